@@ -1,0 +1,113 @@
+"""The ``Arm`` interface every arm backend implements (sim, ur5e, franka).
+
+Frames and units: joint positions [rad], joint velocities [rad/s]; ``T_base_flange`` is the flange pose
+in the robot base frame (4x4); twists are (vx, vy, vz, wx, wy, wz) [m/s, rad/s] of the flange origin,
+expressed in the base frame (the convention of UR ``speedL`` and franky's Cartesian velocity motions).
+
+Only ``cell.safety`` calls the motion methods (``command_twist``, ``execute_trajectory``, ``stop``).
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from types import TracebackType
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+class ArmMode(enum.Enum):
+    """What the arm is doing."""
+
+    IDLE = "idle"
+    VELOCITY = "velocity"
+    TRAJECTORY = "trajectory"
+    STOPPING = "stopping"
+    FAULT = "fault"
+
+
+@dataclass(frozen=True)
+class ArmState:
+    """A snapshot of the arm.
+
+    ``faults`` are short words a person understands (``"protective stop"``, ``"joint limit"``).
+    """
+
+    timestamp: float
+    q: Array
+    qd: Array
+    T_base_flange: Array
+    v_base_flange: Array
+    mode: ArmMode
+    faults: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class JointTrajectory:
+    """Joint positions sampled in time: ``t`` (K,) [s] from 0, strictly increasing; ``q`` (K, n) [rad]."""
+
+    t: Array
+    q: Array
+    qd: Array | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if self.t.ndim != 1 or self.q.ndim != 2 or self.q.shape[0] != self.t.shape[0]:
+            raise ValueError(f"trajectory shapes disagree: t {self.t.shape}, q {self.q.shape}")
+        if self.t.shape[0] < 1 or np.any(np.diff(self.t) <= 0.0):
+            raise ValueError("trajectory times must be non-empty and strictly increasing")
+        if not (np.all(np.isfinite(self.t)) and np.all(np.isfinite(self.q))):
+            raise ValueError("trajectory holds a non-finite value")
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+
+class Arm(ABC):
+    """A robot arm. Use as a context manager, or call ``connect`` / ``disconnect``."""
+
+    name: str = "arm"
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Open the connection; raises ``DriverError`` with the reason when it cannot."""
+
+    @abstractmethod
+    def disconnect(self) -> None:
+        """Stop motion and close the connection. Safe to call twice."""
+
+    @property
+    @abstractmethod
+    def is_connected(self) -> bool: ...
+
+    @property
+    @abstractmethod
+    def n_joints(self) -> int: ...
+
+    @abstractmethod
+    def state(self) -> ArmState:
+        """Current state; raises ``DriverError`` when not connected."""
+
+    @abstractmethod
+    def command_twist(self, v_base_flange: Array) -> None:
+        """Stream a flange twist in the base frame; it holds until the next command or ``stop``."""
+
+    @abstractmethod
+    def execute_trajectory(self, trajectory: JointTrajectory) -> None:
+        """Start following a joint trajectory; ``state().mode`` is TRAJECTORY until it ends."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Decelerate to rest within the arm's limits. Leaves the arm recoverable."""
+
+    def __enter__(self) -> Arm:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.disconnect()

@@ -1,0 +1,102 @@
+"""The ``DepthSensor`` interface every depth backend implements (sim-rgbd, sim-tof, vl53l8cx, realsense,
+replay).
+
+Sensor frame: z along the optical axis, x right, y down (the papers' convention); points in metres.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from types import TracebackType
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """What a planner needs to know about a sensor's viewing geometry.
+
+    ``fov_x_deg`` / ``fov_y_deg`` full field of view [deg]; ``width`` x ``height`` pixels or zones;
+    ``range_min_m`` / ``range_max_m`` the range the sensor reports within [m].
+    """
+
+    kind: str
+    width: int
+    height: int
+    fov_x_deg: float
+    fov_y_deg: float
+    range_min_m: float
+    range_max_m: float
+
+
+@dataclass(frozen=True)
+class ToFZones:
+    """Per-zone data of a multizone time-of-flight frame, flat arrays of length ``n_zones``, row-major
+    from the top-left zone as seen by the sensor.
+
+    ``distance_m`` along each zone's central ray [m] (NaN with no target); ``sigma_m`` the sensor's range
+    sigma [m]; ``status`` the VL53L8CX target status (5 and 9 valid, 255 no target, ...);
+    ``nb_targets`` targets detected; ``reflectance_pct`` estimated reflectance [%];
+    ``directions`` (n_zones, 3) unit central ray of each zone in the sensor frame.
+    """
+
+    distance_m: Array
+    sigma_m: Array
+    status: NDArray[np.uint8]
+    nb_targets: NDArray[np.uint8]
+    reflectance_pct: Array
+    directions: Array
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """One capture.
+
+    ``points`` (N, 3) [m] in the sensor frame: every return the sensor reports (for the ToF, one per zone
+    with a target, whatever its status; filtering by status is perception's job). ``timestamp`` [s] on the
+    job's clock. ``depth`` (H, W) [m], 0 where there is no return (RGB-D only). ``zones`` (ToF only).
+    """
+
+    seq: int
+    timestamp: float
+    points: Array
+    depth: NDArray[np.float32] | None = None
+    zones: ToFZones | None = None
+
+
+class DepthSensor(ABC):
+    """A depth sensor. Use as a context manager, or call ``connect`` / ``disconnect``."""
+
+    name: str = "depth"
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Open the device; raises ``DriverError`` with the reason when it cannot."""
+
+    @abstractmethod
+    def disconnect(self) -> None:
+        """Close the device. Safe to call twice."""
+
+    @property
+    @abstractmethod
+    def is_connected(self) -> bool: ...
+
+    @property
+    @abstractmethod
+    def model(self) -> SensorModel: ...
+
+    @abstractmethod
+    def capture(self) -> DepthFrame:
+        """Return the newest frame; raises ``DriverError`` when the device is silent or gone."""
+
+    def __enter__(self) -> DepthSensor:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.disconnect()

@@ -1,0 +1,67 @@
+"""The one error hierarchy of the project.
+
+It lives in the lowest layer so that drivers and the application raise the same types; ``cell`` imports
+it from here. Each error carries the facts a person needs to act on it.
+"""
+
+from __future__ import annotations
+
+
+class CellError(Exception):
+    """Base of every error the cell raises on purpose."""
+
+
+class ConfigError(CellError):
+    """A configuration file or value is invalid; raised before anything moves.
+
+    ``file`` is the YAML file, ``field`` the dotted path of the offending value and ``allowed`` what
+    would have been accepted.
+    """
+
+    def __init__(self, message: str, *, file: str | None = None, field: str | None = None,
+                 allowed: str | None = None) -> None:
+        self.file = file
+        self.field = field
+        self.allowed = allowed
+        parts = [p for p in (file, field) if p]
+        prefix = ": ".join(parts)
+        text = f"{prefix}: {message}" if prefix else message
+        if allowed:
+            text += f" (allowed: {allowed})"
+        super().__init__(text)
+
+
+class DriverError(CellError):
+    """A device could not be reached or misbehaved. ``device`` names it (e.g. ``arm sim``)."""
+
+    def __init__(self, message: str, *, device: str) -> None:
+        self.device = device
+        super().__init__(f"{device}: {message}")
+
+
+class RobotFault(DriverError):
+    """The arm reports a fault (protective stop, reflex, joint limit, disconnect); motion has stopped."""
+
+    def __init__(self, message: str, *, device: str, fault: str) -> None:
+        self.fault = fault
+        super().__init__(message, device=device)
+
+
+class KinematicsError(CellError):
+    """A kinematic query has no acceptable answer (unreachable pose, wrong joint vector length)."""
+
+
+class SafetyStop(CellError):
+    """The safety layer refused or stopped a motion; ``reason`` is recorded in the job."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
+
+
+class PlanningError(CellError):
+    """A planner cannot produce a next view or a motion."""
+
+
+class JobError(CellError):
+    """A scan job cannot start or continue (missing object, unwritable folder, ...)."""
