@@ -1,0 +1,383 @@
+"""A generic serial-arm kinematic model from Denavit-Hartenberg parameters.
+
+Frames and units
+----------------
+- Lengths [m], angles [rad], joint velocities [rad/s]; twists are (vx, vy, vz, wx, wy, wz) [m/s, rad/s]
+  of the flange origin, expressed in the robot base frame (the convention of :mod:`drivers.arm.base`).
+- ``T_base_flange`` is the pose of the flange (tool mounting) frame in the base frame, 4x4 homogeneous.
+
+DH conventions
+--------------
+Both conventions are supported, chosen by ``convention``:
+
+- ``"standard"`` (distal, Denavit-Hartenberg 1955, used by Universal Robots): the transform from frame
+  i-1 to frame i is ``Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``; joint i turns about the z axis of
+  frame i-1.
+- ``"modified"`` (proximal, Craig 1986, used by Franka): the transform from frame i-1 to frame i is
+  ``Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(theta_i) Tz(d_i)``; joint i turns about the z axis of frame i. Here the
+  arrays ``a[i]`` and ``alpha[i]`` hold the values that *precede* joint i (index i of Franka's table).
+
+In both, ``theta_i = q_i + theta_offset_i`` (the offsets are zero for the nominal UR5e and Panda and
+model encoder zero errors in :meth:`RobotModel.perturbed`).
+
+An optional fixed ``flange`` element (a, d, alpha, no joint) follows the last joint, written in the same
+convention as the chain (Panda: d = 0.107 m from link 7 to the flange). Without it the last link frame is
+the flange (UR5e).
+
+``fk_all`` convention
+---------------------
+``fk_all(q)`` returns ``n_joints + 2`` frames: index 0 is the base (identity), index i in 1..n is link
+frame i (the frame after joint i), and the last entry is the flange. When the model has no flange element
+(UR5e) the last link frame is the flange and appears twice (indices n and n + 1), so the shape is the same
+for every model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.errors import KinematicsError
+from drivers.transforms import pose_error
+
+Array = NDArray[np.float64]
+DHConvention = Literal["standard", "modified"]
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """A capsule (segment ``a``-``b`` swept by a sphere of ``radius``) in the robot base frame [m]."""
+
+    name: str
+    a: Array
+    b: Array
+    radius: float
+
+
+@dataclass(frozen=True)
+class CapsuleSpec:
+    """A capsule attached to frame ``frame`` of ``fk_all`` (0 = base): end points in that frame [m]."""
+
+    name: str
+    frame: int
+    a: tuple[float, float, float]
+    b: tuple[float, float, float]
+    radius: float
+
+
+def _as_vec(x: object, n: int, what: str) -> Array:
+    """``x`` as a finite float vector of length ``n``; raises ``KinematicsError`` otherwise."""
+    try:
+        v = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise KinematicsError(f"{what}: cannot read as numbers ({exc})") from exc
+    if v.shape != (n,):
+        raise KinematicsError(f"{what}: expected shape ({n},), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise KinematicsError(f"{what}: holds a non-finite value: {v}")
+    return v
+
+
+def _dh_standard(theta: Array, d: Array, a: Array, alpha: Array) -> Array:
+    """Stacked (k, 4, 4) standard-DH link transforms Rz(theta) Tz(d) Tx(a) Rx(alpha)."""
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    T = np.zeros((theta.shape[0], 4, 4))
+    T[:, 0, 0] = ct
+    T[:, 0, 1] = -st * ca
+    T[:, 0, 2] = st * sa
+    T[:, 0, 3] = a * ct
+    T[:, 1, 0] = st
+    T[:, 1, 1] = ct * ca
+    T[:, 1, 2] = -ct * sa
+    T[:, 1, 3] = a * st
+    T[:, 2, 1] = sa
+    T[:, 2, 2] = ca
+    T[:, 2, 3] = d
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _dh_modified(theta: Array, d: Array, a: Array, alpha: Array) -> Array:
+    """Stacked (k, 4, 4) modified-DH link transforms Rx(alpha) Tx(a) Rz(theta) Tz(d)."""
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    T = np.zeros((theta.shape[0], 4, 4))
+    T[:, 0, 0] = ct
+    T[:, 0, 1] = -st
+    T[:, 0, 3] = a
+    T[:, 1, 0] = st * ca
+    T[:, 1, 1] = ct * ca
+    T[:, 1, 2] = -sa
+    T[:, 1, 3] = -sa * d
+    T[:, 2, 0] = st * sa
+    T[:, 2, 1] = ct * sa
+    T[:, 2, 2] = ca
+    T[:, 2, 3] = ca * d
+    T[:, 3, 3] = 1.0
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class RobotModel:
+    """Kinematics, limits and a capsule collision model of one serial arm.
+
+    Arrays are per joint (length ``n_joints``): DH parameters ``a``, ``d``, ``alpha`` [m, m, rad] in the
+    model's ``convention``, ``theta_offset`` [rad] (joint zero offsets), limits ``q_min``, ``q_max``
+    [rad], ``qd_max`` [rad/s], ``qdd_max`` [rad/s^2], ``qddd_max`` [rad/s^3], and the ready pose
+    ``q_home`` [rad]. ``flange`` is (a, d, alpha) of the fixed flange element or ``None``.
+    Cartesian ceilings of the flange: ``tcp_max_linear_mps`` [m/s], ``tcp_max_angular_rps`` [rad/s],
+    ``tcp_max_linear_acc`` [m/s^2], ``tcp_max_angular_acc`` [rad/s^2].
+
+    The instance is immutable; :meth:`perturbed` returns a modified copy.
+    """
+
+    name: str
+    convention: DHConvention
+    a: Array
+    d: Array
+    alpha: Array
+    q_min: Array
+    q_max: Array
+    qd_max: Array
+    qdd_max: Array
+    qddd_max: Array
+    q_home: Array
+    tcp_max_linear_mps: float
+    tcp_max_angular_rps: float
+    tcp_max_linear_acc: float
+    tcp_max_angular_acc: float
+    capsule_specs: tuple[CapsuleSpec, ...] = ()
+    extra_adjacent_pairs: tuple[tuple[str, str], ...] = ()
+    flange: tuple[float, float, float] | None = None
+    theta_offset: Array | None = None
+    n_joints: int = field(init=False)
+    adjacent_capsule_pairs: frozenset[frozenset[str]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        n = int(np.asarray(self.a).shape[0])
+        set_ = object.__setattr__
+        set_(self, "n_joints", n)
+        if self.convention not in ("standard", "modified"):
+            raise ValueError(f"{self.name}: unknown DH convention {self.convention!r} "
+                             "(allowed: 'standard', 'modified')")
+        for attr in ("a", "d", "alpha", "q_min", "q_max", "qd_max", "qdd_max", "qddd_max", "q_home"):
+            v = np.array(getattr(self, attr), dtype=float)
+            if v.shape != (n,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"{self.name}: {attr} must be {n} finite numbers, got {v}")
+            v.setflags(write=False)
+            set_(self, attr, v)
+        off = np.zeros(n) if self.theta_offset is None else np.array(self.theta_offset, dtype=float)
+        if off.shape != (n,):
+            raise ValueError(f"{self.name}: theta_offset must have {n} entries")
+        off.setflags(write=False)
+        set_(self, "theta_offset", off)
+        if np.any(self.q_min >= self.q_max):
+            raise ValueError(f"{self.name}: q_min must be below q_max")
+        if np.any(self.qd_max <= 0) or np.any(self.qdd_max <= 0) or np.any(self.qddd_max <= 0):
+            raise ValueError(f"{self.name}: velocity, acceleration and jerk limits must be positive")
+        if np.any(self.q_home < self.q_min) or np.any(self.q_home > self.q_max):
+            raise ValueError(f"{self.name}: q_home {self.q_home} is outside the joint limits")
+        names = [c.name for c in self.capsule_specs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"{self.name}: capsule names must be unique: {names}")
+        for c in self.capsule_specs:
+            if not 0 <= c.frame <= n + 1:
+                raise ValueError(f"{self.name}: capsule {c.name} attached to unknown frame {c.frame}")
+        # Adjacent pairs: capsules on the same or on consecutive frames touch by construction (they
+        # share a joint), plus the model's extra pairs; self-collision checks skip them.
+        pairs: set[frozenset[str]] = set()
+        for i, ci in enumerate(self.capsule_specs):
+            for cj in self.capsule_specs[i + 1:]:
+                if abs(ci.frame - cj.frame) <= 1:
+                    pairs.add(frozenset((ci.name, cj.name)))
+        for p, r in self.extra_adjacent_pairs:
+            if p not in names or r not in names:
+                raise ValueError(f"{self.name}: extra adjacent pair ({p}, {r}) names an unknown capsule")
+            pairs.add(frozenset((p, r)))
+        set_(self, "adjacent_capsule_pairs", frozenset(pairs))
+
+    # ------------------------------------------------------------------ kinematics
+
+    def _dh(self, theta: Array, d: Array, a: Array, alpha: Array) -> Array:
+        if self.convention == "standard":
+            return _dh_standard(theta, d, a, alpha)
+        return _dh_modified(theta, d, a, alpha)
+
+    def check_q(self, q: object, what: str = "q") -> Array:
+        """``q`` as a float array of length ``n_joints``; raises ``KinematicsError`` when it is not."""
+        return _as_vec(q, self.n_joints, f"{self.name} {what}")
+
+    def fk_all(self, q: object) -> Array:
+        """All frames in the base frame, shape (n_joints + 2, 4, 4): base, link 1..n, flange.
+
+        See the module docstring for the convention when the model has no separate flange element.
+        """
+        qv = self.check_q(q)
+        assert self.theta_offset is not None
+        A = self._dh(qv + self.theta_offset, self.d, self.a, self.alpha)
+        out = np.empty((self.n_joints + 2, 4, 4))
+        out[0] = np.eye(4)
+        T = out[0]
+        for i in range(self.n_joints):
+            T = T @ A[i]
+            out[i + 1] = T
+        if self.flange is None:
+            out[-1] = T
+        else:
+            fa, fd, falpha = self.flange
+            F = self._dh(np.zeros(1), np.array([fd]), np.array([fa]), np.array([falpha]))[0]
+            out[-1] = T @ F
+        return out
+
+    def fk(self, q: object) -> Array:
+        """T_base_flange (4, 4) at joint positions ``q`` [rad]."""
+        return self.fk_all(q)[-1]
+
+    def _jacobian_from_frames(self, F: Array) -> Array:
+        n = self.n_joints
+        # Joint i (0-based) turns about z of frame i (standard) or frame i + 1 (modified) of fk_all.
+        axes_frames = F[0:n] if self.convention == "standard" else F[1:n + 1]
+        z = axes_frames[:, :3, 2]
+        o = axes_frames[:, :3, 3]
+        p = F[-1, :3, 3]
+        J = np.empty((6, n))
+        J[:3] = np.cross(z, p - o).T
+        J[3:] = z.T
+        return J
+
+    def jacobian(self, q: object) -> Array:
+        """Geometric Jacobian (6, n) of the flange origin in the base frame, rows (vx, vy, vz, wx, wy, wz)."""
+        return self._jacobian_from_frames(self.fk_all(q))
+
+    def ik_velocity(self, q: object, v_base_flange: object, dt: float, damping: float = 0.02) -> Array:
+        """Joint velocities [rad/s] that best produce the flange twist ``v_base_flange`` [m/s, rad/s].
+
+        Damped least squares ``qd = J^T (J J^T + damping^2 I)^-1 v`` (``damping`` in the units of J,
+        i.e. metres for the linear rows). Limits:
+
+        - position: a joint whose ``q + qd * dt`` [dt in s] would leave ``[q_min, q_max]`` is fixed at the
+          velocity that brings it exactly to the limit, its contribution is removed from the twist and the
+          other joints are re-solved (repeated until no joint leaves, at most ``n_joints`` rounds);
+        - velocity: the whole ``qd`` is then scaled down uniformly so that ``|qd_i| <= qd_max_i``, which
+          keeps the direction of motion and, because ``q`` lies inside the limits, the position limits.
+        """
+        qv = self.check_q(q)
+        v = _as_vec(v_base_flange, 6, f"{self.name} twist")
+        if not (np.isfinite(dt) and dt > 0.0):
+            raise KinematicsError(f"{self.name} ik_velocity: dt must be positive, got {dt}")
+        J = self.jacobian(qv)
+        return self._ik_velocity_J(qv, J, v, dt, damping)
+
+    def _ik_velocity_J(self, q: Array, J: Array, v: Array, dt: float, damping: float) -> Array:
+        n = self.n_joints
+        lam2 = damping * damping
+        hi = np.maximum((self.q_max - q) / dt, 0.0)  # largest allowed qd per joint over dt
+        lo = np.minimum((self.q_min - q) / dt, 0.0)
+        free = np.ones(n, dtype=bool)
+        qd = np.zeros(n)
+        for _ in range(n + 1):
+            Jf = J[:, free]
+            v_rest = v - J[:, ~free] @ qd[~free]
+            qd_free = Jf.T @ np.linalg.solve(Jf @ Jf.T + lam2 * np.eye(6), v_rest)
+            qd[free] = qd_free
+            over = free & ((qd > hi) | (qd < lo))
+            if not np.any(over):
+                break
+            qd[over] = np.clip(qd[over], lo[over], hi[over])
+            free &= ~over
+            if not np.any(free):
+                break
+        ratio = float(np.max(np.abs(qd) / self.qd_max))
+        if ratio > 1.0:
+            qd = qd / ratio
+        return qd
+
+    def ik_pose(self, T_base_flange_goal: Array, q_seed: object, *, tol_m: float = 1e-4,
+                tol_rad: float = 1e-3, max_iter: int = 200) -> Array:
+        """Joint positions [rad] reaching ``T_base_flange_goal``, iterating DLS steps from ``q_seed``.
+
+        Each iteration takes the pose error (position [m], axis-angle [rad], base frame), caps it at
+        0.1 m / 0.5 rad so that one step stays in the region where the linearisation holds, and applies
+        the :meth:`ik_velocity` step with ``dt = 1`` (so the position limits hold at every iterate).
+        Raises ``KinematicsError`` with the remaining residual when ``tol_m`` and ``tol_rad`` are not met
+        within ``max_iter`` iterations.
+        """
+        T_goal = np.asarray(T_base_flange_goal, dtype=float)
+        if T_goal.shape != (4, 4) or not np.all(np.isfinite(T_goal)):
+            raise KinematicsError(f"{self.name} ik_pose: goal must be a finite 4x4 transform")
+        q = np.clip(self.check_q(q_seed, "q_seed"), self.q_min, self.q_max)
+        e = np.zeros(6)
+        for _ in range(max_iter):
+            F = self.fk_all(q)
+            e = pose_error(F[-1], T_goal)
+            ep, er = float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
+            if ep <= tol_m and er <= tol_rad:
+                return q
+            step = e.copy()
+            if ep > 0.1:
+                step[:3] *= 0.1 / ep
+            if er > 0.5:
+                step[3:] *= 0.5 / er
+            J = self._jacobian_from_frames(F)
+            dq = self._ik_velocity_J(q, J, step, 1.0, 0.02)
+            q = np.clip(q + dq, self.q_min, self.q_max)
+        e = pose_error(self.fk(q), T_goal)
+        raise KinematicsError(
+            f"{self.name} ik_pose did not converge in {max_iter} iterations: residual "
+            f"{np.linalg.norm(e[:3]) * 1000:.3f} mm, {np.linalg.norm(e[3:]):.5f} rad "
+            f"(tolerance {tol_m * 1000:.3f} mm, {tol_rad:.5f} rad)")
+
+    def within_limits(self, q: object) -> bool:
+        """True when every joint of ``q`` lies inside ``[q_min, q_max]``."""
+        qv = self.check_q(q)
+        return bool(np.all(qv >= self.q_min) and np.all(qv <= self.q_max))
+
+    # ------------------------------------------------------------------ collision geometry
+
+    def capsules(self, q: object) -> list[Capsule]:
+        """The capsule collision model at ``q``, in the base frame (see the robot module for figures)."""
+        F = self.fk_all(q)
+        out = []
+        for c in self.capsule_specs:
+            T = F[c.frame]
+            a = T[:3, :3] @ np.asarray(c.a) + T[:3, 3]
+            b = T[:3, :3] @ np.asarray(c.b) + T[:3, 3]
+            out.append(Capsule(c.name, a, b, float(c.radius)))
+        return out
+
+    def are_adjacent(self, name_a: str, name_b: str) -> bool:
+        """True when the two capsules touch by construction and self-collision checks skip the pair."""
+        return frozenset((name_a, name_b)) in self.adjacent_capsule_pairs
+
+    # ------------------------------------------------------------------ calibration error
+
+    def perturbed(self, rng: np.random.Generator, joint_offset_std_rad: float,
+                  link_std_m: float) -> RobotModel:
+        """A copy with random joint zero offsets and DH length errors (simulated calibration error).
+
+        Draws, in this order, ``n_joints`` offsets N(0, joint_offset_std_rad) [rad] added to
+        ``theta_offset``, then ``n_joints`` errors N(0, link_std_m) [m] on ``a`` and on ``d``, then one on
+        the flange's ``a`` and ``d`` when there is a flange element. With both standard deviations zero
+        the copy has the same kinematics as this model. Limits and capsules are unchanged.
+        """
+        if joint_offset_std_rad < 0.0 or link_std_m < 0.0:
+            raise ValueError("perturbed: standard deviations must be >= 0")
+        n = self.n_joints
+        d_off = rng.normal(0.0, joint_offset_std_rad, n) if joint_offset_std_rad > 0 else np.zeros(n)
+        if link_std_m > 0:
+            da = rng.normal(0.0, link_std_m, n)
+            dd = rng.normal(0.0, link_std_m, n)
+            df = rng.normal(0.0, link_std_m, 2)
+        else:
+            da, dd, df = np.zeros(n), np.zeros(n), np.zeros(2)
+        flange = self.flange
+        if flange is not None:
+            flange = (flange[0] + float(df[0]), flange[1] + float(df[1]), flange[2])
+        assert self.theta_offset is not None
+        return dataclasses.replace(
+            self, a=self.a + da, d=self.d + dd, theta_offset=self.theta_offset + d_off, flange=flange)
