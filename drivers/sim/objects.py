@@ -1,0 +1,187 @@
+"""Object meshes for the simulated cell: the twelve shipped evaluation objects and user mesh files.
+
+Object frame: metres, z-up, the axis-aligned bounding box centred on x = y = 0 and the lowest point at
+z = 0, so an object placed with the identity pose rests on a z = 0 table. The shipped meshes (package data
+in ``drivers/sim/objects/``, origins and licences in ``CREDITS.md`` there) are already in that frame; a
+user file given by path is translated into it on load (no rotation, no scaling: the file must be in metres
+and z-up).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.errors import JobError
+
+Array = NDArray[np.float64]
+
+OBJECTS_DIR: Path = Path(__file__).resolve().parent / "objects"
+"""Folder of the shipped meshes (package data of ``drivers``)."""
+
+_CC0 = "CC0 (generated here, no third-party content)"
+_YCB = "CC BY 4.0 (YCB Object and Model Set, Calli et al. 2015; attribution required)"
+_STANFORD = "Stanford 3D Scanning Repository terms (research use with acknowledgement; no commercial use)"
+
+_LICENCES: dict[str, str] = {
+    "banana": _YCB,
+    "baseball": _YCB,
+    "bunny": _STANFORD,
+    "cube": _CC0,
+    "dragon": _STANFORD + "; scanned by XYZ RGB Inc.",
+    "flange": _CC0,
+    "gripper": "Apache-2.0 (Franka Emika GmbH, franka_description meshes)",
+    "horizontal_box": _CC0,
+    "mustard": _YCB,
+    "pyramid": _CC0,
+    "teapot": "Utah teapot (Martin Newell, 1975), widely treated as public domain",
+    "vertical_box": _CC0,
+}
+
+_MESH_SUFFIXES = (".ply", ".obj", ".stl")
+
+
+@dataclass(frozen=True)
+class ObjectMesh:
+    """A triangle mesh in the object frame.
+
+    ``vertices`` (V, 3) float64 [m], object frame (z-up, bbox centred on x = y = 0, base at z = 0);
+    ``triangles`` (F, 3) int32 vertex indices, counter-clockwise seen from outside (outward normals).
+    """
+
+    name: str
+    vertices: Array
+    triangles: NDArray[np.int32]
+
+    @property
+    def extents_m(self) -> Array:
+        """Axis-aligned bounding-box size (x, y, z) [m]."""
+        return np.ptp(self.vertices, axis=0)
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """A shipped object: ``name``, ``path`` of its PLY file, ``extents_m`` (3,) bbox size x, y, z [m] and a
+    short ``licence`` text (full record in ``drivers/sim/objects/CREDITS.md``)."""
+
+    name: str
+    path: Path
+    extents_m: Array
+    licence: str
+
+
+def shipped_names() -> list[str]:
+    """Names of the shipped objects, sorted."""
+    return sorted(p.stem for p in OBJECTS_DIR.glob("*.ply"))
+
+
+def list_objects() -> list[ObjectInfo]:
+    """The shipped objects, sorted by name."""
+    return [_info(name) for name in shipped_names()]
+
+
+@cache
+def _info(name: str) -> ObjectInfo:
+    mesh = _load_shipped(name)
+    return ObjectInfo(name=name, path=OBJECTS_DIR / f"{name}.ply", extents_m=mesh.extents_m,
+                      licence=_LICENCES.get(name, "see CREDITS.md"))
+
+
+def _names_hint() -> str:
+    return "shipped objects: " + ", ".join(shipped_names())
+
+
+def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
+    """Read a PLY / OBJ / STL with Open3D; raises ``JobError`` when unreadable or empty."""
+    import open3d as o3d
+
+    if not path.is_file():
+        raise JobError(f"object file not found: {path} ({_names_hint()})")
+    if path.suffix.lower() not in _MESH_SUFFIXES:
+        raise JobError(f"object file {path} is not a .ply/.obj/.stl mesh ({_names_hint()})")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(str(path))
+    vertices = np.asarray(mesh.vertices, dtype=np.float64).copy()
+    triangles = np.asarray(mesh.triangles, dtype=np.int32).copy()
+    if len(vertices) == 0 or len(triangles) == 0:
+        raise JobError(f"object file {path} is unreadable or has no triangles ({_names_hint()})")
+    if not np.all(np.isfinite(vertices)):
+        raise JobError(f"object file {path} has non-finite vertices ({_names_hint()})")
+    return vertices, triangles
+
+
+@cache
+def _load_shipped(name: str) -> ObjectMesh:
+    vertices, triangles = _read_mesh(OBJECTS_DIR / f"{name}.ply")
+    vertices.setflags(write=False)
+    triangles.setflags(write=False)
+    return ObjectMesh(name=name, vertices=vertices, triangles=triangles)
+
+
+def recentre(vertices: Array) -> Array:
+    """Translate vertices [m] so that the bbox is centred on x = y = 0 and the lowest point is at z = 0."""
+    lo = vertices.min(axis=0)
+    hi = vertices.max(axis=0)
+    shift = np.array([-(lo[0] + hi[0]) / 2.0, -(lo[1] + hi[1]) / 2.0, -lo[2]])
+    return vertices + shift
+
+
+def load_object(name_or_path: str | Path) -> ObjectMesh:
+    """Load a shipped object by name, or any PLY / OBJ / STL mesh file by path.
+
+    A shipped name returns the mesh as shipped (already in the object frame; cached, its arrays are
+    read-only, copy them to modify). A user file is read with
+    Open3D and translated into the object frame (bbox centred on x = y = 0, lowest point at z = 0); it is
+    neither rotated nor scaled, so it must be in metres and z-up. Its ``name`` is the file stem.
+
+    Raises ``JobError`` (one line, listing the shipped names) for an unknown name or an unreadable, empty
+    or non-mesh file.
+    """
+    text = str(name_or_path)
+    if text in shipped_names():
+        return _load_shipped(text)
+    path = Path(text).expanduser()
+    if path.suffix.lower() not in _MESH_SUFFIXES and not path.exists():
+        raise JobError(f"unknown object {text!r} ({_names_hint()}; or give a path to a .ply/.obj/.stl file)")
+    vertices, triangles = _read_mesh(path)
+    return ObjectMesh(name=path.stem, vertices=recentre(vertices), triangles=triangles)
+
+
+def face_normals(vertices: Array, triangles: NDArray[np.int32]) -> tuple[Array, Array]:
+    """Unit outward normals (F, 3) and areas (F,) [m^2] of the triangles (zero normal for degenerate ones)."""
+    v = vertices[triangles]
+    cross = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    norm = np.linalg.norm(cross, axis=1)
+    normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0.0)
+    return normals, 0.5 * norm
+
+
+def sample_surface(mesh: ObjectMesh, n: int, rng: np.random.Generator, *,
+                   exclude_down_deg: float = 45.0) -> Array:
+    """Sample ``n`` points (n, 3) [m, object frame] uniformly (area-weighted) on the visible-ish surface.
+
+    Faces whose outward normal makes an angle of ``exclude_down_deg`` [deg] or less with straight down
+    (-z) are left out (scanning paper, eq. 13 and the paragraph after it: the ground truth keeps only
+    surfaces that point mostly sideways or upwards). ``exclude_down_deg = 0`` keeps all but exactly
+    downward faces; a negative value keeps every face. Within the kept faces a triangle is drawn with
+    probability proportional to its area and a point uniformly inside it.
+    """
+    if n < 0:
+        raise ValueError(f"sample_surface: n must be >= 0, got {n}")
+    normals, areas = face_normals(mesh.vertices, mesh.triangles)
+    # angle(normal, -z) > exclude  <=>  dot(normal, -z) < cos(exclude)  <=>  n_z > -cos(exclude)
+    keep = normals[:, 2] > -np.cos(np.deg2rad(exclude_down_deg)) if exclude_down_deg >= 0.0 else areas >= 0
+    weights = np.where(keep, areas, 0.0)
+    total = weights.sum()
+    if total <= 0.0:
+        raise ValueError(f"sample_surface: mesh {mesh.name!r} has no face left after the exclusion")
+    faces = rng.choice(len(weights), size=n, p=weights / total)
+    r1 = np.sqrt(rng.random(n))
+    r2 = rng.random(n)
+    v = mesh.vertices[mesh.triangles[faces]]
+    return ((1.0 - r1)[:, None] * v[:, 0] + (r1 * (1.0 - r2))[:, None] * v[:, 1]
+            + (r1 * r2)[:, None] * v[:, 2])
