@@ -361,9 +361,11 @@ class RobotModel:
         """A copy with random joint zero offsets and DH length errors (simulated calibration error).
 
         Draws, in this order, ``n_joints`` offsets N(0, joint_offset_std_rad) [rad] added to
-        ``theta_offset``, then ``n_joints`` errors N(0, link_std_m) [m] on ``a`` and on ``d``, then one on
-        the flange's ``a`` and ``d`` when there is a flange element. With both standard deviations zero
-        the copy has the same kinematics as this model. Limits and capsules are unchanged.
+        ``theta_offset`` (skipped when that std is 0), then ``n_joints`` errors N(0, link_std_m) [m] on
+        ``a``, ``n_joints`` on ``d`` and two for the flange element's ``a`` and ``d`` (always drawn, used
+        only when there is a flange element; all skipped when ``link_std_m`` is 0). With both standard
+        deviations zero the copy has exactly the same kinematics and ``rng`` is not consumed. Limits and
+        capsules are unchanged (the capsules follow the perturbed frames).
         """
         if joint_offset_std_rad < 0.0 or link_std_m < 0.0:
             raise ValueError("perturbed: standard deviations must be >= 0")
