@@ -58,13 +58,16 @@ class DepthFrame:
 
     ``points`` (N, 3) [m] in the sensor frame: every return the sensor reports (for the ToF, one per zone
     with a target, whatever its status; filtering by status is perception's job). ``timestamp`` [s] on the
-    job's clock. ``depth`` (H, W) [m], 0 where there is no return (RGB-D only). ``zones`` (ToF only).
+    job's clock. ``depth`` (H, W) [m], 0 where there is no return, with ``intrinsics`` its 3x3 pinhole
+    matrix K [px] (RGB-D only): pixel (u, v) at depth z is the point ((u - cx) z / fx, (v - cy) z / fy, z).
+    ``zones`` (ToF only).
     """
 
     seq: int
     timestamp: float
     points: Array
     depth: NDArray[np.float32] | None = None
+    intrinsics: Array | None = None
     zones: ToFZones | None = None
 
 

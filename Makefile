@@ -1,0 +1,33 @@
+# make demo: set everything up (system packages, .venv, Python packages) and run a simulated scan.
+# make test: the whole test suite (what .ci/run calls).
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint bench setup clean
+
+demo: $(STAMP)
+	$(VENV)/bin/cell scan
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml deploy/system-deps.sh
+	bash deploy/system-deps.sh
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+# pytest exits 5 when it collects no test: that is reported, not a failure.
+test: $(STAMP)
+	@$(VENV)/bin/pytest -q; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$rc
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check cell drivers tests benchmarks
+
+bench: $(STAMP)
+	$(PY) benchmarks/sim_render.py
+
+clean:
+	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache

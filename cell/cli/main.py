@@ -1,0 +1,112 @@
+"""``cell``: run simulated scans, list planners and objects, check cell files.
+
+Every command exits non-zero with a one-line reason when it fails.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn
+
+from cell.config import load_config
+from cell.jobs.runner import ScanRequest, run_scan
+from cell.jobs.session import JobSession
+from cell.planning.registry import PLANNERS
+from drivers.errors import CellError
+from drivers.sim.objects import list_objects
+
+DEFAULT_CONFIG = Path("config/sim-franka-rgbd.yaml")
+DEFAULT_OBJECT = "bunny"
+
+app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_help=True,
+                  pretty_exceptions_enable=False)
+config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
+app.add_typer(config_app, name="config")
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _fail(exc: BaseException) -> typer.Exit:
+    err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+    return typer.Exit(code=1)
+
+
+def _parse_pose(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        if len(parts) != 3:
+            raise ValueError
+        x, y, yaw = (float(p) for p in parts)
+    except ValueError:
+        raise typer.BadParameter(f"expected x,y,yaw_deg (three numbers), got {text!r}") from None
+    return x, y, yaw
+
+
+@app.command()
+def scan(
+    config: Annotated[Path, typer.Option(help="cell file")] = DEFAULT_CONFIG,
+    object: Annotated[str, typer.Option("--object", help="shipped name or mesh file")] = DEFAULT_OBJECT,
+    object_pose: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
+    planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's)")] = None,
+    seed: Annotated[int, typer.Option(help="random seed of the job")] = 0,
+    out: Annotated[Path | None, typer.Option(help="job folder to create (default: jobs/<stamp>-...)")] = None,
+    max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's)")] = None,
+) -> None:
+    """Run a scan and write its job folder."""
+    try:
+        cfg = load_config(config)
+        request = ScanRequest(config=cfg, config_path=str(config), object=object,
+                              object_pose=_parse_pose(object_pose), planner=planner, seed=seed, out=out,
+                              max_time_s=max_time)
+        budget = max_time if max_time is not None else cfg.scan.max_time_s
+        with Progress(TextColumn("[bold]scan"), BarColumn(),
+                      TextColumn("{task.fields[sim]:6.1f} s sim  {task.fields[captures]:3d} captures  "
+                                 "coverage {task.fields[coverage]:5.1f} %"),
+                      console=console, transient=True) as progress:
+            task = progress.add_task("scan", total=budget, sim=0.0, captures=0, coverage=0.0)
+
+            def show(session: JobSession) -> None:
+                cov = session.coverage.coverage_pct if session.coverage else 0.0
+                progress.update(task, completed=session.now(), sim=session.now(),
+                                captures=session.n_captures, coverage=cov)
+
+            outcome = run_scan(request, on_progress=show)
+    except CellError as exc:
+        raise _fail(exc) from None
+    r = outcome.result
+    cov = r["metrics"]["coverage_pct"]
+    console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)
+    console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim, path {r['path_length_m']:.2f} m",
+                  highlight=False)
+    console.print(f"coverage: {cov:.1f} %", highlight=False)
+    console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
+
+
+@app.command()
+def planners() -> None:
+    """List the registered planners."""
+    for name, cls in sorted(PLANNERS.items()):
+        console.print(f"{name:12s} {cls.description}", markup=False, highlight=False)
+
+
+@app.command()
+def objects() -> None:
+    """List the shipped objects with their size [m]."""
+    for info in list_objects():
+        dims = " x ".join(f"{v:.3f}" for v in info.extents_m)
+        console.print(f"{info.name:16s} {dims} m", markup=False, highlight=False)
+
+
+@config_app.command("check")
+def config_check(file: Path) -> None:
+    """Validate a cell file; prints a summary or the problem."""
+    try:
+        cfg = load_config(file)
+    except CellError as exc:
+        raise _fail(exc) from None
+    console.print(f"{file}: ok ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
+                  f"sensor {cfg.sensor.type}, planner {cfg.scan.planner})", markup=False, highlight=False)

@@ -1,0 +1,106 @@
+"""Load and validate a cell's YAML file into ``CellConfig``.
+
+Every problem becomes one ``ConfigError`` naming the file, the dotted field and, where the field takes
+a fixed set of values, the allowed ones. Nothing is connected or moved before this passes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pydantic import ValidationError
+
+from cell.config.models import CellConfig
+from drivers.errors import ConfigError
+from drivers.robots import get_robot_model
+
+
+def _field_path(loc: tuple[Any, ...]) -> str:
+    parts: list[str] = []
+    for item in loc:
+        if isinstance(item, int):
+            parts.append(f"[{item}]")
+        elif parts:
+            parts.append(f".{item}")
+        else:
+            parts.append(str(item))
+    return "".join(parts)
+
+
+def _allowed(error: dict[str, Any]) -> str | None:
+    ctx = error.get("ctx") or {}
+    for key in ("expected", "expected_tags"):
+        if key in ctx:
+            return str(ctx[key])
+    return None
+
+
+def _strip_tags(loc: tuple[Any, ...], data: Any) -> tuple[Any, ...]:
+    """Drop the union tag pydantic puts after a discriminated field (``arm.sim.model`` -> ``arm.model``)."""
+    out: list[Any] = []
+    node = data
+    for item in loc:
+        if isinstance(node, dict) and item not in node and node.get("type") == item:
+            continue
+        out.append(item)
+        node = node.get(item) if isinstance(node, dict) else (
+            node[item] if isinstance(node, list) and isinstance(item, int) and item < len(node) else None)
+    return tuple(out)
+
+
+def _check_ceilings(cfg: CellConfig, file: str) -> None:
+    """Refuse limits above the robot model's own maxima and home joints outside its range."""
+    model = get_robot_model(cfg.arm.model)
+    ceilings = {
+        "safety.tcp_max_linear_mps": (cfg.safety.tcp_max_linear_mps, model.tcp_max_linear_mps),
+        "safety.tcp_max_angular_rps": (cfg.safety.tcp_max_angular_rps, model.tcp_max_angular_rps),
+    }
+    for field, (value, ceiling) in ceilings.items():
+        if value > ceiling:
+            raise ConfigError(f"{value} is above the {model.name} ceiling", file=file, field=field,
+                              allowed=f"at most {ceiling}")
+    home = cfg.arm.home_joints_rad
+    if home is not None:
+        q = np.asarray(home, dtype=float)
+        if q.shape != (model.n_joints,):
+            raise ConfigError(f"has {q.size} values", file=file, field="arm.home_joints_rad",
+                              allowed=f"{model.n_joints} joint angles [rad] for the {model.name}")
+        if np.any(q < model.q_min) or np.any(q > model.q_max):
+            raise ConfigError("is outside the joint limits", file=file, field="arm.home_joints_rad",
+                              allowed=f"between {np.round(model.q_min, 4).tolist()} and "
+                                      f"{np.round(model.q_max, 4).tolist()}")
+
+
+def parse_config(data: Any, file: str = "<config>") -> CellConfig:
+    """Validate already-parsed YAML data; ``file`` names the source in error messages."""
+    if not isinstance(data, dict):
+        raise ConfigError("the file must hold a mapping of fields", file=file)
+    try:
+        cfg = CellConfig.model_validate(data)
+    except ValidationError as exc:
+        problems = [(_field_path(_strip_tags(tuple(err["loc"]), data)), err["msg"], _allowed(err))
+                    for err in exc.errors()]
+        if len(problems) == 1:
+            field, msg, allowed = problems[0]
+            raise ConfigError(msg, file=file, field=field, allowed=allowed) from None
+        text = "; ".join(f"{f}: {m}" + (f" (allowed: {a})" if a else "") for f, m, a in problems)
+        error = ConfigError(text, file=file)
+        error.field = problems[0][0]
+        raise error from None
+    _check_ceilings(cfg, file)
+    return cfg
+
+
+def load_config(path: str | Path) -> CellConfig:
+    """Read and validate the cell file at ``path``."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("no such file", file=str(p))
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"not valid YAML: {exc}", file=str(p)) from None
+    return parse_config(data, file=str(p))

@@ -1,0 +1,155 @@
+"""The configuration model of a cell: one YAML file under ``config/`` validated into ``CellConfig``.
+
+Units are SI (m, s, rad) unless a field name says otherwise (``_deg``, ``_hz``, ``_pct``).
+Safety-relevant values (speed limits, workspace) have no defaults: a cell file must state them.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, PositiveFloat, PositiveInt, model_validator
+
+from drivers.arm.config import ArmConfig
+from drivers.config_base import StrictModel
+from drivers.depth.config import DepthConfig
+from drivers.transforms import T_from_xyz_rpy
+
+
+class PoseConfig(StrictModel):
+    """A rigid transform: translation ``xyz_m`` [m] and extrinsic roll-pitch-yaw ``rpy_deg`` [deg]."""
+
+    xyz_m: tuple[float, float, float]
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        return T_from_xyz_rpy(self.xyz_m, np.deg2rad(self.rpy_deg))
+
+
+class StationConfig(StrictModel):
+    """Where objects are put: the station's centre ``xy_m`` on the table and the table top height
+    ``table_z_m``, both in the robot base frame [m]."""
+
+    xy_m: tuple[float, float]
+    table_z_m: float = 0.0
+
+
+class SimConfig(StrictModel):
+    """The simulated world: the table's size and centre in the base frame [m]."""
+
+    table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
+    table_center_xy_m: tuple[float, float] = (0.5, 0.0)
+
+
+class CropBoxConfig(StrictModel):
+    """Axis-aligned box in the sensor frame [m]; points outside are dropped (paper section II-A)."""
+
+    x_m: tuple[float, float]
+    y_m: tuple[float, float]
+    z_m: tuple[float, float]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> CropBoxConfig:
+        for name in ("x_m", "y_m", "z_m"):
+            lo, hi = getattr(self, name)
+            if not lo < hi:
+                raise ValueError(f"{name}: lower bound {lo} must be below upper bound {hi}")
+        return self
+
+
+class PerceptionConfig(StrictModel):
+    """Per-frame processing: crop box in the sensor frame and the accumulation voxel size [m]."""
+
+    crop_box: CropBoxConfig
+    voxel_m: PositiveFloat = 0.0025
+
+
+class WorkspaceConfig(StrictModel):
+    """Box in the base frame [m] that the sensor and the flange must stay inside."""
+
+    min_m: tuple[float, float, float]
+    max_m: tuple[float, float, float]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> WorkspaceConfig:
+        if not all(lo < hi for lo, hi in zip(self.min_m, self.max_m, strict=True)):
+            raise ValueError(f"min_m {self.min_m} must be below max_m {self.max_m} on every axis")
+        return self
+
+
+class SafetyConfig(StrictModel):
+    """Motion limits of the cell. The robot model's own maxima are hard ceilings (checked at load).
+
+    ``tcp_max_linear_mps`` [m/s], ``tcp_max_angular_rps`` [rad/s]; ``joint_velocity_scale`` the share
+    of each joint's maximum speed that point-to-point moves may use, ``joint_acceleration_scale`` and
+    ``joint_jerk_scale`` likewise for acceleration and jerk.
+    """
+
+    tcp_max_linear_mps: PositiveFloat
+    tcp_max_angular_rps: PositiveFloat
+    joint_velocity_scale: float = Field(gt=0.0, le=1.0)
+    joint_acceleration_scale: float = Field(gt=0.0, le=1.0)
+    joint_jerk_scale: float = Field(gt=0.0, le=1.0)
+    workspace: WorkspaceConfig
+
+
+class RingConfig(StrictModel):
+    """One ring of raster views: ``n_views`` views at ``elevation_deg`` above the table plane."""
+
+    elevation_deg: float = Field(gt=0.0, le=90.0)
+    n_views: PositiveInt
+
+
+class RasterConfig(StrictModel):
+    """The ``raster`` planner: predetermined rings of views around the station, each at ``standoff_m``
+    from a point ``target_height_m`` above the table at the station, starting at ``start_azimuth_deg``
+    (0 = looking along +x of the base frame)."""
+
+    rings: list[RingConfig] = Field(min_length=1)
+    target_height_m: float = Field(ge=0.0)
+    start_azimuth_deg: float = 180.0
+    azimuth_span_deg: float = Field(default=360.0, gt=0.0, le=360.0)
+    settle_s: float = Field(default=0.1, ge=0.0)
+
+
+class PlannersConfig(StrictModel):
+    """Per-planner parameters; a planner reads its own section."""
+
+    raster: RasterConfig
+
+
+class ScanConfig(StrictModel):
+    """A scan job: default planner, the distance Z* kept to the object [m] (paper eq. 2, 0.25 m), the
+    control rate [Hz] at which motion is commanded and the sim clock steps, and the time budget [s]."""
+
+    planner: str
+    standoff_m: PositiveFloat
+    control_rate_hz: float = Field(gt=0.0, le=1000.0)
+    max_time_s: PositiveFloat
+
+
+class CellConfig(StrictModel):
+    """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan."""
+
+    name: str
+    mode: Literal["sim", "real"]
+    arm: ArmConfig
+    sensor: DepthConfig
+    mount: PoseConfig = Field(description="T_flange_sensor, the hand-eye transform")
+    station: StationConfig
+    sim: SimConfig = SimConfig()
+    perception: PerceptionConfig
+    safety: SafetyConfig
+    scan: ScanConfig
+    planners: PlannersConfig
+
+    @model_validator(mode="after")
+    def _consistent(self) -> CellConfig:
+        sim_arm = self.arm.type == "sim"
+        sim_sensor = self.sensor.type.startswith("sim-")
+        if self.mode == "sim" and not (sim_arm and sim_sensor):
+            raise ValueError("mode 'sim' needs arm.type 'sim' and a 'sim-...' sensor type")
+        if self.mode == "real" and sim_arm:
+            raise ValueError("mode 'real' needs a hardware arm type ('ur5e' or 'franka')")
+        return self

@@ -1,0 +1,1 @@
+"""Motion generation: point-to-point trajectories and (later) the servo laws."""

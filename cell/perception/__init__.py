@@ -1,0 +1,1 @@
+"""Perception: filtering, accumulation and evaluation of point clouds."""

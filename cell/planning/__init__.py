@@ -1,0 +1,1 @@
+"""Next-view planners, selectable per job by name (:mod:`cell.planning.registry`)."""

@@ -1,0 +1,58 @@
+"""What a planner is, and the session it drives.
+
+A planner decides where the sensor goes next and when to capture; it talks to the cell only through a
+``ScanSession`` (implemented by ``cell.jobs``), which routes every motion through the safety guard.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.config.models import CellConfig
+
+Array = NDArray[np.float64]
+
+
+class ScanSession(Protocol):
+    """The services a planner may use during a scan. Poses are 4x4 in the robot base frame."""
+
+    config: CellConfig
+
+    def now(self) -> float:
+        """Job time [s] (sim time in sim mode)."""
+        ...
+
+    def sensor_pose(self) -> Array:
+        """T_base_sensor as reported by the arm and the hand-eye transform."""
+        ...
+
+    def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
+        """Move so that the sensor reaches ``T_base_sensor`` (joint-space, guarded, blocking in job time).
+        Returns False, and records why, when the pose has no reachable joint solution."""
+        ...
+
+    def wait(self, dt: float) -> None:
+        """Let ``dt`` [s] pass with the arm doing what it was told."""
+        ...
+
+    def capture(self) -> int:
+        """Capture one frame at the current pose, record and accumulate it; returns the number of points
+        it added."""
+        ...
+
+
+class Planner(ABC):
+    """A scan strategy. ``run`` drives the session until done and returns why it ended, in words."""
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+
+    def __init__(self, config: CellConfig) -> None:
+        self.config = config
+
+    @abstractmethod
+    def run(self, session: ScanSession) -> str: ...

@@ -1,0 +1,20 @@
+"""The planners a job can run, registered explicitly by name (no import-time side effects)."""
+
+from __future__ import annotations
+
+from cell.planning.base import Planner
+from cell.planning.raster import RasterPlanner
+from drivers.errors import PlanningError
+
+PLANNERS: dict[str, type[Planner]] = {
+    RasterPlanner.name: RasterPlanner,
+}
+
+
+def get_planner(name: str) -> type[Planner]:
+    """The planner class registered as ``name``; an unknown name raises ``PlanningError`` listing the
+    registered ones."""
+    try:
+        return PLANNERS[name]
+    except KeyError:
+        raise PlanningError(f"unknown planner {name!r}; registered: {', '.join(sorted(PLANNERS))}") from None

@@ -1,0 +1,1 @@
+"""Safety: the motion guard, the one place where motion commands reach an arm."""

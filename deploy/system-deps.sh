@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# System packages the cell needs on Debian 12 / Ubuntu: Open3D's shared libraries (libusb, OpenMP, GL)
+# and Python's venv module. Installs only what is missing; uses sudo when not root.
+set -euo pipefail
+
+missing=()
+have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+have_lib 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
+have_lib 'libgomp.so.1' || missing+=(libgomp1)
+have_lib 'libGL.so.1' || missing+=(libgl1)
+python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+
+if [ ${#missing[@]} -eq 0 ]; then
+  exit 0
+fi
+echo "installing system packages: ${missing[*]}"
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+$SUDO apt-get update -qq
+DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"

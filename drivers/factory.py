@@ -1,0 +1,110 @@
+"""Backends from configuration: one registry per hardware kind, keyed by the config's ``type:``.
+
+Registration is explicit (a dict below), so a type is known whether or not its module was imported.
+Hardware backends import their client library only when built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.arm.base import Arm
+from drivers.arm.config import ArmConfig, SimArmConfig
+from drivers.arm.sim import SimArm
+from drivers.clock import SimClock
+from drivers.depth.base import DepthSensor
+from drivers.depth.config import DepthConfig, SimRGBDConfig, SimToFConfig
+from drivers.depth.sim_rgbd import SimRGBD
+from drivers.depth.sim_tof import SimToF
+from drivers.errors import DriverError
+from drivers.robots.model import RobotModel
+from drivers.sim.scene import SimScene
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class SimWorld:
+    """What simulated backends share: the job's sim clock, random generator and scene."""
+
+    clock: SimClock
+    rng: np.random.Generator
+    scene: SimScene
+
+
+def _need_sim(sim: SimWorld | None, kind: str) -> SimWorld:
+    if sim is None:
+        raise DriverError("a simulated backend needs a simulated world (mode: sim)", device=kind)
+    return sim
+
+
+def _not_implemented(kind: str) -> DriverError:
+    return DriverError("this backend is not implemented in this release; use a sim backend", device=kind)
+
+
+def _sim_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
+    assert isinstance(cfg, SimArmConfig)
+    world = _need_sim(sim, "arm sim")
+    return SimArm(cfg, model, world.clock, world.rng)
+
+
+def _hardware_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
+    raise _not_implemented(f"arm {cfg.type}")
+
+
+ARM_BACKENDS: dict[str, Callable[[ArmConfig, RobotModel, SimWorld | None], Arm]] = {
+    "sim": _sim_arm,
+    "ur5e": _hardware_arm,
+    "franka": _hardware_arm,
+}
+
+
+def make_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
+    """The arm backend named by ``cfg.type``."""
+    return ARM_BACKENDS[cfg.type](cfg, model, sim)
+
+
+PoseSource = Callable[[], Array]
+
+
+def _sim_rgbd(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
+    assert isinstance(cfg, SimRGBDConfig)
+    world = _need_sim(sim, "depth sim-rgbd")
+    return SimRGBD(cfg, world.scene, pose, world.clock, world.rng)
+
+
+def _sim_tof(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
+    assert isinstance(cfg, SimToFConfig)
+    world = _need_sim(sim, "depth sim-tof")
+    return SimToF(cfg, world.scene, pose, world.clock, world.rng)
+
+
+def _hardware_sensor(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
+    raise _not_implemented(f"depth {cfg.type}")
+
+
+SENSOR_BACKENDS: dict[str, Callable[[DepthConfig, SimWorld | None, PoseSource], DepthSensor]] = {
+    "sim-rgbd": _sim_rgbd,
+    "sim-tof": _sim_tof,
+    "vl53l8cx": _hardware_sensor,
+    "realsense": _hardware_sensor,
+    "replay": _hardware_sensor,
+}
+
+
+def make_sensor(cfg: DepthConfig, sim: SimWorld | None, true_sensor_pose: PoseSource) -> DepthSensor:
+    """The depth backend named by ``cfg.type``. ``true_sensor_pose`` gives where the sensor really is
+    (simulated sensors render from it)."""
+    return SENSOR_BACKENDS[cfg.type](cfg, sim, true_sensor_pose)
+
+
+def true_flange_pose(arm: Arm) -> PoseSource:
+    """Where the flange really is: the simulated arm's true pose (which differs from the reported one
+    under its pose-error model); for a hardware arm, the pose it reports."""
+    if isinstance(arm, SimArm):
+        return arm.true_flange_pose
+    return lambda: arm.state().T_base_flange

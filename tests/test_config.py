@@ -1,0 +1,118 @@
+"""Cell files: every shipped file validates; bad files fail with the file, the field and what is allowed."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from cell.cli.main import app
+from cell.config import load_config
+from cell.config.load import parse_config
+from drivers.errors import ConfigError
+
+from .conftest import CONFIG_DIR
+
+SHIPPED = sorted(CONFIG_DIR.glob("*.yaml"))
+
+
+def test_all_four_cells_are_shipped():
+    names = {p.name for p in SHIPPED}
+    assert {"sim-franka-rgbd.yaml", "sim-ur5e-tof.yaml", "franka-realsense.yaml",
+            "ur5e-vl53l8cx.yaml"} <= names
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_shipped_cells_validate(path):
+    cfg = load_config(path)
+    assert cfg.arm.model in ("panda", "ur5e")
+
+
+def test_sim_cells_match_the_papers():
+    franka = load_config(CONFIG_DIR / "sim-franka-rgbd.yaml")
+    assert (franka.arm.model, franka.sensor.type) == ("panda", "sim-rgbd")
+    assert (franka.sensor.width, franka.sensor.height) == (640, 480)
+    assert franka.scan.standoff_m == 0.25
+    box = franka.perception.crop_box
+    assert (box.x_m, box.y_m, box.z_m) == ((-0.15, 0.15), (-0.15, 0.15), (0.05, 0.40))
+    ur = load_config(CONFIG_DIR / "sim-ur5e-tof.yaml")
+    assert (ur.arm.model, ur.sensor.type, ur.sensor.resolution, ur.sensor.fov_deg) == ("ur5e", "sim-tof", 8, 45.0)
+
+
+def test_unknown_robot_model_names_field_and_allowed_values(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["arm"]["model"] = "kuka"
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, file="cell.yaml")
+    text = str(info.value)
+    assert "cell.yaml" in text and "arm.model" in text
+    assert "'panda'" in text and "'ur5e'" in text
+    assert info.value.field == "arm.model"
+
+
+def test_unknown_arm_type_lists_the_types(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["arm"]["type"] = "abb"
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, file="cell.yaml")
+    assert "arm" in str(info.value) and "'sim'" in str(info.value) and "'ur5e'" in str(info.value)
+
+
+def test_unknown_field_is_refused(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["safety"]["max_speed"] = 3
+    with pytest.raises(ConfigError, match="safety.max_speed"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_missing_safety_value_is_refused(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    del data["safety"]["tcp_max_linear_mps"]
+    with pytest.raises(ConfigError, match="safety.tcp_max_linear_mps"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_limit_above_robot_ceiling_is_refused(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["safety"]["tcp_max_linear_mps"] = 5.0
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, file="cell.yaml")
+    assert info.value.field == "safety.tcp_max_linear_mps" and "at most" in str(info.value)
+
+
+def test_home_joints_of_wrong_length_are_refused(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["arm"]["home_joints_rad"] = [0.0] * 6
+    with pytest.raises(ConfigError, match="arm.home_joints_rad"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_sim_mode_with_hardware_arm_is_refused(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["arm"] = {"type": "franka", "host": "10.0.0.2"}
+    with pytest.raises(ConfigError, match="mode 'sim'"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_bad_yaml_and_missing_file(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("arm: [unclosed\n")
+    with pytest.raises(ConfigError, match="bad.yaml: not valid YAML"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="no such file"):
+        load_config(tmp_path / "absent.yaml")
+
+
+def test_cli_config_check(tmp_path, franka_cfg_data):
+    runner = CliRunner()
+    ok = runner.invoke(app, ["config", "check", str(CONFIG_DIR / "sim-franka-rgbd.yaml")])
+    assert ok.exit_code == 0 and "ok" in ok.output
+    data = copy.deepcopy(franka_cfg_data)
+    data["arm"]["model"] = "kuka"
+    bad = tmp_path / "kuka.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    res = runner.invoke(app, ["config", "check", str(bad)])
+    assert res.exit_code == 1
+    assert "arm.model" in res.output and "kuka.yaml" in res.output

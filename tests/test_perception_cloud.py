@@ -1,0 +1,40 @@
+"""Voxel filter, crop box and accumulation."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cell.perception.cloud import CloudAccumulator, crop_box, voxel_downsample
+from drivers.transforms import T_from_xyz_rpy
+
+
+def test_voxel_downsample_averages_each_voxel():
+    pts = np.array([[0.001, 0.001, 0.001], [0.002, 0.002, 0.002], [0.011, 0.0, 0.0]])
+    out = voxel_downsample(pts, 0.01)
+    assert out.shape == (2, 3)
+    np.testing.assert_allclose(out[0], [0.0015, 0.0015, 0.0015])
+    np.testing.assert_allclose(out[1], [0.011, 0.0, 0.0])
+
+
+def test_voxel_downsample_is_order_independent():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.1, 0.1, (2000, 3))
+    a = voxel_downsample(pts, 0.0025)
+    b = voxel_downsample(pts[rng.permutation(2000)], 0.0025)
+    np.testing.assert_allclose(a, b, atol=1e-15)
+    assert voxel_downsample(np.zeros((0, 3)), 0.01).shape == (0, 3)
+
+
+def test_crop_box_uses_open_intervals():
+    pts = np.array([[0.0, 0.0, 0.05], [0.0, 0.0, 0.06], [0.2, 0.0, 0.1], [0.0, 0.0, 0.39]])
+    out = crop_box(pts, (-0.15, 0.15), (-0.15, 0.15), (0.05, 0.40))
+    np.testing.assert_array_equal(out, pts[[1, 3]])
+
+
+def test_accumulator_transforms_to_base_and_merges():
+    acc = CloudAccumulator(0.01)
+    T = T_from_xyz_rpy([1.0, 0.0, 0.0], [0.0, 0.0, np.pi / 2])
+    acc.add(np.array([[0.1, 0.0, 0.0]]), T)
+    np.testing.assert_allclose(acc.points, [[1.0, 0.1, 0.0]], atol=1e-12)
+    acc.add(np.array([[0.1, 0.0, 0.0]]), T)
+    assert acc.points.shape == (1, 3)
