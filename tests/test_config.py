@@ -38,7 +38,8 @@ def test_sim_cells_match_the_papers():
     box = franka.perception.crop_box
     assert (box.x_m, box.y_m, box.z_m) == ((-0.15, 0.15), (-0.15, 0.15), (0.05, 0.40))
     ur = load_config(CONFIG_DIR / "sim-ur5e-tof.yaml")
-    assert (ur.arm.model, ur.sensor.type, ur.sensor.resolution, ur.sensor.fov_deg) == ("ur5e", "sim-tof", 8, 45.0)
+    sensor = ur.sensor
+    assert (ur.arm.model, sensor.type, sensor.resolution, sensor.fov_deg) == ("ur5e", "sim-tof", 8, 45.0)
 
 
 def test_unknown_robot_model_names_field_and_allowed_values(franka_cfg_data):
@@ -63,14 +64,14 @@ def test_unknown_arm_type_lists_the_types(franka_cfg_data):
 def test_unknown_field_is_refused(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
     data["safety"]["max_speed"] = 3
-    with pytest.raises(ConfigError, match="safety.max_speed"):
+    with pytest.raises(ConfigError, match=r"safety\.max_speed"):
         parse_config(data, file="cell.yaml")
 
 
 def test_missing_safety_value_is_refused(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
     del data["safety"]["tcp_max_linear_mps"]
-    with pytest.raises(ConfigError, match="safety.tcp_max_linear_mps"):
+    with pytest.raises(ConfigError, match=r"safety\.tcp_max_linear_mps"):
         parse_config(data, file="cell.yaml")
 
 
@@ -85,7 +86,7 @@ def test_limit_above_robot_ceiling_is_refused(franka_cfg_data):
 def test_home_joints_of_wrong_length_are_refused(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
     data["arm"]["home_joints_rad"] = [0.0] * 6
-    with pytest.raises(ConfigError, match="arm.home_joints_rad"):
+    with pytest.raises(ConfigError, match=r"arm\.home_joints_rad"):
         parse_config(data, file="cell.yaml")
 
 
@@ -99,7 +100,7 @@ def test_sim_mode_with_hardware_arm_is_refused(franka_cfg_data):
 def test_bad_yaml_and_missing_file(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("arm: [unclosed\n")
-    with pytest.raises(ConfigError, match="bad.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML"):
         load_config(bad)
     with pytest.raises(ConfigError, match="no such file"):
         load_config(tmp_path / "absent.yaml")
