@@ -1,0 +1,153 @@
+"""``sim-rgbd``: a simulated pinhole depth camera, rendered by ray casting a :class:`SimScene`.
+
+Sensor frame: z along the optical axis, x right, y down; units metres.
+
+Pixel convention: pixel (u, v) is column u, row v, and its centre is at the integer coordinates (u, v);
+the ray of pixel (u, v) goes through ((u - cx) / fx, (v - cy) / fy, 1) in the sensor frame. So with
+``cx = (width - 1) / 2`` the principal point is the image centre. Back-projection of a depth z [m]:
+x = (u - cx) z / fx, y = (v - cy) z / fy.
+
+Per frame (one ray-casting call for all pixels):
+
+1. the true depth z = t * d_z (z coordinate of the hit, not the range along the ray);
+2. grazing dropouts: with the incidence angle a between the ray and the surface normal, a return with
+   a > ``grazing_deg`` is always dropped and one with ``grazing_deg - 15`` < a <= ``grazing_deg`` is
+   dropped with probability (a - (grazing_deg - 15)) / 15 (linear from 0 to 1);
+3. axial Gaussian noise N(0, sigma(z)^2) with sigma(z) = sigma0_m + k_per_m z^2, z the true depth;
+4. range gating on the measured (noisy) depth: outside [range_min_m, range_max_m] is no return (depth 0).
+
+Random numbers come only from the generator given at construction; every frame draws the same number of
+variates (one uniform and one normal per pixel) whatever the scene, so a seed fixes the frame sequence
+exactly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.clock import Clock
+from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
+from drivers.depth.config import SimRGBDConfig
+from drivers.errors import ConfigError, DriverError
+from drivers.sim.scene import HIT_NONE, SimScene
+
+Array = NDArray[np.float64]
+
+GRAZING_RAMP_DEG: float = 15.0
+"""Width [deg] of the band below ``grazing_deg`` in which the dropout probability rises from 0 to 1."""
+
+
+def read_pose(pose_source: Callable[[], Array], device: str) -> Array:
+    """Call ``pose_source`` and check it returns a finite 4x4 T_base_sensor; ``DriverError`` otherwise."""
+    T = np.asarray(pose_source(), dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DriverError(f"pose source returned an invalid T_base_sensor (shape {T.shape})", device=device)
+    return T
+
+
+class SimRGBD(DepthSensor):
+    """Simulated RGB-D depth camera (depth only), see the module docstring for the image model.
+
+    ``pose_source()`` returns the true T_base_sensor (4x4) at capture time; ``clock`` stamps frames;
+    ``rng`` is the only source of noise. ``capture()`` returns a ``DepthFrame`` with ``depth`` (H, W)
+    float32 [m] (0 = no return) and ``points`` (N, 3) float64 [m, sensor frame] for the valid pixels in
+    row-major pixel order.
+    """
+
+    name = "sim-rgbd"
+
+    def __init__(self, config: SimRGBDConfig, scene: SimScene, pose_source: Callable[[], Array],
+                 clock: Clock, rng: np.random.Generator) -> None:
+        if config.range_min_m >= config.range_max_m:
+            raise ConfigError("range_min_m must be below range_max_m", field="range_min_m",
+                              allowed=f"< {config.range_max_m}")
+        self.config = config
+        self._scene = scene
+        self._pose_source = pose_source
+        self._clock = clock
+        self._rng = rng
+        self._connected = False
+        self._seq = 0
+        w, h = config.width, config.height
+        u = np.arange(w, dtype=np.float64)
+        v = np.arange(h, dtype=np.float64)
+        xn = np.broadcast_to((u - config.cx) / config.fx, (h, w))
+        yn = np.broadcast_to(((v - config.cy) / config.fy)[:, None], (h, w))
+        rays = np.stack([xn, yn, np.ones((h, w))], axis=-1).reshape(-1, 3)
+        norm = np.linalg.norm(rays, axis=1)
+        self._dirs_sensor: Array = rays / norm[:, None]  # (H*W, 3) unit rays, sensor frame
+        self._z_per_t: Array = 1.0 / norm  # depth z per unit range along each ray
+        self._xn = xn.reshape(-1).copy()
+        self._yn = yn.reshape(-1).copy()
+        g = config.grazing_deg
+        self._cos_hard = np.cos(np.deg2rad(g))  # cos(a) below this: always dropped
+        self._cos_soft = np.cos(np.deg2rad(g - GRAZING_RAMP_DEG))  # cos(a) below this: may be dropped
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    @property
+    def model(self) -> SensorModel:
+        c = self.config
+        fov_x = np.degrees(np.arctan((c.cx + 0.5) / c.fx) + np.arctan((c.width - 0.5 - c.cx) / c.fx))
+        fov_y = np.degrees(np.arctan((c.cy + 0.5) / c.fy) + np.arctan((c.height - 0.5 - c.cy) / c.fy))
+        return SensorModel(kind="rgbd", width=c.width, height=c.height, fov_x_deg=float(fov_x),
+                           fov_y_deg=float(fov_y), range_min_m=c.range_min_m, range_max_m=c.range_max_m)
+
+    @property
+    def rays_sensor(self) -> Array:
+        """Unit ray of every pixel (H*W, 3), row-major, sensor frame (read-only view)."""
+        view = self._dirs_sensor.view()
+        view.setflags(write=False)
+        return view
+
+    # -- capture ---------------------------------------------------------------------------------------
+    def capture(self) -> DepthFrame:
+        if not self._connected:
+            raise DriverError("capture while disconnected; call connect() first", device=self.name)
+        c = self.config
+        T = read_pose(self._pose_source, self.name)
+        R = T[:3, :3]
+        dirs_base = self._dirs_sensor @ R.T
+        hits = self._scene.cast(T[:3, 3], dirs_base)
+
+        n_pix = c.width * c.height
+        u_drop = self._rng.random(n_pix, dtype=np.float32)
+        noise = self._rng.standard_normal(n_pix, dtype=np.float32)
+
+        cos_inc = hits.cos_incidence
+        keep = (hits.what != HIT_NONE) & (cos_inc > self._cos_hard)
+        band = keep & (cos_inc < self._cos_soft)  # incidence in the ramp below grazing_deg
+        angle = np.degrees(np.arccos(np.clip(cos_inc[band], -1.0, 1.0)))
+        p_drop = (angle - (c.grazing_deg - GRAZING_RAMP_DEG)) / GRAZING_RAMP_DEG
+        keep[band] = u_drop[band] >= p_drop
+
+        idx = np.flatnonzero(keep)
+        z_true = hits.t[idx] * self._z_per_t[idx]
+        z = z_true + (c.noise.sigma0_m + c.noise.k_per_m * z_true ** 2) * noise[idx]
+        in_range = (z >= c.range_min_m) & (z <= c.range_max_m)
+        idx = idx[in_range]
+        zf = z[in_range].astype(np.float32)
+        depth = np.zeros(n_pix, dtype=np.float32)
+        depth[idx] = zf
+        zd = zf.astype(np.float64)
+        points = np.empty((len(idx), 3))
+        points[:, 0] = self._xn[idx] * zd
+        points[:, 1] = self._yn[idx] * zd
+        points[:, 2] = zd
+
+        frame = DepthFrame(seq=self._seq, timestamp=self._clock.now(), points=points,
+                           depth=depth.reshape(c.height, c.width))
+        self._seq += 1
+        return frame
