@@ -111,7 +111,7 @@ class SimScene:
         if o.shape not in ((3,), d.shape):
             raise ValueError(f"origins must be (3,) or {d.shape}, got {o.shape}")
         n = len(d)
-        rays = np.empty((n, 6), dtype=np.float32)
+        rays = np.empty((n, 6), dtype=np.float32)  # fresh per call: cast is safe from several threads
         rays[:, :3] = o
         rays[:, 3:] = d
         ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
@@ -121,10 +121,9 @@ class SimScene:
         what[geom == self._id_object] = HIT_OBJECT
         hit = what != HIT_NONE
         t = np.where(hit, ans["t_hit"].numpy(), np.inf)  # float64
-        raw = ans["primitive_normals"].numpy()  # float32, zero for no hit
-        dot = raw[:, 0] * rays[:, 3] + raw[:, 1] * rays[:, 4] + raw[:, 2] * rays[:, 5]
-        sign = np.where(dot > 0.0, np.float32(-1.0), np.float32(1.0))  # face the ray
-        normals = (raw * sign[:, None]).astype(np.float64)
+        normals = ans["primitive_normals"].numpy().astype(np.float64)  # zero for no hit
+        dot = np.einsum("ij,ij->i", normals, d)
+        normals *= np.where(dot > 0.0, -1.0, 1.0)[:, None]  # face the ray
         cos_inc = np.where(hit, np.abs(dot), 0.0)
         return RayHits(t=t, normals=normals, what=what, cos_incidence=cos_inc)
 
