@@ -4,9 +4,22 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, PositiveFloat, PositiveInt
+from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.config_base import StrictModel
+
+
+class RangedConfig(StrictModel):
+    """A sensor that reports returns between ``range_min_m`` and ``range_max_m`` [m]."""
+
+    range_min_m: PositiveFloat
+    range_max_m: PositiveFloat
+
+    @model_validator(mode="after")
+    def _range_ordered(self) -> RangedConfig:
+        if self.range_min_m >= self.range_max_m:
+            raise ValueError(f"range_min_m {self.range_min_m} must be below range_max_m {self.range_max_m}")
+        return self
 
 
 class DepthNoiseConfig(StrictModel):
@@ -17,7 +30,7 @@ class DepthNoiseConfig(StrictModel):
     k_per_m: float = Field(ge=0.0, le=0.1)
 
 
-class SimRGBDConfig(StrictModel):
+class SimRGBDConfig(RangedConfig):
     """A simulated RGB-D depth camera rendered by ray casting (pinhole model).
 
     Grazing returns, whose incidence angle to the surface normal exceeds ``grazing_deg``, are dropped;
@@ -31,15 +44,15 @@ class SimRGBDConfig(StrictModel):
     fy: PositiveFloat
     cx: float
     cy: float
-    range_min_m: PositiveFloat
-    range_max_m: PositiveFloat
     noise: DepthNoiseConfig
     grazing_deg: float = Field(default=80.0, gt=15.0, le=90.0)
 
 
-class SimToFConfig(StrictModel):
+class SimToFConfig(RangedConfig):
     """A simulated multizone time-of-flight sensor (VL53L8CX-like): ``resolution`` x ``resolution`` zones
-    over a square ``fov_deg`` field of view, each zone rendered from ``subrays`` x ``subrays`` rays."""
+    over a square ``fov_deg`` field of view, each zone rendered from ``subrays`` x ``subrays`` rays.
+    A zone whose sorted sub-ray ranges jump by more than ``edge_gap_m`` [m] spans a depth edge and gets
+    status 9 (merged target)."""
 
     type: Literal["sim-tof"]
     resolution: Literal[4, 8] = 8
@@ -49,6 +62,7 @@ class SimToFConfig(StrictModel):
     range_max_m: PositiveFloat = 4.0
     noise: DepthNoiseConfig
     min_hit_fraction: float = Field(default=0.25, gt=0.0, le=1.0)
+    edge_gap_m: PositiveFloat = 0.025
 
 
 class VL53L8CXConfig(StrictModel):

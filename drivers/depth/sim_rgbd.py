@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.depth.config import SimRGBDConfig
-from drivers.errors import ConfigError, DriverError
+from drivers.errors import DriverError
 from drivers.sim.scene import HIT_NONE, SimScene
 
 Array = NDArray[np.float64]
@@ -61,10 +61,10 @@ class SimRGBD(DepthSensor):
 
     def __init__(self, config: SimRGBDConfig, scene: SimScene, pose_source: Callable[[], Array],
                  clock: Clock, rng: np.random.Generator) -> None:
-        if config.range_min_m >= config.range_max_m:
-            raise ConfigError("range_min_m must be below range_max_m", field="range_min_m",
-                              allowed=f"< {config.range_max_m}")
         self.config = config
+        self.intrinsics = np.array([[config.fx, 0.0, config.cx],
+                                    [0.0, config.fy, config.cy],
+                                    [0.0, 0.0, 1.0]])
         self._scene = scene
         self._pose_source = pose_source
         self._clock = clock
@@ -148,6 +148,6 @@ class SimRGBD(DepthSensor):
         points[:, 2] = zd
 
         frame = DepthFrame(seq=self._seq, timestamp=self._clock.now(), points=points,
-                           depth=depth.reshape(c.height, c.width))
+                           depth=depth.reshape(c.height, c.width), intrinsics=self.intrinsics)
         self._seq += 1
         return frame

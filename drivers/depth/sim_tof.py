@@ -19,7 +19,7 @@ Per zone (one ray-casting call for all subrays of all zones):
   zone's central ray) plus Gaussian noise N(0, sigma(r)^2), sigma(r) = sigma0_m + k_per_m r^2 with r that
   median range; the zone's point is ``distance_m * direction`` (sensor frame);
 - ``status`` 9 (range valid, large pulse / merged target) when the zone spans a depth edge, else 5 (range
-  valid). Depth edge: the sorted hit ranges have a gap larger than ``edge_gap_m`` (default 0.025 m)
+  valid). Depth edge: the sorted hit ranges have a gap larger than ``edge_gap_m`` (config, default 0.025 m)
   between two neighbours. A gap rather than the total spread is used so that a smooth slanted surface
   (e.g. the table seen at 60 deg incidence, whose ranges spread by several cm over one zone) stays
   status 5, while two surfaces at different depths in one zone give status 9;
@@ -43,7 +43,7 @@ from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel, ToFZones
 from drivers.depth.config import SimToFConfig
 from drivers.depth.sim_rgbd import read_pose
-from drivers.errors import ConfigError, DriverError
+from drivers.errors import DriverError
 from drivers.sim.scene import HIT_OBJECT, HIT_TABLE, SimScene
 
 Array = NDArray[np.float64]
@@ -52,7 +52,6 @@ STATUS_VALID: int = 5
 STATUS_MERGED: int = 9
 STATUS_NO_TARGET: int = 255
 
-EDGE_GAP_M: float = 0.025
 """Default gap [m] between neighbouring sorted subray ranges above which a zone is a depth edge (status 9)."""
 
 REFLECTANCE_OBJECT_PCT: float = 50.0
@@ -82,20 +81,15 @@ class SimToF(DepthSensor):
     ``pose_source()`` returns the true T_base_sensor (4x4) at capture time; ``clock`` stamps frames;
     ``rng`` is the only source of noise. ``capture()`` returns a ``DepthFrame`` with ``zones`` (all
     zones, row-major) and ``points`` (N, 3) [m, sensor frame], one per zone with a target (status 5 or 9),
-    in zone order. ``edge_gap_m`` [m] is the depth-edge threshold for status 9.
+    in zone order; ``config.edge_gap_m`` [m] is the depth-edge threshold for status 9.
     """
 
     name = "sim-tof"
 
     def __init__(self, config: SimToFConfig, scene: SimScene, pose_source: Callable[[], Array],
-                 clock: Clock, rng: np.random.Generator, *, edge_gap_m: float = EDGE_GAP_M) -> None:
-        if config.range_min_m >= config.range_max_m:
-            raise ConfigError("range_min_m must be below range_max_m", field="range_min_m",
-                              allowed=f"< {config.range_max_m}")
-        if edge_gap_m <= 0.0:
-            raise ValueError(f"edge_gap_m must be positive, got {edge_gap_m}")
+                 clock: Clock, rng: np.random.Generator) -> None:
         self.config = config
-        self.edge_gap_m = float(edge_gap_m)
+        self.edge_gap_m = config.edge_gap_m
         self._scene = scene
         self._pose_source = pose_source
         self._clock = clock
