@@ -122,5 +122,5 @@ def test_cli_config_check(tmp_path, franka_cfg_data):
 def test_sensor_range_must_be_ordered(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
     data["sensor"]["range_min_m"] = 2.0
-    with pytest.raises(ConfigError, match="range_min_m 2.0 must be below range_max_m 1.5"):
+    with pytest.raises(ConfigError, match=r"range_min_m 2\.0 must be below range_max_m 1\.5"):
         parse_config(data, file="cell.yaml")
