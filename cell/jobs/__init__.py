@@ -1,0 +1,1 @@
+"""Scan jobs: set-up, the loop, termination, the job folder."""

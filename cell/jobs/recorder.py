@@ -1,0 +1,95 @@
+"""The job folder, readable without the service.
+
+- ``result.json``: the job's outcome (see ``cell.jobs.runner``);
+- ``cloud.ply``: the accumulated cloud, base frame [m], binary little-endian float64 x, y, z;
+- ``trajectory.csv``: ``t,x,y,z,qx,qy,qz,qw``, the sensor pose in the base frame at every control tick;
+- ``frames/NNNNNN.npz``: each capture's raw data with ``T_base_sensor`` (reported), ``T_base_flange`` and
+  the timestamp: for a depth camera the depth image [m] and its intrinsics ``K`` (the points follow from
+  them, see ``DepthFrame``), otherwise the points in the sensor frame, plus the ToF zones;
+  ``frames/index.csv`` lists them;
+- ``log.txt``: what happened, stamped with job time.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.depth.base import DepthFrame
+from drivers.errors import JobError
+from drivers.transforms import quat_xyzw
+
+Array = NDArray[np.float64]
+
+
+def write_ply(path: Path, points: Array) -> None:
+    """Binary little-endian PLY of (N, 3) float64 points; the same points give the same bytes."""
+    pts = np.ascontiguousarray(points, dtype="<f8")
+    header = ("ply\nformat binary_little_endian 1.0\ncomment cell accumulated cloud, base frame, metres\n"
+              f"element vertex {pts.shape[0]}\nproperty double x\nproperty double y\nproperty double z\n"
+              "end_header\n")
+    path.write_bytes(header.encode("ascii") + pts.tobytes())
+
+
+class JobRecorder:
+    """Writes one job folder; every file is flushed as the job goes, so a crash loses nothing recorded."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        try:
+            (folder / "frames").mkdir(parents=True, exist_ok=False)
+        except FileExistsError:
+            raise JobError(f"job folder {folder} already holds a job; choose another --out") from None
+        except OSError as exc:
+            raise JobError(f"cannot create job folder {folder}: {exc}") from None
+        self._log: TextIO = (folder / "log.txt").open("w")
+        self._traj: TextIO = (folder / "trajectory.csv").open("w", newline="")
+        self._traj_writer = csv.writer(self._traj)
+        self._traj_writer.writerow(["t", "x", "y", "z", "qx", "qy", "qz", "qw"])
+        self._index: TextIO = (folder / "frames" / "index.csv").open("w", newline="")
+        self._index_writer = csv.writer(self._index)
+        self._index_writer.writerow(["seq", "t", "file", "n_points"])
+
+    def log(self, t: float, message: str) -> None:
+        self._log.write(f"[{t:9.3f}] {message}\n")
+        self._log.flush()
+
+    def pose(self, t: float, T_base_sensor: Array) -> None:
+        p = T_base_sensor[:3, 3]
+        q = quat_xyzw(T_base_sensor)
+        self._traj_writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in p), *(f"{v:.9f}" for v in q)])
+
+    def frame(self, frame: DepthFrame, T_base_sensor: Array, T_base_flange: Array,
+              extra: dict[str, Array]) -> None:
+        name = f"{frame.seq:06d}.npz"
+        arrays: dict[str, Any] = {"timestamp": np.array(frame.timestamp), "T_base_sensor": T_base_sensor,
+                                  "T_base_flange": T_base_flange, **extra}
+        if frame.depth is not None and frame.intrinsics is not None:
+            arrays.update(depth=frame.depth, K=frame.intrinsics)
+        else:
+            arrays["points"] = frame.points
+        if frame.zones is not None:
+            z = frame.zones
+            arrays.update(zone_distance_m=z.distance_m, zone_sigma_m=z.sigma_m, zone_status=z.status,
+                          zone_nb_targets=z.nb_targets, zone_reflectance_pct=z.reflectance_pct,
+                          zone_directions=z.directions)
+        np.savez_compressed(self.folder / "frames" / name, **arrays)
+        self._index_writer.writerow([frame.seq, f"{frame.timestamp:.6f}", name, frame.points.shape[0]])
+        self._index.flush()
+
+    def cloud(self, points: Array) -> None:
+        write_ply(self.folder / "cloud.ply", points)
+
+    def result(self, result: dict[str, Any]) -> None:
+        text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)
+        (self.folder / "result.json").write_text(text + "\n")
+
+    def close(self) -> None:
+        self._traj.flush()
+        for f in (self._log, self._traj, self._index):
+            f.close()

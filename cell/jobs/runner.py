@@ -1,0 +1,165 @@
+"""Run one scan job end to end and leave its folder.
+
+Set-up order: planner name, object and folder are checked before any driver connects, so bad input fails
+before anything moves. A failure inside the loop stops the arm through the guard, writes everything
+recorded so far with ``status`` ``failed`` (or ``stopped`` for a safety stop) and ``termination`` saying
+why, then re-raises.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.config.models import CellConfig
+from cell.jobs.recorder import JobRecorder
+from cell.jobs.session import JobSession, TimeBudgetExhausted
+from cell.perception.metrics import N_GROUND_TRUTH_POINTS, CoverageTracker, compute_metrics
+from cell.planning.registry import get_planner
+from cell.safety.guard import MotionGuard
+from drivers.clock import SimClock
+from drivers.errors import CellError, JobError, SafetyStop
+from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
+from drivers.robots import get_robot_model
+from drivers.sim.objects import load_object, sample_surface
+from drivers.sim.scene import SimScene
+from drivers.transforms import T_from_xyz_rpy, transform_points
+
+# The ground-truth sample A of eq. 13 is drawn with a fixed seed, so jobs with different seeds are
+# measured against the same points.
+GROUND_TRUTH_SEED = 13
+
+
+@dataclass(frozen=True)
+class ScanRequest:
+    """What to scan and how. ``object_pose`` is (x [m], y [m], yaw [deg]) relative to the station."""
+
+    config: CellConfig
+    config_path: str
+    object: str
+    object_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    planner: str | None = None
+    seed: int = 0
+    out: Path | None = None
+    max_time_s: float | None = None
+
+
+@dataclass(frozen=True)
+class ScanOutcome:
+    folder: Path
+    result: dict[str, Any]
+
+
+def object_pose_in_base(config: CellConfig, pose: tuple[float, float, float]) -> np.ndarray:
+    """T_base_object for an object at (x, y, yaw_deg) relative to the station, resting on the table."""
+    x, y, yaw_deg = pose
+    st = config.station
+    return T_from_xyz_rpy([st.xy_m[0] + x, st.xy_m[1] + y, st.table_z_m], [0.0, 0.0, np.deg2rad(yaw_deg)])
+
+
+def default_job_folder(object_name: str, planner: str, seed: int) -> Path:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("jobs") / f"{stamp}-{Path(object_name).stem}-{planner}-s{seed}"
+
+
+def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
+    return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in values.items()}
+
+
+def _stop_after(guard: MotionGuard, recorder: JobRecorder, t: float, exc: BaseException) -> None:
+    """Stop the arm after a failure in the loop; a failing stop is logged, not allowed to hide ``exc``."""
+    try:
+        guard.stop(f"{type(exc).__name__}: {exc}")
+    except CellError as stop_exc:
+        recorder.log(t, f"stop after failure also failed: {stop_exc}")
+
+
+def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
+    """Run the scan described by ``req``; returns the job folder and the result written there."""
+    cfg = req.config
+    if cfg.mode != "sim":
+        raise JobError("this release runs scans in sim mode only; hardware backends are not available yet")
+    planner_name = req.planner or cfg.scan.planner
+    planner = get_planner(planner_name)(cfg)
+    mesh = load_object(req.object)
+    max_time = req.max_time_s if req.max_time_s is not None else cfg.scan.max_time_s
+    if max_time <= 0:
+        raise JobError(f"--max-time must be positive, got {max_time}")
+    folder = req.out if req.out is not None else default_job_folder(req.object, planner_name, req.seed)
+    recorder = JobRecorder(folder)
+    wall_start = time.monotonic()
+
+    rng = np.random.default_rng(req.seed)
+    clock = SimClock()
+    T_base_object = object_pose_in_base(cfg, req.object_pose)
+    scene = SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
+                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
+    world = SimWorld(clock=clock, rng=rng, scene=scene)
+    model = get_robot_model(cfg.arm.model)
+    T_flange_sensor = cfg.mount.matrix()
+    arm = make_arm(cfg.arm, model, world)
+    flange = true_flange_pose(arm)
+    sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
+    gt_rng = np.random.default_rng(GROUND_TRUTH_SEED)
+    ground_truth = transform_points(T_base_object, sample_surface(mesh, N_GROUND_TRUTH_POINTS, gt_rng))
+    guard = MotionGuard(arm, model, cfg.safety, T_flange_sensor, clock)
+
+    status, termination = "failed", "not started"
+    session: JobSession | None = None
+    error: BaseException | None = None
+    recorder.log(0.0, f"job: planner {planner_name}, object {req.object} at {list(req.object_pose)}, "
+                      f"seed {req.seed}, config {req.config_path}")
+    try:
+        with arm, sensor:
+            session = JobSession(cfg, clock=clock, guard=guard, model=model, sensor=sensor,
+                                 recorder=recorder, max_time_s=max_time,
+                                 coverage=CoverageTracker(ground_truth), on_progress=on_progress)
+            try:
+                termination = planner.run(session)
+            except TimeBudgetExhausted as exc:
+                termination = str(exc)
+            except SafetyStop:
+                raise
+            except Exception as exc:
+                _stop_after(guard, recorder, clock.now(), exc)
+                raise
+            status = "completed"
+    except SafetyStop as exc:
+        status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
+    except CellError as exc:
+        status, termination, error = "failed", f"{type(exc).__name__}: {exc}", exc
+    except Exception as exc:
+        status, termination, error = "failed", f"internal error: {type(exc).__name__}: {exc}", exc
+    finally:
+        recorder.log(clock.now(), f"{status}: {termination}")
+        cloud = session.cloud.points if session is not None else np.zeros((0, 3))
+        recorder.cloud(cloud)
+        metrics = compute_metrics(ground_truth, cloud)
+        result: dict[str, Any] = {
+            "planner": planner_name,
+            "object": req.object,
+            "config": req.config_path,
+            "seed": req.seed,
+            "status": status,
+            "termination": termination,
+            "sim_time_s": round(clock.now(), 6),
+            "wall_time_s": round(time.monotonic() - wall_start, 3),
+            "path_length_m": round(session.path_length_m, 6) if session else 0.0,
+            "n_captures": session.n_captures if session else 0,
+            "n_unreachable_views": session.n_unreachable if session else 0,
+            "n_cloud_points": int(cloud.shape[0]),
+            "object_pose": np.round(T_base_object, 9).tolist(),
+            "metrics": _finite_or_none(metrics.as_dict()),
+            "safety": guard.log.as_dict(),
+        }
+        recorder.result(result)
+        recorder.close()
+    if error is not None:
+        raise error
+    return ScanOutcome(folder=folder, result=result)
