@@ -13,6 +13,7 @@ import numpy as np
 
 from cell.config.models import CellConfig
 from cell.control.trajectory import joint_trajectory
+from cell.jobs.recorder import JobRecorder
 from cell.perception.cloud import CloudAccumulator, crop_box
 from cell.perception.metrics import CoverageTracker
 from cell.planning.base import Array
@@ -23,8 +24,6 @@ from drivers.depth.base import DepthSensor
 from drivers.errors import KinematicsError
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
-
-from cell.jobs.recorder import JobRecorder
 
 # A point-to-point move that has not finished this long after its planned duration is a fault.
 MOVE_TIMEOUT_MARGIN_S = 2.0
