@@ -29,9 +29,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.clock import Clock
-from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
+from drivers.depth.base import DepthFrame, SensorModel
 from drivers.depth.config import SimRGBDConfig
-from drivers.errors import DriverError
+from drivers.depth.sim_base import SimDepthSensor
 from drivers.sim.scene import HIT_NONE, SimScene
 
 Array = NDArray[np.float64]
@@ -40,15 +40,7 @@ GRAZING_RAMP_DEG: float = 15.0
 """Width [deg] of the band below ``grazing_deg`` in which the dropout probability rises from 0 to 1."""
 
 
-def read_pose(pose_source: Callable[[], Array], device: str) -> Array:
-    """Call ``pose_source`` and check it returns a finite 4x4 T_base_sensor; ``DriverError`` otherwise."""
-    T = np.asarray(pose_source(), dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise DriverError(f"pose source returned an invalid T_base_sensor (shape {T.shape})", device=device)
-    return T
-
-
-class SimRGBD(DepthSensor):
+class SimRGBD(SimDepthSensor):
     """Simulated RGB-D depth camera (depth only), see the module docstring for the image model.
 
     ``pose_source()`` returns the true T_base_sensor (4x4) at capture time; ``clock`` stamps frames;
@@ -61,16 +53,11 @@ class SimRGBD(DepthSensor):
 
     def __init__(self, config: SimRGBDConfig, scene: SimScene, pose_source: Callable[[], Array],
                  clock: Clock, rng: np.random.Generator) -> None:
+        super().__init__(scene, pose_source, clock, rng)
         self.config = config
         self.intrinsics = np.array([[config.fx, 0.0, config.cx],
                                     [0.0, config.fy, config.cy],
                                     [0.0, 0.0, 1.0]])
-        self._scene = scene
-        self._pose_source = pose_source
-        self._clock = clock
-        self._rng = rng
-        self._connected = False
-        self._seq = 0
         w, h = config.width, config.height
         u = np.arange(w, dtype=np.float64)
         v = np.arange(h, dtype=np.float64)
@@ -85,17 +72,6 @@ class SimRGBD(DepthSensor):
         g = config.grazing_deg
         self._cos_hard = np.cos(np.deg2rad(g))  # cos(a) below this: always dropped
         self._cos_soft = np.cos(np.deg2rad(g - GRAZING_RAMP_DEG))  # cos(a) below this: may be dropped
-
-    # -- lifecycle -------------------------------------------------------------------------------------
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
 
     @property
     def model(self) -> SensorModel:
@@ -114,10 +90,8 @@ class SimRGBD(DepthSensor):
 
     # -- capture ---------------------------------------------------------------------------------------
     def capture(self) -> DepthFrame:
-        if not self._connected:
-            raise DriverError("capture while disconnected; call connect() first", device=self.name)
         c = self.config
-        T = read_pose(self._pose_source, self.name)
+        T = self._begin_capture()
         R = T[:3, :3]
         dirs_base = self._dirs_sensor @ R.T
         hits = self._scene.cast(T[:3, 3], dirs_base)
@@ -147,7 +121,6 @@ class SimRGBD(DepthSensor):
         points[:, 1] = self._yn[idx] * zd
         points[:, 2] = zd
 
-        frame = DepthFrame(seq=self._seq, timestamp=self._clock.now(), points=points,
+        frame = DepthFrame(seq=self._next_seq(), timestamp=self._clock.now(), points=points,
                            depth=depth.reshape(c.height, c.width), intrinsics=self.intrinsics)
-        self._seq += 1
         return frame

@@ -40,10 +40,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.clock import Clock
-from drivers.depth.base import DepthFrame, DepthSensor, SensorModel, ToFZones
+from drivers.depth.base import DepthFrame, SensorModel, ToFZones
 from drivers.depth.config import SimToFConfig
-from drivers.depth.sim_rgbd import read_pose
-from drivers.errors import DriverError
+from drivers.depth.sim_base import SimDepthSensor
 from drivers.sim.scene import HIT_OBJECT, HIT_TABLE, SimScene
 
 Array = NDArray[np.float64]
@@ -75,7 +74,7 @@ def zone_directions(resolution: int, fov_deg: float, subrays: int = 1) -> Array:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-class SimToF(DepthSensor):
+class SimToF(SimDepthSensor):
     """Simulated multizone ToF sensor, see the module docstring for the zone model.
 
     ``pose_source()`` returns the true T_base_sensor (4x4) at capture time; ``clock`` stamps frames;
@@ -88,28 +87,12 @@ class SimToF(DepthSensor):
 
     def __init__(self, config: SimToFConfig, scene: SimScene, pose_source: Callable[[], Array],
                  clock: Clock, rng: np.random.Generator) -> None:
+        super().__init__(scene, pose_source, clock, rng)
         self.config = config
         self.edge_gap_m = config.edge_gap_m
-        self._scene = scene
-        self._pose_source = pose_source
-        self._clock = clock
-        self._rng = rng
-        self._connected = False
-        self._seq = 0
         self._sub = zone_directions(config.resolution, config.fov_deg, config.subrays)  # (Z, S, 3)
         self._central = zone_directions(config.resolution, config.fov_deg, 1)[:, 0, :]  # (Z, 3)
         self._central.setflags(write=False)
-
-    # -- lifecycle -------------------------------------------------------------------------------------
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
 
     @property
     def model(self) -> SensorModel:
@@ -124,10 +107,8 @@ class SimToF(DepthSensor):
 
     # -- capture ---------------------------------------------------------------------------------------
     def capture(self) -> DepthFrame:
-        if not self._connected:
-            raise DriverError("capture while disconnected; call connect() first", device=self.name)
         c = self.config
-        T = read_pose(self._pose_source, self.name)
+        T = self._begin_capture()
         n_zones, n_sub, _ = self._sub.shape
         dirs_base = self._sub.reshape(-1, 3) @ T[:3, :3].T
         hits = self._scene.cast(T[:3, 3], dirs_base)
@@ -166,6 +147,5 @@ class SimToF(DepthSensor):
         zones = ToFZones(distance_m=distance, sigma_m=sigma, status=status, nb_targets=nb_targets,
                          reflectance_pct=reflectance, directions=self._central.copy())
         points = distance[has_target, None] * self._central[has_target]
-        frame = DepthFrame(seq=self._seq, timestamp=self._clock.now(), points=points, zones=zones)
-        self._seq += 1
+        frame = DepthFrame(seq=self._next_seq(), timestamp=self._clock.now(), points=points, zones=zones)
         return frame

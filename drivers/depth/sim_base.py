@@ -1,0 +1,55 @@
+"""What the simulated depth sensors share: the scene, the true pose they render from, the job's clock and
+generator, the connection state and the frame counter."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.clock import Clock
+from drivers.depth.base import DepthSensor
+from drivers.errors import DriverError
+from drivers.sim.scene import SimScene
+
+Array = NDArray[np.float64]
+
+
+class SimDepthSensor(DepthSensor):
+    """Base of the ray-cast sensors. ``pose_source()`` returns the true T_base_sensor (4x4) at capture
+    time; ``clock`` stamps frames; ``rng`` is the only source of noise."""
+
+    def __init__(self, scene: SimScene, pose_source: Callable[[], Array], clock: Clock,
+                 rng: np.random.Generator) -> None:
+        self._scene = scene
+        self._pose_source = pose_source
+        self._clock = clock
+        self._rng = rng
+        self._connected = False
+        self._seq = 0
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def _begin_capture(self) -> Array:
+        """Check the sensor is connected and return the true, finite T_base_sensor to render from."""
+        if not self._connected:
+            raise DriverError("capture while disconnected; call connect() first", device=self.name)
+        T = np.asarray(self._pose_source(), dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise DriverError(f"pose source returned an invalid T_base_sensor (shape {T.shape})",
+                              device=self.name)
+        return T
+
+    def _next_seq(self) -> int:
+        seq = self._seq
+        self._seq += 1
+        return seq
