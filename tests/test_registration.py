@@ -1,0 +1,144 @@
+"""Point-to-plane ICP registration of a new capture onto the accumulated target (visual-servoing paper
+section II-A): recovery of an injected FK pose error on a simulated bunny capture, rejection of a
+divergent result, the disabled and too-few-points paths."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+from scipy.spatial.transform import Rotation
+
+from cell.perception.cloud import crop_box, voxel_downsample
+from cell.perception.registration import (
+    RegistrationParams,
+    RegistrationTarget,
+    register_frame,
+)
+from drivers.clock import SimClock
+from drivers.depth.config import SimRGBDConfig
+from drivers.depth.sim_rgbd import SimRGBD
+from drivers.sim.objects import load_object
+from drivers.sim.scene import SimScene
+from drivers.transforms import T_from_xyz_rpy, look_at, rotvec, transform_points
+
+PARAMS = RegistrationParams(enabled=True)
+CENTER = np.array([0.45, 0.0, 0.05])  # near the bunny's middle [m, base frame]
+
+
+def _view(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    a, e = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
+    eye = CENTER + 0.25 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    return look_at(eye, CENTER)
+
+
+@pytest.fixture(scope="module")
+def bunny_captures():
+    """Three cropped captures (sensor frame) of the bunny from nearby views 0.25 m away, with their poses."""
+    scene = SimScene(load_object("bunny"), T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    cfg = SimRGBDConfig(type="sim-rgbd", width=640, height=480, fx=475.0, fy=475.0, cx=319.5, cy=239.5,
+                        range_min_m=0.1, range_max_m=1.5, noise={"sigma0_m": 0.0005, "k_per_m": 0.002})
+    pose = {"T": np.eye(4)}
+    cam = SimRGBD(cfg, scene, lambda: pose["T"], SimClock(), np.random.default_rng(0))
+    poses = [_view(180.0, 35.0), _view(200.0, 40.0), _view(190.0, 45.0)]
+    clouds = []
+    with cam:
+        for T in poses:
+            pose["T"] = T
+            frame = cam.capture()
+            clouds.append(crop_box(frame.points, (-0.15, 0.15), (-0.15, 0.15), (0.05, 0.40)))
+    return poses, clouds
+
+
+@pytest.fixture(scope="module")
+def target(bunny_captures):
+    poses, clouds = bunny_captures
+    acc = np.vstack([transform_points(T, c) for T, c in zip(poses[:2], clouds[:2], strict=True)])
+    tgt = RegistrationTarget(PARAMS)
+    tgt.update(voxel_downsample(acc, 0.0025))
+    return tgt
+
+
+def _perturbed(T: np.ndarray, d_m: np.ndarray, rotvec_rad: np.ndarray) -> np.ndarray:
+    """``T`` moved by ``d_m`` and turned by ``rotvec_rad`` about its own origin (base-frame axes)."""
+    out = T.copy()
+    out[:3, :3] = Rotation.from_rotvec(rotvec_rad).as_matrix() @ T[:3, :3]
+    out[:3, 3] += d_m
+    return out
+
+
+def _errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    e_m = float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
+    e_deg = float(np.degrees(np.linalg.norm(rotvec(T[:3, :3] @ T_true[:3, :3].T))))
+    return e_m, e_deg
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_recovers_5mm_1deg_fk_error(bunny_captures, target, seed):
+    poses, clouds = bunny_captures
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    axis = rng.normal(size=3)
+    T_fk = _perturbed(poses[2], 0.005 * d / np.linalg.norm(d), np.deg2rad(1.0) * axis / np.linalg.norm(axis))
+    assert _errors(T_fk, poses[2])[0] == pytest.approx(0.005)
+
+    res = target.register(clouds[2], T_fk)
+
+    assert res.accepted and res.reason == "ok"
+    e_m, e_deg = _errors(res.T_base_sensor, poses[2])
+    assert e_m < 0.001 and e_deg < 0.2, (e_m, e_deg)
+    assert np.allclose(res.T_base_sensor, res.T_correction @ T_fk)
+    assert res.fitness > PARAMS.min_fitness and 0.0 < res.rmse_m < 0.002
+    assert res.correction_m == pytest.approx(0.005, abs=0.0015)
+
+
+def test_register_frame_matches_target_and_is_deterministic(bunny_captures, target):
+    poses, clouds = bunny_captures
+    T_fk = _perturbed(poses[2], np.array([0.003, -0.002, 0.0]), np.deg2rad([0.5, 0.0, 0.3]))
+    a = register_frame(clouds[2], T_fk, target.points, PARAMS, target_normals=target.normals)
+    b = target.register(clouds[2], T_fk)
+    assert np.array_equal(a.T_base_sensor, b.T_base_sensor) and a.fitness == b.fitness
+
+
+def test_wild_initial_guess_is_rejected_and_fk_used(bunny_captures, target, caplog):
+    poses, clouds = bunny_captures
+    T_fk = _perturbed(poses[2], np.array([0.05, 0.0, 0.0]), np.zeros(3))
+    with caplog.at_level("WARNING", logger="cell.perception.registration"):
+        res = target.register(clouds[2], T_fk)
+    assert not res.accepted
+    assert res.reason.startswith("rejected") and "correction" in res.reason
+    assert np.array_equal(res.T_base_sensor, T_fk)
+    assert "using the FK pose" in caplog.text
+
+
+def test_low_fitness_is_rejected(bunny_captures, target):
+    poses, clouds = bunny_captures
+    strict = PARAMS.model_copy(update={"min_fitness": 0.999})
+    res = register_frame(clouds[2], poses[2], target.points, strict, target_normals=target.normals)
+    assert not res.accepted and "fitness" in res.reason
+    assert np.array_equal(res.T_base_sensor, poses[2])
+
+
+def test_disabled_returns_fk(bunny_captures, target):
+    poses, clouds = bunny_captures
+    res = register_frame(clouds[2], poses[2], target.points, RegistrationParams(enabled=False))
+    assert res.reason == "disabled" and not res.accepted
+    assert np.array_equal(res.T_base_sensor, poses[2]) and np.array_equal(res.T_correction, np.eye(4))
+
+
+def test_too_few_points_and_no_target(bunny_captures, target):
+    poses, clouds = bunny_captures
+    few = clouds[2][:: clouds[2].shape[0] // 50][:50]
+    res = target.register(few, poses[2])
+    assert res.reason == "too few points" and not res.accepted
+    assert np.array_equal(res.T_base_sensor, poses[2])
+    res = register_frame(clouds[2], poses[2], np.zeros((0, 3)), PARAMS)
+    assert res.reason == "no target yet" and np.array_equal(res.T_base_sensor, poses[2])
+
+
+def test_params_need_enabled_and_coarse_to_fine():
+    with pytest.raises(ValidationError):
+        RegistrationParams()  # type: ignore[call-arg]
+    with pytest.raises(ValidationError, match="coarse to fine"):
+        RegistrationParams(enabled=True, max_correspondence_m=(0.002, 0.02))
+    assert RegistrationParams(enabled=True).max_correspondence_m[-1] == 0.002
