@@ -1,0 +1,179 @@
+"""Per-frame point filters (visual-servoing paper, section II-A "Filtering").
+
+The paper simplifies each raw cloud to 2.5 mm with a voxel filter, crops it to a box centred on the camera
+frustum (x, y within +-15 cm, z in (5, 40) cm in the sensor frame), removes spurious points with a
+statistical outlier filter, and low-pass filters the object centroid that drives the servo task. For the
+multizone time-of-flight sensor (LR-NBV paper, VL53L8CX) the equivalent of the outlier filter is the
+sensor's own per-zone target status: only zones with a valid status (5 and 9 by default) are kept.
+
+The voxel filter and the crop box are reused from :mod:`cell.perception.cloud`; their parameters live in
+the cell config's ``perception`` section (``crop_box``, ``voxel_m``) and are passed in as arguments here.
+Everything is deterministic (scipy's kd-tree, no randomness).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from cell.perception.cloud import crop_box, voxel_downsample
+from drivers.config_base import StrictModel
+from drivers.depth.base import DepthFrame
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+class FilterParams(StrictModel):
+    """Filter settings not already in the cell config's perception section.
+
+    ``sor_neighbors`` k of the statistical outlier removal; ``sor_std_ratio`` the number of standard
+    deviations above the mean neighbour distance beyond which a point is an outlier; ``sor_enabled``
+    switches the SOR step off (e.g. for the sparse 8x8 ToF); ``valid_tof_statuses`` the VL53L8CX target
+    statuses trusted as valid ranges (ST's guidance: 5 = range valid, 9 = range valid with large pulse).
+    """
+
+    sor_neighbors: int = Field(20, ge=1)
+    sor_std_ratio: float = Field(2.0, gt=0.0)
+    sor_enabled: bool = True
+    valid_tof_statuses: tuple[int, ...] = (5, 9)
+
+
+class CropBox(Protocol):
+    """Anything with open-interval bounds ``x_m``, ``y_m``, ``z_m`` [m] in the sensor frame (e.g. the
+    config's ``CropBoxConfig``)."""
+
+    @property
+    def x_m(self) -> tuple[float, float]: ...
+    @property
+    def y_m(self) -> tuple[float, float]: ...
+    @property
+    def z_m(self) -> tuple[float, float]: ...
+
+
+def statistical_outlier_mask(points: Array, k: int, std_ratio: float) -> BoolArray:
+    """Inlier mask (N,) of the statistical outlier removal (paper section II-A "Filtering").
+
+    For each point the mean Euclidean distance to its ``k`` nearest neighbours (the point itself excluded,
+    PCL's ``StatisticalOutlierRemoval`` semantics) is computed; a point is kept when that mean is at most
+    ``mu + std_ratio * sigma``, with ``mu`` / ``sigma`` the mean and sample standard deviation of the
+    per-point means over the cloud. With fewer than ``k + 1`` points every point is kept (no statistics).
+    """
+    n = points.shape[0]
+    if k < 1:
+        raise ValueError(f"statistical_outlier_mask: k must be >= 1, got {k}")
+    if n <= k:
+        return np.ones(n, dtype=bool)
+    # Query in a spatially coherent order (coarse 64^3 grid cells): same result, ~1.5x faster (cache).
+    lo = points.min(axis=0)
+    cell = max(float(np.ptp(points, axis=0).max()) / 64.0, 1e-9)
+    c = np.floor((points - lo) / cell).astype(np.int64)
+    order = np.lexsort((c[:, 2], c[:, 1], c[:, 0]))
+    sorted_pts = points[order]
+    tree = cKDTree(sorted_pts)
+    dist, _ = tree.query(sorted_pts, k=k + 1, workers=-1)
+    mean_d = np.empty(n)
+    mean_d[order] = dist[:, 1:].mean(axis=1)
+    mu = mean_d.mean()
+    sigma = mean_d.std(ddof=1)
+    return mean_d <= mu + std_ratio * sigma
+
+
+def statistical_outlier_removal(points: Array, k: int, std_ratio: float) -> Array:
+    """The points (M, 3) kept by :func:`statistical_outlier_mask`, in input order."""
+    return points[statistical_outlier_mask(points, k, std_ratio)]
+
+
+def _zone_points(zones_distance: Array, directions: Array) -> Array:
+    return zones_distance[:, None] * directions
+
+
+def valid_tof_points(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[int] = (5, 9)) -> Array:
+    """Points (K, 3) [m, sensor frame] of the ToF zones whose target status is in ``valid_statuses``.
+
+    Rebuilt from ``zones.distance_m * zones.directions`` (distance along each zone's central ray) rather
+    than taken from ``frame.points``, which holds every zone with a target whatever its status. Zones with
+    no target or a non-finite distance are dropped even if their status were listed. Zone order is kept.
+    Raises ``ValueError`` for a frame without ``zones`` (not a ToF frame).
+    """
+    zones = frame.zones
+    if zones is None:
+        raise ValueError(f"valid_tof_points: frame {frame.seq} has no ToF zones")
+    keep = (np.isin(zones.status, np.asarray(valid_statuses, dtype=np.int64))
+            & (zones.nb_targets > 0) & np.isfinite(zones.distance_m) & (zones.distance_m > 0.0))
+    return _zone_points(zones.distance_m[keep], zones.directions[keep])
+
+
+def no_target_directions(frame: DepthFrame) -> Array:
+    """Unit central rays (J, 3) [sensor frame] of the ToF zones that saw no target (``nb_targets == 0``),
+    in zone order: free space up to the sensor's range, for carving the occupancy map."""
+    zones = frame.zones
+    if zones is None:
+        raise ValueError(f"no_target_directions: frame {frame.seq} has no ToF zones")
+    d = zones.directions[zones.nb_targets == 0]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def filter_frame(points_sensor: Array, *, crop: CropBox, voxel_m: float, params: FilterParams) -> Array:
+    """Filter one RGB-D cloud in the sensor frame: crop box, then voxel filter, then SOR.
+
+    The paper lists voxel filter, crop, SOR; cropping first gives the same points inside the box (the
+    voxel grid is anchored at the sensor origin, and a voxel centroid straddling a crop face is the only
+    difference) and makes the voxel step cheaper. SOR comes last so that its statistics are computed on
+    the uniform-density voxelized cloud, which is what makes a global distance threshold meaningful.
+    Output (M, 3) [m, sensor frame], sorted by voxel key.
+    """
+    pts = crop_box(points_sensor, crop.x_m, crop.y_m, crop.z_m)
+    pts = voxel_downsample(pts, voxel_m)
+    if params.sor_enabled:
+        pts = statistical_outlier_removal(pts, params.sor_neighbors, params.sor_std_ratio)
+    return pts
+
+
+class CentroidLowPass:
+    """First-order (exponential) low-pass filter on a 3D centroid [m] with time constant ``tau_s`` [s].
+
+    Paper section II-A: "Residual noise in the centroid estimation is mitigated through a low-pass filter,
+    ensuring stable convergence of the primary task" (the servo keeps the object centroid on the optical
+    axis; a jittery centroid would make the camera twist jitter). The update is dt-aware so that it behaves
+    the same at any frame rate: ``alpha = 1 - exp(-dt / tau_s)``, ``y += alpha * (x - y)``. ``tau_s = 0``
+    passes the input through. The first sample initialises the state; a sample at the same time as the
+    previous one does not move the state; time going backwards raises ``ValueError``.
+    """
+
+    def __init__(self, tau_s: float) -> None:
+        if not tau_s >= 0.0:
+            raise ValueError(f"CentroidLowPass: tau_s must be >= 0 s, got {tau_s}")
+        self.tau_s = float(tau_s)
+        self._y: Array | None = None
+        self._t: float | None = None
+
+    @property
+    def value(self) -> Array | None:
+        """The filtered centroid (3,) [m], or None before the first update."""
+        return None if self._y is None else self._y.copy()
+
+    def reset(self) -> None:
+        """Forget the state; the next update re-initialises it."""
+        self._y = None
+        self._t = None
+
+    def update(self, centroid: Array, t: float) -> Array:
+        """Feed the centroid (3,) [m] measured at time ``t`` [s]; returns the filtered centroid (3,)."""
+        x = np.asarray(centroid, dtype=np.float64).reshape(3)
+        if self._y is None or self._t is None:
+            self._y = x.copy()
+            self._t = float(t)
+            return self._y.copy()
+        dt = float(t) - self._t
+        if dt < 0.0:
+            raise ValueError(f"CentroidLowPass: time went backwards ({self._t} s -> {t} s)")
+        alpha = 1.0 if self.tau_s == 0.0 else 1.0 - math.exp(-dt / self.tau_s)
+        self._y = self._y + alpha * (x - self._y)
+        self._t = float(t)
+        return self._y.copy()

@@ -1,0 +1,366 @@
+"""Object segmentation and region of interest (visual-servoing paper, section II-A "Segmentation";
+LR-NBV paper, section 3.2 "Object Clustering and Dynamic ROI").
+
+Chain, on the occupied voxels of the map in the base frame (z up, the table roughly at constant z):
+
+1. threshold the occupancy probabilities into points (:func:`threshold_occupancy`);
+2. find the table plane with RANSAC and keep only what stands above it (:func:`remove_table_plane`);
+3. extract the object as the largest Euclidean cluster (visual-servoing paper) or the largest DBSCAN
+   cluster (LR-NBV paper, section 3.2), selected by ``SegmentationParams.method``;
+4. enclose it in the ROI box (:class:`ROI`): axis-aligned in the base frame, and oriented in the table
+   plane (minimum-area rectangle), from the table up to the object's top.
+
+The ROI is what the occupancy map samples for the termination entropy H_ROI, the mean binary entropy of
+the voxels in the box (visual-servoing paper, eq. 12); that mean is computed by the map owner, not here.
+
+Everything is deterministic: RANSAC draws from the ``np.random.Generator`` it is given, and the clusterings
+are exact graph computations (scipy kd-tree + connected components) with ties broken by lowest label.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+from drivers.config_base import StrictModel
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+class SegmentationParams(StrictModel):
+    """Segmentation settings (lengths in metres).
+
+    ``method`` "euclidean" (largest connected component of the radius-``cluster_tolerance_m`` graph,
+    visual-servoing paper) or "dbscan" (LR-NBV paper section 3.2, ``dbscan_eps_m`` / ``dbscan_min_points``,
+    the point itself counted in its neighbourhood); ``plane_distance_m`` RANSAC inlier band, and the
+    height above the table plane below which points are dropped as table; ``plane_ransac_iterations``
+    hypotheses drawn; ``table_normal_max_tilt_deg`` only planes whose normal is within this angle of +z
+    are accepted as the table; ``min_cluster_points`` a smaller largest cluster means "no object";
+    ``seed`` of the RANSAC generator when the caller gives none.
+    """
+
+    method: Literal["euclidean", "dbscan"] = "euclidean"
+    plane_distance_m: float = Field(0.006, gt=0.0)
+    plane_ransac_iterations: int = Field(200, ge=1)
+    cluster_tolerance_m: float = Field(0.012, gt=0.0)
+    dbscan_eps_m: float = Field(0.02, gt=0.0)
+    dbscan_min_points: int = Field(5, ge=1)
+    min_cluster_points: int = Field(10, ge=1)
+    table_normal_max_tilt_deg: float = Field(20.0, ge=0.0, le=90.0)
+    seed: int = 0
+
+
+def threshold_occupancy(centres: Array, probabilities: Array, p_occupied: float = 0.5) -> Array:
+    """Step 1 of the paper's segmentation: the voxel centres (N, 3) whose occupancy probability is
+    strictly above ``p_occupied`` (the map's own occupancy threshold should be passed)."""
+    return centres[np.asarray(probabilities) > p_occupied]
+
+
+# ----------------------------------------------------------------------------------------------- plane
+
+
+def _fit_plane_lsq(points: Array) -> Array:
+    """Least-squares plane (a, b, c, d), unit normal with c >= 0, through the points (total least squares)."""
+    centroid = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centroid, full_matrices=False)
+    n = vt[-1]
+    if n[2] < 0.0:
+        n = -n
+    return np.array([n[0], n[1], n[2], -float(n @ centroid)])
+
+
+def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.random.Generator,
+                    ) -> Array | None:
+    """RANSAC for the table plane (visual-servoing paper section II-A, "remove the ground plane with
+    RANSAC"), vectorised over hypotheses.
+
+    Hypotheses from 3 random points; only those whose unit normal is within
+    ``table_normal_max_tilt_deg`` of +z are scored; the one with most points within ``plane_distance_m``
+    wins (first one on ties) and is refined by total least squares on its inliers. Returns the plane
+    (a, b, c, d) with a x + b y + c z + d = 0, (a, b, c) a unit normal with c > 0, or None when fewer than
+    3 points or no acceptable hypothesis.
+    """
+    n = points_base.shape[0]
+    if n < 3:
+        return None
+    iters = params.plane_ransac_iterations
+    idx = rng.integers(0, n, size=(iters, 3))
+    p0, p1, p2 = points_base[idx[:, 0]], points_base[idx[:, 1]], points_base[idx[:, 2]]
+    normals = np.cross(p1 - p0, p2 - p0)
+    norm = np.linalg.norm(normals, axis=1)
+    ok = norm > 1e-12
+    normals = np.divide(normals, norm[:, None], out=np.zeros_like(normals), where=ok[:, None])
+    normals *= np.where(normals[:, 2] < 0.0, -1.0, 1.0)[:, None]
+    ok &= normals[:, 2] >= math.cos(math.radians(params.table_normal_max_tilt_deg))
+    if not np.any(ok):
+        return None
+    normals = normals[ok]
+    offsets = -np.einsum("ij,ij->i", normals, p0[ok])
+    counts = np.empty(normals.shape[0], dtype=np.int64)
+    chunk = max(1, 4_000_000 // max(n, 1))  # bound the (chunk, n) distance matrix to ~32 MB
+    for s in range(0, normals.shape[0], chunk):
+        dist = np.abs(points_base @ normals[s:s + chunk].T + offsets[s:s + chunk])
+        counts[s:s + chunk] = np.count_nonzero(dist <= params.plane_distance_m, axis=0)
+    best = int(np.argmax(counts))
+    if counts[best] < 3:
+        return None
+    inliers = np.abs(points_base @ normals[best] + offsets[best]) <= params.plane_distance_m
+    plane = _fit_plane_lsq(points_base[inliers])
+    if plane[2] < math.cos(math.radians(params.table_normal_max_tilt_deg)):
+        plane = np.array([*normals[best], offsets[best]])
+    return plane
+
+
+def remove_table_plane(points_base: Array, params: SegmentationParams, rng: np.random.Generator,
+                       ) -> tuple[Array, Array | None]:
+    """Drop the table: returns (the points more than ``plane_distance_m`` above the RANSAC table plane,
+    the plane (a, b, c, d) or None).
+
+    The object stands on the table, so points below the plane (noise, or the underside seen through the
+    table) go too. With no acceptable plane every point is returned unchanged with None.
+    """
+    plane = fit_table_plane(points_base, params, rng)
+    if plane is None:
+        return points_base, None
+    height = points_base @ plane[:3] + plane[3]
+    return points_base[height > params.plane_distance_m], plane
+
+
+# -------------------------------------------------------------------------------------------- clusters
+
+
+def _components(n: int, pairs: NDArray[np.int64]) -> NDArray[np.int32]:
+    graph = coo_matrix((np.ones(pairs.shape[0], dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels
+
+
+def euclidean_cluster_labels(points: Array, tolerance_m: float) -> NDArray[np.int32]:
+    """Label (N,) of each point's Euclidean cluster: connected components of the graph linking points
+    closer than ``tolerance_m`` (PCL's EuclideanClusterExtraction)."""
+    n = points.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int32)
+    pairs = cKDTree(points).query_pairs(tolerance_m, output_type="ndarray")
+    return _components(n, pairs)
+
+
+def _largest(points: Array, labels: NDArray[np.integer], min_points: int) -> Array:
+    """Points of the most populated label >= 0 (lowest label on ties); empty (0, 3) if below min_points."""
+    valid = labels >= 0
+    if not np.any(valid):
+        return np.zeros((0, 3))
+    counts = np.bincount(labels[valid])
+    best = int(np.argmax(counts))
+    if counts[best] < min_points:
+        return np.zeros((0, 3))
+    return points[labels == best]
+
+
+def largest_euclidean_cluster(points: Array, tolerance_m: float, min_points: int) -> Array:
+    """The largest Euclidean cluster (visual-servoing paper section II-A, "Euclidean clustering to
+    extract the largest contiguous cluster"); empty (0, 3) if it has fewer than ``min_points``."""
+    return _largest(points, euclidean_cluster_labels(points, tolerance_m), min_points)
+
+
+def dbscan_labels(points: Array, eps_m: float, min_points: int) -> NDArray[np.int64]:
+    """DBSCAN labels (N,), -1 for noise (Ester et al. 1996; LR-NBV paper section 3.2).
+
+    A core point has at least ``min_points`` points (itself included) within ``eps_m``; clusters are the
+    connected components of core points linked within ``eps_m``; a border point (not core, a core point
+    within ``eps_m``) joins the cluster of its nearest core point, which makes the result independent of
+    visiting order (classic DBSCAN gives a border point to whichever cluster reaches it first).
+    Cluster labels are numbered 0.. in order of their lowest point index.
+    """
+    n = points.shape[0]
+    labels = np.full(n, -1, dtype=np.int64)
+    if n == 0:
+        return labels
+    pairs = cKDTree(points).query_pairs(eps_m, output_type="ndarray")
+    counts = 1 + np.bincount(pairs.ravel(), minlength=n)
+    core = counts >= min_points
+    if not np.any(core):
+        return labels
+    core_idx = np.flatnonzero(core)
+    remap = np.full(n, -1, dtype=np.int64)
+    remap[core_idx] = np.arange(core_idx.size)
+    core_pairs = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
+    labels[core_idx] = _components(core_idx.size, remap[core_pairs])
+    border = np.flatnonzero(~core)
+    if border.size:
+        dist, nearest = cKDTree(points[core_idx]).query(points[border], k=1, distance_upper_bound=eps_m)
+        attached = np.isfinite(dist)
+        labels[border[attached]] = labels[core_idx[nearest[attached]]]
+    return labels
+
+
+def dbscan_largest_cluster(points: Array, eps_m: float, min_points: int,
+                           min_cluster_points: int = 1) -> Array:
+    """The largest DBSCAN cluster (LR-NBV paper section 3.2); empty (0, 3) when there is none or it has
+    fewer than ``min_cluster_points`` points."""
+    return _largest(points, dbscan_labels(points, eps_m, min_points), min_cluster_points)
+
+
+# ------------------------------------------------------------------------------------------------- ROI
+
+
+@dataclass(frozen=True)
+class ROI:
+    """The object's region of interest in the base frame [m] (visual-servoing paper section II-A, whose
+    voxels give H_ROI of eq. 12; LR-NBV paper section 3.2, also used for collision checking).
+
+    ``aabb_min`` / ``aabb_max`` (3,) the axis-aligned box of the object points; ``obb_center_xy`` (2,),
+    ``obb_extent_xy`` (2,) full lengths (L, W) with L >= W and ``obb_yaw_rad`` in (-pi/2, pi/2] the yaw of
+    the L axis about +z: the minimum-area rectangle of the points projected on the table plane;
+    ``z_min`` / ``z_max`` the oriented box's height range (from the table when known, else from the
+    points); ``centroid`` (3,) of the points; ``n_points`` how many.
+    """
+
+    aabb_min: Array
+    aabb_max: Array
+    obb_center_xy: Array
+    obb_extent_xy: Array
+    obb_yaw_rad: float
+    z_min: float
+    z_max: float
+    centroid: Array
+    n_points: int
+
+    @property
+    def obb_dims(self) -> Array:
+        """(L, W, H) [m] of the oriented box: packing dimensions (LR-NBV paper)."""
+        return np.array([self.obb_extent_xy[0], self.obb_extent_xy[1], self.z_max - self.z_min])
+
+    def obb_corners(self) -> Array:
+        """The 8 corners (8, 3) of the oriented box: the bottom 4 counter-clockwise seen from above,
+        starting at (-L/2, -W/2) in the box frame, then the top 4 in the same order."""
+        c, s = math.cos(self.obb_yaw_rad), math.sin(self.obb_yaw_rad)
+        half_l, half_w = self.obb_extent_xy / 2.0
+        local = np.array([[-half_l, -half_w], [half_l, -half_w], [half_l, half_w], [-half_l, half_w]])
+        xy = local @ np.array([[c, s], [-s, c]]) + self.obb_center_xy
+        bottom = np.column_stack([xy, np.full(4, self.z_min)])
+        top = np.column_stack([xy, np.full(4, self.z_max)])
+        return np.vstack([bottom, top])
+
+    def contains(self, points: Array) -> BoolArray:
+        """Mask (N,) of the points inside the axis-aligned box (closed)."""
+        return np.all((points >= self.aabb_min) & (points <= self.aabb_max), axis=1)
+
+
+def _principal_angle(xy: Array) -> float:
+    """Direction [rad] of the principal axis of 2D points (0 for a single point)."""
+    if xy.shape[0] < 2:
+        return 0.0
+    _, _, vt = np.linalg.svd(xy - xy.mean(axis=0), full_matrices=False)
+    return math.atan2(vt[0, 1], vt[0, 0])
+
+
+def min_area_rectangle(xy: Array) -> tuple[Array, Array, float]:
+    """Minimum-area enclosing rectangle of 2D points (rotating calipers over the convex hull edges:
+    the optimal rectangle has a side collinear with a hull edge, Freeman & Shapira 1975).
+
+    Returns (centre (2,), extents (L, W) with L >= W, yaw of the L axis in (-pi/2, pi/2]). Degenerate
+    inputs (fewer than 3 points, collinear) fall back to the principal axis of the points.
+    """
+    if xy.shape[0] == 0:
+        raise ValueError("min_area_rectangle: no points")
+    hull = xy
+    try:
+        hull = xy[ConvexHull(xy).vertices]
+        edges = np.roll(hull, -1, axis=0) - hull
+        angles = np.unique(np.round(np.arctan2(edges[:, 1], edges[:, 0]) % (math.pi / 2.0), 12))
+    except (QhullError, ValueError):
+        angles = np.array([_principal_angle(xy)])
+    c, s = np.cos(angles), np.sin(angles)
+    # Coordinates of the hull points along u = (c, s) and v = (-s, c) for every candidate angle.
+    u = hull @ np.vstack([c, s])
+    v = hull @ np.vstack([-s, c])
+    du = u.max(axis=0) - u.min(axis=0)
+    dv = v.max(axis=0) - v.min(axis=0)
+    best = int(np.argmin(du * dv))
+    a = float(angles[best])
+    cu = 0.5 * (u[:, best].max() + u[:, best].min())
+    cv = 0.5 * (v[:, best].max() + v[:, best].min())
+    centre = np.array([cu * math.cos(a) - cv * math.sin(a), cu * math.sin(a) + cv * math.cos(a)])
+    length, width = float(du[best]), float(dv[best])
+    yaw = a
+    if width > length:
+        length, width = width, length
+        yaw = a + math.pi / 2.0
+    # Wrap into (-pi/2, pi/2]: a box's L axis is a line, yaw and yaw + pi are the same.
+    yaw = math.pi / 2.0 - ((math.pi / 2.0 - yaw) % math.pi)
+    return centre, np.array([length, width]), yaw
+
+
+def compute_roi(points_base: Array, table_z: float | None = None) -> ROI:
+    """The ROI of object points (N >= 1, base frame): AABB of the points; oriented box = minimum-area
+    rectangle in the table plane (x-y of the base frame, the table being level within the RANSAC tilt
+    bound), from ``table_z`` (if given, else the lowest point) up to the highest point."""
+    if points_base.shape[0] == 0:
+        raise ValueError("compute_roi: no points")
+    lo = points_base.min(axis=0)
+    hi = points_base.max(axis=0)
+    centre, extents, yaw = min_area_rectangle(points_base[:, :2])
+    z_min = float(lo[2]) if table_z is None else min(float(table_z), float(lo[2]))
+    return ROI(aabb_min=lo, aabb_max=hi, obb_center_xy=centre, obb_extent_xy=extents, obb_yaw_rad=yaw,
+               z_min=z_min, z_max=float(hi[2]), centroid=points_base.mean(axis=0),
+               n_points=int(points_base.shape[0]))
+
+
+@dataclass(frozen=True)
+class SegmentationResult:
+    """Output of :func:`segment_object`.
+
+    ``object_points`` (M, 3) [m, base frame]; ``roi`` None when no object was found; ``plane`` the table
+    plane (a, b, c, d) or None; ``table_z`` [m] the plane's height under the object's centroid (None
+    without plane or object); ``n_input`` points given, ``n_table`` removed as table (on or below the
+    plane), ``n_other`` removed by clustering (other clusters, noise).
+    """
+
+    object_points: Array
+    roi: ROI | None
+    plane: Array | None
+    table_z: float | None
+    n_input: int
+    n_table: int
+    n_other: int
+
+
+def segment_object(points_base: Array, params: SegmentationParams,
+                   rng: np.random.Generator | None = None, table_z: float | None = None,
+                   ) -> SegmentationResult:
+    """The whole segmentation chain (module docstring, steps 2-4) on occupied points (N, 3) [m, base].
+
+    ``rng`` drives RANSAC (default: a generator seeded with ``params.seed``). ``table_z`` [m] overrides
+    the ROI's bottom (e.g. the configured table height); by default the RANSAC plane's height under the
+    object's centroid is used. Returns ``roi = None`` (no exception) when nothing is left.
+    """
+    if rng is None:
+        rng = np.random.default_rng(params.seed)
+    points_base = np.asarray(points_base, dtype=np.float64).reshape(-1, 3)
+    n_input = points_base.shape[0]
+    candidates, plane = remove_table_plane(points_base, params, rng)
+    if params.method == "euclidean":
+        obj = largest_euclidean_cluster(candidates, params.cluster_tolerance_m, params.min_cluster_points)
+    else:
+        obj = dbscan_largest_cluster(candidates, params.dbscan_eps_m, params.dbscan_min_points,
+                                     params.min_cluster_points)
+    n_table = n_input - candidates.shape[0]
+    n_other = candidates.shape[0] - obj.shape[0]
+    if obj.shape[0] == 0:
+        return SegmentationResult(object_points=obj, roi=None, plane=plane, table_z=None, n_input=n_input,
+                                  n_table=n_table, n_other=n_other)
+    if table_z is None and plane is not None:
+        cx, cy = obj[:, 0].mean(), obj[:, 1].mean()
+        table_z = float(-(plane[0] * cx + plane[1] * cy + plane[3]) / plane[2])
+    return SegmentationResult(object_points=obj, roi=compute_roi(obj, table_z), plane=plane,
+                              table_z=table_z, n_input=n_input, n_table=n_table, n_other=n_other)
