@@ -1,0 +1,421 @@
+"""Probabilistic occupancy voxel map (visual-servoing paper section II-A 3, "Accumulation").
+
+The paper accumulates the registered clouds in OctoMap at 5 mm. This module is a numpy re-implementation
+of OctoMap's sensor model, with OctoMap's semantics and defaults:
+
+- log-odds per voxel, l = log(p / (1 - p)); unknown voxels have p = 0.5 (l = 0) and are not stored;
+- a hit adds logit(p_hit) (0.7), a miss adds logit(p_miss) (0.4); the result is clamped to
+  [logit(clamp_min), logit(clamp_max)] = [logit(0.12), logit(0.97)];
+- a voxel is occupied when p > occupied_threshold (0.5), free when known and not occupied;
+- one scan (``integrate``) updates every voxel at most once: the voxels a ray traverses get a miss, its end
+  voxel a hit, and a voxel that is both an end voxel and traversed in the same scan is updated as occupied
+  only (OctoMap ``computeUpdate`` / ``insertPointCloud`` with ``discretize=false``);
+- rays longer than ``max_range_m`` are truncated: the traversed voxels up to the truncated end get a miss,
+  the truncated end voxel is not updated and nothing is marked occupied (OctoMap's ``maxrange``).
+
+Grid: voxel keys k = floor(x / resolution_m) on a grid anchored at the base-frame origin; voxel centre
+(k + 0.5) * resolution_m. Storage is block-sparse: 16^3-voxel blocks of float32 log-odds (NaN = unknown)
+in one pool, addressed through a dense int32 index over the bounding box of the blocks, which grows on
+demand. Memory is bounded by the blocks that rays have touched; a query is two gathers.
+
+Ray traversal is exact voxel traversal (Amanatides and Woo, 1987), vectorised over all the voxel-boundary
+crossings of all the rays of a scan at once: a ray from o to e crosses |k(e) - k(o)|_1 boundaries, and the
+voxel it enters at the crossing of boundary b on axis a at parameter t = (b - o_a) / d_a has key b (or
+b - 1 going down) on axis a and floor(o + t d) on the other axes. The set of voxels is the one the
+incremental DDA visits (up to ties, where a ray passes exactly through an edge or corner of the grid).
+
+Entropy is the binary Shannon entropy of eq. 8 in nats; ``mean_entropy_in_box`` is H_ROI of eq. 12.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import PositiveFloat, model_validator
+
+from drivers.config_base import StrictModel
+
+Array = NDArray[np.float64]
+
+_BLOCK_BITS = 4
+_BLOCK = 1 << _BLOCK_BITS  # voxels per block edge
+_BLOCK_MASK = _BLOCK - 1
+_BLOCK_VOXELS = _BLOCK**3
+_GROW_MARGIN_BLOCKS = 4  # extra blocks on each side when the block index grows
+
+
+def logit(p: float) -> float:
+    """log(p / (1 - p))."""
+    return math.log(p / (1.0 - p))
+
+
+class OccupancyParams(StrictModel):
+    """Sensor model and grid of the occupancy map (OctoMap's defaults).
+
+    ``resolution_m`` [m] is the voxel edge (5 mm RGB-D cell, 1 cm ToF cell, from the cell config);
+    ``max_range_m`` [m] truncates longer rays (their end is then not marked occupied); None: no limit.
+    """
+
+    resolution_m: PositiveFloat
+    p_hit: float = 0.7
+    p_miss: float = 0.4
+    clamp_min: float = 0.12
+    clamp_max: float = 0.97
+    occupied_threshold: float = 0.5
+    max_range_m: PositiveFloat | None = None
+
+    @model_validator(mode="after")
+    def _check_probabilities(self) -> OccupancyParams:
+        if not 0.0 < self.p_miss < 0.5 < self.p_hit < 1.0:
+            raise ValueError(f"need 0 < p_miss < 0.5 < p_hit < 1, got p_miss={self.p_miss}, "
+                             f"p_hit={self.p_hit}")
+        if not 0.0 < self.clamp_min < self.clamp_max < 1.0:
+            raise ValueError(f"need 0 < clamp_min < clamp_max < 1, got clamp_min={self.clamp_min}, "
+                             f"clamp_max={self.clamp_max}")
+        if not self.clamp_min <= self.occupied_threshold <= self.clamp_max:
+            raise ValueError(f"occupied_threshold {self.occupied_threshold} must lie in "
+                             f"[clamp_min, clamp_max] = [{self.clamp_min}, {self.clamp_max}]")
+        return self
+
+
+def binary_entropy(p: Array) -> Array:
+    """Binary Shannon entropy of eq. 8 in nats: H(p) = -p ln p - (1 - p) ln(1 - p); H(0) = H(1) = 0."""
+    p = np.asarray(p, dtype=np.float64)
+    q = 1.0 - p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = -(np.where(p > 0, p * np.log(p), 0.0) + np.where(q > 0, q * np.log(q), 0.0))
+    return h
+
+
+class OccupancyMap:
+    """Log-odds occupancy voxel grid in the robot base frame; see the module docstring."""
+
+    def __init__(self, params: OccupancyParams) -> None:
+        self.params = params
+        self.resolution_m = float(params.resolution_m)
+        self._l_hit = np.float32(logit(params.p_hit))
+        self._l_miss = np.float32(logit(params.p_miss))
+        self._l_min = np.float32(logit(params.clamp_min))
+        self._l_max = np.float32(logit(params.clamp_max))
+        self._l_occ = np.float32(logit(params.occupied_threshold))
+        # Block index: dense int32 over blocks [_origin, _origin + shape); -1 = no block.
+        self._index = np.full((0, 0, 0), -1, dtype=np.int32)
+        self._origin = np.zeros(3, dtype=np.int64)
+        # Pool of blocks: log-odds (n_blocks * 4096,), NaN = unknown; block coordinates per slot.
+        self._pool = np.zeros(0, dtype=np.float32)
+        self._block_coords = np.zeros((0, 3), dtype=np.int64)
+        self._n_blocks = 0
+
+    # ------------------------------------------------------------------ keys and storage
+
+    def keys_of(self, points_base: Array) -> NDArray[np.int64]:
+        """Voxel keys floor(x / resolution) of points (M, 3) [m] in the base frame."""
+        return np.floor(np.asarray(points_base, dtype=np.float64) / self.resolution_m).astype(np.int64)
+
+    def centers_of(self, keys: NDArray[np.int64]) -> Array:
+        """Voxel centres (k + 0.5) * resolution [m] of keys (K, 3)."""
+        return (np.asarray(keys, dtype=np.float64) + 0.5) * self.resolution_m
+
+    def _grow_index(self, kmin: NDArray[np.int64], kmax: NDArray[np.int64]) -> None:
+        """Make the block index cover the voxel keys in [kmin, kmax] (inclusive)."""
+        bmin = kmin >> _BLOCK_BITS
+        bmax = kmax >> _BLOCK_BITS
+        shape = np.array(self._index.shape, dtype=np.int64)
+        if self._index.size and np.all(bmin >= self._origin) and np.all(bmax < self._origin + shape):
+            return
+        if self._index.size:
+            lo = np.minimum(bmin - _GROW_MARGIN_BLOCKS, self._origin)
+            hi = np.maximum(bmax + 1 + _GROW_MARGIN_BLOCKS, self._origin + shape)
+        else:
+            lo, hi = bmin - _GROW_MARGIN_BLOCKS, bmax + 1 + _GROW_MARGIN_BLOCKS
+        new = np.full(tuple(int(v) for v in hi - lo), -1, dtype=np.int32)
+        if self._index.size:
+            o = self._origin - lo
+            new[o[0]:o[0] + shape[0], o[1]:o[1] + shape[1], o[2]:o[2] + shape[2]] = self._index
+        self._index, self._origin = new, lo
+
+    def _slots(self, keys: NDArray[np.int64], allocate: bool) -> NDArray[np.int64]:
+        """Flat pool indices of voxel keys (M, 3); -1 where the block does not exist (allocate=False)."""
+        b = (keys >> _BLOCK_BITS) - self._origin
+        sx, sy, sz = self._index.shape
+        if not allocate:
+            inside = ((b[:, 0] >= 0) & (b[:, 0] < sx) & (b[:, 1] >= 0) & (b[:, 1] < sy)
+                      & (b[:, 2] >= 0) & (b[:, 2] < sz))
+            b = np.where(inside[:, None], b, 0)
+        flat = (b[:, 0] * sy + b[:, 1]) * sz + b[:, 2]
+        slot = self._index.reshape(-1)[flat] if self._index.size else np.full(flat.shape, -1, np.int32)
+        if allocate:
+            missing = slot < 0
+            if np.any(missing):
+                self._allocate(np.unique(flat[missing]))
+                slot = self._index.reshape(-1)[flat]
+        else:
+            slot = np.where(inside, slot, -1)
+        local = (((keys[:, 0] & _BLOCK_MASK) << (2 * _BLOCK_BITS))
+                 | ((keys[:, 1] & _BLOCK_MASK) << _BLOCK_BITS) | (keys[:, 2] & _BLOCK_MASK))
+        out = slot.astype(np.int64) * _BLOCK_VOXELS + local
+        if not allocate:
+            out[slot < 0] = -1
+        return out
+
+    def _allocate(self, flat_blocks: NDArray[np.int64]) -> None:
+        n_new = flat_blocks.size
+        need = (self._n_blocks + n_new) * _BLOCK_VOXELS
+        if need > self._pool.size:
+            cap = max(need, 2 * self._pool.size)
+            pool = np.full(cap, np.nan, dtype=np.float32)
+            pool[:self._pool.size] = self._pool
+            self._pool = pool
+            coords = np.zeros((cap // _BLOCK_VOXELS, 3), dtype=np.int64)
+            coords[:self._n_blocks] = self._block_coords[:self._n_blocks]
+            self._block_coords = coords
+        slots = np.arange(self._n_blocks, self._n_blocks + n_new, dtype=np.int32)
+        self._index.reshape(-1)[flat_blocks] = slots
+        self._block_coords[self._n_blocks:self._n_blocks + n_new] = (
+            np.stack(np.unravel_index(flat_blocks, self._index.shape), axis=1) + self._origin)
+        self._n_blocks += n_new
+
+    # ------------------------------------------------------------------ integration
+
+    def integrate(self, origin_base: Array, endpoints_base: Array, *,
+                  free_only: NDArray[np.bool_] | None = None) -> None:
+        """Integrate one scan: rays from the sensor origin ``origin_base`` (3,) [m] to ``endpoints_base``
+        (N, 3) [m], both in the base frame.
+
+        Traversed voxels get a miss, each end voxel a hit; rays flagged in ``free_only`` (N,) have no
+        target (a ToF zone without a return, carved to the sensor's range): all their voxels, the end voxel
+        included, get a miss. Each voxel is updated at most once per scan, occupied winning over free.
+        """
+        o = np.asarray(origin_base, dtype=np.float64).reshape(3)
+        e = np.asarray(endpoints_base, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(o)) or not np.all(np.isfinite(e)):
+            raise ValueError("integrate: origin and endpoints must be finite")
+        n = e.shape[0]
+        if n == 0:
+            return
+        fo = np.zeros(n, dtype=bool) if free_only is None else np.asarray(free_only, dtype=bool).reshape(n)
+        hit = ~fo
+        exclude_end = np.zeros(n, dtype=bool)
+        if self.params.max_range_m is not None:
+            d = e - o
+            length = np.sqrt(np.einsum("ij,ij->i", d, d))
+            far = length > self.params.max_range_m
+            if np.any(far):
+                e = e.copy()
+                e[far] = o + d[far] * (self.params.max_range_m / length[far])[:, None]
+                exclude_end = far & hit
+                hit = hit & ~far
+        res = self.resolution_m
+        k0 = np.floor(o / res).astype(np.int64)
+        ke = np.floor(e / res).astype(np.int64)
+        self._grow_index(np.minimum(ke.min(axis=0), k0), np.maximum(ke.max(axis=0), k0))
+        # Local voxel coordinates: relative to the corner of the block index (all >= 64, margin included).
+        org = self._origin * _BLOCK
+        Og = o / res - org
+        E = e / res - org
+        u0 = k0 - org
+        ue = ke - org
+        # Blocks first: the same traversal on the block grid gives every block the rays pass through.
+        bO, bE = Og / _BLOCK, E / _BLOCK
+        bk0, bke = u0 >> _BLOCK_BITS, ue >> _BLOCK_BITS
+        coarse = [bk0[None, :]]
+        for a, _cnt, ua, ub in self._crossings(bO, bE, bk0, bke):
+            coarse.append(np.stack([ua if i == a else ub[i] for i in range(3)], axis=1))
+        bkeys = np.concatenate([*coarse, bke], axis=0)
+        self._ensure_blocks(bkeys)
+
+        parts = []
+        if not np.all(exclude_end & np.all(ke == k0, axis=1)):
+            parts.append(self._pool_index(u0[None, 0], u0[None, 1], u0[None, 2]))
+        for a, cnt, ua, ub in self._crossings(Og, E, u0, ue):
+            uvw = [ua if i == a else ub[i] for i in range(3)]
+            idx = self._pool_index(*uvw)
+            if np.any(exclude_end):
+                rays = np.repeat(np.arange(n), cnt)
+                sel = exclude_end[rays]
+                drop = sel & (uvw[0] == ue[rays, 0]) & (uvw[1] == ue[rays, 1]) & (uvw[2] == ue[rays, 2])
+                idx = idx[~drop]
+            parts.append(idx)
+        if np.any(fo):
+            parts.append(self._pool_index(ue[fo, 0], ue[fo, 1], ue[fo, 2]))
+        free_idx = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+        hit_idx = self._pool_index(ue[hit, 0], ue[hit, 1], ue[hit, 2])
+        pool = self._pool
+        old_hit = pool[hit_idx]  # gathered before the misses: occupied wins, one update per voxel
+        old_free = pool[free_idx]
+        old_free[np.isnan(old_free)] = 0.0
+        old_hit[np.isnan(old_hit)] = 0.0
+        pool[free_idx] = np.maximum(old_free + self._l_miss, self._l_min)
+        pool[hit_idx] = np.minimum(old_hit + self._l_hit, self._l_max)
+
+    @staticmethod
+    def _crossings(Og: Array, E: Array, u0: NDArray[np.int64], ue: NDArray[np.int64]):  # noqa: ANN205
+        """Voxel-boundary crossings of the rays Og -> E (grid units), per axis a: yields (a, cnt, ua, ub)
+        with cnt (N,) the crossings per ray on axis a, ua (n,) the key on axis a of the voxel entered at
+        each crossing (ray-major order) and ub the keys on the other axes (dict axis -> (n,)), floor of the
+        ray point just after the crossing parameter t = (boundary - O_a) / D_a."""
+        D = E - Og
+        dk = ue - u0
+        for a in range(3):
+            cnt = np.abs(dk[:, a])
+            total = int(cnt.sum())
+            if total == 0:
+                continue
+            sel = np.flatnonzero(cnt)
+            c = cnt[sel]
+            s = np.sign(dk[sel, a])
+            Da = D[sel, a]
+            # first boundary crossed: u0 + 1 going up, u0 going down; t advances by 1/|D_a| per crossing
+            first = u0[a] + (s > 0)
+            t0 = (first - Og[a]) / Da
+            dt = 1.0 / np.abs(Da)
+            starts = np.cumsum(c) - c
+            rays = np.repeat(np.arange(c.size), c)  # ray of each crossing
+            j1 = np.arange(1, total + 1, dtype=np.int64) - np.take(starts, rays)  # crossing number, from 1
+            ua = np.take(s, rays) * j1 + u0[a]
+            jf = j1.astype(np.float64)
+            ub = {}
+            for b in range(3):
+                if b != a:
+                    Db = D[sel, b]
+                    B = dt * Db
+                    # point at crossing j1: Og + (t0 + (j1 - 1) dt) D, nudged by 1e-9 voxel along the ray so
+                    # that a tie (the ray crossing an edge of the grid) takes the voxel after both crossings
+                    A = Og[b] + t0 * Db - B + np.sign(Db) * 1e-9
+                    # local coordinates are >= 64, so truncation is floor
+                    ub[b] = (np.take(B, rays) * jf + np.take(A, rays)).astype(np.int64)
+            full = np.zeros(cnt.size, dtype=np.int64)
+            full[sel] = c
+            yield a, full, ua, ub
+
+    def _ensure_blocks(self, bkeys: NDArray[np.int64]) -> None:
+        """Allocate the blocks with local block keys (K, 3) that do not exist yet."""
+        _, sy, sz = self._index.shape
+        flat = (bkeys[:, 0] * sy + bkeys[:, 1]) * sz + bkeys[:, 2]
+        missing = self._index.reshape(-1)[flat] < 0
+        if np.any(missing):
+            self._allocate(np.unique(flat[missing]))
+
+    def _pool_index(self, ux: NDArray[np.int64], uy: NDArray[np.int64],
+                    uz: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Pool indices of voxels with local keys (ux, uy, uz); allocates blocks that are missing (rays
+        through an exact grid edge can miss a block in the coarse pass)."""
+        _, sy, sz = self._index.shape
+        bflat = ((ux >> _BLOCK_BITS) * sy + (uy >> _BLOCK_BITS)) * sz + (uz >> _BLOCK_BITS)
+        slot = self._index.reshape(-1)[bflat]
+        if slot.size and slot.min() < 0:
+            self._allocate(np.unique(bflat[slot < 0]))
+            slot = self._index.reshape(-1)[bflat]
+        local = ((ux & _BLOCK_MASK) << (2 * _BLOCK_BITS)) | ((uy & _BLOCK_MASK) << _BLOCK_BITS) \
+            | (uz & _BLOCK_MASK)
+        return slot.astype(np.int64) * _BLOCK_VOXELS + local
+
+    # ------------------------------------------------------------------ queries
+
+    def logodds(self, points_base: Array) -> NDArray[np.float32]:
+        """Log-odds at points (M, 3) [m]; 0 for unknown voxels."""
+        lo = self._raw(points_base)
+        return np.nan_to_num(lo, nan=0.0)
+
+    def _raw(self, points_base: Array) -> NDArray[np.float32]:
+        pts = np.asarray(points_base, dtype=np.float64).reshape(-1, 3)
+        if self._n_blocks == 0 or pts.shape[0] == 0:
+            return np.full(pts.shape[0], np.nan, dtype=np.float32)
+        idx = self._slots(self.keys_of(pts), allocate=False)
+        lo = self._pool[np.maximum(idx, 0)]
+        lo[idx < 0] = np.nan
+        return lo
+
+    def probability(self, points_base: Array) -> Array:
+        """Occupancy probability at points (M, 3) [m]; 0.5 for unknown voxels."""
+        lo = self.logodds(points_base).astype(np.float64)
+        return 1.0 / (1.0 + np.exp(-lo))
+
+    def entropy(self, points_base: Array) -> Array:
+        """Binary entropy of eq. 8 [nats] of the occupancy at points (M, 3) [m]; ln 2 for unknown."""
+        return binary_entropy(self.probability(points_base))
+
+    def is_known(self, points_base: Array) -> NDArray[np.bool_]:
+        """True where the voxel of a point (M, 3) [m] has been observed."""
+        return ~np.isnan(self._raw(points_base))
+
+    def is_occupied(self, points_base: Array) -> NDArray[np.bool_]:
+        """True where the voxel is known and p > occupied_threshold."""
+        return self._raw(points_base) > self._l_occ  # NaN compares False
+
+    # ------------------------------------------------------------------ whole-map views
+
+    def _known(self) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        """Keys (K, 3) sorted lexicographically (x, y, z) and log-odds (K,) of all known voxels."""
+        pool = self._pool[:self._n_blocks * _BLOCK_VOXELS]
+        flat = np.flatnonzero(~np.isnan(pool))
+        slot = flat >> (3 * _BLOCK_BITS)
+        local = flat & (_BLOCK_VOXELS - 1)
+        keys = self._block_coords[slot] << _BLOCK_BITS
+        keys[:, 0] |= local >> (2 * _BLOCK_BITS)
+        keys[:, 1] |= (local >> _BLOCK_BITS) & _BLOCK_MASK
+        keys[:, 2] |= local & _BLOCK_MASK
+        order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
+        return keys[order], pool[flat[order]]
+
+    def known_keys(self) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        """Keys (K, 3) and log-odds (K,) of every observed voxel, sorted by key (x, then y, then z)."""
+        return self._known()
+
+    def occupied_keys(self) -> NDArray[np.int64]:
+        keys, lo = self._known()
+        return keys[lo > self._l_occ]
+
+    def free_keys(self) -> NDArray[np.int64]:
+        keys, lo = self._known()
+        return keys[lo <= self._l_occ]
+
+    def occupied_centers(self) -> Array:
+        """Centres (K, 3) [m] of the occupied voxels, base frame, sorted by key."""
+        return self.centers_of(self.occupied_keys())
+
+    def free_centers(self) -> Array:
+        """Centres (K, 3) [m] of the known free voxels, base frame, sorted by key."""
+        return self.centers_of(self.free_keys())
+
+    @property
+    def n_known(self) -> int:
+        """Number of observed voxels."""
+        return int(np.count_nonzero(~np.isnan(self._pool[:self._n_blocks * _BLOCK_VOXELS])))
+
+    def bounds(self) -> tuple[Array, Array] | None:
+        """(min, max) corners [m] of the axis-aligned box of the observed voxels; None for an empty map."""
+        keys, _ = self._known()
+        if keys.shape[0] == 0:
+            return None
+        return keys.min(axis=0) * self.resolution_m, (keys.max(axis=0) + 1) * self.resolution_m
+
+    def set_logodds(self, keys: NDArray[np.int64], logodds: NDArray[np.floating]) -> None:
+        """Set the log-odds of voxels (K, 3) directly (clamped); used by the .bt reader and tests."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+        if keys.shape[0] == 0:
+            return
+        self._grow_index(keys.min(axis=0), keys.max(axis=0))
+        idx = self._slots(keys, allocate=True)
+        self._pool[idx] = np.clip(np.asarray(logodds, dtype=np.float32), self._l_min, self._l_max)
+
+    def voxel_keys_in_box(self, min_m: Array, max_m: Array) -> NDArray[np.int64]:
+        """Keys of all voxels (known or not) whose interior intersects the box [min_m, max_m] [m]."""
+        lo = np.floor(np.asarray(min_m, dtype=np.float64) / self.resolution_m).astype(np.int64)
+        hi = np.ceil(np.asarray(max_m, dtype=np.float64) / self.resolution_m).astype(np.int64) - 1
+        hi = np.maximum(hi, lo)
+        axes = [np.arange(lo[i], hi[i] + 1) for i in range(3)]
+        grid = np.meshgrid(*axes, indexing="ij")
+        return np.stack([g.reshape(-1) for g in grid], axis=1)
+
+    def voxels_in_box(self, min_m: Array, max_m: Array) -> Array:
+        """Centres (K, 3) [m] of all voxels (known or unknown) whose interior intersects the axis-aligned
+        box [min_m, max_m] [m] (base frame); a box inside one voxel gives that voxel."""
+        return self.centers_of(self.voxel_keys_in_box(min_m, max_m))
+
+    def mean_entropy_in_box(self, min_m: Array, max_m: Array) -> float:
+        """H_ROI of eq. 12: the mean binary entropy (eq. 8, nats) over the voxels V_ROI of the box
+        (``voxels_in_box``); unknown voxels count ln 2."""
+        return float(np.mean(self.entropy(self.voxels_in_box(min_m, max_m))))

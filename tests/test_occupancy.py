@@ -1,0 +1,195 @@
+"""Occupancy map: OctoMap sensor model (log-odds, hit/miss, clamping, one update per scan), ray traversal
+on synthetic geometry, ToF carving, eq. 8 entropy and eq. 12 H_ROI."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from cell.perception.occupancy import OccupancyMap, OccupancyParams, binary_entropy, logit
+
+RES = 0.01
+
+
+def make_map(**kw) -> OccupancyMap:
+    return OccupancyMap(OccupancyParams(resolution_m=RES, **kw))
+
+
+def plane_scan(depth_m: float = 0.3, half_m: float = 0.05, step_m: float = 0.0025) -> np.ndarray:
+    """Endpoints on the plane z = 1 - depth_m seen from a sensor at (0.003, 0.004, 1.0) looking down -z."""
+    g = np.arange(-half_m, half_m + 1e-9, step_m)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    return np.stack([x.ravel() + 0.003, y.ravel() + 0.004, np.full(x.size, 1.0 - depth_m)], axis=1)
+
+
+ORIGIN = np.array([0.003, 0.004, 1.0])
+
+
+def test_params_validation():
+    with pytest.raises(ValidationError):
+        OccupancyParams(resolution_m=0.01, p_hit=0.4)
+    with pytest.raises(ValidationError):
+        OccupancyParams(resolution_m=0.01, p_miss=0.6)
+    with pytest.raises(ValidationError):
+        OccupancyParams(resolution_m=0.01, clamp_min=0.9, clamp_max=0.8)
+    with pytest.raises(ValidationError):
+        OccupancyParams(resolution_m=0.0)
+    with pytest.raises(ValidationError):
+        OccupancyParams(resolution_m=0.01, unknown_field=1)
+    p = OccupancyParams(resolution_m=0.005)
+    assert (p.p_hit, p.p_miss, p.clamp_min, p.clamp_max, p.occupied_threshold) == (0.7, 0.4, 0.12, 0.97, 0.5)
+
+
+def test_unknown_is_half_and_ln2():
+    m = make_map()
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 3.0]])
+    assert np.allclose(m.probability(pts), 0.5)
+    assert np.allclose(m.entropy(pts), math.log(2.0))
+    assert not m.is_known(pts).any()
+    assert m.n_known == 0 and m.bounds() is None
+    m.integrate(ORIGIN, plane_scan())
+    far = np.array([[5.0, 5.0, 5.0], [-3.0, 0.0, 0.0]])  # outside the block index
+    assert np.allclose(m.probability(far), 0.5) and not m.is_known(far).any()
+
+
+def test_plane_free_before_occupied_at_unknown_behind():
+    m = make_map()
+    m.integrate(ORIGIN, plane_scan(depth_m=0.3))
+    z_plane = 0.7
+    xy = np.array([0.003, 0.004])
+    before = np.array([[*xy, z] for z in np.arange(z_plane + 0.02, 0.99, 0.01)])
+    at = np.array([[*xy, z_plane + 1e-4]])
+    behind = np.array([[*xy, z] for z in np.arange(z_plane - 0.02, 0.5, -0.01)])
+    assert np.allclose(m.probability(before), 0.4)
+    assert np.allclose(m.probability(at), 0.7)
+    assert not m.is_known(behind).any()
+    occ = m.occupied_centers()
+    assert occ.shape[0] > 0
+    assert np.allclose(occ[:, 2], (math.floor(z_plane / RES) + 0.5) * RES)
+    free = m.free_centers()
+    assert np.all(free[:, 2] > z_plane)
+    keys, _ = m.known_keys()
+    assert keys.shape[0] == m.n_known == occ.shape[0] + free.shape[0]
+    lo_min, hi = m.bounds()
+    assert lo_min[2] == pytest.approx(math.floor(z_plane / RES) * RES)
+    assert hi[2] == pytest.approx((math.floor(1.0 / RES) + 1) * RES)
+
+
+def test_single_ray_voxels_match_brute_force_sampling():
+    m = make_map()
+    o = np.array([0.0012, 0.0031, 0.0047])
+    e = np.array([[0.137, -0.0615, 0.0893]])
+    m.integrate(o, e)
+    t = np.linspace(0.0, 1.0, 200001)[:-1]
+    sampled = {tuple(k) for k in np.floor((o + t[:, None] * (e[0] - o)) / RES).astype(int)}
+    end = tuple(np.floor(e[0] / RES).astype(int))
+    sampled.discard(end)
+    free = {tuple(k) for k in np.floor(m.free_centers() / RES).astype(int)}
+    assert free == sampled
+    occ = {tuple(k) for k in np.floor(m.occupied_centers() / RES).astype(int)}
+    assert occ == {end}
+
+
+def test_tof_no_target_carves_to_range_and_nothing_occupied():
+    m = make_map()
+    o = np.array([0.0, 0.0, 0.5])
+    dirs = np.array([[0.0, 0.0, -1.0], [0.3, 0.0, -1.0], [0.0, -0.2, -1.0]])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    range_m = 0.4
+    ends = o + dirs * range_m
+    m.integrate(o, ends, free_only=np.ones(3, dtype=bool))
+    assert m.occupied_centers().shape[0] == 0
+    for d in dirs:
+        along = o + d * np.linspace(0.0, range_m - 1e-6, 200)[:, None]
+        assert m.is_known(along).all()
+        assert np.allclose(m.probability(along), 0.4)
+        assert not m.is_known((o + d * (range_m + 0.03))[None]).any()
+
+
+def test_free_only_mask_mixes_hits_and_carving():
+    m = make_map()
+    o = np.array([0.0, 0.0, 0.5])
+    ends = np.array([[0.0, 0.0, 0.2], [0.1, 0.0, 0.2]])
+    m.integrate(o, ends, free_only=np.array([False, True]))
+    assert m.probability(ends[:1])[0] == pytest.approx(0.7)
+    assert m.probability(ends[1:])[0] == pytest.approx(0.4)
+
+
+def test_max_range_truncates_without_occupied_end():
+    m = make_map(max_range_m=0.2)
+    o = np.array([0.0, 0.0, 0.5])
+    ends = np.array([[0.0, 0.0, 0.0], [0.0, 0.1, 0.4]])  # 0.5 m (truncated) and 0.14 m (kept)
+    m.integrate(o, ends)
+    occ = m.occupied_centers()
+    assert occ.shape[0] == 1 and np.allclose(occ[0], (np.floor(ends[1] / RES) + 0.5) * RES)
+    assert m.probability(np.array([[0.0, 0.0, 0.35]]))[0] == pytest.approx(0.4)
+    assert not m.is_known(np.array([[0.0, 0.0, 0.29]])).any()  # beyond the truncated end (z = 0.3)
+
+
+def test_one_update_per_voxel_per_scan_and_occupied_wins():
+    m = make_map()
+    o = np.array([0.0, 0.0, 0.5])
+    # many rays to the same end voxel, and a longer ray that passes through it
+    ends = np.array([[0.0021, 0.0033, 0.2041]] * 50 + [[0.0022, 0.0034, 0.1]])
+    m.integrate(o, ends)
+    assert m.logodds(ends[:1])[0] == pytest.approx(logit(0.7), rel=1e-6)
+    assert m.logodds(np.array([[0.002, 0.003, 0.4]]))[0] == pytest.approx(logit(0.4), rel=1e-6)
+    m.integrate(o, ends)
+    assert m.logodds(ends[:1])[0] == pytest.approx(2 * logit(0.7), rel=1e-6)
+
+
+def test_clamping_after_many_hits_and_misses():
+    m = make_map()
+    o = np.array([0.0, 0.0, 0.5])
+    end = np.array([[0.0, 0.0, 0.2]])
+    for _ in range(40):
+        m.integrate(o, end)
+    assert m.probability(end)[0] == pytest.approx(0.97, rel=1e-5)
+    for _ in range(40):
+        m.integrate(o, end, free_only=np.array([True]))
+    assert m.probability(end)[0] == pytest.approx(0.12, rel=1e-5)
+    m.integrate(o, end)
+    assert m.logodds(end)[0] == pytest.approx(logit(0.12) + logit(0.7), rel=1e-5)
+
+
+def test_entropy_eq8_on_known_values():
+    p = np.array([0.5, 0.7, 0.4, 0.97, 0.12, 0.0, 1.0])
+    expected = [-(q * math.log(q) + (1 - q) * math.log(1 - q)) if 0 < q < 1 else 0.0 for q in p]
+    assert np.allclose(binary_entropy(p), expected)
+    m = make_map()
+    o = np.array([0.0, 0.0, 0.5])
+    m.integrate(o, np.array([[0.0, 0.0, 0.2]]))
+    h = m.entropy(np.array([[0.0, 0.0, 0.2], [0.0, 0.0, 0.3], [0.0, 0.0, 0.1]]))
+    assert np.allclose(h, binary_entropy(np.array([0.7, 0.4, 0.5])))
+
+
+def test_voxels_in_box_and_mean_entropy_eq12():
+    m = make_map()
+    keys = np.array([[0, 0, 0], [1, 0, 0]])
+    m.set_logodds(keys, np.array([logit(0.7), logit(0.12)]))
+    c = m.voxels_in_box([0.0, 0.0, 0.0], [0.02, 0.02, 0.01])  # 2 x 2 x 1 voxels
+    assert c.shape == (4, 3)
+    assert np.allclose(np.sort(c[:, 0]), [0.005, 0.005, 0.015, 0.015])
+    h = binary_entropy(np.array([0.7, 0.12, 0.5, 0.5]))
+    assert m.mean_entropy_in_box([0.0, 0.0, 0.0], [0.02, 0.02, 0.01]) == pytest.approx(h.mean(), rel=1e-6)
+    # a box inside one voxel is that voxel
+    assert m.voxels_in_box([0.001, 0.001, 0.001], [0.002, 0.002, 0.002]).shape == (1, 3)
+
+
+def test_negative_coordinates_and_growth():
+    m = make_map()
+    m.integrate(np.array([-0.5, -0.5, 0.5]), np.array([[-0.52, -0.49, -0.3]]))
+    m.integrate(np.array([2.0, 1.0, 0.5]), np.array([[2.1, 1.05, 0.1]]))
+    assert m.probability(np.array([[-0.52, -0.49, -0.3]]))[0] == pytest.approx(0.7)
+    assert m.probability(np.array([[2.1, 1.05, 0.1]]))[0] == pytest.approx(0.7)
+
+
+def test_empty_and_invalid_input():
+    m = make_map()
+    m.integrate(np.zeros(3), np.zeros((0, 3)))
+    assert m.n_known == 0
+    with pytest.raises(ValueError):
+        m.integrate(np.zeros(3), np.array([[np.nan, 0.0, 0.0]]))
