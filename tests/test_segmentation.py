@@ -215,3 +215,20 @@ def test_min_area_rectangle_and_roi_helpers() -> None:
 def test_threshold_occupancy() -> None:
     c = np.arange(12.0).reshape(4, 3)
     np.testing.assert_array_equal(threshold_occupancy(c, np.array([0.2, 0.5, 0.51, 0.9])), c[2:])
+
+
+@pytest.mark.parametrize(("res", "params"), [
+    (0.005, SegmentationParams()),
+    (0.01, SegmentationParams(plane_distance_m=0.012, cluster_tolerance_m=0.015)),
+    (0.01, SegmentationParams(method="dbscan", plane_distance_m=0.012)),
+])
+@pytest.mark.parametrize("name", ["bunny", "horizontal_box", "mustard", "banana"])
+def test_on_voxel_centres(name: str, res: float, params: SegmentationParams) -> None:
+    """On occupied voxel centres (the map's output), the table at z = 0 straddles two voxel layers."""
+    cloud, _, verts = _scene(name, n=20000)
+    centres = (np.unique(np.floor(cloud / res).astype(np.int64), axis=0) + 0.5) * res
+    res_ = segment_object(centres, params)
+    assert res_.roi is not None
+    assert np.count_nonzero(res_.object_points[:, 2] <= 0.003) == 0
+    assert np.all(np.abs(res_.roi.aabb_max - verts.max(axis=0)) < 0.015)
+    assert np.all(np.abs(res_.roi.aabb_min[:2] - verts.min(axis=0)[:2]) < 0.015)

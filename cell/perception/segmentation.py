@@ -46,6 +46,11 @@ class SegmentationParams(StrictModel):
     hypotheses drawn; ``table_normal_max_tilt_deg`` only planes whose normal is within this angle of +z
     are accepted as the table; ``min_cluster_points`` a smaller largest cluster means "no object";
     ``seed`` of the RANSAC generator when the caller gives none.
+
+    On voxel centres, ``plane_distance_m`` must exceed the map resolution: a table lying on a voxel
+    boundary occupies two layers one resolution apart, and the upper one would otherwise join the object
+    (the default 6 mm suits the 5 mm RGB-D map; use ~12 mm with ``cluster_tolerance_m`` ~15 mm for a 1 cm
+    ToF map). ``cluster_tolerance_m`` must exceed the resolution for face-adjacent voxels to connect.
     """
 
     method: Literal["euclidean", "dbscan"] = "euclidean"
