@@ -364,6 +364,10 @@ class OccupancyMap:
         """Keys (K, 3) and log-odds (K,) of every observed voxel, sorted by key (x, then y, then z)."""
         return self._known()
 
+    def classify_logodds(self, logodds: NDArray[np.floating]) -> NDArray[np.bool_]:
+        """Occupied (True) or free (False) for log-odds of known voxels: p > occupied_threshold."""
+        return np.asarray(logodds) > self._l_occ
+
     def occupied_keys(self) -> NDArray[np.int64]:
         keys, lo = self._known()
         return keys[lo > self._l_occ]
