@@ -110,7 +110,8 @@ def main() -> None:
     ours_ms, octo_ms = min(ours_s) / n * 1e3, min(octo_s) / n * 1e3
     print(f"ours:    {ours_ms:8.1f} ms/frame  ({ours_keys.shape[0]} known voxels, "
           f"{int(ours_occ.sum())} occupied)")
-    print(f"octomap: {octo_ms:8.1f} ms/frame  ({ref_keys.shape[0]} known voxels, {int(ref_occ.sum())} occupied)")
+    print(f"octomap: {octo_ms:8.1f} ms/frame  ({ref_keys.shape[0]} known voxels, "
+          f"{int(ref_occ.sum())} occupied)")
     print(f"known to both: {common.size}; only ours {ours_keys.shape[0] - common.size}, "
           f"only octomap {ref_keys.shape[0] - common.size}; occupied/free agreement {agree:.4f}")
     print(json.dumps({"speedup": round(octo_ms / ours_ms, 3), "agreement": round(agree, 5),
