@@ -26,7 +26,7 @@ app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_hel
                   pretty_exceptions_enable=False)
 config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
-console = Console()
+console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
 

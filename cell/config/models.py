@@ -11,6 +11,10 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
+from cell.perception.filters import FilterParams
+from cell.perception.occupancy import OccupancyParams
+from cell.perception.registration import RegistrationParams
+from cell.perception.segmentation import SegmentationParams
 from drivers.arm.config import ArmConfig
 from drivers.config_base import StrictModel
 from drivers.depth.config import DepthConfig
@@ -59,10 +63,17 @@ class CropBoxConfig(StrictModel):
 
 
 class PerceptionConfig(StrictModel):
-    """Per-frame processing: crop box in the sensor frame and the accumulation voxel size [m]."""
+    """The per-frame pipeline (visual-servoing paper section II-A): crop box in the sensor frame, the
+    voxel size [m] of filtering and accumulation (2.5 mm), the rate [Hz] at which frames are taken while
+    the arm moves (sim time in sim mode; the paper ran at 0.7-1.3 Hz), and each stage's parameters."""
 
     crop_box: CropBoxConfig
     voxel_m: PositiveFloat = 0.0025
+    rate_hz: float = Field(gt=0.0, le=60.0)
+    filters: FilterParams = FilterParams()
+    registration: RegistrationParams
+    occupancy: OccupancyParams
+    segmentation: SegmentationParams = SegmentationParams()
 
 
 class WorkspaceConfig(StrictModel):

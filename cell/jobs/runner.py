@@ -21,6 +21,7 @@ from cell.config.models import CellConfig
 from cell.jobs.recorder import JobRecorder
 from cell.jobs.session import JobSession, TimeBudgetExhausted
 from cell.perception.metrics import N_GROUND_TRUTH_POINTS, CoverageTracker, compute_metrics
+from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.registry import get_planner
 from cell.safety.guard import MotionGuard
 from drivers.clock import SimClock
@@ -72,6 +73,24 @@ def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
     return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in values.items()}
 
 
+def _perception_summary(session: JobSession | None) -> dict[str, Any]:
+    """The ``perception`` section of result.json: registration counts, the last ROI and H_ROI."""
+    latest = session.latest_perception() if session is not None else None
+    roi = latest.roi if latest is not None else None
+    return {
+        "n_frames": session.n_captures if session else 0,
+        "n_registration_rejected": session.n_registration_rejected if session else 0,
+        "h_roi": round(latest.h_roi, 6) if latest is not None and latest.h_roi is not None else None,
+        "roi": None if roi is None else {
+            "aabb_min_m": np.round(roi.aabb_min, 6).tolist(),
+            "aabb_max_m": np.round(roi.aabb_max, 6).tolist(),
+            "obb_center_xy_m": np.round(roi.obb_center_xy, 6).tolist(),
+            "obb_extent_xy_m": np.round(roi.obb_extent_xy, 6).tolist(),
+            "obb_yaw_rad": round(float(roi.obb_yaw_rad), 6),
+        },
+    }
+
+
 def _stop_after(guard: MotionGuard, recorder: JobRecorder, t: float, exc: BaseException) -> None:
     """Stop the arm after a failure in the loop; a failing stop is logged, not allowed to hide ``exc``."""
     try:
@@ -95,12 +114,14 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     recorder = JobRecorder(folder)
     wall_start = time.monotonic()
 
-    rng = np.random.default_rng(req.seed)
+    # One seed per job, split into independent streams so that perception's random draws (RANSAC) never
+    # change the noise the simulated devices see.
+    world_rng, perception_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(req.seed).spawn(2))
     clock = SimClock()
     T_base_object = object_pose_in_base(cfg, req.object_pose)
     scene = SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
                      table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
-    world = SimWorld(clock=clock, rng=rng, scene=scene)
+    world = SimWorld(clock=clock, rng=world_rng, scene=scene)
     model = get_robot_model(cfg.arm.model)
     T_flange_sensor = cfg.mount.matrix()
     arm = make_arm(cfg.arm, model, world)
@@ -117,8 +138,10 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
                       f"seed {req.seed}, config {req.config_path}")
     try:
         with arm, sensor:
+            perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
+                                            range_max_m=sensor.model.range_max_m, rng=perception_rng)
             session = JobSession(cfg, clock=clock, guard=guard, model=model, sensor=sensor,
-                                 recorder=recorder, max_time_s=max_time,
+                                 perception=perception, recorder=recorder, max_time_s=max_time,
                                  coverage=CoverageTracker(ground_truth), on_progress=on_progress)
             try:
                 termination = planner.run(session)
@@ -156,6 +179,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "n_cloud_points": int(cloud.shape[0]),
             "object_pose": np.round(T_base_object, 9).tolist(),
             "metrics": _finite_or_none(metrics.as_dict()),
+            "perception": _perception_summary(session),
             "safety": guard.log.as_dict(),
         }
         recorder.result(result)

@@ -14,8 +14,9 @@ import numpy as np
 from cell.config.models import CellConfig
 from cell.control.trajectory import joint_trajectory
 from cell.jobs.recorder import JobRecorder
-from cell.perception.cloud import CloudAccumulator, crop_box
+from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CoverageTracker
+from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard
 from drivers.arm.base import ArmMode
@@ -37,8 +38,8 @@ class JobSession:
     """Implements ``cell.planning.base.ScanSession`` for one job."""
 
     def __init__(self, config: CellConfig, *, clock: Clock, guard: MotionGuard, model: RobotModel,
-                 sensor: DepthSensor, recorder: JobRecorder, max_time_s: float,
-                 coverage: CoverageTracker | None,
+                 sensor: DepthSensor, perception: PerceptionPipeline, recorder: JobRecorder,
+                 max_time_s: float, coverage: CoverageTracker | None,
                  on_progress: Callable[[JobSession], None] | None = None) -> None:
         self.config = config
         self._clock = clock
@@ -51,11 +52,13 @@ class JobSession:
         self._T_flange_sensor = config.mount.matrix()
         home = config.arm.home_joints_rad
         self._q_home = np.asarray(home, dtype=float) if home is not None else model.q_home
-        self._crop = config.perception.crop_box
-        self.cloud = CloudAccumulator(config.perception.voxel_m)
+        self.perception = perception
+        self._capture_period = 1.0 / config.perception.rate_hz
+        self._next_capture: float | None = None
         self.coverage = coverage
         self.n_captures = 0
         self.n_unreachable = 0
+        self.n_registration_rejected = 0
         self.path_length_m = 0.0
         self._last_position: Array | None = None
         self._on_progress = on_progress
@@ -78,9 +81,24 @@ class JobSession:
         self._last_position = p
         self._recorder.pose(self.now(), T)
 
+    @property
+    def cloud(self) -> CloudAccumulator:
+        return self.perception.cloud
+
+    def latest_perception(self) -> PerceptionUpdate | None:
+        return self.perception.latest
+
+    def set_continuous_capture(self, on: bool) -> None:
+        """Capture at ``perception.rate_hz`` of job time while the planner moves the arm (first capture
+        at once), or stop doing so."""
+        self._next_capture = self.now() if on else None
+
     def _tick(self) -> None:
         if self.now() >= self._max_time:
             raise TimeBudgetExhausted(f"time budget of {self._max_time:g} s used up")
+        if self._next_capture is not None and self.now() >= self._next_capture - 1e-9:
+            self._next_capture += self._capture_period
+            self.capture()
         self._clock.sleep(self._dt)
         self._record_pose()
 
@@ -125,15 +143,20 @@ class JobSession:
     def capture(self) -> int:
         frame = self._sensor.capture()
         state = self._guard.state()
-        T_base_sensor = state.T_base_flange @ self._T_flange_sensor
-        c = self._crop
-        kept = crop_box(frame.points, c.x_m, c.y_m, c.z_m)
-        added = self.cloud.add(kept, T_base_sensor)
-        self._recorder.frame(frame, T_base_sensor, state.T_base_flange, {})
+        T_fk = state.T_base_flange @ self._T_flange_sensor
+        update = self.perception.process(frame, T_fk)
+        reg = update.registration
+        self._recorder.frame(frame, T_fk, state.T_base_flange,
+                             {"T_base_sensor_registered": update.T_base_sensor})
         self.n_captures += 1
+        if not reg.accepted and self.config.perception.registration.enabled:
+            self.n_registration_rejected += 1
         if self.coverage is not None:
-            self.coverage.add(added)
-        self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {kept.shape[0]} in the crop box")
+            self.coverage.add(update.points_base)
+        h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
+        self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
+                 f"filtering; registration {reg.reason} (fitness {reg.fitness:.3f}, correction "
+                 f"{reg.correction_m * 1e3:.2f} mm / {reg.correction_deg:.3f} deg); H_ROI {h}")
         if self._on_progress is not None:
             self._on_progress(self)
-        return int(added.shape[0])
+        return int(update.points_base.shape[0])

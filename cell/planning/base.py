@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
+from cell.perception.pipeline import PerceptionUpdate
 
 Array = NDArray[np.float64]
 
@@ -40,8 +41,16 @@ class ScanSession(Protocol):
         ...
 
     def capture(self) -> int:
-        """Capture one frame at the current pose, record and accumulate it; returns the number of points
-        it added."""
+        """Capture one frame at the current pose and run it through the perception pipeline; returns the
+        number of points it kept."""
+        ...
+
+    def set_continuous_capture(self, on: bool) -> None:
+        """Capture at the configured perception rate while moving (as the servo planners do), or not."""
+        ...
+
+    def latest_perception(self) -> PerceptionUpdate | None:
+        """The newest perception update (pose, object, ROI, H_ROI), None before the first frame."""
         ...
 
 

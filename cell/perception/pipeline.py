@@ -1,0 +1,158 @@
+"""The one per-frame perception pipeline, used by every planner in sim and on hardware (visual-servoing
+paper section II-A and Fig. 2): filter, register, accumulate (cloud and occupancy map), segment.
+
+``PerceptionPipeline.process`` handles one frame synchronously; in sim the job calls it at the
+configured rate of sim time, so a run is deterministic. ``AsyncPerception`` runs the same pipeline in
+its own thread for real mode, asynchronously from control as in the paper: the newest frame waits in a
+one-slot mailbox (older ones are dropped, the pipeline never lags behind), and the newest update is read
+without blocking the control loop. An exception in the worker is kept and re-raised to the reader.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.config.models import PerceptionConfig
+from cell.perception.cloud import CloudAccumulator
+from cell.perception.filters import filter_frame, no_target_directions, valid_tof_points
+from cell.perception.occupancy import OccupancyMap
+from cell.perception.registration import RegistrationResult, RegistrationTarget
+from cell.perception.segmentation import ROI, segment_object
+from drivers.depth.base import DepthFrame
+from drivers.transforms import transform_points
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PerceptionUpdate:
+    """What planners see after a frame: its pose after registration, its filtered points in the base
+    frame, the segmented object and its ROI, and H_ROI (eq. 12). ``roi``, ``centroid`` and ``h_roi`` are
+    None until an object has been found."""
+
+    seq: int
+    timestamp: float
+    T_base_sensor: Array
+    registration: RegistrationResult
+    points_base: Array
+    object_points: Array
+    roi: ROI | None
+    centroid: Array | None
+    h_roi: float | None
+
+
+class PerceptionPipeline:
+    """Filter -> register -> accumulate -> integrate -> segment, one frame at a time.
+
+    ``table_z_m`` is the table height in the base frame [m]; ``range_max_m`` the sensor's maximum range
+    [m], up to which ToF zones with no target carve free space."""
+
+    def __init__(self, config: PerceptionConfig, *, table_z_m: float, range_max_m: float,
+                 rng: np.random.Generator) -> None:
+        self.config = config
+        self.table_z_m = table_z_m
+        self.range_max_m = range_max_m
+        self.cloud = CloudAccumulator(config.voxel_m)
+        self.map = OccupancyMap(config.occupancy)
+        self._target = RegistrationTarget(config.registration)
+        self._rng = rng
+        self.latest: PerceptionUpdate | None = None
+
+    def filter_frame(self, frame: DepthFrame) -> Array:
+        """Points of the frame worth keeping, sensor frame: valid ToF statuses, then crop box, voxel filter
+        and statistical outlier removal (section II-A, "Filtering")."""
+        c = self.config
+        points = frame.points
+        if frame.zones is not None:
+            points = valid_tof_points(frame, c.filters.valid_tof_statuses)
+        return filter_frame(points, crop=c.crop_box, voxel_m=c.voxel_m, params=c.filters)
+
+    def process(self, frame: DepthFrame, T_base_sensor_fk: Array) -> PerceptionUpdate:
+        """Process one frame captured at the pose the arm reported (FK and hand-eye)."""
+        c = self.config
+        points = self.filter_frame(frame)
+        reg = self._target.register(points, T_base_sensor_fk)
+        T = reg.T_base_sensor
+        points_base = transform_points(T, points)
+        self.cloud.add(points, T)
+        if c.registration.enabled:
+            self._target.update(self.cloud.points)
+        origin = T[:3, 3]
+        self.map.integrate(origin, points_base)
+        if frame.zones is not None:
+            rays = no_target_directions(frame)
+            if rays.shape[0]:
+                ends = origin + (rays @ T[:3, :3].T) * self.range_max_m
+                self.map.integrate(origin, ends, free_only=np.ones(rays.shape[0], dtype=bool))
+        seg = segment_object(self.map.occupied_centers(), c.segmentation, self._rng,
+                             table_z=self.table_z_m)
+        roi = seg.roi
+        h_roi = self.map.mean_entropy_in_box(roi.aabb_min, roi.aabb_max) if roi is not None else None
+        update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
+                                  points_base=points_base, object_points=seg.object_points, roi=roi,
+                                  centroid=roi.centroid if roi is not None else None, h_roi=h_roi)
+        self.latest = update
+        return update
+
+
+class AsyncPerception:
+    """Runs a ``PerceptionPipeline`` in its own thread (real mode). ``submit`` never blocks: a frame not
+    yet picked up is replaced by the newer one. ``latest`` returns the newest update, or raises what the
+    worker raised."""
+
+    def __init__(self, pipeline: PerceptionPipeline) -> None:
+        self.pipeline = pipeline
+        self._cond = threading.Condition()
+        self._pending: tuple[DepthFrame, Array] | None = None
+        self._latest: PerceptionUpdate | None = None
+        self._error: BaseException | None = None
+        self._stop = False
+        self.n_dropped = 0
+        self._thread = threading.Thread(target=self._run, name="perception", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def submit(self, frame: DepthFrame, T_base_sensor_fk: Array) -> None:
+        with self._cond:
+            if self._pending is not None:
+                self.n_dropped += 1
+            self._pending = (frame, T_base_sensor_fk)
+            self._cond.notify()
+
+    def latest(self) -> PerceptionUpdate | None:
+        with self._cond:
+            if self._error is not None:
+                raise self._error
+            return self._latest
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                assert self._pending is not None
+                frame, pose = self._pending
+                self._pending = None
+            try:
+                update = self.pipeline.process(frame, pose)
+            except BaseException as exc:
+                with self._cond:
+                    self._error = exc
+                return
+            with self._cond:
+                self._latest = update
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Ask the worker to finish after its current frame and wait for it."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
