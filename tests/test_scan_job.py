@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.octomap_io import read_bt
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import DriverError
 
@@ -60,6 +61,12 @@ def test_job_folder_is_complete(bunny_job):
     assert f0["depth"].shape == (480, 640) and f0["K"].shape == (3, 3) and f0["T_base_sensor"].shape == (4, 4)
     assert read_ply(out / "cloud.ply").shape[0] == result["n_cloud_points"] > 1000
     assert "capture 0" in (out / "log.txt").read_text()
+    occupancy = read_bt(out / "map.bt")
+    assert occupancy.occupied_centers().shape[0] > 100
+    roi = result["perception"]["roi"]
+    assert roi is not None and result["perception"]["h_roi"] is not None
+    np.testing.assert_allclose(np.subtract(roi["aabb_max_m"], roi["aabb_min_m"]), [0.156, 0.121, 0.154],
+                               atol=0.015)
     assert f"job folder: {out}" in output and "coverage:" in output
 
 
@@ -134,6 +141,11 @@ def test_cli_bad_input_exits_with_one_line_reason(tmp_path, args, message):
     assert res.exit_code != 0
     assert message in res.output
     assert not (tmp_path / "j" / "frames").exists()
+
+
+def test_cli_reprocess_refuses_a_folder_that_is_not_a_job(tmp_path):
+    res = CliRunner().invoke(app, ["reprocess", str(tmp_path)])
+    assert res.exit_code == 1 and "not a job folder" in res.output
 
 
 def test_cli_lists_planners_and_objects():

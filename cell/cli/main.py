@@ -15,6 +15,7 @@ from rich.progress import BarColumn, Progress, TextColumn
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.jobs.session import JobSession
+from cell.perception.reprocess import reprocess_job
 from cell.planning.registry import PLANNERS
 from drivers.errors import CellError
 from drivers.sim.objects import list_objects
@@ -84,6 +85,22 @@ def scan(
                   highlight=False)
     console.print(f"coverage: {cov:.1f} %", highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
+
+
+@app.command()
+def reprocess(job_dir: Path) -> None:
+    """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B)."""
+    try:
+        out = reprocess_job(job_dir)
+    except CellError as exc:
+        raise _fail(exc) from None
+    cov = out["metrics"]["coverage_pct"] if out.get("metrics") else None
+    console.print(f"{out['n_frames']} frames, {out['n_cloud_points']} points at {out['voxel_m'] * 1e3:g} mm",
+                  highlight=False)
+    if cov is not None:
+        console.print(f"coverage: {cov:.1f} %", highlight=False)
+    console.print(f"wrote {job_dir / 'cloud_hires.ply'} and {job_dir / 'result_hires.json'}", markup=False,
+                  highlight=False)
 
 
 @app.command()

@@ -7,6 +7,7 @@
   the timestamp: for a depth camera the depth image [m] and its intrinsics ``K`` (the points follow from
   them, see ``DepthFrame``), otherwise the points in the sensor frame, plus the ToF zones;
   ``frames/index.csv`` lists them;
+- ``map.bt``: the occupancy map in OctoMap's binary format (octovis and pyoctomap open it);
 - ``log.txt``: what happened, stamped with job time.
 """
 
@@ -20,6 +21,8 @@ from typing import Any, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.perception.occupancy import OccupancyMap
+from cell.perception.octomap_io import write_bt
 from drivers.depth.base import DepthFrame
 from drivers.errors import JobError
 from drivers.transforms import quat_xyzw
@@ -84,6 +87,9 @@ class JobRecorder:
 
     def cloud(self, points: Array) -> None:
         write_ply(self.folder / "cloud.ply", points)
+
+    def occupancy_map(self, occupancy: OccupancyMap) -> None:
+        write_bt(occupancy, self.folder / "map.bt")
 
     def result(self, result: dict[str, Any]) -> None:
         text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)

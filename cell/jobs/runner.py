@@ -163,6 +163,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
         recorder.log(clock.now(), f"{status}: {termination}")
         cloud = session.cloud.points if session is not None else np.zeros((0, 3))
         recorder.cloud(cloud)
+        if session is not None:
+            recorder.occupancy_map(session.perception.map)
         metrics = compute_metrics(ground_truth, cloud)
         result: dict[str, Any] = {
             "planner": planner_name,

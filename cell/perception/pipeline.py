@@ -73,9 +73,12 @@ class PerceptionPipeline:
 
     def process(self, frame: DepthFrame, T_base_sensor_fk: Array) -> PerceptionUpdate:
         """Process one frame captured at the pose the arm reported (FK and hand-eye)."""
+        T_fk = np.asarray(T_base_sensor_fk, dtype=float)
+        if T_fk.shape != (4, 4) or not np.all(np.isfinite(T_fk)):
+            raise ValueError(f"T_base_sensor_fk is not a finite 4x4 pose: {T_fk.tolist()}")
         c = self.config
         points = self.filter_frame(frame)
-        reg = self._target.register(points, T_base_sensor_fk)
+        reg = self._target.register(points, T_fk)
         T = reg.T_base_sensor
         points_base = transform_points(T, points)
         self.cloud.add(points, T)

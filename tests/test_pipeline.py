@@ -1,0 +1,85 @@
+"""The per-frame pipeline: one frame through every stage, and the threaded runner of real mode."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cell.config import load_config
+from cell.perception.pipeline import AsyncPerception, PerceptionPipeline
+from drivers.clock import SimClock
+from drivers.depth.sim_rgbd import SimRGBD
+from drivers.sim.objects import load_object
+from drivers.sim.scene import SimScene
+from drivers.transforms import look_at, make_T
+
+from .conftest import CONFIG_DIR
+
+
+@pytest.fixture
+def rig():
+    cfg = load_config(CONFIG_DIR / "sim-franka-rgbd.yaml")
+    scene = SimScene(load_object("cube"), make_T(np.eye(3), np.array([0.45, 0.0, 0.0])))
+    pose = {"T": look_at(np.array([0.25, -0.1, 0.2]), np.array([0.45, 0.0, 0.05]))}
+    camera = SimRGBD(cfg.sensor, scene, lambda: pose["T"], SimClock(), np.random.default_rng(0))
+    camera.connect()
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=cfg.sensor.range_max_m,
+                                  rng=np.random.default_rng(1))
+    return camera, pipeline, pose["T"]
+
+
+def test_one_frame_through_every_stage(rig):
+    camera, pipeline, T = rig
+    update = pipeline.process(camera.capture(), T)
+    assert update.registration.reason == "no target yet"
+    np.testing.assert_array_equal(update.T_base_sensor, T)
+    assert 1000 < pipeline.cloud.points.shape[0] <= update.points_base.shape[0]
+    assert pipeline.map.occupied_centers().shape[0] > 100
+    assert update.roi is not None
+    np.testing.assert_allclose(update.roi.centroid[:2], [0.45, 0.0], atol=0.03)
+    assert 0.0 < update.h_roi < np.log(2)
+    second = pipeline.process(camera.capture(), T)
+    assert second.registration.accepted and second.registration.correction_m < 0.002
+
+
+def _wait_for(predicate, timeout_s=30.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_async_perception_processes_in_its_own_thread(rig):
+    camera, pipeline, T = rig
+    runner = AsyncPerception(pipeline)
+    runner.start()
+    try:
+        assert runner.latest() is None
+        runner.submit(camera.capture(), T)
+        assert _wait_for(lambda: runner.latest() is not None)
+        assert runner.latest().roi is not None
+    finally:
+        runner.stop()
+
+
+def test_async_perception_reraises_worker_errors(rig):
+    camera, pipeline, _ = rig
+    runner = AsyncPerception(pipeline)
+    runner.start()
+    try:
+        runner.submit(camera.capture(), np.full((4, 4), np.nan))
+
+        def raised():
+            try:
+                runner.latest()
+            except ValueError as exc:
+                return "not a finite 4x4 pose" in str(exc)
+            return False
+
+        assert _wait_for(raised)
+    finally:
+        runner.stop()
