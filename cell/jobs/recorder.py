@@ -21,6 +21,7 @@ from typing import Any, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.perception.cloud import write_ply
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.octomap_io import write_bt
 from drivers.depth.base import DepthFrame
@@ -28,15 +29,6 @@ from drivers.errors import JobError
 from drivers.transforms import quat_xyzw
 
 Array = NDArray[np.float64]
-
-
-def write_ply(path: Path, points: Array) -> None:
-    """Binary little-endian PLY of (N, 3) float64 points; the same points give the same bytes."""
-    pts = np.ascontiguousarray(points, dtype="<f8")
-    header = ("ply\nformat binary_little_endian 1.0\ncomment cell accumulated cloud, base frame, metres\n"
-              f"element vertex {pts.shape[0]}\nproperty double x\nproperty double y\nproperty double z\n"
-              "end_header\n")
-    path.write_bytes(header.encode("ascii") + pts.tobytes())
 
 
 class JobRecorder:

@@ -20,7 +20,7 @@ import numpy as np
 from cell.config.models import CellConfig
 from cell.jobs.recorder import JobRecorder
 from cell.jobs.session import JobSession, TimeBudgetExhausted
-from cell.perception.metrics import N_GROUND_TRUTH_POINTS, CoverageTracker, compute_metrics
+from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.registry import get_planner
 from cell.safety.guard import MotionGuard
@@ -28,13 +28,9 @@ from drivers.clock import SimClock
 from drivers.errors import CellError, JobError, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
-from drivers.sim.objects import load_object, sample_surface
+from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
-from drivers.transforms import T_from_xyz_rpy, transform_points
-
-# The ground-truth sample A of eq. 13 is drawn with a fixed seed, so jobs with different seeds are
-# measured against the same points.
-GROUND_TRUTH_SEED = 13
+from drivers.transforms import T_from_xyz_rpy
 
 
 @dataclass(frozen=True)
@@ -127,8 +123,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     arm = make_arm(cfg.arm, model, world)
     flange = true_flange_pose(arm)
     sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
-    gt_rng = np.random.default_rng(GROUND_TRUTH_SEED)
-    ground_truth = transform_points(T_base_object, sample_surface(mesh, N_GROUND_TRUTH_POINTS, gt_rng))
+    ground_truth = ground_truth_points(mesh, T_base_object)
     guard = MotionGuard(arm, model, cfg.safety, T_flange_sensor, clock)
 
     status, termination = "failed", "not started"

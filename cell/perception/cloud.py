@@ -7,6 +7,8 @@ voxel key, independent of hash-map iteration order.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -65,3 +67,12 @@ class CloudAccumulator:
         new = voxel_downsample(transform_points(T_base_sensor, points_sensor), self.voxel_m)
         self._points = voxel_downsample(np.vstack([self._points, new]), self.voxel_m)
         return new
+
+
+def write_ply(path: Path, points: Array) -> None:
+    """Binary little-endian PLY of (N, 3) float64 points; the same points give the same bytes."""
+    pts = np.ascontiguousarray(points, dtype="<f8")
+    header = ("ply\nformat binary_little_endian 1.0\ncomment cell accumulated cloud, base frame, metres\n"
+              f"element vertex {pts.shape[0]}\nproperty double x\nproperty double y\nproperty double z\n"
+              "end_header\n")
+    path.write_bytes(header.encode("ascii") + pts.tobytes())

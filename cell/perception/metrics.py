@@ -20,10 +20,23 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from drivers.sim.objects import ObjectMesh, sample_surface
+from drivers.transforms import transform_points
+
 Array = NDArray[np.float64]
 
 COVERAGE_RADIUS_M = 0.0025
 N_GROUND_TRUTH_POINTS = 10_000
+# A is drawn with a fixed seed, so jobs with different seeds, and their offline re-processing, are
+# measured against the same points.
+GROUND_TRUTH_SEED = 13
+
+
+def ground_truth_points(mesh: ObjectMesh, T_base_object: Array) -> Array:
+    """The sample A of eq. 13 in the base frame: ``N_GROUND_TRUTH_POINTS`` points uniform on the surface
+    of ``mesh`` placed at ``T_base_object``, without faces within 45 degrees of straight down."""
+    rng = np.random.default_rng(GROUND_TRUTH_SEED)
+    return transform_points(T_base_object, sample_surface(mesh, N_GROUND_TRUTH_POINTS, rng))
 
 
 @dataclass(frozen=True)

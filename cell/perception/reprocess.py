@@ -4,7 +4,7 @@ The paper flushes the raw frames to disk during a scan and afterwards rebuilds t
 online procedure (section II-A) ... at a higher point cloud resolution of 1 mm", registering "all the
 captured point clouds simultaneously with multiway registration and pose graph optimization" (Open3D),
 then compares the result with the ground truth by eq. 13. ``reprocess_job`` does that for a job folder
-(layout in ``cell.jobs.recorder``):
+(layout in the job recorder, ``cell/jobs/recorder.py``):
 
 1. frames: ``frames/NNNNNN.npz``; a depth image ``depth`` [m] (0 = no return) with intrinsics ``K`` is
    back-projected (x = (u - cx) z / fx, y = (v - cy) z / fy, pixel centres at integer (u, v)), otherwise
@@ -44,11 +44,12 @@ from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt
 
 from cell.config.models import CropBoxConfig
-from cell.perception.cloud import crop_box, voxel_downsample
-from cell.perception.metrics import N_GROUND_TRUTH_POINTS, compute_metrics
+from cell.perception.cloud import crop_box, voxel_downsample, write_ply
+from cell.perception.metrics import compute_metrics, ground_truth_points
 from cell.perception.registration import MAX_NORMAL_NEIGHBOURS, single_threaded_open3d
 from drivers.config_base import StrictModel
 from drivers.errors import CellError, JobError
+from drivers.sim.objects import load_object
 from drivers.transforms import inv_T, rotvec, transform_points
 
 Array = NDArray[np.float64]
@@ -259,9 +260,6 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
 
 def _ground_truth(result: dict[str, Any]) -> Array | None:
     """The eq. 13 sample A of the online run (same object, pose and seed), or None if not known."""
-    from cell.jobs.runner import GROUND_TRUTH_SEED  # upward import kept local; see the report to move it
-    from drivers.sim.objects import load_object, sample_surface
-
     name, pose = result.get("object"), result.get("object_pose")
     if not isinstance(name, str) or pose is None:
         return None
@@ -272,8 +270,7 @@ def _ground_truth(result: dict[str, Any]) -> Array | None:
         mesh = load_object(name)
     except JobError:
         return None
-    rng = np.random.default_rng(GROUND_TRUTH_SEED)
-    return transform_points(T_base_object, sample_surface(mesh, N_GROUND_TRUTH_POINTS, rng))
+    return ground_truth_points(mesh, T_base_object)
 
 
 def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig | None = None,
@@ -285,7 +282,6 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     ``frame_step`` uses every n-th frame only (1 = all). Raises ``JobError`` for a folder that is not a
     job folder, has no frames or holds an unreadable frame.
     """
-    from cell.jobs.recorder import write_ply  # upward import kept local; see the report to move it
 
     job_dir = Path(job_dir)
     if voxel_m <= 0.0:
