@@ -9,6 +9,8 @@ import yaml
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIG_DIR = REPO / "config"
+FRANKA = CONFIG_DIR / "sim-franka-rgbd.yaml"
+UR5E = CONFIG_DIR / "sim-ur5e-tof.yaml"
 
 
 @pytest.fixture

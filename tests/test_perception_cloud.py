@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from cell.perception.cloud import CloudAccumulator, crop_box, voxel_downsample
+from cell.perception.cloud import CloudAccumulator, crop_box, read_ply, voxel_downsample, write_ply
 from drivers.transforms import T_from_xyz_rpy
 
 
@@ -38,3 +39,12 @@ def test_accumulator_transforms_to_base_and_merges():
     np.testing.assert_allclose(acc.points, [[1.0, 0.1, 0.0]], atol=1e-12)
     acc.add(np.array([[0.1, 0.0, 0.0]]), T)
     assert acc.points.shape == (1, 3)
+
+
+def test_ply_round_trip_and_refusal(tmp_path):
+    pts = np.random.default_rng(3).normal(size=(50, 3))
+    write_ply(tmp_path / "c.ply", pts)
+    np.testing.assert_array_equal(read_ply(tmp_path / "c.ply"), pts)
+    (tmp_path / "ascii.ply").write_text("ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(ValueError, match="not a cloud written by cell"):
+        read_ply(tmp_path / "ascii.ply")

@@ -10,18 +10,11 @@ import pytest
 
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.cloud import read_ply
 from cell.perception.reprocess import back_project, reprocess_job
 from drivers.errors import JobError
 
-from .conftest import CONFIG_DIR
-
-FRANKA = CONFIG_DIR / "sim-franka-rgbd.yaml"
-
-
-def _read_ply(path):
-    data = path.read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    return np.frombuffer(data[end:], dtype="<f8").reshape(-1, 3)
+from .conftest import FRANKA
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +35,7 @@ def test_reprocess_writes_hires_cloud_and_metrics(cube_job):
     assert written == out
     assert out["n_frames"] == online["n_captures"] and out["voxel_m"] == 0.001
     assert out["crop_box"]["source"] == str(FRANKA)
-    cloud = _read_ply(job / "cloud_hires.ply")
+    cloud = read_ply(job / "cloud_hires.ply")
     assert cloud.shape[0] == out["n_cloud_points"] > online["n_cloud_points"]  # 1 mm vs 2.5 mm
 
     m, m_online = out["metrics"], online["metrics"]

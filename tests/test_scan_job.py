@@ -15,20 +15,12 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.cloud import read_ply
 from cell.perception.octomap_io import read_bt
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import DriverError
 
-from .conftest import CONFIG_DIR, REPO
-
-FRANKA = CONFIG_DIR / "sim-franka-rgbd.yaml"
-UR5E = CONFIG_DIR / "sim-ur5e-tof.yaml"
-
-
-def read_ply(path):
-    data = path.read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    return np.frombuffer(data[end:], dtype="<f8").reshape(-1, 3)
+from .conftest import FRANKA, REPO, UR5E
 
 
 @pytest.fixture(scope="module")

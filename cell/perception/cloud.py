@@ -76,3 +76,13 @@ def write_ply(path: Path, points: Array) -> None:
               f"element vertex {pts.shape[0]}\nproperty double x\nproperty double y\nproperty double z\n"
               "end_header\n")
     path.write_bytes(header.encode("ascii") + pts.tobytes())
+
+
+def read_ply(path: Path) -> Array:
+    """Read back a cloud written by ``write_ply`` ((N, 3) float64); other PLY layouts raise ValueError."""
+    data = path.read_bytes()
+    marker = b"end_header\n"
+    end = data.find(marker)
+    if end < 0 or b"format binary_little_endian" not in data[:end] or b"property double z" not in data[:end]:
+        raise ValueError(f"{path} is not a cloud written by cell (binary little-endian x, y, z doubles)")
+    return np.frombuffer(data[end + len(marker):], dtype="<f8").reshape(-1, 3).copy()
