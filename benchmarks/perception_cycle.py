@@ -1,0 +1,76 @@
+"""Benchmark of one full perception cycle (filter, register, integrate, segment) per frame.
+
+RGB-D: the Franka cell's pipeline (config/sim-franka-rgbd.yaml) on 640x480 frames of the bunny taken
+from views 20 degrees apart on a ring at Z* = 0.25 m; ToF: the UR5e cell's pipeline on 8x8 frames of the
+horizontal box. Rendering is not timed. The first frames build the target and the map; the median is
+taken over the following ``--frames``. Prints readable lines, then as its last line JSON
+{"rgbd_ms": median, "tof_ms": median}. Goals (issue 3): rgbd_ms <= 100, tof_ms <= 5.
+
+Run: ``.venv/bin/python benchmarks/perception_cycle.py [--frames 12]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cell.config import load_config
+from cell.perception.pipeline import PerceptionPipeline
+from drivers.clock import SimClock
+from drivers.factory import SimWorld, make_sensor
+from drivers.sim.objects import load_object
+from drivers.sim.scene import SimScene
+from drivers.transforms import look_at, make_T
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def cycle_times(config_name: str, object_name: str, standoff_m: float, n_frames: int,
+                warmup: int = 3) -> list[float]:
+    cfg = load_config(REPO / "config" / config_name)
+    station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
+    scene = SimScene(load_object(object_name), make_T(np.eye(3), station),
+                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
+    pose = {"T": np.eye(4)}
+    world = SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=scene)
+    sensor = make_sensor(cfg.sensor, world, lambda: pose["T"])
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
+                                  range_max_m=sensor.model.range_max_m, rng=np.random.default_rng(1))
+    target = station + np.array([0.0, 0.0, 0.06])
+    times = []
+    with sensor:
+        for k in range(warmup + n_frames):
+            az = np.deg2rad(180.0 + 20.0 * k)
+            eye = target + standoff_m * np.array([np.cos(az) * 0.8, np.sin(az) * 0.8, 0.6])
+            pose["T"] = look_at(eye, target)
+            frame = sensor.capture()
+            t0 = time.perf_counter()
+            pipeline.process(frame, pose["T"])
+            if k >= warmup:
+                times.append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=12)
+    args = parser.parse_args()
+    figures = {}
+    for key, config, obj, standoff in (("rgbd_ms", "sim-franka-rgbd.yaml", "bunny", 0.25),
+                                       ("tof_ms", "sim-ur5e-tof.yaml", "horizontal_box", 0.4)):
+        t = cycle_times(config, obj, standoff, args.frames)
+        figures[key] = round(float(np.median(t)), 3)
+        print(f"{key[:-3]:5s} {len(t)} cycles: median {np.median(t):8.2f} ms, "
+              f"min {min(t):8.2f}, max {max(t):8.2f}")
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
