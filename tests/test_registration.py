@@ -107,6 +107,7 @@ def test_wild_initial_guess_is_rejected_and_fk_used(bunny_captures, target, capl
         res = target.register(clouds[2], T_fk)
     assert not res.accepted
     assert res.reason.startswith("rejected") and "correction" in res.reason
+    assert res.rejected
     assert np.array_equal(res.T_base_sensor, T_fk)
     assert "using the FK pose" in caplog.text
 
@@ -122,7 +123,7 @@ def test_low_fitness_is_rejected(bunny_captures, target):
 def test_disabled_returns_fk(bunny_captures, target):
     poses, clouds = bunny_captures
     res = register_frame(clouds[2], poses[2], target.points, RegistrationParams(enabled=False))
-    assert res.reason == "disabled" and not res.accepted
+    assert res.reason == "disabled" and not res.accepted and not res.rejected
     assert np.array_equal(res.T_base_sensor, poses[2]) and np.array_equal(res.T_correction, np.eye(4))
 
 
@@ -130,7 +131,7 @@ def test_too_few_points_and_no_target(bunny_captures, target):
     poses, clouds = bunny_captures
     few = clouds[2][:: clouds[2].shape[0] // 50][:50]
     res = target.register(few, poses[2])
-    assert res.reason == "too few points" and not res.accepted
+    assert res.reason == "too few points" and not res.accepted and not res.rejected
     assert np.array_equal(res.T_base_sensor, poses[2])
     res = register_frame(clouds[2], poses[2], np.zeros((0, 3)), PARAMS)
     assert res.reason == "no target yet" and np.array_equal(res.T_base_sensor, poses[2])

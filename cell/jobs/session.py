@@ -149,7 +149,7 @@ class JobSession:
         self._recorder.frame(frame, T_fk, state.T_base_flange,
                              {"T_base_sensor_registered": update.T_base_sensor})
         self.n_captures += 1
-        if not reg.accepted and self.config.perception.registration.enabled:
+        if reg.rejected:
             self.n_registration_rejected += 1
         if self.coverage is not None:
             self.coverage.add(update.points_base)

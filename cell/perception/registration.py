@@ -93,6 +93,9 @@ class RegistrationParams(StrictModel):
         return v
 
 
+REJECTED = "rejected: "
+
+
 @dataclass(frozen=True)
 class RegistrationResult:
     """Outcome of one registration.
@@ -100,8 +103,8 @@ class RegistrationResult:
     ``T_base_sensor`` the pose to use (corrected if accepted, else FK); ``T_correction`` the 4x4 base-frame
     correction found by ICP (``T_used = T_correction @ T_fk`` when accepted; identity when ICP did not
     run); ``fitness`` and ``rmse_m`` [m] of the last stage; ``correction_m`` [m] and ``correction_deg``
-    [deg] its size at the sensor; ``reason`` "ok", "disabled", "no target yet", "too few points" or why
-    it was rejected.
+    [deg] its size at the sensor; ``reason`` "ok", "disabled", "no target yet", "too few points" (ICP
+    skipped) or, after ICP ran and its result was refused, ``REJECTED`` followed by why.
     """
 
     T_base_sensor: Array
@@ -112,6 +115,11 @@ class RegistrationResult:
     correction_m: float
     correction_deg: float
     reason: str
+
+    @property
+    def rejected(self) -> bool:
+        """ICP ran and its result was refused (a skipped registration is not a rejection)."""
+        return self.reason.startswith(REJECTED)
 
 
 @contextmanager
@@ -219,7 +227,7 @@ class RegistrationTarget:
         if corr_deg > p.max_correction_deg:
             problems.append(f"correction {corr_deg:.2f} deg above {p.max_correction_deg} deg")
         if problems:
-            reason = "rejected: " + "; ".join(problems)
+            reason = REJECTED + "; ".join(problems)
             log.warning("registration %s (fitness %.3f, rmse %.2f mm, correction %.1f mm / %.2f deg); "
                         "using the FK pose", reason, fitness, rmse * 1e3, corr_m * 1e3, corr_deg)
             return RegistrationResult(T_base_sensor=T_fk.copy(), T_correction=T, accepted=False,
