@@ -139,10 +139,32 @@ def single_threaded_open3d() -> Iterator[None]:
         o3d.utility.set_max_threads(previous)
 
 
-def _cloud(points: Array) -> o3d.geometry.PointCloud:
+def o3d_cloud(points: Array, normal_radius_m: float | None = None) -> o3d.geometry.PointCloud:
+    """An Open3D cloud of (N, 3) points [m]; with ``normal_radius_m`` [m], normals estimated from at most
+    ``MAX_NORMAL_NEIGHBOURS`` neighbours within that radius."""
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
+    if normal_radius_m is not None and len(pc.points):
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m,
+                                                                 max_nn=MAX_NORMAL_NEIGHBOURS))
     return pc
+
+
+def coarse_to_fine_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T_init: Array,
+                       stages_m: tuple[float, ...], *, max_iterations: int,
+                       epsilon: float) -> tuple[Array, float, float]:
+    """Point-to-plane ICP of ``source`` onto ``target`` (which has normals) from ``T_init``, one run per
+    maximum correspondence distance in ``stages_m`` [m], each starting where the previous one ended, up to
+    ``max_iterations`` and stopping when fitness and RMSE change by less than ``epsilon``.
+    Returns (T_target_source, fitness, inlier RMSE [m]) of the last stage."""
+    criteria = _reg.ICPConvergenceCriteria(relative_fitness=epsilon, relative_rmse=epsilon,
+                                           max_iteration=max_iterations)
+    estimation = _reg.TransformationEstimationPointToPlane()
+    T, fitness, rmse = T_init, 0.0, 0.0
+    for dist in stages_m:
+        res = _reg.registration_icp(source, target, dist, T, estimation, criteria)
+        T, fitness, rmse = np.array(res.transformation), float(res.fitness), float(res.inlier_rmse)
+    return T, fitness, rmse
 
 
 def _skipped(T_fk: Array, reason: str) -> RegistrationResult:
@@ -177,14 +199,11 @@ class RegistrationTarget:
     def update(self, points_base: Array, normals_base: Array | None = None) -> None:
         """Replace the target by ``points_base`` (M, 3) [m, base frame]; normals are estimated at
         ``normal_radius_m`` unless given (M, 3)."""
-        cloud = _cloud(points_base)
+        if normals_base is not None and normals_base.shape != points_base.shape:
+            raise ValueError(f"normals {normals_base.shape} do not match points {points_base.shape}")
+        cloud = o3d_cloud(points_base, self.params.normal_radius_m if normals_base is None else None)
         if normals_base is not None:
-            if normals_base.shape != points_base.shape:
-                raise ValueError(f"normals {normals_base.shape} do not match points {points_base.shape}")
             cloud.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals_base, dtype=np.float64))
-        elif len(cloud.points):
-            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
-                radius=self.params.normal_radius_m, max_nn=MAX_NORMAL_NEIGHBOURS))
         self._cloud = cloud
 
     def register(self, points_sensor: Array, T_base_sensor_fk: Array) -> RegistrationResult:
@@ -204,17 +223,10 @@ class RegistrationTarget:
                         src.shape[0], self.n_points, p.min_points)
             return _skipped(T_fk, "too few points")
 
-        source = _cloud(transform_points(T_fk, src))
-        criteria = _reg.ICPConvergenceCriteria(relative_fitness=p.epsilon, relative_rmse=p.epsilon,
-                                               max_iteration=p.max_iterations)
-        estimation = _reg.TransformationEstimationPointToPlane()
-        T = np.eye(4)
-        fitness, rmse = 0.0, 0.0
+        source = o3d_cloud(transform_points(T_fk, src))
         with single_threaded_open3d():
-            for dist in p.max_correspondence_m:
-                res = _reg.registration_icp(source, self._cloud, dist, T, estimation, criteria)
-                T = np.array(res.transformation)
-                fitness, rmse = float(res.fitness), float(res.inlier_rmse)
+            T, fitness, rmse = coarse_to_fine_icp(source, self._cloud, np.eye(4), p.max_correspondence_m,
+                                                  max_iterations=p.max_iterations, epsilon=p.epsilon)
 
         T_used = T @ T_fk
         corr_m = float(np.linalg.norm(T_used[:3, 3] - T_fk[:3, 3]))

@@ -46,7 +46,7 @@ from pydantic import Field, PositiveFloat, PositiveInt
 from cell.config.models import CropBoxConfig
 from cell.perception.cloud import crop_box, voxel_downsample, write_ply
 from cell.perception.metrics import compute_metrics, ground_truth_points
-from cell.perception.registration import MAX_NORMAL_NEIGHBOURS, single_threaded_open3d
+from cell.perception.registration import coarse_to_fine_icp, o3d_cloud, single_threaded_open3d
 from drivers.config_base import StrictModel
 from drivers.errors import CellError, JobError
 from drivers.sim.objects import load_object
@@ -161,29 +161,6 @@ def _load_frame(path: Path) -> tuple[Array, Array]:
     return pts, T
 
 
-def _o3d_cloud(points: Array, normal_radius_m: float) -> o3d.geometry.PointCloud:
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
-    if len(pc.points):
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m,
-                                                                 max_nn=MAX_NORMAL_NEIGHBOURS))
-    return pc
-
-
-def _pair_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T_init: Array,
-              p: MultiwayParams) -> tuple[Array, float, float]:
-    """Coarse-to-fine point-to-plane ICP of ``source`` onto ``target`` from ``T_init``; returns
-    (T_target_source, fitness, rmse [m]) of the last stage."""
-    criteria = _reg.ICPConvergenceCriteria(relative_fitness=p.epsilon, relative_rmse=p.epsilon,
-                                           max_iteration=p.max_iterations)
-    est = _reg.TransformationEstimationPointToPlane()
-    T, fitness, rmse = T_init, 0.0, 0.0
-    for dist in p.max_correspondence_m:
-        res = _reg.registration_icp(source, target, dist, T, est, criteria)
-        T, fitness, rmse = np.array(res.transformation), float(res.fitness), float(res.inlier_rmse)
-    return T, fitness, rmse
-
-
 def _pairs(poses: list[Array], p: MultiwayParams) -> list[tuple[int, int, bool]]:
     """(i, j, is_loop_closure) for consecutive frames and for close non-consecutive ones."""
     cos_max = np.cos(np.deg2rad(p.loop_max_angle_deg))
@@ -205,7 +182,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     has a certain "FK prior" edge to the base node (its recorded pose, information from ``fk_sigma_m`` /
     ``fk_sigma_deg``); each accepted ICP pair an uncertain edge that the line process may prune.
     """
-    pcs = [_o3d_cloud(voxel_downsample(c, p.icp_voxel_m) if p.icp_voxel_m > 0.0 else c, p.normal_radius_m)
+    pcs = [o3d_cloud(voxel_downsample(c, p.icp_voxel_m) if p.icp_voxel_m > 0.0 else c, p.normal_radius_m)
            for c in clouds]
     graph = _reg.PoseGraph()
     graph.nodes.append(_reg.PoseGraphNode(np.eye(4)))
@@ -222,7 +199,8 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
         if not (len(pcs[i].points) and len(pcs[j].points)):
             continue
         T_init = inv_T(poses[j]) @ poses[i]  # recorded T_j_i: frame i's points into frame j
-        T, fitness, rmse = _pair_icp(pcs[i], pcs[j], T_init, p)
+        T, fitness, rmse = coarse_to_fine_icp(pcs[i], pcs[j], T_init, p.max_correspondence_m,
+                                              max_iterations=p.max_iterations, epsilon=p.epsilon)
         corr_m = float(np.linalg.norm(T[:3, 3] - T_init[:3, 3]))
         corr_deg = float(np.degrees(np.linalg.norm(rotvec(T[:3, :3] @ T_init[:3, :3].T))))
         ok = fitness >= p.min_fitness and corr_m <= p.max_correction_m and corr_deg <= p.max_correction_deg
