@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cell.perception.cloud import CloudAccumulator, crop_box, read_ply, voxel_downsample, write_ply
-from drivers.transforms import T_from_xyz_rpy
+from drivers.transforms import T_from_xyz_rpy, transform_points
 
 
 def test_voxel_downsample_averages_each_voxel():
@@ -32,12 +32,12 @@ def test_crop_box_uses_open_intervals():
     np.testing.assert_array_equal(out, pts[[1, 3]])
 
 
-def test_accumulator_transforms_to_base_and_merges():
+def test_accumulator_merges_frames_in_the_base_frame():
     acc = CloudAccumulator(0.01)
     T = T_from_xyz_rpy([1.0, 0.0, 0.0], [0.0, 0.0, np.pi / 2])
-    acc.add(np.array([[0.1, 0.0, 0.0]]), T)
+    acc.add(transform_points(T, np.array([[0.1, 0.0, 0.0]])))
     np.testing.assert_allclose(acc.points, [[1.0, 0.1, 0.0]], atol=1e-12)
-    acc.add(np.array([[0.1, 0.0, 0.0]]), T)
+    acc.add(transform_points(T, np.array([[0.1, 0.0, 0.0]])))
     assert acc.points.shape == (1, 3)
 
 

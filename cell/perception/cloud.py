@@ -12,8 +12,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.transforms import transform_points
-
 Array = NDArray[np.float64]
 
 
@@ -61,10 +59,10 @@ class CloudAccumulator:
     def points(self) -> Array:
         return self._points
 
-    def add(self, points_sensor: Array, T_base_sensor: Array) -> Array:
-        """Add points given in the sensor frame at pose ``T_base_sensor``; returns them in the base frame
-        after this frame's own voxel filter."""
-        new = voxel_downsample(transform_points(T_base_sensor, points_sensor), self.voxel_m)
+    def add(self, points_base: Array) -> Array:
+        """Add a frame's points, already in the base frame; returns them after this frame's own voxel
+        filter."""
+        new = voxel_downsample(points_base, self.voxel_m)
         self._points = voxel_downsample(np.vstack([self._points, new]), self.voxel_m)
         return new
 

@@ -81,7 +81,7 @@ class PerceptionPipeline:
         reg = self._target.register(points, T_fk)
         T = reg.T_base_sensor
         points_base = transform_points(T, points)
-        self.cloud.add(points, T)
+        self.cloud.add(points_base)
         if c.registration.enabled:
             self._target.update(self.cloud.points)
         origin = T[:3, 3]
