@@ -5,15 +5,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.arm.base import ArmMode, JointTrajectory
+from drivers.arm.base import ArmMode, JointTrajectory, MotionToken
 from drivers.arm.config import PoseErrorConfig, SimArmConfig
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
-from drivers.errors import DriverError
+from drivers.errors import DriverError, RobotFault
 from drivers.robots import ROBOT_MODEL_NAMES, get_robot_model
 from drivers.transforms import pose_error
 
 DT = 0.004  # 250 Hz
+
+
+_TOKENS: dict[int, MotionToken] = {}
+
+
+def tok(arm: SimArm) -> MotionToken:
+    """The motion token these tests claimed for ``arm`` (the safety guard holds it in a job)."""
+    return _TOKENS[id(arm)]
 
 
 def make_arm(name: str = "panda", seed: int = 0, **cfg: object) -> tuple[SimArm, SimClock]:
@@ -21,6 +29,7 @@ def make_arm(name: str = "panda", seed: int = 0, **cfg: object) -> tuple[SimArm,
     config = SimArmConfig(type="sim", model=name, **cfg)  # type: ignore[arg-type]
     arm = SimArm(config, get_robot_model(name), clock, np.random.default_rng(seed))
     arm.connect()
+    _TOKENS[id(arm)] = arm.claim_motion()
     return arm, clock
 
 
@@ -33,7 +42,7 @@ def run(clock: SimClock, seconds: float) -> None:
 def test_constant_twist_moves_flange_at_commanded_velocity(name: str) -> None:
     arm, clock = make_arm(name)
     v = np.array([0.05, -0.03, 0.04, 0.0, 0.0, 0.1])
-    arm.command_twist(v)
+    arm.command_twist(v, tok(arm))
     run(clock, 0.2)  # let the acceleration ramp settle
     s0 = arm.state()
     assert s0.mode is ArmMode.VELOCITY
@@ -52,7 +61,7 @@ def test_trajectory_is_followed_then_idle() -> None:
     q0 = arm.state().q
     t = np.linspace(0.0, 2.0, 21)
     q = q0 + np.outer(np.sin(np.pi * t / 4.0), [0.3, -0.2, 0.25, 0.1, -0.1, 0.2])
-    arm.execute_trajectory(JointTrajectory(t=t, q=q))
+    arm.execute_trajectory(JointTrajectory(t=t, q=q), tok(arm))
     assert arm.state().mode is ArmMode.TRAJECTORY
     run(clock, 1.0)
     s = arm.state()
@@ -72,16 +81,16 @@ def test_trajectory_must_start_at_current_q() -> None:
     q0 = arm.state().q
     t = np.array([0.0, 1.0])
     with pytest.raises(ValueError, match="rad away"):
-        arm.execute_trajectory(JointTrajectory(t=t, q=np.vstack([q0 + 0.01, q0 + 0.1])))
+        arm.execute_trajectory(JointTrajectory(t=t, q=np.vstack([q0 + 0.01, q0 + 0.1])), tok(arm))
     with pytest.raises(ValueError, match="joints"):
-        arm.execute_trajectory(JointTrajectory(t=t, q=np.zeros((2, 6))))
+        arm.execute_trajectory(JointTrajectory(t=t, q=np.zeros((2, 6))), tok(arm))
 
 
 @pytest.mark.parametrize("name", ROBOT_MODEL_NAMES)
 def test_stop_decelerates_within_limits(name: str) -> None:
     arm, clock = make_arm(name)
     m = arm.model
-    arm.command_twist(np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0]))
+    arm.command_twist(np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0]), tok(arm))
     run(clock, 0.3)
     qd_prev = arm.state().qd
     assert np.linalg.norm(qd_prev) > 0.1
@@ -108,7 +117,7 @@ def test_joint_limits_hold(name: str) -> None:
     m = arm.model
     # push hard in one direction for long: the arm runs into its workspace boundary / joint limits
     for v in ([1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 3.0]):
-        arm.command_twist(np.array(v))
+        arm.command_twist(np.array(v), tok(arm))
         for _ in range(1000):
             clock.sleep(0.01)
             s = arm.state()
@@ -127,7 +136,7 @@ def test_pose_error_model() -> None:
     assert not np.array_equal(arm.true_flange_pose(), arm3.true_flange_pose())
     # the error stays mm-level while moving, and the true pose moves with the reported one
     T_true0 = arm.true_flange_pose()
-    arm.command_twist(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    arm.command_twist(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]), tok(arm))
     run(clock, 0.5)
     diff = arm.true_flange_pose()[:3, 3] - arm.state().T_base_flange[:3, 3]
     assert 3e-4 < np.linalg.norm(diff) < 2e-2
@@ -154,9 +163,9 @@ def test_home_joints_from_config_and_validation() -> None:
 def test_bad_twist_raises() -> None:
     arm, _ = make_arm("ur5e")
     with pytest.raises(ValueError, match="shape"):
-        arm.command_twist(np.zeros(3))
+        arm.command_twist(np.zeros(3), tok(arm))
     with pytest.raises(ValueError, match="non-finite"):
-        arm.command_twist(np.array([0, 0, np.nan, 0, 0, 0]))
+        arm.command_twist(np.array([0, 0, np.nan, 0, 0, 0]), tok(arm))
 
 
 def test_disconnected_raises_and_context_manager() -> None:
@@ -164,12 +173,13 @@ def test_disconnected_raises_and_context_manager() -> None:
     arm = SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("ur5e"), clock,
                  np.random.default_rng(0))
     assert not arm.is_connected
-    for call in (arm.state, arm.stop, lambda: arm.command_twist(np.zeros(6))):
+    _TOKENS[id(arm)] = arm.claim_motion()
+    for call in (arm.state, arm.stop, lambda: arm.command_twist(np.zeros(6), tok(arm))):
         with pytest.raises(DriverError, match="arm sim"):
             call()
     with arm:
         assert arm.is_connected
-        arm.command_twist(np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]))
+        arm.command_twist(np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]), tok(arm))
         clock.sleep(0.1)
     assert not arm.is_connected
     arm.disconnect()  # twice is fine
@@ -182,10 +192,54 @@ def test_deterministic_run() -> None:
     def once() -> np.ndarray:
         arm, clock = make_arm("ur5e", seed=3,
                               pose_error=PoseErrorConfig(joint_offset_std_rad=0.001, link_std_m=0.0005))
-        arm.command_twist(np.array([0.02, 0.01, -0.03, 0.05, 0.0, 0.0]))
+        arm.command_twist(np.array([0.02, 0.01, -0.03, 0.05, 0.0, 0.0]), tok(arm))
         run(clock, 0.5)
         arm.stop()
         run(clock, 0.5)
         return np.concatenate([arm.state().q, arm.true_flange_pose().ravel()])
 
     np.testing.assert_array_equal(once(), once())
+
+
+def test_motion_needs_the_claimed_token() -> None:
+    arm, _ = make_arm("panda")
+    with pytest.raises(DriverError, match="through the safety guard"):
+        arm.command_twist(np.zeros(6), MotionToken())
+    with pytest.raises(DriverError, match="already owned"):
+        arm.claim_motion()
+    arm.release_motion(tok(arm))
+    with pytest.raises(DriverError, match="through the safety guard"):
+        arm.command_twist(np.zeros(6), tok(arm))
+
+
+def test_injected_fault_brakes_refuses_motion_until_recovered() -> None:
+    arm, clock = make_arm("ur5e")
+    arm.command_twist(np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]), tok(arm))
+    run(clock, 0.5)
+    arm.inject_fault("protective stop")
+    s = arm.state()
+    assert s.mode is ArmMode.FAULT and s.faults == ("protective stop",)
+    with pytest.raises(RobotFault, match="protective stop"):
+        arm.command_twist(np.zeros(6), tok(arm))
+    with pytest.raises(RobotFault, match="at rest"):
+        arm.recover()
+    run(clock, 1.0)
+    assert np.all(arm.state().qd == 0.0) and arm.state().mode is ArmMode.FAULT
+    arm.recover()
+    assert arm.state().mode is ArmMode.IDLE and arm.state().faults == ()
+    arm.command_twist(np.zeros(6), tok(arm))
+
+
+def test_disconnect_fault_and_non_recoverable_fault() -> None:
+    arm, _ = make_arm("panda")
+    arm.inject_fault("disconnect")
+    with pytest.raises(RobotFault, match="disconnected"):
+        arm.state()
+    arm.recover()
+    assert arm.state().faults == ()
+    arm.inject_fault("emergency stop", recoverable=False)
+    with pytest.raises(RobotFault, match="cannot be cleared"):
+        arm.recover()
+    arm.release_fault()
+    arm.recover()
+    assert arm.state().mode is ArmMode.IDLE

@@ -41,6 +41,7 @@ class MotionGuard:
         self._safety = safety
         self._T_flange_sensor = T_flange_sensor
         self._clock = clock
+        self._token = arm.claim_motion()
         self.log = log if log is not None else SafetyLog()
         self._ws_min = np.asarray(safety.workspace.min_m)
         self._ws_max = np.asarray(safety.workspace.max_m)
@@ -77,7 +78,7 @@ class MotionGuard:
         reason = self._outside(T)
         if reason:
             raise self._refuse(reason)
-        self._arm.command_twist(v)
+        self._arm.command_twist(v, self._token)
         return v
 
     def execute_trajectory(self, trajectory: JointTrajectory) -> None:
@@ -99,7 +100,7 @@ class MotionGuard:
             reason = self._outside(m.fk(q[k]))
             if reason:
                 raise self._refuse(f"trajectory sample {k}: {reason}")
-        self._arm.execute_trajectory(trajectory)
+        self._arm.execute_trajectory(trajectory, self._token)
 
     def stop(self, reason: str) -> None:
         """Bring the arm to rest and record why."""

@@ -4,7 +4,13 @@ Frames and units: joint positions [rad], joint velocities [rad/s]; ``T_base_flan
 in the robot base frame (4x4); twists are (vx, vy, vz, wx, wy, wz) [m/s, rad/s] of the flange origin,
 expressed in the base frame (the convention of UR ``speedL`` and franky's Cartesian velocity motions).
 
-Only ``cell.safety`` calls the motion methods (``command_twist``, ``execute_trajectory``, ``stop``).
+Motion is gated: ``command_twist`` and ``execute_trajectory`` take the :class:`MotionToken` returned by
+:meth:`Arm.claim_motion`, which the safety guard claims once when it takes the arm over. Anything else
+that holds a reference to the arm (a planner, a script) cannot move it; it can only ``stop`` it, read its
+state, or ``recover`` it as an explicit operator action. Backends implement the underscored methods.
+
+Faults (protective stop, reflex, disconnect, ...) appear in ``ArmState.faults`` and ``mode`` FAULT; a
+motion command while faulted raises ``RobotFault``. ``recover`` clears a fault the arm allows clearing.
 """
 
 from __future__ import annotations
@@ -16,6 +22,8 @@ from types import TracebackType
 
 import numpy as np
 from numpy.typing import NDArray
+
+from drivers.errors import DriverError
 
 Array = NDArray[np.float64]
 
@@ -67,10 +75,45 @@ class JointTrajectory:
         return float(self.t[-1] - self.t[0])
 
 
+class MotionToken:
+    """Proof of being the one motion owner of an arm (see the module docstring). Opaque."""
+
+    __slots__ = ()
+
+
 class Arm(ABC):
     """A robot arm. Use as a context manager, or call ``connect`` / ``disconnect``."""
 
     name: str = "arm"
+    _motion_owner: MotionToken | None = None
+
+    def claim_motion(self) -> MotionToken:
+        """Become the arm's only motion owner; raises ``DriverError`` when it already has one."""
+        if self._motion_owner is not None:
+            raise DriverError("motion is already owned by a safety guard; only one may drive the arm",
+                              device=f"arm {self.name}")
+        self._motion_owner = MotionToken()
+        return self._motion_owner
+
+    def release_motion(self, token: MotionToken) -> None:
+        """Give motion ownership back (the guard does this when its job ends)."""
+        self._check_token(token)
+        self._motion_owner = None
+
+    def _check_token(self, token: object) -> None:
+        if self._motion_owner is None or token is not self._motion_owner:
+            raise DriverError("motion commands must come through the safety guard",
+                              device=f"arm {self.name}")
+
+    def command_twist(self, v_base_flange: Array, token: MotionToken) -> None:
+        """Stream a flange twist in the base frame; it holds until the next command or ``stop``."""
+        self._check_token(token)
+        self._command_twist(v_base_flange)
+
+    def execute_trajectory(self, trajectory: JointTrajectory, token: MotionToken) -> None:
+        """Start following a joint trajectory; ``state().mode`` is TRAJECTORY until it ends."""
+        self._check_token(token)
+        self._execute_trajectory(trajectory)
 
     @abstractmethod
     def connect(self) -> None:
@@ -93,16 +136,21 @@ class Arm(ABC):
         """Current state; raises ``DriverError`` when not connected."""
 
     @abstractmethod
-    def command_twist(self, v_base_flange: Array) -> None:
-        """Stream a flange twist in the base frame; it holds until the next command or ``stop``."""
+    def _command_twist(self, v_base_flange: Array) -> None: ...
 
     @abstractmethod
-    def execute_trajectory(self, trajectory: JointTrajectory) -> None:
-        """Start following a joint trajectory; ``state().mode`` is TRAJECTORY until it ends."""
+    def _execute_trajectory(self, trajectory: JointTrajectory) -> None: ...
 
     @abstractmethod
     def stop(self) -> None:
-        """Decelerate to rest within the arm's limits. Leaves the arm recoverable."""
+        """Decelerate to rest within the arm's limits. Leaves the arm recoverable. Anyone may stop."""
+
+    @abstractmethod
+    def recover(self) -> None:
+        """Operator action: clear a recoverable fault (e.g. unlock a protective stop) and return to IDLE.
+
+        Raises ``RobotFault`` when the fault cannot be cleared from software (e.g. an emergency stop that
+        is still pressed)."""
 
     def __enter__(self) -> Arm:
         self.connect()

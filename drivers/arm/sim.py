@@ -12,6 +12,9 @@ It is a real backend (the embedded default), not a test double. Every ``clock.sl
   becomes IDLE.
 - STOPPING (``stop``): qd is scaled down towards zero so that no joint decelerates faster than its
   ``qdd_max``; IDLE once at rest.
+- FAULT (:meth:`SimArm.inject_fault`, for scenario tests and the ``sim.faults`` schedule): the arm brakes
+  like STOPPING and stays in FAULT, refusing motion with ``RobotFault``, until ``recover``. A
+  ``"disconnect"`` fault makes ``state`` raise ``RobotFault`` too, as a vanished controller would.
 
 Joint positions are always clamped to the model's limits (a clamped joint's velocity is set to zero).
 
@@ -28,7 +31,7 @@ import numpy as np
 from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.arm.config import SimArmConfig
 from drivers.clock import SimClock
-from drivers.errors import DriverError
+from drivers.errors import DriverError, RobotFault
 from drivers.robots.model import RobotModel
 
 Array = np.ndarray
@@ -71,6 +74,8 @@ class SimArm(Arm):
         self._traj: JointTrajectory | None = None
         self._traj_t0 = 0.0
         self._connected = False
+        self._fault: str | None = None
+        self._fault_recoverable = True
         pe = config.pose_error
         if pe is not None:
             self._true_model = model.perturbed(rng, pe.joint_offset_std_rad, pe.link_std_m)
@@ -110,8 +115,16 @@ class SimArm(Arm):
 
     # ------------------------------------------------------------------ interface
 
+    def _require_unfaulted(self, what: str) -> None:
+        self._require_connected(what)
+        if self._fault is not None:
+            raise RobotFault(f"{what} refused: the arm is in {self._fault}", device=_DEVICE,
+                             fault=self._fault)
+
     def state(self) -> ArmState:
         self._require_connected("state()")
+        if self._fault == "disconnect":
+            raise RobotFault("no reply from the arm (disconnected)", device=_DEVICE, fault="disconnect")
         F = self._model.fk_all(self._q)
         J = self._model.jacobian(self._q)
         return ArmState(
@@ -121,7 +134,7 @@ class SimArm(Arm):
             T_base_flange=F[-1].copy(),
             v_base_flange=J @ self._qd,
             mode=self._mode,
-            faults=(),
+            faults=(self._fault,) if self._fault is not None else (),
         )
 
     def true_flange_pose(self) -> Array:
@@ -132,8 +145,8 @@ class SimArm(Arm):
         """
         return self._true_model.fk(self._q)
 
-    def command_twist(self, v_base_flange: Array) -> None:
-        self._require_connected("command_twist()")
+    def _command_twist(self, v_base_flange: Array) -> None:
+        self._require_unfaulted("command_twist()")
         v = np.asarray(v_base_flange, dtype=float)
         if v.shape != (6,):
             raise ValueError(f"arm sim: twist must have shape (6,), got {v.shape}")
@@ -143,8 +156,8 @@ class SimArm(Arm):
         self._traj = None
         self._mode = ArmMode.VELOCITY
 
-    def execute_trajectory(self, trajectory: JointTrajectory) -> None:
-        self._require_connected("execute_trajectory()")
+    def _execute_trajectory(self, trajectory: JointTrajectory) -> None:
+        self._require_unfaulted("execute_trajectory()")
         n = self._model.n_joints
         if trajectory.q.shape[1] != n:
             raise ValueError(f"arm sim: trajectory has {trajectory.q.shape[1]} joints, the arm has {n}")
@@ -164,7 +177,34 @@ class SimArm(Arm):
         self._require_connected("stop()")
         self._traj = None
         self._twist = np.zeros(6)
-        self._mode = ArmMode.STOPPING if np.any(self._qd != 0.0) else ArmMode.IDLE
+        if self._fault is None:
+            self._mode = ArmMode.STOPPING if np.any(self._qd != 0.0) else ArmMode.IDLE
+
+    def recover(self) -> None:
+        self._require_connected("recover()")
+        if self._fault is None:
+            return
+        if not self._fault_recoverable:
+            raise RobotFault(f"{self._fault} cannot be cleared from software", device=_DEVICE,
+                             fault=self._fault)
+        if np.any(self._qd != 0.0):
+            raise RobotFault(f"{self._fault}: wait until the arm is at rest before recovering",
+                             device=_DEVICE, fault=self._fault)
+        self._fault = None
+        self._mode = ArmMode.IDLE
+
+    def inject_fault(self, fault: str, *, recoverable: bool = True) -> None:
+        """Simulate a controller fault (``"protective stop"``, ``"reflex"``, ``"disconnect"``, ...): the
+        arm brakes within its deceleration limits and refuses motion until ``recover``."""
+        self._fault = fault
+        self._fault_recoverable = recoverable
+        self._traj = None
+        self._twist = np.zeros(6)
+        self._mode = ArmMode.FAULT
+
+    def release_fault(self) -> None:
+        """The cause of a non-recoverable fault went away (an emergency stop button released)."""
+        self._fault_recoverable = True
 
     # ------------------------------------------------------------------ simulation
 
@@ -193,18 +233,16 @@ class SimArm(Arm):
                 q_new = np.clip(q_new, m.q_min, m.q_max)
                 self._qd = (q_new - self._q) / dt
                 self._q = q_new
-        elif self._mode is ArmMode.STOPPING:
+        elif self._mode in (ArmMode.STOPPING, ArmMode.FAULT):
             speed = np.abs(self._qd)
             moving = speed > 0.0
-            if not np.any(moving):
+            if np.any(moving):
+                # largest uniform scale-down allowed: no joint may lose more than qdd_max * dt of speed
+                shrink = float(np.min(m.qdd_max[moving] * dt / speed[moving]))
+                self._integrate(self._qd * max(0.0, 1.0 - shrink), dt)
+            else:
                 self._qd = np.zeros(m.n_joints)
-                self._mode = ArmMode.IDLE
-                return
-            # largest uniform scale-down allowed: no joint may lose more than qdd_max * dt of speed
-            shrink = float(np.min(m.qdd_max[moving] * dt / speed[moving]))
-            qd = self._qd * max(0.0, 1.0 - shrink)
-            self._integrate(qd, dt)
-            if not np.any(self._qd != 0.0):
+            if self._mode is ArmMode.STOPPING and not np.any(self._qd != 0.0):
                 self._mode = ArmMode.IDLE
         else:
             self._qd = np.zeros(m.n_joints)
