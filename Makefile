@@ -11,7 +11,8 @@ demo: $(STAMP)
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml deploy/system-deps.sh
+# setup.py and the .pyx: the compiled perception kernels are rebuilt when their source changes.
+$(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx deploy/system-deps.sh
 	bash deploy/system-deps.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
@@ -30,4 +31,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/sim_render.py
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache build cell/perception/_kernels.c cell/perception/*.so

@@ -14,6 +14,7 @@ from cell.perception.filters import (
     CentroidLowPass,
     FilterParams,
     filter_frame,
+    knn_mean_distances,
     no_target_directions,
     statistical_outlier_mask,
     statistical_outlier_removal,
@@ -48,6 +49,32 @@ def test_sor_matches_brute_force_definition() -> None:
     mean_d = np.sort(d, axis=1)[:, 1:k + 1].mean(axis=1)
     expected = mean_d <= mean_d.mean() + ratio * mean_d.std(ddof=1)
     np.testing.assert_array_equal(statistical_outlier_mask(pts, k, ratio), expected)
+
+
+def _brute_knn_mean(pts: np.ndarray, k: int) -> np.ndarray:
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return np.sort(d, axis=1)[:, :k].mean(axis=1)
+
+
+@pytest.mark.parametrize("shape", ["plane_and_outliers", "duplicates", "line", "far_apart", "blob"])
+def test_knn_mean_distances_match_brute_force(shape: str) -> None:
+    rng = np.random.default_rng(2)
+    if shape == "plane_and_outliers":
+        pts = np.vstack([_plane(30) + rng.normal(0.0, 0.0003, (900, 3)),
+                         rng.uniform(-0.2, 0.2, (30, 3))])
+    elif shape == "duplicates":  # exact copies: distance 0 counts, the point itself does not
+        base = rng.normal(0.0, 0.01, (200, 3))
+        pts = np.vstack([base, base[:50], base[:10]])
+    elif shape == "line":
+        pts = np.column_stack([np.linspace(0.0, 1.0, 400), np.zeros(400), np.zeros(400)])
+    elif shape == "far_apart":  # two tight clusters 10 m apart: the grid cap and the widening search
+        pts = np.vstack([rng.normal(0.0, 0.001, (150, 3)), rng.normal(10.0, 0.001, (150, 3))])
+    else:
+        pts = rng.normal(0.0, 0.05, (700, 3))
+    for k in (1, 8, 20):
+        np.testing.assert_allclose(knn_mean_distances(pts, k), _brute_knn_mean(pts, k), rtol=1e-12,
+                                   atol=1e-15)
 
 
 def test_sor_small_inputs() -> None:

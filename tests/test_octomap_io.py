@@ -110,3 +110,25 @@ def test_we_read_a_file_pyoctomap_wrote(tmp_path):
     r = read_bt(path)
     assert key_set(r.occupied_keys()) == occ
     assert key_set(r.free_keys()) == free
+
+
+def test_same_voxels_and_states_as_octomap_over_several_scans():
+    """Independent reference: OctoMap itself (pyoctomap insertPointCloud, discretize=false, maxrange),
+    three overlapping scans from different origins with rays beyond the max range."""
+    pyoctomap = pytest.importorskip("pyoctomap")
+    rng = np.random.default_rng(7)
+    ours = OccupancyMap(OccupancyParams(resolution_m=RES, max_range_m=0.45))
+    tree = pyoctomap.OcTree(RES)
+    tree.setProbHit(0.7)
+    tree.setProbMiss(0.4)
+    for origin in ([0.013, -0.021, 0.4], [0.21, 0.05, 0.33], [-0.12, 0.17, 0.52]):
+        ends = np.column_stack([rng.uniform(-0.1, 0.1, 500), rng.uniform(-0.1, 0.1, 500),
+                                rng.uniform(-0.05, 0.05, 500)])
+        ours.integrate(np.array(origin), ends)
+        tree.insertPointCloud(ends, np.array(origin), 0.45)
+    occ, free = _octomap_leaves(tree, RES)
+    ours_occ, ours_free = key_set(ours.occupied_keys()), key_set(ours.free_keys())
+    both = (occ | free) & (ours_occ | ours_free)
+    assert len(both) >= 0.99 * len(occ | free) and len(both) >= 0.99 * len(ours_occ | ours_free)
+    agree = sum((k in occ) == (k in ours_occ) for k in both)
+    assert agree >= 0.99 * len(both)

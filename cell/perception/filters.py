@@ -8,7 +8,7 @@ sensor's own per-zone target status: only zones with a valid status (5 and 9 by 
 
 The voxel filter and the crop box are reused from :mod:`cell.perception.cloud`; their parameters live in
 the cell config's ``perception`` section (``crop_box``, ``voxel_m``) and are passed in as arguments here.
-Everything is deterministic (scipy's kd-tree, no randomness).
+Everything is deterministic (exact grid search, no randomness).
 """
 
 from __future__ import annotations
@@ -19,14 +19,17 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.spatial import cKDTree
 
+from cell.perception import _kernels as _k
 from cell.perception.cloud import crop_box, voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.depth.base import DepthFrame
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+
+_MAX_GRID_CELLS = 4_000_000
+"""Cap on the cells of the kNN search grid (32 MB of run offsets)."""
 
 
 class FilterParams(StrictModel):
@@ -69,19 +72,45 @@ def statistical_outlier_mask(points: Array, k: int, std_ratio: float) -> BoolArr
         raise ValueError(f"statistical_outlier_mask: k must be >= 1, got {k}")
     if n <= k:
         return np.ones(n, dtype=bool)
-    # Query in a spatially coherent order (coarse 64^3 grid cells): same result, ~1.5x faster (cache).
-    lo = points.min(axis=0)
-    cell = max(float(np.ptp(points, axis=0).max()) / 64.0, 1e-9)
-    c = np.floor((points - lo) / cell).astype(np.int64)
-    order = np.lexsort((c[:, 2], c[:, 1], c[:, 0]))
-    sorted_pts = points[order]
-    tree = cKDTree(sorted_pts)
-    dist, _ = tree.query(sorted_pts, k=k + 1, workers=-1)
-    mean_d = np.empty(n)
-    mean_d[order] = dist[:, 1:].mean(axis=1)
+    mean_d = knn_mean_distances(points, k)
     mu = mean_d.mean()
     sigma = mean_d.std(ddof=1)
     return mean_d <= mu + std_ratio * sigma
+
+
+def knn_mean_distances(points: Array, k: int) -> Array:
+    """Mean Euclidean distance (N,) [m] of each point (N, 3) [m] to its ``k`` nearest other points (N > k).
+
+    Exact search on a uniform grid in the compiled kernel (``_kernels.knn_mean_distances``). The cell edge
+    only sets the speed (measured best on a 150k-point surface): it is chosen so that a cell holds about
+    k / pi points of a surface-like cloud (the k neighbours then lie within about one cell, inside the 27
+    cells around a point), from a first count at 1/64 of the cloud's extent (points per cell grow with the
+    square of the edge on a surface), then widened until the grid has at most ``_MAX_GRID_CELLS`` cells.
+    """
+    if not 0 < k < points.shape[0]:
+        raise ValueError(f"knn_mean_distances: need 0 < k < N, got k={k}, N={points.shape[0]}")
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    lo = pts.min(axis=0)
+    extent = np.maximum(np.ptp(pts, axis=0), 1e-9)
+    cell = float(extent.max()) / 64.0
+    c = np.floor((pts - lo) / cell).astype(np.int64)  # at most 65 per axis
+    per_cell = pts.shape[0] / np.unique((c[:, 0] * 65 + c[:, 1]) * 65 + c[:, 2]).size
+    cell *= math.sqrt((k / math.pi) / per_cell)
+    dims = np.floor(extent / cell).astype(np.int64) + 1
+    while np.prod(dims.astype(np.float64)) > _MAX_GRID_CELLS:
+        cell *= 1.5
+        dims = np.floor(extent / cell).astype(np.int64) + 1
+    cells = np.minimum(np.floor((pts - lo) / cell).astype(np.int64), dims - 1)
+    flat = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    order = np.argsort(flat, kind="stable")  # a cell's points contiguous: the search reads memory in runs
+    starts = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(flat, minlength=starts.size - 1), out=starts[1:])
+    sorted_mean = np.empty(pts.shape[0])
+    _k.knn_mean_distances(pts[order], cells[order], starts, int(dims[0]), int(dims[1]), int(dims[2]), cell,
+                          lo, k, sorted_mean)
+    out = np.empty(pts.shape[0])
+    out[order] = sorted_mean
+    return out
 
 
 def statistical_outlier_removal(points: Array, k: int, std_ratio: float) -> Array:

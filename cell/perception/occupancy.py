@@ -1,7 +1,8 @@
 """Probabilistic occupancy voxel map (visual-servoing paper section II-A 3, "Accumulation").
 
-The paper accumulates the registered clouds in OctoMap at 5 mm. This module is a numpy re-implementation
-of OctoMap's sensor model, with OctoMap's semantics and defaults:
+The paper accumulates the registered clouds in OctoMap at 5 mm. This module re-implements OctoMap's
+sensor model (numpy for storage and queries, a compiled kernel for the rays), with OctoMap's semantics and
+defaults:
 
 - log-odds per voxel, l = log(p / (1 - p)); unknown voxels have p = 0.5 (l = 0) and are not stored;
 - a hit adds logit(p_hit) (0.7), a miss adds logit(p_miss) (0.4); the result is clamped to
@@ -18,11 +19,13 @@ Grid: voxel keys k = floor(x / resolution_m) on a grid anchored at the base-fram
 in one pool, addressed through a dense int32 index over the bounding box of the blocks, which grows on
 demand. Memory is bounded by the blocks that rays have touched; a query is two gathers.
 
-Ray traversal is exact voxel traversal (Amanatides and Woo, 1987), vectorised over all the voxel-boundary
-crossings of all the rays of a scan at once: a ray from o to e crosses |k(e) - k(o)|_1 boundaries, and the
-voxel it enters at the crossing of boundary b on axis a at parameter t = (b - o_a) / d_a has key b (or
-b - 1 going down) on axis a and floor(o + t d) on the other axes. The set of voxels is the one the
-incremental DDA visits (up to ties, where a ray passes exactly through an edge or corner of the grid).
+Ray traversal is OctoMap's incremental voxel traversal (Amanatides and Woo, 1987; ``computeRayKeys``) in
+the compiled kernel ``_kernels.integrate_rays``: from the origin's voxel, step across the boundary met at
+the smallest ray parameter t until the end voxel, |k(e) - k(o)|_1 steps (ties, where a ray passes exactly
+through an edge of the grid, step the higher axis first, as OctoMap). The once-per-scan rule is kept with
+a per-voxel stamp of the last scan that updated it; hits are applied before the traversals, so occupied
+wins. The kernel allocates blocks as rays reach them; the Python side only grows the block index to the
+box of the scan and the pool when it fills. Building the kernel: ``pip install -e .`` (``make setup``).
 
 Entropy is the binary Shannon entropy of eq. 8 in nats; ``mean_entropy_in_box`` is H_ROI of eq. 12.
 """
@@ -35,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import PositiveFloat, model_validator
 
+from cell.perception import _kernels as _k
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -103,10 +107,13 @@ class OccupancyMap:
         # Block index: dense int32 over blocks [_origin, _origin + shape); -1 = no block.
         self._index = np.full((0, 0, 0), -1, dtype=np.int32)
         self._origin = np.zeros(3, dtype=np.int64)
-        # Pool of blocks: log-odds (n_blocks * 4096,), NaN = unknown; block coordinates per slot.
+        # Pool of blocks: log-odds (n_blocks * 4096,), NaN = unknown; block coordinates per slot; per voxel
+        # the number of the last scan that updated it (one update per voxel per scan).
         self._pool = np.zeros(0, dtype=np.float32)
+        self._stamp = np.zeros(0, dtype=np.uint32)
         self._block_coords = np.zeros((0, 3), dtype=np.int64)
         self._n_blocks = 0
+        self._scan = 0
 
     # ------------------------------------------------------------------ keys and storage
 
@@ -160,17 +167,23 @@ class OccupancyMap:
             out[slot < 0] = -1
         return out
 
+    def _reserve(self, n_blocks: int) -> None:
+        """Make the pool (and the scan stamps and block coordinates) hold at least ``n_blocks`` blocks,
+        at least doubling it so that growth is amortised."""
+        if n_blocks * _BLOCK_VOXELS <= self._pool.size:
+            return
+        cap = max(n_blocks, 2 * (self._pool.size // _BLOCK_VOXELS), 8)
+        pool = np.full(cap * _BLOCK_VOXELS, np.nan, dtype=np.float32)
+        pool[:self._pool.size] = self._pool
+        stamp = np.zeros(cap * _BLOCK_VOXELS, dtype=np.uint32)
+        stamp[:self._stamp.size] = self._stamp
+        coords = np.zeros((cap, 3), dtype=np.int64)
+        coords[:self._n_blocks] = self._block_coords[:self._n_blocks]
+        self._pool, self._stamp, self._block_coords = pool, stamp, coords
+
     def _allocate(self, flat_blocks: NDArray[np.int64]) -> None:
         n_new = flat_blocks.size
-        need = (self._n_blocks + n_new) * _BLOCK_VOXELS
-        if need > self._pool.size:
-            cap = max(need, 2 * self._pool.size)
-            pool = np.full(cap, np.nan, dtype=np.float32)
-            pool[:self._pool.size] = self._pool
-            self._pool = pool
-            coords = np.zeros((cap // _BLOCK_VOXELS, 3), dtype=np.int64)
-            coords[:self._n_blocks] = self._block_coords[:self._n_blocks]
-            self._block_coords = coords
+        self._reserve(self._n_blocks + n_new)
         slots = np.arange(self._n_blocks, self._n_blocks + n_new, dtype=np.int32)
         self._index.reshape(-1)[flat_blocks] = slots
         self._block_coords[self._n_blocks:self._n_blocks + n_new] = (
@@ -195,9 +208,9 @@ class OccupancyMap:
         n = e.shape[0]
         if n == 0:
             return
-        fo = np.zeros(n, dtype=bool) if free_only is None else np.asarray(free_only, dtype=bool).reshape(n)
-        hit = ~fo
-        exclude_end = np.zeros(n, dtype=bool)
+        kinds = np.full(n, _k.RAY_HIT, dtype=np.uint8)
+        if free_only is not None:
+            kinds[np.asarray(free_only, dtype=bool).reshape(n)] = _k.RAY_FREE
         if self.params.max_range_m is not None:
             d = e - o
             length = np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -205,112 +218,26 @@ class OccupancyMap:
             if np.any(far):
                 e = e.copy()
                 e[far] = o + d[far] * (self.params.max_range_m / length[far])[:, None]
-                exclude_end = far & hit
-                hit = hit & ~far
+                kinds[far & (kinds == _k.RAY_HIT)] = _k.RAY_TRUNCATED
         res = self.resolution_m
-        k0 = np.floor(o / res).astype(np.int64)
-        ke = np.floor(e / res).astype(np.int64)
+        # Grid units and keys computed as keys_of does, so that a query finds the voxel a ray updated.
+        og = o / res
+        eg = np.ascontiguousarray(e / res)
+        k0 = np.floor(og).astype(np.int64)
+        ke = np.floor(eg).astype(np.int64)
+        # A segment lies in the box of its ends: the index covers every voxel of the scan.
         self._grow_index(np.minimum(ke.min(axis=0), k0), np.maximum(ke.max(axis=0), k0))
-        # Local voxel coordinates: relative to the corner of the block index (all >= 64, margin included).
-        org = self._origin * _BLOCK
-        Og = o / res - org
-        E = e / res - org
-        u0 = k0 - org
-        ue = ke - org
-        # Blocks first: the same traversal on the block grid gives every block the rays pass through.
-        bO, bE = Og / _BLOCK, E / _BLOCK
-        bk0, bke = u0 >> _BLOCK_BITS, ue >> _BLOCK_BITS
-        coarse = [bk0[None, :]]
-        for a, _cnt, ua, ub in self._crossings(bO, bE, bk0, bke):
-            coarse.append(np.stack([ua if i == a else ub[i] for i in range(3)], axis=1))
-        bkeys = np.concatenate([*coarse, bke], axis=0)
-        self._ensure_blocks(bkeys)
-
-        parts = []
-        if not np.all(exclude_end & np.all(ke == k0, axis=1)):
-            parts.append(self._pool_index(u0[None, 0], u0[None, 1], u0[None, 2]))
-        for a, cnt, ua, ub in self._crossings(Og, E, u0, ue):
-            uvw = [ua if i == a else ub[i] for i in range(3)]
-            idx = self._pool_index(*uvw)
-            if np.any(exclude_end):
-                rays = np.repeat(np.arange(n), cnt)
-                sel = exclude_end[rays]
-                drop = sel & (uvw[0] == ue[rays, 0]) & (uvw[1] == ue[rays, 1]) & (uvw[2] == ue[rays, 2])
-                idx = idx[~drop]
-            parts.append(idx)
-        if np.any(fo):
-            parts.append(self._pool_index(ue[fo, 0], ue[fo, 1], ue[fo, 2]))
-        free_idx = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
-        hit_idx = self._pool_index(ue[hit, 0], ue[hit, 1], ue[hit, 2])
-        pool = self._pool
-        old_hit = pool[hit_idx]  # gathered before the misses: occupied wins, one update per voxel
-        old_free = pool[free_idx]
-        old_free[np.isnan(old_free)] = 0.0
-        old_hit[np.isnan(old_hit)] = 0.0
-        pool[free_idx] = np.maximum(old_free + self._l_miss, self._l_min)
-        pool[hit_idx] = np.minimum(old_hit + self._l_hit, self._l_max)
-
-    @staticmethod
-    def _crossings(Og: Array, E: Array, u0: NDArray[np.int64], ue: NDArray[np.int64]):  # noqa: ANN205
-        """Voxel-boundary crossings of the rays Og -> E (grid units), per axis a: yields (a, cnt, ua, ub)
-        with cnt (N,) the crossings per ray on axis a, ua (n,) the key on axis a of the voxel entered at
-        each crossing (ray-major order) and ub the keys on the other axes (dict axis -> (n,)), floor of the
-        ray point just after the crossing parameter t = (boundary - O_a) / D_a."""
-        D = E - Og
-        dk = ue - u0
-        for a in range(3):
-            cnt = np.abs(dk[:, a])
-            total = int(cnt.sum())
-            if total == 0:
-                continue
-            sel = np.flatnonzero(cnt)
-            c = cnt[sel]
-            s = np.sign(dk[sel, a])
-            Da = D[sel, a]
-            # first boundary crossed: u0 + 1 going up, u0 going down; t advances by 1/|D_a| per crossing
-            first = u0[a] + (s > 0)
-            t0 = (first - Og[a]) / Da
-            dt = 1.0 / np.abs(Da)
-            starts = np.cumsum(c) - c
-            rays = np.repeat(np.arange(c.size), c)  # ray of each crossing
-            j1 = np.arange(1, total + 1, dtype=np.int64) - np.take(starts, rays)  # crossing number, from 1
-            ua = np.take(s, rays) * j1 + u0[a]
-            jf = j1.astype(np.float64)
-            ub = {}
-            for b in range(3):
-                if b != a:
-                    Db = D[sel, b]
-                    B = dt * Db
-                    # point at crossing j1: Og + (t0 + (j1 - 1) dt) D, nudged by 1e-9 voxel along the ray so
-                    # that a tie (the ray crossing an edge of the grid) takes the voxel after both crossings
-                    A = Og[b] + t0 * Db - B + np.sign(Db) * 1e-9
-                    # local coordinates are >= 64, so truncation is floor
-                    ub[b] = (np.take(B, rays) * jf + np.take(A, rays)).astype(np.int64)
-            full = np.zeros(cnt.size, dtype=np.int64)
-            full[sel] = c
-            yield a, full, ua, ub
-
-    def _ensure_blocks(self, bkeys: NDArray[np.int64]) -> None:
-        """Allocate the blocks with local block keys (K, 3) that do not exist yet."""
-        _, sy, sz = self._index.shape
-        flat = (bkeys[:, 0] * sy + bkeys[:, 1]) * sz + bkeys[:, 2]
-        missing = self._index.reshape(-1)[flat] < 0
-        if np.any(missing):
-            self._allocate(np.unique(flat[missing]))
-
-    def _pool_index(self, ux: NDArray[np.int64], uy: NDArray[np.int64],
-                    uz: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Pool indices of voxels with local keys (ux, uy, uz); allocates blocks that are missing (rays
-        through an exact grid edge can miss a block in the coarse pass)."""
-        _, sy, sz = self._index.shape
-        bflat = ((ux >> _BLOCK_BITS) * sy + (uy >> _BLOCK_BITS)) * sz + (uz >> _BLOCK_BITS)
-        slot = self._index.reshape(-1)[bflat]
-        if slot.size and slot.min() < 0:
-            self._allocate(np.unique(bflat[slot < 0]))
-            slot = self._index.reshape(-1)[bflat]
-        local = ((ux & _BLOCK_MASK) << (2 * _BLOCK_BITS)) | ((uy & _BLOCK_MASK) << _BLOCK_BITS) \
-            | (uz & _BLOCK_MASK)
-        return slot.astype(np.int64) * _BLOCK_VOXELS + local
+        self._scan += 1
+        corner = self._origin * _BLOCK
+        while True:
+            n_blocks, done = _k.integrate_rays(
+                og, k0, eg, ke, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
+                self._pool, self._stamp, self._block_coords, self._n_blocks, self._scan,
+                self._l_hit, self._l_miss, self._l_min, self._l_max)
+            self._n_blocks = n_blocks
+            if done:
+                return
+            self._reserve(self._n_blocks + 1)  # the pool is full: grow it (doubling), finish the same scan
 
     # ------------------------------------------------------------------ queries
 
