@@ -1,6 +1,7 @@
 """Point-to-plane ICP registration of a new capture onto the accumulated target (visual-servoing paper
 section II-A): recovery of an injected FK pose error on a simulated bunny capture, rejection of a
-divergent result, the disabled and too-few-points paths."""
+divergent result, the disabled and too-few-points paths, and the degeneracy-aware acceptance that keeps an
+exact-pose scan of planes (cube and table) from sliding."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from cell.perception.cloud import crop_box, voxel_downsample
 from cell.perception.registration import (
     RegistrationParams,
     RegistrationTarget,
+    constrained_correction,
     register_frame,
 )
 from drivers.clock import SimClock
@@ -143,3 +145,63 @@ def test_params_need_enabled_and_coarse_to_fine():
     with pytest.raises(ValidationError, match="coarse to fine"):
         RegistrationParams(enabled=True, max_correspondence_m=(0.002, 0.02))
     assert RegistrationParams(enabled=True).max_correspondence_m[-1] == 0.002
+
+
+def test_constrained_correction_keeps_only_what_a_plane_constrains():
+    """Points on the plane z = 0 constrain z and the tilts about x and y; a slide in x-y and a turn about z
+    are dropped (eigenvalue 0), the rest of the correction is kept exactly."""
+    g = np.linspace(-0.05, 0.05, 21)
+    x, y = np.meshgrid(g, g)
+    pts = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    normals = np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1))
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.01]).as_matrix()
+    T[:3, 3] = [0.002, -0.001, 0.003]
+    T_kept, eigval = constrained_correction(T, pts, normals, 0.005)
+    assert np.allclose(eigval[:3], 0.0, atol=1e-12) and np.all(eigval[3:] > 0.1)
+    np.testing.assert_allclose(T_kept, np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.003], [0, 0, 0, 1]]),
+                               atol=1e-12)
+    T_all, _ = constrained_correction(T, pts, normals, 0.0)
+    np.testing.assert_allclose(T_all, T, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def cube_captures():
+    """Four captures of the cube on the table from a ring at 30 degrees elevation, exact poses."""
+    scene = SimScene(load_object("cube"), T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    cfg = SimRGBDConfig(type="sim-rgbd", width=640, height=480, fx=475.0, fy=475.0, cx=319.5, cy=239.5,
+                        range_min_m=0.1, range_max_m=1.5, noise={"sigma0_m": 0.0005, "k_per_m": 0.002})
+    pose = {"T": np.eye(4)}
+    cam = SimRGBD(cfg, scene, lambda: pose["T"], SimClock(), np.random.default_rng(0))
+    poses = [_view(az, 30.0) for az in (180.0, 225.0, 270.0, 315.0)]
+    clouds = []
+    with cam:
+        for T in poses:
+            pose["T"] = T
+            pts = crop_box(cam.capture().points, (-0.15, 0.15), (-0.15, 0.15), (0.05, 0.40))
+            clouds.append(voxel_downsample(pts, 0.0025))
+    return poses, clouds
+
+
+@pytest.mark.parametrize("min_constraint", [0.005, 0.0])
+def test_exact_pose_cube_scan_is_left_alone(cube_captures, min_constraint, caplog):
+    """Table and cube faces let ICP slide: with exact poses the degeneracy-aware acceptance keeps the
+    correction near zero; without it (min_constraint 0) ICP drifts by a millimetre or more."""
+    poses, clouds = cube_captures
+    params = PARAMS.model_copy(update={"min_constraint": min_constraint})
+    target = RegistrationTarget(params)
+    target.update(transform_points(poses[0], clouds[0]))
+    results = []
+    with caplog.at_level("INFO", logger="cell.perception.registration"):
+        for T, cloud in zip(poses[1:], clouds[1:], strict=True):
+            res = target.register(cloud, T)
+            results.append(res)
+            target.update(voxel_downsample(np.vstack([target.points, transform_points(T, cloud)]), 0.0025))
+    assert all(r.accepted for r in results)
+    worst_m = max(r.correction_m for r in results)
+    if min_constraint > 0.0:
+        assert worst_m < 0.0003, [r.correction_m for r in results]
+        assert max(r.correction_deg for r in results) < 0.05
+        assert any(r.n_constrained < 6 for r in results) and "directions constrained" in caplog.text
+    else:
+        assert worst_m > 0.001 and all(r.n_constrained == 6 for r in results)

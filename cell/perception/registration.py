@@ -21,6 +21,18 @@ is used instead: fitness (share of source points with a correspondence within th
 below ``min_fitness``, or a correction of the sensor pose larger than ``max_correction_m`` /
 ``max_correction_deg``.
 
+Degeneracy-aware acceptance (choice of this module; Zhang, Kaess and Singh, "On degeneracy of
+optimization-based state estimation problems", ICRA 2016): scenes of planes (the table, the faces of a box)
+leave directions of the 6-DoF pose that the point-to-plane residuals r_i = (p_i - q_i) . n_i barely
+constrain, and ICP drifts along them by millimetres even from an exact FK pose. At the final pose the
+correspondences of the last stage give the Jacobian rows J_i = [((p_i - c) x n_i) / L, n_i] of r_i with
+respect to a twist (rotation w scaled by L, translation v) about the centroid c of the matched points,
+L their RMS distance to c (so both parts are in metres); the normalised Hessian H = (1/K) sum J_i^T J_i
+has eigenvalues in [0, 1]: the mean squared normal displacement per unit of motion along each
+eigen-direction. The correction (as that twist) is projected onto the eigen-directions whose eigenvalue
+is at least ``min_constraint``; the others keep the FK pose. What was dropped is logged (INFO) and
+counted in ``RegistrationResult.n_constrained``.
+
 The correction is applied in the base frame: ``T_base_sensor_used = T_correction @ T_base_sensor_fk``.
 It is measured at the sensor: the translation is the distance between the corrected and the FK sensor
 origins [m], the angle that of the rotation of ``T_correction`` [deg].
@@ -41,15 +53,17 @@ import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator
+from scipy.spatial.transform import Rotation
 
 from cell.perception.cloud import voxel_downsample
 from drivers.config_base import StrictModel
-from drivers.transforms import rotvec, transform_points
+from drivers.transforms import make_T, rotvec, transform_points
 
 Array = NDArray[np.float64]
 
@@ -71,7 +85,10 @@ class RegistrationParams(StrictModel):
     ``source_voxel_m`` [m] voxel filter of the new frame before ICP (paper: 2.5 mm; 0 = none);
     ``min_fitness`` the share of source points with a correspondence below which the result is rejected;
     ``max_correction_m`` [m] / ``max_correction_deg`` [deg] the largest accepted correction of the FK
-    pose; ``min_points`` the fewest source (and target) points worth registering.
+    pose; ``min_points`` the fewest source (and target) points worth registering; ``min_constraint`` the
+    smallest eigenvalue of the normalised point-to-plane Hessian (module docstring) for a direction of
+    the correction to be kept (0 keeps all six; 0.005 measured: an exact-pose cube scan's sliding
+    direction is at 0.001-0.004, the weakest direction of a bunny view at 0.007).
     """
 
     enabled: bool
@@ -84,6 +101,7 @@ class RegistrationParams(StrictModel):
     max_correction_m: PositiveFloat = 0.02
     max_correction_deg: PositiveFloat = 3.0
     min_points: PositiveInt = 200
+    min_constraint: float = Field(default=0.005, ge=0.0, le=1.0)
 
     @field_validator("max_correspondence_m")
     @classmethod
@@ -104,7 +122,10 @@ class RegistrationResult:
     correction found by ICP (``T_used = T_correction @ T_fk`` when accepted; identity when ICP did not
     run); ``fitness`` and ``rmse_m`` [m] of the last stage; ``correction_m`` [m] and ``correction_deg``
     [deg] its size at the sensor; ``reason`` "ok", "disabled", "no target yet", "too few points" (ICP
-    skipped) or, after ICP ran and its result was refused, ``REJECTED`` followed by why.
+    skipped) or, after ICP ran and its result was refused, ``REJECTED`` followed by why;
+    ``n_constrained`` how many of the 6 eigen-directions of the point-to-plane Hessian were kept
+    (6 when ICP did not run) and ``min_eigenvalue`` the smallest normalised eigenvalue (NaN when ICP did
+    not run).
     """
 
     T_base_sensor: Array
@@ -115,6 +136,8 @@ class RegistrationResult:
     correction_m: float
     correction_deg: float
     reason: str
+    n_constrained: int = 6
+    min_eigenvalue: float = float("nan")
 
     @property
     def rejected(self) -> bool:
@@ -150,21 +173,50 @@ def o3d_cloud(points: Array, normal_radius_m: float | None = None) -> o3d.geomet
     return pc
 
 
+class IcpResult(NamedTuple):
+    """Outcome of ``coarse_to_fine_icp``: ``T`` the 4x4 T_target_source, ``fitness`` and ``rmse_m`` [m] of
+    the last stage, ``correspondences`` (K, 2) its (source index, target index) pairs at ``T``."""
+
+    T: Array
+    fitness: float
+    rmse_m: float
+    correspondences: NDArray[np.int32]
+
+
 def coarse_to_fine_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T_init: Array,
-                       stages_m: tuple[float, ...], *, max_iterations: int,
-                       epsilon: float) -> tuple[Array, float, float]:
+                       stages_m: tuple[float, ...], *, max_iterations: int, epsilon: float) -> IcpResult:
     """Point-to-plane ICP of ``source`` onto ``target`` (which has normals) from ``T_init``, one run per
     maximum correspondence distance in ``stages_m`` [m], each starting where the previous one ended, up to
-    ``max_iterations`` and stopping when fitness and RMSE change by less than ``epsilon``.
-    Returns (T_target_source, fitness, inlier RMSE [m]) of the last stage."""
+    ``max_iterations`` and stopping when fitness and RMSE change by less than ``epsilon``."""
     criteria = _reg.ICPConvergenceCriteria(relative_fitness=epsilon, relative_rmse=epsilon,
                                            max_iteration=max_iterations)
     estimation = _reg.TransformationEstimationPointToPlane()
-    T, fitness, rmse = T_init, 0.0, 0.0
+    out = IcpResult(T_init, 0.0, 0.0, np.zeros((0, 2), dtype=np.int32))
     for dist in stages_m:
-        res = _reg.registration_icp(source, target, dist, T, estimation, criteria)
-        T, fitness, rmse = np.array(res.transformation), float(res.fitness), float(res.inlier_rmse)
-    return T, fitness, rmse
+        res = _reg.registration_icp(source, target, dist, out.T, estimation, criteria)
+        out = IcpResult(np.array(res.transformation), float(res.fitness), float(res.inlier_rmse),
+                        np.asarray(res.correspondence_set, dtype=np.int32))
+    return out
+
+
+def constrained_correction(T_correction: Array, matched_source: Array, matched_normals: Array,
+                           min_constraint: float) -> tuple[Array, Array]:
+    """Project a base-frame correction onto the well-constrained directions of point-to-plane ICP (module
+    docstring). ``matched_source`` (K, 3) [m] are the matched source points after the correction and
+    ``matched_normals`` (K, 3) the target normals they matched. Returns (the projected 4x4 correction,
+    the 6 normalised eigenvalues in ascending order)."""
+    c = matched_source.mean(axis=0)
+    arm = matched_source - c
+    L = max(float(np.sqrt(np.einsum("ij,ij->", arm, arm) / arm.shape[0])), 1e-9)
+    J = np.hstack([np.cross(arm, matched_normals) / L, matched_normals])
+    eigval, eigvec = np.linalg.eigh(J.T @ J / J.shape[0])
+    R, t = T_correction[:3, :3], T_correction[:3, 3]
+    # The correction as a twist about c: p -> R (p - c) + (R c + t); rotation scaled to metres at L.
+    xi = np.concatenate([rotvec(R) * L, R @ c + t - c])
+    keep = eigvec[:, eigval >= min_constraint]
+    xi = keep @ (keep.T @ xi)
+    R_kept = Rotation.from_rotvec(xi[:3] / L).as_matrix()
+    return make_T(R_kept, c + xi[3:] - R_kept @ c), eigval
 
 
 def _skipped(T_fk: Array, reason: str) -> RegistrationResult:
@@ -223,10 +275,26 @@ class RegistrationTarget:
                         src.shape[0], self.n_points, p.min_points)
             return _skipped(T_fk, "too few points")
 
-        source = o3d_cloud(transform_points(T_fk, src))
+        src_base = transform_points(T_fk, src)
         with single_threaded_open3d():
-            T, fitness, rmse = coarse_to_fine_icp(source, self._cloud, np.eye(4), p.max_correspondence_m,
-                                                  max_iterations=p.max_iterations, epsilon=p.epsilon)
+            icp = coarse_to_fine_icp(o3d_cloud(src_base), self._cloud, np.eye(4), p.max_correspondence_m,
+                                     max_iterations=p.max_iterations, epsilon=p.epsilon)
+        fitness, rmse = icp.fitness, icp.rmse_m
+        T, eigval = icp.T, np.full(6, np.nan)
+        if icp.correspondences.shape[0] >= 6:
+            matched = transform_points(icp.T, src_base[icp.correspondences[:, 0]])
+            T, eigval = constrained_correction(icp.T, matched, self.normals[icp.correspondences[:, 1]],
+                                               p.min_constraint)
+        n_constrained = int(np.count_nonzero(eigval >= p.min_constraint)) if np.all(np.isfinite(eigval)) \
+            else 6
+        if n_constrained < 6:
+            log.info("registration: %d of 6 directions constrained (eigenvalues %s, below %g dropped); "
+                     "correction %.2f mm / %.3f deg before, %.2f mm / %.3f deg after", n_constrained,
+                     np.array2string(eigval, precision=4), p.min_constraint,
+                     np.linalg.norm((icp.T @ T_fk)[:3, 3] - T_fk[:3, 3]) * 1e3,
+                     np.degrees(np.linalg.norm(rotvec(icp.T[:3, :3]))),
+                     np.linalg.norm((T @ T_fk)[:3, 3] - T_fk[:3, 3]) * 1e3,
+                     np.degrees(np.linalg.norm(rotvec(T[:3, :3]))))
 
         T_used = T @ T_fk
         corr_m = float(np.linalg.norm(T_used[:3, 3] - T_fk[:3, 3]))
@@ -244,9 +312,11 @@ class RegistrationTarget:
                         "using the FK pose", reason, fitness, rmse * 1e3, corr_m * 1e3, corr_deg)
             return RegistrationResult(T_base_sensor=T_fk.copy(), T_correction=T, accepted=False,
                                       fitness=fitness, rmse_m=rmse, correction_m=corr_m,
-                                      correction_deg=corr_deg, reason=reason)
+                                      correction_deg=corr_deg, reason=reason, n_constrained=n_constrained,
+                                      min_eigenvalue=float(eigval[0]))
         return RegistrationResult(T_base_sensor=T_used, T_correction=T, accepted=True, fitness=fitness,
-                                  rmse_m=rmse, correction_m=corr_m, correction_deg=corr_deg, reason="ok")
+                                  rmse_m=rmse, correction_m=corr_m, correction_deg=corr_deg, reason="ok",
+                                  n_constrained=n_constrained, min_eigenvalue=float(eigval[0]))
 
 
 def register_frame(points_sensor: Array, T_base_sensor_fk: Array, target_base: Array,

@@ -199,8 +199,8 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
         if not (len(pcs[i].points) and len(pcs[j].points)):
             continue
         T_init = inv_T(poses[j]) @ poses[i]  # recorded T_j_i: frame i's points into frame j
-        T, fitness, rmse = coarse_to_fine_icp(pcs[i], pcs[j], T_init, p.max_correspondence_m,
-                                              max_iterations=p.max_iterations, epsilon=p.epsilon)
+        T, fitness, rmse, _ = coarse_to_fine_icp(pcs[i], pcs[j], T_init, p.max_correspondence_m,
+                                                 max_iterations=p.max_iterations, epsilon=p.epsilon)
         corr_m = float(np.linalg.norm(T[:3, 3] - T_init[:3, 3]))
         corr_deg = float(np.degrees(np.linalg.norm(rotvec(T[:3, :3] @ T_init[:3, :3].T))))
         ok = fitness >= p.min_fitness and corr_m <= p.max_correction_m and corr_deg <= p.max_correction_deg
