@@ -13,7 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.arm.base import Arm
-from drivers.arm.config import ArmConfig, SimArmConfig
+from drivers.arm.config import ArmConfig, FrankaArmConfig, SimArmConfig, UR5eArmConfig
+from drivers.arm.hardware import require_module
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
 from drivers.depth.base import DepthSensor
@@ -52,14 +53,26 @@ def _sim_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
     return SimArm(cfg, model, world.clock, world.rng)
 
 
-def _hardware_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
-    raise _not_implemented(f"arm {cfg.type}")
+def _ur5e_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
+    assert isinstance(cfg, UR5eArmConfig)
+    require_module("rtde_control", "ur-rtde==1.6.5", "arm ur5e")
+    from drivers.arm.ur5e import UR5eArm
+
+    return UR5eArm(cfg, model)
+
+
+def _franka_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
+    assert isinstance(cfg, FrankaArmConfig)
+    require_module("franky", "franky-control==2.0.0", "arm franka")
+    from drivers.arm.franka import FrankaArm
+
+    return FrankaArm(cfg, model)
 
 
 ARM_BACKENDS: dict[str, Callable[[ArmConfig, RobotModel, SimWorld | None], Arm]] = {
     "sim": _sim_arm,
-    "ur5e": _hardware_arm,
-    "franka": _hardware_arm,
+    "ur5e": _ur5e_arm,
+    "franka": _franka_arm,
 }
 
 

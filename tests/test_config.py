@@ -92,7 +92,10 @@ def test_home_joints_of_wrong_length_are_refused(franka_cfg_data):
 
 def test_sim_mode_with_hardware_arm_is_refused(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
-    data["arm"] = {"type": "franka", "host": "10.0.0.2"}
+    data["arm"] = {"type": "franka", "host": "10.0.0.2", "relative_dynamics_factor": 0.1,
+                   "velocity_hold_s": 0.05, "max_linear_mps": 0.1, "max_angular_rps": 0.5,
+                   "payload": {"mass_kg": 0.3, "cog_m": [0.0, 0.0, 0.03]}, "torque_threshold_nm": 20.0,
+                   "force_threshold_n": 30.0}
     with pytest.raises(ConfigError, match="mode 'sim'"):
         parse_config(data, file="cell.yaml")
 

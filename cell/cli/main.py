@@ -12,6 +12,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from cell.cli.arm import arm_app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.jobs.session import JobSession
@@ -27,6 +28,7 @@ app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_hel
                   pretty_exceptions_enable=False)
 config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
+app.add_typer(arm_app, name="arm")
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 

@@ -33,24 +33,83 @@ class SimArmConfig(StrictModel):
     pose_error: PoseErrorConfig | None = None
 
 
+DigitalIndex = Annotated[int, Field(ge=0, le=7)]
+
+
+class PayloadConfig(StrictModel):
+    """What the flange carries (sensor, bracket, cables): mass [kg] and centre of mass in the flange frame
+    [m]. The controller uses it for gravity compensation and collision detection, so it has no default."""
+
+    mass_kg: float = Field(ge=0.0, le=5.0)
+    cog_m: tuple[float, float, float]
+
+
 class UR5eArmConfig(StrictModel):
-    """A UR5e controller reached through ur-rtde (hardware backend)."""
+    """A UR5e controller reached through ur-rtde (hardware backend; see :mod:`drivers.arm.ur5e`).
+
+    - ``tcp_offset``: the TCP in the flange frame as a UR pose (x, y, z [m], rx, ry, rz [rad, axis-angle]),
+      sent to the controller with ``setTcp``; the driver still reports and commands the flange.
+    - ``max_linear_mps`` / ``max_angular_rps``: the driver's own ceiling on every twist it sends (a second
+      line behind the safety guard's limits); ``acceleration_mps2`` the speedL acceleration and
+      ``stop_deceleration_mps2`` the speedStop / stopL deceleration.
+    - ``rtde_frequency_hz``: RTDE data rate (the controller runs at 500 Hz); ``servo_rate_hz``: the rate
+      at which trajectory samples are streamed with servoJ; ``servo_lookahead_s`` and ``servo_gain`` are
+      servoJ's smoothing parameters (UR ranges 0.03-0.2 s and 100-2000).
+    - ``watchdog_min_hz``: the RTDE watchdog armed while the arm moves: the control script stops the arm
+      when no command or kick arrives for 1 / ``watchdog_min_hz`` seconds.
+    - ``busy_output`` / ``done_output``: standard digital outputs driven for a packing line, and
+      ``trigger_input``: the standard digital input a line raises to start a scan (``None``: not wired).
+    - ``connect_timeout_s``: how long to wait for each controller port before giving up.
+    """
 
     type: Literal["ur5e"]
     model: Literal["ur5e"] = "ur5e"
     host: str
     home_joints_rad: list[float] | None = None
     connect_timeout_s: PositiveFloat = 5.0
+    tcp_offset: tuple[float, float, float, float, float, float]
+    payload: PayloadConfig
+    max_linear_mps: float = Field(gt=0.0, le=1.0)
+    max_angular_rps: float = Field(gt=0.0, le=3.2)
+    acceleration_mps2: float = Field(gt=0.0, le=5.0)
+    stop_deceleration_mps2: float = Field(gt=0.0, le=10.0)
+    rtde_frequency_hz: float = Field(default=500.0, gt=0.0, le=500.0)
+    servo_rate_hz: float = Field(default=125.0, gt=0.0, le=500.0)
+    servo_lookahead_s: float = Field(default=0.1, ge=0.03, le=0.2)
+    servo_gain: float = Field(default=300.0, ge=100.0, le=2000.0)
+    watchdog_min_hz: float = Field(gt=0.0, le=500.0)
+    busy_output: DigitalIndex | None = None
+    done_output: DigitalIndex | None = None
+    trigger_input: DigitalIndex | None = None
 
 
 class FrankaArmConfig(StrictModel):
-    """A Franka arm reached through franky (hardware backend)."""
+    """A Franka arm reached through franky-control (hardware backend; see :mod:`drivers.arm.franka`).
+
+    - ``relative_dynamics_factor``: share (0, 1] of the robot's velocity, acceleration and jerk limits
+      that every motion may use.
+    - ``velocity_hold_s``: each commanded twist is a Cartesian velocity motion that lasts this long
+      unless renewed; the control loop renews it at its rate, so the arm stops within this time when the
+      loop stops.
+    - ``max_linear_mps`` / ``max_angular_rps``: the driver's own ceiling on every twist it sends.
+    - ``torque_threshold_nm`` / ``force_threshold_n``: the collision reflex thresholds.
+    - ``realtime``: ``enforce`` refuses to connect without a realtime kernel (libfranka's default);
+      ``ignore`` is for simulators and non-realtime test machines.
+    """
 
     type: Literal["franka"]
     model: Literal["panda"] = "panda"
     host: str
     home_joints_rad: list[float] | None = None
-    relative_dynamics_factor: float = Field(default=0.1, gt=0.0, le=1.0)
+    connect_timeout_s: PositiveFloat = 5.0
+    relative_dynamics_factor: float = Field(gt=0.0, le=1.0)
+    velocity_hold_s: float = Field(gt=0.0, le=0.5)
+    max_linear_mps: float = Field(gt=0.0, le=1.7)
+    max_angular_rps: float = Field(gt=0.0, le=2.5)
+    payload: PayloadConfig
+    torque_threshold_nm: float = Field(gt=0.0, le=100.0)
+    force_threshold_n: float = Field(gt=0.0, le=100.0)
+    realtime: Literal["enforce", "ignore"] = "enforce"
 
 
 ArmConfig = Annotated[SimArmConfig | UR5eArmConfig | FrankaArmConfig, Field(discriminator="type")]

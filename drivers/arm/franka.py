@@ -1,0 +1,301 @@
+"""Franka backend through franky-control (pinned: ``franky-control==2.0.0``, the ``franka`` extra).
+
+A Cartesian velocity adapter: each twist becomes a franky ``CartesianVelocityMotion`` of
+``velocity_hold_s`` in the base frame, queued asynchronously so that it takes over the running one
+seamlessly; the control loop renews it at its rate, so the arm decelerates by itself within
+``velocity_hold_s`` when the loop stops. Every motion is scaled by ``relative_dynamics_factor``.
+
+Frames: franky reports and commands the end effector (EE, set in Desk); the Arm interface speaks the
+flange, so poses go through ``F_T_EE`` and twists through the EE's lever arm.
+
+Point-to-point: a synchronised rest-to-rest joint trajectory (what ``cell.control.trajectory`` plans) is
+a straight segment in joint space, which franky's own time-optimal ``JointWaypointMotion`` to the last
+sample also follows; the backend checks that the trajectory is such a segment and refuses anything
+else, so the arm never leaves the path the guard checked.
+
+Version check: before franky connects, the backend performs the research interface's connect handshake
+itself (TCP port 1337: header ``<III`` command 0, command id, size; payload ``<HH`` version, UDP port)
+and reads the server's answer (``<B`` status, ``<H`` version). A server that refuses the client's
+version is refused with both versions named: the franky-control wheels speak version 10 (libfranka
+0.21, FR3-era firmware); an older Panda needs a franky built against a matching libfranka.
+
+Faults: franky's ``ControlException`` (reflexes, limit violations) and the robot's mode become
+"reflex" / "robot error: ..." faults, a lost connection "disconnect". ``recover`` is the operator's
+action: franky's automatic error recovery.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from importlib import metadata
+
+import franky
+import numpy as np
+
+from drivers.arm.base import ArmMode, ArmState, JointTrajectory
+from drivers.arm.config import FrankaArmConfig
+from drivers.arm.hardware import (
+    Array,
+    HardwareArm,
+    check_trajectory,
+    checked_vector,
+    clamp_twist,
+    shift_twist,
+)
+from drivers.errors import DriverError, RobotFault
+from drivers.robots.model import RobotModel
+from drivers.transforms import inv_T
+
+COMMAND_PORT = 1337
+# research-interface version spoken by each supported franky-control release
+CLIENT_VERSIONS = {"2.0.0": 10}
+CONNECT_HEADER = struct.Struct("<III")
+CONNECT_REQUEST = struct.Struct("<HH")
+CONNECT_REPLY = struct.Struct("<BH")
+STATUS_INCOMPATIBLE = 1
+# a trajectory whose samples stray further than this from the straight start-goal segment is refused [rad]
+SEGMENT_TOL_RAD = 0.05
+NETWORK_ERRORS = (franky.NetworkException, franky.ProtocolException)
+
+
+def client_version() -> int:
+    """The research-interface version of the installed franky-control."""
+    installed = metadata.version("franky-control")
+    if installed not in CLIENT_VERSIONS:
+        raise DriverError(f"franky-control {installed} is installed, the cell is built for "
+                          f"{', '.join(CLIENT_VERSIONS)}: pip install 'franky-control==2.0.0'",
+                          device="arm franka")
+    return CLIENT_VERSIONS[installed]
+
+
+def server_version(host: str, timeout_s: float) -> tuple[bool, int]:
+    """Offer the client's version to the robot at ``host``; returns (accepted, the server's version)."""
+    # the robot streams its state to the UDP port a client names, so name a real one for the handshake
+    with socket.create_connection((host, COMMAND_PORT), timeout=timeout_s) as sock, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+        udp.bind((sock.getsockname()[0], 0))
+        request = CONNECT_REQUEST.pack(client_version(), udp.getsockname()[1])
+        sock.sendall(CONNECT_HEADER.pack(0, 0, CONNECT_HEADER.size + len(request)) + request)
+        header = _recv_exact(sock, CONNECT_HEADER.size)
+        _, _, size = CONNECT_HEADER.unpack(header)
+        payload = _recv_exact(sock, size - CONNECT_HEADER.size)
+    status, version = CONNECT_REPLY.unpack(payload[:CONNECT_REPLY.size])
+    return status != STATUS_INCOMPATIBLE, version
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    data = bytearray()
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("the robot closed the connection during the version handshake")
+        data.extend(chunk)
+    return bytes(data)
+
+
+class FrankaArm(HardwareArm):
+    """A Franka Panda / FR3 behind its control unit (see the module docstring)."""
+
+    name = "franka"
+
+    def __init__(self, config: FrankaArmConfig, model: RobotModel) -> None:
+        if model.name != "panda":
+            raise ValueError(f"arm franka: needs the panda model, got {model.name!r}")
+        self._config = config
+        self._model = model
+        self._device = f"arm franka at {config.host}"
+        self._robot: franky.Robot | None = None
+        self._mode = ArmMode.IDLE
+        self._fault: RobotFault | None = None
+
+    # ------------------------------------------------------------------ connection
+
+    def connect(self) -> None:
+        if self._robot is not None:
+            return
+        cfg = self._config
+        try:
+            accepted, version = server_version(cfg.host, cfg.connect_timeout_s)
+        except (OSError, ConnectionError) as exc:
+            raise DriverError(f"cannot reach the robot's control port {cfg.host}:{COMMAND_PORT} within "
+                              f"{cfg.connect_timeout_s:g} s ({exc}); check the address, that FCI is "
+                              "activated in Desk and that the brakes are open", device=self._device) from None
+        if not accepted:
+            raise DriverError(f"the robot's server speaks research-interface version {version}, this client "
+                              f"(franky-control {metadata.version('franky-control')}) speaks "
+                              f"{client_version()}: FR3-era firmware is needed, or a franky built "
+                              "against the libfranka that matches the robot's system version",
+                              device=self._device)
+        realtime = (franky.RealtimeConfig.Enforce if cfg.realtime == "enforce"
+                    else franky.RealtimeConfig.Ignore)
+        try:
+            robot = franky.Robot(cfg.host, relative_dynamics_factor=cfg.relative_dynamics_factor,
+                                 default_torque_threshold=cfg.torque_threshold_nm,
+                                 default_force_threshold=cfg.force_threshold_n, realtime_config=realtime)
+            robot.set_load(cfg.payload.mass_kg, list(cfg.payload.cog_m), [0.0] * 9)
+        except (franky.IncompatibleVersionException, *NETWORK_ERRORS, franky.RealtimeException,
+                franky.CommandException) as exc:
+            raise DriverError(f"franky could not connect: {exc}", device=self._device) from None
+        self._robot = robot
+        self._mode = ArmMode.IDLE
+        self._fault = None
+
+    def disconnect(self) -> None:
+        """Stop and drop the connection (franky closes it with the Robot object). Safe to call twice."""
+        if self._robot is None:
+            return
+        if self._fault is None:
+            self.stop()
+        self._robot = None
+
+    @property
+    def is_connected(self) -> bool:
+        return self._robot is not None
+
+    @property
+    def n_joints(self) -> int:
+        return 7
+
+    @property
+    def model(self) -> RobotModel:
+        return self._model
+
+    def _require(self) -> franky.Robot:
+        if self._robot is None:
+            raise DriverError("not connected (call connect() first)", device=self._device)
+        return self._robot
+
+    # ------------------------------------------------------------------ state and faults
+
+    def _poll(self, robot: franky.Robot) -> None:
+        """Surface what a running motion raised as a fault."""
+        try:
+            robot.poll_motion()
+        except franky.ControlException as exc:
+            self._fault = RobotFault(f"the robot stopped the motion: {exc}", device=self._device,
+                                     fault="reflex")
+        except NETWORK_ERRORS as exc:
+            self._fault = RobotFault(f"lost the connection: {exc}", device=self._device, fault="disconnect")
+
+    def _faults(self, robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+        faults: list[str] = [self._fault.fault] if self._fault is not None else []
+        if state.robot_mode == franky.RobotMode.Reflex and "reflex" not in faults:
+            faults.append("reflex")
+        if state.robot_mode == franky.RobotMode.UserStopped:
+            faults.append("user stop")
+        if robot.has_errors and not faults:
+            faults.append(f"robot error: {state.current_errors}")
+        return tuple(faults)
+
+    def _read(self) -> tuple[franky.Robot, franky.RobotState]:
+        robot = self._require()
+        self._poll(robot)
+        if self._fault is not None and self._fault.fault == "disconnect":
+            raise self._fault
+        try:
+            return robot, robot.state
+        except NETWORK_ERRORS as exc:
+            self._fault = RobotFault(f"lost the connection: {exc}", device=self._device, fault="disconnect")
+            raise self._fault from None
+
+    def state(self) -> ArmState:
+        robot, st = self._read()
+        T_ee = np.asarray(st.O_T_EE.matrix, dtype=float)
+        T_flange = T_ee @ inv_T(np.asarray(st.F_T_EE.matrix, dtype=float))
+        twist = st.O_dP_EE_est if st.O_dP_EE_est is not None else st.O_dP_EE_d
+        v_ee = np.concatenate([np.asarray(twist.linear), np.asarray(twist.angular)])
+        faults = self._faults(robot, st)
+        if self._mode is not ArmMode.IDLE and not robot.is_in_control:
+            self._mode = ArmMode.IDLE
+        return ArmState(timestamp=st.time.to_sec(),
+                        q=np.asarray(st.q, dtype=float), qd=np.asarray(st.dq, dtype=float),
+                        T_base_flange=T_flange,
+                        v_base_flange=shift_twist(v_ee, T_flange[:3, 3] - T_ee[:3, 3]),
+                        mode=ArmMode.FAULT if faults else self._mode, faults=faults)
+
+    def controller_modes(self) -> dict[str, str]:
+        robot, st = self._read()
+        errors = str(st.current_errors) if robot.has_errors else "none"
+        return {"robot mode": st.robot_mode.name, "errors": errors}
+
+    def _refuse_if_faulted(self, what: str) -> franky.Robot:
+        robot, st = self._read()
+        faults = self._faults(robot, st)
+        if faults:
+            raise RobotFault(f"{what} refused: {', '.join(faults)}", device=self._device, fault=faults[0])
+        return robot
+
+    def _move(self, what: str, motion: object) -> None:
+        robot = self._refuse_if_faulted(what)
+        try:
+            robot.move(motion, asynchronous=True)
+        except franky.ControlException as exc:
+            self._fault = RobotFault(f"{what}: {exc}", device=self._device, fault="reflex")
+            raise self._fault from None
+        except NETWORK_ERRORS as exc:
+            self._fault = RobotFault(f"{what}: {exc}", device=self._device, fault="disconnect")
+            raise self._fault from None
+
+    # ------------------------------------------------------------------ commands
+
+    def _command_twist(self, v_base_flange: Array) -> None:
+        cfg = self._config
+        v = clamp_twist(checked_vector(v_base_flange, 6, "twist", self._device), cfg.max_linear_mps,
+                        cfg.max_angular_rps)
+        _, st = self._read()
+        T_ee = np.asarray(st.O_T_EE.matrix, dtype=float)
+        T_flange = T_ee @ inv_T(np.asarray(st.F_T_EE.matrix, dtype=float))
+        v_ee = shift_twist(v, T_ee[:3, 3] - T_flange[:3, 3])
+        hold = franky.Duration(max(1, round(cfg.velocity_hold_s * 1000)))
+        motion = franky.CartesianVelocityMotion(franky.Twist(v_ee[:3], v_ee[3:]), duration=hold,
+                                                relative_dynamics_factor=cfg.relative_dynamics_factor)
+        self._move("command_twist()", motion)
+        self._mode = ArmMode.VELOCITY
+
+    def _execute_trajectory(self, trajectory: JointTrajectory) -> None:
+        _, st = self._read()
+        check_trajectory(trajectory, self._model, np.asarray(st.q, dtype=float), self._device)
+        q0, q1 = trajectory.q[0], trajectory.q[-1]
+        seg = q1 - q0
+        length2 = float(seg @ seg)
+        s = (np.clip((trajectory.q - q0) @ seg / length2, 0.0, 1.0) if length2 > 0
+             else np.zeros(len(trajectory.t)))
+        off = float(np.max(np.abs(trajectory.q - (q0 + s[:, None] * seg))))
+        if off > SEGMENT_TOL_RAD:
+            raise ValueError(f"{self._device}: the trajectory leaves the straight joint segment by "
+                             f"{off:.4f} rad; this backend executes rest-to-rest joint segments only")
+        motion = franky.JointWaypointMotion([franky.JointWaypoint(q1.tolist())],
+                                            relative_dynamics_factor=self._config.relative_dynamics_factor)
+        self._move("execute_trajectory()", motion)
+        self._mode = ArmMode.TRAJECTORY
+
+    def stop(self) -> None:
+        """Decelerate within the relative dynamics factor; a faulted arm has been stopped by the robot."""
+        robot = self._require()
+        self._poll(robot)
+        if self._fault is not None or self._mode is ArmMode.IDLE:
+            self._mode = ArmMode.IDLE
+            return
+        rdf = self._config.relative_dynamics_factor
+        stop_motion = (franky.CartesianVelocityStopMotion(rdf) if self._mode is ArmMode.VELOCITY
+                       else franky.JointStopMotion(rdf))
+        self._move("stop()", stop_motion)
+        self._mode = ArmMode.STOPPING
+
+    def recover(self) -> None:
+        """Operator action: franky's automatic error recovery; a lost connection is re-opened."""
+        robot = self._require()
+        if self._fault is not None and self._fault.fault == "disconnect":
+            self._robot = None
+            self.connect()
+            return
+        try:
+            ok = robot.recover_from_errors()
+        except (franky.CommandException, *NETWORK_ERRORS) as exc:
+            raise RobotFault(f"error recovery failed: {exc}", device=self._device, fault="reflex") from None
+        if not ok:
+            raise RobotFault("the robot refused the automatic error recovery", device=self._device,
+                             fault="reflex")
+        self._fault = None
+        self._mode = ArmMode.IDLE

@@ -1,0 +1,146 @@
+"""Arm backends for the tests, each against its real peer: the sim arm on a sim clock, the UR5e backend
+against the RTDE controller peer, the Franka backend against franky-sim. Shared by the conformance suite
+and the per-backend tests."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.arm.base import Arm, MotionToken
+from drivers.arm.config import FrankaArmConfig, SimArmConfig, UR5eArmConfig
+from drivers.arm.sim import SimArm
+from drivers.clock import SimClock
+from drivers.robots import get_robot_model
+from tests.rtde_peer import ControllerPeer
+
+PAYLOAD = {"mass_kg": 0.3, "cog_m": [0.0, 0.0, 0.03]}
+
+
+def ur5e_config(host: str, **overrides: object) -> UR5eArmConfig:
+    """The UR5e config the tests use: 125 Hz RTDE (enough for a Python peer on a shared CI machine)."""
+    data: dict[str, object] = {
+        "type": "ur5e", "host": host, "tcp_offset": [0.0, 0.0, 0.05, 0.0, 0.0, 0.0], "payload": PAYLOAD,
+        "max_linear_mps": 0.1, "max_angular_rps": 0.5, "acceleration_mps2": 0.5,
+        "stop_deceleration_mps2": 1.0, "rtde_frequency_hz": 125.0, "servo_rate_hz": 125.0,
+        "watchdog_min_hz": 5.0, "busy_output": 2, "done_output": 3, "trigger_input": 4,
+        "connect_timeout_s": 2.0,
+    }
+    data.update(overrides)
+    return UR5eArmConfig.model_validate(data)
+
+
+def franka_config(host: str) -> FrankaArmConfig:
+    return FrankaArmConfig.model_validate({
+        "type": "franka", "host": host, "relative_dynamics_factor": 0.2, "velocity_hold_s": 0.1,
+        "max_linear_mps": 0.1, "max_angular_rps": 0.5, "payload": PAYLOAD, "torque_threshold_nm": 20.0,
+        "force_threshold_n": 30.0, "realtime": "ignore", "connect_timeout_s": 2.0})
+
+
+def free_loopback(port: int, start: int) -> str:
+    """A 127.0.0.N whose ``port`` is free."""
+    for n in range(start, start + 50):
+        host = f"127.0.0.{n}"
+        with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
+            try:
+                probe.bind((host, port))
+            except OSError:
+                continue
+        return host
+    raise RuntimeError(f"no free 127.0.0.N for port {port}")
+
+
+class FrankySim:
+    """``franky-sim --simulator mujoco --hostname 127.0.0.N`` in its own process (port 1337)."""
+
+    def __init__(self) -> None:
+        self.host = free_loopback(1337, 120)
+        exe = Path(sys.executable).with_name("franky-sim")
+        self._proc = subprocess.Popen([str(exe), "--simulator", "mujoco", "--hostname", self.host],
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert self._proc.stdout is not None
+        for line in self._proc.stdout:
+            if "Connect to the server" in line:
+                break
+        else:
+            raise RuntimeError("franky-sim did not start")
+
+    @property
+    def alive(self) -> bool:
+        return self._proc.poll() is None
+
+    def kill(self) -> None:
+        """The robot vanishes (power cut, cable pulled)."""
+        self._proc.kill()
+        self._proc.wait()
+        if self._proc.stdout is not None:
+            self._proc.stdout.close()
+
+
+@dataclass
+class Backend:
+    """One backend under test: the connected arm, its motion token, how time passes, how a fault comes."""
+
+    name: str
+    arm: Arm
+    token: MotionToken
+    advance: Callable[[float], None]
+    inject_fault: Callable[[], None]
+    recoverable: bool
+
+    def wait_until(self, predicate: Callable[[], bool], timeout_s: float = 20.0) -> None:
+        """Let time pass until ``predicate()`` holds (a bound on waiting, not a timed assertion)."""
+        waited = 0.0
+        while not predicate():
+            if waited > timeout_s:
+                raise AssertionError(f"{self.name}: condition not reached within {timeout_s} s")
+            self.advance(0.02)
+            waited += 0.02
+
+
+@contextlib.contextmanager
+def sim_backend() -> Iterator[Backend]:
+    clock = SimClock()
+    arm = SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("ur5e"), clock,
+                 np.random.default_rng(0))
+
+    def advance(seconds: float) -> None:
+        for _ in range(max(1, round(seconds / 0.004))):
+            clock.sleep(0.004)
+
+    with arm:
+        yield Backend("sim", arm, arm.claim_motion(), advance,
+                      lambda: arm.inject_fault("protective stop"), recoverable=True)
+
+
+@contextlib.contextmanager
+def ur5e_backend(peer: ControllerPeer, **overrides: object) -> Iterator[Backend]:
+    from drivers.arm.ur5e import UR5eArm
+
+    arm = UR5eArm(ur5e_config(peer.host, **overrides), get_robot_model("ur5e"))
+    arm.connect()
+    try:
+        yield Backend("ur5e", arm, arm.claim_motion(), time.sleep, peer.protective_stop, recoverable=True)
+    finally:
+        arm.disconnect()
+
+
+@contextlib.contextmanager
+def franka_backend(sim: FrankySim) -> Iterator[Backend]:
+    from drivers.arm.franka import FrankaArm
+
+    arm = FrankaArm(franka_config(sim.host), get_robot_model("panda"))
+    arm.connect()
+    try:
+        yield Backend("franka", arm, arm.claim_motion(), time.sleep, sim.kill, recoverable=False)
+    finally:
+        if sim.alive:
+            arm.disconnect()

@@ -1,0 +1,128 @@
+"""The UR5e backend against the RTDE controller peer: what the driver sends (clamped twists, TCP, payload,
+watchdog, digital outputs) and what it does on protective stops, emergency stops and disconnects."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from drivers.arm.base import ArmMode
+from drivers.arm.ur5e import UR5eArm
+from drivers.errors import DriverError, RobotFault
+from drivers.robots import get_robot_model
+from tests.arm_backends import Backend, ur5e_backend, ur5e_config
+from tests.rtde_peer import ControllerPeer
+
+
+@pytest.fixture
+def peer() -> Iterator[ControllerPeer]:
+    p = ControllerPeer()
+    yield p
+    p.stop()
+
+
+@pytest.fixture
+def ur(peer: ControllerPeer) -> Iterator[Backend]:
+    with ur5e_backend(peer) as b:
+        yield b
+
+
+def test_connect_sends_tcp_and_payload_from_the_config(peer: ControllerPeer, ur: Backend) -> None:
+    st = peer.state()
+    assert st["program_running"] and st["scripts_uploaded"] == 1
+    assert np.allclose(st["tcp_offset"], [0, 0, 0.05, 0, 0, 0]) and st["payload_kg"] == pytest.approx(0.3)
+    # the driver speaks the flange: the reported flange is the TCP minus the offset
+    flange = ur.arm.state().T_base_flange
+    assert np.allclose(flange[:3, 3], peer.state()["flange_pose"][:3], atol=1e-6)
+
+
+def test_twists_are_clamped_and_sent_with_speedl_under_a_watchdog(peer: ControllerPeer, ur: Backend) -> None:
+    ur.arm.command_twist(np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]), ur.token)  # 0.5 m/s > the 0.1 ceiling
+    speedl = peer.records("speedL")[-1]["doubles"]
+    assert np.linalg.norm(speedl[:3]) == pytest.approx(0.1) and speedl[2] > 0
+    assert speedl[6] == pytest.approx(0.5)  # acceleration from the config
+    watchdog = peer.records("setWatchdog")
+    assert watchdog and watchdog[0]["doubles"][0] == pytest.approx(5.0)
+    ur.arm.stop()
+    assert peer.records("speedStop")[-1]["doubles"][0] == pytest.approx(1.0)
+    assert peer.records("setWatchdog")[-1]["doubles"][0] == 0.0  # disarmed at rest
+
+
+def test_the_watchdog_stops_the_arm_when_the_loop_stops_calling(peer: ControllerPeer, ur: Backend) -> None:
+    ur.arm.command_twist(np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0]), ur.token)
+    peer.wait_for(lambda s: not s["program_running"], what="the watchdog ending the script")
+    assert any("watchdog" in e for e in peer.state()["events"])
+    with pytest.raises(RobotFault, match="control script not running") as refused:
+        ur.arm.command_twist(np.zeros(6), ur.token)
+    assert refused.value.fault == "control script not running"
+    ur.arm.recover()
+    assert peer.state()["scripts_uploaded"] == 2 and ur.arm.state().faults == ()
+
+
+def test_protective_stop_is_a_fault_until_the_operator_recovers(peer: ControllerPeer, ur: Backend) -> None:
+    peer.protective_stop()
+    ur.wait_until(lambda: "protective stop" in ur.arm.state().faults)
+    assert ur.arm.controller_modes()["safety mode"] == "PROTECTIVE_STOP"
+    with pytest.raises(RobotFault) as refused:
+        ur.arm.command_twist(np.zeros(6), ur.token)
+    assert refused.value.fault == "protective stop"
+    ur.arm.recover()
+    assert peer.state()["safety_mode"] == "NORMAL" and peer.state()["program_running"]
+    assert np.allclose(peer.state()["tcp_offset"], [0, 0, 0.05, 0, 0, 0])  # re-sent after the restart
+
+
+def test_emergency_stop_cannot_be_cleared_from_software(peer: ControllerPeer, ur: Backend) -> None:
+    peer.emergency_stop()
+    ur.wait_until(lambda: "emergency stop" in ur.arm.state().faults)
+    with pytest.raises(RobotFault, match="release it"):
+        ur.arm.recover()
+    peer.release_emergency_stop()
+    ur.wait_until(lambda: "emergency stop" not in ur.arm.state().faults)
+    assert "power off" in ur.arm.state().faults
+    ur.arm.recover()  # power on, brake release, script re-upload
+    assert ur.arm.state().faults == () and peer.state()["robot_mode"] == "RUNNING"
+
+
+def test_digital_inputs_trigger_and_busy_done_outputs(peer: ControllerPeer, ur: Backend) -> None:
+    arm = ur.arm
+    assert isinstance(arm, UR5eArm)
+    peer.set_digital_input(4, True)
+    ur.wait_until(arm.trigger)
+    assert arm.digital_inputs()[4] and arm.controller_modes()["digital inputs"] == "00001000"
+    arm.signal("busy")
+    peer.wait_for(lambda s: s["digital_out"] == 1 << 2, what="busy output")
+    arm.signal("done")
+    peer.wait_for(lambda s: s["digital_out"] == 1 << 3, what="done output")
+
+
+def test_a_trajectory_is_streamed_with_servoj(peer: ControllerPeer, ur: Backend) -> None:
+    from cell.control.trajectory import joint_trajectory
+
+    q0 = ur.arm.state().q
+    goal = q0 + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.1])
+    traj = joint_trajectory(get_robot_model("ur5e"), q0, goal, dt=0.008, velocity_scale=0.3,
+                            acceleration_scale=0.3, jerk_scale=0.3)
+    ur.arm.execute_trajectory(traj, ur.token)
+    ur.wait_until(lambda: ur.arm.state().mode is ArmMode.IDLE)
+    servoj = peer.records("servoJ")
+    assert len(servoj) > 10 and np.allclose(servoj[-1]["doubles"][:6], goal, atol=1e-9)
+    assert peer.records("servoStop")
+
+
+def test_refuses_a_controller_in_local_control() -> None:
+    peer = ControllerPeer(remote_control=False)
+    try:
+        arm = UR5eArm(ur5e_config(peer.host), get_robot_model("ur5e"))
+        with pytest.raises(DriverError, match="Remote Control"):
+            arm.connect()
+        assert not arm.is_connected
+    finally:
+        peer.stop()
+
+
+def test_an_unreachable_controller_fails_fast_with_its_address() -> None:
+    arm = UR5eArm(ur5e_config("127.0.0.254", connect_timeout_s=0.5), get_robot_model("ur5e"))
+    with pytest.raises(DriverError, match=r"127\.0\.0\.254:30004"):
+        arm.connect()
