@@ -32,6 +32,7 @@ class SimClock:
     def __init__(self, start: float = 0.0) -> None:
         self._t = float(start)
         self._steppers: list[Callable[[float], None]] = []
+        self._overrun = 0.0
 
     def now(self) -> float:
         return self._t
@@ -40,9 +41,17 @@ class SimClock:
         """Register ``step(dt)``, called on every ``sleep`` before time moves on."""
         self._steppers.append(step)
 
+    def set_overrun(self, extra_s: float) -> None:
+        """Make every ``sleep`` last ``extra_s`` seconds longer (0 ends it): a simulated control loop
+        that runs late, while the devices keep moving."""
+        if extra_s < 0.0:
+            raise ValueError(f"overrun must be >= 0, got {extra_s} s")
+        self._overrun = float(extra_s)
+
     def sleep(self, dt: float) -> None:
         if dt < 0.0:
             raise ValueError(f"cannot sleep a negative time ({dt} s)")
+        dt += self._overrun
         for step in self._steppers:
             step(dt)
         self._t += dt

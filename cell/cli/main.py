@@ -14,6 +14,7 @@ from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
 from cell.config import load_config
+from cell.jobs.recorder import request_stop
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.jobs.session import JobSession
 from cell.perception.reprocess import reprocess_job
@@ -87,6 +88,20 @@ def scan(
                   highlight=False)
     console.print(f"coverage: {cov:.1f} %", highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
+
+
+@app.command()
+def stop(
+    job_dir: Annotated[Path, typer.Argument(help="folder of the running job")],
+    reason: Annotated[str, typer.Option(help="recorded in the job's termination")] = "operator stop",
+) -> None:
+    """Operator stop of a running scan: the arm stops at the job's next control tick, and the job ends
+    ``stopped`` with everything recorded so far."""
+    try:
+        request_stop(job_dir, reason)
+    except CellError as exc:
+        raise _fail(exc) from None
+    console.print(f"stop requested: {job_dir}", markup=False, highlight=False)
 
 
 @app.command()

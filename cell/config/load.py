@@ -54,9 +54,14 @@ def _strip_tags(loc: tuple[Any, ...], data: Any) -> tuple[Any, ...]:
 def _check_ceilings(cfg: CellConfig, file: str) -> None:
     """Refuse limits above the robot model's own maxima and home joints outside its range."""
     model = get_robot_model(cfg.arm.model)
+    s = cfg.safety
     ceilings = {
-        "safety.tcp_max_linear_mps": (cfg.safety.tcp_max_linear_mps, model.tcp_max_linear_mps),
-        "safety.tcp_max_angular_rps": (cfg.safety.tcp_max_angular_rps, model.tcp_max_angular_rps),
+        "safety.tcp_max_linear_mps": (s.tcp_max_linear_mps, model.tcp_max_linear_mps),
+        "safety.tcp_max_angular_rps": (s.tcp_max_angular_rps, model.tcp_max_angular_rps),
+        "safety.tcp_max_linear_acc_mps2": (s.tcp_max_linear_acc_mps2, model.tcp_max_linear_acc),
+        "safety.tcp_max_angular_acc_rps2": (s.tcp_max_angular_acc_rps2, model.tcp_max_angular_acc),
+        "safety.tcp_max_linear_jerk_mps3": (s.tcp_max_linear_jerk_mps3, model.tcp_max_linear_jerk),
+        "safety.tcp_max_angular_jerk_rps3": (s.tcp_max_angular_jerk_rps3, model.tcp_max_angular_jerk),
     }
     for field, (value, ceiling) in ceilings.items():
         if value > ceiling:

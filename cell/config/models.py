@@ -15,9 +15,11 @@ from cell.perception.filters import FilterParams
 from cell.perception.occupancy import OccupancyParams
 from cell.perception.registration import RegistrationParams
 from cell.perception.segmentation import SegmentationParams
+from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig
 from drivers.config_base import StrictModel
 from drivers.depth.config import DepthConfig
+from drivers.sim.faults import SimFault
 from drivers.transforms import T_from_xyz_rpy
 
 
@@ -40,10 +42,12 @@ class StationConfig(StrictModel):
 
 
 class SimConfig(StrictModel):
-    """The simulated world: the table's size and centre in the base frame [m]."""
+    """The simulated world: the table's size and centre in the base frame [m], and faults to inject on a
+    schedule (``drivers.sim.faults``) to see the safety layer react."""
 
     table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
     table_center_xy_m: tuple[float, float] = (0.5, 0.0)
+    faults: list[SimFault] = Field(default_factory=list)
 
 
 class CropBoxConfig(StrictModel):
@@ -74,35 +78,6 @@ class PerceptionConfig(StrictModel):
     registration: RegistrationParams
     occupancy: OccupancyParams
     segmentation: SegmentationParams = SegmentationParams()
-
-
-class WorkspaceConfig(StrictModel):
-    """Box in the base frame [m] that the sensor and the flange must stay inside."""
-
-    min_m: tuple[float, float, float]
-    max_m: tuple[float, float, float]
-
-    @model_validator(mode="after")
-    def _ordered(self) -> WorkspaceConfig:
-        if not all(lo < hi for lo, hi in zip(self.min_m, self.max_m, strict=True)):
-            raise ValueError(f"min_m {self.min_m} must be below max_m {self.max_m} on every axis")
-        return self
-
-
-class SafetyConfig(StrictModel):
-    """Motion limits of the cell. The robot model's own maxima are hard ceilings (checked at load).
-
-    ``tcp_max_linear_mps`` [m/s], ``tcp_max_angular_rps`` [rad/s]; ``joint_velocity_scale`` the share
-    of each joint's maximum speed that point-to-point moves may use, ``joint_acceleration_scale`` and
-    ``joint_jerk_scale`` likewise for acceleration and jerk.
-    """
-
-    tcp_max_linear_mps: PositiveFloat
-    tcp_max_angular_rps: PositiveFloat
-    joint_velocity_scale: float = Field(gt=0.0, le=1.0)
-    joint_acceleration_scale: float = Field(gt=0.0, le=1.0)
-    joint_jerk_scale: float = Field(gt=0.0, le=1.0)
-    workspace: WorkspaceConfig
 
 
 class RingConfig(StrictModel):

@@ -8,7 +8,8 @@
   them, see ``DepthFrame``), otherwise the points in the sensor frame, plus the ToF zones;
   ``frames/index.csv`` lists them;
 - ``map.bt``: the occupancy map in OctoMap's binary format (octovis and pyoctomap open it);
-- ``log.txt``: what happened, stamped with job time.
+- ``log.txt``: what happened, stamped with job time;
+- ``STOP``: written by ``cell stop`` while the job runs (an operator stop; the job removes it).
 """
 
 from __future__ import annotations
@@ -29,6 +30,18 @@ from drivers.errors import JobError
 from drivers.transforms import quat_xyzw
 
 Array = NDArray[np.float64]
+
+STOP_FILE = "STOP"
+
+
+def request_stop(folder: Path, reason: str) -> None:
+    """Ask the job running in ``folder`` to stop (operator stop): writes its ``STOP`` file, which the job
+    reads at its next control tick. Raises ``JobError`` when no job is running there."""
+    if not (folder / "log.txt").is_file():
+        raise JobError(f"{folder} is not a job folder (no log.txt)")
+    if (folder / "result.json").exists():
+        raise JobError(f"the job in {folder} is not running: it has finished (result.json exists)")
+    (folder / STOP_FILE).write_text(reason.strip() + "\n")
 
 
 class JobRecorder:

@@ -18,16 +18,19 @@ from typing import Any
 import numpy as np
 
 from cell.config.models import CellConfig
-from cell.jobs.recorder import JobRecorder
+from cell.jobs.recorder import STOP_FILE, JobRecorder
 from cell.jobs.session import JobSession, TimeBudgetExhausted
 from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.registry import get_planner
 from cell.safety.guard import MotionGuard
+from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
+from drivers.depth.sim_base import SimDepthSensor
 from drivers.errors import CellError, JobError, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
+from drivers.sim.faults import SimFaultInjector
 from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import T_from_xyz_rpy
@@ -87,14 +90,6 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
     }
 
 
-def _stop_after(guard: MotionGuard, recorder: JobRecorder, t: float, exc: BaseException) -> None:
-    """Stop the arm after a failure in the loop; a failing stop is logged, not allowed to hide ``exc``."""
-    try:
-        guard.stop(f"{type(exc).__name__}: {exc}")
-    except CellError as stop_exc:
-        recorder.log(t, f"stop after failure also failed: {stop_exc}")
-
-
 def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
     """Run the scan described by ``req``; returns the job folder and the result written there."""
     cfg = req.config
@@ -124,7 +119,11 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     flange = true_flange_pose(arm)
     sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
     ground_truth = ground_truth_points(mesh, T_base_object)
-    guard = MotionGuard(arm, model, cfg.safety, T_flange_sensor, clock)
+    if cfg.sim.faults:
+        if not (isinstance(arm, SimArm) and isinstance(sensor, SimDepthSensor)):
+            raise JobError("sim.faults needs the simulated arm and a simulated sensor")
+        SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
+    guard = MotionGuard.from_config(arm, model, cfg, clock)
 
     status, termination = "failed", "not started"
     session: JobSession | None = None
@@ -137,16 +136,27 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
             session = JobSession(cfg, clock=clock, guard=guard, model=model, sensor=sensor,
                                  perception=perception, recorder=recorder, max_time_s=max_time,
-                                 coverage=CoverageTracker(ground_truth), on_progress=on_progress)
+                                 coverage=CoverageTracker(ground_truth), on_progress=on_progress,
+                                 stop_file=folder / STOP_FILE)
+            # Whatever ends the planner's run, the arm is brought to rest and watched until it is.
             try:
                 termination = planner.run(session)
             except TimeBudgetExhausted as exc:
                 termination = str(exc)
             except SafetyStop:
+                session.settle()
                 raise
+            except KeyboardInterrupt:
+                reason = "operator stop: interrupted (Ctrl-C)"
+                guard.stop(reason)
+                session.settle()
+                raise SafetyStop(reason) from None
             except Exception as exc:
-                _stop_after(guard, recorder, clock.now(), exc)
+                guard.stop(f"{type(exc).__name__}: {exc}")
+                session.settle()
                 raise
+            guard.finish()
+            session.settle()
             status = "completed"
     except SafetyStop as exc:
         status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
@@ -155,6 +165,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     except Exception as exc:
         status, termination, error = "failed", f"internal error: {type(exc).__name__}: {exc}", exc
     finally:
+        guard.release()
         recorder.log(clock.now(), f"{status}: {termination}")
         cloud = session.cloud.points if session is not None else np.zeros((0, 3))
         recorder.cloud(cloud)
@@ -172,7 +183,9 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "wall_time_s": round(time.monotonic() - wall_start, 3),
             "path_length_m": round(session.path_length_m, 6) if session else 0.0,
             "n_captures": session.n_captures if session else 0,
+            "n_capture_failures": session.n_capture_failures if session else 0,
             "n_unreachable_views": session.n_unreachable if session else 0,
+            "refused_moves": dict(sorted(session.refused_moves.items())) if session else {},
             "n_cloud_points": int(cloud.shape[0]),
             "object_pose": np.round(T_base_object, 9).tolist(),
             "metrics": _finite_or_none(metrics.as_dict()),

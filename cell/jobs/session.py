@@ -1,13 +1,21 @@
 """The scan session a planner drives: motion through the guard, captures, accumulation, the job clock.
 
-In sim mode ``wait`` advances the simulated clock one control period at a time, which steps the simulated
-arm; the sensor pose is written to ``trajectory.csv`` at every tick. The time budget is checked on every
-tick: when it runs out ``TimeBudgetExhausted`` ends the planner's run.
+Every control period is one tick: the time budget, an operator stop (``request_stop``, or a ``STOP``
+file in the job folder written by ``cell stop``), a due continuous capture, then the guard's tick
+(watchdog, arm faults, the next streamed command), then the clock moves on by one period (in sim mode this
+steps the simulated arm) and the sensor pose is written to ``trajectory.csv``. When the time budget runs
+out ``TimeBudgetExhausted`` ends the planner's run; a safety stop raises ``SafetyStop``.
+
+While continuous capture is on (planners that move from perception), the watchdog judges the age of the
+newest frame; a frame the sensor fails to deliver then is logged and counted, and the watchdog stops the
+arm if no frame arrives for too long.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -19,15 +27,17 @@ from cell.perception.metrics import CoverageTracker
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard
-from drivers.arm.base import ArmMode
 from drivers.clock import Clock
 from drivers.depth.base import DepthSensor
-from drivers.errors import KinematicsError
+from drivers.errors import DriverError, KinematicsError
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
 
 # A point-to-point move that has not finished this long after its planned duration is a fault.
 MOVE_TIMEOUT_MARGIN_S = 2.0
+# After a stop the job records the arm until every joint is slower than this, for at most this long.
+SETTLED_QD_RAD_S = 1e-4
+SETTLE_TIMEOUT_S = 3.0
 
 
 class TimeBudgetExhausted(Exception):
@@ -40,7 +50,8 @@ class JobSession:
     def __init__(self, config: CellConfig, *, clock: Clock, guard: MotionGuard, model: RobotModel,
                  sensor: DepthSensor, perception: PerceptionPipeline, recorder: JobRecorder,
                  max_time_s: float, coverage: CoverageTracker | None,
-                 on_progress: Callable[[JobSession], None] | None = None) -> None:
+                 on_progress: Callable[[JobSession], None] | None = None,
+                 stop_file: Path | None = None) -> None:
         self.config = config
         self._clock = clock
         self._guard = guard
@@ -55,14 +66,18 @@ class JobSession:
         self.perception = perception
         self._capture_period = 1.0 / config.perception.rate_hz
         self._next_capture: float | None = None
+        self._perception_time: float | None = None
+        self._stop_file = stop_file
         self.coverage = coverage
         self.n_captures = 0
+        self.n_capture_failures = 0
+        self.refused_moves: Counter[str] = Counter()
         self.n_unreachable = 0
         self.n_registration_rejected = 0
         self.path_length_m = 0.0
         self._last_position: Array | None = None
         self._on_progress = on_progress
-        self._record_pose()
+        self._record_pose(self._guard.state().T_base_flange)
 
     def now(self) -> float:
         return self._clock.now()
@@ -73,8 +88,8 @@ class JobSession:
     def sensor_pose(self) -> Array:
         return self._guard.state().T_base_flange @ self._T_flange_sensor
 
-    def _record_pose(self) -> None:
-        T = self.sensor_pose()
+    def _record_pose(self, T_base_flange: Array) -> None:
+        T = T_base_flange @ self._T_flange_sensor
         p = T[:3, 3]
         if self._last_position is not None:
             self.path_length_m += float(np.linalg.norm(p - self._last_position))
@@ -92,15 +107,51 @@ class JobSession:
         """Capture at ``perception.rate_hz`` of job time while the planner moves the arm (first capture
         at once), or stop doing so."""
         self._next_capture = self.now() if on else None
+        self._perception_time = self.now() if on else None
+
+    def request_stop(self, reason: str) -> None:
+        """Operator stop (any thread): the arm stops now and the job ends at its next tick, ``stopped``."""
+        self._guard.request_stop(reason)
 
     def _tick(self) -> None:
         if self.now() >= self._max_time:
             raise TimeBudgetExhausted(f"time budget of {self._max_time:g} s used up")
+        if self._stop_file is not None and self._stop_file.exists():
+            reason = self._stop_file.read_text().strip() or "requested"
+            self._stop_file.unlink()
+            self.request_stop(f"{reason} (cell stop)")
         if self._next_capture is not None and self.now() >= self._next_capture - 1e-9:
             self._next_capture += self._capture_period
-            self.capture()
+            self._capture_continuous()
+        self._guard.tick(self._perception_time)
         self._clock.sleep(self._dt)
-        self._record_pose()
+        self._record_pose(self._guard.state().T_base_flange)
+
+    def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
+        """After a stop: let time pass, recording the pose, until the arm reports rest (True) or
+        ``timeout_s`` [s] passes or the arm no longer answers (False). Nothing is commanded."""
+        end = self.now() + timeout_s
+        ticked = False
+        while True:
+            try:
+                state = self._guard.arm_state()
+            except DriverError:
+                return False
+            if ticked:
+                self._record_pose(state.T_base_flange)
+            if not np.any(np.abs(state.qd) > SETTLED_QD_RAD_S):
+                return True
+            if self.now() >= end:
+                return False
+            self._clock.sleep(self._dt)
+            ticked = True
+
+    def _capture_continuous(self) -> None:
+        try:
+            self.capture()
+        except DriverError as exc:
+            self.n_capture_failures += 1
+            self.log(f"capture failed: {exc}")
 
     def wait(self, dt: float) -> None:
         end = self.now() + dt
@@ -117,13 +168,51 @@ class JobSession:
         traj = joint_trajectory(self._model, state.q, q_goal, dt=self._dt,
                                 velocity_scale=s.joint_velocity_scale,
                                 acceleration_scale=s.joint_acceleration_scale, jerk_scale=s.joint_jerk_scale)
-        self._guard.execute_trajectory(traj)
-        deadline = self.now() + traj.duration + MOVE_TIMEOUT_MARGIN_S
-        while self._guard.state().mode == ArmMode.TRAJECTORY:
+        _, refusal = self._guard.check_trajectory(traj)
+        if refusal is not None:
+            self.refused_moves[refusal.kind] += 1
+            self._guard.log.refuse(self.now(), f"move skipped: {refusal.message}")
+            self.log(f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor) skipped: "
+                     f"{refusal.message}")
+            return False
+        started = self._guard.execute_trajectory(traj)
+        deadline = self.now() + started.duration + MOVE_TIMEOUT_MARGIN_S
+        while self._guard.following:
             if self.now() > deadline:
                 raise KinematicsError("the arm did not finish its move in time")
             self._tick()
         return True
+
+    def command_sensor_twist(self, v_sensor: Array) -> Array:
+        """Stream a twist of the sensor frame, expressed in the sensor frame (v [m/s], w [rad/s]; the
+        papers' camera twist), through the guard until the next command or ``hold``. Returns the twist the
+        limits allow now, in the sensor frame."""
+        v_s = np.asarray(v_sensor, dtype=float)
+        T_bf = self._guard.state().T_base_flange
+        R = (T_bf @ self._T_flange_sensor)[:3, :3]
+        r = R @ self._T_flange_sensor[:3, 3]  # flange origin to sensor origin, base frame
+        v_b, w_b = R @ v_s[:3], R @ v_s[3:]
+        sent = self._guard.command_twist(np.concatenate([v_b - np.cross(w_b, r), w_b]))
+        return np.concatenate([R.T @ (sent[:3] + np.cross(sent[3:], r)), R.T @ sent[3:]])
+
+    def hold(self) -> None:
+        """Ramp a streamed twist down to rest within the acceleration limits."""
+        self._guard.hold()
+
+    def feasible_sensor_velocity(self, v_sensor: Array, activation_m: float) -> Array:
+        """Project a desired sensor velocity (3,) [m/s or unitless direction], sensor frame, into the set
+        the barrier planes allow: the component into any plane closer than ``activation_m`` (beyond the
+        margin) is removed, so the sensor slides along it (visual-servoing paper Fig. 3)."""
+        T = self.sensor_pose()
+        R = T[:3, :3]
+        v = self._guard.barriers.project_velocity(T[:3, 3], R @ np.asarray(v_sensor, dtype=float),
+                                                  activation_m)
+        return R.T @ v
+
+    def sensor_pose_allowed(self, T_base_sensor: Array) -> bool:
+        """Whether the TCP and the sensor of a candidate sensor pose lie on the allowed side of every
+        barrier plane and inside the workspace (margin included)."""
+        return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor)) is None
 
     def _solve_ik(self, T_base_flange: Array, q_now: Array) -> Array | None:
         """Joints reaching ``T_base_flange``, seeded from the current joints, then from home.
@@ -146,6 +235,9 @@ class JobSession:
         T_fk = state.T_base_flange @ self._T_flange_sensor
         update = self.perception.process(frame, T_fk)
         reg = update.registration
+        self._perception_time = frame.timestamp if self._next_capture is not None else None
+        if update.roi is not None:
+            self._guard.set_roi(update.roi.aabb_min, update.roi.aabb_max)
         self._recorder.frame(frame, T_fk, state.T_base_flange,
                              {"T_base_sensor_registered": update.T_base_sensor})
         self.n_captures += 1

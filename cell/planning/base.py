@@ -33,7 +33,8 @@ class ScanSession(Protocol):
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
         """Move so that the sensor reaches ``T_base_sensor`` (joint-space, guarded, blocking in job time).
-        Returns False, and records why, when the pose has no reachable joint solution."""
+        Returns False, and records and counts why, when the pose has no reachable joint solution or the
+        safety layer would refuse the move (collision, barrier plane, joint margin)."""
         ...
 
     def wait(self, dt: float) -> None:
@@ -46,7 +47,29 @@ class ScanSession(Protocol):
         ...
 
     def set_continuous_capture(self, on: bool) -> None:
-        """Capture at the configured perception rate while moving (as the servo planners do), or not."""
+        """Capture at the configured perception rate while moving (as the servo planners do), or not.
+        While it is on, the watchdog stops the arm when perception data grow too old."""
+        ...
+
+    def command_sensor_twist(self, v_sensor: Array) -> Array:
+        """Stream a twist of the sensor frame expressed in the sensor frame (v [m/s], w [rad/s]; the
+        papers' camera twist) through the guard until the next command or ``hold``; ``wait`` lets it act.
+        Returns the twist the limits and barrier planes allow now, sensor frame."""
+        ...
+
+    def hold(self) -> None:
+        """Ramp a streamed twist down to rest (within the acceleration limits)."""
+        ...
+
+    def feasible_sensor_velocity(self, v_sensor: Array, activation_m: float) -> Array:
+        """Project a desired sensor velocity or direction (3,), sensor frame, into the set the barrier
+        planes allow: the component into any plane closer than ``activation_m`` is removed so the motion
+        slides along it (visual-servoing paper Fig. 3)."""
+        ...
+
+    def sensor_pose_allowed(self, T_base_sensor: Array) -> bool:
+        """Whether a candidate sensor pose keeps the TCP and the sensor inside every barrier plane and the
+        workspace box (e.g. to reject global goal candidates)."""
         ...
 
     def latest_perception(self) -> PerceptionUpdate | None:

@@ -1,108 +1,364 @@
-"""The motion guard: every motion command of a job passes here before it reaches the arm backend.
+"""The motion guard: the one place where motion reaches an arm backend (safety issue, item 6).
 
-It checks and limits what it forwards:
+The guard claims the arm's motion token when it is built (``drivers.arm.base``), so nothing else can move
+the arm. It forwards two kinds of motion:
 
-- twists: finite, six values; the flange's linear and angular speed scaled down (direction kept) to the
-  cell's ``tcp_max_linear_mps`` / ``tcp_max_angular_rps``, each clamp counted; refused when the flange or
-  the sensor would leave the workspace box within ``lookahead_s``;
-- joint trajectories: every sample inside the joint limits, joint speeds within the cell's share of the
-  model's maxima, flange and sensor inside the workspace box at every sample; refused otherwise, naming
-  the first offending sample.
+- **Streamed twists** (:meth:`MotionGuard.command_twist` sets the target, :meth:`MotionGuard.tick` sends
+  one command per control period). Each tick, in this order: the flange's linear and angular speed are
+  scaled down to the cell's limits (direction kept); the twist is projected into the set the barrier planes
+  and the workspace box allow for the TCP and the sensor (it slides along active planes); it is scaled
+  down (direction kept) so that no joint exceeds its share of its speed limit and no joint runs into its
+  position margin; ruckig smooths it to the TCP acceleration and jerk limits; the configuration predicted
+  ``collision.lookahead_s`` ahead at that twist is checked for collisions (robot, tool, table, object ROI,
+  obstacles, self-collision). A collision refuses the motion.
+- **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
+  sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
+  be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free when
+  checked densely; refused otherwise.
 
-A refusal stops the arm and raises ``SafetyStop``; the reason is recorded in the job's ``SafetyLog``.
+Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
+honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
+limits), records the reason in the job's :class:`SafetyLog` and raises ``SafetyStop``; every clamp is
+counted there too.
 """
 
 from __future__ import annotations
 
+import contextlib
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.config.models import SafetyConfig
+from cell.config.models import CellConfig
+from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, workspace_planes
+from cell.safety.collision import CollisionWorld
+from cell.safety.config import SafetyConfig
 from cell.safety.events import SafetyLog
-from drivers.arm.base import Arm, ArmState, JointTrajectory
+from cell.safety.smoothing import TwistSmoother
+from cell.safety.watchdog import Watchdog
+from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.clock import Clock
-from drivers.errors import SafetyStop
+from drivers.errors import CellError, RobotFault, SafetyStop
 from drivers.robots.model import RobotModel
 
 Array = NDArray[np.float64]
 
-LOOKAHEAD_S = 0.1
-# Joint speeds of sampled trajectories are finite differences, a hair above the planned bound.
+# Sampled trajectories are checked with finite differences, a hair above the planned bound.
 VELOCITY_TOLERANCE = 1.02
+# A trajectory must start where the arm is, within this much in every joint [rad].
+TRAJECTORY_START_TOL_RAD = 1e-3
+# Damping of the differential IK that predicts joint velocities [m], as the sim arm uses.
+IK_DAMPING = 0.02
+GUARDED_POINTS = ("TCP", "sensor")
+# Braking before a plane or a joint margin is planned at this share of the acceleration limit: a target
+# that falls at the planned rate is tracked by the jerk-limited smoother with some lag, and the rest of the
+# acceleration budget absorbs that lag.
+BRAKING_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a motion is refused: a short ``kind`` to count by (``collision``, ``barrier``, ``joint margin``,
+    ...) and the ``message`` naming what would happen."""
+
+    kind: str
+    message: str
+
+
+@dataclass(frozen=True)
+class GuardGeometry:
+    """Where the guard's limits apply: ``T_flange_sensor`` (hand-eye), the table top height [m] and the
+    control period [s]."""
+
+    T_flange_sensor: Array
+    table_z_m: float
+    period_s: float
 
 
 class MotionGuard:
-    """Owns the arm's motion methods for a job. ``T_flange_sensor`` is the hand-eye transform."""
+    """Owns the motion of one arm for a job; see the module docstring for what each path checks."""
 
-    def __init__(self, arm: Arm, model: RobotModel, safety: SafetyConfig, T_flange_sensor: Array,
+    def __init__(self, arm: Arm, model: RobotModel, safety: SafetyConfig, geometry: GuardGeometry,
                  clock: Clock, log: SafetyLog | None = None) -> None:
         self._arm = arm
         self._model = model
         self._safety = safety
-        self._T_flange_sensor = T_flange_sensor
+        self._T_fs = geometry.T_flange_sensor
+        self._period = geometry.period_s
         self._clock = clock
-        self._token = arm.claim_motion()
         self.log = log if log is not None else SafetyLog()
-        self._ws_min = np.asarray(safety.workspace.min_m)
-        self._ws_max = np.asarray(safety.workspace.max_m)
+        planes = [BarrierPlane.make(p.name or f"plane {i}", p.point, p.normal)
+                  for i, p in enumerate(safety.barrier_planes)]
+        planes += workspace_planes(safety.workspace.min_m, safety.workspace.max_m)
+        self.barriers = Barriers(planes, margin_m=safety.barrier_margin_m,
+                                 acc=BRAKING_SHARE * safety.tcp_max_linear_acc_mps2,
+                                 jerk=safety.tcp_max_linear_jerk_mps3,
+                                 latency_s=geometry.period_s, time_constant_s=safety.collision.lookahead_s)
+        self.collision = CollisionWorld(model, safety.collision, geometry.table_z_m)
+        self.watchdog = Watchdog(safety.watchdog, geometry.period_s)
+        self._smoother = TwistSmoother(
+            geometry.period_s, (safety.tcp_max_linear_acc_mps2, safety.tcp_max_angular_acc_rps2),
+            (safety.tcp_max_linear_jerk_mps3, safety.tcp_max_angular_jerk_rps3))
+        self._qd_limit = model.qd_max * safety.joint_velocity_scale
+        self._qdd_limit = model.qdd_max * safety.joint_acceleration_scale
+        self._qddd_limit = model.qddd_max * safety.joint_jerk_scale
+        self._q_lo = model.q_min + safety.joint_position_margin_rad
+        self._q_hi = model.q_max - safety.joint_position_margin_rad
+        self._target: Array | None = None
+        self._following = False
+        self._stop_lock = threading.Lock()
+        self._stop_request: str | None = None
+        self._token = arm.claim_motion()
+
+    @classmethod
+    def from_config(cls, arm: Arm, model: RobotModel, config: CellConfig, clock: Clock,
+                    log: SafetyLog | None = None) -> MotionGuard:
+        """The guard of a cell: its safety section, hand-eye mount, table height and control rate."""
+        geometry = GuardGeometry(config.mount.matrix(), config.station.table_z_m,
+                                 1.0 / config.scan.control_rate_hz)
+        return cls(arm, model, config.safety, geometry, clock, log)
+
+    # ------------------------------------------------------------------ state and stops
 
     def state(self) -> ArmState:
+        """The arm's state; a fault it reports (or a lost connection) stops the job."""
+        try:
+            state = self._arm.state()
+        except RobotFault as exc:
+            raise self._halt(f"arm fault: {exc.fault} ({exc})") from exc
+        if state.faults:
+            raise self._halt(f"arm fault: {', '.join(state.faults)}")
+        return state
+
+    def arm_state(self) -> ArmState:
+        """The arm's state as it reports it, faults included, without acting on them (e.g. to watch it come
+        to rest after a stop). Raises ``DriverError`` when the arm does not answer."""
         return self._arm.state()
 
-    def _outside(self, T_base_flange: Array) -> str | None:
-        sensor = (T_base_flange @ self._T_flange_sensor)[:3, 3]
-        for name, p in (("flange", T_base_flange[:3, 3]), ("sensor", sensor)):
-            if np.any(p < self._ws_min) or np.any(p > self._ws_max):
-                return f"{name} at {np.round(p, 3).tolist()} m would leave the workspace box"
-        return None
+    @property
+    def following(self) -> bool:
+        """True while a trajectory started through the guard is under way (as of the last tick)."""
+        return self._following
+
+    def stop(self, reason: str) -> None:
+        """Bring the arm to rest and record why. Never raises: a failing stop is recorded as well."""
+        self.log.stop(self._clock.now(), reason)
+        self._target = None
+        self._following = False
+        self._smoother.reset()
+        try:
+            self._arm.stop()
+        except CellError as exc:
+            self.log.stop(self._clock.now(), f"the arm's stop failed too: {exc}")
+
+    def finish(self) -> None:
+        """End of a job's motion (not a safety event): stop streaming and bring the arm to rest."""
+        self._target = None
+        self._following = False
+        self._smoother.reset()
+        self._send(self._arm.stop)
+
+    def request_stop(self, reason: str) -> None:
+        """Operator stop, callable from any thread (the service, the CLI): the arm is told to stop at once
+        and the job's next control tick ends it with ``SafetyStop``."""
+        with self._stop_lock:
+            self._stop_request = reason
+        # A failure here is not lost: the control tick repeats the stop and records its failure.
+        with contextlib.suppress(CellError):
+            self._arm.stop()
+
+    def release(self) -> None:
+        """Give the arm's motion token back at the end of a job."""
+        self._arm.release_motion(self._token)
+
+    def _halt(self, reason: str) -> SafetyStop:
+        self.stop(reason)
+        return SafetyStop(reason)
 
     def _refuse(self, reason: str) -> SafetyStop:
         self.log.refuse(self._clock.now(), reason)
-        self.stop(f"refused: {reason}")
-        return SafetyStop(reason)
+        return self._halt(f"refused: {reason}")
+
+    # ------------------------------------------------------------------ geometry helpers
+
+    def set_roi(self, aabb_min: Array | None, aabb_max: Array | None) -> None:
+        """The object's ROI box (base frame [m]) for collision checks, as perception updates it."""
+        self.collision.set_roi(aabb_min, aabb_max)
+
+    def guarded_points(self, T_base_flange: Array) -> Array:
+        """The TCP (flange origin) and the sensor origin (2, 3) [m] in the base frame."""
+        return np.array([T_base_flange[:3, 3], (T_base_flange @ self._T_fs)[:3, 3]])
+
+    def barrier_violation(self, T_base_flange: Array) -> str | None:
+        """Why a flange pose leaves the allowed side of a plane (margin included), or None."""
+        return self.barriers.first_violation(self.guarded_points(T_base_flange), GUARDED_POINTS)
+
+    # ------------------------------------------------------------------ streamed twists
 
     def command_twist(self, v_base_flange: Array) -> Array:
-        """Forward a flange twist (base frame, [m/s, rad/s]) after limiting it; returns what was sent."""
+        """Set the flange twist (base frame [m/s, rad/s]) that each control tick streams until the next
+        command or ``hold``; returns it as the limits allow it now (the tick re-applies them)."""
         v = np.asarray(v_base_flange, dtype=float)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
             raise self._refuse(f"twist must be 6 finite values, got {np.array2string(v, precision=4)}")
+        if self._following:
+            raise self._refuse("a twist was commanded while a trajectory is being followed")
+        self._target = v.copy()
+        state = self.state()
+        return self._limit(v, state, self._joint_velocity_map(state.q), count=False)
+
+    def hold(self) -> None:
+        """Ramp the streamed twist down to zero (within the acceleration limits) and keep the arm still."""
+        if self._target is not None:
+            self._target = np.zeros(6)
+
+    def _joint_velocity_map(self, q: Array) -> Array:
+        """The damped least-squares map from a flange twist to joint velocities at ``q`` (n, 6)."""
+        J = self._model.jacobian(q)
+        return J.T @ np.linalg.inv(J @ J.T + IK_DAMPING ** 2 * np.eye(6))
+
+    def _limit(self, v: Array, state: ArmState, ik: Array, *, count: bool) -> Array:
+        """Speed limits, barrier projection and joint limits for a twist at ``state`` (module docstring);
+        ``ik`` is the joint velocity map at ``state.q``."""
+        s = self._safety
         v = v.copy()
-        for kind, sl, limit in (("tcp_linear_speed", slice(0, 3), self._safety.tcp_max_linear_mps),
-                                ("tcp_angular_speed", slice(3, 6), self._safety.tcp_max_angular_rps)):
+        for kind, sl, limit in (("tcp_linear_speed", slice(0, 3), s.tcp_max_linear_mps),
+                                ("tcp_angular_speed", slice(3, 6), s.tcp_max_angular_rps)):
             speed = float(np.linalg.norm(v[sl]))
             if speed > limit:
                 v *= limit / speed
-                self.log.clamp(kind)
-        T = self._arm.state().T_base_flange.copy()
-        T[:3, 3] += v[:3] * LOOKAHEAD_S
-        reason = self._outside(T)
-        if reason:
-            raise self._refuse(reason)
-        self._arm.command_twist(v, self._token)
+                if count:
+                    self.log.clamp(kind)
+        T = state.T_base_flange
+        points = self.guarded_points(T)
+        lever = float(np.linalg.norm(points[1] - points[0]))
+        v, planes = self.barriers.project_twist(v, T[:3, 3], points,
+                                                s.tcp_max_linear_mps + s.tcp_max_angular_rps * lever)
+        if count:
+            for name in planes:
+                self.log.clamp(f"barrier {name}")
+        qd = ik @ v
+        ratio = float(np.max(np.abs(qd) / self._qd_limit))
+        if ratio > 1.0:
+            v /= ratio
+            qd /= ratio
+            if count:
+                self.log.clamp("joint_velocity")
+        # A joint may approach its margin only as fast as it can still stop before it.
+        room = np.where(qd > 0.0, self._q_hi - state.q, state.q - self._q_lo)
+        allowed = approach_speed(room, acc=BRAKING_SHARE * self._qdd_limit, jerk=self._qddd_limit,
+                                 latency_s=self._period,
+                                 time_constant_s=s.collision.lookahead_s)
+        moving = np.abs(qd) > 1e-12
+        if np.any(moving):
+            scale = float(np.min(np.minimum(allowed[moving] / np.abs(qd[moving]), 1.0)))
+            if scale < 1.0:
+                v *= scale
+                if count:
+                    self.log.clamp("joint_position_margin")
         return v
 
-    def execute_trajectory(self, trajectory: JointTrajectory) -> None:
-        """Check a joint trajectory sample by sample, then start it."""
+    def tick(self, perception_time_s: float | None = None) -> None:
+        """One control period: watchdog, faults, operator stop, then the next streamed command.
+
+        ``perception_time_s``: capture time of the newest perception data when the motion depends on them
+        (None otherwise). Raises ``SafetyStop`` after stopping the arm when anything is wrong.
+        """
+        now = self._clock.now()
+        with self._stop_lock:
+            request, self._stop_request = self._stop_request, None
+        if request is not None:
+            raise self._halt(f"operator stop: {request}")
+        for reason in (self.watchdog.tick(now), self.watchdog.perception(now, perception_time_s)):
+            if reason is not None:
+                raise self._halt(f"watchdog: {reason}")
+        state = self.state()
+        if self._following:
+            self._following = state.mode is ArmMode.TRAJECTORY
+            return
+        if self._target is None:
+            return
+        ik = self._joint_velocity_map(state.q)
+        limited = self._limit(self._target, state, ik, count=True)
+        v = self._smoother.step(limited)
+        if np.any(np.abs(v - limited) > 1e-9):
+            self.log.clamp("tcp_acceleration")
+        q_pred = state.q + ik @ v * self._safety.collision.lookahead_s
+        hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))
+        if hit is not None:
+            raise self._refuse(f"{hit} within {self._safety.collision.lookahead_s:g} s")
+        self._send(lambda: self._arm.command_twist(v, self._token))
+
+    def _send(self, command: Callable[[], None]) -> None:
+        try:
+            command()
+        except RobotFault as exc:
+            raise self._halt(f"arm fault: {exc.fault} ({exc})") from exc
+
+    # ------------------------------------------------------------------ trajectories
+
+    def check_trajectory(self, trajectory: JointTrajectory) -> tuple[JointTrajectory, Refusal | None]:
+        """Check a joint trajectory without moving: returns it (slowed down in time if a joint or the TCP
+        would be too fast) and why it would be refused, or None. Planners use the reason to discard a
+        move and count it; :meth:`execute_trajectory` refuses it outright."""
         m = self._model
         q = trajectory.q
         if q.shape[1] != m.n_joints:
-            raise self._refuse(f"trajectory has {q.shape[1]} joints, the {m.name} has {m.n_joints}")
-        bad = np.nonzero(np.any((q < m.q_min) | (q > m.q_max), axis=1))[0]
-        if bad.size:
-            raise self._refuse(f"trajectory sample {bad[0]} leaves the joint limits")
-        if q.shape[0] > 1:
-            qd = np.diff(q, axis=0) / np.diff(trajectory.t)[:, None]
-            qd_limit = m.qd_max * self._safety.joint_velocity_scale * VELOCITY_TOLERANCE
-            fast = np.nonzero(np.any(np.abs(qd) > qd_limit, axis=1))[0]
-            if fast.size:
-                raise self._refuse(f"trajectory sample {fast[0]} exceeds the joint speed limit")
-        for k in range(q.shape[0]):
-            reason = self._outside(m.fk(q[k]))
-            if reason:
-                raise self._refuse(f"trajectory sample {k}: {reason}")
-        self._arm.execute_trajectory(trajectory, self._token)
+            return trajectory, Refusal("joints", f"trajectory has {q.shape[1]} joints, the {m.name} has "
+                                                 f"{m.n_joints}")
+        state = self.state()
+        gap = float(np.max(np.abs(q[0] - state.q)))
+        if gap > TRAJECTORY_START_TOL_RAD:
+            return trajectory, Refusal("start", f"trajectory starts {gap:.4f} rad away from the arm's joints")
+        outside = np.nonzero(np.any((q[1:] < self._q_lo) | (q[1:] > self._q_hi), axis=1))[0]
+        if outside.size:
+            return trajectory, Refusal("joint margin", f"trajectory sample {outside[0] + 1} enters the joint "
+                                       f"limit margin ({self._safety.joint_position_margin_rad:g} rad)")
+        F = np.array([m.fk(qk) for qk in q])
+        trajectory = self._within_speed_limits(trajectory, F)
+        start_ok = self.barrier_violation(state.T_base_flange) is None
+        for k, T in enumerate(F):
+            reason = self.barrier_violation(T)
+            # An arm already inside a margin (e.g. after a config change) may still move out of it.
+            if reason is not None and (k > 0 or start_ok):
+                return trajectory, Refusal("barrier", f"trajectory sample {k}: {reason}")
+        hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)
+        if hit is not None:
+            return trajectory, Refusal("collision", f"trajectory sample {hit[0]}: {hit[1]}")
+        return trajectory, None
 
-    def stop(self, reason: str) -> None:
-        """Bring the arm to rest and record why."""
-        self.log.stop(self._clock.now(), reason)
-        self._arm.stop()
+    def execute_trajectory(self, trajectory: JointTrajectory) -> JointTrajectory:
+        """Check a joint trajectory (:meth:`check_trajectory`) and start it; returns what was started. A
+        trajectory that fails the check is refused: the arm stops and ``SafetyStop`` is raised."""
+        if self._target is not None:
+            raise self._refuse("a trajectory was commanded while a twist is being streamed")
+        checked, refusal = self.check_trajectory(trajectory)
+        if refusal is not None:
+            raise self._refuse(refusal.message)
+        if checked is not trajectory:
+            self.log.clamp("trajectory_time_scaled")
+        self._send(lambda: self._arm.execute_trajectory(checked, self._token))
+        self._following = True
+        return checked
+
+    def _within_speed_limits(self, trajectory: JointTrajectory, F: Array) -> JointTrajectory:
+        """Stretch the trajectory's time uniformly (the path is kept) when a joint or the TCP would be
+        faster than the limits; counted as a clamp. ``F``: the flange poses of the samples."""
+        q, t = trajectory.q, trajectory.t
+        if q.shape[0] < 2:
+            return trajectory
+        dt = np.diff(t)[:, None]
+        ratio = float(np.max(np.abs(np.diff(q, axis=0)) / dt / (self._qd_limit * VELOCITY_TOLERANCE)))
+        lin = np.linalg.norm(np.diff(F[:, :3, 3], axis=0), axis=1) / dt[:, 0]
+        ratio = max(ratio, float(np.max(lin)) / (self._safety.tcp_max_linear_mps * VELOCITY_TOLERANCE))
+        R_rel = np.einsum("kji,kjl->kil", F[:-1, :3, :3], F[1:, :3, :3])
+        angle = np.arccos(np.clip((np.trace(R_rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+        ratio = max(ratio, float(np.max(angle / dt[:, 0])) / (self._safety.tcp_max_angular_rps
+                                                                * VELOCITY_TOLERANCE))
+        if ratio <= 1.0:
+            return trajectory
+        qd = None if trajectory.qd is None else trajectory.qd / ratio
+        return JointTrajectory(t=t * ratio, q=q, qd=qd)

@@ -126,7 +126,7 @@ class SimArm(Arm):
         if self._fault == "disconnect":
             raise RobotFault("no reply from the arm (disconnected)", device=_DEVICE, fault="disconnect")
         F = self._model.fk_all(self._q)
-        J = self._model.jacobian(self._q)
+        J = self._model.jacobian_from_frames(F)
         return ArmState(
             timestamp=self._clock.now(),
             q=self._q.copy(),

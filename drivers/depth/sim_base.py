@@ -28,6 +28,7 @@ class SimDepthSensor(DepthSensor):
         self._rng = rng
         self._connected = False
         self._seq = 0
+        self._stalled_until = -np.inf
 
     def connect(self) -> None:
         self._connected = True
@@ -43,11 +44,17 @@ class SimDepthSensor(DepthSensor):
         """Check the sensor is connected and return the true, finite T_base_sensor to render from."""
         if not self._connected:
             raise DriverError("capture while disconnected; call connect() first", device=self.name)
+        if self._clock.now() < self._stalled_until:
+            raise DriverError("no frame: the sensor stopped delivering (simulated stall)", device=self.name)
         T = np.asarray(self._pose_source(), dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise DriverError(f"pose source returned an invalid T_base_sensor (shape {T.shape})",
                               device=self.name)
         return T
+
+    def stall(self, duration_s: float) -> None:
+        """Deliver no frame for ``duration_s`` seconds from now (a simulated sensor fault)."""
+        self._stalled_until = self._clock.now() + duration_s
 
     def _next_seq(self) -> int:
         seq = self._seq

@@ -131,7 +131,8 @@ class RobotModel:
     [rad], ``qd_max`` [rad/s], ``qdd_max`` [rad/s^2], ``qddd_max`` [rad/s^3], and the ready pose
     ``q_home`` [rad]. ``flange`` is (a, d, alpha) of the fixed flange element or ``None``.
     Cartesian ceilings of the flange: ``tcp_max_linear_mps`` [m/s], ``tcp_max_angular_rps`` [rad/s],
-    ``tcp_max_linear_acc`` [m/s^2], ``tcp_max_angular_acc`` [rad/s^2].
+    ``tcp_max_linear_acc`` [m/s^2], ``tcp_max_angular_acc`` [rad/s^2], ``tcp_max_linear_jerk`` [m/s^3],
+    ``tcp_max_angular_jerk`` [rad/s^3].
 
     The instance is immutable; :meth:`perturbed` returns a modified copy.
     """
@@ -151,6 +152,8 @@ class RobotModel:
     tcp_max_angular_rps: float
     tcp_max_linear_acc: float
     tcp_max_angular_acc: float
+    tcp_max_linear_jerk: float
+    tcp_max_angular_jerk: float
     capsule_specs: tuple[CapsuleSpec, ...] = ()
     extra_adjacent_pairs: tuple[tuple[str, str], ...] = ()
     flange: tuple[float, float, float] | None = None
@@ -238,21 +241,26 @@ class RobotModel:
         """T_base_flange (4, 4) at joint positions ``q`` [rad]."""
         return self.fk_all(q)[-1]
 
-    def _jacobian_from_frames(self, F: Array) -> Array:
+    def jacobian_from_frames(self, F: Array) -> Array:
+        """The geometric Jacobian (see :meth:`jacobian`) from frames ``F`` already computed by ``fk_all``."""
         n = self.n_joints
         # Joint i (0-based) turns about z of frame i (standard) or frame i + 1 (modified) of fk_all.
         axes_frames = F[0:n] if self.convention == "standard" else F[1:n + 1]
         z = axes_frames[:, :3, 2]
         o = axes_frames[:, :3, 3]
         p = F[-1, :3, 3]
+        r = p - o
         J = np.empty((6, n))
-        J[:3] = np.cross(z, p - o).T
+        # z x r written out: np.cross costs more than the rest of the Jacobian for a handful of rows.
+        J[0] = z[:, 1] * r[:, 2] - z[:, 2] * r[:, 1]
+        J[1] = z[:, 2] * r[:, 0] - z[:, 0] * r[:, 2]
+        J[2] = z[:, 0] * r[:, 1] - z[:, 1] * r[:, 0]
         J[3:] = z.T
         return J
 
     def jacobian(self, q: object) -> Array:
         """Geometric Jacobian (6, n) of the flange origin in the base frame, rows (vx, vy, vz, wx, wy, wz)."""
-        return self._jacobian_from_frames(self.fk_all(q))
+        return self.jacobian_from_frames(self.fk_all(q))
 
     def ik_velocity(self, q: object, v_base_flange: object, dt: float, damping: float = 0.02) -> Array:
         """Joint velocities [rad/s] that best produce the flange twist ``v_base_flange`` [m/s, rad/s].
@@ -323,7 +331,7 @@ class RobotModel:
                 step[:3] *= 0.1 / ep
             if er > 0.5:
                 step[3:] *= 0.5 / er
-            J = self._jacobian_from_frames(F)
+            J = self.jacobian_from_frames(F)
             dq = self._ik_velocity_J(q, J, step, 1.0, 0.02)
             q = np.clip(q + dq, self.q_min, self.q_max)
         e = pose_error(self.fk(q), T_goal)

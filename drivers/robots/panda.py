@@ -8,7 +8,8 @@ Sources
   alpha = [0, -pi/2, pi/2, pi/2, -pi/2, pi/2, pi/2] rad, then the flange: d = 0.107 m, a = 0, alpha = 0,
   no joint. The link frames are those of Franka's URDF (``panda_link1`` .. ``panda_link8``).
 - Limits: libfranka documentation, "Limits for Panda": q_max, q_min [rad], dq_max [rad/s],
-  ddq_max [rad/s^2], dddq_max [rad/s^3]; Cartesian: 1.7 m/s, 2.5 rad/s, 13 m/s^2, 25 rad/s^2.
+  ddq_max [rad/s^2], dddq_max [rad/s^3]; Cartesian: 1.7 m/s, 2.5 rad/s, 13 m/s^2, 25 rad/s^2,
+  6500 m/s^3, 12500 rad/s^3.
 - Ready pose: libfranka's example start pose [0, -pi/4, 0, -3pi/4, 0, pi/2, pi/4].
 - Capsules: radii from the published link dimensions (drive housings of 120 to 130 mm diameter on
   joints 1-4, about 110 mm on the forearm and wrist, flange 63 mm), rounded up so that each capsule encloses
@@ -80,6 +81,8 @@ def panda_model() -> RobotModel:
         tcp_max_angular_rps=2.5,
         tcp_max_linear_acc=13.0,
         tcp_max_angular_acc=25.0,
+        tcp_max_linear_jerk=6500.0,
+        tcp_max_angular_jerk=12500.0,
         capsule_specs=PANDA_CAPSULES,
         extra_adjacent_pairs=(("link5", "link7"), ("link5b", "link7")),
         flange=(0.0, PANDA_FLANGE_D, 0.0),

@@ -18,7 +18,8 @@ Sources
   10 ms) is our choice for trajectory generation.
 - TCP ceilings: linear 1.0 m/s (UR safety-configuration default for the tool speed limit); angular
   pi rad/s (our choice: what one wrist joint alone reaches at full speed); accelerations 5 m/s^2 and
-  10 rad/s^2 (our choice, comfortably below what speedL accepts, for a camera-carrying arm).
+  10 rad/s^2 (our choice, comfortably below what speedL accepts, for a camera-carrying arm); jerks
+  500 m/s^3 and 1000 rad/s^3 (not published; our choice: the acceleration ceiling reached in 10 ms).
 - Capsule radii are estimated from the UR5e datasheet drawing (base mount diameter 149 mm, wrist joint
   housings about 90 mm) and rounded up so that each capsule encloses its link; the lateral offsets of the
   upper arm (138 mm along the shoulder axis) and of the forearm (138 - 131 = 7 mm) are those of Universal
@@ -80,6 +81,8 @@ def ur5e_model() -> RobotModel:
         tcp_max_angular_rps=PI,
         tcp_max_linear_acc=5.0,
         tcp_max_angular_acc=10.0,
+        tcp_max_linear_jerk=500.0,
+        tcp_max_angular_jerk=1000.0,
         capsule_specs=UR5E_CAPSULES,
         flange=None,
     )

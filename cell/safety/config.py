@@ -1,0 +1,161 @@
+"""The ``safety`` section of a cell file: limits, barrier planes, the collision world and the watchdog.
+
+Units are SI (m, s, rad); frames: barrier planes, obstacles and the workspace box are in the robot base
+frame, tool bodies in the flange frame. Safety values have no defaults: a cell file states them. The robot
+model's own maxima are hard ceilings, checked when the cell file is loaded (``cell.config.load``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field, NonNegativeFloat, PositiveFloat, PositiveInt, field_validator, model_validator
+
+from drivers.config_base import StrictModel
+from drivers.transforms import T_from_xyz_rpy
+
+Vec3 = tuple[float, float, float]
+
+
+class WorkspaceConfig(StrictModel):
+    """Box in the base frame [m] that the sensor and the flange must stay inside; the guard treats its
+    six faces as barrier planes."""
+
+    min_m: Vec3
+    max_m: Vec3
+
+    @model_validator(mode="after")
+    def _ordered(self) -> WorkspaceConfig:
+        if not all(lo < hi for lo, hi in zip(self.min_m, self.max_m, strict=True)):
+            raise ValueError(f"min_m {self.min_m} must be below max_m {self.max_m} on every axis")
+        return self
+
+
+class BarrierPlaneConfig(StrictModel):
+    """A virtual barrier plane (visual-servoing paper section III-A, Fig. 3): a ``point`` on it [m] and its
+    ``normal`` pointing into the allowed side, both in the base frame. ``name`` appears in the logs."""
+
+    point: Vec3
+    normal: Vec3
+    name: str | None = None
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, n: Vec3) -> Vec3:
+        if float(np.linalg.norm(n)) < 1e-9:
+            raise ValueError("normal must not be the zero vector")
+        return n
+
+
+class BodyPose(StrictModel):
+    """Pose of a body's centre: translation ``xyz_m`` [m], extrinsic roll-pitch-yaw ``rpy_deg`` [deg]."""
+
+    xyz_m: Vec3
+    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        return T_from_xyz_rpy(self.xyz_m, np.deg2rad(self.rpy_deg))
+
+
+class BoxBody(StrictModel):
+    """A box of edge lengths ``size_m`` centred on its pose."""
+
+    shape: Literal["box"]
+    name: str
+    size_m: tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+    pose: BodyPose
+
+
+class CylinderBody(StrictModel):
+    """A cylinder of ``radius_m`` and ``length_m`` along its pose's z axis, centred on the pose."""
+
+    shape: Literal["cylinder"]
+    name: str
+    radius_m: PositiveFloat
+    length_m: PositiveFloat
+    pose: BodyPose
+
+
+class MeshBody(StrictModel):
+    """A triangle mesh in metres (any format Open3D reads; a relative ``path`` is taken from the working
+    directory) placed at its pose."""
+
+    shape: Literal["mesh"]
+    name: str
+    path: str
+    pose: BodyPose
+
+
+Body = Annotated[BoxBody | CylinderBody | MeshBody, Field(discriminator="shape")]
+
+
+class TableConfig(StrictModel):
+    """The table slab: its top at ``station.table_z_m``, centre ``center_xy_m`` and ``size_m`` [m] in the
+    base frame, ``thickness_m`` below the top."""
+
+    center_xy_m: tuple[float, float]
+    size_m: tuple[PositiveFloat, PositiveFloat]
+    thickness_m: PositiveFloat = 0.05
+
+
+class CollisionConfig(StrictModel):
+    """The collision world checked with python-fcl.
+
+    ``lookahead_s``: each control tick checks the configuration predicted this far ahead at the
+    commanded velocity. ``trajectory_step_rad``: point-to-point moves are checked at samples no further
+    apart than this in any joint. ``roi_margin_m``: the object's ROI box is inflated by this much on each
+    side. ``tool``: bodies carried by the flange (the sensor and its bracket), posed in the flange frame.
+    ``obstacles``: static bodies in the base frame.
+    """
+
+    lookahead_s: float = Field(gt=0.0, le=1.0)
+    trajectory_step_rad: float = Field(gt=0.0, le=0.2)
+    roi_margin_m: NonNegativeFloat
+    table: TableConfig
+    tool: list[Body] = Field(min_length=1)
+    obstacles: list[Body]
+
+
+class WatchdogConfig(StrictModel):
+    """When the control loop or perception is late, the arm stops.
+
+    A control tick misses its deadline when it comes more than ``deadline_factor`` control periods after
+    the previous one; ``max_missed_deadlines`` misses in a row stop the arm. While a planner streams
+    motion from perception (continuous capture), perception older than ``perception_max_age_s`` [s]
+    stops the arm.
+    """
+
+    deadline_factor: float = Field(gt=1.0)
+    max_missed_deadlines: PositiveInt
+    perception_max_age_s: PositiveFloat
+
+
+class SafetyConfig(StrictModel):
+    """Motion limits of the cell (safety issue, items 1-5).
+
+    TCP (flange) limits: ``tcp_max_linear_mps`` [m/s], ``tcp_max_angular_rps`` [rad/s], accelerations
+    ``tcp_max_linear_acc_mps2`` [m/s^2], ``tcp_max_angular_acc_rps2`` [rad/s^2] and jerks
+    ``tcp_max_linear_jerk_mps3`` [m/s^3], ``tcp_max_angular_jerk_rps3`` [rad/s^3] (ruckig smoothing of
+    streamed twists). Joint limits: ``joint_velocity_scale``, ``joint_acceleration_scale``,
+    ``joint_jerk_scale`` are the shares (0, 1] of each joint's maxima that motion may use;
+    ``joint_position_margin_rad`` keeps joints this far inside their limits. ``barrier_margin_m``: the
+    TCP and the sensor keep this distance from every barrier plane and workspace face, so that the arm's
+    tracking lag never takes them across.
+    """
+
+    tcp_max_linear_mps: PositiveFloat
+    tcp_max_angular_rps: PositiveFloat
+    tcp_max_linear_acc_mps2: PositiveFloat
+    tcp_max_angular_acc_rps2: PositiveFloat
+    tcp_max_linear_jerk_mps3: PositiveFloat
+    tcp_max_angular_jerk_rps3: PositiveFloat
+    joint_velocity_scale: float = Field(gt=0.0, le=1.0)
+    joint_acceleration_scale: float = Field(gt=0.0, le=1.0)
+    joint_jerk_scale: float = Field(gt=0.0, le=1.0)
+    joint_position_margin_rad: float = Field(ge=0.0, le=0.5)
+    workspace: WorkspaceConfig
+    barrier_planes: list[BarrierPlaneConfig]
+    barrier_margin_m: float = Field(ge=0.0, le=0.1)
+    collision: CollisionConfig
+    watchdog: WatchdogConfig

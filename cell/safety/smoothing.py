@@ -1,0 +1,65 @@
+"""Jerk-limited smoothing of streamed twists with ruckig's velocity interface (safety issue, item 4).
+
+Each control tick, the twist a planner asks for becomes ruckig's target velocity and the smoother returns
+the next twist to send: reached with bounded acceleration and jerk, in phase synchronisation so that the
+twist changes along a straight line in velocity space (the direction of a change is kept). Per-axis limits
+are the Cartesian limits divided by sqrt(3), so that the norm of the linear (angular) acceleration and jerk
+never exceeds the cell's limits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+from drivers.errors import SafetyStop
+
+Array = NDArray[np.float64]
+
+_SQRT3 = float(np.sqrt(3.0))
+
+
+class TwistSmoother:
+    """Ruckig in velocity control over the six twist components (v [m/s], w [rad/s]).
+
+    ``period_s``: the control period; ``acc``/``jerk``: (linear, angular) limits as norms
+    [m/s^2, rad/s^2] and [m/s^3, rad/s^3].
+    """
+
+    def __init__(self, period_s: float, acc: tuple[float, float], jerk: tuple[float, float]) -> None:
+        self._otg = Ruckig(6, period_s)
+        self._inp = InputParameter(6)
+        self._out = OutputParameter(6)
+        inp = self._inp
+        inp.control_interface = ControlInterface.Velocity
+        inp.synchronization = Synchronization.Phase
+        inp.max_acceleration = [acc[0] / _SQRT3] * 3 + [acc[1] / _SQRT3] * 3
+        inp.max_jerk = [jerk[0] / _SQRT3] * 3 + [jerk[1] / _SQRT3] * 3
+        inp.max_velocity = [1e3] * 6  # not used by the velocity interface; ruckig wants a value
+        self.reset()
+
+    def reset(self, twist: Array | None = None) -> None:
+        """Restart from rest (or from ``twist``, e.g. what the arm reports) with zero acceleration."""
+        inp = self._inp
+        inp.current_position = [0.0] * 6
+        inp.current_velocity = [0.0] * 6 if twist is None else np.asarray(twist, dtype=float).tolist()
+        inp.current_acceleration = [0.0] * 6
+        inp.target_velocity = inp.current_velocity
+        inp.target_acceleration = [0.0] * 6
+
+    @property
+    def twist(self) -> Array:
+        """The twist the smoother last produced."""
+        return np.array(self._inp.current_velocity)
+
+    def step(self, target: Array) -> Array:
+        """One control period towards ``target``; returns the twist to send now."""
+        self._inp.target_velocity = np.asarray(target, dtype=float).tolist()
+        result = self._otg.update(self._inp, self._out)
+        if result not in (Result.Working, Result.Finished):
+            raise SafetyStop(f"velocity smoothing failed ({result})")
+        self._out.pass_to_input(self._inp)
+        # Positions are irrelevant to a velocity stream; keep them at zero so they never grow large.
+        self._inp.current_position = [0.0] * 6
+        return np.array(self._out.new_velocity)
