@@ -41,6 +41,18 @@ def test_accumulator_merges_frames_in_the_base_frame():
     assert acc.points.shape == (1, 3)
 
 
+def test_accumulator_marks_new_voxels_and_keeps_old_ones_in_order():
+    acc = CloudAccumulator(0.01)
+    acc.add(np.array([[0.001, 0.0, 0.0], [0.021, 0.0, 0.0]]))
+    assert acc.new.tolist() == [True, True]
+    before = acc.points.copy()
+    acc.add(np.array([[0.011, 0.0, 0.0], [0.003, 0.0, 0.0], [0.031, 0.0, 0.0]]))
+    assert acc.new.tolist() == [False, True, False, True]
+    old = acc.points[~acc.new]
+    np.testing.assert_allclose(old[0], [0.002, 0.0, 0.0])  # averaged with the new point of its voxel
+    np.testing.assert_array_equal(old[1], before[1])  # untouched voxels keep their exact centroid
+
+
 def test_ply_round_trip_and_refusal(tmp_path):
     pts = np.random.default_rng(3).normal(size=(50, 3))
     write_ply(tmp_path / "c.ply", pts)

@@ -20,20 +20,29 @@ _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
-def voxel_downsample(points: Array, voxel_m: float) -> Array:
-    """Replace the points of each ``voxel_m`` [m] cube (a grid anchored at the frame origin) by their
-    centroid. Output sorted by voxel index; an empty input gives an empty (0, 3) array."""
-    if points.shape[0] == 0:
-        return np.zeros((0, 3))
+def _voxel_groups(points: Array, voxel_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(voxel of each point (N,), points per voxel (K,)); voxels numbered in the order of their key."""
     idx = np.floor(points / voxel_m).astype(np.int64) + _KEY_OFFSET
     if np.any(idx < 0) or np.any(idx >= (1 << _KEY_BITS)):
         raise ValueError(f"points lie too far from the origin for a {voxel_m} m voxel grid")
     keys = (idx[:, 0] << (2 * _KEY_BITS)) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
     _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    return inverse, counts
+
+
+def _centroids(points: Array, inverse: NDArray[np.int64], counts: NDArray[np.int64]) -> Array:
     sums = np.zeros((counts.size, 3))
     for axis in range(3):
         sums[:, axis] = np.bincount(inverse, weights=points[:, axis], minlength=counts.size)
     return sums / counts[:, None]
+
+
+def voxel_downsample(points: Array, voxel_m: float) -> Array:
+    """Replace the points of each ``voxel_m`` [m] cube (a grid anchored at the frame origin) by their
+    centroid. Output sorted by voxel index; an empty input gives an empty (0, 3) array."""
+    if points.shape[0] == 0:
+        return np.zeros((0, 3))
+    return _centroids(points, *_voxel_groups(points, voxel_m))
 
 
 def crop_box(points: Array, x: tuple[float, float], y: tuple[float, float],
@@ -48,22 +57,35 @@ class CloudAccumulator:
     """The accumulated cloud in the base frame, re-voxelized at ``voxel_m`` after each addition.
 
     Voxel centroids of earlier additions are averaged again with new points of the same voxel, as the
-    paper's concatenate-then-filter step does.
+    paper's concatenate-then-filter step does. ``new`` marks the points of voxels that the last addition
+    created; the others are the previous points, in the same order (voxels are sorted by key and never
+    removed), some of them moved by the averaging.
     """
 
     def __init__(self, voxel_m: float) -> None:
         self.voxel_m = voxel_m
         self._points = np.zeros((0, 3))
+        self._new = np.zeros(0, dtype=bool)
 
     @property
     def points(self) -> Array:
         return self._points
 
+    @property
+    def new(self) -> NDArray[np.bool_]:
+        """Mask (M,) of the points whose voxel the last ``add`` created."""
+        return self._new
+
     def add(self, points_base: Array) -> Array:
         """Add a frame's points, already in the base frame; returns them after this frame's own voxel
         filter."""
         new = voxel_downsample(points_base, self.voxel_m)
-        self._points = voxel_downsample(np.vstack([self._points, new]), self.voxel_m)
+        both = np.vstack([self._points, new])
+        n_old = self._points.shape[0]
+        if both.shape[0]:
+            inverse, counts = _voxel_groups(both, self.voxel_m)
+            self._points = _centroids(both, inverse, counts)
+            self._new = np.bincount(inverse[:n_old], minlength=counts.size) == 0
         return new
 
 

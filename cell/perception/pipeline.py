@@ -83,7 +83,7 @@ class PerceptionPipeline:
         points_base = transform_points(T, points)
         self.cloud.add(points_base)
         if c.registration.enabled:
-            self._target.update(self.cloud.points)
+            self._target.update(self.cloud.points, new=self.cloud.new)
         origin = T[:3, 3]
         self.map.integrate(origin, points_base)
         if frame.zones is not None:
