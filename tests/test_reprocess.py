@@ -1,9 +1,11 @@
 """Offline re-processing of a recorded job (visual-servoing paper section III-B): a short simulated
-scan rebuilt at 1 mm with multiway registration and pose-graph optimization."""
+scan rebuilt at 1 mm with multiway registration and pose-graph optimization, its loop closures and the
+pruning of pair edges."""
 
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ import pytest
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
-from cell.perception.reprocess import back_project, reprocess_job
+from cell.perception.reprocess import MultiwayParams, back_project, reprocess_job
 from drivers.errors import JobError
 
 from .conftest import FRANKA
@@ -70,3 +72,45 @@ def test_not_a_job_folder_raises(tmp_path):
     (tmp_path / "result.json").write_text("{}")
     with pytest.raises(JobError, match="no recorded frames"):
         reprocess_job(tmp_path)
+
+
+@pytest.fixture
+def job_copy(cube_job, tmp_path):
+    job, online = cube_job
+    copy = tmp_path / "job"
+    shutil.copytree(job, copy)
+    return copy, online
+
+
+# Every pair of frames close enough for a loop closure; pairwise ICP on 5 mm clouds, output at 2.5 mm: the
+# graph is the same kind, the tests four times faster.
+EVERY_PAIR = {"loop_max_distance_m": 1.0, "loop_max_angle_deg": 180.0, "icp_voxel_m": 0.005}
+
+
+def test_reprocess_adds_loop_closures_between_close_frames(job_copy):
+    job, online = job_copy
+    out = reprocess_job(job, voxel_m=0.0025, params=MultiwayParams(**EVERY_PAIR))
+    reg, n = out["registration"], out["n_frames"]
+    assert reg["pair_edges"] + len(reg["rejected_pairs"]) == n * (n - 1) // 2  # every pair was tried
+    loops_rejected = sum(r["loop_closure"] for r in reg["rejected_pairs"])
+    assert reg["loop_closure_edges"] + loops_rejected == (n - 1) * (n - 2) // 2  # all but consecutive
+    assert reg["loop_closure_edges"] >= 1
+    assert reg["edges"] == reg["fk_prior_edges"] + reg["pair_edges"]
+    assert reg["max_pose_change_mm"] < 1.0 and reg["max_pose_change_deg"] < 0.2
+    assert out["metrics"]["coverage_pct"] >= online["metrics"]["coverage_pct"] - 3.0
+
+
+def test_reprocess_prunes_uncertain_edges_only(job_copy):
+    """The line process prunes pair edges whose weight falls below ``edge_prune_threshold``: at 1 every
+    pair edge goes (any residual weighs less than 1) and the certain FK priors alone hold the poses; at 0
+    none goes."""
+    job, _ = job_copy
+    reg = reprocess_job(job, voxel_m=0.0025,
+                        params=MultiwayParams(**EVERY_PAIR, edge_prune_threshold=1.0))["registration"]
+    assert reg["pair_edges"] >= 2
+    assert reg["pruned_edges"] == reg["pair_edges"] == len(reg["pruned_pairs"])
+    assert reg["edges_after_pruning"] == reg["fk_prior_edges"]
+    assert reg["max_pose_change_mm"] < 0.01  # only the priors, at the recorded poses, are left
+    reg = reprocess_job(job, voxel_m=0.0025,
+                        params=MultiwayParams(**EVERY_PAIR, edge_prune_threshold=0.0))["registration"]
+    assert reg["pruned_edges"] == 0 and reg["pruned_pairs"] == []

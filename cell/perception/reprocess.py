@@ -192,7 +192,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     for k, T in enumerate(poses):
         graph.nodes.append(_reg.PoseGraphNode(T))
         graph.edges.append(_reg.PoseGraphEdge(k + 1, 0, T, info_fk, uncertain=False))
-    n_pairs = 0
+    n_pairs = n_loops = 0
     rejected: list[dict[str, Any]] = []
     info_dist = p.max_correspondence_m[-1]
     for i, j, loop in _pairs(poses, p):
@@ -212,6 +212,8 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
         info = _reg.get_information_matrix_from_point_clouds(pcs[i], pcs[j], info_dist, T)
         graph.edges.append(_reg.PoseGraphEdge(i + 1, j + 1, T, info, uncertain=True))
         n_pairs += 1
+        n_loops += loop
+    pair_nodes = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
     n_edges = len(graph.edges)
     option = _reg.GlobalOptimizationOption(max_correspondence_distance=info_dist,
                                            edge_prune_threshold=p.edge_prune_threshold,
@@ -220,15 +222,18 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     _reg.global_optimization(graph, _reg.GlobalOptimizationLevenbergMarquardt(),
                              _reg.GlobalOptimizationConvergenceCriteria(), option)
     optimized = [np.array(node.pose) for node in graph.nodes][1:]
+    kept = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
     moves = [(float(np.linalg.norm(a[:3, 3] - b[:3, 3])),
               float(np.degrees(np.linalg.norm(rotvec(a[:3, :3] @ b[:3, :3].T)))))
              for a, b in zip(optimized, poses, strict=True)]
     summary = {
         "fk_prior_edges": len(poses),
         "pair_edges": n_pairs,
+        "loop_closure_edges": n_loops,
         "edges": n_edges,
         "edges_after_pruning": len(graph.edges),
         "pruned_edges": n_edges - len(graph.edges),
+        "pruned_pairs": sorted([i - 1, j - 1] for i, j in pair_nodes - kept),
         "rejected_pairs": rejected,
         "max_pose_change_mm": round(max((m for m, _ in moves), default=0.0) * 1e3, 3),
         "max_pose_change_deg": round(max((d for _, d in moves), default=0.0), 4),
