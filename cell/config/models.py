@@ -11,10 +11,12 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
+from cell.packing.config import PackingConfig
 from cell.perception.filters import FilterParams
 from cell.perception.occupancy import OccupancyParams
 from cell.perception.registration import RegistrationParams
 from cell.perception.segmentation import SegmentationParams
+from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig
 from drivers.config_base import StrictModel
@@ -100,9 +102,14 @@ class RasterConfig(StrictModel):
 
 
 class PlannersConfig(StrictModel):
-    """Per-planner parameters; a planner reads its own section."""
+    """Per-planner parameters; a planner reads its own section. ``vs`` is shared by the three
+    visual-servoing planners (``vs-local``, ``vs-global``, ``vs-hybrid``; Hybrid reads ``vs_local`` and
+    ``vs_global``); their defaults are the visual-servoing paper's values."""
 
     raster: RasterConfig
+    vs: VSConfig = VSConfig()
+    vs_local: VSLocalConfig = VSLocalConfig()
+    vs_global: VSGlobalConfig = VSGlobalConfig()
 
 
 class ScanConfig(StrictModel):
@@ -116,7 +123,8 @@ class ScanConfig(StrictModel):
 
 
 class CellConfig(StrictModel):
-    """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan."""
+    """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan,
+    planners, and the packing result (container catalogue)."""
 
     name: str
     mode: Literal["sim", "real"]
@@ -129,6 +137,7 @@ class CellConfig(StrictModel):
     safety: SafetyConfig
     scan: ScanConfig
     planners: PlannersConfig
+    packing: PackingConfig = PackingConfig()
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:

@@ -20,6 +20,7 @@ import numpy as np
 from cell.config.models import CellConfig
 from cell.jobs.recorder import STOP_FILE, JobRecorder
 from cell.jobs.session import JobSession, TimeBudgetExhausted
+from cell.packing.result import packing_section
 from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.registry import get_planner
@@ -190,6 +191,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "object_pose": np.round(T_base_object, 9).tolist(),
             "metrics": _finite_or_none(metrics.as_dict()),
             "perception": _perception_summary(session),
+            "packing": packing_section(cfg, session, planner, mesh, T_base_object, ground_truth),
             "safety": guard.log.as_dict(),
         }
         recorder.result(result)

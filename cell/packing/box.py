@@ -1,0 +1,105 @@
+"""Oriented bounding boxes standing on the table, and their intersection over union (LR-NBV paper,
+section 4.1, metric 1).
+
+A packing box is yaw-aligned: its base is the minimum-area rectangle of the points projected on the table
+plane (base frame x, y), its L axis at ``yaw_rad`` about +z with L >= W, and it reaches from ``z_min``
+(the table top when known) up to the highest point. All lengths in metres, base frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.perception.segmentation import min_area_rectangle
+from drivers.sim.objects import ObjectMesh
+from drivers.transforms import transform_points
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PackingBox:
+    """``center_xy`` (2,) [m] of the base rectangle, ``dims`` (L, W, H) [m] with L >= W, ``yaw_rad`` of
+    the L axis about +z in (-pi/2, pi/2], ``z_min`` [m] of the bottom face; base frame."""
+
+    center_xy: Array
+    dims: Array
+    yaw_rad: float
+    z_min: float
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.dims))
+
+    def footprint(self) -> Array:
+        """The 4 corners (4, 2) of the base rectangle, counter-clockwise seen from above."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        half_l, half_w = self.dims[0] / 2.0, self.dims[1] / 2.0
+        local = np.array([[-half_l, -half_w], [half_l, -half_w], [half_l, half_w], [-half_l, half_w]])
+        return local @ np.array([[c, s], [-s, c]]) + self.center_xy
+
+
+def box_from_points(points_base: Array, table_z: float | None = None) -> PackingBox:
+    """The packing box of object points (N >= 1, 3) [m], base frame: minimum-area rectangle of their
+    table-plane projection, height from ``table_z`` (or the lowest point when None) to the highest."""
+    if points_base.shape[0] == 0:
+        raise ValueError("box_from_points: no points")
+    centre, extent, yaw = min_area_rectangle(points_base[:, :2])
+    z_min = float(points_base[:, 2].min()) if table_z is None else float(table_z)
+    height = max(float(points_base[:, 2].max()) - z_min, 0.0)
+    return PackingBox(center_xy=centre, dims=np.array([extent[0], extent[1], height]), yaw_rad=yaw,
+                      z_min=z_min)
+
+
+def box_from_mesh(mesh: ObjectMesh, T_base_object: Array) -> PackingBox:
+    """The ground-truth packing box of a mesh posed at ``T_base_object``: the same construction as
+    :func:`box_from_points` on its vertices, from its lowest vertex up."""
+    return box_from_points(transform_points(T_base_object, mesh.vertices))
+
+
+def _clip(subject: Array, clip: Array) -> Array:
+    """Sutherland-Hodgman: the part of convex polygon ``subject`` (n, 2) inside convex polygon ``clip``
+    (m, 2), both counter-clockwise; returns the vertices (k, 2), k = 0 when they do not overlap."""
+    out = subject
+    for i in range(clip.shape[0]):
+        if out.shape[0] == 0:
+            break
+        a, b = clip[i], clip[(i + 1) % clip.shape[0]]
+        edge = b - a
+        # Signed area test: >= 0 on the left of a->b, i.e. inside a counter-clockwise polygon.
+        side = edge[0] * (out[:, 1] - a[1]) - edge[1] * (out[:, 0] - a[0])
+        kept: list[Array] = []
+        for j in range(out.shape[0]):
+            k = (j + 1) % out.shape[0]
+            p, q, sp, sq = out[j], out[k], side[j], side[k]
+            if sp >= 0.0:
+                kept.append(p)
+            if (sp >= 0.0) != (sq >= 0.0):
+                kept.append(p + (q - p) * (sp / (sp - sq)))
+        out = np.array(kept).reshape(-1, 2)
+    return out
+
+
+def _polygon_area(poly: Array) -> float:
+    """Area (shoelace) of a simple polygon (n, 2); 0 for fewer than 3 vertices."""
+    if poly.shape[0] < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def box_iou(a: PackingBox, b: PackingBox) -> float:
+    """Intersection over union of two yaw-aligned boxes (volumes): footprint intersection area times the
+    overlap of their height ranges, over the union of the volumes. 0 when either box is empty."""
+    union_parts = a.volume + b.volume
+    if a.volume <= 0.0 or b.volume <= 0.0:
+        return 0.0
+    dz = min(a.z_min + a.dims[2], b.z_min + b.dims[2]) - max(a.z_min, b.z_min)
+    if dz <= 0.0:
+        return 0.0
+    inter = _polygon_area(_clip(a.footprint(), b.footprint())) * dz
+    return float(inter / (union_parts - inter))

@@ -1,0 +1,130 @@
+"""The ``packing`` section of ``result.json`` (LR-NBV paper, section 4.1, the four metrics):
+
+1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
+   known table height, :mod:`cell.packing.objects`; the box: :mod:`cell.packing.box`) and, in sim, their
+   IoU with the ground-truth box of the posed mesh;
+2. the number of poses, one per capture;
+3. surface coverage [%]: the share of ground-truth surface samples (eq. 13's A of the visual-servoing
+   paper: faces pointing down excluded) within ``coverage_radius_m`` of an object voxel centre;
+4. the number of useless poses: captures after which the reconstructed surface did not grow. The paper
+   calls useless the poses that "do not increase the reconstructed surface and instead cause a decrease":
+   with the occupancy map, a capture can carve occupied voxels free or split the DBSCAN cluster, so the
+   measure can fall; a capture that leaves it unchanged added nothing either, so both count. The measure is
+   the coverage in sim and, without ground truth, the number of object voxels.
+
+and the container chosen for the box (:mod:`cell.packing.containers`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from cell.config.models import CellConfig
+from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
+from cell.packing.containers import choose_container
+from cell.packing.objects import current_object
+from cell.perception.pipeline import PerceptionPipeline
+from drivers.sim.objects import ObjectMesh
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class ReconstructionHistory:
+    """The segmented object (occupied voxel centres, base frame [m]) after each capture, in order."""
+
+    objects: list[Array] = field(default_factory=list)
+
+    def record(self, perception: PerceptionPipeline) -> Array:
+        """Append the object in the pipeline's map now (call after each capture) and return it."""
+        obj = current_object(perception)
+        self.objects.append(obj)
+        return obj
+
+
+@runtime_checkable
+class RecordsReconstruction(Protocol):
+    """A planner that keeps a :class:`ReconstructionHistory` of its captures."""
+
+    reconstruction: ReconstructionHistory
+
+
+class JobFacts(Protocol):
+    """What the packing section reads from a finished job's session."""
+
+    n_captures: int
+    perception: PerceptionPipeline
+
+
+def surface_coverage_pct(ground_truth: Array, object_points: Array, radius_m: float) -> float:
+    """Share [%] of ground-truth surface points (N, 3) within ``radius_m`` [m] of an object point."""
+    if object_points.shape[0] == 0 or ground_truth.shape[0] == 0:
+        return 0.0
+    d, _ = cKDTree(object_points).query(ground_truth, k=1, distance_upper_bound=radius_m)
+    return float(100.0 * np.mean(d <= radius_m))
+
+
+def count_useless(measures: list[float]) -> int:
+    """Poses whose reconstruction measure (one per capture, in order) is not above the one before (0
+    before the first capture)."""
+    previous = 0.0
+    useless = 0
+    for m in measures:
+        if m <= previous:
+            useless += 1
+        previous = m
+    return useless
+
+
+def _box_dict(box: PackingBox) -> dict[str, Any]:
+    return {"center_xy_m": np.round(box.center_xy, 6).tolist(), "yaw_rad": round(box.yaw_rad, 6),
+            "z_min_m": round(box.z_min, 6)}
+
+
+def packing_section(config: CellConfig, session: JobFacts | None, planner: object,
+                    mesh: ObjectMesh | None, T_base_object: Array | None,
+                    ground_truth: Array | None) -> dict[str, Any]:
+    """The ``packing`` section of result.json for a finished job.
+
+    ``planner`` contributes the per-capture history when it keeps one (:class:`RecordsReconstruction`);
+    ``mesh`` posed at ``T_base_object`` gives the ground-truth box and ``ground_truth`` (N, 3) [m] the
+    surface sample, both in sim only (None otherwise, and then ``iou`` and ``coverage_pct`` are None).
+    """
+    pc = config.packing
+    radius = pc.coverage_radius_m or config.perception.occupancy.resolution_m
+    objects = current_object(session.perception) if session is not None else np.zeros((0, 3))
+    history = planner.reconstruction.objects if isinstance(planner, RecordsReconstruction) else None
+    section: dict[str, Any] = {
+        "dims_m": None, "iou": None, "coverage_pct": None,
+        "n_poses": session.n_captures if session is not None else 0,
+        "n_useless_poses": None, "container": None, "box": None,
+    }
+    if ground_truth is not None:
+        section["coverage_pct"] = round(surface_coverage_pct(ground_truth, objects, radius), 3)
+    if history is not None:
+        if ground_truth is not None:
+            measures = [surface_coverage_pct(ground_truth, o, radius) for o in history]
+        else:
+            measures = [float(o.shape[0]) for o in history]
+        section["n_useless_poses"] = count_useless(measures)
+    if objects.shape[0] == 0:
+        section["container"] = {"name": None, "reason": "none fits: no object was found"}
+        return section
+    box = box_from_points(objects, config.station.table_z_m)
+    section["dims_m"] = np.round(box.dims, 6).tolist()
+    section["box"] = _box_dict(box)
+    if mesh is not None and T_base_object is not None:
+        section["iou"] = round(box_iou(box, box_from_mesh(mesh, T_base_object)), 6)
+    choice = choose_container(box.dims, pc.containers, pc.margin_m)
+    section["container"] = {
+        "name": choice.container.name if choice.container is not None else None,
+        "inner_dims_m": list(choice.container.inner_dims_m) if choice.container is not None else None,
+        "rotated": choice.rotated,
+        "reason": choice.reason,
+    }
+    return section

@@ -1,0 +1,226 @@
+"""The packing result (LR-NBV paper, section 4.1): boxes, IoU, containers, coverage, useless poses."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from cell.config.load import load_config
+from cell.config.models import PerceptionConfig
+from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
+from cell.packing.config import ContainerConfig, PackingConfig
+from cell.packing.containers import choose_container, required_inner_dims
+from cell.packing.objects import segment_on_table
+from cell.packing.result import ReconstructionHistory, count_useless, packing_section, surface_coverage_pct
+from cell.perception.metrics import ground_truth_points
+from drivers.sim.objects import load_object, sample_surface
+from drivers.transforms import T_from_xyz_rpy, transform_points
+from tests.conftest import UR5E
+
+
+def _box(cx: float = 0.0, cy: float = 0.0, dims: tuple[float, float, float] = (1.0, 1.0, 1.0),
+         yaw: float = 0.0, z_min: float = 0.0) -> PackingBox:
+    return PackingBox(center_xy=np.array([cx, cy]), dims=np.array(dims), yaw_rad=yaw, z_min=z_min)
+
+
+def _box_surface(dims: tuple[float, float, float], n: int, rng: np.random.Generator) -> np.ndarray:
+    """Points on the five faces (no bottom) of a box centred on x = y = 0 standing on z = 0."""
+    L, W, H = dims
+    pts = rng.uniform([-L / 2, -W / 2, 0.0], [L / 2, W / 2, H], size=(n, 3))
+    face = rng.integers(0, 5, size=n)
+    pts[face == 0, 0] = -L / 2
+    pts[face == 1, 0] = L / 2
+    pts[face == 2, 1] = -W / 2
+    pts[face == 3, 1] = W / 2
+    pts[face == 4, 2] = H
+    return pts
+
+
+def test_box_from_points_recovers_a_yawed_box() -> None:
+    rng = np.random.default_rng(0)
+    T = T_from_xyz_rpy([0.45, -0.05, 0.0], [0.0, 0.0, math.radians(30.0)])
+    pts = transform_points(T, _box_surface((0.2, 0.3, 0.1), 4000, rng))  # W > L in its own frame
+    box = box_from_points(pts, table_z=0.0)
+    np.testing.assert_allclose(box.dims, [0.3, 0.2, 0.1], atol=2e-3)
+    # The L axis is the object's y axis, at 30 + 90 = 120 deg, i.e. -60 deg as a line.
+    assert box.yaw_rad == pytest.approx(math.radians(-60.0), abs=0.01)
+    np.testing.assert_allclose(box.center_xy, [0.45, -0.05], atol=2e-3)
+    assert box.z_min == 0.0
+
+
+def test_box_height_from_the_lowest_point_without_a_table() -> None:
+    pts = np.array([[0.0, 0.0, 0.1], [0.2, 0.0, 0.1], [0.2, 0.1, 0.3], [0.0, 0.1, 0.2]])
+    box = box_from_points(pts)
+    np.testing.assert_allclose(box.dims, [0.2, 0.1, 0.2], atol=1e-12)
+    assert box.z_min == pytest.approx(0.1)
+    with pytest.raises(ValueError):
+        box_from_points(np.zeros((0, 3)))
+
+
+def test_iou_hand_computed_cases() -> None:
+    assert box_iou(_box(), _box()) == pytest.approx(1.0)
+    # Half a cube shifted: intersection 0.5, union 1.5.
+    assert box_iou(_box(), _box(cx=0.5)) == pytest.approx(1.0 / 3.0)
+    # Half the height: intersection 0.5, union 1.
+    assert box_iou(_box(), _box(dims=(1.0, 1.0, 0.5))) == pytest.approx(0.5)
+    # A unit square and the same square turned 45 deg meet in an octagon of area 2 (sqrt 2 - 1).
+    octagon = 2.0 * (math.sqrt(2.0) - 1.0)
+    assert box_iou(_box(), _box(yaw=math.pi / 4)) == pytest.approx(octagon / (2.0 - octagon))
+    # A box and its 90-degree turn with L and W swapped are the same box.
+    turned = _box(dims=(0.2, 0.3, 0.1), yaw=math.pi / 2)
+    assert box_iou(_box(dims=(0.3, 0.2, 0.1)), turned) == pytest.approx(1.0)
+    assert box_iou(_box(), _box(cx=2.0)) == 0.0
+    assert box_iou(_box(), _box(z_min=1.5)) == 0.0
+    assert box_iou(_box(), _box(dims=(1.0, 1.0, 0.0))) == 0.0
+
+
+@pytest.mark.parametrize("name", ["horizontal_box", "vertical_box", "gripper", "flange"])
+def test_ground_truth_box_of_shipped_objects(name: str) -> None:
+    mesh = load_object(name)
+    T = T_from_xyz_rpy([0.47, 0.02, 0.0], [0.0, 0.0, math.radians(25.0)])
+    truth = box_from_mesh(mesh, T)
+    ext = np.sort(mesh.extents_m[:2])[::-1]
+    # The shipped packing objects are axis-aligned in their own frame, so the minimum-area box is at
+    # most their bounding box and its height the mesh height.
+    assert truth.dims[0] * truth.dims[1] <= ext[0] * ext[1] + 1e-9
+    assert truth.dims[2] == pytest.approx(mesh.extents_m[2])
+    # Surface samples of the same mesh give nearly the same box; the gripper's rounded footprint has
+    # minimum-area rectangles a few degrees apart with almost the same area, hence the lower bound.
+    pts = transform_points(T, sample_surface(mesh, 20000, np.random.default_rng(1), exclude_down_deg=-1.0))
+    assert box_iou(box_from_points(pts, table_z=0.0), truth) > 0.85
+
+
+def test_boxes_recover_their_known_dimensions() -> None:
+    T = T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, math.radians(40.0)])
+    for name, dims in (("horizontal_box", [0.3, 0.2, 0.1]), ("vertical_box", [0.1, 0.1, 0.25])):
+        np.testing.assert_allclose(box_from_mesh(load_object(name), T).dims, dims, atol=1e-9)
+
+
+CATALOGUE = [
+    ContainerConfig(name="big", inner_dims_m=(0.5, 0.4, 0.3)),
+    ContainerConfig(name="narrow", inner_dims_m=(0.1, 0.35, 0.15)),
+    ContainerConfig(name="flat", inner_dims_m=(0.35, 0.25, 0.05)),
+]
+
+
+def test_container_smallest_that_fits_with_yaw_swap() -> None:
+    choice = choose_container(np.array([0.3, 0.05, 0.1]), CATALOGUE, margin_m=0.01)
+    assert choice.container is not None and choice.container.name == "narrow"  # 0.32 x 0.07 x 0.11, turned
+    assert choice.rotated
+    np.testing.assert_allclose(required_inner_dims(np.array([0.3, 0.05, 0.1]), 0.01), [0.32, 0.07, 0.11])
+
+
+def test_container_margin_decides() -> None:
+    dims = np.array([0.33, 0.2, 0.04])
+    assert choose_container(dims, CATALOGUE, margin_m=0.0).container.name == "flat"  # type: ignore[union-attr]
+    assert choose_container(dims, CATALOGUE, margin_m=0.02).container.name == "big"  # type: ignore[union-attr]
+
+
+def test_container_none_fits_says_so() -> None:
+    choice = choose_container(np.array([0.6, 0.1, 0.1]), CATALOGUE, margin_m=0.01)
+    assert choice.container is None and choice.reason.startswith("none fits")
+    assert "0.620 x 0.120 x 0.110" in choice.reason
+    assert "empty" in choose_container(np.array([0.1, 0.1, 0.1]), [], 0.0).reason
+
+
+def test_catalogue_names_unique() -> None:
+    with pytest.raises(ValueError, match="repeated: a"):
+        PackingConfig(containers=[ContainerConfig(name="a", inner_dims_m=(1, 1, 1))] * 2)
+
+
+def test_useless_poses_do_not_grow_the_reconstruction() -> None:
+    assert count_useless([]) == 0
+    assert count_useless([10.0, 20.0, 20.0, 15.0, 30.0]) == 2
+    assert count_useless([0.0, 5.0]) == 1
+
+
+def test_surface_coverage() -> None:
+    gt = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    assert surface_coverage_pct(gt, np.array([[0.0, 0.0, 0.005], [2.0, 0.009, 0.0]]), 0.01) == 50.0
+    assert surface_coverage_pct(gt, np.zeros((0, 3)), 0.01) == 0.0
+
+
+@dataclass
+class _Map:
+    occupied: np.ndarray
+
+    def occupied_centers(self) -> np.ndarray:
+        return self.occupied
+
+
+@dataclass
+class _Perception:
+    map: _Map
+    config: PerceptionConfig
+    table_z_m: float = 0.0
+
+
+@dataclass
+class _Session:
+    n_captures: int
+    perception: _Perception
+
+
+def _session(n: int, occupied: np.ndarray) -> _Session:
+    return _Session(n, _Perception(_Map(occupied), load_config(UR5E).perception))
+
+
+@dataclass
+class _Planner:
+    reconstruction: ReconstructionHistory
+
+
+def _voxelise(points: np.ndarray, res: float) -> np.ndarray:
+    return (np.unique(np.floor(points / res).astype(int), axis=0) + 0.5) * res
+
+
+def test_packing_section_on_a_voxelised_shipped_box() -> None:
+    cfg = load_config(UR5E)
+    mesh = load_object("horizontal_box")
+    T = T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, math.radians(20.0)])
+    surface = transform_points(T, sample_surface(mesh, 40000, np.random.default_rng(2)))
+    full = _voxelise(surface[surface[:, 2] > 0.005], 0.01)
+    half = full[full[:, 0] < 0.45]
+    history = ReconstructionHistory([half, full, full[::2]])
+    gt = ground_truth_points(mesh, T)
+    section = packing_section(cfg, _session(3, full), _Planner(history), mesh, T, gt)  # type: ignore[arg-type]
+    np.testing.assert_allclose(section["dims_m"], [0.3, 0.2, 0.1], atol=0.015)  # voxel staircase
+    assert section["iou"] > 0.85
+    assert section["coverage_pct"] > 95.0
+    assert section["n_poses"] == 3
+    assert section["n_useless_poses"] == 1  # the third capture lost half the voxels
+    assert section["container"]["name"] == "large"
+    json_types = (list, float, int, str, dict, bool, type(None))
+    assert all(isinstance(v, json_types) for v in section.values())
+
+
+def test_packing_section_without_object_or_ground_truth() -> None:
+    cfg = load_config(UR5E)
+    section = packing_section(cfg, _session(2, np.zeros((0, 3))), object(), None, None, None)  # type: ignore[arg-type]
+    assert section["dims_m"] is None and section["iou"] is None and section["n_useless_poses"] is None
+    assert section["n_poses"] == 2
+    assert section["container"]["name"] is None and "no object" in section["container"]["reason"]
+    pts = _voxelise(np.random.default_rng(3).uniform([0.4, 0.0, 0.02], [0.5, 0.1, 0.08], (2000, 3)), 0.01)
+    history = _Planner(ReconstructionHistory([pts[:1], pts, pts]))
+    section = packing_section(cfg, _session(3, pts), history, None, None, None)  # type: ignore[arg-type]
+    assert section["n_useless_poses"] == 1  # voxel counts 1, n, n
+    np.testing.assert_allclose(section["dims_m"], [0.09, 0.09, 0.075], atol=1e-9)
+    assert section["iou"] is None and section["coverage_pct"] is None
+
+
+def test_object_on_a_known_table_keeps_a_wide_flat_top() -> None:
+    """A wide box top fills more voxels than the few table voxels an 8x8 sensor hits: cutting at the
+    known table height still finds the box, and stray voxels away from it are left out."""
+    params = load_config(UR5E).perception.segmentation
+    rng = np.random.default_rng(4)
+    T = T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, 0.3])
+    box = _voxelise(transform_points(T, _box_surface((0.3, 0.2, 0.1), 20000, rng)), 0.01)
+    table = _voxelise(rng.uniform([0.0, -0.4, -0.004], [0.9, 0.4, 0.004], (80, 3)), 0.01)
+    stray = np.array([[0.9, 0.5, 0.3]])
+    obj = segment_on_table(np.vstack([box, table, stray]), params, table_z=0.0)
+    assert obj.shape[0] > 0.9 * box.shape[0]
+    assert obj[:, 2].min() > params.plane_distance_m
+    np.testing.assert_allclose(box_from_points(obj, 0.0).dims, [0.3, 0.2, 0.1], atol=0.015)
