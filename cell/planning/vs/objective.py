@@ -87,15 +87,20 @@ class EntropyObjective:
         self.roi_max = np.asarray(roi_max, dtype=np.float64).reshape(3)
         self.directions_cam = np.asarray(directions_cam, dtype=np.float64).reshape(-1, 3)
         res = self.resolution_m
-        # Every sample inside the ROI box falls in a voxel with key in [k_lo, k_hi] (keys as the map's).
-        self._k_lo = np.floor(self.roi_min / res).astype(np.int64)
-        k_hi = np.floor(self.roi_max / res).astype(np.int64)
+        # Every sample inside the ROI box falls in a voxel with key in [floor(min / res), floor(max / res)]
+        # (keys as the map's); one more voxel on each side absorbs rounding at the faces, so no sample
+        # needs clipping.
+        self._k_lo = np.floor(self.roi_min / res).astype(np.int64) - 1
+        k_hi = np.floor(self.roi_max / res).astype(np.int64) + 1
         self._shape = k_hi - self._k_lo + 1
         axes = [np.arange(self._k_lo[i], k_hi[i] + 1) for i in range(3)]
         keys = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
         p = occupancy.probability(occupancy.centers_of(keys))
-        self._log_free = np.log1p(-p)  # log(1 - p_j), flat in key order (x, then y, then z)
-        self._entropy = binary_entropy(p)  # H(p_j) of eq. 8 [nats]
+        # Flat in key order (x, then y, then z), plus a last entry of zeros that samples past the end of
+        # their ray read: log(1 - p_j) and H(p_j) of eq. 8 [nats].
+        self._sentinel = keys.shape[0]
+        self._log_free = np.append(np.log1p(-p), 0.0)
+        self._entropy = np.append(binary_entropy(p), 0.0)
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
@@ -141,14 +146,16 @@ class EntropyObjective:
         res = self.resolution_m
         i = np.arange(n_samples)
         t = t_in[..., None] + (i + 0.5) * res  # (b, K, N)
-        points = o[:, None, None, :] + t[..., None] * d[:, :, None, :]
-        k = np.floor(points / res).astype(np.int64) - self._k_lo
-        # A sample on the ROI's upper face can round into the next voxel: keep it in the snapshot.
-        k = np.clip(k, 0, self._shape - 1)
-        flat = (k[..., 0] * self._shape[1] + k[..., 1]) * self._shape[2] + k[..., 2]
-        valid = i < n[..., None]
-        log_free = np.where(valid, self._log_free[flat], 0.0)
-        entropy = np.where(valid, self._entropy[flat], 0.0)
+        # Flat voxel index ((kx * sy) + ky) * sz + kz, one axis at a time (no (b, K, N, 3) temporaries);
+        # k = floor(x / res) exactly as the map computes keys.
+        flat = np.zeros(t.shape, dtype=np.int64)
+        for axis in range(3):
+            x = o[:, axis, None, None] + t * d[:, :, axis, None]
+            k = np.floor(x / res).astype(np.int64) - self._k_lo[axis]
+            flat = flat * self._shape[axis] + k if axis else k
+        flat[i >= n[..., None]] = self._sentinel
+        log_free = self._log_free[flat]
         # S_j = prod_{i<j} (1 - p_i): exclusive cumulative sum of log(1 - p).
         reach = np.exp(np.cumsum(log_free, axis=-1) - log_free)
-        return np.einsum("bkn,bkn->b", reach, entropy) / self.n_rays
+        reach *= self._entropy[flat]
+        return reach.sum(axis=(1, 2)) / self.n_rays
