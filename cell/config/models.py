@@ -16,6 +16,7 @@ from cell.perception.filters import FilterParams
 from cell.perception.occupancy import OccupancyParams
 from cell.perception.registration import RegistrationParams
 from cell.perception.segmentation import SegmentationParams
+from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig
 from drivers.config_base import StrictModel
@@ -104,6 +105,10 @@ class PlannersConfig(StrictModel):
     """Per-planner parameters; a planner reads its own section."""
 
     raster: RasterConfig
+    # The packing paper's planners; ``nbv`` reads the same parameters and leaves G_d and G_v out.
+    lrnbv: LRNBVConfig = LRNBVConfig()
+    nbv: LRNBVConfig = LRNBVConfig()
+    heu: HEUConfig = HEUConfig()
 
 
 class ScanConfig(StrictModel):

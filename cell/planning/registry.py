@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 from cell.planning.base import Planner
+from cell.planning.lrnbv.heu import HEUPlanner
+from cell.planning.lrnbv.planner import LRNBVPlanner, NBVPlanner
 from cell.planning.raster import RasterPlanner
 from drivers.errors import PlanningError
 
 PLANNERS: dict[str, type[Planner]] = {
     RasterPlanner.name: RasterPlanner,
+    LRNBVPlanner.name: LRNBVPlanner,
+    NBVPlanner.name: NBVPlanner,
+    HEUPlanner.name: HEUPlanner,
 }
 
 

@@ -1,0 +1,320 @@
+"""Algorithm 1 of the LR-NBV paper (section 3.1): a receding-horizon RRT of sensor poses with cached nodes.
+
+Each iteration i:
+
+- ExpandRRT (line 7): a tree T^i grows from the current sensor pose by ``samples_per_iteration`` RRT
+  extensions (steps of ``rrt_step_m`` towards positions drawn in the robot workspace box within
+  ``view_distance_m`` of the object); a node keeps the orientation that maximises U among look
+  directions towards the ROI, and is dropped when ``session.sensor_pose_allowed`` refuses it (barrier
+  planes, workspace) or it comes closer than ``object_clearance_m`` to the object's box;
+- the best branch B^i maximises the cumulative utility of its nodes (eq. 1), x* is its best node
+  (line 9); the other nodes with U > tau join the cached nodes C (line 8);
+- when x* is worse than the best cached node, ExpandRRTCached (line 11) grows a second tree whose
+  samples are drawn around the cached nodes, and x* is taken from it;
+- when U(x*) exceeds the worst cached node's utility (line 15) the arm moves to x* and captures there
+  (lines 16-18); otherwise the scan is complete (line 24). After each capture the cached nodes are
+  re-scored on the new map, sorted and cut to m_i nodes, m_i decreasing linearly from ``cached_nodes``
+  to 1 over ``max_iterations`` (lines 19-21).
+
+Choices the paper leaves open, and why:
+
+- Only x* is captured, not every node of B^i: a capture is a pose and the paper counts poses; the rest
+  of the branch is re-planned next iteration (receding horizon, Bircher et al. 2016).
+- Best and worst cached nodes come from the re-scoring after the last capture, as in lines 20-21; before
+  the first re-scoring there is no threshold and the scan goes on.
+- A move the session refuses (no IK solution, collision, barrier) drops that node and counts a failed
+  move; ``max_failed_moves`` in a row end the scan. The iteration budget counts planning passes, so a
+  scan always ends.
+- The RRT draws from its own generator seeded with the planner's ``seed``, so the same config, object and
+  job seed give the same scan.
+- Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; when that frame
+  shows no object it looks once at the station from above.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar, Protocol
+
+import numpy as np
+
+from cell.config.models import CellConfig
+from cell.packing.result import ReconstructionHistory
+from cell.perception.pipeline import PerceptionPipeline
+from cell.planning.base import Array, Planner, ScanSession
+from cell.planning.lrnbv.config import LRNBVConfig
+from cell.planning.lrnbv.sensor import sensor_rays
+from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
+from drivers.transforms import look_at
+
+
+class MappingSession(ScanSession, Protocol):
+    """A scan session whose perception pipeline (occupancy map A^i) the planner may read."""
+
+    perception: PerceptionPipeline
+
+
+@dataclass
+class Tree:
+    """An RRT of sensor poses: ``positions`` (N, 3), ``rotations`` (N, 3, 3), ``utility`` (N,) with -inf
+    for refused nodes, ``parent`` (N,) index, -1 for the root (node 0, the current pose)."""
+
+    positions: Array
+    rotations: Array
+    utility: Array
+    parent: np.ndarray
+
+    def best_branch(self) -> list[int]:
+        """Eq. 1: the root-to-node path (root excluded) of maximal cumulative utility."""
+        n = self.positions.shape[0]
+        cum = np.zeros(n)
+        for i in range(1, n):  # parents always precede their children
+            cum[i] = cum[self.parent[i]] + self.utility[i]
+        cum[0] = -np.inf
+        end = int(np.argmax(cum))
+        branch: list[int] = []
+        while end > 0:
+            branch.append(end)
+            end = int(self.parent[end])
+        return branch[::-1]
+
+
+@dataclass
+class CachedNodes:
+    """The cached nodes C^i: positions (K, 3), orientations (K, 3, 3), utilities (K,)."""
+
+    positions: Array = field(default_factory=lambda: np.zeros((0, 3)))
+    rotations: Array = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    utility: Array = field(default_factory=lambda: np.zeros(0))
+
+    def append(self, positions: Array, rotations: Array, utility: Array) -> None:
+        self.positions = np.vstack([self.positions, positions])
+        self.rotations = np.concatenate([self.rotations, rotations])
+        self.utility = np.concatenate([self.utility, utility])
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.positions, self.rotations, self.utility = self.positions[mask], self.rotations[mask], \
+            self.utility[mask]
+
+    def __len__(self) -> int:
+        return int(self.utility.shape[0])
+
+
+class RRTViewPlanner(Planner):
+    """Algorithm 1 with the gains its subclass enables (``lr-nbv``: all four; ``nbv``: G_e and G_q)."""
+
+    section: ClassVar[str]
+    uses_density_and_visited: ClassVar[bool]
+
+    def __init__(self, config: CellConfig) -> None:
+        super().__init__(config)
+        self.params: LRNBVConfig = getattr(config.planners, self.section)
+        p = self.params
+        self.weights = Weights(w_e=p.w_e, w_d=p.w_d if self.uses_density_and_visited else 0.0, w_q=p.w_q,
+                               w_v=p.w_v if self.uses_density_and_visited else 0.0)
+        self.rays = sensor_rays(config.sensor, p.rgbd_rays_per_side)
+        self.resolution = config.perception.occupancy.resolution_m
+        self.table_z = config.station.table_z_m
+        ws = config.safety.workspace
+        self.ws_min, self.ws_max = np.asarray(ws.min_m, dtype=float), np.asarray(ws.max_m, dtype=float)
+        self.rng = np.random.default_rng(p.seed)
+        self.visited = VisitedGrid(p.visited_grid_m)
+        self.reconstruction = ReconstructionHistory()
+        self.n_failed_moves = 0
+        self.n_refused_nodes = 0
+
+    # ------------------------------------------------------------------------------------- the map side
+    def field(self, session: MappingSession, obj: Array) -> UtilityField:
+        """U's map inputs for the current object O^i: ROI = its box grown by ``roi_margin_m``, not below
+        the table."""
+        m = self.params.roi_margin_m
+        lo, hi = obj.min(axis=0) - m, obj.max(axis=0) + m
+        lo[2] = max(lo[2], self.table_z)
+        return UtilityField(session.perception.map, obj, lo, hi, resolution=self.resolution,
+                            density_radius_m=self.params.density_radius_m)
+
+    def look_targets(self, obj: Array) -> Array:
+        """The points a node may look at: the object box centre and its corners pulled towards it."""
+        lo, hi = obj.min(axis=0), obj.max(axis=0)
+        centre = 0.5 * (lo + hi)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                            for z in (lo[2], hi[2])])
+        spread = self.params.look_target_spread
+        if spread <= 0.0:
+            return centre[None]
+        return np.vstack([centre, centre + spread * (corners - centre)])
+
+    def score(self, f: UtilityField, targets: Array, positions: Array) -> tuple[Array, Array]:
+        """Best orientation (N, 3, 3) and its utility (N,) for each position, over the look targets."""
+        n, k = positions.shape[0], targets.shape[0]
+        rot = np.empty((n, k, 3, 3))
+        for i in range(n):
+            for j in range(k):
+                rot[i, j] = look_at(positions[i], targets[j])[:3, :3]
+        flat_pos = np.repeat(positions, k, axis=0)
+        g = evaluate(f, self.visited, flat_pos, rot.reshape(-1, 3, 3), self.rays, self.params.ray_length_m)
+        u = self.weights.utility(g).reshape(n, k)
+        best = np.argmax(u, axis=1)
+        return rot[np.arange(n), best], u[np.arange(n), best]
+
+    # ------------------------------------------------------------------------------------------ the tree
+    def _sample_position(self, centre: Array, around: Array | None) -> Array | None:
+        """A position in the workspace box within ``view_distance_m`` of the object centre: uniform, or
+        near a cached node (``around``, ExpandRRTCached). None after 100 misses."""
+        lo_d, hi_d = self.params.view_distance_m
+        lo = np.maximum(self.ws_min, centre - hi_d)
+        hi = np.minimum(self.ws_max, centre + hi_d)
+        for _ in range(100):
+            if around is None:
+                q = self.rng.uniform(lo, hi)
+            else:
+                jitter = self.rng.normal(0.0, self.params.rrt_step_m / 2.0, 3)
+                q = around[self.rng.integers(around.shape[0])] + jitter
+            in_box = bool(np.all(q >= self.ws_min) and np.all(q <= self.ws_max))
+            if in_box and lo_d <= np.linalg.norm(q - centre) <= hi_d:
+                return q
+        return None
+
+    def _clear_of_object(self, p: Array, obj_lo: Array, obj_hi: Array) -> bool:
+        c = self.params.object_clearance_m
+        return not bool(np.all(p >= obj_lo - c) and np.all(p <= obj_hi + c))
+
+    def expand(self, session: MappingSession, f: UtilityField, obj: Array, around: Array | None) -> Tree:
+        """ExpandRRT (``around`` None) or ExpandRRTCached: a tree from the current sensor pose."""
+        p = self.params
+        root = session.sensor_pose()
+        centre = f.object_centre
+        obj_lo, obj_hi = obj.min(axis=0), obj.max(axis=0)
+        positions = [root[:3, 3]]
+        parents = [-1]
+        for _ in range(p.samples_per_iteration):
+            q = self._sample_position(centre, around)
+            if q is None:
+                continue
+            pts = np.array(positions)
+            near = int(np.argmin(np.linalg.norm(pts - q, axis=1)))
+            d = q - pts[near]
+            dist = float(np.linalg.norm(d))
+            new = q if dist <= p.rrt_step_m else pts[near] + d * (p.rrt_step_m / dist)
+            if not self._clear_of_object(new, obj_lo, obj_hi):
+                continue
+            if not session.sensor_pose_allowed(look_at(new, centre)):
+                continue
+            positions.append(new)
+            parents.append(near)
+        pos = np.array(positions)
+        rot = np.empty((pos.shape[0], 3, 3))
+        util = np.full(pos.shape[0], -np.inf)
+        rot[0] = root[:3, :3]
+        if pos.shape[0] > 1:
+            rot[1:], util[1:] = self.score(f, self.look_targets(obj), pos[1:])
+        for i in range(1, pos.shape[0]):
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = rot[i], pos[i]
+            if not session.sensor_pose_allowed(T):
+                util[i] = -np.inf
+                self.n_refused_nodes += 1
+        return Tree(positions=pos, rotations=rot, utility=util, parent=np.array(parents))
+
+    def _cache_off_branch(self, tree: Tree, branch: list[int], cache: CachedNodes) -> None:
+        """Line 8 / 12: nodes of the tree off the best branch with U > tau join C."""
+        mask = tree.utility > self.params.cache_threshold
+        mask[0] = False
+        mask[branch] = False
+        cache.append(tree.positions[mask], tree.rotations[mask], tree.utility[mask])
+
+    def _rescore(self, f: UtilityField, obj: Array, cache: CachedNodes, m: int) -> None:
+        """Line 19: re-score the cached nodes on the new map, keep the best ``m``."""
+        if len(cache) == 0:
+            return
+        cache.rotations, cache.utility = self.score(f, self.look_targets(obj), cache.positions)
+        order = np.argsort(-cache.utility, kind="stable")[:m]
+        cache.positions, cache.rotations, cache.utility = cache.positions[order], cache.rotations[order], \
+            cache.utility[order]
+
+    # ------------------------------------------------------------------------------------------ the scan
+    def _capture(self, session: MappingSession) -> Array:
+        session.wait(self.params.settle_s)
+        session.capture()
+        self.visited.mark(session.sensor_pose()[:3, 3])
+        return self.reconstruction.record(session.perception)
+
+    def _initial_object(self, session: MappingSession) -> Array:
+        obj = self._capture(session)
+        if obj.shape[0]:
+            return obj
+        st = self.config.station
+        target = np.array([st.xy_m[0], st.xy_m[1], self.table_z])
+        eye = target + np.array([0.0, 0.0, self.config.scan.standoff_m])
+        if session.move_to_sensor_pose(look_at(eye, target, up_hint=np.array([1.0, 0.0, 0.0]))):
+            obj = self._capture(session)
+        return obj
+
+    def run(self, session: ScanSession) -> str:
+        s: MappingSession = session  # type: ignore[assignment]
+        p = self.params
+        obj = self._initial_object(s)
+        if obj.shape[0] == 0:
+            return "no object found in the first views"
+        cache = CachedNodes()
+        best_c: float | None = None
+        worst_c: float | None = None
+        captures = 0
+        failed_in_row = 0
+        for it in range(p.max_iterations):
+            f = self.field(s, obj)
+            tree = self.expand(s, f, obj, None)
+            branch = tree.best_branch()
+            self._cache_off_branch(tree, branch, cache)
+            if not branch or not np.isfinite(tree.utility[branch]).any():
+                return f"no feasible view left after {captures} captures (iteration {it})"
+            x, u_x = self._best_on(tree, branch)
+            if best_c is not None and u_x < best_c and len(cache):
+                tree = self.expand(s, f, obj, cache.positions)
+                branch = tree.best_branch()
+                self._cache_off_branch(tree, branch, cache)
+                if branch and np.isfinite(tree.utility[branch]).any():
+                    x2, u2 = self._best_on(tree, branch)
+                    if u2 > u_x:
+                        x, u_x = x2, u2
+            if worst_c is not None and u_x <= worst_c:
+                return (f"converged: best view U = {u_x:.4g} not above the worst cached node's "
+                        f"{worst_c:.4g} after {captures} captures")
+            if not s.move_to_sensor_pose(x):
+                self.n_failed_moves += 1
+                failed_in_row += 1
+                if failed_in_row >= p.max_failed_moves:
+                    return f"{failed_in_row} moves in a row refused after {captures} captures"
+                continue
+            failed_in_row = 0
+            obj_new = self._capture(s)
+            captures += 1
+            if obj_new.shape[0]:
+                obj = obj_new
+            m = max(1, round(p.cached_nodes * (1.0 - (it + 1) / p.max_iterations)))
+            self._rescore(self.field(s, obj), obj, cache, m)
+            if len(cache):
+                best_c, worst_c = float(cache.utility[0]), float(cache.utility[-1])
+        return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
+
+    @staticmethod
+    def _best_on(tree: Tree, branch: list[int]) -> tuple[Array, float]:
+        """Line 9: the best node of the branch, as a pose T_base_sensor, and its utility."""
+        i = branch[int(np.argmax(tree.utility[branch]))]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
+        return T, float(tree.utility[i])
+
+
+class LRNBVPlanner(RRTViewPlanner):
+    name = "lr-nbv"
+    description = "Low-Resolution NBV (packing paper, Algorithm 1): RRT with cached nodes, all four gains"
+    section = "lrnbv"
+    uses_density_and_visited = True
+
+
+class NBVPlanner(RRTViewPlanner):
+    name = "nbv"
+    description = "NBV baseline of the packing paper: Algorithm 1 with only the exploration and quality gains"
+    section = "nbv"
+    uses_density_and_visited = False

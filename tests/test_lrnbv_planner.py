@@ -1,0 +1,94 @@
+"""Algorithm 1 of the LR-NBV paper, its NBV and HEU baselines, and their registration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cell.config.load import load_config
+from cell.config.models import CellConfig
+from cell.jobs.runner import ScanRequest, run_scan
+from cell.planning.lrnbv.heu import HEUPlanner, heu_views
+from cell.planning.lrnbv.planner import CachedNodes, LRNBVPlanner, NBVPlanner, Tree
+from cell.planning.registry import get_planner
+from tests.conftest import UR5E
+
+
+def _with(cfg: CellConfig, section: str, **values: object) -> CellConfig:
+    updated = getattr(cfg.planners, section).model_copy(update=values)
+    planners = cfg.planners.model_copy(update={section: updated})
+    return cfg.model_copy(update={"planners": planners})
+
+
+def test_registered_by_name_and_default_of_the_tof_cell() -> None:
+    assert get_planner("lr-nbv") is LRNBVPlanner
+    assert get_planner("nbv") is NBVPlanner
+    assert get_planner("heu") is HEUPlanner
+    assert load_config(UR5E).scan.planner == "lr-nbv"
+
+
+def test_nbv_leaves_density_and_visited_out() -> None:
+    cfg = load_config(UR5E)
+    lr, nbv = LRNBVPlanner(cfg).weights, NBVPlanner(cfg).weights
+    assert (lr.w_e, lr.w_d, lr.w_q, lr.w_v) == (500.0, 0.05, 0.08, 500.0)  # Table 1
+    assert (nbv.w_e, nbv.w_d, nbv.w_q, nbv.w_v) == (500.0, 0.0, 0.08, 0.0)
+
+
+def test_best_branch_maximises_the_cumulative_utility() -> None:
+    # root 0 -> 1 (5) -> 2 (-1) -> 3 (4): cumulative 8; root -> 4 (7): 7; 1 -> 5 (-inf, refused).
+    utility = np.array([-np.inf, 5.0, -1.0, 4.0, 7.0, -np.inf])
+    tree = Tree(positions=np.zeros((6, 3)), rotations=np.zeros((6, 3, 3)), utility=utility,
+                parent=np.array([-1, 0, 1, 2, 0, 1]))
+    assert tree.best_branch() == [1, 2, 3]
+    root_only = Tree(np.zeros((1, 3)), np.zeros((1, 3, 3)), np.array([-np.inf]), np.array([-1]))
+    assert root_only.best_branch() == []
+
+
+def test_cached_nodes_keep_and_append() -> None:
+    c = CachedNodes()
+    c.append(np.ones((2, 3)), np.zeros((2, 3, 3)), np.array([1.0, 2.0]))
+    c.append(np.zeros((1, 3)), np.zeros((1, 3, 3)), np.array([3.0]))
+    c.keep(np.array([False, True, True]))
+    assert len(c) == 2 and c.utility.tolist() == [2.0, 3.0]
+
+
+def test_heu_views_on_the_ellipse_look_at_the_object() -> None:
+    cfg = load_config(UR5E)
+    views = heu_views(cfg)
+    h = cfg.planners.heu
+    assert len(views) == 13
+    centre = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
+    target = centre + np.array([0.0, 0.0, h.target_height_m])
+    angles = []
+    for T in views:
+        rel = T[:3, 3] - centre
+        assert (rel[0] / h.semi_axes_m[0]) ** 2 + (rel[1] / h.semi_axes_m[1]) ** 2 == pytest.approx(1.0)
+        assert rel[2] == pytest.approx(h.height_m)
+        look = (target - T[:3, 3]) / np.linalg.norm(target - T[:3, 3])
+        np.testing.assert_allclose(T[:3, 2], look, atol=1e-9)
+        angles.append(math.atan2(rel[1] / h.semi_axes_m[1], rel[0] / h.semi_axes_m[0]))
+    steps = np.diff(np.unwrap(angles))
+    np.testing.assert_allclose(steps, 2 * math.pi / 13)
+
+
+def test_short_lr_nbv_scan_reports_packing(tmp_path) -> None:
+    cfg = _with(load_config(UR5E), "lrnbv", max_iterations=3, samples_per_iteration=20)
+    outcome = run_scan(ScanRequest(config=cfg, config_path=str(UR5E), object="horizontal_box",
+                                   out=tmp_path / "lr", planner="lr-nbv"))
+    r = outcome.result
+    assert r["status"] == "completed", r["termination"]
+    pk = r["packing"]
+    assert pk["n_poses"] == r["n_captures"] >= 2
+    assert pk["dims_m"] is not None and pk["iou"] > 0.3
+    assert 0 <= pk["n_useless_poses"] <= pk["n_poses"]
+    assert pk["container"]["reason"]
+
+
+def test_short_heu_scan(tmp_path) -> None:
+    cfg = _with(load_config(UR5E), "heu", n_poses=4)
+    r = run_scan(ScanRequest(config=cfg, config_path=str(UR5E), object="vertical_box", out=tmp_path / "heu",
+                             planner="heu")).result
+    assert r["status"] == "completed" and r["termination"].startswith("heu complete")
+    assert r["packing"]["n_poses"] == r["n_captures"] <= 4
