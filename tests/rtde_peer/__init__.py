@@ -10,51 +10,76 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from tests.rtde_peer.controller import CONTROL_PORT, RTDE_PORT
+from tests.rtde_peer.controller import CONTROL_PORT, PORTS
 
 REPO = Path(__file__).resolve().parents[2]
-_next_host = 20
+FIRST_HOST, LAST_HOST = 20, 250
+# Each test process starts at its own address, so that concurrent runs rarely probe the same one.
+_next_host = FIRST_HOST + os.getpid() % (LAST_HOST - FIRST_HOST)
+START_ATTEMPTS = 5
 
 
 def _free_host() -> str:
-    """A loopback address whose RTDE port is free (another test's or engineer's peer may hold one)."""
+    """A loopback address 127.0.0.N (N in FIRST_HOST..LAST_HOST) whose controller ports are all free
+    (another test's or engineer's peer may hold some)."""
     global _next_host
-    for _ in range(200):
+    for _ in range(LAST_HOST - FIRST_HOST + 1):
         host = f"127.0.0.{_next_host}"
-        _next_host = 20 if _next_host >= 250 else _next_host + 1
-        probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        try:
-            probe.bind((host, RTDE_PORT))
+        _next_host = FIRST_HOST if _next_host >= LAST_HOST else _next_host + 1
+        if all(_port_free(host, port) for port in PORTS):
             return host
-        except OSError:
-            continue
-        finally:
-            probe.close()
     raise RuntimeError("no free 127.0.0.N address for a controller peer")
+
+
+def _port_free(host: str, port: int) -> bool:
+    """Whether the peer could listen on ``host:port`` (bound as the peer binds, with SO_REUSEADDR)."""
+    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return False
+    return True
 
 
 class ControllerPeer:
     """Handle on one running peer process."""
 
-    def __init__(self, *, remote_control: bool = True, start_timeout_s: float = 30.0) -> None:
-        self.host = _free_host()
-        cmd = [sys.executable, "-m", "tests.rtde_peer", "--host", self.host, "--exit-on-stdin-eof"]
-        if not remote_control:
-            cmd.append("--no-remote-control")
-        self._proc = subprocess.Popen(cmd, cwd=REPO, stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, text=True)
-        assert self._proc.stdout is not None
-        line = self._proc.stdout.readline()
-        if not line.startswith("ready"):
-            self._proc.kill()
-            raise RuntimeError(f"controller peer did not start: {line!r}")
+    def __init__(self, *, remote_control: bool = True, q: Sequence[float] | None = None,
+                 start_timeout_s: float = 30.0) -> None:
+        """``q``: the arm's start joints [rad] (default: the peer's UR home pose, the flange at x < 0).
+        A concurrent test run may take the probed address first; then the next free one is tried."""
+        args = [] if remote_control else ["--no-remote-control"]
+        if q is not None:
+            args += ["--q", ",".join(repr(float(v)) for v in q)]
+        for _ in range(START_ATTEMPTS):
+            self.host = _free_host()
+            cmd = [sys.executable, "-m", "tests.rtde_peer", "--host", self.host, "--exit-on-stdin-eof", *args]
+            # the peer's standard error goes to a file, shown when the peer stops (a pipe nobody reads
+            # could fill up and block it); it lives as long as the peer, closed by _take_stderr
+            self._stderr = tempfile.TemporaryFile("w+")  # noqa: SIM115
+            self._proc = subprocess.Popen(cmd, cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                          stderr=self._stderr, text=True)
+            assert self._proc.stdout is not None
+            line = self._proc.stdout.readline()
+            if line.startswith("ready"):
+                break
+            self._proc.communicate()
+            stderr = self._take_stderr()
+            if "Address already in use" not in stderr:
+                raise RuntimeError(f"controller peer did not start: {line!r}\n{stderr}")
+        else:
+            raise RuntimeError(f"controller peer did not start: every address tried was taken ({self.host})")
         self._sock = socket.create_connection((self.host, CONTROL_PORT), timeout=start_timeout_s)
         self._reader = self._sock.makefile("r")
 
@@ -111,3 +136,11 @@ class ControllerPeer:
         for pipe in (self._proc.stdin, self._proc.stdout):
             if pipe is not None:
                 pipe.close()
+        sys.stderr.write(self._take_stderr())
+
+    def _take_stderr(self) -> str:
+        """What the peer process wrote to standard error; closes the file."""
+        self._stderr.seek(0)
+        text = self._stderr.read()
+        self._stderr.close()
+        return text

@@ -18,11 +18,12 @@ It listens on one address (``127.0.0.N``) on the controller's fixed ports:
   a protective stop, an emergency stop (and its release), a disconnect (every client socket closed),
   digital input changes, and reports the state and the commands received.
 
-Motion: a kinematic UR5e (the project's nominal model) integrated every tick: speedL holds a TCP twist
-reached with the commanded acceleration, servoJ/servoL move towards the target at joint speed limits,
-stops decelerate. A protective or emergency stop halts the arm at once and ends the running program, like
-the controller; the RTDE watchdog set by the script (``set_watchdog``) ends the program when the command
-register is not refreshed at the set frequency.
+Motion: a kinematic UR5e (the project's nominal model) integrated every tick over the wall-clock time
+since the previous one (the cycle is 2 ms; a late one integrates what passed, up to ``MAX_STEP_S``):
+speedL holds a TCP twist reached with the commanded acceleration, servoJ/servoL move towards the target
+at joint speed limits, stops decelerate. A protective or emergency stop halts the arm at once and ends the
+running program, like the controller; the RTDE watchdog set by the script (``set_watchdog``) ends the
+program when the command register is not refreshed at the set frequency.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
 SCRIPT_PORT = 30003
 CONTROL_PORT = 30099
+PORTS = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT, CONTROL_PORT)
 
 CONTROLLER_VERSION = (5, 15, 0, 0)
 POLYSCOPE_VERSION = "URSoftware 5.15.0.0 (Jan 01 2024)"
@@ -71,6 +73,9 @@ COMMAND_NAMES = {CMD_SPEEDJ: "speedJ", CMD_SPEEDL: "speedL", CMD_SERVOJ: "servoJ
                  CMD_STOPJ: "stopJ", CMD_SET_WATCHDOG: "setWatchdog", CMD_STOP_SCRIPT: "stopScript"}
 
 TICK_S = 0.002  # the controller's 500 Hz cycle
+# A late cycle integrates the time that really passed (motion keeps wall-clock pace on a loaded machine,
+# as a real controller's does), but at most this much [s], so that a long stall does not teleport the arm.
+MAX_STEP_S = 0.25
 MAX_RECORDS = 5000
 HOME_Q = [0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0]
 
@@ -552,7 +557,7 @@ class PeerServer:
         self.sessions: list[RTDESession] = []
         self.stop_event = threading.Event()
         self.listeners: dict[int, socket.socket] = {}
-        for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT, CONTROL_PORT):
+        for port in PORTS:
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind((host, port))
@@ -564,9 +569,11 @@ class PeerServer:
                     CONTROL_PORT: self._control}
         for port, handler in handlers.items():
             threading.Thread(target=self._accept, args=(self.listeners[port], handler), daemon=True).start()
-        next_t = time.monotonic()
+        next_t = last = time.monotonic()
         while not self.stop_event.is_set():
-            self.ctl.tick(TICK_S)
+            now = time.monotonic()
+            self.ctl.tick(min(max(now - last, 1e-6), MAX_STEP_S))
+            last = now
             t = self.ctl.now()
             for session in list(self.sessions):
                 try:

@@ -1,0 +1,107 @@
+"""``cell arm status`` and ``cell arm jog`` against the RTDE controller peer, with the UR5e hardware
+template (config/ur5e-vl53l8cx.yaml) pointed at the peer."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from cell.cli.arm import AXES, arm_app
+from tests.conftest import CONFIG_DIR
+from tests.rtde_peer import ControllerPeer
+
+TEMPLATE = CONFIG_DIR / "ur5e-vl53l8cx.yaml"
+POSE_LINE = re.compile(r"tcp pose: x ([-+.\d]+) m y ([-+.\d]+) m z ([-+.\d]+) m")
+
+
+def peer_cell_file(template: Path, host: str, folder: Path) -> Path:
+    """``template`` with the arm pointed at a peer on ``host``, with timing a Python peer and a control loop
+    on a loaded test machine keep up with: RTDE at 125 Hz, a 50 Hz control loop, the RTDE watchdog at
+    2 Hz, and a late-loop watchdog that tolerates scheduling hiccups (5 periods, 5 in a row). The limits,
+    workspace and planes are the template's."""
+    data = yaml.safe_load(template.read_text())
+    data["arm"].update(host=host, rtde_frequency_hz=125.0, connect_timeout_s=2.0, watchdog_min_hz=2.0)
+    data["scan"]["control_rate_hz"] = 50.0
+    data["safety"]["watchdog"].update(deadline_factor=5.0, max_missed_deadlines=5)
+    path = folder / f"peer-{template.name}"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.fixture
+def peer() -> Iterator[ControllerPeer]:
+    home = yaml.safe_load(TEMPLATE.read_text())["arm"]["home_joints_rad"]
+    p = ControllerPeer(q=home)
+    yield p
+    p.stop()
+
+
+@pytest.fixture
+def cell_file(peer: ControllerPeer, tmp_path: Path) -> Path:
+    return peer_cell_file(TEMPLATE, peer.host, tmp_path)
+
+
+def tcp_position(output: str) -> np.ndarray:
+    match = POSE_LINE.search(output)
+    assert match is not None, output
+    return np.array([float(v) for v in match.groups()])
+
+
+def test_status_prints_the_tcp_pose_then_a_protective_stop(peer: ControllerPeer, cell_file: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(arm_app, ["status", "--config", str(cell_file)])
+    assert result.exit_code == 0, result.output
+    assert "arm ur5e: connected" in result.output and "faults: none" in result.output
+    assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+
+    peer.protective_stop()
+    result = runner.invoke(arm_app, ["status", "--config", str(cell_file)])
+    assert result.exit_code == 0, result.output
+    assert "protective stop" in result.output and "safety mode PROTECTIVE_STOP" in result.output
+    assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+
+
+def flange_motion(before: list[float], after: list[float]) -> np.ndarray:
+    """The flange's motion between two UR poses: translation [m] and rotation vector [rad], base frame."""
+    R0, R1 = (Rotation.from_rotvec(p[3:]) for p in (before, after))
+    return np.concatenate([np.subtract(after[:3], before[:3]), (R1 * R0.inv()).as_rotvec()])
+
+
+@pytest.mark.parametrize(("axis", "distance"), [("z", 0.02), ("y", -0.01), ("rz", 0.1)])
+def test_jog_moves_the_flange_by_the_distance(peer: ControllerPeer, cell_file: Path, axis: str,
+                                              distance: float) -> None:
+    # the flange, not the TCP: the TCP offset changes when the driver connects and sends it
+    before = peer.state()["flange_pose"]
+    result = CliRunner().invoke(arm_app, ["jog", "--config", str(cell_file), "--axis", axis,
+                                          "--distance", str(distance)])
+    assert result.exit_code == 0, result.output
+    moved = flange_motion(before, peer.state()["flange_pose"])
+    expected = np.zeros(6)
+    expected[AXES[axis]] = distance
+    assert np.allclose(moved, expected, atol=1e-3), moved
+    # streamed with speedL through the guard, ended with speedStop, the watchdog disarmed at rest
+    assert peer.records("speedL") and peer.records("speedStop")
+    assert peer.state()["watchdog_hz"] == 0.0 and peer.state()["motion"] == "idle"
+    assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+
+
+def test_jog_refuses_a_protectively_stopped_arm(peer: ControllerPeer, cell_file: Path) -> None:
+    peer.protective_stop()
+    result = CliRunner().invoke(arm_app, ["jog", "--config", str(cell_file), "--axis", "z",
+                                          "--distance", "0.01"])
+    assert result.exit_code == 1
+    assert "protective stop" in result.output
+    assert not peer.records("speedL")
+
+
+def test_jog_refuses_a_long_move_before_connecting(cell_file: Path) -> None:
+    result = CliRunner().invoke(arm_app, ["jog", "--config", str(cell_file), "--axis", "x",
+                                          "--distance", "0.2"])
+    assert result.exit_code == 2 and "at most 0.05" in result.output
