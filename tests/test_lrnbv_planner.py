@@ -11,8 +11,9 @@ from cell.config.load import load_config
 from cell.config.models import CellConfig
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.planning.lrnbv.heu import HEUPlanner, heu_views
-from cell.planning.lrnbv.planner import CachedNodes, LRNBVPlanner, NBVPlanner, Tree
+from cell.planning.lrnbv.planner import CachedNodes, LRNBVPlanner, NBVPlanner, Tree, look_at_rotations
 from cell.planning.registry import get_planner
+from drivers.transforms import look_at
 from tests.conftest import UR5E
 
 
@@ -34,6 +35,15 @@ def test_nbv_leaves_density_and_visited_out() -> None:
     lr, nbv = LRNBVPlanner(cfg).weights, NBVPlanner(cfg).weights
     assert (lr.w_e, lr.w_d, lr.w_q, lr.w_v) == (500.0, 0.05, 0.08, 500.0)  # Table 1
     assert (nbv.w_e, nbv.w_d, nbv.w_q, nbv.w_v) == (500.0, 0.0, 0.08, 0.0)
+
+
+def test_look_at_rotations_match_look_at() -> None:
+    rng = np.random.default_rng(0)
+    eyes = rng.uniform(-1.0, 1.0, (20, 3))
+    targets = rng.uniform(-1.0, 1.0, (20, 3))
+    targets[0] = eyes[0] - [0.0, 0.0, 0.5]  # straight down: the +x fallback
+    for R, e, t in zip(look_at_rotations(eyes, targets), eyes, targets, strict=True):
+        np.testing.assert_allclose(R, look_at(e, t)[:3, :3], atol=1e-12)
 
 
 def test_best_branch_maximises_the_cumulative_utility() -> None:

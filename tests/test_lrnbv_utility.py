@@ -85,8 +85,10 @@ def test_quality_visited_and_weights() -> None:
 
 def test_tof_rays_see_the_box_from_a_look_at_pose() -> None:
     cfg = load_config(UR5E)
-    rays = sensor_rays(cfg.sensor, 16)
-    assert rays.shape == (64, 3)
+    grid = sensor_rays(cfg.sensor, 16)
+    assert grid.shape == (8, 8, 3)
+    rays = grid.reshape(-1, 3)
+    assert rays[7, 0] > 0.0 and rays[56, 1] > 0.0  # row-major from the top-left: x right, y down
     np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0)
     half = math.tan(math.radians(22.5) * 7 / 8)  # outermost zone centre, 45 deg over 8 zones
     assert np.max(rays[:, 0] / rays[:, 2]) == pytest.approx(half, rel=1e-6)
@@ -102,7 +104,8 @@ def test_tof_rays_see_the_box_from_a_look_at_pose() -> None:
 def test_rgbd_rays_thinned_over_the_image() -> None:
     cfg = load_config(FRANKA)
     rays = sensor_rays(cfg.sensor, 16)
-    assert rays.shape == (16 * 12, 3)
+    assert rays.shape == (12, 16, 3)
+    rays = rays.reshape(-1, 3)
     # The pinhole's half field of view (cx + 0.5) / fx bounds the rays.
     assert np.max(np.abs(rays[:, 0] / rays[:, 2])) < (cfg.sensor.cx + 0.5) / cfg.sensor.fx
 
@@ -112,7 +115,7 @@ def test_chunks_give_the_same_gains() -> None:
     rng = np.random.default_rng(0)
     eyes = rng.uniform([-0.3, -0.3, 0.2], [0.4, 0.4, 0.5], size=(40, 3))
     poses = [look_at(e, np.array([0.05, 0.05, 0.05])) for e in eyes]
-    rays = sensor_rays(load_config(UR5E).sensor, 16)
+    rays = sensor_rays(load_config(UR5E).sensor, 16).reshape(-1, 3)
     rot = np.array([T[:3, :3] for T in poses])
     together = f.ray_gains(eyes, rot, rays, 1.0)
     one_by_one = np.array([f.ray_gains(eyes[i:i + 1], rot[i:i + 1], rays, 1.0) for i in range(40)])[:, :, 0]

@@ -17,6 +17,7 @@ from cell.perception.occupancy import OccupancyParams
 from cell.perception.registration import RegistrationParams
 from cell.perception.segmentation import SegmentationParams
 from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
+from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig
 from drivers.config_base import StrictModel
@@ -102,9 +103,14 @@ class RasterConfig(StrictModel):
 
 
 class PlannersConfig(StrictModel):
-    """Per-planner parameters; a planner reads its own section."""
+    """Per-planner parameters; a planner reads its own section. ``vs`` is shared by the three
+    visual-servoing planners (``vs-local``, ``vs-global``, ``vs-hybrid``; Hybrid reads ``vs_local`` and
+    ``vs_global``); their defaults are the visual-servoing paper's values."""
 
     raster: RasterConfig
+    vs: VSConfig = VSConfig()
+    vs_local: VSLocalConfig = VSLocalConfig()
+    vs_global: VSGlobalConfig = VSGlobalConfig()
     # The packing paper's planners; ``nbv`` reads the same parameters and leaves G_d and G_v out.
     lrnbv: LRNBVConfig = LRNBVConfig()
     nbv: LRNBVConfig = LRNBVConfig()

@@ -6,6 +6,9 @@ from cell.planning.base import Planner
 from cell.planning.lrnbv.heu import HEUPlanner
 from cell.planning.lrnbv.planner import LRNBVPlanner, NBVPlanner
 from cell.planning.raster import RasterPlanner
+from cell.planning.vs.goals import VSGlobalPlanner
+from cell.planning.vs.hybrid import VSHybridPlanner
+from cell.planning.vs.local import VSLocalPlanner
 from drivers.errors import PlanningError
 
 PLANNERS: dict[str, type[Planner]] = {
@@ -13,6 +16,9 @@ PLANNERS: dict[str, type[Planner]] = {
     LRNBVPlanner.name: LRNBVPlanner,
     NBVPlanner.name: NBVPlanner,
     HEUPlanner.name: HEUPlanner,
+    VSLocalPlanner.name: VSLocalPlanner,
+    VSGlobalPlanner.name: VSGlobalPlanner,
+    VSHybridPlanner.name: VSHybridPlanner,
 }
 
 

@@ -48,6 +48,20 @@ from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, eval
 from drivers.transforms import look_at
 
 
+def look_at_rotations(eyes: Array, targets: Array) -> Array:
+    """R_base_sensor (N, 3, 3) of sensors at ``eyes`` (N, 3) looking at ``targets`` (N, 3): the
+    convention of ``drivers.transforms.look_at`` (z to the target, image up = +z of the base frame, or +x
+    when looking straight up or down), for many poses at once."""
+    z = targets - eyes
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    up = np.tile([0.0, 0.0, 1.0], (z.shape[0], 1))
+    up[np.abs(z[:, 2]) > 1.0 - 1e-6] = [1.0, 0.0, 0.0]
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=2)
+
+
 class MappingSession(ScanSession, Protocol):
     """A scan session whose perception pipeline (occupancy map A^i) the planner may read."""
 
@@ -112,7 +126,9 @@ class RRTViewPlanner(Planner):
         p = self.params
         self.weights = Weights(w_e=p.w_e, w_d=p.w_d if self.uses_density_and_visited else 0.0, w_q=p.w_q,
                                w_v=p.w_v if self.uses_density_and_visited else 0.0)
-        self.rays = sensor_rays(config.sensor, p.rgbd_rays_per_side)
+        grid = sensor_rays(config.sensor, p.rgbd_rays_per_side)
+        self.rays = grid.reshape(-1, 3)
+        self.coarse_rays = grid[::2, ::2].reshape(-1, 3)
         self.resolution = config.perception.occupancy.resolution_m
         self.table_z = config.station.table_z_m
         ws = config.safety.workspace
@@ -145,17 +161,23 @@ class RRTViewPlanner(Planner):
         return np.vstack([centre, centre + spread * (corners - centre)])
 
     def score(self, f: UtilityField, targets: Array, positions: Array) -> tuple[Array, Array]:
-        """Best orientation (N, 3, 3) and its utility (N,) for each position, over the look targets."""
+        """Best orientation (N, 3, 3) and its utility (N,) for each position, over the look targets.
+
+        The look targets are ranked with every other ray in each direction of the sensor grid (a quarter
+        of the rays), then the winner is scored with all rays: the ranking needs the rough shape of the
+        view, the score the full eq. 3-4 sums."""
         n, k = positions.shape[0], targets.shape[0]
-        rot = np.empty((n, k, 3, 3))
-        for i in range(n):
-            for j in range(k):
-                rot[i, j] = look_at(positions[i], targets[j])[:3, :3]
-        flat_pos = np.repeat(positions, k, axis=0)
-        g = evaluate(f, self.visited, flat_pos, rot.reshape(-1, 3, 3), self.rays, self.params.ray_length_m)
-        u = self.weights.utility(g).reshape(n, k)
-        best = np.argmax(u, axis=1)
-        return rot[np.arange(n), best], u[np.arange(n), best]
+        eyes = np.repeat(positions, k, axis=0)
+        rot = look_at_rotations(eyes, np.tile(targets, (n, 1))).reshape(n, k, 3, 3)
+        if k > 1:
+            g = evaluate(f, self.visited, eyes, rot.reshape(-1, 3, 3), self.coarse_rays,
+                         self.params.ray_length_m)
+            best = np.argmax(self.weights.utility(g).reshape(n, k), axis=1)
+        else:
+            best = np.zeros(n, dtype=np.int64)
+        chosen = rot[np.arange(n), best]
+        g = evaluate(f, self.visited, positions, chosen, self.rays, self.params.ray_length_m)
+        return chosen, self.weights.utility(g)
 
     # ------------------------------------------------------------------------------------------ the tree
     def _sample_position(self, centre: Array, around: Array | None) -> Array | None:

@@ -14,7 +14,7 @@ Array = NDArray[np.float64]
 
 
 def sensor_rays(sensor: DepthConfig, rgbd_rays_per_side: int) -> Array:
-    """Unit rays (R, 3), sensor frame.
+    """Unit rays (rows, columns, 3), sensor frame, row-major from the top-left of the image.
 
     A multizone ToF sensor (``sim-tof``, ``vl53l8cx``) casts one ray per zone through the zone centre, as
     many as its resolution (8 x 8 over 45 x 45 degrees for the paper's VL53L8CX). A pinhole camera
@@ -22,7 +22,8 @@ def sensor_rays(sensor: DepthConfig, rgbd_rays_per_side: int) -> Array:
     view: the utility is a relative score and a full 640 x 480 image per candidate is too costly.
     """
     if sensor.type in ("sim-tof", "vl53l8cx"):
-        return zone_directions(sensor.resolution, sensor.fov_deg, 1)[:, 0, :]
+        n = sensor.resolution
+        return zone_directions(n, sensor.fov_deg, 1)[:, 0, :].reshape(n, n, 3)
     if sensor.type == "sim-rgbd":
         n_u = rgbd_rays_per_side
         n_v = max(1, round(rgbd_rays_per_side * sensor.height / sensor.width))
@@ -32,6 +33,6 @@ def sensor_rays(sensor: DepthConfig, rgbd_rays_per_side: int) -> Array:
         uu, vv = np.meshgrid(u, v)
         d = np.column_stack([((uu - sensor.cx) / sensor.fx).ravel(), ((vv - sensor.cy) / sensor.fy).ravel(),
                              np.ones(uu.size)])
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
+        return (d / np.linalg.norm(d, axis=1, keepdims=True)).reshape(n_v, n_u, 3)
     raise PlanningError(f"the LR-NBV utility needs the sensor's field of view; sensor type {sensor.type!r} "
                         "has none in its config (supported: sim-tof, vl53l8cx, sim-rgbd)")

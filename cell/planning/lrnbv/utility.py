@@ -141,8 +141,9 @@ class UtilityField:
 
     def _chunk(self, origins: Array, rotations: Array, rays_sensor: Array, step: float, n_max: int,
                span: int) -> tuple[Array, Array]:
-        d = np.einsum("nij,rj->nri", rotations, rays_sensor)  # (n, R, 3) unit directions, base frame
-        o = origins[:, None, :]
+        n, n_rays = origins.shape[0], rays_sensor.shape[0]
+        d = np.einsum("nij,rj->nri", rotations, rays_sensor).reshape(-1, 3)  # (n R, 3) unit, base frame
+        o = np.repeat(origins, n_rays, axis=0)
         # Slab test: the ray parameter range [t0, t1] (metres along d) inside the ROI box.
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / d
@@ -150,23 +151,28 @@ class UtilityField:
             tb = (self.hi - o) * inv
         ta = np.where(np.isnan(ta), -np.inf, ta)
         tb = np.where(np.isnan(tb), np.inf, tb)
-        t0 = np.maximum(np.max(np.minimum(ta, tb), axis=2), 0.0)
-        t1 = np.minimum(np.min(np.maximum(ta, tb), axis=2), n_max * step)
+        t0 = np.maximum(np.max(np.minimum(ta, tb), axis=1), 0.0)
+        # A ray parallel to a slab outside it gets t1 = -inf: floor it so that it casts to an integer.
+        t1 = np.clip(np.min(np.maximum(ta, tb), axis=1), -step, n_max * step)
         k0 = np.ceil(t0 / step - 1e-9).astype(np.int64)
-        k = k0[..., None] + np.arange(span)  # (n, R, S) sample numbers along the ray
-        live = (k * step <= t1[..., None] + 1e-9) & (t1 >= t0)[..., None]
-        pts = o[..., None, :] + (k * step)[..., None] * d[..., None, :]
-        idx = np.floor((pts - self.lo) / self.resolution).astype(np.int64)
-        shape = np.array(self.shape)
-        live &= np.all((idx >= 0) & (idx < shape), axis=-1)
-        idx = np.where(live[..., None], idx, 0)
-        flat = np.ravel_multi_index((idx[..., 0], idx[..., 1], idx[..., 2]), self.shape)
-        hit = self.occluder.ravel()[flat] & live
-        # Eq. 2: valid up to and including the first object sample along the ray.
-        before = np.cumsum(hit, axis=-1) - hit
+        k1 = np.floor(t1 / step + 1e-9).astype(np.int64)
+        count = np.clip(k1 - k0 + 1, 0, span)
+        # Only the samples inside the box, flat: ray number and sample number along the ray.
+        ray = np.repeat(np.arange(count.size), count)
+        first = np.cumsum(count) - count
+        k = k0[ray] + (np.arange(ray.size) - first[ray])
+        g = (o[ray] - self.lo) / self.resolution + (k * (step / self.resolution))[:, None] * d[ray]
+        idx = np.floor(g).astype(np.int64)
+        live = np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)
+        flat = np.ravel_multi_index(tuple(np.where(live[:, None], idx, 0).T), self.shape)
+        hit = (self.occluder.ravel()[flat] & live).astype(np.int64)
+        # Eq. 2: valid up to and including the first object sample along the ray (hits before it = 0).
+        before = np.cumsum(hit) - hit
+        before -= before[first[ray]] if ray.size else before
         valid = live & (before == 0)
-        g_e = np.sum(np.where(valid, self.W.ravel()[flat], 0.0), axis=(1, 2))
-        g_d = np.sum(np.where(valid, self.density.ravel()[flat], 0.0), axis=(1, 2))
+        pose = ray // n_rays
+        g_e = np.bincount(pose, weights=np.where(valid, self.W.ravel()[flat], 0.0), minlength=n)
+        g_d = np.bincount(pose, weights=np.where(valid, self.density.ravel()[flat], 0.0), minlength=n)
         return g_e, g_d
 
     def quality_gain(self, origins: Array) -> Array:

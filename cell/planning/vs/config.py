@@ -1,0 +1,103 @@
+"""Parameters of the visual-servoing planners (``planners.vs``, ``planners.vs_local``, ``planners.vs_global``
+and ``planners.vs_hybrid`` in a cell file). Defaults are the visual-servoing paper's values; where the
+paper is silent the docstring says what was chosen and why."""
+
+from __future__ import annotations
+
+from pydantic import Field, PositiveFloat, PositiveInt, model_validator
+
+from drivers.config_base import StrictModel
+
+
+class ObjectiveConfig(StrictModel):
+    """The ray grid of the entropy objective (eq. 9): ``rays_per_side`` x ``rays_per_side`` rays (23 x 23,
+    K = 529) spread evenly in angle over a square field of view of ``fov_deg`` (30 deg). With
+    ``use_sensor_zones`` and a multizone time-of-flight sensor (``sim-tof``, ``vl53l8cx``), the sensor's
+    own zone count and field of view replace both: the objective then casts the rays the sensor has."""
+
+    rays_per_side: PositiveInt = 23
+    fov_deg: float = Field(default=30.0, gt=0.0, lt=120.0)
+    use_sensor_zones: bool = True
+
+
+class ServoConfig(StrictModel):
+    """The dual-task law (eq. 1-3) and ViSP's adaptive gain lambda_e(x) = (l0 - linf) exp(-l0' x /
+    (l0 - linf)) + linf of the primary task [1/s] (``lambda_0`` 2, ``lambda_inf`` 0.4, ``lambda_0_slope``
+    30); ``lambda_g`` (0.33) the flat gain of the secondary task; the secondary task starts once
+    ||e|| < ``e_converged_m`` (5 mm) and stays on afterwards."""
+
+    lambda_0: PositiveFloat = 2.0
+    lambda_inf: PositiveFloat = 0.4
+    lambda_0_slope: PositiveFloat = 30.0
+    lambda_g: float = Field(default=0.33, ge=0.0)
+    e_converged_m: PositiveFloat = 0.005
+
+    @model_validator(mode="after")
+    def _gain_decreasing(self) -> ServoConfig:
+        if not self.lambda_0 > self.lambda_inf:
+            raise ValueError(f"lambda_0 {self.lambda_0} must exceed lambda_inf {self.lambda_inf}")
+        return self
+
+
+class StartViewConfig(StrictModel):
+    """Where a servo scan starts (paper III-B: "approximately the same sideways view of the object"): at
+    ``scan.standoff_m`` from a point ``target_height_m`` [m] above the station on the table, at
+    ``elevation_deg`` above the table plane and ``azimuth_deg`` of the camera position about +z from the
+    base's +x axis (0: beyond the station, looking back at the robot; 270: on the -y side, a sideways view
+    that both the Panda and the UR5e reach)."""
+
+    target_height_m: float = Field(default=0.06, ge=0.0)
+    elevation_deg: float = Field(default=30.0, gt=0.0, le=90.0)
+    azimuth_deg: float = 270.0
+
+
+class VSConfig(StrictModel):
+    """What the three servo strategies share. ``servo_rate_hz`` (50; paper 30-80 Hz Local, 40-125 Hz
+    Global) is the rate of job time at which the law is evaluated and a new twist streamed; it must not
+    exceed ``scan.control_rate_hz``. ``barrier_activation_m`` [m]: the exploration direction loses its
+    component into a barrier plane closer than this (paper Fig. 3; the paper gives no figure, 2 cm is
+    about one servo second of sliding at the speeds reached). ``centroid_tau_s`` [s]: time constant of
+    the centroid low-pass filter (paper II-A; not given there, 0.5 s is half a perception period).
+    ``h_roi_window`` (10) and ``h_roi_std`` (0.001): the H_ROI termination of Global and Hybrid (eq. 12,
+    section II-D): stop when the standard deviation of the last ``h_roi_window`` values is below it.
+    ``first_object_timeout_s`` [s]: a scan whose start view shows no object for this long fails."""
+
+    servo_rate_hz: float = Field(default=50.0, gt=0.0, le=1000.0)
+    objective: ObjectiveConfig = ObjectiveConfig()
+    servo: ServoConfig = ServoConfig()
+    start: StartViewConfig = StartViewConfig()
+    barrier_activation_m: PositiveFloat = 0.02
+    centroid_tau_s: float = Field(default=0.5, ge=0.0)
+    h_roi_window: int = Field(default=10, ge=2)
+    h_roi_std: PositiveFloat = 0.001
+    first_object_timeout_s: PositiveFloat = 5.0
+
+
+class VSLocalConfig(StrictModel):
+    """VS-Local (eq. 4-6): central differences over ``delta_m`` (5 cm) along the camera's x and y, the
+    gradient scaled by ``alpha`` (1e-4) and its norm clipped to ``g_max`` (1); the scan ends when
+    ||g|| < ``g_max`` (before clipping) in more than ``converged_fraction`` (80 %) of the last
+    ``window`` (200) servo evaluations."""
+
+    delta_m: PositiveFloat = 0.05
+    alpha: PositiveFloat = 1e-4
+    g_max: PositiveFloat = 1.0
+    window: PositiveInt = 200
+    converged_fraction: float = Field(default=0.8, gt=0.0, lt=1.0)
+
+
+class VSGlobalConfig(StrictModel):
+    """VS-Global (eq. 10-11): ``n_candidates`` (5000) poses on the sphere of radius Z* around the centroid,
+    each looking at it; g is the unit tangent direction to the best one, its length decaying linearly to
+    zero within ``slow_radius_m`` (10 cm) of the goal; the goal counts as reached (and a new one is
+    sampled) within ``arrival_m`` [m] (not given in the paper: 1 cm, where g has fallen to 0.1), or after
+    ``max_goal_time_s`` [s] (not in the paper: a goal the barrier projection cannot reach would otherwise
+    hold the scan forever). ``sampling_seed`` seeds the candidate stream at the start of each scan, so a
+    scan is repeatable."""
+
+    n_candidates: PositiveInt = 5000
+    slow_radius_m: PositiveFloat = 0.10
+    arrival_m: PositiveFloat = 0.01
+    max_goal_time_s: PositiveFloat = 20.0
+    sampling_seed: int = Field(default=0, ge=0)
+

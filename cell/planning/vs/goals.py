@@ -1,0 +1,112 @@
+"""VS-Global (visual-servoing paper section II-D, eq. 10-11): servo towards the best of many sampled views.
+
+Candidates: ``n_candidates`` (5000) camera positions drawn uniformly on the sphere of radius Z* around the
+object centroid, each looking at the centroid (image "up" towards +z of the base, as ``look_at``);
+those that put the TCP or the sensor outside a barrier plane or the workspace are rejected
+(``session.sensor_pose_allowed``). The goal is the argmax of f over the rest (eq. 10), all scored in one
+batch.
+
+Eq. 11: g = a(r, r*) (x, y, 0, 0, 0, 0), with (x, y) the goal origin expressed in the current camera frame,
+normalised: the tangent direction of the shortest path on the sphere, since the camera looks at the
+centre. a = min(1, d / ``slow_radius_m``), d the distance between the camera and goal origins [m]: unit
+far away, decaying linearly to 0 within 10 cm. Like VS-Local's, the direction is projected into the set
+the barrier planes allow. A goal counts as reached within ``arrival_m``; one that is not reached within
+``max_goal_time_s`` is given up; either way a new goal is sampled.
+
+The candidate stream comes from a generator seeded with ``sampling_seed`` at the start of each scan, so
+that a scan is repeatable.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cell.config.models import CellConfig
+from cell.planning.base import Array, ScanSession
+from cell.planning.vs.objective import EntropyObjective
+from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner
+from drivers.errors import PlanningError
+
+
+def sphere_views(centre: Array, radius: float, directions: Array) -> Array:
+    """Camera poses (n, 4, 4) at ``centre + radius * directions`` (unit (n, 3)) looking at ``centre``,
+    with ``look_at``'s convention (x = z x up, y = z x x, up = +z of the base). Directions along +-z
+    have no defined roll; callers draw them with probability zero."""
+    z = -np.asarray(directions, dtype=np.float64)
+    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    T = np.zeros((z.shape[0], 4, 4))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = x, y, z
+    T[:, :3, 3] = centre - radius * z
+    T[:, 3, 3] = 1.0
+    return T
+
+
+class GoalSeeker:
+    """Eq. 10-11: samples goals and steers towards the current one (module docstring)."""
+
+    def __init__(self, config: CellConfig) -> None:
+        self.params = config.planners.vs_global
+        self.radius_m = config.scan.standoff_m
+        self.activation_m = config.planners.vs.barrier_activation_m
+        self._rng = np.random.default_rng(self.params.sampling_seed)
+        self.goal: Array | None = None
+        self.goal_value = float("nan")
+        self._goal_since = 0.0
+        self.n_goals = 0
+
+    def sample(self, session: ScanSession, centroid: Array, objective: EntropyObjective) -> None:
+        """Choose a new goal: the best allowed candidate on the sphere around ``centroid`` (eq. 10)."""
+        u = self._rng.normal(size=(self.params.n_candidates, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        views = sphere_views(centroid, self.radius_m, u)
+        allowed = np.array([session.sensor_pose_allowed(T) for T in views], dtype=bool)
+        if not allowed.any():
+            raise PlanningError(f"none of {len(views)} goal candidates on the {self.radius_m:g} m sphere "
+                                "lies inside the barrier planes and the workspace")
+        views = views[allowed]
+        scores = objective(views)
+        best = int(np.argmax(scores))
+        self.goal, self.goal_value = views[best], float(scores[best])
+        self._goal_since = session.now()
+        self.n_goals += 1
+
+    def done(self, session: ScanSession, T_base_cam: Array) -> bool:
+        """The goal was reached (within ``arrival_m``), given up (``max_goal_time_s``), or there is none."""
+        if self.goal is None:
+            return True
+        d = float(np.linalg.norm(self.goal[:3, 3] - T_base_cam[:3, 3]))
+        return d < self.params.arrival_m or session.now() - self._goal_since > self.params.max_goal_time_s
+
+    def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+        """g of eq. 11 towards the current goal, projected to the barrier-feasible set."""
+        assert self.goal is not None
+        p = T_base_cam[:3, :3].T @ (self.goal[:3, 3] - T_base_cam[:3, 3])  # goal origin, camera frame
+        d = float(np.linalg.norm(p))
+        xy = float(np.hypot(p[0], p[1]))
+        direction = np.zeros(3)
+        if xy > 0.0:
+            direction[:2] = p[:2] / xy * min(1.0, d / self.params.slow_radius_m)
+        direction = session.feasible_sensor_velocity(direction, self.activation_m)
+        f = float(objective(T_base_cam))
+        return Secondary(np.concatenate([direction, np.zeros(3)]), float(np.linalg.norm(direction)), f,
+                         "global")
+
+
+class VSGlobalPlanner(ServoScanPlanner):
+    name = "vs-global"
+    description = "visual servoing towards the best of 5000 sampled views (paper eq. 10-11, Global)"
+
+    def __init__(self, config: CellConfig) -> None:
+        super().__init__(config)
+        self.goals = GoalSeeker(config)
+
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+        if self.goals.done(session, T_base_cam):
+            assert self.centroid is not None
+            self.goals.sample(session, self.centroid, objective)
+        return self.goals(session, T_base_cam, objective)
+
+    def finished(self, session: ScanSession) -> str | None:
+        return self.entropy_settled()

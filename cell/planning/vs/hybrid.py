@@ -1,0 +1,38 @@
+"""VS-Hybrid (visual-servoing paper section II-D): VS-Local until its gradient converges (eq. 4-6 and the
+||g|| window), then one VS-Global goal (eq. 10-11) to leave a possible local maximum, then local again
+with a fresh window, and so on. The scan ends on the H_ROI rule of eq. 12, as VS-Global's."""
+
+from __future__ import annotations
+
+from cell.config.models import CellConfig
+from cell.planning.base import Array, ScanSession
+from cell.planning.vs.goals import GoalSeeker
+from cell.planning.vs.local import LocalGradient
+from cell.planning.vs.objective import EntropyObjective
+from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner
+
+
+class VSHybridPlanner(ServoScanPlanner):
+    name = "vs-hybrid"
+    description = "visual-servoing Local until converged, then one Global goal, repeated (paper II-D, Hybrid)"
+
+    def __init__(self, config: CellConfig) -> None:
+        super().__init__(config)
+        self.local = LocalGradient(config)
+        self.goals = GoalSeeker(config)
+        self._global_leg = False
+
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+        if self._global_leg and self.goals.done(session, T_base_cam):
+            self._global_leg = False
+            self.local.reset()
+        elif not self._global_leg and self.local.converged():
+            assert self.centroid is not None
+            self.goals.sample(session, self.centroid, objective)
+            self._global_leg = True
+        if self._global_leg:
+            return self.goals(session, T_base_cam, objective)
+        return self.local(session, T_base_cam, objective)
+
+    def finished(self, session: ScanSession) -> str | None:
+        return self.entropy_settled()

@@ -1,0 +1,74 @@
+"""VS-Local (visual-servoing paper section II-B 2, eq. 4-6): ascend the gradient of f in the camera's
+xy-plane, tangent to the sphere of radius Z* that the primary task keeps the camera on.
+
+g = alpha (df/dx, df/dy, 0, 0, 0, 0) with central differences over delta = 5 cm along the camera's x and y
+(four evaluations of f, plus f(r) itself for the record, in one batch). The direction is then projected
+into the set the barrier planes allow (``session.feasible_sensor_velocity``), so the camera slides along a
+plane (paper Fig. 3), and its norm is clipped to 1: a direction rather than a speed.
+
+Convergence: ||g|| < 1 in more than 80 % of the last 200 evaluations. The norm judged is the one after
+the barrier projection and before clipping, the quantity of the paper's Fig. 4, which drops when the
+camera reaches a plane.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from cell.config.models import CellConfig
+from cell.planning.base import Array, ScanSession
+from cell.planning.vs.objective import EntropyObjective
+from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner, translated
+
+
+class LocalGradient:
+    """Eq. 4-6 with the scaling, projection and clipping of section II-B 2, and the convergence window."""
+
+    def __init__(self, config: CellConfig) -> None:
+        self.params = config.planners.vs_local
+        self.activation_m = config.planners.vs.barrier_activation_m
+        d = self.params.delta_m
+        # r, r + dx, r - dx, r + dy, r - dy in the camera frame.
+        self._offsets = np.array([[0, 0, 0], [d, 0, 0], [-d, 0, 0], [0, d, 0], [0, -d, 0]], dtype=float)
+        self._below: deque[bool] = deque(maxlen=self.params.window)
+
+    def reset(self) -> None:
+        """Forget the convergence window (a new local phase)."""
+        self._below.clear()
+
+    def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+        p = self.params
+        f = objective(translated(T_base_cam, self._offsets))
+        grad = np.array([f[1] - f[2], f[3] - f[4], 0.0]) / (2.0 * p.delta_m)
+        direction = session.feasible_sensor_velocity(p.alpha * grad, self.activation_m)
+        norm = float(np.linalg.norm(direction))
+        self._below.append(norm < p.g_max)
+        if norm > p.g_max:
+            direction = direction * (p.g_max / norm)
+        return Secondary(np.concatenate([direction, np.zeros(3)]), norm, float(f[0]), "local")
+
+    def converged(self) -> bool:
+        """||g|| < g_max in more than ``converged_fraction`` of a full window of evaluations."""
+        w = self._below
+        return len(w) == w.maxlen and sum(w) > self.params.converged_fraction * len(w)
+
+
+class VSLocalPlanner(ServoScanPlanner):
+    name = "vs-local"
+    description = "visual-servoing active vision, gradient of the entropy objective (paper eq. 1-9, Local)"
+
+    def __init__(self, config: CellConfig) -> None:
+        super().__init__(config)
+        self.local = LocalGradient(config)
+
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+        return self.local(session, T_base_cam, objective)
+
+    def finished(self, session: ScanSession) -> str | None:
+        if self.local.converged():
+            p = self.config.planners.vs_local
+            return (f"local gradient converged: ||g|| < {p.g_max:g} in more than "
+                    f"{p.converged_fraction:.0%} of the last {p.window} servo evaluations")
+        return None

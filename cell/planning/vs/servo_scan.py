@@ -1,0 +1,182 @@
+"""The servo loop the three visual-servoing strategies share (visual-servoing paper section II, Fig. 2).
+
+A scan moves to the start view (a sideways view at Z* from the station, paper III-B), switches on
+continuous capture (perception at ``perception.rate_hz``), and then runs the dual-task law of eq. 1 at
+``planners.vs.servo_rate_hz`` of job time: each iteration reads the sensor pose, expresses the low-pass
+filtered object centroid in the camera frame (s of eq. 2), asks the strategy for the secondary task g once
+the primary task has converged, streams the twist through the guard and lets 1 / rate pass.
+
+Each new perception update (a new occupancy map) rebuilds the objective (eq. 9) on the new map and ROI,
+and adds H_ROI (eq. 12) to the history used by the entropy termination of Global and Hybrid. A strategy
+ends the scan by returning a reason from ``secondary``'s companion ``finished``; the time budget and
+safety stops end it from the session.
+
+``telemetry`` keeps one row per servo iteration: the series of the paper's Fig. 4 (||e||, f(r), ||g||
+before clipping, H_ROI) with the job time and the strategy's mode.
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from cell.config.models import CellConfig
+from cell.control.servo import DualTaskServo
+from cell.perception.filters import CentroidLowPass
+from cell.planning.base import Array, Planner, ScanSession
+from cell.planning.vs.objective import EntropyObjective, ray_grid
+from drivers.errors import PlanningError
+from drivers.transforms import look_at
+
+
+@dataclass(frozen=True)
+class TelemetryRow:
+    """One servo iteration: job time [s], ||e|| [m], f(r) [nats], ||g|| before clipping, H_ROI [nats]
+    (None before the first ROI), and the strategy's mode ("primary", "local", "global")."""
+
+    t: float
+    e_norm: float
+    f: float
+    g_norm: float
+    h_roi: float | None
+    mode: str
+
+
+@dataclass(frozen=True)
+class Secondary:
+    """What a strategy returns for one iteration: g (6,) in the camera frame, after projection and
+    clipping, its norm before clipping, f(r) at the current pose [nats], and the mode it came from."""
+
+    g: Array
+    g_norm: float
+    f: float
+    mode: str
+
+
+def objective_rays(config: CellConfig) -> Array:
+    """The rays of eq. 9 for this cell: the configured grid (23 x 23 over 30 deg), or a multizone ToF
+    sensor's own zones and field of view (``planners.vs.objective.use_sensor_zones``)."""
+    oc = config.planners.vs.objective
+    sensor = config.sensor
+    if oc.use_sensor_zones and sensor.type in ("sim-tof", "vl53l8cx"):
+        return ray_grid(sensor.resolution, sensor.fov_deg)
+    return ray_grid(oc.rays_per_side, oc.fov_deg)
+
+
+def start_view(config: CellConfig) -> Array:
+    """T_base_sensor of the start view (``planners.vs.start``), at Z* from its target point."""
+    st = config.planners.vs.start
+    station = config.station
+    target = np.array([station.xy_m[0], station.xy_m[1], station.table_z_m + st.target_height_m])
+    el, az = np.deg2rad(st.elevation_deg), np.deg2rad(st.azimuth_deg)
+    eye = target + config.scan.standoff_m * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
+                                                      np.sin(el)])
+    return look_at(eye, target)
+
+
+def translated(T_base_cam: Array, offsets_cam: Array) -> Array:
+    """Poses (n, 4, 4): ``T_base_cam`` moved by each camera-frame translation of ``offsets_cam`` (n, 3)
+    [m], orientation unchanged (the virtual displacements r +- delta of eq. 5-6)."""
+    out = np.repeat(T_base_cam[None], offsets_cam.shape[0], axis=0)
+    out[:, :3, 3] += offsets_cam @ T_base_cam[:3, :3].T
+    return out
+
+
+class ServoScanPlanner(Planner):
+    """The shared loop (module docstring); a strategy supplies ``secondary`` and ``finished``."""
+
+    def __init__(self, config: CellConfig) -> None:
+        super().__init__(config)
+        vs = config.planners.vs
+        if vs.servo_rate_hz > config.scan.control_rate_hz:
+            raise PlanningError(f"planners.vs.servo_rate_hz {vs.servo_rate_hz:g} exceeds "
+                                f"scan.control_rate_hz {config.scan.control_rate_hz:g}")
+        self.vs = vs
+        sc = vs.servo
+        self.servo = DualTaskServo(standoff_m=config.scan.standoff_m, lambda_0=sc.lambda_0,
+                                   lambda_inf=sc.lambda_inf, lambda_0_slope=sc.lambda_0_slope,
+                                   lambda_g=sc.lambda_g, e_converged_m=sc.e_converged_m)
+        self.rays_cam = objective_rays(config)
+        self.objective: EntropyObjective | None = None
+        self.centroid: Array | None = None
+        self.h_roi: list[float] = []
+        self.telemetry: list[TelemetryRow] = []
+        self._centroid_filter = CentroidLowPass(vs.centroid_tau_s)
+        self._seq: int | None = None
+
+    @abstractmethod
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+        """The secondary task g for the current pose (called once the primary task has converged)."""
+
+    @abstractmethod
+    def finished(self, session: ScanSession) -> str | None:
+        """Why the scan is complete, or None to go on; called after every iteration."""
+
+    def entropy_settled(self) -> str | None:
+        """The H_ROI termination of section II-D: the standard deviation of the last ``h_roi_window``
+        (10) values of eq. 12 is below ``h_roi_std`` (0.001)."""
+        n = self.vs.h_roi_window
+        if len(self.h_roi) < n:
+            return None
+        std = float(np.std(self.h_roi[-n:]))
+        if std < self.vs.h_roi_std:
+            return (f"H_ROI settled: std {std:.5f} of the last {n} values < {self.vs.h_roi_std:g} "
+                    f"(H_ROI {self.h_roi[-1]:.4f})")
+        return None
+
+    def _perceive(self, session: ScanSession) -> None:
+        """Take in a new perception update: filtered centroid, objective on the new map, H_ROI."""
+        update = session.latest_perception()
+        if update is None or update.seq == self._seq:
+            return
+        self._seq = update.seq
+        if update.roi is None or update.centroid is None:
+            return  # segmentation found no object in this map: keep servoing on the last one
+        self.centroid = self._centroid_filter.update(update.centroid, update.timestamp)
+        perception = self.config.perception
+        self.objective = EntropyObjective(session.perception.map, update.roi.aabb_min, update.roi.aabb_max,
+                                          perception.crop_box, self.rays_cam)
+        if update.h_roi is not None:
+            self.h_roi.append(update.h_roi)
+
+    def _wait_for_object(self, session: ScanSession, period: float) -> None:
+        deadline = session.now() + self.vs.first_object_timeout_s
+        while self.centroid is None:
+            if session.now() >= deadline:
+                raise PlanningError(f"no object segmented within {self.vs.first_object_timeout_s:g} s "
+                                    "of the start view")
+            session.wait(period)
+            self._perceive(session)
+
+    def run(self, session: ScanSession) -> str:
+        if not session.move_to_sensor_pose(start_view(self.config)):
+            raise PlanningError("the start view is not reachable (see the log)")
+        period = 1.0 / self.vs.servo_rate_hz
+        session.set_continuous_capture(True)
+        self._perceive(session)
+        self._wait_for_object(session, period)
+        zero = np.zeros(6)
+        while True:
+            self._perceive(session)
+            assert self.centroid is not None and self.objective is not None
+            T = session.sensor_pose()
+            s = T[:3, :3].T @ (self.centroid - T[:3, 3])
+            e = self.servo.error(s)
+            if self.servo.secondary_active or self.servo.primary_converged(e):
+                sec = self.secondary(session, T, self.objective)
+            else:
+                sec = Secondary(zero, 0.0, float(self.objective(T)), "primary")
+            out = self.servo.step(s, sec.g)
+            session.command_sensor_twist(out.v)
+            self.telemetry.append(TelemetryRow(
+                t=session.now(), e_norm=float(np.linalg.norm(out.e)), f=sec.f, g_norm=sec.g_norm,
+                h_roi=self.h_roi[-1] if self.h_roi else None, mode=sec.mode))
+            reason = self.finished(session)
+            if reason is not None:
+                session.hold()
+                session.set_continuous_capture(False)
+                return reason
+            session.wait(period)
+

@@ -1,0 +1,217 @@
+"""The secondary tasks of the visual-servoing strategies: VS-Local's gradient (eq. 4-6), VS-Global's goals
+(eq. 10-11), Hybrid's switching, the H_ROI termination (eq. 12), and their config."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.config import load_config
+from cell.planning.registry import get_planner
+from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, sphere_views
+from cell.planning.vs.hybrid import VSHybridPlanner
+from cell.planning.vs.local import LocalGradient, VSLocalPlanner
+from cell.planning.vs.objective import ray_grid
+from cell.planning.vs.servo_scan import objective_rays, start_view, translated
+from drivers.errors import PlanningError
+from drivers.transforms import look_at
+
+from .conftest import FRANKA, UR5E
+
+CENTRE = np.array([0.45, 0.0, 0.06])
+
+
+class LinearObjective:
+    """f(r) = a . r_o: a constant gradient ``a`` in the base frame [nats/m]."""
+
+    def __init__(self, a):
+        self.a = np.asarray(a, dtype=float)
+
+    def __call__(self, T):
+        T = np.asarray(T)
+        values = T[..., :3, 3] @ self.a
+        return float(values) if T.ndim == 2 else values
+
+
+class FakeSession:
+    """Job time, and barrier planes as a floor at ``floor_z`` for the camera origin."""
+
+    def __init__(self, floor_z: float = -np.inf):
+        self.t = 0.0
+        self.floor_z = floor_z
+        self.pose = np.eye(4)
+
+    def now(self):
+        return self.t
+
+    def sensor_pose_allowed(self, T):
+        return T[2, 3] > self.floor_z
+
+    def feasible_sensor_velocity(self, v, activation_m):
+        # A floor below the camera: no downward component when within activation_m of it.
+        R = self.pose[:3, :3]
+        v_base = R @ v
+        if self.pose[2, 3] - self.floor_z < activation_m and v_base[2] < 0:
+            v_base[2] = 0.0
+        return R.T @ v_base
+
+
+@pytest.fixture(scope="module")
+def franka():
+    return load_config(FRANKA)
+
+
+def test_vs_planners_are_registered(franka):
+    assert get_planner("vs-local") is VSLocalPlanner
+    assert get_planner("vs-global") is VSGlobalPlanner
+    assert get_planner("vs-hybrid") is VSHybridPlanner
+
+
+def test_config_defaults_are_the_papers_values(franka):
+    p = franka.planners
+    assert (p.vs.servo.lambda_0, p.vs.servo.lambda_inf, p.vs.servo.lambda_0_slope) == (2.0, 0.4, 30.0)
+    assert p.vs.servo.lambda_g == 0.33 and p.vs.servo.e_converged_m == 0.005
+    assert (p.vs.objective.rays_per_side, p.vs.objective.fov_deg) == (23, 30.0)
+    assert (p.vs_local.delta_m, p.vs_local.g_max, p.vs_local.window) == (0.05, 1.0, 200)
+    assert p.vs_local.converged_fraction == 0.8
+    assert (p.vs_global.n_candidates, p.vs_global.slow_radius_m) == (5000, 0.10)
+    assert (p.vs.h_roi_window, p.vs.h_roi_std) == (10, 0.001)
+    assert franka.scan.standoff_m == 0.25
+
+
+def test_objective_rays_follow_the_sensor(franka):
+    assert objective_rays(franka).shape == (529, 3)
+    tof = load_config(UR5E)
+    np.testing.assert_allclose(objective_rays(tof), ray_grid(8, tof.sensor.fov_deg))
+
+
+def test_start_view_looks_at_the_station_from_the_standoff(franka):
+    T = start_view(franka)
+    target = np.array([*franka.station.xy_m, franka.planners.vs.start.target_height_m])
+    assert np.linalg.norm(T[:3, 3] - target) == pytest.approx(franka.scan.standoff_m)
+    np.testing.assert_allclose(T[:3, 2], (target - T[:3, 3]) / franka.scan.standoff_m, atol=1e-12)
+
+
+def test_sphere_views_match_look_at():
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(20, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    views = sphere_views(CENTRE, 0.25, u)
+    for T, d in zip(views, u, strict=True):
+        np.testing.assert_allclose(T, look_at(CENTRE + 0.25 * d, CENTRE), atol=1e-12)
+
+
+def test_local_gradient_is_the_central_difference_in_the_camera_plane(franka):
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x, camera y = -base z
+    session = FakeSession()
+    session.pose = T
+    local = LocalGradient(franka)
+    alpha = franka.planners.vs_local.alpha
+    a = np.array([1.0, 0.0, 2.0]) * 0.2 / alpha  # a gradient of norm < 1 after scaling
+    sec = local(session, T, LinearObjective(a))
+    np.testing.assert_allclose(sec.g[:3], alpha * np.array([a[0], -a[2], 0.0]), rtol=1e-9)
+    assert sec.g_norm == pytest.approx(alpha * np.hypot(a[0], a[2]))
+    assert sec.f == pytest.approx(T[:3, 3] @ a)
+    # A steep gradient is clipped to unit length, its norm before clipping is reported.
+    steep = local(session, T, LinearObjective(a * 50))
+    assert np.linalg.norm(steep.g) == pytest.approx(1.0) and steep.g_norm == pytest.approx(50 * sec.g_norm)
+
+
+def test_local_direction_slides_along_a_barrier(franka):
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session = FakeSession(floor_z=T[2, 3] - 0.01)  # 1 cm above the floor, within the activation
+    session.pose = T
+    local = LocalGradient(franka)
+    sec = local(session, T, LinearObjective([0.0, 0.0, -1.0 / franka.planners.vs_local.alpha]))
+    np.testing.assert_allclose(sec.g, 0.0, atol=1e-12)  # straight down is all into the floor
+    assert sec.g_norm == pytest.approx(0.0, abs=1e-12)
+
+
+def test_local_convergence_needs_a_full_window_mostly_below_one(franka):
+    local = LocalGradient(franka)
+    session = FakeSession()
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session.pose = T
+    alpha = franka.planners.vs_local.alpha
+    weak, strong = LinearObjective([0.5 / alpha, 0, 0]), LinearObjective([3.0 / alpha, 0, 0])
+    for _ in range(199):
+        local(session, T, weak)
+    assert not local.converged()  # 199 of 200
+    local(session, T, weak)
+    assert local.converged()
+    for _ in range(40):  # 160 weak, 40 strong: exactly 80 %, not more
+        local(session, T, strong)
+    assert not local.converged()
+    local.reset()
+    assert not local.converged()
+
+
+def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):
+    seeker = GoalSeeker(franka)
+    session = FakeSession(floor_z=0.1)
+    objective = LinearObjective([-1.0, 0.0, 0.0])  # best views are at small x: behind the object
+    seeker.sample(session, CENTRE, objective)
+    goal = seeker.goal
+    assert goal[2, 3] > 0.1 and np.linalg.norm(goal[:3, 3] - CENTRE) == pytest.approx(0.25)
+    assert goal[0, 3] < CENTRE[0] - 0.2  # near the best point of the allowed cap
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session.pose = T
+    far = seeker(session, T, objective)
+    assert np.linalg.norm(far.g[:3]) == pytest.approx(1.0) and far.g[2] == 0.0
+    to_goal = T[:3, :3].T @ (goal[:3, 3] - T[:3, 3])
+    assert far.g[:2] @ to_goal[:2] > 0.99 * np.linalg.norm(to_goal[:2])
+    # Within 10 cm the magnitude decays linearly with the distance.
+    near = translated(goal, np.array([[0.04, 0.0, 0.0]]))[0]
+    session.pose = near
+    assert np.linalg.norm(seeker(session, near, objective).g) == pytest.approx(0.4, rel=1e-6)
+    assert not seeker.done(session, near)
+    session.pose = arrived = translated(goal, np.array([[0.005, 0.0, 0.0]]))[0]
+    assert seeker.done(session, arrived)
+    session.t = franka.planners.vs_global.max_goal_time_s + 1.0
+    assert seeker.done(session, T)  # given up
+
+
+def test_no_allowed_candidate_is_a_planning_error(franka):
+    seeker = GoalSeeker(franka)
+    with pytest.raises(PlanningError, match="barrier"):
+        seeker.sample(FakeSession(floor_z=10.0), CENTRE, LinearObjective([1.0, 0.0, 0.0]))
+
+
+def test_goal_sampling_is_repeatable(franka):
+    goals = []
+    for _ in range(2):
+        seeker = GoalSeeker(franka)
+        seeker.sample(FakeSession(floor_z=0.1), CENTRE, LinearObjective([0.3, -1.0, 0.2]))
+        goals.append(seeker.goal)
+    np.testing.assert_array_equal(goals[0], goals[1])
+
+
+def test_hybrid_goes_global_after_local_converges_then_back(franka):
+    planner = VSHybridPlanner(franka)
+    planner.centroid = CENTRE
+    session = FakeSession(floor_z=0.1)
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session.pose = T
+    weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0])
+    modes = [planner.secondary(session, T, weak).mode for _ in range(201)]
+    assert modes[:200] == ["local"] * 200 and modes[200] == "global"
+    assert planner.goals.n_goals == 1
+    session.pose = planner.goals.goal
+    assert planner.secondary(session, planner.goals.goal, weak).mode == "local"  # arrived: local again
+    assert not planner.local.converged()
+
+
+def test_h_roi_termination_needs_ten_flat_values(franka):
+    planner = VSGlobalPlanner(franka)
+    planner.h_roi = [0.6, 0.5, 0.45] + [0.4] * 9
+    assert planner.finished(FakeSession()) is None
+    planner.h_roi.append(0.4005)
+    reason = planner.finished(FakeSession())
+    assert reason is not None and "H_ROI settled" in reason
+
+
+def test_servo_rate_above_the_control_rate_is_refused(franka):
+    data = franka.model_dump()
+    data["planners"]["vs"]["servo_rate_hz"] = 500.0
+    with pytest.raises(PlanningError, match="servo_rate_hz"):
+        VSLocalPlanner(type(franka).model_validate(data))
