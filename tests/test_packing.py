@@ -224,3 +224,20 @@ def test_object_on_a_known_table_keeps_a_wide_flat_top() -> None:
     assert obj.shape[0] > 0.9 * box.shape[0]
     assert obj[:, 2].min() > params.plane_distance_m
     np.testing.assert_allclose(box_from_points(obj, 0.0).dims, [0.3, 0.2, 0.1], atol=0.015)
+
+
+def test_trimmed_box_ignores_a_few_noisy_voxels() -> None:
+    rng = np.random.default_rng(5)
+    pts = _box_surface((0.3, 0.2, 0.1), 3000, rng) + np.array([0.45, 0.0, 0.0])
+    noisy = np.vstack([pts, [[0.45, 0.0, 0.13], [0.62, 0.0, 0.05], [0.45, -0.13, 0.05]]])
+    assert box_from_points(noisy, 0.0).dims[2] == pytest.approx(0.13)
+    trimmed = box_from_points(noisy, 0.0, trim=0.01)
+    np.testing.assert_allclose(trimmed.dims, [0.3, 0.2, 0.1], atol=0.005)
+    np.testing.assert_allclose(trimmed.center_xy, [0.45, 0.0], atol=0.003)
+    # L stays the longer side when trimming turns the rectangle's sides around.
+    thin = np.array([[0.0, 0.0, 0.1], [0.1, 0.0, 0.1], [0.1, 0.098, 0.1], [0.0, 0.098, 0.1]] * 5)
+    thin = np.vstack([thin, [[0.05, 0.3, 0.1]]])
+    box = box_from_points(thin, 0.0, trim=0.05)
+    assert box.dims[0] >= box.dims[1]
+    with pytest.raises(ValueError):
+        box_from_points(pts, 0.0, trim=0.5)

@@ -43,21 +43,36 @@ class PackingBox:
         return local @ np.array([[c, s], [-s, c]]) + self.center_xy
 
 
-def box_from_points(points_base: Array, table_z: float | None = None) -> PackingBox:
-    """The packing box of object points (N >= 1, 3) [m], base frame: minimum-area rectangle of their
-    table-plane projection, height from ``table_z`` (or the lowest point when None) to the highest."""
+def box_from_points(points_base: Array, table_z: float | None = None, trim: float = 0.0) -> PackingBox:
+    """The packing box of object points (N >= 1, 3) [m], base frame: yaw of the minimum-area rectangle of
+    their table-plane projection; height from ``table_z`` (or the lowest point when None) up.
+
+    ``trim`` in [0, 0.5): the box's faces are the ``trim`` and ``1 - trim`` quantiles of the points along
+    its L and W axes and the ``1 - trim`` quantile of their heights, instead of the extremes, so that a few
+    noisy voxels on the segmented object's shell do not grow it (0: every point inside)."""
     if points_base.shape[0] == 0:
         raise ValueError("box_from_points: no points")
+    if not 0.0 <= trim < 0.5:
+        raise ValueError(f"box_from_points: trim must be in [0, 0.5), got {trim}")
     centre, extent, yaw = min_area_rectangle(points_base[:, :2])
     z_min = float(points_base[:, 2].min()) if table_z is None else float(table_z)
-    height = max(float(points_base[:, 2].max()) - z_min, 0.0)
-    return PackingBox(center_xy=centre, dims=np.array([extent[0], extent[1], height]), yaw_rad=yaw,
-                      z_min=z_min)
+    top = float(np.quantile(points_base[:, 2], 1.0 - trim))
+    if trim > 0.0:
+        axes = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
+        uv = (points_base[:, :2] - centre) @ axes.T
+        lo, hi = np.quantile(uv, trim, axis=0), np.quantile(uv, 1.0 - trim, axis=0)
+        centre = centre + 0.5 * (lo + hi) @ axes
+        extent = hi - lo
+        if extent[1] > extent[0]:
+            extent = extent[::-1]
+            yaw = yaw + math.pi / 2.0 if yaw <= 0.0 else yaw - math.pi / 2.0
+    return PackingBox(center_xy=centre, dims=np.array([extent[0], extent[1], max(top - z_min, 0.0)]),
+                      yaw_rad=yaw, z_min=z_min)
 
 
 def box_from_mesh(mesh: ObjectMesh, T_base_object: Array) -> PackingBox:
     """The ground-truth packing box of a mesh posed at ``T_base_object``: the same construction as
-    :func:`box_from_points` on its vertices, from its lowest vertex up."""
+    :func:`box_from_points` on its vertices (untrimmed), from its lowest vertex up."""
     return box_from_points(transform_points(T_base_object, mesh.vertices))
 
 

@@ -22,12 +22,14 @@ class PackingConfig(StrictModel):
     plane and above the object (the object stands on the container floor); ``coverage_radius_m`` [m] a
     ground-truth surface sample counts as reconstructed when an object voxel centre lies this close (None:
     the occupancy map's resolution, so that a surface point anywhere in an occupied voxel of a thin shell
-    is found by the voxel or its neighbour).
+    is found by the voxel or its neighbour); ``trim_fraction`` the share of object voxels each face of the
+    box may leave outside (noise on the segmented shell, see ``cell.packing.box.box_from_points``).
     """
 
     containers: list[ContainerConfig] = Field(default_factory=list)
     margin_m: float = Field(default=0.01, ge=0.0)
     coverage_radius_m: PositiveFloat | None = None
+    trim_fraction: float = Field(default=0.02, ge=0.0, lt=0.5)
 
     @model_validator(mode="after")
     def _unique_names(self) -> PackingConfig:

@@ -115,7 +115,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     if objects.shape[0] == 0:
         section["container"] = {"name": None, "reason": "none fits: no object was found"}
         return section
-    box = box_from_points(objects, config.station.table_z_m)
+    box = box_from_points(objects, config.station.table_z_m, trim=pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
     section["box"] = _box_dict(box)
     if mesh is not None and T_base_object is not None:
