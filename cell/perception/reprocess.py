@@ -48,6 +48,7 @@ from cell.perception.cloud import crop_box, voxel_downsample, write_ply
 from cell.perception.metrics import compute_metrics, ground_truth_points
 from cell.perception.registration import coarse_to_fine_icp, o3d_cloud, single_threaded_open3d
 from drivers.config_base import StrictModel
+from drivers.depth.projection import back_project
 from drivers.errors import CellError, JobError
 from drivers.sim.objects import load_object
 from drivers.transforms import inv_T, rotvec, transform_points
@@ -132,17 +133,6 @@ def _crop_for(job_dir: Path, result: dict[str, Any]) -> tuple[CropBoxConfig, str
                 except CellError:
                     break
     return PAPER_CROP, "paper section II-A"
-
-
-def back_project(depth: Array, K: Array) -> Array:
-    """Points (N, 3) [m, sensor frame] of the pixels with depth > 0, row-major pixel order."""
-    v, u = np.nonzero(depth > 0.0)
-    z = depth[v, u].astype(np.float64)
-    pts = np.empty((z.size, 3))
-    pts[:, 0] = (u - K[0, 2]) * z / K[0, 0]
-    pts[:, 1] = (v - K[1, 2]) * z / K[1, 1]
-    pts[:, 2] = z
-    return pts
 
 
 def _load_frame(path: Path) -> tuple[Array, Array]:

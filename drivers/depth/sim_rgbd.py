@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, SensorModel
 from drivers.depth.config import SimRGBDConfig
+from drivers.depth.projection import back_project, pinhole_fov_deg
 from drivers.depth.sim_base import SimDepthSensor
 from drivers.sim.scene import HIT_NONE, SimScene
 
@@ -67,8 +68,6 @@ class SimRGBD(SimDepthSensor):
         norm = np.linalg.norm(rays, axis=1)
         self._dirs_sensor: Array = rays / norm[:, None]  # (H*W, 3) unit rays, sensor frame
         self._z_per_t: Array = 1.0 / norm  # depth z per unit range along each ray
-        self._xn = xn.reshape(-1).copy()
-        self._yn = yn.reshape(-1).copy()
         g = config.grazing_deg
         self._cos_hard = np.cos(np.deg2rad(g))  # cos(a) below this: always dropped
         self._cos_soft = np.cos(np.deg2rad(g - GRAZING_RAMP_DEG))  # cos(a) below this: may be dropped
@@ -76,10 +75,9 @@ class SimRGBD(SimDepthSensor):
     @property
     def model(self) -> SensorModel:
         c = self.config
-        fov_x = np.degrees(np.arctan((c.cx + 0.5) / c.fx) + np.arctan((c.width - 0.5 - c.cx) / c.fx))
-        fov_y = np.degrees(np.arctan((c.cy + 0.5) / c.fy) + np.arctan((c.height - 0.5 - c.cy) / c.fy))
-        return SensorModel(kind="rgbd", width=c.width, height=c.height, fov_x_deg=float(fov_x),
-                           fov_y_deg=float(fov_y), range_min_m=c.range_min_m, range_max_m=c.range_max_m)
+        fov_x, fov_y = pinhole_fov_deg(self.intrinsics, c.width, c.height)
+        return SensorModel(kind="rgbd", width=c.width, height=c.height, fov_x_deg=fov_x, fov_y_deg=fov_y,
+                           range_min_m=c.range_min_m, range_max_m=c.range_max_m)
 
     @property
     def rays_sensor(self) -> Array:
@@ -115,12 +113,11 @@ class SimRGBD(SimDepthSensor):
         zf = z[in_range].astype(np.float32)
         depth = np.zeros(n_pix, dtype=np.float32)
         depth[idx] = zf
-        zd = zf.astype(np.float64)
-        points = np.empty((len(idx), 3))
-        points[:, 0] = self._xn[idx] * zd
-        points[:, 1] = self._yn[idx] * zd
-        points[:, 2] = zd
+        depth = depth.reshape(c.height, c.width)
+        # The same back-projection as replay and reprocessing, so that a recorded depth image gives back
+        # exactly the points this frame had.
+        points = back_project(depth, self.intrinsics)
 
         frame = DepthFrame(seq=self._next_seq(), timestamp=self._clock.now(), points=points,
-                           depth=depth.reshape(c.height, c.width), intrinsics=self.intrinsics)
+                           depth=depth, intrinsics=self.intrinsics)
         return frame
