@@ -16,9 +16,16 @@ from drivers.arm.base import Arm
 from drivers.arm.config import ArmConfig, FrankaArmConfig, SimArmConfig, UR5eArmConfig
 from drivers.arm.hardware import require_module
 from drivers.arm.sim import SimArm
-from drivers.clock import SimClock
+from drivers.clock import Clock, SimClock, WallClock
 from drivers.depth.base import DepthSensor
-from drivers.depth.config import DepthConfig, SimRGBDConfig, SimToFConfig
+from drivers.depth.config import (
+    DepthConfig,
+    RealSenseConfig,
+    ReplayConfig,
+    SimRGBDConfig,
+    SimToFConfig,
+    VL53L8CXConfig,
+)
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.depth.sim_tof import SimToF
 from drivers.errors import DriverError
@@ -30,26 +37,26 @@ Array = NDArray[np.float64]
 
 @dataclass
 class SimWorld:
-    """What simulated backends share: the job's sim clock, random generator and scene."""
+    """What simulated backends share: the job's clock, random generator and scene. The clock is the
+    simulated one in sim mode; in a dry run (a hardware arm with a simulated sensor) it is the wall clock,
+    and the simulated arm, which needs the simulated clock, is not part of it."""
 
-    clock: SimClock
+    clock: Clock
     rng: np.random.Generator
     scene: SimScene
 
 
 def _need_sim(sim: SimWorld | None, kind: str) -> SimWorld:
     if sim is None:
-        raise DriverError("a simulated backend needs a simulated world (mode: sim)", device=kind)
+        raise DriverError("a simulated backend needs a simulated world (mode: sim or dry-run)", device=kind)
     return sim
-
-
-def _not_implemented(kind: str) -> DriverError:
-    return DriverError("this backend is not implemented in this release; use a sim backend", device=kind)
 
 
 def _sim_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
     assert isinstance(cfg, SimArmConfig)
     world = _need_sim(sim, "arm sim")
+    if not isinstance(world.clock, SimClock):
+        raise DriverError("the simulated arm needs the simulated clock (mode: sim)", device="arm sim")
     return SimArm(cfg, model, world.clock, world.rng)
 
 
@@ -96,16 +103,45 @@ def _sim_tof(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthS
     return SimToF(cfg, world.scene, pose, world.clock, world.rng)
 
 
-def _hardware_sensor(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
-    raise _not_implemented(f"depth {cfg.type}")
+def _job_clock(sim: SimWorld | None) -> Clock:
+    """The clock hardware and replay backends stamp frames with: the job's sim clock, else the wall clock."""
+    return sim.clock if sim is not None else WallClock()
+
+
+def _vl53l8cx(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
+    assert isinstance(cfg, VL53L8CXConfig)
+    if cfg.i2c is not None:
+        from drivers.depth.vl53l8cx.i2c import VL53L8CXI2C  # needs the optional i2c extra when connecting
+
+        return VL53L8CXI2C(cfg, _job_clock(sim))
+    from drivers.depth.vl53l8cx.serial_driver import VL53L8CXSerial  # pyserial is imported on connect
+
+    return VL53L8CXSerial(cfg, _job_clock(sim))
+
+
+def _realsense(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
+    assert isinstance(cfg, RealSenseConfig)
+    from drivers.depth.realsense import RealSense
+
+    return RealSense(cfg, _job_clock(sim))
+
+
+def _replay(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
+    assert isinstance(cfg, ReplayConfig)
+    from drivers.depth.replay import JobRecording, PlaybackClock, ReplaySensor
+
+    recording = JobRecording(cfg.job_dir)
+    # without a job clock the recording plays in real time from its first frame
+    clock = sim.clock if sim is not None else PlaybackClock(recording.frames[0].timestamp)
+    return ReplaySensor(recording, clock, (cfg.range_min_m, cfg.range_max_m))
 
 
 SENSOR_BACKENDS: dict[str, Callable[[DepthConfig, SimWorld | None, PoseSource], DepthSensor]] = {
     "sim-rgbd": _sim_rgbd,
     "sim-tof": _sim_tof,
-    "vl53l8cx": _hardware_sensor,
-    "realsense": _hardware_sensor,
-    "replay": _hardware_sensor,
+    "vl53l8cx": _vl53l8cx,
+    "realsense": _realsense,
+    "replay": _replay,
 }
 
 

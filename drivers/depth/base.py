@@ -57,9 +57,11 @@ class DepthFrame:
     """One capture.
 
     ``points`` (N, 3) [m] in the sensor frame: every return the sensor reports (for the ToF, one per zone
-    with a target, whatever its status; filtering by status is perception's job). ``timestamp`` [s] on the
-    job's clock. ``depth`` (H, W) [m], 0 where there is no return, with ``intrinsics`` its 3x3 pinhole
-    matrix K [px] (RGB-D only): pixel (u, v) at depth z is the point ((u - cx) z / fx, (v - cy) z / fy, z).
+    with a target whose status the backend counts as a range: 5 and 9 for ``sim-tof``, the config's
+    ``valid_statuses`` for ``vl53l8cx``; perception filters by status again with its own set).
+    ``timestamp`` [s] on the job's clock. ``depth`` (H, W) [m], 0 where there is no return, with
+    ``intrinsics`` its 3x3 pinhole matrix K [px] (RGB-D only): pixel (u, v) at depth z is the point
+    ((u - cx) z / fx, (v - cy) z / fy, z).
     ``zones`` (ToF only).
     """
 

@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.config_base import StrictModel
+from drivers.depth.vl53l8cx.protocol import MAX_FREQUENCY_HZ
 
 
 class RangedConfig(StrictModel):
@@ -65,31 +66,90 @@ class SimToFConfig(RangedConfig):
     edge_gap_m: PositiveFloat = 0.025
 
 
-class VL53L8CXConfig(StrictModel):
-    """A VL53L8CX behind a bridge board; ``port`` is a pyserial URL (device path, ``socket://``, ...)."""
+VL53L8CX_VALID_STATUSES: tuple[int, ...] = (5, 9)
+"""ST's target statuses of a fully trusted range: 5 (range valid) and 9 (range valid, large pulse)."""
+
+
+class VL53L8CXI2CConfig(StrictModel):
+    """The sensor on a Linux I2C bus through Blinka: ``bus`` the /dev/i2c-N number, ``address`` the 7-bit
+    address (0x29 is ST's 0x52 write address), ``lpn_pin`` the Blinka ``board`` pin name wired to LPn (it
+    resets the sensor at connect) or None."""
+
+    bus: int = Field(default=1, ge=0)
+    address: int = Field(default=0x29, ge=0x08, le=0x77)
+    lpn_pin: str | None = None
+
+
+class VL53L8CXConfig(RangedConfig):
+    """A VL53L8CX multizone time-of-flight sensor, reached either through a bridge board speaking the frame
+    format of ``docs/vl53l8cx-serial.md`` (``port``: any pyserial URL, a device path, ``socket://host:port``
+    or ``loop://``) or directly on a Linux I2C bus (``i2c``); exactly one of the two.
+
+    ``resolution`` zones per side and ``frequency_hz`` [Hz] are sent to the sensor (at most 15 Hz at 8x8,
+    60 Hz at 4x4); ``fov_deg`` [deg] the square field of view the zones tile (45 for the VL53L8CX).
+    A zone becomes a point when it has a target and its status is in ``valid_statuses``.
+    ``timeout_s`` [s]: a link that delivers no frame for this long is faulted (silent or gone); it must
+    cover at least two frame periods. ``baudrate`` only matters for a real UART (USB CDC ignores it).
+    """
 
     type: Literal["vl53l8cx"]
-    port: str
+    port: str | None = None
+    baudrate: PositiveInt = 921600
+    i2c: VL53L8CXI2CConfig | None = None
     resolution: Literal[4, 8] = 8
-    frequency_hz: PositiveFloat = 15.0
-    fov_deg: float = 45.0
+    frequency_hz: int = Field(default=15, ge=1, le=60)
+    fov_deg: float = Field(default=45.0, gt=0.0, lt=90.0)
+    valid_statuses: tuple[int, ...] = Field(default=VL53L8CX_VALID_STATUSES, min_length=1)
+    range_min_m: PositiveFloat = 0.02
+    range_max_m: PositiveFloat = 4.0
+    timeout_s: PositiveFloat = 1.0
+
+    @model_validator(mode="after")
+    def _consistent(self) -> VL53L8CXConfig:
+        if (self.port is None) == (self.i2c is None):
+            raise ValueError("give exactly one of port (a bridge board) and i2c (a Linux I2C bus)")
+        limit = MAX_FREQUENCY_HZ[self.resolution]
+        if self.frequency_hz > limit:
+            raise ValueError(f"frequency_hz {self.frequency_hz} is above the sensor's {limit} Hz at "
+                             f"{self.resolution}x{self.resolution}")
+        if self.timeout_s < 2.0 / self.frequency_hz:
+            raise ValueError(f"timeout_s {self.timeout_s} must cover two frame periods "
+                             f"({2.0 / self.frequency_hz:.3f} s at {self.frequency_hz} Hz)")
+        if any(not 0 <= s <= 255 for s in self.valid_statuses):
+            raise ValueError(f"valid_statuses must be target status codes 0..255, got {self.valid_statuses}")
+        return self
 
 
-class RealSenseConfig(StrictModel):
-    """An Intel RealSense camera through Open3D's RealSense support."""
+class RealSenseConfig(RangedConfig):
+    """An Intel RealSense camera through Open3D's RealSense support (``open3d.t.io.RealSenseSensor``).
+
+    ``serial`` picks a camera (empty: the first one found); ``width`` x ``height`` [px] and ``fps`` [Hz]
+    of the depth stream; ``preset`` a librealsense visual preset name (e.g. ``RS2_RS400_VISUAL_PRESET_
+    HIGH_ACCURACY``) or empty for the camera's default; ``record_bag`` a ``.bag`` file to record the
+    session into, or empty. Depth outside [``range_min_m``, ``range_max_m``] [m] counts as no return.
+    Intrinsics and depth scale come from the device's metadata, not from here.
+    """
 
     type: Literal["realsense"]
     serial: str = ""
     width: PositiveInt = 640
     height: PositiveInt = 480
     fps: PositiveInt = 30
+    preset: str = ""
+    record_bag: str = ""
+    range_min_m: PositiveFloat = 0.1
+    range_max_m: PositiveFloat = 2.0
 
 
-class ReplayConfig(StrictModel):
-    """The frames of a recorded job, played back as a sensor."""
+class ReplayConfig(RangedConfig):
+    """The frames of a recorded job folder (``job_dir``), played back as a sensor on the job's clock.
+    ``range_min_m`` / ``range_max_m`` [m]: the recorded sensor's range, which the folder does not hold
+    (perception carves free space up to the maximum along ToF zones without a target)."""
 
     type: Literal["replay"]
     job_dir: str
+    range_min_m: PositiveFloat = 0.02
+    range_max_m: PositiveFloat = 4.0
 
 
 DepthConfig = Annotated[

@@ -1,0 +1,81 @@
+"""A read-only arm that follows a recorded job's poses (see :mod:`drivers.depth.replay`).
+
+``state()`` reports the recorded flange pose at the clock's time: the last recorded pose at or before it
+(zero-order hold; the recorder writes one every control tick, and the exact pose of every capture), the
+first one before the recording starts and the last one after it ends. The job folder does not record
+joint positions, so ``q`` is NaN; ``qd`` and the flange twist are zero.
+
+It cannot move: ``command_twist`` and ``execute_trajectory`` raise ``DriverError`` (after the motion
+token check, so the safety guard stays the only way in). ``stop`` and ``recover`` do nothing: a recording
+has nothing to stop and no fault to clear.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
+from drivers.clock import Clock
+from drivers.depth.replay import CSV_TIME_RESOLUTION_S, JobRecording
+from drivers.errors import DriverError
+from drivers.robots.model import RobotModel
+
+Array = np.ndarray
+
+
+class ReplayArm(Arm):
+    """The recorded poses of ``recording`` on ``clock`` as an arm of ``model`` (which only gives the
+    number of joints)."""
+
+    name = "replay"
+
+    def __init__(self, recording: JobRecording, model: RobotModel, clock: Clock) -> None:
+        self.recording = recording
+        self._model = model
+        self._clock = clock
+        self._times, self._poses = recording.flange_track()
+        self._connected = False
+
+    @property
+    def device(self) -> str:
+        return f"arm replay of {self.recording.job_dir}"
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    @property
+    def n_joints(self) -> int:
+        return self._model.n_joints
+
+    def pose_at(self, t: float) -> Array:
+        """The recorded T_base_flange at time ``t`` [s] (a copy)."""
+        # trajectory times carry 6 decimals: a time within half a microsecond counts as reached
+        k = int(np.searchsorted(self._times, t + CSV_TIME_RESOLUTION_S / 2, side="right")) - 1
+        return self._poses[max(k, 0)].copy()
+
+    def state(self) -> ArmState:
+        if not self._connected:
+            raise DriverError("state while disconnected; call connect() first", device=self.device)
+        t = self._clock.now()
+        n = self._model.n_joints
+        return ArmState(timestamp=t, q=np.full(n, np.nan), qd=np.zeros(n), T_base_flange=self.pose_at(t),
+                        v_base_flange=np.zeros(6), mode=ArmMode.IDLE)
+
+    def _command_twist(self, v_base_flange: Array) -> None:
+        raise DriverError("a replayed job's arm cannot move (it plays recorded poses)", device=self.device)
+
+    def _execute_trajectory(self, trajectory: JointTrajectory) -> None:
+        raise DriverError("a replayed job's arm cannot move (it plays recorded poses)", device=self.device)
+
+    def stop(self) -> None:
+        """Nothing to stop: the recorded poses play on regardless."""
+
+    def recover(self) -> None:
+        """Nothing to recover: a recording has no faults."""

@@ -1,0 +1,207 @@
+"""``vl53l8cx`` over a serial link: a bridge board speaking the frame format of ``docs/vl53l8cx-serial.md``.
+
+The port is a pyserial URL (``/dev/ttyACM0``, ``socket://127.0.0.1:5555``, ``loop://``, ...). ``connect``
+opens it and sends STOP, SET_RESOLUTION, SET_FREQUENCY and START; the driver does not wait for the
+bridge's STATUS answers (a stream without them is still read), but a STATUS that reports a failure
+faults the driver. ``capture`` reads what the port holds, decodes it, and returns the newest RANGING
+frame not returned yet, waiting up to ``timeout_s`` for one.
+
+Faults (``capture`` raises ``DriverError`` until the next ``connect``): no RANGING frame for ``timeout_s``
+(a silent port), a read or write error (a vanished port: unplugged board, closed socket or pseudo-
+terminal), a STATUS with a failure result. Garbage and corrupted frames are not faults: the parser
+resynchronises on the next magic and ``stats`` counts them, with the device's sequence gaps.
+
+pyserial is an optional dependency (the ``tof`` extra), imported when connecting.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.clock import Clock, WallClock
+from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
+from drivers.depth.config import VL53L8CXConfig
+from drivers.depth.vl53l8cx import protocol as p
+from drivers.depth.vl53l8cx.frames import depth_frame, sensor_model
+from drivers.errors import DriverError
+
+READ_SLICE_S = 0.02
+"""Longest single blocking read [s]; ``capture`` loops on such reads until its deadline."""
+
+INSTALL_HINT = "pyserial is not installed; install it with: pip install 'cell[tof]' (or pip install pyserial)"
+
+
+@dataclass(frozen=True)
+class LinkStats:
+    """Counters of a serial link since ``connect``: decoded ``frames`` and ``ranging_frames``, of which
+    ``skipped`` were never returned because a newer one had arrived by the next ``capture``; the parser's
+    ``crc_errors``, ``bad_headers``, ``malformed`` frames and ``bytes_discarded``; the device's sequence
+    ``gaps`` (jumps), ``lost`` frames (numbers skipped), ``duplicates`` and ``restarts``."""
+
+    frames: int
+    ranging_frames: int
+    skipped: int
+    crc_errors: int
+    bad_headers: int
+    malformed: int
+    bytes_discarded: int
+    gaps: int
+    lost: int
+    duplicates: int
+    restarts: int
+
+
+def import_serial() -> Any:
+    """The ``serial`` module, or a ``DriverError`` naming the package that provides it."""
+    try:
+        import serial
+    except ImportError:
+        raise DriverError(INSTALL_HINT, device="depth vl53l8cx") from None
+    return serial
+
+
+class VL53L8CXSerial(DepthSensor):
+    """A VL53L8CX behind a serial bridge (see the module docstring). ``clock`` stamps frames (the job's
+    clock; the wall clock by default). After a frame, ``last_raw`` holds its device-side form."""
+
+    name = "vl53l8cx"
+
+    def __init__(self, config: VL53L8CXConfig, clock: Clock | None = None) -> None:
+        if config.port is None:
+            raise DriverError("the serial backend needs sensor.port (a pyserial URL)", device=self.device)
+        self.config = config
+        self.port_url: str = config.port
+        self._clock = clock if clock is not None else WallClock()
+        self._serial: Any = None
+        self._parser = p.FrameParser()
+        self._sequence = p.SequenceCounter()
+        self._pending: deque[p.RangingFrame] = deque()
+        self._fault: str | None = None
+        self._ranging_frames = 0
+        self._skipped = 0
+        self._host_seq = 0
+        self._seq = 0
+        self.last_raw: p.RangingFrame | None = None
+        self.last_status: p.StatusFrame | None = None
+        self.messages: deque[str] = deque(maxlen=20)
+
+    @property
+    def device(self) -> str:
+        return f"depth vl53l8cx at {self.config.port}"
+
+    # -- connection ------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        serial = import_serial()
+        self.disconnect()
+        self._parser = p.FrameParser()
+        self._sequence = p.SequenceCounter()
+        self._pending.clear()
+        self._fault = None
+        self._ranging_frames = 0
+        self._skipped = 0
+        try:
+            self._serial = serial.serial_for_url(self.port_url, baudrate=self.config.baudrate,
+                                                 timeout=READ_SLICE_S, write_timeout=self.config.timeout_s)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DriverError(f"cannot open the port: {exc}", device=self.device) from None
+        c = self.config
+        for cmd, value in ((p.CMD_STOP, None), (p.CMD_SET_RESOLUTION, c.resolution),
+                           (p.CMD_SET_FREQUENCY, c.frequency_hz), (p.CMD_START, None)):
+            self._send(cmd, value)
+
+    def disconnect(self) -> None:
+        """Ask the bridge to stop ranging (best effort: the port may be gone) and close the port."""
+        if self._serial is None:
+            return
+        port, self._serial = self._serial, None
+        if self._fault is None:
+            serial = import_serial()
+            # closing anyway: a port that has gone has nothing left to stop
+            with contextlib.suppress(serial.SerialException, OSError):
+                port.write(p.command(self._host_seq, self._now_us(), p.CMD_STOP))
+                port.flush()
+        port.close()
+
+    @property
+    def is_connected(self) -> bool:
+        return self._serial is not None and self._fault is None
+
+    @property
+    def model(self) -> SensorModel:
+        return sensor_model(self.config)
+
+    @property
+    def stats(self) -> LinkStats:
+        s, q = self._parser.stats, self._sequence
+        return LinkStats(frames=s.frames, ranging_frames=self._ranging_frames, skipped=self._skipped,
+                         crc_errors=s.crc_errors,
+                         bad_headers=s.bad_headers, malformed=s.malformed, bytes_discarded=s.bytes_discarded,
+                         gaps=q.gaps, lost=q.lost, duplicates=q.duplicates, restarts=q.restarts)
+
+    # -- link ------------------------------------------------------------------------------------------
+    def _now_us(self) -> int:
+        return int(time.monotonic() * 1e6)
+
+    def _raise_fault(self, reason: str) -> DriverError:
+        self._fault = reason
+        return DriverError(reason, device=self.device)
+
+    def _send(self, cmd: int, value: int | None) -> None:
+        serial = import_serial()
+        try:
+            self._serial.write(p.command(self._host_seq, self._now_us(), cmd, value))
+        except (serial.SerialException, OSError) as exc:
+            raise self._raise_fault(f"port vanished while writing: {exc}") from None
+        self._host_seq += 1
+
+    def _read(self, wait: bool) -> None:
+        """Decode what the port holds (blocking up to one read slice when ``wait``)."""
+        serial = import_serial()
+        try:
+            n = self._serial.in_waiting
+            data = self._serial.read(max(n, 1)) if (n or wait) else b""
+        except (serial.SerialException, OSError) as exc:
+            raise self._raise_fault(f"port vanished: {exc}") from None
+        for frame in self._parser.feed(data):
+            if isinstance(frame, p.CommandFrame):
+                continue  # our own commands, echoed by a loop:// port
+            self._sequence.add(frame.seq)
+            if isinstance(frame, p.RangingFrame):
+                self._ranging_frames += 1
+                self._pending.append(frame)
+            elif isinstance(frame, p.StatusFrame):
+                self.last_status = frame
+                if frame.result != p.RESULT_OK:
+                    raise self._raise_fault(
+                        f"the bridge answered command 0x{frame.command:02x} with "
+                        f"'{p.RESULT_TEXT.get(frame.result, f'result {frame.result}')}'"
+                        + (f" (last message: {self.messages[-1]})" if self.messages else ""))
+            else:
+                self.messages.append(frame.text)
+
+    # -- capture ---------------------------------------------------------------------------------------
+    def capture(self) -> DepthFrame:
+        """The newest RANGING frame not returned yet; older ones still waiting are dropped (their link
+        counters are kept). Raises ``DriverError`` when faulted, silent for ``timeout_s`` or gone."""
+        if self._serial is None:
+            raise DriverError("capture while disconnected; call connect() first", device=self.device)
+        if self._fault is not None:
+            raise DriverError(f"faulted: {self._fault}; reconnect to clear", device=self.device)
+        deadline = time.monotonic() + self.config.timeout_s
+        while not self._pending:
+            if time.monotonic() > deadline:
+                raise self._raise_fault(f"no frame for {self.config.timeout_s:g} s: the port is silent")
+            self._read(wait=True)
+        self._read(wait=False)  # whatever else has arrived, so that the newest frame is returned
+        raw = self._pending[-1]
+        self._skipped += len(self._pending) - 1
+        self._pending.clear()
+        self.last_raw = raw
+        frame = depth_frame(raw, seq=self._seq, timestamp=self._clock.now(), fov_deg=self.config.fov_deg,
+                            valid_statuses=self.config.valid_statuses)
+        self._seq += 1
+        return frame
