@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
+from cell.cli.sensor import sensor_app
 from cell.config import load_config
 from cell.jobs.recorder import request_stop
 from cell.jobs.runner import ScanRequest, run_scan
@@ -29,6 +30,7 @@ app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_hel
                   pretty_exceptions_enable=False)
 config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
+app.add_typer(sensor_app, name="sensor")
 app.add_typer(arm_app, name="arm")
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)

@@ -1,0 +1,236 @@
+"""``cell sensor``: commission a depth sensor, emulate a VL53L8CX bridge, re-run a recorded job offline.
+
+- ``cell sensor check --config FILE`` reads frames for a few seconds (or ``--frames N``) from the cell's
+  sensor and prints the frame rate, the share of valid zones (pixels), the link's CRC errors and sequence
+  gaps, and per-zone noise (see :mod:`drivers.depth.check`); ``--port`` overrides a VL53L8CX's port.
+- ``cell sensor emulate`` serves the bridge protocol on a pseudo-terminal (or ``--socket HOST:PORT``),
+  with frames of the simulated ToF sensor and optional injected faults, until Ctrl-C.
+- ``cell sensor replay JOB_DIR`` plays a job folder's frames and poses through the replay sensor and the
+  read-only replay arm into the perception pipeline of the job's cell file, and writes the cloud it
+  rebuilds as ``cloud_replay.ply`` beside the recorded ``cloud.ply``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.console import Console
+from scipy.spatial import cKDTree
+
+from cell.config import load_config
+from cell.config.models import CellConfig
+from cell.perception.cloud import read_ply, write_ply
+from cell.perception.pipeline import PerceptionPipeline
+from drivers.arm.replay import ReplayArm
+from drivers.clock import SimClock
+from drivers.depth.check import CheckReport, SensorCheck
+from drivers.depth.config import VL53L8CX_VALID_STATUSES, VL53L8CXConfig
+from drivers.depth.replay import JobRecording, ReplaySensor
+from drivers.depth.vl53l8cx.emulator import EmulatorFaults, SimToFSource, VL53L8CXEmulator
+from drivers.depth.vl53l8cx.serial_driver import LinkStats, VL53L8CXSerial
+from drivers.errors import CellError, JobError
+from drivers.factory import make_sensor
+from drivers.robots import get_robot_model
+
+sensor_app = typer.Typer(help="Depth sensors: commissioning check, VL53L8CX bridge emulator, job replay.",
+                         no_args_is_help=True)
+console = Console(soft_wrap=True, highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+
+def _fail(exc: BaseException) -> typer.Exit:
+    err_console.print(f"error: {exc}", markup=False, soft_wrap=True)
+    return typer.Exit(code=1)
+
+
+def _int_set(text: str) -> frozenset[int]:
+    try:
+        return frozenset(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated frame indices, got {text!r}") from None
+
+
+# -- check -----------------------------------------------------------------------------------------------
+def _print_report(report: CheckReport, link: LinkStats | None,
+                  valid_statuses: tuple[int, ...] | None) -> None:
+    rate = f"{report.rate_hz:.1f} Hz" if np.isfinite(report.rate_hz) else "- Hz"
+    device = f" (device clock {report.device_rate_hz:.1f} Hz)" if report.device_rate_hz else ""
+    console.print(f"frames: {report.frames} in {report.duration_s:.2f} s, {rate}{device}", markup=False)
+    what = (f"valid zones (statuses {', '.join(map(str, valid_statuses))})" if valid_statuses is not None
+            else "pixels with depth")
+    console.print(f"{what}: {100.0 * report.valid_share:.1f} %", markup=False)
+    if link is not None:
+        console.print(f"CRC errors: {link.crc_errors}", markup=False)
+        console.print(f"sequence gaps: {link.gaps} ({link.lost} frames lost)", markup=False)
+        console.print(f"link: {link.ranging_frames} ranging frames received ({link.skipped} skipped for a "
+                      f"newer one), {link.bad_headers} bad headers, "
+                      f"{link.malformed} malformed, {link.duplicates} duplicates, {link.restarts} restarts, "
+                      f"{link.bytes_discarded} bytes skipped", markup=False)
+    if report.zone_noise_m is not None:
+        noise_mm = report.zone_noise_m * 1e3
+        console.print("per-zone noise [mm] (std over the frames, row 0 = top of the view):", markup=False)
+        for row in noise_mm:
+            cells = ("   -  " if not np.isfinite(v) else f"{v:6.1f}" for v in row)
+            console.print(" ".join(cells), markup=False)
+        finite = noise_mm[np.isfinite(noise_mm)]
+        median = f"{np.median(finite):.1f} mm" if finite.size else "-"
+        console.print(f"median zone noise: {median}", markup=False)
+
+
+@sensor_app.command()
+def check(
+    config: Annotated[Path, typer.Option("--config", help="cell file whose sensor to check")],
+    seconds: Annotated[float, typer.Option(help="how long to read frames [s]")] = 3.0,
+    frames: Annotated[int | None, typer.Option(help="read this many frames instead of --seconds")] = None,
+    port: Annotated[str | None, typer.Option(help="VL53L8CX: pyserial URL replacing sensor.port")] = None,
+) -> None:
+    """Read frames from a cell's sensor and print commissioning figures."""
+    try:
+        cfg = load_config(config)
+        sensor_cfg = cfg.sensor
+        if port is not None:
+            if not isinstance(sensor_cfg, VL53L8CXConfig):
+                raise typer.BadParameter(f"--port is for a vl53l8cx sensor, this cell has {sensor_cfg.type}")
+            sensor_cfg = sensor_cfg.model_copy(update={"port": port, "i2c": None})
+        if sensor_cfg.type.startswith("sim-"):
+            raise JobError(f"sensor type {sensor_cfg.type} renders a simulated scene; check a hardware "
+                           "(vl53l8cx, realsense) or replay sensor")
+        sensor = make_sensor(sensor_cfg, None, lambda: np.eye(4))
+        valid = sensor_cfg.valid_statuses if isinstance(sensor_cfg, VL53L8CXConfig) else None
+        tally = SensorCheck(valid if valid is not None else VL53L8CX_VALID_STATUSES)
+        failure: CellError | None = None
+        with sensor:
+            end = time.monotonic() + seconds
+            try:
+                while (frames is not None and tally.count < frames) or (
+                        frames is None and time.monotonic() < end):
+                    frame = sensor.capture()
+                    raw = sensor.last_raw if isinstance(sensor, VL53L8CXSerial) else None
+                    tally.add(frame, time.monotonic(), raw.timestamp_us if raw is not None else None)
+            except CellError as exc:
+                failure = exc
+            link = sensor.stats if isinstance(sensor, VL53L8CXSerial) else None
+            tof = isinstance(sensor_cfg, VL53L8CXConfig) or sensor.model.kind == "tof"
+    except CellError as exc:
+        raise _fail(exc) from None
+    _print_report(tally.report(), link, (valid or VL53L8CX_VALID_STATUSES) if tof else None)
+    if failure is not None:
+        raise _fail(failure)
+
+
+# -- emulate ---------------------------------------------------------------------------------------------
+@sensor_app.command()
+def emulate(
+    socket: Annotated[str | None, typer.Option(help="serve on HOST:PORT (TCP) instead of a "
+                                                    "pseudo-terminal")] = None,
+    object: Annotated[str, typer.Option("--object", help="shipped object the sensor sees")] = "cube",
+    standoff: Annotated[float, typer.Option(help="sensor distance to the object [m]")] = 0.3,
+    seed: Annotated[int, typer.Option(help="seed of the sensor noise and of the faults")] = 0,
+    garbage: Annotated[int, typer.Option(help="random bytes sent before the banner")] = 0,
+    corrupt: Annotated[str, typer.Option(help="ranging frame indices to corrupt, e.g. 3,7")] = "",
+    corrupt_every: Annotated[int, typer.Option(help="also corrupt every N-th ranging frame")] = 0,
+    drop: Annotated[str, typer.Option(help="ranging frame indices never sent (sequence gaps)")] = "",
+    split: Annotated[bool, typer.Option(help="write frames in small chunks (split reads)")] = False,
+    disconnect_after: Annotated[int | None, typer.Option(help="close the link after N ranging "
+                                                               "frames")] = None,
+) -> None:
+    """Serve the VL53L8CX bridge protocol with simulated frames until Ctrl-C."""
+    faults = EmulatorFaults(garbage_bytes=garbage, corrupt_frames=_int_set(corrupt),
+                            corrupt_every=corrupt_every, drop_frames=_int_set(drop), split=split,
+                            disconnect_after=disconnect_after)
+    try:
+        source = SimToFSource(object, standoff_m=standoff, seed=seed)
+        if socket is not None:
+            host, _, port_text = socket.rpartition(":")
+            if not port_text.isdigit():
+                raise typer.BadParameter(f"expected HOST:PORT, got {socket!r}")
+            emulator = VL53L8CXEmulator.on_tcp(source, faults, seed, host=host or "127.0.0.1",
+                                               port=int(port_text))
+        else:
+            emulator = VL53L8CXEmulator.on_pty(source, faults, seed)
+    except (CellError, OSError) as exc:
+        raise _fail(exc) from None
+    console.print(f"VL53L8CX bridge emulator on {emulator.url}", markup=False)
+    console.print(f"  try: cell sensor check --config config/ur5e-vl53l8cx.yaml --port {emulator.url}",
+                  markup=False)
+    try:
+        emulator.run()
+    except KeyboardInterrupt:
+        emulator.close()
+    c = emulator.counters
+    console.print(f"sent {c.sent} ranging frames ({c.corrupted} corrupted, {c.dropped} dropped, "
+                  f"{c.overflowed} lost to a slow reader)", markup=False)
+
+
+# -- replay ----------------------------------------------------------------------------------------------
+def _job_config(job_dir: Path, config: Path | None) -> tuple[CellConfig, dict]:
+    """The job's result.json and the cell file to replay it with: ``config``, else the one the job names
+    (as given, or relative to the job folder)."""
+    try:
+        result = json.loads((job_dir / "result.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
+    if config is None:
+        named = Path(str(result.get("config", "")))
+        config = next((c for c in (named, job_dir / named) if c.is_file()), None)
+        if config is None:
+            raise JobError(f"the job's cell file {named} is not found; give --config")
+    return load_config(config), result
+
+
+def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> tuple[np.ndarray, int]:
+    """Play a job folder through the replay sensor and arm on a simulated clock into a fresh perception
+    pipeline of ``cfg``; returns the accumulated cloud [m, base frame] and the number of frames.
+
+    Each frame's pose is read from the replay arm at the frame's time and composed with ``cfg``'s mount,
+    as a live job does; perception's generator is the job's (the second stream spawned from ``seed``), so
+    the same cell file and seed rebuild the recorded cloud exactly.
+    """
+    recording = JobRecording(job_dir)
+    clock = SimClock()
+    arm = ReplayArm(recording, get_robot_model(cfg.arm.model), clock)
+    range_m = getattr(cfg.sensor, "range_min_m", 0.02), getattr(cfg.sensor, "range_max_m", 4.0)
+    sensor = ReplaySensor(recording, clock, range_m)
+    perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
+                                    range_max_m=sensor.model.range_max_m,
+                                    rng=np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1]))
+    T_flange_sensor = cfg.mount.matrix()
+    n = 0
+    with arm, sensor:
+        while sensor.remaining:
+            frame = sensor.capture()
+            perception.process(frame, arm.state().T_base_flange @ T_flange_sensor)
+            n += 1
+    return perception.cloud.points, n
+
+
+@sensor_app.command()
+def replay(
+    job_dir: Path,
+    config: Annotated[Path | None, typer.Option(help="cell file (default: the one the job names)")] = None,
+    seed: Annotated[int | None, typer.Option(help="perception seed (default: the job's)")] = None,
+) -> None:
+    """Re-run a recorded job's frames and poses through perception; writes cloud_replay.ply."""
+    try:
+        cfg, result = _job_config(job_dir, config)
+        cloud, n = replay_perception(job_dir, cfg, seed if seed is not None else int(result.get("seed", 0)))
+    except CellError as exc:
+        raise _fail(exc) from None
+    out = job_dir / "cloud_replay.ply"
+    write_ply(out, cloud)
+    console.print(f"{n} frames replayed, {cloud.shape[0]} points; wrote {out}", markup=False)
+    recorded_path = job_dir / "cloud.ply"
+    if recorded_path.is_file():
+        recorded = read_ply(recorded_path)
+        if recorded.shape == cloud.shape and np.array_equal(recorded, cloud):
+            console.print("identical to the recorded cloud.ply", markup=False)
+        elif recorded.shape[0] and cloud.shape[0]:
+            d, _ = cKDTree(recorded).query(cloud)
+            console.print(f"differs from cloud.ply ({recorded.shape[0]} points): nearest recorded point "
+                          f"within {d.max() * 1e3:.3f} mm (max), {np.median(d) * 1e3:.3f} mm (median)",
+                          markup=False)

@@ -1,0 +1,137 @@
+"""Replay: a recorded job's frames as a sensor and its poses as a read-only arm; a replayed job rebuilds its
+original cloud exactly."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cell.cli.main import app
+from cell.cli.sensor import replay_perception
+from cell.config import load_config
+from cell.perception.cloud import read_ply
+from drivers.arm.replay import ReplayArm
+from drivers.clock import SimClock
+from drivers.depth.config import ReplayConfig
+from drivers.depth.replay import JobRecording, PlaybackClock, ReplaySensor
+from drivers.errors import DriverError
+from drivers.factory import make_sensor
+from drivers.robots import get_robot_model
+from drivers.transforms import quat_xyzw
+
+from .conftest import FRANKA, UR5E
+
+
+def _scan(tmp_path_factory, config, max_time: str):
+    out = tmp_path_factory.mktemp("jobs") / "job"
+    res = CliRunner().invoke(app, ["scan", "--config", str(config), "--object", "cube", "--seed", "1",
+                                   "--planner", "raster", "--out", str(out), "--max-time", max_time])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def tof_job(tmp_path_factory):
+    return _scan(tmp_path_factory, UR5E, "15")
+
+
+@pytest.fixture(scope="module")
+def rgbd_job(tmp_path_factory):
+    return _scan(tmp_path_factory, FRANKA, "6")
+
+
+@pytest.mark.parametrize("job, config", [("tof_job", UR5E), ("rgbd_job", FRANKA)])
+def test_a_replayed_job_rebuilds_its_cloud_exactly(request, job, config):
+    job_dir = request.getfixturevalue(job)
+    cloud, n = replay_perception(job_dir, load_config(config), seed=1)
+    assert n == len(list((job_dir / "frames").glob("*.npz"))) >= 3
+    recorded = read_ply(job_dir / "cloud.ply")
+    assert recorded.shape[0] > 50
+    assert cloud.tobytes() == recorded.tobytes()
+
+
+def test_replay_command_writes_and_compares(tof_job):
+    res = CliRunner().invoke(app, ["sensor", "replay", str(tof_job), "--config", str(UR5E)])
+    assert res.exit_code == 0, res.output
+    assert "identical to the recorded cloud.ply" in res.output
+    assert read_ply(tof_job / "cloud_replay.ply").shape == read_ply(tof_job / "cloud.ply").shape
+
+
+def test_replay_arm_follows_the_recorded_poses(tof_job):
+    rec = JobRecording(tof_job)
+    clock = SimClock()
+    arm = ReplayArm(rec, get_robot_model("ur5e"), clock)
+    with pytest.raises(DriverError, match="disconnected"):
+        arm.state()
+    with arm:
+        for k, frame in enumerate(rec.frames):
+            clock.sleep(frame.timestamp - clock.now())
+            state = arm.state()
+            assert np.array_equal(state.T_base_flange, rec.load(k)[2])  # the capture's own pose, exactly
+            assert np.all(np.isnan(state.q)) and state.q.shape == (6,) and not np.any(state.v_base_flange)
+        with (tof_job / "trajectory.csv").open() as f:
+            rows = list(csv.reader(f))[1:]
+        t, *pose = (float(v) for v in rows[len(rows) // 3])
+        T = arm.pose_at(t) @ rec.T_flange_sensor
+        assert np.allclose(T[:3, 3], pose[:3], atol=1e-8)
+        assert np.allclose(np.abs(quat_xyzw(T) @ np.asarray(pose[3:])), 1.0, atol=1e-8)
+        assert np.array_equal(arm.pose_at(-1.0), arm.pose_at(0.0))  # before the recording: its first pose
+
+
+def test_replay_arm_cannot_move(tof_job):
+    arm = ReplayArm(JobRecording(tof_job), get_robot_model("ur5e"), SimClock())
+    with arm:
+        with pytest.raises(DriverError, match="safety guard"):
+            arm.command_twist(np.zeros(6), token=None)
+        token = arm.claim_motion()
+        with pytest.raises(DriverError, match="cannot move"):
+            arm.command_twist(np.zeros(6), token)
+        arm.stop()
+        arm.recover()
+
+
+def test_replay_sensor_plays_on_the_clock(tof_job):
+    rec = JobRecording(tof_job)
+    clock = SimClock()
+    sensor = ReplaySensor(rec, clock, (0.02, 4.0))
+    assert sensor.model.kind == "tof" and sensor.model.width == 8
+    assert sensor.model.fov_x_deg == pytest.approx(45.0)
+    with sensor:
+        first = sensor.capture()  # waits (lets the clock run) until the first recorded frame
+        assert clock.now() == pytest.approx(rec.frames[0].timestamp) and first.seq == rec.frames[0].seq
+        k = len(rec.frames) - 2
+        assert k >= 2
+        clock.sleep(rec.frames[k].timestamp - clock.now())
+        assert sensor.capture().seq == rec.frames[k].seq  # the newest due frame; the ones between: missed
+        last = sensor.capture()
+        assert sensor.remaining == 0
+        assert last.seq == rec.frames[-1].seq and last.zones is not None and last.points.shape[1] == 3
+        with pytest.raises(DriverError, match="replay ended"):
+            sensor.capture()
+
+
+def test_replay_of_a_depth_camera_gives_back_its_image_and_points(rgbd_job):
+    rec = JobRecording(rgbd_job)
+    frame, T_base_sensor, T_base_flange = rec.load(0)
+    assert frame.depth.shape == (480, 640) and frame.intrinsics.shape == (3, 3)
+    assert frame.points.shape[0] == np.count_nonzero(frame.depth)
+    assert np.allclose(T_base_flange @ rec.T_flange_sensor, T_base_sensor)
+    sensor = ReplaySensor(rec, SimClock(), (0.1, 1.5))
+    assert sensor.model.kind == "rgbd" and sensor.model.width == 640
+
+
+def test_not_a_job_folder(tmp_path):
+    with pytest.raises(DriverError, match="no recorded frames"):
+        JobRecording(tmp_path)
+    with pytest.raises(DriverError, match="no recorded frames"):
+        make_sensor(ReplayConfig(type="replay", job_dir=str(tmp_path)), None, lambda: np.eye(4))
+
+
+def test_factory_replay_plays_in_real_time_from_the_first_frame(tof_job):
+    sensor = make_sensor(ReplayConfig(type="replay", job_dir=str(tof_job)), None, lambda: np.eye(4))
+    assert isinstance(sensor, ReplaySensor)
+    clock = PlaybackClock(2.5)
+    assert 2.5 <= clock.now() < 3.5
