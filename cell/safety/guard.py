@@ -286,6 +286,17 @@ class MotionGuard:
         v = self._smoother.step(limited)
         if np.any(np.abs(v - limited) > 1e-9):
             self.log.clamp("tcp_acceleration")
+        # The smoother blends towards the target from a twist limited at an earlier configuration (which
+        # may ask a joint for slightly more here), and when a new target arrives mid-ramp its axes are
+        # only time-synchronised (the blend may bulge past a speed limit); scale such a twist down and
+        # continue smoothing from there.
+        s = self._safety
+        ratio = max(float(np.max(np.abs(ik @ v) / self._qd_limit)),
+                    float(np.linalg.norm(v[:3])) / s.tcp_max_linear_mps,
+                    float(np.linalg.norm(v[3:])) / s.tcp_max_angular_rps)
+        if ratio > 1.0:
+            v = self._smoother.scale(1.0 / ratio)
+            self.log.clamp("smoothed_twist")
         q_pred = state.q + ik @ v * self._safety.collision.lookahead_s
         hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))
         if hit is not None:

@@ -39,19 +39,22 @@ class TwistSmoother:
         inp.max_velocity = [1e3] * 6  # not used by the velocity interface; ruckig wants a value
         self.reset()
 
-    def reset(self, twist: Array | None = None) -> None:
-        """Restart from rest (or from ``twist``, e.g. what the arm reports) with zero acceleration."""
+    def reset(self) -> None:
+        """Restart from rest with zero acceleration (after a stop)."""
         inp = self._inp
         inp.current_position = [0.0] * 6
-        inp.current_velocity = [0.0] * 6 if twist is None else np.asarray(twist, dtype=float).tolist()
+        inp.current_velocity = [0.0] * 6
         inp.current_acceleration = [0.0] * 6
-        inp.target_velocity = inp.current_velocity
+        inp.target_velocity = [0.0] * 6
         inp.target_acceleration = [0.0] * 6
 
-    @property
-    def twist(self) -> Array:
-        """The twist the smoother last produced."""
-        return np.array(self._inp.current_velocity)
+    def scale(self, factor: float) -> Array:
+        """Scale the current twist and acceleration by ``factor`` (0, 1] (a limit applied after smoothing);
+        keeping the acceleration keeps a braking ramp going. Returns the scaled twist."""
+        inp = self._inp
+        inp.current_velocity = (np.array(inp.current_velocity) * factor).tolist()
+        inp.current_acceleration = (np.array(inp.current_acceleration) * factor).tolist()
+        return np.array(inp.current_velocity)
 
     def step(self, target: Array) -> Array:
         """One control period towards ``target``; returns the twist to send now."""

@@ -1,0 +1,327 @@
+"""The guard on its own, for both robot models in sim: property-based twist streams and random targets
+never cross a barrier plane, never collide, never exceed a limit; ruckig trajectories respect the limits;
+the pieces (projection, collision world, watchdog, smoothing) against hand-made cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from cell.config import load_config
+from cell.config.models import CellConfig
+from cell.control.trajectory import joint_trajectory
+from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, project_onto_halfspaces
+from cell.safety.collision import CollisionWorld
+from cell.safety.config import WatchdogConfig
+from cell.safety.guard import MotionGuard
+from cell.safety.smoothing import TwistSmoother
+from cell.safety.watchdog import Watchdog
+from drivers.arm.base import ArmMode, JointTrajectory
+from drivers.arm.sim import SimArm
+from drivers.clock import SimClock
+from drivers.errors import SafetyStop
+from drivers.robots import get_robot_model
+
+from .conftest import FRANKA, UR5E
+
+CELLS = {"panda": FRANKA, "ur5e": UR5E}
+PROPERTY = settings(max_examples=5, deadline=None, derandomize=True,
+                    suppress_health_check=[HealthCheck.too_slow])
+
+
+class Rig:
+    """A simulated arm driven by a guard, recording every twist that reaches the backend."""
+
+    def __init__(self, model_name: str) -> None:
+        self.cfg: CellConfig = load_config(CELLS[model_name])
+        self.model = get_robot_model(model_name)
+        self.clock = SimClock()
+        self.arm = SimArm(self.cfg.arm, self.model, self.clock, np.random.default_rng(0))
+        self.arm.connect()
+        self.guard = MotionGuard.from_config(self.arm, self.model, self.cfg, self.clock)
+        self.dt = 1.0 / self.cfg.scan.control_rate_hz
+        self.sent: list[np.ndarray] = []
+        backend = self.arm._command_twist
+        self.arm._command_twist = lambda v: (self.sent.append(np.array(v)), backend(v))  # type: ignore[method-assign]
+
+    def step(self) -> None:
+        self.clock.sleep(self.dt)
+        self.check_state()
+
+    def check_state(self) -> None:
+        s = self.arm.state()
+        sf = self.cfg.safety
+        g = self.guard
+        distance = g.barriers.clearances(g.guarded_points(s.T_base_flange)) + g.barriers.margin_m
+        assert distance.min() >= 0.0, f"crossed a barrier by {-distance.min() * 1e3:.2f} mm"
+        assert g.collision.check(s.q) is None
+        assert np.all(np.abs(s.qd) <= self.model.qd_max * sf.joint_velocity_scale * 1.05 + 1e-9)
+        assert np.all(s.q >= self.model.q_min) and np.all(s.q <= self.model.q_max)
+
+    def check_sent(self) -> None:
+        sf = self.cfg.safety
+        v = np.array(self.sent) if self.sent else np.zeros((0, 6))
+        assert np.all(np.linalg.norm(v[:, :3], axis=1) <= sf.tcp_max_linear_mps * (1 + 1e-9))
+        assert np.all(np.linalg.norm(v[:, 3:], axis=1) <= sf.tcp_max_angular_rps * (1 + 1e-9))
+        if len(v) > 1:
+            acc = np.diff(v, axis=0) / self.dt
+            assert np.all(np.linalg.norm(acc[:, :3], axis=1) <= sf.tcp_max_linear_acc_mps2 * (1 + 1e-6))
+            assert np.all(np.linalg.norm(acc[:, 3:], axis=1) <= sf.tcp_max_angular_acc_rps2 * (1 + 1e-6))
+
+
+twists = st.lists(st.tuples(st.lists(st.floats(-0.6, 0.6), min_size=3, max_size=3),
+                            st.lists(st.floats(-1.5, 1.5), min_size=3, max_size=3),
+                            st.integers(10, 60)), min_size=1, max_size=4)
+
+
+@pytest.mark.parametrize("model_name", ["panda", "ur5e"])
+@PROPERTY
+@given(stream=twists)
+def test_random_twist_streams_stay_safe(model_name, stream):
+    rig = Rig(model_name)
+    try:
+        for lin, ang, ticks in stream:
+            rig.guard.command_twist(np.array(lin + ang))
+            for _ in range(ticks):
+                rig.guard.tick()
+                rig.step()
+        rig.guard.hold()
+        for _ in range(60):
+            rig.guard.tick()
+            rig.step()
+    except SafetyStop:
+        # A refusal (a collision predicted ahead) stops the arm: it must come to rest safely too.
+        for _ in range(100):
+            rig.step()
+        assert rig.arm.state().mode is ArmMode.IDLE
+    rig.check_sent()
+
+
+@pytest.mark.parametrize("model_name", ["panda", "ur5e"])
+@PROPERTY
+@given(fractions=st.lists(st.floats(0.0, 1.0), min_size=7, max_size=7))
+def test_random_targets_are_refused_or_executed_safely(model_name, fractions):
+    rig = Rig(model_name)
+    m = rig.model
+    lo = m.q_min + rig.cfg.safety.joint_position_margin_rad
+    hi = m.q_max - rig.cfg.safety.joint_position_margin_rad
+    q_goal = lo + (hi - lo) * np.array(fractions[:m.n_joints])
+    sf = rig.cfg.safety
+    traj = joint_trajectory(m, rig.arm.state().q, q_goal, dt=rig.dt, velocity_scale=sf.joint_velocity_scale,
+                            acceleration_scale=sf.joint_acceleration_scale, jerk_scale=sf.joint_jerk_scale)
+    _, refusal = rig.guard.check_trajectory(traj)
+    if refusal is not None:
+        assert refusal.kind in {"collision", "barrier", "joint margin"}
+        return
+    started = rig.guard.execute_trajectory(traj)
+    for _ in range(int(started.duration / rig.dt) + 5):
+        rig.guard.tick()
+        rig.step()
+    np.testing.assert_allclose(rig.arm.state().q, q_goal, atol=1e-9)
+
+
+def test_refused_trajectory_names_the_bodies_and_stops():
+    rig = Rig("ur5e")
+    q0 = rig.arm.state().q
+    q_goal = q0.copy()
+    q_goal[1] += 1.2  # shoulder down: the upper arm swings into the table
+    sf = rig.cfg.safety
+    traj = joint_trajectory(rig.model, q0, q_goal, dt=rig.dt, velocity_scale=sf.joint_velocity_scale,
+                            acceleration_scale=sf.joint_acceleration_scale, jerk_scale=sf.joint_jerk_scale)
+    _, refusal = rig.guard.check_trajectory(traj)
+    assert refusal is not None and refusal.kind in {"collision", "barrier"}
+    with pytest.raises(SafetyStop, match="refused"):
+        rig.guard.execute_trajectory(traj)
+    log = rig.guard.log.as_dict()
+    assert log["refusals"] and log["stops"][0]["reason"].startswith("refused")
+
+
+@pytest.mark.parametrize("model_name", ["panda", "ur5e"])
+def test_ruckig_trajectories_respect_the_configured_limits(model_name):
+    cfg = load_config(CELLS[model_name])
+    m = get_robot_model(model_name)
+    sf = cfg.safety
+    rng = np.random.default_rng(5)
+    dt = 0.002
+    for _ in range(5):
+        q0, q1 = rng.uniform(m.q_min, m.q_max), rng.uniform(m.q_min, m.q_max)
+        traj = joint_trajectory(m, q0, q1, dt=dt, velocity_scale=sf.joint_velocity_scale,
+                                acceleration_scale=sf.joint_acceleration_scale,
+                                jerk_scale=sf.joint_jerk_scale)
+        assert traj.qd is not None
+        assert np.all(np.abs(traj.qd) <= m.qd_max * sf.joint_velocity_scale * (1 + 1e-6))
+        qdd = np.diff(traj.qd, axis=0) / np.diff(traj.t)[:, None]
+        assert np.all(np.abs(qdd) <= m.qdd_max * sf.joint_acceleration_scale * 1.01 + 1e-6)
+        np.testing.assert_array_equal(traj.q[-1], q1)
+
+
+def test_a_twist_into_a_plane_slides_along_it():
+    plane = BarrierPlane.make("wall", [0.5, 0.0, 0.0], [-1.0, 0.0, 0.0])
+    b = Barriers([plane], margin_m=0.0, acc=1.0, jerk=10.0, latency_s=0.01, time_constant_s=0.1)
+    at_wall = np.array([[0.5, 0.0, 0.3]])
+    v, active = b.project_twist(np.array([0.2, 0.1, 0.0, 0.0, 0.0, 0.0]), at_wall[0], at_wall, 1.0)
+    np.testing.assert_allclose(v, [0.0, 0.1, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    assert active == ["wall"]
+    away, _ = b.project_twist(np.array([-0.2, 0.1, 0.0, 0.0, 0.0, 0.0]), at_wall[0], at_wall, 1.0)
+    np.testing.assert_allclose(away[:3], [-0.2, 0.1, 0.0])
+    # Far from the plane, the twist passes unchanged.
+    far = np.array([[0.0, 0.0, 0.3]])
+    same, none = b.project_twist(np.array([0.2, 0.1, 0.0, 0.0, 0.0, 0.0]), far[0], far, 0.25)
+    np.testing.assert_allclose(same[:3], [0.2, 0.1, 0.0])
+    assert none == []
+
+
+def test_two_planes_at_once_leave_the_edge_direction():
+    planes = [BarrierPlane.make("x", [0.5, 0, 0], [-1, 0, 0]),
+              BarrierPlane.make("floor", [0, 0, 0.1], [0, 0, 1])]
+    b = Barriers(planes, margin_m=0.0, acc=1.0, jerk=10.0, latency_s=0.01, time_constant_s=0.1)
+    corner = np.array([0.5, 0.0, 0.1])
+    v = b.project_velocity(corner, np.array([0.3, 0.2, -0.4]), activation_m=0.01)
+    np.testing.assert_allclose(v, [0.0, 0.2, 0.0], atol=1e-12)
+
+
+def test_the_halfspace_projection_is_the_closest_feasible_point():
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        m = int(rng.integers(1, 5))
+        A, b = rng.normal(size=(m, 3)), rng.normal(size=m) * 0.1 - 0.3
+        x_d = rng.normal(size=3)
+        x, _ = project_onto_halfspaces(x_d, A, b, np.ones(3))
+        assert np.min(A @ x - b) >= -1e-9
+        # No feasible point among many random ones is closer.
+        cand = x + rng.normal(size=(2000, 3)) * 0.05
+        ok = np.all(cand @ A.T - b >= 0.0, axis=1)
+        assert np.all(np.linalg.norm(cand[ok] - x_d, axis=1) >= np.linalg.norm(x - x_d) - 1e-9)
+
+
+def test_approach_speed_lets_a_braking_motion_stop_before_the_plane():
+    acc, jerk, latency = 1.0, 10.0, 0.01
+    for d in (0.001, 0.01, 0.05, 0.3):
+        v = float(approach_speed(np.array(d), acc=acc, jerk=jerk, latency_s=latency, time_constant_s=1e-9))
+        t = latency + acc / jerk
+        assert v * t + v * v / (2 * acc) == pytest.approx(d, rel=1e-9)
+    assert float(approach_speed(np.array(-0.01), acc=acc, jerk=jerk, latency_s=latency,
+                                time_constant_s=0.1)) == 0.0
+
+
+@pytest.mark.parametrize("model_name", ["panda", "ur5e"])
+def test_collision_world_names_the_bodies(model_name):
+    cfg = load_config(CELLS[model_name])
+    m = get_robot_model(model_name)
+    world = CollisionWorld(m, cfg.safety.collision, cfg.station.table_z_m)
+    q_home = np.asarray(cfg.arm.home_joints_rad)
+    assert world.check(q_home) is None
+    flange = m.fk(q_home)[:3, 3]
+    world.set_roi(flange - 0.05, flange + 0.05)
+    hit = world.check(q_home)
+    assert hit is not None and hit.body_b == "object ROI"
+    world.set_roi(None, None)
+    assert world.check(q_home) is None
+
+
+def test_obstacles_of_every_shape_are_checked(tmp_path):
+    cfg = load_config(UR5E)
+    m = get_robot_model("ur5e")
+    q_home = np.asarray(cfg.arm.home_joints_rad)
+    flange = m.fk(q_home)[:3, 3]
+    mesh_path = tmp_path / "block.ply"
+    o3d.io.write_triangle_mesh(str(mesh_path), o3d.geometry.TriangleMesh.create_box(0.1, 0.1, 0.1))
+    shapes = [
+        {"shape": "box", "name": "crate", "size_m": [0.1, 0.1, 0.1]},
+        {"shape": "cylinder", "name": "pillar", "radius_m": 0.05, "length_m": 0.2},
+        {"shape": "mesh", "name": "block", "path": str(mesh_path)},
+    ]
+    for shape in shapes:
+        at = flange - (0.05 if shape["shape"] == "mesh" else 0.0)
+        data = cfg.safety.collision.model_dump(mode="json")
+        data["obstacles"] = [{**shape, "pose": {"xyz_m": at.tolist()}}]
+        collision = type(cfg.safety.collision).model_validate(data)
+        hit = CollisionWorld(m, collision, cfg.station.table_z_m).check(q_home)
+        assert hit is not None and hit.body_b == shape["name"]
+
+
+def test_self_collision_is_found_and_adjacent_links_are_not():
+    cfg = load_config(UR5E)
+    m = get_robot_model("ur5e")
+    world = CollisionWorld(m, cfg.safety.collision, cfg.station.table_z_m)
+    q = np.asarray(cfg.arm.home_joints_rad).copy()
+    q[2] = 3.05  # elbow folded back onto the upper arm
+    hit = world.check(q)
+    assert hit is not None and {hit.body_a, hit.body_b} <= set(world.moving_names)
+    assert not m.are_adjacent(hit.body_a, hit.body_b)
+
+
+def test_trajectory_check_is_dense():
+    cfg = load_config(UR5E)
+    m = get_robot_model("ur5e")
+    world = CollisionWorld(m, cfg.safety.collision, cfg.station.table_z_m)
+    q0 = np.asarray(cfg.arm.home_joints_rad)
+    q_mid = q0.copy()
+    q_mid[1] += 1.2
+    assert world.check(q_mid) is not None
+    # Two collision-free end points whose straight joint path passes through q_mid.
+    q_end = q0.copy()
+    q_end[1] += 2.4
+    path = np.vstack([q0, q_end])
+    hit = world.check_path(path, 0.02)
+    assert hit is not None and hit[0] == 1
+
+
+def test_watchdog_counts_late_ticks_in_a_row():
+    dog = Watchdog(WatchdogConfig(deadline_factor=1.5, max_missed_deadlines=3, perception_max_age_s=2.0),
+                   period_s=0.01)
+    assert dog.tick(0.0) is None
+    assert dog.tick(0.02) is None and dog.tick(0.04) is None  # two late ticks
+    assert dog.tick(0.05) is None and dog.missed_in_a_row == 0  # on time again: the count restarts
+    assert dog.tick(0.07) is None and dog.tick(0.09) is None
+    reason = dog.tick(0.11)
+    assert reason is not None and "3 times in a row" in reason
+    assert dog.perception(5.0, None) is None and dog.perception(5.0, 3.5) is None
+    assert "2.50 s old" in (dog.perception(5.0, 2.5) or "")
+
+
+def test_smoother_keeps_direction_and_limits():
+    sm = TwistSmoother(0.01, (1.0, 2.0), (10.0, 20.0))
+    target = np.array([0.2, -0.1, 0.05, 0.0, 0.3, 0.0])
+    out = [sm.step(target) for _ in range(200)]
+    v = np.array(out)
+    lin = v[:, :3]
+    # Intermediate linear velocities point along the target (phase synchronisation; ruckig ends the ramp
+    # within a couple of degrees of it).
+    cos = (lin @ target[:3]) / (np.linalg.norm(lin, axis=1) * np.linalg.norm(target[:3]) + 1e-15)
+    assert np.all(cos[np.linalg.norm(lin, axis=1) > 1e-6] > 0.999)
+    assert np.all(np.linalg.norm(np.diff(v[:, :3], axis=0), axis=1) / 0.01 <= 1.0 + 1e-6)
+    np.testing.assert_allclose(v[-1], target, atol=1e-9)
+
+
+def test_guard_refuses_bad_twists_and_conflicting_motion():
+    rig = Rig("panda")
+    with pytest.raises(SafetyStop, match="6 finite values"):
+        rig.guard.command_twist(np.array([0.0, np.nan, 0, 0, 0, 0]))
+    rig2 = Rig("ur5e")
+    rig2.guard.command_twist(np.array([0.01, 0, 0, 0, 0, 0]))
+    q = rig2.arm.state().q
+    with pytest.raises(SafetyStop, match="while a twist is being streamed"):
+        rig2.guard.execute_trajectory(JointTrajectory(t=np.array([0.0, 1.0]), q=np.vstack([q, q])))
+
+
+def test_fault_stop_leaves_the_arm_recoverable():
+    rig = Rig("panda")
+    rig.guard.command_twist(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    for _ in range(30):
+        rig.guard.tick()
+        rig.step()
+    rig.arm.inject_fault("reflex")
+    with pytest.raises(SafetyStop, match="arm fault: reflex"):
+        rig.guard.tick()
+    for _ in range(50):
+        rig.step()
+    rig.arm.recover()
+    rig.guard.command_twist(np.array([0.0, 0.02, 0.0, 0.0, 0.0, 0.0]))
+    for _ in range(20):
+        rig.guard.tick()
+        rig.step()
+    assert rig.arm.state().mode is ArmMode.VELOCITY
