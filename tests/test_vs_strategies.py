@@ -12,7 +12,7 @@ from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
 from cell.planning.vs.local import LocalGradient, VSLocalPlanner
 from cell.planning.vs.objective import ray_grid
-from cell.planning.vs.servo_scan import objective_rays, start_view, translated
+from cell.planning.vs.servo_scan import achieved_fraction, objective_rays, start_views, translated
 from drivers.errors import PlanningError
 from drivers.transforms import look_at
 
@@ -85,11 +85,14 @@ def test_objective_rays_follow_the_sensor(franka):
     np.testing.assert_allclose(objective_rays(tof), ray_grid(8, tof.sensor.fov_deg))
 
 
-def test_start_view_looks_at_the_station_from_the_standoff(franka):
-    T = start_view(franka)
+def test_start_views_look_at_the_station_from_the_standoff(franka):
+    T, above = start_views(franka)
     target = np.array([*franka.station.xy_m, franka.planners.vs.start.target_height_m])
     assert np.linalg.norm(T[:3, 3] - target) == pytest.approx(franka.scan.standoff_m)
     np.testing.assert_allclose(T[:3, 2], (target - T[:3, 3]) / franka.scan.standoff_m, atol=1e-12)
+    assert T[1, 3] < target[1] - 0.2  # sideways, from -y
+    np.testing.assert_allclose(above[:3, 3], target + np.array([0.0, 0.0, franka.scan.standoff_m]))
+    np.testing.assert_allclose(above[:3, 2], [0.0, 0.0, -1.0], atol=1e-12)
 
 
 def test_sphere_views_match_look_at():
@@ -129,21 +132,24 @@ def test_local_direction_slides_along_a_barrier(franka):
 
 def test_local_convergence_needs_a_full_window_mostly_below_one(franka):
     local = LocalGradient(franka)
-    session = FakeSession()
-    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
-    session.pose = T
-    alpha = franka.planners.vs_local.alpha
-    weak, strong = LinearObjective([0.5 / alpha, 0, 0]), LinearObjective([3.0 / alpha, 0, 0])
     for _ in range(199):
-        local(session, T, weak)
+        local.record(0.5)
     assert not local.converged()  # 199 of 200
-    local(session, T, weak)
+    local.record(0.5)
     assert local.converged()
     for _ in range(40):  # 160 weak, 40 strong: exactly 80 %, not more
-        local(session, T, strong)
+        local.record(3.0)
     assert not local.converged()
     local.reset()
     assert not local.converged()
+
+
+def test_achieved_fraction_measures_what_the_guard_let_through():
+    v = np.array([0.02, 0.0, 0.0, 0.0, 0.1, 0.0])
+    assert achieved_fraction(v, v) == 1.0
+    assert achieved_fraction(v, 0.25 * v) == pytest.approx(0.25)
+    assert achieved_fraction(v, np.zeros(6)) == 0.0  # held by a joint limit
+    assert achieved_fraction(np.zeros(6), np.zeros(6)) == 1.0
 
 
 def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):
@@ -193,7 +199,11 @@ def test_hybrid_goes_global_after_local_converges_then_back(franka):
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     session.pose = T
     weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0])
-    modes = [planner.secondary(session, T, weak).mode for _ in range(201)]
+    modes = []
+    for _ in range(201):
+        sec = planner.secondary(session, T, weak)
+        planner.observe(sec, sec.g_norm)
+        modes.append(sec.mode)
     assert modes[:200] == ["local"] * 200 and modes[200] == "global"
     assert planner.goals.n_goals == 1
     session.pose = planner.goals.goal

@@ -75,12 +75,13 @@ class VSConfig(StrictModel):
 
 class VSLocalConfig(StrictModel):
     """VS-Local (eq. 4-6): central differences over ``delta_m`` (5 cm) along the camera's x and y, the
-    gradient scaled by ``alpha`` (1e-4) and its norm clipped to ``g_max`` (1); the scan ends when
+    gradient scaled by ``alpha`` [m/nats] and its norm clipped to ``g_max`` (1); the scan ends when
     ||g|| < ``g_max`` (before clipping) in more than ``converged_fraction`` (80 %) of the last
-    ``window`` (200) servo evaluations."""
+    ``window`` (200) servo evaluations. ``alpha`` departs from the paper's 1e-4, which belongs to an
+    unstated scale of f: see ``cell.planning.vs.local``."""
 
     delta_m: PositiveFloat = 0.05
-    alpha: PositiveFloat = 1e-4
+    alpha: PositiveFloat = 0.3
     g_max: PositiveFloat = 1.0
     window: PositiveInt = 200
     converged_fraction: float = Field(default=0.8, gt=0.0, lt=1.0)

@@ -34,5 +34,9 @@ class VSHybridPlanner(ServoScanPlanner):
             return self.goals(session, T_base_cam, objective)
         return self.local(session, T_base_cam, objective)
 
+    def observe(self, secondary: Secondary, g_norm: float) -> None:
+        if secondary.mode == "local":
+            self.local.record(g_norm)
+
     def finished(self, session: ScanSession) -> str | None:
         return self.entropy_settled()

@@ -12,7 +12,9 @@ ends the scan by returning a reason from ``secondary``'s companion ``finished``;
 safety stops end it from the session.
 
 ``telemetry`` keeps one row per servo iteration: the series of the paper's Fig. 4 (||e||, f(r), ||g||
-before clipping, H_ROI) with the job time and the strategy's mode.
+before clipping, H_ROI) with the job time and the strategy's mode. ||g|| there is after the barrier
+projection and scaled by the share of the commanded motion the guard let through, so that it falls when
+the camera is held by a plane or a joint limit (the drop of the paper's Fig. 4 at 38 s).
 """
 
 from __future__ import annotations
@@ -65,15 +67,28 @@ def objective_rays(config: CellConfig) -> Array:
     return ray_grid(oc.rays_per_side, oc.fov_deg)
 
 
-def start_view(config: CellConfig) -> Array:
-    """T_base_sensor of the start view (``planners.vs.start``), at Z* from its target point."""
+def start_views(config: CellConfig) -> list[Array]:
+    """T_base_sensor of the start view (``planners.vs.start``) at Z* from its target point, then of a
+    view from straight above it, tried when the first shows no object (a sparse 8x8 frame from the side
+    may hold too few object points to segment)."""
     st = config.planners.vs.start
     station = config.station
     target = np.array([station.xy_m[0], station.xy_m[1], station.table_z_m + st.target_height_m])
     el, az = np.deg2rad(st.elevation_deg), np.deg2rad(st.azimuth_deg)
-    eye = target + config.scan.standoff_m * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
-                                                      np.sin(el)])
-    return look_at(eye, target)
+    Z = config.scan.standoff_m
+    eye = target + Z * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    # From above, image "up" points away from the robot base (+x), as the raster planner's zenith view.
+    above = look_at(target + np.array([0.0, 0.0, Z]), target, up_hint=np.array([1.0, 0.0, 0.0]))
+    return [look_at(eye, target), above]
+
+
+def achieved_fraction(v_commanded: Array, v_allowed: Array) -> float:
+    """The share in [0, 1] of the commanded translation speed that the guard's limits let through (joint
+    limits and margins, barrier planes, speed limits); 1 when nothing was commanded."""
+    wanted = float(np.linalg.norm(v_commanded[:3]))
+    if wanted < 1e-9:
+        return 1.0
+    return min(1.0, float(np.linalg.norm(v_allowed[:3])) / wanted)
 
 
 def translated(T_base_cam: Array, offsets_cam: Array) -> Array:
@@ -114,6 +129,10 @@ class ServoScanPlanner(Planner):
     def finished(self, session: ScanSession) -> str | None:
         """Why the scan is complete, or None to go on; called after every iteration."""
 
+    def observe(self, secondary: Secondary, g_norm: float) -> None:
+        """After the twist went out: ``g_norm`` is ||g|| before clipping scaled by the share of the motion
+        the guard let through (a strategy with a convergence rule on ||g|| counts it here)."""
+
     def entropy_settled(self) -> str | None:
         """The H_ROI termination of section II-D: the standard deviation of the last ``h_roi_window``
         (10) values of eq. 12 is below ``h_roi_std`` (0.001)."""
@@ -141,22 +160,30 @@ class ServoScanPlanner(Planner):
         if update.h_roi is not None:
             self.h_roi.append(update.h_roi)
 
-    def _wait_for_object(self, session: ScanSession, period: float) -> None:
-        deadline = session.now() + self.vs.first_object_timeout_s
-        while self.centroid is None:
-            if session.now() >= deadline:
-                raise PlanningError(f"no object segmented within {self.vs.first_object_timeout_s:g} s "
-                                    "of the start view")
-            session.wait(period)
+    def _find_object(self, session: ScanSession, period: float) -> None:
+        """Go to the start views in turn until perception segments an object, waiting at each up to
+        ``first_object_timeout_s`` [s] of captures; continuous capture is on from the first view
+        reached."""
+        capturing = False
+        for view in start_views(self.config):
+            if not session.move_to_sensor_pose(view):
+                continue
+            if not capturing:
+                session.set_continuous_capture(True)
+                capturing = True
+            deadline = session.now() + self.vs.first_object_timeout_s
             self._perceive(session)
+            while self.centroid is None and session.now() < deadline:
+                session.wait(period)
+                self._perceive(session)
+            if self.centroid is not None:
+                return
+        raise PlanningError(f"no object segmented from the start views within "
+                            f"{self.vs.first_object_timeout_s:g} s each (unreachable views are in the log)")
 
     def run(self, session: ScanSession) -> str:
-        if not session.move_to_sensor_pose(start_view(self.config)):
-            raise PlanningError("the start view is not reachable (see the log)")
         period = 1.0 / self.vs.servo_rate_hz
-        session.set_continuous_capture(True)
-        self._perceive(session)
-        self._wait_for_object(session, period)
+        self._find_object(session, period)
         zero = np.zeros(6)
         while True:
             self._perceive(session)
@@ -169,9 +196,12 @@ class ServoScanPlanner(Planner):
             else:
                 sec = Secondary(zero, 0.0, float(self.objective(T)), "primary")
             out = self.servo.step(s, sec.g)
-            session.command_sensor_twist(out.v)
+            allowed = session.command_sensor_twist(out.v)
+            g_norm = sec.g_norm * achieved_fraction(out.v, allowed)
+            if sec.mode != "primary":
+                self.observe(sec, g_norm)
             self.telemetry.append(TelemetryRow(
-                t=session.now(), e_norm=float(np.linalg.norm(out.e)), f=sec.f, g_norm=sec.g_norm,
+                t=session.now(), e_norm=float(np.linalg.norm(out.e)), f=sec.f, g_norm=g_norm,
                 h_roi=self.h_roi[-1] if self.h_roi else None, mode=sec.mode))
             reason = self.finished(session)
             if reason is not None:
