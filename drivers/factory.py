@@ -37,22 +37,26 @@ Array = NDArray[np.float64]
 
 @dataclass
 class SimWorld:
-    """What simulated backends share: the job's sim clock, random generator and scene."""
+    """What simulated backends share: the job's clock, random generator and scene. The clock is the
+    simulated one in sim mode; in a dry run (a hardware arm with a simulated sensor) it is the wall clock,
+    and the simulated arm, which needs the simulated clock, is not part of it."""
 
-    clock: SimClock
+    clock: Clock
     rng: np.random.Generator
     scene: SimScene
 
 
 def _need_sim(sim: SimWorld | None, kind: str) -> SimWorld:
     if sim is None:
-        raise DriverError("a simulated backend needs a simulated world (mode: sim)", device=kind)
+        raise DriverError("a simulated backend needs a simulated world (mode: sim or dry-run)", device=kind)
     return sim
 
 
 def _sim_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
     assert isinstance(cfg, SimArmConfig)
     world = _need_sim(sim, "arm sim")
+    if not isinstance(world.clock, SimClock):
+        raise DriverError("the simulated arm needs the simulated clock (mode: sim)", device="arm sim")
     return SimArm(cfg, model, world.clock, world.rng)
 
 

@@ -129,10 +129,20 @@ class ScanConfig(StrictModel):
 
 class CellConfig(StrictModel):
     """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan,
-    planners, and the packing result (container catalogue)."""
+    planners, and the packing result (container catalogue).
+
+    ``mode`` says which devices are real:
+
+    - ``sim``: the simulated arm and a simulated sensor on the simulated clock (deterministic);
+    - ``dry-run``: a hardware arm (``ur5e``, ``franka``) and a simulated sensor (``sim-...``) that renders
+      the job's virtual object and the ``sim`` section's table from the pose the arm reports, on the wall
+      clock. Every motion goes through the guard to the real controller; commissioning a cell starts
+      this way, with no object on the table;
+    - ``real``: a hardware arm and a hardware sensor.
+    """
 
     name: str
-    mode: Literal["sim", "real"]
+    mode: Literal["sim", "dry-run", "real"]
     arm: ArmConfig
     sensor: DepthConfig
     mount: PoseConfig = Field(description="T_flange_sensor, the hand-eye transform")
@@ -150,6 +160,10 @@ class CellConfig(StrictModel):
         sim_sensor = self.sensor.type.startswith("sim-")
         if self.mode == "sim" and not (sim_arm and sim_sensor):
             raise ValueError("mode 'sim' needs arm.type 'sim' and a 'sim-...' sensor type")
-        if self.mode == "real" and sim_arm:
-            raise ValueError("mode 'real' needs a hardware arm type ('ur5e' or 'franka')")
+        if self.mode == "dry-run" and (sim_arm or not sim_sensor):
+            raise ValueError("mode 'dry-run' needs a hardware arm type ('ur5e' or 'franka') and a 'sim-...' "
+                             "sensor type")
+        if self.mode == "real" and (sim_arm or sim_sensor):
+            raise ValueError("mode 'real' needs a hardware arm type ('ur5e' or 'franka') and a hardware "
+                             "sensor type (a simulated sensor with a hardware arm is mode 'dry-run')")
         return self

@@ -4,6 +4,10 @@ Set-up order: planner name, object and folder are checked before any driver conn
 before anything moves. A failure inside the loop stops the arm through the guard, writes everything
 recorded so far with ``status`` ``failed`` (or ``stopped`` for a safety stop) and ``termination`` saying
 why, then re-raises.
+
+Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
+job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
+the arm reports it is.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.registry import get_planner
 from cell.safety.guard import MotionGuard
 from drivers.arm.sim import SimArm
-from drivers.clock import SimClock
+from drivers.clock import Clock, SimClock, WallClock
 from drivers.depth.sim_base import SimDepthSensor
 from drivers.errors import CellError, JobError, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
@@ -94,8 +98,9 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
 def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
     """Run the scan described by ``req``; returns the job folder and the result written there."""
     cfg = req.config
-    if cfg.mode != "sim":
-        raise JobError("this release runs scans in sim mode only; hardware backends are not available yet")
+    if cfg.mode == "real":
+        raise JobError("scans with a hardware sensor (mode 'real') are not available yet; mode 'dry-run' "
+                       "scans with a hardware arm and a simulated sensor")
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
     mesh = load_object(req.object)
@@ -109,7 +114,9 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     # One seed per job, split into independent streams so that perception's random draws (RANSAC) never
     # change the noise the simulated devices see.
     world_rng, perception_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(req.seed).spawn(2))
-    clock = SimClock()
+    # A dry run drives a hardware arm: the job runs on the wall clock, and the simulated sensor renders
+    # the virtual object from the pose the arm reports (true_flange_pose).
+    clock: Clock = SimClock() if cfg.mode == "sim" else WallClock()
     T_base_object = object_pose_in_base(cfg, req.object_pose)
     scene = SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
                      table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
@@ -121,7 +128,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
     ground_truth = ground_truth_points(mesh, T_base_object)
     if cfg.sim.faults:
-        if not (isinstance(arm, SimArm) and isinstance(sensor, SimDepthSensor)):
+        if not (isinstance(clock, SimClock) and isinstance(arm, SimArm)
+                and isinstance(sensor, SimDepthSensor)):
             raise JobError("sim.faults needs the simulated arm and a simulated sensor")
         SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
     guard = MotionGuard.from_config(arm, model, cfg, clock)
