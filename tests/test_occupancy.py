@@ -193,3 +193,19 @@ def test_empty_and_invalid_input():
     assert m.n_known == 0
     with pytest.raises(ValueError):
         m.integrate(np.zeros(3), np.array([[np.nan, 0.0, 0.0]]))
+
+
+def test_occupied_keys_follow_voxels_that_turn_free_again():
+    """occupied_keys reads only blocks the kernel counts as holding an occupied voxel: the counts must
+    follow voxels that turn occupied, then free again under carving, and set_logodds."""
+    m = make_map()
+    rng = np.random.default_rng(4)
+    o = np.array([0.0, 0.0, 0.5])
+    ends = np.column_stack([rng.uniform(-0.2, 0.2, 300), rng.uniform(-0.2, 0.2, 300), np.full(300, 0.05)])
+    m.integrate(o, ends)
+    for _ in range(3):  # rays through half of the end voxels, to beyond them: those turn free
+        m.integrate(o, o + (ends[:150] - o) * 1.5, free_only=np.ones(150, dtype=bool))
+    assert not m.is_occupied(ends[:150]).any() and m.is_occupied(ends[150:]).mean() > 0.75
+    m.set_logodds(np.array([[100, 100, 100]]), np.array([2.0]))
+    keys, lo = m.known_keys()
+    np.testing.assert_array_equal(m.occupied_keys(), keys[m.classify_logodds(lo)])

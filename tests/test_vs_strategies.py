@@ -12,7 +12,14 @@ from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
 from cell.planning.vs.local import LocalGradient, VSLocalPlanner
 from cell.planning.vs.objective import ray_grid
-from cell.planning.vs.servo_scan import achieved_fraction, objective_rays, start_views, translated
+from cell.planning.vs.servo_scan import (
+    TelemetryRow,
+    achieved_fraction,
+    objective_rays,
+    start_views,
+    translated,
+)
+from cell.planning.vs.telemetry import write_servo_outputs
 from drivers.errors import PlanningError
 from drivers.transforms import look_at
 
@@ -225,3 +232,15 @@ def test_servo_rate_above_the_control_rate_is_refused(franka):
     data["planners"]["vs"]["servo_rate_hz"] = 500.0
     with pytest.raises(PlanningError, match="servo_rate_hz"):
         VSLocalPlanner(type(franka).model_validate(data))
+
+
+def test_servo_outputs_are_written(tmp_path):
+    rows = [TelemetryRow(t=0.02 * i, e_norm=0.01 / (i + 1), f=1.5, g_norm=2.0 if i > 3 else 0.0,
+                         h_roi=None if i < 2 else 0.6, mode="primary" if i <= 3 else "local")
+            for i in range(20)]
+    write_servo_outputs(tmp_path, rows, np.cumsum(np.full((50, 3), 0.001), axis=0), CENTRE)
+    lines = (tmp_path / "servo.csv").read_text().splitlines()
+    assert lines[0] == "t,e_norm_m,f_nats,g_norm,h_roi_nats,mode" and len(lines) == 21
+    assert lines[1].split(",")[4] == "" and lines[-1].endswith(",local")
+    for name in ("servo.png", "path.png"):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.perception import _kernels as _k
+
 Array = NDArray[np.float64]
 
 
@@ -43,6 +45,63 @@ def voxel_downsample(points: Array, voxel_m: float) -> Array:
     if points.shape[0] == 0:
         return np.zeros((0, 3))
     return _centroids(points, *_voxel_groups(points, voxel_m))
+
+
+class PointGrid:
+    """Points (N, 3) [m] bucketed in a uniform grid of cubic cells for the compiled searches
+    (``_kernels``): sorted by flat cell index (x, then y, then z) so that a cell's points, and a column
+    of cells along z, are contiguous. The cell edge is ``cell_m``, widened by 1.5x steps until the grid
+    over the points' box has at most ``max_cells`` cells (8 bytes of run offsets each).
+
+    ``points`` the sorted points, ``order`` their indices in the input, ``cells`` (N, 3) their cells,
+    ``starts`` (n_cells + 1,) where each cell's run begins, ``dims`` the grid shape, ``lo`` its corner.
+    """
+
+    def __init__(self, points: Array, cell_m: float, max_cells: int = 4_000_000) -> None:
+        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if pts.shape[0] == 0:
+            raise ValueError("PointGrid: no points")
+        self.lo = pts.min(axis=0)
+        extent = np.ptp(pts, axis=0)
+        cell = float(cell_m)
+        dims = np.floor(extent / cell).astype(np.int64) + 1
+        while np.prod(dims.astype(np.float64)) > max_cells:
+            cell *= 1.5
+            dims = np.floor(extent / cell).astype(np.int64) + 1
+        cells = np.minimum(np.floor((pts - self.lo) / cell).astype(np.int64), dims - 1)
+        flat = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+        self.order = np.argsort(flat, kind="stable")
+        self.starts = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
+        np.cumsum(np.bincount(flat, minlength=self.starts.size - 1), out=self.starts[1:])
+        self.points = pts[self.order]
+        self.cells = np.ascontiguousarray(cells[self.order])
+        self.dims = dims
+        self.cell_m = cell
+
+    def nearest_within(self, queries: Array, max_m: float) -> tuple[NDArray[np.int64], Array]:
+        """For each query (Q, 3) [m] the input index of its nearest point within ``max_m`` [m] and the
+        distance [m], or -1 and inf (exact search)."""
+        q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+        index = np.empty(q.shape[0], dtype=np.int64)
+        d2 = np.empty(q.shape[0])
+        nx, ny, nz = (int(v) for v in self.dims)
+        _k.nearest_within(self.points, self.starts, nx, ny, nz, self.cell_m, self.lo, q, max_m, index, d2)
+        found = index >= 0
+        index[found] = self.order[index[found]]
+        return index, np.sqrt(d2)
+
+    def k_nearest_within(self, queries: Array, k: int, radius_m: float) -> NDArray[np.int64]:
+        """Input indices (Q, k) of the at most ``k`` nearest points within ``radius_m`` [m] of each query
+        (Q, 3) [m], nearest first, -1 after the last. The cell edge must be at least ``radius_m``."""
+        if self.cell_m < radius_m:
+            raise ValueError(f"grid cell {self.cell_m} m is smaller than the radius {radius_m} m")
+        q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+        index = np.empty((q.shape[0], k), dtype=np.int64)
+        nx, ny, nz = (int(v) for v in self.dims)
+        _k.k_nearest_within(self.points, self.starts, nx, ny, nz, self.cell_m, self.lo, q, radius_m, index)
+        found = index >= 0
+        index[found] = self.order[index[found]]
+        return index
 
 
 def crop_box(points: Array, x: tuple[float, float], y: tuple[float, float],

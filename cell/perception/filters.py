@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import crop_box, voxel_downsample
+from cell.perception.cloud import PointGrid, crop_box, voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.depth.base import DepthFrame
 
@@ -85,31 +85,23 @@ def knn_mean_distances(points: Array, k: int) -> Array:
     only sets the speed (measured best on a 150k-point surface): it is chosen so that a cell holds about
     k / pi points of a surface-like cloud (the k neighbours then lie within about one cell, inside the 27
     cells around a point), from a first count at 1/64 of the cloud's extent (points per cell grow with the
-    square of the edge on a surface), then widened until the grid has at most ``_MAX_GRID_CELLS`` cells.
+    square of the edge on a surface), then widened until the grid has at most ``_MAX_GRID_CELLS`` cells
+    (``PointGrid``).
     """
     if not 0 < k < points.shape[0]:
         raise ValueError(f"knn_mean_distances: need 0 < k < N, got k={k}, N={points.shape[0]}")
     pts = np.ascontiguousarray(points, dtype=np.float64)
-    lo = pts.min(axis=0)
     extent = np.maximum(np.ptp(pts, axis=0), 1e-9)
     cell = float(extent.max()) / 64.0
-    c = np.floor((pts - lo) / cell).astype(np.int64)  # at most 65 per axis
+    c = np.floor((pts - pts.min(axis=0)) / cell).astype(np.int64)  # at most 65 per axis
     per_cell = pts.shape[0] / np.unique((c[:, 0] * 65 + c[:, 1]) * 65 + c[:, 2]).size
-    cell *= math.sqrt((k / math.pi) / per_cell)
-    dims = np.floor(extent / cell).astype(np.int64) + 1
-    while np.prod(dims.astype(np.float64)) > _MAX_GRID_CELLS:
-        cell *= 1.5
-        dims = np.floor(extent / cell).astype(np.int64) + 1
-    cells = np.minimum(np.floor((pts - lo) / cell).astype(np.int64), dims - 1)
-    flat = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    order = np.argsort(flat, kind="stable")  # a cell's points contiguous: the search reads memory in runs
-    starts = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(flat, minlength=starts.size - 1), out=starts[1:])
+    grid = PointGrid(pts, cell * math.sqrt((k / math.pi) / per_cell), _MAX_GRID_CELLS)
     sorted_mean = np.empty(pts.shape[0])
-    _k.knn_mean_distances(pts[order], cells[order], starts, int(dims[0]), int(dims[1]), int(dims[2]), cell,
-                          lo, k, sorted_mean)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    _k.knn_mean_distances(grid.points, grid.cells, grid.starts, nx, ny, nz, grid.cell_m, grid.lo, k,
+                          sorted_mean)
     out = np.empty(pts.shape[0])
-    out[order] = sorted_mean
+    out[grid.order] = sorted_mean
     return out
 
 

@@ -48,6 +48,8 @@ _BLOCK = 1 << _BLOCK_BITS  # voxels per block edge
 _BLOCK_MASK = _BLOCK - 1
 _BLOCK_VOXELS = _BLOCK**3
 _GROW_MARGIN_BLOCKS = 4  # extra blocks on each side when the block index grows
+_PACK_BITS = 21  # per axis when keys are packed into one int64 for sorting: +-2^20 voxels (10 km at 1 cm)
+_PACK_OFFSET = 1 << (_PACK_BITS - 1)
 
 
 def logit(p: float) -> float:
@@ -111,6 +113,7 @@ class OccupancyMap:
         # the number of the last scan that updated it (one update per voxel per scan).
         self._pool = np.zeros(0, dtype=np.float32)
         self._stamp = np.zeros(0, dtype=np.uint32)
+        self._n_occupied = np.zeros(0, dtype=np.int32)  # occupied voxels per block
         self._block_coords = np.zeros((0, 3), dtype=np.int64)
         self._n_blocks = 0
         self._scan = 0
@@ -179,7 +182,9 @@ class OccupancyMap:
         stamp[:self._stamp.size] = self._stamp
         coords = np.zeros((cap, 3), dtype=np.int64)
         coords[:self._n_blocks] = self._block_coords[:self._n_blocks]
-        self._pool, self._stamp, self._block_coords = pool, stamp, coords
+        n_occupied = np.zeros(cap, dtype=np.int32)
+        n_occupied[:self._n_blocks] = self._n_occupied[:self._n_blocks]
+        self._pool, self._stamp, self._block_coords, self._n_occupied = pool, stamp, coords, n_occupied
 
     def _allocate(self, flat_blocks: NDArray[np.int64]) -> None:
         n_new = flat_blocks.size
@@ -232,8 +237,8 @@ class OccupancyMap:
         while True:
             n_blocks, done = _k.integrate_rays(
                 og, k0, eg, ke, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
-                self._pool, self._stamp, self._block_coords, self._n_blocks, self._scan,
-                self._l_hit, self._l_miss, self._l_min, self._l_max)
+                self._pool, self._stamp, self._n_occupied, self._block_coords, self._n_blocks, self._scan,
+                self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ)
             self._n_blocks = n_blocks
             if done:
                 return
@@ -274,18 +279,25 @@ class OccupancyMap:
 
     # ------------------------------------------------------------------ whole-map views
 
-    def _known(self) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
-        """Keys (K, 3) sorted lexicographically (x, y, z) and log-odds (K,) of all known voxels."""
-        pool = self._pool[:self._n_blocks * _BLOCK_VOXELS]
-        flat = np.flatnonzero(~np.isnan(pool))
-        slot = flat >> (3 * _BLOCK_BITS)
+    def _known(self, blocks: NDArray[np.int64] | None = None, occupied_only: bool = False,
+               ) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+        """Keys (K, 3) sorted by key (x, then y, then z) and log-odds (K,) of the known (or only the
+        occupied) voxels of the given block slots (default: all)."""
+        if blocks is None:
+            blocks = np.arange(self._n_blocks)
+        lo_all = self._pool.reshape(-1, _BLOCK_VOXELS)[blocks].reshape(-1)
+        flat = np.flatnonzero(lo_all > self._l_occ if occupied_only else ~np.isnan(lo_all))
+        slot = blocks[flat >> (3 * _BLOCK_BITS)]
         local = flat & (_BLOCK_VOXELS - 1)
         keys = self._block_coords[slot] << _BLOCK_BITS
         keys[:, 0] |= local >> (2 * _BLOCK_BITS)
         keys[:, 1] |= (local >> _BLOCK_BITS) & _BLOCK_MASK
         keys[:, 2] |= local & _BLOCK_MASK
-        order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
-        return keys[order], pool[flat[order]]
+        # one sort of the keys packed into an int64 (21 bits an axis, offset to be non-negative)
+        k = keys + _PACK_OFFSET
+        packed = (k[:, 0] << (2 * _PACK_BITS)) | (k[:, 1] << _PACK_BITS) | k[:, 2]
+        order = np.argsort(packed, kind="stable")
+        return keys[order], lo_all[flat[order]]
 
     def known_keys(self) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
         """Keys (K, 3) and log-odds (K,) of every observed voxel, sorted by key (x, then y, then z)."""
@@ -296,8 +308,9 @@ class OccupancyMap:
         return np.asarray(logodds) > self._l_occ
 
     def occupied_keys(self) -> NDArray[np.int64]:
-        keys, lo = self._known()
-        return keys[lo > self._l_occ]
+        """Keys (K, 3) of the occupied voxels, sorted by key; only blocks holding one are read (a count
+        per block kept by the integration kernel), so the cost follows the surface, not the free space."""
+        return self._known(np.flatnonzero(self._n_occupied[:self._n_blocks] > 0), occupied_only=True)[0]
 
     def free_keys(self) -> NDArray[np.int64]:
         keys, lo = self._known()
@@ -331,6 +344,8 @@ class OccupancyMap:
         self._grow_index(keys.min(axis=0), keys.max(axis=0))
         idx = self._slots(keys, allocate=True)
         self._pool[idx] = np.clip(np.asarray(logodds, dtype=np.float32), self._l_min, self._l_max)
+        blocks = self._pool[:self._n_blocks * _BLOCK_VOXELS].reshape(-1, _BLOCK_VOXELS)
+        self._n_occupied[:self._n_blocks] = np.count_nonzero(blocks > self._l_occ, axis=1)
 
     def voxel_keys_in_box(self, min_m: Array, max_m: Array) -> NDArray[np.int64]:
         """Keys of all voxels (known or not) whose interior intersects the box [min_m, max_m] [m]."""

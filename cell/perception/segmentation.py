@@ -45,7 +45,8 @@ class SegmentationParams(StrictModel):
     height above the table plane below which points are dropped as table; ``plane_ransac_iterations``
     hypotheses drawn; ``table_normal_max_tilt_deg`` only planes whose normal is within this angle of +z
     are accepted as the table; ``min_cluster_points`` a smaller largest cluster means "no object";
-    ``seed`` of the RANSAC generator when the caller gives none.
+    ``seed`` of the RANSAC generator when the caller gives none; ``plane_score_points`` the most points
+    the hypotheses are scored on (an even subset in the given order; the winner is refined on all points).
 
     On voxel centres, ``plane_distance_m`` must exceed the map resolution: a table lying on a voxel
     boundary occupies two layers one resolution apart, and the upper one would otherwise join the object
@@ -62,6 +63,7 @@ class SegmentationParams(StrictModel):
     min_cluster_points: int = Field(10, ge=1)
     table_normal_max_tilt_deg: float = Field(20.0, ge=0.0, le=90.0)
     seed: int = 0
+    plane_score_points: int = Field(3000, ge=3)
 
 
 def threshold_occupancy(centres: Array, probabilities: Array, p_occupied: float = 0.5) -> Array:
@@ -90,7 +92,10 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
 
     Hypotheses from 3 random points; only those whose unit normal is within
     ``table_normal_max_tilt_deg`` of +z are scored; the one with most points within ``plane_distance_m``
-    wins (first one on ties) and is refined by total least squares on its inliers. Returns the plane
+    wins (first one on ties) and is refined by total least squares on its inliers among all the points.
+    Scoring counts on an even subset of at most ``plane_score_points`` points: the counts are then
+    estimates, but the table holds thousands of voxels and the best plane wins by a wide margin, at a
+    fraction of the cost (200 hypotheses x 12k occupied voxels were ~15 ms a frame). Returns the plane
     (a, b, c, d) with a x + b y + c z + d = 0, (a, b, c) a unit normal with c > 0, or None when fewer than
     3 points or no acceptable hypothesis.
     """
@@ -110,10 +115,13 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
         return None
     normals = normals[ok]
     offsets = -np.einsum("ij,ij->i", normals, p0[ok])
+    scored = points_base
+    if n > params.plane_score_points:
+        scored = points_base[np.linspace(0, n - 1, params.plane_score_points).round().astype(np.int64)]
     counts = np.empty(normals.shape[0], dtype=np.int64)
-    chunk = max(1, 4_000_000 // max(n, 1))  # bound the (chunk, n) distance matrix to ~32 MB
+    chunk = max(1, 4_000_000 // scored.shape[0])  # bound the (chunk, n) distance matrix to ~32 MB
     for s in range(0, normals.shape[0], chunk):
-        dist = np.abs(points_base @ normals[s:s + chunk].T + offsets[s:s + chunk])
+        dist = np.abs(scored @ normals[s:s + chunk].T + offsets[s:s + chunk])
         counts[s:s + chunk] = np.count_nonzero(dist <= params.plane_distance_m, axis=0)
     best = int(np.argmax(counts))
     if counts[best] < 3:

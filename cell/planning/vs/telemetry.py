@@ -1,0 +1,75 @@
+"""The servo planners' outputs for a job folder: the time series of the visual-servoing paper's Fig. 4 as
+CSV and as a four-panel PNG, and the sensor path around the object as in Fig. 3 (left)."""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure  # not pyplot: files only, no display or global figure state
+
+from cell.planning.base import Array
+from cell.planning.vs.servo_scan import TelemetryRow
+
+CSV_NAME = "servo.csv"
+FIG4_NAME = "servo.png"
+PATH_NAME = "path.png"
+
+
+def write_telemetry_csv(path: Path, rows: Sequence[TelemetryRow]) -> None:
+    """``t,e_norm_m,f_nats,g_norm,h_roi_nats,mode``, one line per servo iteration (H_ROI empty before the
+    first ROI)."""
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "e_norm_m", "f_nats", "g_norm", "h_roi_nats", "mode"])
+        for r in rows:
+            w.writerow([f"{r.t:.4f}", f"{r.e_norm:.6g}", f"{r.f:.6g}", f"{r.g_norm:.6g}",
+                        "" if r.h_roi is None else f"{r.h_roi:.6g}", r.mode])
+
+
+def plot_fig4(path: Path, rows: Sequence[TelemetryRow]) -> None:
+    """Four panels over job time: ||e|| (eq. 2), f(r) (eq. 9), ||g|| before clipping (eq. 4), H_ROI
+    (eq. 12)."""
+    t = np.array([r.t for r in rows])
+    series = [("||e|| [m]", [r.e_norm for r in rows]), ("f(r) [nats]", [r.f for r in rows]),
+              ("||g|| before clipping", [r.g_norm for r in rows]),
+              ("H_ROI [nats]", [np.nan if r.h_roi is None else r.h_roi for r in rows])]
+    fig = Figure(figsize=(10, 6))
+    axes = fig.subplots(2, 2, sharex=True)
+    for ax, (label, values) in zip(axes.ravel(), series, strict=True):
+        ax.plot(t, values, lw=1.0)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def plot_path(path: Path, positions_base: Array, centroid_base: Array | None) -> None:
+    """The sensor positions (N, 3) [m] in the base frame, in 3D, with the object centroid."""
+    fig = Figure(figsize=(6, 6))
+    ax = fig.add_subplot(projection="3d")
+    p = np.asarray(positions_base, dtype=float).reshape(-1, 3)
+    ax.plot(p[:, 0], p[:, 1], p[:, 2], lw=1.0)
+    if p.shape[0]:
+        ax.scatter(*p[0], marker="o", label="start")
+        ax.scatter(*p[-1], marker="x", label="end")
+    if centroid_base is not None:
+        ax.scatter(*np.asarray(centroid_base, dtype=float), marker="*", s=80, label="object centroid")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def write_servo_outputs(folder: Path, rows: Sequence[TelemetryRow], positions_base: Array,
+                        centroid_base: Array | None) -> None:
+    """``servo.csv``, ``servo.png`` (Fig. 4) and ``path.png`` (Fig. 3, left) in a job folder."""
+    write_telemetry_csv(folder / CSV_NAME, rows)
+    plot_fig4(folder / FIG4_NAME, rows)
+    plot_path(folder / PATH_NAME, positions_base, centroid_base)
