@@ -33,7 +33,9 @@ class LRNBVConfig(StrictModel):
     - ``settle_s`` [s] waited after a move before a capture; ``max_failed_moves`` moves in a row that the
       session refuses (unreachable, collision, barrier) end the scan;
     - ``rgbd_rays_per_side``: rays across a pinhole camera's wider side (the ToF casts one per zone);
-    - ``seed`` of the RRT's random generator.
+    - ``seed`` of the RRT's random generator;
+    - ``search_heights_m`` [m] above the table from which the station is looked at, in turn, while the
+      first captures show no object (Algorithm 1 needs an initial acquisition of it).
     """
 
     max_iterations: PositiveInt = 300
@@ -56,6 +58,7 @@ class LRNBVConfig(StrictModel):
     settle_s: float = Field(default=0.1, ge=0.0)
     max_failed_moves: PositiveInt = 10
     seed: int = 0
+    search_heights_m: tuple[PositiveFloat, ...] = (0.3, 0.22)
 
     @model_validator(mode="after")
     def _ordered(self) -> LRNBVConfig:

@@ -27,8 +27,9 @@ Choices the paper leaves open, and why:
   scan always ends.
 - The RRT draws from its own generator seeded with the planner's ``seed``, so the same config, object and
   job seed give the same scan.
-- Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; when that frame
-  shows no object it looks once at the station from above.
+- Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; while no object
+  is found it looks down at the station from each of ``search_heights_m`` in turn: a small object seen
+  from far by an 8 x 8 sensor fills fewer zones than a cluster needs.
 """
 
 from __future__ import annotations
@@ -263,13 +264,14 @@ class RRTViewPlanner(Planner):
 
     def _initial_object(self, session: MappingSession) -> Array:
         obj = self._capture(session)
-        if obj.shape[0]:
-            return obj
         st = self.config.station
         target = np.array([st.xy_m[0], st.xy_m[1], self.table_z])
-        eye = target + np.array([0.0, 0.0, self.config.scan.standoff_m])
-        if session.move_to_sensor_pose(look_at(eye, target, up_hint=np.array([1.0, 0.0, 0.0]))):
-            obj = self._capture(session)
+        for height in self.params.search_heights_m:
+            if obj.shape[0]:
+                break
+            eye = target + np.array([0.0, 0.0, height])
+            if session.move_to_sensor_pose(look_at(eye, target, up_hint=np.array([1.0, 0.0, 0.0]))):
+                obj = self._capture(session)
         return obj
 
     def run(self, session: ScanSession) -> str:
