@@ -4,7 +4,9 @@ RGB-D: the Franka cell's pipeline (config/sim-franka-rgbd.yaml) on 640x480 frame
 from views 20 degrees apart on a ring at Z* = 0.25 m; ToF: the UR5e cell's pipeline on 8x8 frames of the
 horizontal box. Rendering is not timed. The first frames build the target and the map; the median is
 taken over the following ``--frames``. Prints readable lines, then as its last line JSON
-{"rgbd_ms": median, "tof_ms": median}. Goals (issue 3): rgbd_ms <= 100, tof_ms <= 5.
+{"rgbd_ms": median, "tof_ms": median, "rgbd_cpu_ms": ..., "tof_cpu_ms": ...}. Goals (issue 3): rgbd_ms <= 100,
+tof_ms <= 5 (wall time on an otherwise idle machine). The ``_cpu_ms`` figures are the process's CPU time
+per cycle: on a machine shared with other work they move far less than the wall time does.
 
 Run: ``.venv/bin/python benchmarks/perception_cycle.py [--frames 12]``
 """
@@ -33,7 +35,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def cycle_times(config_name: str, object_name: str, standoff_m: float, n_frames: int,
-                warmup: int = 3) -> list[float]:
+                warmup: int = 3) -> tuple[list[float], list[float]]:
+    """Wall and CPU time [ms] of each timed cycle."""
     cfg = load_config(REPO / "config" / config_name)
     station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
     scene = SimScene(load_object(object_name), make_T(np.eye(3), station),
@@ -44,18 +47,19 @@ def cycle_times(config_name: str, object_name: str, standoff_m: float, n_frames:
     pipeline = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                   range_max_m=sensor.model.range_max_m, rng=np.random.default_rng(1))
     target = station + np.array([0.0, 0.0, 0.06])
-    times = []
+    times, cpu = [], []
     with sensor:
         for k in range(warmup + n_frames):
             az = np.deg2rad(180.0 + 20.0 * k)
             eye = target + standoff_m * np.array([np.cos(az) * 0.8, np.sin(az) * 0.8, 0.6])
             pose["T"] = look_at(eye, target)
             frame = sensor.capture()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             pipeline.process(frame, pose["T"])
             if k >= warmup:
                 times.append((time.perf_counter() - t0) * 1e3)
-    return times
+                cpu.append((time.process_time() - c0) * 1e3)
+    return times, cpu
 
 
 def main() -> None:
@@ -63,12 +67,13 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=12)
     args = parser.parse_args()
     figures = {}
-    for key, config, obj, standoff in (("rgbd_ms", "sim-franka-rgbd.yaml", "bunny", 0.25),
-                                       ("tof_ms", "sim-ur5e-tof.yaml", "horizontal_box", 0.4)):
-        t = cycle_times(config, obj, standoff, args.frames)
-        figures[key] = round(float(np.median(t)), 3)
-        print(f"{key[:-3]:5s} {len(t)} cycles: median {np.median(t):8.2f} ms, "
-              f"min {min(t):8.2f}, max {max(t):8.2f}")
+    for name, config, obj, standoff, goal in (("rgbd", "sim-franka-rgbd.yaml", "bunny", 0.25, 100.0),
+                                              ("tof", "sim-ur5e-tof.yaml", "horizontal_box", 0.4, 5.0)):
+        t, cpu = cycle_times(config, obj, standoff, args.frames)
+        figures[f"{name}_ms"] = round(float(np.median(t)), 3)
+        figures[f"{name}_cpu_ms"] = round(float(np.median(cpu)), 3)
+        print(f"{name:5s} {len(t)} cycles: median {np.median(t):8.2f} ms (goal <= {goal:g} ms), "
+              f"min {min(t):8.2f}, max {max(t):8.2f}; CPU time median {np.median(cpu):8.2f} ms")
     print(json.dumps(figures))
 
 
