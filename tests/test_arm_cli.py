@@ -54,7 +54,8 @@ def tcp_position(output: str) -> np.ndarray:
     return np.array([float(v) for v in match.groups()])
 
 
-def test_status_prints_the_tcp_pose_then_a_protective_stop(peer: ControllerPeer, cell_file: Path) -> None:
+def test_status_prints_the_tcp_pose_then_a_protective_stop_until_recovered(peer: ControllerPeer,
+                                                                           cell_file: Path) -> None:
     runner = CliRunner()
     result = runner.invoke(arm_app, ["status", "--config", str(cell_file)])
     assert result.exit_code == 0, result.output
@@ -66,6 +67,11 @@ def test_status_prints_the_tcp_pose_then_a_protective_stop(peer: ControllerPeer,
     assert result.exit_code == 0, result.output
     assert "protective stop" in result.output and "safety mode PROTECTIVE_STOP" in result.output
     assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+
+    result = runner.invoke(arm_app, ["recover", "--config", str(cell_file)])
+    assert result.exit_code == 0, result.output
+    assert "faults: none" in result.output and "safety mode NORMAL" in result.output
+    assert any("unlocked" in e for e in peer.state()["events"])
 
 
 def flange_motion(before: list[float], after: list[float]) -> np.ndarray:

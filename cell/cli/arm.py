@@ -2,6 +2,7 @@
 
 ``status`` connects, prints the connection, the TCP pose (translation in metres, rotation as roll-pitch-
 yaw in degrees, base frame), the joints, the modes and any fault in words, and disconnects.
+``recover`` is the operator's action after a stop (see :meth:`drivers.arm.base.Arm.recover`).
 ``jog`` makes one small guarded move: a twist along or about a base-frame axis streamed through the cell's
 motion guard (its speed, acceleration and joint limits, barrier planes, workspace and collision checks) at
 the cell's control rate on the wall clock, ramped down to rest, then the status.
@@ -9,6 +10,8 @@ the cell's control rate on the wall clock, ramped down to rest, then the status.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -27,7 +30,8 @@ from drivers.errors import CellError, DriverError, RobotFault, SafetyStop
 from drivers.factory import make_arm
 from drivers.robots import get_robot_model
 
-arm_app = typer.Typer(help="Commission a cell's arm: status, small guarded jog moves.", no_args_is_help=True)
+arm_app = typer.Typer(help="Commission a cell's arm: status, recovery, small guarded jog moves.",
+                      no_args_is_help=True)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
@@ -44,18 +48,33 @@ JOG_EXTRA_TIME_S = 3.0  # beyond the time at full speed, a jog may take this lon
 REST_QD_RAD_S = 1e-3  # the arm is at rest when every joint is slower than this [rad/s]
 
 
-def _open_arm(config: Path) -> tuple[CellConfig, Arm]:
-    cfg = load_config(config)
-    if cfg.arm.type == "sim":
-        raise DriverError("commissioning commands are for hardware arms (arm.type ur5e or franka)",
-                          device="arm sim")
-    arm = make_arm(cfg.arm, get_robot_model(cfg.arm.model), None)
-    arm.connect()
-    return cfg, arm
+@contextlib.contextmanager
+def _connected_arm(config: Path) -> Iterator[tuple[CellConfig, Arm]]:
+    """The cell file's hardware arm, connected, disconnected at the end; any ``CellError`` becomes a
+    one-line error and exit code 1."""
+    try:
+        cfg = load_config(config)
+        if cfg.arm.type == "sim":
+            raise DriverError("commissioning commands are for hardware arms (arm.type ur5e or franka)",
+                              device="arm sim")
+        arm = make_arm(cfg.arm, get_robot_model(cfg.arm.model), None)
+        arm.connect()
+        try:
+            yield cfg, arm
+        finally:
+            arm.disconnect()
+    except CellError as exc:
+        err_console.print(f"error: {exc}", markup=False, highlight=False)
+        raise typer.Exit(code=1) from None
 
 
 def _print(text: str) -> None:
     console.print(text, markup=False, highlight=False)
+
+
+def _print_status(arm: Arm) -> None:
+    for line in _status_lines(arm):
+        _print(line)
 
 
 def _status_lines(arm: Arm) -> list[str]:
@@ -80,16 +99,19 @@ def _status_lines(arm: Arm) -> list[str]:
 @arm_app.command("status")
 def status(config: Annotated[Path, typer.Option(help="cell file")]) -> None:
     """Connect, print pose, joints, modes and faults, disconnect."""
-    try:
-        _, arm = _open_arm(config)
-        try:
-            for line in _status_lines(arm):
-                _print(line)
-        finally:
-            arm.disconnect()
-    except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False)
-        raise typer.Exit(code=1) from None
+    with _connected_arm(config) as (_, arm):
+        _print_status(arm)
+
+
+@arm_app.command("recover")
+def recover(config: Annotated[Path, typer.Option(help="cell file")]) -> None:
+    """Operator action, once the cause of a stop is found and cleared: clear the arm's fault (UR: close the
+    safety popup, unlock the protective stop, power on, release the brakes, restart the control script;
+    Franka: automatic error recovery), then print the status. An emergency stop must be released on the
+    robot first."""
+    with _connected_arm(config) as (_, arm):
+        arm.recover()
+        _print_status(arm)
 
 
 def _progress(T_start: Array, T_now: Array, axis: int) -> float:
@@ -161,21 +183,13 @@ def jog(
     limit = JOG_MAX_ANGLE_RAD if rotation else JOG_MAX_DISTANCE_M
     if not 0.0 < abs(distance) <= limit:
         raise typer.BadParameter(f"distance must be non-zero and at most {limit} for a jog")
-    try:
-        cfg, arm = _open_arm(config)
+    with _connected_arm(config) as (cfg, arm):
+        clock = WallClock()
+        guard = MotionGuard.from_config(arm, get_robot_model(cfg.arm.model), cfg, clock)
         try:
-            clock = WallClock()
-            guard = MotionGuard.from_config(arm, get_robot_model(cfg.arm.model), cfg, clock)
-            try:
-                s = cfg.safety
-                speed = JOG_SPEED_FRACTION * (s.tcp_max_angular_rps if rotation else s.tcp_max_linear_mps)
-                _jog(guard, clock, AXES[axis], distance, speed, 1.0 / cfg.scan.control_rate_hz)
-            finally:
-                guard.release()
-            for line in _status_lines(arm):
-                _print(line)
+            s = cfg.safety
+            speed = JOG_SPEED_FRACTION * (s.tcp_max_angular_rps if rotation else s.tcp_max_linear_mps)
+            _jog(guard, clock, AXES[axis], distance, speed, 1.0 / cfg.scan.control_rate_hz)
         finally:
-            arm.disconnect()
-    except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False)
-        raise typer.Exit(code=1) from None
+            guard.release()
+        _print_status(arm)
