@@ -54,6 +54,8 @@ def test_the_watchdog_stops_the_arm_when_the_loop_stops_calling(peer: Controller
     ur.arm.command_twist(np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0]), ur.token)
     peer.wait_for(lambda s: not s["program_running"], what="the watchdog ending the script")
     assert any("watchdog" in e for e in peer.state()["events"])
+    # the client learns it from the next data package
+    ur.wait_until(lambda: "control script not running" in ur.arm.state().faults)
     with pytest.raises(RobotFault, match="control script not running") as refused:
         ur.arm.command_twist(np.zeros(6), ur.token)
     assert refused.value.fault == "control script not running"
