@@ -89,7 +89,8 @@ def main() -> None:
         times.append((time.perf_counter() - t0) * 1e3)
         nodes.append(tree.positions.shape[0] - 1)
     print(f"object: {obj.shape[0]} voxels; rays per pose: {planner.rays.shape[0]}; "
-          f"look targets: {planner.look_targets(obj).shape[0]}; nodes per tree: median {int(np.median(nodes))}")
+          f"look targets: {planner.look_targets(obj).shape[0]}; "
+          f"nodes per tree: median {int(np.median(nodes))}")
     print(f"iteration {len(times)} runs: median {np.median(times):8.2f} ms, min {min(times):8.2f}, "
           f"max {max(times):8.2f}")
     print(json.dumps({"iteration_ms": round(float(np.median(times)), 3)}))
