@@ -129,9 +129,14 @@ class EntropyObjective:
         n_max = n.max(axis=1) if n.size else np.zeros(0, dtype=np.int64)
         start = 0
         while start < batch.shape[0]:
-            # Poses per block so that poses x rays x samples stays within _BLOCK_SAMPLES.
-            width = max(int(n_max[start]), 1) * self.n_rays
-            stop = min(batch.shape[0], start + max(1, _BLOCK_SAMPLES // width))
+            # As many poses as keep poses x rays x (their longest ray's samples) within _BLOCK_SAMPLES.
+            stop = start + 1
+            longest = max(int(n_max[start]), 1)
+            while stop < batch.shape[0]:
+                longest_next = max(longest, int(n_max[stop]))
+                if (stop + 1 - start) * self.n_rays * longest_next > _BLOCK_SAMPLES:
+                    break
+                longest, stop = longest_next, stop + 1
             sl = slice(start, stop)
             out[sl] = self._expected_entropy(o[sl], d[sl], t_in[sl], n[sl])
             start = stop
