@@ -3,6 +3,10 @@ watchdog, digital outputs) and what it does on protective stops, emergency stops
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -13,7 +17,7 @@ from drivers.arm.ur5e import UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
 from tests.arm_backends import Backend, ur5e_backend, ur5e_config
-from tests.rtde_peer import ControllerPeer
+from tests.rtde_peer import REPO, ControllerPeer
 
 
 @pytest.fixture
@@ -128,3 +132,62 @@ def test_an_unreachable_controller_fails_fast_with_its_address() -> None:
     arm = UR5eArm(ur5e_config("127.0.0.254", connect_timeout_s=0.5), get_robot_model("ur5e"))
     with pytest.raises(DriverError, match=r"127\.0\.0\.254:30004"):
         arm.connect()
+
+
+def test_a_dropped_connection_is_latched_and_recovery_asks_for_a_restart() -> None:
+    """The controller drops every connection while the arm moves. The driver runs in a child process:
+    after a dropped connection ur-rtde 1.6.5's own reconnection can crash the process that holds it
+    (drivers/arm/ur5e.py), which must not take the test run with it. The child reports its steps on a pipe
+    of their own (ur-rtde's threads write to standard output and error)."""
+    peer = ControllerPeer()
+    steps_r, steps_w = os.pipe()
+    try:
+        pipe = subprocess.PIPE
+        child = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host, str(steps_w)],
+                                 cwd=REPO, stdin=pipe, stdout=pipe, stderr=pipe, text=True,
+                                 pass_fds=(steps_w,))
+        os.close(steps_w)
+        with os.fdopen(steps_r) as steps:
+            assert steps.readline() == "moving\n"
+            peer.drop_clients()
+            out, err = child.communicate("dropped\n", timeout=60)
+            reported = steps.read().splitlines()
+    finally:
+        peer.stop()
+    assert reported == ["fault disconnect", "refused disconnect", "recover refused disconnect"], (
+        f"exit code {child.returncode}\n{out}\n{err}")
+
+
+def _dropped_connection_child(host: str, steps_fd: int) -> None:
+    """The child of the dropped-connection test: reports each step on the file descriptor ``steps_fd``,
+    then ends at once (the interpreter's teardown would destroy the ur-rtde interfaces, see the test)."""
+    steps = os.fdopen(steps_fd, "w", buffering=1)
+    arm = UR5eArm(ur5e_config(host), get_robot_model("ur5e"))
+    arm.connect()
+    token = arm.claim_motion()
+    arm.command_twist(np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.0]), token)
+    steps.write("moving\n")
+    sys.stdin.readline()  # the controller dropped the connections
+    fault = ""
+    for _ in range(1000):  # a bound on waiting, 20 s
+        try:
+            fault = ",".join(arm.state().faults)
+        except RobotFault as exc:
+            fault = exc.fault
+        if fault == "disconnect":
+            break
+        time.sleep(0.02)
+    steps.write(f"fault {fault}\n")
+    for step, action in (("refused", lambda: arm.command_twist(np.zeros(6), token)),
+                         ("recover refused", arm.recover)):
+        try:
+            action()
+            steps.write(f"{step}: no\n")
+        except RobotFault as exc:
+            steps.write(f"{step} {exc.fault}\n")
+    steps.close()
+    os._exit(0)
+
+
+if __name__ == "__main__":
+    _dropped_connection_child(sys.argv[1], int(sys.argv[2]))

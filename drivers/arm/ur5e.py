@@ -1,10 +1,13 @@
 """UR5e backend through ur-rtde (pinned: ``ur-rtde==1.6.5``, the ``ur5e`` extra).
 
 Connections: RTDE receive (state), RTDE control (the control script ur-rtde uploads to port 30003 and
-drives through its register handshake), RTDE IO (digital outputs) and the dashboard server (remote
-control check, unlocking a protective stop, power and brakes). ``connect`` first opens each controller
-port with ``connect_timeout_s`` so an unreachable controller fails fast with its address, and asks the
-dashboard whether the pendant is in remote control.
+drives through its register handshake) and the dashboard server (remote control check, unlocking a
+protective stop, power and brakes); RTDE IO (digital outputs) only while outputs are being set. ur-rtde's
+IO interface writes to its socket in its destructor, and when the controller has dropped the connection
+that write throws inside the destructor, which ends the whole process (``std::terminate``, exit 134), so
+an IO interface is opened for each change of the outputs and closed while the controller still answers.
+``connect`` first opens each controller port with ``connect_timeout_s`` so an unreachable controller fails
+fast with its address, and asks the dashboard whether the pendant is in remote control.
 
 Frames: ur-rtde reports and commands the TCP (``setTcp`` from the config); this backend converts to and
 from the flange, which is what the :class:`~drivers.arm.base.Arm` interface speaks.
@@ -21,10 +24,19 @@ Motion:
 
 Faults, from the controller's safety status and the script's state: "protective stop", "emergency stop",
 "safeguard stop", "safety fault", "power off", "control script not running", "disconnect". A command
-while faulted, a command that returns False, or a lost connection raises ``RobotFault``. ``recover`` is
-the operator's action: reconnect, close the safety popup and unlock the protective stop, power on and
-release the brakes, re-upload the control script, re-send TCP and payload. An emergency stop that is
-still pressed cannot be cleared from software.
+while faulted, a command that returns False, or a lost connection raises ``RobotFault``.
+
+A lost connection is latched as "disconnect" and nothing more is asked of the interfaces. ur-rtde 1.6.5
+reconnects its control interface by itself, from its receive thread, and re-uploads the control script;
+but that thread then keeps running beside the new receive thread it started, the two read the same
+socket, and the process soon ends with a segmentation fault (reproduced against the RTDE peer, not
+avoidable from outside the library). So the arm stays refused, and ``recover`` refuses to reconnect in
+this process and asks for a restart of the program. The arm is stopped all the same: the RTDE watchdog,
+armed whenever it moves, ends the control script when commands stop arriving.
+
+``recover`` is the operator's action: close the safety popup and unlock the protective stop, power on and
+release the brakes, re-upload the control script, re-send TCP and payload. An emergency stop that is still
+pressed cannot be cleared from software.
 """
 
 from __future__ import annotations
@@ -71,6 +83,7 @@ ROBOT_MODE_RUNNING = 7
 SAFETY_FAULT_WORDS = {3: "protective stop", 4: "safety recovery", 5: "safeguard stop", 6: "emergency stop",
                       7: "emergency stop", 8: "safety violation", 9: "safety fault", 12: "safeguard stop",
                       13: "safeguard stop"}
+LOST_CONNECTION = "lost the connection to the controller"
 # how long recovery steps may take on the controller before they count as failed [s]
 RECOVERY_TIMEOUT_S = 10.0
 N_DIGITAL = 8
@@ -90,7 +103,6 @@ class UR5eArm(HardwareArm):
         self._T_flange_tcp = ur_pose_to_T(config.tcp_offset)
         self._recv: rtde_receive.RTDEReceiveInterface | None = None
         self._ctl: rtde_control.RTDEControlInterface | None = None
-        self._io: rtde_io.RTDEIOInterface | None = None
         self._dash: dashboard_client.DashboardClient | None = None
         self._lock = threading.RLock()
         self._mode = ArmMode.IDLE
@@ -98,6 +110,7 @@ class UR5eArm(HardwareArm):
         self._traj_thread: threading.Thread | None = None
         self._traj_cancel = threading.Event()
         self._traj_error: RobotFault | None = None
+        self._lost = False  # the connection was lost (latched, see the module docstring)
 
     # ------------------------------------------------------------------ connection
 
@@ -131,11 +144,10 @@ class UR5eArm(HardwareArm):
         self._mode = ArmMode.IDLE
 
     def _start_control(self) -> None:
-        """Open the control and IO interfaces (ur-rtde uploads its control script) and send the tool."""
+        """Open the control interface (ur-rtde uploads its control script) and send the tool."""
         cfg = self._config
         self._ctl = rtde_control.RTDEControlInterface(cfg.host, cfg.rtde_frequency_hz,
                                                       rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
-        self._io = rtde_io.RTDEIOInterface(cfg.host)
         self._apply_tool()
 
     def _apply_tool(self) -> None:
@@ -149,19 +161,20 @@ class UR5eArm(HardwareArm):
         if self._recv is None:
             return
         self._cancel_trajectory()
-        if self._ctl is not None and self._ctl.isConnected() and not self._faults():
+        if not self._lost and self._ctl is not None and self._ctl.isConnected() and not self._faults():
             self.stop()
             self._ctl.stopScript()
         self._close_clients()
 
     def _close_clients(self) -> None:
-        for client in (self._ctl, self._recv, self._io, self._dash):
+        for client in (self._ctl, self._recv, self._dash):
             if client is not None:
                 # closing a socket the controller already dropped raises in ur-rtde; it is closed either way
                 with contextlib.suppress(RuntimeError):
                     client.disconnect()
-        self._ctl = self._recv = self._io = self._dash = None
+        self._ctl = self._recv = self._dash = None
         self._watchdog_armed = False
+        self._lost = False
 
     @property
     def is_connected(self) -> bool:
@@ -188,9 +201,17 @@ class UR5eArm(HardwareArm):
 
     # ------------------------------------------------------------------ state and faults
 
+    def _connection_lost(self) -> RobotFault:
+        """Latch a lost connection (module docstring) and say so."""
+        self._lost = True
+        return RobotFault(LOST_CONNECTION, device=self._device, fault="disconnect")
+
     def _faults(self) -> tuple[str, ...]:
         recv, ctl = self._clients()
+        if self._lost:
+            return ("disconnect",)  # nothing is asked of the interfaces any more
         if not recv.isConnected() or (ctl is not None and not ctl.isConnected()):
+            self._connection_lost()
             return ("disconnect",)
         faults: list[str] = []
         safety = recv.getSafetyMode()
@@ -214,9 +235,8 @@ class UR5eArm(HardwareArm):
 
     def state(self) -> ArmState:
         recv, _ = self._clients()
-        if not recv.isConnected():
-            raise RobotFault("lost the RTDE connection to the controller", device=self._device,
-                             fault="disconnect")
+        if self._lost or not recv.isConnected():
+            raise self._connection_lost()
         q = checked_vector(recv.getActualQ(), 6, "actual_q", self._device)
         qd = checked_vector(recv.getActualQd(), 6, "actual_qd", self._device)
         T_tcp = ur_pose_to_T(checked_vector(recv.getActualTCPPose(), 6, "actual_TCP_pose", self._device))
@@ -253,6 +273,7 @@ class UR5eArm(HardwareArm):
         try:
             return fn(ctl)
         except RuntimeError as exc:
+            self._connection_lost()
             raise RobotFault(f"{what}: {exc}", device=self._device, fault="disconnect") from None
 
     def _call(self, what: str, fn: Callable[[rtde_control.RTDEControlInterface], object]) -> None:
@@ -364,15 +385,10 @@ class UR5eArm(HardwareArm):
         recv, ctl = self._clients()
         dash = self._dash
         assert dash is not None
+        if self._lost:
+            raise RobotFault(f"{LOST_CONNECTION}; ur-rtde cannot reconnect safely in this process: restart "
+                             "the program to connect again", device=self._device, fault="disconnect")
         self._cancel_trajectory()
-        if not recv.isConnected() or (ctl is not None and not ctl.isConnected()):
-            if not (recv.reconnect() and (ctl is None or ctl.reconnect())):
-                raise RobotFault("the controller cannot be reached again", device=self._device,
-                                 fault="disconnect")
-            dash.disconnect()
-            dash.connect(int(self._config.connect_timeout_s * 1000))
-            if self._io is not None:
-                self._io.reconnect()
         if recv.isEmergencyStopped():
             raise RobotFault("the emergency stop is pressed: release it on the robot, then recover again",
                              device=self._device, fault="emergency stop")
@@ -424,8 +440,15 @@ class UR5eArm(HardwareArm):
     def signal(self, state: Literal["busy", "done", "idle"]) -> None:
         """Drive the busy and done outputs for a packing line: busy while scanning, done when finished."""
         outputs = {self._config.busy_output: state == "busy", self._config.done_output: state == "done"}
-        if self._io is None:
-            raise DriverError("not connected (call connect() first)", device=self._device)
-        for index, level in outputs.items():
-            if index is not None and not self._io.setStandardDigitalOut(index, level):
-                raise self._fault_error(f"setting digital output {index}")
+        self._clients()
+        try:
+            io = rtde_io.RTDEIOInterface(self._config.host)  # see the module docstring
+        except RuntimeError as exc:
+            raise RobotFault(f"opening RTDE IO: {exc}", device=self._device, fault="disconnect") from None
+        try:
+            for index, level in outputs.items():
+                if index is not None and not io.setStandardDigitalOut(index, level):
+                    raise self._fault_error(f"setting digital output {index}")
+        finally:
+            with contextlib.suppress(RuntimeError):  # raises when the controller dropped the connection
+                io.disconnect()
