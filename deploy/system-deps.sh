@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# System packages the cell needs on Debian 12 / Ubuntu: Open3D's shared libraries (libusb, OpenMP, GL)
-# and Python's venv module. Installs only what is missing; uses sudo when not root.
+# System packages the cell needs on Debian 12 / Ubuntu: Open3D's shared libraries (libusb, OpenMP, GL),
+# Python's venv module, and a C compiler with Python's headers for the compiled perception kernels.
+# Installs only what is missing; uses sudo when not root.
 set -euo pipefail
 
 missing=()
@@ -9,6 +10,9 @@ have_lib 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
 have_lib 'libgomp.so.1' || missing+=(libgomp1)
 have_lib 'libGL.so.1' || missing+=(libgl1)
 python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+command -v gcc >/dev/null 2>&1 || missing+=(gcc)
+python3 -c 'import sysconfig, os, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
+  || missing+=(python3-dev)
 
 if [ ${#missing[@]} -eq 0 ]; then
   exit 0
