@@ -29,14 +29,16 @@ CENTRE = np.array([0.45, 0.0, 0.06])
 
 
 class LinearObjective:
-    """f(r) = a . r_o: a constant gradient ``a`` in the base frame [nats/m]."""
+    """f(r) = f_at + a . (r_o - at): a constant gradient ``a`` in the base frame [nats/m], f_at at ``at``."""
 
-    def __init__(self, a):
+    def __init__(self, a, at=(0.0, 0.0, 0.0), f_at=0.0):
         self.a = np.asarray(a, dtype=float)
+        self.at = np.asarray(at, dtype=float)
+        self.f_at = f_at
 
     def __call__(self, T):
         T = np.asarray(T)
-        values = T[..., :3, 3] @ self.a
+        values = self.f_at + (T[..., :3, 3] - self.at) @ self.a
         return float(values) if T.ndim == 2 else values
 
 
@@ -111,20 +113,24 @@ def test_sphere_views_match_look_at():
         np.testing.assert_allclose(T, look_at(CENTRE + 0.25 * d, CENTRE), atol=1e-12)
 
 
-def test_local_gradient_is_the_central_difference_in_the_camera_plane(franka):
+def test_local_gradient_is_the_relative_central_difference_in_the_camera_plane(franka):
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x, camera y = -base z
     session = FakeSession()
     session.pose = T
     local = LocalGradient(franka)
-    alpha = franka.planners.vs_local.alpha
-    a = np.array([1.0, 0.0, 2.0]) * 0.2 / alpha  # a gradient of norm < 1 after scaling
-    sec = local(session, T, LinearObjective(a))
-    np.testing.assert_allclose(sec.g[:3], alpha * np.array([a[0], -a[2], 0.0]), rtol=1e-9)
-    assert sec.g_norm == pytest.approx(alpha * np.hypot(a[0], a[2]))
-    assert sec.f == pytest.approx(T[:3, 3] @ a)
-    # A steep gradient is clipped to unit length, its norm before clipping is reported.
-    steep = local(session, T, LinearObjective(a * 50))
-    assert np.linalg.norm(steep.g) == pytest.approx(1.0) and steep.g_norm == pytest.approx(50 * sec.g_norm)
+    p = franka.planners.vs_local
+    f_r = 2.0  # nats at the camera
+    a = np.array([1.0, 0.0, 2.0]) * 0.2 * f_r / p.alpha  # a gradient of norm < 1 after scaling
+    sec = local(session, T, LinearObjective(a, T[:3, 3], f_r))
+    expected = p.alpha * np.array([a[0], -a[2], 0.0]) / (f_r + p.f_eps_nats)
+    np.testing.assert_allclose(sec.g[:3], expected, rtol=1e-9)
+    assert sec.g_norm == pytest.approx(np.linalg.norm(expected)) and sec.f == pytest.approx(f_r)
+    # The same gradient where f is ten times smaller is ten times steeper: clipped to unit length, its
+    # norm before clipping is reported.
+    steep = local(session, T, LinearObjective(a, T[:3, 3], f_r / 10))
+    assert np.linalg.norm(steep.g) == pytest.approx(1.0)
+    ratio = (f_r + p.f_eps_nats) / (f_r / 10 + p.f_eps_nats)
+    assert steep.g_norm == pytest.approx(np.linalg.norm(expected) * ratio)
 
 
 def test_local_direction_slides_along_a_barrier(franka):
@@ -132,7 +138,7 @@ def test_local_direction_slides_along_a_barrier(franka):
     session = FakeSession(floor_z=T[2, 3] - 0.01)  # 1 cm above the floor, within the activation
     session.pose = T
     local = LocalGradient(franka)
-    sec = local(session, T, LinearObjective([0.0, 0.0, -1.0 / franka.planners.vs_local.alpha]))
+    sec = local(session, T, LinearObjective([0.0, 0.0, -5.0], T[:3, 3], 1.0))
     np.testing.assert_allclose(sec.g, 0.0, atol=1e-12)  # straight down is all into the floor
     assert sec.g_norm == pytest.approx(0.0, abs=1e-12)
 
@@ -205,7 +211,7 @@ def test_hybrid_goes_global_after_local_converges_then_back(franka):
     session = FakeSession(floor_z=0.1)
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     session.pose = T
-    weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0])
+    weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0], T[:3, 3], 1.0)
     modes = []
     for _ in range(201):
         sec = planner.secondary(session, T, weak)

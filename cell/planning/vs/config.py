@@ -75,13 +75,14 @@ class VSConfig(StrictModel):
 
 class VSLocalConfig(StrictModel):
     """VS-Local (eq. 4-6): central differences over ``delta_m`` (5 cm) along the camera's x and y, the
-    gradient scaled by ``alpha`` [m/nats] and its norm clipped to ``g_max`` (1); the scan ends when
-    ||g|| < ``g_max`` (before clipping) in more than ``converged_fraction`` (80 %) of the last
-    ``window`` (200) servo evaluations. ``alpha`` departs from the paper's 1e-4, which belongs to an
-    unstated scale of f: see ``cell.planning.vs.local``."""
+    gradient divided by f(r) + ``f_eps_nats`` and scaled by ``alpha`` [m], its norm clipped to ``g_max``
+    (1); the scan ends when ||g|| < ``g_max`` (before clipping) in more than ``converged_fraction``
+    (80 %) of the last ``window`` (200) servo evaluations. The relative gradient and ``alpha`` = 1 m
+    depart from the paper's 1e-4 on an unstated scale of f: see ``cell.planning.vs.local``."""
 
     delta_m: PositiveFloat = 0.05
-    alpha: PositiveFloat = 0.3
+    alpha: PositiveFloat = 1.0
+    f_eps_nats: PositiveFloat = 1e-3
     g_max: PositiveFloat = 1.0
     window: PositiveInt = 200
     converged_fraction: float = Field(default=0.8, gt=0.0, lt=1.0)

@@ -1,10 +1,11 @@
 """VS-Local (visual-servoing paper section II-B 2, eq. 4-6): ascend the gradient of f in the camera's
 xy-plane, tangent to the sphere of radius Z* that the primary task keeps the camera on.
 
-g = alpha (df/dx, df/dy, 0, 0, 0, 0) with central differences over delta = 5 cm along the camera's x and y
-(four evaluations of f, plus f(r) itself for the record, in one batch). The direction is then projected
-into the set the barrier planes allow (``session.feasible_sensor_velocity``), so the camera slides along a
-plane (paper Fig. 3), and its norm is clipped to 1: a direction rather than a speed.
+The gradient (df/dx, df/dy) of eq. 4 comes from central differences over delta = 5 cm along the camera's
+x and y (eq. 5-6: four evaluations of f, plus f(r) itself, in one batch). It is rescaled (the paper's
+alpha) into g = alpha (df/dx, df/dy, 0, 0, 0, 0) / (f(r) + f_eps), projected into the set the barrier
+planes allow (``session.feasible_sensor_velocity``), so the camera slides along a plane (paper Fig. 3),
+and its norm is clipped to 1: a direction rather than a speed.
 
 Convergence: ||g|| < 1 in more than 80 % of the last 200 evaluations. The norm judged is the one after
 the barrier projection and before clipping, the quantity of the paper's Fig. 4, which drops when the
@@ -12,11 +13,13 @@ camera reaches a plane; the servo loop further scales it by the share of the com
 lets through (``ServoScanPlanner.run``), so a camera held by a joint limit converges as one held by a
 plane does, instead of pressing against it until the time budget ends.
 
-alpha: the paper's 1e-4 belongs to the scale of its implementation's f, which it does not give. With f
-as eq. 9 writes it (mean over the K rays, nats), alpha = 1e-4 gives ||g|| ~ 1e-3 and the termination
-rule would fire as soon as it can; the default here (0.3) puts ||g|| at 2-3 while the simulated cell
-explores (gradients of 6-10 nats/m), so that g saturates into a direction as the paper intends, and the
-rule ends the scan when the gradient falls below 1 / alpha = 3.3 nats/m or the motion is blocked.
+The rescaling departs from the paper. Its alpha = 1e-4 multiplies the gradient of its implementation's f,
+whose scale it does not give: with f as eq. 9 writes it (mean over the K rays, nats) alpha = 1e-4 gives
+||g|| ~ 1e-3 and the rule would end every scan at once. A fixed alpha on the absolute gradient does not
+transfer between objects either: f of a 7 cm ball is ten times smaller than f of the 15 cm bunny, and so
+is its gradient. Dividing by f(r) makes g the relative gradient, d ln f / dx [1/m], independent of the
+object's size, the map resolution and the ray count; alpha [m] = 1 ends the scan once a 5 cm move would
+change f by less than 5 %. ``f_eps_nats`` (1e-3) keeps the ratio finite where no ray meets the ROI.
 """
 
 from __future__ import annotations
@@ -49,8 +52,9 @@ class LocalGradient:
     def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
         p = self.params
         f = objective(translated(T_base_cam, self._offsets))
-        grad = np.array([f[1] - f[2], f[3] - f[4], 0.0]) / (2.0 * p.delta_m)
-        direction = session.feasible_sensor_velocity(p.alpha * grad, self.activation_m)
+        grad = np.array([f[1] - f[2], f[3] - f[4], 0.0]) / (2.0 * p.delta_m)  # eq. 5-6 [nats/m]
+        relative = p.alpha * grad / (f[0] + p.f_eps_nats)  # d ln f / dx, see the module docstring
+        direction = session.feasible_sensor_velocity(relative, self.activation_m)
         norm = float(np.linalg.norm(direction))
         if norm > p.g_max:
             direction = direction * (p.g_max / norm)
