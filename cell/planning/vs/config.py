@@ -92,14 +92,16 @@ class VSGlobalConfig(StrictModel):
     """VS-Global (eq. 10-11): ``n_candidates`` (5000) poses on the sphere of radius Z* around the centroid,
     each looking at it; g is the unit tangent direction to the best one, its length decaying linearly to
     zero within ``slow_radius_m`` (10 cm) of the goal; the goal counts as reached (and a new one is
-    sampled) within ``arrival_m`` [m] (not given in the paper: 1 cm, where g has fallen to 0.1), or after
+    sampled) within ``arrival_m`` [m] (not given in the paper: 5 cm, where g has halved; the linear decay
+    makes the approach exponential, about 5 s per halving at lambda_g = 0.33, and H_ROI would settle
+    during a 1 cm approach before the goal's view is reached), or after
     ``max_goal_time_s`` [s] (not in the paper: a goal the barrier projection cannot reach would otherwise
     hold the scan forever). ``sampling_seed`` seeds the candidate stream at the start of each scan, so a
     scan is repeatable."""
 
     n_candidates: PositiveInt = 5000
     slow_radius_m: PositiveFloat = 0.10
-    arrival_m: PositiveFloat = 0.01
+    arrival_m: PositiveFloat = 0.05
     max_goal_time_s: PositiveFloat = 20.0
     sampling_seed: int = Field(default=0, ge=0)
 
