@@ -50,8 +50,6 @@ Array = NDArray[np.float64]
 VELOCITY_TOLERANCE = 1.02
 # A trajectory must start where the arm is, within this much in every joint [rad].
 TRAJECTORY_START_TOL_RAD = 1e-3
-# Damping of the differential IK that predicts joint velocities [m], as the sim arm uses.
-IK_DAMPING = 0.02
 GUARDED_POINTS = ("TCP", "sensor")
 # Braking before a plane or a joint margin is planned at this share of the acceleration limit: a target
 # that falls at the planned rate is tracked by the jerk-limited smoother with some lag, and the rest of the
@@ -208,17 +206,12 @@ class MotionGuard:
             raise self._refuse("a twist was commanded while a trajectory is being followed")
         self._target = v.copy()
         state = self.state()
-        return self._limit(v, state, self._joint_velocity_map(state.q), count=False)
+        return self._limit(v, state, self._model.dls_map(state.q), count=False)
 
     def hold(self) -> None:
         """Ramp the streamed twist down to zero (within the acceleration limits) and keep the arm still."""
         if self._target is not None:
             self._target = np.zeros(6)
-
-    def _joint_velocity_map(self, q: Array) -> Array:
-        """The damped least-squares map from a flange twist to joint velocities at ``q`` (n, 6)."""
-        J = self._model.jacobian(q)
-        return J.T @ np.linalg.inv(J @ J.T + IK_DAMPING ** 2 * np.eye(6))
 
     def _limit(self, v: Array, state: ArmState, ik: Array, *, count: bool) -> Array:
         """Speed limits, barrier projection and joint limits for a twist at ``state`` (module docstring);
@@ -281,7 +274,7 @@ class MotionGuard:
             return
         if self._target is None:
             return
-        ik = self._joint_velocity_map(state.q)
+        ik = self._model.dls_map(state.q)
         limited = self._limit(self._target, state, ik, count=True)
         v = self._smoother.step(limited)
         if np.any(np.abs(v - limited) > 1e-9):

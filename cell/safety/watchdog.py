@@ -21,7 +21,6 @@ class Watchdog:
         self._deadline = config.deadline_factor * period_s
         self._last_tick: float | None = None
         self.missed_in_a_row = 0
-        self.missed_total = 0
 
     def tick(self, now: float) -> str | None:
         """Record a control tick at ``now``."""
@@ -33,16 +32,10 @@ class Watchdog:
             self.missed_in_a_row = 0
             return None
         self.missed_in_a_row += 1
-        self.missed_total += 1
         if self.missed_in_a_row >= self._cfg.max_missed_deadlines:
             return (f"control loop missed its deadline {self.missed_in_a_row} times in a row (last tick "
                     f"{gap * 1e3:.1f} ms after the previous one, deadline {self._deadline * 1e3:.1f} ms)")
         return None
-
-    def restart(self) -> None:
-        """Forget the last tick (after a pause that was not a control period, e.g. a blocking move)."""
-        self._last_tick = None
-        self.missed_in_a_row = 0
 
     def perception(self, now: float, newest_data_s: float | None) -> str | None:
         """Judge perception data taken at ``newest_data_s`` (None: none yet) while motion depends on it."""

@@ -46,6 +46,8 @@ from drivers.transforms import pose_error
 
 Array = NDArray[np.float64]
 DHConvention = Literal["standard", "modified"]
+# Damping of the differential IK [m]: small against link lengths, large enough near singularities.
+DLS_DAMPING_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -262,7 +264,14 @@ class RobotModel:
         """Geometric Jacobian (6, n) of the flange origin in the base frame, rows (vx, vy, vz, wx, wy, wz)."""
         return self.jacobian_from_frames(self.fk_all(q))
 
-    def ik_velocity(self, q: object, v_base_flange: object, dt: float, damping: float = 0.02) -> Array:
+    def dls_map(self, q: object, damping: float = DLS_DAMPING_M) -> Array:
+        """The damped least-squares map ``J^T (J J^T + damping^2 I)^-1`` (n, 6) from a flange twist to joint
+        velocities at ``q``, without the limits :meth:`ik_velocity` applies (e.g. to predict motion)."""
+        J = self.jacobian(q)
+        return J.T @ np.linalg.inv(J @ J.T + damping * damping * np.eye(6))
+
+    def ik_velocity(self, q: object, v_base_flange: object, dt: float,
+                    damping: float = DLS_DAMPING_M) -> Array:
         """Joint velocities [rad/s] that best produce the flange twist ``v_base_flange`` [m/s, rad/s].
 
         Damped least squares ``qd = J^T (J J^T + damping^2 I)^-1 v`` (``damping`` in the units of J,
