@@ -23,13 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from station_rig import StationRig
+
 from cell.config import load_config
-from cell.perception.pipeline import PerceptionPipeline
-from drivers.clock import SimClock
-from drivers.factory import SimWorld, make_sensor
-from drivers.sim.objects import load_object
-from drivers.sim.scene import SimScene
-from drivers.transforms import look_at, make_T
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,25 +33,14 @@ REPO = Path(__file__).resolve().parents[1]
 def cycle_times(config_name: str, object_name: str, standoff_m: float, n_frames: int,
                 warmup: int = 3) -> tuple[list[float], list[float]]:
     """Wall and CPU time [ms] of each timed cycle."""
-    cfg = load_config(REPO / "config" / config_name)
-    station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
-    scene = SimScene(load_object(object_name), make_T(np.eye(3), station),
-                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
-    pose = {"T": np.eye(4)}
-    world = SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=scene)
-    sensor = make_sensor(cfg.sensor, world, lambda: pose["T"])
-    pipeline = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
-                                  range_max_m=sensor.model.range_max_m, rng=np.random.default_rng(1))
-    target = station + np.array([0.0, 0.0, 0.06])
+    rig = StationRig(load_config(REPO / "config" / config_name), object_name)
     times, cpu = [], []
-    with sensor:
+    with rig.sensor:
         for k in range(warmup + n_frames):
-            az = np.deg2rad(180.0 + 20.0 * k)
-            eye = target + standoff_m * np.array([np.cos(az) * 0.8, np.sin(az) * 0.8, 0.6])
-            pose["T"] = look_at(eye, target)
-            frame = sensor.capture()
+            T = rig.view(180.0 + 20.0 * k, standoff_m)
+            frame = rig.sensor.capture()
             t0, c0 = time.perf_counter(), time.process_time()
-            pipeline.process(frame, pose["T"])
+            rig.pipeline.process(frame, T)
             if k >= warmup:
                 times.append((time.perf_counter() - t0) * 1e3)
                 cpu.append((time.process_time() - c0) * 1e3)

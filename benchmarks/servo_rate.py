@@ -27,22 +27,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+from station_rig import StationRig
 
 from cell.config import load_config
 from cell.control.servo import DualTaskServo
 from cell.perception.occupancy import binary_entropy
-from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.vs.goals import sphere_views
 from cell.planning.vs.objective import EntropyObjective, slab_interval
 from cell.planning.vs.servo_scan import objective_rays, translated
 from cell.safety.guard import MotionGuard
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
-from drivers.factory import SimWorld, make_sensor
 from drivers.robots import get_robot_model
-from drivers.sim.objects import load_object
-from drivers.sim.scene import SimScene
-from drivers.transforms import look_at, make_T
 
 REPO = Path(__file__).resolve().parents[1]
 CELL = REPO / "config" / "sim-franka-rgbd.yaml"
@@ -50,24 +46,14 @@ CELL = REPO / "config" / "sim-franka-rgbd.yaml"
 
 def build_scene(cfg):
     """The pipeline after six frames of the bunny, and each frame's (origin, base-frame points)."""
-    station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
-    scene = SimScene(load_object("bunny"), make_T(np.eye(3), station),
-                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
-    pose = {"T": np.eye(4)}
-    world = SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=scene)
-    sensor = make_sensor(cfg.sensor, world, lambda: pose["T"])
-    pipeline = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
-                                  range_max_m=sensor.model.range_max_m, rng=np.random.default_rng(1))
-    target = station + np.array([0.0, 0.0, 0.06])
+    rig = StationRig(cfg, "bunny")
     frames = []
-    with sensor:
+    with rig.sensor:
         for k in range(6):
-            az = np.deg2rad(200.0 + 25.0 * k)
-            eye = target + cfg.scan.standoff_m * np.array([np.cos(az) * 0.8, np.sin(az) * 0.8, 0.6])
-            pose["T"] = look_at(eye, target)
-            update = pipeline.process(sensor.capture(), pose["T"])
+            T = rig.view(200.0 + 25.0 * k, cfg.scan.standoff_m)
+            update = rig.pipeline.process(rig.sensor.capture(), T)
             frames.append((update.T_base_sensor[:3, 3].copy(), update.points_base))
-    return pipeline, frames
+    return rig.pipeline, frames
 
 
 def octomap_f(tree, T, rays_cam, roi_min, roi_max, crop, res) -> float:
