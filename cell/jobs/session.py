@@ -4,7 +4,8 @@ Every control period is one tick: the time budget, an operator stop (``request_s
 file in the job folder written by ``cell stop``), a due continuous capture, then the guard's tick
 (watchdog, arm faults, the next streamed command), then the clock moves on by one period (in sim mode this
 steps the simulated arm) and the sensor pose is written to ``trajectory.csv``. When the time budget runs
-out ``TimeBudgetExhausted`` ends the planner's run; a safety stop raises ``SafetyStop``.
+out ``TimeBudgetExhausted`` (a ``ScanLimitReached``) ends the planner's run; a safety stop raises
+``SafetyStop``.
 
 While continuous capture is on (planners that move from perception), the watchdog judges the age of the
 newest frame; a frame the sensor fails to deliver then is logged and counted, and the watchdog stops the
@@ -28,7 +29,7 @@ from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard
 from drivers.clock import Clock
-from drivers.depth.base import DepthSensor
+from drivers.depth.base import DepthFrame, DepthSensor
 from drivers.errors import DriverError, KinematicsError
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
@@ -40,8 +41,13 @@ SETTLED_QD_RAD_S = 1e-4
 SETTLE_TIMEOUT_S = 3.0
 
 
-class TimeBudgetExhausted(Exception):
-    """The job's time budget ran out; the runner turns this into the termination reason."""
+class ScanLimitReached(Exception):
+    """The job reached a limit that ends the planner's run (not a fault); the runner turns the message
+    into the termination reason."""
+
+
+class TimeBudgetExhausted(ScanLimitReached):
+    """The job's time budget ran out."""
 
 
 class JobSession:
@@ -231,14 +237,18 @@ class JobSession:
 
     def capture(self) -> int:
         frame = self._sensor.capture()
-        state = self._guard.state()
-        T_fk = state.T_base_flange @ self._T_flange_sensor
+        return self._ingest(frame, self._guard.state().T_base_flange)
+
+    def _ingest(self, frame: DepthFrame, T_base_flange: Array) -> int:
+        """Run a captured frame, taken with the flange at ``T_base_flange``, through perception; record it
+        and count it; returns the number of points kept."""
+        T_fk = T_base_flange @ self._T_flange_sensor
         update = self.perception.process(frame, T_fk)
         reg = update.registration
         self._perception_time = frame.timestamp if self._next_capture is not None else None
         if update.roi is not None:
             self._guard.set_roi(update.roi.aabb_min, update.roi.aabb_max)
-        self._recorder.frame(frame, T_fk, state.T_base_flange,
+        self._recorder.frame(frame, T_fk, T_base_flange,
                              {"T_base_sensor_registered": update.T_base_sensor})
         self.n_captures += 1
         if reg.rejected:
