@@ -69,7 +69,9 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
 def scan(
     config: Annotated[Path | None, typer.Option(help=f"cell file (default: {DEFAULT_CONFIG}; with --replay, "
                                                      "the job's)")] = None,
-    object: Annotated[str, typer.Option("--object", help="shipped name or mesh file")] = DEFAULT_OBJECT,
+    object: Annotated[str | None, typer.Option(
+        "--object", help=f"shipped name or mesh file (default {DEFAULT_OBJECT}); on a real cell, a label "
+                         "for the record")] = None,
     object_pose: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
     planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's; with "
                                                      "--replay, the job's)")] = None,
@@ -87,7 +89,9 @@ def scan(
             request = _replay_request(replay, config, planner, seed, out, max_time)
         else:
             path = config if config is not None else DEFAULT_CONFIG
-            request = ScanRequest(config=load_config(path), config_path=str(path), object=object,
+            cfg = load_config(path)
+            label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
+            request = ScanRequest(config=cfg, config_path=str(path), object=label,
                                   object_pose=_parse_pose(object_pose), planner=planner,
                                   seed=seed if seed is not None else 0, out=out, max_time_s=max_time)
         cfg = request.config

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import json
+import threading
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -59,6 +60,7 @@ class JobRecorder:
         except OSError as exc:
             raise JobError(f"cannot create job folder {folder}: {exc}") from None
         self._log: TextIO = (folder / "log.txt").open("w")
+        self._log_lock = threading.Lock()
         self._traj: TextIO = (folder / "trajectory.csv").open("w", newline="")
         self._traj_writer = csv.writer(self._traj)
         self._traj_writer.writerow(["t", "x", "y", "z", "qx", "qy", "qz", "qw"])
@@ -68,8 +70,10 @@ class JobRecorder:
         self._requests: TextIO | None = None
 
     def log(self, t: float, message: str) -> None:
-        self._log.write(f"[{t:9.3f}] {message}\n")
-        self._log.flush()
+        """One line of ``log.txt`` (any thread: the perception worker logs too on the wall clock)."""
+        with self._log_lock:
+            self._log.write(f"[{t:9.3f}] {message}\n")
+            self._log.flush()
 
     def pose(self, t: float, T_base_sensor: Array) -> None:
         p = T_base_sensor[:3, 3]

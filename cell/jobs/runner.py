@@ -7,7 +7,9 @@ why, then re-raises.
 
 Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
 job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
-the arm reports it is.
+the arm reports it is; ``mode: real`` runs a hardware arm and a hardware sensor on the wall clock, with
+no ground truth (metrics are None). On the wall clock perception runs asynchronously from control
+(``cell.jobs.live``). ``mode: replay`` re-runs a recorded job (``cell.jobs.replay``).
 """
 
 from __future__ import annotations
@@ -23,12 +25,14 @@ from typing import Any
 import numpy as np
 
 from cell.config.models import CellConfig
+from cell.jobs.live import PoseHistory
 from cell.jobs.recorder import STOP_FILE, JobRecorder
 from cell.jobs.replay import ReplaySession
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.packing.result import packing_section
 from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
+from cell.planning.base import Planner
 from cell.planning.registry import get_planner
 from cell.safety.guard import MotionGuard
 from drivers.arm.config import ReplayArmConfig
@@ -117,18 +121,31 @@ def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray 
         return str(name), None, None
 
 
+def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, ObjectMesh | None,
+                                                                        np.ndarray | None]:
+    """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
+    of sim and dry runs and of replays of them; a real cell scans an unknown object)."""
+    if replay_dir is not None:
+        return _recorded_object(replay_dir)
+    if req.config.mode == "real":
+        return req.object, None, None
+    return req.object, load_object(req.object), object_pose_in_base(req.config, req.object_pose)
+
+
+def _run_planner(planner: Planner, session: JobSession) -> str:
+    try:
+        return planner.run(session)
+    finally:
+        session.close()
+
+
 def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
     """Run the scan described by ``req``; returns the job folder and the result written there."""
     cfg = req.config
-    if cfg.mode == "real":
-        raise JobError("scans with a hardware sensor (mode 'real') are not available yet; mode 'dry-run' "
-                       "scans with a hardware arm and a simulated sensor")
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
     replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
-    object_name, mesh, T_base_object = (_recorded_object(replay_dir) if replay_dir is not None
-                                        else (req.object, load_object(req.object),
-                                              object_pose_in_base(cfg, req.object_pose)))
+    object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
     max_time = req.max_time_s if req.max_time_s is not None else cfg.scan.max_time_s
     if max_time <= 0:
         raise JobError(f"--max-time must be positive, got {max_time}")
@@ -139,9 +156,12 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     # One seed per job, split into independent streams so that perception's random draws (RANSAC) never
     # change the noise the simulated devices see.
     world_rng, perception_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(req.seed).spawn(2))
-    # A dry run drives a hardware arm: the job runs on the wall clock, and the simulated sensor renders
-    # the virtual object from the pose the arm reports (true_flange_pose). A replay plays recorded time.
-    clock: Clock = WallClock() if cfg.mode == "dry-run" else SimClock()
+    # With a hardware arm the job runs on the wall clock and perception runs asynchronously, its frames
+    # paired with the poses the control loop records (poses); a dry run's simulated sensor renders the
+    # virtual object from the newest of them. A replay plays recorded time on the simulated clock.
+    wall = cfg.mode in ("dry-run", "real")
+    clock: Clock = WallClock() if wall else SimClock()
+    poses = PoseHistory() if wall else None
     scene = None if mesh is None or T_base_object is None else SimScene(
         mesh, T_base_object, table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
         table_size_xy=cfg.sim.table_size_m)
@@ -149,7 +169,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     model = get_robot_model(cfg.arm.model)
     T_flange_sensor = cfg.mount.matrix()
     arm = make_arm(cfg.arm, model, world)
-    flange = true_flange_pose(arm)
+    flange = poses.latest if poses is not None else true_flange_pose(arm)
     sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
     ground_truth = (ground_truth_points(mesh, T_base_object) if mesh is not None and T_base_object is not None
                     else None)
@@ -177,10 +197,11 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
                 session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
             else:
-                session = JobSession(cfg, sensor=sensor, **common)
-            # Whatever ends the planner's run, the arm is brought to rest and watched until it is.
+                session = JobSession(cfg, sensor=sensor, poses=poses, **common)
+            # Whatever ends the planner's run, the arm is brought to rest and watched until it is, and
+            # asynchronous capture stops before the sensor disconnects.
             try:
-                termination = planner.run(session)
+                termination = _run_planner(planner, session)
             except ScanLimitReached as exc:
                 termination = str(exc)
             except SafetyStop:
