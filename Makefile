@@ -11,8 +11,9 @@ demo: $(STAMP)
 
 setup: $(STAMP)
 
-# setup.py and the .pyx: the compiled perception kernels are rebuilt when their source changes.
-$(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx deploy/system-deps.sh
+# setup.py and the .pyx: the compiled kernels are rebuilt when their source changes.
+$(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx cell/planning/vs/_objective.pyx \
+		deploy/system-deps.sh
 	bash deploy/system-deps.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip

@@ -1,10 +1,13 @@
-"""Builds the compiled perception kernels (cell/perception/_kernels.pyx); everything else about the
-package is in pyproject.toml. ``pip install -e .`` (``make setup``) runs it."""
+"""Builds the compiled kernels, everything else about the package is in pyproject.toml:
+cell/perception/_kernels.pyx (occupancy integration, outlier statistics) and cell/planning/vs/_objective.pyx
+(the entropy NBV objective, OpenMP over candidate poses). ``pip install -e .`` (``make setup``) runs it."""
 
 from Cython.Build import cythonize
 from setuptools import Extension, setup
 
 setup(ext_modules=cythonize(
-    [Extension("cell.perception._kernels", ["cell/perception/_kernels.pyx"], extra_compile_args=["-O3"])],
+    [Extension("cell.perception._kernels", ["cell/perception/_kernels.pyx"], extra_compile_args=["-O3"]),
+     Extension("cell.planning.vs._objective", ["cell/planning/vs/_objective.pyx"],
+               extra_compile_args=["-O3", "-fopenmp"], extra_link_args=["-fopenmp"])],
     compiler_directives={"language_level": 3},
 ))
