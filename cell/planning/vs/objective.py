@@ -25,7 +25,7 @@ function of the pose. A sample's voxel is floor(x / res), as the map keys it, up
 steps the grid coordinate x / res along the ray, so a sample within ~1e-12 voxel of a face may be read from
 the voxel on its other side.
 
-A batch of poses is shared between OpenMP threads (``max_threads``, OMP_NUM_THREADS) once it holds
+A batch of poses is shared between OpenMP threads (``batch_threads``, OMP_NUM_THREADS) once it holds
 ``PARALLEL_MIN_POSES`` poses (the 5000 candidates of eq. 10); smaller ones (the five poses of a servo
 iteration, eq. 5-6) run on the calling thread. Each pose is one sequential sum whichever thread runs it,
 so results do not depend on the thread count.
@@ -47,6 +47,12 @@ Array = NDArray[np.float64]
 
 # Batches from this many poses on are split between threads; below, thread start-up outweighs the gain.
 PARALLEL_MIN_POSES = 64
+
+
+def batch_threads() -> int:
+    """The OpenMP threads a batch of ``PARALLEL_MIN_POSES`` poses or more runs on (OMP_NUM_THREADS, else
+    the number of cores)."""
+    return _k.max_threads()
 
 
 class NBVObjective(Protocol):
@@ -127,7 +133,7 @@ class EntropyObjective:
         if not np.all(np.isfinite(batch[:, :3, :])):
             raise ValueError("T_base_cam must be finite")
         out = np.empty(batch.shape[0])
-        threads = _k.max_threads() if batch.shape[0] >= PARALLEL_MIN_POSES else 1
+        threads = batch_threads() if batch.shape[0] >= PARALLEL_MIN_POSES else 1
         _k.expected_entropy(batch, self.directions_cam, self._crop_in, self._crop_out, self.roi_min,
                             self.roi_max, self.resolution_m, self._k_lo, self._shape, self._voxels, out,
                             threads)
