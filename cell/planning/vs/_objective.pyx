@@ -3,7 +3,7 @@
 ``pip install -e .`` (see setup.py); ``objective.EntropyObjective`` is its only caller and documents the
 method.
 
-``expected_entropy`` scores a batch of camera poses: per pose, each of the K rays is clipped to the ROI
+``Scorer.score`` scores a batch of camera poses: per pose, each of the K rays is clipped to the ROI
 box and the crop box, sampled every resolution, and its samples' voxels read from a dense snapshot of
 the map around the ROI. Poses are independent, so a batch is split over OpenMP threads; every pose is
 computed by the same sequential loop whichever thread runs it, so the result does not depend on the
@@ -15,7 +15,7 @@ checks shapes, dtypes and finiteness before calling.
 
 cimport openmp
 from cython.parallel cimport prange
-from libc.math cimport NAN, ceil
+from libc.math cimport NAN, ceil, isfinite
 from libc.stdint cimport int64_t
 
 # Slack [voxels] of the per-ray check that every sample's grid coordinate lies in the snapshot: far above
@@ -99,23 +99,46 @@ cdef double _pose(const double* T, const double* dirs, Py_ssize_t n_rays, const 
     return total / n_rays
 
 
-def expected_entropy(const double[:, :, ::1] poses, const double[:, ::1] dirs, const double[::1] crop_in,
-                     const double[::1] crop_out, const double[::1] roi_lo, const double[::1] roi_hi,
-                     double res, const int64_t[::1] k_lo, const int64_t[::1] shape,
-                     const double[:, ::1] voxels, double[::1] out, int n_threads):
-    """f of eq. 9 for ``poses`` (B, 4, 4) T_base_cam into ``out`` (B,) [nats], NaN for a pose whose
-    samples leave the snapshot.
+cdef class Scorer:
+    """The rays and the map snapshot of one objective; ``score`` evaluates eq. 9 for batches of poses.
 
     ``dirs`` (K, 3) unit rays, camera frame; ``crop_in`` / ``crop_out`` (K,) each ray's parameters [m]
     inside the crop box; ``roi_lo`` / ``roi_hi`` (3,) the ROI box, base frame [m]; ``res`` the sample
     spacing and voxel edge [m]; ``voxels`` (M, 2): per voxel of the snapshot, (1 - p, H(p)) of eq. 7-8,
-    in key order (x, then y, then z) over ``shape`` (3,) voxels starting at key ``k_lo`` (3,).
-    ``n_threads`` OpenMP threads share the poses.
+    in key order (x, then y, then z) over ``shape`` (3,) voxels starting at key ``k_lo`` (3,). The arrays
+    are held, not copied: the caller does not change them.
     """
-    cdef Py_ssize_t b, n_poses = poses.shape[0], n_rays = dirs.shape[0]
-    if n_poses == 0 or n_rays == 0:
-        out[:] = 0.0
-        return
-    for b in prange(n_poses, nogil=True, schedule="dynamic", chunksize=8, num_threads=n_threads):
-        out[b] = _pose(&poses[b, 0, 0], &dirs[0, 0], n_rays, &crop_in[0], &crop_out[0], &roi_lo[0],
-                       &roi_hi[0], res, &k_lo[0], &shape[0], &voxels[0, 0])
+
+    cdef const double[:, ::1] dirs
+    cdef const double[::1] crop_in, crop_out, roi_lo, roi_hi
+    cdef const int64_t[::1] k_lo, shape
+    cdef const double[:, ::1] voxels
+    cdef double res
+
+    def __init__(self, const double[:, ::1] dirs, const double[::1] crop_in, const double[::1] crop_out,
+                 const double[::1] roi_lo, const double[::1] roi_hi, double res, const int64_t[::1] k_lo,
+                 const int64_t[::1] shape, const double[:, ::1] voxels):
+        self.dirs, self.crop_in, self.crop_out = dirs, crop_in, crop_out
+        self.roi_lo, self.roi_hi, self.res = roi_lo, roi_hi, res
+        self.k_lo, self.shape, self.voxels = k_lo, shape, voxels
+
+    def score(self, const double[:, :, ::1] poses, double[::1] out, int n_threads):
+        """f of eq. 9 for ``poses`` (B, 4, 4) T_base_cam into ``out`` (B,) [nats], on ``n_threads``
+        OpenMP threads; NaN for a pose that is not finite or whose samples leave the snapshot."""
+        cdef Py_ssize_t b, j, n_poses = poses.shape[0], n_rays = self.dirs.shape[0]
+        cdef const double* T
+        if n_poses == 0:
+            return
+        if n_rays == 0:
+            out[:] = 0.0
+            return
+        for b in prange(n_poses, nogil=True, schedule="dynamic", chunksize=8, num_threads=n_threads):
+            T = &poses[b, 0, 0]
+            for j in range(12):
+                if not isfinite(T[j]):
+                    out[b] = NAN
+                    break
+            else:
+                out[b] = _pose(T, &self.dirs[0, 0], n_rays, &self.crop_in[0], &self.crop_out[0],
+                               &self.roi_lo[0], &self.roi_hi[0], self.res, &self.k_lo[0], &self.shape[0],
+                               &self.voxels[0, 0])

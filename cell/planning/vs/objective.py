@@ -15,7 +15,7 @@ contribute 0 and still count in K.
 
 Exchanging the sums gives the form computed here: sum_i P_i C_i + P_{N+1} C_N = sum_j H(p_j) S_j with
 S_j = prod_{i<j} (1 - p_i), the probability that the ray reaches sample j: one pass along the ray with a
-running product, in the compiled kernel ``_objective.expected_entropy``. A plain transcription of eq. 7-9
+running product, in the compiled kernel ``_objective.Scorer``. A plain transcription of eq. 7-9
 lives in the tests and agrees with this to 1e-9 relative.
 
 Because only voxels inside the ROI are ever read, ``EntropyObjective`` takes a snapshot of them when built
@@ -106,18 +106,20 @@ class EntropyObjective:
         # Every sample inside the ROI box falls in a voxel with key in [floor(min / res), floor(max / res)]
         # (keys as the map's); one more voxel on each side absorbs rounding at the faces, so no sample
         # needs clipping.
-        self._k_lo = np.floor(self.roi_min / res).astype(np.int64) - 1
+        k_lo = np.floor(self.roi_min / res).astype(np.int64) - 1
         k_hi = np.floor(self.roi_max / res).astype(np.int64) + 1
-        self._shape = k_hi - self._k_lo + 1
-        axes = [np.arange(self._k_lo[i], k_hi[i] + 1) for i in range(3)]
+        shape = k_hi - k_lo + 1
+        axes = [np.arange(k_lo[i], k_hi[i] + 1) for i in range(3)]
         keys = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
         p = occupancy.probability(occupancy.centers_of(keys))
         # Per voxel in key order (x, then y, then z): 1 - p of eq. 7 and H(p) of eq. 8 [nats].
-        self._voxels = np.ascontiguousarray(np.stack([1.0 - p, binary_entropy(p)], axis=1))
+        voxels = np.ascontiguousarray(np.stack([1.0 - p, binary_entropy(p)], axis=1))
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
-        self._crop_in, self._crop_out = slab_interval(np.zeros(3), self.directions_cam, lo, hi)
+        crop_in, crop_out = slab_interval(np.zeros(3), self.directions_cam, lo, hi)
+        self._scorer = _k.Scorer(self.directions_cam, crop_in, crop_out, self.roi_min, self.roi_max, res,
+                                 k_lo, shape, voxels)
 
     @property
     def n_rays(self) -> int:
@@ -130,17 +132,13 @@ class EntropyObjective:
         if T.shape[-2:] != (4, 4):
             raise ValueError(f"T_base_cam must be (4, 4) or (B, 4, 4), got {T.shape}")
         batch = np.ascontiguousarray(T.reshape(-1, 4, 4))
-        if not np.all(np.isfinite(batch[:, :3, :])):
-            raise ValueError("T_base_cam must be finite")
         out = np.empty(batch.shape[0])
-        threads = batch_threads() if batch.shape[0] >= PARALLEL_MIN_POSES else 1
-        _k.expected_entropy(batch, self.directions_cam, self._crop_in, self._crop_out, self.roi_min,
-                            self.roi_max, self.resolution_m, self._k_lo, self._shape, self._voxels, out,
-                            threads)
-        bad = np.flatnonzero(np.isnan(out))
-        if bad.size:
+        self._scorer.score(batch, out, batch_threads() if batch.shape[0] >= PARALLEL_MIN_POSES else 1)
+        if np.isnan(out).any():
+            i = int(np.flatnonzero(np.isnan(out))[0])
+            if not np.all(np.isfinite(batch[i, :3, :])):
+                raise ValueError(f"T_base_cam must be finite, pose {i} is not")
             # The snapshot covers the ROI box with a voxel to spare: a sample outside it is a bug here.
-            raise PlanningError(f"entropy objective: a ray sample of pose {int(bad[0])} left the map "
-                                f"snapshot around the ROI box {self.roi_min.tolist()} .. "
-                                f"{self.roi_max.tolist()} m")
+            raise PlanningError(f"entropy objective: a ray sample of pose {i} left the map snapshot around "
+                                f"the ROI box {self.roi_min.tolist()} .. {self.roi_max.tolist()} m")
         return float(out[0]) if T.ndim == 2 else out.reshape(T.shape[:-2])
