@@ -9,8 +9,8 @@ the map around the ROI. Poses are independent, so a batch is split over OpenMP t
 computed by the same sequential loop whichever thread runs it, so the result does not depend on the
 number of threads or their schedule.
 
-Plain loops over typed memoryviews, as ``cell/perception/_kernels.pyx``: the caller owns the arrays and
-checks shapes, dtypes and finiteness before calling.
+Plain loops over typed memoryviews, as ``cell/perception/_kernels.pyx``; ``Scorer`` checks that the
+arrays it is given fit together, so that the loops can read them unchecked.
 """
 
 cimport openmp
@@ -118,6 +118,12 @@ cdef class Scorer:
     def __init__(self, const double[:, ::1] dirs, const double[::1] crop_in, const double[::1] crop_out,
                  const double[::1] roi_lo, const double[::1] roi_hi, double res, const int64_t[::1] k_lo,
                  const int64_t[::1] shape, const double[:, ::1] voxels):
+        if dirs.shape[1] != 3 or crop_in.shape[0] != dirs.shape[0] or crop_out.shape[0] != dirs.shape[0]:
+            raise ValueError("Scorer: dirs must be (K, 3), crop_in and crop_out (K,)")
+        if roi_lo.shape[0] != 3 or roi_hi.shape[0] != 3 or k_lo.shape[0] != 3 or shape.shape[0] != 3:
+            raise ValueError("Scorer: roi_lo, roi_hi, k_lo and shape must have 3 entries")
+        if voxels.shape[1] != 2 or voxels.shape[0] != shape[0] * shape[1] * shape[2] or not res > 0.0:
+            raise ValueError("Scorer: voxels must be (shape[0] * shape[1] * shape[2], 2) and res > 0")
         self.dirs, self.crop_in, self.crop_out = dirs, crop_in, crop_out
         self.roi_lo, self.roi_hi, self.res = roi_lo, roi_hi, res
         self.k_lo, self.shape, self.voxels = k_lo, shape, voxels
@@ -127,6 +133,8 @@ cdef class Scorer:
         OpenMP threads; NaN for a pose that is not finite or whose samples leave the snapshot."""
         cdef Py_ssize_t b, j, n_poses = poses.shape[0], n_rays = self.dirs.shape[0]
         cdef const double* T
+        if out.shape[0] != n_poses:
+            raise ValueError(f"Scorer.score: out has {out.shape[0]} entries for {n_poses} poses")
         if n_poses == 0:
             return
         if n_rays == 0:
