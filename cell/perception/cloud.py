@@ -1,8 +1,8 @@
 """Point-cloud filters and accumulation (visual-servoing paper section II-A, "Filtering" and
 "Registration": voxel filter, crop box, concatenate then re-voxelize).
 
-Implemented in numpy so that results are bit-for-bit reproducible: the voxel filter orders its output by
-voxel key, independent of hash-map iteration order.
+Bit-for-bit reproducible: the voxel filter (a compiled one-pass kernel) orders its output by voxel key,
+independent of the order of its hash table, and sums each voxel's points in input order.
 """
 
 from __future__ import annotations
@@ -17,34 +17,42 @@ from cell.perception import _kernels as _k
 Array = NDArray[np.float64]
 
 
-# Voxel indices are packed into one int64 key, 21 bits per axis: +-2**20 voxels, i.e. +-2.6 km at 2.5 mm.
-_KEY_BITS = 21
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
-
-
-def _voxel_groups(points: Array, voxel_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """(voxel of each point (N,), points per voxel (K,)); voxels numbered in the order of their key."""
-    idx = np.floor(points / voxel_m).astype(np.int64) + _KEY_OFFSET
-    if np.any(idx < 0) or np.any(idx >= (1 << _KEY_BITS)):
-        raise ValueError(f"points lie too far from the origin for a {voxel_m} m voxel grid")
-    keys = (idx[:, 0] << (2 * _KEY_BITS)) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    return inverse, counts
-
-
-def _centroids(points: Array, inverse: NDArray[np.int64], counts: NDArray[np.int64]) -> Array:
-    sums = np.zeros((counts.size, 3))
-    for axis in range(3):
-        sums[:, axis] = np.bincount(inverse, weights=points[:, axis], minlength=counts.size)
-    return sums / counts[:, None]
+def _voxel_groups(points: Array, voxel_m: float, box: tuple[Array, Array] | None = None,
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], Array]:
+    """(voxel of each point (N,), -1 outside ``box``; points per voxel (K,); voxel centroids (K, 3)),
+    voxels numbered in the order of their key (x, then y, then z). ``box`` (lo, hi) (3,) [m] keeps only
+    the points strictly inside it. Each centroid is the sum of its points in input order over their
+    number, whatever the hashing inside the kernel (``_kernels.voxel_groups``)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    n = pts.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    group = np.empty(n, dtype=np.int32)
+    sums = np.empty((n, 3))
+    counts = np.empty(n, dtype=np.int64)
+    lo, hi = (np.zeros(3), np.zeros(3)) if box is None else (np.asarray(box[0], dtype=np.float64),
+                                                            np.asarray(box[1], dtype=np.float64))
+    k = _k.voxel_groups(pts, float(voxel_m), lo, hi, box is not None, keys, group, sums, counts)
+    if k < 0:
+        raise ValueError(f"points are not finite or lie too far from the origin for a {voxel_m} m voxel grid")
+    order = np.argsort(keys[:k])
+    rank = np.empty(k, dtype=np.int64)
+    rank[order] = np.arange(k)
+    inverse = np.where(group >= 0, rank[np.maximum(group, 0)], -1)
+    return inverse, counts[order], sums[order] / counts[order][:, None]
 
 
 def voxel_downsample(points: Array, voxel_m: float) -> Array:
     """Replace the points of each ``voxel_m`` [m] cube (a grid anchored at the frame origin) by their
     centroid. Output sorted by voxel index; an empty input gives an empty (0, 3) array."""
-    if points.shape[0] == 0:
-        return np.zeros((0, 3))
-    return _centroids(points, *_voxel_groups(points, voxel_m))
+    return _voxel_groups(points, voxel_m)[2]
+
+
+def crop_voxel_downsample(points: Array, x: tuple[float, float], y: tuple[float, float],
+                          z: tuple[float, float], voxel_m: float) -> Array:
+    """``voxel_downsample(crop_box(points, x, y, z), voxel_m)`` in one pass over the points (a raw
+    640x480 frame holds ~250k of them)."""
+    box = (np.array([x[0], y[0], z[0]]), np.array([x[1], y[1], z[1]]))
+    return _voxel_groups(points, voxel_m, box)[2]
 
 
 class PointGrid:
@@ -142,8 +150,7 @@ class CloudAccumulator:
         both = np.vstack([self._points, new])
         n_old = self._points.shape[0]
         if both.shape[0]:
-            inverse, counts = _voxel_groups(both, self.voxel_m)
-            self._points = _centroids(both, inverse, counts)
+            inverse, counts, self._points = _voxel_groups(both, self.voxel_m)
             self._new = np.bincount(inverse[:n_old], minlength=counts.size) == 0
         return new
 

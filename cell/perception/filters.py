@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, crop_box, voxel_downsample
+from cell.perception.cloud import PointGrid, crop_voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.depth.base import DepthFrame
 
@@ -149,8 +149,7 @@ def filter_frame(points_sensor: Array, *, crop: CropBox, voxel_m: float, params:
     the uniform-density voxelized cloud, which is what makes a global distance threshold meaningful.
     Output (M, 3) [m, sensor frame], sorted by voxel key.
     """
-    pts = crop_box(points_sensor, crop.x_m, crop.y_m, crop.z_m)
-    pts = voxel_downsample(pts, voxel_m)
+    pts = crop_voxel_downsample(points_sensor, crop.x_m, crop.y_m, crop.z_m, voxel_m)
     if params.sor_enabled:
         pts = statistical_outlier_removal(pts, params.sor_neighbors, params.sor_std_ratio)
     return pts
