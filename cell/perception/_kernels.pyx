@@ -462,12 +462,55 @@ cdef enum:
     KEY_BITS = 21  # per axis of a packed voxel key: +-2^20 voxels
 
 
+cdef inline int64_t _floor(double x) noexcept nogil:
+    """floor(x) as an integer for |x| < 2^62, without a call into libm (no SSE4.1 rounding in the
+    baseline x86-64 instruction set)."""
+    cdef int64_t t = <int64_t>x
+    return t - (x < t)
+
+
 cdef inline uint64_t _hash(int64_t key) noexcept nogil:
     """Mix the bits of a packed key (the finaliser of splitmix64)."""
     cdef uint64_t h = <uint64_t>key
     h = (h ^ (h >> 30)) * <uint64_t>0xbf58476d1ce4e5b9
     h = (h ^ (h >> 27)) * <uint64_t>0x94d049bb133111eb
     return h ^ (h >> 31)
+
+
+cdef bint _rehash(int64_t** table_key, int32_t** table_group, int64_t cap, const int64_t* keys,
+                  Py_ssize_t n_groups) noexcept nogil:
+    """Replace the hash table by one of ``cap`` slots holding the n_groups keys; False when out of
+    memory (the old table is kept)."""
+    cdef int64_t* tk = <int64_t*>malloc(cap * sizeof(int64_t))
+    cdef int32_t* tg = <int32_t*>malloc(cap * sizeof(int32_t))
+    cdef uint64_t h, mask = <uint64_t>(cap - 1)
+    cdef Py_ssize_t g
+    if tk == NULL or tg == NULL:
+        free(tk)
+        free(tg)
+        return False
+    for g in range(cap):
+        tg[g] = -1
+    for g in range(n_groups):
+        h = _hash(keys[g]) & mask
+        while tg[h] >= 0:
+            h = (h + 1) & mask
+        tg[h] = <int32_t>g
+        tk[h] = keys[g]
+    free(table_key[0])
+    free(table_group[0])
+    table_key[0], table_group[0] = tk, tg
+    return True
+
+
+cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, int32_t* group, double* sums,
+                             int64_t* counts) noexcept nogil:
+    """Point i joins voxel g."""
+    group[i] = g
+    sums[3 * g] += pts[3 * i]
+    sums[3 * g + 1] += pts[3 * i + 1]
+    sums[3 * g + 2] += pts[3 * i + 2]
+    counts[g] += 1
 
 
 def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] box_lo,
@@ -480,43 +523,48 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
     packed key of each voxel (21 bits an axis, x highest, offset to be non-negative, so that sorting the
     keys sorts by x, then y, then z), ``group_out`` (N,) the voxel of each point, ``sums_out`` (N, 3) and
     ``counts_out`` (N,) the sum of each voxel's points (added in input order) and their number. Returns
-    the number of voxels, or -1 when a kept point is not finite or lies beyond the key range. Grouping
-    goes through an open-addressing hash table of 2^b >= 2N slots.
+    the number of voxels, -1 when a kept point is not finite or lies beyond the key range, -2 when out
+    of memory. Grouping goes through an open-addressing hash table kept at most half full, sized by the
+    voxels rather than the points so that it stays in cache (a raw frame has ~15x more points than
+    voxels).
     """
     cdef Py_ssize_t i, n = points.shape[0], n_groups = 0
-    cdef int64_t cap = 16, key, off = 1 << (KEY_BITS - 1), lim = 1 << KEY_BITS
+    cdef int64_t cap = 4096, key, off = 1 << (KEY_BITS - 1)
     cdef int64_t ix, iy, iz
     cdef uint64_t mask, h
     cdef double x, y, z
-    cdef int64_t* table_key
-    cdef int32_t* table_group
-    cdef int32_t g
-    cdef bint bad = False
-    while cap < 2 * n:
-        cap <<= 1
-    mask = <uint64_t>(cap - 1)
-    table_key = <int64_t*>malloc(cap * sizeof(int64_t))
-    table_group = <int32_t*>malloc(cap * sizeof(int32_t))
-    if table_key == NULL or table_group == NULL:
-        free(table_key)
-        free(table_group)
+    cdef int64_t* table_key = NULL
+    cdef int32_t* table_group = NULL
+    cdef int32_t g, last_group = -1
+    cdef int64_t last_key = -1
+    cdef int status = 0
+    cdef const double* pts
+    cdef int32_t* grp
+    cdef double* sums
+    cdef int64_t* counts
+    if n == 0:
+        return 0
+    pts, grp, sums, counts = &points[0, 0], &group_out[0], &sums_out[0, 0], &counts_out[0]
+    if not _rehash(&table_key, &table_group, cap, &keys_out[0], 0):
         raise MemoryError()
+    mask = <uint64_t>(cap - 1)
     with nogil:
-        for i in range(cap):
-            table_group[i] = -1
         for i in range(n):
             x, y, z = points[i, 0], points[i, 1], points[i, 2]
             if crop and not (box_lo[0] < x < box_hi[0] and box_lo[1] < y < box_hi[1]
                              and box_lo[2] < z < box_hi[2]):
                 group_out[i] = -1
                 continue
-            x, y, z = floor(x / voxel_m), floor(y / voxel_m), floor(z / voxel_m)
+            x, y, z = x / voxel_m, y / voxel_m, z / voxel_m
             # NaN fails every comparison: refused here with the out-of-range keys
             if not (-off <= x < off and -off <= y < off and -off <= z < off):
-                bad = True
+                status = -1
                 break
-            ix, iy, iz = <int64_t>x + off, <int64_t>y + off, <int64_t>z + off
+            ix, iy, iz = _floor(x) + off, _floor(y) + off, _floor(z) + off
             key = (ix << (2 * KEY_BITS)) | (iy << KEY_BITS) | iz
+            if key == last_key:  # neighbouring pixels of a row share a voxel: no lookup
+                _accumulate(pts, i, last_group, grp, sums, counts)
+                continue
             h = _hash(key) & mask
             while table_group[h] >= 0 and table_key[h] != key:
                 h = (h + 1) & mask
@@ -531,14 +579,19 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
                 sums_out[g, 1] = 0.0
                 sums_out[g, 2] = 0.0
                 counts_out[g] = 0
-            group_out[i] = g
-            sums_out[g, 0] += points[i, 0]
-            sums_out[g, 1] += points[i, 1]
-            sums_out[g, 2] += points[i, 2]
-            counts_out[g] += 1
+                if 2 * n_groups > cap:
+                    cap *= 2
+                    if not _rehash(&table_key, &table_group, cap, &keys_out[0], n_groups):
+                        status = -2
+                        break
+                    mask = <uint64_t>(cap - 1)
+            _accumulate(pts, i, g, grp, sums, counts)
+            last_key, last_group = key, g
     free(table_key)
     free(table_group)
-    return -1 if bad else n_groups
+    if status == -2:
+        raise MemoryError()
+    return status if status < 0 else n_groups
 
 
 cdef void _jacobi_eigen3(double* a, double* v) noexcept nogil:
@@ -670,3 +723,59 @@ def radius_components(const double[:, ::1] points, const int64_t[:, ::1] cells, 
                                 parent[ri] = rj
         for i in range(n):
             parent[i] = _root(parent, i)
+
+
+def plane_inlier_counts(const double[:, ::1] points, const double[:, ::1] normals, const double[::1] offsets,
+                        double max_distance_m, int64_t[::1] out):
+    """For each plane n . p + d = 0 (``normals`` (H, 3), ``offsets`` (H,)) the number of points (N, 3)
+    within ``max_distance_m`` [m] of it, into ``out`` (H,) (RANSAC scoring, ``segmentation``)."""
+    cdef Py_ssize_t h, i, nh = normals.shape[0], n = points.shape[0]
+    cdef double a, b, c, d, dist
+    cdef int64_t count
+    with nogil:
+        for h in range(nh):
+            a, b, c, d = normals[h, 0], normals[h, 1], normals[h, 2], offsets[h]
+            count = 0
+            for i in range(n):
+                dist = a * points[i, 0] + b * points[i, 1] + c * points[i, 2] + d
+                count += -max_distance_m <= dist <= max_distance_m
+            out[h] = count
+
+
+def grid_sort(const double[:, ::1] points, const double[::1] lo, double cell_m, int64_t nx, int64_t ny,
+              int64_t nz, int64_t[::1] starts_out, int64_t[::1] order_out, int64_t[:, ::1] cells_out):
+    """Bucket points (N, 3) [m] in the grid of ``cell_m`` cells with corner ``lo`` and shape (nx, ny, nz)
+    (``cloud.PointGrid``) by a counting sort: ``order_out`` (N,) the input index of each point sorted by
+    flat cell index (x, then y, then z; input order within a cell, as a stable argsort), ``cells_out``
+    (N, 3) their cells in that order, ``starts_out`` (nx * ny * nz + 1,) where each cell's run begins.
+    A coordinate past the last cell (rounding at the far face) is clamped into it."""
+    cdef Py_ssize_t i, n = points.shape[0]
+    cdef int64_t c, cx, cy, cz, n_cells = nx * ny * nz
+    cdef int64_t* flat = <int64_t*>malloc(n * sizeof(int64_t) if n else 1)
+    if flat == NULL:
+        raise MemoryError()
+    with nogil:
+        for c in range(n_cells + 1):
+            starts_out[c] = 0
+        for i in range(n):
+            cx = min(_floor((points[i, 0] - lo[0]) / cell_m), nx - 1)
+            cy = min(_floor((points[i, 1] - lo[1]) / cell_m), ny - 1)
+            cz = min(_floor((points[i, 2] - lo[2]) / cell_m), nz - 1)
+            flat[i] = (cx * ny + cy) * nz + cz
+            starts_out[flat[i] + 1] += 1
+        for c in range(n_cells):
+            starts_out[c + 1] += starts_out[c]
+        # scatter with a running cursor per cell, kept in the run starts shifted by one cell
+        for i in range(n):
+            c = flat[i]
+            order_out[starts_out[c]] = i
+            starts_out[c] += 1
+        for c in range(n_cells, 0, -1):
+            starts_out[c] = starts_out[c - 1]
+        starts_out[0] = 0
+        for i in range(n):
+            c = flat[order_out[i]]
+            cells_out[i, 2] = c % nz
+            cells_out[i, 1] = (c // nz) % ny
+            cells_out[i, 0] = c // (nz * ny)
+    free(flat)

@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from pydantic import PositiveFloat, model_validator
 
 from cell.perception import _kernels as _k
+from cell.perception.cloud import bounds
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -231,7 +232,8 @@ class OccupancyMap:
         k0 = np.floor(og).astype(np.int64)
         ke = np.floor(eg).astype(np.int64)
         # A segment lies in the box of its ends: the index covers every voxel of the scan.
-        self._grow_index(np.minimum(ke.min(axis=0), k0), np.maximum(ke.max(axis=0), k0))
+        kmin, kmax = bounds(ke)
+        self._grow_index(np.minimum(kmin, k0), np.maximum(kmax, k0))
         self._scan += 1
         corner = self._origin * _BLOCK
         while True:

@@ -66,7 +66,7 @@ from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, voxel_downsample
+from cell.perception.cloud import PointGrid, bounds, in_box, voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.transforms import make_T, rotvec, transform_points
 
@@ -359,7 +359,8 @@ class RegistrationTarget:
             r = self.params.normal_radius_m
             fresh = pts[new]
             # neighbours of the new points lie in their box widened by the radius
-            near = np.all((pts >= fresh.min(axis=0) - r) & (pts <= fresh.max(axis=0) + r), axis=1)
+            lo, hi = bounds(fresh)
+            near = in_box(pts, lo - r, hi + r)
             normals[new] = estimate_normals(fresh, pts[near], r)
         self._points, self._normals = pts, normals
 
@@ -386,8 +387,8 @@ class RegistrationTarget:
         src_base = transform_points(T_fk, src)
         reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", src, src))))
         margin = p.max_correspondence_m[0] + p.max_correction_m + math.radians(p.max_correction_deg) * reach
-        near = np.flatnonzero(np.all((self._points >= src_base.min(axis=0) - margin)
-                                     & (self._points <= src_base.max(axis=0) + margin), axis=1))
+        lo, hi = bounds(src_base)
+        near = np.flatnonzero(in_box(self._points, lo - margin, hi + margin))
         if near.size < p.min_points:
             log.warning("registration skipped: %d target points near the frame, need %d", near.size,
                         p.min_points)

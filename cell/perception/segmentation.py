@@ -93,6 +93,12 @@ def _fit_plane_lsq(points: Array) -> Array:
     return np.array([n[0], n[1], n[2], -float(n @ centroid)])
 
 
+def _heights(points: Array, normal: Array, offset: float) -> Array:
+    """Signed distances (N,) [m] of points (N, 3) to the plane normal . p + offset = 0 (column by column:
+    a matrix product would wake the BLAS threads for a few thousand points)."""
+    return points[:, 0] * normal[0] + points[:, 1] * normal[1] + points[:, 2] * normal[2] + offset
+
+
 def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.random.Generator,
                     table_z: float | None = None) -> Array | None:
     """RANSAC for the table plane (visual-servoing paper section II-A, "remove the ground plane with
@@ -103,9 +109,9 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
     Hypotheses from 3 random points; only those whose unit normal is within
     ``table_normal_max_tilt_deg`` of +z are scored; the one with most points within ``plane_distance_m``
     wins (first one on ties) and is refined by total least squares on its inliers among all the points.
-    Scoring counts on an even subset of at most ``plane_score_points`` points: the counts are then
-    estimates, but the table holds thousands of voxels and the best plane wins by a wide margin, at a
-    fraction of the cost (200 hypotheses x 12k occupied voxels were ~15 ms a frame). Returns the plane
+    Scoring counts (compiled, ``_kernels.plane_inlier_counts``) on an even subset of at most
+    ``plane_score_points`` points: the counts are then estimates, but the table holds thousands of voxels
+    and the best plane wins by a wide margin, at a fraction of the cost. Returns the plane
     (a, b, c, d) with a x + b y + c z + d = 0, (a, b, c) a unit normal with c > 0, or None when fewer than
     3 points or no acceptable hypothesis.
     """
@@ -132,14 +138,12 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
     if n > params.plane_score_points:
         scored = drawn[np.linspace(0, n - 1, params.plane_score_points).round().astype(np.int64)]
     counts = np.empty(normals.shape[0], dtype=np.int64)
-    chunk = max(1, 4_000_000 // scored.shape[0])  # bound the (chunk, n) distance matrix to ~32 MB
-    for s in range(0, normals.shape[0], chunk):
-        dist = np.abs(scored @ normals[s:s + chunk].T + offsets[s:s + chunk])
-        counts[s:s + chunk] = np.count_nonzero(dist <= params.plane_distance_m, axis=0)
+    _k.plane_inlier_counts(np.ascontiguousarray(scored), np.ascontiguousarray(normals), offsets,
+                           params.plane_distance_m, counts)
     best = int(np.argmax(counts))
     if counts[best] < 3:
         return None
-    inliers = np.abs(points_base @ normals[best] + offsets[best]) <= params.plane_distance_m
+    inliers = np.abs(_heights(points_base, normals[best], offsets[best])) <= params.plane_distance_m
     plane = _fit_plane_lsq(points_base[inliers])
     if plane[2] < math.cos(math.radians(params.table_normal_max_tilt_deg)):
         plane = np.array([*normals[best], offsets[best]])
@@ -162,7 +166,7 @@ def remove_table_plane(points_base: Array, params: SegmentationParams, rng: np.r
         plane = np.array([0.0, 0.0, 1.0, -float(table_z)])
     if plane is None:
         return points_base, None
-    height = points_base @ plane[:3] + plane[3]
+    height = _heights(points_base, plane[:3], plane[3])
     return points_base[height > params.plane_distance_m], plane
 
 
