@@ -70,8 +70,9 @@ def in_box(points: Array, lo: Array, hi: Array) -> NDArray[np.bool_]:
 class PointGrid:
     """Points (N, 3) [m] bucketed in a uniform grid of cubic cells for the compiled searches
     (``_kernels``): sorted by flat cell index (x, then y, then z; a compiled counting sort) so that a
-    cell's points, and a column of cells along z, are contiguous. The cell edge is ``cell_m``, widened by 1.5x steps until the grid
-    over the points' box has at most ``max_cells`` cells (8 bytes of run offsets each).
+    cell's points, and a column of cells along z, are contiguous. The cell edge is ``cell_m``, widened
+    by 1.5x steps until the grid over the points' box has at most ``max_cells`` cells (8 bytes of run
+    offsets each).
 
     ``points`` the sorted points, ``order`` their indices in the input, ``cells`` (N, 3) their cells,
     ``starts`` (n_cells + 1,) where each cell's run begins, ``dims`` the grid shape, ``lo`` its corner.
