@@ -343,6 +343,22 @@ def knn_mean_distances(const double[:, ::1] points, const int64_t[:, ::1] cells,
     free(buf)
 
 
+cdef inline void _nearest_in_run(const double* pts, Py_ssize_t first, Py_ssize_t last, double px, double py,
+                                 double pz, double* best, Py_ssize_t* best_j) noexcept nogil:
+    """Keep in best / best_j the squared distance and index of the nearest of points first..last-1
+    to (px, py, pz) if nearer than best (ties: the earlier point)."""
+    cdef Py_ssize_t j
+    cdef double dx, dy, dz, d2
+    for j in range(first, last):
+        dx = pts[3 * j] - px
+        dy = pts[3 * j + 1] - py
+        dz = pts[3 * j + 2] - pz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best[0]:
+            best[0] = d2
+            best_j[0] = j
+
+
 def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny, int64_t nz,
                    double cell_m, const double[::1] lo, const double[:, ::1] queries, double max_m,
                    int64_t[::1] out_index, double[::1] out_d2):
@@ -355,9 +371,10 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
     query to the outside of the cube, or that distance reaches ``max_m``: the result is exact. Ties go to
     the point scanned first (lowest cell, then lowest index).
     """
-    cdef Py_ssize_t q, j, nq = queries.shape[0]
-    cdef int64_t r, cx, cy, cz, x, y, z, x0, x1, y0, y1, z0, z1, c, best_j
-    cdef double px, py, pz, dx, dy, dz, d2, best, reach, max2 = max_m * max_m
+    cdef Py_ssize_t q, nq = queries.shape[0]
+    cdef int64_t r, cx, cy, cz, x, y, x0, x1, y0, y1, z0, z1, c
+    cdef Py_ssize_t best_j
+    cdef double px, py, pz, best, reach, max2 = max_m * max_m
     cdef const double* pts = &points[0, 0]
     with nogil:
         for q in range(nq):
@@ -375,19 +392,18 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
                 for x in range(x0, x1 + 1):
                     for y in range(y0, y1 + 1):
                         c = (x * ny + y) * nz
-                        for z in range(z0, z1 + 1):
-                            # only the shell at Chebyshev distance r is new
-                            if (r > 0 and x != cx - r and x != cx + r and y != cy - r and y != cy + r
-                                    and z != cz - r and z != cz + r):
-                                continue
-                            for j in range(starts[c + z], starts[c + z + 1]):
-                                dx = pts[3 * j] - px
-                                dy = pts[3 * j + 1] - py
-                                dz = pts[3 * j + 2] - pz
-                                d2 = dx * dx + dy * dy + dz * dz
-                                if d2 < best:
-                                    best = d2
-                                    best_j = j
+                        # only the shell at Chebyshev distance r is new: a whole column on its x-y
+                        # boundary, else its two z caps
+                        if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
+                            _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
+                                            &best_j)
+                            continue
+                        if 0 <= cz - r < nz:
+                            _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz,
+                                            &best, &best_j)
+                        if 0 <= cz + r < nz:
+                            _nearest_in_run(pts, starts[c + cz + r], starts[c + cz + r + 1], px, py, pz,
+                                            &best, &best_j)
                 # distance from the query to the outside of the scanned cube
                 reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
                             min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
