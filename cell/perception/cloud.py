@@ -17,12 +17,17 @@ from cell.perception import _kernels as _k
 Array = NDArray[np.float64]
 
 
+_KEY_BITS = 21
+"""Bits per axis of the packed voxel keys of ``_kernels.voxel_groups`` (offset by 2^20)."""
+
+
 def _voxel_groups(points: Array, voxel_m: float, box: tuple[Array, Array] | None = None,
-                  ) -> tuple[NDArray[np.int32], NDArray[np.int64], Array]:
+                  ) -> tuple[NDArray[np.int32], NDArray[np.int64], NDArray[np.int64], Array]:
     """(voxel of each point (N,) in the kernel's numbering, -1 outside ``box``; the rank of each voxel
-    of that numbering in key order (K,); the voxel centroids (K, 3) in key order (x, then y, then z)).
-    ``box`` (lo, hi) (3,) [m] keeps only the points strictly inside it. Each centroid is the sum of its
-    points in input order over their number, whatever the hashing inside ``_kernels.voxel_groups``."""
+    of that numbering in key order (K,); the packed voxel keys (K,) and the voxel centroids (K, 3), both
+    in key order (x, then y, then z)). ``box`` (lo, hi) (3,) [m] keeps only the points strictly inside
+    it. Each centroid is the sum of its points in input order over their number, whatever the hashing
+    inside ``_kernels.voxel_groups``."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = pts.shape[0]
     keys = np.empty(n, dtype=np.int64)
@@ -37,13 +42,21 @@ def _voxel_groups(points: Array, voxel_m: float, box: tuple[Array, Array] | None
     order = np.argsort(keys[:k])
     rank = np.empty(k, dtype=np.int64)
     rank[order] = np.arange(k)
-    return group, rank, sums[order] / counts[order][:, None]
+    return group, rank, keys[order], sums[order] / counts[order][:, None]
+
+
+def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
+    """The distinct voxel keys floor(p / voxel_m) (K, 3) of points (N, 3) [m], sorted (x, then y, then z)."""
+    packed = _voxel_groups(points, voxel_m)[2]
+    mask = (1 << _KEY_BITS) - 1
+    return np.column_stack([packed >> (2 * _KEY_BITS), (packed >> _KEY_BITS) & mask, packed & mask]
+                           ) - (1 << (_KEY_BITS - 1))
 
 
 def voxel_downsample(points: Array, voxel_m: float) -> Array:
     """Replace the points of each ``voxel_m`` [m] cube (a grid anchored at the frame origin) by their
     centroid. Output sorted by voxel index; an empty input gives an empty (0, 3) array."""
-    return _voxel_groups(points, voxel_m)[2]
+    return _voxel_groups(points, voxel_m)[3]
 
 
 def crop_voxel_downsample(points: Array, x: tuple[float, float], y: tuple[float, float],
@@ -51,7 +64,7 @@ def crop_voxel_downsample(points: Array, x: tuple[float, float], y: tuple[float,
     """``voxel_downsample(crop_box(points, x, y, z), voxel_m)`` in one pass over the points (a raw
     640x480 frame holds ~250k of them)."""
     box = (np.array([x[0], y[0], z[0]]), np.array([x[1], y[1], z[1]]))
-    return _voxel_groups(points, voxel_m, box)[2]
+    return _voxel_groups(points, voxel_m, box)[3]
 
 
 def bounds(points: NDArray[np.floating] | NDArray[np.integer]) -> tuple[NDArray, NDArray]:
@@ -163,7 +176,7 @@ class CloudAccumulator:
         both = np.vstack([self._points, new])
         n_old = self._points.shape[0]
         if both.shape[0]:
-            group, rank, self._points = _voxel_groups(both, self.voxel_m)
+            group, rank, _, self._points = _voxel_groups(both, self.voxel_m)
             self._new = np.bincount(rank[group[:n_old]], minlength=rank.size) == 0
         return new
 
