@@ -170,10 +170,11 @@ class UR5eArm(HardwareArm):
         """Open the control interface (ur-rtde uploads its control script) and send the tool. Raises
         ``ClientError`` / ``ClientGone`` from the child as they come."""
         cfg = self._config
-        assert self._proc is not None
-        self._proc.call("control_connect", cfg.host, cfg.rtde_frequency_hz,
-                        timeout_s=CONTROL_START_TIMEOUT_S + cfg.connect_timeout_s + REPLY_TIMEOUT_S)
-        self._control = True
+        with self._lock:
+            assert self._proc is not None
+            self._proc.call("control_connect", cfg.host, cfg.rtde_frequency_hz,
+                            timeout_s=CONTROL_START_TIMEOUT_S + cfg.connect_timeout_s + REPLY_TIMEOUT_S)
+            self._control = True
         self._apply_tool()
 
     def _apply_tool(self) -> None:
@@ -191,6 +192,9 @@ class UR5eArm(HardwareArm):
             if self._lost is None and self._control and not self._faults(self._snapshot()):
                 self.stop()
                 self._send("stopScript")
+        except RobotFault as exc:
+            if exc.fault != "disconnect":
+                raise  # a lost connection leaves nothing to stop: the watchdog stops the arm
         finally:
             self._close_process()
             self._connected = False

@@ -7,13 +7,16 @@ no policy of its own: the driver decides what to send; the child runs ur-rtde an
 
 A dropped connection ends the child (exit code ``EXIT_LOST``, no answer). ur-rtde 1.6.5's receive
 interface stays disconnected once the controller closed its connection, but its control interface
-reconnects by itself within milliseconds, from its receive thread, uploads a new control script and keeps
-two receive threads on one socket (which soon crashes the process). So the receive interface's
-connection is the tripwire: it is checked before every operation that reads the state or sends to the
-controller, so nothing is sent through a control interface that reconnected by itself, and a monitor
-thread checks it every ``MONITOR_PERIOD_S`` while the child waits, so that the child is gone before
-ur-rtde's own reconnection has got far. The driver latches the loss and starts a fresh child only when an
-operator recovers the arm.
+reconnects by itself, from its receive thread (and keeps two receive threads on one socket, which soon
+crashes the process), and a command whose send fails reconnects and is sent again within the same call:
+against the RTDE peer, a ``speedL`` called 100 ms after a drop returned True and reached the controller
+through a new connection and a new control script. So the receive interface's connection is the
+tripwire: it is checked before every operation that reads the state or sends to the controller, so
+nothing is sent through a control interface that reconnected by itself, and a monitor thread checks it
+every ``MONITOR_PERIOD_S``, also while a command runs (ur-rtde's methods release the GIL; only its
+constructors hold it), so that the child is gone before a reconnection, which takes ur-rtde a script
+upload and at least 10 ms of waiting, can re-send anything. The driver latches the loss and starts a
+fresh child only when an operator recovers the arm.
 
 Requests (``op``: arguments → value):
 
@@ -53,7 +56,7 @@ DASHBOARD_COMMANDS = frozenset({"isInRemoteControl", "closeSafetyPopup", "unlock
 CONTROL_COMMANDS = frozenset({"speedL", "speedStop", "servoJ", "servoStop", "stopL", "setWatchdog",
                               "setTcp", "setPayload", "reuploadScript", "stopScript"})
 # how often the monitor thread checks the receive interface's connection [s]
-MONITOR_PERIOD_S = 0.005
+MONITOR_PERIOD_S = 0.002
 
 
 class Clients:
