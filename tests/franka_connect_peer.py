@@ -16,6 +16,7 @@ import socket
 import struct
 import threading
 
+from drivers.arm.franka import recv_exact
 from tests.arm_backends import free_loopback
 
 COMMAND_PORT = 1337
@@ -51,8 +52,8 @@ class FrankaConnectPeer:
                 self._answer(conn)
 
     def _answer(self, conn: socket.socket) -> None:
-        command, command_id, size = HEADER.unpack(_recv_exact(conn, HEADER.size))
-        body = _recv_exact(conn, size - HEADER.size)
+        command, command_id, size = HEADER.unpack(recv_exact(conn, HEADER.size))
+        body = recv_exact(conn, size - HEADER.size)
         if command != CMD_CONNECT:
             return  # nothing but the handshake is spoken here: drop the connection
         offered, _udp_port = REQUEST.unpack(body[:REQUEST.size])
@@ -67,12 +68,3 @@ class FrankaConnectPeer:
         self._listener.close()
         self._thread.join(timeout=5)
 
-
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
-    data = bytearray()
-    while len(data) < n:
-        chunk = sock.recv(n - len(data))
-        if not chunk:
-            raise ConnectionError("the client closed the connection")
-        data.extend(chunk)
-    return bytes(data)

@@ -106,7 +106,7 @@ def test_twist_moves_the_flange_as_commanded_and_stop_brings_it_to_rest(backend:
     assert np.linalg.norm(moved[:2]) < 0.3 * moved[2]
     arm.stop()
     backend.wait_until(lambda: arm.state().mode is ArmMode.IDLE
-                       and np.linalg.norm(arm.state().v_base_flange[:3]) < 1e-3)
+                       and bool(np.linalg.norm(arm.state().v_base_flange[:3]) < 1e-3))
 
 
 def test_trajectory_ends_at_its_last_sample(backend: Backend) -> None:

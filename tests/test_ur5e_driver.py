@@ -80,7 +80,7 @@ def test_the_watchdog_stops_the_arm_when_the_loop_stops_calling(peer: Controller
 def test_protective_stop_is_a_fault_until_the_operator_recovers(peer: ControllerPeer, ur: Backend) -> None:
     peer.protective_stop()
     ur.wait_until(lambda: "protective stop" in ur.arm.state().faults)
-    assert ur.arm.controller_modes()["safety mode"] == "PROTECTIVE_STOP"
+    assert _ur(ur).controller_modes()["safety mode"] == "PROTECTIVE_STOP"
     with pytest.raises(RobotFault) as refused:
         ur.arm.command_twist(np.zeros(6), ur.token)
     assert refused.value.fault == "protective stop"
