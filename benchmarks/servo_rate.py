@@ -6,7 +6,7 @@ pipeline (5 mm occupancy map, ROI from segmentation). On it:
 - ``f_eval_ms``: median time of one evaluation of f (eq. 9, 529 rays) at poses on the Z* sphere;
 - ``servo_hz``: full servo iterations per second: f at r and the four displaced poses of eq. 5-6 in one
   batch, the law of eq. 1, a guard command and tick on the simulated Panda (the paper ran 30-80 Hz; the
-  issue's goal is 300);
+  issue's goal is 300); ``servo_split_ms``: the median CPU time of each of those parts;
 - ``global_5000_s``: median wall time to generate and score 5000 candidate views (eq. 10; the goal is
   0.5 s, the paper took 1-3 s on a 40-core Xeon), on ``threads`` OpenMP threads (OMP_NUM_THREADS, else
   the cores); barrier checks are not included;
@@ -46,6 +46,9 @@ from drivers.robots import get_robot_model
 
 REPO = Path(__file__).resolve().parents[1]
 CELL = REPO / "config" / "sim-franka-rgbd.yaml"
+# Parts of a servo iteration timed apart (CPU): the five evaluations of f, the law of eq. 1, the guard's
+# command and control tick, the simulated arm's step.
+SERVO_STAGES = ("f", "law", "guard", "sim_arm")
 
 
 def build_scene(cfg):
@@ -131,18 +134,27 @@ def main() -> None:
     offsets = np.array([[0, 0, 0], [d, 0, 0], [-d, 0, 0], [0, d, 0], [0, -d, 0]], dtype=float)
     alpha = cfg.planners.vs_local.alpha
     poses = iter(views)
+    split: dict[str, list[float]] = {stage: [] for stage in SERVO_STAGES}
 
     def iteration() -> None:
+        c = [time.process_time()]
         T = next(poses)
         values = f(translated(T, offsets))
+        c.append(time.process_time())
         g = np.zeros(6)
         g[:2] = alpha * np.array([values[1] - values[2], values[3] - values[4]]) / (2 * d)
         out = servo.step(T[:3, :3].T @ (roi.centroid - T[:3, 3]), g)
+        c.append(time.process_time())
         guard.command_twist(out.v * 1e-3)  # the law's twist, scaled so the arm stays where it is
         guard.tick()
+        c.append(time.process_time())
         clock.sleep(1.0 / cfg.scan.control_rate_hz)
+        c.append(time.process_time())
+        for stage, t0, t1 in zip(SERVO_STAGES, c[:-1], c[1:], strict=True):
+            split[stage].append(t1 - t0)
 
     servo_hz, servo_wall_hz = (1e3 / ms for ms in median_ms(iteration, 300))
+    servo_split_ms = {stage: round(float(np.median(t)) * 1e3, 4) for stage, t in split.items()}
     global_cpu_ms, global_wall_ms = median_ms(
         lambda: f(sphere_views(roi.centroid, cfg.scan.standoff_m, u)), 5)
 
@@ -165,16 +177,18 @@ def main() -> None:
     print(f"f evaluation        {f_eval_ms:8.3f}    {f_eval_wall_ms:8.3f} ms (median of 300 poses)")
     print(f"servo iteration     {servo_hz:8.1f}    {servo_wall_hz:8.1f} Hz (5 evaluations, eq. 1, guard; "
           "goal >= 300 Hz)")
+    print("  of which (CPU, ms): " + ", ".join(f"{k} {v:.3f}" for k, v in servo_split_ms.items()))
     print(f"5000 candidates     {global_cpu_ms / 1e3:8.3f}    {global_wall_ms / 1e3:8.3f} s (goal <= 0.5 s)")
     print(f"f on OctoMap        {octomap_ms:8.3f}    {octomap_wall_ms:8.3f} ms (per-sample OcTree.search); "
           f"max rel. diff {rel:.2e}")
     print(json.dumps({"f_eval_ms": round(f_eval_ms, 4), "f_eval_wall_ms": round(f_eval_wall_ms, 4),
                       "servo_hz": round(servo_hz, 1), "servo_wall_hz": round(servo_wall_hz, 1),
+                      "servo_split_ms": servo_split_ms,
                       "global_5000_s": round(global_wall_ms / 1e3, 4),
                       "global_5000_cpu_s": round(global_cpu_ms / 1e3, 4), "threads": threads,
                       "octomap_f_eval_ms": round(octomap_ms, 3),
                       "octomap_f_eval_wall_ms": round(octomap_wall_ms, 3), "octomap_f_rel_diff": rel,
-                      "load_avg_1min": [load_before, load_after]}))
+                      "load_avg_1min": [round(load_before, 2), round(load_after, 2)]}))
 
 if __name__ == "__main__":
     main()
