@@ -54,6 +54,8 @@ def test_connect_sends_tcp_and_payload_from_the_config(peer: ControllerPeer, ur:
 
 def test_twists_are_clamped_and_sent_with_speedl_under_a_watchdog(peer: ControllerPeer, ur: Backend) -> None:
     ur.arm.command_twist(np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]), ur.token)  # 0.5 m/s > the 0.1 ceiling
+    # speedL streams: ur-rtde returns once it is sent, the peer takes it from the socket a little later
+    peer.wait_for(lambda s: s["counts"].get("speedL", 0) > 0, what="speedL")
     speedl = peer.records("speedL")[-1]["doubles"]
     assert np.linalg.norm(speedl[:3]) == pytest.approx(0.1) and speedl[2] > 0
     assert speedl[6] == pytest.approx(0.5)  # acceleration from the config
