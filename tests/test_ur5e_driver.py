@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from drivers.arm.base import ArmMode
-from drivers.arm.ur5e import UR5eArm
+from drivers.arm.ur5e import REPLY_TIMEOUT_S, UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
 from tests.arm_backends import STREAMING_WATCHDOG_HZ, Backend, ur5e_backend, ur5e_config
@@ -54,6 +54,8 @@ def test_connect_sends_tcp_and_payload_from_the_config(peer: ControllerPeer, ur:
 
 def test_twists_are_clamped_and_sent_with_speedl_under_a_watchdog(peer: ControllerPeer, ur: Backend) -> None:
     ur.arm.command_twist(np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]), ur.token)  # 0.5 m/s > the 0.1 ceiling
+    # speedL streams: ur-rtde returns once it is sent, the peer takes it from the socket a little later
+    peer.wait_for(lambda s: s["counts"].get("speedL", 0) > 0, what="speedL")
     speedl = peer.records("speedL")[-1]["doubles"]
     assert np.linalg.norm(speedl[:3]) == pytest.approx(0.1) and speedl[2] > 0
     assert speedl[6] == pytest.approx(0.5)  # acceleration from the config
@@ -229,6 +231,19 @@ def test_a_crashed_client_process_is_a_fault_and_the_watchdog_stops_the_arm(
     arm.recover()
     assert arm.state().faults == ()
     _twist_moves_the_flange_up(peer, ur)
+
+
+def test_a_hung_client_process_is_killed_and_a_fault(peer: ControllerPeer, streaming_ur: Backend) -> None:
+    """The child stops answering (SIGSTOP): after the reply timeout the driver kills it and faults."""
+    arm = _ur(streaming_ur)
+    pid = arm.client_pid
+    assert pid is not None
+    os.kill(pid, signal.SIGSTOP)
+    with pytest.raises(RobotFault, match=f"did not answer snapshot within {REPLY_TIMEOUT_S:g} s") as lost:
+        arm.state()
+    assert lost.value.fault == "disconnect" and arm.client_pid is None and not _running(pid)
+    arm.recover()
+    assert arm.state().faults == ()
 
 
 def test_the_client_process_ends_with_the_program_that_owns_the_driver(peer: ControllerPeer) -> None:

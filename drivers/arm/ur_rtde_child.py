@@ -1,8 +1,9 @@
 """The child process that holds a UR5e's ur-rtde clients: ``python -m drivers.arm.ur_rtde_child CONN LIFE``.
 
 :class:`~drivers.arm.ur_rtde_process.RTDEProcess` starts it with two file descriptors: ``CONN``, a socket
-carrying :class:`multiprocessing.connection.Connection` requests ``(op, args)`` answered with
-``("ok", value)`` or ``("error", text)``, and ``LIFE``, the read end of the driver's lifeline pipe. It has
+carrying :class:`multiprocessing.connection.Connection` requests ``(seq, op, args)`` answered with
+``(seq, "ok", value)`` or ``(seq, "error", text)``, and ``LIFE``, the read end of the driver's lifeline
+pipe. It has
 no policy of its own: the driver decides what to send; the child runs ur-rtde and reports.
 
 A dropped connection ends the child (exit code ``EXIT_LOST``, no answer). ur-rtde 1.6.5's receive
@@ -171,13 +172,13 @@ def main(conn_fd: int, lifeline_fd: int) -> None:
     clients = Clients()
     while True:
         try:
-            op, args = conn.recv()
+            seq, op, args = conn.recv()
         except EOFError:
             os._exit(EXIT_PARENT_GONE)
         try:
-            reply: tuple[str, object] = ("ok", clients.handle(op, args))
+            reply: tuple[int, str, object] = (seq, "ok", clients.handle(op, args))
         except (RuntimeError, ValueError, TypeError) as exc:  # ur-rtde raises RuntimeError
-            reply = ("error", str(exc))
+            reply = (seq, "error", str(exc))
         conn.send(reply)
         if op == "close":
             sys.stdout.flush()

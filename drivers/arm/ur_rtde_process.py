@@ -1,10 +1,11 @@
 """The process that holds a UR5e's ur-rtde connections, seen from the driver (see :mod:`drivers.arm.ur5e`).
 
 :class:`RTDEProcess` starts ``python -m drivers.arm.ur_rtde_child`` and talks to it over a socket pair
-with :class:`multiprocessing.connection.Connection` (pickled ``(op, args)`` requests, ``("ok", value)``
-or ``("error", text)`` replies, one at a time). The driver never creates a ur-rtde object itself, so what
-ur-rtde does after a dropped connection (reconnecting by itself, a second receive thread, a crash in a
-destructor) happens in a process the driver can end.
+with :class:`multiprocessing.connection.Connection` (pickled ``(seq, op, args)`` requests, ``(seq, "ok",
+value)`` or ``(seq, "error", text)`` replies, one at a time; the sequence number pairs them, so that the
+late reply to a call that was interrupted, e.g. by Ctrl-C, is not taken for the next call's). The driver
+never creates a ur-rtde object itself, so what ur-rtde does after a dropped connection (reconnecting by
+itself, a second receive thread, a crash in a destructor) happens in a process the driver can end.
 
 The child ends with the driver's process: it holds the read end of a pipe (the lifeline) whose write end
 only the driver holds, and exits when that pipe reaches end of file, even in the middle of a ur-rtde call.
@@ -23,6 +24,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from multiprocessing.connection import Connection
 from pathlib import Path
 
@@ -64,6 +66,7 @@ class RTDEProcess:
         self._conn: Connection | None = None
         self._lifeline: int | None = None
         self._lock = threading.Lock()
+        self._seq = 0
 
     def start(self) -> None:
         """Start the child (it imports ur-rtde and waits for requests)."""
@@ -95,13 +98,18 @@ class RTDEProcess:
         with self._lock:
             if self._conn is None or self._proc is None:
                 raise ClientGone("the ur-rtde process is not running")
+            self._seq += 1
+            deadline = time.monotonic() + timeout_s
             try:
-                self._conn.send((op, args))
-                if not self._conn.poll(timeout_s):
-                    self.kill()
-                    raise ClientGone(f"the ur-rtde process did not answer {op} within {timeout_s:g} s "
-                                     "and was killed")
-                status, value = self._conn.recv()
+                self._conn.send((self._seq, op, args))
+                while True:
+                    if not self._conn.poll(max(0.0, deadline - time.monotonic())):
+                        self.kill()
+                        raise ClientGone(f"the ur-rtde process did not answer {op} within {timeout_s:g} s "
+                                         "and was killed")
+                    seq, status, value = self._conn.recv()
+                    if seq == self._seq:
+                        break
             except (EOFError, OSError):
                 raise ClientGone(exit_words(self._reap())) from None
         if status == "error":
