@@ -795,3 +795,27 @@ def grid_sort(const double[:, ::1] points, const double[::1] lo, double cell_m, 
             cells_out[i, 1] = (c // nz) % ny
             cells_out[i, 0] = c // (nz * ny)
     free(flat)
+
+
+def radius_counts(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,
+                  int64_t nx, int64_t ny, int64_t nz, double radius_m, int64_t[::1] out):
+    """The number of points (itself included) at most ``radius_m`` from each point, into ``out`` (N,)
+    (DBSCAN's core test, ``segmentation.dbscan_labels``); points and grid as for ``radius_components``."""
+    cdef Py_ssize_t i, j, n = points.shape[0]
+    cdef int64_t cx, cy, cz, x, y, c, count
+    cdef double px, py, pz, dx, dy, dz, r2 = radius_m * radius_m
+    cdef const double* pts = &points[0, 0]
+    with nogil:
+        for i in range(n):
+            px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
+            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+            count = 0
+            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+                    c = (x * ny + y) * nz
+                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
+                        dx = pts[3 * j] - px
+                        dy = pts[3 * j + 1] - py
+                        dz = pts[3 * j + 2] - pz
+                        count += dx * dx + dy * dy + dz * dz <= r2
+            out[i] = count
