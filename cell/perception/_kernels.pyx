@@ -395,8 +395,9 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
                         # only the shell at Chebyshev distance r is new: a whole column on its x-y
                         # boundary, else its two z caps
                         if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
-                            _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
-                                            &best_j)
+                            if z0 <= z1:  # else the query's cube lies above or below the grid
+                                _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
+                                                &best_j)
                             continue
                         if 0 <= cz - r < nz:
                             _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz,
