@@ -341,8 +341,10 @@ def knn_mean_distances(const double[:, ::1] points, const int64_t[:, ::1] cells,
     by flat cell index (x, y, z) so that a cell's points, and a column of cells along z, are contiguous;
     ``cells`` (N, 3) their cell indices, ``starts`` (nx * ny * nz + 1,) where each cell's run begins.
     The search gathers the squared distances to the points of the cube of 3^3 cells around a point's
-    cell, growing it by shells of cells until k are gathered, and selects the k-th smallest (quickselect);
-    when that distance reaches outside the cube, the cells of the box of that radius around the point
+    cell, growing it by shells of cells until k are gathered, and selects the k-th smallest (quickselect)
+    among those below a bound when k of them are (the previous point's k-th distance widened by 20%,
+    else the distance to the outside of the cube), else among all; when that distance reaches outside
+    the cube, the cells of the box of that radius around the point
     that the cube left out are gathered too (after the k kept) and the selection is repeated, so the
     result is exact. The k distances are summed in an order fixed by the points' order. Needs N > k.
     """
