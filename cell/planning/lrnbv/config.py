@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.config_base import StrictModel
@@ -24,7 +26,11 @@ class LRNBVConfig(StrictModel):
     - ``roi_margin_m``: the ROI of eq. 2 is the object's axis-aligned box grown by this [m] on every side
       (but not below the table), so that the unknown space just around the object seen so far is worth
       exploring;
-    - ``cache_threshold``: tau [utility units], nodes off the best branch above it are cached;
+    - ``cache_threshold``: tau [utility units], nodes off the best branch above it are cached, and a
+      node of the best branch is captured only while its re-scored utility stays above it (0: with the
+      visited gain a node in a visited coarse cell scores about -w_v);
+    - ``capture``: what captureData(B^i) (line 16) captures: ``branch``, the nodes of the best branch
+      from the root outwards (each while its re-scored U stays above tau), or ``best_node``, x* alone;
     - ``rrt_step_m``: RRT extension step [m]; node positions are drawn in the workspace box of the safety
       config within ``view_distance_m`` (min, max) [m] of the object centre and must pass
       ``sensor_pose_allowed``; nodes closer than ``object_clearance_m`` [m] to the object's box are dropped;
@@ -50,6 +56,7 @@ class LRNBVConfig(StrictModel):
     ray_length_m: PositiveFloat = 1.0
     roi_margin_m: float = Field(default=0.05, ge=0.0)
     cache_threshold: float = 0.0
+    capture: Literal["branch", "best_node"] = "branch"
     rrt_step_m: PositiveFloat = 0.15
     view_distance_m: tuple[PositiveFloat, PositiveFloat] = (0.2, 0.6)
     object_clearance_m: float = Field(default=0.08, ge=0.0)

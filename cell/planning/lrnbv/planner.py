@@ -8,18 +8,28 @@ Each iteration i:
   directions towards the ROI, and is dropped when ``session.sensor_pose_allowed`` refuses it (barrier
   planes, workspace) or it comes closer than ``object_clearance_m`` to the object's box;
 - the best branch B^i maximises the cumulative utility of its nodes (eq. 1), x* is its best node
-  (line 9); the other nodes with U > tau join the cached nodes C (line 8);
+  (line 9) and U(x*) the figure lines 10 and 15 compare; the other nodes with U > tau join the cached
+  nodes C (line 8);
 - when x* is worse than the best cached node, ExpandRRTCached (line 11) grows a second tree whose
   samples are drawn around the cached nodes, and x* is taken from it;
-- when U(x*) exceeds the worst cached node's utility (line 15) the arm moves to x* and captures there
-  (lines 16-18); otherwise the scan is complete (line 24). After each capture the cached nodes are
-  re-scored on the new map, sorted and cut to m_i nodes, m_i decreasing linearly from ``cached_nodes``
-  to 1 over ``max_iterations`` (lines 19-21).
+- when U(x*) exceeds the worst cached node's utility (line 15) the arm captures along B^i
+  (captureData(B^i), line 16, :meth:`RRTViewPlanner.capture_branch`) and the map is updated (lines
+  17-18); otherwise the scan is complete (line 24). After the branch the cached nodes are re-scored on
+  the new map, sorted and cut to m_i nodes, m_i decreasing linearly from ``cached_nodes`` to 1 over
+  ``max_iterations`` (lines 19-21).
 
 Choices the paper leaves open, and why:
 
-- Only x* is captured, not every node of B^i: a capture is a pose and the paper counts poses; the rest
-  of the branch is re-planned next iteration (receding horizon, Bircher et al. 2016).
+- captureData(B^i) captures at the branch's nodes in order from the root, as line 16 and "the best
+  branch is used to suggest the next poses" read, not only at x* nor only at the first node (Bircher et
+  al.'s receding horizon, which the paper cites for re-planning a new tree each iteration). Every node
+  after the first is re-scored on the map its predecessors' captures left and skipped when its U is no
+  longer above tau: with the visited gain a node in a coarse cell the branch has just visited scores
+  about -w_v and is not captured again; without it (``nbv``) U stays positive. This is what makes the
+  baseline take more, and more redundant, poses (the paper's useless poses, section 4.2). ``capture:
+  best_node`` captures at x* alone instead.
+- tau (``cache_threshold``) is 0: with the visited gain a node in a visited cell scores about -w_v and
+  is neither cached nor captured; any other node is worth remembering.
 - Best and worst cached nodes come from the re-scoring after the last capture, as in lines 20-21; before
   the first re-scoring there is no threshold and the scan goes on.
 - A move the session refuses (no IK solution, collision, barrier) drops that node and counts a failed
@@ -274,6 +284,37 @@ class RRTViewPlanner(Planner):
                 obj = self._capture(session)
         return obj
 
+    def _node_utility(self, session: MappingSession, obj: Array, tree: Tree, i: int) -> float:
+        """U of tree node ``i`` (its planned orientation) on the map and visited grid as they are now."""
+        g = evaluate(self.field(session, obj), self.visited, tree.positions[i:i + 1], tree.rotations[i:i + 1],
+                     self.rays, self.params.ray_length_m)
+        return float(self.weights.utility(g)[0])
+
+    def capture_branch(self, session: MappingSession, obj: Array, tree: Tree, branch: list[int]) -> tuple[
+            Array, int, int]:
+        """captureData(B^i) (line 16): the arm visits the branch's nodes from the root outwards and captures
+        at each. A node after the first is first re-scored on the map and visited grid its predecessors'
+        captures left, and skipped when its U is no longer above tau: with the visited gain (w_v = 500)
+        this drops a node in a coarse cell the branch has just visited, and so a redundant pose; without
+        it (``nbv``) U stays positive and the whole branch is captured.
+
+        Returns the object after the last capture (``obj`` when none found one), the captures made and the
+        moves refused."""
+        captured = refused = 0
+        for n, i in enumerate(branch):
+            if n > 0 and self._node_utility(session, obj, tree, i) <= self.params.cache_threshold:
+                continue
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
+            if not session.move_to_sensor_pose(T):
+                refused += 1
+                continue
+            obj_new = self._capture(session)
+            captured += 1
+            if obj_new.shape[0]:
+                obj = obj_new
+        return obj, captured, refused
+
     def run(self, session: ScanSession) -> str:
         s: MappingSession = session  # type: ignore[assignment]
         p = self.params
@@ -292,29 +333,29 @@ class RRTViewPlanner(Planner):
             self._cache_off_branch(tree, branch, cache)
             if not branch or not np.isfinite(tree.utility[branch]).any():
                 return f"no feasible view left after {captures} captures (iteration {it})"
-            x, u_x = self._best_on(tree, branch)
+            u_x = self._best_utility(tree, branch)
             if best_c is not None and u_x < best_c and len(cache):
-                tree = self.expand(s, f, obj, cache.positions)
-                branch = tree.best_branch()
-                self._cache_off_branch(tree, branch, cache)
-                if branch and np.isfinite(tree.utility[branch]).any():
-                    x2, u2 = self._best_on(tree, branch)
+                cached_tree = self.expand(s, f, obj, cache.positions)
+                cached_branch = cached_tree.best_branch()
+                self._cache_off_branch(cached_tree, cached_branch, cache)
+                if cached_branch and np.isfinite(cached_tree.utility[cached_branch]).any():
+                    u2 = self._best_utility(cached_tree, cached_branch)
                     if u2 > u_x:
-                        x, u_x = x2, u2
+                        tree, branch, u_x = cached_tree, cached_branch, u2
             if worst_c is not None and u_x <= worst_c:
                 return (f"converged: best view U = {u_x:.4g} not above the worst cached node's "
                         f"{worst_c:.4g} after {captures} captures")
-            if not s.move_to_sensor_pose(x):
-                self.n_failed_moves += 1
-                failed_in_row += 1
+            if p.capture == "best_node":
+                branch = [branch[int(np.argmax(tree.utility[branch]))]]
+            obj, captured, refused = self.capture_branch(s, obj, tree, branch)
+            self.n_failed_moves += refused
+            captures += captured
+            if captured == 0:
+                failed_in_row += refused
                 if failed_in_row >= p.max_failed_moves:
                     return f"{failed_in_row} moves in a row refused after {captures} captures"
                 continue
             failed_in_row = 0
-            obj_new = self._capture(s)
-            captures += 1
-            if obj_new.shape[0]:
-                obj = obj_new
             m = max(1, round(p.cached_nodes * (1.0 - (it + 1) / p.max_iterations)))
             self._rescore(self.field(s, obj), obj, cache, m)
             if len(cache):
@@ -322,12 +363,9 @@ class RRTViewPlanner(Planner):
         return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
 
     @staticmethod
-    def _best_on(tree: Tree, branch: list[int]) -> tuple[Array, float]:
-        """Line 9: the best node of the branch, as a pose T_base_sensor, and its utility."""
-        i = branch[int(np.argmax(tree.utility[branch]))]
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
-        return T, float(tree.utility[i])
+    def _best_utility(tree: Tree, branch: list[int]) -> float:
+        """Line 9: the utility of x*, the best node of the branch."""
+        return float(np.max(tree.utility[branch]))
 
 
 class LRNBVPlanner(RRTViewPlanner):
