@@ -29,7 +29,7 @@ from pydantic import Field
 from scipy.spatial import ConvexHull, QhullError
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid
+from cell.perception.cloud import PointGrid, cross_rows
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -121,7 +121,7 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
     iters = params.plane_ransac_iterations
     idx = rng.integers(0, n, size=(iters, 3))
     p0, p1, p2 = drawn[idx[:, 0]], drawn[idx[:, 1]], drawn[idx[:, 2]]
-    normals = np.cross(p1 - p0, p2 - p0)
+    normals = cross_rows(p1 - p0, p2 - p0)
     norm = np.linalg.norm(normals, axis=1)
     ok = norm > 1e-12
     normals = np.divide(normals, norm[:, None], out=np.zeros_like(normals), where=ok[:, None])
