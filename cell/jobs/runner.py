@@ -87,12 +87,14 @@ def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
 
 
 def _perception_summary(session: JobSession | None) -> dict[str, Any]:
-    """The ``perception`` section of result.json: registration counts, the last ROI and H_ROI."""
+    """The ``perception`` section of result.json: registration counts, the well-constrained directions of
+    each capture's registration (``RegistrationResult.n_constrained``), the last ROI and H_ROI."""
     latest = session.latest_perception() if session is not None else None
     roi = latest.roi if latest is not None else None
     return {
         "n_frames": session.n_captures if session else 0,
         "n_registration_rejected": session.n_registration_rejected if session else 0,
+        "registration_n_constrained": session.registration_n_constrained if session else [],
         "h_roi": round(latest.h_roi, 6) if latest is not None and latest.h_roi is not None else None,
         "roi": None if roi is None else {
             "aabb_min_m": np.round(roi.aabb_min, 6).tolist(),

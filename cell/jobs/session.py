@@ -83,6 +83,9 @@ class JobSession:
         self.refused_moves: Counter[str] = Counter()
         self.n_unreachable = 0
         self.n_registration_rejected = 0
+        # per capture, the directions of the ICP correction kept by the degeneracy-aware acceptance (6 when
+        # ICP did not run; registration.RegistrationResult.n_constrained)
+        self.registration_n_constrained: list[int] = []
         self.path_length_m = 0.0
         self._last_position: Array | None = None
         self._on_progress = on_progress
@@ -320,9 +323,11 @@ class JobSession:
         self.n_captures += 1
         if reg.rejected:
             self.n_registration_rejected += 1
+        self.registration_n_constrained.append(reg.n_constrained)
         if self.coverage is not None:
             self.coverage.add(update.points_base)
         h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
         self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
                  f"filtering; registration {reg.reason} (fitness {reg.fitness:.3f}, correction "
-                 f"{reg.correction_m * 1e3:.2f} mm / {reg.correction_deg:.3f} deg); H_ROI {h}")
+                 f"{reg.correction_m * 1e3:.2f} mm / {reg.correction_deg:.3f} deg, {reg.n_constrained} of 6 "
+                 f"directions constrained); H_ROI {h}")

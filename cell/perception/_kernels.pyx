@@ -273,15 +273,29 @@ cdef Py_ssize_t _scan_box(const double* pts, const int64_t* starts, int64_t nx, 
     return n
 
 
+cdef inline Py_ssize_t _front(double* buf, Py_ssize_t n, double bound) noexcept nogil:
+    """Move the values of buf[0..n-1] at most ``bound`` to its front (branch-free swaps; the order of
+    the others is kept behind them); returns how many there are."""
+    cdef Py_ssize_t j, m = 0
+    cdef double t
+    for j in range(n):
+        t = buf[j]
+        buf[j] = buf[m]
+        buf[m] = t
+        m += t <= bound
+    return m
+
+
 cdef double _knn_mean_one(const double* pts, const int64_t* cells, const int64_t* starts, int64_t nx,
                           int64_t ny, int64_t nz, double cell_m, const double* lo, int k, Py_ssize_t i,
-                          double* buf) noexcept nogil:
-    """knn_mean_distances for point i, with the caller's buffer buf (N,); arrays as raw pointers (a
-    memoryview argument costs a reference count per call)."""
+                          double* buf, double* hint) noexcept nogil:
+    """knn_mean_distances for point i, with the caller's buffer buf (N,) and hint (the previous point's
+    squared k-th distance, updated); arrays as raw pointers (a memoryview argument costs a reference
+    count per call)."""
     cdef int64_t r = 1, cx = cells[3 * i], cy = cells[3 * i + 1], cz = cells[3 * i + 2]
     cdef double px = pts[3 * i], py = pts[3 * i + 1], pz = pts[3 * i + 2]
-    cdef double reach, dk, kth, t, s = 0.0
-    cdef Py_ssize_t n, j, m2
+    cdef double reach, dk, kth, s = 0.0
+    cdef Py_ssize_t n, m2
     cdef int m
     n = _scan_box(pts, starts, nx, ny, nz, cx - 1, cx + 1, cy - 1, cy + 1, cz - 1, cz + 1, cx, cy, cz, -1, i,
                   buf, 0)
@@ -294,16 +308,16 @@ cdef double _knn_mean_one(const double* pts, const int64_t* cells, const int64_t
     reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
                 min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
                     min(pz - (lo[2] + (cz - r) * cell_m), lo[2] + (cz + r + 1) * cell_m - pz)))
-    # When k candidates lie within reach, the k nearest are among them: move those to the front (a
+    # When k candidates lie within a bound, the k nearest are among them: move those to the front (a
     # branch-free pass of swaps, the others kept behind) and select among them only: the mispredicted
-    # branches of the selection cost far more than the distances.
-    m2 = 0
-    for j in range(n):
-        t = buf[j]
-        buf[j] = buf[m2]
-        buf[m2] = t
-        m2 += t <= reach * reach
+    # branches of the selection cost far more than the distances. The bound is first the previous
+    # point's k-th distance widened by 20% (points come in grid order: a neighbour's, mostly), then the
+    # reach of the cube.
+    m2 = _front(buf, n, min(reach * reach, 1.44 * hint[0]))
+    if m2 < k:
+        m2 = _front(buf, n, reach * reach)
     kth = _select(buf, m2 if m2 >= k else n, k)
+    hint[0] = kth
     if kth > reach * reach:
         # exact: add the cells within the k-th distance of the point that the cube left out
         dk = sqrt(kth)
@@ -327,19 +341,23 @@ def knn_mean_distances(const double[:, ::1] points, const int64_t[:, ::1] cells,
     by flat cell index (x, y, z) so that a cell's points, and a column of cells along z, are contiguous;
     ``cells`` (N, 3) their cell indices, ``starts`` (nx * ny * nz + 1,) where each cell's run begins.
     The search gathers the squared distances to the points of the cube of 3^3 cells around a point's
-    cell, growing it by shells of cells until k are gathered, and selects the k-th smallest (quickselect);
-    when that distance reaches outside the cube, the cells of the box of that radius around the point
+    cell, growing it by shells of cells until k are gathered, and selects the k-th smallest (quickselect)
+    among those below a bound when k of them are (the previous point's k-th distance widened by 20%,
+    else the distance to the outside of the cube), else among all; when that distance reaches outside
+    the cube, the cells of the box of that radius around the point
     that the cube left out are gathered too (after the k kept) and the selection is repeated, so the
     result is exact. The k distances are summed in an order fixed by the points' order. Needs N > k.
     """
     cdef Py_ssize_t i, n = points.shape[0]
     cdef const double* pts = &points[0, 0]
+    cdef double hint = INFINITY
     cdef double* buf = <double*>malloc(n * sizeof(double))
     if buf == NULL:
         raise MemoryError()
     with nogil:
         for i in range(n):
-            out[i] = _knn_mean_one(pts, &cells[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], k, i, buf)
+            out[i] = _knn_mean_one(pts, &cells[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], k, i, buf,
+                                   &hint)
     free(buf)
 
 
@@ -395,8 +413,9 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
                         # only the shell at Chebyshev distance r is new: a whole column on its x-y
                         # boundary, else its two z caps
                         if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
-                            _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
-                                            &best_j)
+                            if z0 <= z1:  # else the query's cube lies above or below the grid
+                                _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
+                                                &best_j)
                             continue
                         if 0 <= cz - r < nz:
                             _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz,
@@ -795,3 +814,27 @@ def grid_sort(const double[:, ::1] points, const double[::1] lo, double cell_m, 
             cells_out[i, 1] = (c // nz) % ny
             cells_out[i, 0] = c // (nz * ny)
     free(flat)
+
+
+def radius_counts(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,
+                  int64_t nx, int64_t ny, int64_t nz, double radius_m, int64_t[::1] out):
+    """The number of points (itself included) at most ``radius_m`` from each point, into ``out`` (N,)
+    (DBSCAN's core test, ``segmentation.dbscan_labels``); points and grid as for ``radius_components``."""
+    cdef Py_ssize_t i, j, n = points.shape[0]
+    cdef int64_t cx, cy, cz, x, y, c, count
+    cdef double px, py, pz, dx, dy, dz, r2 = radius_m * radius_m
+    cdef const double* pts = &points[0, 0]
+    with nogil:
+        for i in range(n):
+            px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
+            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+            count = 0
+            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+                    c = (x * ny + y) * nz
+                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
+                        dx = pts[3 * j] - px
+                        dy = pts[3 * j + 1] - py
+                        dz = pts[3 * j + 2] - pz
+                        count += dx * dx + dy * dy + dz * dz <= r2
+            out[i] = count

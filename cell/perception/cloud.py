@@ -74,6 +74,13 @@ def bounds(points: NDArray[np.floating] | NDArray[np.integer]) -> tuple[NDArray,
             np.array([points[:, a].max() for a in range(3)]))
 
 
+def cross_rows(a: Array, b: Array) -> Array:
+    """Row-wise cross products (N, 3) of (N, 3) arrays, the same arithmetic as ``np.cross``, whose axis
+    handling costs ~0.2 ms a call (ICP calls it every iteration)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
+
+
 def in_box(points: Array, lo: Array, hi: Array) -> NDArray[np.bool_]:
     """Mask (N,) of the points (N, 3) inside the closed box [lo, hi], column by column (see ``bounds``)."""
     return ((points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0]) & (points[:, 1] >= lo[1])

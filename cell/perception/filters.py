@@ -145,7 +145,8 @@ def filter_frame(points_sensor: Array, *, crop: CropBox, voxel_m: float, params:
 
     The paper lists voxel filter, crop, SOR; cropping first gives the same points inside the box (the
     voxel grid is anchored at the sensor origin, and a voxel centroid straddling a crop face is the only
-    difference) and makes the voxel step cheaper. SOR comes last so that its statistics are computed on
+    difference) and both are done in one compiled pass over the raw points
+    (``cloud.crop_voxel_downsample``). SOR comes last, as in the paper, so that its statistics are computed on
     the uniform-density voxelized cloud, which is what makes a global distance threshold meaningful.
     Output (M, 3) [m, sensor frame], sorted by voxel key.
     """

@@ -372,5 +372,13 @@ class OccupancyMap:
 
     def mean_entropy_in_box(self, min_m: Array, max_m: Array) -> float:
         """H_ROI of eq. 12: the mean binary entropy (eq. 8, nats) over the voxels V_ROI of the box
-        (``voxels_in_box``); unknown voxels count ln 2."""
-        return float(np.mean(self.entropy(self.voxels_in_box(min_m, max_m))))
+        (``voxels_in_box``); unknown voxels count ln 2. Only the known ones are looked at: the box's keys
+        go straight to the pool, and unknown voxels (most of an early ROI) add ln 2 each."""
+        keys = self.voxel_keys_in_box(min_m, max_m)
+        known = np.zeros(0)
+        if self._n_blocks:
+            idx = self._slots(keys, allocate=False)
+            lo = self._pool[idx[idx >= 0]]
+            known = lo[~np.isnan(lo)].astype(np.float64)
+        h_known = binary_entropy(1.0 / (1.0 + np.exp(-known)))
+        return float((h_known.sum() + (keys.shape[0] - known.size) * math.log(2.0)) / keys.shape[0])

@@ -66,7 +66,7 @@ from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, bounds, in_box, voxel_downsample
+from cell.perception.cloud import PointGrid, bounds, cross_rows, in_box, voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.transforms import make_T, rotvec, transform_points
 
@@ -259,7 +259,7 @@ def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stag
                 break
             p, n = moved[ok], target_normals[j[ok]]
             r = np.einsum("ij,ij->i", p - target[j[ok]], n)
-            A = np.hstack([np.cross(p, n), n])
+            A = np.column_stack([cross_rows(p, n), n])
             x = np.linalg.lstsq(np.einsum("ki,kj->ij", A, A), -np.einsum("ki,k->i", A, r), rcond=None)[0]
             T = make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:]) @ T
             # mean squared motion of the source points: at their centroid, plus the turn about it
@@ -285,7 +285,7 @@ def constrained_correction(T_correction: Array, matched_source: Array, matched_n
     c = matched_source.mean(axis=0)
     arm = matched_source - c
     L = max(float(np.sqrt(np.einsum("ij,ij->", arm, arm) / arm.shape[0])), 1e-9)
-    J = np.hstack([np.cross(arm, matched_normals) / L, matched_normals])
+    J = np.column_stack([cross_rows(arm, matched_normals) / L, matched_normals])
     eigval, eigvec = np.linalg.eigh(np.einsum("ki,kj->ij", J, J) / J.shape[0])
     R, t = T_correction[:3, :3], T_correction[:3, 3]
     # The correction as a twist about c: p -> R (p - c) + (R c + t); rotation scaled to metres at L.

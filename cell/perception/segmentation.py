@@ -14,8 +14,7 @@ The ROI is what the occupancy map samples for the termination entropy H_ROI, the
 the voxels in the box (visual-servoing paper, eq. 12); that mean is computed by the map owner, not here.
 
 Everything is deterministic: RANSAC draws from the ``np.random.Generator`` it is given, and the clusterings
-are exact graph computations (a compiled grid union-find for Euclidean clusters; scipy kd-tree and
-connected components for DBSCAN) with ties broken by lowest label.
+are exact graph computations (compiled grid searches and union-find) with ties broken by lowest label.
 """
 
 from __future__ import annotations
@@ -27,12 +26,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import ConvexHull, QhullError
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid
+from cell.perception.cloud import PointGrid, cross_rows
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -124,7 +121,7 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
     iters = params.plane_ransac_iterations
     idx = rng.integers(0, n, size=(iters, 3))
     p0, p1, p2 = drawn[idx[:, 0]], drawn[idx[:, 1]], drawn[idx[:, 2]]
-    normals = np.cross(p1 - p0, p2 - p0)
+    normals = cross_rows(p1 - p0, p2 - p0)
     norm = np.linalg.norm(normals, axis=1)
     ok = norm > 1e-12
     normals = np.divide(normals, norm[:, None], out=np.zeros_like(normals), where=ok[:, None])
@@ -173,12 +170,6 @@ def remove_table_plane(points_base: Array, params: SegmentationParams, rng: np.r
 # -------------------------------------------------------------------------------------------- clusters
 
 
-def _components(n: int, pairs: NDArray[np.int64]) -> NDArray[np.int32]:
-    graph = coo_matrix((np.ones(pairs.shape[0], dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    return labels
-
-
 def euclidean_cluster_labels(points: Array, tolerance_m: float) -> NDArray[np.int64]:
     """Label (N,) of each point's Euclidean cluster: connected components of the graph linking points at
     most ``tolerance_m`` apart (PCL's EuclideanClusterExtraction), numbered 0.. in order of their lowest
@@ -224,26 +215,27 @@ def dbscan_labels(points: Array, eps_m: float, min_points: int) -> NDArray[np.in
     connected components of core points linked within ``eps_m``; a border point (not core, a core point
     within ``eps_m``) joins the cluster of its nearest core point, which makes the result independent of
     visiting order (classic DBSCAN gives a border point to whichever cluster reaches it first).
-    Cluster labels are numbered 0.. in order of their lowest point index.
+    Cluster labels are numbered 0.. in order of their lowest point index. Neighbour counts, components
+    and nearest core points come from the compiled grid searches (``_kernels``).
     """
     n = points.shape[0]
     labels = np.full(n, -1, dtype=np.int64)
     if n == 0:
         return labels
-    pairs = cKDTree(points).query_pairs(eps_m, output_type="ndarray")
-    counts = 1 + np.bincount(pairs.ravel(), minlength=n)
-    core = counts >= min_points
+    grid = PointGrid(points, eps_m)
+    counts_sorted = np.empty(n, dtype=np.int64)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    _k.radius_counts(grid.points, grid.cells, grid.starts, nx, ny, nz, eps_m, counts_sorted)
+    core = np.empty(n, dtype=bool)
+    core[grid.order] = counts_sorted >= min_points
     if not np.any(core):
         return labels
     core_idx = np.flatnonzero(core)
-    remap = np.full(n, -1, dtype=np.int64)
-    remap[core_idx] = np.arange(core_idx.size)
-    core_pairs = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
-    labels[core_idx] = _components(core_idx.size, remap[core_pairs])
+    labels[core_idx] = euclidean_cluster_labels(points[core_idx], eps_m)
     border = np.flatnonzero(~core)
     if border.size:
-        dist, nearest = cKDTree(points[core_idx]).query(points[border], k=1, distance_upper_bound=eps_m)
-        attached = np.isfinite(dist)
+        nearest, _ = PointGrid(points[core_idx], eps_m).nearest_within(points[border], eps_m)
+        attached = nearest >= 0
         labels[border[attached]] = labels[core_idx[nearest[attached]]]
     return labels
 
