@@ -37,7 +37,8 @@ class LRNBVConfig(StrictModel):
     - ``look_target_spread``: a node's orientation is the best of 9 look-at directions: the object box
       centre and its 8 corners pulled towards the centre to this fraction (0: only the centre);
     - ``settle_s`` [s] waited after a move before a capture; ``max_failed_moves`` moves in a row that the
-      session refuses (unreachable, collision, barrier) end the scan;
+      session refuses (unreachable, collision, barrier) end the scan; nodes within ``refused_radius_m``
+      [m] of a refused position are dropped from later trees and from the cache;
     - ``rgbd_rays_per_side``: rays across a pinhole camera's wider side (the ToF casts one per zone);
     - ``seed`` of the RRT's random generator;
     - ``search_heights_m`` [m] above the table from which the station is looked at, in turn, while the
@@ -64,6 +65,7 @@ class LRNBVConfig(StrictModel):
     rgbd_rays_per_side: PositiveInt = 16
     settle_s: float = Field(default=0.1, ge=0.0)
     max_failed_moves: PositiveInt = 10
+    refused_radius_m: float = Field(default=0.1, ge=0.0)
     seed: int = 0
     search_heights_m: tuple[PositiveFloat, ...] = (0.3, 0.22)
 
