@@ -7,11 +7,14 @@ why, then re-raises.
 
 Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
 job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
-the arm reports it is.
+the arm reports it is; ``mode: real`` runs a hardware arm and a hardware sensor on the wall clock, with
+no ground truth (metrics are None). On the wall clock perception runs asynchronously from control
+(``cell.jobs.live``). ``mode: replay`` re-runs a recorded job (``cell.jobs.replay``).
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,21 +25,27 @@ from typing import Any
 import numpy as np
 
 from cell.config.models import CellConfig
+from cell.jobs.live import PoseHistory
 from cell.jobs.recorder import STOP_FILE, JobRecorder
-from cell.jobs.session import JobSession, TimeBudgetExhausted
+from cell.jobs.replay import ReplaySession
+from cell.jobs.session import JobSession, ScanLimitReached
 from cell.packing.result import packing_section
 from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
+from cell.planning.base import Planner
 from cell.planning.registry import get_planner
 from cell.safety.guard import MotionGuard
+from drivers.arm.config import ReplayArmConfig
+from drivers.arm.replay import ReplayArm
 from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
+from drivers.depth.replay import ReplaySensor
 from drivers.depth.sim_base import SimDepthSensor
 from drivers.errors import CellError, JobError, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.faults import SimFaultInjector
-from drivers.sim.objects import load_object
+from drivers.sim.objects import ObjectMesh, load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import T_from_xyz_rpy
 
@@ -95,38 +104,75 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
     }
 
 
+def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
+    """The object a recorded job scanned, as its ``result.json`` names it, with its mesh and pose when
+    it was a simulated job whose object is at hand (the ground truth for metrics); (name, None, None)
+    otherwise."""
+    try:
+        recorded = json.loads((job_dir / "result.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
+    name, pose = recorded.get("object"), recorded.get("object_pose")
+    if not name or pose is None:
+        return str(name or "unknown"), None, None
+    try:
+        return str(name), load_object(str(name)), np.asarray(pose, dtype=float)
+    except CellError:
+        return str(name), None, None
+
+
+def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, ObjectMesh | None,
+                                                                        np.ndarray | None]:
+    """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
+    of sim and dry runs and of replays of them; a real cell scans an unknown object)."""
+    if replay_dir is not None:
+        return _recorded_object(replay_dir)
+    if req.config.mode == "real":
+        return req.object, None, None
+    return req.object, load_object(req.object), object_pose_in_base(req.config, req.object_pose)
+
+
+def _run_planner(planner: Planner, session: JobSession) -> str:
+    try:
+        return planner.run(session)
+    finally:
+        session.close()
+
+
 def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
     """Run the scan described by ``req``; returns the job folder and the result written there."""
     cfg = req.config
-    if cfg.mode == "real":
-        raise JobError("scans with a hardware sensor (mode 'real') are not available yet; mode 'dry-run' "
-                       "scans with a hardware arm and a simulated sensor")
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
-    mesh = load_object(req.object)
+    replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
+    object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
     max_time = req.max_time_s if req.max_time_s is not None else cfg.scan.max_time_s
     if max_time <= 0:
         raise JobError(f"--max-time must be positive, got {max_time}")
-    folder = req.out if req.out is not None else default_job_folder(req.object, planner_name, req.seed)
+    folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed)
     recorder = JobRecorder(folder)
     wall_start = time.monotonic()
 
     # One seed per job, split into independent streams so that perception's random draws (RANSAC) never
     # change the noise the simulated devices see.
     world_rng, perception_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(req.seed).spawn(2))
-    # A dry run drives a hardware arm: the job runs on the wall clock, and the simulated sensor renders
-    # the virtual object from the pose the arm reports (true_flange_pose).
-    clock: Clock = SimClock() if cfg.mode == "sim" else WallClock()
-    T_base_object = object_pose_in_base(cfg, req.object_pose)
-    scene = SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
-                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
+    # With a hardware arm the job runs on the wall clock and perception runs asynchronously, its frames
+    # paired with the poses the control loop records (poses); a dry run's simulated sensor renders the
+    # virtual object from the newest of them. A replay plays recorded time on the simulated clock.
+    wall = cfg.mode in ("dry-run", "real")
+    clock: Clock = WallClock() if wall else SimClock()
+    poses = PoseHistory() if wall else None
+    scene = None if mesh is None or T_base_object is None else SimScene(
+        mesh, T_base_object, table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
+        table_size_xy=cfg.sim.table_size_m)
     world = SimWorld(clock=clock, rng=world_rng, scene=scene)
     model = get_robot_model(cfg.arm.model)
     T_flange_sensor = cfg.mount.matrix()
     arm = make_arm(cfg.arm, model, world)
-    flange = true_flange_pose(arm)
+    flange = poses.latest if poses is not None else true_flange_pose(arm)
     sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
-    ground_truth = ground_truth_points(mesh, T_base_object)
+    ground_truth = (ground_truth_points(mesh, T_base_object) if mesh is not None and T_base_object is not None
+                    else None)
     if cfg.sim.faults:
         if not (isinstance(clock, SimClock) and isinstance(arm, SimArm)
                 and isinstance(sensor, SimDepthSensor)):
@@ -137,20 +183,26 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     status, termination = "failed", "not started"
     session: JobSession | None = None
     error: BaseException | None = None
-    recorder.log(0.0, f"job: planner {planner_name}, object {req.object} at {list(req.object_pose)}, "
-                      f"seed {req.seed}, config {req.config_path}")
+    placed = f"replay of {replay_dir}" if replay_dir is not None else f"at {list(req.object_pose)}"
+    recorder.log(0.0, f"job: planner {planner_name}, object {object_name} {placed}, seed {req.seed}, "
+                      f"config {req.config_path}")
     try:
         with arm, sensor:
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
-            session = JobSession(cfg, clock=clock, guard=guard, model=model, sensor=sensor,
-                                 perception=perception, recorder=recorder, max_time_s=max_time,
-                                 coverage=CoverageTracker(ground_truth), on_progress=on_progress,
-                                 stop_file=folder / STOP_FILE)
-            # Whatever ends the planner's run, the arm is brought to rest and watched until it is.
+            coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
+            common: dict[str, Any] = dict(
+                clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
+                max_time_s=max_time, coverage=coverage, on_progress=on_progress, stop_file=folder / STOP_FILE)
+            if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
+                session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
+            else:
+                session = JobSession(cfg, sensor=sensor, poses=poses, **common)
+            # Whatever ends the planner's run, the arm is brought to rest and watched until it is, and
+            # asynchronous capture stops before the sensor disconnects.
             try:
-                termination = planner.run(session)
-            except TimeBudgetExhausted as exc:
+                termination = _run_planner(planner, session)
+            except ScanLimitReached as exc:
                 termination = str(exc)
             except SafetyStop:
                 session.settle()
@@ -180,10 +232,11 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
         recorder.cloud(cloud)
         if session is not None:
             recorder.occupancy_map(session.perception.map)
-        metrics = compute_metrics(ground_truth, cloud)
+        metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None
+                   else dict.fromkeys(("chamfer_mm", "hausdorff_mm", "coverage_pct"), float("nan")))
         result: dict[str, Any] = {
             "planner": planner_name,
-            "object": req.object,
+            "object": object_name,
             "config": req.config_path,
             "seed": req.seed,
             "status": status,
@@ -196,12 +249,14 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "n_unreachable_views": session.n_unreachable if session else 0,
             "refused_moves": dict(sorted(session.refused_moves.items())) if session else {},
             "n_cloud_points": int(cloud.shape[0]),
-            "object_pose": np.round(T_base_object, 9).tolist(),
-            "metrics": _finite_or_none(metrics.as_dict()),
+            "object_pose": None if T_base_object is None else np.round(T_base_object, 9).tolist(),
+            "metrics": _finite_or_none(metrics),
             "perception": _perception_summary(session),
             "packing": packing_section(cfg, session, planner, mesh, T_base_object, ground_truth),
             "safety": guard.log.as_dict(),
         }
+        if isinstance(session, ReplaySession):
+            result["replay"] = {"job_dir": str(replay_dir), "n_planner_requests": session.n_planner_requests}
         recorder.result(result)
         recorder.close()
     if error is not None:

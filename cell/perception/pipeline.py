@@ -10,8 +10,10 @@ without blocking the control loop. An exception in the worker is kept and re-rai
 
 from __future__ import annotations
 
+import copy
 import threading
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,8 +33,11 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
-    frame, the segmented object and its ROI, and H_ROI (eq. 12). ``roi``, ``centroid`` and ``h_roi`` are
-    None until an object has been found."""
+    frame, the segmented object and its ROI, H_ROI (eq. 12) and the occupancy map. ``roi``, ``centroid``
+    and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map when frames
+    are processed in the planner's thread (later frames update it), and a copy taken right after this
+    frame when they are processed asynchronously (``AsyncPerception``), so that a planner never reads a
+    map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -43,6 +48,7 @@ class PerceptionUpdate:
     roi: ROI | None
     centroid: Array | None
     h_roi: float | None
+    map: OccupancyMap
 
 
 class PerceptionPipeline:
@@ -97,18 +103,22 @@ class PerceptionPipeline:
         h_roi = self.map.mean_entropy_in_box(roi.aabb_min, roi.aabb_max) if roi is not None else None
         update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
                                   points_base=points_base, object_points=seg.object_points, roi=roi,
-                                  centroid=roi.centroid if roi is not None else None, h_roi=h_roi)
+                                  centroid=roi.centroid if roi is not None else None, h_roi=h_roi,
+                                  map=self.map)
         self.latest = update
         return update
 
 
 class AsyncPerception:
     """Runs a ``PerceptionPipeline`` in its own thread (real mode). ``submit`` never blocks: a frame not
-    yet picked up is replaced by the newer one. ``latest`` returns the newest update, or raises what the
+    yet picked up is replaced by the newer one. ``on_update(frame, T_base_sensor_fk, update)`` runs on the
+    worker after each frame (e.g. to record it). ``latest`` returns the newest update, or raises what the
     worker raised."""
 
-    def __init__(self, pipeline: PerceptionPipeline) -> None:
+    def __init__(self, pipeline: PerceptionPipeline,
+                 on_update: Callable[[DepthFrame, Array, PerceptionUpdate], None] | None = None) -> None:
         self.pipeline = pipeline
+        self._on_update = on_update
         self._cond = threading.Condition()
         self._pending: tuple[DepthFrame, Array] | None = None
         self._latest: PerceptionUpdate | None = None
@@ -144,7 +154,9 @@ class AsyncPerception:
                 frame, pose = self._pending
                 self._pending = None
             try:
-                update = self.pipeline.process(frame, pose)
+                update = replace(self.pipeline.process(frame, pose), map=copy.deepcopy(self.pipeline.map))
+                if self._on_update is not None:
+                    self._on_update(frame, pose, update)
             except BaseException as exc:
                 with self._cond:
                     self._error = exc
