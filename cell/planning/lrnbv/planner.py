@@ -31,7 +31,13 @@ Choices the paper leaves open, and why:
 - tau (``cache_threshold``) is 0: with the visited gain a node in a visited cell scores about -w_v and
   is neither cached nor captured; any other node is worth remembering.
 - Best and worst cached nodes come from the re-scoring after the last capture, as in lines 20-21; before
-  the first re-scoring there is no threshold and the scan goes on.
+  the first re-scoring there is no threshold and the scan goes on. m_i counts planning passes i, so with
+  Table 1's 300 iterations it stays near 50 over a scan of tens of iterations, as the paper's figures
+  imply.
+- G_v's grid (eq. 6) marks the coarse cell of the sensor position of every capture, the initial ones
+  included.
+- ``nbv`` is this same loop, termination included (section 4: it "follows the algorithm described in
+  Algorithm 1"), with w_d = w_v = 0.
 - A move the session refuses (no IK solution, collision, barrier) ends that branch's captures and counts
   a failed move; ``max_failed_moves`` in a row end the scan. Its position is remembered: nodes within
   ``refused_radius_m`` of it are dropped from later trees and from the cache, or the unseen far side of
