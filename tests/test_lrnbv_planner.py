@@ -155,11 +155,21 @@ def test_lr_nbv_captures_along_the_branch_but_not_twice_in_a_visited_cell() -> N
     np.testing.assert_allclose(session.captured, tree.positions[[1, 3]])
 
 
-def test_nbv_captures_the_whole_branch_and_counts_refusals() -> None:
+def test_nbv_captures_the_whole_branch() -> None:
     cfg = load_config(UR5E)
     tree, obj = _branch_tree()
     session = _BranchSession(cfg)
     assert NBVPlanner(cfg).capture_branch(session, obj, tree, [1, 2, 3])[1:] == (3, 0)
+
+
+def test_a_refused_move_ends_the_branch_and_keeps_nodes_away_from_it() -> None:
+    cfg = load_config(UR5E)
+    tree, obj = _branch_tree()
     refusing = _BranchSession(cfg, refuse=tuple(tree.positions[2]))
-    assert NBVPlanner(cfg).capture_branch(refusing, obj, tree, [1, 2, 3])[1:] == (2, 1)
-    np.testing.assert_allclose(refusing.captured, tree.positions[[1, 3]])
+    planner = NBVPlanner(cfg)
+    assert planner.capture_branch(refusing, obj, tree, [1, 2, 3])[1:] == (1, 1)
+    np.testing.assert_allclose(refusing.captured, tree.positions[[1]])
+    np.testing.assert_allclose(planner.refused_positions, tree.positions[[2]])
+    r = cfg.planners.nbv.refused_radius_m
+    probes = tree.positions[2] + np.array([[0.0, 0.0, 0.9 * r], [0.0, 0.0, 1.1 * r]])
+    assert planner.near_refused(probes).tolist() == [True, False]

@@ -31,10 +31,18 @@ Choices the paper leaves open, and why:
 - tau (``cache_threshold``) is 0: with the visited gain a node in a visited cell scores about -w_v and
   is neither cached nor captured; any other node is worth remembering.
 - Best and worst cached nodes come from the re-scoring after the last capture, as in lines 20-21; before
-  the first re-scoring there is no threshold and the scan goes on.
-- A move the session refuses (no IK solution, collision, barrier) drops that node and counts a failed
-  move; ``max_failed_moves`` in a row end the scan. The iteration budget counts planning passes, so a
-  scan always ends.
+  the first re-scoring there is no threshold and the scan goes on. m_i counts planning passes i, so with
+  Table 1's 300 iterations it stays near 50 over a scan of tens of iterations, as the paper's figures
+  imply.
+- G_v's grid (eq. 6) marks the coarse cell of the sensor position of every capture, the initial ones
+  included.
+- ``nbv`` is this same loop, termination included (section 4: it "follows the algorithm described in
+  Algorithm 1"), with w_d = w_v = 0.
+- A move the session refuses (no IK solution, collision, barrier) ends that branch's captures and counts
+  a failed move; ``max_failed_moves`` in a row end the scan. Its position is remembered: nodes within
+  ``refused_radius_m`` of it are dropped from later trees and from the cache, or the unseen far side of
+  an object just beyond the arm's reach would draw every tree back to it. The iteration budget counts
+  planning passes, so a scan always ends.
 - The RRT draws from its own generator seeded with the planner's ``seed``, so the same config, object and
   job seed give the same scan.
 - Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; while no object
@@ -149,6 +157,7 @@ class RRTViewPlanner(Planner):
         self.reconstruction = ReconstructionHistory()
         self.n_failed_moves = 0
         self.n_refused_nodes = 0
+        self.refused_positions = np.zeros((0, 3))
 
     # ------------------------------------------------------------------------------------- the map side
     def field(self, session: MappingSession, obj: Array) -> UtilityField:
@@ -208,6 +217,13 @@ class RRTViewPlanner(Planner):
                 return q
         return None
 
+    def near_refused(self, positions: Array) -> np.ndarray:
+        """Mask (N,) of the positions (N, 3) within ``refused_radius_m`` of one the session refused."""
+        if self.refused_positions.shape[0] == 0:
+            return np.zeros(positions.shape[0], dtype=bool)
+        d = np.linalg.norm(positions[:, None, :] - self.refused_positions[None, :, :], axis=2)
+        return np.asarray(np.any(d < self.params.refused_radius_m, axis=1))
+
     def _clear_of_object(self, p: Array, obj_lo: Array, obj_hi: Array) -> bool:
         c = self.params.object_clearance_m
         return not bool(np.all(p >= obj_lo - c) and np.all(p <= obj_hi + c))
@@ -229,7 +245,7 @@ class RRTViewPlanner(Planner):
             d = q - pts[near]
             dist = float(np.linalg.norm(d))
             new = q if dist <= p.rrt_step_m else pts[near] + d * (p.rrt_step_m / dist)
-            if not self._clear_of_object(new, obj_lo, obj_hi):
+            if not self._clear_of_object(new, obj_lo, obj_hi) or self.near_refused(new[None])[0]:
                 continue
             if not session.sensor_pose_allowed(look_at(new, centre)):
                 continue
@@ -298,8 +314,11 @@ class RRTViewPlanner(Planner):
         this drops a node in a coarse cell the branch has just visited, and so a redundant pose; without
         it (``nbv``) U stays positive and the whole branch is captured.
 
+        A move the session refuses (unreachable, collision, barrier) ends the branch, whose later nodes
+        continue from a pose the arm did not reach, and its position joins ``refused_positions``.
+
         Returns the object after the last capture (``obj`` when none found one), the captures made and the
-        moves refused."""
+        moves refused (0 or 1)."""
         captured = refused = 0
         for n, i in enumerate(branch):
             if n > 0 and self._node_utility(session, obj, tree, i) <= self.params.cache_threshold:
@@ -308,7 +327,8 @@ class RRTViewPlanner(Planner):
             T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
             if not session.move_to_sensor_pose(T):
                 refused += 1
-                continue
+                self.refused_positions = np.vstack([self.refused_positions, tree.positions[i]])
+                break
             obj_new = self._capture(session)
             captured += 1
             if obj_new.shape[0]:
@@ -348,6 +368,8 @@ class RRTViewPlanner(Planner):
             if p.capture == "best_node":
                 branch = [branch[int(np.argmax(tree.utility[branch]))]]
             obj, captured, refused = self.capture_branch(s, obj, tree, branch)
+            if refused:
+                cache.keep(~self.near_refused(cache.positions))
             self.n_failed_moves += refused
             captures += captured
             if captured == 0:
