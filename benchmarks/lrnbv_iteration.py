@@ -80,6 +80,7 @@ def main() -> None:
             pose["T"] = T
             perception.process(sensor.capture(), T)
     planner = LRNBVPlanner(cfg)
+    planner.prepare(sensor.model, np.random.default_rng(2))
     session = _Session(views[0], perception, guard, cfg.mount.matrix())
     obj = current_object(perception)
     times, cpu, nodes = [], [], []

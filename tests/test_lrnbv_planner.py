@@ -12,8 +12,16 @@ from cell.config.models import CellConfig
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.lrnbv.heu import HEUPlanner, heu_views
-from cell.planning.lrnbv.planner import CachedNodes, LRNBVPlanner, NBVPlanner, Tree, look_at_rotations
+from cell.planning.lrnbv.planner import (
+    CachedNodes,
+    LRNBVPlanner,
+    NBVPlanner,
+    RRTViewPlanner,
+    Tree,
+    look_at_rotations,
+)
 from cell.planning.registry import get_planner
+from drivers.depth.base import SensorModel
 from drivers.transforms import look_at
 from tests.conftest import UR5E
 
@@ -146,11 +154,21 @@ def _branch_tree() -> tuple[Tree, np.ndarray]:
     return tree, obj
 
 
+def _prepared(planner: RRTViewPlanner, cfg: CellConfig) -> RRTViewPlanner:
+    """``planner`` ready to plan as a run would make it, for the cell's 8 x 8 ToF sensor."""
+    s = cfg.sensor
+    assert s.type == "sim-tof"
+    planner.prepare(SensorModel(kind="tof", width=s.resolution, height=s.resolution, fov_x_deg=s.fov_deg,
+                                fov_y_deg=s.fov_deg, range_min_m=s.range_min_m, range_max_m=s.range_max_m),
+                    np.random.default_rng(0))
+    return planner
+
+
 def test_lr_nbv_captures_along_the_branch_but_not_twice_in_a_visited_cell() -> None:
     cfg = load_config(UR5E)
     tree, obj = _branch_tree()
     session = _BranchSession(cfg)
-    _, captured, refused = LRNBVPlanner(cfg).capture_branch(session, obj, tree, [1, 2, 3])
+    _, captured, refused = _prepared(LRNBVPlanner(cfg), cfg).capture_branch(session, obj, tree, [1, 2, 3])
     assert (captured, refused) == (2, 0)
     np.testing.assert_allclose(session.captured, tree.positions[[1, 3]])
 
@@ -159,14 +177,14 @@ def test_nbv_captures_the_whole_branch() -> None:
     cfg = load_config(UR5E)
     tree, obj = _branch_tree()
     session = _BranchSession(cfg)
-    assert NBVPlanner(cfg).capture_branch(session, obj, tree, [1, 2, 3])[1:] == (3, 0)
+    assert _prepared(NBVPlanner(cfg), cfg).capture_branch(session, obj, tree, [1, 2, 3])[1:] == (3, 0)
 
 
 def test_a_refused_move_ends_the_branch_and_keeps_nodes_away_from_it() -> None:
     cfg = load_config(UR5E)
     tree, obj = _branch_tree()
     refusing = _BranchSession(cfg, refuse=tuple(tree.positions[2]))
-    planner = NBVPlanner(cfg)
+    planner = _prepared(NBVPlanner(cfg), cfg)
     assert planner.capture_branch(refusing, obj, tree, [1, 2, 3])[1:] == (1, 1)
     np.testing.assert_allclose(refusing.captured, tree.positions[[1]])
     np.testing.assert_allclose(planner.refused_positions, tree.positions[[2]])

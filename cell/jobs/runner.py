@@ -155,9 +155,10 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     recorder = JobRecorder(folder)
     wall_start = time.monotonic()
 
-    # One seed per job, split into independent streams so that perception's random draws (RANSAC) never
-    # change the noise the simulated devices see.
-    world_rng, perception_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(req.seed).spawn(2))
+    # One seed per job, split into independent streams so that perception's random draws (RANSAC) and the
+    # planner's never change the noise the simulated devices see, nor each other.
+    world_rng, perception_rng, planner_rng = (np.random.default_rng(s)
+                                              for s in np.random.SeedSequence(req.seed).spawn(3))
     # With a hardware arm the job runs on the wall clock and perception runs asynchronously, its frames
     # paired with the poses the control loop records (poses); a dry run's simulated sensor renders the
     # virtual object from the newest of them. A replay plays recorded time on the simulated clock.
@@ -195,7 +196,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
-                max_time_s=max_time, coverage=coverage, on_progress=on_progress, stop_file=folder / STOP_FILE)
+                max_time_s=max_time, coverage=coverage, on_progress=on_progress, stop_file=folder / STOP_FILE,
+                rng=planner_rng)
             if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
                 session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
             else:

@@ -30,7 +30,7 @@ from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard
 from drivers.clock import Clock
-from drivers.depth.base import DepthFrame, DepthSensor
+from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.errors import DriverError, KinematicsError
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
@@ -58,10 +58,11 @@ class JobSession:
 
     def __init__(self, config: CellConfig, *, clock: Clock, guard: MotionGuard, model: RobotModel,
                  sensor: DepthSensor, perception: PerceptionPipeline, recorder: JobRecorder,
-                 max_time_s: float, coverage: CoverageTracker | None,
+                 max_time_s: float, coverage: CoverageTracker | None, rng: np.random.Generator,
                  on_progress: Callable[[JobSession], None] | None = None,
                  stop_file: Path | None = None, poses: PoseHistory | None = None) -> None:
         self.config = config
+        self.rng = rng
         self._clock = clock
         self._guard = guard
         self._model = model
@@ -102,6 +103,9 @@ class JobSession:
 
     def sensor_pose(self) -> Array:
         return self._guard.state().T_base_flange @ self._T_flange_sensor
+
+    def sensor_model(self) -> SensorModel:
+        return self._sensor.model
 
     def _record_pose(self, T_base_flange: Array) -> None:
         T = T_base_flange @ self._T_flange_sensor

@@ -44,7 +44,6 @@ class LRNBVConfig(StrictModel):
       session refuses (unreachable, collision, barrier) end the scan; nodes within ``refused_radius_m``
       [m] of a refused position are dropped from later trees and from the cache;
     - ``rgbd_rays_per_side``: rays across a pinhole camera's wider side (the ToF casts one per zone);
-    - ``seed`` of the RRT's random generator;
     - ``search_heights_m`` [m] above the table from which the station is looked at, in turn, while the
       first captures show no object (Algorithm 1 needs an initial acquisition of it).
     """
@@ -70,7 +69,6 @@ class LRNBVConfig(StrictModel):
     settle_s: float = Field(default=0.1, ge=0.0)
     max_failed_moves: PositiveInt = 10
     refused_radius_m: float = Field(default=0.1, ge=0.0)
-    seed: int = 0
     search_heights_m: tuple[PositiveFloat, ...] = (0.3, 0.22)
 
     @model_validator(mode="after")

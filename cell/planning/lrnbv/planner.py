@@ -43,8 +43,8 @@ Choices the paper leaves open, and why:
   ``refused_radius_m`` of it are dropped from later trees and from the cache, or the unseen far side of
   an object just beyond the arm's reach would draw every tree back to it. The iteration budget counts
   planning passes, so a scan always ends.
-- The RRT draws from its own generator seeded with the planner's ``seed``, so the same config, object and
-  job seed give the same scan.
+- The RRT draws from the job's planner generator (``ScanSession.rng``, a stream of the job seed), so the
+  same config, object and job seed give the same scan, and other seeds other trees.
 - Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; while no object
   is found it looks down at the station from each of ``search_heights_m`` in turn: a small object seen
   from far by an 8 x 8 sensor fills fewer zones than a cluster needs.
@@ -64,6 +64,7 @@ from cell.planning.base import Array, Planner, ScanSession
 from cell.planning.lrnbv.config import LRNBVConfig
 from cell.planning.lrnbv.sensor import sensor_rays
 from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
+from drivers.depth.base import SensorModel
 from drivers.transforms import look_at
 
 
@@ -138,6 +139,10 @@ class RRTViewPlanner(Planner):
 
     section: ClassVar[str]
     uses_density_and_visited: ClassVar[bool]
+    # set by prepare(), from the session, when a run starts
+    rays: Array
+    coarse_rays: Array
+    rng: np.random.Generator
 
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
@@ -145,19 +150,24 @@ class RRTViewPlanner(Planner):
         p = self.params
         self.weights = Weights(w_e=p.w_e, w_d=p.w_d if self.uses_density_and_visited else 0.0, w_q=p.w_q,
                                w_v=p.w_v if self.uses_density_and_visited else 0.0)
-        grid = sensor_rays(config.sensor, p.rgbd_rays_per_side)
-        self.rays = grid.reshape(-1, 3)
-        self.coarse_rays = grid[::2, ::2].reshape(-1, 3)
         self.resolution = config.perception.occupancy.resolution_m
         self.table_z = config.station.table_z_m
         ws = config.safety.workspace
         self.ws_min, self.ws_max = np.asarray(ws.min_m, dtype=float), np.asarray(ws.max_m, dtype=float)
-        self.rng = np.random.default_rng(p.seed)
         self.visited = VisitedGrid(p.visited_grid_m)
         self.reconstruction = ReconstructionHistory()
         self.n_failed_moves = 0
         self.n_refused_nodes = 0
         self.refused_positions = np.zeros((0, 3))
+
+    def prepare(self, sensor: SensorModel, rng: np.random.Generator) -> None:
+        """Before planning: the ray set of eqs. 3-4 from the connected sensor's geometry (every 2nd row
+        and column of it for the coarse orientation search) and the generator the RRT draws from (the
+        job's)."""
+        grid = sensor_rays(sensor, self.params.rgbd_rays_per_side)
+        self.rays = grid.reshape(-1, 3)
+        self.coarse_rays = grid[::2, ::2].reshape(-1, 3)
+        self.rng = rng
 
     # ------------------------------------------------------------------------------------- the map side
     def field(self, session: MappingSession, obj: Array) -> UtilityField:
@@ -338,6 +348,7 @@ class RRTViewPlanner(Planner):
     def run(self, session: ScanSession) -> str:
         s: MappingSession = session  # type: ignore[assignment]
         p = self.params
+        self.prepare(session.sensor_model(), session.rng)
         obj = self._initial_object(s)
         if obj.shape[0] == 0:
             return "no object found in the first views"
