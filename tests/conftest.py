@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -21,3 +23,14 @@ def repo() -> Path:
 @pytest.fixture
 def franka_cfg_data() -> dict:
     return yaml.safe_load((CONFIG_DIR / "sim-franka-rgbd.yaml").read_text())
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float = 30.0) -> bool:
+    """Poll ``predicate`` every 10 ms until it holds (True) or ``timeout_s`` [s] of wall time pass (False):
+    for what another thread does."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False

@@ -21,7 +21,7 @@ from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import look_at, make_T
 
-from .conftest import UR5E
+from .conftest import UR5E, wait_for
 
 
 def _pose(x: float, yaw_deg: float) -> np.ndarray:
@@ -78,15 +78,6 @@ def live_rig():
     return sensor, pipeline, poses, T_base_flange, T_flange_sensor
 
 
-def _wait_for(predicate, timeout_s: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
-
-
 def test_live_perception_captures_processes_and_records_on_its_own_threads(live_rig) -> None:
     sensor, pipeline, poses, T_base_flange, T_flange_sensor = live_rig
     flaky = _FlakySensor(sensor, failures=2)
@@ -98,7 +89,7 @@ def test_live_perception_captures_processes_and_records_on_its_own_threads(live_
     live.start()
     updates = []
     try:
-        assert _wait_for(lambda: (u := live.poll()) is not None and updates.append(u) is None
+        assert wait_for(lambda: (u := live.poll()) is not None and updates.append(u) is None
                          and len(updates) >= 3)
     finally:
         live.stop()
@@ -135,6 +126,6 @@ def test_a_worker_error_reaches_the_control_loop(live_rig) -> None:
                 return str(exc) == "disk full"
             return False
 
-        assert _wait_for(raised)
+        assert wait_for(raised)
     finally:
         live.stop()

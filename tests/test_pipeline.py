@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -16,7 +14,7 @@ from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import look_at, make_T
 
-from .conftest import CONFIG_DIR
+from .conftest import CONFIG_DIR, wait_for
 
 
 @pytest.fixture
@@ -45,15 +43,6 @@ def test_one_frame_through_every_stage(rig):
     assert second.registration.accepted and second.registration.correction_m < 0.002
 
 
-def _wait_for(predicate, timeout_s=30.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
-
-
 def test_async_perception_processes_in_its_own_thread(rig):
     camera, pipeline, T = rig
     runner = AsyncPerception(pipeline)
@@ -61,7 +50,7 @@ def test_async_perception_processes_in_its_own_thread(rig):
     try:
         assert runner.latest() is None
         runner.submit(camera.capture(), T)
-        assert _wait_for(lambda: runner.latest() is not None)
+        assert wait_for(lambda: runner.latest() is not None)
         assert runner.latest().roi is not None
     finally:
         runner.stop()
@@ -81,7 +70,7 @@ def test_async_perception_reraises_worker_errors(rig):
                 return "not a finite 4x4 pose" in str(exc)
             return False
 
-        assert _wait_for(raised)
+        assert wait_for(raised)
     finally:
         runner.stop()
 
