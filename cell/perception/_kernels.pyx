@@ -377,6 +377,50 @@ cdef inline void _nearest_in_run(const double* pts, Py_ssize_t first, Py_ssize_t
             best_j[0] = j
 
 
+cdef Py_ssize_t _nearest_one(const double* pts, const int64_t* starts, int64_t nx, int64_t ny, int64_t nz,
+                             double cell_m, const double* lo, double px, double py, double pz, double max_m,
+                             double* out_d2) noexcept nogil:
+    """``nearest_within`` for one query (px, py, pz): the index of its nearest point within ``max_m``
+    and its squared distance into out_d2, or -1 and inf."""
+    cdef int64_t r = 0, cx, cy, cz, x, y, x0, x1, y0, y1, z0, z1, c
+    cdef Py_ssize_t best_j = -1
+    cdef double best = INFINITY, reach
+    cx = <int64_t>floor((px - lo[0]) / cell_m)
+    cy = <int64_t>floor((py - lo[1]) / cell_m)
+    cz = <int64_t>floor((pz - lo[2]) / cell_m)
+    while True:
+        x0, x1 = max(cx - r, 0), min(cx + r, nx - 1)
+        y0, y1 = max(cy - r, 0), min(cy + r, ny - 1)
+        z0, z1 = max(cz - r, 0), min(cz + r, nz - 1)
+        for x in range(x0, x1 + 1):
+            for y in range(y0, y1 + 1):
+                c = (x * ny + y) * nz
+                # only the shell at Chebyshev distance r is new: a whole column on its x-y
+                # boundary, else its two z caps
+                if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
+                    if z0 <= z1:  # else the query's cube lies above or below the grid
+                        _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best, &best_j)
+                    continue
+                if 0 <= cz - r < nz:
+                    _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz, &best,
+                                    &best_j)
+                if 0 <= cz + r < nz:
+                    _nearest_in_run(pts, starts[c + cz + r], starts[c + cz + r + 1], px, py, pz, &best,
+                                    &best_j)
+        # distance from the query to the outside of the scanned cube
+        reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
+                    min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
+                        min(pz - (lo[2] + (cz - r) * cell_m), lo[2] + (cz + r + 1) * cell_m - pz)))
+        if best <= reach * reach or reach >= max_m:
+            break
+        r += 1
+    if best <= max_m * max_m:
+        out_d2[0] = best
+        return best_j
+    out_d2[0] = INFINITY
+    return -1
+
+
 def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny, int64_t nz,
                    double cell_m, const double[::1] lo, const double[:, ::1] queries, double max_m,
                    int64_t[::1] out_index, double[::1] out_d2):
@@ -390,52 +434,58 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
     the point scanned first (lowest cell, then lowest index).
     """
     cdef Py_ssize_t q, nq = queries.shape[0]
-    cdef int64_t r, cx, cy, cz, x, y, x0, x1, y0, y1, z0, z1, c
-    cdef Py_ssize_t best_j
-    cdef double px, py, pz, best, reach, max2 = max_m * max_m
-    cdef const double* pts = &points[0, 0]
     with nogil:
         for q in range(nq):
-            px, py, pz = queries[q, 0], queries[q, 1], queries[q, 2]
-            cx = <int64_t>floor((px - lo[0]) / cell_m)
-            cy = <int64_t>floor((py - lo[1]) / cell_m)
-            cz = <int64_t>floor((pz - lo[2]) / cell_m)
-            best = INFINITY
-            best_j = -1
-            r = 0
-            while True:
-                x0, x1 = max(cx - r, 0), min(cx + r, nx - 1)
-                y0, y1 = max(cy - r, 0), min(cy + r, ny - 1)
-                z0, z1 = max(cz - r, 0), min(cz + r, nz - 1)
-                for x in range(x0, x1 + 1):
-                    for y in range(y0, y1 + 1):
-                        c = (x * ny + y) * nz
-                        # only the shell at Chebyshev distance r is new: a whole column on its x-y
-                        # boundary, else its two z caps
-                        if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
-                            if z0 <= z1:  # else the query's cube lies above or below the grid
-                                _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
-                                                &best_j)
-                            continue
-                        if 0 <= cz - r < nz:
-                            _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz,
-                                            &best, &best_j)
-                        if 0 <= cz + r < nz:
-                            _nearest_in_run(pts, starts[c + cz + r], starts[c + cz + r + 1], px, py, pz,
-                                            &best, &best_j)
-                # distance from the query to the outside of the scanned cube
-                reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
-                            min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
-                                min(pz - (lo[2] + (cz - r) * cell_m), lo[2] + (cz + r + 1) * cell_m - pz)))
-                if best <= reach * reach or reach >= max_m:
-                    break
-                r += 1
-            if best <= max2:
-                out_index[q] = best_j
-                out_d2[q] = best
-            else:
-                out_index[q] = -1
-                out_d2[q] = INFINITY
+            out_index[q] = _nearest_one(&points[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], queries[q, 0],
+                                        queries[q, 1], queries[q, 2], max_m, &out_d2[q])
+
+
+def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] normals, const int64_t[::1] starts,
+                          int64_t nx, int64_t ny, int64_t nz, double cell_m, const double[::1] lo,
+                          const double[:, ::1] source, const double[:, ::1] T, double max_m,
+                          double[:, ::1] ata_out, double[::1] atb_out):
+    """One linearised point-to-plane ICP system in one pass over the source (N, 3) [m]: each point p
+    moved by the 4x4 ``T`` is paired with its nearest target point q within ``max_m`` (as
+    ``nearest_within``; ``points`` and ``normals`` (M, 3) sorted by cell, the grid as there); with the
+    residual r = (p - q) . n and the row a = [p x n, n] of the motion (rotation vector, translation),
+    ``ata_out`` (6, 6) receives sum a^T a and ``atb_out`` (6,) -sum a r, summed in source order.
+    Returns (the number of pairs, the sum of r^2 [m^2])."""
+    cdef Py_ssize_t i, j, n = source.shape[0], count = 0
+    cdef int a, b
+    cdef double sx, sy, sz, px, py, pz, nxv, nyv, nzv, r, d2, sse = 0.0
+    cdef double row[6]
+    cdef double ata[36]
+    cdef double atb[6]
+    for a in range(36):
+        ata[a] = 0.0
+    for a in range(6):
+        atb[a] = 0.0
+    with nogil:
+        for i in range(n):
+            sx, sy, sz = source[i, 0], source[i, 1], source[i, 2]
+            px = T[0, 0] * sx + T[0, 1] * sy + T[0, 2] * sz + T[0, 3]
+            py = T[1, 0] * sx + T[1, 1] * sy + T[1, 2] * sz + T[1, 3]
+            pz = T[2, 0] * sx + T[2, 1] * sy + T[2, 2] * sz + T[2, 3]
+            j = _nearest_one(&points[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], px, py, pz, max_m, &d2)
+            if j < 0:
+                continue
+            nxv, nyv, nzv = normals[j, 0], normals[j, 1], normals[j, 2]
+            r = (px - points[j, 0]) * nxv + (py - points[j, 1]) * nyv + (pz - points[j, 2]) * nzv
+            row[0] = py * nzv - pz * nyv
+            row[1] = pz * nxv - px * nzv
+            row[2] = px * nyv - py * nxv
+            row[3], row[4], row[5] = nxv, nyv, nzv
+            for a in range(6):
+                atb[a] -= row[a] * r
+                for b in range(a, 6):
+                    ata[6 * a + b] += row[a] * row[b]
+            sse += r * r
+            count += 1
+    for a in range(6):
+        atb_out[a] = atb[a]
+        for b in range(6):
+            ata_out[a, b] = ata[6 * a + b] if b >= a else ata[6 * b + a]
+    return count, sse
 
 
 def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny,
