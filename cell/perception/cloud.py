@@ -160,11 +160,17 @@ class CloudAccumulator:
     paper's concatenate-then-filter step does. ``new`` marks the points of voxels that the last addition
     created; the others are the previous points, in the same order (voxels are sorted by key and never
     removed), some of them moved by the averaging.
+
+    The concatenated cloud holds at most one old centroid and one centroid of the new frame per voxel,
+    so re-voxelizing it is a merge of the two key-sorted voxel sets: a voxel in both becomes
+    (old + new) / 2, the voxel filter's own arithmetic for those two points (sum in order from zero,
+    over their count), and the cloud is not re-grouped.
     """
 
     def __init__(self, voxel_m: float) -> None:
         self.voxel_m = voxel_m
         self._points = np.zeros((0, 3))
+        self._keys = np.zeros(0, dtype=np.int64)
         self._new = np.zeros(0, dtype=bool)
 
     @property
@@ -179,12 +185,26 @@ class CloudAccumulator:
     def add(self, points_base: Array) -> Array:
         """Add a frame's points, already in the base frame; returns them after this frame's own voxel
         filter."""
-        new = voxel_downsample(points_base, self.voxel_m)
-        both = np.vstack([self._points, new])
-        n_old = self._points.shape[0]
-        if both.shape[0]:
-            group, rank, _, self._points = _voxel_groups(both, self.voxel_m)
-            self._new = np.bincount(rank[group[:n_old]], minlength=rank.size) == 0
+        _, _, keys, new = _voxel_groups(points_base, self.voxel_m)
+        old_keys, old = self._keys, self._points
+        at = np.searchsorted(old_keys, keys)
+        shared = at < old_keys.size
+        shared[shared] = old_keys[at[shared]] == keys[shared]
+        fresh = ~shared
+        fresh_keys = keys[fresh]
+        # both sets are sorted by key: each voxel's place in the merged set is its rank in its own set
+        # plus the number of voxels of the other set before it
+        to_old = np.arange(old_keys.size) + np.searchsorted(fresh_keys, old_keys)
+        to_fresh = np.arange(fresh_keys.size) + at[fresh]
+        n = old_keys.size + fresh_keys.size
+        self._keys = np.empty(n, dtype=np.int64)
+        self._keys[to_old], self._keys[to_fresh] = old_keys, fresh_keys
+        self._points = np.empty((n, 3))
+        self._points[to_old] = old
+        self._points[to_old[at[shared]]] = (old[at[shared]] + new[shared]) / 2.0
+        self._points[to_fresh] = new[fresh]
+        self._new = np.zeros(n, dtype=bool)
+        self._new[to_fresh] = True
         return new
 
 
