@@ -828,42 +828,48 @@ def plane_inlier_counts(const double[:, ::1] points, const double[:, ::1] normal
 
 
 def grid_sort(const double[:, ::1] points, const double[::1] lo, double cell_m, int64_t nx, int64_t ny,
-              int64_t nz, int64_t[::1] starts_out, int64_t[::1] order_out, int64_t[:, ::1] cells_out):
+              int64_t nz, int64_t[::1] starts_out, int64_t[::1] order_out, int64_t[:, ::1] cells_out,
+              double[:, ::1] points_out):
     """Bucket points (N, 3) [m] in the grid of ``cell_m`` cells with corner ``lo`` and shape (nx, ny, nz)
     (``cloud.PointGrid``) by a counting sort: ``order_out`` (N,) the input index of each point sorted by
-    flat cell index (x, then y, then z; input order within a cell, as a stable argsort), ``cells_out``
-    (N, 3) their cells in that order, ``starts_out`` (nx * ny * nz + 1,) where each cell's run begins.
-    A coordinate past the last cell (rounding at the far face) is clamped into it."""
-    cdef Py_ssize_t i, n = points.shape[0]
-    cdef int64_t c, cx, cy, cz, n_cells = nx * ny * nz
-    cdef int64_t* flat = <int64_t*>malloc(n * sizeof(int64_t) if n else 1)
-    if flat == NULL:
+    flat cell index (x, then y, then z; input order within a cell, as a stable argsort), ``points_out``
+    (N, 3) and ``cells_out`` (N, 3) the points and their cells in that order, ``starts_out``
+    (nx * ny * nz + 1,) where each cell's run begins. A coordinate past the last cell (rounding at the
+    far face) is clamped into it."""
+    cdef Py_ssize_t i, pos, n = points.shape[0]
+    cdef int64_t c, n_cells = nx * ny * nz
+    cdef int64_t* cell = <int64_t*>malloc(4 * n * sizeof(int64_t) if n else 1)
+    if cell == NULL:
         raise MemoryError()
     with nogil:
         for c in range(n_cells + 1):
             starts_out[c] = 0
+        # per point: its cell (x, y, z) and flat index
         for i in range(n):
-            cx = min(_floor((points[i, 0] - lo[0]) / cell_m), nx - 1)
-            cy = min(_floor((points[i, 1] - lo[1]) / cell_m), ny - 1)
-            cz = min(_floor((points[i, 2] - lo[2]) / cell_m), nz - 1)
-            flat[i] = (cx * ny + cy) * nz + cz
-            starts_out[flat[i] + 1] += 1
+            cell[4 * i] = min(_floor((points[i, 0] - lo[0]) / cell_m), nx - 1)
+            cell[4 * i + 1] = min(_floor((points[i, 1] - lo[1]) / cell_m), ny - 1)
+            cell[4 * i + 2] = min(_floor((points[i, 2] - lo[2]) / cell_m), nz - 1)
+            c = (cell[4 * i] * ny + cell[4 * i + 1]) * nz + cell[4 * i + 2]
+            cell[4 * i + 3] = c
+            starts_out[c + 1] += 1
         for c in range(n_cells):
             starts_out[c + 1] += starts_out[c]
         # scatter with a running cursor per cell, kept in the run starts shifted by one cell
         for i in range(n):
-            c = flat[i]
-            order_out[starts_out[c]] = i
+            c = cell[4 * i + 3]
+            pos = starts_out[c]
             starts_out[c] += 1
+            order_out[pos] = i
+            points_out[pos, 0] = points[i, 0]
+            points_out[pos, 1] = points[i, 1]
+            points_out[pos, 2] = points[i, 2]
+            cells_out[pos, 0] = cell[4 * i]
+            cells_out[pos, 1] = cell[4 * i + 1]
+            cells_out[pos, 2] = cell[4 * i + 2]
         for c in range(n_cells, 0, -1):
             starts_out[c] = starts_out[c - 1]
         starts_out[0] = 0
-        for i in range(n):
-            c = flat[order_out[i]]
-            cells_out[i, 2] = c % nz
-            cells_out[i, 1] = (c // nz) % ny
-            cells_out[i, 0] = c // (nz * ny)
-    free(flat)
+    free(cell)
 
 
 def radius_counts(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,

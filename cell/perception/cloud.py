@@ -113,9 +113,9 @@ class PointGrid:
         self.starts = np.empty(int(np.prod(dims)) + 1, dtype=np.int64)
         self.order = np.empty(n, dtype=np.int64)
         self.cells = np.empty((n, 3), dtype=np.int64)
+        self.points = np.empty((n, 3))
         _k.grid_sort(pts, self.lo, cell, int(dims[0]), int(dims[1]), int(dims[2]), self.starts, self.order,
-                     self.cells)
-        self.points = pts[self.order]
+                     self.cells, self.points)
         self.dims = dims
         self.cell_m = cell
 
