@@ -588,10 +588,9 @@ cdef bint _rehash(int64_t** table_key, int32_t** table_group, int64_t cap, const
     return True
 
 
-cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, int32_t* group, double* sums,
+cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, double* sums,
                              int64_t* counts) noexcept nogil:
     """Point i joins voxel g."""
-    group[i] = g
     sums[3 * g] += pts[3 * i]
     sums[3 * g + 1] += pts[3 * i + 1]
     sums[3 * g + 2] += pts[3 * i + 2]
@@ -599,14 +598,14 @@ cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, int32_t
 
 
 def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] box_lo,
-                 const double[::1] box_hi, bint crop, int64_t[::1] keys_out, int32_t[::1] group_out,
-                 double[:, ::1] sums_out, int64_t[::1] counts_out):
+                 const double[::1] box_hi, bint crop, int64_t[::1] keys_out, double[:, ::1] sums_out,
+                 int64_t[::1] counts_out):
     """Group points (N, 3) [m] by voxel of a ``voxel_m`` grid anchored at the origin, in one pass.
 
-    With ``crop`` only the points strictly inside the box (``box_lo``, ``box_hi``) (3,) count; the others
-    get group -1. Voxels are numbered in the order of their first point: ``keys_out`` (N,) receives the
-    packed key of each voxel (21 bits an axis, x highest, offset to be non-negative, so that sorting the
-    keys sorts by x, then y, then z), ``group_out`` (N,) the voxel of each point, ``sums_out`` (N, 3) and
+    With ``crop`` only the points strictly inside the box (``box_lo``, ``box_hi``) (3,) count. Voxels are
+    numbered in the order of their first point: ``keys_out`` (N,) receives the packed key of each voxel
+    (21 bits an axis, x highest, offset to be non-negative, so that sorting the keys sorts by x, then y,
+    then z), ``sums_out`` (N, 3) and
     ``counts_out`` (N,) the sum of each voxel's points (added in input order) and their number. Returns
     the number of voxels, -1 when a kept point is not finite or lies beyond the key range, -2 when out
     of memory. Grouping goes through an open-addressing hash table kept at most half full, sized by the
@@ -624,12 +623,11 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
     cdef int64_t last_key = -1
     cdef int status = 0
     cdef const double* pts
-    cdef int32_t* grp
     cdef double* sums
     cdef int64_t* counts
     if n == 0:
         return 0
-    pts, grp, sums, counts = &points[0, 0], &group_out[0], &sums_out[0, 0], &counts_out[0]
+    pts, sums, counts = &points[0, 0], &sums_out[0, 0], &counts_out[0]
     if not _rehash(&table_key, &table_group, cap, &keys_out[0], 0):
         raise MemoryError()
     mask = <uint64_t>(cap - 1)
@@ -638,7 +636,6 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
             x, y, z = points[i, 0], points[i, 1], points[i, 2]
             if crop and not (box_lo[0] < x < box_hi[0] and box_lo[1] < y < box_hi[1]
                              and box_lo[2] < z < box_hi[2]):
-                group_out[i] = -1
                 continue
             x, y, z = x / voxel_m, y / voxel_m, z / voxel_m
             # NaN fails every comparison: refused here with the out-of-range keys
@@ -648,7 +645,7 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
             ix, iy, iz = _floor(x) + off, _floor(y) + off, _floor(z) + off
             key = (ix << (2 * KEY_BITS)) | (iy << KEY_BITS) | iz
             if key == last_key:  # neighbouring pixels of a row share a voxel: no lookup
-                _accumulate(pts, i, last_group, grp, sums, counts)
+                _accumulate(pts, i, last_group, sums, counts)
                 continue
             h = _hash(key) & mask
             while table_group[h] >= 0 and table_key[h] != key:
@@ -670,7 +667,7 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
                         status = -2
                         break
                     mask = <uint64_t>(cap - 1)
-            _accumulate(pts, i, g, grp, sums, counts)
+            _accumulate(pts, i, g, sums, counts)
             last_key, last_group = key, g
     free(table_key)
     free(table_group)
