@@ -43,9 +43,10 @@ origins [m], the angle that of the rotation of ``T_correction`` [deg].
 For the 8x8 time-of-flight sensor (packing cell) a frame has at most 64 points: registration is off
 there (``enabled: false`` in its cell file; ``min_points`` rejects such frames anyway).
 
-Determinism: the online ICP sums with einsum (no BLAS threads) and queries the kd-tree point by point;
-inputs are float64 arrays in a fixed order (the accumulated cloud from ``voxel_downsample`` is sorted by
-voxel key). The offline re-processing uses Open3D's ICP (``coarse_to_fine_icp``), whose multi-threaded
+Determinism: each online ICP iteration is one single-threaded compiled pass
+(``_kernels.point_to_plane_system``: grid search and normal equations, summed in source order); inputs
+are float64 arrays in a fixed order (the accumulated cloud from ``voxel_downsample`` is sorted by voxel
+key). The offline re-processing uses Open3D's ICP (``coarse_to_fine_icp``), whose multi-threaded
 reductions sum in a varying order: it runs on one Open3D thread (``single_threaded_open3d``).
 """
 
@@ -242,8 +243,9 @@ def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stag
     stages a few tenths of a degree short), or the mean squared point-to-plane residual changed by less
     than ``epsilon`` [m^2]. The returned fitness, RMSE and correspondences are evaluated at the returned
     transform with the last stage's distance. Nearest neighbours come from the exact grid search of
-    ``PointGrid`` (5 mm cells: a grid is built in a few ms, a kd-tree took 5x longer), sums from einsum
-    (not BLAS): nothing depends on thread counts.
+    ``PointGrid`` (5 mm cells: a grid is built in a few ms, a kd-tree took 5x longer); pairing and the
+    6x6 normal equations of an iteration are one compiled pass over the source
+    (``_kernels.point_to_plane_system``, summed in source order): nothing depends on thread counts.
     """
     grid = PointGrid(target, _GRID_CELL_M)
     src = np.ascontiguousarray(source, dtype=np.float64)
