@@ -10,7 +10,8 @@ import pytest
 from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
-from cell.perception.cloud import crop_box, voxel_downsample
+from cell.perception import _kernels
+from cell.perception.cloud import PointGrid, crop_box, cross_rows, voxel_downsample
 from cell.perception.registration import (
     RegistrationParams,
     RegistrationTarget,
@@ -225,3 +226,31 @@ def test_exact_pose_cube_scan_is_left_alone(cube_captures, min_constraint, caplo
         assert any(r.n_constrained < 6 for r in results) and "directions constrained" in caplog.text
     else:
         assert worst_m > 0.001 and all(r.n_constrained == 6 for r in results)
+
+
+def test_point_to_plane_system_matches_numpy_reference():
+    """The compiled ICP step pairs each moved source point with the same nearest target point as
+    ``PointGrid.nearest_within`` and builds the same normal equations as a numpy sum over the pairs."""
+    rng = np.random.default_rng(4)
+    target = rng.uniform(0.0, 0.05, (2000, 3))
+    normals = rng.normal(size=(2000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    source = target[::3] + rng.normal(0.0, 0.002, (667, 3))
+    T = T_from_xyz_rpy([0.001, -0.002, 0.0005], [0.01, -0.02, 0.015])
+    grid = PointGrid(target, 0.005)
+    ata, atb = np.empty((6, 6)), np.empty(6)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    for max_m in (0.001, 0.003, 0.02):
+        count, sse = _kernels.point_to_plane_system(
+            grid.points, np.ascontiguousarray(normals[grid.order]), grid.starts, nx, ny, nz, grid.cell_m,
+            grid.lo, source, T, max_m, ata, atb)
+        moved = transform_points(T, source)
+        j, _ = grid.nearest_within(moved, max_m)
+        ok = j >= 0
+        p, n = moved[ok], normals[j[ok]]
+        r = np.einsum("ij,ij->i", p - target[j[ok]], n)
+        A = np.column_stack([cross_rows(p, n), n])
+        assert count == np.count_nonzero(ok) > 6
+        np.testing.assert_allclose(ata, A.T @ A, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(atb, -A.T @ r, rtol=1e-9, atol=1e-18)
+        np.testing.assert_allclose(sse, r @ r, rtol=1e-9)

@@ -377,6 +377,50 @@ cdef inline void _nearest_in_run(const double* pts, Py_ssize_t first, Py_ssize_t
             best_j[0] = j
 
 
+cdef Py_ssize_t _nearest_one(const double* pts, const int64_t* starts, int64_t nx, int64_t ny, int64_t nz,
+                             double cell_m, const double* lo, double px, double py, double pz, double max_m,
+                             double* out_d2) noexcept nogil:
+    """``nearest_within`` for one query (px, py, pz): the index of its nearest point within ``max_m``
+    and its squared distance into out_d2, or -1 and inf."""
+    cdef int64_t r = 0, cx, cy, cz, x, y, x0, x1, y0, y1, z0, z1, c
+    cdef Py_ssize_t best_j = -1
+    cdef double best = INFINITY, reach
+    cx = <int64_t>floor((px - lo[0]) / cell_m)
+    cy = <int64_t>floor((py - lo[1]) / cell_m)
+    cz = <int64_t>floor((pz - lo[2]) / cell_m)
+    while True:
+        x0, x1 = max(cx - r, 0), min(cx + r, nx - 1)
+        y0, y1 = max(cy - r, 0), min(cy + r, ny - 1)
+        z0, z1 = max(cz - r, 0), min(cz + r, nz - 1)
+        for x in range(x0, x1 + 1):
+            for y in range(y0, y1 + 1):
+                c = (x * ny + y) * nz
+                # only the shell at Chebyshev distance r is new: a whole column on its x-y
+                # boundary, else its two z caps
+                if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
+                    if z0 <= z1:  # else the query's cube lies above or below the grid
+                        _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best, &best_j)
+                    continue
+                if 0 <= cz - r < nz:
+                    _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz, &best,
+                                    &best_j)
+                if 0 <= cz + r < nz:
+                    _nearest_in_run(pts, starts[c + cz + r], starts[c + cz + r + 1], px, py, pz, &best,
+                                    &best_j)
+        # distance from the query to the outside of the scanned cube
+        reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
+                    min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
+                        min(pz - (lo[2] + (cz - r) * cell_m), lo[2] + (cz + r + 1) * cell_m - pz)))
+        if best <= reach * reach or reach >= max_m:
+            break
+        r += 1
+    if best <= max_m * max_m:
+        out_d2[0] = best
+        return best_j
+    out_d2[0] = INFINITY
+    return -1
+
+
 def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny, int64_t nz,
                    double cell_m, const double[::1] lo, const double[:, ::1] queries, double max_m,
                    int64_t[::1] out_index, double[::1] out_d2):
@@ -390,52 +434,58 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
     the point scanned first (lowest cell, then lowest index).
     """
     cdef Py_ssize_t q, nq = queries.shape[0]
-    cdef int64_t r, cx, cy, cz, x, y, x0, x1, y0, y1, z0, z1, c
-    cdef Py_ssize_t best_j
-    cdef double px, py, pz, best, reach, max2 = max_m * max_m
-    cdef const double* pts = &points[0, 0]
     with nogil:
         for q in range(nq):
-            px, py, pz = queries[q, 0], queries[q, 1], queries[q, 2]
-            cx = <int64_t>floor((px - lo[0]) / cell_m)
-            cy = <int64_t>floor((py - lo[1]) / cell_m)
-            cz = <int64_t>floor((pz - lo[2]) / cell_m)
-            best = INFINITY
-            best_j = -1
-            r = 0
-            while True:
-                x0, x1 = max(cx - r, 0), min(cx + r, nx - 1)
-                y0, y1 = max(cy - r, 0), min(cy + r, ny - 1)
-                z0, z1 = max(cz - r, 0), min(cz + r, nz - 1)
-                for x in range(x0, x1 + 1):
-                    for y in range(y0, y1 + 1):
-                        c = (x * ny + y) * nz
-                        # only the shell at Chebyshev distance r is new: a whole column on its x-y
-                        # boundary, else its two z caps
-                        if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
-                            if z0 <= z1:  # else the query's cube lies above or below the grid
-                                _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
-                                                &best_j)
-                            continue
-                        if 0 <= cz - r < nz:
-                            _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz,
-                                            &best, &best_j)
-                        if 0 <= cz + r < nz:
-                            _nearest_in_run(pts, starts[c + cz + r], starts[c + cz + r + 1], px, py, pz,
-                                            &best, &best_j)
-                # distance from the query to the outside of the scanned cube
-                reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
-                            min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
-                                min(pz - (lo[2] + (cz - r) * cell_m), lo[2] + (cz + r + 1) * cell_m - pz)))
-                if best <= reach * reach or reach >= max_m:
-                    break
-                r += 1
-            if best <= max2:
-                out_index[q] = best_j
-                out_d2[q] = best
-            else:
-                out_index[q] = -1
-                out_d2[q] = INFINITY
+            out_index[q] = _nearest_one(&points[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], queries[q, 0],
+                                        queries[q, 1], queries[q, 2], max_m, &out_d2[q])
+
+
+def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] normals, const int64_t[::1] starts,
+                          int64_t nx, int64_t ny, int64_t nz, double cell_m, const double[::1] lo,
+                          const double[:, ::1] source, const double[:, ::1] T, double max_m,
+                          double[:, ::1] ata_out, double[::1] atb_out):
+    """One linearised point-to-plane ICP system in one pass over the source (N, 3) [m]: each point p
+    moved by the 4x4 ``T`` is paired with its nearest target point q within ``max_m`` (as
+    ``nearest_within``; ``points`` and ``normals`` (M, 3) sorted by cell, the grid as there); with the
+    residual r = (p - q) . n and the row a = [p x n, n] of the motion (rotation vector, translation),
+    ``ata_out`` (6, 6) receives sum a^T a and ``atb_out`` (6,) -sum a r, summed in source order.
+    Returns (the number of pairs, the sum of r^2 [m^2])."""
+    cdef Py_ssize_t i, j, n = source.shape[0], count = 0
+    cdef int a, b
+    cdef double sx, sy, sz, px, py, pz, nxv, nyv, nzv, r, d2, sse = 0.0
+    cdef double row[6]
+    cdef double ata[36]
+    cdef double atb[6]
+    for a in range(36):
+        ata[a] = 0.0
+    for a in range(6):
+        atb[a] = 0.0
+    with nogil:
+        for i in range(n):
+            sx, sy, sz = source[i, 0], source[i, 1], source[i, 2]
+            px = T[0, 0] * sx + T[0, 1] * sy + T[0, 2] * sz + T[0, 3]
+            py = T[1, 0] * sx + T[1, 1] * sy + T[1, 2] * sz + T[1, 3]
+            pz = T[2, 0] * sx + T[2, 1] * sy + T[2, 2] * sz + T[2, 3]
+            j = _nearest_one(&points[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], px, py, pz, max_m, &d2)
+            if j < 0:
+                continue
+            nxv, nyv, nzv = normals[j, 0], normals[j, 1], normals[j, 2]
+            r = (px - points[j, 0]) * nxv + (py - points[j, 1]) * nyv + (pz - points[j, 2]) * nzv
+            row[0] = py * nzv - pz * nyv
+            row[1] = pz * nxv - px * nzv
+            row[2] = px * nyv - py * nxv
+            row[3], row[4], row[5] = nxv, nyv, nzv
+            for a in range(6):
+                atb[a] -= row[a] * r
+                for b in range(a, 6):
+                    ata[6 * a + b] += row[a] * row[b]
+            sse += r * r
+            count += 1
+    for a in range(6):
+        atb_out[a] = atb[a]
+        for b in range(6):
+            ata_out[a, b] = ata[6 * a + b] if b >= a else ata[6 * b + a]
+    return count, sse
 
 
 def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny,
@@ -538,10 +588,9 @@ cdef bint _rehash(int64_t** table_key, int32_t** table_group, int64_t cap, const
     return True
 
 
-cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, int32_t* group, double* sums,
+cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, double* sums,
                              int64_t* counts) noexcept nogil:
     """Point i joins voxel g."""
-    group[i] = g
     sums[3 * g] += pts[3 * i]
     sums[3 * g + 1] += pts[3 * i + 1]
     sums[3 * g + 2] += pts[3 * i + 2]
@@ -549,14 +598,14 @@ cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, int32_t
 
 
 def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] box_lo,
-                 const double[::1] box_hi, bint crop, int64_t[::1] keys_out, int32_t[::1] group_out,
-                 double[:, ::1] sums_out, int64_t[::1] counts_out):
+                 const double[::1] box_hi, bint crop, int64_t[::1] keys_out, double[:, ::1] sums_out,
+                 int64_t[::1] counts_out):
     """Group points (N, 3) [m] by voxel of a ``voxel_m`` grid anchored at the origin, in one pass.
 
-    With ``crop`` only the points strictly inside the box (``box_lo``, ``box_hi``) (3,) count; the others
-    get group -1. Voxels are numbered in the order of their first point: ``keys_out`` (N,) receives the
-    packed key of each voxel (21 bits an axis, x highest, offset to be non-negative, so that sorting the
-    keys sorts by x, then y, then z), ``group_out`` (N,) the voxel of each point, ``sums_out`` (N, 3) and
+    With ``crop`` only the points strictly inside the box (``box_lo``, ``box_hi``) (3,) count. Voxels are
+    numbered in the order of their first point: ``keys_out`` (N,) receives the packed key of each voxel
+    (21 bits an axis, x highest, offset to be non-negative, so that sorting the keys sorts by x, then y,
+    then z), ``sums_out`` (N, 3) and
     ``counts_out`` (N,) the sum of each voxel's points (added in input order) and their number. Returns
     the number of voxels, -1 when a kept point is not finite or lies beyond the key range, -2 when out
     of memory. Grouping goes through an open-addressing hash table kept at most half full, sized by the
@@ -574,12 +623,11 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
     cdef int64_t last_key = -1
     cdef int status = 0
     cdef const double* pts
-    cdef int32_t* grp
     cdef double* sums
     cdef int64_t* counts
     if n == 0:
         return 0
-    pts, grp, sums, counts = &points[0, 0], &group_out[0], &sums_out[0, 0], &counts_out[0]
+    pts, sums, counts = &points[0, 0], &sums_out[0, 0], &counts_out[0]
     if not _rehash(&table_key, &table_group, cap, &keys_out[0], 0):
         raise MemoryError()
     mask = <uint64_t>(cap - 1)
@@ -588,7 +636,6 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
             x, y, z = points[i, 0], points[i, 1], points[i, 2]
             if crop and not (box_lo[0] < x < box_hi[0] and box_lo[1] < y < box_hi[1]
                              and box_lo[2] < z < box_hi[2]):
-                group_out[i] = -1
                 continue
             x, y, z = x / voxel_m, y / voxel_m, z / voxel_m
             # NaN fails every comparison: refused here with the out-of-range keys
@@ -598,7 +645,7 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
             ix, iy, iz = _floor(x) + off, _floor(y) + off, _floor(z) + off
             key = (ix << (2 * KEY_BITS)) | (iy << KEY_BITS) | iz
             if key == last_key:  # neighbouring pixels of a row share a voxel: no lookup
-                _accumulate(pts, i, last_group, grp, sums, counts)
+                _accumulate(pts, i, last_group, sums, counts)
                 continue
             h = _hash(key) & mask
             while table_group[h] >= 0 and table_key[h] != key:
@@ -620,7 +667,7 @@ def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] 
                         status = -2
                         break
                     mask = <uint64_t>(cap - 1)
-            _accumulate(pts, i, g, grp, sums, counts)
+            _accumulate(pts, i, g, sums, counts)
             last_key, last_group = key, g
     free(table_key)
     free(table_group)
@@ -778,42 +825,48 @@ def plane_inlier_counts(const double[:, ::1] points, const double[:, ::1] normal
 
 
 def grid_sort(const double[:, ::1] points, const double[::1] lo, double cell_m, int64_t nx, int64_t ny,
-              int64_t nz, int64_t[::1] starts_out, int64_t[::1] order_out, int64_t[:, ::1] cells_out):
+              int64_t nz, int64_t[::1] starts_out, int64_t[::1] order_out, int64_t[:, ::1] cells_out,
+              double[:, ::1] points_out):
     """Bucket points (N, 3) [m] in the grid of ``cell_m`` cells with corner ``lo`` and shape (nx, ny, nz)
     (``cloud.PointGrid``) by a counting sort: ``order_out`` (N,) the input index of each point sorted by
-    flat cell index (x, then y, then z; input order within a cell, as a stable argsort), ``cells_out``
-    (N, 3) their cells in that order, ``starts_out`` (nx * ny * nz + 1,) where each cell's run begins.
-    A coordinate past the last cell (rounding at the far face) is clamped into it."""
-    cdef Py_ssize_t i, n = points.shape[0]
-    cdef int64_t c, cx, cy, cz, n_cells = nx * ny * nz
-    cdef int64_t* flat = <int64_t*>malloc(n * sizeof(int64_t) if n else 1)
-    if flat == NULL:
+    flat cell index (x, then y, then z; input order within a cell, as a stable argsort), ``points_out``
+    (N, 3) and ``cells_out`` (N, 3) the points and their cells in that order, ``starts_out``
+    (nx * ny * nz + 1,) where each cell's run begins. A coordinate past the last cell (rounding at the
+    far face) is clamped into it."""
+    cdef Py_ssize_t i, pos, n = points.shape[0]
+    cdef int64_t c, n_cells = nx * ny * nz
+    cdef int64_t* cell = <int64_t*>malloc(4 * n * sizeof(int64_t) if n else 1)
+    if cell == NULL:
         raise MemoryError()
     with nogil:
         for c in range(n_cells + 1):
             starts_out[c] = 0
+        # per point: its cell (x, y, z) and flat index
         for i in range(n):
-            cx = min(_floor((points[i, 0] - lo[0]) / cell_m), nx - 1)
-            cy = min(_floor((points[i, 1] - lo[1]) / cell_m), ny - 1)
-            cz = min(_floor((points[i, 2] - lo[2]) / cell_m), nz - 1)
-            flat[i] = (cx * ny + cy) * nz + cz
-            starts_out[flat[i] + 1] += 1
+            cell[4 * i] = min(_floor((points[i, 0] - lo[0]) / cell_m), nx - 1)
+            cell[4 * i + 1] = min(_floor((points[i, 1] - lo[1]) / cell_m), ny - 1)
+            cell[4 * i + 2] = min(_floor((points[i, 2] - lo[2]) / cell_m), nz - 1)
+            c = (cell[4 * i] * ny + cell[4 * i + 1]) * nz + cell[4 * i + 2]
+            cell[4 * i + 3] = c
+            starts_out[c + 1] += 1
         for c in range(n_cells):
             starts_out[c + 1] += starts_out[c]
         # scatter with a running cursor per cell, kept in the run starts shifted by one cell
         for i in range(n):
-            c = flat[i]
-            order_out[starts_out[c]] = i
+            c = cell[4 * i + 3]
+            pos = starts_out[c]
             starts_out[c] += 1
+            order_out[pos] = i
+            points_out[pos, 0] = points[i, 0]
+            points_out[pos, 1] = points[i, 1]
+            points_out[pos, 2] = points[i, 2]
+            cells_out[pos, 0] = cell[4 * i]
+            cells_out[pos, 1] = cell[4 * i + 1]
+            cells_out[pos, 2] = cell[4 * i + 2]
         for c in range(n_cells, 0, -1):
             starts_out[c] = starts_out[c - 1]
         starts_out[0] = 0
-        for i in range(n):
-            c = flat[order_out[i]]
-            cells_out[i, 2] = c % nz
-            cells_out[i, 1] = (c // nz) % ny
-            cells_out[i, 0] = c // (nz * ny)
-    free(flat)
+    free(cell)
 
 
 def radius_counts(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,

@@ -22,32 +22,28 @@ _KEY_BITS = 21
 
 
 def _voxel_groups(points: Array, voxel_m: float, box: tuple[Array, Array] | None = None,
-                  ) -> tuple[NDArray[np.int32], NDArray[np.int64], NDArray[np.int64], Array]:
-    """(voxel of each point (N,) in the kernel's numbering, -1 outside ``box``; the rank of each voxel
-    of that numbering in key order (K,); the packed voxel keys (K,) and the voxel centroids (K, 3), both
-    in key order (x, then y, then z)). ``box`` (lo, hi) (3,) [m] keeps only the points strictly inside
-    it. Each centroid is the sum of its points in input order over their number, whatever the hashing
+                  ) -> tuple[NDArray[np.int64], Array]:
+    """(the packed voxel keys (K,) and the voxel centroids (K, 3), both in key order (x, then y, then
+    z)) of the points (N, 3) [m]. ``box`` (lo, hi) (3,) [m] keeps only the points strictly inside it.
+    Each centroid is the sum of its points in input order over their number, whatever the hashing
     inside ``_kernels.voxel_groups``."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = pts.shape[0]
     keys = np.empty(n, dtype=np.int64)
-    group = np.empty(n, dtype=np.int32)
     sums = np.empty((n, 3))
     counts = np.empty(n, dtype=np.int64)
     lo, hi = (np.zeros(3), np.zeros(3)) if box is None else (np.asarray(box[0], dtype=np.float64),
                                                             np.asarray(box[1], dtype=np.float64))
-    k = _k.voxel_groups(pts, float(voxel_m), lo, hi, box is not None, keys, group, sums, counts)
+    k = _k.voxel_groups(pts, float(voxel_m), lo, hi, box is not None, keys, sums, counts)
     if k < 0:
         raise ValueError(f"points are not finite or lie too far from the origin for a {voxel_m} m voxel grid")
     order = np.argsort(keys[:k])
-    rank = np.empty(k, dtype=np.int64)
-    rank[order] = np.arange(k)
-    return group, rank, keys[order], sums[order] / counts[order][:, None]
+    return keys[order], sums[order] / counts[order][:, None]
 
 
 def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
     """The distinct voxel keys floor(p / voxel_m) (K, 3) of points (N, 3) [m], sorted (x, then y, then z)."""
-    packed = _voxel_groups(points, voxel_m)[2]
+    packed = _voxel_groups(points, voxel_m)[0]
     mask = (1 << _KEY_BITS) - 1
     return np.column_stack([packed >> (2 * _KEY_BITS), (packed >> _KEY_BITS) & mask, packed & mask]
                            ) - (1 << (_KEY_BITS - 1))
@@ -56,7 +52,7 @@ def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
 def voxel_downsample(points: Array, voxel_m: float) -> Array:
     """Replace the points of each ``voxel_m`` [m] cube (a grid anchored at the frame origin) by their
     centroid. Output sorted by voxel index; an empty input gives an empty (0, 3) array."""
-    return _voxel_groups(points, voxel_m)[3]
+    return _voxel_groups(points, voxel_m)[1]
 
 
 def crop_voxel_downsample(points: Array, x: tuple[float, float], y: tuple[float, float],
@@ -64,7 +60,7 @@ def crop_voxel_downsample(points: Array, x: tuple[float, float], y: tuple[float,
     """``voxel_downsample(crop_box(points, x, y, z), voxel_m)`` in one pass over the points (a raw
     640x480 frame holds ~250k of them)."""
     box = (np.array([x[0], y[0], z[0]]), np.array([x[1], y[1], z[1]]))
-    return _voxel_groups(points, voxel_m, box)[3]
+    return _voxel_groups(points, voxel_m, box)[1]
 
 
 def bounds(points: NDArray[np.floating] | NDArray[np.integer]) -> tuple[NDArray, NDArray]:
@@ -113,9 +109,9 @@ class PointGrid:
         self.starts = np.empty(int(np.prod(dims)) + 1, dtype=np.int64)
         self.order = np.empty(n, dtype=np.int64)
         self.cells = np.empty((n, 3), dtype=np.int64)
+        self.points = np.empty((n, 3))
         _k.grid_sort(pts, self.lo, cell, int(dims[0]), int(dims[1]), int(dims[2]), self.starts, self.order,
-                     self.cells)
-        self.points = pts[self.order]
+                     self.cells, self.points)
         self.dims = dims
         self.cell_m = cell
 
@@ -160,11 +156,17 @@ class CloudAccumulator:
     paper's concatenate-then-filter step does. ``new`` marks the points of voxels that the last addition
     created; the others are the previous points, in the same order (voxels are sorted by key and never
     removed), some of them moved by the averaging.
+
+    The concatenated cloud holds at most one old centroid and one centroid of the new frame per voxel,
+    so re-voxelizing it is a merge of the two key-sorted voxel sets: a voxel in both becomes
+    (old + new) / 2, the voxel filter's own arithmetic for those two points (sum in order from zero,
+    over their count), and the cloud is not re-grouped.
     """
 
     def __init__(self, voxel_m: float) -> None:
         self.voxel_m = voxel_m
         self._points = np.zeros((0, 3))
+        self._keys = np.zeros(0, dtype=np.int64)
         self._new = np.zeros(0, dtype=bool)
 
     @property
@@ -179,12 +181,26 @@ class CloudAccumulator:
     def add(self, points_base: Array) -> Array:
         """Add a frame's points, already in the base frame; returns them after this frame's own voxel
         filter."""
-        new = voxel_downsample(points_base, self.voxel_m)
-        both = np.vstack([self._points, new])
-        n_old = self._points.shape[0]
-        if both.shape[0]:
-            group, rank, _, self._points = _voxel_groups(both, self.voxel_m)
-            self._new = np.bincount(rank[group[:n_old]], minlength=rank.size) == 0
+        keys, new = _voxel_groups(points_base, self.voxel_m)
+        old_keys, old = self._keys, self._points
+        at = np.searchsorted(old_keys, keys)
+        shared = at < old_keys.size
+        shared[shared] = old_keys[at[shared]] == keys[shared]
+        fresh = ~shared
+        fresh_keys = keys[fresh]
+        # both sets are sorted by key: each voxel's place in the merged set is its rank in its own set
+        # plus the number of voxels of the other set before it
+        to_old = np.arange(old_keys.size) + np.searchsorted(fresh_keys, old_keys)
+        to_fresh = np.arange(fresh_keys.size) + at[fresh]
+        n = old_keys.size + fresh_keys.size
+        self._keys = np.empty(n, dtype=np.int64)
+        self._keys[to_old], self._keys[to_fresh] = old_keys, fresh_keys
+        self._points = np.empty((n, 3))
+        self._points[to_old] = old
+        self._points[to_old[at[shared]]] = (old[at[shared]] + new[shared]) / 2.0
+        self._points[to_fresh] = new[fresh]
+        self._new = np.zeros(n, dtype=bool)
+        self._new[to_fresh] = True
         return new
 
 

@@ -43,9 +43,10 @@ origins [m], the angle that of the rotation of ``T_correction`` [deg].
 For the 8x8 time-of-flight sensor (packing cell) a frame has at most 64 points: registration is off
 there (``enabled: false`` in its cell file; ``min_points`` rejects such frames anyway).
 
-Determinism: the online ICP sums with einsum (no BLAS threads) and queries the kd-tree point by point;
-inputs are float64 arrays in a fixed order (the accumulated cloud from ``voxel_downsample`` is sorted by
-voxel key). The offline re-processing uses Open3D's ICP (``coarse_to_fine_icp``), whose multi-threaded
+Determinism: each online ICP iteration is one single-threaded compiled pass
+(``_kernels.point_to_plane_system``: grid search and normal equations, summed in source order); inputs
+are float64 arrays in a fixed order (the accumulated cloud from ``voxel_downsample`` is sorted by voxel
+key). The offline re-processing uses Open3D's ICP (``coarse_to_fine_icp``), whose multi-threaded
 reductions sum in a varying order: it runs on one Open3D thread (``single_threaded_open3d``).
 """
 
@@ -242,30 +243,32 @@ def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stag
     stages a few tenths of a degree short), or the mean squared point-to-plane residual changed by less
     than ``epsilon`` [m^2]. The returned fitness, RMSE and correspondences are evaluated at the returned
     transform with the last stage's distance. Nearest neighbours come from the exact grid search of
-    ``PointGrid`` (5 mm cells: a grid is built in a few ms, a kd-tree took 5x longer), sums from einsum
-    (not BLAS): nothing depends on thread counts.
+    ``PointGrid`` (5 mm cells: a grid is built in a few ms, a kd-tree took 5x longer); pairing and the
+    6x6 normal equations of an iteration are one compiled pass over the source
+    (``_kernels.point_to_plane_system``, summed in source order): nothing depends on thread counts.
     """
     grid = PointGrid(target, _GRID_CELL_M)
+    src = np.ascontiguousarray(source, dtype=np.float64)
+    normals = np.ascontiguousarray(target_normals[grid.order], dtype=np.float64)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    ata, atb = np.empty((6, 6)), np.empty(6)
     centre = source.mean(axis=0)
     spread = float(np.einsum("ij,ij->", source - centre, source - centre)) / max(source.shape[0], 1)
     T = np.eye(4)
     for dist in stages_m:
         prev_mse = math.inf
         for _ in range(max_iterations):
-            moved = transform_points(T, source)
-            j, d = grid.nearest_within(moved, dist)
-            ok = j >= 0
-            if np.count_nonzero(ok) < 6:
+            # pairs, residuals and the normal equations of the rows [p x n, n] in one compiled pass
+            count, sse = _k.point_to_plane_system(grid.points, normals, grid.starts, nx, ny, nz, grid.cell_m,
+                                                  grid.lo, src, T, dist, ata, atb)
+            if count < 6:
                 break
-            p, n = moved[ok], target_normals[j[ok]]
-            r = np.einsum("ij,ij->i", p - target[j[ok]], n)
-            A = np.column_stack([cross_rows(p, n), n])
-            x = np.linalg.lstsq(np.einsum("ki,kj->ij", A, A), -np.einsum("ki,k->i", A, r), rcond=None)[0]
+            x = np.linalg.lstsq(ata, atb, rcond=None)[0]
             T = make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:]) @ T
             # mean squared motion of the source points: at their centroid, plus the turn about it
             at_centre = np.cross(x[:3], transform_points(T, centre[None])[0]) + x[3:]
             moved_sq = float(at_centre @ at_centre) + float(x[:3] @ x[:3]) * spread
-            mse = float(np.einsum("i,i->", r, r)) / r.size
+            mse = sse / count
             if moved_sq <= epsilon or abs(mse - prev_mse) < epsilon:
                 break
             prev_mse = mse
