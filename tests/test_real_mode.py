@@ -32,8 +32,9 @@ def test_a_real_mode_scan_runs_with_a_hardware_arm_and_sensor(tmp_path: Path, pl
         with emulator:
             sensor = VL53L8CXConfig(type="vl53l8cx", port=emulator.url, resolution=8, frequency_hz=15,
                                     timeout_s=1.0)
-            cfg = dry.model_copy(update={"mode": "real", "sensor": sensor,
-                                         "arm": dry.arm.model_copy(update={"host": peer.host})})
+            # a 1 Hz RTDE watchdog: the Python peer itself may stall on a loaded machine
+            arm = dry.arm.model_copy(update={"host": peer.host, "watchdog_min_hz": 1.0})
+            cfg = dry.model_copy(update={"mode": "real", "sensor": sensor, "arm": arm})
             out = run_scan(ScanRequest(config=cfg, config_path=str(DRY_RUN), object="unknown",
                                        planner=planner, out=tmp_path / "job", max_time_s=max_time_s))
     finally:
