@@ -8,6 +8,9 @@ why, then re-raises.
 Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
 job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
 the arm reports it is.
+
+A servo planner's job also leaves its telemetry (``servo.csv``, ``servo.png``, ``path.png``; see
+``cell.planning.vs.telemetry``), with the coverage over time in sim.
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ from cell.packing.result import packing_section
 from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.registry import get_planner
+from cell.planning.vs.servo_scan import ServoScanPlanner
+from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
 from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
@@ -203,6 +208,9 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "safety": guard.log.as_dict(),
         }
         recorder.result(result)
+        if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
+            write_servo_outputs(folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,
+                                session.coverage_history)
         recorder.close()
     if error is not None:
         raise error

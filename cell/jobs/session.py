@@ -75,7 +75,9 @@ class JobSession:
         self.n_unreachable = 0
         self.n_registration_rejected = 0
         self.path_length_m = 0.0
-        self._last_position: Array | None = None
+        # The sensor origin [m], base frame, at every tick; (job time [s], coverage [%]) at every capture.
+        self.sensor_path: list[Array] = []
+        self.coverage_history: list[tuple[float, float]] = []
         self._on_progress = on_progress
         self._record_pose(self._guard.state().T_base_flange)
 
@@ -91,9 +93,9 @@ class JobSession:
     def _record_pose(self, T_base_flange: Array) -> None:
         T = T_base_flange @ self._T_flange_sensor
         p = T[:3, 3]
-        if self._last_position is not None:
-            self.path_length_m += float(np.linalg.norm(p - self._last_position))
-        self._last_position = p
+        if self.sensor_path:
+            self.path_length_m += float(np.linalg.norm(p - self.sensor_path[-1]))
+        self.sensor_path.append(p)
         self._recorder.pose(self.now(), T)
 
     @property
@@ -244,7 +246,7 @@ class JobSession:
         if reg.rejected:
             self.n_registration_rejected += 1
         if self.coverage is not None:
-            self.coverage.add(update.points_base)
+            self.coverage_history.append((self.now(), self.coverage.add(update.points_base)))
         h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
         self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
                  f"filtering; registration {reg.reason} (fitness {reg.fitness:.3f}, correction "
