@@ -38,7 +38,9 @@ class ScanSession(Protocol):
         ...
 
     def wait(self, dt: float) -> None:
-        """Let ``dt`` [s] pass with the arm doing what it was told."""
+        """Let ``dt`` [s] pass with the arm doing what it was told. Raises ``TwistRefused``
+        (``cell.safety.guard``) when the guard refused a streamed twist: the arm has been stopped and the
+        refusal counted; the planner may command another twist (back off) or let it end the job."""
         ...
 
     def capture(self) -> int:
@@ -59,6 +61,12 @@ class ScanSession(Protocol):
 
     def hold(self) -> None:
         """Ramp a streamed twist down to rest (within the acceleration limits)."""
+        ...
+
+    def joint_limit_twists(self, activation_rad: float) -> Array:
+        """Rows a (m, 6), one per joint closer than ``activation_rad`` [rad] to its position margin: a
+        sensor twist v (sensor frame) moves that joint towards the margin at a . v [rad/s] (first order),
+        so that a planner can keep its motion from pressing into a joint limit (as barrier planes)."""
         ...
 
     def feasible_sensor_velocity(self, v_sensor: Array, activation_m: float) -> Array:

@@ -20,8 +20,9 @@ the arm. It forwards two kinds of motion:
 
 Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
 honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
-limits), records the reason in the job's :class:`SafetyLog` and raises ``SafetyStop``; every clamp is
-counted there too.
+limits), records the reason in the job's :class:`SafetyLog` and raises ``SafetyStop`` (``TwistRefused``
+for a refused streamed twist, which a planner may answer by backing off); every clamp is counted there
+too.
 """
 
 from __future__ import annotations
@@ -66,6 +67,16 @@ class Refusal:
 
     kind: str
     message: str
+
+
+class TwistRefused(SafetyStop):
+    """The guard refused a streamed twist (a collision predicted ahead) and stopped the arm, as for any
+    refusal; ``refusal`` says why. Uncaught it ends the job like any safety stop; a planner that streams
+    twists may instead back off and go on (``cell.jobs.session`` reports it, counted as a refused move)."""
+
+    def __init__(self, reason: str, refusal: Refusal) -> None:
+        super().__init__(reason)
+        self.refusal = refusal
 
 
 @dataclass(frozen=True)
@@ -296,7 +307,9 @@ class MotionGuard:
         q_pred = state.q + ik(v) * self._safety.collision.lookahead_s
         hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))
         if hit is not None:
-            raise self._refuse(f"{hit} within {self._safety.collision.lookahead_s:g} s")
+            reason = f"{hit} within {self._safety.collision.lookahead_s:g} s"
+            stop = self._refuse(reason)
+            raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
 
     def _send(self, command: Callable[[], None]) -> None:

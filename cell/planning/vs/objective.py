@@ -25,6 +25,7 @@ arrays when built (after each map update); between map updates it is a pure func
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -76,12 +77,13 @@ class EntropyObjective:
     """Eq. 7-9 on a snapshot of the occupancy map inside the ROI box (see the module docstring).
 
     ``roi_min`` / ``roi_max`` [m]: the object's ROI box in the base frame; ``crop``: the perception crop
-    box in the camera frame [m]; ``directions_cam`` (K, 3): unit rays in the camera frame (``ray_grid``).
-    Samples are spaced at the map's resolution.
+    box in the camera frame [m]; ``directions_cam`` (K, 3): unit rays in the camera frame (``ray_grid``);
+    ``voxel_entropy``: H(p) of eq. 8 [nats] per voxel probability (the binary entropy unless a planner
+    chooses another measure of a voxel's uncertainty). Samples are spaced at the map's resolution.
     """
 
     def __init__(self, occupancy: OccupancyMap, roi_min: Array, roi_max: Array, crop: CropBox,
-                 directions_cam: Array) -> None:
+                 directions_cam: Array, voxel_entropy: Callable[[Array], Array] = binary_entropy) -> None:
         self.resolution_m = occupancy.resolution_m
         self.roi_min = np.asarray(roi_min, dtype=np.float64).reshape(3)
         self.roi_max = np.asarray(roi_max, dtype=np.float64).reshape(3)
@@ -100,7 +102,7 @@ class EntropyObjective:
         # their ray read: log(1 - p_j) and H(p_j) of eq. 8 [nats].
         self._sentinel = keys.shape[0]
         self._log_free = np.append(np.log1p(-p), 0.0)
-        self._entropy = np.append(binary_entropy(p), 0.0)
+        self._entropy = np.append(voxel_entropy(p), 0.0)
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
