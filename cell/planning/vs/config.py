@@ -24,13 +24,18 @@ class ObjectiveConfig(StrictModel):
     floor dominates f once the free space around the object is known (98 % of f at the end of a bunny
     scan): f then measures the length of free path through the ROI rather than what a view would reveal,
     and VS-Local settles where that path is longest instead of moving on.
+
+    ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box grown by this much sideways and
+    upwards (not downwards, into the table): a departure, since the box of the points seen so far ends at
+    the seen extent of the object, and the space beside a face not seen yet would otherwise never count
+    (3 cm: bunny coverage 84 -> 90 %, mustard 86 -> 94 % in VS-Local scans, at longer scans).
     """
 
     rays_per_side: PositiveInt = 23
     fov_deg: float = Field(default=30.0, gt=0.0, lt=120.0)
     use_sensor_zones: bool = True
     voxel_entropy: Literal["shannon", "residual"] = "residual"
-    roi_margin_m: float = Field(default=0.0, ge=0.0)
+    roi_margin_m: float = Field(default=0.03, ge=0.0)
 
 
 class ServoConfig(StrictModel):
@@ -107,7 +112,7 @@ class VSLocalConfig(StrictModel):
 
     delta_m: PositiveFloat = 0.05
     alpha: PositiveFloat = 1.0
-    f_eps_nats: PositiveFloat = 1e-3
+    f_eps_nats: PositiveFloat = 0.05
     g_max: PositiveFloat = 1.0
     window: PositiveInt = 200
     converged_fraction: float = Field(default=0.8, gt=0.0, lt=1.0)

@@ -11,6 +11,15 @@ and adds H_ROI (eq. 12) to the history used by the entropy termination of Global
 ends the scan by returning a reason from ``secondary``'s companion ``finished``; the time budget and
 safety stops end it from the session.
 
+Limits the paper handled with barrier planes placed by hand are handled here for any placement: the
+secondary direction g is projected so that it does not move a joint that is within
+``joint_activation_rad`` of its position margin further towards it (``session.joint_limit_twists``,
+mapped through the primary task's null-space projector of eq. 1), and the camera slides along the
+joint limit as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
+``TwistRefused``), the arm has been stopped; the scan backs off along the reverse of the refused
+secondary direction for ``backoff_s``, then goes on with that direction blocked within
+``refusal_radius_m`` of where it was refused. A second refusal during the back-off ends the scan.
+
 ``telemetry`` keeps one row per servo iteration: the series of the paper's Fig. 4 (||e||, f(r), ||g||
 before clipping, H_ROI) with the job time and the strategy's mode. ||g|| there is after the barrier
 projection and scaled by the share of the commanded motion the guard let through, so that it falls when
