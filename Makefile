@@ -11,8 +11,10 @@ demo: $(STAMP)
 
 setup: $(STAMP)
 
-# setup.py and the .pyx: the compiled perception kernels are rebuilt when their source changes.
-$(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx deploy/system-deps.sh
+# setup.py and the .pyx: the compiled kernels are rebuilt when their source changes.
+$(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx cell/planning/vs/_objective.pyx \
+		cell/planning/lrnbv/_raygains.pyx \
+		deploy/system-deps.sh
 	bash deploy/system-deps.sh
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
@@ -31,4 +33,5 @@ bench: $(STAMP)
 	$(PY) benchmarks/sim_render.py
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache build cell/perception/_kernels.c cell/perception/*.so
+	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache build cell/perception/_kernels.c \
+		cell/planning/vs/_objective.c cell/planning/lrnbv/_raygains.c cell/perception/*.so cell/planning/*/*.so

@@ -1,10 +1,16 @@
-"""Builds the compiled perception kernels (cell/perception/_kernels.pyx); everything else about the
-package is in pyproject.toml. ``pip install -e .`` (``make setup``) runs it."""
+"""Builds the compiled kernels; everything else about the package is in pyproject.toml:
+cell/perception/_kernels.pyx (occupancy integration, filters, outlier statistics),
+cell/planning/vs/_objective.pyx (the entropy NBV objective, OpenMP over candidate poses) and
+cell/planning/lrnbv/_raygains.pyx (the LR-NBV ray gains). ``pip install -e .`` (``make setup``) runs it."""
 
 from Cython.Build import cythonize
 from setuptools import Extension, setup
 
 setup(ext_modules=cythonize(
-    [Extension("cell.perception._kernels", ["cell/perception/_kernels.pyx"], extra_compile_args=["-O3"])],
+    [Extension("cell.perception._kernels", ["cell/perception/_kernels.pyx"], extra_compile_args=["-O3"]),
+     Extension("cell.planning.vs._objective", ["cell/planning/vs/_objective.pyx"],
+               extra_compile_args=["-O3", "-fopenmp"], extra_link_args=["-fopenmp"]),
+     Extension("cell.planning.lrnbv._raygains", ["cell/planning/lrnbv/_raygains.pyx"],
+               extra_compile_args=["-O3"])],
     compiler_directives={"language_level": 3},
 ))

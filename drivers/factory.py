@@ -13,8 +13,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.arm.base import Arm
-from drivers.arm.config import ArmConfig, FrankaArmConfig, SimArmConfig, UR5eArmConfig
+from drivers.arm.config import ArmConfig, FrankaArmConfig, ReplayArmConfig, SimArmConfig, UR5eArmConfig
 from drivers.arm.hardware import require_module
+from drivers.arm.replay import ReplayArm
 from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
 from drivers.depth.base import DepthSensor
@@ -26,6 +27,7 @@ from drivers.depth.config import (
     SimToFConfig,
     VL53L8CXConfig,
 )
+from drivers.depth.replay import JobRecording, PlaybackClock, ReplaySensor
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.depth.sim_tof import SimToF
 from drivers.errors import DriverError
@@ -39,17 +41,25 @@ Array = NDArray[np.float64]
 class SimWorld:
     """What simulated backends share: the job's clock, random generator and scene. The clock is the
     simulated one in sim mode; in a dry run (a hardware arm with a simulated sensor) it is the wall clock,
-    and the simulated arm, which needs the simulated clock, is not part of it."""
+    and the simulated arm, which needs the simulated clock, is not part of it. A replayed job plays on the
+    simulated clock and has no scene."""
 
     clock: Clock
     rng: np.random.Generator
-    scene: SimScene
+    scene: SimScene | None
 
 
 def _need_sim(sim: SimWorld | None, kind: str) -> SimWorld:
     if sim is None:
         raise DriverError("a simulated backend needs a simulated world (mode: sim or dry-run)", device=kind)
     return sim
+
+
+def _need_scene(sim: SimWorld | None, kind: str) -> SimScene:
+    scene = _need_sim(sim, kind).scene
+    if scene is None:
+        raise DriverError("a simulated sensor needs a simulated scene (mode: sim or dry-run)", device=kind)
+    return scene
 
 
 def _sim_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
@@ -76,10 +86,17 @@ def _franka_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
     return FrankaArm(cfg, model)
 
 
+def _replay_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
+    assert isinstance(cfg, ReplayArmConfig)
+    recording = JobRecording(cfg.job_dir)
+    return ReplayArm(recording, model, _replay_clock(sim, recording))
+
+
 ARM_BACKENDS: dict[str, Callable[[ArmConfig, RobotModel, SimWorld | None], Arm]] = {
     "sim": _sim_arm,
     "ur5e": _ur5e_arm,
     "franka": _franka_arm,
+    "replay": _replay_arm,
 }
 
 
@@ -94,18 +111,24 @@ PoseSource = Callable[[], Array]
 def _sim_rgbd(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
     assert isinstance(cfg, SimRGBDConfig)
     world = _need_sim(sim, "depth sim-rgbd")
-    return SimRGBD(cfg, world.scene, pose, world.clock, world.rng)
+    return SimRGBD(cfg, _need_scene(sim, "depth sim-rgbd"), pose, world.clock, world.rng)
 
 
 def _sim_tof(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
     assert isinstance(cfg, SimToFConfig)
     world = _need_sim(sim, "depth sim-tof")
-    return SimToF(cfg, world.scene, pose, world.clock, world.rng)
+    return SimToF(cfg, _need_scene(sim, "depth sim-tof"), pose, world.clock, world.rng)
 
 
 def _job_clock(sim: SimWorld | None) -> Clock:
     """The clock hardware and replay backends stamp frames with: the job's sim clock, else the wall clock."""
     return sim.clock if sim is not None else WallClock()
+
+
+def _replay_clock(sim: SimWorld | None, recording: JobRecording) -> Clock:
+    """The clock a recording plays on: the job's, else the wall clock from the recording's first frame
+    (real time, without waiting for the moments before it)."""
+    return sim.clock if sim is not None else PlaybackClock(recording.frames[0].timestamp)
 
 
 def _vl53l8cx(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
@@ -128,12 +151,8 @@ def _realsense(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> Dept
 
 def _replay(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
     assert isinstance(cfg, ReplayConfig)
-    from drivers.depth.replay import JobRecording, PlaybackClock, ReplaySensor
-
     recording = JobRecording(cfg.job_dir)
-    # without a job clock the recording plays in real time from its first frame
-    clock = sim.clock if sim is not None else PlaybackClock(recording.frames[0].timestamp)
-    return ReplaySensor(recording, clock, (cfg.range_min_m, cfg.range_max_m))
+    return ReplaySensor(recording, _replay_clock(sim, recording), (cfg.range_min_m, cfg.range_max_m))
 
 
 SENSOR_BACKENDS: dict[str, Callable[[DepthConfig, SimWorld | None, PoseSource], DepthSensor]] = {

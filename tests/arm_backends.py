@@ -23,6 +23,10 @@ from drivers.robots import get_robot_model
 from tests.rtde_peer import ControllerPeer
 
 PAYLOAD = {"mass_kg": 0.3, "cog_m": [0.0, 0.0, 0.03]}
+# The RTDE watchdog for tests that stream commands for a while [Hz]: the test config's 5 Hz one ends the
+# control script when the test process stalls for 0.2 s, which a loaded machine does now and then (the
+# watchdog doing its job, not the behaviour under test); the watchdog's own tests keep 5 Hz.
+STREAMING_WATCHDOG_HZ = 1.0
 
 
 def ur5e_config(host: str, **overrides: object) -> UR5eArmConfig:
@@ -87,7 +91,8 @@ class FrankySim:
 
 @dataclass
 class Backend:
-    """One backend under test: the connected arm, its motion token, how time passes, how a fault comes."""
+    """One backend under test: the connected arm, its motion token, how time passes, how a fault comes,
+    and how long a twist holds without renewal on the arm's clock [s] (``None``: until the next command)."""
 
     name: str
     arm: Arm
@@ -95,6 +100,7 @@ class Backend:
     advance: Callable[[float], None]
     inject_fault: Callable[[], None]
     recoverable: bool
+    twist_hold_s: float | None = None
 
     def wait_until(self, predicate: Callable[[], bool], timeout_s: float = 20.0) -> None:
         """Let time pass until ``predicate()`` holds (a bound on waiting, not a timed assertion)."""
@@ -137,10 +143,12 @@ def ur5e_backend(peer: ControllerPeer, **overrides: object) -> Iterator[Backend]
 def franka_backend(sim: FrankySim) -> Iterator[Backend]:
     from drivers.arm.franka import FrankaArm
 
-    arm = FrankaArm(franka_config(sim.host), get_robot_model("panda"))
+    config = franka_config(sim.host)
+    arm = FrankaArm(config, get_robot_model("panda"))
     arm.connect()
     try:
-        yield Backend("franka", arm, arm.claim_motion(), time.sleep, sim.kill, recoverable=False)
+        yield Backend("franka", arm, arm.claim_motion(), time.sleep, sim.kill, recoverable=False,
+                      twist_hold_s=config.velocity_hold_s)
     finally:
         if sim.alive:
             arm.disconnect()

@@ -12,8 +12,17 @@ import pytest
 from cell.control.trajectory import joint_trajectory
 from drivers.arm.base import ArmMode, MotionToken
 from drivers.errors import DriverError, RobotFault
-from tests.arm_backends import Backend, FrankySim, franka_backend, sim_backend, ur5e_backend
+from tests.arm_backends import (
+    STREAMING_WATCHDOG_HZ,
+    Backend,
+    FrankySim,
+    franka_backend,
+    sim_backend,
+    ur5e_backend,
+)
 from tests.rtde_peer import ControllerPeer
+
+TWIST_MOTION_S = 0.5  # how long the twist test commands motion, on the arm's own clock [s]
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +42,7 @@ def backend(request: pytest.FixtureRequest, franky_sim: list[FrankySim]) -> Iter
     elif request.param == "ur5e":
         peer = ControllerPeer()
         try:
-            with ur5e_backend(peer) as b:
+            with ur5e_backend(peer, watchdog_min_hz=STREAMING_WATCHDOG_HZ) as b:
                 yield b
         finally:
             peer.stop()
@@ -67,19 +76,37 @@ def test_malformed_twist_is_refused_before_anything_is_sent(backend: Backend) ->
 
 
 def test_twist_moves_the_flange_as_commanded_and_stop_brings_it_to_rest(backend: Backend) -> None:
+    """The control loop renews a twist at 50 Hz until the arm's own clock (``ArmState.timestamp``) has
+    seen ``TWIST_MOTION_S`` of commanded motion; the flange must cover at least half of speed x that
+    time (the rest is the acceleration ramp and the command's delay). The arm's clock, not the test's:
+    a simulator on a loaded machine (franky-sim) runs slower than the wall clock. A twist holds until
+    renewed, or for ``backend.twist_hold_s`` of the arm's time (Franka), which bounds each renewal's
+    share of the motion time."""
     arm = backend.arm
-    p0 = arm.state().T_base_flange[:3, 3]
-    v = np.array([0.0, 0.0, 0.04, 0.0, 0.0, 0.0])
-    for _ in range(40):  # the control loop renews the twist at 50 Hz for 0.8 s
-        arm.command_twist(v, backend.token)
+    st = arm.state()
+    p0 = st.T_base_flange[:3, 3]
+    speed = 0.04
+    v = np.array([0.0, 0.0, speed, 0.0, 0.0, 0.0])
+    hold = backend.twist_hold_s if backend.twist_hold_s is not None else np.inf
+    motion_s = 0.0
+    last_command_t = st.timestamp
+    arm.command_twist(v, backend.token)
+    for _ in range(1000):  # a bound on waiting, 20 s of the test's time
         backend.advance(0.02)
-    assert arm.state().mode is ArmMode.VELOCITY
-    moved = arm.state().T_base_flange[:3, 3] - p0
-    assert moved[2] > 0.01, f"{backend.name}: flange moved {moved}"
+        st = arm.state()
+        motion_s += min(st.timestamp - last_command_t, hold)
+        if motion_s >= TWIST_MOTION_S:
+            break
+        last_command_t = st.timestamp
+        arm.command_twist(v, backend.token)
+    assert st.mode is ArmMode.VELOCITY
+    moved = st.T_base_flange[:3, 3] - p0
+    assert motion_s >= TWIST_MOTION_S, f"{backend.name}: only {motion_s:.3f} s of motion on the arm's clock"
+    assert moved[2] > 0.5 * speed * motion_s, f"{backend.name}: flange moved {moved} in {motion_s:.3f} s"
     assert np.linalg.norm(moved[:2]) < 0.3 * moved[2]
     arm.stop()
     backend.wait_until(lambda: arm.state().mode is ArmMode.IDLE
-                       and np.linalg.norm(arm.state().v_base_flange[:3]) < 1e-3)
+                       and bool(np.linalg.norm(arm.state().v_base_flange[:3]) < 1e-3))
 
 
 def test_trajectory_ends_at_its_last_sample(backend: Backend) -> None:

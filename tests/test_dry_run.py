@@ -13,7 +13,7 @@ import yaml
 from cell.config import load_config
 from cell.config.load import parse_config
 from cell.jobs.runner import ScanRequest, run_scan
-from drivers.errors import ConfigError, JobError
+from drivers.errors import ConfigError
 from tests.conftest import CONFIG_DIR
 from tests.rtde_peer import FIRST_HOST, ControllerPeer
 
@@ -73,11 +73,3 @@ def test_real_mode_with_a_simulated_sensor_points_to_the_dry_run() -> None:
     data["mode"] = "real"
     with pytest.raises(ConfigError, match="is mode 'dry-run'"):
         parse_config(data, file="cell.yaml")
-
-
-def test_a_real_mode_scan_is_refused_before_anything_connects(tmp_path: Path) -> None:
-    cfg = load_config(CONFIG_DIR / "ur5e-vl53l8cx.yaml")
-    with pytest.raises(JobError, match="dry-run"):
-        run_scan(ScanRequest(config=cfg, config_path="ur5e-vl53l8cx.yaml", object="horizontal_box",
-                             out=tmp_path / "job"))
-    assert not (tmp_path / "job").exists()

@@ -10,9 +10,18 @@ import pytest
 from cell.config.load import load_config
 from cell.config.models import CellConfig
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.lrnbv.heu import HEUPlanner, heu_views
-from cell.planning.lrnbv.planner import CachedNodes, LRNBVPlanner, NBVPlanner, Tree, look_at_rotations
+from cell.planning.lrnbv.planner import (
+    CachedNodes,
+    LRNBVPlanner,
+    NBVPlanner,
+    RRTViewPlanner,
+    Tree,
+    look_at_rotations,
+)
 from cell.planning.registry import get_planner
+from drivers.depth.base import SensorModel
 from drivers.transforms import look_at
 from tests.conftest import UR5E
 
@@ -83,8 +92,9 @@ def test_heu_views_on_the_ellipse_look_at_the_object() -> None:
     np.testing.assert_allclose(steps, 2 * math.pi / 13)
 
 
-def test_short_lr_nbv_scan_reports_packing(tmp_path) -> None:
-    cfg = _with(load_config(UR5E), "lrnbv", max_iterations=3, samples_per_iteration=20)
+@pytest.mark.parametrize("capture", ["branch", "best_node"])
+def test_short_lr_nbv_scan_reports_packing(tmp_path, capture: str) -> None:
+    cfg = _with(load_config(UR5E), "lrnbv", max_iterations=3, samples_per_iteration=20, capture=capture)
     outcome = run_scan(ScanRequest(config=cfg, config_path=str(UR5E), object="horizontal_box",
                                    out=tmp_path / "lr", planner="lr-nbv"))
     r = outcome.result
@@ -94,6 +104,8 @@ def test_short_lr_nbv_scan_reports_packing(tmp_path) -> None:
     assert pk["dims_m"] is not None and pk["iou"] > 0.3
     assert 0 <= pk["n_useless_poses"] <= pk["n_poses"]
     assert pk["container"]["reason"]
+    if capture == "best_node":  # one capture per iteration after the initial view(s)
+        assert r["n_captures"] <= 3 + 1 + len(cfg.planners.lrnbv.search_heights_m)
 
 
 def test_short_heu_scan(tmp_path) -> None:
@@ -102,3 +114,80 @@ def test_short_heu_scan(tmp_path) -> None:
                              planner="heu")).result
     assert r["status"] == "completed" and r["termination"].startswith("heu complete")
     assert r["packing"]["n_poses"] == r["n_captures"] <= 4
+
+
+class _BranchSession:
+    """A session that reaches every pose but ``refuse`` and whose captures add nothing to the map."""
+
+    def __init__(self, cfg: CellConfig, refuse: tuple[float, float, float] | None = None) -> None:
+        self.perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
+                                             range_max_m=4.0, rng=np.random.default_rng(0))
+        self.pose = np.eye(4)
+        self.refuse = refuse
+        self.captured: list[np.ndarray] = []
+
+    def sensor_pose(self) -> np.ndarray:
+        return self.pose
+
+    def move_to_sensor_pose(self, T: np.ndarray) -> bool:
+        if self.refuse is not None and np.allclose(T[:3, 3], self.refuse):
+            return False
+        self.pose = T
+        return True
+
+    def wait(self, dt: float) -> None:
+        del dt
+
+    def capture(self) -> int:
+        self.captured.append(self.pose[:3, 3].copy())
+        return 0
+
+
+def _branch_tree() -> tuple[Tree, np.ndarray]:
+    """Root, then a branch of three nodes looking at an object at the station: nodes 1 and 2 share a
+    0.18 m visited cell, node 3 lies in another."""
+    obj = np.array([[0.45, 0.0, 0.05], [0.47, 0.02, 0.08]])
+    positions = np.array([[0.0, 0.0, 0.5], [0.19, 0.01, 0.37], [0.21, 0.05, 0.4], [0.45, -0.3, 0.4]])
+    rotations = look_at_rotations(positions, np.repeat(obj.mean(axis=0)[None], 4, axis=0))
+    tree = Tree(positions=positions, rotations=rotations, utility=np.array([-np.inf, 1.0, 1.0, 1.0]),
+                parent=np.array([-1, 0, 1, 2]))
+    return tree, obj
+
+
+def _prepared(planner: RRTViewPlanner, cfg: CellConfig) -> RRTViewPlanner:
+    """``planner`` ready to plan as a run would make it, for the cell's 8 x 8 ToF sensor."""
+    s = cfg.sensor
+    assert s.type == "sim-tof"
+    planner.prepare(SensorModel(kind="tof", width=s.resolution, height=s.resolution, fov_x_deg=s.fov_deg,
+                                fov_y_deg=s.fov_deg, range_min_m=s.range_min_m, range_max_m=s.range_max_m),
+                    np.random.default_rng(0))
+    return planner
+
+
+def test_lr_nbv_captures_along_the_branch_but_not_twice_in_a_visited_cell() -> None:
+    cfg = load_config(UR5E)
+    tree, obj = _branch_tree()
+    session = _BranchSession(cfg)
+    _, captured, refused = _prepared(LRNBVPlanner(cfg), cfg).capture_branch(session, obj, tree, [1, 2, 3])
+    assert (captured, refused) == (2, 0)
+    np.testing.assert_allclose(session.captured, tree.positions[[1, 3]])
+
+
+def test_nbv_captures_the_whole_branch() -> None:
+    cfg = load_config(UR5E)
+    tree, obj = _branch_tree()
+    session = _BranchSession(cfg)
+    assert _prepared(NBVPlanner(cfg), cfg).capture_branch(session, obj, tree, [1, 2, 3])[1:] == (3, 0)
+
+
+def test_a_refused_move_ends_the_branch_and_keeps_nodes_away_from_it() -> None:
+    cfg = load_config(UR5E)
+    tree, obj = _branch_tree()
+    refusing = _BranchSession(cfg, refuse=tuple(tree.positions[2]))
+    planner = _prepared(NBVPlanner(cfg), cfg)
+    assert planner.capture_branch(refusing, obj, tree, [1, 2, 3])[1:] == (1, 1)
+    np.testing.assert_allclose(refusing.captured, tree.positions[[1]])
+    np.testing.assert_allclose(planner.refused_positions, tree.positions[[2]])
+    r = cfg.planners.nbv.refused_radius_m
+    probes = tree.positions[2] + np.array([[0.0, 0.0, 0.9 * r], [0.0, 0.0, 1.1 * r]])
+    assert planner.near_refused(probes).tolist() == [True, False]

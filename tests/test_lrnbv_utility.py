@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +13,12 @@ from cell.config.load import load_config
 from cell.perception.occupancy import OccupancyMap, OccupancyParams, logit
 from cell.planning.lrnbv.sensor import sensor_rays
 from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
+from drivers.clock import SimClock
+from drivers.depth.base import SensorModel
+from drivers.errors import PlanningError
+from drivers.factory import SimWorld, make_sensor
+from drivers.sim.objects import load_object
+from drivers.sim.scene import SimScene
 from drivers.transforms import look_at
 from tests.conftest import FRANKA, UR5E
 
@@ -83,9 +91,15 @@ def test_quality_visited_and_weights() -> None:
     np.testing.assert_allclose(u, 500 * g.g_e + 0.05 * g.g_d + 0.08 * g.g_q + 500 * g.g_v)
 
 
+def _sensor_model(cell: Path) -> SensorModel:
+    """The viewing geometry of the cell's (simulated) sensor, as a session reports it."""
+    world = SimWorld(clock=SimClock(), rng=np.random.default_rng(0),
+                     scene=SimScene(load_object("cube"), np.eye(4)))
+    return make_sensor(load_config(cell).sensor, world, lambda: np.eye(4)).model
+
+
 def test_tof_rays_see_the_box_from_a_look_at_pose() -> None:
-    cfg = load_config(UR5E)
-    grid = sensor_rays(cfg.sensor, 16)
+    grid = sensor_rays(_sensor_model(UR5E), 16)
     assert grid.shape == (8, 8, 3)
     rays = grid.reshape(-1, 3)
     assert rays[7, 0] > 0.0 and rays[56, 1] > 0.0  # row-major from the top-left: x right, y down
@@ -102,12 +116,17 @@ def test_tof_rays_see_the_box_from_a_look_at_pose() -> None:
 
 
 def test_rgbd_rays_thinned_over_the_image() -> None:
-    cfg = load_config(FRANKA)
-    rays = sensor_rays(cfg.sensor, 16)
-    assert rays.shape == (12, 16, 3)
-    rays = rays.reshape(-1, 3)
-    # The pinhole's half field of view (cx + 0.5) / fx bounds the rays.
-    assert np.max(np.abs(rays[:, 0] / rays[:, 2])) < (cfg.sensor.cx + 0.5) / cfg.sensor.fx
+    model = _sensor_model(FRANKA)
+    grid = sensor_rays(model, 16)
+    assert grid.shape == (12, 16, 3)
+    rays = grid.reshape(-1, 3)
+    # cell centres across the field of view: inside it, symmetric about the optical axis, half a cell in
+    tan_x = math.tan(math.radians(model.fov_x_deg) / 2.0)
+    assert np.max(rays[:, 0] / rays[:, 2]) == pytest.approx(tan_x * 15 / 16, rel=1e-12)
+    np.testing.assert_allclose(grid[:, ::-1, 0], -grid[:, :, 0], atol=1e-15)
+    np.testing.assert_allclose(grid[::-1, :, 1], -grid[:, :, 1], atol=1e-15)
+    with pytest.raises(PlanningError, match="no ray model"):
+        sensor_rays(dataclasses.replace(model, kind="lidar"), 16)
 
 
 def test_chunks_give_the_same_gains() -> None:
@@ -115,7 +134,7 @@ def test_chunks_give_the_same_gains() -> None:
     rng = np.random.default_rng(0)
     eyes = rng.uniform([-0.3, -0.3, 0.2], [0.4, 0.4, 0.5], size=(40, 3))
     poses = [look_at(e, np.array([0.05, 0.05, 0.05])) for e in eyes]
-    rays = sensor_rays(load_config(UR5E).sensor, 16).reshape(-1, 3)
+    rays = sensor_rays(_sensor_model(UR5E), 16).reshape(-1, 3)
     rot = np.array([T[:3, :3] for T in poses])
     together = f.ray_gains(eyes, rot, rays, 1.0)
     one_by_one = np.array([f.ray_gains(eyes[i:i + 1], rot[i:i + 1], rays, 1.0) for i in range(40)])[:, :, 0]

@@ -9,7 +9,7 @@ import pytest
 
 from cell.config.models import CropBoxConfig
 from cell.perception.occupancy import OccupancyMap, OccupancyParams
-from cell.planning.vs.objective import EntropyObjective, ray_grid
+from cell.planning.vs.objective import PARALLEL_MIN_POSES, EntropyObjective, ray_grid
 from drivers.depth.sim_tof import zone_directions
 from drivers.transforms import look_at
 
@@ -101,6 +101,17 @@ def test_tof_grid_and_coarse_map_agree_with_the_transcription():
         assert f(T) == pytest.approx(reference_f(occupancy, T, dirs, ROI_MIN, ROI_MAX, crop), rel=1e-9)
 
 
+def test_a_threaded_batch_equals_the_poses_one_by_one():
+    # Batches from PARALLEL_MIN_POSES poses on are split over OpenMP threads; single poses are not. Each
+    # pose is one sequential sum, so the values are bit-identical (job outputs must be byte-identical).
+    rng = np.random.default_rng(11)
+    f = EntropyObjective(random_map(rng), ROI_MIN, ROI_MAX, CROP, ray_grid(23, 30.0))
+    poses = poses_around(rng, PARALLEL_MIN_POSES + 37)
+    batch = f(poses)
+    assert batch.tolist() == [f(T) for T in poses]
+    assert f(poses).tolist() == batch.tolist()
+
+
 def test_ray_grid_is_the_tof_zone_centres_and_spans_the_fov():
     np.testing.assert_allclose(ray_grid(8, 45.0), zone_directions(8, 45.0)[:, 0, :], atol=1e-12)
     d = ray_grid(23, 30.0)
@@ -151,3 +162,7 @@ def test_rejects_a_malformed_pose():
     f = EntropyObjective(random_map(np.random.default_rng(5)), ROI_MIN, ROI_MAX, CROP, ray_grid(3, 30.0))
     with pytest.raises(ValueError, match="4, 4"):
         f(np.eye(3))
+    T = np.eye(4)
+    T[0, 3] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        f(T)

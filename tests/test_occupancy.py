@@ -209,3 +209,21 @@ def test_occupied_keys_follow_voxels_that_turn_free_again():
     m.set_logodds(np.array([[100, 100, 100]]), np.array([2.0]))
     keys, lo = m.known_keys()
     np.testing.assert_array_equal(m.occupied_keys(), keys[m.classify_logodds(lo)])
+
+
+def test_discretize_casts_one_ray_per_end_voxel_to_its_centre():
+    """OctoMap's discretize: the same map as integrating the centres of the distinct end voxels."""
+    rng = np.random.default_rng(3)
+    origin = np.array([0.01, -0.02, 0.3])
+    ends = np.column_stack([rng.uniform(-0.05, 0.05, 3000), rng.uniform(-0.05, 0.05, 3000),
+                            rng.uniform(0.0, 0.01, 3000)])
+    disc = OccupancyMap(OccupancyParams(resolution_m=0.005, discretize=True))
+    disc.integrate(origin, ends)
+    ref = OccupancyMap(OccupancyParams(resolution_m=0.005))
+    ref.integrate(origin, ref.centers_of(np.unique(ref.keys_of(ends), axis=0)))
+    keys, lo = disc.known_keys()
+    ref_keys, ref_lo = ref.known_keys()
+    np.testing.assert_array_equal(keys, ref_keys)
+    np.testing.assert_array_equal(lo, ref_lo)
+    assert np.unique(disc.keys_of(ends), axis=0).shape[0] < ends.shape[0] / 2
+    np.testing.assert_array_equal(disc.occupied_keys(), np.unique(disc.keys_of(ends), axis=0))

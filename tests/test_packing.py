@@ -13,7 +13,7 @@ from cell.config.models import PerceptionConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.config import ContainerConfig, PackingConfig
 from cell.packing.containers import choose_container, required_inner_dims
-from cell.packing.objects import segment_on_table
+from cell.packing.objects import object_surface_points, segment_on_table
 from cell.packing.result import ReconstructionHistory, count_useless, packing_section, surface_coverage_pct
 from cell.perception.metrics import ground_truth_points
 from drivers.sim.objects import load_object, sample_surface
@@ -150,11 +150,20 @@ class _Map:
     def occupied_centers(self) -> np.ndarray:
         return self.occupied
 
+    def keys_of(self, points: np.ndarray) -> np.ndarray:
+        return np.floor(points / 0.01).astype(np.int64)
+
+
+@dataclass
+class _Cloud:
+    points: np.ndarray
+
 
 @dataclass
 class _Perception:
     map: _Map
     config: PerceptionConfig
+    cloud: _Cloud
     table_z_m: float = 0.0
 
 
@@ -164,8 +173,9 @@ class _Session:
     perception: _Perception
 
 
-def _session(n: int, occupied: np.ndarray) -> _Session:
-    return _Session(n, _Perception(_Map(occupied), load_config(UR5E).perception))
+def _session(n: int, occupied: np.ndarray, cloud: np.ndarray | None = None) -> _Session:
+    points = np.zeros((0, 3)) if cloud is None else cloud
+    return _Session(n, _Perception(_Map(occupied), load_config(UR5E).perception, _Cloud(points)))
 
 
 @dataclass
@@ -186,9 +196,12 @@ def test_packing_section_on_a_voxelised_shipped_box() -> None:
     half = full[full[:, 0] < 0.45]
     history = ReconstructionHistory([half, full, full[::2]])
     gt = ground_truth_points(mesh, T)
-    section = packing_section(cfg, _session(3, full), _Planner(history), mesh, T, gt)  # type: ignore[arg-type]
-    np.testing.assert_allclose(section["dims_m"], [0.3, 0.2, 0.1], atol=0.015)  # voxel staircase
-    assert section["iou"] > 0.85
+    session = _session(3, full, surface)
+    section = packing_section(cfg, session, _Planner(history), mesh, T, gt)  # type: ignore[arg-type]
+    # Measured on the surface points inside the voxels, not on the voxel staircase.
+    np.testing.assert_allclose(section["dims_m"], [0.3, 0.2, 0.1], atol=0.005)
+    assert section["box"]["yaw_rad"] == pytest.approx(math.radians(20.0), abs=math.radians(0.5))
+    assert section["iou"] > 0.93
     assert section["coverage_pct"] > 95.0
     assert section["n_poses"] == 3
     assert section["n_useless_poses"] == 1  # the third capture lost half the voxels
@@ -241,3 +254,34 @@ def test_trimmed_box_ignores_a_few_noisy_voxels() -> None:
     assert box.dims[0] >= box.dims[1]
     with pytest.raises(ValueError):
         box_from_points(pts, 0.0, trim=0.5)
+
+
+def test_object_surface_points_are_the_measured_points_in_the_object_voxels() -> None:
+    voxels = np.array([[0.005, 0.005, 0.005], [0.015, 0.005, 0.005], [0.025, 0.005, 0.005]])
+    cloud = np.array([[0.001, 0.002, 0.003], [0.012, 0.009, 0.001],  # in voxels 0 and 1
+                      [0.045, 0.005, 0.005], [0.015, 0.015, 0.005]])  # in no object voxel
+    session = _session(1, voxels, cloud)
+    pts = object_surface_points(session.perception, voxels)  # type: ignore[arg-type]
+    # The measured points of voxels 0 and 1, and the centre of voxel 2, which holds none.
+    np.testing.assert_allclose(pts, np.vstack([cloud[:2], voxels[2:]]))
+    with pytest.raises(ValueError, match="no object voxels"):
+        object_surface_points(session.perception, np.zeros((0, 3)))  # type: ignore[arg-type]
+
+
+def test_trimmed_box_takes_its_yaw_from_the_trimmed_footprint() -> None:
+    # A 10 x 10 cm square base turned by 40 deg, its shell noisy (3 mm) with a few far points: the
+    # convex hull's rectangle turns with the outliers, the trimmed one keeps the square's yaw.
+    rng = np.random.default_rng(4)
+    side = rng.uniform(-0.05, 0.05, 4000)
+    which = rng.integers(0, 4, 4000)
+    local = np.where(which[:, None] < 2, np.column_stack([np.where(which == 0, -0.05, 0.05), side]),
+                     np.column_stack([side, np.where(which == 2, -0.05, 0.05)]))
+    local += rng.normal(0.0, 0.003, local.shape)
+    local[:20] *= 1.25
+    yaw = math.radians(40.0)
+    xy = local @ np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
+    pts = np.column_stack([xy + np.array([0.45, 0.0]), rng.uniform(0.0, 0.25, 4000)])
+    box = box_from_points(pts, 0.0, trim=0.02)
+    assert (box.yaw_rad - yaw + math.pi / 4) % (math.pi / 2) - math.pi / 4 == pytest.approx(0.0, abs=0.01)
+    np.testing.assert_allclose(box.dims[:2], [0.1, 0.1], atol=0.01)  # the noise beyond the 2 % quantile
+    np.testing.assert_allclose(box.center_xy, [0.45, 0.0], atol=0.002)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.perception.cloud import CloudAccumulator, crop_box, read_ply, voxel_downsample, write_ply
+from cell.perception.cloud import CloudAccumulator, PointGrid, crop_box, read_ply, voxel_downsample, write_ply
 from drivers.transforms import T_from_xyz_rpy, transform_points
 
 
@@ -60,3 +60,22 @@ def test_ply_round_trip_and_refusal(tmp_path):
     (tmp_path / "ascii.ply").write_text("ply\nformat ascii 1.0\nend_header\n")
     with pytest.raises(ValueError, match="not a cloud written by cell"):
         read_ply(tmp_path / "ascii.ply")
+
+
+def test_point_grid_searches_match_brute_force_inside_and_far_outside() -> None:
+    """Queries inside the grid's box and far beyond each face (its cube of cells then misses the grid on
+    some axes) find the same nearest point within reach as a brute-force search."""
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(0.0, 0.1, (500, 3))
+    grid = PointGrid(pts, 0.01)
+    queries = np.vstack([rng.uniform(-0.02, 0.12, (300, 3)),
+                         np.array([[0.05, 0.05, 0.3], [0.05, 0.05, -0.2], [0.3, 0.05, 0.05],
+                                   [-0.2, -0.2, 0.05], [0.05, 0.105, 0.05], [0.12, 0.12, 0.12]])])
+    for reach in (0.004, 0.02, 0.5):
+        index, dist = grid.nearest_within(queries, reach)
+        d = np.linalg.norm(queries[:, None, :] - pts[None, :, :], axis=2)
+        best = d.min(axis=1)
+        found = best <= reach
+        np.testing.assert_array_equal(index >= 0, found)
+        np.testing.assert_allclose(dist[found], best[found], rtol=1e-12)
+        assert np.all(np.isinf(dist[~found]))

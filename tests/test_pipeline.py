@@ -11,6 +11,7 @@ from cell.config import load_config
 from cell.perception.pipeline import AsyncPerception, PerceptionPipeline
 from drivers.clock import SimClock
 from drivers.depth.sim_rgbd import SimRGBD
+from drivers.factory import SimWorld, make_sensor
 from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import look_at, make_T
@@ -83,3 +84,25 @@ def test_async_perception_reraises_worker_errors(rig):
         assert _wait_for(raised)
     finally:
         runner.stop()
+
+
+def test_tof_box_top_is_not_taken_for_the_table():
+    """8x8 ToF frames of the horizontal box from above: its top outnumbers the table in the map, but
+    RANSAC only looks near the configured table height, so the ROI is the box (issue 3)."""
+    cfg = load_config(CONFIG_DIR / "sim-ur5e-tof.yaml")
+    station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
+    scene = SimScene(load_object("horizontal_box"), make_T(np.eye(3), station),
+                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
+    pose = {"T": np.eye(4)}
+    world = SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=scene)
+    sensor = make_sensor(cfg.sensor, world, lambda: pose["T"])
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
+                                  range_max_m=sensor.model.range_max_m, rng=np.random.default_rng(1))
+    top = station + np.array([0.0, 0.0, 0.1])
+    with sensor:
+        for dx, dy in ((0.0, 0.0), (0.03, 0.0), (0.0, 0.03), (-0.03, 0.0), (0.0, -0.03)):
+            pose["T"] = look_at(top + np.array([dx, dy, 0.25]), top + np.array([0.0, 0.0, -0.1]))
+            update = pipeline.process(sensor.capture(), pose["T"])
+    assert update.roi is not None
+    assert update.roi.aabb_max[2] == pytest.approx(top[2], abs=0.02)
+    assert update.roi.z_min == pytest.approx(station[2], abs=1e-9)

@@ -4,6 +4,8 @@ original cloud exactly."""
 from __future__ import annotations
 
 import csv
+import json
+import shutil
 
 import numpy as np
 import pytest
@@ -12,6 +14,8 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.cli.sensor import replay_perception
 from cell.config import load_config
+from cell.config.models import CellConfig
+from cell.jobs.replay import replay_config
 from cell.perception.cloud import read_ply
 from drivers.arm.replay import ReplayArm
 from drivers.clock import SimClock
@@ -135,3 +139,76 @@ def test_factory_replay_plays_in_real_time_from_the_first_frame(tof_job):
     assert isinstance(sensor, ReplaySensor)
     clock = PlaybackClock(2.5)
     assert 2.5 <= clock.now() < 3.5
+
+
+# -- a recorded job re-run through perception and the planners (mode: replay) ------------------------------
+def _replay(job_dir, out, *args):
+    res = CliRunner().invoke(app, ["scan", "--replay", str(job_dir), "--out", str(out), *args])
+    assert res.exit_code == 0, res.output
+    return json.loads((out / "result.json").read_text()), res.output
+
+
+def _requests(job_dir):
+    with (job_dir / "planner_requests.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_replay_through_the_recording_planner_rebuilds_the_job(tof_job, tmp_path):
+    result, output = _replay(tof_job, tmp_path / "again")
+    recorded = json.loads((tof_job / "result.json").read_text())
+    assert result["planner"] == recorded["planner"] == "raster" and result["seed"] == 1
+    assert result["status"] == "completed"
+    assert result["termination"] == f"recording ended: all {recorded['n_captures']} recorded frames played"
+    assert result["replay"]["job_dir"] == str(tof_job)
+    assert (tmp_path / "again" / "cloud.ply").read_bytes() == (tof_job / "cloud.ply").read_bytes()
+    assert result["metrics"] == recorded["metrics"]
+    assert result["packing"]["dims_m"] == recorded["packing"]["dims_m"]
+    moves = _requests(tmp_path / "again")
+    # raster asked for one view per recorded capture (and one more, which found the recording ended)
+    assert {r["kind"] for r in moves} == {"move"} and len(moves) == recorded["n_captures"] + 1
+    assert result["replay"]["n_planner_requests"] == len(moves)
+    assert "recording ended" in output
+
+
+def test_replay_through_another_planner_records_what_it_asks_for(tof_job, tmp_path):
+    result, _ = _replay(tof_job, tmp_path / "vs", "--planner", "vs-local")
+    recorded = json.loads((tof_job / "result.json").read_text())
+    assert result["planner"] == "vs-local" and result["status"] == "completed"
+    # whatever the planner asks, the recording plays: every recorded frame, with its recorded pose
+    assert result["n_captures"] == recorded["n_captures"]
+    replayed = JobRecording(tmp_path / "vs")
+    original = JobRecording(tof_job)
+    for k in range(len(original.frames)):
+        assert np.array_equal(replayed.load(k)[2], original.load(k)[2])
+    requests = _requests(tmp_path / "vs")
+    twists = [r for r in requests if r["kind"] == "twist"]
+    assert twists and all(r["x"] == "" and r["vx"] != "" for r in twists)
+    assert np.all(np.isfinite([[float(r[k]) for k in ("vx", "vy", "vz", "wx", "wy", "wz")] for r in twists]))
+    assert not any(r["kind"] == "move" and r["vx"] for r in requests)
+
+
+def test_replay_without_ground_truth_reports_no_metrics(tof_job, tmp_path):
+    job = tmp_path / "real"
+    shutil.copytree(tof_job, job)
+    result = json.loads((job / "result.json").read_text())
+    result.update(object=None, object_pose=None)  # as a job on a real cell records it
+    (job / "result.json").write_text(json.dumps(result))
+    replayed, output = _replay(job, tmp_path / "again", "--config", str(UR5E))
+    assert replayed["metrics"] == {"chamfer_mm": None, "hausdorff_mm": None, "coverage_pct": None}
+    assert replayed["object_pose"] is None and replayed["packing"]["iou"] is None
+    assert replayed["packing"]["dims_m"] is not None and "no ground truth" in output
+
+
+def test_replay_mode_needs_replay_backends_of_one_job(tof_job, tmp_path):
+    cfg = load_config(UR5E)
+    replay = replay_config(cfg, tof_job)
+    assert replay.mode == "replay" and replay.arm.type == "replay" and replay.sensor.type == "replay"
+    data = replay.model_dump()
+    with pytest.raises(ValueError, match=r"mode 'replay' needs arm\.type 'replay'"):
+        CellConfig.model_validate({**data, "arm": cfg.model_dump()["arm"]})
+    with pytest.raises(ValueError, match="must name the same recorded job"):
+        CellConfig.model_validate({**data, "sensor": {**data["sensor"], "job_dir": str(tmp_path)}})
+    with pytest.raises(ValueError, match="needs mode 'replay'"):
+        CellConfig.model_validate({**data, "mode": "real"})
+    res = CliRunner().invoke(app, ["scan", "--replay", str(tmp_path)])
+    assert res.exit_code == 1 and "not a readable job folder" in res.output

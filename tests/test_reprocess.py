@@ -13,7 +13,8 @@ import pytest
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
-from cell.perception.reprocess import MultiwayParams, back_project, reprocess_job
+from cell.perception.registration import o3d_cloud
+from cell.perception.reprocess import MultiwayParams, _constrained_pair, back_project, reprocess_job
 from drivers.errors import JobError
 
 from .conftest import FRANKA
@@ -114,3 +115,19 @@ def test_reprocess_prunes_uncertain_edges_only(job_copy):
     reg = reprocess_job(job, voxel_m=0.0025,
                         params=MultiwayParams(**EVERY_PAIR, edge_prune_threshold=0.0))["registration"]
     assert reg["pruned_edges"] == 0 and reg["pruned_pairs"] == []
+
+
+def test_pair_correction_keeps_only_constrained_directions():
+    """Two views of one plane: a pair's ICP correction that slides along the plane and moves 1 mm along
+    its normal keeps the normal part only (3 of 6 directions constrained), as online registration."""
+    g = np.arange(-0.05, 0.05, 0.0025)
+    X, Y = np.meshgrid(g, g)
+    plane = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 0.3)])
+    source, target = o3d_cloud(plane), o3d_cloud(plane, 0.005)
+    T = np.eye(4)
+    T[:3, 3] = [0.002, -0.001, 0.001]
+    pairs = np.column_stack([np.arange(plane.shape[0])] * 2).astype(np.int32)
+    kept, n_constrained = _constrained_pair(T, np.eye(4), source, target, pairs, 0.003)
+    assert n_constrained == 3
+    np.testing.assert_allclose(kept[:3, 3], [0.0, 0.0, 0.001], atol=1e-9)
+    np.testing.assert_allclose(kept[:3, :3], np.eye(3), atol=1e-9)

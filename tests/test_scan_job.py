@@ -61,6 +61,8 @@ def test_job_folder_is_complete(bunny_job):
     assert occupancy.occupied_centers().shape[0] > 100
     # The first frame has no target to register onto: a skip, not a rejection.
     assert result["perception"]["n_registration_rejected"] == 0
+    n_constrained = result["perception"]["registration_n_constrained"]
+    assert len(n_constrained) == result["n_captures"] and all(0 <= n <= 6 for n in n_constrained)
     roi = result["perception"]["roi"]
     assert roi is not None and result["perception"]["h_roi"] is not None
     np.testing.assert_allclose(np.subtract(roi["aabb_max_m"], roi["aabb_min_m"]), [0.156, 0.121, 0.154],

@@ -232,3 +232,28 @@ def test_on_voxel_centres(name: str, res: float, params: SegmentationParams) -> 
     assert np.count_nonzero(res_.object_points[:, 2] <= 0.003) == 0
     assert np.all(np.abs(res_.roi.aabb_max - verts.max(axis=0)) < 0.015)
     assert np.all(np.abs(res_.roi.aabb_min[:2] - verts.min(axis=0)[:2]) < 0.015)
+
+
+def test_box_top_is_not_the_table_when_its_height_is_known() -> None:
+    """Occupied 1 cm voxels of the horizontal box seen from above with a thin rim of table: the top
+    (0.3 x 0.2 m) outnumbers the table, so unconstrained RANSAC takes it for the table and leaves no
+    object; with the table height known, only planes near it are drawn and the box is found."""
+    res = 0.01
+    rng = np.random.default_rng(4)
+    mesh = load_object("horizontal_box")
+    obj = sample_surface(mesh, 40000, rng) + CENTRE
+    obj = obj[obj[:, 2] > 0.005]  # the bottom face is not seen
+    rim = _table(half=0.17, step=0.01)
+    rim = rim[np.any(np.abs(rim[:, :2] - CENTRE[:2]) > [0.16, 0.11], axis=1)]
+    centres = (np.unique(np.floor(np.vstack([obj, rim]) / res).astype(np.int64), axis=0) + 0.5) * res
+    params = SegmentationParams(method="dbscan", plane_distance_m=0.012)
+    free = segment_object(centres, params, np.random.default_rng(0))
+    assert free.plane is not None and -free.plane[3] > 0.09  # the top taken for the table
+    known = segment_object(centres, params, np.random.default_rng(0), table_z=0.0)
+    assert known.plane is not None and abs(known.plane[3]) < 0.01
+    assert known.roi is not None
+    np.testing.assert_allclose(known.roi.obb_dims, mesh.extents_m, atol=0.015)
+    # no table in view at all: the known height stands in for it
+    top_only = centres[centres[:, 2] > 0.05]
+    alone = segment_object(top_only, params, np.random.default_rng(0), table_z=0.0)
+    assert alone.roi is not None and alone.object_points.shape[0] == top_only.shape[0]

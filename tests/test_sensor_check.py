@@ -18,9 +18,10 @@ from drivers.depth.vl53l8cx.emulator import EmulatorFaults, SimToFSource, VL53L8
 from .conftest import CONFIG_DIR, UR5E
 
 
-def _cell_file(tmp_path, sensor: dict) -> str:
+def _cell_file(tmp_path, sensor: dict, **changes: object) -> str:
     data = yaml.safe_load((CONFIG_DIR / "ur5e-vl53l8cx.yaml").read_text())
     data["sensor"] = sensor
+    data.update(changes)
     path = tmp_path / "cell.yaml"
     path.write_text(yaml.safe_dump(data))
     return str(path)
@@ -62,7 +63,8 @@ def test_check_a_replayed_job(tmp_path):
     res = CliRunner().invoke(app, ["scan", "--config", str(UR5E), "--object", "cube", "--out", str(job),
                                    "--planner", "raster", "--max-time", "8"])
     assert res.exit_code == 0, res.output
-    cell = _cell_file(tmp_path, {"type": "replay", "job_dir": str(job)})
+    cell = _cell_file(tmp_path, {"type": "replay", "job_dir": str(job)}, mode="replay",
+                      arm={"type": "replay", "model": "ur5e", "job_dir": str(job)})
     res = CliRunner().invoke(app, ["sensor", "check", "--config", cell, "--frames", "2"])
     assert res.exit_code == 0, res.output
     assert "frames: 2" in res.output and "valid zones (statuses 5, 9)" in res.output

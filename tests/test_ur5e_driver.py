@@ -1,22 +1,25 @@
 """The UR5e backend against the RTDE controller peer: what the driver sends (clamped twists, TCP, payload,
-watchdog, digital outputs) and what it does on protective stops, emergency stops and disconnects."""
+watchdog, digital outputs) and what it does on protective stops, emergency stops, dropped connections and
+a crash of the process that holds the ur-rtde clients."""
 
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drivers.arm.base import ArmMode
-from drivers.arm.ur5e import UR5eArm
+from drivers.arm.ur5e import REPLY_TIMEOUT_S, UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
-from tests.arm_backends import Backend, ur5e_backend, ur5e_config
+from tests.arm_backends import STREAMING_WATCHDOG_HZ, Backend, ur5e_backend, ur5e_config
 from tests.rtde_peer import REPO, ControllerPeer
 
 
@@ -33,6 +36,13 @@ def ur(peer: ControllerPeer) -> Iterator[Backend]:
         yield b
 
 
+@pytest.fixture
+def streaming_ur(peer: ControllerPeer) -> Iterator[Backend]:
+    """``ur`` with the RTDE watchdog for tests that stream for a while (tests/arm_backends.py)."""
+    with ur5e_backend(peer, watchdog_min_hz=STREAMING_WATCHDOG_HZ) as b:
+        yield b
+
+
 def test_connect_sends_tcp_and_payload_from_the_config(peer: ControllerPeer, ur: Backend) -> None:
     st = peer.state()
     assert st["program_running"] and st["scripts_uploaded"] == 1
@@ -44,6 +54,8 @@ def test_connect_sends_tcp_and_payload_from_the_config(peer: ControllerPeer, ur:
 
 def test_twists_are_clamped_and_sent_with_speedl_under_a_watchdog(peer: ControllerPeer, ur: Backend) -> None:
     ur.arm.command_twist(np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]), ur.token)  # 0.5 m/s > the 0.1 ceiling
+    # speedL streams: ur-rtde returns once it is sent, the peer takes it from the socket a little later
+    peer.wait_for(lambda s: s["counts"].get("speedL", 0) > 0, what="speedL")
     speedl = peer.records("speedL")[-1]["doubles"]
     assert np.linalg.norm(speedl[:3]) == pytest.approx(0.1) and speedl[2] > 0
     assert speedl[6] == pytest.approx(0.5)  # acceleration from the config
@@ -70,7 +82,7 @@ def test_the_watchdog_stops_the_arm_when_the_loop_stops_calling(peer: Controller
 def test_protective_stop_is_a_fault_until_the_operator_recovers(peer: ControllerPeer, ur: Backend) -> None:
     peer.protective_stop()
     ur.wait_until(lambda: "protective stop" in ur.arm.state().faults)
-    assert ur.arm.controller_modes()["safety mode"] == "PROTECTIVE_STOP"
+    assert _ur(ur).controller_modes()["safety mode"] == "PROTECTIVE_STOP"
     with pytest.raises(RobotFault) as refused:
         ur.arm.command_twist(np.zeros(6), ur.token)
     assert refused.value.fault == "protective stop"
@@ -134,60 +146,133 @@ def test_an_unreachable_controller_fails_fast_with_its_address() -> None:
         arm.connect()
 
 
-def test_a_dropped_connection_is_latched_and_recovery_asks_for_a_restart() -> None:
-    """The controller drops every connection while the arm moves. The driver runs in a child process:
-    after a dropped connection ur-rtde 1.6.5's own reconnection can crash the process that holds it
-    (drivers/arm/ur5e.py), which must not take the test run with it. The child reports its steps on a pipe
-    of their own (ur-rtde's threads write to standard output and error)."""
-    peer = ControllerPeer()
-    steps_r, steps_w = os.pipe()
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie nobody has reaped yet does not)."""
     try:
-        pipe = subprocess.PIPE
-        child = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host, str(steps_w)],
-                                 cwd=REPO, stdin=pipe, stdout=pipe, stderr=pipe, text=True,
-                                 pass_fds=(steps_w,))
-        os.close(steps_w)
-        with os.fdopen(steps_r) as steps:
-            assert steps.readline() == "moving\n"
-            peer.drop_clients()
-            out, err = child.communicate("dropped\n", timeout=60)
-            reported = steps.read().splitlines()
-    finally:
-        peer.stop()
-    assert reported == ["fault disconnect", "refused disconnect", "recover refused disconnect"], (
-        f"exit code {child.returncode}\n{out}\n{err}")
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
-def _dropped_connection_child(host: str, steps_fd: int) -> None:
-    """The child of the dropped-connection test: reports each step on the file descriptor ``steps_fd``,
-    then ends at once (the interpreter's teardown would destroy the ur-rtde interfaces, see the test)."""
-    steps = os.fdopen(steps_fd, "w", buffering=1)
-    arm = UR5eArm(ur5e_config(host), get_robot_model("ur5e"))
-    arm.connect()
-    token = arm.claim_motion()
-    arm.command_twist(np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.0]), token)
-    steps.write("moving\n")
-    sys.stdin.readline()  # the controller dropped the connections
-    fault = ""
-    for _ in range(1000):  # a bound on waiting, 20 s
-        try:
-            fault = ",".join(arm.state().faults)
-        except RobotFault as exc:
-            fault = exc.fault
-        if fault == "disconnect":
-            break
-        time.sleep(0.02)
-    steps.write(f"fault {fault}\n")
-    for step, action in (("refused", lambda: arm.command_twist(np.zeros(6), token)),
-                         ("recover refused", arm.recover)):
+def _ur(backend: Backend) -> UR5eArm:
+    assert isinstance(backend.arm, UR5eArm)
+    return backend.arm
+
+
+def _until_lost(ur: Backend, action: Callable[[], None]) -> RobotFault:
+    """Repeat ``action`` every 20 ms until it raises the "disconnect" fault (another fault first, e.g. the
+    control script ended by the drop, is not it yet); a bound on waiting: 20 s."""
+    for _ in range(1000):
         try:
             action()
-            steps.write(f"{step}: no\n")
         except RobotFault as exc:
-            steps.write(f"{step} {exc.fault}\n")
-    steps.close()
-    os._exit(0)
+            if exc.fault == "disconnect":
+                return exc
+        ur.advance(0.02)
+    raise AssertionError("the lost connection never surfaced")
+
+
+def _twist_moves_the_flange_up(peer: ControllerPeer, ur: Backend) -> None:
+    """A twist streamed at 50 Hz for 0.5 s moves the peer's flange up."""
+    z0 = peer.state()["flange_pose"][2]
+    for _ in range(25):
+        ur.arm.command_twist(np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0]), ur.token)
+        ur.advance(0.02)
+    ur.arm.stop()
+    assert peer.state()["flange_pose"][2] > z0
+
+
+def test_a_dropped_connection_ends_the_client_process_until_the_operator_reconnects(
+        peer: ControllerPeer, streaming_ur: Backend) -> None:
+    ur = streaming_ur
+    arm = _ur(ur)
+    first = arm.client_pid
+    assert first is not None and _running(first)
+    v = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])
+    arm.command_twist(v, ur.token)
+    peer.drop_clients()
+    lost = _until_lost(ur, lambda: arm.command_twist(v, ur.token))  # the control loop keeps commanding
+    assert "controller closed the connection" in str(lost)
+    assert arm.client_pid is None and not _running(first)
+    q_after_drop = peer.state()["q"]
+    # latched: state and motion raise, stop sends nothing, until the operator recovers
+    with pytest.raises(RobotFault, match="lost the connection"):
+        arm.state()
+    with pytest.raises(RobotFault, match="lost the connection"):
+        arm.command_twist(v, ur.token)
+    arm.stop()
+    dropped_at = peer.state()["dropped_at"]
+    assert [r for r in peer.records() if r["t"] > dropped_at] == []  # nothing reached the controller
+    assert np.allclose(peer.state()["q"], q_after_drop) and peer.state()["motion"] == "idle"
+
+    arm.recover()  # the operator's action: a fresh process connects again
+    second = arm.client_pid
+    assert second is not None and second != first
+    assert arm.state().faults == () and arm.state().mode is ArmMode.IDLE
+    assert np.allclose(peer.state()["tcp_offset"], [0, 0, 0.05, 0, 0, 0])  # the tool is sent again
+    _twist_moves_the_flange_up(peer, ur)
+
+
+def test_a_crashed_client_process_is_a_fault_and_the_watchdog_stops_the_arm(
+        peer: ControllerPeer, streaming_ur: Backend) -> None:
+    ur = streaming_ur
+    arm = _ur(ur)
+    pid = arm.client_pid
+    assert pid is not None
+    arm.command_twist(np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0]), ur.token)
+    os.kill(pid, signal.SIGKILL)
+    with pytest.raises(RobotFault, match="killed by signal 9") as lost:
+        arm.state()
+    assert lost.value.fault == "disconnect"
+    # nobody renews the twist: the RTDE watchdog armed for the motion ends the script and halts the arm
+    peer.wait_for(lambda s: not s["program_running"], what="the watchdog ending the script")
+    assert any("watchdog" in e for e in peer.state()["events"])
+    arm.recover()
+    assert arm.state().faults == ()
+    _twist_moves_the_flange_up(peer, ur)
+
+
+def test_a_hung_client_process_is_killed_and_a_fault(peer: ControllerPeer, streaming_ur: Backend) -> None:
+    """The child stops answering (SIGSTOP): after the reply timeout the driver kills it and faults."""
+    arm = _ur(streaming_ur)
+    pid = arm.client_pid
+    assert pid is not None
+    os.kill(pid, signal.SIGSTOP)
+    with pytest.raises(RobotFault, match=f"did not answer snapshot within {REPLY_TIMEOUT_S:g} s") as lost:
+        arm.state()
+    assert lost.value.fault == "disconnect" and arm.client_pid is None and not _running(pid)
+    arm.recover()
+    assert arm.state().faults == ()
+
+
+def test_the_client_process_ends_with_the_program_that_owns_the_driver(peer: ControllerPeer) -> None:
+    """The driver's process is killed outright (no clean-up runs): its client process ends by itself."""
+    owner = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host], cwd=REPO,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert owner.stdout is not None
+        pid = int(owner.stdout.readline())
+        assert _running(pid)
+    finally:
+        owner.kill()
+        owner.wait()
+        if owner.stdout is not None:
+            owner.stdout.close()
+    deadline = time.monotonic() + 20.0  # a bound on waiting
+    while _running(pid):
+        assert time.monotonic() < deadline, f"client process {pid} outlived its driver"
+        time.sleep(0.05)
+
+
+def _own_a_connected_arm(host: str) -> None:
+    """The driver's process in the test above: connects, prints the client process id, waits to be
+    killed."""
+    arm = UR5eArm(ur5e_config(host), get_robot_model("ur5e"))
+    arm.connect()
+    print(arm.client_pid, flush=True)
+    time.sleep(600)
 
 
 if __name__ == "__main__":
-    _dropped_connection_child(sys.argv[1], int(sys.argv[2]))
+    _own_a_connected_arm(sys.argv[1])

@@ -52,6 +52,7 @@ class FakeSession:
         self.t = 0.0
         self.floor_z = floor_z
         self.pose = np.eye(4)
+        self.rng = np.random.default_rng(0)
 
     def now(self):
         return self.t

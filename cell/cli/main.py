@@ -16,6 +16,7 @@ from cell.cli.arm import arm_app
 from cell.cli.sensor import sensor_app
 from cell.config import load_config
 from cell.jobs.recorder import request_stop
+from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.jobs.session import JobSession
 from cell.perception.reprocess import reprocess_job
@@ -52,22 +53,48 @@ def _parse_pose(text: str) -> tuple[float, float, float]:
     return x, y, yaw
 
 
+def _replay_request(job_dir: Path, config: Path | None, planner: str | None, seed: int | None,
+                    out: Path | None, max_time: float | None) -> ScanRequest:
+    """A replay of ``job_dir`` (``cell scan --replay``): the job's cell file (or ``config``) with the replay
+    backends, and by default the job's own planner and seed."""
+    cfg, recorded, config_path = recorded_job(job_dir, config)
+    return ScanRequest(config=replay_config(cfg, job_dir), config_path=str(config_path),
+                       object=str(recorded.get("object") or "unknown"),
+                       planner=planner or recorded.get("planner"),
+                       seed=seed if seed is not None else int(recorded.get("seed", 0)), out=out,
+                       max_time_s=max_time)
+
+
 @app.command()
 def scan(
-    config: Annotated[Path, typer.Option(help="cell file")] = DEFAULT_CONFIG,
-    object: Annotated[str, typer.Option("--object", help="shipped name or mesh file")] = DEFAULT_OBJECT,
+    config: Annotated[Path | None, typer.Option(help=f"cell file (default: {DEFAULT_CONFIG}; with --replay, "
+                                                     "the job's)")] = None,
+    object: Annotated[str | None, typer.Option(
+        "--object", help=f"shipped name or mesh file (default {DEFAULT_OBJECT}); on a real cell, a label "
+                         "for the record")] = None,
     object_pose: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
-    planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's)")] = None,
-    seed: Annotated[int, typer.Option(help="random seed of the job")] = 0,
+    planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's; with "
+                                                     "--replay, the job's)")] = None,
+    seed: Annotated[int | None, typer.Option(help="random seed of the job (default 0; with --replay, the "
+                                                  "job's)")] = None,
     out: Annotated[Path | None, typer.Option(help="job folder to create (default: jobs/<stamp>-...)")] = None,
     max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's)")] = None,
+    replay: Annotated[Path | None, typer.Option(help="re-run a recorded job folder's frames and poses "
+                                                     "through perception and the planner (nothing moves)")]
+    = None,
 ) -> None:
     """Run a scan and write its job folder."""
     try:
-        cfg = load_config(config)
-        request = ScanRequest(config=cfg, config_path=str(config), object=object,
-                              object_pose=_parse_pose(object_pose), planner=planner, seed=seed, out=out,
-                              max_time_s=max_time)
+        if replay is not None:
+            request = _replay_request(replay, config, planner, seed, out, max_time)
+        else:
+            path = config if config is not None else DEFAULT_CONFIG
+            cfg = load_config(path)
+            label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
+            request = ScanRequest(config=cfg, config_path=str(path), object=label,
+                                  object_pose=_parse_pose(object_pose), planner=planner,
+                                  seed=seed if seed is not None else 0, out=out, max_time_s=max_time)
+        cfg = request.config
         budget = max_time if max_time is not None else cfg.scan.max_time_s
         with Progress(TextColumn("[bold]scan"), BarColumn(),
                       TextColumn("{task.fields[sim]:6.1f} s sim  {task.fields[captures]:3d} captures  "
@@ -88,7 +115,8 @@ def scan(
     console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)
     console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim, path {r['path_length_m']:.2f} m",
                   highlight=False)
-    console.print(f"coverage: {cov:.1f} %", highlight=False)
+    console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
+                  highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
 
 
@@ -117,7 +145,8 @@ def reprocess(job_dir: Path) -> None:
     console.print(f"{out['n_frames']} frames, {out['n_cloud_points']} points at {out['voxel_m'] * 1e3:g} mm",
                   highlight=False)
     if cov is not None:
-        console.print(f"coverage: {cov:.1f} %", highlight=False)
+        console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
+                  highlight=False)
     console.print(f"wrote {job_dir / 'cloud_hires.ply'} and {job_dir / 'result_hires.json'}", markup=False,
                   highlight=False)
 

@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Annotated
@@ -24,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from cell.config import load_config
 from cell.config.models import CellConfig
+from cell.jobs.replay import recorded_job
 from cell.perception.cloud import read_ply, write_ply
 from cell.perception.pipeline import PerceptionPipeline
 from drivers.arm.replay import ReplayArm
@@ -168,21 +168,6 @@ def emulate(
 
 
 # -- replay ----------------------------------------------------------------------------------------------
-def _job_config(job_dir: Path, config: Path | None) -> tuple[CellConfig, dict]:
-    """The job's result.json and the cell file to replay it with: ``config``, else the one the job names
-    (as given, or relative to the job folder)."""
-    try:
-        result = json.loads((job_dir / "result.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
-    if config is None:
-        named = Path(str(result.get("config", "")))
-        config = next((c for c in (named, job_dir / named) if c.is_file()), None)
-        if config is None:
-            raise JobError(f"the job's cell file {named} is not found; give --config")
-    return load_config(config), result
-
-
 def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> tuple[np.ndarray, int]:
     """Play a job folder through the replay sensor and arm on a simulated clock into a fresh perception
     pipeline of ``cfg``; returns the accumulated cloud [m, base frame] and the number of frames.
@@ -217,7 +202,7 @@ def replay(
 ) -> None:
     """Re-run a recorded job's frames and poses through perception; writes cloud_replay.ply."""
     try:
-        cfg, result = _job_config(job_dir, config)
+        cfg, result, _ = recorded_job(job_dir, config)
         cloud, n = replay_perception(job_dir, cfg, seed if seed is not None else int(result.get("seed", 0)))
     except CellError as exc:
         raise _fail(exc) from None

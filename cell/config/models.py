@@ -6,6 +6,7 @@ Safety-relevant values (speed limits, workspace) have no defaults: a cell file m
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -19,9 +20,9 @@ from cell.perception.segmentation import SegmentationParams
 from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
-from drivers.arm.config import ArmConfig
+from drivers.arm.config import ArmConfig, ReplayArmConfig
 from drivers.config_base import StrictModel
-from drivers.depth.config import DepthConfig
+from drivers.depth.config import DepthConfig, ReplayConfig
 from drivers.sim.faults import SimFault
 from drivers.transforms import T_from_xyz_rpy
 
@@ -138,11 +139,14 @@ class CellConfig(StrictModel):
       the job's virtual object and the ``sim`` section's table from the pose the arm reports, on the wall
       clock. Every motion goes through the guard to the real controller; commissioning a cell starts
       this way, with no object on the table;
-    - ``real``: a hardware arm and a hardware sensor.
+    - ``real``: a hardware arm and a hardware sensor;
+    - ``replay``: a recorded job played back (``arm`` and ``sensor`` of type ``replay``, the same job
+      folder) through this file's perception and a planner, on the simulated clock; nothing moves (see
+      ``cell.jobs.replay``).
     """
 
     name: str
-    mode: Literal["sim", "dry-run", "real"]
+    mode: Literal["sim", "dry-run", "real", "replay"]
     arm: ArmConfig
     sensor: DepthConfig
     mount: PoseConfig = Field(description="T_flange_sensor, the hand-eye transform")
@@ -158,6 +162,16 @@ class CellConfig(StrictModel):
     def _consistent(self) -> CellConfig:
         sim_arm = self.arm.type == "sim"
         sim_sensor = self.sensor.type.startswith("sim-")
+        arm, sensor = self.arm, self.sensor
+        if self.mode == "replay":
+            if not (isinstance(arm, ReplayArmConfig) and isinstance(sensor, ReplayConfig)):
+                raise ValueError("mode 'replay' needs arm.type 'replay' and sensor.type 'replay'")
+            if Path(arm.job_dir) != Path(sensor.job_dir):
+                raise ValueError(f"arm.job_dir ({arm.job_dir}) and sensor.job_dir ({sensor.job_dir}) "
+                                 "must name the same recorded job")
+            return self
+        if isinstance(arm, ReplayArmConfig) or isinstance(sensor, ReplayConfig):
+            raise ValueError("a replay arm or sensor plays a recorded job: it needs mode 'replay'")
         if self.mode == "sim" and not (sim_arm and sim_sensor):
             raise ValueError("mode 'sim' needs arm.type 'sim' and a 'sim-...' sensor type")
         if self.mode == "dry-run" and (sim_arm or not sim_sensor):

@@ -9,6 +9,9 @@
   ``frames/index.csv`` lists them;
 - ``map.bt``: the occupancy map in OctoMap's binary format (octovis and pyoctomap open it);
 - ``log.txt``: what happened, stamped with job time;
+- ``planner_requests.csv`` (replayed jobs only, see ``cell.jobs.replay``): what the planner asked for,
+  ``t,kind,x,y,z,qx,qy,qz,qw,vx,vy,vz,wx,wy,wz``: a ``move`` to a sensor pose (base frame), a ``twist`` of
+  the sensor (sensor frame [m/s, rad/s]) or a ``hold``, each column left empty where it does not apply;
 - ``STOP``: written by ``cell stop`` while the job runs (an operator stop; the job removes it).
 """
 
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import json
+import threading
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -56,16 +60,20 @@ class JobRecorder:
         except OSError as exc:
             raise JobError(f"cannot create job folder {folder}: {exc}") from None
         self._log: TextIO = (folder / "log.txt").open("w")
+        self._log_lock = threading.Lock()
         self._traj: TextIO = (folder / "trajectory.csv").open("w", newline="")
         self._traj_writer = csv.writer(self._traj)
         self._traj_writer.writerow(["t", "x", "y", "z", "qx", "qy", "qz", "qw"])
         self._index: TextIO = (folder / "frames" / "index.csv").open("w", newline="")
         self._index_writer = csv.writer(self._index)
         self._index_writer.writerow(["seq", "t", "file", "n_points"])
+        self._requests: TextIO | None = None
 
     def log(self, t: float, message: str) -> None:
-        self._log.write(f"[{t:9.3f}] {message}\n")
-        self._log.flush()
+        """One line of ``log.txt`` (any thread: the perception worker logs too on the wall clock)."""
+        with self._log_lock:
+            self._log.write(f"[{t:9.3f}] {message}\n")
+            self._log.flush()
 
     def pose(self, t: float, T_base_sensor: Array) -> None:
         p = T_base_sensor[:3, 3]
@@ -90,6 +98,20 @@ class JobRecorder:
         self._index_writer.writerow([frame.seq, f"{frame.timestamp:.6f}", name, frame.points.shape[0]])
         self._index.flush()
 
+    def planner_request(self, t: float, kind: str, T_base_sensor: Array | None = None,
+                        v_sensor: Array | None = None) -> None:
+        """One line of ``planner_requests.csv`` (created with the first request)."""
+        if self._requests is None:
+            self._requests = (self.folder / "planner_requests.csv").open("w", newline="")
+            csv.writer(self._requests).writerow(["t", "kind", "x", "y", "z", "qx", "qy", "qz", "qw",
+                                                 "vx", "vy", "vz", "wx", "wy", "wz"])
+        pose = [] if T_base_sensor is None else [*T_base_sensor[:3, 3], *quat_xyzw(T_base_sensor)]
+        twist = [] if v_sensor is None else list(v_sensor)
+        cells = [f"{v:.9f}" for v in pose] or [""] * 7
+        cells += [f"{v:.9f}" for v in twist] or [""] * 6
+        csv.writer(self._requests).writerow([f"{t:.6f}", kind, *cells])
+        self._requests.flush()
+
     def cloud(self, points: Array) -> None:
         write_ply(self.folder / "cloud.ply", points)
 
@@ -102,5 +124,6 @@ class JobRecorder:
 
     def close(self) -> None:
         self._traj.flush()
-        for f in (self._log, self._traj, self._index):
-            f.close()
+        for f in (self._log, self._traj, self._index, self._requests):
+            if f is not None:
+                f.close()

@@ -7,7 +7,9 @@ why, then re-raises.
 
 Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
 job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
-the arm reports it is.
+the arm reports it is; ``mode: real`` runs a hardware arm and a hardware sensor on the wall clock, with
+no ground truth (metrics are None). On the wall clock perception runs asynchronously from control
+(``cell.jobs.live``). ``mode: replay`` re-runs a recorded job (``cell.jobs.replay``).
 
 A servo planner's job also leaves its telemetry (``servo.csv``, ``servo.png``, ``path.png``; see
 ``cell.planning.vs.telemetry``), with the coverage over time in sim.
@@ -15,6 +17,7 @@ A servo planner's job also leaves its telemetry (``servo.csv``, ``servo.png``, `
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,23 +28,29 @@ from typing import Any
 import numpy as np
 
 from cell.config.models import CellConfig
+from cell.jobs.live import PoseHistory
 from cell.jobs.recorder import STOP_FILE, JobRecorder
-from cell.jobs.session import JobSession, TimeBudgetExhausted
+from cell.jobs.replay import ReplaySession
+from cell.jobs.session import JobSession, ScanLimitReached
 from cell.packing.result import packing_section
 from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
 from cell.perception.pipeline import PerceptionPipeline
+from cell.planning.base import Planner
 from cell.planning.registry import get_planner
 from cell.planning.vs.servo_scan import ServoScanPlanner
 from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
+from drivers.arm.config import ReplayArmConfig
+from drivers.arm.replay import ReplayArm
 from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
+from drivers.depth.replay import ReplaySensor
 from drivers.depth.sim_base import SimDepthSensor
 from drivers.errors import CellError, JobError, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.faults import SimFaultInjector
-from drivers.sim.objects import load_object
+from drivers.sim.objects import ObjectMesh, load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import T_from_xyz_rpy
 
@@ -83,12 +92,14 @@ def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
 
 
 def _perception_summary(session: JobSession | None) -> dict[str, Any]:
-    """The ``perception`` section of result.json: registration counts, the last ROI and H_ROI."""
+    """The ``perception`` section of result.json: registration counts, the well-constrained directions of
+    each capture's registration (``RegistrationResult.n_constrained``), the last ROI and H_ROI."""
     latest = session.latest_perception() if session is not None else None
     roi = latest.roi if latest is not None else None
     return {
         "n_frames": session.n_captures if session else 0,
         "n_registration_rejected": session.n_registration_rejected if session else 0,
+        "registration_n_constrained": session.registration_n_constrained if session else [],
         "h_roi": round(latest.h_roi, 6) if latest is not None and latest.h_roi is not None else None,
         "roi": None if roi is None else {
             "aabb_min_m": np.round(roi.aabb_min, 6).tolist(),
@@ -100,38 +111,76 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
     }
 
 
+def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
+    """The object a recorded job scanned, as its ``result.json`` names it, with its mesh and pose when
+    it was a simulated job whose object is at hand (the ground truth for metrics); (name, None, None)
+    otherwise."""
+    try:
+        recorded = json.loads((job_dir / "result.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
+    name, pose = recorded.get("object"), recorded.get("object_pose")
+    if not name or pose is None:
+        return str(name or "unknown"), None, None
+    try:
+        return str(name), load_object(str(name)), np.asarray(pose, dtype=float)
+    except CellError:
+        return str(name), None, None
+
+
+def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, ObjectMesh | None,
+                                                                        np.ndarray | None]:
+    """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
+    of sim and dry runs and of replays of them; a real cell scans an unknown object)."""
+    if replay_dir is not None:
+        return _recorded_object(replay_dir)
+    if req.config.mode == "real":
+        return req.object, None, None
+    return req.object, load_object(req.object), object_pose_in_base(req.config, req.object_pose)
+
+
+def _run_planner(planner: Planner, session: JobSession) -> str:
+    try:
+        return planner.run(session)
+    finally:
+        session.close()
+
+
 def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
     """Run the scan described by ``req``; returns the job folder and the result written there."""
     cfg = req.config
-    if cfg.mode == "real":
-        raise JobError("scans with a hardware sensor (mode 'real') are not available yet; mode 'dry-run' "
-                       "scans with a hardware arm and a simulated sensor")
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
-    mesh = load_object(req.object)
+    replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
+    object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
     max_time = req.max_time_s if req.max_time_s is not None else cfg.scan.max_time_s
     if max_time <= 0:
         raise JobError(f"--max-time must be positive, got {max_time}")
-    folder = req.out if req.out is not None else default_job_folder(req.object, planner_name, req.seed)
+    folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed)
     recorder = JobRecorder(folder)
     wall_start = time.monotonic()
 
-    # One seed per job, split into independent streams so that perception's random draws (RANSAC) never
-    # change the noise the simulated devices see.
-    world_rng, perception_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(req.seed).spawn(2))
-    # A dry run drives a hardware arm: the job runs on the wall clock, and the simulated sensor renders
-    # the virtual object from the pose the arm reports (true_flange_pose).
-    clock: Clock = SimClock() if cfg.mode == "sim" else WallClock()
-    T_base_object = object_pose_in_base(cfg, req.object_pose)
-    scene = SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
-                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
+    # One seed per job, split into independent streams so that perception's random draws (RANSAC) and the
+    # planner's never change the noise the simulated devices see, nor each other.
+    world_rng, perception_rng, planner_rng = (np.random.default_rng(s)
+                                              for s in np.random.SeedSequence(req.seed).spawn(3))
+    # With a hardware arm the job runs on the wall clock and perception runs asynchronously, its frames
+    # paired with the poses the control loop records (poses); a dry run's simulated sensor renders the
+    # virtual object from the newest of them. A replay plays recorded time on the simulated clock.
+    wall = cfg.mode in ("dry-run", "real")
+    clock: Clock = WallClock() if wall else SimClock()
+    poses = PoseHistory() if wall else None
+    scene = None if mesh is None or T_base_object is None else SimScene(
+        mesh, T_base_object, table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
+        table_size_xy=cfg.sim.table_size_m)
     world = SimWorld(clock=clock, rng=world_rng, scene=scene)
     model = get_robot_model(cfg.arm.model)
     T_flange_sensor = cfg.mount.matrix()
     arm = make_arm(cfg.arm, model, world)
-    flange = true_flange_pose(arm)
+    flange = poses.latest if poses is not None else true_flange_pose(arm)
     sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
-    ground_truth = ground_truth_points(mesh, T_base_object)
+    ground_truth = (ground_truth_points(mesh, T_base_object) if mesh is not None and T_base_object is not None
+                    else None)
     if cfg.sim.faults:
         if not (isinstance(clock, SimClock) and isinstance(arm, SimArm)
                 and isinstance(sensor, SimDepthSensor)):
@@ -142,20 +191,27 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     status, termination = "failed", "not started"
     session: JobSession | None = None
     error: BaseException | None = None
-    recorder.log(0.0, f"job: planner {planner_name}, object {req.object} at {list(req.object_pose)}, "
-                      f"seed {req.seed}, config {req.config_path}")
+    placed = f"replay of {replay_dir}" if replay_dir is not None else f"at {list(req.object_pose)}"
+    recorder.log(0.0, f"job: planner {planner_name}, object {object_name} {placed}, seed {req.seed}, "
+                      f"config {req.config_path}")
     try:
         with arm, sensor:
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
-            session = JobSession(cfg, clock=clock, guard=guard, model=model, sensor=sensor,
-                                 perception=perception, recorder=recorder, max_time_s=max_time,
-                                 coverage=CoverageTracker(ground_truth), on_progress=on_progress,
-                                 stop_file=folder / STOP_FILE)
-            # Whatever ends the planner's run, the arm is brought to rest and watched until it is.
+            coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
+            common: dict[str, Any] = dict(
+                clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
+                max_time_s=max_time, coverage=coverage, on_progress=on_progress, stop_file=folder / STOP_FILE,
+                rng=planner_rng)
+            if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
+                session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
+            else:
+                session = JobSession(cfg, sensor=sensor, poses=poses, **common)
+            # Whatever ends the planner's run, the arm is brought to rest and watched until it is, and
+            # asynchronous capture stops before the sensor disconnects.
             try:
-                termination = planner.run(session)
-            except TimeBudgetExhausted as exc:
+                termination = _run_planner(planner, session)
+            except ScanLimitReached as exc:
                 termination = str(exc)
             except SafetyStop:
                 session.settle()
@@ -185,10 +241,11 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
         recorder.cloud(cloud)
         if session is not None:
             recorder.occupancy_map(session.perception.map)
-        metrics = compute_metrics(ground_truth, cloud)
+        metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None
+                   else dict.fromkeys(("chamfer_mm", "hausdorff_mm", "coverage_pct"), float("nan")))
         result: dict[str, Any] = {
             "planner": planner_name,
-            "object": req.object,
+            "object": object_name,
             "config": req.config_path,
             "seed": req.seed,
             "status": status,
@@ -201,12 +258,14 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "n_unreachable_views": session.n_unreachable if session else 0,
             "refused_moves": dict(sorted(session.refused_moves.items())) if session else {},
             "n_cloud_points": int(cloud.shape[0]),
-            "object_pose": np.round(T_base_object, 9).tolist(),
-            "metrics": _finite_or_none(metrics.as_dict()),
+            "object_pose": None if T_base_object is None else np.round(T_base_object, 9).tolist(),
+            "metrics": _finite_or_none(metrics),
             "perception": _perception_summary(session),
             "packing": packing_section(cfg, session, planner, mesh, T_base_object, ground_truth),
             "safety": guard.log.as_dict(),
         }
+        if isinstance(session, ReplaySession):
+            result["replay"] = {"job_dir": str(replay_dir), "n_planner_requests": session.n_planner_requests}
         recorder.result(result)
         if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
             write_servo_outputs(folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,

@@ -4,7 +4,8 @@ Every control period is one tick: the time budget, an operator stop (``request_s
 file in the job folder written by ``cell stop``), a due continuous capture, then the guard's tick
 (watchdog, arm faults, the next streamed command), then the clock moves on by one period (in sim mode this
 steps the simulated arm) and the sensor pose is written to ``trajectory.csv``. When the time budget runs
-out ``TimeBudgetExhausted`` ends the planner's run; a safety stop raises ``SafetyStop``.
+out ``TimeBudgetExhausted`` (a ``ScanLimitReached``) ends the planner's run; a safety stop raises
+``SafetyStop``.
 
 While continuous capture is on (planners that move from perception), the watchdog judges the age of the
 newest frame; a frame the sensor fails to deliver then is logged and counted, and the watchdog stops the
@@ -21,6 +22,7 @@ import numpy as np
 
 from cell.config.models import CellConfig
 from cell.control.trajectory import joint_trajectory
+from cell.jobs.live import LivePerception, PoseHistory
 from cell.jobs.recorder import JobRecorder
 from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CoverageTracker
@@ -28,7 +30,7 @@ from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard, TwistRefused
 from drivers.clock import Clock
-from drivers.depth.base import DepthSensor
+from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.errors import DriverError, KinematicsError
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
@@ -38,10 +40,17 @@ MOVE_TIMEOUT_MARGIN_S = 2.0
 # After a stop the job records the arm until every joint is slower than this, for at most this long.
 SETTLED_QD_RAD_S = 1e-4
 SETTLE_TIMEOUT_S = 3.0
+# On the wall clock, how long a capture waits for a frame newer than its request.
+STALE_FRAME_TIMEOUT_S = 2.0
 
 
-class TimeBudgetExhausted(Exception):
-    """The job's time budget ran out; the runner turns this into the termination reason."""
+class ScanLimitReached(Exception):
+    """The job reached a limit that ends the planner's run (not a fault); the runner turns the message
+    into the termination reason."""
+
+
+class TimeBudgetExhausted(ScanLimitReached):
+    """The job's time budget ran out."""
 
 
 class JobSession:
@@ -49,10 +58,11 @@ class JobSession:
 
     def __init__(self, config: CellConfig, *, clock: Clock, guard: MotionGuard, model: RobotModel,
                  sensor: DepthSensor, perception: PerceptionPipeline, recorder: JobRecorder,
-                 max_time_s: float, coverage: CoverageTracker | None,
+                 max_time_s: float, coverage: CoverageTracker | None, rng: np.random.Generator,
                  on_progress: Callable[[JobSession], None] | None = None,
-                 stop_file: Path | None = None) -> None:
+                 stop_file: Path | None = None, poses: PoseHistory | None = None) -> None:
         self.config = config
+        self.rng = rng
         self._clock = clock
         self._guard = guard
         self._model = model
@@ -74,11 +84,17 @@ class JobSession:
         self.refused_moves: Counter[str] = Counter()
         self.n_unreachable = 0
         self.n_registration_rejected = 0
+        # per capture, the directions of the ICP correction kept by the degeneracy-aware acceptance (6 when
+        # ICP did not run; registration.RegistrationResult.n_constrained)
+        self.registration_n_constrained: list[int] = []
         self.path_length_m = 0.0
         # The sensor origin [m], base frame, at every tick; (job time [s], coverage [%]) at every capture.
         self.sensor_path: list[Array] = []
         self.coverage_history: list[tuple[float, float]] = []
         self._on_progress = on_progress
+        self._latest: PerceptionUpdate | None = None
+        self._poses = poses
+        self._live: LivePerception | None = None
         self._record_pose(self._guard.state().T_base_flange)
 
     def now(self) -> float:
@@ -90,6 +106,9 @@ class JobSession:
     def sensor_pose(self) -> Array:
         return self._guard.state().T_base_flange @ self._T_flange_sensor
 
+    def sensor_model(self) -> SensorModel:
+        return self._sensor.model
+
     def _record_pose(self, T_base_flange: Array) -> None:
         T = T_base_flange @ self._T_flange_sensor
         p = T[:3, 3]
@@ -97,19 +116,37 @@ class JobSession:
             self.path_length_m += float(np.linalg.norm(p - self.sensor_path[-1]))
         self.sensor_path.append(p)
         self._recorder.pose(self.now(), T)
+        if self._poses is not None:
+            self._poses.add(self.now(), T_base_flange)
 
     @property
     def cloud(self) -> CloudAccumulator:
         return self.perception.cloud
 
     def latest_perception(self) -> PerceptionUpdate | None:
-        return self.perception.latest
+        return self._latest
 
     def set_continuous_capture(self, on: bool) -> None:
-        """Capture at ``perception.rate_hz`` of job time while the planner moves the arm (first capture
-        at once), or stop doing so."""
-        self._next_capture = self.now() if on else None
+        """Capture while the planner moves the arm, or stop doing so. On the simulated clock: at
+        ``perception.rate_hz`` of job time, first capture at once, in the planner's thread. On the wall
+        clock (``poses`` given): the sensor's own rate, asynchronously (``cell.jobs.live``)."""
+        self._next_capture = self.now() if on and self._poses is None else None
         self._perception_time = self.now() if on else None
+        if self._poses is None or on == (self._live is not None):
+            return
+        if on:
+            self._live = LivePerception(self._sensor, self.perception, self._poses, self._T_flange_sensor,
+                                        record=self._record, log=self.log)
+            self._live.start()
+        else:
+            self.close()
+
+    def close(self) -> None:
+        """Stop asynchronous capture if it runs (the end of a job, whatever ended it)."""
+        live, self._live = self._live, None
+        if live is not None:
+            live.stop()
+            self.n_capture_failures += live.n_capture_failures
 
     def request_stop(self, reason: str) -> None:
         """Operator stop (any thread): the arm stops now and the job ends at its next tick, ``stopped``."""
@@ -125,6 +162,10 @@ class JobSession:
         if self._next_capture is not None and self.now() >= self._next_capture - 1e-9:
             self._next_capture += self._capture_period
             self._capture_continuous()
+        if self._live is not None:
+            update = self._live.poll()
+            if update is not None:
+                self._apply(update)
         self._guard.tick(self._perception_time)
         self._clock.sleep(self._dt)
         self._record_pose(self._guard.state().T_base_flange)
@@ -263,25 +304,67 @@ class JobSession:
         return None
 
     def capture(self) -> int:
+        """One frame at the current pose through perception. On the wall clock a frame stamped before
+        the call (e.g. queued by the device while the arm moved) is skipped; while asynchronous capture
+        runs, this waits for its next update instead."""
+        if self._live is not None:
+            return self._next_live_update()
+        asked = self.now()
         frame = self._sensor.capture()
-        state = self._guard.state()
-        T_fk = state.T_base_flange @ self._T_flange_sensor
-        update = self.perception.process(frame, T_fk)
-        reg = update.registration
-        self._perception_time = frame.timestamp if self._next_capture is not None else None
+        deadline = asked + STALE_FRAME_TIMEOUT_S
+        while self._poses is not None and frame.timestamp < asked:
+            if self.now() > deadline:
+                raise DriverError(f"no frame newer than the request at {asked:.3f} s within "
+                                  f"{STALE_FRAME_TIMEOUT_S:g} s (newest at {frame.timestamp:.3f} s)",
+                                  device=self._sensor.device)
+            frame = self._sensor.capture()
+        return self._ingest(frame, self._guard.state().T_base_flange)
+
+    def _next_live_update(self) -> int:
+        assert self._live is not None
+        end = self.now() + STALE_FRAME_TIMEOUT_S
+        while self.now() < end:
+            update = self._live.poll()
+            if update is not None:
+                self._apply(update)
+                return int(update.points_base.shape[0])
+            self._tick()
+        raise DriverError(f"no perception update within {STALE_FRAME_TIMEOUT_S:g} s",
+                          device=self._sensor.device)
+
+    def _ingest(self, frame: DepthFrame, T_base_flange: Array) -> int:
+        """Run a captured frame, taken with the flange at ``T_base_flange``, through perception, record it
+        and take it in; returns the number of points kept."""
+        update = self.perception.process(frame, T_base_flange @ self._T_flange_sensor)
+        self._record(frame, T_base_flange, update)
+        self._apply(update)
+        return int(update.points_base.shape[0])
+
+    def _apply(self, update: PerceptionUpdate) -> None:
+        """Take in a perception update on the control thread: the ROI for collision checks, the age of
+        perception for the watchdog, progress."""
+        self._latest = update
+        self._perception_time = update.timestamp if self._perception_time is not None else None
         if update.roi is not None:
             self._guard.set_roi(update.roi.aabb_min, update.roi.aabb_max)
-        self._recorder.frame(frame, T_fk, state.T_base_flange,
+        if self._on_progress is not None:
+            self._on_progress(self)
+
+    def _record(self, frame: DepthFrame, T_base_flange: Array, update: PerceptionUpdate) -> None:
+        """Write a processed frame to the job folder and count it (on the perception worker in
+        asynchronous capture)."""
+        reg = update.registration
+        T_fk = T_base_flange @ self._T_flange_sensor
+        self._recorder.frame(frame, T_fk, T_base_flange,
                              {"T_base_sensor_registered": update.T_base_sensor})
         self.n_captures += 1
         if reg.rejected:
             self.n_registration_rejected += 1
+        self.registration_n_constrained.append(reg.n_constrained)
         if self.coverage is not None:
             self.coverage_history.append((self.now(), self.coverage.add(update.points_base)))
         h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
         self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
                  f"filtering; registration {reg.reason} (fitness {reg.fitness:.3f}, correction "
-                 f"{reg.correction_m * 1e3:.2f} mm / {reg.correction_deg:.3f} deg); H_ROI {h}")
-        if self._on_progress is not None:
-            self._on_progress(self)
-        return int(update.points_base.shape[0])
+                 f"{reg.correction_m * 1e3:.2f} mm / {reg.correction_deg:.3f} deg, {reg.n_constrained} of 6 "
+                 f"directions constrained); H_ROI {h}")

@@ -43,29 +43,53 @@ class PackingBox:
         return local @ np.array([[c, s], [-s, c]]) + self.center_xy
 
 
+# Yaws tried by the trimmed footprint search [rad]: 0.5 deg apart over a quarter turn (a rectangle's
+# footprint repeats every 90 deg); a 0.25 deg yaw error costs a 0.3 m box well under 1 % of IoU.
+_YAW_CANDIDATES = np.deg2rad(np.arange(0.0, 90.0, 0.5))
+
+
+def _trimmed_footprint(xy: Array, trim: float) -> tuple[Array, Array, float]:
+    """The rectangle of least area holding all but the ``trim`` share of the points (K, 2) beyond each of
+    its four sides, among yaws of ``_YAW_CANDIDATES``: its centre (2,), extent (2,) along its axes and
+    yaw [rad].
+
+    The exact minimum-area rectangle takes its yaw from the convex hull, i.e. from a few outlying
+    points: on a noisy shell of a square base it can be off by 10 deg or more, which costs more IoU than
+    the noise itself. The quantile sides are what the box keeps, so the yaw is chosen on them."""
+    c, s = np.cos(_YAW_CANDIDATES), np.sin(_YAW_CANDIDATES)
+    u = xy[:, 0:1] * c + xy[:, 1:2] * s  # (K, Y) coordinates along each candidate's first axis
+    v = -xy[:, 0:1] * s + xy[:, 1:2] * c
+    lo_u, hi_u = np.quantile(u, [trim, 1.0 - trim], axis=0)
+    lo_v, hi_v = np.quantile(v, [trim, 1.0 - trim], axis=0)
+    best = int(np.argmin((hi_u - lo_u) * (hi_v - lo_v)))
+    yaw = float(_YAW_CANDIDATES[best])
+    axes = np.array([[c[best], s[best]], [-s[best], c[best]]])
+    centre = 0.5 * np.array([lo_u[best] + hi_u[best], lo_v[best] + hi_v[best]]) @ axes
+    return centre, np.array([hi_u[best] - lo_u[best], hi_v[best] - lo_v[best]]), yaw
+
+
 def box_from_points(points_base: Array, table_z: float | None = None, trim: float = 0.0) -> PackingBox:
     """The packing box of object points (N >= 1, 3) [m], base frame: yaw of the minimum-area rectangle of
     their table-plane projection; height from ``table_z`` (or the lowest point when None) up.
 
     ``trim`` in [0, 0.5): the box's faces are the ``trim`` and ``1 - trim`` quantiles of the points along
     its L and W axes and the ``1 - trim`` quantile of their heights, instead of the extremes, so that a few
-    noisy voxels on the segmented object's shell do not grow it (0: every point inside)."""
+    noisy points on the object's shell do not grow it, and the yaw is the one whose trimmed rectangle
+    has the least area (:func:`_trimmed_footprint`); 0: every point inside, the exact minimum-area
+    rectangle."""
     if points_base.shape[0] == 0:
         raise ValueError("box_from_points: no points")
     if not 0.0 <= trim < 0.5:
         raise ValueError(f"box_from_points: trim must be in [0, 0.5), got {trim}")
-    centre, extent, yaw = min_area_rectangle(points_base[:, :2])
+    if trim > 0.0:
+        centre, extent, yaw = _trimmed_footprint(points_base[:, :2], trim)
+    else:
+        centre, extent, yaw = min_area_rectangle(points_base[:, :2])
+    if extent[1] > extent[0]:
+        extent = extent[::-1]
+        yaw = yaw + math.pi / 2.0 if yaw <= 0.0 else yaw - math.pi / 2.0
     z_min = float(points_base[:, 2].min()) if table_z is None else float(table_z)
     top = float(np.quantile(points_base[:, 2], 1.0 - trim))
-    if trim > 0.0:
-        axes = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
-        uv = (points_base[:, :2] - centre) @ axes.T
-        lo, hi = np.quantile(uv, trim, axis=0), np.quantile(uv, 1.0 - trim, axis=0)
-        centre = centre + 0.5 * (lo + hi) @ axes
-        extent = hi - lo
-        if extent[1] > extent[0]:
-            extent = extent[::-1]
-            yaw = yaw + math.pi / 2.0 if yaw <= 0.0 else yaw - math.pi / 2.0
     return PackingBox(center_xy=centre, dims=np.array([extent[0], extent[1], max(top - z_min, 0.0)]),
                       yaw_rad=yaw, z_min=z_min)
 

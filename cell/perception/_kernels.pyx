@@ -5,15 +5,19 @@
   OctoMap's sensor model (visual-servoing paper section II-A 3), by exact voxel traversal
   (Amanatides and Woo, 1987);
 - ``knn_mean_distances``: the mean distance of each point to its k nearest neighbours, the statistic of
-  the statistical outlier removal (``filters.statistical_outlier_mask``), by an exact uniform-grid search.
+  the statistical outlier removal (``filters.statistical_outlier_mask``), by an exact uniform-grid search;
+- ``nearest_within`` / ``k_nearest_within``: exact grid searches for ICP correspondences and normals;
+- ``voxel_groups``: crop box and voxel filter in one pass over a raw frame (``cloud.voxel_downsample``);
+- ``plane_normals``: covariance and smallest eigenvector per neighbourhood (``registration.estimate_normals``);
+- ``radius_components``: Euclidean clusters by union-find (``segmentation.euclidean_cluster_labels``).
 
-Both are plain loops over typed memoryviews (no numpy C API): the callers own the arrays and their
+All are plain loops over typed memoryviews (no numpy C API): the callers own the arrays and their
 layout, and check shapes and dtypes before calling.
 """
 
-from libc.math cimport INFINITY, NAN, floor, isnan, sqrt
-from libc.stdint cimport int32_t, int64_t, uint8_t, uint32_t
-from libc.stdlib cimport free, malloc, realloc
+from libc.math cimport INFINITY, fabs, floor, isnan, sqrt
+from libc.stdint cimport int32_t, int64_t, uint8_t, uint32_t, uint64_t
+from libc.stdlib cimport free, malloc
 
 cdef enum:
     BLOCK_BITS = 4
@@ -185,36 +189,6 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
     return g.n_blocks, bool(ok)
 
 
-cdef struct Buf:
-    double* d2       # squared distances of the candidates found so far
-    Py_ssize_t n
-    Py_ssize_t cap
-
-
-cdef bint _push_run(const double* points, Py_ssize_t i, Py_ssize_t first, Py_ssize_t last,
-                    Buf* buf) noexcept nogil:
-    """Append the squared distances from point i to points first..last-1 (i itself excluded); False when
-    memory runs out."""
-    cdef Py_ssize_t j, need = buf.n + (last - first)
-    cdef double dx, dy, dz
-    cdef double px = points[3 * i], py = points[3 * i + 1], pz = points[3 * i + 2]
-    cdef double* grown
-    if need > buf.cap:
-        grown = <double*>realloc(buf.d2, 2 * need * sizeof(double))
-        if grown == NULL:
-            return False
-        buf.d2, buf.cap = grown, 2 * need
-    for j in range(first, last):
-        if j == i:
-            continue
-        dx = points[3 * j] - px
-        dy = points[3 * j + 1] - py
-        dz = points[3 * j + 2] - pz
-        buf.d2[buf.n] = dx * dx + dy * dy + dz * dz
-        buf.n += 1
-    return True
-
-
 cdef double _select(double* a, Py_ssize_t n, Py_ssize_t k) noexcept nogil:
     """Rearrange a[0..n-1] so that a[0..k-1] are its k smallest values (k <= n); returns the k-th smallest
     (Hoare's quickselect, median-of-three pivots)."""
@@ -254,55 +228,108 @@ cdef double _select(double* a, Py_ssize_t n, Py_ssize_t k) noexcept nogil:
     return t
 
 
-cdef double _knn_mean_one(const double* pts, const int64_t[:, ::1] cells, const int64_t[::1] starts,
-                          int64_t nx, int64_t ny, int64_t nz, double cell_m, const double[::1] lo, int k,
-                          Py_ssize_t i, Buf* buf) noexcept nogil:
-    """knn_mean_distances for point i, with the caller's buffer; NaN when memory runs out."""
-    cdef int64_t r = 1, cx = cells[i, 0], cy = cells[i, 1], cz = cells[i, 2]
-    cdef int64_t x, y, x0, x1, y0, y1, z0, z1, c
-    cdef double reach, s = 0.0
-    cdef bint ok = True
+
+cdef inline Py_ssize_t _scan_run(const double* pts, Py_ssize_t i, Py_ssize_t first, Py_ssize_t last,
+                                 double* buf, Py_ssize_t n) noexcept nogil:
+    """Append to buf[n..] the squared distances from point i to points first..last-1 (i excluded);
+    returns the new length."""
+    cdef Py_ssize_t j
+    cdef double dx, dy, dz
+    cdef double px = pts[3 * i], py = pts[3 * i + 1], pz = pts[3 * i + 2]
+    for j in range(first, last):
+        dx = pts[3 * j] - px
+        dy = pts[3 * j + 1] - py
+        dz = pts[3 * j + 2] - pz
+        buf[n] = dx * dx + dy * dy + dz * dz
+        n += j != i
+    return n
+
+
+cdef Py_ssize_t _scan_box(const double* pts, const int64_t* starts, int64_t nx, int64_t ny, int64_t nz,
+                          int64_t x0, int64_t x1, int64_t y0, int64_t y1, int64_t z0, int64_t z1, int64_t cx,
+                          int64_t cy, int64_t cz, int64_t r, Py_ssize_t i, double* buf,
+                          Py_ssize_t n) noexcept nogil:
+    """Append to buf[n..] the squared distances from point i to the points of the cells in the box
+    [x0, x1] x [y0, y1] x [z0, z1] (clamped to the grid) outside the cube of Chebyshev radius r around
+    cell (cx, cy, cz) (r < 0: none excluded); returns the new length."""
+    cdef int64_t x, y, c, e0, e1
+    x0, x1 = max(x0, 0), min(x1, nx - 1)
+    y0, y1 = max(y0, 0), min(y1, ny - 1)
+    z0, z1 = max(z0, 0), min(z1, nz - 1)
+    if z0 > z1:
+        return n
+    for x in range(x0, x1 + 1):
+        for y in range(y0, y1 + 1):
+            c = (x * ny + y) * nz
+            e0, e1 = max(cz - r, z0), min(cz + r, z1)
+            if r < 0 or x < cx - r or x > cx + r or y < cy - r or y > cy + r or e0 > e1:
+                n = _scan_run(pts, i, starts[c + z0], starts[c + z1 + 1], buf, n)
+                continue
+            # the column passes through the excluded cube: the runs below and above it
+            if z0 < e0:
+                n = _scan_run(pts, i, starts[c + z0], starts[c + e0], buf, n)
+            if e1 < z1:
+                n = _scan_run(pts, i, starts[c + e1 + 1], starts[c + z1 + 1], buf, n)
+    return n
+
+
+cdef inline Py_ssize_t _front(double* buf, Py_ssize_t n, double bound) noexcept nogil:
+    """Move the values of buf[0..n-1] at most ``bound`` to its front (branch-free swaps; the order of
+    the others is kept behind them); returns how many there are."""
+    cdef Py_ssize_t j, m = 0
+    cdef double t
+    for j in range(n):
+        t = buf[j]
+        buf[j] = buf[m]
+        buf[m] = t
+        m += t <= bound
+    return m
+
+
+cdef double _knn_mean_one(const double* pts, const int64_t* cells, const int64_t* starts, int64_t nx,
+                          int64_t ny, int64_t nz, double cell_m, const double* lo, int k, Py_ssize_t i,
+                          double* buf, double* hint) noexcept nogil:
+    """knn_mean_distances for point i, with the caller's buffer buf (N,) and hint (the previous point's
+    squared k-th distance, updated); arrays as raw pointers (a memoryview argument costs a reference
+    count per call)."""
+    cdef int64_t r = 1, cx = cells[3 * i], cy = cells[3 * i + 1], cz = cells[3 * i + 2]
+    cdef double px = pts[3 * i], py = pts[3 * i + 1], pz = pts[3 * i + 2]
+    cdef double reach, dk, kth, s = 0.0
+    cdef Py_ssize_t n, m2
     cdef int m
-    buf.n = 0
-    while True:
-        x0, x1 = max(cx - r, 0), min(cx + r, nx - 1)
-        y0, y1 = max(cy - r, 0), min(cy + r, ny - 1)
-        z0, z1 = max(cz - r, 0), min(cz + r, nz - 1)
-        for x in range(x0, x1 + 1):
-            for y in range(y0, y1 + 1):
-                c = (x * ny + y) * nz
-                if r == 1 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
-                    ok = ok and _push_run(pts, i, starts[c + z0], starts[c + z1 + 1], buf)
-                else:  # inside the shell's x-y extent: only its two z caps are new
-                    if cz - r >= 0:
-                        ok = ok and _push_run(pts, i, starts[c + cz - r], starts[c + cz - r + 1], buf)
-                    if cz + r < nz:
-                        ok = ok and _push_run(pts, i, starts[c + cz + r], starts[c + cz + r + 1], buf)
-        if not ok:
-            return NAN
-        # distance from the point to the nearest face of the scanned cube with cells beyond it
-        reach = INFINITY
-        if cx - r > 0:
-            reach = min(reach, pts[3 * i] - (lo[0] + (cx - r) * cell_m))
-        if cx + r < nx - 1:
-            reach = min(reach, lo[0] + (cx + r + 1) * cell_m - pts[3 * i])
-        if cy - r > 0:
-            reach = min(reach, pts[3 * i + 1] - (lo[1] + (cy - r) * cell_m))
-        if cy + r < ny - 1:
-            reach = min(reach, lo[1] + (cy + r + 1) * cell_m - pts[3 * i + 1])
-        if cz - r > 0:
-            reach = min(reach, pts[3 * i + 2] - (lo[2] + (cz - r) * cell_m))
-        if cz + r < nz - 1:
-            reach = min(reach, lo[2] + (cz + r + 1) * cell_m - pts[3 * i + 2])
-        if buf.n >= k and _select(buf.d2, buf.n, k) <= reach * reach:
-            break  # exact: nothing unscanned is closer
-        if reach == INFINITY:
-            break  # nothing is left to scan
+    n = _scan_box(pts, starts, nx, ny, nz, cx - 1, cx + 1, cy - 1, cy + 1, cz - 1, cz + 1, cx, cy, cz, -1, i,
+                  buf, 0)
+    # too few yet: grow the cube shell by shell until k are held (N > k: the grid holds them)
+    while n < k:
         r += 1
-    m = k if buf.n >= k else <int>buf.n
-    for c in range(m):
-        s += sqrt(buf.d2[c])
-    return s / m if m > 0 else INFINITY
+        n = _scan_box(pts, starts, nx, ny, nz, cx - r, cx + r, cy - r, cy + r, cz - r, cz + r, cx, cy, cz, r - 1,
+                      i, buf, n)
+    # distance from the point to the outside of the scanned cube: nothing beyond it can be closer
+    reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
+                min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
+                    min(pz - (lo[2] + (cz - r) * cell_m), lo[2] + (cz + r + 1) * cell_m - pz)))
+    # When k candidates lie within a bound, the k nearest are among them: move those to the front (a
+    # branch-free pass of swaps, the others kept behind) and select among them only: the mispredicted
+    # branches of the selection cost far more than the distances. The bound is first the previous
+    # point's k-th distance widened by 20% (points come in grid order: a neighbour's, mostly), then the
+    # reach of the cube.
+    m2 = _front(buf, n, min(reach * reach, 1.44 * hint[0]))
+    if m2 < k:
+        m2 = _front(buf, n, reach * reach)
+    kth = _select(buf, m2 if m2 >= k else n, k)
+    hint[0] = kth
+    if kth > reach * reach:
+        # exact: add the cells within the k-th distance of the point that the cube left out
+        dk = sqrt(kth)
+        n = _scan_box(pts, starts, nx, ny, nz,
+                      <int64_t>floor((px - dk - lo[0]) / cell_m), <int64_t>floor((px + dk - lo[0]) / cell_m),
+                      <int64_t>floor((py - dk - lo[1]) / cell_m), <int64_t>floor((py + dk - lo[1]) / cell_m),
+                      <int64_t>floor((pz - dk - lo[2]) / cell_m), <int64_t>floor((pz + dk - lo[2]) / cell_m),
+                      cx, cy, cz, r, i, buf, k)
+        _select(buf, n, k)
+    for m in range(k):
+        s += sqrt(buf[m])
+    return s / k
 
 
 def knn_mean_distances(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,
@@ -313,28 +340,41 @@ def knn_mean_distances(const double[:, ::1] points, const int64_t[:, ::1] cells,
     The points (N, 3) lie in a grid of ``cell_m`` cells with corner ``lo`` and shape (nx, ny, nz), sorted
     by flat cell index (x, y, z) so that a cell's points, and a column of cells along z, are contiguous;
     ``cells`` (N, 3) their cell indices, ``starts`` (nx * ny * nz + 1,) where each cell's run begins.
-    The search gathers the distances to the points of the cube of 3^3 cells around a point's cell, then
-    of the shells of cells at Chebyshev distance r = 2, 3, ..., and stops when k are gathered and the
-    k-th smallest (a quickselect) is within the distance from the point to the outside of the scanned
-    cube, so the result is exact. Needs N > k.
+    The search gathers the squared distances to the points of the cube of 3^3 cells around a point's
+    cell, growing it by shells of cells until k are gathered, and selects the k-th smallest (quickselect)
+    among those below a bound when k of them are (the previous point's k-th distance widened by 20%,
+    else the distance to the outside of the cube), else among all; when that distance reaches outside
+    the cube, the cells of the box of that radius around the point
+    that the cube left out are gathered too (after the k kept) and the selection is repeated, so the
+    result is exact. The k distances are summed in an order fixed by the points' order. Needs N > k.
     """
     cdef Py_ssize_t i, n = points.shape[0]
-    cdef Buf buf
     cdef const double* pts = &points[0, 0]
-    buf.cap = 256
-    buf.d2 = <double*>malloc(buf.cap * sizeof(double))
-    if buf.d2 == NULL:
+    cdef double hint = INFINITY
+    cdef double* buf = <double*>malloc(n * sizeof(double))
+    if buf == NULL:
         raise MemoryError()
-    try:
-        with nogil:
-            for i in range(n):
-                out[i] = _knn_mean_one(pts, cells, starts, nx, ny, nz, cell_m, lo, k, i, &buf)
-                if isnan(out[i]):
-                    break
-        if n and isnan(out[i]):
-            raise MemoryError()
-    finally:
-        free(buf.d2)
+    with nogil:
+        for i in range(n):
+            out[i] = _knn_mean_one(pts, &cells[0, 0], &starts[0], nx, ny, nz, cell_m, &lo[0], k, i, buf,
+                                   &hint)
+    free(buf)
+
+
+cdef inline void _nearest_in_run(const double* pts, Py_ssize_t first, Py_ssize_t last, double px, double py,
+                                 double pz, double* best, Py_ssize_t* best_j) noexcept nogil:
+    """Keep in best / best_j the squared distance and index of the nearest of points first..last-1
+    to (px, py, pz) if nearer than best (ties: the earlier point)."""
+    cdef Py_ssize_t j
+    cdef double dx, dy, dz, d2
+    for j in range(first, last):
+        dx = pts[3 * j] - px
+        dy = pts[3 * j + 1] - py
+        dz = pts[3 * j + 2] - pz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best[0]:
+            best[0] = d2
+            best_j[0] = j
 
 
 def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny, int64_t nz,
@@ -349,9 +389,10 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
     query to the outside of the cube, or that distance reaches ``max_m``: the result is exact. Ties go to
     the point scanned first (lowest cell, then lowest index).
     """
-    cdef Py_ssize_t q, j, nq = queries.shape[0]
-    cdef int64_t r, cx, cy, cz, x, y, z, x0, x1, y0, y1, z0, z1, c, best_j
-    cdef double px, py, pz, dx, dy, dz, d2, best, reach, max2 = max_m * max_m
+    cdef Py_ssize_t q, nq = queries.shape[0]
+    cdef int64_t r, cx, cy, cz, x, y, x0, x1, y0, y1, z0, z1, c
+    cdef Py_ssize_t best_j
+    cdef double px, py, pz, best, reach, max2 = max_m * max_m
     cdef const double* pts = &points[0, 0]
     with nogil:
         for q in range(nq):
@@ -369,19 +410,19 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
                 for x in range(x0, x1 + 1):
                     for y in range(y0, y1 + 1):
                         c = (x * ny + y) * nz
-                        for z in range(z0, z1 + 1):
-                            # only the shell at Chebyshev distance r is new
-                            if (r > 0 and x != cx - r and x != cx + r and y != cy - r and y != cy + r
-                                    and z != cz - r and z != cz + r):
-                                continue
-                            for j in range(starts[c + z], starts[c + z + 1]):
-                                dx = pts[3 * j] - px
-                                dy = pts[3 * j + 1] - py
-                                dz = pts[3 * j + 2] - pz
-                                d2 = dx * dx + dy * dy + dz * dz
-                                if d2 < best:
-                                    best = d2
-                                    best_j = j
+                        # only the shell at Chebyshev distance r is new: a whole column on its x-y
+                        # boundary, else its two z caps
+                        if r == 0 or x == cx - r or x == cx + r or y == cy - r or y == cy + r:
+                            if z0 <= z1:  # else the query's cube lies above or below the grid
+                                _nearest_in_run(pts, starts[c + z0], starts[c + z1 + 1], px, py, pz, &best,
+                                                &best_j)
+                            continue
+                        if 0 <= cz - r < nz:
+                            _nearest_in_run(pts, starts[c + cz - r], starts[c + cz - r + 1], px, py, pz,
+                                            &best, &best_j)
+                        if 0 <= cz + r < nz:
+                            _nearest_in_run(pts, starts[c + cz + r], starts[c + cz + r + 1], px, py, pz,
+                                            &best, &best_j)
                 # distance from the query to the outside of the scanned cube
                 reach = min(min(px - (lo[0] + (cx - r) * cell_m), lo[0] + (cx + r + 1) * cell_m - px),
                             min(min(py - (lo[1] + (cy - r) * cell_m), lo[1] + (cy + r + 1) * cell_m - py),
@@ -450,3 +491,350 @@ def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int
                 out_index[q, m] = best_j[m] if m < found else -1
     free(best)
     free(best_j)
+
+
+cdef enum:
+    KEY_BITS = 21  # per axis of a packed voxel key: +-2^20 voxels
+
+
+cdef inline int64_t _floor(double x) noexcept nogil:
+    """floor(x) as an integer for |x| < 2^62, without a call into libm (no SSE4.1 rounding in the
+    baseline x86-64 instruction set)."""
+    cdef int64_t t = <int64_t>x
+    return t - (x < t)
+
+
+cdef inline uint64_t _hash(int64_t key) noexcept nogil:
+    """Mix the bits of a packed key (the finaliser of splitmix64)."""
+    cdef uint64_t h = <uint64_t>key
+    h = (h ^ (h >> 30)) * <uint64_t>0xbf58476d1ce4e5b9
+    h = (h ^ (h >> 27)) * <uint64_t>0x94d049bb133111eb
+    return h ^ (h >> 31)
+
+
+cdef bint _rehash(int64_t** table_key, int32_t** table_group, int64_t cap, const int64_t* keys,
+                  Py_ssize_t n_groups) noexcept nogil:
+    """Replace the hash table by one of ``cap`` slots holding the n_groups keys; False when out of
+    memory (the old table is kept)."""
+    cdef int64_t* tk = <int64_t*>malloc(cap * sizeof(int64_t))
+    cdef int32_t* tg = <int32_t*>malloc(cap * sizeof(int32_t))
+    cdef uint64_t h, mask = <uint64_t>(cap - 1)
+    cdef Py_ssize_t g
+    if tk == NULL or tg == NULL:
+        free(tk)
+        free(tg)
+        return False
+    for g in range(cap):
+        tg[g] = -1
+    for g in range(n_groups):
+        h = _hash(keys[g]) & mask
+        while tg[h] >= 0:
+            h = (h + 1) & mask
+        tg[h] = <int32_t>g
+        tk[h] = keys[g]
+    free(table_key[0])
+    free(table_group[0])
+    table_key[0], table_group[0] = tk, tg
+    return True
+
+
+cdef inline void _accumulate(const double* pts, Py_ssize_t i, int32_t g, int32_t* group, double* sums,
+                             int64_t* counts) noexcept nogil:
+    """Point i joins voxel g."""
+    group[i] = g
+    sums[3 * g] += pts[3 * i]
+    sums[3 * g + 1] += pts[3 * i + 1]
+    sums[3 * g + 2] += pts[3 * i + 2]
+    counts[g] += 1
+
+
+def voxel_groups(const double[:, ::1] points, double voxel_m, const double[::1] box_lo,
+                 const double[::1] box_hi, bint crop, int64_t[::1] keys_out, int32_t[::1] group_out,
+                 double[:, ::1] sums_out, int64_t[::1] counts_out):
+    """Group points (N, 3) [m] by voxel of a ``voxel_m`` grid anchored at the origin, in one pass.
+
+    With ``crop`` only the points strictly inside the box (``box_lo``, ``box_hi``) (3,) count; the others
+    get group -1. Voxels are numbered in the order of their first point: ``keys_out`` (N,) receives the
+    packed key of each voxel (21 bits an axis, x highest, offset to be non-negative, so that sorting the
+    keys sorts by x, then y, then z), ``group_out`` (N,) the voxel of each point, ``sums_out`` (N, 3) and
+    ``counts_out`` (N,) the sum of each voxel's points (added in input order) and their number. Returns
+    the number of voxels, -1 when a kept point is not finite or lies beyond the key range, -2 when out
+    of memory. Grouping goes through an open-addressing hash table kept at most half full, sized by the
+    voxels rather than the points so that it stays in cache (a raw frame has ~15x more points than
+    voxels).
+    """
+    cdef Py_ssize_t i, n = points.shape[0], n_groups = 0
+    cdef int64_t cap = 4096, key, off = 1 << (KEY_BITS - 1)
+    cdef int64_t ix, iy, iz
+    cdef uint64_t mask, h
+    cdef double x, y, z
+    cdef int64_t* table_key = NULL
+    cdef int32_t* table_group = NULL
+    cdef int32_t g, last_group = -1
+    cdef int64_t last_key = -1
+    cdef int status = 0
+    cdef const double* pts
+    cdef int32_t* grp
+    cdef double* sums
+    cdef int64_t* counts
+    if n == 0:
+        return 0
+    pts, grp, sums, counts = &points[0, 0], &group_out[0], &sums_out[0, 0], &counts_out[0]
+    if not _rehash(&table_key, &table_group, cap, &keys_out[0], 0):
+        raise MemoryError()
+    mask = <uint64_t>(cap - 1)
+    with nogil:
+        for i in range(n):
+            x, y, z = points[i, 0], points[i, 1], points[i, 2]
+            if crop and not (box_lo[0] < x < box_hi[0] and box_lo[1] < y < box_hi[1]
+                             and box_lo[2] < z < box_hi[2]):
+                group_out[i] = -1
+                continue
+            x, y, z = x / voxel_m, y / voxel_m, z / voxel_m
+            # NaN fails every comparison: refused here with the out-of-range keys
+            if not (-off <= x < off and -off <= y < off and -off <= z < off):
+                status = -1
+                break
+            ix, iy, iz = _floor(x) + off, _floor(y) + off, _floor(z) + off
+            key = (ix << (2 * KEY_BITS)) | (iy << KEY_BITS) | iz
+            if key == last_key:  # neighbouring pixels of a row share a voxel: no lookup
+                _accumulate(pts, i, last_group, grp, sums, counts)
+                continue
+            h = _hash(key) & mask
+            while table_group[h] >= 0 and table_key[h] != key:
+                h = (h + 1) & mask
+            g = table_group[h]
+            if g < 0:
+                g = <int32_t>n_groups
+                n_groups += 1
+                table_group[h] = g
+                table_key[h] = key
+                keys_out[g] = key
+                sums_out[g, 0] = 0.0
+                sums_out[g, 1] = 0.0
+                sums_out[g, 2] = 0.0
+                counts_out[g] = 0
+                if 2 * n_groups > cap:
+                    cap *= 2
+                    if not _rehash(&table_key, &table_group, cap, &keys_out[0], n_groups):
+                        status = -2
+                        break
+                    mask = <uint64_t>(cap - 1)
+            _accumulate(pts, i, g, grp, sums, counts)
+            last_key, last_group = key, g
+    free(table_key)
+    free(table_group)
+    if status == -2:
+        raise MemoryError()
+    return status if status < 0 else n_groups
+
+
+cdef void _jacobi_eigen3(double* a, double* v) noexcept nogil:
+    """Eigen-decompose the symmetric 3x3 matrix a (row-major, overwritten: its diagonal ends as the
+    eigenvalues) by cyclic Jacobi rotations; v (row-major) receives the eigenvectors as columns."""
+    cdef int sweep, p, q, r
+    cdef double apq, theta, t, c, s, tau, arp, arq, vrp, vrq, off
+    for p in range(9):
+        v[p] = 0.0
+    v[0] = v[4] = v[8] = 1.0
+    for sweep in range(50):
+        off = a[1] * a[1] + a[2] * a[2] + a[5] * a[5]
+        if off <= 1e-30 * (a[0] * a[0] + a[4] * a[4] + a[8] * a[8]) or off == 0.0:
+            return
+        for p in range(2):
+            for q in range(p + 1, 3):
+                apq = a[3 * p + q]
+                if apq == 0.0:
+                    continue
+                theta = (a[3 * q + q] - a[3 * p + p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0))
+                c = 1.0 / sqrt(t * t + 1.0)
+                s = t * c
+                tau = s / (1.0 + c)
+                a[3 * p + p] -= t * apq
+                a[3 * q + q] += t * apq
+                a[3 * p + q] = a[3 * q + p] = 0.0
+                for r in range(3):
+                    if r != p and r != q:
+                        arp, arq = a[3 * r + p], a[3 * r + q]
+                        a[3 * r + p] = a[3 * p + r] = arp - s * (arq + tau * arp)
+                        a[3 * r + q] = a[3 * q + r] = arq + s * (arp - tau * arq)
+                for r in range(3):
+                    vrp, vrq = v[3 * r + p], v[3 * r + q]
+                    v[3 * r + p] = vrp - s * (vrq + tau * vrp)
+                    v[3 * r + q] = vrq + s * (vrp - tau * vrq)
+
+
+def plane_normals(const double[:, ::1] cloud, const int64_t[:, ::1] neighbours, double[:, ::1] out):
+    """Unit normal of each row of ``neighbours`` (M, K) (indices into ``cloud`` (N, 3), -1 after the
+    last): the eigenvector of the smallest eigenvalue of the neighbours' covariance (mean first, then the
+    centred sums), into ``out`` (M, 3); (0, 0, 1) with fewer than 3 neighbours. Its sign is arbitrary."""
+    cdef Py_ssize_t i, j, m = neighbours.shape[0], kk = neighbours.shape[1]
+    cdef int64_t idx
+    cdef int a, b, best
+    cdef double mean[3]
+    cdef double d[3]
+    cdef double cov[9]
+    cdef double vec[9]
+    cdef Py_ssize_t cnt
+    with nogil:
+        for i in range(m):
+            mean[0] = mean[1] = mean[2] = 0.0
+            cnt = 0
+            for j in range(kk):
+                idx = neighbours[i, j]
+                if idx < 0:
+                    break
+                for a in range(3):
+                    mean[a] += cloud[idx, a]
+                cnt += 1
+            if cnt < 3:
+                out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 1.0
+                continue
+            for a in range(3):
+                mean[a] /= cnt
+            for a in range(9):
+                cov[a] = 0.0
+            for j in range(cnt):
+                idx = neighbours[i, j]
+                for a in range(3):
+                    d[a] = cloud[idx, a] - mean[a]
+                for a in range(3):
+                    for b in range(a, 3):
+                        cov[3 * a + b] += d[a] * d[b]
+            cov[3], cov[6], cov[7] = cov[1], cov[2], cov[5]
+            _jacobi_eigen3(cov, vec)
+            best = 0
+            if cov[4] < cov[0]:
+                best = 1
+            if cov[8] < cov[4 * best]:
+                best = 2
+            out[i, 0], out[i, 1], out[i, 2] = vec[best], vec[3 + best], vec[6 + best]
+
+
+cdef inline Py_ssize_t _root(int64_t* parent, Py_ssize_t i) noexcept nogil:
+    """Root of i in the union-find forest, halving the path on the way."""
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+def radius_components(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,
+                      int64_t nx, int64_t ny, int64_t nz, double radius_m, int64_t[::1] root_out):
+    """Connected components of the graph linking the points at most ``radius_m`` apart (as a kd-tree's
+    pair query with that radius), by union-find.
+
+    ``points`` (N, 3) sorted by grid cell as for ``knn_mean_distances`` (``cells`` (N, 3), ``starts``), the
+    cell at least ``radius_m`` so that the 3^3 cells around a point hold all its links. ``root_out`` (N,)
+    receives for each point the lowest index (in this sorted order) of its component.
+    """
+    cdef Py_ssize_t i, j, n = points.shape[0], ri, rj
+    cdef int64_t cx, cy, cz, x, y, c
+    cdef double px, py, pz, dx, dy, dz, r2 = radius_m * radius_m
+    cdef const double* pts = &points[0, 0]
+    cdef int64_t* parent = &root_out[0]
+    with nogil:
+        for i in range(n):
+            parent[i] = i
+        for i in range(n):
+            px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
+            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+                    c = (x * ny + y) * nz
+                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
+                        if j <= i:
+                            continue
+                        dx = pts[3 * j] - px
+                        dy = pts[3 * j + 1] - py
+                        dz = pts[3 * j + 2] - pz
+                        if dx * dx + dy * dy + dz * dz <= r2:
+                            ri = _root(parent, i)
+                            rj = _root(parent, j)
+                            if ri < rj:
+                                parent[rj] = ri
+                            elif rj < ri:
+                                parent[ri] = rj
+        for i in range(n):
+            parent[i] = _root(parent, i)
+
+
+def plane_inlier_counts(const double[:, ::1] points, const double[:, ::1] normals, const double[::1] offsets,
+                        double max_distance_m, int64_t[::1] out):
+    """For each plane n . p + d = 0 (``normals`` (H, 3), ``offsets`` (H,)) the number of points (N, 3)
+    within ``max_distance_m`` [m] of it, into ``out`` (H,) (RANSAC scoring, ``segmentation``)."""
+    cdef Py_ssize_t h, i, nh = normals.shape[0], n = points.shape[0]
+    cdef double a, b, c, d, dist
+    cdef int64_t count
+    with nogil:
+        for h in range(nh):
+            a, b, c, d = normals[h, 0], normals[h, 1], normals[h, 2], offsets[h]
+            count = 0
+            for i in range(n):
+                dist = a * points[i, 0] + b * points[i, 1] + c * points[i, 2] + d
+                count += -max_distance_m <= dist <= max_distance_m
+            out[h] = count
+
+
+def grid_sort(const double[:, ::1] points, const double[::1] lo, double cell_m, int64_t nx, int64_t ny,
+              int64_t nz, int64_t[::1] starts_out, int64_t[::1] order_out, int64_t[:, ::1] cells_out):
+    """Bucket points (N, 3) [m] in the grid of ``cell_m`` cells with corner ``lo`` and shape (nx, ny, nz)
+    (``cloud.PointGrid``) by a counting sort: ``order_out`` (N,) the input index of each point sorted by
+    flat cell index (x, then y, then z; input order within a cell, as a stable argsort), ``cells_out``
+    (N, 3) their cells in that order, ``starts_out`` (nx * ny * nz + 1,) where each cell's run begins.
+    A coordinate past the last cell (rounding at the far face) is clamped into it."""
+    cdef Py_ssize_t i, n = points.shape[0]
+    cdef int64_t c, cx, cy, cz, n_cells = nx * ny * nz
+    cdef int64_t* flat = <int64_t*>malloc(n * sizeof(int64_t) if n else 1)
+    if flat == NULL:
+        raise MemoryError()
+    with nogil:
+        for c in range(n_cells + 1):
+            starts_out[c] = 0
+        for i in range(n):
+            cx = min(_floor((points[i, 0] - lo[0]) / cell_m), nx - 1)
+            cy = min(_floor((points[i, 1] - lo[1]) / cell_m), ny - 1)
+            cz = min(_floor((points[i, 2] - lo[2]) / cell_m), nz - 1)
+            flat[i] = (cx * ny + cy) * nz + cz
+            starts_out[flat[i] + 1] += 1
+        for c in range(n_cells):
+            starts_out[c + 1] += starts_out[c]
+        # scatter with a running cursor per cell, kept in the run starts shifted by one cell
+        for i in range(n):
+            c = flat[i]
+            order_out[starts_out[c]] = i
+            starts_out[c] += 1
+        for c in range(n_cells, 0, -1):
+            starts_out[c] = starts_out[c - 1]
+        starts_out[0] = 0
+        for i in range(n):
+            c = flat[order_out[i]]
+            cells_out[i, 2] = c % nz
+            cells_out[i, 1] = (c // nz) % ny
+            cells_out[i, 0] = c // (nz * ny)
+    free(flat)
+
+
+def radius_counts(const double[:, ::1] points, const int64_t[:, ::1] cells, const int64_t[::1] starts,
+                  int64_t nx, int64_t ny, int64_t nz, double radius_m, int64_t[::1] out):
+    """The number of points (itself included) at most ``radius_m`` from each point, into ``out`` (N,)
+    (DBSCAN's core test, ``segmentation.dbscan_labels``); points and grid as for ``radius_components``."""
+    cdef Py_ssize_t i, j, n = points.shape[0]
+    cdef int64_t cx, cy, cz, x, y, c, count
+    cdef double px, py, pz, dx, dy, dz, r2 = radius_m * radius_m
+    cdef const double* pts = &points[0, 0]
+    with nogil:
+        for i in range(n):
+            px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
+            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+            count = 0
+            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+                    c = (x * ny + y) * nz
+                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
+                        dx = pts[3 * j] - px
+                        dy = pts[3 * j + 1] - py
+                        dz = pts[3 * j + 2] - pz
+                        count += dx * dx + dy * dy + dz * dz <= r2
+            out[i] = count

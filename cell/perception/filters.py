@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, crop_box, voxel_downsample
+from cell.perception.cloud import PointGrid, bounds, crop_voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.depth.base import DepthFrame
 
@@ -91,9 +91,9 @@ def knn_mean_distances(points: Array, k: int) -> Array:
     if not 0 < k < points.shape[0]:
         raise ValueError(f"knn_mean_distances: need 0 < k < N, got k={k}, N={points.shape[0]}")
     pts = np.ascontiguousarray(points, dtype=np.float64)
-    extent = np.maximum(np.ptp(pts, axis=0), 1e-9)
-    cell = float(extent.max()) / 64.0
-    c = np.floor((pts - pts.min(axis=0)) / cell).astype(np.int64)  # at most 65 per axis
+    lo, hi = bounds(pts)
+    cell = max(float((hi - lo).max()), 1e-9) / 64.0
+    c = np.floor((pts - lo) / cell).astype(np.int64)  # at most 65 per axis
     per_cell = pts.shape[0] / np.unique((c[:, 0] * 65 + c[:, 1]) * 65 + c[:, 2]).size
     grid = PointGrid(pts, cell * math.sqrt((k / math.pi) / per_cell), _MAX_GRID_CELLS)
     sorted_mean = np.empty(pts.shape[0])
@@ -145,12 +145,12 @@ def filter_frame(points_sensor: Array, *, crop: CropBox, voxel_m: float, params:
 
     The paper lists voxel filter, crop, SOR; cropping first gives the same points inside the box (the
     voxel grid is anchored at the sensor origin, and a voxel centroid straddling a crop face is the only
-    difference) and makes the voxel step cheaper. SOR comes last so that its statistics are computed on
+    difference) and both are done in one compiled pass over the raw points
+    (``cloud.crop_voxel_downsample``). SOR comes last, as in the paper, so that its statistics are computed on
     the uniform-density voxelized cloud, which is what makes a global distance threshold meaningful.
     Output (M, 3) [m, sensor frame], sorted by voxel key.
     """
-    pts = crop_box(points_sensor, crop.x_m, crop.y_m, crop.z_m)
-    pts = voxel_downsample(pts, voxel_m)
+    pts = crop_voxel_downsample(points_sensor, crop.x_m, crop.y_m, crop.z_m, voxel_m)
     if params.sor_enabled:
         pts = statistical_outlier_removal(pts, params.sor_neighbors, params.sor_std_ratio)
     return pts

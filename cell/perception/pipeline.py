@@ -10,8 +10,11 @@ without blocking the control loop. An exception in the worker is kept and re-rai
 
 from __future__ import annotations
 
+import copy
 import threading
-from dataclasses import dataclass
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,8 +34,11 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
-    frame, the segmented object and its ROI, and H_ROI (eq. 12). ``roi``, ``centroid`` and ``h_roi`` are
-    None until an object has been found."""
+    frame, the segmented object and its ROI, H_ROI (eq. 12) and the occupancy map. ``roi``, ``centroid``
+    and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map when frames
+    are processed in the planner's thread (later frames update it), and a copy taken right after this
+    frame when they are processed asynchronously (``AsyncPerception``), so that a planner never reads a
+    map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -43,6 +49,27 @@ class PerceptionUpdate:
     roi: ROI | None
     centroid: Array | None
     h_roi: float | None
+    map: OccupancyMap
+
+
+class StageTimes:
+    """Wall and CPU time [ms] of each stage of the last frame, in order (diagnostics; printed by
+    benchmarks/perception_cycle.py). CPU time is the calling thread's (``time.thread_time``): in real
+    mode, the perception thread's own, without the control loop's."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, tuple[float, float]] = {}
+        self._wall = self._cpu = 0.0
+
+    def start(self) -> None:
+        self.last = {}
+        self._wall, self._cpu = time.perf_counter(), time.thread_time()
+
+    def lap(self, stage: str) -> None:
+        """Close ``stage``: the time since the previous lap (or the start)."""
+        wall, cpu = time.perf_counter(), time.thread_time()
+        self.last[stage] = ((wall - self._wall) * 1e3, (cpu - self._cpu) * 1e3)
+        self._wall, self._cpu = wall, cpu
 
 
 class PerceptionPipeline:
@@ -61,6 +88,7 @@ class PerceptionPipeline:
         self._target = RegistrationTarget(config.registration)
         self._rng = rng
         self.latest: PerceptionUpdate | None = None
+        self.stage_times = StageTimes()
 
     def filter_frame(self, frame: DepthFrame) -> Array:
         """Points of the frame worth keeping, sensor frame: valid ToF statuses, then crop box, voxel filter
@@ -77,13 +105,19 @@ class PerceptionPipeline:
         if T_fk.shape != (4, 4) or not np.all(np.isfinite(T_fk)):
             raise ValueError(f"T_base_sensor_fk is not a finite 4x4 pose: {T_fk.tolist()}")
         c = self.config
+        clock = self.stage_times
+        clock.start()
         points = self.filter_frame(frame)
+        clock.lap("filter")
         reg = self._target.register(points, T_fk)
+        clock.lap("register")
         T = reg.T_base_sensor
         points_base = transform_points(T, points)
         self.cloud.add(points_base)
+        clock.lap("accumulate")
         if c.registration.enabled:
             self._target.update(self.cloud.points, new=self.cloud.new)
+        clock.lap("normals")
         origin = T[:3, 3]
         self.map.integrate(origin, points_base)
         if frame.zones is not None:
@@ -91,24 +125,31 @@ class PerceptionPipeline:
             if rays.shape[0]:
                 ends = origin + (rays @ T[:3, :3].T) * self.range_max_m
                 self.map.integrate(origin, ends, free_only=np.ones(rays.shape[0], dtype=bool))
+        clock.lap("integrate")
         seg = segment_object(self.map.occupied_centers(), c.segmentation, self._rng,
                              table_z=self.table_z_m)
+        clock.lap("segment")
         roi = seg.roi
         h_roi = self.map.mean_entropy_in_box(roi.aabb_min, roi.aabb_max) if roi is not None else None
+        clock.lap("h_roi")
         update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
                                   points_base=points_base, object_points=seg.object_points, roi=roi,
-                                  centroid=roi.centroid if roi is not None else None, h_roi=h_roi)
+                                  centroid=roi.centroid if roi is not None else None, h_roi=h_roi,
+                                  map=self.map)
         self.latest = update
         return update
 
 
 class AsyncPerception:
     """Runs a ``PerceptionPipeline`` in its own thread (real mode). ``submit`` never blocks: a frame not
-    yet picked up is replaced by the newer one. ``latest`` returns the newest update, or raises what the
+    yet picked up is replaced by the newer one. ``on_update(frame, T_base_sensor_fk, update)`` runs on the
+    worker after each frame (e.g. to record it). ``latest`` returns the newest update, or raises what the
     worker raised."""
 
-    def __init__(self, pipeline: PerceptionPipeline) -> None:
+    def __init__(self, pipeline: PerceptionPipeline,
+                 on_update: Callable[[DepthFrame, Array, PerceptionUpdate], None] | None = None) -> None:
         self.pipeline = pipeline
+        self._on_update = on_update
         self._cond = threading.Condition()
         self._pending: tuple[DepthFrame, Array] | None = None
         self._latest: PerceptionUpdate | None = None
@@ -144,7 +185,9 @@ class AsyncPerception:
                 frame, pose = self._pending
                 self._pending = None
             try:
-                update = self.pipeline.process(frame, pose)
+                update = replace(self.pipeline.process(frame, pose), map=copy.deepcopy(self.pipeline.map))
+                if self._on_update is not None:
+                    self._on_update(frame, pose, update)
             except BaseException as exc:
                 with self._cond:
                     self._error = exc

@@ -65,7 +65,8 @@ from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
 
-from cell.perception.cloud import PointGrid, voxel_downsample
+from cell.perception import _kernels as _k
+from cell.perception.cloud import PointGrid, bounds, cross_rows, in_box, voxel_downsample
 from drivers.config_base import StrictModel
 from drivers.transforms import make_T, rotvec, transform_points
 
@@ -213,21 +214,16 @@ def estimate_normals(points: Array, cloud: Array, radius_m: float) -> Array:
     """Unit normals (M, 3) at ``points`` (M, 3) [m] of the surface sampled by ``cloud`` (N, 3) [m]: the
     eigenvector of the smallest eigenvalue of the covariance of the at most ``MAX_NORMAL_NEIGHBOURS``
     nearest cloud points within ``radius_m`` [m] (Open3D's hybrid search; a point of the cloud counts
-    itself; neighbours from the exact grid search of ``PointGrid``). Their sign is arbitrary
-    (point-to-plane residuals do not depend on it); fewer than 3 neighbours give (0, 0, 1), as Open3D."""
+    itself; neighbours from the exact grid search of ``PointGrid``; covariance and eigenvector in the
+    compiled ``_kernels.plane_normals``, by Jacobi rotations). Their sign is arbitrary (point-to-plane
+    residuals do not depend on it); fewer than 3 neighbours give (0, 0, 1), as Open3D."""
     m = points.shape[0]
     normals = np.tile(np.array([0.0, 0.0, 1.0]), (m, 1))
     if m == 0 or cloud.shape[0] == 0:
         return normals
+    cloud = np.ascontiguousarray(cloud, dtype=np.float64)
     idx = PointGrid(cloud, radius_m).k_nearest_within(points, MAX_NORMAL_NEIGHBOURS, radius_m)
-    found = idx >= 0
-    count = found.sum(axis=1)
-    nb = cloud[np.where(found, idx, 0)] * found[:, :, None]
-    mean = nb.sum(axis=1) / np.maximum(count, 1)[:, None]
-    centred = (nb - mean[:, None, :]) * found[:, :, None]
-    cov = np.einsum("mki,mkj->mij", centred, centred)
-    ok = count >= 3
-    normals[ok] = np.linalg.eigh(cov[ok])[1][:, :, 0]
+    _k.plane_normals(cloud, idx, normals)
     return normals
 
 
@@ -263,7 +259,7 @@ def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stag
                 break
             p, n = moved[ok], target_normals[j[ok]]
             r = np.einsum("ij,ij->i", p - target[j[ok]], n)
-            A = np.hstack([np.cross(p, n), n])
+            A = np.column_stack([cross_rows(p, n), n])
             x = np.linalg.lstsq(np.einsum("ki,kj->ij", A, A), -np.einsum("ki,k->i", A, r), rcond=None)[0]
             T = make_T(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:]) @ T
             # mean squared motion of the source points: at their centroid, plus the turn about it
@@ -289,7 +285,7 @@ def constrained_correction(T_correction: Array, matched_source: Array, matched_n
     c = matched_source.mean(axis=0)
     arm = matched_source - c
     L = max(float(np.sqrt(np.einsum("ij,ij->", arm, arm) / arm.shape[0])), 1e-9)
-    J = np.hstack([np.cross(arm, matched_normals) / L, matched_normals])
+    J = np.column_stack([cross_rows(arm, matched_normals) / L, matched_normals])
     eigval, eigvec = np.linalg.eigh(np.einsum("ki,kj->ij", J, J) / J.shape[0])
     R, t = T_correction[:3, :3], T_correction[:3, 3]
     # The correction as a twist about c: p -> R (p - c) + (R c + t); rotation scaled to metres at L.
@@ -363,7 +359,8 @@ class RegistrationTarget:
             r = self.params.normal_radius_m
             fresh = pts[new]
             # neighbours of the new points lie in their box widened by the radius
-            near = np.all((pts >= fresh.min(axis=0) - r) & (pts <= fresh.max(axis=0) + r), axis=1)
+            lo, hi = bounds(fresh)
+            near = in_box(pts, lo - r, hi + r)
             normals[new] = estimate_normals(fresh, pts[near], r)
         self._points, self._normals = pts, normals
 
@@ -390,8 +387,8 @@ class RegistrationTarget:
         src_base = transform_points(T_fk, src)
         reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", src, src))))
         margin = p.max_correspondence_m[0] + p.max_correction_m + math.radians(p.max_correction_deg) * reach
-        near = np.flatnonzero(np.all((self._points >= src_base.min(axis=0) - margin)
-                                     & (self._points <= src_base.max(axis=0) + margin), axis=1))
+        lo, hi = bounds(src_base)
+        near = np.flatnonzero(in_box(self._points, lo - margin, hi + margin))
         if near.size < p.min_points:
             log.warning("registration skipped: %d target points near the frame, need %d", near.size,
                         p.min_points)

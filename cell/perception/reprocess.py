@@ -13,8 +13,10 @@ then compares the result with the ground truth by eq. 13. ``reprocess_job`` does
    paper's x, y within +-15 cm, z in (5, 40) cm), then a ``voxel_m`` (1 mm) voxel filter per frame;
 3. multiway registration: point-to-plane ICP (coarse to fine, as online) between consecutive frames and
    between non-consecutive frames whose recorded poses are close (loop closures), each started from the
-   recorded relative pose; pairs failing the acceptance checks (fitness, size of the correction) are
-   left out; information matrices from the aligned pairs;
+   recorded relative pose, its correction kept only along the directions the pair's point-to-plane
+   residuals constrain (the degeneracy-aware acceptance of online registration); pairs failing the
+   acceptance checks (fitness, size of the correction) are left out; information matrices from the
+   aligned pairs;
 4. pose-graph optimization (Open3D, Levenberg-Marquardt): node 0 is the base frame (fixed), node k + 1
    frame k, initialised at its recorded pose. Choice written down here: besides the ICP edges (all
    uncertain, so the line process may prune them), every frame has a certain prior edge to the base
@@ -44,9 +46,14 @@ from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt
 
 from cell.config.models import CropBoxConfig
-from cell.perception.cloud import crop_box, voxel_downsample, write_ply
+from cell.perception.cloud import crop_voxel_downsample, voxel_downsample, write_ply
 from cell.perception.metrics import compute_metrics, ground_truth_points
-from cell.perception.registration import coarse_to_fine_icp, o3d_cloud, single_threaded_open3d
+from cell.perception.registration import (
+    coarse_to_fine_icp,
+    constrained_correction,
+    o3d_cloud,
+    single_threaded_open3d,
+)
 from drivers.config_base import StrictModel
 from drivers.depth.projection import back_project
 from drivers.errors import CellError, JobError
@@ -79,7 +86,9 @@ class MultiwayParams(StrictModel):
     recorded sensor origins are within ``loop_max_distance_m`` [m] and their optical axes within
     ``loop_max_angle_deg`` [deg]; ``edge_prune_threshold`` and ``preference_loop_closure`` are Open3D's
     global-optimization options (line-process weight below which a loop closure is pruned; odometry vs
-    loop-closure balance).
+    loop-closure balance); ``min_constraint`` the degeneracy-aware acceptance of online registration
+    (``RegistrationParams.min_constraint``, same default): a pair's correction keeps only the directions
+    its point-to-plane Hessian constrains, the recorded relative pose the others.
     """
 
     icp_voxel_m: float = Field(default=0.0025, ge=0.0)
@@ -97,6 +106,7 @@ class MultiwayParams(StrictModel):
     loop_max_angle_deg: float = Field(default=60.0, ge=0.0, le=180.0)
     edge_prune_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
     preference_loop_closure: PositiveFloat = 1.0
+    min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
 
 
 def _load_result(job_dir: Path) -> dict[str, Any]:
@@ -165,6 +175,22 @@ def _pairs(poses: list[Array], p: MultiwayParams) -> list[tuple[int, int, bool]]
     return out
 
 
+def _constrained_pair(T: Array, T_init: Array, source: o3d.geometry.PointCloud,
+                      target: o3d.geometry.PointCloud, pairs: NDArray[np.int32], min_constraint: float,
+                      ) -> tuple[Array, int]:
+    """The pair's ICP result ``T`` (T_j_i) with its correction of the recorded ``T_init`` projected onto
+    the well-constrained directions of point-to-plane ICP, as online (``constrained_correction``;
+    ``pairs`` (K, 2) the (source, target) correspondences at ``T``); returns it and how many of the 6
+    directions were kept. Needed here too: the pose graph's information matrices are point-to-point ones,
+    which count a slide along a plane as well constrained."""
+    if pairs.shape[0] < 6 or min_constraint <= 0.0:
+        return T, 6
+    matched = transform_points(T, np.asarray(source.points)[pairs[:, 0]])
+    normals = np.asarray(target.normals)[pairs[:, 1]]
+    C, eigval = constrained_correction(T @ inv_T(T_init), matched, normals, min_constraint)
+    return C @ T_init, int(np.count_nonzero(eigval >= min_constraint))
+
+
 def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tuple[list[Array], dict]:
     """Optimized T_base_sensor of every frame and a summary of the pose graph.
 
@@ -182,15 +208,17 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     for k, T in enumerate(poses):
         graph.nodes.append(_reg.PoseGraphNode(T))
         graph.edges.append(_reg.PoseGraphEdge(k + 1, 0, T, info_fk, uncertain=False))
-    n_pairs = n_loops = 0
+    n_pairs = n_loops = n_underconstrained = 0
     rejected: list[dict[str, Any]] = []
     info_dist = p.max_correspondence_m[-1]
     for i, j, loop in _pairs(poses, p):
         if not (len(pcs[i].points) and len(pcs[j].points)):
             continue
         T_init = inv_T(poses[j]) @ poses[i]  # recorded T_j_i: frame i's points into frame j
-        T, fitness, rmse, _ = coarse_to_fine_icp(pcs[i], pcs[j], T_init, p.max_correspondence_m,
-                                                 max_iterations=p.max_iterations, epsilon=p.epsilon)
+        T, fitness, rmse, pairs = coarse_to_fine_icp(pcs[i], pcs[j], T_init, p.max_correspondence_m,
+                                                     max_iterations=p.max_iterations, epsilon=p.epsilon)
+        T, n_constrained = _constrained_pair(T, T_init, pcs[i], pcs[j], pairs, p.min_constraint)
+        n_underconstrained += n_constrained < 6
         corr_m = float(np.linalg.norm(T[:3, 3] - T_init[:3, 3]))
         corr_deg = float(np.degrees(np.linalg.norm(rotvec(T[:3, :3] @ T_init[:3, :3].T))))
         ok = fitness >= p.min_fitness and corr_m <= p.max_correction_m and corr_deg <= p.max_correction_deg
@@ -219,6 +247,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     summary = {
         "fk_prior_edges": len(poses),
         "pair_edges": n_pairs,
+        "underconstrained_pairs": n_underconstrained,
         "loop_closure_edges": n_loops,
         "edges": n_edges,
         "edges_after_pruning": len(graph.edges),
@@ -274,8 +303,7 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     poses: list[Array] = []
     for path in files:
         pts, T = _load_frame(path)
-        kept = crop_box(pts, crop.x_m, crop.y_m, crop.z_m)
-        clouds.append(voxel_downsample(kept, voxel_m))
+        clouds.append(crop_voxel_downsample(pts, crop.x_m, crop.y_m, crop.z_m, voxel_m))
         poses.append(T)
     t_loaded = time.perf_counter()
 

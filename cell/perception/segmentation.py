@@ -14,7 +14,7 @@ The ROI is what the occupancy map samples for the termination entropy H_ROI, the
 the voxels in the box (visual-servoing paper, eq. 12); that mean is computed by the map owner, not here.
 
 Everything is deterministic: RANSAC draws from the ``np.random.Generator`` it is given, and the clusterings
-are exact graph computations (scipy kd-tree + connected components) with ties broken by lowest label.
+are exact graph computations (compiled grid searches and union-find) with ties broken by lowest label.
 """
 
 from __future__ import annotations
@@ -26,10 +26,10 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import ConvexHull, QhullError
 
+from cell.perception import _kernels as _k
+from cell.perception.cloud import PointGrid, cross_rows
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -46,7 +46,11 @@ class SegmentationParams(StrictModel):
     hypotheses drawn; ``table_normal_max_tilt_deg`` only planes whose normal is within this angle of +z
     are accepted as the table; ``min_cluster_points`` a smaller largest cluster means "no object";
     ``seed`` of the RANSAC generator when the caller gives none; ``plane_score_points`` the most points
-    the hypotheses are scored on (an even subset in the given order; the winner is refined on all points).
+    the hypotheses are scored on (an even subset in the given order; the winner is refined on all points);
+    ``table_max_offset_m`` when the table height ``table_z`` is known (the cell's station), RANSAC draws
+    and scores only points within this height of it, so a large horizontal face of the object (the top of
+    a box filling an 8x8 ToF view) is never taken for the table; the default 2 cm is half the height of
+    the flattest shipped object and covers a 1 cm voxel layer plus the ToF's range noise.
 
     On voxel centres, ``plane_distance_m`` must exceed the map resolution: a table lying on a voxel
     boundary occupies two layers one resolution apart, and the upper one would otherwise join the object
@@ -64,6 +68,7 @@ class SegmentationParams(StrictModel):
     table_normal_max_tilt_deg: float = Field(20.0, ge=0.0, le=90.0)
     seed: int = 0
     plane_score_points: int = Field(3000, ge=3)
+    table_max_offset_m: float = Field(0.02, gt=0.0)
 
 
 def threshold_occupancy(centres: Array, probabilities: Array, p_occupied: float = 0.5) -> Array:
@@ -85,27 +90,38 @@ def _fit_plane_lsq(points: Array) -> Array:
     return np.array([n[0], n[1], n[2], -float(n @ centroid)])
 
 
+def _heights(points: Array, normal: Array, offset: float) -> Array:
+    """Signed distances (N,) [m] of points (N, 3) to the plane normal . p + offset = 0 (column by column:
+    a matrix product would wake the BLAS threads for a few thousand points)."""
+    return points[:, 0] * normal[0] + points[:, 1] * normal[1] + points[:, 2] * normal[2] + offset
+
+
 def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.random.Generator,
-                    ) -> Array | None:
+                    table_z: float | None = None) -> Array | None:
     """RANSAC for the table plane (visual-servoing paper section II-A, "remove the ground plane with
     RANSAC"), vectorised over hypotheses.
 
+    With ``table_z`` [m] (the known table height), only the points within ``table_max_offset_m`` of it
+    take part: the plane found passes near the table height, not through a face of the object.
     Hypotheses from 3 random points; only those whose unit normal is within
     ``table_normal_max_tilt_deg`` of +z are scored; the one with most points within ``plane_distance_m``
     wins (first one on ties) and is refined by total least squares on its inliers among all the points.
-    Scoring counts on an even subset of at most ``plane_score_points`` points: the counts are then
-    estimates, but the table holds thousands of voxels and the best plane wins by a wide margin, at a
-    fraction of the cost (200 hypotheses x 12k occupied voxels were ~15 ms a frame). Returns the plane
+    Scoring counts (compiled, ``_kernels.plane_inlier_counts``) on an even subset of at most
+    ``plane_score_points`` points: the counts are then estimates, but the table holds thousands of voxels
+    and the best plane wins by a wide margin, at a fraction of the cost. Returns the plane
     (a, b, c, d) with a x + b y + c z + d = 0, (a, b, c) a unit normal with c > 0, or None when fewer than
     3 points or no acceptable hypothesis.
     """
-    n = points_base.shape[0]
+    drawn = points_base
+    if table_z is not None:
+        drawn = points_base[np.abs(points_base[:, 2] - table_z) <= params.table_max_offset_m]
+    n = drawn.shape[0]
     if n < 3:
         return None
     iters = params.plane_ransac_iterations
     idx = rng.integers(0, n, size=(iters, 3))
-    p0, p1, p2 = points_base[idx[:, 0]], points_base[idx[:, 1]], points_base[idx[:, 2]]
-    normals = np.cross(p1 - p0, p2 - p0)
+    p0, p1, p2 = drawn[idx[:, 0]], drawn[idx[:, 1]], drawn[idx[:, 2]]
+    normals = cross_rows(p1 - p0, p2 - p0)
     norm = np.linalg.norm(normals, axis=1)
     ok = norm > 1e-12
     normals = np.divide(normals, norm[:, None], out=np.zeros_like(normals), where=ok[:, None])
@@ -115,18 +131,16 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
         return None
     normals = normals[ok]
     offsets = -np.einsum("ij,ij->i", normals, p0[ok])
-    scored = points_base
+    scored = drawn
     if n > params.plane_score_points:
-        scored = points_base[np.linspace(0, n - 1, params.plane_score_points).round().astype(np.int64)]
+        scored = drawn[np.linspace(0, n - 1, params.plane_score_points).round().astype(np.int64)]
     counts = np.empty(normals.shape[0], dtype=np.int64)
-    chunk = max(1, 4_000_000 // scored.shape[0])  # bound the (chunk, n) distance matrix to ~32 MB
-    for s in range(0, normals.shape[0], chunk):
-        dist = np.abs(scored @ normals[s:s + chunk].T + offsets[s:s + chunk])
-        counts[s:s + chunk] = np.count_nonzero(dist <= params.plane_distance_m, axis=0)
+    _k.plane_inlier_counts(np.ascontiguousarray(scored), np.ascontiguousarray(normals), offsets,
+                           params.plane_distance_m, counts)
     best = int(np.argmax(counts))
     if counts[best] < 3:
         return None
-    inliers = np.abs(points_base @ normals[best] + offsets[best]) <= params.plane_distance_m
+    inliers = np.abs(_heights(points_base, normals[best], offsets[best])) <= params.plane_distance_m
     plane = _fit_plane_lsq(points_base[inliers])
     if plane[2] < math.cos(math.radians(params.table_normal_max_tilt_deg)):
         plane = np.array([*normals[best], offsets[best]])
@@ -134,37 +148,46 @@ def fit_table_plane(points_base: Array, params: SegmentationParams, rng: np.rand
 
 
 def remove_table_plane(points_base: Array, params: SegmentationParams, rng: np.random.Generator,
-                       ) -> tuple[Array, Array | None]:
+                       table_z: float | None = None) -> tuple[Array, Array | None]:
     """Drop the table: returns (the points more than ``plane_distance_m`` above the RANSAC table plane,
     the plane (a, b, c, d) or None).
 
     The object stands on the table, so points below the plane (noise, or the underside seen through the
-    table) go too. With no acceptable plane every point is returned unchanged with None.
+    table) go too. With no acceptable plane: if ``table_z`` [m] is known, the level plane at that height
+    stands in for it (a view filled by the object shows too little table for RANSAC, but what lies at
+    the table's height is still table) and is returned as the plane; else every point is returned
+    unchanged with None.
     """
-    plane = fit_table_plane(points_base, params, rng)
+    plane = fit_table_plane(points_base, params, rng, table_z)
+    if plane is None and table_z is not None:
+        plane = np.array([0.0, 0.0, 1.0, -float(table_z)])
     if plane is None:
         return points_base, None
-    height = points_base @ plane[:3] + plane[3]
+    height = _heights(points_base, plane[:3], plane[3])
     return points_base[height > params.plane_distance_m], plane
 
 
 # -------------------------------------------------------------------------------------------- clusters
 
 
-def _components(n: int, pairs: NDArray[np.int64]) -> NDArray[np.int32]:
-    graph = coo_matrix((np.ones(pairs.shape[0], dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    return labels
-
-
-def euclidean_cluster_labels(points: Array, tolerance_m: float) -> NDArray[np.int32]:
-    """Label (N,) of each point's Euclidean cluster: connected components of the graph linking points
-    closer than ``tolerance_m`` (PCL's EuclideanClusterExtraction)."""
+def euclidean_cluster_labels(points: Array, tolerance_m: float) -> NDArray[np.int64]:
+    """Label (N,) of each point's Euclidean cluster: connected components of the graph linking points at
+    most ``tolerance_m`` apart (PCL's EuclideanClusterExtraction), numbered 0.. in order of their lowest
+    point index. Union-find over a grid of ``tolerance_m`` cells in the compiled kernel
+    (``_kernels.radius_components``)."""
     n = points.shape[0]
     if n == 0:
-        return np.zeros(0, dtype=np.int32)
-    pairs = cKDTree(points).query_pairs(tolerance_m, output_type="ndarray")
-    return _components(n, pairs)
+        return np.zeros(0, dtype=np.int64)
+    grid = PointGrid(points, tolerance_m)
+    roots_sorted = np.empty(n, dtype=np.int64)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    _k.radius_components(grid.points, grid.cells, grid.starts, nx, ny, nz, tolerance_m, roots_sorted)
+    roots = np.empty(n, dtype=np.int64)
+    roots[grid.order] = grid.order[roots_sorted]  # a component's root, as an input index
+    _, first, inverse = np.unique(roots, return_index=True, return_inverse=True)
+    rank = np.empty(first.size, dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(first.size)
+    return rank[inverse]
 
 
 def _largest(points: Array, labels: NDArray[np.integer], min_points: int) -> Array:
@@ -192,26 +215,27 @@ def dbscan_labels(points: Array, eps_m: float, min_points: int) -> NDArray[np.in
     connected components of core points linked within ``eps_m``; a border point (not core, a core point
     within ``eps_m``) joins the cluster of its nearest core point, which makes the result independent of
     visiting order (classic DBSCAN gives a border point to whichever cluster reaches it first).
-    Cluster labels are numbered 0.. in order of their lowest point index.
+    Cluster labels are numbered 0.. in order of their lowest point index. Neighbour counts, components
+    and nearest core points come from the compiled grid searches (``_kernels``).
     """
     n = points.shape[0]
     labels = np.full(n, -1, dtype=np.int64)
     if n == 0:
         return labels
-    pairs = cKDTree(points).query_pairs(eps_m, output_type="ndarray")
-    counts = 1 + np.bincount(pairs.ravel(), minlength=n)
-    core = counts >= min_points
+    grid = PointGrid(points, eps_m)
+    counts_sorted = np.empty(n, dtype=np.int64)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    _k.radius_counts(grid.points, grid.cells, grid.starts, nx, ny, nz, eps_m, counts_sorted)
+    core = np.empty(n, dtype=bool)
+    core[grid.order] = counts_sorted >= min_points
     if not np.any(core):
         return labels
     core_idx = np.flatnonzero(core)
-    remap = np.full(n, -1, dtype=np.int64)
-    remap[core_idx] = np.arange(core_idx.size)
-    core_pairs = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
-    labels[core_idx] = _components(core_idx.size, remap[core_pairs])
+    labels[core_idx] = euclidean_cluster_labels(points[core_idx], eps_m)
     border = np.flatnonzero(~core)
     if border.size:
-        dist, nearest = cKDTree(points[core_idx]).query(points[border], k=1, distance_upper_bound=eps_m)
-        attached = np.isfinite(dist)
+        nearest, _ = PointGrid(points[core_idx], eps_m).nearest_within(points[border], eps_m)
+        attached = nearest >= 0
         labels[border[attached]] = labels[core_idx[nearest[attached]]]
     return labels
 
@@ -353,15 +377,16 @@ def segment_object(points_base: Array, params: SegmentationParams,
                    ) -> SegmentationResult:
     """The whole segmentation chain (module docstring, steps 2-4) on occupied points (N, 3) [m, base].
 
-    ``rng`` drives RANSAC (default: a generator seeded with ``params.seed``). ``table_z`` [m] overrides
-    the ROI's bottom (e.g. the configured table height); by default the RANSAC plane's height under the
-    object's centroid is used. Returns ``roi = None`` (no exception) when nothing is left.
+    ``rng`` drives RANSAC (default: a generator seeded with ``params.seed``). ``table_z`` [m], the known
+    table height (the cell's station), limits RANSAC to planes near it (``fit_table_plane``) and is the
+    ROI's bottom; without it the RANSAC plane's height under the object's centroid is used. Returns
+    ``roi = None`` (no exception) when nothing is left.
     """
     if rng is None:
         rng = np.random.default_rng(params.seed)
     points_base = np.asarray(points_base, dtype=np.float64).reshape(-1, 3)
     n_input = points_base.shape[0]
-    candidates, plane = remove_table_plane(points_base, params, rng)
+    candidates, plane = remove_table_plane(points_base, params, rng, table_z)
     if params.method == "euclidean":
         obj = largest_euclidean_cluster(candidates, params.cluster_tolerance_m, params.min_cluster_points)
     else:

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.perception.pipeline import PerceptionUpdate
+from drivers.depth.base import SensorModel
 
 Array = NDArray[np.float64]
 
@@ -22,6 +23,9 @@ class ScanSession(Protocol):
     """The services a planner may use during a scan. Poses are 4x4 in the robot base frame."""
 
     config: CellConfig
+    rng: np.random.Generator
+    """The job's generator for a planner's random draws (a stream of the job's ``--seed`` of its own, so
+    planning never changes the noise the simulated devices see)."""
 
     def now(self) -> float:
         """Job time [s] (sim time in sim mode)."""
@@ -29,6 +33,10 @@ class ScanSession(Protocol):
 
     def sensor_pose(self) -> Array:
         """T_base_sensor as reported by the arm and the hand-eye transform."""
+        ...
+
+    def sensor_model(self) -> SensorModel:
+        """The connected sensor's viewing geometry (field of view, pixels or zones, range)."""
         ...
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:

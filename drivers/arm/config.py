@@ -112,4 +112,16 @@ class FrankaArmConfig(StrictModel):
     realtime: Literal["enforce", "ignore"] = "enforce"
 
 
-ArmConfig = Annotated[SimArmConfig | UR5eArmConfig | FrankaArmConfig, Field(discriminator="type")]
+class ReplayArmConfig(StrictModel):
+    """A recorded job's poses played back as a read-only arm (``mode: replay``; see
+    :mod:`drivers.arm.replay`): ``job_dir`` is the job folder and ``model`` the robot that recorded it.
+    It has no home joints: it cannot move."""
+
+    type: Literal["replay"]
+    model: RobotModelName
+    job_dir: str
+    home_joints_rad: None = None
+
+
+ArmConfig = Annotated[SimArmConfig | UR5eArmConfig | FrankaArmConfig | ReplayArmConfig,
+                      Field(discriminator="type")]

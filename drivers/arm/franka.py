@@ -77,14 +77,15 @@ def server_version(host: str, timeout_s: float) -> tuple[bool, int]:
         udp.bind((sock.getsockname()[0], 0))
         request = CONNECT_REQUEST.pack(client_version(), udp.getsockname()[1])
         sock.sendall(CONNECT_HEADER.pack(0, 0, CONNECT_HEADER.size + len(request)) + request)
-        header = _recv_exact(sock, CONNECT_HEADER.size)
+        header = recv_exact(sock, CONNECT_HEADER.size)
         _, _, size = CONNECT_HEADER.unpack(header)
-        payload = _recv_exact(sock, size - CONNECT_HEADER.size)
+        payload = recv_exact(sock, size - CONNECT_HEADER.size)
     status, version = CONNECT_REPLY.unpack(payload[:CONNECT_REPLY.size])
     return status != STATUS_INCOMPATIBLE, version
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
+def recv_exact(sock: socket.socket, n: int) -> bytes:
+    """Exactly ``n`` bytes from ``sock``; ``ConnectionError`` when the other side closes first."""
     data = bytearray()
     while len(data) < n:
         chunk = sock.recv(n - len(data))

@@ -54,6 +54,11 @@ class ReplayArm(Arm):
     def n_joints(self) -> int:
         return self._model.n_joints
 
+    @property
+    def end_time(self) -> float:
+        """The time of the last recorded pose [s, job clock]."""
+        return float(self._times[-1])
+
     def pose_at(self, t: float) -> Array:
         """The recorded T_base_flange at time ``t`` [s] (a copy)."""
         # trajectory times carry 6 decimals: a time within half a microsecond counts as reached

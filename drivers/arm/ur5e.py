@@ -2,12 +2,13 @@
 
 Connections: RTDE receive (state), RTDE control (the control script ur-rtde uploads to port 30003 and
 drives through its register handshake) and the dashboard server (remote control check, unlocking a
-protective stop, power and brakes); RTDE IO (digital outputs) only while outputs are being set. ur-rtde's
-IO interface writes to its socket in its destructor, and when the controller has dropped the connection
-that write throws inside the destructor, which ends the whole process (``std::terminate``, exit 134), so
-an IO interface is opened for each change of the outputs and closed while the controller still answers.
-``connect`` first opens each controller port with ``connect_timeout_s`` so an unreachable controller fails
-fast with its address, and asks the dashboard whether the pendant is in remote control.
+protective stop, power and brakes); RTDE IO (digital outputs) only while outputs are being set. All of
+them live in a child process that this driver owns (:mod:`drivers.arm.ur_rtde_process`,
+:mod:`drivers.arm.ur_rtde_child`): ur-rtde 1.6.5 misbehaves after a dropped connection (its control
+interface reconnects by itself and then runs two receive threads on one socket, which crashes the
+process; its IO interface's destructor aborts the process), and in a child that is a fault, not the end of
+the program. ``connect`` first opens each controller port with ``connect_timeout_s`` so an unreachable
+controller fails fast with its address, and asks the dashboard whether the pendant is in remote control.
 
 Frames: ur-rtde reports and commands the TCP (``setTcp`` from the config); this backend converts to and
 from the flange, which is what the :class:`~drivers.arm.base.Arm` interface speaks.
@@ -15,7 +16,11 @@ from the flange, which is what the :class:`~drivers.arm.base.Arm` interface spea
 Motion:
 - twists: clamped to the config's ceilings, turned into a TCP twist and sent with ``speedL`` (each call
   renews it); the RTDE watchdog (``watchdog_min_hz``) is armed for as long as the arm moves, and every
-  command or ``state()`` call refreshes it, so a control loop that stops calling stops the arm.
+  command or ``state()`` call refreshes it, so a control loop that stops calling stops the arm. A control
+  tick (``state()`` then ``command_twist``) is two round trips to the child: ``command_twist`` checks
+  faults and takes the TCP pose from the state read less than one RTDE period (``rtde_frequency_hz``)
+  ago when there is one, since the receive interface has nothing newer before its next data package;
+  ``benchmarks/ur_rtde_tick.py`` measures the tick.
 - trajectories: a thread streams the joint samples with ``servoJ`` at ``servo_rate_hz``, interpolated at
   wall-clock time. The trajectory is in joint space and the guard checked those joints, so they go out
   as joints: ``servoL`` would let the controller's IK pick a configuration nobody checked.
@@ -26,32 +31,27 @@ Faults, from the controller's safety status and the script's state: "protective 
 "safeguard stop", "safety fault", "power off", "control script not running", "disconnect". A command
 while faulted, a command that returns False, or a lost connection raises ``RobotFault``.
 
-A lost connection is latched as "disconnect" and nothing more is asked of the interfaces. ur-rtde 1.6.5
-reconnects its control interface by itself, from its receive thread, and re-uploads the control script;
-but that thread then keeps running beside the new receive thread it started, the two read the same
-socket, and the process soon ends with a segmentation fault (reproduced against the RTDE peer, not
-avoidable from outside the library). So the arm stays refused, and ``recover`` refuses to reconnect in
-this process and asks for a restart of the program. The arm is stopped all the same: the RTDE watchdog,
-armed whenever it moves, ends the control script when commands stop arriving.
+A lost connection ("disconnect") is the controller closing it, the child process ending for any other
+reason (a crash), an error from ur-rtde on a command, or the child not answering within
+``REPLY_TIMEOUT_S``. The child is then gone: it ends itself as soon as it sees the controller's drop
+(before ur-rtde's own reconnection could send anything), and the driver kills it in every other case, so
+nothing in this process can resume motion. The fault is latched: ``state()`` and every command raise it
+until the operator recovers. The arm is stopped all the same: the RTDE watchdog, armed whenever it
+moves, ends the control script when commands stop arriving.
 
-``recover`` is the operator's action: close the safety popup and unlock the protective stop, power on and
-release the brakes, re-upload the control script, re-send TCP and payload. An emergency stop that is still
-pressed cannot be cleared from software.
+``recover`` is the operator's action: after a lost connection, start a fresh child and connect again
+(control script, TCP and payload); then close the safety popup and unlock the protective stop, power on
+and release the brakes, re-upload the control script, re-send TCP and payload. An emergency stop that is
+still pressed cannot be cleared from software.
 """
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import Literal
-
-import dashboard_client
-import rtde_control
-import rtde_io
-import rtde_receive
+from typing import Any, Literal
 
 from drivers.arm.base import ArmMode, ArmState, JointTrajectory
 from drivers.arm.config import UR5eArmConfig
@@ -65,6 +65,7 @@ from drivers.arm.hardware import (
     shift_twist,
     ur_pose_to_T,
 )
+from drivers.arm.ur_rtde_process import ClientError, ClientGone, RTDEProcess
 from drivers.errors import DriverError, RobotFault
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
@@ -83,9 +84,13 @@ ROBOT_MODE_RUNNING = 7
 SAFETY_FAULT_WORDS = {3: "protective stop", 4: "safety recovery", 5: "safeguard stop", 6: "emergency stop",
                       7: "emergency stop", 8: "safety violation", 9: "safety fault", 12: "safeguard stop",
                       13: "safeguard stop"}
-LOST_CONNECTION = "lost the connection to the controller"
 # how long recovery steps may take on the controller before they count as failed [s]
 RECOVERY_TIMEOUT_S = 10.0
+# how long a command or a state read in the child may take before the child counts as hung [s]; the
+# slowest are the stops (speedStop waits for the deceleration) and script re-uploads
+REPLY_TIMEOUT_S = 5.0
+# ur-rtde's control interface gives up on a control script that does not start after 5 s
+CONTROL_START_TIMEOUT_S = 5.0
 N_DIGITAL = 8
 
 
@@ -101,21 +106,22 @@ class UR5eArm(HardwareArm):
         self._model = model
         self._device = f"arm ur5e at {config.host}"
         self._T_flange_tcp = ur_pose_to_T(config.tcp_offset)
-        self._recv: rtde_receive.RTDEReceiveInterface | None = None
-        self._ctl: rtde_control.RTDEControlInterface | None = None
-        self._dash: dashboard_client.DashboardClient | None = None
-        self._lock = threading.RLock()
+        self._proc: RTDEProcess | None = None
+        self._connected = False
+        self._control = False  # the control interface is open in the child
+        self._lost: RobotFault | None = None  # latched until the operator recovers (module docstring)
+        self._lock = threading.RLock()  # one exchange with the child at a time, and what depends on it
         self._mode = ArmMode.IDLE
         self._watchdog_armed = False
         self._traj_thread: threading.Thread | None = None
         self._traj_cancel = threading.Event()
         self._traj_error: RobotFault | None = None
-        self._lost = False  # the connection was lost (latched, see the module docstring)
+        self._last_snapshot: tuple[float, dict[str, Any]] | None = None  # (time.monotonic(), snapshot)
 
     # ------------------------------------------------------------------ connection
 
     def connect(self) -> None:
-        if self.is_connected:
+        if self._connected:
             return
         cfg = self._config
         for what, port in PORTS.items():
@@ -126,59 +132,91 @@ class UR5eArm(HardwareArm):
                                   f"{cfg.connect_timeout_s:g} s ({exc}); check the address and that the "
                                   f"controller is on", device=self._device) from None
         try:
-            dash = dashboard_client.DashboardClient(cfg.host)
-            dash.connect(int(cfg.connect_timeout_s * 1000))
-            if not dash.isInRemoteControl():
-                dash.disconnect()
+            self._open()
+        except DriverError:
+            self._lost = None  # a failed connect latches nothing: the next connect starts afresh
+            raise
+        self._connected = True
+
+    def _open(self) -> None:
+        """Start a child process and connect its clients; the control script only when the robot is not
+        stopped (a stopped robot cannot start it: connect for reading, so that its fault shows, and let
+        ``recover`` start it once the operator has cleared the stop)."""
+        cfg = self._config
+        self._proc = RTDEProcess()
+        self._proc.start()
+        self._control = False
+        self._watchdog_armed = False
+        self._mode = ArmMode.IDLE
+        timeout = cfg.connect_timeout_s + REPLY_TIMEOUT_S
+        try:
+            self._proc.call("dashboard_connect", cfg.host, int(cfg.connect_timeout_s * 1000),
+                            timeout_s=timeout)
+            if not self._proc.call("dashboard", "isInRemoteControl", timeout_s=REPLY_TIMEOUT_S):
                 raise DriverError("the controller is in local control: switch the teach pendant to Remote "
                                   "Control, then connect again", device=self._device)
-            self._dash = dash
-            self._recv = rtde_receive.RTDEReceiveInterface(cfg.host, cfg.rtde_frequency_hz, RECEIVE_VARIABLES)
-            # a stopped robot cannot start the control script: connect to it for reading, so that its
-            # fault shows; ``recover`` starts the script once the operator has cleared the stop
-            if self._recv.getSafetyMode() not in SAFETY_FAULT_WORDS:
+            self._proc.call("receive_connect", cfg.host, cfg.rtde_frequency_hz, RECEIVE_VARIABLES,
+                            timeout_s=timeout)
+            if self._snapshot()["safety_mode"] not in SAFETY_FAULT_WORDS:
                 self._start_control()
-        except RuntimeError as exc:
-            self._close_clients()
+        except (ClientError, ClientGone) as exc:
+            self._close_process()
             raise DriverError(f"ur-rtde could not connect: {exc}", device=self._device) from None
-        self._mode = ArmMode.IDLE
+        except DriverError:
+            self._close_process()
+            raise
 
     def _start_control(self) -> None:
-        """Open the control interface (ur-rtde uploads its control script) and send the tool."""
+        """Open the control interface (ur-rtde uploads its control script) and send the tool. Raises
+        ``ClientError`` / ``ClientGone`` from the child as they come."""
         cfg = self._config
-        self._ctl = rtde_control.RTDEControlInterface(cfg.host, cfg.rtde_frequency_hz,
-                                                      rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+        with self._lock:
+            assert self._proc is not None
+            self._proc.call("control_connect", cfg.host, cfg.rtde_frequency_hz,
+                            timeout_s=CONTROL_START_TIMEOUT_S + cfg.connect_timeout_s + REPLY_TIMEOUT_S)
+            self._control = True
         self._apply_tool()
 
     def _apply_tool(self) -> None:
         """Send TCP and payload from the config (the control script forgets them when it restarts)."""
         p = self._config.payload
-        self._call("setTcp", lambda c: c.setTcp(self._config.tcp_offset))
-        self._call("setPayload", lambda c: c.setPayload(p.mass_kg, list(p.cog_m)))
+        self._call("setTcp", list(self._config.tcp_offset))
+        self._call("setPayload", p.mass_kg, list(p.cog_m))
 
     def disconnect(self) -> None:
-        """Stop, end the control script and close every connection. Safe to call twice."""
-        if self._recv is None:
+        """Stop, end the control script and close every connection (the child ends). Safe to call twice."""
+        if not self._connected:
             return
         self._cancel_trajectory()
-        if not self._lost and self._ctl is not None and self._ctl.isConnected() and not self._faults():
-            self.stop()
-            self._ctl.stopScript()
-        self._close_clients()
+        try:
+            if self._lost is None and self._control and not self._faults(self._snapshot()):
+                self.stop()
+                self._send("stopScript")
+        except RobotFault as exc:
+            if exc.fault != "disconnect":
+                raise  # a lost connection leaves nothing to stop: the watchdog stops the arm
+        finally:
+            self._close_process()
+            self._connected = False
+            self._lost = None
 
-    def _close_clients(self) -> None:
-        for client in (self._ctl, self._recv, self._dash):
-            if client is not None:
-                # closing a socket the controller already dropped raises in ur-rtde; it is closed either way
-                with contextlib.suppress(RuntimeError):
-                    client.disconnect()
-        self._ctl = self._recv = self._dash = None
-        self._watchdog_armed = False
-        self._lost = False
+    def _close_process(self) -> None:
+        with self._lock:
+            if self._proc is not None:
+                self._proc.close()
+            self._proc = None
+            self._last_snapshot = None
+            self._control = False
+            self._watchdog_armed = False
 
     @property
     def is_connected(self) -> bool:
-        return self._recv is not None
+        return self._connected
+
+    @property
+    def client_pid(self) -> int | None:
+        """The process id of the child that holds the ur-rtde connections, while it runs."""
+        return self._proc.pid if self._proc is not None else None
 
     @property
     def T_flange_tcp(self) -> Array:
@@ -193,101 +231,127 @@ class UR5eArm(HardwareArm):
     def model(self) -> RobotModel:
         return self._model
 
-    def _clients(self) -> tuple[rtde_receive.RTDEReceiveInterface, rtde_control.RTDEControlInterface | None]:
-        """The receive interface and, once the control script could start, the control interface."""
-        if self._recv is None:
-            raise DriverError("not connected (call connect() first)", device=self._device)
-        return self._recv, self._ctl
+    # ------------------------------------------------------------------ the child process
+
+    def _request(self, op: str, *args: object, timeout_s: float = REPLY_TIMEOUT_S) -> Any:
+        """Run ``op`` in the child. A latched loss is raised again; a child that ended or hung becomes a
+        latched loss. ``ClientError`` (ur-rtde raised) is left to the caller."""
+        with self._lock:
+            if self._lost is not None:
+                raise self._lost
+            if self._proc is None:
+                raise DriverError("not connected (call connect() first)", device=self._device)
+            try:
+                return self._proc.call(op, *args, timeout_s=timeout_s)
+            except ClientGone as exc:
+                raise self._lose(str(exc)) from None
+
+    def _lose(self, why: str) -> RobotFault:
+        """Latch a lost connection: the child is killed (if it still runs) and every later request raises
+        the returned fault until ``recover``."""
+        with self._lock:
+            if self._proc is not None:
+                self._proc.kill()
+            self._last_snapshot = None
+            self._lost = RobotFault(f"lost the connection to the controller: {why}", device=self._device,
+                                    fault="disconnect")
+            return self._lost
+
+    def _snapshot(self, kick: bool = False) -> dict[str, Any]:
+        """The controller's state as the child reads it (see ``Clients.snapshot`` in the child)."""
+        try:
+            snap: dict[str, Any] = self._request("snapshot", kick)
+        except ClientError as exc:
+            raise self._lose(f"reading the state: {exc}") from None
+        self._last_snapshot = (time.monotonic(), snap)
+        return snap
+
+    def _recent_snapshot(self) -> dict[str, Any]:
+        """The last snapshot if it is younger than one RTDE period (a new read would return the same
+        data package), else a new one."""
+        last = self._last_snapshot
+        if last is not None and self._lost is None and \
+                time.monotonic() - last[0] < 1.0 / self._config.rtde_frequency_hz:
+            return last[1]
+        return self._snapshot()
+
+    def _send(self, name: str, *args: object) -> None:
+        """Send a control-interface command; an error from ur-rtde is a lost connection, and a False
+        answer a fault."""
+        try:
+            answer = self._request("control", name, args)
+        except ClientError as exc:
+            raise self._lose(f"{name}: {exc}") from None
+        if answer is False:
+            raise self._fault_error(f"{name} failed")
+
+    def _call(self, name: str, *args: object) -> None:
+        """A command that must succeed: refused while faulted (``_send`` otherwise)."""
+        with self._lock:
+            faults = self._faults(self._snapshot())
+            if faults:
+                raise self._fault_error(f"{name} refused", faults)
+            self._send(name, *args)
+
+    def _dashboard(self, name: str) -> object:
+        try:
+            return self._request("dashboard", name)
+        except ClientError as exc:
+            raise self._lose(f"dashboard {name}: {exc}") from None
 
     # ------------------------------------------------------------------ state and faults
 
-    def _connection_lost(self) -> RobotFault:
-        """Latch a lost connection (module docstring) and say so."""
-        self._lost = True
-        return RobotFault(LOST_CONNECTION, device=self._device, fault="disconnect")
-
-    def _faults(self) -> tuple[str, ...]:
-        recv, ctl = self._clients()
-        if self._lost:
-            return ("disconnect",)  # nothing is asked of the interfaces any more
-        if not recv.isConnected() or (ctl is not None and not ctl.isConnected()):
-            self._connection_lost()
-            return ("disconnect",)
+    def _faults(self, snap: dict[str, Any]) -> tuple[str, ...]:
         faults: list[str] = []
-        safety = recv.getSafetyMode()
+        safety = snap["safety_mode"]
         if safety in SAFETY_FAULT_WORDS:
             faults.append(SAFETY_FAULT_WORDS[safety])
-        robot_mode = recv.getRobotMode()
+        robot_mode = snap["robot_mode"]
         if robot_mode != ROBOT_MODE_RUNNING:
             faults.append("power off" if robot_mode in (3, 4, 5)
                           else f"robot mode {ROBOT_MODES.get(robot_mode)}")
-        if ctl is None or not ctl.isProgramRunning():
+        if not snap["program_running"]:
             faults.append("control script not running")
         if self._traj_error is not None and self._traj_error.fault not in faults:
             faults.append(self._traj_error.fault)
         return tuple(dict.fromkeys(faults))
 
     def _fault_error(self, what: str, faults: tuple[str, ...] | None = None) -> RobotFault:
-        faults = self._faults() if faults is None else faults
+        faults = self._faults(self._snapshot()) if faults is None else faults
         fault = faults[0] if faults else "command refused"
         words = ", ".join(faults) if faults else "the controller refused it"
         return RobotFault(f"{what}: {words}", device=self._device, fault=fault)
 
     def state(self) -> ArmState:
-        recv, _ = self._clients()
-        if self._lost or not recv.isConnected():
-            raise self._connection_lost()
-        q = checked_vector(recv.getActualQ(), 6, "actual_q", self._device)
-        qd = checked_vector(recv.getActualQd(), 6, "actual_qd", self._device)
-        T_tcp = ur_pose_to_T(checked_vector(recv.getActualTCPPose(), 6, "actual_TCP_pose", self._device))
-        v_tcp = checked_vector(recv.getActualTCPSpeed(), 6, "actual_TCP_speed", self._device)
+        snap = self._snapshot(kick=self._watchdog_armed)
+        q = checked_vector(snap["q"], 6, "actual_q", self._device)
+        qd = checked_vector(snap["qd"], 6, "actual_qd", self._device)
+        T_tcp = ur_pose_to_T(checked_vector(snap["tcp_pose"], 6, "actual_TCP_pose", self._device))
+        v_tcp = checked_vector(snap["tcp_speed"], 6, "actual_TCP_speed", self._device)
         T_flange = T_tcp @ inv_T(self._T_flange_tcp)
-        faults = self._faults()
+        faults = self._faults(snap)
         streaming = self._traj_thread is not None and self._traj_thread.is_alive()
         if self._mode is ArmMode.TRAJECTORY and not streaming:
             self._mode = ArmMode.IDLE
-        if self._watchdog_armed and not faults:
-            with self._lock:
-                self._ctl_call("kickWatchdog", lambda c: c.kickWatchdog())
-        return ArmState(timestamp=recv.getTimestamp(), q=q, qd=qd, T_base_flange=T_flange,
+        return ArmState(timestamp=snap["timestamp"], q=q, qd=qd, T_base_flange=T_flange,
                         v_base_flange=shift_twist(v_tcp, T_flange[:3, 3] - T_tcp[:3, 3]),
                         mode=ArmMode.FAULT if faults else self._mode, faults=faults)
 
     def controller_modes(self) -> dict[str, str]:
-        recv, ctl = self._clients()
+        snap = self._snapshot()
+        robot_mode, safety_mode = snap["robot_mode"], snap["safety_mode"]
         return {
-            "robot mode": ROBOT_MODES.get(recv.getRobotMode(), str(recv.getRobotMode())),
-            "safety mode": SAFETY_MODES.get(recv.getSafetyMode(), str(recv.getSafetyMode())),
-            "control script": "running" if ctl is not None and ctl.isProgramRunning() else "not running",
-            "digital inputs": "".join("1" if b else "0" for b in self.digital_inputs()),
+            "robot mode": ROBOT_MODES.get(robot_mode, str(robot_mode)),
+            "safety mode": SAFETY_MODES.get(safety_mode, str(safety_mode)),
+            "control script": "running" if snap["program_running"] else "not running",
+            "digital inputs": "".join("1" if b else "0" for b in _bits(snap["digital_inputs"])),
         }
 
     # ------------------------------------------------------------------ commands
 
-    def _ctl_call(self, what: str, fn: Callable[[rtde_control.RTDEControlInterface], object]) -> object:
-        """Call the control interface; a lost connection becomes a ``RobotFault``."""
-        _, ctl = self._clients()
-        if ctl is None:
-            raise RobotFault(f"{what}: the control script never started", device=self._device,
-                             fault="control script not running")
-        try:
-            return fn(ctl)
-        except RuntimeError as exc:
-            self._connection_lost()
-            raise RobotFault(f"{what}: {exc}", device=self._device, fault="disconnect") from None
-
-    def _call(self, what: str, fn: Callable[[rtde_control.RTDEControlInterface], object]) -> None:
-        """A command that must succeed: refused while faulted, and a False answer is a fault."""
-        with self._lock:
-            faults = self._faults()
-            if faults:
-                raise self._fault_error(f"{what} refused", faults)
-            if self._ctl_call(what, fn) is False:
-                raise self._fault_error(f"{what} failed")
-
     def _arm_watchdog(self) -> None:
         if not self._watchdog_armed:
-            self._call("setWatchdog", lambda c: c.setWatchdog(self._config.watchdog_min_hz))
+            self._call("setWatchdog", self._config.watchdog_min_hz)
             self._watchdog_armed = True
 
     def _command_twist(self, v_base_flange: Array) -> None:
@@ -295,26 +359,28 @@ class UR5eArm(HardwareArm):
         v = clamp_twist(checked_vector(v_base_flange, 6, "twist", self._device), cfg.max_linear_mps,
                         cfg.max_angular_rps)
         self._cancel_trajectory()
-        recv, _ = self._clients()
-        T_tcp = ur_pose_to_T(checked_vector(recv.getActualTCPPose(), 6, "actual_TCP_pose", self._device))
-        T_flange = T_tcp @ inv_T(self._T_flange_tcp)
-        v_tcp = shift_twist(v, T_tcp[:3, 3] - T_flange[:3, 3])
         with self._lock:
+            snap = self._recent_snapshot()
+            faults = self._faults(snap)
+            if faults:
+                raise self._fault_error("speedL refused", faults)
+            T_tcp = ur_pose_to_T(checked_vector(snap["tcp_pose"], 6, "actual_TCP_pose", self._device))
+            T_flange = T_tcp @ inv_T(self._T_flange_tcp)
+            v_tcp = shift_twist(v, T_tcp[:3, 3] - T_flange[:3, 3])
             self._arm_watchdog()
-            self._call("speedL", lambda c: c.speedL(v_tcp.tolist(), cfg.acceleration_mps2, 0.0))
+            self._send("speedL", v_tcp.tolist(), cfg.acceleration_mps2, 0.0)
             self._mode = ArmMode.VELOCITY
 
     def _execute_trajectory(self, trajectory: JointTrajectory) -> None:
-        recv, _ = self._clients()
-        q_now = checked_vector(recv.getActualQ(), 6, "actual_q", self._device)
+        q_now = checked_vector(self._snapshot()["q"], 6, "actual_q", self._device)
         check_trajectory(trajectory, self._model, q_now, self._device)
         self._cancel_trajectory()
         with self._lock:
-            faults = self._faults()
+            faults = self._faults(self._snapshot())
             if faults:
                 raise self._fault_error("execute_trajectory() refused", faults)
             if self._mode is ArmMode.VELOCITY:
-                self._call("speedStop", lambda c: c.speedStop(self._config.stop_deceleration_mps2))
+                self._send("speedStop", self._config.stop_deceleration_mps2)
             self._arm_watchdog()
             self._traj_error = None
             self._traj_cancel.clear()
@@ -333,16 +399,14 @@ class UR5eArm(HardwareArm):
             while not self._traj_cancel.is_set():
                 t = time.monotonic() - t0
                 q = interpolate(trajectory, min(t, trajectory.duration)).tolist()
-                with self._lock:
-                    self._call("servoJ", lambda c, q=q: c.servoJ(q, 0.0, 0.0, period, cfg.servo_lookahead_s,
-                                                                 cfg.servo_gain))
+                self._call("servoJ", q, 0.0, 0.0, period, cfg.servo_lookahead_s, cfg.servo_gain)
                 if t >= trajectory.duration:
                     break
                 tick += 1
                 time.sleep(max(0.0, t0 + tick * period - time.monotonic()))
             with self._lock:
                 if not self._traj_cancel.is_set():
-                    self._call("servoStop", lambda c: c.servoStop(cfg.stop_deceleration_mps2))
+                    self._call("servoStop", cfg.stop_deceleration_mps2)
                     self._disarm_watchdog()
                     self._mode = ArmMode.IDLE
         except RobotFault as exc:
@@ -357,64 +421,77 @@ class UR5eArm(HardwareArm):
 
     def _disarm_watchdog(self) -> None:
         if self._watchdog_armed:
-            self._call("setWatchdog", lambda c: c.setWatchdog(0.0))
+            self._call("setWatchdog", 0.0)
             self._watchdog_armed = False
 
     def stop(self) -> None:
         """Decelerate at ``stop_deceleration_mps2``. On a faulted arm the controller has stopped it already,
-        so nothing is sent."""
-        self._clients()
+        and after a lost connection the RTDE watchdog stops it, so nothing is sent."""
+        if not self._connected:
+            raise DriverError("not connected (call connect() first)", device=self._device)
         self._cancel_trajectory()
-        if self._faults():
-            self._mode = ArmMode.IDLE
-            return
         decel = self._config.stop_deceleration_mps2
         with self._lock:
+            if self._lost is not None or self._faults(self._snapshot()):
+                self._mode = ArmMode.IDLE
+                return
             if self._mode is ArmMode.VELOCITY:
-                self._call("speedStop", lambda c: c.speedStop(decel))
+                self._call("speedStop", decel)
             elif self._mode is ArmMode.TRAJECTORY:
-                self._call("servoStop", lambda c: c.servoStop(decel))
+                self._call("servoStop", decel)
             else:
-                self._call("stopL", lambda c: c.stopL(decel))
+                self._call("stopL", decel)
             self._disarm_watchdog()
             self._mode = ArmMode.IDLE
 
     # ------------------------------------------------------------------ recovery (operator action)
 
     def recover(self) -> None:
-        recv, ctl = self._clients()
-        dash = self._dash
-        assert dash is not None
-        if self._lost:
-            raise RobotFault(f"{LOST_CONNECTION}; ur-rtde cannot reconnect safely in this process: restart "
-                             "the program to connect again", device=self._device, fault="disconnect")
+        if not self._connected:
+            raise DriverError("not connected (call connect() first)", device=self._device)
         self._cancel_trajectory()
-        if recv.isEmergencyStopped():
+        if self._lost is not None:
+            self._reconnect()
+        snap = self._snapshot()
+        if snap["emergency_stopped"]:
             raise RobotFault("the emergency stop is pressed: release it on the robot, then recover again",
                              device=self._device, fault="emergency stop")
-        if recv.isProtectiveStopped():
-            dash.closeSafetyPopup()
-            dash.unlockProtectiveStop()
-            self._wait(lambda: not recv.isProtectiveStopped(), "unlocking the protective stop")
-        if recv.getRobotMode() != ROBOT_MODE_RUNNING:
-            dash.powerOn()
-            dash.brakeRelease()
-            self._wait(lambda: recv.getRobotMode() == ROBOT_MODE_RUNNING,
+        if snap["protective_stopped"]:
+            self._dashboard("closeSafetyPopup")
+            self._dashboard("unlockProtectiveStop")
+            self._wait(lambda: not self._snapshot()["protective_stopped"], "unlocking the protective stop")
+        if snap["robot_mode"] != ROBOT_MODE_RUNNING:
+            self._dashboard("powerOn")
+            self._dashboard("brakeRelease")
+            self._wait(lambda: self._snapshot()["robot_mode"] == ROBOT_MODE_RUNNING,
                        "powering on and releasing the brakes")
         self._traj_error = None
         self._watchdog_armed = False
         self._mode = ArmMode.IDLE
-        if ctl is None:
+        if not self._control:
             try:
                 self._start_control()
-            except RuntimeError as exc:
+            except ClientError as exc:
                 raise self._fault_error(f"starting the control script: {exc}") from None
+            except ClientGone as exc:
+                raise self._lose(str(exc)) from None
             return
-        if not ctl.isProgramRunning():
-            if not ctl.reuploadScript():
-                raise self._fault_error("re-uploading the control script")
-            self._wait(ctl.isProgramRunning, "restarting the control script")
+        if not self._snapshot()["program_running"]:
+            self._send("reuploadScript")
+            self._wait(lambda: self._snapshot()["program_running"], "restarting the control script")
         self._apply_tool()
+
+    def _reconnect(self) -> None:
+        """After a lost connection: a fresh child connects again (the lost one was killed). Stays latched
+        as lost when that fails."""
+        lost = self._lost
+        self._close_process()
+        self._lost = None
+        try:
+            self._open()
+        except DriverError:
+            self._lost = self._lost or lost
+            raise
 
     def _wait(self, done: Callable[[], bool], what: str) -> None:
         deadline = time.monotonic() + RECOVERY_TIMEOUT_S
@@ -427,9 +504,7 @@ class UR5eArm(HardwareArm):
 
     def digital_inputs(self) -> tuple[bool, ...]:
         """The eight standard digital inputs, DI0 first."""
-        recv, _ = self._clients()
-        bits = int(recv.getActualDigitalInputBits())
-        return tuple(bool(bits >> i & 1) for i in range(N_DIGITAL))
+        return _bits(self._snapshot()["digital_inputs"])
 
     def trigger(self) -> bool:
         """The line trigger input's level; ``DriverError`` when the config wires none."""
@@ -440,15 +515,16 @@ class UR5eArm(HardwareArm):
     def signal(self, state: Literal["busy", "done", "idle"]) -> None:
         """Drive the busy and done outputs for a packing line: busy while scanning, done when finished."""
         outputs = {self._config.busy_output: state == "busy", self._config.done_output: state == "done"}
-        self._clients()
+        wired = [(index, level) for index, level in outputs.items() if index is not None]
         try:
-            io = rtde_io.RTDEIOInterface(self._config.host)  # see the module docstring
-        except RuntimeError as exc:
-            raise RobotFault(f"opening RTDE IO: {exc}", device=self._device, fault="disconnect") from None
-        try:
-            for index, level in outputs.items():
-                if index is not None and not io.setStandardDigitalOut(index, level):
-                    raise self._fault_error(f"setting digital output {index}")
-        finally:
-            with contextlib.suppress(RuntimeError):  # raises when the controller dropped the connection
-                io.disconnect()
+            refused = self._request("set_outputs", self._config.host, wired)
+        except ClientError as exc:
+            raise RobotFault(f"setting digital outputs through RTDE IO: {exc}", device=self._device,
+                             fault="disconnect") from None
+        if refused is not None:
+            raise self._fault_error(f"setting digital output {refused}")
+
+
+def _bits(value: int) -> tuple[bool, ...]:
+    """The ``N_DIGITAL`` lowest bits of ``value``, bit 0 first."""
+    return tuple(bool(value >> i & 1) for i in range(N_DIGITAL))

@@ -202,6 +202,11 @@ class ReplaySensor(DepthSensor):
         """Frames not yet played."""
         return len(self.recording.frames) - self._next
 
+    @property
+    def next_timestamp(self) -> float | None:
+        """When the next frame not yet played was recorded [s, job clock], None after the last one."""
+        return self.recording.frames[self._next].timestamp if self.remaining else None
+
     def capture(self) -> DepthFrame:
         if not self._connected:
             raise DriverError("capture while disconnected; call connect() first",

@@ -140,6 +140,7 @@ class Controller:
         self.events: list[str] = []
         self.scripts_uploaded = 0
         self.connections: list[socket.socket] = []
+        self.dropped_at: float | None = None  # when every client connection was last dropped [s]
 
     # ------------------------------------------------------------------ helpers
 
@@ -389,7 +390,7 @@ class Controller:
                 "watchdog_hz": self.watchdog_hz, "scripts_uploaded": self.scripts_uploaded,
                 "digital_in": self.digital_in, "digital_out": self.digital_out,
                 "counts": dict(self.counts), "events": list(self.events),
-                "connections": len(self.connections),
+                "connections": len(self.connections), "dropped_at": self.dropped_at,
             }
 
 
@@ -443,6 +444,9 @@ class RTDESession:
         self.outputs: dict[int, _OutputRecipe] = {}
         self.inputs: dict[int, tuple[list[str], list[str]]] = {}
         self.started = False
+        # set when the controller drops the connection: what was read from it but not yet taken is
+        # discarded, as a controller that closed a connection takes nothing more from it
+        self.dropped = False
 
     def send(self, kind: int, payload: bytes = b"") -> None:
         with self.send_lock:
@@ -486,7 +490,9 @@ class RTDESession:
             if rid in self.inputs:
                 names, types = self.inputs[rid]
                 flat = proto.recipe_struct(types).unpack(payload[1:])
-                self.ctl.write_inputs(names, proto.group(types, flat))
+                with self.ctl.lock:
+                    if not self.dropped:
+                        self.ctl.write_inputs(names, proto.group(types, flat))
 
     def publish(self, t: float) -> None:
         """Send the data packages that are due at time ``t``."""
@@ -688,8 +694,11 @@ class PeerServer:
         """Close every client socket (RTDE, dashboard, script), as a controller that reboots would."""
         with self.ctl.lock:
             self.ctl.event("disconnect: every client connection closed")
+            self.ctl.dropped_at = self.ctl.now()
             self.ctl.halt()
             self.ctl.end_program("clients disconnected")
+            for session in self.sessions:
+                session.dropped = True
             for conn in list(self.ctl.connections):
                 if conn.getsockname()[1] == CONTROL_PORT:
                     continue

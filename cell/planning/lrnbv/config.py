@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.config_base import StrictModel
@@ -24,16 +26,24 @@ class LRNBVConfig(StrictModel):
     - ``roi_margin_m``: the ROI of eq. 2 is the object's axis-aligned box grown by this [m] on every side
       (but not below the table), so that the unknown space just around the object seen so far is worth
       exploring;
-    - ``cache_threshold``: tau [utility units], nodes off the best branch above it are cached;
-    - ``rrt_step_m``: RRT extension step [m]; node positions are drawn in the workspace box of the safety
+    - ``cache_threshold``: tau [utility units], nodes off the best branch above it are cached, and a
+      node of the best branch is captured only while its re-scored utility stays above it (0: with the
+      visited gain a node in a visited coarse cell scores about -w_v);
+    - ``capture``: what captureData(B^i) (line 16) captures: ``branch``, the nodes of the best branch
+      from the root outwards (each while its re-scored U stays above tau), or ``best_node``, x* alone;
+    - ``rrt_step_m``: RRT extension step [m], about the diagonal of a visited-grid cell (0.31 m at
+      0.18 m): with a shorter step a tree's first nodes stay in the cell just captured, where G_v = -1
+      puts -w_v on every branch through them (eq. 1), so only short branches near the root stay
+      positive and x* is poor (a 0.15 m step ended a horizontal_box scan after 9 captures at IoU
+      0.76); node positions are drawn in the workspace box of the safety
       config within ``view_distance_m`` (min, max) [m] of the object centre and must pass
       ``sensor_pose_allowed``; nodes closer than ``object_clearance_m`` [m] to the object's box are dropped;
     - ``look_target_spread``: a node's orientation is the best of 9 look-at directions: the object box
       centre and its 8 corners pulled towards the centre to this fraction (0: only the centre);
     - ``settle_s`` [s] waited after a move before a capture; ``max_failed_moves`` moves in a row that the
-      session refuses (unreachable, collision, barrier) end the scan;
+      session refuses (unreachable, collision, barrier) end the scan; nodes within ``refused_radius_m``
+      [m] of a refused position are dropped from later trees and from the cache;
     - ``rgbd_rays_per_side``: rays across a pinhole camera's wider side (the ToF casts one per zone);
-    - ``seed`` of the RRT's random generator;
     - ``search_heights_m`` [m] above the table from which the station is looked at, in turn, while the
       first captures show no object (Algorithm 1 needs an initial acquisition of it).
     """
@@ -50,14 +60,15 @@ class LRNBVConfig(StrictModel):
     ray_length_m: PositiveFloat = 1.0
     roi_margin_m: float = Field(default=0.05, ge=0.0)
     cache_threshold: float = 0.0
-    rrt_step_m: PositiveFloat = 0.15
+    capture: Literal["branch", "best_node"] = "branch"
+    rrt_step_m: PositiveFloat = 0.3
     view_distance_m: tuple[PositiveFloat, PositiveFloat] = (0.2, 0.6)
     object_clearance_m: float = Field(default=0.08, ge=0.0)
     look_target_spread: float = Field(default=0.5, ge=0.0, le=1.0)
     rgbd_rays_per_side: PositiveInt = 16
     settle_s: float = Field(default=0.1, ge=0.0)
     max_failed_moves: PositiveInt = 10
-    seed: int = 0
+    refused_radius_m: float = Field(default=0.1, ge=0.0)
     search_heights_m: tuple[PositiveFloat, ...] = (0.3, 0.22)
 
     @model_validator(mode="after")

@@ -8,25 +8,43 @@ Each iteration i:
   directions towards the ROI, and is dropped when ``session.sensor_pose_allowed`` refuses it (barrier
   planes, workspace) or it comes closer than ``object_clearance_m`` to the object's box;
 - the best branch B^i maximises the cumulative utility of its nodes (eq. 1), x* is its best node
-  (line 9); the other nodes with U > tau join the cached nodes C (line 8);
+  (line 9) and U(x*) the figure lines 10 and 15 compare; the other nodes with U > tau join the cached
+  nodes C (line 8);
 - when x* is worse than the best cached node, ExpandRRTCached (line 11) grows a second tree whose
   samples are drawn around the cached nodes, and x* is taken from it;
-- when U(x*) exceeds the worst cached node's utility (line 15) the arm moves to x* and captures there
-  (lines 16-18); otherwise the scan is complete (line 24). After each capture the cached nodes are
-  re-scored on the new map, sorted and cut to m_i nodes, m_i decreasing linearly from ``cached_nodes``
-  to 1 over ``max_iterations`` (lines 19-21).
+- when U(x*) exceeds the worst cached node's utility (line 15) the arm captures along B^i
+  (captureData(B^i), line 16, :meth:`RRTViewPlanner.capture_branch`) and the map is updated (lines
+  17-18); otherwise the scan is complete (line 24). After the branch the cached nodes are re-scored on
+  the new map, sorted and cut to m_i nodes, m_i decreasing linearly from ``cached_nodes`` to 1 over
+  ``max_iterations`` (lines 19-21).
 
 Choices the paper leaves open, and why:
 
-- Only x* is captured, not every node of B^i: a capture is a pose and the paper counts poses; the rest
-  of the branch is re-planned next iteration (receding horizon, Bircher et al. 2016).
+- captureData(B^i) captures at the branch's nodes in order from the root, as line 16 and "the best
+  branch is used to suggest the next poses" read, not only at x* nor only at the first node (Bircher et
+  al.'s receding horizon, which the paper cites for re-planning a new tree each iteration). Every node
+  after the first is re-scored on the map its predecessors' captures left and skipped when its U is no
+  longer above tau: with the visited gain a node in a coarse cell the branch has just visited scores
+  about -w_v and is not captured again; without it (``nbv``) U stays positive. This is what makes the
+  baseline take more, and more redundant, poses (the paper's useless poses, section 4.2). ``capture:
+  best_node`` captures at x* alone instead.
+- tau (``cache_threshold``) is 0: with the visited gain a node in a visited cell scores about -w_v and
+  is neither cached nor captured; any other node is worth remembering.
 - Best and worst cached nodes come from the re-scoring after the last capture, as in lines 20-21; before
-  the first re-scoring there is no threshold and the scan goes on.
-- A move the session refuses (no IK solution, collision, barrier) drops that node and counts a failed
-  move; ``max_failed_moves`` in a row end the scan. The iteration budget counts planning passes, so a
-  scan always ends.
-- The RRT draws from its own generator seeded with the planner's ``seed``, so the same config, object and
-  job seed give the same scan.
+  the first re-scoring there is no threshold and the scan goes on. m_i counts planning passes i, so with
+  Table 1's 300 iterations it stays near 50 over a scan of tens of iterations, as the paper's figures
+  imply.
+- G_v's grid (eq. 6) marks the coarse cell of the sensor position of every capture, the initial ones
+  included.
+- ``nbv`` is this same loop, termination included (section 4: it "follows the algorithm described in
+  Algorithm 1"), with w_d = w_v = 0.
+- A move the session refuses (no IK solution, collision, barrier) ends that branch's captures and counts
+  a failed move; ``max_failed_moves`` in a row end the scan. Its position is remembered: nodes within
+  ``refused_radius_m`` of it are dropped from later trees and from the cache, or the unseen far side of
+  an object just beyond the arm's reach would draw every tree back to it. The iteration budget counts
+  planning passes, so a scan always ends.
+- The RRT draws from the job's planner generator (``ScanSession.rng``, a stream of the job seed), so the
+  same config, object and job seed give the same scan, and other seeds other trees.
 - Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; while no object
   is found it looks down at the station from each of ``search_heights_m`` in turn: a small object seen
   from far by an 8 x 8 sensor fills fewer zones than a cluster needs.
@@ -46,6 +64,7 @@ from cell.planning.base import Array, Planner, ScanSession
 from cell.planning.lrnbv.config import LRNBVConfig
 from cell.planning.lrnbv.sensor import sensor_rays
 from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
+from drivers.depth.base import SensorModel
 from drivers.transforms import look_at
 
 
@@ -120,6 +139,10 @@ class RRTViewPlanner(Planner):
 
     section: ClassVar[str]
     uses_density_and_visited: ClassVar[bool]
+    # set by prepare(), from the session, when a run starts
+    rays: Array
+    coarse_rays: Array
+    rng: np.random.Generator
 
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
@@ -127,18 +150,24 @@ class RRTViewPlanner(Planner):
         p = self.params
         self.weights = Weights(w_e=p.w_e, w_d=p.w_d if self.uses_density_and_visited else 0.0, w_q=p.w_q,
                                w_v=p.w_v if self.uses_density_and_visited else 0.0)
-        grid = sensor_rays(config.sensor, p.rgbd_rays_per_side)
-        self.rays = grid.reshape(-1, 3)
-        self.coarse_rays = grid[::2, ::2].reshape(-1, 3)
         self.resolution = config.perception.occupancy.resolution_m
         self.table_z = config.station.table_z_m
         ws = config.safety.workspace
         self.ws_min, self.ws_max = np.asarray(ws.min_m, dtype=float), np.asarray(ws.max_m, dtype=float)
-        self.rng = np.random.default_rng(p.seed)
         self.visited = VisitedGrid(p.visited_grid_m)
         self.reconstruction = ReconstructionHistory()
         self.n_failed_moves = 0
         self.n_refused_nodes = 0
+        self.refused_positions = np.zeros((0, 3))
+
+    def prepare(self, sensor: SensorModel, rng: np.random.Generator) -> None:
+        """Before planning: the ray set of eqs. 3-4 from the connected sensor's geometry (every 2nd row
+        and column of it for the coarse orientation search) and the generator the RRT draws from (the
+        job's)."""
+        grid = sensor_rays(sensor, self.params.rgbd_rays_per_side)
+        self.rays = grid.reshape(-1, 3)
+        self.coarse_rays = grid[::2, ::2].reshape(-1, 3)
+        self.rng = rng
 
     # ------------------------------------------------------------------------------------- the map side
     def field(self, session: MappingSession, obj: Array) -> UtilityField:
@@ -198,6 +227,13 @@ class RRTViewPlanner(Planner):
                 return q
         return None
 
+    def near_refused(self, positions: Array) -> np.ndarray:
+        """Mask (N,) of the positions (N, 3) within ``refused_radius_m`` of one the session refused."""
+        if self.refused_positions.shape[0] == 0:
+            return np.zeros(positions.shape[0], dtype=bool)
+        d = np.linalg.norm(positions[:, None, :] - self.refused_positions[None, :, :], axis=2)
+        return np.asarray(np.any(d < self.params.refused_radius_m, axis=1))
+
     def _clear_of_object(self, p: Array, obj_lo: Array, obj_hi: Array) -> bool:
         c = self.params.object_clearance_m
         return not bool(np.all(p >= obj_lo - c) and np.all(p <= obj_hi + c))
@@ -219,7 +255,7 @@ class RRTViewPlanner(Planner):
             d = q - pts[near]
             dist = float(np.linalg.norm(d))
             new = q if dist <= p.rrt_step_m else pts[near] + d * (p.rrt_step_m / dist)
-            if not self._clear_of_object(new, obj_lo, obj_hi):
+            if not self._clear_of_object(new, obj_lo, obj_hi) or self.near_refused(new[None])[0]:
                 continue
             if not session.sensor_pose_allowed(look_at(new, centre)):
                 continue
@@ -274,9 +310,45 @@ class RRTViewPlanner(Planner):
                 obj = self._capture(session)
         return obj
 
+    def _node_utility(self, session: MappingSession, obj: Array, tree: Tree, i: int) -> float:
+        """U of tree node ``i`` (its planned orientation) on the map and visited grid as they are now."""
+        g = evaluate(self.field(session, obj), self.visited, tree.positions[i:i + 1], tree.rotations[i:i + 1],
+                     self.rays, self.params.ray_length_m)
+        return float(self.weights.utility(g)[0])
+
+    def capture_branch(self, session: MappingSession, obj: Array, tree: Tree, branch: list[int]) -> tuple[
+            Array, int, int]:
+        """captureData(B^i) (line 16): the arm visits the branch's nodes from the root outwards and captures
+        at each. A node after the first is first re-scored on the map and visited grid its predecessors'
+        captures left, and skipped when its U is no longer above tau: with the visited gain (w_v = 500)
+        this drops a node in a coarse cell the branch has just visited, and so a redundant pose; without
+        it (``nbv``) U stays positive and the whole branch is captured.
+
+        A move the session refuses (unreachable, collision, barrier) ends the branch, whose later nodes
+        continue from a pose the arm did not reach, and its position joins ``refused_positions``.
+
+        Returns the object after the last capture (``obj`` when none found one), the captures made and the
+        moves refused (0 or 1)."""
+        captured = refused = 0
+        for n, i in enumerate(branch):
+            if n > 0 and self._node_utility(session, obj, tree, i) <= self.params.cache_threshold:
+                continue
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
+            if not session.move_to_sensor_pose(T):
+                refused += 1
+                self.refused_positions = np.vstack([self.refused_positions, tree.positions[i]])
+                break
+            obj_new = self._capture(session)
+            captured += 1
+            if obj_new.shape[0]:
+                obj = obj_new
+        return obj, captured, refused
+
     def run(self, session: ScanSession) -> str:
         s: MappingSession = session  # type: ignore[assignment]
         p = self.params
+        self.prepare(session.sensor_model(), session.rng)
         obj = self._initial_object(s)
         if obj.shape[0] == 0:
             return "no object found in the first views"
@@ -292,29 +364,31 @@ class RRTViewPlanner(Planner):
             self._cache_off_branch(tree, branch, cache)
             if not branch or not np.isfinite(tree.utility[branch]).any():
                 return f"no feasible view left after {captures} captures (iteration {it})"
-            x, u_x = self._best_on(tree, branch)
+            u_x = self._best_utility(tree, branch)
             if best_c is not None and u_x < best_c and len(cache):
-                tree = self.expand(s, f, obj, cache.positions)
-                branch = tree.best_branch()
-                self._cache_off_branch(tree, branch, cache)
-                if branch and np.isfinite(tree.utility[branch]).any():
-                    x2, u2 = self._best_on(tree, branch)
+                cached_tree = self.expand(s, f, obj, cache.positions)
+                cached_branch = cached_tree.best_branch()
+                self._cache_off_branch(cached_tree, cached_branch, cache)
+                if cached_branch and np.isfinite(cached_tree.utility[cached_branch]).any():
+                    u2 = self._best_utility(cached_tree, cached_branch)
                     if u2 > u_x:
-                        x, u_x = x2, u2
+                        tree, branch, u_x = cached_tree, cached_branch, u2
             if worst_c is not None and u_x <= worst_c:
                 return (f"converged: best view U = {u_x:.4g} not above the worst cached node's "
                         f"{worst_c:.4g} after {captures} captures")
-            if not s.move_to_sensor_pose(x):
-                self.n_failed_moves += 1
-                failed_in_row += 1
+            if p.capture == "best_node":
+                branch = [branch[int(np.argmax(tree.utility[branch]))]]
+            obj, captured, refused = self.capture_branch(s, obj, tree, branch)
+            if refused:
+                cache.keep(~self.near_refused(cache.positions))
+            self.n_failed_moves += refused
+            captures += captured
+            if captured == 0:
+                failed_in_row += refused
                 if failed_in_row >= p.max_failed_moves:
                     return f"{failed_in_row} moves in a row refused after {captures} captures"
                 continue
             failed_in_row = 0
-            obj_new = self._capture(s)
-            captures += 1
-            if obj_new.shape[0]:
-                obj = obj_new
             m = max(1, round(p.cached_nodes * (1.0 - (it + 1) / p.max_iterations)))
             self._rescore(self.field(s, obj), obj, cache, m)
             if len(cache):
@@ -322,12 +396,9 @@ class RRTViewPlanner(Planner):
         return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
 
     @staticmethod
-    def _best_on(tree: Tree, branch: list[int]) -> tuple[Array, float]:
-        """Line 9: the best node of the branch, as a pose T_base_sensor, and its utility."""
-        i = branch[int(np.argmax(tree.utility[branch]))]
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
-        return T, float(tree.utility[i])
+    def _best_utility(tree: Tree, branch: list[int]) -> float:
+        """Line 9: the utility of x*, the best node of the branch."""
+        return float(np.max(tree.utility[branch]))
 
 
 class LRNBVPlanner(RRTViewPlanner):

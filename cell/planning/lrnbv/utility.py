@@ -24,7 +24,7 @@ Eq. 6, visited gain: G_v = -Visited(p) on a coarse grid (cells of ``visited_grid
 where captures were taken.
 
 Everything the map contributes is gathered once per map state into a dense grid over the ROI
-(:class:`UtilityField`); a candidate then costs only index arithmetic and gathers.
+(:class:`UtilityField`); a candidate then costs a compiled walk along its rays (``_raygains.pyx``).
 """
 
 from __future__ import annotations
@@ -37,12 +37,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from cell.perception.occupancy import OccupancyMap
+from cell.planning.lrnbv._raygains import ray_gains
 
 Array = NDArray[np.float64]
-
-# Candidates evaluated together: bounds the (chunk, rays, samples) work arrays to a few tens of MB.
-_CHUNK_SAMPLES = 2_000_000
-
 
 @dataclass(frozen=True)
 class Gains:
@@ -105,74 +102,38 @@ class UtilityField:
         idx = np.indices(self.shape).reshape(3, -1).T
         centres = self.lo + (idx + 0.5) * resolution
         entropy = occupancy.entropy(centres) / math.log(2.0)
-        self.W = (entropy * resolution**3).reshape(self.shape)
+        self.W = np.ascontiguousarray((entropy * resolution**3).reshape(self.shape), dtype=np.float64)
         obj = np.asarray(object_points, dtype=float).reshape(-1, 3)
         if obj.shape[0]:
             rho = cKDTree(obj).query_ball_point(centres, density_radius_m, return_length=True)
         else:
             rho = np.zeros(centres.shape[0])
-        self.density = (1.0 / (1.0 + np.asarray(rho, dtype=float))).reshape(self.shape)
-        self.occluder = np.zeros(self.shape, dtype=bool)
+        self.density = np.ascontiguousarray((1.0 / (1.0 + np.asarray(rho, dtype=float))).reshape(self.shape))
+        self.occluder = np.zeros(self.shape, dtype=np.uint8)
         if obj.shape[0]:
             k = np.floor((obj - self.lo) / resolution).astype(np.int64)
             inside = np.all((k >= 0) & (k < np.array(self.shape)), axis=1)
-            self.occluder[tuple(k[inside].T)] = True
+            self.occluder[tuple(k[inside].T)] = 1
         self.object_centre = obj.mean(axis=0) if obj.shape[0] else 0.5 * (self.lo + self.hi)
 
     def ray_gains(self, origins: Array, rotations: Array, rays_sensor: Array,
                   ray_length_m: float) -> tuple[Array, Array]:
         """G_e and G_d (eqs. 3-4) of N poses: sensor positions ``origins`` (N, 3) and orientations
-        ``rotations`` (N, 3, 3) (R_base_sensor), rays ``rays_sensor`` (R, 3) unit, sensor frame."""
+        ``rotations`` (N, 3, 3) (R_base_sensor), rays ``rays_sensor`` (R, 3) unit, sensor frame.
+
+        The samples t_k are every map voxel along the ray (``resolution`` [m] apart, k = 0 .. ray length
+        / resolution); the compiled loop (``_raygains.ray_gains``) visits only those inside the ROI grid."""
         n = origins.shape[0]
         g_e = np.zeros(n)
         g_d = np.zeros(n)
-        if n == 0:
-            return g_e, g_d
         step = self.resolution
-        n_max = math.floor(ray_length_m / step)
         # Samples a ray can spend inside the box: its diagonal over the step, plus the end points.
         span = math.ceil(float(np.linalg.norm(self.hi - self.lo)) / step) + 2
-        per_pose = rays_sensor.shape[0] * span
-        chunk = max(1, _CHUNK_SAMPLES // per_pose)
-        for s in range(0, n, chunk):
-            e = slice(s, min(s + chunk, n))
-            g_e[e], g_d[e] = self._chunk(origins[e], rotations[e], rays_sensor, step, n_max, span)
-        return g_e, g_d
-
-    def _chunk(self, origins: Array, rotations: Array, rays_sensor: Array, step: float, n_max: int,
-               span: int) -> tuple[Array, Array]:
-        n, n_rays = origins.shape[0], rays_sensor.shape[0]
-        d = np.einsum("nij,rj->nri", rotations, rays_sensor).reshape(-1, 3)  # (n R, 3) unit, base frame
-        o = np.repeat(origins, n_rays, axis=0)
-        # Slab test: the ray parameter range [t0, t1] (metres along d) inside the ROI box.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d
-            ta = (self.lo - o) * inv
-            tb = (self.hi - o) * inv
-        ta = np.where(np.isnan(ta), -np.inf, ta)
-        tb = np.where(np.isnan(tb), np.inf, tb)
-        t0 = np.maximum(np.max(np.minimum(ta, tb), axis=1), 0.0)
-        # A ray parallel to a slab outside it gets t1 = -inf: floor it so that it casts to an integer.
-        t1 = np.clip(np.min(np.maximum(ta, tb), axis=1), -step, n_max * step)
-        k0 = np.ceil(t0 / step - 1e-9).astype(np.int64)
-        k1 = np.floor(t1 / step + 1e-9).astype(np.int64)
-        count = np.clip(k1 - k0 + 1, 0, span)
-        # Only the samples inside the box, flat: ray number and sample number along the ray.
-        ray = np.repeat(np.arange(count.size), count)
-        first = np.cumsum(count) - count
-        k = k0[ray] + (np.arange(ray.size) - first[ray])
-        g = (o[ray] - self.lo) / self.resolution + (k * (step / self.resolution))[:, None] * d[ray]
-        idx = np.floor(g).astype(np.int64)
-        live = np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)
-        flat = np.ravel_multi_index(tuple(np.where(live[:, None], idx, 0).T), self.shape)
-        hit = (self.occluder.ravel()[flat] & live).astype(np.int64)
-        # Eq. 2: valid up to and including the first object sample along the ray (hits before it = 0).
-        before = np.cumsum(hit) - hit
-        before -= before[first[ray]] if ray.size else before
-        valid = live & (before == 0)
-        pose = ray // n_rays
-        g_e = np.bincount(pose, weights=np.where(valid, self.W.ravel()[flat], 0.0), minlength=n)
-        g_d = np.bincount(pose, weights=np.where(valid, self.density.ravel()[flat], 0.0), minlength=n)
+        ray_gains(np.ascontiguousarray(origins, dtype=np.float64),
+                  np.ascontiguousarray(rotations, dtype=np.float64),
+                  np.ascontiguousarray(rays_sensor, dtype=np.float64), self.W, self.density,
+                  self.occluder, self.lo, self.hi, self.resolution, step, math.floor(ray_length_m / step),
+                  span, g_e, g_d)
         return g_e, g_d
 
     def quality_gain(self, origins: Array) -> Array:

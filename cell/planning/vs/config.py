@@ -126,12 +126,11 @@ class VSGlobalConfig(StrictModel):
     makes the approach exponential, about 5 s per halving at lambda_g = 0.33, and H_ROI would settle
     during a 1 cm approach before the goal's view is reached), or after
     ``max_goal_time_s`` [s] (not in the paper: a goal the barrier projection cannot reach would otherwise
-    hold the scan forever). ``sampling_seed`` seeds the candidate stream at the start of each scan, so a
-    scan is repeatable."""
+    hold the scan forever). Candidates are drawn from the job's planner generator (``ScanSession.rng``),
+    so a scan is repeatable for a given job seed."""
 
     n_candidates: PositiveInt = 5000
     slow_radius_m: PositiveFloat = 0.10
     arrival_m: PositiveFloat = 0.05
     max_goal_time_s: PositiveFloat = 20.0
-    sampling_seed: int = Field(default=0, ge=0)
 

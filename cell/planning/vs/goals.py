@@ -13,8 +13,8 @@ far away, decaying linearly to 0 within 10 cm. Like VS-Local's, the direction is
 the barrier planes allow. A goal counts as reached within ``arrival_m``; one that is not reached within
 ``max_goal_time_s`` is given up; either way a new goal is sampled.
 
-The candidate stream comes from a generator seeded with ``sampling_seed`` at the start of each scan, so
-that a scan is repeatable.
+The candidates are drawn from the job's planner generator (``ScanSession.rng``, a stream of the job
+seed), so that a scan is repeatable for its seed.
 """
 
 from __future__ import annotations
@@ -50,7 +50,6 @@ class GoalSeeker:
         self.params = config.planners.vs_global
         self.radius_m = config.scan.standoff_m
         self.activation_m = config.planners.vs.barrier_activation_m
-        self._rng = np.random.default_rng(self.params.sampling_seed)
         self.goal: Array | None = None
         self.goal_value = float("nan")
         self._goal_since = 0.0
@@ -58,7 +57,7 @@ class GoalSeeker:
 
     def sample(self, session: ScanSession, centroid: Array, objective: EntropyObjective) -> None:
         """Choose a new goal: the best allowed candidate on the sphere around ``centroid`` (eq. 10)."""
-        u = self._rng.normal(size=(self.params.n_candidates, 3))
+        u = session.rng.normal(size=(self.params.n_candidates, 3))
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         views = sphere_views(centroid, self.radius_m, u)
         allowed = np.array([session.sensor_pose_allowed(T) for T in views], dtype=bool)

@@ -14,13 +14,21 @@ expectation over the K rays: f(r) = 1/K sum_k sum_{i=1}^{N+1} P_i^k C_i^k. Rays 
 contribute 0 and still count in K.
 
 Exchanging the sums gives the form computed here: sum_i P_i C_i + P_{N+1} C_N = sum_j H(p_j) S_j with
-S_j = prod_{i<j} (1 - p_i), the probability that the ray reaches sample j. S_j is exp of an exclusive
-cumulative sum of log(1 - p), which vectorises over poses, rays and samples. The occupancy map clamps
-p to [clamp_min, clamp_max] (OctoMap), so log(1 - p) is finite. A plain transcription of eq. 7-9 lives in
-the tests and agrees with this to 1e-9 relative.
+S_j = prod_{i<j} (1 - p_i), the probability that the ray reaches sample j: one pass along the ray with a
+running product, in the compiled kernel ``_objective.Scorer``. A plain transcription of eq. 7-9
+lives in the tests and agrees with this to 1e-9 relative.
 
-Because only voxels inside the ROI are ever read, ``EntropyObjective`` takes a snapshot of them as dense
-arrays when built (after each map update); between map updates it is a pure function of the pose.
+Because only voxels inside the ROI are ever read, ``EntropyObjective`` takes a snapshot of them when built
+(after each map update, O(ROI voxels)): a dense array of (1 - p, H(p)) per voxel in key order, so that a
+sample costs one read instead of a block-index lookup, an exp and a log; between map updates f is a pure
+function of the pose. A sample's voxel is floor(x / res), as the map keys it, up to rounding: the kernel
+steps the grid coordinate x / res along the ray, so a sample within ~1e-12 voxel of a face may be read from
+the voxel on its other side.
+
+A batch of poses is shared between OpenMP threads (``batch_threads``, OMP_NUM_THREADS) once it holds
+``PARALLEL_MIN_POSES`` poses (the 5000 candidates of eq. 10); smaller ones (the five poses of a servo
+iteration, eq. 5-6) run on the calling thread. Each pose is one sequential sum whichever thread runs it,
+so results do not depend on the thread count.
 """
 
 from __future__ import annotations
@@ -33,11 +41,19 @@ from numpy.typing import NDArray
 
 from cell.perception.filters import CropBox
 from cell.perception.occupancy import OccupancyMap, binary_entropy
+from cell.planning.vs import _objective as _k
+from drivers.errors import PlanningError
 
 Array = NDArray[np.float64]
 
-# Samples handled per vectorised block (poses x rays x samples): bounds the temporaries to a few MB.
-_BLOCK_SAMPLES = 1 << 18
+# Batches from this many poses on are split between threads; below, thread start-up outweighs the gain.
+PARALLEL_MIN_POSES = 64
+
+
+def batch_threads() -> int:
+    """The OpenMP threads a batch of ``PARALLEL_MIN_POSES`` poses or more runs on (OMP_NUM_THREADS, else
+    the number of cores)."""
+    return _k.max_threads()
 
 
 class NBVObjective(Protocol):
@@ -87,26 +103,25 @@ class EntropyObjective:
         self.resolution_m = occupancy.resolution_m
         self.roi_min = np.asarray(roi_min, dtype=np.float64).reshape(3)
         self.roi_max = np.asarray(roi_max, dtype=np.float64).reshape(3)
-        self.directions_cam = np.asarray(directions_cam, dtype=np.float64).reshape(-1, 3)
+        self.directions_cam = np.ascontiguousarray(directions_cam, dtype=np.float64).reshape(-1, 3)
         res = self.resolution_m
         # Every sample inside the ROI box falls in a voxel with key in [floor(min / res), floor(max / res)]
         # (keys as the map's); one more voxel on each side absorbs rounding at the faces, so no sample
         # needs clipping.
-        self._k_lo = np.floor(self.roi_min / res).astype(np.int64) - 1
+        k_lo = np.floor(self.roi_min / res).astype(np.int64) - 1
         k_hi = np.floor(self.roi_max / res).astype(np.int64) + 1
-        self._shape = k_hi - self._k_lo + 1
-        axes = [np.arange(self._k_lo[i], k_hi[i] + 1) for i in range(3)]
+        shape = k_hi - k_lo + 1
+        axes = [np.arange(k_lo[i], k_hi[i] + 1) for i in range(3)]
         keys = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
         p = occupancy.probability(occupancy.centers_of(keys))
-        # Flat in key order (x, then y, then z), plus a last entry of zeros that samples past the end of
-        # their ray read: log(1 - p_j) and H(p_j) of eq. 8 [nats].
-        self._sentinel = keys.shape[0]
-        self._log_free = np.append(np.log1p(-p), 0.0)
-        self._entropy = np.append(voxel_entropy(p), 0.0)
+        # Per voxel in key order (x, then y, then z): 1 - p of eq. 7 and H(p) of eq. 8 [nats].
+        voxels = np.ascontiguousarray(np.stack([1.0 - p, voxel_entropy(p)], axis=1))
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
-        self._crop_in, self._crop_out = slab_interval(np.zeros(3), self.directions_cam, lo, hi)
+        crop_in, crop_out = slab_interval(np.zeros(3), self.directions_cam, lo, hi)
+        self._scorer = _k.Scorer(self.directions_cam, crop_in, crop_out, self.roi_min, self.roi_max, res,
+                                 k_lo, shape, voxels)
 
     @property
     def n_rays(self) -> int:
@@ -118,51 +133,14 @@ class EntropyObjective:
         T = np.asarray(T_base_cam, dtype=np.float64)
         if T.shape[-2:] != (4, 4):
             raise ValueError(f"T_base_cam must be (4, 4) or (B, 4, 4), got {T.shape}")
-        batch = T.reshape(-1, 4, 4)
-        R = batch[:, :3, :3]
-        o = batch[:, :3, 3]
-        d = np.einsum("bij,kj->bki", R, self.directions_cam)  # ray directions, base frame (B, K, 3)
-        t_in, t_out = slab_interval(o[:, None, :], d, self.roi_min, self.roi_max)
-        t_in = np.maximum(np.maximum(t_in, self._crop_in), 0.0)
-        t_out = np.minimum(t_out, self._crop_out)
-        # Samples t_in + (i + 1/2) res < t_out, i = 0 .. n-1.
-        n = np.maximum(np.ceil((t_out - t_in) / self.resolution_m - 0.5), 0.0).astype(np.int64)
-        out = np.zeros(batch.shape[0])
-        n_max = n.max(axis=1) if n.size else np.zeros(0, dtype=np.int64)
-        start = 0
-        while start < batch.shape[0]:
-            # As many poses as keep poses x rays x (their longest ray's samples) within _BLOCK_SAMPLES.
-            stop = start + 1
-            longest = max(int(n_max[start]), 1)
-            while stop < batch.shape[0]:
-                longest_next = max(longest, int(n_max[stop]))
-                if (stop + 1 - start) * self.n_rays * longest_next > _BLOCK_SAMPLES:
-                    break
-                longest, stop = longest_next, stop + 1
-            sl = slice(start, stop)
-            out[sl] = self._expected_entropy(o[sl], d[sl], t_in[sl], n[sl])
-            start = stop
+        batch = np.ascontiguousarray(T.reshape(-1, 4, 4))
+        out = np.empty(batch.shape[0])
+        self._scorer.score(batch, out, batch_threads() if batch.shape[0] >= PARALLEL_MIN_POSES else 1)
+        if np.isnan(out).any():
+            i = int(np.flatnonzero(np.isnan(out))[0])
+            if not np.all(np.isfinite(batch[i, :3, :])):
+                raise ValueError(f"T_base_cam must be finite, pose {i} is not")
+            # The snapshot covers the ROI box with a voxel to spare: a sample outside it is a bug here.
+            raise PlanningError(f"entropy objective: a ray sample of pose {i} left the map snapshot around "
+                                f"the ROI box {self.roi_min.tolist()} .. {self.roi_max.tolist()} m")
         return float(out[0]) if T.ndim == 2 else out.reshape(T.shape[:-2])
-
-    def _expected_entropy(self, o: Array, d: Array, t_in: Array, n: NDArray[np.int64]) -> Array:
-        """Eq. 9 for a block of poses: origins (b, 3), directions (b, K, 3), entries (b, K), sample
-        counts (b, K)."""
-        n_samples = int(n.max()) if n.size else 0
-        if n_samples == 0:
-            return np.zeros(o.shape[0])
-        res = self.resolution_m
-        i = np.arange(n_samples)
-        t = t_in[..., None] + (i + 0.5) * res  # (b, K, N)
-        # Flat voxel index ((kx * sy) + ky) * sz + kz, one axis at a time (no (b, K, N, 3) temporaries);
-        # k = floor(x / res) exactly as the map computes keys.
-        flat = np.zeros(t.shape, dtype=np.int64)
-        for axis in range(3):
-            x = o[:, axis, None, None] + t * d[:, :, axis, None]
-            k = np.floor(x / res).astype(np.int64) - self._k_lo[axis]
-            flat = flat * self._shape[axis] + k if axis else k
-        flat[i >= n[..., None]] = self._sentinel
-        log_free = self._log_free[flat]
-        # S_j = prod_{i<j} (1 - p_i): exclusive cumulative sum of log(1 - p).
-        reach = np.exp(np.cumsum(log_free, axis=-1) - log_free)
-        reach *= self._entropy[flat]
-        return reach.sum(axis=(1, 2)) / self.n_rays

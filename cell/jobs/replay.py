@@ -1,0 +1,142 @@
+"""Re-running a recorded job offline through perception and a planner (``mode: replay``).
+
+A replayed job plays the recording's frames and poses (``drivers.depth.replay``, ``drivers.arm.replay``)
+on the simulated clock, in recorded time, through the perception of the cell file given and a planner.
+Nothing moves, so the planner cannot choose its views: the recording's motion plays instead of what it
+asks, and :class:`ReplaySession` writes every request to ``planner_requests.csv``:
+
+- ``move_to_sensor_pose`` records the pose asked for and lets the recording play until its next frame
+  is due (the recorded arm reaching its next view), then returns True; the planner's ``capture`` gets
+  that frame, with the flange pose recorded at its time;
+- ``command_sensor_twist`` and ``hold`` record the twist asked for; the twist returned is the recorded
+  sensor twist over the last control period, what the sensor really does;
+- with continuous capture on, every recorded frame is captured when the clock reaches its time.
+
+What a planner decides from real data is thus on record (its requests, its termination and the reason,
+H_ROI, the packing result), and so is what perception makes of the frames with other parameters. The job
+ends when the planner ends, when the recording runs out (``RecordingEnded``) or with the time budget.
+The barrier queries (``feasible_sensor_velocity``, ``sensor_pose_allowed``) answer for the cell file's
+planes, as in a live job.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cell.config.load import load_config
+from cell.config.models import CellConfig
+from cell.jobs.session import JobSession, ScanLimitReached
+from cell.planning.base import Array
+from drivers.arm.replay import ReplayArm
+from drivers.depth.replay import ReplaySensor
+from drivers.errors import ConfigError, JobError
+
+
+class RecordingEnded(ScanLimitReached):
+    """Every recorded frame and pose has been played."""
+
+
+class ReplaySession(JobSession):
+    """A ``ScanSession`` over a recording (see the module docstring). The arm and sensor are the replay
+    backends of one job folder; the guard answers barrier queries and watches for an operator stop."""
+
+    def __init__(self, config: CellConfig, *, arm: ReplayArm, sensor: ReplaySensor, **kwargs: Any) -> None:
+        self._replay_arm = arm
+        self._replay_sensor = sensor
+        self._continuous = False
+        super().__init__(config, sensor=sensor, **kwargs)
+        self.n_planner_requests = 0
+
+    def _request(self, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None) -> None:
+        self.n_planner_requests += 1
+        self._recorder.planner_request(self.now(), kind, T_base_sensor, v_sensor)
+
+    def _ended(self) -> RecordingEnded:
+        frames = len(self._replay_sensor.recording.frames)
+        return RecordingEnded(f"recording ended: all {frames} recorded frames played")
+
+    def _tick(self) -> None:
+        due = self._replay_sensor.next_timestamp
+        if self._continuous and due is not None and due <= self.now() + 1e-9:
+            self._capture_continuous()
+        if self.now() > self._replay_arm.end_time and self._replay_sensor.remaining == 0:
+            raise self._ended()
+        super()._tick()
+
+    def set_continuous_capture(self, on: bool) -> None:
+        """Capture each recorded frame when the clock reaches its time (not at the perception rate: the
+        recording sets the rate), or stop doing so. The watchdog does not judge the frames' age: nothing
+        moves."""
+        self._continuous = on
+
+    def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
+        """Record the pose asked for; play the recording until its next frame is due; True."""
+        self._request("move", T_base_sensor=np.asarray(T_base_sensor, dtype=float))
+        due = self._replay_sensor.next_timestamp
+        if due is None:
+            raise self._ended()
+        while self.now() < due - self._dt:
+            self._tick()
+        return True
+
+    def capture(self) -> int:
+        """The next recorded frame due (waiting for its time) through perception, with the flange pose
+        recorded at the frame's time."""
+        if self._replay_sensor.remaining == 0:
+            raise self._ended()
+        frame = self._replay_sensor.capture()
+        return self._ingest(frame, self._replay_arm.pose_at(frame.timestamp))
+
+    def command_sensor_twist(self, v_sensor: Array) -> Array:
+        """Record the twist asked for (sensor frame); returns the recorded sensor twist over the last
+        control period [m/s, rad/s], sensor frame."""
+        self._request("twist", v_sensor=np.asarray(v_sensor, dtype=float))
+        return self._recorded_twist()
+
+    def hold(self) -> None:
+        self._request("hold")
+
+    def _recorded_twist(self) -> Array:
+        t = self.now()
+        T1 = self._replay_arm.pose_at(t) @ self._T_flange_sensor
+        T0 = self._replay_arm.pose_at(t - self._dt) @ self._T_flange_sensor
+        R1 = T1[:3, :3]
+        v = R1.T @ (T1[:3, 3] - T0[:3, 3]) / self._dt
+        w = Rotation.from_matrix(T0[:3, :3].T @ R1).as_rotvec() / self._dt
+        return np.concatenate([v, R1.T @ T0[:3, :3] @ w])
+
+
+def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, dict[str, Any], Path]:
+    """A job folder's ``result.json`` and the cell file to replay it with: ``config``, else the one the
+    job names (as given, or relative to the job folder). Returns the loaded cell file, the result and
+    the cell file's path."""
+    try:
+        result = json.loads((job_dir / "result.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
+    if config is None:
+        named = Path(str(result.get("config", "")))
+        config = next((c for c in (named, job_dir / named) if c.is_file()), None)
+        if config is None:
+            raise JobError(f"the job's cell file {named} is not found; give --config")
+    return load_config(config), result, config
+
+
+def replay_config(cfg: CellConfig, job_dir: Path) -> CellConfig:
+    """``cfg`` with its arm and sensor replaced by the replay backends of ``job_dir`` (``mode: replay``),
+    the sensor keeping ``cfg``'s range (the folder does not hold it)."""
+    data = cfg.model_dump()
+    sensor = data["sensor"]
+    data.update(mode="replay",
+                arm={"type": "replay", "model": cfg.arm.model, "job_dir": str(job_dir)},
+                sensor={"type": "replay", "job_dir": str(job_dir),
+                        **{k: sensor[k] for k in ("range_min_m", "range_max_m") if k in sensor}})
+    try:
+        return CellConfig.model_validate(data)
+    except ValueError as exc:
+        raise ConfigError(f"cannot replay with this cell file: {exc}") from None
