@@ -300,3 +300,50 @@ def test_secondary_slides_along_a_joint_limit(franka):
     assert free is sec
     away = planner._within_limits(JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(away.g, sec.g)  # moving away from the limit is not blocked
+
+
+class BackOffSession(JointLimitSession):
+    """Records the twists streamed while job time passes; no new perception."""
+
+    def __init__(self, pose):
+        super().__init__(np.zeros((0, 6)))
+        self.pose = pose
+        self.twists = []
+        self.lines = []
+
+    def sensor_pose(self):
+        return self.pose
+
+    def latest_perception(self):
+        return None
+
+    def log(self, message):
+        self.lines.append(message)
+
+    def command_sensor_twist(self, v):
+        self.twists.append(np.array(v))
+        return v
+
+    def wait(self, dt):
+        self.t += dt
+
+
+def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
+    planner = VSLocalPlanner(franka)
+    planner.centroid = CENTRE
+    planner.servo.secondary_active = True
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session = BackOffSession(T)
+    refused = Secondary(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]), 1.0, 0.5, "local")
+    planner._back_off(session, refused, 0.02)
+    vs = franka.planners.vs
+    assert session.t == pytest.approx(vs.backoff_s) and len(session.twists) == round(vs.backoff_s / 0.02)
+    assert all(v[0] < 0.0 for v in session.twists)  # the reverse of the refused camera-x motion
+    assert "backing off" in session.lines[0]
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
+                                                              "local"))
+    np.testing.assert_allclose(towards.g[:2], [0.0, 0.8], atol=1e-12)  # slides past the refused direction
+    session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
+    sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
+    assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused

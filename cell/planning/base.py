@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
-from cell.perception.pipeline import PerceptionUpdate
+from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from drivers.depth.base import SensorModel
 
 Array = NDArray[np.float64]
@@ -26,6 +26,13 @@ class ScanSession(Protocol):
     rng: np.random.Generator
     """The job's generator for a planner's random draws (a stream of the job's ``--seed`` of its own, so
     planning never changes the noise the simulated devices see)."""
+    perception: PerceptionPipeline
+    """The job's perception pipeline, to read (never to feed): its occupancy map (``perception.map``, e.g.
+    for an NBV objective) and accumulated cloud; ``latest_perception`` is its newest update."""
+
+    def log(self, message: str) -> None:
+        """Add a line to the job's log, stamped with job time."""
+        ...
 
     def now(self) -> float:
         """Job time [s] (sim time in sim mode)."""

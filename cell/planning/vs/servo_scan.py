@@ -249,15 +249,18 @@ class ServoScanPlanner(Planner):
         T = session.sensor_pose()
         direction = T[:3, :3] @ refused.g[:3]
         norm = float(np.linalg.norm(direction))
+        unit = direction / norm if norm > 0.0 else np.zeros(3)
         if norm > 0.0:
-            self._refused.append((T[:3, 3].copy(), direction / norm))
+            self._refused.append((T[:3, 3].copy(), unit))
+        session.log(f"backing off for {self.vs.backoff_s:g} s along {np.round(-unit, 3).tolist()} (base "
+                    f"frame), then avoiding that direction within {self.vs.refusal_radius_m:g} m")
         end = session.now() + self.vs.backoff_s
         while session.now() < end - 1e-9:
             self._perceive(session)
             assert self.centroid is not None
             T = session.sensor_pose()
             g = np.zeros(6)
-            g[:2] = -(T[:3, :3].T @ direction)[:2] / max(norm, 1e-12)
+            g[:2] = -(T[:3, :3].T @ unit)[:2]
             out = self.servo.step(T[:3, :3].T @ (self.centroid - T[:3, 3]), g)
             session.command_sensor_twist(out.v)
             session.wait(period)
