@@ -347,3 +347,11 @@ def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
     session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
     sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
     assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
+
+
+def test_hybrid_h_roi_termination_waits_for_the_first_global_goal(franka):
+    planner = VSHybridPlanner(franka)
+    planner.h_roi = [0.4] * 12
+    assert planner.finished(FakeSession()) is None  # still in its first local phase
+    planner.goals.n_goals = 1
+    assert "H_ROI settled" in planner.finished(FakeSession())
