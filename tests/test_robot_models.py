@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -175,6 +176,67 @@ def test_ik_velocity_bad_twist() -> None:
         m.ik_velocity(m.q_home, np.full(6, np.inf), 0.01)
     with pytest.raises(KinematicsError):
         m.ik_velocity(m.q_home, np.zeros(6), 0.0)
+
+
+def limit_cost(m: RobotModel, q: np.ndarray) -> float:
+    """H(q) of the null-space joint-limit avoidance (drivers.robots.model, "Redundancy")."""
+    x = (2.0 * q - m.q_max - m.q_min) / (m.q_max - m.q_min)
+    return float(0.5 * x @ x)
+
+
+# A sideways Panda configuration with the base and third joints twisted against each other, near their
+# limits (what the plain DLS pose IK returned for the visual-servoing start view).
+PANDA_TWISTED = np.array([2.013, -0.396, -2.697, -2.2, 0.609, 1.763, -1.03])
+
+
+@pytest.mark.parametrize("q", [PANDA_TWISTED, MODELS["panda"].q_home])
+def test_panda_null_space_motion_leaves_the_flange_twist_and_lowers_the_limit_cost(q: np.ndarray) -> None:
+    m = MODELS["panda"]
+    ik = m.velocity_map(q)
+    J = m.jacobian(q)
+    np.testing.assert_allclose(J @ ik.null, 0.0, atol=1e-12)
+    dq = 1e-6 * ik.null
+    assert limit_cost(m, q + dq) < limit_cost(m, q)
+    v = np.array([0.05, -0.02, 0.03, 0.05, 0.0, -0.1])
+    np.testing.assert_allclose(J @ ik(v), J @ ik.task @ v, atol=1e-12)  # the twist is realised as without it
+    np.testing.assert_allclose(ik(2.5 * v), 2.5 * ik(v), rtol=1e-12)  # positively homogeneous
+    np.testing.assert_array_equal(ik(np.zeros(6)), np.zeros(7))  # a zero twist is rest
+
+
+def test_velocity_map_task_part_is_damped_least_squares() -> None:
+    for m in MODELS.values():
+        J = m.jacobian(m.q_home)
+        dls = J.T @ np.linalg.inv(J @ J.T + 0.02**2 * np.eye(6))
+        np.testing.assert_allclose(m.velocity_map(m.q_home).task, dls, atol=1e-10)
+    np.testing.assert_array_equal(MODELS["ur5e"].velocity_map(MODELS["ur5e"].q_home).null, 0.0)
+
+
+def test_ik_velocity_is_the_velocity_map_away_from_the_limits() -> None:
+    m = MODELS["panda"]
+    v = np.array([0.02, 0.01, -0.01, 0.0, 0.05, 0.0])
+    np.testing.assert_allclose(m.ik_velocity(PANDA_TWISTED, v, 0.01), m.velocity_map(PANDA_TWISTED)(v),
+                               rtol=1e-12)
+
+
+def test_streaming_a_twist_unwinds_a_twisted_panda() -> None:
+    m = MODELS["panda"]
+    plain = dataclasses.replace(m, limit_avoidance_gain=0.0)
+    v = np.array([0.0, 0.03, 0.0, 0.0, 0.0, 0.0])
+    ends = []
+    for model in (m, plain):
+        q = PANDA_TWISTED.copy()
+        for _ in range(300):  # 3 s at 100 Hz: 9 cm of flange travel
+            q = q + model.ik_velocity(q, v, 0.01) * 0.01
+        ends.append(q)
+    np.testing.assert_allclose(m.fk(ends[0])[:3, 3], plain.fk(ends[1])[:3, 3], atol=2e-3)
+    assert limit_cost(m, ends[0]) < limit_cost(m, ends[1]) - 0.1
+
+
+def test_panda_pose_ik_prefers_a_solution_away_from_the_limits() -> None:
+    m = MODELS["panda"]
+    q = m.ik_pose(m.fk(PANDA_TWISTED), m.q_home)
+    np.testing.assert_allclose(m.fk(q)[:3, 3], m.fk(PANDA_TWISTED)[:3, 3], atol=1e-4)
+    assert limit_cost(m, q) < 0.5 * limit_cost(m, PANDA_TWISTED)
 
 
 # ---------------------------------------------------------------- pose IK

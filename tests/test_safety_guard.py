@@ -16,7 +16,7 @@ from cell.control.trajectory import joint_trajectory
 from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, project_onto_halfspaces
 from cell.safety.collision import CollisionWorld
 from cell.safety.config import WatchdogConfig
-from cell.safety.guard import MotionGuard
+from cell.safety.guard import MotionGuard, TwistRefused
 from cell.safety.smoothing import TwistSmoother
 from cell.safety.watchdog import Watchdog
 from drivers.arm.base import ArmMode, JointTrajectory
@@ -321,6 +321,29 @@ def test_fault_stop_leaves_the_arm_recoverable():
         rig.step()
     rig.arm.recover()
     rig.guard.command_twist(np.array([0.0, 0.02, 0.0, 0.0, 0.0, 0.0]))
+    for _ in range(20):
+        rig.guard.tick()
+        rig.step()
+    assert rig.arm.state().mode is ArmMode.VELOCITY
+
+
+def test_a_streamed_twist_into_the_object_is_refused_as_a_twist_refusal():
+    rig = Rig("panda")
+    p = rig.arm.state().T_base_flange[:3, 3]
+    rig.guard.set_roi(p + np.array([-0.1, -0.1, -0.30]), p + np.array([0.1, 0.1, -0.20]))
+    rig.guard.command_twist(np.array([0.0, 0.0, -0.1, 0.0, 0.0, 0.0]))
+    with pytest.raises(TwistRefused) as refused:
+        for _ in range(400):
+            rig.guard.tick()
+            rig.step()
+    assert isinstance(refused.value, SafetyStop) and refused.value.refusal.kind == "collision"
+    assert "ROI" in refused.value.refusal.message or "roi" in refused.value.refusal.message.lower()
+    log = rig.guard.log.as_dict()
+    assert len(log["refusals"]) == 1 and log["stops"][0]["reason"].startswith("refused")
+    for _ in range(100):
+        rig.step()
+    assert rig.arm.state().mode is ArmMode.IDLE
+    rig.guard.command_twist(np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]))  # backing off is allowed
     for _ in range(20):
         rig.guard.tick()
         rig.step()

@@ -27,9 +27,13 @@ from .conftest import FRANKA, REPO, UR5E
 def bunny_job(tmp_path_factory):
     out = tmp_path_factory.mktemp("jobs") / "bunny"
     res = CliRunner().invoke(app, ["scan", "--config", str(FRANKA), "--object", "bunny", "--seed", "0",
-                                   "--out", str(out), "--max-time", "8"])
+                                   "--planner", "raster", "--out", str(out), "--max-time", "8"])
     assert res.exit_code == 0, res.output
     return out, res.output
+
+
+def test_vs_local_is_the_default_planner():
+    assert load_config(FRANKA).scan.planner == "vs-local"  # `cell scan` and `make demo` without --planner
 
 
 def test_job_folder_is_complete(bunny_job):
@@ -70,7 +74,7 @@ def test_same_seed_gives_identical_outputs(bunny_job, tmp_path):
     out, _ = bunny_job
     again = tmp_path / "again"
     res = CliRunner().invoke(app, ["scan", "--config", str(FRANKA), "--object", "bunny", "--seed", "0",
-                                   "--out", str(again), "--max-time", "8"])
+                                   "--planner", "raster", "--out", str(again), "--max-time", "8"])
     assert res.exit_code == 0, res.output
     assert (out / "cloud.ply").read_bytes() == (again / "cloud.ply").read_bytes()
     a = json.loads((out / "result.json").read_text())
@@ -118,7 +122,8 @@ def test_sensor_failure_stops_and_keeps_frames(tmp_path, monkeypatch):
     monkeypatch.setattr(SimRGBD, "capture", failing_capture)
     cfg = load_config(FRANKA)
     with pytest.raises(DriverError, match="frame timeout"):
-        run_scan(ScanRequest(config=cfg, config_path=str(FRANKA), object="cube", out=tmp_path / "job"))
+        run_scan(ScanRequest(config=cfg, config_path=str(FRANKA), object="cube", planner="raster",
+                             out=tmp_path / "job"))
     result = json.loads((tmp_path / "job" / "result.json").read_text())
     assert result["status"] == "failed" and "frame timeout" in result["termination"]
     assert result["n_captures"] == 2

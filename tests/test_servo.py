@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cell.control.servo import DualTaskServo, adaptive_gain, interaction_matrix
+from cell.control.servo import DualTaskServo, adaptive_gain, interaction_matrix, null_space_projector
 from drivers.transforms import look_at
 
 PAPER = {"lambda_0": 2.0, "lambda_inf": 0.4, "lambda_0_slope": 30.0, "lambda_g": 0.33, "e_converged_m": 0.005}
@@ -46,6 +46,7 @@ def test_pseudo_inverse_and_null_space_projector():
     np.testing.assert_allclose(L @ null, 0.0, atol=1e-12)
     np.testing.assert_allclose(null @ null, null, atol=1e-12)
     assert np.linalg.matrix_rank(null) == 3
+    np.testing.assert_allclose(null_space_projector(np.array([0.01, -0.02, 0.27])), null, atol=1e-12)
 
 
 def test_adaptive_gain_is_vispy_exponential():

@@ -31,6 +31,13 @@ def test_servo_scan_runs_on_the_cell(tmp_path, cell_file, planner, budget):
     # then the secondary task moved the camera: more path than the move to the start view.
     log = (out / "log.txt").read_text()
     assert "capture" in log
+    if cell_file == FRANKA:  # (the 8x8 ToF finds the object only from the second start view, after 5 s)
+        # The servo telemetry (paper Fig. 4 and Fig. 3, left), with the coverage over time in sim.
+        lines = (out / "servo.csv").read_text().splitlines()
+        assert lines[0].endswith(",mode,coverage_pct") and len(lines) > 100
+        assert lines[-1].split(",")[-2] in ("local", "global")
+        for name in ("servo.png", "path.png"):
+            assert (out / name).read_bytes()[:4] == b"\x89PNG"
     traj = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1)
     moving = traj[traj[:, 0] > float(budget) - 3.0, 1:4]
     assert np.linalg.norm(moving[-1] - moving[0]) > 0.01

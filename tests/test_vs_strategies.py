@@ -7,17 +7,20 @@ import numpy as np
 import pytest
 
 from cell.config import load_config
+from cell.perception.occupancy import binary_entropy
 from cell.planning.registry import get_planner
 from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
 from cell.planning.vs.local import LocalGradient, VSLocalPlanner
 from cell.planning.vs.objective import ray_grid
 from cell.planning.vs.servo_scan import (
+    Secondary,
     TelemetryRow,
     achieved_fraction,
     objective_rays,
     start_views,
     translated,
+    voxel_entropy,
 )
 from cell.planning.vs.telemetry import write_servo_outputs
 from drivers.errors import PlanningError
@@ -245,9 +248,110 @@ def test_servo_outputs_are_written(tmp_path):
     rows = [TelemetryRow(t=0.02 * i, e_norm=0.01 / (i + 1), f=1.5, g_norm=2.0 if i > 3 else 0.0,
                          h_roi=None if i < 2 else 0.6, mode="primary" if i <= 3 else "local")
             for i in range(20)]
-    write_servo_outputs(tmp_path, rows, np.cumsum(np.full((50, 3), 0.001), axis=0), CENTRE)
+    write_servo_outputs(tmp_path, rows, np.cumsum(np.full((50, 3), 0.001), axis=0), CENTRE,
+                        coverage=[(0.05, 40.0), (0.2, 55.5)])
     lines = (tmp_path / "servo.csv").read_text().splitlines()
-    assert lines[0] == "t,e_norm_m,f_nats,g_norm,h_roi_nats,mode" and len(lines) == 21
-    assert lines[1].split(",")[4] == "" and lines[-1].endswith(",local")
+    assert lines[0] == "t,e_norm_m,f_nats,g_norm,h_roi_nats,mode,coverage_pct" and len(lines) == 21
+    assert lines[1].split(",")[4] == "" and lines[1].endswith(",primary,")  # before the first capture
+    assert lines[4].endswith(",primary,40.00") and lines[-1].endswith(",local,55.50")
     for name in ("servo.png", "path.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_servo_csv_without_coverage_has_no_coverage_column(tmp_path):
+    rows = [TelemetryRow(t=0.0, e_norm=0.01, f=1.0, g_norm=0.0, h_roi=0.5, mode="primary")]
+    write_servo_outputs(tmp_path, rows, np.zeros((2, 3)), None)
+    assert (tmp_path / "servo.csv").read_text().splitlines()[0] == "t,e_norm_m,f_nats,g_norm,h_roi_nats,mode"
+
+
+def test_residual_voxel_entropy_is_zero_at_the_map_clamps(franka):
+    occ = franka.perception.occupancy
+    h = voxel_entropy(franka)
+    p = np.array([occ.clamp_min, 0.3, 0.5, 0.8, occ.clamp_max])
+    out = h(p)
+    assert out[0] == pytest.approx(0.0, abs=1e-12) and out[-1] == pytest.approx(0.0, abs=1e-12)
+    assert out[2] == pytest.approx(np.log(2.0) - binary_entropy(np.array([occ.clamp_max]))[0])
+    assert np.all(out[1:4] > 0.0)
+    data = franka.model_dump()
+    data["planners"]["vs"]["objective"]["voxel_entropy"] = "shannon"
+    np.testing.assert_array_equal(voxel_entropy(type(franka).model_validate(data))(p), binary_entropy(p))
+
+
+class JointLimitSession(FakeSession):
+    """A joint at its limit that a sensor twist along +x (sensor frame) would drive further into."""
+
+    def __init__(self, rows):
+        super().__init__()
+        self.rows = np.asarray(rows, dtype=float).reshape(-1, 6)
+
+    def joint_limit_twists(self, activation_rad):
+        return self.rows
+
+
+def test_secondary_slides_along_a_joint_limit(franka):
+    planner = VSLocalPlanner(franka)
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    sec = Secondary(np.array([0.6, 0.8, 0.0, 0.0, 0.0, 0.0]), 2.0, 1.0, "local")
+    blocked = planner._within_limits(JointLimitSession([1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    np.testing.assert_allclose(blocked.g, [0.0, 0.8, 0.0, 0.0, 0.0, 0.0], atol=1e-12)  # slides along it
+    assert blocked.g_norm == pytest.approx(2.0 * 0.8)
+    free = planner._within_limits(JointLimitSession(np.zeros((0, 6))), T, s, sec)
+    assert free is sec
+    away = planner._within_limits(JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    np.testing.assert_allclose(away.g, sec.g)  # moving away from the limit is not blocked
+
+
+class BackOffSession(JointLimitSession):
+    """Records the twists streamed while job time passes; no new perception."""
+
+    def __init__(self, pose):
+        super().__init__(np.zeros((0, 6)))
+        self.pose = pose
+        self.twists = []
+        self.lines = []
+
+    def sensor_pose(self):
+        return self.pose
+
+    def latest_perception(self):
+        return None
+
+    def log(self, message):
+        self.lines.append(message)
+
+    def command_sensor_twist(self, v):
+        self.twists.append(np.array(v))
+        return v
+
+    def wait(self, dt):
+        self.t += dt
+
+
+def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
+    planner = VSLocalPlanner(franka)
+    planner.centroid = CENTRE
+    planner.servo.secondary_active = True
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session = BackOffSession(T)
+    refused = Secondary(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]), 1.0, 0.5, "local")
+    planner._back_off(session, refused, 0.02)
+    vs = franka.planners.vs
+    assert session.t == pytest.approx(vs.backoff_s) and len(session.twists) == round(vs.backoff_s / 0.02)
+    assert all(v[0] < 0.0 for v in session.twists)  # the reverse of the refused camera-x motion
+    assert "backing off" in session.lines[0]
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
+                                                              "local"))
+    np.testing.assert_allclose(towards.g[:2], [0.0, 0.8], atol=1e-12)  # slides past the refused direction
+    session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
+    sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
+    assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
+
+
+def test_hybrid_h_roi_termination_waits_for_the_first_global_goal(franka):
+    planner = VSHybridPlanner(franka)
+    planner.h_roi = [0.4] * 12
+    assert planner.finished(FakeSession()) is None  # still in its first local phase
+    planner.goals.n_goals = 1
+    assert "H_ROI settled" in planner.finished(FakeSession())

@@ -37,6 +37,13 @@ def interaction_matrix(s: Array) -> Array:
                      [0.0, 0.0, -1.0, -Y, X, 0.0]])
 
 
+def null_space_projector(s: Array) -> Array:
+    """I_6 - L_s^+ L_s (6, 6) of eq. 1 for the centroid s (3,) [m] in the camera frame: the camera motions
+    that leave s unchanged to first order."""
+    L = interaction_matrix(s)
+    return np.eye(6) - L.T @ np.linalg.solve(L @ L.T, L)
+
+
 def adaptive_gain(x: float, lambda_0: float, lambda_inf: float, lambda_0_slope: float) -> float:
     """ViSP's adaptive gain [1/s] at x >= 0: lambda_0 at 0, slope -lambda_0_slope there, lambda_inf as
     x grows: (l0 - linf) exp(-l0' x / (l0 - linf)) + linf."""
@@ -84,10 +91,8 @@ class DualTaskServo:
         if not self.secondary_active and self.primary_converged(e):
             self.secondary_active = True
         L = interaction_matrix(s)
-        L_pinv = L.T @ np.linalg.inv(L @ L.T)
         lam = adaptive_gain(float(np.max(np.abs(e))), *self._gain)
-        v = -lam * (L_pinv @ e)
+        v = -lam * (L.T @ np.linalg.solve(L @ L.T, e))
         if self.secondary_active:
-            null = np.eye(6) - L_pinv @ L
-            v = v + self.lambda_g * (null @ np.asarray(g, dtype=np.float64).reshape(6))
+            v = v + self.lambda_g * (null_space_projector(s) @ np.asarray(g, dtype=np.float64).reshape(6))
         return ServoOutput(v=v, e=e, secondary=self.secondary_active)

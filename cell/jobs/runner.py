@@ -10,6 +10,9 @@ job on the wall clock with a hardware arm and a simulated sensor that sees the v
 the arm reports it is; ``mode: real`` runs a hardware arm and a hardware sensor on the wall clock, with
 no ground truth (metrics are None). On the wall clock perception runs asynchronously from control
 (``cell.jobs.live``). ``mode: replay`` re-runs a recorded job (``cell.jobs.replay``).
+
+A servo planner's job also leaves its telemetry (``servo.csv``, ``servo.png``, ``path.png``; see
+``cell.planning.vs.telemetry``), with the coverage over time in sim.
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ from cell.perception.metrics import CoverageTracker, compute_metrics, ground_tru
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Planner
 from cell.planning.registry import get_planner
+from cell.planning.vs.servo_scan import ServoScanPlanner
+from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
 from drivers.arm.config import ReplayArmConfig
 from drivers.arm.replay import ReplayArm
@@ -262,6 +267,9 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
         if isinstance(session, ReplaySession):
             result["replay"] = {"job_dir": str(replay_dir), "n_planner_requests": session.n_planner_requests}
         recorder.result(result)
+        if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
+            write_servo_outputs(folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,
+                                session.coverage_history)
         recorder.close()
     if error is not None:
         raise error

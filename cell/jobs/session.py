@@ -28,7 +28,7 @@ from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CoverageTracker
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
-from cell.safety.guard import MotionGuard
+from cell.safety.guard import MotionGuard, TwistRefused
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.errors import DriverError, KinematicsError
@@ -88,7 +88,9 @@ class JobSession:
         # ICP did not run; registration.RegistrationResult.n_constrained)
         self.registration_n_constrained: list[int] = []
         self.path_length_m = 0.0
-        self._last_position: Array | None = None
+        # The sensor origin [m], base frame, at every tick; (job time [s], coverage [%]) at every capture.
+        self.sensor_path: list[Array] = []
+        self.coverage_history: list[tuple[float, float]] = []
         self._on_progress = on_progress
         self._latest: PerceptionUpdate | None = None
         self._poses = poses
@@ -110,9 +112,9 @@ class JobSession:
     def _record_pose(self, T_base_flange: Array) -> None:
         T = T_base_flange @ self._T_flange_sensor
         p = T[:3, 3]
-        if self._last_position is not None:
-            self.path_length_m += float(np.linalg.norm(p - self._last_position))
-        self._last_position = p
+        if self.sensor_path:
+            self.path_length_m += float(np.linalg.norm(p - self.sensor_path[-1]))
+        self.sensor_path.append(p)
         self._recorder.pose(self.now(), T)
         if self._poses is not None:
             self._poses.add(self.now(), T_base_flange)
@@ -195,9 +197,16 @@ class JobSession:
             self.log(f"capture failed: {exc}")
 
     def wait(self, dt: float) -> None:
+        """Let ``dt`` [s] pass. A streamed twist the guard refuses (``TwistRefused``: the arm has been
+        stopped) is counted in ``refused_moves``, logged and raised to the planner, which may back off."""
         end = self.now() + dt
         while self.now() < end - 1e-9:
-            self._tick()
+            try:
+                self._tick()
+            except TwistRefused as exc:
+                self.refused_moves[exc.refusal.kind] += 1
+                self.log(f"streamed twist refused, the arm stopped: {exc.refusal.message}")
+                raise
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
         state = self._guard.state()
@@ -224,17 +233,41 @@ class JobSession:
             self._tick()
         return True
 
+    def _sensor_twist_map(self, T_base_flange: Array) -> Array:
+        """(6, 6) from a twist of the sensor frame expressed in the sensor frame to the flange twist in the
+        base frame at ``T_base_flange``: w_b = R w_s, v_flange = R v_s - w_b x r, r the lever from the
+        flange origin to the sensor origin (base frame)."""
+        R = (T_base_flange @ self._T_flange_sensor)[:3, :3]
+        r = R @ self._T_flange_sensor[:3, 3]
+        r_cross = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+        out = np.zeros((6, 6))
+        out[:3, :3] = out[3:, 3:] = R
+        out[:3, 3:] = r_cross @ R
+        return out
+
     def command_sensor_twist(self, v_sensor: Array) -> Array:
         """Stream a twist of the sensor frame, expressed in the sensor frame (v [m/s], w [rad/s]; the
         papers' camera twist), through the guard until the next command or ``hold``. Returns the twist the
         limits allow now, in the sensor frame."""
-        v_s = np.asarray(v_sensor, dtype=float)
-        T_bf = self._guard.state().T_base_flange
-        R = (T_bf @ self._T_flange_sensor)[:3, :3]
-        r = R @ self._T_flange_sensor[:3, 3]  # flange origin to sensor origin, base frame
-        v_b, w_b = R @ v_s[:3], R @ v_s[3:]
-        sent = self._guard.command_twist(np.concatenate([v_b - np.cross(w_b, r), w_b]))
-        return np.concatenate([R.T @ (sent[:3] + np.cross(sent[3:], r)), R.T @ sent[3:]])
+        to_flange = self._sensor_twist_map(self._guard.state().T_base_flange)
+        sent = self._guard.command_twist(to_flange @ np.asarray(v_sensor, dtype=float))
+        return np.linalg.solve(to_flange, sent)
+
+    def joint_limit_twists(self, activation_rad: float) -> Array:
+        """Rows a (m, 6), one per joint closer than ``activation_rad`` [rad] to its position margin: a
+        sensor twist v (sensor frame, [m/s, rad/s]) moves that joint towards the margin at a . v [rad/s]
+        (first order, the damped least-squares part of the arm's differential IK)."""
+        state = self._guard.state()
+        margin = self.config.safety.joint_position_margin_rad
+        to_hi = (self._model.q_max - margin) - state.q
+        to_lo = state.q - (self._model.q_min + margin)
+        near_hi, near_lo = to_hi < activation_rad, to_lo < activation_rad
+        near = near_hi | near_lo
+        if not np.any(near):
+            return np.zeros((0, 6))
+        rows = self._model.velocity_map(state.q).task @ self._sensor_twist_map(state.T_base_flange)
+        sign = np.where(near_hi, 1.0, -1.0)
+        return (sign[:, None] * rows)[near]
 
     def hold(self) -> None:
         """Ramp a streamed twist down to rest within the acceleration limits."""
@@ -329,7 +362,7 @@ class JobSession:
             self.n_registration_rejected += 1
         self.registration_n_constrained.append(reg.n_constrained)
         if self.coverage is not None:
-            self.coverage.add(update.points_base)
+            self.coverage_history.append((self.now(), self.coverage.add(update.points_base)))
         h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
         self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
                  f"filtering; registration {reg.reason} (fitness {reg.fitness:.3f}, correction "

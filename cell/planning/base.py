@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
-from cell.perception.pipeline import PerceptionUpdate
+from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from drivers.depth.base import SensorModel
 
 Array = NDArray[np.float64]
@@ -26,6 +26,13 @@ class ScanSession(Protocol):
     rng: np.random.Generator
     """The job's generator for a planner's random draws (a stream of the job's ``--seed`` of its own, so
     planning never changes the noise the simulated devices see)."""
+    perception: PerceptionPipeline
+    """The job's perception pipeline, to read (never to feed): its occupancy map (``perception.map``, e.g.
+    for an NBV objective) and accumulated cloud; ``latest_perception`` is its newest update."""
+
+    def log(self, message: str) -> None:
+        """Add a line to the job's log, stamped with job time."""
+        ...
 
     def now(self) -> float:
         """Job time [s] (sim time in sim mode)."""
@@ -46,7 +53,9 @@ class ScanSession(Protocol):
         ...
 
     def wait(self, dt: float) -> None:
-        """Let ``dt`` [s] pass with the arm doing what it was told."""
+        """Let ``dt`` [s] pass with the arm doing what it was told. Raises ``TwistRefused``
+        (``cell.safety.guard``) when the guard refused a streamed twist: the arm has been stopped and the
+        refusal counted; the planner may command another twist (back off) or let it end the job."""
         ...
 
     def capture(self) -> int:
@@ -67,6 +76,12 @@ class ScanSession(Protocol):
 
     def hold(self) -> None:
         """Ramp a streamed twist down to rest (within the acceleration limits)."""
+        ...
+
+    def joint_limit_twists(self, activation_rad: float) -> Array:
+        """Rows a (m, 6), one per joint closer than ``activation_rad`` [rad] to its position margin: a
+        sensor twist v (sensor frame) moves that joint towards the margin at a . v [rad/s] (first order),
+        so that a planner can keep its motion from pressing into a joint limit (as barrier planes)."""
         ...
 
     def feasible_sensor_velocity(self, v_sensor: Array, activation_m: float) -> Array:

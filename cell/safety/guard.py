@@ -8,7 +8,9 @@ the arm. It forwards two kinds of motion:
   scaled down to the cell's limits (direction kept); the twist is projected into the set the barrier planes
   and the workspace box allow for the TCP and the sensor (it slides along active planes); it is scaled
   down (direction kept) so that no joint exceeds its share of its speed limit and no joint runs into its
-  position margin; ruckig smooths it to the TCP acceleration and jerk limits; the configuration predicted
+  position margin, with the joint velocities the arm's differential IK gives (``RobotModel.velocity_map``:
+  damped least squares plus, on a redundant arm, null-space joint-limit avoidance, which scales with the
+  twist); ruckig smooths it to the TCP acceleration and jerk limits; the configuration predicted
   ``collision.lookahead_s`` ahead at that twist is checked for collisions (robot, tool, table, object ROI,
   obstacles, self-collision). A collision refuses the motion.
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
@@ -18,8 +20,9 @@ the arm. It forwards two kinds of motion:
 
 Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
 honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
-limits), records the reason in the job's :class:`SafetyLog` and raises ``SafetyStop``; every clamp is
-counted there too.
+limits), records the reason in the job's :class:`SafetyLog` and raises ``SafetyStop`` (``TwistRefused``
+for a refused streamed twist, which a planner may answer by backing off); every clamp is counted there
+too.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from cell.safety.watchdog import Watchdog
 from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.clock import Clock
 from drivers.errors import CellError, RobotFault, SafetyStop
-from drivers.robots.model import RobotModel
+from drivers.robots.model import JointVelocityMap, RobotModel
 
 Array = NDArray[np.float64]
 
@@ -64,6 +67,16 @@ class Refusal:
 
     kind: str
     message: str
+
+
+class TwistRefused(SafetyStop):
+    """The guard refused a streamed twist (a collision predicted ahead) and stopped the arm, as for any
+    refusal; ``refusal`` says why. Uncaught it ends the job like any safety stop; a planner that streams
+    twists may instead back off and go on (``cell.jobs.session`` reports it, counted as a refused move)."""
+
+    def __init__(self, reason: str, refusal: Refusal) -> None:
+        super().__init__(reason)
+        self.refusal = refusal
 
 
 @dataclass(frozen=True)
@@ -206,16 +219,17 @@ class MotionGuard:
             raise self._refuse("a twist was commanded while a trajectory is being followed")
         self._target = v.copy()
         state = self.state()
-        return self._limit(v, state, self._model.dls_map(state.q), count=False)
+        return self._limit(v, state, self._model.velocity_map(state.q), count=False)
 
     def hold(self) -> None:
         """Ramp the streamed twist down to zero (within the acceleration limits) and keep the arm still."""
         if self._target is not None:
             self._target = np.zeros(6)
 
-    def _limit(self, v: Array, state: ArmState, ik: Array, *, count: bool) -> Array:
+    def _limit(self, v: Array, state: ArmState, ik: JointVelocityMap, *, count: bool) -> Array:
         """Speed limits, barrier projection and joint limits for a twist at ``state`` (module docstring);
-        ``ik`` is the joint velocity map at ``state.q``."""
+        ``ik`` is the arm's differential IK at ``state.q`` (null-space joint-limit avoidance included;
+        positively homogeneous, so scaling the twist scales every joint's velocity alike)."""
         s = self._safety
         v = v.copy()
         for kind, sl, limit in (("tcp_linear_speed", slice(0, 3), s.tcp_max_linear_mps),
@@ -233,7 +247,7 @@ class MotionGuard:
         if count:
             for name in planes:
                 self.log.clamp(f"barrier {name}")
-        qd = ik @ v
+        qd = ik(v)
         ratio = float(np.max(np.abs(qd) / self._qd_limit))
         if ratio > 1.0:
             v /= ratio
@@ -274,7 +288,7 @@ class MotionGuard:
             return
         if self._target is None:
             return
-        ik = self._model.dls_map(state.q)
+        ik = self._model.velocity_map(state.q)
         limited = self._limit(self._target, state, ik, count=True)
         v = self._smoother.step(limited)
         if np.any(np.abs(v - limited) > 1e-9):
@@ -284,16 +298,18 @@ class MotionGuard:
         # only time-synchronised (the blend may bulge past a speed limit); scale such a twist down and
         # continue smoothing from there.
         s = self._safety
-        ratio = max(float(np.max(np.abs(ik @ v) / self._qd_limit)),
+        ratio = max(float(np.max(np.abs(ik(v)) / self._qd_limit)),
                     float(np.linalg.norm(v[:3])) / s.tcp_max_linear_mps,
                     float(np.linalg.norm(v[3:])) / s.tcp_max_angular_rps)
         if ratio > 1.0:
             v = self._smoother.scale(1.0 / ratio)
             self.log.clamp("smoothed_twist")
-        q_pred = state.q + ik @ v * self._safety.collision.lookahead_s
+        q_pred = state.q + ik(v) * self._safety.collision.lookahead_s
         hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))
         if hit is not None:
-            raise self._refuse(f"{hit} within {self._safety.collision.lookahead_s:g} s")
+            reason = f"{hit} within {self._safety.collision.lookahead_s:g} s"
+            stop = self._refuse(reason)
+            raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
 
     def _send(self, command: Callable[[], None]) -> None:

@@ -24,6 +24,20 @@ An optional fixed ``flange`` element (a, d, alpha, no joint) follows the last jo
 convention as the chain (Panda: d = 0.107 m from link 7 to the flange). Without it the last link frame is
 the flange (UR5e).
 
+Redundancy
+----------
+An arm with one joint more than the six of a twist (the Panda's seven) has a self-motion that leaves the
+flange still. The differential IK (:meth:`RobotModel.velocity_map`, :meth:`RobotModel.ik_velocity`) uses
+it for joint-limit avoidance (Liegeois 1977; Siciliano et al., *Robotics*, eq. 3.54):
+``qd = N v + |N v| c`` with ``N`` the damped least-squares map and ``c = -k P grad H(q)``, the
+descent direction of the joint-limit cost ``H(q) = 1/2 sum_i x_i^2``, ``x_i = (2 q_i - q_max_i - q_min_i) /
+(q_max_i - q_min_i)`` (0 mid-range, +-1 at the limits), projected by ``P`` onto the exact null space of
+the Jacobian, so the flange twist is the same as without it. ``k`` is the model's
+``limit_avoidance_gain`` [rad]. The null-space speed is proportional to the task's joint speed
+``|N v|`` [rad/s], so that the map stays positively homogeneous (a twist scaled by s >= 0 gives joint
+velocities scaled by s: speed limits that scale a twist keep their meaning, and a zero twist means rest):
+the arm straightens its redundancy as it moves, not while it holds.
+
 ``fk_all`` convention
 ---------------------
 ``fk_all(q)`` returns ``n_joints + 2`` frames: index 0 is the base (identity), index i in 1..n is link
@@ -48,6 +62,25 @@ Array = NDArray[np.float64]
 DHConvention = Literal["standard", "modified"]
 # Damping of the differential IK [m]: small against link lengths, large enough near singularities.
 DLS_DAMPING_M = 0.02
+# Null-space joint-limit avoidance needs exactly one redundant joint: the columns of the 6 x 6 minors of a
+# 6 x 7 Jacobian (row i drops column i) and the signs of the generalised cross product.
+_MINOR_COLUMNS = np.array([[j for j in range(7) if j != i] for i in range(7)])
+_ALTERNATING_SIGNS = np.array([(-1.0) ** i for i in range(7)])
+
+
+@dataclass(frozen=True)
+class JointVelocityMap:
+    """The differential IK at one configuration, without position limits (module docstring,
+    "Redundancy"): ``qd = task @ v + |task @ v| * null`` [rad/s] for a flange twist ``v`` (base frame,
+    [m/s, rad/s]); ``task`` (n, 6) is the damped least-squares map, ``null`` (n,) the joint-limit avoidance
+    direction in the Jacobian's null space per unit of task joint speed (zero without redundancy)."""
+
+    task: Array
+    null: Array
+
+    def __call__(self, v: Array) -> Array:
+        qd = self.task @ v
+        return qd + float(np.linalg.norm(qd)) * self.null
 
 
 @dataclass(frozen=True)
@@ -134,7 +167,8 @@ class RobotModel:
     ``q_home`` [rad]. ``flange`` is (a, d, alpha) of the fixed flange element or ``None``.
     Cartesian ceilings of the flange: ``tcp_max_linear_mps`` [m/s], ``tcp_max_angular_rps`` [rad/s],
     ``tcp_max_linear_acc`` [m/s^2], ``tcp_max_angular_acc`` [rad/s^2], ``tcp_max_linear_jerk`` [m/s^3],
-    ``tcp_max_angular_jerk`` [rad/s^3].
+    ``tcp_max_angular_jerk`` [rad/s^3]. ``limit_avoidance_gain`` [rad]: the gain k of the null-space
+    joint-limit avoidance (module docstring, "Redundancy"); non-zero only for a 7-joint arm.
 
     The instance is immutable; :meth:`perturbed` returns a modified copy.
     """
@@ -160,6 +194,7 @@ class RobotModel:
     extra_adjacent_pairs: tuple[tuple[str, str], ...] = ()
     flange: tuple[float, float, float] | None = None
     theta_offset: Array | None = None
+    limit_avoidance_gain: float = 0.0
     n_joints: int = field(init=False)
     adjacent_capsule_pairs: frozenset[frozenset[str]] = field(init=False)
 
@@ -185,6 +220,12 @@ class RobotModel:
             raise ValueError(f"{self.name}: q_min must be below q_max")
         if np.any(self.qd_max <= 0) or np.any(self.qdd_max <= 0) or np.any(self.qddd_max <= 0):
             raise ValueError(f"{self.name}: velocity, acceleration and jerk limits must be positive")
+        if not (np.isfinite(self.limit_avoidance_gain) and self.limit_avoidance_gain >= 0.0):
+            raise ValueError(f"{self.name}: limit_avoidance_gain must be >= 0, got "
+                             f"{self.limit_avoidance_gain}")
+        if self.limit_avoidance_gain > 0.0 and n != 7:
+            raise ValueError(f"{self.name}: null-space joint-limit avoidance (limit_avoidance_gain) needs a "
+                             f"7-joint arm (one redundant joint), this one has {n}")
         if np.any(self.q_home < self.q_min) or np.any(self.q_home > self.q_max):
             raise ValueError(f"{self.name}: q_home {self.q_home} is outside the joint limits")
         names = [c.name for c in self.capsule_specs]
@@ -264,22 +305,39 @@ class RobotModel:
         """Geometric Jacobian (6, n) of the flange origin in the base frame, rows (vx, vy, vz, wx, wy, wz)."""
         return self.jacobian_from_frames(self.fk_all(q))
 
-    def dls_map(self, q: object, damping: float = DLS_DAMPING_M) -> Array:
-        """The damped least-squares map ``J^T (J J^T + damping^2 I)^-1`` (n, 6) from a flange twist to joint
-        velocities at ``q``, without the limits :meth:`ik_velocity` applies (e.g. to predict motion)."""
-        J = self.jacobian(q)
-        return J.T @ np.linalg.inv(J @ J.T + damping * damping * np.eye(6))
+    def velocity_map(self, q: object, damping: float = DLS_DAMPING_M) -> JointVelocityMap:
+        """The differential IK at ``q`` without the position limits :meth:`ik_velocity` applies (e.g. to
+        predict motion): the damped least-squares map ``J^T (J J^T + damping^2 I)^-1`` (n, 6) and the
+        null-space joint-limit avoidance (module docstring, "Redundancy")."""
+        qv = self.check_q(q)
+        return self._velocity_map_J(qv, self.jacobian(qv), damping)
+
+    def _velocity_map_J(self, q: Array, J: Array, damping: float) -> JointVelocityMap:
+        task = J.T @ np.linalg.inv(J @ J.T + damping * damping * np.eye(6))
+        if self.limit_avoidance_gain == 0.0:
+            return JointVelocityMap(task, np.zeros(self.n_joints))
+        # The null space of a full-rank 6 x 7 Jacobian is spanned by its generalised cross product,
+        # n_i = (-1)^i det(J without column i) (zero at a singularity, where the avoidance pauses).
+        n = _ALTERNATING_SIGNS * np.linalg.det(J[:, _MINOR_COLUMNS].transpose(1, 0, 2))
+        nn = float(n @ n)
+        if nn < 1e-24:
+            return JointVelocityMap(task, np.zeros(self.n_joints))
+        span = self.q_max - self.q_min
+        grad_h = 2.0 * (2.0 * q - self.q_max - self.q_min) / (span * span)  # dH/dq [1/rad]
+        return JointVelocityMap(task, -self.limit_avoidance_gain * float(n @ grad_h) / nn * n)
 
     def ik_velocity(self, q: object, v_base_flange: object, dt: float,
                     damping: float = DLS_DAMPING_M) -> Array:
         """Joint velocities [rad/s] that best produce the flange twist ``v_base_flange`` [m/s, rad/s].
 
         Damped least squares ``qd = J^T (J J^T + damping^2 I)^-1 v`` (``damping`` in the units of J,
-        i.e. metres for the linear rows). Limits:
+        i.e. metres for the linear rows) with the null-space joint-limit avoidance of
+        :meth:`velocity_map` (module docstring, "Redundancy"). Limits:
 
         - position: a joint whose ``q + qd * dt`` [dt in s] would leave ``[q_min, q_max]`` is fixed at the
           velocity that brings it exactly to the limit, its contribution is removed from the twist and the
-          other joints are re-solved (repeated until no joint leaves, at most ``n_joints`` rounds);
+          other joints are re-solved without the null-space term (repeated until no joint leaves, at most
+          ``n_joints`` rounds);
         - velocity: the whole ``qd`` is then scaled down uniformly so that ``|qd_i| <= qd_max_i``, which
           keeps the direction of motion and, because ``q`` lies inside the limits, the position limits.
         """
@@ -288,9 +346,12 @@ class RobotModel:
         if not (np.isfinite(dt) and dt > 0.0):
             raise KinematicsError(f"{self.name} ik_velocity: dt must be positive, got {dt}")
         J = self.jacobian(qv)
-        return self._ik_velocity_J(qv, J, v, dt, damping)
+        return self._ik_velocity_J(qv, J, v, dt, damping, self._velocity_map_J(qv, J, damping))
 
-    def _ik_velocity_J(self, q: Array, J: Array, v: Array, dt: float, damping: float) -> Array:
+    def _ik_velocity_J(self, q: Array, J: Array, v: Array, dt: float, damping: float,
+                       unlimited: JointVelocityMap | None = None) -> Array:
+        """The limited IK step; ``unlimited`` (the map at ``q``, null-space term included) gives the
+        first round, before any joint is fixed at its limit."""
         n = self.n_joints
         lam2 = damping * damping
         hi = np.maximum((self.q_max - q) / dt, 0.0)  # largest allowed qd per joint over dt
@@ -298,10 +359,12 @@ class RobotModel:
         free = np.ones(n, dtype=bool)
         qd = np.zeros(n)
         for _ in range(n + 1):
-            Jf = J[:, free]
-            v_rest = v - J[:, ~free] @ qd[~free]
-            qd_free = Jf.T @ np.linalg.solve(Jf @ Jf.T + lam2 * np.eye(6), v_rest)
-            qd[free] = qd_free
+            if unlimited is not None and free.all():
+                qd = unlimited(v)
+            else:
+                Jf = J[:, free]
+                v_rest = v - J[:, ~free] @ qd[~free]
+                qd[free] = Jf.T @ np.linalg.solve(Jf @ Jf.T + lam2 * np.eye(6), v_rest)
             over = free & ((qd > hi) | (qd < lo))
             if not np.any(over):
                 break
@@ -320,7 +383,8 @@ class RobotModel:
 
         Each iteration takes the pose error (position [m], axis-angle [rad], base frame), caps it at
         0.1 m / 0.5 rad so that one step stays in the region where the linearisation holds, and applies
-        the :meth:`ik_velocity` step with ``dt = 1`` (so the position limits hold at every iterate).
+        the :meth:`ik_velocity` step with ``dt = 1`` (so the position limits hold at every iterate; its
+        null-space term steers a redundant arm towards a solution away from its joint limits).
         Raises ``KinematicsError`` with the remaining residual when ``tol_m`` and ``tol_rad`` are not met
         within ``max_iter`` iterations.
         """
@@ -341,7 +405,7 @@ class RobotModel:
             if er > 0.5:
                 step[3:] *= 0.5 / er
             J = self.jacobian_from_frames(F)
-            dq = self._ik_velocity_J(q, J, step, 1.0, 0.02)
+            dq = self._ik_velocity_J(q, J, step, 1.0, 0.02, self._velocity_map_J(q, J, 0.02))
             q = np.clip(q + dq, self.q_min, self.q_max)
         e = pose_error(self.fk(q), T_goal)
         raise KinematicsError(

@@ -11,6 +11,7 @@ Sources
   ddq_max [rad/s^2], dddq_max [rad/s^3]; Cartesian: 1.7 m/s, 2.5 rad/s, 13 m/s^2, 25 rad/s^2,
   6500 m/s^3, 12500 rad/s^3.
 - Ready pose: libfranka's example start pose [0, -pi/4, 0, -3pi/4, 0, pi/2, pi/4].
+- Redundancy: the seventh joint's self-motion serves joint-limit avoidance (``PANDA_LIMIT_AVOIDANCE_GAIN``).
 - Capsules: radii from the published link dimensions (drive housings of 120 to 130 mm diameter on
   joints 1-4, about 110 mm on the forearm and wrist, flange 63 mm), rounded up so that each capsule encloses
   its link; placed along the link frames of Franka's URDF. The figures are in frame coordinates of
@@ -38,6 +39,11 @@ PANDA_DQ_MAX = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
 PANDA_DDQ_MAX = [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]
 PANDA_DDDQ_MAX = [7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0]
 PANDA_Q_HOME = [0.0, -PI / 4, 0.0, -3 * PI / 4, 0.0, PI / 2, PI / 4]
+# Null-space joint-limit avoidance gain k [rad] (drivers.robots.model, "Redundancy"). Not a Franka figure:
+# at 3 the self-motion is about as fast as the task's own joint motion for a joint 90 % of the way to its
+# limit, enough to unwind the shoulder-elbow twist of a sideways view within a few centimetres of camera
+# travel (at 1 the base joint still reached its margin in a bunny scan).
+PANDA_LIMIT_AVOIDANCE_GAIN = 3.0
 
 PANDA_CAPSULES = (
     # frame 0: base, bottom of the capsule at z = 0.
@@ -86,4 +92,5 @@ def panda_model() -> RobotModel:
         capsule_specs=PANDA_CAPSULES,
         extra_adjacent_pairs=(("link5", "link7"), ("link5b", "link7")),
         flange=(0.0, PANDA_FLANGE_D, 0.0),
+        limit_avoidance_gain=PANDA_LIMIT_AVOIDANCE_GAIN,
     )

@@ -19,7 +19,10 @@ whose scale it does not give: with f as eq. 9 writes it (mean over the K rays, n
 transfer between objects either: f of a 7 cm ball is ten times smaller than f of the 15 cm bunny, and so
 is its gradient. Dividing by f(r) makes g the relative gradient, d ln f / dx [1/m], independent of the
 object's size, the map resolution and the ray count; alpha [m] = 1 ends the scan once a 5 cm move would
-change f by less than 5 %. ``f_eps_nats`` (1e-3) keeps the ratio finite where no ray meets the ROI.
+change f by less than 5 %. ``f_eps_nats`` (0.05 nats) keeps the ratio finite where no ray meets the ROI
+and sets the level of f below which a view counts as exhausted: with the residual entropy of the objective
+(``ObjectiveConfig.voxel_entropy``) f falls to ~0.01 nats once nothing in view can be learnt, and the
+ratio of such small differences is noise; 0.05 nats is about one unknown voxel on every tenth ray.
 """
 
 from __future__ import annotations

@@ -33,6 +33,7 @@ so results do not depend on the thread count.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -92,12 +93,13 @@ class EntropyObjective:
     """Eq. 7-9 on a snapshot of the occupancy map inside the ROI box (see the module docstring).
 
     ``roi_min`` / ``roi_max`` [m]: the object's ROI box in the base frame; ``crop``: the perception crop
-    box in the camera frame [m]; ``directions_cam`` (K, 3): unit rays in the camera frame (``ray_grid``).
-    Samples are spaced at the map's resolution.
+    box in the camera frame [m]; ``directions_cam`` (K, 3): unit rays in the camera frame (``ray_grid``);
+    ``voxel_entropy``: H(p) of eq. 8 [nats] per voxel probability (the binary entropy unless a planner
+    chooses another measure of a voxel's uncertainty). Samples are spaced at the map's resolution.
     """
 
     def __init__(self, occupancy: OccupancyMap, roi_min: Array, roi_max: Array, crop: CropBox,
-                 directions_cam: Array) -> None:
+                 directions_cam: Array, voxel_entropy: Callable[[Array], Array] = binary_entropy) -> None:
         self.resolution_m = occupancy.resolution_m
         self.roi_min = np.asarray(roi_min, dtype=np.float64).reshape(3)
         self.roi_max = np.asarray(roi_max, dtype=np.float64).reshape(3)
@@ -113,7 +115,7 @@ class EntropyObjective:
         keys = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
         p = occupancy.probability(occupancy.centers_of(keys))
         # Per voxel in key order (x, then y, then z): 1 - p of eq. 7 and H(p) of eq. 8 [nats].
-        voxels = np.ascontiguousarray(np.stack([1.0 - p, binary_entropy(p)], axis=1))
+        voxels = np.ascontiguousarray(np.stack([1.0 - p, voxel_entropy(p)], axis=1))
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])

@@ -11,6 +11,15 @@ and adds H_ROI (eq. 12) to the history used by the entropy termination of Global
 ends the scan by returning a reason from ``secondary``'s companion ``finished``; the time budget and
 safety stops end it from the session.
 
+Limits the paper handled with barrier planes placed by hand are handled here for any placement: the
+secondary direction g is projected so that it does not move a joint that is within
+``joint_activation_rad`` of its position margin further towards it (``session.joint_limit_twists``,
+mapped through the primary task's null-space projector of eq. 1), and the camera slides along the
+joint limit as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
+``TwistRefused``), the arm has been stopped; the scan backs off along the reverse of the refused
+secondary direction for ``backoff_s``, then goes on with that direction blocked within
+``refusal_radius_m`` of where it was refused. A second refusal during the back-off ends the scan.
+
 ``telemetry`` keeps one row per servo iteration: the series of the paper's Fig. 4 (||e||, f(r), ||g||
 before clipping, H_ROI) with the job time and the strategy's mode. ||g|| there is after the barrier
 projection and scaled by the share of the commanded motion the guard let through, so that it falls when
@@ -20,15 +29,19 @@ the camera is held by a plane or a joint limit (the drop of the paper's Fig. 4 a
 from __future__ import annotations
 
 from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from cell.config.models import CellConfig
-from cell.control.servo import DualTaskServo
+from cell.control.servo import DualTaskServo, null_space_projector
 from cell.perception.filters import CentroidLowPass
+from cell.perception.occupancy import binary_entropy
 from cell.planning.base import Array, Planner, ScanSession
 from cell.planning.vs.objective import EntropyObjective, ray_grid
+from cell.safety.barriers import project_onto_halfspaces
+from cell.safety.guard import TwistRefused
 from drivers.errors import PlanningError
 from drivers.transforms import look_at
 
@@ -65,6 +78,22 @@ def objective_rays(config: CellConfig) -> Array:
     if oc.use_sensor_zones and sensor.type in ("sim-tof", "vl53l8cx"):
         return ray_grid(sensor.resolution, sensor.fov_deg)
     return ray_grid(oc.rays_per_side, oc.fov_deg)
+
+
+def voxel_entropy(config: CellConfig) -> Callable[[Array], Array]:
+    """H per voxel probability for the objective (``planners.vs.objective.voxel_entropy``): eq. 8's binary
+    entropy, or the residual H(p) - H(c) above the map's clamping bound c on p's side [nats], zero for a
+    voxel the map is as sure of as it can be."""
+    if config.planners.vs.objective.voxel_entropy == "shannon":
+        return binary_entropy
+    occ = config.perception.occupancy
+    floor_free, floor_occupied = binary_entropy(np.array([occ.clamp_min, occ.clamp_max]))
+
+    def residual(p: Array) -> Array:
+        floor = np.where(p < 0.5, floor_free, floor_occupied)
+        return np.maximum(binary_entropy(p) - floor, 0.0)
+
+    return residual
 
 
 def start_views(config: CellConfig) -> list[Array]:
@@ -114,11 +143,14 @@ class ServoScanPlanner(Planner):
                                    lambda_inf=sc.lambda_inf, lambda_0_slope=sc.lambda_0_slope,
                                    lambda_g=sc.lambda_g, e_converged_m=sc.e_converged_m)
         self.rays_cam = objective_rays(config)
+        self._voxel_entropy = voxel_entropy(config)
         self.objective: EntropyObjective | None = None
         self.centroid: Array | None = None
         self.h_roi: list[float] = []
         self.telemetry: list[TelemetryRow] = []
         self._centroid_filter = CentroidLowPass(vs.centroid_tau_s)
+        # Where the guard refused a streamed twist and the secondary direction refused there (base frame).
+        self._refused: list[tuple[Array, Array]] = []
         self._seq: int | None = None
 
     @abstractmethod
@@ -155,8 +187,10 @@ class ServoScanPlanner(Planner):
             return  # segmentation found no object in this map: keep servoing on the last one
         self.centroid = self._centroid_filter.update(update.centroid, update.timestamp)
         perception = self.config.perception
-        self.objective = EntropyObjective(session.perception.map, update.roi.aabb_min, update.roi.aabb_max,
-                                          perception.crop_box, self.rays_cam)
+        grow = self.vs.objective.roi_margin_m
+        self.objective = EntropyObjective(session.perception.map, update.roi.aabb_min - [grow, grow, 0.0],
+                                          update.roi.aabb_max + grow, perception.crop_box, self.rays_cam,
+                                          self._voxel_entropy)
         if update.h_roi is not None:
             self.h_roi.append(update.h_roi)
 
@@ -181,6 +215,56 @@ class ServoScanPlanner(Planner):
         raise PlanningError(f"no object segmented from the start views within "
                             f"{self.vs.first_object_timeout_s:g} s each (unreachable views are in the log)")
 
+    def _blocked_directions(self, session: ScanSession, T_base_cam: Array, s: Array) -> Array:
+        """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits
+        and of refused motions when B g >= 0: each joint within ``joint_activation_rad`` of its margin
+        (its rate a . (P g) of eq. 1, P the primary task's null-space projector, must not be towards
+        the margin), and each refused secondary direction d (base frame) within ``refusal_radius_m`` of
+        where the guard refused it (g . d <= 0)."""
+        rows = session.joint_limit_twists(self.vs.joint_activation_rad)
+        B = [-(rows @ null_space_projector(s))[:, :2]] if rows.shape[0] else []
+        here = T_base_cam[:3, 3]
+        for where, direction in self._refused:
+            if float(np.linalg.norm(here - where)) < self.vs.refusal_radius_m:
+                B.append(-(T_base_cam[:3, :3].T @ direction)[None, :2])
+        return np.concatenate(B) if B else np.zeros((0, 2))
+
+    def _within_limits(self, session: ScanSession, T_base_cam: Array, s: Array, sec: Secondary) -> Secondary:
+        """``sec`` with g projected into the set ``_blocked_directions`` allows (the camera slides along a
+        joint limit as along a barrier plane, paper Fig. 3); ||g|| before clipping shrinks in proportion,
+        so that a camera held there converges as at a plane."""
+        norm = float(np.linalg.norm(sec.g[:2]))
+        B = self._blocked_directions(session, T_base_cam, s) if norm > 0.0 else np.zeros((0, 2))
+        if not B.shape[0]:
+            return sec
+        xy, _ = project_onto_halfspaces(sec.g[:2], B, np.zeros(B.shape[0]), np.ones(2))
+        g = sec.g.copy()
+        g[:2] = xy
+        return Secondary(g, sec.g_norm * float(np.linalg.norm(xy)) / norm, sec.f, sec.mode)
+
+    def _back_off(self, session: ScanSession, refused: Secondary, period: float) -> None:
+        """After the guard refused the streamed twist (and stopped the arm): remember the refused secondary
+        direction where it happened, then servo along its reverse for ``backoff_s`` [s] with the primary
+        task on. A second refusal meanwhile ends the scan (``TwistRefused`` propagates)."""
+        T = session.sensor_pose()
+        direction = T[:3, :3] @ refused.g[:3]
+        norm = float(np.linalg.norm(direction))
+        unit = direction / norm if norm > 0.0 else np.zeros(3)
+        if norm > 0.0:
+            self._refused.append((T[:3, 3].copy(), unit))
+        session.log(f"backing off for {self.vs.backoff_s:g} s along {np.round(-unit, 3).tolist()} (base "
+                    f"frame), then avoiding that direction within {self.vs.refusal_radius_m:g} m")
+        end = session.now() + self.vs.backoff_s
+        while session.now() < end - 1e-9:
+            self._perceive(session)
+            assert self.centroid is not None
+            T = session.sensor_pose()
+            g = np.zeros(6)
+            g[:2] = -(T[:3, :3].T @ unit)[:2]
+            out = self.servo.step(T[:3, :3].T @ (self.centroid - T[:3, 3]), g)
+            session.command_sensor_twist(out.v)
+            session.wait(period)
+
     def run(self, session: ScanSession) -> str:
         period = 1.0 / self.vs.servo_rate_hz
         self._find_object(session, period)
@@ -192,7 +276,7 @@ class ServoScanPlanner(Planner):
             s = T[:3, :3].T @ (self.centroid - T[:3, 3])
             e = self.servo.error(s)
             if self.servo.secondary_active or self.servo.primary_converged(e):
-                sec = self.secondary(session, T, self.objective)
+                sec = self._within_limits(session, T, s, self.secondary(session, T, self.objective))
             else:
                 sec = Secondary(zero, 0.0, float(self.objective(T)), "primary")
             out = self.servo.step(s, sec.g)
@@ -208,5 +292,7 @@ class ServoScanPlanner(Planner):
                 session.hold()
                 session.set_continuous_capture(False)
                 return reason
-            session.wait(period)
-
+            try:
+                session.wait(period)
+            except TwistRefused:
+                self._back_off(session, sec, period)

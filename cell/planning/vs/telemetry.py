@@ -1,5 +1,8 @@
 """The servo planners' outputs for a job folder: the time series of the visual-servoing paper's Fig. 4 as
-CSV and as a four-panel PNG, and the sensor path around the object as in Fig. 3 (left)."""
+CSV and as a four-panel PNG, and the sensor path around the object as in Fig. 3 (left).
+
+In sim the coverage of the ground truth (eq. 13, known only to the job, not to the planner) is added:
+a column of the CSV, and a second axis on the H_ROI panel."""
 
 from __future__ import annotations
 
@@ -18,20 +21,36 @@ FIG4_NAME = "servo.png"
 PATH_NAME = "path.png"
 
 
-def write_telemetry_csv(path: Path, rows: Sequence[TelemetryRow]) -> None:
-    """``t,e_norm_m,f_nats,g_norm,h_roi_nats,mode``, one line per servo iteration (H_ROI empty before the
-    first ROI)."""
+def coverage_at(t: Array, coverage: Sequence[tuple[float, float]]) -> Array:
+    """Coverage [%] in force at each time of ``t`` [s]: the value of the last ``(time [s], coverage [%])``
+    sample at or before it (NaN before the first)."""
+    if not coverage:
+        return np.full(len(t), np.nan)
+    times, values = (np.array(c, dtype=float) for c in zip(*coverage, strict=True))
+    idx = np.searchsorted(times, t, side="right") - 1
+    return np.where(idx >= 0, values[np.maximum(idx, 0)], np.nan)
+
+
+def write_telemetry_csv(path: Path, rows: Sequence[TelemetryRow],
+                        coverage: Sequence[tuple[float, float]] = ()) -> None:
+    """``t,e_norm_m,f_nats,g_norm,h_roi_nats,mode`` and, with ``coverage`` samples, ``coverage_pct``: one
+    line per servo iteration (H_ROI and coverage empty before their first value)."""
+    cov = coverage_at(np.array([r.t for r in rows]), coverage) if coverage else None
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["t", "e_norm_m", "f_nats", "g_norm", "h_roi_nats", "mode"])
-        for r in rows:
-            w.writerow([f"{r.t:.4f}", f"{r.e_norm:.6g}", f"{r.f:.6g}", f"{r.g_norm:.6g}",
-                        "" if r.h_roi is None else f"{r.h_roi:.6g}", r.mode])
+        w.writerow(["t", "e_norm_m", "f_nats", "g_norm", "h_roi_nats", "mode"]
+                   + (["coverage_pct"] if cov is not None else []))
+        for i, r in enumerate(rows):
+            line = [f"{r.t:.4f}", f"{r.e_norm:.6g}", f"{r.f:.6g}", f"{r.g_norm:.6g}",
+                    "" if r.h_roi is None else f"{r.h_roi:.6g}", r.mode]
+            if cov is not None:
+                line.append("" if np.isnan(cov[i]) else f"{cov[i]:.2f}")
+            w.writerow(line)
 
 
-def plot_fig4(path: Path, rows: Sequence[TelemetryRow]) -> None:
+def plot_fig4(path: Path, rows: Sequence[TelemetryRow], coverage: Sequence[tuple[float, float]] = ()) -> None:
     """Four panels over job time: ||e|| (eq. 2), f(r) (eq. 9), ||g|| before clipping (eq. 4), H_ROI
-    (eq. 12)."""
+    (eq. 12), the last with the coverage [%] on a second axis when ``coverage`` samples are given."""
     t = np.array([r.t for r in rows])
     series = [("||e|| [m]", [r.e_norm for r in rows]), ("f(r) [nats]", [r.f for r in rows]),
               ("||g|| before clipping", [r.g_norm for r in rows]),
@@ -44,6 +63,10 @@ def plot_fig4(path: Path, rows: Sequence[TelemetryRow]) -> None:
         ax.grid(alpha=0.3)
     for ax in axes[1]:
         ax.set_xlabel("t [s]")
+    if coverage:
+        twin = axes[1, 1].twinx()
+        twin.plot(t, coverage_at(t, coverage), lw=1.0, color="tab:green")
+        twin.set_ylabel("coverage [%]", color="tab:green")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 
@@ -68,8 +91,9 @@ def plot_path(path: Path, positions_base: Array, centroid_base: Array | None) ->
 
 
 def write_servo_outputs(folder: Path, rows: Sequence[TelemetryRow], positions_base: Array,
-                        centroid_base: Array | None) -> None:
-    """``servo.csv``, ``servo.png`` (Fig. 4) and ``path.png`` (Fig. 3, left) in a job folder."""
-    write_telemetry_csv(folder / CSV_NAME, rows)
-    plot_fig4(folder / FIG4_NAME, rows)
+                        centroid_base: Array | None, coverage: Sequence[tuple[float, float]] = ()) -> None:
+    """``servo.csv``, ``servo.png`` (Fig. 4) and ``path.png`` (Fig. 3, left) in a job folder;
+    ``coverage``: (job time [s], coverage [%]) samples, in sim."""
+    write_telemetry_csv(folder / CSV_NAME, rows, coverage)
+    plot_fig4(folder / FIG4_NAME, rows, coverage)
     plot_path(folder / PATH_NAME, positions_base, centroid_base)
