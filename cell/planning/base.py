@@ -28,7 +28,9 @@ class ScanSession(Protocol):
     planning never changes the noise the simulated devices see)."""
     perception: PerceptionPipeline
     """The job's perception pipeline, to read (never to feed): its occupancy map (``perception.map``, e.g.
-    for an NBV objective) and accumulated cloud; ``latest_perception`` is its newest update."""
+    for an NBV objective) and accumulated cloud; ``latest_perception`` is its newest update. While
+    continuous capture runs on the wall clock the pipeline is written on another thread: read the map of
+    the newest update (``latest_perception().map``) instead, a copy nothing writes."""
 
     def log(self, message: str) -> None:
         """Add a line to the job's log, stamped with job time."""

@@ -188,7 +188,9 @@ class ServoScanPlanner(Planner):
         self.centroid = self._centroid_filter.update(update.centroid, update.timestamp)
         perception = self.config.perception
         grow = self.vs.objective.roi_margin_m
-        self.objective = EntropyObjective(session.perception.map, update.roi.aabb_min - [grow, grow, 0.0],
+        # the update's own map: on the wall clock perception runs on another thread, and this is the copy
+        # published with the update, which nothing writes
+        self.objective = EntropyObjective(update.map, update.roi.aabb_min - [grow, grow, 0.0],
                                           update.roi.aabb_max + grow, perception.crop_box, self.rays_cam,
                                           self._voxel_entropy)
         if update.h_roi is not None:
