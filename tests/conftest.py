@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 import yaml
+
+from drivers.scheduling import ordinary_scheduling
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIG_DIR = REPO / "config"
@@ -34,3 +36,11 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float = 30.0) -> bool:
             return True
         time.sleep(0.01)
     return False
+
+
+@pytest.fixture(autouse=True)
+def _no_realtime_leak() -> Iterator[None]:
+    """franky (libfranka) leaves the test's thread at a realtime priority (see ``drivers.scheduling``);
+    later tests' peers and clients, started from it, would inherit it and starve each other."""
+    yield
+    ordinary_scheduling()

@@ -3,6 +3,7 @@ loop recorded, processed asynchronously, recorded by the worker; the control loo
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -17,6 +18,7 @@ from drivers.clock import WallClock
 from drivers.depth.base import DepthFrame
 from drivers.depth.sim_tof import SimToF
 from drivers.errors import DriverError
+from drivers.scheduling import is_realtime, ordinary_scheduling
 from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import look_at, make_T
@@ -129,3 +131,26 @@ def test_a_worker_error_reaches_the_control_loop(live_rig) -> None:
         assert wait_for(raised)
     finally:
         live.stop()
+
+
+def test_perception_threads_leave_a_realtime_priority_they_inherit(live_rig) -> None:
+    sensor, pipeline, poses, _, T_flange_sensor = live_rig
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # as libfranka does to its caller
+    except PermissionError:
+        pytest.skip("this user may not set a realtime priority")
+    try:
+        assert is_realtime()
+        live = LivePerception(sensor, pipeline, poses, T_flange_sensor, record=lambda *_: None,
+                              log=lambda _: None)
+        live.start()
+        try:
+            assert wait_for(lambda: live.poll() is not None)
+            policies = {t.name: os.sched_getscheduler(t.native_id) for t in threading.enumerate()
+                        if t.name in ("capture", "perception") and t.native_id is not None}
+        finally:
+            live.stop()
+    finally:
+        ordinary_scheduling()
+    assert policies == {"capture": os.SCHED_OTHER, "perception": os.SCHED_OTHER}
+    assert not is_realtime()

@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 from cell.perception.pipeline import AsyncPerception, PerceptionPipeline, PerceptionUpdate
 from drivers.depth.base import DepthFrame, DepthSensor
 from drivers.errors import DriverError
+from drivers.scheduling import ordinary_scheduling
 from drivers.transforms import inv_T
 
 Array = np.ndarray
@@ -122,6 +123,7 @@ class LivePerception:
         return update
 
     def _capture_loop(self) -> None:
+        ordinary_scheduling()  # never at a realtime priority inherited from the control thread
         while not self._stop.is_set():
             try:
                 frame = self._sensor.capture()

@@ -26,6 +26,7 @@ from cell.perception.occupancy import OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
 from cell.perception.segmentation import ROI, segment_object
 from drivers.depth.base import DepthFrame
+from drivers.scheduling import ordinary_scheduling
 from drivers.transforms import transform_points
 
 Array = NDArray[np.float64]
@@ -175,6 +176,7 @@ class AsyncPerception:
             return self._latest
 
     def _run(self) -> None:
+        ordinary_scheduling()  # never at a realtime priority inherited from the control thread
         while True:
             with self._cond:
                 while self._pending is None and not self._stop:
