@@ -230,11 +230,31 @@ def test_hybrid_goes_global_after_local_converges_then_back(franka):
 
 def test_h_roi_termination_needs_ten_flat_values(franka):
     planner = VSGlobalPlanner(franka)
+    planner.open_entropy_window()
     planner.h_roi = [0.6, 0.5, 0.45] + [0.4] * 9
     assert planner.finished(FakeSession()) is None
     planner.h_roi.append(0.4005)
     reason = planner.finished(FakeSession())
     assert reason is not None and "H_ROI settled" in reason
+
+
+def test_global_h_roi_termination_waits_for_the_first_goal_reached(franka):
+    planner = VSGlobalPlanner(franka)
+    planner.centroid = CENTRE
+    session = FakeSession(floor_z=0.1)
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    session.pose = T
+    objective = LinearObjective([-1.0, 0.0, 0.0])
+    planner.secondary(session, T, objective)  # first goal sampled, far from T
+    planner.h_roi = [0.4] * 12  # flat while travelling
+    assert planner.goals.n_goals == 1 and planner.finished(session) is None
+    session.pose = planner.goals.goal
+    planner.secondary(session, planner.goals.goal, objective)  # arrived: the window opens, a new goal
+    assert planner.goals.n_goals == 2 and planner.finished(session) is None
+    planner.h_roi += [0.4] * 9
+    assert planner.finished(session) is None  # nine values since the arrival
+    planner.h_roi.append(0.4)
+    assert "H_ROI settled" in planner.finished(session)
 
 
 def test_servo_rate_above_the_control_rate_is_refused(franka):
@@ -349,9 +369,12 @@ def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
     assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
 
 
-def test_hybrid_h_roi_termination_waits_for_the_first_global_goal(franka):
+def test_hybrid_h_roi_termination_waits_for_the_end_of_the_first_global_leg(franka):
     planner = VSHybridPlanner(franka)
     planner.h_roi = [0.4] * 12
     assert planner.finished(FakeSession()) is None  # still in its first local phase
     planner.goals.n_goals = 1
+    assert planner.finished(FakeSession()) is None  # travelling to the first goal
+    planner.open_entropy_window()
+    planner.h_roi += [0.4] * 10
     assert "H_ROI settled" in planner.finished(FakeSession())

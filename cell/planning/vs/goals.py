@@ -13,6 +13,10 @@ far away, decaying linearly to 0 within 10 cm. Like VS-Local's, the direction is
 the barrier planes allow. A goal counts as reached within ``arrival_m``; one that is not reached within
 ``max_goal_time_s`` is given up; either way a new goal is sampled.
 
+The scan ends on the H_ROI rule of eq. 12 (``ServoScanPlanner.entropy_settled``), judged on the values
+recorded after the first goal was reached or given up: the paper gives no rule for the way to the first
+goal, and a flat H_ROI while travelling there says only that the start view's surroundings are known.
+
 The candidates are drawn from the job's planner generator (``ScanSession.rng``, a stream of the job
 seed), so that a scan is repeatable for its seed.
 """
@@ -103,6 +107,8 @@ class VSGlobalPlanner(ServoScanPlanner):
 
     def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
         if self.goals.done(session, T_base_cam):
+            if self.goals.goal is not None:
+                self.open_entropy_window()  # the first goal reached or given up
             assert self.centroid is not None
             self.goals.sample(session, self.centroid, objective)
         return self.goals(session, T_base_cam, objective)

@@ -1,8 +1,8 @@
 """VS-Hybrid (visual-servoing paper section II-D): VS-Local until its gradient converges (eq. 4-6 and the
 ||g|| window), then one VS-Global goal (eq. 10-11) to leave a possible local maximum, then local again
-with a fresh window, and so on. The scan ends on the H_ROI rule of eq. 12, as VS-Global's, from the first
-global goal on (not in the paper, which does not say whether the rule already applies to the first local
-phase)."""
+with a fresh window, and so on. The scan ends on the H_ROI rule of eq. 12, as VS-Global's, judged on the
+values recorded after the first global goal was reached or given up (not in the paper, which does not say
+whether the rule already applies to the first local phase and the way to the first goal)."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ class VSHybridPlanner(ServoScanPlanner):
         if self._global_leg and self.goals.done(session, T_base_cam):
             self._global_leg = False
             self.local.reset()
+            self.open_entropy_window()
         elif not self._global_leg and self.local.converged():
             assert self.centroid is not None
             self.goals.sample(session, self.centroid, objective)
@@ -41,7 +42,8 @@ class VSHybridPlanner(ServoScanPlanner):
             self.local.record(g_norm)
 
     def finished(self, session: ScanSession) -> str | None:
-        # The H_ROI rule ends a Hybrid scan only once it has left its first local phase for a global goal:
-        # while that phase still climbs the gradient slowly, H_ROI can stay flat for ten perception
-        # updates, and the scan would end as a Local scan stopped early (bunny: 75 % instead of 90 %).
-        return self.entropy_settled() if self.goals.n_goals > 0 else None
+        # The H_ROI rule is judged from the end of the first global leg on, on the values recorded since:
+        # while the first local phase still climbs the gradient slowly, and while the camera travels to
+        # the first goal, H_ROI can stay flat for ten perception updates, and the scan would end as a
+        # Local scan stopped early (bunny: 75 % instead of 90 %).
+        return self.entropy_settled()

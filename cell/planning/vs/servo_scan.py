@@ -152,6 +152,8 @@ class ServoScanPlanner(Planner):
         # Where the guard refused a streamed twist and the secondary direction refused there (base frame).
         self._refused: list[tuple[Array, Array]] = []
         self._seq: int | None = None
+        # Index of the first H_ROI value the termination of eq. 12 judges; None: not judged yet.
+        self._h_roi_from: int | None = None
 
     @abstractmethod
     def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
@@ -165,11 +167,21 @@ class ServoScanPlanner(Planner):
         """After the twist went out: ``g_norm`` is ||g|| before clipping scaled by the share of the motion
         the guard let through (a strategy with a convergence rule on ||g|| counts it here)."""
 
+    def open_entropy_window(self) -> None:
+        """Start judging the H_ROI termination, on the values from the next perception update on (a
+        goal strategy calls this when it reaches or gives up its first goal; later calls change
+        nothing)."""
+        if self._h_roi_from is None:
+            self._h_roi_from = len(self.h_roi)
+
     def entropy_settled(self) -> str | None:
         """The H_ROI termination of section II-D: the standard deviation of the last ``h_roi_window``
-        (10) values of eq. 12 is below ``h_roi_std`` (0.001)."""
+        (10) values of eq. 12 is below ``h_roi_std`` (0.001), judged only on values recorded since
+        ``open_entropy_window``. The paper samples a new goal on arrival and gives no rule for the way
+        to the first one; judged in flight, a flat H_ROI on the way (the start view's surroundings are
+        known, the goal's not yet seen) ended a dragon scan at 54 % before its first goal."""
         n = self.vs.h_roi_window
-        if len(self.h_roi) < n:
+        if self._h_roi_from is None or len(self.h_roi) - self._h_roi_from < n:
             return None
         std = float(np.std(self.h_roi[-n:]))
         if std < self.vs.h_roi_std:
