@@ -209,12 +209,18 @@ def test_goal_sampling_is_repeatable(franka):
     np.testing.assert_array_equal(goals[0], goals[1])
 
 
-def test_hybrid_goes_global_after_local_converges_then_back(franka):
-    planner = VSHybridPlanner(franka)
+def sideways(planner_class, franka):
+    """A planner of ``planner_class`` with its centroid at CENTRE, a session with a floor at 0.1 m, and
+    the camera pose T looking at CENTRE from 25 cm on its -y side (the session's pose)."""
+    planner = planner_class(franka)
     planner.centroid = CENTRE
     session = FakeSession(floor_z=0.1)
-    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
-    session.pose = T
+    session.pose = T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    return planner, session, T
+
+
+def test_hybrid_goes_global_after_local_converges_then_back(franka):
+    planner, session, T = sideways(VSHybridPlanner, franka)
     weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0], T[:3, 3], 1.0)
     modes = []
     for _ in range(201):
@@ -239,11 +245,7 @@ def test_h_roi_termination_needs_ten_flat_values(franka):
 
 
 def test_global_h_roi_termination_waits_for_the_first_goal_reached(franka):
-    planner = VSGlobalPlanner(franka)
-    planner.centroid = CENTRE
-    session = FakeSession(floor_z=0.1)
-    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
-    session.pose = T
+    planner, session, T = sideways(VSGlobalPlanner, franka)
     objective = LinearObjective([-1.0, 0.0, 0.0])
     planner.secondary(session, T, objective)  # first goal sampled, far from T
     planner.h_roi = [0.4] * 12  # flat while travelling
