@@ -18,12 +18,13 @@ from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.clock import Clock
 from drivers.depth.replay import CSV_TIME_RESOLUTION_S, JobRecording
 from drivers.errors import DriverError
+from drivers.local_link import LocalLink
 from drivers.robots.model import RobotModel
 
 Array = np.ndarray
 
 
-class ReplayArm(Arm):
+class ReplayArm(LocalLink, Arm):
     """The recorded poses of ``recording`` on ``clock`` as an arm of ``model`` (which only gives the
     number of joints)."""
 
@@ -34,21 +35,10 @@ class ReplayArm(Arm):
         self._model = model
         self._clock = clock
         self._times, self._poses = recording.flange_track()
-        self._connected = False
 
     @property
     def device(self) -> str:
         return f"arm replay of {self.recording.job_dir}"
-
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
 
     @property
     def n_joints(self) -> int:
@@ -66,8 +56,7 @@ class ReplayArm(Arm):
         return self._poses[max(k, 0)].copy()
 
     def state(self) -> ArmState:
-        if not self._connected:
-            raise DriverError("state while disconnected; call connect() first", device=self.device)
+        self._require_connected("state", self.device)
         t = self._clock.now()
         n = self._model.n_joints
         return ArmState(timestamp=t, q=np.full(n, np.nan), qd=np.zeros(n), T_base_flange=self.pose_at(t),

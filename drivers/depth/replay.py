@@ -29,6 +29,7 @@ from drivers.clock import Clock, WallClock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel, ToFZones
 from drivers.depth.projection import back_project, pinhole_fov_deg
 from drivers.errors import DriverError
+from drivers.local_link import LocalLink
 from drivers.transforms import inv_T
 
 Array = NDArray[np.float64]
@@ -169,7 +170,7 @@ class PlaybackClock:
         self._wall.sleep(dt)
 
 
-class ReplaySensor(DepthSensor):
+class ReplaySensor(LocalLink, DepthSensor):
     """The frames of a :class:`JobRecording` as a depth sensor on ``clock`` (see the module docstring).
     ``range_m`` (min, max) [m] is the recorded sensor's range, which the job folder does not hold."""
 
@@ -180,18 +181,7 @@ class ReplaySensor(DepthSensor):
         self._clock = clock
         self._range = range_m
         self._next = 0
-        self._connected = False
         self._model = _sensor_model(recording.load(0)[0], range_m)
-
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
 
     @property
     def model(self) -> SensorModel:
@@ -208,9 +198,7 @@ class ReplaySensor(DepthSensor):
         return self.recording.frames[self._next].timestamp if self.remaining else None
 
     def capture(self) -> DepthFrame:
-        if not self._connected:
-            raise DriverError("capture while disconnected; call connect() first",
-                              device=self.recording.device)
+        self._require_connected("capture", self.recording.device)
         frames = self.recording.frames
         if self._next >= len(frames):
             raise DriverError(f"replay ended: all {len(frames)} recorded frames were played",

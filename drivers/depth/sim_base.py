@@ -11,12 +11,13 @@ from numpy.typing import NDArray
 from drivers.clock import Clock
 from drivers.depth.base import DepthSensor
 from drivers.errors import DriverError
+from drivers.local_link import LocalLink
 from drivers.sim.scene import SimScene
 
 Array = NDArray[np.float64]
 
 
-class SimDepthSensor(DepthSensor):
+class SimDepthSensor(LocalLink, DepthSensor):
     """Base of the ray-cast sensors. ``pose_source()`` returns the true T_base_sensor (4x4) at capture
     time; ``clock`` stamps frames; ``rng`` is the only source of noise."""
 
@@ -26,24 +27,12 @@ class SimDepthSensor(DepthSensor):
         self._pose_source = pose_source
         self._clock = clock
         self._rng = rng
-        self._connected = False
         self._seq = 0
         self._stalled_until = -np.inf
 
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
     def _begin_capture(self) -> Array:
         """Check the sensor is connected and return the true, finite T_base_sensor to render from."""
-        if not self._connected:
-            raise DriverError("capture while disconnected; call connect() first", device=self.name)
+        self._require_connected("capture", self.name)
         if self._clock.now() < self._stalled_until:
             raise DriverError("no frame: the sensor stopped delivering (simulated stall)", device=self.name)
         T = np.asarray(self._pose_source(), dtype=np.float64)
