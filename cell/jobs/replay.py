@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
@@ -35,6 +34,7 @@ from cell.planning.base import Array
 from drivers.arm.replay import ReplayArm
 from drivers.depth.replay import ReplaySensor
 from drivers.errors import ConfigError, JobError
+from drivers.transforms import pose_error
 
 
 class RecordingEnded(ScanLimitReached):
@@ -105,10 +105,9 @@ class ReplaySession(JobSession):
         t = self.now()
         T1 = self._replay_arm.pose_at(t) @ self._T_flange_sensor
         T0 = self._replay_arm.pose_at(t - self._dt) @ self._T_flange_sensor
+        step = pose_error(T0, T1) / self._dt  # base frame
         R1 = T1[:3, :3]
-        v = R1.T @ (T1[:3, 3] - T0[:3, 3]) / self._dt
-        w = Rotation.from_matrix(T0[:3, :3].T @ R1).as_rotvec() / self._dt
-        return np.concatenate([v, R1.T @ T0[:3, :3] @ w])
+        return np.concatenate([R1.T @ step[:3], R1.T @ step[3:]])
 
 
 def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, dict[str, Any], Path]:
