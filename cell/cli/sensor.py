@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.jobs.replay import recorded_job
+from cell.jobs.runner import job_generators
 from cell.perception.cloud import read_ply, write_ply
 from cell.perception.pipeline import PerceptionPipeline
 from drivers.arm.replay import ReplayArm
@@ -173,7 +174,7 @@ def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> tuple[np.nda
     pipeline of ``cfg``; returns the accumulated cloud [m, base frame] and the number of frames.
 
     Each frame's pose is read from the replay arm at the frame's time and composed with ``cfg``'s mount,
-    as a live job does; perception's generator is the job's (the second stream spawned from ``seed``), so
+    as a live job does; perception's generator is the job's (``job_generators(seed).perception``), so
     the same cell file and seed rebuild the recorded cloud exactly.
     """
     recording = JobRecording(job_dir)
@@ -183,7 +184,7 @@ def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> tuple[np.nda
     sensor = ReplaySensor(recording, clock, range_m)
     perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                     range_max_m=sensor.model.range_max_m,
-                                    rng=np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1]))
+                                    rng=job_generators(seed).perception)
     T_flange_sensor = cfg.mount.matrix()
     n = 0
     with arm, sensor:

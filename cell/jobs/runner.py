@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -80,6 +80,21 @@ def object_pose_in_base(config: CellConfig, pose: tuple[float, float, float]) ->
     x, y, yaw_deg = pose
     st = config.station
     return T_from_xyz_rpy([st.xy_m[0] + x, st.xy_m[1] + y, st.table_z_m], [0.0, 0.0, np.deg2rad(yaw_deg)])
+
+
+class JobGenerators(NamedTuple):
+    """The random generators of one job: the simulated devices' noise, perception's draws (RANSAC) and
+    the planner's."""
+
+    world: np.random.Generator
+    perception: np.random.Generator
+    planner: np.random.Generator
+
+
+def job_generators(seed: int) -> JobGenerators:
+    """One seed per job, split into independent streams, so that perception's and the planner's draws
+    never change the noise the simulated devices see, nor each other's."""
+    return JobGenerators(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)))
 
 
 def default_job_folder(object_name: str, planner: str, seed: int) -> Path:
@@ -160,10 +175,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     recorder = JobRecorder(folder)
     wall_start = time.monotonic()
 
-    # One seed per job, split into independent streams so that perception's random draws (RANSAC) and the
-    # planner's never change the noise the simulated devices see, nor each other.
-    world_rng, perception_rng, planner_rng = (np.random.default_rng(s)
-                                              for s in np.random.SeedSequence(req.seed).spawn(3))
+    world_rng, perception_rng, planner_rng = job_generators(req.seed)
     # With a hardware arm the job runs on the wall clock and perception runs asynchronously, its frames
     # paired with the poses the control loop records (poses); a dry run's simulated sensor renders the
     # virtual object from the newest of them. A replay plays recorded time on the simulated clock.
