@@ -32,7 +32,7 @@ from cell.config.models import CellConfig
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.planning.base import Array
 from drivers.arm.replay import ReplayArm
-from drivers.depth.replay import ReplaySensor
+from drivers.depth.replay import TIME_TOLERANCE_S, ReplaySensor
 from drivers.errors import ConfigError, JobError
 from drivers.transforms import pose_error
 
@@ -62,7 +62,7 @@ class ReplaySession(JobSession):
 
     def _tick(self) -> None:
         due = self._replay_sensor.next_timestamp
-        if self._continuous and due is not None and due <= self.now() + 1e-9:
+        if self._continuous and due is not None and due <= self.now() + TIME_TOLERANCE_S:
             self._capture_continuous()
         if self.now() > self._replay_arm.end_time and self._replay_sensor.remaining == 0:
             raise self._ended()
