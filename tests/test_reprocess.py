@@ -14,7 +14,13 @@ from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
 from cell.perception.registration import o3d_cloud
-from cell.perception.reprocess import MultiwayParams, _constrained_pair, back_project, reprocess_job
+from cell.perception.reprocess import (
+    MultiwayParams,
+    _constrained_pair,
+    _pairs,
+    back_project,
+    reprocess_job,
+)
 from drivers.errors import JobError
 
 from .conftest import FRANKA
@@ -85,7 +91,21 @@ def job_copy(cube_job, tmp_path):
 
 # Every pair of frames close enough for a loop closure; pairwise ICP on 5 mm clouds, output at 2.5 mm: the
 # graph is the same kind, the tests four times faster.
-EVERY_PAIR = {"loop_max_distance_m": 1.0, "loop_max_angle_deg": 180.0, "icp_voxel_m": 0.005}
+EVERY_PAIR = {"loop_max_distance_m": 1.0, "loop_max_angle_deg": 180.0, "loop_max_per_frame": 1000,
+              "icp_voxel_m": 0.005}
+
+
+def test_loop_closures_are_the_nearest_earlier_frames_up_to_the_cap():
+    """Frames 1 cm apart along x, all looking down +z but frame 3 turned away: each frame pairs with
+    its predecessor and its ``loop_max_per_frame`` nearest earlier frames in range and in angle."""
+    poses = [np.eye(4) for _ in range(8)]
+    for k, T in enumerate(poses):
+        T[0, 3] = 0.01 * k
+    poses[3][:3, :3] = np.diag([1.0, -1.0, -1.0])  # optical axis reversed
+    pairs = _pairs(poses, MultiwayParams(loop_max_per_frame=2, loop_max_distance_m=0.045))
+    assert [(i, j) for i, j, loop in pairs if not loop] == [(k, k + 1) for k in range(7)]
+    loops = {j: [i for i, jj, loop in pairs if loop and jj == j] for j in range(8)}
+    assert loops == {0: [], 1: [], 2: [0], 3: [], 4: [1, 2], 5: [1, 2], 6: [2, 4], 7: [4, 5]}
 
 
 def test_reprocess_adds_loop_closures_between_close_frames(job_copy):

@@ -34,7 +34,6 @@ of registering it (as ``cell.perception.metrics`` does).
 
 from __future__ import annotations
 
-import itertools
 import json
 import time
 from pathlib import Path
@@ -84,7 +83,10 @@ class MultiwayParams(StrictModel):
     its fitness is at least ``min_fitness`` and ICP moved the recorded relative pose by at most
     ``max_correction_m`` [m] / ``max_correction_deg`` [deg]; frames form a loop-closure pair when their
     recorded sensor origins are within ``loop_max_distance_m`` [m] and their optical axes within
-    ``loop_max_angle_deg`` [deg]; ``edge_prune_threshold`` and ``preference_loop_closure`` are Open3D's
+    ``loop_max_angle_deg`` [deg], each frame with at most ``loop_max_per_frame`` earlier ones, the
+    nearest (a slow servo scan keeps most frames within 20 cm of each other, and pairs would grow with
+    the square of the frame count: 3000 for an 80-frame scan, at about 0.3 s a pair);
+    ``edge_prune_threshold`` and ``preference_loop_closure`` are Open3D's
     global-optimization options (line-process weight below which a loop closure is pruned; odometry vs
     loop-closure balance); ``min_constraint`` the degeneracy-aware acceptance of online registration
     (``RegistrationParams.min_constraint``, same default): a pair's correction keeps only the directions
@@ -104,6 +106,7 @@ class MultiwayParams(StrictModel):
     fk_sigma_deg: PositiveFloat = 0.2
     loop_max_distance_m: float = Field(default=0.2, ge=0.0)
     loop_max_angle_deg: float = Field(default=60.0, ge=0.0, le=180.0)
+    loop_max_per_frame: int = Field(default=4, ge=0)
     edge_prune_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
     preference_loop_closure: PositiveFloat = 1.0
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
@@ -162,16 +165,18 @@ def _load_frame(path: Path) -> tuple[Array, Array]:
 
 
 def _pairs(poses: list[Array], p: MultiwayParams) -> list[tuple[int, int, bool]]:
-    """(i, j, is_loop_closure) for consecutive frames and for close non-consecutive ones."""
+    """(i, j, is_loop_closure) for consecutive frames, and for each frame j its nearest earlier
+    non-consecutive frames i (at most ``loop_max_per_frame``) within the loop-closure distance and angle."""
     cos_max = np.cos(np.deg2rad(p.loop_max_angle_deg))
+    origins = np.array([T[:3, 3] for T in poses]).reshape(-1, 3)
+    axes = np.array([T[:3, 2] for T in poses]).reshape(-1, 3)
     out = []
-    for i, j in itertools.combinations(range(len(poses)), 2):
-        if j == i + 1:
-            out.append((i, j, False))
-            continue
-        close = np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]) <= p.loop_max_distance_m
-        if close and float(poses[i][:3, 2] @ poses[j][:3, 2]) >= cos_max:
-            out.append((i, j, True))
+    for j in range(1, len(poses)):
+        out.append((j - 1, j, False))
+        dist = np.linalg.norm(origins[: j - 1] - origins[j], axis=1)
+        close = np.flatnonzero((dist <= p.loop_max_distance_m) & (axes[: j - 1] @ axes[j] >= cos_max))
+        nearest = close[np.argsort(dist[close], kind="stable")][: p.loop_max_per_frame]
+        out.extend((int(i), j, True) for i in sorted(nearest))
     return out
 
 
