@@ -54,6 +54,9 @@ def test_job_folder_is_complete(bunny_job):
     frames = sorted((out / "frames").glob("*.npz"))
     assert len(frames) == result["n_captures"]
     f0 = np.load(frames[0])
+    # the paper's scan time runs from the first frame, after the move from home to the first view
+    assert result["scan_time_s"] == pytest.approx(result["sim_time_s"] - float(f0["timestamp"]), abs=1e-6)
+    assert 0.0 < result["scan_time_s"] < result["sim_time_s"]
     assert f0["depth"].shape == (480, 640) and f0["K"].shape == (3, 3) and f0["T_base_sensor"].shape == (4, 4)
     assert read_ply(out / "cloud.ply").shape[0] == result["n_cloud_points"] > 1000
     assert "capture 0" in (out / "log.txt").read_text()

@@ -113,8 +113,9 @@ def scan(
     r = outcome.result
     cov = r["metrics"]["coverage_pct"]
     console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)
-    console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim, path {r['path_length_m']:.2f} m",
-                  highlight=False)
+    scan = f" (scan {r['scan_time_s']:.1f} s from the first frame)" if r["scan_time_s"] is not None else ""
+    console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim{scan}, path "
+                  f"{r['path_length_m']:.2f} m", highlight=False)
     console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
                   highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)

@@ -106,6 +106,15 @@ def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
     return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in values.items()}
 
 
+def _scan_time(session: JobSession | None, end: float) -> float | None:
+    """The scan time of the visual-servoing paper (section III-C, Fig. 4 and 5, whose clocks start at
+    the start view): job time [s] from the first recorded frame to the end; None without a frame. The
+    job's ``sim_time_s`` also counts the move from home to the first view."""
+    if session is None or session.first_frame_time is None:
+        return None
+    return round(end - session.first_frame_time, 6)
+
+
 def _perception_summary(session: JobSession | None) -> dict[str, Any]:
     """The ``perception`` section of result.json: registration counts, the well-constrained directions of
     each capture's registration (``RegistrationResult.n_constrained``), the last ROI and H_ROI."""
@@ -263,6 +272,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "status": status,
             "termination": termination,
             "sim_time_s": round(clock.now(), 6),
+            "scan_time_s": _scan_time(session, clock.now()),
             "wall_time_s": round(time.monotonic() - wall_start, 3),
             "path_length_m": round(session.path_length_m, 6) if session else 0.0,
             "n_captures": session.n_captures if session else 0,

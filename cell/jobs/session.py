@@ -80,6 +80,8 @@ class JobSession:
         self._stop_file = stop_file
         self.coverage = coverage
         self.n_captures = 0
+        # job time [s] of the first recorded frame: where the paper's scan time starts (section III-C)
+        self.first_frame_time: float | None = None
         self.n_capture_failures = 0
         self.refused_moves: Counter[str] = Counter()
         self.n_unreachable = 0
@@ -358,6 +360,8 @@ class JobSession:
         self._recorder.frame(frame, T_fk, T_base_flange,
                              {"T_base_sensor_registered": update.T_base_sensor})
         self.n_captures += 1
+        if self.first_frame_time is None:
+            self.first_frame_time = frame.timestamp
         if reg.rejected:
             self.n_registration_rejected += 1
         self.registration_n_constrained.append(reg.n_constrained)
