@@ -3,14 +3,48 @@
 from __future__ import annotations
 
 import json
+from typing import ClassVar
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from cell.cli.main import app
+from cell.config import load_config
+from cell.jobs.runner import ScanRequest, run_scan
+from cell.planning.base import Planner, ScanSession
+from cell.planning.registry import PLANNERS
+from drivers.transforms import look_at
 
 from .conftest import FRANKA, UR5E
+
+
+class ReachProbe(Planner):
+    """Asks the session whether the arm reaches a few sensor poses, and moves nowhere."""
+
+    name = "test-reach-probe"
+    description = "test planner: reachability queries"
+    answers: ClassVar[dict[str, bool]] = {}
+
+    def run(self, session: ScanSession) -> str:
+        here = session.sensor_pose()
+        station = np.array([0.45, 0.0, 0.05])
+        above = look_at(station + np.array([0.0, 0.0, 0.25]), station, up_hint=np.array([1.0, 0.0, 0.0]))
+        ReachProbe.answers = {
+            "current pose": session.sensor_pose_reachable(here),
+            "above the station": session.sensor_pose_reachable(above),
+            "1.5 m out": session.sensor_pose_reachable(look_at(np.array([1.5, 0.0, 0.3]), station)),
+        }
+        moved = float(np.linalg.norm(session.sensor_pose()[:3, 3] - here[:3, 3]))
+        return f"probed; moved {moved:.6f} m"
+
+
+def test_reachability_is_inverse_kinematics_within_the_joint_margins(tmp_path, monkeypatch):
+    monkeypatch.setitem(PLANNERS, ReachProbe.name, ReachProbe)
+    r = run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
+                             planner=ReachProbe.name, out=tmp_path / "job", max_time_s=5.0)).result
+    assert r["termination"] == "probed; moved 0.000000 m"  # a query moves nothing
+    assert ReachProbe.answers == {"current pose": True, "above the station": True, "1.5 m out": False}
 
 
 @pytest.mark.parametrize(("cell_file", "planner", "budget"), [(FRANKA, "vs-local", "12"),
@@ -31,6 +65,8 @@ def test_servo_scan_runs_on_the_cell(tmp_path, cell_file, planner, budget):
     # then the secondary task moved the camera: more path than the move to the start view.
     log = (out / "log.txt").read_text()
     assert "capture" in log
+    if planner == "vs-global":  # the goal the arm reaches, on record
+        assert "goal 1: sensor at" in log
     if cell_file == FRANKA:  # (the 8x8 ToF finds the object only from the second start view, after 5 s)
         # The servo telemetry (paper Fig. 4 and Fig. 3, left), with the coverage over time in sim.
         lines = (out / "servo.csv").read_text().splitlines()

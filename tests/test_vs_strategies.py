@@ -46,19 +46,30 @@ class LinearObjective:
 
 
 class FakeSession:
-    """Job time, and barrier planes as a floor at ``floor_z`` for the camera origin."""
+    """Job time, barrier planes as a floor at ``floor_z`` for the camera origin, and an arm that reaches
+    the camera origins at x >= ``reach_min_x`` [m]."""
 
-    def __init__(self, floor_z: float = -np.inf):
+    def __init__(self, floor_z: float = -np.inf, reach_min_x: float = -np.inf):
         self.t = 0.0
         self.floor_z = floor_z
+        self.reach_min_x = reach_min_x
         self.pose = np.eye(4)
         self.rng = np.random.default_rng(0)
+        self.messages: list[str] = []
+        self.n_reach_queries = 0
 
     def now(self):
         return self.t
 
+    def log(self, message):
+        self.messages.append(message)
+
     def sensor_pose_allowed(self, T):
         return T[2, 3] > self.floor_z
+
+    def sensor_pose_reachable(self, T):
+        self.n_reach_queries += 1
+        return T[0, 3] >= self.reach_min_x
 
     def feasible_sensor_velocity(self, v, activation_m):
         # A floor below the camera: no downward component when within activation_m of it.
@@ -192,6 +203,28 @@ def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):
     assert seeker.done(session, arrived)  # within arrival_m (5 cm)
     session.t = franka.planners.vs_global.max_goal_time_s + 1.0
     assert seeker.done(session, T)  # given up
+
+
+def test_goal_is_the_best_candidate_the_arm_reaches(franka):
+    """Best views at small x (behind the object), which the arm reaches only from x = 0.21 m on: the goal
+    is the best reachable one, found in descending f within ``reachability_checks``; with no reachable
+    candidate among them, the best allowed is taken and the log says so."""
+    objective = LinearObjective([-1.0, 0.0, 0.0])
+    seeker = GoalSeeker(franka)
+    session = FakeSession(floor_z=0.1, reach_min_x=0.21)
+    seeker.sample(session, CENTRE, objective)
+    assert 0.21 <= seeker.goal[0, 3] < 0.215
+    assert 1 < session.n_reach_queries <= franka.planners.vs_global.reachability_checks
+    assert "goal 1: sensor at" in session.messages[-1]
+    unchecked = GoalSeeker(franka.model_copy(update={"planners": franka.planners.model_copy(update={
+        "vs_global": franka.planners.vs_global.model_copy(update={"reachability_checks": 0})})}))
+    session = FakeSession(floor_z=0.1, reach_min_x=0.21)
+    unchecked.sample(session, CENTRE, objective)
+    assert unchecked.goal[0, 3] < CENTRE[0] - 0.2 and session.n_reach_queries == 0
+    session = FakeSession(floor_z=0.1, reach_min_x=10.0)
+    seeker.sample(session, CENTRE, objective)
+    assert seeker.goal[0, 3] < CENTRE[0] - 0.2
+    assert any("none of the 50 best goal candidates is reachable" in m for m in session.messages)
 
 
 def test_no_allowed_candidate_is_a_planning_error(franka):

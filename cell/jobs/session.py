@@ -290,6 +290,18 @@ class JobSession:
         barrier plane and inside the workspace (margin included)."""
         return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor)) is None
 
+    def sensor_pose_reachable(self, T_base_sensor: Array) -> bool:
+        """IK seeded from the current joints (from home where the arm reports none, as a replayed arm)
+        reaches the pose with every joint at least ``safety.joint_position_margin_rad`` inside its limits."""
+        q_now = self._guard.state().q
+        seed = q_now if np.all(np.isfinite(q_now)) else self._q_home
+        try:
+            q = self._model.ik_pose(T_base_sensor @ inv_T(self._T_flange_sensor), seed)
+        except KinematicsError:
+            return False
+        margin = self.config.safety.joint_position_margin_rad
+        return bool(np.all(q >= self._model.q_min + margin) and np.all(q <= self._model.q_max - margin))
+
     def _solve_ik(self, T_base_flange: Array, q_now: Array) -> Array | None:
         """Joints reaching ``T_base_flange``, seeded from the current joints, then from home.
 

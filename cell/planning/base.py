@@ -97,6 +97,12 @@ class ScanSession(Protocol):
         workspace box (e.g. to reject global goal candidates)."""
         ...
 
+    def sensor_pose_reachable(self, T_base_sensor: Array) -> bool:
+        """Whether the arm reaches a candidate sensor pose with every joint inside its position margin, by
+        inverse kinematics seeded from the current joints (a servo travels there continuously, so the
+        solution near the present configuration is the one that counts)."""
+        ...
+
     def latest_perception(self) -> PerceptionUpdate | None:
         """The newest perception update (pose, object, ROI, H_ROI), None before the first frame."""
         ...

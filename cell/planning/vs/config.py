@@ -127,10 +127,13 @@ class VSGlobalConfig(StrictModel):
     during a 1 cm approach before the goal's view is reached), or after
     ``max_goal_time_s`` [s] (not in the paper: a goal the barrier projection cannot reach would otherwise
     hold the scan forever). Candidates are drawn from the job's planner generator (``ScanSession.rng``),
-    so a scan is repeatable for a given job seed."""
+    so a scan is repeatable for a given job seed. ``reachability_checks``: the goal is the best candidate
+    that the arm's inverse kinematics reaches from the current joints within the joint margins, among
+    the this many best (0: the best allowed candidate, unchecked; see ``cell.planning.vs.goals``)."""
 
     n_candidates: PositiveInt = 5000
     slow_radius_m: PositiveFloat = 0.10
     arrival_m: PositiveFloat = 0.05
     max_goal_time_s: PositiveFloat = 20.0
+    reachability_checks: int = Field(default=50, ge=0)
 

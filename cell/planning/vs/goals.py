@@ -4,7 +4,13 @@ Candidates: ``n_candidates`` (5000) camera positions drawn uniformly on the sphe
 object centroid, each looking at the centroid (image "up" towards +z of the base, as ``look_at``);
 those that put the TCP or the sensor outside a barrier plane or the workspace are rejected
 (``session.sensor_pose_allowed``). The goal is the argmax of f over the rest (eq. 10), all scored in one
-batch.
+batch, among the candidates the arm can reach: the paper rejects "goal candidates outside the workspace",
+and for an arm the workspace is also what its joints reach. Its barrier planes were placed by hand to
+keep the Panda clear of its joint limits; for any cell and placement, the candidates are tried in
+descending f and the first that inverse kinematics from the current joints reaches within the joint
+margins (``session.sensor_pose_reachable``) is the goal, at most ``reachability_checks`` of them (0: no
+check). Without the check, a bunny scan spent 20 s at a time pressing towards goals behind the Panda's
+elbow limit before giving them up.
 
 Eq. 11: g = a(r, r*) (x, y, 0, 0, 0, 0), with (x, y) the goal origin expressed in the current camera frame,
 normalised: the tangent direction of the shortest path on the sphere, since the camera looks at the
@@ -70,17 +76,35 @@ class GoalSeeker:
                                 "lies inside the barrier planes and the workspace")
         views = views[allowed]
         scores = objective(views)
-        best = int(np.argmax(scores))
+        order = np.argsort(-scores, kind="stable")
+        checks = self.params.reachability_checks
+        best = int(order[0])
+        if checks:
+            best = next((int(k) for k in order[:checks] if session.sensor_pose_reachable(views[k])), -1)
+            if best < 0:
+                best = int(order[0])
+                session.log(f"none of the {min(checks, order.size)} best goal candidates is reachable from "
+                            "the present joints; servoing towards the best")
         self.goal, self.goal_value = views[best], float(scores[best])
         self._goal_since = session.now()
         self.n_goals += 1
+        session.log(f"goal {self.n_goals}: sensor at {np.round(self.goal[:3, 3], 3).tolist()}, f "
+                    f"{self.goal_value:.4f} nats (rank {int(np.flatnonzero(order == best)[0]) + 1} of "
+                    f"{order.size} allowed candidates)")
 
     def done(self, session: ScanSession, T_base_cam: Array) -> bool:
         """The goal was reached (within ``arrival_m``), given up (``max_goal_time_s``), or there is none."""
         if self.goal is None:
             return True
         d = float(np.linalg.norm(self.goal[:3, 3] - T_base_cam[:3, 3]))
-        return d < self.params.arrival_m or session.now() - self._goal_since > self.params.max_goal_time_s
+        elapsed = session.now() - self._goal_since
+        if d < self.params.arrival_m:
+            session.log(f"goal {self.n_goals} reached after {elapsed:.1f} s")
+            return True
+        if elapsed > self.params.max_goal_time_s:
+            session.log(f"goal {self.n_goals} given up after {elapsed:.1f} s, {d:.3f} m away")
+            return True
+        return False
 
     def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
         """g of eq. 11 towards the current goal, projected to the barrier-feasible set."""
