@@ -201,8 +201,28 @@ def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):
     assert not seeker.done(session, near)
     session.pose = arrived = translated(goal, np.array([[0.045, 0.0, 0.0]]))[0]
     assert seeker.done(session, arrived)  # within arrival_m (5 cm)
-    session.t = franka.planners.vs_global.max_goal_time_s + 1.0
-    assert seeker.done(session, T)  # given up
+
+
+def test_a_goal_the_camera_stops_approaching_is_given_up(franka):
+    """Progress of less than ``stall_progress_m`` (1 cm) within ``stall_time_s`` (3 s) gives the goal up;
+    steady progress at the slow approach speed does not, however long it takes."""
+    p = franka.planners.vs_global
+    seeker = GoalSeeker(franka)
+    session = FakeSession(floor_z=0.1)
+    objective = LinearObjective([-1.0, 0.0, 0.0])
+    seeker.sample(session, CENTRE, objective)
+    goal = seeker.goal
+    for k in range(400):  # 1.2 cm per 3 s towards the goal: 8 s at 50 Hz
+        session.t = k * 0.02
+        if seeker.done(session, translated(goal, np.array([[0.2 - 0.004 * session.t, 0.0, 0.0]]))[0]):
+            break
+    assert session.t == pytest.approx(0.02 * 399) and not any("given up" in m for m in session.messages)
+    held = translated(goal, np.array([[0.15, 0.0, 0.0]]))[0]
+    start = session.t
+    while not seeker.done(session, held):
+        session.t += 0.02
+    assert session.t - start == pytest.approx(p.stall_time_s, abs=0.03)
+    assert "goal 1 given up" in session.messages[-1] and "closer in the last 3 s" in session.messages[-1]
 
 
 def test_goal_is_the_best_candidate_the_arm_reaches(franka):

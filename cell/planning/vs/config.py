@@ -124,16 +124,19 @@ class VSGlobalConfig(StrictModel):
     zero within ``slow_radius_m`` (10 cm) of the goal; the goal counts as reached (and a new one is
     sampled) within ``arrival_m`` [m] (not given in the paper: 5 cm, where g has halved; the linear decay
     makes the approach exponential, about 5 s per halving at lambda_g = 0.33, and H_ROI would settle
-    during a 1 cm approach before the goal's view is reached), or after
-    ``max_goal_time_s`` [s] (not in the paper: a goal the barrier projection cannot reach would otherwise
-    hold the scan forever). Candidates are drawn from the job's planner generator (``ScanSession.rng``),
-    so a scan is repeatable for a given job seed. ``reachability_checks``: the goal is the best candidate
-    that the arm's inverse kinematics reaches from the current joints within the joint margins, among
-    the this many best (0: the best allowed candidate, unchecked; see ``cell.planning.vs.goals``)."""
+    during a 1 cm approach before the goal's view is reached), or given up once the camera got less than
+    ``stall_progress_m`` [m] closer to it within the last ``stall_time_s`` [s] (not in the paper: a goal
+    the barrier projection cannot reach would otherwise hold the scan forever; 1 cm in 3 s, where the
+    approach covers 6 cm in 3 s at full speed and 3 cm at the arrival distance). Candidates are drawn
+    from the job's planner generator (``ScanSession.rng``), so a scan is repeatable for a given job seed.
+    ``reachability_checks``: the goal is the best candidate that the arm's inverse kinematics reaches
+    from the current joints within the joint margins, among this many best (0: the best allowed
+    candidate, unchecked; see ``cell.planning.vs.goals``)."""
 
     n_candidates: PositiveInt = 5000
     slow_radius_m: PositiveFloat = 0.10
     arrival_m: PositiveFloat = 0.05
-    max_goal_time_s: PositiveFloat = 20.0
+    stall_time_s: PositiveFloat = 3.0
+    stall_progress_m: PositiveFloat = 0.01
     reachability_checks: int = Field(default=50, ge=0)
 

@@ -16,8 +16,11 @@ Eq. 11: g = a(r, r*) (x, y, 0, 0, 0, 0), with (x, y) the goal origin expressed i
 normalised: the tangent direction of the shortest path on the sphere, since the camera looks at the
 centre. a = min(1, d / ``slow_radius_m``), d the distance between the camera and goal origins [m]: unit
 far away, decaying linearly to 0 within 10 cm. Like VS-Local's, the direction is projected into the set
-the barrier planes allow. A goal counts as reached within ``arrival_m``; one that is not reached within
-``max_goal_time_s`` is given up; either way a new goal is sampled.
+the barrier planes allow. A goal counts as reached within ``arrival_m``; one the camera stops getting
+closer to (less than ``stall_progress_m`` nearer than ``stall_time_s`` ago: held by a barrier plane, a
+joint limit or a refused direction) is given up; either way a new goal is sampled. The paper gives no
+rule for a goal that cannot be reached; a fixed time limit instead (20 s) gave up goals on the far side
+of the object 8 cm before arrival, the exploration speed of eq. 1 being about 2 cm/s.
 
 The scan ends on the H_ROI rule of eq. 12 (``ServoScanPlanner.entropy_settled``), judged on the values
 recorded after the first goal was reached or given up: the paper gives no rule for the way to the first
@@ -28,6 +31,8 @@ seed), so that a scan is repeatable for its seed.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 
@@ -63,6 +68,8 @@ class GoalSeeker:
         self.goal: Array | None = None
         self.goal_value = float("nan")
         self._goal_since = 0.0
+        # (job time [s], distance to the goal [m]) over the last stall_time_s, for the progress rule
+        self._distances: deque[tuple[float, float]] = deque()
         self.n_goals = 0
 
     def sample(self, session: ScanSession, centroid: Array, objective: EntropyObjective) -> None:
@@ -87,22 +94,32 @@ class GoalSeeker:
                             "the present joints; servoing towards the best")
         self.goal, self.goal_value = views[best], float(scores[best])
         self._goal_since = session.now()
+        self._distances.clear()
         self.n_goals += 1
         session.log(f"goal {self.n_goals}: sensor at {np.round(self.goal[:3, 3], 3).tolist()}, f "
                     f"{self.goal_value:.4f} nats (rank {int(np.flatnonzero(order == best)[0]) + 1} of "
                     f"{order.size} allowed candidates)")
 
     def done(self, session: ScanSession, T_base_cam: Array) -> bool:
-        """The goal was reached (within ``arrival_m``), given up (``max_goal_time_s``), or there is none."""
+        """The goal was reached (within ``arrival_m``), given up (no progress of ``stall_progress_m`` within
+        ``stall_time_s``), or there is none. Called once per servo iteration."""
         if self.goal is None:
             return True
+        p = self.params
+        now = session.now()
         d = float(np.linalg.norm(self.goal[:3, 3] - T_base_cam[:3, 3]))
-        elapsed = session.now() - self._goal_since
-        if d < self.params.arrival_m:
+        elapsed = now - self._goal_since
+        if d < p.arrival_m:
             session.log(f"goal {self.n_goals} reached after {elapsed:.1f} s")
             return True
-        if elapsed > self.params.max_goal_time_s:
-            session.log(f"goal {self.n_goals} given up after {elapsed:.1f} s, {d:.3f} m away")
+        self._distances.append((now, d))
+        # keep one sample at or before the start of the window: the distance stall_time_s ago
+        while len(self._distances) > 1 and self._distances[1][0] <= now - p.stall_time_s:
+            self._distances.popleft()
+        t_then, d_then = self._distances[0]
+        if t_then <= now - p.stall_time_s and d_then - d < p.stall_progress_m:
+            session.log(f"goal {self.n_goals} given up after {elapsed:.1f} s, {d:.3f} m away: "
+                        f"{max(d_then - d, 0.0) * 1e3:.1f} mm closer in the last {p.stall_time_s:g} s")
             return True
         return False
 
