@@ -443,16 +443,19 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
 def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] normals, const int64_t[::1] starts,
                           int64_t nx, int64_t ny, int64_t nz, double cell_m, const double[::1] lo,
                           const double[:, ::1] source, const double[:, ::1] T, double max_m,
-                          double[:, ::1] ata_out, double[::1] atb_out):
+                          double max_tangential_m, double[:, ::1] ata_out, double[::1] atb_out):
     """One linearised point-to-plane ICP system in one pass over the source (N, 3) [m]: each point p
     moved by the 4x4 ``T`` is paired with its nearest target point q within ``max_m`` (as
-    ``nearest_within``; ``points`` and ``normals`` (M, 3) sorted by cell, the grid as there); with the
-    residual r = (p - q) . n and the row a = [p x n, n] of the motion (rotation vector, translation),
-    ``ata_out`` (6, 6) receives sum a^T a and ``atb_out`` (6,) -sum a r, summed in source order.
-    Returns (the number of pairs, the sum of r^2 [m^2])."""
+    ``nearest_within``; ``points`` and ``normals`` (M, 3) sorted by cell, the grid as there), and the
+    pair is kept only if p lies within ``max_tangential_m`` [m] of q along q's tangent plane
+    (|p - q|^2 - r^2 <= max_tangential_m^2); with the residual r = (p - q) . n and the row
+    a = [p x n, n] of the motion (rotation vector, translation), ``ata_out`` (6, 6) receives sum a^T a
+    and ``atb_out`` (6,) -sum a r, summed in source order.
+    Returns (the number of pairs kept, the sum of r^2 [m^2])."""
     cdef Py_ssize_t i, j, n = source.shape[0], count = 0
     cdef int a, b
     cdef double sx, sy, sz, px, py, pz, nxv, nyv, nzv, r, d2, sse = 0.0
+    cdef double t2 = max_tangential_m * max_tangential_m
     cdef double row[6]
     cdef double ata[36]
     cdef double atb[6]
@@ -471,6 +474,8 @@ def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] norm
                 continue
             nxv, nyv, nzv = normals[j, 0], normals[j, 1], normals[j, 2]
             r = (px - points[j, 0]) * nxv + (py - points[j, 1]) * nyv + (pz - points[j, 2]) * nzv
+            if d2 - r * r > t2:
+                continue
             row[0] = py * nzv - pz * nyv
             row[1] = pz * nxv - px * nzv
             row[2] = px * nyv - py * nxv
