@@ -6,6 +6,7 @@ exact-pose scan of planes (cube and table) from sliding."""
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import pytest
 from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
@@ -13,11 +14,11 @@ from scipy.spatial.transform import Rotation
 from cell.perception import _kernels
 from cell.perception.cloud import PointGrid, crop_box, cross_rows, voxel_downsample
 from cell.perception.registration import (
+    MAX_NORMAL_NEIGHBOURS,
     RegistrationParams,
     RegistrationTarget,
     constrained_correction,
     estimate_normals,
-    o3d_cloud,
     point_to_plane_icp,
     register_frame,
 )
@@ -145,7 +146,10 @@ def test_too_few_points_and_no_target(bunny_captures, target):
 
 def test_normals_match_open3d_and_update_estimates_only_new_points(target):
     pts = target.points
-    reference = np.asarray(o3d_cloud(pts, PARAMS.normal_radius_m).normals)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=PARAMS.normal_radius_m,
+                                                                max_nn=MAX_NORMAL_NEIGHBOURS))
+    reference = np.asarray(cloud.normals)
     np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", target.normals, reference)), 1.0, atol=1e-9)
     grown = RegistrationTarget(PARAMS)
     half = pts[: pts.shape[0] // 2]

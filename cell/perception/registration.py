@@ -60,8 +60,7 @@ there (``enabled: false`` in its cell file; ``min_points`` rejects such frames a
 Determinism: each online ICP iteration is one single-threaded compiled pass
 (``_kernels.point_to_plane_system``: grid search and normal equations, summed in source order); inputs
 are float64 arrays in a fixed order (the accumulated cloud from ``voxel_downsample`` is sorted by voxel
-key). The offline re-processing uses Open3D's ICP (``coarse_to_fine_icp``), whose multi-threaded
-reductions sum in a varying order: it runs on one Open3D thread (``single_threaded_open3d``).
+key). The offline re-processing (``cell.perception.reprocess``) uses the same ICP.
 """
 
 from __future__ import annotations
@@ -69,13 +68,10 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
@@ -91,8 +87,6 @@ log = logging.getLogger(__name__)
 
 MAX_NORMAL_NEIGHBOURS = 30
 """Cap on the neighbours used for one normal (hybrid radius / k-NN search)."""
-
-_reg = o3d.pipelines.registration
 
 _GRID_CELL_M = 0.005
 """Cell of the correspondence search grid [m]: about four 2.5 mm target points a cell on a surface."""
@@ -172,58 +166,14 @@ class RegistrationResult:
         return self.reason.startswith(REJECTED)
 
 
-@contextmanager
-def single_threaded_open3d() -> Iterator[None]:
-    """Run Open3D on one thread inside the block, restoring the previous limit after it.
-
-    Open3D's multi-threaded reductions sum in a varying order, so ICP on identical inputs can differ in
-    the last bits from call to call; one thread makes it exactly repeatable (simulation must be
-    byte-identical for a given seed). The limit is process-wide: do not run other Open3D work on
-    other threads meanwhile.
-    """
-    previous = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(1)
-    try:
-        yield
-    finally:
-        o3d.utility.set_max_threads(previous)
-
-
-def o3d_cloud(points: Array, normal_radius_m: float | None = None) -> o3d.geometry.PointCloud:
-    """An Open3D cloud of (N, 3) points [m]; with ``normal_radius_m`` [m], normals estimated from at most
-    ``MAX_NORMAL_NEIGHBOURS`` neighbours within that radius."""
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
-    if normal_radius_m is not None and len(pc.points):
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m,
-                                                                 max_nn=MAX_NORMAL_NEIGHBOURS))
-    return pc
-
-
 class IcpResult(NamedTuple):
-    """Outcome of ``coarse_to_fine_icp``: ``T`` the 4x4 T_target_source, ``fitness`` and ``rmse_m`` [m] of
+    """Outcome of ``point_to_plane_icp``: ``T`` the 4x4 T_target_source, ``fitness`` and ``rmse_m`` [m] of
     the last stage, ``correspondences`` (K, 2) its (source index, target index) pairs at ``T``."""
 
     T: Array
     fitness: float
     rmse_m: float
     correspondences: NDArray[np.int32]
-
-
-def coarse_to_fine_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T_init: Array,
-                       stages_m: tuple[float, ...], *, max_iterations: int, epsilon: float) -> IcpResult:
-    """Point-to-plane ICP of ``source`` onto ``target`` (which has normals) from ``T_init``, one run per
-    maximum correspondence distance in ``stages_m`` [m], each starting where the previous one ended, up to
-    ``max_iterations`` and stopping when fitness and RMSE change by less than ``epsilon``."""
-    criteria = _reg.ICPConvergenceCriteria(relative_fitness=epsilon, relative_rmse=epsilon,
-                                           max_iteration=max_iterations)
-    estimation = _reg.TransformationEstimationPointToPlane()
-    out = IcpResult(T_init, 0.0, 0.0, np.zeros((0, 2), dtype=np.int32))
-    for dist in stages_m:
-        res = _reg.registration_icp(source, target, dist, out.T, estimation, criteria)
-        out = IcpResult(np.array(res.transformation), float(res.fitness), float(res.inlier_rmse),
-                        np.asarray(res.correspondence_set, dtype=np.int32))
-    return out
 
 
 def estimate_normals(points: Array, cloud: Array, radius_m: float) -> Array:
