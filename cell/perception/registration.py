@@ -107,7 +107,11 @@ class RegistrationParams(StrictModel):
     pose; ``min_points`` the fewest source (and target) points worth registering; ``min_constraint`` the
     smallest eigenvalue of the normalised point-to-plane Hessian (module docstring) for a direction of
     the correction to be kept (0 keeps all six; 0.003 measured: the sliding direction of exact-pose
-    cube frames lies at 0.0009-0.0019, the weakest direction of the bunny test view at 0.005);
+    cube frames lies at 0.0009-0.0019, the weakest direction of the bunny test view at 0.005; a limit
+    of a fixed threshold: on top views of the cube the other two directions the table and top face
+    leave free, the second slide and the turn about the vertical, sit at 0.002-0.008, mostly the
+    noise tilt of the normals (0.0014-0.0042 from the flat pairs alone), so one of them may be kept
+    and the exact pose moves by up to ~3 mm along it);
     ``max_source_points`` the most frame points ICP uses (an even subset).
     """
 
