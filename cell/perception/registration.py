@@ -47,7 +47,14 @@ respect to a twist (rotation w scaled by L, translation v) about the centroid c 
 L their RMS distance to c (so both parts are in metres); the normalised Hessian H = (1/K) sum J_i^T J_i
 has eigenvalues in [0, 1]: the mean squared normal displacement per unit of motion along each
 eigen-direction. The correction (as that twist) is projected onto the eigen-directions whose eigenvalue
-is at least ``min_constraint``; the others keep the FK pose. What was dropped is logged (INFO) and
+is at least ``min_constraint``; the others keep the FK pose. The normals n_i of this test are fitted
+over ``constraint_normal_radius_m`` (10 mm, twice ICP's 5 mm; choice of this module): on a plane, the
+noise tilt of a 5 mm normal (2.5 mm voxels, ~12 neighbours) alone gives a slide along it an eigenvalue
+of 0.0014-0.004, on both sides of ``min_constraint``, so a slide along the table could pass for a
+measured direction; at 10 mm the tilt variance is ~1/7 of that (0.0001-0.0004 on exact-pose cube top
+views) while the shape of a curved object at that scale stays (weakest direction of the bunny test
+view 0.0049 at 5 mm, 0.0045 at 10 mm). Replayed cube vs-local scan, exact poses: mean correction
+1.21 -> 0.36 mm. What was dropped is logged (INFO) and
 counted in ``RegistrationResult.n_constrained``.
 
 The correction is applied in the base frame: ``T_base_sensor_used = T_correction @ T_base_sensor_fk``.
@@ -106,13 +113,13 @@ class RegistrationParams(StrictModel):
     ``max_correction_m`` [m] / ``max_correction_deg`` [deg] the largest accepted correction of the FK
     pose; ``min_points`` the fewest source (and target) points worth registering; ``min_constraint`` the
     smallest eigenvalue of the normalised point-to-plane Hessian (module docstring) for a direction of
-    the correction to be kept (0 keeps all six; 0.003 measured: the sliding direction of exact-pose
-    cube frames lies at 0.0009-0.0019, the weakest direction of the bunny test view at 0.005; a limit
-    of a fixed threshold: on top views of the cube the other two directions the table and top face
-    leave free, the second slide and the turn about the vertical, sit at 0.002-0.008, mostly the
-    noise tilt of the normals (0.0014-0.0042 from the flat pairs alone), so one of them may be kept
-    and the exact pose moves by up to ~3 mm along it);
-    ``max_source_points`` the most frame points ICP uses (an even subset).
+    the correction to be kept (0 keeps all six; 0.003 measured: the two directions the table and the
+    top face of the cube leave to the noise of the normals lie at 0.0001-0.0004 on exact-pose top views,
+    the weakest direction of the bunny test view at 0.0045; the third direction of those cube views,
+    held by the cube's edges and its sides seen at grazing incidence, lies at 0.0017-0.0034, around the
+    threshold: when kept, it can move an exact-pose frame by up to ~5 mm);
+    ``max_source_points`` the most frame points ICP uses (an even subset);
+    ``constraint_normal_radius_m`` [m] the radius of the normals of the degeneracy test (module docstring).
     """
 
     enabled: bool
@@ -127,6 +134,7 @@ class RegistrationParams(StrictModel):
     min_points: PositiveInt = 200
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
     max_source_points: PositiveInt = 3000
+    constraint_normal_radius_m: PositiveFloat = 0.01
 
     @field_validator("max_correspondence_m")
     @classmethod
@@ -180,9 +188,10 @@ class IcpResult(NamedTuple):
     correspondences: NDArray[np.int32]
 
 
-def estimate_normals(points: Array, cloud: Array, radius_m: float) -> Array:
+def estimate_normals(points: Array, cloud: Array, radius_m: float,
+                     max_neighbours: int = MAX_NORMAL_NEIGHBOURS) -> Array:
     """Unit normals (M, 3) at ``points`` (M, 3) [m] of the surface sampled by ``cloud`` (N, 3) [m]: the
-    eigenvector of the smallest eigenvalue of the covariance of the at most ``MAX_NORMAL_NEIGHBOURS``
+    eigenvector of the smallest eigenvalue of the covariance of the at most ``max_neighbours``
     nearest cloud points within ``radius_m`` [m] (Open3D's hybrid search; a point of the cloud counts
     itself; neighbours from the exact grid search of ``PointGrid``; covariance and eigenvector in the
     compiled ``_kernels.plane_normals``, by Jacobi rotations). Their sign is arbitrary (point-to-plane
@@ -192,7 +201,7 @@ def estimate_normals(points: Array, cloud: Array, radius_m: float) -> Array:
     if m == 0 or cloud.shape[0] == 0:
         return normals
     cloud = np.ascontiguousarray(cloud, dtype=np.float64)
-    idx = PointGrid(cloud, radius_m).k_nearest_within(points, MAX_NORMAL_NEIGHBOURS, radius_m)
+    idx = PointGrid(cloud, radius_m).k_nearest_within(points, max_neighbours, radius_m)
     _k.plane_normals(cloud, idx, normals)
     return normals
 
@@ -375,7 +384,8 @@ class RegistrationTarget:
         T, eigval = icp.T, np.full(6, np.nan)
         if icp.correspondences.shape[0] >= 6:
             matched = transform_points(icp.T, src_base[icp.correspondences[:, 0]])
-            T, eigval = constrained_correction(icp.T, matched, normals[icp.correspondences[:, 1]],
+            T, eigval = constrained_correction(icp.T, matched,
+                                               self._constraint_normals(near, icp.correspondences[:, 1]),
                                                p.min_constraint)
         n_constrained = int(np.count_nonzero(eigval >= p.min_constraint)) if np.all(np.isfinite(eigval)) \
             else 6
@@ -409,6 +419,16 @@ class RegistrationTarget:
         return RegistrationResult(T_base_sensor=T_used, T_correction=T, accepted=True, fitness=fitness,
                                   rmse_m=rmse, correction_m=corr_m, correction_deg=corr_deg, reason="ok",
                                   n_constrained=n_constrained, min_eigenvalue=float(eigval[0]))
+
+
+    def _constraint_normals(self, near: NDArray[np.int64], matched: NDArray[np.int32]) -> Array:
+        """Normals of the degeneracy test at the matched target points ``self._points[near][matched]``:
+        fitted over ``constraint_normal_radius_m`` to the target points ``near``, with the neighbour cap
+        grown with the area of the neighbourhood."""
+        p = self.params
+        cap = math.ceil(MAX_NORMAL_NEIGHBOURS * (p.constraint_normal_radius_m / p.normal_radius_m) ** 2)
+        points = self._points[near]
+        return estimate_normals(points[matched], points, p.constraint_normal_radius_m, max(cap, 3))
 
 
 def register_frame(points_sensor: Array, T_base_sensor_fk: Array, target_base: Array,
