@@ -206,6 +206,15 @@ def estimate_normals(points: Array, cloud: Array, radius_m: float,
     return normals
 
 
+def constraint_normals(points: Array, cloud: Array, normal_radius_m: float,
+                       constraint_normal_radius_m: float) -> Array:
+    """Normals of the degeneracy test (module docstring) at ``points`` (M, 3) [m] of the surface sampled
+    by ``cloud`` (N, 3) [m]: ``estimate_normals`` over ``constraint_normal_radius_m`` [m], the neighbour
+    cap ``MAX_NORMAL_NEIGHBOURS`` of ``normal_radius_m`` [m] grown with the area of the neighbourhood."""
+    cap = math.ceil(MAX_NORMAL_NEIGHBOURS * (constraint_normal_radius_m / normal_radius_m) ** 2)
+    return estimate_normals(points, cloud, constraint_normal_radius_m, max(cap, 3))
+
+
 def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stages_m: tuple[float, ...], *,
                        max_iterations: int, epsilon: float, max_tangential_m: float) -> IcpResult:
     """Point-to-plane ICP (Chen and Medioni, 1992) of ``source`` (N, 3) [m] onto ``target`` (M, 3) [m]
@@ -422,13 +431,11 @@ class RegistrationTarget:
 
 
     def _constraint_normals(self, near: NDArray[np.int64], matched: NDArray[np.int32]) -> Array:
-        """Normals of the degeneracy test at the matched target points ``self._points[near][matched]``:
-        fitted over ``constraint_normal_radius_m`` to the target points ``near``, with the neighbour cap
-        grown with the area of the neighbourhood."""
-        p = self.params
-        cap = math.ceil(MAX_NORMAL_NEIGHBOURS * (p.constraint_normal_radius_m / p.normal_radius_m) ** 2)
+        """Normals of the degeneracy test at the matched target points ``self._points[near][matched]``,
+        fitted to the target points ``near``."""
         points = self._points[near]
-        return estimate_normals(points[matched], points, p.constraint_normal_radius_m, max(cap, 3))
+        return constraint_normals(points[matched], points, self.params.normal_radius_m,
+                                  self.params.constraint_normal_radius_m)
 
 
 def register_frame(points_sensor: Array, T_base_sensor_fk: Array, target_base: Array,

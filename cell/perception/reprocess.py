@@ -58,6 +58,7 @@ from cell.perception.cloud import crop_voxel_downsample, cross_rows, voxel_downs
 from cell.perception.metrics import compute_metrics, ground_truth_points
 from cell.perception.registration import (
     constrained_correction,
+    constraint_normals,
     estimate_normals,
     point_to_plane_icp,
 )
@@ -99,7 +100,9 @@ class MultiwayParams(StrictModel):
     global-optimization options (line-process weight below which a loop closure is pruned; odometry vs
     loop-closure balance); ``min_constraint`` the degeneracy-aware acceptance of online registration
     (``RegistrationParams.min_constraint``, same default): a pair's correction keeps only the directions
-    its point-to-plane Hessian constrains, the recorded relative pose the others.
+    its point-to-plane Hessian constrains, the recorded relative pose the others;
+    ``constraint_normal_radius_m`` [m] the radius of the normals of that test, as online
+    (``RegistrationParams.constraint_normal_radius_m``, same default).
     """
 
     icp_voxel_m: float = Field(default=0.0025, ge=0.0)
@@ -119,6 +122,7 @@ class MultiwayParams(StrictModel):
     edge_prune_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
     preference_loop_closure: PositiveFloat = 1.0
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
+    constraint_normal_radius_m: PositiveFloat = 0.01
 
 
 @contextmanager
@@ -210,7 +214,8 @@ def _constrained_pair(T: Array, T_init: Array, source: Array, target_normals: Ar
                       pairs: NDArray[np.int32], min_constraint: float) -> tuple[Array, int]:
     """The pair's ICP result ``T`` (T_j_i) with its correction of the recorded ``T_init`` projected onto
     the well-constrained directions of point-to-plane ICP, as online (``constrained_correction``;
-    ``source`` (N, 3) [m] frame i's points in its own frame, ``target_normals`` (M, 3) frame j's normals,
+    ``source`` (N, 3) [m] frame i's points in its own frame, ``target_normals`` (M, 3) frame j's normals
+    of the degeneracy test (``constraint_normals``),
     ``pairs`` (K, 2) the (source, target) correspondences at ``T``); returns it and how many of the 6
     directions were kept."""
     if pairs.shape[0] < 6 or min_constraint <= 0.0:
@@ -241,6 +246,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     """
     pts = [voxel_downsample(c, p.icp_voxel_m) if p.icp_voxel_m > 0.0 else c for c in clouds]
     normals = [estimate_normals(c, c, p.normal_radius_m) for c in pts]
+    wide = [constraint_normals(c, c, p.normal_radius_m, p.constraint_normal_radius_m) for c in pts]
     graph = _reg.PoseGraph()
     graph.nodes.append(_reg.PoseGraphNode(np.eye(4)))
     w_rot = (p.point_sigma_m / np.deg2rad(p.fk_sigma_deg)) ** 2
@@ -260,7 +266,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
                                  max_iterations=p.max_iterations, epsilon=p.epsilon,
                                  max_tangential_m=p.normal_radius_m)
         fitness, rmse, pairs = icp.fitness, icp.rmse_m, icp.correspondences
-        T, n_constrained = _constrained_pair(icp.T @ T_init, T_init, pts[i], normals[j], pairs,
+        T, n_constrained = _constrained_pair(icp.T @ T_init, T_init, pts[i], wide[j], pairs,
                                              p.min_constraint)
         n_underconstrained += n_constrained < 6
         corr_m = float(np.linalg.norm(T[:3, 3] - T_init[:3, 3]))
