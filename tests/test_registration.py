@@ -18,6 +18,7 @@ from cell.perception.registration import (
     RegistrationParams,
     RegistrationTarget,
     constrained_correction,
+    constraint_normals,
     estimate_normals,
     point_to_plane_icp,
     register_frame,
@@ -316,3 +317,17 @@ def test_degeneracy_test_normals_are_fitted_at_the_wider_radius():
         eigen[radius] = res.min_eigenvalue
     assert eigen[PARAMS.constraint_normal_radius_m] < 0.1 * eigen[PARAMS.normal_radius_m]
     assert eigen[PARAMS.normal_radius_m] < PARAMS.min_constraint
+
+
+def test_constraint_normals_fit_every_neighbour_within_the_radius(target):
+    """The degeneracy test's normals are those of ``_kernels.plane_normals`` over every target point
+    within the radius (no cap), up to sign."""
+    pts = target.points
+    queries = pts[:: max(1, pts.shape[0] // 500)]
+    radius = PARAMS.constraint_normal_radius_m
+    every = PointGrid(pts, radius).k_nearest_within(queries, pts.shape[0] // 10, radius)
+    assert np.all(every[:, -1] < 0)  # the search was not capped
+    reference = np.empty((queries.shape[0], 3))
+    _kernels.plane_normals(pts, every, reference)
+    normals = constraint_normals(queries, pts, radius)
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", normals, reference)), 1.0, atol=1e-9)

@@ -764,6 +764,68 @@ def plane_normals(const double[:, ::1] cloud, const int64_t[:, ::1] neighbours, 
             out[i, 0], out[i, 1], out[i, 2] = vec[best], vec[3 + best], vec[6 + best]
 
 
+def radius_plane_normals(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny,
+                         int64_t nz, double cell_m, const double[::1] lo, const double[:, ::1] queries,
+                         double radius_m, double[:, ::1] out):
+    """Unit normal at each query (Q, 3) [m] fitted to all ``points`` within ``radius_m`` [m] of it (no
+    neighbour cap): the eigenvector of the smallest eigenvalue of their covariance (sums of the offsets
+    from the query, in grid order), into ``out`` (Q, 3); (0, 0, 1) with fewer than 3 of them. Its sign
+    is arbitrary. ``points``, ``starts``, the grid shape, ``cell_m`` and ``lo`` as for
+    ``nearest_within``; the cell must be at least ``radius_m``."""
+    cdef Py_ssize_t q, j, nq = queries.shape[0], cnt
+    cdef int a, b, best
+    cdef int64_t cx, cy, cz, x, y, c
+    cdef double px, py, pz, d2, r2 = radius_m * radius_m
+    cdef double d[3]
+    cdef double s[3]
+    cdef double cov[9]
+    cdef double vec[9]
+    cdef const double* pts = &points[0, 0]
+    with nogil:
+        for q in range(nq):
+            px, py, pz = queries[q, 0], queries[q, 1], queries[q, 2]
+            cx = <int64_t>floor((px - lo[0]) / cell_m)
+            cy = <int64_t>floor((py - lo[1]) / cell_m)
+            cz = <int64_t>floor((pz - lo[2]) / cell_m)
+            cnt = 0
+            for a in range(3):
+                s[a] = 0.0
+            for a in range(9):
+                cov[a] = 0.0
+            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+                    c = (x * ny + y) * nz
+                    if cz + 1 < 0 or cz - 1 > nz - 1:
+                        continue
+                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
+                        d[0] = pts[3 * j] - px
+                        d[1] = pts[3 * j + 1] - py
+                        d[2] = pts[3 * j + 2] - pz
+                        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                        if d2 > r2:
+                            continue
+                        for a in range(3):
+                            s[a] += d[a]
+                            for b in range(a, 3):
+                                cov[3 * a + b] += d[a] * d[b]
+                        cnt += 1
+            if cnt < 3:
+                out[q, 0], out[q, 1], out[q, 2] = 0.0, 0.0, 1.0
+                continue
+            # centred second moments from the sums about the query (offsets are at most the radius)
+            for a in range(3):
+                for b in range(a, 3):
+                    cov[3 * a + b] = cov[3 * a + b] / cnt - s[a] * s[b] / (<double>cnt * cnt)
+            cov[3], cov[6], cov[7] = cov[1], cov[2], cov[5]
+            _jacobi_eigen3(cov, vec)
+            best = 0
+            if cov[4] < cov[0]:
+                best = 1
+            if cov[8] < cov[4 * best]:
+                best = 2
+            out[q, 0], out[q, 1], out[q, 2] = vec[best], vec[3 + best], vec[6 + best]
+
+
 cdef inline Py_ssize_t _root(int64_t* parent, Py_ssize_t i) noexcept nogil:
     """Root of i in the union-find forest, halving the path on the way."""
     while parent[i] != i:

@@ -246,7 +246,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     """
     pts = [voxel_downsample(c, p.icp_voxel_m) if p.icp_voxel_m > 0.0 else c for c in clouds]
     normals = [estimate_normals(c, c, p.normal_radius_m) for c in pts]
-    wide = [constraint_normals(c, c, p.normal_radius_m, p.constraint_normal_radius_m) for c in pts]
+    wide = [constraint_normals(c, c, p.constraint_normal_radius_m) for c in pts]
     graph = _reg.PoseGraph()
     graph.nodes.append(_reg.PoseGraphNode(np.eye(4)))
     w_rot = (p.point_sigma_m / np.deg2rad(p.fk_sigma_deg)) ** 2
