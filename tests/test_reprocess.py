@@ -13,11 +13,12 @@ import pytest
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
-from cell.perception.registration import o3d_cloud
+from cell.perception.registration import estimate_normals
 from cell.perception.reprocess import (
     MultiwayParams,
     _constrained_pair,
     _pairs,
+    _point_to_plane_information,
     back_project,
     reprocess_job,
 )
@@ -143,11 +144,24 @@ def test_pair_correction_keeps_only_constrained_directions():
     g = np.arange(-0.05, 0.05, 0.0025)
     X, Y = np.meshgrid(g, g)
     plane = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 0.3)])
-    source, target = o3d_cloud(plane), o3d_cloud(plane, 0.005)
+    normals = estimate_normals(plane, plane, 0.005)
     T = np.eye(4)
     T[:3, 3] = [0.002, -0.001, 0.001]
     pairs = np.column_stack([np.arange(plane.shape[0])] * 2).astype(np.int32)
-    kept, n_constrained = _constrained_pair(T, np.eye(4), source, target, pairs, 0.003)
+    kept, n_constrained = _constrained_pair(T, np.eye(4), plane, normals, pairs, 0.003)
     assert n_constrained == 3
     np.testing.assert_allclose(kept[:3, 3], [0.0, 0.0, 0.001], atol=1e-9)
     np.testing.assert_allclose(kept[:3, :3], np.eye(3), atol=1e-9)
+
+
+def test_pair_information_counts_only_what_the_plane_constrains():
+    """A pair edge's information is that of its point-to-plane residuals: a plane measures its normal
+    offset and its tilts, nothing of a slide along it or a turn about its normal (those stay with the
+    FK prior), where Open3D's point-to-point information would count every direction."""
+    g = np.arange(-0.05, 0.05, 0.0025)
+    X, Y = np.meshgrid(g, g)
+    plane = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 0.3)])
+    info = _point_to_plane_information(plane, np.tile([0.0, 0.0, 1.0], (plane.shape[0], 1)))
+    # Open3D's order: rotation about x, y, z, then translation along x, y, z
+    np.testing.assert_allclose(np.diag(info)[[2, 3, 4]], 0.0, atol=1e-12)
+    assert info[5, 5] == plane.shape[0] and info[0, 0] > 0.0 and info[1, 1] > 0.0

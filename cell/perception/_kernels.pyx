@@ -443,16 +443,19 @@ def nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64
 def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] normals, const int64_t[::1] starts,
                           int64_t nx, int64_t ny, int64_t nz, double cell_m, const double[::1] lo,
                           const double[:, ::1] source, const double[:, ::1] T, double max_m,
-                          double[:, ::1] ata_out, double[::1] atb_out):
+                          double max_tangential_m, double[:, ::1] ata_out, double[::1] atb_out):
     """One linearised point-to-plane ICP system in one pass over the source (N, 3) [m]: each point p
     moved by the 4x4 ``T`` is paired with its nearest target point q within ``max_m`` (as
-    ``nearest_within``; ``points`` and ``normals`` (M, 3) sorted by cell, the grid as there); with the
-    residual r = (p - q) . n and the row a = [p x n, n] of the motion (rotation vector, translation),
-    ``ata_out`` (6, 6) receives sum a^T a and ``atb_out`` (6,) -sum a r, summed in source order.
-    Returns (the number of pairs, the sum of r^2 [m^2])."""
+    ``nearest_within``; ``points`` and ``normals`` (M, 3) sorted by cell, the grid as there), and the
+    pair is kept only if p lies within ``max_tangential_m`` [m] of q along q's tangent plane
+    (|p - q|^2 - r^2 <= max_tangential_m^2); with the residual r = (p - q) . n and the row
+    a = [p x n, n] of the motion (rotation vector, translation), ``ata_out`` (6, 6) receives sum a^T a
+    and ``atb_out`` (6,) -sum a r, summed in source order.
+    Returns (the number of pairs kept, the sum of r^2 [m^2])."""
     cdef Py_ssize_t i, j, n = source.shape[0], count = 0
     cdef int a, b
     cdef double sx, sy, sz, px, py, pz, nxv, nyv, nzv, r, d2, sse = 0.0
+    cdef double t2 = max_tangential_m * max_tangential_m
     cdef double row[6]
     cdef double ata[36]
     cdef double atb[6]
@@ -471,6 +474,8 @@ def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] norm
                 continue
             nxv, nyv, nzv = normals[j, 0], normals[j, 1], normals[j, 2]
             r = (px - points[j, 0]) * nxv + (py - points[j, 1]) * nyv + (pz - points[j, 2]) * nzv
+            if d2 - r * r > t2:
+                continue
             row[0] = py * nzv - pz * nyv
             row[1] = pz * nxv - px * nzv
             row[2] = px * nyv - py * nxv
@@ -488,6 +493,27 @@ def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] norm
     return count, sse
 
 
+cdef int _neighbour_runs(const int64_t* starts, int64_t nx, int64_t ny, int64_t nz, double cell_m,
+                         const double* lo, double px, double py, double pz, int64_t* first,
+                         int64_t* last) noexcept nogil:
+    """Into first / last (at least 9 each) the runs of point indices of the 3^3 cells around the cell
+    of (px, py, pz), clipped to the grid (one run per column of cells); returns their number."""
+    cdef int64_t cx, cy, cz, x, y, c
+    cdef int n = 0
+    cx = <int64_t>floor((px - lo[0]) / cell_m)
+    cy = <int64_t>floor((py - lo[1]) / cell_m)
+    cz = <int64_t>floor((pz - lo[2]) / cell_m)
+    if cz + 1 < 0 or cz - 1 > nz - 1:
+        return 0
+    for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+        for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+            c = (x * ny + y) * nz
+            first[n] = starts[c + max(cz - 1, 0)]
+            last[n] = starts[c + min(cz + 1, nz - 1) + 1]
+            n += 1
+    return n
+
+
 def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny,
                      int64_t nz, double cell_m, const double[::1] lo, const double[:, ::1] queries,
                      double radius_m, int64_t[:, ::1] out_index):
@@ -499,8 +525,9 @@ def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int
     """
     cdef Py_ssize_t q, j, nq = queries.shape[0]
     cdef int k = out_index.shape[1]
-    cdef int m, found
-    cdef int64_t cx, cy, cz, x, y, c
+    cdef int m, found, run, n_runs
+    cdef int64_t first[9]
+    cdef int64_t last[9]
     cdef double px, py, pz, dx, dy, dz, d2, r2 = radius_m * radius_m
     cdef const double* pts = &points[0, 0]
     cdef double* best = <double*>malloc(k * sizeof(double))
@@ -512,31 +539,25 @@ def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int
     with nogil:
         for q in range(nq):
             px, py, pz = queries[q, 0], queries[q, 1], queries[q, 2]
-            cx = <int64_t>floor((px - lo[0]) / cell_m)
-            cy = <int64_t>floor((py - lo[1]) / cell_m)
-            cz = <int64_t>floor((pz - lo[2]) / cell_m)
+            n_runs = _neighbour_runs(&starts[0], nx, ny, nz, cell_m, &lo[0], px, py, pz, first, last)
             found = 0
-            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
-                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
-                    c = (x * ny + y) * nz
-                    if cz + 1 < 0 or cz - 1 > nz - 1:
+            for run in range(n_runs):
+                for j in range(first[run], last[run]):
+                    dx = pts[3 * j] - px
+                    dy = pts[3 * j + 1] - py
+                    dz = pts[3 * j + 2] - pz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > r2 or (found == k and d2 >= best[k - 1]):
                         continue
-                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
-                        dx = pts[3 * j] - px
-                        dy = pts[3 * j + 1] - py
-                        dz = pts[3 * j + 2] - pz
-                        d2 = dx * dx + dy * dy + dz * dz
-                        if d2 > r2 or (found == k and d2 >= best[k - 1]):
-                            continue
-                        m = found if found < k else k - 1
-                        while m > 0 and best[m - 1] > d2:
-                            best[m] = best[m - 1]
-                            best_j[m] = best_j[m - 1]
-                            m -= 1
-                        best[m] = d2
-                        best_j[m] = j
-                        if found < k:
-                            found += 1
+                    m = found if found < k else k - 1
+                    while m > 0 and best[m - 1] > d2:
+                        best[m] = best[m - 1]
+                        best_j[m] = best_j[m - 1]
+                        m -= 1
+                    best[m] = d2
+                    best_j[m] = j
+                    if found < k:
+                        found += 1
             for m in range(k):
                 out_index[q, m] = best_j[m] if m < found else -1
     free(best)
@@ -712,17 +733,30 @@ cdef void _jacobi_eigen3(double* a, double* v) noexcept nogil:
                     v[3 * r + q] = vrq + s * (vrp - tau * vrq)
 
 
+cdef inline void _smallest_eigenvector(double* cov, double* out) noexcept nogil:
+    """Into out (3,) the unit eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix whose
+    upper triangle is in cov (row-major; overwritten)."""
+    cdef double vec[9]
+    cdef int best = 0
+    cov[3], cov[6], cov[7] = cov[1], cov[2], cov[5]
+    _jacobi_eigen3(cov, vec)
+    if cov[4] < cov[0]:
+        best = 1
+    if cov[8] < cov[4 * best]:
+        best = 2
+    out[0], out[1], out[2] = vec[best], vec[3 + best], vec[6 + best]
+
+
 def plane_normals(const double[:, ::1] cloud, const int64_t[:, ::1] neighbours, double[:, ::1] out):
     """Unit normal of each row of ``neighbours`` (M, K) (indices into ``cloud`` (N, 3), -1 after the
     last): the eigenvector of the smallest eigenvalue of the neighbours' covariance (mean first, then the
     centred sums), into ``out`` (M, 3); (0, 0, 1) with fewer than 3 neighbours. Its sign is arbitrary."""
     cdef Py_ssize_t i, j, m = neighbours.shape[0], kk = neighbours.shape[1]
     cdef int64_t idx
-    cdef int a, b, best
+    cdef int a, b
     cdef double mean[3]
     cdef double d[3]
     cdef double cov[9]
-    cdef double vec[9]
     cdef Py_ssize_t cnt
     with nogil:
         for i in range(m):
@@ -749,14 +783,56 @@ def plane_normals(const double[:, ::1] cloud, const int64_t[:, ::1] neighbours, 
                 for a in range(3):
                     for b in range(a, 3):
                         cov[3 * a + b] += d[a] * d[b]
-            cov[3], cov[6], cov[7] = cov[1], cov[2], cov[5]
-            _jacobi_eigen3(cov, vec)
-            best = 0
-            if cov[4] < cov[0]:
-                best = 1
-            if cov[8] < cov[4 * best]:
-                best = 2
-            out[i, 0], out[i, 1], out[i, 2] = vec[best], vec[3 + best], vec[6 + best]
+            _smallest_eigenvector(cov, &out[i, 0])
+
+
+def radius_plane_normals(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny,
+                         int64_t nz, double cell_m, const double[::1] lo, const double[:, ::1] queries,
+                         double radius_m, double[:, ::1] out):
+    """Unit normal at each query (Q, 3) [m] fitted to all ``points`` within ``radius_m`` [m] of it (no
+    neighbour cap): the eigenvector of the smallest eigenvalue of their covariance (sums of the offsets
+    from the query, in grid order), into ``out`` (Q, 3); (0, 0, 1) with fewer than 3 of them. Its sign
+    is arbitrary. ``points``, ``starts``, the grid shape, ``cell_m`` and ``lo`` as for
+    ``nearest_within``; the cell must be at least ``radius_m``."""
+    cdef Py_ssize_t q, j, nq = queries.shape[0], cnt
+    cdef int a, b, run, n_runs
+    cdef int64_t first[9]
+    cdef int64_t last[9]
+    cdef double px, py, pz, d2, r2 = radius_m * radius_m
+    cdef double d[3]
+    cdef double s[3]
+    cdef double cov[9]
+    cdef const double* pts = &points[0, 0]
+    with nogil:
+        for q in range(nq):
+            px, py, pz = queries[q, 0], queries[q, 1], queries[q, 2]
+            n_runs = _neighbour_runs(&starts[0], nx, ny, nz, cell_m, &lo[0], px, py, pz, first, last)
+            cnt = 0
+            for a in range(3):
+                s[a] = 0.0
+            for a in range(9):
+                cov[a] = 0.0
+            for run in range(n_runs):
+                for j in range(first[run], last[run]):
+                    d[0] = pts[3 * j] - px
+                    d[1] = pts[3 * j + 1] - py
+                    d[2] = pts[3 * j + 2] - pz
+                    d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                    if d2 > r2:
+                        continue
+                    for a in range(3):
+                        s[a] += d[a]
+                        for b in range(a, 3):
+                            cov[3 * a + b] += d[a] * d[b]
+                    cnt += 1
+            if cnt < 3:
+                out[q, 0], out[q, 1], out[q, 2] = 0.0, 0.0, 1.0
+                continue
+            # centred second moments from the sums about the query (offsets are at most the radius)
+            for a in range(3):
+                for b in range(a, 3):
+                    cov[3 * a + b] = cov[3 * a + b] / cnt - s[a] * s[b] / (<double>cnt * cnt)
+            _smallest_eigenvector(cov, &out[q, 0])
 
 
 cdef inline Py_ssize_t _root(int64_t* parent, Py_ssize_t i) noexcept nogil:

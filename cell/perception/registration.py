@@ -19,6 +19,20 @@ last stage is the paper's 2 mm rejector and gives the reported fitness and RMSE.
 ``max_source_points`` of the frame (an even subset; ~16k points arrive at 2.5 mm): measured on the
 bunny, 3000 points recover an injected 5 mm / 1 deg error as well as all of them, at a fifth of the cost.
 
+Pairs beyond the target's surface are rejected in every stage (choice of this module, the pair rejection
+of the paper's ICP reference [25], Rusinkiewicz and Levoy section 3.4: pairs on mesh boundaries, after
+Turk and Levoy 1994): a pair is used only if the source point lies within ``normal_radius_m`` of its
+target point along that point's tangent plane, the neighbourhood its normal was fitted on. Over a
+sampled surface the nearest target point is within about one voxel along the plane, however far off the
+surface the FK error puts the source point; only a source point beyond the edge of what the target has
+seen gets a nearest point centimetres away along the plane. Such a pair says nothing about the motion,
+yet its residual (p - q) . n is that tangential offset times the noise tilt of the normal (a few
+degrees at 5 mm with 2.5 mm voxels), the same sign for every point of the newly seen area. Summed over
+the few hundred points a new view adds at the edge of the target, it pulled the frame back onto the seen
+area along directions the planes of a box and a table leave to those noise tilts: with the 20 mm first
+stage, exact-pose top views of the cube slid by 5-17 mm and contaminated the target (online coverage
+79.0 % against 81.9 % without registration); with the rejection they move by at most ~3 mm.
+
 A registration that diverges is rejected, logged with its figures (``logging`` at WARNING), and the FK pose
 is used instead: fitness (share of source points with a correspondence within the last stage's distance)
 below ``min_fitness``, or a correction of the sensor pose larger than ``max_correction_m`` /
@@ -33,7 +47,14 @@ respect to a twist (rotation w scaled by L, translation v) about the centroid c 
 L their RMS distance to c (so both parts are in metres); the normalised Hessian H = (1/K) sum J_i^T J_i
 has eigenvalues in [0, 1]: the mean squared normal displacement per unit of motion along each
 eigen-direction. The correction (as that twist) is projected onto the eigen-directions whose eigenvalue
-is at least ``min_constraint``; the others keep the FK pose. What was dropped is logged (INFO) and
+is at least ``min_constraint``; the others keep the FK pose. The normals n_i of this test are fitted
+over ``constraint_normal_radius_m`` (10 mm, twice ICP's 5 mm; choice of this module): on a plane, the
+noise tilt of a 5 mm normal (2.5 mm voxels, ~12 neighbours) alone gives a slide along it an eigenvalue
+of 0.0014-0.004, on both sides of ``min_constraint``, so a slide along the table could pass for a
+measured direction; at 10 mm the tilt variance is ~1/7 of that (0.0001-0.0004 on exact-pose cube top
+views) while the shape of a curved object at that scale stays (weakest direction of the bunny test
+view 0.0049 at 5 mm, 0.0045 at 10 mm). Replayed cube vs-local scan, exact poses: mean correction
+1.21 -> 0.36 mm. What was dropped is logged (INFO) and
 counted in ``RegistrationResult.n_constrained``.
 
 The correction is applied in the base frame: ``T_base_sensor_used = T_correction @ T_base_sensor_fk``.
@@ -46,8 +67,7 @@ there (``enabled: false`` in its cell file; ``min_points`` rejects such frames a
 Determinism: each online ICP iteration is one single-threaded compiled pass
 (``_kernels.point_to_plane_system``: grid search and normal equations, summed in source order); inputs
 are float64 arrays in a fixed order (the accumulated cloud from ``voxel_downsample`` is sorted by voxel
-key). The offline re-processing uses Open3D's ICP (``coarse_to_fine_icp``), whose multi-threaded
-reductions sum in a varying order: it runs on one Open3D thread (``single_threaded_open3d``).
+key). The offline re-processing (``cell.perception.reprocess``) uses the same ICP.
 """
 
 from __future__ import annotations
@@ -55,13 +75,10 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
@@ -78,8 +95,6 @@ log = logging.getLogger(__name__)
 MAX_NORMAL_NEIGHBOURS = 30
 """Cap on the neighbours used for one normal (hybrid radius / k-NN search)."""
 
-_reg = o3d.pipelines.registration
-
 _GRID_CELL_M = 0.005
 """Cell of the correspondence search grid [m]: about four 2.5 mm target points a cell on a surface."""
 
@@ -89,7 +104,8 @@ class RegistrationParams(StrictModel):
     """Registration settings (paper section II-A). ``enabled`` has no default: a cell file states it
     (off for the 8x8 ToF, whose frames have too few points).
 
-    ``normal_radius_m`` [m] target-normal search radius (5 mm); ``max_iterations`` per ICP stage (20);
+    ``normal_radius_m`` [m] target-normal search radius (5 mm), also the largest offset of an ICP pair
+    along the target's tangent plane (module docstring); ``max_iterations`` per ICP stage (20);
     ``epsilon`` relative fitness and RMSE change that ends a stage (1e-8); ``max_correspondence_m`` [m]
     the coarse-to-fine correspondence distances, the last one the paper's 2 mm rejector;
     ``source_voxel_m`` [m] voxel filter of the new frame before ICP (paper: 2.5 mm; 0 = none);
@@ -97,9 +113,13 @@ class RegistrationParams(StrictModel):
     ``max_correction_m`` [m] / ``max_correction_deg`` [deg] the largest accepted correction of the FK
     pose; ``min_points`` the fewest source (and target) points worth registering; ``min_constraint`` the
     smallest eigenvalue of the normalised point-to-plane Hessian (module docstring) for a direction of
-    the correction to be kept (0 keeps all six; 0.003 measured: the sliding direction of exact-pose
-    cube frames lies at 0.0009-0.0019, the weakest direction of the bunny test view at 0.005);
-    ``max_source_points`` the most frame points ICP uses (an even subset).
+    the correction to be kept (0 keeps all six; 0.003 measured: the two directions the table and the
+    top face of the cube leave to the noise of the normals lie at 0.0001-0.0004 on exact-pose top views,
+    the weakest direction of the bunny test view at 0.0045; the third direction of those cube views,
+    held by the cube's edges and its sides seen at grazing incidence, lies at 0.0017-0.0034, around the
+    threshold: when kept, it can move an exact-pose frame by up to ~5 mm);
+    ``max_source_points`` the most frame points ICP uses (an even subset);
+    ``constraint_normal_radius_m`` [m] the radius of the normals of the degeneracy test (module docstring).
     """
 
     enabled: bool
@@ -114,6 +134,7 @@ class RegistrationParams(StrictModel):
     min_points: PositiveInt = 200
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
     max_source_points: PositiveInt = 3000
+    constraint_normal_radius_m: PositiveFloat = 0.01
 
     @field_validator("max_correspondence_m")
     @classmethod
@@ -157,58 +178,14 @@ class RegistrationResult:
         return self.reason.startswith(REJECTED)
 
 
-@contextmanager
-def single_threaded_open3d() -> Iterator[None]:
-    """Run Open3D on one thread inside the block, restoring the previous limit after it.
-
-    Open3D's multi-threaded reductions sum in a varying order, so ICP on identical inputs can differ in
-    the last bits from call to call; one thread makes it exactly repeatable (simulation must be
-    byte-identical for a given seed). The limit is process-wide: do not run other Open3D work on
-    other threads meanwhile.
-    """
-    previous = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(1)
-    try:
-        yield
-    finally:
-        o3d.utility.set_max_threads(previous)
-
-
-def o3d_cloud(points: Array, normal_radius_m: float | None = None) -> o3d.geometry.PointCloud:
-    """An Open3D cloud of (N, 3) points [m]; with ``normal_radius_m`` [m], normals estimated from at most
-    ``MAX_NORMAL_NEIGHBOURS`` neighbours within that radius."""
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
-    if normal_radius_m is not None and len(pc.points):
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m,
-                                                                 max_nn=MAX_NORMAL_NEIGHBOURS))
-    return pc
-
-
 class IcpResult(NamedTuple):
-    """Outcome of ``coarse_to_fine_icp``: ``T`` the 4x4 T_target_source, ``fitness`` and ``rmse_m`` [m] of
+    """Outcome of ``point_to_plane_icp``: ``T`` the 4x4 T_target_source, ``fitness`` and ``rmse_m`` [m] of
     the last stage, ``correspondences`` (K, 2) its (source index, target index) pairs at ``T``."""
 
     T: Array
     fitness: float
     rmse_m: float
     correspondences: NDArray[np.int32]
-
-
-def coarse_to_fine_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T_init: Array,
-                       stages_m: tuple[float, ...], *, max_iterations: int, epsilon: float) -> IcpResult:
-    """Point-to-plane ICP of ``source`` onto ``target`` (which has normals) from ``T_init``, one run per
-    maximum correspondence distance in ``stages_m`` [m], each starting where the previous one ended, up to
-    ``max_iterations`` and stopping when fitness and RMSE change by less than ``epsilon``."""
-    criteria = _reg.ICPConvergenceCriteria(relative_fitness=epsilon, relative_rmse=epsilon,
-                                           max_iteration=max_iterations)
-    estimation = _reg.TransformationEstimationPointToPlane()
-    out = IcpResult(T_init, 0.0, 0.0, np.zeros((0, 2), dtype=np.int32))
-    for dist in stages_m:
-        res = _reg.registration_icp(source, target, dist, out.T, estimation, criteria)
-        out = IcpResult(np.array(res.transformation), float(res.fitness), float(res.inlier_rmse),
-                        np.asarray(res.correspondence_set, dtype=np.int32))
-    return out
 
 
 def estimate_normals(points: Array, cloud: Array, radius_m: float) -> Array:
@@ -228,15 +205,33 @@ def estimate_normals(points: Array, cloud: Array, radius_m: float) -> Array:
     return normals
 
 
+def constraint_normals(points: Array, cloud: Array, radius_m: float) -> Array:
+    """Normals of the degeneracy test (module docstring) at ``points`` (M, 3) [m] of the surface sampled
+    by ``cloud`` (N, 3) [m]: fitted to every cloud point within ``radius_m`` [m], without the neighbour
+    cap of ``estimate_normals`` (compiled ``_kernels.radius_plane_normals``; sorting the nearest 120 of
+    the ~50 points a 10 mm neighbourhood holds at 2.5 mm cost ~30 ms a frame). Sign arbitrary; fewer
+    than 3 neighbours give (0, 0, 1)."""
+    normals = np.empty((points.shape[0], 3))
+    if points.shape[0] == 0:
+        return normals
+    grid = PointGrid(cloud, radius_m)
+    nx, ny, nz = (int(v) for v in grid.dims)
+    _k.radius_plane_normals(grid.points, grid.starts, nx, ny, nz, grid.cell_m, grid.lo,
+                            np.ascontiguousarray(points, dtype=np.float64), radius_m, normals)
+    return normals
+
+
 def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stages_m: tuple[float, ...], *,
-                       max_iterations: int, epsilon: float) -> IcpResult:
+                       max_iterations: int, epsilon: float, max_tangential_m: float) -> IcpResult:
     """Point-to-plane ICP (Chen and Medioni, 1992) of ``source`` (N, 3) [m] onto ``target`` (M, 3) [m]
     with its ``target_normals``, from the identity: one run per maximum correspondence distance in
     ``stages_m`` [m], each starting where the previous one ended.
 
     An iteration pairs each moved source point with its nearest target point within the stage's
     distance and solves the linearised point-to-plane least squares for a small motion (rotation vector w,
-    translation t: p -> p + w x p + t). A stage stops after ``max_iterations`` or when it has converged,
+    translation t: p -> p + w x p + t); a pair whose source point lies more than ``max_tangential_m``
+    [m] from its target point along the target point's tangent plane is left out (beyond the target's
+    surface, module docstring). A stage stops after ``max_iterations`` or when it has converged,
     with the paper's two epsilons (PCL's ``setTransformationEpsilon`` / ``setEuclideanFitnessEpsilon``):
     the last update moved the source points by a mean squared distance of at most ``epsilon`` [m^2]
     (PCL bounds the squared translation by it but accepts any rotation under 0.26 deg, which stopped
@@ -260,7 +255,7 @@ def point_to_plane_icp(source: Array, target: Array, target_normals: Array, stag
         for _ in range(max_iterations):
             # pairs, residuals and the normal equations of the rows [p x n, n] in one compiled pass
             count, sse = _k.point_to_plane_system(grid.points, normals, grid.starts, nx, ny, nz, grid.cell_m,
-                                                  grid.lo, src, T, dist, ata, atb)
+                                                  grid.lo, src, T, dist, max_tangential_m, ata, atb)
             if count < 6:
                 break
             x = np.linalg.lstsq(ata, atb, rcond=None)[0]
@@ -398,12 +393,14 @@ class RegistrationTarget:
             return _skipped(T_fk, "too few points")
         normals = self._normals[near]
         icp = point_to_plane_icp(src_base, self._points[near], normals, p.max_correspondence_m,
-                                 max_iterations=p.max_iterations, epsilon=p.epsilon)
+                                 max_iterations=p.max_iterations, epsilon=p.epsilon,
+                                 max_tangential_m=p.normal_radius_m)
         fitness, rmse = icp.fitness, icp.rmse_m
         T, eigval = icp.T, np.full(6, np.nan)
         if icp.correspondences.shape[0] >= 6:
             matched = transform_points(icp.T, src_base[icp.correspondences[:, 0]])
-            T, eigval = constrained_correction(icp.T, matched, normals[icp.correspondences[:, 1]],
+            T, eigval = constrained_correction(icp.T, matched,
+                                               self._constraint_normals(near, icp.correspondences[:, 1]),
                                                p.min_constraint)
         n_constrained = int(np.count_nonzero(eigval >= p.min_constraint)) if np.all(np.isfinite(eigval)) \
             else 6
@@ -437,6 +434,13 @@ class RegistrationTarget:
         return RegistrationResult(T_base_sensor=T_used, T_correction=T, accepted=True, fitness=fitness,
                                   rmse_m=rmse, correction_m=corr_m, correction_deg=corr_deg, reason="ok",
                                   n_constrained=n_constrained, min_eigenvalue=float(eigval[0]))
+
+
+    def _constraint_normals(self, near: NDArray[np.int64], matched: NDArray[np.int32]) -> Array:
+        """Normals of the degeneracy test at the matched target points ``self._points[near][matched]``,
+        fitted to the target points ``near``."""
+        points = self._points[near]
+        return constraint_normals(points[matched], points, self.params.constraint_normal_radius_m)
 
 
 def register_frame(points_sensor: Array, T_base_sensor_fk: Array, target_base: Array,

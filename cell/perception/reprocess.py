@@ -11,12 +11,19 @@ then compares the result with the ground truth by eq. 13. ``reprocess_job`` does
    the recorded ``points`` [m, sensor frame] are used; ``T_base_sensor`` is the pose the job used;
 2. filtering: the crop box in the sensor frame (the job's cell file if it can still be loaded, else the
    paper's x, y within +-15 cm, z in (5, 40) cm), then a ``voxel_m`` (1 mm) voxel filter per frame;
-3. multiway registration: point-to-plane ICP (coarse to fine, as online) between consecutive frames and
-   between non-consecutive frames whose recorded poses are close (loop closures), each started from the
-   recorded relative pose, its correction kept only along the directions the pair's point-to-plane
-   residuals constrain (the degeneracy-aware acceptance of online registration); pairs failing the
-   acceptance checks (fitness, size of the correction) are left out; information matrices from the
-   aligned pairs;
+3. multiway registration: the point-to-plane ICP of online registration (``point_to_plane_icp``:
+   coarse to fine, the paper's epsilons with PCL's meaning, pairs beyond the target's surface left out)
+   between consecutive frames and between non-consecutive frames whose recorded poses are close (loop
+   closures), each started from the recorded relative pose, its correction kept only along the
+   directions the pair's point-to-plane residuals constrain (the degeneracy-aware acceptance of online
+   registration); pairs failing the acceptance checks (fitness, size of the correction) are left out;
+   information matrices of the point-to-plane residuals of the aligned pairs. Choice written down here:
+   not Open3D's ICP, whose convergence criteria are relative changes of fitness and RMSE: with the
+   paper's 1e-8 it ran all 20 iterations of each stage, and every iteration stepped along the directions
+   that only the noise tilt of the normals constrains (the table and a box face), a random walk of
+   4-9 mm over a pair of exact-pose cube frames (the paper's epsilons stop this ICP after 2-3 iterations
+   there); a whole cube scan's poses moved by up to 8.8 mm and coverage fell from 82 % to 50 %. Nor
+   Open3D's information matrices, which are point-to-point ones (see ``_point_to_plane_information``);
 4. pose-graph optimization (Open3D, Levenberg-Marquardt): node 0 is the base frame (fixed), node k + 1
    frame k, initialised at its recorded pose. Choice written down here: besides the ICP edges (all
    uncertain, so the line process may prune them), every frame has a certain prior edge to the base
@@ -36,6 +43,8 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -45,13 +54,13 @@ from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt
 
 from cell.config.models import CropBoxConfig
-from cell.perception.cloud import crop_voxel_downsample, voxel_downsample, write_ply
+from cell.perception.cloud import crop_voxel_downsample, cross_rows, voxel_downsample, write_ply
 from cell.perception.metrics import compute_metrics, ground_truth_points
 from cell.perception.registration import (
-    coarse_to_fine_icp,
     constrained_correction,
-    o3d_cloud,
-    single_threaded_open3d,
+    constraint_normals,
+    estimate_normals,
+    point_to_plane_icp,
 )
 from drivers.config_base import StrictModel
 from drivers.depth.projection import back_project
@@ -76,10 +85,11 @@ class MultiwayParams(StrictModel):
     information matrices: 4 mm then 2 mm, narrower than online because the recorded poses are already
     the job's (FK or registered) poses, and wider first stages let overlaps dominated by planes (table,
     box faces) slide by centimetres (measured on a simulated cube scan: 20 mm first stage moved poses by
-    5-14 mm, 4 mm by 0.2 mm); ``point_sigma_m`` [m], ``fk_sigma_m`` [m] and ``fk_sigma_deg`` [deg] weigh
+    up to 8.5 mm, 4 mm by 1.0 mm); ``point_sigma_m`` [m], ``fk_sigma_m`` [m] and ``fk_sigma_deg`` [deg] weigh
     each frame's prior edge to its recorded pose against the ICP edges (information (point / fk)^2 per
     axis), which holds the directions that ICP leaves unconstrained; ``max_iterations``
-    per stage and ``epsilon`` relative fitness / RMSE change (paper: 20 and 1e-8); a pair is accepted when
+    per stage and ``epsilon`` [m^2] (paper: 20 and 1e-8, with PCL's meaning as online:
+    ``point_to_plane_icp``); a pair is accepted when
     its fitness is at least ``min_fitness`` and ICP moved the recorded relative pose by at most
     ``max_correction_m`` [m] / ``max_correction_deg`` [deg]; frames form a loop-closure pair when their
     recorded sensor origins are within ``loop_max_distance_m`` [m] and their optical axes within
@@ -90,7 +100,9 @@ class MultiwayParams(StrictModel):
     global-optimization options (line-process weight below which a loop closure is pruned; odometry vs
     loop-closure balance); ``min_constraint`` the degeneracy-aware acceptance of online registration
     (``RegistrationParams.min_constraint``, same default): a pair's correction keeps only the directions
-    its point-to-plane Hessian constrains, the recorded relative pose the others.
+    its point-to-plane Hessian constrains, the recorded relative pose the others;
+    ``constraint_normal_radius_m`` [m] the radius of the normals of that test, as online
+    (``RegistrationParams.constraint_normal_radius_m``, same default).
     """
 
     icp_voxel_m: float = Field(default=0.0025, ge=0.0)
@@ -110,6 +122,24 @@ class MultiwayParams(StrictModel):
     edge_prune_threshold: float = Field(default=0.25, ge=0.0, le=1.0)
     preference_loop_closure: PositiveFloat = 1.0
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
+    constraint_normal_radius_m: PositiveFloat = 0.01
+
+
+@contextmanager
+def single_threaded_open3d() -> Iterator[None]:
+    """Run Open3D on one thread inside the block, restoring the previous limit after it.
+
+    Open3D's multi-threaded reductions sum in a varying order, so the pose-graph optimization of
+    identical inputs can differ in the last bits from call to call; one thread makes it exactly
+    repeatable (simulation must be byte-identical for a given seed). The limit is process-wide: do not
+    run other Open3D work on other threads meanwhile.
+    """
+    previous = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(previous)
 
 
 def _load_result(job_dir: Path) -> dict[str, Any]:
@@ -180,20 +210,31 @@ def _pairs(poses: list[Array], p: MultiwayParams) -> list[tuple[int, int, bool]]
     return out
 
 
-def _constrained_pair(T: Array, T_init: Array, source: o3d.geometry.PointCloud,
-                      target: o3d.geometry.PointCloud, pairs: NDArray[np.int32], min_constraint: float,
-                      ) -> tuple[Array, int]:
+def _constrained_pair(T: Array, T_init: Array, source: Array, target_normals: Array,
+                      pairs: NDArray[np.int32], min_constraint: float) -> tuple[Array, int]:
     """The pair's ICP result ``T`` (T_j_i) with its correction of the recorded ``T_init`` projected onto
     the well-constrained directions of point-to-plane ICP, as online (``constrained_correction``;
+    ``source`` (N, 3) [m] frame i's points in its own frame, ``target_normals`` (M, 3) frame j's normals
+    of the degeneracy test (``constraint_normals``),
     ``pairs`` (K, 2) the (source, target) correspondences at ``T``); returns it and how many of the 6
-    directions were kept. Needed here too: the pose graph's information matrices are point-to-point ones,
-    which count a slide along a plane as well constrained."""
+    directions were kept."""
     if pairs.shape[0] < 6 or min_constraint <= 0.0:
         return T, 6
-    matched = transform_points(T, np.asarray(source.points)[pairs[:, 0]])
-    normals = np.asarray(target.normals)[pairs[:, 1]]
+    matched = transform_points(T, source[pairs[:, 0]])
+    normals = target_normals[pairs[:, 1]]
     C, eigval = constrained_correction(T @ inv_T(T_init), matched, normals, min_constraint)
     return C @ T_init, int(np.count_nonzero(eigval >= min_constraint))
+
+
+def _point_to_plane_information(matched: Array, normals: Array) -> Array:
+    """Information matrix (6, 6) of a pair edge, Open3D's order (rotation, then translation, of frame j
+    about its origin): sum over the pairs of a^T a, a = [q x n, n], the rows of the point-to-plane
+    residuals ICP minimised, with ``matched`` (K, 3) [m] the source points moved into frame j and
+    ``normals`` (K, 3) their target normals; unit variance per residual, as Open3D's point-to-point
+    ``get_information_matrix_from_point_clouds``, which would count a slide along a plane (directions
+    the pair's correction keeps at the recorded pose) as measured and hold it against the FK prior."""
+    rows = np.column_stack([cross_rows(matched, normals), normals])
+    return rows.T @ rows
 
 
 def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tuple[list[Array], dict]:
@@ -203,8 +244,9 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     has a certain "FK prior" edge to the base node (its recorded pose, information from ``fk_sigma_m`` /
     ``fk_sigma_deg``); each accepted ICP pair an uncertain edge that the line process may prune.
     """
-    pcs = [o3d_cloud(voxel_downsample(c, p.icp_voxel_m) if p.icp_voxel_m > 0.0 else c, p.normal_radius_m)
-           for c in clouds]
+    pts = [voxel_downsample(c, p.icp_voxel_m) if p.icp_voxel_m > 0.0 else c for c in clouds]
+    normals = [estimate_normals(c, c, p.normal_radius_m) for c in pts]
+    wide = [constraint_normals(c, c, p.constraint_normal_radius_m) for c in pts]
     graph = _reg.PoseGraph()
     graph.nodes.append(_reg.PoseGraphNode(np.eye(4)))
     w_rot = (p.point_sigma_m / np.deg2rad(p.fk_sigma_deg)) ** 2
@@ -217,12 +259,15 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     rejected: list[dict[str, Any]] = []
     info_dist = p.max_correspondence_m[-1]
     for i, j, loop in _pairs(poses, p):
-        if not (len(pcs[i].points) and len(pcs[j].points)):
+        if not (len(pts[i]) and len(pts[j])):
             continue
         T_init = inv_T(poses[j]) @ poses[i]  # recorded T_j_i: frame i's points into frame j
-        T, fitness, rmse, pairs = coarse_to_fine_icp(pcs[i], pcs[j], T_init, p.max_correspondence_m,
-                                                     max_iterations=p.max_iterations, epsilon=p.epsilon)
-        T, n_constrained = _constrained_pair(T, T_init, pcs[i], pcs[j], pairs, p.min_constraint)
+        icp = point_to_plane_icp(transform_points(T_init, pts[i]), pts[j], normals[j], p.max_correspondence_m,
+                                 max_iterations=p.max_iterations, epsilon=p.epsilon,
+                                 max_tangential_m=p.normal_radius_m)
+        fitness, rmse, pairs = icp.fitness, icp.rmse_m, icp.correspondences
+        T, n_constrained = _constrained_pair(icp.T @ T_init, T_init, pts[i], wide[j], pairs,
+                                             p.min_constraint)
         n_underconstrained += n_constrained < 6
         corr_m = float(np.linalg.norm(T[:3, 3] - T_init[:3, 3]))
         corr_deg = float(np.degrees(np.linalg.norm(rotvec(T[:3, :3] @ T_init[:3, :3].T))))
@@ -232,7 +277,7 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
                              "rmse_mm": round(rmse * 1e3, 3), "correction_mm": round(corr_m * 1e3, 3),
                              "correction_deg": round(corr_deg, 3)})
             continue
-        info = _reg.get_information_matrix_from_point_clouds(pcs[i], pcs[j], info_dist, T)
+        info = _point_to_plane_information(transform_points(T, pts[i][pairs[:, 0]]), normals[j][pairs[:, 1]])
         graph.edges.append(_reg.PoseGraphEdge(i + 1, j + 1, T, info, uncertain=True))
         n_pairs += 1
         n_loops += loop
