@@ -19,7 +19,6 @@ Run: ``nice .venv/bin/python benchmarks/packing_grid.py [--objects horizontal_bo
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from scipy.stats import mannwhitneyu
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.grid_report import print_result
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, object_pose_in_base, run_scan
 from cell.packing.box import box_from_mesh
@@ -154,11 +154,7 @@ def main() -> None:
     lines, stats = table(runs)
     print("\n".join(lines))
     result = {"runs": runs, "per_object": stats, "summary": summary(runs)}
-    print(f"summary: {result['summary']}")
-    text = json.dumps(result)
-    if args.json is not None:
-        args.json.write_text(text + "\n")
-    print(text)
+    print_result(result, args.json)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ Run: ``nice .venv/bin/python benchmarks/vs_table.py [--planners vs-local] [--obj
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -35,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.grid_report import print_result
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
@@ -169,11 +169,7 @@ def main() -> None:
             runs.append(run)
     print("\n".join(table(runs)))
     result = {"runs": runs, "summary": summary(runs)}
-    print(f"summary: {result['summary']}")
-    text = json.dumps(result)
-    if args.json is not None:
-        args.json.write_text(text + "\n")
-    print(text)
+    print_result(result, args.json)
 
 
 if __name__ == "__main__":
