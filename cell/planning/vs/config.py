@@ -112,7 +112,7 @@ class VSLocalConfig(StrictModel):
 
     delta_m: PositiveFloat = 0.05
     alpha: PositiveFloat = 1.0
-    f_eps_nats: PositiveFloat = 0.05
+    f_eps_nats: PositiveFloat = 0.03
     g_max: PositiveFloat = 1.0
     window: PositiveInt = 200
     converged_fraction: float = Field(default=0.8, gt=0.0, lt=1.0)
