@@ -8,7 +8,8 @@ the same way (``cell reprocess``, ``cell.perception.reprocess``) and both are re
 the paper's procedure first, the online cloud's after them.
 
 Per run: coverage [%], Chamfer and Hausdorff [mm] (eq. 13), scan time [s of sim time, from the first frame
-at the start view, as the paper's clocks; ``scan_time_s`` of result.json] and path length [m],
+at the start view, as the paper's clocks; ``scan_time_s`` of result.json] and the sensor's path length
+over the same span [m] (``scan_path_length_m``),
 each with the paper's value for the same object and strategy (Table I; for time and path the paper gives
 only the mean over objects: 42 / 57 / 67 s and 0.8 / 0.8 / 1.2 m). The summary checks the goal of issue 5
 on the paper's procedure: per strategy, coverage at least the paper's on at least 6 of the 8 objects, and
@@ -77,7 +78,7 @@ def run_one(config_path: Path, obj: str, planner: str, seed: int, pose: tuple[fl
             "termination": r["termination"], "coverage_pct": m.get("coverage_pct"),
             "chamfer_mm": m.get("chamfer_mm"), "hausdorff_mm": m.get("hausdorff_mm"),
             "online": r["metrics"], "scan_time_s": r["scan_time_s"], "sim_time_s": r["sim_time_s"],
-            "path_length_m": r["path_length_m"],
+            "path_length_m": r["scan_path_length_m"],
             "n_captures": r["n_captures"], "wall_s": round(scan_wall, 2),
             "reprocess_wall_s": round(time.perf_counter() - wall - scan_wall, 2)}
 

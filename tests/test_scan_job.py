@@ -57,6 +57,11 @@ def test_job_folder_is_complete(bunny_job):
     # the paper's scan time runs from the first frame, after the move from home to the first view
     assert result["scan_time_s"] == pytest.approx(result["sim_time_s"] - float(f0["timestamp"]), abs=1e-6)
     assert 0.0 < result["scan_time_s"] < result["sim_time_s"]
+    traj = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1)  # the sensor's path
+    after = traj[traj[:, 0] >= float(f0["timestamp"]) - 1e-9, 1:4]
+    walked = float(np.linalg.norm(np.diff(after, axis=0), axis=1).sum())
+    assert result["scan_path_length_m"] == pytest.approx(walked, abs=0.01)
+    assert 0.0 < result["scan_path_length_m"] < result["path_length_m"]
     assert f0["depth"].shape == (480, 640) and f0["K"].shape == (3, 3) and f0["T_base_sensor"].shape == (4, 4)
     assert read_ply(out / "cloud.ply").shape[0] == result["n_cloud_points"] > 1000
     assert "capture 0" in (out / "log.txt").read_text()

@@ -109,7 +109,8 @@ def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
 def _scan_time(session: JobSession | None, end: float) -> float | None:
     """The scan time of the visual-servoing paper (section III-C, Fig. 4 and 5, whose clocks start at
     the start view): job time [s] from the first recorded frame to the end; None without a frame. The
-    job's ``sim_time_s`` also counts the move from home to the first view."""
+    job's ``sim_time_s`` also counts the move from home to the first view (and ``path_length_m`` its
+    path, which ``scan_path_length_m`` leaves out)."""
     if session is None or session.first_frame_time is None:
         return None
     return round(end - session.first_frame_time, 6)
@@ -275,6 +276,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "scan_time_s": _scan_time(session, clock.now()),
             "wall_time_s": round(time.monotonic() - wall_start, 3),
             "path_length_m": round(session.path_length_m, 6) if session else 0.0,
+            "scan_path_length_m": (round(session.path_length_m - session.first_frame_path_m, 6)
+                                   if session is not None and session.first_frame_time is not None else None),
             "n_captures": session.n_captures if session else 0,
             "n_capture_failures": session.n_capture_failures if session else 0,
             "n_unreachable_views": session.n_unreachable if session else 0,

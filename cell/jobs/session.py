@@ -80,8 +80,10 @@ class JobSession:
         self._stop_file = stop_file
         self.coverage = coverage
         self.n_captures = 0
-        # job time [s] of the first recorded frame: where the paper's scan time starts (section III-C)
+        # job time [s] and sensor path [m] at the first recorded frame: where the paper's scan time and
+        # trajectory length start (section III-C)
         self.first_frame_time: float | None = None
+        self.first_frame_path_m = 0.0
         self.n_capture_failures = 0
         self.refused_moves: Counter[str] = Counter()
         self.n_unreachable = 0
@@ -374,6 +376,7 @@ class JobSession:
         self.n_captures += 1
         if self.first_frame_time is None:
             self.first_frame_time = frame.timestamp
+            self.first_frame_path_m = self.path_length_m
         if reg.rejected:
             self.n_registration_rejected += 1
         self.registration_n_constrained.append(reg.n_constrained)
