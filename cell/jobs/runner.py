@@ -106,14 +106,15 @@ def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
     return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in values.items()}
 
 
-def _scan_time(session: JobSession | None, end: float) -> float | None:
-    """The scan time of the visual-servoing paper (section III-C, Fig. 4 and 5, whose clocks start at
-    the start view): job time [s] from the first recorded frame to the end; None without a frame. The
-    job's ``sim_time_s`` also counts the move from home to the first view (and ``path_length_m`` its
-    path, which ``scan_path_length_m`` leaves out)."""
+def _scan_span(session: JobSession | None, end: float) -> tuple[float | None, float | None]:
+    """The scan time [s] and trajectory length [m] of the visual-servoing paper (section III-C; its clocks
+    start at the start view, Fig. 4 and 5): job time and sensor path from the first recorded frame to the
+    end; None without a frame. The job's ``sim_time_s`` and ``path_length_m`` also count the move from
+    home to the first view."""
     if session is None or session.first_frame_time is None:
-        return None
-    return round(end - session.first_frame_time, 6)
+        return None, None
+    return (round(end - session.first_frame_time, 6),
+            round(session.path_length_m - session.first_frame_path_m, 6))
 
 
 def _perception_summary(session: JobSession | None) -> dict[str, Any]:
@@ -265,6 +266,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             recorder.occupancy_map(session.perception.map)
         metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None
                    else dict.fromkeys(("chamfer_mm", "hausdorff_mm", "coverage_pct"), float("nan")))
+        scan_time, scan_path = _scan_span(session, clock.now())
         result: dict[str, Any] = {
             "planner": planner_name,
             "object": object_name,
@@ -273,11 +275,10 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "status": status,
             "termination": termination,
             "sim_time_s": round(clock.now(), 6),
-            "scan_time_s": _scan_time(session, clock.now()),
+            "scan_time_s": scan_time,
             "wall_time_s": round(time.monotonic() - wall_start, 3),
             "path_length_m": round(session.path_length_m, 6) if session else 0.0,
-            "scan_path_length_m": (round(session.path_length_m - session.first_frame_path_m, 6)
-                                   if session is not None and session.first_frame_time is not None else None),
+            "scan_path_length_m": scan_path,
             "n_captures": session.n_captures if session else 0,
             "n_capture_failures": session.n_capture_failures if session else 0,
             "n_unreachable_views": session.n_unreachable if session else 0,
