@@ -262,9 +262,8 @@ class JobSession:
         sensor twist v (sensor frame, [m/s, rad/s]) moves that joint towards the margin at a . v [rad/s]
         (first order, the damped least-squares part of the arm's differential IK)."""
         state = self._guard.state()
-        margin = self.config.safety.joint_position_margin_rad
-        to_hi = (self._model.q_max - margin) - state.q
-        to_lo = state.q - (self._model.q_min + margin)
+        q_lo, q_hi = self._guard.joint_bounds
+        to_hi, to_lo = q_hi - state.q, state.q - q_lo
         near_hi, near_lo = to_hi < activation_rad, to_lo < activation_rad
         near = near_hi | near_lo
         if not np.any(near):
@@ -294,15 +293,15 @@ class JobSession:
 
     def sensor_pose_reachable(self, T_base_sensor: Array) -> bool:
         """IK seeded from the current joints (from home where the arm reports none, as a replayed arm)
-        reaches the pose with every joint at least ``safety.joint_position_margin_rad`` inside its limits."""
+        reaches the pose with every joint within the guard's ``joint_bounds`` (limits less the margin)."""
         q_now = self._guard.state().q
         seed = q_now if np.all(np.isfinite(q_now)) else self._q_home
         try:
             q = self._model.ik_pose(T_base_sensor @ inv_T(self._T_flange_sensor), seed)
         except KinematicsError:
             return False
-        margin = self.config.safety.joint_position_margin_rad
-        return bool(np.all(q >= self._model.q_min + margin) and np.all(q <= self._model.q_max - margin))
+        q_lo, q_hi = self._guard.joint_bounds
+        return bool(np.all((q >= q_lo) & (q <= q_hi)))
 
     def _solve_ik(self, T_base_flange: Array, q_now: Array) -> Array | None:
         """Joints reaching ``T_base_flange``, seeded from the current joints, then from home.

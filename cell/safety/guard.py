@@ -150,6 +150,12 @@ class MotionGuard:
         return self._arm.state()
 
     @property
+    def joint_bounds(self) -> tuple[Array, Array]:
+        """The joint positions [rad] motion is kept within: each joint's limits less
+        ``safety.joint_position_margin_rad`` (lower, upper)."""
+        return self._q_lo, self._q_hi
+
+    @property
     def following(self) -> bool:
         """True while a trajectory started through the guard is under way (as of the last tick)."""
         return self._following
