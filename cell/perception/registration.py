@@ -391,17 +391,16 @@ class RegistrationTarget:
             log.warning("registration skipped: %d target points near the frame, need %d", near.size,
                         p.min_points)
             return _skipped(T_fk, "too few points")
-        normals = self._normals[near]
-        icp = point_to_plane_icp(src_base, self._points[near], normals, p.max_correspondence_m,
+        target, normals = self._points[near], self._normals[near]
+        icp = point_to_plane_icp(src_base, target, normals, p.max_correspondence_m,
                                  max_iterations=p.max_iterations, epsilon=p.epsilon,
                                  max_tangential_m=p.normal_radius_m)
         fitness, rmse = icp.fitness, icp.rmse_m
         T, eigval = icp.T, np.full(6, np.nan)
         if icp.correspondences.shape[0] >= 6:
             matched = transform_points(icp.T, src_base[icp.correspondences[:, 0]])
-            T, eigval = constrained_correction(icp.T, matched,
-                                               self._constraint_normals(near, icp.correspondences[:, 1]),
-                                               p.min_constraint)
+            wide = constraint_normals(target[icp.correspondences[:, 1]], target, p.constraint_normal_radius_m)
+            T, eigval = constrained_correction(icp.T, matched, wide, p.min_constraint)
         n_constrained = int(np.count_nonzero(eigval >= p.min_constraint)) if np.all(np.isfinite(eigval)) \
             else 6
         if n_constrained < 6:
@@ -434,13 +433,6 @@ class RegistrationTarget:
         return RegistrationResult(T_base_sensor=T_used, T_correction=T, accepted=True, fitness=fitness,
                                   rmse_m=rmse, correction_m=corr_m, correction_deg=corr_deg, reason="ok",
                                   n_constrained=n_constrained, min_eigenvalue=float(eigval[0]))
-
-
-    def _constraint_normals(self, near: NDArray[np.int64], matched: NDArray[np.int32]) -> Array:
-        """Normals of the degeneracy test at the matched target points ``self._points[near][matched]``,
-        fitted to the target points ``near``."""
-        points = self._points[near]
-        return constraint_normals(points[matched], points, self.params.constraint_normal_radius_m)
 
 
 def register_frame(points_sensor: Array, T_base_sensor_fk: Array, target_base: Array,
