@@ -229,6 +229,11 @@ class ServoScanPlanner(Planner):
         raise PlanningError(f"no object segmented from the start views within "
                             f"{self.vs.first_object_timeout_s:g} s each (unreachable views are in the log)")
 
+    def _features(self, T_base_cam: Array) -> Array:
+        """s of eq. 2: the filtered object centroid in the camera frame [m]."""
+        assert self.centroid is not None
+        return T_base_cam[:3, :3].T @ (self.centroid - T_base_cam[:3, 3])
+
     def _blocked_directions(self, session: ScanSession, T_base_cam: Array, s: Array) -> Array:
         """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits
         and of refused motions when B g >= 0: each joint within ``joint_activation_rad`` of its margin
@@ -271,11 +276,10 @@ class ServoScanPlanner(Planner):
         end = session.now() + self.vs.backoff_s
         while session.now() < end - 1e-9:
             self._perceive(session)
-            assert self.centroid is not None
             T = session.sensor_pose()
             g = np.zeros(6)
             g[:2] = -(T[:3, :3].T @ unit)[:2]
-            out = self.servo.step(T[:3, :3].T @ (self.centroid - T[:3, 3]), g)
+            out = self.servo.step(self._features(T), g)
             session.command_sensor_twist(out.v)
             session.wait(period)
 
@@ -285,9 +289,9 @@ class ServoScanPlanner(Planner):
         zero = np.zeros(6)
         while True:
             self._perceive(session)
-            assert self.centroid is not None and self.objective is not None
+            assert self.objective is not None
             T = session.sensor_pose()
-            s = T[:3, :3].T @ (self.centroid - T[:3, 3])
+            s = self._features(T)
             e = self.servo.error(s)
             if self.servo.secondary_active or self.servo.primary_converged(e):
                 sec = self._within_limits(session, T, s, self.secondary(session, T, self.objective))
