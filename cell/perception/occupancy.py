@@ -58,6 +58,11 @@ def logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
+def from_logodds(logodds: NDArray[np.floating]) -> Array:
+    """Probabilities 1 / (1 + exp(-l)) of log-odds ``logodds``, the inverse of ``logit``."""
+    return 1.0 / (1.0 + np.exp(-np.asarray(logodds, dtype=np.float64)))
+
+
 class OccupancyParams(StrictModel):
     """Sensor model and grid of the occupancy map (OctoMap's defaults).
 
@@ -271,8 +276,7 @@ class OccupancyMap:
 
     def probability(self, points_base: Array) -> Array:
         """Occupancy probability at points (M, 3) [m]; 0.5 for unknown voxels."""
-        lo = self.logodds(points_base).astype(np.float64)
-        return 1.0 / (1.0 + np.exp(-lo))
+        return from_logodds(self.logodds(points_base))
 
     def entropy(self, points_base: Array) -> Array:
         """Binary entropy of eq. 8 [nats] of the occupancy at points (M, 3) [m]; ln 2 for unknown."""
@@ -379,6 +383,6 @@ class OccupancyMap:
         if self._n_blocks:
             idx = self._slots(keys, allocate=False)
             lo = self._pool[idx[idx >= 0]]
-            known = lo[~np.isnan(lo)].astype(np.float64)
-        h_known = binary_entropy(1.0 / (1.0 + np.exp(-known)))
+            known = lo[~np.isnan(lo)]
+        h_known = binary_entropy(from_logodds(known))
         return float((h_known.sum() + (keys.shape[0] - known.size) * math.log(2.0)) / keys.shape[0])
