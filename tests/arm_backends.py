@@ -107,7 +107,9 @@ class Backend:
         waited = 0.0
         while not predicate():
             if waited > timeout_s:
-                raise AssertionError(f"{self.name}: condition not reached within {timeout_s} s")
+                st = self.arm.state()
+                raise AssertionError(f"{self.name}: condition not reached within {timeout_s} s (arm "
+                                     f"{st.mode.name}, faults {st.faults}, joints {np.round(st.q, 4)})")
             self.advance(0.02)
             waited += 0.02
 

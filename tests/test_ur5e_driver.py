@@ -129,6 +129,25 @@ def test_a_trajectory_is_streamed_with_servoj(peer: ControllerPeer, ur: Backend)
     assert peer.records("servoStop")
 
 
+def test_a_trajectory_end_not_reached_in_time_is_a_fault(peer: ControllerPeer) -> None:
+    """The servo's lag decays exponentially, so no arm gets within 1e-9 rad of the end in 50 ms: the
+    arm is stopped and reports the fault, and the operator's recover clears it."""
+    from cell.control.trajectory import joint_trajectory
+
+    with ur5e_backend(peer, settle_tolerance_rad=1e-9, settle_timeout_s=0.05) as ur:
+        q0 = ur.arm.state().q
+        traj = joint_trajectory(get_robot_model("ur5e"), q0, q0 + np.array([0.0, 0, 0, 0, 0, 0.1]),
+                                dt=0.008, velocity_scale=0.3, acceleration_scale=0.3, jerk_scale=0.3)
+        ur.arm.execute_trajectory(traj, ur.token)
+        ur.wait_until(lambda: bool(ur.arm.state().faults))
+        assert ur.arm.state().faults == ("trajectory end not reached",)
+        assert ur.arm.state().mode is ArmMode.FAULT and peer.records("servoStop")
+        with pytest.raises(RobotFault, match="trajectory end not reached"):
+            ur.arm.command_twist(np.zeros(6), ur.token)
+        ur.arm.recover()
+        assert ur.arm.state().faults == () and ur.arm.state().mode is ArmMode.IDLE
+
+
 def test_refuses_a_controller_in_local_control() -> None:
     peer = ControllerPeer(remote_control=False)
     try:

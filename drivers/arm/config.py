@@ -54,7 +54,8 @@ class UR5eArmConfig(StrictModel):
       ``stop_deceleration_mps2`` the speedStop / stopL deceleration.
     - ``rtde_frequency_hz``: RTDE data rate (the controller runs at 500 Hz); ``servo_rate_hz``: the rate
       at which trajectory samples are streamed with servoJ; ``servo_lookahead_s`` and ``servo_gain`` are
-      servoJ's smoothing parameters (UR ranges 0.03-0.2 s and 100-2000).
+      servoJ's smoothing parameters (UR ranges 0.03-0.2 s and 100-2000); a trajectory's last sample is
+      held until every joint is within ``settle_tolerance_rad`` of it, for at most ``settle_timeout_s``.
     - ``watchdog_min_hz``: the RTDE watchdog armed while the arm moves: the control script stops the arm
       when no command or kick arrives for 1 / ``watchdog_min_hz`` seconds.
     - ``busy_output`` / ``done_output``: standard digital outputs driven for a packing line, and
@@ -77,6 +78,8 @@ class UR5eArmConfig(StrictModel):
     servo_rate_hz: float = Field(default=125.0, gt=0.0, le=500.0)
     servo_lookahead_s: float = Field(default=0.1, ge=0.03, le=0.2)
     servo_gain: float = Field(default=300.0, ge=100.0, le=2000.0)
+    settle_tolerance_rad: float = Field(default=1e-3, gt=0.0, le=0.05)
+    settle_timeout_s: float = Field(default=2.0, gt=0.0, le=10.0)
     watchdog_min_hz: float = Field(gt=0.0, le=500.0)
     busy_output: DigitalIndex | None = None
     done_output: DigitalIndex | None = None

@@ -23,7 +23,11 @@ Motion:
   ``benchmarks/ur_rtde_tick.py`` measures the tick.
 - trajectories: a thread streams the joint samples with ``servoJ`` at ``servo_rate_hz``, interpolated at
   wall-clock time. The trajectory is in joint space and the guard checked those joints, so they go out
-  as joints: ``servoL`` would let the controller's IK pick a configuration nobody checked.
+  as joints: ``servoL`` would let the controller's IK pick a configuration nobody checked. The last
+  sample is held until the joints are within ``settle_tolerance_rad`` of it, and only then comes
+  ``servoStop``: servoJ's lookahead leaves the arm behind its setpoint, and a stop in the same controller
+  cycle as the last servoJ would discard that servoJ. Joints not there after ``settle_timeout_s`` are a
+  fault ("trajectory end not reached").
 - ``stop``: ``speedStop`` after velocity, ``servoStop`` after a trajectory, ``stopL`` otherwise, all with
   ``stop_deceleration_mps2``; then the watchdog is disarmed (frequency 0).
 
@@ -52,6 +56,8 @@ import threading
 import time
 from collections.abc import Callable
 from typing import Any, Literal
+
+import numpy as np
 
 from drivers.arm.base import ArmMode, ArmState, JointTrajectory
 from drivers.arm.config import UR5eArmConfig
@@ -390,18 +396,28 @@ class UR5eArm(HardwareArm):
             self._traj_thread.start()
 
     def _stream(self, trajectory: JointTrajectory) -> None:
-        """Send the trajectory's joints with servoJ at ``servo_rate_hz`` until it ends or is cancelled."""
+        """Send the trajectory's joints with servoJ at ``servo_rate_hz`` until it ends or is cancelled,
+        holding the last sample until the joints settle on it (module docstring)."""
         cfg = self._config
         period = 1.0 / cfg.servo_rate_hz
         t0 = time.monotonic()
         tick = 0
+        unsettled: RobotFault | None = None
         try:
             while not self._traj_cancel.is_set():
                 t = time.monotonic() - t0
                 q = interpolate(trajectory, min(t, trajectory.duration)).tolist()
                 self._call("servoJ", q, 0.0, 0.0, period, cfg.servo_lookahead_s, cfg.servo_gain)
                 if t >= trajectory.duration:
-                    break
+                    error = self._end_error(trajectory.q[-1])
+                    if error <= cfg.settle_tolerance_rad:
+                        break
+                    if t - trajectory.duration > cfg.settle_timeout_s:
+                        unsettled = RobotFault(
+                            f"trajectory end not reached: a joint is {error:.4f} rad from it "
+                            f"{t - trajectory.duration:.2f} s after the end", device=self._device,
+                            fault="trajectory end not reached")
+                        break
                 tick += 1
                 time.sleep(max(0.0, t0 + tick * period - time.monotonic()))
             with self._lock:
@@ -409,8 +425,15 @@ class UR5eArm(HardwareArm):
                     self._call("servoStop", cfg.stop_deceleration_mps2)
                     self._disarm_watchdog()
                     self._mode = ArmMode.IDLE
+            self._traj_error = unsettled
         except RobotFault as exc:
             self._traj_error = exc
+
+    def _end_error(self, q_end: Array) -> float:
+        """The largest joint distance [rad] from ``q_end``, as read just before the last command."""
+        assert self._last_snapshot is not None  # _call has just read one
+        q = checked_vector(self._last_snapshot[1]["q"], 6, "actual_q", self._device)
+        return float(np.max(np.abs(q - q_end)))
 
     def _cancel_trajectory(self) -> None:
         thread = self._traj_thread

@@ -20,10 +20,11 @@ It listens on one address (``127.0.0.N``) on the controller's fixed ports:
 
 Motion: a kinematic UR5e (the project's nominal model) integrated every tick over the wall-clock time
 since the previous one (the cycle is 2 ms; a late one integrates what passed, up to ``MAX_STEP_S``):
-speedL holds a TCP twist reached with the commanded acceleration, servoJ/servoL move towards the target
-at joint speed limits, stops decelerate. A protective or emergency stop halts the arm at once and ends the
-running program, like the controller; the RTDE watchdog set by the script (``set_watchdog``) ends the
-program when the command register is not refreshed at the set frequency.
+speedL holds a TCP twist reached with the commanded acceleration, servoJ/servoL follow the target with
+their lookahead time as a first-order lag (within joint speed limits), so the arm trails a streamed
+trajectory as the controller's servo does, stops decelerate. A protective or emergency stop halts the
+arm at once and ends the running program, like the controller; the RTDE watchdog set by the script
+(``set_watchdog``) ends the program when the command register is not refreshed at the set frequency.
 """
 
 from __future__ import annotations
@@ -118,6 +119,7 @@ class Controller:
         self.accel = 0.5
         self.q_target: np.ndarray | None = None
         self.motion = "idle"  # idle | speedl | speedj | servo | stopping
+        self.servo_lookahead = 0.1  # the servo's time constant [s]
         self.T_flange_tcp = np.eye(4)
         self.payload_kg = 0.0
         self.payload_cog = [0.0, 0.0, 0.0]
@@ -228,10 +230,12 @@ class Controller:
             self.motion = "speedj"
         elif cmd == CMD_SERVOJ:
             self.q_target = np.array(d[:6])
+            self.servo_lookahead = d[9]
             self.motion = "servo"
         elif cmd == CMD_SERVOL:
             T_flange = pose_to_T(d[:6]) @ inv_T(self.T_flange_tcp)
             self.q_target = self.model.ik_pose(T_flange, self.q)
+            self.servo_lookahead = d[9]
             self.motion = "servo"
         elif cmd in (CMD_SPEED_STOP, CMD_SERVO_STOP, CMD_STOPL, CMD_STOPJ):
             self.twist_target = np.zeros(6)
@@ -295,7 +299,7 @@ class Controller:
             self.qd = m.ik_velocity(self.q, v_flange, dt)
         elif self.motion == "servo" and self.q_target is not None:
             err = self.q_target - self.q
-            self.qd = np.clip(err / dt, -m.qd_max, m.qd_max)
+            self.qd = np.clip(err / max(self.servo_lookahead, dt), -m.qd_max, m.qd_max)
         elif self.motion == "stopping":
             self.q_target = None
             self.qd = np.zeros(6)
