@@ -125,7 +125,8 @@ class VSGlobalConfig(StrictModel):
     sampled) within ``arrival_m`` [m] (not given in the paper: 5 cm, where g has halved; the linear decay
     makes the approach exponential, about 5 s per halving at lambda_g = 0.33, and H_ROI would settle
     during a 1 cm approach before the goal's view is reached), or given up once the camera got less than
-    ``stall_progress_m`` [m] closer to it within the last ``stall_time_s`` [s] (not in the paper: a goal
+    ``stall_progress_m`` [m] closer to it along the sphere within the last ``stall_time_s`` [s] (not in
+    the paper: a goal
     the barrier projection cannot reach would otherwise hold the scan forever; 1 cm in 3 s, where the
     approach covers 6 cm in 3 s at full speed and 3 cm at the arrival distance). Candidates are drawn
     from the job's planner generator (``ScanSession.rng``), so a scan is repeatable for a given job seed.

@@ -18,7 +18,11 @@ centre. a = min(1, d / ``slow_radius_m``), d the distance between the camera and
 far away, decaying linearly to 0 within 10 cm. Like VS-Local's, the direction is projected into the set
 the barrier planes allow. A goal counts as reached within ``arrival_m``; one the camera stops getting
 closer to (less than ``stall_progress_m`` nearer than ``stall_time_s`` ago: held by a barrier plane, a
-joint limit or a refused direction) is given up; either way a new goal is sampled. The paper gives no
+joint limit or a refused direction) is given up; either way a new goal is sampled. Progress is measured
+along the sphere (the arc between the camera and the goal about the centroid the goal was sampled
+around), the way g moves the camera: the straight-line distance to a goal on the far side shrinks at
+only cos(theta / 2) of the camera's speed, theta the angle between them (0.3 for a goal 145 deg away),
+and far goals were given up after 3 s at full speed. The paper gives no
 rule for a goal that cannot be reached; a fixed time limit instead (20 s) gave up goals on the far side
 of the object 8 cm before arrival, the exploration speed of eq. 1 being about 2 cm/s.
 
@@ -58,6 +62,11 @@ def sphere_views(centre: Array, radius: float, directions: Array) -> Array:
     return T
 
 
+def angle_between(a: Array, b: Array) -> float:
+    """The angle [rad] between vectors ``a`` and ``b`` (3,), accurate near 0 and pi."""
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b)))
+
+
 class GoalSeeker:
     """Eq. 10-11: samples goals and steers towards the current one (module docstring)."""
 
@@ -67,6 +76,7 @@ class GoalSeeker:
         self.activation_m = config.planners.vs.barrier_activation_m
         self.goal: Array | None = None
         self.goal_value = float("nan")
+        self._centre = np.zeros(3)  # the centroid the goal was sampled around [m], base frame
         self._goal_since = 0.0
         # (job time [s], distance to the goal [m]) over the last stall_time_s, for the progress rule
         self._distances: deque[tuple[float, float]] = deque()
@@ -93,6 +103,7 @@ class GoalSeeker:
                 session.log(f"none of the {min(checks, order.size)} best goal candidates is reachable from "
                             "the present joints; servoing towards the best")
         self.goal, self.goal_value = views[best], float(scores[best])
+        self._centre = np.array(centroid, dtype=np.float64)
         self._goal_since = session.now()
         self._distances.clear()
         self.n_goals += 1
@@ -107,18 +118,18 @@ class GoalSeeker:
             return True
         p = self.params
         now = session.now()
-        d = float(np.linalg.norm(self.goal[:3, 3] - T_base_cam[:3, 3]))
         elapsed = now - self._goal_since
-        if d < p.arrival_m:
+        if float(np.linalg.norm(self.goal[:3, 3] - T_base_cam[:3, 3])) < p.arrival_m:
             session.log(f"goal {self.n_goals} reached after {elapsed:.1f} s")
             return True
+        d = self.radius_m * angle_between(T_base_cam[:3, 3] - self._centre, self.goal[:3, 3] - self._centre)
         self._distances.append((now, d))
         # keep one sample at or before the start of the window: the distance stall_time_s ago
         while len(self._distances) > 1 and self._distances[1][0] <= now - p.stall_time_s:
             self._distances.popleft()
         t_then, d_then = self._distances[0]
         if t_then <= now - p.stall_time_s and d_then - d < p.stall_progress_m:
-            session.log(f"goal {self.n_goals} given up after {elapsed:.1f} s, {d:.3f} m away: "
+            session.log(f"goal {self.n_goals} given up after {elapsed:.1f} s, {d:.3f} m away on the sphere: "
                         f"{max(d_then - d, 0.0) * 1e3:.1f} mm closer in the last {p.stall_time_s:g} s")
             return True
         return False
