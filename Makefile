@@ -26,12 +26,14 @@ test: $(STAMP)
 	@$(VENV)/bin/pytest -q; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$rc
 
+# mypy checks the packages listed in pyproject.toml's [tool.mypy] files (cell, drivers, benchmarks).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check cell drivers tests benchmarks
+	$(VENV)/bin/mypy
 
 bench: $(STAMP)
 	$(PY) benchmarks/sim_render.py
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache build cell/perception/_kernels.c \
+	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache .mypy_cache build cell/perception/_kernels.c \
 		cell/planning/vs/_objective.c cell/planning/lrnbv/_raygains.c cell/perception/*.so cell/planning/*/*.so

@@ -18,6 +18,7 @@ import numpy as np
 
 from cell.config import load_config
 from cell.safety.guard import MotionGuard
+from drivers.arm.config import SimArmConfig
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
 from drivers.robots import get_robot_model
@@ -31,6 +32,7 @@ def median_tick_ms(model_name: str) -> float:
     cfg = load_config(CELLS[model_name])
     model = get_robot_model(model_name)
     clock = SimClock()
+    assert isinstance(cfg.arm, SimArmConfig)  # the benchmark's cell files simulate the arm
     arm = SimArm(cfg.arm, model, clock, np.random.default_rng(0))
     arm.connect()
     guard = MotionGuard.from_config(arm, model, cfg, clock)

@@ -29,7 +29,8 @@ from scipy.stats import mannwhitneyu
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.grid_report import print_result
+from grid_report import print_result
+
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, object_pose_in_base, run_scan
 from cell.packing.box import box_from_mesh

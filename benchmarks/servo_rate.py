@@ -40,6 +40,7 @@ from cell.planning.vs.goals import sphere_views
 from cell.planning.vs.objective import EntropyObjective, batch_threads, slab_interval
 from cell.planning.vs.servo_scan import objective_rays, translated
 from cell.safety.guard import MotionGuard
+from drivers.arm.config import SimArmConfig
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
 from drivers.robots import get_robot_model
@@ -122,6 +123,7 @@ def main() -> None:
     # One servo iteration as the loop runs it, on a simulated Panda behind the guard.
     model = get_robot_model(cfg.arm.model)
     clock = SimClock()
+    assert isinstance(cfg.arm, SimArmConfig)  # the benchmark's cell files simulate the arm
     arm = SimArm(cfg.arm, model, clock, np.random.default_rng(0))
     arm.connect()
     guard = MotionGuard.from_config(arm, model, cfg, clock)
@@ -162,7 +164,7 @@ def main() -> None:
     for origin, pts in frames:
         tree.insertPointCloud(pts, origin, -1.0)
     res = pipeline.map.resolution_m
-    octo_values = []
+    octo_values: list[float] = []
     octomap_ms, octomap_wall_ms = median_ms(lambda: octo_values.append(
         octomap_f(tree, views[len(octo_values)], rays, roi.aabb_min, roi.aabb_max, crop, res)), 5)
     ours = f(views[:5])

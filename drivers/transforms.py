@@ -7,6 +7,8 @@ Quaternions are (x, y, z, w), scalar last.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
@@ -14,15 +16,15 @@ from scipy.spatial.transform import Rotation
 Array = NDArray[np.float64]
 
 
-def make_T(R: Array, p: Array) -> Array:
-    """Homogeneous transform from a 3x3 rotation and a translation [m]."""
+def make_T(R: NDArray[np.floating], p: NDArray[np.floating]) -> Array:
+    """Homogeneous transform (float64) from a 3x3 rotation and a translation [m] of any float dtype."""
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = p
     return T
 
 
-def T_from_xyz_rpy(xyz: Array | list[float], rpy: Array | list[float]) -> Array:
+def T_from_xyz_rpy(xyz: Array | Sequence[float], rpy: Array | Sequence[float]) -> Array:
     """Transform from a translation [m] and roll, pitch, yaw [rad] (extrinsic x-y-z)."""
     R = Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_matrix()
     return make_T(R, np.asarray(xyz, dtype=float))

@@ -169,6 +169,16 @@ def test_rgbd_seq_timestamp_connection_and_model(cube_scene: SimScene) -> None:
     assert (m.range_min_m, m.range_max_m) == (0.05, 3.0)
 
 
+def test_sim_sensors_errors_name_their_device(cube_scene: SimScene) -> None:
+    # the job session names sensor.device in its own errors (a stale frame in a dry run)
+    rng = np.random.default_rng(0)
+    for sensor in (SimRGBD(rgbd_config(), cube_scene, lambda: np.eye(4), SimClock(), rng),
+                   SimToF(tof_config(), cube_scene, lambda: np.eye(4), SimClock(), rng)):
+        with pytest.raises(DriverError) as exc:
+            sensor.capture()
+        assert exc.value.device == sensor.device
+
+
 def test_rgbd_bad_pose_raises_driver_error(cube_scene: SimScene) -> None:
     sensor = SimRGBD(rgbd_config(), cube_scene, lambda: np.eye(3), SimClock(), np.random.default_rng(0))
     sensor.connect()

@@ -218,5 +218,5 @@ def replay(
         elif recorded.shape[0] and cloud.shape[0]:
             d, _ = cKDTree(recorded).query(cloud)
             console.print(f"differs from cloud.ply ({recorded.shape[0]} points): nearest recorded point "
-                          f"within {d.max() * 1e3:.3f} mm (max), {np.median(d) * 1e3:.3f} mm (median)",
+                          f"within {np.max(d) * 1e3:.3f} mm (max), {np.median(d) * 1e3:.3f} mm (median)",
                           markup=False)

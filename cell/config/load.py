@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import yaml
 from pydantic import ValidationError
+from pydantic_core import ErrorDetails
 
 from cell.config.models import CellConfig
 from drivers.errors import ConfigError
@@ -30,7 +31,7 @@ def _field_path(loc: tuple[Any, ...]) -> str:
     return "".join(parts)
 
 
-def _allowed(error: dict[str, Any]) -> str | None:
+def _allowed(error: ErrorDetails) -> str | None:
     ctx = error.get("ctx") or {}
     for key in ("expected", "expected_tags"):
         if key in ctx:

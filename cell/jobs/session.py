@@ -255,7 +255,8 @@ class JobSession:
         limits allow now, in the sensor frame."""
         to_flange = self._sensor_twist_map(self._guard.state().T_base_flange)
         sent = self._guard.command_twist(to_flange @ np.asarray(v_sensor, dtype=float))
-        return np.linalg.solve(to_flange, sent)
+        # numpy's stub types solve() of float64 operands as NDArray[floating]; it returns float64
+        return np.linalg.solve(to_flange, sent)  # type: ignore[return-value]
 
     def joint_limit_twists(self, activation_rad: float) -> Array:
         """Rows a (m, 6), one per joint closer than ``activation_rad`` [rad] to its position margin: a

@@ -117,7 +117,7 @@ class OccupancyMap:
         self._l_max = np.float32(logit(params.clamp_max))
         self._l_occ = np.float32(logit(params.occupied_threshold))
         # Block index: dense int32 over blocks [_origin, _origin + shape); -1 = no block.
-        self._index = np.full((0, 0, 0), -1, dtype=np.int32)
+        self._index: NDArray[np.int32] = np.full((0, 0, 0), -1, dtype=np.int32)
         self._origin = np.zeros(3, dtype=np.int64)
         # Pool of blocks: log-odds (n_blocks * 4096,), NaN = unknown; block coordinates per slot; per voxel
         # the number of the last scan that updated it (one update per voxel per scan).
@@ -379,7 +379,7 @@ class OccupancyMap:
         (``voxels_in_box``); unknown voxels count ln 2. Only the known ones are looked at: the box's keys
         go straight to the pool, and unknown voxels (most of an early ROI) add ln 2 each."""
         keys = self.voxel_keys_in_box(min_m, max_m)
-        known = np.zeros(0)
+        known: NDArray[np.floating] = np.zeros(0)
         if self._n_blocks:
             idx = self._slots(keys, allocate=False)
             lo = self._pool[idx[idx >= 0]]

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.perception.occupancy import OccupancyMap, OccupancyParams
+from cell.perception.occupancy import OccupancyMap, OccupancyParams, logit
 
 TREE_DEPTH = 16
 KEY_OFFSET = 1 << (TREE_DEPTH - 1)  # 32768
@@ -176,7 +176,5 @@ def read_bt(path: str | Path, params: OccupancyParams | None = None) -> Occupanc
         states_all.append(st)
     keys = np.concatenate(keys_all) - KEY_OFFSET
     states = np.concatenate(states_all)
-    lo_occ = np.log(params.clamp_max / (1.0 - params.clamp_max))
-    lo_free = np.log(params.clamp_min / (1.0 - params.clamp_min))
-    occ_map.set_logodds(keys, np.where(states == _OCC, lo_occ, lo_free))
+    occ_map.set_logodds(keys, np.where(states == _OCC, logit(params.clamp_max), logit(params.clamp_min)))
     return occ_map

@@ -54,9 +54,10 @@ def workspace_planes(min_m: Sequence[float], max_m: Sequence[float]) -> list[Bar
     return planes
 
 
-def approach_speed(distance_m: Array, *, acc: float, jerk: float, latency_s: float,
+def approach_speed(distance_m: Array, *, acc: float | Array, jerk: float | Array, latency_s: float,
                    time_constant_s: float) -> Array:
-    """Fastest allowed approach speed [m/s] towards a plane ``distance_m`` away (0 at or beyond it).
+    """Fastest allowed approach speed [m/s] towards a plane ``distance_m`` away (0 at or beyond it);
+    ``acc`` / ``jerk`` are scalars or per-element arrays that broadcast against ``distance_m``.
 
     Two bounds, the smaller wins: an exponential approach ``d / time_constant_s`` (a barrier function that
     never reaches the plane in continuous time), and the stopping bound: a motion that keeps its speed

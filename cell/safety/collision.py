@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import fcl
 import numpy as np
@@ -69,7 +70,7 @@ def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float]:
         return (fcl.Cylinder(body.radius_m, body.length_m),
                 float(np.hypot(body.radius_m, body.length_m / 2.0)))
     assert isinstance(body, MeshBody)
-    mesh = o3d.io.read_triangle_mesh(body.path)
+    mesh = o3d.io.read_triangle_mesh(Path(body.path))
     vertices = np.asarray(mesh.vertices, dtype=float)
     triangles = np.asarray(mesh.triangles, dtype=np.int32)
     if triangles.shape[0] == 0:
@@ -149,7 +150,8 @@ class CollisionWorld:
     def _static(name: str, geom: fcl.CollisionGeometry, T: Array, radius: float) -> _Static:
         return _Static(name, fcl.CollisionObject(geom, _fcl_transform(T)), T[:3, 3].copy(), radius)
 
-    def set_roi(self, aabb_min: Sequence[float] | None, aabb_max: Sequence[float] | None) -> None:
+    def set_roi(self, aabb_min: Array | Sequence[float] | None,
+                aabb_max: Array | Sequence[float] | None) -> None:
         """Replace the object's ROI box (base frame [m]); it is inflated by the configured margin. None
         removes it."""
         if aabb_min is None or aabb_max is None:
@@ -184,8 +186,8 @@ class CollisionWorld:
             for i in np.nonzero(near)[0]:
                 if self._touch(objs[i], st.obj):
                     return Collision(self.moving_names[i], st.name)
-        i, j = self._self_pairs[:, 0], self._self_pairs[:, 1]
-        near = np.linalg.norm(centers[i] - centers[j], axis=1) <= radii[i] + radii[j]
+        ia, ib = self._self_pairs[:, 0], self._self_pairs[:, 1]
+        near = np.linalg.norm(centers[ia] - centers[ib], axis=1) <= radii[ia] + radii[ib]
         for a, b in self._self_pairs[near]:
             if self._touch(objs[a], objs[b]):
                 return Collision(self.moving_names[a], self.moving_names[b])

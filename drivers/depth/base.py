@@ -94,6 +94,11 @@ class DepthSensor(ABC):
     @abstractmethod
     def model(self) -> SensorModel: ...
 
+    @property
+    def device(self) -> str:
+        """The sensor as its ``DriverError``s name it; backends with an address (port, serial) add it."""
+        return self.name
+
     @abstractmethod
     def capture(self) -> DepthFrame:
         """Return the newest frame; raises ``DriverError`` when the device is silent or gone."""

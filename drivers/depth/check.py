@@ -77,7 +77,8 @@ class SensorCheck:
         device_rate = None
         if len(self._device_us) > 1:
             # device stamps wrap at 2**32 us; consecutive differences modulo 2**32 unwrap them
-            steps = np.diff(np.asarray(self._device_us, dtype=np.int64)) % U32
+            stamps = np.asarray(self._device_us, dtype=np.int64)
+            steps = np.diff(stamps) % U32
             total_s = float(steps.sum()) * 1e-6
             device_rate = (len(self._device_us) - 1) / total_s if total_s > 0 else float("nan")
         noise = None

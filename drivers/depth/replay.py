@@ -188,6 +188,10 @@ class ReplaySensor(LocalLink, DepthSensor):
         return self._model
 
     @property
+    def device(self) -> str:
+        return self.recording.device
+
+    @property
     def remaining(self) -> int:
         """Frames not yet played."""
         return len(self.recording.frames) - self._next

@@ -111,7 +111,7 @@ class SimRGBD(SimDepthSensor):
         in_range = (z >= c.range_min_m) & (z <= c.range_max_m)
         idx = idx[in_range]
         zf = z[in_range].astype(np.float32)
-        depth = np.zeros(n_pix, dtype=np.float32)
+        depth: NDArray[np.float32] = np.zeros(n_pix, dtype=np.float32)
         depth[idx] = zf
         depth = depth.reshape(c.height, c.width)
         # The same back-projection as replay and reprocessing, so that a recorded depth image gives back

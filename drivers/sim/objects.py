@@ -104,7 +104,7 @@ def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
     if path.suffix.lower() not in _MESH_SUFFIXES:
         raise JobError(f"object file {path} is not a .ply/.obj/.stl mesh ({_names_hint()})")
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh = o3d.io.read_triangle_mesh(str(path))
+        mesh = o3d.io.read_triangle_mesh(path)
     vertices = np.asarray(mesh.vertices, dtype=np.float64).copy()
     triangles = np.asarray(mesh.triangles, dtype=np.int32).copy()
     if len(vertices) == 0 or len(triangles) == 0:

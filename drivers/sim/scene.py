@@ -76,10 +76,13 @@ class SimScene:
 
         table_v, table_t = _box(self.table_center_xy, self.table_size_xy, self.table_z, table_thickness_m)
         self._scene = o3d.t.geometry.RaycastingScene()
+        # Open3D's stub of Tensor(np_array, dtype, device) drops the defaults (the array's dtype, CPU:0).
         table_id = self._scene.add_triangles(
-            o3d.core.Tensor(table_v.astype(np.float32)), o3d.core.Tensor(table_t.astype(np.uint32)))
+            o3d.core.Tensor(table_v.astype(np.float32)),  # type: ignore[call-overload]
+            o3d.core.Tensor(table_t.astype(np.uint32)))  # type: ignore[call-overload]
         object_id = self._scene.add_triangles(
-            o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
+            o3d.core.Tensor(verts.astype(np.float32)),  # type: ignore[call-overload]
+            o3d.core.Tensor(tris.astype(np.uint32)))  # type: ignore[call-overload]
         # geometry id -> what code; any other id (INVALID_ID) maps to HIT_NONE
         self._id_table = int(table_id)
         self._id_object = int(object_id)

@@ -32,7 +32,7 @@ class HEUPlanner(Planner):
         self.reconstruction = ReconstructionHistory()
 
     def run(self, session: ScanSession) -> str:
-        s: MappingSession = session  # type: ignore[assignment]
+        s: MappingSession = session
         views = heu_views(self.config)
         skipped = 0
         for T in views:

@@ -346,7 +346,7 @@ class RRTViewPlanner(Planner):
         return obj, captured, refused
 
     def run(self, session: ScanSession) -> str:
-        s: MappingSession = session  # type: ignore[assignment]
+        s: MappingSession = session
         p = self.params
         self.prepare(session.sensor_model(), session.rng)
         obj = self._initial_object(s)

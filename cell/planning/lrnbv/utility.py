@@ -105,10 +105,11 @@ class UtilityField:
         self.W = np.ascontiguousarray((entropy * resolution**3).reshape(self.shape), dtype=np.float64)
         obj = np.asarray(object_points, dtype=float).reshape(-1, 3)
         if obj.shape[0]:
-            rho = cKDTree(obj).query_ball_point(centres, density_radius_m, return_length=True)
+            counts = cKDTree(obj).query_ball_point(centres, density_radius_m, return_length=True)
+            rho = np.asarray(counts, dtype=float)
         else:
             rho = np.zeros(centres.shape[0])
-        self.density = np.ascontiguousarray((1.0 / (1.0 + np.asarray(rho, dtype=float))).reshape(self.shape))
+        self.density = np.ascontiguousarray((1.0 / (1.0 + rho)).reshape(self.shape))
         self.occluder = np.zeros(self.shape, dtype=np.uint8)
         if obj.shape[0]:
             k = np.floor((obj - self.lo) / resolution).astype(np.int64)

@@ -42,12 +42,12 @@ import numpy as np
 
 from cell.config.models import CellConfig
 from cell.planning.base import Array, ScanSession
-from cell.planning.vs.objective import EntropyObjective
+from cell.planning.vs.objective import EntropyObjective, PoseBatch
 from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner
 from drivers.errors import PlanningError
 
 
-def sphere_views(centre: Array, radius: float, directions: Array) -> Array:
+def sphere_views(centre: Array, radius: float, directions: Array) -> PoseBatch:
     """Camera poses (n, 4, 4) at ``centre + radius * directions`` (unit (n, 3)) looking at ``centre``,
     with ``look_at``'s convention (x = z x up, y = z x x, up = +z of the base). Directions along +-z
     have no defined roll; callers draw them with probability zero."""

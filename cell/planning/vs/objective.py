@@ -34,7 +34,7 @@ so results do not depend on the thread count.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
+from typing import Protocol, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,6 +45,10 @@ from cell.planning.vs import _objective as _k
 from drivers.errors import PlanningError
 
 Array = NDArray[np.float64]
+Pose = np.ndarray[tuple[int, int], np.dtype[np.float64]]
+"""One camera pose T_base_cam (4, 4); an ``Array`` of unknown shape passed to an objective reads as one."""
+PoseBatch = np.ndarray[tuple[int, int, int], np.dtype[np.float64]]
+"""A batch of camera poses (B, 4, 4), typed so that an objective's result types as an array (B,)."""
 
 # Batches from this many poses on are split between threads; below, thread start-up outweighs the gain.
 PARALLEL_MIN_POSES = 64
@@ -61,7 +65,10 @@ class NBVObjective(Protocol):
     batch (B, 4, 4) in the base frame; a float for one pose, an array (B,) for a batch. The servo law
     only ever calls this, so it is agnostic to the objective (paper section II-C)."""
 
-    def __call__(self, T_base_cam: Array) -> float | Array: ...
+    @overload
+    def __call__(self, T_base_cam: Pose) -> float: ...
+    @overload
+    def __call__(self, T_base_cam: PoseBatch) -> Array: ...
 
 
 def ray_grid(rays_per_side: int, fov_deg: float) -> Array:
@@ -127,6 +134,11 @@ class EntropyObjective:
     def n_rays(self) -> int:
         """K of eq. 9."""
         return int(self.directions_cam.shape[0])
+
+    @overload
+    def __call__(self, T_base_cam: Pose) -> float: ...
+    @overload
+    def __call__(self, T_base_cam: PoseBatch) -> Array: ...
 
     def __call__(self, T_base_cam: Array) -> float | Array:
         """f(r) of eq. 9 [nats] for one pose (4, 4) (a float) or a batch (B, 4, 4) (an array (B,))."""

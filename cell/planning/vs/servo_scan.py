@@ -39,7 +39,7 @@ from cell.control.servo import DualTaskServo, null_space_projector
 from cell.perception.filters import CentroidLowPass
 from cell.perception.occupancy import binary_entropy
 from cell.planning.base import Array, Planner, ScanSession
-from cell.planning.vs.objective import EntropyObjective, ray_grid
+from cell.planning.vs.objective import EntropyObjective, PoseBatch, ray_grid
 from cell.safety.barriers import project_onto_halfspaces
 from cell.safety.guard import TwistRefused
 from drivers.errors import PlanningError
@@ -120,7 +120,7 @@ def achieved_fraction(v_commanded: Array, v_allowed: Array) -> float:
     return min(1.0, float(np.linalg.norm(v_allowed[:3])) / wanted)
 
 
-def translated(T_base_cam: Array, offsets_cam: Array) -> Array:
+def translated(T_base_cam: Array, offsets_cam: Array) -> PoseBatch:
     """Poses (n, 4, 4): ``T_base_cam`` moved by each camera-frame translation of ``offsets_cam`` (n, 3)
     [m], orientation unchanged (the virtual displacements r +- delta of eq. 5-6)."""
     out = np.repeat(T_base_cam[None], offsets_cam.shape[0], axis=0)

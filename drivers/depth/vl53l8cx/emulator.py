@@ -65,6 +65,10 @@ class ZoneData:
     nb_target_detected: NDArray[np.uint8]
 
 
+ZoneSource = Callable[[p.Resolution], ZoneData]
+"""What the emulator measures with: the zones at a resolution (e.g. :class:`SimToFSource`)."""
+
+
 @dataclass(frozen=True)
 class EmulatorFaults:
     """Faults to inject. ``garbage_bytes`` random bytes (with stray magics) sent just before the answer
@@ -103,9 +107,9 @@ class SimToFSource:
         self._fov_deg = fov_deg
         self._rng = np.random.default_rng(seed)
         self._clock = SimClock()
-        self._sensors: dict[int, SimToF] = {}
+        self._sensors: dict[p.Resolution, SimToF] = {}
 
-    def _sensor(self, resolution: int) -> SimToF:
+    def _sensor(self, resolution: p.Resolution) -> SimToF:
         if resolution not in self._sensors:
             cfg = SimToFConfig(type="sim-tof", resolution=resolution, fov_deg=self._fov_deg,
                                noise=self._noise)
@@ -114,7 +118,7 @@ class SimToFSource:
             self._sensors[resolution] = sensor
         return self._sensors[resolution]
 
-    def __call__(self, resolution: int) -> ZoneData:
+    def __call__(self, resolution: p.Resolution) -> ZoneData:
         z = self._sensor(resolution).capture().zones
         assert z is not None  # a SimToF frame always has zones
         target = z.nb_targets > 0
@@ -205,7 +209,7 @@ class VL53L8CXEmulator:
     """The emulated bridge (see the module docstring). Create it with :meth:`on_pty` or :meth:`on_tcp`,
     point a driver at :attr:`url`, and run it with :meth:`start` (a thread) or :meth:`run` (blocking)."""
 
-    def __init__(self, link: _Link, source: Callable[[int], ZoneData], faults: EmulatorFaults | None = None,
+    def __init__(self, link: _Link, source: ZoneSource, faults: EmulatorFaults | None = None,
                  seed: int = 0) -> None:
         self._link = link
         self._source = source
@@ -216,7 +220,7 @@ class VL53L8CXEmulator:
         self._seq = 0
         self._t0 = time.monotonic()
         self.ranging = False
-        self.resolution = 8
+        self.resolution: p.Resolution = 8
         self.frequency_hz = 15
         self._next_frame_t = 0.0
         self.counters = EmulatorCounters()
@@ -226,12 +230,12 @@ class VL53L8CXEmulator:
         self._closed = False
 
     @classmethod
-    def on_pty(cls, source: Callable[[int], ZoneData], faults: EmulatorFaults | None = None,
+    def on_pty(cls, source: ZoneSource, faults: EmulatorFaults | None = None,
                seed: int = 0) -> VL53L8CXEmulator:
         return cls(_Link.pty(), source, faults, seed)
 
     @classmethod
-    def on_tcp(cls, source: Callable[[int], ZoneData], faults: EmulatorFaults | None = None, seed: int = 0,
+    def on_tcp(cls, source: ZoneSource, faults: EmulatorFaults | None = None, seed: int = 0,
                host: str = "127.0.0.1", port: int = 0) -> VL53L8CXEmulator:
         """Listen on ``host``:``port`` (0: a free port); one client at a time."""
         return cls(_Link.tcp(host, port), source, faults, seed)
@@ -283,8 +287,8 @@ class VL53L8CXEmulator:
         elif frame.command == p.CMD_STOP:
             self.ranging = False
         elif frame.command == p.CMD_SET_RESOLUTION:
-            if frame.value in p.MAX_FREQUENCY_HZ:
-                self.resolution = int(frame.value)
+            if p.is_resolution(frame.value):
+                self.resolution = frame.value
                 self.frequency_hz = min(self.frequency_hz, p.MAX_FREQUENCY_HZ[self.resolution])
             else:
                 result = p.RESULT_INVALID_PARAMETER

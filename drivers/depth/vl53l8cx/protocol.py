@@ -28,6 +28,7 @@ from __future__ import annotations
 import binascii
 import struct
 from dataclasses import dataclass, field
+from typing import Literal, TypeGuard
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,8 +59,16 @@ RESULT_SENSOR_ERROR = 2
 RESULT_TEXT: dict[int, str] = {RESULT_OK: "ok", RESULT_INVALID_PARAMETER: "invalid parameter",
                                RESULT_SENSOR_ERROR: "sensor error"}
 
-MAX_FREQUENCY_HZ: dict[int, int] = {4: 60, 8: 15}
+Resolution = Literal[4, 8]
+"""A resolution the VL53L8CX supports, in zones per side."""
+
+MAX_FREQUENCY_HZ: dict[Resolution, int] = {4: 60, 8: 15}
 """Highest ranging frequency [Hz] the VL53L8CX allows at each resolution (zones per side)."""
+
+
+def is_resolution(value: int | None) -> TypeGuard[Resolution]:
+    """True when ``value`` (zones per side) is a resolution the VL53L8CX supports."""
+    return value in MAX_FREQUENCY_HZ
 
 ZONE = np.dtype([("distance_mm", "<i2"), ("range_sigma_mm", "<u2"), ("target_status", "u1"),
                  ("reflectance_pct", "u1"), ("nb_target_detected", "u1")])
