@@ -16,13 +16,13 @@ motion command while faulted raises ``RobotFault``. ``recover`` clears a fault t
 from __future__ import annotations
 
 import enum
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass, field
-from types import TracebackType
 
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.device import Device
 from drivers.errors import DriverError
 
 Array = NDArray[np.float64]
@@ -81,7 +81,7 @@ class MotionToken:
     __slots__ = ()
 
 
-class Arm(ABC):
+class Arm(Device):
     """A robot arm. Use as a context manager, or call ``connect`` / ``disconnect``."""
 
     name: str = "arm"
@@ -115,18 +115,6 @@ class Arm(ABC):
         self._check_token(token)
         self._execute_trajectory(trajectory)
 
-    @abstractmethod
-    def connect(self) -> None:
-        """Open the connection; raises ``DriverError`` with the reason when it cannot."""
-
-    @abstractmethod
-    def disconnect(self) -> None:
-        """Stop motion and close the connection. Safe to call twice."""
-
-    @property
-    @abstractmethod
-    def is_connected(self) -> bool: ...
-
     @property
     @abstractmethod
     def n_joints(self) -> int: ...
@@ -151,11 +139,3 @@ class Arm(ABC):
 
         Raises ``RobotFault`` when the fault cannot be cleared from software (e.g. an emergency stop that
         is still pressed)."""
-
-    def __enter__(self) -> Arm:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.disconnect()

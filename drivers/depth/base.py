@@ -6,12 +6,13 @@ Sensor frame: z along the optical axis, x right, y down (the papers' convention)
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
-from types import TracebackType
 
 import numpy as np
 from numpy.typing import NDArray
+
+from drivers.device import Device
 
 Array = NDArray[np.float64]
 
@@ -73,22 +74,10 @@ class DepthFrame:
     zones: ToFZones | None = None
 
 
-class DepthSensor(ABC):
+class DepthSensor(Device):
     """A depth sensor. Use as a context manager, or call ``connect`` / ``disconnect``."""
 
     name: str = "depth"
-
-    @abstractmethod
-    def connect(self) -> None:
-        """Open the device; raises ``DriverError`` with the reason when it cannot."""
-
-    @abstractmethod
-    def disconnect(self) -> None:
-        """Close the device. Safe to call twice."""
-
-    @property
-    @abstractmethod
-    def is_connected(self) -> bool: ...
 
     @property
     @abstractmethod
@@ -102,11 +91,3 @@ class DepthSensor(ABC):
     @abstractmethod
     def capture(self) -> DepthFrame:
         """Return the newest frame; raises ``DriverError`` when the device is silent or gone."""
-
-    def __enter__(self) -> DepthSensor:
-        self.connect()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.disconnect()
