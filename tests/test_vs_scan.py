@@ -30,21 +30,25 @@ class ReachProbe(Planner):
         here = session.sensor_pose()
         station = np.array([0.45, 0.0, 0.05])
         above = look_at(station + np.array([0.0, 0.0, 0.25]), station, up_hint=np.array([1.0, 0.0, 0.0]))
+        in_table = look_at(np.array([0.45, -0.25, -0.03]), station)
         ReachProbe.answers = {
-            "current pose": session.sensor_pose_reachable(here),
-            "above the station": session.sensor_pose_reachable(above),
-            "1.5 m out": session.sensor_pose_reachable(look_at(np.array([1.5, 0.0, 0.3]), station)),
+            "current pose": session.sensor_path_reachable(here[None]),
+            "above the station": session.sensor_path_reachable(above[None]),
+            "1.5 m out": session.sensor_path_reachable(look_at(np.array([1.5, 0.0, 0.3]), station)[None]),
+            "into the table (IK within the margins)": session.sensor_path_reachable(in_table[None]),
         }
         moved = float(np.linalg.norm(session.sensor_pose()[:3, 3] - here[:3, 3]))
         return f"probed; moved {moved:.6f} m"
 
 
-def test_reachability_is_inverse_kinematics_within_the_joint_margins(tmp_path, monkeypatch):
+def test_reachability_is_inverse_kinematics_within_the_joint_margins_free_of_collision(tmp_path,
+                                                                                       monkeypatch):
     monkeypatch.setitem(PLANNERS, ReachProbe.name, ReachProbe)
     r = run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
                              planner=ReachProbe.name, out=tmp_path / "job", max_time_s=5.0)).result
     assert r["termination"] == "probed; moved 0.000000 m"  # a query moves nothing
-    assert ReachProbe.answers == {"current pose": True, "above the station": True, "1.5 m out": False}
+    assert ReachProbe.answers == {"current pose": True, "above the station": True, "1.5 m out": False,
+                                  "into the table (IK within the margins)": False}
 
 
 @pytest.mark.parametrize(("cell_file", "planner", "budget"), [(FRANKA, "vs-local", "12"),

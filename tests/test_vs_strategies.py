@@ -9,7 +9,7 @@ import pytest
 from cell.config import load_config
 from cell.perception.occupancy import binary_entropy
 from cell.planning.registry import get_planner
-from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, sphere_views
+from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, arc_views, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
 from cell.planning.vs.local import LocalGradient, VSLocalPlanner
 from cell.planning.vs.objective import ray_grid
@@ -67,9 +67,12 @@ class FakeSession:
     def sensor_pose_allowed(self, T):
         return T[2, 3] > self.floor_z
 
-    def sensor_pose_reachable(self, T):
+    def sensor_pose(self):
+        return self.pose
+
+    def sensor_path_reachable(self, T):
         self.n_reach_queries += 1
-        return T[0, 3] >= self.reach_min_x
+        return bool(np.all(T[:, 0, 3] >= self.reach_min_x))
 
     def feasible_sensor_velocity(self, v, activation_m):
         # A floor below the camera: no downward component when within activation_m of it.
@@ -249,11 +252,13 @@ def test_progress_to_a_far_goal_is_measured_along_the_sphere(franka):
 
 def test_goal_is_the_best_candidate_the_arm_reaches(franka):
     """Best views at small x (behind the object), which the arm reaches only from x = 0.21 m on: the goal
-    is the best reachable one, found in descending f within ``reachability_checks``; with no reachable
-    candidate among them, the best allowed is taken and the log says so."""
+    is the best one the arm servos to along the arc from the camera, found in descending f within
+    ``reachability_checks``; with no reachable candidate among them, the best allowed is taken and the log
+    says so."""
     objective = LinearObjective([-1.0, 0.0, 0.0])
     seeker = GoalSeeker(franka)
     session = FakeSession(floor_z=0.1, reach_min_x=0.21)
+    session.pose = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     seeker.sample(session, CENTRE, objective)
     assert 0.21 <= seeker.goal[0, 3] < 0.215
     assert 1 < session.n_reach_queries <= franka.planners.vs_global.reachability_checks
@@ -267,6 +272,20 @@ def test_goal_is_the_best_candidate_the_arm_reaches(franka):
     seeker.sample(session, CENTRE, objective)
     assert seeker.goal[0, 3] < CENTRE[0] - 0.2
     assert any("none of the 50 best goal candidates is reachable" in m for m in session.messages)
+
+
+def test_the_path_to_a_goal_follows_the_great_circle_arc():
+    start, goal = CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE + np.array([0.0, 0.0, 0.25])
+    views = arc_views(CENTRE, 0.25, start, goal, 0.03)
+    positions = views[:, :3, 3]
+    assert len(views) == 14  # a quarter circle, 0.393 m of arc, in 14 steps of at most 3 cm
+    np.testing.assert_allclose(np.linalg.norm(positions - CENTRE, axis=1), 0.25)
+    np.testing.assert_allclose(positions[-1], goal, atol=1e-12)
+    steps = np.linalg.norm(np.diff(np.vstack([start, positions]), axis=0), axis=1)
+    assert np.all(steps <= 0.03) and np.allclose(positions[:, 0], CENTRE[0])  # in the plane x = 0.45
+    np.testing.assert_allclose(views[:, :3, 2], -(positions - CENTRE) / 0.25, atol=1e-12)  # looking in
+    opposite = arc_views(CENTRE, 0.25, start, CENTRE + np.array([0.0, 0.25, 0.0]), 0.03)
+    assert opposite[:, 2, 3].max() == pytest.approx(CENTRE[2] + 0.25, abs=1e-3)  # over the top
 
 
 def test_no_allowed_candidate_is_a_planning_error(franka):

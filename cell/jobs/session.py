@@ -42,6 +42,9 @@ SETTLED_QD_RAD_S = 1e-4
 SETTLE_TIMEOUT_S = 3.0
 # On the wall clock, how long a capture waits for a frame newer than its request.
 STALE_FRAME_TIMEOUT_S = 2.0
+# Between consecutive poses of a path a few centimetres apart, a joint moving further than this [rad] is a
+# change of configuration (an elbow or wrist flip), which a servo following the path cannot make.
+MAX_PATH_JOINT_STEP_RAD = 0.5
 
 
 class ScanLimitReached(Exception):
@@ -292,17 +295,26 @@ class JobSession:
         barrier plane and inside the workspace (margin included)."""
         return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor)) is None
 
-    def sensor_pose_reachable(self, T_base_sensor: Array) -> bool:
-        """IK seeded from the current joints (from home where the arm reports none, as a replayed arm)
-        reaches the pose with every joint within the guard's ``joint_bounds`` (limits less the margin)."""
+    def sensor_path_reachable(self, T_base_sensor: Array) -> bool:
+        """IK seeded from the current joints (from home where the arm reports none, as a replayed arm),
+        then from each solution, reaches the poses (K, 4, 4) in turn with every joint within the guard's
+        ``joint_bounds`` (limits less the margin), no collision (``CollisionWorld.check``), and no joint
+        moving more than ``MAX_PATH_JOINT_STEP_RAD`` between consecutive poses."""
         q_now = self._guard.state().q
-        seed = q_now if np.all(np.isfinite(q_now)) else self._q_home
-        try:
-            q = self._model.ik_pose(T_base_sensor @ inv_T(self._T_flange_sensor), seed)
-        except KinematicsError:
-            return False
+        q = q_now if np.all(np.isfinite(q_now)) else self._q_home
         q_lo, q_hi = self._guard.joint_bounds
-        return bool(np.all((q >= q_lo) & (q <= q_hi)))
+        T_fs_inv = inv_T(self._T_flange_sensor)
+        for k, T in enumerate(np.asarray(T_base_sensor, dtype=np.float64).reshape(-1, 4, 4)):
+            try:
+                q_next = self._model.ik_pose(T @ T_fs_inv, q)
+            except KinematicsError:
+                return False
+            if not np.all((q_next >= q_lo) & (q_next <= q_hi)) or \
+                    (k > 0 and np.max(np.abs(q_next - q)) > MAX_PATH_JOINT_STEP_RAD) or \
+                    self._guard.collision.check(q_next) is not None:
+                return False
+            q = q_next
+        return True
 
     def _solve_ik(self, T_base_flange: Array, q_now: Array) -> Array | None:
         """Joints reaching ``T_base_flange``, seeded from the current joints, then from home.

@@ -97,10 +97,12 @@ class ScanSession(Protocol):
         workspace box (e.g. to reject global goal candidates)."""
         ...
 
-    def sensor_pose_reachable(self, T_base_sensor: Array) -> bool:
-        """Whether the arm reaches a candidate sensor pose with every joint inside its position margin, by
-        inverse kinematics seeded from the current joints (a servo travels there continuously, so the
-        solution near the present configuration is the one that counts)."""
+    def sensor_path_reachable(self, T_base_sensor: Array) -> bool:
+        """Whether the arm follows sensor poses (K, 4, 4) in turn from where it is (K = 1: reaches one
+        pose): inverse kinematics seeded from the current joints, then from each solution for the next
+        pose (a servo travels continuously, so the solutions near the present configuration are the ones
+        that count), every solution with each joint inside its position margin and free of collision, and
+        no joint jumping between consecutive poses (a change of configuration the servo cannot make)."""
         ...
 
     def latest_perception(self) -> PerceptionUpdate | None:

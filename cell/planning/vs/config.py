@@ -130,9 +130,11 @@ class VSGlobalConfig(StrictModel):
     the barrier projection cannot reach would otherwise hold the scan forever; 1 cm in 3 s, where the
     approach covers 6 cm in 3 s at full speed and 3 cm at the arrival distance). Candidates are drawn
     from the job's planner generator (``ScanSession.rng``), so a scan is repeatable for a given job seed.
-    ``reachability_checks``: the goal is the best candidate that the arm's inverse kinematics reaches
-    from the current joints within the joint margins, among this many best (0: the best allowed
-    candidate, unchecked; see ``cell.planning.vs.goals``)."""
+    ``reachability_checks``: the goal is the best candidate the arm can servo to, among this many best
+    (0: the best allowed candidate, unchecked): inverse kinematics follows the arc from the camera to it
+    every ``path_step_m`` [m] within the joint margins, free of collision and without a change of
+    configuration (not in the paper; 3 cm, about 7 deg of arc, keeps a joint's step between poses well
+    below a flip; see ``cell.planning.vs.goals``)."""
 
     n_candidates: PositiveInt = 5000
     slow_radius_m: PositiveFloat = 0.10
@@ -140,4 +142,5 @@ class VSGlobalConfig(StrictModel):
     stall_time_s: PositiveFloat = 3.0
     stall_progress_m: PositiveFloat = 0.01
     reachability_checks: int = Field(default=50, ge=0)
+    path_step_m: PositiveFloat = 0.03
 

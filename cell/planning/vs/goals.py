@@ -7,10 +7,13 @@ those that put the TCP or the sensor outside a barrier plane or the workspace ar
 batch, among the candidates the arm can reach: the paper rejects "goal candidates outside the workspace",
 and for an arm the workspace is also what its joints reach. Its barrier planes were placed by hand to
 keep the Panda clear of its joint limits; for any cell and placement, the candidates are tried in
-descending f and the first that inverse kinematics from the current joints reaches within the joint
-margins (``session.sensor_pose_reachable``) is the goal, at most ``reachability_checks`` of them (0: no
-check). Without the check, a bunny scan spent 20 s at a time pressing towards goals behind the Panda's
-elbow limit before giving them up.
+descending f and the first the arm can servo to is the goal, at most ``reachability_checks`` of them (0:
+no check). "Can servo to": inverse kinematics follows the arc of the sphere from the camera to the
+candidate, in steps of ``path_step_m``, within the joint margins, free of collision and without a change
+of configuration (``session.sensor_path_reachable``): g of eq. 11 takes the camera along that arc.
+Without a check, a bunny scan spent 20 s at a time pressing towards goals behind the Panda's elbow limit;
+with the goal alone checked, goals whose way led the arm into itself (link 0 against link 5) were still
+given up after 3 s.
 
 Eq. 11: g = a(r, r*) (x, y, 0, 0, 0, 0), with (x, y) the goal origin expressed in the current camera frame,
 normalised: the tangent direction of the shortest path on the sphere, since the camera looks at the
@@ -62,6 +65,24 @@ def sphere_views(centre: Array, radius: float, directions: Array) -> PoseBatch:
     return T
 
 
+def arc_views(centre: Array, radius: float, start: Array, goal: Array, step_m: float) -> Array:
+    """Camera poses (K, 4, 4) (``sphere_views``) along the shorter great-circle arc of the sphere around
+    ``centre`` from the direction of ``start`` (3,) [m] to that of ``goal`` (3,) [m], every ``step_m`` of
+    arc [m] or closer, the last at the goal, the first one step away from the start. Antipodal points
+    have no shorter arc; the one through the top is taken."""
+    a = (start - centre) / np.linalg.norm(start - centre)
+    b = (goal - centre) / np.linalg.norm(goal - centre)
+    angle = angle_between(a, b)
+    n = max(1, int(np.ceil(angle * radius / step_m)))
+    ortho = b - a * float(a @ b)
+    if np.linalg.norm(ortho) < 1e-9:
+        ortho = np.array([0.0, 0.0, 1.0]) - a * a[2]
+    ortho /= np.linalg.norm(ortho)
+    phi = angle * np.arange(1, n + 1) / n
+    directions = np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * ortho
+    return sphere_views(centre, radius, directions)
+
+
 def angle_between(a: Array, b: Array) -> float:
     """The angle [rad] between vectors ``a`` and ``b`` (3,), accurate near 0 and pi."""
     return float(np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b)))
@@ -97,7 +118,9 @@ class GoalSeeker:
         checks = self.params.reachability_checks
         best = int(order[0])
         if checks:
-            best = next((int(k) for k in order[:checks] if session.sensor_pose_reachable(views[k])), -1)
+            here = session.sensor_pose()[:3, 3]
+            best = next((int(k) for k in order[:checks] if session.sensor_path_reachable(
+                arc_views(centroid, self.radius_m, here, views[k][:3, 3], self.params.path_step_m))), -1)
             if best < 0:
                 best = int(order[0])
                 session.log(f"none of the {min(checks, order.size)} best goal candidates is reachable from "
