@@ -25,9 +25,9 @@ joint limit or a refused direction) is given up; either way a new goal is sample
 along the sphere (the arc between the camera and the goal about the centroid the goal was sampled
 around), the way g moves the camera: the straight-line distance to a goal on the far side shrinks at
 only cos(theta / 2) of the camera's speed, theta the angle between them (0.3 for a goal 145 deg away),
-and far goals were given up after 3 s at full speed. The paper gives no
-rule for a goal that cannot be reached; a fixed time limit instead (20 s) gave up goals on the far side
-of the object 8 cm before arrival, the exploration speed of eq. 1 being about 2 cm/s.
+and far goals were given up after 3 s at full speed. The paper gives no rule for a goal that cannot be
+reached; a fixed time limit instead (20 s) gave up goals on the far side of the object 8 cm before
+arrival, the exploration speed of eq. 1 being about 2 cm/s.
 
 The scan ends on the H_ROI rule of eq. 12 (``ServoScanPlanner.entropy_settled``), judged on the values
 recorded after the first goal was reached or given up: the paper gives no rule for the way to the first
@@ -65,7 +65,7 @@ def sphere_views(centre: Array, radius: float, directions: Array) -> PoseBatch:
     return T
 
 
-def arc_views(centre: Array, radius: float, start: Array, goal: Array, step_m: float) -> Array:
+def arc_views(centre: Array, radius: float, start: Array, goal: Array, step_m: float) -> PoseBatch:
     """Camera poses (K, 4, 4) (``sphere_views``) along the shorter great-circle arc of the sphere around
     ``centre`` from the direction of ``start`` (3,) [m] to that of ``goal`` (3,) [m], every ``step_m`` of
     arc [m] or closer, the last at the goal, the first one step away from the start. Antipodal points
