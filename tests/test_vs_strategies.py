@@ -57,6 +57,7 @@ class FakeSession:
         self.rng = np.random.default_rng(0)
         self.messages: list[str] = []
         self.n_reach_queries = 0
+        self.queried_goals: list[np.ndarray] = []
 
     def now(self):
         return self.t
@@ -72,6 +73,7 @@ class FakeSession:
 
     def sensor_path_reachable(self, T):
         self.n_reach_queries += 1
+        self.queried_goals.append(T[-1, :3, 3])
         return bool(np.all(T[:, 0, 3] >= self.reach_min_x))
 
     def feasible_sensor_velocity(self, v, activation_m):
@@ -253,8 +255,8 @@ def test_progress_to_a_far_goal_is_measured_along_the_sphere(franka):
 def test_goal_is_the_best_candidate_the_arm_reaches(franka):
     """Best views at small x (behind the object), which the arm reaches only from x = 0.21 m on: the goal
     is the best one the arm servos to along the arc from the camera, found in descending f within
-    ``reachability_checks``; with no reachable candidate among them, the best allowed is taken and the log
-    says so."""
+    ``reachability_checks``, one candidate checked per ``arrival_m``; with no reachable candidate among
+    them, the best allowed is taken and the log says so."""
     objective = LinearObjective([-1.0, 0.0, 0.0])
     seeker = GoalSeeker(franka)
     session = FakeSession(floor_z=0.1, reach_min_x=0.21)
@@ -271,7 +273,10 @@ def test_goal_is_the_best_candidate_the_arm_reaches(franka):
     session = FakeSession(floor_z=0.1, reach_min_x=10.0)
     seeker.sample(session, CENTRE, objective)
     assert seeker.goal[0, 3] < CENTRE[0] - 0.2
-    assert any("none of the 50 best goal candidates is reachable" in m for m in session.messages)
+    assert any("none of the 50 goal candidates checked" in m for m in session.messages)
+    goals = np.array(session.queried_goals)
+    apart = np.linalg.norm(goals[:, None] - goals[None], axis=2) + np.eye(len(goals))
+    assert len(goals) == 50 and apart.min() >= franka.planners.vs_global.arrival_m
 
 
 def test_the_path_to_a_goal_follows_the_great_circle_arc():
