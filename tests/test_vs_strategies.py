@@ -280,24 +280,15 @@ def test_goal_is_the_best_candidate_the_arm_reaches(franka):
 
 
 def test_the_path_to_a_goal_follows_the_great_circle_arc():
-    """The poses of the arc are on the sphere, at most 3 cm apart, look at the centre, and carry the
-    start's roll (a camera rolled 90 deg from look_at's stays rolled, relative to the arc)."""
-    start = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
-    rolled = start.copy()
-    rolled[:3, :2] = np.column_stack([start[:3, 1], -start[:3, 0]])  # 90 deg about the optical axis
-    goal = CENTRE + np.array([0.0, 0.0, 0.25])
-    views = arc_views(CENTRE, 0.25, rolled, goal, 0.03)
+    start, goal = CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE + np.array([0.0, 0.0, 0.25])
+    views = arc_views(CENTRE, 0.25, start, goal, 0.03)
     positions = views[:, :3, 3]
     assert len(views) == 14  # a quarter circle, 0.393 m of arc, in 14 steps of at most 3 cm
     np.testing.assert_allclose(np.linalg.norm(positions - CENTRE, axis=1), 0.25)
     np.testing.assert_allclose(positions[-1], goal, atol=1e-12)
-    steps = np.linalg.norm(np.diff(np.vstack([start[:3, 3], positions]), axis=0), axis=1)
+    steps = np.linalg.norm(np.diff(np.vstack([start, positions]), axis=0), axis=1)
     assert np.all(steps <= 0.03) and np.allclose(positions[:, 0], CENTRE[0])  # in the plane x = 0.45
     np.testing.assert_allclose(views[:, :3, 2], -(positions - CENTRE) / 0.25, atol=1e-12)  # looking in
-    # The arc turns about the base x axis; the rolled camera's y axis was along it and stays along it.
-    np.testing.assert_allclose(views[:, :3, 1], np.tile(rolled[:3, 1], (14, 1)), atol=1e-12)
-    for R in views[:, :3, :3]:
-        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     opposite = arc_views(CENTRE, 0.25, start, CENTRE + np.array([0.0, 0.25, 0.0]), 0.03)
     assert opposite[:, 2, 3].max() == pytest.approx(CENTRE[2] + 0.25, abs=1e-3)  # over the top
 

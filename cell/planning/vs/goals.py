@@ -45,7 +45,6 @@ from collections import deque
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
 from cell.planning.base import Array, ScanSession
@@ -69,16 +68,12 @@ def sphere_views(centre: Array, radius: float, directions: Array) -> PoseBatch:
     return T
 
 
-def arc_views(centre: Array, radius: float, T_start: Array, goal: Array, step_m: float) -> PoseBatch:
-    """Camera poses (K, 4, 4) along the shorter great-circle arc of the sphere around ``centre`` from the
-    camera pose ``T_start`` (4, 4) to the direction of ``goal`` (3,) [m], every ``step_m`` of arc [m] or
-    closer, the first one step from the start, the last at the goal, each looking at ``centre``.
-
-    The orientation is the start's, turned to look at the centre and carried along the arc by the
-    rotation about the arc's axis: the camera rolls as eq. 1 moves it, a secondary task without a
-    rotation about the optical axis projected onto orbits of the centroid. Antipodal points have no
-    shorter arc; the one through the top is taken."""
-    a = (T_start[:3, 3] - centre) / np.linalg.norm(T_start[:3, 3] - centre)
+def arc_views(centre: Array, radius: float, start: Array, goal: Array, step_m: float) -> PoseBatch:
+    """Camera poses (K, 4, 4) (``sphere_views``) along the shorter great-circle arc of the sphere around
+    ``centre`` from the direction of ``start`` (3,) [m] to that of ``goal`` (3,) [m], every ``step_m`` of
+    arc [m] or closer, the last at the goal, the first one step away from the start. Antipodal points
+    have no shorter arc; the one through the top is taken."""
+    a = (start - centre) / np.linalg.norm(start - centre)
     b = (goal - centre) / np.linalg.norm(goal - centre)
     angle = angle_between(a, b)
     n = max(1, int(np.ceil(angle * radius / step_m)))
@@ -86,15 +81,9 @@ def arc_views(centre: Array, radius: float, T_start: Array, goal: Array, step_m:
     if np.linalg.norm(ortho) < 1e-9:
         ortho = np.array([0.0, 0.0, 1.0]) - a * a[2]
     ortho /= np.linalg.norm(ortho)
-    z = T_start[:3, 2]
-    look = Rotation.from_rotvec(np.cross(z, -a) / max(np.linalg.norm(np.cross(z, -a)), 1e-12)
-                                * angle_between(z, -a)).as_matrix() @ T_start[:3, :3]
     phi = angle * np.arange(1, n + 1) / n
-    T = np.zeros((n, 4, 4))
-    T[:, :3, :3] = Rotation.from_rotvec(phi[:, None] * np.cross(a, ortho)).as_matrix() @ look
-    T[:, :3, 3] = centre + radius * (np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * ortho)
-    T[:, 3, 3] = 1.0
-    return T
+    directions = np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * ortho
+    return sphere_views(centre, radius, directions)
 
 
 def angle_between(a: Array, b: Array) -> float:
@@ -147,14 +136,14 @@ class GoalSeeker:
         checks = self.params.reachability_checks
         if not checks:
             return int(order[0])
-        start = session.sensor_pose()
+        here = session.sensor_pose()[:3, 3]
         positions = views[:, :3, 3]
         same_as_failed = np.zeros(len(views), dtype=bool)
         n_checked = 0
         for k in order:
             if same_as_failed[k]:
                 continue
-            path = arc_views(centroid, self.radius_m, start, positions[k], self.params.path_step_m)
+            path = arc_views(centroid, self.radius_m, here, positions[k], self.params.path_step_m)
             if session.sensor_path_reachable(path):
                 return int(k)
             same_as_failed |= np.linalg.norm(positions - positions[k], axis=1) < self.params.arrival_m
