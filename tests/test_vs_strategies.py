@@ -333,27 +333,6 @@ def test_hybrid_goes_global_after_local_converges_then_back(franka):
     assert not planner.local.converged()
 
 
-def test_hybrid_without_a_reachable_goal_resumes_local_search(franka):
-    """No candidate the arm can servo to: no global leg (VS-Global would servo towards the best allowed
-    one), local search again with a fresh window, and the H_ROI rule from then on."""
-    planner, session, T = sideways(VSHybridPlanner, franka)
-    session.reach_min_x = 10.0
-    weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0], T[:3, 3], 1.0)
-    modes = []
-    for _ in range(201):
-        sec = planner.secondary(session, T, weak)
-        planner.observe(sec, sec.g_norm)
-        modes.append(sec.mode)
-    assert modes == ["local"] * 201 and planner.goals.n_goals == 0 and session.n_reach_queries == 50
-    assert "local search resumes" in session.messages[-1] and not planner.local.converged()
-    planner.h_roi = [0.4] * 10
-    assert planner.finished(session) is not None  # the entropy window is open
-    global_planner, session, T = sideways(VSGlobalPlanner, franka)
-    session.reach_min_x = 10.0
-    assert global_planner.secondary(session, T, weak).mode == "global"
-    assert "servoing towards the best allowed candidate" in session.messages[-2]
-
-
 def test_h_roi_termination_needs_ten_flat_values(franka):
     planner = VSGlobalPlanner(franka)
     planner.open_entropy_window()

@@ -106,12 +106,8 @@ class GoalSeeker:
         self._distances: deque[tuple[float, float]] = deque()
         self.n_goals = 0
 
-    def sample(self, session: ScanSession, centroid: Array, objective: EntropyObjective,
-               unreachable_ok: bool = True) -> bool:
-        """Choose a new goal: the best allowed candidate on the sphere around ``centroid`` (eq. 10) that
-        the arm can servo to. When none of those checked is, the best allowed one with
-        ``unreachable_ok`` (VS-Global, which has nothing else to do), else no goal. Returns whether a goal
-        was chosen."""
+    def sample(self, session: ScanSession, centroid: Array, objective: EntropyObjective) -> None:
+        """Choose a new goal: the best allowed candidate on the sphere around ``centroid`` (eq. 10)."""
         u = session.rng.normal(size=(self.params.n_candidates, 3))
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         views = sphere_views(centroid, self.radius_m, u)
@@ -123,11 +119,6 @@ class GoalSeeker:
         scores = objective(views)
         order = np.argsort(-scores, kind="stable")
         best = self._reachable(session, centroid, views, order)
-        if best is None:
-            if not unreachable_ok:
-                return False
-            session.log("servoing towards the best allowed candidate")
-            best = int(order[0])
         self.goal, self.goal_value = views[best], float(scores[best])
         self._centre = np.array(centroid, dtype=np.float64)
         self._goal_since = session.now()
@@ -136,14 +127,12 @@ class GoalSeeker:
         session.log(f"goal {self.n_goals}: sensor at {np.round(self.goal[:3, 3], 3).tolist()}, f "
                     f"{self.goal_value:.4f} nats (rank {int(np.flatnonzero(order == best)[0]) + 1} of "
                     f"{order.size} allowed candidates)")
-        return True
 
     def _reachable(self, session: ScanSession, centroid: Array, views: PoseBatch,
-                   order: NDArray[np.intp]) -> int | None:
+                   order: NDArray[np.intp]) -> int:
         """The index of the first candidate in ``order`` that the arm can servo to (module docstring),
-        checking at most ``reachability_checks`` of them (none: the first); a candidate within
-        ``arrival_m`` of one that failed is skipped unchecked, as the same goal. None when no candidate
-        checked is reachable."""
+        checking at most ``reachability_checks`` of them; a candidate within ``arrival_m`` of one that
+        failed is skipped unchecked, as the same goal. None reachable (or no checks): the first."""
         checks = self.params.reachability_checks
         if not checks:
             return int(order[0])
@@ -162,8 +151,9 @@ class GoalSeeker:
             if n_checked == checks:
                 break
         session.log(f"none of the {n_checked} goal candidates checked (best first, one per "
-                    f"{self.params.arrival_m:g} m) is reachable from the present joints")
-        return None
+                    f"{self.params.arrival_m:g} m) is reachable from the present joints; servoing towards "
+                    "the best")
+        return int(order[0])
 
     def done(self, session: ScanSession, T_base_cam: Array) -> bool:
         """The goal was reached (within ``arrival_m``), given up (no progress of ``stall_progress_m`` within

@@ -1,11 +1,8 @@
 """VS-Hybrid (visual-servoing paper section II-D): VS-Local until its gradient converges (eq. 4-6 and the
 ||g|| window), then one VS-Global goal (eq. 10-11) to leave a possible local maximum, then local again
-with a fresh window, and so on. When no candidate the arm can servo to is found (``GoalSeeker.sample``),
-the global leg ends where it starts and local search resumes at once: servoing towards an unreachable
-goal held the camera 3 s each time, or let it creep towards it for 39 s (cube), at no gain. The scan
-ends on the H_ROI rule of eq. 12, as VS-Global's, judged on the values recorded after the first global
-leg ended (not in the paper, which does not say whether the rule already applies to the first local
-phase and the way to the first goal)."""
+with a fresh window, and so on. The scan ends on the H_ROI rule of eq. 12, as VS-Global's, judged on the
+values recorded after the first global goal was reached or given up (not in the paper, which does not say
+whether the rule already applies to the first local phase and the way to the first goal)."""
 
 from __future__ import annotations
 
@@ -34,12 +31,8 @@ class VSHybridPlanner(ServoScanPlanner):
             self.open_entropy_window()
         elif not self._global_leg and self.local.converged():
             assert self.centroid is not None
-            self._global_leg = self.goals.sample(session, self.centroid, objective, unreachable_ok=False)
-            if not self._global_leg:
-                # no place the arm can servo to: the leg ends where it starts, and local search resumes
-                session.log("no global goal the arm can servo to; local search resumes")
-                self.local.reset()
-                self.open_entropy_window()
+            self.goals.sample(session, self.centroid, objective)
+            self._global_leg = True
         if self._global_leg:
             return self.goals(session, T_base_cam, objective)
         return self.local(session, T_base_cam, objective)
