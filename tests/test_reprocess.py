@@ -13,10 +13,9 @@ import pytest
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
-from cell.perception.registration import estimate_normals
+from cell.perception.registration import IcpResult, constrain_icp, estimate_normals, kept_directions
 from cell.perception.reprocess import (
     MultiwayParams,
-    _constrained_pair,
     _pairs,
     _point_to_plane_information,
     back_project,
@@ -148,8 +147,8 @@ def test_pair_correction_keeps_only_constrained_directions():
     T = np.eye(4)
     T[:3, 3] = [0.002, -0.001, 0.001]
     pairs = np.column_stack([np.arange(plane.shape[0])] * 2).astype(np.int32)
-    kept, n_constrained = _constrained_pair(T, np.eye(4), plane, normals, pairs, 0.003)
-    assert n_constrained == 3
+    kept, eigval = constrain_icp(IcpResult(T, 1.0, 0.0, pairs), plane, normals[pairs[:, 1]], 0.003)
+    assert kept_directions(eigval, 0.003) == 3
     np.testing.assert_allclose(kept[:3, 3], [0.0, 0.0, 0.001], atol=1e-9)
     np.testing.assert_allclose(kept[:3, :3], np.eye(3), atol=1e-9)
 

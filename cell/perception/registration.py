@@ -294,6 +294,26 @@ def constrained_correction(T_correction: Array, matched_source: Array, matched_n
     return make_T(R_kept, c + xi[3:] - R_kept @ c), eigval
 
 
+def constrain_icp(icp: IcpResult, source: Array, pair_normals: Array,
+                  min_constraint: float) -> tuple[Array, Array]:
+    """``icp.T`` projected onto the directions its pairs constrain (``constrained_correction``):
+    ``source`` (N, 3) [m] the source points ICP started from, ``pair_normals`` (K, 3) the degeneracy-test
+    normals (``constraint_normals``) of the target points of ``icp.correspondences``. Returns (the
+    correction, the 6 normalised eigenvalues); ``icp.T`` and NaN eigenvalues when there is nothing to
+    test (fewer than 6 pairs) or nothing to drop (``min_constraint`` 0)."""
+    pairs = icp.correspondences
+    if pairs.shape[0] < 6 or min_constraint <= 0.0:
+        return icp.T, np.full(6, np.nan)
+    matched = transform_points(icp.T, source[pairs[:, 0]])
+    return constrained_correction(icp.T, matched, pair_normals, min_constraint)
+
+
+def kept_directions(eigval: Array, min_constraint: float) -> int:
+    """How many of the 6 directions ``constrain_icp`` kept: those whose eigenvalue is at least
+    ``min_constraint``; all 6 when nothing was tested (NaN eigenvalues)."""
+    return int(np.count_nonzero(eigval >= min_constraint)) if np.all(np.isfinite(eigval)) else 6
+
+
 def _skipped(T_fk: Array, reason: str) -> RegistrationResult:
     return RegistrationResult(T_base_sensor=T_fk.copy(), T_correction=np.eye(4), accepted=False,
                               fitness=0.0, rmse_m=0.0, correction_m=0.0, correction_deg=0.0, reason=reason)
@@ -396,13 +416,9 @@ class RegistrationTarget:
                                  max_iterations=p.max_iterations, epsilon=p.epsilon,
                                  max_tangential_m=p.normal_radius_m)
         fitness, rmse = icp.fitness, icp.rmse_m
-        T, eigval = icp.T, np.full(6, np.nan)
-        if icp.correspondences.shape[0] >= 6:
-            matched = transform_points(icp.T, src_base[icp.correspondences[:, 0]])
-            wide = constraint_normals(target[icp.correspondences[:, 1]], target, p.constraint_normal_radius_m)
-            T, eigval = constrained_correction(icp.T, matched, wide, p.min_constraint)
-        n_constrained = int(np.count_nonzero(eigval >= p.min_constraint)) if np.all(np.isfinite(eigval)) \
-            else 6
+        wide = constraint_normals(target[icp.correspondences[:, 1]], target, p.constraint_normal_radius_m)
+        T, eigval = constrain_icp(icp, src_base, wide, p.min_constraint)
+        n_constrained = kept_directions(eigval, p.min_constraint)
         if n_constrained < 6:
             log.info("registration: %d of 6 directions constrained (eigenvalues %s, below %g dropped); "
                      "correction %.2f mm / %.3f deg before, %.2f mm / %.3f deg after", n_constrained,

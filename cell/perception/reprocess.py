@@ -57,9 +57,10 @@ from cell.config.models import CropBoxConfig
 from cell.perception.cloud import crop_voxel_downsample, cross_rows, voxel_downsample, write_ply
 from cell.perception.metrics import compute_metrics, ground_truth_points
 from cell.perception.registration import (
-    constrained_correction,
+    constrain_icp,
     constraint_normals,
     estimate_normals,
+    kept_directions,
     point_to_plane_icp,
 )
 from drivers.config_base import StrictModel
@@ -210,22 +211,6 @@ def _pairs(poses: list[Array], p: MultiwayParams) -> list[tuple[int, int, bool]]
     return out
 
 
-def _constrained_pair(T: Array, T_init: Array, source: Array, target_normals: Array,
-                      pairs: NDArray[np.int32], min_constraint: float) -> tuple[Array, int]:
-    """The pair's ICP result ``T`` (T_j_i) with its correction of the recorded ``T_init`` projected onto
-    the well-constrained directions of point-to-plane ICP, as online (``constrained_correction``;
-    ``source`` (N, 3) [m] frame i's points in its own frame, ``target_normals`` (M, 3) frame j's normals
-    of the degeneracy test (``constraint_normals``),
-    ``pairs`` (K, 2) the (source, target) correspondences at ``T``); returns it and how many of the 6
-    directions were kept."""
-    if pairs.shape[0] < 6 or min_constraint <= 0.0:
-        return T, 6
-    matched = transform_points(T, source[pairs[:, 0]])
-    normals = target_normals[pairs[:, 1]]
-    C, eigval = constrained_correction(T @ inv_T(T_init), matched, normals, min_constraint)
-    return C @ T_init, int(np.count_nonzero(eigval >= min_constraint))
-
-
 def _point_to_plane_information(matched: Array, normals: Array) -> Array:
     """Information matrix (6, 6) of a pair edge, Open3D's order (rotation, then translation, of frame j
     about its origin): sum over the pairs of a^T a, a = [q x n, n], the rows of the point-to-plane
@@ -262,13 +247,15 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
         if not (len(pts[i]) and len(pts[j])):
             continue
         T_init = inv_T(poses[j]) @ poses[i]  # recorded T_j_i: frame i's points into frame j
-        icp = point_to_plane_icp(transform_points(T_init, pts[i]), pts[j], normals[j], p.max_correspondence_m,
+        source = transform_points(T_init, pts[i])
+        icp = point_to_plane_icp(source, pts[j], normals[j], p.max_correspondence_m,
                                  max_iterations=p.max_iterations, epsilon=p.epsilon,
                                  max_tangential_m=p.normal_radius_m)
         fitness, rmse, pairs = icp.fitness, icp.rmse_m, icp.correspondences
-        T, n_constrained = _constrained_pair(icp.T @ T_init, T_init, pts[i], wide[j], pairs,
-                                             p.min_constraint)
-        n_underconstrained += n_constrained < 6
+        # the correction kept along the directions the pair constrains, as online
+        C, eigval = constrain_icp(icp, source, wide[j][pairs[:, 1]], p.min_constraint)
+        T = C @ T_init
+        n_underconstrained += kept_directions(eigval, p.min_constraint) < 6
         corr_m = float(np.linalg.norm(T[:3, 3] - T_init[:3, 3]))
         corr_deg = float(np.degrees(np.linalg.norm(rotvec(T[:3, :3] @ T_init[:3, :3].T))))
         ok = fitness >= p.min_fitness and corr_m <= p.max_correction_m and corr_deg <= p.max_correction_deg
