@@ -8,7 +8,6 @@ import numpy as np
 from cell.config.models import CellConfig
 from cell.packing.result import ReconstructionHistory
 from cell.planning.base import Array, Planner, ScanSession
-from cell.planning.lrnbv.planner import MappingSession
 from drivers.transforms import look_at
 
 
@@ -32,14 +31,13 @@ class HEUPlanner(Planner):
         self.reconstruction = ReconstructionHistory()
 
     def run(self, session: ScanSession) -> str:
-        s: MappingSession = session
         views = heu_views(self.config)
         skipped = 0
         for T in views:
-            if not s.move_to_sensor_pose(T):
+            if not session.move_to_sensor_pose(T):
                 skipped += 1
                 continue
-            s.wait(self.config.planners.heu.settle_s)
-            s.capture()
-            self.reconstruction.record(s.perception)
+            session.wait(self.config.planners.heu.settle_s)
+            session.capture()
+            self.reconstruction.record(session.perception)
         return f"heu complete: {len(views) - skipped} of {len(views)} poses captured, {skipped} refused"

@@ -53,13 +53,12 @@ Choices the paper leaves open, and why:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, Protocol
+from typing import ClassVar
 
 import numpy as np
 
 from cell.config.models import CellConfig
 from cell.packing.result import ReconstructionHistory
-from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Array, Planner, ScanSession
 from cell.planning.lrnbv.config import LRNBVConfig
 from cell.planning.lrnbv.sensor import sensor_rays
@@ -80,12 +79,6 @@ def look_at_rotations(eyes: Array, targets: Array) -> Array:
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     y = np.cross(z, x)
     return np.stack([x, y, z], axis=2)
-
-
-class MappingSession(ScanSession, Protocol):
-    """A scan session whose perception pipeline (occupancy map A^i) the planner may read."""
-
-    perception: PerceptionPipeline
 
 
 @dataclass
@@ -170,7 +163,7 @@ class RRTViewPlanner(Planner):
         self.rng = rng
 
     # ------------------------------------------------------------------------------------- the map side
-    def field(self, session: MappingSession, obj: Array) -> UtilityField:
+    def field(self, session: ScanSession, obj: Array) -> UtilityField:
         """U's map inputs for the current object O^i: ROI = its box grown by ``roi_margin_m``, not below
         the table."""
         m = self.params.roi_margin_m
@@ -238,7 +231,7 @@ class RRTViewPlanner(Planner):
         c = self.params.object_clearance_m
         return not bool(np.all(p >= obj_lo - c) and np.all(p <= obj_hi + c))
 
-    def expand(self, session: MappingSession, f: UtilityField, obj: Array, around: Array | None) -> Tree:
+    def expand(self, session: ScanSession, f: UtilityField, obj: Array, around: Array | None) -> Tree:
         """ExpandRRT (``around`` None) or ExpandRRTCached: a tree from the current sensor pose."""
         p = self.params
         root = session.sensor_pose()
@@ -292,13 +285,13 @@ class RRTViewPlanner(Planner):
             cache.utility[order]
 
     # ------------------------------------------------------------------------------------------ the scan
-    def _capture(self, session: MappingSession) -> Array:
+    def _capture(self, session: ScanSession) -> Array:
         session.wait(self.params.settle_s)
         session.capture()
         self.visited.mark(session.sensor_pose()[:3, 3])
         return self.reconstruction.record(session.perception)
 
-    def _initial_object(self, session: MappingSession) -> Array:
+    def _initial_object(self, session: ScanSession) -> Array:
         obj = self._capture(session)
         st = self.config.station
         target = np.array([st.xy_m[0], st.xy_m[1], self.table_z])
@@ -310,13 +303,13 @@ class RRTViewPlanner(Planner):
                 obj = self._capture(session)
         return obj
 
-    def _node_utility(self, session: MappingSession, obj: Array, tree: Tree, i: int) -> float:
+    def _node_utility(self, session: ScanSession, obj: Array, tree: Tree, i: int) -> float:
         """U of tree node ``i`` (its planned orientation) on the map and visited grid as they are now."""
         g = evaluate(self.field(session, obj), self.visited, tree.positions[i:i + 1], tree.rotations[i:i + 1],
                      self.rays, self.params.ray_length_m)
         return float(self.weights.utility(g)[0])
 
-    def capture_branch(self, session: MappingSession, obj: Array, tree: Tree, branch: list[int]) -> tuple[
+    def capture_branch(self, session: ScanSession, obj: Array, tree: Tree, branch: list[int]) -> tuple[
             Array, int, int]:
         """captureData(B^i) (line 16): the arm visits the branch's nodes from the root outwards and captures
         at each. A node after the first is first re-scored on the map and visited grid its predecessors'
@@ -346,10 +339,9 @@ class RRTViewPlanner(Planner):
         return obj, captured, refused
 
     def run(self, session: ScanSession) -> str:
-        s: MappingSession = session
         p = self.params
         self.prepare(session.sensor_model(), session.rng)
-        obj = self._initial_object(s)
+        obj = self._initial_object(session)
         if obj.shape[0] == 0:
             return "no object found in the first views"
         cache = CachedNodes()
@@ -358,15 +350,15 @@ class RRTViewPlanner(Planner):
         captures = 0
         failed_in_row = 0
         for it in range(p.max_iterations):
-            f = self.field(s, obj)
-            tree = self.expand(s, f, obj, None)
+            f = self.field(session, obj)
+            tree = self.expand(session, f, obj, None)
             branch = tree.best_branch()
             self._cache_off_branch(tree, branch, cache)
             if not branch or not np.isfinite(tree.utility[branch]).any():
                 return f"no feasible view left after {captures} captures (iteration {it})"
             u_x = self._best_utility(tree, branch)
             if best_c is not None and u_x < best_c and len(cache):
-                cached_tree = self.expand(s, f, obj, cache.positions)
+                cached_tree = self.expand(session, f, obj, cache.positions)
                 cached_branch = cached_tree.best_branch()
                 self._cache_off_branch(cached_tree, cached_branch, cache)
                 if cached_branch and np.isfinite(cached_tree.utility[cached_branch]).any():
@@ -378,7 +370,7 @@ class RRTViewPlanner(Planner):
                         f"{worst_c:.4g} after {captures} captures")
             if p.capture == "best_node":
                 branch = [branch[int(np.argmax(tree.utility[branch]))]]
-            obj, captured, refused = self.capture_branch(s, obj, tree, branch)
+            obj, captured, refused = self.capture_branch(session, obj, tree, branch)
             if refused:
                 cache.keep(~self.near_refused(cache.positions))
             self.n_failed_moves += refused
@@ -390,7 +382,7 @@ class RRTViewPlanner(Planner):
                 continue
             failed_in_row = 0
             m = max(1, round(p.cached_nodes * (1.0 - (it + 1) / p.max_iterations)))
-            self._rescore(self.field(s, obj), obj, cache, m)
+            self._rescore(self.field(session, obj), obj, cache, m)
             if len(cache):
                 best_c, worst_c = float(cache.utility[0]), float(cache.utility[-1])
         return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
