@@ -493,16 +493,12 @@ def point_to_plane_system(const double[:, ::1] points, const double[:, ::1] norm
     return count, sse
 
 
-cdef int _neighbour_runs(const int64_t* starts, int64_t nx, int64_t ny, int64_t nz, double cell_m,
-                         const double* lo, double px, double py, double pz, int64_t* first,
-                         int64_t* last) noexcept nogil:
-    """Into first / last (at least 9 each) the runs of point indices of the 3^3 cells around the cell
-    of (px, py, pz), clipped to the grid (one run per column of cells); returns their number."""
-    cdef int64_t cx, cy, cz, x, y, c
+cdef inline int _cell_runs(const int64_t* starts, int64_t nx, int64_t ny, int64_t nz, int64_t cx, int64_t cy,
+                           int64_t cz, int64_t* first, int64_t* last) noexcept nogil:
+    """Into first / last (at least 9 each) the runs of point indices of the 3^3 cells around cell
+    (cx, cy, cz), clipped to the grid (one run per column of cells, x then y); returns their number."""
+    cdef int64_t x, y, c
     cdef int n = 0
-    cx = <int64_t>floor((px - lo[0]) / cell_m)
-    cy = <int64_t>floor((py - lo[1]) / cell_m)
-    cz = <int64_t>floor((pz - lo[2]) / cell_m)
     if cz + 1 < 0 or cz - 1 > nz - 1:
         return 0
     for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
@@ -512,6 +508,15 @@ cdef int _neighbour_runs(const int64_t* starts, int64_t nx, int64_t ny, int64_t 
             last[n] = starts[c + min(cz + 1, nz - 1) + 1]
             n += 1
     return n
+
+
+cdef inline int _neighbour_runs(const int64_t* starts, int64_t nx, int64_t ny, int64_t nz, double cell_m,
+                                const double* lo, double px, double py, double pz, int64_t* first,
+                                int64_t* last) noexcept nogil:
+    """``_cell_runs`` around the cell of the point (px, py, pz)."""
+    return _cell_runs(starts, nx, ny, nz, <int64_t>floor((px - lo[0]) / cell_m),
+                      <int64_t>floor((py - lo[1]) / cell_m), <int64_t>floor((pz - lo[2]) / cell_m), first,
+                      last)
 
 
 def k_nearest_within(const double[:, ::1] points, const int64_t[::1] starts, int64_t nx, int64_t ny,
@@ -853,7 +858,9 @@ def radius_components(const double[:, ::1] points, const int64_t[:, ::1] cells, 
     receives for each point the lowest index (in this sorted order) of its component.
     """
     cdef Py_ssize_t i, j, n = points.shape[0], ri, rj
-    cdef int64_t cx, cy, cz, x, y, c
+    cdef int run, n_runs
+    cdef int64_t first[9]
+    cdef int64_t last[9]
     cdef double px, py, pz, dx, dy, dz, r2 = radius_m * radius_m
     cdef const double* pts = &points[0, 0]
     cdef int64_t* parent = &root_out[0]
@@ -862,23 +869,21 @@ def radius_components(const double[:, ::1] points, const int64_t[:, ::1] cells, 
             parent[i] = i
         for i in range(n):
             px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
-            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
-            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
-                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
-                    c = (x * ny + y) * nz
-                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
-                        if j <= i:
-                            continue
-                        dx = pts[3 * j] - px
-                        dy = pts[3 * j + 1] - py
-                        dz = pts[3 * j + 2] - pz
-                        if dx * dx + dy * dy + dz * dz <= r2:
-                            ri = _root(parent, i)
-                            rj = _root(parent, j)
-                            if ri < rj:
-                                parent[rj] = ri
-                            elif rj < ri:
-                                parent[ri] = rj
+            n_runs = _cell_runs(&starts[0], nx, ny, nz, cells[i, 0], cells[i, 1], cells[i, 2], first, last)
+            for run in range(n_runs):
+                for j in range(first[run], last[run]):
+                    if j <= i:
+                        continue
+                    dx = pts[3 * j] - px
+                    dy = pts[3 * j + 1] - py
+                    dz = pts[3 * j + 2] - pz
+                    if dx * dx + dy * dy + dz * dz <= r2:
+                        ri = _root(parent, i)
+                        rj = _root(parent, j)
+                        if ri < rj:
+                            parent[rj] = ri
+                        elif rj < ri:
+                            parent[ri] = rj
         for i in range(n):
             parent[i] = _root(parent, i)
 
@@ -950,20 +955,21 @@ def radius_counts(const double[:, ::1] points, const int64_t[:, ::1] cells, cons
     """The number of points (itself included) at most ``radius_m`` from each point, into ``out`` (N,)
     (DBSCAN's core test, ``segmentation.dbscan_labels``); points and grid as for ``radius_components``."""
     cdef Py_ssize_t i, j, n = points.shape[0]
-    cdef int64_t cx, cy, cz, x, y, c, count
+    cdef int run, n_runs
+    cdef int64_t first[9]
+    cdef int64_t last[9]
+    cdef int64_t count
     cdef double px, py, pz, dx, dy, dz, r2 = radius_m * radius_m
     cdef const double* pts = &points[0, 0]
     with nogil:
         for i in range(n):
             px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
-            cx, cy, cz = cells[i, 0], cells[i, 1], cells[i, 2]
+            n_runs = _cell_runs(&starts[0], nx, ny, nz, cells[i, 0], cells[i, 1], cells[i, 2], first, last)
             count = 0
-            for x in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
-                for y in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
-                    c = (x * ny + y) * nz
-                    for j in range(starts[c + max(cz - 1, 0)], starts[c + min(cz + 1, nz - 1) + 1]):
-                        dx = pts[3 * j] - px
-                        dy = pts[3 * j + 1] - py
-                        dz = pts[3 * j + 2] - pz
-                        count += dx * dx + dy * dy + dz * dz <= r2
+            for run in range(n_runs):
+                for j in range(first[run], last[run]):
+                    dx = pts[3 * j] - px
+                    dy = pts[3 * j + 1] - py
+                    dz = pts[3 * j + 2] - pz
+                    count += dx * dx + dy * dy + dz * dz <= r2
             out[i] = count
