@@ -18,7 +18,6 @@ Run: ``nice .venv/bin/python benchmarks/packing_grid.py [--objects horizontal_bo
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ from scipy.stats import mannwhitneyu
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grid_report import print_result
+from grid_report import grid_parser, print_result
 
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, object_pose_in_base, run_scan
@@ -133,15 +132,9 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", type=Path, default=REPO / "config" / "sim-ur5e-tof.yaml")
-    parser.add_argument("--objects", nargs="+", default=list(OBJECTS))
-    parser.add_argument("--planners", nargs="+", default=list(PLANNERS))
+    parser = grid_parser(__doc__.splitlines()[0], REPO / "config" / "sim-ur5e-tof.yaml", OBJECTS, PLANNERS,
+                         Path("/tmp/packing_grid"))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
-    parser.add_argument("--object-pose", nargs=3, type=float, default=(0.0, 0.0, 0.0),
-                        metavar=("X_M", "Y_M", "YAW_DEG"), help="object pose relative to the station")
-    parser.add_argument("--out", type=Path, default=Path("/tmp/packing_grid"), help="root of the job folders")
-    parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
     runs = []
     for obj in args.objects:

@@ -24,7 +24,6 @@ Run: ``nice .venv/bin/python benchmarks/vs_table.py [--planners vs-local] [--obj
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -35,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grid_report import print_result
+from grid_report import grid_parser, print_result
 
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
@@ -149,16 +148,10 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", type=Path, default=REPO / "config" / "sim-franka-rgbd.yaml")
-    parser.add_argument("--objects", nargs="+", default=list(OBJECTS))
-    parser.add_argument("--planners", nargs="+", default=list(PLANNERS))
+    parser = grid_parser(__doc__.splitlines()[0], REPO / "config" / "sim-franka-rgbd.yaml", OBJECTS, PLANNERS,
+                         Path("/tmp/vs_table"))
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--object-pose", nargs=3, type=float, default=(0.0, 0.0, 0.0),
-                        metavar=("X_M", "Y_M", "YAW_DEG"), help="object pose relative to the station")
     parser.add_argument("--jobs", type=int, default=2, help="scans run at the same time")
-    parser.add_argument("--out", type=Path, default=Path("/tmp/vs_table"), help="root of the job folders")
-    parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
     grid = [(p, o) for p in args.planners for o in args.objects]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
