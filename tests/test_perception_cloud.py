@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.perception.cloud import CloudAccumulator, PointGrid, crop_box, read_ply, voxel_downsample, write_ply
+from cell.perception.cloud import (
+    CloudAccumulator,
+    PointGrid,
+    crop_box,
+    first_voxels,
+    read_ply,
+    voxel_downsample,
+    write_ply,
+)
 from drivers.transforms import T_from_xyz_rpy, transform_points
 
 
@@ -24,6 +32,18 @@ def test_voxel_downsample_is_order_independent():
     b = voxel_downsample(pts[rng.permutation(2000)], 0.0025)
     np.testing.assert_allclose(a, b, atol=1e-15)
     assert voxel_downsample(np.zeros((0, 3)), 0.01).shape == (0, 3)
+
+
+def test_first_voxels_filters_the_concatenation_and_names_each_voxels_first_cloud():
+    a = np.array([[0.001, 0.001, 0.001], [0.031, 0.0, 0.0]])
+    b = np.array([[0.002, 0.002, 0.002], [0.015, 0.0, 0.0]])
+    c = np.array([[0.018, 0.001, 0.0], [0.035, 0.0, 0.0], [0.05, 0.05, 0.05]])
+    centroids, first = first_voxels([a, np.zeros((0, 3)), b, c], 0.01)
+    np.testing.assert_array_equal(centroids, voxel_downsample(np.vstack([a, b, c]), 0.01))
+    # voxels in key order: (0, 0, 0) from cloud 0, (1, 0, 0) from cloud 2, (3, 0, 0) from 0, (5, 5, 5) from 3
+    np.testing.assert_array_equal(first, [0, 2, 0, 3])
+    empty_centroids, empty_first = first_voxels([], 0.01)
+    assert empty_centroids.shape == (0, 3) and empty_first.shape == (0,)
 
 
 def test_crop_box_uses_open_intervals():

@@ -49,6 +49,12 @@ def test_reprocess_writes_hires_cloud_and_metrics(cube_job):
 
     m, m_online = out["metrics"], online["metrics"]
     assert set(m) == {"chamfer_mm", "hausdorff_mm", "coverage_pct"}
+    timeline = out["timeline"]
+    assert set(timeline) == {"t_s", *m} and all(len(v) == out["n_frames"] for v in timeline.values())
+    assert timeline["t_s"][0] == 0.0 and np.all(np.diff(timeline["t_s"]) > 0.0)
+    assert timeline["t_s"][-1] <= online["scan_time_s"]
+    assert {k: v[-1] for k, v in timeline.items() if k in m} == m
+    assert np.all(np.diff(timeline["coverage_pct"]) >= 0.0) and np.all(np.diff(timeline["chamfer_mm"]) <= 0.0)
     assert m["coverage_pct"] >= m_online["coverage_pct"] - 3.0
     assert m["chamfer_mm"] <= m_online["chamfer_mm"] + 0.2
 

@@ -7,6 +7,7 @@ independent of the order of its hash table, and sums each voxel's points in inpu
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,20 @@ def _voxel_groups(points: Array, voxel_m: float, box: tuple[Array, Array] | None
         raise ValueError(f"points are not finite or lie too far from the origin for a {voxel_m} m voxel grid")
     order = np.argsort(keys[:k])
     return keys[order], sums[order] / counts[order][:, None]
+
+
+def first_voxels(clouds: Sequence[Array], voxel_m: float) -> tuple[Array, NDArray[np.int64]]:
+    """The clouds (each (N_i, 3) [m]) concatenated and voxel filtered at ``voxel_m`` [m] (K, 3), as
+    ``voxel_downsample`` of their concatenation, and for each voxel the index (K,) of the first cloud
+    with a point in it."""
+    if not clouds:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    centroids = _voxel_groups(np.vstack(clouds), voxel_m)[1]
+    own = [_voxel_groups(c, voxel_m)[0] for c in clouds]
+    # both in key order; np.unique keeps a key's first occurrence, in cloud order the earliest cloud's
+    _, first = np.unique(np.concatenate(own), return_index=True)
+    cloud_of = np.repeat(np.arange(len(clouds)), [k.size for k in own])
+    return centroids, cloud_of[first]
 
 
 def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:

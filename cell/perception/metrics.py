@@ -61,8 +61,43 @@ def compute_metrics(ground_truth: Array, cloud: Array, radius_m: float = COVERAG
     if cloud.shape[0] == 0:
         return Metrics(float("inf"), float("inf"), 0.0)
     d, _ = cKDTree(cloud).query(ground_truth, k=1)
+    return _from_distances(np.asarray(d, dtype=np.float64), radius_m)
+
+
+def _from_distances(d: Array, radius_m: float) -> Metrics:
+    """Eq. 13 from the distances d (|A|,) [m] of the ground-truth points to their nearest cloud point."""
     return Metrics(chamfer_mm=float(np.mean(d) * 1e3), hausdorff_mm=float(np.max(d) * 1e3),
                    coverage_pct=float(100.0 * np.mean(d <= radius_m)))
+
+
+def metrics_timeline(ground_truth: Array, centroids: Array, first: NDArray[np.int64], n_frames: int,
+                     radius_m: float = COVERAGE_RADIUS_M) -> list[Metrics]:
+    """Eq. 13 as the scan went on (the curves of the visual-servoing paper's Fig. 5): entry k (k = 0 ..
+    ``n_frames`` - 1) measures the voxels of the scan's cloud ``centroids`` (K, 3) [m] that frame k or an
+    earlier one filled, ``first`` (K,) the first frame of each (``cloud.first_voxels``).
+
+    The last entry is the whole cloud's figure, exactly. Before it, a voxel stands at its final centroid,
+    which later frames' points may have moved within the voxel (by less than its diagonal) from the
+    centroid of the points seen so far. Each frame's new voxels are measured only against the
+    ground-truth points they can bring closer: within the distance the earlier voxels left (rounded up to
+    the next millimetre, so that the points go to the k-d tree in a few groups), a bound that keeps the
+    search to the new voxels near each point.
+    """
+    d = np.full(ground_truth.shape[0], np.inf)
+    order = np.argsort(first, kind="stable")
+    starts = np.searchsorted(first[order], np.arange(n_frames + 1))
+    out: list[Metrics] = []
+    for k in range(n_frames):
+        new = centroids[order[starts[k]:starts[k + 1]]]
+        if new.shape[0]:
+            tree = cKDTree(new)
+            bound = (np.floor(d / 1e-3) + 1.0) * 1e-3
+            for b in np.unique(bound):
+                at = np.flatnonzero(bound == b)
+                found, _ = tree.query(ground_truth[at], k=1, distance_upper_bound=float(b))
+                d[at] = np.minimum(d[at], found)
+        out.append(_from_distances(d, radius_m))
+    return out
 
 
 class CoverageTracker:

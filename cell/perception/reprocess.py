@@ -32,7 +32,11 @@ then compares the result with the ground truth by eq. 13. ``reprocess_job`` does
 5. each frame transformed by its optimized pose, concatenated and voxel-filtered at ``voxel_m``; written
    to ``cloud_hires.ply``;
 6. eq. 13 metrics when the object and its pose are known (simulated jobs), against the same ground-truth
-   sample as the online run; everything in ``result_hires.json``.
+   sample as the online run, and their ``timeline`` as the scan went on (the paper's Fig. 5, bottom): per
+   frame, its capture time from the first frame [s, the clock of ``scan_time_s``] and the figures of the
+   cloud the frames up to it make, built as in step 5 with the same optimized poses; the last entry is
+   the whole scan's figure (``cell.perception.metrics.metrics_timeline``); everything in
+   ``result_hires.json``.
 
 Left out from the paper's post-processing: the statistical outlier filter and segmentation (not part of
 the online pipeline of this release either); the comparison places the mesh at its known pose instead
@@ -54,8 +58,13 @@ from numpy.typing import NDArray
 from pydantic import Field, PositiveFloat, PositiveInt
 
 from cell.config.models import CropBoxConfig
-from cell.perception.cloud import crop_voxel_downsample, cross_rows, voxel_downsample, write_ply
-from cell.perception.metrics import compute_metrics, ground_truth_points
+from cell.perception.cloud import crop_voxel_downsample, cross_rows, first_voxels, voxel_downsample, write_ply
+from cell.perception.metrics import (
+    Metrics,
+    compute_metrics,
+    ground_truth_points,
+    metrics_timeline,
+)
 from cell.perception.registration import (
     constrain_icp,
     constraint_normals,
@@ -179,20 +188,21 @@ def _crop_for(job_dir: Path, result: dict[str, Any]) -> tuple[CropBoxConfig, str
     return PAPER_CROP, "paper section II-A"
 
 
-def _load_frame(path: Path) -> tuple[Array, Array]:
-    """(points [m, sensor frame], T_base_sensor) of one recorded frame."""
+def _load_frame(path: Path) -> tuple[Array, Array, float]:
+    """(points [m, sensor frame], T_base_sensor, capture time [s, job clock]) of one recorded frame."""
     try:
         with np.load(path) as f:
             T = np.asarray(f["T_base_sensor"], dtype=np.float64)
+            t = float(f["timestamp"])
             if "depth" in f and "K" in f:
                 pts = back_project(np.asarray(f["depth"]), np.asarray(f["K"], dtype=np.float64))
             else:
                 pts = np.asarray(f["points"], dtype=np.float64).reshape(-1, 3)
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, TypeError) as exc:
         raise JobError(f"{path}: not a readable frame ({exc})") from None
     if T.shape != (4, 4):
         raise JobError(f"{path}: T_base_sensor has shape {T.shape}, expected (4, 4)")
-    return pts, T
+    return pts, T, t
 
 
 def _pairs(poses: list[Array], p: MultiwayParams) -> list[tuple[int, int, bool]]:
@@ -312,6 +322,11 @@ def _ground_truth(result: dict[str, Any]) -> Array | None:
     return ground_truth_points(mesh, T_base_object)
 
 
+def _rounded(m: Metrics) -> dict[str, float | None]:
+    """Eq. 13 figures for JSON: 6 decimals, None for the infinite distances of an empty cloud."""
+    return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in m.as_dict().items()}
+
+
 def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig | None = None,
                   params: MultiwayParams | None = None, frame_step: int = 1) -> dict[str, Any]:
     """Rebuild a job's cloud at ``voxel_m`` [m] with multiway registration (paper section III-B).
@@ -338,10 +353,12 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
 
     clouds: list[Array] = []
     poses: list[Array] = []
+    times: list[float] = []
     for path in files:
-        pts, T = _load_frame(path)
+        pts, T, t = _load_frame(path)
         clouds.append(crop_voxel_downsample(pts, crop.x_m, crop.y_m, crop.z_m, voxel_m))
         poses.append(T)
+        times.append(t)
     t_loaded = time.perf_counter()
 
     with single_threaded_open3d():
@@ -350,14 +367,17 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
 
     per_frame = [voxel_downsample(transform_points(T, c), voxel_m) for T, c in zip(optimized, clouds,
                                                                                      strict=True)]
-    cloud = voxel_downsample(np.vstack(per_frame), voxel_m) if per_frame else np.zeros((0, 3))
+    cloud, first = first_voxels(per_frame, voxel_m)
     write_ply(job_dir / "cloud_hires.ply", cloud)
 
     gt = _ground_truth(result)
-    metrics = None
+    metrics = timeline = None
     if gt is not None:
-        m = compute_metrics(gt, cloud).as_dict()
-        metrics = {k: (round(v, 6) if np.isfinite(v) else None) for k, v in m.items()}
+        metrics = _rounded(compute_metrics(gt, cloud))
+        steps = [_rounded(m) for m in metrics_timeline(gt, cloud, first, len(per_frame))]
+        timeline = {"t_s": [round(t - times[0], 3) for t in times],
+                    **{k: [step[k] for step in steps] for k in metrics}}
+    t_measured = time.perf_counter()
     out: dict[str, Any] = {
         "n_frames": len(files),
         "frame_step": frame_step,
@@ -367,9 +387,11 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
         "n_cloud_points": int(cloud.shape[0]),
         "metrics": metrics,
         "metrics_online": result.get("metrics"),
+        "timeline": timeline,
         "registration": summary,
         "wall_time_s": {"load": round(t_loaded - t_start, 3),
                         "registration": round(t_registered - t_loaded, 3),
+                        "metrics": round(t_measured - t_registered, 3),
                         "total": round(time.perf_counter() - t_start, 3)},
     }
     (job_dir / "result_hires.json").write_text(json.dumps(out, indent=2, allow_nan=False) + "\n")
