@@ -35,8 +35,11 @@ PROPERTY = settings(max_examples=5, deadline=None, derandomize=True,
 class Rig:
     """A simulated arm driven by a guard, recording every twist that reaches the backend."""
 
-    def __init__(self, model_name: str) -> None:
+    def __init__(self, model_name: str, home_joints_rad: list[float] | None = None) -> None:
         self.cfg: CellConfig = load_config(CELLS[model_name])
+        if home_joints_rad is not None:
+            arm = self.cfg.arm.model_copy(update={"home_joints_rad": home_joints_rad})
+            self.cfg = self.cfg.model_copy(update={"arm": arm})
         self.model = get_robot_model(model_name)
         self.clock = SimClock()
         self.arm = SimArm(self.cfg.arm, self.model, self.clock, np.random.default_rng(0))
@@ -348,3 +351,19 @@ def test_a_streamed_twist_into_the_object_is_refused_as_a_twist_refusal():
         rig.guard.tick()
         rig.step()
     assert rig.arm.state().mode is ArmMode.VELOCITY
+
+
+def test_a_commanded_twist_comes_back_as_the_arm_realizes_it():
+    """Damped least squares falls short of a twist along a near-singular direction: the returned twist
+    says so (the servo scan judges a camera held by the arm's reach by it)."""
+    rig = Rig("panda")
+    outward = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0])
+    free = rig.guard.command_twist(outward)
+    assert np.allclose(free, outward, atol=5e-4)
+    rig.guard.hold()
+
+    stretched = Rig("panda", [-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33])  # flange at x = 0.65 m
+    realized = stretched.guard.command_twist(outward)
+    assert np.linalg.norm(realized[:3]) < 0.15 * np.linalg.norm(outward[:3])
+    up = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])
+    assert np.allclose(stretched.guard.command_twist(up), up, atol=5e-4)

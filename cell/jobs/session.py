@@ -255,7 +255,7 @@ class JobSession:
     def command_sensor_twist(self, v_sensor: Array) -> Array:
         """Stream a twist of the sensor frame, expressed in the sensor frame (v [m/s], w [rad/s]; the
         papers' camera twist), through the guard until the next command or ``hold``. Returns the twist the
-        limits allow now, in the sensor frame."""
+        arm realizes of it now (within the limits, short of it near a singularity), in the sensor frame."""
         to_flange = self._sensor_twist_map(self._guard.state().T_base_flange)
         sent = self._guard.command_twist(to_flange @ np.asarray(v_sensor, dtype=float))
         # numpy's stub types solve() of float64 operands as NDArray[floating]; it returns float64

@@ -217,7 +217,10 @@ class MotionGuard:
 
     def command_twist(self, v_base_flange: Array) -> Array:
         """Set the flange twist (base frame [m/s, rad/s]) that each control tick streams until the next
-        command or ``hold``; returns it as the limits allow it now (the tick re-applies them)."""
+        command or ``hold``; returns the twist the arm realizes of it now: as the limits allow it (the
+        tick re-applies them), through the arm's differential IK, whose damped least squares falls short
+        of a twist along a direction the arm is near-singular in (an arm stretched to its reach moves
+        a few percent of a twist outwards)."""
         v = np.asarray(v_base_flange, dtype=float)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
             raise self._refuse(f"twist must be 6 finite values, got {np.array2string(v, precision=4)}")
@@ -225,7 +228,8 @@ class MotionGuard:
             raise self._refuse("a twist was commanded while a trajectory is being followed")
         self._target = v.copy()
         state = self.state()
-        return self._limit(v, state, self._model.velocity_map(state.q), count=False)
+        ik = self._model.velocity_map(state.q)
+        return self._model.jacobian(state.q) @ ik(self._limit(v, state, ik, count=False))
 
     def hold(self) -> None:
         """Ramp the streamed twist down to zero (within the acceleration limits) and keep the arm still."""

@@ -22,8 +22,9 @@ secondary direction for ``backoff_s``, then goes on with that direction blocked 
 
 ``telemetry`` keeps one row per servo iteration: the series of the paper's Fig. 4 (||e||, f(r), ||g||
 before clipping, H_ROI) with the job time and the strategy's mode. ||g|| there is after the barrier
-projection and scaled by the share of the commanded motion the guard let through, so that it falls when
-the camera is held by a plane or a joint limit (the drop of the paper's Fig. 4 at 38 s).
+projection and scaled by the share of the commanded motion the arm realizes, so that it falls when the
+camera is held by a plane, a joint limit or the arm's reach (a singularity), as at the drop of the paper's
+Fig. 4 at 38 s.
 """
 
 from __future__ import annotations
@@ -112,8 +113,9 @@ def start_views(config: CellConfig) -> list[Array]:
 
 
 def achieved_fraction(v_commanded: Array, v_allowed: Array) -> float:
-    """The share in [0, 1] of the commanded translation speed that the guard's limits let through (joint
-    limits and margins, barrier planes, speed limits); 1 when nothing was commanded."""
+    """The share in [0, 1] of the commanded translation speed that the arm realizes: what the guard's
+    limits let through (joint limits and margins, barrier planes, speed limits) and its differential IK
+    achieves (short of a twist near a singularity); 1 when nothing was commanded."""
     wanted = float(np.linalg.norm(v_commanded[:3]))
     if wanted < 1e-9:
         return 1.0
@@ -165,7 +167,7 @@ class ServoScanPlanner(Planner):
 
     def observe(self, secondary: Secondary, g_norm: float) -> None:
         """After the twist went out: ``g_norm`` is ||g|| before clipping scaled by the share of the motion
-        the guard let through (a strategy with a convergence rule on ||g|| counts it here)."""
+        the arm realizes (a strategy with a convergence rule on ||g|| counts it here)."""
 
     def open_entropy_window(self) -> None:
         """Start judging the H_ROI termination, on the values from the next perception update on (a
