@@ -15,6 +15,11 @@ only the mean over objects: 42 / 57 / 67 s and 0.8 / 0.8 / 1.2 m). The summary c
 on the paper's procedure: per strategy, coverage at least the paper's on at least 6 of the 8 objects, and
 a mean VS-Local scan time of at most 42 s.
 
+Re-processing also gives each run's eq. 13 figures as the scan went on (``timeline`` of
+``result_hires.json``): the table adds the scan time at which a run first reached the paper's coverage for
+its object and strategy, and ``<out>/fig5.png`` plots Chamfer distance and coverage against scan time, per
+object, as the paper's Fig. 5 (bottom) does, a dot where each scan terminated.
+
 Prints the table, then as its last line JSON {"runs": [...], "summary": {...}}; ``--json`` also writes
 that JSON to a file. Runs go ``--jobs`` at a time (default 2), each in its own process.
 
@@ -31,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure  # not pyplot: a file only, no display
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -73,14 +79,28 @@ def run_one(config_path: Path, obj: str, planner: str, seed: int, pose: tuple[fl
     r = run_scan(ScanRequest(config=cfg, config_path=str(config_path), object=obj, object_pose=pose,
                              planner=planner, seed=seed, out=folder)).result
     scan_wall = time.perf_counter() - wall
-    m = reprocess_job(folder)["metrics"] or {}
+    hires = reprocess_job(folder)
+    m = hires["metrics"] or {}
     return {"object": obj, "planner": planner, "seed": seed, "status": r["status"],
             "termination": r["termination"], "coverage_pct": m.get("coverage_pct"),
             "chamfer_mm": m.get("chamfer_mm"), "hausdorff_mm": m.get("hausdorff_mm"),
             "online": r["metrics"], "scan_time_s": r["scan_time_s"], "sim_time_s": r["sim_time_s"],
             "path_length_m": r["scan_path_length_m"],
+            "time_to_paper_coverage_s": time_to_coverage(hires["timeline"],
+                                                         paper_value(planner, "coverage_pct", obj)),
+            "timeline": hires["timeline"],
             "n_captures": r["n_captures"], "wall_s": round(scan_wall, 2),
             "reprocess_wall_s": round(time.perf_counter() - wall - scan_wall, 2)}
+
+
+def time_to_coverage(timeline: dict[str, list[float | None]] | None, coverage_pct: float | None
+                     ) -> float | None:
+    """Scan time [s] of the first frame whose cloud, with the frames before it, reaches ``coverage_pct``
+    (re-processing's timeline); None if it never does, or nothing is known to compare."""
+    if timeline is None or coverage_pct is None:
+        return None
+    return next((t for t, c in zip(timeline["t_s"], timeline["coverage_pct"], strict=True)
+                 if t is not None and c is not None and c >= coverage_pct), None)
 
 
 def paper_value(planner: str, metric: str, obj: str) -> float | None:
@@ -98,7 +118,8 @@ def _pair(value: float | None, paper: float | None, digits: int) -> str:
 def table(runs: list[dict[str, Any]]) -> list[str]:
     """One line per run, ours (paper's) side by side."""
     lines = [f"{'planner':9} {'object':9} {'coverage %':>14} {'Chamfer mm':>12} {'Hausdorff mm':>14} "
-             f"{'time s':>12} {'path m':>11}  {'online: cov % / Ch / Hd':>24}  termination"]
+             f"{'time s':>12} {'to paper cov. s':>15} {'path m':>11}  {'online: cov % / Ch / Hd':>24}  "
+             "termination"]
     for r in runs:
         p, o = r["planner"], r["object"]
         online = r["online"] or {}
@@ -109,6 +130,7 @@ def table(runs: list[dict[str, Any]]) -> list[str]:
             f"{_pair(r['chamfer_mm'], paper_value(p, 'chamfer_mm', o), 1):>12} "
             f"{_pair(r['hausdorff_mm'], paper_value(p, 'hausdorff_mm', o), 1):>14} "
             f"{_pair(r['scan_time_s'], PAPER_TIME_S.get(p), 1):>12} "
+            f"{_pair(r['time_to_paper_coverage_s'], None, 1):>15} "
             f"{_pair(r['path_length_m'], PAPER_PATH_M.get(p), 2):>11}  {online_text:>24}  "
             f"{r['termination'][:60]}")
     return lines
@@ -134,6 +156,7 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "at_or_above_paper_online": len(online),
             "mean_coverage_pct": round(float(np.mean([r["coverage_pct"] or 0.0 for r in rs])), 2),
             "mean_time_s": round(float(np.mean([r["scan_time_s"] or 0.0 for r in rs])), 2),
+            "time_to_paper_coverage_s": {r["object"]: r["time_to_paper_coverage_s"] for r, _ in judged},
             "mean_path_m": round(float(np.mean([r["path_length_m"] for r in rs])), 3),
         }
         out[planner] = entry
@@ -145,6 +168,39 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             goal_met = False
     out["goal_met"] = goal_met and set(PLANNERS) <= set(out)
     return out
+
+
+def plot_timelines(runs: list[dict[str, Any]], path: Path) -> None:
+    """The paper's Fig. 5 (bottom) for these runs: per object, Chamfer distance [mm] (top panel) and
+    coverage [%] (bottom, Table I's figure per strategy dashed) against scan time [s], a line per
+    strategy, a dot where the scan terminated."""
+    objects = list(dict.fromkeys(r["object"] for r in runs))
+    cols = min(4, len(objects))
+    rows = -(-len(objects) // cols)
+    fig = Figure(figsize=(4.0 * cols, 5.0 * rows))
+    axes = fig.subplots(2 * rows, cols, squeeze=False)
+    colours = dict(zip(PLANNERS, ("tab:blue", "tab:orange", "tab:green"), strict=True))
+    for i, obj in enumerate(objects):
+        top, bottom = axes[2 * (i // cols), i % cols], axes[2 * (i // cols) + 1, i % cols]
+        for r in (r for r in runs if r["object"] == obj and r["timeline"] is not None):
+            tl, colour = r["timeline"], colours.get(r["planner"], "tab:gray")
+            for ax, key in ((top, "chamfer_mm"), (bottom, "coverage_pct")):
+                ax.plot(tl["t_s"], tl[key], color=colour, label=r["planner"])
+                ax.plot([r["scan_time_s"]], [tl[key][-1]], "o", color=colour)
+            paper = paper_value(r["planner"], "coverage_pct", obj)
+            if paper is not None:
+                bottom.axhline(paper, color=colour, linestyle="--", linewidth=0.8)
+        top.set_title(obj)
+        top.set_ylabel("Chamfer [mm]")
+        top.set_ylim(bottom=0.0)
+        bottom.set_ylabel("coverage [%]")
+        bottom.set_xlabel("scan time [s]")
+        top.legend(fontsize="small")
+    for j in range(len(objects), rows * cols):
+        axes[2 * (j // cols), j % cols].set_visible(False)
+        axes[2 * (j // cols) + 1, j % cols].set_visible(False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 def main() -> None:
@@ -166,6 +222,8 @@ def main() -> None:
                   f"{run['reprocess_wall_s']} s re-processing; {run['termination']}", flush=True)
             runs.append(run)
     print("\n".join(table(runs)))
+    plot_timelines(runs, args.out / "fig5.png")
+    print(f"Fig. 5 (Chamfer and coverage against scan time): {args.out / 'fig5.png'}")
     result = {"runs": runs, "summary": summary(runs)}
     print_result(result, args.json)
 
