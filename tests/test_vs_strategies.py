@@ -414,9 +414,18 @@ def test_secondary_slides_along_a_joint_limit(franka):
     s = np.array([0.0, 0.0, franka.scan.standoff_m])
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     sec = Secondary(np.array([0.6, 0.8, 0.0, 0.0, 0.0, 0.0]), 2.0, 1.0, "local")
-    blocked = planner._within_limits(JointLimitSession([1.0, 0, 0, 0, 0, 0]), T, s, sec)
-    np.testing.assert_allclose(blocked.g, [0.0, 0.8, 0.0, 0.0, 0.0, 0.0], atol=1e-12)  # slides along it
-    assert blocked.g_norm == pytest.approx(2.0 * 0.8)
+    limit = JointLimitSession([1.0, 0, 0, 0, 0, 0])
+    # g before clipping, (1.2, 1.6), projected: (0, 1.6), clipped again: the camera slides at full speed
+    blocked = planner._within_limits(limit, T, s, sec)
+    np.testing.assert_allclose(blocked.g, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    assert blocked.g_norm == pytest.approx(1.6)
+    # (0.66, 0.88) projected: (0, 0.88), below the clipping norm: slower, and counted as converging
+    weak = planner._within_limits(limit, T, s, Secondary(sec.g, 1.1, 1.0, "local"))
+    np.testing.assert_allclose(weak.g[:2], [0.0, 0.88], atol=1e-12)
+    assert weak.g_norm == pytest.approx(0.88)
+    unclipped = planner._within_limits(limit, T, s, Secondary(sec.g * 0.5, 0.5, 1.0, "local"))
+    np.testing.assert_allclose(unclipped.g[:2], [0.0, 0.4], atol=1e-12)
+    assert unclipped.g_norm == pytest.approx(0.4)
     free = planner._within_limits(JointLimitSession(np.zeros((0, 6))), T, s, sec)
     assert free is sec
     away = planner._within_limits(JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
@@ -464,7 +473,7 @@ def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
     s = np.array([0.0, 0.0, franka.scan.standoff_m])
     towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
                                                               "local"))
-    np.testing.assert_allclose(towards.g[:2], [0.0, 0.8], atol=1e-12)  # slides past the refused direction
+    np.testing.assert_allclose(towards.g[:2], [0.0, 1.0], atol=1e-12)  # slides past the refused direction
     session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
     sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
     assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused

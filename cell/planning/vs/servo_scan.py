@@ -251,17 +251,21 @@ class ServoScanPlanner(Planner):
         return np.concatenate(B) if B else np.zeros((0, 2))
 
     def _within_limits(self, session: ScanSession, T_base_cam: Array, s: Array, sec: Secondary) -> Secondary:
-        """``sec`` with g projected into the set ``_blocked_directions`` allows (the camera slides along a
-        joint limit as along a barrier plane, paper Fig. 3); ||g|| before clipping shrinks in proportion,
-        so that a camera held there converges as at a plane."""
+        """``sec`` with g projected into the set ``_blocked_directions`` allows, the camera sliding along a
+        joint limit as along a barrier plane (paper Fig. 3): g before clipping is projected, and then
+        clipped again to the norm g had, so that a strong gradient slides the camera along the limit at
+        full speed, and ||g|| before clipping, the projected one, falls below 1 when the camera is held
+        there, as at a plane. Projection onto these half-planes through the origin scales with its
+        argument: g before clipping is ``sec.g`` times ||g|| before clipping over ||``sec.g``||."""
         norm = float(np.linalg.norm(sec.g[:2]))
         B = self._blocked_directions(session, T_base_cam, s) if norm > 0.0 else np.zeros((0, 2))
         if not B.shape[0]:
             return sec
         xy, _ = project_onto_halfspaces(sec.g[:2], B, np.zeros(B.shape[0]), np.ones(2))
+        projected = float(np.linalg.norm(xy)) * sec.g_norm / norm
         g = sec.g.copy()
-        g[:2] = xy
-        return Secondary(g, sec.g_norm * float(np.linalg.norm(xy)) / norm, sec.f, sec.mode)
+        g[:2] = xy * (sec.g_norm / norm) * min(1.0, norm / projected) if projected > 0.0 else 0.0
+        return Secondary(g, projected, sec.f, sec.mode)
 
     def _back_off(self, session: ScanSession, refused: Secondary, period: float) -> None:
         """After the guard refused the streamed twist (and stopped the arm): remember the refused secondary
