@@ -9,7 +9,9 @@ import shutil
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from cell.cli.main import app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
@@ -125,6 +127,19 @@ def test_reprocess_adds_loop_closures_between_close_frames(job_copy):
     assert reg["edges"] == reg["fk_prior_edges"] + reg["pair_edges"]
     assert reg["max_pose_change_mm"] < 1.0 and reg["max_pose_change_deg"] < 0.2
     assert out["metrics"]["coverage_pct"] >= online["metrics"]["coverage_pct"] - 3.0
+
+
+def test_a_job_without_ground_truth_is_rebuilt_without_metrics(job_copy):
+    job, _ = job_copy
+    result = json.loads((job / "result.json").read_text())
+    del result["object_pose"]  # as on a real cell: nothing to compare with
+    (job / "result.json").write_text(json.dumps(result))
+    res = CliRunner().invoke(app, ["reprocess", str(job)])
+    assert res.exit_code == 0, res.output
+    assert "coverage: - (no ground truth)" in res.output
+    written = json.loads((job / "result_hires.json").read_text())
+    assert written["metrics"] is None and written["timeline"] is None
+    assert read_ply(job / "cloud_hires.ply").shape[0] == written["n_cloud_points"] > 0
 
 
 def test_reprocess_prunes_uncertain_edges_only(job_copy):

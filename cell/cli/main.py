@@ -145,8 +145,7 @@ def reprocess(job_dir: Path) -> None:
     cov = out["metrics"]["coverage_pct"] if out.get("metrics") else None
     console.print(f"{out['n_frames']} frames, {out['n_cloud_points']} points at {out['voxel_m'] * 1e3:g} mm",
                   highlight=False)
-    if cov is not None:
-        console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
+    console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
                   highlight=False)
     console.print(f"wrote {job_dir / 'cloud_hires.ply'} and {job_dir / 'result_hires.json'}", markup=False,
                   highlight=False)
