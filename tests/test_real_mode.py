@@ -41,7 +41,12 @@ def test_a_real_mode_scan_runs_with_a_hardware_arm_and_sensor(tmp_path: Path, pl
         peer.stop()
     result = out.result
     assert result["status"] == "completed", result["termination"]
-    assert result["safety"]["stops"] == [], result["safety"]
+    # The guard may refuse a twist towards the object's ROI: the emulated view does not follow the arm,
+    # so the map smears the cube along the path, and on the wall clock how far the arm gets depends on
+    # the machine's load. The scan backs off and goes on; nothing else (a fault, the watchdog) may stop it.
+    safety = result["safety"]
+    assert all(stop["reason"].startswith("refused: ") for stop in safety["stops"]), safety
+    assert len(safety["stops"]) == len(safety["refusals"]), safety
     # the frames came from the serial link and were recorded with the pose of their time
     frames = sorted((out.folder / "frames").glob("*.npz"))
     assert result["n_captures"] == len(frames) >= 2
