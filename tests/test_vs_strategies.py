@@ -183,6 +183,10 @@ def test_achieved_fraction_measures_what_the_guard_let_through():
     assert achieved_fraction(v, 0.25 * v) == pytest.approx(0.25)
     assert achieved_fraction(v, np.zeros(6)) == 0.0  # held by a joint limit
     assert achieved_fraction(np.zeros(6), np.zeros(6)) == 1.0
+    # turned by the arm's differential IK near a singularity: what counts is the part along the command
+    turned = np.array([0.002, 0.0075, 0.0, 0.0, 0.0, 0.0])
+    assert achieved_fraction(v, turned) == pytest.approx(0.1)
+    assert achieved_fraction(v, -v) == 0.0
 
 
 def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):

@@ -113,13 +113,15 @@ def start_views(config: CellConfig) -> list[Array]:
 
 
 def achieved_fraction(v_commanded: Array, v_allowed: Array) -> float:
-    """The share in [0, 1] of the commanded translation speed that the arm realizes: what the guard's
-    limits let through (joint limits and margins, barrier planes, speed limits) and its differential IK
-    achieves (short of a twist near a singularity); 1 when nothing was commanded."""
-    wanted = float(np.linalg.norm(v_commanded[:3]))
-    if wanted < 1e-9:
+    """The share in [0, 1] of the commanded translation that the arm realizes along the commanded
+    direction: what the guard's limits let through (joint limits and margins, barrier planes, speed
+    limits) and its differential IK achieves; 1 when nothing was commanded. Along the direction, not in
+    norm: near a singularity damped least squares also turns the twist (a teapot scan's arm, unable to
+    back the camera away, realized 38 % of the commanded speed in norm and 10 % along it)."""
+    wanted = float(np.dot(v_commanded[:3], v_commanded[:3]))
+    if wanted < 1e-18:
         return 1.0
-    return min(1.0, float(np.linalg.norm(v_allowed[:3])) / wanted)
+    return min(1.0, max(0.0, float(np.dot(v_commanded[:3], v_allowed[:3])) / wanted))
 
 
 def translated(T_base_cam: Array, offsets_cam: Array) -> PoseBatch:
