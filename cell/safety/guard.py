@@ -229,7 +229,7 @@ class MotionGuard:
         self._target = v.copy()
         state = self.state()
         ik = self._model.velocity_map(state.q)
-        return self._model.jacobian(state.q) @ ik(self._limit(v, state, ik, count=False))
+        return ik.realized(self._limit(v, state, ik, count=False))
 
     def hold(self) -> None:
         """Ramp the streamed twist down to zero (within the acceleration limits) and keep the arm still."""

@@ -73,14 +73,21 @@ class JointVelocityMap:
     """The differential IK at one configuration, without position limits (module docstring,
     "Redundancy"): ``qd = task @ v + |task @ v| * null`` [rad/s] for a flange twist ``v`` (base frame,
     [m/s, rad/s]); ``task`` (n, 6) is the damped least-squares map, ``null`` (n,) the joint-limit avoidance
-    direction in the Jacobian's null space per unit of task joint speed (zero without redundancy)."""
+    direction in the Jacobian's null space per unit of task joint speed (zero without redundancy);
+    ``jacobian`` (6, n) the geometric Jacobian both were made from."""
 
     task: Array
     null: Array
+    jacobian: Array
 
     def __call__(self, v: Array) -> Array:
         qd = self.task @ v
         return qd + float(np.linalg.norm(qd)) * self.null
+
+    def realized(self, v: Array) -> Array:
+        """The flange twist (6,) the joint velocities ``self(v)`` make: ``v`` itself away from
+        singularities, short of it (and turned) along a direction the arm is near-singular in."""
+        return self.jacobian @ self(v)
 
 
 @dataclass(frozen=True)
@@ -315,16 +322,16 @@ class RobotModel:
     def _velocity_map_J(self, q: Array, J: Array, damping: float) -> JointVelocityMap:
         task = J.T @ np.linalg.inv(J @ J.T + damping * damping * np.eye(6))
         if self.limit_avoidance_gain == 0.0:
-            return JointVelocityMap(task, np.zeros(self.n_joints))
+            return JointVelocityMap(task, np.zeros(self.n_joints), J)
         # The null space of a full-rank 6 x 7 Jacobian is spanned by its generalised cross product,
         # n_i = (-1)^i det(J without column i) (zero at a singularity, where the avoidance pauses).
         n = _ALTERNATING_SIGNS * np.linalg.det(J[:, _MINOR_COLUMNS].transpose(1, 0, 2))
         nn = float(n @ n)
         if nn < 1e-24:
-            return JointVelocityMap(task, np.zeros(self.n_joints))
+            return JointVelocityMap(task, np.zeros(self.n_joints), J)
         span = self.q_max - self.q_min
         grad_h = 2.0 * (2.0 * q - self.q_max - self.q_min) / (span * span)  # dH/dq [1/rad]
-        return JointVelocityMap(task, -self.limit_avoidance_gain * float(n @ grad_h) / nn * n)
+        return JointVelocityMap(task, -self.limit_avoidance_gain * float(n @ grad_h) / nn * n, J)
 
     def ik_velocity(self, q: object, v_base_flange: object, dt: float,
                     damping: float = DLS_DAMPING_M) -> Array:
