@@ -177,7 +177,7 @@ def test_local_convergence_needs_a_full_window_mostly_below_one(franka):
     assert not local.converged()
 
 
-def test_achieved_fraction_measures_what_the_guard_let_through():
+def test_achieved_fraction_measures_what_the_arm_realized_along_the_command():
     v = np.array([0.02, 0.0, 0.0, 0.0, 0.1, 0.0])
     assert achieved_fraction(v, v) == 1.0
     assert achieved_fraction(v, 0.25 * v) == pytest.approx(0.25)

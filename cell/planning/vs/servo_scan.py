@@ -264,9 +264,10 @@ class ServoScanPlanner(Planner):
         if not B.shape[0]:
             return sec
         xy, _ = project_onto_halfspaces(sec.g[:2], B, np.zeros(B.shape[0]), np.ones(2))
-        projected = float(np.linalg.norm(xy)) * sec.g_norm / norm
+        raw = xy * (sec.g_norm / norm)  # g before clipping, projected
+        projected = float(np.linalg.norm(raw))
         g = sec.g.copy()
-        g[:2] = xy * (sec.g_norm / norm) * min(1.0, norm / projected) if projected > 0.0 else 0.0
+        g[:2] = raw * min(1.0, norm / projected) if projected > 0.0 else 0.0
         return Secondary(g, projected, sec.f, sec.mode)
 
     def _back_off(self, session: ScanSession, refused: Secondary, period: float) -> None:
