@@ -24,10 +24,12 @@ POSE_LINE = re.compile(r"tcp pose: x ([-+.\d]+) m y ([-+.\d]+) m z ([-+.\d]+) m"
 def peer_cell_file(template: Path, host: str, folder: Path) -> Path:
     """``template`` with the arm pointed at a peer on ``host``, with timing a Python peer and a control loop
     on a loaded test machine keep up with: RTDE at 125 Hz, a 50 Hz control loop, the RTDE watchdog at
-    2 Hz, and a late-loop watchdog that tolerates scheduling hiccups (5 periods, 5 in a row). The limits,
-    workspace and planes are the template's."""
+    1 Hz (as in ``test_real_mode``; at 2 Hz the peer's control script once stopped a jog when the three
+    processes, test, ur-rtde child and peer, stalled on two loaded cores), and a late-loop watchdog that
+    tolerates scheduling hiccups (5 periods, 5 in a row). The limits, workspace and planes are the
+    template's."""
     data = yaml.safe_load(template.read_text())
-    data["arm"].update(host=host, rtde_frequency_hz=125.0, connect_timeout_s=2.0, watchdog_min_hz=2.0)
+    data["arm"].update(host=host, rtde_frequency_hz=125.0, connect_timeout_s=2.0, watchdog_min_hz=1.0)
     data["scan"]["control_rate_hz"] = 50.0
     data["safety"]["watchdog"].update(deadline_factor=5.0, max_missed_deadlines=5)
     path = folder / f"peer-{template.name}"
