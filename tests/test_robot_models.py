@@ -218,6 +218,22 @@ def test_ik_velocity_is_the_velocity_map_away_from_the_limits() -> None:
                                rtol=1e-12)
 
 
+def test_min_singular_value_falls_at_the_reach_and_its_gradient_leads_away() -> None:
+    m = MODELS["panda"]
+    stretched = np.array([-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33])  # the flange at x = 0.65 m, its reach
+    assert m.min_singular_value(m.q_home) == pytest.approx(
+        np.linalg.svd(m.jacobian(m.q_home), compute_uv=False).min(), rel=1e-12)
+    assert m.min_singular_value(m.q_home) > 0.1 and m.min_singular_value(stretched) < 0.01
+    d = np.random.default_rng(3).normal(size=7)
+    d /= np.linalg.norm(d)
+    for q in (m.q_home, PANDA_TWISTED, stretched):
+        grad = m.min_singular_value_gradient(q)
+        step = 1e-4 * grad / np.linalg.norm(grad)
+        assert m.min_singular_value(q - step) < m.min_singular_value(q) < m.min_singular_value(q + step)
+        slope = (m.min_singular_value(q + 1e-6 * d) - m.min_singular_value(q - 1e-6 * d)) / 2e-6
+        assert grad @ d == pytest.approx(slope, rel=1e-3, abs=1e-7)
+
+
 def test_streaming_a_twist_unwinds_a_twisted_panda() -> None:
     m = MODELS["panda"]
     plain = dataclasses.replace(m, limit_avoidance_gain=0.0)

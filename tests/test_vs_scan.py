@@ -31,11 +31,18 @@ class ReachProbe(Planner):
         station = np.array([0.45, 0.0, 0.05])
         above = look_at(station + np.array([0.0, 0.0, 0.25]), station, up_hint=np.array([1.0, 0.0, 0.0]))
         in_table = look_at(np.array([0.45, -0.25, -0.03]), station)
+        edge = look_at(np.array([0.665, 0.0, 0.35]), station)
+        inside = look_at(np.array([0.62, 0.0, 0.35]), station)
         ReachProbe.answers = {
             "current pose": session.sensor_path_reachable(here[None]),
             "above the station": session.sensor_path_reachable(above[None]),
             "1.5 m out": session.sensor_path_reachable(look_at(np.array([1.5, 0.0, 0.3]), station)[None]),
             "into the table (IK within the margins)": session.sensor_path_reachable(in_table[None]),
+            # looking back at the station from beyond it: the arm near the edge of its reach (smallest
+            # singular value 0.055 at x = 0.665 m) and well inside it (0.126 at x = 0.62 m)
+            "at the edge of the reach": session.sensor_path_reachable(edge[None]),
+            "at the edge of the reach, clear of it": session.sensor_path_reachable(edge[None], 0.06),
+            "inside the reach, clear of its edge": session.sensor_path_reachable(inside[None], 0.06),
         }
         moved = float(np.linalg.norm(session.sensor_pose()[:3, 3] - here[:3, 3]))
         return f"probed; moved {moved:.6f} m"
@@ -48,7 +55,43 @@ def test_reachability_is_inverse_kinematics_within_the_joint_margins_free_of_col
                              planner=ReachProbe.name, out=tmp_path / "job", max_time_s=5.0)).result
     assert r["termination"] == "probed; moved 0.000000 m"  # a query moves nothing
     assert ReachProbe.answers == {"current pose": True, "above the station": True, "1.5 m out": False,
-                                  "into the table (IK within the margins)": False}
+                                  "into the table (IK within the margins)": False,
+                                  "at the edge of the reach": True,
+                                  "at the edge of the reach, clear of it": False,
+                                  "inside the reach, clear of its edge": True}
+
+
+class SingularityProbe(Planner):
+    """Reads the rows of ``singularity_twists`` and the rate at which a sensor twist moving the flange
+    out along +x (base frame) would lower the arm's smallest singular value; moves nowhere."""
+
+    name = "test-singularity-probe"
+    description = "test planner: singularity rows"
+    found: ClassVar[dict[str, object]] = {}
+
+    def run(self, session: ScanSession) -> str:
+        rows = session.singularity_twists(0.06)
+        outward = np.concatenate([session.sensor_pose()[:3, :3].T @ np.array([0.02, 0.0, 0.0]), np.zeros(3)])
+        SingularityProbe.found = {"rows": rows.shape[0], "outward": [float(a @ outward) for a in rows],
+                                  "inward": [float(a @ -outward) for a in rows]}
+        return "probed"
+
+
+@pytest.mark.parametrize(("home", "n_rows"), [(None, 0), ([-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33], 1)])
+def test_singularity_rows_say_which_sensor_motion_drives_the_arm_into_its_reach(tmp_path, monkeypatch,
+                                                                               home, n_rows):
+    """At home no row; stretched to its reach (the flange at x = 0.65 m, smallest singular value 4e-4),
+    one, by which moving the sensor further out lowers the singular value and moving it back raises it."""
+    monkeypatch.setitem(PLANNERS, SingularityProbe.name, SingularityProbe)
+    SingularityProbe.found = {}
+    cfg = load_config(FRANKA)
+    if home is not None:
+        cfg = cfg.model_copy(update={"arm": cfg.arm.model_copy(update={"home_joints_rad": home})})
+    run_scan(ScanRequest(config=cfg, config_path=str(FRANKA), object="cube", planner=SingularityProbe.name,
+                         out=tmp_path / "job", max_time_s=5.0))
+    found = SingularityProbe.found
+    assert found["rows"] == n_rows
+    assert all(rate > 0.0 for rate in found["outward"]) and all(rate < 0.0 for rate in found["inward"])
 
 
 @pytest.mark.parametrize(("cell_file", "planner", "budget"), [(FRANKA, "vs-local", "12"),

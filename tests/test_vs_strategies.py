@@ -71,7 +71,7 @@ class FakeSession:
     def sensor_pose(self):
         return self.pose
 
-    def sensor_path_reachable(self, T):
+    def sensor_path_reachable(self, T, min_singular_value=0.0):
         self.n_reach_queries += 1
         self.queried_goals.append(T[-1, :3, 3])
         return bool(np.all(T[:, 0, 3] >= self.reach_min_x))
@@ -403,14 +403,19 @@ def test_residual_voxel_entropy_is_zero_at_the_map_clamps(franka):
 
 
 class JointLimitSession(FakeSession):
-    """A joint at its limit that a sensor twist along +x (sensor frame) would drive further into."""
+    """Joints at their limits (``rows`` of ``joint_limit_twists``) and an arm at the edge of its reach
+    (``singular``, of ``singularity_twists``) that sensor twists v with a . v > 0 drive further into."""
 
-    def __init__(self, rows):
+    def __init__(self, rows, singular=()):
         super().__init__()
         self.rows = np.asarray(rows, dtype=float).reshape(-1, 6)
+        self.singular = np.asarray(singular, dtype=float).reshape(-1, 6)
 
     def joint_limit_twists(self, activation_rad):
         return self.rows
+
+    def singularity_twists(self, activation):
+        return self.singular
 
 
 def test_secondary_slides_along_a_joint_limit(franka):
@@ -434,6 +439,21 @@ def test_secondary_slides_along_a_joint_limit(franka):
     assert free is sec
     away = planner._within_limits(JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(away.g, sec.g)  # moving away from the limit is not blocked
+
+
+def test_secondary_slides_along_the_edge_of_the_reach_and_a_joint_limit_together(franka):
+    planner = VSLocalPlanner(franka)
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    sec = Secondary(np.array([0.6, 0.8, 0.0, 0.0, 0.0, 0.0]), 2.0, 1.0, "local")
+    # the reach alone: as a joint limit, g before clipping (1.2, 1.6) loses its +x part
+    reach = planner._within_limits(JointLimitSession(np.zeros((0, 6)), [1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    np.testing.assert_allclose(reach.g, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    assert reach.g_norm == pytest.approx(1.6)
+    # the reach against +x and a joint against +y: held in the corner, and counted as converging
+    corner = planner._within_limits(JointLimitSession([0, 1.0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    np.testing.assert_allclose(corner.g, 0.0, atol=1e-12)
+    assert corner.g_norm == pytest.approx(0.0, abs=1e-12)
 
 
 class BackOffSession(JointLimitSession):

@@ -276,6 +276,17 @@ class JobSession:
         sign = np.where(near_hi, 1.0, -1.0)
         return (sign[:, None] * rows)[near]
 
+    def singularity_twists(self, activation: float) -> Array:
+        """Rows a (0 or 1, 6): while the smallest singular value of the arm's Jacobian
+        (``RobotModel.min_singular_value``) is below ``activation``, a sensor twist v (sensor frame,
+        [m/s, rad/s]) lowers it at a . v per second (first order, the damped least-squares part of the
+        arm's differential IK); none otherwise."""
+        state = self._guard.state()
+        if self._model.min_singular_value(state.q) >= activation:
+            return np.zeros((0, 6))
+        rate = self._model.min_singular_value_gradient(state.q) @ self._model.velocity_map(state.q).task
+        return -(rate @ self._sensor_twist_map(state.T_base_flange))[None, :]
+
     def hold(self) -> None:
         """Ramp a streamed twist down to rest within the acceleration limits."""
         self._guard.hold()
@@ -295,11 +306,12 @@ class JobSession:
         barrier plane and inside the workspace (margin included)."""
         return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor)) is None
 
-    def sensor_path_reachable(self, T_base_sensor: Array) -> bool:
+    def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
         """IK seeded from the current joints (from home where the arm reports none, as a replayed arm),
         then from each solution, reaches the poses (K, 4, 4) in turn with every joint within the guard's
-        ``joint_bounds`` (limits less the margin), no collision (``CollisionWorld.check``), and no joint
-        moving more than ``MAX_PATH_JOINT_STEP_RAD`` between consecutive poses."""
+        ``joint_bounds`` (limits less the margin), no collision (``CollisionWorld.check``), the smallest
+        singular value of the Jacobian at least ``min_singular_value`` and no joint moving more than
+        ``MAX_PATH_JOINT_STEP_RAD`` between consecutive poses."""
         q_now = self._guard.state().q
         q = q_now if np.all(np.isfinite(q_now)) else self._q_home
         q_lo, q_hi = self._guard.joint_bounds
@@ -311,6 +323,7 @@ class JobSession:
                 return False
             if not np.all((q_next >= q_lo) & (q_next <= q_hi)) or \
                     (k > 0 and np.max(np.abs(q_next - q)) > MAX_PATH_JOINT_STEP_RAD) or \
+                    self._model.min_singular_value(q_next) < min_singular_value or \
                     self._guard.collision.check(q_next) is not None:
                 return False
             q = q_next

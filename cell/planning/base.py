@@ -86,6 +86,12 @@ class ScanSession(Protocol):
         so that a planner can keep its motion from pressing into a joint limit (as barrier planes)."""
         ...
 
+    def singularity_twists(self, activation: float) -> Array:
+        """Rows a (0 or 1, 6): while the smallest singular value of the arm's Jacobian is below
+        ``activation``, a sensor twist v (sensor frame) lowers it at a . v (first order), so that a
+        planner can keep its motion from driving the arm into a singularity (as barrier planes)."""
+        ...
+
     def feasible_sensor_velocity(self, v_sensor: Array, activation_m: float) -> Array:
         """Project a desired sensor velocity or direction (3,), sensor frame, into the set the barrier
         planes allow: the component into any plane closer than ``activation_m`` is removed so the motion
@@ -97,12 +103,14 @@ class ScanSession(Protocol):
         workspace box (e.g. to reject global goal candidates)."""
         ...
 
-    def sensor_path_reachable(self, T_base_sensor: Array) -> bool:
+    def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
         """Whether the arm follows sensor poses (K, 4, 4) in turn from where it is (K = 1: reaches one
         pose): inverse kinematics seeded from the current joints, then from each solution for the next
         pose (a servo travels continuously, so the solutions near the present configuration are the ones
-        that count), every solution with each joint inside its position margin and free of collision, and
-        no joint jumping between consecutive poses (a change of configuration the servo cannot make)."""
+        that count), every solution with each joint inside its position margin, free of collision and
+        with the smallest singular value of the arm's Jacobian at least ``min_singular_value`` (clear of
+        the edge of its reach), and no joint jumping between consecutive poses (a change of
+        configuration the servo cannot make)."""
         ...
 
     def latest_perception(self) -> PerceptionUpdate | None:

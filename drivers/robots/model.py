@@ -312,6 +312,24 @@ class RobotModel:
         """Geometric Jacobian (6, n) of the flange origin in the base frame, rows (vx, vy, vz, wx, wy, wz)."""
         return self.jacobian_from_frames(self.fk_all(q))
 
+    def min_singular_value(self, q: object) -> float:
+        """The smallest singular value of :meth:`jacobian` at ``q`` (translational rows in m/rad,
+        rotational in rad/rad): zero at a singularity. The damped least-squares IK realizes a twist along
+        the corresponding direction at s^2 / (s^2 + damping^2) of its size (0.9 at s = 3 ``DLS_DAMPING_M``,
+        0.5 at s = ``DLS_DAMPING_M``)."""
+        return float(np.linalg.svd(self.jacobian(q), compute_uv=False)[-1])
+
+    def min_singular_value_gradient(self, q: object, step_rad: float = 1e-6) -> Array:
+        """d :meth:`min_singular_value` / dq (n,) by central differences of ``step_rad`` [rad] (where the
+        two smallest singular values cross, the derivative of the smaller one)."""
+        qv = self.check_q(q)
+        grad = np.empty(self.n_joints)
+        for i in range(self.n_joints):
+            dq = np.zeros(self.n_joints)
+            dq[i] = step_rad
+            grad[i] = (self.min_singular_value(qv + dq) - self.min_singular_value(qv - dq)) / (2.0 * step_rad)
+        return grad
+
     def velocity_map(self, q: object, damping: float = DLS_DAMPING_M) -> JointVelocityMap:
         """The differential IK at ``q`` without the position limits :meth:`ik_velocity` applies (e.g. to
         predict motion): the damped least-squares map ``J^T (J J^T + damping^2 I)^-1`` (n, 6) and the

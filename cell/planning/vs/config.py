@@ -84,6 +84,13 @@ class VSConfig(StrictModel):
     limit as along a barrier plane instead of pressing into it (not in the paper, whose barrier planes
     were placed to keep the Panda from its limits; 0.15 rad is about two seconds of joint travel at the
     exploration speeds).
+    ``singular_value_activation``: likewise, g loses its component that would lower the smallest
+    singular value of the arm's Jacobian (``RobotModel.min_singular_value``) once it is below this, so
+    that the camera slides along the edge of the arm's reach instead of servoing into it (not in the
+    paper, whose barrier plane at the Panda's maximum reach did this for its one placement, Fig. 3;
+    beyond the edge the differential IK cannot hold the primary task: a teapot scan's arm reached a
+    singular value of 0.001 and lost the object by 3 to 6 cm for 15 s). 0.06 is three times the IK's
+    damping, where it still realizes 90 % of a twist along the weakest direction.
     ``backoff_s`` [s]: after the guard refused a streamed twist (a collision predicted ahead), the
     camera backs off along the reverse of the refused secondary motion for this long, primary task on,
     then carries on with that direction blocked within ``refusal_radius_m`` [m] of where it was refused
@@ -99,6 +106,7 @@ class VSConfig(StrictModel):
     h_roi_std: PositiveFloat = 0.001
     first_object_timeout_s: PositiveFloat = 5.0
     joint_activation_rad: PositiveFloat = 0.15
+    singular_value_activation: float = Field(default=0.06, ge=0.0)
     backoff_s: PositiveFloat = 1.0
     refusal_radius_m: PositiveFloat = 0.05
 

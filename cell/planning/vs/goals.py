@@ -11,7 +11,8 @@ descending f and the first the arm can servo to is the goal, at most ``reachabil
 no check), skipping those within ``arrival_m`` of one that failed (the same goal to the servo: the best
 candidates cluster, and 50 checks went to one unreachable cluster). "Can servo to": inverse kinematics
 follows the arc of the sphere from the camera to the candidate, in steps of ``path_step_m``, within the
-joint margins, free of collision and without a change of configuration
+joint margins, free of collision, clear of the edge of the arm's reach (``vs.singular_value_activation``,
+which the servo keeps the arm from crossing) and without a change of configuration
 (``session.sensor_path_reachable``): g of eq. 11 takes the camera along that arc.
 Without a check, a bunny scan spent 20 s at a time pressing towards goals behind the Panda's elbow limit;
 with the goal alone checked, goals whose way led the arm into itself (link 0 against link 5) were still
@@ -98,6 +99,8 @@ class GoalSeeker:
         self.params = config.planners.vs_global
         self.radius_m = config.scan.standoff_m
         self.activation_m = config.planners.vs.barrier_activation_m
+        # the servo keeps the arm from lowering this further (ServoScanPlanner): a path below it is blocked
+        self.min_singular_value = config.planners.vs.singular_value_activation
         self.goal: Array | None = None
         self.goal_value = float("nan")
         self._centre = np.zeros(3)  # the centroid the goal was sampled around [m], base frame
@@ -144,7 +147,7 @@ class GoalSeeker:
             if same_as_failed[k]:
                 continue
             path = arc_views(centroid, self.radius_m, here, positions[k], self.params.path_step_m)
-            if session.sensor_path_reachable(path):
+            if session.sensor_path_reachable(path, self.min_singular_value):
                 return int(k)
             same_as_failed |= np.linalg.norm(positions - positions[k], axis=1) < self.params.arrival_m
             n_checked += 1

@@ -14,8 +14,10 @@ safety stops end it from the session.
 Limits the paper handled with barrier planes placed by hand are handled here for any placement: the
 secondary direction g is projected so that it does not move a joint that is within
 ``joint_activation_rad`` of its position margin further towards it (``session.joint_limit_twists``,
-mapped through the primary task's null-space projector of eq. 1), and the camera slides along the
-joint limit as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
+mapped through the primary task's null-space projector of eq. 1), nor lower the smallest singular value
+of the arm's Jacobian once it is below ``singular_value_activation`` (``session.singularity_twists``:
+the arm at the edge of its reach), and the camera slides along the joint limit or the edge of the
+reach as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
 ``TwistRefused``), the arm has been stopped; the scan backs off along the reverse of the refused
 secondary direction for ``backoff_s``, then goes on with that direction blocked within
 ``refusal_radius_m`` of where it was refused. A second refusal during the back-off ends the scan.
@@ -239,12 +241,14 @@ class ServoScanPlanner(Planner):
         return T_base_cam[:3, :3].T @ (self.centroid - T_base_cam[:3, 3])
 
     def _blocked_directions(self, session: ScanSession, T_base_cam: Array, s: Array) -> Array:
-        """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits
-        and of refused motions when B g >= 0: each joint within ``joint_activation_rad`` of its margin
-        (its rate a . (P g) of eq. 1, P the primary task's null-space projector, must not be towards
-        the margin), and each refused secondary direction d (base frame) within ``refusal_radius_m`` of
-        where the guard refused it (g . d <= 0)."""
-        rows = session.joint_limit_twists(self.vs.joint_activation_rad)
+        """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits,
+        of singular configurations and of refused motions when B g >= 0: each joint within
+        ``joint_activation_rad`` of its margin (its rate a . (P g) of eq. 1, P the primary task's
+        null-space projector, must not be towards the margin), the arm's smallest singular value once
+        below ``singular_value_activation`` (it must not fall further), and each refused secondary
+        direction d (base frame) within ``refusal_radius_m`` of where the guard refused it (g . d <= 0)."""
+        rows = np.concatenate([session.joint_limit_twists(self.vs.joint_activation_rad),
+                               session.singularity_twists(self.vs.singular_value_activation)])
         B = [-(rows @ null_space_projector(s))[:, :2]] if rows.shape[0] else []
         here = T_base_cam[:3, 3]
         for where, direction in self._refused:
