@@ -85,3 +85,20 @@ def look_at(eye: Array, target: Array, up_hint: Array | None = None) -> Array:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_T(np.column_stack([x, y, z]), eye)
+
+
+def smallest_rotation(u: Array, v: Array) -> Array:
+    """The rotation (3, 3) by the smallest angle that turns unit vector ``u`` (3,) onto unit ``v`` (3,),
+    about their common normal (Rodrigues); for opposite vectors, one of the half turns."""
+    axis = np.cross(u, v)
+    c = float(u @ v)
+    s2 = float(axis @ axis)
+    if s2 < 1e-24:
+        if c > 0.0:
+            return np.eye(3)
+        w = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+        w /= np.linalg.norm(w)
+        return 2.0 * np.outer(w, w) - np.eye(3)
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + K + K @ K * ((1.0 - c) / s2)
+

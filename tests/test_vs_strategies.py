@@ -285,7 +285,7 @@ def test_goal_is_the_best_candidate_the_arm_reaches(franka):
 
 def test_the_path_to_a_goal_follows_the_great_circle_arc():
     start, goal = CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE + np.array([0.0, 0.0, 0.25])
-    views = arc_views(CENTRE, 0.25, start, goal, 0.03)
+    views = arc_views(CENTRE, 0.25, look_at(start, CENTRE), goal, 0.03)
     positions = views[:, :3, 3]
     assert len(views) == 14  # a quarter circle, 0.393 m of arc, in 14 steps of at most 3 cm
     np.testing.assert_allclose(np.linalg.norm(positions - CENTRE, axis=1), 0.25)
@@ -293,8 +293,29 @@ def test_the_path_to_a_goal_follows_the_great_circle_arc():
     steps = np.linalg.norm(np.diff(np.vstack([start, positions]), axis=0), axis=1)
     assert np.all(steps <= 0.03) and np.allclose(positions[:, 0], CENTRE[0])  # in the plane x = 0.45
     np.testing.assert_allclose(views[:, :3, 2], -(positions - CENTRE) / 0.25, atol=1e-12)  # looking in
-    opposite = arc_views(CENTRE, 0.25, start, CENTRE + np.array([0.0, 0.25, 0.0]), 0.03)
+    for T in views:  # proper rotations
+        np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+        assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+    opposite = arc_views(CENTRE, 0.25, look_at(start, CENTRE), CENTRE + np.array([0.0, 0.25, 0.0]), 0.03)
     assert opposite[:, 2, 3].max() == pytest.approx(CENTRE[2] + 0.25, abs=1e-3)  # over the top
+
+
+def test_the_path_to_a_goal_keeps_the_cameras_roll():
+    """Along the arc the camera turns only about axes across its optical axis, as the servo turns it: a
+    camera rolled by 180 deg stays rolled, whatever roll the goal candidates have."""
+    start, goal = CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE + np.array([0.2, 0.0, 0.15])
+    upright = look_at(start, CENTRE)
+    rolled = upright.copy()
+    rolled[:3, :2] *= -1.0  # 180 deg about the optical axis
+    plain, turned = (arc_views(CENTRE, 0.25, T, goal, 0.03) for T in (upright, rolled))
+    np.testing.assert_allclose(turned[:, :3, 2], plain[:, :3, 2], atol=1e-12)
+    np.testing.assert_allclose(turned[:, :3, :2], -plain[:, :3, :2], atol=1e-12)
+    for views, T in ((plain, upright), (turned, rolled)):
+        R = np.concatenate([T[None, :3, :3], views[:, :3, :3]])
+        # each step turns the camera by the angle its optical axis turns, no more: no roll
+        turn = np.arccos(np.clip((np.einsum("kij,kij->k", R[1:], R[:-1]) - 1.0) / 2.0, -1.0, 1.0))
+        axis = np.arccos(np.clip(np.einsum("ki,ki->k", R[1:, :, 2], R[:-1, :, 2]), -1.0, 1.0))
+        np.testing.assert_allclose(turn[1:], axis[1:], atol=1e-9)
 
 
 def test_no_allowed_candidate_is_a_planning_error(franka):

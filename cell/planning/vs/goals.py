@@ -52,6 +52,7 @@ from cell.planning.base import Array, ScanSession
 from cell.planning.vs.objective import EntropyObjective, PoseBatch
 from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner
 from drivers.errors import PlanningError
+from drivers.transforms import smallest_rotation
 
 
 def sphere_views(centre: Array, radius: float, directions: Array) -> PoseBatch:
@@ -70,11 +71,16 @@ def sphere_views(centre: Array, radius: float, directions: Array) -> PoseBatch:
 
 
 def arc_views(centre: Array, radius: float, start: Array, goal: Array, step_m: float) -> PoseBatch:
-    """Camera poses (K, 4, 4) (``sphere_views``) along the shorter great-circle arc of the sphere around
-    ``centre`` from the direction of ``start`` (3,) [m] to that of ``goal`` (3,) [m], every ``step_m`` of
-    arc [m] or closer, the last at the goal, the first one step away from the start. Antipodal points
-    have no shorter arc; the one through the top is taken."""
-    a = (start - centre) / np.linalg.norm(start - centre)
+    """Camera poses (K, 4, 4) along the shorter great-circle arc of the sphere around ``centre`` from the
+    direction of the camera pose ``start`` (4, 4) to that of ``goal`` (3,) [m], every ``step_m`` of arc
+    [m] or closer, the last at the goal, the first one step away from the start; each looks at
+    ``centre`` with the roll about its optical axis carried over from the pose before by the smallest
+    rotation, from ``start``'s: the servo turns the camera so (eq. 1 has no rotation about the optical
+    axis while the centroid is on it), whatever roll ``sphere_views`` gives the goal candidate. (With the
+    candidates' roll the first pose of every arc asked a camera the servo had rolled by 180 deg to turn
+    the wrist over at once, and a VS-Hybrid cube scan found none of 116 places reachable.) Antipodal
+    points have no shorter arc; the one through the top is taken."""
+    a = (start[:3, 3] - centre) / np.linalg.norm(start[:3, 3] - centre)
     b = (goal - centre) / np.linalg.norm(goal - centre)
     angle = angle_between(a, b)
     n = max(1, int(np.ceil(angle * radius / step_m)))
@@ -84,7 +90,15 @@ def arc_views(centre: Array, radius: float, start: Array, goal: Array, step_m: f
     ortho /= np.linalg.norm(ortho)
     phi = angle * np.arange(1, n + 1) / n
     directions = np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * ortho
-    return sphere_views(centre, radius, directions)
+    T = np.zeros((n, 4, 4))
+    T[:, 3, 3] = 1.0
+    # the start's frame, its optical axis aimed at the centre by the smallest rotation
+    R = smallest_rotation(start[:3, 2], -a) @ start[:3, :3]
+    for k, d in enumerate(directions):
+        R = smallest_rotation(R[:, 2], -d) @ R
+        T[k, :3, :3] = R
+        T[k, :3, 3] = centre + radius * d
+    return T
 
 
 def angle_between(a: Array, b: Array) -> float:
@@ -139,7 +153,7 @@ class GoalSeeker:
         checks = self.params.reachability_checks
         if not checks:
             return int(order[0])
-        here = session.sensor_pose()[:3, 3]
+        here = session.sensor_pose()
         positions = views[:, :3, 3]
         same_as_failed = np.zeros(len(views), dtype=bool)
         n_checked = 0
