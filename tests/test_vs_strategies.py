@@ -108,10 +108,15 @@ def test_config_defaults_are_the_papers_values(franka):
     assert franka.scan.standoff_m == 0.25
 
 
-def test_objective_rays_follow_the_sensor(franka):
-    assert objective_rays(franka).shape == (529, 3)
-    tof = load_config(UR5E)
-    np.testing.assert_allclose(objective_rays(tof), ray_grid(8, tof.sensor.fov_deg))
+def test_objective_rays_span_the_sensors_field_of_view(franka):
+    np.testing.assert_allclose(objective_rays(franka), ray_grid(23, 30.0))
+    tof = load_config(UR5E)  # the 8 x 8 ToF over 45 deg: 23 x 23 rays over its 45 deg
+    rays = objective_rays(tof)
+    np.testing.assert_allclose(rays, ray_grid(23, tof.sensor.fov_deg))
+    assert tof.sensor.fov_deg == 45.0 and rays.shape == (529, 3)
+    data = tof.model_dump()
+    data["planners"]["vs"]["objective"]["use_sensor_fov"] = False
+    np.testing.assert_allclose(objective_rays(type(tof).model_validate(data)), ray_grid(23, 30.0))
 
 
 def test_start_views_look_at_the_station_from_the_standoff(franka):

@@ -74,12 +74,12 @@ class Secondary:
 
 
 def objective_rays(config: CellConfig) -> Array:
-    """The rays of eq. 9 for this cell: the configured grid (23 x 23 over 30 deg), or a multizone ToF
-    sensor's own zones and field of view (``planners.vs.objective.use_sensor_zones``)."""
+    """The rays of eq. 9 for this cell: the configured grid (23 x 23 over 30 deg), over a multizone ToF
+    sensor's own field of view where it has one (``planners.vs.objective.use_sensor_fov``)."""
     oc = config.planners.vs.objective
     sensor = config.sensor
-    if oc.use_sensor_zones and sensor.type in ("sim-tof", "vl53l8cx"):
-        return ray_grid(sensor.resolution, sensor.fov_deg)
+    if oc.use_sensor_fov and sensor.type in ("sim-tof", "vl53l8cx"):
+        return ray_grid(oc.rays_per_side, sensor.fov_deg)
     return ray_grid(oc.rays_per_side, oc.fov_deg)
 
 
