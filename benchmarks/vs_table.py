@@ -76,13 +76,18 @@ MIN_OBJECTS_AT_PAPER = 6
 MAX_LOCAL_TIME_S = 42.0
 
 
+def job_folder(out: Path, obj: str, planner: str, seed: int) -> Path:
+    """The folder of one scan job under ``out``."""
+    return out / f"{obj}-{planner}-s{seed}"
+
+
 def run_one(config_path: Path, obj: str, planner: str, seed: int, pose: tuple[float, float, float],
             out: Path) -> dict[str, Any]:
     """One scan job, re-processed: the metrics of the paper's procedure and of the online cloud (``online``),
     sim time, path length, termination and the wall time [s] of the scan and of the re-processing."""
     cfg = load_config(config_path)
     wall = time.perf_counter()
-    folder = out / f"{obj}-{planner}-s{seed}"
+    folder = job_folder(out, obj, planner, seed)
     r = run_scan(ScanRequest(config=cfg, config_path=str(config_path), object=obj, object_pose=pose,
                              planner=planner, seed=seed, out=folder)).result
     scan_wall = time.perf_counter() - wall
@@ -271,6 +276,11 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="scans run at the same time")
     args = parser.parse_args()
     grid = [(p, o, s) for p in args.planners for o in args.objects for s in args.seeds]
+    # a job refuses a folder that holds one (JobRecorder); say so before the grid runs, not after
+    taken = [f for p, o, s in grid if (f := job_folder(args.out, o, p, s) / "frames").exists()]
+    if taken:
+        parser.error(f"{len(taken)} of the job folders already hold a job (e.g. {taken[0].parent}); "
+                     "choose another --out")
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, args.config, o, p, s, tuple(args.object_pose), args.out)
                    for p, o, s in grid]
