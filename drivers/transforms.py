@@ -89,16 +89,13 @@ def look_at(eye: Array, target: Array, up_hint: Array | None = None) -> Array:
 
 def smallest_rotation(u: Array, v: Array) -> Array:
     """The rotation (3, 3) by the smallest angle that turns unit vector ``u`` (3,) onto unit ``v`` (3,),
-    about their common normal (Rodrigues); for opposite vectors, one of the half turns."""
+    about their common normal; for opposite vectors, one of the half turns."""
     axis = np.cross(u, v)
-    c = float(u @ v)
-    s2 = float(axis @ axis)
-    if s2 < 1e-24:
-        if c > 0.0:
+    s = float(np.linalg.norm(axis))
+    angle = float(np.arctan2(s, float(u @ v)))
+    if s < 1e-12:
+        if angle < np.pi / 2:
             return np.eye(3)
-        w = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
-        w /= np.linalg.norm(w)
-        return 2.0 * np.outer(w, w) - np.eye(3)
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + K + K @ K * ((1.0 - c) / s2)
-
+        axis = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])  # any normal of u
+        s = float(np.linalg.norm(axis))
+    return Rotation.from_rotvec(axis * (angle / s)).as_matrix()
