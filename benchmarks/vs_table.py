@@ -50,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from grid_report import grid_parser, print_result
 
 from cell.config import load_config
+from cell.jobs.recorder import holds_job
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
 
@@ -159,20 +160,21 @@ def _mean_se(values: list[float]) -> dict[str, float | None]:
     return {"mean": float(np.mean(values)), "se": se}
 
 
+def _figure(run: dict[str, Any], key: str) -> float:
+    """One of ``MEAN_KEYS`` of a run; 0 where it has none (e.g. no ground truth)."""
+    value = (run["online"] or {}).get("coverage_pct") if key == "online_coverage_pct" else run.get(key)
+    return float(value or 0.0)
+
+
 def object_means(runs: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
     """Per strategy and object, over its runs (one per seed): ``n`` and the mean and standard error of
-    each of ``MEAN_KEYS`` (a run without a figure, e.g. no ground truth, counts as 0)."""
-    out: dict[str, dict[str, dict[str, Any]]] = {}
+    each of ``MEAN_KEYS``."""
+    grouped: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for r in runs:
-        out.setdefault(r["planner"], {}).setdefault(r["object"], {"runs": []})["runs"].append(r)
-    for per_object in out.values():
-        for obj, entry in per_object.items():
-            rs = entry.pop("runs")
-            figures = {k: [float(r.get(k) or 0.0) for r in rs] for k in MEAN_KEYS[:-1]}
-            figures["online_coverage_pct"] = [float((r["online"] or {}).get("coverage_pct") or 0.0)
-                                              for r in rs]
-            per_object[obj] = {"n": len(rs), **{k: _mean_se(v) for k, v in figures.items()}}
-    return out
+        grouped.setdefault(r["planner"], {}).setdefault(r["object"], []).append(r)
+    return {planner: {obj: {"n": len(rs), **{k: _mean_se([_figure(r, k) for r in rs]) for k in MEAN_KEYS}}
+                      for obj, rs in per_object.items()}
+            for planner, per_object in grouped.items()}
 
 
 def means_table(means: dict[str, dict[str, dict[str, Any]]]) -> list[str]:
@@ -276,10 +278,10 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="scans run at the same time")
     args = parser.parse_args()
     grid = [(p, o, s) for p in args.planners for o in args.objects for s in args.seeds]
-    # a job refuses a folder that holds one (JobRecorder); say so before the grid runs, not after
-    taken = [f for p, o, s in grid if (f := job_folder(args.out, o, p, s) / "frames").exists()]
+    # a job refuses a folder that holds one: say so before the grid runs, not after
+    taken = [f for p, o, s in grid if holds_job(f := job_folder(args.out, o, p, s))]
     if taken:
-        parser.error(f"{len(taken)} of the job folders already hold a job (e.g. {taken[0].parent}); "
+        parser.error(f"{len(taken)} of the job folders already hold a job (e.g. {taken[0]}); "
                      "choose another --out")
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, args.config, o, p, s, tuple(args.object_pose), args.out)

@@ -38,6 +38,11 @@ Array = NDArray[np.float64]
 STOP_FILE = "STOP"
 
 
+def holds_job(folder: Path) -> bool:
+    """Whether ``folder`` already holds a job (its ``frames/``), which ``JobRecorder`` refuses."""
+    return (folder / "frames").exists()
+
+
 def request_stop(folder: Path, reason: str) -> None:
     """Ask the job running in ``folder`` to stop (operator stop): writes its ``STOP`` file, which the job
     reads at its next control tick. Raises ``JobError`` when no job is running there."""
