@@ -15,6 +15,8 @@ REPO = Path(__file__).resolve().parent.parent
 CONFIG_DIR = REPO / "config"
 FRANKA = CONFIG_DIR / "sim-franka-rgbd.yaml"
 UR5E = CONFIG_DIR / "sim-ur5e-tof.yaml"
+# Panda joints [rad] stretched to its reach: the flange at x = 0.65 m, smallest singular value of J 4e-4
+PANDA_AT_REACH = (-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33)
 
 
 @pytest.fixture

@@ -14,6 +14,8 @@ from drivers.errors import KinematicsError
 from drivers.robots import ROBOT_MODEL_NAMES, RobotModel, get_robot_model
 from drivers.transforms import pose_error
 
+from .conftest import PANDA_AT_REACH
+
 PI = np.pi
 MODELS = {name: get_robot_model(name) for name in ROBOT_MODEL_NAMES}
 
@@ -220,7 +222,7 @@ def test_ik_velocity_is_the_velocity_map_away_from_the_limits() -> None:
 
 def test_min_singular_value_falls_at_the_reach_and_its_gradient_leads_away() -> None:
     m = MODELS["panda"]
-    stretched = np.array([-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33])  # the flange at x = 0.65 m, its reach
+    stretched = np.array(PANDA_AT_REACH)
     assert m.min_singular_value(m.q_home) == pytest.approx(
         np.linalg.svd(m.jacobian(m.q_home), compute_uv=False).min(), rel=1e-12)
     assert m.min_singular_value(m.q_home) > 0.1 and m.min_singular_value(stretched) < 0.01

@@ -25,7 +25,7 @@ from drivers.clock import SimClock
 from drivers.errors import SafetyStop
 from drivers.robots import get_robot_model
 
-from .conftest import FRANKA, UR5E
+from .conftest import FRANKA, PANDA_AT_REACH, UR5E
 
 CELLS = {"panda": FRANKA, "ur5e": UR5E}
 PROPERTY = settings(max_examples=5, deadline=None, derandomize=True,
@@ -362,7 +362,7 @@ def test_a_commanded_twist_comes_back_as_the_arm_realizes_it():
     assert np.allclose(free, outward, atol=5e-4)
     rig.guard.hold()
 
-    stretched = Rig("panda", [-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33])  # flange at x = 0.65 m
+    stretched = Rig("panda", list(PANDA_AT_REACH))
     realized = stretched.guard.command_twist(outward)
     assert np.linalg.norm(realized[:3]) < 0.15 * np.linalg.norm(outward[:3])
     up = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])

@@ -16,7 +16,7 @@ from cell.planning.base import Planner, ScanSession
 from cell.planning.registry import PLANNERS
 from drivers.transforms import look_at
 
-from .conftest import FRANKA, UR5E
+from .conftest import FRANKA, PANDA_AT_REACH, UR5E
 
 
 class ReachProbe(Planner):
@@ -77,7 +77,7 @@ class SingularityProbe(Planner):
         return "probed"
 
 
-@pytest.mark.parametrize(("home", "n_rows"), [(None, 0), ([-0.1, 1.33, 0.08, -0.47, 0.0, 0.62, 0.33], 1)])
+@pytest.mark.parametrize(("home", "n_rows"), [(None, 0), (list(PANDA_AT_REACH), 1)])
 def test_singularity_rows_say_which_sensor_motion_drives_the_arm_into_its_reach(tmp_path, monkeypatch,
                                                                                home, n_rows):
     """At home no row; stretched to its reach (the flange at x = 0.65 m, smallest singular value 4e-4),
