@@ -7,6 +7,7 @@ import pytest
 
 from cell.config import load_config
 from cell.perception.pipeline import AsyncPerception, PerceptionPipeline
+from cell.perception.segmentation import compute_roi
 from drivers.clock import SimClock
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.factory import SimWorld, make_sensor
@@ -39,8 +40,15 @@ def test_one_frame_through_every_stage(rig):
     assert update.roi is not None
     np.testing.assert_allclose(update.roi.centroid[:2], [0.45, 0.0], atol=0.03)
     assert 0.0 < update.h_roi < np.log(2)
+    # The object was once seen 2 cm taller: H_ROI averages over the box of every ROI so far.
+    taller = np.vstack([update.object_points, update.roi.aabb_max + np.array([0.0, 0.0, 0.02])])
+    pipeline.extent.add(compute_roi(taller, table_z=0.0))
     second = pipeline.process(camera.capture(), T)
     assert second.registration.accepted and second.registration.correction_m < 0.002
+    assert second.roi.aabb_max[2] < update.roi.aabb_max[2] + 0.01
+    assert pipeline.extent.max_m[2] == pytest.approx(update.roi.aabb_max[2] + 0.02)
+    assert second.h_roi == pipeline.map.mean_entropy_in_box(pipeline.extent.min_m, pipeline.extent.max_m)
+    assert second.h_roi != pipeline.map.mean_entropy_in_box(second.roi.aabb_min, second.roi.aabb_max)
 
 
 def test_async_perception_processes_in_its_own_thread(rig):

@@ -10,6 +10,7 @@ import pytest
 
 from cell.perception.segmentation import (
     ROI,
+    ObjectExtent,
     SegmentationParams,
     compute_roi,
     dbscan_labels,
@@ -210,6 +211,30 @@ def test_min_area_rectangle_and_roi_helpers() -> None:
     np.testing.assert_allclose(sorted(edges), sorted([0.2, 0.06, 0.2]), atol=1e-9)
     with pytest.raises(ValueError):
         compute_roi(np.zeros((0, 3)))
+
+
+def test_object_extent_keeps_what_a_split_off_piece_took_and_restarts_on_another_object() -> None:
+    rng = np.random.default_rng(2)
+    ball = rng.normal(size=(400, 3))
+    ball = CENTRE + np.array([0.0, 0.0, 0.037]) + 0.037 * ball / np.linalg.norm(ball, axis=1, keepdims=True)
+    extent = ObjectExtent()
+    lo, hi = extent.add(compute_roi(ball, table_z=0.0))
+    np.testing.assert_array_equal(lo, ball.min(axis=0))
+    np.testing.assert_array_equal(hi, ball.max(axis=0))
+    # Carving splits the +y side and the bottom off: the segmented box shrinks, the extent does not.
+    kept = ball[(ball[:, 1] < 0.02) & (ball[:, 2] > 0.02)]
+    lo, hi = extent.add(compute_roi(kept, table_z=0.0))
+    np.testing.assert_array_equal(lo, ball.min(axis=0))
+    np.testing.assert_array_equal(hi, ball.max(axis=0))
+    # More of the object seen: the extent grows.
+    grown = np.vstack([kept, CENTRE + np.array([0.0, 0.0, 0.09])])
+    _, hi = extent.add(compute_roi(grown, table_z=0.0))
+    assert hi[2] == pytest.approx(0.09)
+    # A box that does not touch the extent is another object: the extent starts again from it.
+    other = kept + np.array([0.0, 0.3, 0.0])
+    lo, hi = extent.add(compute_roi(other, table_z=0.0))
+    np.testing.assert_array_equal(lo, other.min(axis=0))
+    np.testing.assert_array_equal(hi, other.max(axis=0))
 
 
 def test_threshold_occupancy() -> None:

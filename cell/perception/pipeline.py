@@ -24,7 +24,7 @@ from cell.perception.cloud import CloudAccumulator
 from cell.perception.filters import filter_frame, no_target_directions, valid_tof_points
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
-from cell.perception.segmentation import ROI, segment_object
+from cell.perception.segmentation import ROI, ObjectExtent, segment_object
 from drivers.depth.base import DepthFrame
 from drivers.scheduling import ordinary_scheduling
 from drivers.transforms import transform_points
@@ -35,11 +35,11 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
-    frame, the segmented object and its ROI, H_ROI (eq. 12) and the occupancy map. ``roi``, ``centroid``
-    and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map when frames
-    are processed in the planner's thread (later frames update it), and a copy taken right after this
-    frame when they are processed asynchronously (``AsyncPerception``), so that a planner never reads a
-    map the worker is writing."""
+    frame, the segmented object and its ROI, H_ROI (eq. 12, over the box of every ROI so far:
+    ``ObjectExtent``) and the occupancy map. ``roi``, ``centroid`` and ``h_roi`` are None until an object
+    has been found. ``map`` is the pipeline's own map when frames are processed in the planner's thread
+    (later frames update it), and a copy taken right after this frame when they are processed
+    asynchronously (``AsyncPerception``), so that a planner never reads a map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -87,6 +87,7 @@ class PerceptionPipeline:
         self.cloud = CloudAccumulator(config.voxel_m)
         self.map = OccupancyMap(config.occupancy)
         self._target = RegistrationTarget(config.registration)
+        self.extent = ObjectExtent()
         self._rng = rng
         self.latest: PerceptionUpdate | None = None
         self.stage_times = StageTimes()
@@ -131,7 +132,7 @@ class PerceptionPipeline:
                              table_z=self.table_z_m)
         clock.lap("segment")
         roi = seg.roi
-        h_roi = self.map.mean_entropy_in_box(roi.aabb_min, roi.aabb_max) if roi is not None else None
+        h_roi = self.map.mean_entropy_in_box(*self.extent.add(roi)) if roi is not None else None
         clock.lap("h_roi")
         update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
                                   points_base=points_base, object_points=seg.object_points, roi=roi,
