@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from cell.config import load_config
-from cell.perception.occupancy import binary_entropy
+from cell.perception.occupancy import OccupancyMap, binary_entropy
+from cell.perception.segmentation import compute_roi
 from cell.planning.registry import get_planner
 from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, arc_views, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
@@ -538,3 +541,27 @@ def test_hybrid_h_roi_termination_waits_for_the_end_of_the_first_global_leg(fran
     planner.open_entropy_window()
     planner.h_roi += [0.4] * 10
     assert "H_ROI settled" in planner.finished(FakeSession())
+
+
+class PerceivingSession:
+    """Serves one perception update."""
+
+    def __init__(self, update):
+        self.update = update
+
+    def latest_perception(self):
+        return self.update
+
+
+def test_the_objective_counts_the_objects_extent_so_far_not_the_current_roi(franka):
+    # A piece of the object split off in this map: the segmented box is smaller than the extent seen.
+    roi = compute_roi(np.array([[0.42, -0.03, 0.0], [0.46, 0.01, 0.05]]), table_z=0.0)
+    extent = (np.array([0.41, -0.04, 0.0]), np.array([0.49, 0.04, 0.08]))
+    update = SimpleNamespace(seq=1, timestamp=1.0, roi=roi, centroid=roi.centroid, extent=extent, h_roi=0.5,
+                             map=OccupancyMap(franka.perception.occupancy))
+    planner = VSLocalPlanner(franka)
+    planner._perceive(PerceivingSession(update))
+    grow = franka.planners.vs.objective.roi_margin_m
+    np.testing.assert_allclose(planner.objective.roi_min, extent[0] - [grow, grow, 0.0])
+    np.testing.assert_allclose(planner.objective.roi_max, extent[1] + grow)
+    assert planner.h_roi == [0.5]

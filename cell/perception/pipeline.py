@@ -35,11 +35,12 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
-    frame, the segmented object and its ROI, H_ROI (eq. 12, over the box of every ROI so far:
-    ``ObjectExtent``) and the occupancy map. ``roi``, ``centroid`` and ``h_roi`` are None until an object
-    has been found. ``map`` is the pipeline's own map when frames are processed in the planner's thread
-    (later frames update it), and a copy taken right after this frame when they are processed
-    asynchronously (``AsyncPerception``), so that a planner never reads a map the worker is writing."""
+    frame, the segmented object and its ROI, ``extent`` the box (min, max) [m] of every ROI so far
+    (``ObjectExtent``), H_ROI (eq. 12) over that box, and the occupancy map. ``roi``, ``centroid``,
+    ``extent`` and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map
+    when frames are processed in the planner's thread (later frames update it), and a copy taken right
+    after this frame when they are processed asynchronously (``AsyncPerception``), so that a planner never
+    reads a map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -49,6 +50,7 @@ class PerceptionUpdate:
     object_points: Array
     roi: ROI | None
     centroid: Array | None
+    extent: tuple[Array, Array] | None
     h_roi: float | None
     map: OccupancyMap
 
@@ -132,12 +134,13 @@ class PerceptionPipeline:
                              table_z=self.table_z_m)
         clock.lap("segment")
         roi = seg.roi
-        h_roi = self.map.mean_entropy_in_box(*self.extent.add(roi)) if roi is not None else None
+        extent = self.extent.add(roi) if roi is not None else None
+        h_roi = self.map.mean_entropy_in_box(*extent) if extent is not None else None
         clock.lap("h_roi")
         update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
                                   points_base=points_base, object_points=seg.object_points, roi=roi,
-                                  centroid=roi.centroid if roi is not None else None, h_roi=h_roi,
-                                  map=self.map)
+                                  centroid=roi.centroid if roi is not None else None, extent=extent,
+                                  h_roi=h_roi, map=self.map)
         self.latest = update
         return update
 

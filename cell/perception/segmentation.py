@@ -355,8 +355,9 @@ def compute_roi(points_base: Array, table_z: float | None = None) -> ROI:
 
 
 class ObjectExtent:
-    """The box H_ROI (visual-servoing paper, eq. 12) averages over: the smallest axis-aligned box [m, base
-    frame] holding every ROI box of the object seen so far in a scan.
+    """The box H_ROI (visual-servoing paper, eq. 12) averages over and the rays of the objective (eq. 9)
+    are clipped to: the smallest axis-aligned box [m, base frame] holding every ROI box of the object seen
+    so far in a scan.
 
     A departure from the paper, which takes the box of the object segmented from the current map. The
     object stands still during a scan (paper III-B), so its extent never shrinks, but its segmented box

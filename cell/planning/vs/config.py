@@ -31,10 +31,11 @@ class ObjectiveConfig(StrictModel):
     scan): f then measures the length of free path through the ROI rather than what a view would reveal,
     and VS-Local settles where that path is longest instead of moving on.
 
-    ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box grown by this much sideways and
-    upwards (not downwards, into the table): a departure, since the box of the points seen so far ends at
-    the seen extent of the object, and the space beside a face not seen yet would otherwise never count
-    (3 cm: bunny coverage 84 -> 90 %, mustard 86 -> 94 % in VS-Local scans, at longer scans).
+    ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box (the box of every ROI of the scan so
+    far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards (not
+    downwards, into the table): a departure, since the box of the points seen so far ends at the seen
+    extent of the object, and the space beside a face not seen yet would otherwise never count (3 cm:
+    bunny coverage 84 -> 90 %, mustard 86 -> 94 % in VS-Local scans, at longer scans).
     """
 
     rays_per_side: PositiveInt = 23

@@ -6,10 +6,12 @@ continuous capture (perception at ``perception.rate_hz``), and then runs the dua
 filtered object centroid in the camera frame (s of eq. 2), asks the strategy for the secondary task g once
 the primary task has converged, streams the twist through the guard and lets 1 / rate pass.
 
-Each new perception update (a new occupancy map) rebuilds the objective (eq. 9) on the new map and ROI,
-and adds H_ROI (eq. 12) to the history used by the entropy termination of Global and Hybrid. A strategy
-ends the scan by returning a reason from ``secondary``'s companion ``finished``; the time budget and
-safety stops end it from the session.
+Each new perception update (a new occupancy map) rebuilds the objective (eq. 9) on the new map, its rays
+clipped to the box of every ROI of the scan so far (``PerceptionUpdate.extent``, the box H_ROI averages
+over: a box that shrank with the segmentation would change f for reasons unrelated to what a view
+reveals), and adds H_ROI (eq. 12) to the history used by the entropy termination of Global and Hybrid.
+A strategy ends the scan by returning a reason from ``secondary``'s companion ``finished``; the time
+budget and safety stops end it from the session.
 
 Limits the paper handled with barrier planes placed by hand are handled here for any placement: the
 secondary direction g is projected so that it does not move a joint that is within
@@ -201,16 +203,16 @@ class ServoScanPlanner(Planner):
         if update is None or update.seq == self._seq:
             return
         self._seq = update.seq
-        if update.roi is None or update.centroid is None:
+        if update.extent is None or update.centroid is None:
             return  # segmentation found no object in this map: keep servoing on the last one
         self.centroid = self._centroid_filter.update(update.centroid, update.timestamp)
         perception = self.config.perception
         grow = self.vs.objective.roi_margin_m
+        lo, hi = update.extent
         # the update's own map: on the wall clock perception runs on another thread, and this is the copy
         # published with the update, which nothing writes
-        self.objective = EntropyObjective(update.map, update.roi.aabb_min - [grow, grow, 0.0],
-                                          update.roi.aabb_max + grow, perception.crop_box, self.rays_cam,
-                                          self._voxel_entropy)
+        self.objective = EntropyObjective(update.map, lo - [grow, grow, 0.0], hi + grow, perception.crop_box,
+                                          self.rays_cam, self._voxel_entropy)
         if update.h_roi is not None:
             self.h_roi.append(update.h_roi)
 
