@@ -5,7 +5,6 @@ and the per-backend tests."""
 from __future__ import annotations
 
 import contextlib
-import socket
 import subprocess
 import sys
 import time
@@ -20,6 +19,7 @@ from drivers.arm.config import FrankaArmConfig, SimArmConfig, UR5eArmConfig
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
 from drivers.robots import get_robot_model
+from tests.loopback import free_loopback
 from tests.rtde_peer import ControllerPeer
 
 PAYLOAD = {"mass_kg": 0.3, "cog_m": [0.0, 0.0, 0.03]}
@@ -49,24 +49,11 @@ def franka_config(host: str) -> FrankaArmConfig:
         "force_threshold_n": 30.0, "realtime": "ignore", "connect_timeout_s": 2.0})
 
 
-def free_loopback(port: int, start: int) -> str:
-    """A 127.0.0.N whose ``port`` is free."""
-    for n in range(start, start + 50):
-        host = f"127.0.0.{n}"
-        with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
-            try:
-                probe.bind((host, port))
-            except OSError:
-                continue
-        return host
-    raise RuntimeError(f"no free 127.0.0.N for port {port}")
-
-
 class FrankySim:
     """``franky-sim --simulator mujoco --hostname 127.0.0.N`` in its own process (port 1337)."""
 
     def __init__(self) -> None:
-        self.host = free_loopback(1337, 120)
+        self.host = free_loopback([1337], reuse_address=False)
         exe = Path(sys.executable).with_name("franky-sim")
         self._proc = subprocess.Popen([str(exe), "--simulator", "mujoco", "--hostname", self.host],
                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -17,7 +17,7 @@ import struct
 import threading
 
 from drivers.arm.franka import recv_exact
-from tests.arm_backends import free_loopback
+from tests.loopback import free_loopback
 
 COMMAND_PORT = 1337
 HEADER = struct.Struct("<III")
@@ -33,7 +33,7 @@ class FrankaConnectPeer:
     def __init__(self, version: int) -> None:
         self.version = version
         self.offered: list[int] = []
-        self.host = free_loopback(COMMAND_PORT, 200)
+        self.host = free_loopback([COMMAND_PORT])
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._listener.bind((self.host, COMMAND_PORT))

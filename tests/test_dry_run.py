@@ -15,7 +15,8 @@ from cell.config.load import parse_config
 from cell.jobs.runner import ScanRequest, run_scan
 from drivers.errors import ConfigError
 from tests.conftest import CONFIG_DIR
-from tests.rtde_peer import FIRST_HOST, ControllerPeer
+from tests.loopback import FIRST_HOST
+from tests.rtde_peer import ControllerPeer
 
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 MAX_TIME_S = 15.0  # wall-clock budget of the test's scan [s]

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -20,36 +19,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from tests.loopback import free_loopback
 from tests.rtde_peer.controller import CONTROL_PORT, PORTS
 
 REPO = Path(__file__).resolve().parents[2]
-FIRST_HOST, LAST_HOST = 20, 250
-# Each test process starts at its own address, so that concurrent runs rarely probe the same one.
-_next_host = FIRST_HOST + os.getpid() % (LAST_HOST - FIRST_HOST)
 START_ATTEMPTS = 5
-
-
-def _free_host() -> str:
-    """A loopback address 127.0.0.N (N in FIRST_HOST..LAST_HOST) whose controller ports are all free
-    (another test's or engineer's peer may hold some)."""
-    global _next_host
-    for _ in range(LAST_HOST - FIRST_HOST + 1):
-        host = f"127.0.0.{_next_host}"
-        _next_host = FIRST_HOST if _next_host >= LAST_HOST else _next_host + 1
-        if all(_port_free(host, port) for port in PORTS):
-            return host
-    raise RuntimeError("no free 127.0.0.N address for a controller peer")
-
-
-def _port_free(host: str, port: int) -> bool:
-    """Whether the peer could listen on ``host:port`` (bound as the peer binds, with SO_REUSEADDR)."""
-    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((host, port))
-        except OSError:
-            return False
-    return True
 
 
 class ControllerPeer:
@@ -63,7 +37,7 @@ class ControllerPeer:
         if q is not None:
             args += ["--q", ",".join(repr(float(v)) for v in q)]
         for _ in range(START_ATTEMPTS):
-            self.host = _free_host()
+            self.host = free_loopback(PORTS)
             cmd = [sys.executable, "-m", "tests.rtde_peer", "--host", self.host, "--exit-on-stdin-eof", *args]
             # the peer's standard error goes to a file, shown when the peer stops (a pipe nobody reads
             # could fill up and block it); it lives as long as the peer, closed by _take_stderr
