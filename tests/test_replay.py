@@ -187,6 +187,20 @@ def test_replay_through_another_planner_records_what_it_asks_for(tof_job, tmp_pa
     assert not any(r["kind"] == "move" and r["vx"] for r in requests)
 
 
+def test_a_servo_scan_replays_through_its_secondary_task(tmp_path):
+    """A VS-Local recording replayed through VS-Local: the recorded motion kept the object centred, so the
+    secondary task starts, and its barrier rows (joint limits, the edge of the reach) ask a replayed arm,
+    which reports no joints, for nothing."""
+    args = ["scan", "--config", str(FRANKA), "--object", "cube", "--planner", "vs-local",
+            "--out", str(tmp_path / "job"), "--max-time", "7"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    result, _ = _replay(tmp_path / "job", tmp_path / "again")
+    assert result["status"] == "completed", result.get("termination")
+    with (tmp_path / "again" / "servo.csv").open() as f:
+        assert "local" in {row["mode"] for row in csv.DictReader(f)}
+
+
 def test_replay_without_ground_truth_reports_no_metrics(tof_job, tmp_path):
     job = tmp_path / "real"
     shutil.copytree(tof_job, job)

@@ -264,8 +264,11 @@ class JobSession:
     def joint_limit_twists(self, activation_rad: float) -> Array:
         """Rows a (m, 6), one per joint closer than ``activation_rad`` [rad] to its position margin: a
         sensor twist v (sensor frame, [m/s, rad/s]) moves that joint towards the margin at a . v [rad/s]
-        (first order, the damped least-squares part of the arm's differential IK)."""
+        (first order, the damped least-squares part of the arm's differential IK). None for an arm that
+        reports no joints (a replayed one)."""
         state = self._guard.state()
+        if not np.all(np.isfinite(state.q)):
+            return np.zeros((0, 6))
         q_lo, q_hi = self._guard.joint_bounds
         to_hi, to_lo = q_hi - state.q, state.q - q_lo
         near_hi, near_lo = to_hi < activation_rad, to_lo < activation_rad
@@ -280,9 +283,10 @@ class JobSession:
         """Rows a (0 or 1, 6): while the smallest singular value of the arm's Jacobian
         (``RobotModel.min_singular_value``) is below ``activation``, a sensor twist v (sensor frame,
         [m/s, rad/s]) lowers it at a . v per second (first order, the damped least-squares part of the
-        arm's differential IK); none otherwise."""
+        arm's differential IK); none otherwise, and none for an arm that reports no joints (a replayed
+        one: its recorded motion plays whatever the planner asks)."""
         state = self._guard.state()
-        if self._model.min_singular_value(state.q) >= activation:
+        if not np.all(np.isfinite(state.q)) or self._model.min_singular_value(state.q) >= activation:
             return np.zeros((0, 6))
         rate = self._model.min_singular_value_gradient(state.q) @ self._model.velocity_map(state.q).task
         return -(rate @ self._sensor_twist_map(state.T_base_flange))[None, :]
