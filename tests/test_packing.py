@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
@@ -13,9 +13,10 @@ from cell.config.models import PerceptionConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.config import ContainerConfig, PackingConfig
 from cell.packing.containers import choose_container, required_inner_dims
-from cell.packing.objects import object_surface_points, segment_on_table
+from cell.packing.objects import extent_points, object_surface_points, segment_on_table
 from cell.packing.result import ReconstructionHistory, count_useless, packing_section, surface_coverage_pct
 from cell.perception.metrics import ground_truth_points
+from cell.perception.segmentation import ObjectExtent, compute_roi
 from drivers.sim.objects import load_object, sample_surface
 from drivers.transforms import T_from_xyz_rpy, transform_points
 from tests.conftest import UR5E
@@ -146,6 +147,7 @@ def test_surface_coverage() -> None:
 @dataclass
 class _Map:
     occupied: np.ndarray
+    resolution_m: float = 0.01
 
     def occupied_centers(self) -> np.ndarray:
         return self.occupied
@@ -165,6 +167,7 @@ class _Perception:
     config: PerceptionConfig
     cloud: _Cloud
     table_z_m: float = 0.0
+    extent: ObjectExtent = field(default_factory=ObjectExtent)
 
 
 @dataclass
@@ -285,3 +288,31 @@ def test_trimmed_box_takes_its_yaw_from_the_trimmed_footprint() -> None:
     assert (box.yaw_rad - yaw + math.pi / 4) % (math.pi / 2) - math.pi / 4 == pytest.approx(0.0, abs=0.01)
     np.testing.assert_allclose(box.dims[:2], [0.1, 0.1], atol=0.01)  # the noise beyond the 2 % quantile
     np.testing.assert_allclose(box.center_xy, [0.45, 0.0], atol=0.002)
+
+
+def test_extent_points_are_the_measured_points_in_the_box_of_every_roi() -> None:
+    session = _session(1, np.zeros((0, 3)), np.array([
+        [0.45, 0.0, 0.05],      # inside
+        [0.4995, 0.0, 0.05],    # beyond the last voxel centre, within its voxel
+        [0.5005, 0.0, 0.05],    # beyond that voxel
+        [0.45, 0.0, 0.004],     # below the table cut
+    ]))
+    assert extent_points(session.perception).shape == (0, 3)  # type: ignore[arg-type]
+    session.perception.extent.add(compute_roi(np.array([[0.405, -0.045, 0.015], [0.495, 0.045, 0.095]])))
+    got = extent_points(session.perception)  # type: ignore[arg-type]
+    np.testing.assert_allclose(got, session.perception.cloud.points[:2])
+
+
+def test_packing_box_keeps_a_piece_the_final_cluster_lost() -> None:
+    """Carving split the far half off the final map's cluster; the box of every ROI of the scan still
+    holds it, and so do the measured points: the box is the whole object's."""
+    cfg = load_config(UR5E)
+    T = T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, 0.0])
+    surface = transform_points(T, _box_surface((0.3, 0.2, 0.1), 20000, np.random.default_rng(6)))
+    surface = surface[surface[:, 2] > 0.013]
+    full = _voxelise(surface, 0.01)
+    near = full[full[:, 0] < 0.45]
+    session = _session(1, near, surface)
+    session.perception.extent.add(compute_roi(full))
+    section = packing_section(cfg, session, object(), None, None, None)  # type: ignore[arg-type]
+    np.testing.assert_allclose(section["dims_m"], [0.3, 0.2, 0.1], atol=0.005)

@@ -1,8 +1,9 @@
 """The ``packing`` section of ``result.json`` (LR-NBV paper, section 4.1, the four metrics):
 
 1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
-   known table height, and the measured points inside them, :mod:`cell.packing.objects`; the box:
-   :mod:`cell.packing.box`) and, in sim, their IoU with the ground-truth box of the posed mesh;
+   known table height, the measured points inside them and inside the box of every ROI of the scan,
+   :mod:`cell.packing.objects`; the box: :mod:`cell.packing.box`) and, in sim, their IoU with the
+   ground-truth box of the posed mesh;
 2. the number of poses, one per capture;
 3. surface coverage [%]: the share of ground-truth surface samples (eq. 13's A of the visual-servoing
    paper: faces pointing down excluded) within ``coverage_radius_m`` of an object voxel centre;
@@ -27,7 +28,7 @@ from scipy.spatial import cKDTree
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.containers import choose_container
-from cell.packing.objects import current_object, object_surface_points
+from cell.packing.objects import current_object, extent_points, object_surface_points
 from cell.perception.pipeline import PerceptionPipeline
 from drivers.sim.objects import ObjectMesh
 
@@ -115,8 +116,9 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     if session is None or objects.shape[0] == 0:
         section["container"] = {"name": None, "reason": "none fits: no object was found"}
         return section
-    box = box_from_points(object_surface_points(session.perception, objects), config.station.table_z_m,
-                          trim=pc.trim_fraction)
+    perception = session.perception
+    measured = np.vstack([object_surface_points(perception, objects), extent_points(perception)])
+    box = box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
     section["box"] = _box_dict(box)
     if mesh is not None and T_base_object is not None:
