@@ -362,7 +362,7 @@ class ObjectExtent:
     A departure from the paper, which takes the box of the object segmented from the current map. The
     object stands still during a scan (paper III-B), so its extent never shrinks, but its segmented box
     does: rays passing a curved surface at a grazing angle carve its one-voxel shell, a piece splits off
-    and the largest cluster loses it. On a 7.5 cm baseball the box lost 1.5 cm in y and 2 cm at the bottom
+    and the largest cluster loses it. On a 7.3 cm baseball the box lost 1.5 cm in y and 2 cm at the bottom
     for a few frames at a time, each change moving H_ROI by about 0.01 nats, ten times the flatness
     threshold of the termination rule (std of the last ten values < 0.001); VS-Global and VS-Hybrid
     baseball scans ran to their 180 s budget on that flicker alone. A ROI disjoint from the box so far is
