@@ -227,3 +227,24 @@ def test_discretize_casts_one_ray_per_end_voxel_to_its_centre():
     np.testing.assert_array_equal(lo, ref_lo)
     assert np.unique(disc.keys_of(ends), axis=0).shape[0] < ends.shape[0] / 2
     np.testing.assert_array_equal(disc.occupied_keys(), np.unique(disc.keys_of(ends), axis=0))
+
+
+@pytest.mark.parametrize("keep_surface", [False, True])
+def test_keep_surface_spares_occupied_neighbours_of_hits_from_grazing_rays(keep_surface):
+    """Two voxels seen occupied from above; then rays along the surface: one ends in the voxel next to
+    the first (a grazing ray to the surface beyond it), one ends four voxels past the second. OctoMap
+    carves both; with ``keep_surface`` the first, next to a hit of the scan, keeps its log-odds."""
+    m = make_map(keep_surface=keep_surface)
+    near, far = np.array([0.005, 0.005, 0.005]), np.array([0.005, 0.055, 0.005])
+    for _ in range(2):
+        m.integrate(np.array([0.005, 0.03, 0.5]), np.vstack([near, far]))
+    before = m.logodds(np.vstack([near, far]))
+    assert np.all(before > 0.0)
+    grazing = np.array([[0.015, 0.005, 0.005], [0.045, 0.055, 0.005]])
+    m.integrate(np.array([-0.3, 0.03, 0.005]), grazing)
+    after = m.logodds(np.vstack([near, far]))
+    assert after[1] == pytest.approx(before[1] + logit(0.4))  # away from every hit: carved
+    if keep_surface:
+        assert after[0] == before[0]
+    else:
+        assert after[0] == pytest.approx(before[0] + logit(0.4))

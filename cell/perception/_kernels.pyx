@@ -92,6 +92,32 @@ cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noe
     return True
 
 
+cdef inline void _keep_surface(Grid* g, int64_t x, int64_t y, int64_t z) noexcept nogil:
+    """Stamp the occupied voxels among the 26 neighbours of hit voxel (x, y, z), so that no ray of this
+    scan carves them (see ``OccupancyParams.keep_surface``); neighbours outside the block index or in
+    blocks not allocated are unknown, not occupied, and are left alone."""
+    cdef int64_t dx, dy, dz, lx, ly, lz, slot, v
+    for dx in range(-1, 2):
+        lx = x + dx - g.ox
+        if lx < 0 or lx >= (g.sx << BLOCK_BITS):
+            continue
+        for dy in range(-1, 2):
+            ly = y + dy - g.oy
+            if ly < 0 or ly >= (g.sy << BLOCK_BITS):
+                continue
+            for dz in range(-1, 2):
+                lz = z + dz - g.oz
+                if lz < 0 or lz >= (g.sz << BLOCK_BITS):
+                    continue
+                slot = g.index[(((lx >> BLOCK_BITS) * g.sy) + (ly >> BLOCK_BITS)) * g.sz + (lz >> BLOCK_BITS)]
+                if slot < 0:
+                    continue
+                v = slot * BLOCK_VOXELS + (((lx & BLOCK_MASK) << (2 * BLOCK_BITS))
+                                           | ((ly & BLOCK_MASK) << BLOCK_BITS) | (lz & BLOCK_MASK))
+                if g.pool[v] > g.l_occ:
+                    g.stamp[v] = g.scan
+
+
 cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
                     bint end_free) noexcept nogil:
     """Misses for the voxels of the segment o -> e (grid units) from the voxel k0 of o up to the voxel ke
@@ -148,7 +174,7 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
                    const int64_t[:, ::1] end_keys, const uint8_t[::1] kinds, int32_t[:, :, ::1] index,
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
                    int32_t[::1] n_occupied, int64_t[:, ::1] block_coords, int64_t n_blocks, uint32_t scan,
-                   float l_hit, float l_miss, float l_min, float l_max, float l_occ):
+                   float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface):
     """Integrate one scan; returns (number of blocks in use, True if done / False if the pool is full).
 
     ``origin`` (3,) and ``ends`` (N, 3) in grid units (metres / resolution), ``origin_key`` and
@@ -157,9 +183,10 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
     ``pool`` / ``stamp`` the log-odds and scan stamps, ``n_occupied`` (capacity,) the occupied voxels
     (log-odds above ``l_occ``) of each block, kept up to date, ``block_coords`` (capacity, 3); ``scan`` a number
     not used by an earlier scan. End voxels of hits are updated first, so that a voxel both hit and
-    traversed in the scan is updated as occupied only. When the pool fills up the call stops: grow the
-    pool and call again with the same ``scan``; voxels already updated are skipped by their stamp, so
-    the result is the same as one uninterrupted call.
+    traversed in the scan is updated as occupied only; with ``keep_surface``, the occupied neighbours of
+    the hit voxels are then stamped too, so that no ray of the scan carves them. When the pool fills up
+    the call stops: grow the pool and call again with the same ``scan``; voxels already updated are
+    skipped by their stamp, so the result is the same as one uninterrupted call.
     """
     cdef Grid g
     cdef Py_ssize_t i, n = ends.shape[0]
@@ -181,6 +208,10 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
                 ok = False
                 break
         if ok:
+            if keep_surface:
+                for i in range(n):
+                    if kinds[i] == K_HIT:
+                        _keep_surface(&g, end_keys[i, 0], end_keys[i, 1], end_keys[i, 2])
             for i in range(n):
                 if not _traverse(&g, &origin[0], &origin_key[0], &ends[i, 0], &end_keys[i, 0],
                                  kinds[i] == K_FREE):
