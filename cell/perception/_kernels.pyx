@@ -49,10 +49,21 @@ cdef struct Grid:
     float l_hit, l_miss, l_min, l_max, l_occ
 
 
+cdef inline int64_t _block(Grid* g, int64_t lx, int64_t ly, int64_t lz) noexcept nogil:
+    """Entry of the block index for the voxel (lx, ly, lz), its key less the index's first (ox, oy, oz)."""
+    return (((lx >> BLOCK_BITS) * g.sy) + (ly >> BLOCK_BITS)) * g.sz + (lz >> BLOCK_BITS)
+
+
+cdef inline int64_t _in_slot(int64_t slot, int64_t lx, int64_t ly, int64_t lz) noexcept nogil:
+    """Pool index of the voxel (lx, ly, lz) (as for ``_block``) in the block stored at ``slot``."""
+    return slot * BLOCK_VOXELS + (((lx & BLOCK_MASK) << (2 * BLOCK_BITS))
+                                  | ((ly & BLOCK_MASK) << BLOCK_BITS) | (lz & BLOCK_MASK))
+
+
 cdef inline int64_t _voxel(Grid* g, int64_t x, int64_t y, int64_t z) noexcept nogil:
     """Pool index of voxel key (x, y, z), allocating its block; -1 when the pool is full."""
     cdef int64_t lx = x - g.ox, ly = y - g.oy, lz = z - g.oz
-    cdef int64_t b = (((lx >> BLOCK_BITS) * g.sy) + (ly >> BLOCK_BITS)) * g.sz + (lz >> BLOCK_BITS)
+    cdef int64_t b = _block(g, lx, ly, lz)
     cdef int64_t slot = g.index[b]
     if slot < 0:
         if g.n_blocks == g.capacity:
@@ -63,8 +74,7 @@ cdef inline int64_t _voxel(Grid* g, int64_t x, int64_t y, int64_t z) noexcept no
         g.coords[3 * slot + 1] = (y - (ly & BLOCK_MASK)) >> BLOCK_BITS
         g.coords[3 * slot + 2] = (z - (lz & BLOCK_MASK)) >> BLOCK_BITS
         g.n_blocks += 1
-    return slot * BLOCK_VOXELS + (((lx & BLOCK_MASK) << (2 * BLOCK_BITS))
-                                  | ((ly & BLOCK_MASK) << BLOCK_BITS) | (lz & BLOCK_MASK))
+    return _in_slot(slot, lx, ly, lz)
 
 
 cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noexcept nogil:
@@ -109,11 +119,10 @@ cdef inline void _keep_surface(Grid* g, int64_t x, int64_t y, int64_t z) noexcep
                 lz = z + dz - g.oz
                 if lz < 0 or lz >= (g.sz << BLOCK_BITS):
                     continue
-                slot = g.index[(((lx >> BLOCK_BITS) * g.sy) + (ly >> BLOCK_BITS)) * g.sz + (lz >> BLOCK_BITS)]
+                slot = g.index[_block(g, lx, ly, lz)]
                 if slot < 0:
                     continue
-                v = slot * BLOCK_VOXELS + (((lx & BLOCK_MASK) << (2 * BLOCK_BITS))
-                                           | ((ly & BLOCK_MASK) << BLOCK_BITS) | (lz & BLOCK_MASK))
+                v = _in_slot(slot, lx, ly, lz)
                 if g.pool[v] > g.l_occ:
                     g.stamp[v] = g.scan
 
