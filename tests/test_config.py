@@ -42,6 +42,15 @@ def test_sim_cells_match_the_papers():
     assert (ur.arm.model, sensor.type, sensor.resolution, sensor.fov_deg) == ("ur5e", "sim-tof", 8, 45.0)
 
 
+@pytest.mark.parametrize("sim, real", [("sim-franka-rgbd", "franka-realsense"),
+                                       ("sim-ur5e-tof", "ur5e-vl53l8cx")])
+def test_real_cells_scan_with_what_their_simulated_twins_were_measured_with(sim, real):
+    twin, cell = load_config(CONFIG_DIR / f"{sim}.yaml"), load_config(CONFIG_DIR / f"{real}.yaml")
+    for section in ("vs", "vs_local", "vs_global"):
+        assert getattr(cell.planners, section) == getattr(twin.planners, section), section
+    assert cell.perception.occupancy == twin.perception.occupancy
+
+
 def test_unknown_robot_model_names_field_and_allowed_values(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
     data["arm"]["model"] = "kuka"
