@@ -1,6 +1,7 @@
-"""VS-Local on shapes and placements that are not Table I's: what the scan time and coverage of
-``benchmarks/vs_table.py`` become away from the eight objects at the station's centre, for choosing the
-planners' parameters on the method rather than on those objects.
+"""VS-Local on ten shapes and placements that are not Table I's: scan time, path and coverage.
+
+What the figures of ``benchmarks/vs_table.py`` become away from the eight objects at the station's centre,
+for choosing the planners' parameters on the method rather than on those objects.
 
 The cases: four primitive shapes built here with Open3D (metres, z up, base at z = 0, centred), each at
 the station's centre or turned; the two shipped packing boxes, turned; four of Table I's objects moved
@@ -18,7 +19,6 @@ Run: ``nice .venv/bin/python benchmarks/vs_heldout.py [--config F] [--seeds 0] [
 
 from __future__ import annotations
 
-import argparse
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -29,10 +29,9 @@ import open3d as o3d
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grid_report import print_result
+from grid_report import jobs_parser, print_result, refuse_taken
 
 from cell.config import load_config
-from cell.jobs.recorder import holds_job
 from cell.jobs.runner import ScanRequest, run_scan
 
 REPO = Path(__file__).resolve().parents[1]
@@ -90,19 +89,14 @@ def run_one(config_path: Path, label: str, obj: str, pose: tuple[float, float, f
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", type=Path, default=REPO / "config" / "sim-franka-rgbd.yaml")
+    parser = jobs_parser(__doc__.splitlines()[0], REPO / "config" / "sim-franka-rgbd.yaml",
+                         Path("/tmp/vs_heldout"))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
-    parser.add_argument("--out", type=Path, default=Path("/tmp/vs_heldout"), help="root of the job folders")
-    parser.add_argument("--json", type=Path, default=None, help="also write the JSON here")
     parser.add_argument("--jobs", type=int, default=2, help="scans run at the same time")
     args = parser.parse_args()
     grid = [(label, obj, pose, seed, args.out / f"{label}-s{seed}") for label, obj, pose in CASES
             for seed in args.seeds]
-    taken = [folder for *_, folder in grid if holds_job(folder)]
-    if taken:
-        parser.error(f"{len(taken)} of the job folders already hold a job (e.g. {taken[0]}); "
-                     "choose another --out")
+    refuse_taken(parser, [folder for *_, folder in grid])
     shapes = write_shapes(args.out / "shapes")
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, args.config, label, str(shapes.get(obj, obj)), pose, seed, folder)

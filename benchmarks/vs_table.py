@@ -47,10 +47,9 @@ from matplotlib.figure import Figure  # not pyplot: a file only, no display
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grid_report import grid_parser, print_result
+from grid_report import grid_parser, print_result, refuse_taken
 
 from cell.config import load_config
-from cell.jobs.recorder import holds_job
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
 
@@ -278,11 +277,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="scans run at the same time")
     args = parser.parse_args()
     grid = [(p, o, s) for p in args.planners for o in args.objects for s in args.seeds]
-    # a job refuses a folder that holds one: say so before the grid runs, not after
-    taken = [f for p, o, s in grid if holds_job(f := job_folder(args.out, o, p, s))]
-    if taken:
-        parser.error(f"{len(taken)} of the job folders already hold a job (e.g. {taken[0]}); "
-                     "choose another --out")
+    refuse_taken(parser, [job_folder(args.out, o, p, s) for p, o, s in grid])
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, args.config, o, p, s, tuple(args.object_pose), args.out)
                    for p, o, s in grid]
