@@ -29,6 +29,7 @@ from cell.perception.metrics import CoverageTracker
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard, TwistRefused
+from drivers.arm.base import ArmState
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.errors import DriverError, KinematicsError
@@ -261,13 +262,19 @@ class JobSession:
         # numpy's stub types solve() of float64 operands as NDArray[floating]; it returns float64
         return np.linalg.solve(to_flange, sent)  # type: ignore[return-value]
 
+    def _jointed_state(self) -> ArmState | None:
+        """The arm's state, or None when it reports no joints (a replayed arm: its recorded motion plays
+        whatever the planner asks, so no joint limit or reach holds it back)."""
+        state = self._guard.state()
+        return state if np.all(np.isfinite(state.q)) else None
+
     def joint_limit_twists(self, activation_rad: float) -> Array:
         """Rows a (m, 6), one per joint closer than ``activation_rad`` [rad] to its position margin: a
         sensor twist v (sensor frame, [m/s, rad/s]) moves that joint towards the margin at a . v [rad/s]
-        (first order, the damped least-squares part of the arm's differential IK). None for an arm that
-        reports no joints (a replayed one)."""
-        state = self._guard.state()
-        if not np.all(np.isfinite(state.q)):
+        (first order, the damped least-squares part of the arm's differential IK). No rows for an arm that
+        reports no joints (:meth:`_jointed_state`)."""
+        state = self._jointed_state()
+        if state is None:
             return np.zeros((0, 6))
         q_lo, q_hi = self._guard.joint_bounds
         to_hi, to_lo = q_hi - state.q, state.q - q_lo
@@ -283,10 +290,10 @@ class JobSession:
         """Rows a (0 or 1, 6): while the smallest singular value of the arm's Jacobian
         (``RobotModel.min_singular_value``) is below ``activation``, a sensor twist v (sensor frame,
         [m/s, rad/s]) lowers it at a . v per second (first order, the damped least-squares part of the
-        arm's differential IK); none otherwise, and none for an arm that reports no joints (a replayed
-        one: its recorded motion plays whatever the planner asks)."""
-        state = self._guard.state()
-        if not np.all(np.isfinite(state.q)) or self._model.min_singular_value(state.q) >= activation:
+        arm's differential IK); none otherwise, and none for an arm that reports no joints
+        (:meth:`_jointed_state`)."""
+        state = self._jointed_state()
+        if state is None or self._model.min_singular_value(state.q) >= activation:
             return np.zeros((0, 6))
         rate = self._model.min_singular_value_gradient(state.q) @ self._model.velocity_map(state.q).task
         return -(rate @ self._sensor_twist_map(state.T_base_flange))[None, :]
