@@ -31,10 +31,16 @@ from cell.perception.segmentation import SegmentationParams, dbscan_largest_clus
 Array = NDArray[np.float64]
 
 
+def table_cut_z(params: SegmentationParams, table_z: float) -> float:
+    """Height [m, base frame] above which :func:`segment_on_table` takes points to be the object's:
+    ``params.plane_distance_m`` above the known table height ``table_z`` [m]."""
+    return table_z + params.plane_distance_m
+
+
 def segment_on_table(occupied_base: Array, params: SegmentationParams, table_z: float) -> Array:
     """The object's points (M, 3) [m, base frame]: the largest cluster (``params.method``) of the occupied
-    voxel centres more than ``params.plane_distance_m`` above ``table_z`` [m]; (0, 3) when none."""
-    above = occupied_base[occupied_base[:, 2] > table_z + params.plane_distance_m]
+    voxel centres above :func:`table_cut_z`; (0, 3) when none."""
+    above = occupied_base[occupied_base[:, 2] > table_cut_z(params, table_z)]
     if params.method == "euclidean":
         return largest_euclidean_cluster(above, params.cluster_tolerance_m, params.min_cluster_points)
     return dbscan_largest_cluster(above, params.dbscan_eps_m, params.dbscan_min_points,
@@ -72,12 +78,12 @@ def object_surface_points(perception: PerceptionPipeline, object_voxels: Array) 
 def extent_points(perception: PerceptionPipeline) -> Array:
     """The accumulated cloud's points (K, 3) [m, base frame] inside the box of every ROI of the scan
     (``perception.extent``, grown by half a voxel from the voxel centres it was taken on to the voxels'
-    faces) and above the table cut of :func:`segment_on_table`; (0, 3) before any ROI."""
+    faces) and above :func:`table_cut_z`; (0, 3) before any ROI."""
     extent = perception.extent
     if extent.min_m is None or extent.max_m is None:
         return np.zeros((0, 3))
     half = perception.map.resolution_m / 2.0
     lo = extent.min_m - half
-    lo[2] = max(lo[2], perception.table_z_m + perception.config.segmentation.plane_distance_m)
+    lo[2] = max(lo[2], table_cut_z(perception.config.segmentation, perception.table_z_m))
     cloud = perception.cloud.points
     return cloud[np.all((cloud > lo) & (cloud <= extent.max_m + half), axis=1)]
