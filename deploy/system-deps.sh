@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # System packages the cell needs on Debian 12 / Ubuntu: Open3D's shared libraries (libusb, OpenMP, GL),
-# Python's venv module, and a C compiler with Python's headers for the compiled perception kernels.
+# Python's venv module, a C compiler with Python's headers for the compiled perception kernels, and
+# PostgreSQL's server (the job store's tests run a real one).
 # Installs only what is missing; uses sudo when not root.
 set -euo pipefail
 
@@ -13,6 +14,7 @@ python3 -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
 command -v gcc >/dev/null 2>&1 || missing+=(gcc)
 python3 -c 'import sysconfig, os, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
   || missing+=(python3-dev)
+compgen -G '/usr/lib/postgresql/*/bin/initdb' >/dev/null || missing+=(postgresql)
 
 if [ ${#missing[@]} -eq 0 ]; then
   exit 0

@@ -65,3 +65,19 @@ class PlanningError(CellError):
 
 class JobError(CellError):
     """A scan job cannot start or continue (missing object, unwritable folder, ...)."""
+
+
+class StoreError(CellError):
+    """The job store cannot be opened, migrated or written (a bad ``--db`` URL, a database that does not
+    answer, a schema newer than this software)."""
+
+
+class ServiceError(CellError):
+    """The service refuses a request. ``reason`` is one of ``invalid`` (``field`` names the offending
+    input), ``not found``, ``conflict`` (not in a state that allows it), ``queue full``; the API turns it
+    into its HTTP status (422, 404, 409, 429)."""
+
+    def __init__(self, message: str, *, reason: str, field: str | None = None) -> None:
+        self.reason = reason
+        self.field = field
+        super().__init__(message)

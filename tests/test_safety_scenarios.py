@@ -18,8 +18,9 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config import load_config
 from cell.config.load import parse_config
+from cell.jobs.control import JobControl
+from cell.jobs.progress import JobProgress
 from cell.jobs.runner import ScanRequest, run_scan
-from cell.jobs.session import JobSession
 from cell.planning.base import Planner, ScanSession
 from cell.planning.registry import PLANNERS
 from drivers.arm.base import ArmMode, JointTrajectory, MotionToken
@@ -96,7 +97,8 @@ def _test_planners(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
 def _run(tmp_path: Path, config_path: Path, *, faults: list[dict[str, Any]] | None = None,
          planner: str = OrbitPlanner.name, max_time: float = 12.0,
-         on_progress: Any = None) -> tuple[dict[str, Any], Path, BaseException | None]:
+         on_progress: Any = None, control: JobControl | None = None,
+         ) -> tuple[dict[str, Any], Path, BaseException | None]:
     data = load_config(config_path).model_dump(mode="json")
     data["sim"]["faults"] = faults or []
     cfg = parse_config(data, file=str(config_path))
@@ -104,7 +106,7 @@ def _run(tmp_path: Path, config_path: Path, *, faults: list[dict[str, Any]] | No
     error: BaseException | None = None
     try:
         run_scan(ScanRequest(config=cfg, config_path=str(config_path), object="bunny", planner=planner,
-                             out=out, max_time_s=max_time), on_progress=on_progress)
+                             out=out, max_time_s=max_time), on_progress=on_progress, control=control)
     except SafetyStop as exc:
         error = exc
     return json.loads((out / "result.json").read_text()), out, error
@@ -168,18 +170,33 @@ def test_arm_comes_to_rest_after_a_fault(tmp_path):
 
 
 def test_operator_stop_from_the_service_call(tmp_path):
-    def stop_at_second_frame(session: JobSession) -> None:
-        if session.n_captures == 2:
-            session.request_stop("operator pressed stop")
+    control = JobControl()
+    commanded: list[bool] = []
 
-    result, out, error = _run(tmp_path, FRANKA, on_progress=stop_at_second_frame)
+    def stop_at_second_frame(progress: JobProgress) -> None:
+        if progress.n_captures == 2:
+            commanded.append(control.request_stop("operator pressed stop"))
+
+    result, out, error = _run(tmp_path, FRANKA, on_progress=stop_at_second_frame, control=control)
     _assert_stopped_and_kept(result, out, error, "operator stop: operator pressed stop")
-    assert result["n_captures"] == 2
+    assert result["n_captures"] == 2 and commanded == [True]
+    # a stop after the job ended has nothing left to stop
+    assert control.request_stop("too late") is False
+
+
+def test_a_stop_asked_before_the_job_moves_is_applied_before_its_first_motion(tmp_path):
+    control = JobControl()
+    assert control.request_stop("stopped while queued") is False
+    result, out, error = _run(tmp_path, FRANKA, control=control)
+    assert isinstance(error, SafetyStop) and result["status"] == "stopped"
+    assert "operator stop: stopped while queued" in result["termination"]
+    # the sensor never moved: the stop reached the guard before the planner's first command
+    assert np.ptp(_sensor_positions(out), axis=0).max() < 1e-9 and result["path_length_m"] == 0.0
 
 
 def test_operator_stop_from_the_cli(tmp_path):
-    def cli_stop(session: JobSession) -> None:
-        if session.n_captures == 3:
+    def cli_stop(progress: JobProgress) -> None:
+        if progress.n_captures == 3:
             res = CliRunner().invoke(app, ["stop", str(tmp_path / "job"), "--reason", "lunch"])
             assert res.exit_code == 0, res.output
 

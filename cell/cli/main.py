@@ -13,12 +13,14 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
+from cell.cli.keys import keys_app
 from cell.cli.sensor import sensor_app
+from cell.cli.serve import serve
 from cell.config import load_config
+from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import request_stop
 from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import ScanRequest, run_scan
-from cell.jobs.session import JobSession
 from cell.perception.reprocess import reprocess_job
 from cell.planning.registry import PLANNERS
 from drivers.errors import CellError
@@ -33,6 +35,8 @@ config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 app.add_typer(sensor_app, name="sensor")
 app.add_typer(arm_app, name="arm")
+app.add_typer(keys_app, name="keys")
+app.command()(serve)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
@@ -102,10 +106,9 @@ def scan(
                       console=console, transient=True) as progress:
             task = progress.add_task("scan", total=budget, sim=0.0, captures=0, coverage=0.0)
 
-            def show(session: JobSession) -> None:
-                cov = session.coverage.coverage_pct if session.coverage else 0.0
-                progress.update(task, completed=session.now(), sim=session.now(),
-                                captures=session.n_captures, coverage=cov)
+            def show(p: JobProgress) -> None:
+                progress.update(task, completed=p.t_s, sim=p.t_s, captures=p.n_captures,
+                                coverage=p.coverage_pct or 0.0)
 
             outcome = run_scan(request, on_progress=show)
     except CellError as exc:

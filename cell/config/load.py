@@ -102,6 +102,12 @@ def parse_config(data: Any, file: str = "<config>") -> CellConfig:
 
 def load_config(path: str | Path) -> CellConfig:
     """Read and validate the cell file at ``path``."""
+    return load_config_data(path)[0]
+
+
+def load_config_data(path: str | Path) -> tuple[CellConfig, Any]:
+    """Read and validate the cell file at ``path``; returns it with its parsed YAML (which
+    ``parse_config`` validates again elsewhere, e.g. in a job's worker process)."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError("no such file", file=str(p))
@@ -109,4 +115,4 @@ def load_config(path: str | Path) -> CellConfig:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"not valid YAML: {exc}", file=str(p)) from None
-    return parse_config(data, file=str(p))
+    return parse_config(data, file=str(p)), data

@@ -128,9 +128,21 @@ class ScanConfig(StrictModel):
     max_time_s: PositiveFloat
 
 
+class ServiceConfig(StrictModel):
+    """``cell serve``: how many jobs may wait behind the running one (``queue_max``; beyond it a
+    submission is refused), how long a stop request waits for the job's worker to confirm that the arm
+    was commanded to stop [s], how long shutting down waits for a running job to stop and finish its
+    folder [s], and the largest mesh an operator may upload [MB]."""
+
+    queue_max: PositiveInt = 16
+    stop_confirm_timeout_s: PositiveFloat = 2.0
+    shutdown_timeout_s: PositiveFloat = 20.0
+    max_upload_mb: PositiveFloat = 50.0
+
+
 class CellConfig(StrictModel):
     """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan,
-    planners, and the packing result (container catalogue).
+    planners, the packing result (container catalogue) and the service (``cell serve``).
 
     ``mode`` says which devices are real:
 
@@ -157,6 +169,7 @@ class CellConfig(StrictModel):
     scan: ScanConfig
     planners: PlannersConfig
     packing: PackingConfig = PackingConfig()
+    service: ServiceConfig = ServiceConfig()
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:

@@ -28,7 +28,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from cell.config.models import CellConfig
+from cell.jobs.control import JobControl
 from cell.jobs.live import PoseHistory
+from cell.jobs.placement import check_on_table
+from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import STOP_FILE, JobRecorder
 from cell.jobs.replay import ReplaySession
 from cell.jobs.session import JobSession, ScanLimitReached
@@ -162,7 +165,9 @@ def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, Obj
         return _recorded_object(replay_dir)
     if req.config.mode == "real":
         return req.object, None, None
-    return req.object, load_object(req.object), object_pose_in_base(req.config, req.object_pose)
+    mesh = load_object(req.object)
+    check_on_table(req.config, mesh, req.object_pose)
+    return req.object, mesh, object_pose_in_base(req.config, req.object_pose)
 
 
 def _run_planner(planner: Planner, session: JobSession) -> str:
@@ -172,8 +177,12 @@ def _run_planner(planner: Planner, session: JobSession) -> str:
         session.close()
 
 
-def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None = None) -> ScanOutcome:
-    """Run the scan described by ``req``; returns the job folder and the result written there."""
+def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None = None,
+             control: JobControl | None = None) -> ScanOutcome:
+    """Run the scan described by ``req``; returns the job folder and the result written there.
+
+    ``on_progress`` gets a snapshot after each perception update, on the control thread (keep it short);
+    ``control`` lets another thread stop the job (``JobControl.request_stop``)."""
     cfg = req.config
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
@@ -222,14 +231,18 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
             coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
+            report = None if on_progress is None else (
+                lambda s: on_progress(s.progress(planner.figures())))
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
-                max_time_s=max_time, coverage=coverage, on_progress=on_progress, stop_file=folder / STOP_FILE,
+                max_time_s=max_time, coverage=coverage, on_progress=report, stop_file=folder / STOP_FILE,
                 rng=planner_rng)
             if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
                 session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
             else:
                 session = JobSession(cfg, sensor=sensor, poses=poses, **common)
+            if control is not None:
+                control.attach(session)
             # Whatever ends the planner's run, the arm is brought to rest and watched until it is, and
             # asynchronous capture stops before the sensor disconnects.
             try:
@@ -258,6 +271,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
     except Exception as exc:
         status, termination, error = "failed", f"internal error: {type(exc).__name__}: {exc}", exc
     finally:
+        if control is not None:
+            control.detach()
         guard.release()
         recorder.log(clock.now(), f"{status}: {termination}")
         cloud = session.cloud.points if session is not None else np.zeros((0, 3))
@@ -289,6 +304,7 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobSession], None] | None 
             "perception": _perception_summary(session),
             "packing": packing_section(cfg, session, planner, mesh, T_base_object, ground_truth),
             "safety": guard.log.as_dict(),
+            "control": session.ticks.summary() if session is not None else None,
         }
         if isinstance(session, ReplaySession):
             result["replay"] = {"job_dir": str(replay_dir), "n_planner_requests": session.n_planner_requests}

@@ -23,6 +23,7 @@ import numpy as np
 from cell.config.models import CellConfig
 from cell.control.trajectory import joint_trajectory
 from cell.jobs.live import LivePerception, PoseHistory
+from cell.jobs.progress import ControlTicks, JobProgress, quat_of, xyz_m
 from cell.jobs.recorder import JobRecorder
 from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CoverageTracker
@@ -100,6 +101,8 @@ class JobSession:
         self.sensor_path: list[Array] = []
         self.coverage_history: list[tuple[float, float]] = []
         self._on_progress = on_progress
+        self.ticks = ControlTicks(self._dt)
+        self._T_base_sensor = np.eye(4)
         self._latest: PerceptionUpdate | None = None
         self._poses = poses
         self._live: LivePerception | None = None
@@ -119,6 +122,7 @@ class JobSession:
 
     def _record_pose(self, T_base_flange: Array) -> None:
         T = T_base_flange @ self._T_flange_sensor
+        self._T_base_sensor = T
         p = T[:3, 3]
         if self.sensor_path:
             self.path_length_m += float(np.linalg.norm(p - self.sensor_path[-1]))
@@ -176,7 +180,25 @@ class JobSession:
                 self._apply(update)
         self._guard.tick(self._perception_time)
         self._clock.sleep(self._dt)
+        self.ticks.record(self.now())
         self._record_pose(self._guard.state().T_base_flange)
+
+    def progress(self, planner: dict[str, float | int | str | None]) -> JobProgress:
+        """The job now, for ``run_scan``'s ``on_progress`` (control thread); ``planner`` holds the
+        planner's own figures (``Planner.figures``)."""
+        latest = self._latest
+        extent = latest.extent if latest is not None else None
+        stages = self.perception.stage_times.last
+        return JobProgress(
+            t_s=round(self.now(), 6), n_captures=self.n_captures,
+            sensor_xyz_m=xyz_m(self._T_base_sensor[:3, 3]), sensor_quat_xyzw=quat_of(self._T_base_sensor),
+            path_length_m=round(self.path_length_m, 6),
+            h_roi=round(latest.h_roi, 6) if latest is not None and latest.h_roi is not None else None,
+            coverage_pct=round(self.coverage.coverage_pct, 3) if self.coverage is not None else None,
+            roi_box_m=None if extent is None else (xyz_m(extent[0]), xyz_m(extent[1])),
+            n_cloud_points=int(self.cloud.points.shape[0]),
+            perception_cycle_s=round(sum(wall for wall, _ in stages.values()) * 1e-3, 6) if stages else None,
+            planner=planner, ticks=self.ticks.histogram())
 
     def settle(self, timeout_s: float = SETTLE_TIMEOUT_S) -> bool:
         """After a stop: let time pass, recording the pose, until the arm reports rest (True) or

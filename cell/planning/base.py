@@ -129,3 +129,8 @@ class Planner(ABC):
 
     @abstractmethod
     def run(self, session: ScanSession) -> str: ...
+
+    def figures(self) -> dict[str, float | int | str | None]:
+        """The planner's own figures of the scan so far, for progress reports (names carry units);
+        none by default."""
+        return {}

@@ -151,6 +151,8 @@ class RRTViewPlanner(Planner):
         self.reconstruction = ReconstructionHistory()
         self.n_failed_moves = 0
         self.n_refused_nodes = 0
+        self.iteration = 0
+        self.best_utility: float | None = None
         self.refused_positions = np.zeros((0, 3))
 
     def prepare(self, sensor: SensorModel, rng: np.random.Generator) -> None:
@@ -357,6 +359,7 @@ class RRTViewPlanner(Planner):
             if not branch or not np.isfinite(tree.utility[branch]).any():
                 return f"no feasible view left after {captures} captures (iteration {it})"
             u_x = self._best_utility(tree, branch)
+            self.iteration = it + 1
             if best_c is not None and u_x < best_c and len(cache):
                 cached_tree = self.expand(session, f, obj, cache.positions)
                 cached_branch = cached_tree.best_branch()
@@ -365,6 +368,7 @@ class RRTViewPlanner(Planner):
                     u2 = self._best_utility(cached_tree, cached_branch)
                     if u2 > u_x:
                         tree, branch, u_x = cached_tree, cached_branch, u2
+            self.best_utility = u_x
             if worst_c is not None and u_x <= worst_c:
                 return (f"converged: best view U = {u_x:.4g} not above the worst cached node's "
                         f"{worst_c:.4g} after {captures} captures")
@@ -386,6 +390,11 @@ class RRTViewPlanner(Planner):
             if len(cache):
                 best_c, worst_c = float(cache.utility[0]), float(cache.utility[-1])
         return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
+
+    def figures(self) -> dict[str, float | int | str | None]:
+        """Algorithm 1 so far: iterations, the utility of the last chosen view x*, refused moves."""
+        return {"iteration": self.iteration, "best_utility": None if self.best_utility is None
+                else round(self.best_utility, 6), "failed_moves": self.n_failed_moves}
 
     @staticmethod
     def _best_utility(tree: Tree, branch: list[int]) -> float:

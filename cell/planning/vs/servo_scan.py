@@ -163,6 +163,14 @@ class ServoScanPlanner(Planner):
         # Index of the first H_ROI value the termination of eq. 12 judges; None: not judged yet.
         self._h_roi_from: int | None = None
 
+    def figures(self) -> dict[str, float | int | str | None]:
+        """The last servo iteration: ||e|| [m], f [nats], ||g||, the mode, and the iteration count."""
+        if not self.telemetry:
+            return {"servo_iterations": 0}
+        row = self.telemetry[-1]
+        return {"servo_iterations": len(self.telemetry), "e_norm_m": round(row.e_norm, 6),
+                "f_nats": round(row.f, 6), "g_norm": round(row.g_norm, 6), "mode": row.mode}
+
     @abstractmethod
     def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
         """The secondary task g for the current pose (called once the primary task has converged)."""

@@ -1,0 +1,80 @@
+"""The FastAPI application of ``cell serve``: ``/api/v1`` (OpenAPI at ``/api/v1/openapi.json``, docs at
+``/docs``), ``/healthz``, ``/readyz`` and ``/metrics``.
+
+The lifespan opens what the routes share: the cell's service (store, queue, workers) and the key ring,
+which a background task reloads every second so that ``cell keys create`` / ``revoke`` take effect
+without a restart. Shutting down stops the running job and finishes its folder.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from cell import __version__
+from cell.api.routes import cell as cell_routes
+from cell.api.routes import health, jobs
+from cell.service.keys import KeyRing
+from cell.service.manager import CellService
+from cell.service.startup import ServiceSettings, build_service
+from drivers.errors import ServiceError, StoreError
+
+KEY_REFRESH_S = 1.0
+STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429}
+log = logging.getLogger("cell.service")
+
+
+async def _refresh_keys(ring: KeyRing) -> None:
+    while True:
+        await asyncio.sleep(KEY_REFRESH_S)
+        try:
+            await asyncio.to_thread(ring.refresh)
+        except StoreError as exc:
+            log.warning("keys not reloaded: %s", exc)
+
+
+def create_app(settings: ServiceSettings, service: CellService | None = None) -> FastAPI:
+    """The application for ``settings`` (or an already built ``service``, which it starts and closes)."""
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        cell = service if service is not None else await asyncio.to_thread(build_service, settings)
+        app.state.service = cell
+        app.state.keys = await asyncio.to_thread(KeyRing, cell.store)
+        for line in await cell.start():
+            log.warning("%s", line)
+        refresher = asyncio.create_task(_refresh_keys(app.state.keys))
+        try:
+            yield
+        finally:
+            refresher.cancel()
+            await cell.close()
+            cell.store.close()
+
+    app = FastAPI(title="cell", version=__version__, lifespan=lifespan,
+                  description="An autonomous active-vision scanning cell: run, watch and stop scans.",
+                  openapi_url="/api/v1/openapi.json", docs_url="/docs", redoc_url=None)
+    app.include_router(cell_routes.router)
+    app.include_router(jobs.router)
+    app.include_router(health.router)
+
+    @app.exception_handler(ServiceError)
+    async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
+        status = STATUS_OF.get(exc.reason, 409)
+        if status == 422:
+            detail: object = [{"loc": ["body", exc.field or "body"], "msg": str(exc), "type": "value_error"}]
+        else:
+            detail = str(exc)
+        return JSONResponse({"detail": detail}, status_code=status)
+
+    @app.exception_handler(StoreError)
+    async def store_error(_: Request, exc: StoreError) -> JSONResponse:
+        log.error("job store: %s", exc)
+        return JSONResponse({"detail": "the job store does not answer; try again"}, status_code=503)
+
+    return app

@@ -1,0 +1,84 @@
+"""The cell: its status, what it can run and scan, the operator's STOP, the arm and the queue."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated
+
+from fastapi import APIRouter, Body, UploadFile
+
+from cell.api.auth import Reader, Recoverer, Stopper, Uploader
+from cell.api.deps import Service
+from cell.api.schemas import CellOut, ObjectOut, PlannerOut, RecoverOut, StopIn, StopOut
+from drivers.errors import ServiceError
+
+router = APIRouter(prefix="/api/v1", tags=["cell"])
+UPLOAD_CHUNK = 1 << 20
+
+
+@router.get("/cell", response_model=CellOut)
+async def get_cell(cell: Service, _: Reader) -> dict[str, object]:
+    """Name, mode, arm, sensor, the running job and its progress, the queue, the software version."""
+    return cell.status()
+
+
+@router.get("/planners", response_model=list[PlannerOut])
+async def get_planners(cell: Service,
+                       _: Reader) -> list[dict[str, str | bool]]:
+    """The planners a job may name, the cell's default marked."""
+    return cell.planners()
+
+
+@router.get("/objects", response_model=list[ObjectOut])
+def get_objects(cell: Service, _: Reader) -> list[ObjectOut]:
+    """Sim and dry-run cells: the shipped objects and the uploaded meshes (a real cell scans real ones:
+    none)."""
+    if cell.config.mode in ("real", "replay"):
+        return []
+    return [ObjectOut(name=e.name, source=e.source, extents_m=e.extents_m, licence=e.licence)
+            for e in cell.objects.entries()]
+
+
+@router.post("/objects", response_model=ObjectOut, status_code=201)
+async def post_object(cell: Service, file: UploadFile,
+                      _: Uploader) -> ObjectOut:
+    """Upload a PLY, OBJ or STL mesh in metres, z-up (sim and dry-run cells); it is named after the file."""
+    if cell.config.mode in ("real", "replay"):
+        raise ServiceError(f"a {cell.config.mode} cell scans real objects; meshes are for sim and dry-run "
+                           "cells", reason="conflict")
+    limit = int(cell.config.service.max_upload_mb * 1e6)
+    data = bytearray()
+    while chunk := await file.read(UPLOAD_CHUNK):
+        data += chunk
+        if len(data) > limit:
+            raise ServiceError(f"the file is above the cell's {limit / 1e6:g} MB", reason="invalid",
+                               field="file")
+    entry = await asyncio.to_thread(cell.objects.add, file.filename or "upload", bytes(data))
+    return ObjectOut(name=entry.name, source=entry.source, extents_m=entry.extents_m, licence=entry.licence)
+
+
+@router.post("/stop", response_model=StopOut)
+async def post_stop(cell: Service, key: Stopper,
+                    body: Annotated[StopIn | None, Body()] = None) -> StopOut:
+    """STOP: whatever moves is commanded to stop (through the guard) before this answers, and queued jobs
+    are held until an operator resumes the queue. Every valid key may stop."""
+    reason = (body or StopIn()).reason
+    outcome = await cell.stop_all(f"{reason} (key {key.name})")
+    return StopOut(job_id=outcome.job_id, arm_commanded=outcome.arm_commanded, message=outcome.message,
+                   queue_held=cell.hold_reason() is not None)
+
+
+@router.post("/arm/recover", response_model=RecoverOut)
+async def post_recover(cell: Service,
+                       _: Recoverer) -> dict[str, object]:
+    """After a protective stop (or another fault the arm reported): clear it, as `cell arm recover` does.
+    Queued jobs may start again once it is cleared."""
+    return await cell.recover_arm()
+
+
+@router.post("/queue/resume", response_model=CellOut)
+async def post_resume(cell: Service,
+                      _: Recoverer) -> dict[str, object]:
+    """Let queued jobs start again after a STOP (refused while the arm is faulted: recover it first)."""
+    cell.resume()
+    return cell.status()

@@ -1,0 +1,144 @@
+"""Jobs: submit, list, read, cancel or purge, stop, follow live (Server-Sent Events), download files."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import mimetypes
+from collections.abc import AsyncIterator
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Header, HTTPException, Query, Response
+from fastapi.responses import FileResponse, StreamingResponse
+
+from cell.api.auth import Canceller, Reader, Stopper, Submitter
+from cell.api.deps import Service
+from cell.api.schemas import FileOut, JobOut, JobPage, JobSubmit, StopIn, StopOut
+from cell.service.keys import Permission, allowed
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
+
+router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
+KEEP_ALIVE_S = 15.0
+"""An event stream with nothing to say sends a comment this often [s], so proxies keep it open."""
+CONTENT_TYPES = {".json": "application/json", ".csv": "text/csv; charset=utf-8",
+                 ".txt": "text/plain; charset=utf-8", ".png": "image/png", ".ply": "application/octet-stream",
+                 ".bt": "application/octet-stream", ".npz": "application/octet-stream"}
+
+
+@router.post("", response_model=JobOut, status_code=201)
+async def submit(body: JobSubmit, response: Response, cell: Service,
+                 key: Submitter) -> JobOut:
+    """Queue a scan. 201 with the job and its ``Location``; 422 naming the field for invalid input; 429
+    when the queue is full."""
+    job = await cell.submit(body.request(), submitted_by=key.name)
+    response.headers["Location"] = f"/api/v1/jobs/{job.id}"
+    return JobOut.of(job)
+
+
+STATUS_FILTER = Query(description="any of " + ", ".join(JOB_STATUSES))
+
+
+@router.get("", response_model=JobPage)
+async def list_jobs(cell: Service, _: Reader, status: Annotated[list[str] | None, STATUS_FILTER] = None,
+                    planner: str | None = None, part_id: str | None = None,
+                    created_after: datetime | None = None, created_before: datetime | None = None,
+                    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                    offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> JobPage:
+    """This cell's jobs, newest first, filtered and paginated."""
+    unknown = sorted(set(status or ()) - set(JOB_STATUSES))
+    if unknown:
+        message = f"unknown status {unknown[0]!r}; one of {', '.join(JOB_STATUSES)}"
+        raise HTTPException(422, [{"loc": ["query", "status"], "type": "value_error", "msg": message}])
+    jobs, total = await asyncio.to_thread(
+        cell.store.list_jobs, cell=cell.name, statuses=status, planner=planner, part_id=part_id,
+        created_after=created_after, created_before=created_before, limit=limit, offset=offset)
+    return JobPage(items=[JobOut.of(j) for j in jobs], total=total, limit=limit, offset=offset)
+
+
+@router.get("/{job_id}", response_model=JobOut)
+async def get_job(job_id: str, cell: Service, _: Reader) -> JobOut:
+    """Status, progress, times and, once it ended, the whole result.json under ``result``."""
+    return JobOut.of(await cell.job(job_id))
+
+
+@router.delete("/{job_id}", response_model=JobOut | None)
+async def delete_job(job_id: str, cell: Service,
+                     key: Canceller) -> JobOut | None:
+    """A queued job becomes ``cancelled``. An ended job is purged (its folder and record deleted; admin
+    keys only)."""
+    job = await cell.job(job_id)
+    if job.status in FINISHED_STATUSES:
+        if not allowed(key.role, Permission.PURGE):
+            raise HTTPException(403, f"a {key.role} key may not purge an ended job")
+        await cell.purge(job_id)
+        return None
+    return JobOut.of(await cell.cancel(job_id, f"cancelled by key {key.name}"))
+
+
+@router.post("/{job_id}/stop", response_model=StopOut)
+async def stop_job(job_id: str, cell: Service, key: Stopper, body: StopIn | None = None) -> StopOut:
+    """Stop this job: the arm is commanded to stop before this answers (a queued job is cancelled).
+    Every valid key may stop."""
+    reason = (body or StopIn()).reason
+    outcome = await cell.stop_job(job_id, f"{reason} (key {key.name})")
+    return StopOut(job_id=outcome.job_id, arm_commanded=outcome.arm_commanded, message=outcome.message,
+                   queue_held=cell.hold_reason() is not None)
+
+
+@router.get("/{job_id}/events", response_class=StreamingResponse,
+            responses={200: {"content": {"text/event-stream": {}}}})
+async def job_events(job_id: str, cell: Service, _: Reader,
+                     last_event_id: Annotated[int | None, Header(ge=0)] = None) -> StreamingResponse:
+    """Server-Sent Events: ``state`` (queued, running, completed, failed, stopped, cancelled,
+    interrupted), ``progress`` at each perception update, and a final ``result``. Reconnect with
+    ``Last-Event-ID`` to resume where the stream broke off."""
+    log = await cell.job_events(job_id)
+    metrics = cell.metrics
+
+    async def stream() -> AsyncIterator[str]:
+        metrics.sse_clients.inc()
+        try:
+            async for event in log.follow(last_event_id or 0, KEEP_ALIVE_S):
+                if event is None:
+                    yield ": keep-alive\n\n"
+                else:
+                    yield f"id: {event.id}\nevent: {event.kind}\ndata: {json.dumps(event.data)}\n\n"
+        finally:
+            metrics.sse_clients.dec()
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+def _inside(folder: Path, name: str) -> Path:
+    """The file ``name`` of a job folder; 404 for anything that is not a file inside it."""
+    root = folder.resolve()
+    path = (root / name).resolve()
+    if "\0" in name or not path.is_relative_to(root) or path == root or not path.is_file():
+        raise HTTPException(404, f"no file {name!r} in this job's folder")
+    return path
+
+
+@router.get("/{job_id}/files", response_model=list[FileOut])
+async def list_files(job_id: str, cell: Service,
+                     _: Reader) -> list[FileOut]:
+    """Every file of the job folder (frames included)."""
+    folder = Path((await cell.job(job_id)).folder)
+    if not folder.is_dir():
+        return []
+    root = folder.resolve()
+    return [FileOut(name=str(p.relative_to(root)), size_bytes=p.stat().st_size,
+                    url=f"/api/v1/jobs/{job_id}/files/{p.relative_to(root)}")
+            for p in sorted(root.rglob("*")) if p.is_file() and p.resolve().is_relative_to(root)]
+
+
+@router.get("/{job_id}/files/{name:path}", response_class=FileResponse)
+async def get_file(job_id: str, name: str, cell: Service,
+                   _: Reader) -> FileResponse:
+    """One file of the job folder (``result.json``, ``cloud.ply``, ``map.bt``, ``trajectory.csv``,
+    ``servo.png``, ``path.png``, ``log.txt``, ``frames/000000.npz``, ...); nothing outside it."""
+    path = _inside(Path((await cell.job(job_id)).folder), name)
+    media = CONTENT_TYPES.get(path.suffix) or mimetypes.guess_type(path.name)[0] or "application/octet-stream"
+    return FileResponse(path, media_type=media, filename=path.name, content_disposition_type="inline")

@@ -1,0 +1,163 @@
+"""Request and response bodies of ``/api/v1``, apart from the service's own records.
+
+Units are in the field names (``_m``, ``_s``, ``_deg``); poses are in the robot base frame.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from cell.service.store import JobRecord
+from cell.service.submission import MAX_SEED, MAX_TIME_BUDGET_S, JobRequest
+
+
+class JobSubmit(BaseModel):
+    """A scan to run. Everything but ``object`` (on sim and dry-run cells) defaults to the cell's own:
+    its planner, pose (0, 0, 0) at the station, seed 0, the cell file's time budget."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    planner: str | None = Field(None, max_length=64, description="planner name (GET /api/v1/planners)")
+    object: str | None = Field(None, max_length=128, description="object name (GET /api/v1/objects); on a "
+                                                                 "real cell, an optional label")
+    object_pose: tuple[float, float, float] | None = Field(
+        None, description="[x_m, y_m, yaw_deg] on the table, from the cell's station")
+    seed: int | None = Field(None, ge=0, le=MAX_SEED)
+    max_time_s: float | None = Field(None, gt=0.0, le=MAX_TIME_BUDGET_S, description="time budget [s]")
+    part_id: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[\x20-\x7e]+$",
+                                description="the line's identifier of the part (printable ASCII)")
+
+    @field_validator("object_pose")
+    @classmethod
+    def _finite(cls, pose: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if pose is not None and not all(math.isfinite(v) for v in pose):
+            raise ValueError("every value must be a finite number")
+        return pose
+
+    def request(self) -> JobRequest:
+        return JobRequest(planner=self.planner, object=self.object, object_pose=self.object_pose,
+                          seed=self.seed, max_time_s=self.max_time_s, part_id=self.part_id)
+
+
+class JobOut(BaseModel):
+    """A job: what was asked, where it is, and once it ended the whole ``result.json`` under ``result``.
+    ``progress`` is the newest progress of a running job (the last one of an ended job)."""
+
+    id: str
+    cell: str
+    status: str
+    planner: str
+    object: str | None
+    object_pose: tuple[float, float, float] | None
+    seed: int
+    max_time_s: float | None
+    part_id: str | None
+    submitted_by: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    termination: str | None
+    progress: dict[str, Any] | None
+    result: dict[str, Any] | None
+    links: dict[str, str]
+
+    @classmethod
+    def of(cls, job: JobRecord) -> JobOut:
+        base = f"/api/v1/jobs/{job.id}"
+        links = {"self": base, "events": f"{base}/events", "files": f"{base}/files", "stop": f"{base}/stop"}
+        return cls(id=job.id, cell=job.cell, status=job.status, planner=job.planner, object=job.object,
+                   object_pose=job.object_pose, seed=job.seed, max_time_s=job.max_time_s, part_id=job.part_id,
+                   submitted_by=job.submitted_by, created_at=job.created_at, started_at=job.started_at,
+                   finished_at=job.finished_at, termination=job.termination, progress=job.progress,
+                   result=job.result, links=links)
+
+
+class JobPage(BaseModel):
+    """One page of jobs, newest first; ``total`` counts every job the filters match."""
+
+    items: list[JobOut]
+    total: int
+    limit: int
+    offset: int
+
+
+class FileOut(BaseModel):
+    """A file of a job folder: its name relative to the folder, size [bytes] and download link."""
+
+    name: str
+    size_bytes: int
+    url: str
+
+
+class StopIn(BaseModel):
+    """Why the stop: recorded in the job's termination with the key's name."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    reason: str = Field("operator stop", min_length=1, max_length=200)
+
+
+class StopOut(BaseModel):
+    """What a stop did: the job it reached (None: nothing ran), whether that job's arm had been commanded
+    to stop when this answer was sent, in words, and whether queued jobs are held."""
+
+    job_id: str | None
+    arm_commanded: bool
+    message: str
+    queue_held: bool
+
+
+class RecoverOut(BaseModel):
+    ok: bool
+    message: str
+    arm: dict[str, Any]
+
+
+class ObjectOut(BaseModel):
+    """An object the cell can scan: bounding box (x, y, z) [m]; ``source`` shipped or uploaded."""
+
+    name: str
+    source: str
+    extents_m: tuple[float, float, float]
+    licence: str | None
+
+
+class PlannerOut(BaseModel):
+    name: str
+    description: str
+    default: bool
+
+
+class ArmOut(BaseModel):
+    """The arm: ``state`` idle, moving, protective stop, emergency stop, fault or disconnected; ``tcp``
+    the flange pose (``xyz_m``, ``quat_xyzw``), None until known."""
+
+    type: str
+    model: str
+    connected: bool
+    state: str
+    protective_stop: bool
+    faults: list[str]
+    tcp: dict[str, list[float]] | None
+
+
+class QueueOut(BaseModel):
+    length: int
+    max: int
+    held: str | None = Field(description="why queued jobs do not start, or null")
+
+
+class CellOut(BaseModel):
+    """The cell now: name, mode (sim, dry-run, real, replay), arm, sensor, running job, queue, version."""
+
+    name: str
+    mode: str
+    version: str
+    arm: ArmOut
+    sensor: dict[str, Any]
+    job: dict[str, Any] | None
+    queue: QueueOut

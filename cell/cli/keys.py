@@ -1,0 +1,111 @@
+"""``cell keys``: the service's API keys, managed on the machine that holds its store.
+
+``create`` makes a key and prints it once (alone on its last line, so that a script can take it with
+``tail -n 1``); only its SHA-256 is stored. ``list`` shows names, roles, creation times and whether each
+key is active, never a key or a hash. ``revoke`` ends a key; its name stays taken. Every command opens the
+store given by ``--db`` or, by default, the SQLite store in ``--data-dir``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from cell.service.keys import Role, create_key, parse_role
+from cell.service.store import Store, open_store, sqlite_url
+from drivers.errors import CellError, StoreError
+
+DEFAULT_DATA_DIR = Path("data")
+
+keys_app = typer.Typer(help="API keys of the service: create, list, revoke.", no_args_is_help=True)
+console = Console(soft_wrap=True)
+err_console = Console(stderr=True)
+
+DataDirOption = Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
+DbOption = Annotated[str | None, typer.Option(help="store URL instead of the data folder's SQLite file: "
+                                                    "sqlite:///ABS/PATH/cell.db or "
+                                                    "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DB")]
+
+
+@contextlib.contextmanager
+def _one_line_errors() -> Iterator[None]:
+    """Any ``CellError`` inside becomes a one-line ``error: ...`` on stderr and exit code 1."""
+    try:
+        yield
+    except CellError as exc:
+        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=1) from None
+
+
+@contextlib.contextmanager
+def opened_store(data_dir: Path, db: str | None) -> Iterator[Store]:
+    """The store at ``db`` or, without it, the SQLite store in ``data_dir`` (the folder created if
+    missing), closed at the end. ``StoreError`` if it cannot be opened."""
+    if db is None:
+        try:
+            data_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}") from None
+    store = open_store(db if db is not None else sqlite_url(data_dir))
+    try:
+        yield store
+    finally:
+        store.close()
+
+
+def _print(text: str) -> None:
+    console.print(text, markup=False, highlight=False)
+
+
+def _utc(moment: datetime) -> str:
+    """``moment`` in UTC, ISO 8601 to the second."""
+    return moment.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+@keys_app.command("create")
+def create(
+    role: Annotated[str, typer.Option(help=f"what the key may do: {', '.join(Role)}")],
+    name: Annotated[str | None, typer.Option(help="1-64 letters, digits, '.', '_', '-' (default: "
+                                                  "<role>-<6 hex>)")] = None,
+    data_dir: DataDirOption = DEFAULT_DATA_DIR,
+    db: DbOption = None,
+) -> None:
+    """Create a key and print it once: only its hash is stored, it cannot be shown again."""
+    with _one_line_errors():
+        parse_role(role)
+        with opened_store(data_dir, db) as store:
+            record, key = create_key(store, role, name)
+    _print(f"created key {record.name!r} (role {record.role}); it is shown once, store it now:")
+    _print(key)
+
+
+@keys_app.command("list")
+def list_keys(data_dir: DataDirOption = DEFAULT_DATA_DIR, db: DbOption = None) -> None:
+    """List the keys: name, role, creation time (UTC) and whether each is active or since when revoked."""
+    with _one_line_errors(), opened_store(data_dir, db) as store:
+        records = store.list_keys()
+    if not records:
+        _print("no keys")
+        return
+    width = max(len(record.name) for record in records)
+    for record in records:
+        state = "active" if record.revoked_at is None else f"revoked {_utc(record.revoked_at)}"
+        _print(f"{record.name:{width}s}  {record.role:8s}  created {_utc(record.created_at)}  {state}")
+
+
+@keys_app.command("revoke")
+def revoke(
+    name: Annotated[str, typer.Argument(help="the key's name")],
+    data_dir: DataDirOption = DEFAULT_DATA_DIR,
+    db: DbOption = None,
+) -> None:
+    """Revoke a key: the service refuses it within a second. Its name stays taken."""
+    with _one_line_errors(), opened_store(data_dir, db) as store:
+        record = store.revoke_key(name)
+    _print(f"revoked key {record.name!r} (role {record.role})")

@@ -1,0 +1,59 @@
+"""``cell serve``: run the cell as a long-running service (FastAPI under uvicorn).
+
+It binds 127.0.0.1 by default; on any other interface it refuses to start until at least one API key
+exists (``cell keys create``), since every route but ``/healthz`` needs one.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+from typing import Annotated
+
+import typer
+import uvicorn
+from rich.console import Console
+
+from cell.api.app import create_app
+from cell.service.keys import KeyRing
+from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
+from drivers.errors import CellError
+
+err_console = Console(stderr=True)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` names only this machine (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def serve(
+    config: Annotated[Path, typer.Option(help="cell file")] = DEFAULT_CONFIG,
+    host: Annotated[str, typer.Option(help="interface to bind (another than loopback needs an API key)")]
+    = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535)] = 8080,
+    data_dir: Annotated[Path, typer.Option(help="jobs, uploads, logs and the embedded database")]
+    = DEFAULT_DATA_DIR,
+    db: Annotated[str | None, typer.Option(help="store URL, e.g. postgresql+psycopg://user@host/db (default: "
+                                                "SQLite in the data dir)")] = None,
+) -> None:
+    """Run the cell as a service: REST API under /api/v1, docs at /docs."""
+    try:
+        service = build_service(ServiceSettings(config_file=config, data_dir=data_dir, db_url=db))
+        if not is_loopback(host) and len(KeyRing(service.store)) == 0:
+            service.store.close()
+            raise CellError(f"refusing to listen on {host}, beyond this machine, with no API key: create one "
+                            f"first (cell keys create --data-dir {data_dir} --role admin)")
+    except CellError as exc:
+        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=1) from None
+    if len(KeyRing(service.store)) == 0:
+        err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --data-dir "
+                          f"{data_dir} --role operator)", markup=False, highlight=False, soft_wrap=True)
+    uvicorn.run(create_app(ServiceSettings(config, data_dir, db), service), host=host, port=port,
+                log_level="info", timeout_graceful_shutdown=int(service.config.service.shutdown_timeout_s))

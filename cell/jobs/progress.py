@@ -1,0 +1,96 @@
+"""What a running job reports: a progress snapshot at each perception update, and its control-loop ticks.
+
+:class:`JobProgress` is built on the control thread after each perception update (cheap: a few numbers,
+never the cloud) and handed to ``run_scan``'s ``on_progress``; the service streams it to its clients.
+:class:`ControlTicks` counts the control loop's tick periods in job time (the wall clock on a hardware
+arm, the simulated clock in sim), as the watchdog judges them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.transforms import quat_xyzw
+
+TICK_BUCKETS_S = (0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1, 0.25, 0.5, 1.0)
+"""Upper bounds [s] of the tick-period histogram (Prometheus ``le`` buckets; +Inf is implied): control
+periods of 2 ms (500 Hz RTDE) to 20 ms (50 Hz), and the late ticks a watchdog counts."""
+
+OVERRUN_FACTOR = 1.5
+"""A tick is an overrun when its period exceeds the control period by more than half a period: it then
+lands nearer the next slot than its own, so one command period was lost."""
+
+
+@dataclass
+class ControlTicks:
+    """Tick periods [s] of one job's control loop, in job time. ``period_s`` is the configured one."""
+
+    period_s: float
+    periods: list[float] = field(default_factory=list)
+    overruns: int = 0
+    _last: float | None = None
+
+    def record(self, t: float) -> None:
+        """A control tick at job time ``t`` [s]."""
+        if self._last is not None:
+            dt = t - self._last
+            self.periods.append(dt)
+            if dt > OVERRUN_FACTOR * self.period_s:
+                self.overruns += 1
+        self._last = t
+
+    def histogram(self) -> dict[str, Any]:
+        """Cumulative counts per ``TICK_BUCKETS_S`` bound, the count, sum [s] and overruns."""
+        p = np.asarray(self.periods)
+        return {"buckets": [int(np.count_nonzero(p <= b)) for b in TICK_BUCKETS_S], "count": int(p.size),
+                "sum_s": float(p.sum()), "overruns": self.overruns}
+
+    def summary(self) -> dict[str, Any]:
+        """The ``control`` section of result.json: tick count, period p50 / p99 / max [s], overruns and
+        the histogram."""
+        p = np.asarray(self.periods)
+        stats = (dict(zip(("period_p50_s", "period_p99_s"), np.percentile(p, [50, 99]).round(6).tolist(),
+                          strict=True)) | {"period_max_s": round(float(p.max()), 6)}
+                 if p.size else dict.fromkeys(("period_p50_s", "period_p99_s", "period_max_s")))
+        return {"period_s": self.period_s, "n_ticks": int(p.size) + (self._last is not None), **stats,
+                "overruns": self.overruns, "histogram": self.histogram()}
+
+
+def xyz_m(v: np.ndarray) -> tuple[float, float, float]:
+    """A point (3,) [m] as JSON-ready floats, rounded to 1 um."""
+    return round(float(v[0]), 6), round(float(v[1]), 6), round(float(v[2]), 6)
+
+
+def quat_of(T: np.ndarray) -> tuple[float, float, float, float]:
+    """The rotation of a 4x4 pose as a quaternion (x, y, z, w), rounded to 1e-6."""
+    q = [round(float(v), 6) for v in quat_xyzw(T)]
+    return q[0], q[1], q[2], q[3]
+
+
+@dataclass(frozen=True)
+class JobProgress:
+    """A running job after a perception update. Base frame, SI units: job time ``t_s`` [s], the sensor
+    pose (``sensor_xyz_m``, quaternion ``sensor_quat_xyzw``), the sensor's path so far [m], H_ROI [nats]
+    (eq. 12; None before an object is found), coverage [%] against the ground truth (sim and dry runs;
+    None otherwise), the box (min, max) of every ROI so far [m], the accumulated cloud's size, the wall
+    time perception took for the frame [s], the planner's own figures, and the tick histogram so far."""
+
+    t_s: float
+    n_captures: int
+    sensor_xyz_m: tuple[float, float, float]
+    sensor_quat_xyzw: tuple[float, float, float, float]
+    path_length_m: float
+    h_roi: float | None
+    coverage_pct: float | None
+    roi_box_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None
+    n_cloud_points: int
+    perception_cycle_s: float | None
+    planner: dict[str, float | int | str | None]
+    ticks: dict[str, Any]
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return asdict(self)

@@ -1,0 +1,96 @@
+"""What the service knows of its arm, for ``GET /cell``, without ever talking to it from the web side.
+
+A job's worker owns the arm while the job runs; the service learns its pose from the job's progress and
+its faults from how the job ended. Between jobs a simulated arm is always there (at home, or where the
+last job left it); a hardware arm is connected by each job and by recovery only, so it reads as not
+connected, with the last pose and faults known.
+
+A fault the arm reported (protective stop, emergency stop, reflex, disconnect) is latched: no queued job
+starts until an operator recovers the arm (``POST /arm/recover``), as on the command line, where
+recovery is never automatic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cell.config.models import CellConfig
+from cell.jobs.progress import quat_of, xyz_m
+from drivers.robots import get_robot_model
+from drivers.transforms import inv_T, make_T
+
+ARM_FAULTS = {"protective stop": "protective stop", "emergency stop": "emergency stop", "reflex": "fault",
+              "disconnect": "disconnected"}
+"""Faults a job's termination can name (``arm fault: <fault>``, ``cell.safety.guard``) and the arm state
+each leaves."""
+
+
+@dataclass
+class ArmStatus:
+    """``connected``; ``state``: ``idle``, ``moving`` (a job owns the arm), ``protective stop``,
+    ``emergency stop``, ``fault`` or ``disconnected``; ``faults`` latched until recovery; ``tcp`` the
+    flange pose in the base frame (``xyz_m``, ``quat_xyzw``), None before it is known."""
+
+    connected: bool
+    state: str
+    faults: list[str] = field(default_factory=list)
+    tcp: dict[str, Any] | None = None
+
+    @property
+    def protective_stop(self) -> bool:
+        return "protective stop" in self.faults
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"connected": self.connected, "state": self.state, "protective_stop": self.protective_stop,
+                "faults": list(self.faults), "tcp": self.tcp}
+
+
+def _pose(T: np.ndarray) -> dict[str, Any]:
+    return {"xyz_m": list(xyz_m(T[:3, 3])), "quat_xyzw": list(quat_of(T))}
+
+
+class ArmTracker:
+    """Keeps :class:`ArmStatus` from the events of the jobs (see the module docstring)."""
+
+    def __init__(self, config: CellConfig) -> None:
+        self._simulated = config.arm.type == "sim"
+        self._T_sensor_flange = inv_T(config.mount.matrix())
+        home = config.arm.home_joints_rad
+        model = get_robot_model(config.arm.model)
+        tcp = _pose(model.fk(np.asarray(home) if home is not None else model.q_home)) if self._simulated \
+            else None
+        self.status = ArmStatus(connected=self._simulated, state="idle", tcp=tcp)
+
+    @property
+    def faulted(self) -> bool:
+        return bool(self.status.faults)
+
+    def job_started(self) -> None:
+        self.status.connected, self.status.state = True, "moving"
+
+    def progress(self, progress: dict[str, Any]) -> None:
+        """A job's progress: the flange pose from the sensor pose and the mount."""
+        T_base_sensor = make_T(Rotation.from_quat(progress["sensor_quat_xyzw"]).as_matrix(),
+                               np.asarray(progress["sensor_xyz_m"]))
+        self.status.tcp = _pose(T_base_sensor @ self._T_sensor_flange)
+
+    def job_ended(self, termination: str) -> None:
+        """Latch a fault the job's termination names; otherwise the arm is idle."""
+        fault = next((f for f in ARM_FAULTS if f"arm fault: {f}" in termination), None)
+        self.status.connected = self._simulated
+        if fault is None:
+            self.status.state = "idle"
+            return
+        self.status.faults = [fault]
+        self.status.state = ARM_FAULTS[fault]
+
+    def recovered(self, faults: list[str], T_base_flange: list[list[float]] | None) -> None:
+        """The outcome of a recovery: the faults left (none: idle) and the pose the arm reported."""
+        self.status.faults = list(faults)
+        self.status.state = ARM_FAULTS.get(faults[0], "fault") if faults else "idle"
+        if T_base_flange is not None:
+            self.status.tcp = _pose(np.asarray(T_base_flange))

@@ -1,0 +1,473 @@
+"""The long-running cell: one arm, one sensor, jobs run one at a time from a FIFO queue.
+
+:class:`CellService` is what the API and the packing line call; it knows nothing of HTTP. It runs on the
+service's event loop: the queue, the running job and the event logs live there, the store is written
+from worker threads (``asyncio.to_thread``) so that no database call holds the loop.
+
+Each job runs in a worker process of its own (``cell.service.worker``): the control loop never shares an
+interpreter lock with the web side, and a job survives nothing it should not: when the service goes away
+its worker stops the arm and finishes the folder. A stop is passed to the worker, which commands the arm
+to stop before it answers; a worker that does not answer in ``service.stop_confirm_timeout_s`` is killed
+with its children (the arm's own connection watchdog then stops it: the UR's RTDE watchdog, the Franka's
+communication reflex).
+
+``stop_all`` (the operator's STOP) also holds the queue: nothing else starts until an operator resumes
+it. A fault the arm reported holds it too, until the arm is recovered (``cell.service.arm_status``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import os
+import secrets
+import shutil
+import signal
+import sys
+from collections import deque
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from cell import __version__
+from cell.config.models import CellConfig
+from cell.planning.registry import PLANNERS
+from cell.service.arm_status import ArmTracker
+from cell.service.events import EventHub, JobEvents
+from cell.service.metrics import ServiceMetrics
+from cell.service.objects import ObjectLibrary
+from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_command
+from cell.service.recovery import finish_folder, reconcile
+from cell.service.store import FINISHED_STATUSES, JobRecord, Store
+from cell.service.submission import JobRequest, ValidJob, validate
+from drivers.errors import ServiceError
+
+LINE_LIMIT = 1 << 24
+"""Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
+RECOVER_TIMEOUT_S = 60.0
+"""How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
+SHUTDOWN_CANCEL = "cancelled: the service shut down before the job started"
+SHUTDOWN_STOP = "the service is shutting down"
+
+log = logging.getLogger("cell.service")
+
+
+@dataclass
+class _Queued:
+    job: JobRecord
+    source: str
+
+
+@dataclass
+class _Running:
+    """The job on the arm: its worker (None while it is being started), a stop asked for meanwhile, the
+    stop confirmations the worker owes, its newest progress."""
+
+    job: JobRecord
+    proc: asyncio.subprocess.Process | None = None
+    stop_reason: str | None = None
+    acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
+    progress: dict[str, Any] | None = None
+    ended: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class StopOutcome:
+    """What a stop did: the job it reached (None: nothing ran), whether that job's arm was commanded to
+    stop before the answer (False: it had not moved yet, or it had ended), and in words."""
+
+    job_id: str | None
+    arm_commanded: bool
+    message: str
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def _exit_text(code: int) -> str:
+    if code < 0:
+        return f"killed by {signal.Signals(-code).name}"
+    return f"exit code {code}"
+
+
+class CellService:
+    """The service of one cell (see the module docstring). ``config_data`` is the cell file's parsed
+    YAML, handed to each job's worker so that every job runs the file as it was when the service
+    started."""
+
+    def __init__(self, *, config: CellConfig, config_data: dict[str, Any], config_file: str, data_dir: Path,
+                 store: Store) -> None:
+        self.config = config
+        self.name = config.name
+        self._config_data = config_data
+        self._config_file = config_file
+        self.data_dir = data_dir
+        self.jobs_dir = data_dir / "jobs"
+        self._logs_dir = data_dir / "logs"
+        self.store = store
+        self.objects = ObjectLibrary(data_dir / "objects", config)
+        self.events = EventHub()
+        self.arm = ArmTracker(config)
+        self.metrics = ServiceMetrics(lambda: self.store.count_by_status(self.name),
+                                      lambda: len(self._queued))
+        self._queued: dict[str, _Queued] = {}
+        self._running: _Running | None = None
+        self._held: str | None = None
+        self._busy_with_arm = False
+        self._closing = False
+        self._submit_lock = asyncio.Lock()
+        self._wake = asyncio.Event()
+        self._dispatcher: asyncio.Task[None] | None = None
+
+    # ------------------------------------------------------------------ life
+
+    async def start(self) -> list[str]:
+        """Settle what a previous run left (``cell.service.recovery``), then take jobs. Returns what was
+        settled, in words."""
+        for folder in (self.jobs_dir, self._logs_dir):
+            folder.mkdir(parents=True, exist_ok=True)
+        settled = await asyncio.to_thread(reconcile, self.store, self.name,
+                                          self.config.service.shutdown_timeout_s)
+        self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
+        return settled
+
+    async def close(self) -> None:
+        """Shut down: queued jobs are cancelled, the running one is stopped and its folder finished."""
+        self._closing = True
+        for job_id in list(self._queued):
+            await self._cancel_queued(job_id, SHUTDOWN_CANCEL)
+        running = self._running
+        if running is not None:
+            await self._stop_running(running, SHUTDOWN_STOP)
+            proc = running.proc
+            if proc is not None:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(proc.wait(), self.config.service.shutdown_timeout_s)
+                if proc.returncode is None:
+                    self._kill(proc)
+        if self._dispatcher is not None:
+            self._wake.set()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._dispatcher),
+                                       self.config.service.shutdown_timeout_s)
+            self._dispatcher.cancel()
+
+    @property
+    def ready(self) -> bool:
+        """Taking jobs: started and not shutting down."""
+        return self._dispatcher is not None and not self._dispatcher.done() and not self._closing
+
+    # ------------------------------------------------------------------ reading
+
+    def status(self) -> dict[str, Any]:
+        """The cell now (no database, no device: safe to poll)."""
+        running = self._running
+        cfg = self.config
+        # a hardware sensor is connected by each job: it is known to deliver once a job has a frame
+        sensor_up = cfg.sensor.type.startswith("sim-") or (running is not None
+                                                           and running.progress is not None)
+        return {
+            "name": self.name, "mode": cfg.mode, "version": __version__,
+            "arm": {"type": cfg.arm.type, "model": cfg.arm.model, **self.arm.status.as_dict()},
+            "sensor": {"type": cfg.sensor.type, "connected": sensor_up},
+            "job": None if running is None else {
+                "id": running.job.id, "status": "running", "planner": running.job.planner,
+                "part_id": running.job.part_id, "progress": running.progress},
+            "queue": {"length": len(self._queued), "max": self.config.service.queue_max,
+                      "held": self.hold_reason()},
+        }
+
+    def hold_reason(self) -> str | None:
+        """Why queued jobs do not start, or None."""
+        if self.arm.faulted:
+            return f"arm {self.arm.status.state}: recover the arm first (POST /api/v1/arm/recover)"
+        return self._held
+
+    def planners(self) -> list[dict[str, str | bool]]:
+        return [{"name": name, "description": cls.description, "default": name == self.config.scan.planner}
+                for name, cls in sorted(PLANNERS.items())]
+
+    async def job(self, job_id: str) -> JobRecord:
+        """A job of this cell, with the running job's newest progress; ``ServiceError`` (not found)."""
+        job = await asyncio.to_thread(self.store.get_job, job_id)
+        if job is None or job.cell != self.name:
+            raise ServiceError(f"no job {job_id!r} on cell {self.name!r}", reason="not found")
+        running = self._running
+        if running is not None and running.job.id == job_id and running.progress is not None:
+            return dataclasses.replace(job, progress=running.progress)
+        return job
+
+    async def job_events(self, job_id: str) -> JobEvents:
+        """The job's event log; for a job this run of the service has not seen (it ended before a
+        restart), one made of its final state and result."""
+        log = self.events.get(job_id)
+        if log is not None:
+            return log
+        job = await self.job(job_id)
+        log = self.events.log(job_id)
+        log.publish("state", {"status": job.status, "termination": job.termination})
+        if job.status in FINISHED_STATUSES:
+            log.publish("result", {"status": job.status, "result": job.result})
+        return log
+
+    def job_folder(self, job: JobRecord) -> Path:
+        return Path(job.folder)
+
+    # ------------------------------------------------------------------ submitting and cancelling
+
+    async def submit(self, request: JobRequest, submitted_by: str | None) -> JobRecord:
+        """Validate and queue a job; ``ServiceError`` when invalid (naming the field), when the queue is
+        full, or while shutting down."""
+        valid: ValidJob = await asyncio.to_thread(validate, self.config, self.objects, request)
+        async with self._submit_lock:
+            if self._closing:
+                raise ServiceError("the service is shutting down", reason="conflict")
+            limit = self.config.service.queue_max
+            if len(self._queued) >= limit:
+                raise ServiceError(f"the queue is full: {len(self._queued)} jobs wait (service.queue_max "
+                                   f"{limit}); try again when one has started", reason="queue full")
+            job_id = secrets.token_hex(8)
+            job = JobRecord(id=job_id, cell=self.name, status="queued", planner=valid.planner,
+                            object=valid.object, object_pose=valid.object_pose, seed=valid.seed,
+                            max_time_s=valid.max_time_s, part_id=valid.part_id,
+                            folder=str((self.jobs_dir / job_id).resolve()), submitted_by=submitted_by,
+                            created_at=_now())
+            await asyncio.to_thread(self.store.add_job, job)
+            self._queued[job_id] = _Queued(job, valid.object_source)
+        self.events.log(job_id).publish("state", {"status": "queued", "termination": None})
+        self._wake.set()
+        return job
+
+    async def cancel(self, job_id: str, reason: str) -> JobRecord:
+        """Cancel a queued job; ``ServiceError`` (conflict) for a job that is not queued."""
+        if job_id not in self._queued:
+            job = await self.job(job_id)
+            raise ServiceError(f"job {job_id} is {job.status}, not queued: "
+                               + ("stop it instead" if job.status == "running" else "it has ended"),
+                               reason="conflict")
+        return await self._cancel_queued(job_id, reason)
+
+    async def _cancel_queued(self, job_id: str, reason: str) -> JobRecord:
+        del self._queued[job_id]
+        job = await asyncio.to_thread(self.store.update_job, job_id, status="cancelled", termination=reason,
+                                      finished_at=_now())
+        log = self.events.log(job_id)
+        log.publish("state", {"status": "cancelled", "termination": reason})
+        log.publish("result", {"status": "cancelled", "result": None})
+        return job
+
+    async def purge(self, job_id: str) -> None:
+        """Delete an ended job: its folder and its record (admin)."""
+        job = await self.job(job_id)
+        if job.status not in FINISHED_STATUSES:
+            raise ServiceError(f"job {job_id} is {job.status}: cancel or stop it first", reason="conflict")
+        folder = Path(job.folder)
+        if folder.parent.resolve() == self.jobs_dir.resolve():
+            await asyncio.to_thread(shutil.rmtree, folder, True)
+        await asyncio.to_thread(self.store.delete_job, job_id)
+
+    # ------------------------------------------------------------------ stopping
+
+    async def stop_job(self, job_id: str, reason: str) -> StopOutcome:
+        """Stop one job: a running one through its worker (the arm is commanded to stop before this
+        returns), a queued one is cancelled."""
+        if job_id in self._queued:
+            await self._cancel_queued(job_id, f"cancelled before it started: {reason}")
+            return StopOutcome(job_id, False, "the job had not started: cancelled")
+        running = self._running
+        if running is None or running.job.id != job_id:
+            job = await self.job(job_id)
+            raise ServiceError(f"job {job_id} is {job.status}: nothing to stop", reason="conflict")
+        return await self._stop_running(running, reason)
+
+    async def stop_all(self, reason: str) -> StopOutcome:
+        """The operator's STOP: hold the queue and stop the running job, if any."""
+        self._held = f"held after a stop ({reason}): resume the queue to go on (POST /api/v1/queue/resume)"
+        running = self._running
+        if running is None:
+            return StopOutcome(None, False, "nothing was moving; the queue is held")
+        return await self._stop_running(running, reason)
+
+    def resume(self) -> None:
+        """Let queued jobs start again after a STOP; ``ServiceError`` (conflict) while the arm is faulted."""
+        if self.arm.faulted:
+            raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
+        self._held = None
+        self._wake.set()
+
+    async def _stop_running(self, running: _Running, reason: str) -> StopOutcome:
+        self.metrics.stop_requests.inc()
+        job_id, proc = running.job.id, running.proc
+        if proc is None:
+            running.stop_reason = running.stop_reason or reason
+            return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
+        if running.ended is not None or proc.returncode is not None:
+            return StopOutcome(job_id, False, "the job had already ended")
+        ack: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+        running.acks.append(ack)
+        try:
+            assert proc.stdin is not None
+            proc.stdin.write(stop_command(reason))
+            await proc.stdin.drain()
+            commanded = await asyncio.wait_for(asyncio.shield(ack),
+                                               self.config.service.stop_confirm_timeout_s)
+        except (BrokenPipeError, ConnectionResetError):
+            return StopOutcome(job_id, False, "the job's worker had already ended")
+        except TimeoutError:
+            self._kill(proc)
+            return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
+                               f"{self.config.service.stop_confirm_timeout_s:g} s and was killed; the arm's "
+                               "connection watchdog stops the arm")
+        return StopOutcome(job_id, commanded, "the arm was commanded to stop" if commanded else
+                           "the job had not moved yet: it stops before its first motion")
+
+    @staticmethod
+    def _kill(proc: asyncio.subprocess.Process) -> None:
+        """End a worker and its children (an arm driver's own process) at once."""
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+
+    # ------------------------------------------------------------------ the arm
+
+    async def recover_arm(self) -> dict[str, Any]:
+        """Operator action after a fault: a hardware arm is connected by a worker, recovered and
+        disconnected; a simulated arm has only its latched fault cleared (each job gets a fresh one).
+        ``ServiceError`` (conflict) while a job owns the arm."""
+        if self._running is not None or self._busy_with_arm:
+            raise ServiceError("a job owns the arm: stop it first", reason="conflict")
+        if self.config.arm.type == "sim":
+            self.arm.recovered([], None)
+            self._wake.set()
+            return {"ok": True, "message": "recovered (simulated arm)", "arm": self.arm.status.as_dict()}
+        self._busy_with_arm = True
+        try:
+            report = await self._recover_in_worker()
+        finally:
+            self._busy_with_arm = False
+        if report.get("arm") is not None:
+            self.arm.recovered(report["arm"]["faults"], report["arm"]["T_base_flange"])
+        self._wake.set()
+        return {"ok": bool(report.get("ok")), "message": str(report.get("message")),
+                "arm": self.arm.status.as_dict()}
+
+    async def _recover_in_worker(self) -> dict[str, Any]:
+        spec = WorkerSpec(op="recover", job_id="recover", config=self._config_data,
+                          config_file=self._config_file)
+        proc = await self._spawn(spec, self._logs_dir / "worker-recover.log")
+        assert proc.stdout is not None
+        report: dict[str, Any] = {"ok": False, "message": "the recovery worker ended without an answer"}
+        try:
+            async with asyncio.timeout(RECOVER_TIMEOUT_S):
+                while line := await proc.stdout.readline():
+                    message = json.loads(line)
+                    if message.get("type") == "recovered":
+                        report = message
+                await proc.wait()
+        except TimeoutError:
+            self._kill(proc)
+            report = {"ok": False, "message": f"the arm did not recover within {RECOVER_TIMEOUT_S:g} s"}
+        return report
+
+    # ------------------------------------------------------------------ running jobs
+
+    async def _spawn(self, spec: WorkerSpec, log_path: Path) -> asyncio.subprocess.Process:
+        with log_path.open("ab") as log:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", WORKER_MODULE, "--job", spec.job_id, stdin=asyncio.subprocess.PIPE,
+                stdout=asyncio.subprocess.PIPE, stderr=log, start_new_session=True, limit=LINE_LIMIT)
+        assert proc.stdin is not None
+        proc.stdin.write(spec.line())
+        await proc.stdin.drain()
+        return proc
+
+    def _may_start(self) -> bool:
+        return bool(self._queued) and self._running is None and self.hold_reason() is None \
+            and not self._busy_with_arm and not self._closing
+
+    async def _dispatch(self) -> None:
+        while not self._closing:
+            await self._wake.wait()
+            self._wake.clear()
+            while self._may_start():
+                job_id = next(iter(self._queued))
+                queued = self._queued.pop(job_id)
+                running = self._running = _Running(queued.job)
+                try:
+                    await self._run(running, queued.source)
+                except Exception as exc:  # the job fails, the service goes on with the next
+                    log.exception("job %s could not be run", job_id)
+                    await self._finish(running, None, f"the service could not run the job: "
+                                                      f"{type(exc).__name__}: {exc}")
+
+    async def _run(self, running: _Running, source: str) -> None:
+        job = running.job
+        spec = WorkerSpec(op="scan", job_id=job.id, config=self._config_data, config_file=self._config_file,
+                          object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
+                          planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
+        proc = running.proc = await self._spawn(spec, self._logs_dir / f"worker-{job.id}.log")
+        if running.stop_reason is not None:
+            await self._stop_running(running, running.stop_reason)
+        running.job = await asyncio.to_thread(self.store.update_job, job.id, status="running",
+                                              started_at=_now(), worker_pid=proc.pid)
+        self.arm.job_started()
+        self.events.log(job.id).publish("state", {"status": "running", "termination": None})
+        assert proc.stdout is not None
+        while line := await proc.stdout.readline():
+            try:
+                message = finite_json(json.loads(line))
+            except ValueError:
+                log.warning("job %s: a malformed line from its worker: %r", job.id, line[:200])
+                continue
+            self._take(running, message)
+        code = await proc.wait()
+        await self._finish(running, code)
+
+    def _take(self, running: _Running, message: dict[str, Any]) -> None:
+        """One line from the job's worker."""
+        kind = message.get("type")
+        if kind == "progress":
+            progress = message["progress"]
+            self.metrics.ticks.running = progress.pop("ticks", None)
+            running.progress = progress
+            self.arm.progress(progress)
+            if progress.get("perception_cycle_s") is not None:
+                self.metrics.perception_cycle.observe(progress["perception_cycle_s"])
+            self.events.log(running.job.id).publish("progress", progress)
+        elif kind == "stop" and running.acks:
+            ack = running.acks.popleft()
+            if not ack.done():
+                ack.set_result(bool(message.get("commanded")))
+        elif kind == "ended":
+            running.ended = message
+
+    async def _finish(self, running: _Running, code: int | None, failure: str | None = None) -> None:
+        """Record how the job ended: from its worker's last word, or ``failure`` / the worker's exit
+        ``code`` when it had none (the folder is then finished here)."""
+        job, ended = running.job, running.ended
+        for ack in running.acks:
+            if not ack.done():
+                ack.set_result(False)
+        if ended is None:
+            status = "failed"
+            termination = failure or f"the job's worker process ended unexpectedly ({_exit_text(code or 0)})"
+            result = await asyncio.to_thread(finish_folder, Path(job.folder), job, status, termination)
+        else:
+            status, termination = ended["status"], ended["termination"]
+            result = finite_json(ended.get("result")) or await asyncio.to_thread(
+                finish_folder, Path(job.folder), job, status, termination)
+        self.metrics.ticks.job_ended(None if ended is None else ended.get("ticks"))
+        if status == "completed" and result.get("sim_time_s") is not None:
+            self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
+        self.arm.job_ended(termination)
+        await asyncio.to_thread(self.store.update_job, job.id, status=status, termination=termination,
+                                result=result, finished_at=_now(), worker_pid=None, progress=running.progress)
+        self._running = None
+        events = self.events.log(job.id)
+        events.publish("state", {"status": status, "termination": termination})
+        events.publish("result", {"status": status, "result": result})
+        self._wake.set()

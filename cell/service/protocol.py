@@ -1,0 +1,75 @@
+"""The pipe protocol between the service and a job's worker process (``cell.service.worker``).
+
+The service starts ``python -m cell.service.worker --job ID`` and writes JSON lines to its standard input:
+first the :class:`WorkerSpec` (what to run), then commands (``{"op": "stop", "reason": ...}``). The end of
+that input means the service has gone (closed, crashed or killed): the worker stops the arm at once and
+finishes the job folder, since nobody could press stop any more.
+
+The worker writes JSON lines back (its own standard output is moved to standard error first, so that a
+library printing to it cannot break the protocol), each with a ``type``:
+
+- ``started``: ``pid``;
+- ``progress``: ``progress``, a ``cell.jobs.progress.JobProgress`` as a dict;
+- ``stop``: the answer to a stop command, after the arm was commanded to stop: ``commanded`` (False when
+  the job had not yet moved or had ended: it stops before its first motion), ``reason``;
+- ``recovered``: the answer to a recover spec: ``ok``, ``message``, ``arm`` (the state after);
+- ``ended``: ``status``, ``termination``, ``result`` (the job's result.json, None when the job ended
+  before its folder existed) and ``ticks`` (the control loop's final tick histogram).
+
+Progress lines may be dropped when the service does not read fast enough; nothing else is.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+WORKER_MODULE = "cell.service.worker"
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """One task of a worker. ``op`` ``scan``: run the job (``config`` is the cell file's parsed YAML, which
+    the worker validates again, ``config_file`` its name for messages and the record; ``object`` a
+    shipped name or a mesh path, or a label on a real cell; ``object_pose`` x [m], y [m], yaw [deg] from
+    the station; ``folder`` the job folder to create). ``op`` ``recover``: connect the cell's arm, clear
+    a recoverable fault, report its state and disconnect (operator action)."""
+
+    op: str
+    job_id: str
+    config: dict[str, Any]
+    config_file: str
+    object: str = "unknown"
+    object_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    planner: str | None = None
+    seed: int = 0
+    max_time_s: float | None = None
+    folder: str = ""
+
+    def line(self) -> bytes:
+        return (json.dumps(asdict(self)) + "\n").encode()
+
+    @classmethod
+    def parse(cls, line: str) -> WorkerSpec:
+        data = json.loads(line)
+        data["object_pose"] = tuple(data["object_pose"])
+        return cls(**data)
+
+
+def stop_command(reason: str) -> bytes:
+    """The line that asks a worker to stop its job."""
+    return (json.dumps({"op": "stop", "reason": reason}) + "\n").encode()
+
+
+def finite_json(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None: result.json may hold NaN (a metric with no
+    ground truth), which strict JSON (responses, PostgreSQL's JSON type) cannot carry."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_json(v) for v in value]
+    return value

@@ -1,0 +1,42 @@
+"""Opening a cell's service: its cell file, read once, and its data dir and store.
+
+The data dir holds everything the service writes: ``cell.db`` (the embedded SQLite store, unless
+``--db`` names another), ``jobs/<id>/`` (one folder per job, the layout ``cell scan`` writes),
+``objects/`` (uploaded meshes) and ``logs/`` (each job worker's standard error).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from cell.config.load import load_config_data
+from cell.service.manager import CellService
+from cell.service.store import Store, open_store, sqlite_url
+
+DEFAULT_CONFIG = Path("config/sim-franka-rgbd.yaml")
+DEFAULT_DATA_DIR = Path("data")
+
+
+@dataclass(frozen=True)
+class ServiceSettings:
+    """``cell serve``'s choices: the cell file, the data dir and the store's URL (None: SQLite in the data
+    dir)."""
+
+    config_file: Path = DEFAULT_CONFIG
+    data_dir: Path = DEFAULT_DATA_DIR
+    db_url: str | None = None
+
+
+def open_data_store(data_dir: Path, db_url: str | None) -> Store:
+    """The store of ``data_dir`` (created if missing): ``db_url`` or the embedded SQLite file."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    return open_store(db_url or sqlite_url(data_dir))
+
+
+def build_service(settings: ServiceSettings) -> CellService:
+    """The service of the cell file, on its store; call ``start`` on the event loop that will run it."""
+    config, data = load_config_data(settings.config_file)
+    store = open_data_store(settings.data_dir, settings.db_url)
+    return CellService(config=config, config_data=data, config_file=str(settings.config_file),
+                       data_dir=settings.data_dir.resolve(), store=store)

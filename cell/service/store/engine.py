@@ -1,0 +1,173 @@
+"""Opening the job store's database: URL checks, the engine with SQLite's pragmas, and the schema brought
+to this software's newest Alembic revision.
+
+Two databases are supported: SQLite (``sqlite:///ABS/PATH/cell.db``, a single cell's default, in WAL mode
+so that the API's readers never wait for the worker's writes) and PostgreSQL through psycopg 3
+(``postgresql+psycopg://USER:PASSWORD@HOST:PORT/DATABASE``, which several cells may share; a plain
+``postgresql://`` means the same). Every failure is a one-line :class:`drivers.errors.StoreError` naming
+the URL with its password hidden.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from pathlib import Path
+from typing import Any
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from alembic.util import CommandError
+from sqlalchemy import Engine, create_engine, event, make_url, text
+from sqlalchemy.engine import URL
+from sqlalchemy.exc import ArgumentError, DBAPIError, SQLAlchemyError
+
+from drivers.errors import StoreError
+
+MIGRATIONS = Path(__file__).resolve().parent / "migrations"
+SUPPORTED_URLS = "sqlite:///ABS/PATH/cell.db or postgresql+psycopg://USER:PASSWORD@HOST:PORT/DATABASE"
+SQLITE_FILE = "cell.db"  # the store's file in a cell's data folder
+# Set on every SQLite connection: wait up to 5 s for another writer (first, so that switching to WAL
+# waits too), write-ahead log (readers and one writer at once), fsync at checkpoints only (WAL stays
+# consistent after a crash; the last transactions may be lost on power loss), enforced foreign keys.
+SQLITE_PRAGMAS = ("PRAGMA busy_timeout=5000", "PRAGMA journal_mode=WAL", "PRAGMA synchronous=NORMAL",
+                  "PRAGMA foreign_keys=ON")
+POSTGRES_CONNECT_TIMEOUT_S = 10  # how long a connection attempt to PostgreSQL may take [s]
+# Key of the PostgreSQL advisory lock held while migrating, so that cells starting together on one
+# database migrate one after the other ("cell" in ASCII).
+MIGRATION_LOCK_ID = 0x63656C6C
+# Alembic's ``context`` and ``op`` are module-level proxies: one migration at a time in a process.
+_MIGRATING = threading.Lock()
+
+
+def sqlite_url(data_dir: Path) -> str:
+    """The URL of the SQLite store in ``data_dir`` (``<data_dir>/cell.db``, made absolute)."""
+    return f"sqlite:///{(data_dir / SQLITE_FILE).resolve()}"
+
+
+def hide_password(url: str) -> str:
+    """``url`` with its password shown as ``***``, also when it does not parse as a URL."""
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except (ArgumentError, ValueError):
+        return re.sub(r"(://[^/@:]*:)[^@]*@", r"\1***@", url)
+
+
+def store_error(shown_url: str, action: str, exc: BaseException, password: str | None) -> StoreError:
+    """A one-line :class:`StoreError` for ``exc`` raised while doing ``action``: the store's URL (password
+    hidden), the action, and the driver's own words (not SQLAlchemy's statement dump), on one line and
+    with ``password`` blotted out."""
+    cause = exc.orig if isinstance(exc, DBAPIError) and exc.orig is not None else exc
+    reason = " ".join(line.strip() for line in str(cause).splitlines() if line.strip())
+    if password:
+        reason = reason.replace(password, "***")
+    return StoreError(f"job store {shown_url}: {action}: {reason or type(cause).__name__}")
+
+
+def schema_head() -> str:
+    """The newest schema revision this software knows (its migrations' head)."""
+    head = ScriptDirectory.from_config(_alembic_config()).get_current_head()
+    if head is None:
+        raise StoreError(f"no migrations found in {MIGRATIONS}")
+    return head
+
+
+def open_engine(url: str) -> Engine:
+    """An engine on ``url`` whose schema is at :func:`schema_head`, migrated if need be; a database
+    already there is not touched. Raises :class:`StoreError` on a bad URL, an unsupported database, a
+    database that cannot be reached or migrated, or one whose schema is newer than this software's."""
+    shown = hide_password(url)
+    engine = _create_engine(url, shown)
+    try:
+        _upgrade(engine, shown)
+    except (StoreError, CommandError, SQLAlchemyError) as exc:
+        engine.dispose()
+        if isinstance(exc, StoreError):
+            raise
+        raise store_error(shown, "cannot open", exc, engine.url.password) from None
+    return engine
+
+
+def _create_engine(url: str, shown: str) -> Engine:
+    try:
+        parsed = make_url(url)
+    except (ArgumentError, ValueError):
+        raise StoreError(f"job store {shown}: not a database URL (expected {SUPPORTED_URLS})") from None
+    backend, _, driver = parsed.drivername.partition("+")
+    if backend == "sqlite" and driver in ("", "pysqlite"):
+        return _sqlite_engine(parsed, shown)
+    if backend == "postgresql" and driver in ("", "psycopg"):
+        try:
+            return create_engine(parsed.set(drivername="postgresql+psycopg"), pool_pre_ping=True,
+                                 connect_args={"connect_timeout": POSTGRES_CONNECT_TIMEOUT_S})
+        except ImportError:
+            raise StoreError(f"job store {shown}: PostgreSQL needs psycopg: pip install 'cell[postgres]'"
+                             ) from None
+    raise StoreError(f"job store {shown}: unsupported database {parsed.drivername!r} "
+                     f"(expected {SUPPORTED_URLS})")
+
+
+def _sqlite_engine(parsed: URL, shown: str) -> Engine:
+    """A file-backed SQLite engine that sets :data:`SQLITE_PRAGMAS` on every new connection."""
+    if not parsed.database or parsed.database == ":memory:":
+        raise StoreError(f"job store {shown}: an SQLite store needs a file (sqlite:///ABS/PATH/cell.db)")
+    folder = Path(parsed.database).parent
+    if not folder.is_dir():
+        raise StoreError(f"job store {shown}: folder {folder} does not exist")
+    engine = create_engine(parsed)
+    event.listen(engine, "connect", _set_sqlite_pragmas)
+    return engine
+
+
+def _set_sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    cursor = dbapi_connection.cursor()
+    try:
+        for pragma in SQLITE_PRAGMAS:
+            cursor.execute(pragma)
+    finally:
+        cursor.close()
+
+
+def _alembic_config() -> Config:
+    """Alembic's configuration without an ini file: the packaged migrations folder."""
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS).replace("%", "%%"))
+    config.set_main_option("path_separator", "os")
+    return config
+
+
+def _upgrade(engine: Engine, shown: str) -> None:
+    """Migrate ``engine``'s database to the head revision on one connection; refuse a revision this
+    software does not know (a newer cell migrated the database).
+
+    Stores opened at once never race: in this process a lock serializes migrations, and across processes
+    PostgreSQL's advisory lock or SQLite's write lock (``BEGIN IMMEDIATE``, which also makes SQLite's DDL
+    one transaction) is held from reading the revision until the migration is committed."""
+    config = _alembic_config()
+    script = ScriptDirectory.from_config(config)
+    head = script.get_current_head()
+    known = {revision.revision for revision in script.walk_revisions()}
+    postgres = engine.dialect.name == "postgresql"
+    with _MIGRATING, engine.connect() as connection:
+        if postgres:
+            connection.execute(text("SELECT pg_advisory_lock(:id)"), {"id": MIGRATION_LOCK_ID})
+            connection.commit()
+        else:
+            connection.exec_driver_sql("BEGIN IMMEDIATE")
+        try:
+            current = set(MigrationContext.configure(connection).get_current_heads())
+            unknown = sorted(current - known)
+            if unknown:
+                raise StoreError(f"job store {shown}: the database's schema revision {', '.join(unknown)} is "
+                                 f"newer than this software's ({head}); upgrade cell")
+            if current != {head}:
+                config.attributes["connection"] = connection
+                command.upgrade(config, "head")
+            connection.commit()
+        finally:
+            if postgres:
+                connection.rollback()
+                connection.execute(text("SELECT pg_advisory_unlock(:id)"), {"id": MIGRATION_LOCK_ID})
+                connection.commit()

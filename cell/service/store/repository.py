@@ -1,0 +1,237 @@
+"""The job store: jobs and API keys, in SQLite or PostgreSQL.
+
+:class:`Store` is synchronous and may be called from several threads at once: every call runs in its own
+SQLAlchemy session and transaction. It takes and returns the frozen records of
+:mod:`cell.service.store.records`, never ORM rows. A database error during use becomes a one-line
+:class:`drivers.errors.StoreError` naming the operation; a caller's mistake (an unknown field or status,
+a naive datetime) is a ``ValueError``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, fields
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import ColumnElement, Engine, func, select
+from sqlalchemy.exc import IntegrityError, SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
+from cell.service.store.engine import open_engine, store_error
+from cell.service.store.models import JobRow, KeyRow
+from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord
+from drivers.errors import ServiceError
+
+JOB_FIELDS = tuple(field.name for field in fields(JobRecord))
+JOB_ID = re.compile(r"[0-9a-f]{16}")  # a job id: 16 lowercase hex characters
+_CHANGEABLE = frozenset(JOB_FIELDS) - {"id"}
+_TIME_FIELDS = ("created_at", "started_at", "finished_at")
+
+
+def open_store(url: str) -> Store:
+    """Open the store at ``url`` (see :mod:`cell.service.store.engine`), its schema migrated to this
+    software's newest revision. Raises :class:`drivers.errors.StoreError` with a one-line message naming
+    the URL without its password."""
+    return Store(open_engine(url))
+
+
+class Store:
+    """Jobs and API keys in one database. ``url`` is the database's URL with its password hidden."""
+
+    def __init__(self, engine: Engine) -> None:
+        """A store on ``engine``, whose schema must already be at the head revision (:func:`open_store`
+        makes sure of it)."""
+        self._engine = engine
+        self._sessions = sessionmaker(engine, expire_on_commit=False)
+        self.url = engine.url.render_as_string(hide_password=True)
+
+    def close(self) -> None:
+        """Close every pooled connection; the store is not used afterwards."""
+        self._engine.dispose()
+
+    @contextlib.contextmanager
+    def _session(self, action: str, *, conflict: str | None = None) -> Iterator[Session]:
+        """A session in a transaction, committed at the end. A database error becomes a
+        :class:`StoreError` naming ``action``; with ``conflict``, an integrity error (a duplicate key)
+        becomes a ``ServiceError`` of reason ``conflict`` with that message."""
+        try:
+            with self._sessions.begin() as session:
+                yield session
+        except IntegrityError as exc:
+            if conflict is None:
+                raise store_error(self.url, action, exc, self._engine.url.password) from None
+            raise ServiceError(conflict, reason="conflict") from None
+        except SQLAlchemyError as exc:
+            raise store_error(self.url, action, exc, self._engine.url.password) from None
+
+    # jobs
+
+    def add_job(self, job: JobRecord) -> None:
+        """Store a new job. ``ServiceError`` (``conflict``) if a job with its id exists; ``ValueError`` for
+        an id that is not 16 lowercase hex characters, an unknown status or a naive time."""
+        if not JOB_ID.fullmatch(job.id):
+            raise ValueError(f"job id {job.id!r}: expected 16 lowercase hex characters")
+        columns = _job_columns(asdict(job))
+        with self._session(f"adding job {job.id}", conflict=f"job {job.id} already exists") as session:
+            session.add(JobRow(**columns))
+
+    def get_job(self, job_id: str) -> JobRecord | None:
+        """The job ``job_id``, or None if there is none."""
+        with self._session(f"reading job {job_id}") as session:
+            row = session.get(JobRow, job_id)
+            return None if row is None else _job_record(row)
+
+    def update_job(self, job_id: str, **changes: Any) -> JobRecord:
+        """Set some of job ``job_id``'s fields (names of :class:`JobRecord` fields other than ``id``) and
+        return the job as stored. ``KeyError`` if there is no such job, ``ValueError`` for another name,
+        an unknown status or a naive time."""
+        unknown = sorted(set(changes) - _CHANGEABLE)
+        if unknown:
+            raise ValueError(f"cannot update job field(s) {', '.join(unknown)} (changeable: "
+                             f"{', '.join(sorted(_CHANGEABLE))})")
+        columns = _job_columns(changes)
+        with self._session(f"updating job {job_id}") as session:
+            row = session.get(JobRow, job_id)
+            if row is None:
+                raise KeyError(job_id)
+            for name, value in columns.items():
+                setattr(row, name, value)
+            session.flush()
+            return _job_record(row)
+
+    def list_jobs(self, *, cell: str | None = None, statuses: Sequence[str] | None = None,
+                  planner: str | None = None, part_id: str | None = None,
+                  created_after: datetime | None = None, created_before: datetime | None = None,
+                  limit: int = 50, offset: int = 0) -> tuple[list[JobRecord], int]:
+        """One page of the jobs that match every given filter, newest first (by creation time, then id),
+        and how many match in all. ``created_after`` is inclusive, ``created_before`` exclusive; ``limit``
+        and ``offset`` count jobs (``ValueError`` if negative)."""
+        if limit < 0 or offset < 0:
+            raise ValueError(f"limit and offset must not be negative (got {limit}, {offset})")
+        conditions: list[ColumnElement[bool]] = []
+        if cell is not None:
+            conditions.append(JobRow.cell == cell)
+        if statuses is not None:
+            conditions.append(JobRow.status.in_(_checked_statuses(statuses)))
+        if planner is not None:
+            conditions.append(JobRow.planner == planner)
+        if part_id is not None:
+            conditions.append(JobRow.part_id == part_id)
+        if created_after is not None:
+            conditions.append(JobRow.created_at >= _aware("created_after", created_after))
+        if created_before is not None:
+            conditions.append(JobRow.created_at < _aware("created_before", created_before))
+        with self._session("listing jobs") as session:
+            total = session.scalar(select(func.count()).select_from(JobRow).where(*conditions)) or 0
+            rows = session.scalars(select(JobRow).where(*conditions)
+                                   .order_by(JobRow.created_at.desc(), JobRow.id.desc())
+                                   .limit(limit).offset(offset))
+            return [_job_record(row) for row in rows], total
+
+    def jobs_in_status(self, cell: str, statuses: Sequence[str]) -> list[JobRecord]:
+        """``cell``'s jobs in one of ``statuses``, oldest first (the queue's order: creation time, then
+        id)."""
+        query = (select(JobRow).where(JobRow.cell == cell, JobRow.status.in_(_checked_statuses(statuses)))
+                 .order_by(JobRow.created_at, JobRow.id))
+        with self._session(f"reading cell {cell}'s jobs") as session:
+            return [_job_record(row) for row in session.scalars(query)]
+
+    def count_by_status(self, cell: str) -> dict[str, int]:
+        """How many of ``cell``'s jobs are in each status; every status of :data:`JOB_STATUSES` is a key."""
+        query = select(JobRow.status, func.count()).where(JobRow.cell == cell).group_by(JobRow.status)
+        counts = dict.fromkeys(JOB_STATUSES, 0)
+        with self._session(f"counting cell {cell}'s jobs") as session:
+            for status, count in session.execute(query):
+                counts[status] = count
+        return counts
+
+    def delete_job(self, job_id: str) -> None:
+        """Remove job ``job_id`` from the store (its folder stays); ``KeyError`` if there is none."""
+        with self._session(f"deleting job {job_id}") as session:
+            row = session.get(JobRow, job_id)
+            if row is None:
+                raise KeyError(job_id)
+            session.delete(row)
+
+    # keys
+
+    def add_key(self, name: str, role: str, key_hash: str) -> KeyRecord:
+        """Store a new active key: its name, role and hex SHA-256 (never the key). ``ServiceError``
+        (``conflict``) if a key of that name exists, even revoked: a name always means one key."""
+        record = KeyRecord(name=name, role=role, key_hash=key_hash, created_at=datetime.now(UTC))
+        conflict = f"a key named {name!r} already exists (a revoked key's name stays taken)"
+        with self._session(f"adding key {name!r}", conflict=conflict) as session:
+            if session.get(KeyRow, name) is not None:
+                raise ServiceError(conflict, reason="conflict")
+            session.add(KeyRow(**asdict(record)))
+        return record
+
+    def list_keys(self) -> list[KeyRecord]:
+        """Every key, active or revoked, by name."""
+        with self._session("listing keys") as session:
+            return [_key_record(row) for row in session.scalars(select(KeyRow).order_by(KeyRow.name))]
+
+    def revoke_key(self, name: str) -> KeyRecord:
+        """Revoke key ``name`` now and return it. ``ServiceError`` ``not found`` if there is no such key,
+        ``conflict`` if it is already revoked."""
+        with self._session(f"revoking key {name!r}") as session:
+            row = session.get(KeyRow, name)
+            if row is None:
+                raise ServiceError(f"no key named {name!r}", reason="not found")
+            if row.revoked_at is not None:
+                raise ServiceError(f"key {name!r} was already revoked at {row.revoked_at.isoformat()}",
+                                   reason="conflict")
+            row.revoked_at = datetime.now(UTC)
+            session.flush()
+            return _key_record(row)
+
+    def active_keys(self) -> list[KeyRecord]:
+        """The keys that are not revoked, by name."""
+        query = select(KeyRow).where(KeyRow.revoked_at.is_(None)).order_by(KeyRow.name)
+        with self._session("reading the active keys") as session:
+            return [_key_record(row) for row in session.scalars(query)]
+
+
+def _aware(name: str, value: datetime) -> datetime:
+    if value.tzinfo is None:
+        raise ValueError(f"{name} {value.isoformat()} is naive: the job store needs timezone-aware times")
+    return value
+
+
+def _checked_statuses(statuses: Sequence[str]) -> list[str]:
+    unknown = sorted(set(statuses) - set(JOB_STATUSES))
+    if unknown:
+        raise ValueError(f"unknown job status(es) {', '.join(unknown)} (allowed: {', '.join(JOB_STATUSES)})")
+    return list(statuses)
+
+
+def _job_columns(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` (JobRecord fields) checked and turned into column values: times in UTC, the pose as a
+    JSON list."""
+    columns = dict(values)
+    if "status" in columns:
+        _checked_statuses([columns["status"]])
+    for name in _TIME_FIELDS:
+        if columns.get(name) is not None:
+            columns[name] = _aware(name, columns[name]).astimezone(UTC)
+    pose = columns.get("object_pose")
+    if pose is not None:
+        if len(pose) != 3:
+            raise ValueError(f"object_pose {pose!r}: expected (x [m], y [m], yaw [deg])")
+        columns["object_pose"] = [float(v) for v in pose]
+    return columns
+
+
+def _job_record(row: JobRow) -> JobRecord:
+    values = {name: getattr(row, name) for name in JOB_FIELDS}
+    pose = values["object_pose"]
+    values["object_pose"] = None if pose is None else (float(pose[0]), float(pose[1]), float(pose[2]))
+    return JobRecord(**values)
+
+
+def _key_record(row: KeyRow) -> KeyRecord:
+    return KeyRecord(name=row.name, role=row.role, key_hash=row.key_hash, created_at=row.created_at,
+                     revoked_at=row.revoked_at)

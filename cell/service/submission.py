@@ -1,0 +1,78 @@
+"""What a client asks of a scan job, checked against the cell before it is queued.
+
+Every check that ``cell scan`` would make before anything moves is made here, at submission, so that a
+bad request is answered at once (naming the field) instead of failing later on the arm: the planner is
+registered, the object is known and stands on the table at the pose asked, the seed and the time budget
+are in range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cell.config.models import CellConfig
+from cell.jobs.placement import check_on_table
+from cell.planning.registry import PLANNERS
+from cell.service.objects import ObjectLibrary
+from drivers.errors import JobError, ServiceError
+
+MAX_SEED = 2**63 - 1
+MAX_TIME_BUDGET_S = 3600.0
+"""The longest time budget a job may ask for [s]: an hour, twenty times the papers' longest scans."""
+
+
+@dataclass(frozen=True)
+class JobRequest:
+    """A client's request; None takes the cell's default (``object`` has none on a sim or dry-run cell).
+    ``object_pose`` is (x [m], y [m], yaw [deg]) from the station."""
+
+    planner: str | None = None
+    object: str | None = None
+    object_pose: tuple[float, float, float] | None = None
+    seed: int | None = None
+    max_time_s: float | None = None
+    part_id: str | None = None
+
+
+@dataclass(frozen=True)
+class ValidJob:
+    """A request with the cell's defaults filled in; ``object_source`` is what the worker loads (a
+    shipped name or an uploaded file's path; the label on a real cell)."""
+
+    planner: str
+    object: str | None
+    object_source: str
+    object_pose: tuple[float, float, float]
+    seed: int
+    max_time_s: float | None
+    part_id: str | None
+
+
+def _invalid(message: str, field: str) -> ServiceError:
+    return ServiceError(message, reason="invalid", field=field)
+
+
+def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> ValidJob:
+    """The request completed with the cell's defaults, or ``ServiceError`` (invalid) naming the field."""
+    planner = req.planner or config.scan.planner
+    if planner not in PLANNERS:
+        raise _invalid(f"unknown planner {planner!r}; registered: {', '.join(sorted(PLANNERS))}", "planner")
+    seed = 0 if req.seed is None else req.seed
+    if not 0 <= seed <= MAX_SEED:
+        raise _invalid(f"seed must be between 0 and {MAX_SEED}, got {seed}", "seed")
+    if req.max_time_s is not None and not 0.0 < req.max_time_s <= MAX_TIME_BUDGET_S:
+        raise _invalid(f"max_time_s must be above 0 and at most {MAX_TIME_BUDGET_S:g} s, got "
+                       f"{req.max_time_s}", "max_time_s")
+    pose = req.object_pose or (0.0, 0.0, 0.0)
+    if config.mode in ("real", "replay"):
+        label = req.object or "unknown"
+        return ValidJob(planner, req.object, label, pose, seed, req.max_time_s, req.part_id)
+    if req.object is None:
+        raise _invalid(f"a {config.mode} cell scans a virtual object: name one (GET /api/v1/objects)",
+                       "object")
+    source = objects.source(req.object)
+    try:
+        check_on_table(config, objects.mesh(req.object), pose)
+    except JobError as exc:
+        raise _invalid(str(exc), "object_pose") from None
+    return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)

@@ -1,0 +1,170 @@
+"""API keys: roles and permissions, creation (only the hash is stored), the in-memory key ring, and the
+``cell keys`` commands."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import sqlite3
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cell.cli.main import app
+from cell.service.keys import (
+    PERMISSIONS,
+    KeyRing,
+    Permission,
+    Role,
+    allowed,
+    create_key,
+    hash_key,
+    new_key,
+)
+from cell.service.store import Store, open_store, sqlite_url
+from drivers.errors import ServiceError
+
+KEY = re.compile(r"cell_[A-Za-z0-9_-]{43}")
+UTC_SECONDS = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ"  # how `cell keys list` shows a time
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> Iterator[Store]:
+    opened = open_store(sqlite_url(tmp_path))
+    yield opened
+    opened.close()
+
+
+def raw_rows(db: Path) -> list[tuple[object, ...]]:
+    with sqlite3.connect(db) as raw:
+        return raw.execute("SELECT * FROM api_keys").fetchall()
+
+
+def test_permission_table():
+    expected = {
+        Role.VIEWER: {Permission.READ, Permission.STOP},
+        Role.OPERATOR: {Permission.READ, Permission.STOP, Permission.SUBMIT, Permission.CANCEL,
+                        Permission.RECOVER, Permission.UPLOAD},
+        Role.LINE: {Permission.READ, Permission.STOP, Permission.LINE},
+        Role.ADMIN: set(Permission),
+    }
+    assert expected == PERMISSIONS
+    assert not allowed("viewer", Permission.SUBMIT)
+    assert allowed("operator", Permission.SUBMIT)
+    assert all(allowed(role, Permission.STOP) for role in Role)
+    assert [role for role in Role if allowed(role, Permission.KEYS)] == [Role.ADMIN]
+    assert not allowed("nobody", Permission.READ)
+
+
+def test_new_keys_are_random():
+    keys = {new_key() for _ in range(100)}
+    assert len(keys) == 100 and all(KEY.fullmatch(key) for key in keys)
+    assert hash_key("cell_x") == hashlib.sha256(b"cell_x").hexdigest()
+
+
+def test_create_key_stores_only_the_hash(store: Store, tmp_path: Path):
+    record, key = create_key(store, "operator", "op-1")
+    assert KEY.fullmatch(key)
+    assert (record.name, record.role, record.active) == ("op-1", "operator", True)
+    assert record.key_hash == hashlib.sha256(key.encode()).hexdigest()
+    rows = raw_rows(tmp_path / "cell.db")
+    assert len(rows) == 1
+    assert record.key_hash in rows[0]
+    assert not any(key in str(value) for value in rows[0])
+    assert store.list_keys() == [record]
+
+
+def test_default_name(store: Store):
+    record, _ = create_key(store, "viewer", None)
+    assert re.fullmatch(r"viewer-[0-9a-f]{6}", record.name)
+
+
+def test_create_key_refuses(store: Store):
+    with pytest.raises(ServiceError) as err:
+        create_key(store, "root", "x")
+    assert (err.value.reason, err.value.field) == ("invalid", "role")
+    assert "viewer, operator, line, admin" in str(err.value)
+    for name in ("", "has space", "x" * 65, "semi;colon"):
+        with pytest.raises(ServiceError) as err:
+            create_key(store, "viewer", name)
+        assert (err.value.reason, err.value.field) == ("invalid", "name")
+    create_key(store, "viewer", "screen.1")
+    with pytest.raises(ServiceError) as err:
+        create_key(store, "admin", "screen.1")
+    assert err.value.reason == "conflict"
+    assert [k.name for k in store.list_keys()] == ["screen.1"]
+
+
+def test_key_ring(store: Store):
+    operator, operator_key = create_key(store, "operator", "op")
+    ring = KeyRing(store)
+    assert len(ring) == 1
+    assert ring.authenticate(operator_key) == operator
+    assert ring.authenticate(new_key()) is None
+    assert ring.authenticate("") is None
+    line, line_key = create_key(store, "line", "plc")
+    assert ring.authenticate(line_key) is None  # not before the next refresh
+    ring.refresh()
+    assert ring.authenticate(line_key) == line and len(ring) == 2
+    store.revoke_key("op")
+    ring.refresh()
+    assert ring.authenticate(operator_key) is None and len(ring) == 1
+
+
+# the command line
+
+runner = CliRunner()
+
+
+def test_cli_create_list_revoke(tmp_path: Path):
+    data = tmp_path / "data"
+    created = runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "operator",
+                                  "--name", "op-1"])
+    assert created.exit_code == 0, created.output
+    lines = created.stdout.splitlines()
+    key = lines[-1]
+    assert KEY.fullmatch(key)
+    assert lines[-2] == "created key 'op-1' (role operator); it is shown once, store it now:"
+    assert (data / "cell.db").exists()
+
+    listed = runner.invoke(app, ["keys", "list", "--data-dir", str(data)])
+    assert listed.exit_code == 0, listed.output
+    assert re.fullmatch(rf"op-1\s+operator\s+created {UTC_SECONDS}\s+active\n", listed.stdout)
+    assert key not in listed.output and hash_key(key) not in listed.output
+
+    revoked = runner.invoke(app, ["keys", "revoke", "op-1", "--data-dir", str(data)])
+    assert revoked.exit_code == 0, revoked.output
+    listed = runner.invoke(app, ["keys", "list", "--data-dir", str(data)])
+    assert re.fullmatch(rf"op-1\s+operator\s+created {UTC_SECONDS}\s+revoked {UTC_SECONDS}\n", listed.stdout)
+
+    again = runner.invoke(app, ["keys", "revoke", "op-1", "--data-dir", str(data)])
+    assert again.exit_code == 1
+    assert again.stderr.startswith("error: key 'op-1' was already revoked") and again.stderr.count("\n") == 1
+
+
+def test_cli_defaults_and_db_option(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.chdir(tmp_path)
+    created = runner.invoke(app, ["keys", "create", "--role", "admin"])
+    assert created.exit_code == 0, created.output
+    assert (tmp_path / "data" / "cell.db").exists()  # --data-dir defaults to ./data
+    assert runner.invoke(app, ["keys", "list"]).stdout.startswith("admin-")
+    (tmp_path / "other").mkdir()
+    db = sqlite_url(tmp_path / "other")
+    assert runner.invoke(app, ["keys", "list", "--db", db]).stdout == "no keys\n"
+
+
+def test_cli_errors_are_one_line(tmp_path: Path):
+    data = tmp_path / "data"
+    bad_role = runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "root"])
+    assert bad_role.exit_code == 1
+    assert bad_role.stderr == "error: unknown role 'root' (roles: viewer, operator, line, admin)\n"
+    assert bad_role.stdout == ""
+    assert not data.exists()  # refused before the store was opened
+    bad_db = runner.invoke(app, ["keys", "list", "--db", "mysql://cell:s3cret@localhost/cell"])
+    assert bad_db.exit_code == 1
+    assert bad_db.stderr.startswith("error: job store mysql://cell:***@localhost/cell: unsupported")
+    assert bad_db.stderr.count("\n") == 1 and "s3cret" not in bad_db.output
+    unknown = runner.invoke(app, ["keys", "revoke", "nobody", "--data-dir", str(data)])
+    assert (unknown.exit_code, unknown.stderr) == (1, "error: no key named 'nobody'\n")

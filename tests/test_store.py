@@ -1,0 +1,390 @@
+"""The job store on SQLite and on a real PostgreSQL server (``tests/postgres.py``): jobs and keys round
+trip, filters and pages, the queue's order, migrations (once, never backwards), errors that hide the
+password, and two cells sharing one PostgreSQL database."""
+
+from __future__ import annotations
+
+import sqlite3
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from sqlalchemy import create_engine, text
+
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord, Store, open_store, sqlite_url
+from cell.service.store.engine import open_engine, schema_head
+from cell.service.store.models import Base
+from drivers.errors import ServiceError, StoreError
+from tests.postgres import free_port, fresh_database, postgres_url  # noqa: F401  (a fixture)
+
+T0 = datetime(2026, 3, 2, 8, 0, tzinfo=UTC)
+
+
+def make_job(n: int, **fields: object) -> JobRecord:
+    """Job number ``n``: created ``n`` minutes after T0 on cell ``a``, queued, with a distinct id."""
+    values: dict[str, object] = dict(
+        id=f"{n:016x}", cell="a", status="queued", planner="vs-local", object="bunny",
+        object_pose=(0.01, -0.02, 30.0), seed=n, max_time_s=120.0, part_id=None, folder=f"/data/jobs/{n}",
+        submitted_by="op", created_at=T0 + timedelta(minutes=n))
+    values.update(fields)
+    return JobRecord(**values)
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """An empty store's URL: a SQLite file, or a fresh database on the session's PostgreSQL server."""
+    if request.param == "sqlite":
+        yield sqlite_url(tmp_path)
+    else:
+        with fresh_database(request.getfixturevalue("postgres_url")) as url:
+            yield url
+
+
+@pytest.fixture
+def store(store_url: str) -> Iterator[Store]:
+    opened = open_store(store_url)
+    yield opened
+    opened.close()
+
+
+def test_statuses():
+    assert set(JOB_STATUSES) > FINISHED_STATUSES
+    assert set(JOB_STATUSES) - FINISHED_STATUSES == {"queued", "running"}
+
+
+def test_job_round_trip(store: Store):
+    job = make_job(1, result={"status": "completed", "metrics": {"coverage_pct": 91.5, "chamfer_mm": None}},
+                   progress={"t_s": 3.5, "n_captures": 4}, part_id="P-7", worker_pid=4242,
+                   started_at=datetime(2026, 3, 2, 10, 1, 2, 345678, tzinfo=timezone(timedelta(hours=2))))
+    store.add_job(job)
+    back = store.get_job(job.id)
+    assert back == job
+    assert back is not None
+    for moment in (back.created_at, back.started_at):
+        assert moment is not None and moment.tzinfo is not None and moment.utcoffset() == timedelta(0)
+    assert back.started_at == datetime(2026, 3, 2, 8, 1, 2, 345678, tzinfo=UTC)
+    assert back.object_pose == (0.01, -0.02, 30.0) and isinstance(back.object_pose, tuple)
+    assert back.result == job.result and back.progress == job.progress
+    assert store.get_job("ffffffffffffffff") is None
+
+
+def test_nulls_round_trip(store: Store):
+    job = make_job(2, object=None, object_pose=None, max_time_s=None, submitted_by=None)
+    store.add_job(job)
+    assert store.get_job(job.id) == job
+
+
+def test_add_job_refuses_duplicates_and_bad_values(store: Store):
+    store.add_job(make_job(1))
+    with pytest.raises(ServiceError) as err:
+        store.add_job(make_job(1))
+    assert err.value.reason == "conflict"
+    with pytest.raises(ValueError, match="hex"):
+        store.add_job(make_job(2, id="NOT-HEX-00000000"))
+    with pytest.raises(ValueError, match="status"):
+        store.add_job(make_job(3, status="paused"))
+    with pytest.raises(ValueError, match="naive"):
+        store.add_job(make_job(4, created_at=datetime(2026, 3, 2, 8, 0)))
+    assert store.list_jobs()[1] == 1
+
+
+def test_update_job(store: Store):
+    job = make_job(1)
+    store.add_job(job)
+    started = T0 + timedelta(hours=1)
+    updated = store.update_job(job.id, status="running", started_at=started, worker_pid=99,
+                               progress={"t_s": 1.0, "coverage_pct": 12.5})
+    assert updated == replace(job, status="running", started_at=started, worker_pid=99,
+                              progress={"t_s": 1.0, "coverage_pct": 12.5})
+    assert store.get_job(job.id) == updated
+    finished = store.update_job(job.id, status="completed", finished_at=started + timedelta(seconds=30),
+                                termination="coverage converged", result={"status": "completed"},
+                                progress=None, worker_pid=None)
+    assert finished.progress is None and finished.worker_pid is None
+    assert store.get_job(job.id) == finished
+
+
+def test_update_job_refuses(store: Store):
+    store.add_job(make_job(1))
+    with pytest.raises(ValueError, match="colour"):
+        store.update_job(make_job(1).id, colour="red")
+    with pytest.raises(ValueError, match="id"):
+        store.update_job(make_job(1).id, id="0000000000000002")
+    with pytest.raises(ValueError, match="status"):
+        store.update_job(make_job(1).id, status="paused")
+    with pytest.raises(ValueError, match="naive"):
+        store.update_job(make_job(1).id, finished_at=datetime(2026, 1, 1))
+    with pytest.raises(KeyError):
+        store.update_job("0000000000000009", status="running")
+    assert store.get_job(make_job(1).id) == make_job(1)
+
+
+@pytest.fixture
+def many_jobs(store: Store) -> list[JobRecord]:
+    """Eight jobs over two cells, statuses, planners and part ids, created a minute apart (and two at
+    the same time, to order by id)."""
+    jobs = [
+        make_job(1, status="completed"),
+        make_job(2, status="failed", planner="lrnbv"),
+        make_job(3, cell="b", status="completed", part_id="P-1"),
+        make_job(4, status="running", part_id="P-1"),
+        make_job(5, status="queued", planner="lrnbv"),
+        make_job(6, status="queued"),
+        make_job(7, status="queued", created_at=T0 + timedelta(minutes=6)),
+        make_job(8, cell="b", status="queued"),
+    ]
+    for job in jobs:
+        store.add_job(job)
+    return jobs
+
+
+def ids(jobs: list[JobRecord]) -> list[int]:
+    return [int(job.id, 16) for job in jobs]
+
+
+def test_list_jobs_filters(store: Store, many_jobs: list[JobRecord]):
+    page, total = store.list_jobs()
+    assert ids(page) == [8, 7, 6, 5, 4, 3, 2, 1] and total == 8  # newest first; 6 and 7 tie: by id
+    assert ids(store.list_jobs(cell="a")[0]) == [7, 6, 5, 4, 2, 1]
+    assert ids(store.list_jobs(statuses=["completed", "failed"])[0]) == [3, 2, 1]
+    assert ids(store.list_jobs(statuses=[])[0]) == []
+    assert ids(store.list_jobs(planner="lrnbv")[0]) == [5, 2]
+    assert ids(store.list_jobs(part_id="P-1")[0]) == [4, 3]
+    assert ids(store.list_jobs(created_after=T0 + timedelta(minutes=5))[0]) == [8, 7, 6, 5]
+    assert ids(store.list_jobs(created_before=T0 + timedelta(minutes=3))[0]) == [2, 1]
+    # a time in another zone means the same instant
+    after = (T0 + timedelta(minutes=3)).astimezone(timezone(timedelta(hours=-5)))
+    assert ids(store.list_jobs(created_after=after, created_before=T0 + timedelta(minutes=5))[0]) == [4, 3]
+    page, total = store.list_jobs(cell="a", statuses=["queued"], planner="vs-local")
+    assert ids(page) == [7, 6] and total == 2
+    with pytest.raises(ValueError, match="status"):
+        store.list_jobs(statuses=["paused"])
+    with pytest.raises(ValueError, match="naive"):
+        store.list_jobs(created_after=datetime(2026, 1, 1))
+
+
+def test_list_jobs_pages(store: Store, many_jobs: list[JobRecord]):
+    pages = [store.list_jobs(limit=3, offset=offset) for offset in (0, 3, 6, 9)]
+    assert [(ids(page), total) for page, total in pages] \
+        == [([8, 7, 6], 8), ([5, 4, 3], 8), ([2, 1], 8), ([], 8)]
+    page, total = store.list_jobs(cell="a", limit=2, offset=1)
+    assert ids(page) == [6, 5] and total == 6
+    with pytest.raises(ValueError):
+        store.list_jobs(limit=-1)
+
+
+def test_queue_order_and_counts(store: Store, many_jobs: list[JobRecord]):
+    assert ids(store.jobs_in_status("a", ["queued"])) == [5, 6, 7]  # oldest first; 6 and 7 tie: by id
+    assert ids(store.jobs_in_status("a", ["queued", "running"])) == [4, 5, 6, 7]
+    assert ids(store.jobs_in_status("b", ["queued"])) == [8]
+    assert store.jobs_in_status("c", ["queued"]) == []
+    assert store.count_by_status("a") == {"queued": 3, "running": 1, "completed": 1, "failed": 1,
+                                          "stopped": 0, "cancelled": 0, "interrupted": 0}
+    assert store.count_by_status("c") == dict.fromkeys(JOB_STATUSES, 0)
+
+
+def test_delete_job(store: Store, many_jobs: list[JobRecord]):
+    store.delete_job(many_jobs[0].id)
+    assert store.get_job(many_jobs[0].id) is None
+    assert store.list_jobs()[1] == 7
+    with pytest.raises(KeyError):
+        store.delete_job(many_jobs[0].id)
+
+
+def test_keys_round_trip(store: Store):
+    added = store.add_key("op", "operator", "ab" * 32)
+    assert added.active and added.created_at.tzinfo is not None
+    store.add_key("admin-1", "admin", "cd" * 32)
+    assert [k.name for k in store.list_keys()] == ["admin-1", "op"]
+    assert store.list_keys()[1] == added
+    revoked = store.revoke_key("op")
+    assert not revoked.active and revoked.revoked_at is not None and revoked.revoked_at.tzinfo is not None
+    assert [k.name for k in store.active_keys()] == ["admin-1"]
+    assert store.list_keys()[1] == revoked
+    with pytest.raises(ServiceError) as err:
+        store.revoke_key("op")
+    assert err.value.reason == "conflict"
+    with pytest.raises(ServiceError) as err:
+        store.revoke_key("nobody")
+    assert err.value.reason == "not found"
+    with pytest.raises(ServiceError) as err:
+        store.add_key("op", "viewer", "ef" * 32)  # a revoked key's name stays taken
+    assert err.value.reason == "conflict"
+
+
+def test_threads_share_a_store(store: Store):
+    """Several threads add and update jobs at once (one session per call)."""
+    errors: list[BaseException] = []
+
+    def work(t: int) -> None:
+        try:
+            for i in range(5):
+                job = make_job(100 * t + i, cell=f"t{t}")
+                store.add_job(job)
+                store.update_job(job.id, status="running", progress={"i": i})
+                store.list_jobs(cell=f"t{t}")
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(t,)) for t in range(1, 7)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == []
+    assert store.list_jobs(statuses=["running"])[1] == 30
+
+
+def test_schema_matches_models(store_url: str):
+    """The hand-written migrations leave exactly the schema the models describe."""
+    engine = open_engine(store_url)
+    try:
+        with engine.connect() as connection:
+            diff = compare_metadata(MigrationContext.configure(connection, opts={"compare_type": True}),
+                                    Base.metadata)
+    finally:
+        engine.dispose()
+    assert diff == []
+
+
+def test_reopen_runs_no_migration(store_url: str, monkeypatch: pytest.MonkeyPatch):
+    first = open_store(store_url)
+    first.add_job(make_job(1))
+    first.close()
+
+    def no_upgrade(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a migration ran on a database already at head")
+
+    monkeypatch.setattr("cell.service.store.engine.command.upgrade", no_upgrade)
+    again = open_store(store_url)
+    try:
+        assert again.get_job(make_job(1).id) == make_job(1)
+    finally:
+        again.close()
+    engine = create_engine(store_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT version_num FROM alembic_version")).scalars().all() \
+            == [schema_head()]
+    engine.dispose()
+
+
+def test_newer_schema_is_refused(store_url: str):
+    open_store(store_url).close()
+    engine = create_engine(store_url)
+    with engine.begin() as connection:
+        connection.execute(text("UPDATE alembic_version SET version_num = '9999_future'"))
+    engine.dispose()
+    with pytest.raises(StoreError, match=r"9999_future.*newer") as err:
+        open_store(store_url)
+    assert "\n" not in str(err.value)
+
+
+def test_sqlite_pragmas(tmp_path: Path):
+    open_store(sqlite_url(tmp_path)).close()
+    with sqlite3.connect(tmp_path / "cell.db") as raw:
+        assert raw.execute("PRAGMA journal_mode").fetchone() == ("wal",)
+    engine = open_engine(sqlite_url(tmp_path))
+    try:
+        with engine.connect() as connection:
+            answers = {name: connection.exec_driver_sql(f"PRAGMA {name}").scalar()
+                       for name in ("journal_mode", "synchronous", "busy_timeout", "foreign_keys")}
+    finally:
+        engine.dispose()
+    assert answers == {"journal_mode": "wal", "synchronous": 1, "busy_timeout": 5000, "foreign_keys": 1}
+
+
+def test_sqlite_url(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.chdir(tmp_path)
+    assert sqlite_url(Path("data")) == f"sqlite:///{tmp_path / 'data' / 'cell.db'}"
+
+
+@pytest.mark.parametrize(("url", "words"), [
+    ("not a url", "not a database URL"),
+    ("mysql://cell:s3cret@localhost/cell", "unsupported database"),
+    ("postgresql+asyncpg://cell:s3cret@localhost/cell", "unsupported database"),
+    ("sqlite://", "needs a file"),
+    ("sqlite:////no/such/folder/cell.db", "does not exist"),
+])
+def test_bad_urls(url: str, words: str):
+    with pytest.raises(StoreError, match=words) as err:
+        open_store(url)
+    message = str(err.value)
+    assert "s3cret" not in message and "\n" not in message
+
+
+def test_unreachable_postgres_hides_the_password():
+    url = f"postgresql+psycopg://cell:s3cret@127.0.0.1:{free_port()}/cell"  # nothing listens there
+    with pytest.raises(StoreError) as err:
+        open_store(url)
+    message = str(err.value)
+    assert "s3cret" not in message and "\n" not in message
+    assert "postgresql+psycopg://cell:***@127.0.0.1" in message and "cannot open" in message
+
+
+def open_at_once(url: str, n: int) -> list[Store]:
+    """``n`` stores opened on ``url`` by as many threads at once."""
+    stores: list[Store] = []
+    errors: list[BaseException] = []
+
+    def start() -> None:
+        try:
+            stores.append(open_store(url))
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start) for _ in range(n)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for opened in stores if errors else []:
+        opened.close()
+    assert errors == []
+    return stores
+
+
+def test_stores_opened_at_once_migrate_once(store_url: str):
+    for opened in open_at_once(store_url, 4):
+        opened.close()
+    engine = create_engine(store_url)
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT version_num FROM alembic_version")).scalars().all() \
+            == [schema_head()]
+    engine.dispose()
+
+
+def test_processes_open_one_sqlite_store_at_once(tmp_path: Path):
+    """Cells (or ``cell keys`` and ``cell serve``) starting together on one new SQLite file: SQLite's
+    write lock serializes their migrations."""
+    code = "import sys; from cell.service.store import open_store; open_store(sys.argv[1]).close()"
+    url = sqlite_url(tmp_path)
+    starts = [subprocess.Popen([sys.executable, "-c", code, url], stderr=subprocess.PIPE) for _ in range(4)]
+    outcomes = [(start.wait(timeout=60), start.stderr.read() if start.stderr else b"") for start in starts]
+    assert outcomes == [(0, b"")] * 4
+    with sqlite3.connect(tmp_path / "cell.db") as raw:
+        assert raw.execute("SELECT version_num FROM alembic_version").fetchall() == [(schema_head(),)]
+
+
+def test_two_cells_share_a_postgres_database(postgres_url: str):  # noqa: F811  (the imported fixture)
+    """Two cells on one database, started at once, each see the other's jobs only when they do not
+    filter by cell."""
+    with fresh_database(postgres_url) as url:
+        a, b = open_at_once(url, 2)
+        try:
+            a.add_job(make_job(1, cell="a"))
+            b.add_job(make_job(2, cell="b"))
+            assert ids(b.list_jobs(cell="a")[0]) == [1]
+            assert ids(a.list_jobs(cell="b")[0]) == [2]
+            assert ids(a.list_jobs()[0]) == [2, 1]
+            assert ids(a.jobs_in_status("a", ["queued"])) == [1]
+            assert b.count_by_status("b")["queued"] == 1 and b.count_by_status("a")["queued"] == 1
+        finally:
+            a.close()
+            b.close()
