@@ -1,0 +1,110 @@
+"""A real ``cell serve`` in a subprocess on loopback, started as a user starts it, for the tests.
+
+:class:`ServedCell` makes a data dir, creates API keys with ``cell keys create`` (one per role), starts
+``cell serve --config ... --data-dir ... --port ...`` on a free port of 127.0.0.1 and waits for
+``/healthz``. ``kill()`` sends SIGKILL to the service alone (its job's worker lives on, as after a crash);
+``start()`` again runs a new service on the same data dir and port.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+REPO = Path(__file__).resolve().parent.parent
+CELL = [sys.executable, "-m", "cell.cli.main"]
+ROLES = ("viewer", "operator", "line", "admin")
+START_TIMEOUT_S = 60.0
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
+        probe.bind((host, 0))
+        return int(probe.getsockname()[1])
+
+
+def create_key(data_dir: Path, role: str, name: str, db: str | None = None) -> str:
+    """``cell keys create``; returns the key (its output's last line)."""
+    cmd = [*CELL, "keys", "create", "--data-dir", str(data_dir), "--role", role, "--name", name]
+    out = subprocess.run([*cmd, *(["--db", db] if db else [])], cwd=REPO, capture_output=True, text=True,
+                         check=True)
+    return out.stdout.strip().splitlines()[-1]
+
+
+class ServedCell:
+    """One ``cell serve`` process (see the module docstring); ``keys[role]`` holds a key of each role."""
+
+    def __init__(self, config: Path, data_dir: Path, *, db: str | None = None, host: str = "127.0.0.1") -> None:
+        self.config, self.data_dir, self.db, self.host = config, data_dir, db, host
+        self.port = free_port(host)
+        self.url = f"http://{host}:{self.port}"
+        self.keys = {role: create_key(data_dir, role, f"test-{role}", db) for role in ROLES}
+        self.proc: subprocess.Popen[str] | None = None
+        self._log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)  # noqa: SIM115
+        self.start()
+
+    def start(self) -> None:
+        cmd = [*CELL, "serve", "--config", str(self.config), "--data-dir", str(self.data_dir),
+               "--host", self.host, "--port", str(self.port), *(["--db", self.db] if self.db else [])]
+        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT, text=True)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"cell serve exited with {self.proc.returncode}:\n{self.log()}")
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
+                    return
+            time.sleep(0.1)
+        raise RuntimeError(f"cell serve did not answer within {START_TIMEOUT_S:g} s:\n{self.log()}")
+
+    def client(self, role: str = "operator", timeout_s: float = 30.0) -> httpx.Client:
+        return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {self.keys[role]}"},
+                            timeout=timeout_s)
+
+    def wait_job(self, job_id: str, statuses: tuple[str, ...], timeout_s: float = 120.0) -> dict[str, Any]:
+        """Poll the job until its status is one of ``statuses`` (a bound on waiting, not a timed check)."""
+        deadline = time.monotonic() + timeout_s
+        with self.client("viewer") as client:
+            while True:
+                job: dict[str, Any] = client.get(f"/api/v1/jobs/{job_id}").json()
+                if job["status"] in statuses:
+                    return job
+                if time.monotonic() > deadline:
+                    raise AssertionError(f"job {job_id} never reached {statuses}: {job['status']}\n{self.log()}")
+                time.sleep(0.1)
+
+    def kill(self) -> None:
+        """SIGKILL the service process alone, as a crash would."""
+        assert self.proc is not None
+        os.kill(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> int:
+        """SIGTERM (a graceful shutdown); returns the exit code."""
+        if self.proc is None or self.proc.poll() is not None:
+            return self.proc.returncode if self.proc else 0
+        self.proc.terminate()
+        try:
+            return self.proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.wait()
+
+    def log(self) -> str:
+        self._log.flush()
+        return Path(self._log.name).read_text()
+
+    def close(self) -> None:
+        self.stop()
+        self._log.close()
+        Path(self._log.name).unlink(missing_ok=True)
