@@ -1,15 +1,19 @@
 # make demo: set everything up (system packages, .venv, Python packages) and run a simulated scan.
-# make test: the whole test suite (what .ci/run calls).
+# make test: the whole test suite (what .ci/run calls). make serve: the service (README, "Service").
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench setup clean
+.PHONY: demo test lint bench setup clean serve
 
 demo: $(STAMP)
 	$(VENV)/bin/cell scan
 
 setup: $(STAMP)
+
+# the service of the embedded default cell on http://127.0.0.1:8080 (data dir: data/)
+serve: $(STAMP)
+	$(VENV)/bin/cell serve
 
 # setup.py and the .pyx: the compiled kernels are rebuilt when their source changes.
 $(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx cell/planning/vs/_objective.pyx \

@@ -18,8 +18,9 @@ import typer
 from rich.console import Console
 
 from cell.service.keys import Role, create_key, parse_role
-from cell.service.store import Store, open_store, sqlite_url
-from drivers.errors import CellError, StoreError
+from cell.service.startup import open_data_store
+from cell.service.store import Store
+from drivers.errors import CellError
 
 DEFAULT_DATA_DIR = Path("data")
 
@@ -47,12 +48,7 @@ def _one_line_errors() -> Iterator[None]:
 def opened_store(data_dir: Path, db: str | None) -> Iterator[Store]:
     """The store at ``db`` or, without it, the SQLite store in ``data_dir`` (the folder created if
     missing), closed at the end. ``StoreError`` if it cannot be opened."""
-    if db is None:
-        try:
-            data_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}") from None
-    store = open_store(db if db is not None else sqlite_url(data_dir))
+    store = open_data_store(data_dir, db)
     try:
         yield store
     finally:

@@ -13,6 +13,7 @@ from pathlib import Path
 from cell.config.load import load_config_data
 from cell.service.manager import CellService
 from cell.service.store import Store, open_store, sqlite_url
+from drivers.errors import StoreError
 
 DEFAULT_CONFIG = Path("config/sim-franka-rgbd.yaml")
 DEFAULT_DATA_DIR = Path("data")
@@ -29,8 +30,12 @@ class ServiceSettings:
 
 
 def open_data_store(data_dir: Path, db_url: str | None) -> Store:
-    """The store of ``data_dir`` (created if missing): ``db_url`` or the embedded SQLite file."""
-    data_dir.mkdir(parents=True, exist_ok=True)
+    """The store of ``data_dir`` (created if missing): ``db_url`` or the embedded SQLite file.
+    ``StoreError`` when it cannot be opened."""
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}") from None
     return open_store(db_url or sqlite_url(data_dir))
 
 

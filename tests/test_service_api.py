@@ -1,0 +1,238 @@
+"""The service in process (FastAPI's TestClient runs the app and its lifespan; each job still runs in a
+real worker process): validation, a fault latched until recovery, the queue held by STOP, metrics,
+and the pieces the service is made of: event logs, restart reconciliation, placement on the table."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from fastapi.testclient import TestClient
+from typer.testing import CliRunner
+
+from cell.api.app import create_app
+from cell.cli.main import app as cli
+from cell.config import load_config
+from cell.jobs.placement import check_on_table
+from cell.service.events import JobEvents
+from cell.service.keys import create_key
+from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
+from cell.service.startup import ServiceSettings, open_data_store
+from cell.service.store import JobRecord
+from drivers.errors import JobError
+from drivers.sim.objects import load_object
+
+from .conftest import FRANKA
+
+
+def _client(tmp_path: Path, config: Path = FRANKA) -> tuple[TestClient, dict[str, str]]:
+    data = tmp_path / "data"
+    store = open_data_store(data, None)
+    keys = {role: create_key(store, role, role)[1] for role in ("viewer", "operator", "admin")}
+    store.close()
+    return TestClient(create_app(ServiceSettings(config_file=config, data_dir=data))), keys
+
+
+def _auth(key: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {key}"}
+
+
+def _wait(client: TestClient, key: str, job_id: str, statuses: set[str], timeout_s: float = 90.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        job = client.get(f"/api/v1/jobs/{job_id}", headers=_auth(key)).json()
+        if job["status"] in statuses:
+            return job
+        assert time.monotonic() < deadline, f"job {job_id} stayed {job['status']}"
+        time.sleep(0.05)
+
+
+@pytest.fixture
+def served(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
+    client, keys = _client(tmp_path)
+    with client:
+        yield client, keys
+
+
+@pytest.mark.parametrize(("body", "field", "words"), [
+    ({"object": "bunny", "planner": "teleport"}, "planner", "unknown planner 'teleport'"),
+    ({"object": "unicorn"}, "object", "unknown object 'unicorn'"),
+    ({}, "object", "scans a virtual object"),
+    ({"object": "bunny", "object_pose": [2.0, 2.0, 0.0]}, "object_pose", "off the table"),
+    ({"object": "bunny", "max_time_s": 0}, "max_time_s", "greater than 0"),
+    ({"object": "bunny", "seed": -1}, "seed", "greater than or equal to 0"),
+    ({"object": "bunny", "object_pose": [0.0, "nan", 0.0]}, "object_pose", "finite"),
+    ({"object": "bunny", "colour": "red"}, "colour", "Extra inputs are not permitted"),
+])
+def test_invalid_submissions_answer_422_naming_the_field(served, body, field, words):
+    client, keys = served
+    res = client.post("/api/v1/jobs", json=body, headers=_auth(keys["operator"]))
+    assert res.status_code == 422, res.text
+    detail = res.json()["detail"]
+    assert any(d["loc"][-1] == field or field in d["loc"] for d in detail), detail
+    assert any(words in d["msg"] for d in detail), detail
+    assert client.get("/api/v1/jobs", headers=_auth(keys["viewer"])).json()["total"] == 0
+
+
+def test_keys_are_checked_and_never_echoed(served):
+    client, keys = served
+    assert client.get("/healthz").status_code == 200
+    missing = client.get("/api/v1/cell")
+    assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
+    assert client.get("/api/v1/cell", headers=_auth("cell_" + "x" * 43)).status_code == 401
+    forbidden = client.post("/api/v1/jobs", json={"object": "bunny"}, headers=_auth(keys["viewer"]))
+    assert forbidden.status_code == 403
+    for res in (missing, forbidden):
+        assert all(k not in res.text for k in keys.values())
+
+
+def test_a_protective_stop_holds_the_queue_until_the_arm_is_recovered(tmp_path):
+    data = yaml.safe_load(FRANKA.read_text())
+    data["sim"]["faults"] = [{"at_s": 3.5, "kind": "protective stop"}]
+    config = tmp_path / "faulty.yaml"
+    config.write_text(yaml.safe_dump(data))
+    client, keys = _client(tmp_path, config)
+    op = _auth(keys["operator"])
+    with client:
+        first = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 8}, headers=op).json()
+        second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
+        ended = _wait(client, keys["viewer"], first["id"], {"stopped", "failed", "completed"})
+        assert ended["status"] == "stopped" and "arm fault: protective stop" in ended["termination"]
+        cell = client.get("/api/v1/cell", headers=op).json()
+        assert cell["arm"]["protective_stop"] and cell["arm"]["state"] == "protective stop"
+        assert "recover" in cell["queue"]["held"]
+        time.sleep(0.5)  # a dispatcher that ignored the latch would have started the next job by now
+        assert client.get(f"/api/v1/jobs/{second['id']}", headers=op).json()["status"] == "queued"
+        assert client.post("/api/v1/queue/resume", headers=op).status_code == 409
+        assert client.post("/api/v1/arm/recover", headers=_auth(keys["viewer"])).status_code == 403
+        recovered = client.post("/api/v1/arm/recover", headers=op).json()
+        assert recovered["ok"] and not recovered["arm"]["faults"]
+        assert _wait(client, keys["viewer"], second["id"], {"completed", "failed", "stopped"})["status"] \
+            == "completed"
+
+
+def test_stop_holds_the_queue_and_resume_releases_it(served):
+    client, keys = served
+    op = _auth(keys["operator"])
+    stop = client.post("/api/v1/stop", json={"reason": "hands in the cell"}, headers=_auth(keys["viewer"]))
+    assert stop.status_code == 200 and stop.json() == {
+        "job_id": None, "arm_commanded": False, "queue_held": True,
+        "message": "nothing was moving; the queue is held"}
+    job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
+    time.sleep(0.5)
+    assert client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["status"] == "queued"
+    assert "hands in the cell" in client.get("/api/v1/cell", headers=op).json()["queue"]["held"]
+    # a queued job can be cancelled, and its event stream ends
+    cancelled = client.delete(f"/api/v1/jobs/{job['id']}", headers=op)
+    assert cancelled.status_code == 200 and cancelled.json()["status"] == "cancelled"
+    events = client.get(f"/api/v1/jobs/{job['id']}/events", headers=op).text
+    assert "event: result" in events and '"cancelled"' in events
+    again = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
+    assert client.post("/api/v1/queue/resume", headers=op).json()["queue"]["held"] is None
+    done = _wait(client, keys["viewer"], again["id"], {"completed", "failed", "stopped"})
+    assert done["status"] == "completed" and done["result"]["control"]["n_ticks"] > 0
+    metrics = client.get("/metrics", headers=op).text
+    assert 'cell_jobs{status="completed"} 1.0' in metrics and 'cell_jobs{status="cancelled"} 1.0' in metrics
+    assert "cell_control_tick_period_seconds_count" in metrics
+    assert 'cell_scan_duration_seconds_count{planner="vs-local"} 1.0' in metrics
+    # an ended job is purged by an admin only
+    assert client.delete(f"/api/v1/jobs/{again['id']}", headers=op).status_code == 403
+    assert client.delete(f"/api/v1/jobs/{again['id']}", headers=_auth(keys["admin"])).status_code == 200
+    assert client.get(f"/api/v1/jobs/{again['id']}", headers=op).status_code == 404
+
+
+def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
+    client, keys = served
+    op = _auth(keys["operator"])
+    mesh = load_object("cube")
+    lines = ["solid part"] + [
+        "facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {v[0]} {v[1]} {v[2]}\n" for v in mesh.vertices[t])
+        + "endloop\nendfacet" for t in mesh.triangles] + ["endsolid part"]
+    ok = client.post("/api/v1/objects", files={"file": ("My Part.stl", "\n".join(lines).encode())}, headers=op)
+    assert ok.status_code == 201, ok.text
+    assert ok.json()["name"] == "my_part"
+    names = [o["name"] for o in client.get("/api/v1/objects", headers=op).json()]
+    assert "my_part" in names and "bunny" in names
+    assert client.post("/api/v1/objects", files={"file": ("my_part.stl", b"x")}, headers=op).status_code == 409
+    bad = client.post("/api/v1/objects", files={"file": ("junk.ply", b"not a mesh")}, headers=op)
+    assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "file"
+    job = client.post("/api/v1/jobs", json={"object": "my_part", "max_time_s": 1}, headers=op)
+    assert job.status_code == 201 and job.json()["object"] == "my_part"
+
+
+def test_event_logs_resume_after_the_last_id_and_wake_followers():
+    async def scenario() -> list[Any]:
+        log = JobEvents()
+        log.publish("state", {"status": "queued"})
+        log.publish("progress", {"t_s": 1.0})
+        assert [e.id for e in log.after(0)] == [1, 2] and [e.id for e in log.after(1)] == [2]
+        seen: list[Any] = []
+
+        async def follow() -> None:
+            async for event in log.follow(1, idle_s=0.05):
+                seen.append(None if event is None else (event.id, event.kind))
+
+        task = asyncio.create_task(follow())
+        await asyncio.sleep(0.12)
+        log.publish("result", {"status": "completed"})
+        await asyncio.wait_for(task, 1.0)
+        return seen
+
+    seen = asyncio.run(scenario())
+    assert seen[0] == (2, "progress") and seen[-1] == (3, "result")
+    assert None in seen  # keep-alives while nothing happened
+
+
+def _job(tmp_path: Path, status: str, name: str) -> JobRecord:
+    return JobRecord(id=name, cell="c", status=status, planner="vs-local", object="bunny",
+                     object_pose=(0.0, 0.0, 0.0), seed=0, max_time_s=None, part_id=None,
+                     folder=str(tmp_path / "jobs" / name), submitted_by="op", created_at=datetime.now(UTC))
+
+
+def test_a_restart_settles_running_and_queued_jobs(tmp_path):
+    store = open_data_store(tmp_path, None)
+    killed, finished, queued = (_job(tmp_path, s, n) for s, n in (
+        ("running", "a" * 16), ("running", "b" * 16), ("queued", "c" * 16)))
+    for job in (killed, finished, queued):
+        store.add_job(job)
+    frames = Path(killed.folder) / "frames"
+    frames.mkdir(parents=True)
+    (frames / "index.csv").write_text("seq,t,file,n_points\n0,0.1,000000.npz,10\n1,1.1,000001.npz,12\n")
+    (Path(killed.folder) / "log.txt").write_text("[    0.000] job: ...\n")
+    Path(finished.folder).mkdir(parents=True)
+    (Path(finished.folder) / "result.json").write_text(json.dumps({"status": "completed", "termination": "done"}))
+
+    reconcile(store, "c", worker_wait_s=0.1)
+
+    got = store.get_job(killed.id)
+    assert got is not None and got.status == "interrupted" and got.termination == RESTART_TERMINATION
+    written = json.loads((Path(killed.folder) / "result.json").read_text())
+    assert written["status"] == "interrupted" and written["n_captures"] == 2
+    assert RESTART_TERMINATION in (Path(killed.folder) / "log.txt").read_text()
+    done = store.get_job(finished.id)
+    assert done is not None and done.status == "completed" and done.termination == "done"
+    cancelled = store.get_job(queued.id)
+    assert cancelled is not None and cancelled.status == "cancelled" and cancelled.termination == RESTART_CANCEL
+    store.close()
+
+
+def test_an_object_must_stand_on_the_table():
+    cfg = load_config(FRANKA)
+    bunny = load_object("bunny")
+    check_on_table(cfg, bunny, (0.1, -0.2, 45.0))
+    with pytest.raises(JobError, match=r"off the table: .* the table spans x -0.100..1.100 m"):
+        check_on_table(cfg, bunny, (0.63, 0.0, 0.0))
+
+
+def test_cell_scan_refuses_an_object_off_the_table_before_making_its_folder(tmp_path):
+    out = tmp_path / "job"
+    res = CliRunner().invoke(cli, ["scan", "--object", "bunny", "--object-pose", "2,2,0", "--out", str(out)])
+    assert res.exit_code == 1 and "off the table" in res.output
+    assert not out.exists()
