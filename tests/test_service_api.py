@@ -152,15 +152,17 @@ def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
     client, keys = served
     op = _auth(keys["operator"])
     mesh = load_object("cube")
-    lines = ["solid part"] + [
-        "facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {v[0]} {v[1]} {v[2]}\n" for v in mesh.vertices[t])
-        + "endloop\nendfacet" for t in mesh.triangles] + ["endsolid part"]
-    ok = client.post("/api/v1/objects", files={"file": ("My Part.stl", "\n".join(lines).encode())}, headers=op)
+    facets = ["facet normal 0 0 0\nouter loop\n"
+              + "".join(f"vertex {x} {y} {z}\n" for x, y, z in mesh.vertices[t]) + "endloop\nendfacet"
+              for t in mesh.triangles]
+    stl = "\n".join(["solid part", *facets, "endsolid part"]).encode()
+    ok = client.post("/api/v1/objects", files={"file": ("My Part.stl", stl)}, headers=op)
     assert ok.status_code == 201, ok.text
     assert ok.json()["name"] == "my_part"
     names = [o["name"] for o in client.get("/api/v1/objects", headers=op).json()]
     assert "my_part" in names and "bunny" in names
-    assert client.post("/api/v1/objects", files={"file": ("my_part.stl", b"x")}, headers=op).status_code == 409
+    taken = client.post("/api/v1/objects", files={"file": ("my_part.stl", b"x")}, headers=op)
+    assert taken.status_code == 409
     bad = client.post("/api/v1/objects", files={"file": ("junk.ply", b"not a mesh")}, headers=op)
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "file"
     job = client.post("/api/v1/jobs", json={"object": "my_part", "max_time_s": 1}, headers=op)
@@ -207,7 +209,8 @@ def test_a_restart_settles_running_and_queued_jobs(tmp_path):
     (frames / "index.csv").write_text("seq,t,file,n_points\n0,0.1,000000.npz,10\n1,1.1,000001.npz,12\n")
     (Path(killed.folder) / "log.txt").write_text("[    0.000] job: ...\n")
     Path(finished.folder).mkdir(parents=True)
-    (Path(finished.folder) / "result.json").write_text(json.dumps({"status": "completed", "termination": "done"}))
+    outcome = {"status": "completed", "termination": "done"}
+    (Path(finished.folder) / "result.json").write_text(json.dumps(outcome))
 
     reconcile(store, "c", worker_wait_s=0.1)
 
@@ -219,7 +222,8 @@ def test_a_restart_settles_running_and_queued_jobs(tmp_path):
     done = store.get_job(finished.id)
     assert done is not None and done.status == "completed" and done.termination == "done"
     cancelled = store.get_job(queued.id)
-    assert cancelled is not None and cancelled.status == "cancelled" and cancelled.termination == RESTART_CANCEL
+    assert cancelled is not None
+    assert (cancelled.status, cancelled.termination) == ("cancelled", RESTART_CANCEL)
     store.close()
 
 

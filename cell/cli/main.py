@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
+from cell.cli.jobs import jobs_app
 from cell.cli.keys import keys_app
 from cell.cli.sensor import sensor_app
 from cell.cli.serve import serve
@@ -36,6 +37,7 @@ app.add_typer(config_app, name="config")
 app.add_typer(sensor_app, name="sensor")
 app.add_typer(arm_app, name="arm")
 app.add_typer(keys_app, name="keys")
+app.add_typer(jobs_app, name="jobs")
 app.command()(serve)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)

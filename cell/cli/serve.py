@@ -20,6 +20,8 @@ from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettin
 from drivers.errors import CellError
 
 err_console = Console(stderr=True)
+SHUTDOWN_GRACE_S = 2
+"""How long open requests (event streams) may run on after SIGTERM before they are cut [s]."""
 
 
 def is_loopback(host: str) -> bool:
@@ -55,5 +57,7 @@ def serve(
     if len(KeyRing(service.store)) == 0:
         err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --data-dir "
                           f"{data_dir} --role operator)", markup=False, highlight=False, soft_wrap=True)
+    # On SIGTERM or Ctrl-C uvicorn waits for open connections before the app shuts down (and stops the
+    # running job); event streams never close by themselves, so they are cut after a short grace.
     uvicorn.run(create_app(ServiceSettings(config, data_dir, db), service), host=host, port=port,
-                log_level="info", timeout_graceful_shutdown=int(service.config.service.shutdown_timeout_s))
+                log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_S)

@@ -115,7 +115,8 @@ async def job_events(job_id: str, cell: Service, _: Reader,
 def _inside(folder: Path, name: str) -> Path:
     """The file ``name`` of a job folder; 404 for anything that is not a file inside it."""
     root = folder.resolve()
-    path = (root / name).resolve()
+    # a NUL byte is refused before resolving: os.path.realpath raises ValueError on one (a 500)
+    path = root if "\0" in name else (root / name).resolve()
     if "\0" in name or not path.is_relative_to(root) or path == root or not path.is_file():
         raise HTTPException(404, f"no file {name!r} in this job's folder")
     return path
