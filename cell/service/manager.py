@@ -50,7 +50,7 @@ LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
 RECOVER_TIMEOUT_S = 60.0
 """How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
-SHUTDOWN_CANCEL = "cancelled: the service shut down before the job started"
+SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
 
 log = logging.getLogger("cell.service")

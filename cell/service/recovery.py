@@ -24,8 +24,8 @@ from typing import Any
 from cell.service.protocol import WORKER_MODULE
 from cell.service.store import JobRecord, Store
 
-RESTART_TERMINATION = "interrupted: the service stopped while the job ran"
-RESTART_CANCEL = "cancelled: the service restarted before the job started"
+RESTART_TERMINATION = "the service stopped while the job ran"
+RESTART_CANCEL = "the service restarted before the job started"
 TERM_GRACE_S = 5.0
 """After SIGTERM, how long a worker has to stop the arm and finish before it is killed [s]."""
 

@@ -1,0 +1,617 @@
+"""``cell serve`` as a user runs it: a real service process on loopback (``tests.service_process``), its
+jobs in real worker processes, driven over HTTP.
+
+A sim job from submission to result through its event stream; stopping a job mid-scan and holding the
+queue; killing the service (SIGKILL) mid-scan on a dry-run cell against the RTDE controller peer, then
+restarting it; a planner that fails in the worker; the queue's bound; keys on every route (from the
+OpenAPI document); path traversal on job files; a schemathesis fuzz of every operation; a PostgreSQL
+store shared by two cells; and the refusal to listen beyond loopback without a key.
+"""
+
+from __future__ import annotations
+
+import collections
+import csv
+import http.client
+import itertools
+import json
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+import httpx
+import numpy as np
+import pytest
+import schemathesis
+import yaml
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis.errors import Unsatisfiable
+from schemathesis import GenerationMode
+from schemathesis.core.result import Err, Ok
+
+from cell.service.protocol import finite_json
+from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION
+from cell.service.store import open_store
+from tests.conftest import CONFIG_DIR, FRANKA, UR5E
+from tests.postgres import fresh_database, postgres_url  # noqa: F401  (a fixture of this module)
+from tests.rtde_peer import ControllerPeer
+from tests.rtde_peer.controller import MAX_RECORDS
+from tests.service_process import CELL, REPO, ROLES, ServedCell, free_port
+
+DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
+ENDED = ("completed", "failed", "stopped", "cancelled", "interrupted")
+SHORT_S = 5.0  # sim time budget of a short job [s]: three perception updates on the Franka cell
+LONG_S = 120.0  # a budget no test's job reaches: it is stopped first [s]
+SQLITE_MAGIC = b"SQLite format 3"
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def cell_file(tmp: Path, base: Path, name: str, edit: Callable[[dict[str, Any]], None]) -> Path:
+    """A copy of the cell file ``base`` in ``tmp``, changed by ``edit`` (on its parsed YAML)."""
+    data = yaml.safe_load(base.read_text())
+    edit(data)
+    path = tmp / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def read_sse(response: httpx.Response) -> list[dict[str, Any]]:
+    """The events of a Server-Sent Events stream, parsed by hand: ``id``, ``event`` and the ``data``
+    decoded as JSON; comments (keep-alives) skipped."""
+    events: list[dict[str, Any]] = []
+    fields: dict[str, str] = {}
+    for line in response.iter_lines():
+        if line == "":
+            if fields:
+                events.append({"id": int(fields["id"]), "event": fields["event"],
+                               "data": json.loads(fields["data"])})
+                fields = {}
+        elif not line.startswith(":"):
+            name, _, value = line.partition(":")
+            fields[name] = fields.get(name, "") + value.removeprefix(" ")
+    assert not fields, f"the stream ended inside an event: {fields}"
+    return events
+
+
+def events_of(cell: ServedCell, job_id: str, last_event_id: int | None = None) -> list[dict[str, Any]]:
+    headers = {} if last_event_id is None else {"Last-Event-ID": str(last_event_id)}
+    with cell.client("viewer") as client, \
+            client.stream("GET", f"/api/v1/jobs/{job_id}/events", headers=headers) as response:
+        assert response.status_code == 200, response.read()
+        assert response.headers["content-type"].startswith("text/event-stream")
+        return read_sse(response)
+
+
+def submit(cell: ServedCell, **body: Any) -> dict[str, Any]:
+    with cell.client("operator") as client:
+        response = client.post("/api/v1/jobs", json=body)
+    assert response.status_code == 201, response.text
+    job: dict[str, Any] = response.json()
+    return job
+
+
+def get_job(cell: ServedCell, job_id: str) -> dict[str, Any]:
+    with cell.client("viewer") as client:
+        response = client.get(f"/api/v1/jobs/{job_id}")
+    assert response.status_code == 200, response.text
+    job: dict[str, Any] = response.json()
+    return job
+
+
+def wait_progress(cell: ServedCell, job_id: str, predicate: Callable[[dict[str, Any]], bool],
+                  timeout_s: float = 90.0) -> dict[str, Any]:
+    """Poll the running job until its newest progress satisfies ``predicate`` (a bound on waiting)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        job = get_job(cell, job_id)
+        if job["progress"] is not None and predicate(job["progress"]):
+            return job
+        assert job["status"] in ("queued", "running"), f"the job ended first: {job['termination']}"
+        assert time.monotonic() < deadline, f"no such progress in {timeout_s:g} s: {job['progress']}"
+        time.sleep(0.05)
+
+
+def settle_queue(cell: ServedCell) -> None:
+    """Leave the cell idle for the next test: hold the queue (stopping what runs), cancel what waits,
+    wait for the running job to end, resume."""
+    with cell.client("admin") as client:
+        assert client.post("/api/v1/stop", json={"reason": "test clean-up"}).status_code == 200
+        for job in client.get("/api/v1/jobs", params={"status": ["queued", "running"]}).json()["items"]:
+            if job["status"] == "queued":
+                client.delete(f"/api/v1/jobs/{job['id']}")
+            else:
+                cell.wait_job(job["id"], ENDED)
+        assert client.post("/api/v1/queue/resume").status_code == 200
+
+
+def trajectory(folder: Path) -> np.ndarray:
+    """trajectory.csv as rows (t, x, y, z, qx, qy, qz, qw)."""
+    with (folder / "trajectory.csv").open(newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
+    return np.array(rows[1:], dtype=float)
+
+
+def raw_get(cell: ServedCell, target: str, key: str) -> tuple[int, bytes]:
+    """GET ``target`` exactly as written (no client-side normalization of ``..`` or ``%2F``)."""
+    conn = http.client.HTTPConnection(cell.host, cell.port, timeout=10)
+    try:
+        conn.request("GET", target, headers={"Authorization": f"Bearer {key}"})
+        response = conn.getresponse()
+        return response.status, response.read()
+    finally:
+        conn.close()
+
+
+# ---------------------------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def franka(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServedCell]:
+    """The Franka + RGB-D sim cell, served once for the tests that leave it idle."""
+    cell = ServedCell(FRANKA, tmp_path_factory.mktemp("franka") / "data")
+    try:
+        yield cell
+    finally:
+        cell.close()
+
+
+@pytest.fixture(scope="module")
+def scanned(franka: ServedCell) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """A short sim job followed live from its submission: its final record and its events."""
+    job = submit(franka, object="bunny", max_time_s=SHORT_S)
+    events = events_of(franka, job["id"])
+    return get_job(franka, job["id"]), events
+
+
+# ---------------------------------------------------------------------------------------------- 1. SSE
+
+
+def test_a_sim_job_runs_from_submission_to_result_through_its_event_stream(
+        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
+    job, events = scanned
+    assert job["status"] == "completed", job["termination"]
+    assert [e["id"] for e in events] == list(range(1, len(events) + 1))
+    states = [e["data"]["status"] for e in events if e["event"] == "state"]
+    assert states == ["queued", "running", "completed"]
+    # progress between the running and the final state, its job time and captures growing
+    kinds = [e["event"] for e in events]
+    assert kinds[:2] == ["state", "state"] and kinds[-2:] == ["state", "result"]
+    progress = [e["data"] for e in events if e["event"] == "progress"]
+    assert set(kinds[2:-2]) == {"progress"} and len(progress) >= 2
+    t_s = [p["t_s"] for p in progress]
+    assert all(b > a for a, b in itertools.pairwise(t_s)) and t_s[-1] <= SHORT_S
+    captures = [p["n_captures"] for p in progress]
+    assert captures == sorted(captures) and captures[-1] > captures[0] >= 1
+    # the final result event carries the job's result, as the job's record holds it
+    final = events[-1]["data"]
+    assert final["status"] == "completed"
+    assert final["result"] == job["result"]
+    assert job["result"]["n_captures"] == captures[-1] and job["result"]["planner"] == "vs-local"
+    folder = franka.data_dir / "jobs" / job["id"]
+    on_disk = (folder / "result.json").read_bytes()
+    assert json.loads(on_disk)["status"] == "completed"
+    with franka.client("viewer") as client:
+        served = client.get(f"/api/v1/jobs/{job['id']}/files/result.json")
+    assert served.status_code == 200
+    assert served.headers["content-type"] == "application/json"
+    assert served.content == on_disk
+    # reconnecting with Last-Event-ID gives exactly the events after it
+    for last in (0, 2, len(events) - 1):
+        assert events_of(franka, job["id"], last_event_id=last) == events[last:]
+
+
+# ---------------------------------------------------------------------------------------------- 2. stop
+
+
+def test_any_key_stops_a_job_mid_scan_and_the_folder_is_complete(franka: ServedCell) -> None:
+    job = submit(franka, object="bunny", max_time_s=LONG_S)
+    # the second perception update: the servo is moving the camera by then
+    wait_progress(franka, job["id"], lambda p: p["n_captures"] >= 2)
+    with franka.client("viewer") as client:
+        response = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "hand in the cell"})
+    assert response.status_code == 200, response.text
+    answer = response.json()
+    assert answer["job_id"] == job["id"] and answer["arm_commanded"] is True
+    assert answer["queue_held"] is False  # a job's own stop does not hold the queue
+
+    ended = franka.wait_job(job["id"], ENDED)
+    assert ended["status"] == "stopped"
+    assert "operator stop: hand in the cell (key test-viewer)" in ended["termination"]
+    result = ended["result"]
+    assert result["status"] == "stopped" and result["sim_time_s"] < LONG_S
+    folder = franka.data_dir / "jobs" / job["id"]
+    for name in ("result.json", "cloud.ply", "map.bt", "trajectory.csv", "log.txt"):
+        assert (folder / name).is_file() and (folder / name).stat().st_size > 0, name
+    assert json.loads((folder / "result.json").read_text())["status"] == "stopped"
+    frames = sorted((folder / "frames").glob("*.npz"))
+    assert len(frames) == result["n_captures"] >= 2
+    with (folder / "frames" / "index.csv").open(newline="") as f:
+        assert len(list(csv.DictReader(f))) == len(frames)
+
+    # the arm moved up to the stop, then came to rest: the last rows hold one pose
+    stop_t = result["safety"]["stops"][0]["t"]
+    assert "hand in the cell" in result["safety"]["stops"][0]["reason"]
+    rows = trajectory(folder)
+    before = rows[(rows[:, 0] <= stop_t) & (rows[:, 0] >= stop_t - 0.2)]
+    assert len(before) >= 5
+    assert np.linalg.norm(before[-1, 1:4] - before[0, 1:4]) > 5e-4, "the arm was not moving before the stop"
+    after = rows[rows[:, 0] >= stop_t]
+    assert len(after) >= 2 and rows[-1, 0] == pytest.approx(result["sim_time_s"])
+    assert np.allclose(rows[-1, 1:], rows[-2, 1:], atol=1e-9), "the arm is still moving at the end"
+    step = np.linalg.norm(np.diff(after[:, 1:4], axis=0), axis=1)
+    assert step[-1] <= 1e-9 and np.all(np.diff(step) <= 1e-6), "the arm did not slow down to rest"
+
+
+def test_stop_holds_the_queue_until_an_operator_resumes_it(franka: ServedCell) -> None:
+    with franka.client("line") as line:
+        response = line.post("/api/v1/stop")
+    assert response.status_code == 200, response.text
+    assert response.json() | {"message": None} == {"job_id": None, "arm_commanded": False, "message": None,
+                                                   "queue_held": True}
+    job = submit(franka, object="bunny", max_time_s=2.0)
+    with franka.client("viewer") as viewer:
+        held = viewer.get("/api/v1/cell").json()["queue"]
+        assert held["length"] == 1 and "resume" in held["held"]
+        time.sleep(1.0)  # what would start it starts at once: a second is ample
+        assert get_job(franka, job["id"])["status"] == "queued"
+        assert viewer.get("/api/v1/cell").json()["job"] is None
+        assert viewer.post("/api/v1/queue/resume").status_code == 403  # resuming is an operator's
+    with franka.client("operator") as operator:
+        resumed = operator.post("/api/v1/queue/resume")
+    assert resumed.status_code == 200 and resumed.json()["queue"]["held"] is None
+    ended = franka.wait_job(job["id"], ENDED)
+    assert ended["status"] == "completed", ended["termination"]
+    assert ended["started_at"] is not None
+
+
+# ---------------------------------------------------------------------------------------------- 3. kill -9
+
+
+MOTIONS = {"servoJ", "servoL", "speedJ", "speedL", "moveJ", "moveL", "servoC", "moveP", "moveC"}
+"""Commands of the peer's control script that move the arm (its stops, ``STOPS``, are allowed at any time)."""
+STOPS = {"stopL", "stopJ", "speedStop", "servoStop"}
+
+
+def test_killing_the_service_mid_scan_stops_the_arm_and_a_restart_marks_the_job_interrupted(
+        tmp_path: Path) -> None:
+    data = yaml.safe_load(DRY_RUN.read_text())
+    peer = ControllerPeer(q=data["arm"]["home_joints_rad"])
+    cell: ServedCell | None = None
+    try:
+        data["arm"]["host"] = peer.host
+        path = tmp_path / "dryrun.yaml"
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+        watchdog_s = 1.0 / data["arm"]["watchdog_min_hz"]
+        cell = ServedCell(path, tmp_path / "data")
+        job = submit(cell, object="horizontal_box", planner="raster", max_time_s=60.0)
+        waiting = submit(cell, object="horizontal_box", planner="raster", max_time_s=60.0)
+        wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1 or p["path_length_m"] > 0)
+        # kill while the arm is moving, so that coming to rest means something
+        peer.wait_for(lambda st: max(abs(v) for v in st["qd"]) > 1e-3, what="the arm moving")
+        asked = time.monotonic()
+        last = peer.records()[-1]
+        killed = time.monotonic()
+        cell.kill()
+        # the kill on the peer's clock (its records' ``t``: its own monotonic time since it started): the
+        # newest command of a streaming arm is a control period old at most, so this is late by at most
+        # the round trip of ``records`` and early by at most that period
+        t_kill = last["t"] + (killed - asked)
+
+        rest = peer.wait_for(lambda st: st["motion"] == "idle" and not st["program_running"],
+                             what="the arm at rest with its program ended")
+        assert max(abs(v) for v in rest["qd"]) < 1e-9
+        cell.start()  # waits (reconcile) for the old worker to end
+        records = peer.records()
+        assert len(records) < MAX_RECORDS, "the peer stopped keeping records: the check below is blind"
+        assert any(r["name"] in MOTIONS for r in records if t_kill - 0.5 < r["t"] <= t_kill), \
+            "the arm was not being streamed to when the service was killed"
+        late = [r for r in records if r["name"] in MOTIONS and r["t"] > t_kill + watchdog_s + 0.2]
+        assert late == [], f"motion commanded after the kill (at {t_kill:.3f} s): {late[:5]}"
+        # the job's worker stopped the arm itself, through the guard, once the service had gone
+        assert any(r["name"] in STOPS and r["t"] > t_kill - 0.05 for r in records), records[-10:]
+        assert peer.state()["safety_mode"] == "NORMAL"
+
+        record = get_job(cell, job["id"])
+        assert record["status"] == "interrupted" and record["termination"] == RESTART_TERMINATION
+        folder = cell.data_dir / "jobs" / job["id"]
+        result = json.loads((folder / "result.json").read_text())
+        assert result["status"] == "interrupted" and finite_json(result) == record["result"]
+        assert "the service stopped while the job ran" in result["worker"]["termination"]
+        frames = sorted((folder / "frames").glob("*.npz"))
+        with (folder / "frames" / "index.csv").open(newline="") as f:
+            assert len(list(csv.DictReader(f))) == len(frames) >= 1
+        log = (folder / "log.txt").read_text()
+        assert "capture 0" in log and "[service] interrupted" in log
+        # nothing starts by itself after the restart: the job that waited is cancelled, the arm idle
+        cancelled = get_job(cell, waiting["id"])
+        assert cancelled["status"] == "cancelled" and cancelled["termination"] == RESTART_CANCEL
+        assert cancelled["started_at"] is None
+        with cell.client("viewer") as client:
+            status = client.get("/api/v1/cell").json()
+            assert status["job"] is None and status["queue"]["length"] == 0
+            time.sleep(1.0)
+            assert client.get("/api/v1/jobs", params={"status": ["queued", "running"]}).json()["total"] == 0
+        assert peer.records() == records and peer.state()["program_running"] is False
+    finally:
+        if cell is not None:
+            cell.close()
+        peer.stop()
+
+
+# ---------------------------------------------------------------------------------------------- 4. + 5.
+
+
+@pytest.fixture(scope="module")
+def bounded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServedCell]:
+    """The Franka cell with two places in its queue, and a servo rate above its control rate: the
+    visual-servoing planners refuse it when the worker builds them (``PlanningError``), others run."""
+    tmp = tmp_path_factory.mktemp("bounded")
+
+    def edit(data: dict[str, Any]) -> None:
+        data["service"] = {"queue_max": 2}
+        data["planners"]["vs"]["servo_rate_hz"] = 2 * data["scan"]["control_rate_hz"]
+
+    cell = ServedCell(cell_file(tmp, FRANKA, "bounded.yaml", edit), tmp / "data")
+    try:
+        yield cell
+    finally:
+        cell.close()
+
+
+def test_a_planner_that_raises_fails_its_job_and_the_next_job_runs(bounded: ServedCell) -> None:
+    failing = submit(bounded, object="bunny", planner="vs-local", max_time_s=SHORT_S)
+    following = submit(bounded, object="bunny", planner="raster", max_time_s=3.0)
+    failed = bounded.wait_job(failing["id"], ENDED)
+    assert failed["status"] == "failed"
+    assert failed["termination"].startswith("PlanningError: planners.vs.servo_rate_hz 200 exceeds "
+                                            "scan.control_rate_hz 100"), failed["termination"]
+    folder = bounded.data_dir / "jobs" / failing["id"]
+    result = json.loads((folder / "result.json").read_text())
+    assert result["status"] == "failed" and result["termination"] == failed["termination"]
+    assert failed["result"]["status"] == "failed"
+    ran = bounded.wait_job(following["id"], ENDED)
+    assert ran["status"] == "completed", ran["termination"]
+    assert ran["result"]["planner"] == "raster" and ran["result"]["n_captures"] >= 1
+
+
+def test_a_full_queue_refuses_a_submission_with_429(bounded: ServedCell) -> None:
+    try:
+        running = submit(bounded, object="bunny", planner="raster", max_time_s=LONG_S)
+        bounded.wait_job(running["id"], ("running",))
+        queued = [submit(bounded, object="bunny", planner="raster", max_time_s=1.0) for _ in range(2)]
+        with bounded.client("operator") as client:
+            refused = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 1.0})
+            assert refused.status_code == 429, refused.text
+            detail = refused.json()["detail"]
+            assert isinstance(detail, str) and "queue is full" in detail and "queue_max 2" in detail
+            listed = client.get("/api/v1/jobs", params={"status": ["queued", "running"]}).json()
+        assert {j["id"] for j in listed["items"]} == {running["id"], *(j["id"] for j in queued)}
+        assert all(get_job(bounded, j["id"])["status"] == "queued" for j in queued)
+    finally:
+        settle_queue(bounded)
+
+
+# ---------------------------------------------------------------------------------------------- 6. keys
+
+
+MOTION_ROUTES = {("POST", "/api/v1/jobs"), ("DELETE", "/api/v1/jobs/{job_id}"), ("POST", "/api/v1/objects"),
+                 ("POST", "/api/v1/arm/recover"), ("POST", "/api/v1/queue/resume")}
+STOP_ROUTES = {("POST", "/api/v1/stop"), ("POST", "/api/v1/jobs/{job_id}/stop")}
+OPEN_ROUTES = {("GET", "/healthz")}
+
+
+def _operations(cell: ServedCell) -> set[tuple[str, str]]:
+    document = httpx.get(f"{cell.url}/api/v1/openapi.json", timeout=10).json()
+    return {(method.upper(), path) for path, item in document["paths"].items() for method in item
+            if method in ("get", "post", "put", "patch", "delete")}
+
+
+def _call(cell: ServedCell, method: str, path: str, job_id: str, key: str | None) -> httpx.Response:
+    """One request to the operation, with a plausible body; ``key`` None sends no Authorization."""
+    url = path.replace("{job_id}", job_id).replace("{name}", "result.json")
+    kwargs: dict[str, Any] = {}
+    if (method, path) == ("POST", "/api/v1/jobs"):
+        kwargs["json"] = {"object": "bunny", "max_time_s": 1.0}
+    elif (method, path) == ("POST", "/api/v1/objects"):
+        kwargs["files"] = {"file": ("cube.ply", b"ply\nformat ascii 1.0\nend_header\n")}
+    headers = {} if key is None else {"Authorization": f"Bearer {key}"}
+    with httpx.Client(base_url=cell.url, timeout=30) as client:
+        return client.request(method, url, headers=headers, **kwargs)
+
+
+def test_every_route_needs_a_key_and_motion_needs_a_role_that_may_move(
+        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
+    job_id = scanned[0]["id"]
+    operations = _operations(franka)
+    assert operations >= MOTION_ROUTES | STOP_ROUTES, sorted(operations)
+    assert len(operations - OPEN_ROUTES) >= 15
+    try:
+        for method, path in sorted(operations - OPEN_ROUTES):
+            for key in (None, "cell_" + "A" * 43):
+                response = _call(franka, method, path, job_id, key)
+                assert response.status_code == 401, (method, path, key, response.text)
+                assert response.headers.get("www-authenticate") == "Bearer", (method, path)
+            # a viewer's key is known: never 401 (and reading needs nothing more)
+            viewer = _call(franka, method, path, job_id, franka.keys["viewer"])
+            assert viewer.status_code != 401, (method, path, viewer.text)
+            if method == "GET":
+                assert viewer.status_code == 200, (method, path, viewer.text)
+        for method, path in sorted(MOTION_ROUTES):
+            for role in ("viewer", "line"):
+                response = _call(franka, method, path, job_id, franka.keys[role])
+                assert response.status_code == 403, (method, path, role, response.text)
+                assert role in response.json()["detail"]
+        for method, path in sorted(STOP_ROUTES):
+            for role in ROLES:
+                response = _call(franka, method, path, job_id, franka.keys[role])
+                assert response.status_code not in (401, 403), (method, path, role, response.text)
+                assert response.status_code in (200, 409), (method, path, role, response.text)
+        with franka.client("viewer") as client:
+            assert client.get("/api/v1/jobs").json()["total"] >= 1  # nothing was purged or added
+            assert client.get(f"/api/v1/jobs/{job_id}").json()["status"] == "completed"
+        assert httpx.get(f"{franka.url}/healthz", timeout=10).status_code == 200
+    finally:
+        settle_queue(franka)
+
+
+# ---------------------------------------------------------------------------------------------- 7. files
+
+
+def test_job_files_never_leave_the_job_folder(
+        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
+    job_id = scanned[0]["id"]
+    db = franka.data_dir / "cell.db"
+    assert db.read_bytes().startswith(SQLITE_MAGIC)
+    folder = franka.data_dir / "jobs" / job_id
+    (folder / "leak.db").symlink_to(db)
+    (folder / "up").symlink_to(franka.data_dir, target_is_directory=True)
+    key = franka.keys["admin"]
+    base = f"/api/v1/jobs/{job_id}/files/"
+    try:
+        status, body = raw_get(franka, base + "result.json", key)  # the control: a file inside is served
+        assert status == 200 and json.loads(body)["status"] == "completed"
+        for name in ("../cell.db", "../../cell.db", "..%2F..%2Fcell.db", "%2e%2e/%2e%2e/cell.db",
+                     "%2E%2E%2F%2E%2E%2Fcell.db", "frames/../../../cell.db", "/" + str(db),
+                     quote(str(db), safe=""), "leak.db", "up/cell.db", "up/../cell.db",
+                     "..%5C..%5Ccell.db", "result.json%00.png", ""):
+            status, body = raw_get(franka, base + name, key)
+            assert status == 404, (name, status, body[:200])
+            assert SQLITE_MAGIC not in body, name
+        with franka.client("viewer") as client:
+            listed = {f["name"] for f in client.get(f"/api/v1/jobs/{job_id}/files").json()}
+        assert "result.json" in listed and "frames/index.csv" in listed
+        assert not any(n.startswith(("leak", "up")) for n in listed), sorted(listed)
+    finally:
+        (folder / "leak.db").unlink()
+        (folder / "up").unlink()
+
+
+# ---------------------------------------------------------------------------------------------- 8. fuzz
+
+
+FUZZ_EXAMPLES = 12  # per operation and generation mode
+
+
+def test_fuzzing_every_operation_never_gives_a_server_error(
+        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
+    """schemathesis cases from the live OpenAPI document, positive and negative, with an admin key and
+    free path parameters, then with the real job's id (DELETE aside: it would purge the job). STOP first
+    holds the queue, so that a fuzzed job that happens to be valid waits instead of moving the arm."""
+    job_id = scanned[0]["id"]
+    headers = {"Authorization": f"Bearer {franka.keys['admin']}"}
+    schema = schemathesis.openapi.from_url(f"{franka.url}/api/v1/openapi.json", timeout=10)
+    errors: list[str] = []
+    calls = 0
+    statuses: collections.Counter[tuple[str, int]] = collections.Counter()
+
+    def hold() -> None:
+        with franka.client("admin") as client:
+            assert client.post("/api/v1/stop", json={"reason": "fuzzing"}).status_code == 200
+
+    def fuzz(strategy: Any, mode: GenerationMode) -> None:
+        @settings(max_examples=FUZZ_EXAMPLES, derandomize=True, database=None, deadline=None,
+                  phases=(Phase.explicit, Phase.generate), suppress_health_check=list(HealthCheck))
+        @given(case=strategy)
+        def run(case: Any) -> None:
+            nonlocal calls
+            calls += 1
+            response = case.call(base_url=franka.url, headers=headers, timeout=30)
+            statuses[str(mode), response.status_code] += 1
+            if case.path == "/api/v1/queue/resume" and response.status_code == 200:
+                hold()  # a fuzzed resume must not let a fuzzed job move the arm
+            if response.status_code >= 500:
+                errors.append(f"{case.method} {case.formatted_path} query={case.query} body={case.body!r}"
+                              f" -> {response.status_code} {response.text[:300]}")
+
+        try:
+            run()
+        except Unsatisfiable:  # an operation with nothing a request could get wrong
+            assert mode is GenerationMode.NEGATIVE
+
+    with franka.client("viewer") as client:
+        before = {j["id"] for j in client.get("/api/v1/jobs", params={"limit": 500}).json()["items"]}
+    hold()
+    try:
+        loaded = list(schema.get_all_operations())
+        operations = [result.ok() for result in loaded if isinstance(result, Ok)]
+        assert len(operations) == len(loaded), [r.err() for r in loaded if isinstance(r, Err)]
+        assert len(operations) >= 15
+        for operation in operations:
+            for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
+                fuzz(operation.as_strategy(generation_mode=mode), mode)
+                if "{job_id}" in operation.path and operation.method.upper() != "DELETE":
+                    real_job = {"job_id": job_id}
+                    fuzz(operation.as_strategy(generation_mode=mode, path_parameters=real_job), mode)
+        assert errors == [], "\n".join(errors) + "\n" + franka.log()[-3000:]
+        # the cases reached the handlers: the admin key went with every positive case, and some succeeded
+        assert calls >= len(operations) * FUZZ_EXAMPLES
+        assert not any(status == 401 for mode, status in statuses if mode == "positive"), statuses
+        assert sum(n for (_, status), n in statuses.items() if status < 300) >= len(operations), statuses
+    finally:
+        settle_queue(franka)
+    with franka.client("viewer") as client:  # nothing the fuzz submitted ever ran
+        jobs = client.get("/api/v1/jobs", params={"limit": 500}).json()["items"]
+    assert all(j["started_at"] is None for j in jobs if j["id"] not in before), jobs
+    assert httpx.get(f"{franka.url}/healthz", timeout=10).status_code == 200
+
+
+# ---------------------------------------------------------------------------------------------- 9. PostgreSQL
+
+
+def test_two_cells_share_a_postgresql_store_and_each_lists_its_own_jobs(
+        tmp_path: Path, postgres_url: str) -> None:  # noqa: F811
+    with fresh_database(postgres_url) as url:
+        franka_cell = ServedCell(FRANKA, tmp_path / "franka", db=url, key_prefix="franka")
+        ur5e_cell: ServedCell | None = None
+        try:
+            ran = submit(franka_cell, object="bunny", max_time_s=3.0)
+            ended = franka_cell.wait_job(ran["id"], ENDED)
+            assert ended["status"] == "completed", ended["termination"]
+            assert (tmp_path / "franka" / "jobs" / ran["id"] / "result.json").is_file()
+
+            ur5e_cell = ServedCell(UR5E, tmp_path / "ur5e", db=url, key_prefix="ur5e")
+            with ur5e_cell.client("operator") as client:
+                assert client.post("/api/v1/stop").status_code == 200  # hold it: this job need not run
+                own = client.post("/api/v1/jobs", json={"object": "horizontal_box"}).json()
+                assert client.delete(f"/api/v1/jobs/{own['id']}").json()["status"] == "cancelled"
+                listed = client.get("/api/v1/jobs").json()
+                assert [j["id"] for j in listed["items"]] == [own["id"]] and listed["total"] == 1
+                assert client.get(f"/api/v1/jobs/{ran['id']}").status_code == 404  # another cell's
+            with franka_cell.client("viewer") as client:
+                listed = client.get("/api/v1/jobs").json()
+                assert [j["id"] for j in listed["items"]] == [ran["id"]] and listed["total"] == 1
+            store = open_store(url)
+            try:
+                jobs, total = store.list_jobs()
+            finally:
+                store.close()
+            assert total == 2
+            assert {(j.id, j.cell, j.status) for j in jobs} == {(ran["id"], "sim-franka-rgbd", "completed"),
+                                                                (own["id"], "sim-ur5e-tof", "cancelled")}
+        finally:
+            franka_cell.close()
+            if ur5e_cell is not None:
+                ur5e_cell.close()
+
+
+# ---------------------------------------------------------------------------------------------- 10. bind
+
+
+def test_serving_beyond_loopback_without_a_key_is_refused_before_binding(tmp_path: Path) -> None:
+    port = free_port()
+    started = time.monotonic()
+    out = subprocess.run([*CELL, "serve", "--host", "0.0.0.0", "--port", str(port), "--data-dir",
+                          str(tmp_path / "data")], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1, out
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    assert lines[0].startswith("error: refusing to listen on 0.0.0.0") and "no API key" in lines[0]
+    assert "cell keys create" in lines[0]
+    assert "Uvicorn running" not in out.stdout + out.stderr
+    assert time.monotonic() - started < 30.0
