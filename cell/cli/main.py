@@ -180,3 +180,7 @@ def config_check(file: Path) -> None:
         raise _fail(exc) from None
     console.print(f"{file}: ok ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
                   f"sensor {cfg.sensor.type}, planner {cfg.scan.planner})", markup=False, highlight=False)
+
+
+if __name__ == "__main__":
+    app(prog_name="cell")

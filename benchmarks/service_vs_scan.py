@@ -1,0 +1,193 @@
+"""The same sim scan through the service and through ``cell scan``: is the wall time within 10 %?
+
+The default sim scan (config/sim-franka-rgbd.yaml, VS-Local, the bunny, seed 0, a ``--max-time`` of 30 s
+of sim time to keep it short) run ``--repeats`` times (3) each way, interleaved, the order alternating
+from one repeat to the next (CLI then service, service then CLI, ...) so that neither way always runs
+first on a cold cache:
+
+- ``cell scan``: ``.venv/bin/cell scan --out DIR ...`` as a subprocess, timed from its launch to its exit
+  (what a user at a shell waits);
+- the service: ``POST /api/v1/jobs`` to one ``cell serve`` (tests/service_process.ServedCell) started
+  before the first repeat and kept running, timed from the POST to the job's ``completed`` state seen on
+  its ``GET /api/v1/jobs/{id}/events`` stream (what a client of the service waits; the stream is opened
+  right after the POST and replays the job's events from the first).
+
+Both times include a process start: the CLI's own (Python, imports, the cell file), and the job's worker
+process that the service starts for each job (Python, imports; the service hands it the cell file it
+parsed at its start). They also include writing the job folder. The service's time also includes
+queueing, the worker's report lines and the SSE stream.
+
+Also each job's own ``wall_time_s`` from its result.json (from the job's start to its end, without the
+process start) and the ratio of those. The sim is deterministic: the two ways' result.json must agree on
+``n_captures``, ``sim_time_s`` and ``metrics``, and are checked to. And the CPU time [s] of each job's
+process (the CLI's; the service's worker, counted in the service's children once it was waited for) and
+of the service itself meanwhile: a job this size uses more than one core, so its wall time moves with
+whatever else runs on the machine; its CPU time much less. Each run records the 1-minute load average
+at its start.
+
+    nice .venv/bin/python benchmarks/service_vs_scan.py [--repeats 3] [--max-time 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tests.service_process import ServedCell
+
+REPO = Path(__file__).resolve().parents[1]
+CELL = REPO / ".venv" / "bin" / "cell"
+CONFIG = REPO / "config" / "sim-franka-rgbd.yaml"
+OBJECT, PLANNER, SEED = "bunny", "vs-local", 0
+GOAL_RATIO = 1.10  # service within 10 % of the CLI
+JOB_TIMEOUT_S = 600.0  # a bound on waiting for one job, not a timed check
+SAME = ("n_captures", "sim_time_s", "metrics")
+
+
+def children_cpu_s() -> float:
+    """User + system CPU time [s] of this process's ended (waited-for) children."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def cpu_s(pid: int) -> tuple[float, float]:
+    """User + system CPU time [s] of process ``pid`` and of its ended (waited-for) children."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    tick = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / tick, (int(fields[13]) + int(fields[14])) / tick
+
+
+def run_cli(out: Path, max_time_s: float) -> tuple[float, dict[str, Any], dict[str, float]]:
+    """``cell scan`` into ``out``: (seconds from launch to exit, its result.json, its CPU time [s])."""
+    cmd = [str(CELL), "scan", "--config", str(CONFIG), "--object", OBJECT, "--planner", PLANNER,
+           "--seed", str(SEED), "--max-time", f"{max_time_s:g}", "--out", str(out)]
+    cpu0 = children_cpu_s()
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=JOB_TIMEOUT_S)
+    elapsed = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"cell scan exited with {proc.returncode}:\n{proc.stdout}\n{proc.stderr}")
+    return elapsed, json.loads((out / "result.json").read_text()), {"job_cpu_s": children_cpu_s() - cpu0}
+
+
+def sse_events(lines: Any) -> Any:
+    """(kind, data) of each event of a Server-Sent Events stream's lines."""
+    kind, data = "message", ""
+    for line in lines:
+        if not line:
+            if data:
+                yield kind, json.loads(data)
+            kind, data = "message", ""
+        elif line.startswith("event:"):
+            kind = line.split(":", 1)[1].strip()
+        elif line.startswith("data:"):
+            data += line.split(":", 1)[1].strip()
+
+
+def run_service(served: ServedCell, max_time_s: float) -> tuple[float, str, dict[str, Any], dict[str, float]]:
+    """One job through the service: (seconds from the POST to its end on the event stream, its status,
+    its result.json, the CPU time [s] of its worker and of the service meanwhile). The service publishes
+    the job's end once its worker has exited and been waited for, so the worker's CPU time is then in
+    the service's children's."""
+    assert served.proc is not None
+    with served.client("operator", timeout_s=JOB_TIMEOUT_S) as client:
+        own0, children0 = cpu_s(served.proc.pid)
+        t0 = time.perf_counter()
+        response = client.post("/api/v1/jobs", json={"planner": PLANNER, "object": OBJECT, "seed": SEED,
+                                                      "max_time_s": max_time_s})
+        response.raise_for_status()
+        job_id = response.json()["id"]
+        status = None
+        with client.stream("GET", f"/api/v1/jobs/{job_id}/events") as stream:
+            stream.raise_for_status()
+            for kind, data in sse_events(stream.iter_lines()):
+                if kind in ("state", "result") and data["status"] not in ("queued", "running"):
+                    status = data["status"]
+                    break
+        elapsed = time.perf_counter() - t0
+        own1, children1 = cpu_s(served.proc.pid)
+        if status is None:
+            raise RuntimeError(f"job {job_id}: its event stream ended before the job did")
+        result = client.get(f"/api/v1/jobs/{job_id}/files/result.json")
+        result.raise_for_status()
+    return elapsed, status, result.json(), {"job_cpu_s": children1 - children0, "service_cpu_s": own1 - own0}
+
+
+def median(values: list[float]) -> float:
+    return round(float(statistics.median(values)), 4)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=3, help="runs each way")
+    parser.add_argument("--max-time", type=float, default=30.0, help="the scan's time budget [s of sim time]")
+    args = parser.parse_args()
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="service-vs-scan-") as tmp:
+        (Path(tmp) / "data").mkdir()
+        served = ServedCell(CONFIG, Path(tmp) / "data")
+        try:
+            for i in range(args.repeats):
+                order = ("cli", "service") if i % 2 == 0 else ("service", "cli")
+                for way in order:
+                    load_avg = os.getloadavg()[0]
+                    if way == "cli":
+                        elapsed, result, cpu = run_cli(Path(tmp) / f"cli-{i}", args.max_time)
+                        status = result["status"]
+                    else:
+                        elapsed, status, result, cpu = run_service(served, args.max_time)
+                    row = {"way": way, "repeat": i, "elapsed_s": round(elapsed, 4), "status": status,
+                           "wall_time_s": result["wall_time_s"], **{k: round(v, 3) for k, v in cpu.items()},
+                           "load_avg_1min_before": round(load_avg, 2), **{k: result[k] for k in SAME}}
+                    rows.append(row)
+                    web = f" + service {cpu['service_cpu_s']:.2f} s" if "service_cpu_s" in cpu else ""
+                    print(f"repeat {i + 1} {way:7s}: {elapsed:.3f} s to the end ({status}), job wall "
+                          f"{result['wall_time_s']:.3f} s, CPU {cpu['job_cpu_s']:.2f} s{web}, "
+                          f"{result['n_captures']} captures, {result['sim_time_s']} s sim, "
+                          f"{result['metrics']}", flush=True)
+        finally:
+            served.close()
+    cli = [r for r in rows if r["way"] == "cli"]
+    svc = [r for r in rows if r["way"] == "service"]
+    cli_s, svc_s = median([r["elapsed_s"] for r in cli]), median([r["elapsed_s"] for r in svc])
+    cli_job, svc_job = median([r["wall_time_s"] for r in cli]), median([r["wall_time_s"] for r in svc])
+    ratio, job_ratio = round(svc_s / cli_s, 4), round(svc_job / cli_job, 4)
+    cli_cpu, svc_cpu = median([r["job_cpu_s"] for r in cli]), median([r["job_cpu_s"] for r in svc])
+    identical = all({k: r[k] for k in SAME} == {k: rows[0][k] for k in SAME} for r in rows)
+    figures = {
+        "cli_s": cli_s, "service_s": svc_s, "ratio_service_over_cli": ratio,
+        "pair_ratios": [round(s["elapsed_s"] / c["elapsed_s"], 4) for c, s in zip(cli, svc, strict=True)],
+        "goal": {"limit": GOAL_RATIO, "met": ratio <= GOAL_RATIO},
+        "cli_job_wall_time_s": cli_job, "service_job_wall_time_s": svc_job, "job_wall_time_ratio": job_ratio,
+        "cli_cpu_s": cli_cpu, "service_worker_cpu_s": svc_cpu, "cpu_ratio": round(svc_cpu / cli_cpu, 4),
+        "service_web_cpu_s": median([r["service_cpu_s"] for r in svc]),
+        "results_identical": identical, "all_completed": all(r["status"] == "completed" for r in rows),
+        **{k: rows[0][k] for k in SAME},
+        "repeats": args.repeats, "max_time_s": args.max_time, "config": str(CONFIG.relative_to(REPO)),
+        "object": OBJECT, "planner": PLANNER, "seed": SEED,
+        "cpus": os.cpu_count(), "load_avg_1min": round(os.getloadavg()[0], 2),
+        "runs": rows,
+    }
+    print(f"cell scan: median {cli_s:.3f} s launch to exit (job {cli_job:.3f} s); service: median "
+          f"{svc_s:.3f} s POST to completed (job {svc_job:.3f} s)")
+    print(f"service / CLI: {ratio:.3f} ({'within' if figures['goal']['met'] else 'NOT within'} 10 %); job "
+          f"wall time ratio {job_ratio:.3f}")
+    print(f"CPU time: cell scan {cli_cpu:.2f} s, the service's worker {svc_cpu:.2f} s (+ the service itself "
+          f"{figures['service_web_cpu_s']:.2f} s) (medians)")
+    print(f"n_captures, sim_time_s and metrics identical across all runs: {identical}")
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
