@@ -81,6 +81,14 @@ def test_invalid_submissions_answer_422_naming_the_field(served, body, field, wo
     assert client.get("/api/v1/jobs", headers=_auth(keys["viewer"])).json()["total"] == 0
 
 
+def test_the_docs_page_works_without_the_internet(served):
+    client, _ = served
+    page = client.get("/docs")
+    assert page.status_code == 200 and "https://" not in page.text
+    script = next(part.split('"')[0] for part in page.text.split('src="')[1:] if "swagger-ui-bundle" in part)
+    assert client.get(script).status_code == 200
+
+
 def test_keys_are_checked_and_never_echoed(served):
     client, keys = served
     assert client.get("/healthz").status_code == 200

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 
 from cell import __version__
 from cell.api.routes import cell as cell_routes
@@ -56,9 +57,10 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
             await cell.close()
             cell.store.close()
 
-    app = FastAPI(title="cell", version=__version__, lifespan=lifespan,
-                  description="An autonomous active-vision scanning cell: run, watch and stop scans.",
-                  openapi_url="/api/v1/openapi.json", docs_url="/docs", redoc_url=None)
+    # the docs page's scripts are served by the cell itself: a cell's PC often has no internet
+    app = FastAPIOffline(title="cell", version=__version__, lifespan=lifespan,
+                         description="An autonomous active-vision scanning cell: run, watch and stop scans.",
+                         openapi_url="/api/v1/openapi.json", docs_url="/docs", redoc_url=None)
     app.include_router(cell_routes.router)
     app.include_router(jobs.router)
     app.include_router(health.router)

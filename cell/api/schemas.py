@@ -98,7 +98,7 @@ class StopIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    reason: str = Field("operator stop", min_length=1, max_length=200)
+    reason: str = Field("requested over the API", min_length=1, max_length=200)
 
 
 class StopOut(BaseModel):
