@@ -21,6 +21,7 @@ from cell.api.app import create_app
 from cell.cli.main import app as cli
 from cell.config import load_config
 from cell.jobs.placement import check_on_table
+from cell.jobs.progress import TICK_BUCKETS_S, ControlTicks
 from cell.service.events import JobEvents
 from cell.service.keys import create_key
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
@@ -248,3 +249,16 @@ def test_cell_scan_refuses_an_object_off_the_table_before_making_its_folder(tmp_
     res = CliRunner().invoke(cli, ["scan", "--object", "bunny", "--object-pose", "2,2,0", "--out", str(out)])
     assert res.exit_code == 1 and "off the table" in res.output
     assert not out.exists()
+
+
+def test_control_ticks_count_periods_into_cumulative_buckets_and_overruns():
+    ticks = ControlTicks(period_s=0.01)
+    for t in (0.0, 0.01, 0.02, 0.045, 0.055, 0.355):  # periods 10, 10, 25, 10, 300 ms
+        ticks.record(t)
+    hist = ticks.histogram()
+    bounds = dict(zip(TICK_BUCKETS_S, hist["buckets"], strict=True))
+    assert (bounds[0.008], bounds[0.015], bounds[0.03], bounds[0.25], bounds[0.5]) == (0, 3, 4, 4, 5)
+    assert hist["count"] == 5 and hist["sum_s"] == pytest.approx(0.355) and hist["overruns"] == 2
+    summary = ticks.summary()
+    assert summary["n_ticks"] == 6 and summary["period_max_s"] == pytest.approx(0.3)
+    assert summary["period_p50_s"] == pytest.approx(0.01)

@@ -15,7 +15,6 @@ import uvicorn
 from rich.console import Console
 
 from cell.api.app import create_app
-from cell.service.keys import KeyRing
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
 from drivers.errors import CellError
 
@@ -47,14 +46,15 @@ def serve(
     """Run the cell as a service: REST API under /api/v1, docs at /docs."""
     try:
         service = build_service(ServiceSettings(config_file=config, data_dir=data_dir, db_url=db))
-        if not is_loopback(host) and len(KeyRing(service.store)) == 0:
+        has_keys = bool(service.store.active_keys())
+        if not is_loopback(host) and not has_keys:
             service.store.close()
             raise CellError(f"refusing to listen on {host}, beyond this machine, with no API key: create one "
                             f"first (cell keys create --data-dir {data_dir} --role admin)")
     except CellError as exc:
         err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=1) from None
-    if len(KeyRing(service.store)) == 0:
+    if not has_keys:
         err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --data-dir "
                           f"{data_dir} --role operator)", markup=False, highlight=False, soft_wrap=True)
     # On SIGTERM or Ctrl-C uvicorn waits for open connections before the app shuts down (and stops the

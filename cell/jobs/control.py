@@ -25,13 +25,6 @@ class JobControl:
         self._lock = threading.Lock()
         self._session: Stoppable | None = None
         self._reason: str | None = None
-        self._ended = False
-
-    @property
-    def stop_reason(self) -> str | None:
-        """The reason of the first stop asked for, or None."""
-        with self._lock:
-            return self._reason
 
     def attach(self, session: Stoppable) -> None:
         """The job's session exists (called by the runner before anything moves); a stop asked for
@@ -46,7 +39,6 @@ class JobControl:
         """The job's motion has ended; later stops have nothing to stop."""
         with self._lock:
             self._session = None
-            self._ended = True
 
     def request_stop(self, reason: str) -> bool:
         """Stop the job: True when a running job's arm was commanded to stop by this call; False when the

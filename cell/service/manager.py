@@ -215,9 +215,6 @@ class CellService:
             log.publish("result", {"status": job.status, "result": job.result})
         return log
 
-    def job_folder(self, job: JobRecord) -> Path:
-        return Path(job.folder)
-
     # ------------------------------------------------------------------ submitting and cancelling
 
     async def submit(self, request: JobRequest, submitted_by: str | None) -> JobRecord:

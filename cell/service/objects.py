@@ -48,6 +48,12 @@ class ObjectLibrary:
         self._lock = threading.Lock()
         self._meshes: dict[str, ObjectMesh] = {}
 
+    @property
+    def virtual(self) -> bool:
+        """Whether the cell scans virtual objects (sim and dry-run cells); a real or replayed cell scans
+        what is on its table, and an object name is only a label."""
+        return self._config.mode in ("sim", "dry-run")
+
     def _uploaded(self) -> dict[str, Path]:
         if not self.folder.is_dir():
             return {}

@@ -64,7 +64,7 @@ def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> Val
         raise _invalid(f"max_time_s must be above 0 and at most {MAX_TIME_BUDGET_S:g} s, got "
                        f"{req.max_time_s}", "max_time_s")
     pose = req.object_pose or (0.0, 0.0, 0.0)
-    if config.mode in ("real", "replay"):
+    if not objects.virtual:
         label = req.object or "unknown"
         return ValidJob(planner, req.object, label, pose, seed, req.max_time_s, req.part_id)
     if req.object is None:

@@ -33,7 +33,7 @@ async def get_planners(cell: Service,
 def get_objects(cell: Service, _: Reader) -> list[ObjectOut]:
     """Sim and dry-run cells: the shipped objects and the uploaded meshes (a real cell scans real ones:
     none)."""
-    if cell.config.mode in ("real", "replay"):
+    if not cell.objects.virtual:
         return []
     return [ObjectOut(name=e.name, source=e.source, extents_m=e.extents_m, licence=e.licence)
             for e in cell.objects.entries()]
@@ -43,7 +43,7 @@ def get_objects(cell: Service, _: Reader) -> list[ObjectOut]:
 async def post_object(cell: Service, file: UploadFile,
                       _: Uploader) -> ObjectOut:
     """Upload a PLY, OBJ or STL mesh in metres, z-up (sim and dry-run cells); it is named after the file."""
-    if cell.config.mode in ("real", "replay"):
+    if not cell.objects.virtual:
         raise ServiceError(f"a {cell.config.mode} cell scans real objects; meshes are for sim and dry-run "
                            "cells", reason="conflict")
     limit = int(cell.config.service.max_upload_mb * 1e6)
