@@ -44,6 +44,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cell.cli.client import parse_events
 from tests.service_process import ServedCell
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,20 +82,6 @@ def run_cli(out: Path, max_time_s: float) -> tuple[float, dict[str, Any], dict[s
     return elapsed, json.loads((out / "result.json").read_text()), {"job_cpu_s": children_cpu_s() - cpu0}
 
 
-def sse_events(lines: Any) -> Any:
-    """(kind, data) of each event of a Server-Sent Events stream's lines."""
-    kind, data = "message", ""
-    for line in lines:
-        if not line:
-            if data:
-                yield kind, json.loads(data)
-            kind, data = "message", ""
-        elif line.startswith("event:"):
-            kind = line.split(":", 1)[1].strip()
-        elif line.startswith("data:"):
-            data += line.split(":", 1)[1].strip()
-
-
 def run_service(served: ServedCell, max_time_s: float) -> tuple[float, str, dict[str, Any], dict[str, float]]:
     """One job through the service: (seconds from the POST to its end on the event stream, its status,
     its result.json, the CPU time [s] of its worker and of the service meanwhile). The service publishes
@@ -111,9 +98,9 @@ def run_service(served: ServedCell, max_time_s: float) -> tuple[float, str, dict
         status = None
         with client.stream("GET", f"/api/v1/jobs/{job_id}/events") as stream:
             stream.raise_for_status()
-            for kind, data in sse_events(stream.iter_lines()):
-                if kind in ("state", "result") and data["status"] not in ("queued", "running"):
-                    status = data["status"]
+            for event in parse_events(stream.iter_lines()):
+                if event.event in ("state", "result") and event.data["status"] not in ("queued", "running"):
+                    status = event.data["status"]
                     break
         elapsed = time.perf_counter() - t0
         own1, children1 = cpu_s(served.proc.pid)
