@@ -26,9 +26,7 @@ from cell.service.keys import create_key as add_key
 from cell.service.store import open_store, sqlite_url
 
 REPO = Path(__file__).resolve().parent.parent
-# the `cell` command as its console script runs it (cell.cli.main has no `__main__` block, so `python -m`
-# would run nothing)
-CELL = [sys.executable, "-c", "from cell.cli.main import app; app(prog_name='cell')"]
+CELL = [sys.executable, "-m", "cell.cli.main"]
 ROLES = ("viewer", "operator", "line", "admin")
 START_TIMEOUT_S = 60.0
 
