@@ -46,8 +46,8 @@ def test_permission_table():
     expected = {
         Role.VIEWER: {Permission.READ, Permission.STOP},
         Role.OPERATOR: {Permission.READ, Permission.STOP, Permission.SUBMIT, Permission.CANCEL,
-                        Permission.RECOVER, Permission.UPLOAD},
-        Role.LINE: {Permission.READ, Permission.STOP, Permission.LINE},
+                        Permission.RECOVER, Permission.UPLOAD, Permission.MODE},
+        Role.LINE: {Permission.READ, Permission.STOP, Permission.LINE, Permission.MODE},
         Role.ADMIN: set(Permission),
     }
     assert expected == PERMISSIONS

@@ -1,5 +1,5 @@
 """The FastAPI application of ``cell serve``: ``/api/v1`` (OpenAPI at ``/api/v1/openapi.json``, docs at
-``/docs``), ``/healthz``, ``/readyz`` and ``/metrics``.
+``/docs``; the packing line under ``/api/v1/line``), ``/healthz``, ``/readyz`` and ``/metrics``.
 
 The lifespan opens what the routes share: the cell's service (store, queue, workers) and the key ring,
 which a background task reloads every second so that ``cell keys create`` / ``revoke`` take effect
@@ -20,6 +20,7 @@ from fastapi_offline import FastAPIOffline
 from cell import __version__
 from cell.api.routes import cell as cell_routes
 from cell.api.routes import health, jobs
+from cell.api.routes import line as line_routes
 from cell.service.keys import KeyRing
 from cell.service.manager import CellService
 from cell.service.startup import ServiceSettings, build_service
@@ -63,6 +64,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
                          openapi_url="/api/v1/openapi.json", docs_url="/docs", redoc_url=None)
     app.include_router(cell_routes.router)
     app.include_router(jobs.router)
+    app.include_router(line_routes.router)
     app.include_router(health.router)
 
     @app.exception_handler(ServiceError)

@@ -11,6 +11,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from cell.line.config import PART_ID_MAX
 from cell.service.store import JobRecord
 from cell.service.submission import MAX_SEED, MAX_TIME_BUDGET_S, JobRequest
 
@@ -151,8 +152,86 @@ class QueueOut(BaseModel):
     held: str | None = Field(description="why queued jobs do not start, or null")
 
 
+class CycleResultOut(BaseModel):
+    """One part's result as the line reads it: lengths [m] of the packing box (length >= width), the
+    container chosen (empty: none fits) with the smallest clearance [m] to its walls or lid, and whether
+    the part fits; ``status`` the scan job's, or ``rejected`` when no scan ran."""
+
+    job_id: str
+    part_id: str
+    status: str
+    length_m: float
+    width_m: float
+    height_m: float
+    container: str
+    clearance_m: float
+    fits: bool
+    message: str
+
+
+class StopReasonOut(BaseModel):
+    id: int = Field(description="0 none, 1 line Stop, 2 operator STOP, 3 line Abort, 4 safety stop, 5 arm "
+                                "fault, 6 scan failed, 7 service shut down, 8 Clear failed")
+    message: str
+
+
+class LineOut(BaseModel):
+    """The packing line's PackML state machine: state and unit mode (numbers and names), the part id
+    the next Start scans, the cycle's job, the counters, the last stop reason and result, the outcome
+    of the last command."""
+
+    state: int
+    state_name: str
+    mode: int
+    mode_name: str
+    part_id: str
+    job_id: str | None
+    processed: int
+    defective: int
+    stop_reason: StopReasonOut
+    result: CycleResultOut | None
+    message: str
+
+
+class LineCommandIn(BaseModel):
+    """A PackML command by name (``start``) or number (2); ``part_id`` sets the part the next Start scans
+    (sim and dry-run cells: a shipped or uploaded object, optionally ``NAME@x_m,y_m,yaw_deg``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    command: str | int = Field(description="reset 1, start 2, stop 3, hold 4, unhold 5, suspend 6, unsuspend "
+                                           "7, abort 8, clear 9")
+    part_id: str | None = Field(None, min_length=1, max_length=PART_ID_MAX, pattern=r"^[\x20-\x7e]+$")
+
+
+class LineCommandOut(BaseModel):
+    message: str
+    line: LineOut
+
+
+class LineModeIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    mode: str | int = Field(description="production 1 or manual 3")
+
+
+class LineTransitionOut(BaseModel):
+    """One recorded transition: its id (for paging), when, the PackML states before and after, the unit
+    mode after, and why."""
+
+    id: int
+    at: datetime
+    from_state: int
+    from_name: str
+    to_state: int
+    to_name: str
+    mode: int
+    cause: str
+
+
 class CellOut(BaseModel):
-    """The cell now: name, mode (sim, dry-run, real, replay), arm, sensor, running job, queue, version."""
+    """The cell now: name, mode (sim, dry-run, real, replay), arm, sensor, running job, queue, version, and
+    the packing line's state when the cell has one."""
 
     name: str
     mode: str
@@ -161,3 +240,4 @@ class CellOut(BaseModel):
     sensor: dict[str, Any]
     job: dict[str, Any] | None
     queue: QueueOut
+    line: LineOut | None

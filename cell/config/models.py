@@ -12,6 +12,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
+from cell.line.config import LineConfig
 from cell.packing.config import PackingConfig
 from cell.perception.filters import FilterParams
 from cell.perception.occupancy import OccupancyParams
@@ -20,7 +21,7 @@ from cell.perception.segmentation import SegmentationParams
 from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
-from drivers.arm.config import ArmConfig, ReplayArmConfig
+from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
 from drivers.config_base import StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
 from drivers.sim.faults import SimFault
@@ -142,7 +143,8 @@ class ServiceConfig(StrictModel):
 
 class CellConfig(StrictModel):
     """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan,
-    planners, the packing result (container catalogue) and the service (``cell serve``).
+    planners, the packing result (container catalogue), the service (``cell serve``) and the packing
+    line's interface (``line``, None: no line).
 
     ``mode`` says which devices are real:
 
@@ -170,6 +172,7 @@ class CellConfig(StrictModel):
     planners: PlannersConfig
     packing: PackingConfig = PackingConfig()
     service: ServiceConfig = ServiceConfig()
+    line: LineConfig | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:
@@ -193,4 +196,12 @@ class CellConfig(StrictModel):
         if self.mode == "real" and (sim_arm or sim_sensor):
             raise ValueError("mode 'real' needs a hardware arm type ('ur5e' or 'franka') and a hardware "
                              "sensor type (a simulated sensor with a hardware arm is mode 'dry-run')")
+        if self.line is not None and self.line.dio is not None:
+            if not isinstance(arm, UR5eArmConfig):
+                raise ValueError(f"line.dio is the UR5e's digital-I/O handshake: a {arm.type} arm has none")
+            wired = {"trigger_input": arm.trigger_input, "busy_output": arm.busy_output,
+                     "done_output": arm.done_output}
+            missing = [name for name, index in wired.items() if index is None]
+            if missing:
+                raise ValueError(f"line.dio needs the arm's {', '.join(missing)}")
         return self

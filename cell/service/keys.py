@@ -34,7 +34,8 @@ class Role(StrEnum):
 
 class Permission(StrEnum):
     """What a request may do: read jobs and status, stop the arm, submit, cancel a queued job, recover
-    after a stop, upload an object mesh, drive the line interface, manage keys, purge old jobs."""
+    after a stop, upload an object mesh, drive the line interface, switch the line's unit mode (Production
+    or the operator's Manual), manage keys, purge old jobs."""
 
     READ = "read"
     STOP = "stop"
@@ -43,6 +44,7 @@ class Permission(StrEnum):
     RECOVER = "recover"
     UPLOAD = "upload"
     LINE = "line"
+    MODE = "mode"
     KEYS = "keys"
     PURGE = "purge"
 
@@ -51,8 +53,8 @@ class Permission(StrEnum):
 PERMISSIONS: dict[Role, frozenset[Permission]] = {
     Role.VIEWER: frozenset({Permission.READ, Permission.STOP}),
     Role.OPERATOR: frozenset({Permission.READ, Permission.STOP, Permission.SUBMIT, Permission.CANCEL,
-                              Permission.RECOVER, Permission.UPLOAD}),
-    Role.LINE: frozenset({Permission.READ, Permission.STOP, Permission.LINE}),
+                              Permission.RECOVER, Permission.UPLOAD, Permission.MODE}),
+    Role.LINE: frozenset({Permission.READ, Permission.STOP, Permission.LINE, Permission.MODE}),
     Role.ADMIN: frozenset(Permission),
 }
 

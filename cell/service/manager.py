@@ -35,6 +35,7 @@ from typing import Any
 
 from cell import __version__
 from cell.config.models import CellConfig
+from cell.line.controller import LineController
 from cell.planning.registry import PLANNERS
 from cell.service.arm_status import ArmTracker
 from cell.service.events import EventHub, JobEvents
@@ -58,8 +59,11 @@ log = logging.getLogger("cell.service")
 
 @dataclass
 class _Queued:
+    """A job waiting: its record, what its worker loads, and who asked (``api`` or ``line``)."""
+
     job: JobRecord
     source: str
+    origin: str
 
 
 @dataclass
@@ -68,6 +72,7 @@ class _Running:
     stop confirmations the worker owes, its newest progress."""
 
     job: JobRecord
+    origin: str
     proc: asyncio.subprocess.Process | None = None
     stop_reason: str | None = None
     acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
@@ -123,6 +128,7 @@ class CellService:
         self._submit_lock = asyncio.Lock()
         self._wake = asyncio.Event()
         self._dispatcher: asyncio.Task[None] | None = None
+        self.line = LineController(self, config.line, store) if config.line is not None else None
 
     # ------------------------------------------------------------------ life
 
@@ -133,6 +139,8 @@ class CellService:
             folder.mkdir(parents=True, exist_ok=True)
         settled = await asyncio.to_thread(reconcile, self.store, self.name,
                                           self.config.service.shutdown_timeout_s)
+        if self.line is not None:
+            await self.line.start()
         self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
         return settled
 
@@ -156,6 +164,8 @@ class CellService:
                 await asyncio.wait_for(asyncio.shield(self._dispatcher),
                                        self.config.service.shutdown_timeout_s)
             self._dispatcher.cancel()
+        if self.line is not None:
+            await self.line.close()
 
     @property
     def ready(self) -> bool:
@@ -180,6 +190,7 @@ class CellService:
                 "part_id": running.job.part_id, "progress": running.progress},
             "queue": {"length": len(self._queued), "max": self.config.service.queue_max,
                       "held": self.hold_reason()},
+            "line": None if self.line is None else self.line.snapshot().as_dict(),
         }
 
     def hold_reason(self) -> str | None:
@@ -217,9 +228,14 @@ class CellService:
 
     # ------------------------------------------------------------------ submitting and cancelling
 
-    async def submit(self, request: JobRequest, submitted_by: str | None) -> JobRecord:
-        """Validate and queue a job; ``ServiceError`` when invalid (naming the field), when the queue is
-        full, or while shutting down."""
+    async def submit(self, request: JobRequest, submitted_by: str | None, origin: str = "api") -> JobRecord:
+        """Validate and queue a job from ``origin`` (``api``: an operator; ``line``: the packing line's
+        Start); ``ServiceError`` when invalid (naming the field), when the queue is full, while shutting
+        down, or for an operator's job while the line owns the cell (Production mode)."""
+        if origin == "api" and self.line is not None and self.line.owns_cell:
+            raise ServiceError(f"the packing line owns the cell (PackML {self.line.mode.label} mode, "
+                               f"{self.line.state.label}): operator jobs run in Manual mode (POST "
+                               "/api/v1/line/mode)", reason="conflict")
         valid: ValidJob = await asyncio.to_thread(validate, self.config, self.objects, request)
         async with self._submit_lock:
             if self._closing:
@@ -235,7 +251,7 @@ class CellService:
                             folder=str((self.jobs_dir / job_id).resolve()), submitted_by=submitted_by,
                             created_at=_now())
             await asyncio.to_thread(self.store.add_job, job)
-            self._queued[job_id] = _Queued(job, valid.object_source)
+            self._queued[job_id] = _Queued(job, valid.object_source, origin)
         self.events.log(job_id).publish("state", {"status": "queued", "termination": None})
         self._wake.set()
         return job
@@ -256,6 +272,8 @@ class CellService:
         log = self.events.log(job_id)
         log.publish("state", {"status": "cancelled", "termination": reason})
         log.publish("result", {"status": "cancelled", "result": None})
+        if self.line is not None:
+            self.line.job_ended(job_id, "cancelled", reason, None)
         return job
 
     async def purge(self, job_id: str) -> None:
@@ -283,7 +301,10 @@ class CellService:
         return await self._stop_running(running, reason)
 
     async def stop_all(self, reason: str) -> StopOutcome:
-        """The operator's STOP: hold the queue and stop the running job, if any."""
+        """The operator's STOP: hold the queue and stop the running job, if any; the line, if wired, is
+        stopped too (Stopping, then Stopped)."""
+        if self.line is not None:
+            self.line.operator_stop(reason)
         self._held = f"held after a stop ({reason}): resume the queue to go on (POST /api/v1/queue/resume)"
         running = self._running
         if running is None:
@@ -296,6 +317,18 @@ class CellService:
             raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
         self._held = None
         self._wake.set()
+
+    def resume_for_line(self) -> None:
+        """The line's Reset: let queued jobs start again after a STOP (the line's Reset refuses itself while
+        the arm is faulted)."""
+        if not self.arm.faulted:
+            self.resume()
+
+    def operator_jobs(self) -> bool:
+        """Whether an operator's job waits or runs."""
+        running = self._running
+        return any(q.origin == "api" for q in self._queued.values()) or (
+            running is not None and running.origin == "api")
 
     async def _stop_running(self, running: _Running, reason: str) -> StopOutcome:
         self.metrics.stop_requests.inc()
@@ -393,7 +426,7 @@ class CellService:
             while self._may_start():
                 job_id = next(iter(self._queued))
                 queued = self._queued.pop(job_id)
-                running = self._running = _Running(queued.job)
+                running = self._running = _Running(queued.job, queued.origin)
                 try:
                     await self._run(running, queued.source)
                 except Exception as exc:  # the job fails, the service goes on with the next
@@ -467,4 +500,6 @@ class CellService:
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
+        if self.line is not None:
+            self.line.job_ended(job.id, status, termination, result)
         self._wake.set()

@@ -1,4 +1,5 @@
-"""The job store's tables as SQLAlchemy ORM models: ``jobs`` and ``api_keys``.
+"""The job store's tables as SQLAlchemy ORM models: ``jobs``, ``api_keys``, ``line_transitions`` and
+``line_state``.
 
 The schema itself is created and changed only by the Alembic migrations in ``migrations/versions``;
 these models must describe the schema the newest migration leaves (``tests/test_store.py`` compares
@@ -101,3 +102,33 @@ class KeyRow(Base):
     key_hash: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime)
     revoked_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class LineTransitionRow(Base):
+    """A row of ``line_transitions``: one :class:`cell.service.store.records.LineTransition`, numbered in
+    the order they were recorded."""
+
+    __tablename__ = "line_transitions"
+    __table_args__ = (Index("ix_line_transitions_cell_id", "cell", "id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    cell: Mapped[str] = mapped_column(String(64))
+    at: Mapped[datetime] = mapped_column(UTCDateTime)
+    from_state: Mapped[int] = mapped_column(Integer)
+    to_state: Mapped[int] = mapped_column(Integer)
+    mode: Mapped[int] = mapped_column(Integer)
+    cause: Mapped[str] = mapped_column(Text)
+
+
+class LineStateRow(Base):
+    """A row of ``line_state``: one :class:`cell.service.store.records.LineRecord` per cell."""
+
+    __tablename__ = "line_state"
+
+    cell: Mapped[str] = mapped_column(String(64), primary_key=True)
+    mode: Mapped[int] = mapped_column(Integer)
+    processed: Mapped[int] = mapped_column(BigInteger)
+    defective: Mapped[int] = mapped_column(BigInteger)
+    stop_reason_id: Mapped[int] = mapped_column(Integer)
+    stop_reason: Mapped[str] = mapped_column(Text)
+    last_result: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))

@@ -65,3 +65,31 @@ class KeyRecord:
     def active(self) -> bool:
         """Whether the key still authenticates (it has not been revoked)."""
         return self.revoked_at is None
+
+
+@dataclass(frozen=True)
+class LineTransition:
+    """One transition of a cell's PackML state machine: when (timezone-aware UTC), the states before and
+    after (their PackML numbers, :class:`cell.line.packml.State`), the unit mode after, and the cause in
+    words (the command and who sent it, or the event)."""
+
+    cell: str
+    at: datetime
+    from_state: int
+    to_state: int
+    mode: int
+    cause: str
+
+
+@dataclass(frozen=True)
+class LineRecord:
+    """What a cell's line keeps across restarts: the unit mode, the PackML counters (parts processed,
+    defective), the last stop reason (ID and text) and the last result the line read (JSON)."""
+
+    cell: str
+    mode: int
+    processed: int = 0
+    defective: int = 0
+    stop_reason_id: int = 0
+    stop_reason: str = ""
+    last_result: dict[str, Any] | None = None

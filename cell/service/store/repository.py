@@ -1,4 +1,4 @@
-"""The job store: jobs and API keys, in SQLite or PostgreSQL.
+"""The job store: jobs, API keys and the packing line's state and transitions, in SQLite or PostgreSQL.
 
 :class:`Store` is synchronous and may be called from several threads at once: every call runs in its own
 SQLAlchemy session and transaction. It takes and returns the frozen records of
@@ -21,8 +21,8 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from cell.service.store.engine import open_engine, store_error
-from cell.service.store.models import JobRow, KeyRow
-from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord
+from cell.service.store.models import JobRow, KeyRow, LineStateRow, LineTransitionRow
+from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord, LineRecord, LineTransition
 from drivers.errors import ServiceError
 
 JOB_FIELDS = tuple(field.name for field in fields(JobRecord))
@@ -193,6 +193,45 @@ class Store:
         query = select(KeyRow).where(KeyRow.revoked_at.is_(None)).order_by(KeyRow.name)
         with self._session("reading the active keys") as session:
             return [_key_record(row) for row in session.scalars(query)]
+
+
+    # the packing line
+
+    def add_line_transition(self, transition: LineTransition) -> None:
+        """Record one PackML transition (``ValueError`` for a naive time)."""
+        at = _aware("at", transition.at).astimezone(UTC)
+        with self._session(f"recording cell {transition.cell}'s line transition") as session:
+            session.add(LineTransitionRow(**{**asdict(transition), "at": at}))
+
+    def line_transitions(self, cell: str, *, limit: int = 100,
+                         before_id: int | None = None) -> list[tuple[int, LineTransition]]:
+        """``cell``'s newest transitions first, with their ids: at most ``limit``, older than
+        ``before_id`` when given (the next page)."""
+        if limit < 0:
+            raise ValueError(f"limit must not be negative (got {limit})")
+        query = select(LineTransitionRow).where(LineTransitionRow.cell == cell)
+        if before_id is not None:
+            query = query.where(LineTransitionRow.id < before_id)
+        query = query.order_by(LineTransitionRow.id.desc()).limit(limit)
+        with self._session(f"reading cell {cell}'s line transitions") as session:
+            return [(row.id, LineTransition(cell=row.cell, at=row.at, from_state=row.from_state,
+                                            to_state=row.to_state, mode=row.mode, cause=row.cause))
+                    for row in session.scalars(query)]
+
+    def get_line(self, cell: str) -> LineRecord | None:
+        """``cell``'s line record, or None before its line first ran."""
+        with self._session(f"reading cell {cell}'s line") as session:
+            row = session.get(LineStateRow, cell)
+            if row is None:
+                return None
+            return LineRecord(cell=row.cell, mode=row.mode, processed=row.processed, defective=row.defective,
+                              stop_reason_id=row.stop_reason_id, stop_reason=row.stop_reason,
+                              last_result=row.last_result)
+
+    def put_line(self, record: LineRecord) -> None:
+        """Write ``cell``'s line record (created or replaced)."""
+        with self._session(f"writing cell {record.cell}'s line") as session:
+            session.merge(LineStateRow(**asdict(record)))
 
 
 def _aware(name: str, value: datetime) -> datetime:

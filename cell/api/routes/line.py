@@ -1,0 +1,73 @@
+"""The packing line over REST: its PackML state, commands, unit mode and recorded transitions.
+
+The same state machine answers OPC UA and the robot's digital I/O (``cell.line``); a command that is not
+valid now answers 409 with the reason, the state unchanged.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, TypeVar
+
+from fastapi import APIRouter, Query
+
+from cell.api.auth import Liner, ModeSwitcher, Reader
+from cell.api.deps import Service
+from cell.api.schemas import LineCommandIn, LineCommandOut, LineModeIn, LineOut, LineTransitionOut
+from cell.line.controller import LineController
+from cell.line.packml import Command, State, UnitMode
+from cell.service.manager import CellService
+from drivers.errors import ServiceError
+
+router = APIRouter(prefix="/api/v1/line", tags=["line"])
+E = TypeVar("E", Command, UnitMode)
+
+
+def _line(cell: CellService) -> LineController:
+    if cell.line is None:
+        raise ServiceError(f"cell {cell.name} has no packing line (no line: section in its cell file)",
+                           reason="not found")
+    return cell.line
+
+
+def _member(kind: type[E], value: str | int, field: str) -> E:
+    """``value`` as a member of ``kind``, by name (any case) or number; ``ServiceError`` naming them."""
+    try:
+        return kind(value) if isinstance(value, int) else kind[value.strip().upper()]
+    except (KeyError, ValueError):
+        names = ", ".join(f"{m.name.lower()} {m.value}" for m in kind)
+        raise ServiceError(f"unknown {field} {value!r}; one of: {names}", reason="invalid",
+                           field=field) from None
+
+
+@router.get("", response_model=LineOut)
+async def get_line(cell: Service, _: Reader) -> dict[str, Any]:
+    """State and unit mode, the part id, the cycle's job, counters, last stop reason and last result."""
+    return _line(cell).snapshot().as_dict()
+
+
+@router.post("/command", response_model=LineCommandOut)
+async def post_command(cell: Service, body: LineCommandIn, key: Liner) -> dict[str, Any]:
+    """A PackML command (``part_id`` first sets the part the next Start scans)."""
+    line = _line(cell)
+    command = _member(Command, body.command, "command")
+    message = await line.command(command, f"REST (key {key.name})", part_id=body.part_id)
+    return {"message": message, "line": line.snapshot().as_dict()}
+
+
+@router.post("/mode", response_model=LineCommandOut)
+async def post_mode(cell: Service, body: LineModeIn, key: ModeSwitcher) -> dict[str, Any]:
+    """Switch the unit mode: Production (the line starts scans, operator jobs are refused) or Manual (the
+    operator's). Only in Stopped, Idle or Aborted."""
+    line = _line(cell)
+    message = await line.set_mode(_member(UnitMode, body.mode, "mode"), f"REST (key {key.name})")
+    return {"message": message, "line": line.snapshot().as_dict()}
+
+
+@router.get("/history", response_model=list[LineTransitionOut])
+async def get_history(cell: Service, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                      before_id: Annotated[int | None, Query(ge=1)] = None) -> list[dict[str, Any]]:
+    """Recorded transitions, newest first; ``before_id`` pages back."""
+    rows = await _line(cell).history(limit, before_id)
+    return [{"id": row_id, "at": t.at, "from_state": t.from_state, "from_name": State(t.from_state).label,
+             "to_state": t.to_state, "to_name": State(t.to_state).label, "mode": t.mode, "cause": t.cause}
+            for row_id, t in rows]

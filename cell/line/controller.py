@@ -1,0 +1,399 @@
+"""The cell's PackML state machine, owned by the service: what the line's commands do to the cell.
+
+One :class:`LineController` per cell. The three ways in (OPC UA, the robot's digital I/O, REST) call
+:meth:`LineController.command` and :meth:`LineController.set_mode`; they learn of every change through
+:meth:`LineController.subscribe`. Everything runs on the service's event loop.
+
+What each state does (TR88.00.02's model, :mod:`cell.line.packml`):
+
+- Starting: the part id (``Command/Parameter/PartId``) becomes a scan job, which Execute runs. In sim
+  and dry-run cells the part id names the feeder's part (:mod:`cell.line.result`); a part the cell does
+  not know, or cannot place on its table, ends the cycle as a defective part with the reason, not as a
+  fault.
+- Completing writes the result (:class:`cell.line.result.CycleResult`) and the counters; Complete holds
+  them until Reset.
+- Stopping stops the scan's arm through the guard (the job ends ``stopped``), then Stopped. An operator's
+  STOP (API, web page) is a Stop too.
+- Aborting is the fault path: a safety stop, an arm fault or a failed job during Execute, or the Abort
+  command, stop the scan and end in Aborted with the stop reason. Clearing recovers a faulted arm (as
+  ``POST /arm/recover`` does), then Stopped; Resetting lets the queue run again, then Idle.
+- Holding and Suspending stop the scan (a scan cannot be paused half-way: its maps and its path are those
+  of one continuous run); Unholding and Unsuspending scan the same part again from the start. A scan
+  that completed before the hold took effect is not repeated: its result is written on Unhold.
+
+Production mode lets the line start scans and refuses operator jobs; Manual mode is the operator's and
+refuses Start. The mode changes only in Stopped, Idle or Aborted, and not to Production while operator
+jobs wait or run.
+
+Every transition is recorded (time, from, to, cause) in the job store, and the mode, counters, stop reason
+and last result are kept there across restarts; the state itself starts at Stopped, as a machine's does
+after power-up. Store writes are queued to a task of their own, so that no transition waits for the
+database.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
+
+from cell.line import packml
+from cell.line.config import LineConfig
+from cell.line.packml import Command, State, StopReason, UnitMode
+from cell.line.result import CycleResult, check_part_id, cycle_result, feeder_part, rejected
+from cell.service.store import LineRecord, LineTransition, Store
+from cell.service.submission import JobRequest
+from drivers.errors import ServiceError, StoreError
+
+if TYPE_CHECKING:
+    from cell.service.manager import CellService
+
+log = logging.getLogger("cell.line")
+
+MODE_NAMES = {"production": UnitMode.PRODUCTION, "manual": UnitMode.MANUAL}
+
+
+@dataclass(frozen=True)
+class LineSnapshot:
+    """The line now: PackML state and unit mode, the part id parameter, the scan job of the cycle (None
+    outside one), the counters, the last stop reason, the last result (None before the first), and the
+    outcome of the last command, in words."""
+
+    state: State
+    mode: UnitMode
+    part_id: str
+    job_id: str | None
+    processed: int
+    defective: int
+    stop_reason_id: StopReason
+    stop_reason: str
+    result: CycleResult | None
+    message: str
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready, with the state's and mode's names beside their numbers."""
+        return {"state": int(self.state), "state_name": self.state.label, "mode": int(self.mode),
+                "mode_name": self.mode.label, "part_id": self.part_id, "job_id": self.job_id,
+                "processed": self.processed, "defective": self.defective,
+                "stop_reason": {"id": int(self.stop_reason_id), "message": self.stop_reason},
+                "result": None if self.result is None else self.result.as_dict(), "message": self.message}
+
+
+Listener = Callable[[LineSnapshot], None]
+
+
+class LineController:
+    """The PackML state machine of one cell (see the module docstring)."""
+
+    def __init__(self, service: CellService, config: LineConfig, store: Store) -> None:
+        self._service = service
+        self._config = config
+        self._store = store
+        self._cell = service.name
+        self.state = State.STOPPED
+        self.mode = MODE_NAMES[config.initial_mode]
+        self.part_id = ""
+        self._job_id: str | None = None
+        self._cycle_part = ""
+        self._done: CycleResult | None = None  # a scan that completed while the line held or suspended
+        self._record = LineRecord(cell=self._cell, mode=int(self.mode))
+        self._message = ""
+        self._source = ""
+        self._listeners: list[Listener] = []
+        self._writes: asyncio.Queue[Callable[[], None] | None] = asyncio.Queue()
+        self._writer: asyncio.Task[None] | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    # ------------------------------------------------------------------ life
+
+    async def start(self) -> None:
+        """Load what the store kept (mode, counters, stop reason, last result) and begin in Stopped."""
+        kept = await asyncio.to_thread(self._store.get_line, self._cell)
+        if kept is not None:
+            self._record = kept
+            self.mode = UnitMode(kept.mode)
+        self._writer = asyncio.create_task(self._write_all(), name="line store writer")
+        self._record_transition(State.STOPPED, "the service started")
+
+    async def close(self) -> None:
+        """Finish the queued store writes."""
+        for task in list(self._tasks):
+            task.cancel()
+        if self._writer is not None:
+            self._writes.put_nowait(None)
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._writer
+
+    def subscribe(self, listener: Listener) -> None:
+        """Call ``listener`` (on the event loop; it must not block) with the snapshot after every change."""
+        self._listeners.append(listener)
+
+    # ------------------------------------------------------------------ reading
+
+    @property
+    def owns_cell(self) -> bool:
+        """Production mode: the line starts scans and operator jobs are refused."""
+        return self.mode is UnitMode.PRODUCTION
+
+    @property
+    def job_id(self) -> str | None:
+        """The scan job of the current cycle, if one runs."""
+        return self._job_id
+
+    def snapshot(self) -> LineSnapshot:
+        r = self._record
+        return LineSnapshot(self.state, self.mode, self.part_id, self._job_id, r.processed, r.defective,
+                            StopReason(r.stop_reason_id), r.stop_reason,
+                            None if r.last_result is None else CycleResult.from_dict(r.last_result),
+                            self._message)
+
+    async def history(self, limit: int, before_id: int | None) -> list[tuple[int, LineTransition]]:
+        return await asyncio.to_thread(self._store.line_transitions, self._cell, limit=limit,
+                                       before_id=before_id)
+
+    # ------------------------------------------------------------------ commands
+
+    def set_part_id(self, part_id: str) -> None:
+        """The part id the next Start scans (``Command/Parameter/PartId``); ``ServiceError`` (invalid)."""
+        self.part_id = check_part_id(part_id)
+        self._notify()
+
+    async def command(self, command: Command, source: str, part_id: str | None = None) -> str:
+        """Act on ``command`` from ``source`` (e.g. ``opcua (key line-1)``); ``part_id`` sets the parameter
+        first. Returns what was done, in words; ``ServiceError`` (conflict) when the command is not valid
+        now, the state unchanged."""
+        if part_id is not None:
+            self.set_part_id(part_id)
+        why = packml.refusal(self.state, command) or self._precondition(command)
+        if why is not None:
+            self._message = f"refused {command.label} from {source}: {why}"
+            self._notify()
+            raise ServiceError(why, reason="conflict")
+        self._message = f"{command.label} from {source}"
+        self._source = source
+        if command is Command.STOP:
+            self._set_stop_reason(StopReason.LINE_STOP, f"Stop from {source}")
+        elif command is Command.ABORT:
+            self._set_stop_reason(StopReason.LINE_ABORT, f"Abort from {source}")
+        self._enter(packml.ACTING[command], self._message)
+        return f"{command.label} accepted: {self.state.label}"
+
+    def _precondition(self, command: Command) -> str | None:
+        if command is Command.START:
+            if not self.owns_cell:
+                return f"the cell is in {self.mode.label} mode: the line starts scans in Production only"
+            if not self.part_id:
+                return "no part id: set Command/Parameter/PartId (or part_id) before Start"
+        if command is Command.RESET and self._service.arm.faulted:
+            return (f"the arm is faulted ({', '.join(self._service.arm.status.faults)}): Abort, then Clear "
+                    "recovers it")
+        return None
+
+    async def set_mode(self, mode: UnitMode, source: str) -> str:
+        """Change the unit mode; ``ServiceError`` (conflict or invalid) when it may not change now."""
+        if mode not in packml.OFFERED_MODES:
+            offered = ", ".join(f"{m.value} {m.label}" for m in sorted(packml.OFFERED_MODES))
+            raise ServiceError(f"unit mode {int(mode)} ({mode.label}) is not offered; offered: {offered}",
+                               reason="invalid", field="mode")
+        if mode is self.mode:
+            return f"already in {mode.label} mode"
+        if self.state not in packml.MODE_CHANGE_STATES:
+            allowed = ", ".join(s.label for s in sorted(packml.MODE_CHANGE_STATES))
+            raise ServiceError(f"the unit mode changes in {allowed} only, not in {self.state.label}",
+                               reason="conflict")
+        if mode is UnitMode.PRODUCTION and self._service.operator_jobs():
+            raise ServiceError("operator jobs are queued or running: let them end (or stop them) before the "
+                               "line takes the cell in Production mode", reason="conflict")
+        self.mode = mode
+        self._save(mode=int(mode))
+        self._record_transition(self.state, f"unit mode {mode.label} from {source}")
+        return f"{mode.label} mode"
+
+    def operator_stop(self, reason: str) -> None:
+        """The operator's STOP (``POST /api/v1/stop``): a Stop, whatever the mode."""
+        if packml.refusal(self.state, Command.STOP) is None:
+            self._set_stop_reason(StopReason.OPERATOR_STOP, reason)
+            self._enter(State.STOPPING, f"operator STOP: {reason}")
+
+    # ------------------------------------------------------------------ the scan job
+
+    def job_ended(self, job_id: str, status: str, termination: str, result: dict[str, Any] | None) -> None:
+        """The service's word that a job ended; the line acts on its own cycle's job only."""
+        if job_id != self._job_id:
+            return
+        self._job_id = None
+        state = self.state
+        if state in (State.HOLDING, State.SUSPENDING):
+            if status == "completed":
+                self._done = cycle_result(job_id, self._cycle_part, status, termination, result)
+            after = State.HELD if state is State.HOLDING else State.SUSPENDED
+            self._enter(after, f"the scan ended: {status}")
+        elif state is State.STOPPING:
+            self._enter(State.STOPPED, f"the scan ended: {status}")
+        elif state is State.ABORTING:
+            self._enter(State.ABORTED, f"the scan ended: {status}")
+        elif state is State.EXECUTE:
+            self._execute_ended(job_id, status, termination, result)
+
+    def _execute_ended(self, job_id: str, status: str, termination: str,
+                       result: dict[str, Any] | None) -> None:
+        if status == "completed":
+            self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
+            return
+        if status in ("stopped", "cancelled") and not termination.startswith("safety stop"):
+            reason = StopReason.SHUTDOWN if status == "cancelled" else StopReason.OPERATOR_STOP
+            self._set_stop_reason(reason, f"scan {job_id} {status}: {termination}")
+            self._record_transition(State.STOPPING, f"the scan was {status}")
+            self._record_transition(State.STOPPED, "no scan runs")
+            return
+        if self._service.arm.faulted:
+            reason = StopReason.ARM_FAULT
+        elif termination.startswith("safety stop"):
+            reason = StopReason.SAFETY_STOP
+        else:
+            reason = StopReason.JOB_FAILED
+        self._fault(reason, f"scan {job_id} {status}: {termination}")
+
+    # ------------------------------------------------------------------ states
+
+    def _enter(self, state: State, cause: str) -> None:
+        self._record_transition(state, cause)
+        work: dict[State, Callable[[], Awaitable[None]]] = {
+            State.STARTING: self._starting, State.UNHOLDING: self._restarting,
+            State.UNSUSPENDING: self._restarting, State.STOPPING: self._stop_scan,
+            State.HOLDING: self._stop_scan, State.SUSPENDING: self._stop_scan,
+            State.ABORTING: self._stop_scan,
+            State.CLEARING: self._clearing, State.RESETTING: self._resetting,
+        }
+        if state in work:
+            self._spawn(work[state](), state)
+
+    def _spawn(self, coroutine: Awaitable[None], state: State) -> None:
+        async def run() -> None:
+            try:
+                await coroutine
+            except Exception as exc:  # an acting state that cannot finish is a fault, never a hang
+                log.exception("line: %s failed", state.label)
+                if self.state is state:
+                    self._fault(StopReason.JOB_FAILED, f"{state.label} failed: {type(exc).__name__}: {exc}")
+
+        task = asyncio.create_task(run(), name=f"line {state.label}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _starting(self) -> None:
+        self._cycle_part = self.part_id
+        self._done = None
+        await self._scan(self._cycle_part, State.STARTING)
+
+    async def _restarting(self) -> None:
+        state = self.state
+        if self._done is not None:
+            done, self._done = self._done, None
+            self._enter(State.EXECUTE, "the held part's scan had completed")
+            self._complete(done)
+            return
+        await self._scan(self._cycle_part, state)
+
+    async def _scan(self, part_id: str, acting: State) -> None:
+        """Submit the part's scan job and enter Execute; a part the cell cannot scan completes as a
+        defective one."""
+        service = self._service
+        name: str | None = part_id
+        pose: tuple[float, float, float] | None = None
+        try:
+            if service.objects.virtual:
+                name, pose = feeder_part(part_id)
+            else:
+                name = None
+            seed = self._record.processed
+            request = JobRequest(object=name, object_pose=pose, seed=seed, max_time_s=self._config.max_time_s,
+                                 part_id=part_id)
+            job = await service.submit(request, f"line: {self._source}", origin="line")
+        except ServiceError as exc:
+            if exc.reason != "invalid" or self.state is not acting:
+                raise
+            self._enter(State.EXECUTE, f"part {part_id!r} cannot be scanned")
+            self._complete(rejected(part_id, f"{exc.field}: {exc}"))
+            return
+        if self.state is not acting:  # stopped or aborted meanwhile: the job is not the line's any more
+            await service.stop_job(job.id, f"the line left {acting.label}")
+            return
+        self._job_id = job.id
+        self._enter(State.EXECUTE, f"scan {job.id} of part {part_id!r}")
+
+    def _complete(self, result: CycleResult) -> None:
+        """Completing: the result and the counters, then Complete."""
+        self._enter(State.COMPLETING, f"{result.status}: {result.message}")
+        r = self._record
+        self._save(processed=r.processed + 1, defective=r.defective + (not result.fits),
+                   last_result=result.as_dict())
+        self._enter(State.COMPLETE, "the result is written" + ("" if result.fits else " (defective)"))
+
+    async def _stop_scan(self) -> None:
+        acting = self.state
+        job_id = self._job_id
+        if job_id is not None:
+            await self._service.stop_job(job_id, f"the line: {acting.label}")
+            return  # job_ended moves on
+        after = {State.STOPPING: State.STOPPED, State.ABORTING: State.ABORTED, State.HOLDING: State.HELD,
+                 State.SUSPENDING: State.SUSPENDED}[acting]
+        if self.state is acting:
+            self._enter(after, "no scan was running")
+
+    async def _clearing(self) -> None:
+        service = self._service
+        if service.arm.faulted:
+            outcome = await service.recover_arm()
+            if not outcome["ok"]:
+                self._fault(StopReason.CLEAR_FAILED, f"the arm did not recover: {outcome['message']}")
+                return
+        if self.state is State.CLEARING:
+            self._enter(State.STOPPED, "cleared")
+
+    async def _resetting(self) -> None:
+        self._service.resume_for_line()
+        if self.state is State.RESETTING:
+            self._enter(State.IDLE, "reset")
+
+    # ------------------------------------------------------------------ recording
+
+    def _fault(self, reason: StopReason, text: str) -> None:
+        """The fault path with no scan left to stop: Aborting, then Aborted, with the stop reason."""
+        self._set_stop_reason(reason, text)
+        self._record_transition(State.ABORTING, text)
+        self._record_transition(State.ABORTED, "nothing moves")
+
+    def _set_stop_reason(self, reason: StopReason, text: str) -> None:
+        self._save(stop_reason_id=int(reason), stop_reason=text[:500])
+
+    def _save(self, **changes: Any) -> None:
+        self._record = record = replace(self._record, **changes)
+        self._writes.put_nowait(lambda: self._store.put_line(record))
+
+    def _record_transition(self, to: State, cause: str) -> None:
+        transition = LineTransition(cell=self._cell, at=datetime.now(UTC), from_state=int(self.state),
+                                    to_state=int(to), mode=int(self.mode), cause=cause[:500])
+        log.info("line: %s -> %s (%s)", self.state.label, to.label, cause)
+        self.state = to
+        self._writes.put_nowait(lambda: self._store.add_line_transition(transition))
+        self._notify()
+
+    def _notify(self) -> None:
+        snapshot = self.snapshot()
+        for listener in self._listeners:
+            try:
+                listener(snapshot)
+            except Exception:  # one broken way in must not stop the others from hearing
+                log.exception("line: a listener failed")
+
+    async def _write_all(self) -> None:
+        while (write := await self._writes.get()) is not None:
+            try:
+                await asyncio.to_thread(write)
+            except StoreError as exc:
+                log.error("line: not recorded: %s", exc)

@@ -1,0 +1,101 @@
+"""What the line reads after a cycle, and what a part id says in a sim or dry-run cell.
+
+In sim and dry-run cells the part id names what the simulated feeder puts on the table: a shipped object
+or an uploaded mesh, optionally with a placement ``NAME@x_m,y_m,yaw_deg`` (from the station, as
+``cell scan --object-pose``). On a real cell the part id is only recorded.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from cell.line.config import PART_ID_MAX
+from drivers.errors import ServiceError
+
+PLACEMENT_SEPARATOR = "@"
+
+
+def check_part_id(part_id: str) -> str:
+    """``part_id`` if a line may send it (1 to :data:`PART_ID_MAX` printable characters), else
+    ``ServiceError`` (invalid, field ``part_id``)."""
+    if not 0 < len(part_id) <= PART_ID_MAX or not part_id.isprintable():
+        raise ServiceError(f"a part id is 1 to {PART_ID_MAX} printable characters, got {len(part_id)}",
+                           reason="invalid", field="part_id")
+    return part_id
+
+
+def feeder_part(part_id: str) -> tuple[str, tuple[float, float, float] | None]:
+    """The object and placement (x [m], y [m], yaw [deg], or None: the cell's default) a sim or dry-run
+    cell's feeder puts on the table for ``part_id``; ``ServiceError`` (invalid, field ``part_id``) for a
+    placement that is not three finite numbers."""
+    name, sep, placement = part_id.partition(PLACEMENT_SEPARATOR)
+    if not sep:
+        return name, None
+    try:
+        x, y, yaw = (float(v) for v in placement.split(","))
+    except ValueError:
+        raise ServiceError(f"part id {part_id!r}: the placement after '@' must be x_m,y_m,yaw_deg",
+                           reason="invalid", field="part_id") from None
+    if not all(math.isfinite(v) for v in (x, y, yaw)):
+        raise ServiceError(f"part id {part_id!r}: the placement must be finite numbers", reason="invalid",
+                           field="part_id")
+    return name, (x, y, yaw)
+
+
+@dataclass(frozen=True)
+class CycleResult:
+    """One part's result as the line reads it (``Result/...``).
+
+    ``status`` is the job's (``completed``, ``stopped``, ``failed``) or ``rejected`` when no scan ran (an
+    unknown part); ``length_m`` >= ``width_m`` and ``height_m`` the packing box [m] (0 when none was
+    measured); ``container`` the chosen container's name ("" when none fits); ``clearance_m`` the
+    smallest gap [m] between the box and the container's walls or lid (0 when none fits); ``fits``
+    whether a container was chosen (a part that fits none is defective, not a fault); ``message`` why,
+    in words."""
+
+    job_id: str
+    part_id: str
+    status: str
+    length_m: float = 0.0
+    width_m: float = 0.0
+    height_m: float = 0.0
+    container: str = ""
+    clearance_m: float = 0.0
+    fits: bool = False
+    message: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> CycleResult:
+        return cls(**data)
+
+
+def rejected(part_id: str, reason: str) -> CycleResult:
+    """The result of a part the cell would not scan (no job ran)."""
+    return CycleResult(job_id="", part_id=part_id, status="rejected", message=reason)
+
+
+def cycle_result(job_id: str, part_id: str, status: str, termination: str | None,
+                 result: dict[str, Any] | None) -> CycleResult:
+    """The line's view of a finished job: its ``result.json``'s ``packing`` section (dimensions, container)
+    and how it ended."""
+    packing = (result or {}).get("packing") or {}
+    dims = packing.get("dims_m")
+    container = packing.get("container") or {}
+    reason = str(container.get("reason") or termination or status)
+    if not dims:
+        return CycleResult(job_id=job_id, part_id=part_id, status=status, message=reason)
+    length, width = sorted(dims[:2], reverse=True)
+    height = dims[2]
+    inner = container.get("inner_dims_m")
+    if not container.get("name") or not inner:
+        return CycleResult(job_id, part_id, status, length, width, height, message=reason)
+    in_plane = sorted(inner[:2], reverse=True)
+    # the box stands on the container's floor: gaps on each side in the plane, and above it
+    clearance = min((in_plane[0] - length) / 2.0, (in_plane[1] - width) / 2.0, inner[2] - height)
+    return CycleResult(job_id, part_id, status, length, width, height, str(container["name"]),
+                       round(clearance, 6), True, reason)
