@@ -36,6 +36,7 @@ from typing import Any
 from cell import __version__
 from cell.config.models import CellConfig
 from cell.line.controller import LineController
+from cell.line.dio import DigitalIOHandshake
 from cell.planning.registry import PLANNERS
 from cell.service.arm_status import ArmTracker
 from cell.service.events import EventHub, JobEvents
@@ -45,6 +46,7 @@ from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_c
 from cell.service.recovery import finish_folder, reconcile
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store
 from cell.service.submission import JobRequest, ValidJob, validate
+from drivers.arm.config import UR5eArmConfig
 from drivers.errors import ServiceError
 
 LINE_LIMIT = 1 << 24
@@ -129,6 +131,7 @@ class CellService:
         self._wake = asyncio.Event()
         self._dispatcher: asyncio.Task[None] | None = None
         self.line = LineController(self, config.line, store) if config.line is not None else None
+        self._dio: DigitalIOHandshake | None = None
 
     # ------------------------------------------------------------------ life
 
@@ -141,6 +144,11 @@ class CellService:
                                           self.config.service.shutdown_timeout_s)
         if self.line is not None:
             await self.line.start()
+            line_cfg, arm_cfg = self.config.line, self.config.arm
+            assert line_cfg is not None
+            if line_cfg.dio is not None and isinstance(arm_cfg, UR5eArmConfig):
+                self._dio = DigitalIOHandshake(self.line, arm_cfg, line_cfg.dio)
+                self._dio.start()
         self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
         return settled
 
@@ -164,6 +172,8 @@ class CellService:
                 await asyncio.wait_for(asyncio.shield(self._dispatcher),
                                        self.config.service.shutdown_timeout_s)
             self._dispatcher.cancel()
+        if self._dio is not None:
+            await self._dio.close()
         if self.line is not None:
             await self.line.close()
 

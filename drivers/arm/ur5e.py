@@ -350,7 +350,7 @@ class UR5eArm(HardwareArm):
             "robot mode": ROBOT_MODES.get(robot_mode, str(robot_mode)),
             "safety mode": SAFETY_MODES.get(safety_mode, str(safety_mode)),
             "control script": "running" if snap["program_running"] else "not running",
-            "digital inputs": "".join("1" if b else "0" for b in _bits(snap["digital_inputs"])),
+            "digital inputs": "".join("1" if b else "0" for b in bits(snap["digital_inputs"])),
         }
 
     # ------------------------------------------------------------------ commands
@@ -527,7 +527,7 @@ class UR5eArm(HardwareArm):
 
     def digital_inputs(self) -> tuple[bool, ...]:
         """The eight standard digital inputs, DI0 first."""
-        return _bits(self._snapshot()["digital_inputs"])
+        return bits(self._snapshot()["digital_inputs"])
 
     def trigger(self) -> bool:
         """The line trigger input's level; ``DriverError`` when the config wires none."""
@@ -548,6 +548,6 @@ class UR5eArm(HardwareArm):
             raise self._fault_error(f"setting digital output {refused}")
 
 
-def _bits(value: int) -> tuple[bool, ...]:
+def bits(value: int) -> tuple[bool, ...]:
     """The ``N_DIGITAL`` lowest bits of ``value``, bit 0 first."""
     return tuple(bool(value >> i & 1) for i in range(N_DIGITAL))

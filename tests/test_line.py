@@ -1,0 +1,306 @@
+"""The packing line's PackML state machine through REST (in process; each scan in a real worker), the
+digital-I/O handshake against the RTDE controller peer, and the pieces: the state table, the part id,
+the result a line reads, the debouncer."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from fastapi.testclient import TestClient
+
+from cell.api.app import create_app
+from cell.line.dio import Debouncer
+from cell.line.packml import ACCEPTS, Command, State, refusal
+from cell.line.result import check_part_id, cycle_result, feeder_part
+from cell.service.keys import create_key
+from cell.service.startup import ServiceSettings, open_data_store
+from drivers.errors import ServiceError
+from tests.rtde_peer import ControllerPeer
+
+from .conftest import CONFIG_DIR
+
+TOF = CONFIG_DIR / "sim-ur5e-tof.yaml"
+DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
+ROLES = ("viewer", "operator", "line", "admin")
+
+
+class Line:
+    """A served cell with a line, and a key of each role."""
+
+    def __init__(self, client: TestClient, keys: dict[str, str]) -> None:
+        self.client, self.keys = client, keys
+
+    def auth(self, role: str) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.keys[role]}"}
+
+    def state(self) -> dict[str, Any]:
+        return self.client.get("/api/v1/line", headers=self.auth("viewer")).json()
+
+    def command(self, command: str, part_id: str | None = None, role: str = "line") -> Any:
+        body = {"command": command} | ({"part_id": part_id} if part_id is not None else {})
+        return self.client.post("/api/v1/line/command", json=body, headers=self.auth(role))
+
+    def wait(self, states: set[str], timeout_s: float = 120.0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        while (now := self.state())["state_name"] not in states:
+            assert time.monotonic() < deadline, f"the line stayed {now['state_name']}: {now}"
+            time.sleep(0.05)
+        return now
+
+    def job(self, job_id: str) -> dict[str, Any]:
+        return self.client.get(f"/api/v1/jobs/{job_id}", headers=self.auth("viewer")).json()
+
+
+def _cell_file(tmp_path: Path, base: Path, line: dict[str, Any], **changes: Any) -> Path:
+    data = yaml.safe_load(base.read_text())
+    data["line"] = line
+    data.update(changes)
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@contextlib.contextmanager
+def served_line(tmp_path: Path, config: Path) -> Iterator[Line]:
+    data = tmp_path / "data"
+    store = open_data_store(data, None)
+    keys = {role: create_key(store, role, role)[1] for role in ROLES}
+    store.close()
+    with TestClient(create_app(ServiceSettings(config_file=config, data_dir=data))) as client:
+        yield Line(client, keys)
+
+
+@pytest.fixture
+def line(tmp_path: Path) -> Iterator[Line]:
+    with served_line(tmp_path, _cell_file(tmp_path, TOF, {"initial_mode": "production"})) as served:
+        yield served
+
+
+# ---------------------------------------------------------------------- the pieces
+
+
+def test_the_state_table_is_packmls():
+    assert refusal(State.IDLE, Command.START) is None
+    assert refusal(State.EXECUTE, Command.START) == ("Start is not valid in Execute (valid in: Idle)")
+    assert ACCEPTS[Command.RESET] == {State.STOPPED, State.COMPLETE}
+    assert ACCEPTS[Command.CLEAR] == {State.ABORTED}
+    # Stop from every state outside the Stopped and Aborted branches; Abort from all but Aborting/Aborted
+    assert State.CLEARING not in ACCEPTS[Command.STOP] and State.COMPLETE in ACCEPTS[Command.STOP]
+    assert set(State) - ACCEPTS[Command.ABORT] == {State.ABORTING, State.ABORTED}
+    assert [int(s) for s in (State.CLEARING, State.EXECUTE, State.COMPLETE)] == [1, 6, 17]
+    assert [int(c) for c in (Command.RESET, Command.START, Command.CLEAR)] == [1, 2, 9]
+
+
+def test_part_ids():
+    assert feeder_part("bunny") == ("bunny", None)
+    assert feeder_part("horizontal_box@0.01,-0.02,20") == ("horizontal_box", (0.01, -0.02, 20.0))
+    for bad in ("cube@1,2", "cube@a,b,c", "cube@nan,0,0"):
+        with pytest.raises(ServiceError, match="placement") as err:
+            feeder_part(bad)
+        assert err.value.field == "part_id"
+    assert check_part_id("x" * 64) == "x" * 64
+    for bad in ("", "x" * 65, "tab\there"):
+        with pytest.raises(ServiceError, match="1 to 64 printable"):
+            check_part_id(bad)
+
+
+def test_the_result_a_line_reads():
+    packing = {"dims_m": [0.10, 0.20, 0.05], "container": {
+        "name": "medium", "inner_dims_m": [0.25, 0.20, 0.15], "rotated": True, "reason": "smallest"}}
+    result = cycle_result("j", "p", "completed", "done", {"packing": packing})
+    # length is the longer side; the clearance is the smallest gap: (0.20 - 0.10) / 2 across
+    assert (result.length_m, result.width_m, result.height_m) == (0.20, 0.10, 0.05)
+    assert result.fits and result.container == "medium" and result.clearance_m == pytest.approx(0.025)
+    none = {"dims_m": [0.6, 0.5, 0.4], "container": {"name": None, "reason": "none fits: no container"}}
+    defective = cycle_result("j", "p", "completed", "done", {"packing": none})
+    assert not defective.fits and defective.container == "" and defective.length_m == 0.6
+    assert defective.message == "none fits: no container"
+
+
+def test_the_debouncer_ignores_bounces_shorter_than_its_hold():
+    trigger = Debouncer(False, hold_s=0.02)
+    assert trigger.update(True, 0.000) is None
+    assert trigger.update(False, 0.010) is None  # a bounce: back before 20 ms
+    assert trigger.update(True, 0.015) is None
+    assert trigger.update(True, 0.030) is None
+    assert trigger.update(True, 0.036) is True and trigger.level
+    assert trigger.update(True, 0.100) is None
+
+
+# ---------------------------------------------------------------------- through REST
+
+
+def test_whole_cycles_with_results_and_counters(line: Line):
+    assert line.state()["state_name"] == "Stopped"
+    refused = line.command("start", "cube")
+    assert refused.status_code == 409 and "valid in: Idle" in refused.json()["detail"]
+    assert line.command("reset").json()["line"]["state_name"] in {"Resetting", "Idle"}
+    line.wait({"Idle"})
+    parts = ["horizontal_box@0.01,-0.02,20", "unicorn", "cube@-0.02,0.01,45"]
+    for n, part in enumerate(parts, start=1):
+        assert line.command("start", part).status_code == 200
+        done = line.wait({"Complete"})
+        result = done["result"]
+        assert result["part_id"] == part and done["processed"] == n
+        if part == "unicorn":  # the feeder has no such part: defective, not a fault
+            assert result["status"] == "rejected" and not result["fits"]
+            assert "unknown object" in result["message"]
+        else:
+            job = line.job(result["job_id"])
+            assert job["status"] == "completed" and job["part_id"] == part
+            assert result["fits"] and result["container"] and result["clearance_m"] > 0
+            assert result["length_m"] >= result["width_m"] > 0 and result["height_m"] > 0
+        assert line.command("reset").status_code == 200
+        line.wait({"Idle"})
+    assert line.state()["defective"] == 1
+    history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
+    walk = [(h["from_name"], h["to_name"]) for h in reversed(history)]
+    assert walk[:3] == [("Stopped", "Stopped"), ("Stopped", "Resetting"), ("Resetting", "Idle")]
+    assert walk.count(("Completing", "Complete")) == 3
+    assert line.client.get("/api/v1/line/history", headers={}).status_code == 401
+
+
+def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: Line):
+    line.command("reset")
+    line.wait({"Idle"})
+    line.command("start", "bunny")
+    running = line.wait({"Execute"})
+    again = line.command("start", "cube")
+    assert again.status_code == 409 and "not valid in Execute" in again.json()["detail"]
+    after = line.state()
+    assert after["state_name"] == "Execute" and after["job_id"] == running["job_id"]
+    assert line.command("stop", role="viewer").status_code == 403
+    assert line.command("stop").status_code == 200
+    stopped = line.wait({"Stopped"})
+    assert stopped["stop_reason"] == {"id": 1, "message": "Stop from REST (key line)"}
+    assert line.job(running["job_id"])["status"] == "stopped"
+    assert stopped["processed"] == 0
+
+
+def test_an_arm_fault_aborts_and_clear_then_reset_recover(tmp_path: Path):
+    config = _cell_file(tmp_path, TOF, {}, sim={"table_size_m": [1.2, 1.2], "table_center_xy_m": [0.4, 0.0],
+                                               "faults": [{"at_s": 2.0, "kind": "protective stop"}]})
+    with served_line(tmp_path, config) as line:
+        line.command("reset")
+        line.wait({"Idle"})
+        line.command("start", "bunny")
+        aborted = line.wait({"Aborted"})
+        assert aborted["stop_reason"]["id"] == 5 and "protective stop" in aborted["stop_reason"]["message"]
+        refused = line.command("reset")
+        assert refused.status_code == 409 and "valid in: Stopped, Complete" in refused.json()["detail"]
+        assert line.state()["state_name"] == "Aborted"
+        line.command("clear")
+        line.wait({"Stopped"})
+        cell = line.client.get("/api/v1/cell", headers=line.auth("viewer")).json()
+        assert not cell["arm"]["faults"] and cell["line"]["state_name"] == "Stopped"
+        line.command("reset")
+        line.wait({"Idle"})
+
+
+def test_the_line_and_operators_never_drive_the_cell_at_once(line: Line):
+    op = line.auth("operator")
+    refused = line.client.post("/api/v1/jobs", json={"object": "cube"}, headers=op)
+    assert refused.status_code == 409 and "Production mode" in refused.json()["detail"]
+    manual = line.client.post("/api/v1/line/mode", json={"mode": "manual"}, headers=op)
+    assert manual.status_code == 200 and manual.json()["line"]["mode_name"] == "Manual"
+    line.command("reset")
+    line.wait({"Idle"})
+    start = line.command("start", "cube")
+    assert start.status_code == 409 and "Manual mode" in start.json()["detail"]
+    job = line.client.post("/api/v1/jobs", json={"object": "bunny"}, headers=op).json()
+    back = line.client.post("/api/v1/line/mode", json={"mode": 1}, headers=line.auth("line"))
+    assert back.status_code == 409 and "operator jobs" in back.json()["detail"]
+    line.client.post(f"/api/v1/jobs/{job['id']}/stop", headers=op)
+    deadline = time.monotonic() + 30
+    while line.client.post("/api/v1/line/mode", json={"mode": "production"},
+                           headers=line.auth("line")).status_code != 200:
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    assert line.state()["mode_name"] == "Production"
+    maintenance = line.client.post("/api/v1/line/mode", json={"mode": 2}, headers=line.auth("line"))
+    assert maintenance.status_code == 422 and "not offered" in maintenance.text
+
+
+def test_an_operator_stop_stops_the_line_and_the_counters_outlive_a_restart(tmp_path: Path):
+    config = _cell_file(tmp_path, TOF, {})
+    with served_line(tmp_path, config) as line:
+        line.command("reset")
+        line.wait({"Idle"})
+        line.command("start", "baseball")
+        line.wait({"Complete"})
+        line.command("reset")
+        line.wait({"Idle"})
+        line.command("start", "bunny")
+        line.wait({"Execute"})
+        stop = line.client.post("/api/v1/stop", json={"reason": "hands in the cell"},
+                                headers=line.auth("viewer"))
+        assert stop.status_code == 200
+        stopped = line.wait({"Stopped"})
+        assert stopped["stop_reason"]["id"] == 2 and "hands in the cell" in stopped["stop_reason"]["message"]
+        # Reset releases the queue the STOP held: the next part scans
+        line.command("reset")
+        line.wait({"Idle"})
+        assert line.client.get("/api/v1/cell", headers=line.auth("viewer")).json()["queue"]["held"] is None
+        keys = line.keys
+    with _reopen(tmp_path, config, keys) as line:
+        state = line.state()
+        assert state["state_name"] == "Stopped" and state["processed"] == 1
+        assert state["result"]["part_id"] == "baseball" and state["stop_reason"]["id"] == 2
+
+
+@contextlib.contextmanager
+def _reopen(tmp_path: Path, config: Path, keys: dict[str, str]) -> Iterator[Line]:
+    """The same data dir served again, with the keys made the first time."""
+    with TestClient(create_app(ServiceSettings(config_file=config, data_dir=tmp_path / "data"))) as client:
+        yield Line(client, keys)
+
+
+def test_a_cell_without_a_line_says_so(tmp_path: Path):
+    data = tmp_path / "data"
+    store = open_data_store(data, None)
+    key = create_key(store, "line", "l")[1]
+    store.close()
+    with TestClient(create_app(ServiceSettings(config_file=TOF, data_dir=data))) as client:
+        res = client.get("/api/v1/line", headers={"Authorization": f"Bearer {key}"})
+        assert res.status_code == 404 and "no packing line" in res.json()["detail"]
+        assert client.get("/api/v1/cell", headers={"Authorization": f"Bearer {key}"}).json()["line"] is None
+
+
+# ---------------------------------------------------------------------- the robot's digital I/O
+
+
+def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path):
+    base = yaml.safe_load(DRY_RUN.read_text())
+    peer = ControllerPeer(q=base["arm"]["home_joints_rad"])
+    try:
+        arm = base["arm"] | {"host": peer.host}
+        config = _cell_file(tmp_path, DRY_RUN, {"dio": {"part_id": "horizontal_box", "debounce_s": 0.3}},
+                            arm=arm)
+        with served_line(tmp_path, config) as line:
+            trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
+            line.command("reset")
+            line.wait({"Idle"})
+            # a 50 ms pulse is a bounce to a 300 ms filter: nothing starts
+            peer.set_digital_input(trigger, True)
+            time.sleep(0.05)
+            peer.set_digital_input(trigger, False)
+            time.sleep(0.6)
+            assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
+            peer.set_digital_input(trigger, True)
+            peer.wait_for(lambda s: s["digital_out"] == busy, what="busy high in Execute")
+            assert line.state()["state_name"] == "Execute"
+            peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=120, what="done high in Complete")
+            complete = line.state()
+            assert complete["state_name"] == "Complete" and complete["result"]["part_id"] == "horizontal_box"
+            assert complete["message"] == "Start from digital input DI0 rising"
+            peer.set_digital_input(trigger, False)  # the trigger falls: Reset
+            peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the trigger fell")
+            line.wait({"Idle"})
+    finally:
+        peer.stop()
