@@ -133,12 +133,15 @@ class ServiceConfig(StrictModel):
     """``cell serve``: how many jobs may wait behind the running one (``queue_max``; beyond it a
     submission is refused), how long a stop request waits for the job's worker to confirm that the arm
     was commanded to stop [s], how long shutting down waits for a running job to stop and finish its
-    folder [s], and the largest mesh an operator may upload [MB]."""
+    folder [s], and the largest mesh an operator may upload [MB]. ``warm_worker``: keep the next job's
+    worker process started, its libraries loaded, so that a job (a line's Start) reaches the arm without
+    the second or so a new Python process takes to import them; it costs the memory of one idle worker."""
 
     queue_max: PositiveInt = 16
     stop_confirm_timeout_s: PositiveFloat = 2.0
     shutdown_timeout_s: PositiveFloat = 20.0
     max_upload_mb: PositiveFloat = 50.0
+    warm_worker: bool = True
 
 
 class CellConfig(StrictModel):

@@ -304,7 +304,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
             "perception": _perception_summary(session),
             "packing": packing_section(cfg, session, planner, mesh, T_base_object, ground_truth),
             "safety": guard.log.as_dict(),
-            "control": session.ticks.summary() if session is not None else None,
+            "control": None if session is None else {**session.ticks.summary(),
+                                                     "first_motion_unix_s": guard.first_motion_unix_s},
         }
         if isinstance(session, ReplaySession):
             result["replay"] = {"job_dir": str(replay_dir), "n_planner_requests": session.n_planner_requests}

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -123,6 +124,9 @@ class MotionGuard:
         self._stop_lock = threading.Lock()
         self._stop_request: str | None = None
         self._token = arm.claim_motion()
+        self.first_motion_unix_s: float | None = None
+        """Wall-clock time [s since the epoch] of the first motion command sent to the arm (None before
+        one): what a line's latency from its trigger to the arm is measured to."""
 
     @classmethod
     def from_config(cls, arm: Arm, model: RobotModel, config: CellConfig, clock: Clock,
@@ -176,7 +180,7 @@ class MotionGuard:
         self._target = None
         self._following = False
         self._smoother.reset()
-        self._send(self._arm.stop)
+        self._send(self._arm.stop, motion=False)
 
     def request_stop(self, reason: str) -> None:
         """Operator stop, callable from any thread (the service, the CLI): the arm is told to stop at once
@@ -322,7 +326,9 @@ class MotionGuard:
             raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
 
-    def _send(self, command: Callable[[], None]) -> None:
+    def _send(self, command: Callable[[], None], *, motion: bool = True) -> None:
+        if motion and self.first_motion_unix_s is None:
+            self.first_motion_unix_s = time.time()
         try:
             command()
         except RobotFault as exc:

@@ -9,7 +9,8 @@ interpreter lock with the web side, and a job survives nothing it should not: wh
 its worker stops the arm and finishes the folder. A stop is passed to the worker, which commands the arm
 to stop before it answers; a worker that does not answer in ``service.stop_confirm_timeout_s`` is killed
 with its children (the arm's own connection watchdog then stops it: the UR's RTDE watchdog, the Franka's
-communication reflex).
+communication reflex). With ``service.warm_worker`` the next job's worker is started ahead, between
+jobs, and waits with its libraries loaded.
 
 ``stop_all`` (the operator's STOP) also holds the queue: nothing else starts until an operator resumes
 it. A fault the arm reported holds it too, until the arm is recovered (``cell.service.arm_status``).
@@ -132,6 +133,8 @@ class CellService:
         self._dispatcher: asyncio.Task[None] | None = None
         self.line = LineController(self, config.line, store) if config.line is not None else None
         self._dio: DigitalIOHandshake | None = None
+        self._spare: asyncio.subprocess.Process | None = None
+        self._spare_log = self._logs_dir / "worker-spare.log"
 
     # ------------------------------------------------------------------ life
 
@@ -150,6 +153,7 @@ class CellService:
                 self._dio = DigitalIOHandshake(self.line, arm_cfg, line_cfg.dio)
                 self._dio.start()
         self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
+        await self._warm()
         return settled
 
     async def close(self) -> None:
@@ -172,6 +176,7 @@ class CellService:
                 await asyncio.wait_for(asyncio.shield(self._dispatcher),
                                        self.config.service.shutdown_timeout_s)
             self._dispatcher.cancel()
+        await self._close_spare()
         if self._dio is not None:
             await self._dio.close()
         if self.line is not None:
@@ -415,15 +420,44 @@ class CellService:
 
     # ------------------------------------------------------------------ running jobs
 
-    async def _spawn(self, spec: WorkerSpec, log_path: Path) -> asyncio.subprocess.Process:
+    async def _start_worker(self, log_path: Path, label: str) -> asyncio.subprocess.Process:
         with log_path.open("ab") as log:
-            proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", WORKER_MODULE, "--job", spec.job_id, stdin=asyncio.subprocess.PIPE,
+            return await asyncio.create_subprocess_exec(
+                sys.executable, "-m", WORKER_MODULE, "--job", label, stdin=asyncio.subprocess.PIPE,
                 stdout=asyncio.subprocess.PIPE, stderr=log, start_new_session=True, limit=LINE_LIMIT)
+
+    async def _spawn(self, spec: WorkerSpec, log_path: Path, *,
+                     warm: bool = False) -> asyncio.subprocess.Process:
+        """A worker given ``spec``: the warm spare when ``warm`` and one is ready (its log renamed to
+        ``log_path``), else a new process."""
+        proc, self._spare = (self._spare, None) if warm else (None, self._spare)
+        if proc is not None and proc.returncode is None:
+            os.replace(self._spare_log, log_path)
+        else:
+            proc = await self._start_worker(log_path, spec.job_id)
         assert proc.stdin is not None
         proc.stdin.write(spec.line())
         await proc.stdin.drain()
         return proc
+
+    async def _warm(self) -> None:
+        """Start the next job's worker now (``service.warm_worker``): it loads its libraries and waits."""
+        if not self.config.service.warm_worker or self._closing or self._spare is not None:
+            return
+        self._spare_log = self._logs_dir / f"worker-spare-{secrets.token_hex(4)}.log"
+        self._spare = await self._start_worker(self._spare_log, "spare")
+
+    async def _close_spare(self) -> None:
+        spare, self._spare = self._spare, None
+        if spare is None:
+            return
+        assert spare.stdin is not None
+        spare.stdin.close()  # the end of its input: it exits without running anything
+        try:
+            await asyncio.wait_for(spare.wait(), self.config.service.stop_confirm_timeout_s)
+        except TimeoutError:
+            self._kill(spare)
+        self._spare_log.unlink(missing_ok=True)
 
     def _may_start(self) -> bool:
         return bool(self._queued) and self._running is None and self.hold_reason() is None \
@@ -449,7 +483,7 @@ class CellService:
         spec = WorkerSpec(op="scan", job_id=job.id, config=self._config_data, config_file=self._config_file,
                           object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
                           planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
-        proc = running.proc = await self._spawn(spec, self._logs_dir / f"worker-{job.id}.log")
+        proc = running.proc = await self._spawn(spec, self._logs_dir / f"worker-{job.id}.log", warm=True)
         if running.stop_reason is not None:
             await self._stop_running(running, running.stop_reason)
         running.job = await asyncio.to_thread(self.store.update_job, job.id, status="running",
@@ -513,3 +547,4 @@ class CellService:
         if self.line is not None:
             self.line.job_ended(job.id, status, termination, result)
         self._wake.set()
+        await self._warm()

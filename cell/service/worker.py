@@ -153,6 +153,13 @@ def _recover(spec: WorkerSpec, outbox: Outbox) -> int:
         return 1
 
 
+def _preload() -> None:
+    """Import what a scan needs before the task comes: a warm worker (``service.warm_worker``) then
+    starts its job without the second the imports take."""
+    import cell.jobs.runner  # noqa: F401
+    import drivers.factory  # noqa: F401
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m cell.service.worker", description=__doc__)
     parser.add_argument("--job", required=True, help="the job's id (for the process list)")
@@ -162,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     os.dup2(2, 1)
     sys.stdout = sys.stderr
     outbox = Outbox(protocol)
+    _preload()
     source = _lines(sys.stdin.fileno())
     try:
         spec = WorkerSpec.parse(next(source).decode())
