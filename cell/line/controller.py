@@ -245,7 +245,8 @@ class LineController:
             self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
             return
         if status in ("stopped", "cancelled") and not termination.startswith("safety stop"):
-            reason = StopReason.SHUTDOWN if status == "cancelled" else StopReason.OPERATOR_STOP
+            shutdown = status == "cancelled" or not self._service.ready
+            reason = StopReason.SHUTDOWN if shutdown else StopReason.OPERATOR_STOP
             self._set_stop_reason(reason, f"scan {job_id} {status}: {termination}")
             self._record_transition(State.STOPPING, f"the scan was {status}")
             self._record_transition(State.STOPPED, "no scan runs")
