@@ -21,6 +21,7 @@ from cell import __version__
 from cell.api.routes import cell as cell_routes
 from cell.api.routes import health, jobs
 from cell.api.routes import line as line_routes
+from cell.line.opcua import serve_opcua
 from cell.service.keys import KeyRing
 from cell.service.manager import CellService
 from cell.service.startup import ServiceSettings, build_service
@@ -52,7 +53,8 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
             log.warning("%s", line)
         refresher = asyncio.create_task(_refresh_keys(app.state.keys))
         try:
-            yield
+            async with serve_opcua(cell, app.state.keys):  # the line's OPC UA server, if the cell has one
+                yield
         finally:
             refresher.cancel()
             await cell.close()

@@ -15,6 +15,7 @@ import uvicorn
 from rich.console import Console
 
 from cell.api.app import create_app
+from cell.line.opcua import check_endpoint
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
 from drivers.errors import CellError
 
@@ -51,6 +52,11 @@ def serve(
             service.store.close()
             raise CellError(f"refusing to listen on {host}, beyond this machine, with no API key: create one "
                             f"first (cell keys create --data-dir {data_dir} --role admin)")
+        try:
+            check_endpoint(service.config.line)  # the line's OPC UA port: free, and a host of this machine
+        except CellError:
+            service.store.close()
+            raise
     except CellError as exc:
         err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=1) from None

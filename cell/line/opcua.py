@@ -1,0 +1,365 @@
+"""The packing line over OPC UA: an asyncua server on the service's event loop, started by ``cell serve``
+when the cell file has ``line.opcua`` (:func:`serve_opcua`).
+
+Its address space (:mod:`cell.line.opcua_nodes`, documented in ``docs/packml-opcua.md``) offers the line
+two ways to drive the cell's PackML state machine (:class:`cell.line.controller.LineController`), as the
+REST trigger does:
+
+- PackTags: the PLC writes ``Command/CntrlCmd``, then ``Command/CmdChangeRequest`` true; before the
+  write is answered the cell has acted on the command (or refused it) and written ``CmdChangeRequest``
+  back to false; ``Status/CommandMessage`` says what was done or why not. ``Command/UnitMode`` with
+  ``Command/UnitModeChangeRequest`` changes the unit mode the same way. ``Command/Parameter/PartId`` sets
+  the part the next Start scans.
+- OPC 30050's methods (Start, Stop, Reset, ...; SetUnitMode): a refused call answers ``Bad_InvalidState``
+  (not valid in this state) or ``Bad_InvalidArgument``, the reason in ``Status/CommandMessage``.
+
+A write of the wrong type, of a value out of range (a PartId over 64 characters, a CntrlCmd that is no
+command) or with an index range is refused whole (the request's service result is Bad) and changes
+nothing. Values follow the line: every change the controller reports is queued and written, in order,
+by one task; a command's answer waits until its effects are readable. Who logs in and how is
+:mod:`cell.line.opcua_security`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable
+from datetime import UTC
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
+
+from asyncua import Server, ua
+from asyncua.common.callback import CallbackType, ServerItemCallback
+
+from cell.line.config import LineConfig, OPCUAConfig
+from cell.line.controller import LineController, LineSnapshot
+from cell.line.opcua_nodes import (
+    CMD_CHANGE_REQUEST,
+    CNTRL_CMD,
+    COMMAND_MESSAGE,
+    METHODS,
+    PACKML_URI,
+    PART_ID,
+    SET_PART_ID,
+    SET_UNIT_MODE,
+    STATE_CURRENT,
+    TAGS,
+    UNIT_MODE,
+    UNIT_MODE_CHANGE_REQUEST,
+    Namespaces,
+    Tag,
+    build,
+)
+from cell.line.opcua_security import LinePermissions, LineUserManager, caller, ensure_certificate, fingerprint
+from cell.line.packml import Command, UnitMode
+from cell.line.result import check_part_id
+from cell.service.keys import KeyRing
+from drivers.errors import ConfigError, ServiceError
+
+if TYPE_CHECKING:
+    from cell.service.manager import CellService
+
+log = logging.getLogger("cell.line")
+
+S = ua.StatusCodes
+STATUS_OF = {"conflict": S.BadInvalidState, "invalid": S.BadInvalidArgument}
+"""A refused command's status code by the ``ServiceError`` reason."""
+_TAG = {tag.path: tag for tag in TAGS}
+_LINE_TAGS = sorted(((tag.path, tag.read) for tag in TAGS if tag.read is not None),
+                    key=lambda item: item[0] == STATE_CURRENT or item[0].endswith("/CurrentState"))
+"""The tags that follow the line, its state last: a client that sees a new state reads the values that came
+with it (the result with Complete, the job id with Execute)."""
+_COMMANDS = ", ".join(f"{c.value} {c.label}" for c in Command)
+_MODES = ", ".join(f"{m.value} {m.label}" for m in UnitMode)
+MethodResult = ua.StatusCode | ua.CallMethodResult
+
+
+def _status(code: int) -> ua.StatusCode:
+    return ua.StatusCode(ua.UInt32(code))
+
+
+def _source(name: str | None) -> str:
+    return f"OPC UA (key {name})"
+
+
+def _refusal(tag: Tag, item: ua.WriteValue) -> tuple[str, int] | None:
+    """Why a client's write of ``item`` to ``tag`` is refused, with its status code; None: it is not."""
+    data = item.Value
+    if item.IndexRange:
+        return "index ranges are not supported", S.BadWriteNotSupported
+    if data.StatusCode is not None and not data.StatusCode.is_good():
+        return "a value with a Bad status", S.BadWriteNotSupported
+    variant = data.Value
+    if variant is None or variant.Value is None:
+        return f"expects a {tag.vtype.name}, got nothing", S.BadTypeMismatch
+    if variant.VariantType != tag.vtype or variant.is_array:
+        got = f"an array of {variant.VariantType.name}" if variant.is_array else variant.VariantType.name
+        return f"expects a {tag.vtype.name}, got {got}", S.BadTypeMismatch
+    value = variant.Value
+    if tag.path == CNTRL_CMD and value != 0 and value not in set(Command):
+        return f"{value} is no command (0 none, {_COMMANDS})", S.BadOutOfRange
+    if tag.path == UNIT_MODE and value != 0 and value not in set(UnitMode):
+        return f"{value} is no unit mode (0 none, {_MODES})", S.BadOutOfRange
+    if tag.path == PART_ID:
+        try:
+            check_part_id(value)
+        except ServiceError as exc:
+            return str(exc), S.BadOutOfRange
+    return None
+
+
+class LineOPCUA:
+    """The OPC UA server of one cell's line (see the module docstring)."""
+
+    def __init__(self, service: CellService, line: LineController, config: OPCUAConfig,
+                 keys: KeyRing) -> None:
+        self._service = service
+        self._line = line
+        self._config = config
+        self._keys = keys
+        self._server = Server(user_manager=LineUserManager(keys))
+        self._ids: dict[str, ua.NodeId] = {}
+        self._writable: dict[ua.NodeId, Tag] = {}
+        self._snapshots: asyncio.Queue[LineSnapshot] = asyncio.Queue()
+        self._published: dict[str, Any] = {}
+        self._line_message: str | None = None
+        self._publisher: asyncio.Task[None] | None = None
+
+    @property
+    def application_uri(self) -> str:
+        """The server's OPC UA application URI (also in its certificate)."""
+        return f"urn:cell:{self._service.name}"
+
+    async def start(self) -> None:
+        """Build the address space and listen; ``ConfigError`` in one line when the endpoint cannot be
+        bound or the certificate cannot be made."""
+        server, config = self._server, self._config
+        await server.init()
+        server.set_endpoint(config.endpoint)
+        server.set_server_name(f"cell {self._service.name}")
+        await server.set_application_uri(self.application_uri)
+        if config.security == "sign-and-encrypt":
+            cert, key = await asyncio.to_thread(ensure_certificate, self._service.data_dir / "opcua",
+                                                self.application_uri, config.host)
+            await server.load_certificate(str(cert))
+            await server.load_private_key(str(key))
+            policies = [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt]
+            log.info("OPC UA: server certificate %s, SHA-256 %s", cert, fingerprint(cert))
+        else:
+            policies = [ua.SecurityPolicyType.NoSecurity]
+        server.set_security_policy(policies, permission_ruleset=LinePermissions(self._keys))
+        server.set_identity_tokens([ua.UserNameIdentityToken])
+        ns = Namespaces(await server.register_namespace(config.namespace),
+                        await server.register_namespace(PACKML_URI))
+        handlers = {method.path: self._handler(method.path) for method in METHODS}
+        self._ids = await build(server, self._service.name, ns, handlers)
+        self._writable = {self._ids[tag.path]: tag for tag in TAGS if tag.writable}
+        server.subscribe_server_callback(CallbackType.PreWrite, self._pre_write)
+        server.subscribe_server_callback(CallbackType.PostWrite, self._post_write)
+        self._publisher = asyncio.create_task(self._publish_all(), name="OPC UA values")
+        self._line.subscribe(self._heard)
+        self._heard(self._line.snapshot())
+        await self.settle()
+        try:
+            await server.start()
+        except OSError as exc:
+            raise ConfigError(f"cannot listen on {config.endpoint}: {exc.strerror or exc}",
+                              field="line.opcua.endpoint") from None
+        log.info("OPC UA: listening on %s (security %s)", config.endpoint, config.security)
+
+    async def stop(self) -> None:
+        """Close the sessions and stop listening."""
+        publisher, self._publisher = self._publisher, None
+        await self._server.stop()
+        if publisher is not None:
+            publisher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await publisher
+
+    async def settle(self) -> None:
+        """Wait until every change the line reported so far is written into the address space."""
+        await self._snapshots.join()
+
+    # ------------------------------------------------------------------ values
+
+    def _heard(self, snapshot: LineSnapshot) -> None:
+        if self._publisher is not None:
+            self._snapshots.put_nowait(snapshot)
+
+    async def _publish_all(self) -> None:
+        while True:
+            snapshot = await self._snapshots.get()
+            try:
+                await self._publish(snapshot)
+            except Exception:  # one failed write must not leave every later change unpublished
+                log.exception("OPC UA: the line's values were not written")
+            finally:
+                self._snapshots.task_done()
+
+    async def _publish(self, snapshot: LineSnapshot) -> None:
+        for path, read in _LINE_TAGS:
+            await self._set(path, read(snapshot))
+        if snapshot.message != self._line_message:
+            self._line_message = snapshot.message
+            await self._set(COMMAND_MESSAGE, snapshot.message)
+
+    async def _set(self, path: str, value: Any) -> None:
+        """Write a value the server owns (unchanged values are not written again)."""
+        if self._published.get(path) != value:
+            self._published[path] = value
+            await self._write(path, value)
+
+    async def _write(self, path: str, value: Any) -> None:
+        now = ua.DateTime.now(UTC)
+        await self._server.write_attribute_value(self._ids[path], ua.DataValue(
+            ua.Variant(value, _TAG[path].vtype), SourceTimestamp=now, ServerTimestamp=now))
+
+    async def _say(self, text: str) -> None:
+        """``Status/CommandMessage`` for what this server refused or did itself."""
+        await self.settle()
+        log.info("OPC UA: %s", text)
+        await self._set(COMMAND_MESSAGE, text)
+
+    def _read(self, path: str) -> Any:
+        value = self._server.read_attribute_value(self._ids[path]).Value
+        return None if value is None else value.Value
+
+    # ------------------------------------------------------------------ writes
+
+    async def _pre_write(self, event: ServerItemCallback, _: Any) -> None:
+        """Refuse a client's whole write request when one of its values may not be written."""
+        if not event.is_external:
+            return
+        for item in event.request_params.NodesToWrite:
+            tag = self._writable.get(item.NodeId)
+            if tag is None or item.AttributeId != ua.AttributeIds.Value:
+                continue  # asyncua refuses what is not writable
+            refused = _refusal(tag, item)
+            if refused is not None:
+                why, code = refused
+                await self._say(f"refused a write of {tag.path.rsplit('/', 1)[-1]} from "
+                                f"{_source(event.user.name)}: {why}")
+                raise ua.UaStatusCodeError(code)
+
+    async def _post_write(self, event: ServerItemCallback, _: Any) -> None:
+        """Act on what a client wrote: the part id, the command and mode handshakes."""
+        if not event.is_external:
+            return
+        source = _source(event.user.name)
+        for item, status in zip(event.request_params.NodesToWrite, event.response_params, strict=True):
+            tag = self._writable.get(item.NodeId)
+            if tag is None or not status.is_good():
+                continue
+            value = item.Value.Value.Value
+            if tag.path == PART_ID:
+                self._line.set_part_id(value)
+            elif tag.path == CMD_CHANGE_REQUEST and value:
+                await self._command(self._read(CNTRL_CMD), source)
+                await self._write(CMD_CHANGE_REQUEST, False)
+            elif tag.path == UNIT_MODE_CHANGE_REQUEST and value:
+                await self._mode(self._read(UNIT_MODE), source)
+                await self._write(UNIT_MODE_CHANGE_REQUEST, False)
+        await self.settle()
+
+    # ------------------------------------------------------------------ commands
+
+    async def _command(self, number: int, source: str) -> ua.StatusCode:
+        """Give the line PackML command ``number``; its status code once its effects are readable."""
+        try:
+            command = Command(number)
+        except ValueError:
+            await self._say(f"refused CntrlCmd {number} from {source}: no command; one of {_COMMANDS}")
+            return _status(S.BadInvalidArgument)
+        try:
+            await self._line.command(command, source)
+        except ServiceError as exc:  # the controller says why in its message
+            await self.settle()
+            return _status(STATUS_OF.get(exc.reason, S.BadInvalidState))
+        await self.settle()
+        return _status(S.Good)
+
+    async def _mode(self, number: int, source: str) -> ua.StatusCode:
+        """Switch the line to unit mode ``number``; its status code."""
+        try:
+            mode = UnitMode(number)
+        except ValueError:
+            await self._say(f"refused unit mode {number} from {source}: one of {_MODES}")
+            return _status(S.BadInvalidArgument)
+        try:
+            done = await self._line.set_mode(mode, source)
+        except ServiceError as exc:
+            await self._say(f"refused unit mode {mode.label} from {source}: {exc}")
+            return _status(STATUS_OF.get(exc.reason, S.BadInvalidState))
+        await self._say(f"unit mode {mode.label} from {source}: {done}")
+        return _status(S.Good)
+
+    async def _part_id(self, part_id: str, source: str) -> MethodResult:
+        try:
+            self._line.set_part_id(part_id)
+        except ServiceError as exc:
+            await self._say(f"refused part id from {source}: {exc}")
+            return ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
+                                       InputArgumentResults=[_status(S.BadOutOfRange)])
+        await self.settle()
+        return _status(S.Good)
+
+    def _handler(self, path: str) -> Callable[..., Awaitable[MethodResult]]:
+        """The handler of method ``path`` (asyncua calls it with the object's NodeId and the arguments)."""
+        spec = next(m for m in METHODS if m.path == path)
+
+        async def call(_: ua.NodeId, *args: ua.Variant) -> MethodResult:
+            source = _source(caller.get())
+            expected = [] if spec.argument is None else [spec.argument[1]]
+            if len(args) > len(expected):
+                return _status(S.BadTooManyArguments)
+            if len(args) < len(expected):
+                return _status(S.BadArgumentsMissing)
+            if any(a.VariantType != t or a.is_array for a, t in zip(args, expected, strict=True)):
+                return ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
+                                           InputArgumentResults=[_status(S.BadTypeMismatch)])
+            if spec.command is not None:
+                return await self._command(int(spec.command), source)
+            if path == SET_UNIT_MODE:
+                return await self._mode(args[0].Value, source)
+            assert path == SET_PART_ID
+            return await self._part_id(args[0].Value, source)
+
+        return call
+
+
+def check_endpoint(line: LineConfig | None) -> None:
+    """Whether this machine can listen on the line's OPC UA endpoint now (nothing to check without one):
+    ``ConfigError`` in one line for a port in use or a host that is not this machine's, before the
+    service starts."""
+    if line is None or line.opcua is None:
+        return
+    endpoint = line.opcua.endpoint
+    parts = urlsplit(endpoint)
+    try:
+        for family, kind, proto, _, address in socket.getaddrinfo(parts.hostname, parts.port,
+                                                                   type=socket.SOCK_STREAM):
+            with socket.socket(family, kind, proto) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server's own socket
+                probe.bind(address)
+    except OSError as exc:
+        raise ConfigError(f"cannot listen on {endpoint}: {exc.strerror or exc}",
+                          field="line.opcua.endpoint") from None
+
+
+@contextlib.asynccontextmanager
+async def serve_opcua(service: CellService, keys: KeyRing) -> AsyncIterator[LineOPCUA | None]:
+    """The cell's OPC UA server while the context runs (None when the cell file has no ``line.opcua``);
+    ``keys`` authenticates its users and is kept current by the caller."""
+    line_config = service.config.line
+    if service.line is None or line_config is None or line_config.opcua is None:
+        yield None
+        return
+    server = LineOPCUA(service, service.line, line_config.opcua, keys)
+    try:
+        await server.start()
+        yield server
+    finally:
+        await server.stop()
