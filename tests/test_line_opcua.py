@@ -1,0 +1,494 @@
+"""The packing line over OPC UA, as a PLC drives it: a real ``cell serve`` (``tests.service_process``) whose
+cell file has ``line.opcua``, and an asyncua client as the PLC.
+
+One cell (sign-and-encrypt, the server's generated certificate trusted by the PLC) serves most tests: five
+parts through the PackTags handshake and OPC 30050's methods, Stop during Execute, Start refused in
+Execute, the PLC disconnecting mid-scan, anonymous and unknown users refused, writes of the wrong type
+or too long refused, the unit mode. A second cell (security ``none`` on loopback) has a protective stop
+injected into every scan: Aborted with the stop reason, then Clear and Reset. Last, ``cell serve``
+refuses an OPC UA port in use or a host that is not this machine's, in one line.
+
+The cells scan with the raster planner (a part in about a second of wall time); every test brings the
+line to Idle itself, so that they do not depend on their order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import subprocess
+import time
+from collections.abc import AsyncIterator, Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from asyncua import Client, Node, ua
+from asyncua.crypto import cert_gen
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+from cell.line.opcua_security import CERT_FILE, KEY_FILE, ensure_certificate
+from cell.service.keys import create_key
+from cell.service.store import open_store, sqlite_url
+from tests.conftest import UR5E
+from tests.service_process import CELL, REPO, ServedCell, free_port
+
+NAMESPACE = "urn:cell:packml"
+PACKML = "http://opcfoundation.org/UA/PackML/"
+PLC_URI = "urn:test:plc"
+STOPPED, IDLE, EXECUTE, ABORTED, COMPLETE = 2, 4, 6, 9, 17
+RESET, START, STOP, CLEAR = 1, 2, 3, 9
+ENDS = (STOPPED, ABORTED, COMPLETE)
+EXECUTE_STATE = "BaseStateMachine/MachineState/ExecuteState"
+CELL_METHODS = {"SetPartId"}
+PARTS = ("horizontal_box@0.01,-0.02,20", "cube", "vertical_box@-0.02,0.01,-35", "pyramid@0.0,0.02,90",
+         "horizontal_box@-0.015,0.0,-60")
+
+
+@dataclass(frozen=True)
+class Served:
+    """A served cell with OPC UA: ``url`` its endpoint; ``client_cert``/``client_key`` the PLC's own
+    certificate (None: security ``none``)."""
+
+    cell: ServedCell
+    url: str
+    client_cert: Path | None = None
+    client_key: Path | None = None
+
+    @property
+    def server_cert(self) -> Path:
+        return self.cell.data_dir / "opcua" / CERT_FILE
+
+    def rest(self, path: str) -> Any:
+        with self.cell.client("viewer") as client:
+            return client.get(path).json()
+
+
+def _serve(tmp: Path, security: str,
+           edit: Callable[[dict[str, Any]], None] | None = None) -> tuple[ServedCell, str]:
+    url = f"opc.tcp://127.0.0.1:{free_port()}/cell"
+    data = yaml.safe_load(UR5E.read_text())
+    data["scan"]["planner"] = "raster"
+    data["line"] = {"opcua": {"endpoint": url, "security": security}}
+    if edit is not None:
+        edit(data)
+    config = tmp / "cell.yaml"
+    config.write_text(yaml.safe_dump(data, sort_keys=False))
+    return ServedCell(config, tmp / "data"), url
+
+
+@pytest.fixture(scope="module")
+def encrypted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    tmp = tmp_path_factory.mktemp("encrypted")
+    cell, url = _serve(tmp, "sign-and-encrypt")
+    cert, key = tmp / "plc-cert.der", tmp / "plc-key.pem"
+    use, subject = [ExtendedKeyUsageOID.CLIENT_AUTH], {"organizationName": "test"}
+    asyncio.run(cert_gen.setup_self_signed_certificate(key, cert, PLC_URI, "plc", use, subject))
+    try:
+        yield Served(cell, url, cert, key)
+    finally:
+        cell.close()
+
+
+class PLC:
+    """The test's line controller: nodes by path (``PackTags/Status/StateCurrent``), the handshake, the
+    methods."""
+
+    def __init__(self, client: Client, ns: int, packml: int) -> None:
+        self.client, self.ns, self.packml = client, ns, packml
+
+    def node(self, path: str) -> Node:
+        return self.client.get_node(ua.NodeId(path.replace("/", "."), self.ns))
+
+    async def read(self, path: str) -> Any:
+        return await self.node(f"PackTags/{path}").read_value()
+
+    async def write(self, path: str, value: Any, vtype: ua.VariantType) -> None:
+        await self.node(f"PackTags/{path}").write_value(ua.Variant(value, vtype))
+
+    async def state(self) -> int:
+        return int(await self.read("Status/StateCurrent"))
+
+    async def handshake(self, command: int) -> None:
+        """CntrlCmd, then CmdChangeRequest true; the cell has acted and reset it when the write returns."""
+        await self.write("Command/CntrlCmd", command, ua.VariantType.Int32)
+        await self.write("Command/CmdChangeRequest", True, ua.VariantType.Boolean)
+        assert await self.read("Command/CmdChangeRequest") is False
+
+    async def call(self, path: str, *args: ua.Variant) -> None:
+        """The method at ``path`` (under the unit), found by its browse path: OPC 30050's names in the
+        PackML namespace, the cell's own (SetPartId) in the cell's."""
+        names = [f"{self.ns if name in CELL_METHODS else self.packml}:{name}" for name in path.split("/")]
+        parent = await self.client.nodes.objects.get_child([f"{self.ns}:sim-ur5e-tof", *names[:-1]])
+        await parent.call_method(names[-1], *args)
+
+    async def start(self, part_id: str, methods: bool = False) -> str:
+        """Start a scan of ``part_id`` in Idle, through the handshake or SetPartId and the Start method;
+        its job id once in Execute."""
+        if methods:
+            await self.call("SetPartId", ua.Variant(part_id, ua.VariantType.String))
+            await self.call(f"{EXECUTE_STATE}/Start")
+        else:
+            await self.write("Command/Parameter/PartId", part_id, ua.VariantType.String)
+            await self.handshake(START)
+        await self.wait((EXECUTE,))
+        return str(await self.read("Status/JobId"))
+
+    async def wait(self, states: tuple[int, ...], timeout_s: float = 60.0) -> int:
+        """Poll StateCurrent until it is one of ``states`` (a bound on waiting, not a timed check)."""
+        deadline = time.monotonic() + timeout_s
+        while (state := await self.state()) not in states:
+            assert time.monotonic() < deadline, f"the line stayed in {state}, not {states}"
+            await asyncio.sleep(0.01)
+        return state
+
+    async def to_idle(self) -> None:
+        """Bring the line to Idle from wherever an earlier test left it."""
+        state = await self.wait((STOPPED, IDLE, EXECUTE, ABORTED, COMPLETE))
+        if state == EXECUTE:
+            await self.handshake(STOP)
+            state = await self.wait((STOPPED,))
+        if state == ABORTED:
+            await self.handshake(CLEAR)
+            state = await self.wait((STOPPED,))
+        if state != IDLE:
+            await self.handshake(RESET)
+            await self.wait((IDLE,))
+
+
+async def _client(served: Served, user: str | None, secret: str | None = None) -> Client:
+    """A client of ``served`` logging in as ``user`` (None: anonymous) with ``secret`` (None: the line
+    key's), trusting the server's certificate when the cell encrypts."""
+    client = Client(served.url, timeout=30)
+    client.application_uri = PLC_URI
+    if user is not None:
+        client.set_user(user)
+        client.set_password(secret if secret is not None else served.cell.keys["line"])
+    if served.client_cert is not None:
+        await client.set_security(SecurityPolicyBasic256Sha256, str(served.client_cert),
+                                  str(served.client_key), server_certificate=str(served.server_cert))
+    return client
+
+
+@contextlib.asynccontextmanager
+async def plc(served: Served, user: str | None = "test-line",
+              secret: str | None = None) -> AsyncIterator[PLC]:
+    async with await _client(served, user, secret) as client:
+        namespaces = await client.get_namespace_array()
+        yield PLC(client, namespaces.index(NAMESPACE), namespaces.index(PACKML))
+
+
+def run(coroutine: Any) -> Any:
+    return asyncio.run(coroutine)
+
+
+# ------------------------------------------------------------------------------------------------ cycles
+
+
+def test_five_parts_through_the_handshake_and_the_methods(encrypted):
+    async def scenario() -> list[dict[str, Any]]:
+        results = []
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            seen: list[int] = []
+
+            class Handler:
+                def datachange_notification(self, node: Node, value: int, data: Any) -> None:
+                    seen.append(value)
+
+            subscription = await line.client.create_subscription(10, Handler())
+            await subscription.subscribe_data_change(line.node("PackTags/Status/StateCurrent"))
+            processed = await line.read("Admin/ProdProcessedCount")
+            for i, part in enumerate(PARTS):
+                methods = i % 2 == 1
+                job_id = await line.start(part, methods)
+                assert await line.wait(ENDS) == COMPLETE
+                result = {name: await line.read(f"Result/{name}") for name in (
+                    "JobId", "PartId", "Status", "LengthM", "WidthM", "HeightM", "Container", "ClearanceM",
+                    "Fits", "Message")}
+                assert result["JobId"] == job_id and result["PartId"] == part, result
+                assert await line.read("Admin/ProdProcessedCount") == processed + i + 1
+                assert await line.read("Status/JobId") == ""
+                results.append(result)
+                if methods:
+                    await line.call(f"{EXECUTE_STATE}/Reset")
+                else:
+                    await line.handshake(RESET)
+                assert await line.wait((IDLE,)) == IDLE
+            await subscription.delete()
+            assert seen.count(EXECUTE) == len(PARTS) and seen.count(COMPLETE) == len(PARTS), seen
+            # a part the feeder does not know: no scan, a defective part, not a fault
+            defective = await line.read("Admin/ProdDefectiveCount")
+            await line.write("Command/Parameter/PartId", "unicorn", ua.VariantType.String)
+            await line.handshake(START)
+            assert await line.wait(ENDS) == COMPLETE
+            assert (await line.read("Result/Status"), await line.read("Result/Fits")) == ("rejected", False)
+            assert "unicorn" in await line.read("Result/Message")
+            assert await line.read("Admin/ProdDefectiveCount") == defective + 1
+            await line.handshake(RESET)
+        return results
+
+    results = run(scenario())
+    for result in results:
+        assert result["Status"] == "completed", result
+        assert result["LengthM"] >= result["WidthM"] > 0.0 and result["HeightM"] > 0.0, result
+        assert result["Fits"] and result["Container"] and result["ClearanceM"] >= 0.0, result
+    # a horizontal box measures the same wherever the feeder puts it
+    first, last = results[0], results[-1]
+    assert abs(first["LengthM"] - last["LengthM"]) < 0.02 and abs(first["HeightM"] - last["HeightM"]) < 0.02
+    job = encrypted.rest(f"/api/v1/jobs/{results[-1]['JobId']}")
+    assert job["status"] == "completed" and job["part_id"] == PARTS[-1]
+    line = encrypted.rest("/api/v1/line")
+    assert line["result"]["part_id"] == "unicorn" and line["state_name"] == "Idle"
+    causes = [t["cause"] for t in encrypted.rest("/api/v1/line/history?limit=200")]
+    assert "Start from OPC UA (key test-line)" in causes and "Reset from OPC UA (key test-line)" in causes
+
+
+def test_stop_during_execute_stops_the_scan(encrypted):
+    async def scenario() -> tuple[str, int, str]:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            job_id = await line.start("vertical_box", methods=True)
+            await line.call("BaseStateMachine/MachineState/Stop")
+            assert await line.wait(ENDS) == STOPPED
+            return job_id, await line.read("Admin/StopReason/ID"), await line.read("Admin/StopReason/Message")
+
+    job_id, reason_id, reason = run(scenario())
+    assert reason_id == 1 and reason == "Stop from OPC UA (key test-line)"
+    job = encrypted.cell.wait_job(job_id, ("stopped", "completed", "failed"))
+    assert job["status"] == "stopped", job
+    assert encrypted.rest("/api/v1/cell")["job"] is None
+
+
+def test_start_in_execute_is_refused_and_changes_nothing(encrypted):
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            job_id = await line.start("cube")
+            with pytest.raises(ua.uaerrors.BadInvalidState):
+                await line.call(f"{EXECUTE_STATE}/Start")
+            assert await line.state() == EXECUTE and await line.read("Status/JobId") == job_id
+            message = await line.read("Status/CommandMessage")
+            assert message == ("refused Start from OPC UA (key test-line): Start is not valid in Execute "
+                               "(valid in: Idle)")
+            await line.write("Command/Parameter/PartId", "bunny", ua.VariantType.String)
+            await line.handshake(START)
+            assert await line.state() == EXECUTE and await line.read("Status/JobId") == job_id
+            assert "refused Start" in await line.read("Status/CommandMessage")
+            assert await line.wait(ENDS) == COMPLETE
+            assert await line.read("Result/PartId") == "cube"
+
+    run(scenario())
+
+
+def test_the_result_waits_in_complete_for_a_plc_that_disconnected(encrypted):
+    async def start() -> str:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            return await line.start("pyramid")
+
+    async def later() -> tuple[int, str, str]:
+        async with plc(encrypted) as line:
+            return await line.wait(ENDS), await line.read("Result/JobId"), await line.read("Result/Status")
+
+    job_id = run(start())  # the PLC is gone mid-scan
+    assert encrypted.rest("/api/v1/line")["state_name"] in ("Execute", "Completing", "Complete")
+    encrypted.cell.wait_job(job_id, ("completed", "stopped", "failed"))
+    time.sleep(0.5)  # a Complete that did not hold would have moved on by now
+    assert run(later()) == (COMPLETE, job_id, "completed")
+
+
+def test_the_unit_mode_through_the_handshake_and_set_unit_mode(encrypted):
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            await line.write("Command/UnitMode", 3, ua.VariantType.Int32)
+            await line.write("Command/UnitModeChangeRequest", True, ua.VariantType.Boolean)
+            assert await line.read("Command/UnitModeChangeRequest") is False
+            assert await line.read("Status/UnitModeCurrent") == 3
+            with pytest.raises(ua.uaerrors.BadInvalidState):
+                await line.call(f"{EXECUTE_STATE}/Start")
+            assert "Manual mode" in await line.read("Status/CommandMessage")
+            with pytest.raises(ua.uaerrors.BadInvalidArgument):
+                await line.call("SetUnitMode", ua.Variant(2, ua.VariantType.Int32))
+            assert "not offered" in await line.read("Status/CommandMessage")
+            await line.call("SetUnitMode", ua.Variant(1, ua.VariantType.Int32))
+            assert await line.read("Status/UnitModeCurrent") == 1
+            assert await line.state() == IDLE
+
+    run(scenario())
+
+
+# ------------------------------------------------------------------------------------------------ refusals
+
+
+def test_writes_of_the_wrong_type_or_too_long_are_refused_and_change_nothing(encrypted):
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            await line.write("Command/Parameter/PartId", "cube", ua.VariantType.String)
+            part_id = line.node("PackTags/Command/Parameter/PartId")
+            with pytest.raises(ua.uaerrors.BadTypeMismatch):
+                await line.write("Command/Parameter/PartId", 42, ua.VariantType.Int32)
+            assert "expects a String, got Int32" in await line.read("Status/CommandMessage")
+            with pytest.raises(ua.uaerrors.BadOutOfRange):
+                await line.write("Command/Parameter/PartId", "x" * 65, ua.VariantType.String)
+            assert "1 to 64 printable characters, got 65" in await line.read("Status/CommandMessage")
+            with pytest.raises(ua.uaerrors.BadOutOfRange):  # one bad value refuses the whole request
+                await line.client.write_values(
+                    [part_id, line.node("PackTags/Command/CntrlCmd")],
+                    [ua.Variant("bunny", ua.VariantType.String), ua.Variant(42, ua.VariantType.Int32)])
+            with pytest.raises(ua.uaerrors.BadTypeMismatch):
+                await line.write("Command/CmdChangeRequest", 1, ua.VariantType.Int32)
+            assert await part_id.read_value() == "cube"
+            with pytest.raises(ua.UaStatusCodeError):
+                await line.call("SetPartId", ua.Variant("y" * 65, ua.VariantType.String))
+            with pytest.raises(ua.UaStatusCodeError):
+                await line.call("SetPartId", ua.Variant(7, ua.VariantType.Int32))
+            assert await part_id.read_value() == "cube"
+            for read_only, value in (("Status/StateCurrent", ua.Variant(4, ua.VariantType.Int32)),
+                                     ("Admin/ProdProcessedCount", ua.Variant(0, ua.VariantType.Int32)),
+                                     ("Result/Fits", ua.Variant(True, ua.VariantType.Boolean))):
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await line.node(f"PackTags/{read_only}").write_value(value)
+            assert await part_id.read_value() == "cube"
+
+    run(scenario())
+    assert encrypted.rest("/api/v1/line")["part_id"] == "cube"
+
+
+def test_anonymous_and_unknown_users_can_do_nothing(encrypted):
+    keys = encrypted.cell.keys
+
+    async def refused(user: str | None, secret: str | None) -> None:
+        why = ua.uaerrors.BadUserAccessDenied if user else ua.uaerrors.BadIdentityTokenRejected
+        with pytest.raises(why):
+            async with plc(encrypted, user, secret):
+                pass
+
+    async def unactivated(ns: int) -> None:
+        """A session that never logged in may read, browse and write nothing."""
+        client = await _client(encrypted, None)
+        await client.connect_socket()
+        try:
+            await client.send_hello()
+            await client.open_secure_channel()
+            await client.create_session()
+            state, command = (client.get_node(ua.NodeId(f"PackTags.{name}", ns))
+                              for name in ("Status.StateCurrent", "Command.CntrlCmd"))
+            for action in (client.nodes.server_state.read_value(), state.read_value(),
+                           client.nodes.objects.get_children(),
+                           command.write_value(ua.Variant(1, ua.VariantType.Int32))):
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await action
+        finally:
+            client.disconnect_socket()
+
+    async def scenario() -> None:
+        await refused(None, None)
+        await refused("test-line", "cell_" + "x" * 43)
+        await refused("test-line", keys["operator"])  # another key's secret
+        await refused("test-viewer", keys["viewer"])  # a key without the line permission
+        await refused("test-operator", keys["operator"])
+        async with plc(encrypted, "test-admin", keys["admin"]) as line:  # admin keys have it too
+            assert await line.state() in (STOPPED, IDLE, COMPLETE, ABORTED)
+            ns = line.ns
+        await unactivated(ns)
+
+    run(scenario())
+    assert not any(secret in encrypted.cell.log() for secret in keys.values())
+
+
+def test_a_revoked_key_is_refused_from_its_next_request(encrypted):
+    store = open_store(sqlite_url(encrypted.cell.data_dir))
+    try:
+        secret = create_key(store, "line", "plc-revoked")[1]
+    finally:
+        store.close()
+    time.sleep(1.5)  # the service reloads its keys every second
+
+    async def scenario() -> None:
+        async with plc(encrypted, "plc-revoked", secret) as line:
+            await line.state()
+            store = open_store(sqlite_url(encrypted.cell.data_dir))
+            try:
+                store.revoke_key("plc-revoked")
+            finally:
+                store.close()
+            await asyncio.sleep(1.5)
+            # refused: the read itself, or the client's own keep-alive read first, which drops the session
+            with pytest.raises((ua.uaerrors.BadUserAccessDenied, ConnectionError)):
+                await line.state()
+
+    run(scenario())
+
+
+def test_the_server_certificate_is_made_once_and_its_key_kept_private(encrypted, tmp_path):
+    folder = encrypted.cell.data_dir / "opcua"
+    assert (folder / KEY_FILE).stat().st_mode & 0o777 == 0o600 and folder.stat().st_mode & 0o777 == 0o700
+    cert = x509.load_der_x509_certificate((folder / CERT_FILE).read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "urn:cell:sim-ur5e-tof" in names.get_values_for_type(x509.UniformResourceIdentifier)
+    # made on the first start, then the same files
+    made = ensure_certificate(tmp_path / "opcua", "urn:cell:x", "127.0.0.1")
+    first = [path.read_bytes() for path in made]
+    again = ensure_certificate(tmp_path / "opcua", "urn:cell:x", "127.0.0.1")
+    assert again == made and [path.read_bytes() for path in again] == first
+
+
+# ------------------------------------------------------------------------------------------------ faults
+
+
+def test_a_driver_fault_during_execute_aborts_then_clear_and_reset_recover(tmp_path):
+    def faulty(data: dict[str, Any]) -> None:
+        data["sim"]["faults"] = [{"at_s": 0.5, "kind": "protective stop"}]
+
+    cell, url = _serve(tmp_path, "none", faulty)
+    served = Served(cell, url)
+
+    async def scenario() -> tuple[int, str]:
+        async with plc(served) as line:
+            await line.to_idle()
+            await line.write("Command/Parameter/PartId", "cube", ua.VariantType.String)
+            await line.handshake(START)
+            assert await line.wait(ENDS) == ABORTED
+            reason = (await line.read("Admin/StopReason/ID"), await line.read("Admin/StopReason/Message"))
+            with pytest.raises(ua.uaerrors.BadInvalidState):
+                await line.call(f"{EXECUTE_STATE}/Reset")
+            assert await line.state() == ABORTED
+            await line.handshake(CLEAR)
+            await line.wait((STOPPED,))
+            await line.call(f"{EXECUTE_STATE}/Reset")
+            await line.wait((IDLE,))
+            return reason
+
+    try:
+        reason_id, reason = run(scenario())
+        assert reason_id == 5 and "protective stop" in reason, reason
+        arm = served.rest("/api/v1/cell")["arm"]
+        assert not arm["faults"], arm
+    finally:
+        cell.close()
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "192.0.2.1"])  # a port in use; an address of no interface here
+def test_serve_refuses_an_endpoint_it_cannot_listen_on_in_one_line(tmp_path, host):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        data = yaml.safe_load(UR5E.read_text())
+        data["line"] = {"opcua": {"endpoint": f"opc.tcp://{host}:{port}/cell"}}
+        config = tmp_path / "cell.yaml"
+        config.write_text(yaml.safe_dump(data))
+        serve = [*CELL, "serve", "--config", str(config), "--data-dir", str(tmp_path / "data"), "--port",
+                 str(free_port())]
+        out = subprocess.run(serve, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1, out.stdout + out.stderr
+    why = "Address already in use" if host == "127.0.0.1" else "Cannot assign requested address"
+    endpoint = f"opc.tcp://{host}:{port}/cell"
+    assert out.stderr.strip() == f"error: line.opcua.endpoint: cannot listen on {endpoint}: {why}", out.stderr
