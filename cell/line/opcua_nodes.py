@@ -69,11 +69,8 @@ class Tag:
     read: Reader | None = None
 
     @property
-    def node_id(self) -> str:
-        return self.path.replace("/", ".")
-
-    @property
     def initial(self) -> Any:
+        """The value before the line's first snapshot is written: zero, false or empty."""
         return {V.Int32: 0, V.Boolean: False, V.String: "", V.Double: 0.0,
                 V.LocalizedText: ua.LocalizedText("")}[self.vtype]
 
@@ -163,10 +160,6 @@ class MethodSpec:
     command: Command | None = None
     argument: tuple[str, ua.VariantType] | None = None
 
-    @property
-    def node_id(self) -> str:
-        return self.path.replace("/", ".")
-
 
 _BASE, _MACHINE = "BaseStateMachine", "BaseStateMachine/MachineState"
 _EXECUTE = "BaseStateMachine/MachineState/ExecuteState"
@@ -204,12 +197,17 @@ class Namespaces:
     cell: int
     packml: int
 
-    def browse_name(self, name: str) -> ua.QualifiedName:
+    def browse_name(self, path: str) -> ua.QualifiedName:
+        """The browse name of the node at ``path``: its last part, in OPC 30050's namespace for the
+        specification's names, in namespace 0 for ``CurrentState`` (FiniteStateMachineType's), else in
+        the cell's."""
+        name = path.rsplit("/", 1)[-1]
         if name == "CurrentState":
             return ua.QualifiedName(name, 0)
         return ua.QualifiedName(name, self.packml if name in _PACKML_NAMES else self.cell)
 
     def node_id(self, path: str) -> ua.NodeId:
+        """The NodeId of the node at ``path``: the path with dots, a string in the cell's namespace."""
         return ua.NodeId(ua.String(path.replace("/", ".")), ua.Int16(self.cell))
 
 
@@ -221,7 +219,7 @@ async def build(server: Server, unit_name: str, ns: Namespaces,
                 handlers: dict[str, Callable[..., Any]]) -> dict[str, ua.NodeId]:
     """Add the unit's objects, :data:`TAGS` and :data:`METHODS` (``handlers`` by method path) to
     ``server``'s address space; returns each tag's NodeId by path."""
-    unit = await server.nodes.objects.add_object(ns.node_id(UNIT_ID), ns.browse_name(unit_name))
+    unit = await server.nodes.objects.add_object(ns.node_id(UNIT_ID), ua.QualifiedName(unit_name, ns.cell))
     await _describe(unit, "A scanning cell on the packing line: a PackML unit (ISA-TR88.00.02, OPC 30050).")
     objects: dict[str, Node] = {"": unit}
 
@@ -229,14 +227,13 @@ async def build(server: Server, unit_name: str, ns: Namespaces,
         folder = path.rpartition("/")[0]
         if folder not in objects:
             above = await parent(folder)
-            name = folder.rsplit("/", 1)[-1]
-            objects[folder] = await above.add_object(ns.node_id(folder), ns.browse_name(name))
+            objects[folder] = await above.add_object(ns.node_id(folder), ns.browse_name(folder))
         return objects[folder]
 
     ids: dict[str, ua.NodeId] = {}
     for tag in TAGS:
-        node = await (await parent(tag.path)).add_variable(ns.node_id(tag.path), ns.browse_name(
-            tag.path.rsplit("/", 1)[-1]), tag.initial, varianttype=tag.vtype)
+        node = await (await parent(tag.path)).add_variable(ns.node_id(tag.path), ns.browse_name(tag.path),
+                                                           tag.initial, varianttype=tag.vtype)
         await _describe(node, tag.doc)
         if tag.writable:
             await node.set_writable()
@@ -246,7 +243,6 @@ async def build(server: Server, unit_name: str, ns: Namespaces,
             Name=method.argument[0], DataType=ua.NodeId(ua.Int32(method.argument[1].value)), ValueRank=-1,
             Description=ua.LocalizedText(method.doc))]
         node = await (await parent(method.path)).add_method(
-            ns.node_id(method.path), ns.browse_name(method.path.rsplit("/", 1)[-1]), handlers[method.path],
-            inputs, [])
+            ns.node_id(method.path), ns.browse_name(method.path), handlers[method.path], inputs, [])
         await _describe(node, method.doc)
     return ids
