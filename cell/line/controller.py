@@ -194,13 +194,28 @@ class LineController:
         return None
 
     async def set_mode(self, mode: UnitMode, source: str) -> str:
-        """Change the unit mode; ``ServiceError`` (conflict or invalid) when it may not change now."""
+        """Change the unit mode; ``ServiceError`` (conflict or invalid) when it may not change now. The
+        outcome is the snapshot's ``message``, as a command's."""
+        try:
+            self._check_mode(mode)
+        except ServiceError as exc:
+            self._message = f"refused unit mode {mode.label} from {source}: {exc}"
+            self._notify()
+            raise
+        self._message = f"unit mode {mode.label} from {source}"
+        if mode is not self.mode:
+            self.mode = mode
+            self._save(mode=int(mode))
+            self._record_transition(self.state, self._message)
+        return f"{mode.label} mode"
+
+    def _check_mode(self, mode: UnitMode) -> None:
         if mode not in packml.OFFERED_MODES:
             offered = ", ".join(f"{m.value} {m.label}" for m in sorted(packml.OFFERED_MODES))
             raise ServiceError(f"unit mode {int(mode)} ({mode.label}) is not offered; offered: {offered}",
                                reason="invalid", field="mode")
         if mode is self.mode:
-            return f"already in {mode.label} mode"
+            return
         if self.state not in packml.MODE_CHANGE_STATES:
             allowed = ", ".join(s.label for s in sorted(packml.MODE_CHANGE_STATES))
             raise ServiceError(f"the unit mode changes in {allowed} only, not in {self.state.label}",
@@ -208,10 +223,6 @@ class LineController:
         if mode is UnitMode.PRODUCTION and self._service.operator_jobs():
             raise ServiceError("operator jobs are queued or running: let them end (or stop them) before the "
                                "line takes the cell in Production mode", reason="conflict")
-        self.mode = mode
-        self._save(mode=int(mode))
-        self._record_transition(self.state, f"unit mode {mode.label} from {source}")
-        return f"{mode.label} mode"
 
     def operator_stop(self, reason: str) -> None:
         """The operator's STOP (``POST /api/v1/stop``): a Stop, whatever the mode."""

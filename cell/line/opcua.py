@@ -288,12 +288,12 @@ class LineOPCUA:
         except ValueError:
             await self._say(f"refused unit mode {number} from {source}: one of {_MODES}")
             return _status(S.BadInvalidArgument)
-        try:
-            done = await self._line.set_mode(mode, source)
+        try:  # the controller says what it did, or why not, in the snapshot's message
+            await self._line.set_mode(mode, source)
         except ServiceError as exc:
-            await self._say(f"refused unit mode {mode.label} from {source}: {exc}")
+            await self.settle()
             return _status(STATUS_OF.get(exc.reason, S.BadInvalidState))
-        await self._say(f"unit mode {mode.label} from {source}: {done}")
+        await self.settle()
         return _status(S.Good)
 
     async def _part_id(self, part_id: str, source: str) -> MethodResult:
