@@ -72,7 +72,8 @@ class _Queued:
 @dataclass
 class _Running:
     """The job on the arm: its worker (None while it is being started), a stop asked for meanwhile, the
-    stop confirmations the worker owes, its newest progress."""
+    stop confirmations the worker owes, its newest progress, its worker's last word, whether its end is
+    recorded (the worker may still be exiting) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
@@ -81,6 +82,8 @@ class _Running:
     acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
     progress: dict[str, Any] | None = None
     ended: dict[str, Any] | None = None
+    recorded: bool = False
+    gone: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,8 @@ class CellService:
         self._dio: DigitalIOHandshake | None = None
         self._spare: asyncio.subprocess.Process | None = None
         self._spare_log = self._logs_dir / "worker-spare.log"
+        # the next worker may load beside a running job only where no arm moves on the wall clock
+        self._warm_beside_jobs = config.mode in ("sim", "replay")
 
     # ------------------------------------------------------------------ life
 
@@ -383,6 +388,10 @@ class CellService:
         """Operator action after a fault: a hardware arm is connected by a worker, recovered and
         disconnected; a simulated arm has only its latched fault cleared (each job gets a fresh one).
         ``ServiceError`` (conflict) while a job owns the arm."""
+        running = self._running
+        if running is not None and running.recorded:  # the job has ended: its worker is letting go
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(running.gone.wait(), self.config.service.shutdown_timeout_s)
         if self._running is not None or self._busy_with_arm:
             raise ServiceError("a job owns the arm: stop it first", reason="conflict")
         if self.config.arm.type == "sim":
@@ -484,6 +493,8 @@ class CellService:
                           object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
                           planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
         proc = running.proc = await self._spawn(spec, self._logs_dir / f"worker-{job.id}.log", warm=True)
+        if self._warm_beside_jobs:
+            await self._warm()
         if running.stop_reason is not None:
             await self._stop_running(running, running.stop_reason)
         running.job = await asyncio.to_thread(self.store.update_job, job.id, status="running",
@@ -498,6 +509,8 @@ class CellService:
                 log.warning("job %s: a malformed line from its worker: %r", job.id, line[:200])
                 continue
             self._take(running, message)
+            if running.ended is not None and not running.recorded:
+                await self._record_end(running)
         code = await proc.wait()
         await self._finish(running, code)
 
@@ -519,9 +532,12 @@ class CellService:
         elif kind == "ended":
             running.ended = message
 
-    async def _finish(self, running: _Running, code: int | None, failure: str | None = None) -> None:
-        """Record how the job ended: from its worker's last word, or ``failure`` / the worker's exit
-        ``code`` when it had none (the folder is then finished here)."""
+    async def _record_end(self, running: _Running, code: int | None = None,
+                          failure: str | None = None) -> None:
+        """Record how the job ended, as soon as it is known: from its worker's last word (while the worker
+        process still exits), or ``failure`` / the worker's exit ``code`` when it had none (the folder is
+        then finished here). The line hears first: its Complete waits for nothing else."""
+        running.recorded = True
         job, ended = running.job, running.ended
         for ack in running.acks:
             if not ack.done():
@@ -538,13 +554,19 @@ class CellService:
         if status == "completed" and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
         self.arm.job_ended(termination)
+        if self.line is not None:
+            self.line.job_ended(job.id, status, termination, result)
         await asyncio.to_thread(self.store.update_job, job.id, status=status, termination=termination,
                                 result=result, finished_at=_now(), worker_pid=None, progress=running.progress)
-        self._running = None
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
-        if self.line is not None:
-            self.line.job_ended(job.id, status, termination, result)
+
+    async def _finish(self, running: _Running, code: int | None, failure: str | None = None) -> None:
+        """The job's worker has exited: the arm is free for the next job."""
+        if not running.recorded:
+            await self._record_end(running, code, failure)
+        self._running = None
+        running.gone.set()
         self._wake.set()
         await self._warm()
