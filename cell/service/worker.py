@@ -194,4 +194,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_code = main()
+    # Everything is closed by now (the arm, the sensor, the job's files, the protocol): the interpreter's
+    # teardown (a few hundred milliseconds with the perception libraries) would only keep the arm from
+    # the next job, which starts once this process has exited.
+    sys.stderr.flush()
+    os._exit(exit_code)
