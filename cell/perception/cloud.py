@@ -186,6 +186,9 @@ class CloudAccumulator:
 
     @property
     def points(self) -> Array:
+        """(M, 3) [m], base frame. Each ``add`` makes a new array and never changes one handed out
+        before, so another thread may read a reference taken between two additions
+        (``cell.jobs.live_cloud``)."""
         return self._points
 
     @property
