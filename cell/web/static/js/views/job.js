@@ -106,6 +106,7 @@ export function showJob(main, context, jobId) {
 
   async function onEnded() {
     clearInterval(cloudTimer);
+    window.dispatchEvent(new Event("cell:changed"));
     const job = await api(`/api/v1/jobs/${jobId}`);
     if (!alive) return;
     setStatus(job.status, job.termination);

@@ -28,7 +28,7 @@ function row(job) {
     h("td", {}, job.part_id ?? "–"),
     h("td", { class: "num" }, result.n_captures ?? job.progress?.n_captures ?? "–"),
     h("td", { class: "num" }, fmt(coverage, 1, "%")),
-    h("td", {}, dims ? `${dims.map((v) => v.toFixed(3)).join(" × ")} m` : "–"),
+    h("td", { class: "dims" }, dims ? `${dims.map((v) => v.toFixed(3)).join(" × ")} m` : "–"),
     h("td", { class: "termination", title: job.termination ?? "" }, job.termination ?? ""));
 }
 

@@ -26,7 +26,8 @@ function render(status, context) {
   $("st-name").textContent = status.name;
   $("st-mode").textContent = status.mode;
   const arm = status.arm;
-  $("st-arm").textContent = arm.faults.length ? `${arm.state}: ${arm.faults.join(", ")}` : arm.state;
+  const other = arm.faults.filter((fault) => fault !== arm.state);
+  $("st-arm").textContent = other.length ? `${arm.state}: ${other.join(", ")}` : arm.state;
   $("st-arm").dataset.tone = ARM_TONE[arm.state] ?? "busy";
   $("st-sensor").textContent = `${status.sensor.type}, ${status.sensor.connected ? "ready" : "not connected"}`;
   $("st-sensor").dataset.tone = status.sensor.connected ? "ok" : "idle";
@@ -52,6 +53,7 @@ async function act(button, path, body, outcome) {
   try {
     const answer = await api(path, { method: "POST", json: body });
     $("stop-outcome").textContent = outcome(answer);
+    window.dispatchEvent(new Event("cell:changed"));
   } catch (error) {
     $("stop-outcome").textContent = `${button.textContent.trim()} failed: ${describe(error)}`;
   } finally {
@@ -59,15 +61,24 @@ async function act(button, path, body, outcome) {
   }
 }
 
-/** Start polling the cell and wire the bar's buttons; returns a function that stops both. */
+/** Start polling the cell (at once again on a "cell:changed" event: a job ended, a button acted) and wire
+ *  the bar's buttons; returns a function that stops both. */
 export function startStatus(context) {
   const bar = $("statusbar");
   bar.hidden = false;
   $("whoami").textContent = `${context.who.name} (${context.who.role})`;
   let timer = null;
   let alive = true;
+  let busy = false;
+  let again = false;
 
   async function poll() {
+    if (busy) {
+      again = true; // asked for while a poll runs: poll once more right after it
+      return;
+    }
+    busy = true;
+    clearTimeout(timer);
     try {
       const status = await api("/api/v1/cell");
       context.status = status;
@@ -77,7 +88,9 @@ export function startStatus(context) {
     } catch (error) {
       $("st-link").textContent = `status not updated: ${describe(error)}`;
     }
-    if (alive) timer = setTimeout(poll, POLL_MS);
+    busy = false;
+    if (alive) timer = setTimeout(poll, again ? 0 : POLL_MS);
+    again = false;
   }
 
   const stop = () => act($("stop"), "/api/v1/stop", { reason: STOP_REASON }, (answer) =>
@@ -92,21 +105,20 @@ export function startStatus(context) {
       stop();
     }
   };
-  $("stop").addEventListener("click", stop);
-  $("recover").addEventListener("click", recover);
-  $("resume").addEventListener("click", resume);
-  $("logout").addEventListener("click", logout);
-  document.addEventListener("keydown", onKey);
+  const listening = new AbortController(); // removes every listener below at once
+  const { signal } = listening;
+  $("stop").addEventListener("click", stop, { signal });
+  $("recover").addEventListener("click", recover, { signal });
+  $("resume").addEventListener("click", resume, { signal });
+  $("logout").addEventListener("click", logout, { signal });
+  document.addEventListener("keydown", onKey, { signal });
+  window.addEventListener("cell:changed", poll, { signal });
   poll();
 
   return () => {
     alive = false;
     clearTimeout(timer);
-    $("stop").removeEventListener("click", stop);
-    $("recover").removeEventListener("click", recover);
-    $("resume").removeEventListener("click", resume);
-    $("logout").removeEventListener("click", logout);
-    document.removeEventListener("keydown", onKey);
+    listening.abort();
     $("stop-outcome").textContent = "";
     bar.hidden = true;
   };

@@ -52,7 +52,7 @@ export async function scanForm({ onSubmitted }) {
   const y = numberInput({ value: "0", "aria-label": "y [m]" });
   const yaw = numberInput({ value: "0", "aria-label": "yaw [deg]" });
   const seed = h("input", { type: "number", min: 0, step: 1, value: "0" });
-  const budget = numberInput({ min: 0, placeholder: "the cell's default" });
+  const budget = numberInput({ min: 0, placeholder: "cell default" });
   const part = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
   const upload = h("input", { type: "file", accept: ".ply,.obj,.stl" });
   const uploadButton = h("button", { type: "button" }, "Upload mesh");
