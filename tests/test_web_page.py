@@ -3,12 +3,14 @@ against a real ``cell serve`` (the sim Franka + RGB-D cell) reached through a TC
 the test can cut (``tests.tcp_proxy``).
 
 One service and one browser serve the whole module. A wrong key is refused; a viewer's key is offered
-no scan; an operator starts a raster scan from the form (a pose off the table is refused next to the
-field first), watches progress arrive, sees it complete with its coverage and dimensions, downloads a file
-and finds it in the jobs table; a vs-local scan is watched live through a cut of every connection
-(the event stream resumes and no progress is lost), then stopped with the STOP key and the queue resumed.
-The 3D view is checked to have drawn (its canvas read back), and each main view is saved as a screenshot
-under ``tests/artifacts/web/``.
+no scan; the packing line's PackML state shows when the status has one; an operator starts a raster scan
+from the form (a pose off the table is refused next to the field first), watches progress arrive, sees it
+complete with its coverage and dimensions, downloads a file and finds it in the jobs table; uploads a
+mesh; a vs-local scan is watched live through a cut of every connection (the event stream resumes and no
+progress is lost), then stopped with the STOP key and the queue resumed; the views fit 1024x768; an
+operator recovers the arm after a protective stop (a cell of its own). The 3D view is checked to have
+drawn (its canvas read back), and each main view is saved as a screenshot under
+``tests/artifacts/web/``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import trimesh
 import yaml
 from PIL import Image
 
@@ -217,6 +220,7 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     page.click("button[type=submit]")
     wait_for(page, "document.getElementById('err-object_pose').textContent.length > 0")
     assert "table" in page.text_content("#err-object_pose")
+    shot(page, "new-scan-refused")
     assert page.url.endswith("/")
     page.fill("input[aria-label='x [m]']", "0")
     page.click("button[type=submit]")
@@ -257,6 +261,25 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     page.click(f"table.jobs a[href='#/jobs/{job_id}']")
     page.wait_for_selector("#result")
     assert page.text_content("#fig-dims") == f"{dims} m"
+
+
+def test_an_operator_uploads_a_mesh_from_the_form(open_page: Callable[..., Page], tmp_path: Path) -> None:
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a mesh")
+    crate = tmp_path / "crate.ply"
+    trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(crate)
+    page = open_page("operator")
+    page.wait_for_selector("#f-file")
+    page.set_input_files("#f-file", str(notes))
+    page.click("text=Upload mesh")
+    wait_for(page, "document.getElementById('err-file').textContent.length > 0")
+    assert "not a mesh file" in page.text_content("#err-file")
+    page.set_input_files("#f-file", str(crate))
+    page.click("text=Upload mesh")
+    wait_for(page, "document.getElementById('f-object').value === 'crate'")
+    assert page.text_content("#err-file") == ""
+    chosen = page.evaluate("() => document.getElementById('f-object').selectedOptions[0].textContent")
+    assert chosen == "crate (0.060 × 0.050 × 0.040 m, uploaded)"
 
 
 def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
