@@ -45,7 +45,8 @@ export function bytes(n) {
   return `${(n / 1024 ** 2).toFixed(1)} MB`;
 }
 
-/** A date-time of the API in the browser's local time. */
-export function when(iso) {
-  return iso ? new Date(iso).toLocaleString() : "–";
+/** A date-time of the API in the browser's local time (`short`: date and minutes, compactly). */
+export function when(iso, short = false) {
+  if (!iso) return "–";
+  return new Date(iso).toLocaleString(undefined, short ? { dateStyle: "short", timeStyle: "short" } : {});
 }

@@ -20,7 +20,7 @@ function row(job) {
   const coverage = result.metrics?.coverage_pct;
   const dims = result.packing?.dims_m;
   return h("tr", {},
-    h("td", {}, when(job.created_at)),
+    h("td", {}, when(job.created_at, true)),
     h("td", {}, h("a", { href: `#/jobs/${job.id}`, class: "mono" }, job.id)),
     h("td", {}, h("span", { class: `status status-${job.status}` }, job.status)),
     h("td", {}, job.planner),
@@ -46,10 +46,10 @@ export function showJobs(main, context, params) {
     h("label", { for: "filter-planner" }, "Planner"), planner,
     h("label", { for: "filter-part" }, "Part id"), part,
     h("button", { type: "submit" }, "Filter"));
-  const submit = () => go({ status: status.value, planner: planner.value, part_id: part.value.trim() }, 0);
-  form.addEventListener("submit", (event) => { event.preventDefault(); submit(); });
-  status.addEventListener("change", submit);
-  planner.addEventListener("change", submit);
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    go({ status: status.value, planner: planner.value, part_id: part.value.trim() }, 0);
+  });
 
   const body = h("tbody", {}, h("tr", {}, h("td", { colspan: 10 }, "Loading…")));
   const pager = h("div", { class: "pager" });
@@ -57,7 +57,7 @@ export function showJobs(main, context, params) {
     h("h2", { id: "jobs-title" }, "Jobs"), form,
     h("div", { class: "table-wrap" }, h("table", { class: "jobs" },
       h("thead", {}, h("tr", {}, ["Created", "Job", "Status", "Planner", "Object", "Part id", "Captures", "Coverage",
-        "Dimensions", "Termination"].map((title) => h("th", { scope: "col" }, title)))),
+        "Dimensions", "Termination"].map((title) => h("th", { scope: "col", class: `col-${title.toLowerCase().replace(" ", "-")}` }, title)))),
       body)),
     pager));
 
