@@ -18,7 +18,7 @@ import pytest
 
 from cell.jobs import live_cloud
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter, read_live_cloud
-from cell.perception.cloud import write_ply
+from cell.perception.cloud import CloudAccumulator, write_ply
 from cell.service.clouds import HEADER, JobCloud, decode_cloud, encode_cloud, job_cloud
 from cell.service.keys import PERMISSIONS, Role
 
@@ -76,6 +76,18 @@ def test_a_jobs_cloud_is_its_snapshot_while_it_runs_and_cloud_ply_once_it_ended(
 
 
 # ---------------------------------------------------------------------------------------------- snapshot
+
+
+def test_the_accumulator_never_changes_a_cloud_it_handed_out() -> None:
+    """What lets the control thread hand a reference to the snapshot writer without a copy."""
+    rng = np.random.default_rng(2)
+    cloud = CloudAccumulator(0.005)
+    cloud.add(rng.uniform(0.0, 0.1, size=(2000, 3)))
+    handed_out = cloud.points
+    kept = handed_out.copy()
+    cloud.add(rng.uniform(0.05, 0.15, size=(2000, 3)))  # shares voxels with the first: averaged anew
+    assert cloud.points is not handed_out and cloud.points.shape[0] > handed_out.shape[0]
+    assert np.array_equal(handed_out, kept)
 
 
 def test_the_snapshot_is_written_by_a_thread_of_its_own_at_most_once_a_period(

@@ -5,7 +5,8 @@ the service's cloud endpoint) reads this snapshot instead: the accumulated cloud
 (N, 3) float32, in NumPy's ``.npy`` format, at most ``LIVE_CLOUD_PERIOD_S`` of wall time old.
 
 The control thread only hands over a reference (:meth:`LiveCloudWriter.offer`, O(1): the accumulator
-never changes an array it has handed out, ``cell.perception.cloud.CloudAccumulator``); a thread of its own
+publishes each cloud complete and never changes it afterwards, ``cell.perception.cloud.CloudAccumulator``,
+even while the perception worker adds the next frame on the wall clock); a thread of its own
 converts and writes it, to a temporary file renamed over the snapshot (``os.replace``), so a reader sees
 the previous snapshot or the next one, never a part of one. The snapshot is removed when the job ends.
 """
