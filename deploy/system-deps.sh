@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # System packages the cell needs on Debian 12 / Ubuntu: Open3D's shared libraries (libusb, OpenMP, GL),
-# Python's venv module, a C compiler with Python's headers for the compiled perception kernels, and
-# PostgreSQL's server (the job store's tests run a real one).
+# Python's venv module, a C compiler with Python's headers for the compiled perception kernels,
+# PostgreSQL's server (the job store's tests run a real one), and Chromium with a font (the operator
+# page's tests drive it headless with Playwright; no browser is downloaded).
 # Installs only what is missing; uses sudo when not root.
 set -euo pipefail
 
@@ -15,6 +16,8 @@ command -v gcc >/dev/null 2>&1 || missing+=(gcc)
 python3 -c 'import sysconfig, os, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
   || missing+=(python3-dev)
 compgen -G '/usr/lib/postgresql/*/bin/initdb' >/dev/null || missing+=(postgresql)
+command -v chromium >/dev/null 2>&1 || missing+=(chromium)
+[ -e /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ] || missing+=(fonts-dejavu-core)
 
 if [ ${#missing[@]} -eq 0 ]; then
   exit 0

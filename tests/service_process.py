@@ -122,3 +122,9 @@ class ServedCell:
         self.stop()
         self._log.close()
         Path(self._log.name).unlink(missing_ok=True)
+
+    def __enter__(self) -> ServedCell:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()

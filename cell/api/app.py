@@ -19,8 +19,9 @@ from fastapi_offline import FastAPIOffline
 
 from cell import __version__
 from cell.api.routes import cell as cell_routes
-from cell.api.routes import health, jobs
+from cell.api.routes import clouds, health, jobs, keys
 from cell.api.routes import line as line_routes
+from cell.api.routes.page import add_page
 from cell.line.opcua import serve_opcua
 from cell.service.keys import KeyRing
 from cell.service.manager import CellService
@@ -68,6 +69,9 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
     app.include_router(jobs.router)
     app.include_router(line_routes.router)
     app.include_router(health.router)
+    app.include_router(clouds.router)
+    app.include_router(keys.router)
+    add_page(app)  # the operator's page (cell.web) at / and /static
 
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:

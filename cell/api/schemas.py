@@ -94,6 +94,14 @@ class FileOut(BaseModel):
     url: str
 
 
+class WhoAmIOut(BaseModel):
+    """The calling key: its name, role (viewer, operator, line, admin) and what that role may do."""
+
+    name: str
+    role: str
+    permissions: list[str]
+
+
 class StopIn(BaseModel):
     """Why the stop: recorded in the job's termination with the key's name."""
 

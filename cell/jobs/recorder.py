@@ -13,6 +13,8 @@
   ``t,kind,x,y,z,qx,qy,qz,qw,vx,vy,vz,wx,wy,wz``: a ``move`` to a sensor pose (base frame), a ``twist`` of
   the sensor (sensor frame [m/s, rad/s]) or a ``hold``, each column left empty where it does not apply;
 - ``STOP``: written by ``cell stop`` while the job runs (an operator stop; the job removes it).
+- ``cloud_live.npy``: while a watched job runs, its accumulated cloud (``cell.jobs.live_cloud``; removed
+  when it ends).
 """
 
 from __future__ import annotations

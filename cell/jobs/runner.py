@@ -30,6 +30,7 @@ import numpy as np
 from cell.config.models import CellConfig
 from cell.jobs.control import JobControl
 from cell.jobs.live import PoseHistory
+from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.placement import check_on_table
 from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import STOP_FILE, JobRecorder
@@ -181,8 +182,9 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
              control: JobControl | None = None) -> ScanOutcome:
     """Run the scan described by ``req``; returns the job folder and the result written there.
 
-    ``on_progress`` gets a snapshot after each perception update, on the control thread (keep it short);
-    ``control`` lets another thread stop the job (``JobControl.request_stop``)."""
+    ``on_progress`` gets a snapshot after each perception update, on the control thread (keep it short),
+    and the job then also keeps its accumulated cloud in ``cloud_live.npy`` while it runs
+    (``cell.jobs.live_cloud``); ``control`` lets another thread stop the job (``JobControl.request_stop``)."""
     cfg = req.config
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
@@ -220,6 +222,15 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
         SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
     guard = MotionGuard.from_config(arm, model, cfg, clock)
 
+    # a watched job (``on_progress`` given) keeps a snapshot of its cloud for its watchers
+    live_cloud = None if on_progress is None else LiveCloudWriter(
+        folder / LIVE_CLOUD_FILE, log=lambda message: recorder.log(clock.now(), message))
+
+    def report(s: JobSession) -> None:
+        assert on_progress is not None and live_cloud is not None
+        live_cloud.offer(s.cloud.points)
+        on_progress(s.progress(planner.figures()))
+
     status, termination = "failed", "not started"
     session: JobSession | None = None
     error: BaseException | None = None
@@ -231,12 +242,10 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
             coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
-            report = None if on_progress is None else (
-                lambda s: on_progress(s.progress(planner.figures())))
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
-                max_time_s=max_time, coverage=coverage, on_progress=report, stop_file=folder / STOP_FILE,
-                rng=planner_rng)
+                max_time_s=max_time, coverage=coverage, on_progress=None if on_progress is None else report,
+                stop_file=folder / STOP_FILE, rng=planner_rng)
             if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
                 session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
             else:
@@ -277,6 +286,8 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
         recorder.log(clock.now(), f"{status}: {termination}")
         cloud = session.cloud.points if session is not None else np.zeros((0, 3))
         recorder.cloud(cloud)
+        if live_cloud is not None:
+            live_cloud.close()
         if session is not None:
             recorder.occupancy_map(session.perception.map)
         metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None

@@ -186,6 +186,10 @@ class CloudAccumulator:
 
     @property
     def points(self) -> Array:
+        """(M, 3) [m], base frame. Each ``add`` builds a new array and publishes it once complete, and
+        never changes one handed out before: any thread may take it, at any time, and read it later
+        (``cell.jobs.live_cloud``; on the wall clock the perception worker adds while the control thread
+        reports)."""
         return self._points
 
     @property
@@ -208,14 +212,16 @@ class CloudAccumulator:
         to_old = np.arange(old_keys.size) + np.searchsorted(fresh_keys, old_keys)
         to_fresh = np.arange(fresh_keys.size) + at[fresh]
         n = old_keys.size + fresh_keys.size
-        self._keys = np.empty(n, dtype=np.int64)
-        self._keys[to_old], self._keys[to_fresh] = old_keys, fresh_keys
-        self._points = np.empty((n, 3))
-        self._points[to_old] = old
-        self._points[to_old[at[shared]]] = (old[at[shared]] + new[shared]) / 2.0
-        self._points[to_fresh] = new[fresh]
-        self._new = np.zeros(n, dtype=bool)
-        self._new[to_fresh] = True
+        merged_keys = np.empty(n, dtype=np.int64)
+        merged_keys[to_old], merged_keys[to_fresh] = old_keys, fresh_keys
+        points = np.empty((n, 3))
+        points[to_old] = old
+        points[to_old[at[shared]]] = (old[at[shared]] + new[shared]) / 2.0
+        points[to_fresh] = new[fresh]
+        created = np.zeros(n, dtype=bool)
+        created[to_fresh] = True
+        # published only once complete: another thread reading ``points`` meanwhile gets the previous cloud
+        self._keys, self._points, self._new = merged_keys, points, created
         return new
 
 

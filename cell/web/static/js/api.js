@@ -1,0 +1,92 @@
+// The page's only door to the cell: every call to /api/v1 goes through here with the key the operator
+// logged in with, as "Authorization: Bearer <key>". The key lives in this tab's sessionStorage only: it is
+// never put in a URL, a log line or the page's markup.
+
+const KEY_ITEM = "cell.key";
+
+/** An answer of the API that is not a success: HTTP status, and FastAPI's `detail` (text or a list of
+ *  {loc, msg} for validation errors). */
+export class ApiError extends Error {
+  constructor(status, detail) {
+    super(typeof detail === "string" ? detail : `HTTP ${status}`);
+    this.status = status;
+    this.detail = detail;
+  }
+}
+
+export function storedKey() {
+  return sessionStorage.getItem(KEY_ITEM);
+}
+
+export function storeKey(key) {
+  sessionStorage.setItem(KEY_ITEM, key);
+}
+
+export function forgetKey() {
+  sessionStorage.removeItem(KEY_ITEM);
+}
+
+/** Headers of an authorized request, with `extra` added. */
+export function authHeaders(extra = {}, key = storedKey()) {
+  return { ...extra, Authorization: `Bearer ${key}` };
+}
+
+async function failure(response) {
+  let detail = response.statusText || `HTTP ${response.status}`;
+  try {
+    const body = await response.json();
+    if (body && body.detail !== undefined) detail = body.detail;
+  } catch {
+    // not JSON: keep the status text
+  }
+  if (response.status === 401) window.dispatchEvent(new CustomEvent("cell:unauthorized"));
+  return new ApiError(response.status, detail);
+}
+
+/** The raw response of an authorized request; an ApiError for any status but 2xx. `options.json` is sent
+ *  as a JSON body, `options.form` as multipart form data. A 401 also fires "cell:unauthorized". */
+export async function request(path, options = {}) {
+  const { json, form, key, headers = {}, ...rest } = options;
+  const init = { ...rest, headers: authHeaders(headers, key ?? storedKey()), cache: "no-store" };
+  if (json !== undefined) {
+    init.body = JSON.stringify(json);
+    init.headers["Content-Type"] = "application/json";
+  } else if (form !== undefined) {
+    init.body = form;
+  }
+  const response = await fetch(path, init);
+  if (!response.ok) throw await failure(response);
+  return response;
+}
+
+/** The JSON answer of an authorized request (null for 204). */
+export async function api(path, options = {}) {
+  const response = await request(path, options);
+  return response.status === 204 ? null : response.json();
+}
+
+/** A file of the API as a Blob (images and downloads: <img src> and <a href> cannot send the key). */
+export async function apiBlob(path) {
+  return (await request(path)).blob();
+}
+
+/** Save a file of the API under `name`, fetched with the key and handed to the browser as a blob URL. */
+export async function download(path, name) {
+  const url = URL.createObjectURL(await apiBlob(path));
+  const link = document.createElement("a");
+  link.href = url;
+  link.download = name;
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 60_000);
+}
+
+/** A readable sentence for an error of a call. */
+export function describe(error) {
+  if (error instanceof ApiError) {
+    if (Array.isArray(error.detail)) return error.detail.map((d) => d.msg).join("; ");
+    return `${error.message} (HTTP ${error.status})`;
+  }
+  return `the cell did not answer (${error.message})`;
+}

@@ -1,0 +1,33 @@
+// The live job's curves over job time, as progress comes (visual-servoing paper Fig. 4): captures, the
+// sensor's path length, H_ROI and, in sim, the coverage of the object.
+
+import { h } from "../dom.js";
+import { LinePlot } from "../plot.js";
+
+const CURVES = [
+  { key: "n_captures", title: "captures", color: "#1f6fb2", yMin: 0 },
+  { key: "path_length_m", title: "path length [m]", color: "#5f3dc4", yMin: 0 },
+  { key: "h_roi", title: "H_ROI [nats]", color: "#d9480f", yMin: 0 },
+  { key: "coverage_pct", title: "coverage [%]", color: "#2b8a3e", yMin: 0, yMax: 100 },
+];
+
+/** The curves' section: `element`, `add(progress)` for each progress event, `count` of those added. */
+export function progressCharts() {
+  const canvases = CURVES.map((c) => h("canvas", { class: "plot", id: `plot-${c.key}` }));
+  const plots = CURVES.map((c, i) => new LinePlot(canvases[i], c));
+  const summary = h("p", { class: "hint", id: "progress-summary", "aria-live": "polite" }, "No progress yet.");
+  const element = h("section", { class: "card charts", "aria-labelledby": "charts-title" },
+    h("h2", { id: "charts-title" }, "Progress"), summary, h("div", { class: "plots" }, canvases));
+  const charts = {
+    element,
+    count: 0,
+    add(progress) {
+      plots.forEach((plot, i) => plot.add(progress.t_s, progress[CURVES[i].key] ?? null));
+      charts.count += 1;
+      element.dataset.count = String(charts.count);
+      summary.textContent = `${charts.count} updates; job time ${progress.t_s.toFixed(1)} s, `
+        + `${progress.n_captures} captures, ${progress.n_cloud_points} cloud points`;
+    },
+  };
+  return charts;
+}

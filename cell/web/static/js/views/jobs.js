@@ -1,0 +1,83 @@
+// The jobs table: newest first, filtered by status, planner and part id, a page at a time (the list
+// endpoint's own query parameters, kept in the address so that a filtered page can be bookmarked).
+
+import { api, describe } from "../api.js";
+import { fmt, h, replace, when } from "../dom.js";
+
+const STATUSES = ["queued", "running", "completed", "failed", "stopped", "cancelled", "interrupted"];
+const PAGE = 20;
+
+function go(filters, offset) {
+  const query = new URLSearchParams();
+  for (const [name, value] of Object.entries(filters)) if (value) query.set(name, value);
+  if (offset > 0) query.set("offset", String(offset));
+  const text = query.toString();
+  window.location.hash = `#/jobs${text ? `?${text}` : ""}`;
+}
+
+function row(job) {
+  const result = job.result ?? {};
+  const coverage = result.metrics?.coverage_pct;
+  const dims = result.packing?.dims_m;
+  return h("tr", {},
+    h("td", {}, when(job.created_at, true)),
+    h("td", {}, h("a", { href: `#/jobs/${job.id}`, class: "mono" }, job.id)),
+    h("td", {}, h("span", { class: `status status-${job.status}` }, job.status)),
+    h("td", {}, job.planner),
+    h("td", {}, job.object ?? "–"),
+    h("td", {}, job.part_id ?? "–"),
+    h("td", { class: "num" }, result.n_captures ?? job.progress?.n_captures ?? "–"),
+    h("td", { class: "num" }, fmt(coverage, 1, "%")),
+    h("td", { class: "dims" }, dims ? `${dims.map((v) => v.toFixed(3)).join(" × ")} m` : "–"),
+    h("td", { class: "termination", title: job.termination ?? "" }, job.termination ?? ""));
+}
+
+/** Show the table in `main` for the filters in `params`; returns a function that leaves the view. */
+export function showJobs(main, context, params) {
+  const filters = { status: params.get("status") ?? "", planner: params.get("planner") ?? "", part_id: params.get("part_id") ?? "" };
+  const offset = Math.max(0, Number(params.get("offset")) || 0);
+
+  const status = h("select", { id: "filter-status", name: "status" }, h("option", { value: "" }, "any"),
+    STATUSES.map((s) => h("option", { value: s, selected: s === filters.status }, s)));
+  const planner = h("select", { id: "filter-planner", name: "planner" }, h("option", { value: "" }, "any"));
+  const part = h("input", { id: "filter-part", name: "part_id", type: "search", value: filters.part_id });
+  const form = h("form", { class: "filters", role: "search", "aria-label": "Filter jobs" },
+    h("label", { for: "filter-status" }, "Status"), status,
+    h("label", { for: "filter-planner" }, "Planner"), planner,
+    h("label", { for: "filter-part" }, "Part id"), part,
+    h("button", { type: "submit" }, "Filter"));
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    go({ status: status.value, planner: planner.value, part_id: part.value.trim() }, 0);
+  });
+
+  const body = h("tbody", {}, h("tr", {}, h("td", { colspan: 10 }, "Loading…")));
+  const pager = h("div", { class: "pager" });
+  main.append(h("section", { class: "card", "aria-labelledby": "jobs-title" },
+    h("h2", { id: "jobs-title" }, "Jobs"), form,
+    h("div", { class: "table-wrap" }, h("table", { class: "jobs" },
+      h("thead", {}, h("tr", {}, ["Created", "Job", "Status", "Planner", "Object", "Part id", "Captures", "Coverage",
+        "Dimensions", "Termination"].map((title) => h("th", { scope: "col", class: `col-${title.toLowerCase().replace(" ", "-")}` }, title)))),
+      body)),
+    pager));
+
+  let alive = true;
+  api("/api/v1/planners").then((planners) => {
+    for (const p of planners) planner.append(h("option", { value: p.name, selected: p.name === filters.planner }, p.name));
+  }).catch(() => {});
+
+  const query = new URLSearchParams({ limit: String(PAGE), offset: String(offset) });
+  for (const [name, value] of Object.entries(filters)) if (value) query.set(name, value);
+  api(`/api/v1/jobs?${query}`).then((page) => {
+    if (!alive) return;
+    replace(body, page.items.length ? page.items.map(row) : h("tr", {}, h("td", { colspan: 10 }, "No job matches.")));
+    const last = Math.min(page.offset + page.items.length, page.total);
+    replace(pager,
+      h("button", { type: "button", disabled: offset === 0, onclick: () => go(filters, Math.max(0, offset - PAGE)) }, "Newer"),
+      h("span", { "aria-live": "polite" }, page.total ? `${page.offset + 1}–${last} of ${page.total}` : "0 jobs"),
+      h("button", { type: "button", disabled: last >= page.total, onclick: () => go(filters, offset + PAGE) }, "Older"));
+  }).catch((error) => {
+    if (alive) replace(body, h("tr", {}, h("td", { colspan: 10, class: "error" }, describe(error))));
+  });
+  return () => { alive = false; };
+}

@@ -1,0 +1,150 @@
+// The new-scan form: planner (with its one-line description), the object and its pose on the table for
+// sim and dry-run cells (shipped objects and uploaded meshes), seed, time budget and part id. The API's
+// validation errors (422) are shown next to the field they name.
+
+import { api, ApiError, describe } from "../api.js";
+import { h, replace } from "../dom.js";
+
+const VIRTUAL_MODES = ["sim", "dry-run"];
+
+function field(name, label, control, hint = "") {
+  control.id = `f-${name}`;
+  control.name = name;
+  const describedBy = [`err-${name}`, hint ? `hint-${name}` : ""].filter(Boolean).join(" ");
+  control.setAttribute("aria-describedby", describedBy);
+  return h("div", { class: "field", "data-field": name },
+    h("label", { for: control.id }, label), control,
+    hint ? h("p", { class: "hint", id: `hint-${name}` }, hint) : null,
+    h("p", { class: "field-error", id: `err-${name}` }));
+}
+
+function numberInput(attrs) {
+  return h("input", { type: "number", step: "any", inputmode: "decimal", ...attrs });
+}
+
+function objectLabel(entry) {
+  const [x, y, z] = entry.extents_m.map((v) => v.toFixed(3));
+  return `${entry.name} (${x} × ${y} × ${z} m${entry.source === "uploaded" ? ", uploaded" : ""})`;
+}
+
+/** The form in a section; `onSubmitted(job)` after a job was queued. */
+export async function scanForm({ onSubmitted }) {
+  const [planners, cell, objects] = await Promise.all([
+    api("/api/v1/planners"), api("/api/v1/cell"), api("/api/v1/objects"),
+  ]);
+  const virtual = VIRTUAL_MODES.includes(cell.mode);
+
+  const planner = h("select", {}, planners.map((p) => h("option", { value: p.name, selected: p.default }, p.name)));
+  const description = h("p", { class: "hint", id: "hint-planner", "aria-live": "polite" });
+  const describePlanner = () => {
+    description.textContent = planners.find((p) => p.name === planner.value)?.description ?? "";
+  };
+  planner.addEventListener("change", describePlanner);
+  describePlanner();
+
+  const object = h("select", {});
+  const fillObjects = (entries, selected) => {
+    replace(object, entries.map((e) => h("option", { value: e.name, selected: e.name === selected }, objectLabel(e))));
+  };
+  fillObjects(objects, objects[0]?.name);
+  const label = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
+  const x = numberInput({ value: "0", "aria-label": "x [m]" });
+  const y = numberInput({ value: "0", "aria-label": "y [m]" });
+  const yaw = numberInput({ value: "0", "aria-label": "yaw [deg]" });
+  const seed = h("input", { type: "number", min: 0, step: 1, value: "0" });
+  const budget = numberInput({ min: 0, placeholder: "cell default" });
+  const part = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
+  const upload = h("input", { type: "file", accept: ".ply,.obj,.stl" });
+  const uploadButton = h("button", { type: "button" }, "Upload mesh");
+  const formError = h("p", { class: "error", role: "alert" });
+  const submit = h("button", { type: "submit", class: "primary" }, "Start scan");
+
+  const pose = h("div", { class: "field", "data-field": "object_pose" },
+    h("span", { class: "label", id: "pose-label" }, "Pose on the table (from the station)"),
+    h("div", { class: "pose", role: "group", "aria-labelledby": "pose-label", "aria-describedby": "err-object_pose" },
+      h("label", {}, "x [m] ", x), h("label", {}, "y [m] ", y), h("label", {}, "yaw [deg] ", yaw)),
+    h("p", { class: "field-error", id: "err-object_pose" }));
+  const plannerField = field("planner", "Planner", planner);
+  plannerField.querySelector(".field-error").before(description);
+  planner.setAttribute("aria-describedby", "hint-planner err-planner");
+
+  const form = h("form", { class: "scan-form", novalidate: true },
+    plannerField,
+    virtual
+      ? [field("object", "Object", object),
+        h("div", { class: "field upload" }, field("file", "Or upload a mesh (PLY, OBJ or STL, metres, z up)", upload),
+          uploadButton),
+        pose]
+      : field("object", "Label of the part (optional)", label),
+    h("div", { class: "row" }, field("seed", "Seed", seed),
+      field("max_time_s", "Time budget [s]", budget), field("part_id", "Part id", part)),
+    submit, formError);
+
+  const clearErrors = () => {
+    for (const p of form.querySelectorAll(".field-error")) p.textContent = "";
+    for (const c of form.querySelectorAll("[aria-invalid]")) c.removeAttribute("aria-invalid");
+    formError.textContent = "";
+  };
+  const showError = (error) => {
+    if (error instanceof ApiError && Array.isArray(error.detail)) {
+      for (const item of error.detail) {
+        const name = item.loc?.[1];
+        const slot = name ? form.querySelector(`#err-${CSS.escape(String(name))}`) : null;
+        if (slot) {
+          slot.textContent = [slot.textContent, item.msg].filter(Boolean).join("; ");
+          form.querySelector(`[data-field="${CSS.escape(String(name))}"] input, [data-field="${CSS.escape(String(name))}"] select`)
+            ?.setAttribute("aria-invalid", "true");
+        } else {
+          formError.textContent = [formError.textContent, item.msg].filter(Boolean).join("; ");
+        }
+      }
+    } else {
+      formError.textContent = describe(error);
+    }
+  };
+  const number = (input) => (input.value.trim() === "" ? undefined : Number(input.value));
+
+  uploadButton.addEventListener("click", async () => {
+    clearErrors();
+    const file = upload.files[0];
+    if (!file) {
+      form.querySelector("#err-file").textContent = "Choose a file first.";
+      return;
+    }
+    const data = new FormData();
+    data.append("file", file);
+    uploadButton.disabled = true;
+    try {
+      const entry = await api("/api/v1/objects", { method: "POST", form: data });
+      fillObjects(await api("/api/v1/objects"), entry.name);
+      upload.value = "";
+    } catch (error) {
+      showError(error);
+    } finally {
+      uploadButton.disabled = false;
+    }
+  });
+
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    clearErrors();
+    const body = { planner: planner.value, seed: number(seed), max_time_s: number(budget) };
+    if (part.value.trim()) body.part_id = part.value.trim();
+    if (virtual) {
+      body.object = object.value;
+      body.object_pose = [number(x) ?? 0, number(y) ?? 0, number(yaw) ?? 0];
+    } else if (label.value.trim()) {
+      body.object = label.value.trim();
+    }
+    submit.disabled = true;
+    try {
+      onSubmitted(await api("/api/v1/jobs", { method: "POST", json: body }));
+    } catch (error) {
+      showError(error);
+    } finally {
+      submit.disabled = false;
+    }
+  });
+
+  return h("section", { class: "card", "aria-labelledby": "scan-title" }, h("h2", { id: "scan-title" }, "New scan"), form);
+}

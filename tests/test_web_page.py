@@ -1,0 +1,368 @@
+"""The operator's page in a real browser: Debian's Chromium, headless, driven by Playwright for Python,
+against a real ``cell serve`` (the sim Franka + RGB-D cell) reached through a TCP relay whose connections
+the test can cut (``tests.tcp_proxy``).
+
+One service and one browser serve the whole module. A wrong key is refused; a viewer's key is offered
+no scan; the packing line's PackML state shows when the status has one; an operator starts a raster scan
+from the form (a pose off the table is refused next to the field first), watches progress arrive, sees it
+complete with its coverage and dimensions, downloads a file and finds it in the jobs table; uploads a
+mesh; a vs-local scan is watched live through a cut of every connection (the event stream resumes and no
+progress is lost), then stopped with the STOP key and the queue resumed; the views fit 1024x768; an
+operator recovers the arm after a protective stop (a cell of its own). The 3D view is checked to have
+drawn (its canvas read back), and each main view is saved as a screenshot under
+``tests/artifacts/web/``.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import re
+import shutil
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+from PIL import Image
+
+from tests.conftest import FRANKA
+from tests.service_process import REPO, ServedCell
+from tests.tcp_proxy import CuttableProxy
+
+CHROMIUM = Path("/usr/bin/chromium")
+pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed "
+                                "(deploy/system-deps.sh installs it): no browser to run the page in")
+sync_api = pytest.importorskip("playwright.sync_api")
+
+ARTIFACTS = REPO / "tests" / "artifacts" / "web"
+# as the machine's own probe starts it: no sandbox (root), no GPU, no calls home; WebGL on SwiftShader
+LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+WAIT_MS = 90_000  # a bound on waiting for a job, not a timed check
+BACKGROUND = (0xF4, 0xF6, 0xF8)  # the 3D view's background (scene.js COLORS.background)
+
+Page = Any  # playwright.sync_api.Page
+
+
+# ---------------------------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServedCell]:
+    with ServedCell(FRANKA, tmp_path_factory.mktemp("web") / "data") as served:
+        yield served
+
+
+@pytest.fixture(scope="module")
+def proxy(cell: ServedCell) -> Iterator[CuttableProxy]:
+    relay = CuttableProxy((cell.host, cell.port))
+    try:
+        yield relay
+    finally:
+        relay.close()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    shutil.rmtree(ARTIFACTS, ignore_errors=True)
+    ARTIFACTS.mkdir(parents=True)
+    with sync_api.sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+@pytest.fixture
+def open_page(browser: Any, proxy: CuttableProxy, cell: ServedCell) -> Iterator[Callable[..., Page]]:
+    """``open_page(role=None, width=1280, height=800, other=None)``: a fresh browser context on the page
+    of the module's cell (or of ``other``), logged in with the role's key (typed, then Enter) unless
+    ``role`` is None. Script errors fail the test."""
+    contexts: list[Any] = []
+    errors: list[str] = []
+
+    def open_(role: str | None = None, width: int = 1280, height: int = 800,
+              other: ServedCell | None = None) -> Page:
+        context = browser.new_context(viewport={"width": width, "height": height}, accept_downloads=True)
+        contexts.append(context)
+        page = context.new_page()
+        page.set_default_timeout(WAIT_MS)
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto((proxy.url if other is None else other.url) + "/")
+        if role is not None:
+            log_in(page, (other or cell).keys[role])
+            page.wait_for_selector("#statusbar:not([hidden])")
+        return page
+
+    yield open_
+    for context in contexts:
+        context.close()
+    assert errors == [], errors
+
+
+def log_in(page: Page, key: str) -> None:
+    """Type the key into the focused field and press Enter, as a keyboard user does."""
+    assert page.evaluate("() => document.activeElement.id") == "login-key"
+    page.keyboard.type(key)
+    page.keyboard.press("Enter")
+
+
+def wait_for(page: Page, expression: str) -> None:
+    """Wait until the JavaScript ``expression`` holds (a function: the page's CSP forbids eval)."""
+    page.wait_for_function(f"() => {expression}")
+
+
+def progress_count(page: Page) -> int:
+    return int(page.evaluate("() => Number(document.querySelector('.charts').dataset.count || 0)"))
+
+
+def view_pixels(page: Page) -> np.ndarray:
+    """The 3D view's canvas read back (its WebGL drawing buffer, kept for this), (H, W, 3) uint8."""
+    url = page.evaluate("() => document.querySelector('#view3d canvas').toDataURL('image/png')")
+    image = Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB")
+    return np.asarray(image)
+
+
+def cloud_pixels(page: Page) -> int:
+    """Pixels of the 3D view that are the cloud's colours (blue to amber by height) rather than the
+    background, the grey grid or the thin coloured lines."""
+    rgb = view_pixels(page).astype(int)
+    assert rgb.shape[0] > 100 and rgb.shape[1] > 100, rgb.shape
+    drawn = np.abs(rgb - np.array(BACKGROUND)).max(axis=2) > 40
+    grey = (rgb.max(axis=2) - rgb.min(axis=2)) < 30
+    return int(np.count_nonzero(drawn & ~grey))
+
+
+def shot(page: Page, name: str, full_page: bool = False) -> None:
+    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=full_page)
+
+
+def read(cell: ServedCell, path: str) -> Any:
+    """GET ``path`` of the API with a viewer's key (what the test checks the page against)."""
+    with cell.client("viewer") as client:
+        response = client.get(path)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def events_of(cell: ServedCell, job_id: str) -> list[str]:
+    with cell.client("viewer") as client, client.stream("GET", f"/api/v1/jobs/{job_id}/events") as response:
+        return re.findall(r"^event: (\w+)$", response.read().decode(), flags=re.MULTILINE)
+
+
+# ---------------------------------------------------------------------------------------------- login
+
+
+def test_a_wrong_key_is_refused_and_nothing_is_kept(open_page: Callable[..., Page]) -> None:
+    page = open_page()
+    shot(page, "login")
+    log_in(page, "cell_" + "A" * 43)
+    wait_for(page, "document.getElementById('login-error').textContent.length > 0")
+    assert "not valid" in page.text_content("#login-error")
+    assert page.is_hidden("#statusbar")
+    assert page.evaluate("() => sessionStorage.length") == 0
+    assert "cell_" not in page.url
+
+
+def test_a_viewer_may_watch_and_stop_but_is_offered_no_scan(open_page: Callable[..., Page],
+                                                            cell: ServedCell) -> None:
+    page = open_page("viewer")
+    page.wait_for_selector("#no-submit")
+    assert page.locator("#f-planner").count() == 0 and page.locator("form.scan-form").count() == 0
+    assert page.is_visible("#stop") and page.is_enabled("#stop")
+    assert page.is_hidden("#recover") and page.is_hidden("#resume")
+    wait_for(page, "document.getElementById('st-name').textContent === 'sim-franka-rgbd'")
+    assert page.text_content("#st-mode") == "sim" and page.text_content("#whoami") == "test-viewer (viewer)"
+    # the key is kept in this tab's session storage only, never in the address
+    assert page.evaluate("() => sessionStorage.getItem('cell.key')") == cell.keys["viewer"]
+    assert cell.keys["viewer"] not in page.url
+    # no line on this branch's service: nothing shown for it
+    assert page.is_hidden("#st-line-item")
+
+
+def test_the_status_bar_shows_the_lines_packml_state_when_there_is_one(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """The packing line adds ``line`` to GET /cell (issue 19); here a route adds it to the answer."""
+    page = open_page()
+
+    def with_line(route: Any) -> None:
+        status = route.fetch().json()
+        status["line"] = {"state": 6, "state_name": "Execute", "mode": "production"}
+        route.fulfill(json=status)
+
+    page.route("**/api/v1/cell", with_line)
+    log_in(page, cell.keys["viewer"])
+    wait_for(page, "document.getElementById('st-line').textContent === 'Execute (6)'")
+    assert page.is_visible("#st-line-item") and page.text_content("#st-line-mode") == "production"
+
+
+# ---------------------------------------------------------------------------------------------- scans
+
+
+def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    page = open_page("operator")
+    page.wait_for_selector("#f-planner")
+    page.select_option("#f-planner", "raster")
+    assert "rings of views" in page.text_content("#hint-planner")
+    page.select_option("#f-object", "bunny")
+    page.fill("#f-max_time_s", "30")
+    page.fill("#f-part_id", "crate-17")
+    shot(page, "new-scan")
+    # a pose off the table: the API's 422 is shown next to the pose, and nothing is queued
+    page.fill("input[aria-label='x [m]']", "2")
+    page.click("button[type=submit]")
+    wait_for(page, "document.getElementById('err-object_pose').textContent.length > 0")
+    assert "table" in page.text_content("#err-object_pose")
+    shot(page, "new-scan-refused")
+    assert page.url.endswith("/")
+    page.fill("input[aria-label='x [m]']", "0")
+    page.click("button[type=submit]")
+
+    page.wait_for_url(re.compile(r"#/jobs/[0-9a-f]{16}$"))
+    job_id = page.url.rsplit("/", 1)[1]
+    page.wait_for_selector("#job-status")
+    wait_for(page, "Number(document.querySelector('.charts').dataset.count || 0) >= 1")  # progress arrives
+    page.wait_for_selector("#result")
+    assert page.text_content("#job-status") == "completed"
+    job = read(cell, f"/api/v1/jobs/{job_id}")
+    result = job["result"]
+    assert job["status"] == "completed" and result["planner"] == "raster"
+    assert progress_count(page) == events_of(cell, job_id).count("progress") >= 2
+    # coverage and the packing dimensions, as the result holds them
+    assert page.text_content("#fig-coverage") == f"{result['metrics']['coverage_pct']:.2f} %"
+    dims = " × ".join(f"{v:.3f}" for v in result["packing"]["dims_m"])
+    assert page.text_content("#fig-dims") == f"{dims} m"
+    assert page.text_content("#fig-container").startswith(result["packing"]["container"]["name"])
+    assert dims in page.text_content("#packing-note")
+    wait_for(page, "document.getElementById('job-log').textContent.includes('raster complete')")
+    assert cloud_pixels(page) > 500, "the 3D view shows no cloud"
+    shot(page, "job-completed", full_page=True)
+
+    # a file downloads through a blob URL (the key goes in a header, never in a link)
+    with page.expect_download() as download:
+        page.click("button[aria-label='Download result.json']")
+    saved = json.loads(Path(download.value.path()).read_text())
+    assert saved["status"] == "completed" and saved["n_captures"] == result["n_captures"]
+
+    # the jobs table, filtered, opens the job's detail page
+    page.click("nav a[href='#/jobs']")
+    page.select_option("#filter-planner", "raster")
+    page.fill("#filter-part", "crate-17")
+    page.click("form.filters button[type=submit]")
+    page.wait_for_url(re.compile(r"#/jobs\?planner=raster&part_id=crate-17$"))
+    page.wait_for_selector(f"table.jobs a[href='#/jobs/{job_id}']")
+    assert page.locator("table.jobs tbody tr").count() == 1 and page.text_content(".pager span") == "1–1 of 1"
+    shot(page, "jobs")
+    page.click(f"table.jobs a[href='#/jobs/{job_id}']")
+    page.wait_for_selector("#result")
+    assert page.text_content("#fig-dims") == f"{dims} m"
+
+
+def test_an_operator_uploads_a_mesh_from_the_form(open_page: Callable[..., Page], tmp_path: Path) -> None:
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a mesh")
+    crate = tmp_path / "crate.ply"
+    trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(crate)
+    page = open_page("operator")
+    page.wait_for_selector("#f-file")
+    page.set_input_files("#f-file", str(notes))
+    page.click("text=Upload mesh")
+    wait_for(page, "document.getElementById('err-file').textContent.length > 0")
+    assert "not a mesh file" in page.text_content("#err-file")
+    page.set_input_files("#f-file", str(crate))
+    page.click("text=Upload mesh")
+    wait_for(page, "document.getElementById('f-object').value === 'crate'")
+    assert page.text_content("#err-file") == ""
+    chosen = page.evaluate("() => document.getElementById('f-object').selectedOptions[0].textContent")
+    assert chosen == "crate (0.060 × 0.050 × 0.040 m, uploaded)"
+
+
+def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
+        open_page: Callable[..., Page], cell: ServedCell, proxy: CuttableProxy) -> None:
+    with cell.client("operator") as client:
+        response = client.post("/api/v1/jobs", json={"object": "bunny", "planner": "vs-local",
+                                                     "max_time_s": 120.0})
+    assert response.status_code == 201, response.text
+    job_id = response.json()["id"]
+    page = open_page("operator")
+    page.click("#running-now a")  # the job running now, from the first view
+    page.wait_for_url(re.compile(f"#/jobs/{job_id}$"))
+    wait_for(page, "Number(document.querySelector('.charts').dataset.count || 0) >= 2")
+    wait_for(page, "document.getElementById('job-link').textContent === 'live'")
+
+    # every connection cut: the page says so, reconnects by itself and resumes after the last event
+    assert proxy.cut() > 0
+    wait_for(page, "document.getElementById('job-link').textContent.includes('reconnecting')")
+    wait_for(page, "document.getElementById('job-link').textContent === 'live'")
+    before = progress_count(page)
+    wait_for(page, f"Number(document.querySelector('.charts').dataset.count) > {before}")
+    assert cloud_pixels(page) > 500, "the 3D view shows no live cloud"
+    shot(page, "job-live")
+
+    page.keyboard.press("Escape")  # STOP
+    wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP:')")
+    assert "the arm was commanded to stop" in page.text_content("#stop-outcome")
+    wait_for(page, "document.getElementById('job-status').textContent === 'stopped'")
+    page.wait_for_selector("#result")
+    assert progress_count(page) == events_of(cell, job_id).count("progress"), "progress was lost"
+    assert "operator stop" in page.text_content("#result-termination")
+    page.wait_for_selector("#img-servo-png")
+    assert page.evaluate("() => document.getElementById('img-servo-png').naturalWidth") > 100
+
+    # STOP held the queue: an operator resumes it from the status bar
+    page.wait_for_selector("#resume:not([hidden])")
+    page.click("#resume")
+    page.wait_for_selector("#resume", state="hidden")
+    assert read(cell, "/api/v1/cell")["queue"]["held"] is None
+
+
+def test_the_pages_fit_a_1024x768_tablet(open_page: Callable[..., Page], cell: ServedCell) -> None:
+    ended = read(cell, "/api/v1/jobs?status=stopped&status=completed&limit=1")["items"]
+    if not ended:  # this test alone: a job of its own
+        with cell.client("operator") as client:
+            job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 5.0}).json()
+        ended = [cell.wait_job(job["id"], ("completed",))]
+    page = open_page("operator", width=1024, height=768)
+    shot(page, "new-scan-1024")
+    page.goto(f"{page.url.split('#')[0]}#/jobs/{ended[0]['id']}")
+    page.wait_for_selector("#result")
+    wait_for(page, "document.querySelector('#view3d canvas') !== null")
+    assert page.evaluate("() => document.documentElement.scrollWidth") <= 1024
+    assert cloud_pixels(page) > 500
+    shot(page, "job-stopped-1024")
+    page.goto(f"{page.url.split('#')[0]}#/jobs")
+    page.wait_for_selector("table.jobs tbody a")
+    assert page.evaluate("() => document.documentElement.scrollWidth") <= 1024
+    shot(page, "jobs-1024")
+
+
+def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callable[..., Page],
+                                                              tmp_path: Path) -> None:
+    data = yaml.safe_load(FRANKA.read_text())
+    data["sim"]["faults"] = [{"at_s": 3.5, "kind": "protective stop"}]
+    config = tmp_path / "faulty.yaml"
+    config.write_text(yaml.safe_dump(data))
+    with ServedCell(config, tmp_path / "data", key_prefix="faulty") as faulty:
+        with faulty.client("operator") as client:
+            job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 8.0}).json()
+        faulty.wait_job(job["id"], ("stopped",))
+        viewer = open_page("viewer", other=faulty)
+        wait_for(viewer, "document.getElementById('st-arm').textContent.startsWith('protective stop')")
+        assert viewer.is_hidden("#recover")  # a viewer may not recover
+        page = open_page("operator", other=faulty)
+        page.wait_for_selector("#recover:not([hidden])")
+        assert "recover the arm first" in page.text_content("#st-held")
+        shot(page, "protective-stop")
+        page.click("#recover")
+        wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('Recover:')")
+        assert "recovered" in page.text_content("#stop-outcome")
+        wait_for(page, "document.getElementById('st-arm').textContent === 'idle'")
+        page.wait_for_selector("#recover", state="hidden")
