@@ -183,6 +183,26 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     assert stopped["processed"] == 0
 
 
+def test_hold_stops_the_scan_and_unhold_scans_the_part_again(line: Line):
+    line.command("reset")
+    line.wait({"Idle"})
+    line.command("start", "cube@0.01,0.0,15")
+    first = line.wait({"Execute"})["job_id"]
+    assert line.command("hold").status_code == 200
+    held = line.wait({"Held"})
+    assert line.job(first)["status"] == "stopped" and held["job_id"] is None
+    assert line.command("start", "bunny").status_code == 409  # Held waits for Unhold (or Stop, Abort)
+    line.command("unhold")
+    again = line.wait({"Execute"})["job_id"]
+    assert again != first and line.job(again)["part_id"] == "cube@0.01,0.0,15"
+    done = line.wait({"Complete"})
+    assert done["result"]["job_id"] == again and done["processed"] == 1
+    history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
+    walk = [h["to_name"] for h in reversed(history)]
+    assert walk[walk.index("Holding"):walk.index("Complete") + 1] == [
+        "Holding", "Held", "Unholding", "Execute", "Completing", "Complete"]
+
+
 def test_an_arm_fault_aborts_and_clear_then_reset_recover(tmp_path: Path):
     config = _cell_file(tmp_path, TOF, {}, sim={"table_size_m": [1.2, 1.2], "table_center_xy_m": [0.4, 0.0],
                                                "faults": [{"at_s": 2.0, "kind": "protective stop"}]})

@@ -183,24 +183,25 @@ def test_a_viewer_may_watch_and_stop_but_is_offered_no_scan(open_page: Callable[
     # the key is kept in this tab's session storage only, never in the address
     assert page.evaluate("() => sessionStorage.getItem('cell.key')") == cell.keys["viewer"]
     assert cell.keys["viewer"] not in page.url
-    # no line on this branch's service: nothing shown for it
+    # this cell has no packing line: nothing shown for it
     assert page.is_hidden("#st-line-item")
 
 
 def test_the_status_bar_shows_the_lines_packml_state_when_there_is_one(
         open_page: Callable[..., Page], cell: ServedCell) -> None:
-    """The packing line adds ``line`` to GET /cell (issue 19); here a route adds it to the answer."""
+    """A cell with a packing line has ``line`` in GET /cell (``cell.line.controller.LineSnapshot``); here a
+    route adds one, as such a cell reports it, to this line-less cell's answer."""
     page = open_page()
 
     def with_line(route: Any) -> None:
         status = route.fetch().json()
-        status["line"] = {"state": 6, "state_name": "Execute", "mode": "production"}
+        status["line"] = {"state": 6, "state_name": "Execute", "mode": 1, "mode_name": "Production"}
         route.fulfill(json=status)
 
     page.route("**/api/v1/cell", with_line)
     log_in(page, cell.keys["viewer"])
     wait_for(page, "document.getElementById('st-line').textContent === 'Execute (6)'")
-    assert page.is_visible("#st-line-item") and page.text_content("#st-line-mode") == "production"
+    assert page.is_visible("#st-line-item") and page.text_content("#st-line-mode") == "Production"
 
 
 # ---------------------------------------------------------------------------------------------- scans

@@ -18,7 +18,7 @@ function line(status) {
   $("st-line-item").hidden = !wired;
   if (wired) {
     $("st-line").textContent = `${wired.state_name ?? "?"} (${wired.state ?? "?"})`;
-    $("st-line-mode").textContent = wired.mode ?? "";
+    $("st-line-mode").textContent = wired.mode_name ?? wired.mode ?? "";
   }
 }
 
