@@ -195,8 +195,9 @@ class CellService:
     # ------------------------------------------------------------------ reading
 
     def status(self) -> dict[str, Any]:
-        """The cell now (no database, no device: safe to poll)."""
-        running = self._running
+        """The cell now (no database, no device: safe to poll). A job whose end is recorded is no longer
+        the running one, though its worker may still be exiting."""
+        running = self._running if self._running is not None and not self._running.recorded else None
         cfg = self.config
         # a hardware sensor is connected by each job: it is known to deliver once a job has a frame
         sensor_up = cfg.sensor.type.startswith("sim-") or (running is not None
