@@ -6,7 +6,6 @@ exists (``cell keys create``), since every route but ``/healthz`` needs one.
 
 from __future__ import annotations
 
-import ipaddress
 from pathlib import Path
 from typing import Annotated
 
@@ -18,20 +17,11 @@ from cell.api.app import create_app
 from cell.line.opcua import check_endpoint
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
 from drivers.errors import CellError
+from drivers.hosts import is_loopback
 
 err_console = Console(stderr=True)
 SHUTDOWN_GRACE_S = 2
 """How long open requests (event streams) may run on after SIGTERM before they are cut [s]."""
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` names only this machine (127.0.0.0/8, ::1, localhost)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def serve(

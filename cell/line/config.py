@@ -7,25 +7,16 @@ the robot's digital I/O when their sections are given.
 
 from __future__ import annotations
 
-import ipaddress
 from typing import Literal
 from urllib.parse import urlsplit
 
 from pydantic import Field, PositiveFloat, field_validator, model_validator
 
 from drivers.config_base import StrictModel
+from drivers.hosts import is_loopback
 
 PART_ID_MAX = 64
 """Longest part id a line may send [characters]."""
-
-
-def _loopback_host(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class OPCUAConfig(StrictModel):
@@ -56,7 +47,7 @@ class OPCUAConfig(StrictModel):
 
     @model_validator(mode="after")
     def _plain_only_on_loopback(self) -> OPCUAConfig:
-        if self.security == "none" and not _loopback_host(self.host):
+        if self.security == "none" and not is_loopback(self.host):
             raise ValueError(f"security 'none' sends the line key in clear text: only a loopback endpoint "
                              f"may use it, not {self.host}")
         return self
