@@ -28,7 +28,7 @@ import logging
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from datetime import UTC
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 from urllib.parse import urlsplit
 
 from asyncua import Server, ua
@@ -75,6 +75,7 @@ with it (the result with Complete, the job id with Execute)."""
 _COMMANDS = ", ".join(f"{c.value} {c.label}" for c in Command)
 _MODES = ", ".join(f"{m.value} {m.label}" for m in UnitMode)
 MethodResult = ua.StatusCode | ua.CallMethodResult
+E = TypeVar("E", Command, UnitMode)
 
 
 def _status(code: int) -> ua.StatusCode:
@@ -268,28 +269,26 @@ class LineOPCUA:
 
     async def _command(self, number: int, source: str) -> ua.StatusCode:
         """Give the line PackML command ``number``; its status code once its effects are readable."""
-        try:
-            command = Command(number)
-        except ValueError:
-            await self._say(f"refused CntrlCmd {number} from {source}: no command; one of {_COMMANDS}")
-            return _status(S.BadInvalidArgument)
-        try:
-            await self._line.command(command, source)
-        except ServiceError as exc:  # the controller says why in its message
-            await self.settle()
-            return _status(STATUS_OF.get(exc.reason, S.BadInvalidState))
-        await self.settle()
-        return _status(S.Good)
+        return await self._act(Command, number, lambda command: self._line.command(command, source),
+                               f"refused CntrlCmd {number} from {source}: no command; one of {_COMMANDS}")
 
     async def _mode(self, number: int, source: str) -> ua.StatusCode:
         """Switch the line to unit mode ``number``; its status code."""
+        return await self._act(UnitMode, number, lambda mode: self._line.set_mode(mode, source),
+                               f"refused unit mode {number} from {source}: one of {_MODES}")
+
+    async def _act(self, kind: Callable[[int], E], number: int, act: Callable[[E], Awaitable[str]],
+                   unknown: str) -> ua.StatusCode:
+        """``act`` on ``number`` as a member of ``kind`` (``unknown`` said when it is none); the controller
+        says what it did, or why not, in the snapshot's message. The status code once its effects are
+        readable."""
         try:
-            mode = UnitMode(number)
+            member = kind(number)
         except ValueError:
-            await self._say(f"refused unit mode {number} from {source}: one of {_MODES}")
+            await self._say(unknown)
             return _status(S.BadInvalidArgument)
-        try:  # the controller says what it did, or why not, in the snapshot's message
-            await self._line.set_mode(mode, source)
+        try:
+            await act(member)
         except ServiceError as exc:
             await self.settle()
             return _status(STATUS_OF.get(exc.reason, S.BadInvalidState))
