@@ -268,6 +268,11 @@ def test_reopen_runs_no_migration(store_url: str, monkeypatch: pytest.MonkeyPatc
         assert again.get_job(make_job(1).id) == make_job(1)
     finally:
         again.close()
+    _assert_at_head(store_url)
+
+
+def _assert_at_head(store_url: str) -> None:
+    """The store's database records one schema revision, this software's newest."""
     engine = create_engine(store_url)
     with engine.connect() as connection:
         assert connection.execute(text("SELECT version_num FROM alembic_version")).scalars().all() \
@@ -353,11 +358,7 @@ def open_at_once(url: str, n: int) -> list[Store]:
 def test_stores_opened_at_once_migrate_once(store_url: str):
     for opened in open_at_once(store_url, 4):
         opened.close()
-    engine = create_engine(store_url)
-    with engine.connect() as connection:
-        assert connection.execute(text("SELECT version_num FROM alembic_version")).scalars().all() \
-            == [schema_head()]
-    engine.dispose()
+    _assert_at_head(store_url)
 
 
 def test_processes_open_one_sqlite_store_at_once(tmp_path: Path):
