@@ -107,6 +107,14 @@ class LineController:
         self._writes: asyncio.Queue[Callable[[], None] | None] = asyncio.Queue()
         self._writer: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
+        # what each acting state does before its state-complete transition
+        self._acting_work: dict[State, Callable[[], Awaitable[None]]] = {
+            State.STARTING: self._starting, State.UNHOLDING: self._restarting,
+            State.UNSUSPENDING: self._restarting, State.STOPPING: self._stop_scan,
+            State.HOLDING: self._stop_scan, State.SUSPENDING: self._stop_scan,
+            State.ABORTING: self._stop_scan,
+            State.CLEARING: self._clearing, State.RESETTING: self._resetting,
+        }
 
     # ------------------------------------------------------------------ life
 
@@ -274,15 +282,9 @@ class LineController:
 
     def _enter(self, state: State, cause: str) -> None:
         self._record_transition(state, cause)
-        work: dict[State, Callable[[], Awaitable[None]]] = {
-            State.STARTING: self._starting, State.UNHOLDING: self._restarting,
-            State.UNSUSPENDING: self._restarting, State.STOPPING: self._stop_scan,
-            State.HOLDING: self._stop_scan, State.SUSPENDING: self._stop_scan,
-            State.ABORTING: self._stop_scan,
-            State.CLEARING: self._clearing, State.RESETTING: self._resetting,
-        }
-        if state in work:
-            self._spawn(work[state](), state)
+        work = self._acting_work.get(state)
+        if work is not None:
+            self._spawn(work(), state)
 
     def _spawn(self, coroutine: Awaitable[None], state: State) -> None:
         async def run() -> None:
