@@ -537,7 +537,7 @@ class CellService:
                           failure: str | None = None) -> None:
         """Record how the job ended, as soon as it is known: from its worker's last word (while the worker
         process still exits), or ``failure`` / the worker's exit ``code`` when it had none (the folder is
-        then finished here). The line hears first: its Complete waits for nothing else."""
+        then finished here)."""
         running.recorded = True
         job, ended = running.job, running.ended
         for ack in running.acks:
@@ -555,10 +555,11 @@ class CellService:
         if status == "completed" and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
         self.arm.job_ended(termination)
-        if self.line is not None:
-            self.line.job_ended(job.id, status, termination, result)
         await asyncio.to_thread(self.store.update_job, job.id, status=status, termination=termination,
                                 result=result, finished_at=_now(), worker_pid=None, progress=running.progress)
+        # the line hears once the store has the outcome: a line that reads the job finds it ended
+        if self.line is not None:
+            self.line.job_ended(job.id, status, termination, result)
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
