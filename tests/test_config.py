@@ -121,7 +121,7 @@ def test_bad_yaml_and_missing_file(tmp_path):
 def test_cli_config_check(tmp_path, franka_cfg_data):
     runner = CliRunner()
     ok = runner.invoke(app, ["config", "check", str(CONFIG_DIR / "sim-franka-rgbd.yaml")])
-    assert ok.exit_code == 0 and "ok" in ok.output
+    assert ok.exit_code == 0 and "ready: nothing left to measure" in ok.output
     data = copy.deepcopy(franka_cfg_data)
     data["arm"]["model"] = "kuka"
     bad = tmp_path / "kuka.yaml"

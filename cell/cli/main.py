@@ -13,21 +13,24 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
+from cell.cli.init_cell import init
 from cell.cli.jobs import jobs_app
 from cell.cli.keys import keys_app
 from cell.cli.sensor import sensor_app
 from cell.cli.serve import serve
 from cell.config import load_config
+from cell.config.placeholders import find_placeholders
 from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import request_stop
 from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
 from cell.planning.registry import PLANNERS
+from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import CellError
 from drivers.sim.objects import list_objects
 
-DEFAULT_CONFIG = Path("config/sim-franka-rgbd.yaml")
+DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_OBJECT = "bunny"
 
 app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_help=True,
@@ -39,6 +42,7 @@ app.add_typer(arm_app, name="arm")
 app.add_typer(keys_app, name="keys")
 app.add_typer(jobs_app, name="jobs")
 app.command()(serve)
+app.command()(init)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
@@ -173,13 +177,22 @@ def objects() -> None:
 
 @config_app.command("check")
 def config_check(file: Path) -> None:
-    """Validate a cell file; prints a summary or the problem."""
+    """Validate a cell file; prints a summary or the problem, and the values still marked
+    ``# MEASURE:`` (then exit code 1: the file is valid but not ready)."""
     try:
         cfg = load_config(file)
     except CellError as exc:
         raise _fail(exc) from None
-    console.print(f"{file}: ok ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
+    console.print(f"{file}: valid ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
                   f"sensor {cfg.sensor.type}, planner {cfg.scan.planner})", markup=False, highlight=False)
+    left = find_placeholders(file.read_text())
+    if not left:
+        console.print("ready: nothing left to measure", markup=False, highlight=False)
+        return
+    for p in left:
+        console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
+    raise _fail(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write it and delete "
+                "the mark)")
 
 
 if __name__ == "__main__":

@@ -11,11 +11,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cell.config.load import load_config_data
+from cell.config.placeholders import require_measured
 from cell.service.manager import CellService
 from cell.service.store import Store, open_store, sqlite_url
+from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import StoreError
 
-DEFAULT_CONFIG = Path("config/sim-franka-rgbd.yaml")
+DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_DATA_DIR = Path("data")
 
 
@@ -42,6 +44,7 @@ def open_data_store(data_dir: Path, db_url: str | None) -> Store:
 def build_service(settings: ServiceSettings) -> CellService:
     """The service of the cell file, on its store; call ``start`` on the event loop that will run it."""
     config, data = load_config_data(settings.config_file)
+    require_measured(settings.config_file, config.mode)
     store = open_data_store(settings.data_dir, settings.db_url)
     return CellService(config=config, config_data=data, config_file=str(settings.config_file),
                        data_dir=settings.data_dir.resolve(), store=store)

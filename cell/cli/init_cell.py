@@ -1,0 +1,76 @@
+"""``cell init``: a new cell's folder from a template, ready to fill in.
+
+``cell init DIR --template NAME`` writes ``DIR/cell.yaml`` (the template, its values to measure marked
+``# MEASURE:``) and the data folder ``DIR/data`` the service fills (``jobs``, ``objects``, ``logs``, and
+``calibration`` for the calibration views and results), then lists what is left to measure and the
+commands that follow. It never overwrites a cell file.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from cell.config.placeholders import find_placeholders
+from cell.templates import TEMPLATES, template_path
+from drivers.errors import CellError, ConfigError
+
+CELL_FILE = "cell.yaml"
+DATA_FOLDERS = ("jobs", "objects", "logs", "calibration")
+CELL_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+"""A cell's name: the store's key for its jobs (64 characters at most), safe in a file name."""
+
+console = Console(soft_wrap=True)
+err_console = Console(stderr=True)
+
+
+def init_cell(folder: Path, template: str, name: str | None = None) -> Path:
+    """Write ``folder/cell.yaml`` from ``template`` (its ``name:`` replaced by ``name`` if given) and the
+    data folder layout; returns the cell file. ``ConfigError`` if the cell file exists, the template or
+    the name is unknown or invalid, or the folder cannot be written."""
+    text = template_path(template).read_text()
+    if name is not None:
+        if not CELL_NAME.fullmatch(name):
+            raise ConfigError(f"{name!r} is not a cell name", field="--name",
+                              allowed="1-64 letters, digits, '.', '_', '-', starting with a letter or digit")
+        text = re.sub(r"^name: .*$", f"name: {name}", text, count=1, flags=re.MULTILINE)
+    cell_file = folder / CELL_FILE
+    if cell_file.exists():
+        raise ConfigError("exists already; cell init never overwrites a cell file", file=str(cell_file))
+    try:
+        for sub in DATA_FOLDERS:
+            (folder / "data" / sub).mkdir(parents=True, exist_ok=True)
+        with cell_file.open("x") as out:
+            out.write(text)
+    except OSError as exc:
+        raise ConfigError(f"cannot write the cell's folder: {exc.strerror}", file=str(folder)) from None
+    return cell_file
+
+
+def init(
+    folder: Annotated[Path, typer.Argument(help="the cell's folder (created if missing)")],
+    template: Annotated[str, typer.Option(help=f"one of: {', '.join(TEMPLATES)}")],
+    name: Annotated[str | None, typer.Option(help="the cell's name (default: the template's)")] = None,
+) -> None:
+    """Start a cell: its cell file from a template and its data folder, with what is left to measure."""
+    try:
+        cell_file = init_cell(folder, template, name)
+    except CellError as exc:
+        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=1) from None
+    data = folder / "data"
+    console.print(f"wrote {cell_file} and {data}/", markup=False, highlight=False)
+    left = find_placeholders(cell_file.read_text())
+    if left:
+        console.print(f"{len(left)} values to measure (marked '# MEASURE:'; delete each mark once measured):",
+                      markup=False, highlight=False)
+        for p in left:
+            console.print(f"  line {p.line:3d}  {p.field}: {p.what}", markup=False, highlight=False)
+    console.print("next:", markup=False, highlight=False)
+    for step in (f"cell config check {cell_file}", f"cell doctor --config {cell_file} --data-dir {data}",
+                 f"cell serve --config {cell_file} --data-dir {data}"):
+        console.print(f"  {step}", markup=False, highlight=False)

@@ -1,0 +1,84 @@
+"""``cell init`` on each template, ``cell config check``'s placeholders, and a real cell refused while any
+value is still marked."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from typer.testing import CliRunner
+
+from cell.cli.main import app
+from cell.config.placeholders import find_placeholders, require_measured
+from cell.service.startup import ServiceSettings, build_service
+from cell.templates import TEMPLATES, template_path
+from drivers.errors import ConfigError
+
+MEASURED = {"sim-franka-rgbd": [], "sim-ur5e-tof": [],
+            "ur5e-vl53l8cx": ["arm.host", "sensor.port", "mount.xyz_m", "mount.rpy_deg", "station.xy_m",
+                              "station.table_z_m"],
+            "franka-realsense": ["arm.host", "sensor.serial", "mount.xyz_m", "mount.rpy_deg", "station.xy_m",
+                                 "station.table_z_m"]}
+
+
+def _measure(text: str) -> str:
+    """The integrator's edit: each marked value kept (as if measured equal) and its mark deleted."""
+    return re.sub(r"\s*#\s*MEASURE:.*$", "", text, flags=re.MULTILINE)
+
+
+@pytest.mark.parametrize("template", TEMPLATES)
+def test_init_then_check_lists_the_placeholders_until_measured(tmp_path, template):
+    runner = CliRunner()
+    folder = tmp_path / "cell-a"
+    res = runner.invoke(app, ["init", str(folder), "--template", template, "--name", "line-3"])
+    assert res.exit_code == 0, res.output
+    cell_file = folder / "cell.yaml"
+    assert {p.name for p in (folder / "data").iterdir()} == {"jobs", "objects", "logs", "calibration"}
+    assert "name: line-3\n" in cell_file.read_text()
+    for field in MEASURED[template]:
+        assert field in res.output
+
+    check = runner.invoke(app, ["config", "check", str(cell_file)])
+    listed = re.findall(r"placeholder: line \d+ (\S+):", check.output)
+    assert listed == MEASURED[template]
+    assert check.exit_code == (1 if MEASURED[template] else 0), check.output
+    if MEASURED[template]:
+        assert "not ready: 6 values" in check.output
+
+    cell_file.write_text(_measure(cell_file.read_text()))
+    check = runner.invoke(app, ["config", "check", str(cell_file)])
+    assert check.exit_code == 0 and "ready: nothing left to measure" in check.output
+
+
+def test_init_never_overwrites_a_cell_file_and_names_bad_input(tmp_path):
+    runner = CliRunner()
+    assert runner.invoke(app, ["init", str(tmp_path), "--template", "sim-ur5e-tof"]).exit_code == 0
+    before = (tmp_path / "cell.yaml").read_text()
+    again = runner.invoke(app, ["init", str(tmp_path), "--template", "ur5e-vl53l8cx"])
+    assert again.exit_code == 1 and "never overwrites" in again.output
+    assert (tmp_path / "cell.yaml").read_text() == before
+    unknown = runner.invoke(app, ["init", str(tmp_path / "b"), "--template", "kuka"])
+    assert unknown.exit_code == 1 and "no template 'kuka'" in unknown.output
+    assert "sim-ur5e-tof" in unknown.output
+    bad_name = runner.invoke(app, ["init", str(tmp_path / "c"), "--template", "sim-ur5e-tof",
+                                   "--name", "../x"])
+    assert bad_name.exit_code == 1 and "--name" in bad_name.output
+    assert not (tmp_path / "c" / "cell.yaml").exists()
+
+
+def test_a_mark_on_a_comment_line_marks_nothing():
+    text = "# MEASURE: the header is not a field\narm:\n  host: 10.0.0.2  # MEASURE: the address\n  port: 1\n"
+    found = find_placeholders(text)
+    assert [(p.field, p.line, p.what) for p in found] == [("arm.host", 3, "the address")]
+
+
+def test_a_real_cell_with_placeholders_is_refused_and_runs_once_measured(tmp_path):
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(template_path("ur5e-vl53l8cx").read_text())
+    with pytest.raises(ConfigError, match=r"still to measure: arm\.host, sensor\.port, mount\.xyz_m"):
+        require_measured(cell_file, "real")
+    with pytest.raises(ConfigError, match="still to measure"):
+        build_service(ServiceSettings(config_file=cell_file, data_dir=tmp_path / "data"))
+    require_measured(cell_file, "dry-run")  # a dry run moves the real arm but scans a virtual object
+    cell_file.write_text(_measure(cell_file.read_text()))
+    require_measured(cell_file, "real")
