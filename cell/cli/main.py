@@ -27,7 +27,7 @@ from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
 from cell.planning.registry import PLANNERS
 from cell.templates import DEFAULT_TEMPLATE, template_path
-from drivers.errors import CellError
+from drivers.errors import CellError, ConfigError
 from drivers.sim.objects import list_objects
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
@@ -191,8 +191,8 @@ def config_check(file: Path) -> None:
         return
     for p in left:
         console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
-    raise _fail(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write it and delete "
-                "the mark)")
+    raise _fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write it "
+                            "and delete the mark)", file=str(file)))
 
 
 if __name__ == "__main__":
