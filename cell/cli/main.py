@@ -191,8 +191,8 @@ def config_check(file: Path) -> None:
         return
     for p in left:
         console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
-    raise _fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write it "
-                            "and delete the mark)", file=str(file)))
+    raise _fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
+                            "it and delete the mark)", file=str(file)))
 
 
 if __name__ == "__main__":
