@@ -49,9 +49,11 @@ class ServedCell:
     """One ``cell serve`` process (see the module docstring); ``keys[role]`` holds a key of each role."""
 
     def __init__(self, config: Path, data_dir: Path, *, db: str | None = None, host: str = "127.0.0.1",
-                 key_prefix: str = "test") -> None:
-        """``key_prefix`` names the keys (``<prefix>-<role>``): cells sharing one store need their own."""
+                 key_prefix: str = "test", env: dict[str, str] | None = None) -> None:
+        """``key_prefix`` names the keys (``<prefix>-<role>``): cells sharing one store need their own;
+        ``env`` is added to the service's environment."""
         self.config, self.data_dir, self.db, self.host = config, data_dir, db, host
+        self.env = {**os.environ, **(env or {})}
         self.port = free_port(host)
         self.url = f"http://{host}:{self.port}"
         # the first key as a user makes it (``cell keys create``); the others straight into the same store,
@@ -69,7 +71,8 @@ class ServedCell:
     def start(self) -> None:
         cmd = [*CELL, "serve", "--config", str(self.config), "--data-dir", str(self.data_dir),
                "--host", self.host, "--port", str(self.port), *(["--db", self.db] if self.db else [])]
-        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT, text=True,
+                                     env=self.env)
         deadline = time.monotonic() + START_TIMEOUT_S
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:

@@ -1,6 +1,8 @@
 """``cell serve``: run the cell as a long-running service (FastAPI under uvicorn).
 
-It binds 127.0.0.1 by default; on any other interface it refuses to start until at least one API key
+Under systemd (``deploy/systemd/cell.service``, ``Type=notify``) it reports ready, alive and stopping
+over ``NOTIFY_SOCKET``; its log is JSON lines on standard error unless that is a terminal. It binds
+127.0.0.1 by default; on any other interface it refuses to start until at least one API key
 exists (``cell keys create``), since every route but ``/healthz`` needs one.
 """
 
@@ -14,7 +16,10 @@ import uvicorn
 from rich.console import Console
 
 from cell.api.app import create_app
+from cell.api.server import NotifyingServer
 from cell.line.opcua import check_endpoint
+from cell.service.logs import configure_logging
+from cell.service.notify import Notifier
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
 from drivers.errors import CellError
 from drivers.hosts import is_loopback
@@ -36,6 +41,7 @@ def serve(
 ) -> None:
     """Run the cell as a service: REST API under /api/v1, docs at /docs."""
     try:
+        notifier = Notifier()
         service = build_service(ServiceSettings(config_file=config, data_dir=data_dir, db_url=db))
         has_keys = bool(service.store.active_keys())
         if not is_loopback(host) and not has_keys:
@@ -53,7 +59,12 @@ def serve(
     if not has_keys:
         err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --data-dir "
                           f"{data_dir} --role operator)", markup=False, highlight=False, soft_wrap=True)
+    configure_logging()
     # On SIGTERM or Ctrl-C uvicorn waits for open connections before the app shuts down (and stops the
     # running job); event streams never close by themselves, so they are cut after a short grace.
-    uvicorn.run(create_app(ServiceSettings(config, data_dir, db), service), host=host, port=port,
-                log_level="info", timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
+    server = NotifyingServer(uvicorn.Config(create_app(ServiceSettings(config, data_dir, db), service),
+                                            host=host, port=port, log_config=None,
+                                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S), notifier)
+    server.run()
+    if not server.started:
+        raise typer.Exit(code=1)

@@ -273,6 +273,8 @@ class CellService:
                             created_at=_now())
             await asyncio.to_thread(self.store.add_job, job)
             self._queued[job_id] = _Queued(job, valid.object_source, origin)
+        log.info("job queued: %s, planner %s, seed %d, from %s", job.object or "unknown object", job.planner,
+                 job.seed, submitted_by or origin, extra={"job_id": job_id, "part_id": job.part_id})
         self.events.log(job_id).publish("state", {"status": "queued", "termination": None})
         self._wake.set()
         return job
@@ -290,9 +292,10 @@ class CellService:
         del self._queued[job_id]
         job = await asyncio.to_thread(self.store.update_job, job_id, status="cancelled", termination=reason,
                                       finished_at=_now())
-        log = self.events.log(job_id)
-        log.publish("state", {"status": "cancelled", "termination": reason})
-        log.publish("result", {"status": "cancelled", "result": None})
+        log.info("job cancelled: %s", reason, extra={"job_id": job_id, "status": "cancelled"})
+        events = self.events.log(job_id)
+        events.publish("state", {"status": "cancelled", "termination": reason})
+        events.publish("result", {"status": "cancelled", "result": None})
         if self.line is not None:
             self.line.job_ended(job_id, "cancelled", reason, None)
         return job
@@ -306,6 +309,7 @@ class CellService:
         if folder.parent.resolve() == self.jobs_dir.resolve():
             await asyncio.to_thread(shutil.rmtree, folder, True)
         await asyncio.to_thread(self.store.delete_job, job_id)
+        log.info("job deleted with its folder", extra={"job_id": job_id})
 
     # ------------------------------------------------------------------ stopping
 
@@ -319,7 +323,7 @@ class CellService:
         if running is None or running.job.id != job_id:
             job = await self.job(job_id)
             raise ServiceError(f"job {job_id} is {job.status}: nothing to stop", reason="conflict")
-        return await self._stop_running(running, reason)
+        return self._logged(await self._stop_running(running, reason), reason)
 
     async def stop_all(self, reason: str) -> StopOutcome:
         """The operator's STOP: hold the queue and stop the running job, if any; the line, if wired, is
@@ -329,8 +333,14 @@ class CellService:
         self._held = f"held after a stop ({reason}): resume the queue to go on (POST /api/v1/queue/resume)"
         running = self._running
         if running is None:
-            return StopOutcome(None, False, "nothing was moving; the queue is held")
-        return await self._stop_running(running, reason)
+            return self._logged(StopOutcome(None, False, "nothing was moving; the queue is held"), reason)
+        return self._logged(await self._stop_running(running, reason), reason)
+
+    @staticmethod
+    def _logged(outcome: StopOutcome, reason: str) -> StopOutcome:
+        """``outcome``, logged once the stop was passed on (the log never delays a stop)."""
+        log.warning("stop (%s): %s", reason, outcome.message, extra={"job_id": outcome.job_id})
+        return outcome
 
     def resume(self) -> None:
         """Let queued jobs start again after a STOP; ``ServiceError`` (conflict) while the arm is faulted."""
@@ -501,6 +511,7 @@ class CellService:
         running.job = await asyncio.to_thread(self.store.update_job, job.id, status="running",
                                               started_at=_now(), worker_pid=proc.pid)
         self.arm.job_started()
+        log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
         self.events.log(job.id).publish("state", {"status": "running", "termination": None})
         assert proc.stdout is not None
         while line := await proc.stdout.readline():
@@ -555,6 +566,8 @@ class CellService:
         if status == "completed" and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
         self.arm.job_ended(termination)
+        log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
+                termination, extra={"job_id": job.id, "part_id": job.part_id, "status": status})
         await asyncio.to_thread(self.store.update_job, job.id, status=status, termination=termination,
                                 result=result, finished_at=_now(), worker_pid=None, progress=running.progress)
         # the line hears once the store has the outcome: a line that reads the job finds it ended

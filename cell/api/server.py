@@ -1,0 +1,50 @@
+"""uvicorn's server for ``cell serve``, telling systemd how it is (:mod:`cell.service.notify`).
+
+``READY=1`` once the API listens (after the cell's service started: store, queue, line), ``WATCHDOG=1``
+every half watchdog period from the event loop itself, so that a loop that hangs stops the pings and
+systemd restarts the service, and ``STOPPING=1`` as soon as a shutdown begins (the running job is then
+stopped and its folder finished, which may take ``service.shutdown_timeout_s``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+
+import uvicorn
+
+from cell.service.notify import Notifier
+
+
+class NotifyingServer(uvicorn.Server):
+    """A uvicorn server that notifies ``notifier``'s service manager."""
+
+    def __init__(self, config: uvicorn.Config, notifier: Notifier) -> None:
+        super().__init__(config)
+        self._notifier = notifier
+        self._pings: asyncio.Task[None] | None = None
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        await super().startup(sockets)
+        if not self.started:
+            return
+        self._notifier.notify(READY="1", STATUS=f"serving on {self.config.host}:{self.config.port}")
+        interval = self._notifier.ping_interval_s
+        if interval is not None:
+            self._pings = asyncio.create_task(self._ping(interval))
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        self._notifier.notify(STOPPING="1", STATUS="stopping: the running job stops and finishes its folder")
+        try:
+            await super().shutdown(sockets)
+        finally:
+            if self._pings is not None:
+                self._pings.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await self._pings
+
+    async def _ping(self, interval_s: float) -> None:
+        while True:
+            self._notifier.notify(WATCHDOG="1")
+            await asyncio.sleep(interval_s)

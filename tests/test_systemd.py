@@ -1,0 +1,156 @@
+"""Running under systemd: the notify protocol spoken by a real ``cell serve`` to a socket of the test's
+own, the JSON log lines journald takes, and the unit file as ``systemd-analyze verify`` reads it."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cell.service.logs import HumanFormatter, JsonLineFormatter, configure_logging
+from cell.service.notify import Notifier
+from drivers.errors import CellError
+from tests.conftest import UR5E
+from tests.service_process import REPO, ServedCell
+
+UNIT = REPO / "deploy" / "systemd" / "cell.service"
+WATCHDOG_USEC = 400_000  # pings every 0.2 s
+
+
+def _messages(sock: socket.socket, until: float) -> list[dict[str, str]]:
+    """Every datagram received before the monotonic time ``until``, parsed into its fields."""
+    out = []
+    while (left := until - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            data = sock.recv(4096).decode()
+        except TimeoutError:
+            break
+        out.append(dict(line.split("=", 1) for line in data.splitlines()))
+    return out
+
+
+@pytest.fixture
+def notify_socket(tmp_path):
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    path = tmp_path / "notify.sock"
+    sock.bind(str(path))
+    yield sock, path
+    sock.close()
+
+
+def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_job(tmp_path, notify_socket):
+    sock, path = notify_socket
+    cell = ServedCell(UR5E, tmp_path / "data", env={"NOTIFY_SOCKET": str(path),
+                                                    "WATCHDOG_USEC": str(WATCHDOG_USEC)})
+    try:
+        # READY before the first answer: it is sent as soon as the API listens, before any request runs
+        first = _messages(sock, time.monotonic() + 0.05)
+        assert first and first[0]["READY"] == "1" and "serving on 127.0.0.1" in first[0]["STATUS"]
+        pings = _messages(sock, time.monotonic() + 1.0)
+        assert sum(m.get("WATCHDOG") == "1" for m in pings) >= 3
+        with cell.client() as client:
+            job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1.0}).json()
+        cell.wait_job(job["id"], ("completed", "failed", "stopped"))
+        # uvicorn re-raises the SIGTERM it handled once shut down; systemd counts that as a clean stop
+        assert cell.stop() in (0, -signal.SIGTERM)
+        after = _messages(sock, time.monotonic() + 0.5)
+        assert any(m.get("STOPPING") == "1" for m in after)
+        log = cell.log()
+    finally:
+        cell.close()
+    lines = [json.loads(line) for line in log.splitlines() if line.startswith("{")]
+    assert lines, log
+    assert all({"ts", "level", "logger", "msg"} <= line.keys() for line in lines)
+    mine = [line["msg"] for line in lines if line.get("job_id") == job["id"]]
+    assert any(m.startswith("job queued") for m in mine) and any(m.startswith("job started") for m in mine)
+    assert any(m.startswith("job ended") for m in mine)
+    assert any(line["logger"] == "uvicorn.access" for line in lines)  # uvicorn's lines are JSON too
+    assert cell.keys["operator"] not in log
+
+
+def test_notifier_addresses_watchdog_ownership_and_bad_values(tmp_path):
+    name = f"cell-test-{os.getpid()}"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind("\0" + name)  # the abstract namespace, as systemd may pass it
+    with sock:
+        Notifier({"NOTIFY_SOCKET": "@" + name}).notify(READY="1", STATUS="up")
+        sock.settimeout(1.0)
+        assert sock.recv(4096) == b"READY=1\nSTATUS=up"
+    assert Notifier({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "4000000"}).ping_interval_s == 2.0
+    # the manager watches another process (a worker inherits the variables): not this one's watchdog
+    other = Notifier({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "4000000", "WATCHDOG_PID": "1"})
+    assert other.ping_interval_s is None
+    assert Notifier({}).ping_interval_s is None and not Notifier({}).enabled
+    Notifier({}).notify(READY="1")  # not under systemd: nothing to tell, nothing raised
+    with pytest.raises(CellError, match="WATCHDOG_USEC"):
+        Notifier({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "soon"})
+
+
+def _record(**extra: object) -> logging.LogRecord:
+    record = logging.LogRecord("cell.service", logging.WARNING, __file__, 1, "job ended %s", ("failed",),
+                               None)
+    record.__dict__.update(extra)
+    return record
+
+
+def test_json_lines_carry_the_record_fields_and_the_journal_priority():
+    line = json.loads(JsonLineFormatter().format(_record(job_id="ab12", status="failed")))
+    assert line["msg"] == "job ended failed" and line["level"] == "warning" and line["job_id"] == "ab12"
+    assert line["status"] == "failed" and line["ts"].endswith("+00:00")
+    assert JsonLineFormatter(priority_prefix=True).format(_record()).startswith("<4>{")
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        failed = logging.LogRecord("x", logging.ERROR, __file__, 1, "oops", None, sys.exc_info())
+    assert "ValueError: boom" in json.loads(JsonLineFormatter().format(failed))["exc"]
+    assert HumanFormatter().format(_record(job_id="ab12")).endswith("job ended failed [job ab12]")
+
+
+def test_the_log_is_human_on_a_terminal_and_json_elsewhere():
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    controller, terminal = os.openpty()
+    try:
+        with os.fdopen(terminal, "w") as tty:
+            configure_logging(tty)
+            assert isinstance(root.handlers[0].formatter, HumanFormatter)
+        configure_logging(io.StringIO())
+        assert isinstance(root.handlers[0].formatter, JsonLineFormatter)
+    finally:
+        os.close(controller)
+        root.handlers, _ = saved
+        root.setLevel(saved[1])
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
+def test_the_unit_file_verifies(tmp_path):
+    # verify wants ExecStart's program to exist: point it at this venv's cell instead of /opt/cell's
+    cell = Path(sys.executable).parent / "cell"
+    unit = tmp_path / "cell.service"
+    unit.write_text(UNIT.read_text().replace("/opt/cell/venv/bin/cell", str(cell)))
+    out = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stderr == "", out.stderr
+
+
+def test_the_unit_the_users_and_the_udev_rule_agree():
+    unit = dict(line.split("=", 1) for line in UNIT.read_text().splitlines() if "=" in line
+                and not line.startswith("#"))
+    assert unit["Type"] == "notify" and int(unit["WatchdogSec"]) > 0 and unit["NotifyAccess"] == "main"
+    assert "--data-dir /var/lib/cell" in unit["ExecStart"] and unit["StateDirectory"] == "cell"
+    assert "--config /etc/cell/" in unit["ExecStart"] and unit["ConfigurationDirectory"] == "cell"
+    group = unit["SupplementaryGroups"]
+    sysusers = (REPO / "deploy" / "systemd" / "cell.sysusers.conf").read_text()
+    assert f"m {unit['User']} {group}" in sysusers
+    rules = (REPO / "deploy" / "udev" / "99-vl53l8cx.rules").read_text()
+    assert all(f'GROUP="{group}"' in line for line in rules.splitlines() if line.startswith("SUBSYSTEM"))
