@@ -19,7 +19,7 @@ from fastapi_offline import FastAPIOffline
 
 from cell import __version__
 from cell.api.routes import cell as cell_routes
-from cell.api.routes import clouds, health, jobs, keys
+from cell.api.routes import clouds, health, jobs, keys, retention
 from cell.api.routes import line as line_routes
 from cell.api.routes.page import add_page
 from cell.line.opcua import serve_opcua
@@ -71,6 +71,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
     app.include_router(health.router)
     app.include_router(clouds.router)
     app.include_router(keys.router)
+    app.include_router(retention.router)
     add_page(app)  # the operator's page (cell.web) at / and /static
 
     @app.exception_handler(ServiceError)

@@ -64,6 +64,7 @@ class JobOut(BaseModel):
     termination: str | None
     progress: dict[str, Any] | None
     result: dict[str, Any] | None
+    keep: bool
     links: dict[str, str]
 
     @classmethod
@@ -74,7 +75,7 @@ class JobOut(BaseModel):
                    object_pose=job.object_pose, seed=job.seed, max_time_s=job.max_time_s, part_id=job.part_id,
                    submitted_by=job.submitted_by, created_at=job.created_at, started_at=job.started_at,
                    finished_at=job.finished_at, termination=job.termination, progress=job.progress,
-                   result=job.result, links=links)
+                   result=job.result, keep=job.keep, links=links)
 
 
 class JobPage(BaseModel):
@@ -100,6 +101,36 @@ class WhoAmIOut(BaseModel):
     name: str
     role: str
     permissions: list[str]
+
+
+class KeepIn(BaseModel):
+    """Whether retention must never delete the job (``service.retention``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    keep: bool
+
+
+class PrunedOut(BaseModel):
+    """An ended job that retention deletes: when it ended, its folder's size [MB] and why."""
+
+    id: str
+    ended_at: datetime
+    size_mb: float
+    reason: str
+
+
+class RetentionOut(BaseModel):
+    """Retention's limits (``service.retention``; None: no limit of that kind), the job folders' size
+    before pruning [GB], the jobs pruning deletes (or deleted) and what that frees [GB], and why the size
+    limit still is not met, if it is not."""
+
+    days: float | None
+    max_gb: float | None
+    total_gb: float
+    freed_gb: float
+    jobs: list[PrunedOut]
+    unmet: str | None
 
 
 class StopIn(BaseModel):

@@ -167,6 +167,16 @@ class ApiClient:
         result: dict[str, Any] = self.request("POST", "/api/v1/stop", json_body={"reason": reason})
         return result
 
+    def keep(self, job_id: str, keep: bool) -> dict[str, Any]:
+        result: dict[str, Any] = self.request("PUT", f"/api/v1/jobs/{_segment(job_id)}/keep",
+                                              json_body={"keep": keep})
+        return result
+
+    def retention(self, prune: bool) -> dict[str, Any]:
+        result: dict[str, Any] = (self.request("POST", "/api/v1/retention/prune") if prune
+                                  else self.request("GET", "/api/v1/retention"))
+        return result
+
     # --- the event stream ---------------------------------------------------------------------------------
 
     def events(self, job_id: str, last_id: int, idle_s: float,

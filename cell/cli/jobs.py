@@ -1,4 +1,5 @@
-"""``cell jobs``: submit, list, show, stop and wait for the jobs of a running ``cell serve``, from scripts.
+"""``cell jobs``: submit, list, show, stop, wait for, keep and prune the jobs of a running ``cell serve``,
+from scripts.
 
 Every command talks to the service at ``--server`` (default: ``$CELL_SERVER``, else
 ``http://127.0.0.1:8080``) with the API key ``--key`` (default: ``$CELL_KEY``; ``cell keys create`` makes
@@ -318,6 +319,42 @@ def stop(
     _print(str(outcome.get("message")))
     if all_ and outcome.get("queue_held"):
         _print("queued jobs are held until the queue is resumed (POST /api/v1/queue/resume)")
+
+
+@jobs_app.command("keep")
+def keep(
+    job_id: Annotated[str, typer.Argument(metavar="ID", help="the job's id")],
+    off: Annotated[bool, typer.Option("--off", help="release the job: retention may delete it again")]
+    = False,
+    server: ServerOption = DEFAULT_SERVER,
+    key: KeyOption = None,
+) -> None:
+    """Keep a job: retention (service.retention) never deletes it."""
+    with _client(server, key) as client:
+        job = client.keep(job_id, not off)
+    _print(f"{job['id']}: {'kept' if job['keep'] else 'not kept'}")
+
+
+@jobs_app.command("prune")
+def prune(
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="only show what would be deleted")] = False,
+    server: ServerOption = DEFAULT_SERVER,
+    key: KeyOption = None,
+) -> None:
+    """Delete the ended jobs that service.retention lets go (their folders and records; admin keys), as the
+    service does by itself every retention.interval_h; --dry-run shows them (any key)."""
+    with _client(server, key) as client:
+        answer = client.retention(prune=not dry_run)
+    limits = [f"{answer['days']:g} days" if answer["days"] is not None else None,
+              f"{answer['max_gb']:g} GB" if answer["max_gb"] is not None else None]
+    shown = " and ".join(limit for limit in limits if limit) or "no limit (service.retention): nothing goes"
+    _print(f"retention: {shown}; job folders {answer['total_gb']:.3f} GB")
+    for job in answer["jobs"]:
+        _print(f"{job['id']}  ended {_utc(job['ended_at'])}  {job['size_mb']:8.1f} MB  {job['reason']}")
+    verb = "would free" if dry_run else "freed"
+    _print(f"{len(answer['jobs'])} jobs, {verb} {answer['freed_gb']:.3f} GB")
+    if answer["unmet"]:
+        _print(f"warning: {answer['unmet']}")
 
 
 @jobs_app.command("wait")

@@ -129,19 +129,32 @@ class ScanConfig(StrictModel):
     max_time_s: PositiveFloat
 
 
+class RetentionConfig(StrictModel):
+    """How long ``cell serve`` keeps ended jobs (their folders and store rows): ``days`` after they ended,
+    and/or while all job folders together stay under ``max_gb`` [GB, 1e9 bytes] (the oldest ended jobs go
+    first). None: no limit of that kind. A running or queued job, and one marked ``keep``, is never
+    deleted. The service prunes when it starts and every ``interval_h`` hours."""
+
+    days: PositiveFloat | None = None
+    max_gb: PositiveFloat | None = None
+    interval_h: PositiveFloat = 1.0
+
+
 class ServiceConfig(StrictModel):
     """``cell serve``: how many jobs may wait behind the running one (``queue_max``; beyond it a
     submission is refused), how long a stop request waits for the job's worker to confirm that the arm
     was commanded to stop [s], how long shutting down waits for a running job to stop and finish its
     folder [s], and the largest mesh an operator may upload [MB]. ``warm_worker``: keep the next job's
     worker process started, its libraries loaded, so that a job (a line's Start) reaches the arm without
-    the second or so a new Python process takes to import them; it costs the memory of one idle worker."""
+    the second or so a new Python process takes to import them; it costs the memory of one idle worker.
+    ``retention``: when ended jobs are deleted (:class:`RetentionConfig`; by default never)."""
 
     queue_max: PositiveInt = 16
     stop_confirm_timeout_s: PositiveFloat = 2.0
     shutdown_timeout_s: PositiveFloat = 20.0
     max_upload_mb: PositiveFloat = 50.0
     warm_worker: bool = True
+    retention: RetentionConfig = RetentionConfig()
 
 
 class CellConfig(StrictModel):

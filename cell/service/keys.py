@@ -35,7 +35,7 @@ class Role(StrEnum):
 class Permission(StrEnum):
     """What a request may do: read jobs and status, stop the arm, submit, cancel a queued job, recover
     after a stop, upload an object mesh, drive the line interface, switch the line's unit mode (Production
-    or the operator's Manual), manage keys, purge old jobs."""
+    or the operator's Manual), manage keys, purge old jobs, mark a job kept from retention."""
 
     READ = "read"
     STOP = "stop"
@@ -47,13 +47,14 @@ class Permission(StrEnum):
     MODE = "mode"
     KEYS = "keys"
     PURGE = "purge"
+    KEEP = "keep"
 
 
 # Each role's permissions. STOP is every role's: stopping the arm is never refused to a known key.
 PERMISSIONS: dict[Role, frozenset[Permission]] = {
     Role.VIEWER: frozenset({Permission.READ, Permission.STOP}),
     Role.OPERATOR: frozenset({Permission.READ, Permission.STOP, Permission.SUBMIT, Permission.CANCEL,
-                              Permission.RECOVER, Permission.UPLOAD, Permission.MODE}),
+                              Permission.RECOVER, Permission.UPLOAD, Permission.MODE, Permission.KEEP}),
     Role.LINE: frozenset({Permission.READ, Permission.STOP, Permission.LINE, Permission.MODE}),
     Role.ADMIN: frozenset(Permission),
 }

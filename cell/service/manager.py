@@ -45,6 +45,7 @@ from cell.service.metrics import ServiceMetrics
 from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_command
 from cell.service.recovery import finish_folder, reconcile
+from cell.service.retention import Retention
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
@@ -122,6 +123,8 @@ class CellService:
         self._logs_dir = data_dir / "logs"
         self.store = store
         self.objects = ObjectLibrary(data_dir / "objects", config)
+        self.retention = Retention(store, self.name, self.jobs_dir, config.service.retention)
+        self._pruner: asyncio.Task[None] | None = None
         self.events = EventHub()
         self.arm = ArmTracker(config)
         self.metrics = ServiceMetrics(lambda: self.store.count_by_status(self.name),
@@ -158,12 +161,16 @@ class CellService:
                 self._dio = DigitalIOHandshake(self.line, arm_cfg, line_cfg.dio)
                 self._dio.start()
         self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
+        if self.retention.active:
+            self._pruner = asyncio.create_task(self.retention.run(), name="retention")
         await self._warm()
         return settled
 
     async def close(self) -> None:
         """Shut down: queued jobs are cancelled, the running one is stopped and its folder finished."""
         self._closing = True
+        if self._pruner is not None:
+            self._pruner.cancel()
         for job_id in list(self._queued):
             await self._cancel_queued(job_id, SHUTDOWN_CANCEL)
         running = self._running
@@ -310,6 +317,13 @@ class CellService:
             await asyncio.to_thread(shutil.rmtree, folder, True)
         await asyncio.to_thread(self.store.delete_job, job_id)
         log.info("job deleted with its folder", extra={"job_id": job_id})
+
+    async def set_keep(self, job_id: str, keep: bool) -> JobRecord:
+        """Mark a job kept (retention never deletes it) or not; ``ServiceError`` (not found)."""
+        await self.job(job_id)
+        job = await asyncio.to_thread(self.store.update_job, job_id, keep=keep)
+        log.info("job %s", "kept" if keep else "no longer kept", extra={"job_id": job_id})
+        return job
 
     # ------------------------------------------------------------------ stopping
 

@@ -13,9 +13,9 @@ from typing import Annotated
 from fastapi import APIRouter, Header, HTTPException, Query, Response
 from fastapi.responses import FileResponse, StreamingResponse
 
-from cell.api.auth import Canceller, Reader, Stopper, Submitter
+from cell.api.auth import Canceller, Keeper, Reader, Stopper, Submitter
 from cell.api.deps import Service
-from cell.api.schemas import FileOut, JobOut, JobPage, JobSubmit, StopIn, StopOut
+from cell.api.schemas import FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopIn, StopOut
 from cell.service.keys import Permission, allowed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 
@@ -75,6 +75,12 @@ async def delete_job(job_id: str, cell: Service,
         await cell.purge(job_id)
         return None
     return JobOut.of(await cell.cancel(job_id, f"cancelled by key {key.name}"))
+
+
+@router.put("/{job_id}/keep", response_model=JobOut)
+async def keep_job(job_id: str, body: KeepIn, cell: Service, _: Keeper) -> JobOut:
+    """Mark the job kept (``service.retention`` never deletes it) or release it."""
+    return JobOut.of(await cell.set_keep(job_id, body.keep))
 
 
 @router.post("/{job_id}/stop", response_model=StopOut)

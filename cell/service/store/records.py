@@ -26,7 +26,8 @@ class JobRecord:
     time budget [s] (None: the cell file's); ``part_id`` the line's identifier of the part, if any;
     ``folder`` the absolute path of the job folder; ``submitted_by`` the name of the API key that submitted
     it. Every time is timezone-aware UTC. ``result`` is the job's ``result.json`` once it ended,
-    ``progress`` the last progress snapshot, ``worker_pid`` the process id of the worker that runs it.
+    ``progress`` the last progress snapshot, ``worker_pid`` the process id of the worker that runs it;
+    ``keep``: retention never deletes the job.
     """
 
     id: str
@@ -47,6 +48,7 @@ class JobRecord:
     result: dict[str, Any] | None = None
     progress: dict[str, Any] | None = None
     worker_pid: int | None = None
+    keep: bool = False
 
 
 @dataclass(frozen=True)

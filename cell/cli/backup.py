@@ -1,0 +1,38 @@
+"""``cell backup DEST``: a consistent copy of the service's SQLite store, while it runs.
+
+Restoring: stop the service, copy the backup to ``<data dir>/cell.db`` (and delete any ``cell.db-wal``
+and ``cell.db-shm`` beside it), start the service. Job folders are plain files: copy them with rsync.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from cell.service.startup import DEFAULT_DATA_DIR
+from cell.service.store import sqlite_url
+from cell.service.store.backup import backup_sqlite, sqlite_file
+from drivers.errors import CellError
+
+console = Console(soft_wrap=True)
+err_console = Console(stderr=True)
+
+
+def backup(
+    dest: Annotated[Path, typer.Argument(help="the backup file, or a folder to write cell-<UTC time>.db in")],
+    data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
+    = DEFAULT_DATA_DIR,
+    db: Annotated[str | None, typer.Option(help="the store's URL instead of the data folder's (SQLite only: "
+                                                "PostgreSQL is backed up with pg_dump)")] = None,
+) -> None:
+    """Back up the job store while the service runs (SQLite's online backup); never overwrites a file."""
+    try:
+        info = backup_sqlite(sqlite_file(db or sqlite_url(data_dir)), dest)
+    except CellError as exc:
+        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=1) from None
+    console.print(f"wrote {info.path}: {info.n_jobs} jobs, {info.size_bytes / 1e6:.1f} MB, schema revision "
+                  f"{info.revision}", markup=False, highlight=False)

@@ -1,0 +1,157 @@
+"""Retention: which ended jobs ``service.retention`` deletes, and deleting them (folder and store row).
+
+A plan looks at the store's ended jobs of one cell, oldest first, and at the size of every job folder
+on disk. It never names a running or queued job, nor one marked ``keep``: those stay even when the
+size limit cannot be met without them, and the plan says so. Deleting re-reads each job first, so a job
+marked ``keep`` after the plan was made is spared.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import shutil
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+from cell.config.models import RetentionConfig
+from cell.service.store import FINISHED_STATUSES, JobRecord, Store
+from drivers.errors import CellError
+
+GB = 1e9
+log = logging.getLogger("cell.service")
+
+
+@dataclass(frozen=True)
+class PrunedJob:
+    """An ended job the plan deletes: its folder's size [bytes] and why it goes."""
+
+    job_id: str
+    folder: str
+    ended_at: datetime
+    size_bytes: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class PrunePlan:
+    """What pruning deletes now: ``jobs`` (oldest first), the size of all job folders before [bytes], what
+    deleting frees [bytes], and ``unmet``: why the size limit still is not met afterwards, or None."""
+
+    jobs: tuple[PrunedJob, ...]
+    total_bytes: int
+    freed_bytes: int
+    unmet: str | None
+
+
+def folder_size(path: Path) -> int:
+    """Bytes in the files under ``path`` (0 if it is gone); links are counted, not followed."""
+    total = 0
+    for root, _dirs, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(root, name)).st_size
+            except FileNotFoundError:  # a file removed while walking
+                continue
+    return total
+
+
+def _ended_at(job: JobRecord) -> datetime:
+    return job.finished_at or job.created_at
+
+
+def _inside(folder: str, jobs_dir: Path) -> bool:
+    return Path(folder).resolve().parent == jobs_dir.resolve()
+
+
+def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConfig,
+               now: datetime) -> PrunePlan:
+    """The ended jobs of ``cell`` that ``retention`` deletes at ``now`` (timezone-aware)."""
+    total = folder_size(jobs_dir)
+    ended = sorted((job for job in store.jobs_in_status(cell, sorted(FINISHED_STATUSES)) if not job.keep),
+                   key=lambda job: (_ended_at(job), job.id))
+    sizes = {job.id: folder_size(Path(job.folder)) if _inside(job.folder, jobs_dir) else 0 for job in ended}
+    chosen: list[PrunedJob] = []
+    rest: list[JobRecord] = []
+    if retention.days is not None:
+        cutoff = now - timedelta(days=retention.days)
+        for job in ended:
+            if _ended_at(job) < cutoff:
+                chosen.append(PrunedJob(job.id, job.folder, _ended_at(job), sizes[job.id],
+                                        f"ended more than {retention.days:g} days ago"))
+            else:
+                rest.append(job)
+    else:
+        rest = ended
+    freed = sum(p.size_bytes for p in chosen)
+    unmet = None
+    if retention.max_gb is not None:
+        limit = retention.max_gb * GB
+        for job in rest:
+            if total - freed <= limit:
+                break
+            chosen.append(PrunedJob(job.id, job.folder, _ended_at(job), sizes[job.id],
+                                    f"the job folders are over {retention.max_gb:g} GB"))
+            freed += sizes[job.id]
+        if total - freed > limit:
+            unmet = (f"{(total - freed) / GB:.2f} GB of job folders remain, over the {retention.max_gb:g} GB "
+                     "limit: the rest are running, queued or kept jobs (or folders the store does not know)")
+    return PrunePlan(tuple(chosen), total, freed, unmet)
+
+
+def prune(store: Store, plan: PrunePlan, jobs_dir: Path) -> list[PrunedJob]:
+    """Delete the plan's jobs: folder first (a row left by a crash in between is deleted next time), then
+    the row. Returns the jobs deleted; a job gone, marked ``keep`` or no longer ended meanwhile is left."""
+    done = []
+    for item in plan.jobs:
+        job = store.get_job(item.job_id)
+        if job is None or job.keep or job.status not in FINISHED_STATUSES:
+            continue
+        if _inside(job.folder, jobs_dir):
+            shutil.rmtree(job.folder, ignore_errors=True)
+        store.delete_job(job.id)
+        done.append(item)
+    return done
+
+
+class Retention:
+    """A cell's retention in the service: plans and prunes off the event loop, one prune at a time, and
+    prunes by itself every ``interval_h`` hours (``run``) when any limit is set."""
+
+    def __init__(self, store: Store, cell: str, jobs_dir: Path, config: RetentionConfig) -> None:
+        self.config = config
+        self._store, self._cell, self._jobs_dir = store, cell, jobs_dir
+        self._lock = asyncio.Lock()
+
+    @property
+    def active(self) -> bool:
+        """Whether any limit is set (else nothing is ever deleted by retention)."""
+        return self.config.days is not None or self.config.max_gb is not None
+
+    async def plan(self) -> PrunePlan:
+        """What pruning would delete now."""
+        return await asyncio.to_thread(plan_prune, self._store, self._cell, self._jobs_dir, self.config,
+                                       datetime.now(UTC))
+
+    async def prune(self) -> tuple[PrunePlan, list[PrunedJob]]:
+        """Prune now; returns the plan and the jobs deleted, each logged."""
+        async with self._lock:
+            plan = await self.plan()
+            done = await asyncio.to_thread(prune, self._store, plan, self._jobs_dir)
+        for item in done:
+            log.info("job deleted by retention: %s (%.1f MB)", item.reason, item.size_bytes / 1e6,
+                     extra={"job_id": item.job_id})
+        if plan.unmet:
+            log.warning("retention: %s", plan.unmet)
+        return plan, done
+
+    async def run(self) -> None:
+        """Prune now and then every ``interval_h`` hours, until cancelled; a failure is logged, not fatal."""
+        while True:
+            try:
+                await self.prune()
+            except (CellError, OSError) as exc:
+                log.error("retention could not prune: %s", exc)
+            await asyncio.sleep(self.config.interval_h * 3600.0)
