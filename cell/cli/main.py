@@ -14,6 +14,7 @@ from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
 from cell.cli.backup import backup
+from cell.cli.doctor import doctor
 from cell.cli.init_cell import init
 from cell.cli.jobs import jobs_app
 from cell.cli.keys import keys_app
@@ -45,6 +46,7 @@ app.add_typer(jobs_app, name="jobs")
 app.command()(serve)
 app.command()(init)
 app.command()(backup)
+app.command()(doctor)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 

@@ -1,0 +1,170 @@
+"""Checks of this computer: Python and packages, the compiled kernels, system libraries, the clock, the
+CPU frequency governor, real-time scheduling limits, free disk, and the service's ports."""
+
+from __future__ import annotations
+
+import ctypes
+import importlib
+import os
+import platform
+import resource
+import shutil
+import socket
+import sys
+from importlib import metadata
+from pathlib import Path
+
+from cell.doctor.findings import Finding
+
+PYTHON = (3, 11)
+CORE_PACKAGES = ("numpy", "open3d-cpu", "ruckig", "python-fcl", "fastapi", "uvicorn", "sqlalchemy", "asyncua")
+KERNELS = ("cell.perception._kernels", "cell.planning.vs._objective", "cell.planning.lrnbv._raygains")
+# Open3D's shared libraries and the Debian package that has each
+SYSTEM_LIBRARIES = {"libusb-1.0.so.0": "libusb-1.0-0", "libgomp.so.1": "libgomp1", "libGL.so.1": "libgl1"}
+DISK_FAIL_GB = 1.0
+"""Below this a scan's folder (frames, clouds: tens to hundreds of MB) may not fit [GB]."""
+DISK_WARN_GB = 10.0
+"""Below this a day of scanning may fill the disk; set service.retention [GB]."""
+RT_PRIORITY = 99
+"""libfranka raises its control thread to SCHED_FIFO's highest priority (99)."""
+TIME_ERROR = 5
+"""adjtimex(2)'s answer when the kernel's clock is not synchronised (TIME_ERROR)."""
+GOVERNORS = Path("/sys/devices/system/cpu")
+
+
+def python_version() -> Finding:
+    found = platform.python_version()
+    if sys.version_info[:2] != PYTHON:
+        wanted = f"{PYTHON[0]}.{PYTHON[1]}"
+        return Finding.fail("python", found, f"install Python {wanted} and the cell in a venv of it")
+    return Finding.ok("python", f"{found} ({sys.executable})")
+
+
+def packages(extras: dict[str, str]) -> list[Finding]:
+    """The cell's and its main dependencies' versions, and each package the cell file needs
+    (``extras``: distribution name -> the extra that installs it)."""
+    try:
+        versions = [f"cell {metadata.version('cell')}"]
+    except metadata.PackageNotFoundError:
+        versions = ["cell (not installed as a package)"]
+    missing = []
+    for name in CORE_PACKAGES:
+        try:
+            versions.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            missing.append(name)
+    found = [Finding.ok("packages", ", ".join(versions)) if not missing else Finding.fail(
+        "packages", f"missing: {', '.join(missing)}", "reinstall: pip install --force-reinstall cell")]
+    for name, extra in extras.items():
+        try:
+            found.append(Finding.ok(f"package {name}", metadata.version(name)))
+        except metadata.PackageNotFoundError:
+            found.append(Finding.fail(f"package {name}", "not installed, and the cell file needs it",
+                                      f"pip install 'cell[{extra}]'"))
+    return found
+
+
+def kernels() -> Finding:
+    broken = []
+    for module in KERNELS:
+        try:
+            importlib.import_module(module)
+        except ImportError as exc:
+            broken.append(f"{module} ({exc})")
+    if broken:
+        return Finding.fail("compiled kernels", f"cannot load {'; '.join(broken)}",
+                            "reinstall the cell's wheel for this Python (a build needs gcc and python3-dev)")
+    return Finding.ok("compiled kernels", f"{len(KERNELS)} load")
+
+
+def system_libraries() -> Finding:
+    missing = []
+    for library, package in SYSTEM_LIBRARIES.items():
+        try:
+            ctypes.CDLL(library)
+        except OSError:
+            missing.append(package)
+    if missing:
+        return Finding.fail("system libraries", f"Open3D needs {', '.join(missing)}",
+                            f"sudo apt install {' '.join(missing)}")
+    return Finding.ok("system libraries", ", ".join(SYSTEM_LIBRARIES))
+
+
+class _Timex(ctypes.Structure):
+    # adjtimex(2) reads and writes a struct timex; with modes 0 it only reads. Its size is below 256
+    # bytes on every Linux ABI: a zeroed buffer of that size is what the call needs.
+    _fields_ = [("modes", ctypes.c_uint), ("rest", ctypes.c_byte * 252)]
+
+
+def clock_sync() -> Finding:
+    """The kernel's own view (adjtimex), set by whichever NTP client runs (timesyncd, chrony, ntpd)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        state = libc.adjtimex(ctypes.byref(_Timex()))
+    except (OSError, AttributeError):
+        return Finding.warn("clock", "cannot ask the kernel whether the clock is synchronised",
+                            "check `timedatectl` says 'System clock synchronized: yes'")
+    if state == TIME_ERROR or state < 0:
+        return Finding.warn("clock", "not synchronised: job times, logs and the line's timestamps drift",
+                            "sudo timedatectl set-ntp true (or point chrony at the plant's time server)")
+    return Finding.ok("clock", "synchronised")
+
+
+def cpu_governor(root: Path = GOVERNORS) -> Finding:
+    files = sorted(root.glob("cpu[0-9]*/cpufreq/scaling_governor"))
+    if not files:
+        return Finding.ok("cpu governor", "no frequency scaling exposed (fixed clock or a virtual machine)")
+    governors = {f.read_text().strip() for f in files}
+    if governors != {"performance"}:
+        return Finding.warn("cpu governor", f"{', '.join(sorted(governors))}: the control loop's timing "
+                            "jitters as the clock ramps", "sudo cpupower frequency-set -g performance "
+                            "(persist it in /etc/default/cpupower)")
+    return Finding.ok("cpu governor", "performance")
+
+
+def realtime_limits(required: bool, user: str | None = None) -> Finding:
+    """Whether this user may run a thread at SCHED_FIFO priority 99 (``required``: the Franka with
+    ``realtime: enforce``), and whether the kernel is PREEMPT_RT."""
+    soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    allowed = os.geteuid() == 0 or soft == resource.RLIM_INFINITY or soft >= RT_PRIORITY
+    flag = Path("/sys/kernel/realtime")
+    rt_kernel = flag.is_file() and flag.read_text().strip() == "1"
+    who = user or os.environ.get("USER", "the cell's user")
+    if not allowed:
+        fix = (f"add '{who} - rtprio 99' and '{who} - memlock unlimited' to /etc/security/limits.d/cell.conf "
+               "and log in again (the systemd unit sets LimitRTPRIO=99)")
+        text = f"real-time priority up to {soft}, {RT_PRIORITY} needed"
+        return Finding.fail("real-time", text, fix) if required else Finding.warn("real-time", text, fix)
+    if not rt_kernel:
+        text = "allowed, but the kernel is not PREEMPT_RT"
+        fix = "install a real-time kernel (Debian: linux-image-rt-amd64) and boot it"
+        return Finding.warn("real-time", text, fix) if required else Finding.ok("real-time", text)
+    return Finding.ok("real-time", f"priority {RT_PRIORITY} allowed, PREEMPT_RT kernel")
+
+
+def disk(data_dir: Path) -> Finding:
+    where = data_dir
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    free_gb = shutil.disk_usage(where).free / 1e9
+    if not os.access(where, os.W_OK):
+        return Finding.fail("disk", f"{where} is not writable by this user",
+                            f"give the cell's user the data folder: sudo chown -R $USER {where}")
+    text = f"{free_gb:.1f} GB free under {where}"
+    fix = "free space, or set service.retention (days, max_gb) so that old jobs are pruned"
+    if free_gb < DISK_FAIL_GB:
+        return Finding.fail("disk", text, fix)
+    if free_gb < DISK_WARN_GB:
+        return Finding.warn("disk", text, fix)
+    return Finding.ok("disk", text)
+
+
+def port_free(host: str, port: int, name: str = "service port") -> Finding:
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn's own socket
+            probe.bind((host, port))
+    except OSError as exc:
+        return Finding.fail(name, f"cannot listen on {host}:{port}: {exc.strerror or exc}",
+                            f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or move")
+    return Finding.ok(name, f"{host}:{port} is free")

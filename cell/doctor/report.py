@@ -1,0 +1,78 @@
+"""All of ``cell doctor``'s checks for one cell file, in the order an engineer works through them: the
+machine, the cell file, then the devices it names."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from cell.config.load import load_config
+from cell.config.models import CellConfig
+from cell.config.placeholders import find_placeholders
+from cell.doctor import devices, machine
+from cell.doctor.findings import Finding, Status
+from cell.line.opcua import check_endpoint
+from drivers.arm.config import FrankaArmConfig, UR5eArmConfig
+from drivers.depth.config import VL53L8CXConfig
+from drivers.errors import CellError
+
+
+def _extras(cfg: CellConfig, db_url: str | None) -> dict[str, str]:
+    """The packages the cell file needs beyond the base install, each with the extra that installs it."""
+    needed: dict[str, str] = {}
+    if isinstance(cfg.arm, UR5eArmConfig):
+        needed["ur-rtde"] = "ur5e"
+    if isinstance(cfg.arm, FrankaArmConfig):
+        needed["franky-control"] = "franka"
+    if isinstance(cfg.sensor, VL53L8CXConfig):
+        needed.update({"pyserial": "tof"} if cfg.sensor.port is not None else
+                      {"circuitpython-vl53lxcx": "i2c", "adafruit-blinka": "i2c"})
+    if db_url is not None and db_url.startswith("postgresql"):
+        needed["psycopg"] = "postgres"
+    return needed
+
+
+def _cell_file(path: Path, cfg: CellConfig) -> Finding:
+    left = find_placeholders(path.read_text())
+    if not left:
+        return Finding.ok("cell file", f"{path}: {cfg.name}, mode {cfg.mode}, nothing left to measure")
+    names = ", ".join(p.field for p in left)
+    fix = f"measure each, write it and delete its '# MEASURE:' mark (cell config check {path})"
+    if cfg.mode == "real":
+        return Finding.fail("cell file", f"still to measure: {names}", fix)
+    return Finding.warn("cell file", f"still to measure: {names} (a {cfg.mode} cell runs meanwhile)", fix)
+
+
+def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
+               db_url: str | None = None) -> list[Finding]:
+    """Every check, in order; a cell file that does not load is one failure and ends the list's device
+    part (there is nothing to check it against)."""
+    found = [machine.python_version(), machine.kernels(), machine.system_libraries()]
+    try:
+        cfg = load_config(config_file)
+    except CellError as exc:
+        found += machine.packages({})
+        found.append(Finding.fail("cell file", str(exc), f"fix it, then: cell config check {config_file}"))
+        return found
+    found += machine.packages(_extras(cfg, db_url))
+    found.append(_cell_file(config_file, cfg))
+    enforce_rt = isinstance(cfg.arm, FrankaArmConfig) and cfg.arm.realtime == "enforce"
+    found += [machine.clock_sync(), machine.cpu_governor(), machine.realtime_limits(required=enforce_rt),
+              machine.disk(data_dir), machine.port_free(host, port)]
+    try:
+        check_endpoint(cfg.line)
+        if cfg.line is not None and cfg.line.opcua is not None:
+            found.append(Finding.ok("line OPC UA port", f"{cfg.line.opcua.endpoint} is free"))
+    except CellError as exc:
+        found.append(Finding.fail("line OPC UA port", str(exc), "stop the program that holds it, or change "
+                                  "line.opcua.endpoint (and the PLC's configuration)"))
+    if isinstance(cfg.sensor, VL53L8CXConfig) and cfg.sensor.port is not None:
+        found.append(devices.serial_port(cfg.sensor.port))
+    if isinstance(cfg.arm, UR5eArmConfig):
+        found += devices.ur_controller(cfg.arm.host)
+    elif isinstance(cfg.arm, FrankaArmConfig):
+        found.append(devices.franka_controller(cfg.arm.host))
+    return found
+
+
+def failed(found: list[Finding]) -> bool:
+    return any(f.status is Status.FAIL for f in found)

@@ -1,0 +1,182 @@
+"""``cell doctor``: ok against the RTDE controller peer, a pseudo-terminal as the sensor's port and the
+Franka connect peer; each failure class reported with its fix (an absent robot, port or package, no
+permission, broken kernels, a full disk, a taken port, placeholders, real-time limits)."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from cell.cli.main import app
+from cell.doctor import machine
+from cell.doctor.findings import Status
+from drivers.arm.franka import client_version
+from tests.conftest import CONFIG_DIR
+from tests.franka_connect_peer import FrankaConnectPeer
+from tests.loopback import free_loopback
+from tests.rtde_peer import ControllerPeer
+from tests.service_process import free_port
+from tests.test_arm_cli import TEMPLATE, peer_cell_file
+
+
+@pytest.fixture(scope="module")
+def peer() -> Iterator[ControllerPeer]:
+    p = ControllerPeer()
+    yield p
+    p.stop()
+
+
+@pytest.fixture
+def pty_port() -> Iterator[str]:
+    controller, device = os.openpty()
+    yield os.ttyname(device)
+    os.close(device)
+    os.close(controller)
+
+
+def _cell(tmp_path: Path, host: str, port: str, template: Path = TEMPLATE, **arm: object) -> Path:
+    """``template`` (its marks dropped, as measured) with the robot at ``host`` and the sensor on ``port``."""
+    if template == TEMPLATE:
+        template = peer_cell_file(template, host, tmp_path)
+    data = yaml.safe_load(template.read_text())
+    data["arm"].update(host=host, **arm)
+    if "port" in data["sensor"]:
+        data["sensor"]["port"] = port
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _doctor(cell_file: Path, tmp_path: Path, *extra: str) -> tuple[int, dict[str, tuple[str, str]]]:
+    """Exit code and, per check, (status, the detail and fix lines)."""
+    res = CliRunner().invoke(app, ["doctor", "--config", str(cell_file), "--data-dir", str(tmp_path / "data"),
+                                   "--port", str(free_port()), *extra])
+    checks: dict[str, tuple[str, str]] = {}
+    name = ""
+    for line in res.output.splitlines():
+        match = re.match(r"(ok  |warn|FAIL)  (.+?)\s{2,}(.*)$", line)
+        if match:
+            name = match.group(2).strip()
+            checks[name] = (match.group(1).strip().lower(), match.group(3))
+        elif line.strip().startswith("fix:") and name:
+            checks[name] = (checks[name][0], checks[name][1] + " " + line.strip())
+    assert checks, res.output
+    return res.exit_code, checks
+
+
+def test_ok_against_the_controller_peer_and_a_pty(peer, pty_port, tmp_path):
+    code, checks = _doctor(_cell(tmp_path, peer.host, pty_port), tmp_path)
+    assert checks["robot RTDE"][0] == "ok" and "protocol 2" in checks["robot RTDE"][1]
+    assert checks["robot software"] == ("ok", "URSoftware 5.15.0.0 (Jan 01 2024)")
+    assert checks["robot remote control"][0] == "ok"
+    assert checks["serial port"] == ("ok", f"{pty_port} opens")
+    assert checks["cell file"][0] == "ok" and checks["package ur-rtde"][0] == "ok"
+    assert checks["compiled kernels"][0] == "ok" and checks["service port"][0] == "ok"
+    assert not [name for name, (status, _) in checks.items() if status == "fail"]
+    assert code == 0
+
+
+def test_a_pendant_in_local_mode_is_a_warning_with_its_fix(pty_port, tmp_path):
+    local = ControllerPeer(remote_control=False)
+    try:
+        code, checks = _doctor(_cell(tmp_path, local.host, pty_port), tmp_path)
+    finally:
+        local.stop()
+    status, text = checks["robot remote control"]
+    assert status == "warn" and "fix: on the pendant" in text and code == 0
+
+
+def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_path):
+    nobody = free_loopback([30004, 29999])
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        code, checks = _doctor(_cell(tmp_path, nobody, "/dev/no-such-board"), tmp_path, "--port",
+                               str(taken.getsockname()[1]))
+    assert code == 1
+    for name in ("robot RTDE", "robot dashboard"):
+        assert checks[name][0] == "fail" and "fix: check the robot is on" in checks[name][1]
+    assert checks["serial port"][0] == "fail" and "deploy/udev" in checks["serial port"][1]
+    assert checks["service port"][0] == "fail" and "ss -ltnp" in checks["service port"][1]
+
+
+def test_a_port_this_user_may_not_open_names_the_group_to_join(peer, pty_port, tmp_path, monkeypatch):
+    monkeypatch.setattr("cell.doctor.devices.os.access", lambda path, mode: path != pty_port)
+    code, checks = _doctor(_cell(tmp_path, peer.host, pty_port), tmp_path)
+    status, text = checks["serial port"]
+    assert code == 1 and status == "fail" and "usermod -aG" in text and "which this user is not in" in text
+
+
+def test_broken_kernels_a_missing_extra_and_a_full_disk_fail_with_their_fixes(peer, pty_port, tmp_path,
+                                                                             monkeypatch):
+    real_import, real_version = machine.importlib.import_module, machine.metadata.version
+
+    def no_kernel(name: str):
+        if name == "cell.planning.vs._objective":
+            raise ImportError("undefined symbol: GOMP_parallel")
+        return real_import(name)
+
+    def no_rtde(name: str) -> str:
+        if name == "ur-rtde":
+            raise machine.metadata.PackageNotFoundError(name)
+        return real_version(name)
+
+    monkeypatch.setattr(machine.importlib, "import_module", no_kernel)
+    monkeypatch.setattr(machine.metadata, "version", no_rtde)
+    full = shutil._ntuple_diskusage(10**12, 10**12, 5 * 10**8)  # 0.5 GB free
+    monkeypatch.setattr(machine.shutil, "disk_usage", lambda _: full)
+    code, checks = _doctor(_cell(tmp_path, peer.host, pty_port), tmp_path)
+    assert code == 1
+    assert checks["compiled kernels"][0] == "fail" and "GOMP_parallel" in checks["compiled kernels"][1]
+    rtde = checks["package ur-rtde"]
+    assert rtde[0] == "fail" and "pip install 'cell[ur5e]'" in rtde[1]
+    assert checks["disk"][0] == "fail" and "service.retention" in checks["disk"][1]
+
+
+def test_placeholders_and_a_bad_cell_file_fail(peer, tmp_path):
+    template = CONFIG_DIR / "ur5e-vl53l8cx.yaml"
+    code, checks = _doctor(template, tmp_path)
+    assert code == 1 and checks["cell file"][0] == "fail" and "arm.host" in checks["cell file"][1]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nmode: sometimes\n")
+    code, checks = _doctor(bad, tmp_path)
+    assert code == 1 and checks["cell file"][0] == "fail" and "cell config check" in checks["cell file"][1]
+
+
+def test_the_franka_handshake_and_its_real_time_limits(tmp_path, monkeypatch):
+    franka = CONFIG_DIR / "franka-realsense.yaml"
+    good = FrankaConnectPeer(client_version())
+    old = FrankaConnectPeer(client_version() - 1)
+    try:
+        _, checks = _doctor(_cell(tmp_path, good.host, "", franka), tmp_path)
+        assert checks["robot FCI"][0] == "ok" and checks["package franky-control"][0] == "ok"
+        _, checks = _doctor(_cell(tmp_path, old.host, "", franka), tmp_path)
+        assert checks["robot FCI"][0] == "fail" and "franky-control that matches" in checks["robot FCI"][1]
+    finally:
+        good.stop()
+        old.stop()
+    monkeypatch.setattr(machine.os, "geteuid", lambda: 1000)
+    monkeypatch.setattr(machine.resource, "getrlimit", lambda _: (0, 0))
+    _, checks = _doctor(_cell(tmp_path, free_loopback([1337]), "", franka, realtime="enforce"), tmp_path)
+    assert checks["real-time"][0] == "fail" and "rtprio 99" in checks["real-time"][1]
+    _, checks = _doctor(_cell(tmp_path, free_loopback([1337]), "", franka, realtime="ignore"), tmp_path)
+    assert checks["real-time"][0] == "warn"
+
+
+def test_the_cpu_governor_is_read_from_sysfs(tmp_path):
+    for cpu, governor in (("cpu0", "performance"), ("cpu1", "powersave")):
+        (tmp_path / cpu / "cpufreq").mkdir(parents=True)
+        (tmp_path / cpu / "cpufreq" / "scaling_governor").write_text(governor + "\n")
+    slow = machine.cpu_governor(tmp_path)
+    assert slow.status is Status.WARN and "powersave" in slow.detail and "cpupower" in (slow.fix or "")
+    (tmp_path / "cpu1" / "cpufreq" / "scaling_governor").write_text("performance\n")
+    assert machine.cpu_governor(tmp_path).status is Status.OK
+    assert machine.cpu_governor(tmp_path / "none").status is Status.OK
