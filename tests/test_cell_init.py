@@ -60,6 +60,10 @@ def test_init_never_overwrites_a_cell_file_and_names_bad_input(tmp_path):
     unknown = runner.invoke(app, ["init", str(tmp_path / "b"), "--template", "kuka"])
     assert unknown.exit_code == 1 and "no template 'kuka'" in unknown.output
     assert "sim-ur5e-tof" in unknown.output
+    elsewhere = runner.invoke(app, ["init", str(tmp_path / "etc"), "--template", "sim-ur5e-tof",
+                                    "--data-dir", str(tmp_path / "var")])
+    assert elsewhere.exit_code == 0 and (tmp_path / "var" / "jobs").is_dir()
+    assert not (tmp_path / "etc" / "data").exists() and f"--data-dir {tmp_path / 'var'}" in elsewhere.output
     bad_name = runner.invoke(app, ["init", str(tmp_path / "c"), "--template", "sim-ur5e-tof",
                                    "--name", "../x"])
     assert bad_name.exit_code == 1 and "--name" in bad_name.output

@@ -1,9 +1,9 @@
 """``cell init``: a new cell's folder from a template, ready to fill in.
 
 ``cell init DIR --template NAME`` writes ``DIR/cell.yaml`` (the template, its values to measure marked
-``# MEASURE:``) and the data folder ``DIR/data`` the service fills (``jobs``, ``objects``, ``logs``, and
-``calibration`` for the calibration views and results), then lists what is left to measure and the
-commands that follow. It never overwrites a cell file.
+``# MEASURE:``) and the data folder the service fills (``DIR/data`` or ``--data-dir``: ``jobs``,
+``objects``, ``logs``, and ``calibration`` for the calibration views and results), then lists what is
+left to measure and the commands that follow. It never overwrites a cell file.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
 
-def init_cell(folder: Path, template: str, name: str | None = None) -> Path:
+def init_cell(folder: Path, template: str, name: str | None = None, data_dir: Path | None = None) -> Path:
     """Write ``folder/cell.yaml`` from ``template`` (its ``name:`` replaced by ``name`` if given) and the
-    data folder layout; returns the cell file. ``ConfigError`` if the cell file exists, the template or
-    the name is unknown or invalid, or the folder cannot be written."""
+    data folder layout in ``data_dir`` (default ``folder/data``); returns the cell file. ``ConfigError``
+    if the cell file exists, the template or the name is unknown or invalid, or a folder cannot be
+    written."""
     text = template_path(template).read_text()
     if name is not None:
         if not CELL_NAME.fullmatch(name):
@@ -42,8 +43,9 @@ def init_cell(folder: Path, template: str, name: str | None = None) -> Path:
     if cell_file.exists():
         raise ConfigError("exists already; cell init never overwrites a cell file", file=str(cell_file))
     try:
+        folder.mkdir(parents=True, exist_ok=True)
         for sub in DATA_FOLDERS:
-            (folder / "data" / sub).mkdir(parents=True, exist_ok=True)
+            ((data_dir or folder / "data") / sub).mkdir(parents=True, exist_ok=True)
         with cell_file.open("x") as out:
             out.write(text)
     except OSError as exc:
@@ -55,14 +57,16 @@ def init(
     folder: Annotated[Path, typer.Argument(help="the cell's folder (created if missing)")],
     template: Annotated[str, typer.Option(help=f"one of: {', '.join(TEMPLATES)}")],
     name: Annotated[str | None, typer.Option(help="the cell's name (default: the template's)")] = None,
+    data_dir: Annotated[Path | None, typer.Option(help="the service's data folder (default: FOLDER/data; "
+                                                       "/var/lib/cell under systemd)")] = None,
 ) -> None:
     """Start a cell: its cell file from a template and its data folder, with what is left to measure."""
     try:
-        cell_file = init_cell(folder, template, name)
+        cell_file = init_cell(folder, template, name, data_dir)
     except CellError as exc:
         err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=1) from None
-    data = folder / "data"
+    data = data_dir or folder / "data"
     console.print(f"wrote {cell_file} and {data}/", markup=False, highlight=False)
     left = find_placeholders(cell_file.read_text())
     if left:
