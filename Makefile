@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench setup clean serve
+.PHONY: demo test lint bench setup clean serve dist
 
 demo: $(STAMP)
 	$(VENV)/bin/cell scan
@@ -35,9 +35,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check cell drivers tests benchmarks
 	$(VENV)/bin/mypy
 
+# the sdist and the wheel (the kernels compiled from the sdist) in dist/: what `pip install` takes on a cell's PC
+dist: $(STAMP)
+	$(PY) -m build --outdir dist .
+
 bench: $(STAMP)
 	$(PY) benchmarks/sim_render.py
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache .mypy_cache build cell/perception/_kernels.c \
+	rm -rf $(VENV) dist *.egg-info .pytest_cache .ruff_cache .mypy_cache build cell/perception/_kernels.c \
 		cell/planning/vs/_objective.c cell/planning/lrnbv/_raygains.c cell/perception/*.so cell/planning/*/*.so
