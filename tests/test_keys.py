@@ -46,7 +46,7 @@ def test_permission_table():
     expected = {
         Role.VIEWER: {Permission.READ, Permission.STOP},
         Role.OPERATOR: {Permission.READ, Permission.STOP, Permission.SUBMIT, Permission.CANCEL,
-                        Permission.RECOVER, Permission.UPLOAD, Permission.MODE},
+                        Permission.RECOVER, Permission.UPLOAD, Permission.MODE, Permission.KEEP},
         Role.LINE: {Permission.READ, Permission.STOP, Permission.LINE, Permission.MODE},
         Role.ADMIN: set(Permission),
     }
