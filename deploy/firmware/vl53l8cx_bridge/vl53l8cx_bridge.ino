@@ -57,8 +57,8 @@ class UldBoard : public bridge::Board {
   }
 };
 
-UldBoard board;
-bridge::Bridge device(board);
+UldBoard uld_board;
+bridge::Bridge device(uld_board);
 
 static void send_ranging() {
   static bridge::Zone zones[bridge::kMaxZones];
