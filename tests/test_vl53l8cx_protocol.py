@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 
 from drivers.depth.vl53l8cx import protocol as p
 
-FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = settings(max_examples=150, derandomize=True, database=None, deadline=None,
+                suppress_health_check=[HealthCheck.too_slow])
 
 u32 = st.integers(0, 2**32 - 1)
 
