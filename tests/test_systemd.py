@@ -7,6 +7,7 @@ import io
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
@@ -152,5 +153,11 @@ def test_the_unit_the_users_and_the_udev_rule_agree():
     group = unit["SupplementaryGroups"]
     sysusers = (REPO / "deploy" / "systemd" / "cell.sysusers.conf").read_text()
     assert f"m {unit['User']} {group}" in sysusers
-    rules = (REPO / "deploy" / "udev" / "99-vl53l8cx.rules").read_text()
-    assert all(f'GROUP="{group}"' in line for line in rules.splitlines() if line.startswith("SUBSYSTEM"))
+    rules = [line for line in (REPO / "deploy" / "udev" / "99-vl53l8cx.rules").read_text().splitlines()
+             if line.startswith("SUBSYSTEM")]
+    assert rules and all(f'GROUP="{group}"' in line and 'SYMLINK+="vl53l8cx"' in line for line in rules)
+    # the rule matches exactly the USB ids the firmware's README says the boards report
+    matched = {re.search(r'idVendor}=="(\w+)", ATTRS{idProduct}=="(\w+)"', line).groups() for line in rules}
+    readme = (REPO / "deploy" / "firmware" / "README.md").read_text()
+    stated = set(re.findall(r"\*\*(\w{4}):(\w{4})\*\*", readme))
+    assert matched == stated and stated
