@@ -63,6 +63,11 @@ class PlanningError(CellError):
     """A planner cannot produce a next view or a motion."""
 
 
+class NoObjectFound(PlanningError):
+    """The planner's views show no object above the table, so it has nothing to scan: the job ends
+    ``no_object`` (not a failure of the cell; an empty table, a part that did not arrive)."""
+
+
 class JobError(CellError):
     """A scan job cannot start or continue (missing object, unwritable folder, ...)."""
 

@@ -83,6 +83,9 @@ def test_a_real_cell_with_placeholders_is_refused_and_runs_once_measured(tmp_pat
         require_measured(cell_file, "real")
     with pytest.raises(ConfigError, match="still to measure"):
         build_service(ServiceSettings(config_file=cell_file, data_dir=tmp_path / "data"))
+    scan = CliRunner().invoke(app, ["scan", "--config", str(cell_file), "--out", str(tmp_path / "job")])
+    assert scan.exit_code == 1 and "still to measure: arm.host" in scan.output
+    assert not (tmp_path / "job").exists()
     require_measured(cell_file, "dry-run")  # a dry run moves the real arm but scans a virtual object
     cell_file.write_text(_measure(cell_file.read_text()))
     require_measured(cell_file, "real")

@@ -112,10 +112,49 @@ def test_sim_mode_with_hardware_arm_is_refused(franka_cfg_data):
 def test_bad_yaml_and_missing_file(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("arm: [unclosed\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml: line 2, column 1: not valid YAML: .* flow sequence at "
+                                          r"line 1, column 6"):
         load_config(bad)
     with pytest.raises(ConfigError, match="no such file"):
         load_config(tmp_path / "absent.yaml")
+
+
+@pytest.mark.parametrize("text, where", [
+    ("name: x\n  mode: sim\n", "line 2, column 7"),      # an indented key: mapping values not allowed
+    ("name: x\nmode: \"sim\n", "line 3, column 1"),      # an unterminated string
+    ("name: \x01\n", "character 7"),                     # a control character
+])
+def test_a_yaml_syntax_error_is_one_line_with_file_line_and_column(tmp_path, text, where):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    res = CliRunner().invoke(app, ["config", "check", str(bad)])
+    assert res.exit_code == 1
+    assert res.output.count("\n") == 1 and res.output.startswith(f"error: {bad}: {where}: not valid YAML: ")
+
+
+@pytest.mark.parametrize("cell, path, value", [
+    ("sim-franka-rgbd", ("safety", "tcp_max_linear_mps"), "0.25"),
+    ("sim-franka-rgbd", ("safety", "barrier_margin_m"), True),
+    ("sim-franka-rgbd", ("safety", "watchdog", "max_missed_deadlines"), "3"),
+    ("sim-franka-rgbd", ("safety", "workspace", "max_m"), [0.85, "0.7", 1.1]),
+    ("dryrun-ur5e-peer", ("arm", "max_linear_mps"), "0.1"),
+])
+def test_a_quoted_number_in_a_safety_field_is_refused(cell, path, value):
+    data = yaml.safe_load((CONFIG_DIR / f"{cell}.yaml").read_text())
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    with pytest.raises(ConfigError, match=rf"{'.'.join(path)}.*: Input should be a valid (number|integer)"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_integers_are_numbers_in_safety_fields(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["safety"]["workspace"]["max_m"] = [1, 1, 1]
+    data["safety"]["watchdog"]["perception_max_age_s"] = 2
+    cfg = parse_config(data, file="cell.yaml")
+    assert cfg.safety.workspace.max_m == (1.0, 1.0, 1.0) and cfg.safety.watchdog.perception_max_age_s == 2.0
 
 
 def test_cli_config_check(tmp_path, franka_cfg_data):

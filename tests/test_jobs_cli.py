@@ -27,7 +27,7 @@ JOB_ID = re.compile(r"[0-9a-f]{16}")
 UTC_SECONDS = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ")
 PROGRESS_LINE = re.compile(r"t \d+\.\d s  \d+ captures  (coverage \d+\.\d %  )?H_ROI (\d+\.\d{3} nats|-)")
 Completed = tuple[str, subprocess.CompletedProcess[str]]
-FINISHED = ("completed", "failed", "stopped", "cancelled", "interrupted")
+FINISHED = ("completed", "no_object", "failed", "stopped", "cancelled", "interrupted")
 
 
 @pytest.fixture(scope="module")

@@ -121,6 +121,10 @@ def test_the_result_a_line_reads():
     defective = cycle_result("j", "p", "completed", "done", {"packing": none})
     assert not defective.fits and defective.container == "" and defective.length_m == 0.6
     assert defective.message == "none fits: no container"
+    # nothing on the table: a no-part result, whatever the packing section holds
+    empty = cycle_result("j", "p", "no_object", "no object found: ...", {"packing": packing})
+    assert (empty.status, empty.fits, empty.length_m, empty.container) == ("no_object", False, 0.0, "")
+    assert empty.message == "no object found: ..."
 
 
 def test_the_debouncer_ignores_bounces_shorter_than_its_hold():
@@ -142,7 +146,7 @@ def test_whole_cycles_with_results_and_counters(line: Line):
     assert refused.status_code == 409 and "valid in: Idle" in refused.json()["detail"]
     assert line.command("reset").json()["line"]["state_name"] in {"Resetting", "Idle"}
     line.wait({"Idle"})
-    parts = ["horizontal_box@0.01,-0.02,20", "unicorn", "cube@-0.02,0.01,45"]
+    parts = ["horizontal_box@0.01,-0.02,20", "unicorn", "none", "cube@-0.02,0.01,45"]
     for n, part in enumerate(parts, start=1):
         assert line.command("start", part).status_code == 200
         done = line.wait({"Complete"})
@@ -151,6 +155,10 @@ def test_whole_cycles_with_results_and_counters(line: Line):
         if part == "unicorn":  # the feeder has no such part: defective, not a fault
             assert result["status"] == "rejected" and not result["fits"]
             assert "unknown object" in result["message"]
+        elif part == "none":  # the feeder put nothing on the table: a no-part result, not a fault
+            assert line.job(result["job_id"])["status"] == "no_object"
+            assert result["status"] == "no_object" and not result["fits"] and result["length_m"] == 0.0
+            assert result["message"].startswith("no object found: ")
         else:
             job = line.job(result["job_id"])
             assert job["status"] == "completed" and job["part_id"] == part
@@ -158,11 +166,11 @@ def test_whole_cycles_with_results_and_counters(line: Line):
             assert result["length_m"] >= result["width_m"] > 0 and result["height_m"] > 0
         assert line.command("reset").status_code == 200
         line.wait({"Idle"})
-    assert line.state()["defective"] == 1
+    assert line.state()["defective"] == 2
     history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
     walk = [(h["from_name"], h["to_name"]) for h in reversed(history)]
     assert walk[:3] == [("Stopped", "Stopped"), ("Stopped", "Resetting"), ("Resetting", "Idle")]
-    assert walk.count(("Completing", "Complete")) == 3
+    assert walk.count(("Completing", "Complete")) == 4
     assert line.client.get("/api/v1/line/history", headers={}).status_code == 401
 
 

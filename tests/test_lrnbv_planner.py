@@ -109,11 +109,11 @@ def test_short_lr_nbv_scan_reports_packing(tmp_path, capture: str) -> None:
 
 
 def test_short_heu_scan(tmp_path) -> None:
-    cfg = _with(load_config(UR5E), "heu", n_poses=4)
+    cfg = _with(load_config(UR5E), "heu", n_poses=5)
     r = run_scan(ScanRequest(config=cfg, config_path=str(UR5E), object="vertical_box", out=tmp_path / "heu",
                              planner="heu")).result
     assert r["status"] == "completed" and r["termination"].startswith("heu complete")
-    assert r["packing"]["n_poses"] == r["n_captures"] <= 4
+    assert r["packing"]["n_poses"] == r["n_captures"] <= 5
 
 
 class _BranchSession:

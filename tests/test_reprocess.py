@@ -142,6 +142,34 @@ def test_a_job_without_ground_truth_is_rebuilt_without_metrics(job_copy):
     assert read_ply(job / "cloud_hires.ply").shape[0] == written["n_cloud_points"] > 0
 
 
+def test_a_lost_result_is_rebuilt_from_the_frames_with_progress_lines(job_copy):
+    job, online = job_copy
+    (job / "result.json").unlink()  # as after a crash before the job could write it
+    res = CliRunner().invoke(app, ["reprocess", str(job)])
+    assert res.exit_code == 0, res.output
+    n = online["n_captures"]
+    assert f"result.json was missing: rebuilt from {n} frames (status interrupted)" in res.stdout
+    rebuilt = json.loads((job / "result.json").read_text())
+    assert rebuilt["status"] == "interrupted" and rebuilt["n_captures"] == n
+    assert {k: rebuilt[k] for k in ("planner", "object", "seed", "config", "object_pose")} == {
+        k: online[k] for k in ("planner", "object", "seed", "config", "object_pose")}
+    # the object's pose came back with the result: the rebuilt cloud is measured against the ground truth
+    hires = json.loads((job / "result_hires.json").read_text())
+    assert hires["metrics"]["coverage_pct"] >= online["metrics"]["coverage_pct"] - 3.0
+    # not on a terminal: lines on standard error, at the start and the end of each stage
+    lines = res.stderr.splitlines()
+    for stage in (f"load frames 0/{n}", f"load frames {n}/{n}", "optimize the pose graph 1/1", "metrics 1/1"):
+        assert f"reprocess: {stage}" in lines
+    assert any(line.startswith("reprocess: register pairs ") for line in lines)
+
+
+def test_a_folder_without_result_or_frames_is_not_a_job(tmp_path):
+    (tmp_path / "frames").mkdir()
+    res = CliRunner().invoke(app, ["reprocess", str(tmp_path)])
+    assert res.exit_code == 1 and "no result.json and no recorded frames" in res.output
+    assert not (tmp_path / "result.json").exists()
+
+
 def test_reprocess_prunes_uncertain_edges_only(job_copy):
     """The line process prunes pair edges whose weight falls below ``edge_prune_threshold``: at 1 every
     pair edge goes (any residual weighs less than 1) and the certain FK priors alone hold the poses; at 0

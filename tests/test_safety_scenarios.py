@@ -207,7 +207,7 @@ def test_operator_stop_from_the_cli(tmp_path):
 
 def test_cli_stop_refuses_a_finished_job(tmp_path):
     result, out, _ = _run(tmp_path, FRANKA, max_time=1.0)
-    assert result["status"] == "completed"
+    assert result["status"] in ("completed", "no_object")  # it ended, whatever its first second saw
     res = CliRunner().invoke(app, ["stop", str(out)])
     assert res.exit_code != 0 and "not running" in res.output
 

@@ -161,11 +161,25 @@ def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
     client, keys = served
     op = _auth(keys["operator"])
     mesh = load_object("cube")
-    facets = ["facet normal 0 0 0\nouter loop\n"
-              + "".join(f"vertex {x} {y} {z}\n" for x, y, z in mesh.vertices[t]) + "endloop\nendfacet"
-              for t in mesh.triangles]
-    stl = "\n".join(["solid part", *facets, "endsolid part"]).encode()
-    ok = client.post("/api/v1/objects", files={"file": ("My Part.stl", stl)}, headers=op)
+
+    def stl(scale: float) -> bytes:
+        corners = mesh.vertices[mesh.triangles] * scale
+        facets = ["facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {x} {y} {z}\n" for x, y, z in c)
+                  + "endloop\nendfacet" for c in corners]
+        return "\n".join(["solid part", *facets, "endsolid part"]).encode()
+
+    # a CAD export in millimetres: refused, saying what a scale would make of it; accepted with that scale
+    mm = client.post("/api/v1/objects", files={"file": ("Part MM.stl", stl(1000.0))}, headers=op)
+    assert mm.status_code == 422 and mm.json()["detail"][0]["loc"][-1] == "file"
+    assert ("object Part MM is 100.000 x 100.000 x 100.000 m" in mm.text
+            and "the upload's scale 0.001 would make it 0.100 x 0.100 x 0.100 m" in mm.text)
+    scaled = client.post("/api/v1/objects", files={"file": ("Part MM.stl", stl(1000.0))},
+                         data={"scale": "0.001"}, headers=op)
+    assert scaled.status_code == 201, scaled.text
+    assert scaled.json()["name"] == "part_mm" and scaled.json()["extents_m"] == pytest.approx([0.1] * 3)
+    reserved = client.post("/api/v1/objects", files={"file": ("none.stl", stl(1.0))}, headers=op)
+    assert reserved.status_code == 409  # the name of an empty table
+    ok = client.post("/api/v1/objects", files={"file": ("My Part.stl", stl(1.0))}, headers=op)
     assert ok.status_code == 201, ok.text
     assert ok.json()["name"] == "my_part"
     names = [o["name"] for o in client.get("/api/v1/objects", headers=op).json()]
@@ -176,6 +190,8 @@ def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
     assert bad.status_code == 422 and bad.json()["detail"][0]["loc"][-1] == "file"
     job = client.post("/api/v1/jobs", json={"object": "my_part", "max_time_s": 1}, headers=op)
     assert job.status_code == 201 and job.json()["object"] == "my_part"
+    empty = client.post("/api/v1/jobs", json={"object": "none", "max_time_s": 1}, headers=op)
+    assert empty.status_code == 201 and empty.json()["object"] == "none"
 
 
 def test_event_logs_resume_after_the_last_id_and_wake_followers():

@@ -185,8 +185,8 @@ def test_queue_order_and_counts(store: Store, many_jobs: list[JobRecord]):
     assert ids(store.jobs_in_status("a", ["queued", "running"])) == [4, 5, 6, 7]
     assert ids(store.jobs_in_status("b", ["queued"])) == [8]
     assert store.jobs_in_status("c", ["queued"]) == []
-    assert store.count_by_status("a") == {"queued": 3, "running": 1, "completed": 1, "failed": 1,
-                                          "stopped": 0, "cancelled": 0, "interrupted": 0}
+    assert store.count_by_status("a") == {"queued": 3, "running": 1, "completed": 1, "no_object": 0,
+                                          "failed": 1, "stopped": 0, "cancelled": 0, "interrupted": 0}
     assert store.count_by_status("c") == dict.fromkeys(JOB_STATUSES, 0)
 
 

@@ -5,6 +5,7 @@ a crash of the process that holds the ur-rtde clients."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
 from tests.arm_backends import STREAMING_WATCHDOG_HZ, Backend, ur5e_backend, ur5e_config
 from tests.rtde_peer import REPO, ControllerPeer
+from tests.rtde_peer.broken import BrokenController
 
 
 @pytest.fixture
@@ -163,6 +165,33 @@ def test_an_unreachable_controller_fails_fast_with_its_address() -> None:
     arm = UR5eArm(ur5e_config("127.0.0.254", connect_timeout_s=0.5), get_robot_model("ur5e"))
     with pytest.raises(DriverError, match=r"127\.0\.0\.254:30004"):
         arm.connect()
+
+
+@pytest.mark.parametrize("behaviour, dashboard_ok, port, tried, what", [
+    ("close", False, "dashboard port {host}:29999", "the dashboard server's handshake",
+     r"the controller closed the connection \(ur-rtde: End of file\)"),
+    ("hang", False, "dashboard port {host}:29999", "the dashboard server's handshake",
+     r"no answer within 0\.5 s \(connect_timeout_s\) \(ur-rtde: Operation canceled\)"),
+    # the RTDE client reads as the socket closes: an end of file or a reset, by the timing
+    ("close", True, "RTDE port {host}:30004", "the RTDE protocol handshake",
+     r"the controller (closed|reset) the connection "
+     r"\(ur-rtde: read: (End of file|Connection reset by peer)\)"),
+])
+def test_a_handshake_that_fails_says_what_was_tried_and_what_to_check(behaviour, dashboard_ok, port, tried,
+                                                                     what) -> None:
+    controller = BrokenController(behaviour, dashboard_ok=dashboard_ok)
+    try:
+        arm = UR5eArm(ur5e_config(controller.host, connect_timeout_s=0.5), get_robot_model("ur5e"))
+        with pytest.raises(DriverError) as failed:
+            arm.connect()
+        text = str(failed.value)
+        assert f"the controller's {port.format(host=controller.host)} accepted the connection, but {tried} " \
+               f"failed: " in text
+        assert re.search(what, text)
+        assert f"check that {controller.host} is the UR controller" in text and "Settings > Security" in text
+        assert not arm.is_connected
+    finally:
+        controller.stop()
 
 
 def _running(pid: int) -> bool:

@@ -11,9 +11,10 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from cell.jobs.inputs import MAX_SEED
 from cell.line.config import PART_ID_MAX
 from cell.service.store import JobRecord
-from cell.service.submission import MAX_SEED, MAX_TIME_BUDGET_S, JobRequest
+from cell.service.submission import MAX_TIME_BUDGET_S, JobRequest
 
 
 class JobSubmit(BaseModel):

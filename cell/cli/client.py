@@ -24,7 +24,7 @@ import httpx
 
 from drivers.errors import CellError
 
-FINISHED = frozenset({"completed", "failed", "stopped", "cancelled", "interrupted"})
+FINISHED = frozenset({"completed", "no_object", "failed", "stopped", "cancelled", "interrupted"})
 """The statuses a job never leaves."""
 REQUEST_TIMEOUT_S = 30.0
 STREAM_IDLE_S = 40.0

@@ -10,27 +10,28 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn
 
 from cell.cli.arm import arm_app
 from cell.cli.backup import backup
 from cell.cli.doctor import doctor
+from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.init_cell import init
-from cell.cli.jobs import jobs_app
+from cell.cli.jobs import EXIT_NOT_COMPLETED, jobs_app
 from cell.cli.keys import keys_app
+from cell.cli.progress import scan_progress, stage_progress
 from cell.cli.sensor import sensor_app
 from cell.cli.serve import serve
 from cell.config import load_config
-from cell.config.placeholders import find_placeholders
-from cell.jobs.progress import JobProgress
+from cell.config.placeholders import find_placeholders, require_measured
+from cell.jobs.rebuild import rebuild_result
 from cell.jobs.recorder import request_stop
 from cell.jobs.replay import recorded_job, replay_config
-from cell.jobs.runner import ScanRequest, run_scan
+from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
 from cell.perception.reprocess import reprocess_job
 from cell.planning.registry import PLANNERS
 from cell.templates import DEFAULT_TEMPLATE, template_path
-from drivers.errors import CellError, ConfigError
-from drivers.sim.objects import list_objects
+from drivers.errors import CellError, ConfigError, SafetyStop
+from drivers.sim.objects import EMPTY_TABLE, list_objects
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_OBJECT = "bunny"
@@ -79,50 +80,61 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
                        max_time_s=max_time)
 
 
+def _stopped(job: PreparedScan, exc: Exception) -> typer.Exit:
+    """A scan that stopped or failed after its folder was made: the reason, then where the folder is (its
+    log.txt holds the traceback of an internal error)."""
+    reason = exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}"
+    err_console.print(f"error: {reason}", markup=False, highlight=False, soft_wrap=True)
+    err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
+    interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED
+    return typer.Exit(code=EXIT_INTERRUPTED if interrupted else 1)
+
+
 @app.command()
 def scan(
-    config: Annotated[Path | None, typer.Option(help=f"cell file (default: {DEFAULT_CONFIG}; with --replay, "
-                                                     "the job's)")] = None,
+    config: Annotated[Path | None, typer.Option(help=f"cell file (default: the shipped {DEFAULT_TEMPLATE} "
+                                                     "cell; with --replay, the job's)")] = None,
     object: Annotated[str | None, typer.Option(
-        "--object", help=f"shipped name or mesh file (default {DEFAULT_OBJECT}); on a real cell, a label "
-                         "for the record")] = None,
+        "--object", help=f"shipped name or mesh file (default {DEFAULT_OBJECT}), {EMPTY_TABLE!r} for an "
+                         "empty table; on a real cell, a label for the record")] = None,
     object_pose: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
+    object_scale: Annotated[float, typer.Option(help="multiplies the mesh's coordinates into metres (0.001 "
+                                                     "for a mesh in millimetres)")] = 1.0,
     planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's; with "
                                                      "--replay, the job's)")] = None,
     seed: Annotated[int | None, typer.Option(help="random seed of the job (default 0; with --replay, the "
                                                   "job's)")] = None,
-    out: Annotated[Path | None, typer.Option(help="job folder to create (default: jobs/<stamp>-...)")] = None,
+    out: Annotated[Path | None, typer.Option(help="job folder to create, new or empty (default: "
+                                                  "jobs/<stamp>-...)")] = None,
     max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's)")] = None,
     replay: Annotated[Path | None, typer.Option(help="re-run a recorded job folder's frames and poses "
                                                      "through perception and the planner (nothing moves)")]
     = None,
 ) -> None:
-    """Run a scan and write its job folder."""
+    """Run a scan and write its job folder. Exit code 0 when it completed, 2 when it ended otherwise (no
+    object found, stopped, failed), 1 on an error, 130 after Ctrl-C; the job folder is printed in every case
+    once it exists.
+    Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
     try:
         if replay is not None:
             request = _replay_request(replay, config, planner, seed, out, max_time)
         else:
             path = config if config is not None else DEFAULT_CONFIG
             cfg = load_config(path)
+            require_measured(path, cfg.mode)
             label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
             request = ScanRequest(config=cfg, config_path=str(path), object=label,
                                   object_pose=_parse_pose(object_pose), planner=planner,
-                                  seed=seed if seed is not None else 0, out=out, max_time_s=max_time)
-        cfg = request.config
-        budget = max_time if max_time is not None else cfg.scan.max_time_s
-        with Progress(TextColumn("[bold]scan"), BarColumn(),
-                      TextColumn("{task.fields[sim]:6.1f} s sim  {task.fields[captures]:3d} captures  "
-                                 "coverage {task.fields[coverage]:5.1f} %"),
-                      console=console, transient=True) as progress:
-            task = progress.add_task("scan", total=budget, sim=0.0, captures=0, coverage=0.0)
-
-            def show(p: JobProgress) -> None:
-                progress.update(task, completed=p.t_s, sim=p.t_s, captures=p.n_captures,
-                                coverage=p.coverage_pct or 0.0)
-
-            outcome = run_scan(request, on_progress=show)
+                                  seed=seed if seed is not None else 0, out=out, max_time_s=max_time,
+                                  object_scale=object_scale)
+        job = prepare_scan(request)
     except CellError as exc:
         raise _fail(exc) from None
+    try:
+        with scan_progress(job.max_time_s) as show:
+            outcome = run_prepared(job, on_progress=show)
+    except Exception as exc:  # the job's folder holds its result whatever the error: say where it is
+        raise _stopped(job, exc) from None
     r = outcome.result
     cov = r["metrics"]["coverage_pct"]
     console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)
@@ -132,6 +144,8 @@ def scan(
     console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
                   highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
+    if r["status"] != "completed":
+        raise typer.Exit(code=EXIT_NOT_COMPLETED)
 
 
 @app.command()
@@ -150,9 +164,16 @@ def stop(
 
 @app.command()
 def reprocess(job_dir: Path) -> None:
-    """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B)."""
+    """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B). A folder
+    whose result.json is missing but whose frames are there gets its result.json back first (status
+    interrupted). Progress: a bar on a terminal, else lines to standard error."""
     try:
-        out = reprocess_job(job_dir)
+        rebuilt = rebuild_result(job_dir)
+        if rebuilt is not None:
+            console.print(f"{job_dir / 'result.json'} was missing: rebuilt from {rebuilt['n_captures']} "
+                          f"frames (status {rebuilt['status']})", markup=False, highlight=False)
+        with stage_progress("reprocess") as show:
+            out = reprocess_job(job_dir, progress=show)
     except CellError as exc:
         raise _fail(exc) from None
     cov = out["metrics"]["coverage_pct"] if out.get("metrics") else None

@@ -80,6 +80,22 @@ def _check_ceilings(cfg: CellConfig, file: str) -> None:
                                       f"{np.round(model.q_max, 4).tolist()}")
 
 
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """A YAML syntax error on one line, positions 1-based: where the problem is, what it is, and where
+    the construct it broke began."""
+    if isinstance(exc, yaml.MarkedYAMLError) and exc.problem_mark is not None:
+        mark, context = exc.problem_mark, exc.context_mark
+        text = f"line {mark.line + 1}, column {mark.column + 1}: not valid YAML: {exc.problem}"
+        if exc.context and context is not None:
+            text += f" ({exc.context} at line {context.line + 1}, column {context.column + 1})"
+        return text
+    if isinstance(exc, yaml.reader.ReaderError):
+        char = exc.character
+        code = char if isinstance(char, int) else ord(char)
+        return f"character {exc.position + 1}: not valid YAML: {exc.reason} (#x{code:04x})"
+    return "not valid YAML: " + " ".join(str(exc).split())
+
+
 def parse_config(data: Any, file: str = "<config>") -> CellConfig:
     """Validate already-parsed YAML data; ``file`` names the source in error messages."""
     if not isinstance(data, dict):
@@ -113,6 +129,8 @@ def load_config_data(path: str | Path) -> tuple[CellConfig, Any]:
         raise ConfigError("no such file", file=str(p))
     try:
         data = yaml.safe_load(p.read_text())
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"not a text file: byte {exc.start + 1} is not UTF-8", file=str(p)) from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"not valid YAML: {exc}", file=str(p)) from None
+        raise ConfigError(_yaml_problem(exc), file=str(p)) from None
     return parse_config(data, file=str(p)), data

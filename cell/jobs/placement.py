@@ -1,8 +1,13 @@
-"""Where an object may be put: on the simulated table, whole.
+"""Where an object may be put: on the simulated table, whole, and only an object of a size the cell can
+scan.
 
 Sim and dry-run jobs place a virtual object at (x [m], y [m], yaw [deg]) relative to the station; its
 footprint (the mesh's vertices turned by the yaw, projected on the table) must lie on the table of the
 cell's ``sim`` section, or the object would float beside it and the scan would report nonsense.
+
+Before that, the mesh's size must be plausible for the cell (:func:`check_object_size`): a CAD export in
+millimetres loads as an object a thousand times too large, which no view sees whole, and whose scan ends
+at 0 % coverage; the refusal says what a scale would make of it.
 """
 
 from __future__ import annotations
@@ -12,6 +17,47 @@ import numpy as np
 from cell.config.models import CellConfig
 from drivers.errors import JobError
 from drivers.sim.objects import ObjectMesh
+
+MIN_OBJECT_SIZE_M = 0.01
+"""The smallest largest side [m] of an object a cell scans: below it an object covers a handful of the
+2.5 mm map's voxels and at most one zone of an 8x8 ToF frame at the scan's distance, and the mesh is far
+more likely in the wrong units than a part to pack."""
+
+UNIT_SCALES = ((0.001, "millimetres"), (0.01, "centimetres"), (0.0254, "inches"))
+"""The scales that turn a CAD export's usual units into metres, the first one a refusal suggests."""
+
+
+def _dims(extents: np.ndarray) -> str:
+    return " x ".join(f"{v:.3f}" for v in extents) + " m"
+
+
+def _plausible(config: CellConfig, extents: np.ndarray) -> bool:
+    """Whether a bounding box (x, y, z) [m] could stand on the cell's table and under its workspace's top,
+    with a largest side of at least ``MIN_OBJECT_SIZE_M``."""
+    across = np.sort(extents[:2])[::-1]
+    table = np.sort(np.asarray(config.sim.table_size_m))[::-1]
+    height = config.safety.workspace.max_m[2] - config.station.table_z_m
+    return bool(extents.max() >= MIN_OBJECT_SIZE_M and np.all(across <= table) and extents[2] <= height)
+
+
+def check_object_size(config: CellConfig, mesh: ObjectMesh, scale: float = 1.0,
+                      option: str = "--object-scale") -> None:
+    """Raise ``JobError`` when ``mesh`` (loaded at ``scale``) is not a size the cell can scan: its size,
+    the limits, and what ``option`` with a CAD unit's scale would make of it."""
+    extents = mesh.extents_m
+    if _plausible(config, extents):
+        return
+    table = np.asarray(config.sim.table_size_m)
+    height = config.safety.workspace.max_m[2] - config.station.table_z_m
+    text = (f"object {mesh.name} is {_dims(extents)} (x, y, z), not a size this cell scans: its largest side "
+            f"at least {MIN_OBJECT_SIZE_M:g} m, at most the table's {table[0]:g} x {table[1]:g} m across and "
+            f"{height:g} m tall (the workspace's top)")
+    if extents.max() < MIN_OBJECT_SIZE_M:
+        raise JobError(f"{text}; if the mesh is not in metres, {option} converts it")
+    fits = [(unit, name) for unit, name in UNIT_SCALES if _plausible(config, extents * unit)]
+    unit, name = fits[0] if fits else UNIT_SCALES[0]
+    raise JobError(f"{text}; a mesh in {name}? {option} {scale * unit:g} would make it "
+                   f"{_dims(extents * unit)}")
 
 
 def footprint_bounds(config: CellConfig, mesh: ObjectMesh,
@@ -33,3 +79,11 @@ def check_on_table(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, floa
     raise JobError(f"object pose {list(pose)} puts {mesh.name} off the table: its footprint spans "
                    f"x {lo[0]:.3f}..{hi[0]:.3f} m, y {lo[1]:.3f}..{hi[1]:.3f} m (base frame); the table "
                    f"spans x {t_lo[0]:.3f}..{t_hi[0]:.3f} m, y {t_lo[1]:.3f}..{t_hi[1]:.3f} m")
+
+
+def check_placement(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
+                    scale: float = 1.0, option: str = "--object-scale") -> None:
+    """Both checks, the size first (a mesh in the wrong units is also off the table, and its size is
+    the better reason): ``JobError`` saying what is wrong."""
+    check_object_size(config, mesh, scale, option)
+    check_on_table(config, mesh, pose)

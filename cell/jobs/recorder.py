@@ -1,5 +1,8 @@
 """The job folder, readable without the service.
 
+- ``job.json``: what the job was asked, written when the folder is made (planner, object, its scale and
+  pose, seed, cell file); what ``cell reprocess`` rebuilds ``result.json`` from when that is missing
+  (``cell.jobs.rebuild``);
 - ``result.json``: the job's outcome (see ``cell.jobs.runner``);
 - ``cloud.ply``: the accumulated cloud, base frame [m], binary little-endian float64 x, y, z;
 - ``trajectory.csv``: ``t,x,y,z,qx,qy,qz,qw``, the sensor pose in the base frame at every control tick;
@@ -38,6 +41,8 @@ from drivers.transforms import quat_xyzw
 Array = NDArray[np.float64]
 
 STOP_FILE = "STOP"
+JOB_FILE = "job.json"
+RESULT_FILE = "result.json"
 
 
 def holds_job(folder: Path) -> bool:
@@ -125,9 +130,13 @@ class JobRecorder:
     def occupancy_map(self, occupancy: OccupancyMap) -> None:
         write_bt(occupancy, self.folder / "map.bt")
 
+    def job(self, job: dict[str, Any]) -> None:
+        """Write ``job.json``: what the job was asked."""
+        (self.folder / JOB_FILE).write_text(json.dumps(job, indent=2) + "\n")
+
     def result(self, result: dict[str, Any]) -> None:
         text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)
-        (self.folder / "result.json").write_text(text + "\n")
+        (self.folder / RESULT_FILE).write_text(text + "\n")
 
     def close(self) -> None:
         self._traj.flush()

@@ -1,9 +1,18 @@
 """Run one scan job end to end and leave its folder.
 
-Set-up order: planner name, object and folder are checked before any driver connects, so bad input fails
-before anything moves. A failure inside the loop stops the arm through the guard, writes everything
-recorded so far with ``status`` ``failed`` (or ``stopped`` for a safety stop) and ``termination`` saying
-why, then re-raises.
+Set-up order: every input (planner name, seed, time budget, object, its size and placement, the folder)
+is checked by :func:`prepare_scan` before the job's folder exists and before any driver connects, so bad
+input fails before anything moves and leaves nothing behind. Once the folder exists it always ends with
+a ``result.json``, whatever happens: a failure inside the loop stops the arm through the guard, writes
+everything recorded so far with ``status`` ``failed`` (or ``stopped`` for a safety stop or Ctrl-C) and
+``termination`` saying why, then re-raises; a failure while setting up or while writing the outputs
+leaves a ``failed`` result with the error.
+
+A job that ran to its end, recorded frames, but whose segmentation never found an object above the table
+in them (an empty table; a part that did not arrive) ends ``no_object``, not ``completed``: termination
+"no object found: ...". It is decided from what the job saw, never from ground truth, so it holds on a
+real cell too. A job whose time budget ran out before its first frame saw nothing either way and ends
+``completed`` with no captures, as before.
 
 Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
 job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
@@ -19,6 +28,7 @@ from __future__ import annotations
 
 import json
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
@@ -29,9 +39,10 @@ import numpy as np
 
 from cell.config.models import CellConfig
 from cell.jobs.control import JobControl
+from cell.jobs.inputs import check_job_folder, check_pose, check_seed, check_time_budget
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
-from cell.jobs.placement import check_on_table
+from cell.jobs.placement import check_placement
 from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import STOP_FILE, JobRecorder
 from cell.jobs.replay import ReplaySession
@@ -50,18 +61,22 @@ from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
 from drivers.depth.replay import ReplaySensor
 from drivers.depth.sim_base import SimDepthSensor
-from drivers.errors import CellError, JobError, SafetyStop
+from drivers.errors import CellError, JobError, NoObjectFound, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.faults import SimFaultInjector
-from drivers.sim.objects import ObjectMesh, load_object
+from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import T_from_xyz_rpy
+
+INTERRUPTED = "operator stop: interrupted (Ctrl-C)"
 
 
 @dataclass(frozen=True)
 class ScanRequest:
-    """What to scan and how. ``object_pose`` is (x [m], y [m], yaw [deg]) relative to the station."""
+    """What to scan and how. ``object_pose`` is (x [m], y [m], yaw [deg]) relative to the station;
+    ``object_scale`` multiplies a mesh's coordinates into metres (0.001 for a mesh in millimetres);
+    ``object`` ``"none"`` is an empty table."""
 
     config: CellConfig
     config_path: str
@@ -71,6 +86,24 @@ class ScanRequest:
     seed: int = 0
     out: Path | None = None
     max_time_s: float | None = None
+    object_scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class PreparedScan:
+    """A request checked and resolved by :func:`prepare_scan`, before its folder exists: the planner,
+    the object's name, and its mesh and pose in the base frame when known (the ground truth), the time
+    budget [s] and the folder the job will create."""
+
+    request: ScanRequest
+    planner_name: str
+    planner: Planner
+    replay_dir: Path | None
+    object_name: str
+    mesh: ObjectMesh | None
+    T_base_object: np.ndarray | None
+    max_time_s: float
+    folder: Path
 
 
 @dataclass(frozen=True)
@@ -142,9 +175,9 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
 
 
 def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
-    """The object a recorded job scanned, as its ``result.json`` names it, with its mesh and pose when
-    it was a simulated job whose object is at hand (the ground truth for metrics); (name, None, None)
-    otherwise."""
+    """The object a recorded job scanned, as its ``result.json`` names it, with its mesh (at the scale
+    the job used) and pose when it was a simulated job whose object is at hand (the ground truth for
+    metrics); (name, None, None) otherwise."""
     try:
         recorded = json.loads((job_dir / "result.json").read_text())
     except (OSError, ValueError) as exc:
@@ -153,7 +186,8 @@ def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray 
     if not name or pose is None:
         return str(name or "unknown"), None, None
     try:
-        return str(name), load_object(str(name)), np.asarray(pose, dtype=float)
+        return (str(name), load_object(str(name), float(recorded.get("object_scale", 1.0))),
+                np.asarray(pose, dtype=float))
     except CellError:
         return str(name), None, None
 
@@ -161,14 +195,37 @@ def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray 
 def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, ObjectMesh | None,
                                                                         np.ndarray | None]:
     """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
-    of sim and dry runs and of replays of them; a real cell scans an unknown object)."""
+    of sim and dry runs and of replays of them; a real cell scans an unknown object, an empty table has
+    none)."""
     if replay_dir is not None:
         return _recorded_object(replay_dir)
     if req.config.mode == "real":
         return req.object, None, None
-    mesh = load_object(req.object)
-    check_on_table(req.config, mesh, req.object_pose)
+    if req.object == EMPTY_TABLE:
+        return EMPTY_TABLE, None, None
+    mesh = load_object(req.object, req.object_scale)
+    check_placement(req.config, mesh, req.object_pose, req.object_scale)
     return req.object, mesh, object_pose_in_base(req.config, req.object_pose)
+
+
+def prepare_scan(req: ScanRequest) -> PreparedScan:
+    """Check every input of ``req`` and resolve it; raises ``CellError`` (one line) for bad input. Nothing
+    is created and nothing connects."""
+    cfg = req.config
+    check_seed(req.seed)
+    max_time = req.max_time_s if req.max_time_s is not None else cfg.scan.max_time_s
+    check_time_budget(max_time)
+    check_pose(req.object_pose)
+    if cfg.sim.faults and cfg.mode != "sim":
+        raise JobError("sim.faults needs the simulated arm and a simulated sensor (mode: sim)")
+    planner_name = req.planner or cfg.scan.planner
+    planner = get_planner(planner_name)(cfg)
+    replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
+    object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
+    folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed)
+    check_job_folder(folder)
+    return PreparedScan(req, planner_name, planner, replay_dir, object_name, mesh, T_base_object, max_time,
+                        folder)
 
 
 def _run_planner(planner: Planner, session: JobSession) -> str:
@@ -178,74 +235,87 @@ def _run_planner(planner: Planner, session: JobSession) -> str:
         session.close()
 
 
+def _no_object(session: JobSession, planner_termination: str) -> str:
+    return (f"no object found: segmentation found nothing above the table in {session.n_captures} frames "
+            f"({planner_termination})")
+
+
 def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None = None,
              control: JobControl | None = None) -> ScanOutcome:
-    """Run the scan described by ``req``; returns the job folder and the result written there.
+    """Check ``req`` (:func:`prepare_scan`) and run it (:func:`run_prepared`)."""
+    return run_prepared(prepare_scan(req), on_progress, control)
+
+
+def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] | None = None,
+                 control: JobControl | None = None) -> ScanOutcome:
+    """Run a prepared scan; returns the job folder and the result written there.
 
     ``on_progress`` gets a snapshot after each perception update, on the control thread (keep it short),
     and the job then also keeps its accumulated cloud in ``cloud_live.npy`` while it runs
-    (``cell.jobs.live_cloud``); ``control`` lets another thread stop the job (``JobControl.request_stop``)."""
-    cfg = req.config
-    planner_name = req.planner or cfg.scan.planner
-    planner = get_planner(planner_name)(cfg)
-    replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
-    object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
-    max_time = req.max_time_s if req.max_time_s is not None else cfg.scan.max_time_s
-    if max_time <= 0:
-        raise JobError(f"--max-time must be positive, got {max_time}")
-    folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed)
+    (``cell.jobs.live_cloud``); ``control`` lets another thread stop the job (``JobControl.request_stop``).
+    A failure, a safety stop or Ctrl-C is raised once the folder is finished (``SafetyStop`` for the
+    last two)."""
+    req, cfg, planner, folder = job.request, job.request.config, job.planner, job.folder
     recorder = JobRecorder(folder)
     wall_start = time.monotonic()
-
-    world_rng, perception_rng, planner_rng = job_generators(req.seed)
     # With a hardware arm the job runs on the wall clock and perception runs asynchronously, its frames
     # paired with the poses the control loop records (poses); a dry run's simulated sensor renders the
     # virtual object from the newest of them. A replay plays recorded time on the simulated clock.
     wall = cfg.mode in ("dry-run", "real")
     clock: Clock = WallClock() if wall else SimClock()
-    poses = PoseHistory() if wall else None
-    scene = None if mesh is None or T_base_object is None else SimScene(
-        mesh, T_base_object, table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
-        table_size_xy=cfg.sim.table_size_m)
-    world = SimWorld(clock=clock, rng=world_rng, scene=scene)
-    model = get_robot_model(cfg.arm.model)
-    T_flange_sensor = cfg.mount.matrix()
-    arm = make_arm(cfg.arm, model, world)
-    flange = poses.latest if poses is not None else true_flange_pose(arm)
-    sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
-    ground_truth = (ground_truth_points(mesh, T_base_object) if mesh is not None and T_base_object is not None
-                    else None)
-    if cfg.sim.faults:
-        if not (isinstance(clock, SimClock) and isinstance(arm, SimArm)
-                and isinstance(sensor, SimDepthSensor)):
-            raise JobError("sim.faults needs the simulated arm and a simulated sensor")
-        SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
-    guard = MotionGuard.from_config(arm, model, cfg, clock)
-
-    # a watched job (``on_progress`` given) keeps a snapshot of its cloud for its watchers
-    live_cloud = None if on_progress is None else LiveCloudWriter(
-        folder / LIVE_CLOUD_FILE, log=lambda message: recorder.log(clock.now(), message))
-
-    def report(s: JobSession) -> None:
-        assert on_progress is not None and live_cloud is not None
-        live_cloud.offer(s.cloud.points)
-        on_progress(s.progress(planner.figures()))
-
     status, termination = "failed", "not started"
     session: JobSession | None = None
+    guard: MotionGuard | None = None
+    live_cloud: LiveCloudWriter | None = None
+    ground_truth: np.ndarray | None = None
     error: BaseException | None = None
-    placed = f"replay of {replay_dir}" if replay_dir is not None else f"at {list(req.object_pose)}"
-    recorder.log(0.0, f"job: planner {planner_name}, object {object_name} {placed}, seed {req.seed}, "
-                      f"config {req.config_path}")
+    placed = f"replay of {job.replay_dir}" if job.replay_dir is not None else f"at {list(req.object_pose)}"
+    scaled = "" if req.object_scale == 1.0 else f" scaled by {req.object_scale:g}"
+    recorder.log(0.0, f"job: planner {job.planner_name}, object {job.object_name}{scaled} {placed}, seed "
+                      f"{req.seed}, config {req.config_path}")
     try:
+        T_base_object = job.T_base_object
+        recorder.job({**_identity(job), "object_placement": list(req.object_pose),
+                      "max_time_s": job.max_time_s})
+        world_rng, perception_rng, planner_rng = job_generators(req.seed)
+        poses = PoseHistory() if wall else None
+        T_station = object_pose_in_base(cfg, (0.0, 0.0, 0.0))
+        scene = SimScene(job.mesh, T_base_object if T_base_object is not None else T_station,
+                         table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
+                         table_size_xy=cfg.sim.table_size_m) if cfg.mode in ("sim", "dry-run") else None
+        world = SimWorld(clock=clock, rng=world_rng, scene=scene)
+        model = get_robot_model(cfg.arm.model)
+        T_flange_sensor = cfg.mount.matrix()
+        arm = make_arm(cfg.arm, model, world)
+        flange = poses.latest if poses is not None else true_flange_pose(arm)
+        sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
+        if job.mesh is not None and T_base_object is not None:
+            ground_truth = ground_truth_points(job.mesh, T_base_object)
+        if cfg.sim.faults:
+            # a sim cell's devices (prepare_scan refused faults on any other)
+            assert isinstance(clock, SimClock) and isinstance(arm, SimArm)
+            assert isinstance(sensor, SimDepthSensor)
+            SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
+        guard = MotionGuard.from_config(arm, model, cfg, clock)
+
+        # a watched job (``on_progress`` given) keeps a snapshot of its cloud for its watchers
+        live_cloud = None if on_progress is None else LiveCloudWriter(
+            folder / LIVE_CLOUD_FILE, log=lambda message: recorder.log(clock.now(), message))
+
+        def report(s: JobSession) -> None:
+            assert on_progress is not None and live_cloud is not None
+            live_cloud.offer(s.cloud.points)
+            on_progress(s.progress(planner.figures()))
+
         with arm, sensor:
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
             coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
-                max_time_s=max_time, coverage=coverage, on_progress=None if on_progress is None else report,
-                stop_file=folder / STOP_FILE, rng=planner_rng)
+                max_time_s=job.max_time_s, coverage=coverage,
+                on_progress=None if on_progress is None else report, stop_file=folder / STOP_FILE,
+                rng=planner_rng)
             if isinstance(arm, ReplayArm) and isinstance(sensor, ReplaySensor):
                 session = ReplaySession(cfg, arm=arm, sensor=sensor, **common)
             else:
@@ -256,75 +326,107 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
             # asynchronous capture stops before the sensor disconnects.
             try:
                 termination = _run_planner(planner, session)
-            except ScanLimitReached as exc:
+            except (ScanLimitReached, NoObjectFound) as exc:
                 termination = str(exc)
             except SafetyStop:
                 session.settle()
                 raise
             except KeyboardInterrupt:
-                reason = "operator stop: interrupted (Ctrl-C)"
-                guard.stop(reason)
+                guard.stop(INTERRUPTED)
                 session.settle()
-                raise SafetyStop(reason) from None
+                raise SafetyStop(INTERRUPTED) from None
             except Exception as exc:
                 guard.stop(f"{type(exc).__name__}: {exc}")
                 session.settle()
                 raise
             guard.finish()
             session.settle()
-            status = "completed"
+            # no frame, nothing seen: the budget ran out before the first view (a budget's matter)
+            status = "completed" if session.object_found or session.n_captures == 0 else "no_object"
+            if status == "no_object":
+                termination = _no_object(session, termination)
     except SafetyStop as exc:
         status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
+    except KeyboardInterrupt:
+        status, termination, error = "stopped", f"safety stop: {INTERRUPTED}", SafetyStop(INTERRUPTED)
     except CellError as exc:
         status, termination, error = "failed", f"{type(exc).__name__}: {exc}", exc
     except Exception as exc:
         status, termination, error = "failed", f"internal error: {type(exc).__name__}: {exc}", exc
+        recorder.log(clock.now(), "".join(traceback.format_exception(exc)).rstrip())
     finally:
         if control is not None:
             control.detach()
-        guard.release()
-        recorder.log(clock.now(), f"{status}: {termination}")
-        cloud = session.cloud.points if session is not None else np.zeros((0, 3))
-        recorder.cloud(cloud)
+        if guard is not None:
+            guard.release()
         if live_cloud is not None:
             live_cloud.close()
-        if session is not None:
-            recorder.occupancy_map(session.perception.map)
-        metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None
-                   else dict.fromkeys(("chamfer_mm", "hausdorff_mm", "coverage_pct"), float("nan")))
-        scan_time, scan_path = _scan_span(session, clock.now())
-        result: dict[str, Any] = {
-            "planner": planner_name,
-            "object": object_name,
-            "config": req.config_path,
-            "seed": req.seed,
-            "status": status,
-            "termination": termination,
-            "sim_time_s": round(clock.now(), 6),
-            "scan_time_s": scan_time,
-            "wall_time_s": round(time.monotonic() - wall_start, 3),
-            "path_length_m": round(session.path_length_m, 6) if session else 0.0,
-            "scan_path_length_m": scan_path,
-            "n_captures": session.n_captures if session else 0,
-            "n_capture_failures": session.n_capture_failures if session else 0,
-            "n_unreachable_views": session.n_unreachable if session else 0,
-            "refused_moves": dict(sorted(session.refused_moves.items())) if session else {},
-            "n_cloud_points": int(cloud.shape[0]),
-            "object_pose": None if T_base_object is None else np.round(T_base_object, 9).tolist(),
-            "metrics": _finite_or_none(metrics),
-            "perception": _perception_summary(session),
-            "packing": packing_section(cfg, session, planner, mesh, T_base_object, ground_truth),
-            "safety": guard.log.as_dict(),
-            "control": None if session is None else {**session.ticks.summary(),
-                                                     "first_motion_unix_s": guard.first_motion_unix_s},
-        }
-        if isinstance(session, ReplaySession):
-            result["replay"] = {"job_dir": str(replay_dir), "n_planner_requests": session.n_planner_requests}
-        recorder.result(result)
-        if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
-            write_servo_outputs(folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,
-                                session.coverage_history)
+        recorder.log(clock.now(), f"{status}: {termination}")
+        try:
+            result = _write_outputs(job, recorder, clock, wall_start, status, termination, session, guard,
+                                    ground_truth)
+        except Exception as exc:
+            # the folder still ends with a result, which says what is missing and why
+            status = "failed"
+            termination = f"internal error while writing the job's outputs: {type(exc).__name__}: {exc}"
+            recorder.log(clock.now(), termination)
+            result = {**_identity(job), "status": status, "termination": termination}
+            recorder.result(result)
+            error = error or exc
         recorder.close()
     if error is not None:
         raise error
     return ScanOutcome(folder=folder, result=result)
+
+
+def _identity(job: PreparedScan) -> dict[str, Any]:
+    """What result.json says of the job before its outcome: planner, object (its scale, and its pose in
+    the base frame when known), cell file, seed."""
+    req, T = job.request, job.T_base_object
+    return {"planner": job.planner_name, "object": job.object_name, "object_scale": req.object_scale,
+            "object_pose": None if T is None else np.round(T, 9).tolist(), "config": req.config_path,
+            "seed": req.seed}
+
+
+def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_start: float, status: str,
+                   termination: str, session: JobSession | None, guard: MotionGuard | None,
+                   ground_truth: np.ndarray | None) -> dict[str, Any]:
+    """Write the cloud, the map, result.json and the planner's telemetry; returns the result."""
+    cloud = session.cloud.points if session is not None else np.zeros((0, 3))
+    recorder.cloud(cloud)
+    if session is not None:
+        recorder.occupancy_map(session.perception.map)
+    metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None
+               else dict.fromkeys(("chamfer_mm", "hausdorff_mm", "coverage_pct"), float("nan")))
+    scan_time, scan_path = _scan_span(session, clock.now())
+    T_base_object = job.T_base_object
+    result: dict[str, Any] = {
+        **_identity(job),
+        "status": status,
+        "termination": termination,
+        "sim_time_s": round(clock.now(), 6),
+        "scan_time_s": scan_time,
+        "wall_time_s": round(time.monotonic() - wall_start, 3),
+        "path_length_m": round(session.path_length_m, 6) if session else 0.0,
+        "scan_path_length_m": scan_path,
+        "n_captures": session.n_captures if session else 0,
+        "n_capture_failures": session.n_capture_failures if session else 0,
+        "n_unreachable_views": session.n_unreachable if session else 0,
+        "refused_moves": dict(sorted(session.refused_moves.items())) if session else {},
+        "n_cloud_points": int(cloud.shape[0]),
+        "metrics": _finite_or_none(metrics),
+        "perception": _perception_summary(session),
+        "packing": packing_section(job.request.config, session, job.planner, job.mesh, T_base_object,
+                                   ground_truth),
+        "safety": guard.log.as_dict() if guard is not None else None,
+        "control": None if session is None or guard is None else {
+            **session.ticks.summary(), "first_motion_unix_s": guard.first_motion_unix_s},
+    }
+    if isinstance(session, ReplaySession):
+        result["replay"] = {"job_dir": str(job.replay_dir), "n_planner_requests": session.n_planner_requests}
+    recorder.result(result)
+    planner = job.planner
+    if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
+        write_servo_outputs(job.folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,
+                            session.coverage_history)
+    return result

@@ -135,6 +135,12 @@ class JobSession:
     def cloud(self) -> CloudAccumulator:
         return self.perception.cloud
 
+    @property
+    def object_found(self) -> bool:
+        """Whether segmentation has found an object above the table in any frame so far (what the job
+        saw, not ground truth)."""
+        return self.perception.extent.min_m is not None
+
     def latest_perception(self) -> PerceptionUpdate | None:
         return self._latest
 

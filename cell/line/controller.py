@@ -11,7 +11,9 @@ What each state does (TR88.00.02's model, :mod:`cell.line.packml`):
   not know, or cannot place on its table, ends the cycle as a defective part with the reason, not as a
   fault.
 - Completing writes the result (:class:`cell.line.result.CycleResult`) and the counters; Complete holds
-  them until Reset.
+  them until Reset. A scan that found nothing on the table (job ``no_object``) completes the cycle too,
+  with a no-part result (``Result/Status`` ``no_object``, ``Fits`` false: counted defective), not a
+  fault: the line decides what an empty station means.
 - Stopping stops the scan's arm through the guard (the job ends ``stopped``), then Stopped. An operator's
   STOP (API, web page) is a Stop too.
 - Aborting is the fault path: a safety stop, an arm fault or a failed job during Execute, or the Abort
@@ -260,7 +262,7 @@ class LineController:
 
     def _execute_ended(self, job_id: str, status: str, termination: str,
                        result: dict[str, Any] | None) -> None:
-        if status == "completed":
+        if status in ("completed", "no_object"):
             self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
             return
         if status in ("stopped", "cancelled") and not termination.startswith("safety stop"):

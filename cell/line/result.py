@@ -48,12 +48,12 @@ def feeder_part(part_id: str) -> tuple[str, tuple[float, float, float] | None]:
 class CycleResult:
     """One part's result as the line reads it (``Result/...``).
 
-    ``status`` is the job's (``completed``, ``stopped``, ``failed``) or ``rejected`` when no scan ran (an
-    unknown part); ``length_m`` >= ``width_m`` and ``height_m`` the packing box [m] (0 when none was
-    measured); ``container`` the chosen container's name ("" when none fits); ``clearance_m`` the
-    smallest gap [m] between the box and the container's walls or lid (0 when none fits); ``fits``
-    whether a container was chosen (a part that fits none is defective, not a fault); ``message`` why,
-    in words."""
+    ``status`` is the job's (``completed``, ``no_object``: nothing on the table, ``stopped``, ``failed``)
+    or ``rejected`` when no scan ran (an unknown part); ``length_m`` >= ``width_m`` and ``height_m`` the
+    packing box [m] (0 when none was measured); ``container`` the chosen container's name ("" when none
+    fits); ``clearance_m`` the smallest gap [m] between the box and the container's walls or lid (0 when
+    none fits); ``fits`` whether a container was chosen (a part that fits none is defective, not a fault);
+    ``message`` why, in words."""
 
     job_id: str
     part_id: str
@@ -82,7 +82,9 @@ def rejected(part_id: str, reason: str) -> CycleResult:
 def cycle_result(job_id: str, part_id: str, status: str, termination: str | None,
                  result: dict[str, Any] | None) -> CycleResult:
     """The line's view of a finished job: its ``result.json``'s ``packing`` section (dimensions, container)
-    and how it ended."""
+    and how it ended; a job that found no object gives a no-part result (no dimensions, no container)."""
+    if status == "no_object":
+        return CycleResult(job_id=job_id, part_id=part_id, status=status, message=termination or status)
     packing = (result or {}).get("packing") or {}
     dims = packing.get("dims_m")
     container = packing.get("container") or {}

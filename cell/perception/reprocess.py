@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -81,6 +81,9 @@ from drivers.transforms import inv_T, rotvec, transform_points
 Array = NDArray[np.float64]
 
 _reg = o3d.pipelines.registration
+
+StageReport = Callable[[str, int, int], None]
+"""(stage, done, total): how far a stage of the re-processing is."""
 
 PAPER_CROP = CropBoxConfig(x_m=(-0.15, 0.15), y_m=(-0.15, 0.15), z_m=(0.05, 0.40))
 """The paper's crop box (section II-A), used when the job's cell file cannot be loaded."""
@@ -165,8 +168,13 @@ def _load_result(job_dir: Path) -> dict[str, Any]:
     return result
 
 
+def recorded_frames(job_dir: Path) -> list[Path]:
+    """The frame files of a job folder (``frames/NNNNNN.npz``), in order."""
+    return sorted((job_dir / "frames").glob("[0-9]*.npz"))
+
+
 def _frame_files(job_dir: Path) -> list[Path]:
-    files = sorted((job_dir / "frames").glob("[0-9]*.npz"))
+    files = recorded_frames(job_dir)
     if not files:
         raise JobError(f"{job_dir} holds no recorded frames (frames/NNNNNN.npz); nothing to re-process")
     return files
@@ -232,8 +240,10 @@ def _point_to_plane_information(matched: Array, normals: Array) -> Array:
     return rows.T @ rows
 
 
-def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tuple[list[Array], dict]:
-    """Optimized T_base_sensor of every frame and a summary of the pose graph.
+def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams,
+              progress: StageReport) -> tuple[list[Array], dict]:
+    """Optimized T_base_sensor of every frame and a summary of the pose graph; ``progress`` hears of
+    each pair registered and of the optimization.
 
     Node 0 is the base frame (fixed); node k + 1 is frame k, initialised at its recorded pose. Each frame
     has a certain "FK prior" edge to the base node (its recorded pose, information from ``fk_sigma_m`` /
@@ -253,7 +263,9 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
     n_pairs = n_loops = n_underconstrained = 0
     rejected: list[dict[str, Any]] = []
     info_dist = p.max_correspondence_m[-1]
-    for i, j, loop in _pairs(poses, p):
+    pairs_to_register = _pairs(poses, p)
+    for n_done, (i, j, loop) in enumerate(pairs_to_register):
+        progress("register pairs", n_done, len(pairs_to_register))
         if not (len(pts[i]) and len(pts[j])):
             continue
         T_init = inv_T(poses[j]) @ poses[i]  # recorded T_j_i: frame i's points into frame j
@@ -280,12 +292,15 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
         n_loops += loop
     pair_nodes = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
     n_edges = len(graph.edges)
+    progress("register pairs", len(pairs_to_register), len(pairs_to_register))
+    progress("optimize the pose graph", 0, 1)
     option = _reg.GlobalOptimizationOption(max_correspondence_distance=info_dist,
                                            edge_prune_threshold=p.edge_prune_threshold,
                                            preference_loop_closure=p.preference_loop_closure,
                                            reference_node=0)
     _reg.global_optimization(graph, _reg.GlobalOptimizationLevenbergMarquardt(),
                              _reg.GlobalOptimizationConvergenceCriteria(), option)
+    progress("optimize the pose graph", 1, 1)
     optimized = [np.array(node.pose) for node in graph.nodes][1:]
     kept = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
     moves = [(float(np.linalg.norm(a[:3, 3] - b[:3, 3])),
@@ -308,7 +323,8 @@ def _multiway(clouds: list[Array], poses: list[Array], p: MultiwayParams) -> tup
 
 
 def _ground_truth(result: dict[str, Any]) -> Array | None:
-    """The eq. 13 sample A of the online run (same object, pose and seed), or None if not known."""
+    """The eq. 13 sample A of the online run (same object, scale, pose and seed), or None if not
+    known."""
     name, pose = result.get("object"), result.get("object_pose")
     if not isinstance(name, str) or pose is None:
         return None
@@ -316,8 +332,8 @@ def _ground_truth(result: dict[str, Any]) -> Array | None:
     if T_base_object.shape != (4, 4):
         return None
     try:
-        mesh = load_object(name)
-    except JobError:
+        mesh = load_object(name, float(result.get("object_scale", 1.0)))
+    except (JobError, TypeError, ValueError):
         return None
     return ground_truth_points(mesh, T_base_object)
 
@@ -327,14 +343,20 @@ def _rounded(m: Metrics) -> dict[str, float | None]:
     return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in m.as_dict().items()}
 
 
+def _silent(stage: str, done: int, total: int) -> None:
+    """A ``StageReport`` that reports nowhere."""
+
+
 def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig | None = None,
-                  params: MultiwayParams | None = None, frame_step: int = 1) -> dict[str, Any]:
+                  params: MultiwayParams | None = None, frame_step: int = 1,
+                  progress: StageReport = _silent) -> dict[str, Any]:
     """Rebuild a job's cloud at ``voxel_m`` [m] with multiway registration (paper section III-B).
 
     Writes ``cloud_hires.ply`` and ``result_hires.json`` into ``job_dir`` and returns what was written
     to the JSON. ``crop`` overrides the crop box (sensor frame); ``params`` the registration settings;
-    ``frame_step`` uses every n-th frame only (1 = all). Raises ``JobError`` for a folder that is not a
-    job folder, has no frames or holds an unreadable frame.
+    ``frame_step`` uses every n-th frame only (1 = all); ``progress`` hears how far each stage is (frames
+    loaded, pairs registered, pose graph, metrics). Raises ``JobError`` for a folder that is not a job
+    folder, has no frames or holds an unreadable frame.
     """
 
     job_dir = Path(job_dir)
@@ -354,15 +376,17 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     clouds: list[Array] = []
     poses: list[Array] = []
     times: list[float] = []
-    for path in files:
+    for n_done, path in enumerate(files):
+        progress("load frames", n_done, len(files))
         pts, T, t = _load_frame(path)
         clouds.append(crop_voxel_downsample(pts, crop.x_m, crop.y_m, crop.z_m, voxel_m))
         poses.append(T)
         times.append(t)
+    progress("load frames", len(files), len(files))
     t_loaded = time.perf_counter()
 
     with single_threaded_open3d():
-        optimized, summary = _multiway(clouds, poses, p)
+        optimized, summary = _multiway(clouds, poses, p, progress)
     t_registered = time.perf_counter()
 
     per_frame = [voxel_downsample(transform_points(T, c), voxel_m) for T, c in zip(optimized, clouds,
@@ -373,10 +397,12 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     gt = _ground_truth(result)
     metrics = timeline = None
     if gt is not None:
+        progress("metrics", 0, 1)
         metrics = _rounded(compute_metrics(gt, cloud))
         steps = [_rounded(m) for m in metrics_timeline(gt, cloud, first, len(per_frame))]
         timeline = {"t_s": [round(t - times[0], 3) for t in times],
                     **{k: [step[k] for step in steps] for k in metrics}}
+        progress("metrics", 1, 1)
     t_measured = time.perf_counter()
     out: dict[str, Any] = {
         "n_frames": len(files),

@@ -1,8 +1,9 @@
 """The ``safety`` section of a cell file: limits, barrier planes, the collision world and the watchdog.
 
 Units are SI (m, s, rad); frames: barrier planes, obstacles and the workspace box are in the robot base
-frame, tool bodies in the flange frame. Safety values have no defaults: a cell file states them. The robot
-model's own maxima are hard ceilings, checked when the cell file is loaded (``cell.config.load``).
+frame, tool bodies in the flange frame. Safety values have no defaults: a cell file states them, as numbers
+(strict: a quoted "475" is refused, not read; an integer is a number). The robot model's own maxima are
+hard ceilings, checked when the cell file is loaded (``cell.config.load``).
 """
 
 from __future__ import annotations
@@ -10,12 +11,12 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, NonNegativeFloat, PositiveFloat, PositiveInt, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from drivers.config_base import StrictModel
+from drivers.config_base import NonNegativeNumber, Number, PositiveCount, PositiveNumber, StrictModel
 from drivers.transforms import T_from_xyz_rpy
 
-Vec3 = tuple[float, float, float]
+Vec3 = tuple[Number, Number, Number]
 
 
 class WorkspaceConfig(StrictModel):
@@ -63,7 +64,7 @@ class BoxBody(StrictModel):
 
     shape: Literal["box"]
     name: str
-    size_m: tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+    size_m: tuple[PositiveNumber, PositiveNumber, PositiveNumber]
     pose: BodyPose
 
 
@@ -72,8 +73,8 @@ class CylinderBody(StrictModel):
 
     shape: Literal["cylinder"]
     name: str
-    radius_m: PositiveFloat
-    length_m: PositiveFloat
+    radius_m: PositiveNumber
+    length_m: PositiveNumber
     pose: BodyPose
 
 
@@ -94,9 +95,9 @@ class TableConfig(StrictModel):
     """The table slab: its top at ``station.table_z_m``, centre ``center_xy_m`` and ``size_m`` [m] in the
     base frame, ``thickness_m`` below the top."""
 
-    center_xy_m: tuple[float, float]
-    size_m: tuple[PositiveFloat, PositiveFloat]
-    thickness_m: PositiveFloat = 0.05
+    center_xy_m: tuple[Number, Number]
+    size_m: tuple[PositiveNumber, PositiveNumber]
+    thickness_m: PositiveNumber = 0.05
 
 
 class CollisionConfig(StrictModel):
@@ -109,9 +110,9 @@ class CollisionConfig(StrictModel):
     ``obstacles``: static bodies in the base frame.
     """
 
-    lookahead_s: float = Field(gt=0.0, le=1.0)
-    trajectory_step_rad: float = Field(gt=0.0, le=0.2)
-    roi_margin_m: NonNegativeFloat
+    lookahead_s: Number = Field(gt=0.0, le=1.0)
+    trajectory_step_rad: Number = Field(gt=0.0, le=0.2)
+    roi_margin_m: NonNegativeNumber
     table: TableConfig
     tool: list[Body] = Field(min_length=1)
     obstacles: list[Body]
@@ -126,9 +127,9 @@ class WatchdogConfig(StrictModel):
     stops the arm.
     """
 
-    deadline_factor: float = Field(gt=1.0)
-    max_missed_deadlines: PositiveInt
-    perception_max_age_s: PositiveFloat
+    deadline_factor: Number = Field(gt=1.0)
+    max_missed_deadlines: PositiveCount
+    perception_max_age_s: PositiveNumber
 
 
 class SafetyConfig(StrictModel):
@@ -144,18 +145,18 @@ class SafetyConfig(StrictModel):
     tracking lag never takes them across.
     """
 
-    tcp_max_linear_mps: PositiveFloat
-    tcp_max_angular_rps: PositiveFloat
-    tcp_max_linear_acc_mps2: PositiveFloat
-    tcp_max_angular_acc_rps2: PositiveFloat
-    tcp_max_linear_jerk_mps3: PositiveFloat
-    tcp_max_angular_jerk_rps3: PositiveFloat
-    joint_velocity_scale: float = Field(gt=0.0, le=1.0)
-    joint_acceleration_scale: float = Field(gt=0.0, le=1.0)
-    joint_jerk_scale: float = Field(gt=0.0, le=1.0)
-    joint_position_margin_rad: float = Field(ge=0.0, le=0.5)
+    tcp_max_linear_mps: PositiveNumber
+    tcp_max_angular_rps: PositiveNumber
+    tcp_max_linear_acc_mps2: PositiveNumber
+    tcp_max_angular_acc_rps2: PositiveNumber
+    tcp_max_linear_jerk_mps3: PositiveNumber
+    tcp_max_angular_jerk_rps3: PositiveNumber
+    joint_velocity_scale: Number = Field(gt=0.0, le=1.0)
+    joint_acceleration_scale: Number = Field(gt=0.0, le=1.0)
+    joint_jerk_scale: Number = Field(gt=0.0, le=1.0)
+    joint_position_margin_rad: Number = Field(ge=0.0, le=0.5)
     workspace: WorkspaceConfig
     barrier_planes: list[BarrierPlaneConfig]
-    barrier_margin_m: float = Field(ge=0.0, le=0.1)
+    barrier_margin_m: Number = Field(ge=0.0, le=0.1)
     collision: CollisionConfig
     watchdog: WatchdogConfig

@@ -1,9 +1,11 @@
 """The objects a sim or dry-run cell can scan: the shipped meshes and the meshes operators upload.
 
 Uploads are kept in ``<data-dir>/objects/<name>.<ply|obj|stl>``; a name is the file's stem made safe
-(lower case letters, digits, ``-`` and ``_``), never a shipped name, never a path. A mesh is accepted as
-``cell scan --object`` accepts it (``drivers.sim.objects.load_object``: metres, z-up, re-centred) and
-must stand on the cell's table at the station.
+(lower case letters, digits, ``-`` and ``_``), never a shipped name nor ``none`` (an empty table), never a
+path. A mesh is accepted as ``cell scan --object`` accepts it (``drivers.sim.objects.load_object``: z-up,
+re-centred, in metres or with the scale that converts its units, as ``--object-scale``), must be of a size
+the cell scans and must stand on the cell's table at the station. A scaled mesh is kept scaled, as a PLY
+file in metres.
 """
 
 from __future__ import annotations
@@ -16,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from cell.config.models import CellConfig
-from cell.jobs.placement import check_on_table
+from cell.jobs.placement import check_placement
 from drivers.errors import CellError, ServiceError
-from drivers.sim.objects import ObjectMesh, list_objects, load_object, shipped_names
+from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, list_objects, load_object, shipped_names, write_mesh
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
 _SAFE_NAME = re.compile(r"[^a-z0-9_-]+")
@@ -87,9 +89,10 @@ class ObjectLibrary:
                 self._meshes[name] = mesh
         return mesh
 
-    def add(self, filename: str, data: bytes) -> ObjectEntry:
-        """Store an uploaded mesh file as an object named after the file's stem; raises ``ServiceError``
-        when the name or the mesh is not acceptable."""
+    def add(self, filename: str, data: bytes, scale: float = 1.0) -> ObjectEntry:
+        """Store an uploaded mesh file, its coordinates multiplied by ``scale`` into metres, as an object
+        named after the file's stem; raises ``ServiceError`` when the name or the mesh is not
+        acceptable."""
         suffix = Path(filename).suffix.lower()
         if suffix not in MESH_SUFFIXES:
             raise ServiceError(f"{filename!r} is not a mesh file (allowed: {', '.join(MESH_SUFFIXES)})",
@@ -102,19 +105,23 @@ class ObjectLibrary:
             raise ServiceError(f"{filename!r} is {len(data) / 1e6:.1f} MB, above the cell's {limit:g} MB",
                                reason="invalid", field="file")
         with self._lock:
-            if name in shipped_names() or name in self._uploaded():
+            if name in shipped_names() or name == EMPTY_TABLE or name in self._uploaded():
                 raise ServiceError(f"an object named {name!r} exists already", reason="conflict",
                                    field="file")
             self.folder.mkdir(parents=True, exist_ok=True)
             staged = self.folder / f".upload-{name}{suffix}"
             staged.write_bytes(data)
             try:
-                mesh = load_object(staged)
-                check_on_table(self._config, mesh, (0.0, 0.0, 0.0))
+                mesh = load_object(staged, scale)
+                check_placement(self._config, mesh, (0.0, 0.0, 0.0), scale, option="the upload's scale")
             except CellError as exc:
                 staged.unlink()
-                raise ServiceError(str(exc).replace(str(staged), filename), reason="invalid",
-                                   field="file") from None
-            staged.rename(self.folder / f"{name}{suffix}")
+                text = str(exc).replace(str(staged), filename).replace(staged.stem, Path(filename).stem)
+                raise ServiceError(text, reason="invalid", field="file") from None
+            if scale == 1.0:
+                staged.rename(self.folder / f"{name}{suffix}")
+            else:
+                staged.unlink()
+                write_mesh(mesh, self.folder / f"{name}.ply")
             self._meshes[name] = mesh
         return ObjectEntry(name, "uploaded", _extents(mesh.extents_m))

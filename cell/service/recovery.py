@@ -4,9 +4,9 @@
 When the service starts it looks for its cell's jobs still marked ``running`` (the service was killed
 while they ran). A worker that outlived the service has seen its input close and stopped the arm
 (``cell.service.worker``); it is given time to finish its folder, then ended. A job whose folder says
-``completed`` was finished safely and stays so; any other becomes ``interrupted``, its folder keeping
-every frame and log line and gaining a ``result.json`` that says so. Jobs still ``queued`` become
-``cancelled``: nothing moves after a restart until someone asks again.
+``completed`` or ``no_object`` was finished safely and stays so; any other becomes ``interrupted``, its
+folder keeping every frame and log line and gaining a ``result.json`` that says so. Jobs still
+``queued`` become ``cancelled``: nothing moves after a restart until someone asks again.
 """
 
 from __future__ import annotations
@@ -103,8 +103,8 @@ def reconcile(store: Store, cell: str, worker_wait_s: float) -> list[str]:
         end_worker(job.worker_pid, job.id, worker_wait_s)
         folder = Path(job.folder)
         result = read_result(folder)
-        if result is not None and result.get("status") == "completed":
-            status, termination = "completed", str(result.get("termination"))
+        if result is not None and result.get("status") in ("completed", "no_object"):
+            status, termination = str(result["status"]), str(result.get("termination"))
         else:
             status, termination = "interrupted", RESTART_TERMINATION
             result = finish_folder(folder, job, status, termination)

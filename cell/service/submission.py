@@ -2,8 +2,8 @@
 
 Every check that ``cell scan`` would make before anything moves is made here, at submission, so that a
 bad request is answered at once (naming the field) instead of failing later on the arm: the planner is
-registered, the object is known and stands on the table at the pose asked, the seed and the time budget
-are in range.
+registered, the object is known, of a size the cell scans and stands on the table at the pose asked
+(``"none"``: an empty table), the seed and the time budget are in range.
 """
 
 from __future__ import annotations
@@ -11,12 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from cell.config.models import CellConfig
-from cell.jobs.placement import check_on_table
+from cell.jobs.inputs import check_seed
+from cell.jobs.placement import check_object_size, check_on_table
 from cell.planning.registry import PLANNERS
 from cell.service.objects import ObjectLibrary
 from drivers.errors import JobError, ServiceError
+from drivers.sim.objects import EMPTY_TABLE
 
-MAX_SEED = 2**63 - 1
 MAX_TIME_BUDGET_S = 3600.0
 """The longest time budget a job may ask for [s]: an hour, twenty times the papers' longest scans."""
 
@@ -58,8 +59,10 @@ def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> Val
     if planner not in PLANNERS:
         raise _invalid(f"unknown planner {planner!r}; registered: {', '.join(sorted(PLANNERS))}", "planner")
     seed = 0 if req.seed is None else req.seed
-    if not 0 <= seed <= MAX_SEED:
-        raise _invalid(f"seed must be between 0 and {MAX_SEED}, got {seed}", "seed")
+    try:
+        check_seed(seed)
+    except JobError as exc:
+        raise _invalid(str(exc), "seed") from None
     if req.max_time_s is not None and not 0.0 < req.max_time_s <= MAX_TIME_BUDGET_S:
         raise _invalid(f"max_time_s must be above 0 and at most {MAX_TIME_BUDGET_S:g} s, got "
                        f"{req.max_time_s}", "max_time_s")
@@ -70,9 +73,16 @@ def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> Val
     if req.object is None:
         raise _invalid(f"a {config.mode} cell scans a virtual object: name one (GET /api/v1/objects)",
                        "object")
+    if req.object == EMPTY_TABLE:
+        return ValidJob(planner, req.object, EMPTY_TABLE, pose, seed, req.max_time_s, req.part_id)
     source = objects.source(req.object)
+    mesh = objects.mesh(req.object)
     try:
-        check_on_table(config, objects.mesh(req.object), pose)
+        check_object_size(config, mesh, option="uploading it again with scale")
+    except JobError as exc:  # an upload kept from before the cell checked sizes
+        raise _invalid(str(exc), "object") from None
+    try:
+        check_on_table(config, mesh, pose)
     except JobError as exc:
         raise _invalid(str(exc), "object_pose") from None
     return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)

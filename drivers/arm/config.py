@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat
 
-from drivers.config_base import StrictModel
+from drivers.config_base import Number, StrictModel
 
 RobotModelName = Literal["panda", "ur5e"]
 
@@ -70,17 +70,17 @@ class UR5eArmConfig(StrictModel):
     connect_timeout_s: PositiveFloat = 5.0
     tcp_offset: tuple[float, float, float, float, float, float]
     payload: PayloadConfig
-    max_linear_mps: float = Field(gt=0.0, le=1.0)
-    max_angular_rps: float = Field(gt=0.0, le=3.2)
-    acceleration_mps2: float = Field(gt=0.0, le=5.0)
-    stop_deceleration_mps2: float = Field(gt=0.0, le=10.0)
+    max_linear_mps: Number = Field(gt=0.0, le=1.0)
+    max_angular_rps: Number = Field(gt=0.0, le=3.2)
+    acceleration_mps2: Number = Field(gt=0.0, le=5.0)
+    stop_deceleration_mps2: Number = Field(gt=0.0, le=10.0)
     rtde_frequency_hz: float = Field(default=500.0, gt=0.0, le=500.0)
     servo_rate_hz: float = Field(default=125.0, gt=0.0, le=500.0)
     servo_lookahead_s: float = Field(default=0.1, ge=0.03, le=0.2)
     servo_gain: float = Field(default=300.0, ge=100.0, le=2000.0)
     settle_tolerance_rad: float = Field(default=1e-3, gt=0.0, le=0.05)
     settle_timeout_s: float = Field(default=2.0, gt=0.0, le=10.0)
-    watchdog_min_hz: float = Field(gt=0.0, le=500.0)
+    watchdog_min_hz: Number = Field(gt=0.0, le=500.0)
     busy_output: DigitalIndex | None = None
     done_output: DigitalIndex | None = None
     trigger_input: DigitalIndex | None = None
@@ -105,13 +105,13 @@ class FrankaArmConfig(StrictModel):
     host: str
     home_joints_rad: list[float] | None = None
     connect_timeout_s: PositiveFloat = 5.0
-    relative_dynamics_factor: float = Field(gt=0.0, le=1.0)
+    relative_dynamics_factor: Number = Field(gt=0.0, le=1.0)
     velocity_hold_s: float = Field(gt=0.0, le=0.5)
-    max_linear_mps: float = Field(gt=0.0, le=1.7)
-    max_angular_rps: float = Field(gt=0.0, le=2.5)
+    max_linear_mps: Number = Field(gt=0.0, le=1.7)
+    max_angular_rps: Number = Field(gt=0.0, le=2.5)
     payload: PayloadConfig
-    torque_threshold_nm: float = Field(gt=0.0, le=100.0)
-    force_threshold_n: float = Field(gt=0.0, le=100.0)
+    torque_threshold_nm: Number = Field(gt=0.0, le=100.0)
+    force_threshold_n: Number = Field(gt=0.0, le=100.0)
     realtime: Literal["enforce", "ignore"] = "enforce"
 
 

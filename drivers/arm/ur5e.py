@@ -9,6 +9,9 @@ interface reconnects by itself and then runs two receive threads on one socket, 
 process; its IO interface's destructor aborts the process), and in a child that is a fault, not the end of
 the program. ``connect`` first opens each controller port with ``connect_timeout_s`` so an unreachable
 controller fails fast with its address, and asks the dashboard whether the pendant is in remote control.
+A port that accepts the connection but then closes it or never answers (another device at that address,
+a controller still booting, a service disabled in PolyScope) fails with the port, what happened and what
+to check, not ur-rtde's bare "Operation canceled" or "End of file".
 
 Frames: ur-rtde reports and commands the TCP (``setTcp`` from the config); this backend converts to and
 from the flange, which is what the :class:`~drivers.arm.base.Arm` interface speaks.
@@ -98,6 +101,10 @@ REPLY_TIMEOUT_S = 5.0
 # ur-rtde's control interface gives up on a control script that does not start after 5 s
 CONTROL_START_TIMEOUT_S = 5.0
 N_DIGITAL = 8
+# what ur-rtde's (boost.asio's) errors mean during a connection's handshake
+HANDSHAKE_ERRORS = {"Operation canceled": "no answer within {timeout:g} s (connect_timeout_s)",
+                    "End of file": "the controller closed the connection",
+                    "Connection reset by peer": "the controller reset the connection"}
 
 
 class UR5eArm(HardwareArm):
@@ -155,22 +162,41 @@ class UR5eArm(HardwareArm):
         self._watchdog_armed = False
         self._mode = ArmMode.IDLE
         timeout = cfg.connect_timeout_s + REPLY_TIMEOUT_S
+        step = "dashboard"
         try:
             self._proc.call("dashboard_connect", cfg.host, int(cfg.connect_timeout_s * 1000),
                             timeout_s=timeout)
             if not self._proc.call("dashboard", "isInRemoteControl", timeout_s=REPLY_TIMEOUT_S):
                 raise DriverError("the controller is in local control: switch the teach pendant to Remote "
                                   "Control, then connect again", device=self._device)
+            step = "RTDE"
             self._proc.call("receive_connect", cfg.host, cfg.rtde_frequency_hz, RECEIVE_VARIABLES,
                             timeout_s=timeout)
             if self._snapshot()["safety_mode"] not in SAFETY_FAULT_WORDS:
+                step = "script"
                 self._start_control()
         except (ClientError, ClientGone) as exc:
             self._close_process()
-            raise DriverError(f"ur-rtde could not connect: {exc}", device=self._device) from None
+            raise self._handshake_error(step, exc) from None
         except DriverError:
             self._close_process()
             raise
+
+    def _handshake_error(self, step: str, exc: Exception) -> DriverError:
+        """The failure of a connection that the controller's ``step`` port (a key of ``PORTS``) accepted:
+        what was tried, what happened, and what to check."""
+        cfg = self._config
+        said = str(exc)
+        meaning = HANDSHAKE_ERRORS.get(said.rsplit(": ", 1)[-1])  # ur-rtde may say "read: End of file"
+        if meaning is not None:
+            said = f"{meaning.format(timeout=cfg.connect_timeout_s)} (ur-rtde: {said})"
+        tried = {"dashboard": "the dashboard server's handshake", "RTDE": "the RTDE protocol handshake",
+                 "script": "uploading ur-rtde's control script and starting it"}[step]
+        return DriverError(
+            f"the controller's {step} port {cfg.host}:{PORTS[step]} accepted the connection, but {tried} "
+            f"failed: {said}; check that {cfg.host} is the UR controller and not another device, that it "
+            "has finished booting, that the Dashboard Server and RTDE are enabled (PolyScope: Settings > "
+            "Security > Services) and that no other program holds the connection", device=self._device)
 
     def _start_control(self) -> None:
         """Open the control interface (ur-rtde uploads its control script) and send the tool. Raises

@@ -3,8 +3,9 @@
 Object frame: metres, z-up, the axis-aligned bounding box centred on x = y = 0 and the lowest point at
 z = 0, so an object placed with the identity pose rests on a z = 0 table. The shipped meshes (package data
 in ``drivers/sim/objects/``, origins and licences in ``CREDITS.md`` there) are already in that frame; a
-user file given by path is translated into it on load (no rotation, no scaling: the file must be in metres
-and z-up).
+user file given by path is translated into it on load (no rotation; no scaling unless asked: a file in
+other units than metres needs the scale that converts them, e.g. 0.001 for millimetres). ``EMPTY_TABLE``
+("none") names no object at all: a simulated cell's table with nothing on it.
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ _LICENCES: dict[str, str] = {
 }
 
 _MESH_SUFFIXES = (".ply", ".obj", ".stl")
+
+EMPTY_TABLE = "none"
+"""The object name of an empty table: a simulated scene with nothing on it (no mesh, no ground truth)."""
 
 
 @dataclass(frozen=True)
@@ -130,25 +134,44 @@ def recentre(vertices: Array) -> Array:
     return vertices + shift
 
 
-def load_object(name_or_path: str | Path) -> ObjectMesh:
-    """Load a shipped object by name, or any PLY / OBJ / STL mesh file by path.
+def load_object(name_or_path: str | Path, scale: float = 1.0) -> ObjectMesh:
+    """Load a shipped object by name, or any PLY / OBJ / STL mesh file by path, its coordinates
+    multiplied by ``scale`` (1: the file is in metres; 0.001: in millimetres).
 
-    A shipped name returns the mesh as shipped (already in the object frame; cached, its arrays are
-    read-only, copy them to modify). A user file is read with
-    Open3D and translated into the object frame (bbox centred on x = y = 0, lowest point at z = 0); it is
-    neither rotated nor scaled, so it must be in metres and z-up. Its ``name`` is the file stem.
+    A shipped name at scale 1 returns the mesh as shipped (already in the object frame; cached, its
+    arrays are read-only, copy them to modify). A user file is read with Open3D, scaled and translated
+    into the object frame (bbox centred on x = y = 0, lowest point at z = 0); it is not rotated, so it
+    must be z-up. Its ``name`` is the file stem.
 
-    Raises ``JobError`` (one line, listing the shipped names) for an unknown name or an unreadable, empty
-    or non-mesh file.
+    Raises ``JobError`` (one line, listing the shipped names) for an unknown name, an unreadable, empty
+    or non-mesh file, or a scale that is not a positive finite number.
     """
+    if not (np.isfinite(scale) and scale > 0.0):
+        raise JobError(f"an object's scale must be a positive number, got {scale}")
     text = str(name_or_path)
     if text in shipped_names():
-        return _load_shipped(text)
+        shipped = _load_shipped(text)
+        if scale == 1.0:
+            return shipped
+        # the object frame's origin is on the base, so scaling keeps the mesh in it
+        return ObjectMesh(name=text, vertices=shipped.vertices * scale, triangles=shipped.triangles.copy())
     path = Path(text).expanduser()
     if path.suffix.lower() not in _MESH_SUFFIXES and not path.exists():
-        raise JobError(f"unknown object {text!r} ({_names_hint()}; or give a path to a .ply/.obj/.stl file)")
+        raise JobError(f"unknown object {text!r} ({_names_hint()}; {EMPTY_TABLE!r} for an empty table; or "
+                       "give a path to a .ply/.obj/.stl file)")
     vertices, triangles = _read_mesh(path)
-    return ObjectMesh(name=path.stem, vertices=recentre(vertices), triangles=triangles)
+    return ObjectMesh(name=path.stem, vertices=recentre(vertices * scale), triangles=triangles)
+
+
+def write_mesh(mesh: ObjectMesh, path: Path) -> None:
+    """Write ``mesh`` as a binary PLY file [m, object frame], which ``load_object`` reads back as it is."""
+    import open3d as o3d
+
+    # Open3D takes writable arrays only (a shipped mesh's are read-only)
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices.copy()),
+                                    o3d.utility.Vector3iVector(mesh.triangles.copy()))
+    if not o3d.io.write_triangle_mesh(path, out):
+        raise JobError(f"cannot write the mesh {mesh.name} to {path}")
 
 
 def face_normals(vertices: Array, triangles: NDArray[np.int32]) -> tuple[Array, Array]:

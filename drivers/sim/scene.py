@@ -1,4 +1,5 @@
-"""The simulated world the sim sensors ray-cast: a table and one object, in the robot base frame.
+"""The simulated world the sim sensors ray-cast: a table and one object (or none: an empty table), in the
+robot base frame.
 
 Built on Open3D's ``o3d.t.geometry.RaycastingScene`` (Embree BVH, float32 internally, so hit distances
 are good to about 1e-7 relative). All coordinates are in the base frame [m].
@@ -43,7 +44,8 @@ class RayHits:
 
 
 class SimScene:
-    """A table and one object placed by ``T_base_object``, ready for ray casting.
+    """A table and one object placed by ``T_base_object`` (``obj`` None: the table only), ready for ray
+    casting.
 
     The table is a box ``table_thickness_m`` thick whose top face is the plane z = ``table_z`` [m, base
     frame], ``table_size_xy`` [m] wide and centred on ``table_center_xy`` [m]. The object mesh
@@ -51,7 +53,7 @@ class SimScene:
     frame); to set an object on the table use a pose with translation z = ``table_z``.
     """
 
-    def __init__(self, obj: ObjectMesh, T_base_object: Array, *, table_z: float = 0.0,
+    def __init__(self, obj: ObjectMesh | None, T_base_object: Array, *, table_z: float = 0.0,
                  table_center_xy: tuple[float, float] = (0.5, 0.0),
                  table_size_xy: tuple[float, float] = (1.2, 1.0),
                  table_thickness_m: float = 0.03) -> None:
@@ -62,14 +64,15 @@ class SimScene:
             raise ValueError("table size and thickness must be positive")
         self._T_base_object = T.copy()
         self._T_base_object.setflags(write=False)
-        self.object_name: str = obj.name
+        self.object_name: str | None = None if obj is None else obj.name
         self.table_z: float = float(table_z)
         self.table_center_xy: tuple[float, float] = (float(table_center_xy[0]), float(table_center_xy[1]))
         self.table_size_xy: tuple[float, float] = (float(table_size_xy[0]), float(table_size_xy[1]))
 
-        verts = transform_points(T, np.asarray(obj.vertices, dtype=np.float64))
+        verts = (np.zeros((0, 3)) if obj is None
+                 else transform_points(T, np.asarray(obj.vertices, dtype=np.float64)))
         verts.setflags(write=False)
-        tris = np.ascontiguousarray(obj.triangles, dtype=np.int32)
+        tris = np.ascontiguousarray(np.zeros((0, 3)) if obj is None else obj.triangles, dtype=np.int32)
         tris.setflags(write=False)
         self._object_vertices = verts
         self._object_triangles = tris
@@ -80,12 +83,14 @@ class SimScene:
         table_id = self._scene.add_triangles(
             o3d.core.Tensor(table_v.astype(np.float32)),  # type: ignore[call-overload]
             o3d.core.Tensor(table_t.astype(np.uint32)))  # type: ignore[call-overload]
-        object_id = self._scene.add_triangles(
-            o3d.core.Tensor(verts.astype(np.float32)),  # type: ignore[call-overload]
-            o3d.core.Tensor(tris.astype(np.uint32)))  # type: ignore[call-overload]
-        # geometry id -> what code; any other id (INVALID_ID) maps to HIT_NONE
+        # geometry id -> what code; any other id (INVALID_ID) maps to HIT_NONE, and no geometry has the
+        # id -1 that an empty table gives its missing object
         self._id_table = int(table_id)
-        self._id_object = int(object_id)
+        self._id_object = -1
+        if obj is not None:
+            self._id_object = int(self._scene.add_triangles(
+                o3d.core.Tensor(verts.astype(np.float32)),  # type: ignore[call-overload]
+                o3d.core.Tensor(tris.astype(np.uint32))))  # type: ignore[call-overload]
 
     @property
     def T_base_object(self) -> Array:

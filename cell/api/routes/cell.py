@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated
 
-from fastapi import APIRouter, Body, UploadFile
+from fastapi import APIRouter, Body, Form, UploadFile
 
 from cell.api.auth import Reader, Recoverer, Stopper, Uploader
 from cell.api.deps import Service
@@ -40,9 +40,14 @@ def get_objects(cell: Service, _: Reader) -> list[ObjectOut]:
 
 
 @router.post("/objects", response_model=ObjectOut, status_code=201)
-async def post_object(cell: Service, file: UploadFile,
-                      _: Uploader) -> ObjectOut:
-    """Upload a PLY, OBJ or STL mesh in metres, z-up (sim and dry-run cells); it is named after the file."""
+async def post_object(cell: Service, file: UploadFile, _: Uploader,
+                      scale: Annotated[float, Form(gt=0.0, allow_inf_nan=False,
+                                                   description="multiplies the mesh's coordinates into "
+                                                               "metres (0.001 for millimetres)")] = 1.0,
+                      ) -> ObjectOut:
+    """Upload a PLY, OBJ or STL mesh, z-up (sim and dry-run cells), in metres or with the ``scale`` that
+    converts it; it is named after the file. A mesh of a size the cell cannot scan is refused (422),
+    saying what a scale would make of it."""
     if not cell.objects.virtual:
         raise ServiceError(f"a {cell.config.mode} cell scans real objects; meshes are for sim and dry-run "
                            "cells", reason="conflict")
@@ -53,7 +58,7 @@ async def post_object(cell: Service, file: UploadFile,
         if len(data) > limit:
             raise ServiceError(f"the file is above the cell's {limit / 1e6:g} MB", reason="invalid",
                                field="file")
-    entry = await asyncio.to_thread(cell.objects.add, file.filename or "upload", bytes(data))
+    entry = await asyncio.to_thread(cell.objects.add, file.filename or "upload", bytes(data), scale)
     return ObjectOut(name=entry.name, source=entry.source, extents_m=entry.extents_m, licence=entry.licence)
 
 

@@ -47,7 +47,8 @@ Choices the paper leaves open, and why:
   same config, object and job seed give the same scan, and other seeds other trees.
 - Before Algorithm 1 starts (inputs A^0, C^0) the planner captures at the current pose; while no object
   is found it looks down at the station from each of ``search_heights_m`` in turn: a small object seen
-  from far by an 8 x 8 sensor fills fewer zones than a cluster needs.
+  from far by an 8 x 8 sensor fills fewer zones than a cluster needs; no object in any of those views
+  ends the scan with ``NoObjectFound`` (the job ends ``no_object``).
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ from cell.planning.lrnbv.config import LRNBVConfig
 from cell.planning.lrnbv.sensor import sensor_rays
 from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
 from drivers.depth.base import SensorModel
+from drivers.errors import NoObjectFound
 from drivers.transforms import look_at
 
 
@@ -345,7 +347,7 @@ class RRTViewPlanner(Planner):
         self.prepare(session.sensor_model(), session.rng)
         obj = self._initial_object(session)
         if obj.shape[0] == 0:
-            return "no object found in the first views"
+            raise NoObjectFound("no object segmented from the current view and the search views")
         cache = CachedNodes()
         best_c: float | None = None
         worst_c: float | None = None

@@ -47,7 +47,7 @@ from cell.planning.base import Array, Planner, ScanSession
 from cell.planning.vs.objective import EntropyObjective, PoseBatch, ray_grid
 from cell.safety.barriers import project_onto_halfspaces
 from cell.safety.guard import TwistRefused
-from drivers.errors import PlanningError
+from drivers.errors import NoObjectFound, PlanningError
 from drivers.transforms import look_at
 
 
@@ -242,7 +242,9 @@ class ServoScanPlanner(Planner):
                 self._perceive(session)
             if self.centroid is not None:
                 return
-        raise PlanningError(f"no object segmented from the start views within "
+        if not capturing:
+            raise PlanningError("none of the start views is reachable (the log names them)")
+        raise NoObjectFound(f"no object segmented from the start views within "
                             f"{self.vs.first_object_timeout_s:g} s each (unreachable views are in the log)")
 
     def _features(self, T_base_cam: Array) -> Array:

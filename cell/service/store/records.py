@@ -8,11 +8,13 @@ from datetime import datetime
 from typing import Any
 
 # Every status a job can be in, in the order of its life: waiting, on the arm, then one way of ending.
-JOB_STATUSES = ("queued", "running", "completed", "failed", "stopped", "cancelled", "interrupted")
-# The statuses a job never leaves: ``completed``, ``failed`` and ``stopped`` are the scan's own outcomes
-# (``result.json``), ``cancelled`` a job removed from the queue before it ran, ``interrupted`` a job whose
-# worker died or whose service went down while it ran.
-FINISHED_STATUSES = frozenset({"completed", "failed", "stopped", "cancelled", "interrupted"})
+JOB_STATUSES = ("queued", "running", "completed", "no_object", "failed", "stopped", "cancelled",
+                "interrupted")
+# The statuses a job never leaves: ``completed``, ``no_object`` (the scan found nothing on the table),
+# ``failed`` and ``stopped`` are the scan's own outcomes (``result.json``), ``cancelled`` a job removed
+# from the queue before it ran, ``interrupted`` a job whose worker died or whose service went down while
+# it ran.
+FINISHED_STATUSES = frozenset({"completed", "no_object", "failed", "stopped", "cancelled", "interrupted"})
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ import { progressCharts } from "./charts.js";
 import { resultSections } from "./result.js";
 import { viewSection } from "./view3d.js";
 
-const ENDED = ["completed", "failed", "stopped", "cancelled", "interrupted"];
+const ENDED = ["completed", "no_object", "failed", "stopped", "cancelled", "interrupted"];
 const CLOUD_REFRESH_MS = 1500;
 const MAX_PATH_POINTS = 4000;
 const LINK_TEXT = { open: "live", reconnecting: "connection lost: reconnecting…", closed: "" };

@@ -4,7 +4,9 @@
 import { api, describe } from "../api.js";
 import { fmt, h, replace, when } from "../dom.js";
 
-const STATUSES = ["queued", "running", "completed", "failed", "stopped", "cancelled", "interrupted"];
+const STATUSES = [
+  "queued", "running", "completed", "no_object", "failed", "stopped", "cancelled", "interrupted",
+];
 const PAGE = 20;
 
 function go(filters, offset) {

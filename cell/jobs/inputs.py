@@ -1,0 +1,45 @@
+"""The checks of a scan's inputs that need no device: each raises ``JobError`` with a one-line reason, so
+that ``run_scan`` refuses bad input before the job's folder exists and the service before it queues.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from drivers.errors import JobError
+
+MAX_SEED = 2**63 - 1
+"""The largest seed a job takes: the store keeps it as a signed 64-bit integer; numpy's seed sequence
+takes any non-negative integer."""
+
+
+def check_seed(seed: int) -> None:
+    if not 0 <= seed <= MAX_SEED:
+        raise JobError(f"seed must be between 0 and {MAX_SEED}, got {seed}")
+
+
+def check_time_budget(max_time_s: float) -> None:
+    if not (math.isfinite(max_time_s) and max_time_s > 0.0):
+        raise JobError(f"time budget must be a positive number of seconds, got {max_time_s}")
+
+
+def check_pose(pose: tuple[float, float, float]) -> None:
+    """An object pose (x [m], y [m], yaw [deg]) from the station: three finite numbers."""
+    if not all(math.isfinite(v) for v in pose):
+        raise JobError(f"object pose must be three finite numbers x, y, yaw_deg, got {list(pose)}")
+
+
+def check_job_folder(folder: Path) -> None:
+    """A new job's folder: one that does not exist yet, or an empty one. A folder that holds a job is
+    refused (its result would be overwritten), and so is any other non-empty folder (the job's files
+    would land among someone's own)."""
+    if not folder.exists():
+        return
+    if not folder.is_dir():
+        raise JobError(f"job folder {folder} is a file; choose another --out")
+    if (folder / "frames").exists() or (folder / "result.json").exists():
+        raise JobError(f"job folder {folder} already holds a job; choose another --out")
+    if any(folder.iterdir()):
+        raise JobError(f"{folder} is not empty and holds no job: a job writes its own folder; choose a new "
+                       "or empty --out")

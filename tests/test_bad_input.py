@@ -1,0 +1,193 @@
+"""Bad input that used to run a whole job and report success, or leave a broken job folder: refused before
+the folder exists with a one-line reason, or ended with its own outcome; and how `cell scan` reports on a
+pipe and when it ends."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+import sys
+from importlib.metadata import entry_points
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import cell.jobs.runner as runner
+from cell.cli.main import app
+from cell.config import load_config
+from cell.jobs.replay import replay_config
+from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
+from drivers.errors import JobError
+from drivers.sim.objects import ObjectMesh, load_object, write_mesh
+
+from .conftest import FRANKA, REPO
+
+
+def _scan(*args: str):
+    return CliRunner().invoke(app, ["scan", "--config", str(FRANKA), *args])
+
+
+@pytest.fixture(scope="module")
+def cube_mm(tmp_path_factory):
+    """The shipped cube exported in millimetres (a CAD export): 100 units a side."""
+    cube = load_object("cube")
+    path = tmp_path_factory.mktemp("meshes") / "cube_mm.ply"
+    write_mesh(ObjectMesh("cube_mm", cube.vertices * 1000.0, cube.triangles), path)
+    return path
+
+
+def test_a_mesh_in_millimetres_is_refused_saying_what_the_scale_would_make_of_it(cube_mm, tmp_path):
+    res = _scan("--object", str(cube_mm), "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1 and res.output.count("\n") == 1
+    assert "cube_mm is 100.000 x 100.000 x 100.000 m" in res.output
+    assert "--object-scale 0.001 would make it 0.100 x 0.100 x 0.100 m" in res.output
+    assert not (tmp_path / "j").exists()
+    job = prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object=str(cube_mm),
+                                   object_scale=0.001, out=tmp_path / "j"))
+    assert job.mesh is not None and np.allclose(job.mesh.extents_m, 0.1)
+    assert not (tmp_path / "j").exists()
+
+
+def test_a_mesh_too_small_to_be_a_part_is_refused(tmp_path):
+    with pytest.raises(JobError, match=r"bunny is 0\.000 x 0\.000 x 0\.000 m .* largest side at least 0\.01"):
+        prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="bunny",
+                                 object_scale=0.001, out=tmp_path / "j"))
+
+
+def test_a_pose_off_the_table_is_refused_naming_the_table(tmp_path):
+    res = _scan("--object-pose", "2,2,0", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1 and res.output.count("\n") == 1
+    assert "off the table" in res.output
+    assert "the table spans x -0.100..1.100 m, y -0.500..0.500 m" in res.output
+    assert not (tmp_path / "j").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", "-1"], "seed must be between 0 and 9223372036854775807, got -1"),
+    (["--max-time", "nan"], "time budget must be a positive number of seconds, got nan"),
+    (["--object-pose", "inf,0,0"], "object pose must be three finite numbers"),
+    (["--object-scale", "0"], "scale must be a positive number, got 0.0"),
+])
+def test_every_input_is_checked_before_the_job_folder_exists(tmp_path, args, message):
+    res = _scan(*args, "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1 and res.output.startswith("error: ") and message in res.output
+    assert res.output.count("\n") == 1
+    assert not (tmp_path / "j").exists()
+
+
+def test_out_must_be_a_new_or_empty_folder(tmp_path):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("my own file\n")
+    res = _scan("--out", str(mine))
+    assert res.exit_code == 1 and "is not empty and holds no job" in res.output
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    request = ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube", out=empty)
+    assert prepare_scan(request).folder == empty
+
+
+def test_an_empty_table_ends_no_object_and_the_cli_says_so(tmp_path):
+    out = tmp_path / "empty"
+    res = _scan("--object", "none", "--planner", "raster", "--max-time", "8", "--out", str(out))
+    assert res.exit_code == 2, res.output
+    result = json.loads((out / "result.json").read_text())
+    assert result["status"] == "no_object" and result["n_captures"] >= 3
+    assert result["termination"].startswith("no object found: segmentation found nothing above the table")
+    assert result["metrics"]["coverage_pct"] is None and result["packing"]["dims_m"] is None
+    assert f"job folder: {out}" in res.output
+    # decided from what the job saw, not from ground truth: a replay of the recording has none, and the
+    # same frames give the same outcome
+    replay = run_scan(ScanRequest(config=replay_config(load_config(FRANKA), out),
+                                  config_path=str(FRANKA), object="none", planner="raster",
+                                  out=tmp_path / "replay"))
+    assert replay.result["object_pose"] is None and replay.result["status"] == "no_object"
+
+
+def test_a_scan_with_its_object_completes(tmp_path):
+    outcome = run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
+                                   planner="raster", max_time_s=4.0, out=tmp_path / "j"))
+    assert outcome.result["status"] == "completed" and outcome.result["n_captures"] >= 1
+
+
+def test_a_failure_while_setting_up_still_leaves_a_result(tmp_path, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("the guard could not be built")
+
+    monkeypatch.setattr(runner.MotionGuard, "from_config", broken)
+    res = _scan("--object", "cube", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1
+    assert res.output == ("error: internal error: RuntimeError: the guard could not be built\n"
+                          f"job folder: {tmp_path / 'j'}\n")
+    result = json.loads((tmp_path / "j" / "result.json").read_text())
+    assert result["status"] == "failed"
+    assert result["termination"] == "internal error: RuntimeError: the guard could not be built"
+    assert result["object"] == "cube" and result["safety"] is None
+    log = (tmp_path / "j" / "log.txt").read_text()
+    assert "Traceback (most recent call last)" in log and "in broken" in log
+
+
+def test_a_failure_while_writing_the_outputs_still_leaves_a_result(tmp_path, monkeypatch):
+    def broken(*args, **kwargs):
+        raise ValueError("no packing today")
+
+    monkeypatch.setattr(runner, "packing_section", broken)
+    with pytest.raises(ValueError, match="no packing today"):
+        run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
+                             planner="raster", max_time_s=2.0, out=tmp_path / "j"))
+    result = json.loads((tmp_path / "j" / "result.json").read_text())
+    assert result["status"] == "failed" and result["seed"] == 0
+    assert result["termination"] == ("internal error while writing the job's outputs: ValueError: no packing "
+                                     "today")
+
+
+def test_ctrl_c_in_a_scan_stops_it_and_exits_130_with_the_folder(tmp_path, monkeypatch):
+    def interrupted(self, session):
+        session.wait(0.5)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner.get_planner("raster"), "run", interrupted)
+    res = _scan("--object", "cube", "--planner", "raster", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 130
+    assert "interrupted (Ctrl-C)" in res.output and f"job folder: {tmp_path / 'j'}" in res.output
+    assert json.loads((tmp_path / "j" / "result.json").read_text())["status"] == "stopped"
+
+
+def test_progress_lines_on_a_pipe_every_few_seconds_of_job_time(tmp_path):
+    res = _scan("--object", "cube", "--planner", "raster", "--max-time", "14", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 0, res.output
+    lines = [line for line in res.stderr.splitlines() if line.startswith("scan: ")]
+    times = [float(line.split()[1]) for line in lines]
+    assert len(lines) >= 2 and all(b - a >= 5.0 for a, b in itertools.pairwise(times))
+    assert lines[0].endswith(" %") and " of 14 s, " in lines[0] and " captures, " in lines[0]
+    assert "job folder:" not in res.stderr  # a completed job prints its folder with its result
+
+
+# Ctrl-C (SIGINT) at the moment `cell` imports a module of its command line, as a person typing it during
+# the second or two that the imports take would
+_CTRL_C_DURING_IMPORTS = """
+import builtins, os, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal, whatever this test runs under
+real_import, target = builtins.__import__, sys.argv[1]
+def import_(name, *args, **kwargs):
+    if name == target:
+        os.kill(os.getpid(), signal.SIGINT)
+    return real_import(name, *args, **kwargs)
+builtins.__import__ = import_
+sys.argv = ["cell", "planners"]
+from cell.cli.entry import main
+main()
+"""
+
+
+@pytest.mark.parametrize("module", ["cell.cli.main", "open3d", "scipy.spatial"])
+def test_ctrl_c_while_importing_exits_quietly_with_130(module):
+    (script,) = entry_points(group="console_scripts", name="cell")
+    assert script.value == "cell.cli.entry:main"
+    proc = subprocess.run([sys.executable, "-c", _CTRL_C_DURING_IMPORTS, module], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130
+    assert proc.stdout == "" and proc.stderr == ""
