@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config.models import RetentionConfig
 from cell.service.retention import plan_prune, prune
-from cell.service.store import open_store, sqlite_url
+from cell.service.store import FINISHED_STATUSES, open_store, sqlite_url
 from tests.conftest import UR5E
 from tests.service_process import ServedCell
 from tests.test_store import make_job
@@ -91,7 +91,7 @@ def test_keep_and_prune_through_the_service_and_the_cli(tmp_path):
             ids = [client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 0.5}).json()["id"]
                    for _ in range(2)]
         for job_id in ids:
-            cell.wait_job(job_id, ("completed", "failed", "stopped"))
+            cell.wait_job(job_id, tuple(FINISHED_STATUSES))
         kept, old = ids
         res = runner.invoke(app, ["jobs", "keep", kept, "--key", cell.keys["operator"]], env=env)
         assert res.exit_code == 0 and f"{kept}: kept" in res.output, res.output

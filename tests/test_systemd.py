@@ -20,6 +20,7 @@ import pytest
 
 from cell.service.logs import HumanFormatter, JsonLineFormatter, configure_logging
 from cell.service.notify import Notifier
+from cell.service.store import FINISHED_STATUSES
 from drivers.errors import CellError
 from tests.conftest import UR5E
 from tests.service_process import REPO, ServedCell
@@ -62,7 +63,7 @@ def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_
         assert sum(m.get("WATCHDOG") == "1" for m in pings) >= 3
         with cell.client() as client:
             job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1.0}).json()
-        cell.wait_job(job["id"], ("completed", "failed", "stopped"))
+        cell.wait_job(job["id"], tuple(FINISHED_STATUSES))
         # uvicorn re-raises the SIGTERM it handled once shut down; systemd counts that as a clean stop
         assert cell.stop() in (0, -signal.SIGTERM)
         after = _messages(sock, time.monotonic() + 0.5)
