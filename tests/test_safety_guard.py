@@ -11,68 +11,22 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cell.config import load_config
-from cell.config.models import CellConfig
 from cell.control.trajectory import joint_trajectory
 from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, project_onto_halfspaces
 from cell.safety.collision import CollisionWorld
 from cell.safety.config import WatchdogConfig
-from cell.safety.guard import MotionGuard, TwistRefused
+from cell.safety.guard import TwistRefused
 from cell.safety.smoothing import TwistSmoother
 from cell.safety.watchdog import Watchdog
 from drivers.arm.base import ArmMode, JointTrajectory
-from drivers.arm.sim import SimArm
-from drivers.clock import SimClock
 from drivers.errors import SafetyStop
 from drivers.robots import get_robot_model
 
-from .conftest import FRANKA, PANDA_AT_REACH, UR5E
+from .conftest import PANDA_AT_REACH, UR5E
+from .safety_rig import CELLS, Rig
 
-CELLS = {"panda": FRANKA, "ur5e": UR5E}
 PROPERTY = settings(max_examples=5, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.too_slow])
-
-
-class Rig:
-    """A simulated arm driven by a guard, recording every twist that reaches the backend."""
-
-    def __init__(self, model_name: str, home_joints_rad: list[float] | None = None) -> None:
-        self.cfg: CellConfig = load_config(CELLS[model_name])
-        if home_joints_rad is not None:
-            arm = self.cfg.arm.model_copy(update={"home_joints_rad": home_joints_rad})
-            self.cfg = self.cfg.model_copy(update={"arm": arm})
-        self.model = get_robot_model(model_name)
-        self.clock = SimClock()
-        self.arm = SimArm(self.cfg.arm, self.model, self.clock, np.random.default_rng(0))
-        self.arm.connect()
-        self.guard = MotionGuard.from_config(self.arm, self.model, self.cfg, self.clock)
-        self.dt = 1.0 / self.cfg.scan.control_rate_hz
-        self.sent: list[np.ndarray] = []
-        backend = self.arm._command_twist
-        self.arm._command_twist = lambda v: (self.sent.append(np.array(v)), backend(v))  # type: ignore[method-assign]
-
-    def step(self) -> None:
-        self.clock.sleep(self.dt)
-        self.check_state()
-
-    def check_state(self) -> None:
-        s = self.arm.state()
-        sf = self.cfg.safety
-        g = self.guard
-        distance = g.barriers.clearances(g.guarded_points(s.T_base_flange)) + g.barriers.margin_m
-        assert distance.min() >= 0.0, f"crossed a barrier by {-distance.min() * 1e3:.2f} mm"
-        assert g.collision.check(s.q) is None
-        assert np.all(np.abs(s.qd) <= self.model.qd_max * sf.joint_velocity_scale * 1.05 + 1e-9)
-        assert np.all(s.q >= self.model.q_min) and np.all(s.q <= self.model.q_max)
-
-    def check_sent(self) -> None:
-        sf = self.cfg.safety
-        v = np.array(self.sent) if self.sent else np.zeros((0, 6))
-        assert np.all(np.linalg.norm(v[:, :3], axis=1) <= sf.tcp_max_linear_mps * (1 + 1e-9))
-        assert np.all(np.linalg.norm(v[:, 3:], axis=1) <= sf.tcp_max_angular_rps * (1 + 1e-9))
-        if len(v) > 1:
-            acc = np.diff(v, axis=0) / self.dt
-            assert np.all(np.linalg.norm(acc[:, :3], axis=1) <= sf.tcp_max_linear_acc_mps2 * (1 + 1e-6))
-            assert np.all(np.linalg.norm(acc[:, 3:], axis=1) <= sf.tcp_max_angular_acc_rps2 * (1 + 1e-6))
 
 
 twists = st.lists(st.tuples(st.lists(st.floats(-0.6, 0.6), min_size=3, max_size=3),
@@ -84,22 +38,20 @@ twists = st.lists(st.tuples(st.lists(st.floats(-0.6, 0.6), min_size=3, max_size=
 @PROPERTY
 @given(stream=twists)
 def test_random_twist_streams_stay_safe(model_name, stream):
-    rig = Rig(model_name)
+    rig = Rig.of(model_name)
     try:
         for lin, ang, ticks in stream:
             rig.guard.command_twist(np.array(lin + ang))
-            for _ in range(ticks):
-                rig.guard.tick()
-                rig.step()
+            rig.tick(ticks)
         rig.guard.hold()
-        for _ in range(60):
-            rig.guard.tick()
-            rig.step()
+        rig.tick(60)
     except SafetyStop:
         # A refusal (a collision predicted ahead) stops the arm: it must come to rest safely too.
         for _ in range(100):
             rig.step()
         assert rig.arm.state().mode is ArmMode.IDLE
+    rig.assert_safe()
+    assert rig.judge.cell_limits["joint_velocity_share"] == 0
     rig.check_sent()
 
 
@@ -107,7 +59,7 @@ def test_random_twist_streams_stay_safe(model_name, stream):
 @PROPERTY
 @given(fractions=st.lists(st.floats(0.0, 1.0), min_size=7, max_size=7))
 def test_random_targets_are_refused_or_executed_safely(model_name, fractions):
-    rig = Rig(model_name)
+    rig = Rig.of(model_name)
     m = rig.model
     lo = m.q_min + rig.cfg.safety.joint_position_margin_rad
     hi = m.q_max - rig.cfg.safety.joint_position_margin_rad
@@ -120,14 +72,13 @@ def test_random_targets_are_refused_or_executed_safely(model_name, fractions):
         assert refusal.kind in {"collision", "barrier", "joint margin"}
         return
     started = rig.guard.execute_trajectory(traj)
-    for _ in range(int(started.duration / rig.dt) + 5):
-        rig.guard.tick()
-        rig.step()
+    rig.tick(int(started.duration / rig.dt) + 5)
     np.testing.assert_allclose(rig.arm.state().q, q_goal, atol=1e-9)
+    rig.assert_safe()
 
 
 def test_refused_trajectory_names_the_bodies_and_stops():
-    rig = Rig("ur5e")
+    rig = Rig.of("ur5e")
     q0 = rig.arm.state().q
     q_goal = q0.copy()
     q_goal[1] += 1.2  # shoulder down: the upper arm swings into the table
@@ -301,10 +252,10 @@ def test_smoother_keeps_direction_and_limits():
 
 
 def test_guard_refuses_bad_twists_and_conflicting_motion():
-    rig = Rig("panda")
+    rig = Rig.of("panda")
     with pytest.raises(SafetyStop, match="6 finite values"):
         rig.guard.command_twist(np.array([0.0, np.nan, 0, 0, 0, 0]))
-    rig2 = Rig("ur5e")
+    rig2 = Rig.of("ur5e")
     rig2.guard.command_twist(np.array([0.01, 0, 0, 0, 0, 0]))
     q = rig2.arm.state().q
     with pytest.raises(SafetyStop, match="while a twist is being streamed"):
@@ -312,11 +263,9 @@ def test_guard_refuses_bad_twists_and_conflicting_motion():
 
 
 def test_fault_stop_leaves_the_arm_recoverable():
-    rig = Rig("panda")
+    rig = Rig.of("panda")
     rig.guard.command_twist(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
-    for _ in range(30):
-        rig.guard.tick()
-        rig.step()
+    rig.tick(30)
     rig.arm.inject_fault("reflex")
     with pytest.raises(SafetyStop, match="arm fault: reflex"):
         rig.guard.tick()
@@ -324,21 +273,17 @@ def test_fault_stop_leaves_the_arm_recoverable():
         rig.step()
     rig.arm.recover()
     rig.guard.command_twist(np.array([0.0, 0.02, 0.0, 0.0, 0.0, 0.0]))
-    for _ in range(20):
-        rig.guard.tick()
-        rig.step()
+    rig.tick(20)
     assert rig.arm.state().mode is ArmMode.VELOCITY
 
 
 def test_a_streamed_twist_into_the_object_is_refused_as_a_twist_refusal():
-    rig = Rig("panda")
+    rig = Rig.of("panda")
     p = rig.arm.state().T_base_flange[:3, 3]
-    rig.guard.set_roi(p + np.array([-0.1, -0.1, -0.30]), p + np.array([0.1, 0.1, -0.20]))
+    rig.set_roi(p + np.array([-0.1, -0.1, -0.30]), p + np.array([0.1, 0.1, -0.20]))
     rig.guard.command_twist(np.array([0.0, 0.0, -0.1, 0.0, 0.0, 0.0]))
     with pytest.raises(TwistRefused) as refused:
-        for _ in range(400):
-            rig.guard.tick()
-            rig.step()
+        rig.tick(400)
     assert isinstance(refused.value, SafetyStop) and refused.value.refusal.kind == "collision"
     assert "ROI" in refused.value.refusal.message or "roi" in refused.value.refusal.message.lower()
     log = rig.guard.log.as_dict()
@@ -347,22 +292,21 @@ def test_a_streamed_twist_into_the_object_is_refused_as_a_twist_refusal():
         rig.step()
     assert rig.arm.state().mode is ArmMode.IDLE
     rig.guard.command_twist(np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]))  # backing off is allowed
-    for _ in range(20):
-        rig.guard.tick()
-        rig.step()
+    rig.tick(20)
     assert rig.arm.state().mode is ArmMode.VELOCITY
+    rig.assert_safe()
 
 
 def test_a_commanded_twist_comes_back_as_the_arm_realizes_it():
     """Damped least squares falls short of a twist along a near-singular direction: the returned twist
     says so (the servo scan judges a camera held by the arm's reach by it)."""
-    rig = Rig("panda")
+    rig = Rig.of("panda")
     outward = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0])
     free = rig.guard.command_twist(outward)
     assert np.allclose(free, outward, atol=5e-4)
     rig.guard.hold()
 
-    stretched = Rig("panda", list(PANDA_AT_REACH))
+    stretched = Rig.of("panda", PANDA_AT_REACH)
     realized = stretched.guard.command_twist(outward)
     assert np.linalg.norm(realized[:3]) < 0.15 * np.linalg.norm(outward[:3])
     up = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])

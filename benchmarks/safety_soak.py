@@ -1,0 +1,229 @@
+"""Safety soak: random streamed twists and point-to-point moves, per robot, through the real motion guard
+(``cell.safety.guard``) and the simulated arm, every control period of the motion judged by
+``tests.safety_rig.MotionJudge``, which shares no code with the guard.
+
+Each episode builds a cell from the robot's sim cell file the way a job builds it (``tests.safety_rig.Rig``)
+with a random start configuration (collision-free, inside the joint margins, 1 cm clear of the barrier
+margins; in a third of them one joint 2 mrad to 0.25 rad from its margin), one to three random barrier
+planes 7 mm to 25 cm from the TCP or the sensor, a random object box (3 to 25 cm on a side, 10 to 45 cm
+from the flange) as the guard's ROI and, in half of the episodes, another such box as an obstacle in the
+cell file. It then sends ``COMMANDS_PER_EPISODE`` random commands:
+
+- twists (92 %): towards one of the episode's planes, towards the object, or anywhere; up to twice the
+  cell's speed limits; held for 1 to 4 control periods (80 %) or 8 to 30;
+- holds (5 %): the streamed twist ramped down, for 5 to 20 control periods;
+- moves (3 %): streaming ends, the arm comes to rest and a ruckig trajectory to a random joint goal (within
+  0.3 rad of the joints or, one time in three, 1.2 rad; clipped to the joint limits, so some lie inside
+  the margin) is checked by the guard and, unless refused, followed to its end.
+
+A refusal stops the arm: it is counted, the arm comes to rest and the episode goes on.
+
+Prints one line per robot and then one line of JSON: per robot the commands sent, those refused (by
+reason), ``breaches`` (control periods in which something happened that must never happen: a barrier
+plane crossed, bodies in contact, a joint at its limit or beyond the robot model's speed, acceleration or
+jerk; each must be 0), ``cell_limits`` (control periods over the cell file's tighter limits: margins,
+limit shares, TCP limits) and the worst value of each kind (a depth [m or rad] or a ratio to the limit).
+
+    .venv/bin/python benchmarks/safety_soak.py [--commands N] [--seed S] [--robot ur5e|panda ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cell.control.trajectory import joint_trajectory
+from cell.safety.guard import TwistRefused
+from drivers.errors import SafetyStop
+from drivers.robots import get_robot_model
+from tests.safety_rig import MotionJudge, Rig, cell_config
+
+Array = np.ndarray
+ROBOTS = ("ur5e", "panda")
+COMMANDS_PER_EPISODE = 200
+START_TRIES = 10_000
+BOX_TRIES = 50
+# Random boxes keep this far [m] from the arm at the start: more than the ROI margin the guard inflates by.
+BOX_CLEARANCE_M = 0.04
+
+
+def _unit(rng: np.random.Generator) -> Array:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+class Episode:
+    """A random cell (start joints, planes, object box, obstacle) with its rig; see the module docstring."""
+
+    def __init__(self, robot: str, rng: np.random.Generator, probe: MotionJudge) -> None:
+        cfg = cell_config(robot)
+        q0 = self._start(cfg.safety.joint_position_margin_rad, cfg.safety.barrier_margin_m, robot, rng, probe)
+        points = probe.guarded_points(get_robot_model(robot).fk(q0))
+        self.normals = [_unit(rng) for _ in range(int(rng.integers(1, 4)))]
+        planes = [{"name": f"random {i}", "normal": n.tolist(),
+                   "point": (points[int(np.argmin(points @ n))]
+                             - rng.uniform(cfg.safety.barrier_margin_m + 0.002, 0.25) * n).tolist()}
+                  for i, n in enumerate(self.normals)]
+        self.roi = self._free_box(q0, points[0], rng, probe)
+        obstacle = self._free_box(q0, points[0], rng, probe) if rng.random() < 0.5 else None
+        obstacles = [] if obstacle is None else [{
+            "shape": "box", "name": "random obstacle", "size_m": (obstacle[1] - obstacle[0]).tolist(),
+            "pose": {"xyz_m": ((obstacle[0] + obstacle[1]) / 2.0).tolist()}}]
+        probe.set_roi(None, None)
+        self.rig = Rig(cell_config(robot, home_joints_rad=q0, barrier_planes=planes, obstacles=obstacles))
+        if self.roi is not None:
+            self.rig.set_roi(*self.roi)
+
+    @staticmethod
+    def _start(margin_rad: float, margin_m: float, robot: str, rng: np.random.Generator,
+               probe: MotionJudge) -> Array:
+        """Joints inside the margins, collision-free, the guarded points 1 cm clear of the barrier margin;
+        a third with one joint close to its margin."""
+        m = get_robot_model(robot)
+        lo, hi = m.q_min + margin_rad, m.q_max - margin_rad
+        for _ in range(START_TRIES):
+            q = rng.uniform(lo + 0.02, hi - 0.02)
+            if rng.random() < 1.0 / 3.0:
+                j = int(rng.integers(m.n_joints))
+                gap = rng.uniform(0.002, 0.25)
+                q[j] = lo[j] + gap if rng.random() < 0.5 else hi[j] - gap
+            if probe.contact(q) is None and probe.clearance(q) > margin_m + 0.01:
+                return q
+        raise RuntimeError(f"no start configuration found for the {robot} in {START_TRIES} tries")
+
+    @staticmethod
+    def _free_box(q0: Array, near: Array, rng: np.random.Generator, probe: MotionJudge
+                  ) -> tuple[Array, Array] | None:
+        """A box 3 to 25 cm on a side, centred 10 to 45 cm from ``near``, clear of the arm at ``q0``."""
+        for _ in range(BOX_TRIES):
+            size = rng.uniform(0.03, 0.25, size=3)
+            centre = near + _unit(rng) * rng.uniform(0.1, 0.45)
+            lo, hi = centre - size / 2.0, centre + size / 2.0
+            probe.set_roi(lo - BOX_CLEARANCE_M, hi + BOX_CLEARANCE_M)
+            if probe.contact(q0) is None:
+                return lo, hi
+        return None
+
+    def twist(self, rng: np.random.Generator) -> Array:
+        """A random twist: towards a plane, the object or anywhere, up to twice the speed limits."""
+        rig = self.rig
+        sf = rig.cfg.safety
+        r = rng.random()
+        if r < 0.35:
+            d = -self.normals[int(rng.integers(len(self.normals)))] + 0.3 * _unit(rng)
+        elif r < 0.6 and self.roi is not None:
+            d = (self.roi[0] + self.roi[1]) / 2.0 - rig.arm.state().T_base_flange[:3, 3]
+        else:
+            d = _unit(rng)
+        lin = d / np.linalg.norm(d) * rng.uniform(0.0, 2.0 * sf.tcp_max_linear_mps)
+        turn = rng.uniform(0.0, 2.0 * sf.tcp_max_angular_rps) if rng.random() < 0.5 else 0.0
+        ang = _unit(rng) * turn
+        return np.concatenate([lin, ang])
+
+    def move(self, rng: np.random.Generator, refused: Counter[str]) -> None:
+        """End streaming, let the arm come to rest, then a ruckig move to a random goal (unless refused)."""
+        rig, guard, m = self.rig, self.rig.guard, self.rig.model
+        sf = rig.cfg.safety
+        guard.finish()
+        rig.settle()
+        q = rig.arm.state().q
+        reach = 0.3 if rng.random() < 2.0 / 3.0 else 1.2
+        goal = np.clip(q + rng.uniform(-reach, reach, m.n_joints), m.q_min, m.q_max)
+        traj = joint_trajectory(m, q, goal, dt=rig.dt, velocity_scale=sf.joint_velocity_scale,
+                                acceleration_scale=sf.joint_acceleration_scale,
+                                jerk_scale=sf.joint_jerk_scale)
+        _, refusal = guard.check_trajectory(traj)
+        if refusal is not None:
+            refused[f"move: {refusal.kind}"] += 1
+            return
+        guard.execute_trajectory(traj)
+        rig.tick()
+        while guard.following:
+            rig.tick()
+
+
+def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
+    """Run ``n_commands`` random commands on ``robot`` (see the module docstring); returns its figures."""
+    rng = np.random.default_rng(seed)
+    probe_cfg = cell_config(robot)
+    probe = MotionJudge(probe_cfg, get_robot_model(robot), 1.0 / probe_cfg.scan.control_rate_hz)
+    sent: Counter[str] = Counter()
+    refused: Counter[str] = Counter()
+    breaches: Counter[str] = Counter()
+    cell_limits: Counter[str] = Counter()
+    worst: dict[str, float] = {}
+    contacts: Counter[str] = Counter()
+    periods = 0
+    t0 = time.perf_counter()
+    while sent["commands"] < n_commands:
+        episode = Episode(robot, rng, probe)
+        rig = episode.rig
+        sent["episodes"] += 1
+        for _ in range(min(COMMANDS_PER_EPISODE, n_commands - sent["commands"])):
+            sent["commands"] += 1
+            r = rng.random()
+            try:
+                if r < 0.03:
+                    sent["moves"] += 1
+                    episode.move(rng, refused)
+                elif r < 0.08:
+                    sent["holds"] += 1
+                    rig.guard.hold()
+                    rig.tick(int(rng.integers(5, 21)))
+                else:
+                    sent["twists"] += 1
+                    rig.guard.command_twist(episode.twist(rng))
+                    rig.tick(int(rng.integers(1, 5)) if rng.random() < 0.8 else int(rng.integers(8, 31)))
+            except TwistRefused as exc:
+                refused[f"twist: {exc.refusal.kind}"] += 1
+                rig.settle()
+            except SafetyStop as exc:
+                refused[f"stop: {exc.reason.split(':')[0]}"] += 1
+                rig.settle()
+        rig.guard.finish()
+        rig.settle()
+        judge = rig.judge
+        breaches.update(judge.breaches)
+        cell_limits.update(judge.cell_limits)
+        if judge.first_contact is not None:
+            contacts[judge.first_contact] += 1
+        for kind, value in judge.worst.items():
+            worst[kind] = max(worst.get(kind, -np.inf), value)
+        periods += round(rig.clock.now() / rig.dt)
+    return {"robot": robot, "seed": seed, **sent, "control_periods": periods,
+            "sim_time_h": round(periods * rig.dt / 3600.0, 2),
+            "refused_total": sum(refused.values()), "refused": dict(sorted(refused.items())),
+            "breaches_total": sum(breaches.values()), "breaches": dict(breaches),
+            "first_contacts": dict(contacts), "cell_limits": dict(cell_limits),
+            "worst": {k: float(f"{v:.4g}") for k, v in worst.items()},
+            "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--commands", type=int, default=100_000, help="random commands per robot")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random generator")
+    parser.add_argument("--robot", choices=ROBOTS, action="append", help="robot to soak (repeatable; "
+                        "default: both)")
+    args = parser.parse_args()
+    results = []
+    for robot in args.robot or ROBOTS:
+        r = soak(robot, args.commands, args.seed)
+        results.append(r)
+        print(f"{robot:6s} {r['commands']} commands ({r['twists']} twists, {r['holds']} holds, {r['moves']} "
+              f"moves) over {r['sim_time_h']} h of sim time: {r['refused_total']} refused, "
+              f"{r['breaches_total']} breaches, {r['wall_s']} s", flush=True)
+    print(json.dumps({"robots": results, "breaches_total": sum(r["breaches_total"] for r in results)}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,166 @@
+"""Each safety function of the guard, shown to act where it must, judged by the motion the simulated arm
+really made (``tests.safety_rig.MotionJudge``, which shares no code with the guard). Each test fails when
+its function is taken out of the guard (``benchmarks/safety_mutants.py`` checks that): the barrier
+projection of streamed twists and the barrier check of moves, the collision check of both, the joint
+margin clamp of both, and the watchdog's late-loop and stale-perception stops. ``benchmarks/safety_soak.py``
+runs the same judge over 10^5 random commands per robot; two defects it found are kept here as expected
+failures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.control.trajectory import joint_trajectory
+from drivers.arm.base import ArmMode, JointTrajectory
+from drivers.errors import SafetyStop
+from drivers.robots import get_robot_model
+
+from .safety_rig import Rig, cell_config
+
+ROBOTS = ["panda", "ur5e"]
+
+
+def _plane_below(model_name: str, depth_m: float) -> dict[str, object]:
+    """A horizontal barrier plane ``depth_m`` below the lower of the TCP and the sensor at the home pose."""
+    rig = Rig.of(model_name)
+    z = rig.judge.guarded_points(rig.arm.state().T_base_flange)[:, 2].min()
+    return {"name": "shelf", "point": [0.0, 0.0, float(z) - depth_m], "normal": [0.0, 0.0, 1.0]}
+
+
+def _move(rig: Rig, q_goal: np.ndarray) -> JointTrajectory:
+    """A ruckig move from the arm's joints to ``q_goal`` [rad], planned as a job plans it."""
+    sf = rig.cfg.safety
+    return joint_trajectory(rig.model, rig.arm.state().q, q_goal, dt=rig.dt,
+                            velocity_scale=sf.joint_velocity_scale,
+                            acceleration_scale=sf.joint_acceleration_scale, jerk_scale=sf.joint_jerk_scale)
+
+
+def _lowered(rig: Rig, drop_m: float) -> np.ndarray:
+    """Joints [rad] that put the flange ``drop_m`` straight below where it is, same orientation."""
+    T = rig.arm.state().T_base_flange.copy()
+    T[2, 3] -= drop_m
+    return rig.model.ik_pose(T, rig.arm.state().q)
+
+
+def _wrist_near_its_limit(model_name: str, room_rad: float) -> Rig:
+    """The home pose with the last joint ``room_rad`` below the upper edge of its margin."""
+    base = cell_config(model_name)
+    q0 = np.array(base.arm.home_joints_rad)
+    q0[-1] = get_robot_model(model_name).q_max[-1] - base.safety.joint_position_margin_rad - room_rad
+    return Rig(cell_config(model_name, home_joints_rad=q0))
+
+
+def _roll_wrist(rig: Rig, rate_rps: float, ticks: int) -> None:
+    """Stream a turn of the flange about its own z axis (the last joint alone), re-aimed every tick."""
+    for _ in range(ticks):
+        z = rig.arm.state().T_base_flange[:3, 2]
+        rig.guard.command_twist(np.concatenate([np.zeros(3), rate_rps * z]))
+        rig.tick()
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_streamed_twist_into_a_plane_stops_at_its_margin_and_slides_along_it(model_name):
+    rig = Rig(cell_config(model_name, barrier_planes=[_plane_below(model_name, 0.08)]))
+    start = rig.arm.state().T_base_flange[:3, 3].copy()
+    rig.guard.command_twist(np.array([0.0, 0.04, -0.1, 0.0, 0.0, 0.0]))
+    rig.tick(250)  # 2.5 s: without the plane the arm would go 25 cm down
+    rig.assert_safe()
+    margin = rig.cfg.safety.barrier_margin_m
+    assert margin - 1e-3 < rig.judge.clearance(rig.arm.state().q) < margin + 2e-3  # it reached the plane
+    moved = rig.arm.state().T_base_flange[:3, 3] - start
+    assert moved[1] > 0.09  # and kept sliding sideways along it
+    assert rig.guard.log.clamps["barrier shelf"] > 0
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_move_through_a_plane_is_refused_as_a_barrier(model_name):
+    rig = Rig(cell_config(model_name, barrier_planes=[_plane_below(model_name, 0.03)]))
+    traj = _move(rig, _lowered(rig, 0.08))
+    _, refusal = rig.guard.check_trajectory(traj)
+    assert refusal is not None and refusal.kind == "barrier" and "shelf" in refusal.message
+    with pytest.raises(SafetyStop, match="refused"):
+        rig.guard.execute_trajectory(traj)
+    rig.settle()
+    rig.assert_safe()
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_move_through_the_object_is_refused_as_a_collision(model_name):
+    rig = Rig.of(model_name)
+    flange = rig.arm.state().T_base_flange[:3, 3]
+    # The tool reaches 5 cm below the flange at most and the guard inflates the box by 2 cm: 3 cm clear.
+    rig.set_roi(flange - np.array([0.05, 0.05, 0.20]), flange - np.array([-0.05, -0.05, 0.10]))
+    assert rig.guard.collision.check(rig.arm.state().q) is None
+    _, refusal = rig.guard.check_trajectory(_move(rig, _lowered(rig, 0.15)))
+    assert refusal is not None and refusal.kind == "collision" and "ROI" in refusal.message
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_streamed_wrist_roll_stops_at_the_joint_margin(model_name):
+    rig = _wrist_near_its_limit(model_name, 0.15)
+    _roll_wrist(rig, 0.15, 250)  # 2.5 s: without the margin the joint would turn 0.375 rad
+    rig.assert_safe()
+    assert rig.judge.cell_limits["joint_margin"] == 0
+    room = rig.guard.joint_bounds[1][-1] - rig.arm.state().q[-1]
+    assert 0.0 <= room < 0.02  # it came close, and stopped
+    assert rig.guard.log.clamps["joint_position_margin"] > 0
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_move_into_the_joint_margin_is_refused(model_name):
+    rig = _wrist_near_its_limit(model_name, 0.15)
+    q_goal = rig.arm.state().q.copy()
+    q_goal[-1] = rig.model.q_max[-1] - 0.02  # inside the margin, short of the joint's limit
+    _, refusal = rig.guard.check_trajectory(_move(rig, q_goal))
+    assert refusal is not None and refusal.kind == "joint margin"
+
+
+def test_late_control_ticks_stop_the_arm():
+    rig = Rig.of("ur5e")
+    rig.guard.command_twist(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    rig.tick(20)
+    allowed = rig.cfg.safety.watchdog.max_missed_deadlines
+    with pytest.raises(SafetyStop, match="watchdog: control loop missed its deadline"):
+        for _ in range(allowed + 1):
+            rig.clock.sleep(2.0 * rig.dt)  # each tick a period late
+            rig.guard.tick()
+    assert rig.guard.watchdog.missed_in_a_row == allowed
+    assert rig.arm.state().mode is ArmMode.STOPPING
+
+
+def test_stale_perception_stops_the_arm():
+    rig = Rig.of("panda")
+    rig.guard.command_twist(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    max_age = rig.cfg.safety.watchdog.perception_max_age_s
+    rig.tick(20)
+    rig.guard.tick(perception_time_s=rig.clock.now() - 0.9 * max_age)
+    rig.step()
+    with pytest.raises(SafetyStop, match="watchdog: perception data are"):
+        rig.guard.tick(perception_time_s=rig.clock.now() - 1.1 * max_age)
+    assert rig.arm.state().mode is ArmMode.STOPPING
+
+
+# Defects the soak found: the guard shapes the twist it is asked for, but its braking bounds assume the
+# flange or a joint can brake harder and sooner than the jerk-limited, phase-synchronised smoothing after
+# them lets it, so a streamed twist at full speed overshoots.
+
+@pytest.mark.xfail(strict=True, reason="the barrier braking bound assumes more than the twist smoother "
+                   "brakes with, all the more while the smoother also ramps a turn (soak finding)")
+@pytest.mark.parametrize("turn_rps", [0.0, 1.0])
+def test_a_full_speed_twist_into_a_plane_stops_before_it(turn_rps):
+    rig = Rig(cell_config("ur5e", barrier_planes=[_plane_below("ur5e", 0.10)]))
+    rig.guard.command_twist(np.array([0.0, 0.0, -0.25, 0.0, 0.0, 0.0]))
+    rig.tick(30)
+    rig.guard.command_twist(np.array([0.0, 0.0, -0.25, turn_rps, 0.0, 0.0]))
+    rig.tick(150)
+    rig.assert_safe()
+
+
+@pytest.mark.xfail(strict=True, reason="the joint margin braking bound assumes the joint's own acceleration "
+                   "and jerk shares, the twist smoother brakes with the TCP's (soak finding)")
+def test_a_wrist_roll_at_half_the_angular_limit_stops_before_the_joint_limit():
+    rig = _wrist_near_its_limit("ur5e", 0.15)
+    _roll_wrist(rig, 0.5 * rig.cfg.safety.tcp_max_angular_rps, 150)
+    rig.assert_safe()
+
