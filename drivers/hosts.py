@@ -1,8 +1,9 @@
-"""Host names and addresses: which of them name only this machine."""
+"""Host names and addresses: which of them name only this machine, and whether a port can be listened on."""
 
 from __future__ import annotations
 
 import ipaddress
+import socket
 
 
 def is_loopback(host: str) -> bool:
@@ -13,3 +14,17 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def listen_problem(host: str | None, port: int | None) -> str | None:
+    """Why a TCP server could not listen on ``host``:``port`` now (a port in use, an address that is not
+    this machine's, a name that does not resolve), or None when it could. Probed as a server binds, with
+    SO_REUSEADDR, on every address the name resolves to."""
+    try:
+        for family, kind, proto, _, address in socket.getaddrinfo(host, port, type=socket.SOCK_STREAM):
+            with socket.socket(family, kind, proto) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                probe.bind(address)
+    except OSError as exc:
+        return str(exc.strerror or exc)
+    return None

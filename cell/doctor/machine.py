@@ -9,12 +9,12 @@ import os
 import platform
 import resource
 import shutil
-import socket
 import sys
 from importlib import metadata
 from pathlib import Path
 
 from cell.doctor.findings import Finding
+from drivers.hosts import listen_problem
 
 PYTHON = (3, 11)
 CORE_PACKAGES = ("numpy", "open3d-cpu", "ruckig", "python-fcl", "fastapi", "uvicorn", "sqlalchemy", "asyncua")
@@ -160,11 +160,8 @@ def disk(data_dir: Path) -> Finding:
 
 
 def port_free(host: str, port: int, name: str = "service port") -> Finding:
-    try:
-        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn's own socket
-            probe.bind((host, port))
-    except OSError as exc:
-        return Finding.fail(name, f"cannot listen on {host}:{port}: {exc.strerror or exc}",
+    problem = listen_problem(host, port)
+    if problem is not None:
+        return Finding.fail(name, f"cannot listen on {host}:{port}: {problem}",
                             f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or move")
     return Finding.ok(name, f"{host}:{port} is free")

@@ -25,7 +25,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from datetime import UTC
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -58,6 +57,7 @@ from cell.line.packml import Command, UnitMode
 from cell.line.result import check_part_id
 from cell.service.keys import KeyRing
 from drivers.errors import ConfigError, ServiceError
+from drivers.hosts import listen_problem
 
 if TYPE_CHECKING:
     from cell.service.manager import CellService
@@ -337,15 +337,9 @@ def check_endpoint(line: LineConfig | None) -> None:
         return
     endpoint = line.opcua.endpoint
     parts = urlsplit(endpoint)
-    try:
-        for family, kind, proto, _, address in socket.getaddrinfo(parts.hostname, parts.port,
-                                                                   type=socket.SOCK_STREAM):
-            with socket.socket(family, kind, proto) as probe:
-                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server's own socket
-                probe.bind(address)
-    except OSError as exc:
-        raise ConfigError(f"cannot listen on {endpoint}: {exc.strerror or exc}",
-                          field="line.opcua.endpoint") from None
+    problem = listen_problem(parts.hostname, parts.port)
+    if problem is not None:
+        raise ConfigError(f"cannot listen on {endpoint}: {problem}", field="line.opcua.endpoint")
 
 
 @contextlib.asynccontextmanager
