@@ -25,7 +25,6 @@ import json
 import logging
 import os
 import secrets
-import shutil
 import signal
 import sys
 from collections import deque
@@ -45,7 +44,7 @@ from cell.service.metrics import ServiceMetrics
 from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_command
 from cell.service.recovery import finish_folder, reconcile
-from cell.service.retention import Retention
+from cell.service.retention import Retention, delete_job
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
@@ -312,10 +311,7 @@ class CellService:
         job = await self.job(job_id)
         if job.status not in FINISHED_STATUSES:
             raise ServiceError(f"job {job_id} is {job.status}: cancel or stop it first", reason="conflict")
-        folder = Path(job.folder)
-        if folder.parent.resolve() == self.jobs_dir.resolve():
-            await asyncio.to_thread(shutil.rmtree, folder, True)
-        await asyncio.to_thread(self.store.delete_job, job_id)
+        await asyncio.to_thread(delete_job, self.store, job, self.jobs_dir)
         log.info("job deleted with its folder", extra={"job_id": job_id})
 
     async def set_keep(self, job_id: str, keep: bool) -> JobRecord:

@@ -101,17 +101,23 @@ def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConf
     return PrunePlan(tuple(chosen), total, freed, unmet)
 
 
+def delete_job(store: Store, job: JobRecord, jobs_dir: Path) -> None:
+    """Delete an ended job: its folder when it is one of ``jobs_dir``'s (a folder elsewhere is never
+    touched), then its row, so that a row a crash leaves in between is deleted next time."""
+    if _inside(job.folder, jobs_dir):
+        shutil.rmtree(job.folder, ignore_errors=True)
+    store.delete_job(job.id)
+
+
 def prune(store: Store, plan: PrunePlan, jobs_dir: Path) -> list[PrunedJob]:
-    """Delete the plan's jobs: folder first (a row left by a crash in between is deleted next time), then
-    the row. Returns the jobs deleted; a job gone, marked ``keep`` or no longer ended meanwhile is left."""
+    """Delete the plan's jobs (:func:`delete_job`). Returns the jobs deleted; a job gone, marked ``keep``
+    or no longer ended meanwhile is left."""
     done = []
     for item in plan.jobs:
         job = store.get_job(item.job_id)
         if job is None or job.keep or job.status not in FINISHED_STATUSES:
             continue
-        if _inside(job.folder, jobs_dir):
-            shutil.rmtree(job.folder, ignore_errors=True)
-        store.delete_job(job.id)
+        delete_job(store, job, jobs_dir)
         done.append(item)
     return done
 
