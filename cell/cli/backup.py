@@ -12,13 +12,13 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.errors import fail
 from cell.service.startup import DEFAULT_DATA_DIR
 from cell.service.store import sqlite_url
 from cell.service.store.backup import backup_sqlite, sqlite_file
 from drivers.errors import CellError
 
 console = Console(soft_wrap=True)
-err_console = Console(stderr=True)
 
 
 def backup(
@@ -32,7 +32,6 @@ def backup(
     try:
         info = backup_sqlite(sqlite_file(db or sqlite_url(data_dir)), dest)
     except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(code=1) from None
+        raise fail(exc) from None
     console.print(f"wrote {info.path}: {info.n_jobs} jobs, {info.size_bytes / 1e6:.1f} MB, schema revision "
                   f"{info.revision}", markup=False, highlight=False)

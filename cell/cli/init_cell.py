@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.errors import fail
 from cell.config.placeholders import find_placeholders
 from cell.templates import TEMPLATES, template_path
 from drivers.errors import CellError, ConfigError
@@ -25,7 +26,6 @@ CELL_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 """A cell's name: the store's key for its jobs (64 characters at most), safe in a file name."""
 
 console = Console(soft_wrap=True)
-err_console = Console(stderr=True)
 
 
 def init_cell(folder: Path, template: str, name: str | None = None, data_dir: Path | None = None) -> Path:
@@ -64,8 +64,7 @@ def init(
     try:
         cell_file = init_cell(folder, template, name, data_dir)
     except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(code=1) from None
+        raise fail(exc) from None
     data = data_dir or folder / "data"
     console.print(f"wrote {cell_file} and {data}/", markup=False, highlight=False)
     left = find_placeholders(cell_file.read_text())

@@ -26,6 +26,7 @@ import typer
 from rich.console import Console
 
 from cell.cli.client import FINISHED, ApiClient, ServerEvent
+from cell.cli.errors import fail
 from drivers.errors import CellError
 
 DEFAULT_SERVER = "http://127.0.0.1:8080"
@@ -38,7 +39,6 @@ EXIT_NOT_COMPLETED = 2
 jobs_app = typer.Typer(help="Jobs of a running `cell serve`: submit, list, show, stop, wait (for scripts).",
                        no_args_is_help=True)
 console = Console(soft_wrap=True)
-err_console = Console(stderr=True)
 
 ServerOption = Annotated[str, typer.Option(
     "--server", envvar="CELL_SERVER", metavar="URL",
@@ -53,22 +53,17 @@ def _print(text: str) -> None:
     console.print(text, markup=False, highlight=False)
 
 
-def _fail(message: object) -> typer.Exit:
-    err_console.print(f"error: {message}", markup=False, highlight=False, soft_wrap=True)
-    return typer.Exit(code=1)
-
-
 @contextlib.contextmanager
 def _client(server: str, key: str | None) -> Iterator[ApiClient]:
     """A client of ``server`` with ``key``; every ``CellError`` inside becomes one line and exit code 1."""
     if key is None or not key.strip():
-        raise _fail("no API key: pass --key KEY or set CELL_KEY (on the service's machine, "
+        raise fail("no API key: pass --key KEY or set CELL_KEY (on the service's machine, "
                     "`cell keys create --role operator` makes one)")
     try:
         with ApiClient(server or DEFAULT_SERVER, key) as client:
             yield client
     except CellError as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
 
 
 def _utc(text: str | None) -> str:
@@ -105,7 +100,7 @@ def _parse_pose(text: str) -> list[float]:
             raise ValueError
         pose = [float(p) for p in parts]
     except ValueError:
-        raise _fail(f"--object-pose: expected x,y,yaw_deg (three numbers), got {text!r}") from None
+        raise fail(f"--object-pose: expected x,y,yaw_deg (three numbers), got {text!r}") from None
     return pose
 
 
@@ -153,7 +148,7 @@ def follow_job(client: ApiClient, job_id: str, timeout_s: float | None) -> int:
 
 def _check_timeout(timeout_s: float | None) -> None:
     if timeout_s is not None and not (math.isfinite(timeout_s) and timeout_s > 0):
-        raise _fail(f"--timeout must be a positive number of seconds, got {timeout_s:g}")
+        raise fail(f"--timeout must be a positive number of seconds, got {timeout_s:g}")
 
 
 def _wait_exit(client: ApiClient, job_id: str, timeout_s: float | None) -> typer.Exit:
@@ -181,7 +176,7 @@ def submit(
 ) -> None:
     """Queue a scan; prints the job's id alone on the last line (with --wait: first, then its progress)."""
     if timeout is not None and not wait:
-        raise _fail("--timeout is for --wait")
+        raise fail("--timeout is for --wait")
     _check_timeout(timeout)
     body: dict[str, Any] = {"planner": planner, "object": object,
                             "object_pose": _parse_pose(object_pose) if object_pose is not None else None,
@@ -313,7 +308,7 @@ def stop(
 ) -> None:
     """Stop a job (a queued one is cancelled), or with --all the whole cell; prints what it did."""
     if (job_id is None) == (not all_):
-        raise _fail("give a job id or --all (not both)")
+        raise fail("give a job id or --all (not both)")
     with _client(server, key) as client:
         outcome = client.stop_all(reason) if all_ else client.stop(str(job_id), reason)
     _print(str(outcome.get("message")))

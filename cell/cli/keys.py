@@ -17,6 +17,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.errors import fail
 from cell.service.keys import Role, create_key, parse_role
 from cell.service.startup import open_data_store
 from cell.service.store import Store
@@ -26,7 +27,6 @@ DEFAULT_DATA_DIR = Path("data")
 
 keys_app = typer.Typer(help="API keys of the service: create, list, revoke.", no_args_is_help=True)
 console = Console(soft_wrap=True)
-err_console = Console(stderr=True)
 
 DataDirOption = Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
 DbOption = Annotated[str | None, typer.Option(help="store URL instead of the data folder's SQLite file: "
@@ -40,8 +40,7 @@ def _one_line_errors() -> Iterator[None]:
     try:
         yield
     except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(code=1) from None
+        raise fail(exc) from None
 
 
 @contextlib.contextmanager

@@ -15,6 +15,7 @@ from cell.cli.arm import arm_app
 from cell.cli.backup import backup
 from cell.cli.doctor import doctor
 from cell.cli.entry import EXIT_INTERRUPTED
+from cell.cli.errors import fail, print_error
 from cell.cli.init_cell import init
 from cell.cli.jobs import EXIT_NOT_COMPLETED, jobs_app
 from cell.cli.keys import keys_app
@@ -52,11 +53,6 @@ console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
 
-def _fail(exc: BaseException) -> typer.Exit:
-    err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-    return typer.Exit(code=1)
-
-
 def _parse_pose(text: str) -> tuple[float, float, float]:
     parts = text.split(",")
     try:
@@ -84,7 +80,7 @@ def _stopped(job: PreparedScan, exc: Exception) -> typer.Exit:
     """A scan that stopped or failed after its folder was made: the reason, then where the folder is (its
     log.txt holds the traceback of an internal error)."""
     reason = exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}"
-    err_console.print(f"error: {reason}", markup=False, highlight=False, soft_wrap=True)
+    print_error(reason)
     err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
     interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED
     return typer.Exit(code=EXIT_INTERRUPTED if interrupted else 1)
@@ -129,7 +125,7 @@ def scan(
                                   object_scale=object_scale)
         job = prepare_scan(request)
     except CellError as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
     try:
         with scan_progress(job.max_time_s) as show:
             outcome = run_prepared(job, on_progress=show)
@@ -158,7 +154,7 @@ def stop(
     try:
         request_stop(job_dir, reason)
     except CellError as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
     console.print(f"stop requested: {job_dir}", markup=False, highlight=False)
 
 
@@ -175,7 +171,7 @@ def reprocess(job_dir: Path) -> None:
         with stage_progress("reprocess") as show:
             out = reprocess_job(job_dir, progress=show)
     except CellError as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
     cov = out["metrics"]["coverage_pct"] if out.get("metrics") else None
     console.print(f"{out['n_frames']} frames, {out['n_cloud_points']} points at {out['voxel_m'] * 1e3:g} mm",
                   highlight=False)
@@ -207,7 +203,7 @@ def config_check(file: Path) -> None:
     try:
         cfg = load_config(file)
     except CellError as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
     console.print(f"{file}: valid ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
                   f"sensor {cfg.sensor.type}, planner {cfg.scan.planner})", markup=False, highlight=False)
     left = find_placeholders(file.read_text())
@@ -216,7 +212,7 @@ def config_check(file: Path) -> None:
         return
     for p in left:
         console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
-    raise _fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
+    raise fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
                             "it and delete the mark)", file=str(file)))
 
 

@@ -17,6 +17,7 @@ from rich.console import Console
 
 from cell.api.app import create_app
 from cell.api.server import NotifyingServer
+from cell.cli.errors import fail
 from cell.line.opcua import check_endpoint
 from cell.service.logs import configure_logging
 from cell.service.notify import Notifier
@@ -54,8 +55,7 @@ def serve(
             service.store.close()
             raise
     except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        raise typer.Exit(code=1) from None
+        raise fail(exc) from None
     if not has_keys:
         err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --data-dir "
                           f"{data_dir} --role operator)", markup=False, highlight=False, soft_wrap=True)
