@@ -58,6 +58,16 @@ def folder_size(path: Path) -> int:
     return total
 
 
+def _size(entry: Path) -> int:
+    """Bytes under a folder, or of a file (0 once it is gone)."""
+    if entry.is_dir():
+        return folder_size(entry)
+    try:
+        return entry.lstat().st_size
+    except FileNotFoundError:
+        return 0
+
+
 def _ended_at(job: JobRecord) -> datetime:
     return job.finished_at or job.created_at
 
@@ -69,10 +79,13 @@ def _inside(folder: str, jobs_dir: Path) -> bool:
 def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConfig,
                now: datetime) -> PrunePlan:
     """The ended jobs of ``cell`` that ``retention`` deletes at ``now`` (timezone-aware)."""
-    total = folder_size(jobs_dir)
+    # one walk of the jobs folder gives both the total and each job's share
+    entries = {entry.name: _size(entry) for entry in (jobs_dir.iterdir() if jobs_dir.is_dir() else ())}
+    total = sum(entries.values())
     ended = sorted((job for job in store.jobs_in_status(cell, sorted(FINISHED_STATUSES)) if not job.keep),
                    key=lambda job: (_ended_at(job), job.id))
-    sizes = {job.id: folder_size(Path(job.folder)) if _inside(job.folder, jobs_dir) else 0 for job in ended}
+    sizes = {job.id: entries.get(Path(job.folder).name, 0) if _inside(job.folder, jobs_dir) else 0
+             for job in ended}
     chosen: list[PrunedJob] = []
     rest: list[JobRecord] = []
     if retention.days is not None:
