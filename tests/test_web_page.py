@@ -230,7 +230,7 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     page.wait_for_url(re.compile(r"#/jobs/[0-9a-f]{16}$"))
     job_id = page.url.rsplit("/", 1)[1]
     page.wait_for_selector("#job-status")
-    wait_for(page, "Number(document.querySelector('.charts').dataset.count || 0) >= 1")  # progress arrives
+    wait_for(page, "Number(document.querySelector('.charts')?.dataset.count || 0) >= 1")  # progress arrives
     page.wait_for_selector("#result")
     assert page.text_content("#job-status") == "completed"
     job = read(cell, f"/api/v1/jobs/{job_id}")
@@ -296,7 +296,7 @@ def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
     page = open_page("operator")
     page.click("#running-now a")  # the job running now, from the first view
     page.wait_for_url(re.compile(f"#/jobs/{job_id}$"))
-    wait_for(page, "Number(document.querySelector('.charts').dataset.count || 0) >= 2")
+    wait_for(page, "Number(document.querySelector('.charts')?.dataset.count || 0) >= 2")
     wait_for(page, "document.getElementById('job-link').textContent === 'live'")
 
     # every connection cut: the page says so, reconnects by itself and resumes after the last event
