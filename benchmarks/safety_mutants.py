@@ -51,6 +51,8 @@ MUTANTS = (
     Mutant("no-barrier-projection", "streamed twists are not projected into the barrier planes", GUARD,
            "v, planes = self.barriers.project_twist(v, T[:3, 3], points,\n" + " " * 48
            + "s.tcp_max_linear_mps + s.tcp_max_angular_rps * lever)", "planes: list[str] = []"),
+    Mutant("no-braking-check", "the stop that would follow a streamed twist is not checked", GUARD,
+           "unsafe = self._braking_violation(state, ik)", "unsafe = None"),
     Mutant("no-barrier-check-of-moves", "trajectory samples are not checked against the barrier planes",
            GUARD, "reason = self.barrier_violation(T)\n", "reason = None\n"),
     Mutant("no-collision-check-of-twists", "the configuration predicted ahead of a streamed twist is not "

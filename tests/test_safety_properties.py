@@ -141,12 +141,10 @@ def test_stale_perception_stops_the_arm():
     assert rig.arm.state().mode is ArmMode.STOPPING
 
 
-# Defects the soak found: the guard shapes the twist it is asked for, but its braking bounds assume the
-# flange or a joint can brake harder and sooner than the jerk-limited, phase-synchronised smoothing after
-# them lets it, so a streamed twist at full speed overshoots.
+# The soak's findings: a guard that shaped the twist it was asked for but assumed the flange or a joint could
+# brake harder and sooner than the jerk-limited, phase-synchronised smoothing after it let them overshot a
+# plane at full speed (more so while the smoother also ramped a turn) and a joint margin in a fast wrist roll.
 
-@pytest.mark.xfail(strict=True, reason="the barrier braking bound assumes more than the twist smoother "
-                   "brakes with, all the more while the smoother also ramps a turn (soak finding)")
 @pytest.mark.parametrize("turn_rps", [0.0, 1.0])
 def test_a_full_speed_twist_into_a_plane_stops_before_it(turn_rps):
     rig = Rig(cell_config("ur5e", barrier_planes=[_plane_below("ur5e", 0.10)]))
@@ -157,8 +155,6 @@ def test_a_full_speed_twist_into_a_plane_stops_before_it(turn_rps):
     rig.assert_safe()
 
 
-@pytest.mark.xfail(strict=True, reason="the joint margin braking bound assumes the joint's own acceleration "
-                   "and jerk shares, the twist smoother brakes with the TCP's (soak finding)")
 def test_a_wrist_roll_at_half_the_angular_limit_stops_before_the_joint_limit():
     rig = _wrist_near_its_limit("ur5e", 0.15)
     _roll_wrist(rig, 0.5 * rig.cfg.safety.tcp_max_angular_rps, 150)

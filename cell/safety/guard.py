@@ -10,9 +10,13 @@ the arm. It forwards two kinds of motion:
   down (direction kept) so that no joint exceeds its share of its speed limit and no joint runs into its
   position margin, with the joint velocities the arm's differential IK gives (``RobotModel.velocity_map``:
   damped least squares plus, on a redundant arm, null-space joint-limit avoidance, which scales with the
-  twist); ruckig smooths it to the TCP acceleration and jerk limits; the configuration predicted
-  ``collision.lookahead_s`` ahead at that twist is checked for collisions (robot, tool, table, object ROI,
-  obstacles, self-collision). A collision refuses the motion.
+  twist); ruckig smooths it to the TCP acceleration and jerk limits; the stop that would follow the
+  smoothed twist (sent for one period, then ruckig's ramp to rest) must keep the TCP and the sensor out of
+  every barrier margin and the joints inside their margins, or the next step of braking is sent instead
+  (the projection and the joint margin above plan their braking with simpler bounds that the smoothing
+  does not always keep, e.g. while it also ramps a turn: this check is what guarantees the stop); the
+  configuration predicted ``collision.lookahead_s`` ahead at that twist is checked for collisions (robot,
+  tool, table, object ROI, obstacles, self-collision). A collision refuses the motion.
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
   sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
   be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free when
@@ -57,8 +61,12 @@ TRAJECTORY_START_TOL_RAD = 1e-3
 GUARDED_POINTS = ("TCP", "sensor")
 # Braking before a plane or a joint margin is planned at this share of the acceleration limit: a target
 # that falls at the planned rate is tracked by the jerk-limited smoother with some lag, and the rest of the
-# acceleration budget absorbs that lag.
+# acceleration budget absorbs most of it (the braking check in ``tick`` catches the rest).
 BRAKING_SHARE = 0.5
+# The stop checked before each streamed twist may use this share of the barrier margin: the projection aims
+# at the margin itself, and a twist sliding along it (whose realized motion grazes the plane by microns)
+# must not be taken for one heading in; the rest of the margin is left for the arm's tracking error.
+BRAKING_MARGIN_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -304,6 +312,7 @@ class MotionGuard:
             return
         ik = self._model.velocity_map(state.q)
         limited = self._limit(self._target, state, ik, count=True)
+        snapshot = self._smoother.snapshot()
         v = self._smoother.step(limited)
         if np.any(np.abs(v - limited) > 1e-9):
             self.log.clamp("tcp_acceleration")
@@ -318,6 +327,12 @@ class MotionGuard:
         if ratio > 1.0:
             v = self._smoother.scale(1.0 / ratio)
             self.log.clamp("smoothed_twist")
+        unsafe = self._braking_violation(state, ik)
+        if unsafe is not None:
+            # The step before this one was checked the same way, so braking from it is known to stay clear.
+            self._smoother.restore(snapshot)
+            v = self._smoother.step(np.zeros(6))
+            self.log.clamp(unsafe)
         q_pred = state.q + ik(v) * self._safety.collision.lookahead_s
         hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))
         if hit is not None:
@@ -325,6 +340,39 @@ class MotionGuard:
             stop = self._refuse(reason)
             raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
+
+    def _braking_violation(self, state: ArmState, ik: JointVelocityMap) -> str | None:
+        """What braking after the twist the smoother holds now would enter (``barrier braking`` or
+        ``joint margin braking``, the clamp it is counted as), or None if it stays clear: the joints must
+        stay inside their margins and the TCP and the sensor out of every barrier margin along the whole
+        stop (:meth:`TwistSmoother.braking`; the stop may use ``BRAKING_MARGIN_SHARE`` of the barrier
+        margin); a point or joint already inside a margin may not go deeper.
+        The joints follow the differential IK at ``state.q``, and the flange moves as its Jacobian makes
+        those joint motions move it (which differs from the twist asked for near a singularity); the
+        sensor turns with the flange (Rodrigues' formula on the rotation vector of that motion)."""
+        times, twist = self._smoother.braking()
+        qd = ik(twist)
+        dq = np.concatenate([np.zeros((1, qd.shape[1])),
+                             np.cumsum(0.5 * (qd[1:] + qd[:-1]) * np.diff(times)[:, None], axis=0)])
+        q = state.q + dq
+        if np.any(q < np.minimum(self._q_lo, state.q) - 1e-9) or np.any(q > np.maximum(self._q_hi, state.q)
+                                                                         + 1e-9):
+            return "joint margin braking"
+        moved = dq @ ik.jacobian.T
+        now = self.guarded_points(state.T_base_flange)
+        lever = now[1] - now[0]
+        theta = moved[:, 3:]
+        angle = np.linalg.norm(theta, axis=1, keepdims=True)
+        axis = np.divide(theta, angle, out=np.zeros_like(theta), where=angle > 0.0)
+        cos, sin = np.cos(angle), np.sin(angle)
+        turned = lever * cos + np.cross(axis, lever) * sin + axis * (axis @ lever)[:, None] * (1.0 - cos)
+        tcp = now[0] + moved[:, :3]
+        path = np.stack([tcp, tcp + turned], axis=1)  # (k, 2, 3)
+        floor = np.minimum(self.barriers.clearances(now), -BRAKING_MARGIN_SHARE * self.barriers.margin_m)
+        clearance = self.barriers.clearances(path.reshape(-1, 3)).reshape(len(times), 2, -1)
+        if np.any(clearance < floor[None] - 1e-9):
+            return "barrier braking"
+        return None
 
     def _send(self, command: Callable[[], None], *, motion: bool = True) -> None:
         if motion and self.first_motion_unix_s is None:

@@ -5,13 +5,25 @@ the next twist to send: reached with bounded acceleration and jerk, in phase syn
 twist changes along a straight line in velocity space (the direction of a change is kept). Per-axis limits
 are the Cartesian limits divided by sqrt(3), so that the norm of the linear (angular) acceleration and jerk
 never exceeds the cell's limits.
+
+The smoother also tells how the motion would come to rest from where it is (:meth:`TwistSmoother.braking`):
+ruckig's time-optimal ramp to a zero twist under the same limits, which is the path a stop takes, so that
+the guard can check that path before it sends a twist (``cell.safety.guard``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+from ruckig import (
+    ControlInterface,
+    InputParameter,
+    OutputParameter,
+    Result,
+    Ruckig,
+    Synchronization,
+    Trajectory,
+)
 
 from drivers.errors import SafetyStop
 
@@ -37,6 +49,13 @@ class TwistSmoother:
         inp.max_acceleration = [acc[0] / _SQRT3] * 3 + [acc[1] / _SQRT3] * 3
         inp.max_jerk = [jerk[0] / _SQRT3] * 3 + [jerk[1] / _SQRT3] * 3
         inp.max_velocity = [1e3] * 6  # not used by the velocity interface; ruckig wants a value
+        self._period = period_s
+        self._brake_inp = InputParameter(6)
+        for name in ("control_interface", "synchronization", "max_acceleration", "max_jerk", "max_velocity"):
+            setattr(self._brake_inp, name, getattr(inp, name))
+        self._brake_inp.target_velocity = [0.0] * 6
+        self._brake_inp.target_acceleration = [0.0] * 6
+        self._brake = Trajectory(6)
         self.reset()
 
     def reset(self) -> None:
@@ -55,6 +74,33 @@ class TwistSmoother:
         inp.current_velocity = (np.array(inp.current_velocity) * factor).tolist()
         inp.current_acceleration = (np.array(inp.current_acceleration) * factor).tolist()
         return np.array(inp.current_velocity)
+
+    def snapshot(self) -> tuple[list[float], list[float]]:
+        """The current twist and its rate of change, to :meth:`restore` after a step that is not taken."""
+        return list(self._inp.current_velocity), list(self._inp.current_acceleration)
+
+    def restore(self, snapshot: tuple[list[float], list[float]]) -> None:
+        """Go back to a :meth:`snapshot`."""
+        self._inp.current_velocity, self._inp.current_acceleration = list(snapshot[0]), list(snapshot[1])
+
+    def braking(self) -> tuple[Array, Array]:
+        """How the current twist comes to rest: it is sent for one control period (the step it came from),
+        then ruckig's time-optimal ramp to zero under the same limits and synchronisation runs. Returns the
+        times (k,) [s] from now, about one control period apart, and the twist (k, 6) at each; the first
+        sample is now, the last the arm at rest."""
+        inp = self._brake_inp
+        v0 = np.array(self._inp.current_velocity)
+        inp.current_position = [0.0] * 6
+        inp.current_velocity = self._inp.current_velocity
+        inp.current_acceleration = self._inp.current_acceleration
+        result = self._otg.calculate(inp, self._brake)
+        if result not in (Result.Working, Result.Finished):
+            raise SafetyStop(f"braking ramp failed ({result})")
+        duration = self._brake.duration
+        ramp = np.append(np.arange(0.0, duration, self._period), duration)
+        times = np.concatenate([[0.0], ramp + self._period])
+        twist = np.vstack([v0, np.array([self._brake.at_time(t)[1] for t in ramp])])
+        return times, twist
 
     def step(self, target: Array) -> Array:
         """One control period towards ``target``; returns the twist to send now."""

@@ -235,11 +235,13 @@ class SimArm(Arm):
                 self._q = q_new
         elif self._mode in (ArmMode.STOPPING, ArmMode.FAULT):
             speed = np.abs(self._qd)
-            moving = speed > 0.0
-            if np.any(moving):
+            # Joints slower than qdd_max * dt could stop within this step; only the others bound it (and
+            # dividing by them alone keeps a vanishing speed from overflowing the ratio).
+            slow_to_stop = speed > m.qdd_max * dt
+            if np.any(slow_to_stop):
                 # largest uniform scale-down allowed: no joint may lose more than qdd_max * dt of speed
-                shrink = float(np.min(m.qdd_max[moving] * dt / speed[moving]))
-                self._integrate(self._qd * max(0.0, 1.0 - shrink), dt)
+                shrink = float(np.min(m.qdd_max[slow_to_stop] * dt / speed[slow_to_stop]))
+                self._integrate(self._qd * (1.0 - shrink), dt)
             else:
                 self._qd = np.zeros(m.n_joints)
             if self._mode is ArmMode.STOPPING and not np.any(self._qd != 0.0):

@@ -81,8 +81,9 @@ class JointVelocityMap:
     jacobian: Array
 
     def __call__(self, v: Array) -> Array:
-        qd = self.task @ v
-        return qd + float(np.linalg.norm(qd)) * self.null
+        """Joint velocities (n,) of a twist (6,), or (k, n) of twists (k, 6)."""
+        qd = v @ self.task.T
+        return qd + np.linalg.norm(qd, axis=-1, keepdims=True) * self.null
 
     def realized(self, v: Array) -> Array:
         """The flange twist (6,) the joint velocities ``self(v)`` make: ``v`` itself away from
