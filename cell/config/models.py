@@ -47,12 +47,15 @@ class StationConfig(StrictModel):
 
 
 class SimConfig(StrictModel):
-    """The simulated world: the table's size and centre in the base frame [m], and faults to inject on a
-    schedule (``drivers.sim.faults``) to see the safety layer react."""
+    """The simulated world: the table's size and centre in the base frame [m], faults to inject on a
+    schedule (``drivers.sim.faults``) to see the safety layer react, and ``true_mount``, the hand-eye
+    transform T_flange_sensor the simulated sensor really has (None: the cell file's ``mount``), so that
+    what a job believes (``mount``) can differ from the truth a calibration has to find."""
 
     table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
     table_center_xy_m: tuple[float, float] = (0.5, 0.0)
     faults: list[SimFault] = Field(default_factory=list)
+    true_mount: PoseConfig | None = None
 
 
 class CropBoxConfig(StrictModel):
@@ -189,6 +192,10 @@ class CellConfig(StrictModel):
     packing: PackingConfig = PackingConfig()
     service: ServiceConfig = ServiceConfig()
     line: LineConfig | None = None
+
+    def true_mount_matrix(self) -> np.ndarray:
+        """T_flange_sensor (4x4) the simulated sensor renders from: ``sim.true_mount``, else ``mount``."""
+        return (self.sim.true_mount or self.mount).matrix()
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:

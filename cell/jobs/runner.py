@@ -285,7 +285,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                          table_size_xy=cfg.sim.table_size_m) if cfg.mode in ("sim", "dry-run") else None
         world = SimWorld(clock=clock, rng=world_rng, scene=scene)
         model = get_robot_model(cfg.arm.model)
-        T_flange_sensor = cfg.mount.matrix()
+        # the simulated sensor renders from the mount it really has, the job believes ``mount``
+        T_flange_sensor = cfg.true_mount_matrix()
         arm = make_arm(cfg.arm, model, world)
         flange = poses.latest if poses is not None else true_flange_pose(arm)
         sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
