@@ -1,0 +1,111 @@
+"""``cell calibrate``: the cell measures its own mount, table and ToF zones (the ``calibration`` package).
+
+Every move goes through a job (``cell.jobs``, so the safety layer); the views' job folder, with the raw
+frames and the flange poses, is kept under ``<data dir>/calibrations/<date-time>-<kind>-<target>``.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import date
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+
+from calibration.cell_file import update_cell_file
+from calibration.compare import compare_results, read_result
+from calibration.mount import calibrate_mount, default_folder, result_json
+from calibration.targets import BOX_TARGETS, DEFAULT_BOX
+from cell.cli.errors import fail
+from cell.config import load_config
+from cell.service.startup import DEFAULT_DATA_DIR
+from drivers.errors import CalibrationError, CellError
+
+calibrate_app = typer.Typer(help="Calibrate the cell with the cell: the sensor mount, the table, the ToF "
+                                 "zones.", no_args_is_help=True)
+console = Console(soft_wrap=True)
+
+BOARD_TARGET = "charuco"
+ConfigOption = Annotated[Path, typer.Option(help="the cell file")]
+DataDirOption = Annotated[Path, typer.Option(help="the data folder; the views are kept in its calibrations/")]
+
+
+def _print(text: str) -> None:
+    console.print(text, markup=False, highlight=False)
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def _axes(values: list[float], unit: str) -> str:
+    return ", ".join(f"{name} {v:.3f}" for name, v in zip("xyz", values, strict=True)) + f" {unit}"
+
+
+@calibrate_app.command()
+def mount(
+    config: ConfigOption,
+    out: Annotated[Path, typer.Option(help="where to write the result (JSON)")],
+    target: Annotated[str, typer.Option(help=f"the known shape on the table: {', '.join(BOX_TARGETS)}")]
+    = DEFAULT_BOX,
+    poses: Annotated[int, typer.Option(min=4, help="views to plan (ToF: 40 or more)")] = 30,
+    standoff: Annotated[float | None, typer.Option(help="sensor distance to the target [m] (default: "
+                                                        "scan.standoff_m)")] = None,
+    write: Annotated[bool, typer.Option(help="put the mount into the cell file (comments kept), after "
+                                             "showing the change")] = False,
+    data_dir: DataDirOption = DEFAULT_DATA_DIR,
+    seed: Annotated[int, typer.Option(help="seed of the job (simulated devices, point sampling)")] = 0,
+) -> None:
+    """Solve the sensor mount (hand-eye, T_flange_sensor) from views of a known shape (the table and a
+    box at the station) that the arm visits through the safety layer; prints it with its residual and
+    per-axis standard deviations and writes the JSON result."""
+    try:
+        if target == BOARD_TARGET:
+            raise CalibrationError("the ChArUco board method is not implemented yet; use a box target "
+                                   f"({', '.join(BOX_TARGETS)})")
+        cfg = load_config(config)
+        folder = default_folder(data_dir, "mount", target)
+        cal = calibrate_mount(cfg, str(config), target=target, n_poses=poses, folder=folder, seed=seed,
+                              standoff_m=standoff)
+        result = result_json(cal, str(config))
+        _write_json(out, result)
+        _write_json(folder / "calibration.json", result)
+    except CellError as exc:
+        raise fail(exc) from None
+    m = result["mount"]
+    _print(f"mount: xyz_m {m['xyz_m']}, rpy_deg {m['rpy_deg']} (changed by {result['change_mm']:.2f} mm, "
+           f"{result['change_deg']:.3f} deg)")
+    _print(f"residual {result['residual_mm']:.3f} mm RMS over {result['n_points']} points of "
+           f"{result['n_views']} views ({result['n_planned']} planned, {result['n_unreachable_views']} "
+           "out of "
+           f"reach, refused {result['refused_moves'] or 'none'})")
+    _print(f"std: {_axes(result['std_mm'], 'mm')}; about {_axes(result['std_deg'], 'deg')}")
+    _print(f"wrote {out}; views kept in {folder}")
+    if write:
+        try:
+            update_cell_file(config, {("mount", "xyz_m"): m["xyz_m"], ("mount", "rpy_deg"): m["rpy_deg"]},
+                             f"calibrated by cell calibrate mount, {date.today().isoformat()}", _print)
+        except CellError as exc:
+            raise fail(exc) from None
+        _print(f"wrote the mount into {config}")
+
+
+@calibrate_app.command()
+def compare(
+    a: Annotated[Path, typer.Argument(help="a mount calibration result (JSON)")],
+    b: Annotated[Path, typer.Argument(help="another one")],
+) -> None:
+    """How far two mount calibrations are apart (B less A), and whether that is within 3 combined
+    standard deviations on every axis."""
+    try:
+        diff = compare_results(read_result(a), read_result(b))
+    except CellError as exc:
+        raise fail(exc) from None
+    _print(f"translation: {_axes(diff['delta_xyz_mm'], 'mm')} ({diff['distance_mm']:.3f} mm)")
+    _print(f"rotation: roll-pitch-yaw {diff['delta_rpy_deg']} deg ({diff['angle_deg']:.4f} deg)")
+    if diff["consistent"] is not None:
+        _print("consistent within their uncertainties" if diff["consistent"]
+               else "NOT consistent: the mount moved, or one calibration is off")
