@@ -4,9 +4,9 @@ the safety layer; a view it refuses, or one out of reach, is skipped and counted
 
 Mount views (known shape): ``n`` sensor poses looking at the top centre of the box at the station, at
 ``standoff_m``, their directions spread on a cap of the sphere (elevations between ``ELEVATION_DEG``,
-azimuths by the golden angle so that any prefix of the list is spread too) and each turned about its
-optical axis by one of ``ROLLS_DEG``: views from several directions and with several rotations of the
-flange are what make every axis of the mount observable.
+azimuths by the golden angle, then visited in order of azimuth so that the moves between them are
+short) and each turned about its optical axis by one of ``ROLLS_DEG``: views from several directions and
+with several rotations of the flange are what make every axis of the mount observable.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def mount_views(config: CellConfig, n: int, look_at_height_m: float, standoff_m:
     target = np.array([st.xy_m[0], st.xy_m[1], st.table_z_m + look_at_height_m])
     lo, hi = np.deg2rad(ELEVATION_DEG)
     views = []
-    for i in range(n):
+    for i in sorted(range(n), key=lambda k: (k * GOLDEN_ANGLE_RAD) % (2.0 * np.pi)):
         az = np.pi + i * GOLDEN_ANGLE_RAD
         el = lo + (hi - lo) * ((i * 0.618034) % 1.0)
         eye = target + standoff_m * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
@@ -57,16 +57,18 @@ raises to refuse the views."""
 class ViewsPlanner(Planner):
     """Visits given sensor poses in order and captures one frame at each; a pose the arm cannot reach or
     the guard refuses is skipped (the session logs and counts it). ``precheck`` runs before anything
-    moves."""
+    moves; ``frames_per_view`` frames are taken at each view (more frames average a noisy sensor's
+    noise down at no cost in motion)."""
 
     name = "calibration-views"
     description = "the views a calibration planned, one capture each"
 
     def __init__(self, config: CellConfig, views: list[Array], precheck: Precheck | None = None,
-                 settle_s: float = 0.2) -> None:
+                 frames_per_view: int = 1, settle_s: float = 0.2) -> None:
         super().__init__(config)
         self.views = views
         self.precheck = precheck
+        self.frames_per_view = frames_per_view
         self.settle_s = settle_s
 
     def run(self, session: ScanSession) -> str:
@@ -78,7 +80,8 @@ class ViewsPlanner(Planner):
                 skipped += 1
                 continue
             session.wait(self.settle_s)
-            session.capture()
+            for _ in range(self.frames_per_view):
+                session.capture()
         n = len(self.views)
         return f"calibration views: {n - skipped} of {n} captured, {skipped} skipped"
 
@@ -86,21 +89,28 @@ class ViewsPlanner(Planner):
 def capture_views(config: CellConfig, config_path: str, views: list[Array], *, target_object: str,
                   folder: Path, seed: int = 0,
                   object_pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                  precheck: Precheck | None = None) -> ScanOutcome:
+                  precheck: Precheck | None = None, frames_per_view: int = 1) -> ScanOutcome:
     """Run the views as a job into ``folder`` (created; it keeps the raw frames and poses). In sim and
     dry runs ``target_object`` (a shipped mesh or ``none``) stands at ``object_pose`` (x, y, yaw_deg)
-    from the station; on a real cell it is only the job's label. ``precheck``: see ``ViewsPlanner``."""
+    from the station; on a real cell it is only the job's label. ``precheck``, ``frames_per_view``: see
+    ``ViewsPlanner``."""
     request = ScanRequest(config=config, config_path=config_path, object=target_object, planner="raster",
                           seed=seed, out=folder, object_pose=object_pose)
-    job = dataclasses.replace(prepare_scan(request), planner=ViewsPlanner(config, views, precheck),
-                              planner_name=ViewsPlanner.name)
+    planner = ViewsPlanner(config, views, precheck, frames_per_view)
+    job = dataclasses.replace(prepare_scan(request), planner=planner, planner_name=ViewsPlanner.name)
     return run_prepared(job)
+
+
+SAME_VIEW_ATOL = 1e-4
+"""Consecutive frames whose reported flange poses agree within this (4x4 entries, [m] and unitless) were
+taken at one view and are merged."""
 
 
 def load_views(folder: Path) -> list[View]:
     """The captured views of a job folder, in capture order: the reported flange pose and the measured
-    points (sensor frame): a depth image back-projected, or the ToF zones of status 5."""
-    views = []
+    points (sensor frame): a depth image back-projected, or the ToF zones of status 5; the frames of one
+    view (``SAME_VIEW_ATOL``) merged."""
+    views: list[View] = []
     for path in sorted((folder / "frames").glob("*.npz")):
         with np.load(path) as f:
             if "depth" in f:
@@ -110,5 +120,9 @@ def load_views(folder: Path) -> list[View]:
                 points = f["zone_distance_m"][ok, None] * f["zone_directions"][ok]
             else:
                 points = f["points"]
-            views.append(View(np.array(f["T_base_flange"], dtype=np.float64), points))
+            T = np.array(f["T_base_flange"], dtype=np.float64)
+        if views and np.allclose(views[-1].T_base_flange, T, atol=SAME_VIEW_ATOL):
+            views[-1] = View(views[-1].T_base_flange, np.concatenate([views[-1].points_sensor, points]))
+        else:
+            views.append(View(T, points))
     return views
