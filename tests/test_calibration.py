@@ -16,13 +16,18 @@ from calibration.cell_file import updated_text
 from calibration.mount import calibrate_mount, pose_difference
 from calibration.predict import check_views_observable
 from calibration.targets import box_target
+from calibration.tof import calibrate_zones
 from calibration.views import capture_views, mount_views
 from cell.cli.main import app
 from cell.config import load_config
 from cell.config.load import parse_config
 from cell.config.models import CellConfig, PoseConfig
 from drivers.depth.base import SensorModel
-from drivers.errors import CalibrationError
+from drivers.depth.config import VL53L8CXConfig, ZoneBiasConfig
+from drivers.depth.vl53l8cx.emulator import SimToFSource, VL53L8CXEmulator
+from drivers.depth.vl53l8cx.serial_driver import VL53L8CXSerial
+from drivers.depth.zone_correction import ZoneCorrection, write_zone_correction
+from drivers.errors import CalibrationError, ConfigError
 from drivers.transforms import look_at
 from tests.conftest import CONFIG_DIR, FRANKA, UR5E
 
@@ -162,3 +167,48 @@ def test_the_board_method_says_it_is_not_there(tmp_path: Path) -> None:
     run = CliRunner().invoke(app, ["calibrate", "mount", "--config", str(UR5E), "--out",
                                    str(tmp_path / "m.json"), "--target", "charuco"])
     assert run.exit_code == 1 and "not implemented" in run.output
+
+
+def test_the_zone_calibration_finds_each_zones_bias_and_halves_the_range_error(tmp_path: Path) -> None:
+    cfg = load_config(UR5E)
+    bias = ZoneBiasConfig(offset_std_m=0.01, seed=3)
+    sensor = cfg.sensor.model_copy(update={"zone_bias": bias})
+    cfg, _ = _with_true_mount(cfg.model_copy(update={"sensor": sensor}))
+    fit = calibrate_zones(cfg, "test", folder=tmp_path / "views", frames_per_height=6)
+    truth = bias.offset_std_m * np.random.default_rng(bias.seed).standard_normal(64)
+    # the biases up to their common part (the mount's business), despite the wrong mount
+    assert np.abs(fit.correction.offset_m - (truth - truth.mean())).mean() < 0.002
+    assert fit.error_after_m <= 0.5 * fit.error_before_m
+    np.testing.assert_allclose(fit.correction.noise_m.mean(), 0.005, atol=0.0015)  # sigma0 + k r^2
+
+    # the correction file, applied by the simulated sensor, leaves no bias to find
+    path = tmp_path / "zones.json"
+    write_zone_correction(fit.correction, path)
+    sensor = cfg.sensor.model_copy(update={"zone_correction": str(path)})
+    corrected = cfg.model_copy(update={"sensor": sensor})
+    again = calibrate_zones(corrected, "test", folder=tmp_path / "again", frames_per_height=6)
+    assert again.error_before_m < 0.6 * fit.error_before_m
+    np.testing.assert_allclose(again.correction.offset_m, fit.correction.offset_m, atol=0.004)
+
+
+def test_the_serial_driver_applies_the_zone_correction(tmp_path: Path) -> None:
+    offsets = np.linspace(-0.02, 0.02, 16)
+    path = tmp_path / "zones.json"
+    write_zone_correction(ZoneCorrection(resolution=4, offset_m=offsets, noise_m=np.zeros(16)), path)
+    emulator = VL53L8CXEmulator.on_tcp(SimToFSource("cube", seed=1), seed=2)
+    config = VL53L8CXConfig(type="vl53l8cx", port=emulator.url, resolution=4, frequency_hz=60, timeout_s=2.0,
+                            zone_correction=str(path))
+    sensor = VL53L8CXSerial(config)
+    with emulator, sensor:
+        frames = [(sensor.capture(), sensor.last_raw) for _ in range(3)]
+    for frame, raw in frames:
+        assert raw is not None
+        has = raw.nb_target_detected > 0
+        np.testing.assert_allclose(frame.zones.distance_m[has], raw.distance_mm[has] / 1000.0 - offsets[has],
+                                   atol=1e-6)  # the file holds 6 decimals
+        valid = has & np.isin(raw.target_status, [5, 9]) & (raw.distance_mm > 0)
+        np.testing.assert_allclose(np.linalg.norm(frame.points, axis=1),
+                                   raw.distance_mm[valid] / 1000.0 - offsets[valid], atol=1e-6)
+    # a table for another resolution is refused when the driver is made, naming the file
+    with pytest.raises(ConfigError, match=r"zones\.json.*4x4 zones, the sensor runs 8x8"):
+        VL53L8CXSerial(config.model_copy(update={"resolution": 8, "frequency_hz": 15}))
