@@ -30,6 +30,7 @@ from drivers.depth.zone_correction import ZoneCorrection, write_zone_correction
 from drivers.errors import CalibrationError, ConfigError
 from drivers.transforms import look_at
 from tests.conftest import CONFIG_DIR, FRANKA, UR5E
+from tests.rtde_peer import ControllerPeer
 
 TRUE_OFFSET_XYZ_M = (0.006, -0.005, 0.004)
 TRUE_OFFSET_RPY_DEG = (2.0, -3.0, 2.5)  # 8.8 mm and 4.4 deg from the believed mount
@@ -212,3 +213,25 @@ def test_the_serial_driver_applies_the_zone_correction(tmp_path: Path) -> None:
     # a table for another resolution is refused when the driver is made, naming the file
     with pytest.raises(ConfigError, match=r"zones\.json.*4x4 zones, the sensor runs 8x8"):
         VL53L8CXSerial(config.model_copy(update={"resolution": 8, "frequency_hz": 15}))
+
+
+def test_a_calibration_on_the_dry_run_path_moves_the_rtde_peer_through_the_guard(tmp_path: Path) -> None:
+    dry_run = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
+    cfg = load_config(dry_run)
+    assert cfg.arm.home_joints_rad is not None
+    peer = ControllerPeer(q=cfg.arm.home_joints_rad)
+    try:
+        cfg = cfg.model_copy(update={"arm": cfg.arm.model_copy(update={"host": peer.host})})
+        cal = calibrate_mount(cfg, str(dry_run), target="horizontal_box", n_poses=6,
+                              folder=tmp_path / "views")
+        servoj = peer.records("servoJ")
+        peer_state = peer.state()
+    finally:
+        peer.stop()
+    result = cal.job_result
+    assert result["status"] == "completed" and result["safety"]["stops"] == [], result["termination"]
+    assert servoj and peer_state["safety_mode"] == "NORMAL" and result["path_length_m"] > 0.1
+    assert cal.fit.n_views >= 4 and len(list((tmp_path / "views" / "frames").glob("*.npz"))) >= 4 * 5
+    # a handful of views: the mount is found within the uncertainty the fit reports
+    err_m, err_deg = pose_difference(cal.fit.T_flange_sensor, cfg.true_mount_matrix())
+    assert err_m <= 4.0 * float(np.linalg.norm(cal.fit.std_m)) and err_deg <= 1.0
