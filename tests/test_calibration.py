@@ -235,3 +235,19 @@ def test_a_calibration_on_the_dry_run_path_moves_the_rtde_peer_through_the_guard
     # a handful of views: the mount is found within the uncertainty the fit reports
     err_m, err_deg = pose_difference(cal.fit.T_flange_sensor, cfg.true_mount_matrix())
     assert err_m <= 4.0 * float(np.linalg.norm(cal.fit.std_m)) and err_deg <= 1.0
+
+
+def test_cli_table_finds_the_table_and_the_part_on_the_station(tmp_path: Path) -> None:
+    cell = tmp_path / "cell.yaml"
+    data = yaml.safe_load(FRANKA.read_text())
+    data["sensor"].update(width=160, height=120, fx=118.75, fy=118.75, cx=79.5, cy=59.5)  # fast
+    cell.write_text(yaml.safe_dump(data))
+    out = tmp_path / "table.json"
+    run = CliRunner().invoke(app, ["calibrate", "table", "--config", str(cell), "--out", str(out),
+                                   "--object", "cube", "--data-dir", str(tmp_path / "data")])
+    assert run.exit_code == 0, run.output
+    report = json.loads(out.read_text())
+    assert abs(report["table_z_difference_mm"]) < 0.5 and report["tilt_deg"] < 0.05
+    # the centre of what the views saw of the cube: its top and the sides they faced
+    assert report["part_xy_m"] is not None and np.hypot(*report["station_difference_mm"]) < 10.0
+    assert "part on the station" in run.output

@@ -18,6 +18,7 @@ from rich.console import Console
 from calibration.cell_file import update_cell_file
 from calibration.compare import compare_results, read_result
 from calibration.mount import calibrate_mount, default_folder, result_json
+from calibration.table import calibrate_table, table_report
 from calibration.targets import BOX_TARGETS, DEFAULT_BOX
 from calibration.tof import DEFAULT_FRAMES_PER_HEIGHT, DEFAULT_HEIGHTS_M, calibrate_zones, zone_record
 from cell.cli.errors import fail
@@ -144,6 +145,38 @@ def tof(
         except CellError as exc:
             raise fail(exc) from None
         _print(f"set sensor.zone_correction in {config}")
+
+
+@calibrate_app.command()
+def table(
+    config: ConfigOption,
+    out: Annotated[Path | None, typer.Option(help="also write the report (JSON) here")] = None,
+    ring: Annotated[int, typer.Option(min=0, help="views around the station besides the one above it")] = 4,
+    object: Annotated[str, typer.Option("--object", help="sim and dry runs: what stands on the station "
+                                                         "(a shipped mesh; 'none': nothing)")] = "none",
+    data_dir: DataDirOption = DEFAULT_DATA_DIR,
+    seed: Annotated[int, typer.Option(help="seed of the job (simulated devices)")] = 0,
+) -> None:
+    """Find the table plane (height and tilt) and, with a part on the station's mark, the station, from
+    a short scan, and report them against the cell file's ``station``."""
+    try:
+        cfg = load_config(config)
+        folder = default_folder(data_dir, "table", object)
+        report = table_report(calibrate_table(cfg, str(config), folder=folder, ring=ring,
+                                              target_object=object, seed=seed), cfg)
+        _write_json(folder / "table.json", report)
+        if out is not None:
+            _write_json(out, report)
+    except CellError as exc:
+        raise fail(exc) from None
+    _print(f"table at the station: z {report['table_z_at_station_m']:.4f} m (cell file "
+           f"{report['cell_file_table_z_m']:.4f} m, {report['table_z_difference_mm']:+.2f} mm), tilt "
+           f"{report['tilt_deg']:.3f} deg towards {report['tilt_direction_deg']:.0f} deg; residual "
+           f"{report['residual_mm']:.2f} mm over {report['n_points']} points")
+    if report["part_xy_m"] is not None:
+        _print(f"part on the station at xy {report['part_xy_m']} m: {report['station_difference_mm']} mm "
+               f"from the cell file's station {report['cell_file_station_xy_m']}")
+    _print(f"views kept in {folder}")
 
 
 @calibrate_app.command()
