@@ -16,6 +16,10 @@ Per frame (one ray-casting call for all pixels):
 3. axial Gaussian noise N(0, sigma(z)^2) with sigma(z) = sigma0_m + k_per_m z^2, z the true depth;
 4. range gating on the measured (noisy) depth: outside [range_min_m, range_max_m] is no return (depth 0).
 
+The grey ``intensity`` image is rendered from the same rays, noise-free and without dropouts (a camera's
+image sees what its depth misses): the table's grey or what is printed on it (a calibration board,
+``SimScene.texture``), the object's grey, black where a ray hits nothing.
+
 Random numbers come only from the generator given at construction; every frame draws the same number of
 variates (one uniform and one normal per pixel) whatever the scene, so a seed fixes the frame sequence
 exactly.
@@ -117,7 +121,8 @@ class SimRGBD(SimDepthSensor):
         # The same back-projection as replay and reprocessing, so that a recorded depth image gives back
         # exactly the points this frame had.
         points = back_project(depth, self.intrinsics)
+        intensity = self._scene.intensity(hits, T[:3, 3], dirs_base).reshape(c.height, c.width)
 
         frame = DepthFrame(seq=self._next_seq(), timestamp=self._clock.now(), points=points,
-                           depth=depth, intrinsics=self.intrinsics)
+                           depth=depth, intrinsics=self.intrinsics, intensity=intensity)
         return frame
