@@ -18,15 +18,22 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calibration.board_fit import BoardFit, fit_mount_to_board, load_board_views
 from calibration.predict import check_views_observable
 from calibration.shape_fit import Array, ShapeFit, fit_mount_to_shape
 from calibration.targets import box_target
 from calibration.views import capture_views, load_views, mount_views
 from cell.config.models import CellConfig
 from drivers.depth.base import SensorModel
+from drivers.errors import CalibrationError
+from drivers.sim.objects import EMPTY_TABLE
 from drivers.transforms import inv_T
 
 METHOD_SHAPE = "known-shape"
+METHOD_BOARD = "charuco"
+BOARD_TARGET = "charuco"
+BOARD_ELEVATION_DEG = (50.0, 85.0)
+"""Board views look down more steeply than box views: the markers must stay readable."""
 TOF_TYPES = ("sim-tof", "vl53l8cx")
 TOF_FRAMES_PER_VIEW = 5
 """Frames a ToF sensor takes at each view: its 64 zones are noisy (about 5 mm at 0.4 m), and averaging
@@ -38,7 +45,7 @@ class MountCalibration:
     """A solved mount: the fit, the mount it started from, the views' job folder and its result (how many
     views were planned, captured, refused)."""
 
-    fit: ShapeFit
+    fit: ShapeFit | BoardFit
     T_start: Array
     target: str
     folder: Path
@@ -67,13 +74,16 @@ def default_folder(data_dir: Path, kind: str, target: str) -> Path:
 def calibrate_mount(config: CellConfig, config_path: str, *, target: str, n_poses: int, folder: Path,
                     seed: int = 0, standoff_m: float | None = None,
                     object_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> MountCalibration:
-    """Calibrate the mount against the known-shape ``target`` (a box of ``calibration.targets``) from
-    ``n_poses`` planned views at ``standoff_m`` [m] (default: the cell's ``scan.standoff_m``), starting
-    from the cell file's ``mount``. In sim and dry runs the box stands at ``object_pose`` (x, y, yaw_deg)
-    from the station; the fit starts from the station, yaw 0, and finds where it is."""
+    """Calibrate the mount against ``target`` from ``n_poses`` planned views at ``standoff_m`` [m]
+    (default: the cell's ``scan.standoff_m``), starting from the cell file's ``mount``: the ChArUco board
+    (``BOARD_TARGET``, the cell's ``calibration.board`` lying on the table at the station) or a known
+    shape (a box of ``calibration.targets``). In sim and dry runs the box stands at ``object_pose`` (x, y,
+    yaw_deg) from the station; the fit starts from the station, yaw 0, and finds where it is."""
+    standoff = standoff_m if standoff_m is not None else config.scan.standoff_m
+    if target == BOARD_TARGET:
+        return _calibrate_with_board(config, config_path, n_poses, folder, seed, standoff)
     box = box_target(target)
     T_start = config.mount.matrix()
-    standoff = standoff_m if standoff_m is not None else config.scan.standoff_m
     views = mount_views(config, n_poses, float(box.size_m[2]), standoff)
     box0 = np.array([config.station.xy_m[0], config.station.xy_m[1], 0.0])
     table_z = config.station.table_z_m
@@ -90,6 +100,19 @@ def calibrate_mount(config: CellConfig, config_path: str, *, target: str, n_pose
                             job_result=outcome.result, n_planned=len(views))
 
 
+def _calibrate_with_board(config: CellConfig, config_path: str, n_poses: int, folder: Path, seed: int,
+                          standoff_m: float) -> MountCalibration:
+    board = config.calibration.board
+    if board is None:
+        raise CalibrationError("the cell file has no calibration.board (the ChArUco board's squares, their "
+                               "size, the markers' size and dictionary)")
+    views = mount_views(config, n_poses, 0.0, standoff_m, elevation_deg=BOARD_ELEVATION_DEG)
+    outcome = capture_views(config, config_path, views, target_object=EMPTY_TABLE, folder=folder, seed=seed)
+    fit = fit_mount_to_board(*load_board_views(outcome.folder, board))
+    return MountCalibration(fit=fit, T_start=config.mount.matrix(), target=BOARD_TARGET,
+                            folder=outcome.folder, job_result=outcome.result, n_planned=len(views))
+
+
 def result_json(cal: MountCalibration, config_path: str) -> dict[str, Any]:
     """The JSON ``cell calibrate mount`` writes (see the issue's format): the mount, its residual [mm],
     the views used, the per-axis standard deviations ([mm], [deg] about the flange axes), and the
@@ -104,7 +127,7 @@ def result_json(cal: MountCalibration, config_path: str) -> dict[str, Any]:
         "n_views": fit.n_views,
         "std_mm": np.round(fit.std_m * 1e3, 4).tolist(),
         "std_deg": np.round(np.degrees(fit.std_rad), 5).tolist(),
-        "method": METHOD_SHAPE,
+        "method": METHOD_BOARD if isinstance(fit, BoardFit) else METHOD_SHAPE,
         "target": cal.target,
         "config": config_path,
         "date": datetime.now().isoformat(timespec="seconds"),
@@ -112,9 +135,7 @@ def result_json(cal: MountCalibration, config_path: str) -> dict[str, Any]:
         "change_mm": round(moved_m * 1e3, 4),
         "change_deg": round(moved_deg, 5),
         "n_points": fit.n_points,
-        "box_pose_found": {"xy_m": np.round(fit.box_pose[:2], 6).tolist(),
-                           "yaw_deg": round(float(np.degrees(fit.box_pose[2])), 4)},
-        "table_z_found_m": round(fit.table_z_m, 6),
+        **fit.record(),
         "views_dir": str(cal.folder),
         "n_planned": cal.n_planned,
         "n_captured": job.get("n_captures"),

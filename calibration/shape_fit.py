@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -71,6 +72,12 @@ class ShapeFit:
     table_z_m: float
     n_views: int
     n_points: int
+
+    def record(self) -> dict[str, Any]:
+        """The method's own figures for the result JSON: where the box and the table were found."""
+        return {"box_pose_found": {"xy_m": np.round(self.box_pose[:2], 6).tolist(),
+                                   "yaw_deg": round(float(np.degrees(self.box_pose[2])), 4)},
+                "table_z_found_m": round(self.table_z_m, 6)}
 
 
 def mount_from_params(T0: Array, p: Array) -> Array:

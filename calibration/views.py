@@ -33,12 +33,13 @@ ZONE_STATUS_VALID = 5
 distance belongs to no one surface)."""
 
 
-def mount_views(config: CellConfig, n: int, look_at_height_m: float, standoff_m: float) -> list[Array]:
+def mount_views(config: CellConfig, n: int, look_at_height_m: float, standoff_m: float,
+                elevation_deg: tuple[float, float] = ELEVATION_DEG) -> list[Array]:
     """``n`` T_base_sensor poses (see the module docstring) looking at the point ``look_at_height_m``
-    [m] above the table at the station."""
+    [m] above the table at the station, at elevations within ``elevation_deg``."""
     st = config.station
     target = np.array([st.xy_m[0], st.xy_m[1], st.table_z_m + look_at_height_m])
-    lo, hi = np.deg2rad(ELEVATION_DEG)
+    lo, hi = np.deg2rad(elevation_deg)
     views = []
     for i in sorted(range(n), key=lambda k: (k * GOLDEN_ANGLE_RAD) % (2.0 * np.pi)):
         az = np.pi + i * GOLDEN_ANGLE_RAD

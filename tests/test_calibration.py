@@ -12,8 +12,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from calibration.board_fit import fit_mount_to_board, load_board_views
 from calibration.cell_file import updated_text
-from calibration.mount import calibrate_mount, pose_difference
+from calibration.mount import BOARD_ELEVATION_DEG, calibrate_mount, pose_difference
 from calibration.predict import check_views_observable
 from calibration.targets import box_target
 from calibration.tof import calibrate_zones
@@ -21,13 +22,14 @@ from calibration.views import capture_views, mount_views
 from cell.cli.main import app
 from cell.config import load_config
 from cell.config.load import parse_config
-from cell.config.models import CellConfig, PoseConfig
+from cell.config.models import CalibrationConfig, CellConfig, PoseConfig
 from drivers.depth.base import SensorModel
 from drivers.depth.config import VL53L8CXConfig, ZoneBiasConfig
 from drivers.depth.vl53l8cx.emulator import SimToFSource, VL53L8CXEmulator
 from drivers.depth.vl53l8cx.serial_driver import VL53L8CXSerial
 from drivers.depth.zone_correction import ZoneCorrection, write_zone_correction
 from drivers.errors import CalibrationError, ConfigError
+from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.transforms import look_at
 from tests.conftest import CONFIG_DIR, FRANKA, UR5E
 from tests.rtde_peer import ControllerPeer
@@ -164,10 +166,29 @@ def test_write_replaces_measure_marks_and_touches_nothing_else() -> None:
     assert cfg.mount.rpy_deg == (0.5, -0.25, 1.0) and cfg.sensor.zone_correction == "zones.json"
 
 
-def test_the_board_method_says_it_is_not_there(tmp_path: Path) -> None:
+def test_the_board_method_needs_the_cells_board(tmp_path: Path) -> None:
     run = CliRunner().invoke(app, ["calibrate", "mount", "--config", str(UR5E), "--out",
                                    str(tmp_path / "m.json"), "--target", "charuco"])
-    assert run.exit_code == 1 and "not implemented" in run.output
+    assert run.exit_code == 1 and "no calibration.board" in run.output
+
+
+def test_the_board_recovers_a_perturbed_mount_and_views_without_it_are_skipped(tmp_path: Path) -> None:
+    cfg, true = _with_true_mount(load_config(FRANKA))
+    cfg = cfg.model_copy(update={"calibration": CalibrationConfig(board=BoardConfig()),
+                                 "sim": cfg.sim.model_copy(update={"board": SimBoardConfig(pose=(0.01, 0.005,
+                                                                                                 5.0))})})
+    views = mount_views(cfg, 16, 0.0, 0.3, elevation_deg=BOARD_ELEVATION_DEG)
+    x, y = cfg.station.xy_m
+    away = [look_at(np.array([x - 0.1, y + dy, 0.35]), np.array([x - 0.1, y + dy + 0.3, 0.0]))
+            for dy in (-0.1, 0.1)]  # the board is out of sight
+    capture_views(cfg, "test", views[:8] + away + views[8:], target_object="none", folder=tmp_path / "views")
+    board_views, missing = load_board_views(tmp_path / "views", BoardConfig())
+    assert missing == 2
+    fit = fit_mount_to_board(board_views, missing)
+    err_m, err_deg = pose_difference(fit.T_flange_sensor, true.matrix())
+    assert err_m <= 0.0005 and err_deg <= 0.2, (err_m, err_deg)
+    assert fit.method in ("tsai", "park", "daniilidis") and fit.residual_px < 0.5
+    assert fit.record()["n_views_without_board"] == 2
 
 
 def test_the_zone_calibration_finds_each_zones_bias_and_halves_the_range_error(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from rich.console import Console
 
 from calibration.cell_file import update_cell_file
 from calibration.compare import compare_results, read_result
-from calibration.mount import calibrate_mount, default_folder, result_json
+from calibration.mount import BOARD_TARGET, calibrate_mount, default_folder, result_json
 from calibration.table import calibrate_table, table_report
 from calibration.targets import BOX_TARGETS, DEFAULT_BOX
 from calibration.tof import DEFAULT_FRAMES_PER_HEIGHT, DEFAULT_HEIGHTS_M, calibrate_zones, zone_record
@@ -25,13 +25,12 @@ from cell.cli.errors import fail
 from cell.config import load_config
 from cell.service.startup import DEFAULT_DATA_DIR
 from drivers.depth.zone_correction import write_zone_correction
-from drivers.errors import CalibrationError, CellError
+from drivers.errors import CellError
 
 calibrate_app = typer.Typer(help="Calibrate the cell with the cell: the sensor mount, the table, the ToF "
                                  "zones.", no_args_is_help=True)
 console = Console(soft_wrap=True)
 
-BOARD_TARGET = "charuco"
 ConfigOption = Annotated[Path, typer.Option(help="the cell file")]
 DataDirOption = Annotated[Path, typer.Option(help="the data folder; the views are kept in its calibrations/")]
 
@@ -53,7 +52,8 @@ def _axes(values: list[float], unit: str) -> str:
 def mount(
     config: ConfigOption,
     out: Annotated[Path, typer.Option(help="where to write the result (JSON)")],
-    target: Annotated[str, typer.Option(help=f"the known shape on the table: {', '.join(BOX_TARGETS)}")]
+    target: Annotated[str, typer.Option(help=f"{BOARD_TARGET!r}: the cell's ChArUco board (RGB-D cameras); "
+                                             f"or a known shape on the table: {', '.join(BOX_TARGETS)}")]
     = DEFAULT_BOX,
     poses: Annotated[int, typer.Option(min=4, help="views to plan (ToF: 40 or more)")] = 30,
     standoff: Annotated[float | None, typer.Option(help="sensor distance to the target [m] (default: "
@@ -63,13 +63,10 @@ def mount(
     data_dir: DataDirOption = DEFAULT_DATA_DIR,
     seed: Annotated[int, typer.Option(help="seed of the job (simulated devices, point sampling)")] = 0,
 ) -> None:
-    """Solve the sensor mount (hand-eye, T_flange_sensor) from views of a known shape (the table and a
-    box at the station) that the arm visits through the safety layer; prints it with its residual and
-    per-axis standard deviations and writes the JSON result."""
+    """Solve the sensor mount (hand-eye, T_flange_sensor) from views of the ChArUco board or of a known
+    shape (the table and a box at the station) that the arm visits through the safety layer; prints it
+    with its residual and per-axis standard deviations and writes the JSON result."""
     try:
-        if target == BOARD_TARGET:
-            raise CalibrationError("the ChArUco board method is not implemented yet; use a box target "
-                                   f"({', '.join(BOX_TARGETS)})")
         cfg = load_config(config)
         folder = default_folder(data_dir, "mount", target)
         cal = calibrate_mount(cfg, str(config), target=target, n_poses=poses, folder=folder, seed=seed,
