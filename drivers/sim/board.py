@@ -5,8 +5,8 @@ Board frame: OpenCV's (``cv2.aruco.CharucoBoard``): origin at the board's top-le
 along the rows of squares, y down the columns, z into the board (so z points down into the table when
 the board lies face up). The printed image covers ``squares_x * square_m`` by ``squares_y * square_m``.
 
-OpenCV (``opencv-contrib-python-headless``, the ``calibration`` extra) is imported only when a board is
-used.
+OpenCV (``opencv-contrib-python-headless`` 4.x, the ``calibration`` extra; the 5.0 wheels have no
+``calibrateHandEye``) is imported only when a board is used.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ from drivers.errors import DriverError
 
 Array = NDArray[np.float64]
 
-INSTALL_HINT = "the ChArUco board needs OpenCV: pip install 'opencv-contrib-python-headless>=4.8,<5'"
+INSTALL_HINT = ("the ChArUco board needs OpenCV: pip install 'cell[calibration]' "
+                "(opencv-contrib-python-headless 4.x)")
 TEXTURE_PX_PER_SQUARE = 120
 """Resolution of the simulated board's printed image [px per square]."""
 INTENSITY_TABLE = 110
