@@ -36,6 +36,8 @@ BOARD_ELEVATION_DEG = (50.0, 85.0)
 """Board views look down more steeply than box views: the markers must stay readable."""
 TOF_TYPES = ("sim-tof", "vl53l8cx")
 TOF_FRAMES_PER_VIEW = 5
+TOF_POSES = 40
+CAMERA_POSES = 30
 """Frames a ToF sensor takes at each view: its 64 zones are noisy (about 5 mm at 0.4 m), and averaging
 over frames costs no motion."""
 
@@ -64,6 +66,12 @@ def pose_difference(T_a: Array, T_b: Array) -> tuple[float, float]:
     dR = T_a[:3, :3].T @ T_b[:3, :3]
     return (float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])),
             float(np.degrees(np.linalg.norm(Rotation.from_matrix(dR).as_rotvec()))))
+
+
+def default_poses(config: CellConfig) -> int:
+    """How many views a mount calibration plans by default: ``TOF_POSES`` for a ToF sensor (64 noisy
+    zones a frame), ``CAMERA_POSES`` for a camera."""
+    return TOF_POSES if config.sensor.type in TOF_TYPES else CAMERA_POSES
 
 
 def default_folder(data_dir: Path, kind: str, target: str) -> Path:

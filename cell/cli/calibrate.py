@@ -17,7 +17,7 @@ from rich.console import Console
 
 from calibration.cell_file import update_cell_file
 from calibration.compare import compare_results, read_result
-from calibration.mount import BOARD_TARGET, calibrate_mount, default_folder, result_json
+from calibration.mount import BOARD_TARGET, calibrate_mount, default_folder, default_poses, result_json
 from calibration.table import calibrate_table, table_report
 from calibration.targets import BOX_TARGETS, DEFAULT_BOX
 from calibration.tof import DEFAULT_FRAMES_PER_HEIGHT, DEFAULT_HEIGHTS_M, calibrate_zones, zone_record
@@ -55,7 +55,8 @@ def mount(
     target: Annotated[str, typer.Option(help=f"{BOARD_TARGET!r}: the cell's ChArUco board (RGB-D cameras); "
                                              f"or a known shape on the table: {', '.join(BOX_TARGETS)}")]
     = DEFAULT_BOX,
-    poses: Annotated[int, typer.Option(min=4, help="views to plan (ToF: 40 or more)")] = 30,
+    poses: Annotated[int | None, typer.Option(min=4, help="views to plan (default: 40 for a ToF sensor, "
+                                                          "30 for a camera)")] = None,
     standoff: Annotated[float | None, typer.Option(help="sensor distance to the target [m] (default: "
                                                         "scan.standoff_m)")] = None,
     write: Annotated[bool, typer.Option(help="put the mount into the cell file (comments kept), after "
@@ -69,7 +70,8 @@ def mount(
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "mount", target)
-        cal = calibrate_mount(cfg, str(config), target=target, n_poses=poses, folder=folder, seed=seed,
+        n_poses = poses if poses is not None else default_poses(cfg)
+        cal = calibrate_mount(cfg, str(config), target=target, n_poses=n_poses, folder=folder, seed=seed,
                               standoff_m=standoff)
         result = result_json(cal, str(config))
         _write_json(out, result)
