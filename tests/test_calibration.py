@@ -177,11 +177,11 @@ def test_the_board_recovers_a_perturbed_mount_and_views_without_it_are_skipped(t
     cfg = cfg.model_copy(update={"calibration": CalibrationConfig(board=BoardConfig()),
                                  "sim": cfg.sim.model_copy(update={"board": SimBoardConfig(pose=(0.01, 0.005,
                                                                                                  5.0))})})
-    views = mount_views(cfg, 16, 0.0, 0.3, elevation_deg=BOARD_ELEVATION_DEG)
+    views = mount_views(cfg, 10, 0.0, 0.3, elevation_deg=BOARD_ELEVATION_DEG)
     x, y = cfg.station.xy_m
     away = [look_at(np.array([x - 0.1, y + dy, 0.35]), np.array([x - 0.1, y + dy + 0.3, 0.0]))
             for dy in (-0.1, 0.1)]  # the board is out of sight
-    capture_views(cfg, "test", views[:8] + away + views[8:], target_object="none", folder=tmp_path / "views")
+    capture_views(cfg, "test", views[:5] + away + views[5:], target_object="none", folder=tmp_path / "views")
     board_views, missing = load_board_views(tmp_path / "views", BoardConfig())
     assert missing == 2
     fit = fit_mount_to_board(board_views, missing)
