@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibration.shape_fit import Array, ShapeProblem, View, check_observable, jacobian
+from calibration.shape_fit import N_MOUNT, Array, ShapeProblem, View, check_observable, jacobian
 from calibration.targets import BoxTarget
 from drivers.depth.base import SensorModel
 from drivers.sim.objects import load_object
@@ -53,6 +53,6 @@ def check_views_observable(model: SensorModel, flange_poses: Sequence[Array], T_
     """Raise ``CalibrationError`` when the planned flange poses could not observe every mount axis
     (predicted points, ``NOMINAL_NOISE_M`` noise)."""
     views = predicted_views(model, flange_poses, T_mount, target, box_pose, table_z)
-    problem = ShapeProblem(views, T_mount, target)
-    x = np.concatenate([np.zeros(6), box_pose, [table_z]])
+    problem = ShapeProblem.from_views(views, T_mount, target)
+    x = np.concatenate([np.zeros(N_MOUNT), box_pose, [table_z]])
     check_observable(jacobian(problem.residuals, x), NOMINAL_NOISE_M)

@@ -86,16 +86,25 @@ def mount_from_params(T0: Array, p: Array) -> Array:
     return make_T(R, T0[:3, 3] + p[:3])
 
 
+@dataclass(frozen=True)
 class ShapeProblem:
-    """Points of all views stacked, with their view's rotation and translation, and the residuals."""
+    """The points of all views stacked (N, 3) [m, sensor frame], each with its view's flange rotation
+    (N, 3, 3) and translation (N, 3) [m], the starting mount and the target; ``residuals`` of the
+    parameters (the mount correction, the box pose, the table height)."""
 
-    def __init__(self, views: Sequence[View], T0: Array, target: BoxTarget) -> None:
-        self.T0 = T0
-        self.target = target
-        self.points = np.concatenate([v.points_sensor for v in views])
+    points: Array
+    R: Array
+    t: Array
+    T0: Array
+    target: BoxTarget
+
+    @classmethod
+    def from_views(cls, views: Sequence[View], T0: Array, target: BoxTarget) -> ShapeProblem:
         counts = [v.points_sensor.shape[0] for v in views]
-        self.R = np.repeat(np.stack([v.T_base_flange[:3, :3] for v in views]), counts, axis=0)
-        self.t = np.repeat(np.stack([v.T_base_flange[:3, 3] for v in views]), counts, axis=0)
+        return cls(points=np.concatenate([v.points_sensor for v in views]),
+                   R=np.repeat(np.stack([v.T_base_flange[:3, :3] for v in views]), counts, axis=0),
+                   t=np.repeat(np.stack([v.T_base_flange[:3, 3] for v in views]), counts, axis=0),
+                   T0=T0, target=target)
 
     def residuals(self, x: Array) -> Array:
         M = mount_from_params(self.T0, x[:N_MOUNT])
@@ -104,10 +113,7 @@ class ShapeProblem:
         return self.target.signed_distance(base, x[N_MOUNT:N_MOUNT + 3], float(x[N_MOUNT + 3]))
 
     def subset(self, keep: NDArray[np.bool_]) -> ShapeProblem:
-        out = object.__new__(ShapeProblem)
-        out.T0, out.target = self.T0, self.target
-        out.points, out.R, out.t = self.points[keep], self.R[keep], self.t[keep]
-        return out
+        return ShapeProblem(self.points[keep], self.R[keep], self.t[keep], self.T0, self.target)
 
 
 def jacobian(fun: Callable[[Array], Array], x: Array) -> Array:
@@ -185,7 +191,7 @@ def fit_mount_to_shape(views: Sequence[View], T_mount0: Array, target: BoxTarget
              if v.points_sensor.shape[0] >= 3]
     if len(views) < MIN_VIEWS:
         raise CalibrationError(f"only {len(views)} views saw the target; at least {MIN_VIEWS} are needed")
-    problem = ShapeProblem(views, T_mount0, target)
+    problem = ShapeProblem.from_views(views, T_mount0, target)
     x0 = np.concatenate([np.zeros(N_MOUNT), np.asarray(box_pose0, dtype=float), [table_z0]])
     robust = least_squares(problem.residuals, x0, loss="soft_l1", f_scale=ROBUST_SCALE_M, x_scale="jac")
     r = problem.residuals(robust.x)
