@@ -68,6 +68,11 @@ class NoObjectFound(PlanningError):
     ``no_object`` (not a failure of the cell; an empty table, a part that did not arrive)."""
 
 
+class CalibrationError(CellError):
+    """A calibration cannot give a trustworthy answer (too few views, an axis the views cannot observe,
+    a target not seen); the message says which and what to change."""
+
+
 class JobError(CellError):
     """A scan job cannot start or continue (missing object, unwritable folder, ...)."""
 

@@ -24,7 +24,7 @@ import pytest
 
 from tests.service_process import REPO, free_port
 
-SOURCES = ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "cell", "drivers")
+SOURCES = ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "cell", "drivers", "calibration")
 BUILD_TIMEOUT_S = 600
 
 

@@ -13,6 +13,7 @@ from rich.console import Console
 
 from cell.cli.arm import arm_app
 from cell.cli.backup import backup
+from cell.cli.calibrate import calibrate_app
 from cell.cli.doctor import doctor
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
@@ -45,6 +46,7 @@ app.add_typer(sensor_app, name="sensor")
 app.add_typer(arm_app, name="arm")
 app.add_typer(keys_app, name="keys")
 app.add_typer(jobs_app, name="jobs")
+app.add_typer(calibrate_app, name="calibrate")
 app.command()(serve)
 app.command()(init)
 app.command()(backup)

@@ -24,6 +24,7 @@ from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
 from drivers.config_base import StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
+from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.sim.faults import SimFault
 from drivers.transforms import T_from_xyz_rpy
 
@@ -47,12 +48,24 @@ class StationConfig(StrictModel):
 
 
 class SimConfig(StrictModel):
-    """The simulated world: the table's size and centre in the base frame [m], and faults to inject on a
-    schedule (``drivers.sim.faults``) to see the safety layer react."""
+    """The simulated world: the table's size and centre in the base frame [m], faults to inject on a
+    schedule (``drivers.sim.faults``) to see the safety layer react, and ``true_mount``, the hand-eye
+    transform T_flange_sensor the simulated sensor really has (None: the cell file's ``mount``), so that
+    what a job believes (``mount``) can differ from the truth a calibration has to find; ``board``: the
+    cell's calibration board (``calibration.board``) lying on the table (None: no board)."""
 
     table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
     table_center_xy_m: tuple[float, float] = (0.5, 0.0)
     faults: list[SimFault] = Field(default_factory=list)
+    true_mount: PoseConfig | None = None
+    board: SimBoardConfig | None = None
+
+
+class CalibrationConfig(StrictModel):
+    """What ``cell calibrate`` uses: ``board``, the ChArUco board of the camera calibration (None: the
+    cell has none)."""
+
+    board: BoardConfig | None = None
 
 
 class CropBoxConfig(StrictModel):
@@ -189,6 +202,11 @@ class CellConfig(StrictModel):
     packing: PackingConfig = PackingConfig()
     service: ServiceConfig = ServiceConfig()
     line: LineConfig | None = None
+    calibration: CalibrationConfig = CalibrationConfig()
+
+    def true_mount_matrix(self) -> np.ndarray:
+        """T_flange_sensor (4x4) the simulated sensor renders from: ``sim.true_mount``, else ``mount``."""
+        return (self.sim.true_mount or self.mount).matrix()
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:
@@ -212,6 +230,8 @@ class CellConfig(StrictModel):
         if self.mode == "real" and (sim_arm or sim_sensor):
             raise ValueError("mode 'real' needs a hardware arm type ('ur5e' or 'franka') and a hardware "
                              "sensor type (a simulated sensor with a hardware arm is mode 'dry-run')")
+        if self.sim.board is not None and self.calibration.board is None:
+            raise ValueError("sim.board lays the calibration board on the table: it needs calibration.board")
         if self.line is not None and self.line.dio is not None:
             if not isinstance(arm, UR5eArmConfig):
                 raise ValueError(f"line.dio is the UR5e's digital-I/O handshake: a {arm.type} arm has none")

@@ -8,7 +8,8 @@
 - ``trajectory.csv``: ``t,x,y,z,qx,qy,qz,qw``, the sensor pose in the base frame at every control tick;
 - ``frames/NNNNNN.npz``: each capture's raw data with ``T_base_sensor`` (reported), ``T_base_flange`` and
   the timestamp: for a depth camera the depth image [m] and its intrinsics ``K`` (the points follow from
-  them, see ``DepthFrame``), otherwise the points in the sensor frame, plus the ToF zones;
+  them, see ``DepthFrame``) and its grey ``intensity`` image when it gives one, otherwise the points in
+  the sensor frame, plus the ToF zones;
   ``frames/index.csv`` lists them;
 - ``map.bt``: the occupancy map in OctoMap's binary format (octovis and pyoctomap open it);
 - ``log.txt``: what happened, stamped with job time;
@@ -99,6 +100,8 @@ class JobRecorder:
                                   "T_base_flange": T_base_flange, **extra}
         if frame.depth is not None and frame.intrinsics is not None:
             arrays.update(depth=frame.depth, K=frame.intrinsics)
+        if frame.intensity is not None:
+            arrays["intensity"] = frame.intensity
         else:
             arrays["points"] = frame.points
         if frame.zones is not None:

@@ -64,6 +64,7 @@ from drivers.depth.sim_base import SimDepthSensor
 from drivers.errors import CellError, JobError, NoObjectFound, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
+from drivers.sim.board import TableTexture, board_on_table, board_texture
 from drivers.sim.faults import SimFaultInjector
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, load_object
 from drivers.sim.scene import SimScene
@@ -282,10 +283,12 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
         T_station = object_pose_in_base(cfg, (0.0, 0.0, 0.0))
         scene = SimScene(job.mesh, T_base_object if T_base_object is not None else T_station,
                          table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
-                         table_size_xy=cfg.sim.table_size_m) if cfg.mode in ("sim", "dry-run") else None
+                         table_size_xy=cfg.sim.table_size_m,
+                         texture=_sim_board(cfg)) if cfg.mode in ("sim", "dry-run") else None
         world = SimWorld(clock=clock, rng=world_rng, scene=scene)
         model = get_robot_model(cfg.arm.model)
-        T_flange_sensor = cfg.mount.matrix()
+        # the simulated sensor renders from the mount it really has, the job believes ``mount``
+        T_flange_sensor = cfg.true_mount_matrix()
         arm = make_arm(cfg.arm, model, world)
         flange = poses.latest if poses is not None else true_flange_pose(arm)
         sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
@@ -377,6 +380,15 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
     if error is not None:
         raise error
     return ScanOutcome(folder=folder, result=result)
+
+
+def _sim_board(cfg: CellConfig) -> TableTexture | None:
+    """The calibration board printed on the simulated table (``sim.board``), or None."""
+    if cfg.sim.board is None or cfg.calibration.board is None:
+        return None
+    st = cfg.station
+    return board_texture(cfg.calibration.board,
+                         board_on_table(cfg.calibration.board, st.xy_m, st.table_z_m, cfg.sim.board.pose))
 
 
 def _identity(job: PreparedScan) -> dict[str, Any]:

@@ -63,7 +63,8 @@ class DepthFrame:
     ``timestamp`` [s] on the job's clock. ``depth`` (H, W) [m], 0 where there is no return, with
     ``intrinsics`` its 3x3 pinhole matrix K [px] (RGB-D only): pixel (u, v) at depth z is the point
     ((u - cx) z / fx, (v - cy) z / fy, z).
-    ``zones`` (ToF only).
+    ``zones`` (ToF only). ``intensity`` (H, W) uint8, the grey image registered to ``depth`` (same
+    intrinsics), for a camera that gives one (``sim-rgbd``; calibration boards are found in it).
     """
 
     seq: int
@@ -72,6 +73,7 @@ class DepthFrame:
     depth: NDArray[np.float32] | None = None
     intrinsics: Array | None = None
     zones: ToFZones | None = None
+    intensity: NDArray[np.uint8] | None = None
 
 
 class DepthSensor(Device):

@@ -49,11 +49,21 @@ class SimRGBDConfig(RangedConfig):
     grazing_deg: float = Field(default=80.0, gt=15.0, le=90.0)
 
 
+class ZoneBiasConfig(StrictModel):
+    """The simulated ToF sensor's own range error: each zone's distance is off by a constant offset drawn
+    once from N(0, ``offset_std_m``^2) [m] by a generator of its own seeded with ``seed`` (a property of
+    the device, the same in every job, and no draw from the job's generator)."""
+
+    offset_std_m: float = Field(ge=0.0, le=0.05)
+    seed: int = Field(default=0, ge=0)
+
+
 class SimToFConfig(RangedConfig):
     """A simulated multizone time-of-flight sensor (VL53L8CX-like): ``resolution`` x ``resolution`` zones
     over a square ``fov_deg`` field of view, each zone rendered from ``subrays`` x ``subrays`` rays.
     A zone whose sorted sub-ray ranges jump by more than ``edge_gap_m`` [m] spans a depth edge and gets
-    status 9 (merged target)."""
+    status 9 (merged target). ``zone_bias``: the device's per-zone range bias (None: none);
+    ``zone_correction``: a per-zone correction file to apply, as the ``vl53l8cx`` backend does."""
 
     type: Literal["sim-tof"]
     resolution: Literal[4, 8] = 8
@@ -64,6 +74,8 @@ class SimToFConfig(RangedConfig):
     noise: DepthNoiseConfig
     min_hit_fraction: float = Field(default=0.25, gt=0.0, le=1.0)
     edge_gap_m: PositiveFloat = 0.025
+    zone_bias: ZoneBiasConfig | None = None
+    zone_correction: str | None = None
 
 
 VL53L8CX_VALID_STATUSES: tuple[int, ...] = (5, 9)
@@ -90,6 +102,8 @@ class VL53L8CXConfig(RangedConfig):
     A zone becomes a point when it has a target and its status is in ``valid_statuses``.
     ``timeout_s`` [s]: a link that delivers no frame for this long is faulted (silent or gone); it must
     cover at least two frame periods. ``baudrate`` only matters for a real UART (USB CDC ignores it).
+    ``zone_correction``: a per-zone range correction file written by ``cell calibrate tof``
+    (``drivers.depth.zone_correction``), applied to every frame; None: distances as the sensor reports.
     """
 
     type: Literal["vl53l8cx"]
@@ -103,6 +117,7 @@ class VL53L8CXConfig(RangedConfig):
     range_min_m: PositiveFloat = 0.02
     range_max_m: PositiveFloat = 4.0
     timeout_s: PositiveFloat = 1.0
+    zone_correction: str | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> VL53L8CXConfig:

@@ -16,6 +16,11 @@ Per frame (one ray-casting call for all pixels):
 3. axial Gaussian noise N(0, sigma(z)^2) with sigma(z) = sigma0_m + k_per_m z^2, z the true depth;
 4. range gating on the measured (noisy) depth: outside [range_min_m, range_max_m] is no return (depth 0).
 
+The grey ``intensity`` image is rendered from the same rays (from ``SUPERSAMPLE`` x ``SUPERSAMPLE`` rays
+per pixel, averaged, when a texture is printed on the table), noise-free and without dropouts (a camera's
+image sees what its depth misses): the table's grey or what is printed on it (a calibration board,
+``SimScene.texture``), the object's grey, black where a ray hits nothing.
+
 Random numbers come only from the generator given at construction; every frame draws the same number of
 variates (one uniform and one normal per pixel) whatever the scene, so a seed fixes the frame sequence
 exactly.
@@ -33,10 +38,14 @@ from drivers.depth.base import DepthFrame, SensorModel
 from drivers.depth.config import SimRGBDConfig
 from drivers.depth.projection import back_project, pinhole_fov_deg
 from drivers.depth.sim_base import SimDepthSensor
-from drivers.sim.scene import HIT_NONE, SimScene
+from drivers.sim.scene import HIT_NONE, RayHits, SimScene
 
 Array = NDArray[np.float64]
 
+SUPERSAMPLE = 2
+"""Rays per pixel side of the grey image when a texture is printed on the table (a calibration board):
+a pixel sees the mean over its area, as a real camera does, so corners are found to a fraction of a
+pixel."""
 GRAZING_RAMP_DEG: float = 15.0
 """Width [deg] of the band below ``grazing_deg`` in which the dropout probability rises from 0 to 1."""
 
@@ -59,18 +68,41 @@ class SimRGBD(SimDepthSensor):
         self.intrinsics = np.array([[config.fx, 0.0, config.cx],
                                     [0.0, config.fy, config.cy],
                                     [0.0, 0.0, 1.0]])
-        w, h = config.width, config.height
-        u = np.arange(w, dtype=np.float64)
-        v = np.arange(h, dtype=np.float64)
-        xn = np.broadcast_to((u - config.cx) / config.fx, (h, w))
-        yn = np.broadcast_to(((v - config.cy) / config.fy)[:, None], (h, w))
-        rays = np.stack([xn, yn, np.ones((h, w))], axis=-1).reshape(-1, 3)
+        rays = self._pixel_rays(0.0, 0.0)
         norm = np.linalg.norm(rays, axis=1)
         self._dirs_sensor: Array = rays / norm[:, None]  # (H*W, 3) unit rays, sensor frame
         self._z_per_t: Array = 1.0 / norm  # depth z per unit range along each ray
+        # the grey image of a printed texture: each pixel the mean of SUPERSAMPLE^2 rays over its area
+        offsets = (np.arange(SUPERSAMPLE) + 0.5) / SUPERSAMPLE - 0.5
+        self._grey_dirs: list[Array] = []
+        if scene.texture is not None:
+            for du in offsets:
+                for dv in offsets:
+                    r = self._pixel_rays(float(du), float(dv))
+                    self._grey_dirs.append(r / np.linalg.norm(r, axis=1, keepdims=True))
         g = config.grazing_deg
         self._cos_hard = np.cos(np.deg2rad(g))  # cos(a) below this: always dropped
         self._cos_soft = np.cos(np.deg2rad(g - GRAZING_RAMP_DEG))  # cos(a) below this: may be dropped
+
+    def _pixel_rays(self, du: float, dv: float) -> Array:
+        """Rays (H*W, 3), sensor frame, not normalized, through each pixel's centre shifted by (du, dv)
+        [px]."""
+        c = self.config
+        w, h = c.width, c.height
+        xn = np.broadcast_to((np.arange(w) + du - c.cx) / c.fx, (h, w))
+        yn = np.broadcast_to(((np.arange(h) + dv - c.cy) / c.fy)[:, None], (h, w))
+        return np.stack([xn, yn, np.ones((h, w))], axis=-1).reshape(-1, 3)
+
+    def _grey(self, T: Array, hits: RayHits, dirs_base: Array) -> NDArray[np.uint8]:
+        """The grey image (H*W,): from the depth rays' hits, or, with a printed texture in the scene,
+        the mean over each pixel's supersampled rays."""
+        if not self._grey_dirs:
+            return self._scene.intensity(hits, T[:3, 3], dirs_base)
+        total = np.zeros(dirs_base.shape[0])
+        for d in self._grey_dirs:
+            d_base = d @ T[:3, :3].T
+            total += self._scene.intensity(self._scene.cast(T[:3, 3], d_base), T[:3, 3], d_base)
+        return np.round(total / len(self._grey_dirs)).astype(np.uint8)
 
     @property
     def model(self) -> SensorModel:
@@ -117,7 +149,8 @@ class SimRGBD(SimDepthSensor):
         # The same back-projection as replay and reprocessing, so that a recorded depth image gives back
         # exactly the points this frame had.
         points = back_project(depth, self.intrinsics)
+        intensity = self._grey(T, hits, dirs_base).reshape(c.height, c.width)
 
         frame = DepthFrame(seq=self._next_seq(), timestamp=self._clock.now(), points=points,
-                           depth=depth, intrinsics=self.intrinsics)
+                           depth=depth, intrinsics=self.intrinsics, intensity=intensity)
         return frame

@@ -28,6 +28,11 @@ Per zone (one ray-casting call for all subrays of all zones):
 - ``reflectance_pct`` is not modelled: the mean over the hit subrays of 50 % for the object and 30 % for
   the table.
 
+Per-zone bias (``zone_bias``): each zone's distance carries a constant offset [m], drawn once at
+construction from a generator of its own (``zone_bias.seed``), as a real sensor's zones each range a little
+long or short; ``zone_offsets_m`` holds them (the truth ``cell calibrate tof`` must find). A
+``zone_correction`` file is applied after it, as the ``vl53l8cx`` backend does.
+
 Random numbers come only from the generator given at construction; every frame draws exactly one normal
 variate per zone, so a seed fixes the frame sequence exactly.
 """
@@ -43,6 +48,7 @@ from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, SensorModel, ToFZones
 from drivers.depth.config import SimToFConfig
 from drivers.depth.sim_base import SimDepthSensor
+from drivers.depth.zone_correction import load_zone_correction
 from drivers.sim.scene import HIT_OBJECT, HIT_TABLE, SimScene
 
 Array = NDArray[np.float64]
@@ -93,6 +99,12 @@ class SimToF(SimDepthSensor):
         self._sub = zone_directions(config.resolution, config.fov_deg, config.subrays)  # (Z, S, 3)
         self._central = zone_directions(config.resolution, config.fov_deg, 1)[:, 0, :]  # (Z, 3)
         self._central.setflags(write=False)
+        n_zones = config.resolution ** 2
+        bias = config.zone_bias
+        self.zone_offsets_m: Array = np.zeros(n_zones) if bias is None else \
+            bias.offset_std_m * np.random.default_rng(bias.seed).standard_normal(n_zones)
+        self._correction = (None if config.zone_correction is None
+                            else load_zone_correction(config.zone_correction, config.resolution))
 
     @property
     def model(self) -> SensorModel:
@@ -136,7 +148,9 @@ class SimToF(SimDepthSensor):
         refl = np.where(valid, refl, 0.0).sum(axis=1) / kk
 
         sigma_noise = c.noise.sigma0_m + c.noise.k_per_m * np.where(has_target, median, 0.0) ** 2
-        distance = np.where(has_target, median + sigma_noise * noise, np.nan)
+        distance = np.where(has_target, median + self.zone_offsets_m + sigma_noise * noise, np.nan)
+        if self._correction is not None:
+            distance = self._correction.apply(distance)
         sigma = np.where(has_target, sigma_noise + std, np.nan)
         status = np.full(n_zones, STATUS_NO_TARGET, dtype=np.uint8)
         status[has_target] = STATUS_VALID

@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from drivers.sim.board import INTENSITY_OBJECT, INTENSITY_TABLE, TableTexture
 from drivers.sim.objects import ObjectMesh
 from drivers.transforms import transform_points
 
@@ -56,7 +57,7 @@ class SimScene:
     def __init__(self, obj: ObjectMesh | None, T_base_object: Array, *, table_z: float = 0.0,
                  table_center_xy: tuple[float, float] = (0.5, 0.0),
                  table_size_xy: tuple[float, float] = (1.2, 1.0),
-                 table_thickness_m: float = 0.03) -> None:
+                 table_thickness_m: float = 0.03, texture: TableTexture | None = None) -> None:
         T = np.asarray(T_base_object, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"T_base_object must be a finite 4x4 matrix, got shape {T.shape}")
@@ -78,6 +79,7 @@ class SimScene:
         self._object_triangles = tris
 
         table_v, table_t = _box(self.table_center_xy, self.table_size_xy, self.table_z, table_thickness_m)
+        self.texture = texture
         self._scene = o3d.t.geometry.RaycastingScene()
         # Open3D's stub of Tensor(np_array, dtype, device) drops the defaults (the array's dtype, CPU:0).
         table_id = self._scene.add_triangles(
@@ -134,6 +136,20 @@ class SimScene:
         normals *= np.where(dot > 0.0, -1.0, 1.0)[:, None]  # face the ray
         cos_inc = np.where(hit, np.abs(dot), 0.0)
         return RayHits(t=t, normals=normals, what=what, cos_incidence=cos_inc)
+
+
+    def intensity(self, hits: RayHits, origins: Array, directions: Array) -> NDArray[np.uint8]:
+        """The grey level (N,) of each hit: the table's (or what is printed on it, ``texture``), the
+        object's, 0 for no hit."""
+        out = np.zeros(hits.t.shape[0], dtype=np.uint8)
+        out[hits.what == HIT_OBJECT] = INTENSITY_OBJECT
+        table = hits.what == HIT_TABLE
+        if np.any(table):
+            o = origins if origins.ndim == 1 else origins[table]
+            points = o + hits.t[table, None] * directions[table]
+            texture = self.texture
+            out[table] = texture.intensity(points) if texture is not None else INTENSITY_TABLE
+        return out
 
 
 def _box(center_xy: tuple[float, float], size_xy: tuple[float, float], top_z: float,

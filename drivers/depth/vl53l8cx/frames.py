@@ -16,6 +16,7 @@ from drivers.depth.base import DepthFrame, SensorModel, ToFZones
 from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.sim_tof import zone_directions
 from drivers.depth.vl53l8cx.protocol import RangingFrame
+from drivers.depth.zone_correction import ZoneCorrection, load_zone_correction
 
 Array = NDArray[np.float64]
 
@@ -35,14 +36,16 @@ def valid_zones(raw: RangingFrame, valid_statuses: tuple[int, ...]) -> NDArray[n
 
 
 def depth_frame(raw: RangingFrame, *, seq: int, timestamp: float, fov_deg: float,
-                valid_statuses: tuple[int, ...]) -> DepthFrame:
+                valid_statuses: tuple[int, ...], correction: ZoneCorrection | None = None) -> DepthFrame:
     """The ``DepthFrame`` of one measurement: ``zones`` in SI units (distance and sigma [m], NaN where
     the zone has no target; reflectance [%]) and one point [m, sensor frame] per valid zone (see
     :func:`valid_zones`), distance times the zone's central ray. ``seq`` and ``timestamp`` [s] are the
-    host's."""
+    host's. ``correction``: each zone's distance less its calibrated bias (the zones and the points)."""
     rays = central_rays(raw.resolution, float(fov_deg))
     has_target = raw.nb_target_detected > 0
     distance = np.where(has_target, raw.distance_mm.astype(np.float64) / 1000.0, np.nan)
+    if correction is not None:
+        distance = correction.apply(distance)
     sigma = np.where(has_target, raw.range_sigma_mm.astype(np.float64) / 1000.0, np.nan)
     reflectance = np.where(has_target, raw.reflectance_pct.astype(np.float64), np.nan)
     zones = ToFZones(distance_m=distance, sigma_m=sigma, status=raw.target_status.copy(),
@@ -51,6 +54,11 @@ def depth_frame(raw: RangingFrame, *, seq: int, timestamp: float, fov_deg: float
     keep = valid_zones(raw, valid_statuses)
     points = distance[keep, None] * rays[keep]
     return DepthFrame(seq=seq, timestamp=timestamp, points=points, zones=zones)
+
+
+def configured_correction(c: VL53L8CXConfig) -> ZoneCorrection | None:
+    """The zone correction file a configured VL53L8CX names, read (None when it names none)."""
+    return None if c.zone_correction is None else load_zone_correction(c.zone_correction, c.resolution)
 
 
 def sensor_model(c: VL53L8CXConfig) -> SensorModel:

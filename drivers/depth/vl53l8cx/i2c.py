@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from drivers.clock import Clock, WallClock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.depth.config import VL53L8CXConfig
-from drivers.depth.vl53l8cx.frames import depth_frame, sensor_model
+from drivers.depth.vl53l8cx.frames import configured_correction, depth_frame, sensor_model
 from drivers.depth.vl53l8cx.protocol import RangingFrame
 from drivers.errors import DriverError
 
@@ -64,6 +64,7 @@ class VL53L8CXI2C(DepthSensor):
             raise DriverError("the I2C backend needs sensor.i2c", device="depth vl53l8cx i2c")
         self.config = config
         self.i2c = config.i2c
+        self._correction = configured_correction(config)
         self._clock = clock if clock is not None else WallClock()
         self._tof: Any = None
         self._seq = 0
@@ -137,6 +138,6 @@ class VL53L8CXI2C(DepthSensor):
                            reflectance_pct=zones(np.asarray(r.reflectance) // 2, np.uint8),
                            nb_target_detected=zones(r.nb_target_detected, np.uint8))
         frame = depth_frame(raw, seq=self._seq, timestamp=self._clock.now(), fov_deg=c.fov_deg,
-                            valid_statuses=c.valid_statuses)
+                            valid_statuses=c.valid_statuses, correction=self._correction)
         self._seq += 1
         return frame

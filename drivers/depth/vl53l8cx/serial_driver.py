@@ -26,7 +26,7 @@ from drivers.clock import Clock, WallClock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.vl53l8cx import protocol as p
-from drivers.depth.vl53l8cx.frames import depth_frame, sensor_model
+from drivers.depth.vl53l8cx.frames import configured_correction, depth_frame, sensor_model
 from drivers.errors import DriverError
 
 READ_SLICE_S = 0.02
@@ -75,6 +75,7 @@ class VL53L8CXSerial(DepthSensor):
             raise DriverError("the serial backend needs sensor.port (a pyserial URL)", device=self.device)
         self.config = config
         self.port_url: str = config.port
+        self._correction = configured_correction(config)
         self._clock = clock if clock is not None else WallClock()
         self._serial: Any = None
         self._parser = p.FrameParser()
@@ -202,6 +203,6 @@ class VL53L8CXSerial(DepthSensor):
         self._pending.clear()
         self.last_raw = raw
         frame = depth_frame(raw, seq=self._seq, timestamp=self._clock.now(), fov_deg=self.config.fov_deg,
-                            valid_statuses=self.config.valid_statuses)
+                            valid_statuses=self.config.valid_statuses, correction=self._correction)
         self._seq += 1
         return frame

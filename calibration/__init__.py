@@ -1,0 +1,2 @@
+"""Calibration of the cell by the cell itself: the sensor mount (hand-eye), the table and the ToF zones;
+every move goes through ``cell.jobs`` (and so the safety layer)."""

@@ -1,0 +1,51 @@
+"""``cell calibrate compare A B``: how far two mount calibrations (their JSON results) are apart, and
+whether the difference is within what their uncertainties allow."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cell.config.models import PoseConfig
+from drivers.errors import CalibrationError
+
+CONSISTENT_SIGMAS = 3.0
+"""Two calibrations agree when each axis differs by at most this many combined standard deviations."""
+
+
+def read_result(path: Path) -> dict[str, Any]:
+    """A calibration result written by ``cell calibrate mount``; ``CalibrationError`` otherwise."""
+    try:
+        data = json.loads(path.read_text())
+        PoseConfig(**data["mount"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CalibrationError(f"{path} is not a mount calibration result: {exc}") from None
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path} is not a mount calibration result")
+    return data
+
+
+def compare_results(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """B's mount less A's: per axis (translation [mm] in the flange frame, roll-pitch-yaw [deg]), the
+    distance [mm] and the rotation angle [deg] between them, and, when both carry their standard
+    deviations, whether every axis differs by at most ``CONSISTENT_SIGMAS`` combined ones."""
+    Ta, Tb = PoseConfig(**a["mount"]).matrix(), PoseConfig(**b["mount"]).matrix()
+    d_mm = (Tb[:3, 3] - Ta[:3, 3]) * 1e3
+    d_deg = np.asarray(b["mount"]["rpy_deg"], dtype=float) - np.asarray(a["mount"]["rpy_deg"], dtype=float)
+    d_deg = (d_deg + 180.0) % 360.0 - 180.0
+    cos = (np.trace(Ta[:3, :3].T @ Tb[:3, :3]) - 1.0) / 2.0
+    out: dict[str, Any] = {
+        "delta_xyz_mm": np.round(d_mm, 4).tolist(), "delta_rpy_deg": np.round(d_deg, 5).tolist(),
+        "distance_mm": round(float(np.linalg.norm(d_mm)), 4),
+        "angle_deg": round(float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), 5),
+        "consistent": None,
+    }
+    if all(k in r for r in (a, b) for k in ("std_mm", "std_deg")):
+        s_mm = np.hypot(np.asarray(a["std_mm"], dtype=float), np.asarray(b["std_mm"], dtype=float))
+        s_deg = np.hypot(np.asarray(a["std_deg"], dtype=float), np.asarray(b["std_deg"], dtype=float))
+        out["consistent"] = bool(np.all(np.abs(d_mm) <= CONSISTENT_SIGMAS * s_mm) and
+                                 np.all(np.abs(d_deg) <= CONSISTENT_SIGMAS * s_deg))
+    return out

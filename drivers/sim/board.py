@@ -1,0 +1,122 @@
+"""A ChArUco calibration board: its definition (the cell file's ``calibration.board``) and, in sim, its
+printed image lying flat on the table, which the simulated RGB-D camera sees in its intensity image.
+
+Board frame: OpenCV's (``cv2.aruco.CharucoBoard``): origin at the board's top-left corner as printed, x
+along the rows of squares, y down the columns, z into the board (so z points down into the table when
+the board lies face up). The printed image covers ``squares_x * square_m`` by ``squares_y * square_m``.
+
+OpenCV (``opencv-contrib-python-headless`` 4.x, the ``calibration`` extra; the 5.0 wheels have no
+``calibrateHandEye``) is imported only when a board is used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import PositiveFloat, model_validator
+
+from drivers.config_base import StrictModel
+from drivers.errors import DriverError
+
+Array = NDArray[np.float64]
+
+INSTALL_HINT = ("the ChArUco board needs OpenCV: pip install 'cell[calibration]' "
+                "(opencv-contrib-python-headless 4.x)")
+TEXTURE_PX_PER_SQUARE = 120
+"""Resolution of the simulated board's printed image [px per square]."""
+INTENSITY_TABLE = 110
+INTENSITY_OBJECT = 170
+
+
+def import_cv2() -> Any:
+    """``cv2`` with its aruco module, or ``DriverError`` with the pip command that installs it."""
+    try:
+        import cv2
+    except ImportError:
+        raise DriverError(INSTALL_HINT, device="charuco board") from None
+    if not hasattr(cv2, "aruco") or not hasattr(cv2, "calibrateHandEye"):
+        raise DriverError(INSTALL_HINT, device="charuco board")
+    return cv2
+
+
+class BoardConfig(StrictModel):
+    """A ChArUco board: ``squares`` (x, y) chessboard squares of ``square_m`` [m], markers of
+    ``marker_m`` [m] from the predefined aruco ``dictionary``."""
+
+    squares: tuple[int, int] = (7, 5)
+    square_m: PositiveFloat = 0.03
+    marker_m: PositiveFloat = 0.022
+    dictionary: Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50",
+                        "DICT_6X6_100"] = "DICT_5X5_100"
+
+    @model_validator(mode="after")
+    def _sizes(self) -> BoardConfig:
+        if min(self.squares) < 3:
+            raise ValueError(f"squares {self.squares}: at least 3 x 3")
+        if self.marker_m >= self.square_m:
+            raise ValueError(f"marker_m {self.marker_m} must be below square_m {self.square_m}")
+        return self
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        return self.squares[0] * self.square_m, self.squares[1] * self.square_m
+
+    def opencv(self) -> Any:
+        """The ``cv2.aruco.CharucoBoard``."""
+        cv2 = import_cv2()
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard(self.squares, self.square_m, self.marker_m, dictionary)
+
+
+class SimBoardConfig(StrictModel):
+    """In sim: the cell's ``calibration.board`` lies face up on the table, its centre at ``pose``
+    (x [m], y [m], yaw [deg]) from the station."""
+
+    pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class TableTexture:
+    """A printed image (H, W) uint8 lying face up on the table: ``T_base_board`` places the board frame
+    (see the module docstring), ``size_m`` (x, y) the printed area [m]."""
+
+    image: NDArray[np.uint8]
+    T_base_board: Array
+    size_m: tuple[float, float]
+
+    def intensity(self, points_base: Array) -> NDArray[np.uint8]:
+        """The printed intensity at table points (N, 3) [m, base frame]; the table's own outside."""
+        R, t = self.T_base_board[:3, :3], self.T_base_board[:3, 3]
+        local = (points_base - t) @ R
+        h, w = self.image.shape
+        u = np.floor(local[:, 0] / self.size_m[0] * w).astype(np.int64)
+        v = np.floor(local[:, 1] / self.size_m[1] * h).astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        out = np.full(points_base.shape[0], INTENSITY_TABLE, dtype=np.uint8)
+        out[inside] = self.image[v[inside], u[inside]]
+        return out
+
+
+def board_texture(board: BoardConfig, T_base_board: Array) -> TableTexture:
+    """The board's printed image (``TEXTURE_PX_PER_SQUARE``) at ``T_base_board``."""
+    px = (board.squares[0] * TEXTURE_PX_PER_SQUARE, board.squares[1] * TEXTURE_PX_PER_SQUARE)
+    image = np.asarray(board.opencv().generateImage(px, marginSize=0, borderBits=1), dtype=np.uint8)
+    return TableTexture(image=image, T_base_board=T_base_board, size_m=board.size_m)
+
+
+def board_on_table(board: BoardConfig, station_xy: tuple[float, float], table_z: float,
+                   pose: tuple[float, float, float]) -> Array:
+    """T_base_board of the board lying face up (board z down) with its centre at ``pose`` (x, y,
+    yaw_deg) from the station on the table at ``table_z`` [m]."""
+    yaw = np.deg2rad(pose[2])
+    c, s = np.cos(yaw), np.sin(yaw)
+    # board x along the yawed base x, board y along the yawed base -y, board z down: a right-handed frame
+    R = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
+    centre = np.array([station_xy[0] + pose[0], station_xy[1] + pose[1], table_z])
+    half = np.array([board.size_m[0] / 2.0, board.size_m[1] / 2.0, 0.0])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, centre - R @ half
+    return T
