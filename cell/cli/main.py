@@ -16,6 +16,7 @@ from cell.cli.backup import backup
 from cell.cli.doctor import doctor
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
+from cell.cli.eval import eval_app
 from cell.cli.init_cell import init
 from cell.cli.jobs import EXIT_NOT_COMPLETED, jobs_app
 from cell.cli.keys import keys_app
@@ -45,6 +46,7 @@ app.add_typer(sensor_app, name="sensor")
 app.add_typer(arm_app, name="arm")
 app.add_typer(keys_app, name="keys")
 app.add_typer(jobs_app, name="jobs")
+app.add_typer(eval_app, name="eval")
 app.command()(serve)
 app.command()(init)
 app.command()(backup)

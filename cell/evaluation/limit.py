@@ -102,9 +102,10 @@ def seen_points(mesh: ObjectMesh, T_base_object: Array, points: Array, views: Ar
     """Which of ``points`` (N, 3, on the posed mesh, base frame) some view in ``views`` (K, 4, 4) sees
     (module docstring)."""
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(transform_points(T_base_object, mesh.vertices).astype(np.float32),
-                        np.asarray(mesh.triangles, dtype=np.uint32))
-    closest = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
+    scene.add_triangles(
+        o3d.core.Tensor(transform_points(T_base_object, mesh.vertices).astype(np.float32)),  # type: ignore[call-overload]
+        o3d.core.Tensor(np.asarray(mesh.triangles, dtype=np.uint32)))  # type: ignore[call-overload]
+    closest = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))  # type: ignore[call-overload]
     normals = closest["primitive_normals"].numpy().astype(np.float64)
     tan_x = np.tan(np.deg2rad(limits.fov_x_deg) / 2.0)
     tan_y = np.tan(np.deg2rad(limits.fov_y_deg) / 2.0)
@@ -126,7 +127,7 @@ def seen_points(mesh: ObjectMesh, T_base_object: Array, points: Array, views: Ar
             continue
         unit = d[ok] / dist[ok, None]
         rays = np.hstack([np.broadcast_to(origin, unit.shape), unit]).astype(np.float32)
-        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()  # type: ignore[call-overload]
         seen[candidates[t_hit >= dist[ok] - HIT_TOLERANCE_M]] = True
     return seen
 

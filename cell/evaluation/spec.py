@@ -67,11 +67,17 @@ def _file_digest(path: Path) -> str:
         raise JobError(f"cannot read {path}: {exc}") from None
 
 
+def input_digest(config: str, object: str, **inputs: object) -> str:
+    """The hex SHA-256 of the cell file's and the object mesh's contents, the software version and
+    ``inputs`` (JSON values)."""
+    everything = {**inputs, "config": _file_digest(Path(config).resolve()),
+                  "object": _file_digest(mesh_file(object).resolve()), "version": __version__}
+    return hashlib.sha256(json.dumps(everything, sort_keys=True).encode()).hexdigest()
+
+
 def scan_key(spec: ScanSpec) -> str:
-    """The hex SHA-256 of the scan's inputs (module docstring)."""
-    inputs = {**asdict(spec), "config": _file_digest(Path(spec.config).resolve()),
-              "object": _file_digest(mesh_file(spec.object).resolve()), "version": __version__}
-    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
+    """The key of a scan: :func:`input_digest` of all its inputs (module docstring)."""
+    return input_digest(**asdict(spec))
 
 
 def folder_name(spec: ScanSpec, key: str) -> str:
@@ -79,11 +85,11 @@ def folder_name(spec: ScanSpec, key: str) -> str:
     return f"{spec.object_label}-{spec.planner}-s{spec.seed}-{key[:KEY_LENGTH]}"
 
 
-def cross(config: str, objects: Sequence[str], placements: Sequence[Placement], planners: Sequence[str],
-          seeds: Sequence[int], max_time_s: float | None = None) -> list[ScanSpec]:
-    """Every object x placement x planner x seed."""
+def cross(config: str, cases: Sequence[tuple[str, Placement]], planners: Sequence[str], seeds: Sequence[int],
+          max_time_s: float | None = None) -> list[ScanSpec]:
+    """Every case (an object at a placement) x planner x seed."""
     return [ScanSpec(config, obj, placement, planner, seed, max_time_s)
-            for obj in objects for placement in placements for planner in planners for seed in seeds]
+            for obj, placement in cases for planner in planners for seed in seeds]
 
 
 def parse_placement(text: str) -> Placement:
