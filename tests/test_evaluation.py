@@ -26,8 +26,8 @@ from drivers.sim.objects import face_normals, load_object
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "config" / "sim-ur5e-tof.yaml")
 # two objects x two planners x one seed, 6 s of sim time each (a few captures, well under a second of work)
-SPECS = cross(CONFIG, [("cube", (0.0, 0.0, 0.0)), ("horizontal_box", (0.0, 0.0, 0.0))], ["heu", "lr-nbv"], [0],
-              max_time_s=6.0)
+SPECS = cross(CONFIG, [("cube", (0.0, 0.0, 0.0)), ("horizontal_box", (0.0, 0.0, 0.0))], ["heu", "lr-nbv"],
+              [0], max_time_s=6.0)
 CRASH_MARKER_ENV = "CELL_TEST_CRASH_MARKERS"
 
 
