@@ -25,29 +25,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from grid_report import jobs_parser, print_result, refuse_taken
 
 from cell.config import load_config
+from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.runner import ScanRequest, run_scan
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER_LOCAL_TIME_S = 42.0
 
 
-def _shapes() -> dict[str, o3d.geometry.TriangleMesh]:
-    """The primitive shapes [m]: a can, a ring lying flat, a cone and a thin upright slab."""
-    return {"cylinder": o3d.geometry.TriangleMesh.create_cylinder(radius=0.035, height=0.11, resolution=48),
-            "torus": o3d.geometry.TriangleMesh.create_torus(torus_radius=0.045, tube_radius=0.018,
-                                                              radial_resolution=48, tubular_resolution=24),
-            "cone": o3d.geometry.TriangleMesh.create_cone(radius=0.05, height=0.09, resolution=48),
-            "slab": o3d.geometry.TriangleMesh.create_box(width=0.14, height=0.03, depth=0.09)}
-
-
-# (label, object: a shape above or a shipped name, pose (x [m], y [m], yaw [deg]) from the station)
+# (label, object: a shape of ``write_heldout_shapes`` or a shipped name, pose (x [m], y [m], yaw [deg]))
 CASES: tuple[tuple[str, str, tuple[float, float, float]], ...] = (
     ("cylinder", "cylinder", (0.0, 0.0, 0.0)),
     ("torus", "torus", (0.0, 0.0, 0.0)),
@@ -60,20 +51,6 @@ CASES: tuple[tuple[str, str, tuple[float, float, float]], ...] = (
     ("cube-30", "cube", (0.0, 0.0, 30.0)),
     ("teapot-moved", "teapot", (0.03, 0.03, 120.0)),
 )
-
-
-def write_shapes(folder: Path) -> dict[str, Path]:
-    """Each shape as a PLY mesh in ``folder``, its box centred on the origin in x and y, its base at z = 0."""
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    for name, mesh in _shapes().items():
-        box = mesh.get_axis_aligned_bounding_box()
-        lo, hi = np.asarray(box.min_bound), np.asarray(box.max_bound)
-        mesh.translate([-(lo[0] + hi[0]) / 2.0, -(lo[1] + hi[1]) / 2.0, -lo[2]])
-        mesh.compute_vertex_normals()
-        paths[name] = folder / f"{name}.ply"
-        o3d.io.write_triangle_mesh(paths[name], mesh)
-    return paths
 
 
 def run_one(config_path: Path, label: str, obj: str, pose: tuple[float, float, float], seed: int,
@@ -97,7 +74,7 @@ def main() -> None:
     grid = [(label, obj, pose, seed, args.out / f"{label}-s{seed}") for label, obj, pose in CASES
             for seed in args.seeds]
     refuse_taken(parser, [folder for *_, folder in grid])
-    shapes = write_shapes(args.out / "shapes")
+    shapes = write_heldout_shapes(args.out / "shapes")
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, args.config, label, str(shapes.get(obj, obj)), pose, seed, folder)
                    for label, obj, pose, seed, folder in grid]

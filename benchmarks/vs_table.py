@@ -50,27 +50,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from grid_report import grid_parser, print_result, refuse_taken
 
 from cell.config import load_config
+from cell.evaluation import paper
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
 
 REPO = Path(__file__).resolve().parents[1]
-OBJECTS = ("bunny", "banana", "baseball", "mustard", "cube", "pyramid", "dragon", "teapot")
-PLANNERS = ("vs-local", "vs-global", "vs-hybrid")
-# Table I of the visual-servoing paper: coverage [%], Chamfer [mm], Hausdorff [mm], in OBJECTS' order.
-PAPER: dict[str, dict[str, tuple[float, ...]]] = {
-    "vs-global": {"coverage_pct": (88.2, 69.4, 77.3, 80.2, 94.9, 97.4, 90.8, 67.4),
-                  "chamfer_mm": (1.5, 2.3, 2.2, 1.9, 0.9, 0.7, 1.1, 4.2),
-                  "hausdorff_mm": (23.2, 14.2, 19.8, 17.4, 15.2, 15.4, 17.3, 39.3)},
-    "vs-hybrid": {"coverage_pct": (95.1, 75.4, 78.8, 90.6, 95.0, 99.7, 90.6, 67.5),
-                  "chamfer_mm": (0.8, 2.2, 2.3, 1.3, 0.9, 0.5, 1.1, 4.0),
-                  "hausdorff_mm": (12.9, 14.5, 22.9, 14.2, 14.1, 6.7, 19.0, 39.4)},
-    "vs-local": {"coverage_pct": (90.1, 71.2, 72.0, 90.8, 92.2, 99.1, 89.6, 68.9),
-                 "chamfer_mm": (1.2, 2.5, 3.0, 1.4, 1.1, 0.5, 1.2, 3.8),
-                 "hausdorff_mm": (17.8, 15.9, 24.8, 14.9, 16.1, 8.4, 18.8, 40.1)},
-}
-# Section III-C: mean scan time [s] and trajectory length [m] over the objects.
-PAPER_TIME_S = {"vs-local": 42.0, "vs-global": 57.0, "vs-hybrid": 67.0}
-PAPER_PATH_M = {"vs-local": 0.8, "vs-global": 0.8, "vs-hybrid": 1.2}
+OBJECTS = paper.TABLE_I_OBJECTS
+PLANNERS = paper.VS_PLANNERS
+PAPER_TIME_S = paper.MEAN_SCAN_TIME_S
+PAPER_PATH_M = paper.MEAN_PATH_M
 # Goal of issue 5.
 MIN_OBJECTS_AT_PAPER = 6
 MAX_LOCAL_TIME_S = 42.0
@@ -115,11 +103,7 @@ def time_to_coverage(timeline: dict[str, list[float | None]] | None, coverage_pc
                  if t is not None and c is not None and c >= coverage_pct), None)
 
 
-def paper_value(planner: str, metric: str, obj: str) -> float | None:
-    """Table I's figure for this strategy, metric and object; None for an object not in Table I."""
-    if obj not in OBJECTS or planner not in PAPER:
-        return None
-    return PAPER[planner][metric][OBJECTS.index(obj)]
+paper_value = paper.table_i
 
 
 def _pair(value: float | None, paper: float | None, digits: int) -> str:
