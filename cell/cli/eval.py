@@ -8,6 +8,7 @@ same command again skips the scans already done. ``cell eval limit`` prints an o
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -20,7 +21,7 @@ from cell.evaluation import presets
 from cell.evaluation.evaluate import evaluate
 from cell.evaluation.executors import make_executor
 from cell.evaluation.limit import DEFAULT_DIRECTIONS, cell_coverage_limit
-from cell.evaluation.spec import cross, load_placements, parse_placement
+from cell.evaluation.spec import load_placements, parse_placement
 from cell.templates import template_path
 from drivers.errors import CellError
 from drivers.sim.objects import load_object
@@ -32,86 +33,63 @@ console = Console(soft_wrap=True)
 Config = Annotated[Path | None, typer.Option(help="cell file (default: the preset's shipped sim cell)")]
 Planners = Annotated[list[str] | None, typer.Option("--planners", help="planner names (repeat the option)")]
 Objects = Annotated[list[str] | None, typer.Option("--objects", help="shipped names or mesh files (repeat)")]
-Placements = Annotated[Path | None, typer.Option(help="YAML list of [x_m, y_m, yaw_deg] placements")]
+Placements = Annotated[Path | None, typer.Option(help="YAML list of \\[x_m, y_m, yaw_deg] placements")]
 Seeds = Annotated[list[int] | None, typer.Option("--seeds", help="job seeds (repeat the option)")]
 Out = Annotated[Path, typer.Option(help="output folder: job folders, results.csv, report.md, figures")]
 ExecutorOpt = Annotated[str, typer.Option(help="local (a process pool) or ray")]
 Jobs = Annotated[int | None, typer.Option(help="scans at a time (local default 2; ray: all the CPUs)")]
 RayAddress = Annotated[str | None, typer.Option(help="Ray cluster address (default: a local instance)")]
 MaxTime = Annotated[float | None, typer.Option(help="time budget of each scan [s] (default: the cell's)")]
+Reprocess = Annotated[bool | None, typer.Option(
+    "--reprocess/--online", help="measure each job's cloud re-processed at 1 mm as the paper's Table I, or "
+                                 "the online cloud (default: vs-table re-processes, the others not)")]
 Directions = Annotated[int, typer.Option(help="view directions per hemisphere of the coverage limit; 0: "
                                               "no coverage limit")]
 
 
-def _run(preset: presets.Preset, config: Path | None, planners: list[str] | None, objects: list[str] | None,
-         placements: Path | None, seeds: list[int] | None, out: Path, executor: str, jobs: int | None,
-         ray_address: str | None, max_time: float | None, limit_directions: int) -> None:
+def _run(preset_for: Callable[[Path], presets.Preset], config: Path | None, planners: list[str] | None,
+         objects: list[str] | None, placements: Path | None, seeds: list[int] | None, out: Path,
+         executor: str, jobs: int | None, ray_address: str | None, max_time: float | None,
+         limit_directions: int, reprocess: bool | None) -> None:
     try:
+        preset = preset_for(out)
         cfg = config if config is not None else preset.config
         load_config(cfg)  # a bad cell file fails here, naming the field, not in every worker
-        if objects or placements:
-            where = (load_placements(placements) if placements
-                     else list(dict.fromkeys(p for _, p in preset.cases)) or [presets.CENTRE])
-            what = objects or list(dict.fromkeys(o for o, _ in preset.cases))
-            cases = presets.crossed(what, where)
-        else:
-            cases = preset.cases
-        specs = cross(str(cfg.resolve()), cases, planners or preset.planners, seeds or preset.seeds, max_time)
-        if not specs:
-            raise CellError("the grid is empty: give --objects and --planners")
+        specs = preset.specs(cfg, objects, load_placements(placements) if placements else None, planners,
+                             seeds, max_time, reprocess)
+        clouds = "the 1 mm re-processed clouds" if specs[0].reprocess else "the online clouds"
         report = evaluate(specs, out, make_executor(executor, jobs, ray_address),
                           limit_directions=limit_directions or None,
-                          title_lines=[f"Cell file: `{cfg}`; executor: {executor}.", ""])
+                          title_lines=[f"Cell file: `{cfg}`; executor: {executor}; coverage, Chamfer and "
+                                       f"Hausdorff of {clouds}.", ""])
     except CellError as exc:
         raise fail(exc) from None
     console.print(f"report: {report}", markup=False, highlight=False)
 
 
-@eval_app.command("vs-table")
-def vs_table(out: Out, config: Config = None, planners: Planners = None, objects: Objects = None,
-             placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
-             jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
-             limit_directions: Directions = DEFAULT_DIRECTIONS) -> None:
-    """The visual-servoing paper's Table I: its eight objects x VS-Local / Global / Hybrid, seeds 0 1 2."""
-    _run(presets.VS_TABLE, config, planners, objects, placements, seeds, out, executor, jobs, ray_address,
-         max_time, limit_directions)
+def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: str) -> None:
+    """Register ``cell eval <name>``: the grid of ``preset_for(out)`` with the options in its place."""
+    def command(out: Out, config: Config = None, planners: Planners = None, objects: Objects = None,
+                placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
+                jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
+                limit_directions: Directions = DEFAULT_DIRECTIONS, reprocess: Reprocess = None) -> None:
+        _run(preset_for, config, planners, objects, placements, seeds, out, executor, jobs, ray_address,
+             max_time, limit_directions, reprocess)
+
+    command.__doc__ = doc
+    eval_app.command(name)(command)
 
 
-@eval_app.command("packing")
-def packing(out: Out, config: Config = None, planners: Planners = None, objects: Objects = None,
-            placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
-            jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
-            limit_directions: Directions = DEFAULT_DIRECTIONS) -> None:
-    """The LR-NBV paper's section 4: its four objects x LR-NBV / NBV / HEU, seeds 0 to 4."""
-    _run(presets.PACKING, config, planners, objects, placements, seeds, out, executor, jobs, ray_address,
-         max_time, limit_directions)
-
-
-@eval_app.command("heldout")
-def heldout(out: Out, config: Config = None, planners: Planners = None, objects: Objects = None,
-            placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
-            jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
-            limit_directions: Directions = DEFAULT_DIRECTIONS) -> None:
-    """Ten shapes and placements that are not Table I's, VS-Local (shapes written to OUT/shapes)."""
-    try:
-        preset = presets.heldout(out / "shapes")
-    except OSError as exc:
-        raise fail(f"cannot write the held-out shapes: {exc}") from None
-    _run(preset, config, planners, objects, placements, seeds, out, executor, jobs, ray_address, max_time,
-         limit_directions)
-
-
-@eval_app.command("grid")
-def grid(out: Out, objects: Objects = None, planners: Planners = None, config: Config = None,
-         placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
-         jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
-         limit_directions: Directions = DEFAULT_DIRECTIONS) -> None:
-    """Any objects x placements (default the station's centre) x planners x seeds (default 0)."""
-    if not objects or not planners:
-        raise fail("grid needs --objects and --planners", code=2)
-    preset = presets.Preset(template_path("sim-franka-rgbd"), (), (), (0,))
-    _run(preset, config, planners, objects, placements, seeds, out, executor, jobs, ray_address, max_time,
-         limit_directions)
+_grid_command("vs-table", lambda _: presets.VS_TABLE,
+              "The visual-servoing paper's Table I: its eight objects x VS-Local / Global / Hybrid, seeds "
+              "0 1 2, each job re-processed at 1 mm as the paper.")
+_grid_command("packing", lambda _: presets.PACKING,
+              "The LR-NBV paper's section 4: its four objects x LR-NBV / NBV / HEU, seeds 0 to 4.")
+_grid_command("heldout", lambda out: presets.heldout(out / "shapes"),
+              "Ten shapes and placements that are not Table I's, VS-Local (shapes written to OUT/shapes).")
+_grid_command("grid", lambda _: presets.Preset(template_path("sim-franka-rgbd"), (), (), (0,)),
+              "Any objects x placements (default the station's centre) x planners x seeds (default 0); "
+              "--objects and --planners are needed.")
 
 
 @eval_app.command("limit")

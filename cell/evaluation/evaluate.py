@@ -11,7 +11,7 @@ from typing import TextIO
 
 from cell.config import load_config
 from cell.evaluation.executors import Executor
-from cell.evaluation.grid import run_grid
+from cell.evaluation.grid import run_grid, timelines
 from cell.evaluation.limit import cell_coverage_limit
 from cell.evaluation.report import Limits, write_report
 from cell.evaluation.spec import ScanSpec, input_digest
@@ -46,4 +46,4 @@ def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_
     and the report; returns report.md's path."""
     rows = run_grid(specs, out, executor, task, stream)
     limits = coverage_limits(specs, out, limit_directions) if limit_directions else {}
-    return write_report(rows, out, limits, title_lines)
+    return write_report(rows, out, limits, title_lines, timelines(specs, out))

@@ -19,12 +19,33 @@ from pathlib import Path
 from typing import TextIO
 
 from cell.evaluation.executors import Executor, TaskFailure
-from cell.evaluation.results import Row, csv_text, failed_row, row_from_folder, sorted_rows
+from cell.evaluation.results import (
+    Row,
+    RowId,
+    Timeline,
+    csv_text,
+    failed_row,
+    identity,
+    row_from_folder,
+    sorted_rows,
+    timeline_from_folder,
+)
 from cell.evaluation.spec import ScanSpec, folder_name, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
 
 SCANS_DIR = "scans"
 RESULTS_CSV = "results.csv"
+
+
+def scan_folder(out: Path, spec: ScanSpec, key: str | None = None) -> Path:
+    """The job folder of the scan ``spec`` (of key ``key``, computed when None) under ``out``."""
+    return out / SCANS_DIR / folder_name(spec, key or scan_key(spec))
+
+
+def timelines(specs: Sequence[ScanSpec], out: Path) -> dict[RowId, Timeline]:
+    """The timelines of the re-processed scans of ``specs`` under ``out``, by row."""
+    found = {identity(spec): timeline_from_folder(scan_folder(out, spec)) for spec in specs}
+    return {k: t for k, t in found.items() if t is not None}
 
 
 def _duration(seconds: float) -> str:
@@ -69,10 +90,9 @@ def run_grid(specs: Sequence[ScanSpec], out: Path, executor: Executor,
              stream: TextIO | None = None) -> list[Row]:
     """Run the scans of ``specs`` not done yet under ``out`` on ``executor`` and write ``results.csv``;
     returns its rows (sorted). ``task`` runs one scan in a worker (the real scan by default)."""
-    scans = out / SCANS_DIR
-    scans.mkdir(parents=True, exist_ok=True)
+    (out / SCANS_DIR).mkdir(parents=True, exist_ok=True)
     keyed = {scan_key(spec): spec for spec in specs}  # a scan listed twice runs once
-    folders = {key: scans / folder_name(spec, key) for key, spec in keyed.items()}
+    folders = {key: scan_folder(out, spec, key) for key, spec in keyed.items()}
     todo = [key for key, folder in folders.items() if not (folder / "result.json").is_file()]
     rows = {key: row_from_folder(keyed[key], folder) for key, folder in folders.items() if key not in todo}
     progress = GridProgress(len(keyed), len(rows), stream if stream is not None else sys.stderr)

@@ -52,13 +52,15 @@ Array = NDArray[np.float64]
 RADIUS_FACTORS = (0.5, 1.0, 1.5)
 """View distances as multiples of the cell's ``scan.standoff_m``."""
 DEFAULT_DIRECTIONS = 300
+"""View directions per hemisphere (``cell eval limit --directions``)."""
 HIT_TOLERANCE_M = 5e-4
 """A ray reaching the mesh this much before the point still sees it (the point lies on a triangle)."""
 
 
 @dataclass(frozen=True)
 class ViewLimits:
-    """What a view sees: full field of view [deg], range [m] and the largest incidence angle [deg]."""
+    """What a view sees: its full field of view across and along the image [deg], its range [m] and the
+    largest incidence angle [deg] at which a surface still returns (90: any)."""
 
     fov_x_deg: float
     fov_y_deg: float

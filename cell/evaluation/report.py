@@ -1,15 +1,17 @@
-"""``report.md`` and its figures, from ``results.csv`` alone (so a report can be rebuilt at any time).
+"""``report.md`` and its figures, from ``results.csv`` and the re-processed scans' timelines (so a report
+can be rebuilt from the output folder at any time).
 
 Scans group by object and placement (the placement shown only where an object has several); within a
 group, by planner. A group's figures are the mean and standard error of the mean over its scans that
 have the figure (failed scans have none), ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
 brackets where it has one. Mann-Whitney U (two-sided) compares every two planners of a group on each
-figure both have; ``-`` where it cannot say anything (all values tie).
+figure both have (and on each box dimension); ``-`` where it cannot say anything (all values tie).
 
-Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5 as points: each scan's final coverage and
-Chamfer distance against its scan time, a panel per group) and, for packing grids, ``fig3.png`` (the
-packing paper's Fig. 3: IoU, packing coverage, poses and useless poses per planner, mean and standard
-error, a column per group).
+Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
+against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
+job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, for
+packing grids, ``fig3.png`` (the packing paper's Fig. 3: IoU, packing coverage, poses and useless poses
+per planner, mean and standard error, a column per group).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from matplotlib.figure import Figure  # not pyplot: files only, no display
 from scipy.stats import mannwhitneyu
 
 from cell.evaluation import paper
-from cell.evaluation.results import Row, value
+from cell.evaluation.results import Row, RowId, Timeline, row_id, value
 
 REPORT_MD = "report.md"
 FIG5 = "fig5.png"
@@ -133,29 +135,42 @@ def packing_table(gs: Sequence[Group]) -> list[str]:
     return _table(header, lines)
 
 
+def _samples(rs: Sequence[Row]) -> dict[str, list[float]]:
+    """The rows' values of each tested figure: ``TESTED`` and the box dimensions (the packing paper
+    tests the dimensions too)."""
+    return {**{c: figures(rs, c) for c in TESTED}, **{name: dims(rs, k) for k, name in enumerate(DIMS)}}
+
+
 def tests_table(gs: Sequence[Group]) -> list[str]:
-    """Mann-Whitney U of every two planners of a group on each figure."""
+    """Mann-Whitney U of every two planners of a group on each figure both have."""
     lines = []
     for g in gs:
         for (pa, ra), (pb, rb) in itertools.combinations(g.by_planner.items(), 2):
-            for column in TESTED:
-                test = mann_whitney(figures(ra, column), figures(rb, column))
-                if figures(ra, column) and figures(rb, column):
-                    lines.append([g.label, column, pa, pb, *(("-", "-") if test is None else
-                                                             (f"{test[0]:.1f}", f"{test[1]:.4f}"))])
+            samples_a, samples_b = _samples(ra), _samples(rb)
+            for name, a in samples_a.items():
+                if a and (b := samples_b[name]):
+                    test = mann_whitney(a, b)
+                    lines.append([g.label, name, pa, pb, *(("-", "-") if test is None else
+                                                           (f"{test[0]:.1f}", f"{test[1]:.4f}"))])
     return _table(["object", "figure", "planner A", "planner B", "U (A)", "p"], lines)
 
 
-def _scatter(rows: Sequence[Row], path: Path) -> None:
+def _fig5(rows: Sequence[Row], timelines: dict[RowId, Timeline], path: Path) -> None:
     gs = groups(rows)
     fig = Figure(figsize=(4.0 * len(gs), 6.0))
     axes = fig.subplots(2, len(gs), squeeze=False)
     for i, g in enumerate(gs):
-        for planner, rs in g.by_planner.items():
+        for n, (planner, rs) in enumerate(g.by_planner.items()):
+            colour = f"C{n}"
             for ax, column in ((axes[0, i], "chamfer_mm"), (axes[1, i], "coverage_pct")):
                 pairs = [(t, v) for r in rs if (t := value(r, "scan_time_s")) is not None
                          and (v := value(r, column)) is not None]
-                ax.plot([t for t, _ in pairs], [v for _, v in pairs], "o", label=planner)
+                ax.plot([t for t, _ in pairs], [v for _, v in pairs], "o", color=colour, label=planner)
+                for r in rs:
+                    if (timeline := timelines.get(row_id(r))) is not None:
+                        ax.plot(timeline["t_s"], timeline[column], color=colour, linewidth=0.8)
+            if (table_i := paper.table_i(planner, "coverage_pct", g.object)) is not None:
+                axes[1, i].axhline(table_i, color=colour, linestyle="--", linewidth=0.8)
         axes[0, i].set_title(g.label)
         axes[0, i].set_ylabel("Chamfer [mm]")
         axes[1, i].set_ylabel("coverage [%]")
@@ -182,9 +197,11 @@ def _bars(rows: Sequence[Row], path: Path) -> None:
     fig.savefig(path, dpi=90)
 
 
-def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = ()) -> Path:
+def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = (),
+                 timelines: dict[RowId, Timeline] | None = None) -> Path:
     """Write report.md and its figures into ``out``; ``limits`` the coverage limit [%] per object and
-    placement (results.csv's texts; absent: not computed). Returns report.md's path."""
+    placement (results.csv's texts; absent: not computed), ``timelines`` those of the re-processed
+    scans by row (``cell.evaluation.grid.timelines``). Returns report.md's path."""
     gs = groups(rows)
     statuses = sorted({r["status"] for r in rows})
     counts = ", ".join(f"{sum(r['status'] == s for r in rows)} {s}" for s in statuses)
@@ -194,7 +211,7 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
           "path the paper's mean over its objects, section III-C). `limit %`: the coverage limit, the share "
           "of the surface any reachable view can see (`cell eval limit`).", "",
           *reconstruction_table(gs, limits), "", f"![coverage and Chamfer against scan time]({FIG5})", ""]
-    _scatter(rows, out / FIG5)
+    _fig5(rows, timelines or {}, out / FIG5)
     if any(r["iou"] for r in rows):
         md += ["## Packing (LR-NBV paper, Fig. 3)", "",
                "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "

@@ -8,8 +8,10 @@ packing history, a scan that never ran).
 Columns: ``object``, ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or
 ``failed`` for a scan whose worker died twice), ``termination``, ``scan_time_s`` (job time from the first
 frame, the visual-servoing paper's clock), ``path_m`` (sensor path over the same span), ``n_captures``,
-``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud), and the packing paper's
-figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and ``packing_coverage_pct``.
+``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud; on the 1 mm re-processed
+cloud, ``result_hires.json``, for a grid that re-processes, as the paper measures Table I), and the
+packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
+``packing_coverage_pct``.
 """
 
 from __future__ import annotations
@@ -31,6 +33,11 @@ NUMERIC = ("scan_time_s", "path_m", "coverage_pct", "chamfer_mm", "hausdorff_mm"
 DECIMALS = 4
 
 Row = dict[str, str]
+RowId = tuple[str, str, str, str]
+"""(object, placement, planner, seed) of a row."""
+Timeline = dict[str, list[float | None]]
+"""Eq. 13 as a re-processed scan went on (``result_hires.json``): ``t_s`` [s from the first frame] and
+``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` of the cloud the frames up to each one make."""
 
 
 def _number(value: Any) -> str:
@@ -42,13 +49,16 @@ def _number(value: Any) -> str:
 
 
 def _identity(spec: ScanSpec) -> Row:
-    return {"object": spec.object_label, "placement": spec.placement_text, "planner": spec.planner,
-            "seed": str(spec.seed)}
+    return dict(zip(COLUMNS[:4], identity(spec), strict=True))
 
 
-def row_from_result(spec: ScanSpec, result: dict[str, Any]) -> Row:
-    """The row of a scan whose job folder holds ``result`` (its result.json)."""
-    metrics = result.get("metrics") or {}
+HIRES_JSON = "result_hires.json"
+
+
+def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any] | None = None) -> Row:
+    """The row of a scan whose job folder holds ``result`` (its result.json) and, re-processed,
+    ``hires`` (its result_hires.json), whose eq. 13 figures then replace the online cloud's."""
+    metrics = (hires if hires is not None else result).get("metrics") or {}
     packing = result.get("packing") or {}
     dims = packing.get("dims_m")
     return {**_identity(spec), "status": result["status"],
@@ -65,7 +75,26 @@ def row_from_result(spec: ScanSpec, result: dict[str, Any]) -> Row:
 
 def row_from_folder(spec: ScanSpec, folder: Path) -> Row:
     """The row of a scan from its job folder."""
-    return row_from_result(spec, json.loads((folder / "result.json").read_text()))
+    hires = folder / HIRES_JSON
+    return row_from_result(spec, json.loads((folder / "result.json").read_text()),
+                           json.loads(hires.read_text()) if hires.is_file() else None)
+
+
+def timeline_from_folder(folder: Path) -> Timeline | None:
+    """A re-processed scan's timeline from its job folder; None when it was not re-processed or has no
+    ground truth."""
+    hires = folder / HIRES_JSON
+    return json.loads(hires.read_text()).get("timeline") if hires.is_file() else None
+
+
+def identity(spec: ScanSpec) -> RowId:
+    """The (object, placement, planner, seed) of the spec's row."""
+    return spec.object_label, spec.placement_text, spec.planner, str(spec.seed)
+
+
+def row_id(row: Row) -> RowId:
+    """The (object, placement, planner, seed) of a row."""
+    return row["object"], row["placement"], row["planner"], row["seed"]
 
 
 def failed_row(spec: ScanSpec, reason: str) -> Row:

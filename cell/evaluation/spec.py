@@ -2,9 +2,9 @@
 
 A scan is keyed by the SHA-256 of its inputs: the content of the cell file, the content of the object's
 mesh file (a shipped object's PLY or the user's file), the placement, planner, seed, time budget, the
-mesh scale and the software version. The key names the scan's job folder, so a second run of the same
-grid finds the scans already done, and any change of an input (an edited cell file, a new release) runs
-the scan again.
+mesh scale, whether the job is re-processed and the software version. The key names the scan's job
+folder, so a second run of the same grid finds the scans already done, and any change of an input (an
+edited cell file, a new release) runs the scan again.
 """
 
 from __future__ import annotations
@@ -19,8 +19,9 @@ from pathlib import Path
 import yaml
 
 from cell import __version__
-from drivers.errors import ConfigError, JobError
-from drivers.sim.objects import OBJECTS_DIR, shipped_names
+from cell.planning.registry import get_planner
+from drivers.errors import CellError, ConfigError, JobError
+from drivers.sim.objects import OBJECTS_DIR, load_object, shipped_names
 
 Placement = tuple[float, float, float]
 """(x [m], y [m], yaw [deg]) of the object relative to the station, as ``cell scan --object-pose``."""
@@ -32,8 +33,9 @@ KEY_LENGTH = 12
 @dataclass(frozen=True)
 class ScanSpec:
     """One scan: the cell file, the object (a shipped name or a mesh file's path), its placement, the
-    planner, the job seed, the time budget [s] (None: the cell file's) and the mesh scale (mesh units to
-    metres)."""
+    planner, the job seed, the time budget [s] (None: the cell file's), the mesh scale (mesh units to
+    metres) and whether the job folder is re-processed after the scan as the visual-servoing paper
+    measures Table I (``cell.perception.reprocess``: 1 mm, multiway registration; ``result_hires.json``)."""
 
     config: str
     object: str
@@ -42,6 +44,7 @@ class ScanSpec:
     seed: int
     max_time_s: float | None = None
     object_scale: float = 1.0
+    reprocess: bool = False
 
     @property
     def object_label(self) -> str:
@@ -86,10 +89,21 @@ def folder_name(spec: ScanSpec, key: str) -> str:
 
 
 def cross(config: str, cases: Sequence[tuple[str, Placement]], planners: Sequence[str], seeds: Sequence[int],
-          max_time_s: float | None = None) -> list[ScanSpec]:
+          max_time_s: float | None = None, reprocess: bool = False) -> list[ScanSpec]:
     """Every case (an object at a placement) x planner x seed."""
-    return [ScanSpec(config, obj, placement, planner, seed, max_time_s)
+    return [ScanSpec(config, obj, placement, planner, seed, max_time_s, reprocess=reprocess)
             for obj, placement in cases for planner in planners for seed in seeds]
+
+
+def check_specs(specs: Sequence[ScanSpec]) -> None:
+    """Refuse a grid that cannot run before any scan does: an empty one, an unknown planner, an object
+    that is neither a shipped name nor a readable mesh file (``CellError``, one line)."""
+    if not specs:
+        raise CellError("the grid is empty: give objects and planners")
+    for planner in dict.fromkeys(s.planner for s in specs):
+        get_planner(planner)
+    for obj, scale in dict.fromkeys((s.object, s.object_scale) for s in specs):
+        load_object(obj, scale)
 
 
 def parse_placement(text: str) -> Placement:

@@ -2,9 +2,9 @@
 
 A worker may be another machine (a Ray cluster) without the driver's files, so the task carries the cell
 file's text and a user mesh's bytes; the worker writes them to a private temporary folder, runs the scan
-there (``cell.jobs.runner.run_scan``) and sends the whole job folder back as an in-memory tar archive,
-which the driver unpacks under ``--out``. The job records the driver's cell-file path and the mesh's
-name, not the worker's temporary copies.
+there (``cell.jobs.runner.run_scan``, then ``cell.perception.reprocess`` when the spec asks) and sends
+the whole job folder back as an in-memory tar archive, which the driver unpacks under ``--out``. The job
+records the driver's cell-file path and the mesh's name, not the worker's temporary copies.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from pathlib import Path
 from cell.config import load_config
 from cell.evaluation.spec import ScanSpec, mesh_file
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.reprocess import reprocess_job
 from drivers.errors import CellError
 from drivers.sim.objects import shipped_names
 
@@ -81,9 +82,13 @@ def run_scan_task(task: ScanTask) -> TaskOutput:
         folder = root / JOB_DIR
         error = None
         try:
-            run_scan(ScanRequest(config=load_config(config_path), config_path=spec.config, object=obj,
+            config = load_config(config_path)
+            run_scan(ScanRequest(config=config, config_path=spec.config, object=obj,
                                  object_pose=spec.placement, planner=spec.planner, seed=spec.seed,
                                  out=folder, max_time_s=spec.max_time_s, object_scale=spec.object_scale))
+            if spec.reprocess:
+                # the crop box from the task's copy: the job names the driver's file, absent on a cluster
+                reprocess_job(folder, crop=config.perception.crop_box)
         except CellError as exc:
             error = f"{type(exc).__name__}: {exc}"
         except Exception as exc:
