@@ -11,8 +11,10 @@ Results arrive through ``on_done(index, result)`` in the order tasks finish, on 
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
@@ -58,10 +60,30 @@ class _Worker:
     index: int | None = None
 
 
+THREADS_VAR = "OMP_NUM_THREADS"
+"""Threads of OpenMP and of OpenBLAS (which falls back to it) in a worker process."""
+
+
+@contextmanager
+def _worker_threads(jobs: int) -> Iterator[None]:
+    """Processes spawned inside get ``THREADS_VAR`` = this machine's CPUs / ``jobs`` (at least 1) unless
+    the user set it: ``jobs`` workers share the cores rather than each taking all of them, as Ray's
+    workers do (Ray sets it to a task's CPUs). The variable must be in the environment a worker starts
+    with: the libraries read it when they load, before the worker's own code runs."""
+    if THREADS_VAR in os.environ:
+        yield
+        return
+    os.environ[THREADS_VAR] = str(max(1, (os.cpu_count() or 1) // jobs))
+    try:
+        yield
+    finally:
+        del os.environ[THREADS_VAR]
+
+
 @dataclass
 class LocalPool:
     """``jobs`` worker processes on this machine (started fresh, ``spawn``: no state inherited from the
-    driver), each running one task at a time."""
+    driver; their threads limited, see ``_worker_threads``), each running one task at a time."""
 
     jobs: int
 
@@ -78,7 +100,8 @@ class LocalPool:
         def start() -> _Worker:
             ours, theirs = ctx.Pipe()
             process = ctx.Process(target=_serve, args=(theirs, fn), daemon=True)
-            process.start()
+            with _worker_threads(self.jobs):
+                process.start()
             theirs.close()
             return _Worker(process, ours)
 
@@ -116,9 +139,9 @@ class LocalPool:
                             assign(replacement)
                         continue
                     worker.index = None
-                    on_done(index, value if ok else TaskFailure(value, attempts[index]))
-                    if pending:
+                    if pending:  # before on_done: the worker scans while the driver unpacks
                         assign(worker)
+                    on_done(index, value if ok else TaskFailure(value, attempts[index]))
         finally:
             for worker in workers:
                 if worker.process.is_alive() and worker.index is None:
@@ -134,7 +157,8 @@ class RayExecutor:
     """Tasks on Ray: the instance already initialised in this process, else one started here (a local
     instance of ``jobs`` CPUs, or the cluster at ``address``, e.g. ``auto`` or ``ray://head:10001``) and
     shut down at the end. Each task asks for one CPU; at most ``jobs`` are in flight (all when None).
-    Ray reruns a task whose worker died (``max_retries=1``)."""
+    Ray reruns a task whose worker died (``max_retries=1``) and keeps its worker processes for the next
+    tasks (``max_calls`` 0, the default), so each worker imports the scan's modules once."""
 
     address: str | None = None
     jobs: int | None = None
