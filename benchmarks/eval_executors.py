@@ -9,10 +9,11 @@ own time budget (the packing preset's; ``--max-time`` to shorten it), no coverag
 
 Both wall times count everything a user waits for: the pool starts its worker processes, Ray its
 instance (``ray.init``: GCS, raylet, agents, the pre-started workers), and the workers of both import
-the scan's modules before their first scan. ``--repeats`` runs pool and Ray alternately that many times
-(interleaved, so that a change of the machine's load falls on both) and reports the median of each and
-of the per-repeat ratios. ``--attached`` also times Ray on an instance started beforehand (what a user
-with a running cluster, ``--ray-address``, waits for), which shows Ray's start-up apart.
+the scan's modules before their first scan. ``--repeats`` runs pool and Ray that many times each,
+interleaved (pool first in even repeats, Ray first in odd ones, so that a change of the machine's load
+falls on both) and reports the median of each and of the per-repeat ratios. ``--attached`` also times
+Ray on an instance started beforehand (what a user with a running cluster, ``--ray-address``, waits
+for), which shows Ray's start-up apart.
 
 Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2] [--repeats 3]
 [--max-time S] [--attached]``
@@ -74,8 +75,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.repeats):
             root = Path(tmp) / str(k)
-            pool_s.append(timed(LocalPool(args.jobs), specs, root / "pool"))
-            ray_s.append(timed(RayExecutor(jobs=args.jobs), specs, root / "ray"))
+            # alternate which goes first, so that neither always runs on the machine the other left
+            for kind in ("pool", "ray") if k % 2 == 0 else ("ray", "pool"):
+                if kind == "pool":
+                    pool_s.append(timed(LocalPool(args.jobs), specs, root / "pool"))
+                else:
+                    ray_s.append(timed(RayExecutor(jobs=args.jobs), specs, root / "ray"))
             if args.attached:
                 attached.append(timed_attached(args.jobs, specs, root / "attached"))
             reference = (root / "pool" / RESULTS_CSV).read_bytes()

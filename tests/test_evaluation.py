@@ -1,12 +1,15 @@
 """cell.evaluation: a small grid through the local pool and Ray with identical results.csv, resume, a
-killed worker retried and reported, the report against results.csv, and the coverage limit."""
+killed worker retried and reported, a re-processed scan's 1 mm figures and timeline, the report against
+results.csv, and the coverage limit."""
 
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +18,12 @@ import pytest
 
 from cell.config import load_config
 from cell.evaluation.executors import LocalPool, RayExecutor
-from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid
+from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
 from cell.evaluation.limit import cell_coverage_limit
 from cell.evaluation.report import REPORT_MD, write_report
-from cell.evaluation.results import read_csv
-from cell.evaluation.spec import cross
-from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task
+from cell.evaluation.results import read_csv, row_from_folder
+from cell.evaluation.spec import ScanSpec, cross, scan_key
+from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
 from drivers.sim.objects import face_normals, load_object
 
 REPO = Path(__file__).resolve().parents[1]
@@ -121,6 +124,24 @@ def test_ray_gives_the_same_results_and_retries_a_killed_worker(local_run, tmp_p
         ray.shutdown()
     assert len(list(tmp_path.iterdir())) == 3  # two markers and the output folder: each lr-nbv scan died once
     assert (tmp_path / "ray" / RESULTS_CSV).read_bytes() == (out / RESULTS_CSV).read_bytes()
+
+
+def test_a_reprocessed_scan_reports_the_1mm_figures_and_its_timeline(tmp_path):
+    spec = ScanSpec(str(REPO / "config" / "sim-franka-rgbd.yaml"), "cube", (0.0, 0.0, 0.0), "vs-local", 0,
+                    max_time_s=3.0, reprocess=True)
+    output = run_scan_task(ScanTask.of(spec, scan_key(spec)))
+    assert output.error is None and output.archive is not None
+    folder = scan_folder(tmp_path, spec)
+    unpack_folder(output.archive, folder)
+    hires = json.loads((folder / "result_hires.json").read_text())
+    online = json.loads((folder / "result.json").read_text())["metrics"]
+    assert hires["metrics"] != online
+    row = row_from_folder(spec, folder)
+    assert [row[k] for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm")] == [
+        f"{hires['metrics'][k]:.4f}" for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm")]
+    online_spec = replace(spec, reprocess=False)
+    assert scan_key(online_spec) != scan_key(spec)
+    assert timelines([spec, online_spec], tmp_path) == {("cube", "0,0,0", "vs-local", "0"): hires["timeline"]}
 
 
 def _table(md: str, first_header: str) -> list[list[str]]:

@@ -44,8 +44,8 @@ def scan_folder(out: Path, spec: ScanSpec, key: str | None = None) -> Path:
 
 def timelines(specs: Sequence[ScanSpec], out: Path) -> dict[RowId, Timeline]:
     """The timelines of the re-processed scans of ``specs`` under ``out``, by row."""
-    found = {identity(spec): timeline_from_folder(scan_folder(out, spec)) for spec in specs}
-    return {k: t for k, t in found.items() if t is not None}
+    found = ((identity(spec), timeline_from_folder(scan_folder(out, spec))) for spec in specs)
+    return {row: timeline for row, timeline in found if timeline is not None}
 
 
 def _duration(seconds: float) -> str:
