@@ -17,6 +17,7 @@ from cell.cli.calibrate import calibrate_app
 from cell.cli.doctor import doctor
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
+from cell.cli.eval import eval_app
 from cell.cli.init_cell import init
 from cell.cli.jobs import EXIT_NOT_COMPLETED, jobs_app
 from cell.cli.keys import keys_app
@@ -47,6 +48,7 @@ app.add_typer(arm_app, name="arm")
 app.add_typer(keys_app, name="keys")
 app.add_typer(jobs_app, name="jobs")
 app.add_typer(calibrate_app, name="calibrate")
+app.add_typer(eval_app, name="eval")
 app.command()(serve)
 app.command()(init)
 app.command()(backup)

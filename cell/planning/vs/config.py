@@ -45,7 +45,7 @@ class ObjectiveConfig(StrictModel):
     voxels) use 1 cm, two voxels: on Table I's objects (VS-Local, seed 0, ``f_eps_nats`` 0.03) 3 cm gave 8 of
     8 objects at the paper's coverage in 51.2 s on average, 1 cm 8 of 8 in 45.2 s, 0 cm 7 of 8 (the cube as
     above) in 36.9 s (``benchmarks/vs_table.py``); on ten shapes and placements outside Table I
-    (``benchmarks/vs_heldout.py``) the mean coverage rose from 82.4 to 88.3 % at 1 cm, the mean scan time
+    (``cell eval heldout``) the mean coverage rose from 82.4 to 88.3 % at 1 cm, the mean scan time
     from 49.8 to 51.4 s.
     """
 

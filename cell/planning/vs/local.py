@@ -32,7 +32,7 @@ curved objects), and a 5 cm step can change which of them the rays at the edge o
 as f itself: a relative gradient of up to 10 f / (f + f_eps) [1/m], above 1 wherever f exceeds f_eps / 9,
 and a scan wanders on that noise at full speed until it happens to end. The default, 0.03, is the RGB-D
 cells' value before their 1 cm margin; they now use 0.05 (the simulated ToF cell: 0.001). Measured on the
-RGB-D cell with its 1 cm ROI margin (``benchmarks/vs_table.py``, ``benchmarks/vs_heldout.py``): at 0.03,
+RGB-D cell with its 1 cm ROI margin (``benchmarks/vs_table.py``, ``cell eval heldout``): at 0.03,
 8 of Table I's 8 objects reached the paper's coverage with a mean scan time of 45.2 s (seed 0); at
 0.05, 7 of 8 in 39.3 s (seed 0) and 40.4 s (seeds 1 and 2): the cube's arc from one side over the top to the
 other ends at 82 % (paper 92.2 %), the arc the paper describes for its Local cube scans. On ten shapes and

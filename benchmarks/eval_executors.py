@@ -1,0 +1,112 @@
+"""``cell eval``'s executors on this machine: the same 16-scan grid on the local process pool and on a
+local Ray instance of the same size; wall time of each, their ratio (issue 23's goal: Ray at least 0.9x
+the pool's throughput) and whether their results.csv are byte-identical. Also the mean wall time of one
+scan, from which ``--table-i-seeds`` scans of Table I (8 objects x 3 strategies) on ``--nodes`` nodes of
+``--cores`` cores are estimated.
+
+The grid: 4 packing objects x lr-nbv and heu x seeds 0 1 on ``config/sim-ur5e-tof.yaml`` with the cell's
+own time budget (the packing preset's; ``--max-time`` to shorten it), no coverage limit.
+
+Both wall times count everything a user waits for: the pool starts its worker processes, Ray its
+instance (``ray.init``: GCS, raylet, agents, the pre-started workers), and the workers of both import
+the scan's modules before their first scan. ``--repeats`` runs pool and Ray that many times each,
+interleaved (pool first in even repeats, Ray first in odd ones, so that a change of the machine's load
+falls on both) and reports the median of each and of the per-repeat ratios. ``--attached`` also times
+Ray on an instance started beforehand (what a user with a running cluster, ``--ray-address``, waits
+for), which shows Ray's start-up apart.
+
+Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2] [--repeats 3]
+[--max-time S] [--attached]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from cell.evaluation import paper
+from cell.evaluation.executors import Executor, LocalPool, RayExecutor
+from cell.evaluation.grid import RESULTS_CSV, run_grid
+from cell.evaluation.spec import ScanSpec, cross
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def timed(executor: Executor, specs: list[ScanSpec], out: Path) -> float:
+    """Wall time [s] of the grid into the empty folder ``out``."""
+    start = time.perf_counter()
+    run_grid(specs, out, executor, stream=io.StringIO())
+    return time.perf_counter() - start
+
+
+def timed_attached(jobs: int, specs: list[ScanSpec], out: Path) -> tuple[float, float]:
+    """(seconds to start a local Ray instance of ``jobs`` CPUs, seconds of the grid on it)."""
+    import ray
+
+    start = time.perf_counter()
+    ray.init(num_cpus=jobs, include_dashboard=False, log_to_driver=False)
+    try:
+        return time.perf_counter() - start, timed(RayExecutor(jobs=jobs), specs, out)
+    finally:
+        ray.shutdown()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--max-time", type=float, default=None, help="scan budget [s] (default: the cell's)")
+    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--attached", action="store_true", help="also Ray on an instance started before")
+    parser.add_argument("--nodes", type=int, default=10)
+    parser.add_argument("--cores", type=int, default=16)
+    parser.add_argument("--table-i-seeds", type=int, default=10)
+    args = parser.parse_args()
+    cases = [(o, (0.0, 0.0, 0.0)) for o in paper.PACKING_OBJECTS]
+    specs = cross(str(REPO / "config" / "sim-ur5e-tof.yaml"), cases, ["lr-nbv", "heu"], [0, 1], args.max_time)
+    pool_s: list[float] = []
+    ray_s: list[float] = []
+    attached: list[tuple[float, float]] = []
+    identical = True
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(args.repeats):
+            root = Path(tmp) / str(k)
+            # alternate which goes first, so that neither always runs on the machine the other left
+            for kind in ("pool", "ray") if k % 2 == 0 else ("ray", "pool"):
+                if kind == "pool":
+                    pool_s.append(timed(LocalPool(args.jobs), specs, root / "pool"))
+                else:
+                    ray_s.append(timed(RayExecutor(jobs=args.jobs), specs, root / "ray"))
+            if args.attached:
+                attached.append(timed_attached(args.jobs, specs, root / "attached"))
+            reference = (root / "pool" / RESULTS_CSV).read_bytes()
+            identical &= all((root / kind / RESULTS_CSV).read_bytes() == reference
+                             for kind in ("ray", "attached") if (root / kind).exists())
+        results = (Path(tmp) / "0" / "pool").glob("scans/*/result.json")
+        scan_s = [json.loads(p.read_text())["wall_time_s"] for p in results]
+    mean_scan_s = sum(scan_s) / len(scan_s)
+    n_table_i = len(paper.TABLE_I_OBJECTS) * len(paper.VS_PLANNERS) * args.table_i_seeds
+    report = {
+        "n_scans": len(specs), "jobs": args.jobs, "max_time_s": args.max_time, "repeats": args.repeats,
+        "pool_wall_s": [round(s, 2) for s in pool_s], "ray_wall_s": [round(s, 2) for s in ray_s],
+        "pool_wall_median_s": round(statistics.median(pool_s), 2),
+        "ray_wall_median_s": round(statistics.median(ray_s), 2),
+        "ray_throughput_vs_pool": round(statistics.median(p / r for p, r in zip(pool_s, ray_s, strict=True)),
+                                        3),
+        "results_csv_identical": identical,
+        "mean_scan_wall_s": round(mean_scan_s, 3), "table_i_scans": n_table_i,
+    }
+    if attached:
+        report["ray_start_s"] = [round(start, 2) for start, _ in attached]
+        report["ray_attached_wall_s"] = [round(wall, 2) for _, wall in attached]
+        report["ray_attached_throughput_vs_pool"] = round(statistics.median(
+            p / wall for p, (_, wall) in zip(pool_s, attached, strict=True)), 3)
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()

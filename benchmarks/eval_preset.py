@@ -1,0 +1,26 @@
+"""What the benchmarks that judge a preset of ``cell eval`` share: run it as a user does (the ``cell``
+console script beside this Python, so the benchmark measures the product), then read its results.csv."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+from cell.evaluation.grid import RESULTS_CSV
+from cell.evaluation.report import REPORT_MD
+from cell.evaluation.results import Row, read_csv
+
+
+def run_preset(preset: str, default_out: Path, description: str) -> tuple[Path, list[Row]]:
+    """``cell eval <preset> --out OUT`` with the script's other options passed on; exits with its exit
+    code when it fails. Returns report.md's path and results.csv's rows."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--out", type=Path, default=default_out, help="the evaluation's output folder")
+    args, rest = parser.parse_known_args()
+    cell = Path(sys.executable).with_name("cell")
+    done = subprocess.run([str(cell), "eval", preset, "--out", str(args.out), *rest], check=False)
+    if done.returncode:
+        sys.exit(done.returncode)
+    return args.out / REPORT_MD, read_csv(args.out / RESULTS_CSV)

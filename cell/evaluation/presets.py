@@ -1,0 +1,105 @@
+"""The papers' experiments and the held-out set as grids (``cell eval vs-table|packing|heldout``).
+
+- ``vs-table``: the visual-servoing paper's Table I, its eight objects x VS-Local, VS-Global, VS-Hybrid
+  at the station's centre on the shipped ``sim-franka-rgbd`` cell; the paper ran each three times and
+  measured the clouds re-processed offline at 1 mm (section III-B), so each job is re-processed.
+- ``packing``: the LR-NBV paper's section 4, its four objects x LR-NBV, NBV, HEU, five runs each, on the
+  shipped ``sim-ur5e-tof`` cell.
+- ``heldout``: ten shapes and placements that are not Table I's (four primitive shapes built here, the
+  two packing boxes turned, four of Table I's objects moved and turned), VS-Local on ``sim-franka-rgbd``:
+  the figures away from the objects the planners were tuned on. Each object has its own placement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from cell.evaluation import paper
+from cell.evaluation.spec import Placement, ScanSpec, check_specs, cross
+from cell.templates import template_path
+from drivers.errors import CellError
+
+CENTRE: Placement = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A grid's defaults: cell file, objects with their placements, planners, seeds and whether each job
+    is re-processed as the visual-servoing paper measures Table I (``ScanSpec.reprocess``)."""
+
+    config: Path
+    cases: tuple[tuple[str, Placement], ...]
+    planners: tuple[str, ...]
+    seeds: tuple[int, ...]
+    reprocess: bool = False
+
+    def specs(self, config: Path | None = None, objects: Sequence[str] | None = None,
+              placements: Sequence[Placement] | None = None, planners: Sequence[str] | None = None,
+              seeds: Sequence[int] | None = None, max_time_s: float | None = None,
+              reprocess: bool | None = None) -> list[ScanSpec]:
+        """The grid of this preset with whatever is given in place of its own; given objects or
+        placements are crossed with each other (where one is not given: the preset's objects, or its
+        distinct placements, or the station's centre), checked (``check_specs``)."""
+        cases = self.cases
+        if objects or placements:
+            cases = crossed(objects or list(dict.fromkeys(o for o, _ in self.cases)),
+                            placements or list(dict.fromkeys(p for _, p in self.cases)) or [CENTRE])
+        specs = cross(str((config or self.config).resolve()), cases, planners or self.planners,
+                      seeds or self.seeds, max_time_s, self.reprocess if reprocess is None else reprocess)
+        check_specs(specs)
+        return specs
+
+
+VS_TABLE = Preset(template_path("sim-franka-rgbd"), tuple((o, CENTRE) for o in paper.TABLE_I_OBJECTS),
+                  paper.VS_PLANNERS, (0, 1, 2), reprocess=True)
+PACKING = Preset(template_path("sim-ur5e-tof"), tuple((o, CENTRE) for o in paper.PACKING_OBJECTS),
+                 paper.PACKING_PLANNERS, (0, 1, 2, 3, 4))
+# (object: a shape of ``heldout_shapes`` or a shipped name, placement)
+HELDOUT_CASES: tuple[tuple[str, Placement], ...] = (
+    ("cylinder", CENTRE), ("torus", CENTRE), ("cone", CENTRE), ("slab", (0.0, 0.0, 30.0)),
+    ("horizontal_box", (0.0, 0.0, 20.0)), ("vertical_box", (0.0, 0.0, -15.0)),
+    ("bunny", (0.05, -0.04, 60.0)), ("mustard", (-0.04, 0.05, -40.0)), ("cube", (0.0, 0.0, 30.0)),
+    ("teapot", (0.03, 0.03, 120.0)),
+)
+
+
+def _shapes() -> dict[str, o3d.geometry.TriangleMesh]:
+    """The held-out primitive shapes [m]: a can, a ring lying flat, a cone and a thin upright slab."""
+    return {"cylinder": o3d.geometry.TriangleMesh.create_cylinder(radius=0.035, height=0.11, resolution=48),
+            "torus": o3d.geometry.TriangleMesh.create_torus(torus_radius=0.045, tube_radius=0.018,
+                                                              radial_resolution=48, tubular_resolution=24),
+            "cone": o3d.geometry.TriangleMesh.create_cone(radius=0.05, height=0.09, resolution=48),
+            "slab": o3d.geometry.TriangleMesh.create_box(width=0.14, height=0.03, depth=0.09)}
+
+
+def write_heldout_shapes(folder: Path) -> dict[str, Path]:
+    """Each held-out shape as a PLY mesh in ``folder`` (bbox centred on x = y = 0, base at z = 0); the
+    files are the same bytes every time, so the scans' keys are too."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, mesh in _shapes().items():
+        lo, hi = np.asarray(mesh.get_min_bound()), np.asarray(mesh.get_max_bound())
+        mesh.translate([-(lo[0] + hi[0]) / 2.0, -(lo[1] + hi[1]) / 2.0, -lo[2]])
+        paths[name] = folder / f"{name}.ply"
+        o3d.io.write_triangle_mesh(paths[name], mesh)
+    return paths
+
+
+def heldout(folder: Path) -> Preset:
+    """The held-out preset, its shapes written into ``folder``."""
+    try:
+        shapes = write_heldout_shapes(folder)
+    except OSError as exc:
+        raise CellError(f"cannot write the held-out shapes into {folder}: {exc}") from None
+    cases = tuple((str(shapes[o]) if o in shapes else o, p) for o, p in HELDOUT_CASES)
+    return Preset(template_path("sim-franka-rgbd"), cases, ("vs-local",), (0,))
+
+
+def crossed(objects: Sequence[str], placements: Sequence[Placement]) -> tuple[tuple[str, Placement], ...]:
+    """Every object at every placement."""
+    return tuple((o, p) for o in objects for p in placements)

@@ -1,0 +1,229 @@
+"""``report.md`` and its figures, from ``results.csv`` and the re-processed scans' timelines (so a report
+can be rebuilt from the output folder at any time).
+
+Scans group by object and placement (the placement shown only where an object has several); within a
+group, by planner. A group's figures are the mean and standard error of the mean over its scans that
+have the figure (failed scans have none), ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
+brackets where it has one. Mann-Whitney U (two-sided) compares every two planners of a group on each
+figure both have (and on each box dimension); ``-`` where it cannot say anything (all values tie).
+
+Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
+against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
+job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, for
+packing grids, ``fig3.png`` (the packing paper's Fig. 3: IoU, packing coverage, poses and useless poses
+per planner, mean and standard error, a column per group).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure  # not pyplot: files only, no display
+from scipy.stats import mannwhitneyu
+
+from cell.evaluation import paper
+from cell.evaluation.results import Row, RowId, Timeline, row_id, value
+
+REPORT_MD = "report.md"
+FIG5 = "fig5.png"
+FIG3 = "fig3.png"
+
+# (column, heading, decimals) of the two tables
+RECONSTRUCTION = (("coverage_pct", "coverage %", 1), ("chamfer_mm", "Chamfer mm", 1),
+                  ("hausdorff_mm", "Hausdorff mm", 1), ("scan_time_s", "scan time s", 1),
+                  ("path_m", "path m", 2))
+PACKING = (("iou", "IoU", 3), ("packing_coverage_pct", "coverage %", 1), ("n_poses", "poses", 1),
+           ("n_useless_poses", "useless poses", 1))
+DIMS = ("L m", "W m", "H m")
+Limits = dict[tuple[str, str], float]
+"""Coverage limit [%] by (object, placement) as results.csv writes them."""
+TESTED = ("coverage_pct", "chamfer_mm", "hausdorff_mm", "scan_time_s", "iou", "n_poses", "n_useless_poses")
+
+
+@dataclass(frozen=True)
+class Group:
+    """The scans of one object at one placement: its label in the tables and rows by planner."""
+
+    label: str
+    object: str
+    placement: str
+    by_planner: dict[str, list[Row]]
+
+
+def groups(rows: Sequence[Row]) -> list[Group]:
+    """The rows (results.csv's order) grouped by object and placement."""
+    placements: dict[str, set[str]] = {}
+    for r in rows:
+        placements.setdefault(r["object"], set()).add(r["placement"])
+    out: dict[tuple[str, str], Group] = {}
+    for r in rows:
+        key = (r["object"], r["placement"])
+        if key not in out:
+            label = r["object"] if len(placements[r["object"]]) == 1 else f"{r['object']} @ {r['placement']}"
+            out[key] = Group(label, r["object"], r["placement"], {})
+        out[key].by_planner.setdefault(r["planner"], []).append(r)
+    return list(out.values())
+
+
+def figures(rows: Sequence[Row], column: str) -> list[float]:
+    """The column's values of the rows that have one."""
+    return [v for r in rows if (v := value(r, column)) is not None]
+
+
+def dims(rows: Sequence[Row], axis: int) -> list[float]:
+    """The rows' box dimension ``axis`` (0 L, 1 W, 2 H) [m], of those that have a box."""
+    return [float(r["dims_m"].split()[axis]) for r in rows if r["dims_m"]]
+
+
+def mean_se(values: Sequence[float], digits: int, paper_figure: float | None = None) -> str:
+    """``mean ± se`` (standard error of the mean, ``ddof=1``; no ``± se`` for one value), ``(paper)``
+    after it where given; ``-`` for no values."""
+    if not values:
+        text = "-"
+    else:
+        text = f"{np.mean(values):.{digits}f}"
+        if len(values) > 1:
+            text += f" ± {np.std(values, ddof=1) / np.sqrt(len(values)):.{digits}f}"
+    return text if paper_figure is None else f"{text} ({paper_figure:.{digits}f})"
+
+
+def mann_whitney(a: Sequence[float], b: Sequence[float]) -> tuple[float, float] | None:
+    """(U of ``a``, two-sided p) of two samples; None when either is empty or every value ties."""
+    if not a or not b or len(set(a) | set(b)) == 1:
+        return None
+    result = mannwhitneyu(a, b, alternative="two-sided")
+    return float(result.statistic), float(result.pvalue)
+
+
+def _paper_figure(planner: str, column: str, obj: str) -> float | None:
+    if column in ("coverage_pct", "chamfer_mm", "hausdorff_mm"):
+        return paper.table_i(planner, column, obj)
+    return {"scan_time_s": paper.MEAN_SCAN_TIME_S, "path_m": paper.MEAN_PATH_M}.get(column, {}).get(planner)
+
+
+def _table(header: Sequence[str], lines: Sequence[Sequence[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header),
+            *("| " + " | ".join(line) + " |" for line in lines)]
+
+
+def reconstruction_table(gs: Sequence[Group], limits: Limits) -> list[str]:
+    """Table I's layout: per group and planner, n and mean ± se (paper) of each reconstruction figure,
+    the group's coverage limit beside its coverage."""
+    header = ["object", "planner", "n", RECONSTRUCTION[0][1], "limit %",
+              *(heading for _, heading, _ in RECONSTRUCTION[1:])]
+    lines = []
+    for g in gs:
+        limit = limits.get((g.object, g.placement))
+        for planner, rs in g.by_planner.items():
+            cells = [mean_se(figures(rs, c), d, _paper_figure(planner, c, g.object))
+                     for c, _, d in RECONSTRUCTION]
+            lines.append([g.label, planner, str(len(rs)), cells[0], "-" if limit is None else f"{limit:.1f}",
+                          *cells[1:]])
+    return _table(header, lines)
+
+
+def packing_table(gs: Sequence[Group]) -> list[str]:
+    """The packing paper's Fig. 3 figures: per group and planner, mean ± se of L, W, H and the rest."""
+    header = ["object", "planner", "n", *DIMS, *(heading for _, heading, _ in PACKING)]
+    lines = [[g.label, planner, str(len(rs)), *(mean_se(dims(rs, k), 4) for k in range(3)),
+              *(mean_se(figures(rs, c), d) for c, _, d in PACKING)]
+             for g in gs for planner, rs in g.by_planner.items()]
+    return _table(header, lines)
+
+
+def _samples(rs: Sequence[Row]) -> dict[str, list[float]]:
+    """The rows' values of each tested figure: ``TESTED`` and the box dimensions (the packing paper
+    tests the dimensions too)."""
+    return {**{c: figures(rs, c) for c in TESTED}, **{name: dims(rs, k) for k, name in enumerate(DIMS)}}
+
+
+def tests_table(gs: Sequence[Group]) -> list[str]:
+    """Mann-Whitney U of every two planners of a group on each figure both have."""
+    lines = []
+    for g in gs:
+        for (pa, ra), (pb, rb) in itertools.combinations(g.by_planner.items(), 2):
+            samples_a, samples_b = _samples(ra), _samples(rb)
+            for name, a in samples_a.items():
+                if a and (b := samples_b[name]):
+                    test = mann_whitney(a, b)
+                    lines.append([g.label, name, pa, pb, *(("-", "-") if test is None else
+                                                           (f"{test[0]:.1f}", f"{test[1]:.4f}"))])
+    return _table(["object", "figure", "planner A", "planner B", "U (A)", "p"], lines)
+
+
+def _fig5(rows: Sequence[Row], timelines: dict[RowId, Timeline], path: Path) -> None:
+    gs = groups(rows)
+    fig = Figure(figsize=(4.0 * len(gs), 6.0))
+    axes = fig.subplots(2, len(gs), squeeze=False)
+    for i, g in enumerate(gs):
+        for n, (planner, rs) in enumerate(g.by_planner.items()):
+            colour = f"C{n}"
+            for ax, column in ((axes[0, i], "chamfer_mm"), (axes[1, i], "coverage_pct")):
+                pairs = [(t, v) for r in rs if (t := value(r, "scan_time_s")) is not None
+                         and (v := value(r, column)) is not None]
+                ax.plot([t for t, _ in pairs], [v for _, v in pairs], "o", color=colour, label=planner)
+                for r in rs:
+                    if (timeline := timelines.get(row_id(r))) is not None:
+                        ax.plot(timeline["t_s"], timeline[column], color=colour, linewidth=0.8)
+            if (table_i := paper.table_i(planner, "coverage_pct", g.object)) is not None:
+                axes[1, i].axhline(table_i, color=colour, linestyle="--", linewidth=0.8)
+        axes[0, i].set_title(g.label)
+        axes[0, i].set_ylabel("Chamfer [mm]")
+        axes[1, i].set_ylabel("coverage [%]")
+        axes[1, i].set_xlabel("scan time [s]")
+        axes[0, i].legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+def _bars(rows: Sequence[Row], path: Path) -> None:
+    gs = groups(rows)
+    fig = Figure(figsize=(3.5 * len(gs), 9.0))
+    axes = fig.subplots(len(PACKING), len(gs), squeeze=False)
+    for i, g in enumerate(gs):
+        planners = list(g.by_planner)
+        for j, (column, heading, _) in enumerate(PACKING):
+            values = [figures(g.by_planner[p], column) for p in planners]
+            means = [float(np.mean(v)) if v else 0.0 for v in values]
+            errors = [float(np.std(v, ddof=1) / np.sqrt(len(v))) if len(v) > 1 else 0.0 for v in values]
+            axes[j, i].bar(planners, means, yerr=errors, capsize=3)
+            axes[j, i].set_ylabel(heading)
+        axes[0, i].set_title(g.label)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = (),
+                 timelines: dict[RowId, Timeline] | None = None) -> Path:
+    """Write report.md and its figures into ``out``; ``limits`` the coverage limit [%] per object and
+    placement (results.csv's texts; absent: not computed), ``timelines`` those of the re-processed
+    scans by row (``cell.evaluation.grid.timelines``). Returns report.md's path."""
+    gs = groups(rows)
+    statuses = sorted({r["status"] for r in rows})
+    counts = ", ".join(f"{sum(r['status'] == s for r in rows)} {s}" for s in statuses)
+    md = ["# Evaluation report", "", *title_lines, f"{len(rows)} scans: {counts}.", "",
+          "## Reconstruction (visual-servoing paper, Table I layout)", "",
+          "Mean ± standard error over the seeds; the paper's figure in brackets (Table I; for scan time and "
+          "path the paper's mean over its objects, section III-C). `limit %`: the coverage limit, the share "
+          "of the surface any reachable view can see (`cell eval limit`).", "",
+          *reconstruction_table(gs, limits), "", f"![coverage and Chamfer against scan time]({FIG5})", ""]
+    _fig5(rows, timelines or {}, out / FIG5)
+    if any(r["iou"] for r in rows):
+        md += ["## Packing (LR-NBV paper, Fig. 3)", "",
+               "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "
+               "claims:", "", *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
+               *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
+        _bars(rows, out / FIG3)
+    md += ["## Mann-Whitney U between planners", "", *tests_table(gs), ""]
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        md += ["## Failed scans", "", *(f"- {r['object']} {r['placement']} {r['planner']} seed {r['seed']}: "
+                                        f"{r['termination']}" for r in failed), ""]
+    path = out / REPORT_MD
+    path.write_text("\n".join(md))
+    return path
+

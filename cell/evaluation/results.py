@@ -1,0 +1,134 @@
+"""``results.csv``: one row per scan of a grid, from its job folder's ``result.json``.
+
+Byte-identical for the same grid whoever ran it: rows sorted by object, placement, planner and seed;
+every number written with a fixed number of decimals; nothing that depends on the machine or the wall
+clock (no wall times, no paths). Empty cells are figures a scan does not have (no ground truth, no
+packing history, a scan that never ran).
+
+Columns: ``object``, ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or
+``failed`` for a scan whose worker died twice), ``termination``, ``scan_time_s`` (job time from the first
+frame, the visual-servoing paper's clock), ``path_m`` (sensor path over the same span), ``n_captures``,
+``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud; on the 1 mm re-processed
+cloud, ``result_hires.json``, for a grid that re-processes, as the paper measures Table I), and the
+packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
+``packing_coverage_pct``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from cell.evaluation.spec import ScanSpec
+
+COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "scan_time_s", "path_m",
+           "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "dims_m", "iou", "n_poses",
+           "n_useless_poses", "packing_coverage_pct")
+NUMERIC = ("scan_time_s", "path_m", "coverage_pct", "chamfer_mm", "hausdorff_mm", "iou",
+           "packing_coverage_pct", "n_captures", "n_poses", "n_useless_poses")
+DECIMALS = 4
+
+Row = dict[str, str]
+RowId = tuple[str, str, str, str]
+"""(object, placement, planner, seed) of a row."""
+Timeline = dict[str, list[float | None]]
+"""Eq. 13 as a re-processed scan went on (``result_hires.json``): ``t_s`` [s from the first frame] and
+``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` of the cloud the frames up to each one make."""
+
+
+def _number(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return str(value)
+    return f"{float(value):.{DECIMALS}f}"
+
+
+def _identity(spec: ScanSpec) -> Row:
+    return dict(zip(COLUMNS[:4], identity(spec), strict=True))
+
+
+HIRES_JSON = "result_hires.json"
+
+
+def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any] | None = None) -> Row:
+    """The row of a scan whose job folder holds ``result`` (its result.json) and, re-processed,
+    ``hires`` (its result_hires.json), whose eq. 13 figures then replace the online cloud's."""
+    metrics = (hires if hires is not None else result).get("metrics") or {}
+    packing = result.get("packing") or {}
+    dims = packing.get("dims_m")
+    return {**_identity(spec), "status": result["status"],
+            "termination": " ".join(str(result["termination"]).split()),
+            "scan_time_s": _number(result.get("scan_time_s")),
+            "path_m": _number(result.get("scan_path_length_m")),
+            "n_captures": _number(result.get("n_captures")),
+            **{k: _number(metrics.get(k)) for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm")},
+            "dims_m": "" if dims is None else " ".join(_number(d) for d in dims),
+            "iou": _number(packing.get("iou")), "n_poses": _number(packing.get("n_poses")),
+            "n_useless_poses": _number(packing.get("n_useless_poses")),
+            "packing_coverage_pct": _number(packing.get("coverage_pct"))}
+
+
+def row_from_folder(spec: ScanSpec, folder: Path) -> Row:
+    """The row of a scan from its job folder."""
+    hires = folder / HIRES_JSON
+    return row_from_result(spec, json.loads((folder / "result.json").read_text()),
+                           json.loads(hires.read_text()) if hires.is_file() else None)
+
+
+def timeline_from_folder(folder: Path) -> Timeline | None:
+    """A re-processed scan's timeline from its job folder; None when it was not re-processed or has no
+    ground truth."""
+    hires = folder / HIRES_JSON
+    return json.loads(hires.read_text()).get("timeline") if hires.is_file() else None
+
+
+def identity(spec: ScanSpec) -> RowId:
+    """The (object, placement, planner, seed) of the spec's row."""
+    return spec.object_label, spec.placement_text, spec.planner, str(spec.seed)
+
+
+def row_id(row: Row) -> RowId:
+    """The (object, placement, planner, seed) of a row."""
+    return row["object"], row["placement"], row["planner"], row["seed"]
+
+
+def failed_row(spec: ScanSpec, reason: str) -> Row:
+    """The row of a scan that left no job folder (refused, or its worker died twice)."""
+    return {**dict.fromkeys(COLUMNS, ""), **_identity(spec), "status": "failed",
+            "termination": " ".join(reason.split())}
+
+
+def _order(row: Row) -> tuple[str, tuple[float, ...], str, int]:
+    return (row["object"], tuple(float(v) for v in row["placement"].split(",")), row["planner"],
+            int(row["seed"]))
+
+
+def sorted_rows(rows: Iterable[Row]) -> list[Row]:
+    """The rows in results.csv's order: object, placement, planner, seed."""
+    return sorted(rows, key=_order)
+
+
+def csv_text(rows: Iterable[Row]) -> str:
+    """The rows as CSV text, sorted (:func:`sorted_rows`), ``\\n`` line ends."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(sorted_rows(rows))
+    return buffer.getvalue()
+
+
+def read_csv(path: Path) -> list[Row]:
+    """The rows of a results.csv."""
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def value(row: Row, column: str) -> float | None:
+    """A numeric cell as a float; None when empty."""
+    text = row[column]
+    return None if text == "" else float(text)

@@ -1,0 +1,135 @@
+"""One scan of a grid, what makes it what it is (its key), and the grid's cross product.
+
+A scan is keyed by the SHA-256 of its inputs: the content of the cell file, the content of the object's
+mesh file (a shipped object's PLY or the user's file), the placement, planner, seed, time budget, the
+mesh scale, whether the job is re-processed and the software version. The key names the scan's job
+folder, so a second run of the same grid finds the scans already done, and any change of an input (an
+edited cell file, a new release) runs the scan again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from functools import cache
+from pathlib import Path
+
+import yaml
+
+from cell import __version__
+from cell.planning.registry import get_planner
+from drivers.errors import CellError, ConfigError, JobError
+from drivers.sim.objects import OBJECTS_DIR, load_object, shipped_names
+
+Placement = tuple[float, float, float]
+"""(x [m], y [m], yaw [deg]) of the object relative to the station, as ``cell scan --object-pose``."""
+
+KEY_LENGTH = 12
+"""Hex digits of the key in a job folder's name (48 bits: no collision within any practical grid)."""
+
+
+@dataclass(frozen=True)
+class ScanSpec:
+    """One scan: the cell file, the object (a shipped name or a mesh file's path), its placement, the
+    planner, the job seed, the time budget [s] (None: the cell file's), the mesh scale (mesh units to
+    metres) and whether the job folder is re-processed after the scan as the visual-servoing paper
+    measures Table I (``cell.perception.reprocess``: 1 mm, multiway registration; ``result_hires.json``)."""
+
+    config: str
+    object: str
+    placement: Placement
+    planner: str
+    seed: int
+    max_time_s: float | None = None
+    object_scale: float = 1.0
+    reprocess: bool = False
+
+    @property
+    def object_label(self) -> str:
+        """The object's name in tables: a shipped name, or a mesh file's stem."""
+        return self.object if self.object in shipped_names() else Path(self.object).stem
+
+    @property
+    def placement_text(self) -> str:
+        """The placement as ``x,y,yaw_deg`` (``cell scan --object-pose``'s form)."""
+        return ",".join(f"{v:g}" for v in self.placement)
+
+
+def mesh_file(obj: str) -> Path:
+    """The file holding the object's mesh: the shipped PLY for a shipped name, else the path given."""
+    return OBJECTS_DIR / f"{obj}.ply" if obj in shipped_names() else Path(obj).expanduser()
+
+
+@cache
+def _file_digest(path: Path) -> str:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise JobError(f"cannot read {path}: {exc}") from None
+
+
+def input_digest(config: str, object: str, **inputs: object) -> str:
+    """The hex SHA-256 of the cell file's and the object mesh's contents, the software version and
+    ``inputs`` (JSON values)."""
+    everything = {**inputs, "config": _file_digest(Path(config).resolve()),
+                  "object": _file_digest(mesh_file(object).resolve()), "version": __version__}
+    return hashlib.sha256(json.dumps(everything, sort_keys=True).encode()).hexdigest()
+
+
+def scan_key(spec: ScanSpec) -> str:
+    """The key of a scan: :func:`input_digest` of all its inputs (module docstring)."""
+    return input_digest(**asdict(spec))
+
+
+def folder_name(spec: ScanSpec, key: str) -> str:
+    """The job folder's name: readable, then the key."""
+    return f"{spec.object_label}-{spec.planner}-s{spec.seed}-{key[:KEY_LENGTH]}"
+
+
+def cross(config: str, cases: Sequence[tuple[str, Placement]], planners: Sequence[str], seeds: Sequence[int],
+          max_time_s: float | None = None, reprocess: bool = False) -> list[ScanSpec]:
+    """Every case (an object at a placement) x planner x seed."""
+    return [ScanSpec(config, obj, placement, planner, seed, max_time_s, reprocess=reprocess)
+            for obj, placement in cases for planner in planners for seed in seeds]
+
+
+def check_specs(specs: Sequence[ScanSpec]) -> None:
+    """Refuse a grid that cannot run before any scan does: an empty one, an unknown planner, an object
+    that is neither a shipped name nor a readable mesh file (``CellError``, one line)."""
+    if not specs:
+        raise CellError("the grid is empty: give objects and planners")
+    for planner in dict.fromkeys(s.planner for s in specs):
+        get_planner(planner)
+    for obj, scale in dict.fromkeys((s.object, s.object_scale) for s in specs):
+        load_object(obj, scale)
+
+
+def parse_placement(text: str) -> Placement:
+    """``x,y,yaw_deg`` as three numbers; raises ``ConfigError``."""
+    parts = text.split(",")
+    try:
+        x, y, yaw = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(f"a placement is x,y,yaw_deg (three numbers), got {text!r}") from None
+    return x, y, yaw
+
+
+def load_placements(path: Path) -> list[Placement]:
+    """A placements file: YAML, a list of ``[x_m, y_m, yaw_deg]`` (or ``"x,y,yaw_deg"`` strings)."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read the placements: {exc}") from None
+    if not isinstance(data, list) or not data:
+        raise ConfigError(f"{path}: expected a non-empty list of [x_m, y_m, yaw_deg]")
+    placements = []
+    for item in data:
+        if isinstance(item, str):
+            placements.append(parse_placement(item))
+        elif isinstance(item, list) and len(item) == 3 and all(isinstance(v, int | float) for v in item):
+            placements.append((float(item[0]), float(item[1]), float(item[2])))
+        else:
+            raise ConfigError(f"{path}: a placement is [x_m, y_m, yaw_deg], got {item!r}")
+    return placements

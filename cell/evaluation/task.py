@@ -1,0 +1,97 @@
+"""One scan as a task of an executor: what a worker gets, what it runs, what it sends back.
+
+A worker may be another machine (a Ray cluster) without the driver's files, so the task carries the cell
+file's text and a user mesh's bytes; the worker writes them to a private temporary folder, runs the scan
+there (``cell.jobs.runner.run_scan``, then ``cell.perception.reprocess`` when the spec asks) and sends
+the whole job folder back as an in-memory tar archive, which the driver unpacks under ``--out``. The job
+records the driver's cell-file path and the mesh's name, not the worker's temporary copies.
+"""
+
+from __future__ import annotations
+
+import io
+import tarfile
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from cell.config import load_config
+from cell.evaluation.spec import ScanSpec, mesh_file
+from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.reprocess import reprocess_job
+from drivers.errors import CellError
+from drivers.sim.objects import shipped_names
+
+JOB_DIR = "job"
+
+
+@dataclass(frozen=True)
+class ScanTask:
+    """A scan to run: its spec, key, the cell file's text and, for a user mesh, the file's bytes."""
+
+    spec: ScanSpec
+    key: str
+    config_text: str
+    mesh_bytes: bytes | None
+
+    @classmethod
+    def of(cls, spec: ScanSpec, key: str) -> ScanTask:
+        mesh = None if spec.object in shipped_names() else mesh_file(spec.object).read_bytes()
+        return cls(spec, key, Path(spec.config).read_text(), mesh)
+
+
+@dataclass(frozen=True)
+class TaskOutput:
+    """What a worker sends back: the key, the job folder as tar bytes (None when the scan was refused
+    before its folder existed) and the one-line reason of a refusal or failure (None when it ran)."""
+
+    key: str
+    archive: bytes | None
+    error: str | None
+
+
+def pack_folder(folder: Path) -> bytes:
+    """``folder``'s files as an uncompressed tar archive in memory, paths relative to it."""
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w") as tar:
+        tar.add(folder, arcname=".")
+    return buffer.getvalue()
+
+
+def unpack_folder(archive: bytes, folder: Path) -> None:
+    """Extract a :func:`pack_folder` archive into ``folder`` (created); refuses paths leaving it."""
+    folder.mkdir(parents=True)
+    with tarfile.open(fileobj=io.BytesIO(archive), mode="r") as tar:
+        tar.extractall(folder, filter="data")
+
+
+def run_scan_task(task: ScanTask) -> TaskOutput:
+    """Run the task's scan in a temporary folder and return its job folder (never raises for a scan's
+    failure: a failed job's folder holds its result and the reason comes back with it)."""
+    spec = task.spec
+    with tempfile.TemporaryDirectory(prefix="cell-eval-") as tmp:
+        root = Path(tmp)
+        config_path = root / Path(spec.config).name
+        config_path.write_text(task.config_text)
+        obj = spec.object
+        if task.mesh_bytes is not None:
+            mesh_path = root / "mesh" / Path(spec.object).name
+            mesh_path.parent.mkdir()
+            mesh_path.write_bytes(task.mesh_bytes)
+            obj = str(mesh_path)
+        folder = root / JOB_DIR
+        error = None
+        try:
+            config = load_config(config_path)
+            run_scan(ScanRequest(config=config, config_path=spec.config, object=obj,
+                                 object_pose=spec.placement, planner=spec.planner, seed=spec.seed,
+                                 out=folder, max_time_s=spec.max_time_s, object_scale=spec.object_scale))
+            if spec.reprocess:
+                # the crop box from the task's copy: the job names the driver's file, absent on a cluster
+                reprocess_job(folder, crop=config.perception.crop_box)
+        except CellError as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        except Exception as exc:
+            error = f"internal error: {type(exc).__name__}: {exc}"
+        archive = pack_folder(folder) if (folder / "result.json").is_file() else None
+    return TaskOutput(task.key, archive, error)

@@ -1,0 +1,62 @@
+"""``cell eval grid`` as a user runs it (the installed ``cell`` console script): a one-scan grid leaves
+results.csv and report.md and a second run skips the scan; bad input is refused with one line on
+standard error and a failing exit code before any scan runs (the real app in this process: no scan
+would start anyway, and a fresh interpreter per case costs seconds)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cell.cli.main import app
+from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR
+from cell.evaluation.report import REPORT_MD
+from cell.evaluation.results import read_csv
+
+REPO = Path(__file__).resolve().parents[1]
+CELL = Path(sys.executable).with_name("cell")
+GRID = ["eval", "grid", "--config", str(REPO / "config" / "sim-ur5e-tof.yaml"), "--limit-directions", "0",
+        "--jobs", "1", "--max-time", "6"]
+
+
+def cell_eval(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(CELL), *GRID, *args], capture_output=True, text=True, timeout=120, check=False)
+
+
+def test_a_grid_writes_its_report_and_a_rerun_skips_the_done_scan(tmp_path):
+    out = tmp_path / "run"
+    first = cell_eval("--objects", "cube", "--planners", "heu", "--out", str(out))
+    assert first.returncode == 0, first.stderr
+    assert "eval: 1/1 scans (0 failed)" in first.stderr
+    assert first.stdout.strip() == f"report: {out / REPORT_MD}"
+    rows = read_csv(out / RESULTS_CSV)
+    assert [(r["object"], r["planner"], r["status"]) for r in rows] == [("cube", "heu", "completed")]
+    assert "| cube | heu | 1 |" in (out / REPORT_MD).read_text()
+    first_csv = (out / RESULTS_CSV).read_text()
+
+    again = cell_eval("--objects", "cube", "--planners", "heu", "--out", str(out))
+    assert again.returncode == 0, again.stderr
+    assert "eval: 1 scans already done, 0 to run" in again.stderr
+    assert (out / RESULTS_CSV).read_text() == first_csv
+
+
+@pytest.mark.parametrize(("args", "reason"), [
+    (["--objects", "cube", "--planners", "no-such-planner"], "unknown planner 'no-such-planner'"),
+    (["--objects", "no_such_object", "--planners", "heu"], "unknown object 'no_such_object'"),
+    (["--objects", "cube", "--planners", "heu", "--placements", "{placements}"], "a placement is"),
+    (["--objects", "cube"], "the grid is empty"),
+])
+def test_bad_input_fails_in_one_line_before_any_scan(tmp_path, args, reason):
+    placements = tmp_path / "placements.yaml"
+    placements.write_text("- [0.0, 0.0]\n")
+    out = tmp_path / "run"
+    given = [a.format(placements=placements) for a in args]
+    done = CliRunner().invoke(app, [*GRID, *given, "--out", str(out)])
+    assert done.exit_code not in (0, None)
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and reason in lines[0], done.stderr
+    assert not (out / SCANS_DIR).exists()

@@ -1,0 +1,211 @@
+"""cell.evaluation: a small grid through the local pool and Ray with identical results.csv, resume, a
+killed worker retried and reported, a re-processed scan's 1 mm figures and timeline, the report against
+results.csv, and the coverage limit."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from cell.config import load_config
+from cell.evaluation.executors import LocalPool, RayExecutor
+from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
+from cell.evaluation.limit import cell_coverage_limit
+from cell.evaluation.report import REPORT_MD, write_report
+from cell.evaluation.results import read_csv, row_from_folder
+from cell.evaluation.spec import ScanSpec, cross, scan_key
+from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
+from drivers.sim.objects import face_normals, load_object
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = str(REPO / "config" / "sim-ur5e-tof.yaml")
+# two objects x two planners x one seed, 6 s of sim time each (a few captures, well under a second of work)
+SPECS = cross(CONFIG, [("cube", (0.0, 0.0, 0.0)), ("horizontal_box", (0.0, 0.0, 0.0))], ["heu", "lr-nbv"],
+              [0], max_time_s=6.0)
+CRASH_MARKER_ENV = "CELL_TEST_CRASH_MARKERS"
+
+
+def crash_first_attempt(task: ScanTask) -> TaskOutput:
+    """Kill the worker on the first attempt of every lr-nbv scan (a marker file per scan says it was
+    tried), then scan as usual."""
+    marker = Path(os.environ[CRASH_MARKER_ENV]) / task.key
+    if task.spec.planner == "lr-nbv" and not marker.exists():
+        marker.touch()
+        os._exit(3)
+    return run_scan_task(task)
+
+
+def crash_always(task: ScanTask) -> TaskOutput:
+    """Kill the worker of every cube scan, every time."""
+    if task.spec.object == "cube":
+        os._exit(4)
+    return run_scan_task(task)
+
+
+@pytest.fixture(scope="module")
+def local_run(tmp_path_factory) -> tuple[Path, str]:
+    out = tmp_path_factory.mktemp("local")
+    progress = io.StringIO()
+    run_grid(SPECS, out, LocalPool(2), stream=progress)
+    return out, progress.getvalue()
+
+
+def test_grid_writes_every_scan_and_progress(local_run):
+    out, progress = local_run
+    rows = read_csv(out / RESULTS_CSV)
+    assert [(r["object"], r["planner"]) for r in rows] == [
+        ("cube", "heu"), ("cube", "lr-nbv"), ("horizontal_box", "heu"), ("horizontal_box", "lr-nbv")]
+    assert all(r["status"] == "completed" for r in rows)
+    assert all(float(r["coverage_pct"]) > 0.0 and r["iou"] for r in rows)
+    assert len(list((out / SCANS_DIR).glob("*/result.json"))) == 4
+    assert "eval: 4/4 scans (0 failed)" in progress and "left" in progress
+
+
+def test_one_worker_gives_the_same_bytes(local_run, tmp_path):
+    out, _ = local_run
+    run_grid(SPECS, tmp_path, LocalPool(1), stream=io.StringIO())
+    assert (tmp_path / RESULTS_CSV).read_bytes() == (out / RESULTS_CSV).read_bytes()
+
+
+def test_rerun_skips_done_scans(local_run, tmp_path):
+    out = tmp_path / "again"
+    shutil.copytree(local_run[0], out)
+    extra = cross(CONFIG, [("cube", (0.0, 0.0, 0.0))], ["heu"], [1], max_time_s=6.0)
+    ran: list[int] = []
+
+    class Counting(LocalPool):
+        def run(self, fn, items, on_done):
+            ran.append(len(items))
+            super().run(fn, items, on_done)
+
+    progress = io.StringIO()
+    run_grid([*SPECS, *extra], out, Counting(2), stream=progress)
+    assert ran == [1]
+    assert "4 scans already done, 1 to run" in progress.getvalue()
+    assert len(read_csv(out / RESULTS_CSV)) == 5
+
+
+def test_a_killed_worker_is_retried_then_reported(local_run, tmp_path, monkeypatch):
+    out, _ = local_run
+    monkeypatch.setenv(CRASH_MARKER_ENV, str(tmp_path))
+    retried = tmp_path / "retried"
+    run_grid(SPECS, retried, LocalPool(2), task=crash_first_attempt, stream=io.StringIO())
+    assert len(list(tmp_path.glob("*"))) == 3  # two markers and the output folder: each lr-nbv scan died once
+    assert (retried / RESULTS_CSV).read_bytes() == (out / RESULTS_CSV).read_bytes()
+
+    dead = tmp_path / "dead"
+    progress = io.StringIO()
+    rows = run_grid(SPECS, dead, LocalPool(2), task=crash_always, stream=progress)
+    failed = [r for r in rows if r["status"] == "failed"]
+    assert [(r["object"], r["planner"]) for r in failed] == [("cube", "heu"), ("cube", "lr-nbv")]
+    assert all("worker died twice" in r["termination"] and r["coverage_pct"] == "" for r in failed)
+    assert "4/4 scans (2 failed)" in progress.getvalue()
+
+
+def test_ray_gives_the_same_results_and_retries_a_killed_worker(local_run, tmp_path, monkeypatch):
+    ray = pytest.importorskip("ray")
+    out, _ = local_run
+    monkeypatch.setenv(CRASH_MARKER_ENV, str(tmp_path))
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+             runtime_env={"env_vars": {CRASH_MARKER_ENV: str(tmp_path)}})
+    try:
+        ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+        run_grid(SPECS, tmp_path / "ray", RayExecutor(), task=crash_first_attempt, stream=io.StringIO())
+    finally:
+        ray.shutdown()
+    assert len(list(tmp_path.iterdir())) == 3  # two markers and the output folder: each lr-nbv scan died once
+    assert (tmp_path / "ray" / RESULTS_CSV).read_bytes() == (out / RESULTS_CSV).read_bytes()
+
+
+def test_a_reprocessed_scan_reports_the_1mm_figures_and_its_timeline(tmp_path):
+    spec = ScanSpec(str(REPO / "config" / "sim-franka-rgbd.yaml"), "cube", (0.0, 0.0, 0.0), "vs-local", 0,
+                    max_time_s=3.0, reprocess=True)
+    output = run_scan_task(ScanTask.of(spec, scan_key(spec)))
+    assert output.error is None and output.archive is not None
+    folder = scan_folder(tmp_path, spec)
+    unpack_folder(output.archive, folder)
+    hires = json.loads((folder / "result_hires.json").read_text())
+    online = json.loads((folder / "result.json").read_text())["metrics"]
+    assert hires["metrics"] != online
+    row = row_from_folder(spec, folder)
+    assert [row[k] for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm")] == [
+        f"{hires['metrics'][k]:.4f}" for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm")]
+    online_spec = replace(spec, reprocess=False)
+    assert scan_key(online_spec) != scan_key(spec)
+    assert timelines([spec, online_spec], tmp_path) == {("cube", "0,0,0", "vs-local", "0"): hires["timeline"]}
+
+
+def _table(md: str, first_header: str) -> list[list[str]]:
+    lines = md.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first_header}"))
+    body = []
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        body.append([c.strip() for c in line.strip("|").split("|")])
+    return body
+
+
+def test_report_tables_match_results_csv(local_run, tmp_path):
+    out, _ = local_run
+    rows = read_csv(out / RESULTS_CSV)
+    # a second seed per scan, so that the table shows means and standard errors
+    twin = [{**r, "seed": "1", "coverage_pct": f"{float(r['coverage_pct']) + 1.0:.4f}"} for r in rows]
+    write_report(rows + twin, tmp_path, {("cube", "0,0,0"): 100.0})
+    md = (tmp_path / REPORT_MD).read_text()
+    table = _table(md, "object | planner | n | coverage %")
+    assert len(table) == len(rows)
+    for r, line in zip(rows, table, strict=True):
+        a, b = float(r["coverage_pct"]), float(r["coverage_pct"]) + 1.0
+        se = np.std([a, b], ddof=1) / np.sqrt(2)
+        assert line[:5] == [r["object"], r["planner"], "2", f"{(a + b) / 2:.1f} ± {se:.1f}",
+                            "100.0" if r["object"] == "cube" else "-"]
+        assert line[5] == f"{float(r['chamfer_mm']):.1f} ± 0.0"
+    packing = _table(md, "object | planner | n | L m")
+    for r, line in zip(rows, packing, strict=True):
+        assert line[3:7] == [f"{float(d):.4f} ± 0.0000" for d in r["dims_m"].split()] + \
+            [f"{float(r['iou']):.3f} ± 0.000"]
+    assert (tmp_path / "fig5.png").stat().st_size > 0 and (tmp_path / "fig3.png").stat().st_size > 0
+
+
+def _box(lo, hi, inward=False):
+    mesh = o3d.geometry.TriangleMesh.create_box(*(np.subtract(hi, lo)))
+    mesh.translate(lo)
+    v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    return v, (t[:, ::-1] if inward else t)
+
+
+def _kept_area(v, t) -> float:
+    """Area [m^2] of the faces eq. 13's sample keeps (not within 45 degrees of straight down)."""
+    normals, areas = face_normals(v, t.astype(np.int32))
+    return float(areas[normals[:, 2] > -np.cos(np.pi / 4)].sum())
+
+
+def test_coverage_limit_of_a_cube_and_of_a_hidden_cavity(tmp_path):
+    config = load_config(CONFIG)
+    cube = load_object("cube")
+    assert cell_coverage_limit(config, cube, (0.0, 0.0, 0.0), 60, reachable=False).coverage_pct == 100.0
+    # a 10 cm box holding a closed 6 cm cavity: its walls and floor face into the box, seen from nowhere
+    outer = _box((-0.05, -0.05, 0.0), (0.05, 0.05, 0.1))
+    inner = _box((-0.03, -0.03, 0.02), (0.03, 0.03, 0.08), inward=True)
+    v = np.vstack([outer[0], inner[0]])
+    t = np.vstack([outer[1], inner[1] + len(outer[0])])
+    path = tmp_path / "cavity.ply"
+    o3d.io.write_triangle_mesh(path, o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v),
+                                                                o3d.utility.Vector3iVector(t)))
+    hidden_pct = 100.0 * _kept_area(*inner) / (_kept_area(*outer) + _kept_area(*inner))
+    limit = cell_coverage_limit(config, load_object(str(path)), (0.0, 0.0, 0.0), 60, reachable=False)
+    assert limit.coverage_pct == pytest.approx(100.0 - hidden_pct, abs=1.5)
+    # the arm reaches only some of the views, and they still see the whole cube
+    reachable = cell_coverage_limit(config, cube, (0.0, 0.0, 0.0), 60)
+    assert 0 < reachable.n_reachable < reachable.n_views
+    assert reachable.coverage_pct == 100.0
