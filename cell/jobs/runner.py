@@ -427,6 +427,6 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     recorder.result(result)
     planner = job.planner
     if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
-        write_servo_outputs(job.folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,
-                            session.coverage_history)
+        write_servo_outputs(job.folder, planner.telemetry.records(), np.array(session.sensor_path.records()),
+                            planner.centroid, session.coverage_history)
     return result
