@@ -1,20 +1,31 @@
 """The Franka backend's fault paths against franky-sim with the control unit's faults injected
 (tests/franky_fault_sim.py): what franky raises becomes a ``RobotFault`` with the reason, the robot's
 errors and the next step; the arm is at rest; ``recover`` clears what the robot lets it clear; a lost
-robot is a "disconnect" fault. The conformance suite covers a reflex while idle."""
+robot is a "disconnect" fault; a reflex during a scan ends the job with everything it recorded kept, and
+``cell arm recover`` clears it. The conformance suite covers a reflex while idle."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from typer.testing import CliRunner
 
+from cell.cli.arm import arm_app
+from cell.config import load_config
 from cell.control.trajectory import joint_trajectory
+from cell.jobs import session
+from cell.jobs.progress import JobProgress
+from cell.jobs.runner import ScanRequest, run_scan
 from drivers.arm.base import ArmMode
 from drivers.arm.franka import FrankaArm
-from drivers.errors import DriverError, RobotFault
-from tests.arm_backends import Backend, FrankySim, franka_backend
+from drivers.errors import DriverError, RobotFault, SafetyStop
+from tests.arm_backends import Backend, FrankySim, franka_backend, franka_config
+from tests.conftest import FRANKA
 
 UP = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])  # a slow twist [m/s, rad/s]
 
@@ -54,7 +65,8 @@ def test_a_reflex_during_a_move_stops_the_arm_names_its_errors_and_recovers(
     arm = franka.arm
     start_a_long_move(franka)
     sim.inject("reflex cartesian_reflex joint_velocity_violation")
-    franka.wait_until(lambda: arm.state().faults == ("reflex",) and at_rest(franka))
+    reflex = "reflex: joint_velocity_violation, cartesian_reflex"  # the robot's flags, in its order
+    franka.wait_until(lambda: arm.state().faults == (reflex,) and at_rest(franka))
     st = arm.state()
     assert st.mode is ArmMode.FAULT
     with pytest.raises(RobotFault) as refused:
@@ -112,3 +124,59 @@ def test_a_vanished_robot_is_a_disconnect_and_recover_says_what_to_check(
     assert refused.value.fault == "disconnect"
     with pytest.raises(DriverError, match="cannot reach the robot's control port"):
         arm.recover()
+
+
+def dry_run_cell(tmp_path: Path, host: str) -> Path:
+    """The sim Franka cell as a dry run (the Franka backend, the simulated camera rendering from the pose
+    the arm reports) against franky-sim at ``host``: a short raster, on the wall clock at 50 Hz with the
+    dry run's lenient late-tick watchdog (a Python simulator shares the machine)."""
+    data = yaml.safe_load(FRANKA.read_text())
+    data["mode"] = "dry-run"
+    home = data["arm"]["home_joints_rad"]
+    data["arm"] = franka_config(host).model_dump(mode="json") | {"home_joints_rad": home}
+    data["safety"]["watchdog"] |= {"deadline_factor": 5.0, "max_missed_deadlines": 5}
+    data["scan"] |= {"planner": "raster", "control_rate_hz": 50.0}
+    data["planners"]["raster"]["rings"] = [{"elevation_deg": 60.0, "n_views": 6}]
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_a_reflex_during_a_scan_ends_it_with_every_frame_kept_and_cell_arm_recover_clears_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # franky-sim, a Python simulator, runs slower than the wall clock on a loaded machine, and a move on
+    # it with it: the job's deadline for a move (its planned duration + 2 s) is not what this test is about
+    monkeypatch.setattr(session, "MOVE_TIMEOUT_MARGIN_S", 60.0)
+    sim = FrankySim(q=load_config(FRANKA).arm.home_joints_rad)
+    try:
+        cell_file = dry_run_cell(tmp_path, sim.host)
+        injected_at: list[int] = []
+
+        def reflex_after_the_first_capture(progress: JobProgress) -> None:
+            if progress.n_captures >= 1 and not injected_at:
+                injected_at.append(progress.n_captures)
+                sim.inject("reflex cartesian_reflex")  # a collision, as the arm moves on to the next view
+
+        folder = tmp_path / "job"
+        with pytest.raises(SafetyStop):  # raised once the folder is finished, as for any safety stop
+            run_scan(ScanRequest(config=load_config(cell_file), config_path=str(cell_file), object="bunny",
+                                 out=folder, max_time_s=120.0), on_progress=reflex_after_the_first_capture)
+        result = json.loads((folder / "result.json").read_text())
+        assert injected_at, "the scan ended before its first capture"
+        assert result["status"] == "stopped"
+        termination = result["termination"]
+        assert "arm fault: reflex: cartesian_reflex" in termination, termination
+        # nothing recorded before the fault is lost: every capture's frame, the cloud, the path, the log
+        frames = sorted((folder / "frames").glob("*.npz"))
+        assert result["n_captures"] == len(frames) >= injected_at[0]
+        assert result["n_cloud_points"] > 0 and (folder / "cloud.ply").stat().st_size > 0
+        assert len((folder / "trajectory.csv").read_text().splitlines()) > 2
+        assert "reflex" in (folder / "log.txt").read_text()
+        # the operator's way back: status shows the fault, recover clears it
+        runner = CliRunner()
+        status = runner.invoke(arm_app, ["status", "--config", str(cell_file)])
+        assert status.exit_code == 0 and "faults: reflex: cartesian_reflex" in status.output, status.output
+        recovered = runner.invoke(arm_app, ["recover", "--config", str(cell_file)])
+        assert recovered.exit_code == 0 and "faults: none" in recovered.output, recovered.output
+    finally:
+        sim.kill()

@@ -33,8 +33,10 @@ robot while the user stop is pressed), or a new connection after a disconnect.
 from __future__ import annotations
 
 import contextlib
+import json
 import socket
 import struct
+import time
 from importlib import metadata
 
 import franky
@@ -64,6 +66,9 @@ STATUS_INCOMPATIBLE = 1
 # a trajectory whose samples stray further than this from the straight start-goal segment is refused [rad]
 SEGMENT_TOL_RAD = 0.05
 NETWORK_ERRORS = (franky.NetworkException, franky.ProtocolException)
+# franky judges a recovery by the state it holds when the robot answers, which can still show the errors
+# the recovery cleared (seen with a fresh connection): the state is read again for this long [s]
+RECOVERY_STATE_LAG_S = 0.5
 # what the operator does next, per fault word
 NEXT_STEP = {
     "reflex": "find what the arm hit or which limit it reached and clear it, then recover (cell arm recover)",
@@ -214,7 +219,7 @@ class FrankaArm(HardwareArm):
         elif isinstance(exc, NETWORK_ERRORS):
             self._fault = self._fault_error("disconnect", f"{what}: lost the connection: {exc}")
         else:  # a command the robot refused: its state says why
-            faults = self._faults(robot, robot.state)
+            faults = self._fault_kinds(robot, robot.state)
             self._fault = self._fault_error(faults[0] if faults else "control error", f"{what}: {exc}", robot)
         return self._fault
 
@@ -225,7 +230,8 @@ class FrankaArm(HardwareArm):
         except (franky.ControlException, *NETWORK_ERRORS) as exc:
             self._latch(exc, robot, "the robot stopped the motion")
 
-    def _faults(self, robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+    def _fault_kinds(self, robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+        """The faults' kinds (keys of ``NEXT_STEP``): the latched one, then what the robot's state says."""
         faults: list[str] = [self._fault.fault] if self._fault is not None else []
         if state.robot_mode == franky.RobotMode.Reflex:
             faults.append("reflex")
@@ -234,6 +240,15 @@ class FrankaArm(HardwareArm):
         if robot.has_errors and not faults:
             faults.append("robot error")
         return tuple(dict.fromkeys(faults))
+
+    @staticmethod
+    def _described(kinds: tuple[str, ...], robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+        """The faults for people (``ArmState.faults``): a reflex, an error or an aborted motion with the
+        robot's error flags (its current errors, else the last motion's): ``reflex: cartesian_reflex``."""
+        errors = state.current_errors if robot.has_errors else state.last_motion_errors
+        flags = ", ".join(json.loads(str(errors)))
+        flagged = ("reflex", "robot error", "control error")
+        return tuple(f"{kind}: {flags}" if flags and kind in flagged else kind for kind in kinds)
 
     def _read(self) -> tuple[franky.Robot, franky.RobotState]:
         robot = self._require()
@@ -251,7 +266,7 @@ class FrankaArm(HardwareArm):
         T_flange = T_ee @ inv_T(np.asarray(st.F_T_EE.matrix, dtype=float))
         twist = st.O_dP_EE_est if st.O_dP_EE_est is not None else st.O_dP_EE_d
         v_ee = np.concatenate([np.asarray(twist.linear), np.asarray(twist.angular)])
-        faults = self._faults(robot, st)
+        faults = self._described(self._fault_kinds(robot, st), robot, st)
         if self._mode is not ArmMode.IDLE and not robot.is_in_control:
             self._mode = ArmMode.IDLE
         return ArmState(timestamp=st.time.to_sec(),
@@ -267,10 +282,11 @@ class FrankaArm(HardwareArm):
 
     def _refuse_if_faulted(self, what: str) -> franky.Robot:
         robot, st = self._read()
-        faults = self._faults(robot, st)
-        if faults:
+        kinds = self._fault_kinds(robot, st)
+        if kinds:
             latched = f" ({self._fault})" if self._fault is not None else ""
-            raise self._fault_error(faults[0], f"{what} refused: {', '.join(faults)}{latched}", robot)
+            faults = ", ".join(self._described(kinds, robot, st))
+            raise self._fault_error(kinds[0], f"{what} refused: {faults}{latched}", robot)
         return robot
 
     def _move(self, what: str, motion: object) -> None:
@@ -328,6 +344,16 @@ class FrankaArm(HardwareArm):
         self._move("stop()", stop_motion)
         self._mode = ArmMode.STOPPING
 
+    @staticmethod
+    def _errors_clear_within(robot: franky.Robot, timeout_s: float) -> bool:
+        """Whether the robot's state shows no errors within ``timeout_s`` [s] (read every 10 ms)."""
+        deadline = time.monotonic() + timeout_s
+        while robot.has_errors:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
     def recover(self) -> None:
         """Operator action: franky's automatic error recovery; a lost connection is re-opened."""
         robot = self._require()
@@ -336,9 +362,9 @@ class FrankaArm(HardwareArm):
             self.connect()
             return
         try:
-            ok = robot.recover_from_errors()
+            ok = robot.recover_from_errors() or self._errors_clear_within(robot, RECOVERY_STATE_LAG_S)
         except (franky.CommandException, *NETWORK_ERRORS) as exc:
-            faults = self._faults(robot, robot.state) if isinstance(exc, franky.CommandException) else ()
+            faults = self._fault_kinds(robot, robot.state) if isinstance(exc, franky.CommandException) else ()
             raise self._fault_error(faults[0] if faults else "disconnect",
                                     f"the automatic error recovery failed: {exc}", robot) from None
         if not ok:
