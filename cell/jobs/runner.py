@@ -42,6 +42,7 @@ from cell.jobs.control import JobControl
 from cell.jobs.inputs import check_job_folder, check_pose, check_seed, check_time_budget
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
+from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
 from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import STOP_FILE, JobRecorder
@@ -374,6 +375,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             recorder.result(result)
             error = error or exc
         recorder.close()
+        release_freed_heap()
     if error is not None:
         raise error
     return ScanOutcome(folder=folder, result=result)
