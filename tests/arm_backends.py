@@ -53,10 +53,11 @@ def franka_config(host: str) -> FrankaArmConfig:
 
 class FrankySim:
     """franky-sim with injectable faults (tests/franky_fault_sim.py) on 127.0.0.N, port 1337, in its own
-    process; ``q`` the robot's initial joints [rad] (franky-sim's default pose when None)."""
+    process; ``q`` the robot's initial joints [rad] (franky-sim's default pose when None); ``host`` a
+    given address (a robot that comes back), else a free one."""
 
-    def __init__(self, q: Sequence[float] | None = None) -> None:
-        self.host = free_loopback([1337], reuse_address=False)
+    def __init__(self, q: Sequence[float] | None = None, host: str | None = None) -> None:
+        self.host = host or free_loopback([1337], reuse_address=False)
         args = [sys.executable, "-m", "tests.franky_fault_sim", "--hostname", self.host]
         if q is not None:
             args += ["--q", ",".join(map(str, q))]

@@ -110,7 +110,7 @@ def test_a_user_stop_cannot_be_recovered_until_it_is_released(sim: FrankySim, fr
     arm.stop()
 
 
-def test_a_vanished_robot_is_a_disconnect_and_recover_says_what_to_check(
+def test_a_vanished_robot_is_a_disconnect_recover_says_what_to_check_and_reconnects_once_it_is_back(
         sim: FrankySim, franka: Backend) -> None:
     arm = franka.arm
     arm.command_twist(UP, franka.token)
@@ -124,6 +124,14 @@ def test_a_vanished_robot_is_a_disconnect_and_recover_says_what_to_check(
     assert refused.value.fault == "disconnect"
     with pytest.raises(DriverError, match="cannot reach the robot's control port"):
         arm.recover()
+    back = FrankySim(host=sim.host)  # the robot is powered again: recover reconnects
+    try:
+        arm.recover()
+        assert arm.state().faults == () and arm.state().mode is ArmMode.IDLE
+        arm.command_twist(UP, franka.token)
+        arm.stop()
+    finally:
+        back.kill()
 
 
 def dry_run_cell(tmp_path: Path, host: str) -> Path:

@@ -359,7 +359,11 @@ class FrankaArm(HardwareArm):
         robot = self._require()
         if self._fault is not None and self._fault.fault == "disconnect":
             self._robot = None
-            self.connect()
+            try:
+                self.connect()
+            except DriverError:
+                self._robot = robot  # still latched as lost: the operator's next recover tries again
+                raise
             return
         try:
             ok = robot.recover_from_errors() or self._errors_clear_within(robot, RECOVERY_STATE_LAG_S)
