@@ -12,7 +12,6 @@ everything, as without decimation. Deterministic: the same records give the same
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -60,9 +59,6 @@ class DecimatedSeries(Generic[T]):
         if self.count and (self.count - 1) % self.stride != 0:
             kept.append(self.last)
         return kept
-
-    def __iter__(self) -> Iterator[T]:
-        return iter(self.records())
 
     def __len__(self) -> int:
         """How many records :meth:`records` returns (not how many were offered: see ``count``)."""
