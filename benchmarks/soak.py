@@ -22,10 +22,10 @@ start (after the first job: imports and first-use caches are not a leak), after 
 and at the end, and the growth from after the warmup to the end [%] against the goal of issue 25
 (<= 5 %); fds and threads at the same three points; every job that did not end ``completed``.
 
-A job gives the C heap's free memory back to the system at its end (``cell.jobs.memory``): before that,
-the in-process RSS crept up by what glibc kept of the largest jobs' allocations (5.9 % over 180 jobs, in
-+-30 MiB steps), while the Python heap grew by 63 KiB over 40 jobs (tracemalloc) and RSS with
-``malloc_trim`` before each sample by 0.6 %: retention, not a leak.
+``run_scan`` gives the C heap's free memory back to the system after each job (``cell.jobs.memory``):
+before that, the in-process RSS crept up by what glibc kept of the jobs' freed allocations (5.9 % from
+job 20 to 200, in +-30 MiB steps), while the Python heap grew by 63 KiB over 40 jobs (tracemalloc) and
+RSS with ``malloc_trim`` before each sample by 0.6 %: retention, not a leak. Since: 0.6 %.
 
     nice .venv/bin/python benchmarks/soak.py [--jobs 200] [--warmup 20] [--max-time 10] [--only service]
 """

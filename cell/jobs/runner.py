@@ -243,8 +243,12 @@ def _no_object(session: JobSession, planner_termination: str) -> str:
 
 def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None = None,
              control: JobControl | None = None) -> ScanOutcome:
-    """Check ``req`` (:func:`prepare_scan`) and run it (:func:`run_prepared`)."""
-    return run_prepared(prepare_scan(req), on_progress, control)
+    """Check ``req`` (:func:`prepare_scan`) and run it (:func:`run_prepared`); then give the memory the
+    job freed back to the system (``cell.jobs.memory``), once its objects are gone."""
+    try:
+        return run_prepared(prepare_scan(req), on_progress, control)
+    finally:
+        release_freed_heap()
 
 
 def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] | None = None,
@@ -375,7 +379,6 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             recorder.result(result)
             error = error or exc
         recorder.close()
-        release_freed_heap()
     if error is not None:
         raise error
     return ScanOutcome(folder=folder, result=result)
