@@ -8,7 +8,7 @@ import contextlib
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +22,8 @@ from drivers.robots import get_robot_model
 from tests.loopback import free_loopback
 from tests.rtde_peer import ControllerPeer
 
+# the fault the conformance suite injects into franky-sim: a collision reflex
+REFLEX = "reflex cartesian_reflex"
 PAYLOAD = {"mass_kg": 0.3, "cog_m": [0.0, 0.0, 0.03]}
 # The RTDE watchdog for tests that stream commands for a while [Hz]: the test config's 5 Hz one ends the
 # control script when the test process stalls for 0.2 s, which a loaded machine does now and then (the
@@ -50,19 +52,35 @@ def franka_config(host: str) -> FrankaArmConfig:
 
 
 class FrankySim:
-    """``franky-sim --simulator mujoco --hostname 127.0.0.N`` in its own process (port 1337)."""
+    """franky-sim with injectable faults (tests/franky_fault_sim.py) on 127.0.0.N, port 1337, in its own
+    process; ``q`` the robot's initial joints [rad] (franky-sim's default pose when None); ``host`` a
+    given address (a robot that comes back), else a free one."""
 
-    def __init__(self) -> None:
-        self.host = free_loopback([1337], reuse_address=False)
-        exe = Path(sys.executable).with_name("franky-sim")
-        self._proc = subprocess.Popen([str(exe), "--simulator", "mujoco", "--hostname", self.host],
-                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    def __init__(self, q: Sequence[float] | None = None, host: str | None = None) -> None:
+        self.host = host or free_loopback([1337], reuse_address=False)
+        args = [sys.executable, "-m", "tests.franky_fault_sim", "--hostname", self.host]
+        if q is not None:
+            args += ["--q", ",".join(map(str, q))]
+        self._proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      stderr=subprocess.STDOUT, text=True, cwd=Path(__file__).parent.parent)
+        if self._wait_for("Connect to the server") is None:
+            raise RuntimeError("franky-sim did not start")
+
+    def _wait_for(self, prefix: str) -> str | None:
+        """The next line of the simulator's output that starts with ``prefix`` (None: it ended first)."""
         assert self._proc.stdout is not None
         for line in self._proc.stdout:
-            if "Connect to the server" in line:
-                break
-        else:
-            raise RuntimeError("franky-sim did not start")
+            if line.startswith(prefix):
+                return line
+        return None
+
+    def inject(self, command: str) -> None:
+        """A fault command (``reflex FLAG...``, ``user-stop``, ``release``); returns once it is applied."""
+        assert self._proc.stdin is not None
+        self._proc.stdin.write(command + "\n")
+        self._proc.stdin.flush()
+        if self._wait_for(f"done {command}") is None:
+            raise RuntimeError(f"franky-sim ended before applying {command!r}")
 
     @property
     def alive(self) -> bool:
@@ -72,8 +90,9 @@ class FrankySim:
         """The robot vanishes (power cut, cable pulled)."""
         self._proc.kill()
         self._proc.wait()
-        if self._proc.stdout is not None:
-            self._proc.stdout.close()
+        for pipe in (self._proc.stdin, self._proc.stdout):
+            if pipe is not None:
+                pipe.close()
 
 
 @dataclass
@@ -136,8 +155,8 @@ def franka_backend(sim: FrankySim) -> Iterator[Backend]:
     arm = FrankaArm(config, get_robot_model("panda"))
     arm.connect()
     try:
-        yield Backend("franka", arm, arm.claim_motion(), time.sleep, sim.kill, recoverable=False,
-                      twist_hold_s=config.velocity_hold_s)
+        yield Backend("franka", arm, arm.claim_motion(), time.sleep, lambda: sim.inject(REFLEX),
+                      recoverable=True, twist_hold_s=config.velocity_hold_s)
     finally:
         if sim.alive:
             arm.disconnect()

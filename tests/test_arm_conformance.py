@@ -26,16 +26,15 @@ TWIST_MOTION_S = 0.5  # how long the twist test commands motion, on the arm's ow
 
 
 @pytest.fixture(scope="module")
-def franky_sim() -> Iterator[list[FrankySim]]:
-    """One franky-sim for the module, restarted after a test that killed it."""
-    holder = [FrankySim()]
-    yield holder
-    if holder[0].alive:
-        holder[0].kill()
+def franky_sim() -> Iterator[FrankySim]:
+    """One franky-sim for the module (the fault test injects a reflex and recovers from it)."""
+    sim = FrankySim()
+    yield sim
+    sim.kill()
 
 
 @pytest.fixture(params=["sim", "ur5e", "franka"])
-def backend(request: pytest.FixtureRequest, franky_sim: list[FrankySim]) -> Iterator[Backend]:
+def backend(request: pytest.FixtureRequest, franky_sim: FrankySim) -> Iterator[Backend]:
     if request.param == "sim":
         with sim_backend() as b:
             yield b
@@ -47,9 +46,7 @@ def backend(request: pytest.FixtureRequest, franky_sim: list[FrankySim]) -> Iter
         finally:
             peer.stop()
     else:
-        if not franky_sim[0].alive:
-            franky_sim[0] = FrankySim()
-        with franka_backend(franky_sim[0]) as b:
+        with franka_backend(franky_sim) as b:
             yield b
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.control.decimation import DecimatedSeries
 from drivers.transforms import quat_xyzw
 
 TICK_BUCKETS_S = (0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1, 0.25, 0.5, 1.0)
@@ -29,15 +30,18 @@ lands nearer the next slot than its own, so one command period was lost."""
 @dataclass
 class ControlTicks:
     """Tick periods [s] of one job's control loop, in job time. ``period_s`` is the configured one. The
-    histogram is kept as the ticks come, so that reading it on the control thread costs the same at any
-    point of a long job."""
+    histogram, the count, the sum and the longest period are kept exactly as the ticks come, so that
+    reading them on the control thread costs the same at any point of a long job; the periods themselves,
+    for the percentiles, in a :class:`DecimatedSeries` (bounded memory: a job longer than its capacity has
+    p50 and p99 from evenly spaced ticks)."""
 
     period_s: float
-    periods: list[float] = field(default_factory=list)
+    periods: DecimatedSeries[float] = field(default_factory=DecimatedSeries)
     overruns: int = 0
     _last: float | None = None
     _per_bucket: list[int] = field(default_factory=lambda: [0] * len(TICK_BUCKETS_S))
     _sum_s: float = 0.0
+    _max_s: float = 0.0
 
     def record(self, t: float) -> None:
         """A control tick at job time ``t`` [s]."""
@@ -45,6 +49,7 @@ class ControlTicks:
             dt = t - self._last
             self.periods.append(dt)
             self._sum_s += dt
+            self._max_s = max(self._max_s, dt)
             bucket = bisect.bisect_left(TICK_BUCKETS_S, dt)
             if bucket < len(TICK_BUCKETS_S):
                 self._per_bucket[bucket] += 1
@@ -54,7 +59,7 @@ class ControlTicks:
 
     def histogram(self) -> dict[str, Any]:
         """Cumulative counts per ``TICK_BUCKETS_S`` bound, the count, sum [s] and overruns."""
-        return {"buckets": list(itertools.accumulate(self._per_bucket)), "count": len(self.periods),
+        return {"buckets": list(itertools.accumulate(self._per_bucket)), "count": self.periods.count,
                 "sum_s": self._sum_s, "overruns": self.overruns}
 
     def summary(self) -> dict[str, Any]:
@@ -62,10 +67,10 @@ class ControlTicks:
         the histogram."""
         stats: dict[str, float | None] = dict.fromkeys(("period_p50_s", "period_p99_s", "period_max_s"))
         if self.periods:
-            p50, p99, top = np.percentile(self.periods, [50, 99, 100])
+            p50, p99 = np.percentile(self.periods.records(), [50, 99])
             stats = {"period_p50_s": round(float(p50), 6), "period_p99_s": round(float(p99), 6),
-                     "period_max_s": round(float(top), 6)}
-        return {"period_s": self.period_s, "n_ticks": len(self.periods) + (self._last is not None), **stats,
+                     "period_max_s": round(self._max_s, 6)}
+        return {"period_s": self.period_s, "n_ticks": self.periods.count + (self._last is not None), **stats,
                 "overruns": self.overruns, "histogram": self.histogram()}
 
 

@@ -42,6 +42,7 @@ from cell.jobs.control import JobControl
 from cell.jobs.inputs import check_job_folder, check_pose, check_seed, check_time_budget
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
+from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
 from cell.jobs.progress import JobProgress
 from cell.jobs.recorder import STOP_FILE, JobRecorder
@@ -243,8 +244,12 @@ def _no_object(session: JobSession, planner_termination: str) -> str:
 
 def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None = None,
              control: JobControl | None = None) -> ScanOutcome:
-    """Check ``req`` (:func:`prepare_scan`) and run it (:func:`run_prepared`)."""
-    return run_prepared(prepare_scan(req), on_progress, control)
+    """Check ``req`` (:func:`prepare_scan`) and run it (:func:`run_prepared`); then give the memory the
+    job freed back to the system (``cell.jobs.memory``), once its objects are gone."""
+    try:
+        return run_prepared(prepare_scan(req), on_progress, control)
+    finally:
+        release_freed_heap()
 
 
 def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] | None = None,
@@ -439,6 +444,6 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     recorder.result(result)
     planner = job.planner
     if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
-        write_servo_outputs(job.folder, planner.telemetry, np.array(session.sensor_path), planner.centroid,
-                            session.coverage_history)
+        write_servo_outputs(job.folder, planner.telemetry.records(), np.array(session.sensor_path.records()),
+                            planner.centroid, session.coverage_history)
     return result

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from cell.config.models import CellConfig
+from cell.control.decimation import DecimatedSeries
 from cell.control.trajectory import joint_trajectory
 from cell.jobs.live import LivePerception, PoseHistory
 from cell.jobs.progress import ControlTicks, JobProgress, quat_of, xyz_m
@@ -97,8 +98,9 @@ class JobSession:
         # ICP did not run; registration.RegistrationResult.n_constrained)
         self.registration_n_constrained: list[int] = []
         self.path_length_m = 0.0
-        # The sensor origin [m], base frame, at every tick; (job time [s], coverage [%]) at every capture.
-        self.sensor_path: list[Array] = []
+        # The sensor origin [m], base frame, at every tick (decimated in long jobs); (job time [s],
+        # coverage [%]) at every capture.
+        self.sensor_path: DecimatedSeries[Array] = DecimatedSeries()
         self.coverage_history: list[tuple[float, float]] = []
         self._on_progress = on_progress
         self.ticks = ControlTicks(self._dt)
@@ -125,7 +127,7 @@ class JobSession:
         self._T_base_sensor = T
         p = T[:3, 3]
         if self.sensor_path:
-            self.path_length_m += float(np.linalg.norm(p - self.sensor_path[-1]))
+            self.path_length_m += float(np.linalg.norm(p - self.sensor_path.last))
         self.sensor_path.append(p)
         self._recorder.pose(self.now(), T)
         if self._poses is not None:

@@ -24,7 +24,7 @@ from drivers.robots import get_robot_model
 from drivers.transforms import inv_T, make_T
 
 ARM_FAULTS = {"protective stop": "protective stop", "emergency stop": "emergency stop", "reflex": "fault",
-              "disconnect": "disconnected"}
+              "user stop": "fault", "disconnect": "disconnected"}
 """Faults a job's termination can name (``arm fault: <fault>``, ``cell.safety.guard``) and the arm state
 each leaves."""
 

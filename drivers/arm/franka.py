@@ -19,15 +19,24 @@ and reads the server's answer (``<B`` status, ``<H`` version). A server that ref
 version is refused with both versions named: the franky-control wheels speak version 10 (libfranka
 0.21, FR3-era firmware); an older Panda needs a franky built against a matching libfranka.
 
-Faults: franky's ``ControlException`` (reflexes, limit violations) and the robot's mode become
-"reflex" / "robot error: ..." faults, a lost connection "disconnect". ``recover`` is the operator's
-action: franky's automatic error recovery.
+Faults: the control unit aborts a running motion with a reason that libfranka raises as a
+``ControlException`` (message ``Move command aborted: motion aborted by reflex! ["cartesian_reflex"]`` or
+``... User Stop pressed!``); the robot has already stopped, holding its joints. The backend latches it as
+a ``RobotFault`` whose ``fault`` is a word from libfranka's reason ("reflex", "user stop", otherwise
+"control error"), and whose message carries the reason, the error flags the robot reports, the robot
+mode and what the operator does next. A fault seen only in the robot's state (mode ``Reflex`` or
+``UserStopped``, errors after a reflex outside a motion) refuses motion the same way; a lost connection
+is "disconnect". ``recover`` is the operator's action: franky's automatic error recovery (refused by the
+robot while the user stop is pressed), or a new connection after a disconnect.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import socket
 import struct
+import time
 from importlib import metadata
 
 import franky
@@ -57,6 +66,17 @@ STATUS_INCOMPATIBLE = 1
 # a trajectory whose samples stray further than this from the straight start-goal segment is refused [rad]
 SEGMENT_TOL_RAD = 0.05
 NETWORK_ERRORS = (franky.NetworkException, franky.ProtocolException)
+# franky judges a recovery by the state it holds when the robot answers, which can still show the errors
+# the recovery cleared (seen with a fresh connection): the state is read again for this long [s]
+RECOVERY_STATE_LAG_S = 0.5
+# what the operator does next, per fault word
+NEXT_STEP = {
+    "reflex": "find what the arm hit or which limit it reached and clear it, then recover (cell arm recover)",
+    "user stop": "release the user stop, then recover (cell arm recover)",
+    "control error": "check the motion and the network to the robot, then recover (cell arm recover)",
+    "robot error": "read the errors in Desk, clear their cause, then recover (cell arm recover)",
+    "disconnect": "check the network and that FCI is active in Desk, then recover (reconnects)",
+}
 
 
 def client_version() -> int:
@@ -82,6 +102,14 @@ def server_version(host: str, timeout_s: float) -> tuple[bool, int]:
         payload = recv_exact(sock, size - CONNECT_HEADER.size)
     status, version = CONNECT_REPLY.unpack(payload[:CONNECT_REPLY.size])
     return status != STATUS_INCOMPATIBLE, version
+
+
+def aborted_fault(exc: franky.ControlException) -> str:
+    """The fault word for a motion the robot aborted, from libfranka's fixed wording of the reason."""
+    text = str(exc)
+    if "User Stop" in text:
+        return "user stop"
+    return "reflex" if "reflex" in text else "control error"
 
 
 def recv_exact(sock: socket.socket, n: int) -> bytes:
@@ -169,25 +197,58 @@ class FrankaArm(HardwareArm):
 
     # ------------------------------------------------------------------ state and faults
 
+    def _fault_error(self, fault: str, what: str, robot: franky.Robot | None = None) -> RobotFault:
+        """A fault with the facts: ``what`` happened, the robot's mode and errors (when it answers), and
+        the operator's next step."""
+        facts = [what.replace("\n", "; ")]
+        if robot is not None:
+            with contextlib.suppress(*NETWORK_ERRORS):
+                st = robot.state
+                facts.append(f"robot mode {st.robot_mode.name}")
+                if robot.has_errors:
+                    facts.append(f"errors {st.current_errors}")
+                elif fault != "user stop":
+                    facts.append(f"last motion's errors {st.last_motion_errors}")
+        facts.append(NEXT_STEP[fault])
+        return RobotFault("; ".join(facts), device=self._device, fault=fault)
+
+    def _latch(self, exc: Exception, robot: franky.Robot, what: str) -> RobotFault:
+        """Latch what franky raised about a motion as the arm's fault, until ``recover``."""
+        if isinstance(exc, franky.ControlException):
+            self._fault = self._fault_error(aborted_fault(exc), f"{what}: {exc}", robot)
+        elif isinstance(exc, NETWORK_ERRORS):
+            self._fault = self._fault_error("disconnect", f"{what}: lost the connection: {exc}")
+        else:  # a command the robot refused: its state says why
+            faults = self._fault_kinds(robot, robot.state)
+            self._fault = self._fault_error(faults[0] if faults else "control error", f"{what}: {exc}", robot)
+        return self._fault
+
     def _poll(self, robot: franky.Robot) -> None:
         """Surface what a running motion raised as a fault."""
         try:
             robot.poll_motion()
-        except franky.ControlException as exc:
-            self._fault = RobotFault(f"the robot stopped the motion: {exc}", device=self._device,
-                                     fault="reflex")
-        except NETWORK_ERRORS as exc:
-            self._fault = RobotFault(f"lost the connection: {exc}", device=self._device, fault="disconnect")
+        except (franky.ControlException, *NETWORK_ERRORS) as exc:
+            self._latch(exc, robot, "the robot stopped the motion")
 
-    def _faults(self, robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+    def _fault_kinds(self, robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+        """The faults' kinds (keys of ``NEXT_STEP``): the latched one, then what the robot's state says."""
         faults: list[str] = [self._fault.fault] if self._fault is not None else []
-        if state.robot_mode == franky.RobotMode.Reflex and "reflex" not in faults:
+        if state.robot_mode == franky.RobotMode.Reflex:
             faults.append("reflex")
         if state.robot_mode == franky.RobotMode.UserStopped:
             faults.append("user stop")
         if robot.has_errors and not faults:
-            faults.append(f"robot error: {state.current_errors}")
-        return tuple(faults)
+            faults.append("robot error")
+        return tuple(dict.fromkeys(faults))
+
+    @staticmethod
+    def _described(kinds: tuple[str, ...], robot: franky.Robot, state: franky.RobotState) -> tuple[str, ...]:
+        """The faults for people (``ArmState.faults``): a reflex, an error or an aborted motion with the
+        robot's error flags (its current errors, else the last motion's): ``reflex: cartesian_reflex``."""
+        errors = state.current_errors if robot.has_errors else state.last_motion_errors
+        flags = ", ".join(json.loads(str(errors)))
+        flagged = ("reflex", "robot error", "control error")
+        return tuple(f"{kind}: {flags}" if flags and kind in flagged else kind for kind in kinds)
 
     def _read(self) -> tuple[franky.Robot, franky.RobotState]:
         robot = self._require()
@@ -197,8 +258,7 @@ class FrankaArm(HardwareArm):
         try:
             return robot, robot.state
         except NETWORK_ERRORS as exc:
-            self._fault = RobotFault(f"lost the connection: {exc}", device=self._device, fault="disconnect")
-            raise self._fault from None
+            raise self._latch(exc, robot, "reading the state") from None
 
     def state(self) -> ArmState:
         robot, st = self._read()
@@ -206,7 +266,7 @@ class FrankaArm(HardwareArm):
         T_flange = T_ee @ inv_T(np.asarray(st.F_T_EE.matrix, dtype=float))
         twist = st.O_dP_EE_est if st.O_dP_EE_est is not None else st.O_dP_EE_d
         v_ee = np.concatenate([np.asarray(twist.linear), np.asarray(twist.angular)])
-        faults = self._faults(robot, st)
+        faults = self._described(self._fault_kinds(robot, st), robot, st)
         if self._mode is not ArmMode.IDLE and not robot.is_in_control:
             self._mode = ArmMode.IDLE
         return ArmState(timestamp=st.time.to_sec(),
@@ -222,21 +282,19 @@ class FrankaArm(HardwareArm):
 
     def _refuse_if_faulted(self, what: str) -> franky.Robot:
         robot, st = self._read()
-        faults = self._faults(robot, st)
-        if faults:
-            raise RobotFault(f"{what} refused: {', '.join(faults)}", device=self._device, fault=faults[0])
+        kinds = self._fault_kinds(robot, st)
+        if kinds:
+            latched = f" ({self._fault})" if self._fault is not None else ""
+            faults = ", ".join(self._described(kinds, robot, st))
+            raise self._fault_error(kinds[0], f"{what} refused: {faults}{latched}", robot)
         return robot
 
     def _move(self, what: str, motion: object) -> None:
         robot = self._refuse_if_faulted(what)
         try:
             robot.move(motion, asynchronous=True)
-        except franky.ControlException as exc:
-            self._fault = RobotFault(f"{what}: {exc}", device=self._device, fault="reflex")
-            raise self._fault from None
-        except NETWORK_ERRORS as exc:
-            self._fault = RobotFault(f"{what}: {exc}", device=self._device, fault="disconnect")
-            raise self._fault from None
+        except (franky.ControlException, franky.CommandException, *NETWORK_ERRORS) as exc:
+            raise self._latch(exc, robot, what) from None
 
     # ------------------------------------------------------------------ commands
 
@@ -278,25 +336,43 @@ class FrankaArm(HardwareArm):
         if self._fault is not None or self._mode is ArmMode.IDLE:
             self._mode = ArmMode.IDLE
             return
+        if self._mode is ArmMode.STOPPING:
+            return  # a stop motion is under way (franky refuses a stop of the other kind meanwhile)
         rdf = self._config.relative_dynamics_factor
         stop_motion = (franky.CartesianVelocityStopMotion(rdf) if self._mode is ArmMode.VELOCITY
                        else franky.JointStopMotion(rdf))
         self._move("stop()", stop_motion)
         self._mode = ArmMode.STOPPING
 
+    @staticmethod
+    def _errors_clear_within(robot: franky.Robot, timeout_s: float) -> bool:
+        """Whether the robot's state shows no errors within ``timeout_s`` [s] (read every 10 ms)."""
+        deadline = time.monotonic() + timeout_s
+        while robot.has_errors:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
     def recover(self) -> None:
         """Operator action: franky's automatic error recovery; a lost connection is re-opened."""
         robot = self._require()
         if self._fault is not None and self._fault.fault == "disconnect":
             self._robot = None
-            self.connect()
+            try:
+                self.connect()
+            except DriverError:
+                self._robot = robot  # still latched as lost: the operator's next recover tries again
+                raise
             return
         try:
-            ok = robot.recover_from_errors()
+            ok = robot.recover_from_errors() or self._errors_clear_within(robot, RECOVERY_STATE_LAG_S)
         except (franky.CommandException, *NETWORK_ERRORS) as exc:
-            raise RobotFault(f"error recovery failed: {exc}", device=self._device, fault="reflex") from None
+            faults = self._fault_kinds(robot, robot.state) if isinstance(exc, franky.CommandException) else ()
+            raise self._fault_error(faults[0] if faults else "disconnect",
+                                    f"the automatic error recovery failed: {exc}", robot) from None
         if not ok:
-            raise RobotFault("the robot refused the automatic error recovery", device=self._device,
-                             fault="reflex")
+            raise self._fault_error("robot error", "the robot still reports errors after the automatic "
+                                    "error recovery", robot)
         self._fault = None
         self._mode = ArmMode.IDLE

@@ -24,11 +24,11 @@ reach as along a plane. When the guard refuses a streamed twist (a collision pre
 secondary direction for ``backoff_s``, then goes on with that direction blocked within
 ``refusal_radius_m`` of where it was refused. A second refusal during the back-off ends the scan.
 
-``telemetry`` keeps one row per servo iteration: the series of the paper's Fig. 4 (||e||, f(r), ||g||
-before clipping, H_ROI) with the job time and the strategy's mode. ||g|| there is after the barrier
-projection and scaled by the share of the commanded motion the arm realizes, so that it falls when the
-camera is held by a plane, a joint limit or the arm's reach (a singularity), as at the drop of the paper's
-Fig. 4 at 38 s.
+``telemetry`` keeps one row per servo iteration (decimated in long jobs, ``cell.control.decimation``): the
+series of the paper's Fig. 4 (||e||, f(r), ||g|| before clipping, H_ROI) with the job time and the
+strategy's mode. ||g|| there is after the barrier projection and scaled by the share of the commanded motion
+the arm realizes, so that it falls when the camera is held by a plane, a joint limit or the arm's reach (a
+singularity), as at the drop of the paper's Fig. 4 at 38 s.
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cell.config.models import CellConfig
+from cell.control.decimation import DecimatedSeries
 from cell.control.servo import DualTaskServo, null_space_projector
 from cell.perception.filters import CentroidLowPass
 from cell.perception.occupancy import binary_entropy
@@ -155,7 +156,7 @@ class ServoScanPlanner(Planner):
         self.objective: EntropyObjective | None = None
         self.centroid: Array | None = None
         self.h_roi: list[float] = []
-        self.telemetry: list[TelemetryRow] = []
+        self.telemetry: DecimatedSeries[TelemetryRow] = DecimatedSeries()
         self._centroid_filter = CentroidLowPass(vs.centroid_tau_s)
         # Where the guard refused a streamed twist and the secondary direction refused there (base frame).
         self._refused: list[tuple[Array, Array]] = []
@@ -167,8 +168,8 @@ class ServoScanPlanner(Planner):
         """The last servo iteration: ||e|| [m], f [nats], ||g||, the mode, and the iteration count."""
         if not self.telemetry:
             return {"servo_iterations": 0}
-        row = self.telemetry[-1]
-        return {"servo_iterations": len(self.telemetry), "e_norm_m": round(row.e_norm, 6),
+        row = self.telemetry.last
+        return {"servo_iterations": self.telemetry.count, "e_norm_m": round(row.e_norm, 6),
                 "f_nats": round(row.f, 6), "g_norm": round(row.g_norm, 6), "mode": row.mode}
 
     @abstractmethod
