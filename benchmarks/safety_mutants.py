@@ -53,6 +53,8 @@ MUTANTS = (
            + "s.tcp_max_linear_mps + s.tcp_max_angular_rps * lever)", "planes: list[str] = []"),
     Mutant("no-braking-check", "the stop that would follow a streamed twist is not checked", GUARD,
            "unsafe = self._braking_violation(state, ik)", "unsafe = None"),
+    Mutant("no-joint-overrun-stop", "a joint carried towards its limit faster than the IK predicted is not "
+           "stopped", GUARD, "overrun = self._joint_overrun(state)", "overrun = None"),
     Mutant("no-barrier-check-of-moves", "trajectory samples are not checked against the barrier planes",
            GUARD, "reason = self.barrier_violation(T)\n", "reason = None\n"),
     Mutant("no-collision-check-of-twists", "the configuration predicted ahead of a streamed twist is not "

@@ -16,7 +16,9 @@ the arm. It forwards two kinds of motion:
   (the projection and the joint margin above plan their braking with simpler bounds that the smoothing
   does not always keep, e.g. while it also ramps a turn: this check is what guarantees the stop); the
   configuration predicted ``collision.lookahead_s`` ahead at that twist is checked for collisions (robot,
-  tool, table, object ROI, obstacles, self-collision). A collision refuses the motion.
+  tool, table, object ROI, obstacles, self-collision). A collision refuses the motion, and so does a joint
+  that the arm reports moving towards its limit faster than its own stop could absorb within half the joint
+  margin (a last resort where the IK's prediction falls short, near a singularity).
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
   sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
   be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free when
@@ -310,6 +312,10 @@ class MotionGuard:
             return
         if self._target is None:
             return
+        overrun = self._joint_overrun(state)
+        if overrun is not None:
+            stop = self._refuse(overrun)
+            raise TwistRefused(stop.reason, Refusal("joint limit", overrun))
         ik = self._model.velocity_map(state.q)
         limited = self._limit(self._target, state, ik, count=True)
         snapshot = self._smoother.snapshot()
@@ -340,6 +346,29 @@ class MotionGuard:
             stop = self._refuse(reason)
             raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
+
+    def _joint_overrun(self, state: ArmState) -> str | None:
+        """Why the arm must stop now, or None: a joint that, at the speed the arm reports, would be carried
+        past half its position margin by the arm's own stop begun one control period from now (all joints
+        slowed together, the first to stop at the robot's deceleration limit, as a stop command does).
+
+        The braking check in :meth:`tick` predicts joint motion with the differential IK at the current
+        joints; near a singularity that map changes quickly along a stop and the prediction falls short.
+        This check reads the joints' measured speeds instead, so it holds wherever the arm is."""
+        speed = np.abs(state.qd)
+        if not np.any(speed > 0.0):
+            return None
+        t_stop = float(np.max(speed / self._model.qdd_max))
+        travel = speed * (self._period + 0.5 * t_stop)
+        half = 0.5 * self._safety.joint_position_margin_rad
+        hi, lo = self._model.q_max - half, self._model.q_min + half
+        room = np.where(state.qd > 0.0, hi - state.q, state.q - lo)
+        over = np.nonzero(travel > room)[0]
+        if over.size == 0:
+            return None
+        j = int(over[0])
+        return (f"joint {j + 1} at {state.qd[j]:+.3f} rad/s would be carried past half its limit margin "
+                f"({travel[j] * 1e3:.1f} mrad to stop, {max(room[j], 0.0) * 1e3:.1f} mrad left)")
 
     def _braking_violation(self, state: ArmState, ik: JointVelocityMap) -> str | None:
         """What braking after the twist the smoother holds now would enter (``barrier braking`` or
