@@ -180,16 +180,30 @@ def _fig5(rows: Sequence[Row], timelines: dict[RowId, Timeline], path: Path) -> 
     fig.savefig(path, dpi=90)
 
 
+def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
+    """Mean and standard error of each list (0 where a list is empty or has one value)."""
+    means = [float(np.mean(v)) if v else 0.0 for v in values]
+    errors = [float(np.std(v, ddof=1) / np.sqrt(len(v))) if len(v) > 1 else 0.0 for v in values]
+    return means, errors
+
+
 def _bars(rows: Sequence[Row], path: Path) -> None:
+    """The packing paper's Fig. 3 per group: the box dimensions L, W, H per planner, then each of
+    ``PACKING``, as mean bars with standard errors."""
     gs = groups(rows)
-    fig = Figure(figsize=(3.5 * len(gs), 9.0))
-    axes = fig.subplots(len(PACKING), len(gs), squeeze=False)
+    fig = Figure(figsize=(3.5 * len(gs), 11.0))
+    axes = fig.subplots(len(PACKING) + 1, len(gs), squeeze=False)
     for i, g in enumerate(gs):
         planners = list(g.by_planner)
-        for j, (column, heading, _) in enumerate(PACKING):
-            values = [figures(g.by_planner[p], column) for p in planners]
-            means = [float(np.mean(v)) if v else 0.0 for v in values]
-            errors = [float(np.std(v, ddof=1) / np.sqrt(len(v))) if len(v) > 1 else 0.0 for v in values]
+        width = 0.8 / len(planners)
+        for n, planner in enumerate(planners):
+            means, errors = _means_and_errors([dims(g.by_planner[planner], k) for k in range(3)])
+            axes[0, i].bar(np.arange(3) + n * width, means, width, yerr=errors, capsize=3, label=planner)
+        axes[0, i].set_xticks(np.arange(3) + width * (len(planners) - 1) / 2.0, ["L", "W", "H"])
+        axes[0, i].set_ylabel("box [m]")
+        axes[0, i].legend(fontsize="small")
+        for j, (column, heading, _) in enumerate(PACKING, start=1):
+            means, errors = _means_and_errors([figures(g.by_planner[p], column) for p in planners])
             axes[j, i].bar(planners, means, yerr=errors, capsize=3)
             axes[j, i].set_ylabel(heading)
         axes[0, i].set_title(g.label)
