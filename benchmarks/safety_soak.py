@@ -22,7 +22,8 @@ Prints one line per robot and then one line of JSON: per robot the commands sent
 reason), ``breaches`` (control periods in which something happened that must never happen: a barrier
 plane crossed, bodies in contact, a joint at its limit or beyond the robot model's speed, acceleration or
 jerk; each must be 0), ``cell_limits`` (control periods over the cell file's tighter limits: margins,
-limit shares, TCP limits) and the worst value of each kind (a depth [m or rad] or a ratio to the limit).
+limit shares, TCP limits), the worst value of each kind (a depth [m or rad] or a ratio to the limit) and
+``breach_events``: the first breaches with the episode and command they came in (to replay that episode).
 
     .venv/bin/python benchmarks/safety_soak.py [--commands N] [--seed S] [--robot ur5e|panda ...]
 """
@@ -50,6 +51,8 @@ from tests.safety_rig import MotionJudge, Rig, cell_config
 Array = np.ndarray
 ROBOTS = ("ur5e", "panda")
 COMMANDS_PER_EPISODE = 200
+# The first breaches are listed with where they happened (episode, command), so that one can be replayed.
+MAX_BREACH_EVENTS = 50
 START_TRIES = 10_000
 BOX_TRIES = 50
 # Random boxes keep this far [m] from the arm at the start: more than the ROI margin the guard inflates by.
@@ -162,15 +165,18 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
     cell_limits: Counter[str] = Counter()
     worst: dict[str, float] = {}
     contacts: Counter[str] = Counter()
+    events: list[dict[str, Any]] = []
     periods = 0
     t0 = time.perf_counter()
     while sent["commands"] < n_commands:
         episode = Episode(robot, rng, probe)
         rig = episode.rig
         sent["episodes"] += 1
-        for _ in range(min(COMMANDS_PER_EPISODE, n_commands - sent["commands"])):
+        for index in range(min(COMMANDS_PER_EPISODE, n_commands - sent["commands"])):
             sent["commands"] += 1
+            before = sum(rig.judge.breaches.values())
             r = rng.random()
+            kind = "move" if r < 0.03 else "hold" if r < 0.08 else "twist"
             try:
                 if r < 0.03:
                     sent["moves"] += 1
@@ -189,6 +195,10 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
             except SafetyStop as exc:
                 refused[f"stop: {exc.reason.split(':')[0]}"] += 1
                 rig.settle()
+            if sum(rig.judge.breaches.values()) > before and len(events) < MAX_BREACH_EVENTS:
+                events.append({"episode": sent["episodes"] - 1, "command": index, "command_kind": kind,
+                               "breaches": {k: v for k, v in rig.judge.breaches.items() if v},
+                               "first_contact": rig.judge.first_contact})
         rig.guard.finish()
         rig.settle()
         judge = rig.judge
@@ -205,6 +215,7 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
             "breaches_total": sum(breaches.values()), "breaches": dict(breaches),
             "first_contacts": dict(contacts), "cell_limits": dict(cell_limits),
             "worst": {k: float(f"{v:.4g}") for k, v in worst.items()},
+            "breach_events": events,
             "wall_s": round(time.perf_counter() - t0, 1)}
 
 
