@@ -33,6 +33,7 @@ from drivers.clock import SimClock
 from drivers.factory import SimWorld, make_arm
 from drivers.robots import get_robot_model
 from drivers.robots.model import RobotModel
+from drivers.transforms import rotvec
 from tests.conftest import FRANKA, UR5E
 
 Array = NDArray[np.float64]
@@ -155,13 +156,6 @@ def _frame_along(a: Array, b: Array) -> Array:
     T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
     T[:3, 3] = (a + b) / 2.0
     return T
-
-
-def _rotation_vector(R: Array) -> Array:
-    """Axis times angle [rad] of a rotation matrix (angles below pi)."""
-    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0  # sin(angle) * axis
-    return w if angle < 1e-9 else w * (angle / np.sin(angle))
 
 
 def _max_ratio(values: Array, limits: Array | float) -> float:
@@ -342,7 +336,7 @@ class MotionJudge:
         T = F[-1]
         self._q = [*self._q[1:], q]
         self._p = [*self._p[1:], T[:3, 3].copy()]
-        self._w = [*self._w[1:], _rotation_vector(T[:3, :3] @ self._R.T) / dt]
+        self._w = [*self._w[1:], rotvec(T[:3, :3] @ self._R.T) / dt]
         self._R = T[:3, :3].copy()
         self._phases = [*self._phases[1:], PHASES[mode]]
         phase, window = self._phases[-1], set(self._phases)

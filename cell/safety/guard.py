@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
 from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, workspace_planes
@@ -129,6 +130,9 @@ class MotionGuard:
         self._qddd_limit = model.qddd_max * safety.joint_jerk_scale
         self._q_lo = model.q_min + safety.joint_position_margin_rad
         self._q_hi = model.q_max - safety.joint_position_margin_rad
+        # A joint's measured motion must stop short of half its margin (``_joint_overrun``).
+        self._q_lo_overrun = model.q_min + 0.5 * safety.joint_position_margin_rad
+        self._q_hi_overrun = model.q_max - 0.5 * safety.joint_position_margin_rad
         self._target: Array | None = None
         self._following = False
         self._stop_lock = threading.Lock()
@@ -360,9 +364,7 @@ class MotionGuard:
             return None
         t_stop = float(np.max(speed / self._model.qdd_max))
         travel = speed * (self._period + 0.5 * t_stop)
-        half = 0.5 * self._safety.joint_position_margin_rad
-        hi, lo = self._model.q_max - half, self._model.q_min + half
-        room = np.where(state.qd > 0.0, hi - state.q, state.q - lo)
+        room = np.where(state.qd > 0.0, self._q_hi_overrun - state.q, state.q - self._q_lo_overrun)
         over = np.nonzero(travel > room)[0]
         if over.size == 0:
             return None
@@ -378,7 +380,7 @@ class MotionGuard:
         margin); a point or joint already inside a margin may not go deeper.
         The joints follow the differential IK at ``state.q``, and the flange moves as its Jacobian makes
         those joint motions move it (which differs from the twist asked for near a singularity); the
-        sensor turns with the flange (Rodrigues' formula on the rotation vector of that motion)."""
+        sensor turns with the flange (by the rotation vector of that motion)."""
         times, twist = self._smoother.braking()
         qd = ik(twist)
         dq = np.concatenate([np.zeros((1, qd.shape[1])),
@@ -390,11 +392,7 @@ class MotionGuard:
         moved = dq @ ik.jacobian.T
         now = self.guarded_points(state.T_base_flange)
         lever = now[1] - now[0]
-        theta = moved[:, 3:]
-        angle = np.linalg.norm(theta, axis=1, keepdims=True)
-        axis = np.divide(theta, angle, out=np.zeros_like(theta), where=angle > 0.0)
-        cos, sin = np.cos(angle), np.sin(angle)
-        turned = lever * cos + np.cross(axis, lever) * sin + axis * (axis @ lever)[:, None] * (1.0 - cos)
+        turned = Rotation.from_rotvec(moved[:, 3:]).apply(lever)
         tcp = now[0] + moved[:, :3]
         path = np.stack([tcp, tcp + turned], axis=1)  # (k, 2, 3)
         floor = np.minimum(self.barriers.clearances(now), -BRAKING_MARGIN_SHARE * self.barriers.margin_m)

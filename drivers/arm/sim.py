@@ -237,10 +237,10 @@ class SimArm(Arm):
             speed = np.abs(self._qd)
             # Joints slower than qdd_max * dt could stop within this step; only the others bound it (and
             # dividing by them alone keeps a vanishing speed from overflowing the ratio).
-            slow_to_stop = speed > m.qdd_max * dt
-            if np.any(slow_to_stop):
+            too_fast = speed > m.qdd_max * dt
+            if np.any(too_fast):
                 # largest uniform scale-down allowed: no joint may lose more than qdd_max * dt of speed
-                shrink = float(np.min(m.qdd_max[slow_to_stop] * dt / speed[slow_to_stop]))
+                shrink = float(np.min(m.qdd_max[too_fast] * dt / speed[too_fast]))
                 self._integrate(self._qd * (1.0 - shrink), dt)
             else:
                 self._qd = np.zeros(m.n_joints)
