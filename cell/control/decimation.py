@@ -53,16 +53,18 @@ class DecimatedSeries(Generic[T]):
             raise IndexError("the series is empty")
         return self._last  # type: ignore[return-value]
 
+    @property
+    def _newest_dropped(self) -> bool:
+        """Whether the newest record fell between the kept ones (``records`` adds it at the end)."""
+        return self.count > 0 and (self.count - 1) % self.stride != 0
+
     def records(self) -> list[T]:
         """The kept records in order, ending with the newest record."""
-        kept = list(self._kept)
-        if self.count and (self.count - 1) % self.stride != 0:
-            kept.append(self.last)
-        return kept
+        return [*self._kept, self.last] if self._newest_dropped else list(self._kept)
 
     def __len__(self) -> int:
         """How many records :meth:`records` returns (not how many were offered: see ``count``)."""
-        return len(self._kept) + (self.count > 0 and (self.count - 1) % self.stride != 0)
+        return len(self._kept) + self._newest_dropped
 
     def __bool__(self) -> bool:
         return self.count > 0
