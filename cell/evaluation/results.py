@@ -28,8 +28,6 @@ from cell.evaluation.spec import ScanSpec
 COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "scan_time_s", "path_m",
            "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "dims_m", "iou", "n_poses",
            "n_useless_poses", "packing_coverage_pct")
-NUMERIC = ("scan_time_s", "path_m", "coverage_pct", "chamfer_mm", "hausdorff_mm", "iou",
-           "packing_coverage_pct", "n_captures", "n_poses", "n_useless_poses")
 DECIMALS = 4
 
 Row = dict[str, str]
