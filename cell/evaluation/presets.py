@@ -23,6 +23,7 @@ from cell.evaluation import paper
 from cell.evaluation.spec import Placement, ScanSpec, check_specs, cross
 from cell.templates import template_path
 from drivers.errors import CellError
+from drivers.sim.objects import ObjectMesh, recentre, write_mesh
 
 CENTRE: Placement = (0.0, 0.0, 0.0)
 
@@ -83,10 +84,9 @@ def write_heldout_shapes(folder: Path) -> dict[str, Path]:
     folder.mkdir(parents=True, exist_ok=True)
     paths = {}
     for name, mesh in _shapes().items():
-        lo, hi = np.asarray(mesh.get_min_bound()), np.asarray(mesh.get_max_bound())
-        mesh.translate([-(lo[0] + hi[0]) / 2.0, -(lo[1] + hi[1]) / 2.0, -lo[2]])
         paths[name] = folder / f"{name}.ply"
-        o3d.io.write_triangle_mesh(paths[name], mesh)
+        write_mesh(ObjectMesh(name, recentre(np.asarray(mesh.vertices)),
+                              np.asarray(mesh.triangles, dtype=np.int32)), paths[name])
     return paths
 
 
