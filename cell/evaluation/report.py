@@ -155,8 +155,7 @@ def tests_table(gs: Sequence[Group]) -> list[str]:
     return _table(["object", "figure", "planner A", "planner B", "U (A)", "p"], lines)
 
 
-def _fig5(rows: Sequence[Row], timelines: dict[RowId, Timeline], path: Path) -> None:
-    gs = groups(rows)
+def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> None:
     fig = Figure(figsize=(4.0 * len(gs), 6.0))
     axes = fig.subplots(2, len(gs), squeeze=False)
     for i, g in enumerate(gs):
@@ -187,10 +186,9 @@ def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], l
     return means, errors
 
 
-def _bars(rows: Sequence[Row], path: Path) -> None:
+def _bars(gs: Sequence[Group], path: Path) -> None:
     """The packing paper's Fig. 3 per group: the box dimensions L, W, H per planner, then each of
     ``PACKING``, as mean bars with standard errors."""
-    gs = groups(rows)
     fig = Figure(figsize=(3.5 * len(gs), 11.0))
     axes = fig.subplots(len(PACKING) + 1, len(gs), squeeze=False)
     for i, g in enumerate(gs):
@@ -225,13 +223,13 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
           "path the paper's mean over its objects, section III-C). `limit %`: the coverage limit, the share "
           "of the surface any reachable view can see (`cell eval limit`).", "",
           *reconstruction_table(gs, limits), "", f"![coverage and Chamfer against scan time]({FIG5})", ""]
-    _fig5(rows, timelines or {}, out / FIG5)
+    _fig5(gs, timelines or {}, out / FIG5)
     if any(r["iou"] for r in rows):
         md += ["## Packing (LR-NBV paper, Fig. 3)", "",
                "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "
                "claims:", "", *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
                *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
-        _bars(rows, out / FIG3)
+        _bars(gs, out / FIG3)
     md += ["## Mann-Whitney U between planners", "", *tests_table(gs), ""]
     failed = [r for r in rows if r["status"] == "failed"]
     if failed:
