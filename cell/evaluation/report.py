@@ -79,6 +79,11 @@ def dims(rows: Sequence[Row], axis: int) -> list[float]:
     return [float(r["dims_m"].split()[axis]) for r in rows if r["dims_m"]]
 
 
+def standard_error(values: Sequence[float]) -> float | None:
+    """Standard error of the mean (``ddof=1``); None for fewer than two values."""
+    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None
+
+
 def mean_se(values: Sequence[float], digits: int, paper_figure: float | None = None) -> str:
     """``mean ± se`` (standard error of the mean, ``ddof=1``; no ``± se`` for one value), ``(paper)``
     after it where given; ``-`` for no values."""
@@ -86,8 +91,8 @@ def mean_se(values: Sequence[float], digits: int, paper_figure: float | None = N
         text = "-"
     else:
         text = f"{np.mean(values):.{digits}f}"
-        if len(values) > 1:
-            text += f" ± {np.std(values, ddof=1) / np.sqrt(len(values)):.{digits}f}"
+        if (se := standard_error(values)) is not None:
+            text += f" ± {se:.{digits}f}"
     return text if paper_figure is None else f"{text} ({paper_figure:.{digits}f})"
 
 
@@ -182,7 +187,7 @@ def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> 
 def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
     """Mean and standard error of each list (0 where a list is empty or has one value)."""
     means = [float(np.mean(v)) if v else 0.0 for v in values]
-    errors = [float(np.std(v, ddof=1) / np.sqrt(len(v))) if len(v) > 1 else 0.0 for v in values]
+    errors = [standard_error(v) or 0.0 for v in values]
     return means, errors
 
 
