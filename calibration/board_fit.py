@@ -23,14 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from calibration.shape_fit import (
-    N_MOUNT,
-    Array,
-    check_observable,
-    jacobian,
-    mount_covariance,
-    mount_from_params,
-)
+from calibration.shape_fit import N_MOUNT, Array, mount_from_params, mount_std
 from drivers.errors import CalibrationError
 from drivers.sim.board import BoardConfig, import_cv2
 from drivers.transforms import inv_T, make_T
@@ -171,10 +164,7 @@ def fit_mount_to_board(views: Sequence[BoardView], n_missing: int = 0) -> BoardF
 
     sol = least_squares(residuals, np.zeros(N_MOUNT + 6), x_scale="jac")
     r = residuals(sol.x)
-    sigma = float(np.sqrt(np.sum(r ** 2) / max(r.size - sol.x.size, 1)))
-    J = jacobian(residuals, sol.x)
-    check_observable(J, sigma)
-    std = np.sqrt(np.diag(mount_covariance(J, sigma)))
+    std = mount_std(residuals, sol.x, r)
     T_fs = mount_from_params(T0, sol.x[:N_MOUNT])
     B = board(sol.x)
     depth = float(np.mean([(inv_T(v.T_base_flange @ T_fs) @ B)[2, 3] for v in views]))

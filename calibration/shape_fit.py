@@ -154,6 +154,17 @@ def check_observable(J: Array, sigma_m: float) -> None:
         "other directions and with other rotations of the flange")
 
 
+def mount_std(fun: Callable[[Array], Array], x: Array, r: Array) -> Array:
+    """The mount's per-axis standard deviations (6,) at ``x``, the least-squares solution of ``fun``
+    whose residuals there are ``r``: sigma from ``r`` and its degrees of freedom, the covariance of
+    :func:`mount_covariance`; raises ``CalibrationError`` first when an axis is unobservable
+    (:func:`check_observable`)."""
+    sigma = float(np.sqrt(np.sum(r ** 2) / max(r.size - x.size, 1)))
+    J = jacobian(fun, x)
+    check_observable(J, sigma)
+    return np.sqrt(np.diag(mount_covariance(J, sigma)))
+
+
 def _subsample(views: Sequence[View], max_points: int, rng: np.random.Generator) -> list[View]:
     out = []
     for v in views:
@@ -200,12 +211,8 @@ def fit_mount_to_shape(views: Sequence[View], T_mount0: Array, target: BoxTarget
     inliers = problem.subset(keep)
     final = least_squares(inliers.residuals, robust.x, x_scale="jac")
     r = inliers.residuals(final.x)
-    n, n_par = r.size, final.x.size
-    sigma = float(np.sqrt(np.sum(r ** 2) / max(n - n_par, 1)))
-    J = jacobian(inliers.residuals, final.x)
-    check_observable(J, sigma)
-    std = np.sqrt(np.diag(mount_covariance(J, sigma)))
+    std = mount_std(inliers.residuals, final.x, r)
     return ShapeFit(T_flange_sensor=mount_from_params(T_mount0, final.x[:N_MOUNT]),
                     residual_m=float(np.sqrt(np.mean(r ** 2))), std_m=std[:3], std_rad=std[3:],
                     box_pose=final.x[N_MOUNT:N_MOUNT + 3].copy(), table_z_m=float(final.x[N_MOUNT + 3]),
-                    n_views=len(views), n_points=n)
+                    n_views=len(views), n_points=r.size)
