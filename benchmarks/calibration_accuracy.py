@@ -46,6 +46,7 @@ from cell.config.models import CalibrationConfig, CellConfig, PoseConfig
 from cell.jobs.runner import ScanRequest, run_scan
 from drivers.depth.config import ZoneBiasConfig
 from drivers.sim.board import BoardConfig, SimBoardConfig
+from drivers.transforms import make_T
 
 REPO = Path(__file__).resolve().parents[1]
 RGBD = REPO / "config" / "sim-franka-rgbd.yaml"
@@ -66,9 +67,7 @@ def _true_mount(cfg: CellConfig, rng: np.random.Generator, max_mm: float, max_de
     t = T[:3, 3] + direction() * rng.uniform(0.5, 1.0) * max_mm * 1e-3
     angle = np.deg2rad(rng.uniform(0.5, 1.0) * max_deg)
     R = Rotation.from_rotvec(direction() * angle).as_matrix() @ T[:3, :3]
-    T_true = np.eye(4)
-    T_true[:3, :3], T_true[:3, 3] = R, t
-    return PoseConfig(**pose_dict(T_true))
+    return PoseConfig(**pose_dict(make_T(R, t)))
 
 
 def _with(cfg: CellConfig, *, mount: PoseConfig | None = None, true_mount: PoseConfig | None = None,

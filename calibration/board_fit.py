@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 from calibration.shape_fit import N_MOUNT, Array, mount_from_params, mount_std
 from drivers.errors import CalibrationError
 from drivers.sim.board import BoardConfig, import_cv2
-from drivers.transforms import inv_T, make_T
+from drivers.transforms import inv_T, make_T, transform_points
 
 MIN_CORNERS = 6
 MIN_VIEWS = 5
@@ -118,8 +118,7 @@ def _reprojection(views: Sequence[BoardView], T_fs: Array, T_base_board: Array) 
     """Pixel residuals (2 N,) of every corner of ``views``."""
     out = []
     for v in views:
-        T = inv_T(v.T_base_flange @ T_fs) @ T_base_board
-        p = v.object_points @ T[:3, :3].T + T[:3, 3]
+        p = transform_points(inv_T(v.T_base_flange @ T_fs) @ T_base_board, v.object_points)
         uv = p[:, :2] / p[:, 2:3] * np.diag(v.K)[:2] + v.K[:2, 2]
         out.append((uv - v.image_points).ravel())
     return np.concatenate(out)

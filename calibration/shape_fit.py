@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.targets import BoxTarget
 from drivers.errors import CalibrationError
-from drivers.transforms import make_T
+from drivers.transforms import make_T, transform_points
 
 Array = NDArray[np.float64]
 
@@ -108,7 +108,7 @@ class ShapeProblem:
 
     def residuals(self, x: Array) -> Array:
         M = mount_from_params(self.T0, x[:N_MOUNT])
-        flange = self.points @ M[:3, :3].T + M[:3, 3]
+        flange = transform_points(M, self.points)
         base = np.einsum("nij,nj->ni", self.R, flange) + self.t
         return self.target.signed_distance(base, x[N_MOUNT:N_MOUNT + 3], float(x[N_MOUNT + 3]))
 
@@ -182,8 +182,7 @@ def _near_target(views: Sequence[View], T0: Array, target: BoxTarget, box_pose: 
     radius = 0.5 * float(np.linalg.norm(target.size_m[:2])) + margin_m
     out = []
     for v in views:
-        T = v.T_base_flange @ T0
-        base = v.points_sensor @ T[:3, :3].T + T[:3, 3]
+        base = transform_points(v.T_base_flange @ T0, v.points_sensor)
         near = np.linalg.norm(base[:, :2] - box_pose[:2], axis=1) <= radius
         out.append(View(v.T_base_flange, v.points_sensor[near]))
     return out
