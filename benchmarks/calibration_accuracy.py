@@ -45,6 +45,7 @@ from cell.config import load_config
 from cell.config.models import CalibrationConfig, CellConfig, PoseConfig
 from cell.jobs.runner import ScanRequest, run_scan
 from drivers.depth.config import ZoneBiasConfig
+from drivers.depth.sim_tof import zone_offsets
 from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.transforms import make_T
 
@@ -111,7 +112,7 @@ def _zones_run(seed: int, args: argparse.Namespace, out: Path) -> dict[str, Any]
     bias = ZoneBiasConfig(offset_std_m=args.zone_bias_mm * 1e-3, seed=seed)
     cfg = _with(base, true_mount=true, zone_bias=bias)
     fit = calibrate_zones(cfg, str(TOF), folder=out / f"zones_s{seed}", seed=seed)
-    truth = bias.offset_std_m * np.random.default_rng(bias.seed).standard_normal(64)
+    truth = zone_offsets(bias, 64)
     before = float(np.mean(np.abs(truth)))
     after = float(np.mean(np.abs(truth - fit.correction.offset_m)))
     return {"run": "tof_zones", "seed": seed, "bias_before_mm": round(before * 1e3, 4),
