@@ -45,7 +45,9 @@ from cell.config import load_config
 from cell.config.models import CalibrationConfig, CellConfig, PoseConfig
 from cell.jobs.runner import ScanRequest, run_scan
 from drivers.depth.config import ZoneBiasConfig
+from drivers.depth.sim_tof import zone_offsets
 from drivers.sim.board import BoardConfig, SimBoardConfig
+from drivers.transforms import make_T
 
 REPO = Path(__file__).resolve().parents[1]
 RGBD = REPO / "config" / "sim-franka-rgbd.yaml"
@@ -66,9 +68,7 @@ def _true_mount(cfg: CellConfig, rng: np.random.Generator, max_mm: float, max_de
     t = T[:3, 3] + direction() * rng.uniform(0.5, 1.0) * max_mm * 1e-3
     angle = np.deg2rad(rng.uniform(0.5, 1.0) * max_deg)
     R = Rotation.from_rotvec(direction() * angle).as_matrix() @ T[:3, :3]
-    T_true = np.eye(4)
-    T_true[:3, :3], T_true[:3, 3] = R, t
-    return PoseConfig(**pose_dict(T_true))
+    return PoseConfig(**pose_dict(make_T(R, t)))
 
 
 def _with(cfg: CellConfig, *, mount: PoseConfig | None = None, true_mount: PoseConfig | None = None,
@@ -112,7 +112,7 @@ def _zones_run(seed: int, args: argparse.Namespace, out: Path) -> dict[str, Any]
     bias = ZoneBiasConfig(offset_std_m=args.zone_bias_mm * 1e-3, seed=seed)
     cfg = _with(base, true_mount=true, zone_bias=bias)
     fit = calibrate_zones(cfg, str(TOF), folder=out / f"zones_s{seed}", seed=seed)
-    truth = bias.offset_std_m * np.random.default_rng(bias.seed).standard_normal(64)
+    truth = zone_offsets(bias, 64)
     before = float(np.mean(np.abs(truth)))
     after = float(np.mean(np.abs(truth - fit.correction.offset_m)))
     return {"run": "tof_zones", "seed": seed, "bias_before_mm": round(before * 1e3, 4),

@@ -23,17 +23,10 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from calibration.shape_fit import (
-    N_MOUNT,
-    Array,
-    check_observable,
-    jacobian,
-    mount_covariance,
-    mount_from_params,
-)
+from calibration.shape_fit import N_MOUNT, Array, mount_from_params, mount_std
 from drivers.errors import CalibrationError
 from drivers.sim.board import BoardConfig, import_cv2
-from drivers.transforms import inv_T, make_T
+from drivers.transforms import inv_T, make_T, transform_points
 
 MIN_CORNERS = 6
 MIN_VIEWS = 5
@@ -125,8 +118,7 @@ def _reprojection(views: Sequence[BoardView], T_fs: Array, T_base_board: Array) 
     """Pixel residuals (2 N,) of every corner of ``views``."""
     out = []
     for v in views:
-        T = inv_T(v.T_base_flange @ T_fs) @ T_base_board
-        p = v.object_points @ T[:3, :3].T + T[:3, 3]
+        p = transform_points(inv_T(v.T_base_flange @ T_fs) @ T_base_board, v.object_points)
         uv = p[:, :2] / p[:, 2:3] * np.diag(v.K)[:2] + v.K[:2, 2]
         out.append((uv - v.image_points).ravel())
     return np.concatenate(out)
@@ -171,10 +163,7 @@ def fit_mount_to_board(views: Sequence[BoardView], n_missing: int = 0) -> BoardF
 
     sol = least_squares(residuals, np.zeros(N_MOUNT + 6), x_scale="jac")
     r = residuals(sol.x)
-    sigma = float(np.sqrt(np.sum(r ** 2) / max(r.size - sol.x.size, 1)))
-    J = jacobian(residuals, sol.x)
-    check_observable(J, sigma)
-    std = np.sqrt(np.diag(mount_covariance(J, sigma)))
+    std = mount_std(residuals, sol.x, r)
     T_fs = mount_from_params(T0, sol.x[:N_MOUNT])
     B = board(sol.x)
     depth = float(np.mean([(inv_T(v.T_base_flange @ T_fs) @ B)[2, 3] for v in views]))

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration.mount import pose_difference
 from cell.config.models import PoseConfig
 from drivers.errors import CalibrationError
 
@@ -36,12 +37,10 @@ def compare_results(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     d_mm = (Tb[:3, 3] - Ta[:3, 3]) * 1e3
     d_deg = np.asarray(b["mount"]["rpy_deg"], dtype=float) - np.asarray(a["mount"]["rpy_deg"], dtype=float)
     d_deg = (d_deg + 180.0) % 360.0 - 180.0
-    cos = (np.trace(Ta[:3, :3].T @ Tb[:3, :3]) - 1.0) / 2.0
+    distance_m, angle_deg = pose_difference(Ta, Tb)
     out: dict[str, Any] = {
         "delta_xyz_mm": np.round(d_mm, 4).tolist(), "delta_rpy_deg": np.round(d_deg, 5).tolist(),
-        "distance_mm": round(float(np.linalg.norm(d_mm)), 4),
-        "angle_deg": round(float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), 5),
-        "consistent": None,
+        "distance_mm": round(distance_m * 1e3, 4), "angle_deg": round(angle_deg, 5), "consistent": None,
     }
     if all(k in r for r in (a, b) for k in ("std_mm", "std_deg")):
         s_mm = np.hypot(np.asarray(a["std_mm"], dtype=float), np.asarray(b["std_mm"], dtype=float))

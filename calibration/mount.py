@@ -27,7 +27,7 @@ from cell.config.models import CellConfig
 from drivers.depth.base import SensorModel
 from drivers.errors import CalibrationError
 from drivers.sim.objects import EMPTY_TABLE
-from drivers.transforms import inv_T
+from drivers.transforms import inv_T, rotvec
 
 METHOD_SHAPE = "known-shape"
 METHOD_BOARD = "charuco"
@@ -63,9 +63,8 @@ def pose_dict(T: Array) -> dict[str, list[float]]:
 
 def pose_difference(T_a: Array, T_b: Array) -> tuple[float, float]:
     """Translation [m] and rotation angle [deg] between two transforms."""
-    dR = T_a[:3, :3].T @ T_b[:3, :3]
     return (float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])),
-            float(np.degrees(np.linalg.norm(Rotation.from_matrix(dR).as_rotvec()))))
+            float(np.degrees(np.linalg.norm(rotvec(T_a[:3, :3].T @ T_b[:3, :3])))))
 
 
 def default_poses(config: CellConfig) -> int:

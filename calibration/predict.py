@@ -10,25 +10,16 @@ import numpy as np
 
 from calibration.shape_fit import N_MOUNT, Array, ShapeProblem, View, check_observable, jacobian
 from calibration.targets import BoxTarget
+from cell.planning.lrnbv.sensor import sensor_rays
 from drivers.depth.base import SensorModel
 from drivers.sim.objects import load_object
 from drivers.sim.scene import HIT_NONE, SimScene
 from drivers.transforms import T_from_xyz_rpy
 
 RAYS_PER_SIDE = 16
-"""At most this many rays across each side of the field of view (fewer for a sensor with fewer zones)."""
+"""A camera's rays across the width of its image (a ToF sensor casts one per zone)."""
 NOMINAL_NOISE_M = 0.002
 """The range noise [m] the prediction assumes; the views must observe every axis at this noise."""
-
-
-def sensor_rays(model: SensorModel) -> Array:
-    """Unit rays (K, 3), sensor frame, on an even grid over the sensor's field of view."""
-    nx, ny = min(model.width, RAYS_PER_SIDE), min(model.height, RAYS_PER_SIDE)
-    ax = np.tan(np.deg2rad(model.fov_x_deg / 2.0)) * ((np.arange(nx) + 0.5) / nx * 2.0 - 1.0)
-    ay = np.tan(np.deg2rad(model.fov_y_deg / 2.0)) * ((np.arange(ny) + 0.5) / ny * 2.0 - 1.0)
-    gx, gy = np.meshgrid(ax, ay)
-    rays = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
 def predicted_views(model: SensorModel, flange_poses: Sequence[Array], T_mount: Array, target: BoxTarget,
@@ -38,7 +29,7 @@ def predicted_views(model: SensorModel, flange_poses: Sequence[Array], T_mount: 
     T_box = T_from_xyz_rpy([box_pose[0], box_pose[1], table_z], [0.0, 0.0, box_pose[2]])
     scene = SimScene(load_object(target.name), T_box, table_z=table_z,
                      table_center_xy=(float(box_pose[0]), float(box_pose[1])), table_size_xy=(4.0, 4.0))
-    rays = sensor_rays(model)
+    rays = sensor_rays(model, RAYS_PER_SIDE).reshape(-1, 3)
     out = []
     for T_bf in flange_poses:
         T = T_bf @ T_mount

@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.targets import BoxTarget
 from drivers.errors import CalibrationError
-from drivers.transforms import make_T
+from drivers.transforms import make_T, transform_points
 
 Array = NDArray[np.float64]
 
@@ -108,7 +108,7 @@ class ShapeProblem:
 
     def residuals(self, x: Array) -> Array:
         M = mount_from_params(self.T0, x[:N_MOUNT])
-        flange = self.points @ M[:3, :3].T + M[:3, 3]
+        flange = transform_points(M, self.points)
         base = np.einsum("nij,nj->ni", self.R, flange) + self.t
         return self.target.signed_distance(base, x[N_MOUNT:N_MOUNT + 3], float(x[N_MOUNT + 3]))
 
@@ -154,6 +154,17 @@ def check_observable(J: Array, sigma_m: float) -> None:
         "other directions and with other rotations of the flange")
 
 
+def mount_std(fun: Callable[[Array], Array], x: Array, r: Array) -> Array:
+    """The mount's per-axis standard deviations (6,) at ``x``, the least-squares solution of ``fun``
+    whose residuals there are ``r``: sigma from ``r`` and its degrees of freedom, the covariance of
+    :func:`mount_covariance`; raises ``CalibrationError`` first when an axis is unobservable
+    (:func:`check_observable`)."""
+    sigma = float(np.sqrt(np.sum(r ** 2) / max(r.size - x.size, 1)))
+    J = jacobian(fun, x)
+    check_observable(J, sigma)
+    return np.sqrt(np.diag(mount_covariance(J, sigma)))
+
+
 def _subsample(views: Sequence[View], max_points: int, rng: np.random.Generator) -> list[View]:
     out = []
     for v in views:
@@ -171,8 +182,7 @@ def _near_target(views: Sequence[View], T0: Array, target: BoxTarget, box_pose: 
     radius = 0.5 * float(np.linalg.norm(target.size_m[:2])) + margin_m
     out = []
     for v in views:
-        T = v.T_base_flange @ T0
-        base = v.points_sensor @ T[:3, :3].T + T[:3, 3]
+        base = transform_points(v.T_base_flange @ T0, v.points_sensor)
         near = np.linalg.norm(base[:, :2] - box_pose[:2], axis=1) <= radius
         out.append(View(v.T_base_flange, v.points_sensor[near]))
     return out
@@ -200,12 +210,8 @@ def fit_mount_to_shape(views: Sequence[View], T_mount0: Array, target: BoxTarget
     inliers = problem.subset(keep)
     final = least_squares(inliers.residuals, robust.x, x_scale="jac")
     r = inliers.residuals(final.x)
-    n, n_par = r.size, final.x.size
-    sigma = float(np.sqrt(np.sum(r ** 2) / max(n - n_par, 1)))
-    J = jacobian(inliers.residuals, final.x)
-    check_observable(J, sigma)
-    std = np.sqrt(np.diag(mount_covariance(J, sigma)))
+    std = mount_std(inliers.residuals, final.x, r)
     return ShapeFit(T_flange_sensor=mount_from_params(T_mount0, final.x[:N_MOUNT]),
                     residual_m=float(np.sqrt(np.mean(r ** 2))), std_m=std[:3], std_rad=std[3:],
                     box_pose=final.x[N_MOUNT:N_MOUNT + 3].copy(), table_z_m=float(final.x[N_MOUNT + 3]),
-                    n_views=len(views), n_points=n)
+                    n_views=len(views), n_points=r.size)

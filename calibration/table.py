@@ -24,7 +24,7 @@ from calibration.shape_fit import Array
 from calibration.views import capture_views, load_views
 from cell.config.models import CellConfig
 from drivers.errors import CalibrationError
-from drivers.transforms import look_at
+from drivers.transforms import look_at, transform_points
 
 RING_ELEVATION_DEG = 60.0
 TRIM_SIGMAS = 3.0
@@ -88,8 +88,7 @@ def calibrate_table(config: CellConfig, config_path: str, *, folder: Path, ring:
     capture_views(config, config_path, table_views(config, ring), target_object=target_object,
                   folder=folder, seed=seed)
     T_mount = config.mount.matrix()
-    points = [v.points_sensor @ (v.T_base_flange @ T_mount)[:3, :3].T + (v.T_base_flange @ T_mount)[:3, 3]
-              for v in load_views(folder)]
+    points = [transform_points(v.T_base_flange @ T_mount, v.points_sensor) for v in load_views(folder)]
     if not points:
         raise CalibrationError("no view of the table was captured")
     return fit_table(np.concatenate(points))

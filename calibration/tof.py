@@ -24,6 +24,7 @@ sum, so it replaces the old one.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -108,8 +109,9 @@ def _model_range(frames: ZoneFrames, h0: float, angles: Array) -> Array:
 def _mean_abs_error(frames: ZoneFrames, rows: Array, expected: Array, offset: Array) -> float:
     """Mean over zones and heights of |the zone's mean corrected distance - the expected range|."""
     errors = []
-    for z_m in np.unique(np.round(frames.flange_z_m[rows], 4)):
-        at = rows[np.round(frames.flange_z_m[rows], 4) == z_m]
+    heights = np.round(frames.flange_z_m[rows], 4)
+    for z_m in np.unique(heights):
+        at = rows[heights == z_m]
         measured = np.nanmean(frames.distance_m[at], axis=0) - offset
         errors.append(np.abs(measured - expected[at[0]]))
     return float(np.nanmean(np.concatenate(errors)))
@@ -146,7 +148,7 @@ def fit_zone_bias(frames: ZoneFrames, resolution: int) -> ZoneFit:
     seen = ok.any(axis=0)
     offset = np.where(seen, offset, 0.0)
     r = np.where(ok, d - _model_range(sub, h0, angles) - offset[None, :], np.nan)
-    noise = np.where(seen, np.nanstd(np.where(ok, r, np.nan), axis=0), 0.0)
+    noise = np.where(seen, np.nanstd(r, axis=0), 0.0)
     expected = _model_range(frames, h0, angles)
     return ZoneFit(correction=ZoneCorrection(resolution=resolution, offset_m=offset, noise_m=noise),
                    height0_m=h0, toward_table=_toward(angles),
@@ -170,10 +172,8 @@ def calibrate_zones(config: CellConfig, config_path: str, *, folder: Path,
     if sensor.zone_correction is None:
         return fit
     applied = load_zone_correction(sensor.zone_correction, sensor.resolution)
-    total = ZoneCorrection(resolution=sensor.resolution, offset_m=fit.correction.offset_m + applied.offset_m,
-                           noise_m=fit.correction.noise_m)
-    return ZoneFit(correction=total, height0_m=fit.height0_m, toward_table=fit.toward_table,
-                   error_before_m=fit.error_before_m, error_after_m=fit.error_after_m, n_frames=fit.n_frames)
+    return dataclasses.replace(fit, correction=dataclasses.replace(
+        fit.correction, offset_m=fit.correction.offset_m + applied.offset_m))
 
 
 def zone_record(fit: ZoneFit, config_path: str, folder: Path) -> dict[str, Any]:

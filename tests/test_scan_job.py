@@ -14,9 +14,12 @@ from typer.testing import CliRunner
 
 from cell.cli.main import app
 from cell.config import load_config
+from cell.jobs.recorder import JobRecorder
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
 from cell.perception.octomap_io import read_bt
+from drivers.depth.base import DepthFrame
+from drivers.depth.projection import back_project
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import DriverError
 
@@ -76,6 +79,22 @@ def test_job_folder_is_complete(bunny_job):
     np.testing.assert_allclose(np.subtract(roi["aabb_max_m"], roi["aabb_min_m"]), [0.156, 0.121, 0.154],
                                atol=0.015)
     assert f"job folder: {out}" in output and "coverage:" in output
+
+
+def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path):
+    recorder = JobRecorder(tmp_path / "job")
+    depth = np.full((4, 6), 0.5, dtype=np.float32)
+    K = np.array([[5.0, 0.0, 2.5], [0.0, 5.0, 1.5], [0.0, 0.0, 1.0]])
+    grey = np.full((4, 6), 110, dtype=np.uint8)
+    for seq, intensity in ((0, None), (1, grey)):
+        frame = DepthFrame(seq=seq, timestamp=0.0, points=back_project(depth, K), depth=depth, intrinsics=K,
+                           intensity=intensity)
+        recorder.frame(frame, np.eye(4), np.eye(4), {})
+    recorder.close()
+    plain, with_grey = (np.load(tmp_path / "job" / "frames" / f"{seq:06d}.npz") for seq in (0, 1))
+    # the points follow from the depth image: a camera's frame does not keep them twice
+    assert {"depth", "K"} <= set(plain.files) and not {"points", "intensity"} & set(plain.files)
+    assert "points" not in with_grey.files and np.array_equal(with_grey["intensity"], grey)
 
 
 def test_same_seed_gives_identical_outputs(bunny_job, tmp_path):

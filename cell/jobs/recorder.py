@@ -100,10 +100,10 @@ class JobRecorder:
                                   "T_base_flange": T_base_flange, **extra}
         if frame.depth is not None and frame.intrinsics is not None:
             arrays.update(depth=frame.depth, K=frame.intrinsics)
-        if frame.intensity is not None:
-            arrays["intensity"] = frame.intensity
         else:
             arrays["points"] = frame.points
+        if frame.intensity is not None:
+            arrays["intensity"] = frame.intensity
         if frame.zones is not None:
             z = frame.zones
             arrays.update(zone_distance_m=z.distance_m, zone_sigma_m=z.sigma_m, zone_status=z.status,

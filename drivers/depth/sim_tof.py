@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, SensorModel, ToFZones
-from drivers.depth.config import SimToFConfig
+from drivers.depth.config import SimToFConfig, ZoneBiasConfig
 from drivers.depth.sim_base import SimDepthSensor
 from drivers.depth.zone_correction import load_zone_correction
 from drivers.sim.scene import HIT_OBJECT, HIT_TABLE, SimScene
@@ -80,6 +80,14 @@ def zone_directions(resolution: int, fov_deg: float, subrays: int = 1) -> Array:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
+def zone_offsets(bias: ZoneBiasConfig | None, n_zones: int) -> Array:
+    """Each zone's constant range offset (n_zones,) [m] of the bias model ``bias`` (None: none), the same
+    draw at every call (the module docstring)."""
+    if bias is None:
+        return np.zeros(n_zones)
+    return bias.offset_std_m * np.random.default_rng(bias.seed).standard_normal(n_zones)
+
+
 class SimToF(SimDepthSensor):
     """Simulated multizone ToF sensor, see the module docstring for the zone model.
 
@@ -99,10 +107,7 @@ class SimToF(SimDepthSensor):
         self._sub = zone_directions(config.resolution, config.fov_deg, config.subrays)  # (Z, S, 3)
         self._central = zone_directions(config.resolution, config.fov_deg, 1)[:, 0, :]  # (Z, 3)
         self._central.setflags(write=False)
-        n_zones = config.resolution ** 2
-        bias = config.zone_bias
-        self.zone_offsets_m: Array = np.zeros(n_zones) if bias is None else \
-            bias.offset_std_m * np.random.default_rng(bias.seed).standard_normal(n_zones)
+        self.zone_offsets_m = zone_offsets(config.zone_bias, config.resolution ** 2)
         self._correction = (None if config.zone_correction is None
                             else load_zone_correction(config.zone_correction, config.resolution))
 

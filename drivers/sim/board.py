@@ -20,6 +20,7 @@ from pydantic import PositiveFloat, model_validator
 
 from drivers.config_base import StrictModel
 from drivers.errors import DriverError
+from drivers.transforms import make_T
 
 Array = NDArray[np.float64]
 
@@ -117,6 +118,4 @@ def board_on_table(board: BoardConfig, station_xy: tuple[float, float], table_z:
     R = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
     centre = np.array([station_xy[0] + pose[0], station_xy[1] + pose[1], table_z])
     half = np.array([board.size_m[0] / 2.0, board.size_m[1] / 2.0, 0.0])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, centre - R @ half
-    return T
+    return make_T(R, centre - R @ half)

@@ -137,18 +137,18 @@ class SimScene:
         cos_inc = np.where(hit, np.abs(dot), 0.0)
         return RayHits(t=t, normals=normals, what=what, cos_incidence=cos_inc)
 
-
     def intensity(self, hits: RayHits, origins: Array, directions: Array) -> NDArray[np.uint8]:
         """The grey level (N,) of each hit: the table's (or what is printed on it, ``texture``), the
         object's, 0 for no hit."""
         out = np.zeros(hits.t.shape[0], dtype=np.uint8)
         out[hits.what == HIT_OBJECT] = INTENSITY_OBJECT
         table = hits.what == HIT_TABLE
-        if np.any(table):
+        if self.texture is None:
+            out[table] = INTENSITY_TABLE
+        elif np.any(table):
+            # where the table was hit matters only for what is printed there (a per-frame cost otherwise)
             o = origins if origins.ndim == 1 else origins[table]
-            points = o + hits.t[table, None] * directions[table]
-            texture = self.texture
-            out[table] = texture.intensity(points) if texture is not None else INTENSITY_TABLE
+            out[table] = self.texture.intensity(o + hits.t[table, None] * directions[table])
         return out
 
 
