@@ -36,10 +36,10 @@ BOARD_ELEVATION_DEG = (50.0, 85.0)
 """Board views look down more steeply than box views: the markers must stay readable."""
 TOF_TYPES = ("sim-tof", "vl53l8cx")
 TOF_FRAMES_PER_VIEW = 5
-TOF_POSES = 40
-CAMERA_POSES = 30
 """Frames a ToF sensor takes at each view: its 64 zones are noisy (about 5 mm at 0.4 m), and averaging
 over frames costs no motion."""
+TOF_POSES = 40
+CAMERA_POSES = 30
 
 
 @dataclass(frozen=True)
