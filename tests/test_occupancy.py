@@ -155,6 +155,23 @@ def test_clamping_after_many_hits_and_misses():
     assert m.logodds(end)[0] == pytest.approx(logit(0.12) + logit(0.7), rel=1e-5)
 
 
+def test_observation_counts_per_scan_past_the_clamp():
+    m = make_map()
+    o = np.array([0.0, 0.0, 0.5])
+    end = np.array([[0.0, 0.0, 0.2]])
+    between = np.array([[0.0, 0.0, 0.35]])
+    for _ in range(40):
+        m.integrate(o, np.repeat(end, 5, axis=0))  # five rays to one voxel: one update of it per scan
+    for _ in range(3):
+        m.integrate(o, end, free_only=np.array([True]))
+    hits, misses = m.observation_counts(np.vstack([end, between, [[1.0, 1.0, 1.0]]]))
+    # the log-odds stopped at the clamp after 5 hits, the counts did not
+    assert hits.tolist() == [40, 0, 0]
+    assert misses.tolist() == [3, 43, 0]
+    m.set_logodds(np.array([[50, 50, 50]]), np.array([2.0]))
+    assert [c.tolist() for c in m.observation_counts(np.array([[0.505, 0.505, 0.505]]))] == [[0], [0]]
+
+
 def test_entropy_eq8_on_known_values():
     p = np.array([0.5, 0.7, 0.4, 0.97, 0.12, 0.0, 1.0])
     expected = [-(q * math.log(q) + (1 - q) * math.log(1 - q)) if 0 < q < 1 else 0.0 for q in p]

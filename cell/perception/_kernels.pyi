@@ -16,7 +16,8 @@ RAY_TRUNCATED: int
 
 def integrate_rays(origin: F64, origin_key: I64, ends: F64, end_keys: I64, kinds: NDArray[np.uint8],
                    index: NDArray[np.int32], ox: int, oy: int, oz: int, pool: NDArray[np.float32],
-                   stamp: NDArray[np.uint32], n_occupied: NDArray[np.int32], block_coords: I64, n_blocks: int,
+                   stamp: NDArray[np.uint32], counts: NDArray[np.uint32], n_occupied: NDArray[np.int32],
+                   block_coords: I64, n_blocks: int,
                    scan: int, l_hit: SupportsFloat, l_miss: SupportsFloat, l_min: SupportsFloat,
                    l_max: SupportsFloat, l_occ: SupportsFloat, keep_surface: bool) -> tuple[int, bool]: ...
 def knn_mean_distances(points: F64, cells: I64, starts: I64, nx: int, ny: int, nz: int, cell_m: float,

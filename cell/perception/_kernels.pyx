@@ -25,6 +25,10 @@ cdef enum:
     BLOCK_VOXELS = 4096
 
 cdef enum:
+    COUNT_BITS = 16
+    COUNT_MASK = 0xFFFF  # a count saturates there
+
+cdef enum:
     K_HIT = 0        # traversed voxels free, end voxel occupied
     K_FREE = 1       # no target (ToF carving): traversed voxels and the end voxel free
     K_TRUNCATED = 2  # beyond max range: traversed voxels free, the (truncated) end voxel not updated
@@ -41,6 +45,7 @@ cdef struct Grid:
     int64_t ox, oy, oz   # voxel key of its first corner (block origin * 16)
     float* pool          # log-odds, NaN = unknown
     uint32_t* stamp      # scan number of the last update of each voxel
+    uint32_t* counts     # scans that updated each voxel: hits in the low 16 bits, misses in the high 16
     int32_t* n_occupied  # occupied voxels per block
     int64_t* coords      # (capacity, 3) block keys of each slot
     int64_t n_blocks
@@ -96,6 +101,11 @@ cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noe
         lo = lo + g.l_miss
         lo = lo if lo > g.l_min else g.l_min
     g.pool[v] = lo
+    if hit:
+        if (g.counts[v] & COUNT_MASK) != COUNT_MASK:
+            g.counts[v] += 1
+    elif (g.counts[v] >> COUNT_BITS) != COUNT_MASK:
+        g.counts[v] += 1 << COUNT_BITS
     # NaN (unknown) compares False: not occupied
     if (lo > g.l_occ) != (old > g.l_occ):
         g.n_occupied[v // BLOCK_VOXELS] += 1 if lo > g.l_occ else -1
@@ -182,14 +192,16 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
 def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, const double[:, ::1] ends,
                    const int64_t[:, ::1] end_keys, const uint8_t[::1] kinds, int32_t[:, :, ::1] index,
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
-                   int32_t[::1] n_occupied, int64_t[:, ::1] block_coords, int64_t n_blocks, uint32_t scan,
+                   uint32_t[::1] counts, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
+                   int64_t n_blocks, uint32_t scan,
                    float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface):
     """Integrate one scan; returns (number of blocks in use, True if done / False if the pool is full).
 
     ``origin`` (3,) and ``ends`` (N, 3) in grid units (metres / resolution), ``origin_key`` and
     ``end_keys`` their voxel keys floor(.); ``kinds`` (N,) RAY_HIT / RAY_FREE / RAY_TRUNCATED;
     ``index`` the block index covering every key of the scan, its first voxel key (ox, oy, oz);
-    ``pool`` / ``stamp`` the log-odds and scan stamps, ``n_occupied`` (capacity,) the occupied voxels
+    ``pool`` / ``stamp`` / ``counts`` the log-odds, scan stamps and hit (low 16 bits) and miss (high 16 bits)
+    counts of each voxel (saturating at 65535), ``n_occupied`` (capacity,) the occupied voxels
     (log-odds above ``l_occ``) of each block, kept up to date, ``block_coords`` (capacity, 3); ``scan`` a number
     not used by an earlier scan. End voxels of hits are updated first, so that a voxel both hit and
     traversed in the scan is updated as occupied only; with ``keep_surface``, the occupied neighbours of
@@ -205,6 +217,7 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
     g.ox, g.oy, g.oz = ox, oy, oz
     g.pool = &pool[0]
     g.stamp = &stamp[0]
+    g.counts = &counts[0]
     g.n_occupied = &n_occupied[0]
     g.coords = &block_coords[0, 0]
     g.n_blocks = n_blocks

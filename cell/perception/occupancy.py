@@ -19,13 +19,16 @@ Grid: voxel keys k = floor(x / resolution_m) on a grid anchored at the base-fram
 in one pool, addressed through a dense int32 index over the bounding box of the blocks, which grows on
 demand. Memory is bounded by the blocks that rays have touched; a query is two gathers.
 
-Ray traversal is OctoMap's incremental voxel traversal (Amanatides and Woo, 1987; ``computeRayKeys``) in
-the compiled kernel ``_kernels.integrate_rays``: from the origin's voxel, step across the boundary met at
-the smallest ray parameter t until the end voxel, |k(e) - k(o)|_1 steps (ties, where a ray passes exactly
-through an edge of the grid, step the higher axis first, as OctoMap). The once-per-scan rule is kept with
-a per-voxel stamp of the last scan that updated it; hits are applied before the traversals, so occupied
-wins. The kernel allocates blocks as rays reach them; the Python side only grows the block index to the
-box of the scan and the pool when it fills. Building the kernel: ``pip install -e .`` (``make setup``).
+Ray traversal is OctoMap's incremental voxel traversal (Amanatides and Woo, 1987; ``computeRayKeys``) in the
+compiled kernel ``_kernels.integrate_rays``: from the origin's voxel, step across the boundary met at the
+smallest ray parameter t until the end voxel, |k(e) - k(o)|_1 steps (ties, where a ray passes exactly through
+an edge of the grid, step the higher axis first, as OctoMap). The once-per-scan rule is kept with a per-voxel
+stamp of the last scan that updated it; hits are applied before the traversals, so occupied wins. Each voxel
+also counts the scans that updated it as occupied and as free (``observation_counts``, beyond OctoMap): with
+the log-odds clamped, they tell a voxel seen often and still ambiguous (a surface that partly fills its voxel,
+hit by some views and crossed by others) from one barely seen. The kernel allocates blocks as rays reach them;
+the Python side only grows the block index to the box of the scan and the pool when it fills. Building the
+kernel: ``pip install -e .`` (``make setup``).
 
 Entropy is the binary Shannon entropy of eq. 8 in nats; ``mean_entropy_in_box`` is H_ROI of eq. 12.
 """
@@ -49,6 +52,8 @@ _BLOCK = 1 << _BLOCK_BITS  # voxels per block edge
 _BLOCK_MASK = _BLOCK - 1
 _BLOCK_VOXELS = _BLOCK**3
 _GROW_MARGIN_BLOCKS = 4  # extra blocks on each side when the block index grows
+_COUNT_BITS = 16  # observation counts: hits in the low 16 bits of a uint32, misses in the high 16
+_COUNT_MASK = (1 << _COUNT_BITS) - 1
 _PACK_BITS = 21  # per axis when keys are packed into one int64 for sorting: +-2^20 voxels (10 km at 1 cm)
 _PACK_OFFSET = 1 << (_PACK_BITS - 1)
 
@@ -132,6 +137,7 @@ class OccupancyMap:
         # the number of the last scan that updated it (one update per voxel per scan).
         self._pool = np.zeros(0, dtype=np.float32)
         self._stamp = np.zeros(0, dtype=np.uint32)
+        self._counts = np.zeros(0, dtype=np.uint32)  # per voxel: hits (low 16 bits), misses (high 16)
         self._n_occupied = np.zeros(0, dtype=np.int32)  # occupied voxels per block
         self._block_coords = np.zeros((0, 3), dtype=np.int64)
         self._n_blocks = 0
@@ -190,8 +196,8 @@ class OccupancyMap:
         return out
 
     def _reserve(self, n_blocks: int) -> None:
-        """Make the pool (and the scan stamps and block coordinates) hold at least ``n_blocks`` blocks,
-        at least doubling it so that growth is amortised."""
+        """Make the pool (and the scan stamps, observation counts and block coordinates) hold at least
+        ``n_blocks`` blocks, at least doubling it so that growth is amortised."""
         if n_blocks * _BLOCK_VOXELS <= self._pool.size:
             return
         cap = max(n_blocks, 2 * (self._pool.size // _BLOCK_VOXELS), 8)
@@ -199,11 +205,14 @@ class OccupancyMap:
         pool[:self._pool.size] = self._pool
         stamp = np.zeros(cap * _BLOCK_VOXELS, dtype=np.uint32)
         stamp[:self._stamp.size] = self._stamp
+        counts = np.zeros(cap * _BLOCK_VOXELS, dtype=np.uint32)
+        counts[:self._counts.size] = self._counts
         coords = np.zeros((cap, 3), dtype=np.int64)
         coords[:self._n_blocks] = self._block_coords[:self._n_blocks]
         n_occupied = np.zeros(cap, dtype=np.int32)
         n_occupied[:self._n_blocks] = self._n_occupied[:self._n_blocks]
-        self._pool, self._stamp, self._block_coords, self._n_occupied = pool, stamp, coords, n_occupied
+        self._pool, self._stamp, self._counts = pool, stamp, counts
+        self._block_coords, self._n_occupied = coords, n_occupied
 
     def _allocate(self, flat_blocks: NDArray[np.int64]) -> None:
         n_new = flat_blocks.size
@@ -260,8 +269,9 @@ class OccupancyMap:
         while True:
             n_blocks, done = _k.integrate_rays(
                 og, k0, eg, ke, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
-                self._pool, self._stamp, self._n_occupied, self._block_coords, self._n_blocks, self._scan,
-                self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ, self.params.keep_surface)
+                self._pool, self._stamp, self._counts, self._n_occupied, self._block_coords, self._n_blocks,
+                self._scan, self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ,
+                self.params.keep_surface)
             self._n_blocks = n_blocks
             if done:
                 return
@@ -282,6 +292,18 @@ class OccupancyMap:
         lo = self._pool[np.maximum(idx, 0)]
         lo[idx < 0] = np.nan
         return lo
+
+    def observation_counts(self, points_base: Array) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """(hits, misses) (M,) of the voxels of points (M, 3) [m]: how many scans updated each voxel as
+        occupied and as free (0 and 0 for unknown voxels, and for voxels set by ``set_logodds``, such as a
+        map read from a .bt file, which holds no counts); each saturates at 65535."""
+        pts = np.asarray(points_base, dtype=np.float64).reshape(-1, 3)
+        if self._n_blocks == 0 or pts.shape[0] == 0:
+            zero = np.zeros(pts.shape[0], dtype=np.int64)
+            return zero, zero.copy()
+        idx = self._slots(self.keys_of(pts), allocate=False)
+        c = np.where(idx >= 0, self._counts[np.maximum(idx, 0)], 0).astype(np.int64)
+        return c & _COUNT_MASK, c >> _COUNT_BITS
 
     def probability(self, points_base: Array) -> Array:
         """Occupancy probability at points (M, 3) [m]; 0.5 for unknown voxels."""
