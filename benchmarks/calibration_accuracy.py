@@ -73,7 +73,8 @@ def _true_mount(cfg: CellConfig, rng: np.random.Generator, max_mm: float, max_de
 
 def _with(cfg: CellConfig, *, mount: PoseConfig | None = None, true_mount: PoseConfig | None = None,
           **sensor: Any) -> CellConfig:
-    sim = cfg.sim.model_copy(update={"true_mount": true_mount or cfg.sim.true_mount})
+    # exact but for the mount: the figures are the calibration's own, held to the truth it must find
+    sim = cfg.sim.model_copy(update={"true_mount": true_mount or cfg.sim.true_mount, "exact": True})
     update: dict[str, Any] = {"sim": sim}
     if mount is not None:
         update["mount"] = mount

@@ -39,10 +39,13 @@ TRUE_OFFSET_RPY_DEG = (2.0, -3.0, 2.5)  # 8.8 mm and 4.4 deg from the believed m
 
 
 def _with_true_mount(cfg: CellConfig) -> tuple[CellConfig, PoseConfig]:
+    """The cell with its sensor really at ``true`` and no other calibration error (``sim.exact``), so that
+    the mount found can be held to the truth."""
     m = cfg.mount
     true = PoseConfig(xyz_m=tuple(np.add(m.xyz_m, TRUE_OFFSET_XYZ_M)),
                       rpy_deg=tuple(np.add(m.rpy_deg, TRUE_OFFSET_RPY_DEG)))
-    return cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"true_mount": true})}), true
+    sim = cfg.sim.model_copy(update={"true_mount": true, "exact": True})
+    return cfg.model_copy(update={"sim": sim}), true
 
 
 def _small_rgbd(cfg: CellConfig) -> CellConfig:
@@ -115,6 +118,7 @@ def test_views_of_one_orientation_are_refused_naming_the_axis_before_anything_mo
 def _tof_cell_with_true_mount(tmp_path: Path) -> Path:
     text = UR5E.read_text().replace(
         "  true_mount: null", "  true_mount: {xyz_m: [0.006, 0.035, 0.034], rpy_deg: [2.0, -3.0, 2.5]}  #")
+    text = text.replace("  exact: false", "  exact: true")  # no calibration error but the mount's
     path = tmp_path / "cell.yaml"
     path.write_text(text)
     return path
@@ -262,6 +266,7 @@ def test_cli_table_finds_the_table_and_the_part_on_the_station(tmp_path: Path) -
     cell = tmp_path / "cell.yaml"
     data = yaml.safe_load(FRANKA.read_text())
     data["sensor"].update(width=160, height=120, fx=118.75, fy=118.75, cx=79.5, cy=59.5)  # fast
+    data["sim"]["exact"] = True  # the table where the cell file says: a depth bias would move it
     cell.write_text(yaml.safe_dump(data))
     out = tmp_path / "table.json"
     run = CliRunner().invoke(app, ["calibrate", "table", "--config", str(cell), "--out", str(out),

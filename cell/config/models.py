@@ -58,7 +58,7 @@ class SimConfig(StrictModel):
     ``error``: the calibration error a carefully calibrated real cell still has (hand-eye, kinematics,
     depth bias; sizes and reasons in ``drivers.sim.errors``), drawn per job from its seed, on unless
     ``exact`` is true (for the algorithm tests that need the sensor exactly where the job believes it is).
-    A ``true_mount`` given replaces the drawn hand-eye error."""
+    A ``true_mount`` given replaces the drawn hand-eye error, and holds with ``exact`` too."""
 
     table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
     table_center_xy_m: tuple[float, float] = (0.5, 0.0)
