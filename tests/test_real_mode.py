@@ -13,6 +13,7 @@ import pytest
 
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.perception.metrics import METRICS_KEYS
 from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.vl53l8cx.emulator import SimToFSource, VL53L8CXEmulator
 from tests.conftest import CONFIG_DIR
@@ -56,7 +57,7 @@ def test_a_real_mode_scan_runs_with_a_hardware_arm_and_sensor(tmp_path: Path, pl
     assert result["n_captures"] == len(frames) >= 2
     assert result["n_cloud_points"] > 0 and result["perception"]["n_frames"] == result["n_captures"]
     # there is no ground truth on a real cell
-    assert result["metrics"] == {"chamfer_mm": None, "hausdorff_mm": None, "coverage_pct": None}
+    assert result["metrics"] == dict.fromkeys(METRICS_KEYS)
     assert result["object_pose"] is None
     assert json.loads((out.folder / "result.json").read_text())["status"] == "completed"
     # asynchronous capture has stopped with the job

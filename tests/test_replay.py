@@ -17,6 +17,7 @@ from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.jobs.replay import replay_config
 from cell.perception.cloud import read_ply
+from cell.perception.metrics import METRICS_KEYS
 from drivers.arm.replay import ReplayArm
 from drivers.clock import SimClock
 from drivers.depth.config import ReplayConfig
@@ -208,7 +209,7 @@ def test_replay_without_ground_truth_reports_no_metrics(tof_job, tmp_path):
     result.update(object=None, object_pose=None)  # as a job on a real cell records it
     (job / "result.json").write_text(json.dumps(result))
     replayed, output = _replay(job, tmp_path / "again", "--config", str(UR5E))
-    assert replayed["metrics"] == {"chamfer_mm": None, "hausdorff_mm": None, "coverage_pct": None}
+    assert replayed["metrics"] == dict.fromkeys(METRICS_KEYS)
     assert replayed["object_pose"] is None and replayed["packing"]["iou"] is None
     assert replayed["packing"]["dims_m"] is not None and "no ground truth" in output
 

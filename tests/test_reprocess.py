@@ -15,6 +15,7 @@ from cell.cli.main import app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
+from cell.perception.metrics import METRICS_KEYS
 from cell.perception.registration import IcpResult, constrain_icp, estimate_normals, kept_directions
 from cell.perception.reprocess import (
     MultiwayParams,
@@ -50,12 +51,14 @@ def test_reprocess_writes_hires_cloud_and_metrics(cube_job):
     assert cloud.shape[0] == out["n_cloud_points"] > online["n_cloud_points"]  # 1 mm vs 2.5 mm
 
     m, m_online = out["metrics"], online["metrics"]
-    assert set(m) == {"chamfer_mm", "hausdorff_mm", "coverage_pct"}
+    assert set(m) == set(METRICS_KEYS)
     timeline = out["timeline"]
-    assert set(timeline) == {"t_s", *m} and all(len(v) == out["n_frames"] for v in timeline.values())
+    # the timeline follows the registered figures (the ground truth registered once, to the whole cloud)
+    assert set(timeline) == {"t_s", "chamfer_mm", "hausdorff_mm", "coverage_pct"}
+    assert all(len(v) == out["n_frames"] for v in timeline.values())
     assert timeline["t_s"][0] == 0.0 and np.all(np.diff(timeline["t_s"]) > 0.0)
     assert timeline["t_s"][-1] <= online["scan_time_s"]
-    assert {k: v[-1] for k, v in timeline.items() if k in m} == m
+    assert {k: v[-1] for k, v in timeline.items() if k != "t_s"} == {k: m[k] for k in timeline if k != "t_s"}
     assert np.all(np.diff(timeline["coverage_pct"]) >= 0.0) and np.all(np.diff(timeline["chamfer_mm"]) <= 0.0)
     assert m["coverage_pct"] >= m_online["coverage_pct"] - 3.0
     assert m["chamfer_mm"] <= m_online["chamfer_mm"] + 0.2
@@ -64,7 +67,8 @@ def test_reprocess_writes_hires_cloud_and_metrics(cube_job):
     assert reg["fk_prior_edges"] == out["n_frames"] and reg["pair_edges"] >= 1
     assert reg["edges"] == reg["fk_prior_edges"] + reg["pair_edges"]
     assert reg["edges_after_pruning"] + reg["pruned_edges"] == reg["edges"]
-    # the simulated job's poses are exact: the optimization must not move them by more than a millimetre
+    # the simulated job's poses are off by a calibrated cell's error only (0.5 mm, 0.1 deg at the hand-eye):
+    # the optimization must not move them by more than a millimetre
     assert reg["max_pose_change_mm"] < 1.0 and reg["max_pose_change_deg"] < 0.2
 
 

@@ -38,6 +38,9 @@ POSTGRES_CONNECT_TIMEOUT_S = 10  # how long a connection attempt to PostgreSQL m
 # Key of the PostgreSQL advisory lock held while migrating, so that cells starting together on one
 # database migrate one after the other ("cell" in ASCII).
 MIGRATION_LOCK_ID = 0x63656C6C
+# How long a cell starting beside another waits for that one's SQLite migration [ms]: longer than the
+# 5 s a request waits, as a migration on a loaded machine can take several seconds.
+SQLITE_MIGRATION_WAIT_MS = 60_000
 # Alembic's ``context`` and ``op`` are module-level proxies: one migration at a time in a process.
 _MIGRATING = threading.Lock()
 
@@ -155,6 +158,7 @@ def _upgrade(engine: Engine, shown: str) -> None:
             connection.execute(text("SELECT pg_advisory_lock(:id)"), {"id": MIGRATION_LOCK_ID})
             connection.commit()
         else:
+            connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_MIGRATION_WAIT_MS}")
             connection.exec_driver_sql("BEGIN IMMEDIATE")
         try:
             current = set(MigrationContext.configure(connection).get_current_heads())
@@ -171,3 +175,6 @@ def _upgrade(engine: Engine, shown: str) -> None:
                 connection.rollback()
                 connection.execute(text("SELECT pg_advisory_unlock(:id)"), {"id": MIGRATION_LOCK_ID})
                 connection.commit()
+            else:
+                connection.rollback()
+                connection.exec_driver_sql(SQLITE_PRAGMAS[0])  # the pooled connection waits as any other
