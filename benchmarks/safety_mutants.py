@@ -34,6 +34,7 @@ TEST_FILES = ("tests/test_safety_guard.py", "tests/test_safety_properties.py",
               "tests/test_safety_scenarios.py")
 RUN_TIMEOUT_S = 900.0
 GUARD = "cell/safety/guard.py"
+COLLISION = "cell/safety/collision.py"
 
 
 @dataclass(frozen=True)
@@ -62,9 +63,14 @@ MUTANTS = (
            "hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))", "hit = None"),
     Mutant("no-collision-check-of-moves", "trajectories are not checked for collisions", GUARD,
            "hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)", "hit = None"),
-    Mutant("no-fcl", "FCL never reports a contact (the collision world finds none, for anything)",
-           "cell/safety/collision.py",
-           "return fcl.collide(a, b, self._request, fcl.CollisionResult()) > 0", "return False"),
+    Mutant("no-fcl", "FCL never reports a contact (the collision world finds none in a configuration)",
+           COLLISION, "return fcl.collide(a, b, self._request, fcl.CollisionResult()) > 0", "return False"),
+    Mutant("no-fcl-distance", "FCL's distance never reports bodies close (a path check finds no contact)",
+           COLLISION, "return float(fcl.distance(a, b, self._distance_request, fcl.DistanceResult()))",
+           "return float(np.inf)"),
+    Mutant("no-sweep-bound-of-moves", "a move's path is clear when its checked configurations are (the "
+           "motion between them is not bounded)", COLLISION, "if np.all(da + db > need):",
+           "if np.all(np.minimum(da, db) > 0.0):"),
     Mutant("no-joint-clamp-of-twists", "streamed twists are not slowed down before a joint's margin", GUARD,
            "scale = float(np.min(np.minimum(allowed[moving] / np.abs(qd[moving]), 1.0)))", "scale = 1.0"),
     Mutant("no-joint-check-of-moves", "trajectory samples are not checked against the joint margins", GUARD,

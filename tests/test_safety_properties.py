@@ -3,8 +3,7 @@ really made (``tests.safety_rig.MotionJudge``, which shares no code with the gua
 its function is taken out of the guard (``benchmarks/safety_mutants.py`` checks that): the barrier
 projection of streamed twists and the barrier check of moves, the collision check of both, the joint
 margin clamp of both, and the watchdog's late-loop and stale-perception stops. ``benchmarks/safety_soak.py``
-runs the same judge over 10^5 random commands per robot; two defects it found are kept here as expected
-failures."""
+runs the same judge over 10^5 random commands per robot; the defects it found are kept here as tests."""
 
 from __future__ import annotations
 
@@ -181,3 +180,26 @@ def test_a_wrist_roll_at_half_the_angular_limit_stops_before_the_joint_limit():
     _roll_wrist(rig, 0.5 * rig.cfg.safety.tcp_max_angular_rps, 150)
     rig.assert_safe()
 
+
+
+# The soak's Panda move whose camera clipped a corner of an obstacle between two trajectory samples 6 mrad
+# apart (episode 444 at seed 0): both samples are clear, a configuration between them is not.
+CLIPPED_MOVE_RAD = np.array([
+    [-1.167074392953996, -1.2075228186016285, 2.0583127764039957, -0.4692569815403904, -1.7861427082940624,
+     0.7187804278168044, -1.4329491091891482],
+    [-1.1734675606719847, -1.2114249419303993, 2.06294724120488, -0.4676316499730932, -1.7891880097079849,
+     0.7183273754710752, -1.4317828086890534]])
+CLIPPED_OBSTACLE = {"shape": "box", "name": "random obstacle",
+                    "size_m": [0.1501869745180332, 0.10695310120325563, 0.1408453732136572],
+                    "pose": {"xyz_m": [0.13023988259255723, 0.6236337732070906, 0.7078193987754317]}}
+
+
+def test_a_move_that_clips_an_obstacle_between_its_samples_is_refused():
+    rig = Rig(cell_config("panda", home_joints_rad=CLIPPED_MOVE_RAD[0], obstacles=[CLIPPED_OBSTACLE]))
+    a, b = CLIPPED_MOVE_RAD
+    assert rig.judge.contact(a) is None and rig.judge.contact(b) is None
+    assert rig.judge.contact((a + b) / 2.0) == "camera touches random obstacle"
+    move = JointTrajectory(t=np.array([0.0, rig.dt]), q=CLIPPED_MOVE_RAD.copy())
+    _, refusal = rig.guard.check_trajectory(move)
+    assert refusal is not None and refusal.kind == "collision"
+    assert "camera would touch random obstacle" in refusal.message

@@ -21,8 +21,8 @@ the arm. It forwards two kinds of motion:
   margin (a last resort where the IK's prediction falls short, near a singularity).
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
   sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
-  be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free when
-  checked densely; refused otherwise.
+  be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free, between
+  its samples too (``CollisionWorld.check_path``); refused otherwise.
 
 Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
 honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
