@@ -73,6 +73,9 @@ MUTANTS = (
            "if np.all(np.minimum(da, db) > 0.0):"),
     Mutant("no-joint-clamp-of-twists", "streamed twists are not slowed down before a joint's margin", GUARD,
            "scale = float(np.min(np.minimum(allowed[moving] / np.abs(qd[moving]), 1.0)))", "scale = 1.0"),
+    Mutant("no-joint-acceleration-limit-of-twists", "a streamed twist may ask a joint to change speed faster "
+           "than the robot can", GUARD,
+           "share = self._joint_rate_share(state.qd, ik(np.asarray(snapshot[0])), qd)", "share = 1.0"),
     Mutant("no-joint-check-of-moves", "trajectory samples are not checked against the joint margins", GUARD,
            "outside = np.nonzero(np.any((q[1:] < self._q_lo) | (q[1:] > self._q_hi), axis=1))[0]",
            "outside = np.zeros(0, dtype=int)"),

@@ -203,3 +203,20 @@ def test_a_move_that_clips_an_obstacle_between_its_samples_is_refused():
     _, refusal = rig.guard.check_trajectory(move)
     assert refusal is not None and refusal.kind == "collision"
     assert "camera would touch random obstacle" in refusal.message
+
+
+def test_a_twist_streamed_near_the_wrist_singularity_never_asks_a_joint_for_more_than_its_acceleration():
+    # The soak's UR5e twists whose jerk passed the robot's limit: near a singularity the joint velocities of a
+    # smoothly changing twist change faster than the robot can accelerate; the arm saturated at its limit and,
+    # when it caught up, its acceleration leapt by more than the jerk limit allows in one period.
+    base = cell_config("ur5e")
+    q0 = np.array(base.arm.home_joints_rad)
+    q0[4] = -0.13  # the wrist 7.4 degrees from its singularity
+    rig = Rig(cell_config("ur5e", home_joints_rad=q0))
+    twist = np.array([-0.16, 0.12, -0.04, 0.34, 0.0, -0.34])
+    for sign in (1.0, -1.0):
+        rig.guard.command_twist(sign * twist)
+        rig.tick(40)
+    rig.assert_safe()
+    assert rig.judge.worst["joint_acceleration"] < 0.99  # never at the arm's own limit
+    assert rig.guard.log.clamps["joint_acceleration"] > 0
