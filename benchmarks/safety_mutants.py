@@ -69,8 +69,8 @@ MUTANTS = (
            COLLISION, "return float(fcl.distance(a, b, self._distance_request, fcl.DistanceResult()))",
            "return float(np.inf)"),
     Mutant("no-sweep-bound-of-moves", "a move's path is clear when its checked configurations are (the "
-           "motion between them is not bounded)", COLLISION, "if np.all(da + db > need):",
-           "if np.all(np.minimum(da, db) > 0.0):"),
+           "motion between them is not bounded)", COLLISION, "open_ = da + db <= need",
+           "open_ = np.zeros(len(need), dtype=bool)"),
     Mutant("no-joint-clamp-of-twists", "streamed twists are not slowed down before a joint's margin", GUARD,
            "scale = float(np.min(np.minimum(allowed[moving] / np.abs(qd[moving]), 1.0)))", "scale = 1.0"),
     Mutant("no-joint-acceleration-limit-of-twists", "a streamed twist may ask a joint to change speed faster "

@@ -24,7 +24,7 @@ to more than the pair's bounds cannot touch in between; a stretch where they do 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -278,11 +278,14 @@ class CollisionWorld:
 
         Configurations no further apart than ``max_step_rad`` in any joint are checked with FCL's distance
         (segments are subdivided); the stretch between two of them is clear when, for every pair of bodies,
-        their distances at both ends add up to more than the pair's :meth:`sweep_bound` over the stretch
-        (the sum of both bounds for two moving bodies). This is sound: at any point of the stretch a body
-        lies within its bound times the share of the stretch behind it of where it was at the start, and
-        within its bound times the share ahead of where it is at the end, so the pair's distance stays
-        above ``(d_start + d_end - bound) / 2 > 0``. A stretch that is not clear is bisected until each
+        their distances at both ends add up to more than the pair's bound over the stretch: the moving
+        body's :meth:`sweep_bound` against a static body; for two moving bodies, the same sum over the
+        joints that move one of them and not the other (a joint that moves both turns them as one rigid
+        piece, which keeps their distance; the others move one body relative to the other by at most
+        that). This is sound: at any point of the stretch a body lies within the bound times the share of
+        the stretch behind it of where it was relative to the other at the start, and within the bound
+        times the share ahead of where it is at the end, so the pair's distance stays above
+        ``(d_start + d_end - bound) / 2 > 0``. A stretch that is not clear is bisected until each
         part is, or a configuration on it touches."""
         q_path = np.asarray(q_path, dtype=float)
         dense, owner = [q_path[:1]], [0]
@@ -294,16 +297,11 @@ class CollisionWorld:
         q = np.concatenate(dense)
         statics = self._statics()
         pairs = self._path_pairs(statics)
-        at_rest = np.zeros(len(statics))
-
-        def bound(dq: Array) -> Array:
-            """The pairs' sweep bounds (p,) [m] over a stretch of ``dq`` (n,), or of each row of (s, n)."""
-            sweep = np.abs(dq) @ self._lever.T
-            sweep = np.concatenate([sweep, np.broadcast_to(at_rest, (*sweep.shape[:-1], at_rest.size))],
-                                   axis=-1)
-            return sweep[..., pairs[:, 0]] + sweep[..., pairs[:, 1]]
-
-        sweeps = bound(np.diff(q, axis=0))
+        levers = np.vstack([self._lever, np.zeros((len(statics), self._lever.shape[1]))])
+        first, second = levers[pairs[:, 0]], levers[pairs[:, 1]]
+        # A joint that moves both bodies of a pair moves them as one rigid piece: their distance stays.
+        pair_levers = np.where((first > 0.0) & (second > 0.0), 0.0, first + second)
+        sweeps = np.abs(np.diff(q, axis=0)) @ pair_levers.T
         # A configuration's distances are exact (FCL) where the sphere test alone cannot clear the
         # stretches on either side of it.
         needs = np.maximum(np.vstack([sweeps[:1], sweeps]), np.vstack([sweeps, sweeps[-1:]])) \
@@ -314,22 +312,25 @@ class CollisionWorld:
         for k in range(1, q.shape[0]):
             d_next, hit = self._clearance(q[k], needs[k], pairs, statics)
             if hit is None:
-                hit = self._check_stretch(q[k - 1], d_prev, q[k], d_next, pairs, statics, bound)
+                hit = self._check_stretch(q[k - 1], d_prev, q[k], d_next, pairs, pair_levers, statics)
             if hit is not None:
                 return owner[k], hit
             d_prev = d_next
         return None
 
-    def _check_stretch(self, qa: Array, da: Array, qb: Array, db: Array, pairs: Array,
-                       statics: list[_Static], bound: Callable[[Array], Array]) -> Collision | None:
-        """The straight stretch from ``qa`` to ``qb`` given the pairs' distance bounds at its ends: None
-        when it is clear (:meth:`check_path`), else it is bisected; returns the contact found on it."""
-        need = bound(qb - qa)
-        if np.all(da + db > need):
+    def _check_stretch(self, qa: Array, da: Array, qb: Array, db: Array, pairs: Array, levers: Array,
+                       statics: list[_Static]) -> Collision | None:
+        """The straight stretch from ``qa`` to ``qb`` for ``pairs`` with their distance bounds at its ends
+        and their levers (:meth:`check_path`): the halves of the stretch are checked for the pairs it does
+        not clear, recursively; returns the contact found on it, or None."""
+        need = np.abs(qb - qa) @ levers.T
+        open_ = da + db <= need
+        if not np.any(open_):
             return None
+        pairs, levers, da, db = pairs[open_], levers[open_], da[open_], db[open_]
         qm = (qa + qb) / 2.0
-        dm, hit = self._clearance(qm, need / 2.0, pairs, statics)
+        dm, hit = self._clearance(qm, need[open_] / 2.0, pairs, statics)
         if hit is not None:
             return hit
-        return (self._check_stretch(qa, da, qm, dm, pairs, statics, bound)
-                or self._check_stretch(qm, dm, qb, db, pairs, statics, bound))
+        return (self._check_stretch(qa, da, qm, dm, pairs, levers, statics)
+                or self._check_stretch(qm, dm, qb, db, pairs, levers, statics))
