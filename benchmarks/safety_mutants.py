@@ -34,6 +34,7 @@ TEST_FILES = ("tests/test_safety_guard.py", "tests/test_safety_properties.py",
               "tests/test_safety_scenarios.py")
 RUN_TIMEOUT_S = 900.0
 GUARD = "cell/safety/guard.py"
+COLLISION = "cell/safety/collision.py"
 
 
 @dataclass(frozen=True)
@@ -62,11 +63,19 @@ MUTANTS = (
            "hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))", "hit = None"),
     Mutant("no-collision-check-of-moves", "trajectories are not checked for collisions", GUARD,
            "hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)", "hit = None"),
-    Mutant("no-fcl", "FCL never reports a contact (the collision world finds none, for anything)",
-           "cell/safety/collision.py",
-           "return fcl.collide(a, b, self._request, fcl.CollisionResult()) > 0", "return False"),
+    Mutant("no-fcl", "FCL never reports a contact (the collision world finds none in a configuration)",
+           COLLISION, "return fcl.collide(a, b, self._request, fcl.CollisionResult()) > 0", "return False"),
+    Mutant("no-fcl-distance", "FCL's distance never reports bodies close (a path check finds no contact)",
+           COLLISION, "return float(fcl.distance(a, b, self._distance_request, fcl.DistanceResult()))",
+           "return float(np.inf)"),
+    Mutant("no-sweep-bound-of-moves", "a move's path is clear when its checked configurations are (the "
+           "motion between them is not bounded)", COLLISION, "open_ = da + db <= need",
+           "open_ = np.zeros(len(need), dtype=bool)"),
     Mutant("no-joint-clamp-of-twists", "streamed twists are not slowed down before a joint's margin", GUARD,
            "scale = float(np.min(np.minimum(allowed[moving] / np.abs(qd[moving]), 1.0)))", "scale = 1.0"),
+    Mutant("no-joint-acceleration-limit-of-twists", "a streamed twist may ask a joint to change speed faster "
+           "than the robot can", GUARD,
+           "share = self._joint_rate_share(state.qd, ik(np.asarray(snapshot[0])), qd)", "share = 1.0"),
     Mutant("no-joint-check-of-moves", "trajectory samples are not checked against the joint margins", GUARD,
            "outside = np.nonzero(np.any((q[1:] < self._q_lo) | (q[1:] > self._q_hi), axis=1))[0]",
            "outside = np.zeros(0, dtype=int)"),

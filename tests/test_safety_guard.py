@@ -224,6 +224,34 @@ def test_trajectory_check_is_dense():
     assert hit is not None and hit[0] == 1
 
 
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_no_point_of_a_body_moves_further_than_its_sweep_bound(model_name):
+    # The path check's soundness rests on this bound: points on the surface of every link capsule and the
+    # corners of the tool, along random straight joint moves from random configurations.
+    cfg = load_config(CELLS[model_name])
+    m = get_robot_model(model_name)
+    world = CollisionWorld(m, cfg.safety.collision, cfg.station.table_z_m)
+    offsets = np.vstack([np.zeros(3), np.eye(3), -np.eye(3)])
+    points = [(c.frame, np.vstack([np.asarray(end) + c.radius * offsets for end in (c.a, c.b)]))
+              for c in m.capsule_specs]
+    flange = m.n_joints + 1
+    for body in cfg.safety.collision.tool:
+        corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3)).reshape(3, -1).T * np.asarray(body.size_m)
+        points.append((flange, corners @ body.pose.matrix()[:3, :3].T + body.pose.matrix()[:3, 3]))
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        q0 = rng.uniform(m.q_min, m.q_max)
+        dq = rng.uniform(-0.5, 0.5, m.n_joints)
+        bound = world.sweep_bound(dq)
+        start = m.fk_all(q0)
+        for s in np.linspace(0.0, 1.0, 9)[1:]:
+            F = m.fk_all(q0 + s * dq)
+            for k, (frame, local) in enumerate(points):
+                moved = (local @ F[frame, :3, :3].T + F[frame, :3, 3]) - (local @ start[frame, :3, :3].T
+                                                                          + start[frame, :3, 3])
+                assert np.max(np.linalg.norm(moved, axis=1)) <= s * bound[k] + 1e-12
+
+
 def test_watchdog_counts_late_ticks_in_a_row():
     dog = Watchdog(WatchdogConfig(deadline_factor=1.5, max_missed_deadlines=3, perception_max_age_s=2.0),
                    period_s=0.01)

@@ -3,8 +3,7 @@ really made (``tests.safety_rig.MotionJudge``, which shares no code with the gua
 its function is taken out of the guard (``benchmarks/safety_mutants.py`` checks that): the barrier
 projection of streamed twists and the barrier check of moves, the collision check of both, the joint
 margin clamp of both, and the watchdog's late-loop and stale-perception stops. ``benchmarks/safety_soak.py``
-runs the same judge over 10^5 random commands per robot; two defects it found are kept here as expected
-failures."""
+runs the same judge over 10^5 random commands per robot; the defects it found are kept here as tests."""
 
 from __future__ import annotations
 
@@ -181,3 +180,43 @@ def test_a_wrist_roll_at_half_the_angular_limit_stops_before_the_joint_limit():
     _roll_wrist(rig, 0.5 * rig.cfg.safety.tcp_max_angular_rps, 150)
     rig.assert_safe()
 
+
+
+# The soak's Panda move whose camera clipped a corner of an obstacle between two trajectory samples 6 mrad
+# apart (episode 444 at seed 0): both samples are clear, a configuration between them is not.
+CLIPPED_MOVE_RAD = np.array([
+    [-1.167074392953996, -1.2075228186016285, 2.0583127764039957, -0.4692569815403904, -1.7861427082940624,
+     0.7187804278168044, -1.4329491091891482],
+    [-1.1734675606719847, -1.2114249419303993, 2.06294724120488, -0.4676316499730932, -1.7891880097079849,
+     0.7183273754710752, -1.4317828086890534]])
+CLIPPED_OBSTACLE = {"shape": "box", "name": "random obstacle",
+                    "size_m": [0.1501869745180332, 0.10695310120325563, 0.1408453732136572],
+                    "pose": {"xyz_m": [0.13023988259255723, 0.6236337732070906, 0.7078193987754317]}}
+
+
+def test_a_move_that_clips_an_obstacle_between_its_samples_is_refused():
+    rig = Rig(cell_config("panda", home_joints_rad=CLIPPED_MOVE_RAD[0], obstacles=[CLIPPED_OBSTACLE]))
+    a, b = CLIPPED_MOVE_RAD
+    assert rig.judge.contact(a) is None and rig.judge.contact(b) is None
+    assert rig.judge.contact((a + b) / 2.0) == "camera touches random obstacle"
+    move = JointTrajectory(t=np.array([0.0, rig.dt]), q=CLIPPED_MOVE_RAD.copy())
+    _, refusal = rig.guard.check_trajectory(move)
+    assert refusal is not None and refusal.kind == "collision"
+    assert "camera would touch random obstacle" in refusal.message
+
+
+def test_a_twist_streamed_near_the_wrist_singularity_never_asks_a_joint_for_more_than_its_acceleration():
+    # The soak's UR5e twists whose jerk passed the robot's limit: near a singularity the joint velocities of a
+    # smoothly changing twist change faster than the robot can accelerate; the arm saturated at its limit and,
+    # when it caught up, its acceleration leapt by more than the jerk limit allows in one period.
+    base = cell_config("ur5e")
+    q0 = np.array(base.arm.home_joints_rad)
+    q0[4] = -0.13  # the wrist 7.4 degrees from its singularity
+    rig = Rig(cell_config("ur5e", home_joints_rad=q0))
+    twist = np.array([-0.16, 0.12, -0.04, 0.34, 0.0, -0.34])
+    for sign in (1.0, -1.0):
+        rig.guard.command_twist(sign * twist)
+        rig.tick(40)
+    rig.assert_safe()
+    assert rig.judge.worst["joint_acceleration"] < 0.99  # never at the arm's own limit
+    assert rig.guard.log.clamps["joint_acceleration"] > 0

@@ -15,6 +15,11 @@ when two moving bodies that are not adjacent touch (self-collision). Adjacent pa
 links on the base and the first joint's frames stand on the table and are not checked against it.
 
 A cheap bounding-sphere test in numpy selects the candidate pairs; FCL decides each candidate exactly.
+
+A joint path (:meth:`CollisionWorld.check_path`) is checked continuously, not only at its samples: between
+two configurations checked with FCL's distance, every point of a body moves at most a bound derived from the
+robot model's geometry (:meth:`CollisionWorld.sweep_bound`), so a pair whose distances at both ends add up
+to more than the pair's bounds cannot touch in between; a stretch where they do not is bisected.
 """
 
 from __future__ import annotations
@@ -36,6 +41,9 @@ Array = NDArray[np.float64]
 
 # Frames at or below this index stand on the table (robot base and first joint housing).
 _BASE_FRAMES = 1
+# On a joint path, two bodies closer than this [m] count as touching: bisection must end somewhere, and a
+# move that grazes a body by a tenth of a millimetre is one to refuse.
+PATH_CONTACT_M = 1e-4
 
 
 @dataclass(frozen=True)
@@ -103,6 +111,7 @@ class CollisionWorld:
     def __init__(self, model: RobotModel, config: CollisionConfig, table_z_m: float) -> None:
         self._model = model
         self._request = fcl.CollisionRequest()
+        self._distance_request = fcl.DistanceRequest()
         specs = model.capsule_specs
         self._link_names = [c.name for c in specs]
         lengths = [float(np.linalg.norm(np.subtract(c.b, c.a))) for c in specs]
@@ -113,11 +122,14 @@ class CollisionWorld:
         radii = [c.radius + h / 2.0 for c, h in zip(specs, lengths, strict=True)]
         flange_frame = model.n_joints + (1 if model.flange is not None else 0)
         frames = [c.frame for c in specs]
+        # How far a body's points lie from the origin of the frame that carries it (sweep_bound).
+        extents = [max(float(np.linalg.norm(c.a)), float(np.linalg.norm(c.b))) + c.radius for c in specs]
         for body in config.tool:
             geom, radius = _geometry(body)
             geoms.append(geom)
             local.append(body.pose.matrix())
             radii.append(radius)
+            extents.append(float(np.linalg.norm(body.pose.xyz_m)) + radius)
             frames.append(flange_frame)
         self.moving_names = self._link_names + [b.name for b in config.tool]
         n_moving = len(self.moving_names)
@@ -126,6 +138,7 @@ class CollisionWorld:
         self._local = np.array(local)
         self._radii = np.asarray(radii)
         self._on_base = self._frames <= _BASE_FRAMES
+        self._lever = self._sweep_levers(model, self._frames, np.asarray(extents))
         allowed = np.eye(n_moving, dtype=bool)
         for i, a in enumerate(self.moving_names):
             for j, b in enumerate(self.moving_names):
@@ -145,6 +158,35 @@ class CollisionWorld:
             self._obstacles.append(self._static(body.name, geom, body.pose.matrix(), radius))
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
+
+    @staticmethod
+    def _sweep_levers(model: RobotModel, frames: Array, extents: Array) -> Array:
+        """(bodies, joints) [m]: an upper bound on the distance of any point of each body from each joint's
+        axis, over all configurations (zero for a joint that does not move the body).
+
+        Joint i turns about the z axis of ``fk_all`` frame i (standard DH) or i + 1 (modified DH), which
+        passes through that frame's origin, and moves frames i + 1 onwards. A point p of a body carried
+        by frame f lies within the body's extent e of f's origin, and the origins of consecutive frames
+        are a fixed distance apart (a DH transform moves its origin by sqrt(a^2 + d^2) whatever the joint
+        angle; the flange is fixed), so by the triangle inequality
+        ``dist(p, axis_i) <= |p - o_axis| <= e + sum of the link distances from the axis frame to f``."""
+        n = model.n_joints
+        origins = model.fk_all(model.q_home)[:, :3, 3]
+        reach = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(origins, axis=0), axis=1))])
+        axis_frame = np.arange(n) + (0 if model.convention == "standard" else 1)
+        lever = extents[:, None] + reach[frames][:, None] - reach[axis_frame][None, :]
+        return np.where(np.arange(n)[None, :] < frames[:, None], lever, 0.0)
+
+    def sweep_bound(self, dq: Array) -> Array:
+        """How far [m] any point of each moving body (k,) can move while the joints go along a straight
+        line by ``dq`` (n,) [rad], from anywhere.
+
+        A revolute joint turning by dθ moves a point by at most dθ times its distance from the joint's
+        axis, and the motions of all joints add up, so the length of a point's path is at most
+        ``sum_i |dq_i| * lever_i`` with the levers of :meth:`_sweep_levers` (which hold in every
+        configuration); a point never ends up further from where it was than the length of its path.
+        Along a polyline the bounds of its segments add up."""
+        return self._lever @ np.abs(dq)
 
     @staticmethod
     def _static(name: str, geom: fcl.CollisionGeometry, T: Array, radius: float) -> _Static:
@@ -174,11 +216,15 @@ class CollisionWorld:
     def _touch(self, a: fcl.CollisionObject, b: fcl.CollisionObject) -> bool:
         return fcl.collide(a, b, self._request, fcl.CollisionResult()) > 0
 
+    def _distance(self, a: fcl.CollisionObject, b: fcl.CollisionObject) -> float:
+        """FCL's distance [m] between two bodies (not positive when they touch)."""
+        return float(fcl.distance(a, b, self._distance_request, fcl.DistanceResult()))
+
     def check(self, q: Array) -> Collision | None:
         """The first pair of bodies in contact at joints ``q`` [rad], or None when it is collision-free."""
         T = self._place(np.asarray(q, dtype=float))
         centers, radii, objs = T[:, :3, 3], self._radii, self._objs
-        statics = [self._table, *self._obstacles] + ([self._roi] if self._roi is not None else [])
+        statics = self._statics()
         for st in statics:
             near = np.linalg.norm(centers - st.center, axis=1) <= radii + st.radius
             if st is self._table:
@@ -193,19 +239,98 @@ class CollisionWorld:
                 return Collision(self.moving_names[a], self.moving_names[b])
         return None
 
+    def _statics(self) -> list[_Static]:
+        return [self._table, *self._obstacles] + ([self._roi] if self._roi is not None else [])
+
+    def _path_pairs(self, statics: list[_Static]) -> Array:
+        """The pairs a path check watches, as (p, 2) indices into the moving bodies followed by ``statics``:
+        (moving body, static) for every static the body can touch, then the self-collision pairs."""
+        n_moving = len(self._objs)
+        pairs = [self._self_pairs]
+        for s, st in enumerate(statics):
+            bodies = np.nonzero(~self._on_base)[0] if st is self._table else np.arange(n_moving)
+            pairs.insert(-1, np.column_stack([bodies, np.full(bodies.size, n_moving + s)]))
+        return np.concatenate(pairs).astype(int)
+
+    def _clearance(self, q: Array, need: Array, pairs: Array, statics: list[_Static]
+                   ) -> tuple[Array, Collision | None]:
+        """Lower bounds [m] on the distance of each pair at joints ``q``: the gap between the pair's bounding
+        spheres, or FCL's distance where that gap is below ``need`` (p,); and the first pair found within
+        ``PATH_CONTACT_M`` (touching), or None."""
+        T = self._place(q)
+        centers = np.vstack([T[:, :3, 3], [st.center for st in statics]])
+        radii = np.concatenate([self._radii, [st.radius for st in statics]])
+        a, b = pairs[:, 0], pairs[:, 1]
+        gap = np.linalg.norm(centers[a] - centers[b], axis=1) - radii[a] - radii[b]
+        objs = self._objs + [st.obj for st in statics]
+        for p in np.nonzero(gap < np.maximum(need, PATH_CONTACT_M))[0]:
+            i, j = pairs[p]
+            gap[p] = self._distance(objs[i], objs[j])
+            if gap[p] <= PATH_CONTACT_M:
+                names = self.moving_names + [st.name for st in statics]
+                return gap, Collision(names[i], names[j])
+        return gap, None
+
     def check_path(self, q_path: Array, max_step_rad: float) -> tuple[int, Collision] | None:
-        """Check a joint path (K, n) densely: consecutive samples further apart than ``max_step_rad`` in
-        any joint are subdivided. Returns the index of the first sample at or after the contact and the
-        contact, or None."""
+        """Check a joint path (K, n) [rad], taken as straight lines in joint space between its samples (as
+        an arm interpolates them), for contact anywhere along it. Returns the index of the first sample at
+        or after the contact and the contact (two bodies closer than ``PATH_CONTACT_M``), or None.
+
+        Configurations no further apart than ``max_step_rad`` in any joint are checked with FCL's distance
+        (segments are subdivided); the stretch between two of them is clear when, for every pair of bodies,
+        their distances at both ends add up to more than the pair's bound over the stretch: the moving
+        body's :meth:`sweep_bound` against a static body; for two moving bodies, the same sum over the
+        joints that move one of them and not the other (a joint that moves both turns them as one rigid
+        piece, which keeps their distance; the others move one body relative to the other by at most
+        that). This is sound: at any point of the stretch a body lies within the bound times the share of
+        the stretch behind it of where it was relative to the other at the start, and within the bound
+        times the share ahead of where it is at the end, so the pair's distance stays above
+        ``(d_start + d_end - bound) / 2 > 0``. A stretch that is not clear is bisected until each
+        part is, or a configuration on it touches."""
         q_path = np.asarray(q_path, dtype=float)
-        hit = self.check(q_path[0])
+        dense, owner = [q_path[:1]], [0]
+        for k in range(1, q_path.shape[0]):
+            step = q_path[k] - q_path[k - 1]
+            n_sub = max(1, int(np.ceil(float(np.max(np.abs(step))) / max_step_rad)))
+            dense.append(q_path[k - 1] + step * (np.arange(1, n_sub + 1) / n_sub)[:, None])
+            owner += [k] * n_sub
+        q = np.concatenate(dense)
+        statics = self._statics()
+        pairs = self._path_pairs(statics)
+        levers = np.vstack([self._lever, np.zeros((len(statics), self._lever.shape[1]))])
+        first, second = levers[pairs[:, 0]], levers[pairs[:, 1]]
+        # A joint that moves both bodies of a pair moves them as one rigid piece: their distance stays.
+        pair_levers = np.where((first > 0.0) & (second > 0.0), 0.0, first + second)
+        sweeps = np.abs(np.diff(q, axis=0)) @ pair_levers.T
+        # A configuration's distances are exact (FCL) where the sphere test alone cannot clear the
+        # stretches on either side of it.
+        needs = np.maximum(np.vstack([sweeps[:1], sweeps]), np.vstack([sweeps, sweeps[-1:]])) \
+            if len(sweeps) else np.zeros((1, len(pairs)))
+        d_prev, hit = self._clearance(q[0], needs[0], pairs, statics)
         if hit is not None:
             return 0, hit
-        for k in range(1, q_path.shape[0]):
-            step = float(np.max(np.abs(q_path[k] - q_path[k - 1])))
-            n_sub = max(1, int(np.ceil(step / max_step_rad)))
-            for s in range(1, n_sub + 1):
-                hit = self.check(q_path[k - 1] + (q_path[k] - q_path[k - 1]) * (s / n_sub))
-                if hit is not None:
-                    return k, hit
+        for k in range(1, q.shape[0]):
+            d_next, hit = self._clearance(q[k], needs[k], pairs, statics)
+            if hit is None:
+                hit = self._check_stretch(q[k - 1], d_prev, q[k], d_next, pairs, pair_levers, statics)
+            if hit is not None:
+                return owner[k], hit
+            d_prev = d_next
         return None
+
+    def _check_stretch(self, qa: Array, da: Array, qb: Array, db: Array, pairs: Array, levers: Array,
+                       statics: list[_Static]) -> Collision | None:
+        """The straight stretch from ``qa`` to ``qb`` for ``pairs`` with their distance bounds at its ends
+        and their levers (:meth:`check_path`): the halves of the stretch are checked for the pairs it does
+        not clear, recursively; returns the contact found on it, or None."""
+        need = np.abs(qb - qa) @ levers.T
+        open_ = da + db <= need
+        if not np.any(open_):
+            return None
+        pairs, levers, da, db = pairs[open_], levers[open_], da[open_], db[open_]
+        qm = (qa + qb) / 2.0
+        dm, hit = self._clearance(qm, need[open_] / 2.0, pairs, statics)
+        if hit is not None:
+            return hit
+        return (self._check_stretch(qa, da, qm, dm, pairs, levers, statics)
+                or self._check_stretch(qm, dm, qb, db, pairs, levers, statics))

@@ -10,7 +10,9 @@ the arm. It forwards two kinds of motion:
   down (direction kept) so that no joint exceeds its share of its speed limit and no joint runs into its
   position margin, with the joint velocities the arm's differential IK gives (``RobotModel.velocity_map``:
   damped least squares plus, on a redundant arm, null-space joint-limit avoidance, which scales with the
-  twist); ruckig smooths it to the TCP acceleration and jerk limits; the stop that would follow the
+  twist); ruckig smooths it to the TCP acceleration and jerk limits, and takes only as much of a step as
+  every joint can follow within the robot's acceleration limit and half its jerk limit (a twist that would
+  need more even when held is refused); the stop that would follow the
   smoothed twist (sent for one period, then ruckig's ramp to rest) must keep the TCP and the sensor out of
   every barrier margin and the joints inside their margins, or the next step of braking is sent instead
   (the projection and the joint margin above plan their braking with simpler bounds that the smoothing
@@ -21,8 +23,8 @@ the arm. It forwards two kinds of motion:
   margin (a last resort where the IK's prediction falls short, near a singularity).
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
   sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
-  be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free when
-  checked densely; refused otherwise.
+  be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free, between
+  its samples too (``CollisionWorld.check_path``); refused otherwise.
 
 Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
 honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
@@ -128,6 +130,11 @@ class MotionGuard:
         self._qd_limit = model.qd_max * safety.joint_velocity_scale
         self._qdd_limit = model.qdd_max * safety.joint_acceleration_scale
         self._qddd_limit = model.qddd_max * safety.joint_jerk_scale
+        # The most a streamed twist may change a joint's speed in one control period [rad/s]: within the
+        # robot's acceleration limit, and at most half its jerk limit's worth, so that even a swing from
+        # one extreme to the other in the next period keeps its jerk limit (``_joint_rate_share``).
+        dt = geometry.period_s
+        self._qd_step = np.minimum(model.qdd_max * dt, 0.5 * model.qddd_max * dt * dt)
         self._q_lo = model.q_min + safety.joint_position_margin_rad
         self._q_hi = model.q_max - safety.joint_position_margin_rad
         # A joint's measured motion must stop short of half its margin (``_joint_overrun``).
@@ -331,12 +338,27 @@ class MotionGuard:
         # only time-synchronised (the blend may bulge past a speed limit); scale such a twist down and
         # continue smoothing from there.
         s = self._safety
-        ratio = max(float(np.max(np.abs(ik(v)) / self._qd_limit)),
+        qd = ik(v)
+        ratio = max(float(np.max(np.abs(qd) / self._qd_limit)),
                     float(np.linalg.norm(v[:3])) / s.tcp_max_linear_mps,
                     float(np.linalg.norm(v[3:])) / s.tcp_max_angular_rps)
         if ratio > 1.0:
             v = self._smoother.scale(1.0 / ratio)
+            qd /= ratio
             self.log.clamp("smoothed_twist")
+        # Near a singularity a twist smoothed in Cartesian space can ask the joints for more acceleration than
+        # the robot has; the arm then lags at its limit and its acceleration leaps past the jerk limit when
+        # it catches up. Only as much of the smoother's step is taken as every joint can follow; when even
+        # holding the previous twist needs more (the configuration alone turns the joints), the twist stops.
+        share = self._joint_rate_share(state.qd, ik(np.asarray(snapshot[0])), qd)
+        if share is None:
+            reason = ("the joints would have to change speed faster than the robot allows to follow the "
+                      "twist (near a singularity)")
+            stop = self._refuse(reason)
+            raise TwistRefused(stop.reason, Refusal("joint acceleration", reason))
+        if share < 1.0:
+            v = self._smoother.blend(snapshot, share)
+            self.log.clamp("joint_acceleration")
         unsafe = self._braking_violation(state, ik)
         if unsafe is not None:
             # The step before this one was checked the same way, so braking from it is known to stay clear.
@@ -350,6 +372,21 @@ class MotionGuard:
             stop = self._refuse(reason)
             raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
+
+    def _joint_rate_share(self, qd_now: Array, qd_from: Array, qd_to: Array) -> float | None:
+        """The largest share s in [0, 1] of the smoother's step, from the joint velocities of the twist it
+        held (``qd_from``) to those of the twist it reached (``qd_to``), both at the arm's joints [rad/s],
+        that no joint takes further than ``_qd_step`` from its speed ``qd_now``; None when no share does."""
+        lo = qd_now - self._qd_step - qd_from
+        hi = qd_now + self._qd_step - qd_from
+        step = qd_to - qd_from
+        moving = np.abs(step) > 1e-12
+        if np.any(~moving & ((lo > 0.0) | (hi < 0.0))):
+            return None
+        ends = np.stack([lo[moving], hi[moving]]) / step[moving]
+        first = max(0.0, float(np.max(np.min(ends, axis=0), initial=0.0)))
+        last = min(1.0, float(np.min(np.max(ends, axis=0), initial=1.0)))
+        return last if first <= last else None
 
     def _joint_overrun(self, state: ArmState) -> str | None:
         """Why the arm must stop now, or None: a joint that, at the speed the arm reports, would be carried

@@ -83,6 +83,15 @@ class TwistSmoother:
         """Go back to a :meth:`snapshot`."""
         self._inp.current_velocity, self._inp.current_acceleration = list(snapshot[0]), list(snapshot[1])
 
+    def blend(self, snapshot: tuple[list[float], list[float]], share: float) -> Array:
+        """Take only ``share`` [0, 1] of the step since ``snapshot``: the twist and its rate of change go back
+        that far towards the snapshot's (a limit applied after smoothing). Returns the twist."""
+        v0, a0 = np.array(snapshot[0]), np.array(snapshot[1])
+        inp = self._inp
+        inp.current_velocity = (v0 + share * (np.array(inp.current_velocity) - v0)).tolist()
+        inp.current_acceleration = (a0 + share * (np.array(inp.current_acceleration) - a0)).tolist()
+        return np.array(inp.current_velocity)
+
     def braking(self) -> tuple[Array, Array]:
         """How the current twist comes to rest: it is sent for one control period (the step it came from),
         then ruckig's time-optimal ramp to zero under the same limits and synchronisation runs. Returns the
