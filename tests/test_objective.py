@@ -6,10 +6,18 @@ import math
 
 import numpy as np
 import pytest
+from scipy.integrate import quad
+from scipy.stats import beta
 
 from cell.config.models import CropBoxConfig
-from cell.perception.occupancy import OccupancyMap, OccupancyParams
-from cell.planning.vs.objective import PARALLEL_MIN_POSES, EntropyObjective, ray_grid
+from cell.perception.occupancy import OccupancyMap, OccupancyParams, binary_entropy
+from cell.planning.vs.objective import (
+    PARALLEL_MIN_POSES,
+    EntropyObjective,
+    observation_information,
+    observation_weight,
+    ray_grid,
+)
 from drivers.depth.sim_tof import zone_directions
 from drivers.transforms import look_at
 
@@ -166,3 +174,60 @@ def test_rejects_a_malformed_pose():
     T[0, 3] = np.nan
     with pytest.raises(ValueError, match="finite"):
         f(T)
+
+
+def test_observation_information_is_the_beta_bernoulli_mutual_information():
+    # I = H(E theta) - E H(theta) for theta ~ Beta(1 + h, 1 + m), by quadrature over theta.
+    for h, m in [(0, 0), (1, 0), (0, 3), (4, 4), (2, 9)]:
+        posterior = beta(1 + h, 1 + m)
+        expected_entropy = quad(lambda t, d=posterior: float(binary_entropy(np.array([t]))[0]) * d.pdf(t),
+                                0.0, 1.0)[0]
+        mu = (1 + h) / (2 + h + m)
+        expected = float(binary_entropy(np.array([mu]))[0]) - expected_entropy
+        assert observation_information(np.array([h]), np.array([m]))[0] == pytest.approx(expected, abs=1e-9)
+    assert observation_weight(np.array([0]), np.array([0]))[0] == pytest.approx(1.0, rel=1e-12)
+
+
+def test_observation_weight_falls_like_one_over_the_observations():
+    n = np.array([10, 100, 1000, 65535])
+    for share in (0.0, 0.5, 0.9):
+        hits = np.round(share * n).astype(np.int64)
+        w = observation_weight(hits, n - hits)
+        assert np.all(np.diff(w) < 0)
+        if share == 0.0:
+            continue  # a hit rate at 0: I falls faster still
+        # I ~ 1 / (2 (n + 3)) once the posterior is narrow, whatever the (inner) hit rate
+        assert w[-1] * (np.log(2.0) - 0.5) * 2.0 * (n[-1] + 3) == pytest.approx(1.0, rel=0.02)
+
+
+def ambiguous_voxel_map(n_scans: int) -> tuple[OccupancyMap, np.ndarray, np.ndarray]:
+    """A map where one voxel was hit and crossed in alternate scans (a surface that partly fills it),
+    ``n_scans`` (even) in all, with p_miss = 1 - p_hit so that it ends at p = 1/2; the camera pose looking
+    straight down at it and a ROI box whose top is that voxel's top face (the voxels the scans crossed
+    above it lie outside)."""
+    occupancy = OccupancyMap(OccupancyParams(resolution_m=0.005, p_hit=0.7, p_miss=0.3))
+    voxel = np.array([[0.4525, 0.0025, 0.0525]])  # the centre of voxel (90, 0, 10)
+    origin = voxel[0] + [0.0, 0.0, 0.25]
+    for k in range(n_scans):
+        occupancy.integrate(origin, voxel, free_only=np.array([k % 2 == 1]))
+    roi = np.stack([voxel[0] - [0.05, 0.05, 0.05], voxel[0] + [0.05, 0.05, 0.0025]])
+    return occupancy, look_at(origin, voxel[0], up_hint=np.array([1.0, 0.0, 0.0])), roi
+
+
+def test_an_often_seen_ambiguous_voxel_weighs_less_than_an_unseen_one():
+    axis = np.array([[0.0, 0.0, 1.0]])
+    paper, aware = {}, {}
+    for n_scans in (0, 2, 40):
+        occupancy, T, roi = ambiguous_voxel_map(n_scans)
+        assert occupancy.probability(T[:3, 3] - [0.0, 0.0, 0.25])[0] == pytest.approx(0.5)
+        paper[n_scans] = EntropyObjective(occupancy, *roi, CROP, axis)(T)
+        aware[n_scans] = EntropyObjective(occupancy, *roi, CROP, axis, observation_aware=True)(T)
+    # eq. 8 cannot tell the voxel seen 40 times from unseen space: same p, same entropy
+    assert paper[40] == pytest.approx(paper[0], rel=1e-12) and paper[2] == pytest.approx(paper[0], rel=1e-12)
+    # weighted by what one more observation can tell, it fades the more it was seen; unseen space does not
+    assert aware[0] == pytest.approx(paper[0], rel=1e-12)
+    assert aware[40] < aware[2] < aware[0]
+    ln2 = math.log(2.0)
+    # the voxel is the ray's first sample; the unseen ones behind it are reached with probability 1/2
+    w40 = observation_weight(np.array([20]), np.array([20]))[0]
+    assert paper[0] - aware[40] == pytest.approx(ln2 * (1.0 - w40), rel=1e-9)

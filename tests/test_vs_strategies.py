@@ -431,6 +431,29 @@ def test_residual_voxel_entropy_is_zero_at_the_map_clamps(franka):
     np.testing.assert_array_equal(voxel_entropy(type(franka).model_validate(data))(p), binary_entropy(p))
 
 
+def test_entropy_choice_reaches_the_objective(franka):
+    # a map whose voxels were all scanned many times, ambiguously: the paper's form counts them fully,
+    # the observation-aware default discounts them
+    occupancy = OccupancyMap(franka.perception.occupancy)
+    origin = CENTRE + np.array([0.0, 0.0, 0.3])
+    ends = occupancy.voxels_in_box(CENTRE - 0.04, CENTRE + 0.04)
+    for k in range(30):
+        occupancy.integrate(origin, ends, free_only=np.full(len(ends), k % 2 == 1))
+    update = SimpleNamespace(seq=1, extent=(CENTRE - 0.02, CENTRE + 0.02), centroid=CENTRE, timestamp=0.0,
+                             map=occupancy, h_roi=None)
+    session = SimpleNamespace(latest_perception=lambda: update)
+    T = look_at(origin, CENTRE)
+    values = {}
+    for choice in ("paper", "observation_aware"):
+        data = franka.model_dump()
+        data["planners"]["vs"]["objective"]["entropy"] = choice
+        planner = VSLocalPlanner(type(franka).model_validate(data))
+        planner._perceive(session)
+        values[choice] = planner.objective(T)
+    assert franka.planners.vs.objective.entropy == "observation_aware"
+    assert 0.0 < values["observation_aware"] < 0.5 * values["paper"]
+
+
 class JointLimitSession(FakeSession):
     """Joints at their limits (``rows`` of ``joint_limit_twists``) and an arm at the edge of its reach
     (``singular``, of ``singularity_twists``) that sensor twists v with a . v > 0 drive further into."""

@@ -5,9 +5,12 @@
   measured the clouds re-processed offline at 1 mm (section III-B), so each job is re-processed.
 - ``packing``: the LR-NBV paper's section 4, its four objects x LR-NBV, NBV, HEU, five runs each, on the
   shipped ``sim-ur5e-tof`` cell.
-- ``heldout``: ten shapes and placements that are not Table I's (four primitive shapes built here, the
-  two packing boxes turned, four of Table I's objects moved and turned), VS-Local on ``sim-franka-rgbd``:
-  the figures away from the objects the planners were tuned on. Each object has its own placement.
+- ``heldout``: fifteen shapes and placements that are not Table I's (nine shapes built here: a can, a ring
+  lying flat, a cone, a thin upright slab, and the hard cases of issue 24: an open cup (thin walls), a
+  ring standing up and a washer (holes; the washer also flat), a mushroom (an overhang) and a tall square
+  post; the two packing boxes turned; four of Table I's objects moved and turned), VS-Local on
+  ``sim-franka-rgbd``: the figures away from the objects the planners were tuned on. Each object has its
+  own placement.
 """
 
 from __future__ import annotations
@@ -65,13 +68,54 @@ HELDOUT_CASES: tuple[tuple[str, Placement], ...] = (
     ("cylinder", CENTRE), ("torus", CENTRE), ("cone", CENTRE), ("slab", (0.0, 0.0, 30.0)),
     ("horizontal_box", (0.0, 0.0, 20.0)), ("vertical_box", (0.0, 0.0, -15.0)),
     ("bunny", (0.05, -0.04, 60.0)), ("mustard", (-0.04, 0.05, -40.0)), ("cube", (0.0, 0.0, 30.0)),
-    ("teapot", (0.03, 0.03, 120.0)),
+    ("teapot", (0.03, 0.03, 120.0)), ("cup", CENTRE), ("standing_ring", (0.0, 0.0, 45.0)),
+    ("washer", (0.02, 0.0, 0.0)), ("mushroom", CENTRE), ("post", (-0.02, 0.02, 10.0)),
 )
 
 
+def lathe(profile: Sequence[tuple[float, float]], segments: int = 48) -> o3d.geometry.TriangleMesh:
+    """The closed surface swept by revolving ``profile`` about the z axis: (r, z) [m] points of a closed
+    polygon, counter-clockwise in the (r, z) half-plane (the solid on its left); points with r = 0 lie on
+    the axis and become one vertex. Faces point out of the solid."""
+    angles = 2.0 * np.pi * np.arange(segments) / segments
+    rings: list[list[int]] = []
+    vertices: list[list[float]] = []
+    for r, z in profile:
+        if r == 0.0:
+            rings.append([len(vertices)] * segments)
+            vertices.append([0.0, 0.0, z])
+        else:
+            rings.append(list(range(len(vertices), len(vertices) + segments)))
+            vertices.extend([r * np.cos(a), r * np.sin(a), z] for a in angles)
+    triangles = []
+    for i in range(len(rings)):
+        lower, upper = rings[i], rings[(i + 1) % len(rings)]
+        for j in range(segments):
+            k = (j + 1) % segments
+            # (a, b, c) with b one step round the axis and c one step along the profile: the normal
+            # (b - a) x (c - a) points to the right of the profile, out of the solid
+            for tri in ((lower[j], lower[k], upper[k]), (lower[j], upper[k], upper[j])):
+                if len(set(tri)) == 3:
+                    triangles.append(tri)
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array(vertices)),
+                                     o3d.utility.Vector3iVector(np.array(triangles, dtype=np.int32)))
+
+
 def _shapes() -> dict[str, o3d.geometry.TriangleMesh]:
-    """The held-out primitive shapes [m]: a can, a ring lying flat, a cone and a thin upright slab."""
-    return {"cylinder": o3d.geometry.TriangleMesh.create_cylinder(radius=0.035, height=0.11, resolution=48),
+    """The held-out shapes [m]: a can, a ring lying flat, a cone, a thin upright slab; an open cup with
+    4 mm walls, a ring standing on its rim, a washer with a 4 cm hole, a mushroom whose cap overhangs its
+    stem by 2 cm, and a 4 x 4 x 18 cm post."""
+    standing_ring = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.04, tube_radius=0.012,
+                                                           radial_resolution=48, tubular_resolution=24)
+    standing_ring.rotate(o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0.0, 0.0)), center=(0, 0, 0))
+    return {"cup": lathe([(0.0, 0.0), (0.045, 0.0), (0.045, 0.07), (0.041, 0.07), (0.041, 0.004),
+                          (0.0, 0.004)]),
+            "standing_ring": standing_ring,
+            "washer": lathe([(0.02, 0.0), (0.06, 0.0), (0.06, 0.012), (0.02, 0.012)]),
+            "mushroom": lathe([(0.0, 0.0), (0.02, 0.0), (0.02, 0.06), (0.04, 0.06), (0.045, 0.07),
+                               (0.035, 0.085), (0.0, 0.09)]),
+            "post": o3d.geometry.TriangleMesh.create_box(width=0.04, height=0.04, depth=0.18),
+            "cylinder": o3d.geometry.TriangleMesh.create_cylinder(radius=0.035, height=0.11, resolution=48),
             "torus": o3d.geometry.TriangleMesh.create_torus(torus_radius=0.045, tube_radius=0.018,
                                                               radial_resolution=48, tubular_resolution=24),
             "cone": o3d.geometry.TriangleMesh.create_cone(radius=0.05, height=0.09, resolution=48),

@@ -31,6 +31,13 @@ class ObjectiveConfig(StrictModel):
     scan): f then measures the length of free path through the ROI rather than what a view would reveal,
     and VS-Local settles where that path is longest instead of moving on.
 
+    ``entropy``: ``paper`` takes each voxel's H as ``voxel_entropy`` gives it; ``observation_aware`` (the
+    default, a departure from eq. 8) weights it by the information one more observation of the voxel can
+    still give, I(h, m) / I(0, 0) of its hit and miss counts under a Beta-Bernoulli model (1 for an
+    unseen voxel, falling like 1 / n for one seen n times; ``cell.planning.vs.objective``), so that
+    voxels the views keep disagreeing on (a surface crossing them at a slant, a calibration error) stop
+    drawing the camera and holding f above the termination's floor, and unseen space does not.
+
     ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box (the box of every ROI of the scan so
     far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards (not
     downwards, into the table). The paper clips to the box itself; but that box ends at the seen extent of the
@@ -53,6 +60,7 @@ class ObjectiveConfig(StrictModel):
     fov_deg: float = Field(default=30.0, gt=0.0, lt=120.0)
     use_sensor_fov: bool = True
     voxel_entropy: Literal["shannon", "residual"] = "residual"
+    entropy: Literal["paper", "observation_aware"] = "observation_aware"
     roi_margin_m: float = Field(default=0.03, ge=0.0)
 
 

@@ -25,6 +25,27 @@ function of the pose. A sample's voxel is floor(x / res), as the map keys it, up
 steps the grid coordinate x / res along the ray, so a sample within ~1e-12 voxel of a face may be read from
 the voxel on its other side.
 
+Observation-aware entropy (``observation_aware``, a departure from eq. 8; ``planners.vs.objective.entropy``).
+Eq. 8 counts a voxel's uncertainty as H(p), the entropy of the map's estimate p. For a voxel that a surface
+crosses at a slant, or that the views disagree on (a calibration error moves the surface by a voxel from
+one view to the next), the outcome of an observation is itself random: some views hit it, some pass
+through, and p stays at 0.2-0.8 however often it is seen. H(p) then never falls, and a view of such voxels
+scores as high as a view of unseen space, which a threshold on f cannot tell apart. Model a voxel's
+outcome as Bernoulli(theta), theta its hit rate, with a uniform prior; after h hits and m misses (the
+scans that updated it, ``OccupancyMap.observation_counts``) theta ~ Beta(a, b), a = 1 + h, b = 1 + m,
+s = a + b, mean mu = a / s. The entropy of the next outcome, H(mu), splits into what would remain if theta
+were known, E[H(theta)], and what the observation tells about theta, the mutual information
+
+    I(h, m) = H(mu) - E[H(theta)] = H(mu) - psi(s + 1) + mu psi(a + 1) + (1 - mu) psi(b + 1)  [nats]
+
+(psi the digamma function; E[theta ln theta] = mu (psi(a + 1) - psi(s + 1))). Only I can be removed by
+looking again. It is ln 2 - 1/2 for an unseen voxel and falls like 1 / (2 (h + m + 3)) whatever the hit
+rate, so a voxel the views keep disagreeing on fades from f as it is seen, while unseen space keeps its
+weight. The observation-aware objective weights each voxel's H of eq. 8 (``voxel_entropy``) by
+w(h, m) = I(h, m) / I(0, 0), 1 for an unseen voxel (so f of unseen space is eq. 9's), and leaves eq. 7's
+stopping probabilities (1 - p) as they are. A voxel without counts (a map read from a .bt file) weighs as
+unseen: the paper's form.
+
 A batch of poses is shared between OpenMP threads (``batch_threads``, OMP_NUM_THREADS) once it holds
 ``PARALLEL_MIN_POSES`` poses (the 5000 candidates of eq. 10); smaller ones (the five poses of a servo
 iteration, eq. 5-6) run on the calling thread. Each pose is one sequential sum whichever thread runs it,
@@ -38,6 +59,7 @@ from typing import Protocol, overload
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import digamma
 
 from cell.perception.filters import CropBox
 from cell.perception.occupancy import OccupancyMap, binary_entropy
@@ -83,6 +105,27 @@ def ray_grid(rays_per_side: int, fov_deg: float) -> Array:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def observation_information(hits: NDArray[np.integer], misses: NDArray[np.integer]) -> Array:
+    """I(h, m) [nats]: the information one more observation of a voxel gives about its hit rate after
+    ``hits`` and ``misses`` (arrays of the same shape), under a uniform prior (module docstring)."""
+    a = 1.0 + np.asarray(hits, dtype=np.float64)
+    b = 1.0 + np.asarray(misses, dtype=np.float64)
+    s = a + b
+    mu = a / s
+    expected_entropy = digamma(s + 1.0) - mu * digamma(a + 1.0) - (1.0 - mu) * digamma(b + 1.0)
+    return np.maximum(binary_entropy(mu) - expected_entropy, 0.0)
+
+
+# I(0, 0) = ln 2 - 1/2: an unseen voxel's.
+_UNSEEN_INFORMATION = float(np.log(2.0) - 0.5)
+
+
+def observation_weight(hits: NDArray[np.integer], misses: NDArray[np.integer]) -> Array:
+    """w(h, m) = I(h, m) / I(0, 0) in (0, 1]: the share of an unseen voxel's information that one more
+    observation of a voxel seen ``hits`` times occupied and ``misses`` times free still gives."""
+    return observation_information(hits, misses) / _UNSEEN_INFORMATION
+
+
 def slab_interval(origin: Array, direction: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
     """Ray parameters [t_in, t_out] where rays origin + t direction (broadcast, last axis 3) lie inside
     the axis-aligned box [lo, hi]; t_in > t_out when a ray misses it. Ray parameters [m] for unit
@@ -102,11 +145,14 @@ class EntropyObjective:
     ``roi_min`` / ``roi_max`` [m]: the object's ROI box in the base frame; ``crop``: the perception crop
     box in the camera frame [m]; ``directions_cam`` (K, 3): unit rays in the camera frame (``ray_grid``);
     ``voxel_entropy``: H(p) of eq. 8 [nats] per voxel probability (the binary entropy unless a planner
-    chooses another measure of a voxel's uncertainty). Samples are spaced at the map's resolution.
+    chooses another measure of a voxel's uncertainty); with ``observation_aware`` each voxel's H is
+    weighted by ``observation_weight`` of its counts (module docstring). Samples are spaced at the map's
+    resolution.
     """
 
     def __init__(self, occupancy: OccupancyMap, roi_min: Array, roi_max: Array, crop: CropBox,
-                 directions_cam: Array, voxel_entropy: Callable[[Array], Array] = binary_entropy) -> None:
+                 directions_cam: Array, voxel_entropy: Callable[[Array], Array] = binary_entropy,
+                 observation_aware: bool = False) -> None:
         self.resolution_m = occupancy.resolution_m
         self.roi_min = np.asarray(roi_min, dtype=np.float64).reshape(3)
         self.roi_max = np.asarray(roi_max, dtype=np.float64).reshape(3)
@@ -120,9 +166,13 @@ class EntropyObjective:
         shape = k_hi - k_lo + 1
         axes = [np.arange(k_lo[i], k_hi[i] + 1) for i in range(3)]
         keys = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
-        p = occupancy.probability(occupancy.centers_of(keys))
+        centers = occupancy.centers_of(keys)
+        p = occupancy.probability(centers)
+        entropy = voxel_entropy(p)
+        if observation_aware:
+            entropy = entropy * observation_weight(*occupancy.observation_counts(centers))
         # Per voxel in key order (x, then y, then z): 1 - p of eq. 7 and H(p) of eq. 8 [nats].
-        voxels = np.ascontiguousarray(np.stack([1.0 - p, voxel_entropy(p)], axis=1))
+        voxels = np.ascontiguousarray(np.stack([1.0 - p, entropy], axis=1))
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])

@@ -221,7 +221,8 @@ class ServoScanPlanner(Planner):
         # the update's own map: on the wall clock perception runs on another thread, and this is the copy
         # published with the update, which nothing writes
         self.objective = EntropyObjective(update.map, lo - [grow, grow, 0.0], hi + grow, perception.crop_box,
-                                          self.rays_cam, self._voxel_entropy)
+                                          self.rays_cam, self._voxel_entropy,
+                                          self.vs.objective.entropy == "observation_aware")
         if update.h_roi is not None:
             self.h_roi.append(update.h_roi)
 
