@@ -265,9 +265,10 @@ def _result_lines(result: dict[str, Any]) -> list[tuple[str, str]]:
         if value is not None:
             lines.append((name, value))
     packing = result.get("packing") or {}
-    dims = packing.get("dims_m")
-    if isinstance(dims, list) and dims:
-        lines.append(("packing dims", " x ".join(f"{v:.3f}" for v in dims) + " m"))
+    for label, field in (("packing dims", "dims_m"), ("packing upper", "dims_upper_m")):
+        value = packing.get(field)
+        if isinstance(value, list) and value:
+            lines.append((label, " x ".join(f"{v:.3f}" for v in value) + " m"))
     container = packing.get("container")
     if isinstance(container, dict):
         name = container.get("name") or "none"
