@@ -33,7 +33,7 @@ def median_tick_ms(model_name: str) -> float:
     model = get_robot_model(model_name)
     clock = SimClock()
     assert isinstance(cfg.arm, SimArmConfig)  # the benchmark's cell files simulate the arm
-    arm = SimArm(cfg.arm, model, clock, np.random.default_rng(0))
+    arm = SimArm(cfg.arm, model, clock)
     arm.connect()
     guard = MotionGuard.from_config(arm, model, cfg, clock)
     dt = 1.0 / cfg.scan.control_rate_hz

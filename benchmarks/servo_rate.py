@@ -124,7 +124,7 @@ def main() -> None:
     model = get_robot_model(cfg.arm.model)
     clock = SimClock()
     assert isinstance(cfg.arm, SimArmConfig)  # the benchmark's cell files simulate the arm
-    arm = SimArm(cfg.arm, model, clock, np.random.default_rng(0))
+    arm = SimArm(cfg.arm, model, clock)
     arm.connect()
     guard = MotionGuard.from_config(arm, model, cfg, clock)
     sc = cfg.planners.vs.servo

@@ -7,7 +7,7 @@ Hardware backends import their client library only when built.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +32,7 @@ from drivers.depth.sim_rgbd import SimRGBD
 from drivers.depth.sim_tof import SimToF
 from drivers.errors import DriverError
 from drivers.robots.model import RobotModel
+from drivers.sim.errors import SimErrors
 from drivers.sim.scene import SimScene
 
 Array = NDArray[np.float64]
@@ -42,11 +43,13 @@ class SimWorld:
     """What simulated backends share: the job's clock, random generator and scene. The clock is the
     simulated one in sim mode; in a dry run (a hardware arm with a simulated sensor) it is the wall clock,
     and the simulated arm, which needs the simulated clock, is not part of it. A replayed job plays on the
-    simulated clock and has no scene."""
+    simulated clock and has no scene. ``errors``: the calibration error the simulated arm and sensor
+    really have (``drivers.sim.errors``; none by default)."""
 
     clock: Clock
     rng: np.random.Generator
     scene: SimScene | None
+    errors: SimErrors = field(default_factory=SimErrors.none)
 
 
 def _need_sim(sim: SimWorld | None, kind: str) -> SimWorld:
@@ -67,7 +70,7 @@ def _sim_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
     world = _need_sim(sim, "arm sim")
     if not isinstance(world.clock, SimClock):
         raise DriverError("the simulated arm needs the simulated clock (mode: sim)", device="arm sim")
-    return SimArm(cfg, model, world.clock, world.rng)
+    return SimArm(cfg, model, world.clock, world.errors.true_model)
 
 
 def _ur5e_arm(cfg: ArmConfig, model: RobotModel, sim: SimWorld | None) -> Arm:
@@ -111,13 +114,15 @@ PoseSource = Callable[[], Array]
 def _sim_rgbd(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
     assert isinstance(cfg, SimRGBDConfig)
     world = _need_sim(sim, "depth sim-rgbd")
-    return SimRGBD(cfg, _need_scene(sim, "depth sim-rgbd"), pose, world.clock, world.rng)
+    return SimRGBD(cfg, _need_scene(sim, "depth sim-rgbd"), pose, world.clock, world.rng,
+                   depth_offset_m=world.errors.depth_offset_m)
 
 
 def _sim_tof(cfg: DepthConfig, sim: SimWorld | None, pose: PoseSource) -> DepthSensor:
     assert isinstance(cfg, SimToFConfig)
     world = _need_sim(sim, "depth sim-tof")
-    return SimToF(cfg, _need_scene(sim, "depth sim-tof"), pose, world.clock, world.rng)
+    return SimToF(cfg, _need_scene(sim, "depth sim-tof"), pose, world.clock, world.rng,
+                  depth_offset_m=world.errors.depth_offset_m)
 
 
 def _job_clock(sim: SimWorld | None) -> Clock:

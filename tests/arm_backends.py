@@ -123,8 +123,7 @@ class Backend:
 @contextlib.contextmanager
 def sim_backend() -> Iterator[Backend]:
     clock = SimClock()
-    arm = SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("ur5e"), clock,
-                 np.random.default_rng(0))
+    arm = SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("ur5e"), clock)
 
     def advance(seconds: float) -> None:
         for _ in range(max(1, round(seconds / 0.004))):

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from cell.perception.metrics import CoverageTracker, compute_metrics, metrics_timeline
+from cell.perception.metrics import (
+    METRICS_KEYS,
+    CoverageTracker,
+    compute_metrics,
+    ground_truth_points,
+    measure,
+    metrics_timeline,
+)
+from drivers.sim.objects import load_object, sample_surface
+from drivers.transforms import T_from_xyz_rpy, rotvec, transform_points
 
 
 def test_metrics_are_one_sided_over_ground_truth():
@@ -56,3 +65,45 @@ def test_timeline_before_the_first_point_is_an_empty_cloud():
     steps = metrics_timeline(gt, np.array([[0.0, 0.0, 0.001]]), np.array([1]), n_frames=2)
     assert steps[0] == compute_metrics(gt, np.zeros((0, 3)))
     assert steps[1].coverage_pct == 100.0 and np.isclose(steps[1].hausdorff_mm, 1.0)
+
+
+def _partial_bunny(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 13's A of the bunny at a station, and a noisy cloud of its +x half (what a few views see)."""
+    mesh = load_object("bunny", 1.0)
+    T = T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, 0.0])
+    gt = ground_truth_points(mesh, T)
+    pts = transform_points(T, sample_surface(mesh, 20_000, rng))
+    half = pts[pts[:, 0] > pts[:, 0].mean()]
+    return gt, half + rng.normal(0.0, 0.0005, half.shape)
+
+
+def test_registration_removes_a_common_offset_but_not_disagreeing_views():
+    gt, cloud = _partial_bunny(np.random.default_rng(3))
+    exact = measure(gt, cloud)
+    # a calibration error: every view moved alike by 3 mm and 0.3 deg about the base origin
+    offset = T_from_xyz_rpy([0.003, -0.002, 0.002], np.deg2rad([0.1, -0.2, 0.2]))
+    moved = measure(gt, transform_points(offset, cloud))
+    assert moved.unregistered.coverage_pct < exact.unregistered.coverage_pct - 15.0
+    assert abs(moved.registered.coverage_pct - exact.registered.coverage_pct) < 0.5
+    assert abs(exact.registered.coverage_pct - exact.unregistered.coverage_pct) < 1.0
+    # A moved by the offset itself, to 0.5 mm at the object and 0.1 deg
+    centre = cloud.mean(axis=0)[None]
+    assert np.linalg.norm(transform_points(moved.T, centre) - transform_points(offset, centre)) < 5e-4
+    assert np.degrees(np.linalg.norm(rotvec(moved.T[:3, :3].T @ offset[:3, :3]))) < 0.1
+    # views that disagree: the cube's +x face seen 3 mm too far out and its -x face 3 mm too far out the
+    # other way (two views, each with its own error): the cube looks 6 mm wider, which no rigid motion
+    # undoes, so both faces stay beyond the 2.5 mm radius
+    cube = load_object("cube", 1.0)
+    gt_cube = ground_truth_points(cube, np.eye(4))
+    pts = sample_surface(cube, 20_000, np.random.default_rng(4))
+    lo, hi = pts[:, 0].min(), pts[:, 0].max()
+    consistent = measure(gt_cube, pts)
+    wide = pts.copy()
+    wide[np.isclose(pts[:, 0], hi), 0] += 0.003
+    wide[np.isclose(pts[:, 0], lo), 0] -= 0.003
+    disagree = measure(gt_cube, wide)
+    # the x faces are 40 % of A; their points within 2.5 mm of an edge are still covered by the others
+    assert disagree.registered.coverage_pct < consistent.registered.coverage_pct - 30.0
+    summary = disagree.as_dict()
+    assert set(summary) == set(METRICS_KEYS)
+    assert summary["coverage_unregistered_pct"] == disagree.unregistered.coverage_pct

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from drivers.arm.base import ArmMode, JointTrajectory, MotionToken
-from drivers.arm.config import PoseErrorConfig, SimArmConfig
+from drivers.arm.config import SimArmConfig
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
 from drivers.errors import DriverError, RobotFault
@@ -24,10 +24,14 @@ def tok(arm: SimArm) -> MotionToken:
     return _TOKENS[id(arm)]
 
 
-def make_arm(name: str = "panda", seed: int = 0, **cfg: object) -> tuple[SimArm, SimClock]:
+def make_arm(name: str = "panda", seed: int = 0, error: tuple[float, float] | None = None,
+             **cfg: object) -> tuple[SimArm, SimClock]:
+    """A connected sim arm; ``error`` (joint offset std [rad], DH length std [m]) perturbs its true model."""
     clock = SimClock()
     config = SimArmConfig(type="sim", model=name, **cfg)  # type: ignore[arg-type]
-    arm = SimArm(config, get_robot_model(name), clock, np.random.default_rng(seed))
+    model = get_robot_model(name)
+    true_model = None if error is None else model.perturbed(np.random.default_rng(seed), *error)
+    arm = SimArm(config, model, clock, true_model)
     arm.connect()
     _TOKENS[id(arm)] = arm.claim_motion()
     return arm, clock
@@ -126,13 +130,13 @@ def test_joint_limits_hold(name: str) -> None:
 
 
 def test_pose_error_model() -> None:
-    pe = {"joint_offset_std_rad": 0.002, "link_std_m": 0.001}
-    arm, clock = make_arm("panda", seed=11, pose_error=PoseErrorConfig(**pe))
+    pe = (0.002, 0.001)
+    arm, clock = make_arm("panda", seed=11, error=pe)
     diff = arm.true_flange_pose()[:3, 3] - arm.state().T_base_flange[:3, 3]
     assert 3e-4 < np.linalg.norm(diff) < 2e-2
-    arm2, _ = make_arm("panda", seed=11, pose_error=PoseErrorConfig(**pe))
+    arm2, _ = make_arm("panda", seed=11, error=pe)
     np.testing.assert_array_equal(arm.true_flange_pose(), arm2.true_flange_pose())
-    arm3, _ = make_arm("panda", seed=12, pose_error=PoseErrorConfig(**pe))
+    arm3, _ = make_arm("panda", seed=12, error=pe)
     assert not np.array_equal(arm.true_flange_pose(), arm3.true_flange_pose())
     # the error stays mm-level while moving, and the true pose moves with the reported one
     T_true0 = arm.true_flange_pose()
@@ -156,8 +160,7 @@ def test_home_joints_from_config_and_validation() -> None:
         make_arm("panda", home_joints_rad=[0.0] * 7)  # joint 4 must be below -0.0698
     clock = SimClock()
     with pytest.raises(ValueError, match="model"):
-        SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("panda"), clock,
-               np.random.default_rng(0))
+        SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("panda"), clock)
 
 
 def test_bad_twist_raises() -> None:
@@ -170,8 +173,7 @@ def test_bad_twist_raises() -> None:
 
 def test_disconnected_raises_and_context_manager() -> None:
     clock = SimClock()
-    arm = SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("ur5e"), clock,
-                 np.random.default_rng(0))
+    arm = SimArm(SimArmConfig(type="sim", model="ur5e"), get_robot_model("ur5e"), clock)
     assert not arm.is_connected
     _TOKENS[id(arm)] = arm.claim_motion()
     for call in (arm.state, arm.stop, lambda: arm.command_twist(np.zeros(6), tok(arm))):
@@ -190,8 +192,7 @@ def test_disconnected_raises_and_context_manager() -> None:
 
 def test_deterministic_run() -> None:
     def once() -> np.ndarray:
-        arm, clock = make_arm("ur5e", seed=3,
-                              pose_error=PoseErrorConfig(joint_offset_std_rad=0.001, link_std_m=0.0005))
+        arm, clock = make_arm("ur5e", seed=3, error=(0.001, 0.0005))
         arm.command_twist(np.array([0.02, 0.01, -0.03, 0.05, 0.0, 0.0]), tok(arm))
         run(clock, 0.5)
         arm.stop()

@@ -25,6 +25,7 @@ from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
 from drivers.config_base import StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
 from drivers.sim.board import BoardConfig, SimBoardConfig
+from drivers.sim.errors import SimErrorConfig, SimErrors
 from drivers.sim.faults import SimFault
 from drivers.transforms import T_from_xyz_rpy
 
@@ -52,13 +53,20 @@ class SimConfig(StrictModel):
     schedule (``drivers.sim.faults``) to see the safety layer react, and ``true_mount``, the hand-eye
     transform T_flange_sensor the simulated sensor really has (None: the cell file's ``mount``), so that
     what a job believes (``mount``) can differ from the truth a calibration has to find; ``board``: the
-    cell's calibration board (``calibration.board``) lying on the table (None: no board)."""
+    cell's calibration board (``calibration.board``) lying on the table (None: no board).
+
+    ``error``: the calibration error a carefully calibrated real cell still has (hand-eye, kinematics,
+    depth bias; sizes and reasons in ``drivers.sim.errors``), drawn per job from its seed, on unless
+    ``exact`` is true (for the algorithm tests that need the sensor exactly where the job believes it is).
+    A ``true_mount`` given replaces the drawn hand-eye error."""
 
     table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
     table_center_xy_m: tuple[float, float] = (0.5, 0.0)
     faults: list[SimFault] = Field(default_factory=list)
     true_mount: PoseConfig | None = None
     board: SimBoardConfig | None = None
+    exact: bool = False
+    error: SimErrorConfig = SimErrorConfig()
 
 
 class CalibrationConfig(StrictModel):
@@ -204,9 +212,12 @@ class CellConfig(StrictModel):
     line: LineConfig | None = None
     calibration: CalibrationConfig = CalibrationConfig()
 
-    def true_mount_matrix(self) -> np.ndarray:
-        """T_flange_sensor (4x4) the simulated sensor renders from: ``sim.true_mount``, else ``mount``."""
-        return (self.sim.true_mount or self.mount).matrix()
+    def true_mount_matrix(self, errors: SimErrors | None = None) -> np.ndarray:
+        """T_flange_sensor (4x4) the simulated sensor renders from: ``sim.true_mount``, else ``mount`` moved
+        by the drawn hand-eye error ``errors.T_mount_error`` (none when not given)."""
+        if self.sim.true_mount is not None:
+            return self.sim.true_mount.matrix()
+        return self.mount.matrix() if errors is None else self.mount.matrix() @ errors.T_mount_error
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:

@@ -35,7 +35,7 @@ FIG3 = "fig3.png"
 # (column, heading, decimals) of the two tables
 RECONSTRUCTION = (("coverage_pct", "coverage %", 1), ("chamfer_mm", "Chamfer mm", 1),
                   ("hausdorff_mm", "Hausdorff mm", 1), ("scan_time_s", "scan time s", 1),
-                  ("path_m", "path m", 2))
+                  ("path_m", "path m", 2), ("coverage_unregistered_pct", "unregistered coverage %", 1))
 PACKING = (("iou", "IoU", 3), ("packing_coverage_pct", "coverage %", 1), ("n_poses", "poses", 1),
            ("n_useless_poses", "useless poses", 1))
 DIMS = ("L m", "W m", "H m")

@@ -9,7 +9,9 @@ Columns: ``object``, ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``statu
 ``failed`` for a scan whose worker died twice), ``termination``, ``scan_time_s`` (job time from the first
 frame, the visual-servoing paper's clock), ``path_m`` (sensor path over the same span), ``n_captures``,
 ``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud; on the 1 mm re-processed
-cloud, ``result_hires.json``, for a grid that re-processes, as the paper measures Table I), and the
+cloud, ``result_hires.json``, for a grid that re-processes, as the paper measures Table I; the ground truth
+registered to the cloud as the paper does), ``coverage_unregistered_pct`` and ``chamfer_unregistered_mm``
+(the same without registration, the ground truth where the simulated object really is), and the
 packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
 ``packing_coverage_pct``.
 """
@@ -26,8 +28,8 @@ from typing import Any
 from cell.evaluation.spec import ScanSpec
 
 COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "scan_time_s", "path_m",
-           "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "dims_m", "iou", "n_poses",
-           "n_useless_poses", "packing_coverage_pct")
+           "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "coverage_unregistered_pct",
+           "chamfer_unregistered_mm", "dims_m", "iou", "n_poses", "n_useless_poses", "packing_coverage_pct")
 DECIMALS = 4
 
 Row = dict[str, str]
@@ -64,7 +66,8 @@ def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any
             "scan_time_s": _number(result.get("scan_time_s")),
             "path_m": _number(result.get("scan_path_length_m")),
             "n_captures": _number(result.get("n_captures")),
-            **{k: _number(metrics.get(k)) for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm")},
+            **{k: _number(metrics.get(k)) for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm",
+                                                     "coverage_unregistered_pct", "chamfer_unregistered_mm")},
             "dims_m": "" if dims is None else " ".join(_number(d) for d in dims),
             "iou": _number(packing.get("iou")), "n_poses": _number(packing.get("n_poses")),
             "n_useless_poses": _number(packing.get("n_useless_poses")),

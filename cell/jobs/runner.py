@@ -49,7 +49,7 @@ from cell.jobs.recorder import STOP_FILE, JobRecorder
 from cell.jobs.replay import ReplaySession
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.packing.result import packing_section
-from cell.perception.metrics import CoverageTracker, compute_metrics, ground_truth_points
+from cell.perception.metrics import METRICS_KEYS, CoverageTracker, ground_truth_points, measure
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Planner
 from cell.planning.registry import get_planner
@@ -66,6 +66,7 @@ from drivers.errors import CellError, JobError, NoObjectFound, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.board import TableTexture, board_on_table, board_texture
+from drivers.sim.errors import SimErrors, draw_sim_errors
 from drivers.sim.faults import SimFaultInjector
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, load_object
 from drivers.sim.scene import SimScene
@@ -122,18 +123,19 @@ def object_pose_in_base(config: CellConfig, pose: tuple[float, float, float]) ->
 
 
 class JobGenerators(NamedTuple):
-    """The random generators of one job: the simulated devices' noise, perception's draws (RANSAC) and
-    the planner's."""
+    """The random generators of one job: the simulated devices' noise, perception's draws (RANSAC), the
+    planner's and the simulated cell's calibration error (``sim.error``)."""
 
     world: np.random.Generator
     perception: np.random.Generator
     planner: np.random.Generator
+    calibration_error: np.random.Generator
 
 
 def job_generators(seed: int) -> JobGenerators:
     """One seed per job, split into independent streams, so that perception's and the planner's draws
     never change the noise the simulated devices see, nor each other's."""
-    return JobGenerators(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)))
+    return JobGenerators(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)))
 
 
 def default_job_folder(object_name: str, planner: str, seed: int) -> Path:
@@ -283,17 +285,21 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
         T_base_object = job.T_base_object
         recorder.job({**_identity(job), "object_placement": list(req.object_pose),
                       "max_time_s": job.max_time_s})
-        world_rng, perception_rng, planner_rng = job_generators(req.seed)
+        world_rng, perception_rng, planner_rng, error_rng = job_generators(req.seed)
         poses = PoseHistory() if wall else None
         T_station = object_pose_in_base(cfg, (0.0, 0.0, 0.0))
         scene = SimScene(job.mesh, T_base_object if T_base_object is not None else T_station,
                          table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
                          table_size_xy=cfg.sim.table_size_m,
                          texture=_sim_board(cfg)) if cfg.mode in ("sim", "dry-run") else None
-        world = SimWorld(clock=clock, rng=world_rng, scene=scene)
         model = get_robot_model(cfg.arm.model)
+        errors = (draw_sim_errors(cfg.sim.error, model, error_rng) if scene is not None and not cfg.sim.exact
+                  else SimErrors.none())
+        world = SimWorld(clock=clock, rng=world_rng, scene=scene, errors=errors)
+        if scene is not None:
+            recorder.log(0.0, f"sim: {errors.describe() if not cfg.sim.exact else 'exact (sim.exact)'}")
         # the simulated sensor renders from the mount it really has, the job believes ``mount``
-        T_flange_sensor = cfg.true_mount_matrix()
+        T_flange_sensor = cfg.true_mount_matrix(errors)
         arm = make_arm(cfg.arm, model, world)
         flange = poses.latest if poses is not None else true_flange_pose(arm)
         sensor = make_sensor(cfg.sensor, world, lambda: flange() @ T_flange_sensor)
@@ -413,8 +419,8 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     recorder.cloud(cloud)
     if session is not None:
         recorder.occupancy_map(session.perception.map)
-    metrics = (compute_metrics(ground_truth, cloud).as_dict() if ground_truth is not None
-               else dict.fromkeys(("chamfer_mm", "hausdorff_mm", "coverage_pct"), float("nan")))
+    metrics = (measure(ground_truth, cloud).as_dict() if ground_truth is not None
+               else dict.fromkeys(METRICS_KEYS, float("nan")))
     scan_time, scan_path = _scan_span(session, clock.now())
     T_base_object = job.T_base_object
     result: dict[str, Any] = {

@@ -8,8 +8,13 @@ captured cloud, both in the base frame [m]. All three are one-sided, over A:
 - Hausdorff(A, B) = max over a of min_b d(a, b)
 - Coverage(A, B, l) = 100 * share of a with min_b d(a, b) <= l, l = 2.5 mm.
 
-The paper registers the mesh to the cloud first; in simulation the ground-truth pose is known, so the
-mesh is placed at it and no registration is needed.
+The paper registers the mesh to the cloud first, and so does ``measure``: A, placed at the object's
+ground-truth pose, is moved by the rigid transform that best lays the cloud onto it
+(``register_ground_truth``), so that the offset a calibration error gives every view alike (the cloud a
+little shifted or turned as a whole) is not counted as reconstruction error, while a cloud whose views
+disagree still is: no rigid motion brings two copies of a surface onto one. The figures before
+registration are kept beside them (``*_unregistered``). ``CoverageTracker``, the live figure during a
+scan, is unregistered.
 """
 
 from __future__ import annotations
@@ -20,8 +25,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from cell.perception.registration import (
+    RegistrationParams,
+    constrain_icp,
+    estimate_normals,
+    point_to_plane_icp,
+)
 from drivers.sim.objects import ObjectMesh, sample_surface
-from drivers.transforms import transform_points
+from drivers.transforms import inv_T, rotvec, transform_points
 
 Array = NDArray[np.float64]
 
@@ -68,6 +79,81 @@ def _from_distances(d: Array, radius_m: float) -> Metrics:
     """Eq. 13 from the distances d (|A|,) [m] of the ground-truth points to their nearest cloud point."""
     return Metrics(chamfer_mm=float(np.mean(d) * 1e3), hausdorff_mm=float(np.max(d) * 1e3),
                    coverage_pct=float(100.0 * np.mean(d <= radius_m)))
+
+
+# Registration (``register_ground_truth``): correspondences farther apart than this are outliers. Four times
+# the coverage radius: it holds a calibrated cell's error (a few millimetres at the object) with room to
+# spare, and leaves out what segmentation let through (table points, noise) a centimetre off the surface.
+REGISTRATION_MAX_DISTANCE_M = 4 * COVERAGE_RADIUS_M
+_REGISTRATION_ITERATIONS = 50
+_MIN_CONSTRAINT: float = RegistrationParams.model_fields["min_constraint"].default  # the online default
+_REGISTRATION_CONVERGED_M = 1e-6  # [m] root mean square motion of an update at which a stage ends
+
+
+def register_ground_truth(ground_truth: Array, cloud: Array,
+                          max_distance_m: float = REGISTRATION_MAX_DISTANCE_M) -> Array:
+    """The rigid T (4x4, base frame) that moves A (``ground_truth``, (N, 3) [m]) onto the cloud (M, 3) [m].
+
+    Point-to-plane ICP (``registration.point_to_plane_icp``) from the cloud to A: every cloud point lies on
+    the seen part of the surface, which A covers whole, so each has a true counterpart on A, while most of
+    A has none in a partial cloud. A's normals come from its own points (within ``max_distance_m``); pairs
+    farther apart than ``max_distance_m``, then half that, are left out, as are those more than the
+    coverage radius beyond A's points along their tangent plane. Starts at the identity (A at the
+    ground-truth pose); a stage ends when an update moves the cloud by less than 1 um (mean square).
+
+    Then, as the online registration of frames does (``registration.constrain_icp``), the motion is kept
+    only along the directions the pairs constrain (a cloud of one face of a box says nothing about a slide
+    along it), and it is refused (the identity) when it would move a point of the cloud's bounding box
+    farther than ``max_distance_m``: beyond the gate the pairs it was computed from do not exist, and a
+    calibration error is far smaller (a sparse, noisy cloud, such as the 8x8 ToF sensor's, otherwise slides
+    A by centimetres).
+    """
+    if cloud.shape[0] < 3 or ground_truth.shape[0] < 3:
+        return np.eye(4)
+    normals = estimate_normals(ground_truth, ground_truth, max_distance_m)
+    icp = point_to_plane_icp(cloud, ground_truth, normals, (max_distance_m, max_distance_m / 2),
+                             max_iterations=_REGISTRATION_ITERATIONS, epsilon=_REGISTRATION_CONVERGED_M ** 2,
+                             max_tangential_m=COVERAGE_RADIUS_M)
+    T, _ = constrain_icp(icp, cloud, normals[icp.correspondences[:, 1]], _MIN_CONSTRAINT)
+    lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    if np.max(np.linalg.norm(transform_points(T, corners) - corners, axis=1)) > max_distance_m:
+        return np.eye(4)
+    return inv_T(T)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Eq. 13 as the paper measures it: after registering A to the cloud (``registered``), before it
+    (``unregistered``), and the registration ``T`` (4x4, base frame) that moved A."""
+
+    registered: Metrics
+    unregistered: Metrics
+    T: Array
+
+    def as_dict(self) -> dict[str, float]:
+        """result.json's ``metrics``: the registered figures (``chamfer_mm``, ``hausdorff_mm``,
+        ``coverage_pct``), the unregistered ones (the same names with ``_unregistered``), and how far
+        registration moved A (``registration_mm``: its translation, ``registration_deg``: its angle); the
+        keys are ``METRICS_KEYS``."""
+        u = self.unregistered
+        return {**self.registered.as_dict(), "chamfer_unregistered_mm": u.chamfer_mm,
+                "hausdorff_unregistered_mm": u.hausdorff_mm, "coverage_unregistered_pct": u.coverage_pct,
+                "registration_mm": float(np.linalg.norm(self.T[:3, 3]) * 1e3),
+                "registration_deg": float(np.degrees(np.linalg.norm(rotvec(self.T[:3, :3]))))}
+
+
+METRICS_KEYS = ("chamfer_mm", "hausdorff_mm", "coverage_pct", "chamfer_unregistered_mm",
+                "hausdorff_unregistered_mm", "coverage_unregistered_pct", "registration_mm",
+                "registration_deg")
+
+
+def measure(ground_truth: Array, cloud: Array, radius_m: float = COVERAGE_RADIUS_M) -> Measurement:
+    """Eq. 13 of A = ``ground_truth`` and B = ``cloud`` ((N, 3) [m]) after registering A to B
+    (``register_ground_truth``) and before."""
+    T = register_ground_truth(ground_truth, cloud)
+    return Measurement(compute_metrics(transform_points(T, ground_truth), cloud, radius_m),
+                       compute_metrics(ground_truth, cloud, radius_m), T)
 
 
 def metrics_timeline(ground_truth: Array, centroids: Array, first: NDArray[np.int64], n_frames: int,

@@ -35,12 +35,12 @@ then compares the result with the ground truth by eq. 13. ``reprocess_job`` does
    sample as the online run, and their ``timeline`` as the scan went on (the paper's Fig. 5, bottom): per
    frame, its capture time from the first frame [s, the clock of ``scan_time_s``] and the figures of the
    cloud the frames up to it make, built as in step 5 with the same optimized poses; the last entry is
-   the whole scan's figure (``cell.perception.metrics.metrics_timeline``); everything in
-   ``result_hires.json``.
+   the whole scan's figure (``cell.perception.metrics.metrics_timeline``), all with the ground truth
+   registered to the whole cloud as the paper does, and the unregistered figures beside (``measure``);
+   everything in ``result_hires.json``.
 
 Left out from the paper's post-processing: the statistical outlier filter and segmentation (not part of
-the online pipeline of this release either); the comparison places the mesh at its known pose instead
-of registering it (as ``cell.perception.metrics`` does).
+the online pipeline of this release either).
 """
 
 from __future__ import annotations
@@ -59,12 +59,7 @@ from pydantic import Field, PositiveFloat, PositiveInt
 
 from cell.config.models import CropBoxConfig
 from cell.perception.cloud import crop_voxel_downsample, cross_rows, first_voxels, voxel_downsample, write_ply
-from cell.perception.metrics import (
-    Metrics,
-    compute_metrics,
-    ground_truth_points,
-    metrics_timeline,
-)
+from cell.perception.metrics import ground_truth_points, measure, metrics_timeline
 from cell.perception.registration import (
     constrain_icp,
     constraint_normals,
@@ -338,9 +333,9 @@ def _ground_truth(result: dict[str, Any]) -> Array | None:
     return ground_truth_points(mesh, T_base_object)
 
 
-def _rounded(m: Metrics) -> dict[str, float | None]:
+def _rounded(figures: dict[str, float]) -> dict[str, float | None]:
     """Eq. 13 figures for JSON: 6 decimals, None for the infinite distances of an empty cloud."""
-    return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in m.as_dict().items()}
+    return {k: (round(v, 6) if np.isfinite(v) else None) for k, v in figures.items()}
 
 
 def _silent(stage: str, done: int, total: int) -> None:
@@ -398,10 +393,13 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     metrics = timeline = None
     if gt is not None:
         progress("metrics", 0, 1)
-        metrics = _rounded(compute_metrics(gt, cloud))
-        steps = [_rounded(m) for m in metrics_timeline(gt, cloud, first, len(per_frame))]
+        measured = measure(gt, cloud)
+        metrics = _rounded(measured.as_dict())
+        # the whole scan's registration places A for every step: the curve ends at the registered figure
+        gt_registered = transform_points(measured.T, gt)
+        steps = [_rounded(m.as_dict()) for m in metrics_timeline(gt_registered, cloud, first, len(per_frame))]
         timeline = {"t_s": [round(t - times[0], 3) for t in times],
-                    **{k: [step[k] for step in steps] for k in metrics}}
+                    **{k: [step[k] for step in steps] for k in steps[0]}}
         progress("metrics", 1, 1)
     t_measured = time.perf_counter()
     out: dict[str, Any] = {

@@ -11,26 +11,12 @@ from drivers.config_base import Number, StrictModel
 RobotModelName = Literal["panda", "ur5e"]
 
 
-class PoseErrorConfig(StrictModel):
-    """Simulated calibration and kinematic error, drawn once per job from the job's generator.
-
-    The simulated arm moves with perturbed kinematics but reports poses from the nominal model, so the
-    poses a job sees are off by a few millimetres like a real arm's, and registration has something to
-    correct. ``joint_offset_std_rad``: encoder zero offset per joint; ``link_std_m``: error on every
-    DH length (a and d).
-    """
-
-    joint_offset_std_rad: float = Field(ge=0.0, le=0.05)
-    link_std_m: float = Field(ge=0.0, le=0.01)
-
-
 class SimArmConfig(StrictModel):
     """The simulated arm: integrates commanded twists through the model's differential IK."""
 
     type: Literal["sim"]
     model: RobotModelName
     home_joints_rad: list[float] | None = None
-    pose_error: PoseErrorConfig | None = None
 
 
 DigitalIndex = Annotated[int, Field(ge=0, le=7)]

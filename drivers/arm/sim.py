@@ -18,10 +18,10 @@ It is a real backend (the embedded default), not a test double. Every ``clock.sl
 
 Joint positions are always clamped to the model's limits (a clamped joint's velocity is set to zero).
 
-Calibration error: with ``config.pose_error`` set, a perturbed copy of the model is drawn once from the
-job's generator at construction. The joints then "really" move the perturbed arm: :meth:`true_flange_pose`
-(what the simulated sensors use) is the perturbed FK at the current q, while :meth:`state` reports the
-nominal FK, like a real arm whose kinematic calibration is a few millimetres off.
+Calibration error: given a ``true_model`` (a perturbed copy of the nominal model, drawn per job by
+``drivers.sim.errors``), the joints "really" move that arm: :meth:`true_flange_pose` (what the simulated
+sensors use) is its FK at the current q, while :meth:`state` reports the nominal FK, like a real arm whose
+kinematic calibration is a little off.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ class SimArm(Arm):
     name = "sim"
 
     def __init__(self, config: SimArmConfig, model: RobotModel, clock: SimClock,
-                 rng: np.random.Generator) -> None:
+                 true_model: RobotModel | None = None) -> None:
         if config.model != model.name:
             raise ValueError(f"arm sim: config names model {config.model!r} but the model given is "
                              f"{model.name!r}")
@@ -76,11 +76,7 @@ class SimArm(Arm):
         self._connected = False
         self._fault: str | None = None
         self._fault_recoverable = True
-        pe = config.pose_error
-        if pe is not None:
-            self._true_model = model.perturbed(rng, pe.joint_offset_std_rad, pe.link_std_m)
-        else:
-            self._true_model = model
+        self._true_model = true_model if true_model is not None else model
         clock.add_stepper(self._step)
 
     # ------------------------------------------------------------------ connection
@@ -140,7 +136,7 @@ class SimArm(Arm):
     def true_flange_pose(self) -> Array:
         """Where the flange really is (4x4, base frame): the perturbed model's FK at the current q.
 
-        Equal to ``state().T_base_flange`` when the config has no ``pose_error``. Works while
+        Equal to ``state().T_base_flange`` without a ``true_model``. Works while
         disconnected (the arm is still somewhere).
         """
         return self._true_model.fk(self._q)

@@ -19,10 +19,12 @@ Array = NDArray[np.float64]
 
 class SimDepthSensor(LocalLink, DepthSensor):
     """Base of the ray-cast sensors. ``pose_source()`` returns the true T_base_sensor (4x4) at capture
-    time; ``clock`` stamps frames; ``rng`` is the only source of noise."""
+    time; ``clock`` stamps frames; ``rng`` is the only source of noise; ``depth_offset_m`` [m] a bias
+    added to every range the sensor reports (``drivers.sim.errors``)."""
 
     def __init__(self, scene: SimScene, pose_source: Callable[[], Array], clock: Clock,
-                 rng: np.random.Generator) -> None:
+                 rng: np.random.Generator, depth_offset_m: float = 0.0) -> None:
+        self.depth_offset_m = depth_offset_m
         self._scene = scene
         self._pose_source = pose_source
         self._clock = clock

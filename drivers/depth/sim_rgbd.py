@@ -13,7 +13,8 @@ Per frame (one ray-casting call for all pixels):
 2. grazing dropouts: with the incidence angle a between the ray and the surface normal, a return with
    a > ``grazing_deg`` is always dropped and one with ``grazing_deg - 15`` < a <= ``grazing_deg`` is
    dropped with probability (a - (grazing_deg - 15)) / 15 (linear from 0 to 1);
-3. axial Gaussian noise N(0, sigma(z)^2) with sigma(z) = sigma0_m + k_per_m z^2, z the true depth;
+3. the depth bias ``depth_offset_m`` (a calibration error, ``drivers.sim.errors``) and axial Gaussian noise
+   N(0, sigma(z)^2) with sigma(z) = sigma0_m + k_per_m z^2, z the true depth;
 4. range gating on the measured (noisy) depth: outside [range_min_m, range_max_m] is no return (depth 0).
 
 The grey ``intensity`` image is rendered from the same rays (from ``SUPERSAMPLE`` x ``SUPERSAMPLE`` rays
@@ -62,8 +63,8 @@ class SimRGBD(SimDepthSensor):
     name = "sim-rgbd"
 
     def __init__(self, config: SimRGBDConfig, scene: SimScene, pose_source: Callable[[], Array],
-                 clock: Clock, rng: np.random.Generator) -> None:
-        super().__init__(scene, pose_source, clock, rng)
+                 clock: Clock, rng: np.random.Generator, depth_offset_m: float = 0.0) -> None:
+        super().__init__(scene, pose_source, clock, rng, depth_offset_m)
         self.config = config
         self.intrinsics = np.array([[config.fx, 0.0, config.cx],
                                     [0.0, config.fy, config.cy],
@@ -139,7 +140,7 @@ class SimRGBD(SimDepthSensor):
 
         idx = np.flatnonzero(keep)
         z_true = hits.t[idx] * self._z_per_t[idx]
-        z = z_true + (c.noise.sigma0_m + c.noise.k_per_m * z_true ** 2) * noise[idx]
+        z = z_true + self.depth_offset_m + (c.noise.sigma0_m + c.noise.k_per_m * z_true ** 2) * noise[idx]
         in_range = (z >= c.range_min_m) & (z <= c.range_max_m)
         idx = idx[in_range]
         zf = z[in_range].astype(np.float32)

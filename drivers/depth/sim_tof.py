@@ -30,7 +30,8 @@ Per zone (one ray-casting call for all subrays of all zones):
 
 Per-zone bias (``zone_bias``): each zone's distance carries a constant offset [m], drawn once at
 construction from a generator of its own (``zone_bias.seed``), as a real sensor's zones each range a little
-long or short; ``zone_offsets_m`` holds them (the truth ``cell calibrate tof`` must find). A
+long or short; ``zone_offsets_m`` holds them (the truth ``cell calibrate tof`` must find), and every zone
+the common ``depth_offset_m`` (a calibration error, ``drivers.sim.errors``). A
 ``zone_correction`` file is applied after it, as the ``vl53l8cx`` backend does.
 
 Random numbers come only from the generator given at construction; every frame draws exactly one normal
@@ -100,8 +101,8 @@ class SimToF(SimDepthSensor):
     name = "sim-tof"
 
     def __init__(self, config: SimToFConfig, scene: SimScene, pose_source: Callable[[], Array],
-                 clock: Clock, rng: np.random.Generator) -> None:
-        super().__init__(scene, pose_source, clock, rng)
+                 clock: Clock, rng: np.random.Generator, depth_offset_m: float = 0.0) -> None:
+        super().__init__(scene, pose_source, clock, rng, depth_offset_m)
         self.config = config
         self.edge_gap_m = config.edge_gap_m
         self._sub = zone_directions(config.resolution, config.fov_deg, config.subrays)  # (Z, S, 3)
@@ -153,7 +154,8 @@ class SimToF(SimDepthSensor):
         refl = np.where(valid, refl, 0.0).sum(axis=1) / kk
 
         sigma_noise = c.noise.sigma0_m + c.noise.k_per_m * np.where(has_target, median, 0.0) ** 2
-        distance = np.where(has_target, median + self.zone_offsets_m + sigma_noise * noise, np.nan)
+        bias = self.zone_offsets_m + self.depth_offset_m
+        distance = np.where(has_target, median + bias + sigma_noise * noise, np.nan)
         if self._correction is not None:
             distance = self._correction.apply(distance)
         sigma = np.where(has_target, sigma_noise + std, np.nan)
