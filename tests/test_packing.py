@@ -331,7 +331,7 @@ def test_packing_box_keeps_a_piece_the_final_cluster_lost() -> None:
 def _model(**kw: float) -> ErrorModel:
     base = dict(zone_rad=math.radians(45.0 / 8), sigma0_m=0.004, k_per_m=0.01, bias_m=0.002, voxel_m=0.01,
                 pose_m=0.002, pose_rad=0.0035, coverage=2.0)
-    return ErrorModel(**{**base, **kw})
+    return ErrorModel(**{**base, **kw}, half_fov_rad=(math.radians(22.5), math.radians(22.5)))
 
 
 def test_a_face_seen_edge_on_gets_a_zone_footprint_and_head_on_only_the_range_error() -> None:
@@ -366,6 +366,12 @@ def test_upper_bound_of_a_box_seen_from_above_reaches_out_by_the_footprint() -> 
     assert upper[0] - box.dims[0] == pytest.approx(2.0 * footprint + 0.03, abs=0.01)
     assert upper[2] - box.dims[2] < 0.02 < upper[0] - box.dims[0]
     assert np.all(upper >= box.dims)
+    # From 5 cm above the top the field of view (4 cm across) cuts the box: its sides have no bound.
+    T[:3, 3] = [0.0, 0.0, 0.15]
+    close = top[np.all(np.abs(top[:, :2]) < 0.05 * math.tan(math.radians(22.5)), axis=1)]
+    seen = Seen.of([Sighting(T, close)], np.ones(close.shape[0], dtype=bool))
+    upper = upper_dims(box_from_points(close, 0.0, trim=0.02), m, seen, 0.02)
+    assert np.isinf(upper[0]) and np.isinf(upper[1]) and np.isfinite(upper[2])
 
 
 def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:

@@ -99,13 +99,15 @@ def cycle_result(job_id: str, part_id: str, status: str, termination: str | None
     length, width = sorted(dims[:2], reverse=True)
     height = dims[2]
     upper = packing.get("dims_upper_m") or dims
-    up_length, up_width = sorted(upper[:2], reverse=True)
-    measured = {"upper_length_m": up_length, "upper_width_m": up_width, "upper_height_m": upper[2]}
+    # an unbounded face (no container then) leaves the upper bound at 0: not measured
+    up_length, up_width, up_height = (0.0, 0.0, 0.0) if None in upper else \
+        (*sorted(upper[:2], reverse=True), upper[2])
     inner = container.get("inner_dims_m")
     if not container.get("name") or not inner:
-        return CycleResult(job_id, part_id, status, length, width, height, message=reason, **measured)
+        return CycleResult(job_id, part_id, status, length, width, height, message=reason,
+                           upper_length_m=up_length, upper_width_m=up_width, upper_height_m=up_height)
     in_plane = sorted(inner[:2], reverse=True)
     # the box stands on the container's floor: gaps on each side in the plane, and above it
-    clearance = min((in_plane[0] - up_length) / 2.0, (in_plane[1] - up_width) / 2.0, inner[2] - upper[2])
+    clearance = min((in_plane[0] - up_length) / 2.0, (in_plane[1] - up_width) / 2.0, inner[2] - up_height)
     return CycleResult(job_id, part_id, status, length, width, height, str(container["name"]),
-                       round(clearance, 6), True, reason, **measured)
+                       round(clearance, 6), True, reason, up_length, up_width, up_height)

@@ -20,7 +20,7 @@ chosen for the upper bound (:mod:`cell.packing.containers`): a box that is too s
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
-from cell.packing.containers import choose_container
+from cell.packing.containers import ContainerChoice, choose_container
 from cell.packing.objects import (
     current_object,
     extent_points,
@@ -141,19 +141,29 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     seen = _seen(perception, objects, sightings, measured, config.scan.standoff_m)
     upper = upper_dims(box, error_model(config, session.sensor_model()), seen, pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
-    section["dims_upper_m"] = np.round(upper, 6).tolist()
-    section["dims_uncertainty_m"] = np.round(upper - box.dims, 6).tolist()
+    section["dims_upper_m"] = _finite(upper)
+    section["dims_uncertainty_m"] = _finite(upper - box.dims)
     section["box"] = _box_dict(box)
     if mesh is not None and T_base_object is not None:
         section["iou"] = round(box_iou(box, box_from_mesh(mesh, T_base_object)), 6)
-    choice = choose_container(upper, pc.containers, pc.margin_m)
+    if np.all(np.isfinite(upper)):
+        choice = choose_container(upper, pc.containers, pc.margin_m)
+        choice = replace(choice, reason=f"{choice.reason}, for the box's upper bound")
+    else:
+        choice = ContainerChoice(None, False, "none: a face of the box was seen only at the edge of the "
+                                              "sensor's field of view, so it has no upper bound")
     section["container"] = {
         "name": choice.container.name if choice.container is not None else None,
         "inner_dims_m": list(choice.container.inner_dims_m) if choice.container is not None else None,
         "rotated": choice.rotated,
-        "reason": f"{choice.reason}; chosen on the upper bound of the box",
+        "reason": choice.reason,
     }
     return section
+
+
+def _finite(values: Array) -> list[float | None]:
+    """``values`` [m] rounded to the micrometre for result.json, None where infinite (no bound)."""
+    return [round(float(v), 6) if np.isfinite(v) else None for v in values]
 
 
 def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighting], measured: Array,

@@ -45,7 +45,12 @@ The points are each capture's own (:class:`Sighting`, with the pose it was taken
 keeps no sightings gets the estimate's own points seen from the configured stand-off range in the worst
 way (sqrt 2 footprints sideways and the whole range error along n). Each dimension's upper bound is the
 distance between its two faces' bounds (H: from the table up); its uncertainty is the difference to the
-estimate. A face no view saw is bounded by nothing, as it is not estimated either.
+estimate.
+
+All of this assumes that the face was inside some view: a face whose points all come from the outer
+ring of zones of their views (within one zone of the field of view's border) may go on beyond the field
+of view, where no zone looked, and has no upper bound (infinite): a scan that saw the object only from
+too close, cut by the field of view, gives no container rather than too small a one.
 """
 
 from __future__ import annotations
@@ -83,7 +88,8 @@ class Sighting:
 class ErrorModel:
     """The allowance delta(n) of the module docstring: ``zone_rad`` w [rad], range noise sigma(r) =
     ``sigma0_m`` + ``k_per_m`` r^2 [m] and bias std ``bias_m`` [m], ``voxel_m`` the map resolution [m],
-    pose std ``pose_m`` [m] and ``pose_rad`` [rad], ``coverage`` the factor on the Gaussian terms."""
+    pose std ``pose_m`` [m] and ``pose_rad`` [rad], ``coverage`` the factor on the Gaussian terms;
+    ``half_fov_rad`` half the field of view [rad] across (x) and down (y) the image."""
 
     zone_rad: float
     sigma0_m: float
@@ -93,6 +99,7 @@ class ErrorModel:
     pose_m: float
     pose_rad: float
     coverage: float
+    half_fov_rad: tuple[float, float]
 
     def delta(self, ranges: Array, along_ray: Array, sideways: Array) -> float:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
@@ -113,7 +120,9 @@ def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
     return ErrorModel(zone_rad=math.radians(sensor.fov_x_deg) / sensor.width, sigma0_m=noise.sigma0_m,
                       k_per_m=noise.k_per_m, bias_m=u.range_bias_m,
                       voxel_m=config.perception.occupancy.resolution_m, pose_m=u.pose_translation_m,
-                      pose_rad=u.pose_rotation_rad, coverage=u.coverage_factor)
+                      pose_rad=u.pose_rotation_rad, coverage=u.coverage_factor,
+                      half_fov_rad=(math.radians(sensor.fov_x_deg) / 2.0,
+                                    math.radians(sensor.fov_y_deg) / 2.0))
 
 
 @dataclass(frozen=True)
@@ -149,13 +158,26 @@ class Seen:
         sideways = np.abs(np.einsum("kaj,a->kj", self.axes[:, :, :2], n)).sum(axis=1)
         return ranges, along, sideways
 
+    def framed(self, model: ErrorModel) -> NDArray[np.bool_]:
+        """Mask (K,) of the points seen at least one zone inside their view's field of view (all True
+        when the views are unknown)."""
+        if self.origins is None or self.axes is None:
+            return np.ones(self.points.shape[0], dtype=bool)
+        local = np.einsum("kaj,ka->kj", self.axes, self.points - self.origins)  # sensor frame
+        across = np.abs(np.arctan2(local[:, 0], local[:, 2]))
+        down = np.abs(np.arctan2(local[:, 1], local[:, 2]))
+        return np.asarray((across < model.half_fov_rad[0] - model.zone_rad)
+                          & (down < model.half_fov_rad[1] - model.zone_rad))
+
 
 def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
     """The upper bound [m] of the face with outward unit normal ``n`` (3,), as a coordinate along n: the
     ``1 - trim`` quantile of n.p over the points plus delta(n) of the face's points (those beyond the
-    ``1 - FACE_FRACTION`` quantile)."""
+    ``1 - FACE_FRACTION`` quantile); infinite when none of those is framed (:meth:`Seen.framed`)."""
     x = seen.points @ n
     face = x >= np.quantile(x, 1.0 - FACE_FRACTION)
+    if not seen.framed(model)[face].any():
+        return math.inf
     ranges, along, sideways = seen.geometry(n)
     return float(np.quantile(x, 1.0 - trim)) + model.delta(ranges[face], along[face], sideways[face])
 
@@ -163,7 +185,8 @@ def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
 def upper_dims(box: PackingBox, model: ErrorModel, seen: Seen, trim: float) -> Array:
     """Upper bounds (L, W, H) [m] of the box's dimensions from the object's points ``seen``: the
     distance between the bounds of the two faces of L and of W (along the box's yaw), and from the
-    box's floor (``z_min``) to the top's bound; each at least the box's own dimension."""
+    box's floor (``z_min``) to the top's bound; each at least the box's own dimension, infinite when a
+    face has no bound (:func:`face_bound`)."""
     c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
     u, v, z = np.array([c, s, 0.0]), np.array([-s, c, 0.0]), np.array([0.0, 0.0, 1.0])
     dims = np.array([face_bound(model, seen, u, trim) + face_bound(model, seen, -u, trim),
