@@ -117,6 +117,15 @@ def test_the_result_a_line_reads():
     # length is the longer side; the clearance is the smallest gap: (0.20 - 0.10) / 2 across
     assert (result.length_m, result.width_m, result.height_m) == (0.20, 0.10, 0.05)
     assert result.fits and result.container == "medium" and result.clearance_m == pytest.approx(0.025)
+    assert (result.upper_length_m, result.upper_width_m, result.upper_height_m) == (0.20, 0.10, 0.05)
+    # with an upper bound, the clearance is the upper bound's: (0.20 - 0.14) / 2 across
+    upper = {**packing, "dims_upper_m": [0.14, 0.22, 0.08]}
+    bounded = cycle_result("j", "p", "completed", "done", {"packing": upper})
+    assert (bounded.length_m, bounded.upper_length_m, bounded.upper_width_m) == (0.20, 0.22, 0.14)
+    assert bounded.clearance_m == pytest.approx(0.015)
+    no_bound = {**packing, "dims_upper_m": [None, None, 0.06], "container": {"name": None, "reason": "none"}}
+    unbounded = cycle_result("j", "p", "completed", "done", {"packing": no_bound})
+    assert not unbounded.fits and unbounded.upper_length_m == 0.0 and unbounded.length_m == 0.20
     none = {"dims_m": [0.6, 0.5, 0.4], "container": {"name": None, "reason": "none fits: no container"}}
     defective = cycle_result("j", "p", "completed", "done", {"packing": none})
     assert not defective.fits and defective.container == "" and defective.length_m == 0.6

@@ -209,8 +209,8 @@ def test_five_parts_through_the_handshake_and_the_methods(encrypted):
                 job_id = await line.start(part, methods)
                 assert await line.wait(ENDS) == COMPLETE
                 result = {name: await line.read(f"Result/{name}") for name in (
-                    "JobId", "PartId", "Status", "LengthM", "WidthM", "HeightM", "Container", "ClearanceM",
-                    "Fits", "Message")}
+                    "JobId", "PartId", "Status", "LengthM", "WidthM", "HeightM", "UpperLengthM",
+                    "UpperWidthM", "UpperHeightM", "Container", "ClearanceM", "Fits", "Message")}
                 assert result["JobId"] == job_id and result["PartId"] == part, result
                 assert await line.read("Admin/ProdProcessedCount") == processed + i + 1
                 assert await line.read("Status/JobId") == ""
@@ -237,6 +237,8 @@ def test_five_parts_through_the_handshake_and_the_methods(encrypted):
     for result in results:
         assert result["Status"] == "completed", result
         assert result["LengthM"] >= result["WidthM"] > 0.0 and result["HeightM"] > 0.0, result
+        assert result["UpperLengthM"] >= result["LengthM"], result
+        assert result["UpperHeightM"] >= result["HeightM"], result
         assert result["Fits"] and result["Container"] and result["ClearanceM"] >= 0.0, result
     # a horizontal box measures the same wherever the feeder puts it
     first, last = results[0], results[-1]

@@ -12,7 +12,7 @@ import pytest
 from cell.config.load import load_config
 from cell.perception.occupancy import OccupancyMap, OccupancyParams, logit
 from cell.planning.lrnbv.sensor import sensor_rays
-from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
+from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate, observation_information
 from drivers.clock import SimClock
 from drivers.depth.base import SensorModel
 from drivers.errors import PlanningError
@@ -140,3 +140,37 @@ def test_chunks_give_the_same_gains() -> None:
     one_by_one = np.array([f.ray_gains(eyes[i:i + 1], rot[i:i + 1], rays, 1.0) for i in range(40)])[:, :, 0]
     np.testing.assert_allclose(together[0], one_by_one[:, 0])
     np.testing.assert_allclose(together[1], one_by_one[:, 1])
+
+
+def test_observation_information_falls_like_one_over_n_whatever_the_ratio() -> None:
+    assert observation_information(np.array([0]), np.array([0]))[0] == pytest.approx(1.0)
+    n = np.array([10, 100, 1000])
+    ambiguous = observation_information(n // 2, n // 2)
+    # I(h, m) -> 1 / (2 n) for large n, here over I(0, 0) = ln 2 - 1/2.
+    np.testing.assert_allclose(ambiguous[1:] * n[1:], 1.0 / (2.0 * (math.log(2.0) - 0.5)), rtol=0.05)
+    assert np.all(np.diff(ambiguous) < 0.0)
+    # Symmetric in hits and misses, and a settled voxel gives little more than an ambiguous one.
+    assert observation_information(np.array([3]), np.array([7]))[0] == pytest.approx(
+        observation_information(np.array([7]), np.array([3]))[0])
+    assert observation_information(np.array([10]), np.array([0]))[0] < ambiguous[0]
+
+
+def test_a_voxel_seen_often_and_still_ambiguous_stops_drawing_views() -> None:
+    """A voxel of the row hit once and carved twice in turn, 39 times, stays near p = 0.5 (a hit's log-odds
+    about twice a miss's), as does an unknown one; the paper's weight counts it almost fully, the
+    observation-aware one hardly."""
+    occupancy = _map()
+    origin = np.array([-0.2, 0.055, 0.055])
+    for k in range(39):
+        end = np.array([[0.025, 0.055, 0.055]]) if k % 3 == 0 else np.array([[0.045, 0.055, 0.055]])
+        occupancy.integrate(origin, end)
+    hits, misses = occupancy.observation_counts(np.array([[0.025, 0.055, 0.055]]))
+    assert hits[0] == 13 and misses[0] == 26
+    assert occupancy.entropy(np.array([[0.025, 0.055, 0.055]]))[0] > 0.6
+    paper = _field(occupancy, np.zeros((0, 3)))
+    aware = UtilityField(occupancy, np.zeros((0, 3)), np.zeros(3), np.full(3, 0.1), resolution=RES,
+                         density_radius_m=0.015, observation_aware=True)
+    assert paper.W[2, 5, 5] > 0.8 * VOXEL
+    assert aware.W[2, 5, 5] < 0.1 * VOXEL  # about 1 / (2 n) over ln 2 - 1/2, n = 39
+    # Unknown voxels weigh the same in both.
+    assert aware.W[9, 5, 5] == paper.W[9, 5, 5] == pytest.approx(VOXEL)

@@ -15,8 +15,10 @@ from cell.packing.config import ContainerConfig, PackingConfig
 from cell.packing.containers import choose_container, required_inner_dims
 from cell.packing.objects import extent_points, object_surface_points, segment_on_table
 from cell.packing.result import ReconstructionHistory, count_useless, packing_section, surface_coverage_pct
+from cell.packing.uncertainty import ErrorModel, Seen, Sighting, upper_dims
 from cell.perception.metrics import ground_truth_points
 from cell.perception.segmentation import ObjectExtent, compute_roi
+from drivers.depth.base import SensorModel
 from drivers.sim.objects import load_object, sample_surface
 from drivers.transforms import T_from_xyz_rpy, transform_points
 from tests.conftest import UR5E
@@ -175,6 +177,10 @@ class _Session:
     n_captures: int
     perception: _Perception
 
+    def sensor_model(self) -> SensorModel:
+        return SensorModel(kind="tof", width=8, height=8, fov_x_deg=45.0, fov_y_deg=45.0, range_min_m=0.02,
+                           range_max_m=4.0)
+
 
 def _session(n: int, occupied: np.ndarray, cloud: np.ndarray | None = None) -> _Session:
     points = np.zeros((0, 3)) if cloud is None else cloud
@@ -208,7 +214,11 @@ def test_packing_section_on_a_voxelised_shipped_box() -> None:
     assert section["coverage_pct"] > 95.0
     assert section["n_poses"] == 3
     assert section["n_useless_poses"] == 1  # the third capture lost half the voxels
-    assert section["container"]["name"] == "large"
+    # The estimate fits "large" (0.35 x 0.25 x 0.2 with 1 cm clearance); its upper bound, seen from the
+    # stand-off in the worst way (no sightings), does not.
+    assert choose_container(np.array(section["dims_m"]), cfg.packing.containers,
+                            cfg.packing.margin_m).container.name == "large"  # type: ignore[union-attr]
+    assert section["container"]["name"] == "extra-large"
     json_types = (list, float, int, str, dict, bool, type(None))
     assert all(isinstance(v, json_types) for v in section.values())
 
@@ -316,3 +326,68 @@ def test_packing_box_keeps_a_piece_the_final_cluster_lost() -> None:
     session.perception.extent.add(compute_roi(full))
     section = packing_section(cfg, session, object(), None, None, None)  # type: ignore[arg-type]
     np.testing.assert_allclose(section["dims_m"], [0.3, 0.2, 0.1], atol=0.005)
+
+
+def _model(**kw: float) -> ErrorModel:
+    base = dict(zone_rad=math.radians(45.0 / 8), sigma0_m=0.004, k_per_m=0.01, bias_m=0.002, voxel_m=0.01,
+                pose_m=0.002, pose_rad=0.0035, coverage=2.0)
+    return ErrorModel(**{**base, **kw}, half_fov_rad=(math.radians(22.5), math.radians(22.5)))
+
+
+def test_a_face_seen_edge_on_gets_a_zone_footprint_and_head_on_only_the_range_error() -> None:
+    m = _model()
+    r = np.full(10, 0.3)
+    grazing = m.delta(r, np.zeros(10), np.ones(10))
+    head_on = m.delta(r, np.ones(10), np.zeros(10))
+    footprint = 0.3 * math.tan(math.radians(45.0 / 8))
+    pose = 0.002 + 0.3 * 0.0035
+    assert grazing == pytest.approx(footprint + 0.005 + 2.0 * pose)
+    sigma = 0.004 + 0.01 * 0.09
+    assert head_on == pytest.approx(0.005 + 2.0 * math.sqrt(sigma**2 / 10 + 0.002**2 + pose**2))
+    # Without any error the bound is the estimate's face.
+    exact = _model(zone_rad=0.0, sigma0_m=0.0, k_per_m=0.0, bias_m=0.0, voxel_m=0.0, pose_m=0.0, pose_rad=0.0)
+    assert exact.delta(r, np.ones(10), np.ones(10)) == 0.0
+
+
+def test_upper_bound_of_a_box_seen_from_above_reaches_out_by_the_footprint() -> None:
+    """The top of a 0.2 x 0.1 x 0.1 box seen from 0.3 m straight above: the top face is seen head on (range
+    error only), the four sides only as the top's silhouette, each a footprint further out."""
+    rng = np.random.default_rng(7)
+    top = np.column_stack([rng.uniform(-0.1, 0.1, 2000), rng.uniform(-0.05, 0.05, 2000), np.full(2000, 0.1)])
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # z down
+    T[:3, 3] = [0.0, 0.0, 0.4]
+    seen = Seen.of([Sighting(T, top)], np.ones(2000, dtype=bool))
+    box = box_from_points(top, 0.0, trim=0.02)
+    m = _model()
+    upper = upper_dims(box, m, seen, 0.02)
+    r_edge = np.linalg.norm([0.1, 0.0, 0.3])
+    footprint = r_edge * math.tan(m.zone_rad)
+    assert upper[0] - box.dims[0] == pytest.approx(2.0 * footprint + 0.03, abs=0.01)
+    assert upper[2] - box.dims[2] < 0.02 < upper[0] - box.dims[0]
+    assert np.all(upper >= box.dims)
+    # From 5 cm above the top the field of view (4 cm across) cuts the box: its sides have no bound.
+    T[:3, 3] = [0.0, 0.0, 0.15]
+    close = top[np.all(np.abs(top[:, :2]) < 0.05 * math.tan(math.radians(22.5)), axis=1)]
+    seen = Seen.of([Sighting(T, close)], np.ones(close.shape[0], dtype=bool))
+    upper = upper_dims(box_from_points(close, 0.0, trim=0.02), m, seen, 0.02)
+    assert np.isinf(upper[0]) and np.isinf(upper[1]) and np.isfinite(upper[2])
+
+
+def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:
+    """A box that fits the small container by its estimate, but not with its uncertainty: the upper
+    bound goes into a larger one, and the result gives both."""
+    cfg = load_config(UR5E)
+    T = T_from_xyz_rpy([0.45, 0.0, 0.0], [0.0, 0.0, 0.0])
+    surface = transform_points(T, _box_surface((0.12, 0.12, 0.06), 20000, np.random.default_rng(8)))
+    surface = surface[surface[:, 2] > 0.013]
+    voxels = _voxelise(surface, 0.01)
+    assert choose_container(np.array([0.12, 0.12, 0.06]), cfg.packing.containers, cfg.packing.margin_m) \
+        .container.name == "small"  # type: ignore[union-attr]
+    section = packing_section(cfg, _session(1, voxels, surface), object(), None, None, None)  # type: ignore[arg-type]
+    dims, upper = np.array(section["dims_m"]), np.array(section["dims_upper_m"])
+    np.testing.assert_allclose(dims, [0.12, 0.12, 0.06], atol=0.005)
+    np.testing.assert_allclose(upper - dims, section["dims_uncertainty_m"], atol=1e-6)
+    assert np.all(upper > dims + 0.01)  # no sightings: seen from the stand-off in the worst way
+    assert section["container"]["name"] != "small"
+    assert "upper bound" in section["container"]["reason"]

@@ -193,9 +193,10 @@ class QueueOut(BaseModel):
 
 
 class CycleResultOut(BaseModel):
-    """One part's result as the line reads it: lengths [m] of the packing box (length >= width), the
-    container chosen (empty: none fits) with the smallest clearance [m] to its walls or lid, and whether
-    the part fits; ``status`` the scan job's, or ``rejected`` when no scan ran."""
+    """One part's result as the line reads it: lengths [m] of the packing box (length >= width), its upper
+    bound from the sensor's error model (``upper_*``, what the container is chosen for), the container
+    chosen (empty: none fits) with the smallest clearance [m] between the upper bound and its walls or
+    lid, and whether the part fits; ``status`` the scan job's, or ``rejected`` when no scan ran."""
 
     job_id: str
     part_id: str
@@ -207,6 +208,9 @@ class CycleResultOut(BaseModel):
     clearance_m: float
     fits: bool
     message: str
+    upper_length_m: float = 0.0
+    upper_width_m: float = 0.0
+    upper_height_m: float = 0.0
 
 
 class StopReasonOut(BaseModel):

@@ -245,6 +245,22 @@ def _job_lines(job: dict[str, Any]) -> list[tuple[str, str]]:
     return lines
 
 
+def packing_lines(packing: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, value) lines of a result.json's ``packing`` section: the box's estimate, its upper bound
+    and the container chosen for that; none for a section without them."""
+    lines = []
+    for label, key in (("packing dims", "dims_m"), ("packing upper", "dims_upper_m")):
+        value = packing.get(key)
+        if isinstance(value, list) and value:
+            lines.append((label, " x ".join(f"{v:.3f}" for v in value) + " m"))
+    container = packing.get("container")
+    if isinstance(container, dict):
+        name = container.get("name") or "none"
+        reason = container.get("reason")
+        lines.append(("container", f"{name} ({reason})" if reason else name))
+    return lines
+
+
 def _result_lines(result: dict[str, Any]) -> list[tuple[str, str]]:
     """The key figures of an ended job's result.json."""
     lines = [("result", f"{result.get('status')}: {result.get('termination')}")]
@@ -264,15 +280,7 @@ def _result_lines(result: dict[str, Any]) -> list[tuple[str, str]]:
         value = _number(metrics.get(field), fmt, unit)
         if value is not None:
             lines.append((name, value))
-    packing = result.get("packing") or {}
-    dims = packing.get("dims_m")
-    if isinstance(dims, list) and dims:
-        lines.append(("packing dims", " x ".join(f"{v:.3f}" for v in dims) + " m"))
-    container = packing.get("container")
-    if isinstance(container, dict):
-        name = container.get("name") or "none"
-        reason = container.get("reason")
-        lines.append(("container", f"{name} ({reason})" if reason else name))
+    lines += packing_lines(result.get("packing") or {})
     return lines
 
 

@@ -19,7 +19,7 @@ from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
 from cell.cli.eval import eval_app
 from cell.cli.init_cell import init
-from cell.cli.jobs import EXIT_NOT_COMPLETED, jobs_app
+from cell.cli.jobs import EXIT_NOT_COMPLETED, jobs_app, packing_lines
 from cell.cli.keys import keys_app
 from cell.cli.progress import scan_progress, stage_progress
 from cell.cli.sensor import sensor_app
@@ -143,6 +143,10 @@ def scan(
                   f"{r['path_length_m']:.2f} m", highlight=False)
     console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
                   highlight=False)
+    packing = r.get("packing") or {}
+    if packing.get("dims_m"):  # an object was measured: its box, upper bound and container
+        for label, value in packing_lines(packing):
+            console.print(f"{label}: {value}", markup=False, highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
     if r["status"] != "completed":
         raise typer.Exit(code=EXIT_NOT_COMPLETED)

@@ -130,10 +130,17 @@ TAGS: tuple[Tag, ...] = (
         read=_result(lambda r: r.width_m, 0.0)),
     Tag("PackTags/Result/HeightM", V.Double, "The packing box's height [m].",
         read=_result(lambda r: r.height_m, 0.0)),
+    Tag("PackTags/Result/UpperLengthM", V.Double, "The upper bound of the box's length [m] from the "
+        "sensor's error model: the box the container is chosen for (0: not measured).",
+        read=_result(lambda r: r.upper_length_m, 0.0)),
+    Tag("PackTags/Result/UpperWidthM", V.Double, "The upper bound of the box's width [m].",
+        read=_result(lambda r: r.upper_width_m, 0.0)),
+    Tag("PackTags/Result/UpperHeightM", V.Double, "The upper bound of the box's height [m].",
+        read=_result(lambda r: r.upper_height_m, 0.0)),
     Tag("PackTags/Result/Container", V.String, "The container chosen from the cell's catalogue "
         "(packing.containers; empty when none fits).", read=_result(lambda r: r.container, "")),
-    Tag("PackTags/Result/ClearanceM", V.Double, "The smallest gap between the box and the container's "
-        "walls or lid [m] (0 when none fits).", read=_result(lambda r: r.clearance_m, 0.0)),
+    Tag("PackTags/Result/ClearanceM", V.Double, "The smallest gap between the box's upper bound and the "
+        "container's walls or lid [m] (0 when none fits).", read=_result(lambda r: r.clearance_m, 0.0)),
     Tag("PackTags/Result/Fits", V.Boolean, "Whether a container was chosen (false: the part is "
         "defective).", read=_result(lambda r: r.fits, False)),
     Tag("PackTags/Result/Message", V.String, "Why the cycle ended as it did, in words.",

@@ -50,10 +50,12 @@ class CycleResult:
 
     ``status`` is the job's (``completed``, ``no_object``: nothing on the table, ``stopped``, ``failed``)
     or ``rejected`` when no scan ran (an unknown part); ``length_m`` >= ``width_m`` and ``height_m`` the
-    packing box [m] (0 when none was measured); ``container`` the chosen container's name ("" when none
-    fits); ``clearance_m`` the smallest gap [m] between the box and the container's walls or lid (0 when
-    none fits); ``fits`` whether a container was chosen (a part that fits none is defective, not a fault);
-    ``message`` why, in words."""
+    packing box's estimate [m] (0 when none was measured) and ``upper_length_m``, ``upper_width_m``,
+    ``upper_height_m`` its upper bound [m] from the sensor's error model, the box the container is chosen
+    for (0 when none was measured); ``container`` the chosen container's name ("" when none fits);
+    ``clearance_m`` the smallest gap [m] between the upper bound and the container's walls or lid (0
+    when none fits); ``fits`` whether a container was chosen (a part that fits none is defective, not a
+    fault); ``message`` why, in words."""
 
     job_id: str
     part_id: str
@@ -65,6 +67,9 @@ class CycleResult:
     clearance_m: float = 0.0
     fits: bool = False
     message: str = ""
+    upper_length_m: float = 0.0
+    upper_width_m: float = 0.0
+    upper_height_m: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -93,11 +98,16 @@ def cycle_result(job_id: str, part_id: str, status: str, termination: str | None
         return CycleResult(job_id=job_id, part_id=part_id, status=status, message=reason)
     length, width = sorted(dims[:2], reverse=True)
     height = dims[2]
+    upper = packing.get("dims_upper_m") or dims
+    # an unbounded face (no container then) leaves the upper bound at 0: not measured
+    up_length, up_width, up_height = (0.0, 0.0, 0.0) if None in upper else \
+        (*sorted(upper[:2], reverse=True), upper[2])
     inner = container.get("inner_dims_m")
     if not container.get("name") or not inner:
-        return CycleResult(job_id, part_id, status, length, width, height, message=reason)
+        return CycleResult(job_id, part_id, status, length, width, height, message=reason,
+                           upper_length_m=up_length, upper_width_m=up_width, upper_height_m=up_height)
     in_plane = sorted(inner[:2], reverse=True)
     # the box stands on the container's floor: gaps on each side in the plane, and above it
-    clearance = min((in_plane[0] - length) / 2.0, (in_plane[1] - width) / 2.0, inner[2] - height)
+    clearance = min((in_plane[0] - up_length) / 2.0, (in_plane[1] - up_width) / 2.0, inner[2] - up_height)
     return CycleResult(job_id, part_id, status, length, width, height, str(container["name"]),
-                       round(clearance, 6), True, reason)
+                       round(clearance, 6), True, reason, up_length, up_width, up_height)

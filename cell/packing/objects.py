@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.perception.occupancy import OccupancyMap
 from cell.perception.pipeline import PerceptionPipeline
 from cell.perception.segmentation import SegmentationParams, dbscan_largest_cluster, largest_euclidean_cluster
 
@@ -53,37 +54,49 @@ def current_object(perception: PerceptionPipeline) -> Array:
                             perception.table_z_m)
 
 
+def in_object_voxels(occupancy: OccupancyMap, points: Array, object_voxels: Array) -> NDArray[np.bool_]:
+    """Mask (K,) of the ``points`` (K, 3) [m, base frame] that lie in a voxel of ``object_voxels`` (their
+    centres, (M >= 1, 3)) of ``occupancy``."""
+    keys = occupancy.keys_of(object_voxels)
+    lo = keys.min(axis=0)
+    shape = tuple(int(n) for n in keys.max(axis=0) - lo + 1)
+    is_object = np.zeros(shape, dtype=bool)
+    is_object[tuple((keys - lo).T)] = True
+    pk = occupancy.keys_of(points) - lo
+    inside = np.all((pk >= 0) & (pk < np.array(shape)), axis=1)
+    mask = np.zeros(points.shape[0], dtype=bool)
+    mask[inside] = is_object[tuple(pk[inside].T)]
+    return mask
+
+
 def object_surface_points(perception: PerceptionPipeline, object_voxels: Array) -> Array:
     """The object's measured surface (K, 3) [m, base frame]: the points of the accumulated cloud that lie
     in the voxels of ``object_voxels`` (their centres, (M >= 1, 3)), plus the centre of each such voxel
     that holds none of them (a cloud point is a voxel-filtered mean and can sit across a map voxel face)."""
     if object_voxels.shape[0] == 0:
         raise ValueError("object_surface_points: no object voxels")
-    occupancy = perception.map
     cloud = perception.cloud.points
-    keys = occupancy.keys_of(object_voxels)
-    lo = keys.min(axis=0)
-    shape = tuple(int(n) for n in keys.max(axis=0) - lo + 1)
-    is_object = np.zeros(shape, dtype=bool)
-    is_object[tuple((keys - lo).T)] = True
-    ck = occupancy.keys_of(cloud) - lo
-    inside = np.all((ck >= 0) & (ck < np.array(shape)), axis=1)
-    in_object = np.zeros(cloud.shape[0], dtype=bool)
-    in_object[inside] = is_object[tuple(ck[inside].T)]
-    has_point = np.zeros(shape, dtype=bool)
-    has_point[tuple(ck[in_object].T)] = True
-    return np.vstack([cloud[in_object], object_voxels[~has_point[tuple((keys - lo).T)]]])
+    in_object = in_object_voxels(perception.map, cloud, object_voxels)
+    held = in_object_voxels(perception.map, object_voxels, cloud[in_object]) if in_object.any() else \
+        np.zeros(object_voxels.shape[0], dtype=bool)
+    return np.vstack([cloud[in_object], object_voxels[~held]])
 
 
-def extent_points(perception: PerceptionPipeline) -> Array:
-    """The accumulated cloud's points (K, 3) [m, base frame] inside the box of every ROI of the scan
+def in_extent(perception: PerceptionPipeline, points: Array) -> NDArray[np.bool_]:
+    """Mask (K,) of the ``points`` (K, 3) [m, base frame] inside the box of every ROI of the scan
     (``perception.extent``, grown by half a voxel from the voxel centres it was taken on to the voxels'
-    faces) and above :func:`table_cut_z`; (0, 3) before any ROI."""
+    faces) and above :func:`table_cut_z`; all False before any ROI."""
     extent = perception.extent
     if extent.min_m is None or extent.max_m is None:
-        return np.zeros((0, 3))
+        return np.zeros(points.shape[0], dtype=bool)
     half = perception.map.resolution_m / 2.0
     lo = extent.min_m - half
     lo[2] = max(lo[2], table_cut_z(perception.config.segmentation, perception.table_z_m))
+    return np.all((points > lo) & (points <= extent.max_m + half), axis=1)
+
+
+def extent_points(perception: PerceptionPipeline) -> Array:
+    """The accumulated cloud's points (K, 3) [m, base frame] in :func:`in_extent`; (0, 3) before any
+    ROI."""
     cloud = perception.cloud.points
-    return cloud[np.all((cloud > lo) & (cloud <= extent.max_m + half), axis=1)]
+    return cloud[in_extent(perception, cloud)]

@@ -13,12 +13,14 @@
    measure can fall; a capture that leaves it unchanged added nothing either, so both count. The measure is
    the coverage in sim and, without ground truth, the number of object voxels.
 
-and the container chosen for the box (:mod:`cell.packing.containers`).
+beside the dimensions their upper bound ``dims_upper_m`` and uncertainty ``dims_uncertainty_m`` (upper bound
+minus estimate) [m] from the sensor's error model (:mod:`cell.packing.uncertainty`), and the container
+chosen for the upper bound (:mod:`cell.packing.containers`): a box that is too small jams the line.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -27,9 +29,17 @@ from scipy.spatial import cKDTree
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
-from cell.packing.containers import choose_container
-from cell.packing.objects import current_object, extent_points, object_surface_points
+from cell.packing.containers import ContainerChoice, choose_container
+from cell.packing.objects import (
+    current_object,
+    extent_points,
+    in_extent,
+    in_object_voxels,
+    object_surface_points,
+)
+from cell.packing.uncertainty import Seen, Sighting, error_model, upper_dims
 from cell.perception.pipeline import PerceptionPipeline
+from drivers.depth.base import SensorModel
 from drivers.sim.objects import ObjectMesh
 
 Array = NDArray[np.float64]
@@ -37,14 +47,19 @@ Array = NDArray[np.float64]
 
 @dataclass
 class ReconstructionHistory:
-    """The segmented object (occupied voxel centres, base frame [m]) after each capture, in order."""
+    """The segmented object (occupied voxel centres, base frame [m]) after each capture, in order, and
+    each capture's points with the pose they were taken from (for the box's upper bound)."""
 
     objects: list[Array] = field(default_factory=list)
+    sightings: list[Sighting] = field(default_factory=list)
 
     def record(self, perception: PerceptionPipeline) -> Array:
-        """Append the object in the pipeline's map now (call after each capture) and return it."""
+        """Append the object in the pipeline's map now and the pipeline's last frame (call after each
+        capture); return the object."""
         obj = current_object(perception)
         self.objects.append(obj)
+        if perception.latest is not None:
+            self.sightings.append(Sighting(perception.latest.T_base_sensor, perception.latest.points_base))
         return obj
 
 
@@ -60,6 +75,8 @@ class JobFacts(Protocol):
 
     n_captures: int
     perception: PerceptionPipeline
+
+    def sensor_model(self) -> SensorModel: ...
 
 
 def surface_coverage_pct(ground_truth: Array, object_points: Array, radius_m: float) -> float:
@@ -103,7 +120,8 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     section: dict[str, Any] = {
         "dims_m": None, "iou": None, "coverage_pct": None,
         "n_poses": session.n_captures if session is not None else 0,
-        "n_useless_poses": None, "container": None, "box": None,
+        "n_useless_poses": None, "container": None, "box": None, "dims_upper_m": None,
+        "dims_uncertainty_m": None,
     }
     if ground_truth is not None:
         section["coverage_pct"] = round(surface_coverage_pct(ground_truth, objects, radius), 3)
@@ -119,11 +137,21 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     perception = session.perception
     measured = np.vstack([object_surface_points(perception, objects), extent_points(perception)])
     box = box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction)
+    sightings = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
+    seen = _seen(perception, objects, sightings, measured, config.scan.standoff_m)
+    upper = upper_dims(box, error_model(config, session.sensor_model()), seen, pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
+    section["dims_upper_m"] = _finite(upper)
+    section["dims_uncertainty_m"] = _finite(upper - box.dims)
     section["box"] = _box_dict(box)
     if mesh is not None and T_base_object is not None:
         section["iou"] = round(box_iou(box, box_from_mesh(mesh, T_base_object)), 6)
-    choice = choose_container(box.dims, pc.containers, pc.margin_m)
+    if np.all(np.isfinite(upper)):
+        choice = choose_container(upper, pc.containers, pc.margin_m)
+        choice = replace(choice, reason=f"{choice.reason}, for the box's upper bound")
+    else:
+        choice = ContainerChoice(None, False, "none: a face of the box was seen only at the edge of the "
+                                              "sensor's field of view, so it has no upper bound")
     section["container"] = {
         "name": choice.container.name if choice.container is not None else None,
         "inner_dims_m": list(choice.container.inner_dims_m) if choice.container is not None else None,
@@ -131,3 +159,22 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
         "reason": choice.reason,
     }
     return section
+
+
+def _finite(values: Array) -> list[float | None]:
+    """``values`` [m] rounded to the micrometre for result.json, None where infinite (no bound)."""
+    return [round(float(v), 6) if np.isfinite(v) else None for v in values]
+
+
+def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighting], measured: Array,
+          standoff_m: float) -> Seen:
+    """The object's points with their views for the upper bound: each capture's points in the object's
+    voxels or in the box of every ROI (the selection of the estimate's points), or without captures
+    on record the estimate's own points seen from ``standoff_m`` (:class:`Seen`)."""
+    if not sightings:
+        return Seen(measured, range_m=standoff_m)
+    points = np.vstack([s.points for s in sightings])
+    keep = in_object_voxels(perception.map, points, objects) | in_extent(perception, points)
+    if not keep.any():
+        return Seen(measured, range_m=standoff_m)
+    return Seen.of(sightings, keep)

@@ -44,6 +44,10 @@ class LRNBVConfig(StrictModel):
       session refuses (unreachable, collision, barrier) end the scan; nodes within ``refused_radius_m``
       [m] of a refused position are dropped from later trees and from the cache;
     - ``rgbd_rays_per_side``: rays across a pinhole camera's wider side (the ToF casts one per zone);
+    - ``exploration_weight``: W of eq. 3, ``entropy`` (the paper's, Selin et al.'s normalised occupancy
+      entropy) or ``observation`` (that entropy capped by the information one more observation gives,
+      which falls like 1 / n with the n scans that updated the voxel, so that surface voxels seen often
+      and still ambiguous stop drawing views; a departure from the paper, ``cell.planning.lrnbv.utility``);
     - ``search_heights_m`` [m] above the table from which the station is looked at, in turn, while the
       first captures show no object (Algorithm 1 needs an initial acquisition of it).
     """
@@ -70,6 +74,7 @@ class LRNBVConfig(StrictModel):
     max_failed_moves: PositiveInt = 10
     refused_radius_m: float = Field(default=0.1, ge=0.0)
     search_heights_m: tuple[PositiveFloat, ...] = (0.3, 0.22)
+    exploration_weight: Literal["entropy", "observation"] = "observation"
 
     @model_validator(mode="after")
     def _ordered(self) -> LRNBVConfig:

@@ -174,7 +174,8 @@ class RRTViewPlanner(Planner):
         lo, hi = obj.min(axis=0) - m, obj.max(axis=0) + m
         lo[2] = max(lo[2], self.table_z)
         return UtilityField(session.perception.map, obj, lo, hi, resolution=self.resolution,
-                            density_radius_m=self.params.density_radius_m)
+                            density_radius_m=self.params.density_radius_m,
+                            observation_aware=self.params.exploration_weight == "observation")
 
     def look_targets(self, obj: Array) -> Array:
         """The points a node may look at: the object box centre and its corners pulled towards it."""

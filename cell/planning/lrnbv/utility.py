@@ -12,7 +12,20 @@ t_k <= t*, the first object sample itself included (it is the surface the sensor
 
 Eq. 3, exploration gain: G_e = sum of V W over the samples, with W the volumetric weight of Selin et
 al. (2019): the volume [m^3] of the sample's voxel times its normalised occupancy entropy (1 for an
-unknown voxel, 0 for a certain one), i.e. the uncertain volume the ray traverses.
+unknown voxel, 0 for a certain one), i.e. the uncertain volume the ray traverses (``exploration_weight:
+entropy``, the paper's form).
+
+Departure (``exploration_weight: observation``, issue 24): the log-odds entropy cannot tell a voxel that
+was never seen from one seen often whose hits and misses keep disagreeing (a surface voxel an 8 x 8 zone
+cuts at a grazing angle, ranged in some views and carved free in others): both stay near p = 0.5 and
+keep drawing views that resolve nothing. The map's per-voxel counts (``OccupancyMap.observation_counts``:
+h scans that updated it as occupied, m as free) tell them apart. With the voxel's occupancy a Bernoulli
+of unknown rate theta, Beta(1 + h, 1 + m) after its observations, the information one more observation
+gives about theta is I(h, m) = H(p^) - E[H(theta)], p^ = (1 + h) / (2 + h + m), with H the binary entropy
+and E[H(theta)] = psi(n + 3) - ((1 + h) psi(h + 2) + (1 + m) psi(m + 2)) / (n + 2) [nats], n = h + m
+(psi the digamma function). It is ln 2 - 1/2 for a voxel never seen and falls like 1 / (2 n) with n
+whatever the ratio h / m. The weight is then the paper's normalised entropy capped by I(h, m) / I(0, 0):
+the paper's W for voxels seen a few times, and small for voxels seen often, settled or not.
 
 Eq. 4, density gain: G_d = sum of V / (1 + rho), rho the number of object points within ``r_d`` of the
 sample (taken at the centre of the sample's voxel).
@@ -35,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
+from scipy.special import digamma
 
 from cell.perception.occupancy import OccupancyMap
 from cell.planning.lrnbv._raygains import ray_gains
@@ -84,16 +98,28 @@ class VisitedGrid:
         return np.array([(int(a), int(b), int(c)) in self._cells for a, b, c in keys], dtype=bool)
 
 
+def observation_information(hits: NDArray[np.int64], misses: NDArray[np.int64]) -> Array:
+    """I(h, m) / I(0, 0) (the module docstring) of voxels observed ``hits`` times occupied and ``misses``
+    times free: 1 for a voxel never seen, falling like 1 / n with its n = h + m observations."""
+    a = 1.0 + np.asarray(hits, dtype=float)
+    b = 1.0 + np.asarray(misses, dtype=float)
+    p = a / (a + b)
+    predictive = -(p * np.log(p) + (1.0 - p) * np.log1p(-p))
+    expected = digamma(a + b + 1.0) - (a * digamma(a + 1.0) + b * digamma(b + 1.0)) / (a + b)
+    return np.asarray((predictive - expected) / (math.log(2.0) - 0.5))
+
+
 class UtilityField:
     """The map-derived inputs of eqs. 2-4 on a dense grid over the ROI box, for one map state.
 
     ``roi_min`` / ``roi_max`` (3,) [m] the ROI box; the grid has the map's ``resolution`` and covers it.
-    ``object_points`` (M, 3) [m] the current object O^i. ``W`` per cell: eq. 3's weight; ``density`` per
-    cell: 1 / (1 + rho) of eq. 4; ``occluder`` per cell: an object point lies in it.
+    ``object_points`` (M, 3) [m] the current object O^i. ``W`` per cell: eq. 3's weight (``observation_
+    aware``: capped by :func:`observation_information`, the module docstring); ``density`` per cell:
+    1 / (1 + rho) of eq. 4; ``occluder`` per cell: an object point lies in it.
     """
 
     def __init__(self, occupancy: OccupancyMap, object_points: Array, roi_min: Array, roi_max: Array,
-                 *, resolution: float, density_radius_m: float) -> None:
+                 *, resolution: float, density_radius_m: float, observation_aware: bool = False) -> None:
         self.resolution = resolution
         self.lo = np.floor(np.asarray(roi_min, dtype=float) / resolution) * resolution
         hi = np.ceil(np.asarray(roi_max, dtype=float) / resolution) * resolution
@@ -102,6 +128,8 @@ class UtilityField:
         idx = np.indices(self.shape).reshape(3, -1).T
         centres = self.lo + (idx + 0.5) * resolution
         entropy = occupancy.entropy(centres) / math.log(2.0)
+        if observation_aware:
+            entropy = np.minimum(entropy, observation_information(*occupancy.observation_counts(centres)))
         self.W = np.ascontiguousarray((entropy * resolution**3).reshape(self.shape), dtype=np.float64)
         obj = np.asarray(object_points, dtype=float).reshape(-1, 3)
         if obj.shape[0]:

@@ -1,0 +1,195 @@
+"""The packing box's upper bound: how far each face of the object can lie beyond the box's estimate.
+
+A face of the box, with outward unit normal n (+-L, +-W along the box's yaw, +z for the top; the bottom is
+the known table), is estimated at the ``1 - trim`` quantile along n of the object's measured points
+(``cell.packing.box``). The face's points are those beyond the ``1 - FACE_FRACTION`` quantile along n;
+each was seen from a sensor origin o at range r = |p - o| along the unit ray d, with the sensor's image
+axes x (right) and y (down) in the base frame. The true face can lie beyond the estimate by:
+
+1. **Zone footprint** (bounded). A multizone ToF zone reports one range for a cone of angular width
+   w = fov / resolution (45 deg / 8 = 5.625 deg for the VL53L8CX), placed on the zone's central ray; the
+   surface that produced it is anywhere in the cone, up to half a footprint, r tan(w / 2), from the ray
+   along each image axis. At the object's silhouette a zone ranges the object only when the object gives
+   the dominant share of its returns (the sim takes the median of its sub-rays: over half of them), and
+   the neighbouring zone outwards, which ranged the background, may still hold up to half its own width
+   of the object. So a silhouette seen at a zone's centre can lie up to one zone footprint, r tan(w),
+   beyond the point along each image axis (at least an eighth of one with the sim's 4 x 4 sub-rays, half
+   of one on average: why an 8 x 8 box comes out small). Along n: r tan(w) (|n.x| + |n.y|), the whole
+   footprint for a face seen edge-on (a grazing view, n in the image plane; up to sqrt 2 of it along the
+   zone's diagonal) and nothing for a face seen head-on. The term is the median of that over the face's
+   points: a face defined by silhouettes seen from above gets about a footprint, a wall the sensor
+   faced gets little. For a pinhole camera w is one pixel's angle and the term vanishes.
+2. **Map resolution** (bounded). The box is measured on the points in the object's occupancy voxels or
+   in the box of every ROI grown by half a voxel (:mod:`cell.packing.objects`), and on the centres of
+   object voxels that hold no measured point: a silhouette point whose voxel a grazing ray carved free is
+   kept only within half a voxel of the voxels that stayed, and a voxel centre is half a voxel inside its
+   faces, so the face can lie res / 2 further out.
+3. **Range noise** (Gaussian). Each range is off by N(0, sigma(r)^2), sigma(r) = sigma0 + k r^2 (the
+   sensor's noise model), along d. The estimate is a high quantile of the face's K points, which the
+   noise scatters both ways: it does not pull the face in, and what remains is the quantile's own
+   spread, about sigma |n.d| / sqrt K.
+4. **Range bias** (Gaussian). Each zone's constant offset left after calibration, std b, moves a point
+   along d and does not average out over one zone's repeated views: b |n.d|.
+5. **Pose** (Gaussian). The sensor pose the job believes is off the true one by the hand-eye residual and
+   the arm's joint offsets, a translation of std t and a rotation of std theta, which move a point at
+   range r by up to t + r theta in any direction, so along n too; the same for all of a view's points.
+
+Bounded terms add (each is a worst case that can coincide with the others); the Gaussian ones, being
+independent, add in quadrature and enter as ``coverage_factor`` c times their combined std. With r, |n.d|
+and |n.x| + |n.y| the medians over the face's points:
+
+    delta(n) = r tan(w) (|n.x| + |n.y|) + res / 2
+               + c sqrt(sigma(r)^2 |n.d|^2 / K + b^2 |n.d|^2 + (t + r theta)^2).
+
+The points are each capture's own (:class:`Sighting`, with the pose it was taken from); a planner that
+keeps no sightings gets the estimate's own points seen from the configured stand-off range in the worst
+way (sqrt 2 footprints sideways and the whole range error along n). Each dimension's upper bound is the
+distance between its two faces' bounds (H: from the table up); its uncertainty is the difference to the
+estimate.
+
+All of this assumes that the face was inside some view: a face whose points all come from the outer
+ring of zones of their views (within one zone of the field of view's border) may go on beyond the field
+of view, where no zone looked, and has no upper bound (infinite): a scan that saw the object only from
+too close, cut by the field of view, gives no container rather than too small a one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cell.config.models import CellConfig
+from cell.packing.box import PackingBox
+from drivers.depth.base import SensorModel
+from drivers.depth.config import DepthNoiseConfig
+
+Array = NDArray[np.float64]
+
+# The share of the points, outermost along a face's normal, that the face's delta is taken over: a few
+# zones' worth on each face of a scan of some thousand points, more than the estimate's trim.
+FACE_FRACTION = 0.05
+# The sim VL53L8CX's range noise, for a real sensor whose config carries none (BoxUncertaintyConfig).
+DEFAULT_RANGE_NOISE = DepthNoiseConfig(sigma0_m=0.004, k_per_m=0.01)
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """One capture: the sensor pose it was taken from (``T_base_sensor``, 4x4) and its points (K, 3)
+    [m], both base frame."""
+
+    T_base_sensor: Array
+    points: Array
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """The allowance delta(n) of the module docstring: ``zone_rad`` w [rad], range noise sigma(r) =
+    ``sigma0_m`` + ``k_per_m`` r^2 [m] and bias std ``bias_m`` [m], ``voxel_m`` the map resolution [m],
+    pose std ``pose_m`` [m] and ``pose_rad`` [rad], ``coverage`` the factor on the Gaussian terms;
+    ``half_fov_rad`` half the field of view [rad] across (x) and down (y) the image."""
+
+    zone_rad: float
+    sigma0_m: float
+    k_per_m: float
+    bias_m: float
+    voxel_m: float
+    pose_m: float
+    pose_rad: float
+    coverage: float
+    half_fov_rad: tuple[float, float]
+
+    def delta(self, ranges: Array, along_ray: Array, sideways: Array) -> float:
+        """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
+        |n.d| (K,) and ``sideways`` |n.x| + |n.y| (K,) (the module docstring; medians over the points)."""
+        r, along, side = float(np.median(ranges)), float(np.median(along_ray)), float(np.median(sideways))
+        sigma = self.sigma0_m + self.k_per_m * r**2
+        pose = self.pose_m + r * self.pose_rad
+        gaussian = math.sqrt(along**2 * (sigma**2 / ranges.shape[0] + self.bias_m**2) + pose**2)
+        return r * math.tan(self.zone_rad) * side + self.voxel_m / 2.0 + self.coverage * gaussian
+
+
+def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
+    """The error model of a cell with this sensor: its zone (or pixel) angle, its range noise (the
+    packing config's, else the sensor config's ``noise``, else :data:`DEFAULT_RANGE_NOISE`), the map
+    resolution and the packing config's bias, pose and coverage factor."""
+    u = config.packing.uncertainty
+    noise = u.range_noise or getattr(config.sensor, "noise", None) or DEFAULT_RANGE_NOISE
+    return ErrorModel(zone_rad=math.radians(sensor.fov_x_deg) / sensor.width, sigma0_m=noise.sigma0_m,
+                      k_per_m=noise.k_per_m, bias_m=u.range_bias_m,
+                      voxel_m=config.perception.occupancy.resolution_m, pose_m=u.pose_translation_m,
+                      pose_rad=u.pose_rotation_rad, coverage=u.coverage_factor,
+                      half_fov_rad=(math.radians(sensor.fov_x_deg) / 2.0,
+                                    math.radians(sensor.fov_y_deg) / 2.0))
+
+
+@dataclass(frozen=True)
+class Seen:
+    """Object points (K, 3) [m, base frame] with what the allowance needs of the view each came from:
+    ``origins`` (K, 3) the sensor position [m] and ``axes`` (K, 3, 3) R_base_sensor (columns x, y, z);
+    both None when the views are unknown, and then every point counts as seen from ``range_m`` [m] in
+    the worst way for every face (sqrt 2 footprints sideways and the whole range error along n)."""
+
+    points: Array
+    origins: Array | None = None
+    axes: Array | None = None
+    range_m: float = 0.0
+
+    @staticmethod
+    def of(sightings: list[Sighting], keep: NDArray[np.bool_]) -> Seen:
+        """The points of ``sightings`` (at least one), in order, where ``keep`` (over all of them,
+        concatenated)."""
+        counts = [s.points.shape[0] for s in sightings]
+        points = np.vstack([s.points for s in sightings])
+        origins = np.repeat(np.array([s.T_base_sensor[:3, 3] for s in sightings]), counts, axis=0)
+        axes = np.repeat(np.array([s.T_base_sensor[:3, :3] for s in sightings]), counts, axis=0)
+        return Seen(points[keep], origins[keep], axes[keep])
+
+    def geometry(self, n: Array) -> tuple[Array, Array, Array]:
+        """Per point: range r [m], |n.d| and |n.x| + |n.y| of its view, for the face normal ``n`` (3,)."""
+        k = self.points.shape[0]
+        if self.origins is None or self.axes is None:
+            return np.full(k, self.range_m), np.ones(k), np.full(k, math.sqrt(2.0))
+        offset = self.points - self.origins
+        ranges = np.linalg.norm(offset, axis=1)
+        along = np.abs(offset @ n) / np.maximum(ranges, 1e-9)
+        sideways = np.abs(np.einsum("kaj,a->kj", self.axes[:, :, :2], n)).sum(axis=1)
+        return ranges, along, sideways
+
+    def framed(self, model: ErrorModel) -> NDArray[np.bool_]:
+        """Mask (K,) of the points seen at least one zone inside their view's field of view (all True
+        when the views are unknown)."""
+        if self.origins is None or self.axes is None:
+            return np.ones(self.points.shape[0], dtype=bool)
+        local = np.einsum("kaj,ka->kj", self.axes, self.points - self.origins)  # sensor frame
+        across = np.abs(np.arctan2(local[:, 0], local[:, 2]))
+        down = np.abs(np.arctan2(local[:, 1], local[:, 2]))
+        return np.asarray((across < model.half_fov_rad[0] - model.zone_rad)
+                          & (down < model.half_fov_rad[1] - model.zone_rad))
+
+
+def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
+    """The upper bound [m] of the face with outward unit normal ``n`` (3,), as a coordinate along n: the
+    ``1 - trim`` quantile of n.p over the points plus delta(n) of the face's points (those beyond the
+    ``1 - FACE_FRACTION`` quantile); infinite when none of those is framed (:meth:`Seen.framed`)."""
+    x = seen.points @ n
+    face = x >= np.quantile(x, 1.0 - FACE_FRACTION)
+    if not seen.framed(model)[face].any():
+        return math.inf
+    ranges, along, sideways = seen.geometry(n)
+    return float(np.quantile(x, 1.0 - trim)) + model.delta(ranges[face], along[face], sideways[face])
+
+
+def upper_dims(box: PackingBox, model: ErrorModel, seen: Seen, trim: float) -> Array:
+    """Upper bounds (L, W, H) [m] of the box's dimensions from the object's points ``seen``: the
+    distance between the bounds of the two faces of L and of W (along the box's yaw), and from the
+    box's floor (``z_min``) to the top's bound; each at least the box's own dimension, infinite when a
+    face has no bound (:func:`face_bound`)."""
+    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
+    u, v, z = np.array([c, s, 0.0]), np.array([-s, c, 0.0]), np.array([0.0, 0.0, 1.0])
+    dims = np.array([face_bound(model, seen, u, trim) + face_bound(model, seen, -u, trim),
+                     face_bound(model, seen, v, trim) + face_bound(model, seen, -v, trim),
+                     face_bound(model, seen, z, trim) - box.z_min])
+    return np.maximum(dims, box.dims)
