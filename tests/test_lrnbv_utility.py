@@ -12,7 +12,7 @@ import pytest
 from cell.config.load import load_config
 from cell.perception.occupancy import OccupancyMap, OccupancyParams, logit
 from cell.planning.lrnbv.sensor import sensor_rays
-from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate, observation_information
+from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
 from drivers.clock import SimClock
 from drivers.depth.base import SensorModel
 from drivers.errors import PlanningError
@@ -140,19 +140,6 @@ def test_chunks_give_the_same_gains() -> None:
     one_by_one = np.array([f.ray_gains(eyes[i:i + 1], rot[i:i + 1], rays, 1.0) for i in range(40)])[:, :, 0]
     np.testing.assert_allclose(together[0], one_by_one[:, 0])
     np.testing.assert_allclose(together[1], one_by_one[:, 1])
-
-
-def test_observation_information_falls_like_one_over_n_whatever_the_ratio() -> None:
-    assert observation_information(np.array([0]), np.array([0]))[0] == pytest.approx(1.0)
-    n = np.array([10, 100, 1000])
-    ambiguous = observation_information(n // 2, n // 2)
-    # I(h, m) -> 1 / (2 n) for large n, here over I(0, 0) = ln 2 - 1/2.
-    np.testing.assert_allclose(ambiguous[1:] * n[1:], 1.0 / (2.0 * (math.log(2.0) - 0.5)), rtol=0.05)
-    assert np.all(np.diff(ambiguous) < 0.0)
-    # Symmetric in hits and misses, and a settled voxel gives little more than an ambiguous one.
-    assert observation_information(np.array([3]), np.array([7]))[0] == pytest.approx(
-        observation_information(np.array([7]), np.array([3]))[0])
-    assert observation_information(np.array([10]), np.array([0]))[0] < ambiguous[0]
 
 
 def test_a_voxel_seen_often_and_still_ambiguous_stops_drawing_views() -> None:

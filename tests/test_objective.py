@@ -6,16 +6,12 @@ import math
 
 import numpy as np
 import pytest
-from scipy.integrate import quad
-from scipy.stats import beta
 
 from cell.config.models import CropBoxConfig
-from cell.perception.occupancy import OccupancyMap, OccupancyParams, binary_entropy
+from cell.perception.occupancy import OccupancyMap, OccupancyParams, observation_weight
 from cell.planning.vs.objective import (
     PARALLEL_MIN_POSES,
     EntropyObjective,
-    observation_information,
-    observation_weight,
     ray_grid,
 )
 from drivers.depth.sim_tof import zone_directions
@@ -174,30 +170,6 @@ def test_rejects_a_malformed_pose():
     T[0, 3] = np.nan
     with pytest.raises(ValueError, match="finite"):
         f(T)
-
-
-def test_observation_information_is_the_beta_bernoulli_mutual_information():
-    # I = H(E theta) - E H(theta) for theta ~ Beta(1 + h, 1 + m), by quadrature over theta.
-    for h, m in [(0, 0), (1, 0), (0, 3), (4, 4), (2, 9)]:
-        posterior = beta(1 + h, 1 + m)
-        expected_entropy = quad(lambda t, d=posterior: float(binary_entropy(np.array([t]))[0]) * d.pdf(t),
-                                0.0, 1.0)[0]
-        mu = (1 + h) / (2 + h + m)
-        expected = float(binary_entropy(np.array([mu]))[0]) - expected_entropy
-        assert observation_information(np.array([h]), np.array([m]))[0] == pytest.approx(expected, abs=1e-9)
-    assert observation_weight(np.array([0]), np.array([0]))[0] == pytest.approx(1.0, rel=1e-12)
-
-
-def test_observation_weight_falls_like_one_over_the_observations():
-    n = np.array([10, 100, 1000, 65535])
-    for share in (0.0, 0.5, 0.9):
-        hits = np.round(share * n).astype(np.int64)
-        w = observation_weight(hits, n - hits)
-        assert np.all(np.diff(w) < 0)
-        if share == 0.0:
-            continue  # a hit rate at 0: I falls faster still
-        # I ~ 1 / (2 (n + 3)) once the posterior is narrow, whatever the (inner) hit rate
-        assert w[-1] * (np.log(2.0) - 0.5) * 2.0 * (n[-1] + 3) == pytest.approx(1.0, rel=0.02)
 
 
 def ambiguous_voxel_map(n_scans: int) -> tuple[OccupancyMap, np.ndarray, np.ndarray]:

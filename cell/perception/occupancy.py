@@ -40,6 +40,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import PositiveFloat, model_validator
+from scipy.special import digamma
 
 from cell.perception import _kernels as _k
 from cell.perception.cloud import bounds, voxel_keys
@@ -117,6 +118,36 @@ def binary_entropy(p: Array) -> Array:
     with np.errstate(divide="ignore", invalid="ignore"):
         h = -(np.where(p > 0, p * np.log(p), 0.0) + np.where(q > 0, q * np.log(q), 0.0))
     return h
+
+
+def observation_information(hits: NDArray[np.integer], misses: NDArray[np.integer]) -> Array:
+    """I(h, m) [nats]: the information one more observation of a voxel gives about its hit rate after
+    ``hits`` and ``misses`` (arrays of the same shape; ``OccupancyMap.observation_counts``).
+
+    The voxel's outcome is Bernoulli(theta), theta its hit rate, with a uniform prior; after h hits and m
+    misses theta ~ Beta(a, b), a = 1 + h, b = 1 + m, s = a + b, mean mu = a / s. The entropy of the next
+    outcome, H(mu), splits into what would remain if theta were known, E[H(theta)], and the mutual
+    information I(h, m) = H(mu) - E[H(theta)] = H(mu) - psi(s + 1) + mu psi(a + 1) + (1 - mu) psi(b + 1)
+    (psi the digamma function; E[theta ln theta] = mu (psi(a + 1) - psi(s + 1))). Only I can be removed by
+    looking again: it is ln 2 - 1/2 for an unseen voxel and falls like 1 / (2 (h + m + 3)) whatever the hit
+    rate, where the log-odds entropy of a voxel the views keep disagreeing on stays near ln 2."""
+    a = 1.0 + np.asarray(hits, dtype=np.float64)
+    b = 1.0 + np.asarray(misses, dtype=np.float64)
+    s = a + b
+    mu = a / s
+    expected_entropy = digamma(s + 1.0) - mu * digamma(a + 1.0) - (1.0 - mu) * digamma(b + 1.0)
+    return np.maximum(binary_entropy(mu) - expected_entropy, 0.0)
+
+
+# I(0, 0) = ln 2 - 1/2: an unseen voxel's.
+_UNSEEN_INFORMATION = float(np.log(2.0) - 0.5)
+
+
+def observation_weight(hits: NDArray[np.integer], misses: NDArray[np.integer]) -> Array:
+    """w(h, m) = I(h, m) / I(0, 0) in (0, 1]: the share of an unseen voxel's information that one more
+    observation of a voxel seen ``hits`` times occupied and ``misses`` times free still gives
+    (:func:`observation_information`); 1 for a voxel never seen."""
+    return observation_information(hits, misses) / _UNSEEN_INFORMATION
 
 
 class OccupancyMap:

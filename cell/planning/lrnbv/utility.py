@@ -18,14 +18,12 @@ entropy``, the paper's form).
 Departure (``exploration_weight: observation``, issue 24): the log-odds entropy cannot tell a voxel that
 was never seen from one seen often whose hits and misses keep disagreeing (a surface voxel an 8 x 8 zone
 cuts at a grazing angle, ranged in some views and carved free in others): both stay near p = 0.5 and
-keep drawing views that resolve nothing. The map's per-voxel counts (``OccupancyMap.observation_counts``:
-h scans that updated it as occupied, m as free) tell them apart. With the voxel's occupancy a Bernoulli
-of unknown rate theta, Beta(1 + h, 1 + m) after its observations, the information one more observation
-gives about theta is I(h, m) = H(p^) - E[H(theta)], p^ = (1 + h) / (2 + h + m), with H the binary entropy
-and E[H(theta)] = psi(n + 3) - ((1 + h) psi(h + 2) + (1 + m) psi(m + 2)) / (n + 2) [nats], n = h + m
-(psi the digamma function). It is ln 2 - 1/2 for a voxel never seen and falls like 1 / (2 n) with n
-whatever the ratio h / m. The weight is then the paper's normalised entropy capped by I(h, m) / I(0, 0):
-the paper's W for voxels seen a few times, and small for voxels seen often, settled or not.
+keep drawing views that resolve nothing. The map's per-voxel counts
+(``OccupancyMap.observation_counts``: h scans that updated it as occupied, m as free) tell them apart:
+``cell.perception.occupancy.observation_weight`` w(h, m), the Beta-Bernoulli information one more
+observation gives about the voxel's hit rate over an unseen voxel's, is 1 for a voxel never seen and falls
+like 1 / (h + m) whatever the ratio h / m. The weight is then the paper's normalised entropy capped by
+w(h, m): the paper's W for voxels seen a few times, and small for voxels seen often, settled or not.
 
 Eq. 4, density gain: G_d = sum of V / (1 + rho), rho the number of object points within ``r_d`` of the
 sample (taken at the centre of the sample's voxel).
@@ -48,9 +46,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
-from scipy.special import digamma
 
-from cell.perception.occupancy import OccupancyMap
+from cell.perception.occupancy import OccupancyMap, observation_weight
 from cell.planning.lrnbv._raygains import ray_gains
 
 Array = NDArray[np.float64]
@@ -98,24 +95,13 @@ class VisitedGrid:
         return np.array([(int(a), int(b), int(c)) in self._cells for a, b, c in keys], dtype=bool)
 
 
-def observation_information(hits: NDArray[np.int64], misses: NDArray[np.int64]) -> Array:
-    """I(h, m) / I(0, 0) (the module docstring) of voxels observed ``hits`` times occupied and ``misses``
-    times free: 1 for a voxel never seen, falling like 1 / n with its n = h + m observations."""
-    a = 1.0 + np.asarray(hits, dtype=float)
-    b = 1.0 + np.asarray(misses, dtype=float)
-    p = a / (a + b)
-    predictive = -(p * np.log(p) + (1.0 - p) * np.log1p(-p))
-    expected = digamma(a + b + 1.0) - (a * digamma(a + 1.0) + b * digamma(b + 1.0)) / (a + b)
-    return np.asarray((predictive - expected) / (math.log(2.0) - 0.5))
-
-
 class UtilityField:
     """The map-derived inputs of eqs. 2-4 on a dense grid over the ROI box, for one map state.
 
     ``roi_min`` / ``roi_max`` (3,) [m] the ROI box; the grid has the map's ``resolution`` and covers it.
     ``object_points`` (M, 3) [m] the current object O^i. ``W`` per cell: eq. 3's weight (``observation_
-    aware``: capped by :func:`observation_information`, the module docstring); ``density`` per cell:
-    1 / (1 + rho) of eq. 4; ``occluder`` per cell: an object point lies in it.
+    aware``: capped by ``observation_weight``, the module docstring); ``density`` per cell: 1 / (1 + rho)
+    of eq. 4; ``occluder`` per cell: an object point lies in it.
     """
 
     def __init__(self, occupancy: OccupancyMap, object_points: Array, roi_min: Array, roi_max: Array,
@@ -129,7 +115,7 @@ class UtilityField:
         centres = self.lo + (idx + 0.5) * resolution
         entropy = occupancy.entropy(centres) / math.log(2.0)
         if observation_aware:
-            entropy = np.minimum(entropy, observation_information(*occupancy.observation_counts(centres)))
+            entropy = np.minimum(entropy, observation_weight(*occupancy.observation_counts(centres)))
         self.W = np.ascontiguousarray((entropy * resolution**3).reshape(self.shape), dtype=np.float64)
         obj = np.asarray(object_points, dtype=float).reshape(-1, 3)
         if obj.shape[0]:

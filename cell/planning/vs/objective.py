@@ -30,21 +30,13 @@ Eq. 8 counts a voxel's uncertainty as H(p), the entropy of the map's estimate p.
 crosses at a slant, or that the views disagree on (a calibration error moves the surface by a voxel from
 one view to the next), the outcome of an observation is itself random: some views hit it, some pass
 through, and p stays at 0.2-0.8 however often it is seen. H(p) then never falls, and a view of such voxels
-scores as high as a view of unseen space, which a threshold on f cannot tell apart. Model a voxel's
-outcome as Bernoulli(theta), theta its hit rate, with a uniform prior; after h hits and m misses (the
-scans that updated it, ``OccupancyMap.observation_counts``) theta ~ Beta(a, b), a = 1 + h, b = 1 + m,
-s = a + b, mean mu = a / s. The entropy of the next outcome, H(mu), splits into what would remain if theta
-were known, E[H(theta)], and what the observation tells about theta, the mutual information
-
-    I(h, m) = H(mu) - E[H(theta)] = H(mu) - psi(s + 1) + mu psi(a + 1) + (1 - mu) psi(b + 1)  [nats]
-
-(psi the digamma function; E[theta ln theta] = mu (psi(a + 1) - psi(s + 1))). Only I can be removed by
-looking again. It is ln 2 - 1/2 for an unseen voxel and falls like 1 / (2 (h + m + 3)) whatever the hit
-rate, so a voxel the views keep disagreeing on fades from f as it is seen, while unseen space keeps its
-weight. The observation-aware objective weights each voxel's H of eq. 8 (``voxel_entropy``) by
-w(h, m) = I(h, m) / I(0, 0), 1 for an unseen voxel (so f of unseen space is eq. 9's), and leaves eq. 7's
-stopping probabilities (1 - p) as they are. A voxel without counts (a map read from a .bt file) weighs as
-unseen: the paper's form.
+scores as high as a view of unseen space, which a threshold on f cannot tell apart. The map's per-voxel
+counts (``OccupancyMap.observation_counts``) do: the observation-aware objective weights each voxel's H of
+eq. 8 (``voxel_entropy``) by w(h, m) = I(h, m) / I(0, 0) (``cell.perception.occupancy.observation_weight``:
+the Beta-Bernoulli information one more observation gives about the voxel's hit rate), 1 for an unseen
+voxel (so f of unseen space is eq. 9's) and falling like 1 / (h + m) whatever the hit rate, so a voxel the
+views keep disagreeing on fades from f as it is seen. Eq. 7's stopping probabilities (1 - p) stay as they
+are. A voxel without counts (a map read from a .bt file) weighs as unseen: the paper's form.
 
 A batch of poses is shared between OpenMP threads (``batch_threads``, OMP_NUM_THREADS) once it holds
 ``PARALLEL_MIN_POSES`` poses (the 5000 candidates of eq. 10); smaller ones (the five poses of a servo
@@ -59,10 +51,9 @@ from typing import Protocol, overload
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import digamma
 
 from cell.perception.filters import CropBox
-from cell.perception.occupancy import OccupancyMap, binary_entropy
+from cell.perception.occupancy import OccupancyMap, binary_entropy, observation_weight
 from cell.planning.vs import _objective as _k
 from drivers.errors import PlanningError
 
@@ -103,27 +94,6 @@ def ray_grid(rays_per_side: int, fov_deg: float) -> Array:
     tx, ty = np.meshgrid(np.tan(ang), np.tan(ang), indexing="xy")
     d = np.stack([tx.ravel(), ty.ravel(), np.ones(n * n)], axis=1)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def observation_information(hits: NDArray[np.integer], misses: NDArray[np.integer]) -> Array:
-    """I(h, m) [nats]: the information one more observation of a voxel gives about its hit rate after
-    ``hits`` and ``misses`` (arrays of the same shape), under a uniform prior (module docstring)."""
-    a = 1.0 + np.asarray(hits, dtype=np.float64)
-    b = 1.0 + np.asarray(misses, dtype=np.float64)
-    s = a + b
-    mu = a / s
-    expected_entropy = digamma(s + 1.0) - mu * digamma(a + 1.0) - (1.0 - mu) * digamma(b + 1.0)
-    return np.maximum(binary_entropy(mu) - expected_entropy, 0.0)
-
-
-# I(0, 0) = ln 2 - 1/2: an unseen voxel's.
-_UNSEEN_INFORMATION = float(np.log(2.0) - 0.5)
-
-
-def observation_weight(hits: NDArray[np.integer], misses: NDArray[np.integer]) -> Array:
-    """w(h, m) = I(h, m) / I(0, 0) in (0, 1]: the share of an unseen voxel's information that one more
-    observation of a voxel seen ``hits`` times occupied and ``misses`` times free still gives."""
-    return observation_information(hits, misses) / _UNSEEN_INFORMATION
 
 
 def slab_interval(origin: Array, direction: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
