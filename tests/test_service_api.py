@@ -127,6 +127,25 @@ def test_a_protective_stop_holds_the_queue_until_the_arm_is_recovered(tmp_path):
             == "completed"
 
 
+def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stopped(tmp_path):
+    """A worker that cannot answer a stop in ``stop_confirm_timeout_s`` (still starting on a loaded
+    machine, or hung) is killed; the job was stopped by the operator, not failed by itself."""
+    data = yaml.safe_load(FRANKA.read_text())
+    data.setdefault("service", {})["stop_confirm_timeout_s"] = 1e-6  # no worker answers in a microsecond
+    config = tmp_path / "impatient.yaml"
+    config.write_text(yaml.safe_dump(data))
+    client, keys = _client(tmp_path, config)
+    op = _auth(keys["operator"])
+    with client:
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        _wait(client, keys["viewer"], job["id"], {"running"})
+        stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "hands in the cell"}, headers=op)
+        assert stop.status_code == 200 and "was killed" in stop.json()["message"]
+        ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
+        assert ended["status"] == "stopped", ended["termination"]
+        assert "hands in the cell" in ended["termination"] and "was killed" in ended["termination"]
+
+
 def test_stop_holds_the_queue_and_resume_releases_it(served):
     client, keys = served
     op = _auth(keys["operator"])

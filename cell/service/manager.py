@@ -72,14 +72,16 @@ class _Queued:
 @dataclass
 class _Running:
     """The job on the arm: its worker (None while it is being started), a stop asked for meanwhile, the
-    stop confirmations the worker owes, its newest progress, its worker's last word, whether its end is
-    recorded (the worker may still be exiting) and ``gone``, set once the worker has exited."""
+    stop confirmations the worker owes, the stop its worker was killed for (it did not confirm in time),
+    its newest progress, its worker's last word, whether its end is recorded (the worker may still be
+    exiting) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
     proc: asyncio.subprocess.Process | None = None
     stop_reason: str | None = None
     acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
+    killed_for: str | None = None
     progress: dict[str, Any] | None = None
     ended: dict[str, Any] | None = None
     recorded: bool = False
@@ -390,6 +392,8 @@ class CellService:
         except (BrokenPipeError, ConnectionResetError):
             return StopOutcome(job_id, False, "the job's worker had already ended")
         except TimeoutError:
+            running.killed_for = (f"{reason} (the job's worker did not confirm the stop in "
+                                  f"{self.config.service.stop_confirm_timeout_s:g} s and was killed)")
             self._kill(proc)
             return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
                                f"{self.config.service.stop_confirm_timeout_s:g} s and was killed; the arm's "
@@ -565,8 +569,13 @@ class CellService:
             if not ack.done():
                 ack.set_result(False)
         if ended is None:
-            status = "failed"
-            termination = failure or f"the job's worker process ended unexpectedly ({_exit_text(code or 0)})"
+            if running.killed_for is not None:
+                # a stop carried out by killing a worker that did not answer (busy starting, or hung)
+                status, termination = "stopped", f"safety stop: {running.killed_for}"
+            else:
+                exit_text = _exit_text(code or 0)
+                status = "failed"
+                termination = failure or f"the job's worker process ended unexpectedly ({exit_text})"
             result = await asyncio.to_thread(finish_folder, Path(job.folder), job, status, termination)
         else:
             status, termination = ended["status"], ended["termination"]
