@@ -141,17 +141,22 @@ cdef inline void _keep_surface(Grid* g, int64_t x, int64_t y, int64_t z) noexcep
                     g.stamp[v] = g.scan
 
 
-cdef inline bint _advance(int64_t* c, int64_t s, int64_t exit_at, int64_t* n, double* t, double dt,
-                          int64_t* v, int64_t dv) noexcept nogil:
-    """Step one axis of a walk: its voxel coordinate c by s, its crossings left n, its next crossing t
-    (never when none is left), the pool index v by dv; True when the step leaves the block (v is then
-    stale: look it up)."""
-    cdef bint leaves = (c[0] & BLOCK_MASK) == exit_at
-    c[0] += s
-    n[0] -= 1
-    t[0] = t[0] + dt if n[0] > 0 else INFINITY
-    v[0] += dv
-    return leaves
+cdef inline int64_t _run_length(int64_t c, int64_t s, int64_t n) noexcept nogil:
+    """Steps an axis of a walk takes from voxel coordinate c (step s, n crossings left) before its next
+    event: its last crossing, or the step into the next block."""
+    cdef int64_t edge = (BLOCK_MASK + 1 - (c & BLOCK_MASK)) if s > 0 else (c & BLOCK_MASK) + 1
+    return n if n < edge else edge
+
+
+cdef inline bint _run_ends(int64_t c, int64_t s, int64_t* n, int64_t* run, double* t) noexcept nogil:
+    """An axis' run has ended at coordinate c: start its next one (``run`` steps, ``n`` crossings left
+    after it; its next crossing t never when none is left); True when the run ended by a step into
+    another block (the pool index is then stale: look it up)."""
+    if n[0] == 0:
+        t[0] = INFINITY
+    run[0] = _run_length(c, s, n[0])
+    n[0] -= run[0]
+    return (c & BLOCK_MASK) == (0 if s > 0 else BLOCK_MASK)
 
 
 cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
@@ -160,11 +165,13 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
     of e, ke itself only when ``end_free``. As OctoMap's computeRayKeys, a ray inside one voxel marks
     nothing (unless ``end_free``). The next boundary crossed is the one at the smallest parameter t
     (ties go to the higher axis, as OctoMap); counting the crossings left per axis makes the walk end
-    exactly at ke whatever the rounding of t. The pool index follows the walk: a step inside a block
-    moves it by a constant per axis, only a step into another block looks the block index up."""
+    exactly at ke whatever the rounding of t.
+
+    A step does the least it can: the pool index moves by a constant per axis, and each axis counts down
+    the steps of its run, up to its next event (``_run_length``): only then is the block index looked
+    up or the axis retired."""
     cdef int64_t left[3]
     cdef int64_t step[3]
-    cdef int64_t exit_at[3]
     cdef double t_max[3]
     cdef double t_delta[3]
     cdef double d
@@ -174,11 +181,9 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         d = e[a] - o[a]
         left[a] = ke[a] - k0[a]
         step[a] = 1
-        exit_at[a] = BLOCK_MASK
         if left[a] < 0:
             left[a] = -left[a]
             step[a] = -1
-            exit_at[a] = 0
         total += left[a]
         if left[a] > 0:
             t_max[a] = (<double>(k0[a] + (1 if step[a] > 0 else 0)) - o[a]) / d
@@ -190,9 +195,14 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         return _update(g, k0[0], k0[1], k0[2], False) if end_free else True
     # the walk's state in scalars, so that it stays in registers
     cdef int64_t x = k0[0] - g.ox, y = k0[1] - g.oy, z = k0[2] - g.oz
-    cdef int64_t nx = left[0], ny = left[1], nz = left[2]
+    cdef int64_t sx = step[0], sy = step[1], sz = step[2]
+    cdef int64_t rx = _run_length(x, sx, left[0]), ry = _run_length(y, sy, left[1])
+    cdef int64_t rz = _run_length(z, sz, left[2])
+    cdef int64_t nx = left[0] - rx, ny = left[1] - ry, nz = left[2] - rz
+    cdef int64_t dvx = sx << (2 * BLOCK_BITS), dvy = sy << BLOCK_BITS, dvz = sz
     cdef double tx = t_max[0], ty = t_max[1], tz = t_max[2]
-    cdef bint leaves
+    cdef double dtx = t_delta[0], dty = t_delta[1], dtz = t_delta[2]
+    cdef bint stale
     # in locals: the compiler would reload them from g after every call of _apply
     cdef const uint32_t* stamp = g.stamp
     cdef uint32_t scan = g.scan
@@ -202,17 +212,35 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
     if stamp[v] != scan:
         _apply(g, v, False)
     while total > 1:
+        stale = False
+        # OctoMap's order on ties: y before x, z before both
         if ty <= tx:
-            if ty < tz:
-                leaves = _advance(&y, step[1], exit_at[1], &ny, &ty, t_delta[1], &v, step[1] << BLOCK_BITS)
-            else:
-                leaves = _advance(&z, step[2], exit_at[2], &nz, &tz, t_delta[2], &v, step[2])
-        elif tx < tz:
-            leaves = _advance(&x, step[0], exit_at[0], &nx, &tx, t_delta[0], &v, step[0] << (2 * BLOCK_BITS))
+            a = 1 if ty < tz else 2
         else:
-            leaves = _advance(&z, step[2], exit_at[2], &nz, &tz, t_delta[2], &v, step[2])
+            a = 0 if tx < tz else 2
+        if a == 1:
+            y += sy
+            v += dvy
+            ty += dty
+            ry -= 1
+            if ry == 0:
+                stale = _run_ends(y, sy, &ny, &ry, &ty)
+        elif a == 0:
+            x += sx
+            v += dvx
+            tx += dtx
+            rx -= 1
+            if rx == 0:
+                stale = _run_ends(x, sx, &nx, &rx, &tx)
+        else:
+            z += sz
+            v += dvz
+            tz += dtz
+            rz -= 1
+            if rz == 0:
+                stale = _run_ends(z, sz, &nz, &rz, &tz)
         total -= 1
-        if leaves:
+        if stale:
             v = _local_voxel(g, x, y, z)
             if v < 0:
                 return False
