@@ -14,7 +14,7 @@ RAY_HIT: int
 RAY_FREE: int
 RAY_TRUNCATED: int
 
-def integrate_rays(origin: F64, origin_key: I64, ends: F64, end_keys: I64, kinds: NDArray[np.uint8],
+def integrate_rays(origin: F64, ends: F64, resolution: float, kinds: NDArray[np.uint8],
                    index: NDArray[np.int32], ox: int, oy: int, oz: int, pool: NDArray[np.float32],
                    stamp: NDArray[np.uint32], counts: NDArray[np.uint32], n_occupied: NDArray[np.int32],
                    block_coords: I64, n_blocks: int,

@@ -65,9 +65,9 @@ cdef inline int64_t _in_slot(int64_t slot, int64_t lx, int64_t ly, int64_t lz) n
                                   | ((ly & BLOCK_MASK) << BLOCK_BITS) | (lz & BLOCK_MASK))
 
 
-cdef inline int64_t _voxel(Grid* g, int64_t x, int64_t y, int64_t z) noexcept nogil:
-    """Pool index of voxel key (x, y, z), allocating its block; -1 when the pool is full."""
-    cdef int64_t lx = x - g.ox, ly = y - g.oy, lz = z - g.oz
+cdef inline int64_t _local_voxel(Grid* g, int64_t lx, int64_t ly, int64_t lz) noexcept nogil:
+    """Pool index of the voxel (lx, ly, lz) (as for ``_block``), allocating its block; -1 when the pool
+    is full."""
     cdef int64_t b = _block(g, lx, ly, lz)
     cdef int64_t slot = g.index[b]
     if slot < 0:
@@ -75,22 +75,16 @@ cdef inline int64_t _voxel(Grid* g, int64_t x, int64_t y, int64_t z) noexcept no
             return -1
         slot = g.n_blocks
         g.index[b] = <int32_t>slot
-        g.coords[3 * slot] = (x - (lx & BLOCK_MASK)) >> BLOCK_BITS
-        g.coords[3 * slot + 1] = (y - (ly & BLOCK_MASK)) >> BLOCK_BITS
-        g.coords[3 * slot + 2] = (z - (lz & BLOCK_MASK)) >> BLOCK_BITS
+        g.coords[3 * slot] = (g.ox + lx) >> BLOCK_BITS
+        g.coords[3 * slot + 1] = (g.oy + ly) >> BLOCK_BITS
+        g.coords[3 * slot + 2] = (g.oz + lz) >> BLOCK_BITS
         g.n_blocks += 1
     return _in_slot(slot, lx, ly, lz)
 
 
-cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noexcept nogil:
-    """Apply a hit or a miss to a voxel unless it was already updated in this scan (OctoMap: one update
-    per voxel per scan). False when the pool is full."""
-    cdef int64_t v = _voxel(g, x, y, z)
+cdef void _apply(Grid* g, int64_t v, bint hit) noexcept nogil:
+    """Apply a hit or a miss to pool voxel v, not yet updated in this scan, and stamp it."""
     cdef float lo, old
-    if v < 0:
-        return False
-    if g.stamp[v] == g.scan:
-        return True
     g.stamp[v] = g.scan
     old = g.pool[v]
     lo = 0.0 if isnan(old) else old
@@ -109,6 +103,16 @@ cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noe
     # NaN (unknown) compares False: not occupied
     if (lo > g.l_occ) != (old > g.l_occ):
         g.n_occupied[v // BLOCK_VOXELS] += 1 if lo > g.l_occ else -1
+
+
+cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noexcept nogil:
+    """Apply a hit or a miss to voxel key (x, y, z) unless it was already updated in this scan (OctoMap:
+    one update per voxel per scan). False when the pool is full."""
+    cdef int64_t v = _local_voxel(g, x - g.ox, y - g.oy, z - g.oz)
+    if v < 0:
+        return False
+    if g.stamp[v] != g.scan:
+        _apply(g, v, hit)
     return True
 
 
@@ -137,23 +141,43 @@ cdef inline void _keep_surface(Grid* g, int64_t x, int64_t y, int64_t z) noexcep
                     g.stamp[v] = g.scan
 
 
+cdef inline int64_t _run_length(int64_t c, int64_t s, int64_t n) noexcept nogil:
+    """Steps an axis of a walk takes from voxel coordinate c (step s, n crossings left) before its next
+    event: its last crossing, or the step into the next block."""
+    cdef int64_t edge = (BLOCK_MASK + 1 - (c & BLOCK_MASK)) if s > 0 else (c & BLOCK_MASK) + 1
+    return n if n < edge else edge
+
+
+cdef inline bint _run_ends(int64_t c, int64_t s, int64_t* n, int64_t* run, double* t) noexcept nogil:
+    """An axis' run has ended at coordinate c: start its next one (``run`` steps, ``n`` crossings left
+    after it; its next crossing t never when none is left); True when the run ended by a step into
+    another block (the pool index is then stale: look it up)."""
+    if n[0] == 0:
+        t[0] = INFINITY
+    run[0] = _run_length(c, s, n[0])
+    n[0] -= run[0]
+    return (c & BLOCK_MASK) == (0 if s > 0 else BLOCK_MASK)
+
+
 cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
                     bint end_free) noexcept nogil:
     """Misses for the voxels of the segment o -> e (grid units) from the voxel k0 of o up to the voxel ke
     of e, ke itself only when ``end_free``. As OctoMap's computeRayKeys, a ray inside one voxel marks
     nothing (unless ``end_free``). The next boundary crossed is the one at the smallest parameter t
     (ties go to the higher axis, as OctoMap); counting the crossings left per axis makes the walk end
-    exactly at ke whatever the rounding of t."""
+    exactly at ke whatever the rounding of t.
+
+    A step does the least it can: the pool index moves by a constant per axis, and each axis counts down
+    the steps of its run, up to its next event (``_run_length``): only then is the block index looked
+    up or the axis retired."""
     cdef int64_t left[3]
     cdef int64_t step[3]
-    cdef int64_t cur[3]
     cdef double t_max[3]
     cdef double t_delta[3]
     cdef double d
-    cdef int64_t total = 0
-    cdef int a, best
+    cdef int64_t total = 0, v
+    cdef int a
     for a in range(3):
-        cur[a] = k0[a]
         d = e[a] - o[a]
         left[a] = ke[a] - k0[a]
         step[a] = 1
@@ -168,37 +192,84 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
             t_max[a] = INFINITY
             t_delta[a] = INFINITY
     if total == 0:
-        return _update(g, cur[0], cur[1], cur[2], False) if end_free else True
-    if not _update(g, cur[0], cur[1], cur[2], False):
+        return _update(g, k0[0], k0[1], k0[2], False) if end_free else True
+    # the walk's state in scalars, so that it stays in registers
+    cdef int64_t x = k0[0] - g.ox, y = k0[1] - g.oy, z = k0[2] - g.oz
+    cdef int64_t sx = step[0], sy = step[1], sz = step[2]
+    cdef int64_t rx = _run_length(x, sx, left[0]), ry = _run_length(y, sy, left[1])
+    cdef int64_t rz = _run_length(z, sz, left[2])
+    cdef int64_t nx = left[0] - rx, ny = left[1] - ry, nz = left[2] - rz
+    cdef int64_t dvx = sx << (2 * BLOCK_BITS), dvy = sy << BLOCK_BITS, dvz = sz
+    cdef double tx = t_max[0], ty = t_max[1], tz = t_max[2]
+    cdef double dtx = t_delta[0], dty = t_delta[1], dtz = t_delta[2]
+    cdef bint stale
+    # in locals: the compiler would reload them from g after every call of _apply
+    cdef const uint32_t* stamp = g.stamp
+    cdef uint32_t scan = g.scan
+    v = _local_voxel(g, x, y, z)
+    if v < 0:
         return False
+    if stamp[v] != scan:
+        _apply(g, v, False)
     while total > 1:
-        best = 2
-        if t_max[0] < t_max[1]:
-            if t_max[0] < t_max[2]:
-                best = 0
-        elif t_max[1] < t_max[2]:
-            best = 1
-        cur[best] += step[best]
-        left[best] -= 1
-        t_max[best] = t_max[best] + t_delta[best] if left[best] > 0 else INFINITY
+        stale = False
+        # OctoMap's order on ties: y before x, z before both
+        if ty <= tx:
+            a = 1 if ty < tz else 2
+        else:
+            a = 0 if tx < tz else 2
+        if a == 1:
+            y += sy
+            v += dvy
+            ty += dty
+            ry -= 1
+            if ry == 0:
+                stale = _run_ends(y, sy, &ny, &ry, &ty)
+        elif a == 0:
+            x += sx
+            v += dvx
+            tx += dtx
+            rx -= 1
+            if rx == 0:
+                stale = _run_ends(x, sx, &nx, &rx, &tx)
+        else:
+            z += sz
+            v += dvz
+            tz += dtz
+            rz -= 1
+            if rz == 0:
+                stale = _run_ends(z, sz, &nz, &rz, &tz)
         total -= 1
-        if not _update(g, cur[0], cur[1], cur[2], False):
-            return False
+        if stale:
+            v = _local_voxel(g, x, y, z)
+            if v < 0:
+                return False
+        if stamp[v] != scan:
+            _apply(g, v, False)
     if end_free:
         return _update(g, ke[0], ke[1], ke[2], False)
     return True
 
 
-def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, const double[:, ::1] ends,
-                   const int64_t[:, ::1] end_keys, const uint8_t[::1] kinds, int32_t[:, :, ::1] index,
+cdef inline void _grid_point(const double* p, double resolution, double* pg, int64_t* key) noexcept nogil:
+    """A point p [m] in grid units (p / resolution) and its voxel key floor(p / resolution), the same
+    arithmetic as ``OccupancyMap.keys_of``, so that a query finds the voxel a ray updated."""
+    cdef int a
+    for a in range(3):
+        pg[a] = p[a] / resolution
+        key[a] = <int64_t>floor(pg[a])
+
+
+def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double resolution,
+                   const uint8_t[::1] kinds, int32_t[:, :, ::1] index,
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
                    uint32_t[::1] counts, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
                    int64_t n_blocks, uint32_t scan,
                    float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface):
     """Integrate one scan; returns (number of blocks in use, True if done / False if the pool is full).
 
-    ``origin`` (3,) and ``ends`` (N, 3) in grid units (metres / resolution), ``origin_key`` and
-    ``end_keys`` their voxel keys floor(.); ``kinds`` (N,) RAY_HIT / RAY_FREE / RAY_TRUNCATED;
+    ``origin`` (3,) and ``ends`` (N, 3) [m] in the grid's frame, ``resolution`` [m] its voxel edge (voxel
+    keys floor(x / resolution)); ``kinds`` (N,) RAY_HIT / RAY_FREE / RAY_TRUNCATED;
     ``index`` the block index covering every key of the scan, its first voxel key (ox, oy, oz);
     ``pool`` / ``stamp`` / ``counts`` the log-odds, scan stamps and hit (low 16 bits) and miss (high 16 bits)
     counts of each voxel (saturating at 65535), ``n_occupied`` (capacity,) the occupied voxels
@@ -212,6 +283,10 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
     cdef Grid g
     cdef Py_ssize_t i, n = ends.shape[0]
     cdef bint ok = True
+    cdef double og[3]
+    cdef double eg[3]
+    cdef int64_t k0[3]
+    cdef int64_t ke[3]
     g.index = &index[0, 0, 0]
     g.sx, g.sy, g.sz = index.shape[0], index.shape[1], index.shape[2]
     g.ox, g.oy, g.oz = ox, oy, oz
@@ -225,18 +300,22 @@ def integrate_rays(const double[::1] origin, const int64_t[::1] origin_key, cons
     g.scan = scan
     g.l_hit, g.l_miss, g.l_min, g.l_max, g.l_occ = l_hit, l_miss, l_min, l_max, l_occ
     with nogil:
+        _grid_point(&origin[0], resolution, og, k0)
         for i in range(n):
-            if kinds[i] == K_HIT and not _update(&g, end_keys[i, 0], end_keys[i, 1], end_keys[i, 2], True):
-                ok = False
-                break
+            if kinds[i] == K_HIT:
+                _grid_point(&ends[i, 0], resolution, eg, ke)
+                if not _update(&g, ke[0], ke[1], ke[2], True):
+                    ok = False
+                    break
         if ok:
             if keep_surface:
                 for i in range(n):
                     if kinds[i] == K_HIT:
-                        _keep_surface(&g, end_keys[i, 0], end_keys[i, 1], end_keys[i, 2])
+                        _grid_point(&ends[i, 0], resolution, eg, ke)
+                        _keep_surface(&g, ke[0], ke[1], ke[2])
             for i in range(n):
-                if not _traverse(&g, &origin[0], &origin_key[0], &ends[i, 0], &end_keys[i, 0],
-                                 kinds[i] == K_FREE):
+                _grid_point(&ends[i, 0], resolution, eg, ke)
+                if not _traverse(&g, og, k0, eg, ke, kinds[i] == K_FREE):
                     ok = False
                     break
     return g.n_blocks, bool(ok)

@@ -266,15 +266,17 @@ class OccupancyMap:
         included, get a miss. Each voxel is updated at most once per scan, occupied winning over free.
         With ``discretize`` (params) a scan without ``free_only`` casts one ray per distinct end voxel.
         """
-        o = np.asarray(origin_base, dtype=np.float64).reshape(3)
-        e = np.asarray(endpoints_base, dtype=np.float64).reshape(-1, 3)
-        if not np.all(np.isfinite(o)) or not np.all(np.isfinite(e)):
+        o = np.ascontiguousarray(origin_base, dtype=np.float64).reshape(3)
+        e = checked = np.ascontiguousarray(endpoints_base, dtype=np.float64).reshape(-1, 3)
+        # a NaN or an infinity among the ends shows in their box: cheaper than a mask of every coordinate
+        lo, hi = bounds(e) if e.shape[0] else (o, o)
+        if not (np.all(np.isfinite(o)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
             raise ValueError("integrate: origin and endpoints must be finite")
-        if self.params.discretize and free_only is None and e.shape[0]:
+        if e.shape[0] == 0:
+            return
+        if self.params.discretize and free_only is None:
             e = self.centers_of(voxel_keys(e, self.resolution_m))
         n = e.shape[0]
-        if n == 0:
-            return
         kinds = np.full(n, _k.RAY_HIT, dtype=np.uint8)
         if free_only is not None:
             kinds[np.asarray(free_only, dtype=bool).reshape(n)] = _k.RAY_FREE
@@ -286,20 +288,17 @@ class OccupancyMap:
                 e = e.copy()
                 e[far] = o + d[far] * (self.params.max_range_m / length[far])[:, None]
                 kinds[far & (kinds == _k.RAY_HIT)] = _k.RAY_TRUNCATED
-        res = self.resolution_m
-        # Grid units and keys computed as keys_of does, so that a query finds the voxel a ray updated.
-        og = o / res
-        eg = np.ascontiguousarray(e / res)
-        k0 = np.floor(og).astype(np.int64)
-        ke = np.floor(eg).astype(np.int64)
-        # A segment lies in the box of its ends: the index covers every voxel of the scan.
-        kmin, kmax = bounds(ke)
-        self._grow_index(np.minimum(kmin, k0), np.maximum(kmax, k0))
+        if e is not checked:
+            lo, hi = bounds(e)
+        # A segment lies in the box of its ends: the index covers every voxel of the scan. Division by
+        # the resolution is monotonic, so the keys of the box's corners bound the keys of the ends,
+        # which the kernel computes as keys_of does.
+        self._grow_index(self.keys_of(np.minimum(lo, o)), self.keys_of(np.maximum(hi, o)))
         self._scan += 1
         corner = self._origin * _BLOCK
         while True:
             n_blocks, done = _k.integrate_rays(
-                og, k0, eg, ke, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
+                o, e, self.resolution_m, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
                 self._pool, self._stamp, self._counts, self._n_occupied, self._block_coords, self._n_blocks,
                 self._scan, self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ,
                 self.params.keep_surface)
