@@ -176,6 +176,55 @@ def test_collision_world_names_the_bodies(model_name):
     assert world.check(q_home) is None
 
 
+def _vertical_move_refusal(rig: Rig, dz: float):
+    """Why the guard would refuse moving the flange straight up by ``dz`` [m] (down when negative), or
+    None."""
+    q0 = rig.arm.state().q
+    T = rig.model.fk(q0)
+    T[2, 3] += dz
+    sf = rig.cfg.safety
+    traj = joint_trajectory(rig.model, q0, rig.model.ik_pose(T, q0), dt=rig.dt,
+                            velocity_scale=sf.joint_velocity_scale,
+                            acceleration_scale=sf.joint_acceleration_scale, jerk_scale=sf.joint_jerk_scale)
+    return rig.guard.check_trajectory(traj)[1]
+
+
+def test_a_roi_margin_reaching_the_arm_where_it_stands_is_shrunk_on_that_face():
+    """An object's box 5.5 cm under the flange: its margin would reach the wrist where the arm stands, and
+    every move would be refused at its first sample. The space the arm takes is free of the object, so the
+    guard shrinks the margin of the face towards the arm only: a move away passes, a move into the object's
+    box is still refused."""
+    rig = Rig.of("ur5e")
+    q0 = rig.arm.state().q
+    p = rig.model.fk(q0)[:3, 3]
+    lo, hi = p + np.array([-0.05, -0.05, -0.30]), p + np.array([0.05, 0.05, -0.055])
+    cfg = rig.cfg.safety.collision
+    world = CollisionWorld(rig.model, cfg, rig.cfg.station.table_z_m)
+    world.set_roi(lo, hi)
+    hit = world.check(q0)
+    assert hit is not None and hit.body_b == "object ROI"
+    margins = world.set_roi(lo, hi, q_free=q0)
+    assert margins is not None and world.check(q0) is None
+    np.testing.assert_array_equal(margins[:5], cfg.roi_margin_m)
+    assert 0.0 < margins[5] < cfg.roi_margin_m
+
+    rig.guard.set_roi(lo, hi)
+    assert rig.guard.log.clamps["roi_margin_at_arm"] == 1
+    assert _vertical_move_refusal(rig, 0.10) is None
+    refusal = _vertical_move_refusal(rig, -0.10)
+    assert refusal is not None and "object ROI" in refusal.message
+
+
+def test_a_roi_whose_own_box_reaches_the_arm_keeps_its_margin():
+    rig = Rig.of("ur5e")
+    q0 = rig.arm.state().q
+    p = rig.model.fk(q0)[:3, 3]
+    rig.guard.set_roi(p - 0.05, p + 0.05)
+    assert rig.guard.log.clamps["roi_margin_at_arm"] == 0
+    refusal = _vertical_move_refusal(rig, 0.10)
+    assert refusal is not None and refusal.message.startswith("trajectory sample 0:")
+
+
 def test_obstacles_of_every_shape_are_checked(tmp_path):
     cfg = load_config(UR5E)
     m = get_robot_model("ur5e")

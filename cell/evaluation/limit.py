@@ -143,7 +143,9 @@ def reachable_views(config: CellConfig, views: Array, aabb_min: Array, aabb_max:
     arm = make_arm(SimArmConfig(type="sim", model=config.arm.model, home_joints_rad=list(q_home)), model,
                    SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=None))
     guard = MotionGuard.from_config(arm, model, config, SimClock())
-    guard.set_roi(aabb_min, aabb_max)
+    # The full margin on every face: a view's configuration is judged on its own, not from where the
+    # twin (never connected, never moved) stands.
+    guard.collision.set_roi(aabb_min, aabb_max)
     q_lo, q_hi = guard.joint_bounds
     T_sensor_flange = inv_T(config.mount.matrix())
     reachable = np.zeros(len(views), dtype=bool)

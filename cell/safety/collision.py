@@ -6,7 +6,8 @@ Bodies:
 - the tool: bodies carried by the flange (the sensor and its bracket), from ``safety.collision.tool``;
 - the table: a slab whose top is the station's table height;
 - the object's ROI: its axis-aligned box inflated by ``roi_margin_m``, replaced whenever perception
-  updates the ROI;
+  updates the ROI; on a face whose margin would reach the arm where it stands, the margin is shrunk
+  (:meth:`CollisionWorld.set_roi`);
 - static obstacles from ``safety.collision.obstacles`` (boxes, cylinders, meshes).
 
 A configuration collides when a moving body (link or tool) touches the table, the ROI or an obstacle, or
@@ -44,6 +45,12 @@ _BASE_FRAMES = 1
 # On a joint path, two bodies closer than this [m] count as touching: bisection must end somewhere, and a
 # move that grazes a body by a tenth of a millimetre is one to refuse.
 PATH_CONTACT_M = 1e-4
+# A ROI margin shrunk because it would reach the arm where it stands keeps the arm's bodies this far [m]
+# from the box: further than a path check's contact distance, so that a move from there is not refused
+# at its first sample.
+ROI_ARM_CLEARANCE_M = 2.0 * PATH_CONTACT_M
+# Such a margin is found by bisection to within this [m].
+_ROI_MARGIN_TOL_M = 1e-4
 
 
 @dataclass(frozen=True)
@@ -192,19 +199,88 @@ class CollisionWorld:
     def _static(name: str, geom: fcl.CollisionGeometry, T: Array, radius: float) -> _Static:
         return _Static(name, fcl.CollisionObject(geom, _fcl_transform(T)), T[:3, 3].copy(), radius)
 
-    def set_roi(self, aabb_min: Array | Sequence[float] | None,
-                aabb_max: Array | Sequence[float] | None) -> None:
+    def set_roi(self, aabb_min: Array | Sequence[float] | None, aabb_max: Array | Sequence[float] | None,
+                q_free: Array | None = None) -> Array | None:
         """Replace the object's ROI box (base frame [m]); it is inflated by the configured margin. None
-        removes it."""
+        removes it.
+
+        ``q_free``: the joints [rad] the arm stands at as the ROI is updated. The box is an estimate of
+        where the object is and the margin covers its error, but the space the arm's bodies take at
+        ``q_free`` is known to hold no object: the margin of a face that would reach them is shrunk, as
+        little as keeps them ``ROI_ARM_CLEARANCE_M`` clear (:meth:`_roi_margins`), so that the arm may move
+        on from where it stands, and away; towards the object it is still stopped by what is left. The
+        object's own box is never shrunk: when it reaches the arm, the full margin stays (and every move
+        from there is refused, as without ``q_free``).
+
+        Returns the margins [m] of the faces (-x, -y, -z, +x, +y, +z) when one was shrunk, else None."""
         if aabb_min is None or aabb_max is None:
             self._roi = None
-            return
-        lo = np.asarray(aabb_min, dtype=float) - self._roi_margin
-        hi = np.asarray(aabb_max, dtype=float) + self._roi_margin
+            return None
+        lo = np.asarray(aabb_min, dtype=float)
+        hi = np.asarray(aabb_max, dtype=float)
+        margins = np.full(6, self._roi_margin) if q_free is None else self._roi_margins(lo, hi, q_free)
+        self._roi = self._box("object ROI", lo - margins[:3], hi + margins[3:])
+        return margins if np.any(margins < self._roi_margin) else None
+
+    def _roi_margins(self, lo: Array, hi: Array, q: Array) -> Array:
+        """The margins [m] of the faces (-x, -y, -z, +x, +y, +z) of the box ``lo``..``hi`` (base frame [m])
+        that keep the arm's bodies at joints ``q`` [rad] ``ROI_ARM_CLEARANCE_M`` clear of it: on each face
+        the configured margin, or less where that would reach them. The full margins when the box itself
+        comes that close.
+
+        The box grown by margins is the box and one slab beyond each face, as wide as the grown box. A first
+        pass finds, for each face, the largest margin whose slab only as wide as the box is clear: a face
+        that does not face the arm keeps its full margin. A second pass shrinks each face further until its
+        slab as wide as the box grown by the first pass's margins is clear (an arm over an edge or a
+        corner); the final slabs lie within these, so the whole grown box is clear."""
+        full = np.full(6, self._roi_margin)
+        centers = self._place(np.asarray(q, dtype=float))[:, :3, 3]
+        if self._roi_margin == 0.0 or self._box_reaches_arm(lo, hi, centers):
+            return full
+        facing = np.array([self._clear_margin(lo, hi, f, full[f], np.zeros(6), centers) for f in range(6)])
+        return np.array([self._clear_margin(lo, hi, f, facing[f], facing, centers) for f in range(6)])
+
+    def _clear_margin(self, lo: Array, hi: Array, face: int, upper: float, lateral: Array, centers: Array
+                      ) -> float:
+        """The largest margin [m] in [0, ``upper``] (within ``_ROI_MARGIN_TOL_M``, by bisection: a slab only
+        grows with its margin) whose slab beyond ``face`` of the box ``lo``..``hi``, as wide as the box
+        grown by ``lateral`` (6,) on the other faces, keeps ``ROI_ARM_CLEARANCE_M`` from the arm's bodies
+        (their centres ``centers``, as last placed)."""
+        if not self._box_reaches_arm(*self._slab(lo, hi, face, upper, lateral), centers):
+            return upper
+        clear, reached = 0.0, upper
+        while reached - clear > _ROI_MARGIN_TOL_M:
+            mid = (clear + reached) / 2.0
+            if self._box_reaches_arm(*self._slab(lo, hi, face, mid, lateral), centers):
+                reached = mid
+            else:
+                clear = mid
+        return clear
+
+    @staticmethod
+    def _slab(lo: Array, hi: Array, face: int, margin: float, lateral: Array) -> tuple[Array, Array]:
+        """The lower and upper corners of the slab ``margin`` [m] thick beyond ``face`` (-x, -y, -z, +x,
+        +y, +z) of the box ``lo``..``hi``, as wide as the box grown by ``lateral`` (6,) on the other faces."""
+        axis = face % 3
+        slab_lo, slab_hi = lo - lateral[:3], hi + lateral[3:]
+        if face >= 3:
+            slab_lo[axis], slab_hi[axis] = hi[axis], hi[axis] + margin
+        else:
+            slab_lo[axis], slab_hi[axis] = lo[axis] - margin, lo[axis]
+        return slab_lo, slab_hi
+
+    def _box_reaches_arm(self, lo: Array, hi: Array, centers: Array) -> bool:
+        """Whether the box ``lo``..``hi`` (base frame [m]) comes within ``ROI_ARM_CLEARANCE_M`` of a moving
+        body as last placed (their centres ``centers``, (k, 3))."""
+        box = self._box("box", lo - ROI_ARM_CLEARANCE_M, hi + ROI_ARM_CLEARANCE_M)
+        return self._first_touching(box, centers, np.ones(len(self._objs), dtype=bool)) is not None
+
+    def _box(self, name: str, lo: Array, hi: Array) -> _Static:
+        """An axis-aligned box from ``lo`` to ``hi`` (base frame [m])."""
         T = np.eye(4)
         T[:3, 3] = (lo + hi) / 2.0
         size = hi - lo
-        self._roi = self._static("object ROI", fcl.Box(*size), T, float(np.linalg.norm(size) / 2.0))
+        return self._static(name, fcl.Box(*size), T, float(np.linalg.norm(size) / 2.0))
 
     def _place(self, q: Array) -> Array:
         """Pose every moving body at ``q``; returns their poses (k, 4, 4) in the base frame."""
@@ -226,17 +302,24 @@ class CollisionWorld:
         centers, radii, objs = T[:, :3, 3], self._radii, self._objs
         statics = self._statics()
         for st in statics:
-            near = np.linalg.norm(centers - st.center, axis=1) <= radii + st.radius
-            if st is self._table:
-                near &= ~self._on_base
-            for i in np.nonzero(near)[0]:
-                if self._touch(objs[i], st.obj):
-                    return Collision(self.moving_names[i], st.name)
+            i = self._first_touching(st, centers, ~self._on_base if st is self._table else
+                                     np.ones(len(objs), dtype=bool))
+            if i is not None:
+                return Collision(self.moving_names[i], st.name)
         ia, ib = self._self_pairs[:, 0], self._self_pairs[:, 1]
         near = np.linalg.norm(centers[ia] - centers[ib], axis=1) <= radii[ia] + radii[ib]
         for a, b in self._self_pairs[near]:
             if self._touch(objs[a], objs[b]):
                 return Collision(self.moving_names[a], self.moving_names[b])
+        return None
+
+    def _first_touching(self, st: _Static, centers: Array, bodies: NDArray[np.bool_]) -> int | None:
+        """The first of the moving ``bodies`` (a mask), as last placed (their centres ``centers``), that
+        touches the static body ``st``, or None."""
+        near = bodies & (np.linalg.norm(centers - st.center, axis=1) <= self._radii + st.radius)
+        for i in np.nonzero(near)[0]:
+            if self._touch(self._objs[i], st.obj):
+                return int(i)
         return None
 
     def _statics(self) -> list[_Static]:

@@ -227,8 +227,12 @@ class MotionGuard:
     # ------------------------------------------------------------------ geometry helpers
 
     def set_roi(self, aabb_min: Array | None, aabb_max: Array | None) -> None:
-        """The object's ROI box (base frame [m]) for collision checks, as perception updates it."""
-        self.collision.set_roi(aabb_min, aabb_max)
+        """The object's ROI box (base frame [m]) for collision checks, as perception updates it. Its margin
+        is shrunk where it would reach the arm where it stands (``CollisionWorld.set_roi``), counted as the
+        clamp ``roi_margin_at_arm``."""
+        q = None if aabb_min is None or aabb_max is None else self.state().q
+        if self.collision.set_roi(aabb_min, aabb_max, q_free=q) is not None:
+            self.log.clamp("roi_margin_at_arm")
 
     def guarded_points(self, T_base_flange: Array) -> Array:
         """The TCP (flange origin) and the sensor origin (2, 3) [m] in the base frame."""
