@@ -99,6 +99,7 @@ def test_short_lr_nbv_scan_reports_packing(tmp_path, capture: str) -> None:
                                    out=tmp_path / "lr", planner="lr-nbv"))
     r = outcome.result
     assert r["status"] == "completed", r["termination"]
+    assert f"after {r['n_captures']} captures" in r["termination"]  # the initial view(s) counted too
     pk = r["packing"]
     assert pk["n_poses"] == r["n_captures"] >= 2
     assert pk["dims_m"] is not None and pk["iou"] > 0.3

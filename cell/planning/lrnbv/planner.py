@@ -296,8 +296,10 @@ class RRTViewPlanner(Planner):
         self.visited.mark(session.sensor_pose()[:3, 3])
         return self.reconstruction.record(session.perception)
 
-    def _initial_object(self, session: ScanSession) -> Array:
+    def _initial_object(self, session: ScanSession) -> tuple[Array, int]:
+        """The object from the current view, or else from the search views; and the captures made."""
         obj = self._capture(session)
+        captures = 1
         st = self.config.station
         target = np.array([st.xy_m[0], st.xy_m[1], self.table_z])
         for height in self.params.search_heights_m:
@@ -306,7 +308,8 @@ class RRTViewPlanner(Planner):
             eye = target + np.array([0.0, 0.0, height])
             if session.move_to_sensor_pose(look_at(eye, target, up_hint=np.array([1.0, 0.0, 0.0]))):
                 obj = self._capture(session)
-        return obj
+                captures += 1
+        return obj, captures
 
     def _node_utility(self, session: ScanSession, obj: Array, tree: Tree, i: int) -> float:
         """U of tree node ``i`` (its planned orientation) on the map and visited grid as they are now."""
@@ -346,13 +349,12 @@ class RRTViewPlanner(Planner):
     def run(self, session: ScanSession) -> str:
         p = self.params
         self.prepare(session.sensor_model(), session.rng)
-        obj = self._initial_object(session)
+        obj, captures = self._initial_object(session)
         if obj.shape[0] == 0:
             raise NoObjectFound("no object segmented from the current view and the search views")
         cache = CachedNodes()
         best_c: float | None = None
         worst_c: float | None = None
-        captures = 0
         failed_in_row = 0
         for it in range(p.max_iterations):
             f = self.field(session, obj)
