@@ -18,7 +18,7 @@ from typer.testing import CliRunner, Result
 
 from cell.cli import client as client_module
 from cell.cli.client import ApiClient, ServerEvent, parse_events
-from cell.cli.jobs import follow_job
+from cell.cli.jobs import follow_job, packing_lines
 from cell.cli.main import app
 from tests.service_process import CELL, REPO, ServedCell, free_port
 
@@ -334,3 +334,12 @@ def test_the_key_option_is_not_shown_in_help():
     result = CliRunner().invoke(app, ["jobs", "list", "--help"], env={"CELL_KEY": "cell_secret-value"})
     assert result.exit_code == 0 and "CELL_KEY" in result.stdout
     assert "cell_secret-value" not in result.output
+
+
+def test_packing_lines_show_a_face_without_an_upper_bound():
+    """A face seen only at the edge of the field of view has no upper bound (null in result.json)."""
+    lines = dict(packing_lines({"dims_m": [0.035, 0.035, 0.26], "dims_upper_m": [None, None, 0.272],
+                                "container": {"name": None, "reason": "none: a face has no upper bound"}}))
+    assert lines == {"packing dims": "0.035 x 0.035 x 0.260 m",
+                     "packing upper": "unbounded x unbounded x 0.272 m",
+                     "container": "none (none: a face has no upper bound)"}

@@ -252,7 +252,8 @@ def packing_lines(packing: dict[str, Any]) -> list[tuple[str, str]]:
     for label, key in (("packing dims", "dims_m"), ("packing upper", "dims_upper_m")):
         value = packing.get(key)
         if isinstance(value, list) and value:
-            lines.append((label, " x ".join(f"{v:.3f}" for v in value) + " m"))
+            # a face seen only at the field of view's edge has no upper bound (null)
+            lines.append((label, " x ".join("unbounded" if v is None else f"{v:.3f}" for v in value) + " m"))
     container = packing.get("container")
     if isinstance(container, dict):
         name = container.get("name") or "none"
