@@ -83,10 +83,11 @@ def summary(rows: Sequence[Row]) -> dict[str, Any]:
     return out
 
 
-def box_figures(scans: Path) -> dict[str, Any]:
+def box_figures(scans: Path, shapes: Path) -> dict[str, Any]:
     """Per scan (``object planner seed placement``) of the job folders under ``scans``: the estimate's
     error and the upper bound's margin against the posed mesh's box [m], L W H; then the lowest margin,
-    the largest estimate error on the paper's four objects and whether issue 24's goals hold."""
+    the largest estimate error on the paper's four objects and whether issue 24's goals hold. A mesh the
+    scan's worker read from a copy of its own is read from ``shapes`` (the held-out shapes' folder)."""
     per_scan: dict[str, Any] = {}
     margins: list[float] = []
     errors: list[float] = []
@@ -95,7 +96,10 @@ def box_figures(scans: Path) -> dict[str, Any]:
         packing = result.get("packing") or {}
         if packing.get("dims_m") is None or result.get("object_pose") is None:
             continue
-        truth = box_from_mesh(load_object(result["object"], result.get("object_scale") or 1.0),
+        mesh = Path(result["object"])
+        if mesh.suffix and not mesh.is_file():
+            mesh = shapes / mesh.name
+        truth = box_from_mesh(load_object(str(mesh), result.get("object_scale") or 1.0),
                               np.array(result["object_pose"])).dims
         error = np.array(packing["dims_m"]) - truth
         upper = [np.inf if v is None else v for v in packing.get("dims_upper_m") or packing["dims_m"]]
@@ -142,7 +146,7 @@ def main() -> None:
         sys.exit(done.returncode)
     rows = read_csv(out / RESULTS_CSV)
     print(json.dumps({"report": str(out / REPORT_MD), "summary": summary(rows),
-                      "boxes": box_figures(out / "scans")}))
+                      "boxes": box_figures(out / "scans", out / "shapes")}))
 
 
 if __name__ == "__main__":
