@@ -193,6 +193,12 @@ def test_local_gradient_looks_over_longer_arcs_where_f_is_flat_at_delta(franka):
     # Judged on what the camera can follow: with +x blocked (a joint limit), the view has converged.
     held = LocalGradient(franka)(session, T, flat_at_delta, lambda v: np.array([min(v[0], 0.0), v[1], v[2]]))
     assert held.g_norm == 0.0
+    # A longer arc's view beyond a barrier plane is none the camera can take: it offers what r does.
+    below = DeadZoneObjective([0.0, 0.0, -1.0], T[:3, 3], 0.001, 0.07)  # rises 7 cm below the camera
+    assert LocalGradient(franka)(session, T, below).g_norm > franka.planners.vs_local.g_max
+    floored = FakeSession(floor_z=T[2, 3] - 0.06)  # delta's views above it, the longer arcs' below
+    floored.pose = T
+    assert LocalGradient(franka)(floored, T, below).g_norm == 0.0
     # The paper's single difference over delta sees nothing there and counts the view as converged, as
     # does Hybrid's local phase, whose global goals leave such a plateau.
     data = franka.model_dump()

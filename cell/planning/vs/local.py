@@ -64,7 +64,13 @@ wandered on the same plateau (69.7 % at 50 s). So, before an evaluation counts t
 the same central difference is taken over longer arcs of the sphere, doubling from 2 delta up to
 ``reach_deg`` (23, 46 and 90 deg at Z* = 25 cm), the four virtual displacements turned about the point
 the camera looks at so that their views still hold the object (``orbited``); the first arc whose ||g||
-reaches 1 gives the direction, and the camera still moves continuously along the sphere. The scan ends
+reaches 1 gives the direction, and the camera still moves continuously along the sphere. Each arc is
+judged on the part of its direction the camera can follow (``ServoScanPlanner.follows``: barrier planes,
+joint limits, the edge of the reach), as the convergence window is, and a displaced view the camera may
+not take (beyond a barrier plane) counts as the current one: judged before the joint limits, a banana
+scan pressed towards the Panda's elbow limit and converged there; with the views under the table
+counted, a mustard scan on the floor plane dithered along it, towards the unseen underside, until its
+time budget. The scan ends
 where f is flat at every scale up to a quarter turn, beyond which a displaced view looks at the sides
 the current one cannot see: a local maximum at the scale of the object rather than of delta. The dragon
 then went round the object's far end to its far side: 97.0 % in 69 s. ``reach_deg`` 0 is the paper's
@@ -140,7 +146,10 @@ class LocalGradient:
         for angle in self._coarse_angles:  # flat at delta: the same difference over longer arcs
             if float(np.linalg.norm(direction)) >= p.g_max:
                 break
-            fk = objective(orbited(T_base_cam, self.standoff_m, angle))
+            views = orbited(T_base_cam, self.standoff_m, angle)
+            # a view beyond a barrier plane (under the floor, past the reach) is none the camera can take:
+            # it offers what the current one does
+            fk = np.where([session.sensor_pose_allowed(v) for v in views], objective(views), f[0])
             arc_grad = np.array([fk[0] - fk[1], fk[2] - fk[3], 0.0]) / (2.0 * angle * self.standoff_m)
             coarse = feasible(p.alpha * arc_grad / (f[0] + p.f_eps_nats))
             if float(np.linalg.norm(coarse)) >= p.g_max:
