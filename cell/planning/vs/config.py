@@ -145,7 +145,7 @@ class VSLocalConfig(StrictModel):
     depart from the paper's 1e-4 on an unstated scale of f: see ``cell.planning.vs.local``.
 
     ``reach_deg`` [deg]: where ||g|| over ``delta_m`` is below ``g_max``, the same difference is taken again
-    over arcs of the viewing sphere doubling from 2 ``delta_m`` up to this angle before the evaluation
+    over arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this angle before the evaluation
     counts towards convergence (a departure; 0, the default, is the paper's single delta; the RGB-D cells
     use 90: a camera that has used up the information around it otherwise ends on a plateau, not at a
     maximum, see ``cell.planning.vs.local``). VS-Hybrid always uses the single delta."""
