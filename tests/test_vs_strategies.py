@@ -14,7 +14,7 @@ from cell.perception.segmentation import compute_roi
 from cell.planning.registry import get_planner
 from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, arc_views, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
-from cell.planning.vs.local import LocalGradient, VSLocalPlanner
+from cell.planning.vs.local import LocalGradient, VSLocalPlanner, orbited
 from cell.planning.vs.objective import ray_grid
 from cell.planning.vs.servo_scan import (
     Secondary,
@@ -159,6 +159,53 @@ def test_local_gradient_is_the_relative_central_difference_in_the_camera_plane(f
     assert np.linalg.norm(steep.g) == pytest.approx(1.0)
     ratio = (f_r + p.f_eps_nats) / (f_r / 10 + p.f_eps_nats)
     assert steep.g_norm == pytest.approx(np.linalg.norm(expected) * ratio)
+
+
+def test_orbited_views_turn_on_the_sphere_about_the_point_looked_at():
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    views = orbited(T, 0.25, np.pi / 2)
+    for view, side in zip(views, (T[:3, 0], -T[:3, 0], T[:3, 1], -T[:3, 1]), strict=True):
+        np.testing.assert_allclose(view[:3, 3], CENTRE + 0.25 * side, atol=1e-12)  # a quarter turn
+        np.testing.assert_allclose(view[:3, 2], -side, atol=1e-12)  # still looking at CENTRE
+        np.testing.assert_allclose(view[:3, :3].T @ view[:3, :3], np.eye(3), atol=1e-12)
+
+
+class DeadZoneObjective:
+    """f(r) = f_at + max(0, (r_o - at) . e - dead_m): flat within ``dead_m`` [m] of ``at`` along unit
+    ``e``, then rising at 1 nat/m: the surroundings of a view whose information the camera has used up."""
+
+    def __init__(self, e, at, f_at, dead_m):
+        self.e, self.at, self.f_at, self.dead_m = np.asarray(e, dtype=float), np.asarray(at), f_at, dead_m
+
+    def __call__(self, T):
+        T = np.asarray(T)
+        values = self.f_at + np.maximum(0.0, (T[..., :3, 3] - self.at) @ self.e - self.dead_m)
+        return float(values) if T.ndim == 2 else values
+
+
+def test_local_gradient_looks_over_longer_arcs_where_f_is_flat_at_delta(franka):
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
+    session = FakeSession()
+    session.pose = T
+    flat_at_delta = DeadZoneObjective([1.0, 0.0, 0.0], T[:3, 3], 0.001, 0.07)  # rises 7 cm away along +x
+    sec = LocalGradient(franka)(session, T, flat_at_delta)
+    assert sec.g_norm > franka.planners.vs_local.g_max and sec.g[0] == pytest.approx(1.0)
+    # Judged on what the camera can follow: with +x blocked (a joint limit), the view has converged.
+    held = LocalGradient(franka)(session, T, flat_at_delta, lambda v: np.array([min(v[0], 0.0), v[1], v[2]]))
+    assert held.g_norm == 0.0
+    # A longer arc's view beyond a barrier plane is none the camera can take: it offers what r does.
+    below = DeadZoneObjective([0.0, 0.0, -1.0], T[:3, 3], 0.001, 0.07)  # rises 7 cm below the camera
+    assert LocalGradient(franka)(session, T, below).g_norm > franka.planners.vs_local.g_max
+    floored = FakeSession(floor_z=T[2, 3] - 0.06)  # delta's views above it, the longer arcs' below
+    floored.pose = T
+    assert LocalGradient(franka)(floored, T, below).g_norm == 0.0
+    # The paper's single difference over delta sees nothing there and counts the view as converged, as
+    # does Hybrid's local phase, whose global goals leave such a plateau.
+    data = franka.model_dump()
+    data["planners"]["vs_local"]["reach_deg"] = 0.0
+    paper = type(franka).model_validate(data)
+    assert LocalGradient(paper)(session, T, flat_at_delta).g_norm == 0.0
+    assert VSHybridPlanner(franka).local(session, T, flat_at_delta).g_norm == 0.0
 
 
 def test_local_direction_slides_along_a_barrier(franka):

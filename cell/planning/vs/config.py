@@ -142,9 +142,16 @@ class VSLocalConfig(StrictModel):
     gradient divided by f(r) + ``f_eps_nats`` and scaled by ``alpha`` [m], its norm clipped to ``g_max``
     (1); the scan ends when ||g|| < ``g_max`` (before clipping) in more than ``converged_fraction``
     (80 %) of the last ``window`` (200) servo evaluations. The relative gradient and ``alpha`` = 1 m
-    depart from the paper's 1e-4 on an unstated scale of f: see ``cell.planning.vs.local``."""
+    depart from the paper's 1e-4 on an unstated scale of f: see ``cell.planning.vs.local``.
+
+    ``reach_deg`` [deg]: where ||g|| over ``delta_m`` is below ``g_max``, the same difference is taken again
+    over arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this angle before the evaluation
+    counts towards convergence (a departure; 0, the default, is the paper's single delta; the RGB-D cells
+    use 90: a camera that has used up the information around it otherwise ends on a plateau, not at a
+    maximum, see ``cell.planning.vs.local``). VS-Hybrid always uses the single delta."""
 
     delta_m: PositiveFloat = 0.05
+    reach_deg: float = Field(default=0.0, ge=0.0, lt=180.0)
     alpha: PositiveFloat = 1.0
     f_eps_nats: PositiveFloat = 0.03
     g_max: PositiveFloat = 1.0

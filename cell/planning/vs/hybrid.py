@@ -20,7 +20,7 @@ class VSHybridPlanner(ServoScanPlanner):
 
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
-        self.local = LocalGradient(config)
+        self.local = LocalGradient(config, coarse=False)  # its global goals leave a plateau
         self.goals = GoalSeeker(config)
         self._global_leg = False
 

@@ -270,6 +270,21 @@ class ServoScanPlanner(Planner):
                 B.append(-(T_base_cam[:3, :3].T @ direction)[None, :2])
         return np.concatenate(B) if B else np.zeros((0, 2))
 
+    def follows(self, session: ScanSession, T_base_cam: Array) -> Callable[[Array], Array]:
+        """A map from a secondary direction (3,) in the camera frame to the part of it the camera can follow
+        from ``T_base_cam``: without its components into the barrier planes and into the half-planes
+        ``_blocked_directions`` gives (joint limits, the edge of the reach, refused motions)."""
+        B = self._blocked_directions(session, T_base_cam, self._features(T_base_cam))
+        activation = self.vs.barrier_activation_m
+
+        def follow(v: Array) -> Array:
+            out = session.feasible_sensor_velocity(v, activation)
+            if B.shape[0] and np.any(out[:2]):
+                out[:2], _ = project_onto_halfspaces(out[:2], B, np.zeros(B.shape[0]), np.ones(2))
+            return out
+
+        return follow
+
     def _within_limits(self, session: ScanSession, T_base_cam: Array, s: Array, sec: Secondary) -> Secondary:
         """``sec`` with g projected into the set ``_blocked_directions`` allows, the camera sliding along a
         joint limit as along a barrier plane (paper Fig. 3): g before clipping is projected, and then
