@@ -1,5 +1,6 @@
 """Median cost of one guard tick per robot model: watchdog, fault read, speed and joint limits, barrier
-projection, ruckig smoothing, and the FCL check of the configuration predicted ``lookahead_s`` ahead.
+projection, ruckig smoothing, and the FCL check of the joint path to the configuration predicted
+``lookahead_s`` ahead.
 
 Each model streams a slowly turning twist through ``MotionGuard.tick`` on its sim cell for 2000 control
 periods; only the tick is timed (the simulated arm's own stepping is not). The safety issue's goal is at

@@ -58,9 +58,11 @@ MUTANTS = (
            "stopped", GUARD, "overrun = self._joint_overrun(state)", "overrun = None"),
     Mutant("no-barrier-check-of-moves", "trajectory samples are not checked against the barrier planes",
            GUARD, "reason = self.barrier_violation(T)\n", "reason = None\n"),
-    Mutant("no-collision-check-of-twists", "the configuration predicted ahead of a streamed twist is not "
-           "checked for collisions", GUARD,
-           "hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))", "hit = None"),
+    Mutant("no-collision-check-of-twists", "the motion predicted ahead of a streamed twist is not checked "
+           "for collisions", GUARD, "hit = self._collision_ahead(state.q, ik(v))", "hit = None"),
+    Mutant("no-path-check-of-twists", "only the configuration predicted ahead of a streamed twist is checked "
+           "for collisions, not the arm's way to it", GUARD, "check_path(np.stack([q, q_pred]), ",
+           "check_path(np.stack([q_pred, q_pred]), "),
     Mutant("no-collision-check-of-moves", "trajectories are not checked for collisions", GUARD,
            "hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)", "hit = None"),
     Mutant("no-fcl", "FCL never reports a contact (the collision world finds none in a configuration)",

@@ -23,9 +23,11 @@ reason), ``breaches`` (control periods in which something happened that must nev
 plane crossed, bodies in contact, a joint at its limit or beyond the robot model's speed, acceleration or
 jerk; each must be 0), ``cell_limits`` (control periods over the cell file's tighter limits: margins,
 limit shares, TCP limits), the worst value of each kind (a depth [m or rad] or a ratio to the limit) and
-``breach_events``: the first breaches with the episode and command they came in (to replay that episode).
+``breach_events``: the first breaches with the episode and command they came in (``--episodes E:E+1``
+replays episode E alone: the episodes before it are drawn, not run, so it gets the same commands).
 
     .venv/bin/python benchmarks/safety_soak.py [--commands N] [--seed S] [--robot ur5e|panda ...]
+    .venv/bin/python benchmarks/safety_soak.py --robot ur5e --seed S --episodes 121:122   # replay one
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import json
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -116,31 +119,68 @@ class Episode:
                 return lo, hi
         return None
 
-    def twist(self, rng: np.random.Generator) -> Array:
-        """A random twist: towards a plane, the object or anywhere, up to twice the speed limits."""
+    def command(self, rng: np.random.Generator, sent: Counter[str], refused: Counter[str]
+                ) -> tuple[str, Callable[[], None]]:
+        """Draw a random command (see the module docstring): its kind and what runs it. Every random number
+        of a command is drawn here, whatever the arm does when it runs, so that the commands of an episode
+        can be drawn without running them (``--episodes``)."""
+        rig = self.rig
+        r = rng.random()
+        if r < 0.03:
+            reach = 0.3 if rng.random() < 2.0 / 3.0 else 1.2
+            offset = rng.uniform(-reach, reach, rig.model.n_joints)
+            return "move", lambda: self.move(offset, sent, refused)
+        if r < 0.08:
+            ticks = int(rng.integers(5, 21))
+            return "hold", lambda: self.hold(ticks, sent)
+        twist = self.twist(rng)
+        ticks = int(rng.integers(1, 5)) if rng.random() < 0.8 else int(rng.integers(8, 31))
+
+        def stream() -> None:
+            sent["twists"] += 1
+            rig.guard.command_twist(twist())
+            rig.tick(ticks)
+
+        return "twist", stream
+
+    def twist(self, rng: np.random.Generator) -> Callable[[], Array]:
+        """A random twist: towards a plane, the object (from where the arm is when it is sent) or anywhere, up
+        to twice the speed limits."""
         rig = self.rig
         sf = rig.cfg.safety
         r = rng.random()
+        towards_object = 0.35 <= r < 0.6 and self.roi is not None
         if r < 0.35:
             d = -self.normals[int(rng.integers(len(self.normals)))] + 0.3 * _unit(rng)
-        elif r < 0.6 and self.roi is not None:
-            d = (self.roi[0] + self.roi[1]) / 2.0 - rig.arm.state().T_base_flange[:3, 3]
-        else:
+        elif not towards_object:
             d = _unit(rng)
-        lin = d / np.linalg.norm(d) * rng.uniform(0.0, 2.0 * sf.tcp_max_linear_mps)
+        speed = rng.uniform(0.0, 2.0 * sf.tcp_max_linear_mps)
         turn = rng.uniform(0.0, 2.0 * sf.tcp_max_angular_rps) if rng.random() < 0.5 else 0.0
         ang = _unit(rng) * turn
-        return np.concatenate([lin, ang])
 
-    def move(self, rng: np.random.Generator, refused: Counter[str]) -> None:
-        """End streaming, let the arm come to rest, then a ruckig move to a random goal (unless refused)."""
+        def aim() -> Array:
+            way = ((self.roi[0] + self.roi[1]) / 2.0 - rig.arm.state().T_base_flange[:3, 3]
+                   if towards_object and self.roi is not None else d)
+            return np.concatenate([way / np.linalg.norm(way) * speed, ang])
+
+        return aim
+
+    def hold(self, ticks: int, sent: Counter[str]) -> None:
+        """Ramp the streamed twist down and keep still for ``ticks`` control periods."""
+        sent["holds"] += 1
+        self.rig.guard.hold()
+        self.rig.tick(ticks)
+
+    def move(self, offset: Array, sent: Counter[str], refused: Counter[str]) -> None:
+        """End streaming, let the arm come to rest, then a ruckig move by ``offset`` [rad] (clipped to the
+        joint limits) unless refused."""
         rig, guard, m = self.rig, self.rig.guard, self.rig.model
         sf = rig.cfg.safety
+        sent["moves"] += 1
         guard.finish()
         rig.settle()
         q = rig.arm.state().q
-        reach = 0.3 if rng.random() < 2.0 / 3.0 else 1.2
-        goal = np.clip(q + rng.uniform(-reach, reach, m.n_joints), m.q_min, m.q_max)
+        goal = np.clip(q + offset, m.q_min, m.q_max)
         traj = joint_trajectory(m, q, goal, dt=rig.dt, velocity_scale=sf.joint_velocity_scale,
                                 acceleration_scale=sf.joint_acceleration_scale,
                                 jerk_scale=sf.joint_jerk_scale)
@@ -154,8 +194,10 @@ class Episode:
             rig.tick()
 
 
-def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
-    """Run ``n_commands`` random commands on ``robot`` (see the module docstring); returns its figures."""
+def soak(robot: str, n_commands: int, seed: int, first_episode: int = 0) -> dict[str, Any]:
+    """Run ``n_commands`` random commands on ``robot`` (see the module docstring), from episode
+    ``first_episode`` of the seed's sequence on (the earlier ones are drawn, not run); returns its
+    figures."""
     rng = np.random.default_rng(seed)
     probe_cfg = cell_config(robot)
     probe = MotionJudge(probe_cfg, get_robot_model(robot), 1.0 / probe_cfg.scan.control_rate_hz)
@@ -168,6 +210,11 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
     events: list[dict[str, Any]] = []
     periods = 0
     t0 = time.perf_counter()
+    for _ in range(first_episode):
+        skipped = Episode(robot, rng, probe)
+        for _ in range(COMMANDS_PER_EPISODE):
+            skipped.command(rng, sent, refused)
+    number = first_episode
     while sent["commands"] < n_commands:
         episode = Episode(robot, rng, probe)
         rig = episode.rig
@@ -175,20 +222,9 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
         for index in range(min(COMMANDS_PER_EPISODE, n_commands - sent["commands"])):
             sent["commands"] += 1
             before = sum(rig.judge.breaches.values())
-            r = rng.random()
-            kind = "move" if r < 0.03 else "hold" if r < 0.08 else "twist"
+            kind, run = episode.command(rng, sent, refused)
             try:
-                if r < 0.03:
-                    sent["moves"] += 1
-                    episode.move(rng, refused)
-                elif r < 0.08:
-                    sent["holds"] += 1
-                    rig.guard.hold()
-                    rig.tick(int(rng.integers(5, 21)))
-                else:
-                    sent["twists"] += 1
-                    rig.guard.command_twist(episode.twist(rng))
-                    rig.tick(int(rng.integers(1, 5)) if rng.random() < 0.8 else int(rng.integers(8, 31)))
+                run()
             except TwistRefused as exc:
                 refused[f"twist: {exc.refusal.kind}"] += 1
                 rig.settle()
@@ -196,7 +232,7 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
                 refused[f"stop: {exc.reason.split(':')[0]}"] += 1
                 rig.settle()
             if sum(rig.judge.breaches.values()) > before and len(events) < MAX_BREACH_EVENTS:
-                events.append({"episode": sent["episodes"] - 1, "command": index, "command_kind": kind,
+                events.append({"episode": number, "command": index, "command_kind": kind,
                                "breaches": {k: v for k, v in rig.judge.breaches.items() if v},
                                "first_contact": rig.judge.first_contact})
         rig.guard.finish()
@@ -209,6 +245,7 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
         for kind, value in judge.worst.items():
             worst[kind] = max(worst.get(kind, -np.inf), value)
         periods += round(rig.clock.now() / rig.dt)
+        number += 1
     return {"robot": robot, "seed": seed, **sent, "control_periods": periods,
             "sim_time_h": round(periods * rig.dt / 3600.0, 2),
             "refused_total": sum(refused.values()), "refused": dict(sorted(refused.items())),
@@ -219,16 +256,33 @@ def soak(robot: str, n_commands: int, seed: int) -> dict[str, Any]:
             "wall_s": round(time.perf_counter() - t0, 1)}
 
 
+def _episodes(text: str) -> tuple[int, int]:
+    """``FROM:TO`` as two episode numbers, 0 <= FROM < TO."""
+    first, _, last = text.partition(":")
+    try:
+        bounds = int(first), int(last)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected FROM:TO (two episode numbers), got {text!r}") from None
+    if not 0 <= bounds[0] < bounds[1]:
+        raise argparse.ArgumentTypeError(f"expected 0 <= FROM < TO, got {text!r}")
+    return bounds
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--commands", type=int, default=100_000, help="random commands per robot")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random generator")
+    parser.add_argument("--episodes", metavar="FROM:TO", type=_episodes, help="run only episodes FROM to "
+                        "TO - 1 of the seed's sequence (e.g. one that ``breach_events`` names), in place of "
+                        "--commands")
     parser.add_argument("--robot", choices=ROBOTS, action="append", help="robot to soak (repeatable; "
                         "default: both)")
     args = parser.parse_args()
     results = []
     for robot in args.robot or ROBOTS:
-        r = soak(robot, args.commands, args.seed)
+        first, last = args.episodes or (0, None)
+        n_commands = args.commands if last is None else (last - first) * COMMANDS_PER_EPISODE
+        r = soak(robot, n_commands, args.seed, first)
         results.append(r)
         print(f"{robot:6s} {r['commands']} commands ({r['twists']} twists, {r['holds']} holds, {r['moves']} "
               f"moves) over {r['sim_time_h']} h of sim time: {r['refused_total']} refused, "

@@ -220,3 +220,90 @@ def test_a_twist_streamed_near_the_wrist_singularity_never_asks_a_joint_for_more
     rig.assert_safe()
     assert rig.judge.worst["joint_acceleration"] < 0.99  # never at the arm's own limit
     assert rig.guard.log.clamps["joint_acceleration"] > 0
+
+
+# The soak's UR5e twists that turned the forearm into a corner of an obstacle (episode 121 at seed 0): from
+# rest next to it, a twist and then a turn; every configuration predicted ahead of the arm was clear, but
+# the arm's way bent off the lines to them and into the corner.
+TURN_START_RAD = [3.60876244304158, 5.37057717043888, -1.228811513311022, 4.700343488188488,
+                  0.06029129185400769, -0.35000450611175127]
+TURN_TWISTS = np.array([
+    [0.12749711018155616, -0.037918294455657905, -0.0905331743686652, 0.11822092426281426,
+     -0.08553862292228254, -0.22329735317968283],
+    [-0.02799054350998415, -0.003675371077657719, -0.008943716901939285, 1.4365664135416782,
+     -0.5890831662736534, 0.39655249595916786]])
+CORNER_OBSTACLE = {"shape": "box", "name": "random obstacle",
+                   "size_m": [0.1693682910030958, 0.19357351526407934, 0.10854120879428275],
+                   "pose": {"xyz_m": [0.1832482707988733, -0.0179117165298196, 0.8908961367745728]}}
+
+
+def test_a_streamed_twist_that_turns_into_an_obstacle_is_refused_before_it_touches():
+    rig = Rig(cell_config("ur5e", home_joints_rad=TURN_START_RAD, obstacles=[CORNER_OBSTACLE]))
+    with pytest.raises(TwistRefused) as refused:
+        for twist in TURN_TWISTS:
+            rig.guard.command_twist(twist)
+            rig.tick(24)
+    assert refused.value.refusal.kind == "collision"
+    assert "forearm would touch random obstacle" in refused.value.refusal.message
+    rig.settle()
+    rig.assert_safe()
+
+
+# A streamed twist that bends the arm's way: along x, then along y and back a little.
+BEND_TWISTS = (np.array([0.25, 0.0, 0.0, 0.0, 0.0, 0.0]), np.array([-0.1, 0.25, 0.0, 0.0, 0.0, 0.0]))
+BEND_TICKS = (30, 40)
+CUBE_M = 0.01
+
+
+def _stream_the_bend(rig: Rig) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Stream ``BEND_TWISTS``; returns the joints [rad] the arm reached after each tick and the configuration
+    each tick predicted ``lookahead_s`` ahead at the twist it sent (the end of the path the guard checks)."""
+    lookahead = rig.cfg.safety.collision.lookahead_s
+    reached, predicted = [], []
+    for twist, ticks in zip(BEND_TWISTS, BEND_TICKS, strict=True):
+        rig.guard.command_twist(twist)
+        for _ in range(ticks):
+            q = rig.arm.state().q
+            rig.tick()
+            predicted.append(q + rig.model.velocity_map(q)(rig.sent[-1]) * lookahead)
+            reached.append(rig.arm.state().q)
+    return reached, predicted
+
+
+def _cube_beside_the_predictions(model_name: str) -> np.ndarray:
+    """The centre [m] of a cube of side ``CUBE_M`` that the arm reaches on its way round the bend while no
+    configuration predicted until then touches it: inside the bend, where the arm's way turns off the lines
+    to the predictions (found on a free run, with the judge's bodies)."""
+    rig = Rig.of(model_name)
+    reached, predicted = _stream_the_bend(rig)
+    flange = np.array([rig.model.fk(q)[:3, 3] for q in reached])
+    k = BEND_TICKS[0] + BEND_TICKS[1] // 3
+    along = flange[k + 1] - flange[k - 1]
+    bend = flange[k + 3] - 2.0 * flange[k] + flange[k - 3]
+    inward = bend - (bend @ along) / (along @ along) * along
+    inward /= np.linalg.norm(inward)
+
+    def touches(centre: np.ndarray, q: np.ndarray) -> bool:
+        rig.judge.set_roi(centre - CUBE_M / 2.0, centre + CUBE_M / 2.0)
+        return rig.judge.contact(q) is not None
+
+    steps = np.arange(0.0, 0.2, 0.0005)
+    surface = next(s for s in steps if not touches(flange[k] + s * inward, reached[k]))
+    for depth in steps[1:10]:
+        centre = flange[k] + (surface - depth) * inward
+        first = next((j for j, q in enumerate(reached) if touches(centre, q)), None)
+        if first is not None and not any(touches(centre, q) for q in predicted[:first + 1]):
+            return centre
+    raise AssertionError(f"no cube on the {model_name}'s way round the bend lies beside every prediction")
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_streamed_twist_that_bends_is_refused_before_a_cube_beside_its_predictions(model_name):
+    centre = _cube_beside_the_predictions(model_name)
+    cube = {"shape": "box", "name": "cube", "size_m": [CUBE_M] * 3, "pose": {"xyz_m": centre.tolist()}}
+    rig = Rig(cell_config(model_name, obstacles=[cube]))
+    with pytest.raises(TwistRefused) as refused:
+        _stream_the_bend(rig)
+    assert refused.value.refusal.kind == "collision"
+    rig.settle()
+    rig.assert_safe()

@@ -17,8 +17,9 @@ the arm. It forwards two kinds of motion:
   every barrier margin and the joints inside their margins, or the next step of braking is sent instead
   (the projection and the joint margin above plan their braking with simpler bounds that the smoothing
   does not always keep, e.g. while it also ramps a turn: this check is what guarantees the stop); the
-  configuration predicted ``collision.lookahead_s`` ahead at that twist is checked for collisions (robot,
-  tool, table, object ROI, obstacles, self-collision). A collision refuses the motion, and so does a joint
+  joint path to the configuration predicted ``collision.lookahead_s`` ahead at that twist, along which the
+  next period and a stop after it run, is checked for collisions all along (robot, tool, table, object
+  ROI, obstacles, self-collision). A collision refuses the motion, and so does a joint
   that the arm reports moving towards its limit faster than its own stop could absorb within half the joint
   margin (a last resort where the IK's prediction falls short, near a singularity).
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
@@ -47,7 +48,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
 from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, workspace_planes
-from cell.safety.collision import CollisionWorld
+from cell.safety.collision import Collision, CollisionWorld
 from cell.safety.config import SafetyConfig
 from cell.safety.events import SafetyLog
 from cell.safety.smoothing import TwistSmoother
@@ -369,13 +370,28 @@ class MotionGuard:
             self._smoother.restore(snapshot)
             v = self._smoother.step(np.zeros(6))
             self.log.clamp(unsafe)
-        q_pred = state.q + ik(v) * self._safety.collision.lookahead_s
-        hit = self.collision.check(np.clip(q_pred, self._model.q_min, self._model.q_max))
+        hit = self._collision_ahead(state.q, ik(v))
         if hit is not None:
             reason = f"{hit} within {self._safety.collision.lookahead_s:g} s"
             stop = self._refuse(reason)
             raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
+
+    def _collision_ahead(self, q: Array, qd: Array) -> Collision | None:
+        """The contact the arm would make going on at joint velocities ``qd`` [rad/s] from ``q`` [rad] for
+        ``collision.lookahead_s``, or None.
+
+        The whole straight joint path to the predicted configuration is checked (``check_path``), not only
+        its end: where the arm turns, what it reaches next lies off the line that earlier predictions
+        followed, so a corner of an obstacle can lie beside every predicted end and still on the arm's way
+        (the soak's UR5e forearm went into one that way). One control period of motion and the arm's stop
+        after it run along this line. An arm that already touches something (an ROI that grew over it)
+        may still move where the predicted configuration is clear."""
+        q_pred = np.clip(q + qd * self._safety.collision.lookahead_s, self._model.q_min, self._model.q_max)
+        hit = self.collision.check_path(np.stack([q, q_pred]), self._safety.collision.trajectory_step_rad)
+        if hit is None:
+            return None
+        return hit[1] if hit[0] > 0 else self.collision.check(q_pred)
 
     def _joint_rate_share(self, qd_now: Array, qd_from: Array, qd_to: Array) -> float | None:
         """The largest share s in [0, 1] of the smoother's step, from the joint velocities of the twist it
