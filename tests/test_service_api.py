@@ -41,6 +41,16 @@ def _client(tmp_path: Path, config: Path = FRANKA) -> tuple[TestClient, dict[str
     return TestClient(create_app(ServiceSettings(config_file=config, data_dir=data))), keys
 
 
+def _client_with(tmp_path: Path, name: str, **sections: dict[str, Any]) -> tuple[TestClient, dict[str, str]]:
+    """``_client`` on the Franka sim cell with ``sections`` merged into its top-level sections."""
+    data = yaml.safe_load(FRANKA.read_text())
+    for section, values in sections.items():
+        data.setdefault(section, {}).update(values)
+    config = tmp_path / f"{name}.yaml"
+    config.write_text(yaml.safe_dump(data))
+    return _client(tmp_path, config)
+
+
 def _auth(key: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {key}"}
 
@@ -103,11 +113,8 @@ def test_keys_are_checked_and_never_echoed(served):
 
 
 def test_a_protective_stop_holds_the_queue_until_the_arm_is_recovered(tmp_path):
-    data = yaml.safe_load(FRANKA.read_text())
-    data["sim"]["faults"] = [{"at_s": 3.5, "kind": "protective stop"}]
-    config = tmp_path / "faulty.yaml"
-    config.write_text(yaml.safe_dump(data))
-    client, keys = _client(tmp_path, config)
+    fault = {"at_s": 3.5, "kind": "protective stop"}
+    client, keys = _client_with(tmp_path, "faulty", sim={"faults": [fault]})
     op = _auth(keys["operator"])
     with client:
         first = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 8}, headers=op).json()
@@ -130,11 +137,8 @@ def test_a_protective_stop_holds_the_queue_until_the_arm_is_recovered(tmp_path):
 def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stopped(tmp_path):
     """A worker that cannot answer a stop in ``stop_confirm_timeout_s`` (still starting on a loaded
     machine, or hung) is killed; the job was stopped by the operator, not failed by itself."""
-    data = yaml.safe_load(FRANKA.read_text())
-    data.setdefault("service", {})["stop_confirm_timeout_s"] = 1e-6  # no worker answers in a microsecond
-    config = tmp_path / "impatient.yaml"
-    config.write_text(yaml.safe_dump(data))
-    client, keys = _client(tmp_path, config)
+    # no worker answers in a microsecond
+    client, keys = _client_with(tmp_path, "impatient", service={"stop_confirm_timeout_s": 1e-6})
     op = _auth(keys["operator"])
     with client:
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
