@@ -208,6 +208,9 @@ def test_a_roi_margin_reaching_the_arm_where_it_stands_is_shrunk_on_that_face():
     np.testing.assert_array_equal(margins[:5], cfg.roi_margin_m)
     assert 0.0 < margins[5] < cfg.roi_margin_m
 
+    rig.guard.set_roi(lo, hi)  # before any tick the guard has not read the joints: the full margin
+    assert "roi_margin_at_arm" not in rig.guard.log.clamps
+    rig.guard.tick()  # as a job's control loop, which reads the joints the ROI is shrunk for
     rig.guard.set_roi(lo, hi)
     assert rig.guard.log.clamps["roi_margin_at_arm"] == 1
     assert _vertical_move_refusal(rig, 0.10) is None

@@ -143,6 +143,7 @@ class MotionGuard:
         self._q_hi_overrun = model.q_max - 0.5 * safety.joint_position_margin_rad
         self._target: Array | None = None
         self._following = False
+        self._q_seen: Array | None = None  # the joints [rad] the last tick read
         self._stop_lock = threading.Lock()
         self._stop_request: str | None = None
         self._token = arm.claim_motion()
@@ -231,7 +232,12 @@ class MotionGuard:
         """The object's ROI box (base frame [m]) for collision checks, as perception updates it. Its margin
         is shrunk where it would reach the arm where it stands (``CollisionWorld.set_roi``), counted as the
         clamp ``roi_margin_at_arm``."""
-        q = None if aabb_min is None or aabb_max is None else self.state().q
+        # The joints the last tick read (the arm is at rest after a capture), not a read of its own: a
+        # fault is the tick's to act on and name. None before the first tick, or from a replayed arm whose
+        # joints are not known: the ROI keeps its full margin.
+        q = self._q_seen
+        if aabb_min is None or aabb_max is None or q is None or not np.all(np.isfinite(q)):
+            q = None
         if self.collision.set_roi(aabb_min, aabb_max, q_free=q) is not None:
             self.log.clamp("roi_margin_at_arm")
 
@@ -323,6 +329,7 @@ class MotionGuard:
             if reason is not None:
                 raise self._halt(f"watchdog: {reason}")
         state = self.state()
+        self._q_seen = np.array(state.q, dtype=float)
         if self._following:
             self._following = state.mode is ArmMode.TRAJECTORY
             return
