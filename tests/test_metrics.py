@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from cell.perception import metrics
 from cell.perception.metrics import (
     METRICS_KEYS,
     CoverageTracker,
@@ -11,6 +13,7 @@ from cell.perception.metrics import (
     ground_truth_points,
     measure,
     metrics_timeline,
+    register_ground_truth,
 )
 from drivers.sim.objects import load_object, sample_surface
 from drivers.transforms import T_from_xyz_rpy, rotvec, transform_points
@@ -107,3 +110,12 @@ def test_registration_removes_a_common_offset_but_not_disagreeing_views():
     summary = disagree.as_dict()
     assert set(summary) == set(METRICS_KEYS)
     assert summary["coverage_unregistered_pct"] == disagree.unregistered.coverage_pct
+
+
+def test_a_registration_that_leaves_a_and_the_cloud_fitting_worse_is_refused(monkeypatch: pytest.MonkeyPatch):
+    """ICP minimises only the cloud's distance to A; a motion within its 10 mm gate that leaves A and the
+    cloud fitting each other worse (a slide along a partial cloud) is refused: A stays where it was."""
+    gt, cloud = _partial_bunny(np.random.default_rng(3))
+    slide = T_from_xyz_rpy([0.005, 0.0, 0.0], [0.0, 0.0, 0.0])
+    monkeypatch.setattr(metrics, "constrain_icp", lambda *_args: (slide, None))
+    np.testing.assert_array_equal(register_ground_truth(gt, cloud), np.eye(4))
