@@ -302,8 +302,7 @@ class CollisionWorld:
         centers, radii, objs = T[:, :3, 3], self._radii, self._objs
         statics = self._statics()
         for st in statics:
-            i = self._first_touching(st, centers, ~self._on_base if st is self._table else
-                                     np.ones(len(objs), dtype=bool))
+            i = self._first_touching(st, centers, self._can_touch(st))
             if i is not None:
                 return Collision(self.moving_names[i], st.name)
         ia, ib = self._self_pairs[:, 0], self._self_pairs[:, 1]
@@ -322,6 +321,11 @@ class CollisionWorld:
                 return int(i)
         return None
 
+    def _can_touch(self, st: _Static) -> NDArray[np.bool_]:
+        """The moving bodies (a mask) checked against the static body ``st``: all but those on the base and
+        the first joint's frames for the table, which they stand on."""
+        return ~self._on_base if st is self._table else np.ones(len(self._objs), dtype=bool)
+
     def _statics(self) -> list[_Static]:
         return [self._table, *self._obstacles] + ([self._roi] if self._roi is not None else [])
 
@@ -331,7 +335,7 @@ class CollisionWorld:
         n_moving = len(self._objs)
         pairs = [self._self_pairs]
         for s, st in enumerate(statics):
-            bodies = np.nonzero(~self._on_base)[0] if st is self._table else np.arange(n_moving)
+            bodies = np.nonzero(self._can_touch(st))[0]
             pairs.insert(-1, np.column_stack([bodies, np.full(bodies.size, n_moving + s)]))
         return np.concatenate(pairs).astype(int)
 
