@@ -377,6 +377,25 @@ def test_a_streamed_twist_into_the_object_is_refused_as_a_twist_refusal():
     rig.assert_safe()
 
 
+def test_a_twist_streamed_while_a_stop_brakes_the_arm_starts_once_it_is_at_rest():
+    """A planner backs off at once after a refusal, while the arm's stop still brakes it: the twist waits
+    for the arm to come to rest and then moves it, instead of being refused (smoothed from a rest the
+    joints were not at, it needed a joint to change speed faster than the robot can)."""
+    rig = Rig.of("panda")
+    p = rig.arm.state().T_base_flange[:3, 3]
+    rig.set_roi(p + np.array([0.30, -0.1, -0.2]), p + np.array([0.5, 0.1, 0.2]))
+    rig.guard.command_twist(np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(TwistRefused):
+        rig.tick(400)
+    assert np.max(np.abs(rig.arm.state().qd)) > 0.1  # still braking
+    rig.guard.command_twist(np.array([-0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    rig.tick(150)
+    state = rig.arm.state()
+    assert state.mode is ArmMode.VELOCITY
+    assert state.v_base_flange[0] < -0.045  # backing off at the commanded speed
+    rig.assert_safe()
+
+
 def test_a_commanded_twist_comes_back_as_the_arm_realizes_it():
     """Damped least squares falls short of a twist along a near-singular direction: the returned twist
     says so (the servo scan judges a camera held by the arm's reach by it)."""

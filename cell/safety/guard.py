@@ -19,7 +19,8 @@ the arm. It forwards two kinds of motion:
   does not always keep, e.g. while it also ramps a turn: this check is what guarantees the stop); the
   joint path to the configuration predicted ``collision.lookahead_s`` ahead at that twist, along which the
   next period and a stop after it run, is checked for collisions all along (robot, tool, table, object
-  ROI, obstacles, self-collision). A collision refuses the motion, and so does a joint
+  ROI, obstacles, self-collision). After a stop, a streamed twist starts once the arm's own stop has
+  brought its joints to rest. A collision refuses the motion, and so does a joint
   that the arm reports moving towards its limit faster than its own stop could absorb within half the joint
   margin (a last resort where the IK's prediction falls short, near a singularity).
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
@@ -143,6 +144,8 @@ class MotionGuard:
         self._q_hi_overrun = model.q_max - 0.5 * safety.joint_position_margin_rad
         self._target: Array | None = None
         self._following = False
+        # After a stop, streaming waits for the arm's own ramp to rest (``tick``).
+        self._settling = False
         self._q_seen: Array | None = None  # the joints [rad] the last tick read
         self._stop_lock = threading.Lock()
         self._stop_request: str | None = None
@@ -193,6 +196,7 @@ class MotionGuard:
         self._target = None
         self._following = False
         self._smoother.reset()
+        self._settling = True
         try:
             self._arm.stop()
         except CellError as exc:
@@ -335,6 +339,14 @@ class MotionGuard:
             return
         if self._target is None:
             return
+        if self._settling:
+            # The smoother restarts from rest after a stop; a twist streamed while the arm's stop is still
+            # braking its joints (a planner backing off at once) would be smoothed from a rest the joints
+            # are not at, and no share of a step could bring them to it within their acceleration limit:
+            # it starts once every joint is within one step of rest.
+            if np.any(np.abs(state.qd) > self._qd_step):
+                return
+            self._settling = False
         overrun = self._joint_overrun(state)
         if overrun is not None:
             stop = self._refuse(overrun)
