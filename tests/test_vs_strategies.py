@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from cell.config import load_config
+from cell.control.servo import DualTaskServo
 from cell.perception.occupancy import OccupancyMap, binary_entropy
 from cell.perception.segmentation import compute_roi
 from cell.planning.registry import get_planner
+from cell.planning.vs.config import ServoConfig
 from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, arc_views, sphere_views
 from cell.planning.vs.hybrid import VSHybridPlanner
 from cell.planning.vs.local import LocalGradient, VSLocalPlanner, orbited
@@ -102,13 +104,26 @@ def test_vs_planners_are_registered(franka):
 def test_config_defaults_are_the_papers_values(franka):
     p = franka.planners
     assert (p.vs.servo.lambda_0, p.vs.servo.lambda_inf, p.vs.servo.lambda_0_slope) == (2.0, 0.4, 30.0)
-    assert p.vs.servo.lambda_g == 0.33 and p.vs.servo.e_converged_m == 0.005
+    assert ServoConfig().lambda_g == 0.33 and p.vs.servo.e_converged_m == 0.005
     assert (p.vs.objective.rays_per_side, p.vs.objective.fov_deg) == (23, 30.0)
     assert (p.vs_local.delta_m, p.vs_local.g_max, p.vs_local.window) == (0.05, 1.0, 200)
     assert p.vs_local.converged_fraction == 0.8
     assert (p.vs_global.n_candidates, p.vs_global.slow_radius_m) == (5000, 0.10)
     assert (p.vs.h_roi_window, p.vs.h_roi_std) == (10, 0.001)
     assert franka.scan.standoff_m == 0.25
+
+
+@pytest.mark.parametrize(("lambda_g", "speed_mps"), [(0.33, 0.019), (None, 0.05)])
+def test_lambda_g_moves_the_camera_at_the_speed_its_docstring_gives(franka, lambda_g, speed_mps):
+    """The paper's gain explores at 1.9 cm/s; the RGB-D cell's at delta per perception period."""
+    if lambda_g is None:
+        lambda_g = franka.planners.vs.servo.lambda_g
+        speed_mps = franka.planners.vs_local.delta_m * franka.perception.rate_hz
+    Z = franka.scan.standoff_m
+    servo = DualTaskServo(standoff_m=Z, lambda_0=2.0, lambda_inf=0.4, lambda_0_slope=30.0, lambda_g=lambda_g,
+                          e_converged_m=0.005)
+    out = servo.step(np.array([0.0, 0.0, Z]), np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    assert np.linalg.norm(out.v[:3]) == pytest.approx(speed_mps, rel=0.03)
 
 
 def test_objective_rays_span_the_sensors_field_of_view(franka):

@@ -68,7 +68,19 @@ class ServoConfig(StrictModel):
     """The dual-task law (eq. 1-3) and ViSP's adaptive gain lambda_e(x) = (l0 - linf) exp(-l0' x /
     (l0 - linf)) + linf of the primary task [1/s] (``lambda_0`` 2, ``lambda_inf`` 0.4, ``lambda_0_slope``
     30); ``lambda_g`` (0.33) the flat gain of the secondary task; the secondary task starts once
-    ||e|| < ``e_converged_m`` (5 mm) and stays on afterwards."""
+    ||e|| < ``e_converged_m`` (5 mm) and stays on afterwards.
+
+    ``lambda_g`` sets the exploration speed, though not as its value suggests. g (||g|| <= 1, a direction:
+    section II-B 2) reaches the twist through the primary task's null-space projector, whose 6-vector
+    mixes metres and radians: of a unit sideways g it keeps Z*^2 / (1 + Z*^2) as translation (5.9 % at
+    Z* = 0.25 m, with Z* in metres; the rest becomes the turn that keeps the object centred), so the
+    paper's 0.33 moves the camera at 1.9 cm/s at most. The RGB-D cells use 0.85, 5 cm/s: the map eq. 9
+    reads is rebuilt once per perception period (1 s) and eq. 5-6 compare views delta = 5 cm apart, so at
+    delta per perception period the camera never moves further between two maps than the scale on which
+    the gradient says where to go. Table I, VS-Local, seed 0, calibration error on: mean scan time 34.4 s
+    against 53.4 s, coverage of the limit at least 0.95 on 6 of 8 objects against 4 (banana 1.01 against
+    0.82, dragon 0.99 against 0.945; ``cell eval vs-table``): a slow camera used its time on views that
+    one map apart showed nearly the same thing, and converged before it had been round the object."""
 
     lambda_0: PositiveFloat = 2.0
     lambda_inf: PositiveFloat = 0.4
