@@ -12,6 +12,7 @@ from cell.config import load_config
 from cell.control.servo import DualTaskServo
 from cell.perception.occupancy import OccupancyMap, binary_entropy
 from cell.perception.segmentation import compute_roi
+from cell.planning.base import Array
 from cell.planning.registry import get_planner
 from cell.planning.vs.config import ServoConfig
 from cell.planning.vs.goals import GoalSeeker, VSGlobalPlanner, arc_views, sphere_views
@@ -233,18 +234,38 @@ def test_local_direction_slides_along_a_barrier(franka):
     assert sec.g_norm == pytest.approx(0.0, abs=1e-12)
 
 
+def _sweep(n: int, speed_mps: float = 0.05, rate_hz: float = 50.0) -> list[Array]:
+    """Camera positions (3,) [m] of n servo evaluations moving straight along x."""
+    return [np.array([0.4 + i * speed_mps / rate_hz, 0.0, 0.3]) for i in range(n)]
+
+
 def test_local_convergence_needs_a_full_window_mostly_below_one(franka):
     local = LocalGradient(franka)
-    for _ in range(199):
-        local.record(0.5)
+    moving = _sweep(240)
+    for p in moving[:199]:
+        local.record(0.5, p)
     assert not local.converged()  # 199 of 200
-    local.record(0.5)
+    local.record(0.5, moving[199])
     assert local.converged()
-    for _ in range(40):  # 160 weak, 40 strong: exactly 80 %, not more
-        local.record(3.0)
+    for p in moving[200:]:  # 160 weak, 40 strong: exactly 80 %, not more
+        local.record(3.0, p)
     assert not local.converged()
     local.reset()
     assert not local.converged()
+
+
+def test_a_camera_going_to_and_fro_within_delta_has_converged_whatever_its_gradient(franka):
+    """||g|| above 1 throughout, but the camera never leaves a ball of delta: eq. 5-6 cannot tell its
+    views apart, a maximum on the gradient's scale."""
+    delta = franka.planners.vs_local.delta_m
+    dither = LocalGradient(franka)
+    sweep = LocalGradient(franka)
+    for i, p in enumerate(_sweep(200)):
+        to_and_fro = [0.4 + 0.4 * delta * np.sin(i / 7.0), 0.2 * delta * np.cos(i / 5.0), 0.3]
+        dither.record(1.5, np.array(to_and_fro))
+        sweep.record(1.5, p)  # 20 cm in the window
+        assert not dither.converged() or i == 199
+    assert dither.converged() and not sweep.converged()
 
 
 def test_achieved_fraction_measures_what_the_arm_realized_along_the_command():
@@ -419,7 +440,7 @@ def test_hybrid_goes_global_after_local_converges_then_back(franka):
     modes = []
     for _ in range(201):
         sec = planner.secondary(session, T, weak)
-        planner.observe(sec, sec.g_norm)
+        planner.observe(sec, sec.g_norm, T[:3, 3])
         modes.append(sec.mode)
     assert modes[:200] == ["local"] * 200 and modes[200] == "global"
     assert planner.goals.n_goals == 1

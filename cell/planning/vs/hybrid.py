@@ -37,9 +37,9 @@ class VSHybridPlanner(ServoScanPlanner):
             return self.goals(session, T_base_cam, objective)
         return self.local(session, T_base_cam, objective)
 
-    def observe(self, secondary: Secondary, g_norm: float) -> None:
+    def observe(self, secondary: Secondary, g_norm: float, position_m: Array) -> None:
         if secondary.mode == "local":
-            self.local.record(g_norm)
+            self.local.record(g_norm, position_m)
 
     def finished(self, session: ScanSession) -> str | None:
         # The H_ROI rule is judged from the end of the first global leg on, on the values recorded since:

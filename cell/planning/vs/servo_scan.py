@@ -180,9 +180,10 @@ class ServoScanPlanner(Planner):
     def finished(self, session: ScanSession) -> str | None:
         """Why the scan is complete, or None to go on; called after every iteration."""
 
-    def observe(self, secondary: Secondary, g_norm: float) -> None:
+    def observe(self, secondary: Secondary, g_norm: float, position_m: Array) -> None:
         """After the twist went out: ``g_norm`` is ||g|| before clipping scaled by the share of the motion
-        the arm realizes (a strategy with a convergence rule on ||g|| counts it here)."""
+        the arm realizes, ``position_m`` (3,) [m, base frame] where the camera was when g was computed (a
+        strategy with a convergence rule on ||g|| counts it here)."""
 
     def open_entropy_window(self) -> None:
         """Start judging the H_ROI termination, on the values from the next perception update on (a
@@ -343,7 +344,7 @@ class ServoScanPlanner(Planner):
             allowed = session.command_sensor_twist(out.v)
             g_norm = sec.g_norm * achieved_fraction(out.v, allowed)
             if sec.mode != "primary":
-                self.observe(sec, g_norm)
+                self.observe(sec, g_norm, T[:3, 3])
             self.telemetry.append(TelemetryRow(
                 t=session.now(), e_norm=float(np.linalg.norm(out.e)), f=sec.f, g_norm=g_norm,
                 h_roi=self.h_roi[-1] if self.h_roi else None, mode=sec.mode))
