@@ -303,3 +303,42 @@ def test_observation_weight_falls_like_one_over_the_observations():
         observation_weight(np.array([7]), np.array([3]))[0])
     settled, ambiguous = observation_weight(np.array([10, 5]), np.array([0, 5]))
     assert settled < ambiguous
+
+
+@pytest.mark.parametrize("keep_surface", [False, True])
+def test_dense_marking_gives_the_map_of_the_walk_in_the_pool(monkeypatch, keep_surface):
+    """The kernel marks a scan's misses in a dense box and sweeps it when the box is small, and walks the
+    pool otherwise: both must give the same map, bit for bit, over scans that mix hits, ToF carving,
+    truncation at max range, rays exactly along grid planes and edges (the tie rules), and voxels
+    updated by earlier scans."""
+    rng = np.random.default_rng(7)
+
+    def scans() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        out = []
+        for origin in ([0.003, 0.004, 0.5], [0.02, -0.01, 0.45], [0.0, 0.0, 0.4]):  # the last on a corner
+            o = np.array(origin)
+            ends = np.column_stack([rng.uniform(-0.15, 0.15, 400), rng.uniform(-0.15, 0.15, 400),
+                                    rng.uniform(0.0, 0.1, 400)])
+            grid = np.array([[0.1, 0.0, 0.0], [0.1, 0.1, 0.0], [0.0, 0.1, 0.3], [-0.05, 0.05, 0.35]])
+            free = rng.random(ends.shape[0] + grid.shape[0]) < 0.2
+            out.append((o, np.vstack([ends, grid]), free))
+        return out
+
+    def build(max_dense: int) -> OccupancyMap:
+        monkeypatch.setattr("cell.perception.occupancy._MAX_DENSE_VOXELS", max_dense)
+        m = make_map(max_range_m=0.42, keep_surface=keep_surface)
+        for o, ends, free in recorded:
+            m.integrate(o, ends)
+            m.integrate(o, ends[::2], free_only=free[::2])
+        return m
+
+    recorded = scans()
+    dense, walked = build(1 << 25), build(0)
+    keys, lo = dense.known_keys()
+    keys_w, lo_w = walked.known_keys()
+    np.testing.assert_array_equal(keys, keys_w)
+    np.testing.assert_array_equal(lo, lo_w)
+    centres = dense.centers_of(keys)
+    for a, b in zip(dense.observation_counts(centres), walked.observation_counts(centres), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert keys.shape[0] > 10_000 and dense.occupied_keys().shape[0] > 100

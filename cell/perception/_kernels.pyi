@@ -19,7 +19,8 @@ def integrate_rays(origin: F64, ends: F64, resolution: float, kinds: NDArray[np.
                    stamp: NDArray[np.uint32], counts: NDArray[np.uint32], n_occupied: NDArray[np.int32],
                    block_coords: I64, n_blocks: int,
                    scan: int, l_hit: SupportsFloat, l_miss: SupportsFloat, l_min: SupportsFloat,
-                   l_max: SupportsFloat, l_occ: SupportsFloat, keep_surface: bool) -> tuple[int, bool]: ...
+                   l_max: SupportsFloat, l_occ: SupportsFloat, keep_surface: bool,
+                   max_dense_voxels: int) -> tuple[int, bool]: ...
 def knn_mean_distances(points: F64, cells: I64, starts: I64, nx: int, ny: int, nz: int, cell_m: float,
                        lo: F64, k: int, out: F64) -> None: ...
 def nearest_within(points: F64, starts: I64, nx: int, ny: int, nz: int, cell_m: float, lo: F64, queries: F64,

@@ -17,7 +17,8 @@ layout, and check shapes and dtypes before calling.
 
 from libc.math cimport INFINITY, fabs, floor, isnan, sqrt
 from libc.stdint cimport int32_t, int64_t, uint8_t, uint32_t, uint64_t
-from libc.stdlib cimport free, malloc
+from libc.stdlib cimport calloc, free, llabs, malloc
+from libc.string cimport memcpy
 
 cdef enum:
     BLOCK_BITS = 4
@@ -27,6 +28,12 @@ cdef enum:
 cdef enum:
     COUNT_BITS = 16
     COUNT_MASK = 0xFFFF  # a count saturates there
+
+cdef enum:
+    # integrate_rays marks the misses in a dense box only when it holds at most this many voxels per
+    # step of the walks: a voxel of the box costs a byte to clear and to sweep (8 at a time), a step of
+    # the walk in the pool several nanoseconds
+    DENSE_PER_STEP = 16
 
 cdef enum:
     K_HIT = 0        # traversed voxels free, end voxel occupied
@@ -159,23 +166,21 @@ cdef inline bint _run_ends(int64_t c, int64_t s, int64_t* n, int64_t* run, doubl
     return (c & BLOCK_MASK) == (0 if s > 0 else BLOCK_MASK)
 
 
-cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
-                    bint end_free) noexcept nogil:
-    """Misses for the voxels of the segment o -> e (grid units) from the voxel k0 of o up to the voxel ke
-    of e, ke itself only when ``end_free``. As OctoMap's computeRayKeys, a ray inside one voxel marks
-    nothing (unless ``end_free``). The next boundary crossed is the one at the smallest parameter t
-    (ties go to the higher axis, as OctoMap); counting the crossings left per axis makes the walk end
-    exactly at ke whatever the rounding of t.
+cdef inline int _next_axis(double tx, double ty, double tz) noexcept nogil:
+    """The axis (0, 1, 2) whose boundary a walk crosses next: the smallest t; OctoMap's order on ties,
+    y before x, z before both."""
+    if ty <= tx:
+        return 1 if ty < tz else 2
+    return 0 if tx < tz else 2
 
-    A step does the least it can: the pool index moves by a constant per axis, and each axis counts down
-    the steps of its run, up to its next event (``_run_length``): only then is the block index looked
-    up or the axis retired."""
-    cdef int64_t left[3]
-    cdef int64_t step[3]
-    cdef double t_max[3]
-    cdef double t_delta[3]
+
+cdef inline int64_t _ray_setup(const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                               int64_t* left, int64_t* step, double* t_max, double* t_delta) noexcept nogil:
+    """Start of the walk o -> e (grid units) from voxel k0 to voxel ke: per axis the crossings ``left``,
+    the ``step`` (+-1), the parameter t of the first crossing ``t_max`` and between crossings ``t_delta``
+    (never, INFINITY, for an axis without crossings); returns the crossings in all, |ke - k0|_1."""
     cdef double d
-    cdef int64_t total = 0, v
+    cdef int64_t total = 0
     cdef int a
     for a in range(3):
         d = e[a] - o[a]
@@ -191,6 +196,26 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         else:
             t_max[a] = INFINITY
             t_delta[a] = INFINITY
+    return total
+
+
+cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                    bint end_free) noexcept nogil:
+    """Misses for the voxels of the segment o -> e (grid units) from the voxel k0 of o up to the voxel ke
+    of e, ke itself only when ``end_free``. As OctoMap's computeRayKeys, a ray inside one voxel marks
+    nothing (unless ``end_free``). The next boundary crossed is the one at the smallest parameter t
+    (ties go to the higher axis, as OctoMap); counting the crossings left per axis makes the walk end
+    exactly at ke whatever the rounding of t.
+
+    A step does the least it can: the pool index moves by a constant per axis, and each axis counts down
+    the steps of its run, up to its next event (``_run_length``): only then is the block index looked
+    up or the axis retired."""
+    cdef int64_t left[3]
+    cdef int64_t step[3]
+    cdef double t_max[3]
+    cdef double t_delta[3]
+    cdef int64_t total = _ray_setup(o, k0, e, ke, left, step, t_max, t_delta), v
+    cdef int a
     if total == 0:
         return _update(g, k0[0], k0[1], k0[2], False) if end_free else True
     # the walk's state in scalars, so that it stays in registers
@@ -213,11 +238,7 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         _apply(g, v, False)
     while total > 1:
         stale = False
-        # OctoMap's order on ties: y before x, z before both
-        if ty <= tx:
-            a = 1 if ty < tz else 2
-        else:
-            a = 0 if tx < tz else 2
+        a = _next_axis(tx, ty, tz)
         if a == 1:
             y += sy
             v += dvy
@@ -251,6 +272,82 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
     return True
 
 
+cdef struct Marks:
+    uint8_t* seen       # one byte per voxel of the box, x slowest, z fastest: 1 = a ray of the scan crossed it
+    int64_t lx, ly, lz  # voxel key of the box's first corner
+    int64_t nx, ny, nz  # its shape, nz a multiple of 8 (a row is swept 8 voxels at a time)
+
+
+cdef inline int64_t _mark_index(Marks* m, int64_t x, int64_t y, int64_t z) noexcept nogil:
+    return ((x - m.lx) * m.ny + (y - m.ly)) * m.nz + (z - m.lz)
+
+
+cdef inline int64_t _cross(double* t, double dt, int64_t* n, int64_t dv) noexcept nogil:
+    """One crossing of an axis: its next crossing ``t`` moves on by ``dt``, or to never (INFINITY) after
+    its last of ``n``; returns the move ``dv`` of the voxel index."""
+    t[0] += dt
+    n[0] -= 1
+    if n[0] == 0:
+        t[0] = INFINITY
+    return dv
+
+
+cdef void _mark_ray(Marks* m, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                    bint end_free) noexcept nogil:
+    """Mark in ``m`` the voxels ``_traverse`` would give a miss: the same walk (same arithmetic, same
+    order on ties, the same crossings per axis), but in a dense box, where a step is a constant move of
+    the index per axis and a store of 1, whether or not an earlier ray of the scan marked the voxel:
+    no block runs, no stamp to read, no branch on it."""
+    cdef int64_t left[3]
+    cdef int64_t step[3]
+    cdef double t_max[3]
+    cdef double t_delta[3]
+    cdef int64_t total = _ray_setup(o, k0, e, ke, left, step, t_max, t_delta)
+    if total == 0:
+        if end_free:
+            m.seen[_mark_index(m, k0[0], k0[1], k0[2])] = 1
+        return
+    cdef uint8_t* seen = m.seen
+    cdef int64_t v = _mark_index(m, k0[0], k0[1], k0[2])
+    cdef int64_t dvx = step[0] * m.ny * m.nz, dvy = step[1] * m.nz, dvz = step[2]
+    cdef int64_t nx = left[0], ny = left[1], nz = left[2]
+    cdef double tx = t_max[0], ty = t_max[1], tz = t_max[2]
+    cdef double dtx = t_delta[0], dty = t_delta[1], dtz = t_delta[2]
+    cdef int a
+    seen[v] = 1
+    while total > 1:
+        a = _next_axis(tx, ty, tz)
+        if a == 1:
+            v += _cross(&ty, dty, &ny, dvy)
+        elif a == 0:
+            v += _cross(&tx, dtx, &nx, dvx)
+        else:
+            v += _cross(&tz, dtz, &nz, dvz)
+        total -= 1
+        seen[v] = 1
+    if end_free:
+        seen[_mark_index(m, ke[0], ke[1], ke[2])] = 1
+
+
+cdef bint _miss_marked(Grid* g, Marks* m) noexcept nogil:
+    """A miss for every voxel marked in ``m`` that this scan has not updated yet (``_update``), swept in
+    key order; False when the pool is full."""
+    cdef int64_t x, y, z, w
+    cdef uint64_t word
+    cdef const uint8_t* row
+    for x in range(m.nx):
+        for y in range(m.ny):
+            row = m.seen + (x * m.ny + y) * m.nz
+            for w in range(0, m.nz, 8):
+                memcpy(&word, row + w, 8)
+                if word == 0:  # most of the box: 8 voxels at a time
+                    continue
+                for z in range(w, w + 8):
+                    if row[z] and not _update(g, m.lx + x, m.ly + y, m.lz + z, False):
+                        return False
+    return True
+
+
 cdef inline void _grid_point(const double* p, double resolution, double* pg, int64_t* key) noexcept nogil:
     """A point p [m] in grid units (p / resolution) and its voxel key floor(p / resolution), the same
     arithmetic as ``OccupancyMap.keys_of``, so that a query finds the voxel a ray updated."""
@@ -265,7 +362,8 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
                    uint32_t[::1] counts, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
                    int64_t n_blocks, uint32_t scan,
-                   float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface):
+                   float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface,
+                   int64_t max_dense_voxels):
     """Integrate one scan; returns (number of blocks in use, True if done / False if the pool is full).
 
     ``origin`` (3,) and ``ends`` (N, 3) [m] in the grid's frame, ``resolution`` [m] its voxel edge (voxel
@@ -279,6 +377,13 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     the hit voxels are then stamped too, so that no ray of the scan carves them. When the pool fills up
     the call stops: grow the pool and call again with the same ``scan``; voxels already updated are
     skipped by their stamp, so the result is the same as one uninterrupted call.
+
+    The misses: most rays of a scan share most of their voxels (all leave the sensor's voxel; a 5 mm map
+    of an RGB-D frame has ~90 steps a ray and ~40 rays a traversed voxel), so the walk is the cost, not
+    the updates. When the box of the scan holds at most ``max_dense_voxels`` voxels and at most
+    DENSE_PER_STEP per step of the walks, the rays only mark their voxels in a dense byte box
+    (``_mark_ray``), and one sweep of it applies the misses (``_miss_marked``); otherwise each ray
+    updates the pool as it walks (``_traverse``). The set of voxels, hence the map, is the same.
     """
     cdef Grid g
     cdef Py_ssize_t i, n = ends.shape[0]
@@ -287,6 +392,12 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     cdef double eg[3]
     cdef int64_t k0[3]
     cdef int64_t ke[3]
+    cdef int64_t lo[3]
+    cdef int64_t hi[3]
+    cdef int64_t steps = 0, volume
+    cdef int a
+    cdef Marks m
+    m.seen = NULL
     g.index = &index[0, 0, 0]
     g.sx, g.sy, g.sz = index.shape[0], index.shape[1], index.shape[2]
     g.ox, g.oy, g.oz = ox, oy, oz
@@ -313,11 +424,31 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
                     if kinds[i] == K_HIT:
                         _grid_point(&ends[i, 0], resolution, eg, ke)
                         _keep_surface(&g, ke[0], ke[1], ke[2])
+            for a in range(3):
+                lo[a] = hi[a] = k0[a]
             for i in range(n):
                 _grid_point(&ends[i, 0], resolution, eg, ke)
-                if not _traverse(&g, og, k0, eg, ke, kinds[i] == K_FREE):
-                    ok = False
-                    break
+                for a in range(3):
+                    lo[a] = min(lo[a], ke[a])
+                    hi[a] = max(hi[a], ke[a])
+                    steps += llabs(ke[a] - k0[a])
+            m.lx, m.ly, m.lz = lo[0], lo[1], lo[2]
+            m.nx, m.ny, m.nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, (hi[2] - lo[2] + 8) & ~7
+            volume = m.nx * m.ny * m.nz
+            if volume <= max_dense_voxels and volume <= DENSE_PER_STEP * steps:
+                m.seen = <uint8_t*>calloc(volume, 1)
+            if m.seen != NULL:
+                for i in range(n):
+                    _grid_point(&ends[i, 0], resolution, eg, ke)
+                    _mark_ray(&m, og, k0, eg, ke, kinds[i] == K_FREE)
+                ok = _miss_marked(&g, &m)
+                free(m.seen)
+            else:
+                for i in range(n):
+                    _grid_point(&ends[i, 0], resolution, eg, ke)
+                    if not _traverse(&g, og, k0, eg, ke, kinds[i] == K_FREE):
+                        ok = False
+                        break
     return g.n_blocks, bool(ok)
 
 
