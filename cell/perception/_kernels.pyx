@@ -354,7 +354,7 @@ cdef inline void _grid_point(const double* p, double resolution, double* pg, int
     cdef int a
     for a in range(3):
         pg[a] = p[a] / resolution
-        key[a] = <int64_t>floor(pg[a])
+        key[a] = _floor(pg[a])
 
 
 def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double resolution,
