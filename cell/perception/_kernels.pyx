@@ -357,6 +357,60 @@ cdef inline void _grid_point(const double* p, double resolution, double* pg, int
         key[a] = _floor(pg[a])
 
 
+cdef bint _dense_box(Marks* m, const int64_t* keys, Py_ssize_t n, const int64_t* k0,
+                     int64_t max_dense_voxels) noexcept nogil:
+    """Allocate ``m`` (zeroed) over the box of the voxel k0 of the origin and the end voxels ``keys``
+    (n, 3) of the rays, if it holds at most ``max_dense_voxels`` voxels and at most DENSE_PER_STEP per
+    step of the walks; False when it does not (or the allocation fails): walk the pool instead."""
+    cdef int64_t lo[3]
+    cdef int64_t hi[3]
+    cdef int64_t steps = 0, volume, k
+    cdef Py_ssize_t i
+    cdef int a
+    for a in range(3):
+        lo[a] = hi[a] = k0[a]
+    for i in range(n):
+        for a in range(3):
+            k = keys[3 * i + a]
+            lo[a] = min(lo[a], k)
+            hi[a] = max(hi[a], k)
+            steps += llabs(k - k0[a])
+    m.lx, m.ly, m.lz = lo[0], lo[1], lo[2]
+    m.nx, m.ny, m.nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, (hi[2] - lo[2] + 8) & ~7
+    volume = m.nx * m.ny * m.nz
+    m.seen = NULL
+    if volume <= max_dense_voxels and volume <= DENSE_PER_STEP * steps:
+        m.seen = <uint8_t*>calloc(volume, 1)
+    return m.seen != NULL
+
+
+cdef bint _integrate(Grid* g, const double* og, const int64_t* k0, const double* pg, const int64_t* keys,
+                     const uint8_t* kinds, Py_ssize_t n, bint keep_surface,
+                     int64_t max_dense_voxels) noexcept nogil:
+    """``integrate_rays`` on the rays' ends in grid units ``pg`` (n, 3) and their voxels ``keys``
+    (n, 3), the origin's ``og`` and ``k0``; False when the pool is full."""
+    cdef Py_ssize_t i
+    cdef Marks m
+    cdef bint ok
+    for i in range(n):
+        if kinds[i] == K_HIT and not _update(g, keys[3 * i], keys[3 * i + 1], keys[3 * i + 2], True):
+            return False
+    if keep_surface:
+        for i in range(n):
+            if kinds[i] == K_HIT:
+                _keep_surface(g, keys[3 * i], keys[3 * i + 1], keys[3 * i + 2])
+    if not _dense_box(&m, keys, n, k0, max_dense_voxels):
+        for i in range(n):
+            if not _traverse(g, og, k0, pg + 3 * i, keys + 3 * i, kinds[i] == K_FREE):
+                return False
+        return True
+    for i in range(n):
+        _mark_ray(&m, og, k0, pg + 3 * i, keys + 3 * i, kinds[i] == K_FREE)
+    ok = _miss_marked(g, &m)
+    free(m.seen)
+    return ok
+
+
 def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double resolution,
                    const uint8_t[::1] kinds, int32_t[:, :, ::1] index,
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
@@ -387,17 +441,16 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     """
     cdef Grid g
     cdef Py_ssize_t i, n = ends.shape[0]
-    cdef bint ok = True
+    cdef bint ok
     cdef double og[3]
-    cdef double eg[3]
     cdef int64_t k0[3]
-    cdef int64_t ke[3]
-    cdef int64_t lo[3]
-    cdef int64_t hi[3]
-    cdef int64_t steps = 0, volume
-    cdef int a
-    cdef Marks m
-    m.seen = NULL
+    # the ends in grid units and their voxels, once for the passes over the rays
+    cdef double* pg = <double*>malloc(3 * n * sizeof(double) + 1)
+    cdef int64_t* keys = <int64_t*>malloc(3 * n * sizeof(int64_t) + 1)
+    if pg == NULL or keys == NULL:
+        free(pg)
+        free(keys)
+        raise MemoryError()
     g.index = &index[0, 0, 0]
     g.sx, g.sy, g.sz = index.shape[0], index.shape[1], index.shape[2]
     g.ox, g.oy, g.oz = ox, oy, oz
@@ -413,42 +466,10 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     with nogil:
         _grid_point(&origin[0], resolution, og, k0)
         for i in range(n):
-            if kinds[i] == K_HIT:
-                _grid_point(&ends[i, 0], resolution, eg, ke)
-                if not _update(&g, ke[0], ke[1], ke[2], True):
-                    ok = False
-                    break
-        if ok:
-            if keep_surface:
-                for i in range(n):
-                    if kinds[i] == K_HIT:
-                        _grid_point(&ends[i, 0], resolution, eg, ke)
-                        _keep_surface(&g, ke[0], ke[1], ke[2])
-            for a in range(3):
-                lo[a] = hi[a] = k0[a]
-            for i in range(n):
-                _grid_point(&ends[i, 0], resolution, eg, ke)
-                for a in range(3):
-                    lo[a] = min(lo[a], ke[a])
-                    hi[a] = max(hi[a], ke[a])
-                    steps += llabs(ke[a] - k0[a])
-            m.lx, m.ly, m.lz = lo[0], lo[1], lo[2]
-            m.nx, m.ny, m.nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, (hi[2] - lo[2] + 8) & ~7
-            volume = m.nx * m.ny * m.nz
-            if volume <= max_dense_voxels and volume <= DENSE_PER_STEP * steps:
-                m.seen = <uint8_t*>calloc(volume, 1)
-            if m.seen != NULL:
-                for i in range(n):
-                    _grid_point(&ends[i, 0], resolution, eg, ke)
-                    _mark_ray(&m, og, k0, eg, ke, kinds[i] == K_FREE)
-                ok = _miss_marked(&g, &m)
-                free(m.seen)
-            else:
-                for i in range(n):
-                    _grid_point(&ends[i, 0], resolution, eg, ke)
-                    if not _traverse(&g, og, k0, eg, ke, kinds[i] == K_FREE):
-                        ok = False
-                        break
+            _grid_point(&ends[i, 0], resolution, pg + 3 * i, keys + 3 * i)
+        ok = _integrate(&g, og, k0, pg, keys, &kinds[0], n, keep_surface, max_dense_voxels)
+    free(pg)
+    free(keys)
     return g.n_blocks, bool(ok)
 
 
