@@ -89,7 +89,7 @@ cdef inline int64_t _local_voxel(Grid* g, int64_t lx, int64_t ly, int64_t lz) no
     return _in_slot(slot, lx, ly, lz)
 
 
-cdef void _apply(Grid* g, int64_t v, bint hit) noexcept nogil:
+cdef inline void _apply(Grid* g, int64_t v, bint hit) noexcept nogil:
     """Apply a hit or a miss to pool voxel v, not yet updated in this scan, and stamp it."""
     cdef float lo, old
     g.stamp[v] = g.scan
@@ -330,21 +330,33 @@ cdef void _mark_ray(Marks* m, const double* o, const int64_t* k0, const double* 
 
 
 cdef bint _miss_marked(Grid* g, Marks* m) noexcept nogil:
-    """A miss for every voxel marked in ``m`` that this scan has not updated yet (``_update``), swept in
-    key order; False when the pool is full."""
-    cdef int64_t x, y, z, w
+    """A miss for every voxel marked in ``m`` that this scan has not updated yet, swept in key order;
+    False when the pool is full. Along a row (x, y fixed) the voxels of one block are consecutive in the
+    pool: the block index is read once a block, not once a voxel."""
+    cdef int64_t x, y, z, w, lz, bz, v0
     cdef uint64_t word
     cdef const uint8_t* row
+    cdef uint32_t scan = g.scan
     for x in range(m.nx):
         for y in range(m.ny):
             row = m.seen + (x * m.ny + y) * m.nz
+            bz = -1  # the block of the row last looked up (relative z >> BLOCK_BITS), none yet
             for w in range(0, m.nz, 8):
                 memcpy(&word, row + w, 8)
                 if word == 0:  # most of the box: 8 voxels at a time
                     continue
                 for z in range(w, w + 8):
-                    if row[z] and not _update(g, m.lx + x, m.ly + y, m.lz + z, False):
-                        return False
+                    if not row[z]:
+                        continue
+                    lz = m.lz + z - g.oz
+                    if (lz >> BLOCK_BITS) != bz:
+                        bz = lz >> BLOCK_BITS
+                        v0 = _local_voxel(g, m.lx + x - g.ox, m.ly + y - g.oy, lz)
+                        if v0 < 0:
+                            return False
+                        v0 -= lz & BLOCK_MASK
+                    if g.stamp[v0 + (lz & BLOCK_MASK)] != scan:
+                        _apply(g, v0 + (lz & BLOCK_MASK), False)
     return True
 
 
