@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from scipy.integrate import quad
 from scipy.stats import beta
 
+from cell.perception import _kernels as _k
 from cell.perception.occupancy import (
     OccupancyMap,
     OccupancyParams,
@@ -306,11 +307,11 @@ def test_observation_weight_falls_like_one_over_the_observations():
 
 
 @pytest.mark.parametrize("keep_surface", [False, True])
-def test_dense_marking_gives_the_map_of_the_walk_in_the_pool(monkeypatch, keep_surface):
-    """The kernel marks a scan's misses in a dense box and sweeps it when the box is small, and walks the
-    pool otherwise: both must give the same map, bit for bit, over scans that mix hits, ToF carving,
-    truncation at max range, rays exactly along grid planes and edges (the tie rules), and voxels
-    updated by earlier scans."""
+def test_dense_marking_and_lanes_give_the_map_of_the_walk_in_the_pool(monkeypatch, keep_surface):
+    """The kernel marks a scan's misses in a dense box and sweeps it when the box is small, walking the
+    rays several at once in SIMD lanes where the processor has them, and walks the pool otherwise: all
+    must give the same map, bit for bit, over scans that mix hits, ToF carving, truncation at max range,
+    rays exactly along grid planes and edges (the tie rules), and voxels updated by earlier scans."""
     rng = np.random.default_rng(7)
 
     def scans() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -324,21 +325,20 @@ def test_dense_marking_gives_the_map_of_the_walk_in_the_pool(monkeypatch, keep_s
             out.append((o, np.vstack([ends, grid]), free))
         return out
 
-    def build(max_dense: int) -> OccupancyMap:
+    def build(max_dense: int, lanes: bool) -> tuple[np.ndarray, ...]:
         monkeypatch.setattr("cell.perception.occupancy._MAX_DENSE_VOXELS", max_dense)
+        monkeypatch.setattr("cell.perception.occupancy._RAY_LANES", lanes)
         m = make_map(max_range_m=0.42, keep_surface=keep_surface)
         for o, ends, free in recorded:
             m.integrate(o, ends)
             m.integrate(o, ends[::2], free_only=free[::2])
-        return m
+        keys, lo = m.known_keys()
+        assert keys.shape[0] > 10_000 and m.occupied_keys().shape[0] > 100
+        return keys, lo, *m.observation_counts(m.centers_of(keys))
 
     recorded = scans()
-    dense, walked = build(1 << 25), build(0)
-    keys, lo = dense.known_keys()
-    keys_w, lo_w = walked.known_keys()
-    np.testing.assert_array_equal(keys, keys_w)
-    np.testing.assert_array_equal(lo, lo_w)
-    centres = dense.centers_of(keys)
-    for a, b in zip(dense.observation_counts(centres), walked.observation_counts(centres), strict=True):
-        np.testing.assert_array_equal(a, b)
-    assert keys.shape[0] > 10_000 and dense.occupied_keys().shape[0] > 100
+    walked = build(0, lanes=False)
+    variants = [(1 << 25, False)] + ([(1 << 25, True)] if _k.ray_lanes() else [])
+    for max_dense, lanes in variants:
+        for a, b in zip(build(max_dense, lanes), walked, strict=True):
+            np.testing.assert_array_equal(a, b)

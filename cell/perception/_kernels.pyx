@@ -278,6 +278,19 @@ cdef struct Marks:
     int64_t nx, ny, nz  # its shape, nz a multiple of 8 (a row is swept 8 voxels at a time)
 
 
+cdef extern from "_ray_lanes.h" nogil:
+    ctypedef struct RayWalk:
+        double t[3]
+        double dt[3]
+        int64_t n[3]
+        int64_t dv[3]
+        int64_t v
+        int64_t total
+    enum: RAY_LANES
+    bint ray_lanes_available()
+    void ray_lanes_walk(RayWalk* w, uint8_t* seen, int64_t steps)
+
+
 cdef inline int64_t _mark_index(Marks* m, int64_t x, int64_t y, int64_t z) noexcept nogil:
     return ((x - m.lx) * m.ny + (y - m.ly)) * m.nz + (z - m.lz)
 
@@ -292,29 +305,36 @@ cdef inline int64_t _cross(double* t, double dt, int64_t* n, int64_t dv) noexcep
     return dv
 
 
-cdef void _mark_ray(Marks* m, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
-                    bint end_free) noexcept nogil:
-    """Mark in ``m`` the voxels ``_traverse`` would give a miss: the same walk (same arithmetic, same
-    order on ties, the same crossings per axis), but in a dense box, where a step is a constant move of
-    the index per axis and a store of 1, whether or not an earlier ray of the scan marked the voxel:
-    no block runs, no stamp to read, no branch on it."""
+cdef void _mark_start(Marks* m, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                      RayWalk* w) noexcept nogil:
+    """Start in ``w`` the walk of ``_traverse`` for the segment o -> e (grid units), k0 -> ke, in the
+    dense box ``m``, and mark its first voxel (k0, unless the ray stays in it)."""
     cdef int64_t left[3]
     cdef int64_t step[3]
-    cdef double t_max[3]
-    cdef double t_delta[3]
-    cdef int64_t total = _ray_setup(o, k0, e, ke, left, step, t_max, t_delta)
-    if total == 0:
-        if end_free:
-            m.seen[_mark_index(m, k0[0], k0[1], k0[2])] = 1
-        return
-    cdef uint8_t* seen = m.seen
-    cdef int64_t v = _mark_index(m, k0[0], k0[1], k0[2])
-    cdef int64_t dvx = step[0] * m.ny * m.nz, dvy = step[1] * m.nz, dvz = step[2]
-    cdef int64_t nx = left[0], ny = left[1], nz = left[2]
-    cdef double tx = t_max[0], ty = t_max[1], tz = t_max[2]
-    cdef double dtx = t_delta[0], dty = t_delta[1], dtz = t_delta[2]
+    cdef int64_t stride[3]
     cdef int a
-    seen[v] = 1
+    w.total = _ray_setup(o, k0, e, ke, left, step, w.t, w.dt)
+    stride[0], stride[1], stride[2] = m.ny * m.nz, m.nz, 1
+    for a in range(3):
+        w.n[a] = left[a]
+        w.dv[a] = step[a] * stride[a]
+    w.v = _mark_index(m, k0[0], k0[1], k0[2])
+    if w.total > 0:
+        m.seen[w.v] = 1
+
+
+cdef void _mark_walk(const RayWalk* w, uint8_t* seen) noexcept nogil:
+    """Walk on from ``w`` up to the voxel before the end one, marking each voxel in ``seen``: the walk of
+    ``_traverse`` (same arithmetic, same order on ties, the same crossings per axis), but in a dense box,
+    where a step is a constant move of the index per axis and a store of 1, whether or not an earlier ray
+    of the scan marked the voxel: no block runs, no stamp to read, no branch on it."""
+    # the state in locals, so that it stays in registers (a store to seen may alias *w)
+    cdef int64_t v = w.v, total = w.total
+    cdef int64_t nx = w.n[0], ny = w.n[1], nz = w.n[2]
+    cdef int64_t dvx = w.dv[0], dvy = w.dv[1], dvz = w.dv[2]
+    cdef double tx = w.t[0], ty = w.t[1], tz = w.t[2]
+    cdef double dtx = w.dt[0], dty = w.dt[1], dtz = w.dt[2]
+    cdef int a
     while total > 1:
         a = _next_axis(tx, ty, tz)
         if a == 1:
@@ -325,15 +345,91 @@ cdef void _mark_ray(Marks* m, const double* o, const int64_t* k0, const double* 
             v += _cross(&tz, dtz, &nz, dvz)
         total -= 1
         seen[v] = 1
+
+
+cdef inline void _mark_end(Marks* m, const int64_t* ke, bint end_free) noexcept nogil:
+    """The end voxel of a ray is marked only for a ray without a target (``_traverse``'s end_free)."""
     if end_free:
-        seen[_mark_index(m, ke[0], ke[1], ke[2])] = 1
+        m.seen[_mark_index(m, ke[0], ke[1], ke[2])] = 1
+
+
+cdef void _mark_ray(Marks* m, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                    bint end_free) noexcept nogil:
+    """Mark in ``m`` the voxels ``_traverse`` would give a miss."""
+    cdef RayWalk w
+    _mark_start(m, o, k0, e, ke, &w)
+    _mark_walk(&w, m.seen)
+    _mark_end(m, ke, end_free)
+
+
+cdef int64_t* _order_by_crossings(const int64_t* keys, Py_ssize_t n, const int64_t* k0) noexcept nogil:
+    """The rays' indices (malloc'd, n) sorted by their crossings |ke - k0|_1, by a counting sort; NULL
+    when memory fails."""
+    cdef int64_t* total = <int64_t*>malloc(n * sizeof(int64_t) + 1)
+    cdef int64_t* order = <int64_t*>malloc(n * sizeof(int64_t) + 1)
+    cdef int64_t* start = NULL
+    cdef int64_t longest = 0
+    cdef Py_ssize_t i
+    if total != NULL and order != NULL:
+        for i in range(n):
+            total[i] = (llabs(keys[3 * i] - k0[0]) + llabs(keys[3 * i + 1] - k0[1])
+                        + llabs(keys[3 * i + 2] - k0[2]))
+            longest = max(longest, total[i])
+        start = <int64_t*>calloc(longest + 2, sizeof(int64_t))
+    if start == NULL:
+        free(total)
+        free(order)
+        return NULL
+    for i in range(n):
+        start[total[i] + 1] += 1
+    for i in range(longest + 1):
+        start[i + 1] += start[i]
+    for i in range(n):
+        order[start[total[i]]] = i
+        start[total[i]] += 1
+    free(total)
+    free(start)
+    return order
+
+
+cdef void _mark_rays(Marks* m, const double* og, const int64_t* k0, const double* pg, const int64_t* keys,
+                     const uint8_t* kinds, Py_ssize_t n, bint lanes) noexcept nogil:
+    """Mark in ``m`` the voxels of all the rays (ends ``pg`` / ``keys`` (n, 3), grid units / voxels).
+
+    With ``lanes``, where the processor has those of ``_ray_lanes.h``, the rays go there RAY_LANES at a time: sorted
+    by their number of crossings, so that the walks of a group are about as long, the group walks
+    together as far as its shortest walk goes less one crossing, then each walk finishes alone (a few
+    crossings at most). Otherwise, and for the rays left over, one ray at a time."""
+    cdef RayWalk w[RAY_LANES]
+    cdef int64_t* order = _order_by_crossings(keys, n, k0) if lanes and ray_lanes_available() else NULL
+    cdef int64_t j, r, steps
+    cdef Py_ssize_t i = 0
+    cdef int l
+    if order != NULL:
+        while i + RAY_LANES <= n:
+            steps = -1
+            for l in range(RAY_LANES):
+                r = order[i + l]
+                _mark_start(m, og, k0, pg + 3 * r, keys + 3 * r, &w[l])
+                steps = w[l].total - 1 if steps < 0 else min(steps, w[l].total - 1)
+            if steps > 0:
+                ray_lanes_walk(w, m.seen, steps)
+            for l in range(RAY_LANES):
+                r = order[i + l]
+                _mark_walk(&w[l], m.seen)
+                _mark_end(m, keys + 3 * r, kinds[r] == K_FREE)
+            i += RAY_LANES
+    for j in range(i, n):
+        r = order[j] if order != NULL else j
+        _mark_ray(m, og, k0, pg + 3 * r, keys + 3 * r, kinds[r] == K_FREE)
+    free(order)
 
 
 cdef bint _miss_marked(Grid* g, Marks* m) noexcept nogil:
     """A miss for every voxel marked in ``m`` that this scan has not updated yet, swept in key order;
     False when the pool is full. Along a row (x, y fixed) the voxels of one block are consecutive in the
     pool: the block index is read once a block, not once a voxel."""
-    cdef int64_t x, y, z, w, lz, bz, v0
+    cdef int64_t x, y, z, w, lz, bz, v0 = 0
     cdef uint64_t word
     cdef const uint8_t* row
     cdef uint32_t scan = g.scan
@@ -397,8 +493,8 @@ cdef bint _dense_box(Marks* m, const int64_t* keys, Py_ssize_t n, const int64_t*
 
 
 cdef bint _integrate(Grid* g, const double* og, const int64_t* k0, const double* pg, const int64_t* keys,
-                     const uint8_t* kinds, Py_ssize_t n, bint keep_surface,
-                     int64_t max_dense_voxels) noexcept nogil:
+                     const uint8_t* kinds, Py_ssize_t n, bint keep_surface, int64_t max_dense_voxels,
+                     bint lanes) noexcept nogil:
     """``integrate_rays`` on the rays' ends in grid units ``pg`` (n, 3) and their voxels ``keys``
     (n, 3), the origin's ``og`` and ``k0``; False when the pool is full."""
     cdef Py_ssize_t i
@@ -416,11 +512,15 @@ cdef bint _integrate(Grid* g, const double* og, const int64_t* k0, const double*
             if not _traverse(g, og, k0, pg + 3 * i, keys + 3 * i, kinds[i] == K_FREE):
                 return False
         return True
-    for i in range(n):
-        _mark_ray(&m, og, k0, pg + 3 * i, keys + 3 * i, kinds[i] == K_FREE)
+    _mark_rays(&m, og, k0, pg, keys, kinds, n, lanes)
     ok = _miss_marked(g, &m)
     free(m.seen)
     return ok
+
+
+def ray_lanes():
+    """True when this processor walks rays in the SIMD lanes of ``_ray_lanes.h`` (x86-64 with AVX2)."""
+    return bool(ray_lanes_available())
 
 
 def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double resolution,
@@ -429,7 +529,7 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
                    uint32_t[::1] counts, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
                    int64_t n_blocks, uint32_t scan,
                    float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface,
-                   int64_t max_dense_voxels):
+                   int64_t max_dense_voxels, bint lanes):
     """Integrate one scan; returns (number of blocks in use, True if done / False if the pool is full).
 
     ``origin`` (3,) and ``ends`` (N, 3) [m] in the grid's frame, ``resolution`` [m] its voxel edge (voxel
@@ -448,8 +548,9 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     of an RGB-D frame has ~90 steps a ray and ~40 rays a traversed voxel), so the walk is the cost, not
     the updates. When the box of the scan holds at most ``max_dense_voxels`` voxels and at most
     DENSE_PER_STEP per step of the walks, the rays only mark their voxels in a dense byte box
-    (``_mark_ray``), and one sweep of it applies the misses (``_miss_marked``); otherwise each ray
-    updates the pool as it walks (``_traverse``). The set of voxels, hence the map, is the same.
+    (``_mark_rays``; with ``lanes``, several rays at once in SIMD lanes where the processor has them),
+    and one sweep of it applies the misses (``_miss_marked``); otherwise each ray updates the pool as it
+    walks (``_traverse``). The set of voxels, hence the map, is the same.
     """
     cdef Grid g
     cdef Py_ssize_t i, n = ends.shape[0]
@@ -479,7 +580,7 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
         _grid_point(&origin[0], resolution, og, k0)
         for i in range(n):
             _grid_point(&ends[i, 0], resolution, pg + 3 * i, keys + 3 * i)
-        ok = _integrate(&g, og, k0, pg, keys, &kinds[0], n, keep_surface, max_dense_voxels)
+        ok = _integrate(&g, og, k0, pg, keys, &kinds[0], n, keep_surface, max_dense_voxels, lanes)
     free(pg)
     free(keys)
     return g.n_blocks, bool(ok)

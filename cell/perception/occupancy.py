@@ -28,7 +28,8 @@ also counts the scans that updated it as occupied and as free (``observation_cou
 the log-odds clamped, they tell a voxel seen often and still ambiguous (a surface that partly fills its voxel,
 hit by some views and crossed by others) from one barely seen. The rays of a scan share most of their voxels:
 when the box of the scan is small enough (``_MAX_DENSE_VOXELS``), the kernel only marks the traversed voxels
-in a dense byte box and applies the misses in one sweep of it, the same voxels as walking the pool. The kernel
+in a dense byte box (walking several rays at once in SIMD lanes where the processor has them, ``_RAY_LANES``)
+and applies the misses in one sweep of it, the same voxels as walking the pool. The kernel
 allocates blocks as it updates them; the Python side only grows the block index to the box of the scan and the
 pool when it fills. Building the kernel: ``pip install -e .`` (``make setup``).
 
@@ -62,6 +63,8 @@ _PACK_OFFSET = 1 << (_PACK_BITS - 1)
 # The largest box [voxels, one byte each] in which the kernel marks a scan's misses before applying them
 # (``_kernels.integrate_rays``); a scan with a larger box walks the pool directly.
 _MAX_DENSE_VOXELS = 1 << 25
+# Walk the rays of a scan several at once in SIMD lanes where the processor has them (the same voxels).
+_RAY_LANES = True
 
 
 def logit(p: float) -> float:
@@ -306,7 +309,7 @@ class OccupancyMap:
                 o, e, self.resolution_m, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
                 self._pool, self._stamp, self._counts, self._n_occupied, self._block_coords, self._n_blocks,
                 self._scan, self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ,
-                self.params.keep_surface, _MAX_DENSE_VOXELS)
+                self.params.keep_surface, _MAX_DENSE_VOXELS, _RAY_LANES)
             self._n_blocks = n_blocks
             if done:
                 return
