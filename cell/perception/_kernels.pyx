@@ -3,7 +3,8 @@
 
 - ``integrate_rays``: one scan into the block-sparse log-odds grid of ``occupancy.OccupancyMap`` with
   OctoMap's sensor model (visual-servoing paper section II-A 3), by exact voxel traversal
-  (Amanatides and Woo, 1987);
+  (Amanatides and Woo, 1987), several rays at once in the SIMD lanes of ``_ray_lanes.h`` where the
+  processor has them;
 - ``knn_mean_distances``: the mean distance of each point to its k nearest neighbours, the statistic of
   the statistical outlier removal (``filters.statistical_outlier_mask``), by an exact uniform-grid search;
 - ``nearest_within`` / ``k_nearest_within``: exact grid searches for ICP correspondences and normals;
