@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from scipy.integrate import quad
 from scipy.stats import beta
 
+from cell.perception import _kernels as _k
 from cell.perception.occupancy import (
     OccupancyMap,
     OccupancyParams,
@@ -303,3 +304,41 @@ def test_observation_weight_falls_like_one_over_the_observations():
         observation_weight(np.array([7]), np.array([3]))[0])
     settled, ambiguous = observation_weight(np.array([10, 5]), np.array([0, 5]))
     assert settled < ambiguous
+
+
+@pytest.mark.parametrize("keep_surface", [False, True])
+def test_dense_marking_and_lanes_give_the_map_of_the_walk_in_the_pool(monkeypatch, keep_surface):
+    """The kernel marks a scan's misses in a dense box and sweeps it when the box is small, walking the
+    rays several at once in SIMD lanes where the processor has them, and walks the pool otherwise: all
+    must give the same map, bit for bit, over scans that mix hits, ToF carving, truncation at max range,
+    rays exactly along grid planes and edges (the tie rules), and voxels updated by earlier scans."""
+    rng = np.random.default_rng(7)
+
+    def scans() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        out = []
+        for origin in ([0.003, 0.004, 0.5], [0.02, -0.01, 0.45], [0.0, 0.0, 0.4]):  # the last on a corner
+            o = np.array(origin)
+            ends = np.column_stack([rng.uniform(-0.15, 0.15, 400), rng.uniform(-0.15, 0.15, 400),
+                                    rng.uniform(0.0, 0.1, 400)])
+            grid = np.array([[0.1, 0.0, 0.0], [0.1, 0.1, 0.0], [0.0, 0.1, 0.3], [-0.05, 0.05, 0.35]])
+            free = rng.random(ends.shape[0] + grid.shape[0]) < 0.2
+            out.append((o, np.vstack([ends, grid]), free))
+        return out
+
+    def build(max_dense: int, lanes: bool) -> tuple[np.ndarray, ...]:
+        monkeypatch.setattr("cell.perception.occupancy._MAX_DENSE_VOXELS", max_dense)
+        monkeypatch.setattr("cell.perception.occupancy._RAY_LANES", lanes)
+        m = make_map(max_range_m=0.42, keep_surface=keep_surface)
+        for o, ends, free in recorded:
+            m.integrate(o, ends)
+            m.integrate(o, ends[::2], free_only=free[::2])
+        keys, lo = m.known_keys()
+        assert keys.shape[0] > 10_000 and m.occupied_keys().shape[0] > 100
+        return keys, lo, *m.observation_counts(m.centers_of(keys))
+
+    recorded = scans()
+    walked = build(0, lanes=False)
+    variants = [(1 << 25, False)] + ([(1 << 25, True)] if _k.ray_lanes() else [])
+    for max_dense, lanes in variants:
+        for a, b in zip(build(max_dense, lanes), walked, strict=True):
+            np.testing.assert_array_equal(a, b)

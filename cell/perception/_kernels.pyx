@@ -3,7 +3,8 @@
 
 - ``integrate_rays``: one scan into the block-sparse log-odds grid of ``occupancy.OccupancyMap`` with
   OctoMap's sensor model (visual-servoing paper section II-A 3), by exact voxel traversal
-  (Amanatides and Woo, 1987);
+  (Amanatides and Woo, 1987), several rays at once in the SIMD lanes of ``_ray_lanes.h`` where the
+  processor has them;
 - ``knn_mean_distances``: the mean distance of each point to its k nearest neighbours, the statistic of
   the statistical outlier removal (``filters.statistical_outlier_mask``), by an exact uniform-grid search;
 - ``nearest_within`` / ``k_nearest_within``: exact grid searches for ICP correspondences and normals;
@@ -17,7 +18,8 @@ layout, and check shapes and dtypes before calling.
 
 from libc.math cimport INFINITY, fabs, floor, isnan, sqrt
 from libc.stdint cimport int32_t, int64_t, uint8_t, uint32_t, uint64_t
-from libc.stdlib cimport free, malloc
+from libc.stdlib cimport calloc, free, llabs, malloc
+from libc.string cimport memcpy
 
 cdef enum:
     BLOCK_BITS = 4
@@ -27,6 +29,12 @@ cdef enum:
 cdef enum:
     COUNT_BITS = 16
     COUNT_MASK = 0xFFFF  # a count saturates there
+
+cdef enum:
+    # integrate_rays marks the misses in a dense box only when it holds at most this many voxels per
+    # step of the walks: a voxel of the box costs a byte to clear and to sweep (8 at a time), a step of
+    # the walk in the pool several nanoseconds
+    DENSE_PER_STEP = 16
 
 cdef enum:
     K_HIT = 0        # traversed voxels free, end voxel occupied
@@ -82,7 +90,7 @@ cdef inline int64_t _local_voxel(Grid* g, int64_t lx, int64_t ly, int64_t lz) no
     return _in_slot(slot, lx, ly, lz)
 
 
-cdef void _apply(Grid* g, int64_t v, bint hit) noexcept nogil:
+cdef inline void _apply(Grid* g, int64_t v, bint hit) noexcept nogil:
     """Apply a hit or a miss to pool voxel v, not yet updated in this scan, and stamp it."""
     cdef float lo, old
     g.stamp[v] = g.scan
@@ -159,23 +167,21 @@ cdef inline bint _run_ends(int64_t c, int64_t s, int64_t* n, int64_t* run, doubl
     return (c & BLOCK_MASK) == (0 if s > 0 else BLOCK_MASK)
 
 
-cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
-                    bint end_free) noexcept nogil:
-    """Misses for the voxels of the segment o -> e (grid units) from the voxel k0 of o up to the voxel ke
-    of e, ke itself only when ``end_free``. As OctoMap's computeRayKeys, a ray inside one voxel marks
-    nothing (unless ``end_free``). The next boundary crossed is the one at the smallest parameter t
-    (ties go to the higher axis, as OctoMap); counting the crossings left per axis makes the walk end
-    exactly at ke whatever the rounding of t.
+cdef inline int _next_axis(double tx, double ty, double tz) noexcept nogil:
+    """The axis (0, 1, 2) whose boundary a walk crosses next: the smallest t; OctoMap's order on ties,
+    y before x, z before both."""
+    if ty <= tx:
+        return 1 if ty < tz else 2
+    return 0 if tx < tz else 2
 
-    A step does the least it can: the pool index moves by a constant per axis, and each axis counts down
-    the steps of its run, up to its next event (``_run_length``): only then is the block index looked
-    up or the axis retired."""
-    cdef int64_t left[3]
-    cdef int64_t step[3]
-    cdef double t_max[3]
-    cdef double t_delta[3]
+
+cdef inline int64_t _ray_setup(const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                               int64_t* left, int64_t* step, double* t_max, double* t_delta) noexcept nogil:
+    """Start of the walk o -> e (grid units) from voxel k0 to voxel ke: per axis the crossings ``left``,
+    the ``step`` (+-1), the parameter t of the first crossing ``t_max`` and between crossings ``t_delta``
+    (never, INFINITY, for an axis without crossings); returns the crossings in all, |ke - k0|_1."""
     cdef double d
-    cdef int64_t total = 0, v
+    cdef int64_t total = 0
     cdef int a
     for a in range(3):
         d = e[a] - o[a]
@@ -191,6 +197,26 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         else:
             t_max[a] = INFINITY
             t_delta[a] = INFINITY
+    return total
+
+
+cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                    bint end_free) noexcept nogil:
+    """Misses for the voxels of the segment o -> e (grid units) from the voxel k0 of o up to the voxel ke
+    of e, ke itself only when ``end_free``. As OctoMap's computeRayKeys, a ray inside one voxel marks
+    nothing (unless ``end_free``). The next boundary crossed is the one at the smallest parameter t
+    (ties go to the higher axis, as OctoMap); counting the crossings left per axis makes the walk end
+    exactly at ke whatever the rounding of t.
+
+    A step does the least it can: the pool index moves by a constant per axis, and each axis counts down
+    the steps of its run, up to its next event (``_run_length``): only then is the block index looked
+    up or the axis retired."""
+    cdef int64_t left[3]
+    cdef int64_t step[3]
+    cdef double t_max[3]
+    cdef double t_delta[3]
+    cdef int64_t total = _ray_setup(o, k0, e, ke, left, step, t_max, t_delta), v
+    cdef int a
     if total == 0:
         return _update(g, k0[0], k0[1], k0[2], False) if end_free else True
     # the walk's state in scalars, so that it stays in registers
@@ -213,11 +239,7 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         _apply(g, v, False)
     while total > 1:
         stale = False
-        # OctoMap's order on ties: y before x, z before both
-        if ty <= tx:
-            a = 1 if ty < tz else 2
-        else:
-            a = 0 if tx < tz else 2
+        a = _next_axis(tx, ty, tz)
         if a == 1:
             y += sy
             v += dvy
@@ -251,13 +273,255 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
     return True
 
 
+cdef struct Marks:
+    uint8_t* seen       # one byte per voxel of the box, x slowest, z fastest: 1 = a ray of the scan crossed it
+    int64_t lx, ly, lz  # voxel key of the box's first corner
+    int64_t nx, ny, nz  # its shape, nz a multiple of 8 (a row is swept 8 voxels at a time)
+
+
+cdef extern from "_ray_lanes.h" nogil:
+    ctypedef struct RayWalk:
+        double t[3]
+        double dt[3]
+        int64_t n[3]
+        int64_t dv[3]
+        int64_t v
+        int64_t total
+    enum: RAY_LANES
+    bint ray_lanes_available()
+    void ray_lanes_walk(RayWalk* w, uint8_t* seen, int64_t steps)
+
+
+cdef inline int64_t _mark_index(Marks* m, int64_t x, int64_t y, int64_t z) noexcept nogil:
+    return ((x - m.lx) * m.ny + (y - m.ly)) * m.nz + (z - m.lz)
+
+
+cdef inline int64_t _cross(double* t, double dt, int64_t* n, int64_t dv) noexcept nogil:
+    """One crossing of an axis: its next crossing ``t`` moves on by ``dt``, or to never (INFINITY) after
+    its last of ``n``; returns the move ``dv`` of the voxel index."""
+    t[0] += dt
+    n[0] -= 1
+    if n[0] == 0:
+        t[0] = INFINITY
+    return dv
+
+
+cdef void _mark_start(Marks* m, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                      RayWalk* w) noexcept nogil:
+    """Start in ``w`` the walk of ``_traverse`` for the segment o -> e (grid units), k0 -> ke, in the
+    dense box ``m``, and mark its first voxel (k0, unless the ray stays in it)."""
+    cdef int64_t left[3]
+    cdef int64_t step[3]
+    cdef int64_t stride[3]
+    cdef int a
+    w.total = _ray_setup(o, k0, e, ke, left, step, w.t, w.dt)
+    stride[0], stride[1], stride[2] = m.ny * m.nz, m.nz, 1
+    for a in range(3):
+        w.n[a] = left[a]
+        w.dv[a] = step[a] * stride[a]
+    w.v = _mark_index(m, k0[0], k0[1], k0[2])
+    if w.total > 0:
+        m.seen[w.v] = 1
+
+
+cdef void _mark_walk(const RayWalk* w, uint8_t* seen) noexcept nogil:
+    """Walk on from ``w`` up to the voxel before the end one, marking each voxel in ``seen``: the walk of
+    ``_traverse`` (same arithmetic, same order on ties, the same crossings per axis), but in a dense box,
+    where a step is a constant move of the index per axis and a store of 1, whether or not an earlier ray
+    of the scan marked the voxel: no block runs, no stamp to read, no branch on it."""
+    # the state in locals, so that it stays in registers (a store to seen may alias *w)
+    cdef int64_t v = w.v, total = w.total
+    cdef int64_t nx = w.n[0], ny = w.n[1], nz = w.n[2]
+    cdef int64_t dvx = w.dv[0], dvy = w.dv[1], dvz = w.dv[2]
+    cdef double tx = w.t[0], ty = w.t[1], tz = w.t[2]
+    cdef double dtx = w.dt[0], dty = w.dt[1], dtz = w.dt[2]
+    cdef int a
+    while total > 1:
+        a = _next_axis(tx, ty, tz)
+        if a == 1:
+            v += _cross(&ty, dty, &ny, dvy)
+        elif a == 0:
+            v += _cross(&tx, dtx, &nx, dvx)
+        else:
+            v += _cross(&tz, dtz, &nz, dvz)
+        total -= 1
+        seen[v] = 1
+
+
+cdef inline void _mark_end(Marks* m, const int64_t* ke, bint end_free) noexcept nogil:
+    """The end voxel of a ray is marked only for a ray without a target (``_traverse``'s end_free)."""
+    if end_free:
+        m.seen[_mark_index(m, ke[0], ke[1], ke[2])] = 1
+
+
+cdef void _mark_ray(Marks* m, const double* o, const int64_t* k0, const double* e, const int64_t* ke,
+                    bint end_free) noexcept nogil:
+    """Mark in ``m`` the voxels ``_traverse`` would give a miss."""
+    cdef RayWalk w
+    _mark_start(m, o, k0, e, ke, &w)
+    _mark_walk(&w, m.seen)
+    _mark_end(m, ke, end_free)
+
+
+cdef int64_t* _order_by_crossings(const int64_t* keys, Py_ssize_t n, const int64_t* k0) noexcept nogil:
+    """The rays' indices (malloc'd, n) sorted by their crossings |ke - k0|_1, by a counting sort; NULL
+    when memory fails."""
+    cdef int64_t* total = <int64_t*>malloc(n * sizeof(int64_t) + 1)
+    cdef int64_t* order = <int64_t*>malloc(n * sizeof(int64_t) + 1)
+    cdef int64_t* start = NULL
+    cdef int64_t longest = 0
+    cdef Py_ssize_t i
+    if total != NULL and order != NULL:
+        for i in range(n):
+            total[i] = (llabs(keys[3 * i] - k0[0]) + llabs(keys[3 * i + 1] - k0[1])
+                        + llabs(keys[3 * i + 2] - k0[2]))
+            longest = max(longest, total[i])
+        start = <int64_t*>calloc(longest + 2, sizeof(int64_t))
+    if start == NULL:
+        free(total)
+        free(order)
+        return NULL
+    for i in range(n):
+        start[total[i] + 1] += 1
+    for i in range(longest + 1):
+        start[i + 1] += start[i]
+    for i in range(n):
+        order[start[total[i]]] = i
+        start[total[i]] += 1
+    free(total)
+    free(start)
+    return order
+
+
+cdef void _mark_rays(Marks* m, const double* og, const int64_t* k0, const double* pg, const int64_t* keys,
+                     const uint8_t* kinds, Py_ssize_t n, bint lanes) noexcept nogil:
+    """Mark in ``m`` the voxels of all the rays (ends ``pg`` / ``keys`` (n, 3), grid units / voxels).
+
+    With ``lanes``, where the processor has those of ``_ray_lanes.h``, the rays go there RAY_LANES at a time: sorted
+    by their number of crossings, so that the walks of a group are about as long, the group walks
+    together as far as its shortest walk goes less one crossing, then each walk finishes alone (a few
+    crossings at most). Otherwise, and for the rays left over, one ray at a time."""
+    cdef RayWalk w[RAY_LANES]
+    cdef int64_t* order = _order_by_crossings(keys, n, k0) if lanes and ray_lanes_available() else NULL
+    cdef int64_t j, r, steps
+    cdef Py_ssize_t i = 0
+    cdef int l
+    if order != NULL:
+        while i + RAY_LANES <= n:
+            steps = -1
+            for l in range(RAY_LANES):
+                r = order[i + l]
+                _mark_start(m, og, k0, pg + 3 * r, keys + 3 * r, &w[l])
+                steps = w[l].total - 1 if steps < 0 else min(steps, w[l].total - 1)
+            if steps > 0:
+                ray_lanes_walk(w, m.seen, steps)
+            for l in range(RAY_LANES):
+                r = order[i + l]
+                _mark_walk(&w[l], m.seen)
+                _mark_end(m, keys + 3 * r, kinds[r] == K_FREE)
+            i += RAY_LANES
+    for j in range(i, n):
+        r = order[j] if order != NULL else j
+        _mark_ray(m, og, k0, pg + 3 * r, keys + 3 * r, kinds[r] == K_FREE)
+    free(order)
+
+
+cdef bint _miss_marked(Grid* g, Marks* m) noexcept nogil:
+    """A miss for every voxel marked in ``m`` that this scan has not updated yet, swept in key order;
+    False when the pool is full. Along a row (x, y fixed) the voxels of one block are consecutive in the
+    pool: the block index is read once a block, not once a voxel."""
+    cdef int64_t x, y, z, w, lz, bz, v0 = 0
+    cdef uint64_t word
+    cdef const uint8_t* row
+    cdef uint32_t scan = g.scan
+    for x in range(m.nx):
+        for y in range(m.ny):
+            row = m.seen + (x * m.ny + y) * m.nz
+            bz = -1  # the block of the row last looked up (relative z >> BLOCK_BITS), none yet
+            for w in range(0, m.nz, 8):
+                memcpy(&word, row + w, 8)
+                if word == 0:  # most of the box: 8 voxels at a time
+                    continue
+                for z in range(w, w + 8):
+                    if not row[z]:
+                        continue
+                    lz = m.lz + z - g.oz
+                    if (lz >> BLOCK_BITS) != bz:
+                        bz = lz >> BLOCK_BITS
+                        v0 = _local_voxel(g, m.lx + x - g.ox, m.ly + y - g.oy, lz)
+                        if v0 < 0:
+                            return False
+                        v0 -= lz & BLOCK_MASK
+                    if g.stamp[v0 + (lz & BLOCK_MASK)] != scan:
+                        _apply(g, v0 + (lz & BLOCK_MASK), False)
+    return True
+
+
 cdef inline void _grid_point(const double* p, double resolution, double* pg, int64_t* key) noexcept nogil:
     """A point p [m] in grid units (p / resolution) and its voxel key floor(p / resolution), the same
     arithmetic as ``OccupancyMap.keys_of``, so that a query finds the voxel a ray updated."""
     cdef int a
     for a in range(3):
         pg[a] = p[a] / resolution
-        key[a] = <int64_t>floor(pg[a])
+        key[a] = _floor(pg[a])
+
+
+cdef bint _dense_box(Marks* m, const int64_t* keys, Py_ssize_t n, const int64_t* k0,
+                     int64_t max_dense_voxels) noexcept nogil:
+    """Allocate ``m`` (zeroed) over the box of the voxel k0 of the origin and the end voxels ``keys``
+    (n, 3) of the rays, if it holds at most ``max_dense_voxels`` voxels and at most DENSE_PER_STEP per
+    step of the walks; False when it does not (or the allocation fails): walk the pool instead."""
+    cdef int64_t lo[3]
+    cdef int64_t hi[3]
+    cdef int64_t steps = 0, volume, k
+    cdef Py_ssize_t i
+    cdef int a
+    for a in range(3):
+        lo[a] = hi[a] = k0[a]
+    for i in range(n):
+        for a in range(3):
+            k = keys[3 * i + a]
+            lo[a] = min(lo[a], k)
+            hi[a] = max(hi[a], k)
+            steps += llabs(k - k0[a])
+    m.lx, m.ly, m.lz = lo[0], lo[1], lo[2]
+    m.nx, m.ny, m.nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, (hi[2] - lo[2] + 8) & ~7
+    volume = m.nx * m.ny * m.nz
+    m.seen = NULL
+    if volume <= max_dense_voxels and volume <= DENSE_PER_STEP * steps:
+        m.seen = <uint8_t*>calloc(volume, 1)
+    return m.seen != NULL
+
+
+cdef bint _integrate(Grid* g, const double* og, const int64_t* k0, const double* pg, const int64_t* keys,
+                     const uint8_t* kinds, Py_ssize_t n, bint keep_surface, int64_t max_dense_voxels,
+                     bint lanes) noexcept nogil:
+    """``integrate_rays`` on the rays' ends in grid units ``pg`` (n, 3) and their voxels ``keys``
+    (n, 3), the origin's ``og`` and ``k0``; False when the pool is full."""
+    cdef Py_ssize_t i
+    cdef Marks m
+    cdef bint ok
+    for i in range(n):
+        if kinds[i] == K_HIT and not _update(g, keys[3 * i], keys[3 * i + 1], keys[3 * i + 2], True):
+            return False
+    if keep_surface:
+        for i in range(n):
+            if kinds[i] == K_HIT:
+                _keep_surface(g, keys[3 * i], keys[3 * i + 1], keys[3 * i + 2])
+    if not _dense_box(&m, keys, n, k0, max_dense_voxels):
+        for i in range(n):
+            if not _traverse(g, og, k0, pg + 3 * i, keys + 3 * i, kinds[i] == K_FREE):
+                return False
+        return True
+    _mark_rays(&m, og, k0, pg, keys, kinds, n, lanes)
+    ok = _miss_marked(g, &m)
+    free(m.seen)
+    return ok
+
+
+def ray_lanes():
+    """True when this processor walks rays in the SIMD lanes of ``_ray_lanes.h`` (x86-64 with AVX2)."""
+    return bool(ray_lanes_available())
 
 
 def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double resolution,
@@ -265,7 +529,8 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
                    uint32_t[::1] counts, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
                    int64_t n_blocks, uint32_t scan,
-                   float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface):
+                   float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface,
+                   int64_t max_dense_voxels, bint lanes):
     """Integrate one scan; returns (number of blocks in use, True if done / False if the pool is full).
 
     ``origin`` (3,) and ``ends`` (N, 3) [m] in the grid's frame, ``resolution`` [m] its voxel edge (voxel
@@ -279,14 +544,27 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     the hit voxels are then stamped too, so that no ray of the scan carves them. When the pool fills up
     the call stops: grow the pool and call again with the same ``scan``; voxels already updated are
     skipped by their stamp, so the result is the same as one uninterrupted call.
+
+    The misses: most rays of a scan share most of their voxels (all leave the sensor's voxel; a 5 mm map
+    of an RGB-D frame has ~90 steps a ray and ~40 rays a traversed voxel), so the walk is the cost, not
+    the updates. When the box of the scan holds at most ``max_dense_voxels`` voxels and at most
+    DENSE_PER_STEP per step of the walks, the rays only mark their voxels in a dense byte box
+    (``_mark_rays``; with ``lanes``, several rays at once in SIMD lanes where the processor has them),
+    and one sweep of it applies the misses (``_miss_marked``); otherwise each ray updates the pool as it
+    walks (``_traverse``). The set of voxels, hence the map, is the same.
     """
     cdef Grid g
     cdef Py_ssize_t i, n = ends.shape[0]
-    cdef bint ok = True
+    cdef bint ok
     cdef double og[3]
-    cdef double eg[3]
     cdef int64_t k0[3]
-    cdef int64_t ke[3]
+    # the ends in grid units and their voxels, once for the passes over the rays
+    cdef double* pg = <double*>malloc(3 * n * sizeof(double) + 1)
+    cdef int64_t* keys = <int64_t*>malloc(3 * n * sizeof(int64_t) + 1)
+    if pg == NULL or keys == NULL:
+        free(pg)
+        free(keys)
+        raise MemoryError()
     g.index = &index[0, 0, 0]
     g.sx, g.sy, g.sz = index.shape[0], index.shape[1], index.shape[2]
     g.ox, g.oy, g.oz = ox, oy, oz
@@ -302,22 +580,10 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     with nogil:
         _grid_point(&origin[0], resolution, og, k0)
         for i in range(n):
-            if kinds[i] == K_HIT:
-                _grid_point(&ends[i, 0], resolution, eg, ke)
-                if not _update(&g, ke[0], ke[1], ke[2], True):
-                    ok = False
-                    break
-        if ok:
-            if keep_surface:
-                for i in range(n):
-                    if kinds[i] == K_HIT:
-                        _grid_point(&ends[i, 0], resolution, eg, ke)
-                        _keep_surface(&g, ke[0], ke[1], ke[2])
-            for i in range(n):
-                _grid_point(&ends[i, 0], resolution, eg, ke)
-                if not _traverse(&g, og, k0, eg, ke, kinds[i] == K_FREE):
-                    ok = False
-                    break
+            _grid_point(&ends[i, 0], resolution, pg + 3 * i, keys + 3 * i)
+        ok = _integrate(&g, og, k0, pg, keys, &kinds[0], n, keep_surface, max_dense_voxels, lanes)
+    free(pg)
+    free(keys)
     return g.n_blocks, bool(ok)
 
 

@@ -26,9 +26,12 @@ an edge of the grid, step the higher axis first, as OctoMap). The once-per-scan 
 stamp of the last scan that updated it; hits are applied before the traversals, so occupied wins. Each voxel
 also counts the scans that updated it as occupied and as free (``observation_counts``, beyond OctoMap): with
 the log-odds clamped, they tell a voxel seen often and still ambiguous (a surface that partly fills its voxel,
-hit by some views and crossed by others) from one barely seen. The kernel allocates blocks as rays reach them;
-the Python side only grows the block index to the box of the scan and the pool when it fills. Building the
-kernel: ``pip install -e .`` (``make setup``).
+hit by some views and crossed by others) from one barely seen. The rays of a scan share most of their voxels:
+when the box of the scan is small enough (``_MAX_DENSE_VOXELS``), the kernel only marks the traversed voxels
+in a dense byte box (walking several rays at once in SIMD lanes where the processor has them, ``_RAY_LANES``)
+and applies the misses in one sweep of it, the same voxels as walking the pool. The kernel
+allocates blocks as it updates them; the Python side only grows the block index to the box of the scan and the
+pool when it fills. Building the kernel: ``pip install -e .`` (``make setup``).
 
 Entropy is the binary Shannon entropy of eq. 8 in nats; ``mean_entropy_in_box`` is H_ROI of eq. 12.
 """
@@ -57,6 +60,11 @@ _COUNT_BITS = 16  # observation counts: hits in the low 16 bits of a uint32, mis
 _COUNT_MASK = (1 << _COUNT_BITS) - 1
 _PACK_BITS = 21  # per axis when keys are packed into one int64 for sorting: +-2^20 voxels (10 km at 1 cm)
 _PACK_OFFSET = 1 << (_PACK_BITS - 1)
+# The largest box [voxels, one byte each] in which the kernel marks a scan's misses before applying them
+# (``_kernels.integrate_rays``); a scan with a larger box walks the pool directly.
+_MAX_DENSE_VOXELS = 1 << 25
+# Walk the rays of a scan several at once in SIMD lanes where the processor has them (the same voxels).
+_RAY_LANES = True
 
 
 def logit(p: float) -> float:
@@ -301,7 +309,7 @@ class OccupancyMap:
                 o, e, self.resolution_m, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
                 self._pool, self._stamp, self._counts, self._n_occupied, self._block_coords, self._n_blocks,
                 self._scan, self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ,
-                self.params.keep_surface)
+                self.params.keep_surface, _MAX_DENSE_VOXELS, _RAY_LANES)
             self._n_blocks = n_blocks
             if done:
                 return
