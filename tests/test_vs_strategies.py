@@ -254,18 +254,40 @@ def test_local_convergence_needs_a_full_window_mostly_below_one(franka):
     assert not local.converged()
 
 
-def test_a_camera_going_to_and_fro_within_delta_has_converged_whatever_its_gradient(franka):
-    """||g|| above 1 throughout, but the camera never leaves a ball of delta: eq. 5-6 cannot tell its
-    views apart, a maximum on the gradient's scale."""
+def test_a_camera_going_to_and_fro_within_delta_judges_its_gradient_flat_there(franka):
+    """||g|| above 1 over delta, but the camera has not left a ball of delta for a whole window: eq. 5-6
+    cannot tell its views apart, so the difference counts as flat and the camera holds, unless a longer
+    arc offers a way on."""
+
+    class DeltaNoise:
+        """f with a strong difference over delta around the camera; over longer arcs ``arc`` (4,)."""
+
+        def __init__(self, arc: list[float]) -> None:
+            self.arc = np.array(arc)
+
+        def __call__(self, T):
+            n = np.asarray(T).shape[0]
+            return np.array([1.0, 1.5, 0.5, 1.0, 1.0]) if n == 5 else self.arc
+
     delta = franka.planners.vs_local.delta_m
-    dither = LocalGradient(franka)
-    sweep = LocalGradient(franka)
+    session = FakeSession(floor_z=0.0)
+    session.pose = T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    flat, strong = DeltaNoise([1.0] * 4), DeltaNoise([1.5, 0.5, 1.0, 1.0])
+    dither, sweep = LocalGradient(franka), LocalGradient(franka)
     for i, p in enumerate(_sweep(200)):
         to_and_fro = [0.4 + 0.4 * delta * np.sin(i / 7.0), 0.2 * delta * np.cos(i / 5.0), 0.3]
         dither.record(1.5, np.array(to_and_fro))
         sweep.record(1.5, p)  # 20 cm in the window
-        assert not dither.converged() or i == 199
-    assert dither.converged() and not sweep.converged()
+    assert dither.dithering() and not sweep.dithering()
+    moving = sweep(session, T, flat)
+    assert moving.g_norm > 1.0 and moving.g[0] > 0.0
+    held = dither(session, T, flat)
+    assert held.g_norm == 0.0 and not np.any(held.g)
+    on = dither(session, T, strong)  # the first longer arc: 2 delta's
+    assert on.g_norm >= 1.0 and on.g[0] > 0.0
+    for _ in range(161):
+        dither.record(held.g_norm, np.array([0.4, 0.0, 0.3]))
+    assert dither.converged()
 
 
 def test_achieved_fraction_measures_what_the_arm_realized_along_the_command():
