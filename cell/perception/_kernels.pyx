@@ -167,6 +167,18 @@ cdef inline bint _run_ends(int64_t c, int64_t s, int64_t* n, int64_t* run, doubl
     return (c & BLOCK_MASK) == (0 if s > 0 else BLOCK_MASK)
 
 
+cdef inline bint _step_run(int64_t* c, int64_t s, int64_t* v, int64_t dv, double* t, double dt, int64_t* run,
+                           int64_t* n) noexcept nogil:
+    """One crossing of an axis of ``_traverse``'s walk: its coordinate c moves by its step s, the pool index
+    v by dv, its next crossing t by dt, and its run counts down; True when the run ended by a step into
+    another block (``_run_ends``: the pool index is then stale)."""
+    c[0] += s
+    v[0] += dv
+    t[0] += dt
+    run[0] -= 1
+    return _run_ends(c[0], s, n, run, t) if run[0] == 0 else False
+
+
 cdef inline int _next_axis(double tx, double ty, double tz) noexcept nogil:
     """The axis (0, 1, 2) whose boundary a walk crosses next: the smallest t; OctoMap's order on ties,
     y before x, z before both."""
@@ -238,29 +250,13 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
     if stamp[v] != scan:
         _apply(g, v, False)
     while total > 1:
-        stale = False
         a = _next_axis(tx, ty, tz)
         if a == 1:
-            y += sy
-            v += dvy
-            ty += dty
-            ry -= 1
-            if ry == 0:
-                stale = _run_ends(y, sy, &ny, &ry, &ty)
+            stale = _step_run(&y, sy, &v, dvy, &ty, dty, &ry, &ny)
         elif a == 0:
-            x += sx
-            v += dvx
-            tx += dtx
-            rx -= 1
-            if rx == 0:
-                stale = _run_ends(x, sx, &nx, &rx, &tx)
+            stale = _step_run(&x, sx, &v, dvx, &tx, dtx, &rx, &nx)
         else:
-            z += sz
-            v += dvz
-            tz += dtz
-            rz -= 1
-            if rz == 0:
-                stale = _run_ends(z, sz, &nz, &rz, &tz)
+            stale = _step_run(&z, sz, &v, dvz, &tz, dtz, &rz, &nz)
         total -= 1
         if stale:
             v = _local_voxel(g, x, y, z)
