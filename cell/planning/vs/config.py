@@ -153,10 +153,10 @@ class VSLocalConfig(StrictModel):
     """VS-Local (eq. 4-6): central differences over ``delta_m`` (5 cm) along the camera's x and y, the
     gradient divided by f(r) + ``f_eps_nats`` and scaled by ``alpha`` [m], its norm clipped to ``g_max``
     (1); the scan ends when ||g|| < ``g_max`` (before clipping) in more than ``converged_fraction``
-    (80 %) of the last ``window`` (200) servo evaluations; a camera that stayed within ``delta_m`` / 2 of
-    its mean position over them has its difference over delta judged flat (a departure). The relative
-    gradient and ``alpha`` = 1 m depart from the paper's 1e-4 on an unstated scale of f: see
-    ``cell.planning.vs.local``.
+    (80 %) of the last ``window`` (200) servo evaluations; a camera that stayed within ``delta_m`` of its
+    mean position over them has its difference over delta judged flat until a longer arc has led it that
+    arc's length away (a departure). The relative gradient and ``alpha`` = 1 m depart from the paper's 1e-4
+    on an unstated scale of f: see ``cell.planning.vs.local``.
 
     ``reach_deg`` [deg]: where ||g|| over ``delta_m`` is below ``g_max``, the same difference is taken again
     over arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this angle before the evaluation

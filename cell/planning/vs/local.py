@@ -15,15 +15,19 @@ one held by a plane does, instead of pressing against it until the time budget e
 at (8, -6) cm, 45 deg from the station: the stretched arm moved the camera at 4 % of the commanded
 speed from 75 s on, and the scan ran to its 180 s budget).
 
-Going to and fro (``dithering``, not in the paper): a camera that stayed within delta / 2 of its mean
-position over a whole window is on a spot where eq. 5-6, which cannot tell apart views closer than
-delta, give noise, however large ||g|| is there. Its difference over delta then counts as flat: the
-camera holds, and the longer arcs below decide whether it moves on or the scan converges. A Table I
-bunny (seed 0) went to and fro from 21 to 65 s, online coverage stuck at 83 %, before it happened to
-leave (97.4 % at 90 s); with the rule it leaves at once (96.8 % at 75 s). Not yet solved: a held-out
-horizontal box (30 deg yaw, seed 0) goes to and fro from 20 s on, ||g|| 1.0-1.5 with its direction
-turning over and f flat at 0.022 nats; a longer arc shows it a way out, but once the camera has left
-the ball the difference over delta pulls it back, and it runs to its time budget either way.
+Going to and fro (``dithering``, not in the paper): a camera that stayed within delta of its mean
+position over a whole window never left the stencil of eq. 5-6 (views delta either side) that judged
+the spot: the differences it followed there were of views overlapping each other's, noise however large
+||g|| is. The spot's difference over delta then counts as flat: the camera holds, and the longer arcs
+below decide whether it moves on or the scan converges. If an arc offers a way on, the camera follows
+the arcs until it is that arc's length from the spot (``_spot``): the arc said f is higher there, not
+half way, and within that distance the difference over delta would pull it back to the spot it has used
+up. A Table I bunny (seed 0) went to and fro from 21 to 65 s, online coverage stuck at 83 %, before it
+happened to leave (97.4 % at 90 s); with the rule it leaves at once (96.8 % at 75 s). A held-out
+horizontal box (20 deg yaw, seed 0) went to and fro 20 cm over its top from 20 s to its 180 s budget
+within 1-3 cm of one spot, ||g|| 1.0-1.5 with its direction turning over and f flat at 0.022 nats, its
+sides unseen: with the rule as first written (a ball of delta / 2, no commitment) the
+arcs showed it the way out, and once out of the ball the difference over delta pulled it back.
 
 The rescaling departs from the paper. Its alpha = 1e-4 multiplies the gradient of its implementation's f,
 whose scale it does not give: with f as eq. 9 writes it (mean over the K rays, nats) alpha = 1e-4 gives
@@ -139,11 +143,15 @@ class LocalGradient:
         self._offsets = np.array([[0, 0, 0], [d, 0, 0], [-d, 0, 0], [0, d, 0], [0, -d, 0]], dtype=float)
         self._below: deque[bool] = deque(maxlen=self.params.window)
         self._where: deque[Array] = deque(maxlen=self.params.window)
+        # (spot [m, base frame], distance [m]): a spot gone to and fro on, and how far from it the
+        # arcs lead before the difference over delta is followed again
+        self._spot: tuple[Array, float] | None = None
 
     def reset(self) -> None:
-        """Forget the convergence window (a new local phase)."""
+        """Forget the convergence window and any spot (a new local phase)."""
         self._below.clear()
         self._where.clear()
+        self._spot = None
 
     def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
                  feasible: Callable[[Array], Array] | None = None) -> Secondary:
@@ -159,7 +167,11 @@ class LocalGradient:
         relative = p.alpha * grad / (f[0] + p.f_eps_nats)  # d ln f / dx, see the module docstring
         direction = feasible(relative)
         norm = float(np.linalg.norm(direction))
-        if self.dithering():  # the difference over delta is noise here: judged flat, not followed
+        position = T_base_cam[:3, 3]
+        if self._spot is not None and np.linalg.norm(position - self._spot[0]) >= self._spot[1]:
+            self._spot = None  # the arc's length away: the difference over delta leads again
+        leaving = self._spot is not None
+        if leaving or self.dithering():  # the difference over delta is noise here: not followed
             direction, norm = np.zeros(3), 0.0
         for angle in self._coarse_angles:  # flat at delta: the same difference over longer arcs
             if norm >= p.g_max:
@@ -172,6 +184,8 @@ class LocalGradient:
             coarse = feasible(p.alpha * arc_grad / (f[0] + p.f_eps_nats))
             if float(np.linalg.norm(coarse)) >= p.g_max:
                 direction, norm = coarse, float(np.linalg.norm(coarse))
+                if not leaving and self.dithering():
+                    self._spot = (np.array(self._mean_position()), angle * self.standoff_m)
         clipped = direction * (p.g_max / norm) if norm > p.g_max else direction
         return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local")
 
@@ -181,13 +195,17 @@ class LocalGradient:
         self._below.append(g_norm < self.params.g_max)
         self._where.append(np.asarray(position_m, dtype=float).reshape(3))
 
+    def _mean_position(self) -> Array:
+        """The camera's mean position (3,) [m, base frame] over the window."""
+        return np.asarray(np.mean(np.array(self._where), axis=0))
+
     def dithering(self) -> bool:
-        """Over a full window of evaluations the camera stayed within delta / 2 of its mean position
-        (module docstring)."""
+        """Over a full window of evaluations the camera stayed within delta of its mean position (module
+        docstring)."""
         if len(self._where) < (self._where.maxlen or 0):
             return False
-        where = np.array(self._where)
-        return float(np.max(np.linalg.norm(where - where.mean(axis=0), axis=1))) <= 0.5 * self.params.delta_m
+        spread = np.linalg.norm(np.array(self._where) - self._mean_position(), axis=1)
+        return float(np.max(spread)) <= self.params.delta_m
 
     def converged(self) -> bool:
         """||g|| < g_max in more than ``converged_fraction`` of a full window of evaluations."""
