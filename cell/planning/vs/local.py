@@ -173,21 +173,31 @@ class LocalGradient:
         leaving = self._spot is not None
         if leaving or self.dithering():  # the difference over delta is noise here: not followed
             direction, norm = np.zeros(3), 0.0
-        for angle in self._coarse_angles:  # flat at delta: the same difference over longer arcs
-            if norm >= p.g_max:
-                break
-            views = orbited(T_base_cam, self.standoff_m, angle)
-            # a view beyond a barrier plane (under the floor, past the reach) is none the camera can take:
-            # it offers what the current one does
-            fk = np.where([session.sensor_pose_allowed(v) for v in views], objective(views), f[0])
-            arc_grad = np.array([fk[0] - fk[1], fk[2] - fk[3], 0.0]) / (2.0 * angle * self.standoff_m)
-            coarse = feasible(p.alpha * arc_grad / (f[0] + p.f_eps_nats))
+        if norm < p.g_max and self._coarse_angles:  # flat at delta: the same difference over longer arcs
+            coarse, angle = self._steepest_arc(session, T_base_cam, objective, float(f[0]), feasible)
             if float(np.linalg.norm(coarse)) >= p.g_max:
                 direction, norm = coarse, float(np.linalg.norm(coarse))
                 if not leaving and self.dithering():
-                    self._spot = (np.array(self._mean_position()), angle * self.standoff_m)
+                    self._spot = (self._mean_position(), angle * self.standoff_m)
         clipped = direction * (p.g_max / norm) if norm > p.g_max else direction
         return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local")
+
+    def _steepest_arc(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
+                      feasible: Callable[[Array], Array]) -> tuple[Array, float]:
+        """The relative difference (3,) over the coarse arc [rad] along which ln f rises fastest per metre,
+        the part of it the camera can follow, and that arc."""
+        p = self.params
+        views = np.concatenate([orbited(T_base_cam, self.standoff_m, a) for a in self._coarse_angles])
+        # a view beyond a barrier plane (under the floor, past the reach) is none the camera can take: it
+        # offers what the current one does
+        f = np.where([session.sensor_pose_allowed(v) for v in views], objective(views), f_r).reshape(-1, 4)
+        best, best_angle = np.zeros(3), self._coarse_angles[0]
+        for fk, angle in zip(f, self._coarse_angles, strict=True):
+            arc_grad = np.array([fk[0] - fk[1], fk[2] - fk[3], 0.0]) / (2.0 * angle * self.standoff_m)
+            slope = feasible(p.alpha * arc_grad / (f_r + p.f_eps_nats))
+            if np.linalg.norm(slope) > np.linalg.norm(best):
+                best, best_angle = slope, angle
+        return best, best_angle
 
     def record(self, g_norm: float, position_m: Array) -> None:
         """Count one servo evaluation whose ||g|| (before clipping, as the arm could follow it) was
