@@ -224,6 +224,34 @@ def test_local_gradient_looks_over_longer_arcs_where_f_is_flat_at_delta(franka):
     assert VSHybridPlanner(franka).local(session, T, flat_at_delta).g_norm == 0.0
 
 
+class StepObjective:
+    """f(r) = f_at plus ``rise`` (nats) once r_o is more than ``beyond_m`` [m] from ``at`` along unit ``e``,
+    for each (e, beyond_m, rise) of ``steps``: information lying some distance away on either side."""
+
+    def __init__(self, at, f_at, steps):
+        self.at, self.f_at, self.steps = np.asarray(at), f_at, steps
+
+    def __call__(self, T):
+        d = np.asarray(T)[..., :3, 3] - self.at
+        values = self.f_at + sum(rise * ((d @ np.asarray(e)) > beyond) for e, beyond, rise in self.steps)
+        return float(values) if np.asarray(T).ndim == 2 else values
+
+
+def test_where_delta_is_flat_the_arc_along_which_f_rises_fastest_leads(franka):
+    """A little information just beyond the shortest arc on one side and much more a little further on
+    the other: the camera goes for the steeper rise, not the nearer one."""
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
+    session = FakeSession()
+    session.pose = T
+    steps = [([1.0, 0.0, 0.0], 0.09, 0.02), ([-1.0, 0.0, 0.0], 0.13, 0.2)]
+    near_and_far = StepObjective(T[:3, 3], 0.001, steps)
+    sec = LocalGradient(franka)(session, T, near_and_far)
+    assert sec.g_norm > franka.planners.vs_local.g_max and sec.g[0] == pytest.approx(-1.0)
+    # the near rise alone is steep enough to be followed
+    near = StepObjective(T[:3, 3], 0.001, [([1.0, 0.0, 0.0], 0.09, 0.02)])
+    assert LocalGradient(franka)(session, T, near).g[0] == pytest.approx(1.0)
+
+
 def test_local_direction_slides_along_a_barrier(franka):
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     session = FakeSession(floor_z=T[2, 3] - 0.01)  # 1 cm above the floor, within the activation
@@ -288,6 +316,37 @@ def test_a_camera_going_to_and_fro_within_delta_judges_its_gradient_flat_there(f
     for _ in range(161):
         dither.record(held.g_norm, np.array([0.4, 0.0, 0.3]))
     assert dither.converged()
+
+
+def test_a_camera_leaving_a_spot_it_went_to_and_fro_on_follows_the_arcs_for_their_length(franka):
+    """Once a longer arc has offered the way off a spot gone to and fro on, a difference over delta that
+    points back to the spot is not followed until the camera is that arc's length from the spot."""
+
+    class BackToTheSpot:
+        """The difference over delta points along -x, the longer arcs along +x."""
+
+        def __call__(self, T):
+            n = np.asarray(T).shape[0]
+            return np.array([1.0, 0.5, 1.5, 1.0, 1.0]) if n == 5 else np.tile([1.5, 0.5, 1.0, 1.0], n // 4)
+
+    delta = franka.planners.vs_local.delta_m
+    session = FakeSession(floor_z=0.0)
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
+    local = LocalGradient(franka)
+    spot = T[:3, 3].copy()
+    for i in range(200):
+        to_and_fro = np.array([0.4 * delta * np.sin(i / 7.0), 0.0, 0.2 * delta * np.cos(i / 5.0)])
+        local.record(1.5, spot + to_and_fro)
+    leaving = local(session, T, BackToTheSpot())
+    assert leaving.g[0] > 0.0  # the first arc's length, 2 delta's, away from the spot
+    for i in range(1, 200):  # the camera moves on along +x at 5 cm/s
+        local.record(leaving.g_norm, spot + np.array([i * 0.001, 0.0, 0.0]))
+    on_the_way = T.copy()
+    on_the_way[0, 3] += 1.9 * delta
+    assert local(session, on_the_way, BackToTheSpot()).g[0] > 0.0
+    arrived = T.copy()
+    arrived[0, 3] += 2.1 * delta
+    assert local(session, arrived, BackToTheSpot()).g[0] < 0.0  # delta leads again
 
 
 def test_achieved_fraction_measures_what_the_arm_realized_along_the_command():

@@ -77,8 +77,11 @@ until the time budget (177 s, 71.9 %); taking the steeper one-sided difference o
 wandered on the same plateau (69.7 % at 50 s). So, before an evaluation counts towards convergence,
 the same central difference is taken over longer arcs of the sphere, 2, 3, ... times delta's up to
 ``reach_deg`` (23, 34, 46, ... 90 deg at Z* = 25 cm), the four virtual displacements turned about the point
-the camera looks at so that their views still hold the object (``orbited``); the first arc whose ||g||
-reaches 1 gives the direction, and the camera still moves continuously along the sphere. Each arc is
+the camera looks at so that their views still hold the object (``orbited``); the arc along which ln f
+rises fastest per metre gives the direction if its ||g|| reaches 1, and the camera still moves
+continuously along the sphere (the shortest arc reaching 1, as first written, sent a held-out horizontal
+box's camera to and fro between a short arc's small rise on one side and a longer arc's steep one on the
+other: a few centimetres towards the steep one made the short one lead again). Each arc is
 judged on the part of its direction the camera can follow (``ServoScanPlanner.follows``: barrier planes,
 joint limits, the edge of the reach), as the convergence window is, and a displaced view the camera may
 not take (beyond a barrier plane) counts as the current one: with the views under the table counted,
