@@ -75,19 +75,26 @@ seen, and neither the termination nor f_eps can tell the two apart: with f_eps a
 unseen voxel (0.0013 nats), ||g|| stayed above 1 on the plateau's noise and the camera dithered in place
 until the time budget (177 s, 71.9 %); taking the steeper one-sided difference out of the dip instead
 wandered on the same plateau (69.7 % at 50 s). So, before an evaluation counts towards convergence,
-the same central difference is taken over longer arcs of the sphere, 2, 3, ... times delta's up to
-``reach_deg`` (23, 34, 46, ... 90 deg at Z* = 25 cm), the four virtual displacements turned about the point
-the camera looks at so that their views still hold the object (``orbited``); the arc along which ln f
-rises fastest per metre gives the direction if its ||g|| reaches 1, and the camera still moves
-continuously along the sphere (the shortest arc reaching 1, as first written, sent a held-out horizontal
-box's camera to and fro between a short arc's small rise on one side and a longer arc's steep one on the
-other: a few centimetres towards the steep one made the short one lead again). Each arc is
-judged on the part of its direction the camera can follow (``ServoScanPlanner.follows``: barrier planes,
-joint limits, the edge of the reach), as the convergence window is, and a displaced view the camera may
-not take (beyond a barrier plane) counts as the current one: with the views under the table counted,
-mustard, bunny and teapot scans on the floor plane dithered along it, towards the unseen underside,
-until their time budget. The arcs grow by delta's rather than doubling: from a camera high over the
-object the views 90 deg away lie under the table and those 46 deg away still look at the known top,
+the camera looks over longer arcs of the sphere, 2, 3, ... times delta's up to ``reach_deg`` (23, 34, 46,
+... 90 deg at Z* = 25 cm): the four virtual displacements of eq. 5-6 turned about the point the camera
+looks at, so that their views still hold the object (``orbited``). It heads for the one view among them
+whose f exceeds f(r) most per metre of arc, (f(view) - f(r)) / arc, judged on the part of its direction
+the camera can follow (``ServoScanPlanner.follows``: barrier planes, joint limits, the edge of the reach)
+as the convergence window is, with the relative scaling above; a view beyond a barrier plane (under the
+table, past the reach) is none the camera can take and is not a candidate. The camera still moves
+continuously along the sphere. Two forms were tried first and dropped. The central difference of each
+arc, the shortest that reached 1 leading: a held-out horizontal box's camera went to and fro between a
+short arc's small rise on one side and a longer arc's steep one on the other (a few centimetres towards
+the steep one and the short one led again), to its 180 s budget. The same, the steepest arc leading: a
+view beyond a barrier plane then had to count as the current one (with the views under the table
+counted, mustard, bunny and teapot scans on the floor plane had dithered along it, towards the unseen
+underside), which made a long arc's difference one-sided and steep next to a shorter arc's two-sided one
+in the opposite direction, and a held-out mustard bottle went to and fro between the two and converged
+at 85 % (99.8 % before). The one best view gives one target; as the camera nears it, that view's rise per
+metre only grows. On the fifteen held-out scans (seed 0): mean coverage 85.0 % in 35.5 s with the
+central differences, 87.8 % in 28.0 s with the best view.
+
+The arcs grow by delta's rather than doubling: from a camera high over the object the views 90 deg away lie under the table and those 46 deg away still look at the known top,
 and a dragon scan converged there with the unseen lower sides in between (87.6 %). The scan ends where
 f is flat at every scale up to a quarter turn, beyond which a displaced view looks at the sides the
 current one cannot see: a local maximum at the scale of the object rather than of delta.
@@ -187,20 +194,22 @@ class LocalGradient:
 
     def _steepest_arc(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
                       feasible: Callable[[Array], Array]) -> tuple[Array, float]:
-        """The relative difference (3,) over the coarse arc [rad] along which ln f rises fastest per metre,
-        the part of it the camera can follow, and that arc."""
+        """The relative rise of f (3,) towards the coarse arcs' view whose f exceeds ``f_r`` most per metre
+        of arc in the part of its direction the camera can follow (``feasible``), that part, and that view's
+        arc [rad]; zero if no view exceeds it. A view beyond a barrier plane (under the floor, past the
+        reach) is none the camera can take."""
         p = self.params
         views = np.concatenate([orbited(T_base_cam, self.standoff_m, a) for a in self._coarse_angles])
-        # a view beyond a barrier plane (under the floor, past the reach) is none the camera can take: it
-        # offers what the current one does
-        f = np.where([session.sensor_pose_allowed(v) for v in views], objective(views), f_r).reshape(-1, 4)
-        best, best_angle = np.zeros(3), self._coarse_angles[0]
-        for fk, angle in zip(f, self._coarse_angles, strict=True):
-            arc_grad = np.array([fk[0] - fk[1], fk[2] - fk[3], 0.0]) / (2.0 * angle * self.standoff_m)
-            slope = feasible(p.alpha * arc_grad / (f_r + p.f_eps_nats))
-            if np.linalg.norm(slope) > np.linalg.norm(best):
-                best, best_angle = slope, angle
-        return best, best_angle
+        arcs = np.repeat(self._coarse_angles, 4)
+        allowed = np.array([session.sensor_pose_allowed(v) for v in views])
+        rise = np.where(allowed, (objective(views) - f_r) / (arcs * self.standoff_m), 0.0)  # [nats/m]
+        towards = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])  # as orbited
+        best, best_arc = np.zeros(3), float(arcs[0])
+        for i in np.flatnonzero(rise > 0.0):
+            followed = feasible(p.alpha * rise[i] * towards[i % 4] / (f_r + p.f_eps_nats))
+            if np.linalg.norm(followed) > np.linalg.norm(best):
+                best, best_arc = followed, float(arcs[i])
+        return best, best_arc
 
     def record(self, g_norm: float, position_m: Array) -> None:
         """Count one servo evaluation whose ||g|| (before clipping, as the arm could follow it) was
