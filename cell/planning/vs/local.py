@@ -94,10 +94,11 @@ at 85 % (99.8 % before). The one best view gives one target; as the camera nears
 metre only grows. On the fifteen held-out scans (seed 0): mean coverage 85.0 % in 35.5 s with the
 central differences, 87.8 % in 28.0 s with the best view.
 
-The arcs grow by delta's rather than doubling: from a camera high over the object the views 90 deg away lie under the table and those 46 deg away still look at the known top,
-and a dragon scan converged there with the unseen lower sides in between (87.6 %). The scan ends where
-f is flat at every scale up to a quarter turn, beyond which a displaced view looks at the sides the
-current one cannot see: a local maximum at the scale of the object rather than of delta.
+The arcs grow by delta's rather than doubling: from a camera high over the object the views 90 deg away lie
+under the table and those 46 deg away still look at the known top, and a dragon scan converged there with the
+unseen lower sides in between (87.6 %). The scan ends where f is flat at every scale up to a quarter turn,
+beyond which a displaced view looks at the sides the current one cannot see: a local maximum at the scale of
+the object rather than of delta.
 ``reach_deg`` 0 is the paper's single delta; VS-Hybrid keeps that (its global goals are its way off a
 plateau). Table I, seed 0, calibration error on (``cell eval vs-table --planners vs-local --seeds 0``),
 coverage of the limit with 90 deg against 0: banana 0.82 / 0.71, baseball 0.91 / 0.84, bunny
