@@ -237,7 +237,7 @@ class StepObjective:
         return float(values) if np.asarray(T).ndim == 2 else values
 
 
-def test_where_delta_is_flat_the_arc_along_which_f_rises_fastest_leads(franka):
+def test_where_delta_is_flat_the_arc_view_whose_f_rises_most_per_metre_leads(franka):
     """A little information just beyond the shortest arc on one side and much more a little further on
     the other: the camera goes for the steeper rise, not the nearer one."""
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x

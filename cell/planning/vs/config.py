@@ -158,9 +158,10 @@ class VSLocalConfig(StrictModel):
     arc's length away (a departure). The relative gradient and ``alpha`` = 1 m depart from the paper's 1e-4
     on an unstated scale of f: see ``cell.planning.vs.local``.
 
-    ``reach_deg`` [deg]: where ||g|| over ``delta_m`` is below ``g_max``, the same difference is taken again
-    over arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this angle before the evaluation
-    counts towards convergence (a departure; 0, the default, is the paper's single delta; the RGB-D cells
+    ``reach_deg`` [deg]: where ||g|| over ``delta_m`` is below ``g_max``, the camera heads for the view, among
+    the displacements of eq. 5-6 over arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this
+    angle, whose f exceeds f(r) most per metre of arc, before the evaluation counts towards convergence (a
+    departure; 0, the default, is the paper's single delta; the RGB-D cells
     use 90: a camera that has used up the information around it otherwise ends on a plateau, not at a
     maximum, see ``cell.planning.vs.local``). VS-Hybrid always uses the single delta."""
 

@@ -185,7 +185,7 @@ class LocalGradient:
         if leaving or self.dithering():  # the difference over delta is noise here: not followed
             direction, norm = np.zeros(3), 0.0
         if norm < p.g_max and self._coarse_angles:  # flat at delta: the same difference over longer arcs
-            coarse, angle = self._steepest_arc(session, T_base_cam, objective, float(f[0]), feasible)
+            coarse, angle = self._best_arc_view(session, T_base_cam, objective, float(f[0]), feasible)
             if float(np.linalg.norm(coarse)) >= p.g_max:
                 direction, norm = coarse, float(np.linalg.norm(coarse))
                 if not leaving and self.dithering():
@@ -193,8 +193,8 @@ class LocalGradient:
         clipped = direction * (p.g_max / norm) if norm > p.g_max else direction
         return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local")
 
-    def _steepest_arc(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
-                      feasible: Callable[[Array], Array]) -> tuple[Array, float]:
+    def _best_arc_view(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
+                       feasible: Callable[[Array], Array]) -> tuple[Array, float]:
         """The relative rise of f (3,) towards the coarse arcs' view whose f exceeds ``f_r`` most per metre
         of arc in the part of its direction the camera can follow (``feasible``), that part, and that view's
         arc [rad]; zero if no view exceeds it. A view beyond a barrier plane (under the floor, past the
