@@ -63,6 +63,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox
+from cell.packing.zones import surface_normals
 from drivers.depth.base import SensorModel
 from drivers.depth.config import DepthNoiseConfig
 
@@ -130,22 +131,32 @@ class Seen:
     """Object points (K, 3) [m, base frame] with what the allowance needs of the view each came from:
     ``origins`` (K, 3) the sensor position [m] and ``axes`` (K, 3, 3) R_base_sensor (columns x, y, z);
     both None when the views are unknown, and then every point counts as seen from ``range_m`` [m] in
-    the worst way for every face (sqrt 2 footprints sideways and the whole range error along n)."""
+    the worst way for every face (sqrt 2 footprints sideways and the whole range error along n).
+    ``normals`` (K, 3) the local surface normal at each point from its capture's neighbouring zones
+    (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed."""
 
     points: Array
     origins: Array | None = None
     axes: Array | None = None
     range_m: float = 0.0
+    normals: Array | None = None
 
     @staticmethod
-    def of(sightings: list[Sighting], keep: NDArray[np.bool_]) -> Seen:
+    def of(sightings: list[Sighting], keep: NDArray[np.bool_], model: ErrorModel | None = None) -> Seen:
         """The points of ``sightings`` (at least one), in order, where ``keep`` (over all of them,
-        concatenated)."""
+        concatenated); with ``model``, each point's surface normal from the kept points of its own
+        capture on the model's zone grid."""
         counts = [s.points.shape[0] for s in sightings]
         points = np.vstack([s.points for s in sightings])
         origins = np.repeat(np.array([s.T_base_sensor[:3, 3] for s in sightings]), counts, axis=0)
         axes = np.repeat(np.array([s.T_base_sensor[:3, :3] for s in sightings]), counts, axis=0)
-        return Seen(points[keep], origins[keep], axes[keep])
+        normals = None
+        if model is not None:
+            starts = np.cumsum([0, *counts])
+            normals = np.vstack([surface_normals(s.T_base_sensor, s.points[keep[a:b]], model.zone_rad,
+                                                 model.half_fov_rad)
+                                 for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True)])
+        return Seen(points[keep], origins[keep], axes[keep], normals=normals)
 
     def geometry(self, n: Array) -> tuple[Array, Array, Array]:
         """Per point: range r [m], |n.d| and |n.x| + |n.y| of its view, for the face normal ``n`` (3,)."""
@@ -187,9 +198,6 @@ def upper_dims(box: PackingBox, model: ErrorModel, seen: Seen, trim: float) -> A
     distance between the bounds of the two faces of L and of W (along the box's yaw), and from the
     box's floor (``z_min``) to the top's bound; each at least the box's own dimension, infinite when a
     face has no bound (:func:`face_bound`)."""
-    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
-    u, v, z = np.array([c, s, 0.0]), np.array([-s, c, 0.0]), np.array([0.0, 0.0, 1.0])
-    dims = np.array([face_bound(model, seen, u, trim) + face_bound(model, seen, -u, trim),
-                     face_bound(model, seen, v, trim) + face_bound(model, seen, -v, trim),
-                     face_bound(model, seen, z, trim) - box.z_min])
+    bounds = [face_bound(model, seen, n, trim) for n in box.face_normals()]
+    dims = np.array([bounds[0] + bounds[1], bounds[2] + bounds[3], bounds[4] - box.z_min])
     return np.maximum(dims, box.dims)

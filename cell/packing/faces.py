@@ -1,0 +1,87 @@
+"""The packing box's faces where the sensor saw them head on: at the plane the points scatter about, not at
+the tail of their range noise.
+
+The trimmed box (:func:`cell.packing.box.box_from_points`) puts each face at the ``1 - trim`` quantile of
+all points along its outward normal n. On a face the sensor faced, the points scatter along their rays
+with the range noise, sigma(r) = sigma0 + k r^2 (the sensor's noise model: about 5 mm at 0.35 m for the
+VL53L8CX), so that quantile lands in the noise's tail, about 2-2.5 sigma |n.d| beyond the face: a box
+top seen from above came out 8-12 mm high on every scan. Here such a face is put where its points say the
+plane is:
+
+1. **Facing points.** The points whose local surface normal (from their capture's neighbouring zones,
+   :func:`cell.packing.zones.surface_normals`) lies within ``FACING_DEG`` of n, among those no more than
+   ``BAND_SIGMAS`` of their own noise std inside the box's face: on a box, the face's own points (a top
+   and a side meet at 90 deg; the normal's own error is 10-20 deg). Not the view ray: a view 40 deg
+   above the table meets a top and a side both at 40-50 deg.
+2. **Noise taken out.** Each facing point's coordinate x along n is the plane's X plus its range error
+   along n, sigma(r) |n.d| e with e standard normal, so x - z_q sigma(r) |n.d| has its q quantile at X
+   for any mix of ranges and incidences: q = ``QUANTILE`` (0.9) rather than the median, so that a face
+   is not pulled in by the points of a rounded edge or of a part of the face set back from it.
+3. **Only where it is a plane.** If that puts the face more than ``ACCEPT_SIGMAS`` noise std (median
+   over the facing points) inside the box's own face, the points beyond it are not a plane's noise but
+   surface the facing points missed (a protrusion smaller than a zone, a rounded part), and the box's
+   face stays.
+
+The assumption, which a real VL53L8CX satisfies as the simulated one does: a zone that a plane fills
+reports the plane's range on the zone's central ray, up to zero-mean noise of std sigma(r) (the sim takes
+the median of its sub-rays' ranges; the real sensor's histogram peak of a surface filling the zone is its
+range at the zone's centroid); a common range offset left after calibration shifts all faces alike and
+is not taken out (the upper bound allows for it).
+
+Faces seen only at the object's outline (a 15 mm rim seen from above, a top seen only from the side) have
+no facing points and keep the box's quantile face. Their points are the zone centres just inside the
+silhouette; the outline itself lies up to a zone footprint further out, and on these scans no estimate of
+where (the outermost zone per view with half a footprint added, or the interval between the last zone on
+the object and the first beyond it) came closer than the quantile over the views' phases: the outermost
+zones include the zones that straddle a depth edge and range between the object and what lies behind.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import norm
+
+from cell.packing.box import PackingBox, box_from_faces
+from cell.packing.uncertainty import ErrorModel, Seen
+
+# A point faces the face when its surface normal is within this angle of the face's [deg]: twice the
+# normal's error from the range noise at the scans' ranges, far from the 90 deg between adjacent faces.
+FACING_DEG = 35.0
+# The share of the noise-corrected facing points below the face (module docstring, step 2).
+QUANTILE = 0.9
+# Fewer facing points than this cannot place a 0.9 quantile between two of them.
+MIN_FACING_POINTS = 10
+# The facing points are taken from this many noise std inside the box's face outwards: that face lies
+# up to ~3 std beyond the plane (the quantile of all points is a higher one of the face's own), and 3
+# more hold all but 0.13 % of the plane's points.
+BAND_SIGMAS = 6.0
+# A face further inside the box's own than this many noise std is not a plane's (step 3).
+ACCEPT_SIGMAS = 3.0
+
+
+def head_on_face(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float:
+    """Where the face with outward unit normal ``n`` (3,) lies [m, coordinate along n]: the plane its
+    facing points scatter about (module docstring), or ``face_m``, the box's own, when it has too few
+    facing points, or they do not make a plane, or ``seen`` carries no normals."""
+    if seen.normals is None or seen.origins is None:
+        return face_m
+    ranges, along, _ = seen.geometry(n)
+    sigma = (model.sigma0_m + model.k_per_m * ranges**2) * along
+    x = seen.points @ n
+    with np.errstate(invalid="ignore"):  # NaN normals: not facing
+        facing = seen.normals @ n >= math.cos(math.radians(FACING_DEG))
+    facing &= x >= face_m - BAND_SIGMAS * sigma
+    if np.count_nonzero(facing) < MIN_FACING_POINTS:
+        return face_m
+    plane = float(np.quantile(x[facing] - norm.ppf(QUANTILE) * sigma[facing], QUANTILE))
+    if plane < face_m - ACCEPT_SIGMAS * float(np.median(sigma[facing])):
+        return face_m
+    return plane
+
+
+def head_on_box(box: PackingBox, model: ErrorModel, seen: Seen) -> PackingBox:
+    """``box`` with each of its four sides and its top at :func:`head_on_face` (same yaw and floor)."""
+    return box_from_faces(box, np.array([head_on_face(model, seen, n, float(f))
+                                         for n, f in zip(box.face_normals(), box.faces(), strict=True)]))
