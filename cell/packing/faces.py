@@ -19,8 +19,9 @@ plane is:
    is not pulled in by the points of a rounded edge or of a part of the face set back from it.
 3. **Only where it is a plane.** If that puts the face more than ``ACCEPT_SIGMAS`` noise std (median
    over the facing points) inside the box's own face, the points beyond it are not a plane's noise but
-   surface the facing points missed (a protrusion smaller than a zone, a rounded part), and the box's
-   face stays.
+   surface the facing points missed (a protrusion smaller than a zone, a rounded part); if the facing
+   points' median lies more than ``ONE_PLANE_SIGMAS`` below it, they lie on more than one level (a
+   flange's hub over its rim, both within the band); either way the box's face stays.
 
 The assumption, which a real VL53L8CX satisfies as the simulated one does: a zone that a plane fills
 reports the plane's range on the zone's central ray, up to zero-mean noise of std sigma(r) (the sim takes
@@ -59,6 +60,10 @@ MIN_FACING_POINTS = 10
 BAND_SIGMAS = 6.0
 # A face further inside the box's own than this many noise std is not a plane's (step 3).
 ACCEPT_SIGMAS = 3.0
+# On one plane the facing points' median and their noise-corrected quantile both estimate it: their
+# difference has a std of about 0.7 noise std at the fewest (10) facing points, less with more. Further
+# apart than twice that, the facing points lie on two levels (a hub on a rim) and the face stays (step 3).
+ONE_PLANE_SIGMAS = 1.5
 
 
 def head_on_face(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float:
@@ -76,9 +81,10 @@ def head_on_face(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) ->
     if np.count_nonzero(facing) < MIN_FACING_POINTS:
         return face_m
     plane = float(np.quantile(x[facing] - norm.ppf(QUANTILE) * sigma[facing], QUANTILE))
-    if plane < face_m - ACCEPT_SIGMAS * float(np.median(sigma[facing])):
-        return face_m
-    return plane
+    spread = float(np.median(sigma[facing]))
+    set_back = plane < face_m - ACCEPT_SIGMAS * spread
+    two_levels = plane - float(np.median(x[facing])) > ONE_PLANE_SIGMAS * spread
+    return face_m if set_back or two_levels else plane
 
 
 def head_on_box(box: PackingBox, model: ErrorModel, seen: Seen) -> PackingBox:
