@@ -1,10 +1,13 @@
 """The packing box's upper bound: how far each face of the object can lie beyond the box's estimate.
 
 A face of the box, with outward unit normal n (+-L, +-W along the box's yaw, +z for the top; the bottom is
-the known table), is estimated at the ``1 - trim`` quantile along n of the object's measured points
-(``cell.packing.box``). The face's points are those beyond the ``1 - FACE_FRACTION`` quantile along n;
-each was seen from a sensor origin o at range r = |p - o| along the unit ray d, with the sensor's image
-axes x (right) and y (down) in the base frame. The true face can lie beyond the estimate by:
+the known table), is bounded from the ``1 - trim`` quantile along n of the object's measured points: the
+trimmed box's face (``cell.packing.box``), where the estimate lies too unless the face was seen head on
+(then the estimate is the plane its points scatter about, ``cell.packing.faces``, which changes nothing
+here but the bound's floor, the estimate). The face's points are those beyond the ``1 - FACE_FRACTION``
+quantile along n; each was seen from a sensor origin o at range r = |p - o| along the unit ray d, with
+the sensor's image axes x (right) and y (down) in the base frame. The true face can lie beyond that
+quantile by:
 
 1. **Zone footprint** (bounded). A multizone ToF zone reports one range for a cone of angular width
    w = fov / resolution (45 deg / 8 = 5.625 deg for the VL53L8CX), placed on the zone's central ray; the
