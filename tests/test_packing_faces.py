@@ -1,5 +1,5 @@
-"""The packing box's faces seen head on (cell.packing.faces) and the zone grid's surface normals
-(cell.packing.zones), on captures rendered along an 8x8 ToF sensor's zone rays."""
+"""The packing box's faces seen head on and at the outline (cell.packing.faces) and the zone grid's
+surface normals (cell.packing.zones), on captures rendered along an 8x8 ToF sensor's zone rays."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cell.packing.box import PackingBox, box_from_faces, box_from_points
-from cell.packing.faces import head_on_face
+from cell.packing.faces import face_at, head_on_plane, outline_gap
 from cell.packing.uncertainty import ErrorModel, Seen, Sighting
 from cell.packing.zones import surface_normals, zone_grid
 from drivers.depth.sim_tof import zone_directions
@@ -84,17 +84,17 @@ def test_a_top_seen_head_on_lies_where_its_points_scatter_not_at_their_noise_tai
     seen = _seen(sightings)
     quantile_top = float(np.quantile(seen.points[:, 2], 0.98))
     assert quantile_top - 0.1 > 0.006  # the range noise's tail: about 2 sigma (4.9 mm) out
-    top = head_on_face(MODEL, seen, np.array([0.0, 0.0, 1.0]), quantile_top)
+    top = head_on_plane(MODEL, seen, np.array([0.0, 0.0, 1.0]), quantile_top)
     assert top == pytest.approx(0.1, abs=0.002)
 
 
-def test_a_face_without_facing_points_or_on_two_levels_keeps_the_box_face() -> None:
+def test_no_plane_without_facing_points_normals_or_one_level() -> None:
     seen = _seen(_top_scan(0.1, 0.1, seed=2))
     # The sides of a top seen from above: no point faces them.
-    assert head_on_face(MODEL, seen, np.array([1.0, 0.0, 0.0]), 0.1) == 0.1
-    # Without normals (no zone grid), the box's face too.
-    assert head_on_face(MODEL, Seen(seen.points, seen.origins, seen.axes), np.array([0.0, 0.0, 1.0]),
-                        0.11) == 0.11
+    assert head_on_plane(MODEL, seen, np.array([1.0, 0.0, 0.0]), 0.1) is None
+    # Without normals (no zone grid) no point is known to face the top.
+    assert head_on_plane(MODEL, Seen(seen.points, seen.origins, seen.axes), np.array([0.0, 0.0, 1.0]),
+                         0.11) is None
     # A small hub 2.5 cm over a wide rim, both facing up within the band: one quantile would put the
     # top between the two; the median says two levels, and the box's face (the hub's) stays.
     rng = np.random.default_rng(3)
@@ -103,8 +103,30 @@ def test_a_face_without_facing_points_or_on_two_levels_keeps_the_box_face() -> N
     mixed = [Sighting(r.T_base_sensor, np.vstack([r.points[np.any(np.abs(r.points[:, :2]) > 0.025, axis=1)],
                                                   h.points])) for r, h in zip(rim, hub, strict=True)]
     seen = _seen(mixed)
+    up = np.array([0.0, 0.0, 1.0])
     hub_top = float(np.quantile(seen.points[:, 2], 0.98))
-    assert head_on_face(MODEL, seen, np.array([0.0, 0.0, 1.0]), hub_top) == hub_top
+    assert head_on_plane(MODEL, seen, up, hub_top) is None
+    assert face_at(MODEL, seen, up, hub_top) == pytest.approx(hub_top, abs=0.002)  # seen head on: no gap
+
+
+def test_a_face_seen_at_the_outline_moves_out_by_a_footprint_over_the_views_plus_one() -> None:
+    """A 20 cm square top seen from above by 6 sensor positions (3 tilts each): its sides are seen only
+    as the top's outline, the outermost zones inside it by up to a footprint (about 3 cm at 0.3 m)."""
+    sightings = _top_scan(0.1, 0.1, seed=5)
+    seen = _seen(sightings)
+    side = np.array([1.0, 0.0, 0.0])
+    x, face = seen.face(side)
+    ranges, _, sideways = seen.geometry(side)
+    gap = outline_gap(MODEL, seen, side)
+    views = np.unique(seen.origins[face], axis=0).shape[0]  # type: ignore[index]
+    assert 2 <= views <= 6
+    assert gap == pytest.approx(MODEL.footprint(ranges[face], sideways[face]) / (views + 1))
+    quantile = float(np.quantile(x, 0.98))
+    estimate = face_at(MODEL, seen, side, quantile)
+    assert estimate == pytest.approx(quantile + gap)
+    assert 0.1 - quantile > 0.005 and abs(estimate - 0.1) < 0.1 - quantile
+    # Views unknown: no gap.
+    assert outline_gap(MODEL, Seen(seen.points, range_m=0.3), side) == 0.0
 
 
 def test_box_from_faces_inverts_faces() -> None:

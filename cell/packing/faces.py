@@ -1,5 +1,6 @@
-"""The packing box's faces where the sensor saw them head on: at the plane the points scatter about, not at
-the tail of their range noise.
+"""Where the packing box's faces lie: a face the sensor saw head on at the plane its points scatter about,
+not at the tail of their range noise; a face seen only at the object's outline beyond its outermost
+points by the zone footprint's expected share.
 
 The trimmed box (:func:`cell.packing.box.box_from_points`) puts each face at the ``1 - trim`` quantile of
 all points along its outward normal n. On a face the sensor faced, the points scatter along their rays
@@ -29,12 +30,24 @@ the median of its sub-rays' ranges; the real sensor's histogram peak of a surfac
 range at the zone's centroid); a common range offset left after calibration shifts all faces alike and
 is not taken out (the upper bound allows for it).
 
-Faces seen only at the object's outline (a 15 mm rim seen from above, a top seen only from the side) have
-no facing points and keep the box's quantile face. Their points are the zone centres just inside the
-silhouette; the outline itself lies up to a zone footprint further out, and on these scans no estimate of
-where (the outermost zone per view with half a footprint added, or the interval between the last zone on
-the object and the first beyond it) came closer than the quantile over the views' phases: the outermost
-zones include the zones that straddle a depth edge and range between the object and what lies behind.
+**Faces seen at the outline.** A face with no plane of facing points (a 15 mm rim seen from above, a top
+seen only from the side, a rounded part) keeps the box's quantile face, moved out by the part of a zone
+footprint that the outline is expected to lie beyond it. At the silhouette a zone ranges the object
+only when the object gives most of its return (the sim: the median of its sub-rays' ranges, so over half
+of them on the object; the real VL53L8CX in its default single-target mode merges the object and the
+background behind it into one return-weighted range, which lands on the object's surface only when the
+object gives the larger share), and the next zone outwards, which ranged the background, holds less
+than half: the outline lies between the outermost object zone's centre and one footprint, r tan(w)
+(|n.x| + |n.y|) along n (``ErrorModel.footprint``), beyond it, anywhere in between as the zone grid
+falls on the object. Seen from V views whose grids fall independently, the outermost of V such points
+lies on average 1 / (V + 1) of a footprint inside the outline (the gap below the largest of V uniform
+draws): that is what the face moves out by, V the number of distinct sensor positions among the face's
+points (``cell.packing.uncertainty.FACE_FRACTION``), and the footprint their median. A face seen head on
+has |n.x| + |n.y| near 0 and moves little. This takes the order statistics' mean, not a bound: the
+upper bound allows for the whole footprint.
+
+A face that a view never showed (a face only grazed by a few zones from far, a part of the object lost
+to the segmentation) stays where its few points put it; the upper bound is what covers it.
 """
 
 from __future__ import annotations
@@ -66,12 +79,32 @@ ACCEPT_SIGMAS = 3.0
 ONE_PLANE_SIGMAS = 1.5
 
 
-def head_on_face(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float:
-    """Where the face with outward unit normal ``n`` (3,) lies [m, coordinate along n]: the plane its
-    facing points scatter about (module docstring), or ``face_m``, the box's own, when it has too few
+def face_at(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float:
+    """Where the face with outward unit normal ``n`` (3,) lies [m, coordinate along n], the box's own at
+    ``face_m``: the plane of its facing points (:func:`head_on_plane`), else ``face_m`` plus the outline's
+    expected gap (:func:`outline_gap`)."""
+    plane = head_on_plane(model, seen, n, face_m)
+    return face_m + outline_gap(model, seen, n) if plane is None else plane
+
+
+def outline_gap(model: ErrorModel, seen: Seen, n: np.ndarray) -> float:
+    """How far [m] the outline of the face with outward unit normal ``n`` (3,) lies beyond its outermost
+    points on average: a zone footprint along n over the number of distinct views among the face's
+    points plus one (module docstring); 0 when the views are unknown."""
+    if seen.origins is None:
+        return 0.0
+    _, face = seen.face(n)
+    ranges, _, sideways = seen.geometry(n)
+    views = np.unique(seen.origins[face], axis=0).shape[0]
+    return model.footprint(ranges[face], sideways[face]) / (views + 1)
+
+
+def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float | None:
+    """The plane [m, coordinate along n] that the points facing the face with outward unit normal ``n``
+    (3,) scatter about (module docstring), the box's face lying at ``face_m``; None when it has too few
     facing points, or they do not make a plane, or ``seen`` carries no normals."""
     if seen.normals is None or seen.origins is None:
-        return face_m
+        return None
     ranges, along, _ = seen.geometry(n)
     sigma = (model.sigma0_m + model.k_per_m * ranges**2) * along
     x = seen.points @ n
@@ -79,15 +112,15 @@ def head_on_face(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) ->
         facing = seen.normals @ n >= math.cos(math.radians(FACING_DEG))
     facing &= x >= face_m - BAND_SIGMAS * sigma
     if np.count_nonzero(facing) < MIN_FACING_POINTS:
-        return face_m
+        return None
     plane = float(np.quantile(x[facing] - norm.ppf(QUANTILE) * sigma[facing], QUANTILE))
     spread = float(np.median(sigma[facing]))
     set_back = plane < face_m - ACCEPT_SIGMAS * spread
     two_levels = plane - float(np.median(x[facing])) > ONE_PLANE_SIGMAS * spread
-    return face_m if set_back or two_levels else plane
+    return None if set_back or two_levels else plane
 
 
-def head_on_box(box: PackingBox, model: ErrorModel, seen: Seen) -> PackingBox:
-    """``box`` with each of its four sides and its top at :func:`head_on_face` (same yaw and floor)."""
-    return box_from_faces(box, np.array([head_on_face(model, seen, n, float(f))
+def faced_box(box: PackingBox, model: ErrorModel, seen: Seen) -> PackingBox:
+    """``box`` with each of its four sides and its top at :func:`face_at` (same yaw and floor)."""
+    return box_from_faces(box, np.array([face_at(model, seen, n, float(f))
                                          for n, f in zip(box.face_normals(), box.faces(), strict=True)]))

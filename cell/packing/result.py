@@ -3,8 +3,8 @@
 1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
    known table height, the measured points inside them and inside the box of every ROI of the scan,
    :mod:`cell.packing.objects`; the box: :mod:`cell.packing.box`, its faces seen head on at the plane
-   their points scatter about: :mod:`cell.packing.faces`) and, in sim, their IoU with the ground-truth
-   box of the posed mesh;
+   their points scatter about, those seen at the outline beyond it: :mod:`cell.packing.faces`) and, in
+   sim, their IoU with the ground-truth box of the posed mesh;
 2. the number of poses, one per capture;
 3. surface coverage [%]: the share of ground-truth surface samples (eq. 13's A of the visual-servoing
    paper: faces pointing down excluded) within ``coverage_radius_m`` of an object voxel centre;
@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.containers import ContainerChoice, choose_container
-from cell.packing.faces import head_on_box
+from cell.packing.faces import faced_box
 from cell.packing.objects import (
     current_object,
     extent_points,
@@ -141,7 +141,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     sightings = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
     model = error_model(config, session.sensor_model())
     seen = _seen(perception, objects, sightings, measured, config.scan.standoff_m, model)
-    box = head_on_box(box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction), model, seen)
+    box = faced_box(box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction), model, seen)
     upper = upper_dims(box, model, seen, pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
     section["dims_upper_m"] = _finite(upper)

@@ -108,11 +108,16 @@ class ErrorModel:
     def delta(self, ranges: Array, along_ray: Array, sideways: Array) -> float:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
         |n.d| (K,) and ``sideways`` |n.x| + |n.y| (K,) (the module docstring; medians over the points)."""
-        r, along, side = float(np.median(ranges)), float(np.median(along_ray)), float(np.median(sideways))
+        r, along = float(np.median(ranges)), float(np.median(along_ray))
         sigma = self.sigma0_m + self.k_per_m * r**2
         pose = self.pose_m + r * self.pose_rad
         gaussian = math.sqrt(along**2 * (sigma**2 / ranges.shape[0] + self.bias_m**2) + pose**2)
-        return r * math.tan(self.zone_rad) * side + self.voxel_m / 2.0 + self.coverage * gaussian
+        return self.footprint(ranges, sideways) + self.voxel_m / 2.0 + self.coverage * gaussian
+
+    def footprint(self, ranges: Array, sideways: Array) -> float:
+        """One zone footprint along a face's normal n [m], r tan(w) (|n.x| + |n.y|), from the face's K >= 1
+        points' ``ranges`` r (K,) [m] and ``sideways`` |n.x| + |n.y| (K,) (medians over the points)."""
+        return float(np.median(ranges)) * math.tan(self.zone_rad) * float(np.median(sideways))
 
 
 def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
@@ -161,6 +166,12 @@ class Seen:
                                  for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True)])
         return Seen(points[keep], origins[keep], axes[keep], normals=normals)
 
+    def face(self, n: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """The points' coordinates x (K,) [m] along the unit normal ``n`` (3,), and which of them are the
+        face's: those beyond the ``1 - FACE_FRACTION`` quantile of x."""
+        x = self.points @ n
+        return x, x >= np.quantile(x, 1.0 - FACE_FRACTION)
+
     def geometry(self, n: Array) -> tuple[Array, Array, Array]:
         """Per point: range r [m], |n.d| and |n.x| + |n.y| of its view, for the face normal ``n`` (3,)."""
         k = self.points.shape[0]
@@ -188,8 +199,7 @@ def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
     """The upper bound [m] of the face with outward unit normal ``n`` (3,), as a coordinate along n: the
     ``1 - trim`` quantile of n.p over the points plus delta(n) of the face's points (those beyond the
     ``1 - FACE_FRACTION`` quantile); infinite when none of those is framed (:meth:`Seen.framed`)."""
-    x = seen.points @ n
-    face = x >= np.quantile(x, 1.0 - FACE_FRACTION)
+    x, face = seen.face(n)
     if not seen.framed(model)[face].any():
         return math.inf
     ranges, along, sideways = seen.geometry(n)
