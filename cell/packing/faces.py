@@ -5,9 +5,9 @@ points by the zone footprint's expected share.
 The trimmed box (:func:`cell.packing.box.box_from_points`) puts each face at the ``1 - trim`` quantile of
 all points along its outward normal n. On a face the sensor faced, the points scatter along their rays
 with the range noise, sigma(r) = sigma0 + k r^2 (the sensor's noise model: about 5 mm at 0.35 m for the
-VL53L8CX), so that quantile lands in the noise's tail, about 2-2.5 sigma |n.d| beyond the face: a box
-top seen from above came out 8-12 mm high on every scan. Here such a face is put where its points say the
-plane is:
+VL53L8CX), so that quantile lands in the noise's tail, about 2-2.5 sigma |n.d| beyond the face: the
+horizontal box's top came out 4.6-12.5 mm high on all 15 scans of the packing paper's grid. Here such a
+face is put where its points say the plane is:
 
 1. **Facing points.** The points whose local surface normal (from their capture's neighbouring zones,
    :func:`cell.packing.zones.surface_normals`) lies within ``FACING_DEG`` of n, among those no more than
@@ -24,27 +24,31 @@ plane is:
    points' median lies more than ``ONE_PLANE_SIGMAS`` below it, they lie on more than one level (a
    flange's hub over its rim, both within the band); either way the box's face stays.
 
-The assumption, which a real VL53L8CX satisfies as the simulated one does: a zone that a plane fills
-reports the plane's range on the zone's central ray, up to zero-mean noise of std sigma(r) (the sim takes
-the median of its sub-rays' ranges; the real sensor's histogram peak of a surface filling the zone is its
-range at the zone's centroid); a common range offset left after calibration shifts all faces alike and
-is not taken out (the upper bound allows for it).
+The assumption (the simulated sensor's behaviour; expected of a real VL53L8CX, not measured on one here):
+a zone that a plane fills reports the plane's range on the zone's central ray, up to zero-mean noise of
+std sigma(r) (the sim takes the median of its sub-rays' ranges; a real zone's histogram peak from a
+surface filling it is that surface's range near the zone's centre); a common range offset left after
+calibration, and the hand-eye error, shift the faces and are not taken out (the upper bound allows for
+them: on the grid's scans they leave the head-on faces 2-6 mm inside on some seeds).
 
-**Faces seen at the outline.** A face with no plane of facing points (a 15 mm rim seen from above, a top
-seen only from the side, a rounded part) keeps the box's quantile face, moved out by the part of a zone
-footprint that the outline is expected to lie beyond it. At the silhouette a zone ranges the object
-only when the object gives most of its return (the sim: the median of its sub-rays' ranges, so over half
-of them on the object; the real VL53L8CX in its default single-target mode merges the object and the
-background behind it into one return-weighted range, which lands on the object's surface only when the
-object gives the larger share), and the next zone outwards, which ranged the background, holds less
-than half: the outline lies between the outermost object zone's centre and one footprint, r tan(w)
-(|n.x| + |n.y|) along n (``ErrorModel.footprint``), beyond it, anywhere in between as the zone grid
-falls on the object. Seen from V views whose grids fall independently, the outermost of V such points
-lies on average 1 / (V + 1) of a footprint inside the outline (the gap below the largest of V uniform
-draws): that is what the face moves out by, V the number of distinct sensor positions among the face's
-points (``cell.packing.uncertainty.FACE_FRACTION``), and the footprint their median. A face seen head on
-has |n.x| + |n.y| near 0 and moves little. This takes the order statistics' mean, not a bound: the
-upper bound allows for the whole footprint.
+**Faces seen at the outline.** A face with no plane of facing points (a 15 mm rim seen from above, a top seen
+only from the side, a rounded part) keeps the box's quantile face, moved out by the part of a zone footprint
+that the outline is expected to lie beyond it. At the silhouette a zone ranges the object only when the object
+gives most of its return (the sim: the median of its sub-rays' ranges, so over half of them on the object; a
+real zone with a background close behind the object merges the two into one range between them, nearer the
+object the larger its share, so its point falls in the object's voxels rather than being cut as background
+about when the object gives most of the return: the assumption), and the next zone outwards, which ranged the
+background, holds less than half: the outline lies between the outermost object zone's centre and one
+footprint, r tan(w) (|n.x| + |n.y|) along n (``ErrorModel.footprint``), beyond it, anywhere in between as the
+zone grid falls on the object. Seen from V views whose grids fall independently, the outermost of V such
+points lies on average 1 / (V + 1) of a footprint inside the outline (the gap below the largest of V uniform
+draws): that is what the face moves out by, V the number of distinct sensor positions among the face's points
+(``cell.packing.uncertainty.FACE_FRACTION``), and the footprint their median. A face seen head on has |n.x| +
+|n.y| near 0 and moves little. This takes the order statistics' mean, not a bound: the upper bound allows for
+the whole footprint. Where the background is out of range (a view over the object into nothing), the sim
+ranges a zone from a quarter of its sub-rays on the object (``min_hit_fraction``) and the outline lies closer
+than assumed; with few views (2-3) the gap is a third of a footprint or more and the face's few points are
+noisy, so one face can come out 1-2 cm either way.
 
 A face that a view never showed (a face only grazed by a few zones from far, a part of the object lost
 to the segmentation) stays where its few points put it; the upper bound is what covers it.
