@@ -31,6 +31,24 @@ class PackingBox:
     yaw_rad: float
     z_min: float
 
+    def axes_xy(self) -> tuple[Array, Array]:
+        """The unit L and W axes (2,) in the table plane."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return np.array([c, s]), np.array([-s, c])
+
+    def face_normals(self) -> Array:
+        """The outward unit normals (5, 3) of the +L, -L, +W, -W faces and the top, base frame."""
+        u, v = self.axes_xy()
+        return np.array([[*u, 0.0], [*-u, 0.0], [*v, 0.0], [*-v, 0.0], [0.0, 0.0, 1.0]])
+
+    def faces(self) -> Array:
+        """Where the box's +L, -L, +W, -W faces and its top lie (5,) [m]: each face's coordinate along its
+        outward normal (the inverse of :func:`box_from_faces`)."""
+        u, v = self.axes_xy()
+        cu, cv = float(self.center_xy @ u), float(self.center_xy @ v)
+        half_l, half_w = self.dims[0] / 2.0, self.dims[1] / 2.0
+        return np.array([cu + half_l, half_l - cu, cv + half_w, half_w - cv, self.z_min + self.dims[2]])
+
     @property
     def volume(self) -> float:
         return float(np.prod(self.dims))
@@ -85,13 +103,29 @@ def box_from_points(points_base: Array, table_z: float | None = None, trim: floa
         centre, extent, yaw = _trimmed_footprint(points_base[:, :2], trim)
     else:
         centre, extent, yaw = min_area_rectangle(points_base[:, :2])
+    z_min = float(points_base[:, 2].min()) if table_z is None else float(table_z)
+    top = float(np.quantile(points_base[:, 2], 1.0 - trim))
+    return _long_side_first(centre, extent, yaw, z_min, top)
+
+
+def _long_side_first(centre: Array, extent: Array, yaw: float, z_min: float, top: float) -> PackingBox:
+    """The box of base rectangle ``centre`` (2,) [m], ``extent`` (2,) [m] along the axes at ``yaw``
+    [rad] and its perpendicular, from ``z_min`` up to ``top`` [m], its L axis along the longer side."""
     if extent[1] > extent[0]:
         extent = extent[::-1]
         yaw = yaw + math.pi / 2.0 if yaw <= 0.0 else yaw - math.pi / 2.0
-    z_min = float(points_base[:, 2].min()) if table_z is None else float(table_z)
-    top = float(np.quantile(points_base[:, 2], 1.0 - trim))
     return PackingBox(center_xy=centre, dims=np.array([extent[0], extent[1], max(top - z_min, 0.0)]),
                       yaw_rad=yaw, z_min=z_min)
+
+
+def box_from_faces(box: PackingBox, faces: Array) -> PackingBox:
+    """The box with ``box``'s yaw and floor whose faces lie at ``faces`` (5,) [m]: the coordinates of
+    its +L, -L, +W, -W faces along their outward normals (the L axis at ``box.yaw_rad``, base frame) and
+    the height of its top."""
+    u, v = box.axes_xy()
+    centre = 0.5 * (faces[0] - faces[1]) * u + 0.5 * (faces[2] - faces[3]) * v
+    extent = np.array([faces[0] + faces[1], faces[2] + faces[3]])
+    return _long_side_first(centre, extent, box.yaw_rad, box.z_min, float(faces[4]))
 
 
 def box_from_mesh(mesh: ObjectMesh, T_base_object: Array) -> PackingBox:

@@ -2,8 +2,9 @@
 
 1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
    known table height, the measured points inside them and inside the box of every ROI of the scan,
-   :mod:`cell.packing.objects`; the box: :mod:`cell.packing.box`) and, in sim, their IoU with the
-   ground-truth box of the posed mesh;
+   :mod:`cell.packing.objects`; the box: :mod:`cell.packing.box`, its faces seen head on at the plane
+   their points scatter about, those seen at the outline beyond it: :mod:`cell.packing.faces`) and, in
+   sim, their IoU with the ground-truth box of the posed mesh;
 2. the number of poses, one per capture;
 3. surface coverage [%]: the share of ground-truth surface samples (eq. 13's A of the visual-servoing
    paper: faces pointing down excluded) within ``coverage_radius_m`` of an object voxel centre;
@@ -30,6 +31,7 @@ from scipy.spatial import cKDTree
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.containers import ContainerChoice, choose_container
+from cell.packing.faces import faced_box
 from cell.packing.objects import (
     current_object,
     extent_points,
@@ -37,7 +39,7 @@ from cell.packing.objects import (
     in_object_voxels,
     object_surface_points,
 )
-from cell.packing.uncertainty import Seen, Sighting, error_model, upper_dims
+from cell.packing.uncertainty import ErrorModel, Seen, Sighting, error_model, upper_dims
 from cell.perception.pipeline import PerceptionPipeline
 from drivers.depth.base import SensorModel
 from drivers.sim.objects import ObjectMesh
@@ -136,10 +138,11 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
         return section
     perception = session.perception
     measured = np.vstack([object_surface_points(perception, objects), extent_points(perception)])
-    box = box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction)
     sightings = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
-    seen = _seen(perception, objects, sightings, measured, config.scan.standoff_m)
-    upper = upper_dims(box, error_model(config, session.sensor_model()), seen, pc.trim_fraction)
+    model = error_model(config, session.sensor_model())
+    seen = _seen(perception, objects, sightings, measured, config.scan.standoff_m, model)
+    box = faced_box(box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction), model, seen)
+    upper = upper_dims(box, model, seen, pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
     section["dims_upper_m"] = _finite(upper)
     section["dims_uncertainty_m"] = _finite(upper - box.dims)
@@ -167,14 +170,15 @@ def _finite(values: Array) -> list[float | None]:
 
 
 def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighting], measured: Array,
-          standoff_m: float) -> Seen:
-    """The object's points with their views for the upper bound: each capture's points in the object's
-    voxels or in the box of every ROI (the selection of the estimate's points), or without captures
-    on record the estimate's own points seen from ``standoff_m`` (:class:`Seen`)."""
+          standoff_m: float, model: ErrorModel) -> Seen:
+    """The object's points with their views for the head-on faces and the upper bound: each capture's
+    points in the object's voxels or in the box of every ROI (the selection of the estimate's points),
+    with their surface normals on ``model``'s zone grid, or without captures on record the estimate's
+    own points seen from ``standoff_m`` (:class:`Seen`)."""
     if not sightings:
         return Seen(measured, range_m=standoff_m)
     points = np.vstack([s.points for s in sightings])
     keep = in_object_voxels(perception.map, points, objects) | in_extent(perception, points)
     if not keep.any():
         return Seen(measured, range_m=standoff_m)
-    return Seen.of(sightings, keep)
+    return Seen.of(sightings, keep, model)

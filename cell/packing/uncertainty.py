@@ -1,10 +1,13 @@
 """The packing box's upper bound: how far each face of the object can lie beyond the box's estimate.
 
 A face of the box, with outward unit normal n (+-L, +-W along the box's yaw, +z for the top; the bottom is
-the known table), is estimated at the ``1 - trim`` quantile along n of the object's measured points
-(``cell.packing.box``). The face's points are those beyond the ``1 - FACE_FRACTION`` quantile along n;
-each was seen from a sensor origin o at range r = |p - o| along the unit ray d, with the sensor's image
-axes x (right) and y (down) in the base frame. The true face can lie beyond the estimate by:
+the known table), is bounded from the ``1 - trim`` quantile along n of the object's measured points: the
+trimmed box's face (``cell.packing.box``), where the estimate lies too unless the face was seen head on
+(then the estimate is the plane its points scatter about, ``cell.packing.faces``, which changes nothing
+here but the bound's floor, the estimate). The face's points are those beyond the ``1 - FACE_FRACTION``
+quantile along n; each was seen from a sensor origin o at range r = |p - o| along the unit ray d, with
+the sensor's image axes x (right) and y (down) in the base frame. The true face can lie beyond that
+quantile by:
 
 1. **Zone footprint** (bounded). A multizone ToF zone reports one range for a cone of angular width
    w = fov / resolution (45 deg / 8 = 5.625 deg for the VL53L8CX), placed on the zone's central ray; the
@@ -63,6 +66,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox
+from cell.packing.zones import surface_normals
 from drivers.depth.base import SensorModel
 from drivers.depth.config import DepthNoiseConfig
 
@@ -104,11 +108,16 @@ class ErrorModel:
     def delta(self, ranges: Array, along_ray: Array, sideways: Array) -> float:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
         |n.d| (K,) and ``sideways`` |n.x| + |n.y| (K,) (the module docstring; medians over the points)."""
-        r, along, side = float(np.median(ranges)), float(np.median(along_ray)), float(np.median(sideways))
+        r, along = float(np.median(ranges)), float(np.median(along_ray))
         sigma = self.sigma0_m + self.k_per_m * r**2
         pose = self.pose_m + r * self.pose_rad
         gaussian = math.sqrt(along**2 * (sigma**2 / ranges.shape[0] + self.bias_m**2) + pose**2)
-        return r * math.tan(self.zone_rad) * side + self.voxel_m / 2.0 + self.coverage * gaussian
+        return self.footprint(ranges, sideways) + self.voxel_m / 2.0 + self.coverage * gaussian
+
+    def footprint(self, ranges: Array, sideways: Array) -> float:
+        """One zone footprint along a face's normal n [m], r tan(w) (|n.x| + |n.y|), from the face's K >= 1
+        points' ``ranges`` r (K,) [m] and ``sideways`` |n.x| + |n.y| (K,) (medians over the points)."""
+        return float(np.median(ranges)) * math.tan(self.zone_rad) * float(np.median(sideways))
 
 
 def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
@@ -130,22 +139,38 @@ class Seen:
     """Object points (K, 3) [m, base frame] with what the allowance needs of the view each came from:
     ``origins`` (K, 3) the sensor position [m] and ``axes`` (K, 3, 3) R_base_sensor (columns x, y, z);
     both None when the views are unknown, and then every point counts as seen from ``range_m`` [m] in
-    the worst way for every face (sqrt 2 footprints sideways and the whole range error along n)."""
+    the worst way for every face (sqrt 2 footprints sideways and the whole range error along n).
+    ``normals`` (K, 3) the local surface normal at each point from its capture's neighbouring zones
+    (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed."""
 
     points: Array
     origins: Array | None = None
     axes: Array | None = None
     range_m: float = 0.0
+    normals: Array | None = None
 
     @staticmethod
-    def of(sightings: list[Sighting], keep: NDArray[np.bool_]) -> Seen:
+    def of(sightings: list[Sighting], keep: NDArray[np.bool_], model: ErrorModel | None = None) -> Seen:
         """The points of ``sightings`` (at least one), in order, where ``keep`` (over all of them,
-        concatenated)."""
+        concatenated); with ``model``, each point's surface normal from the kept points of its own
+        capture on the model's zone grid."""
         counts = [s.points.shape[0] for s in sightings]
         points = np.vstack([s.points for s in sightings])
         origins = np.repeat(np.array([s.T_base_sensor[:3, 3] for s in sightings]), counts, axis=0)
         axes = np.repeat(np.array([s.T_base_sensor[:3, :3] for s in sightings]), counts, axis=0)
-        return Seen(points[keep], origins[keep], axes[keep])
+        normals = None
+        if model is not None:
+            starts = np.cumsum([0, *counts])
+            normals = np.vstack([surface_normals(s.T_base_sensor, s.points[keep[a:b]], model.zone_rad,
+                                                 model.half_fov_rad)
+                                 for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True)])
+        return Seen(points[keep], origins[keep], axes[keep], normals=normals)
+
+    def face(self, n: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """The points' coordinates x (K,) [m] along the unit normal ``n`` (3,), and which of them are the
+        face's: those beyond the ``1 - FACE_FRACTION`` quantile of x."""
+        x = self.points @ n
+        return x, x >= np.quantile(x, 1.0 - FACE_FRACTION)
 
     def geometry(self, n: Array) -> tuple[Array, Array, Array]:
         """Per point: range r [m], |n.d| and |n.x| + |n.y| of its view, for the face normal ``n`` (3,)."""
@@ -174,8 +199,7 @@ def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
     """The upper bound [m] of the face with outward unit normal ``n`` (3,), as a coordinate along n: the
     ``1 - trim`` quantile of n.p over the points plus delta(n) of the face's points (those beyond the
     ``1 - FACE_FRACTION`` quantile); infinite when none of those is framed (:meth:`Seen.framed`)."""
-    x = seen.points @ n
-    face = x >= np.quantile(x, 1.0 - FACE_FRACTION)
+    x, face = seen.face(n)
     if not seen.framed(model)[face].any():
         return math.inf
     ranges, along, sideways = seen.geometry(n)
@@ -187,9 +211,6 @@ def upper_dims(box: PackingBox, model: ErrorModel, seen: Seen, trim: float) -> A
     distance between the bounds of the two faces of L and of W (along the box's yaw), and from the
     box's floor (``z_min``) to the top's bound; each at least the box's own dimension, infinite when a
     face has no bound (:func:`face_bound`)."""
-    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
-    u, v, z = np.array([c, s, 0.0]), np.array([-s, c, 0.0]), np.array([0.0, 0.0, 1.0])
-    dims = np.array([face_bound(model, seen, u, trim) + face_bound(model, seen, -u, trim),
-                     face_bound(model, seen, v, trim) + face_bound(model, seen, -v, trim),
-                     face_bound(model, seen, z, trim) - box.z_min])
+    bounds = [face_bound(model, seen, n, trim) for n in box.face_normals()]
+    dims = np.array([bounds[0] + bounds[1], bounds[2] + bounds[3], bounds[4] - box.z_min])
     return np.maximum(dims, box.dims)

@@ -1,0 +1,130 @@
+"""Where the packing box's faces lie: a face the sensor saw head on at the plane its points scatter about,
+not at the tail of their range noise; a face seen only at the object's outline beyond its outermost
+points by the zone footprint's expected share.
+
+The trimmed box (:func:`cell.packing.box.box_from_points`) puts each face at the ``1 - trim`` quantile of
+all points along its outward normal n. On a face the sensor faced, the points scatter along their rays
+with the range noise, sigma(r) = sigma0 + k r^2 (the sensor's noise model: about 5 mm at 0.35 m for the
+VL53L8CX), so that quantile lands in the noise's tail, about 2-2.5 sigma |n.d| beyond the face: the
+horizontal box's top came out 4.6-12.5 mm high on all 15 scans of the packing paper's grid. Here such a
+face is put where its points say the plane is:
+
+1. **Facing points.** The points whose local surface normal (from their capture's neighbouring zones,
+   :func:`cell.packing.zones.surface_normals`) lies within ``FACING_DEG`` of n, among those no more than
+   ``BAND_SIGMAS`` of their own noise std inside the box's face: on a box, the face's own points (a top
+   and a side meet at 90 deg; the normal's own error is 10-20 deg). Not the view ray: a view 40 deg
+   above the table meets a top and a side both at 40-50 deg.
+2. **Noise taken out.** Each facing point's coordinate x along n is the plane's X plus its range error
+   along n, sigma(r) |n.d| e with e standard normal, so x - z_q sigma(r) |n.d| has its q quantile at X
+   for any mix of ranges and incidences: q = ``QUANTILE`` (0.9) rather than the median, so that a face
+   is not pulled in by the points of a rounded edge or of a part of the face set back from it.
+3. **Only where it is a plane.** If that puts the face more than ``ACCEPT_SIGMAS`` noise std (median
+   over the facing points) inside the box's own face, the points beyond it are not a plane's noise but
+   surface the facing points missed (a protrusion smaller than a zone, a rounded part); if the facing
+   points' median lies more than ``ONE_PLANE_SIGMAS`` below it, they lie on more than one level (a
+   flange's hub over its rim, both within the band); either way the box's face stays.
+
+The assumption (the simulated sensor's behaviour; expected of a real VL53L8CX, not measured on one here):
+a zone that a plane fills reports the plane's range on the zone's central ray, up to zero-mean noise of
+std sigma(r) (the sim takes the median of its sub-rays' ranges; a real zone's histogram peak from a
+surface filling it is that surface's range near the zone's centre); a common range offset left after
+calibration, and the hand-eye error, shift the faces and are not taken out (the upper bound allows for
+them: on the grid's scans they leave the head-on faces 2-6 mm inside on some seeds).
+
+**Faces seen at the outline.** A face with no plane of facing points (a 15 mm rim seen from above, a top seen
+only from the side, a rounded part) keeps the box's quantile face, moved out by the part of a zone footprint
+that the outline is expected to lie beyond it. At the silhouette a zone ranges the object only when the object
+gives most of its return (the sim: the median of its sub-rays' ranges, so over half of them on the object; a
+real zone with a background close behind the object merges the two into one range between them, nearer the
+object the larger its share, so its point falls in the object's voxels rather than being cut as background
+about when the object gives most of the return: the assumption), and the next zone outwards, which ranged the
+background, holds less than half: the outline lies between the outermost object zone's centre and one
+footprint, r tan(w) (|n.x| + |n.y|) along n (``ErrorModel.footprint``), beyond it, anywhere in between as the
+zone grid falls on the object. Seen from V views whose grids fall independently, the outermost of V such
+points lies on average 1 / (V + 1) of a footprint inside the outline (the gap below the largest of V uniform
+draws): that is what the face moves out by, V the number of distinct sensor positions among the face's points
+(``cell.packing.uncertainty.FACE_FRACTION``), and the footprint their median. A face seen head on has |n.x| +
+|n.y| near 0 and moves little. This takes the order statistics' mean, not a bound: the upper bound allows for
+the whole footprint. Where the background is out of range (a view over the object into nothing), the sim
+ranges a zone from a quarter of its sub-rays on the object (``min_hit_fraction``) and the outline lies closer
+than assumed; with few views (2-3) the gap is a third of a footprint or more and the face's few points are
+noisy, so one face can come out 1-2 cm either way.
+
+A face that a view never showed (a face only grazed by a few zones from far, a part of the object lost
+to the segmentation) stays where its few points put it; the upper bound is what covers it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import norm
+
+from cell.packing.box import PackingBox, box_from_faces
+from cell.packing.uncertainty import ErrorModel, Seen
+
+# A point faces the face when its surface normal is within this angle of the face's [deg]: twice the
+# normal's error from the range noise at the scans' ranges, far from the 90 deg between adjacent faces.
+FACING_DEG = 35.0
+# The share of the noise-corrected facing points below the face (module docstring, step 2).
+QUANTILE = 0.9
+# Fewer facing points than this cannot place a 0.9 quantile between two of them.
+MIN_FACING_POINTS = 10
+# The facing points are taken from this many noise std inside the box's face outwards: that face lies
+# up to ~3 std beyond the plane (the quantile of all points is a higher one of the face's own), and 3
+# more hold all but 0.13 % of the plane's points.
+BAND_SIGMAS = 6.0
+# A face further inside the box's own than this many noise std is not a plane's (step 3).
+ACCEPT_SIGMAS = 3.0
+# On one plane the facing points' median and their noise-corrected quantile both estimate it: their
+# difference has a std of about 0.7 noise std at the fewest (10) facing points, less with more. Further
+# apart than twice that, the facing points lie on two levels (a hub on a rim) and the face stays (step 3).
+ONE_PLANE_SIGMAS = 1.5
+
+
+def face_at(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float:
+    """Where the face with outward unit normal ``n`` (3,) lies [m, coordinate along n], the box's own at
+    ``face_m``: the plane of its facing points (:func:`head_on_plane`), else ``face_m`` plus the outline's
+    expected gap (:func:`outline_gap`)."""
+    plane = head_on_plane(model, seen, n, face_m)
+    return face_m + outline_gap(model, seen, n) if plane is None else plane
+
+
+def outline_gap(model: ErrorModel, seen: Seen, n: np.ndarray) -> float:
+    """How far [m] the outline of the face with outward unit normal ``n`` (3,) lies beyond its outermost
+    points on average: a zone footprint along n over the number of distinct views among the face's
+    points plus one (module docstring); 0 when the views are unknown."""
+    if seen.origins is None:
+        return 0.0
+    _, face = seen.face(n)
+    ranges, _, sideways = seen.geometry(n)
+    views = np.unique(seen.origins[face], axis=0).shape[0]
+    return model.footprint(ranges[face], sideways[face]) / (views + 1)
+
+
+def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float | None:
+    """The plane [m, coordinate along n] that the points facing the face with outward unit normal ``n``
+    (3,) scatter about (module docstring), the box's face lying at ``face_m``; None when it has too few
+    facing points, or they do not make a plane, or ``seen`` carries no normals."""
+    if seen.normals is None or seen.origins is None:
+        return None
+    ranges, along, _ = seen.geometry(n)
+    sigma = (model.sigma0_m + model.k_per_m * ranges**2) * along
+    x = seen.points @ n
+    with np.errstate(invalid="ignore"):  # NaN normals: not facing
+        facing = seen.normals @ n >= math.cos(math.radians(FACING_DEG))
+    facing &= x >= face_m - BAND_SIGMAS * sigma
+    if np.count_nonzero(facing) < MIN_FACING_POINTS:
+        return None
+    plane = float(np.quantile(x[facing] - norm.ppf(QUANTILE) * sigma[facing], QUANTILE))
+    spread = float(np.median(sigma[facing]))
+    set_back = plane < face_m - ACCEPT_SIGMAS * spread
+    two_levels = plane - float(np.median(x[facing])) > ONE_PLANE_SIGMAS * spread
+    return None if set_back or two_levels else plane
+
+
+def faced_box(box: PackingBox, model: ErrorModel, seen: Seen) -> PackingBox:
+    """``box`` with each of its four sides and its top at :func:`face_at` (same yaw and floor)."""
+    return box_from_faces(box, np.array([face_at(model, seen, n, float(f))
+                                         for n, f in zip(box.face_normals(), box.faces(), strict=True)]))

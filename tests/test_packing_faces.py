@@ -1,0 +1,144 @@
+"""The packing box's faces seen head on and at the outline (cell.packing.faces) and the zone grid's
+surface normals (cell.packing.zones), on captures rendered along an 8x8 ToF sensor's zone rays."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cell.packing.box import PackingBox, box_from_faces, box_from_points
+from cell.packing.faces import face_at, head_on_plane, outline_gap
+from cell.packing.uncertainty import ErrorModel, Seen, Sighting
+from cell.packing.zones import surface_normals, zone_grid
+from drivers.depth.sim_tof import zone_directions
+
+ZONE = math.radians(45.0 / 8)
+HALF_FOV = (math.radians(22.5), math.radians(22.5))
+MODEL = ErrorModel(zone_rad=ZONE, sigma0_m=0.004, k_per_m=0.01, bias_m=0.002, voxel_m=0.01, pose_m=0.002,
+                   pose_rad=0.0035, coverage=2.0, half_fov_rad=HALF_FOV)
+RAYS = zone_directions(8, 45.0, 1)[:, 0, :]  # the 64 zones' central rays, sensor frame
+
+
+def _looking_down(x: float, y: float, height: float, tilt_deg: float = 0.0) -> np.ndarray:
+    """T_base_sensor of a sensor at (x, y, height) looking down, tilted about the base x axis."""
+    t = math.radians(tilt_deg)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(t), -math.sin(t)], [0.0, math.sin(t), math.cos(t)]])
+    T = np.eye(4)
+    T[:3, :3] = rx @ np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = [x, y, height]
+    return T
+
+
+def _capture(T: np.ndarray, top_z: float, half: float, rng: np.random.Generator,
+             noise: bool = True) -> np.ndarray:
+    """The points (K, 3) [base] an 8x8 sensor at T ranges on a square top |x|, |y| <= ``half`` at height
+    ``top_z``: each zone's central ray to the plane, off along the ray by the model's range noise."""
+    d = RAYS @ T[:3, :3].T
+    t = (top_z - T[2, 3]) / d[:, 2]
+    hit = T[:3, 3] + t[:, None] * d
+    on = np.all(np.abs(hit[:, :2]) <= half, axis=1)
+    r = t[on]
+    if noise:
+        r = r + (MODEL.sigma0_m + MODEL.k_per_m * r**2) * rng.standard_normal(r.shape[0])
+    return T[:3, 3] + r[:, None] * d[on]
+
+
+def _top_scan(top_z: float, half: float, seed: int) -> list[Sighting]:
+    rng = np.random.default_rng(seed)
+    poses = [_looking_down(dx, dy, top_z + 0.3, tilt) for dx in (-0.02, 0.0, 0.02) for dy in (-0.02, 0.02)
+             for tilt in (-10.0, 0.0, 10.0)]
+    return [Sighting(T, _capture(T, top_z, half, rng)) for T in poses]
+
+
+def _seen(sightings: list[Sighting]) -> Seen:
+    keep = np.ones(sum(s.points.shape[0] for s in sightings), dtype=bool)
+    return Seen.of(sightings, keep, MODEL)
+
+
+def test_zone_grid_finds_each_central_ray_its_zone() -> None:
+    row, col = zone_grid(RAYS * 0.3, ZONE, HALF_FOV)
+    np.testing.assert_array_equal(row * 8 + col, np.arange(64))
+    behind = zone_grid(np.array([[0.0, 0.0, -0.3], [1.0, 0.0, 0.1]]), ZONE, HALF_FOV)
+    assert list(behind[0]) == [-1, -1]
+
+
+def test_surface_normals_of_a_tilted_plane_face_the_sensor() -> None:
+    T = _looking_down(0.0, 0.0, 0.4, tilt_deg=20.0)
+    rng = np.random.default_rng(0)
+    flat = _capture(T, 0.1, 1.0, rng, noise=False)
+    normals = surface_normals(T, flat, ZONE, HALF_FOV)
+    assert np.all(np.isfinite(normals))
+    np.testing.assert_allclose(normals, np.tile([0.0, 0.0, 1.0], (64, 1)), atol=1e-9)
+    # With the range noise, still within the 35 deg that tells a top from a side.
+    noisy = surface_normals(T, _capture(T, 0.1, 1.0, rng), ZONE, HALF_FOV)
+    assert np.median(noisy[:, 2]) > math.cos(math.radians(20.0))
+    # Two points in one zone are not that zone's range; a lone point has no neighbours.
+    doubled = surface_normals(T, np.vstack([flat[:1], flat[:1] * 1.001]), ZONE, HALF_FOV)
+    assert np.all(np.isnan(doubled))
+
+
+def test_a_top_seen_head_on_lies_where_its_points_scatter_not_at_their_noise_tail() -> None:
+    sightings = _top_scan(0.1, 0.1, seed=1)
+    seen = _seen(sightings)
+    quantile_top = float(np.quantile(seen.points[:, 2], 0.98))
+    assert quantile_top - 0.1 > 0.006  # the range noise's tail: about 2 sigma (4.9 mm) out
+    top = head_on_plane(MODEL, seen, np.array([0.0, 0.0, 1.0]), quantile_top)
+    assert top == pytest.approx(0.1, abs=0.002)
+
+
+def test_no_plane_without_facing_points_normals_or_one_level() -> None:
+    seen = _seen(_top_scan(0.1, 0.1, seed=2))
+    # The sides of a top seen from above: no point faces them.
+    assert head_on_plane(MODEL, seen, np.array([1.0, 0.0, 0.0]), 0.1) is None
+    # Without normals (no zone grid) no point is known to face the top.
+    assert head_on_plane(MODEL, Seen(seen.points, seen.origins, seen.axes), np.array([0.0, 0.0, 1.0]),
+                         0.11) is None
+    # A small hub 2.5 cm over a wide rim, both facing up within the band: one quantile would put the
+    # top between the two; the median says two levels, and the box's face (the hub's) stays.
+    rng = np.random.default_rng(3)
+    rim = _top_scan(0.015, 0.06, seed=4)
+    hub = [Sighting(s.T_base_sensor, _capture(s.T_base_sensor, 0.04, 0.025, rng)) for s in rim]
+    mixed = [Sighting(r.T_base_sensor, np.vstack([r.points[np.any(np.abs(r.points[:, :2]) > 0.025, axis=1)],
+                                                  h.points])) for r, h in zip(rim, hub, strict=True)]
+    seen = _seen(mixed)
+    up = np.array([0.0, 0.0, 1.0])
+    hub_top = float(np.quantile(seen.points[:, 2], 0.98))
+    assert head_on_plane(MODEL, seen, up, hub_top) is None
+    assert face_at(MODEL, seen, up, hub_top) == pytest.approx(hub_top, abs=0.002)  # seen head on: no gap
+
+
+def test_a_face_seen_at_the_outline_moves_out_by_a_footprint_over_the_views_plus_one() -> None:
+    """A 20 cm square top seen from above by 6 sensor positions (3 tilts each): its sides are seen only
+    as the top's outline, the outermost zones inside it by up to a footprint (about 3 cm at 0.3 m)."""
+    sightings = _top_scan(0.1, 0.1, seed=5)
+    seen = _seen(sightings)
+    side = np.array([1.0, 0.0, 0.0])
+    x, face = seen.face(side)
+    ranges, _, sideways = seen.geometry(side)
+    gap = outline_gap(MODEL, seen, side)
+    views = np.unique(seen.origins[face], axis=0).shape[0]  # type: ignore[index]
+    assert 2 <= views <= 6
+    assert gap == pytest.approx(MODEL.footprint(ranges[face], sideways[face]) / (views + 1))
+    quantile = float(np.quantile(x, 0.98))
+    estimate = face_at(MODEL, seen, side, quantile)
+    assert estimate == pytest.approx(quantile + gap)
+    assert 0.1 - quantile > 0.005 and abs(estimate - 0.1) < 0.1 - quantile
+    # Views unknown: no gap.
+    assert outline_gap(MODEL, Seen(seen.points, range_m=0.3), side) == 0.0
+
+
+def test_box_from_faces_inverts_faces() -> None:
+    box = PackingBox(center_xy=np.array([0.45, -0.02]), dims=np.array([0.3, 0.2, 0.1]),
+                     yaw_rad=math.radians(25.0), z_min=0.0)
+    again = box_from_faces(box, box.faces())
+    np.testing.assert_allclose(again.center_xy, box.center_xy, atol=1e-12)
+    np.testing.assert_allclose(again.dims, box.dims, atol=1e-12)
+    # Faces that make W the longer side turn the L axis by 90 deg.
+    wide = box_from_faces(box, box.faces() + np.array([0.0, 0.0, 0.1, 0.1, 0.0]))
+    np.testing.assert_allclose(wide.dims, [0.4, 0.3, 0.1], atol=1e-12)
+    assert wide.yaw_rad == pytest.approx(math.radians(25.0 - 90.0))
+    points = np.random.default_rng(5).uniform([0.3, -0.1, 0.0], [0.6, 0.1, 0.1], (500, 3))
+    trimmed = box_from_points(points, 0.0, trim=0.02)
+    np.testing.assert_allclose(box_from_faces(trimmed, trimmed.faces()).dims, trimmed.dims, atol=1e-12)
