@@ -160,12 +160,15 @@ class LocalGradient:
         # (spot [m, base frame], distance [m]): a spot gone to and fro on, and how far from it the
         # arcs lead before the difference over delta is followed again
         self._spot: tuple[Array, float] | None = None
+        # the side of the camera (an index of orbited's four displacements) the coarse arcs last led to
+        self._heading: int | None = None
 
     def reset(self) -> None:
         """Forget the convergence window and any spot (a new local phase)."""
         self._below.clear()
         self._where.clear()
         self._spot = None
+        self._heading = None
 
     def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
                  feasible: Callable[[Array], Array] | None = None) -> Secondary:
@@ -187,7 +190,9 @@ class LocalGradient:
         leaving = self._spot is not None
         if leaving or self.dithering():  # the difference over delta is noise here: not followed
             direction, norm = np.zeros(3), 0.0
-        if norm < p.g_max and self._coarse_angles:  # flat at delta: the same difference over longer arcs
+        if norm >= p.g_max:
+            self._heading = None  # the difference over delta leads
+        elif self._coarse_angles:  # flat at delta: the views over longer arcs
             coarse, angle = self._best_arc_view(session, T_base_cam, objective, float(f[0]), feasible)
             if float(np.linalg.norm(coarse)) >= p.g_max:
                 direction, norm = coarse, float(np.linalg.norm(coarse))
@@ -201,19 +206,24 @@ class LocalGradient:
         """The relative rise of f (3,) towards the coarse arcs' view whose f exceeds ``f_r`` most per metre
         of arc in the part of its direction the camera can follow (``feasible``), that part, and that view's
         arc [rad]; zero if no view exceeds it. A view beyond a barrier plane (under the floor, past the
-        reach) is none the camera can take."""
+        reach) is none the camera can take. While the side last headed for (``_heading``: +x, -x, +y or
+        -y of the camera) still offers a rise of ``g_max``, its best view is kept (module docstring)."""
         p = self.params
         views = np.concatenate([orbited(T_base_cam, self.standoff_m, a) for a in self._coarse_angles])
         arcs = np.repeat(self._coarse_angles, 4)
         allowed = np.array([session.sensor_pose_allowed(v) for v in views])
         rise = np.where(allowed, (objective(views) - f_r) / (arcs * self.standoff_m), 0.0)  # [nats/m]
         towards = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])  # as orbited
-        best, best_arc = np.zeros(3), float(arcs[0])
+        side_best: list[tuple[Array, float]] = [(np.zeros(3), float(arcs[0]))] * 4
         for i in np.flatnonzero(rise > 0.0):
             followed = feasible(p.alpha * rise[i] * towards[i % 4] / (f_r + p.f_eps_nats))
-            if np.linalg.norm(followed) > np.linalg.norm(best):
-                best, best_arc = followed, float(arcs[i])
-        return best, best_arc
+            if np.linalg.norm(followed) > np.linalg.norm(side_best[i % 4][0]):
+                side_best[i % 4] = (followed, float(arcs[i]))
+        norms = [float(np.linalg.norm(g)) for g, _ in side_best]
+        if self._heading is None or norms[self._heading] < p.g_max:
+            best = int(np.argmax(norms))
+            self._heading = best if norms[best] >= p.g_max else None
+        return side_best[self._heading] if self._heading is not None else side_best[int(np.argmax(norms))]
 
     def record(self, g_norm: float, position_m: Array) -> None:
         """Count one servo evaluation whose ||g|| (before clipping, as the arm could follow it) was
