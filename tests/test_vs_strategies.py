@@ -252,6 +252,34 @@ def test_where_delta_is_flat_the_arc_view_whose_f_rises_most_per_metre_leads(fra
     assert LocalGradient(franka)(session, T, near).g[0] == pytest.approx(1.0)
 
 
+def test_the_coarse_arcs_keep_the_side_they_led_to_while_it_still_offers_a_rise(franka):
+    """A camera in a valley between two ridges, the views on both sides higher than its own: it keeps going
+    to the side it chose while that side still rises by g_max, rather than turning whenever the other
+    side's rise is a little larger (it went to and fro between them)."""
+
+    class Valley:
+        """Flat over delta; over the shortest arc, ``up`` towards camera +y and ``down`` towards -y."""
+
+        def __init__(self, up: float, down: float) -> None:
+            self.up, self.down = up, down
+
+        def __call__(self, T):
+            n = np.asarray(T).shape[0]
+            out = np.full(n, 0.001)
+            if n != 5:
+                out[2], out[3] = self.up, self.down  # orbited's order: +x, -x, +y, -y
+            return out
+
+    session = FakeSession()
+    session.pose = T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    local = LocalGradient(franka)
+    assert local(session, T, Valley(0.02, 0.015)).g[1] == pytest.approx(1.0)
+    kept = local(session, T, Valley(0.015, 0.02))
+    assert kept.g_norm >= franka.planners.vs_local.g_max and kept.g[1] == pytest.approx(1.0)
+    assert LocalGradient(franka)(session, T, Valley(0.015, 0.02)).g[1] == pytest.approx(-1.0)
+    assert local(session, T, Valley(0.001, 0.02)).g[1] == pytest.approx(-1.0)  # +y has nothing left
+
+
 def test_local_direction_slides_along_a_barrier(franka):
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     session = FakeSession(floor_z=T[2, 3] - 0.01)  # 1 cm above the floor, within the activation

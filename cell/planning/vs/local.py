@@ -93,9 +93,11 @@ view beyond a barrier plane then had to count as the current one (with the views
 counted, mustard, bunny and teapot scans on the floor plane had dithered along it, towards the unseen
 underside), which made a long arc's difference one-sided and steep next to a shorter arc's two-sided one
 in the opposite direction, and a held-out mustard bottle went to and fro between the two and converged
-at 85 % (99.8 % before). The one best view gives one target; as the camera nears it, that view's rise per
-metre only grows. On the fifteen held-out scans (seed 0): mean coverage 85.0 % in 35.5 s with the
-central differences, 87.8 % in 28.0 s with the best view.
+at 85 % (99.8 % before). The views move with the camera, so the best one can change sides as it moves: in
+a valley between two ridges both sides rise, and a centimetre towards one made the other the steeper (a
+Table I bunny went to and fro between its +y and -y views to its 180 s budget in all three seeds). So
+the side last headed for (``_heading``) is kept while it still offers a rise of g_max, and the best of
+all is taken again once it does not or the difference over delta leads.
 
 The arcs grow by delta's rather than doubling: from a camera high over the object the views 90 deg away lie
 under the table and those 46 deg away still look at the known top, and a dragon scan converged there with the
