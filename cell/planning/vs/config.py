@@ -36,7 +36,9 @@ class ObjectiveConfig(StrictModel):
     still give, I(h, m) / I(0, 0) of its hit and miss counts under a Beta-Bernoulli model (1 for an
     unseen voxel, falling like 1 / n for one seen n times; ``cell.planning.vs.objective``), so that
     voxels the views keep disagreeing on (a surface crossing them at a slant, a calibration error) stop
-    drawing the camera and holding f above the termination's floor, and unseen space does not.
+    drawing the camera and holding f above the termination's floor, and unseen space does not; and a voxel
+    hit only from the other side of a ray counts for it as one not hit yet (``OccupancyMap.hit_sides``: the
+    two faces of a wall thinner than a voxel share voxels; ``cell.planning.vs.objective``).
 
     ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box (the box of every ROI of the scan so
     far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards, and
