@@ -203,3 +203,30 @@ def test_an_often_seen_ambiguous_voxel_weighs_less_than_an_unseen_one():
     # the voxel is the ray's first sample; the unseen ones behind it are reached with probability 1/2
     w40 = observation_weight(np.array([20]), np.array([20]))[0]
     assert paper[0] - aware[40] == pytest.approx(ln2 * (1.0 - w40), rel=1e-9)
+
+
+def test_a_voxel_hit_only_from_the_other_side_reads_as_unseen_from_this_one():
+    # A one-voxel wall seen from above, as the inside of a cup's 4 mm wall shares a 5 mm voxel with its
+    # outside: from below, what the voxel's far face looks like has never been seen.
+    occupancy = OccupancyMap(OccupancyParams(resolution_m=0.005))
+    voxel = np.array([[0.4525, 0.0025, 0.0525]])
+    above, below = voxel[0] + [0.0, 0.0, 0.25], voxel[0] - [0.0, 0.0, 0.25]
+    for _ in range(5):
+        occupancy.integrate(above, voxel)
+    roi = (voxel[0] - 0.0025, voxel[0] + 0.0025)  # the voxel alone: one sample per ray
+    axis = np.array([[0.0, 0.0, 1.0]])
+    up = np.array([1.0, 0.0, 0.0])
+
+    def f(eye, aware=True):
+        return EntropyObjective(occupancy, *roi, CROP, axis, observation_aware=aware)(
+            look_at(eye, voxel[0], up_hint=up))
+
+    seen = f(above)
+    assert seen < 0.1 * math.log(2.0)
+    assert f(below, aware=False) == pytest.approx(seen / observation_weight(np.array([5]), np.array([0]))[0])
+    assert f(below) == pytest.approx(math.log(2.0), rel=1e-9)
+    beyond = voxel + np.array([0.0, 0.0, 0.05])
+    occupancy.integrate(below, beyond, free_only=np.array([True]))  # crossed from below
+    assert f(below) == pytest.approx(math.log(2.0) * observation_weight(np.array([0]), np.array([1]))[0])
+    occupancy.integrate(below, voxel)  # and now hit from below: as the map holds it, either side
+    assert f(below) == pytest.approx(f(above), rel=1e-12)

@@ -342,3 +342,18 @@ def test_dense_marking_and_lanes_give_the_map_of_the_walk_in_the_pool(monkeypatc
     for max_dense, lanes in variants:
         for a, b in zip(build(max_dense, lanes), walked, strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+def test_hit_sides_sum_the_directions_of_the_hits_until_one_comes_from_the_other_side():
+    m = make_map()
+    end = np.array([[0.0025, 0.0025, 0.2025]])
+    above, below = end[0] + [0.0, 0.0, 0.3], end[0] - [0.0, 0.4, 0.3]
+    for _ in range(3):
+        m.integrate(above, np.repeat(end, 4, axis=0))  # four rays to one voxel: one direction per scan
+    m.integrate(above, end - np.array([0.0, 0.0, 0.1]))  # crossed, not hit: no direction
+    np.testing.assert_allclose(m.hit_sides(end), [[0.0, 0.0, -3.0]], atol=1e-6)
+    np.testing.assert_array_equal(m.hit_sides(np.array([[1.0, 1.0, 1.0], [0.0025, 0.0025, 0.3025]])), 0.0)
+    m.integrate(below, end)  # (0, 0.8, 0.6): against the sum
+    assert np.isnan(m.hit_sides(end)).all()
+    m.integrate(above, end)
+    assert np.isnan(m.hit_sides(end)).all()  # hit from both sides, for good

@@ -333,3 +333,31 @@ def test_constraint_normals_fit_every_neighbour_within_the_radius(target):
     _kernels.plane_normals(pts, every, reference)
     normals = constraint_normals(queries, pts, radius)
     np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", normals, reference)), 1.0, atol=1e-9)
+
+
+def _grid(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.stack(np.meshgrid(u, v, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def test_a_sensor_is_not_registered_onto_the_back_of_a_thin_wall():
+    # A 4 mm wall standing on the table (x in [0, 4 mm]): the target holds its face seen from -x and the
+    # table around it; a new exact-pose frame from +x sees the wall's other face and the table on its
+    # side. The face seen from -x lies 4 mm from the new face, well within the first ICP stages, with the
+    # opposite normal: only the side of the surface each sensor saw tells them apart.
+    step = 0.0025
+    wall = _grid(np.arange(-0.04, 0.04, step), np.arange(step, 0.07, step))
+    table = _grid(np.arange(-0.1, 0.1, step), np.arange(-0.1, 0.1, step))
+    face_a = np.column_stack([np.zeros(len(wall)), wall])
+    face_b = np.column_stack([np.full(len(wall), 0.004), wall])
+    table_pts = np.column_stack([table, np.zeros(len(table))])
+    target_pts = np.vstack([face_a, table_pts[(table_pts[:, 0] < 0.0) | (table_pts[:, 0] > 0.004)]])
+    T_b = look_at(np.array([0.22, 0.0, 0.12]), np.array([0.0, 0.0, 0.03]))
+    source = transform_points(np.linalg.inv(T_b), np.vstack([face_b, table_pts[table_pts[:, 0] > 0.004]]))
+    moved = {}
+    for oriented in (True, False):
+        target = RegistrationTarget(PARAMS)
+        target.update(target_pts, viewpoint_base=np.array([-0.22, 0.0, 0.12]) if oriented else None)
+        res = target.register(source, T_b)
+        moved[oriented] = res.correction_m if res.accepted else 0.0
+    assert moved[True] < 0.0005
+    assert moved[False] > 0.003  # unoriented, the new face was pulled onto the old one

@@ -16,7 +16,8 @@ RAY_TRUNCATED: int
 
 def integrate_rays(origin: F64, ends: F64, resolution: float, kinds: NDArray[np.uint8],
                    index: NDArray[np.int32], ox: int, oy: int, oz: int, pool: NDArray[np.float32],
-                   stamp: NDArray[np.uint32], counts: NDArray[np.uint32], n_occupied: NDArray[np.int32],
+                   stamp: NDArray[np.uint32], counts: NDArray[np.uint32], sides: NDArray[np.float32],
+                   n_occupied: NDArray[np.int32],
                    block_coords: I64, n_blocks: int,
                    scan: int, l_hit: SupportsFloat, l_miss: SupportsFloat, l_min: SupportsFloat,
                    l_max: SupportsFloat, l_occ: SupportsFloat, keep_surface: bool,

@@ -16,7 +16,7 @@ All are plain loops over typed memoryviews (no numpy C API): the callers own the
 layout, and check shapes and dtypes before calling.
 """
 
-from libc.math cimport INFINITY, fabs, floor, isnan, sqrt
+from libc.math cimport INFINITY, NAN, fabs, floor, isnan, sqrt
 from libc.stdint cimport int32_t, int64_t, uint8_t, uint32_t, uint64_t
 from libc.stdlib cimport calloc, free, llabs, malloc
 from libc.string cimport memcpy
@@ -54,6 +54,7 @@ cdef struct Grid:
     float* pool          # log-odds, NaN = unknown
     uint32_t* stamp      # scan number of the last update of each voxel
     uint32_t* counts     # scans that updated each voxel: hits in the low 16 bits, misses in the high 16
+    float* sides         # (3 per voxel) sum of the unit directions of its hits; NaN: hit from both sides
     int32_t* n_occupied  # occupied voxels per block
     int64_t* coords      # (capacity, 3) block keys of each slot
     int64_t n_blocks
@@ -121,6 +122,41 @@ cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noe
         return False
     if g.stamp[v] != g.scan:
         _apply(g, v, hit)
+    return True
+
+
+cdef inline bint _hit(Grid* g, int64_t x, int64_t y, int64_t z, const double* og, const double* pg
+                      ) noexcept nogil:
+    """``_update`` of the end voxel (x, y, z) of a ray from ``og`` to ``pg`` (grid units) with a hit; the
+    scan's first hit of the voxel also adds the ray's unit direction to its ``sides``, or marks them NaN
+    (hit from both sides, for good) when it points against their sum. False when the pool is full."""
+    cdef int64_t v = _local_voxel(g, x - g.ox, y - g.oy, z - g.oz)
+    cdef double h[3]
+    cdef double norm = 0.0, along = 0.0
+    cdef float* m
+    cdef int a
+    if v < 0:
+        return False
+    if g.stamp[v] == g.scan:
+        return True
+    _apply(g, v, True)
+    m = g.sides + 3 * v
+    if isnan(m[0]):
+        return True
+    for a in range(3):
+        h[a] = pg[a] - og[a]
+        norm += h[a] * h[a]
+    if norm == 0.0:
+        return True
+    norm = sqrt(norm)
+    for a in range(3):
+        h[a] /= norm
+        along += m[a] * h[a]
+    if along < 0.0:
+        m[0] = m[1] = m[2] = NAN
+    else:
+        for a in range(3):
+            m[a] += <float>h[a]
     return True
 
 
@@ -498,7 +534,7 @@ cdef bint _integrate(Grid* g, const double* og, const int64_t* k0, const double*
     cdef Marks m
     cdef bint ok
     for i in range(n):
-        if kinds[i] == K_HIT and not _update(g, keys[3 * i], keys[3 * i + 1], keys[3 * i + 2], True):
+        if kinds[i] == K_HIT and not _hit(g, keys[3 * i], keys[3 * i + 1], keys[3 * i + 2], og, pg + 3 * i):
             return False
     if keep_surface:
         for i in range(n):
@@ -523,7 +559,7 @@ def ray_lanes():
 def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double resolution,
                    const uint8_t[::1] kinds, int32_t[:, :, ::1] index,
                    int64_t ox, int64_t oy, int64_t oz, float[::1] pool, uint32_t[::1] stamp,
-                   uint32_t[::1] counts, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
+                   uint32_t[::1] counts, float[::1] sides, int32_t[::1] n_occupied, int64_t[:, ::1] block_coords,
                    int64_t n_blocks, uint32_t scan,
                    float l_hit, float l_miss, float l_min, float l_max, float l_occ, bint keep_surface,
                    int64_t max_dense_voxels, bint lanes):
@@ -533,7 +569,8 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     keys floor(x / resolution)); ``kinds`` (N,) RAY_HIT / RAY_FREE / RAY_TRUNCATED;
     ``index`` the block index covering every key of the scan, its first voxel key (ox, oy, oz);
     ``pool`` / ``stamp`` / ``counts`` the log-odds, scan stamps and hit (low 16 bits) and miss (high 16 bits)
-    counts of each voxel (saturating at 65535), ``n_occupied`` (capacity,) the occupied voxels
+    counts of each voxel (saturating at 65535), ``sides`` (3 per voxel) the sum of the unit directions of
+    the rays that hit it (one per scan, the first), NaN once a hit came against that sum, ``n_occupied`` (capacity,) the occupied voxels
     (log-odds above ``l_occ``) of each block, kept up to date, ``block_coords`` (capacity, 3); ``scan`` a number
     not used by an earlier scan. End voxels of hits are updated first, so that a voxel both hit and
     traversed in the scan is updated as occupied only; with ``keep_surface``, the occupied neighbours of
@@ -567,6 +604,9 @@ def integrate_rays(const double[::1] origin, const double[:, ::1] ends, double r
     g.pool = &pool[0]
     g.stamp = &stamp[0]
     g.counts = &counts[0]
+    if sides.shape[0] != 3 * counts.shape[0]:
+        raise ValueError("integrate_rays: sides must hold 3 floats per voxel")
+    g.sides = &sides[0]
     g.n_occupied = &n_occupied[0]
     g.coords = &block_coords[0, 0]
     g.n_blocks = n_blocks

@@ -31,7 +31,16 @@ when the box of the scan is small enough (``_MAX_DENSE_VOXELS``), the kernel onl
 in a dense byte box (walking several rays at once in SIMD lanes where the processor has them, ``_RAY_LANES``)
 and applies the misses in one sweep of it, the same voxels as walking the pool. The kernel
 allocates blocks as it updates them; the Python side only grows the block index to the box of the scan and the
-pool when it fills. Building the kernel: ``pip install -e .`` (``make setup``).
+pool when it fills.
+
+Each voxel also keeps the side it was hit from (``hit_sides``, beyond OctoMap): the sum of the unit
+directions of the rays that hit it, one per scan, turned NaN for good once a hit comes against that sum
+(the voxel was then hit from both sides). A surface voxel of a solid can only be hit from the side its
+surface faces; but both faces of a wall thinner than a voxel (an open cup's 4 mm wall in the 5 mm map)
+share voxels, and once one face is seen the map holds no trace that the other is not:
+``cell.planning.vs.objective`` reads the sides to count such a voxel as unseen for a ray from the other
+side. Kept where the hits are applied (one direction per hit voxel and scan), not in the ray walk.
+Building the kernel: ``pip install -e .`` (``make setup``).
 
 Entropy is the binary Shannon entropy of eq. 8 in nats; ``mean_entropy_in_box`` is H_ROI of eq. 12.
 """
@@ -177,6 +186,7 @@ class OccupancyMap:
         self._pool = np.zeros(0, dtype=np.float32)
         self._stamp = np.zeros(0, dtype=np.uint32)
         self._counts = np.zeros(0, dtype=np.uint32)  # per voxel: hits (low 16 bits), misses (high 16)
+        self._sides = np.zeros(0, dtype=np.float32)  # per voxel 3: sum of its hits' ray directions, NaN: both
         self._n_occupied = np.zeros(0, dtype=np.int32)  # occupied voxels per block
         self._block_coords = np.zeros((0, 3), dtype=np.int64)
         self._n_blocks = 0
@@ -246,11 +256,13 @@ class OccupancyMap:
         stamp[:self._stamp.size] = self._stamp
         counts = np.zeros(cap * _BLOCK_VOXELS, dtype=np.uint32)
         counts[:self._counts.size] = self._counts
+        sides = np.zeros(3 * cap * _BLOCK_VOXELS, dtype=np.float32)
+        sides[:self._sides.size] = self._sides
         coords = np.zeros((cap, 3), dtype=np.int64)
         coords[:self._n_blocks] = self._block_coords[:self._n_blocks]
         n_occupied = np.zeros(cap, dtype=np.int32)
         n_occupied[:self._n_blocks] = self._n_occupied[:self._n_blocks]
-        self._pool, self._stamp, self._counts = pool, stamp, counts
+        self._pool, self._stamp, self._counts, self._sides = pool, stamp, counts, sides
         self._block_coords, self._n_occupied = coords, n_occupied
 
     def _allocate(self, flat_blocks: NDArray[np.int64]) -> None:
@@ -307,8 +319,8 @@ class OccupancyMap:
         while True:
             n_blocks, done = _k.integrate_rays(
                 o, e, self.resolution_m, kinds, self._index, int(corner[0]), int(corner[1]), int(corner[2]),
-                self._pool, self._stamp, self._counts, self._n_occupied, self._block_coords, self._n_blocks,
-                self._scan, self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ,
+                self._pool, self._stamp, self._counts, self._sides, self._n_occupied, self._block_coords,
+                self._n_blocks, self._scan, self._l_hit, self._l_miss, self._l_min, self._l_max, self._l_occ,
                 self.params.keep_surface, _MAX_DENSE_VOXELS, _RAY_LANES)
             self._n_blocks = n_blocks
             if done:
@@ -342,6 +354,18 @@ class OccupancyMap:
         idx = self._slots(self.keys_of(pts), allocate=False)
         c = np.where(idx >= 0, self._counts[np.maximum(idx, 0)], 0).astype(np.int64)
         return c & _COUNT_MASK, c >> _COUNT_BITS
+
+    def hit_sides(self, points_base: Array) -> Array:
+        """(M, 3) per voxel of points (M, 3) [m]: the sum of the unit directions (base frame) of the rays
+        that hit it, one per scan; NaN once it was hit from both sides (a ray against that sum); 0 for
+        voxels never hit, unknown, or set by ``set_logodds``. See the module docstring."""
+        pts = np.asarray(points_base, dtype=np.float64).reshape(-1, 3)
+        if self._n_blocks == 0 or pts.shape[0] == 0:
+            return np.zeros((pts.shape[0], 3))
+        idx = self._slots(self.keys_of(pts), allocate=False)
+        sides = self._sides.reshape(-1, 3)[np.maximum(idx, 0)].astype(np.float64)
+        sides[idx < 0] = 0.0
+        return sides
 
     def probability(self, points_base: Array) -> Array:
         """Occupancy probability at points (M, 3) [m]; 0.5 for unknown voxels."""

@@ -120,7 +120,7 @@ class PerceptionPipeline:
         self.cloud.add(points_base)
         clock.lap("accumulate")
         if c.registration.enabled:
-            self._target.update(self.cloud.points, new=self.cloud.new)
+            self._target.update(self.cloud.points, new=self.cloud.new, viewpoint_base=T[:3, 3])
         clock.lap("normals")
         origin = T[:3, 3]
         self.map.integrate(origin, points_base)

@@ -21,6 +21,8 @@ from libc.stdint cimport int64_t
 # Slack [voxels] of the per-ray check that every sample's grid coordinate lies in the snapshot: far above
 # the rounding of the running sum along a ray, far below a voxel.
 cdef double SLACK = 1e-6
+cdef enum:
+    VOXEL = 6  # doubles per voxel of the snapshot: 1 - p, H(p), H from the other side, its side (3)
 
 
 def max_threads() -> int:
@@ -33,12 +35,13 @@ cdef double _pose(const double* T, const double* dirs, Py_ssize_t n_rays, const 
                   const int64_t* k_lo, const int64_t* shape, const double* voxels) noexcept nogil:
     """f(r) of eq. 9 for one pose ``T`` (4 x 4, row-major, T_base_cam) [nats]; NaN when a sample falls
     outside the snapshot (the caller's box is wrong)."""
-    # Offsets in ``voxels`` (two doubles per voxel) of one step in x and in y.
-    cdef int64_t stride_y = 2 * shape[2], stride_x = 2 * shape[1] * shape[2]
+    # Offsets in ``voxels`` (VOXEL doubles per voxel) of one step in x and in y.
+    cdef int64_t stride_y = VOXEL * shape[2], stride_x = VOXEL * shape[1] * shape[2]
     cdef double o[3]
     cdef double d[3]
     cdef double g0[3]
     cdef double t_in, t_out, ta, tb, ga, lo, hi, reach, ray, gx, gy, gz, total = 0.0
+    cdef const double* vox
     cdef Py_ssize_t k, a, i, n, v
     cdef bint miss
     for a in range(3):
@@ -89,9 +92,13 @@ cdef double _pose(const double* T, const double* dirs, Py_ssize_t n_rays, const 
         gx, gy, gz = g0[0], g0[1], g0[2]
         for i in range(n):
             # Non-negative coordinates: truncation is floor (libm's floor is a call on baseline x86-64).
-            v = <int64_t>gx * stride_x + <int64_t>gy * stride_y + 2 * <int64_t>gz
-            ray = ray + reach * voxels[v + 1]
-            reach = reach * voxels[v]
+            v = <int64_t>gx * stride_x + <int64_t>gy * stride_y + VOXEL * <int64_t>gz
+            vox = voxels + v
+            if vox[3] * d[0] + vox[4] * d[1] + vox[5] * d[2] < 0.0:
+                ray = ray + reach * vox[2]  # hit only ever from the other side
+            else:
+                ray = ray + reach * vox[1]
+            reach = reach * vox[0]
             gx = gx + d[0]
             gy = gy + d[1]
             gz = gz + d[2]
@@ -104,9 +111,11 @@ cdef class Scorer:
 
     ``dirs`` (K, 3) unit rays, camera frame; ``crop_in`` / ``crop_out`` (K,) each ray's parameters [m]
     inside the crop box; ``roi_lo`` / ``roi_hi`` (3,) the ROI box, base frame [m]; ``res`` the sample
-    spacing and voxel edge [m]; ``voxels`` (M, 2): per voxel of the snapshot, (1 - p, H(p)) of eq. 7-8,
-    in key order (x, then y, then z) over ``shape`` (3,) voxels starting at key ``k_lo`` (3,). The arrays
-    are held, not copied: the caller does not change them.
+    spacing and voxel edge [m]; ``voxels`` (M, 6): per voxel of the snapshot, (1 - p, H(p)) of eq. 7-8,
+    the H a ray from the other side reads, and the side it was hit from (a direction, base frame; 0 for
+    none), in key order (x, then y, then z) over ``shape`` (3,) voxels starting at key ``k_lo`` (3,); a
+    sample whose ray points against its voxel's side reads the third column instead of the second.
+    The arrays are held, not copied: the caller does not change them.
     """
 
     cdef const double[:, ::1] dirs
@@ -122,8 +131,8 @@ cdef class Scorer:
             raise ValueError("Scorer: dirs must be (K, 3), crop_in and crop_out (K,)")
         if roi_lo.shape[0] != 3 or roi_hi.shape[0] != 3 or k_lo.shape[0] != 3 or shape.shape[0] != 3:
             raise ValueError("Scorer: roi_lo, roi_hi, k_lo and shape must have 3 entries")
-        if voxels.shape[1] != 2 or voxels.shape[0] != shape[0] * shape[1] * shape[2] or not res > 0.0:
-            raise ValueError("Scorer: voxels must be (shape[0] * shape[1] * shape[2], 2) and res > 0")
+        if voxels.shape[1] != VOXEL or voxels.shape[0] != shape[0] * shape[1] * shape[2] or not res > 0.0:
+            raise ValueError(f"Scorer: voxels must be (shape[0] * shape[1] * shape[2], {VOXEL}) and res > 0")
         self.dirs, self.crop_in, self.crop_out = dirs, crop_in, crop_out
         self.roi_lo, self.roi_hi, self.res = roi_lo, roi_hi, res
         self.k_lo, self.shape, self.voxels = k_lo, shape, voxels

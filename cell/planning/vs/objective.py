@@ -38,6 +38,21 @@ voxel (so f of unseen space is eq. 9's) and falling like 1 / (h + m) whatever th
 views keep disagreeing on fades from f as it is seen. Eq. 7's stopping probabilities (1 - p) stay as they
 are. A voxel without counts (a map read from a .bt file) weighs as unseen: the paper's form.
 
+The observation-aware objective also reads the side each voxel was hit from (``OccupancyMap.hit_sides``,
+the sum u of the unit directions of the rays that hit it): a sample whose ray d points against it,
+d . u < 0, reads the voxel's H as that of a voxel never hit and seen free as often as the map's misses
+count, H(0.5) w(0, m) (its own 1 - p still stops the ray): its hits only say what its other side looks
+like, and from this side it is unseen unless rays from here have crossed it since. A surface voxel of a
+solid is reached from its other side only through the solid, by rays that eq. 7 has already stopped, so
+this changes nothing there; but the two faces of a wall thinner than a voxel share voxels, and once one
+face is seen the map holds the other as known. In a VS-Local cup scan (4 mm walls, 5 mm voxels, seed 0)
+45 % of the surface left unseen lay in voxels hit from the other face, f at the views of that side was
+0.006-0.02 nats, below what the coarse differences of ``cell.planning.vs.local`` need to go there, and
+the scan converged on one side (63.7 %; with the rule 88.6 %). Without the misses' weight a camera that
+crossed such voxels from their unseen side (a face that fills only part of its voxel) read them as unseen
+however often it did, and held in place until the time budget. A voxel hit from both sides (a hit
+against the sum turns it NaN in the map) is read as it is; so is a voxel never hit (u = 0).
+
 A batch of poses is shared between OpenMP threads (``batch_threads``, OMP_NUM_THREADS) once it holds
 ``PARALLEL_MIN_POSES`` poses (the 5000 candidates of eq. 10); smaller ones (the five poses of a servo
 iteration, eq. 5-6) run on the calling thread. Each pose is one sequential sum whichever thread runs it,
@@ -139,10 +154,16 @@ class EntropyObjective:
         centers = occupancy.centers_of(keys)
         p = occupancy.probability(centers)
         entropy = voxel_entropy(p)
+        sides = np.zeros((centers.shape[0], 3))
+        other_side = entropy
         if observation_aware:
-            entropy = entropy * observation_weight(*occupancy.observation_counts(centers))
-        # Per voxel in key order (x, then y, then z): 1 - p of eq. 7 and H(p) of eq. 8 [nats].
-        voxels = np.ascontiguousarray(np.stack([1.0 - p, entropy], axis=1))
+            hits, misses = occupancy.observation_counts(centers)
+            entropy = entropy * observation_weight(hits, misses)
+            sides = np.nan_to_num(occupancy.hit_sides(centers), nan=0.0)  # hit from both sides: none
+            other_side = voxel_entropy(np.full(1, 0.5)) * observation_weight(np.zeros_like(misses), misses)
+        # Per voxel in key order (x, then y, then z): 1 - p of eq. 7, H(p) of eq. 8 [nats], the H a ray
+        # against the side it was hit from reads, and that side.
+        voxels = np.ascontiguousarray(np.column_stack([1.0 - p, entropy, other_side, sides]))
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
         lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
         hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
