@@ -780,3 +780,16 @@ def test_the_objective_counts_the_objects_extent_so_far_not_the_current_roi(fran
     np.testing.assert_allclose(planner.objective.roi_min, extent[0] - [grow, grow, 0.0])
     np.testing.assert_allclose(planner.objective.roi_max, extent[1] + grow)
     assert planner.h_roi == [0.5]
+
+
+def test_the_objectives_box_reaches_down_to_the_table_the_object_stands_on(franka):
+    # A mushroom's cap hides the top of its stem: the largest cluster is the cap, its extent ends 6 cm
+    # above the table, and the stem below it must still count in f.
+    table_z = franka.station.table_z_m
+    extent = (np.array([0.40, -0.05, table_z + 0.06]), np.array([0.49, 0.05, table_z + 0.09]))
+    roi = compute_roi(np.vstack(extent), table_z=table_z)
+    update = SimpleNamespace(seq=1, timestamp=1.0, roi=roi, centroid=roi.centroid, extent=extent, h_roi=0.5,
+                             map=OccupancyMap(franka.perception.occupancy))
+    planner = VSLocalPlanner(franka)
+    planner._perceive(PerceivingSession(update))
+    assert planner.objective.roi_min[2] == table_z

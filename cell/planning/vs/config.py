@@ -41,8 +41,14 @@ class ObjectiveConfig(StrictModel):
     two faces of a wall thinner than a voxel share voxels; ``cell.planning.vs.objective``).
 
     ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box (the box of every ROI of the scan so
-    far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards (not
-    downwards, into the table). The paper clips to the box itself; but that box ends at the seen extent of the
+    far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards, and
+    downwards to the table the object stands on (``station.table_z_m``; not into it). The bottom is a
+    departure too: the segmented box ends at the lowest voxel of the largest cluster, and whatever lies
+    between it and the table can only be the object. Segmentation drops the voxels within
+    ``plane_distance_m`` (6 mm) of the table, half of a 12 mm washer, and a mushroom's stem, whose top
+    its 2 cm overhang hides, is a cluster of its own: their extents ended 12 mm and 6 cm above the table,
+    and the unseen sides below never counted in f (VS-Local washer, seed 0: 76.2 -> 83.2 % coverage).
+    The paper clips to the box itself; but that box ends at the seen extent of the
     object, and the space just beyond an edge seen from one side never counts: with no margin a VS-Local cube
     scan (RGB-D cell, seed 0) stopped on top after 18 s with 63 % coverage, its rays seeing only the known top
     face. The margin is not free, though. Its known-free voxels are clamped at p = 0.12, and eq. 7 lets a ray

@@ -219,9 +219,11 @@ class ServoScanPlanner(Planner):
         perception = self.config.perception
         grow = self.vs.objective.roi_margin_m
         lo, hi = update.extent
+        # down to the table the object stands on (ObjectiveConfig.roi_margin_m)
+        lo = np.array([lo[0] - grow, lo[1] - grow, min(lo[2], self.config.station.table_z_m)])
         # the update's own map: on the wall clock perception runs on another thread, and this is the copy
         # published with the update, which nothing writes
-        self.objective = EntropyObjective(update.map, lo - [grow, grow, 0.0], hi + grow, perception.crop_box,
+        self.objective = EntropyObjective(update.map, lo, hi + grow, perception.crop_box,
                                           self.rays_cam, self._voxel_entropy,
                                           self.vs.objective.entropy == "observation_aware")
         if update.h_roi is not None:
