@@ -219,8 +219,10 @@ class ServoScanPlanner(Planner):
         perception = self.config.perception
         grow = self.vs.objective.roi_margin_m
         lo, hi = update.extent
-        # down to the table the object stands on (ObjectiveConfig.roi_margin_m)
-        lo = np.array([lo[0] - grow, lo[1] - grow, min(lo[2], self.config.station.table_z_m)])
+        # down to the table the object stands on, above the voxel layer its surface lies in
+        # (ObjectiveConfig.roi_margin_m)
+        floor = self.config.station.table_z_m + perception.occupancy.resolution_m
+        lo = np.array([lo[0] - grow, lo[1] - grow, min(lo[2], floor)])
         # the update's own map: on the wall clock perception runs on another thread, and this is the copy
         # published with the update, which nothing writes
         self.objective = EntropyObjective(update.map, lo, hi + grow, perception.crop_box,
