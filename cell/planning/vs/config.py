@@ -41,16 +41,16 @@ class ObjectiveConfig(StrictModel):
     two faces of a wall thinner than a voxel share voxels; ``cell.planning.vs.objective``).
 
     ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box (the box of every ROI of the scan so
-    far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards, and
-    downwards to one voxel above the table the object stands on (``station.table_z_m``: the voxels the
-    table's surface lies in hold its hits and range noise, not the object). The bottom is a departure too:
-    the segmented box ends at the lowest voxel of the largest cluster, and whatever lies between it and the
-    table can only be the object. Down to the table itself, Table I's banana (seeds 1, 2) lost 17-20 points
-    of coverage (79.7 / 79.9 % online against 98.4 / 86.3 % with the segmented box); one voxel above it,
-    88.2 / 85.7 %, the held-out washer, torus and cup keeping their gains (94.3, 98.4, 96.2 %). Segmentation drops the voxels within
-    ``plane_distance_m`` (6 mm) of the table, half of a 12 mm washer, and a mushroom's stem, whose top
-    its 2 cm overhang hides, is a cluster of its own: their extents ended 12 mm and 6 cm above the table,
-    and the unseen sides below never counted in f (VS-Local washer, seed 0: 76.2 -> 83.2 % coverage).
+    far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards, and downwards
+    to one voxel above the table the object stands on (``station.table_z_m``: the voxels the table's surface
+    lies in hold its hits and range noise, not the object). The bottom is a departure too: the segmented box
+    ends at the lowest voxel of the largest cluster, and whatever lies between it and the table can only be
+    the object. Down to the table itself, Table I's banana (seeds 1, 2) lost 17-20 points of coverage (79.7 /
+    79.9 % online against 98.4 / 86.3 % with the segmented box); one voxel above it, 88.2 / 85.7 %, the held-
+    out washer, torus and cup keeping their gains (94.3, 98.4, 96.2 %). Segmentation drops the voxels within
+    ``plane_distance_m`` (6 mm) of the table, half of a 12 mm washer, and a mushroom's stem, whose top its 2
+    cm overhang hides, is a cluster of its own: their extents ended 12 mm and 6 cm above the table, and the
+    unseen sides below never counted in f (VS-Local washer, seed 0: 76.2 -> 83.2 % coverage).
     The paper clips to the box itself; but that box ends at the seen extent of the
     object, and the space just beyond an edge seen from one side never counts: with no margin a VS-Local cube
     scan (RGB-D cell, seed 0) stopped on top after 18 s with 63 % coverage, its rays seeing only the known top
