@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import subprocess
 import sys
 from collections.abc import Callable, Sequence
@@ -55,7 +54,7 @@ from cell.evaluation.grid import RESULTS_CSV
 from cell.evaluation.presets import write_heldout_shapes
 from cell.evaluation.report import REPORT_MD, figures
 from cell.evaluation.results import Row, read_csv
-from cell.packing.box import box_from_mesh
+from cell.packing.box import PackingBox, box_from_mesh
 from cell.packing.result import ReconstructionHistory, packing_section
 from cell.perception.pipeline import PerceptionPipeline
 from cell.templates import template_path
@@ -116,13 +115,9 @@ def face_errors(box: dict[str, Any], dims: Sequence[float], vertices: Array) -> 
     """Each face's error [m] of a result.json box (``box`` its ``packing.box``, ``dims`` its L W H):
     the face's coordinate minus the farthest mesh vertex (``vertices`` (N, 3), base frame) along the
     face's outward normal, +L -L +W -W (the box's own yaw) and top."""
-    c, s = math.cos(box["yaw_rad"]), math.sin(box["yaw_rad"])
-    u, v, z = np.array([c, s, 0.0]), np.array([-s, c, 0.0]), np.array([0.0, 0.0, 1.0])
-    centre = np.array([*box["center_xy_m"], 0.0])
-    half_l, half_w = dims[0] / 2.0, dims[1] / 2.0
-    faces = np.array([centre @ u + half_l, -(centre @ u) + half_l, centre @ v + half_w,
-                      -(centre @ v) + half_w, box["z_min_m"] + dims[2]])
-    normals = np.array([u, -u, v, -v, z])
+    estimate = PackingBox(center_xy=np.asarray(box["center_xy_m"], dtype=float),
+                          dims=np.asarray(dims, dtype=float), yaw_rad=box["yaw_rad"], z_min=box["z_min_m"])
+    faces, normals = estimate.faces(), estimate.face_normals()
     return np.asarray(faces - (vertices @ normals.T).max(axis=0))
 
 

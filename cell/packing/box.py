@@ -55,10 +55,9 @@ class PackingBox:
 
     def footprint(self) -> Array:
         """The 4 corners (4, 2) of the base rectangle, counter-clockwise seen from above."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
         half_l, half_w = self.dims[0] / 2.0, self.dims[1] / 2.0
         local = np.array([[-half_l, -half_w], [half_l, -half_w], [half_l, half_w], [-half_l, half_w]])
-        return local @ np.array([[c, s], [-s, c]]) + self.center_xy
+        return local @ np.vstack(self.axes_xy()) + self.center_xy
 
 
 # Yaws tried by the trimmed footprint search [rad]: 0.5 deg apart over a quarter turn (a rectangle's

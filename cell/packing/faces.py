@@ -110,7 +110,7 @@ def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -
     if seen.normals is None or seen.origins is None:
         return None
     ranges, along, _ = seen.geometry(n)
-    sigma = (model.sigma0_m + model.k_per_m * ranges**2) * along
+    sigma = model.range_sigma(ranges) * along
     x = seen.points @ n
     with np.errstate(invalid="ignore"):  # NaN normals: not facing
         facing = seen.normals @ n >= math.cos(math.radians(FACING_DEG))

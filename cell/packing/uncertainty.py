@@ -109,10 +109,14 @@ class ErrorModel:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
         |n.d| (K,) and ``sideways`` |n.x| + |n.y| (K,) (the module docstring; medians over the points)."""
         r, along = float(np.median(ranges)), float(np.median(along_ray))
-        sigma = self.sigma0_m + self.k_per_m * r**2
+        sigma = self.range_sigma(r)
         pose = self.pose_m + r * self.pose_rad
         gaussian = math.sqrt(along**2 * (sigma**2 / ranges.shape[0] + self.bias_m**2) + pose**2)
         return self.footprint(ranges, sideways) + self.voxel_m / 2.0 + self.coverage * gaussian
+
+    def range_sigma(self, ranges: Array | float) -> Array | float:
+        """sigma(r) = sigma0 + k r^2 [m] of ranges r [m]."""
+        return self.sigma0_m + self.k_per_m * ranges**2
 
     def footprint(self, ranges: Array, sideways: Array) -> float:
         """One zone footprint along a face's normal n [m], r tan(w) (|n.x| + |n.y|), from the face's K >= 1
