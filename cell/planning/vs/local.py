@@ -189,8 +189,8 @@ class LocalGradient:
         position = T_base_cam[:3, 3]
         if self._spot is not None and np.linalg.norm(position - self._spot[0]) >= self._spot[1]:
             self._spot = None  # the arc's length away: the difference over delta leads again
-        leaving = self._spot is not None
-        if leaving or self.dithering():  # the difference over delta is noise here: not followed
+        leaving, dithering = self._spot is not None, self.dithering()
+        if leaving or dithering:  # the difference over delta is noise here: not followed
             direction, norm = np.zeros(3), 0.0
         if norm >= p.g_max:
             self._heading = None  # the difference over delta leads
@@ -198,7 +198,7 @@ class LocalGradient:
             coarse, angle = self._best_arc_view(session, T_base_cam, objective, float(f[0]), feasible)
             if float(np.linalg.norm(coarse)) >= p.g_max:
                 direction, norm = coarse, float(np.linalg.norm(coarse))
-                if not leaving and self.dithering():
+                if not leaving and dithering:
                     self._spot = (self._mean_position(), angle * self.standoff_m)
         clipped = direction * (p.g_max / norm) if norm > p.g_max else direction
         return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local")
