@@ -179,11 +179,29 @@ def test_local_gradient_is_the_relative_central_difference_in_the_camera_plane(f
 
 def test_orbited_views_turn_on_the_sphere_about_the_point_looked_at():
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
-    views = orbited(T, 0.25, np.pi / 2)
-    for view, side in zip(views, (T[:3, 0], -T[:3, 0], T[:3, 1], -T[:3, 1]), strict=True):
+    views, directions = orbited(T, 0.25, np.pi / 2)
+    sides = (T[:3, 0], -T[:3, 0], T[:3, 1], -T[:3, 1])
+    for view, side, direction in zip(views[:4], sides, directions[:4], strict=True):
         np.testing.assert_allclose(view[:3, 3], CENTRE + 0.25 * side, atol=1e-12)  # a quarter turn
-        np.testing.assert_allclose(view[:3, 2], -side, atol=1e-12)  # still looking at CENTRE
+        np.testing.assert_allclose(T[:3, :3] @ direction, side, atol=1e-12)
+    diagonal = (T[:3, 0] + T[:3, 1]) / np.sqrt(2.0)
+    np.testing.assert_allclose(views[4][:3, 3], CENTRE + 0.25 * diagonal, atol=1e-12)
+    # round the circle of the camera's height: a quarter turn about +z from the -y side is the +x side
+    np.testing.assert_allclose(views[-2][:3, 3], CENTRE + np.array([0.25, 0.0, 0.0]), atol=1e-12)
+    np.testing.assert_allclose(views[-1][:3, 3], CENTRE - np.array([0.25, 0.0, 0.0]), atol=1e-12)
+    np.testing.assert_allclose(directions[-2], [1.0, 0.0, 0.0], atol=1e-12)  # camera x is base x here
+    for view in views:
+        np.testing.assert_allclose(view[:3, 3] + 0.25 * view[:3, 2], CENTRE, atol=1e-12)  # still looks at it
         np.testing.assert_allclose(view[:3, :3].T @ view[:3, :3], np.eye(3), atol=1e-12)
+    down = look_at(CENTRE + np.array([0.0, 0.0, 0.25]), CENTRE, np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(orbited(down, 0.25, 0.5)[1][-2:], 0.0)  # looking straight down: no such circle
+
+
+def on_the_sides(f: list[float], n: int) -> Array:
+    """f (n,) at the n views of the coarse arcs: ``f`` (4,) at each arc's +x, -x, +y and -y views (orbited's
+    first four), 1.0 at its others."""
+    per_arc = len(orbited(np.eye(4), 0.25, 0.1)[0])
+    return np.tile(np.concatenate([f, np.ones(per_arc - 4)]), n // per_arc)
 
 
 class DeadZoneObjective:
@@ -206,9 +224,11 @@ def test_local_gradient_looks_over_longer_arcs_where_f_is_flat_at_delta(franka):
     flat_at_delta = DeadZoneObjective([1.0, 0.0, 0.0], T[:3, 3], 0.001, 0.07)  # rises 7 cm away along +x
     sec = LocalGradient(franka)(session, T, flat_at_delta)
     assert sec.g_norm > franka.planners.vs_local.g_max and sec.g[0] == pytest.approx(1.0)
-    # Judged on what the camera can follow: with +x blocked (a joint limit), the view has converged.
+    # Judged on what the camera can follow: with +x blocked (a joint limit) it slides along the limit
+    # towards a diagonal view (+x+y or +x-y), and held in every direction the view has converged.
     held = LocalGradient(franka)(session, T, flat_at_delta, lambda v: np.array([min(v[0], 0.0), v[1], v[2]]))
-    assert held.g_norm == 0.0
+    assert held.g[0] == 0.0 and abs(held.g[1]) == pytest.approx(1.0)
+    assert LocalGradient(franka)(session, T, flat_at_delta, lambda v: np.zeros(3)).g_norm == 0.0
     # A longer arc's view beyond a barrier plane is none the camera can take: it offers what r does.
     below = DeadZoneObjective([0.0, 0.0, -1.0], T[:3, 3], 0.001, 0.07)  # rises 7 cm below the camera
     assert LocalGradient(franka)(session, T, below).g_norm > franka.planners.vs_local.g_max
@@ -250,6 +270,27 @@ def test_where_delta_is_flat_the_arc_view_whose_f_rises_most_per_metre_leads(fra
     # the near rise alone is steep enough to be followed
     near = StepObjective(T[:3, 3], 0.001, [([1.0, 0.0, 0.0], 0.09, 0.02)])
     assert LocalGradient(franka)(session, T, near).g[0] == pytest.approx(1.0)
+
+
+def test_a_camera_low_on_the_sphere_goes_round_at_its_height_where_great_circles_dip_under_the_table(franka):
+    """The information lies round the object at the camera's height, 10 deg above the table: every great
+    circle through the view but the one straight up dips under the floor before it gets there (the one
+    straight up stays on the near side), the circle of the camera's height gets there."""
+    elevation = np.deg2rad(10.0)
+    T = look_at(CENTRE + 0.25 * np.array([0.0, -np.cos(elevation), np.sin(elevation)]), CENTRE)
+    session = FakeSession(floor_z=T[2, 3] - 0.01)
+    session.pose = T
+
+    class RoundAtHeight:
+        """f 0.001, and 0.2 at the views more than 15 cm further along +x at most 1 cm above the camera."""
+
+        def __call__(self, poses):
+            d = np.asarray(poses)[..., :3, 3] - T[:3, 3]
+            return 0.001 + 0.2 * ((d[..., 0] > 0.15) & (d[..., 2] < 0.01))
+
+    sec = LocalGradient(franka)(session, T, RoundAtHeight())
+    assert sec.g_norm > franka.planners.vs_local.g_max
+    np.testing.assert_allclose(sec.g[:3], [1.0, 0.0, 0.0], atol=1e-9)  # level, towards +x
 
 
 def test_the_coarse_arcs_keep_the_side_they_led_to_while_it_still_offers_a_rise(franka):
@@ -323,7 +364,7 @@ def test_a_camera_going_to_and_fro_within_delta_judges_its_gradient_flat_there(f
 
         def __call__(self, T):
             n = np.asarray(T).shape[0]
-            return np.array([1.0, 1.5, 0.5, 1.0, 1.0]) if n == 5 else np.tile(self.arc, n // 4)
+            return np.array([1.0, 1.5, 0.5, 1.0, 1.0]) if n == 5 else on_the_sides(self.arc, n)
 
     delta = franka.planners.vs_local.delta_m
     session = FakeSession(floor_z=0.0)
@@ -355,7 +396,7 @@ def test_a_camera_leaving_a_spot_it_went_to_and_fro_on_follows_the_arcs_for_thei
 
         def __call__(self, T):
             n = np.asarray(T).shape[0]
-            return np.array([1.0, 0.5, 1.5, 1.0, 1.0]) if n == 5 else np.tile([1.5, 0.5, 1.0, 1.0], n // 4)
+            return np.array([1.0, 0.5, 1.5, 1.0, 1.0]) if n == 5 else on_the_sides([1.5, 0.5, 1.0, 1.0], n)
 
     delta = franka.planners.vs_local.delta_m
     session = FakeSession(floor_z=0.0)

@@ -170,8 +170,9 @@ class VSLocalConfig(StrictModel):
     on an unstated scale of f: see ``cell.planning.vs.local``.
 
     ``reach_deg`` [deg]: where ||g|| over ``delta_m`` is below ``g_max``, the camera heads for the view, among
-    the displacements of eq. 5-6 over arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this
-    angle, whose f exceeds f(r) most per metre of arc, before the evaluation counts towards convergence (a
+    the displacements of eq. 5-6 (with their diagonals, and round the vertical at the camera's height) over
+    arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this angle, whose f exceeds f(r) most
+    per metre of arc, before the evaluation counts towards convergence (a
     departure; 0, the default, is the paper's single delta; the RGB-D cells
     use 90: a camera that has used up the information around it otherwise ends on a plateau, not at a
     maximum, see ``cell.planning.vs.local``). VS-Hybrid always uses the single delta."""
