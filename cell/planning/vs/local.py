@@ -240,16 +240,17 @@ class LocalGradient:
         p = self.params
         orbits = [orbited(T_base_cam, self.standoff_m, a) for a in self._coarse_angles]
         views = np.concatenate([v for v, _ in orbits])
-        n = views.shape[0] // len(orbits)  # arcs per angle
-        arcs = np.repeat(self._coarse_angles, n)
         allowed = np.array([session.sensor_pose_allowed(v) for v in views])
-        rise = np.where(allowed, (objective(views) - f_r) / (arcs * self.standoff_m), 0.0)  # [nats/m]
-        directions = orbits[0][1]  # the same at every angle
-        side_best: list[tuple[Array, float]] = [(np.zeros(3), float(arcs[0]))] * n
-        for i in np.flatnonzero(rise > 0.0):
-            followed = feasible(p.alpha * rise[i] * directions[i % n] / (f_r + p.f_eps_nats))
-            if np.linalg.norm(followed) > np.linalg.norm(side_best[i % n][0]):
-                side_best[i % n] = (followed, float(arcs[i]))
+        arcs = np.array(self._coarse_angles)
+        gain = np.where(allowed, objective(views) - f_r, 0.0).reshape(len(arcs), -1)  # (angle, way round)
+        rise = gain / (arcs[:, None] * self.standoff_m)  # [nats/m]
+        # The part of a direction the camera can follow scales with it (half-spaces through the origin), and
+        # a way round keeps its direction at every angle: its steepest view is the one followed furthest.
+        side_best = []
+        for i, direction in enumerate(orbits[0][1]):
+            k = int(np.argmax(rise[:, i]))
+            g = p.alpha * float(rise[k, i]) * direction / (f_r + p.f_eps_nats)
+            side_best.append((feasible(g) if rise[k, i] > 0.0 else np.zeros(3), float(arcs[k])))
         norms = [float(np.linalg.norm(g)) for g, _ in side_best]
         if self._heading is None or norms[self._heading] < p.g_max:
             best = int(np.argmax(norms))
