@@ -788,23 +788,6 @@ def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
     assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
 
 
-def test_a_refusal_just_after_the_camera_turned_round_backs_off_along_its_motion_not_the_new_command(franka):
-    """The camera moved +x for the last second, its secondary direction had just turned to -x when the
-    guard refused (the arm still going +x): backing off along the reverse of the command would drive it on
-    towards the contact; it retraces its motion (-x) and avoids +x there."""
-    planner = VSLocalPlanner(franka)
-    planner.centroid = CENTRE
-    planner.servo.secondary_active = True
-    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
-    session = BackOffSession(T)
-    planner._path.extend([(0.0, T[:3, 3] - [0.05, 0.0, 0.0]), (1.0, T[:3, 3])])
-    planner._back_off(session, Secondary(np.array([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0]), 1.0, 0.5, "local"), 0.02)
-    assert all(v[0] < 0.0 for v in session.twists)
-    s = np.array([0.0, 0.0, franka.scan.standoff_m])
-    onwards = Secondary(np.array([1.0, 0.0, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
-    assert planner._within_limits(session, T, s, onwards).g_norm == 0.0  # +x, towards the contact, blocked
-
-
 def test_hybrid_h_roi_termination_waits_for_the_end_of_the_first_global_leg(franka):
     planner = VSHybridPlanner(franka)
     planner.h_roi = [0.4] * 12

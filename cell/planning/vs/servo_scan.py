@@ -20,8 +20,8 @@ mapped through the primary task's null-space projector of eq. 1), nor lower the 
 of the arm's Jacobian once it is below ``singular_value_activation`` (``session.singularity_twists``:
 the arm at the edge of its reach), and the camera slides along the joint limit or the edge of the
 reach as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
-``TwistRefused``), the arm has been stopped; the scan backs off along the reverse of the camera's
-motion over the last ``backoff_s`` for as long, then goes on with that direction blocked within
+``TwistRefused``), the arm has been stopped; the scan backs off along the reverse of the refused
+secondary direction for ``backoff_s``, then goes on with that direction blocked within
 ``refusal_radius_m`` of where it was refused. A second refusal during the back-off ends the scan.
 
 ``telemetry`` keeps one row per servo iteration (decimated in long jobs, ``cell.control.decimation``): the
@@ -34,7 +34,6 @@ singularity), as at the drop of the paper's Fig. 4 at 38 s.
 from __future__ import annotations
 
 from abc import abstractmethod
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -51,10 +50,6 @@ from cell.safety.barriers import project_onto_halfspaces
 from cell.safety.guard import TwistRefused
 from drivers.errors import NoObjectFound, PlanningError
 from drivers.transforms import look_at
-
-# A camera that moved less than this [m] over the last backoff_s was at rest (well above an arm's
-# repeatability, 0.1 mm for the UR5e and the Panda, below any motion the servo commands in a second).
-AT_REST_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -163,10 +158,8 @@ class ServoScanPlanner(Planner):
         self.h_roi: list[float] = []
         self.telemetry: DecimatedSeries[TelemetryRow] = DecimatedSeries()
         self._centroid_filter = CentroidLowPass(vs.centroid_tau_s)
-        # Where the guard refused a streamed twist and the direction refused there (base frame).
+        # Where the guard refused a streamed twist and the secondary direction refused there (base frame).
         self._refused: list[tuple[Array, Array]] = []
-        # (job time [s], camera position [m, base frame]) of the servo iterations of the last backoff_s
-        self._path: deque[tuple[float, Array]] = deque()
         self._seq: int | None = None
         # Index of the first H_ROI value the termination of eq. 12 judges; None: not judged yet.
         self._h_roi_from: int | None = None
@@ -316,18 +309,11 @@ class ServoScanPlanner(Planner):
         return Secondary(g, projected, sec.f, sec.mode)
 
     def _back_off(self, session: ScanSession, refused: Secondary, period: float) -> None:
-        """After the guard refused the streamed twist (and stopped the arm): servo for ``backoff_s`` [s],
-        primary task on, along the reverse of the camera's own motion over the last ``backoff_s`` (the
-        refused secondary direction where the camera was at rest), and remember that direction where it
-        happened. The motion is what brought the arm near the contact; the refused command can be its
-        reverse: a Table I mustard scan (seed 1) on the Panda had just turned its secondary direction round
-        when the guard, whose smoothed twist still went the old way, refused it with link2 6 mm from link5b,
-        and backing off along the reverse of the command drove the arm on towards the contact, refused again
-        0.15 s later, which ended the scan. A second refusal meanwhile ends the scan (``TwistRefused``
-        propagates)."""
+        """After the guard refused the streamed twist (and stopped the arm): remember the refused secondary
+        direction where it happened, then servo along its reverse for ``backoff_s`` [s] with the primary
+        task on. A second refusal meanwhile ends the scan (``TwistRefused`` propagates)."""
         T = session.sensor_pose()
-        moved = T[:3, 3] - self._path[0][1] if self._path else np.zeros(3)
-        direction = moved if float(np.linalg.norm(moved)) > AT_REST_M else T[:3, :3] @ refused.g[:3]
+        direction = T[:3, :3] @ refused.g[:3]
         norm = float(np.linalg.norm(direction))
         unit = direction / norm if norm > 0.0 else np.zeros(3)
         if norm > 0.0:
@@ -343,7 +329,6 @@ class ServoScanPlanner(Planner):
             out = self.servo.step(self._features(T), g)
             session.command_sensor_twist(out.v)
             session.wait(period)
-        self._path.clear()
 
     def run(self, session: ScanSession) -> str:
         period = 1.0 / self.vs.servo_rate_hz
@@ -353,9 +338,6 @@ class ServoScanPlanner(Planner):
             self._perceive(session)
             assert self.objective is not None
             T = session.sensor_pose()
-            self._path.append((session.now(), T[:3, 3].copy()))
-            while session.now() - self._path[0][0] > self.vs.backoff_s:
-                self._path.popleft()
             s = self._features(T)
             e = self.servo.error(s)
             if self.servo.secondary_active or self.servo.primary_converged(e):
