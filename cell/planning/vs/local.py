@@ -147,9 +147,9 @@ def orbited(T_base_cam: Array, radius_m: float, angle_rad: float) -> tuple[PoseB
     that it stays on the sphere of that radius around the point and still looks at it (the virtual
     displacements of eq. 5-6 over an arc of ``angle_rad * radius_m``): along the great circles towards each
     of its :data:`SIDES`, then along the circle of its height both ways (about the base's +z, then -z).
-    From a view low on the sphere every great circle but the level one dips under the table within a
-    quarter turn, and that one climbs back towards the near side; the circle of the camera's height goes
-    round the object at the height it is at, as far as the arc reaches.
+    From a view low on the sphere, looking down at the point, the great circles through it turn down
+    towards the table, the level one too, except those climbing over the top, which stay on the near side
+    within a quarter turn; the circle of the camera's height goes round the object at the height it is at.
 
     Returns the poses (10, 4, 4) and the directions (10, 3) they start out in, unit in the camera frame
     (zero for the circle of its height when the camera looks straight down: it has none)."""
