@@ -2,9 +2,10 @@
 
 1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
    known table height, the measured points inside them and inside the box of every ROI of the scan,
-   :mod:`cell.packing.objects`; the box: :mod:`cell.packing.box`, its faces seen head on at the plane
-   their points scatter about, those seen at the outline beyond it: :mod:`cell.packing.faces`) and, in
-   sim, their IoU with the ground-truth box of the posed mesh;
+   :mod:`cell.packing.objects`, and those below the cut above the table's noise band,
+   :mod:`cell.packing.low_points`; the box: :mod:`cell.packing.box`, its faces seen head on at the plane
+   their points scatter about, those seen at the outline beyond where their points end:
+   :mod:`cell.packing.faces`) and, in sim, their IoU with the ground-truth box of the posed mesh;
 2. the number of poses, one per capture;
 3. surface coverage [%]: the share of ground-truth surface samples (eq. 13's A of the visual-servoing
    paper: faces pointing down excluded) within ``coverage_radius_m`` of an object voxel centre;
