@@ -128,20 +128,29 @@ def test_a_face_seen_at_the_outline_lies_a_footprint_over_its_points_plus_one_be
     assert outline_gap(MODEL, Seen(seen.points, range_m=0.3), side) == 0.0
 
 
-def test_the_samples_end_where_an_evenly_sampled_surface_runs_out_whatever_its_size() -> None:
-    """A 30 cm top sampled evenly: 2 % of its points are its last 6 mm, where the trimmed quantile stops;
-    the points beyond it span as much as as many inside, so they end at the edge. Gross outliers fewer
-    than the trimmed points do not carry it out; the end is never beyond the outermost point."""
+def test_the_samples_end_where_a_surface_running_out_ends_whatever_its_size() -> None:
+    """A 30 cm top sampled evenly, its normals up: 2 % of its points are its last 6 mm, where the trimmed
+    quantile stops; the points beyond it span as much as as many inside, so they end at the edge. Gross
+    outliers fewer than the trimmed points do not carry it out; the end is never beyond the outermost point.
+    A wall at the face (normals facing it) is where its points crowd: no step; without normals, none."""
     rng = np.random.default_rng(8)
     top = np.column_stack([rng.uniform(-0.15, 0.15, 2000), rng.uniform(-0.1, 0.1, 2000), np.full(2000, 0.1)])
-    outliers = np.array([[0.2, 0.0, 0.1], [0.22, 0.05, 0.1], [0.25, -0.05, 0.1]])
-    seen = Seen(np.vstack([top, outliers]))
+    points = np.vstack([top, [[0.2, 0.0, 0.1], [0.22, 0.05, 0.1], [0.25, -0.05, 0.1]]])
+    up = np.tile([0.0, 0.0, 1.0], (points.shape[0], 1))
     side = np.array([1.0, 0.0, 0.0])
-    quantile = float(np.quantile(seen.points @ side, 0.98))
+    quantile = float(np.quantile(points @ side, 0.98))
     assert 0.15 - quantile > 0.005
-    assert sample_end(seen, side, quantile) == pytest.approx(0.15, abs=0.002)
-    assert sample_end(seen, side, 0.3) == 0.3  # nothing beyond the face
-    few = Seen(top[:3])
+    assert sample_end(Seen(points, normals=up), side, quantile) == pytest.approx(0.15, abs=0.002)
+    assert sample_end(Seen(points, normals=up), side, 0.3) == 0.3  # nothing beyond the face
+    assert sample_end(Seen(points), side, quantile) == quantile
+    assert sample_end(Seen(points, normals=np.tile(side, (points.shape[0], 1))), side, quantile) == quantile
+    # Half the outermost points on a wall facing the face: half the step.
+    half = up.copy()
+    half[np.argsort(-(points @ side))[:80:2]] = side
+    step = sample_end(Seen(points, normals=up), side, quantile) - quantile
+    halved = sample_end(Seen(points, normals=half), side, quantile) - quantile
+    assert halved == pytest.approx(step / 2, rel=0.1)
+    few = Seen(top[:3], normals=up[:3])
     assert sample_end(few, side, float(np.quantile(top[:3, 0], 0.5))) <= top[:3, 0].max()
 
 

@@ -36,16 +36,22 @@ only from the side, a rounded part) is put where the object's samples along n en
 zone footprint that the outline is expected to lie beyond them:
 
 1. **Where the samples end.** The box's face is the ``1 - trim`` quantile of its points along n, so k = trim N
-   points lie beyond it. On a face seen head on they sit on the face; at an outline they are the last strip of
-   a surface that runs out there (a top up to its edge, a rim), and the quantile lies inside the samples' end
-   by the width that a share ``trim`` of all the object's points covers, which grows with the object: 2 % of a
-   30 cm top's points are its last 6 mm, the 2 % segment of a 12 cm disc is 6 mm deep (the horizontal box's
-   far face came out 2.2 cm in on two LR-NBV scans of the packing paper's grid, the flange 1-2.4 cm narrow on
-   all five NBV scans). A surface sampled evenly up to its end has the same number of points in every strip
-   of equal width, so the k points beyond the quantile span as much as the k inside it: the samples end at
-   q + (q - x_2k) (:func:`sample_end`, x_2k the 2k-th outermost point), and never beyond the outermost point.
-   The points beyond the quantile count there by their number only, so a few gross outliers among them (what
-   the trim is for) move it no further than their number of points inside the quantile.
+   points lie beyond it. On a surface that runs out at the face (a top up to its edge, a rim seen from above)
+   they are the last strip of it, and the quantile lies inside the samples' end by the width that a share
+   ``trim`` of all the object's points covers, which grows with the object: 2 % of a 30 cm top's points are
+   its last 6 mm, the 2 % segment of a 12 cm disc is 6 mm deep (the horizontal box's far face came out 2.2 cm
+   in on two LR-NBV scans of the packing paper's grid, the flange 1-2.4 cm narrow on all five NBV scans). A
+   surface sampled evenly up to its end has as many points in every strip of equal width, so the k points
+   beyond the quantile span as much as the k inside it: the samples end at q + (q - x_2k) (x_2k the 2k-th
+   outermost point), never beyond the outermost point. On a surface that turns at the face (a wall, a
+   curved side at its extreme) the points crowd at the face and the quantile is already there. The local
+   normals tell the two apart: a surface running out past a horizontal face is a top whose normals lie
+   90 deg from n, 55 deg beyond ``FACING_DEG``, which the normals' 10-20 deg error does not bridge, while
+   a wall at the face faces n. The outermost 2k points can hold both (a side wall and the top's edge
+   above it), so the step out is q - x_2k times the share of them with a known normal that does not face
+   n (:func:`sample_end`); with no normal known there is no step. The points beyond the quantile count by
+   their number only, so a few gross outliers among them (what the trim is for) move it no further than
+   their number of points inside the quantile.
 2. **The outline beyond the samples.** At the silhouette a zone ranges the object only when the object gives
    most of its return (the sim: the median of its sub-rays' ranges, so over half of them on the object; a real
    zone with a background close behind the object merges the two into one range between them, nearer the
@@ -108,14 +114,24 @@ def face_at(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> floa
 
 def sample_end(seen: Seen, n: np.ndarray, face_m: float) -> float:
     """Where the points of ``seen`` along the unit normal ``n`` (3,) end [m], the box's quantile face at
-    ``face_m``: face_m + (face_m - x_2k) for the k points beyond it, x_2k the 2k-th outermost, at most the
-    outermost point (module docstring, step 1); ``face_m`` when no point lies beyond it or fewer than 2k
-    points lie on the object."""
-    x = np.sort(seen.points @ n)[::-1]
+    ``face_m``: face_m + s (face_m - x_2k) for the k points beyond it, x_2k the 2k-th outermost and s the
+    share of the 2k outermost points with a known normal that does not face n, at most the outermost point
+    (module docstring, step 1); ``face_m`` when no point lies beyond it, fewer than 2k points lie on the
+    object or no normal is known."""
+    x = seen.points @ n
+    order = np.argsort(-x)
     k = int(np.count_nonzero(x > face_m))
-    if k == 0 or 2 * k >= x.size:
+    if seen.normals is None or k == 0 or 2 * k >= x.size:
         return face_m
-    return min(2.0 * face_m - float(x[2 * k]), float(x[0]))
+    with np.errstate(invalid="ignore"):  # NaN normals: unknown
+        cosines = seen.normals[order[:2 * k]] @ n
+    known = np.isfinite(cosines)
+    if not known.any():
+        return face_m
+    facing = math.cos(math.radians(FACING_DEG))
+    running_out = np.count_nonzero(cosines[known] < facing) / np.count_nonzero(known)
+    end = face_m + running_out * (face_m - float(x[order[2 * k]]))
+    return min(end, float(x[order[0]]))
 
 
 def outline_gap(model: ErrorModel, seen: Seen, n: np.ndarray) -> float:
