@@ -132,7 +132,8 @@ def test_the_samples_end_where_a_surface_running_out_ends_whatever_its_size() ->
     """A 30 cm top sampled evenly, its normals up: 2 % of its points are its last 6 mm, where the trimmed
     quantile stops; the points beyond it span as much as as many inside, so they end at the edge. Gross
     outliers fewer than the trimmed points do not carry it out; the end is never beyond the outermost point.
-    A wall at the face (normals facing it) is where its points crowd: no step; without normals, none."""
+    A wall or rounded end at the face (normals towards it) is where its points crowd: no step; without
+    normals, none."""
     rng = np.random.default_rng(8)
     top = np.column_stack([rng.uniform(-0.15, 0.15, 2000), rng.uniform(-0.1, 0.1, 2000), np.full(2000, 0.1)])
     points = np.vstack([top, [[0.2, 0.0, 0.1], [0.22, 0.05, 0.1], [0.25, -0.05, 0.1]]])
@@ -144,6 +145,9 @@ def test_the_samples_end_where_a_surface_running_out_ends_whatever_its_size() ->
     assert sample_end(Seen(points, normals=up), side, 0.3) == 0.3  # nothing beyond the face
     assert sample_end(Seen(points), side, quantile) == quantile
     assert sample_end(Seen(points, normals=np.tile(side, (points.shape[0], 1))), side, quantile) == quantile
+    # A rounded end 50 deg off the face's normal turns towards it as well: no step.
+    rounded = np.tile([math.cos(math.radians(50.0)), 0.0, math.sin(math.radians(50.0))], (points.shape[0], 1))
+    assert sample_end(Seen(points, normals=rounded), side, quantile) == quantile
     # Half the outermost points on a wall facing the face: half the step.
     half = up.copy()
     half[np.argsort(-(points @ side))[:80:2]] = side

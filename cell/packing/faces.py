@@ -44,14 +44,15 @@ zone footprint that the outline is expected to lie beyond them:
    surface sampled evenly up to its end has as many points in every strip of equal width, so the k points
    beyond the quantile span as much as the k inside it: the samples end at q + (q - x_2k) (x_2k the 2k-th
    outermost point), never beyond the outermost point. On a surface that turns at the face (a wall, a
-   curved side at its extreme) the points crowd at the face and the quantile is already there. The local
-   normals tell the two apart: a surface running out past a horizontal face is a top whose normals lie
-   90 deg from n, 55 deg beyond ``FACING_DEG``, which the normals' 10-20 deg error does not bridge, while
-   a wall at the face faces n. The outermost 2k points can hold both (a side wall and the top's edge
-   above it), so the step out is q - x_2k times the share of them with a known normal that does not face
-   n (:func:`sample_end`); with no normal known there is no step. The points beyond the quantile count by
-   their number only, so a few gross outliers among them (what the trim is for) move it no further than
-   their number of points inside the quantile.
+   curved or rounded side at its extreme) the points crowd at the face and the quantile is already there.
+   The local normals tell the two apart: a surface that runs out along n has its normals across n (a top's
+   are 90 deg from a side's n), one that turns at the face has them towards n; a normal counts as across
+   when it lies within ``FACING_DEG`` of the plane perpendicular to n (twice the normals' own error, as
+   for facing). The outermost 2k points can hold both (a side wall and the top's edge above it), so the
+   step out is q - x_2k times the share of them with a known normal across n (:func:`sample_end`); with
+   no normal known there is no step. The points beyond the quantile count by their number only, so a few
+   gross outliers among them (what the trim is for) move it no further than their number of points inside
+   the quantile.
 2. **The outline beyond the samples.** At the silhouette a zone ranges the object only when the object gives
    most of its return (the sim: the median of its sub-rays' ranges, so over half of them on the object; a real
    zone with a background close behind the object merges the two into one range between them, nearer the
@@ -115,7 +116,7 @@ def face_at(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> floa
 def sample_end(seen: Seen, n: np.ndarray, face_m: float) -> float:
     """Where the points of ``seen`` along the unit normal ``n`` (3,) end [m], the box's quantile face at
     ``face_m``: face_m + s (face_m - x_2k) for the k points beyond it, x_2k the 2k-th outermost and s the
-    share of the 2k outermost points with a known normal that does not face n, at most the outermost point
+    share of the 2k outermost points with a known normal across n, at most the outermost point
     (module docstring, step 1); ``face_m`` when no point lies beyond it, fewer than 2k points lie on the
     object or no normal is known."""
     x = seen.points @ n
@@ -128,8 +129,8 @@ def sample_end(seen: Seen, n: np.ndarray, face_m: float) -> float:
     known = np.isfinite(cosines)
     if not known.any():
         return face_m
-    facing = math.cos(math.radians(FACING_DEG))
-    running_out = np.count_nonzero(cosines[known] < facing) / np.count_nonzero(known)
+    across = math.sin(math.radians(FACING_DEG))
+    running_out = np.count_nonzero(np.abs(cosines[known]) < across) / np.count_nonzero(known)
     end = face_m + running_out * (face_m - float(x[order[2 * k]]))
     return min(end, float(x[order[0]]))
 
