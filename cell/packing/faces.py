@@ -1,6 +1,6 @@
 """Where the packing box's faces lie: a face the sensor saw head on at the plane its points scatter about,
-not at the tail of their range noise; a face seen only at the object's outline beyond its outermost
-points by the zone footprint's expected share.
+not at the tail of their range noise; a face seen only at the object's outline where its points end, beyond
+that by the zone footprint's expected share.
 
 The trimmed box (:func:`cell.packing.box.box_from_points`) puts each face at the ``1 - trim`` quantile of
 all points along its outward normal n. On a face the sensor faced, the points scatter along their rays
@@ -32,23 +32,45 @@ calibration, and the hand-eye error, shift the faces and are not taken out (the 
 them: on the grid's scans they leave the head-on faces 2-6 mm inside on some seeds).
 
 **Faces seen at the outline.** A face with no plane of facing points (a 15 mm rim seen from above, a top seen
-only from the side, a rounded part) keeps the box's quantile face, moved out by the part of a zone footprint
-that the outline is expected to lie beyond it. At the silhouette a zone ranges the object only when the object
-gives most of its return (the sim: the median of its sub-rays' ranges, so over half of them on the object; a
-real zone with a background close behind the object merges the two into one range between them, nearer the
-object the larger its share, so its point falls in the object's voxels rather than being cut as background
-about when the object gives most of the return: the assumption), and the next zone outwards, which ranged the
-background, holds less than half: the outline lies between the outermost object zone's centre and one
-footprint, r tan(w) (|n.x| + |n.y|) along n (``ErrorModel.footprint``), beyond it, anywhere in between as the
-zone grid falls on the object. Seen from V views whose grids fall independently, the outermost of V such
-points lies on average 1 / (V + 1) of a footprint inside the outline (the gap below the largest of V uniform
-draws): that is what the face moves out by, V the number of distinct sensor positions among the face's points
-(``cell.packing.uncertainty.FACE_FRACTION``), and the footprint their median. A face seen head on has |n.x| +
-|n.y| near 0 and moves little. This takes the order statistics' mean, not a bound: the upper bound allows for
-the whole footprint. Where the background is out of range (a view over the object into nothing), the sim
-ranges a zone from a quarter of its sub-rays on the object (``min_hit_fraction``) and the outline lies closer
-than assumed; with few views (2-3) the gap is a third of a footprint or more and the face's few points are
-noisy, so one face can come out 1-2 cm either way.
+only from the side, a rounded part) is put where the object's samples along n end, moved out by the part of a
+zone footprint that the outline is expected to lie beyond them:
+
+1. **Where the samples end.** The box's face is the ``1 - trim`` quantile of its points along n, so k = trim N
+   points lie beyond it. On a surface that runs out at the face (a top up to its edge, a rim seen from above)
+   they are the last strip of it, and the quantile lies inside the samples' end by the width that a share
+   ``trim`` of all the object's points covers, which grows with the object: 2 % of a 30 cm top's points are
+   its last 6 mm, the 2 % segment of a 12 cm disc is 6 mm deep (the horizontal box's far face came out 2.2 cm
+   in on two LR-NBV scans of the packing paper's grid, the flange 1-2.4 cm narrow on all five NBV scans). A
+   surface sampled evenly up to its end has as many points in every strip of equal width, so the k points
+   beyond the quantile span as much as the k inside it: the samples end at q + (q - x_2k) (x_2k the 2k-th
+   outermost point), never beyond the outermost point. On a surface that turns at the face (a wall, a
+   curved or rounded side at its extreme) the points crowd at the face and the quantile is already there.
+   The local normals tell the two apart: a surface that runs out along n has its normals across n (a top's
+   are 90 deg from a side's n), one that turns at the face has them towards n; a normal counts as across
+   when it lies within ``FACING_DEG`` of the plane perpendicular to n (twice the normals' own error, as
+   for facing). The outermost 2k points can hold both (a side wall and the top's edge above it), so the
+   step out is q - x_2k times the share of them with a known normal across n (:func:`sample_end`); with
+   no normal known there is no step. The points beyond the quantile count by their number only, so a few
+   gross outliers among them (what the trim is for) move it no further than their number of points inside
+   the quantile.
+2. **The outline beyond the samples.** At the silhouette a zone ranges the object only when the object gives
+   most of its return (the sim: the median of its sub-rays' ranges, so over half of them on the object; a real
+   zone with a background close behind the object merges the two into one range between them, nearer the
+   object the larger its share, so its point falls in the object's voxels rather than being cut as background
+   about when the object gives most of the return: the assumption), and the next zone outwards, which ranged
+   the background, holds less than half: the outline lies between the outermost object zone's centre and one
+   footprint, r tan(w) (|n.x| + |n.y|) along n (``ErrorModel.footprint``), beyond it, anywhere in between as
+   the zone grid falls on the object. An edge crosses a view's zone grid at a different offset in each zone
+   it passes unless the grid's rows run along it, so each point on the outline is a draw of its own: the
+   outermost of Z draws lies on average 1 / (Z + 1) of a footprint inside the outline (the gap below the
+   largest of Z uniform draws), Z the number of the face's points (the share
+   ``cell.packing.uncertainty.FACE_FRACTION`` outermost along n) and the footprint their median; a grid
+   aligned with the edge gives one draw per view, and the gap is then larger (half a footprint for one view).
+   A face seen head on has |n.x| + |n.y| near 0 and moves little. This takes the order statistics' mean, not
+   a bound: the upper bound allows for the whole footprint. Where the background is out of range (a view over
+   the object into nothing), the sim ranges a zone from a quarter of its sub-rays on the object
+   (``min_hit_fraction``) and the outline lies closer than assumed; with few views (2-3) the face's few points
+   are noisy, so one face can come out 1-2 cm either way.
 
 A face that a view never showed (a face only grazed by a few zones from far, a part of the object lost
 to the segmentation) stays where its few points put it; the upper bound is what covers it.
@@ -85,22 +107,43 @@ ONE_PLANE_SIGMAS = 1.5
 
 def face_at(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float:
     """Where the face with outward unit normal ``n`` (3,) lies [m, coordinate along n], the box's own at
-    ``face_m``: the plane of its facing points (:func:`head_on_plane`), else ``face_m`` plus the outline's
-    expected gap (:func:`outline_gap`)."""
+    ``face_m``: the plane of its facing points (:func:`head_on_plane`), else where the samples end
+    (:func:`sample_end`) plus the outline's expected gap (:func:`outline_gap`)."""
     plane = head_on_plane(model, seen, n, face_m)
-    return face_m + outline_gap(model, seen, n) if plane is None else plane
+    return sample_end(seen, n, face_m) + outline_gap(model, seen, n) if plane is None else plane
+
+
+def sample_end(seen: Seen, n: np.ndarray, face_m: float) -> float:
+    """Where the points of ``seen`` along the unit normal ``n`` (3,) end [m], the box's quantile face at
+    ``face_m``: face_m + s (face_m - x_2k) for the k points beyond it, x_2k the 2k-th outermost and s the
+    share of the 2k outermost points with a known normal across n, at most the outermost point
+    (module docstring, step 1); ``face_m`` when no point lies beyond it, fewer than 2k points lie on the
+    object or no normal is known."""
+    x = seen.points @ n
+    order = np.argsort(-x)
+    k = int(np.count_nonzero(x > face_m))
+    if seen.normals is None or k == 0 or 2 * k >= x.size:
+        return face_m
+    with np.errstate(invalid="ignore"):  # NaN normals: unknown
+        cosines = seen.normals[order[:2 * k]] @ n
+    known = np.isfinite(cosines)
+    if not known.any():
+        return face_m
+    across = math.sin(math.radians(FACING_DEG))
+    running_out = np.count_nonzero(np.abs(cosines[known]) < across) / np.count_nonzero(known)
+    end = face_m + running_out * (face_m - float(x[order[2 * k]]))
+    return min(end, float(x[order[0]]))
 
 
 def outline_gap(model: ErrorModel, seen: Seen, n: np.ndarray) -> float:
     """How far [m] the outline of the face with outward unit normal ``n`` (3,) lies beyond its outermost
-    points on average: a zone footprint along n over the number of distinct views among the face's
-    points plus one (module docstring); 0 when the views are unknown."""
+    points on average: a zone footprint along n over the number of the face's points plus one (module
+    docstring, step 2); 0 when the views are unknown."""
     if seen.origins is None:
         return 0.0
     _, face = seen.face(n)
     ranges, _, sideways = seen.geometry(n)
-    views = np.unique(seen.origins[face], axis=0).shape[0]
-    return model.footprint(ranges[face], sideways[face]) / (views + 1)
+    return model.footprint(ranges[face], sideways[face]) / (np.count_nonzero(face) + 1)
 
 
 def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -> float | None:

@@ -82,17 +82,25 @@ def object_surface_points(perception: PerceptionPipeline, object_voxels: Array) 
     return np.vstack([cloud[in_object], object_voxels[~held]])
 
 
-def in_extent(perception: PerceptionPipeline, points: Array) -> NDArray[np.bool_]:
-    """Mask (K,) of the ``points`` (K, 3) [m, base frame] inside the box of every ROI of the scan
-    (``perception.extent``, grown by half a voxel from the voxel centres it was taken on to the voxels'
-    faces) and above :func:`table_cut_z`; all False before any ROI."""
+def extent_box(perception: PerceptionPipeline) -> tuple[Array, Array] | None:
+    """The box (min, max) (3,) [m, base frame] of every ROI of the scan (``perception.extent``), grown by
+    half a voxel from the voxel centres it was taken on to the voxels' faces; None before any ROI."""
     extent = perception.extent
     if extent.min_m is None or extent.max_m is None:
-        return np.zeros(points.shape[0], dtype=bool)
+        return None
     half = perception.map.resolution_m / 2.0
-    lo = extent.min_m - half
+    return extent.min_m - half, extent.max_m + half
+
+
+def in_extent(perception: PerceptionPipeline, points: Array) -> NDArray[np.bool_]:
+    """Mask (K,) of the ``points`` (K, 3) [m, base frame] inside :func:`extent_box` and above
+    :func:`table_cut_z`; all False before any ROI."""
+    box = extent_box(perception)
+    if box is None:
+        return np.zeros(points.shape[0], dtype=bool)
+    lo, hi = box
     lo[2] = max(lo[2], table_cut_z(perception.config.segmentation, perception.table_z_m))
-    return np.all((points > lo) & (points <= extent.max_m + half), axis=1)
+    return np.all((points > lo) & (points <= hi), axis=1)
 
 
 def extent_points(perception: PerceptionPipeline) -> Array:
