@@ -141,10 +141,11 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     perception = session.perception
     sightings = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
     model = error_model(config, session.sensor_model())
+    captured = np.vstack([s.points for s in sightings]) if sightings else np.zeros((0, 3))
     low = above_table(perception, sightings, model)
     measured = np.vstack([object_surface_points(perception, objects), extent_points(perception),
-                          *([np.vstack([s.points for s in sightings])[low]] if low.any() else [])])
-    seen = _seen(perception, objects, sightings, low, measured, config.scan.standoff_m, model)
+                          captured[low]])
+    seen = _seen(perception, objects, sightings, captured, low, measured, config.scan.standoff_m, model)
     box = faced_box(box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction), model, seen)
     upper = upper_dims(box, model, seen, pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
@@ -173,17 +174,16 @@ def _finite(values: Array) -> list[float | None]:
     return [round(float(v), 6) if np.isfinite(v) else None for v in values]
 
 
-def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighting], low: NDArray[np.bool_],
-          measured: Array, standoff_m: float, model: ErrorModel) -> Seen:
+def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighting], captured: Array,
+          low: NDArray[np.bool_], measured: Array, standoff_m: float, model: ErrorModel) -> Seen:
     """The object's points with their views for the head-on faces and the upper bound: each capture's
-    points in the object's voxels, in the box of every ROI or where ``low`` (over the captures' points,
-    concatenated: those below the table cut above the table's noise band) (the selection of the estimate's
-    points), with their surface normals on ``model``'s zone grid, or without captures on record the
-    estimate's own points seen from ``standoff_m`` (:class:`Seen`)."""
+    points (``captured``, all of them concatenated) in the object's voxels, in the box of every ROI or
+    where ``low`` (over ``captured``: those below the table cut above the table's noise band) (the
+    selection of the estimate's points), with their surface normals on ``model``'s zone grid, or without
+    captures on record the estimate's own points seen from ``standoff_m`` (:class:`Seen`)."""
     if not sightings:
         return Seen(measured, range_m=standoff_m)
-    points = np.vstack([s.points for s in sightings])
-    keep = in_object_voxels(perception.map, points, objects) | in_extent(perception, points) | low
+    keep = in_object_voxels(perception.map, captured, objects) | in_extent(perception, captured) | low
     if not keep.any():
         return Seen(measured, range_m=standoff_m)
     return Seen.of(sightings, keep, model)
