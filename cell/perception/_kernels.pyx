@@ -114,15 +114,21 @@ cdef inline void _apply(Grid* g, int64_t v, bint hit) noexcept nogil:
         g.n_occupied[v // BLOCK_VOXELS] += 1 if lo > g.l_occ else -1
 
 
-cdef inline bint _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noexcept nogil:
+cdef enum:
+    POOL_FULL = -1  # _update: the pool is full
+    UPDATED = -2    # _update: the voxel was already updated in this scan
+
+
+cdef inline int64_t _update(Grid* g, int64_t x, int64_t y, int64_t z, bint hit) noexcept nogil:
     """Apply a hit or a miss to voxel key (x, y, z) unless it was already updated in this scan (OctoMap:
-    one update per voxel per scan). False when the pool is full."""
+    one update per voxel per scan). Its pool index when applied, else ``UPDATED`` or ``POOL_FULL``."""
     cdef int64_t v = _local_voxel(g, x - g.ox, y - g.oy, z - g.oz)
     if v < 0:
-        return False
-    if g.stamp[v] != g.scan:
-        _apply(g, v, hit)
-    return True
+        return POOL_FULL
+    if g.stamp[v] == g.scan:
+        return UPDATED
+    _apply(g, v, hit)
+    return v
 
 
 cdef inline bint _hit(Grid* g, int64_t x, int64_t y, int64_t z, const double* og, const double* pg
@@ -130,16 +136,13 @@ cdef inline bint _hit(Grid* g, int64_t x, int64_t y, int64_t z, const double* og
     """``_update`` of the end voxel (x, y, z) of a ray from ``og`` to ``pg`` (grid units) with a hit; the
     scan's first hit of the voxel also adds the ray's unit direction to its ``sides``, or marks them NaN
     (hit from both sides, for good) when it points against their sum. False when the pool is full."""
-    cdef int64_t v = _local_voxel(g, x - g.ox, y - g.oy, z - g.oz)
+    cdef int64_t v = _update(g, x, y, z, True)
     cdef double h[3]
     cdef double norm = 0.0, along = 0.0
     cdef float* m
     cdef int a
     if v < 0:
-        return False
-    if g.stamp[v] == g.scan:
-        return True
-    _apply(g, v, True)
+        return v != POOL_FULL
     m = g.sides + 3 * v
     if isnan(m[0]):
         return True
@@ -266,7 +269,7 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
     cdef int64_t total = _ray_setup(o, k0, e, ke, left, step, t_max, t_delta), v
     cdef int a
     if total == 0:
-        return _update(g, k0[0], k0[1], k0[2], False) if end_free else True
+        return _update(g, k0[0], k0[1], k0[2], False) != POOL_FULL if end_free else True
     # the walk's state in scalars, so that it stays in registers
     cdef int64_t x = k0[0] - g.ox, y = k0[1] - g.oy, z = k0[2] - g.oz
     cdef int64_t sx = step[0], sy = step[1], sz = step[2]
@@ -301,7 +304,7 @@ cdef bint _traverse(Grid* g, const double* o, const int64_t* k0, const double* e
         if stamp[v] != scan:
             _apply(g, v, False)
     if end_free:
-        return _update(g, ke[0], ke[1], ke[2], False)
+        return _update(g, ke[0], ke[1], ke[2], False) != POOL_FULL
     return True
 
 
