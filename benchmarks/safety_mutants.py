@@ -57,7 +57,8 @@ MUTANTS = (
     Mutant("no-joint-overrun-stop", "a joint carried towards its limit faster than the IK predicted is not "
            "stopped", GUARD, "overrun = self._joint_overrun(state)", "overrun = None"),
     Mutant("no-barrier-check-of-moves", "trajectory samples are not checked against the barrier planes",
-           GUARD, "reason = self.barrier_violation(T)\n", "reason = None\n"),
+           GUARD, "reason = self.barriers.first_violation(self.guarded_points(T), GUARDED_POINTS, floor)\n",
+           "reason = None\n"),
     Mutant("no-collision-check-of-twists", "the motion predicted ahead of a streamed twist is not checked "
            "for collisions", GUARD, "hit = self._collision_ahead(state.q, ik(v))", "hit = None"),
     Mutant("no-path-check-of-twists", "only the configuration predicted ahead of a streamed twist is checked "

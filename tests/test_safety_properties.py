@@ -86,6 +86,26 @@ def test_a_move_through_a_plane_is_refused_as_a_barrier(model_name):
 
 
 @pytest.mark.parametrize("model_name", ROBOTS)
+def test_a_move_may_graze_a_margin_as_deep_as_a_stop_may_and_no_deeper(model_name):
+    """A move's samples may enter a plane's margin by the share a streamed twist's stop may use (the
+    straight joint line of a retrace along a path that slid on the margin bends into it), not further."""
+    margin = cell_config(model_name).safety.barrier_margin_m
+    depth = 0.08
+    for into_m, refused in ((0.4 * margin, False), (0.6 * margin, True)):
+        rig = Rig(cell_config(model_name, barrier_planes=[_plane_below(model_name, depth)]))
+        traj = _move(rig, _lowered(rig, depth - margin + into_m))
+        _, refusal = rig.guard.check_trajectory(traj)
+        assert (refusal is not None) == refused, (into_m, refusal)
+        if refused:
+            assert refusal is not None and refusal.kind == "barrier" and "shelf" in refusal.message
+        else:
+            rig.guard.execute_trajectory(traj)
+            rig.settle()
+            rig.assert_safe()
+            assert -0.5 * margin < rig.judge.clearance(rig.arm.state().q) - margin < -0.3 * margin
+
+
+@pytest.mark.parametrize("model_name", ROBOTS)
 def test_a_move_through_the_object_is_refused_as_a_collision(model_name):
     rig = Rig.of(model_name)
     flange = rig.arm.state().T_base_flange[:3, 3]

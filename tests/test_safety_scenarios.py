@@ -23,9 +23,11 @@ from cell.jobs.progress import JobProgress
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.planning.base import Planner, ScanSession
 from cell.planning.registry import PLANNERS
+from cell.safety.guard import TwistRefused
 from drivers.arm.base import ArmMode, JointTrajectory, MotionToken
 from drivers.arm.sim import SimArm
 from drivers.errors import DriverError, SafetyStop
+from drivers.transforms import look_at
 
 from .conftest import FRANKA, UR5E
 
@@ -62,6 +64,31 @@ class PushPlanner(Planner):
         return "push done"
 
 
+class RetracePlanner(Planner):
+    """Looks at the object from 25 cm, streams the sensor straight at it until the guard refuses (the
+    object's ROI ahead), then retraces the last second of the arm's path; ``refused_at`` keeps the job
+    time [s] and sensor position [m] of the refusal."""
+
+    name: ClassVar[str] = "test-retrace"
+    description: ClassVar[str] = "test planner: drive into the object, then retrace"
+    refused_at: ClassVar[list[tuple[float, np.ndarray]]] = []
+
+    def run(self, session: ScanSession) -> str:
+        station = session.config.station
+        centre = np.array([*station.xy_m, station.table_z_m + 0.05])
+        assert session.move_to_sensor_pose(look_at(centre + np.array([0.0, -0.15, 0.2]), centre))
+        session.set_continuous_capture(True)
+        session.wait(1.0)
+        try:
+            for _ in range(200):
+                session.command_sensor_twist(np.array([0.0, 0.0, 0.08, 0.0, 0.0, 0.0]))
+                session.wait(0.05)
+        except TwistRefused:
+            self.refused_at.append((session.now(), session.sensor_pose()[:3, 3].copy()))
+            return "retraced" if session.retrace(1.0) else "not retraced"
+        return "never refused"
+
+
 class BypassPlanner(Planner):
     """Tries to move the arm around the guard, with everything it can find."""
 
@@ -92,6 +119,7 @@ def _test_planners(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     monkeypatch.setitem(PLANNERS, OrbitPlanner.name, OrbitPlanner)
     monkeypatch.setitem(PLANNERS, BypassPlanner.name, BypassPlanner)
     monkeypatch.setitem(PLANNERS, PushPlanner.name, PushPlanner)
+    monkeypatch.setitem(PLANNERS, RetracePlanner.name, RetracePlanner)
     yield
 
 
@@ -112,10 +140,14 @@ def _run(tmp_path: Path, config_path: Path, *, faults: list[dict[str, Any]] | No
     return json.loads((out / "result.json").read_text()), out, error
 
 
-def _sensor_positions(out: Path) -> np.ndarray:
+def _trajectory(out: Path) -> np.ndarray:
+    """trajectory.csv's rows: job time [s], sensor position [m], orientation (quaternion xyzw)."""
     with (out / "trajectory.csv").open() as f:
-        rows = list(csv.reader(f))[1:]
-    return np.array([[float(v) for v in r[1:4]] for r in rows])
+        return np.array([[float(v) for v in r] for r in list(csv.reader(f))[1:]])
+
+
+def _sensor_positions(out: Path) -> np.ndarray:
+    return _trajectory(out)[:, 1:4]
 
 
 def _assert_stopped_and_kept(result: dict[str, Any], out: Path, error: BaseException | None,
@@ -235,6 +267,24 @@ def test_streamed_motion_slides_along_the_barrier_planes(tmp_path):
     assert clamps.get("barrier max reach x", 0) > 0 and clamps.get("barrier floor", 0) > 0
     assert positions[-1, 1] - positions[len(positions) // 2, 1] > 0.05
     assert result["safety"]["stops"] == [] and result["safety"]["refusals"] == []
+
+
+def test_after_a_refused_twist_the_arm_retraces_its_path(tmp_path):
+    """The arm stopped short of the object goes back the way it came: it ends where it was a second before
+    the refusal (the path it passed is clear), not along some reverse of the last command."""
+    RetracePlanner.refused_at.clear()
+    result, out, error = _run(tmp_path, FRANKA, planner=RetracePlanner.name, max_time=20.0)
+    assert error is None and result["termination"] == "retraced", result["termination"]
+    assert result["refused_moves"] == {"collision": 1}
+    refusals = [r["reason"] for r in result["safety"]["refusals"]]
+    assert refusals == ["camera would touch object ROI within 0.15 s"]
+    (t_refused, p_refused), = RetracePlanner.refused_at
+    rows = _trajectory(out)
+    before = rows[rows[:, 0] <= t_refused - 1.0 + 1e-9][-1]
+    end = rows[-1]
+    np.testing.assert_allclose(end[1:4], before[1:4], atol=1e-3)
+    assert abs(float(np.dot(end[4:], before[4:]))) > 1.0 - 1e-6  # same orientation
+    assert np.linalg.norm(p_refused - end[1:4]) > 0.04  # went back about a second of 8 cm/s
 
 
 def test_raster_scan_respects_the_barrier_planes(tmp_path):

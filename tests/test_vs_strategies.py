@@ -29,6 +29,7 @@ from cell.planning.vs.servo_scan import (
     voxel_entropy,
 )
 from cell.planning.vs.telemetry import write_servo_outputs
+from cell.safety.guard import Refusal, TwistRefused
 from drivers.errors import PlanningError
 from drivers.transforms import look_at
 
@@ -742,43 +743,38 @@ def test_secondary_slides_along_the_edge_of_the_reach_and_a_joint_limit_together
 
 
 class BackOffSession(JointLimitSession):
-    """Records the twists streamed while job time passes; no new perception."""
+    """Records the retraces asked for; ``can_retrace`` says whether the arm could."""
 
-    def __init__(self, pose):
+    def __init__(self, pose, can_retrace=True):
         super().__init__(np.zeros((0, 6)))
         self.pose = pose
-        self.twists = []
+        self.can_retrace = can_retrace
+        self.retraced = []
         self.lines = []
 
     def sensor_pose(self):
         return self.pose
 
-    def latest_perception(self):
-        return None
-
     def log(self, message):
         self.lines.append(message)
 
-    def command_sensor_twist(self, v):
-        self.twists.append(np.array(v))
-        return v
-
-    def wait(self, dt):
-        self.t += dt
+    def retrace(self, duration_s):
+        self.retraced.append(duration_s)
+        return self.can_retrace
 
 
-def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
+def test_after_a_refusal_the_arm_retraces_and_the_camera_avoids_that_direction(franka):
     planner = VSLocalPlanner(franka)
     planner.centroid = CENTRE
     planner.servo.secondary_active = True
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     session = BackOffSession(T)
     refused = Secondary(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]), 1.0, 0.5, "local")
-    planner._back_off(session, refused, 0.02)
+    refusal = TwistRefused("refused: link6 would touch the table", Refusal("collision", "link6"))
+    planner._back_off(session, refused, refusal)
     vs = franka.planners.vs
-    assert session.t == pytest.approx(vs.backoff_s) and len(session.twists) == round(vs.backoff_s / 0.02)
-    assert all(v[0] < 0.0 for v in session.twists)  # the reverse of the refused camera-x motion
-    assert "backing off" in session.lines[0]
+    assert session.retraced == [vs.backoff_s]
+    assert "retracing" in session.lines[0]
     s = np.array([0.0, 0.0, franka.scan.standoff_m])
     towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
                                                               "local"))
@@ -786,6 +782,15 @@ def test_after_a_refusal_the_camera_backs_off_and_avoids_that_direction(franka):
     session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
     sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
     assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
+
+
+def test_a_refusal_the_arm_cannot_retrace_from_ends_the_scan(franka):
+    planner = VSLocalPlanner(franka)
+    session = BackOffSession(look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE), can_retrace=False)
+    refusal = TwistRefused("refused: link6 would touch the table", Refusal("collision", "link6"))
+    with pytest.raises(TwistRefused) as ended:
+        planner._back_off(session, Secondary(np.array([1.0, 0, 0, 0, 0, 0.0]), 1.0, 0.5, "local"), refusal)
+    assert ended.value is refusal
 
 
 def test_hybrid_h_roi_termination_waits_for_the_end_of_the_first_global_leg(franka):

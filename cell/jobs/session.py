@@ -14,7 +14,7 @@ arm if no frame arrives for too long.
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from pathlib import Path
 
@@ -48,6 +48,8 @@ STALE_FRAME_TIMEOUT_S = 2.0
 # Between consecutive poses of a path a few centimetres apart, a joint moving further than this [rad] is a
 # change of configuration (an elbow or wrist flip), which a servo following the path cannot make.
 MAX_PATH_JOINT_STEP_RAD = 0.5
+# How far back in job time [s] the joint path is kept for ``retrace``.
+JOINT_PATH_KEPT_S = 5.0
 
 
 class ScanLimitReached(Exception):
@@ -108,7 +110,9 @@ class JobSession:
         self._latest: PerceptionUpdate | None = None
         self._poses = poses
         self._live: LivePerception | None = None
-        self._record_pose(self._guard.state().T_base_flange)
+        # (job time [s], joints [rad]) at every tick over the last JOINT_PATH_KEPT_S, for ``retrace``
+        self._joint_path: deque[tuple[float, Array]] = deque(maxlen=int(JOINT_PATH_KEPT_S / self._dt) + 1)
+        self._record_pose(self._guard.state())
 
     def now(self) -> float:
         return self._clock.now()
@@ -122,7 +126,9 @@ class JobSession:
     def sensor_model(self) -> SensorModel:
         return self._sensor.model
 
-    def _record_pose(self, T_base_flange: Array) -> None:
+    def _record_pose(self, state: ArmState) -> None:
+        T_base_flange = state.T_base_flange
+        self._joint_path.append((self.now(), state.q))
         T = T_base_flange @ self._T_flange_sensor
         self._T_base_sensor = T
         p = T[:3, 3]
@@ -189,7 +195,7 @@ class JobSession:
         self._guard.tick(self._perception_time)
         self._clock.sleep(self._dt)
         self.ticks.record(self.now())
-        self._record_pose(self._guard.state().T_base_flange)
+        self._record_pose(self._guard.state())
 
     def progress(self, planner: dict[str, float | int | str | None]) -> JobProgress:
         """The job now, for ``run_scan``'s ``on_progress`` (control thread); ``planner`` holds the
@@ -219,7 +225,7 @@ class JobSession:
             except DriverError:
                 return False
             if ticked:
-                self._record_pose(state.T_base_flange)
+                self._record_pose(state)
             if not np.any(np.abs(state.qd) > SETTLED_QD_RAD_S):
                 return True
             if self.now() >= end:
@@ -252,16 +258,44 @@ class JobSession:
         if q_goal is None:
             self.n_unreachable += 1
             return False
+        return self._move_joints(state.q, q_goal, f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} "
+                                                  "(sensor)")
+
+    def retrace(self, duration_s: float) -> bool:
+        """After the guard stopped a streamed twist: tick until the arm is at rest, then move it (joint
+        space, guarded, blocking in job time) back to the joints it had ``duration_s`` [s] before this
+        call (at most ``JOINT_PATH_KEPT_S`` back, or to where the record starts), along the straight joint
+        line to them. The arm passed through the configurations between, so the move undoes the motion
+        the guard judged, whatever the planner commanded last; a Cartesian reverse of a command can carry
+        the joints on towards the contact. Returns False, without moving, for an arm that reports no
+        joints (a replayed arm) or when the guard refuses the move (recorded and counted); raises
+        ``KinematicsError`` when the arm does not come to rest within ``SETTLE_TIMEOUT_S``."""
+        target_time = self.now() - duration_s
+        deadline = self.now() + SETTLE_TIMEOUT_S
+        while np.any(np.abs(self._guard.state().qd) > SETTLED_QD_RAD_S):
+            if self.now() > deadline:
+                raise KinematicsError(f"the arm did not come to rest within {SETTLE_TIMEOUT_S:g} s of a stop")
+            self._tick()
+        state = self._jointed_state()
+        if state is None:
+            return False
+        q_back = next((q for t, q in reversed(self._joint_path) if t <= target_time + 1e-9),
+                      self._joint_path[0][1])
+        return self._move_joints(state.q, q_back, f"retrace of {duration_s:g} s")
+
+    def _move_joints(self, q_start: Array, q_goal: Array, what: str) -> bool:
+        """Move from ``q_start`` (the arm's joints now) to ``q_goal`` [rad] along a time-optimal joint
+        trajectory through the guard, ticking until it ends; False when the guard would refuse it (``what``
+        names the move in the log)."""
         s = self.config.safety
-        traj = joint_trajectory(self._model, state.q, q_goal, dt=self._dt,
+        traj = joint_trajectory(self._model, q_start, q_goal, dt=self._dt,
                                 velocity_scale=s.joint_velocity_scale,
                                 acceleration_scale=s.joint_acceleration_scale, jerk_scale=s.joint_jerk_scale)
         _, refusal = self._guard.check_trajectory(traj)
         if refusal is not None:
             self.refused_moves[refusal.kind] += 1
             self._guard.log.refuse(self.now(), f"move skipped: {refusal.message}")
-            self.log(f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor) skipped: "
-                     f"{refusal.message}")
+            self.log(f"{what} skipped: {refusal.message}")
             return False
         started = self._guard.execute_trajectory(traj)
         deadline = self.now() + started.duration + MOVE_TIMEOUT_MARGIN_S

@@ -54,6 +54,13 @@ class ScanSession(Protocol):
         safety layer would refuse the move (collision, barrier plane, joint margin)."""
         ...
 
+    def retrace(self, duration_s: float) -> bool:
+        """After the guard stopped a streamed twist: once the arm is at rest, move it back (joint space,
+        guarded, blocking in job time) to the joints it had ``duration_s`` [s] before, along the path it
+        came. Returns False, without moving, when the arm reports no joints or the guard would refuse
+        the move."""
+        ...
+
     def wait(self, dt: float) -> None:
         """Let ``dt`` [s] pass with the arm doing what it was told. Raises ``TwistRefused``
         (``cell.safety.guard``) when the guard refused a streamed twist: the arm has been stopped and the

@@ -129,10 +129,12 @@ class Barriers:
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         return np.einsum("kpj,pj->kp", p[:, None, :] - self._P[None], self._N) - self.margin_m
 
-    def first_violation(self, points: Array, names: Sequence[str]) -> str | None:
-        """A sentence naming the first guarded point inside a plane's margin, or None."""
+    def first_violation(self, points: Array, names: Sequence[str], floor: Array | float = 0.0) -> str | None:
+        """A sentence naming the first guarded point inside a plane's margin, or None. ``floor``: the
+        clearance [m] (scalar, or per point and plane as ``clearances`` gives) a point may go down to; 0
+        keeps every point out of the margin."""
         c = self.clearances(points)
-        bad = np.argwhere(c < 0.0)
+        bad = np.argwhere(c < floor)
         if bad.size == 0:
             return None
         k, i = bad[0]

@@ -25,8 +25,9 @@ the arm. It forwards two kinds of motion:
   margin (a last resort where the IK's prediction falls short, near a singularity).
 - **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
   sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
-  be too fast, TCP and sensor on the allowed side of every plane, and the whole path collision-free, between
-  its samples too (``CollisionWorld.check_path``); refused otherwise.
+  be too fast, TCP and sensor on the allowed side of every plane, into its margin no deeper than a stop
+  after a streamed twist may go (``BRAKING_MARGIN_SHARE``, or where the arm already is), and the whole
+  path collision-free, between its samples too (``CollisionWorld.check_path``); refused otherwise.
 
 Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
 honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
@@ -72,7 +73,9 @@ GUARDED_POINTS = ("TCP", "sensor")
 BRAKING_SHARE = 0.5
 # The stop checked before each streamed twist may use this share of the barrier margin: the projection aims
 # at the margin itself, and a twist sliding along it (whose realized motion grazes the plane by microns)
-# must not be taken for one heading in; the rest of the margin is left for the arm's tracking error.
+# must not be taken for one heading in; the rest of the margin is left for the arm's tracking error. A
+# move's samples may go as deep: the straight joint line back along a path that slid along a margin (a
+# retrace after a refusal) bends into it by the path's curvature.
 BRAKING_MARGIN_SHARE = 0.5
 
 
@@ -252,6 +255,13 @@ class MotionGuard:
     def barrier_violation(self, T_base_flange: Array) -> str | None:
         """Why a flange pose leaves the allowed side of a plane (margin included), or None."""
         return self.barriers.first_violation(self.guarded_points(T_base_flange), GUARDED_POINTS)
+
+    def _margin_floor(self, T_base_flange: Array) -> Array:
+        """The lowest clearance [m] beyond the barrier margin (guarded points x planes) a motion from
+        ``T_base_flange`` may reach: ``BRAKING_MARGIN_SHARE`` of the margin, and no deeper than a point
+        already is."""
+        return np.minimum(self.barriers.clearances(self.guarded_points(T_base_flange)),
+                          -BRAKING_MARGIN_SHARE * self.barriers.margin_m)
 
     # ------------------------------------------------------------------ streamed twists
 
@@ -471,7 +481,7 @@ class MotionGuard:
         turned = Rotation.from_rotvec(moved[:, 3:]).apply(lever)
         tcp = now[0] + moved[:, :3]
         path = np.stack([tcp, tcp + turned], axis=1)  # (k, 2, 3)
-        floor = np.minimum(self.barriers.clearances(now), -BRAKING_MARGIN_SHARE * self.barriers.margin_m)
+        floor = self._margin_floor(state.T_base_flange)
         clearance = self.barriers.clearances(path.reshape(-1, 3)).reshape(len(times), 2, -1)
         if np.any(clearance < floor[None] - 1e-9):
             return "barrier braking"
@@ -506,11 +516,10 @@ class MotionGuard:
                                        f"limit margin ({self._safety.joint_position_margin_rad:g} rad)")
         F = np.array([m.fk(qk) for qk in q])
         trajectory = self._within_speed_limits(trajectory, F)
-        start_ok = self.barrier_violation(state.T_base_flange) is None
+        floor = self._margin_floor(state.T_base_flange)
         for k, T in enumerate(F):
-            reason = self.barrier_violation(T)
-            # An arm already inside a margin (e.g. after a config change) may still move out of it.
-            if reason is not None and (k > 0 or start_ok):
+            reason = self.barriers.first_violation(self.guarded_points(T), GUARDED_POINTS, floor)
+            if reason is not None:
                 return trajectory, Refusal("barrier", f"trajectory sample {k}: {reason}")
         hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)
         if hit is not None:

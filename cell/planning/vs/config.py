@@ -141,8 +141,8 @@ class VSConfig(StrictModel):
     singular value of 0.001 and lost the object by 3 to 6 cm for 15 s). 0.06 is three times the IK's
     damping, where it still realizes 90 % of a twist along the weakest direction.
     ``backoff_s`` [s]: after the guard refused a streamed twist (a collision predicted ahead), the
-    camera backs off along the reverse of the refused secondary motion for this long, primary task on,
-    then carries on with that direction blocked within ``refusal_radius_m`` [m] of where it was refused
+    arm retraces its joint path of this long before the refusal, then the camera carries on with the
+    refused secondary direction blocked within ``refusal_radius_m`` [m] of where it was refused
     (``ServoScanPlanner``)."""
 
     servo_rate_hz: float = Field(default=50.0, gt=0.0, le=1000.0)

@@ -20,9 +20,9 @@ mapped through the primary task's null-space projector of eq. 1), nor lower the 
 of the arm's Jacobian once it is below ``singular_value_activation`` (``session.singularity_twists``:
 the arm at the edge of its reach), and the camera slides along the joint limit or the edge of the
 reach as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
-``TwistRefused``), the arm has been stopped; the scan backs off along the reverse of the refused
-secondary direction for ``backoff_s``, then goes on with that direction blocked within
-``refusal_radius_m`` of where it was refused. A second refusal during the back-off ends the scan.
+``TwistRefused``), the arm has been stopped; the scan backs off by retracing the arm's joint path of the
+last ``backoff_s`` (``session.retrace``), then goes on with the refused secondary direction blocked within
+``refusal_radius_m`` of where it was refused. A back-off the guard refuses ends the scan.
 
 ``telemetry`` keeps one row per servo iteration (decimated in long jobs, ``cell.control.decimation``): the
 series of the paper's Fig. 4 (||e||, f(r), ||g|| before clipping, H_ROI) with the job time and the
@@ -308,27 +308,20 @@ class ServoScanPlanner(Planner):
         g[:2] = raw * min(1.0, norm / projected) if projected > 0.0 else 0.0
         return Secondary(g, projected, sec.f, sec.mode)
 
-    def _back_off(self, session: ScanSession, refused: Secondary, period: float) -> None:
+    def _back_off(self, session: ScanSession, refused: Secondary, refusal: TwistRefused) -> None:
         """After the guard refused the streamed twist (and stopped the arm): remember the refused secondary
-        direction where it happened, then servo along its reverse for ``backoff_s`` [s] with the primary
-        task on. A second refusal meanwhile ends the scan (``TwistRefused`` propagates)."""
+        direction where it happened, then retrace the arm's last ``backoff_s`` [s] of joint path
+        (``session.retrace``). Where it cannot, ``refusal`` ends the scan."""
         T = session.sensor_pose()
         direction = T[:3, :3] @ refused.g[:3]
         norm = float(np.linalg.norm(direction))
-        unit = direction / norm if norm > 0.0 else np.zeros(3)
         if norm > 0.0:
-            self._refused.append((T[:3, 3].copy(), unit))
-        session.log(f"backing off for {self.vs.backoff_s:g} s along {np.round(-unit, 3).tolist()} (base "
-                    f"frame), then avoiding that direction within {self.vs.refusal_radius_m:g} m")
-        end = session.now() + self.vs.backoff_s
-        while session.now() < end - 1e-9:
-            self._perceive(session)
-            T = session.sensor_pose()
-            g = np.zeros(6)
-            g[:2] = -(T[:3, :3].T @ unit)[:2]
-            out = self.servo.step(self._features(T), g)
-            session.command_sensor_twist(out.v)
-            session.wait(period)
+            self._refused.append((T[:3, 3].copy(), direction / norm))
+        session.log(f"retracing the arm's last {self.vs.backoff_s:g} s of path, then avoiding "
+                    f"{np.round(direction / norm, 3).tolist() if norm > 0.0 else 'no direction'} (base "
+                    f"frame) within {self.vs.refusal_radius_m:g} m of {np.round(T[:3, 3], 3).tolist()}")
+        if not session.retrace(self.vs.backoff_s):
+            raise refusal
 
     def run(self, session: ScanSession) -> str:
         period = 1.0 / self.vs.servo_rate_hz
@@ -359,5 +352,5 @@ class ServoScanPlanner(Planner):
                 return reason
             try:
                 session.wait(period)
-            except TwistRefused:
-                self._back_off(session, sec, period)
+            except TwistRefused as refusal:
+                self._back_off(session, sec, refusal)
