@@ -13,6 +13,7 @@ from cell.packing.faces import face_at, head_on_plane, outline_gap, sample_end
 from cell.packing.uncertainty import ErrorModel, Seen, Sighting
 from cell.packing.zones import surface_normals, zone_grid
 from drivers.depth.sim_tof import zone_directions
+from drivers.transforms import look_at
 
 ZONE = math.radians(45.0 / 8)
 HALF_FOV = (math.radians(22.5), math.radians(22.5))
@@ -108,6 +109,44 @@ def test_no_plane_without_facing_points_normals_or_one_level() -> None:
     assert head_on_plane(MODEL, seen, up, hub_top) is None
     # Seen head on: no gap, and the noisy points' end lies a fraction of their noise (5 mm) beyond.
     assert face_at(MODEL, seen, up, hub_top) == pytest.approx(hub_top, abs=0.003)
+
+
+def _flank(T: np.ndarray, radius: float | None, rng: np.random.Generator) -> np.ndarray:
+    """The points (K, 3) [base] an 8x8 sensor at T ranges on the cylinder x^2 + z^2 = ``radius``^2 (its
+    axis along y, |y| <= 0.1 m, x > 0: a rounded flank facing +x; None: the plane x = 0.06 m, |z| <=
+    0.06 m), off along the rays by the range noise."""
+    o, d = T[:3, 3], RAYS @ T[:3, :3].T
+    if radius is None:
+        t = (0.06 - o[0]) / d[:, 0]
+        on = np.abs(o[2] + t * d[:, 2]) <= 0.06
+    else:  # |o_xz + t d_xz|^2 = radius^2, the nearer root
+        a = d[:, 0] ** 2 + d[:, 2] ** 2
+        b = 2.0 * (o[0] * d[:, 0] + o[2] * d[:, 2])
+        disc = b**2 - 4.0 * a * (o[0] ** 2 + o[2] ** 2 - radius**2)
+        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)
+        on = disc > 0.0
+    on &= np.abs(o[1] + t * d[:, 1]) <= 0.1
+    r = t[on] + (MODEL.sigma0_m + MODEL.k_per_m * t[on] ** 2) * rng.standard_normal(np.count_nonzero(on))
+    return o + r[:, None] * d[on]
+
+
+def test_a_rounded_flank_seen_head_on_is_not_put_at_a_plane_inside_it() -> None:
+    """A flank curving away over its height (radius 6 cm) seen head on from 0.3 m: its facing points lie
+    up to a fifth of the radius inside its extreme (a plane through them came out 3.9 mm inside); more of
+    them lie deep than a plane's noise puts there, and the face is the box's own, the trimmed quantile at
+    the extreme plus the noise's tail. A flat side seen alike stays a plane, the tail taken out."""
+    rng = np.random.default_rng(11)
+    poses = [look_at(np.array([0.36, dy, dz]), np.array([0.0, dy, 0.0])) for dy in (-0.04, 0.0, 0.04)
+             for dz in (-0.03, 0.0, 0.03)]
+    side = np.array([1.0, 0.0, 0.0])
+    seen = _seen([Sighting(T, _flank(T, 0.06, rng)) for T in poses])
+    quantile = float(np.quantile(seen.points @ side, 0.98))
+    assert head_on_plane(MODEL, seen, side, quantile) == quantile
+    assert abs(quantile - 0.06) < 0.006
+    flat = _seen([Sighting(T, _flank(T, None, rng)) for T in poses])
+    quantile = float(np.quantile(flat.points @ side, 0.98))
+    plane = head_on_plane(MODEL, flat, side, quantile)
+    assert plane is not None and plane != quantile and abs(plane - 0.06) < 0.003
 
 
 def test_a_face_seen_at_the_outline_lies_a_footprint_over_its_points_plus_one_beyond_their_end() -> None:

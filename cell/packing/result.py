@@ -2,10 +2,10 @@
 
 1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
    known table height, the measured points inside them and inside the box of every ROI of the scan,
-   :mod:`cell.packing.objects`, and those below the cut above the table's noise band,
-   :mod:`cell.packing.low_points`; the box: :mod:`cell.packing.box`, its faces seen head on at the plane
-   their points scatter about, those seen at the outline beyond where their points end:
-   :mod:`cell.packing.faces`) and, in sim, their IoU with the ground-truth box of the posed mesh;
+   :mod:`cell.packing.objects`, and those below the cut above the table's noise band, less those within
+   it above the cut, :mod:`cell.packing.table_band`; the box: :mod:`cell.packing.box`, its faces seen
+   head on at the plane their points scatter about, those seen at the outline beyond where their points
+   end: :mod:`cell.packing.faces`) and, in sim, their IoU with the ground-truth box of the posed mesh;
 2. the number of poses, one per capture;
 3. surface coverage [%]: the share of ground-truth surface samples (eq. 13's A of the visual-servoing
    paper: faces pointing down excluded) within ``coverage_radius_m`` of an object voxel centre;
@@ -33,7 +33,6 @@ from cell.config.models import CellConfig
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.containers import ContainerChoice, choose_container
 from cell.packing.faces import faced_box
-from cell.packing.low_points import above_table
 from cell.packing.objects import (
     current_object,
     extent_points,
@@ -41,6 +40,7 @@ from cell.packing.objects import (
     in_object_voxels,
     object_surface_points,
 )
+from cell.packing.table_band import above_table, clear_of_table, off_table
 from cell.packing.uncertainty import ErrorModel, Seen, Sighting, error_model, upper_dims
 from cell.perception.pipeline import PerceptionPipeline
 from drivers.depth.base import SensorModel
@@ -142,10 +142,12 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     sightings = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
     model = error_model(config, session.sensor_model())
     captured = np.vstack([s.points for s in sightings]) if sightings else np.zeros((0, 3))
-    low = above_table(perception, sightings, model)
-    measured = np.vstack([object_surface_points(perception, objects), extent_points(perception),
-                          captured[low]])
-    seen = _seen(perception, objects, sightings, captured, low, measured, config.scan.standoff_m, model)
+    clear = clear_of_table(perception, sightings, model)
+    low = above_table(perception, sightings, clear)
+    cloud = np.vstack([object_surface_points(perception, objects), extent_points(perception)])
+    measured = np.vstack([cloud[off_table(perception, cloud, captured, clear)], captured[low]])
+    seen = _seen(perception, objects, sightings, captured, low, clear, measured, config.scan.standoff_m,
+                 model)
     box = faced_box(box_from_points(measured, config.station.table_z_m, trim=pc.trim_fraction), model, seen)
     upper = upper_dims(box, model, seen, pc.trim_fraction)
     section["dims_m"] = np.round(box.dims, 6).tolist()
@@ -175,15 +177,18 @@ def _finite(values: Array) -> list[float | None]:
 
 
 def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighting], captured: Array,
-          low: NDArray[np.bool_], measured: Array, standoff_m: float, model: ErrorModel) -> Seen:
+          low: NDArray[np.bool_], clear: NDArray[np.bool_], measured: Array, standoff_m: float,
+          model: ErrorModel) -> Seen:
     """The object's points with their views for the head-on faces and the upper bound: each capture's
     points (``captured``, all of them concatenated) in the object's voxels, in the box of every ROI or
-    where ``low`` (over ``captured``: those below the table cut above the table's noise band) (the
-    selection of the estimate's points), with their surface normals on ``model``'s zone grid, or without
-    captures on record the estimate's own points seen from ``standoff_m`` (:class:`Seen`)."""
+    where ``low`` (over ``captured``: those below the table cut above the table's noise band), and
+    ``clear`` of the table's band (the selection of the estimate's points), with their surface normals on
+    ``model``'s zone grid, or without captures on record the estimate's own points seen from
+    ``standoff_m`` (:class:`Seen`)."""
     if not sightings:
         return Seen(measured, range_m=standoff_m)
     keep = in_object_voxels(perception.map, captured, objects) | in_extent(perception, captured) | low
+    keep &= clear
     if not keep.any():
         return Seen(measured, range_m=standoff_m)
     return Seen.of(sightings, keep, model)

@@ -1,5 +1,5 @@
-"""The object's points below the segmentation's table cut that stand above the table's noise band
-(``cell.packing.low_points``)."""
+"""The table's noise band (``cell.packing.table_band``): the object's points below the segmentation's table
+cut that stand above it, and the table's own points above the cut that do not."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from cell.config.load import load_config
-from cell.packing.low_points import above_table, height_sigma
 from cell.packing.result import ReconstructionHistory, packing_section
+from cell.packing.table_band import above_table, clear_of_table, height_sigma, off_table
 from cell.packing.uncertainty import ErrorModel, Sighting
 from cell.perception.segmentation import compute_roi
 from drivers.transforms import look_at
@@ -48,14 +48,18 @@ def test_above_table_takes_points_over_the_views_own_table_band_inside_the_exten
                        [0.60, 0.0, 0.009],   # outside the extent
                        [0.45, 0.0, 0.020]])  # above the cut: the segmentation's own
     sightings = [Sighting(_oblique(0.0), np.vstack([probes, table]))]
-    assert not above_table(perception, sightings, MODEL).any()  # type: ignore[arg-type]  # no ROI yet
+    clear = clear_of_table(perception, sightings, MODEL)  # type: ignore[arg-type]
+    assert not above_table(perception, sightings, clear).any()  # type: ignore[arg-type]  # no ROI yet
     perception.extent.add(compute_roi(np.array([[0.405, -0.045, 0.015], [0.495, 0.045, 0.035]])))
-    got = above_table(perception, sightings, MODEL)  # type: ignore[arg-type]
+    clear = clear_of_table(perception, sightings, MODEL)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(clear[:4], [True, False, True, True])
+    got = above_table(perception, sightings, clear)  # type: ignore[arg-type]
     np.testing.assert_array_equal(got[:4], [True, False, False, False])
     assert not got[4:].any()
     # Without the view's table the known height stands in: 6 mm is then above the band.
-    alone = above_table(perception, [Sighting(_oblique(0.0), probes)], MODEL)  # type: ignore[arg-type]
-    np.testing.assert_array_equal(alone, [True, True, False, False])
+    alone = [Sighting(_oblique(0.0), probes)]
+    got = above_table(perception, alone, clear_of_table(perception, alone, MODEL))  # type: ignore[arg-type]
+    np.testing.assert_array_equal(got, [True, True, False, False])
 
 
 def test_a_plates_rim_below_the_table_cut_still_counts() -> None:
@@ -79,3 +83,37 @@ def test_a_plates_rim_below_the_table_cut_still_counts() -> None:
     session.perception.extent.add(compute_roi(voxels))
     section = packing_section(cfg, session, _Planner(history), None, None, None)  # type: ignore[arg-type]
     np.testing.assert_allclose(section["dims_m"][:2], [0.12, 0.12], atol=0.01)
+
+
+def test_a_cloud_point_is_the_tables_when_every_capture_point_of_its_voxel_is() -> None:
+    session = _session(1, np.zeros((0, 3)))
+    captured = np.array([[0.451, 0.0011, 0.0131], [0.4512, 0.0013, 0.0133],  # one voxel, both the table's
+                         [0.501, 0.0011, 0.0131], [0.5012, 0.0013, 0.0133]])  # one voxel, one the object's
+    clear = np.array([False, False, False, True])
+    cloud = np.vstack([captured[:2].mean(axis=0), captured[2:].mean(axis=0), [[0.6, 0.0, 0.05]]])
+    got = off_table(session.perception, cloud, captured, clear)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(got, [False, True, True])  # the last: no capture point in its voxel
+
+
+def test_table_noise_over_the_cut_beyond_the_part_does_not_lengthen_its_box() -> None:
+    """A 10 x 10 x 5 cm block seen from 0.5 m straight above, where the table's height std is 6.8 mm: a
+    cluster of table points 12.5 mm up (1.8 std, over the 12 mm cut) 5-7 cm beyond its end fills
+    voxels the segmentation joined to the block and the ROI's box, and holds more than the trim's 2 % of
+    the points. They are within their capture's table band: the box is the block's."""
+    cfg = load_config(UR5E)
+    grid = np.linspace(-0.0475, 0.0475, 20)
+    top = np.column_stack([*(g.ravel() for g in np.meshgrid(grid + CENTRE[0], grid)), np.full(400, 0.05)])
+    noise = np.column_stack([np.repeat(CENTRE[0] + np.linspace(0.1, 0.12, 5), 4),
+                             np.tile(np.linspace(-0.03, 0.03, 4), 5), np.full(20, 0.0125)])
+    ring = np.linspace(0.0, 2.0 * math.pi, 40, endpoint=False)
+    table = CENTRE + np.column_stack([0.2 * np.cos(ring), 0.2 * np.sin(ring), np.zeros(40)])
+    history = ReconstructionHistory()
+    for k in range(4):
+        eye = CENTRE + np.array([0.002 * k, 0.0, 0.5])
+        history.sightings.append(Sighting(look_at(eye, CENTRE),
+                                          np.vstack([top[k::4], noise[k::4], table])))
+    voxels = _voxelise(np.vstack([top, noise]), 0.01)
+    session = _session(4, voxels, np.vstack([top, noise]))
+    session.perception.extent.add(compute_roi(voxels))
+    section = packing_section(cfg, session, _Planner(history), None, None, None)  # type: ignore[arg-type]
+    np.testing.assert_allclose(section["dims_m"], [0.1, 0.1, 0.05], atol=0.01)
