@@ -21,6 +21,7 @@ from cell.config.load import parse_config
 from cell.jobs.control import JobControl
 from cell.jobs.progress import JobProgress
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.jobs.session import retrace_targets
 from cell.planning.base import Planner, ScanSession
 from cell.planning.registry import PLANNERS
 from cell.safety.guard import TwistRefused
@@ -285,6 +286,14 @@ def test_after_a_refused_twist_the_arm_retraces_its_path(tmp_path):
     np.testing.assert_allclose(end[1:4], before[1:4], atol=1e-3)
     assert abs(float(np.dot(end[4:], before[4:]))) > 1.0 - 1e-6  # same orientation
     assert np.linalg.norm(p_refused - end[1:4]) > 0.04  # went back about a second of 8 cm/s
+
+
+def test_a_refused_retrace_is_tried_half_and_a_quarter_as_far_back():
+    path = [(0.01 * k, np.full(6, float(k))) for k in range(300)]  # joints = tick number
+    targets = retrace_targets(path, 2.5, 1.0)
+    assert [back for back, _ in targets] == [1.0, 0.5, 0.25]
+    assert [q[0] for _, q in targets] == [150.0, 200.0, 225.0]  # recorded at 1.5, 2.0 and 2.25 s
+    assert retrace_targets(path[100:], 1.5, 1.0)[0][1][0] == 100.0  # the record starts later: its first
 
 
 def test_raster_scan_respects_the_barrier_planes(tmp_path):

@@ -15,7 +15,7 @@ arm if no frame arrives for too long.
 from __future__ import annotations
 
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +48,24 @@ STALE_FRAME_TIMEOUT_S = 2.0
 # Between consecutive poses of a path a few centimetres apart, a joint moving further than this [rad] is a
 # change of configuration (an elbow or wrist flip), which a servo following the path cannot make.
 MAX_PATH_JOINT_STEP_RAD = 0.5
-# How far back in job time [s] the joint path is kept for ``retrace``.
+# How far back in job time [s] the joint path is kept for ``retrace``, and the shares of the asked duration
+# it tries in turn.
 JOINT_PATH_KEPT_S = 5.0
+RETRACE_SHARES = (1.0, 0.5, 0.25)
+
+
+def retrace_targets(joint_path: Iterable[tuple[float, Array]], stopped_at_s: float,
+                    duration_s: float) -> list[tuple[float, Array]]:
+    """Where ``JobSession.retrace`` tries to go back to, in turn: for each share of ``RETRACE_SHARES``, the
+    time back [s] and the joints [rad] last recorded at least that long before ``stopped_at_s`` [s] in
+    ``joint_path`` ((job time [s], joints) in time order), or its first record where it starts later."""
+    path = list(joint_path)
+    out = []
+    for share in RETRACE_SHARES:
+        back_to = stopped_at_s - share * duration_s
+        q = next((q for t, q in reversed(path) if t <= back_to + 1e-9), path[0][1])
+        out.append((share * duration_s, q))
+    return out
 
 
 class ScanLimitReached(Exception):
@@ -267,11 +283,14 @@ class JobSession:
         call (at most ``JOINT_PATH_KEPT_S`` back, or to where the record starts), along the straight joint
         line to them. The arm passed through the configurations between, so the move undoes the motion
         the guard judged, whatever the planner commanded last; a Cartesian reverse of a command can carry
-        the joints on towards the contact. Returns False, without moving, for an arm that reports no
-        joints (a replayed arm) or when the guard refuses the move (recorded and counted); raises
-        ``KinematicsError`` when the arm does not come to rest within ``SETTLE_TIMEOUT_S``."""
-        target_time = self.now() - duration_s
-        deadline = self.now() + SETTLE_TIMEOUT_S
+        the joints on towards the contact. The straight line bends off the path it retraces by its
+        curvature, which grows with the square of its length: where the guard refuses it (a path that slid
+        along a barrier margin), half as far back is tried, then a quarter (``RETRACE_SHARES``). Returns
+        False, without moving, for an arm that reports no joints (a replayed arm) or when the guard refuses
+        every one (recorded and counted); raises ``KinematicsError`` when the arm does not come to rest
+        within ``SETTLE_TIMEOUT_S``."""
+        stopped_at = self.now()
+        deadline = stopped_at + SETTLE_TIMEOUT_S
         while np.any(np.abs(self._guard.state().qd) > SETTLED_QD_RAD_S):
             if self.now() > deadline:
                 raise KinematicsError(f"the arm did not come to rest within {SETTLE_TIMEOUT_S:g} s of a stop")
@@ -279,9 +298,8 @@ class JobSession:
         state = self._jointed_state()
         if state is None:
             return False
-        q_back = next((q for t, q in reversed(self._joint_path) if t <= target_time + 1e-9),
-                      self._joint_path[0][1])
-        return self._move_joints(state.q, q_back, f"retrace of {duration_s:g} s")
+        return any(self._move_joints(state.q, q_back, f"retrace of {back_s:g} s")
+                   for back_s, q_back in retrace_targets(self._joint_path, stopped_at, duration_s))
 
     def _move_joints(self, q_start: Array, q_goal: Array, what: str) -> bool:
         """Move from ``q_start`` (the arm's joints now) to ``q_goal`` [rad] along a time-optimal joint
