@@ -21,7 +21,7 @@ from cell.config.load import parse_config
 from cell.jobs.control import JobControl
 from cell.jobs.progress import JobProgress
 from cell.jobs.runner import ScanRequest, run_scan
-from cell.jobs.session import retrace_targets
+from cell.jobs.session import retrace_starts
 from cell.planning.base import Planner, ScanSession
 from cell.planning.registry import PLANNERS
 from cell.safety.guard import TwistRefused
@@ -66,9 +66,10 @@ class PushPlanner(Planner):
 
 
 class RetracePlanner(Planner):
-    """Looks at the object from 25 cm, streams the sensor straight at it until the guard refuses (the
-    object's ROI ahead), then retraces the last second of the arm's path; ``refused_at`` keeps the job
-    time [s] and sensor position [m] of the refusal."""
+    """Looks at the object from 25 cm, streams the sensor sideways for a while and then straight at the
+    object until the guard refuses (the object's ROI ahead), then retraces the last two seconds of the
+    arm's path, round the corner; ``refused_at`` keeps the job time [s] and sensor position [m] of the
+    refusal."""
 
     name: ClassVar[str] = "test-retrace"
     description: ClassVar[str] = "test planner: drive into the object, then retrace"
@@ -80,13 +81,15 @@ class RetracePlanner(Planner):
         assert session.move_to_sensor_pose(look_at(centre + np.array([0.0, -0.15, 0.2]), centre))
         session.set_continuous_capture(True)
         session.wait(1.0)
+        session.command_sensor_twist(np.array([0.08, 0.0, 0.0, 0.0, 0.0, 0.0]))
+        session.wait(0.8)
         try:
             for _ in range(200):
-                session.command_sensor_twist(np.array([0.0, 0.0, 0.08, 0.0, 0.0, 0.0]))
+                session.command_sensor_twist(np.array([0.0, 0.0, 0.1, 0.0, 0.0, 0.0]))
                 session.wait(0.05)
         except TwistRefused:
             self.refused_at.append((session.now(), session.sensor_pose()[:3, 3].copy()))
-            return "retraced" if session.retrace(1.0) else "not retraced"
+            return "retraced" if session.retrace(2.0) else "not retraced"
         return "never refused"
 
 
@@ -271,8 +274,9 @@ def test_streamed_motion_slides_along_the_barrier_planes(tmp_path):
 
 
 def test_after_a_refused_twist_the_arm_retraces_its_path(tmp_path):
-    """The arm stopped short of the object goes back the way it came: it ends where it was a second before
-    the refusal (the path it passed is clear), not along some reverse of the last command."""
+    """The arm stopped short of the object goes back the way it came, round the corner of its path, and
+    ends where it was two seconds before the refusal: not along some reverse of the last command, nor
+    along the straight joint line that cuts the corner."""
     RetracePlanner.refused_at.clear()
     result, out, error = _run(tmp_path, FRANKA, planner=RetracePlanner.name, max_time=20.0)
     assert error is None and result["termination"] == "retraced", result["termination"]
@@ -281,19 +285,22 @@ def test_after_a_refused_twist_the_arm_retraces_its_path(tmp_path):
     assert refusals == ["camera would touch object ROI within 0.15 s"]
     (t_refused, p_refused), = RetracePlanner.refused_at
     rows = _trajectory(out)
-    before = rows[rows[:, 0] <= t_refused - 1.0 + 1e-9][-1]
-    end = rows[-1]
-    np.testing.assert_allclose(end[1:4], before[1:4], atol=1e-3)
-    assert abs(float(np.dot(end[4:], before[4:]))) > 1.0 - 1e-6  # same orientation
-    assert np.linalg.norm(p_refused - end[1:4]) > 0.04  # went back about a second of 8 cm/s
+    came = rows[(rows[:, 0] >= t_refused - 2.0 - 1e-9) & (rows[:, 0] <= t_refused + 1e-9)]
+    back = rows[rows[:, 0] > t_refused + 0.5]  # the stop has braked the arm by then
+    np.testing.assert_allclose(back[-1, 1:4], came[0, 1:4], atol=1e-3)
+    assert abs(float(np.dot(back[-1, 4:], came[0, 4:]))) > 1.0 - 1e-6  # same orientation
+    off_path = np.linalg.norm(back[:, None, 1:4] - came[None, :, 1:4], axis=2).min(axis=1)
+    assert off_path.max() < 1e-3  # every sample of the way back lies on the way it came
+    chord = (p_refused - came[0, 1:4]) / np.linalg.norm(p_refused - came[0, 1:4])
+    rel = came[:, 1:4] - came[0, 1:4]
+    corner = np.linalg.norm(rel - np.outer(rel @ chord, chord), axis=1).max()
+    assert corner > 0.02  # and that way has a corner a straight line back would cut
 
 
 def test_a_refused_retrace_is_tried_half_and_a_quarter_as_far_back():
-    path = [(0.01 * k, np.full(6, float(k))) for k in range(300)]  # joints = tick number
-    targets = retrace_targets(path, 2.5, 1.0)
-    assert [back for back, _ in targets] == [1.0, 0.5, 0.25]
-    assert [q[0] for _, q in targets] == [150.0, 200.0, 225.0]  # recorded at 1.5, 2.0 and 2.25 s
-    assert retrace_targets(path[100:], 1.5, 1.0)[0][1][0] == 100.0  # the record starts later: its first
+    times = [0.01 * k for k in range(300)]
+    assert retrace_starts(times, 2.5, 1.0) == [(1.0, 150), (0.5, 200), (0.25, 225)]  # at 1.5, 2.0, 2.25 s
+    assert retrace_starts(times[100:], 1.5, 1.0)[0] == (1.0, 0)  # the record starts later: its first
 
 
 def test_raster_scan_respects_the_barrier_planes(tmp_path):

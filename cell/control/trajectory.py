@@ -32,10 +32,50 @@ def joint_trajectory(model: RobotModel, q_start: Array, q_goal: Array, *, dt: fl
     result = Ruckig(n).calculate(inp, traj)
     if result not in (Result.Working, Result.Finished):
         raise PlanningError(f"ruckig could not plan the joint move: {result}")
+    q, qd, t = _sampled(traj, dt)
+    q[-1] = q_goal
+    return JointTrajectory(t=t, q=q, qd=qd)
+
+
+def path_trajectory(model: RobotModel, path: Array, path_dt: float, *, dt: float, velocity_scale: float,
+                    acceleration_scale: float, jerk_scale: float) -> JointTrajectory:
+    """Rest-to-rest trajectory along a recorded joint path: ``path`` (K, n) [rad], its samples ``path_dt``
+    [s] apart as the arm passed them (in either direction of time; linear between samples), sampled every
+    ``dt`` [s].
+
+    The path's own time u [s] follows ruckig's time-optimal one-axis profile from 0 to its end, rest to
+    rest: du/dt at most 1 (never faster than the arm passed it, so the path's curvature asks no more of a
+    joint than it did then) and at most each joint's scaled speed over its fastest rate along the path,
+    d2u/dt2 and d3u/dt3 at most each joint's scaled acceleration and jerk over that rate (the profile's
+    own share, q'(u) u'' and q'(u) u'''). The last sample is exactly the path's end.
+    """
+    q_path = np.asarray(path, dtype=float)
+    if q_path.shape[0] < 2:
+        return JointTrajectory(t=np.array([0.0]), q=q_path[:1].copy())
+    fastest = np.maximum(np.max(np.abs(np.diff(q_path, axis=0)), axis=0) / path_dt, 1e-12)  # |dq/du|
+    inp = InputParameter(1)
+    inp.current_position = [0.0]
+    inp.target_position = [path_dt * (q_path.shape[0] - 1)]
+    inp.max_velocity = [min(1.0, float(np.min(model.qd_max * velocity_scale / fastest)))]
+    inp.max_acceleration = [float(np.min(model.qdd_max * acceleration_scale / fastest))]
+    inp.max_jerk = [float(np.min(model.qddd_max * jerk_scale / fastest))]
+    traj = Trajectory(1)
+    result = Ruckig(1).calculate(inp, traj)
+    if result not in (Result.Working, Result.Finished):
+        raise PlanningError(f"ruckig could not time the joint path: {result}")
+    u, du, t = _sampled(traj, dt)
+    k = np.clip(np.floor(u[:, 0] / path_dt).astype(int), 0, q_path.shape[0] - 2)
+    w = u / path_dt - k[:, None]
+    q = (1.0 - w) * q_path[k] + w * q_path[k + 1]
+    qd = (q_path[k + 1] - q_path[k]) / path_dt * du
+    q[-1] = q_path[-1]
+    return JointTrajectory(t=t, q=q, qd=qd)
+
+
+def _sampled(traj: Trajectory, dt: float) -> tuple[Array, Array, Array]:
+    """A ruckig trajectory's positions and velocities (K, axes) at K times (K,) [s] from 0 to its end,
+    at most ``dt`` apart."""
     steps = max(1, int(np.ceil(traj.duration / dt)))
     t = np.linspace(0.0, traj.duration, steps + 1) if traj.duration > 0 else np.array([0.0])
     samples = [traj.at_time(float(ti)) for ti in t]
-    q = np.array([s[0] for s in samples])
-    qd = np.array([s[1] for s in samples])
-    q[-1] = q_goal
-    return JointTrajectory(t=t, q=q, qd=qd)
+    return np.array([s[0] for s in samples]), np.array([s[1] for s in samples]), t

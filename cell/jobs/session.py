@@ -14,15 +14,16 @@ arm if no frame arrives for too long.
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections import Counter, deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from cell.config.models import CellConfig
 from cell.control.decimation import DecimatedSeries
-from cell.control.trajectory import joint_trajectory
+from cell.control.trajectory import joint_trajectory, path_trajectory
 from cell.jobs.live import LivePerception, PoseHistory
 from cell.jobs.progress import ControlTicks, JobProgress, quat_of, xyz_m
 from cell.jobs.recorder import JobRecorder
@@ -31,7 +32,7 @@ from cell.perception.metrics import CoverageTracker
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard, TwistRefused
-from drivers.arm.base import ArmState
+from drivers.arm.base import ArmState, JointTrajectory
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.errors import DriverError, KinematicsError
@@ -54,17 +55,14 @@ JOINT_PATH_KEPT_S = 5.0
 RETRACE_SHARES = (1.0, 0.5, 0.25)
 
 
-def retrace_targets(joint_path: Iterable[tuple[float, Array]], stopped_at_s: float,
-                    duration_s: float) -> list[tuple[float, Array]]:
+def retrace_starts(times: Sequence[float], stopped_at_s: float, duration_s: float) -> list[tuple[float, int]]:
     """Where ``JobSession.retrace`` tries to go back to, in turn: for each share of ``RETRACE_SHARES``, the
-    time back [s] and the joints [rad] last recorded at least that long before ``stopped_at_s`` [s] in
-    ``joint_path`` ((job time [s], joints) in time order), or its first record where it starts later."""
-    path = list(joint_path)
+    time back [s] and the index in ``times`` (job times [s] of the recorded joints, in order) of the last
+    record at least that long before ``stopped_at_s`` [s], or of the first where the record starts later."""
     out = []
     for share in RETRACE_SHARES:
         back_to = stopped_at_s - share * duration_s
-        q = next((q for t, q in reversed(path) if t <= back_to + 1e-9), path[0][1])
-        out.append((share * duration_s, q))
+        out.append((share * duration_s, max(0, bisect_right(times, back_to + 1e-9) - 1)))
     return out
 
 
@@ -274,41 +272,48 @@ class JobSession:
         if q_goal is None:
             self.n_unreachable += 1
             return False
-        return self._move_joints(state.q, q_goal, f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} "
-                                                  "(sensor)")
+        traj = joint_trajectory(self._model, state.q, q_goal, dt=self._dt, **self._joint_scales())
+        return self._follow(traj, f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)")
 
     def retrace(self, duration_s: float) -> bool:
-        """After the guard stopped a streamed twist: tick until the arm is at rest, then move it (joint
-        space, guarded, blocking in job time) back to the joints it had ``duration_s`` [s] before this
-        call (at most ``JOINT_PATH_KEPT_S`` back, or to where the record starts), along the straight joint
-        line to them. The arm passed through the configurations between, so the move undoes the motion
-        the guard judged, whatever the planner commanded last; a Cartesian reverse of a command can carry
-        the joints on towards the contact. The straight line bends off the path it retraces by its
-        curvature, which grows with the square of its length: where the guard refuses it (a path that slid
-        along a barrier margin), half as far back is tried, then a quarter (``RETRACE_SHARES``). Returns
-        False, without moving, for an arm that reports no joints (a replayed arm) or when the guard refuses
-        every one (recorded and counted); raises ``KinematicsError`` when the arm does not come to rest
-        within ``SETTLE_TIMEOUT_S``."""
+        """After the guard stopped a streamed twist: tick until the arm is at rest, then move it (guarded,
+        blocking in job time) back along the joint path it came, through every configuration it passed
+        since ``duration_s`` [s] before this call (at most ``JOINT_PATH_KEPT_S``, or since the record
+        starts), never faster than it came (``path_trajectory``). That undoes the motion the guard judged,
+        whatever the planner commanded last (a Cartesian reverse of a command can carry the joints on
+        towards the contact), and passes only where the guard let the arm pass (a straight joint line
+        back cuts the corners of a path that slid along the floor's margin, into it and the table).
+        Where the guard refuses it all the same, half as far back is tried, then a quarter
+        (``RETRACE_SHARES``). Returns False, without moving, for an arm that reports no joints (a replayed
+        arm) or when the guard refuses every one (recorded and counted); raises ``KinematicsError`` when
+        the arm does not come to rest within ``SETTLE_TIMEOUT_S``."""
         stopped_at = self.now()
         deadline = stopped_at + SETTLE_TIMEOUT_S
         while np.any(np.abs(self._guard.state().qd) > SETTLED_QD_RAD_S):
             if self.now() > deadline:
                 raise KinematicsError(f"the arm did not come to rest within {SETTLE_TIMEOUT_S:g} s of a stop")
             self._tick()
-        state = self._jointed_state()
-        if state is None:
+        if self._jointed_state() is None:
             return False
-        return any(self._move_joints(state.q, q_back, f"retrace of {back_s:g} s")
-                   for back_s, q_back in retrace_targets(self._joint_path, stopped_at, duration_s))
+        times = [t for t, _ in self._joint_path]
+        q_path = np.array([q for _, q in self._joint_path])
+        moved = np.concatenate([[True], np.any(q_path[1:] != q_path[:-1], axis=1)])  # not the rests
+        for back_s, start in retrace_starts(times, stopped_at, duration_s):
+            path = q_path[start:][moved[start:]][::-1]
+            traj = path_trajectory(self._model, path, self._dt, dt=self._dt, **self._joint_scales())
+            if self._follow(traj, f"retrace of {back_s:g} s"):
+                return True
+        return False
 
-    def _move_joints(self, q_start: Array, q_goal: Array, what: str) -> bool:
-        """Move from ``q_start`` (the arm's joints now) to ``q_goal`` [rad] along a time-optimal joint
-        trajectory through the guard, ticking until it ends; False when the guard would refuse it (``what``
-        names the move in the log)."""
+    def _joint_scales(self) -> dict[str, float]:
+        """The cell's shares of the joints' speed, acceleration and jerk limits for moves."""
         s = self.config.safety
-        traj = joint_trajectory(self._model, q_start, q_goal, dt=self._dt,
-                                velocity_scale=s.joint_velocity_scale,
-                                acceleration_scale=s.joint_acceleration_scale, jerk_scale=s.joint_jerk_scale)
+        return {"velocity_scale": s.joint_velocity_scale, "acceleration_scale": s.joint_acceleration_scale,
+                "jerk_scale": s.joint_jerk_scale}
+
+    def _follow(self, traj: JointTrajectory, what: str) -> bool:
+        """Follow a joint trajectory through the guard, ticking until it ends; False when the guard would
+        refuse it (recorded and counted; ``what`` names the move in the log)."""
         _, refusal = self._guard.check_trajectory(traj)
         if refusal is not None:
             self.refused_moves[refusal.kind] += 1
