@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -29,45 +30,63 @@ UNIT = REPO / "deploy" / "systemd" / "cell.service"
 WATCHDOG_USEC = 400_000  # pings every 0.2 s
 
 
-def _messages(sock: socket.socket, until: float) -> list[dict[str, str]]:
-    """Every datagram received before the monotonic time ``until``, parsed into its fields."""
-    out = []
-    while (left := until - time.monotonic()) > 0:
-        sock.settimeout(left)
-        try:
-            data = sock.recv(4096).decode()
-        except TimeoutError:
-            break
-        out.append(dict(line.split("=", 1) for line in data.splitlines()))
-    return out
+class Manager:
+    """The service manager's side of ``NOTIFY_SOCKET``: a thread that reads every datagram as it comes,
+    as systemd does, and keeps it with the monotonic time it arrived."""
+
+    def __init__(self, path: Path) -> None:
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.bind(str(path))
+        self._sock.settimeout(0.05)
+        self.received: list[tuple[float, dict[str, str]]] = []
+        self._open = True
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while self._open:
+            try:
+                data = self._sock.recv(4096).decode()
+            except TimeoutError:
+                continue
+            self.received.append((time.monotonic(), dict(line.split("=", 1) for line in data.splitlines())))
+
+    def between(self, start: float, end: float) -> list[dict[str, str]]:
+        """The messages that arrived between the monotonic times ``start`` and ``end``."""
+        return [m for t, m in list(self.received) if start <= t < end]
+
+    def close(self) -> None:
+        self._open = False
+        self._thread.join()
+        self._sock.close()
 
 
 @pytest.fixture
-def notify_socket(tmp_path):
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    path = tmp_path / "notify.sock"
-    sock.bind(str(path))
-    yield sock, path
-    sock.close()
+def manager(tmp_path):
+    listening = Manager(tmp_path / "notify.sock")
+    yield listening
+    listening.close()
 
 
-def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_job(tmp_path, notify_socket):
-    sock, path = notify_socket
-    cell = ServedCell(UR5E, tmp_path / "data", env={"NOTIFY_SOCKET": str(path),
+def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_job(tmp_path, manager):
+    cell = ServedCell(UR5E, tmp_path / "data", env={"NOTIFY_SOCKET": str(tmp_path / "notify.sock"),
                                                     "WATCHDOG_USEC": str(WATCHDOG_USEC)})
     try:
+        answered = time.monotonic()
         # READY before the first answer: it is sent as soon as the API listens, before any request runs
-        first = _messages(sock, time.monotonic() + 0.05)
+        first = manager.between(0.0, answered)
         assert first and first[0]["READY"] == "1" and "serving on 127.0.0.1" in first[0]["STATUS"]
-        pings = _messages(sock, time.monotonic() + 1.0)
+        time.sleep(1.0)
+        pings = manager.between(answered, answered + 1.0)
         assert sum(m.get("WATCHDOG") == "1" for m in pings) >= 3
         with cell.client() as client:
             job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1.0}).json()
         cell.wait_job(job["id"], tuple(FINISHED_STATUSES))
+        stopping = time.monotonic()
         # uvicorn re-raises the SIGTERM it handled once shut down; systemd counts that as a clean stop
         assert cell.stop() in (0, -signal.SIGTERM)
-        after = _messages(sock, time.monotonic() + 0.5)
-        assert any(m.get("STOPPING") == "1" for m in after)
+        time.sleep(0.2)
+        assert any(m.get("STOPPING") == "1" for m in manager.between(stopping, time.monotonic()))
         log = cell.log()
     finally:
         cell.close()
@@ -79,6 +98,21 @@ def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_
     assert any(m.startswith("job ended") for m in mine)
     assert any(line["logger"] == "uvicorn.access" for line in lines)  # uvicorn's lines are JSON too
     assert cell.keys["operator"] not in log
+
+
+def test_a_manager_that_reads_nothing_never_holds_a_notification(tmp_path):
+    """Linux queues 10 datagrams for a reader that has fallen behind; the pings come from the API's event
+    loop, so a blocking send there would hold every request. The 50 notifications return at once."""
+    path = tmp_path / "notify.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as unread:
+        unread.bind(str(path))
+        notifier = Notifier({"NOTIFY_SOCKET": str(path)})
+        sender = threading.Thread(target=lambda: [notifier.notify(WATCHDOG="1") for _ in range(50)],
+                                  daemon=True)
+        sender.start()
+        sender.join(timeout=5.0)
+        assert not sender.is_alive()
+        assert unread.recv(4096) == b"WATCHDOG=1"
 
 
 def test_notifier_addresses_watchdog_ownership_and_bad_values(tmp_path):

@@ -49,11 +49,16 @@ class Notifier:
 
     def notify(self, **fields: str) -> None:
         """Send ``KEY=VALUE`` lines (``notify(READY="1", STATUS="serving")``). A manager that went away is
-        not an error of the service: ``OSError`` is ignored, as sd_notify(3) does."""
+        not an error of the service: ``OSError`` is ignored, as sd_notify(3) does. The send never waits:
+        a datagram socket whose reader has fallen behind (Linux queues ``net.unix.max_dgram_qlen``, 10 by
+        default) would block the event loop that sends the pings, and with it every request, Stop
+        included; such a notification is dropped instead (a manager that reads no pings restarts the
+        service, as it should)."""
         if not self.enabled:
             return
         message = "\n".join(f"{key}={value}" for key, value in fields.items()).encode()
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.setblocking(False)
             try:
                 sock.sendto(message, self._address)
             except OSError:
