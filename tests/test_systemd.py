@@ -74,7 +74,9 @@ def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_
     try:
         answered = time.monotonic()
         # READY before the first answer: it is sent as soon as the API listens, before any request runs
-        first = manager.between(0.0, answered)
+        # (the 50 ms are the reading thread's, not the service's)
+        time.sleep(0.05)
+        first = manager.between(0.0, answered + 0.05)
         assert first and first[0]["READY"] == "1" and "serving on 127.0.0.1" in first[0]["STATUS"]
         time.sleep(1.0)
         pings = manager.between(answered, answered + 1.0)
