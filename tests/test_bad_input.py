@@ -17,12 +17,13 @@ from typer.testing import CliRunner
 import cell.jobs.runner as runner
 from cell.cli.main import app
 from cell.config import load_config
+from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.replay import replay_config
 from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
 from drivers.errors import JobError
 from drivers.sim.objects import ObjectMesh, load_object, write_mesh
 
-from .conftest import FRANKA, REPO
+from .conftest import FRANKA, REPO, UR5E
 
 
 def _scan(*args: str):
@@ -105,6 +106,22 @@ def test_an_empty_table_ends_no_object_and_the_cli_says_so(tmp_path):
                                   config_path=str(FRANKA), object="none", planner="raster",
                                   out=tmp_path / "replay"))
     assert replay.result["object_pose"] is None and replay.result["status"] == "no_object"
+
+
+def test_a_part_only_the_map_shows_ends_completed_with_its_box(tmp_path):
+    """The 12 mm washer of the held-out shapes on the ToF cell, LR-NBV, seed 1: as high as the table cut,
+    its 8 x 8 zones mixed with the table and its 4 cm hole, no single frame's segmentation finds it, but
+    the map built from the 8 frames does; LR-NBV scans it and the packing box is measured. The job reports
+    it found the part (it said ``no_object`` beside a box)."""
+    washer = write_heldout_shapes(tmp_path / "shapes")["washer"]
+    outcome = run_scan(ScanRequest(config=load_config(UR5E), config_path=str(UR5E), object=str(washer),
+                                   planner="lr-nbv", seed=1, out=tmp_path / "j"))
+    log = (tmp_path / "j" / "log.txt").read_text().splitlines()
+    captures = [line for line in log if "] capture " in line]
+    assert captures and all(line.endswith("H_ROI -") for line in captures), \
+        "a frame's segmentation found the washer: this scan no longer shows what the test is about"
+    assert outcome.result["status"] == "completed", outcome.result["termination"]
+    assert outcome.result["packing"]["dims_m"] is not None
 
 
 def test_a_scan_with_its_object_completes(tmp_path):

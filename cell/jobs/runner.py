@@ -338,10 +338,12 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                 control.attach(session)
             # Whatever ends the planner's run, the arm is brought to rest and watched until it is, and
             # asynchronous capture stops before the sensor disconnects.
+            planner_found_nothing = False
             try:
                 termination = _run_planner(planner, session)
             except (ScanLimitReached, NoObjectFound) as exc:
                 termination = str(exc)
+                planner_found_nothing = isinstance(exc, NoObjectFound)
             except SafetyStop:
                 session.settle()
                 raise
@@ -355,8 +357,10 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                 raise
             guard.finish()
             session.settle()
-            # no frame, nothing seen: the budget ran out before the first view (a budget's matter)
-            status = "completed" if session.object_found or session.n_captures == 0 else "no_object"
+            # no frame, nothing seen: the budget ran out before the first view (a budget's matter); a
+            # planner that ended for want of an object has the last word over what the map may hold
+            found = session.object_found and not planner_found_nothing
+            status = "completed" if found or session.n_captures == 0 else "no_object"
             if status == "no_object":
                 termination = _no_object(session, termination)
     except SafetyStop as exc:
