@@ -170,33 +170,44 @@ def box_figures(scans: Path, shapes: Path, packing_of: PackingOf = _recorded_pac
     """Per scan (``object planner seed placement``) of the job folders under ``scans``: the estimate's
     error, each face's error (:func:`face_errors`) and the upper bound's margin against the posed mesh's
     box [m], L W H; then the lowest margin, the largest estimate error on the paper's four objects and
-    whether issue 24's goals hold. ``packing_of(job folder, its result, its mesh)`` gives a scan's
-    packing section (default: the one its result.json holds; :func:`rescored_packing` recomputes it)."""
+    whether issue 24's goals hold; per object and planner the scans whose every dimension lies within
+    ``MAX_DIMS_ERROR_M`` of the truth, of those with a box; and the scans of a part that gave no box (a
+    part the scan did not find, which the figures above cannot show). ``packing_of(job folder, its
+    result, its mesh)`` gives a scan's packing section (default: the one its result.json holds;
+    :func:`rescored_packing` recomputes it)."""
     per_scan: dict[str, Any] = {}
     margins: list[float] = []
     errors: list[float] = []
+    within: dict[str, list[int]] = {}
+    no_box: list[str] = []
     for path in sorted(scans.glob("*/result.json")):
         result = json.loads(path.read_text())
-        if (result.get("packing") or {}).get("dims_m") is None or result.get("object_pose") is None:
+        if result.get("object_pose") is None:
             continue
+        name = Path(result["object"]).stem
+        key = f"{name} {result['planner']} s{result['seed']} {path.parent.name}"
         mesh = _mesh_of(result, shapes)
         pose = np.array(result["object_pose"])
         packing = packing_of(path.parent, result, mesh)
         if packing.get("dims_m") is None:
+            no_box.append(f"{key}: {result['status']}")
             continue
         truth = box_from_mesh(mesh, pose).dims
         error = np.array(packing["dims_m"]) - truth
         upper = [np.inf if v is None else v for v in packing.get("dims_upper_m") or packing["dims_m"]]
         margin = np.array(upper) - truth
-        name = Path(result["object"]).stem
         faces = face_errors(packing["box"], packing["dims_m"], transform_points(pose, mesh.vertices))
-        per_scan[f"{name} {result['planner']} s{result['seed']} {path.parent.name}"] = {
+        per_scan[key] = {
             "error_m": np.round(error, 4).tolist(),
             "face_error_m": np.round(faces, 4).tolist(),
             "upper_margin_m": [round(float(v), 4) if np.isfinite(v) else None for v in margin]}
         margins.append(float(margin.min()))
+        largest = float(np.abs(error).max())
         if name in PAPER_OBJECTS:
-            errors.append(float(np.abs(error).max()))
+            errors.append(largest)
+        counts = within.setdefault(f"{name} {result['planner']}", [0, 0])
+        counts[0] += int(largest <= MAX_DIMS_ERROR_M)
+        counts[1] += 1
     worst_margin = min(margins) if margins else None
     worst_error = max(errors) if errors else None
     return {"scans": per_scan,
@@ -204,7 +215,9 @@ def box_figures(scans: Path, shapes: Path, packing_of: PackingOf = _recorded_pac
             "mean_upper_margin_m": round(float(np.mean(margins)), 4) if margins else None,
             "max_dims_error_paper_objects_m": None if worst_error is None else round(worst_error, 4),
             "upper_goal_met": None if worst_margin is None else worst_margin >= MIN_UPPER_MARGIN_M,
-            "dims_goal_met": None if worst_error is None else worst_error <= MAX_DIMS_ERROR_M}
+            "dims_goal_met": None if worst_error is None else worst_error <= MAX_DIMS_ERROR_M,
+            "within_dims_error": {group: within[group] for group in sorted(within)},
+            "no_box": no_box}
 
 
 def _eval_args(suite: str, out: Path, rest: list[str]) -> list[str]:
