@@ -35,6 +35,7 @@ class Manager:
     as systemd does, and keeps it with the monotonic time it arrived."""
 
     def __init__(self, path: Path) -> None:
+        self.path = path
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._sock.bind(str(path))
         self._sock.settimeout(0.05)
@@ -69,7 +70,7 @@ def manager(tmp_path):
 
 
 def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_job(tmp_path, manager):
-    cell = ServedCell(UR5E, tmp_path / "data", env={"NOTIFY_SOCKET": str(tmp_path / "notify.sock"),
+    cell = ServedCell(UR5E, tmp_path / "data", env={"NOTIFY_SOCKET": str(manager.path),
                                                     "WATCHDOG_USEC": str(WATCHDOG_USEC)})
     try:
         answered = time.monotonic()
