@@ -5,8 +5,13 @@ and the pieces the service is made of: event logs, restart reconciliation, place
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import gc
 import json
+import os
+import sys
 import time
+import warnings
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -148,6 +153,36 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
         ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
         assert ended["status"] == "stopped", ended["termination"]
         assert "hands in the cell" in ended["termination"] and "was killed" in ended["termination"]
+
+
+def _open_pipes() -> int:
+    """The pipes this process holds open (a worker's stdin and stdout are pipes)."""
+    pipes = 0
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(FileNotFoundError):  # the listing's own descriptor, closed by now
+            pipes += os.readlink(f"/proc/self/fd/{fd}").startswith("pipe:")
+    return pipes
+
+
+@pytest.mark.parametrize("stop_confirm_timeout_s", [2.0, 1e-6], ids=["spare ends", "spare killed"])
+def test_a_service_shut_down_leaves_none_of_its_workers_pipes_open(tmp_path, monkeypatch,
+                                                                   stop_confirm_timeout_s):
+    """The warm spare worker, still loading when the service shuts down, ends (or is killed after
+    ``stop_confirm_timeout_s``) with its pipes closed while the event loop runs. Awaiting only its exit
+    left its output pipe open, to be closed by the garbage collector on the ended loop: "Event loop is
+    closed" raised in a finaliser, which on CPython 3.11 could land inside an unrelated ``ast.parse``."""
+    client, _ = _client_with(tmp_path, "shutdown", service={"stop_confirm_timeout_s": stop_confirm_timeout_s})
+    unraisable: list[Any] = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    before = _open_pipes()
+    for _ in range(3):
+        with client:
+            pass
+        assert _open_pipes() == before
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ResourceWarning)
+        gc.collect()
+    assert [(u.exc_type, str(u.exc_value)) for u in unraisable] == []
 
 
 def test_stop_holds_the_queue_and_resume_releases_it(served):

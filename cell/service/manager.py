@@ -407,6 +407,17 @@ class CellService:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
 
+    async def _reap(self, proc: asyncio.subprocess.Process, timeout_s: float) -> None:
+        """Let a worker that nobody else reads end: its input is closed, its output read to the end
+        and its exit awaited; after ``timeout_s`` it is killed. Its pipes are then closed while the
+        event loop runs (a pipe left open is closed by the garbage collector, on a loop that may have
+        ended, and the process would stay a zombie)."""
+        try:
+            await asyncio.wait_for(proc.communicate(), timeout_s)
+        except TimeoutError:
+            self._kill(proc)
+            await proc.communicate()
+
     # ------------------------------------------------------------------ the arm
 
     async def recover_arm(self) -> dict[str, Any]:
@@ -446,10 +457,10 @@ class CellService:
                     message = json.loads(line)
                     if message.get("type") == "recovered":
                         report = message
-                await proc.wait()
         except TimeoutError:
-            self._kill(proc)
             report = {"ok": False, "message": f"the arm did not recover within {RECOVER_TIMEOUT_S:g} s"}
+            self._kill(proc)
+        await self._reap(proc, self.config.service.stop_confirm_timeout_s)
         return report
 
     # ------------------------------------------------------------------ running jobs
@@ -468,6 +479,8 @@ class CellService:
         if proc is not None and proc.returncode is None:
             os.replace(self._spare_log, log_path)
         else:
+            if proc is not None:  # the spare died waiting (its log says why)
+                await self._reap(proc, self.config.service.stop_confirm_timeout_s)
             proc = await self._start_worker(log_path, spec.job_id)
         assert proc.stdin is not None
         proc.stdin.write(spec.line())
@@ -485,12 +498,7 @@ class CellService:
         spare, self._spare = self._spare, None
         if spare is None:
             return
-        assert spare.stdin is not None
-        spare.stdin.close()  # the end of its input: it exits without running anything
-        try:
-            await asyncio.wait_for(spare.wait(), self.config.service.stop_confirm_timeout_s)
-        except TimeoutError:
-            self._kill(spare)
+        await self._reap(spare, self.config.service.stop_confirm_timeout_s)  # without input it runs nothing
         self._spare_log.unlink(missing_ok=True)
 
     def _may_start(self) -> bool:
