@@ -26,7 +26,6 @@ import httpx
 import numpy as np
 import pytest
 import schemathesis
-import schemathesis.specs.openapi.schemas  # imported at collection: see below
 import yaml
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
@@ -41,11 +40,6 @@ from tests.postgres import fresh_database, postgres_url  # noqa: F401  (a fixtur
 from tests.rtde_peer import ControllerPeer
 from tests.rtde_peer.controller import MAX_RECORDS
 from tests.service_process import CELL, REPO, ROLES, ServedCell, free_port
-
-# schemathesis.openapi.from_url imports its OpenAPI modules lazily; pytest rewrites them as a plugin's, and
-# on CPython 3.11.7 that ast.parse, run some 200 frames deep inside the fuzzing test, failed once with
-# "SystemError: AST constructor recursion depth mismatch" (CPython gh-106905). Imported above, at
-# collection, they are parsed once with a shallow stack.
 
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 ENDED = ("completed", "failed", "stopped", "cancelled", "interrupted")
