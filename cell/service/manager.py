@@ -410,8 +410,8 @@ class CellService:
     async def _reap(self, proc: asyncio.subprocess.Process, timeout_s: float) -> None:
         """Let a worker that nobody else reads end: its input is closed, its output read to the end
         and its exit awaited; after ``timeout_s`` it is killed. Its pipes are then closed while the
-        event loop runs (a pipe left open is closed by the garbage collector, on a loop that may have
-        ended, and the process would stay a zombie)."""
+        event loop runs: a pipe left open is closed by the garbage collector, on a loop that may have
+        ended (``wait`` alone returns at the exit, often before the loop has read the output's end)."""
         try:
             await asyncio.wait_for(proc.communicate(), timeout_s)
         except TimeoutError:
