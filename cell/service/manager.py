@@ -407,13 +407,14 @@ class CellService:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
 
-    async def _reap(self, proc: asyncio.subprocess.Process, timeout_s: float) -> None:
-        """Let a worker that nobody else reads end: its input is closed, its output read to the end
-        and its exit awaited; after ``timeout_s`` it is killed. Its pipes are then closed while the
-        event loop runs: a pipe left open is closed by the garbage collector, on a loop that may have
-        ended (``wait`` alone returns at the exit, often before the loop has read the output's end)."""
+    async def _reap(self, proc: asyncio.subprocess.Process) -> None:
+        """Let a worker that nobody else reads end: its input is closed, its output read to the end and
+        its exit awaited; after ``service.stop_confirm_timeout_s`` it is killed. Its pipes are then closed
+        while the event loop runs: a pipe left open is closed by the garbage collector, on a loop that
+        may have ended (``wait`` alone returns at the exit, often before the loop has read the output's
+        end)."""
         try:
-            await asyncio.wait_for(proc.communicate(), timeout_s)
+            await asyncio.wait_for(proc.communicate(), self.config.service.stop_confirm_timeout_s)
         except TimeoutError:
             self._kill(proc)
             await proc.communicate()
@@ -460,7 +461,7 @@ class CellService:
         except TimeoutError:
             report = {"ok": False, "message": f"the arm did not recover within {RECOVER_TIMEOUT_S:g} s"}
             self._kill(proc)
-        await self._reap(proc, self.config.service.stop_confirm_timeout_s)
+        await self._reap(proc)
         return report
 
     # ------------------------------------------------------------------ running jobs
@@ -480,7 +481,7 @@ class CellService:
             os.replace(self._spare_log, log_path)
         else:
             if proc is not None:  # the spare died waiting (its log says why)
-                await self._reap(proc, self.config.service.stop_confirm_timeout_s)
+                await self._reap(proc)
             proc = await self._start_worker(log_path, spec.job_id)
         assert proc.stdin is not None
         proc.stdin.write(spec.line())
@@ -498,7 +499,7 @@ class CellService:
         spare, self._spare = self._spare, None
         if spare is None:
             return
-        await self._reap(spare, self.config.service.stop_confirm_timeout_s)  # without input it runs nothing
+        await self._reap(spare)  # without input it runs nothing
         self._spare_log.unlink(missing_ok=True)
 
     def _may_start(self) -> bool:
