@@ -19,12 +19,13 @@ import pytest
 from cell.config import load_config
 from cell.evaluation.executors import LocalPool, RayExecutor
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
-from cell.evaluation.limit import cell_coverage_limit
+from cell.evaluation.limit import cell_coverage_limit, reachable_views
 from cell.evaluation.report import REPORT_MD, write_report
 from cell.evaluation.results import read_csv, row_from_folder
 from cell.evaluation.spec import ScanSpec, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
 from drivers.sim.objects import face_normals, load_object
+from drivers.transforms import look_at
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "config" / "sim-ur5e-tof.yaml")
@@ -188,6 +189,20 @@ def _kept_area(v, t) -> float:
     """Area [m^2] of the faces eq. 13's sample keeps (not within 45 degrees of straight down)."""
     normals, areas = face_normals(v, t.astype(np.int32))
     return float(areas[normals[:, 2] > -np.cos(np.pi / 4)].sum())
+
+
+def test_a_view_counts_as_reachable_at_any_roll_about_its_optical_axis():
+    # The Panda's last joint ends before an upright camera on the arm's left (+y) can be turned that far:
+    # the view is taken rolled, from the same place along the same axis.
+    config = load_config(REPO / "config" / "sim-franka-rgbd.yaml")
+    centre = np.array([0.45, 0.0, 0.05])
+    direction = np.array([0.0, np.cos(np.pi / 4), np.sin(np.pi / 4)])
+    view = look_at(centre + 0.25 * direction, centre)
+    posed, reachable = reachable_views(config, view[None], centre - [0.05, 0.05, 0.05], centre + 0.05)
+    assert reachable.tolist() == [True]
+    np.testing.assert_allclose(posed[0][:3, 2:], view[:3, 2:], atol=1e-12)
+    roll_deg = np.degrees(np.arccos(np.clip(posed[0][:3, 0] @ view[:3, 0], -1.0, 1.0)))
+    assert roll_deg > 1.0  # upright, the first roll tried, was out of reach
 
 
 def test_coverage_limit_of_a_cube_and_of_a_hidden_cavity(tmp_path):

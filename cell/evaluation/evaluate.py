@@ -12,7 +12,7 @@ from typing import TextIO
 from cell.config import load_config
 from cell.evaluation.executors import Executor
 from cell.evaluation.grid import run_grid, timelines
-from cell.evaluation.limit import cell_coverage_limit
+from cell.evaluation.limit import ROLL_STEP_DEG, cell_coverage_limit
 from cell.evaluation.report import Limits, write_report
 from cell.evaluation.spec import ScanSpec, input_digest
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task
@@ -29,7 +29,7 @@ def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int) -> 
     limits: Limits = {}
     for spec in specs:
         key = input_digest(spec.config, spec.object, placement=spec.placement, scale=spec.object_scale,
-                           n_directions=n_directions)
+                           n_directions=n_directions, roll_step_deg=ROLL_STEP_DEG)
         if key not in cache:
             mesh = load_object(spec.object, spec.object_scale)
             cache[key] = cell_coverage_limit(load_config(spec.config), mesh, spec.placement,

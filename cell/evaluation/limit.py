@@ -21,8 +21,13 @@ the home joints, with the barrier planes of ``sensor_pose_allowed``): the TCP an
 barrier plane and the workspace box, an inverse-kinematics solution from the home joints with every joint
 inside the guard's position margins, and no collision of the arm and its tool with the table, the static
 obstacles or the object's box (the guard's ROI, from the true bounding box). The arm's own model and the
-cell's own safety section decide; nothing is assumed about the arm. ``reachable=False`` skips the check:
-every view on the hemispheres counts (a sensor that could be anywhere).
+cell's own safety section decide; nothing is assumed about the arm. A view's roll about its optical axis
+is free: it counts when the arm can take it at any of the rolls ``ROLL_STEP_DEG`` apart (the first one,
+nearest to upright, is the one whose field of view is used). A view held upright only (``look_at``'s
+roll) leaves out two views in three on the visual-servoing cell, where the Panda's wrist joints end
+before the camera's roll does: 334 of 900 reachable for the teapot, against 575 with the roll free,
+and its limit falls from 99.7 to 96.7 %. ``reachable=False`` skips the check: every view on the
+hemispheres counts (a sensor that could be anywhere).
 """
 
 from __future__ import annotations
@@ -55,6 +60,8 @@ DEFAULT_DIRECTIONS = 300
 """View directions per hemisphere (``cell eval limit --directions``)."""
 HIT_TOLERANCE_M = 5e-4
 """A ray reaching the mesh this much before the point still sees it (the point lies on a triangle)."""
+ROLL_STEP_DEG = 30.0
+"""The rolls about a view's optical axis tried for it: 0, +30, -30, +60, ... up to 180 degrees."""
 
 
 @dataclass(frozen=True)
@@ -134,9 +141,24 @@ def seen_points(mesh: ObjectMesh, T_base_object: Array, points: Array, views: Ar
     return seen
 
 
-def reachable_views(config: CellConfig, views: Array, aabb_min: Array, aabb_max: Array) -> NDArray[np.bool_]:
-    """Which sensor poses (K, 4, 4) the cell's arm can take with the object's box at ``aabb_min`` /
-    ``aabb_max`` (base frame [m]); the checks of the module docstring, on a simulated twin of the arm."""
+def view_rolls() -> Array:
+    """The rotations (R, 4, 4) about the optical axis (z) a view is tried at, nearest to upright first."""
+    steps = round(180.0 / ROLL_STEP_DEG)
+    angles = np.deg2rad(ROLL_STEP_DEG) * np.array([0] + [s * k for k in range(1, steps) for s in (1, -1)]
+                                                   + [steps])
+    rolls = np.tile(np.eye(4), (len(angles), 1, 1))
+    rolls[:, 0, 0] = rolls[:, 1, 1] = np.cos(angles)
+    rolls[:, 1, 0] = np.sin(angles)
+    rolls[:, 0, 1] = -rolls[:, 1, 0]
+    return rolls
+
+
+def reachable_views(config: CellConfig, views: Array, aabb_min: Array,
+                    aabb_max: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Which sensor poses (K, 4, 4) the cell's arm can take, at some roll about the optical axis, with the
+    object's box at ``aabb_min`` / ``aabb_max`` (base frame [m]); the checks of the module docstring, on a
+    simulated twin of the arm. Returns the views at the first roll the arm can take (upright where it
+    can take none) and which are reachable."""
     model = get_robot_model(config.arm.model)
     home = config.arm.home_joints_rad
     q_home = np.asarray(home, dtype=float) if home is not None else model.q_home
@@ -148,17 +170,26 @@ def reachable_views(config: CellConfig, views: Array, aabb_min: Array, aabb_max:
     guard.collision.set_roi(aabb_min, aabb_max)
     q_lo, q_hi = guard.joint_bounds
     T_sensor_flange = inv_T(config.mount.matrix())
-    reachable = np.zeros(len(views), dtype=bool)
-    for k, T in enumerate(views):
-        T_flange = T @ T_sensor_flange
+
+    def takes(T_sensor: Array) -> bool:
+        T_flange = T_sensor @ T_sensor_flange
         if guard.barrier_violation(T_flange) is not None:
-            continue
+            return False
         try:
             q = model.ik_pose(T_flange, q_home)
         except KinematicsError:
-            continue
-        reachable[k] = bool(np.all((q >= q_lo) & (q <= q_hi)) and guard.collision.check(q) is None)
-    return reachable
+            return False
+        return bool(np.all((q >= q_lo) & (q <= q_hi)) and guard.collision.check(q) is None)
+
+    posed = np.array(views, dtype=float)
+    reachable = np.zeros(len(views), dtype=bool)
+    rolls = view_rolls()
+    for k, T in enumerate(views):
+        for roll in rolls:
+            if takes(T @ roll):
+                posed[k], reachable[k] = T @ roll, True
+                break
+    return posed, reachable
 
 
 def sensor_limits(config: CellConfig, mesh: ObjectMesh, T_base_object: Array) -> ViewLimits:
@@ -185,7 +216,8 @@ def cell_coverage_limit(config: CellConfig, mesh: ObjectMesh, placement: tuple[f
                   for f in RADIUS_FACTORS)
     views = hemisphere_views((lo + hi) / 2.0, radii, n_directions)
     if reachable:
-        views = views[reachable_views(config, views, lo, hi)]
+        views, mask = reachable_views(config, views, lo, hi)
+        views = views[mask]
     points = ground_truth_points(mesh, T_base_object)
     seen = seen_points(mesh, T_base_object, points, views, limits)
     return CoverageLimit(round(float(100.0 * seen.mean()), 2), len(points), len(radii) * n_directions,
