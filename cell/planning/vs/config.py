@@ -89,7 +89,8 @@ class ServoConfig(StrictModel):
     reads is rebuilt once per perception period (1 s) and eq. 5-6 compare views delta = 5 cm apart, so at
     delta per perception period the camera never moves further between two maps than the scale on which
     the gradient says where to go. Table I, VS-Local, seed 0, calibration error on: mean scan time 34.4 s
-    against 53.4 s, coverage of the limit at least 0.95 on 6 of 8 objects against 4 (banana 1.01 against
+    against 53.4 s, coverage of the upright-view limit (``cell.evaluation.limit`` before the roll was free,
+    up to 3 points lower) at least 0.95 on 6 of 8 objects against 4 (banana 1.01 against
     0.82, dragon 0.99 against 0.945; ``cell eval vs-table``): a slow camera used its time on views that
     one map apart showed nearly the same thing, and converged before it had been round the object."""
 
