@@ -24,10 +24,11 @@ obstacles or the object's box (the guard's ROI, from the true bounding box). The
 cell's own safety section decide; nothing is assumed about the arm. A view's roll about its optical axis
 is free: it counts when the arm can take it at any of the rolls ``ROLL_STEP_DEG`` apart (the first one,
 nearest to upright, is the one whose field of view is used). A view held upright only (``look_at``'s
-roll) leaves out two views in three on the visual-servoing cell, where the Panda's wrist joints end
-before the camera's roll does: 334 of 900 reachable for the teapot, against 575 with the roll free,
-and its limit falls from 99.7 to 96.7 %. ``reachable=False`` skips the check: every view on the
-hemispheres counts (a sensor that could be anywhere).
+roll) leaves out two views in three on the visual-servoing cell: 334 of 900 reachable for the teapot,
+against 575 with the roll free, and its limit falls from 99.7 to 96.7 % (of the upright views the Panda
+cannot take, most have no inverse-kinematics solution from the home joints; the rest collide, cross a
+barrier plane or leave a joint's margin, most often joint 7's). ``reachable=False`` skips the check:
+every view on the hemispheres counts (a sensor that could be anywhere).
 """
 
 from __future__ import annotations
