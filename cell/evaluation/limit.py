@@ -51,7 +51,7 @@ from drivers.factory import SimWorld, make_arm, make_sensor
 from drivers.robots import get_robot_model
 from drivers.sim.objects import ObjectMesh
 from drivers.sim.scene import SimScene
-from drivers.transforms import inv_T, look_at, transform_points
+from drivers.transforms import T_from_xyz_rpy, inv_T, look_at, transform_points
 
 Array = NDArray[np.float64]
 
@@ -147,11 +147,7 @@ def view_rolls() -> Array:
     steps = round(180.0 / ROLL_STEP_DEG)
     angles = np.deg2rad(ROLL_STEP_DEG) * np.array([0] + [s * k for k in range(1, steps) for s in (1, -1)]
                                                    + [steps])
-    rolls = np.tile(np.eye(4), (len(angles), 1, 1))
-    rolls[:, 0, 0] = rolls[:, 1, 1] = np.cos(angles)
-    rolls[:, 1, 0] = np.sin(angles)
-    rolls[:, 0, 1] = -rolls[:, 1, 0]
-    return rolls
+    return np.array([T_from_xyz_rpy((0.0, 0.0, 0.0), (0.0, 0.0, a)) for a in angles])
 
 
 def reachable_views(config: CellConfig, views: Array, aabb_min: Array,
@@ -186,9 +182,9 @@ def reachable_views(config: CellConfig, views: Array, aabb_min: Array,
     reachable = np.zeros(len(views), dtype=bool)
     rolls = view_rolls()
     for k, T in enumerate(views):
-        for roll in rolls:
-            if takes(T @ roll):
-                posed[k], reachable[k] = T @ roll, True
+        for rolled in T @ rolls:
+            if takes(rolled):
+                posed[k], reachable[k] = rolled, True
                 break
     return posed, reachable
 
