@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from cell.config import load_config
-from cell.control.servo import DualTaskServo
+from cell.control.servo import DualTaskServo, exploration_speed_mps
 from cell.perception.occupancy import OccupancyMap, binary_entropy
 from cell.perception.segmentation import compute_roi
 from cell.planning.base import Array
@@ -23,6 +24,7 @@ from cell.planning.vs.servo_scan import (
     Secondary,
     TelemetryRow,
     achieved_fraction,
+    held_norm,
     objective_rays,
     start_views,
     translated,
@@ -273,6 +275,28 @@ def test_where_delta_is_flat_the_arc_view_whose_f_rises_most_per_metre_leads(fra
     assert LocalGradient(franka)(session, T, near).g[0] == pytest.approx(1.0)
 
 
+def test_a_camera_crosses_used_up_views_at_the_scale_of_the_arc_that_leads_it(franka):
+    """Flat at delta, the camera goes for the view an arc of k deltas away at k times the exploration
+    speed (k deltas per perception period), up to the cell's TCP speed limits; the difference over delta
+    keeps the exploration speed."""
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
+    session = FakeSession()
+    session.pose = T
+    two_deltas = StepObjective(T[:3, 3], 0.001, [([1.0, 0.0, 0.0], 0.09, 0.2)])  # first passed by 2 deltas
+    sec = LocalGradient(franka)(session, T, two_deltas)
+    assert sec.g[0] == pytest.approx(1.0) and sec.speed == pytest.approx(2.0)
+    # beyond 24 cm along +x: first passed by the arc of 7 deltas (80 deg), crossed at the TCP limits
+    seven_deltas = StepObjective(T[:3, 3], 0.001, [([1.0, 0.0, 0.0], 0.24, 0.5)])
+    safety, Z = franka.safety, franka.scan.standoff_m
+    fastest = min(safety.tcp_max_linear_mps, safety.tcp_max_angular_rps * Z)
+    limit = fastest / exploration_speed_mps(franka.planners.vs.servo.lambda_g, Z)
+    assert 2.0 < limit < 7.0
+    far = LocalGradient(franka)(session, T, seven_deltas)
+    assert far.g[0] == pytest.approx(1.0) and far.speed == pytest.approx(limit)
+    steep = LinearObjective([1.0, 0.0, 0.0], T[:3, 3], 0.1)  # the difference over delta leads
+    assert LocalGradient(franka)(session, T, steep).speed == 1.0
+
+
 def test_a_camera_low_on_the_sphere_goes_round_at_its_height_where_great_circles_dip_under_the_table(franka):
     """The information lies round the object at the camera's height, 10 deg above the table: every great
     circle through the view but the one straight up dips under the floor before it gets there (the one
@@ -429,6 +453,33 @@ def test_achieved_fraction_measures_what_the_arm_realized_along_the_command():
     turned = np.array([0.002, 0.0075, 0.0, 0.0, 0.0, 0.0])
     assert achieved_fraction(v, turned) == pytest.approx(0.1)
     assert achieved_fraction(v, -v) == 0.0
+
+
+def test_a_crossing_slowed_to_the_exploration_speed_is_not_held():
+    """||g|| counts as the arm could follow it against the exploration speed: a crossing at three times
+    that speed which the guard's speed limits slow to it is still on its way, one slowed further is held
+    in part."""
+    v = np.array([0.15, 0.0, 0.0, 0.0, 0.6, 0.0])
+    crossing = Secondary(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]), 2.0, 0.01, "local", 3.0)
+    assert held_norm(crossing, v, v) == pytest.approx(2.0)
+    assert held_norm(crossing, v, v / 3.0) == pytest.approx(2.0)
+    assert held_norm(crossing, v, v / 6.0) == pytest.approx(1.0)
+    exploring = Secondary(crossing.g, 2.0, 0.01, "local")
+    assert held_norm(exploring, v, v / 3.0) == pytest.approx(2.0 / 3.0)
+
+
+def test_the_secondary_speed_reaches_the_streamed_twist(franka):
+    planner = VSLocalPlanner(franka)
+    planner.servo.secondary_active = True
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    session = StreamSession()
+    g = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    planner._command(session, s, Secondary(g, 1.0, 0.01, "local"))
+    planner._command(session, s, Secondary(g, 3.0, 0.01, "local", 3.0))
+    exploring, crossing = session.twists
+    speed = exploration_speed_mps(franka.planners.vs.servo.lambda_g, franka.scan.standoff_m)
+    assert np.linalg.norm(exploring[:3]) == pytest.approx(speed)
+    np.testing.assert_allclose(crossing, 3.0 * exploring, atol=1e-12)
 
 
 def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):
@@ -688,6 +739,18 @@ def test_entropy_choice_reaches_the_objective(franka):
     assert 0.0 < values["observation_aware"] < 0.5 * values["paper"]
 
 
+class StreamSession(FakeSession):
+    """Records the sensor twists streamed to it, and lets them through."""
+
+    def __init__(self):
+        super().__init__()
+        self.twists = []
+
+    def command_sensor_twist(self, v):
+        self.twists.append(np.array(v))
+        return np.array(v)
+
+
 class JointLimitSession(FakeSession):
     """Joints at their limits (``rows`` of ``joint_limit_twists``) and an arm at the edge of its reach
     (``singular``, of ``singularity_twists``) that sensor twists v with a . v > 0 drive further into."""
@@ -725,6 +788,11 @@ def test_secondary_slides_along_a_joint_limit(franka):
     assert free is sec
     away = planner._within_limits(JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(away.g, sec.g)  # moving away from the limit is not blocked
+    # along the edge of the reach a crossing slides as fast as it was crossing
+    reach = JointLimitSession(np.zeros((0, 6)), [1.0, 0, 0, 0, 0, 0])
+    crossing = planner._within_limits(reach, T, s, Secondary(sec.g, 2.0, 1.0, "local", 3.0))
+    np.testing.assert_allclose(crossing.g, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    assert crossing.speed == 3.0
 
 
 def test_secondary_slides_along_the_edge_of_the_reach_and_a_joint_limit_together(franka):
@@ -740,6 +808,46 @@ def test_secondary_slides_along_the_edge_of_the_reach_and_a_joint_limit_together
     corner = planner._within_limits(JointLimitSession([0, 1.0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(corner.g, 0.0, atol=1e-12)
     assert corner.g_norm == pytest.approx(0.0, abs=1e-12)
+
+
+class MarginSession(FakeSession):
+    """A joint ``distance_rad`` from its position margin, which sensor twists v with ``row`` . v > 0 drive
+    it towards: a row of ``joint_limit_twists`` once the activation exceeds that distance."""
+
+    def __init__(self, row, distance_rad, floor_z=-np.inf):
+        super().__init__(floor_z=floor_z)
+        self.row, self.distance_rad = np.asarray(row, dtype=float), distance_rad
+
+    def joint_limit_twists(self, activation_rad):
+        return self.row[None] if self.distance_rad < activation_rad else np.zeros((0, 6))
+
+    def singularity_twists(self, activation):
+        return np.zeros((0, 6))
+
+
+def test_a_crossing_slows_to_the_exploration_speed_near_the_limits_it_moves_towards(franka):
+    """The activation distances of the joint margins and barrier planes are the arm's seconds of travel
+    at the exploration speed: a crossing at k times that speed slows to it within k times them, when g
+    moves towards the limit."""
+    planner = VSLocalPlanner(franka)
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x, camera y = base -z
+    vs = franka.planners.vs
+    along_x = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    joint = MarginSession(along_x, 2.0 * vs.joint_activation_rad)
+    joint.pose = T
+    crossing = Secondary(along_x, 2.0, 0.01, "local", 3.0)
+    assert planner._within_limits(joint, T, s, crossing).speed == 1.0
+    np.testing.assert_allclose(planner._within_limits(joint, T, s, crossing).g, along_x)  # not yet sliding
+    assert planner._within_limits(joint, T, s, replace(crossing, speed=1.5)).speed == 1.5  # not that near
+    away = Secondary(-along_x, 2.0, 0.01, "local", 3.0)
+    assert planner._within_limits(joint, T, s, away).speed == 3.0
+    floor = MarginSession(along_x, np.inf, floor_z=T[2, 3] - 2.5 * vs.barrier_activation_m)
+    floor.pose = T
+    down = Secondary(np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0]), 2.0, 0.01, "local", 3.0)
+    assert planner._within_limits(floor, T, s, down).speed == 1.0
+    assert planner._within_limits(floor, T, s, replace(down, speed=2.0)).speed == 2.0
+    assert planner._within_limits(floor, T, s, crossing).speed == 3.0  # along the floor
 
 
 class BackOffSession(JointLimitSession):

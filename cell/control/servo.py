@@ -51,6 +51,14 @@ def adaptive_gain(x: float, lambda_0: float, lambda_inf: float, lambda_0_slope: 
     return float(a * np.exp(-lambda_0_slope * x / a) + lambda_inf)
 
 
+def exploration_speed_mps(lambda_g: float, standoff_m: float) -> float:
+    """The camera's speed [m/s] for a unit g across the view (camera x or y) with the object at s*: the
+    null-space projector of eq. 1 keeps Z*^2 / (1 + Z*^2) of it as translation (Z* in metres; the rest
+    is the turn that keeps the object centred), times lambda_g."""
+    z2 = float(standoff_m) ** 2
+    return float(lambda_g) * z2 / (1.0 + z2)
+
+
 @dataclass(frozen=True)
 class ServoOutput:
     """One evaluation of eq. 1: the camera twist ``v`` (6,), the primary task error ``e`` (3,) [m] and

@@ -92,7 +92,9 @@ class ServoConfig(StrictModel):
     against 53.4 s, coverage of the upright-view limit (``cell.evaluation.limit`` before the roll was free,
     up to 3 points lower) at least 0.95 on 6 of 8 objects against 4 (banana 1.01 against
     0.82, dragon 0.99 against 0.945; ``cell eval vs-table``): a slow camera used its time on views that
-    one map apart showed nearly the same thing, and converged before it had been round the object."""
+    one map apart showed nearly the same thing, and converged before it had been round the object. By
+    the same rule VS-Local crosses views it has used up, led by a longer arc of k deltas, at k deltas per
+    period (``cell.planning.vs.local``), up to the cell's TCP speed limits."""
 
     lambda_0: PositiveFloat = 2.0
     lambda_inf: PositiveFloat = 0.4
@@ -175,8 +177,10 @@ class VSLocalConfig(StrictModel):
     arcs of the viewing sphere of 2, 3, ... times ``delta_m``'s up to this angle, whose f exceeds f(r) most
     per metre of arc, before the evaluation counts towards convergence (a
     departure; 0, the default, is the paper's single delta; the RGB-D cells
-    use 90: a camera that has used up the information around it otherwise ends on a plateau, not at a
-    maximum, see ``cell.planning.vs.local``). VS-Hybrid always uses the single delta."""
+    use 175, a half turn: a camera that has used up the information around it otherwise ends on a plateau,
+    not at a maximum, see ``cell.planning.vs.local``). While an arc of k ``delta_m``'s leads, the camera
+    moves at k times the exploration speed (``ServoConfig``), up to the cell's TCP speed limits: it is
+    crossing views it has used up. VS-Hybrid always uses the single delta."""
 
     delta_m: PositiveFloat = 0.05
     reach_deg: float = Field(default=0.0, ge=0.0, lt=180.0)

@@ -110,9 +110,9 @@ object's mean coverage at least 0.96 of its upright-view limit, see below, mean 
 
 The arcs grow by delta's rather than doubling: from a camera high over the object the views 90 deg away lie
 under the table and those 46 deg away still look at the known top, and a dragon scan converged there with the
-unseen lower sides in between (87.6 %). The scan ends where f is flat at every scale up to a quarter turn,
-beyond which a displaced view looks at the sides the current one cannot see: a local maximum at the scale of
-the object rather than of delta.
+unseen lower sides in between (87.6 %). With arcs up to a quarter turn the scan ended where f is flat at
+every scale up to 90 deg, beyond which a displaced view looks at the sides the current one cannot see: a
+local maximum at the scale of the object rather than of delta.
 ``reach_deg`` 0 is the paper's single delta; VS-Hybrid keeps that (its global goals are its way off a
 plateau). Table I, seed 0, calibration error on (``cell eval vs-table --planners vs-local --seeds 0``),
 coverage of the limit with 90 deg against 0 (the limit of views held upright, which ``cell.evaluation.limit``
@@ -121,6 +121,31 @@ bunny 0.98 / 0.96, cube 1 / 1, dragon 0.94 / 0.74, mustard 1 / 0.96, pyramid 1 /
 mean scan time rose from 33.9 to 53.4 s (bunny 94 s, mustard 78 s: the camera goes on round the object). Those
 were at the paper's exploration speed, 1.9 cm/s; at the RGB-D cells' 5 cm/s (``ServoConfig.lambda_g``) the
 camera gets round the object well before the arcs run out of scale.
+
+Half a turn, crossed at the arc's scale. A quarter turn was not enough for the teapot on the Panda (Table I,
+seeds 0-2: 92.4-93.5 % of its 99.7 % limit, ``cell.evaluation.limit``): the camera climbed from the start
+view over the top to the unseen side, slid along the floor plane towards the robot, and was held at azimuth
+146 deg (seen from the object, 0 beyond it) by a refused motion (link1 against link5b) and the elbow's
+margin (joint 4), with the lower body under the spout unseen 150 deg round, beyond the sectors the arm
+cannot take low (its base, the plane of its maximum reach); an oracle map, in which the unseen surface
+stayed unknown, ended the same way. With arcs up to 175 deg, a half turn short of the antipode where every
+great circle meets, the camera compares views as far as the far side of the object all along the scan, and
+every Table I object reached at least 0.98 of its limit, the teapot 0.982; but the mean scan time rose from
+36.2 to 48.0 s. Most of it (bunny, seed 0: 39 of 66 s; cube 37 of 58 s; teapot, seed 2: 98 of 128 s) was
+spent led by a longer arc, crossing views the camera had used up at the exploration speed, whose rule is
+delta per perception period because the difference over delta judges views delta apart (``ServoConfig``).
+By the same rule, while the arc of k deltas leads, the camera moves at k times that speed
+(``Secondary.speed``), up to the cell's TCP speed limits (linear, and angular about the object at Z*: 5
+times, 25 cm/s, on the RGB-D cells); the convergence window judges ||g|| against the exploration speed
+(``held_norm``), so a crossing the guard's speed limits slow is not taken for a held camera; near a joint's
+margin or a barrier plane it slows to the exploration speed (``ServoScanPlanner._limits_ahead``). Table I,
+seeds 0-2, calibration error on (``benchmarks/vs_table.py``), coverage of the limit: banana 0.995, baseball
+0.981, bunny 0.993, cube 1, dragon 0.990, mustard 0.999, pyramid 1, teapot 0.963 (99.8, 92.9 and 95.2 %),
+mean scan time 39.3 s. On fifteen shapes and placements outside Table I (``cell eval heldout``, seed 0)
+against a quarter turn: mean coverage 92.3 against 93.1 %, mean scan time 36.8 against 36.9 s; a standing
+ring 97.5 against 89.1 %, a mushroom 88.8 against 80.7 %, a torus 85.8 against 97.8 %, and a cup 56.5
+against 88.0 %: it converged on the floor plane on the side it had climbed to, the thin walls' case of
+``cell.planning.vs.objective``.
 """
 
 from __future__ import annotations
@@ -132,6 +157,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
+from cell.control.servo import exploration_speed_mps
 from cell.planning.base import Array, ScanSession
 from cell.planning.vs.objective import EntropyObjective, PoseBatch
 from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner, translated
@@ -178,6 +204,12 @@ class LocalGradient:
         self.activation_m = config.planners.vs.barrier_activation_m
         self.standoff_m = config.scan.standoff_m
         d = self.params.delta_m
+        # The fastest crossing, as a multiple of the exploration speed: the cell's TCP speed limits, linear
+        # and (about the object at Z*) angular; the guard scales the flange's own twist down to them.
+        safety, servo = config.safety, config.planners.vs.servo
+        speed = exploration_speed_mps(servo.lambda_g, self.standoff_m)
+        fastest = min(safety.tcp_max_linear_mps, safety.tcp_max_angular_rps * self.standoff_m)
+        self._max_speed = max(1.0, fastest / speed) if speed > 0.0 else 1.0
         # The arcs [rad] of the coarse differences: 2, 3, ... times delta's, the last one at reach_deg.
         reach = np.deg2rad(self.params.reach_deg) if coarse else 0.0
         step = d / self.standoff_m
@@ -220,16 +252,18 @@ class LocalGradient:
         leaving, dithering = self._spot is not None, self.dithering()
         if leaving or dithering:  # the difference over delta is noise here: not followed
             direction, norm = np.zeros(3), 0.0
+        speed = 1.0
         if norm >= p.g_max:
             self._heading = None  # the difference over delta leads
         elif self._coarse_angles:  # flat at delta: the views over longer arcs
             coarse, angle = self._best_arc_view(session, T_base_cam, objective, float(f[0]), feasible)
             if float(np.linalg.norm(coarse)) >= p.g_max:
                 direction, norm = coarse, float(np.linalg.norm(coarse))
+                speed = min(angle * self.standoff_m / p.delta_m, self._max_speed)  # the arc's deltas
                 if not leaving and dithering:
                     self._spot = (self._mean_position(), angle * self.standoff_m)
         clipped = direction * (p.g_max / norm) if norm > p.g_max else direction
-        return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local")
+        return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local", speed)
 
     def _best_arc_view(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
                        feasible: Callable[[Array], Array]) -> tuple[Array, float]:
