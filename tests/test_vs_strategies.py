@@ -474,8 +474,9 @@ def test_the_secondary_speed_reaches_the_streamed_twist(franka):
     s = np.array([0.0, 0.0, franka.scan.standoff_m])
     session = StreamSession()
     g = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    planner._command(session, s, Secondary(g, 1.0, 0.01, "local"))
-    planner._command(session, s, Secondary(g, 3.0, 0.01, "local", 3.0))
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
+    planner._command(session, T, s, Secondary(g, 1.0, 0.01, "local"))
+    planner._command(session, T, s, Secondary(g, 3.0, 0.01, "local", 3.0))
     exploring, crossing = session.twists
     speed = exploration_speed_mps(franka.planners.vs.servo.lambda_g, franka.scan.standoff_m)
     assert np.linalg.norm(exploring[:3]) == pytest.approx(speed)
@@ -890,6 +891,27 @@ def test_after_a_refusal_the_arm_retraces_and_the_camera_avoids_that_direction(f
     session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
     sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
     assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
+
+
+def test_a_refusal_after_g_fell_to_zero_avoids_the_way_the_camera_came(franka):
+    """g projected out near a joint limit while the arm still slowed down along it: the direction it had
+    followed is the refused one (without that the camera went back to the same refusal every 2 s, 67
+    times, in a teapot scan)."""
+    planner = VSLocalPlanner(franka)
+    planner.centroid = CENTRE
+    planner.servo.secondary_active = True
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
+    session = BackOffSession(T)
+    s = np.array([0.0, 0.0, franka.scan.standoff_m])
+    planner._command(StreamSession(), T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local"))
+    planner._command(StreamSession(), T, s, Secondary(np.zeros(6), 0.0, 0.5, "local"))
+    refusal = TwistRefused("refused: link1 would touch link5b", Refusal("collision", "link1"))
+    planner._back_off(session, Secondary(np.zeros(6), 0.0, 0.5, "local"), refusal)
+    [(_, direction)] = planner._refused
+    np.testing.assert_allclose(direction, T[:3, :3] @ [0.6, 0.8, 0.0], atol=1e-12)
+    towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
+                                                              "local"))
+    np.testing.assert_allclose(towards.g, 0.0, atol=1e-12)  # held, and counted as converging
 
 
 def test_a_refusal_the_arm_cannot_retrace_from_ends_the_scan(franka):

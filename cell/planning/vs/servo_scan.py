@@ -22,7 +22,10 @@ the arm at the edge of its reach), and the camera slides along the joint limit o
 reach as along a plane. When the guard refuses a streamed twist (a collision predicted ahead,
 ``TwistRefused``), the arm has been stopped; the scan backs off by retracing the arm's joint path of the
 last ``backoff_s`` (``session.retrace``), then goes on with the refused secondary direction blocked within
-``refusal_radius_m`` of where it was refused. A back-off the guard refuses ends the scan.
+``refusal_radius_m`` of where it was refused: the last direction the camera followed where g had fallen to
+zero as the arm slowed (projected out near a joint limit; with no direction blocked, a Table I teapot
+scan went back to the same refusal every 2 s, 67 times, to its time budget). A back-off the guard refuses
+ends the scan.
 
 ``telemetry`` keeps one row per servo iteration (decimated in long jobs, ``cell.control.decimation``): the
 series of the paper's Fig. 4 (||e||, f(r), ||g|| before clipping, H_ROI) with the job time and the
@@ -171,6 +174,8 @@ class ServoScanPlanner(Planner):
         self._centroid_filter = CentroidLowPass(vs.centroid_tau_s)
         # Where the guard refused a streamed twist and the secondary direction refused there (base frame).
         self._refused: list[tuple[Array, Array]] = []
+        # The last secondary direction the camera followed (unit, base frame), None before the first.
+        self._moving: Array | None = None
         self._seq: int | None = None
         # Index of the first H_ROI value the termination of eq. 12 judges; None: not judged yet.
         self._h_roi_from: int | None = None
@@ -338,10 +343,15 @@ class ServoScanPlanner(Planner):
 
     def _back_off(self, session: ScanSession, refused: Secondary, refusal: TwistRefused) -> None:
         """After the guard refused the streamed twist (and stopped the arm): remember the refused secondary
-        direction where it happened, then retrace the arm's last ``backoff_s`` [s] of joint path
-        (``session.retrace``). Where it cannot, ``refusal`` ends the scan."""
+        direction where it happened (the last one the camera followed, if g was zero then), then retrace
+        the arm's last ``backoff_s`` [s] of joint path (``session.retrace``). Where it cannot, ``refusal``
+        ends the scan."""
         T = session.sensor_pose()
         direction = T[:3, :3] @ refused.g[:3]
+        if not np.any(direction) and self._moving is not None:
+            # g had fallen to zero as the arm slowed (projected out near a joint limit), the arm still
+            # moving the way g had led it
+            direction = self._moving
         norm = float(np.linalg.norm(direction))
         if norm > 0.0:
             self._refused.append((T[:3, 3].copy(), direction / norm))
@@ -351,9 +361,12 @@ class ServoScanPlanner(Planner):
         if not session.retrace(self.vs.backoff_s):
             raise refusal
 
-    def _command(self, session: ScanSession, s: Array, sec: Secondary) -> tuple[ServoOutput, float]:
+    def _command(self, session: ScanSession, T_base_cam: Array, s: Array,
+                 sec: Secondary) -> tuple[ServoOutput, float]:
         """Eq. 1 for the centroid ``s`` with g at ``sec.speed`` times the exploration speed, streamed to the
-        arm: the servo's output and ||g|| as the arm could follow it (``held_norm``)."""
+        arm from ``T_base_cam``: the servo's output and ||g|| as the arm could follow it (``held_norm``)."""
+        if np.any(sec.g[:3]):
+            self._moving = T_base_cam[:3, :3] @ sec.g[:3] / float(np.linalg.norm(sec.g[:3]))
         out = self.servo.step(s, sec.speed * sec.g)
         allowed = session.command_sensor_twist(out.v)
         return out, held_norm(sec, out.v, allowed)
@@ -372,7 +385,7 @@ class ServoScanPlanner(Planner):
                 sec = self._within_limits(session, T, s, self.secondary(session, T, self.objective))
             else:
                 sec = Secondary(zero, 0.0, float(self.objective(T)), "primary")
-            out, g_norm = self._command(session, s, sec)
+            out, g_norm = self._command(session, T, s, sec)
             if sec.mode != "primary":
                 self.observe(sec, g_norm, T[:3, 3])
             self.telemetry.append(TelemetryRow(
