@@ -123,28 +123,28 @@ were at the paper's exploration speed, 1.9 cm/s; at the RGB-D cells' 5 cm/s (``S
 camera gets round the object well before the arcs run out of scale.
 
 Half a turn, crossed at the arc's scale. A quarter turn was not enough for the teapot on the Panda (Table I,
-seeds 0-2: 92.4-93.5 % of its 99.7 % limit, ``cell.evaluation.limit``): the camera climbed from the start
-view over the top to the unseen side, slid along the floor plane towards the robot, and was held at azimuth
-146 deg (seen from the object, 0 beyond it) by a refused motion (link1 against link5b) and the elbow's
-margin (joint 4), with the lower body under the spout unseen 150 deg round, beyond the sectors the arm
-cannot take low (its base, the plane of its maximum reach); an oracle map, in which the unseen surface
-stayed unknown, ended the same way. With arcs up to 175 deg, a half turn short of the antipode where every
-great circle meets, the camera compares views as far as the far side of the object all along the scan, and
-every Table I object reached at least 0.98 of its limit, the teapot 0.982; but the mean scan time rose from
-36.2 to 48.0 s. Most of it (bunny, seed 0: 39 of 66 s; cube 37 of 58 s; teapot, seed 2: 98 of 128 s) was
-spent led by a longer arc, crossing views the camera had used up at the exploration speed, whose rule is
-delta per perception period because the difference over delta judges views delta apart (``ServoConfig``).
-By the same rule, while the arc of k deltas leads, the camera moves at k times that speed
-(``Secondary.speed``), up to the cell's TCP speed limits (linear, and angular about the object at Z*: 5
-times, 25 cm/s, on the RGB-D cells); the convergence window judges ||g|| against the exploration speed
+seeds 0-2: 92.4-93.5 % of its 99.7 % limit, ``cell.evaluation.limit``): the camera climbed from the start view
+over the top to the unseen side, slid along the floor plane towards the robot, and was held at azimuth 146 deg
+(seen from the object, 0 beyond it) by a refused motion (link1 against link5b) and the elbow's margin (joint
+4), with the lower body under the spout unseen 150 deg round, beyond the sectors the arm cannot take low (its
+base, the plane of its maximum reach); an oracle map, in which the unseen surface stayed unknown, ended the
+same way. With arcs up to 175 deg, a half turn short of the antipode where every great circle meets, the
+camera compares views as far as the far side of the object all along the scan, and every Table I object
+reached at least 0.98 of its limit, the teapot 0.982; but the mean scan time rose from 36.2 to 48.0 s. Most of
+it (bunny, seed 0: 39 of 66 s; cube 37 of 58 s; teapot, seed 2: 98 of 128 s) was spent led by a longer arc,
+crossing views the camera had used up at the exploration speed, whose rule is delta per perception period
+because the difference over delta judges views delta apart (``ServoConfig``). By the same rule, while the arc
+of k deltas leads, the camera moves at k times that speed (``Secondary.speed``), up to the cell's TCP speed
+limits (linear, and angular about the object at Z*: 5 times, 25 cm/s, on the simulated RGB-D cell, twice on
+the Franka template's 0.1 m/s); the convergence window judges ||g|| against the exploration speed
 (``held_norm``), so a crossing the guard's speed limits slow is not taken for a held camera; near a joint's
 margin or a barrier plane it slows to the exploration speed (``ServoScanPlanner._limits_ahead``). Table I,
 seeds 0-2, calibration error on (``benchmarks/vs_table.py``), coverage of the limit: banana 0.995, baseball
-0.981, bunny 0.993, cube 1, dragon 0.990, mustard 0.999, pyramid 1, teapot 0.963 (99.8, 92.9 and 95.2 %),
-mean scan time 39.3 s. On fifteen shapes and placements outside Table I (``cell eval heldout``, seed 0)
-against a quarter turn: mean coverage 92.3 against 93.1 %, mean scan time 36.8 against 36.9 s; a standing
-ring 97.5 against 89.1 %, a mushroom 88.8 against 80.7 %, a torus 85.8 against 97.8 %, and a cup 56.5
-against 88.0 %: it converged on the floor plane on the side it had climbed to, the thin walls' case of
+0.981, bunny 0.993, cube 1, dragon 0.990, mustard 0.999, pyramid 1, teapot 0.963 (99.8, 92.9 and 95.2 %), mean
+scan time 39.3 s. On fifteen shapes and placements outside Table I (``cell eval heldout``, seed 0) against a
+quarter turn: mean coverage 92.3 against 93.1 %, mean scan time 36.8 against 36.9 s; a standing ring 97.5
+against 89.1 %, a mushroom 88.8 against 80.7 %, a torus 85.8 against 97.8 %, and a cup 56.5 against 88.0 %: it
+converged on the floor plane on the side it had climbed to, the thin walls' case of
 ``cell.planning.vs.objective``.
 """
 
