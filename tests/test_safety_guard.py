@@ -410,3 +410,24 @@ def test_a_commanded_twist_comes_back_as_the_arm_realizes_it():
     assert np.linalg.norm(realized[:3]) < 0.15 * np.linalg.norm(outward[:3])
     up = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])
     assert np.allclose(stretched.guard.command_twist(up), up, atol=5e-4)
+
+
+def test_a_pose_as_deep_in_a_plane_margin_as_a_motion_from_here_may_go_is_allowed_from_here():
+    """A camera sliding along a plane sits inside its margin, as deep as a streamed twist may take it:
+    from there the poses at its own depth are within reach (``from_here``), deeper ones are not, and
+    without ``from_here`` neither is."""
+    rig = Rig.of("ur5e")
+    rig.guard.tick()
+    T = rig.model.fk(rig.arm.state().q)
+    margin = 0.01
+    lowest = float(np.min(rig.guard.guarded_points(T)[:, 2]))
+    floor = BarrierPlane.make("floor", [0.0, 0.0, lowest - 0.6 * margin], [0.0, 0.0, 1.0])
+    rig.guard.barriers = Barriers([floor], margin_m=margin, acc=1.0, jerk=10.0, latency_s=0.01,
+                                  time_constant_s=0.1)
+    level = T.copy()
+    level[:2, 3] += 0.05  # elsewhere at the same height
+    assert rig.guard.barrier_violation(level) is not None
+    assert rig.guard.barrier_violation(level, from_here=True) is None
+    deeper = level.copy()
+    deeper[2, 3] -= 0.2 * margin
+    assert rig.guard.barrier_violation(deeper, from_here=True) is not None

@@ -74,7 +74,7 @@ class FakeSession:
     def log(self, message):
         self.messages.append(message)
 
-    def sensor_pose_allowed(self, T):
+    def sensor_pose_allowed(self, T, from_here=False):
         return T[2, 3] > self.floor_z
 
     def sensor_pose(self):
@@ -295,6 +295,23 @@ def test_a_camera_crosses_used_up_views_at_the_scale_of_the_arc_that_leads_it(fr
     assert far.g[0] == pytest.approx(1.0) and far.speed == pytest.approx(limit)
     steep = LinearObjective([1.0, 0.0, 0.0], T[:3, 3], 0.1)  # the difference over delta leads
     assert LocalGradient(franka)(session, T, steep).speed == 1.0
+
+
+class InMarginSession(FakeSession):
+    """A camera sliding along the floor plane inside its margin: a view at its height or above is within
+    reach of a motion from here, none is as a pose judged on its own."""
+
+    def sensor_pose_allowed(self, T, from_here=False):
+        return T[2, 3] >= self.pose[2, 3] - 1e-9 if from_here else T[2, 3] > self.pose[2, 3] + 0.01
+
+
+def test_a_camera_in_a_planes_margin_counts_the_views_at_its_height(franka):
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # level: its x great circle is level too
+    session = InMarginSession()
+    session.pose = T
+    beyond = StepObjective(T[:3, 3], 0.001, [([1.0, 0.0, 0.0], 0.09, 0.2)])
+    sec = LocalGradient(franka)(session, T, beyond)
+    assert sec.g[0] == pytest.approx(1.0) and sec.g_norm > franka.planners.vs_local.g_max
 
 
 def test_a_camera_low_on_the_sphere_goes_round_at_its_height_where_great_circles_dip_under_the_table(franka):

@@ -404,10 +404,11 @@ class JobSession:
                                                   activation_m)
         return R.T @ v
 
-    def sensor_pose_allowed(self, T_base_sensor: Array) -> bool:
+    def sensor_pose_allowed(self, T_base_sensor: Array, from_here: bool = False) -> bool:
         """Whether the TCP and the sensor of a candidate sensor pose lie on the allowed side of every
-        barrier plane and inside the workspace (margin included)."""
-        return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor)) is None
+        barrier plane and inside the workspace (margin included; ``from_here``: as far into the margin as
+        a motion from the arm's current pose may go)."""
+        return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor), from_here) is None
 
     def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
         """IK seeded from the current joints (from home where the arm reports none, as a replayed arm),

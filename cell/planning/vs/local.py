@@ -267,16 +267,18 @@ class LocalGradient:
 
     def _best_arc_view(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
                        feasible: Callable[[Array], Array]) -> tuple[Array, float]:
-        """The relative rise of f (3,) towards the coarse arcs' view whose f exceeds ``f_r`` most per metre
-        of arc in the part of its direction the camera can follow (``feasible``), that part, and that view's
-        arc [rad]; zero if no view exceeds it. A view beyond a barrier plane (under the floor, past the
-        reach) is none the camera can take. While the side last headed for (``_heading``: one of
-        :func:`orbited`'s ways round) still offers a rise of ``g_max``, its best view is kept (module
-        docstring)."""
+        """The relative rise of f (3,) towards the coarse arcs' view whose f exceeds ``f_r`` most per metre of
+        arc in the part of its direction the camera can follow (``feasible``), that part, and that view's arc
+        [rad]; zero if no view exceeds it. A view beyond a barrier plane (under the floor, past the reach) is
+        none the camera can take, judged as far into the plane's margin as a motion from here may go: a camera
+        sliding along the floor plane is inside its margin, and so is every view at its height (held on the
+        floor, a held-out cup scan had none of its level circle's views counted). While the side last headed
+        for (``_heading``: one of :func:`orbited`'s ways round) still offers a rise of ``g_max``, its best
+        view is kept (module docstring)."""
         p = self.params
         orbits = [orbited(T_base_cam, self.standoff_m, a) for a in self._coarse_angles]
         views = np.concatenate([v for v, _ in orbits])
-        allowed = np.array([session.sensor_pose_allowed(v) for v in views])
+        allowed = np.array([session.sensor_pose_allowed(v, from_here=True) for v in views])
         arcs = np.array(self._coarse_angles)
         gain = np.where(allowed, objective(views) - f_r, 0.0).reshape(len(arcs), -1)  # (angle, way round)
         rise = gain / (arcs[:, None] * self.standoff_m)  # [nats/m]
