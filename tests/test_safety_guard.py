@@ -427,7 +427,7 @@ def test_a_pose_as_deep_in_a_plane_margin_as_a_motion_from_here_may_go_is_allowe
     level = T.copy()
     level[:2, 3] += 0.05  # elsewhere at the same height
     assert rig.guard.barrier_violation(level) is not None
-    assert rig.guard.barrier_violation(level, from_here=True) is None
+    assert rig.guard.barrier_violation(level, rig.guard.motion_floor()) is None
     deeper = level.copy()
     deeper[2, 3] -= 0.2 * margin
-    assert rig.guard.barrier_violation(deeper, from_here=True) is not None
+    assert rig.guard.barrier_violation(deeper, rig.guard.motion_floor()) is not None

@@ -74,8 +74,11 @@ class FakeSession:
     def log(self, message):
         self.messages.append(message)
 
-    def sensor_pose_allowed(self, T, from_here=False):
+    def sensor_pose_allowed(self, T):
         return T[2, 3] > self.floor_z
+
+    def sensor_poses_allowed(self, T, from_here=False):
+        return np.array([self.sensor_pose_allowed(v) for v in T], dtype=bool)
 
     def sensor_pose(self):
         return self.pose
@@ -301,8 +304,9 @@ class InMarginSession(FakeSession):
     """A camera sliding along the floor plane inside its margin: a view at its height or above is within
     reach of a motion from here, none is as a pose judged on its own."""
 
-    def sensor_pose_allowed(self, T, from_here=False):
-        return T[2, 3] >= self.pose[2, 3] - 1e-9 if from_here else T[2, 3] > self.pose[2, 3] + 0.01
+    def sensor_poses_allowed(self, T, from_here=False):
+        z = np.asarray(T)[:, 2, 3]
+        return z >= self.pose[2, 3] - 1e-9 if from_here else z > self.pose[2, 3] + 0.01
 
 
 def test_a_camera_in_a_planes_margin_counts_the_views_at_its_height(franka):

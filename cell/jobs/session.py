@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.control.decimation import DecimatedSeries
@@ -404,11 +405,18 @@ class JobSession:
                                                   activation_m)
         return R.T @ v
 
-    def sensor_pose_allowed(self, T_base_sensor: Array, from_here: bool = False) -> bool:
+    def sensor_pose_allowed(self, T_base_sensor: Array) -> bool:
         """Whether the TCP and the sensor of a candidate sensor pose lie on the allowed side of every
-        barrier plane and inside the workspace (margin included; ``from_here``: as far into the margin as
-        a motion from the arm's current pose may go)."""
-        return self._guard.barrier_violation(T_base_sensor @ inv_T(self._T_flange_sensor), from_here) is None
+        barrier plane and inside the workspace (margin included)."""
+        return bool(self.sensor_poses_allowed(np.asarray(T_base_sensor)[None])[0])
+
+    def sensor_poses_allowed(self, T_base_sensor: Array, from_here: bool = False) -> NDArray[np.bool_]:
+        """``sensor_pose_allowed`` of each of the poses (K, 4, 4); ``from_here``: as far into a plane's
+        margin as a motion from the arm's current pose may go (read once for the batch)."""
+        floor = self._guard.motion_floor() if from_here else 0.0
+        T_fs_inv = inv_T(self._T_flange_sensor)
+        return np.array([self._guard.barrier_violation(T @ T_fs_inv, floor) is None for T in T_base_sensor],
+                        dtype=bool)
 
     def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
         """IK seeded from the current joints (from home where the arm reports none, as a replayed arm),

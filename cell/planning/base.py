@@ -105,11 +105,15 @@ class ScanSession(Protocol):
         slides along it (visual-servoing paper Fig. 3)."""
         ...
 
-    def sensor_pose_allowed(self, T_base_sensor: Array, from_here: bool = False) -> bool:
+    def sensor_pose_allowed(self, T_base_sensor: Array) -> bool:
         """Whether a candidate sensor pose keeps the TCP and the sensor inside every barrier plane and the
-        workspace box (e.g. to reject global goal candidates); ``from_here``: as far into a plane's margin
-        as a motion from the current pose may go (a camera sliding along a plane is inside its margin,
-        and so is every view at its height)."""
+        workspace box (e.g. to reject global goal candidates)."""
+        ...
+
+    def sensor_poses_allowed(self, T_base_sensor: Array, from_here: bool = False) -> NDArray[np.bool_]:
+        """``sensor_pose_allowed`` of each of the poses (K, 4, 4); ``from_here``: as far into a plane's
+        margin as a motion from the current pose may go (a camera sliding along a plane is inside its
+        margin, and so is every view at its height)."""
         ...
 
     def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:

@@ -252,11 +252,16 @@ class MotionGuard:
         """The TCP (flange origin) and the sensor origin (2, 3) [m] in the base frame."""
         return np.array([T_base_flange[:3, 3], (T_base_flange @ self._T_fs)[:3, 3]])
 
-    def barrier_violation(self, T_base_flange: Array, from_here: bool = False) -> str | None:
-        """Why a flange pose leaves the allowed side of a plane (margin included), or None; ``from_here``:
-        as far into the margin as a motion from the arm's current pose may go (``_margin_floor``)."""
-        floor = self._margin_floor(self.state().T_base_flange) if from_here else 0.0
+    def barrier_violation(self, T_base_flange: Array, floor: Array | float = 0.0) -> str | None:
+        """Why a flange pose leaves the allowed side of a plane (margin included), or None; ``floor``: the
+        clearance a guarded point may go down to (``motion_floor``: as far into the margin as a motion from
+        the arm's current pose may go)."""
         return self.barriers.first_violation(self.guarded_points(T_base_flange), GUARDED_POINTS, floor)
+
+    def motion_floor(self) -> Array:
+        """The lowest clearance [m] (guarded points x planes) a motion from the arm's current pose may reach
+        (``_margin_floor``)."""
+        return self._margin_floor(self.state().T_base_flange)
 
     def _margin_floor(self, T_base_flange: Array) -> Array:
         """The lowest clearance [m] beyond the barrier margin (guarded points x planes) a motion from

@@ -128,7 +128,7 @@ class GoalSeeker:
         u = session.rng.normal(size=(self.params.n_candidates, 3))
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         views = sphere_views(centroid, self.radius_m, u)
-        allowed = np.array([session.sensor_pose_allowed(T) for T in views], dtype=bool)
+        allowed = session.sensor_poses_allowed(views)
         if not allowed.any():
             raise PlanningError(f"none of {len(views)} goal candidates on the {self.radius_m:g} m sphere "
                                 "lies inside the barrier planes and the workspace")

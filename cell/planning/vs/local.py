@@ -278,7 +278,7 @@ class LocalGradient:
         p = self.params
         orbits = [orbited(T_base_cam, self.standoff_m, a) for a in self._coarse_angles]
         views = np.concatenate([v for v, _ in orbits])
-        allowed = np.array([session.sensor_pose_allowed(v, from_here=True) for v in views])
+        allowed = session.sensor_poses_allowed(views, from_here=True)
         arcs = np.array(self._coarse_angles)
         gain = np.where(allowed, objective(views) - f_r, 0.0).reshape(len(arcs), -1)  # (angle, way round)
         rise = gain / (arcs[:, None] * self.standoff_m)  # [nats/m]
