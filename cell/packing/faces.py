@@ -18,8 +18,9 @@ face is put where its points say the plane is:
    along n, sigma(r) |n.d| e with e standard normal, so x - z_q sigma(r) |n.d| has its q quantile at X
    for any mix of ranges and incidences: q = ``QUANTILE`` (0.9) rather than the median, so that a face
    is not pulled in by the points of a rounded edge or of a part of the face set back from it.
-3. **Only where it is a plane.** If that puts the face more than ``ACCEPT_SIGMAS`` noise std (median
-   over the facing points) inside the box's own face, the points beyond it are not a plane's noise but
+3. **Only where it is a plane.** If that puts the face more than ``ACCEPT_SIGMAS`` scatter std (median
+   over the facing points; the std of step 4, whose pose terms scatter a plane's points about it as the
+   range noise does) inside the box's own face, the points beyond it are not a plane's noise but
    surface the facing points missed (a protrusion smaller than a zone, a rounded part); if the facing
    points' median lies more than ``ONE_PLANE_SIGMAS`` below it, they lie on more than one level (a
    flange's hub over its rim, both within the band); either way the box's face stays.
@@ -108,10 +109,10 @@ MIN_FACING_POINTS = 10
 # up to ~3 std beyond the plane (the quantile of all points is a higher one of the face's own), and 3
 # more hold all but 0.13 % of the plane's points.
 BAND_SIGMAS = 6.0
-# A face further inside the box's own than this many noise std is not a plane's (step 3).
+# A face further inside the box's own than this many scatter std is not a plane's (step 3).
 ACCEPT_SIGMAS = 3.0
 # On one plane the facing points' median and their noise-corrected quantile both estimate it: their
-# difference has a std of about 0.7 noise std at the fewest (10) facing points, less with more. Further
+# difference has a std of about 0.7 scatter std at the fewest (10) facing points, less with more. Further
 # apart than twice that, the facing points lie on two levels (a hub on a rim) and the face stays (step 3).
 ONE_PLANE_SIGMAS = 1.5
 # A facing point further inside the plane than this many of its std is deep (step 4): 2.3 % of a plane's.
@@ -177,23 +178,28 @@ def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -
     if np.count_nonzero(facing) < MIN_FACING_POINTS:
         return None
     plane = float(np.quantile(x[facing] - norm.ppf(QUANTILE) * sigma[facing], QUANTILE))
-    spread = float(np.median(sigma[facing]))
+    scatter = _scatter_std(model, sigma[facing], ranges[facing], along[facing])
+    spread = float(np.median(scatter))
     set_back = plane < face_m - ACCEPT_SIGMAS * spread
     two_levels = plane - float(np.median(x[facing])) > ONE_PLANE_SIGMAS * spread
     if set_back or two_levels:
         return None
-    rounded = _rounded(model, x[facing] - plane, sigma[facing], ranges[facing], along[facing])
-    return face_m if rounded else plane
+    return face_m if _rounded(x[facing] - plane, scatter) else plane
 
 
-def _rounded(model: ErrorModel, depth: np.ndarray, sigma: np.ndarray, ranges: np.ndarray,
-             along: np.ndarray) -> bool:
-    """Whether facing points at ``depth`` (K,) [m] outside their plane (negative: inside), with range
-    noise std ``sigma`` (K,) [m] along n, ``ranges`` (K,) [m] and |n.d| ``along`` (K,), lie deeper inside
-    it than a plane's points do (module docstring, step 4)."""
+def _scatter_std(model: ErrorModel, sigma: np.ndarray, ranges: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """The std (K,) [m] of points about the plane they were seen on, along its normal n: range noise std
+    ``sigma`` (K,) [m] along n, the range offset over |n.d| ``along`` (K,) and the pose terms at ``ranges``
+    (K,) [m] (module docstring, step 4)."""
     pose = model.pose_m + ranges * model.pose_rad
-    std = np.sqrt(sigma**2 + (model.bias_m * along) ** 2 + pose**2)
-    deep = int(np.count_nonzero(depth < -DEEP_SIGMAS * std))
+    return np.asarray(np.sqrt(sigma**2 + (model.bias_m * along) ** 2 + pose**2))
+
+
+def _rounded(depth: np.ndarray, scatter: np.ndarray) -> bool:
+    """Whether facing points at ``depth`` (K,) [m] outside their plane (negative: inside), scattered
+    about a plane with std ``scatter`` (K,) [m], lie deeper inside it than a plane's points do (module
+    docstring, step 4)."""
+    deep = int(np.count_nonzero(depth < -DEEP_SIGMAS * scatter))
     return bool(binom.sf(deep - 1, depth.size, norm.cdf(-DEEP_SIGMAS)) < ROUNDED_ALPHA)
 
 
