@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from itertools import pairwise
+
 import numpy as np
 from numpy.typing import NDArray
 from ruckig import InputParameter, Result, Ruckig, Trajectory
@@ -21,20 +24,45 @@ def joint_trajectory(model: RobotModel, q_start: Array, q_goal: Array, *, dt: fl
     scales (0, 1]; ruckig makes the move time-optimal under those bounds with all joints synchronised.
     The last sample is exactly ``q_goal``.
     """
+    return waypoint_trajectory(model, [q_start, q_goal], dt=dt, velocity_scale=velocity_scale,
+                               acceleration_scale=acceleration_scale, jerk_scale=jerk_scale)
+
+
+def waypoint_trajectory(model: RobotModel, waypoints: Sequence[Array], *, dt: float, velocity_scale: float,
+                        acceleration_scale: float, jerk_scale: float) -> JointTrajectory:
+    """Rest-to-rest through each of ``waypoints`` (at least 2 joint vectors [rad]) in turn: the move of
+    :func:`joint_trajectory` between every two consecutive ones, joined where the arm is at rest, sampled
+    every ``dt`` [s]. The last sample is exactly the last waypoint."""
+    scales = (velocity_scale, acceleration_scale, jerk_scale)
+    n = model.n_joints
+    ts, qs, qds = [np.zeros(1)], [np.asarray(waypoints[0], dtype=float).reshape(1, n)], [np.zeros((1, n))]
+    for a, b in pairwise(waypoints):
+        t, q, qd = _rest_to_rest(model, a, b, dt, scales)
+        ts.append(t[1:] + ts[-1][-1])  # each leg's first sample is the previous one's last, at rest
+        qs.append(q[1:])
+        qds.append(qd[1:])
+    return JointTrajectory(t=np.concatenate(ts), q=np.vstack(qs), qd=np.vstack(qds))
+
+
+def _rest_to_rest(model: RobotModel, q_start: Array, q_goal: Array, dt: float,
+                  scales: tuple[float, float, float]) -> tuple[Array, Array, Array]:
+    """Times (K,) [s], joints (K, n) [rad] and joint speeds (K, n) [rad/s] of the move of
+    :func:`joint_trajectory` from ``q_start`` to ``q_goal``; ``scales`` its velocity, acceleration and jerk
+    scales."""
     n = model.n_joints
     inp = InputParameter(n)
     inp.current_position = np.asarray(q_start, dtype=float).tolist()
     inp.target_position = np.asarray(q_goal, dtype=float).tolist()
-    inp.max_velocity = (model.qd_max * velocity_scale).tolist()
-    inp.max_acceleration = (model.qdd_max * acceleration_scale).tolist()
-    inp.max_jerk = (model.qddd_max * jerk_scale).tolist()
+    inp.max_velocity = (model.qd_max * scales[0]).tolist()
+    inp.max_acceleration = (model.qdd_max * scales[1]).tolist()
+    inp.max_jerk = (model.qddd_max * scales[2]).tolist()
     traj = Trajectory(n)
     result = Ruckig(n).calculate(inp, traj)
     if result not in (Result.Working, Result.Finished):
         raise PlanningError(f"ruckig could not plan the joint move: {result}")
     q, qd, t = _sampled(traj, dt)
     q[-1] = q_goal
-    return JointTrajectory(t=t, q=q, qd=qd)
+    return t, q, qd
 
 
 def path_trajectory(model: RobotModel, path: Array, path_dt: float, *, dt: float, velocity_scale: float,

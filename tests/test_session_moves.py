@@ -1,0 +1,77 @@
+"""Point-to-point moves of a job session: a view that the straight joint move to the joints solved from the
+current ones cannot reach safely is reached on the arm's other branch, or through home."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from cell.config import load_config
+from cell.jobs.runner import ScanRequest, run_scan
+from cell.planning.base import Planner, ScanSession
+from cell.planning.registry import PLANNERS
+from drivers.transforms import look_at
+
+from .conftest import UR5E
+
+
+class CrossPlanner(Planner):
+    """Moves to the sensor positions ``offsets`` [m] relative to a point 5 cm over the station, each
+    looking at that point; keeps what each move returned, the view and the sensor pose reached."""
+
+    name: ClassVar[str] = "test-cross"
+    description: ClassVar[str] = "test planner: cross between two views"
+    offsets: ClassVar[tuple[np.ndarray, ...]] = ()
+    moves: ClassVar[list[tuple[bool, np.ndarray, np.ndarray]]] = []
+
+    def run(self, session: ScanSession) -> str:
+        station = session.config.station
+        centre = np.array([*station.xy_m, station.table_z_m + 0.05])
+        for offset in self.offsets:
+            view = look_at(centre + offset, centre)
+            CrossPlanner.moves.append((session.move_to_sensor_pose(view), view, session.sensor_pose()))
+        return "crossed"
+
+
+def _cross(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *offsets: list[float]) -> np.ndarray:
+    """Run the crossing on the UR5e cell; check that every view was reached with no move refused, and
+    return the sensor's path (K, 3) [m], starting at home."""
+    monkeypatch.setitem(PLANNERS, CrossPlanner.name, CrossPlanner)
+    monkeypatch.setattr(CrossPlanner, "offsets", tuple(np.array(o) for o in offsets))
+    monkeypatch.setattr(CrossPlanner, "moves", [])
+    result = run_scan(ScanRequest(config=load_config(UR5E), config_path=str(UR5E), object="vertical_box",
+                                  out=tmp_path / "scan", planner=CrossPlanner.name)).result
+    assert result["status"] == "completed", result["termination"]
+    assert [moved for moved, _, _ in CrossPlanner.moves] == [True] * len(offsets)
+    for _, view, reached in CrossPlanner.moves:
+        np.testing.assert_allclose(reached[:3, 3], view[:3, 3], atol=1e-3)
+    assert result["refused_moves"] == {} and result["safety"]["refusals"] == []
+    with (tmp_path / "scan" / "trajectory.csv").open() as f:
+        return np.array([[float(r["x"]), float(r["y"]), float(r["z"])] for r in csv.DictReader(f)])
+
+
+def _back_home_after_leaving(path: np.ndarray) -> bool:
+    off_home = np.linalg.norm(path - path[0], axis=1)
+    left = int(np.argmax(off_home > 0.05))
+    return bool(left > 0 and off_home[left:].min() < 1e-3)
+
+
+def test_a_view_the_straight_move_cannot_reach_safely_is_reached_on_the_arms_other_branch(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Low on the station's far side, then high over its left (the arm keeps the branch it came on), then
+    high over its right: the joints solved from the current ones would sweep the forearm into the wrist on
+    the way; those solved from home are reached straight, not by way of home."""
+    path = _cross(monkeypatch, tmp_path, [0.282, 0.0, 0.103], [0.106, 0.184, 0.212], [-0.106, -0.184, 0.212])
+    assert not _back_home_after_leaving(path)
+
+
+def test_a_view_no_straight_move_reaches_safely_is_reached_through_home(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """From low on the station's far side to low on the arm's side, to its left: every straight joint
+    move takes the sensor 3 mm into the floor plane's 5 mm margin; through home it stays clear."""
+    path = _cross(monkeypatch, tmp_path, [0.282, 0.0, 0.103], [-0.244, 0.141, 0.103])
+    assert _back_home_after_leaving(path)
