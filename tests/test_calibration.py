@@ -16,6 +16,7 @@ from calibration.board_fit import fit_mount_to_board, load_board_views
 from calibration.cell_file import updated_text
 from calibration.mount import BOARD_ELEVATION_DEG, calibrate_mount, pose_difference
 from calibration.predict import check_views_observable
+from calibration.table import fit_table
 from calibration.targets import box_target
 from calibration.tof import calibrate_zones
 from calibration.views import capture_views, mount_views
@@ -260,6 +261,21 @@ def test_a_calibration_on_the_dry_run_path_moves_the_rtde_peer_through_the_guard
     # a handful of views: the mount is found within the uncertainty the fit reports
     err_m, err_deg = pose_difference(cal.fit.T_flange_sensor, cfg.true_mount_matrix())
     assert err_m <= 4.0 * float(np.linalg.norm(cal.fit.std_m)) and err_deg <= 1.0
+
+
+def test_the_table_fit_starts_from_the_table_not_from_a_part_standing_on_it() -> None:
+    """A 10 cm part over a tenth of the points: a least-squares start on every point lies between the part
+    and the table, and trimming about it kept neither; from the points near the median height the fit
+    finds the table, 0.5 mm up, and the part above it."""
+    rng = np.random.default_rng(0)
+    table = np.column_stack([rng.uniform([0.25, -0.2], [0.65, 0.2], (20000, 2)),
+                             0.0005 + rng.normal(0.0, 0.0005, 20000)])
+    part = np.column_stack([rng.uniform([0.4, -0.05], [0.5, 0.05], (2000, 2)),
+                            0.1 + rng.normal(0.0, 0.0005, 2000)])
+    fit = fit_table(np.vstack([table, part]))
+    np.testing.assert_allclose(fit.coefficients, [0.0, 0.0, 0.0005], atol=1e-4)
+    assert fit.n_points > 19000
+    assert fit.part_xy_m is not None and np.allclose(fit.part_xy_m, [0.45, 0.0], atol=0.005)
 
 
 def test_cli_table_finds_the_table_and_the_part_on_the_station(tmp_path: Path) -> None:
