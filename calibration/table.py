@@ -8,12 +8,11 @@ height (the table fills most of every view and lies near level; a part on it doe
 without the points more than ``TRIM_SIGMAS`` robust standard deviations off the plane (a part on the
 table, the table's edge), until nothing changes. A first fit to every point does not do: the views of
 the simulated Franka cell's 10 cm cube, a tenth of the points, pulled it up and tilted it, and the
-trimming then converged onto the cube's top. Reported against the
-cell file: the table's height at the station (``station.table_z_m``), its tilt from the base frame's
-x-y plane [deg] and its direction, and, when points stand more than ``ABOVE_M`` and ``ABOVE_SIGMAS``
-residual standard deviations above the plane (a part placed on the station's mark), the centre of those
-points (of what the views saw of the part, so a coarse sensor's figure leans towards the sides it saw)
-against ``station.xy_m``.
+trimming then converged onto the cube's top. Reported against the cell file: the table's height at the
+station (``station.table_z_m``), its tilt from the base frame's x-y plane [deg] and its direction, and,
+when points stand more than ``ABOVE_M`` and ``ABOVE_SIGMAS`` residual standard deviations above the
+plane (a part placed on the station's mark), the centre of those points (of what the views saw of the
+part, so a coarse sensor's figure leans towards the sides it saw) against ``station.xy_m``.
 """
 
 from __future__ import annotations

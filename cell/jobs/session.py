@@ -285,7 +285,8 @@ class JobSession:
             traj = waypoint_trajectory(self._model, waypoints, dt=self._dt, **self._joint_scales())
             _, refused = self._guard.check_trajectory(traj)
             if refused is None:
-                return self._follow(traj, what)
+                self._execute(traj)
+                return True
             refusal = refusal or refused
         if refusal is None:
             self.n_unreachable += 1
@@ -354,13 +355,17 @@ class JobSession:
         if refusal is not None:
             self._refused(refusal, what)
             return False
+        self._execute(traj)
+        return True
+
+    def _execute(self, traj: JointTrajectory) -> None:
+        """Start a joint trajectory through the guard and tick until it ends."""
         started = self._guard.execute_trajectory(traj)
         deadline = self.now() + started.duration + MOVE_TIMEOUT_MARGIN_S
         while self._guard.following:
             if self.now() > deadline:
                 raise KinematicsError("the arm did not finish its move in time")
             self._tick()
-        return True
 
     def _refused(self, refusal: Refusal, what: str) -> None:
         """Record and count a move the guard would refuse; ``what`` names it in the log."""
