@@ -165,6 +165,11 @@ def mount_std(fun: Callable[[Array], Array], x: Array, r: Array) -> Array:
     return np.sqrt(np.diag(mount_covariance(J, sigma)))
 
 
+def robust_std(values: Array) -> float:
+    """The standard deviation of ``values`` (K >= 1,) that their median absolute deviation gives."""
+    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
+
+
 def _subsample(views: Sequence[View], max_points: int, rng: np.random.Generator) -> list[View]:
     out = []
     for v in views:
@@ -205,8 +210,7 @@ def fit_mount_to_shape(views: Sequence[View], T_mount0: Array, target: BoxTarget
     x0 = np.concatenate([np.zeros(N_MOUNT), np.asarray(box_pose0, dtype=float), [table_z0]])
     robust = least_squares(problem.residuals, x0, loss="soft_l1", f_scale=ROBUST_SCALE_M, x_scale="jac")
     r = problem.residuals(robust.x)
-    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    keep = np.abs(r) <= max(INLIER_SIGMAS * sigma, 1e-4)
+    keep = np.abs(r) <= max(INLIER_SIGMAS * robust_std(r), 1e-4)
     inliers = problem.subset(keep)
     final = least_squares(inliers.residuals, robust.x, x_scale="jac")
     r = inliers.residuals(final.x)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.shape_fit import Array
+from calibration.shape_fit import Array, robust_std
 from calibration.views import capture_views, load_views
 from cell.config.models import CellConfig
 from drivers.errors import CalibrationError
@@ -67,12 +67,12 @@ def fit_table(points_base: Array) -> TableFit:
         raise CalibrationError(f"only {points_base.shape[0]} points of the table were measured")
     A = np.column_stack([points_base[:, 0], points_base[:, 1], np.ones(points_base.shape[0])])
     z = points_base[:, 2]
-    keep = np.abs(z - np.median(z)) <= max(TRIM_SIGMAS * _robust_std(z), 1e-4)
+    keep = np.abs(z - np.median(z)) <= max(TRIM_SIGMAS * robust_std(z), 1e-4)
     coef = np.zeros(3)
     for _ in range(MAX_ROUNDS):
         coef = np.linalg.lstsq(A[keep], points_base[keep, 2], rcond=None)[0]
         r = points_base[:, 2] - A @ coef
-        sigma = _robust_std(r[keep])
+        sigma = robust_std(r[keep])
         new = np.abs(r) <= max(TRIM_SIGMAS * sigma, 1e-4)
         if np.array_equal(new, keep):
             break
@@ -83,11 +83,6 @@ def fit_table(points_base: Array) -> TableFit:
     part = points_base[above, :2].mean(axis=0) if np.count_nonzero(above) >= 3 else None
     return TableFit(coefficients=coef, residual_m=residual,
                     n_points=int(np.count_nonzero(keep)), part_xy_m=part)
-
-
-def _robust_std(values: Array) -> float:
-    """The standard deviation of ``values`` (K >= 1,) that their median absolute deviation gives."""
-    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
 def calibrate_table(config: CellConfig, config_path: str, *, folder: Path, ring: int = 4,
