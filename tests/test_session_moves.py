@@ -1,9 +1,11 @@
 """Point-to-point moves of a job session: a view that the straight joint move to the joints solved from the
-current ones cannot reach safely is reached on the arm's other branch, or through home."""
+current ones cannot reach safely is reached on the arm's other branch, or through home, or rolled about the
+sensor's axis where the roll sees the same."""
 
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 from typing import ClassVar
 
@@ -14,36 +16,41 @@ from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.planning.base import Planner, ScanSession
 from cell.planning.registry import PLANNERS
-from drivers.transforms import look_at
+from drivers.transforms import T_from_xyz_rpy, look_at
 
-from .conftest import UR5E
+from .conftest import FRANKA, UR5E
 
 
 class CrossPlanner(Planner):
     """Moves to the sensor positions ``offsets`` [m] relative to a point 5 cm over the station, each
-    looking at that point; keeps what each move returned, the view and the sensor pose reached."""
+    looking at that point, rolled about its axis by ``roll_deg``; keeps what each move returned, the view
+    and the sensor pose reached."""
 
     name: ClassVar[str] = "test-cross"
     description: ClassVar[str] = "test planner: cross between two views"
     offsets: ClassVar[tuple[np.ndarray, ...]] = ()
+    roll_deg: ClassVar[float] = 0.0
     moves: ClassVar[list[tuple[bool, np.ndarray, np.ndarray]]] = []
 
     def run(self, session: ScanSession) -> str:
         station = session.config.station
         centre = np.array([*station.xy_m, station.table_z_m + 0.05])
+        roll = T_from_xyz_rpy(np.zeros(3), (0.0, 0.0, math.radians(self.roll_deg)))
         for offset in self.offsets:
-            view = look_at(centre + offset, centre)
+            view = look_at(centre + offset, centre) @ roll
             CrossPlanner.moves.append((session.move_to_sensor_pose(view), view, session.sensor_pose()))
         return "crossed"
 
 
-def _cross(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *offsets: list[float]) -> np.ndarray:
-    """Run the crossing on the UR5e cell; check that every view was reached with no move refused, and
-    return the sensor's path (K, 3) [m], starting at home."""
+def _cross(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *offsets: list[float], cell: Path = UR5E,
+           roll_deg: float = 0.0) -> np.ndarray:
+    """Run the crossing on ``cell``; check that every view was reached with no move refused, and return
+    the sensor's path (K, 3) [m], starting at home."""
     monkeypatch.setitem(PLANNERS, CrossPlanner.name, CrossPlanner)
     monkeypatch.setattr(CrossPlanner, "offsets", tuple(np.array(o) for o in offsets))
+    monkeypatch.setattr(CrossPlanner, "roll_deg", roll_deg)
     monkeypatch.setattr(CrossPlanner, "moves", [])
-    result = run_scan(ScanRequest(config=load_config(UR5E), config_path=str(UR5E), object="vertical_box",
+    result = run_scan(ScanRequest(config=load_config(cell), config_path=str(cell), object="vertical_box",
                                   out=tmp_path / "scan", planner=CrossPlanner.name)).result
     assert result["status"] == "completed", result["termination"]
     assert [moved for moved, _, _ in CrossPlanner.moves] == [True] * len(offsets)
@@ -75,3 +82,21 @@ def test_a_view_no_straight_move_reaches_safely_is_reached_through_home(
     move takes the sensor 3 mm into the floor plane's 5 mm margin; through home it stays clear."""
     path = _cross(monkeypatch, tmp_path, [0.282, 0.0, 0.103], [-0.244, 0.141, 0.103])
     assert _back_home_after_leaving(path)
+
+
+@pytest.mark.parametrize(("cell", "offset", "roll_deg", "turn_deg"), [
+    (UR5E, [-0.196, 0.113, 0.106], 45.0, 90.0),
+    (FRANKA, [0.177, 0.0, 0.177], 270.0, 180.0),
+])
+def test_a_view_no_route_reaches_safely_is_reached_rolled_about_the_sensor_axis(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cell: Path, offset: list[float], roll_deg: float,
+        turn_deg: float) -> None:
+    """Low on the arm's left, the UR5e's every route folds the base into the forearm; over the station,
+    the Panda's wrist would enter its joint limit margin. The ToF's square grid seen a quarter turn about
+    its axis, and the camera's image seen upside down, are the same view: that one is reached, along the
+    same axis from the same point, its image axes turned by that much."""
+    _cross(monkeypatch, tmp_path, offset, cell=cell, roll_deg=roll_deg)
+    [(_, view, reached)] = CrossPlanner.moves
+    np.testing.assert_allclose(reached[:3, 2], view[:3, 2], atol=1e-3)
+    turned = math.degrees(math.acos(np.clip(reached[:3, 0] @ view[:3, 0], -1.0, 1.0)))
+    assert turned == pytest.approx(turn_deg, abs=0.5)

@@ -14,6 +14,7 @@ arm if no frame arrives for too long.
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_right
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
@@ -39,7 +40,7 @@ from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.errors import DriverError, KinematicsError
 from drivers.robots.model import RobotModel
-from drivers.transforms import inv_T
+from drivers.transforms import T_from_xyz_rpy, inv_T
 
 # A point-to-point move that has not finished this long after its planned duration is a fault.
 MOVE_TIMEOUT_MARGIN_S = 2.0
@@ -58,6 +59,18 @@ SAME_SOLUTION_RAD = 0.01
 # it tries in turn.
 JOINT_PATH_KEPT_S = 5.0
 RETRACE_SHARES = (1.0, 0.5, 0.25)
+
+
+def same_view_rolls(sensor: SensorModel) -> tuple[float, ...]:
+    """Rolls [rad] of the sensor about its optical axis, other than none, after which it sees what it saw:
+    its field of view and its grid of zones (or pixels), symmetric about the axis, map onto themselves. A
+    quarter turn either way and a half turn for a square grid over a square field (the VL53L8CX's 8 x 8
+    zones over 45 x 45 deg: a zone's central ray turns into another zone's), a half turn for a rectangle
+    (a camera's image turns upside down; its principal point is taken to be the image centre). The flange
+    pose differs by the roll, so a view whose joints lie past a joint's limit margin, or whose move the
+    guard refuses, may be reached rolled; the capture records the pose it was taken from."""
+    square = sensor.width == sensor.height and math.isclose(sensor.fov_x_deg, sensor.fov_y_deg)
+    return (math.pi / 2.0, -math.pi / 2.0, math.pi) if square else (math.pi,)
 
 
 def retrace_starts(times: Sequence[float], stopped_at_s: float, duration_s: float) -> list[tuple[float, int]]:
@@ -276,18 +289,24 @@ class JobSession:
                 raise
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
-        """The first of :meth:`_routes` to the pose that the guard accepts, followed; False when there is
-        none, the direct move's refusal recorded and counted (or the pose counted unreachable when no joints
-        reach it)."""
+        """The first of :meth:`_routes` to the pose that the guard accepts, followed, else the first to one
+        of the pose's rolls that see the same (:func:`same_view_rolls`, tried only when joints reach the
+        pose itself); False when there is none, the direct move's refusal recorded and counted (or the pose
+        counted unreachable when no joints reach it)."""
         what = f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)"
+        q_now, T_sensor_flange = self._guard.state().q, inv_T(self._T_flange_sensor)
         refusal: Refusal | None = None
-        for waypoints in self._routes(T_base_sensor @ inv_T(self._T_flange_sensor), self._guard.state().q):
-            traj = waypoint_trajectory(self._model, waypoints, dt=self._dt, **self._joint_scales())
-            _, refused = self._guard.check_trajectory(traj)
-            if refused is None:
-                self._execute(traj)
-                return True
-            refusal = refusal or refused
+        for roll in (0.0, *same_view_rolls(self._sensor.model)):
+            if roll != 0.0 and refusal is None:
+                break
+            T_rolled = T_base_sensor @ T_from_xyz_rpy(np.zeros(3), (0.0, 0.0, roll))
+            for waypoints in self._routes(T_rolled @ T_sensor_flange, q_now):
+                traj = waypoint_trajectory(self._model, waypoints, dt=self._dt, **self._joint_scales())
+                _, refused = self._guard.check_trajectory(traj)
+                if refused is None:
+                    self._execute(traj)
+                    return True
+                refusal = refusal or refused
         if refusal is None:
             self.n_unreachable += 1
         else:
