@@ -23,7 +23,7 @@ from cell.planning.lrnbv.planner import (
 from cell.planning.registry import get_planner
 from drivers.depth.base import SensorModel
 from drivers.transforms import look_at
-from tests.conftest import UR5E
+from tests.conftest import FRANKA, UR5E
 
 
 def _with(cfg: CellConfig, section: str, **values: object) -> CellConfig:
@@ -109,8 +109,9 @@ def test_short_lr_nbv_scan_reports_packing(tmp_path, capture: str) -> None:
         assert r["n_captures"] <= 3 + 1 + len(cfg.planners.lrnbv.search_heights_m)
 
 
-def test_heu_scan_reaches_every_pose_of_the_ellipse(tmp_path) -> None:
-    r = run_scan(ScanRequest(config=load_config(UR5E), config_path=str(UR5E), object="vertical_box",
+@pytest.mark.parametrize("cell", [UR5E, FRANKA])
+def test_heu_scan_reaches_every_pose_of_the_ellipse(tmp_path, cell) -> None:
+    r = run_scan(ScanRequest(config=load_config(cell), config_path=str(cell), object="vertical_box",
                              out=tmp_path / "heu", planner="heu")).result
     assert r["status"] == "completed"
     assert r["termination"] == "heu complete: 13 of 13 poses captured, 0 refused"
