@@ -51,9 +51,10 @@ class ScanSession(Protocol):
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
         """Move so that the sensor reaches ``T_base_sensor`` (joint-space, guarded, blocking in job time):
         straight to the joints solved from the current ones or from home, or by way of home when the
-        guard refuses the straight move. Returns False, and records and counts why, when the pose has no
-        reachable joint solution or the safety layer would refuse every one of those moves (collision,
-        barrier plane, joint margin)."""
+        guard refuses the straight move, else the same way to the pose rolled about the sensor's optical
+        axis where the roll sees the same (a sensor's captures hold the pose they were taken from).
+        Returns False, and records and counts why, when the pose has no reachable joint solution or the
+        safety layer would refuse every one of those moves (collision, barrier plane, joint margin)."""
         ...
 
     def retrace(self, duration_s: float) -> bool:
