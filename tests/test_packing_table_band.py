@@ -13,6 +13,7 @@ from cell.packing.result import ReconstructionHistory, packing_section
 from cell.packing.table_band import above_table, clear_of_table, height_sigma, off_table
 from cell.packing.uncertainty import ErrorModel, Sighting
 from cell.perception.segmentation import compute_roi
+from drivers.depth.sim_tof import zone_directions
 from drivers.transforms import look_at
 from tests.conftest import UR5E
 from tests.test_packing import _Planner, _session, _voxelise
@@ -49,17 +50,49 @@ def test_above_table_takes_points_over_the_views_own_table_band_inside_the_exten
                        [0.45, 0.0, 0.020]])  # above the cut: the segmentation's own
     sightings = [Sighting(_oblique(0.0), np.vstack([probes, table]))]
     clear = clear_of_table(perception, sightings, MODEL)  # type: ignore[arg-type]
-    assert not above_table(perception, sightings, clear).any()  # type: ignore[arg-type]  # no ROI yet
+    assert not above_table(perception, sightings, clear, MODEL).any()  # type: ignore[arg-type]  # no ROI yet
     perception.extent.add(compute_roi(np.array([[0.405, -0.045, 0.015], [0.495, 0.045, 0.035]])))
     clear = clear_of_table(perception, sightings, MODEL)  # type: ignore[arg-type]
     np.testing.assert_array_equal(clear[:4], [True, False, True, True])
-    got = above_table(perception, sightings, clear)  # type: ignore[arg-type]
+    got = above_table(perception, sightings, clear, MODEL)  # type: ignore[arg-type]
     np.testing.assert_array_equal(got[:4], [True, False, False, False])
     assert not got[4:].any()
     # Without the view's table the known height stands in: 6 mm is then above the band.
     alone = [Sighting(_oblique(0.0), probes)]
-    got = above_table(perception, alone, clear_of_table(perception, alone, MODEL))  # type: ignore[arg-type]
+    clear = clear_of_table(perception, alone, MODEL)  # type: ignore[arg-type]
+    got = above_table(perception, alone, clear, MODEL)  # type: ignore[arg-type]
     np.testing.assert_array_equal(got, [True, True, False, False])
+
+
+def test_a_table_point_over_the_band_by_chance_among_table_points_is_not_the_objects() -> None:
+    """One capture, a range per zone (the VL53L8CX's 8 x 8 over 45 deg) of a 10 x 10 cm plate 10 mm tall
+    on the table, seen 45 deg down from 0.28 m: the plate's zones stand over the view's band (7.4 mm)
+    and below the 12 mm cut, and count. A table zone two zones off the plate, inside the ROI's footprint,
+    comes out 9 mm high (over the band, as 1 in 44 of the table's do by chance): among table zones, it
+    does not count."""
+    session = _session(1, np.zeros((0, 3)))
+    perception = session.perception
+    T = look_at(CENTRE + np.array([0.2, 0.0, 0.2]), CENTRE)
+    rays = zone_directions(8, 45.0)[:, 0] @ T[:3, :3].T
+    origin = T[:3, 3]
+
+    def hit(height: float) -> np.ndarray:
+        return origin - ((origin[2] - height) / rays[:, 2])[:, None] * rays
+
+    plate = np.all(np.abs(hit(0.01)[:, :2] - CENTRE[:2]) <= 0.05, axis=1)
+    points = np.where(plate[:, None], hit(0.01), hit(0.0))
+    lo, hi = np.array([0.38, -0.17, 0.015]), np.array([0.52, 0.07, 0.035])
+    inside = np.all((points[:, :2] > lo[:2]) & (points[:, :2] < hi[:2]), axis=1)
+    zone = np.column_stack(np.divmod(np.arange(64), 8))
+    apart = np.array([np.abs(zone[plate] - z).max(axis=1).min() >= 2 for z in zone])
+    chance = int(np.flatnonzero(inside & apart)[0])
+    points[chance, 2] = 0.009
+    sightings = [Sighting(T, points)]
+    perception.extent.add(compute_roi(np.array([lo, hi])))
+    clear = clear_of_table(perception, sightings, MODEL)  # type: ignore[arg-type]
+    assert clear[chance] and clear[plate].all() and np.count_nonzero(plate) >= 4
+    got = above_table(perception, sightings, clear, MODEL)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(np.flatnonzero(got), np.flatnonzero(plate))
 
 
 def test_a_plates_rim_below_the_table_cut_still_counts() -> None:

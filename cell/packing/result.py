@@ -143,7 +143,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     model = error_model(config, session.sensor_model())
     captured = np.vstack([s.points for s in sightings]) if sightings else np.zeros((0, 3))
     clear = clear_of_table(perception, sightings, model)
-    low = above_table(perception, sightings, clear)
+    low = above_table(perception, sightings, clear, model)
     cloud = np.vstack([object_surface_points(perception, objects), extent_points(perception)])
     measured = np.vstack([cloud[off_table(perception, cloud, captured, clear)], captured[low]])
     seen = _seen(perception, objects, sightings, captured, low, clear, measured, config.scan.standoff_m,

@@ -22,6 +22,11 @@ Two uses:
    NBV scan of the packing paper's grid. Points below the cut that stand above the band join the box's,
    those inside the extent's footprint only (in the table plane): what stands on the table there is the
    object (the extent's own argument), and a table point outside it that passes the band by chance is not.
+   Inside the footprint too, a point joins only beside another point of its capture above the band (in its
+   zone or one of the 8 around it on the zone grid): a table point that passes the band by chance (1 in
+   44 at c = 2) has table points around it, all 8 of which stay in the band with probability
+   (1 - 1/44)^8 = 0.83, while a low rim's points have the rim and the part beside them. On the packing
+   grids' LR-NBV and NBV scans, 35 faces moved closer to the truth by over 1 mm and 12 further.
 2. **Above the cut** (:func:`clear_of_table`, :func:`off_table`). The table's noise reaches over the cut
    too: seen from 0.45 m straight above, its height std is 6.3 mm and 2 std is 12.6 mm, and over a scan's
    thousands of table points some dozens pass 12 mm, fill voxels of the layer above the cut next to the
@@ -40,6 +45,7 @@ from numpy.typing import NDArray
 
 from cell.packing.objects import extent_box, table_cut_z
 from cell.packing.uncertainty import ErrorModel, Sighting
+from cell.packing.zones import zone_grid
 from cell.perception.pipeline import PerceptionPipeline
 
 Array = NDArray[np.float64]
@@ -79,16 +85,46 @@ def clear_of_table(perception: PerceptionPipeline, sightings: list[Sighting],
 
 
 def above_table(perception: PerceptionPipeline, sightings: list[Sighting], clear: NDArray[np.bool_],
-                ) -> NDArray[np.bool_]:
+                model: ErrorModel) -> NDArray[np.bool_]:
     """Mask over the points of ``sightings`` (concatenated, in order) of those below the segmentation's
     table cut that the module docstring takes for the object's (use 1), ``clear`` the
-    :func:`clear_of_table` of the same points; all False before any ROI."""
+    :func:`clear_of_table` of the same points, ``model`` giving the zone grid; all False before any
+    ROI."""
     box = extent_box(perception)
     if box is None or not sightings:
         return np.zeros(clear.shape[0], dtype=bool)
     p = np.vstack([s.points for s in sightings])
     cut = table_cut_z(perception.config.segmentation, perception.table_z_m)
-    return _over(p, box) & (p[:, 2] <= cut) & clear
+    return _over(p, box) & (p[:, 2] <= cut) & clear & beside_clear(sightings, clear, model)
+
+
+def beside_clear(sightings: list[Sighting], clear: NDArray[np.bool_], model: ErrorModel) -> NDArray[np.bool_]:
+    """Mask over the points of ``sightings`` (concatenated, in order) of those with another point of their
+    capture that is ``clear`` (over all the points) in their zone or one of the 8 around it, on the zone
+    grid of ``model`` (:func:`cell.packing.zones.zone_grid`); False for a point outside the field of
+    view."""
+    masks: list[NDArray[np.bool_]] = []
+    start = 0
+    for s in sightings:
+        own = clear[start:start + s.points.shape[0]]
+        start += s.points.shape[0]
+        R, origin = s.T_base_sensor[:3, :3], s.T_base_sensor[:3, 3]
+        row, col = zone_grid((s.points - origin) @ R, model.zone_rad, model.half_fov_rad)
+        on = row >= 0
+        if not on.any():
+            masks.append(np.zeros(s.points.shape[0], dtype=bool))
+            continue
+        # clear points per zone, on a grid with a free ring around it, then summed over each 3 x 3 block
+        count = np.zeros((int(row[on].max()) + 3, int(col[on].max()) + 3), dtype=np.int64)
+        np.add.at(count, (row[on & own] + 1, col[on & own] + 1), 1)
+        padded = np.pad(count, 1)
+        block = np.zeros_like(count)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                block += padded[1 + dr:1 + dr + count.shape[0], 1 + dc:1 + dc + count.shape[1]]
+        others = block[np.where(on, row + 1, 0), np.where(on, col + 1, 0)] - own.astype(np.int64)
+        masks.append(on & (others > 0))
+    return np.concatenate(masks) if masks else np.zeros(0, dtype=bool)
 
 
 def off_table(perception: PerceptionPipeline, points: Array, captured: Array,
