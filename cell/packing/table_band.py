@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import convolve
 
 from cell.packing.objects import extent_box, table_cut_z
 from cell.packing.uncertainty import ErrorModel, Sighting
@@ -114,15 +115,10 @@ def beside_clear(sightings: list[Sighting], clear: NDArray[np.bool_], model: Err
         if not on.any():
             masks.append(np.zeros(s.points.shape[0], dtype=bool))
             continue
-        # clear points per zone, on a grid with a free ring around it, then summed over each 3 x 3 block
-        count = np.zeros((int(row[on].max()) + 3, int(col[on].max()) + 3), dtype=np.int64)
-        np.add.at(count, (row[on & own] + 1, col[on & own] + 1), 1)
-        padded = np.pad(count, 1)
-        block = np.zeros_like(count)
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                block += padded[1 + dr:1 + dr + count.shape[0], 1 + dc:1 + dc + count.shape[1]]
-        others = block[np.where(on, row + 1, 0), np.where(on, col + 1, 0)] - own.astype(np.int64)
+        count = np.zeros((int(row[on].max()) + 1, int(col[on].max()) + 1), dtype=np.int64)
+        np.add.at(count, (row[on & own], col[on & own]), 1)  # clear points per zone
+        block = convolve(count, np.ones((3, 3), dtype=np.int64), mode="constant")  # ... and around it
+        others = block[np.where(on, row, 0), np.where(on, col, 0)] - own.astype(np.int64)
         masks.append(on & (others > 0))
     return np.concatenate(masks) if masks else np.zeros(0, dtype=bool)
 
