@@ -24,7 +24,7 @@ from cell.perception.cloud import CloudAccumulator
 from cell.perception.filters import filter_frame, no_target_directions, valid_tof_points
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
-from cell.perception.segmentation import ROI, ObjectExtent, segment_object
+from cell.perception.segmentation import ROI, ObjectExtent, SegmentationResult, segment_object
 from drivers.depth.base import DepthFrame
 from drivers.scheduling import ordinary_scheduling
 from drivers.transforms import transform_points
@@ -35,8 +35,9 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
-    frame, the segmented object and its ROI, ``extent`` the box (min, max) [m] of every ROI so far
-    (``ObjectExtent``), H_ROI (eq. 12) over that box, and the occupancy map. ``roi``, ``centroid``,
+    frame, the ends of the rays it carved free (its ToF zones with no target, out to the sensor's range;
+    (0, 3) for a camera), the segmented object and its ROI, ``extent`` the box (min, max) [m] of every ROI
+    so far (``ObjectExtent``), H_ROI (eq. 12) over that box, and the occupancy map. ``roi``, ``centroid``,
     ``extent`` and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map
     when frames are processed in the planner's thread (later frames update it), and a copy taken right
     after this frame when they are processed asynchronously (``AsyncPerception``), so that a planner never
@@ -47,6 +48,7 @@ class PerceptionUpdate:
     T_base_sensor: Array
     registration: RegistrationResult
     points_base: Array
+    free_ends_base: Array
     object_points: Array
     roi: ROI | None
     centroid: Array | None
@@ -108,7 +110,6 @@ class PerceptionPipeline:
         T_fk = np.asarray(T_base_sensor_fk, dtype=float)
         if T_fk.shape != (4, 4) or not np.all(np.isfinite(T_fk)):
             raise ValueError(f"T_base_sensor_fk is not a finite 4x4 pose: {T_fk.tolist()}")
-        c = self.config
         clock = self.stage_times
         clock.start()
         points = self.filter_frame(frame)
@@ -117,32 +118,44 @@ class PerceptionPipeline:
         clock.lap("register")
         T = reg.T_base_sensor
         points_base = transform_points(T, points)
-        self.cloud.add(points_base)
-        clock.lap("accumulate")
-        if c.registration.enabled:
-            self._target.update(self.cloud.points, new=self.cloud.new, viewpoint_base=T[:3, 3])
-        clock.lap("normals")
-        origin = T[:3, 3]
-        self.map.integrate(origin, points_base)
+        free_ends = np.zeros((0, 3))
         if frame.zones is not None:
-            rays = no_target_directions(frame)
-            if rays.shape[0]:
-                ends = origin + (rays @ T[:3, :3].T) * self.range_max_m
-                self.map.integrate(origin, ends, free_only=np.ones(rays.shape[0], dtype=bool))
-        clock.lap("integrate")
-        seg = segment_object(self.map.occupied_centers(), c.segmentation, self._rng,
-                             table_z=self.table_z_m)
-        clock.lap("segment")
+            free_ends = T[:3, 3] + (no_target_directions(frame) @ T[:3, :3].T) * self.range_max_m
+        seg, extent = self.add_capture(T, points_base, free_ends)
         roi = seg.roi
-        extent = self.extent.add(roi) if roi is not None else None
         h_roi = self.map.mean_entropy_in_box(*extent) if extent is not None else None
         clock.lap("h_roi")
         update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
-                                  points_base=points_base, object_points=seg.object_points, roi=roi,
+                                  points_base=points_base, free_ends_base=free_ends,
+                                  object_points=seg.object_points, roi=roi,
                                   centroid=roi.centroid if roi is not None else None, extent=extent,
                                   h_roi=h_roi, map=self.map)
         self.latest = update
         return update
+
+
+    def add_capture(self, T_base_sensor: Array, points_base: Array, free_ends: Array,
+                    ) -> tuple[SegmentationResult, tuple[Array, Array] | None]:
+        """Accumulate one capture's filtered points ``points_base`` (K, 3) [m, base frame], seen from the
+        sensor pose ``T_base_sensor`` (after registration), into the cloud and the occupancy map, carving
+        free the rays to ``free_ends`` (J, 3) [m] (the zones with no target, up to the sensor's range),
+        segment the map and add the object's ROI to ``extent``: the segmentation and the box of every ROI
+        so far (None until an object has been found)."""
+        clock = self.stage_times
+        self.cloud.add(points_base)
+        clock.lap("accumulate")
+        if self.config.registration.enabled:
+            self._target.update(self.cloud.points, new=self.cloud.new, viewpoint_base=T_base_sensor[:3, 3])
+        clock.lap("normals")
+        origin = T_base_sensor[:3, 3]
+        self.map.integrate(origin, points_base)
+        if free_ends.shape[0]:
+            self.map.integrate(origin, free_ends, free_only=np.ones(free_ends.shape[0], dtype=bool))
+        clock.lap("integrate")
+        seg = segment_object(self.map.occupied_centers(), self.config.segmentation, self._rng,
+                             table_z=self.table_z_m)
+        clock.lap("segment")
+        return seg, self.extent.add(seg.roi) if seg.roi is not None else None
 
 
 class AsyncPerception:
