@@ -170,6 +170,7 @@ class _Perception:
     cloud: _Cloud
     table_z_m: float = 0.0
     extent: ObjectExtent = field(default_factory=ObjectExtent)
+    range_max_m: float = 4.0
 
 
 @dataclass

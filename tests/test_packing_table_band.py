@@ -12,11 +12,12 @@ from cell.config.load import load_config
 from cell.packing.result import ReconstructionHistory, packing_section
 from cell.packing.table_band import above_table, clear_of_table, height_sigma, off_table
 from cell.packing.uncertainty import ErrorModel, Sighting
+from cell.perception.pipeline import PerceptionPipeline
 from cell.perception.segmentation import compute_roi
 from drivers.depth.sim_tof import zone_directions
 from drivers.transforms import look_at
 from tests.conftest import UR5E
-from tests.test_packing import _Planner, _session, _voxelise
+from tests.test_packing import _Planner, _Session, _session, _voxelise
 
 MODEL = ErrorModel(zone_rad=math.radians(45.0 / 8), sigma0_m=0.004, k_per_m=0.01, bias_m=0.002, voxel_m=0.01,
                    pose_m=0.002, pose_rad=0.0035, coverage=2.0,
@@ -96,24 +97,27 @@ def test_a_table_point_over_the_band_by_chance_among_table_points_is_not_the_obj
 
 
 def test_a_plates_rim_below_the_table_cut_still_counts() -> None:
-    """A 12 x 12 cm plate whose outer centimetre the oblique views saw 7 mm over the table (zones that
-    straddle its outline, as on a flange's rim), below the 12 mm cut, while its inner part's points and
-    the map's voxels (their centres half a voxel inside the plate's edge) stand above it: the box is the
-    plate's width, not that of the points and voxels above the cut."""
+    """A 12 x 12 cm plate 25 mm tall whose outer 8 mm the oblique views saw 7 mm over the table (zones
+    that straddle its outline, as on a flange's rim), below the 12 mm cut, while the rest of its points,
+    and so the map's voxels out to its edge, stand above it: the box is the plate's width, not that of
+    the points above the cut (10.4 cm)."""
     cfg = load_config(UR5E)
     rng = np.random.default_rng(3)
     xy = rng.uniform(-0.06, 0.06, size=(3000, 2))
-    rim = np.abs(xy).max(axis=1) > 0.05
-    plate = np.column_stack([xy + CENTRE[:2], np.where(rim, 0.007, 0.016)])
-    inner = plate[~rim]
-    ring = np.linspace(0.0, 2.0 * math.pi, 40, endpoint=False)
-    table = CENTRE + np.column_stack([0.12 * np.cos(ring), 0.12 * np.sin(ring), np.zeros(40)])
+    rim = np.abs(xy).max(axis=1) > 0.052
+    plate = np.column_stack([xy + CENTRE[:2], np.where(rim, 0.007, 0.025)])
+    around = np.linspace(-0.2, 0.2, 41)
+    table = np.column_stack([*(g.ravel() + c for g, c in zip(np.meshgrid(around, around), CENTRE[:2],
+                                                               strict=True)), np.zeros(around.size**2)])
+    table = table[np.abs(table[:, :2] - CENTRE[:2]).max(axis=1) > 0.07]
     history = ReconstructionHistory()
     for k, azimuth in enumerate((0.0, 90.0, 180.0, 270.0)):
         history.sightings.append(Sighting(_oblique(azimuth), np.vstack([plate[k::4], table])))
-    voxels = _voxelise(np.column_stack([plate[:, :2], np.full(len(plate), 0.016)]), 0.01)
-    session = _session(4, voxels, inner)
-    session.perception.extent.add(compute_roi(voxels))
+    perception = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=4.0,
+                                    rng=np.random.default_rng(0))
+    for s in history.sightings:
+        perception.add_capture(s.T_base_sensor, s.points, s.free_ends)
+    session = _Session(4, perception)  # type: ignore[arg-type]
     section = packing_section(cfg, session, _Planner(history), None, None, None)  # type: ignore[arg-type]
     np.testing.assert_allclose(section["dims_m"][:2], [0.12, 0.12], atol=0.01)
 

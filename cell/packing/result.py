@@ -18,6 +18,11 @@
 beside the dimensions their upper bound ``dims_upper_m`` and uncertainty ``dims_uncertainty_m`` (upper bound
 minus estimate) [m] from the sensor's error model (:mod:`cell.packing.uncertainty`), and the container
 chosen for the upper bound (:mod:`cell.packing.containers`): a box that is too small jams the line.
+
+The box is measured on the captures as the table correction leaves them (``table_correction``: the sensor
+mount's error and the common range offset that the table seen in every capture shows,
+:mod:`cell.packing.table_calibration`), accumulated afresh into a pipeline of the scan's configuration; a
+planner that keeps no captures gets the scan's own cloud and map, uncorrected.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from cell.packing.objects import (
     object_surface_points,
 )
 from cell.packing.table_band import above_table, clear_of_table, off_table
+from cell.packing.table_calibration import TableCorrection, corrected_perception, table_correction
 from cell.packing.uncertainty import ErrorModel, Seen, Sighting, error_model, upper_dims
 from cell.perception.pipeline import PerceptionPipeline
 from drivers.depth.base import SensorModel
@@ -63,7 +69,8 @@ class ReconstructionHistory:
         obj = current_object(perception)
         self.objects.append(obj)
         if perception.latest is not None:
-            self.sightings.append(Sighting(perception.latest.T_base_sensor, perception.latest.points_base))
+            latest = perception.latest
+            self.sightings.append(Sighting(latest.T_base_sensor, latest.points_base, latest.free_ends_base))
         return obj
 
 
@@ -125,7 +132,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
         "dims_m": None, "iou": None, "coverage_pct": None,
         "n_poses": session.n_captures if session is not None else 0,
         "n_useless_poses": None, "container": None, "box": None, "dims_upper_m": None,
-        "dims_uncertainty_m": None,
+        "dims_uncertainty_m": None, "table_correction": None,
     }
     if ground_truth is not None:
         section["coverage_pct"] = round(surface_coverage_pct(ground_truth, objects, radius), 3)
@@ -138,9 +145,15 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     if session is None or objects.shape[0] == 0:
         section["container"] = {"name": None, "reason": "none fits: no object was found"}
         return section
-    perception = session.perception
-    sightings = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
+    recorded = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
     model = error_model(config, session.sensor_model())
+    correction = table_correction(session.perception, recorded, model)
+    sightings = [correction.apply(s) for s in recorded]
+    perception = corrected_perception(session.perception, sightings) if sightings else session.perception
+    objects = current_object(perception)
+    if objects.shape[0] == 0:  # the corrected captures' map lost the object the scan's holds: keep the scan's
+        correction, perception, sightings = TableCorrection.none(), session.perception, recorded
+        objects = current_object(perception)
     captured = np.vstack([s.points for s in sightings]) if sightings else np.zeros((0, 3))
     clear = clear_of_table(perception, sightings, model)
     low = above_table(perception, sightings, clear, model)
@@ -154,6 +167,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     section["dims_upper_m"] = _finite(upper)
     section["dims_uncertainty_m"] = _finite(upper - box.dims)
     section["box"] = _box_dict(box)
+    section["table_correction"] = correction.summary()
     if mesh is not None and T_base_object is not None:
         section["iou"] = round(box_iou(box, box_from_mesh(mesh, T_base_object)), 6)
     if np.all(np.isfinite(upper)):

@@ -59,7 +59,7 @@ too close, cut by the field of view, gives no container rather than too small a 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -81,11 +81,13 @@ DEFAULT_RANGE_NOISE = DepthNoiseConfig(sigma0_m=0.004, k_per_m=0.01)
 
 @dataclass(frozen=True)
 class Sighting:
-    """One capture: the sensor pose it was taken from (``T_base_sensor``, 4x4) and its points (K, 3)
-    [m], both base frame."""
+    """One capture: the sensor pose it was taken from (``T_base_sensor``, 4x4), its points (K, 3) [m] and
+    the ends (J, 3) [m] of the rays it carved free (``PerceptionUpdate.free_ends_base``), all base
+    frame."""
 
     T_base_sensor: Array
     points: Array
+    free_ends: Array = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
