@@ -19,9 +19,9 @@ table's normal in the sensor frame, that reads, per table point,
     table_z - p_z = (s x a) . omega + a . t - (a . d) b,
 
 one linear equation in x = (omega, t, b) (7) with the point's range noise along z, sigma(r) |a . d|, as
-its noise. :func:`table_correction` solves them all, over all captures, by
-weighted least squares with the calibration's own residual as a zero-mean Gaussian prior on x (the
-packing error model's ``pose_rad``, ``pose_m`` and ``bias_m``): the maximum a posteriori correction. What
+its noise. :func:`table_correction` solves them all, over all captures, by weighted least squares with
+the calibration's own residual as a zero-mean Gaussian prior on x (the packing error model's
+``pose_rad``, ``pose_m`` and ``bias_m``): the maximum a posteriori correction. What
 the table cannot tell stays at the prior's zero: the translation along an image axis that stays level in
 every view, and a rotation about the table's normal. A table point more than ``OUTLIER_SIGMAS`` of its
 std off the fitted plane (a part of the object low enough to pass for the table, a zone mixing the
@@ -50,8 +50,7 @@ Array = NDArray[np.float64]
 # A table point further off the fitted plane than this many of its std is not the table's: a plane's
 # points lie that far once in 370.
 OUTLIER_SIGMAS = 3.0
-# Fits in all: the first on every table point, each next one without the outliers of the one before
-# (the outliers' share settles after one re-fit on the grids' scans).
+# Fits in all: the first on every table point, each next one without the outliers of the one before.
 FIT_ROUNDS = 3
 # A capture with fewer table points than this adds nothing (a view down onto the object alone).
 MIN_TABLE_POINTS = 10
