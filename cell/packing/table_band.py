@@ -66,19 +66,25 @@ def height_sigma(model: ErrorModel, origin: Array, points: Array) -> Array:
     return np.asarray(up * np.sqrt(model.range_sigma(ranges) ** 2 + model.bias_m**2))
 
 
+def on_table(perception: PerceptionPipeline, points: Array) -> NDArray[np.bool_]:
+    """Mask (K,) of the ``points`` (K, 3) [m, base frame] that a capture's table level is taken on: within
+    the segmentation's cut of the known table height and outside the footprint of the object's extent
+    (the box of every ROI; before any ROI, all of them within the cut)."""
+    cut = table_cut_z(perception.config.segmentation, perception.table_z_m) - perception.table_z_m
+    table = np.abs(points[:, 2] - perception.table_z_m) <= cut
+    box = extent_box(perception)
+    return table if box is None else table & ~_over(points, box)
+
+
 def clear_of_table(perception: PerceptionPipeline, sightings: list[Sighting],
                    model: ErrorModel) -> NDArray[np.bool_]:
     """Mask over the points of ``sightings`` (concatenated, in order) of those above their own capture's
     table band (the module docstring), wherever they lie; before any ROI, the capture's table is all of
     its points within the cut."""
     masks: list[NDArray[np.bool_]] = []
-    box = extent_box(perception)
-    cut = table_cut_z(perception.config.segmentation, perception.table_z_m)
     for s in sightings:
         p = s.points
-        table = np.abs(p[:, 2] - perception.table_z_m) <= cut - perception.table_z_m
-        if box is not None:
-            table &= ~_over(p, box)
+        table = on_table(perception, p)
         level = float(np.median(p[table, 2])) if np.count_nonzero(table) >= MIN_TABLE_POINTS \
             else perception.table_z_m
         masks.append(p[:, 2] - level > model.coverage * height_sigma(model, s.T_base_sensor[:3, 3], p))

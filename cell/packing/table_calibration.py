@@ -28,9 +28,9 @@ std off the fitted plane (a part of the object low enough to pass for the table,
 object's edge and the table) is left out and the fit repeated, ``FIT_ROUNDS`` times in all.
 
 The table points are those a capture saw within the segmentation's table cut and outside the footprint of
-the object's extent (the box of every ROI), as ``cell.packing.table_band`` takes them for the capture's
-table level. The joints' offsets of a calibrated arm (about 0.4 mm at the flange) differ from capture to
-capture and are not modelled here; they stay in the residual.
+the object's extent (the box of every ROI): ``cell.packing.table_band.on_table``, on which a capture's
+table level is taken too. The joints' offsets of a calibrated arm (about 0.4 mm at the flange) differ
+from capture to capture and are not modelled here; they stay in the residual.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from cell.packing.objects import extent_box, table_cut_z
+from cell.packing.objects import extent_box
+from cell.packing.table_band import on_table
 from cell.packing.uncertainty import ErrorModel, Sighting
 from cell.perception.pipeline import PerceptionPipeline
 
@@ -103,18 +104,14 @@ def table_correction(perception: PerceptionPipeline, sightings: list[Sighting],
                      model: ErrorModel) -> TableCorrection:
     """The maximum a posteriori :class:`TableCorrection` of the scan whose captures are ``sightings``
     (base frame), from their table points (the module docstring); zero without a ROI or table points."""
-    box = extent_box(perception)
-    if box is None:
+    if extent_box(perception) is None:  # no object yet: nothing tells the table from it
         return TableCorrection.none()
-    table_z = perception.table_z_m
-    cut = table_cut_z(perception.config.segmentation, table_z) - table_z
     rows: list[Array] = []
     heights: list[Array] = []
     sigmas: list[Array] = []
     for s in sightings:
         R, origin = s.T_base_sensor[:3, :3], s.T_base_sensor[:3, 3]
-        table = (np.abs(s.points[:, 2] - table_z) <= cut) & \
-            ~np.all((s.points[:, :2] > box[0][:2]) & (s.points[:, :2] <= box[1][:2]), axis=1)
+        table = on_table(perception, s.points)
         if np.count_nonzero(table) < MIN_TABLE_POINTS:
             continue
         p = s.points[table]
@@ -122,7 +119,7 @@ def table_correction(perception: PerceptionPipeline, sightings: list[Sighting],
         rays = local / np.linalg.norm(local, axis=1, keepdims=True)
         up = R[2]  # the base frame's z axis in the sensor frame (a row of R = a column of R^T)
         rows.append(np.hstack([np.cross(local, up), np.broadcast_to(up, local.shape), -(rays @ up)[:, None]]))
-        heights.append(table_z - p[:, 2])
+        heights.append(perception.table_z_m - p[:, 2])
         sigmas.append(model.range_sigma(np.linalg.norm(local, axis=1)) * np.abs(rays @ up))
     if not rows:
         return TableCorrection.none()
