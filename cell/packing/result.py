@@ -148,12 +148,15 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     recorded = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
     model = error_model(config, session.sensor_model())
     correction = table_correction(session.perception, recorded, model)
-    sightings = [correction.apply(s) for s in recorded]
-    perception = corrected_perception(session.perception, sightings) if sightings else session.perception
-    objects = current_object(perception)
-    if objects.shape[0] == 0:  # the corrected captures' map lost the object the scan's holds: keep the scan's
-        correction, perception, sightings = TableCorrection.none(), session.perception, recorded
-        objects = current_object(perception)
+    perception, sightings = session.perception, recorded
+    if correction.n_table_points:  # else nothing was measured and the scan's own pipeline stands
+        corrected = [correction.apply(s) for s in recorded]
+        rebuilt = corrected_perception(session.perception, corrected)
+        rebuilt_objects = current_object(rebuilt)
+        if rebuilt_objects.shape[0]:
+            perception, sightings, objects = rebuilt, corrected, rebuilt_objects
+        else:  # the corrected captures' map lost the object the scan's holds: keep the scan's
+            correction = TableCorrection.none()
     captured = np.vstack([s.points for s in sightings]) if sightings else np.zeros((0, 3))
     clear = clear_of_table(perception, sightings, model)
     low = above_table(perception, sightings, clear, model)

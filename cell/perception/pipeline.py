@@ -133,7 +133,6 @@ class PerceptionPipeline:
         self.latest = update
         return update
 
-
     def add_capture(self, T_base_sensor: Array, points_base: Array, free_ends: Array,
                     ) -> tuple[SegmentationResult, tuple[Array, Array] | None]:
         """Accumulate one capture's filtered points ``points_base`` (K, 3) [m, base frame], seen from the
