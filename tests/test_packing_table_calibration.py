@@ -9,6 +9,7 @@ import pytest
 
 from cell.config.load import load_config
 from cell.packing import result
+from cell.packing.box import PackingBox
 from cell.packing.result import ReconstructionHistory, packing_section
 from cell.packing.table_calibration import TableCorrection, table_correction
 from cell.packing.uncertainty import Sighting
@@ -125,11 +126,25 @@ def _scan(T_error: np.ndarray, offset_m: float) -> tuple[ReconstructionHistory, 
     return history, perception
 
 
+def _box(section: dict) -> PackingBox:
+    b = section["box"]
+    return PackingBox(np.array(b["center_xy_m"]), np.array(section["dims_m"]), b["yaw_rad"], b["z_min_m"])
+
+
+def _apart(a: PackingBox, b: PackingBox) -> float:
+    """How far [m] the boxes ``a`` and ``b`` lie apart: the furthest corner of either footprint from the
+    nearest of the other's (a square footprint's L and W may swap), or the difference of their tops."""
+    gaps = np.linalg.norm(a.footprint()[:, None, :] - b.footprint()[None, :, :], axis=2)
+    tops = abs(a.z_min + a.dims[2] - b.z_min - b.dims[2])
+    return float(max(gaps.min(axis=1).max(), gaps.min(axis=0).max(), tops))
+
+
 def test_the_box_of_a_cell_with_a_mount_error_comes_out_as_the_exact_cells(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """The same twelve captures of a box by a cell with the mount error and range offset above and by an
-    exact one: with the table correction the box is the exact cell's to within a third of what it is
-    without (the sum over L W H of the differences, 1 mm against 3.5 mm here)."""
+    exact one: with the table correction the box lies nearer the exact cell's than without it (a corner
+    1.0 mm off against 2.0 mm here; what is left is the share of the range offset and of the translation
+    along the optical axis that the table cannot tell apart)."""
     cfg = load_config(UR5E)
     exact_history, exact_perception = _scan(np.eye(4), 0.0)
     exact = packing_section(cfg, _Session(12, exact_perception), _Planner(exact_history),  # type: ignore[arg-type]
@@ -141,8 +156,8 @@ def test_the_box_of_a_cell_with_a_mount_error_comes_out_as_the_exact_cells(
     assert exact["table_correction"]["range_offset_mm"] == pytest.approx(0.0, abs=0.3)
     monkeypatch.setattr(result, "table_correction", lambda *_: TableCorrection.none())
     as_recorded = packing_section(cfg, session, _Planner(history), None, None, None)  # type: ignore[arg-type]
-    off = [float(np.abs(np.subtract(s["dims_m"], exact["dims_m"])).sum()) for s in (corrected, as_recorded)]
-    assert off[0] < off[1] / 3.0
+    off = [_apart(_box(s), _box(exact)) for s in (corrected, as_recorded)]
+    assert off[0] < off[1] / 1.5
 
 
 def test_a_correction_that_loses_the_object_is_not_applied(monkeypatch: pytest.MonkeyPatch) -> None:

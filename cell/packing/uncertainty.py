@@ -66,7 +66,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox
-from cell.packing.zones import surface_normals
+from cell.packing.zones import inside_outline, surface_normals
 from drivers.depth.base import SensorModel
 from drivers.depth.config import DepthNoiseConfig
 
@@ -75,6 +75,8 @@ Array = NDArray[np.float64]
 # The share of the points, outermost along a face's normal, that the face's delta is taken over: a few
 # zones' worth on each face of a scan of some thousand points, more than the estimate's trim.
 FACE_FRACTION = 0.05
+# A neighbour zone further than a zone by more than this many std of two ranges' difference saw past it.
+OUTLINE_SIGMAS = 3.0
 # The sim VL53L8CX's range noise, for a real sensor whose config carries none (BoxUncertaintyConfig).
 DEFAULT_RANGE_NOISE = DepthNoiseConfig(sigma0_m=0.004, k_per_m=0.01)
 
@@ -147,30 +149,41 @@ class Seen:
     both None when the views are unknown, and then every point counts as seen from ``range_m`` [m] in
     the worst way for every face (sqrt 2 footprints sideways and the whole range error along n).
     ``normals`` (K, 3) the local surface normal at each point from its capture's neighbouring zones
-    (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed."""
+    (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed; ``inside``
+    (K,) whether each point's zone has all its neighbours on the object in its capture
+    (:func:`cell.packing.zones.inside_outline`), None when not computed."""
 
     points: Array
     origins: Array | None = None
     axes: Array | None = None
     range_m: float = 0.0
     normals: Array | None = None
+    inside: NDArray[np.bool_] | None = None
 
     @staticmethod
     def of(sightings: list[Sighting], keep: NDArray[np.bool_], model: ErrorModel | None = None) -> Seen:
         """The points of ``sightings`` (at least one), in order, where ``keep`` (over all of them,
         concatenated); with ``model``, each point's surface normal from the kept points of its own
-        capture on the model's zone grid."""
+        capture on the model's zone grid, and whether it lies inside its capture's outline."""
         counts = [s.points.shape[0] for s in sightings]
         points = np.vstack([s.points for s in sightings])
         origins = np.repeat(np.array([s.T_base_sensor[:3, 3] for s in sightings]), counts, axis=0)
         axes = np.repeat(np.array([s.T_base_sensor[:3, :3] for s in sightings]), counts, axis=0)
-        normals = None
-        if model is not None:
-            starts = np.cumsum([0, *counts])
-            normals = np.vstack([surface_normals(s.T_base_sensor, s.points[keep[a:b]], model.zone_rad,
-                                                 model.half_fov_rad)
-                                 for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True)])
-        return Seen(points[keep], origins[keep], axes[keep], normals=normals)
+        if model is None:
+            return Seen(points[keep], origins[keep], axes[keep])
+        starts = np.cumsum([0, *counts])
+        normals, inside = [], []
+        for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True):
+            kept = s.points[keep[a:b]]
+            normals.append(surface_normals(s.T_base_sensor, kept, model.zone_rad, model.half_fov_rad))
+            returns = np.vstack([s.points, s.free_ends])
+            on_object = np.concatenate([keep[a:b], np.zeros(s.free_ends.shape[0], dtype=bool)])
+            ranges = np.linalg.norm(returns - s.T_base_sensor[:3, 3], axis=1)
+            margin = OUTLINE_SIGMAS * math.sqrt(2.0) * np.asarray(model.range_sigma(ranges))
+            inside.append(inside_outline(s.T_base_sensor, returns, on_object, margin, model.zone_rad,
+                                         model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
+        return Seen(points[keep], origins[keep], axes[keep], normals=np.vstack(normals),
+                    inside=np.concatenate(inside))
 
     def face(self, n: Array) -> tuple[Array, NDArray[np.bool_]]:
         """The points' coordinates x (K,) [m] along the unit normal ``n`` (3,), and which of them are the

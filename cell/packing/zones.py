@@ -1,4 +1,5 @@
-"""A capture's points on its sensor's zone grid, and the local surface normal each zone's neighbours give.
+"""A capture's points on its sensor's zone grid, the local surface normal each zone's neighbours give, and
+whether those neighbours hold the object all around.
 
 A multizone ToF sensor (the VL53L8CX: 8 x 8 zones over 45 x 45 deg) reports one range per zone along the
 zone's central ray, so a capture's points sit on a grid of known angles: the point of zone (row i, column
@@ -12,9 +13,15 @@ zones beside and below a zone is the surface normal there, to within the range n
 step (sigma about 5 mm over 3-4 cm at 0.3-0.4 m: about 10 deg, 20 deg at twice that). It tells a point
 on a box's top from one on its side whatever the view, which the view ray alone does not: a view 40 deg
 above the table sees a top and a side both at 40-50 deg.
+
+A zone whose neighbour saw past the object (further off, or nothing) lies on the object's outline in that
+capture: part of its footprint may fall beside the object, and its range, the object's part of it, is
+placed on a central ray that may miss the object (:func:`inside_outline`).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +44,39 @@ def zone_grid(local: Array, zone_rad: float, half_fov_rad: tuple[float, float]) 
     return np.where(inside, row, -1), np.where(inside, col, -1)
 
 
+@dataclass(frozen=True)
+class ZoneNeighbours:
+    """Where one capture's points sit on its zone grid (:func:`zone_grid`): ``single`` (K',) the indices of
+    the points alone in their zone, ``owner`` the point index per zone (-1: none), on a grid padded by a
+    free ring so that (``row``, ``col``) (K',) of a single point, one more than its zone's, has all four
+    neighbours in it, and ``n_rows``, ``n_cols`` the sensor's grid."""
+
+    single: NDArray[np.int64]
+    owner: NDArray[np.int64]
+    row: NDArray[np.int64]
+    col: NDArray[np.int64]
+    n_rows: int
+    n_cols: int
+
+    @staticmethod
+    def of(T_base_sensor: Array, points: Array, zone_rad: float,
+           half_fov_rad: tuple[float, float]) -> ZoneNeighbours:
+        """The grid of one capture's ``points`` (K, 3) [m, base frame] taken from ``T_base_sensor``, for
+        zones of ``zone_rad`` [rad] over a field of view of twice ``half_fov_rad`` (across, down) [rad]."""
+        R, origin = T_base_sensor[:3, :3], T_base_sensor[:3, 3]
+        row, col = zone_grid((points - origin) @ R, zone_rad, half_fov_rad)
+        n_cols = round(2.0 * half_fov_rad[0] / zone_rad)
+        n_rows = round(2.0 * half_fov_rad[1] / zone_rad)
+        on_grid = np.flatnonzero(row >= 0)
+        shape = (n_rows + 2, n_cols + 2)
+        count = np.zeros(shape, dtype=np.int64)
+        np.add.at(count, (row[on_grid] + 1, col[on_grid] + 1), 1)
+        owner = np.full(shape, -1, dtype=np.int64)
+        owner[row[on_grid] + 1, col[on_grid] + 1] = on_grid
+        single = on_grid[count[row[on_grid] + 1, col[on_grid] + 1] == 1]
+        return ZoneNeighbours(single, owner, row[single] + 1, col[single] + 1, n_rows, n_cols)
+
+
 def surface_normals(T_base_sensor: Array, points: Array, zone_rad: float,
                     half_fov_rad: tuple[float, float]) -> Array:
     """Unit surface normal (K, 3) [base frame] at each point of one capture ``points`` (K, 3) [m, base
@@ -46,18 +86,8 @@ def surface_normals(T_base_sensor: Array, points: Array, zone_rad: float,
     normals = np.full(points.shape, np.nan)
     if points.shape[0] == 0:
         return normals
-    R, origin = T_base_sensor[:3, :3], T_base_sensor[:3, 3]
-    row, col = zone_grid((points - origin) @ R, zone_rad, half_fov_rad)
-    on_grid = np.flatnonzero(row >= 0)
-    if on_grid.size == 0:
-        return normals
-    shape = (int(row[on_grid].max()) + 3, int(col[on_grid].max()) + 3)  # a free ring around the grid
-    count = np.zeros(shape, dtype=np.int64)
-    np.add.at(count, (row[on_grid] + 1, col[on_grid] + 1), 1)
-    owner = np.full(shape, -1, dtype=np.int64)
-    owner[row[on_grid] + 1, col[on_grid] + 1] = on_grid
-    single = on_grid[count[row[on_grid] + 1, col[on_grid] + 1] == 1]
-    r, c = row[single] + 1, col[single] + 1
+    grid = ZoneNeighbours.of(T_base_sensor, points, zone_rad, half_fov_rad)
+    single, owner, r, c = grid.single, grid.owner, grid.row, grid.col
 
     def step(after: NDArray[np.int64], before: NDArray[np.int64]) -> tuple[Array, NDArray[np.bool_]]:
         """The mean step to the neighbour after and from the one before (K', 3), and where either is."""
@@ -74,7 +104,33 @@ def surface_normals(T_base_sensor: Array, points: Array, zone_rad: float,
     length = np.linalg.norm(cross, axis=1)
     ok = has_across & has_down & (length > 0.0)
     unit = cross[ok] / length[ok, None]
-    towards = np.einsum("kj,kj->k", unit, points[single[ok]] - origin) > 0.0
+    towards = np.einsum("kj,kj->k", unit, points[single[ok]] - T_base_sensor[:3, 3]) > 0.0
     normals[single[ok]] = np.where(towards[:, None], -unit, unit)
     return normals
 
+
+def inside_outline(T_base_sensor: Array, points: Array, on_object: NDArray[np.bool_], margin_m: Array,
+                   zone_rad: float, half_fov_rad: tuple[float, float]) -> NDArray[np.bool_]:
+    """Mask (K,) of the points of one capture ``points`` (K, 3) [m, base frame: its returns and the ends of
+    its rays with no target] taken from ``T_base_sensor`` that are ``on_object`` (K,) and inside the
+    object's outline: each of the zone's four neighbours on the sensor's grid ranged the object, or
+    something no further than the zone's own range plus ``margin_m`` (K,) [m] (the table in front of a
+    side's foot), or lies beyond the grid's border (the field of view's edge is not the object's). A zone
+    whose neighbour saw past the object, or saw nothing, straddles the outline: part of its footprint
+    falls beside the object, and its range is placed on a central ray that may miss it."""
+    inside = np.zeros(points.shape[0], dtype=bool)
+    if points.shape[0] == 0:
+        return inside
+    grid = ZoneNeighbours.of(T_base_sensor, points, zone_rad, half_fov_rad)
+    ranges = np.linalg.norm(points - T_base_sensor[:3, 3], axis=1)
+    r, c, own = grid.row, grid.col, grid.single
+    present = on_object[own].copy()
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        nr, nc = r + dr, c + dc
+        off_grid = (nr < 1) | (nr > grid.n_rows) | (nc < 1) | (nc > grid.n_cols)
+        other = grid.owner[nr, nc]
+        seen = other >= 0
+        near = seen & (on_object[other] | (ranges[other] <= ranges[own] + margin_m[own]))
+        present &= off_grid | near
+    inside[own] = present
+    return inside
