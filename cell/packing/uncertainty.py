@@ -150,8 +150,8 @@ class Seen:
     the worst way for every face (sqrt 2 footprints sideways and the whole range error along n).
     ``normals`` (K, 3) the local surface normal at each point from its capture's neighbouring zones
     (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed; ``inside``
-    (K,) whether each point's zone has all its neighbours on the object in its capture
-    (:func:`cell.packing.zones.inside_outline`), None when not computed."""
+    (K,) whether each point lies inside the object's outline in its capture, no neighbouring zone having
+    seen past the object (:func:`cell.packing.zones.inside_outline`), None when not computed."""
 
     points: Array
     origins: Array | None = None

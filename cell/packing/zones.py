@@ -46,10 +46,10 @@ def zone_grid(local: Array, zone_rad: float, half_fov_rad: tuple[float, float]) 
 
 @dataclass(frozen=True)
 class ZoneNeighbours:
-    """Where one capture's points sit on its zone grid (:func:`zone_grid`): ``single`` (K',) the indices of
-    the points alone in their zone, ``owner`` the point index per zone (-1: none), on a grid padded by a
-    free ring so that (``row``, ``col``) (K',) of a single point, one more than its zone's, has all four
-    neighbours in it, and ``n_rows``, ``n_cols`` the sensor's grid."""
+    """Where one capture's points sit on its sensor's ``n_rows`` x ``n_cols`` zone grid (:func:`zone_grid`):
+    ``owner`` (n_rows + 2, n_cols + 2) the index of a point in each zone (-1: none), the grid padded by a
+    ring of empty zones so that every zone has four neighbours in it; ``single`` (K',) the points alone in
+    their zone and ``row``, ``col`` (K',) their zones in the padded grid (the sensor's plus one)."""
 
     single: NDArray[np.int64]
     owner: NDArray[np.int64]
