@@ -46,7 +46,7 @@ face is put where its points say the plane is:
    the gripper's narrow by 16 mm over 65 mm, 14 deg, widest near the foot; an overhang) is not a plane
    perpendicular to n: the plane of steps 2-3 lies mid-slope, and when its foot's zones lie on the
    outline it is fitted to the points up the flank alone, too far in for step 4 to find many deeper
-   still (the gripper's flanks 4-9 mm inside on the grids' LR-NBV and NBV scans). On a side standing
+   still (the gripper's flanks up to 9 mm inside on the grids' LR-NBV and NBV scans). On a side standing
    upright the facing points' coordinate along n does not trend with their height: the weighted
    least-squares slope of x against z (weights 1 / their std of step 4), over all the facing points, is
    zero up to its standard error, from the residuals' own scatter but no less than that std (on
