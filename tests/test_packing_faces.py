@@ -253,8 +253,8 @@ def test_a_side_seen_at_a_slant_by_views_off_by_their_own_pose_error_is_one_plan
 def test_a_flank_that_leans_over_its_height_is_not_put_at_a_plane_mid_slope() -> None:
     """The shipped gripper's flank (31.4 mm from its centre near the foot, 15.7 mm at 76 mm height) seen
     by the sim VL53L8CX from three views 30 deg up: the plane of its facing points lies mid-slope, 6 mm
-    inside, and few of them lie deeper still (its foot's zones are on the outline). Their trend with
-    height tells it leans, and the face is the box's own, the trimmed quantile at the flank's foot."""
+    inside, and too few of them lie deeper still for the rounded test. Their trend with height tells it
+    leans, and the face is the box's own, the trimmed quantile at the flank's foot."""
     centre = np.array([0.45, 0.0, 0.0])
     sightings = _sim_tof_views("gripper", centre, centre + np.array([0.0, 0.0, 0.04]), 0.3,
                                [(a, 30.0) for a in (-45.0, 0.0, 45.0)])
