@@ -17,12 +17,13 @@ import open3d as o3d
 import pytest
 
 from cell.config import load_config
+from cell.evaluation import spec as spec_module
 from cell.evaluation.executors import LocalPool, RayExecutor
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
 from cell.evaluation.limit import cell_coverage_limit, reachable_views
 from cell.evaluation.report import REPORT_MD, write_report
 from cell.evaluation.results import read_csv, row_from_folder
-from cell.evaluation.spec import ScanSpec, cross, scan_key
+from cell.evaluation.spec import ScanSpec, code_digest, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
 from drivers.sim.objects import face_normals, load_object
 from drivers.transforms import look_at
@@ -93,6 +94,26 @@ def test_rerun_skips_done_scans(local_run, tmp_path):
     assert ran == [1]
     assert "4 scans already done, 1 to run" in progress.getvalue()
     assert len(read_csv(out / RESULTS_CSV)) == 5
+
+
+def test_a_scan_is_keyed_by_the_code_it_runs(tmp_path, monkeypatch):
+    """An edited module or kernel gives the scans other keys, so a grid run again after a change of the
+    code scans again rather than reporting what the old code left; other files do not count."""
+    package = tmp_path / "package"
+    package.mkdir()
+    (package / "a.py").write_text("x = 1\n")
+    first = code_digest([package])
+    (package / "notes.txt").write_text("not code")
+    assert code_digest([package]) == first
+    (package / "a.py").write_text("x = 2\n")
+    edited = code_digest([package])
+    assert edited != first
+    (package / "kernels").mkdir()
+    (package / "kernels" / "k.so").write_bytes(b"\x7fELF")
+    assert code_digest([package]) != edited
+    key = scan_key(SPECS[0])
+    monkeypatch.setattr(spec_module, "software_digest", lambda: first)
+    assert scan_key(SPECS[0]) != key
 
 
 def test_a_killed_worker_is_retried_then_reported(local_run, tmp_path, monkeypatch):

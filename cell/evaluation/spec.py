@@ -2,9 +2,12 @@
 
 A scan is keyed by the SHA-256 of its inputs: the content of the cell file, the content of the object's
 mesh file (a shipped object's PLY or the user's file), the placement, planner, seed, time budget, the
-mesh scale, whether the job is re-processed and the software version. The key names the scan's job
-folder, so a second run of the same grid finds the scans already done, and any change of an input (an
-edited cell file, a new release) runs the scan again.
+mesh scale, whether the job is re-processed and the software: the content of every module and compiled
+kernel of ``cell`` and ``drivers`` (:func:`software_digest`), not only the release's version, which a
+working copy keeps while its code changes. The key names the scan's job folder, so a second run of the
+same grid finds the scans already done, and any change of an input (an edited cell file, a new release,
+an edited module) runs the scan again: a benchmark run again after a change measures the new code, not
+the scans the old code left in its output folder.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from pathlib import Path
 
 import yaml
 
-from cell import __version__
+import cell
+import drivers
 from cell.planning.registry import get_planner
 from drivers.errors import CellError, ConfigError, JobError
 from drivers.sim.objects import OBJECTS_DIR, load_object, shipped_names
@@ -62,6 +66,23 @@ def mesh_file(obj: str) -> Path:
     return OBJECTS_DIR / f"{obj}.ply" if obj in shipped_names() else Path(obj).expanduser()
 
 
+def code_digest(roots: Sequence[Path]) -> str:
+    """The hex SHA-256 of each module (.py) and compiled kernel (.so) under the package folders ``roots``,
+    by its path from its root's parent (the package's name first) and its content."""
+    digest = hashlib.sha256()
+    for root in roots:
+        for path in sorted(p for suffix in ("*.py", "*.so") for p in root.rglob(suffix)):
+            digest.update(path.relative_to(root.parent).as_posix().encode())
+            digest.update(hashlib.sha256(path.read_bytes()).digest())
+    return digest.hexdigest()
+
+
+@cache
+def software_digest() -> str:
+    """:func:`code_digest` of the ``cell`` and ``drivers`` packages: the code a scan runs."""
+    return code_digest([Path(cell.__file__).parent, Path(drivers.__file__).parent])
+
+
 @cache
 def _file_digest(path: Path) -> str:
     try:
@@ -71,10 +92,10 @@ def _file_digest(path: Path) -> str:
 
 
 def input_digest(config: str, object: str, **inputs: object) -> str:
-    """The hex SHA-256 of the cell file's and the object mesh's contents, the software version and
-    ``inputs`` (JSON values)."""
+    """The hex SHA-256 of the cell file's and the object mesh's contents, the software
+    (:func:`software_digest`) and ``inputs`` (JSON values)."""
     everything = {**inputs, "config": _file_digest(Path(config).resolve()),
-                  "object": _file_digest(mesh_file(object).resolve()), "version": __version__}
+                  "object": _file_digest(mesh_file(object).resolve()), "software": software_digest()}
     return hashlib.sha256(json.dumps(everything, sort_keys=True).encode()).hexdigest()
 
 
