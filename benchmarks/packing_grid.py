@@ -13,15 +13,15 @@ planners were not tuned on, lr-nbv and nbv only: the pose ratio there (issue 24:
 ``--suite heldout``: the held-out primitive shapes (``cell.evaluation.presets.write_heldout_shapes``,
 written into OUT/shapes) on the ToF cell with ``cell eval grid``, lr-nbv, seeds 0-4 unless given.
 
-Every suite adds, from each scan's result.json, the box against the ground truth of the posed mesh: per
-part and seed the dimension errors (estimate minus truth, L W H) and the upper bound's margin
-(``dims_upper_m`` minus truth, the lowest of L W H; infinite where a face had no bound and no container
-was chosen), and each face's error (the estimate's face minus the posed mesh's extent along the
-estimate's own axes, +L -L +W -W top: which faces make a dimension wrong). Issue 24's goals: no margin
-below -2 mm on any part and seed, and every estimate within 1 cm of the truth on the packing paper's four
-objects.
+Every suite adds, from the result.json of each scan of its results.csv (not of other runs' job folders left
+under the same ``--out``), the box against the ground truth of the posed mesh: per part and seed the
+dimension errors (estimate minus truth, L W H) and the upper bound's margin (``dims_upper_m`` minus truth,
+the lowest of L W H; infinite where a face had no bound and no container was chosen), and each face's
+error (the estimate's face minus the posed mesh's extent along the estimate's own axes, +L -L +W -W top:
+which faces make a dimension wrong). Issue 24's goals: no margin below -2 mm on any part and seed, and
+every estimate within 1 cm of the truth on the packing paper's four objects.
 
-``--rescore DIR``: no scan; the boxes of the job folders under DIR/scans (an earlier run's ``--out``)
+``--rescore DIR``: no scan; the boxes of every job folder under DIR/scans (an earlier run's ``--out``)
 re-estimated with the code as it is now from their recorded frames and poses, played through the cell's
 perception as the job did, each capture a sighting of a planner that records them (LR-NBV, NBV, HEU):
 seconds per scan instead of a rescan, for changes to ``cell.packing``. The same figures, with the
@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.load import load_config
-from cell.evaluation.grid import RESULTS_CSV
+from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR
 from cell.evaluation.presets import write_heldout_shapes
 from cell.evaluation.report import REPORT_MD, figures
 from cell.evaluation.results import Row, read_csv
@@ -166,8 +166,9 @@ def _recorded_packing(job: Path, result: dict[str, Any], mesh: ObjectMesh) -> di
     return dict(result.get("packing") or {})
 
 
-def box_figures(scans: Path, shapes: Path, packing_of: PackingOf = _recorded_packing) -> dict[str, Any]:
-    """Per scan (``object planner seed placement``) of the job folders under ``scans``: the estimate's
+def box_figures(jobs: Sequence[Path], shapes: Path,
+                packing_of: PackingOf = _recorded_packing) -> dict[str, Any]:
+    """Per scan (``object planner seed placement``) of the job folders ``jobs``: the estimate's
     error, each face's error (:func:`face_errors`) and the upper bound's margin against the posed mesh's
     box [m], L W H; then the lowest margin, the largest estimate error on the paper's four objects and
     whether issue 24's goals hold; per object and planner the scans whose every dimension lies within
@@ -180,7 +181,7 @@ def box_figures(scans: Path, shapes: Path, packing_of: PackingOf = _recorded_pac
     errors: list[float] = []
     within: dict[str, list[int]] = {}
     no_box: list[str] = []
-    for path in sorted(scans.glob("*/result.json")):
+    for path in sorted(job / "result.json" for job in jobs):
         result = json.loads(path.read_text())
         if result.get("object_pose") is None:
             continue
@@ -241,8 +242,8 @@ def main() -> None:
                         help="no scan: re-estimate the boxes of this earlier --out's job folders")
     args, rest = parser.parse_known_args()
     if args.rescore is not None:
-        print(json.dumps({"boxes": box_figures(args.rescore / "scans", args.rescore / "shapes",
-                                               rescored_packing)}))
+        jobs = [path.parent for path in (args.rescore / "scans").glob("*/result.json")]
+        print(json.dumps({"boxes": box_figures(jobs, args.rescore / "shapes", rescored_packing)}))
         return
     out = args.out or Path(f"/tmp/packing_grid_{args.suite}")
     cell = Path(sys.executable).with_name("cell")
@@ -250,8 +251,9 @@ def main() -> None:
     if done.returncode:
         sys.exit(done.returncode)
     rows = read_csv(out / RESULTS_CSV)
+    jobs = [out / SCANS_DIR / row["job"] for row in rows if row["job"]]
     print(json.dumps({"report": str(out / REPORT_MD), "summary": summary(rows),
-                      "boxes": box_figures(out / "scans", out / "shapes")}))
+                      "boxes": box_figures(jobs, out / "shapes")}))
 
 
 if __name__ == "__main__":

@@ -93,12 +93,14 @@ def test_rerun_skips_done_scans(local_run, tmp_path):
     run_grid([*SPECS, *extra], out, Counting(2), stream=progress)
     assert ran == [1]
     assert "4 scans already done, 1 to run" in progress.getvalue()
-    assert len(read_csv(out / RESULTS_CSV)) == 5
+    rows = read_csv(out / RESULTS_CSV)
+    jobs = sorted(scan_folder(out, spec).name for spec in [*SPECS, *extra])
+    assert sorted(row["job"] for row in rows) == jobs
 
 
 def test_a_scan_is_keyed_by_the_code_it_runs(tmp_path, monkeypatch):
-    """An edited module or kernel gives the scans other keys, so a grid run again after a change of the
-    code scans again rather than reporting what the old code left; other files do not count."""
+    """An edited module or kernel source gives the scans other keys, so a grid run again after a change of
+    the code scans again rather than reporting what the old code left; other files do not count."""
     package = tmp_path / "package"
     package.mkdir()
     (package / "a.py").write_text("x = 1\n")
@@ -109,7 +111,9 @@ def test_a_scan_is_keyed_by_the_code_it_runs(tmp_path, monkeypatch):
     edited = code_digest([package])
     assert edited != first
     (package / "kernels").mkdir()
-    (package / "kernels" / "k.so").write_bytes(b"\x7fELF")
+    (package / "kernels" / "k.so").write_bytes(b"\x7fELF")  # a build of the kernel: not a source
+    assert code_digest([package]) == edited
+    (package / "kernels" / "k.pyx").write_text("def f(): pass\n")
     assert code_digest([package]) != edited
     key = scan_key(SPECS[0])
     monkeypatch.setattr(spec_module, "software_digest", lambda: first)

@@ -13,7 +13,9 @@ cloud, ``result_hires.json``, for a grid that re-processes, as the paper measure
 registered to the cloud as the paper does), ``coverage_unregistered_pct`` and ``chamfer_unregistered_mm``
 (the same without registration, the ground truth where the simulated object really is), and the
 packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
-``packing_coverage_pct``.
+``packing_coverage_pct``; last ``job``, the scan's job folder under ``scans/`` (its name holds the scan's
+key, ``cell.evaluation.spec``; empty for a failed scan): the output folder may also hold the folders of
+earlier runs, scans of other code or inputs, which are not this grid's.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from cell.evaluation.spec import ScanSpec
 
 COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "scan_time_s", "path_m",
            "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "coverage_unregistered_pct",
-           "chamfer_unregistered_mm", "dims_m", "iou", "n_poses", "n_useless_poses", "packing_coverage_pct")
+           "chamfer_unregistered_mm", "dims_m", "iou", "n_poses", "n_useless_poses", "packing_coverage_pct",
+           "job")
 DECIMALS = 4
 
 Row = dict[str, str]
@@ -77,8 +80,8 @@ def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any
 def row_from_folder(spec: ScanSpec, folder: Path) -> Row:
     """The row of a scan from its job folder."""
     hires = folder / HIRES_JSON
-    return row_from_result(spec, json.loads((folder / "result.json").read_text()),
-                           json.loads(hires.read_text()) if hires.is_file() else None)
+    return {**row_from_result(spec, json.loads((folder / "result.json").read_text()),
+                              json.loads(hires.read_text()) if hires.is_file() else None), "job": folder.name}
 
 
 def timeline_from_folder(folder: Path) -> Timeline | None:

@@ -2,12 +2,13 @@
 
 A scan is keyed by the SHA-256 of its inputs: the content of the cell file, the content of the object's
 mesh file (a shipped object's PLY or the user's file), the placement, planner, seed, time budget, the
-mesh scale, whether the job is re-processed and the software: the content of every module and compiled
-kernel of ``cell`` and ``drivers`` (:func:`software_digest`), not only the release's version, which a
-working copy keeps while its code changes. The key names the scan's job folder, so a second run of the
+mesh scale, whether the job is re-processed and the software: its release version and the content of
+every source file of ``cell`` and ``drivers`` (:func:`software_digest`: the modules and the compiled
+kernels' sources, the same on every machine), as a working copy keeps its version while its code
+changes. The key names the scan's job folder, so a second run of the
 same grid finds the scans already done, and any change of an input (an edited cell file, a new release,
-an edited module) runs the scan again: a benchmark run again after a change measures the new code, not
-the scans the old code left in its output folder.
+an edited module or kernel) runs the scan again: a benchmark run again after a change measures the new
+code, not the scans the old code left in its output folder.
 """
 
 from __future__ import annotations
@@ -66,12 +67,17 @@ def mesh_file(obj: str) -> Path:
     return OBJECTS_DIR / f"{obj}.ply" if obj in shipped_names() else Path(obj).expanduser()
 
 
+SOURCE_SUFFIXES = ("py", "pyx", "h")
+"""The source files :func:`code_digest` reads: modules and the compiled kernels' Cython and C sources
+(not the binaries, which differ between machines' compilers)."""
+
+
 def code_digest(roots: Sequence[Path]) -> str:
-    """The hex SHA-256 of each module (.py) and compiled kernel (.so) under the package folders ``roots``,
-    by its path from its root's parent (the package's name first) and its content."""
+    """The hex SHA-256 of each source file (``SOURCE_SUFFIXES``) under the package folders ``roots``, by
+    its path from its root's parent (the package's name first) and its content."""
     digest = hashlib.sha256()
     for root in roots:
-        for path in sorted(p for suffix in ("*.py", "*.so") for p in root.rglob(suffix)):
+        for path in sorted(p for suffix in SOURCE_SUFFIXES for p in root.rglob(f"*.{suffix}")):
             digest.update(path.relative_to(root.parent).as_posix().encode())
             digest.update(hashlib.sha256(path.read_bytes()).digest())
     return digest.hexdigest()
@@ -79,8 +85,9 @@ def code_digest(roots: Sequence[Path]) -> str:
 
 @cache
 def software_digest() -> str:
-    """:func:`code_digest` of the ``cell`` and ``drivers`` packages: the code a scan runs."""
-    return code_digest([Path(cell.__file__).parent, Path(drivers.__file__).parent])
+    """The release version and :func:`code_digest` of the ``cell`` and ``drivers`` packages: the code a
+    scan runs."""
+    return f"{cell.__version__} {code_digest([Path(cell.__file__).parent, Path(drivers.__file__).parent])}"
 
 
 @cache
