@@ -5,10 +5,10 @@ mesh file (a shipped object's PLY or the user's file), the placement, planner, s
 mesh scale, whether the job is re-processed and the software: its release version and the content of
 every source file of ``cell`` and ``drivers`` (:func:`software_digest`: the modules and the compiled
 kernels' sources, the same on every machine), as a working copy keeps its version while its code
-changes. The key names the scan's job folder, so a second run of the
-same grid finds the scans already done, and any change of an input (an edited cell file, a new release,
-an edited module or kernel) runs the scan again: a benchmark run again after a change measures the new
-code, not the scans the old code left in its output folder.
+changes. The key names the scan's job folder, so a second run of the same grid finds the scans already
+done, and any change of an input (an edited cell file, a new release, an edited module or kernel) runs
+the scan again: a benchmark run again after a change measures the new code, not the scans the old code
+left in its output folder.
 """
 
 from __future__ import annotations
