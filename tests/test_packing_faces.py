@@ -92,7 +92,9 @@ def test_zones_inside_the_outline_have_the_object_or_something_nearer_all_around
     on_top = np.all(np.abs(T[:2, 3] + (0.1 - 0.4) / d[:, 2:] * d[:, :2]) <= 0.06, axis=1)
     t = np.where(on_top, 0.3, 0.4) / -d[:, 2]  # the top at z = 0.1, the table beyond it at z = 0
     points = T[:3, 3] + t[:, None] * d
-    margin = np.full(64, 0.01)
+    def margin(ranges: np.ndarray) -> np.ndarray:
+        return np.full(ranges.shape, 0.01)
+
     grid = on_top.reshape(8, 8)
     around = grid.copy()
     around[1:] &= grid[:-1]
@@ -108,7 +110,7 @@ def test_zones_inside_the_outline_have_the_object_or_something_nearer_all_around
     silent = np.flatnonzero(on_top)[0] - 1  # the zone left of the top's first
     assert not on_top[silent]
     kept = np.delete(np.arange(64), silent)
-    lone = inside_outline(T, nearer[kept], on_top[kept], margin[kept], ZONE, HALF_FOV)
+    lone = inside_outline(T, nearer[kept], on_top[kept], margin, ZONE, HALF_FOV)
     assert np.count_nonzero(lone) == np.count_nonzero(on_top) - 1
     # The field of view's edge is not the object's: a top filling the grid is inside it everywhere.
     everywhere = np.ones(64, dtype=bool)

@@ -208,14 +208,14 @@ def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -
     if np.count_nonzero(inner) < MIN_FACING_POINTS:
         inner = facing
     plane = float(np.quantile(x[inner] - norm.ppf(QUANTILE) * sigma[inner], QUANTILE))
-    scatter = _scatter_std(model, sigma, ranges, along)
-    spread = float(np.median(scatter[inner]))
+    scatter = _scatter_std(model, sigma[facing], ranges[facing], along[facing])
+    spread = float(np.median(scatter[inner[facing]]))
     set_back = plane < face_m - ACCEPT_SIGMAS * spread
     two_levels = plane - float(np.median(x[inner])) > ONE_PLANE_SIGMAS * spread
     if set_back or two_levels:
         return None
-    if _rounded(x[facing] - plane, scatter[facing]) or (n[2] == 0.0 and _leaning(
-            x[facing], seen.points[facing, 2], scatter[facing])):
+    if _rounded(x[facing] - plane, scatter) or (n[2] == 0.0 and _leaning(x[facing], seen.points[facing, 2],
+                                                                          scatter)):
         return face_m
     return plane
 

@@ -172,14 +172,18 @@ class Seen:
         if model is None:
             return Seen(points[keep], origins[keep], axes[keep])
         starts = np.cumsum([0, *counts])
+
+        def margin(ranges: Array) -> Array:
+            """How far [m] a neighbour may range beyond zones at ``ranges`` [m] and not have seen past the
+            object: ``OUTLINE_SIGMAS`` std of two ranges' difference."""
+            return OUTLINE_SIGMAS * math.sqrt(2.0) * np.asarray(model.range_sigma(ranges))
+
         normals, inside = [], []
         for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True):
             kept = s.points[keep[a:b]]
             normals.append(surface_normals(s.T_base_sensor, kept, model.zone_rad, model.half_fov_rad))
             returns = np.vstack([s.points, s.free_ends])
             on_object = np.concatenate([keep[a:b], np.zeros(s.free_ends.shape[0], dtype=bool)])
-            ranges = np.linalg.norm(returns - s.T_base_sensor[:3, 3], axis=1)
-            margin = OUTLINE_SIGMAS * math.sqrt(2.0) * np.asarray(model.range_sigma(ranges))
             inside.append(inside_outline(s.T_base_sensor, returns, on_object, margin, model.zone_rad,
                                          model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
         return Seen(points[keep], origins[keep], axes[keep], normals=np.vstack(normals),

@@ -21,6 +21,7 @@ placed on a central ray that may miss the object (:func:`inside_outline`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,20 +110,23 @@ def surface_normals(T_base_sensor: Array, points: Array, zone_rad: float,
     return normals
 
 
-def inside_outline(T_base_sensor: Array, points: Array, on_object: NDArray[np.bool_], margin_m: Array,
-                   zone_rad: float, half_fov_rad: tuple[float, float]) -> NDArray[np.bool_]:
+def inside_outline(T_base_sensor: Array, points: Array, on_object: NDArray[np.bool_],
+                   margin_m: Callable[[Array], Array], zone_rad: float,
+                   half_fov_rad: tuple[float, float]) -> NDArray[np.bool_]:
     """Mask (K,) of the points of one capture ``points`` (K, 3) [m, base frame: its returns and the ends of
     its rays with no target] taken from ``T_base_sensor`` that are ``on_object`` (K,) and inside the
     object's outline: each of the zone's four neighbours on the sensor's grid ranged the object, or
-    something no further than the zone's own range plus ``margin_m`` (K,) [m] (the table in front of a
-    side's foot), or lies beyond the grid's border (the field of view's edge is not the object's). A zone
-    whose neighbour saw past the object, or saw nothing, straddles the outline: part of its footprint
-    falls beside the object, and its range is placed on a central ray that may miss it."""
+    something no further than the zone's own range r plus ``margin_m(r)`` [m] (elementwise over the
+    ranges; the table in front of a side's foot), or lies beyond the grid's border (the field of view's
+    edge is not the object's). A zone whose neighbour saw past the object, or saw nothing, straddles the
+    outline: part of its footprint falls beside the object, and its range is placed on a central ray that
+    may miss it."""
     inside = np.zeros(points.shape[0], dtype=bool)
     if points.shape[0] == 0:
         return inside
     grid = ZoneNeighbours.of(T_base_sensor, points, zone_rad, half_fov_rad)
     ranges = np.linalg.norm(points - T_base_sensor[:3, 3], axis=1)
+    margin = margin_m(ranges)
     r, c, own = grid.row, grid.col, grid.single
     present = on_object[own].copy()
     for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
@@ -130,7 +134,7 @@ def inside_outline(T_base_sensor: Array, points: Array, on_object: NDArray[np.bo
         off_grid = (nr < 1) | (nr > grid.n_rows) | (nc < 1) | (nc > grid.n_cols)
         other = grid.owner[nr, nc]
         seen = other >= 0
-        near = seen & (on_object[other] | (ranges[other] <= ranges[own] + margin_m[own]))
+        near = seen & (on_object[other] | (ranges[other] <= ranges[own] + margin[own]))
         present &= off_grid | near
     inside[own] = present
     return inside
