@@ -54,8 +54,8 @@ from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR
 from cell.evaluation.presets import write_heldout_shapes
 from cell.evaluation.report import REPORT_MD, figures
 from cell.evaluation.results import Row, read_csv
-from cell.packing.box import PackingBox, box_from_mesh
-from cell.packing.result import ReconstructionHistory, packing_section
+from cell.packing.box import box_from_mesh
+from cell.packing.result import ReconstructionHistory, packing_section, section_box
 from cell.perception.pipeline import PerceptionPipeline
 from cell.templates import template_path
 from drivers.clock import SimClock
@@ -111,12 +111,11 @@ def _mesh_of(result: dict[str, Any], shapes: Path) -> ObjectMesh:
     return load_object(str(mesh), result.get("object_scale") or 1.0)
 
 
-def face_errors(box: dict[str, Any], dims: Sequence[float], vertices: Array) -> Array:
-    """Each face's error [m] of a result.json box (``box`` its ``packing.box``, ``dims`` its L W H):
-    the face's coordinate minus the farthest mesh vertex (``vertices`` (N, 3), base frame) along the
-    face's outward normal, +L -L +W -W (the box's own yaw) and top."""
-    estimate = PackingBox(center_xy=np.asarray(box["center_xy_m"], dtype=float),
-                          dims=np.asarray(dims, dtype=float), yaw_rad=box["yaw_rad"], z_min=box["z_min_m"])
+def face_errors(packing: dict[str, Any], vertices: Array) -> Array:
+    """Each face's error [m] of a result.json ``packing`` section's box: the face's coordinate minus the
+    farthest mesh vertex (``vertices`` (N, 3), base frame) along the face's outward normal, +L -L +W -W
+    (the box's own yaw) and top."""
+    estimate = section_box(packing)
     faces, normals = estimate.faces(), estimate.face_normals()
     return np.asarray(faces - (vertices @ normals.T).max(axis=0))
 
@@ -197,7 +196,7 @@ def box_figures(jobs: Sequence[Path], shapes: Path,
         error = np.array(packing["dims_m"]) - truth
         upper = [np.inf if v is None else v for v in packing.get("dims_upper_m") or packing["dims_m"]]
         margin = np.array(upper) - truth
-        faces = face_errors(packing["box"], packing["dims_m"], transform_points(pose, mesh.vertices))
+        faces = face_errors(packing, transform_points(pose, mesh.vertices))
         per_scan[key] = {
             "error_m": np.round(error, 4).tolist(),
             "face_error_m": np.round(faces, 4).tolist(),

@@ -10,7 +10,7 @@ import pytest
 from cell.config.load import load_config
 from cell.packing import result
 from cell.packing.box import PackingBox
-from cell.packing.result import ReconstructionHistory, packing_section
+from cell.packing.result import ReconstructionHistory, packing_section, section_box
 from cell.packing.table_calibration import TableCorrection, table_correction
 from cell.packing.uncertainty import Sighting
 from cell.perception.pipeline import PerceptionPipeline
@@ -126,11 +126,6 @@ def _scan(T_error: np.ndarray, offset_m: float) -> tuple[ReconstructionHistory, 
     return history, perception
 
 
-def _box(section: dict) -> PackingBox:
-    b = section["box"]
-    return PackingBox(np.array(b["center_xy_m"]), np.array(section["dims_m"]), b["yaw_rad"], b["z_min_m"])
-
-
 def _apart(a: PackingBox, b: PackingBox) -> float:
     """How far [m] the boxes ``a`` and ``b`` lie apart: the furthest corner of either footprint from the
     nearest of the other's (a square footprint's L and W may swap), or the difference of their tops."""
@@ -156,7 +151,7 @@ def test_the_box_of_a_cell_with_a_mount_error_comes_out_as_the_exact_cells(
     assert exact["table_correction"]["range_offset_mm"] == pytest.approx(0.0, abs=0.3)
     monkeypatch.setattr(result, "table_correction", lambda *_: TableCorrection.none())
     as_recorded = packing_section(cfg, session, _Planner(history), None, None, None)  # type: ignore[arg-type]
-    off = [_apart(_box(s), _box(exact)) for s in (corrected, as_recorded)]
+    off = [_apart(section_box(s), section_box(exact)) for s in (corrected, as_recorded)]
     assert off[0] < off[1] / 1.5
 
 

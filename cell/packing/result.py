@@ -115,6 +115,15 @@ def _box_dict(box: PackingBox) -> dict[str, Any]:
             "z_min_m": round(box.z_min, 6)}
 
 
+def section_box(section: dict[str, Any]) -> PackingBox:
+    """The estimate's box of a result.json ``packing`` section: its ``box`` (as :func:`_box_dict` writes
+    it) with its ``dims_m``."""
+    box = section["box"]
+    return PackingBox(center_xy=np.asarray(box["center_xy_m"], dtype=float),
+                      dims=np.asarray(section["dims_m"], dtype=float), yaw_rad=box["yaw_rad"],
+                      z_min=box["z_min_m"])
+
+
 def packing_section(config: CellConfig, session: JobFacts | None, planner: object,
                     mesh: ObjectMesh | None, T_base_object: Array | None,
                     ground_truth: Array | None) -> dict[str, Any]:
