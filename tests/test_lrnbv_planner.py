@@ -119,7 +119,8 @@ def test_heu_scan_reaches_every_pose_of_the_ellipse(tmp_path, cell) -> None:
 
 
 class _BranchSession:
-    """A session that reaches every pose but ``refuse`` and whose captures add nothing to the map."""
+    """A session that reaches every pose but ``refuse`` and whose captures add nothing to the map; it
+    counts its reach checks."""
 
     def __init__(self, cfg: CellConfig, refuse: tuple[float, float, float] | None = None) -> None:
         self.perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
@@ -127,9 +128,14 @@ class _BranchSession:
         self.pose = np.eye(4)
         self.refuse = refuse
         self.captured: list[np.ndarray] = []
+        self.reach_checks = 0
 
     def sensor_pose(self) -> np.ndarray:
         return self.pose
+
+    def sensor_path_reachable(self, T: np.ndarray) -> bool:
+        self.reach_checks += 1
+        return self.refuse is None or not np.allclose(T[0, :3, 3], self.refuse)
 
     def move_to_sensor_pose(self, T: np.ndarray) -> bool:
         if self.refuse is not None and np.allclose(T[:3, 3], self.refuse):
@@ -193,3 +199,21 @@ def test_a_refused_move_ends_the_branch_and_keeps_nodes_away_from_it() -> None:
     r = cfg.planners.nbv.refused_radius_m
     probes = tree.positions[2] + np.array([[0.0, 0.0, 0.9 * r], [0.0, 0.0, 1.1 * r]])
     assert planner.near_refused(probes).tolist() == [True, False]
+
+
+def test_the_cache_keeps_the_best_nodes_the_arm_reaches_and_checks_each_once() -> None:
+    cfg = load_config(UR5E)
+    tree, obj = _branch_tree()
+    planner = _prepared(LRNBVPlanner(cfg), cfg)
+    f = planner.field(_BranchSession(cfg), obj)
+    _, utility = planner.score(f, planner.look_targets(obj), tree.positions[1:])
+    rank = np.argsort(-utility, kind="stable")
+    session = _BranchSession(cfg, refuse=tuple(tree.positions[1 + rank[0]]))  # the best node: out of reach
+    cache = CachedNodes()
+    cache.append(tree.positions[1:], tree.rotations[1:], np.zeros(3))
+    planner._rescore(session, f, obj, cache, 2)
+    np.testing.assert_allclose(cache.positions, tree.positions[1 + rank[1:]])
+    np.testing.assert_allclose(cache.utility, utility[rank[1:]])
+    assert session.reach_checks == 3
+    planner._rescore(session, f, obj, cache, 2)  # the same map: the same look targets, no new check
+    assert session.reach_checks == 3 and len(cache) == 2

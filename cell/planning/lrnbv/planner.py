@@ -34,6 +34,12 @@ Choices the paper leaves open, and why:
   the first re-scoring there is no threshold and the scan goes on. m_i counts planning passes i, so with
   Table 1's 300 iterations it stays near 50 over a scan of tens of iterations, as the paper's figures
   imply.
+- The cached nodes kept at line 19 are the best m_i the arm reaches (``session.sensor_path_reachable``:
+  IK from the present joints within the guard's bounds, no collision). Algorithm 1 caches utilities
+  only; kept regardless of reach, the far side of an object beyond the arm's reach holds the cache's
+  places with high utilities, the worst kept node (line 21) is then a high one and the scan completes
+  early (a vertical box at seed 14 completed after 8 captures, IoU 0.71). A node is checked once, when
+  it first ranks among those kept.
 - G_v's grid (eq. 6) marks the coarse cell of the sensor position of every capture, the initial ones
   included.
 - ``nbv`` is this same loop, termination included (section 4: it "follows the algorithm described in
@@ -66,7 +72,7 @@ from cell.planning.lrnbv.sensor import sensor_rays
 from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
 from drivers.depth.base import SensorModel
 from drivers.errors import NoObjectFound
-from drivers.transforms import look_at
+from drivers.transforms import look_at, make_T
 
 
 def look_at_rotations(eyes: Array, targets: Array) -> Array:
@@ -110,20 +116,24 @@ class Tree:
 
 @dataclass
 class CachedNodes:
-    """The cached nodes C^i: positions (K, 3), orientations (K, 3, 3), utilities (K,)."""
+    """The cached nodes C^i: positions (K, 3), orientations (K, 3, 3), utilities (K,), and ``reached``
+    (K,): the arm was found to reach the node (False: not checked yet)."""
 
     positions: Array = field(default_factory=lambda: np.zeros((0, 3)))
     rotations: Array = field(default_factory=lambda: np.zeros((0, 3, 3)))
     utility: Array = field(default_factory=lambda: np.zeros(0))
+    reached: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     def append(self, positions: Array, rotations: Array, utility: Array) -> None:
         self.positions = np.vstack([self.positions, positions])
         self.rotations = np.concatenate([self.rotations, rotations])
         self.utility = np.concatenate([self.utility, utility])
+        self.reached = np.concatenate([self.reached, np.zeros(utility.shape[0], dtype=bool)])
 
-    def keep(self, mask: np.ndarray) -> None:
-        self.positions, self.rotations, self.utility = self.positions[mask], self.rotations[mask], \
-            self.utility[mask]
+    def keep(self, which: np.ndarray) -> None:
+        """Keep the nodes ``which`` selects (a mask, or indices in the order to keep them)."""
+        self.positions, self.rotations, self.utility, self.reached = self.positions[which], \
+            self.rotations[which], self.utility[which], self.reached[which]
 
     def __len__(self) -> int:
         return int(self.utility.shape[0])
@@ -280,14 +290,24 @@ class RRTViewPlanner(Planner):
         mask[branch] = False
         cache.append(tree.positions[mask], tree.rotations[mask], tree.utility[mask])
 
-    def _rescore(self, f: UtilityField, obj: Array, cache: CachedNodes, m: int) -> None:
-        """Line 19: re-score the cached nodes on the new map, keep the best ``m``."""
+    def _rescore(self, session: ScanSession, f: UtilityField, obj: Array, cache: CachedNodes, m: int) -> None:
+        """Line 19: re-score the cached nodes on the new map and keep the best ``m`` the arm reaches
+        (``session.sensor_path_reachable``), best first. A node is checked once, in the orientation it
+        has when it first ranks among those kept: later re-scorings turn it by degrees as the object's box
+        grows, and each check is an IK solve (a move to it is checked again)."""
         if len(cache) == 0:
             return
         cache.rotations, cache.utility = self.score(f, self.look_targets(obj), cache.positions)
-        order = np.argsort(-cache.utility, kind="stable")[:m]
-        cache.positions, cache.rotations, cache.utility = cache.positions[order], cache.rotations[order], \
-            cache.utility[order]
+        kept: list[int] = []
+        for i in np.argsort(-cache.utility, kind="stable"):
+            if len(kept) == m:
+                break
+            if not cache.reached[i]:
+                T = make_T(cache.rotations[i], cache.positions[i])
+                cache.reached[i] = session.sensor_path_reachable(T[None])
+            if cache.reached[i]:
+                kept.append(int(i))
+        cache.keep(np.array(kept, dtype=np.int64))
 
     # ------------------------------------------------------------------------------------------ the scan
     def _capture(self, session: ScanSession) -> Array:
@@ -391,7 +411,7 @@ class RRTViewPlanner(Planner):
                 continue
             failed_in_row = 0
             m = max(1, round(p.cached_nodes * (1.0 - (it + 1) / p.max_iterations)))
-            self._rescore(self.field(session, obj), obj, cache, m)
+            self._rescore(session, self.field(session, obj), obj, cache, m)
             if len(cache):
                 best_c, worst_c = float(cache.utility[0]), float(cache.utility[-1])
         return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
