@@ -21,11 +21,11 @@ error (the estimate's face minus the posed mesh's extent along the estimate's ow
 which faces make a dimension wrong). Issue 24's goals: no margin below -2 mm on any part and seed, and
 every estimate within 1 cm of the truth on the packing paper's four objects.
 
-``--rescore DIR``: no scan; the boxes of every job folder under DIR/scans (an earlier run's ``--out``)
-re-estimated with the code as it is now from their recorded frames and poses, played through the cell's
-perception as the job did, each capture a sighting of a planner that records them (LR-NBV, NBV, HEU):
-seconds per scan instead of a rescan, for changes to ``cell.packing``. The same figures, with the
-packing sections recomputed.
+``--rescore DIR``: no scan; the boxes of the scans of DIR/results.csv (an earlier run's ``--out``; every
+job folder under DIR/scans when that results.csv predates the ``job`` column) re-estimated with the code
+as it is now from their recorded frames and poses, played through the cell's perception as the job did,
+each capture a sighting of a planner that records them (LR-NBV, NBV, HEU): seconds per scan instead of a
+rescan, for changes to ``cell.packing``. The same figures, with the packing sections recomputed.
 
 Options other than ``--out`` and ``--suite`` go to ``cell eval`` as they are (``--objects horizontal_box``,
 ``--seeds 0``, ``--jobs 2``, ...). Prints JSON {"report": ..., "summary": {...}, "boxes": {...}} as its last
@@ -233,6 +233,16 @@ def _eval_args(suite: str, out: Path, rest: list[str]) -> list[str]:
             "--planners", "lr-nbv", *seeds, *rest]
 
 
+def _listed_jobs(out: Path) -> list[Path]:
+    """The job folders of the scans that ``out``'s results.csv lists, not the folders of other runs (of
+    other code) left under the same ``out``; every folder under ``out``/scans for a results.csv written
+    before it had a ``job`` column."""
+    rows = read_csv(out / RESULTS_CSV)
+    if rows and "job" not in rows[0]:
+        return [path.parent for path in (out / SCANS_DIR).glob("*/result.json")]
+    return [out / SCANS_DIR / row["job"] for row in rows if row["job"]]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--suite", choices=("paper", "unseen", "heldout"), default="paper")
@@ -241,7 +251,7 @@ def main() -> None:
                         help="no scan: re-estimate the boxes of this earlier --out's job folders")
     args, rest = parser.parse_known_args()
     if args.rescore is not None:
-        jobs = [path.parent for path in (args.rescore / "scans").glob("*/result.json")]
+        jobs = _listed_jobs(args.rescore)
         print(json.dumps({"boxes": box_figures(jobs, args.rescore / "shapes", rescored_packing)}))
         return
     out = args.out or Path(f"/tmp/packing_grid_{args.suite}")
@@ -249,10 +259,8 @@ def main() -> None:
     done = subprocess.run([str(cell), "eval", *_eval_args(args.suite, out, rest)], check=False)
     if done.returncode:
         sys.exit(done.returncode)
-    rows = read_csv(out / RESULTS_CSV)
-    jobs = [out / SCANS_DIR / row["job"] for row in rows if row["job"]]
-    print(json.dumps({"report": str(out / REPORT_MD), "summary": summary(rows),
-                      "boxes": box_figures(jobs, out / "shapes")}))
+    print(json.dumps({"report": str(out / REPORT_MD), "summary": summary(read_csv(out / RESULTS_CSV)),
+                      "boxes": box_figures(_listed_jobs(out), out / "shapes")}))
 
 
 if __name__ == "__main__":
