@@ -233,11 +233,10 @@ def _eval_args(suite: str, out: Path, rest: list[str]) -> list[str]:
             "--planners", "lr-nbv", *seeds, *rest]
 
 
-def _listed_jobs(out: Path) -> list[Path]:
-    """The job folders of the scans that ``out``'s results.csv lists, not the folders of other runs (of
-    other code) left under the same ``out``; every folder under ``out``/scans for a results.csv written
-    before it had a ``job`` column."""
-    rows = read_csv(out / RESULTS_CSV)
+def _listed_jobs(out: Path, rows: list[Row]) -> list[Path]:
+    """The job folders of the scans that ``rows`` (``out``'s results.csv) list, not the folders of other
+    runs (of other code) left under the same ``out``; every folder under ``out``/scans for a results.csv
+    written before it had a ``job`` column."""
     if rows and "job" not in rows[0]:
         return [path.parent for path in (out / SCANS_DIR).glob("*/result.json")]
     return [out / SCANS_DIR / row["job"] for row in rows if row["job"]]
@@ -251,7 +250,7 @@ def main() -> None:
                         help="no scan: re-estimate the boxes of this earlier --out's job folders")
     args, rest = parser.parse_known_args()
     if args.rescore is not None:
-        jobs = _listed_jobs(args.rescore)
+        jobs = _listed_jobs(args.rescore, read_csv(args.rescore / RESULTS_CSV))
         print(json.dumps({"boxes": box_figures(jobs, args.rescore / "shapes", rescored_packing)}))
         return
     out = args.out or Path(f"/tmp/packing_grid_{args.suite}")
@@ -259,8 +258,9 @@ def main() -> None:
     done = subprocess.run([str(cell), "eval", *_eval_args(args.suite, out, rest)], check=False)
     if done.returncode:
         sys.exit(done.returncode)
-    print(json.dumps({"report": str(out / REPORT_MD), "summary": summary(read_csv(out / RESULTS_CSV)),
-                      "boxes": box_figures(_listed_jobs(out), out / "shapes")}))
+    rows = read_csv(out / RESULTS_CSV)
+    print(json.dumps({"report": str(out / REPORT_MD), "summary": summary(rows),
+                      "boxes": box_figures(_listed_jobs(out, rows), out / "shapes")}))
 
 
 if __name__ == "__main__":
