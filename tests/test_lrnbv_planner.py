@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -217,3 +218,47 @@ def test_the_cache_keeps_the_best_nodes_the_arm_reaches_and_checks_each_once() -
     assert session.reach_checks == 3
     planner._rescore(session, f, obj, cache, 2)  # the same map: the same look targets, no new check
     assert session.reach_checks == 3 and len(cache) == 2
+
+
+class _ScriptedPlanner(LRNBVPlanner):
+    """Algorithm 1's loop over a one-node tree of the utility ``tree_utility[i]`` at iteration i, each
+    branch captured; re-scoring ``i`` leaves one cached node of utility ``rescored[i]``, or none (None)."""
+
+    def __init__(self, cfg: CellConfig, tree_utility: list[float], rescored: list[float | None]) -> None:
+        super().__init__(cfg)
+        self.tree_utility, self.rescored = iter(tree_utility), iter(rescored)
+
+    def prepare(self, sensor: SensorModel, rng: np.random.Generator) -> None:
+        del sensor, rng
+
+    def _initial_object(self, session: object) -> tuple[np.ndarray, int]:
+        return np.zeros((1, 3)), 1
+
+    def field(self, session: object, obj: np.ndarray) -> None:
+        return None
+
+    def expand(self, session: object, f: object, obj: np.ndarray, around: np.ndarray | None) -> Tree:
+        return Tree(positions=np.zeros((2, 3)), rotations=np.repeat(np.eye(3)[None], 2, axis=0),
+                    utility=np.array([-np.inf, next(self.tree_utility)]), parent=np.array([-1, 0]))
+
+    def capture_branch(self, session: object, obj: np.ndarray, tree: Tree,
+                       branch: list[int]) -> tuple[np.ndarray, int, int]:
+        return obj, 1, 0
+
+    def _rescore(self, session: object, f: object, obj: np.ndarray, cache: CachedNodes, m: int) -> None:
+        utility = next(self.rescored)
+        cache.keep(np.zeros(len(cache), dtype=bool))
+        if utility is not None:
+            cache.append(np.zeros((1, 3)), np.eye(3)[None], np.array([utility]))
+
+
+def test_a_re_scoring_that_keeps_no_cached_node_leaves_no_threshold() -> None:
+    """Lines 20-21 over an empty cache (every cached node out of reach): no best or worst cached node, so
+    a view worse than the nodes the cache has dropped is still captured, as before the first re-scoring."""
+    cfg = _with(load_config(UR5E), "lrnbv", max_iterations=4)
+    session = SimpleNamespace(sensor_model=lambda: None, rng=None)
+    emptied = _ScriptedPlanner(cfg, [3.0, 3.0, 0.5, 0.5], [1.0, None, None, None])
+    assert emptied.run(session) == "iteration limit (4) reached after 5 captures"
+    kept = _ScriptedPlanner(cfg, [3.0, 3.0, 0.5, 0.5], [1.0, 1.0, 1.0, 1.0])
+    assert kept.run(session).startswith("converged: best view U = 0.5 not above the worst cached node's 1 "
+                                        "after 3 captures")

@@ -31,9 +31,11 @@ Choices the paper leaves open, and why:
 - tau (``cache_threshold``) is 0: with the visited gain a node in a visited cell scores about -w_v and
   is neither cached nor captured; any other node is worth remembering.
 - Best and worst cached nodes come from the re-scoring after the last capture, as in lines 20-21; before
-  the first re-scoring there is no threshold and the scan goes on. m_i counts planning passes i, so with
-  Table 1's 300 iterations it stays near 50 over a scan of tens of iterations, as the paper's figures
-  imply.
+  the first re-scoring, and after one that kept no node (every cached node out of reach), there is no
+  threshold and the scan goes on: the argmax and argmin of an empty C^i are no node, and a threshold
+  kept from nodes the cache has dropped would end the scan on views it can no longer offer. m_i counts
+  planning passes i, so with Table 1's 300 iterations it stays near 50 over a scan of tens of
+  iterations, as the paper's figures imply.
 - The cached nodes kept at line 19 are the best m_i the arm reaches (``session.sensor_path_reachable``:
   IK from the present joints within the guard's bounds, no collision). Algorithm 1 caches utilities
   only; kept regardless of reach, the far side of an object beyond the arm's reach holds the cache's
@@ -412,8 +414,8 @@ class RRTViewPlanner(Planner):
             failed_in_row = 0
             m = max(1, round(p.cached_nodes * (1.0 - (it + 1) / p.max_iterations)))
             self._rescore(session, self.field(session, obj), obj, cache, m)
-            if len(cache):
-                best_c, worst_c = float(cache.utility[0]), float(cache.utility[-1])
+            best_c, worst_c = (float(cache.utility[0]), float(cache.utility[-1])) if len(cache) \
+                else (None, None)
         return f"iteration limit ({p.max_iterations}) reached after {captures} captures"
 
     def figures(self) -> dict[str, float | int | str | None]:
