@@ -14,7 +14,9 @@ Variants of ``config/sim-ur5e-tof.yaml`` (written to OUT/cells):
 Each variant's scans differ in their paths too (the planners see other points), so a single scan's box
 moves either way for that reason alone; the counts over the grid are what compares. Prints, per variant,
 the scans whose every dimension lies within 1 cm of the truth, per object and planner and in all, as a
-table, then JSON {variant: within_dims_error} as its last line.
+table; then per object, planner and variant the estimate's error, mean and std over the seeds (L W H):
+a mean that stays with every error source off is the estimator's own bias; then JSON {variant:
+within_dims_error} as its last line.
 
 Run: ``nice .venv/bin/python benchmarks/packing_error_sources.py [--out DIR] [packing_grid options]``
 (default options: ``--objects flange --objects gripper --planners lr-nbv --planners nbv --jobs 2
@@ -31,6 +33,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from cell.templates import template_path
@@ -76,6 +79,7 @@ def main() -> None:
     (args.out / "cells").mkdir(parents=True, exist_ok=True)
     grid = Path(__file__).with_name("packing_grid.py")
     within: dict[str, dict[str, list[int]]] = {}
+    bias: dict[str, dict[str, list[list[float]]]] = {}
     for name, variant in variants(cell).items():
         path = args.out / "cells" / f"{name}.yaml"
         path.write_text(yaml.safe_dump({**variant, "name": f"{cell['name']}-{name}"}, sort_keys=False))
@@ -84,7 +88,8 @@ def main() -> None:
         done = subprocess.run(command, check=False, capture_output=True, text=True)
         if done.returncode:
             sys.exit(f"{name}: packing_grid.py failed ({done.returncode}):\n{done.stderr[-2000:]}")
-        within[name] = json.loads(done.stdout.strip().splitlines()[-1])["boxes"]["within_dims_error"]
+        boxes = json.loads(done.stdout.strip().splitlines()[-1])["boxes"]
+        within[name], bias[name] = boxes["within_dims_error"], boxes["dims_error_mean_std_m"]
     groups = sorted({group for counts in within.values() for group in counts})
     print(f"{'within 1 cm':<24}" + "".join(f"{name:>17}" for name in within))
     for group in groups:
@@ -92,6 +97,12 @@ def main() -> None:
     total = {name: [sum(c[0] for c in counts.values()), sum(c[1] for c in counts.values())]
              for name, counts in within.items()}
     print(f"{'all':<24}" + "".join(f"{_count(t):>17}" for t in total.values()))
+    print(f"\n{'estimate error [mm]':<41}" + "".join(f"{dim:>16}" for dim in "LWH"))
+    for group in groups:
+        for name, stats in bias.items():
+            if group in stats:
+                cells = zip(*(np.array(v) * 1e3 for v in stats[group]), strict=True)
+                print(f"{group:<24}{name:<17}" + "".join(f"{m:>+9.1f} +- {s:<4.1f}" for m, s in cells))
     print(json.dumps(within))
 
 

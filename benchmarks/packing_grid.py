@@ -171,14 +171,15 @@ def box_figures(jobs: Sequence[Path], shapes: Path,
     error, each face's error (:func:`face_errors`) and the upper bound's margin against the posed mesh's
     box [m], L W H; then the lowest margin, the largest estimate error on the paper's four objects and
     whether issue 24's goals hold; per object and planner the scans whose every dimension lies within
-    ``MAX_DIMS_ERROR_M`` of the truth, of those with a box; and the scans of a part that gave no box (a
-    part the scan did not find, which the figures above cannot show). ``packing_of(job folder, its
-    result, its mesh)`` gives a scan's packing section (default: the one its result.json holds;
-    :func:`rescored_packing` recomputes it)."""
+    ``MAX_DIMS_ERROR_M`` of the truth, of those with a box, and the mean and std of the estimate's
+    error (L W H: its bias, which more scans do not take out, and its scatter); and the scans of a part
+    that gave no box (a part the scan did not find, which the figures above cannot show).
+    ``packing_of(job folder, its result, its mesh)`` gives a scan's packing section (default: the one
+    its result.json holds; :func:`rescored_packing` recomputes it)."""
     per_scan: dict[str, Any] = {}
     margins: list[float] = []
     errors: list[float] = []
-    within: dict[str, list[int]] = {}
+    group_errors: dict[str, list[NDArray[np.float64]]] = {}
     no_box: list[str] = []
     for path in sorted(job / "result.json" for job in jobs):
         result = json.loads(path.read_text())
@@ -205,18 +206,22 @@ def box_figures(jobs: Sequence[Path], shapes: Path,
         largest = float(np.abs(error).max())
         if name in PAPER_OBJECTS:
             errors.append(largest)
-        counts = within.setdefault(f"{name} {result['planner']}", [0, 0])
-        counts[0] += int(largest <= MAX_DIMS_ERROR_M)
-        counts[1] += 1
+        group_errors.setdefault(f"{name} {result['planner']}", []).append(error)
     worst_margin = min(margins) if margins else None
     worst_error = max(errors) if errors else None
+    grouped = {group: np.array(e) for group, e in sorted(group_errors.items())}
+    within = {group: [int(np.count_nonzero(np.abs(e).max(axis=1) <= MAX_DIMS_ERROR_M)), e.shape[0]]
+              for group, e in grouped.items()}
+    bias = {group: [np.round(e.mean(axis=0), 4).tolist(), np.round(e.std(axis=0), 4).tolist()]
+            for group, e in grouped.items()}
     return {"scans": per_scan,
             "min_upper_margin_m": None if worst_margin is None else round(worst_margin, 4),
             "mean_upper_margin_m": round(float(np.mean(margins)), 4) if margins else None,
             "max_dims_error_paper_objects_m": None if worst_error is None else round(worst_error, 4),
             "upper_goal_met": None if worst_margin is None else worst_margin >= MIN_UPPER_MARGIN_M,
             "dims_goal_met": None if worst_error is None else worst_error <= MAX_DIMS_ERROR_M,
-            "within_dims_error": {group: within[group] for group in sorted(within)},
+            "within_dims_error": within,
+            "dims_error_mean_std_m": bias,
             "no_box": no_box}
 
 
