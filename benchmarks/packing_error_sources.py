@@ -79,7 +79,7 @@ def main() -> None:
     (args.out / "cells").mkdir(parents=True, exist_ok=True)
     grid = Path(__file__).with_name("packing_grid.py")
     within: dict[str, dict[str, list[int]]] = {}
-    bias: dict[str, dict[str, list[list[float]]]] = {}
+    error_stats: dict[str, dict[str, list[list[float]]]] = {}
     for name, variant in variants(cell).items():
         path = args.out / "cells" / f"{name}.yaml"
         path.write_text(yaml.safe_dump({**variant, "name": f"{cell['name']}-{name}"}, sort_keys=False))
@@ -89,7 +89,7 @@ def main() -> None:
         if done.returncode:
             sys.exit(f"{name}: packing_grid.py failed ({done.returncode}):\n{done.stderr[-2000:]}")
         boxes = json.loads(done.stdout.strip().splitlines()[-1])["boxes"]
-        within[name], bias[name] = boxes["within_dims_error"], boxes["dims_error_mean_std_m"]
+        within[name], error_stats[name] = boxes["within_dims_error"], boxes["dims_error_mean_std_m"]
     groups = sorted({group for counts in within.values() for group in counts})
     print(f"{'within 1 cm':<24}" + "".join(f"{name:>17}" for name in within))
     for group in groups:
@@ -99,7 +99,7 @@ def main() -> None:
     print(f"{'all':<24}" + "".join(f"{_count(t):>17}" for t in total.values()))
     print(f"\n{'estimate error [mm]':<41}" + "".join(f"{dim:>16}" for dim in "LWH"))
     for group in groups:
-        for name, stats in bias.items():
+        for name, stats in error_stats.items():
             if group in stats:
                 cells = zip(*(np.array(v) * 1e3 for v in stats[group]), strict=True)
                 print(f"{group:<24}{name:<17}" + "".join(f"{m:>+9.1f} +- {s:<4.1f}" for m, s in cells))

@@ -212,8 +212,8 @@ def box_figures(jobs: Sequence[Path], shapes: Path,
     grouped = {group: np.array(e) for group, e in sorted(group_errors.items())}
     within = {group: [int(np.count_nonzero(np.abs(e).max(axis=1) <= MAX_DIMS_ERROR_M)), e.shape[0]]
               for group, e in grouped.items()}
-    bias = {group: [np.round(e.mean(axis=0), 4).tolist(), np.round(e.std(axis=0), 4).tolist()]
-            for group, e in grouped.items()}
+    error_stats = {group: [np.round(e.mean(axis=0), 4).tolist(), np.round(e.std(axis=0), 4).tolist()]
+                   for group, e in grouped.items()}
     return {"scans": per_scan,
             "min_upper_margin_m": None if worst_margin is None else round(worst_margin, 4),
             "mean_upper_margin_m": round(float(np.mean(margins)), 4) if margins else None,
@@ -221,7 +221,7 @@ def box_figures(jobs: Sequence[Path], shapes: Path,
             "upper_goal_met": None if worst_margin is None else worst_margin >= MIN_UPPER_MARGIN_M,
             "dims_goal_met": None if worst_error is None else worst_error <= MAX_DIMS_ERROR_M,
             "within_dims_error": within,
-            "dims_error_mean_std_m": bias,
+            "dims_error_mean_std_m": error_stats,
             "no_box": no_box}
 
 
