@@ -278,9 +278,7 @@ class RRTViewPlanner(Planner):
         if pos.shape[0] > 1:
             rot[1:], util[1:] = self.score(f, self.look_targets(obj), pos[1:])
         for i in range(1, pos.shape[0]):
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = rot[i], pos[i]
-            if not session.sensor_pose_allowed(T):
+            if not session.sensor_pose_allowed(make_T(rot[i], pos[i])):
                 util[i] = -np.inf
                 self.n_refused_nodes += 1
         return Tree(positions=pos, rotations=rot, utility=util, parent=np.array(parents))
@@ -356,9 +354,7 @@ class RRTViewPlanner(Planner):
         for n, i in enumerate(branch):
             if n > 0 and self._node_utility(session, obj, tree, i) <= self.params.cache_threshold:
                 continue
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = tree.rotations[i], tree.positions[i]
-            if not session.move_to_sensor_pose(T):
+            if not session.move_to_sensor_pose(make_T(tree.rotations[i], tree.positions[i])):
                 refused += 1
                 self.refused_positions = np.vstack([self.refused_positions, tree.positions[i]])
                 break
