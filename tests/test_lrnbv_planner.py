@@ -134,9 +134,9 @@ class _BranchSession:
     def sensor_pose(self) -> np.ndarray:
         return self.pose
 
-    def sensor_path_reachable(self, T: np.ndarray) -> bool:
+    def sensor_view_reachable(self, T: np.ndarray) -> bool:
         self.reach_checks += 1
-        return self.refuse is None or not np.allclose(T[0, :3, 3], self.refuse)
+        return self.refuse is None or not np.allclose(T[:3, 3], self.refuse)
 
     def move_to_sensor_pose(self, T: np.ndarray) -> bool:
         if self.refuse is not None and np.allclose(T[:3, 3], self.refuse):

@@ -24,13 +24,15 @@ from .conftest import FRANKA, UR5E
 class CrossPlanner(Planner):
     """Moves to the sensor positions ``offsets`` [m] relative to a point 5 cm over the station, each
     looking at that point, rolled about its axis by ``roll_deg``; keeps what each move returned, the view
-    and the sensor pose reached."""
+    and the sensor pose reached, and, asked before the move, whether the session held the view within a
+    move's reach and within a servo's (``sensor_view_reachable``, ``sensor_path_reachable``)."""
 
     name: ClassVar[str] = "test-cross"
     description: ClassVar[str] = "test planner: cross between two views"
     offsets: ClassVar[tuple[np.ndarray, ...]] = ()
     roll_deg: ClassVar[float] = 0.0
     moves: ClassVar[list[tuple[bool, np.ndarray, np.ndarray]]] = []
+    reach: ClassVar[list[tuple[bool, bool]]] = []
 
     def run(self, session: ScanSession) -> str:
         station = session.config.station
@@ -38,6 +40,8 @@ class CrossPlanner(Planner):
         roll = T_from_xyz_rpy(np.zeros(3), (0.0, 0.0, math.radians(self.roll_deg)))
         for offset in self.offsets:
             view = look_at(centre + offset, centre) @ roll
+            reach = (session.sensor_view_reachable(view), session.sensor_path_reachable(view[None]))
+            CrossPlanner.reach.append(reach)
             CrossPlanner.moves.append((session.move_to_sensor_pose(view), view, session.sensor_pose()))
         return "crossed"
 
@@ -50,6 +54,7 @@ def _cross(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *offsets: list[float
     monkeypatch.setattr(CrossPlanner, "offsets", tuple(np.array(o) for o in offsets))
     monkeypatch.setattr(CrossPlanner, "roll_deg", roll_deg)
     monkeypatch.setattr(CrossPlanner, "moves", [])
+    monkeypatch.setattr(CrossPlanner, "reach", [])
     result = run_scan(ScanRequest(config=load_config(cell), config_path=str(cell), object="vertical_box",
                                   out=tmp_path / "scan", planner=CrossPlanner.name)).result
     assert result["status"] == "completed", result["termination"]
@@ -82,6 +87,20 @@ def test_a_view_no_straight_move_reaches_safely_is_reached_through_home(
     move takes the sensor 3 mm into the floor plane's 5 mm margin; through home it stays clear."""
     path = _cross(monkeypatch, tmp_path, [0.282, 0.0, 0.103], [-0.244, 0.141, 0.103])
     assert _back_home_after_leaving(path)
+
+
+@pytest.mark.parametrize("offset", [[-0.404, 0.283, 0.098], [-0.398, -0.166, 0.165]],
+                         ids=["solved from home", "rolled"])
+def test_a_view_a_move_reaches_on_another_branch_or_rolled_is_within_its_reach_not_a_servos(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, offset: list[float]) -> None:
+    """From high on the station's right, to near the arm on its left or on its right: at the joints
+    solved from the current ones the upper arm would touch the table (left) or the shoulder the sensor's
+    board (right). On the left the joints solved from home are clear, and no roll from the current ones
+    is; on the right a quarter turn about the sensor's axis is, and the home seed gives the same joints.
+    The move gets there. The move's reach check (LR-NBV's cached nodes) says so beforehand; the servo's,
+    which stays on the present branch and the present roll, does not."""
+    _cross(monkeypatch, tmp_path, [0.0, -0.35, 0.25], offset)
+    assert CrossPlanner.reach == [(True, True), (True, False)]
 
 
 @pytest.mark.parametrize(("cell", "offset", "roll_deg", "turn_deg"), [

@@ -38,6 +38,9 @@ class ReachProbe(Planner):
             "above the station": session.sensor_path_reachable(above[None]),
             "1.5 m out": session.sensor_path_reachable(look_at(np.array([1.5, 0.0, 0.3]), station)[None]),
             "into the table (IK within the margins)": session.sensor_path_reachable(in_table[None]),
+            "a move above the station": session.sensor_view_reachable(above),
+            "a move 1.5 m out": session.sensor_view_reachable(look_at(np.array([1.5, 0.0, 0.3]), station)),
+            "a move into the table, at any roll": session.sensor_view_reachable(in_table),
             # looking back at the station from beyond it: the arm near the edge of its reach (smallest
             # singular value 0.055 at x = 0.665 m) and well inside it (0.126 at x = 0.62 m)
             "at the edge of the reach": session.sensor_path_reachable(edge[None]),
@@ -56,6 +59,8 @@ def test_reachability_is_inverse_kinematics_within_the_joint_margins_free_of_col
     assert r["termination"] == "probed; moved 0.000000 m"  # a query moves nothing
     assert ReachProbe.answers == {"current pose": True, "above the station": True, "1.5 m out": False,
                                   "into the table (IK within the margins)": False,
+                                  "a move above the station": True, "a move 1.5 m out": False,
+                                  "a move into the table, at any roll": False,
                                   "at the edge of the reach": True,
                                   "at the edge of the reach, clear of it": False,
                                   "inside the reach, clear of its edge": True}

@@ -16,7 +16,7 @@ of the object's bounding box, looking at that centre, at ``n_directions`` direct
 the upper hemisphere (a Fibonacci lattice) and at ``RADIUS_FACTORS`` times the cell's ``scan.standoff_m``
 (the planners view from about there; the LR-NBV planner's views are 0.2 to 0.6 m from the object),
 each radius clipped to the sensor's range. A view counts when the cell could take it, by the checks a
-scan's planner uses before it moves (``ScanSession.sensor_path_reachable`` for one pose, seeded from
+scan's planner uses before it moves (``ScanSession.sensor_view_reachable``, here seeded from
 the home joints, with the barrier planes of ``sensor_pose_allowed``): the TCP and the sensor inside every
 barrier plane and the workspace box, an inverse-kinematics solution from the home joints with every joint
 inside the guard's position margins, and no collision of the arm and its tool with the table, the static

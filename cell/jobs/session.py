@@ -478,30 +478,53 @@ class JobSession:
 
     def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
         """IK seeded from the current joints (from home where the arm reports none, as a replayed arm),
-        then from each solution, reaches the poses (K, 4, 4) in turn with every joint within the guard's
-        ``joint_bounds`` (limits less the margin), no collision (``CollisionWorld.check``), the smallest
-        singular value of the Jacobian at least ``min_singular_value`` and no joint moving more than
-        ``MAX_PATH_JOINT_STEP_RAD`` between consecutive poses."""
-        q_now = self._guard.state().q
-        q = q_now if np.all(np.isfinite(q_now)) else self._q_home
-        q_lo, q_hi = self._guard.joint_bounds
+        then from each solution, reaches the poses (K, 4, 4) in turn, every solution one the arm may take
+        (:meth:`_joints_allowed`) and no joint moving more than ``MAX_PATH_JOINT_STEP_RAD`` between
+        consecutive poses."""
+        q = self._q_reported()
         T_fs_inv = inv_T(self._T_flange_sensor)
         for k, T in enumerate(np.asarray(T_base_sensor, dtype=np.float64).reshape(-1, 4, 4)):
             try:
                 q_next = self._model.ik_pose(T @ T_fs_inv, q)
             except KinematicsError:
                 return False
-            if not np.all((q_next >= q_lo) & (q_next <= q_hi)) or \
-                    (k > 0 and np.max(np.abs(q_next - q)) > MAX_PATH_JOINT_STEP_RAD) or \
-                    self._model.min_singular_value(q_next) < min_singular_value or \
-                    self._guard.collision.check(q_next) is not None:
+            if (k > 0 and np.max(np.abs(q_next - q)) > MAX_PATH_JOINT_STEP_RAD) or \
+                    not self._joints_allowed(q_next, min_singular_value):
                 return False
             q = q_next
         return True
 
-    def _ik_solutions(self, T_base_flange: Array, q_now: Array) -> Iterator[Array]:
+    def sensor_view_reachable(self, T_base_sensor: Array) -> bool:
+        """Whether :meth:`move_to_sensor_pose` finds joints for the view (4, 4) that the arm may take
+        (:meth:`_joints_allowed`): among the IK solutions it tries (:meth:`_ik_solutions`: seeded from the
+        current joints, or home where the arm reports none, and from home) at the pose, or, where joints
+        reach the pose, at one of its same-view rolls. The move checks its path as well."""
+        q_now, T_sensor_flange = self._q_reported(), inv_T(self._T_flange_sensor)
+        for roll in (0.0, *same_view_rolls(self._sensor.model)):
+            T_flange = T_base_sensor @ T_from_xyz_rpy(np.zeros(3), (0.0, 0.0, roll)) @ T_sensor_flange
+            solutions = list(self._ik_solutions(T_flange, q_now, quiet=True))
+            if any(self._joints_allowed(q) for q in solutions):
+                return True
+            if roll == 0.0 and not solutions:
+                return False
+        return False
+
+    def _q_reported(self) -> Array:
+        """The arm's joints, or home where it reports none (a replayed arm)."""
+        q_now = self._guard.state().q
+        return q_now if np.all(np.isfinite(q_now)) else self._q_home
+
+    def _joints_allowed(self, q: Array, min_singular_value: float = 0.0) -> bool:
+        """Whether the arm may take joints ``q``: each inside the guard's ``joint_bounds`` (limits less the
+        margin), no collision (``CollisionWorld.check``) and the smallest singular value of the Jacobian
+        at least ``min_singular_value``."""
+        q_lo, q_hi = self._guard.joint_bounds
+        return bool(np.all((q >= q_lo) & (q <= q_hi))) and \
+            self._model.min_singular_value(q) >= min_singular_value and self._guard.collision.check(q) is None
+
+    def _ik_solutions(self, T_base_flange: Array, q_now: Array, quiet: bool = False) -> Iterator[Array]:
         """Joints reaching ``T_base_flange``, seeded from the current joints, then, where it differs, the
-        solution seeded from home; none (logged) when neither converges.
+        solution seeded from home; none when neither converges (logged unless ``quiet``).
 
         Seeding from the current joints keeps moves short; a redundant arm can however drift into a
         folded configuration from which the next views are out of reach, and the home seed recovers.
@@ -517,7 +540,7 @@ class JobSession:
             if not any(np.allclose(q_goal, q, atol=SAME_SOLUTION_RAD) for q in found):
                 found.append(q_goal)
                 yield q_goal
-        if not found:
+        if not found and not quiet:
             self.log(f"view at {np.round(T_base_flange[:3, 3], 3).tolist()} (flange) unreachable: {error}")
 
     def capture(self) -> int:

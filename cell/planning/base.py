@@ -129,6 +129,14 @@ class ScanSession(Protocol):
         configuration the servo cannot make)."""
         ...
 
+    def sensor_view_reachable(self, T_base_sensor: Array) -> bool:
+        """Whether ``move_to_sensor_pose`` finds joints for the view (4, 4) that the arm may take (inside
+        every joint's position margin, free of collision): among the inverse-kinematics solutions a move
+        tries (seeded from the current joints and from home: a point-to-point move may change the arm's
+        configuration) at the pose or at a roll about the optical axis after which the sensor sees the
+        same. The move checks its path as well."""
+        ...
+
     def latest_perception(self) -> PerceptionUpdate | None:
         """The newest perception update (pose, object, ROI, H_ROI), None before the first frame."""
         ...

@@ -36,8 +36,10 @@ Choices the paper leaves open, and why:
   kept from nodes the cache has dropped would end the scan on views it can no longer offer. m_i counts
   planning passes i, so with Table 1's 300 iterations it stays near 50 over a scan of tens of
   iterations, as the paper's figures imply.
-- The cached nodes kept at line 19 are the best m_i the arm reaches (``session.sensor_path_reachable``:
-  IK from the present joints within the guard's bounds, no collision). Algorithm 1 caches utilities
+- The cached nodes kept at line 19 are the best m_i the arm reaches (``session.sensor_view_reachable``:
+  joints for the view, or for one of its same-view rolls, that a move to it would try, within the
+  guard's bounds and free of collision; a node a move reaches only from the home seed, or rolled, is
+  one the arm reaches). Algorithm 1 caches utilities
   only; kept regardless of reach, the far side of an object beyond the arm's reach holds the cache's
   places with high utilities, the worst kept node (line 21) is then a high one and the scan completes
   early (a vertical box at seed 14 completed after 8 captures, IoU 0.71). A node is checked once, when
@@ -292,7 +294,7 @@ class RRTViewPlanner(Planner):
 
     def _rescore(self, session: ScanSession, f: UtilityField, obj: Array, cache: CachedNodes, m: int) -> None:
         """Line 19: re-score the cached nodes on the new map and keep the best ``m`` the arm reaches
-        (``session.sensor_path_reachable``), best first. A node is checked once, in the orientation it
+        (``session.sensor_view_reachable``), best first. A node is checked once, in the orientation it
         has when it first ranks among those kept: later re-scorings turn it by degrees as the object's box
         grows, and each check is an IK solve (a move to it is checked again)."""
         if len(cache) == 0:
@@ -304,7 +306,7 @@ class RRTViewPlanner(Planner):
                 break
             if not cache.reached[i]:
                 T = make_T(cache.rotations[i], cache.positions[i])
-                cache.reached[i] = session.sensor_path_reachable(T[None])
+                cache.reached[i] = session.sensor_view_reachable(T)
             if cache.reached[i]:
                 kept.append(int(i))
         cache.keep(np.array(kept, dtype=np.int64))
