@@ -1,6 +1,6 @@
 """cell.evaluation: a small grid through the local pool and Ray with identical results.csv, resume, a
 killed worker retried and reported, a re-processed scan's 1 mm figures and timeline, the report against
-results.csv, and the coverage limit."""
+results.csv, and the coverage limit (computed on the grid's executor, once per input)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ import pytest
 
 from cell.config import load_config
 from cell.evaluation import spec as spec_module
+from cell.evaluation.evaluate import LIMITS_JSON, coverage_limits
 from cell.evaluation.executors import LocalPool, RayExecutor
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
 from cell.evaluation.limit import cell_coverage_limit, reachable_views
@@ -249,3 +250,32 @@ def test_coverage_limit_of_a_cube_and_of_a_hidden_cavity(tmp_path):
     reachable = cell_coverage_limit(config, cube, (0.0, 0.0, 0.0), 60)
     assert 0 < reachable.n_reachable < reachable.n_views
     assert reachable.coverage_pct == 100.0
+
+
+def test_coverage_limits_run_side_by_side_on_the_executor_once_per_input(tmp_path):
+    """Two planners and two placements of the cube, and a mesh file that is no mesh: the executor gets one
+    limit to compute per object and placement, each as the driver would compute it; the broken one is
+    reported and left out. Asked again, nothing is computed: limits.json holds them."""
+    broken = tmp_path / "broken.ply"
+    broken.write_text("not a mesh\n")
+    placements = [("cube", (0.0, 0.0, 0.0)), ("cube", (0.04, -0.02, 30.0)), (str(broken), (0.0, 0.0, 0.0))]
+    specs = cross(CONFIG, placements, ["heu", "lr-nbv"], [0])
+    given: list[int] = []
+
+    class Counting(LocalPool):
+        def run(self, fn, items, on_done):
+            given.append(len(items))
+            super().run(fn, items, on_done)
+
+    progress = io.StringIO()
+    limits = coverage_limits(specs, tmp_path, 8, Counting(2), progress)
+    config = load_config(CONFIG)
+    assert given == [3]
+    assert limits == {("cube", "0,0,0"): cell_coverage_limit(config, load_object("cube"), (0.0, 0.0, 0.0),
+                                                              8).coverage_pct,
+                      ("cube", "0.04,-0.02,30"): cell_coverage_limit(config, load_object("cube"),
+                                                                     (0.04, -0.02, 30.0), 8).coverage_pct}
+    assert f"no coverage limit of {broken} at (0.0, 0.0, 0.0)" in progress.getvalue()
+    assert len(json.loads((tmp_path / LIMITS_JSON).read_text())) == 2
+    assert coverage_limits(specs, tmp_path, 8, Counting(2), progress) == limits
+    assert given == [3, 1]  # the broken mesh only

@@ -5,12 +5,14 @@
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
 from cell.config import load_config
-from cell.evaluation.executors import Executor
+from cell.evaluation.executors import Executor, TaskFailure
 from cell.evaluation.grid import run_grid, timelines
 from cell.evaluation.limit import ROLL_STEP_DEG, cell_coverage_limit
 from cell.evaluation.report import Limits, write_report
@@ -21,29 +23,60 @@ from drivers.sim.objects import load_object
 LIMITS_JSON = "limits.json"
 
 
-def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int) -> Limits:
+@dataclass(frozen=True)
+class LimitTask:
+    """One coverage limit to compute, as a worker receives it: the cell file, the object (shipped name or
+    mesh file), its scale, its placement (x [m], y [m], yaw [deg] from the station) and the view
+    directions per hemisphere."""
+
+    config: str
+    object: str
+    object_scale: float
+    placement: tuple[float, float, float]
+    n_directions: int
+
+
+def run_limit_task(task: LimitTask) -> float:
+    """The coverage limit [%] of ``task`` (in a worker of the grid's executor)."""
+    mesh = load_object(task.object, task.object_scale)
+    return cell_coverage_limit(load_config(task.config), mesh, task.placement, task.n_directions).coverage_pct
+
+
+def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, executor: Executor,
+                    stream: TextIO | None = None) -> Limits:
     """The coverage limit [%] of each object and placement of ``specs`` on its cell, by (object,
-    placement) as results.csv writes them; computed once per set of inputs and kept in ``limits.json``."""
+    placement) as results.csv writes them; computed once per set of inputs, the new ones side by side on
+    ``executor`` (each is minutes of inverse kinematics on one core), and kept in ``limits.json``. A limit
+    whose computation failed is left out (the report shows none), and why is written to ``stream``
+    (default stderr)."""
     cache_path = out / LIMITS_JSON
     cache: dict[str, float] = json.loads(cache_path.read_text()) if cache_path.is_file() else {}
-    limits: Limits = {}
-    for spec in specs:
-        key = input_digest(spec.config, spec.object, placement=spec.placement, scale=spec.object_scale,
-                           n_directions=n_directions, roll_step_deg=ROLL_STEP_DEG)
-        if key not in cache:
-            mesh = load_object(spec.object, spec.object_scale)
-            cache[key] = cell_coverage_limit(load_config(spec.config), mesh, spec.placement,
-                                             n_directions).coverage_pct
-        limits[(spec.object_label, spec.placement_text)] = cache[key]
+    keys = [input_digest(spec.config, spec.object, placement=spec.placement, scale=spec.object_scale,
+                         n_directions=n_directions, roll_step_deg=ROLL_STEP_DEG) for spec in specs]
+    todo = {key: LimitTask(spec.config, spec.object, spec.object_scale, spec.placement, n_directions)
+            for key, spec in zip(keys, specs, strict=True) if key not in cache}
+    pending = list(todo)
+
+    def on_done(index: int, value: float | TaskFailure) -> None:
+        if isinstance(value, TaskFailure):
+            task = todo[pending[index]]
+            print(f"eval: no coverage limit of {task.object} at {task.placement}: {value.reason}",
+                  file=stream if stream is not None else sys.stderr, flush=True)
+        else:
+            cache[pending[index]] = value
+
+    if todo:
+        executor.run(run_limit_task, [todo[key] for key in pending], on_done)
     cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
-    return limits
+    return {(spec.object_label, spec.placement_text): cache[key]
+            for spec, key in zip(specs, keys, strict=True) if key in cache}
 
 
 def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_directions: int | None,
              task: Callable[[ScanTask], TaskOutput] = run_scan_task, stream: TextIO | None = None,
              title_lines: Sequence[str] = ()) -> Path:
-    """Run the grid, the coverage limits (``limit_directions`` directions per hemisphere; None: none)
-    and the report; returns report.md's path."""
+    """Run the grid, then the coverage limits on the same executor (``limit_directions`` directions per
+    hemisphere; None: none), and the report; returns report.md's path."""
     rows = run_grid(specs, out, executor, task, stream)
-    limits = coverage_limits(specs, out, limit_directions) if limit_directions else {}
+    limits = coverage_limits(specs, out, limit_directions, executor, stream) if limit_directions else {}
     return write_report(rows, out, limits, title_lines, timelines(specs, out))
