@@ -39,11 +39,10 @@ Choices the paper leaves open, and why:
 - The cached nodes kept at line 19 are the best m_i the arm reaches (``session.sensor_view_reachable``:
   joints for the view, or for one of its same-view rolls, that a move to it would try, within the
   guard's bounds and free of collision; a node a move reaches only from the home seed, or rolled, is
-  one the arm reaches). Algorithm 1 caches utilities
-  only; kept regardless of reach, the far side of an object beyond the arm's reach holds the cache's
-  places with high utilities, the worst kept node (line 21) is then a high one and the scan completes
-  early (a vertical box at seed 14 completed after 8 captures, IoU 0.71). A node is checked once, when
-  it first ranks among those kept.
+  one the arm reaches). Algorithm 1 caches utilities only; kept regardless of reach, the far side of an
+  object beyond the arm's reach holds the cache's places with high utilities, the worst kept node (line
+  21) is then a high one and the scan completes early (a vertical box at seed 14 completed after 8
+  captures, IoU 0.71). A node is checked once, when it first ranks among those kept.
 - G_v's grid (eq. 6) marks the coarse cell of the sensor position of every capture, the initial ones
   included.
 - ``nbv`` is this same loop, termination included (section 4: it "follows the algorithm described in
@@ -296,7 +295,7 @@ class RRTViewPlanner(Planner):
         """Line 19: re-score the cached nodes on the new map and keep the best ``m`` the arm reaches
         (``session.sensor_view_reachable``), best first. A node is checked once, in the orientation it
         has when it first ranks among those kept: later re-scorings turn it by degrees as the object's box
-        grows, and each check is an IK solve (a move to it is checked again)."""
+        grows, and each check is up to eight IK solves (a move to it is checked again)."""
         if len(cache) == 0:
             return
         cache.rotations, cache.utility = self.score(f, self.look_targets(obj), cache.positions)
