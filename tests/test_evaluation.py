@@ -9,7 +9,7 @@ import json
 import os
 import shutil
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,17 @@ CONFIG = str(REPO / "config" / "sim-ur5e-tof.yaml")
 SPECS = cross(CONFIG, [("cube", (0.0, 0.0, 0.0)), ("horizontal_box", (0.0, 0.0, 0.0))], ["heu", "lr-nbv"],
               [0], max_time_s=6.0)
 CRASH_MARKER_ENV = "CELL_TEST_CRASH_MARKERS"
+
+
+@dataclass
+class CountingPool(LocalPool):
+    """A local pool that keeps how many items each of its runs was given."""
+
+    given: list[int] = field(default_factory=list)
+
+    def run(self, fn, items, on_done):
+        self.given.append(len(items))
+        super().run(fn, items, on_done)
 
 
 def crash_first_attempt(task: ScanTask) -> TaskOutput:
@@ -83,16 +94,10 @@ def test_rerun_skips_done_scans(local_run, tmp_path):
     out = tmp_path / "again"
     shutil.copytree(local_run[0], out)
     extra = cross(CONFIG, [("cube", (0.0, 0.0, 0.0))], ["heu"], [1], max_time_s=6.0)
-    ran: list[int] = []
-
-    class Counting(LocalPool):
-        def run(self, fn, items, on_done):
-            ran.append(len(items))
-            super().run(fn, items, on_done)
-
+    pool = CountingPool(2)
     progress = io.StringIO()
-    run_grid([*SPECS, *extra], out, Counting(2), stream=progress)
-    assert ran == [1]
+    run_grid([*SPECS, *extra], out, pool, stream=progress)
+    assert pool.given == [1]
     assert "4 scans already done, 1 to run" in progress.getvalue()
     rows = read_csv(out / RESULTS_CSV)
     jobs = sorted(scan_folder(out, spec).name for spec in [*SPECS, *extra])
@@ -260,22 +265,16 @@ def test_coverage_limits_run_side_by_side_on_the_executor_once_per_input(tmp_pat
     broken.write_text("not a mesh\n")
     placements = [("cube", (0.0, 0.0, 0.0)), ("cube", (0.04, -0.02, 30.0)), (str(broken), (0.0, 0.0, 0.0))]
     specs = cross(CONFIG, placements, ["heu", "lr-nbv"], [0])
-    given: list[int] = []
-
-    class Counting(LocalPool):
-        def run(self, fn, items, on_done):
-            given.append(len(items))
-            super().run(fn, items, on_done)
-
+    pool = CountingPool(2)
     progress = io.StringIO()
-    limits = coverage_limits(specs, tmp_path, 8, Counting(2), progress)
+    limits = coverage_limits(specs, tmp_path, 8, pool, progress)
     config = load_config(CONFIG)
-    assert given == [3]
+    assert pool.given == [3]
     assert limits == {("cube", "0,0,0"): cell_coverage_limit(config, load_object("cube"), (0.0, 0.0, 0.0),
                                                               8).coverage_pct,
                       ("cube", "0.04,-0.02,30"): cell_coverage_limit(config, load_object("cube"),
                                                                      (0.04, -0.02, 30.0), 8).coverage_pct}
     assert f"no coverage limit of {broken} at (0.0, 0.0, 0.0)" in progress.getvalue()
     assert len(json.loads((tmp_path / LIMITS_JSON).read_text())) == 2
-    assert coverage_limits(specs, tmp_path, 8, Counting(2), progress) == limits
-    assert given == [3, 1]  # the broken mesh only
+    assert coverage_limits(specs, tmp_path, 8, pool, progress) == limits
+    assert pool.given == [3, 1]  # the broken mesh only
