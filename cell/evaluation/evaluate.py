@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
@@ -23,23 +22,12 @@ from drivers.sim.objects import load_object
 LIMITS_JSON = "limits.json"
 
 
-@dataclass(frozen=True)
-class LimitTask:
-    """One coverage limit to compute, as a worker receives it: the cell file, the object (shipped name or
-    mesh file), its scale, its placement (x [m], y [m], yaw [deg] from the station) and the view
-    directions per hemisphere."""
-
-    config: str
-    object: str
-    object_scale: float
-    placement: tuple[float, float, float]
-    n_directions: int
-
-
-def run_limit_task(task: LimitTask) -> float:
-    """The coverage limit [%] of ``task`` (in a worker of the grid's executor)."""
-    mesh = load_object(task.object, task.object_scale)
-    return cell_coverage_limit(load_config(task.config), mesh, task.placement, task.n_directions).coverage_pct
+def run_limit_task(task: tuple[ScanSpec, int]) -> float:
+    """The coverage limit [%] of a scan's object at its placement on its cell, over the given number of
+    view directions per hemisphere (in a worker of the grid's executor)."""
+    spec, n_directions = task
+    mesh = load_object(spec.object, spec.object_scale)
+    return cell_coverage_limit(load_config(spec.config), mesh, spec.placement, n_directions).coverage_pct
 
 
 def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, executor: Executor,
@@ -53,20 +41,19 @@ def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, exe
     cache: dict[str, float] = json.loads(cache_path.read_text()) if cache_path.is_file() else {}
     keys = [input_digest(spec.config, spec.object, placement=spec.placement, scale=spec.object_scale,
                          n_directions=n_directions, roll_step_deg=ROLL_STEP_DEG) for spec in specs]
-    todo = {key: LimitTask(spec.config, spec.object, spec.object_scale, spec.placement, n_directions)
-            for key, spec in zip(keys, specs, strict=True) if key not in cache}
+    todo = {key: spec for key, spec in zip(keys, specs, strict=True) if key not in cache}
     pending = list(todo)
 
     def on_done(index: int, value: float | TaskFailure) -> None:
         if isinstance(value, TaskFailure):
-            task = todo[pending[index]]
-            print(f"eval: no coverage limit of {task.object} at {task.placement}: {value.reason}",
+            spec = todo[pending[index]]
+            print(f"eval: no coverage limit of {spec.object} at {spec.placement}: {value.reason}",
                   file=stream if stream is not None else sys.stderr, flush=True)
         else:
             cache[pending[index]] = value
 
     if todo:
-        executor.run(run_limit_task, [todo[key] for key in pending], on_done)
+        executor.run(run_limit_task, [(todo[key], n_directions) for key in pending], on_done)
     cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
     return {(spec.object_label, spec.placement_text): cache[key]
             for spec, key in zip(specs, keys, strict=True) if key in cache}

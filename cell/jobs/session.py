@@ -517,10 +517,11 @@ class JobSession:
     def _joints_allowed(self, q: Array, min_singular_value: float = 0.0) -> bool:
         """Whether the arm may take joints ``q``: each inside the guard's ``joint_bounds`` (limits less the
         margin), no collision (``CollisionWorld.check``) and the smallest singular value of the Jacobian
-        at least ``min_singular_value``."""
+        at least ``min_singular_value`` (not computed for a bound of 0: every singular value meets it)."""
         q_lo, q_hi = self._guard.joint_bounds
         return bool(np.all((q >= q_lo) & (q <= q_hi))) and \
-            self._model.min_singular_value(q) >= min_singular_value and self._guard.collision.check(q) is None
+            (min_singular_value <= 0.0 or self._model.min_singular_value(q) >= min_singular_value) and \
+            self._guard.collision.check(q) is None
 
     def _ik_solutions(self, T_base_flange: Array, q_now: Array, quiet: bool = False) -> Iterator[Array]:
         """Joints reaching ``T_base_flange``, seeded from the current joints, then, where it differs, the
