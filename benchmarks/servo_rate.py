@@ -41,9 +41,10 @@ from station_rig import StationRig
 
 from cell.config import load_config
 from cell.control.servo import DualTaskServo
+from cell.perception.cloud import slab_interval
 from cell.perception.occupancy import binary_entropy
 from cell.planning.vs.goals import sphere_views
-from cell.planning.vs.objective import EntropyObjective, batch_threads, slab_interval
+from cell.planning.vs.objective import EntropyObjective, batch_threads
 from cell.planning.vs.servo_scan import objective_rays, translated
 from cell.safety.guard import MotionGuard
 from drivers.arm.config import SimArmConfig

@@ -13,6 +13,7 @@ from cell.config.models import CropBoxConfig
 from cell.perception.filters import (
     CentroidLowPass,
     FilterParams,
+    carved_lengths,
     filter_frame,
     knn_mean_distances,
     no_target_directions,
@@ -119,6 +120,17 @@ def test_no_target_directions() -> None:
     rays = no_target_directions(frame)
     np.testing.assert_allclose(rays, z.directions[[2, 7]])
     np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0)
+
+
+def test_a_zone_with_no_target_carves_to_the_crop_box_or_the_range_whichever_is_nearer() -> None:
+    crop = CropBoxConfig(x_m=(-0.5, 0.5), y_m=(-0.5, 0.5), z_m=(0.02, 1.0))
+    tilt = math.radians(30.0)
+    rays = np.array([[0.0, 0.0, 1.0],                              # out through the far face
+                     [math.sin(tilt), 0.0, math.cos(tilt)],        # out through the side at x = 0.5
+                     [0.0, -math.sin(tilt), math.cos(tilt)],
+                     [0.0, 0.0, -1.0]])                            # behind the sensor: never in the box
+    np.testing.assert_allclose(carved_lengths(rays, crop, 4.0), [1.0, 1.0, 1.0, 0.0])
+    np.testing.assert_allclose(carved_lengths(rays, crop, 0.6), [0.6, 0.6, 0.6, 0.0])
 
 
 def test_filter_frame_chain() -> None:

@@ -103,3 +103,29 @@ def test_tof_box_top_is_not_taken_for_the_table():
     assert update.roi is not None
     assert update.roi.aabb_max[2] == pytest.approx(top[2], abs=0.02)
     assert update.roi.z_min == pytest.approx(station[2], abs=1e-9)
+
+
+def test_tof_zones_with_no_target_carve_free_space_no_further_than_the_crop_box():
+    """8x8 ToF frame over the table's far edge into open space: no zone has a target. Their rays carve the
+    map free up to the crop box's far face (1 m ahead), not on to the sensor's 4 m range, whose blocks
+    no query reads (0.8-1.6 GB of peak memory on a simulated scan)."""
+    cfg = load_config(CONFIG_DIR / "sim-ur5e-tof.yaml")
+    scene = SimScene(load_object("cube"), make_T(np.eye(3), np.array([*cfg.station.xy_m, 0.0])),
+                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)
+    T = look_at(np.array([0.45, 0.0, 0.3]), np.array([2.0, 0.0, 0.3]))
+    world = SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=scene)
+    sensor = make_sensor(cfg.sensor, world, lambda: T)
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=sensor.model.range_max_m,
+                                  rng=np.random.default_rng(1))
+    with sensor:
+        frame = sensor.capture()
+    assert frame.zones is not None and np.all(frame.zones.nb_targets == 0)
+    update = pipeline.process(frame, T)
+    far = (update.free_ends_base - T[:3, 3]) @ T[:3, :3]
+    assert far.shape == (64, 3)
+    np.testing.assert_allclose(far[:, 2], cfg.perception.crop_box.z_m[1])
+    keys, _ = pipeline.map.known_keys()
+    depth = (pipeline.map.centers_of(keys) - T[:3, 3]) @ T[:3, 2]
+    assert depth.max() <= cfg.perception.crop_box.z_m[1] + cfg.perception.occupancy.resolution_m
+    assert depth.max() >= cfg.perception.crop_box.z_m[1] - cfg.perception.occupancy.resolution_m
+    assert pipeline.map.occupied_keys().shape[0] == 0

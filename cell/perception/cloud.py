@@ -156,6 +156,19 @@ class PointGrid:
         return index
 
 
+def slab_interval(origin: Array, direction: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
+    """Ray parameters [t_in, t_out] where rays origin + t direction (broadcast, last axis 3) lie inside
+    the axis-aligned box [lo, hi]; t_in > t_out when a ray misses it. Ray parameters [m] for unit
+    directions."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (lo - origin) / direction
+        tb = (hi - origin) / direction
+    # fmin / fmax ignore the NaN of a ray lying exactly in a face plane and parallel to it.
+    t_in = np.max(np.fmin(ta, tb), axis=-1)
+    t_out = np.min(np.fmax(ta, tb), axis=-1)
+    return t_in, t_out
+
+
 def crop_box(points: Array, x: tuple[float, float], y: tuple[float, float],
              z: tuple[float, float]) -> Array:
     """Keep the points strictly inside the box (open intervals, as the paper's z in (5, 40) cm)."""

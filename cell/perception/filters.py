@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, bounds, crop_voxel_downsample
+from cell.perception.cloud import PointGrid, bounds, crop_voxel_downsample, slab_interval
 from drivers.config_base import StrictModel
 from drivers.depth.base import DepthFrame
 
@@ -140,6 +140,21 @@ def no_target_directions(frame: DepthFrame) -> Array:
         raise ValueError(f"no_target_directions: frame {frame.seq} has no ToF zones")
     d = zones.directions[zones.nb_targets == 0]
     return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def carved_lengths(directions: Array, crop: CropBox, range_max_m: float) -> Array:
+    """How far [m] each of the unit rays ``directions`` (J, 3) [sensor frame] of the ToF zones that saw no
+    target carves free space: to the sensor's range ``range_max_m`` or to where it leaves the crop box
+    ``crop`` [sensor frame], whichever is nearer; 0 for a ray that never enters the box.
+
+    A return beyond the crop box is dropped with its ray, so the map holds nothing beyond the box but what
+    these rays carve; the planners read it only inside the object's ROI, well inside the box. Carved on to
+    the VL53L8CX's 4 m, they filled the map with blocks that no query reads: 0.8-1.6 GB of peak memory on
+    one simulated ToF scan."""
+    lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
+    hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
+    t_in, t_out = slab_interval(np.zeros(3), directions, lo, hi)
+    return np.where(t_out >= t_in, np.clip(t_out, 0.0, range_max_m), 0.0)
 
 
 def filter_frame(points_sensor: Array, *, crop: CropBox, voxel_m: float, params: FilterParams) -> Array:

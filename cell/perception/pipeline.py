@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import PerceptionConfig
 from cell.perception.cloud import CloudAccumulator
-from cell.perception.filters import filter_frame, no_target_directions, valid_tof_points
+from cell.perception.filters import carved_lengths, filter_frame, no_target_directions, valid_tof_points
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
 from cell.perception.segmentation import ROI, ObjectExtent, SegmentationResult, segment_object
@@ -35,13 +35,13 @@ Array = NDArray[np.float64]
 @dataclass(frozen=True)
 class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
-    frame, the ends of the rays it carved free (its ToF zones with no target, out to the sensor's range;
-    (0, 3) for a camera), the segmented object and its ROI, ``extent`` the box (min, max) [m] of every ROI
-    so far (``ObjectExtent``), H_ROI (eq. 12) over that box, and the occupancy map. ``roi``, ``centroid``,
-    ``extent`` and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map
-    when frames are processed in the planner's thread (later frames update it), and a copy taken right
-    after this frame when they are processed asynchronously (``AsyncPerception``), so that a planner never
-    reads a map the worker is writing."""
+    frame, the ends of the rays it carved free (its ToF zones with no target, out to the sensor's range or
+    the crop box's far side, :func:`carved_lengths`; (0, 3) for a camera), the segmented object and its
+    ROI, ``extent`` the box (min, max) [m] of every ROI so far (``ObjectExtent``), H_ROI (eq. 12) over that
+    box, and the occupancy map. ``roi``, ``centroid``, ``extent`` and ``h_roi`` are None until an object
+    has been found. ``map`` is the pipeline's own map when frames are processed in the planner's thread
+    (later frames update it), and a copy taken right after this frame when they are processed
+    asynchronously (``AsyncPerception``), so that a planner never reads a map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -81,7 +81,7 @@ class PerceptionPipeline:
     """Filter -> register -> accumulate -> integrate -> segment, one frame at a time.
 
     ``table_z_m`` is the table height in the base frame [m]; ``range_max_m`` the sensor's maximum range
-    [m], up to which ToF zones with no target carve free space."""
+    [m], up to which ToF zones with no target carve free space (no further than the crop box)."""
 
     def __init__(self, config: PerceptionConfig, *, table_z_m: float, range_max_m: float,
                  rng: np.random.Generator) -> None:
@@ -120,7 +120,10 @@ class PerceptionPipeline:
         points_base = transform_points(T, points)
         free_ends = np.zeros((0, 3))
         if frame.zones is not None:
-            free_ends = T[:3, 3] + (no_target_directions(frame) @ T[:3, :3].T) * self.range_max_m
+            directions = no_target_directions(frame)
+            length = carved_lengths(directions, self.config.crop_box, self.range_max_m)
+            carves = length > 0.0
+            free_ends = T[:3, 3] + (directions[carves] @ T[:3, :3].T) * length[carves, None]
         seg, extent = self.add_capture(T, points_base, free_ends)
         roi = seg.roi
         h_roi = self.map.mean_entropy_in_box(*extent) if extent is not None else None
@@ -137,9 +140,9 @@ class PerceptionPipeline:
                     ) -> tuple[SegmentationResult, tuple[Array, Array] | None]:
         """Accumulate one capture's filtered points ``points_base`` (K, 3) [m, base frame], seen from the
         sensor pose ``T_base_sensor`` (after registration), into the cloud and the occupancy map, carving
-        free the rays to ``free_ends`` (J, 3) [m] (the zones with no target, up to the sensor's range),
-        segment the map and add the object's ROI to ``extent``: the segmentation and the box of every ROI
-        so far (None until an object has been found)."""
+        free the rays to ``free_ends`` (J, 3) [m] (the zones with no target, up to the sensor's range or the
+        crop box), segment the map and add the object's ROI to ``extent``: the segmentation and the box of
+        every ROI so far (None until an object has been found)."""
         clock = self.stage_times
         self.cloud.add(points_base)
         clock.lap("accumulate")

@@ -67,6 +67,7 @@ from typing import Protocol, overload
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.perception.cloud import slab_interval
 from cell.perception.filters import CropBox
 from cell.perception.occupancy import OccupancyMap, binary_entropy, observation_weight
 from cell.planning.vs import _objective as _k
@@ -109,19 +110,6 @@ def ray_grid(rays_per_side: int, fov_deg: float) -> Array:
     tx, ty = np.meshgrid(np.tan(ang), np.tan(ang), indexing="xy")
     d = np.stack([tx.ravel(), ty.ravel(), np.ones(n * n)], axis=1)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def slab_interval(origin: Array, direction: Array, lo: Array, hi: Array) -> tuple[Array, Array]:
-    """Ray parameters [t_in, t_out] where rays origin + t direction (broadcast, last axis 3) lie inside
-    the axis-aligned box [lo, hi]; t_in > t_out when a ray misses it. Ray parameters [m] for unit
-    directions."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (lo - origin) / direction
-        tb = (hi - origin) / direction
-    # fmin / fmax ignore the NaN of a ray lying exactly in a face plane and parallel to it.
-    t_in = np.max(np.fmin(ta, tb), axis=-1)
-    t_out = np.min(np.fmax(ta, tb), axis=-1)
-    return t_in, t_out
 
 
 class EntropyObjective:
