@@ -108,7 +108,7 @@ def test_tof_box_top_is_not_taken_for_the_table():
 def test_tof_zones_with_no_target_carve_free_space_no_further_than_the_crop_box():
     """8x8 ToF frame over the table's far edge into open space: no zone has a target. Their rays carve the
     map free up to the crop box's far face (1 m ahead), not on to the sensor's 4 m range, whose blocks
-    no query reads (0.8-1.6 GB of peak memory on a simulated scan)."""
+    no query reads (1.0-1.6 GB of peak memory on a simulated scan)."""
     cfg = load_config(CONFIG_DIR / "sim-ur5e-tof.yaml")
     scene = SimScene(load_object("cube"), make_T(np.eye(3), np.array([*cfg.station.xy_m, 0.0])),
                      table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m)

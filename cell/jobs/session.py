@@ -292,7 +292,8 @@ class JobSession:
         """The first of :meth:`_routes` to the pose that the guard accepts, followed, else the first to one
         of the pose's rolls that see the same (:func:`same_view_rolls`, tried only when joints reach the
         pose itself); False when there is none, the direct move's refusal recorded and counted (or the pose
-        counted unreachable when no joints reach it)."""
+        counted unreachable when no joints reach it). :meth:`sensor_view_reachable` gives its verdict on
+        the goal beforehand, without the path."""
         what = f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)"
         q_now, T_sensor_flange = self._guard.state().q, inv_T(self._T_flange_sensor)
         refusal: Refusal | None = None

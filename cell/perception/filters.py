@@ -149,7 +149,7 @@ def carved_lengths(directions: Array, crop: CropBox, range_max_m: float) -> Arra
 
     A return beyond the crop box is dropped with its ray, so the map holds nothing beyond the box but what
     these rays carve; the planners read it only inside the object's ROI, well inside the box. Carved on to
-    the VL53L8CX's 4 m, they filled the map with blocks that no query reads: 0.8-1.6 GB of peak memory on
+    the VL53L8CX's 4 m, they filled the map with blocks that no query reads: 1.0-1.6 GB of peak memory on
     one simulated ToF scan."""
     lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
     hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
