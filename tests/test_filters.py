@@ -127,7 +127,7 @@ def test_a_zone_with_no_target_carves_to_the_crop_box_or_the_range_whichever_is_
     tilt = math.radians(30.0)
     rays = np.array([[0.0, 0.0, 1.0],                              # out through the far face
                      [math.sin(tilt), 0.0, math.cos(tilt)],        # out through the side at x = 0.5
-                     [0.0, -math.sin(tilt), math.cos(tilt)],
+                     [0.0, -math.sin(tilt), math.cos(tilt)],       # out through the side at y = -0.5
                      [0.0, 0.0, -1.0]])                            # behind the sensor: never in the box
     np.testing.assert_allclose(carved_lengths(rays, crop, 4.0), [1.0, 1.0, 1.0, 0.0])
     np.testing.assert_allclose(carved_lengths(rays, crop, 0.6), [0.6, 0.6, 0.6, 0.0])
