@@ -42,6 +42,7 @@ from station_rig import StationRig
 from cell.config import load_config
 from cell.control.servo import DualTaskServo
 from cell.perception.cloud import slab_interval
+from cell.perception.filters import crop_interval
 from cell.perception.occupancy import binary_entropy
 from cell.planning.vs.goals import sphere_views
 from cell.planning.vs.objective import EntropyObjective, batch_threads
@@ -76,8 +77,7 @@ def octomap_f(tree, T, rays_cam, roi_min, roi_max, crop, res) -> float:
     R, o = T[:3, :3], T[:3, 3]
     d = rays_cam @ R.T
     t_in, t_out = slab_interval(o, d, roi_min, roi_max)
-    c_in, c_out = slab_interval(np.zeros(3), rays_cam, np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]]),
-                                np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]]))
+    c_in, c_out = crop_interval(rays_cam, crop)
     t_in, t_out = np.maximum(np.maximum(t_in, c_in), 0.0), np.minimum(t_out, c_out)
     total = 0.0
     for k in range(rays_cam.shape[0]):

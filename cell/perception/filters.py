@@ -142,6 +142,15 @@ def no_target_directions(frame: DepthFrame) -> Array:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def crop_interval(directions: Array, crop: CropBox) -> tuple[Array, Array]:
+    """Ray parameters [t_in, t_out] [m] where the unit rays ``directions`` (..., 3) from the sensor [sensor
+    frame] lie inside the crop box ``crop`` (:func:`cell.perception.cloud.slab_interval`; t_in > t_out
+    for a ray that misses it). The box is fixed in the sensor frame: the same for every pose."""
+    lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
+    hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
+    return slab_interval(np.zeros(3), directions, lo, hi)
+
+
 def carved_lengths(directions: Array, crop: CropBox, range_max_m: float) -> Array:
     """How far [m] each of the unit rays ``directions`` (J, 3) [sensor frame] of the ToF zones that saw no
     target carves free space: to the sensor's range ``range_max_m`` or to where it leaves the crop box
@@ -151,9 +160,7 @@ def carved_lengths(directions: Array, crop: CropBox, range_max_m: float) -> Arra
     these rays carve; the planners read it only inside the object's ROI, well inside the box. Carved on to
     the VL53L8CX's 4 m, they filled the map with blocks that no query reads: 1.0-1.6 GB of peak memory on
     one simulated ToF scan."""
-    lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
-    hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
-    t_in, t_out = slab_interval(np.zeros(3), directions, lo, hi)
+    t_in, t_out = crop_interval(directions, crop)
     return np.where(t_out >= t_in, np.clip(t_out, 0.0, range_max_m), 0.0)
 
 

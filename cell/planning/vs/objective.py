@@ -67,8 +67,7 @@ from typing import Protocol, overload
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.perception.cloud import slab_interval
-from cell.perception.filters import CropBox
+from cell.perception.filters import CropBox, crop_interval
 from cell.perception.occupancy import OccupancyMap, binary_entropy, observation_weight
 from cell.planning.vs import _objective as _k
 from drivers.errors import PlanningError
@@ -153,9 +152,7 @@ class EntropyObjective:
         # against the side it was hit from reads, and that side.
         voxels = np.ascontiguousarray(np.column_stack([1.0 - p, entropy, other_side, sides]))
         # The crop box is fixed in the camera frame: its interval per ray is the same for every pose.
-        lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
-        hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
-        crop_in, crop_out = slab_interval(np.zeros(3), self.directions_cam, lo, hi)
+        crop_in, crop_out = crop_interval(self.directions_cam, crop)
         self._scorer = _k.Scorer(self.directions_cam, crop_in, crop_out, self.roi_min, self.roi_max, res,
                                  k_lo, shape, voxels)
 
