@@ -496,10 +496,13 @@ class CellService:
         self._spare = await self._start_worker(self._spare_log, "spare")
 
     async def _close_spare(self) -> None:
+        """End the warm spare at once: it holds no job and no arm, and it would read the end of its input
+        only once its libraries are loaded (seconds). Its pipes are then closed as :meth:`_reap` does."""
         spare, self._spare = self._spare, None
         if spare is None:
             return
-        await self._reap(spare)  # without input it runs nothing
+        self._kill(spare)
+        await spare.communicate()
         self._spare_log.unlink(missing_ok=True)
 
     def _may_start(self) -> bool:
