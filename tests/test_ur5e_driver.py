@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -91,6 +92,28 @@ def test_protective_stop_is_a_fault_until_the_operator_recovers(peer: Controller
     ur.arm.recover()
     assert peer.state()["safety_mode"] == "NORMAL" and peer.state()["program_running"]
     assert np.allclose(peer.state()["tcp_offset"], [0, 0, 0.05, 0, 0, 0])  # re-sent after the restart
+
+
+def test_recover_unlocks_a_protective_stop_the_receive_stream_does_not_show_yet(
+        peer: ControllerPeer, ur: Backend, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The receive and control interfaces read two RTDE streams, so the script's end can reach the driver
+    before the protective stop that ended it (seen on a loaded machine): recover asks the dashboard."""
+    arm = _ur(ur)
+    peer.protective_stop()
+    ur.wait_until(lambda: "protective stop" in arm.state().faults)
+    read = arm._snapshot
+    lagging = [True]
+
+    def snapshot(kick: bool = False) -> dict[str, Any]:
+        snap = read(kick)
+        if lagging.pop() if lagging else False:  # recover's first read: from before the stop
+            return {**snap, "protective_stopped": False, "safety_mode": 1}
+        return snap
+
+    monkeypatch.setattr(arm, "_snapshot", snapshot)
+    arm.recover()
+    assert not lagging
+    assert peer.state()["safety_mode"] == "NORMAL" and peer.state()["program_running"]
 
 
 def test_emergency_stop_cannot_be_cleared_from_software(peer: ControllerPeer, ur: Backend) -> None:

@@ -47,9 +47,10 @@ until the operator recovers. The arm is stopped all the same: the RTDE watchdog,
 moves, ends the control script when commands stop arriving.
 
 ``recover`` is the operator's action: after a lost connection, start a fresh child and connect again
-(control script, TCP and payload); then close the safety popup and unlock the protective stop, power on
-and release the brakes, re-upload the control script, re-send TCP and payload. An emergency stop that is
-still pressed cannot be cleared from software.
+(control script, TCP and payload); then close the safety popup and unlock the protective stop (the one the
+state shows, or the dashboard's: the state can lag it), power on and release the brakes, re-upload the
+control script, re-send TCP and payload. An emergency stop that is still pressed cannot be cleared from
+software.
 """
 
 from __future__ import annotations
@@ -90,6 +91,7 @@ SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 
                 10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
                 13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
 ROBOT_MODE_RUNNING = 7
+SAFETY_PROTECTIVE_STOP = 3
 SAFETY_FAULT_WORDS = {3: "protective stop", 4: "safety recovery", 5: "safeguard stop", 6: "emergency stop",
                       7: "emergency stop", 8: "safety violation", 9: "safety fault", 12: "safeguard stop",
                       13: "safeguard stop"}
@@ -505,7 +507,7 @@ class UR5eArm(HardwareArm):
         if snap["emergency_stopped"]:
             raise RobotFault("the emergency stop is pressed: release it on the robot, then recover again",
                              device=self._device, fault="emergency stop")
-        if snap["protective_stopped"]:
+        if snap["protective_stopped"] or self._dashboard_says_protective_stop():
             self._dashboard("closeSafetyPopup")
             self._dashboard("unlockProtectiveStop")
             self._wait(lambda: not self._snapshot()["protective_stopped"], "unlocking the protective stop")
@@ -529,6 +531,13 @@ class UR5eArm(HardwareArm):
             self._send("reuploadScript")
             self._wait(lambda: self._snapshot()["program_running"], "restarting the control script")
         self._apply_tool()
+
+    def _dashboard_says_protective_stop(self) -> bool:
+        """Whether the controller itself, asked on the dashboard, is in a protective stop. The receive
+        interface and the control interface read two RTDE streams, so the script's end can reach the driver
+        before the protective stop that ended it: seen on a loaded machine, recover skipped the unlock and
+        waited out its timeout for a script the controller would not run."""
+        return f"Safetystatus: {SAFETY_MODES[SAFETY_PROTECTIVE_STOP]}" in str(self._dashboard("safetystatus"))
 
     def _reconnect(self) -> None:
         """After a lost connection: a fresh child connects again (the lost one was killed). Stays latched

@@ -53,7 +53,7 @@ import rtde_receive
 from drivers.arm.ur_rtde_process import EXIT_CLOSED, EXIT_LOST, EXIT_PARENT_GONE
 
 DASHBOARD_COMMANDS = frozenset({"isInRemoteControl", "closeSafetyPopup", "unlockProtectiveStop", "powerOn",
-                                "brakeRelease"})
+                                "brakeRelease", "safetystatus"})
 CONTROL_COMMANDS = frozenset({"speedL", "speedStop", "servoJ", "servoStop", "stopL", "setWatchdog",
                               "setTcp", "setPayload", "reuploadScript", "stopScript"})
 # how often the monitor thread checks the receive interface's connection [s]
