@@ -27,6 +27,9 @@ from .conftest import CONFIG_DIR
 
 TOF = CONFIG_DIR / "sim-ur5e-tof.yaml"
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
+# A line scan's time budget here [s]: the line needs a scan's result (a box, a container), not a full
+# scan's accuracy, which the planners' own tests judge.
+SCAN_S = 15.0
 ROLES = ("viewer", "operator", "line", "admin")
 
 
@@ -78,7 +81,8 @@ def served_line(tmp_path: Path, config: Path) -> Iterator[Line]:
 
 @pytest.fixture
 def line(tmp_path: Path) -> Iterator[Line]:
-    with served_line(tmp_path, _cell_file(tmp_path, TOF, {"initial_mode": "production"})) as served:
+    config = _cell_file(tmp_path, TOF, {"initial_mode": "production", "max_time_s": SCAN_S})
+    with served_line(tmp_path, config) as served:
         yield served
 
 
@@ -265,7 +269,7 @@ def test_the_line_and_operators_never_drive_the_cell_at_once(line: Line):
 
 
 def test_an_operator_stop_stops_the_line_and_the_counters_outlive_a_restart(tmp_path: Path):
-    config = _cell_file(tmp_path, TOF, {})
+    config = _cell_file(tmp_path, TOF, {"max_time_s": SCAN_S})
     with served_line(tmp_path, config) as line:
         line.command("reset")
         line.wait({"Idle"})
@@ -317,8 +321,8 @@ def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path):
     peer = ControllerPeer(q=base["arm"]["home_joints_rad"])
     try:
         arm = base["arm"] | {"host": peer.host}
-        config = _cell_file(tmp_path, DRY_RUN, {"dio": {"part_id": "horizontal_box", "debounce_s": 0.3}},
-                            arm=arm)
+        line_config = {"dio": {"part_id": "horizontal_box", "debounce_s": 0.3}, "max_time_s": SCAN_S}
+        config = _cell_file(tmp_path, DRY_RUN, line_config, arm=arm)
         with served_line(tmp_path, config) as line:
             trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
             line.command("reset")
