@@ -102,17 +102,18 @@ def test_recover_unlocks_a_protective_stop_the_receive_stream_does_not_show_yet(
     peer.protective_stop()
     ur.wait_until(lambda: "protective stop" in arm.state().faults)
     read = arm._snapshot
-    lagging = [True]
+    stale = [True]  # recover's first read: from before the stop
 
     def snapshot(kick: bool = False) -> dict[str, Any]:
         snap = read(kick)
-        if lagging.pop() if lagging else False:  # recover's first read: from before the stop
+        if stale:
+            stale.clear()
             return {**snap, "protective_stopped": False, "safety_mode": 1}
         return snap
 
     monkeypatch.setattr(arm, "_snapshot", snapshot)
     arm.recover()
-    assert not lagging
+    assert not stale
     assert peer.state()["safety_mode"] == "NORMAL" and peer.state()["program_running"]
 
 
