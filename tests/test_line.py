@@ -19,7 +19,8 @@ from cell.line.dio import Debouncer
 from cell.line.packml import ACCEPTS, Command, State, refusal
 from cell.line.result import check_part_id, cycle_result, feeder_part
 from cell.service.keys import create_key
-from cell.service.startup import ServiceSettings, open_data_store
+from cell.service.startup import ServiceSettings
+from cell.service.store import open_data_store
 from drivers.errors import ServiceError
 from tests.rtde_peer import ControllerPeer
 

@@ -31,8 +31,8 @@ from cell.jobs.progress import TICK_BUCKETS_S, ControlTicks
 from cell.service.events import JobEvents
 from cell.service.keys import create_key
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
-from cell.service.startup import ServiceSettings, open_data_store
-from cell.service.store import JobRecord
+from cell.service.startup import ServiceSettings
+from cell.service.store import JobRecord, open_data_store
 from drivers.errors import JobError
 from drivers.sim.objects import load_object
 

@@ -19,8 +19,7 @@ from rich.console import Console
 
 from cell.cli.errors import fail
 from cell.service.keys import Role, create_key, parse_role
-from cell.service.startup import open_data_store
-from cell.service.store import Store
+from cell.service.store import Store, open_data_store
 from drivers.errors import CellError
 
 DEFAULT_DATA_DIR = Path("data")

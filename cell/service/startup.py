@@ -13,9 +13,8 @@ from pathlib import Path
 from cell.config.load import load_config_data
 from cell.config.placeholders import require_measured
 from cell.service.manager import CellService
-from cell.service.store import Store, open_store, sqlite_url
+from cell.service.store import open_data_store
 from cell.templates import DEFAULT_TEMPLATE, template_path
-from drivers.errors import StoreError
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_DATA_DIR = Path("data")
@@ -29,16 +28,6 @@ class ServiceSettings:
     config_file: Path = DEFAULT_CONFIG
     data_dir: Path = DEFAULT_DATA_DIR
     db_url: str | None = None
-
-
-def open_data_store(data_dir: Path, db_url: str | None) -> Store:
-    """The store of ``data_dir`` (created if missing): ``db_url`` or the embedded SQLite file.
-    ``StoreError`` when it cannot be opened."""
-    try:
-        data_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}") from None
-    return open_store(db_url or sqlite_url(data_dir))
 
 
 def build_service(settings: ServiceSettings) -> CellService:

@@ -1,18 +1,6 @@
 """Simulation backends' world: object meshes (:mod:`drivers.sim.objects`) and the ray-casting scene
-(:mod:`drivers.sim.scene`) that the sim depth sensors render. Units metres, base frame z-up."""
+(:mod:`drivers.sim.scene`) that the sim depth sensors render. Units metres, base frame z-up.
 
-from drivers.sim.objects import ObjectInfo, ObjectMesh, list_objects, load_object, sample_surface
-from drivers.sim.scene import HIT_NONE, HIT_OBJECT, HIT_TABLE, RayHits, SimScene
-
-__all__ = [
-    "HIT_NONE",
-    "HIT_OBJECT",
-    "HIT_TABLE",
-    "ObjectInfo",
-    "ObjectMesh",
-    "RayHits",
-    "SimScene",
-    "list_objects",
-    "load_object",
-    "sample_surface",
-]
+Nothing is imported here: the cell file's models import :mod:`drivers.sim.board` and
+:mod:`drivers.sim.errors`, and every ``cell`` command reads a cell file, while the scene loads Open3D
+(about a second), which only a simulated scan needs."""

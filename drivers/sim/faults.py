@@ -8,14 +8,16 @@ sensor delivers no frames (sensor stall). Times are sim time [s].
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import TYPE_CHECKING, Literal, get_args
 
 from pydantic import Field, PositiveFloat, model_validator
 
-from drivers.arm.sim import SimArm
-from drivers.clock import SimClock
 from drivers.config_base import StrictModel
-from drivers.depth.sim_base import SimDepthSensor
+
+if TYPE_CHECKING:  # the injector's devices: the cell file's models import this module, not the sim
+    from drivers.arm.sim import SimArm
+    from drivers.clock import SimClock
+    from drivers.depth.sim_base import SimDepthSensor
 
 ArmFaultKind = Literal["protective stop", "reflex", "emergency stop", "disconnect"]
 FaultKind = ArmFaultKind | Literal["loop overrun", "sensor stall"]

@@ -10,7 +10,7 @@ from cell.service.store.records import (
     LineRecord,
     LineTransition,
 )
-from cell.service.store.repository import Store, open_store
+from cell.service.store.repository import Store, open_data_store, open_store
 
 __all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "JobRecord", "KeyRecord", "LineRecord", "LineTransition",
-           "Store", "open_store", "sqlite_url"]
+           "Store", "open_data_store", "open_store", "sqlite_url"]

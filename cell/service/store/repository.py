@@ -14,16 +14,17 @@ import re
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, fields
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import ColumnElement, Engine, func, select
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
-from cell.service.store.engine import open_engine, store_error
+from cell.service.store.engine import open_engine, sqlite_url, store_error
 from cell.service.store.models import JobRow, KeyRow, LineStateRow, LineTransitionRow
 from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord, LineRecord, LineTransition
-from drivers.errors import ServiceError
+from drivers.errors import ServiceError, StoreError
 
 JOB_FIELDS = tuple(field.name for field in fields(JobRecord))
 JOB_ID = re.compile(r"[0-9a-f]{16}")  # a job id: 16 lowercase hex characters
@@ -36,6 +37,16 @@ def open_store(url: str) -> Store:
     software's newest revision. Raises :class:`drivers.errors.StoreError` with a one-line message naming
     the URL without its password."""
     return Store(open_engine(url))
+
+
+def open_data_store(data_dir: Path, db_url: str | None) -> Store:
+    """The store of a cell's data dir ``data_dir`` (created if missing): ``db_url``, or the embedded SQLite
+    file ``cell.db`` in it. ``StoreError`` when it cannot be opened."""
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}") from None
+    return open_store(db_url or sqlite_url(data_dir))
 
 
 class Store:
