@@ -26,7 +26,7 @@ from cell.service.keys import create_key as add_key
 from cell.service.store import open_store, sqlite_url
 
 REPO = Path(__file__).resolve().parent.parent
-CELL = [sys.executable, "-m", "cell.cli.main"]
+CELL = [sys.executable, "-m", "cell.cli.entry"]  # the installed `cell` program's code
 ROLES = ("viewer", "operator", "line", "admin")
 START_TIMEOUT_S = 60.0
 

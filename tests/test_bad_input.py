@@ -200,7 +200,7 @@ main()
 """
 
 
-@pytest.mark.parametrize("module", ["cell.cli.main", "open3d", "scipy.spatial"])
+@pytest.mark.parametrize("module", ["cell.cli.commands", "open3d", "scipy.spatial"])
 def test_ctrl_c_while_importing_exits_quietly_with_130(module):
     (script,) = entry_points(group="console_scripts", name="cell")
     assert script.value == "cell.cli.entry:main"

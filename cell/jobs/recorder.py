@@ -16,7 +16,8 @@
 - ``planner_requests.csv`` (replayed jobs only, see ``cell.jobs.replay``): what the planner asked for,
   ``t,kind,x,y,z,qx,qy,qz,qw,vx,vy,vz,wx,wy,wz``: a ``move`` to a sensor pose (base frame), a ``twist`` of
   the sensor (sensor frame [m/s, rad/s]) or a ``hold``, each column left empty where it does not apply;
-- ``STOP``: written by ``cell stop`` while the job runs (an operator stop; the job removes it).
+- ``STOP``: written by ``cell stop`` while the job runs (an operator stop, ``cell.jobs.stop_file``; the
+  job removes it).
 - ``cloud_live.npy``: while a watched job runs, its accumulated cloud (``cell.jobs.live_cloud``; removed
   when it ends).
 """
@@ -41,7 +42,6 @@ from drivers.transforms import quat_xyzw
 
 Array = NDArray[np.float64]
 
-STOP_FILE = "STOP"
 JOB_FILE = "job.json"
 RESULT_FILE = "result.json"
 
@@ -49,16 +49,6 @@ RESULT_FILE = "result.json"
 def holds_job(folder: Path) -> bool:
     """Whether ``folder`` already holds a job (its ``frames/``), which ``JobRecorder`` refuses."""
     return (folder / "frames").exists()
-
-
-def request_stop(folder: Path, reason: str) -> None:
-    """Ask the job running in ``folder`` to stop (operator stop): writes its ``STOP`` file, which the job
-    reads at its next control tick. Raises ``JobError`` when no job is running there."""
-    if not (folder / "log.txt").is_file():
-        raise JobError(f"{folder} is not a job folder (no log.txt)")
-    if (folder / "result.json").exists():
-        raise JobError(f"the job in {folder} is not running: it has finished (result.json exists)")
-    (folder / STOP_FILE).write_text(reason.strip() + "\n")
 
 
 class JobRecorder:

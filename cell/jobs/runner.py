@@ -45,9 +45,10 @@ from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
 from cell.jobs.progress import JobProgress
-from cell.jobs.recorder import STOP_FILE, JobRecorder
+from cell.jobs.recorder import JobRecorder
 from cell.jobs.replay import ReplaySession
 from cell.jobs.session import JobSession, ScanLimitReached
+from cell.jobs.stop_file import STOP_FILE
 from cell.packing.result import packing_section
 from cell.perception.metrics import METRICS_KEYS, CoverageTracker, ground_truth_points, measure
 from cell.perception.pipeline import PerceptionPipeline

@@ -1,0 +1,36 @@
+"""``cell config check``: whether a cell file is valid, and what is still to be measured in it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.console import Console
+
+from cell.cli.errors import fail
+from cell.config import load_config
+from cell.config.placeholders import find_placeholders
+from drivers.errors import CellError, ConfigError
+
+config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
+console = Console(soft_wrap=True)
+
+
+@config_app.command("check")
+def config_check(file: Path) -> None:
+    """Validate a cell file; prints a summary or the problem, and the values still marked
+    ``# MEASURE:`` (then exit code 1: the file is valid but not ready)."""
+    try:
+        cfg = load_config(file)
+    except CellError as exc:
+        raise fail(exc) from None
+    console.print(f"{file}: valid ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
+                  f"sensor {cfg.sensor.type}, planner {cfg.scan.planner})", markup=False, highlight=False)
+    left = find_placeholders(file.read_text())
+    if not left:
+        console.print("ready: nothing left to measure", markup=False, highlight=False)
+        return
+    for p in left:
+        console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
+    raise fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
+                            "it and delete the mark)", file=str(file)))

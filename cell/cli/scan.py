@@ -1,0 +1,122 @@
+"""``cell scan``: a scan on a cell file (the shipped simulated cell by default), or the replay of a recorded
+job, writing its job folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from cell.cli.entry import EXIT_INTERRUPTED
+from cell.cli.errors import fail, print_error
+from cell.cli.jobs import EXIT_NOT_COMPLETED, packing_lines
+from cell.cli.progress import scan_progress
+from cell.config import load_config
+from cell.config.placeholders import require_measured
+from cell.jobs.replay import recorded_job, replay_config
+from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
+from cell.templates import DEFAULT_TEMPLATE, template_path
+from drivers.errors import CellError, SafetyStop
+from drivers.sim.objects import EMPTY_TABLE
+
+DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
+DEFAULT_OBJECT = "bunny"
+
+console = Console(soft_wrap=True)
+err_console = Console(stderr=True)
+
+
+def _parse_pose(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        if len(parts) != 3:
+            raise ValueError
+        x, y, yaw = (float(p) for p in parts)
+    except ValueError:
+        raise typer.BadParameter(f"expected x,y,yaw_deg (three numbers), got {text!r}") from None
+    return x, y, yaw
+
+
+def _replay_request(job_dir: Path, config: Path | None, planner: str | None, seed: int | None,
+                    out: Path | None, max_time: float | None) -> ScanRequest:
+    """A replay of ``job_dir`` (``cell scan --replay``): the job's cell file (or ``config``) with the replay
+    backends, and by default the job's own planner and seed."""
+    cfg, recorded, config_path = recorded_job(job_dir, config)
+    return ScanRequest(config=replay_config(cfg, job_dir), config_path=str(config_path),
+                       object=str(recorded.get("object") or "unknown"),
+                       planner=planner or recorded.get("planner"),
+                       seed=seed if seed is not None else int(recorded.get("seed", 0)), out=out,
+                       max_time_s=max_time)
+
+
+def _stopped(job: PreparedScan, exc: Exception) -> typer.Exit:
+    """A scan that stopped or failed after its folder was made: the reason, then where the folder is (its
+    log.txt holds the traceback of an internal error)."""
+    reason = exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}"
+    print_error(reason)
+    err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
+    interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED
+    return typer.Exit(code=EXIT_INTERRUPTED if interrupted else 1)
+
+
+def scan(
+    config: Annotated[Path | None, typer.Option(help=f"cell file (default: the shipped {DEFAULT_TEMPLATE} "
+                                                     "cell; with --replay, the job's)")] = None,
+    object: Annotated[str | None, typer.Option(
+        "--object", help=f"shipped name or mesh file (default {DEFAULT_OBJECT}), {EMPTY_TABLE!r} for an "
+                         "empty table; on a real cell, a label for the record")] = None,
+    object_pose: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
+    object_scale: Annotated[float, typer.Option(help="multiplies the mesh's coordinates into metres (0.001 "
+                                                     "for a mesh in millimetres)")] = 1.0,
+    planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's; with "
+                                                     "--replay, the job's)")] = None,
+    seed: Annotated[int | None, typer.Option(help="random seed of the job (default 0; with --replay, the "
+                                                  "job's)")] = None,
+    out: Annotated[Path | None, typer.Option(help="job folder to create, new or empty (default: "
+                                                  "jobs/<stamp>-...)")] = None,
+    max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's)")] = None,
+    replay: Annotated[Path | None, typer.Option(help="re-run a recorded job folder's frames and poses "
+                                                     "through perception and the planner (nothing moves)")]
+    = None,
+) -> None:
+    """Run a scan and write its job folder. Exit code 0 when it completed, 2 when it ended otherwise (no
+    object found, stopped, failed), 1 on an error, 130 after Ctrl-C; the job folder is printed in every case
+    once it exists.
+    Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
+    try:
+        if replay is not None:
+            request = _replay_request(replay, config, planner, seed, out, max_time)
+        else:
+            path = config if config is not None else DEFAULT_CONFIG
+            cfg = load_config(path)
+            require_measured(path, cfg.mode)
+            label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
+            request = ScanRequest(config=cfg, config_path=str(path), object=label,
+                                  object_pose=_parse_pose(object_pose), planner=planner,
+                                  seed=seed if seed is not None else 0, out=out, max_time_s=max_time,
+                                  object_scale=object_scale)
+        job = prepare_scan(request)
+    except CellError as exc:
+        raise fail(exc) from None
+    try:
+        with scan_progress(job.max_time_s) as show:
+            outcome = run_prepared(job, on_progress=show)
+    except Exception as exc:  # the job's folder holds its result whatever the error: say where it is
+        raise _stopped(job, exc) from None
+    r = outcome.result
+    cov = r["metrics"]["coverage_pct"]
+    console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)
+    scan = f" (scan {r['scan_time_s']:.1f} s from the first frame)" if r["scan_time_s"] is not None else ""
+    console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim{scan}, path "
+                  f"{r['path_length_m']:.2f} m", highlight=False)
+    console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
+                  highlight=False)
+    packing = r.get("packing") or {}
+    if packing.get("dims_m"):  # an object was measured: its box, upper bound and container
+        for label, value in packing_lines(packing):
+            console.print(f"{label}: {value}", markup=False, highlight=False)
+    console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
+    if r["status"] != "completed":
+        raise typer.Exit(code=EXIT_NOT_COMPLETED)
