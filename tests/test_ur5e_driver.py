@@ -24,6 +24,7 @@ from drivers.robots import get_robot_model
 from tests.arm_backends import STREAMING_WATCHDOG_HZ, Backend, ur5e_backend, ur5e_config
 from tests.rtde_peer import REPO, ControllerPeer
 from tests.rtde_peer.broken import BrokenController
+from tests.rtde_peer.controller import UNLOCK_AFTER_S
 
 
 @pytest.fixture
@@ -92,6 +93,10 @@ def test_protective_stop_is_a_fault_until_the_operator_recovers(peer: Controller
     ur.arm.recover()
     assert peer.state()["safety_mode"] == "NORMAL" and peer.state()["program_running"]
     assert np.allclose(peer.state()["tcp_offset"], [0, 0, 0.05, 0, 0, 0])  # re-sent after the restart
+    # the controller refuses an unlock until 5 s after the stop: recover, asked at once, waited for it
+    # rather than taking the refusal for a lost connection
+    times = {text: float(t) for t, text in (e.split(" ", 1) for e in peer.state()["events"])}
+    assert times["protective stop unlocked (dashboard)"] - times["protective stop"] >= UNLOCK_AFTER_S
 
 
 def test_recover_unlocks_a_protective_stop_the_receive_stream_does_not_show_yet(

@@ -97,6 +97,10 @@ SAFETY_FAULT_WORDS = {3: "protective stop", 4: "safety recovery", 5: "safeguard 
                       13: "safeguard stop"}
 # how long recovery steps may take on the controller before they count as failed [s]
 RECOVERY_TIMEOUT_S = 10.0
+# A UR controller refuses to unlock a protective stop until 5 s after it occurred, answering with this
+# (Dashboard Server e-Series, "unlock protective stop"); recover asks again this often until it may [s]
+UNLOCK_TOO_SOON = "Cannot unlock protective stop until 5s after occurrence"
+UNLOCK_RETRY_S = 0.25
 # how long a command or a state read in the child may take before the child counts as hung [s]; the
 # slowest are the stops (speedStop waits for the deceleration) and script re-uploads
 REPLY_TIMEOUT_S = 5.0
@@ -509,7 +513,7 @@ class UR5eArm(HardwareArm):
                              device=self._device, fault="emergency stop")
         if snap["protective_stopped"] or self._dashboard_says_protective_stop():
             self._dashboard("closeSafetyPopup")
-            self._dashboard("unlockProtectiveStop")
+            self._unlock_protective_stop()
             self._wait(lambda: not self._snapshot()["protective_stopped"], "unlocking the protective stop")
         if snap["robot_mode"] != ROBOT_MODE_RUNNING:
             self._dashboard("powerOn")
@@ -531,6 +535,22 @@ class UR5eArm(HardwareArm):
             self._send("reuploadScript")
             self._wait(lambda: self._snapshot()["program_running"], "restarting the control script")
         self._apply_tool()
+
+    def _unlock_protective_stop(self) -> None:
+        """Ask the controller to unlock its protective stop. It refuses until 5 s after the stop occurred
+        (ur-rtde raises with the controller's answer, :data:`UNLOCK_TOO_SOON`), so an operator's recovery
+        right after a stop asks again until it may, within ``RECOVERY_TIMEOUT_S``; any other refusal is a
+        fault naming the controller's answer."""
+        deadline = time.monotonic() + RECOVERY_TIMEOUT_S
+        while True:
+            try:
+                self._request("dashboard", "unlockProtectiveStop")
+                return
+            except ClientError as exc:
+                if UNLOCK_TOO_SOON not in str(exc) or time.monotonic() > deadline:
+                    raise RobotFault(f"unlocking the protective stop: {exc}", device=self._device,
+                                     fault="protective stop") from None
+            time.sleep(UNLOCK_RETRY_S)
 
     def _dashboard_says_protective_stop(self) -> bool:
         """Whether the controller itself, asked on the dashboard, is in a protective stop. The receive

@@ -6,7 +6,9 @@ It listens on one address (``127.0.0.N``) on the controller's fixed ports:
   input recipes, ids 1..N per connection; START is answered before the first data package; data packages
   go out at each output recipe's frequency; input data packages write the controller's input table.
 - 29999 dashboard: the text commands ur-rtde and the cell use (remote control, PolyScope version, unlock
-  protective stop, close safety popup, power on, brake release, robot and safety mode, stop, quit).
+  protective stop, close safety popup, power on, brake release, robot and safety mode, stop, quit). As a
+  real controller, it refuses to unlock a protective stop until ``UNLOCK_AFTER_S`` after it occurred,
+  with the controller's answer (``UNLOCK_TOO_SOON``).
 - 30003 script: the uploaded program text. A ``def ...: ... end`` program starts "running": the peer
   then behaves as ur-rtde's control script does, through the register handshake: it reads the command
   from ``input_int_register_<off>`` and its arguments from the input int/double registers (``off`` is
@@ -60,6 +62,11 @@ SERIAL_NUMBER = "20235500001"
 # robot modes and safety modes as RTDE reports them
 ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7
+# A UR controller unlocks a protective stop only this long after it occurred [s], and answers earlier
+# requests with this (the Dashboard Server's documented reply)
+UNLOCK_AFTER_S = 5.0
+UNLOCK_TOO_SOON = ("Cannot unlock protective stop until 5s after occurrence. Always inspect cause of "
+                   "protective stop before unlocking")
 ROBOT_MODE_NAMES = {3: "POWER_OFF", 5: "IDLE", 7: "RUNNING"}
 SAFETY_MODE_NAMES = {1: "NORMAL", 3: "PROTECTIVE_STOP", 7: "ROBOT_EMERGENCY_STOP"}
 
@@ -130,6 +137,7 @@ class Controller:
         self.robot_mode = ROBOT_MODE_RUNNING
         self.safety_mode = SAFETY_NORMAL
         self.estop_pressed = False
+        self.protective_stop_at = 0.0  # when the last protective stop occurred [s]
         self.program_running = False
         self.reg_int_offset = 0
         self.reg_float_offset = 0
@@ -318,6 +326,7 @@ class Controller:
     def protective_stop(self) -> None:
         with self.lock:
             self.safety_mode = SAFETY_PROTECTIVE_STOP
+            self.protective_stop_at = self.now()
             self.halt()
             self.end_program("protective stop")
             self.event("protective stop")
@@ -538,6 +547,8 @@ def _dashboard_reply(ctl: Controller, line: str) -> str | None:
             return "closing safety popup"
         if low == "unlock protective stop":
             if ctl.safety_mode == SAFETY_PROTECTIVE_STOP:
+                if ctl.now() - ctl.protective_stop_at < UNLOCK_AFTER_S:
+                    return UNLOCK_TOO_SOON
                 ctl.safety_mode = SAFETY_NORMAL
                 ctl.event("protective stop unlocked (dashboard)")
             return "Protective stop releasing"
