@@ -165,9 +165,13 @@ def test_replay_through_the_recording_planner_rebuilds_the_job(tof_job, tmp_path
     assert result["metrics"] == recorded["metrics"]
     assert result["packing"]["dims_m"] == recorded["packing"]["dims_m"]
     moves = _requests(tmp_path / "again")
-    # raster asked for one view per recorded capture (and one more, which found the recording ended)
-    assert {r["kind"] for r in moves} == {"move"} and len(moves) == recorded["n_captures"] + 1
+    # raster asked for the live job's views and got its answers (refused ones too); the live job's time
+    # ran out on its way to the last, whose capture found the recording ended
+    live = _requests(tof_job)
+    assert {r["kind"] for r in moves} == {"move"} and moves == live
+    assert sum(r["answer"] == "reached" for r in live) == recorded["n_captures"] + 1
     assert result["replay"]["n_planner_requests"] == len(moves)
+    assert result["replay"]["n_recorded_answers"] == len(live)
     assert "recording ended" in output
 
 
@@ -186,6 +190,27 @@ def test_replay_through_another_planner_records_what_it_asks_for(tof_job, tmp_pa
     assert twists and all(r["x"] == "" and r["vx"] != "" for r in twists)
     assert np.all(np.isfinite([[float(r[k]) for k in ("vx", "vy", "vz", "wx", "wy", "wz")] for r in twists]))
     assert not any(r["kind"] == "move" and r["vx"] for r in requests)
+
+
+def test_an_lr_nbv_job_replays_its_views_with_the_arms_answers(tmp_path):
+    """LR-NBV chooses its next views from the arm's answers (a refused move ends a branch, an unreachable
+    cached node is dropped), which the frames do not hold: the live job records its moves and reach checks
+    with their answers, and the replay gives the same answers while its planner asks what the live one did.
+    Replayed with its own planner, the job asks for the same views and rebuilds the same cloud."""
+    live = tmp_path / "live"
+    res = CliRunner().invoke(app, ["scan", "--config", str(UR5E), "--object", "gripper", "--planner",
+                                   "lr-nbv", "--seed", "0", "--max-time", "10", "--out", str(live)])
+    assert res.exit_code == 0, res.output
+    asked = _requests(live)
+    assert {r["answer"] for r in asked} == {"reached", "refused", "reachable", "unreachable"}
+    result, _ = _replay(live, tmp_path / "again")
+    assert _requests(tmp_path / "again")[:len(asked)] == asked
+    assert result["replay"]["n_recorded_answers"] == len(asked)
+    assert (tmp_path / "again" / "cloud.ply").read_bytes() == (live / "cloud.ply").read_bytes()
+    # another seed grows other trees: the replay leaves the recorded requests, says so, and plays on
+    other, _ = _replay(live, tmp_path / "other", "--seed", "1")
+    assert other["replay"]["n_recorded_answers"] < len(asked) and other["status"] == "completed"
+    assert "the planner asked for another " in (tmp_path / "other" / "log.txt").read_text()
 
 
 def test_a_servo_scan_replays_through_its_secondary_task(tmp_path):

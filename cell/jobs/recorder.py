@@ -13,9 +13,8 @@
   ``frames/index.csv`` lists them;
 - ``map.bt``: the occupancy map in OctoMap's binary format (octovis and pyoctomap open it);
 - ``log.txt``: what happened, stamped with job time;
-- ``planner_requests.csv`` (replayed jobs only, see ``cell.jobs.replay``): what the planner asked for,
-  ``t,kind,x,y,z,qx,qy,qz,qw,vx,vy,vz,wx,wy,wz``: a ``move`` to a sensor pose (base frame), a ``twist`` of
-  the sensor (sensor frame [m/s, rad/s]) or a ``hold``, each column left empty where it does not apply;
+- ``planner_requests.csv``: the moves and reach checks the planner asked for, with the cell's answers
+  (a replayed job's: every request, twists and holds too; ``cell.jobs.requests``);
 - ``STOP``: written by ``cell stop`` while the job runs (an operator stop, ``cell.jobs.stop_file``; the
   job removes it).
 - ``cloud_live.npy``: while a watched job runs, its accumulated cloud (``cell.jobs.live_cloud``; removed
@@ -33,6 +32,7 @@ from typing import Any, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
+from cell.jobs.requests import COLUMNS, REQUESTS_FILE, request_row
 from cell.perception.cloud import write_ply
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.octomap_io import write_bt
@@ -104,17 +104,12 @@ class JobRecorder:
         self._index.flush()
 
     def planner_request(self, t: float, kind: str, T_base_sensor: Array | None = None,
-                        v_sensor: Array | None = None) -> None:
-        """One line of ``planner_requests.csv`` (created with the first request)."""
+                        v_sensor: Array | None = None, answer: str = "", t_done: float | None = None) -> None:
+        """One row of ``planner_requests.csv`` (created with the first request; ``cell.jobs.requests``)."""
         if self._requests is None:
-            self._requests = (self.folder / "planner_requests.csv").open("w", newline="")
-            csv.writer(self._requests).writerow(["t", "kind", "x", "y", "z", "qx", "qy", "qz", "qw",
-                                                 "vx", "vy", "vz", "wx", "wy", "wz"])
-        pose = [] if T_base_sensor is None else [*T_base_sensor[:3, 3], *quat_xyzw(T_base_sensor)]
-        twist = [] if v_sensor is None else list(v_sensor)
-        cells = [f"{v:.9f}" for v in pose] or [""] * 7
-        cells += [f"{v:.9f}" for v in twist] or [""] * 6
-        csv.writer(self._requests).writerow([f"{t:.6f}", kind, *cells])
+            self._requests = (self.folder / REQUESTS_FILE).open("w", newline="")
+            csv.writer(self._requests).writerow(COLUMNS)
+        csv.writer(self._requests).writerow(request_row(t, kind, T_base_sensor, v_sensor, answer, t_done))
         self._requests.flush()
 
     def cloud(self, points: Array) -> None:

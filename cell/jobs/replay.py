@@ -8,6 +8,14 @@ asks, and :class:`ReplaySession` writes every request to ``planner_requests.csv`
 - ``move_to_sensor_pose`` records the pose asked for and lets the recording play until its next frame
   is due (the recorded arm reaching its next view), then returns True; the planner's ``capture`` gets
   that frame, with the flange pose recorded at its time;
+- while the planner asks what the live job's did (the same views, in order), a move and a reach check
+  (``sensor_view_reachable``) get the live job's answers instead (its ``planner_requests.csv``,
+  :mod:`cell.jobs.requests`): a move plays the recording until the live move ended and returns whether
+  it reached its view, a reach check returns the live verdict. The arm's answers are not in the frames:
+  without them a replay of LR-NBV asked for other views from the first move the live arm refused, and
+  settled a planner's wait after each move a second time, reading the arm's pose on its way to the next
+  view. Once the planner asks for something else, the recording plays on as above, and reach checks
+  are answered from home's joints (a replayed arm reports none);
 - ``command_sensor_twist`` and ``hold`` record the twist asked for; the twist returned is the recorded
   sensor twist over the last control period, what the sensor really does;
 - with continuous capture on, every recorded frame is captured when the clock reaches its time.
@@ -29,6 +37,15 @@ import numpy as np
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
+from cell.jobs.requests import (
+    REACHABLE,
+    REACHED,
+    REFUSED,
+    UNREACHABLE,
+    RecordedAnswer,
+    pose_cells,
+    recorded_answers,
+)
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.planning.base import Array
 from drivers.arm.replay import ReplayArm
@@ -51,10 +68,33 @@ class ReplaySession(JobSession):
         self._continuous = False
         super().__init__(config, sensor=sensor, **kwargs)
         self.n_planner_requests = 0
+        self._answers = recorded_answers(sensor.recording.job_dir)
+        self._asked = dict.fromkeys(self._answers, 0)
+        self._following = bool(self._answers)
+        self.n_recorded_answers = 0
 
-    def _request(self, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None) -> None:
+    def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
+                 answer: str = "", t_done: float | None = None) -> None:
         self.n_planner_requests += 1
-        self._recorder.planner_request(self.now(), kind, T_base_sensor, v_sensor)
+        self._recorder.planner_request(t, kind, T_base_sensor, v_sensor, answer, t_done)
+
+    def _recorded(self, kind: str, T_base_sensor: Array) -> RecordedAnswer | None:
+        """The live job's answer to this request (a ``move`` or ``reach`` of the pose (4, 4)), while the
+        planner asks what the live one did; None from the first request it did not ask, logged."""
+        if not self._following:
+            return None
+        k = self._asked.get(kind, 0)
+        self._asked[kind] = k + 1
+        answers = self._answers.get(kind, [])
+        if k < len(answers) and answers[k].pose == pose_cells(T_base_sensor):
+            self.n_recorded_answers += 1
+            return answers[k]
+        self._following = False
+        asked = f"another {kind} than the recorded job's {kind} {k + 1}" if k < len(answers) else \
+            f"more {kind}s than the recorded job ({len(answers)})"
+        self.log(f"the planner asked for {asked}: from here the recording plays on whatever it asks, and the "
+                 "recorded answers no longer apply")
+        return None
 
     def _ended(self) -> RecordingEnded:
         frames = len(self._replay_sensor.recording.frames)
@@ -75,14 +115,35 @@ class ReplaySession(JobSession):
         self._continuous = on
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
-        """Record the pose asked for; play the recording until its next frame is due; True."""
-        self._request("move", T_base_sensor=np.asarray(T_base_sensor, dtype=float))
-        due = self._replay_sensor.next_timestamp
-        if due is None:
-            raise self._ended()
-        while self.now() < due - self._dt:
-            self._tick()
-        return True
+        """Record the pose asked for; with the live job's answer (:meth:`_recorded`), play the recording
+        until the live move ended and return whether it reached its view; else play it until its next
+        frame is due and return True."""
+        T = np.asarray(T_base_sensor, dtype=float)
+        asked = self.now()
+        recorded = self._recorded("move", T)
+        if recorded is not None and recorded.t_done is not None:
+            while self.now() < recorded.t_done - self._dt / 2:
+                self._tick()
+            reached = recorded.answer == REACHED
+        else:
+            due = self._replay_sensor.next_timestamp
+            if due is None:
+                self._request(asked, "move", T)  # asked, and unanswered: the recording has ended
+                raise self._ended()
+            while self.now() < due - self._dt:
+                self._tick()
+            reached = True
+        self._request(asked, "move", T, answer=REACHED if reached else REFUSED, t_done=self.now())
+        return reached
+
+    def sensor_view_reachable(self, T_base_sensor: Array) -> bool:
+        """The live job's verdict on the view while the planner follows it (:meth:`_recorded`), else the
+        session's own (seeded from home: a replayed arm reports no joints); recorded."""
+        T = np.asarray(T_base_sensor, dtype=float)
+        recorded = self._recorded("reach", T)
+        reachable = recorded.answer == REACHABLE if recorded is not None else self._view_reachable(T)
+        self._request(self.now(), "reach", T, answer=REACHABLE if reachable else UNREACHABLE)
+        return reachable
 
     def capture(self) -> int:
         """The next recorded frame due (waiting for its time) through perception, with the flange pose
@@ -95,11 +156,11 @@ class ReplaySession(JobSession):
     def command_sensor_twist(self, v_sensor: Array) -> Array:
         """Record the twist asked for (sensor frame); returns the recorded sensor twist over the last
         control period [m/s, rad/s], sensor frame."""
-        self._request("twist", v_sensor=np.asarray(v_sensor, dtype=float))
+        self._request(self.now(), "twist", v_sensor=np.asarray(v_sensor, dtype=float))
         return self._recorded_twist()
 
     def hold(self) -> None:
-        self._request("hold")
+        self._request(self.now(), "hold")
 
     def _recorded_twist(self) -> Array:
         t = self.now()

@@ -451,7 +451,8 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
             **session.ticks.summary(), "first_motion_unix_s": guard.first_motion_unix_s},
     }
     if isinstance(session, ReplaySession):
-        result["replay"] = {"job_dir": str(job.replay_dir), "n_planner_requests": session.n_planner_requests}
+        result["replay"] = {"job_dir": str(job.replay_dir), "n_planner_requests": session.n_planner_requests,
+                            "n_recorded_answers": session.n_recorded_answers}
     recorder.result(result)
     planner = job.planner
     if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:

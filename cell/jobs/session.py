@@ -29,6 +29,7 @@ from cell.control.trajectory import path_trajectory, waypoint_trajectory
 from cell.jobs.live import LivePerception, PoseHistory
 from cell.jobs.progress import ControlTicks, JobProgress, quat_of, xyz_m
 from cell.jobs.recorder import JobRecorder
+from cell.jobs.requests import REACHABLE, REACHED, REFUSED, UNREACHABLE
 from cell.packing.objects import current_object
 from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CoverageTracker
@@ -293,7 +294,16 @@ class JobSession:
         of the pose's rolls that see the same (:func:`same_view_rolls`, tried only when joints reach the
         pose itself); False when there is none, the direct move's refusal recorded and counted (or the pose
         counted unreachable when no joints reach it). :meth:`sensor_view_reachable` gives its verdict on
-        the goal beforehand, without the path."""
+        the goal beforehand, without the path. The request and its answer go to ``planner_requests.csv``
+        (``cell.jobs.requests``: what a replay answers with)."""
+        asked = self.now()
+        reached = self._move_to_view(T_base_sensor)
+        self._recorder.planner_request(asked, "move", T_base_sensor, answer=REACHED if reached else REFUSED,
+                                       t_done=self.now())
+        return reached
+
+    def _move_to_view(self, T_base_sensor: Array) -> bool:
+        """:meth:`move_to_sensor_pose`'s move, unrecorded."""
         what = f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)"
         q_now, T_sensor_flange = self._guard.state().q, inv_T(self._T_flange_sensor)
         refusal: Refusal | None = None
@@ -499,7 +509,15 @@ class JobSession:
         """Whether :meth:`move_to_sensor_pose` finds joints for the view (4, 4) that the arm may take
         (:meth:`_joints_allowed`): among the IK solutions it tries (:meth:`_ik_solutions`: seeded from the
         current joints, or home where the arm reports none, and from home) at the pose, or, where joints
-        reach the pose, at one of its same-view rolls. The move checks its path as well."""
+        reach the pose, at one of its same-view rolls. The move checks its path as well. The check and its
+        answer go to ``planner_requests.csv``, as a move's do."""
+        reachable = self._view_reachable(T_base_sensor)
+        self._recorder.planner_request(self.now(), "reach", T_base_sensor,
+                                       answer=REACHABLE if reachable else UNREACHABLE)
+        return reachable
+
+    def _view_reachable(self, T_base_sensor: Array) -> bool:
+        """:meth:`sensor_view_reachable`'s verdict, unrecorded."""
         q_now, T_sensor_flange = self._q_reported(), inv_T(self._T_flange_sensor)
         for roll in (0.0, *same_view_rolls(self._sensor.model)):
             T_flange = T_base_sensor @ T_from_xyz_rpy(np.zeros(3), (0.0, 0.0, roll)) @ T_sensor_flange
