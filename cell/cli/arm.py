@@ -105,10 +105,11 @@ def status(config: Annotated[Path, typer.Option(help="cell file")]) -> None:
 
 @arm_app.command("recover")
 def recover(config: Annotated[Path, typer.Option(help="cell file")]) -> None:
-    """Operator action, once the cause of a stop is found and cleared: clear the arm's fault (UR: close the
-    safety popup, unlock the protective stop, power on, release the brakes, restart the control script;
-    Franka: automatic error recovery), then print the status. An emergency stop must be released on the
-    robot first."""
+    """Clear the arm's fault, once the cause of the stop is found and cleared.
+
+    UR: close the safety popup, unlock the protective stop (the controller allows it from 5 s after the
+    stop), power on, release the brakes, restart the control script; Franka: automatic error recovery.
+    Then print the status. An emergency stop must be released on the robot first."""
     with _connected_arm(config) as (_, arm):
         arm.recover()
         _print_status(arm)
@@ -175,8 +176,9 @@ def jog(
     distance: Annotated[float, typer.Option(help=f"signed distance [m] or angle [rad], at most "
                                                  f"{JOG_MAX_DISTANCE_M} / {JOG_MAX_ANGLE_RAD}")],
 ) -> None:
-    """One small guarded move of the flange along or about a base-frame axis, then stop and print the
-    status."""
+    """One small guarded move of the flange along or about a base-frame axis.
+
+    Then stop and print the status."""
     if axis not in AXES:
         raise typer.BadParameter(f"axis must be one of {', '.join(AXES)}")
     rotation = AXES[axis] >= 3

@@ -64,9 +64,11 @@ def mount(
     data_dir: DataDirOption = DEFAULT_DATA_DIR,
     seed: Annotated[int, typer.Option(help="seed of the job (simulated devices, point sampling)")] = 0,
 ) -> None:
-    """Solve the sensor mount (hand-eye, T_flange_sensor) from views of the ChArUco board or of a known
-    shape (the table and a box at the station) that the arm visits through the safety layer; prints it
-    with its residual and per-axis standard deviations and writes the JSON result."""
+    """Solve the sensor mount (hand-eye, T_flange_sensor).
+
+    From views of the ChArUco board or of a known shape (the table and a box at the station) that the arm
+    visits through the safety layer; prints it with its residual and per-axis standard deviations and
+    writes the JSON result."""
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "mount", target)
@@ -117,10 +119,11 @@ def tof(
     data_dir: DataDirOption = DEFAULT_DATA_DIR,
     seed: Annotated[int, typer.Option(help="seed of the job (simulated devices)")] = 0,
 ) -> None:
-    """Measure each ToF zone's range bias and noise with the sensor looking straight down at the flat,
-    clear table beside the station from several heights; writes the per-zone correction the sensor
-    applies (``sensor.zone_correction``) and prints the mean absolute range error over the zones before
-    and after it, on frames held back from the fit."""
+    """Measure each ToF zone's range bias and noise.
+
+    With the sensor looking straight down at the flat, clear table beside the station from several
+    heights; writes the per-zone correction the sensor applies (``sensor.zone_correction``) and prints the
+    mean absolute range error over the zones before and after it, on frames held back from the fit."""
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "tof", "table")
@@ -156,8 +159,10 @@ def table(
     data_dir: DataDirOption = DEFAULT_DATA_DIR,
     seed: Annotated[int, typer.Option(help="seed of the job (simulated devices)")] = 0,
 ) -> None:
-    """Find the table plane (height and tilt) and, with a part on the station's mark, the station, from
-    a short scan, and report them against the cell file's ``station``."""
+    """Find the table plane (height and tilt) and the station.
+
+    From a short scan (the station with a part on its mark), reported against the cell file's
+    ``station``."""
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "table", object)
@@ -183,8 +188,9 @@ def compare(
     a: Annotated[Path, typer.Argument(help="a mount calibration result (JSON)")],
     b: Annotated[Path, typer.Argument(help="another one")],
 ) -> None:
-    """How far two mount calibrations are apart (B less A), and whether that is within 3 combined
-    standard deviations on every axis."""
+    """How far two mount calibrations are apart (B less A).
+
+    And whether that is within 3 combined standard deviations on every axis."""
     try:
         diff = compare_results(read_result(a), read_result(b))
     except CellError as exc:

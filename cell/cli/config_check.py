@@ -18,8 +18,10 @@ console = Console(soft_wrap=True)
 
 @config_app.command("check")
 def config_check(file: Path) -> None:
-    """Validate a cell file; prints a summary or the problem, and the values still marked
-    ``# MEASURE:`` (then exit code 1: the file is valid but not ready)."""
+    """Validate a cell file.
+
+    Prints a summary or the problem, and the values still marked ``# MEASURE:`` (then exit code 1: the
+    file is valid but not ready)."""
     try:
         cfg = load_config(file)
     except CellError as exc:

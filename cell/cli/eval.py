@@ -102,9 +102,10 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
           = DEFAULT_DIRECTIONS,
           everywhere: Annotated[bool, typer.Option(help="count every view, reachable by the arm or not")]
           = False) -> None:
-    """The object's coverage limit on the cell: the share of its surface (eq. 13's sample) that any
-    reachable view (at any roll about its optical axis) within the sensor's range, field of view and
-    grazing limit can see."""
+    """The object's coverage limit on the cell.
+
+    The share of its surface (eq. 13's sample) that any reachable view (at any roll about its optical
+    axis) within the sensor's range, field of view and grazing limit can see."""
     try:
         path = config if config is not None else template_path("sim-franka-rgbd")
         result = cell_coverage_limit(load_config(path), load_object(object, object_scale),

@@ -345,8 +345,10 @@ def prune(
     server: ServerOption = DEFAULT_SERVER,
     key: KeyOption = None,
 ) -> None:
-    """Delete the ended jobs that service.retention lets go (their folders and records; admin keys), as the
-    service does by itself every retention.interval_h; --dry-run shows them (any key)."""
+    """Delete the ended jobs that service.retention lets go.
+
+    Their folders and records go (admin keys), as the service does by itself every
+    retention.interval_h; --dry-run shows them (any key)."""
     with _client(server, key) as client:
         answer = client.retention(prune=not dry_run)
     limits = [f"{answer['days']:g} days" if answer["days"] is not None else None,
@@ -368,8 +370,9 @@ def wait(
     server: ServerOption = DEFAULT_SERVER,
     key: KeyOption = None,
 ) -> None:
-    """Follow a job until it ends: a progress line at most every second, then its status. Exit code 0 when
-    it completed, 2 when it ended otherwise, 1 on an error or timeout."""
+    """Follow a job until it ends: a progress line at most every second, then its status.
+
+    Exit code 0 when it completed, 2 when it ended otherwise, 1 on an error or timeout."""
     _check_timeout(timeout)
     with _client(server, key) as client:
         raise _wait_exit(client, job_id, timeout)

@@ -16,9 +16,10 @@ console = Console(soft_wrap=True)
 
 
 def reprocess(job_dir: Path) -> None:
-    """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B). A folder
-    whose result.json is missing but whose frames are there gets its result.json back first (status
-    interrupted). Progress: a bar on a terminal, else lines to standard error."""
+    """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B).
+
+    A folder whose result.json is missing but whose frames are there gets its result.json back first
+    (status interrupted). Progress: a bar on a terminal, else lines to standard error."""
     try:
         rebuilt = rebuild_result(job_dir)
         if rebuilt is not None:

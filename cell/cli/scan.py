@@ -81,9 +81,10 @@ def scan(
                                                      "through perception and the planner (nothing moves)")]
     = None,
 ) -> None:
-    """Run a scan and write its job folder. Exit code 0 when it completed, 2 when it ended otherwise (no
-    object found, stopped, failed), 1 on an error, 130 after Ctrl-C; the job folder is printed in every case
-    once it exists.
+    """Run a scan and write its job folder.
+
+    Exit code 0 when it completed, 2 when it ended otherwise (no object found, stopped, failed), 1 on an
+    error, 130 after Ctrl-C; the job folder is printed in every case once it exists.
     Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
     try:
         if replay is not None:

@@ -20,8 +20,10 @@ def stop(
     job_dir: Annotated[Path, typer.Argument(help="folder of the running job")],
     reason: Annotated[str, typer.Option(help="recorded in the job's termination")] = "operator stop",
 ) -> None:
-    """Operator stop of a running scan: the arm stops at the job's next control tick, and the job ends
-    ``stopped`` with everything recorded so far."""
+    """Operator stop of a running scan.
+
+    The arm stops at the job's next control tick, and the job ends ``stopped`` with everything recorded so
+    far."""
     try:
         request_stop(job_dir, reason)
     except CellError as exc:
