@@ -340,6 +340,36 @@ def test_guard_refuses_bad_twists_and_conflicting_motion():
     q = rig2.arm.state().q
     with pytest.raises(SafetyStop, match="while a twist is being streamed"):
         rig2.guard.execute_trajectory(JointTrajectory(t=np.array([0.0, 1.0]), q=np.vstack([q, q])))
+    # a trajectory starts where the arm is: one from elsewhere would have the arm jump to its start
+    rig3 = Rig.of("ur5e")
+    q = rig3.arm.state().q
+    elsewhere = q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.05])
+    with pytest.raises(SafetyStop, match=r"starts 0\.0500 rad away from the arm's joints"):
+        rig3.guard.execute_trajectory(JointTrajectory(t=np.array([0.0, 1.0]), q=np.vstack([elsewhere, q])))
+    assert rig3.arm.state().mode is not ArmMode.TRAJECTORY
+    # and nothing streams over a trajectory being followed
+    rig4 = Rig.of("ur5e")
+    q = rig4.arm.state().q
+    rig4.guard.execute_trajectory(JointTrajectory(t=np.array([0.0, 2.0]), q=np.vstack([q, q + 0.02])))
+    with pytest.raises(SafetyStop, match="while a trajectory is being followed"):
+        rig4.guard.command_twist(np.array([0.01, 0, 0, 0, 0, 0]))
+
+
+def test_a_trajectory_faster_than_the_limits_is_slowed_down_along_its_path():
+    """A planner's trajectory that asks a joint or the TCP for more speed than the cell allows is stretched
+    in time, its path kept, before the arm gets it."""
+    rig = Rig.of("ur5e")
+    q0 = rig.arm.state().q
+    q = np.linspace(q0, q0 + np.array([0.2, -0.1, 0.1, 0.0, 0.0, 0.1]), 11)
+    executed = rig.guard.execute_trajectory(JointTrajectory(t=np.linspace(0.0, 0.05, 11), q=q))
+    np.testing.assert_array_equal(executed.q, q)
+    sf, m = rig.cfg.safety, rig.model
+    qd = np.abs(np.diff(executed.q, axis=0)) / np.diff(executed.t)[:, None]
+    assert np.all(qd <= m.qd_max * sf.joint_velocity_scale * 1.02 + 1e-9)  # the guard's 2 % tolerance
+    flange = np.array([m.fk(qk)[:3, 3] for qk in executed.q])
+    assert np.all(np.linalg.norm(np.diff(flange, axis=0), axis=1) / np.diff(executed.t)
+                  <= sf.tcp_max_linear_mps * 1.02 + 1e-9)
+    assert rig.guard.log.as_dict()["clamps"]["trajectory_time_scaled"] == 1
 
 
 def test_fault_stop_leaves_the_arm_recoverable():
