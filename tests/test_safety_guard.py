@@ -442,6 +442,20 @@ def test_a_commanded_twist_comes_back_as_the_arm_realizes_it():
     assert np.allclose(stretched.guard.command_twist(up), up, atol=5e-4)
 
 
+def test_a_twist_too_fast_comes_back_within_the_limits():
+    """A planner asking for more than the cell allows is told what the arm will do: its twist within the
+    TCP's speed limits and, through the arm's joints, theirs (each tick limits the streamed twist again)."""
+    rig = Rig.of("ur5e")
+    sf, m = rig.cfg.safety, rig.model
+    for asked in (np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 0.0, 0.0, 5.0])):
+        realized = rig.guard.command_twist(asked)
+        assert np.linalg.norm(realized[:3]) <= sf.tcp_max_linear_mps + 1e-9
+        assert np.linalg.norm(realized[3:]) <= sf.tcp_max_angular_rps + 1e-9
+        qd = m.velocity_map(rig.arm.state().q)(realized)
+        assert np.all(np.abs(qd) <= m.qd_max * sf.joint_velocity_scale * (1 + 1e-6))
+        rig.guard.hold()
+
+
 def test_a_pose_as_deep_in_a_plane_margin_as_a_motion_from_here_may_go_is_allowed_from_here():
     """A camera sliding along a plane sits inside its margin, as deep as a streamed twist may take it:
     from there the poses at its own depth are within reach (``from_here``), deeper ones are not, and
