@@ -115,7 +115,8 @@ class Backend:
             if waited > timeout_s:
                 st = self.arm.state()
                 raise AssertionError(f"{self.name}: condition not reached within {timeout_s} s (arm "
-                                     f"{st.mode.name}, faults {st.faults}, joints {np.round(st.q, 4)})")
+                                     f"{st.mode.name}, faults {st.faults}, joints {np.round(st.q, 4)}, "
+                                     f"joint speeds {np.round(st.qd, 4)})")
             self.advance(0.02)
             waited += 0.02
 
