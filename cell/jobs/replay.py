@@ -37,15 +37,7 @@ import numpy as np
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
-from cell.jobs.requests import (
-    REACHABLE,
-    REACHED,
-    REFUSED,
-    UNREACHABLE,
-    RecordedAnswer,
-    pose_cells,
-    recorded_answers,
-)
+from cell.jobs.requests import REACHABLE, REACHED, RecordedAnswer, pose_cells, recorded_answers
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.planning.base import Array
 from drivers.arm.replay import ReplayArm
@@ -69,14 +61,14 @@ class ReplaySession(JobSession):
         super().__init__(config, sensor=sensor, **kwargs)
         self.n_planner_requests = 0
         self._answers = recorded_answers(sensor.recording.job_dir)
-        self._asked = dict.fromkeys(self._answers, 0)
+        self._asked: dict[str, int] = {}
         self._following = bool(self._answers)
         self.n_recorded_answers = 0
 
     def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
                  answer: str = "", t_done: float | None = None) -> None:
         self.n_planner_requests += 1
-        self._recorder.planner_request(t, kind, T_base_sensor, v_sensor, answer, t_done)
+        super()._request(t, kind, T_base_sensor, v_sensor, answer, t_done)
 
     def _recorded(self, kind: str, T_base_sensor: Array) -> RecordedAnswer | None:
         """The live job's answer to this request (a ``move`` or ``reach`` of the pose (4, 4)), while the
@@ -114,36 +106,30 @@ class ReplaySession(JobSession):
         moves."""
         self._continuous = on
 
-    def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
-        """Record the pose asked for; with the live job's answer (:meth:`_recorded`), play the recording
-        until the live move ended and return whether it reached its view; else play it until its next
-        frame is due and return True."""
-        T = np.asarray(T_base_sensor, dtype=float)
-        asked = self.now()
-        recorded = self._recorded("move", T)
+    def _move_to_view(self, T_base_sensor: Array) -> bool:
+        """With the live job's answer (:meth:`_recorded`), play the recording until the live move ended and
+        return whether it reached its view; else play it until its next frame is due and return True. The
+        session records the request and the answer (``move_to_sensor_pose``)."""
+        recorded = self._recorded("move", T_base_sensor)
         if recorded is not None and recorded.t_done is not None:
             while self.now() < recorded.t_done - self._dt / 2:
                 self._tick()
-            reached = recorded.answer == REACHED
-        else:
-            due = self._replay_sensor.next_timestamp
-            if due is None:
-                self._request(asked, "move", T)  # asked, and unanswered: the recording has ended
-                raise self._ended()
-            while self.now() < due - self._dt:
-                self._tick()
-            reached = True
-        self._request(asked, "move", T, answer=REACHED if reached else REFUSED, t_done=self.now())
-        return reached
+            return recorded.answer == REACHED
+        due = self._replay_sensor.next_timestamp
+        if due is None:
+            self._request(self.now(), "move", T_base_sensor)  # asked, and unanswered: the recording has ended
+            raise self._ended()
+        while self.now() < due - self._dt:
+            self._tick()
+        return True
 
-    def sensor_view_reachable(self, T_base_sensor: Array) -> bool:
+    def _view_reachable(self, T_base_sensor: Array) -> bool:
         """The live job's verdict on the view while the planner follows it (:meth:`_recorded`), else the
-        session's own (seeded from home: a replayed arm reports no joints); recorded."""
-        T = np.asarray(T_base_sensor, dtype=float)
-        recorded = self._recorded("reach", T)
-        reachable = recorded.answer == REACHABLE if recorded is not None else self._view_reachable(T)
-        self._request(self.now(), "reach", T, answer=REACHABLE if reachable else UNREACHABLE)
-        return reachable
+        session's own (seeded from home: a replayed arm reports no joints)."""
+        recorded = self._recorded("reach", T_base_sensor)
+        if recorded is None:
+            return super()._view_reachable(T_base_sensor)
+        return recorded.answer == REACHABLE
 
     def capture(self) -> int:
         """The next recorded frame due (waiting for its time) through perception, with the flange pose

@@ -298,9 +298,13 @@ class JobSession:
         (``cell.jobs.requests``: what a replay answers with)."""
         asked = self.now()
         reached = self._move_to_view(T_base_sensor)
-        self._recorder.planner_request(asked, "move", T_base_sensor, answer=REACHED if reached else REFUSED,
-                                       t_done=self.now())
+        self._request(asked, "move", T_base_sensor, answer=REACHED if reached else REFUSED, t_done=self.now())
         return reached
+
+    def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
+                 answer: str = "", t_done: float | None = None) -> None:
+        """One row of ``planner_requests.csv``: a request asked at ``t`` [s] and its answer."""
+        self._recorder.planner_request(t, kind, T_base_sensor, v_sensor, answer, t_done)
 
     def _move_to_view(self, T_base_sensor: Array) -> bool:
         """:meth:`move_to_sensor_pose`'s move, unrecorded."""
@@ -512,8 +516,7 @@ class JobSession:
         reach the pose, at one of its same-view rolls. The move checks its path as well. The check and its
         answer go to ``planner_requests.csv``, as a move's do."""
         reachable = self._view_reachable(T_base_sensor)
-        self._recorder.planner_request(self.now(), "reach", T_base_sensor,
-                                       answer=REACHABLE if reachable else UNREACHABLE)
+        self._request(self.now(), "reach", T_base_sensor, answer=REACHABLE if reachable else UNREACHABLE)
         return reachable
 
     def _view_reachable(self, T_base_sensor: Array) -> bool:
