@@ -5,10 +5,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
 
+from cell.planning.registry import PLANNERS, PlannerEntry
 from drivers.scheduling import ordinary_scheduling
 
 REPO = Path(__file__).resolve().parent.parent
@@ -27,6 +29,13 @@ def repo() -> Path:
 @pytest.fixture
 def franka_cfg_data() -> dict:
     return yaml.safe_load((CONFIG_DIR / "sim-franka-rgbd.yaml").read_text())
+
+
+def register_planner(monkeypatch: pytest.MonkeyPatch, planner: Any) -> None:
+    """Register the test's planner class ``planner`` (a ``Planner`` with a ``name``) for the test, as
+    the shipped planners are: by where it lives."""
+    entry = PlannerEntry(f"test planner {planner.__name__}", f"{planner.__module__}:{planner.__qualname__}")
+    monkeypatch.setitem(PLANNERS, planner.name, entry)
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float = 30.0) -> bool:

@@ -1,6 +1,7 @@
 """The ``cell`` program loads the command it runs and nothing else (``cell.cli.commands``): an operator's
-``cell stop`` and the service's clients (``cell jobs``, ``cell keys``) answer without loading Open3D, SciPy
-or the planners, which only a scan needs; ``cell --help`` still lists every command."""
+``cell stop``, the service's clients (``cell jobs``, ``cell keys``) and ``cell planners`` answer without
+loading Open3D, SciPy or the planners, which only a scan needs; the service lists planners by name and
+leaves them to its job's worker; ``cell --help`` still lists every command."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ try:
     main()
 except SystemExit:
     pass
-heavy = ("open3d", "scipy", "cell.planning.registry", "cell.jobs.runner", "fastapi")
+heavy = ("open3d", "scipy", "cell.planning.base", "cell.jobs.runner", "fastapi")
 print(json.dumps({name: name in sys.modules for name in heavy}))
 """
 
@@ -35,14 +36,17 @@ def _loaded(*args: str) -> dict[str, bool]:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("args", [("stop", "nowhere"), ("jobs", "--help"), ("keys", "--help")])
-def test_stop_and_the_service_clients_load_no_heavy_library(args):
+@pytest.mark.parametrize("args", [("stop", "nowhere"), ("jobs", "--help"), ("keys", "--help"), ("planners",)])
+def test_stop_the_service_clients_and_the_planner_list_load_no_heavy_library(args):
     assert not any(_loaded(*args).values())
 
 
-def test_a_scan_command_loads_what_it_needs():
-    assert _loaded("planners") == {"open3d": True, "scipy": True, "cell.planning.registry": True,
-                                   "cell.jobs.runner": False, "fastapi": False}
+def test_a_scan_loads_the_planners_and_the_service_does_not():
+    assert _loaded("scan", "--help") == {"open3d": True, "scipy": True, "cell.planning.base": True,
+                                         "cell.jobs.runner": True, "fastapi": False}
+    # SciPy's special functions for the map's parameters; no planner, no Open3D
+    assert _loaded("serve", "--help") == {"open3d": False, "scipy": True, "cell.planning.base": False,
+                                          "cell.jobs.runner": False, "fastapi": True}
 
 
 def test_the_help_lists_every_command_and_a_stop_of_no_job_says_why(tmp_path: Path):

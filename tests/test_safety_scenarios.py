@@ -23,14 +23,13 @@ from cell.jobs.progress import JobProgress
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.jobs.session import retrace_starts
 from cell.planning.base import Planner, ScanSession
-from cell.planning.registry import PLANNERS
 from cell.safety.guard import TwistRefused
 from drivers.arm.base import ArmMode, JointTrajectory, MotionToken
 from drivers.arm.sim import SimArm
 from drivers.errors import DriverError, SafetyStop
 from drivers.transforms import look_at
 
-from .conftest import FRANKA, UR5E
+from .conftest import FRANKA, UR5E, register_planner
 
 
 class OrbitPlanner(Planner):
@@ -38,7 +37,6 @@ class OrbitPlanner(Planner):
     station) with continuous capture, like the servo planners do."""
 
     name: ClassVar[str] = "test-orbit"
-    description: ClassVar[str] = "test planner: stream an orbit"
 
     def run(self, session: ScanSession) -> str:
         session.set_continuous_capture(True)
@@ -54,7 +52,6 @@ class PushPlanner(Planner):
     """Streams a base-frame velocity into the corner of the maximum-reach plane and the floor."""
 
     name: ClassVar[str] = "test-push"
-    description: ClassVar[str] = "test planner: push into the barrier planes"
 
     def run(self, session: ScanSession) -> str:
         session.set_continuous_capture(True)
@@ -72,7 +69,6 @@ class RetracePlanner(Planner):
     refusal."""
 
     name: ClassVar[str] = "test-retrace"
-    description: ClassVar[str] = "test planner: drive into the object, then retrace"
     refused_at: ClassVar[list[tuple[float, np.ndarray]]] = []
 
     def run(self, session: ScanSession) -> str:
@@ -97,7 +93,6 @@ class BypassPlanner(Planner):
     """Tries to move the arm around the guard, with everything it can find."""
 
     name: ClassVar[str] = "test-bypass"
-    description: ClassVar[str] = "test planner: try to reach the arm backend directly"
     attempts: ClassVar[list[str]] = []
 
     def run(self, session: ScanSession) -> str:
@@ -120,10 +115,10 @@ class BypassPlanner(Planner):
 
 @pytest.fixture(autouse=True)
 def _test_planners(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    monkeypatch.setitem(PLANNERS, OrbitPlanner.name, OrbitPlanner)
-    monkeypatch.setitem(PLANNERS, BypassPlanner.name, BypassPlanner)
-    monkeypatch.setitem(PLANNERS, PushPlanner.name, PushPlanner)
-    monkeypatch.setitem(PLANNERS, RetracePlanner.name, RetracePlanner)
+    register_planner(monkeypatch, OrbitPlanner)
+    register_planner(monkeypatch, BypassPlanner)
+    register_planner(monkeypatch, PushPlanner)
+    register_planner(monkeypatch, RetracePlanner)
     yield
 
 

@@ -15,10 +15,9 @@ import pytest
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.planning.base import Planner, ScanSession
-from cell.planning.registry import PLANNERS
 from drivers.transforms import T_from_xyz_rpy, look_at
 
-from .conftest import FRANKA, UR5E
+from .conftest import FRANKA, UR5E, register_planner
 
 
 class CrossPlanner(Planner):
@@ -28,7 +27,6 @@ class CrossPlanner(Planner):
     move's reach and within a servo's (``sensor_view_reachable``, ``sensor_path_reachable``)."""
 
     name: ClassVar[str] = "test-cross"
-    description: ClassVar[str] = "test planner: cross between two views"
     offsets: ClassVar[tuple[np.ndarray, ...]] = ()
     roll_deg: ClassVar[float] = 0.0
     moves: ClassVar[list[tuple[bool, np.ndarray, np.ndarray]]] = []
@@ -50,7 +48,7 @@ def _cross(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *offsets: list[float
            roll_deg: float = 0.0) -> np.ndarray:
     """Run the crossing on ``cell``; check that every view was reached with no move refused, and return
     the sensor's path (K, 3) [m], starting at home."""
-    monkeypatch.setitem(PLANNERS, CrossPlanner.name, CrossPlanner)
+    register_planner(monkeypatch, CrossPlanner)
     monkeypatch.setattr(CrossPlanner, "offsets", tuple(np.array(o) for o in offsets))
     monkeypatch.setattr(CrossPlanner, "roll_deg", roll_deg)
     monkeypatch.setattr(CrossPlanner, "moves", [])

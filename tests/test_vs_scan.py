@@ -13,17 +13,15 @@ from cell.cli.main import app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.planning.base import Planner, ScanSession
-from cell.planning.registry import PLANNERS
 from drivers.transforms import look_at
 
-from .conftest import FRANKA, PANDA_AT_REACH, UR5E
+from .conftest import FRANKA, PANDA_AT_REACH, UR5E, register_planner
 
 
 class ReachProbe(Planner):
     """Asks the session whether the arm reaches a few sensor poses, and moves nowhere."""
 
     name = "test-reach-probe"
-    description = "test planner: reachability queries"
     answers: ClassVar[dict[str, bool]] = {}
 
     def run(self, session: ScanSession) -> str:
@@ -53,7 +51,7 @@ class ReachProbe(Planner):
 
 def test_reachability_is_inverse_kinematics_within_the_joint_margins_free_of_collision(tmp_path,
                                                                                        monkeypatch):
-    monkeypatch.setitem(PLANNERS, ReachProbe.name, ReachProbe)
+    register_planner(monkeypatch, ReachProbe)
     r = run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
                              planner=ReachProbe.name, out=tmp_path / "job", max_time_s=5.0)).result
     assert r["termination"] == "probed; moved 0.000000 m"  # a query moves nothing
@@ -71,7 +69,6 @@ class SingularityProbe(Planner):
     out along +x (base frame) would lower the arm's smallest singular value; moves nowhere."""
 
     name = "test-singularity-probe"
-    description = "test planner: singularity rows"
     found: ClassVar[dict[str, object]] = {}
 
     def run(self, session: ScanSession) -> str:
@@ -87,7 +84,7 @@ def test_singularity_rows_say_which_sensor_motion_drives_the_arm_into_its_reach(
                                                                                home, n_rows):
     """At home no row; stretched to its reach (the flange at x = 0.65 m, smallest singular value 4e-4),
     one, by which moving the sensor further out lowers the singular value and moving it back raises it."""
-    monkeypatch.setitem(PLANNERS, SingularityProbe.name, SingularityProbe)
+    register_planner(monkeypatch, SingularityProbe)
     SingularityProbe.found = {}
     cfg = load_config(FRANKA)
     if home is not None:

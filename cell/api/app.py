@@ -22,7 +22,6 @@ from cell.api.routes import cell as cell_routes
 from cell.api.routes import clouds, health, jobs, keys, retention
 from cell.api.routes import line as line_routes
 from cell.api.routes.page import add_page
-from cell.line.opcua import serve_opcua
 from cell.service.keys import KeyRing
 from cell.service.manager import CellService
 from cell.service.startup import ServiceSettings, build_service
@@ -42,6 +41,17 @@ async def _refresh_keys(ring: KeyRing) -> None:
             log.warning("keys not reloaded: %s", exc)
 
 
+def _line_opcua(cell: CellService, keys: KeyRing) -> contextlib.AbstractAsyncContextManager[object]:
+    """The line's OPC UA server while the context runs, when the cell file has ``line.opcua``; asyncua (a
+    second of imports) is loaded only then."""
+    line = cell.config.line
+    if cell.line is None or line is None or line.opcua is None:
+        return contextlib.nullcontext()
+    from cell.line.opcua import serve_opcua
+
+    return serve_opcua(cell, cell.line, line.opcua, keys)
+
+
 def create_app(settings: ServiceSettings, service: CellService | None = None) -> FastAPI:
     """The application for ``settings`` (or an already built ``service``, which it starts and closes)."""
 
@@ -54,7 +64,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
             log.warning("%s", line)
         refresher = asyncio.create_task(_refresh_keys(app.state.keys))
         try:
-            async with serve_opcua(cell, app.state.keys):  # the line's OPC UA server, if the cell has one
+            async with _line_opcua(cell, app.state.keys):
                 yield
         finally:
             refresher.cancel()

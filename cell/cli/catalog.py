@@ -12,8 +12,8 @@ console = Console(soft_wrap=True)
 
 def planners() -> None:
     """List the registered planners."""
-    for name, cls in sorted(PLANNERS.items()):
-        console.print(f"{name:12s} {cls.description}", markup=False, highlight=False)
+    for name, entry in sorted(PLANNERS.items()):
+        console.print(f"{name:12s} {entry.description}", markup=False, highlight=False)
 
 
 def objects() -> None:

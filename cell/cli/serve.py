@@ -18,7 +18,7 @@ from rich.console import Console
 from cell.api.app import create_app
 from cell.api.server import NotifyingServer
 from cell.cli.errors import fail
-from cell.line.opcua import check_endpoint
+from cell.line.opcua_endpoint import check_endpoint
 from cell.service.logs import configure_logging
 from cell.service.notify import Notifier
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service

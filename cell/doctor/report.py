@@ -10,7 +10,7 @@ from cell.config.models import CellConfig
 from cell.config.placeholders import find_placeholders
 from cell.doctor import devices, machine
 from cell.doctor.findings import Finding, Status
-from cell.line.opcua import check_endpoint
+from cell.line.opcua_endpoint import check_endpoint
 from drivers.arm.config import FrankaArmConfig, UR5eArmConfig
 from drivers.depth.config import VL53L8CXConfig
 from drivers.errors import CellError

@@ -24,7 +24,7 @@ import yaml
 
 import cell
 import drivers
-from cell.planning.registry import get_planner
+from cell.planning.registry import check_planner
 from drivers.errors import CellError, ConfigError, JobError
 from drivers.sim.objects import OBJECTS_DIR, load_object, shipped_names
 
@@ -129,7 +129,7 @@ def check_specs(specs: Sequence[ScanSpec]) -> None:
     if not specs:
         raise CellError("the grid is empty: give objects and planners")
     for planner in dict.fromkeys(s.planner for s in specs):
-        get_planner(planner)
+        check_planner(planner)
     for obj, scale in dict.fromkeys((s.object, s.object_scale) for s in specs):
         load_object(obj, scale)
 

@@ -1,5 +1,6 @@
 """The packing line over OPC UA: an asyncua server on the service's event loop, started by ``cell serve``
-when the cell file has ``line.opcua`` (:func:`serve_opcua`).
+when the cell file has ``line.opcua`` (:func:`serve_opcua`; :mod:`cell.line.opcua_endpoint` checks its
+endpoint first).
 
 Its address space (:mod:`cell.line.opcua_nodes`, documented in ``docs/packml-opcua.md``) offers the line
 two ways to drive the cell's PackML state machine (:class:`cell.line.controller.LineController`), as the
@@ -28,12 +29,11 @@ import logging
 from collections.abc import AsyncIterator, Awaitable, Callable
 from datetime import UTC
 from typing import TYPE_CHECKING, Any, TypeVar
-from urllib.parse import urlsplit
 
 from asyncua import Server, ua
 from asyncua.common.callback import CallbackType, ServerItemCallback
 
-from cell.line.config import LineConfig, OPCUAConfig
+from cell.line.config import OPCUAConfig
 from cell.line.controller import LineController, LineSnapshot
 from cell.line.opcua_nodes import (
     CMD_CHANGE_REQUEST,
@@ -57,7 +57,6 @@ from cell.line.packml import Command, UnitMode
 from cell.line.result import check_part_id
 from cell.service.keys import KeyRing
 from drivers.errors import ConfigError, ServiceError
-from drivers.hosts import listen_problem
 
 if TYPE_CHECKING:
     from cell.service.manager import CellService
@@ -329,28 +328,12 @@ class LineOPCUA:
         return call
 
 
-def check_endpoint(line: LineConfig | None) -> None:
-    """Whether this machine can listen on the line's OPC UA endpoint now (nothing to check without one):
-    ``ConfigError`` in one line for a port in use or a host that is not this machine's, before the
-    service starts."""
-    if line is None or line.opcua is None:
-        return
-    endpoint = line.opcua.endpoint
-    parts = urlsplit(endpoint)
-    problem = listen_problem(parts.hostname, parts.port)
-    if problem is not None:
-        raise ConfigError(f"cannot listen on {endpoint}: {problem}", field="line.opcua.endpoint")
-
-
 @contextlib.asynccontextmanager
-async def serve_opcua(service: CellService, keys: KeyRing) -> AsyncIterator[LineOPCUA | None]:
-    """The cell's OPC UA server while the context runs (None when the cell file has no ``line.opcua``);
-    ``keys`` authenticates its users and is kept current by the caller."""
-    line_config = service.config.line
-    if service.line is None or line_config is None or line_config.opcua is None:
-        yield None
-        return
-    server = LineOPCUA(service, service.line, line_config.opcua, keys)
+async def serve_opcua(service: CellService, line: LineController, config: OPCUAConfig,
+                      keys: KeyRing) -> AsyncIterator[LineOPCUA]:
+    """The OPC UA server ``config`` of the cell's ``line`` while the context runs; ``keys`` authenticates
+    its users and is kept current by the caller."""
+    server = LineOPCUA(service, line, config, keys)
     try:
         await server.start()
         yield server

@@ -7,7 +7,7 @@ A planner decides where the sensor goes next and when to capture; it talks to th
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -144,9 +144,6 @@ class ScanSession(Protocol):
 
 class Planner(ABC):
     """A scan strategy. ``run`` drives the session until done and returns why it ended, in words."""
-
-    name: ClassVar[str]
-    description: ClassVar[str]
 
     def __init__(self, config: CellConfig) -> None:
         self.config = config

@@ -38,9 +38,6 @@ def raster_views(config: CellConfig) -> list[Array]:
 
 
 class RasterPlanner(Planner):
-    name = "raster"
-    description = "predetermined rings of views around the station (naive baseline, no feedback)"
-
     def run(self, session: ScanSession) -> str:
         views = raster_views(self.config)
         settle = self.config.planners.raster.settle_s

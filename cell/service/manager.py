@@ -229,8 +229,8 @@ class CellService:
         return self._held
 
     def planners(self) -> list[dict[str, str | bool]]:
-        return [{"name": name, "description": cls.description, "default": name == self.config.scan.planner}
-                for name, cls in sorted(PLANNERS.items())]
+        return [{"name": name, "description": entry.description, "default": name == self.config.scan.planner}
+                for name, entry in sorted(PLANNERS.items())]
 
     async def job(self, job_id: str) -> JobRecord:
         """A job of this cell, with the running job's newest progress; ``ServiceError`` (not found)."""

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 from cell.config.models import CellConfig
 from cell.jobs.inputs import check_seed
 from cell.jobs.placement import check_object_size, check_on_table
-from cell.planning.registry import PLANNERS
+from cell.planning.registry import check_planner
 from cell.service.objects import ObjectLibrary
-from drivers.errors import JobError, ServiceError
+from drivers.errors import JobError, PlanningError, ServiceError
 from drivers.sim.objects import EMPTY_TABLE
 
 MAX_TIME_BUDGET_S = 3600.0
@@ -56,8 +56,10 @@ def _invalid(message: str, field: str) -> ServiceError:
 def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> ValidJob:
     """The request completed with the cell's defaults, or ``ServiceError`` (invalid) naming the field."""
     planner = req.planner or config.scan.planner
-    if planner not in PLANNERS:
-        raise _invalid(f"unknown planner {planner!r}; registered: {', '.join(sorted(PLANNERS))}", "planner")
+    try:
+        check_planner(planner)
+    except PlanningError as exc:
+        raise _invalid(str(exc), "planner") from None
     seed = 0 if req.seed is None else req.seed
     try:
         check_seed(seed)

@@ -23,9 +23,6 @@ def heu_views(config: CellConfig) -> list[Array]:
 
 
 class HEUPlanner(Planner):
-    name = "heu"
-    description = "packing paper's heuristic baseline: 13 poses on an ellipse around the known object"
-
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
         self.reconstruction = ReconstructionHistory()

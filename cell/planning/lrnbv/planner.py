@@ -427,14 +427,14 @@ class RRTViewPlanner(Planner):
 
 
 class LRNBVPlanner(RRTViewPlanner):
-    name = "lr-nbv"
-    description = "Low-Resolution NBV (packing paper, Algorithm 1): RRT with cached nodes, all four gains"
+    """Algorithm 1 with all four gains (``lr-nbv``)."""
+
     section = "lrnbv"
     uses_density_and_visited = True
 
 
 class NBVPlanner(RRTViewPlanner):
-    name = "nbv"
-    description = "NBV baseline of the packing paper: Algorithm 1 with only the exploration and quality gains"
+    """The NBV baseline: Algorithm 1 with the exploration and quality gains only (``nbv``)."""
+
     section = "nbv"
     uses_density_and_visited = False

@@ -211,9 +211,6 @@ class GoalSeeker:
 
 
 class VSGlobalPlanner(ServoScanPlanner):
-    name = "vs-global"
-    description = "visual servoing towards the best of 5000 sampled views (paper eq. 10-11, Global)"
-
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
         self.goals = GoalSeeker(config)

@@ -15,9 +15,6 @@ from cell.planning.vs.servo_scan import Secondary, ServoScanPlanner
 
 
 class VSHybridPlanner(ServoScanPlanner):
-    name = "vs-hybrid"
-    description = "visual-servoing Local until converged, then one Global goal, repeated (paper II-D, Hybrid)"
-
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
         self.local = LocalGradient(config, coarse=False)  # its global goals leave a plateau

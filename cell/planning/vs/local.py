@@ -320,9 +320,6 @@ class LocalGradient:
 
 
 class VSLocalPlanner(ServoScanPlanner):
-    name = "vs-local"
-    description = "visual-servoing active vision, gradient of the entropy objective (paper eq. 1-9, Local)"
-
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
         self.local = LocalGradient(config)
