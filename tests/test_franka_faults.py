@@ -56,8 +56,15 @@ def start_a_long_move(backend: Backend) -> None:
     backend.wait_until(lambda: bool(np.max(np.abs(arm.state().qd)) > 0.05))
 
 
-def at_rest(backend: Backend) -> bool:
-    return bool(np.max(np.abs(backend.arm.state().qd)) < 1e-3)
+def at_rest(backend: Backend, window_s: float = 0.2) -> bool:
+    """The arm's joints moved at under 1e-3 rad/s on average over ``window_s`` [s]: it has stopped.
+
+    Not their speeds: franky-sim holds a stopped Panda with a PD law it integrates explicitly each 1 ms
+    step, and at times the last joint is left chattering between two positions one step apart for good:
+    its speed reads +-0.077 rad/s while it stays within 8e-5 rad (4 of 10 stops on a loaded machine)."""
+    q_before = backend.arm.state().q
+    backend.advance(window_s)
+    return bool(np.max(np.abs(backend.arm.state().q - q_before)) < 1e-3 * window_s)
 
 
 def test_a_reflex_during_a_move_stops_the_arm_names_its_errors_and_recovers(
