@@ -1,0 +1,85 @@
+"""How soon ``cell serve`` answers after it starts: the wall time [s] from starting the process (as a
+user does, ``python -m cell.cli.entry serve`` on ``config/sim-ur5e-tof.yaml``, a fresh data dir each run)
+to the first ``/healthz`` that answers 200, polled every 50 ms; the process is then stopped (SIGTERM).
+
+With ``--reference DIR`` (another checkout of the cell, e.g. ``git worktree add /tmp/ref REV`` with its
+compiled kernels copied in) the same is measured there, interleaved run by run (this tree, the
+reference, this tree, ...), and the ratio of the medians is printed: both share the machine's load
+alike. The service starts its spare job worker while it starts (``service.warm_worker``), which competes
+for the cores, as on a cell's PC.
+
+Prints one line per run, then as its last line JSON {"runs": {tree: [s, ...]}, "median_s": {...},
+"ratio": this / reference or null}.
+
+    .venv/bin/python benchmarks/serve_startup.py [--repeats 5] [--reference /tmp/ref]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parent.parent
+CELL_FILE = Path("config") / "sim-ur5e-tof.yaml"
+POLL_S = 0.05
+TIMEOUT_S = 120.0
+
+
+def _free_port() -> int:
+    with contextlib.closing(socket.socket()) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def time_to_healthz(tree: Path) -> float:
+    """Seconds from starting ``cell serve`` in ``tree`` to its first healthy ``/healthz``."""
+    port = _free_port()
+    with tempfile.TemporaryDirectory() as data_dir:
+        cmd = [sys.executable, "-m", "cell.cli.entry", "serve", "--config", str(tree / CELL_FILE),
+               "--data-dir", data_dir, "--port", str(port)]
+        start = time.monotonic()
+        proc = subprocess.Popen(cmd, cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            while time.monotonic() - start < TIMEOUT_S:
+                if proc.poll() is not None:
+                    raise RuntimeError(f"cell serve in {tree} exited with {proc.returncode}")
+                with contextlib.suppress(httpx.HTTPError):
+                    if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
+                        return time.monotonic() - start
+                time.sleep(POLL_S)
+            raise RuntimeError(f"cell serve in {tree} did not answer within {TIMEOUT_S:g} s")
+        finally:
+            proc.terminate()
+            proc.wait(timeout=60)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--reference", type=Path, default=None, help="another checkout, measured interleaved")
+    args = parser.parse_args()
+    trees = {"this": REPO, **({"reference": args.reference.resolve()} if args.reference else {})}
+    runs: dict[str, list[float]] = {name: [] for name in trees}
+    for repeat in range(args.repeats):
+        for name, tree in trees.items():
+            runs[name].append(time_to_healthz(tree))
+            print(f"run {repeat} {name}: {runs[name][-1]:.2f} s", flush=True)
+    medians = {name: statistics.median(values) for name, values in runs.items()}
+    ratio = medians["this"] / medians["reference"] if "reference" in medians else None
+    print(json.dumps({"runs": {k: [round(v, 3) for v in vs] for k, vs in runs.items()},
+                      "median_s": {k: round(v, 3) for k, v in medians.items()},
+                      "ratio": None if ratio is None else round(ratio, 3)}))
+
+
+if __name__ == "__main__":
+    main()
