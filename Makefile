@@ -26,11 +26,11 @@ $(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx cell/planning/vs/
 	touch $(STAMP)
 
 # pytest exits 5 when it collects no test: that is reported, not a failure. The suite runs in
-# TEST_WORKERS processes (pytest-xdist), each test file in one of them (its module fixtures built once):
-# two, the CI machine's cores.
+# TEST_WORKERS processes (pytest-xdist), each test file in one of them (its module fixtures built once),
+# handed out in collection order, the longest files first (tests/conftest.py): two, the CI machine's cores.
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	@$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile; rc=$$?; \
+	@$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 0; fi; exit $$rc
 
 # mypy checks the packages listed in pyproject.toml's [tool.mypy] files (cell, drivers, benchmarks).
