@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 
 from cell.cli.commands import COMMANDS
+from cell.planning.base import Planner
+from cell.planning.registry import PLANNERS, get_planner
 from tests.service_process import REPO
 
 # Runs the installed program's entry point with the given arguments, then prints which of the heavy
@@ -57,3 +59,10 @@ def test_the_help_lists_every_command_and_a_stop_of_no_job_says_why(tmp_path: Pa
                           capture_output=True, text=True, timeout=120, check=False)
     assert stop.returncode == 1
     assert stop.stderr.strip() == f"error: {tmp_path} is not a job folder (no log.txt)"
+
+
+def test_every_registered_planner_loads_as_a_planner():
+    """The registry names each planner by where it lives, imported only when a job runs it: each entry
+    must load a planner class."""
+    assert all(issubclass(get_planner(name), Planner) for name in PLANNERS)
+    assert len({entry.location for entry in PLANNERS.values()}) == len(PLANNERS)
