@@ -158,6 +158,10 @@ def _preload() -> None:
     starts its job without the second the imports take."""
     import cell.jobs.runner  # noqa: F401
     import drivers.factory  # noqa: F401
+    from cell.planning.registry import PLANNERS
+
+    for entry in PLANNERS.values():  # the registry imports a planner only when asked for it
+        entry.load()
 
 
 def main(argv: list[str] | None = None) -> int:
