@@ -194,7 +194,7 @@ def import_(name, *args, **kwargs):
         os.kill(os.getpid(), signal.SIGINT)
     return real_import(name, *args, **kwargs)
 builtins.__import__ = import_
-sys.argv = ["cell", "planners"]
+sys.argv = ["cell", "scan", "--help"]  # a command that loads Open3D and SciPy
 from cell.cli.entry import main
 main()
 """
