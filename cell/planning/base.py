@@ -143,7 +143,8 @@ class ScanSession(Protocol):
 
 
 class Planner(ABC):
-    """A scan strategy. ``run`` drives the session until done and returns why it ended, in words."""
+    """A scan strategy. ``run`` drives the session until done and returns why it ended, in words. A job
+    finds it by the name, with the description, that :mod:`cell.planning.registry` gives it."""
 
     def __init__(self, config: CellConfig) -> None:
         self.config = config
