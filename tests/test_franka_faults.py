@@ -61,7 +61,7 @@ def at_rest(backend: Backend, window_s: float = 0.2) -> bool:
 
     Not their speeds: franky-sim holds a stopped Panda with a PD law it integrates explicitly each 1 ms
     step, and at times the last joint is left chattering between two positions one step apart for good:
-    its speed reads +-0.077 rad/s while it stays within 8e-5 rad (4 of 10 stops on a loaded machine)."""
+    its speed reads +-0.077 rad/s while it stays within 8e-5 rad (8 of 26 stops on a loaded machine)."""
     q_before = backend.arm.state().q
     backend.advance(window_s)
     return bool(np.max(np.abs(backend.arm.state().q - q_before)) < 1e-3 * window_s)
