@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import socket
 import statistics
 import subprocess
 import sys
@@ -29,21 +28,19 @@ from pathlib import Path
 
 import httpx
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tests.service_process import free_port
+
 REPO = Path(__file__).resolve().parent.parent
 CELL_FILE = Path("config") / "sim-ur5e-tof.yaml"
 POLL_S = 0.05
 TIMEOUT_S = 120.0
 
 
-def _free_port() -> int:
-    with contextlib.closing(socket.socket()) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
 def time_to_healthz(tree: Path) -> float:
     """Seconds from starting ``cell serve`` in ``tree`` to its first healthy ``/healthz``."""
-    port = _free_port()
+    port = free_port()
     with tempfile.TemporaryDirectory() as data_dir:
         cmd = [sys.executable, "-m", "cell.cli.entry", "serve", "--config", str(tree / CELL_FILE),
                "--data-dir", data_dir, "--port", str(port)]

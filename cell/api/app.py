@@ -44,12 +44,12 @@ async def _refresh_keys(ring: KeyRing) -> None:
 def _line_opcua(cell: CellService, keys: KeyRing) -> contextlib.AbstractAsyncContextManager[object]:
     """The line's OPC UA server while the context runs, when the cell file has ``line.opcua``; asyncua (a
     second of imports) is loaded only then."""
-    line = cell.config.line
-    if cell.line is None or line is None or line.opcua is None:
+    line_config = cell.config.line
+    if cell.line is None or line_config is None or line_config.opcua is None:
         return contextlib.nullcontext()
     from cell.line.opcua import serve_opcua
 
-    return serve_opcua(cell, cell.line, line.opcua, keys)
+    return serve_opcua(cell, cell.line, line_config.opcua, keys)
 
 
 def create_app(settings: ServiceSettings, service: CellService | None = None) -> FastAPI:
