@@ -276,7 +276,8 @@ class Controller:
         silent_s = self.cycle_s - self.input_updated.get(reg, 0.0)
         if self.watchdog_hz > 0.0 and silent_s > 1.0 / self.watchdog_hz:
             self.halt()
-            self.end_program("RTDE watchdog expired")
+            self.end_program(f"RTDE watchdog expired: no command for {silent_s:.3f} s of controller time "
+                             f"at {self.watchdog_hz:g} Hz")
             return
         cmd = self.in_int(0)
         out = self.reg_int_offset
