@@ -207,6 +207,28 @@ def test_the_status_bar_shows_the_lines_packml_state_when_there_is_one(
 # ---------------------------------------------------------------------------------------------- scans
 
 
+def test_the_form_says_it_is_loading_until_the_api_answers(open_page: Callable[..., Page],
+                                                          cell: ServedCell) -> None:
+    """The form needs the planners, the cell and the objects: while an answer is held back, its place says
+    that it is loading (not a blank panel), and the form replaces that once the answer arrives."""
+    page = open_page()
+    held: list[Any] = []
+
+    def hold(route: Any) -> None:
+        held.append(route)
+
+    page.route("**/api/v1/planners", hold)
+    log_in(page, cell.keys["operator"])
+    page.wait_for_selector("#form-loading")
+    wait_for(page, "document.querySelector('#form-loading h2').textContent === 'New scan'")
+    assert "Loading the form" in page.text_content("#form-loading")
+    assert page.locator("form.scan-form").count() == 0 and len(held) == 1
+    shot(page, "new-scan-loading")
+    held[0].continue_()
+    page.wait_for_selector("form.scan-form")
+    assert page.locator("#form-loading").count() == 0
+
+
 def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
         open_page: Callable[..., Page], cell: ServedCell) -> None:
     page = open_page("operator")
@@ -361,6 +383,7 @@ def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callabl
         page = open_page("operator", other=faulty)
         page.wait_for_selector("#recover:not([hidden])")
         assert "recover the arm first" in page.text_content("#st-held")
+        page.wait_for_selector("form.scan-form")
         shot(page, "protective-stop")
         page.click("#recover")
         wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('Recover:')")

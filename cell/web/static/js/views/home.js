@@ -10,7 +10,10 @@ export function showHome(main, context) {
   const running = h("p", { id: "running-now" }, "Nothing is running.");
   const side = h("section", { class: "card", "aria-labelledby": "now-title" },
     h("h2", { id: "now-title" }, "Now"), running, h("p", {}, h("a", { href: "#/jobs" }, "All jobs")));
-  const slot = h("div", { class: "form-slot" });
+  // the form needs three answers of the API first: until then the slot says so rather than stay blank
+  const slot = h("div", { class: "form-slot" },
+    h("section", { class: "card", id: "form-loading", "aria-busy": "true" }, h("h2", {}, "New scan"),
+      h("p", {}, "Loading the form…")));
   main.append(h("div", { class: "home" }, slot, side));
 
   if (context.can("submit")) {
