@@ -283,6 +283,11 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     page.wait_for_url(re.compile(r"#/jobs\?planner=raster&part_id=crate-17$"))
     page.wait_for_selector(f"table.jobs a[href='#/jobs/{job_id}']")
     assert page.locator("table.jobs tbody tr").count() == 1 and page.text_content(".pager span") == "1–1 of 1"
+    # the part id on one line of text, as it is written: an identifier is not broken at its hyphen
+    lines = page.evaluate("() => { const r = document.createRange(); "
+                          "r.selectNodeContents(document.querySelector('table.jobs tbody td.part')); "
+                          "return r.getClientRects().length; }")
+    assert lines == 1 and page.get_attribute("table.jobs tbody td.part", "title") == "crate-17"
     shot(page, "jobs")
     page.click(f"table.jobs a[href='#/jobs/{job_id}']")
     page.wait_for_selector("#result")

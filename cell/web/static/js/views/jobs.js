@@ -27,7 +27,7 @@ function row(job) {
     h("td", {}, h("span", { class: `status status-${job.status}` }, job.status)),
     h("td", {}, job.planner),
     h("td", {}, job.object ?? "–"),
-    h("td", {}, job.part_id ?? "–"),
+    h("td", { class: "part", title: job.part_id ?? "" }, job.part_id ?? "–"),
     h("td", { class: "num" }, result.n_captures ?? job.progress?.n_captures ?? "–"),
     h("td", { class: "num" }, fmt(coverage, 1, "%")),
     h("td", { class: "dims" }, dims ? `${dims.map((v) => v.toFixed(3)).join(" × ")} m` : "–"),
