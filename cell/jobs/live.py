@@ -22,13 +22,12 @@ from collections import deque
 from collections.abc import Callable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cell.perception.pipeline import AsyncPerception, PerceptionPipeline, PerceptionUpdate
 from drivers.depth.base import DepthFrame, DepthSensor
 from drivers.errors import DriverError
 from drivers.scheduling import ordinary_scheduling
-from drivers.transforms import inv_T
+from drivers.transforms import inv_T, rotation_from_rotvec, rotvec
 
 Array = np.ndarray
 
@@ -73,8 +72,8 @@ class PoseHistory:
             T0, T1 = self._poses[k - 1], self._poses[k]
         s = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
         T = np.eye(4)
-        step = Rotation.from_matrix(T0[:3, :3].T @ T1[:3, :3]).as_rotvec()
-        T[:3, :3] = T0[:3, :3] @ Rotation.from_rotvec(s * step).as_matrix()
+        step = rotvec(T0[:3, :3].T @ T1[:3, :3])
+        T[:3, :3] = T0[:3, :3] @ rotation_from_rotvec(s * step)
         T[:3, 3] = (1.0 - s) * T0[:3, 3] + s * T1[:3, 3]
         return T
 

@@ -14,12 +14,11 @@ from types import ModuleType
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from drivers.arm.base import Arm, JointTrajectory
 from drivers.errors import DriverError
 from drivers.robots.model import RobotModel
-from drivers.transforms import make_T
+from drivers.transforms import make_T, rotation_from_rotvec, rotvec
 
 Array = NDArray[np.float64]
 
@@ -67,11 +66,11 @@ def shift_twist(v: Array, lever_base: Array) -> Array:
 def ur_pose_to_T(pose: object) -> Array:
     """A UR pose (x, y, z [m], rx, ry, rz [rad, axis-angle]) as a 4x4 transform."""
     p = np.asarray(pose, dtype=float)
-    return make_T(Rotation.from_rotvec(p[3:]).as_matrix(), p[:3])
+    return make_T(rotation_from_rotvec(p[3:]), p[:3])
 
 
 def T_to_ur_pose(T: Array) -> Array:
-    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+    return np.concatenate([T[:3, 3], rotvec(T[:3, :3])])
 
 
 def check_trajectory(trajectory: JointTrajectory, model: RobotModel, q_now: Array, device: str) -> None:
