@@ -282,9 +282,13 @@ class CollisionWorld:
         size = hi - lo
         return self._static(name, fcl.Box(*size), T, float(np.linalg.norm(size) / 2.0))
 
+    def _poses(self, q: Array) -> Array:
+        """The moving bodies' poses (k, 4, 4) at ``q`` in the base frame (their FCL objects not moved)."""
+        return self._model.fk_all(q)[self._frames] @ self._local
+
     def _place(self, q: Array) -> Array:
         """Pose every moving body at ``q``; returns their poses (k, 4, 4) in the base frame."""
-        T = self._model.fk_all(q)[self._frames] @ self._local
+        T = self._poses(q)
         for obj, Tk in zip(self._objs, T, strict=True):
             obj.setTransform(_fcl_transform(Tk))
         return T
@@ -343,15 +347,22 @@ class CollisionWorld:
                    ) -> tuple[Array, Collision | None]:
         """Lower bounds [m] on the distance of each pair at joints ``q``: the gap between the pair's bounding
         spheres, or FCL's distance where that gap is below ``need`` (p,); and the first pair found within
-        ``PATH_CONTACT_M`` (touching), or None."""
-        T = self._place(q)
+        ``PATH_CONTACT_M`` (touching), or None. Only the moving bodies of the pairs that need FCL's
+        distance have their FCL objects moved to ``q`` (most pairs are cleared by their spheres)."""
+        T = self._poses(q)
+        n_moving = len(self._objs)
         centers = np.vstack([T[:, :3, 3], [st.center for st in statics]])
         radii = np.concatenate([self._radii, [st.radius for st in statics]])
         a, b = pairs[:, 0], pairs[:, 1]
         gap = np.linalg.norm(centers[a] - centers[b], axis=1) - radii[a] - radii[b]
         objs = self._objs + [st.obj for st in statics]
+        placed = np.zeros(n_moving, dtype=bool)
         for p in np.nonzero(gap < np.maximum(need, PATH_CONTACT_M))[0]:
             i, j = pairs[p]
+            for body in (i, j):
+                if body < n_moving and not placed[body]:
+                    objs[body].setTransform(_fcl_transform(T[body]))
+                    placed[body] = True
             gap[p] = self._distance(objs[i], objs[j])
             if gap[p] <= PATH_CONTACT_M:
                 names = self.moving_names + [st.name for st in statics]
