@@ -58,7 +58,7 @@ def quat_xyzw(T: Array) -> Array:
     r00, r11, r22 = float(R[0, 0]), float(R[1, 1]), float(R[2, 2])
     trace = r00 + r11 + r22
     i = 0 if r00 >= r11 and r00 >= r22 else (1 if r11 >= r22 else 2)
-    if trace >= float(R[i, i]):
+    if trace > float(R[i, i]):
         q = [float(R[2, 1] - R[1, 2]), float(R[0, 2] - R[2, 0]), float(R[1, 0] - R[0, 1]), 1.0 + trace]
     else:
         j, k = (i + 1) % 3, (i + 2) % 3
