@@ -162,6 +162,9 @@ def events_of(cell: ServedCell, job_id: str) -> list[str]:
 
 def test_a_wrong_key_is_refused_and_nothing_is_kept(open_page: Callable[..., Page]) -> None:
     page = open_page()
+    # the command that makes a key, set as code (not in Markdown's backticks)
+    assert page.text_content("#login-help code") == "cell keys create"
+    assert "`" not in page.text_content("#login-help")
     shot(page, "login")
     log_in(page, "cell_" + "A" * 43)
     wait_for(page, "document.getElementById('login-error').textContent.length > 0")

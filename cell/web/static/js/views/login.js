@@ -18,7 +18,8 @@ export function showLogin(main, message = "") {
       h("label", { for: "login-key" }, "API key"),
       input,
       h("p", { id: "login-help", class: "hint" },
-        "A key made with `cell keys create`. It is kept in this browser tab only, until you log out or close the tab."),
+        "A key made with ", h("code", { class: "mono" }, "cell keys create"),
+        ". It is kept in this browser tab only, until you log out or close the tab."),
       button, error);
     form.addEventListener("submit", async (event) => {
       event.preventDefault();
