@@ -106,7 +106,9 @@ class LineController:
         self._message = ""
         self._source = ""
         self._listeners: list[Listener] = []
-        self._writes: asyncio.Queue[Callable[[], None] | None] = asyncio.Queue()
+        # store writes in order: a write, a reader's marker (set once the writes before it are done), or
+        # None (close)
+        self._writes: asyncio.Queue[Callable[[], None] | asyncio.Event | None] = asyncio.Queue()
         self._writer: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         # what each acting state does before its state-complete transition
@@ -162,6 +164,12 @@ class LineController:
                             self._message)
 
     async def history(self, limit: int, before_id: int | None) -> list[tuple[int, LineTransition]]:
+        """The transitions the store holds, newest first, those queued for it so far included: a client
+        that saw the line in a state finds the transition into it."""
+        if self._writer is not None and not self._writer.done():
+            written = asyncio.Event()
+            self._writes.put_nowait(written)
+            await written.wait()
         return await asyncio.to_thread(self._store.line_transitions, self._cell, limit=limit,
                                        before_id=before_id)
 
@@ -409,6 +417,9 @@ class LineController:
 
     async def _write_all(self) -> None:
         while (write := await self._writes.get()) is not None:
+            if isinstance(write, asyncio.Event):
+                write.set()
+                continue
             try:
                 await asyncio.to_thread(write)
             except StoreError as exc:
