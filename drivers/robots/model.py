@@ -205,6 +205,8 @@ class RobotModel:
     limit_avoidance_gain: float = 0.0
     n_joints: int = field(init=False)
     adjacent_capsule_pairs: frozenset[frozenset[str]] = field(init=False)
+    _fixed_links: Array = field(init=False, repr=False)
+    _flange_link: Array = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         n = int(np.asarray(self.a).shape[0])
@@ -224,6 +226,11 @@ class RobotModel:
             raise ValueError(f"{self.name}: theta_offset must have {n} entries")
         off.setflags(write=False)
         set_(self, "theta_offset", off)
+        # The parts of the DH transforms no joint changes, computed once (fk_all, _links).
+        dh = _dh_standard if self.convention == "standard" else _dh_modified
+        set_(self, "_fixed_links", dh(np.zeros(n), self.d, self.a, self.alpha))
+        fa, fd, falpha = self.flange if self.flange is not None else (0.0, 0.0, 0.0)
+        set_(self, "_flange_link", dh(np.zeros(1), np.array([fd]), np.array([fa]), np.array([falpha]))[0])
         if np.any(self.q_min >= self.q_max):
             raise ValueError(f"{self.name}: q_min must be below q_max")
         if np.any(self.qd_max <= 0) or np.any(self.qdd_max <= 0) or np.any(self.qddd_max <= 0):
@@ -257,10 +264,21 @@ class RobotModel:
 
     # ------------------------------------------------------------------ kinematics
 
-    def _dh(self, theta: Array, d: Array, a: Array, alpha: Array) -> Array:
+    def _links(self, theta: Array) -> Array:
+        """The link transforms (n, 4, 4) at joint angles ``theta`` (n,) [rad] (offsets included): the
+        joint's turn about z times the link's fixed part (standard DH, Rz(theta) Tz(d) Tx(a) Rx(alpha)), or
+        the fixed part times the turn (modified DH, Rx(alpha) Tx(a) Tz(d) Rz(theta), as Rz and Tz commute).
+        Only the two rows or columns the turn mixes are computed."""
+        ct, st = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        fixed = self._fixed_links
+        A = fixed.copy()
         if self.convention == "standard":
-            return _dh_standard(theta, d, a, alpha)
-        return _dh_modified(theta, d, a, alpha)
+            A[:, 0, :] = ct * fixed[:, 0, :] - st * fixed[:, 1, :]
+            A[:, 1, :] = st * fixed[:, 0, :] + ct * fixed[:, 1, :]
+        else:
+            A[:, :, 0] = ct * fixed[:, :, 0] + st * fixed[:, :, 1]
+            A[:, :, 1] = ct * fixed[:, :, 1] - st * fixed[:, :, 0]
+        return A
 
     def check_q(self, q: object, what: str = "q") -> Array:
         """``q`` as a float array of length ``n_joints``; raises ``KinematicsError`` when it is not."""
@@ -273,19 +291,13 @@ class RobotModel:
         """
         qv = self.check_q(q)
         assert self.theta_offset is not None
-        A = self._dh(qv + self.theta_offset, self.d, self.a, self.alpha)
-        out = np.empty((self.n_joints + 2, 4, 4))
+        A = self._links(qv + self.theta_offset)
+        n = self.n_joints
+        out = np.empty((n + 2, 4, 4))
         out[0] = np.eye(4)
-        T = out[0]
-        for i in range(self.n_joints):
-            T = T @ A[i]
-            out[i + 1] = T
-        if self.flange is None:
-            out[-1] = T
-        else:
-            fa, fd, falpha = self.flange
-            F = self._dh(np.zeros(1), np.array([fd]), np.array([fa]), np.array([falpha]))[0]
-            out[-1] = T @ F
+        for i in range(n):
+            np.matmul(out[i], A[i], out=out[i + 1])
+        np.matmul(out[n], self._flange_link, out=out[n + 1])
         return out
 
     def fk(self, q: object) -> Array:
