@@ -31,7 +31,7 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 TEST_FILES = ("tests/test_safety_guard.py", "tests/test_safety_properties.py",
-              "tests/test_safety_scenarios.py")
+              "tests/test_safety_scenarios.py", "tests/test_collision_motion.py")
 RUN_TIMEOUT_S = 900.0
 GUARD = "cell/safety/guard.py"
 COLLISION = "cell/safety/collision.py"
@@ -62,8 +62,17 @@ MUTANTS = (
     Mutant("no-collision-check-of-twists", "the motion predicted ahead of a streamed twist is not checked "
            "for collisions", GUARD, "hit = self._collision_ahead(state.q, ik(v))", "hit = None"),
     Mutant("no-path-check-of-twists", "only the configuration predicted ahead of a streamed twist is checked "
-           "for collisions, not the arm's way to it", GUARD, "check_path(np.stack([q, q_pred]), ",
-           "check_path(np.stack([q_pred, q_pred]), "),
+           "for collisions, not the arm's way to it", GUARD, "check_motion(q, q_pred)",
+           "check_motion(q_pred, q_pred)"),
+    Mutant("no-bound-since-the-reference", "the arm's way ahead is cleared by the distances kept from an "
+           "earlier tick without the bound on how far the arm moved since", COLLISION,
+           'reach = np.einsum("pn,pn->p", ref.levers, np.abs(q_from - ref.q)) + span', "reach = span"),
+    Mutant("no-new-roi-for-the-way-ahead", "the distances kept for the arm's way ahead outlive a new ROI",
+           COLLISION, "        self._reference = None\n        if aabb_min is None",
+           "        if aabb_min is None"),
+    Mutant("every-capsule-axial", "a joint's turn counts as keeping the distance of every capsule it turns "
+           "(not only of one on its axis)", COLLISION, "axial[i] = on_z & (axis_frame == c.frame)",
+           "axial[i] = c.frame <= axis_frame"),
     Mutant("no-collision-check-of-moves", "trajectories are not checked for collisions", GUARD,
            "hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)", "hit = None"),
     Mutant("no-fcl", "FCL never reports a contact (the collision world finds none in a configuration)",

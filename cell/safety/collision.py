@@ -21,6 +21,11 @@ A joint path (:meth:`CollisionWorld.check_path`) is checked continuously, not on
 two configurations checked with FCL's distance, every point of a body moves at most a bound derived from the
 robot model's geometry (:meth:`CollisionWorld.sweep_bound`), so a pair whose distances at both ends add up
 to more than the pair's bounds cannot touch in between; a stretch where they do not is bisected.
+
+The guard checks the arm's way ahead every control period (:meth:`CollisionWorld.check_motion`); those
+paths start a fraction of a millimetre apart, so the distances found for one are kept, pair by pair, and
+clear the next paths for as long as the same bound says that the pair cannot have come near enough since
+(conservative advancement): most ticks need no FCL call at all.
 """
 
 from __future__ import annotations
@@ -51,6 +56,10 @@ PATH_CONTACT_M = 1e-4
 ROI_ARM_CLEARANCE_M = 2.0 * PATH_CONTACT_M
 # Such a margin is found by bisection to within this [m].
 _ROI_MARGIN_TOL_M = 1e-4
+# A pair looked at again for the paths checked again and again (CollisionWorld.check_motion) gets FCL's
+# distance when its spheres come within this many times the path's bound: its reference then lasts while
+# the arm covers about twice that path again before the spheres' gap would have to be looked at closer.
+REFERENCE_REACH = 3.0
 
 
 @dataclass(frozen=True)
@@ -70,6 +79,18 @@ class _Static:
     obj: fcl.CollisionObject
     center: Array
     radius: float
+
+
+@dataclass
+class _Reference:
+    """For each of the path check's ``pairs`` (p, 2), with their ``levers`` (p, n) [m/rad]
+    (``CollisionWorld._path_pairs``): a lower bound ``distance`` (p,) [m] on its distance at joints ``q``
+    (p, n) [rad], where it was last looked at (``CollisionWorld.check_motion``)."""
+
+    q: Array
+    distance: Array
+    pairs: Array
+    levers: Array
 
 
 def _fcl_transform(T: Array) -> fcl.Transform:
@@ -146,6 +167,7 @@ class CollisionWorld:
         self._radii = np.asarray(radii)
         self._on_base = self._frames <= _BASE_FRAMES
         self._lever = self._sweep_levers(model, self._frames, np.asarray(extents))
+        self._axial = self._axial_capsules(model, len(self._objs))
         allowed = np.eye(n_moving, dtype=bool)
         for i, a in enumerate(self.moving_names):
             for j, b in enumerate(self.moving_names):
@@ -165,6 +187,7 @@ class CollisionWorld:
             self._obstacles.append(self._static(body.name, geom, body.pose.matrix(), radius))
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
+        self._reference: _Reference | None = None
 
     @staticmethod
     def _sweep_levers(model: RobotModel, frames: Array, extents: Array) -> Array:
@@ -183,6 +206,21 @@ class CollisionWorld:
         axis_frame = np.arange(n) + (0 if model.convention == "standard" else 1)
         lever = extents[:, None] + reach[frames][:, None] - reach[axis_frame][None, :]
         return np.where(np.arange(n)[None, :] < frames[:, None], lever, 0.0)
+
+    @staticmethod
+    def _axial_capsules(model: RobotModel, n_moving: int) -> NDArray[np.bool_]:
+        """(bodies, joints): True where the body is a link capsule whose segment lies on the joint's axis,
+        which is fixed in the capsule's frame: the capsule is carried by the frame whose z axis the joint
+        turns about (``_sweep_levers``) and both its ends are on that z axis. Such a capsule is the same set
+        of points after any turn of the joint about it, so the joint's turn (of the capsule itself, or of
+        the bodies beyond it) does not change the distance between the capsule and any body."""
+        n = model.n_joints
+        axis_frame = np.arange(n) + (0 if model.convention == "standard" else 1)
+        axial = np.zeros((n_moving, n), dtype=bool)
+        for i, c in enumerate(model.capsule_specs):
+            on_z = not np.any(np.asarray([c.a[:2], c.b[:2]], dtype=float))
+            axial[i] = on_z & (axis_frame == c.frame)
+        return axial
 
     def sweep_bound(self, dq: Array) -> Array:
         """How far [m] any point of each moving body (k,) can move while the joints go along a straight
@@ -213,6 +251,7 @@ class CollisionWorld:
         from there is refused, as without ``q_free``).
 
         Returns the margins [m] of the faces (-x, -y, -z, +x, +y, +z) when one was shrunk, else None."""
+        self._reference = None
         if aabb_min is None or aabb_max is None:
             self._roi = None
             return None
@@ -333,15 +372,25 @@ class CollisionWorld:
     def _statics(self) -> list[_Static]:
         return [self._table, *self._obstacles] + ([self._roi] if self._roi is not None else [])
 
-    def _path_pairs(self, statics: list[_Static]) -> Array:
+    def _path_pairs(self, statics: list[_Static]) -> tuple[Array, Array]:
         """The pairs a path check watches, as (p, 2) indices into the moving bodies followed by ``statics``:
-        (moving body, static) for every static the body can touch, then the self-collision pairs."""
+        (moving body, static) for every static the body can touch, then the self-collision pairs; and their
+        levers (p, n) [m/rad]: how far a joint's turn by one radian moves one body of the pair relative to
+        the other, at most (:meth:`sweep_bound`). A joint's turn keeps the pair's distance, and its lever is
+        zero, when it moves both bodies (as one rigid piece) or when it turns about one of them (a capsule
+        on its axis, :meth:`_axial_capsules`; the UR5e's upper arm passes 3 mm from its base, which the
+        first joint turns it around)."""
         n_moving = len(self._objs)
         pairs = [self._self_pairs]
         for s, st in enumerate(statics):
             bodies = np.nonzero(self._can_touch(st))[0]
             pairs.insert(-1, np.column_stack([bodies, np.full(bodies.size, n_moving + s)]))
-        return np.concatenate(pairs).astype(int)
+        index = np.concatenate(pairs).astype(int)
+        levers = np.vstack([self._lever, np.zeros((len(statics), self._lever.shape[1]))])
+        axial = np.vstack([self._axial, np.zeros((len(statics), self._axial.shape[1]), dtype=bool)])
+        a, b = index[:, 0], index[:, 1]
+        kept = ((levers[a] > 0.0) & (levers[b] > 0.0)) | axial[a] | axial[b]
+        return index, np.where(kept, 0.0, levers[a] + levers[b])
 
     def _clearance(self, q: Array, need: Array, pairs: Array, statics: list[_Static]
                    ) -> tuple[Array, Collision | None]:
@@ -394,11 +443,7 @@ class CollisionWorld:
             owner += [k] * n_sub
         q = np.concatenate(dense)
         statics = self._statics()
-        pairs = self._path_pairs(statics)
-        levers = np.vstack([self._lever, np.zeros((len(statics), self._lever.shape[1]))])
-        first, second = levers[pairs[:, 0]], levers[pairs[:, 1]]
-        # A joint that moves both bodies of a pair moves them as one rigid piece: their distance stays.
-        pair_levers = np.where((first > 0.0) & (second > 0.0), 0.0, first + second)
+        pairs, pair_levers = self._path_pairs(statics)
         sweeps = np.abs(np.diff(q, axis=0)) @ pair_levers.T
         # A configuration's distances are exact (FCL) where the sphere test alone cannot clear the
         # stretches on either side of it.
@@ -415,6 +460,46 @@ class CollisionWorld:
                 return owner[k], hit
             d_prev = d_next
         return None
+
+    def check_motion(self, q_from: Array, q_to: Array) -> tuple[int, Collision] | None:
+        """Check the straight joint path from ``q_from`` to ``q_to`` (n,) [rad] as :meth:`check_path` does,
+        for a path checked again and again as the arm moves (the guard's way ahead, every control period).
+        Returns ``(0, contact)`` when ``q_from`` itself touches, ``(1, contact)`` for a contact further on,
+        or None.
+
+        Each pair keeps a reference: a lower bound on its distance at joints q_r where it was last looked
+        at. At any q on the path, each joint is at most ``|q_from - q_r| + |q_to - q_from|`` from q_r
+        (triangle inequality), so by :meth:`check_path`'s bound the pair's distance there is at least the
+        reference less the pair's levers times that reach; a pair for which that stays above
+        ``PATH_CONTACT_M`` needs no FCL call (conservative advancement). The others are looked at again at
+        ``q_from`` (FCL's distance where their spheres come within ``REFERENCE_REACH`` times the path's own
+        bound, the spheres' gap beyond), which becomes their reference; those the path's own bound does not
+        clear from there are checked at ``q_to`` and along the path by bisection (:meth:`_check_stretch`).
+        A new ROI drops the references."""
+        q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
+        statics = self._statics()
+        ref = self._reference
+        if ref is None:
+            pairs, levers = self._path_pairs(statics)
+            ref = _Reference(np.tile(q_from, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers)
+        span = ref.levers @ np.abs(q_to - q_from)
+        reach = np.einsum("pn,pn->p", ref.levers, np.abs(q_from - ref.q)) + span
+        stale = np.nonzero(ref.distance - reach <= PATH_CONTACT_M)[0]
+        if stale.size == 0:
+            return None
+        pairs, levers = ref.pairs[stale], ref.levers[stale]
+        distance, hit = self._clearance(q_from, REFERENCE_REACH * span[stale], pairs, statics)
+        if hit is not None:
+            return 0, hit
+        ref.q[stale], ref.distance[stale] = q_from, distance
+        self._reference = ref
+        open_ = distance - span[stale] <= PATH_CONTACT_M
+        if not np.any(open_):
+            return None
+        pairs, levers, distance = pairs[open_], levers[open_], distance[open_]
+        d_to, hit = self._clearance(q_to, span[stale][open_], pairs, statics)
+        hit = hit or self._check_stretch(q_from, distance, q_to, d_to, pairs, levers, statics)
+        return None if hit is None else (1, hit)
 
     def _check_stretch(self, qa: Array, da: Array, qb: Array, db: Array, pairs: Array, levers: Array,
                        statics: list[_Static]) -> Collision | None:

@@ -104,11 +104,11 @@ class CollisionConfig(StrictModel):
     """The collision world checked with python-fcl.
 
     ``lookahead_s``: each control tick checks the joint path to the configuration predicted this far
-    ahead at the commanded velocity. ``trajectory_step_rad``: joint paths (point-to-point moves and that
-    of each tick) are checked exactly at configurations no further apart than this in any joint, and
-    between them by a bound on how far the bodies move. ``roi_margin_m``: the object's ROI box is inflated
-    by this much on each side. ``tool``: bodies carried by the flange (the sensor and its bracket), posed in
-    the flange frame.
+    ahead at the commanded velocity, continuously (``CollisionWorld.check_motion``).
+    ``trajectory_step_rad``: the joint paths of point-to-point moves are checked exactly at configurations
+    no further apart than this in any joint, and between them by a bound on how far the bodies move.
+    ``roi_margin_m``: the object's ROI box is inflated by this much on each side. ``tool``: bodies carried
+    by the flange (the sensor and its bracket), posed in the flange frame.
     ``obstacles``: static bodies in the base frame.
     """
 

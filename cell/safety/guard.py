@@ -417,14 +417,14 @@ class MotionGuard:
         """The contact the arm would make going on at joint velocities ``qd`` [rad/s] from ``q`` [rad] for
         ``collision.lookahead_s``, or None.
 
-        The whole straight joint path to the predicted configuration is checked (``check_path``), not only
+        The whole straight joint path to the predicted configuration is checked (``check_motion``), not only
         its end: where the arm turns, what it reaches next lies off the line that earlier predictions
         followed, so a corner of an obstacle can lie beside every predicted end and still on the arm's way
         (the soak's UR5e forearm went into one that way). One control period of motion and the arm's stop
         after it run along this line. An arm that already touches something (an ROI that grew over it)
         may still move where the predicted configuration is clear."""
         q_pred = np.clip(q + qd * self._safety.collision.lookahead_s, self._model.q_min, self._model.q_max)
-        hit = self.collision.check_path(np.stack([q, q_pred]), self._safety.collision.trajectory_step_rad)
+        hit = self.collision.check_motion(q, q_pred)
         if hit is None:
             return None
         return hit[1] if hit[0] > 0 else self.collision.check(q_pred)

@@ -1,0 +1,98 @@
+"""The collision world's check of the arm's way ahead, looked at again every control period
+(``CollisionWorld.check_motion``): it keeps each pair's distance from where it last looked and must still
+find every contact that a full path check finds, after the arm moved on and after a new ROI; the pair
+bound it rests on, with the joints that turn a body about a capsule on their axis, holds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.config import load_config
+from cell.safety.collision import CollisionWorld
+from drivers.robots import get_robot_model
+
+from .safety_rig import CELLS
+
+# FCL's distance between a box (the tool) and a capsule comes out to about 1e-5 m (its GJK's tolerance):
+# two bodies moved as one rigid piece show that much change.
+FCL_TOL_M = 5e-5
+
+
+def _world(model_name: str) -> tuple[CollisionWorld, np.ndarray]:
+    cfg = load_config(CELLS[model_name])
+    model = get_robot_model(model_name)
+    world = CollisionWorld(model, cfg.safety.collision, cfg.station.table_z_m)
+    return world, np.asarray(cfg.arm.home_joints_rad)
+
+
+def _walk_towards(world: CollisionWorld, q0: np.ndarray, q_goal: np.ndarray, ticks: int, lookahead: float
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ticks of an arm going straight from ``q0`` to ``q_goal`` in ``ticks`` steps, each with the
+    configuration ``lookahead`` steps ahead (the guard's predicted path), as (q, q_pred)."""
+    step = (q_goal - q0) / ticks
+    return [(q0 + k * step, q0 + (k + lookahead) * step) for k in range(ticks)]
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_the_way_ahead_finds_the_contact_a_full_path_check_finds_tick_by_tick(model_name):
+    """An arm driven down at the object's box, each tick's way ahead checked by both: kept distances may
+    only save work, never hide a contact (the first tick that sees one is the same, and so is each answer)."""
+    world, q_home = _world(model_name)
+    model = get_robot_model(model_name)
+    flange = model.fk(q_home)[:3, 3]
+    world.set_roi(flange - np.array([0.04, 0.04, 0.30]), flange - np.array([-0.04, -0.04, 0.18]))
+    T = model.fk(q_home)
+    T[2, 3] -= 0.25
+    q_goal = model.ik_pose(T, q_home)
+    answers = []
+    for q, q_pred in _walk_towards(world, q_home, q_goal, ticks=120, lookahead=15):
+        full = world.check_path(np.stack([q, q_pred]), 0.02)
+        ahead = world.check_motion(q, q_pred)
+        assert (ahead is None) == (full is None), (q, full, ahead)
+        answers.append(ahead is not None)
+    first = answers.index(True)
+    assert 10 < first < 110 and all(answers[first:first + 5])
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_a_new_roi_is_seen_by_the_next_tick(model_name):
+    """The arm's way ahead cleared many times with no ROI, then a box appears on it: the next check sees it
+    (the kept distances were about the bodies as they were)."""
+    world, q_home = _world(model_name)
+    model = get_robot_model(model_name)
+    q_pred = q_home + 0.01
+    for _ in range(5):
+        assert world.check_motion(q_home, q_pred) is None
+    flange = model.fk(q_pred)[:3, 3]
+    world.set_roi(flange - 0.02, flange + 0.02)
+    hit = world.check_motion(q_home, q_pred)
+    assert hit is not None and hit[1].body_b == "object ROI"
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_no_pair_comes_closer_than_its_bound_says(model_name):
+    """The pairs' bounds (the moving bodies' levers, nothing for a joint that moves both bodies or turns one
+    about a capsule on its axis) against FCL's distances, along random moves and along turns of each joint
+    alone, from random configurations: a pair's distance never changes by more than its bound."""
+    world, _ = _world(model_name)
+    model = get_robot_model(model_name)
+    statics = world._statics()
+    pairs, levers = world._path_pairs(statics)
+    objs = world._objs + [st.obj for st in statics]
+    rng = np.random.default_rng(11)
+    n = model.n_joints
+    moves = [rng.uniform(-0.4, 0.4, n) for _ in range(12)] + [0.4 * np.eye(n)[j] for j in range(n)]
+    axial_pairs = 0
+    for dq in moves:
+        q0 = rng.uniform(model.q_min, model.q_max)
+        world._place(q0)
+        before = np.array([world._distance(objs[a], objs[b]) for a, b in pairs])
+        world._place(q0 + dq)
+        after = np.array([world._distance(objs[a], objs[b]) for a, b in pairs])
+        bound = levers @ np.abs(dq)
+        apart = (before > 0.0) & (after > 0.0)  # FCL's distance is a depth, not a distance, once they touch
+        excess = np.where(apart, np.abs(after - before) - bound, 0.0)
+        assert np.max(excess) <= FCL_TOL_M
+        axial_pairs += int(np.sum((bound == 0.0) & (np.abs(dq) @ world._lever[pairs[:, 0]].T > 0.0)))
+    assert axial_pairs > 0  # some bounds were zero only because a joint turned a body about a capsule
