@@ -68,8 +68,7 @@ MUTANTS = (
            "earlier tick without the bound on how far the arm moved since", COLLISION,
            'reach = np.einsum("pn,pn->p", ref.levers, np.abs(q_from - ref.q)) + span', "reach = span"),
     Mutant("no-new-roi-for-the-way-ahead", "the distances kept for the arm's way ahead outlive a new ROI",
-           COLLISION, "        self._reference = None\n        if aabb_min is None",
-           "        if aabb_min is None"),
+           COLLISION, "if ref is None or ref.roi is not roi:", "if ref is None:"),
     Mutant("every-capsule-axial", "a joint's turn counts as keeping the distance of every capsule it turns "
            "(not only of one on its axis)", COLLISION, "axial[i] = on_z & (axis_frame == c.frame)",
            "axial[i] = c.frame <= axis_frame"),

@@ -85,12 +85,14 @@ class _Static:
 class _Reference:
     """For each of the path check's ``pairs`` (p, 2), with their ``levers`` (p, n) [m/rad]
     (``CollisionWorld._path_pairs``): a lower bound ``distance`` (p,) [m] on its distance at joints ``q``
-    (p, n) [rad], where it was last looked at (``CollisionWorld.check_motion``)."""
+    (p, n) [rad], where it was last looked at (``CollisionWorld.check_motion``); ``roi`` is the ROI body
+    they were found with."""
 
     q: Array
     distance: Array
     pairs: Array
     levers: Array
+    roi: _Static | None
 
 
 def _fcl_transform(T: Array) -> fcl.Transform:
@@ -251,7 +253,6 @@ class CollisionWorld:
         from there is refused, as without ``q_free``).
 
         Returns the margins [m] of the faces (-x, -y, -z, +x, +y, +z) when one was shrunk, else None."""
-        self._reference = None
         if aabb_min is None or aabb_max is None:
             self._roi = None
             return None
@@ -475,13 +476,14 @@ class CollisionWorld:
         ``q_from`` (FCL's distance where their spheres come within ``REFERENCE_REACH`` times the path's own
         bound, the spheres' gap beyond), which becomes their reference; those the path's own bound does not
         clear from there are checked at ``q_to`` and along the path by bisection (:meth:`_check_stretch`).
-        A new ROI drops the references."""
+        The references hold for the ROI they were found with: another ROI (``set_roi``) drops them."""
         q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
-        statics = self._statics()
+        roi, statics = self._roi, self._statics()
         ref = self._reference
-        if ref is None:
+        if ref is None or ref.roi is not roi:
             pairs, levers = self._path_pairs(statics)
-            ref = _Reference(np.tile(q_from, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers)
+            ref = _Reference(np.tile(q_from, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers,
+                             roi)
         span = ref.levers @ np.abs(q_to - q_from)
         reach = np.einsum("pn,pn->p", ref.levers, np.abs(q_from - ref.q)) + span
         stale = np.nonzero(ref.distance - reach <= PATH_CONTACT_M)[0]
