@@ -116,8 +116,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import binom, norm
-from scipy.stats import t as student_t
+from scipy.special import bdtrc, ndtr, ndtri, stdtr
 
 from cell.packing.box import PackingBox, box_from_faces
 from cell.packing.uncertainty import ErrorModel, Seen
@@ -207,7 +206,7 @@ def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -
     inner = facing & seen.inside if seen.inside is not None else facing
     if np.count_nonzero(inner) < MIN_FACING_POINTS:
         inner = facing
-    plane = float(np.quantile(x[inner] - norm.ppf(QUANTILE) * sigma[inner], QUANTILE))
+    plane = float(np.quantile(x[inner] - ndtri(QUANTILE) * sigma[inner], QUANTILE))
     scatter = _scatter_std(model, sigma[facing], ranges[facing], along[facing])
     spread = float(np.median(scatter[inner[facing]]))
     set_back = plane < face_m - ACCEPT_SIGMAS * spread
@@ -233,7 +232,8 @@ def _rounded(depth: np.ndarray, scatter: np.ndarray) -> bool:
     about a plane with std ``scatter`` (K,) [m], lie deeper inside it than a plane's points do (module
     docstring, step 4)."""
     deep = int(np.count_nonzero(depth < -DEEP_SIGMAS * scatter))
-    return bool(binom.sf(deep - 1, depth.size, norm.cdf(-DEEP_SIGMAS)) < ROUNDED_ALPHA)
+    # P(at least ``deep`` of them that deep), binomial with the normal tail below -DEEP_SIGMAS
+    return bool(bdtrc(deep - 1, depth.size, ndtr(-DEEP_SIGMAS)) < ROUNDED_ALPHA)
 
 
 def _leaning(x: np.ndarray, height: np.ndarray, scatter: np.ndarray) -> bool:
@@ -247,7 +247,7 @@ def _leaning(x: np.ndarray, height: np.ndarray, scatter: np.ndarray) -> bool:
     dof = x.size - 2
     covariance = np.linalg.inv(design.T @ design) * max(float(residual @ residual) / dof, 1.0)
     t_slope = abs(float(coefficients[1])) / math.sqrt(float(covariance[1, 1]))
-    return bool(2.0 * student_t.sf(t_slope, dof) < ROUNDED_ALPHA)
+    return bool(2.0 * stdtr(dof, -t_slope) < ROUNDED_ALPHA)  # two-sided, Student's t with dof
 
 
 def faced_box(box: PackingBox, model: ErrorModel, seen: Seen) -> PackingBox:
