@@ -1,18 +1,22 @@
 """The ``cell`` program loads the command it runs and nothing else (``cell.cli.commands``): an operator's
 ``cell stop``, the service's clients (``cell jobs``, ``cell keys``) and ``cell planners`` answer without
 loading Open3D, SciPy or the planners, which only a scan needs; the service lists planners by name and
-leaves them to its job's worker; ``cell --help`` still lists every command."""
+leaves them to its job's worker; ``cell --help`` lists every command, with the help each has, and loads
+none of them."""
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import typer
 
-from cell.cli.commands import COMMANDS
+from cell.cli.commands import COMMANDS, command_help
 from cell.planning.base import Planner
 from cell.planning.registry import PLANNERS, get_planner
 from tests.service_process import REPO
@@ -28,11 +32,18 @@ try:
 except SystemExit:
     pass
 heavy = ("open3d", "scipy", "cell.planning.base", "cell.jobs.runner", "fastapi")
-print(json.dumps({name: name in sys.modules for name in heavy}))
+loaded = {name: name in sys.modules for name in heavy}
+print(json.dumps({**loaded, "commands": sorted(m for m in sys.modules if m.startswith("cell.cli.")
+                                               and m not in ("cell.cli.entry", "cell.cli.commands"))}))
 """
 
 
 def _loaded(*args: str) -> dict[str, bool]:
+    """Which of the heavy libraries ``cell *args`` loaded (the command modules it loaded left out)."""
+    return {name: loaded for name, loaded in _run(*args).items() if name != "commands"}
+
+
+def _run(*args: str) -> dict:
     proc = subprocess.run([sys.executable, "-c", _LOADED_AFTER, *args], cwd=REPO, capture_output=True,
                           text=True, timeout=120, check=False)
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -41,6 +52,23 @@ def _loaded(*args: str) -> dict[str, bool]:
 @pytest.mark.parametrize("args", [("stop", "nowhere"), ("jobs", "--help"), ("keys", "--help"), ("planners",)])
 def test_stop_the_service_clients_and_the_planner_list_load_no_heavy_library(args):
     assert not any(_loaded(*args).values())
+
+
+@pytest.mark.parametrize("args", [("--help",), (), ("nosuch",)])
+def test_the_command_list_loads_no_command(args):
+    loaded = _run(*args)
+    assert loaded.pop("commands") == [] and not any(loaded.values())
+
+
+def test_the_list_gives_each_command_the_help_the_command_has():
+    """The list reads each command's help from its module's source; loaded, the command has the same."""
+    for location in COMMANDS.values():
+        module, attribute = location.split(":")
+        target = getattr(importlib.import_module(module), attribute)
+        if isinstance(target, typer.Typer):
+            assert command_help(location) == (target.info.help, True)
+        else:
+            assert command_help(location) == (inspect.getdoc(target), False)
 
 
 def test_a_scan_loads_the_planners_and_the_service_does_not():

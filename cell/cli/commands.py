@@ -3,13 +3,19 @@
 Each command lives in a module of its own (:data:`COMMANDS`) and is imported only when it runs: a scan
 needs Open3D, SciPy and the planners, seconds of imports, which ``cell stop``, ``cell jobs`` (a client of
 the service) or ``cell keys`` must not wait for. ``cell.cli.entry`` builds the command line with the one
-command named on it, or with all of them (``cell --help``, a mistyped name).
+command named on it (:func:`cell_app`), or, for ``cell --help``, no command or a mistyped name, with the
+list of all of them (:func:`listing_app`): each command's help is read from its module's source, none is
+imported (all of them took seconds).
 """
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
 from collections.abc import Iterable
+from pathlib import Path
+from typing import NoReturn
 
 import typer
 
@@ -35,9 +41,7 @@ COMMANDS: dict[str, str] = {
 }
 
 
-def cell_app(names: Iterable[str]) -> typer.Typer:
-    """The ``cell`` command line with the commands ``names`` (keys of :data:`COMMANDS`), their modules
-    imported."""
+def _app() -> typer.Typer:
     app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_help=True,
                       pretty_exceptions_enable=False)
 
@@ -45,6 +49,50 @@ def cell_app(names: Iterable[str]) -> typer.Typer:
     def cell() -> None:
         """Autonomous active-vision scanning cell."""
 
+    return app
+
+
+def command_help(location: str) -> tuple[str, bool]:
+    """The help of the command at ``location`` (module:attribute, :data:`COMMANDS`) and whether it is a
+    group, read from the module's source without importing it: the docstring of a function, or the
+    ``help`` of a group's ``typer.Typer(help=...)``. Raises ``LookupError`` when the source has neither."""
+    module, attribute = location.split(":")
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None:
+        raise LookupError(f"{location}: no module {module}")
+    for node in ast.parse(Path(spec.origin).read_text()).body:
+        if isinstance(node, ast.FunctionDef) and node.name == attribute:
+            return ast.get_docstring(node) or "", False
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) \
+                and any(isinstance(target, ast.Name) and target.id == attribute for target in node.targets):
+            for keyword in node.value.keywords:
+                if keyword.arg == "help" and isinstance(keyword.value, ast.Constant):
+                    return str(keyword.value.value), True
+    raise LookupError(f"{location}: neither a function with a docstring nor a typer.Typer(help=...)")
+
+
+def _not_loaded() -> NoReturn:
+    raise RuntimeError("a command of the listing ran: cell.cli.entry loads a command before running it")
+
+
+def listing_app() -> typer.Typer:
+    """The ``cell`` command line that lists every command of :data:`COMMANDS` with its help
+    (:func:`command_help`) and loads none: for ``cell --help``, no command or a name none of them has. A
+    command named on the command line runs from :func:`cell_app`, never from here."""
+    app = _app()
+    for name, location in COMMANDS.items():
+        text, group = command_help(location)
+        if group:
+            app.add_typer(typer.Typer(help=text), name=name)
+        else:
+            app.command(name, help=text)(_not_loaded)
+    return app
+
+
+def cell_app(names: Iterable[str]) -> typer.Typer:
+    """The ``cell`` command line with the commands ``names`` (keys of :data:`COMMANDS`), their modules
+    imported."""
+    app = _app()
     for name in names:
         module, attribute = COMMANDS[name].split(":")
         target = getattr(importlib.import_module(module), attribute)

@@ -7,8 +7,8 @@ imports nothing heavy and, while the command line loads, answers SIGINT by endin
 with exit code 130 and no output: nothing has happened yet that needs finishing. Once loaded, Ctrl-C is
 Python's again (``cell scan`` stops its arm and finishes its job folder).
 
-Only the command named on the command line is loaded (:mod:`cell.cli.commands`); all of them when none
-is (``cell --help``) or the name is none of theirs (click then says so, with the names).
+Only the command named on the command line is loaded (:mod:`cell.cli.commands`); none when none is
+(``cell --help`` lists them all from their sources) or the name is none of theirs (click then says so).
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ def main() -> None:
     quiet = previous is signal.default_int_handler
     if quiet:
         signal.signal(signal.SIGINT, _exit_interrupted)
-    from cell.cli.commands import COMMANDS, cell_app
+    from cell.cli.commands import COMMANDS, cell_app, listing_app
 
     named = sys.argv[1] if len(sys.argv) > 1 else None
-    app = cell_app([named] if named in COMMANDS else COMMANDS)
+    app = cell_app([named]) if named in COMMANDS else listing_app()
     if quiet:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     app(prog_name="cell")
