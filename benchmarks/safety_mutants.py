@@ -64,9 +64,9 @@ MUTANTS = (
     Mutant("no-path-check-of-twists", "only the configuration predicted ahead of a streamed twist is checked "
            "for collisions, not the arm's way to it", GUARD, "check_motion(q, q_pred)",
            "check_motion(q_pred, q_pred)"),
-    Mutant("no-bound-since-the-reference", "the arm's way ahead is cleared by the distances kept from an "
-           "earlier tick without the bound on how far the arm moved since", COLLISION,
-           'reach = np.einsum("pn,pn->p", ref.levers, np.abs(q_from - ref.q)) + span', "reach = span"),
+    Mutant("no-bound-since-the-reference", "a path is cleared by the distances kept from an earlier "
+           "configuration without the bound on how far the arm moved since", COLLISION,
+           "np.maximum(np.abs(q_from - ref.q), np.abs(q_to - ref.q))", "np.zeros_like(ref.q)"),
     Mutant("no-new-roi-for-the-way-ahead", "the distances kept for the arm's way ahead outlive a new ROI",
            COLLISION, "if ref is None or ref.roi is not roi:", "if ref is None:"),
     Mutant("every-capsule-axial", "a joint's turn counts as keeping the distance of every capsule it turns "

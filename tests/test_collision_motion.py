@@ -1,7 +1,8 @@
-"""The collision world's check of the arm's way ahead, looked at again every control period
-(``CollisionWorld.check_motion``): it keeps each pair's distance from where it last looked and must still
-find every contact that a full path check finds, after the arm moved on and after a new ROI; the pair
-bound it rests on, with the joints that turn a body about a capsule on their axis, holds."""
+"""The collision world's continuous checks against the configurations along the path: a joint path
+(``CollisionWorld.check_path``) and the arm's way ahead, looked at again every control period
+(``check_motion``), keep each pair's distance from where they last measured it and must still find every
+contact, after the arm moved on and after a new ROI; the pair bound they rest on, with the joints that
+turn a body about a capsule on their axis, holds."""
 
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ def _world(model_name: str) -> tuple[CollisionWorld, np.ndarray]:
     return world, np.asarray(cfg.arm.home_joints_rad)
 
 
-def _walk_towards(world: CollisionWorld, q0: np.ndarray, q_goal: np.ndarray, ticks: int, lookahead: float
+def _walk_towards(q0: np.ndarray, q_goal: np.ndarray, ticks: int, lookahead: float
                   ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The ticks of an arm going straight from ``q0`` to ``q_goal`` in ``ticks`` steps, each with the
     configuration ``lookahead`` steps ahead (the guard's predicted path), as (q, q_pred)."""
@@ -35,9 +36,10 @@ def _walk_towards(world: CollisionWorld, q0: np.ndarray, q_goal: np.ndarray, tic
 
 
 @pytest.mark.parametrize("model_name", ["ur5e", "panda"])
-def test_the_way_ahead_finds_the_contact_a_full_path_check_finds_tick_by_tick(model_name):
-    """An arm driven down at the object's box, each tick's way ahead checked by both: kept distances may
-    only save work, never hide a contact (the first tick that sees one is the same, and so is each answer)."""
+def test_the_way_ahead_finds_every_contact_the_configurations_along_it_show(model_name):
+    """An arm driven down at the object's box, each tick's way ahead checked, and checked again at 41
+    configurations along it: kept distances may only save work, never hide a contact (each answer is the
+    same)."""
     world, q_home = _world(model_name)
     model = get_robot_model(model_name)
     flange = model.fk(q_home)[:3, 3]
@@ -46,13 +48,38 @@ def test_the_way_ahead_finds_the_contact_a_full_path_check_finds_tick_by_tick(mo
     T[2, 3] -= 0.25
     q_goal = model.ik_pose(T, q_home)
     answers = []
-    for q, q_pred in _walk_towards(world, q_home, q_goal, ticks=120, lookahead=15):
-        full = world.check_path(np.stack([q, q_pred]), 0.02)
+    for q, q_pred in _walk_towards(q_home, q_goal, ticks=120, lookahead=15):
+        sampled = [world.check(q + s * (q_pred - q)) for s in np.linspace(0.0, 1.0, 41)]
         ahead = world.check_motion(q, q_pred)
-        assert (ahead is None) == (full is None), (q, full, ahead)
+        assert (ahead is None) == all(hit is None for hit in sampled), (q, ahead)
         answers.append(ahead is not None)
     first = answers.index(True)
     assert 10 < first < 110 and all(answers[first:first + 5])
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_a_path_is_refused_where_the_configurations_along_it_touch(model_name):
+    """Random joint paths of a few samples around the object's box, checked once, and again at 30
+    configurations per segment: the path check reports a contact exactly when one of them touches, at
+    the segment where the first does."""
+    world, q_home = _world(model_name)
+    model = get_robot_model(model_name)
+    flange = model.fk(q_home)[:3, 3]
+    world.set_roi(flange - np.array([0.05, 0.05, 0.35]), flange - np.array([-0.05, -0.05, 0.2]))
+    rng = np.random.default_rng(5)
+    refused = 0
+    for _ in range(25):
+        path = q_home + np.cumsum(rng.uniform(-0.25, 0.25, (4, model.n_joints)), axis=0)
+        path = np.vstack([q_home, np.clip(path, model.q_min, model.q_max)])
+        along = np.linspace(0.0, 1.0, 30)
+        touching = [k for k in range(1, len(path))
+                    if any(world.check(path[k - 1] + s * (path[k] - path[k - 1])) is not None for s in along)]
+        hit = world.check_path(path, 0.02)
+        assert (hit is None) == (not touching)
+        if hit is not None:
+            assert hit[0] == touching[0]
+            refused += 1
+    assert 3 <= refused <= 22  # paths both ways
 
 
 @pytest.mark.parametrize("model_name", ["ur5e", "panda"])

@@ -424,16 +424,19 @@ class CollisionWorld:
         an arm interpolates them), for contact anywhere along it. Returns the index of the first sample at
         or after the contact and the contact (two bodies closer than ``PATH_CONTACT_M``), or None.
 
-        Configurations no further apart than ``max_step_rad`` in any joint are checked with FCL's distance
-        (segments are subdivided); the stretch between two of them is clear when, for every pair of bodies,
-        their distances at both ends add up to more than the pair's bound over the stretch: the moving
-        body's :meth:`sweep_bound` against a static body; for two moving bodies, the same sum over the
-        joints that move one of them and not the other (a joint that moves both turns them as one rigid
-        piece, which keeps their distance; the others move one body relative to the other by at most
-        that). This is sound: at any point of the stretch a body lies within the bound times the share of
-        the stretch behind it of where it was relative to the other at the start, and within the bound
-        times the share ahead of where it is at the end, so the pair's distance stays above
-        ``(d_start + d_end - bound) / 2 > 0``. A stretch that is not clear is bisected until each
+        Segments longer than ``max_step_rad`` in any joint are subdivided, and the stretches between the
+        configurations are checked in turn against each pair's reference (:meth:`_advance`): a lower bound
+        on the pair's distance where it was last measured, less how far the pair can have come closer
+        since. For a static body that is the moving body's :meth:`sweep_bound`; for two moving bodies, the
+        same sum over the joints that move one of them and not the other (a joint that moves both turns them
+        as one rigid piece, which keeps their distance; the others move one body relative to the other by
+        at most that), and nothing for a joint that turns one of them about a capsule on its axis. A pair
+        whose bound no longer clears it is measured again (FCL's distance) at the stretch's start; when the
+        stretch's own bound does not clear it from there either, its distances at both ends must add up to
+        more than that bound, which is sound: at any point of the stretch a body lies within the bound
+        times the share of the stretch behind it of where it was relative to the other at the start, and
+        within the bound times the share ahead of where it is at the end, so the pair's distance stays
+        above ``(d_start + d_end - bound) / 2 > 0``. A stretch that is not clear is bisected until each
         part is, or a configuration on it touches."""
         q_path = np.asarray(q_path, dtype=float)
         dense, owner = [q_path[:1]], [0]
@@ -442,66 +445,80 @@ class CollisionWorld:
             n_sub = max(1, int(np.ceil(float(np.max(np.abs(step))) / max_step_rad)))
             dense.append(q_path[k - 1] + step * (np.arange(1, n_sub + 1) / n_sub)[:, None])
             owner += [k] * n_sub
+        if len(owner) == 1:  # one configuration: a stretch that stays there
+            dense.append(q_path[:1])
+            owner.append(0)
         q = np.concatenate(dense)
         statics = self._statics()
-        pairs, pair_levers = self._path_pairs(statics)
-        sweeps = np.abs(np.diff(q, axis=0)) @ pair_levers.T
-        # A configuration's distances are exact (FCL) where the sphere test alone cannot clear the
-        # stretches on either side of it.
-        needs = np.maximum(np.vstack([sweeps[:1], sweeps]), np.vstack([sweeps, sweeps[-1:]])) \
-            if len(sweeps) else np.zeros((1, len(pairs)))
-        d_prev, hit = self._clearance(q[0], needs[0], pairs, statics)
-        if hit is not None:
-            return 0, hit
+        ref = self._reference_for(q[0], statics)
         for k in range(1, q.shape[0]):
-            d_next, hit = self._clearance(q[k], needs[k], pairs, statics)
-            if hit is None:
-                hit = self._check_stretch(q[k - 1], d_prev, q[k], d_next, pairs, pair_levers, statics)
+            hit = self._advance(ref, q[k - 1], q[k], statics)
             if hit is not None:
-                return owner[k], hit
-            d_prev = d_next
+                return owner[k - 1 + hit[0]], hit[1]
         return None
 
     def check_motion(self, q_from: Array, q_to: Array) -> tuple[int, Collision] | None:
         """Check the straight joint path from ``q_from`` to ``q_to`` (n,) [rad] as :meth:`check_path` does,
-        for a path checked again and again as the arm moves (the guard's way ahead, every control period).
-        Returns ``(0, contact)`` when ``q_from`` itself touches, ``(1, contact)`` for a contact further on,
-        or None.
-
-        Each pair keeps a reference: a lower bound on its distance at joints q_r where it was last looked
-        at. At any q on the path, each joint is at most ``|q_from - q_r| + |q_to - q_from|`` from q_r
-        (triangle inequality), so by :meth:`check_path`'s bound the pair's distance there is at least the
-        reference less the pair's levers times that reach; a pair for which that stays above
-        ``PATH_CONTACT_M`` needs no FCL call (conservative advancement). The others are looked at again at
-        ``q_from`` (FCL's distance where their spheres come within ``REFERENCE_REACH`` times the path's own
-        bound, the spheres' gap beyond), which becomes their reference; those the path's own bound does not
-        clear from there are checked at ``q_to`` and along the path by bisection (:meth:`_check_stretch`).
-        The references hold for the ROI they were found with: another ROI (``set_roi``) drops them."""
+        for a path checked again and again as the arm moves (the guard's way ahead, every control period):
+        the pairs' references are kept from one call to the next, so most calls measure nothing. Returns
+        ``(0, contact)`` when ``q_from`` itself touches, ``(1, contact)`` for a contact further on, or
+        None. The references hold for the ROI they were found with: another ROI (``set_roi``) drops them."""
         q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
-        roi, statics = self._roi, self._statics()
+        statics = self._statics()
         ref = self._reference
-        if ref is None or ref.roi is not roi:
-            pairs, levers = self._path_pairs(statics)
-            ref = _Reference(np.tile(q_from, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers,
-                             roi)
+        if ref is None or ref.roi is not self._roi:
+            ref = self._reference = self._reference_for(q_from, statics)
+        return self._advance(ref, q_from, q_to, statics)
+
+    def _reference_for(self, q: Array, statics: list[_Static]) -> _Reference:
+        """References of the path check's pairs with ``statics`` that clear nothing yet (a distance of minus
+        infinity, at joints ``q``)."""
+        pairs, levers = self._path_pairs(statics)
+        return _Reference(np.tile(q, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers, self._roi)
+
+    def _advance(self, ref: _Reference, q_from: Array, q_to: Array, statics: list[_Static]
+                 ) -> tuple[int, Collision] | None:
+        """The straight stretch from ``q_from`` to ``q_to`` (n,) [rad] against the pairs' references ``ref``
+        (updated): ``(0, contact)`` when ``q_from`` touches, ``(1, contact)`` for a contact further on, or
+        None when it is clear.
+
+        At any q on the stretch, each joint is at most ``max(|q_from - q_r|, |q_to - q_r|)`` from a pair's
+        reference joints q_r (the distance to a point moving along a line is largest at an end), so by the
+        pair's levers (:meth:`check_path`) the pair's distance there is at least its reference less the
+        levers times that; a pair for which that stays above ``PATH_CONTACT_M`` needs no FCL call
+        (conservative advancement). The others are measured again at ``q_from`` unless their reference is
+        there, with those that would need it within ``REFERENCE_REACH`` such stretches (FCL's distance where
+        their spheres come within ``REFERENCE_REACH`` times the stretch's own bound, the spheres' gap
+        beyond), which becomes their reference; those the stretch's own bound does not clear from there are
+        measured at ``q_to`` and checked along the stretch by bisection (:meth:`_check_stretch`), and then
+        keep their distances at ``q_to``, where a path's next stretch starts."""
         span = ref.levers @ np.abs(q_to - q_from)
-        reach = np.einsum("pn,pn->p", ref.levers, np.abs(q_from - ref.q)) + span
-        stale = np.nonzero(ref.distance - reach <= PATH_CONTACT_M)[0]
+        reach = np.einsum("pn,pn->p", ref.levers, np.maximum(np.abs(q_from - ref.q), np.abs(q_to - ref.q)))
+        # written so that only a bound that clears counts (a NaN never does)
+        stale = np.nonzero(~(ref.distance - reach > PATH_CONTACT_M))[0]
         if stale.size == 0:
             return None
-        pairs, levers = ref.pairs[stale], ref.levers[stale]
-        distance, hit = self._clearance(q_from, REFERENCE_REACH * span[stale], pairs, statics)
-        if hit is not None:
-            return 0, hit
-        ref.q[stale], ref.distance[stale] = q_from, distance
-        self._reference = ref
-        open_ = distance - span[stale] <= PATH_CONTACT_M
-        if not np.any(open_):
+        # the others were measured right there
+        measure = stale[np.isneginf(ref.distance[stale]) | np.any(ref.q[stale] != q_from, axis=1)]
+        if measure.size:
+            # the forward kinematics at q_from is paid for now: also measure the pairs about to need it
+            soon = ~(ref.distance - reach > PATH_CONTACT_M + REFERENCE_REACH * span)
+            measure = np.union1d(measure, np.nonzero(soon & np.any(ref.q != q_from, axis=1))[0])
+            distance, hit = self._clearance(q_from, REFERENCE_REACH * span[measure], ref.pairs[measure],
+                                            statics)
+            if hit is not None:
+                return 0, hit
+            ref.q[measure], ref.distance[measure] = q_from, distance
+        opened = stale[~(ref.distance[stale] - span[stale] > PATH_CONTACT_M)]
+        if opened.size == 0:
             return None
-        pairs, levers, distance = pairs[open_], levers[open_], distance[open_]
-        d_to, hit = self._clearance(q_to, span[stale][open_], pairs, statics)
-        hit = hit or self._check_stretch(q_from, distance, q_to, d_to, pairs, levers, statics)
-        return None if hit is None else (1, hit)
+        pairs, levers = ref.pairs[opened], ref.levers[opened]
+        d_to, hit = self._clearance(q_to, span[opened], pairs, statics)
+        hit = hit or self._check_stretch(q_from, ref.distance[opened], q_to, d_to, pairs, levers, statics)
+        if hit is not None:
+            return 1, hit
+        ref.q[opened], ref.distance[opened] = q_to, d_to  # where the next stretch starts
+        return None
 
     def _check_stretch(self, qa: Array, da: Array, qb: Array, db: Array, pairs: Array, levers: Array,
                        statics: list[_Static]) -> Collision | None:

@@ -105,8 +105,8 @@ class CollisionConfig(StrictModel):
 
     ``lookahead_s``: each control tick checks the joint path to the configuration predicted this far
     ahead at the commanded velocity, continuously (``CollisionWorld.check_motion``).
-    ``trajectory_step_rad``: the joint paths of point-to-point moves are checked exactly at configurations
-    no further apart than this in any joint, and between them by a bound on how far the bodies move.
+    ``trajectory_step_rad``: the joint paths of point-to-point moves are cut into stretches no longer than
+    this in any joint, each checked continuously (``CollisionWorld.check_path``).
     ``roi_margin_m``: the object's ROI box is inflated by this much on each side. ``tool``: bodies carried
     by the flange (the sensor and its bracket), posed in the flange frame.
     ``obstacles``: static bodies in the base frame.
