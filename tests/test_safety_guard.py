@@ -93,6 +93,30 @@ def test_refused_trajectory_names_the_bodies_and_stops():
     assert log["refusals"] and log["stops"][0]["reason"].startswith("refused")
 
 
+def test_a_planners_move_is_checked_once_and_a_refusal_is_an_answer(monkeypatch):
+    """``try_trajectory``: a move the guard refuses comes back as the refusal, with the arm neither moved
+    nor stopped (the next move goes); one it accepts is started after one check of its path."""
+    rig = Rig.of("ur5e")
+    q0 = rig.arm.state().q
+    sf = rig.cfg.safety
+    scales = {"velocity_scale": sf.joint_velocity_scale, "acceleration_scale": sf.joint_acceleration_scale,
+              "jerk_scale": sf.joint_jerk_scale}
+    into_table = q0 + np.eye(rig.model.n_joints)[1] * 1.2  # shoulder down: the upper arm into the table
+    _, refusal = rig.guard.try_trajectory(joint_trajectory(rig.model, q0, into_table, dt=rig.dt, **scales))
+    assert refusal is not None and refusal.kind in {"collision", "barrier"}
+    assert not rig.guard.following and not rig.guard.log.as_dict()["stops"]
+    np.testing.assert_array_equal(rig.arm.state().q, q0)
+    checks = []
+    check_path = rig.guard.collision.check_path
+    monkeypatch.setattr(rig.guard.collision, "check_path", lambda *a: checks.append(1) or check_path(*a))
+    q_goal = q0 + np.array([0.1, -0.05, 0.05, 0.0, 0.1, 0.0])
+    started, refusal = rig.guard.try_trajectory(joint_trajectory(rig.model, q0, q_goal, dt=rig.dt, **scales))
+    assert refusal is None and rig.guard.following and len(checks) == 1
+    rig.tick(int(started.duration / rig.dt) + 5)
+    np.testing.assert_allclose(rig.arm.state().q, q_goal, atol=1e-9)
+    rig.assert_safe()
+
+
 @pytest.mark.parametrize("model_name", ["panda", "ur5e"])
 def test_ruckig_trajectories_respect_the_configured_limits(model_name):
     cfg = load_config(CELLS[model_name])

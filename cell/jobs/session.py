@@ -317,9 +317,9 @@ class JobSession:
             T_rolled = T_base_sensor @ T_from_xyz_rpy(np.zeros(3), (0.0, 0.0, roll))
             for waypoints in self._routes(T_rolled @ T_sensor_flange, q_now):
                 traj = waypoint_trajectory(self._model, waypoints, dt=self._dt, **self._joint_scales())
-                _, refused = self._guard.check_trajectory(traj)
+                started, refused = self._guard.try_trajectory(traj)
                 if refused is None:
-                    self._execute(traj)
+                    self._until_done(started)
                     return True
                 refusal = refusal or refused
         if refusal is None:
@@ -385,16 +385,15 @@ class JobSession:
     def _follow(self, traj: JointTrajectory, what: str) -> bool:
         """Follow a joint trajectory through the guard, ticking until it ends; False when the guard would
         refuse it (recorded and counted; ``what`` names the move in the log)."""
-        _, refusal = self._guard.check_trajectory(traj)
+        started, refusal = self._guard.try_trajectory(traj)
         if refusal is not None:
             self._refused(refusal, what)
             return False
-        self._execute(traj)
+        self._until_done(started)
         return True
 
-    def _execute(self, traj: JointTrajectory) -> None:
-        """Start a joint trajectory through the guard and tick until it ends."""
-        started = self._guard.execute_trajectory(traj)
+    def _until_done(self, started: JointTrajectory) -> None:
+        """Tick until the joint trajectory the guard ``started`` ends."""
         deadline = self.now() + started.duration + MOVE_TIMEOUT_MARGIN_S
         while self._guard.following:
             if self.now() > deadline:

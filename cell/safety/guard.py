@@ -23,11 +23,12 @@ the arm. It forwards two kinds of motion:
   brought its joints to rest. A collision refuses the motion, and so does a joint
   that the arm reports moving towards its limit faster than its own stop could absorb within half the joint
   margin (a last resort where the IK's prediction falls short, near a singularity).
-- **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, ruckig's time-optimal moves): every
-  sample inside the joint limits and margins, slowed down uniformly in time when a joint or the TCP would
-  be too fast, TCP and sensor on the allowed side of every plane, into its margin no deeper than a stop
-  after a streamed twist may go (``BRAKING_MARGIN_SHARE``, or where the arm already is), and the whole
-  path collision-free, between its samples too (``CollisionWorld.check_path``); refused otherwise.
+- **Joint trajectories** (:meth:`MotionGuard.execute_trajectory`, and :meth:`MotionGuard.try_trajectory`
+  for a planner's moves, ruckig's time-optimal moves): every sample inside the joint limits and margins,
+  slowed down uniformly in time when a joint or the TCP would be too fast, TCP and sensor on the allowed
+  side of every plane, into its margin no deeper than a stop after a streamed twist may go
+  (``BRAKING_MARGIN_SHARE``, or where the arm already is), and the whole path collision-free, between its
+  samples too (``CollisionWorld.check_path``); refused otherwise.
 
 Every tick also runs the watchdog (late control loop, stale perception), reads the arm's faults, and
 honours an operator stop. A refusal or a fault stops the arm (zero velocity, decelerating within the arm's
@@ -536,16 +537,32 @@ class MotionGuard:
     def execute_trajectory(self, trajectory: JointTrajectory) -> JointTrajectory:
         """Check a joint trajectory (:meth:`check_trajectory`) and start it; returns what was started. A
         trajectory that fails the check is refused: the arm stops and ``SafetyStop`` is raised."""
-        if self._target is not None:
-            raise self._refuse("a trajectory was commanded while a twist is being streamed")
-        checked, refusal = self.check_trajectory(trajectory)
+        checked, refusal = self._check_start(trajectory)
         if refusal is not None:
             raise self._refuse(refusal.message)
+        self._start(trajectory, checked)
+        return checked
+
+    def try_trajectory(self, trajectory: JointTrajectory) -> tuple[JointTrajectory, Refusal | None]:
+        """Check a joint trajectory (:meth:`check_trajectory`) and start it unless the check refuses it: a
+        planner's move, to which a refusal is an answer (the arm is neither moved nor stopped), checked
+        once. Returns what was started (or would have been) and the refusal, or None."""
+        checked, refusal = self._check_start(trajectory)
+        if refusal is None:
+            self._start(trajectory, checked)
+        return checked, refusal
+
+    def _check_start(self, trajectory: JointTrajectory) -> tuple[JointTrajectory, Refusal | None]:
+        if self._target is not None:
+            raise self._refuse("a trajectory was commanded while a twist is being streamed")
+        return self.check_trajectory(trajectory)
+
+    def _start(self, trajectory: JointTrajectory, checked: JointTrajectory) -> None:
+        """Start ``checked``, what :meth:`check_trajectory` made of ``trajectory`` and accepted."""
         if checked is not trajectory:
             self.log.clamp("trajectory_time_scaled")
         self._send(lambda: self._arm.execute_trajectory(checked, self._token))
         self._following = True
-        return checked
 
     def _within_speed_limits(self, trajectory: JointTrajectory, F: Array) -> JointTrajectory:
         """Stretch the trajectory's time uniformly (the path is kept) when a joint or the TCP would be
