@@ -68,7 +68,7 @@ MUTANTS = (
            "configuration without the bound on how far the arm moved since", COLLISION,
            "np.maximum(np.abs(q_from - ref.q), np.abs(q_to - ref.q))", "np.zeros_like(ref.q)"),
     Mutant("no-new-roi-for-the-way-ahead", "the distances kept for the arm's way ahead outlive a new ROI",
-           COLLISION, "if ref is None or ref.roi is not roi:", "if ref is None:"),
+           COLLISION, "if ref is None or ref.roi is not self._roi:", "if ref is None:"),
     Mutant("every-capsule-axial", "a joint's turn counts as keeping the distance of every capsule it turns "
            "(not only of one on its axis)", COLLISION, "axial[i] = on_z & (axis_frame == c.frame)",
            "axial[i] = c.frame <= axis_frame"),
