@@ -17,15 +17,16 @@ links on the base and the first joint's frames stand on the table and are not ch
 
 A cheap bounding-sphere test in numpy selects the candidate pairs; FCL decides each candidate exactly.
 
-A joint path (:meth:`CollisionWorld.check_path`) is checked continuously, not only at its samples: between
-two configurations checked with FCL's distance, every point of a body moves at most a bound derived from the
-robot model's geometry (:meth:`CollisionWorld.sweep_bound`), so a pair whose distances at both ends add up
-to more than the pair's bounds cannot touch in between; a stretch where they do not is bisected.
+A joint path (:meth:`CollisionWorld.check_path`) is checked continuously, not only at its samples: as the
+joints move, every point of a body moves at most a bound derived from the robot model's geometry
+(:meth:`CollisionWorld.sweep_bound`). Each pair keeps a lower bound on its distance where it was last
+measured (FCL's distance, or its bounding spheres' gap) and is measured again only when that bound, less
+how far the pair can have come closer since, no longer clears it (conservative advancement); a stretch
+whose distances at both ends do not add up to more than the pair's bound over it is bisected.
 
 The guard checks the arm's way ahead every control period (:meth:`CollisionWorld.check_motion`); those
-paths start a fraction of a millimetre apart, so the distances found for one are kept, pair by pair, and
-clear the next paths for as long as the same bound says that the pair cannot have come near enough since
-(conservative advancement): most ticks need no FCL call at all.
+paths start a fraction of a millimetre apart, and the distances are kept from one tick to the next: most
+ticks need no FCL call at all.
 """
 
 from __future__ import annotations
