@@ -499,12 +499,13 @@ class CollisionWorld:
         stale = np.nonzero(~(ref.distance - reach > PATH_CONTACT_M))[0]
         if stale.size == 0:
             return None
-        # the others were measured right there
-        measure = stale[np.isneginf(ref.distance[stale]) | np.any(ref.q[stale] != q_from, axis=1)]
+        # the pairs not measured right there (nor ever)
+        away = np.isneginf(ref.distance) | np.any(ref.q != q_from, axis=1)
+        measure = stale[away[stale]]
         if measure.size:
             # the forward kinematics at q_from is paid for now: also measure the pairs about to need it
             soon = ~(ref.distance - reach > PATH_CONTACT_M + REFERENCE_REACH * span)
-            measure = np.union1d(measure, np.nonzero(soon & np.any(ref.q != q_from, axis=1))[0])
+            measure = np.union1d(measure, np.nonzero(soon & away)[0])
             distance, hit = self._clearance(q_from, REFERENCE_REACH * span[measure], ref.pairs[measure],
                                             statics)
             if hit is not None:
