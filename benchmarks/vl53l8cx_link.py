@@ -18,7 +18,7 @@ from drivers.depth.vl53l8cx.serial_driver import VL53L8CXSerial
 
 def parser_throughput(n_frames: int = 3000) -> dict[str, float]:
     rng = np.random.default_rng(0)
-    source = SimToFSource("cube", seed=0)
+    source = SimToFSource.fixed("cube", seed=0)
     z = source(8)
     frame = p.encode(p.RangingFrame(0, 0, 8, z.distance_mm, z.range_sigma_mm, z.target_status,
                                     z.reflectance_pct, z.nb_target_detected))
@@ -35,7 +35,7 @@ def parser_throughput(n_frames: int = 3000) -> dict[str, float]:
 
 
 def pty_link(seconds: float = 3.0) -> dict[str, float]:
-    emulator = VL53L8CXEmulator.on_pty(SimToFSource("cube", seed=1))
+    emulator = VL53L8CXEmulator.on_pty(SimToFSource.fixed("cube", seed=1))
     sensor = VL53L8CXSerial(VL53L8CXConfig(type="vl53l8cx", port=emulator.url, resolution=4, frequency_hz=60))
     durations = []
     with emulator, sensor:

@@ -222,7 +222,7 @@ def test_the_serial_driver_applies_the_zone_correction(tmp_path: Path) -> None:
     offsets = np.linspace(-0.02, 0.02, 16)
     path = tmp_path / "zones.json"
     write_zone_correction(ZoneCorrection(resolution=4, offset_m=offsets, noise_m=np.zeros(16)), path)
-    emulator = VL53L8CXEmulator.on_tcp(SimToFSource("cube", seed=1), seed=2)
+    emulator = VL53L8CXEmulator.on_tcp(SimToFSource.fixed("cube", seed=1), seed=2)
     config = VL53L8CXConfig(type="vl53l8cx", port=emulator.url, resolution=4, frequency_hz=60, timeout_s=2.0,
                             zone_correction=str(path))
     sensor = VL53L8CXSerial(config)

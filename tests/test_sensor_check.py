@@ -31,7 +31,7 @@ def test_check_counts_injected_corrupted_and_dropped_frames(tmp_path):
     corrupted, dropped = {4, 10, 15}, {7}
     faults = EmulatorFaults(garbage_bytes=200, corrupt_frames=frozenset(corrupted),
                             drop_frames=frozenset(dropped))
-    emulator = VL53L8CXEmulator.on_pty(SimToFSource("cube", seed=5), faults, seed=6)
+    emulator = VL53L8CXEmulator.on_pty(SimToFSource.fixed("cube", seed=5), faults, seed=6)
     cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": "/dev/null-replaced-by---port", "resolution": 4,
                                  "frequency_hz": 60, "timeout_s": 2.0})
     with emulator:
@@ -49,7 +49,7 @@ def test_check_counts_injected_corrupted_and_dropped_frames(tmp_path):
 
 
 def test_check_reports_a_vanishing_device(tmp_path):
-    emulator = VL53L8CXEmulator.on_pty(SimToFSource("cube"), EmulatorFaults(disconnect_after=5))
+    emulator = VL53L8CXEmulator.on_pty(SimToFSource.fixed("cube"), EmulatorFaults(disconnect_after=5))
     cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": emulator.url, "resolution": 4,
                                  "frequency_hz": 60})
     with emulator:

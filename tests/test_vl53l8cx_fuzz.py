@@ -16,12 +16,9 @@ and that the only exception it raises is the fault a failing STATUS asks for.
 
 from __future__ import annotations
 
-import fcntl
 import os
 import re
 import struct
-import sys
-import termios
 import time
 import tty
 from dataclasses import dataclass
@@ -351,16 +348,13 @@ def test_every_mutation_makes_a_malformed_frame_that_costs_only_itself(mutation,
     assert (parser.stats.malformed, parser.stats.crc_errors, parser.stats.bytes_discarded) == (1, 0, 0)
 
 
-def _wait_landed(fd: int, n: int) -> None:
-    """Wait until the terminal ``fd`` holds ``n`` unread bytes: what the master side writes reaches the
-    slave's input queue asynchronously, and each capture must see exactly the stream written so far."""
-    count = bytearray(4)
+def _wait_read(sensor: VL53L8CXSerial, n: int) -> None:
+    """Wait until the driver's reader has decoded the ``n`` bytes written so far, or stopped at a fault:
+    what the master side writes reaches the slave asynchronously, and each capture must see exactly the
+    stream written so far."""
     deadline = time.monotonic() + 5.0
-    while True:
-        fcntl.ioctl(fd, termios.FIONREAD, count)
-        if int.from_bytes(count, sys.byteorder) >= n:
-            return
-        assert time.monotonic() < deadline, f"{n} bytes written, not arrived"
+    while sensor.stats.bytes_read < n and sensor.is_connected:
+        assert time.monotonic() < deadline, f"{n} bytes written, {sensor.stats.bytes_read} read"
         time.sleep(0.0005)
 
 
@@ -396,26 +390,23 @@ def test_the_serial_driver_returns_only_injected_frames_within_the_spec_and_coun
     master, slave = os.openpty()
     tty.setraw(slave)
     sensor = VL53L8CXSerial(VL53L8CXConfig(type="vl53l8cx", port=os.ttyname(slave), timeout_s=1.0))
-    read = 0  # delivered frames the driver has read (it reads only in capture)
-    unread = 0  # bytes written since the last capture
+    read = 0  # delivered frames captures have seen
     skipped = 0
-    fault_at: int | None = None
+    faulted = False
     try:
         sensor.connect()
         for start, end in link.chunks():
             os.write(master, link.stream[start:end])
-            unread += end - start
             ready = [frame for at, frame in link.delivered[read:] if at <= end]
             if not any(isinstance(f, p.RangingFrame) or _failing(f) for f in ready):
                 continue  # capture would wait for more
-            _wait_landed(slave, unread)
+            _wait_read(sensor, end)
             read += len(ready)
-            unread = 0
             if any(_failing(f) for f in ready):
                 with pytest.raises(DriverError, match="answered command") as fault:
                     sensor.capture()
                 assert isinstance(fault.value, CellError)
-                fault_at = end
+                faulted = True
                 break
             frame = sensor.capture()
             newest = [f for f in ready if isinstance(f, p.RangingFrame)]
@@ -423,7 +414,7 @@ def test_the_serial_driver_returns_only_injected_frames_within_the_spec_and_coun
             _assert_within_spec(frame, newest[-1], sensor.config.valid_statuses)
             skipped += len(newest) - 1
         assert read == len(link.delivered)
-        if fault_at is not None:
+        if faulted:
             assert not sensor.is_connected
             with pytest.raises(DriverError, match="faulted"):
                 sensor.capture()
@@ -432,7 +423,10 @@ def test_the_serial_driver_returns_only_injected_frames_within_the_spec_and_coun
         sensor.disconnect()
         os.close(master)
         os.close(slave)
-    expected = dict(link.expected, skipped=skipped)
-    if fault_at is not None:  # the driver stopped reading at the fault, perhaps inside the filler
-        expected["bytes_discarded"] = link.discarded_before_filler + max(0, fault_at - link.body_length)
+    expected = dict(link.expected, skipped=skipped, bytes_read=stats.bytes_read)
+    if faulted:  # the reader stopped at the fault, perhaps inside the filler
+        filler_read = max(0, stats.bytes_read - link.body_length)
+        expected["bytes_discarded"] = link.discarded_before_filler + filler_read
+    else:
+        assert stats.bytes_read == len(link.stream)
     assert stats == LinkStats(**expected)

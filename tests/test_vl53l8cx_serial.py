@@ -7,14 +7,16 @@ import binascii
 import itertools
 import os
 import struct
+import time
 import tty
 
 import numpy as np
 import pytest
 
+from drivers.clock import WallClock
 from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.vl53l8cx import protocol as p
-from drivers.depth.vl53l8cx.emulator import EmulatorFaults, SimToFSource, VL53L8CXEmulator
+from drivers.depth.vl53l8cx.emulator import EmulatorFaults, SimToFSource, VL53L8CXEmulator, ZoneData
 from drivers.depth.vl53l8cx.i2c import VL53L8CXI2C, uld_to_sensor_order
 from drivers.depth.vl53l8cx.serial_driver import VL53L8CXSerial
 from drivers.errors import DriverError
@@ -41,7 +43,7 @@ def _capture_until_fault(sensor: VL53L8CXSerial, limit: int = 200) -> tuple[list
 def test_pty_end_to_end_with_garbage_split_reads_corruption_and_disconnect(resolution):
     faults = EmulatorFaults(garbage_bytes=500, corrupt_frames=frozenset({2, 6}), drop_frames=frozenset({9}),
                             split=True, disconnect_after=14)
-    emulator = VL53L8CXEmulator.on_pty(SimToFSource("cube", seed=3), faults, seed=4)
+    emulator = VL53L8CXEmulator.on_pty(SimToFSource.fixed("cube", seed=3), faults, seed=4)
     freq = 60 if resolution == 4 else 15
     # the emulator is a thread of this process: on a loaded machine it was once held off the link for
     # 2 s in the full suite, and the driver rightly called the port silent instead of gone
@@ -80,8 +82,37 @@ def test_pty_end_to_end_with_garbage_split_reads_corruption_and_disconnect(resol
     assert [f.seq for f in frames] == list(range(len(frames)))
 
 
+def test_a_capture_after_a_pause_returns_a_frame_measured_after_the_pause():
+    """Nobody captures while a stop-and-go scan moves the arm, and the bridge queues what it measures
+    meanwhile once the port fills up. A capture that asks for a frame newer than its request (what a job
+    on the wall clock does) must get one measured after the request, not one queued while the arm moved:
+    the emulator writes its clock's time into every zone when it ranges."""
+    clock = WallClock()
+
+    def stamped(resolution: int) -> ZoneData:
+        n = resolution**2
+        ms = np.full(n, round(clock.now() * 1000.0), np.int16)
+        return ZoneData(distance_mm=ms, range_sigma_mm=np.full(n, 5, np.uint16),
+                        target_status=np.full(n, 5, np.uint8), reflectance_pct=np.full(n, 50, np.uint8),
+                        nb_target_detected=np.ones(n, np.uint8))
+
+    emulator = VL53L8CXEmulator.on_pty(stamped, seed=1)
+    sensor = VL53L8CXSerial(_config(emulator.url, resolution=8, frequency_hz=15), clock)
+    with emulator, sensor:
+        for pause_s in (1.5, 3.0):  # long enough to fill the pseudo-terminal and the emulator's outbox
+            time.sleep(pause_s)
+            asked = clock.now()
+            frame = sensor.capture()
+            while frame.timestamp < asked:
+                frame = sensor.capture()
+            assert sensor.last_raw is not None
+            measured = sensor.last_raw.distance_mm[0] / 1000.0
+            # a frame queued during the pause was measured up to the pause's length before the request
+            assert asked - 0.5 < measured <= frame.timestamp
+
+
 def test_socket_url_and_reconnect():
-    emulator = VL53L8CXEmulator.on_tcp(SimToFSource("cube", seed=1), seed=2)
+    emulator = VL53L8CXEmulator.on_tcp(SimToFSource.fixed("cube", seed=1), seed=2)
     assert emulator.url.startswith("socket://127.0.0.1:")
     sensor = VL53L8CXSerial(_config(emulator.url))
     with emulator:
@@ -196,8 +227,13 @@ def test_frames_from_an_independent_encoder_become_points():
         status = [5] * 60 + [9, 6, 255, 4]
         nb = [1] * 62 + [0, 1]
         older = _encoder_from_the_document(40, 3, 8, [999] * 64, [2] * 64, [5] * 64, [30] * 64, [1] * 64)
-        os.write(master, b"boot noise\r\n" + older + _encoder_from_the_document(41, 7, 8, d, [2] * 64, status,
-                                                                                   [30] * 64, nb))
+        stream = b"boot noise\r\n" + older + _encoder_from_the_document(41, 7, 8, d, [2] * 64, status,
+                                                                          [30] * 64, nb)
+        os.write(master, stream)
+        deadline = time.monotonic() + 5.0
+        while sensor.stats.bytes_read < len(stream):  # both frames have arrived
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
         frame = sensor.capture()  # the newest of the two
         stats = sensor.stats
         sensor.disconnect()

@@ -68,8 +68,8 @@ def _print_report(report: CheckReport, link: LinkStats | None,
     if link is not None:
         console.print(f"CRC errors: {link.crc_errors}", markup=False)
         console.print(f"sequence gaps: {link.gaps} ({link.lost} frames lost)", markup=False)
-        console.print(f"link: {link.ranging_frames} ranging frames received ({link.skipped} skipped for a "
-                      f"newer one), {link.bad_headers} bad headers, "
+        console.print(f"link: {link.bytes_read} bytes read, {link.ranging_frames} ranging frames received "
+                      f"({link.skipped} skipped for a newer one), {link.bad_headers} bad headers, "
                       f"{link.malformed} malformed, {link.duplicates} duplicates, {link.restarts} restarts, "
                       f"{link.bytes_discarded} bytes skipped", markup=False)
     if report.zone_noise_m is not None:
@@ -145,7 +145,7 @@ def emulate(
                             corrupt_every=corrupt_every, drop_frames=_int_set(drop), split=split,
                             disconnect_after=disconnect_after)
     try:
-        source = SimToFSource(object, standoff_m=standoff, seed=seed)
+        source = SimToFSource.fixed(object, standoff_m=standoff, seed=seed)
         if socket is not None:
             host, _, port_text = socket.rpartition(":")
             if not port_text.isdigit():

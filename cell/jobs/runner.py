@@ -289,10 +289,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
         world_rng, perception_rng, planner_rng, error_rng = job_generators(req.seed)
         poses = PoseHistory() if wall else None
         T_station = object_pose_in_base(cfg, (0.0, 0.0, 0.0))
-        scene = SimScene(job.mesh, T_base_object if T_base_object is not None else T_station,
-                         table_z=cfg.station.table_z_m, table_center_xy=cfg.sim.table_center_xy_m,
-                         table_size_xy=cfg.sim.table_size_m,
-                         texture=_sim_board(cfg)) if cfg.mode in ("sim", "dry-run") else None
+        scene = sim_scene(cfg, job.mesh, T_base_object if T_base_object is not None else T_station) \
+            if cfg.mode in ("sim", "dry-run") else None
         model = get_robot_model(cfg.arm.model)
         errors = (draw_sim_errors(cfg.sim.error, model, error_rng) if scene is not None and not cfg.sim.exact
                   else SimErrors.none())
@@ -396,6 +394,14 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
     if error is not None:
         raise error
     return ScanOutcome(folder=folder, result=result)
+
+
+def sim_scene(cfg: CellConfig, mesh: ObjectMesh | None, T_base_object: np.ndarray) -> SimScene:
+    """The cell's simulated table (``sim``, ``station``, the calibration board of ``sim.board``) with
+    ``mesh`` on it at ``T_base_object`` (base frame [m]; None: the table only)."""
+    return SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
+                    table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m,
+                    texture=_sim_board(cfg))
 
 
 def _sim_board(cfg: CellConfig) -> TableTexture | None:

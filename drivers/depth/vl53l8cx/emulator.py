@@ -8,9 +8,11 @@ new limit when the resolution changes. Ranging frames leave at the commanded fre
 numbered like every frame the device sends by one sequence counter, stamped with the device's
 microseconds.
 
-The scene: a shipped object on a table, seen by a sensor at a fixed pose (``standoff_m`` above the
-object's base, looking down at it from the side at ``tilt_deg`` from vertical), rendered by
-:class:`drivers.depth.sim_tof.SimToF` with the noise of ``noise`` and quantised to the sensor's integers.
+The scene (:class:`SimToFSource`): a simulated scene seen from a pose that may move, rendered by
+:class:`drivers.depth.sim_tof.SimToF` with the noise of ``noise`` and quantised to the sensor's integers;
+by default (:meth:`SimToFSource.fixed`) a shipped object on a table, seen by a sensor at a fixed pose
+(``standoff_m`` from the object's half height, looking down at it from the side at ``tilt_deg`` from
+vertical).
 
 Faults for tests and commissioning drills (:class:`EmulatorFaults`): garbage ahead of the first answer,
 corrupted frames
@@ -92,28 +94,39 @@ class EmulatorFaults:
 
 
 class SimToFSource:
-    """Renders :class:`ZoneData` of a shipped object with the simulated ToF sensor (see the module
-    docstring). ``seed`` fixes the noise."""
+    """Renders :class:`ZoneData` of a simulated scene with the simulated ToF sensor, seen from the pose
+    ``view()`` returns when a frame is ranged (T_base_sensor, 4x4, base frame [m]): a fixed viewpoint
+    (:meth:`fixed`, the module docstring's scene) or an arm's (a test's controller peer, so that what the
+    emulator sees follows the arm). ``seed`` fixes the noise."""
 
-    def __init__(self, object_name: str = "cube", *, standoff_m: float = 0.3, tilt_deg: float = 20.0,
-                 fov_deg: float = 45.0, noise: DepthNoiseConfig | None = None, seed: int = 0) -> None:
-        mesh = load_object(object_name)
-        self._scene = SimScene(mesh, np.eye(4), table_center_xy=(0.0, 0.0), table_size_xy=(1.2, 1.2))
-        height = float(mesh.extents_m[2])
-        tilt = np.deg2rad(tilt_deg)
-        eye = np.array([-standoff_m * np.sin(tilt), 0.0, height / 2.0 + standoff_m * np.cos(tilt)])
-        self.T_base_sensor = look_at(eye, np.array([0.0, 0.0, height / 2.0]))
+    def __init__(self, scene: SimScene, view: Callable[[], NDArray[np.float64]], *, fov_deg: float = 45.0,
+                 noise: DepthNoiseConfig | None = None, seed: int = 0) -> None:
+        self._scene = scene
+        self._view = view
         self._noise = noise if noise is not None else DepthNoiseConfig(sigma0_m=0.004, k_per_m=0.01)
         self._fov_deg = fov_deg
         self._rng = np.random.default_rng(seed)
         self._clock = SimClock()
         self._sensors: dict[p.Resolution, SimToF] = {}
 
+    @classmethod
+    def fixed(cls, object_name: str = "cube", *, standoff_m: float = 0.3, tilt_deg: float = 20.0,
+              fov_deg: float = 45.0, noise: DepthNoiseConfig | None = None, seed: int = 0) -> SimToFSource:
+        """A shipped object at the base frame's origin on a 1.2 m table, seen ``standoff_m`` from its
+        half height at ``tilt_deg`` from vertical."""
+        mesh = load_object(object_name)
+        scene = SimScene(mesh, np.eye(4), table_center_xy=(0.0, 0.0), table_size_xy=(1.2, 1.2))
+        height = float(mesh.extents_m[2])
+        tilt = np.deg2rad(tilt_deg)
+        eye = np.array([-standoff_m * np.sin(tilt), 0.0, height / 2.0 + standoff_m * np.cos(tilt)])
+        T_base_sensor = look_at(eye, np.array([0.0, 0.0, height / 2.0]))
+        return cls(scene, lambda: T_base_sensor, fov_deg=fov_deg, noise=noise, seed=seed)
+
     def _sensor(self, resolution: p.Resolution) -> SimToF:
         if resolution not in self._sensors:
             cfg = SimToFConfig(type="sim-tof", resolution=resolution, fov_deg=self._fov_deg,
                                noise=self._noise)
-            sensor = SimToF(cfg, self._scene, lambda: self.T_base_sensor, self._clock, self._rng)
+            sensor = SimToF(cfg, self._scene, self._view, self._clock, self._rng)
             sensor.connect()
             self._sensors[resolution] = sensor
         return self._sensors[resolution]

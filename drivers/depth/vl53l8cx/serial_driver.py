@@ -3,8 +3,14 @@
 The port is a pyserial URL (``/dev/ttyACM0``, ``socket://127.0.0.1:5555``, ``loop://``, ...). ``connect``
 opens it and sends STOP, SET_RESOLUTION, SET_FREQUENCY and START; the driver does not wait for the
 bridge's STATUS answers (a stream without them is still read), but a STATUS that reports a failure
-faults the driver. ``capture`` reads what the port holds, decodes it, and returns the newest RANGING
-frame not returned yet, waiting up to ``timeout_s`` for one.
+faults the driver. From ``connect`` to ``disconnect`` a reader thread keeps the port drained: it decodes
+what arrives and stamps each RANGING frame with the clock when it arrives. ``capture`` returns the newest
+RANGING frame not returned yet, waiting up to ``timeout_s`` for one.
+
+Why a reader: a port nobody reads fills up (the host's tty buffer, then the bridge's own), and the bridge
+sends what it had queued once it is read again. A frame read only when a capture asks could then be a
+second or more old, taken while the arm moved, yet arrive after the capture asked for a frame of the
+arm at rest. Drained all along, a frame's arrival is its measurement's time to within the link's latency.
 
 Faults (``capture`` raises ``DriverError`` until the next ``connect``): no RANGING frame for ``timeout_s``
 (a silent port), a read or write error (a vanished port: unplugged board, closed socket or pseudo-
@@ -17,6 +23,7 @@ pyserial is an optional dependency (the ``tof`` extra), imported when connecting
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -28,20 +35,24 @@ from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.vl53l8cx import protocol as p
 from drivers.depth.vl53l8cx.frames import configured_correction, depth_frame, sensor_model
 from drivers.errors import DriverError
+from drivers.scheduling import ordinary_scheduling
 
 READ_SLICE_S = 0.02
-"""Longest single blocking read [s]; ``capture`` loops on such reads until its deadline."""
+"""Longest single blocking read of the reader thread [s], so that it sees a disconnect that soon."""
+READER_JOIN_S = 1.0
 
 INSTALL_HINT = "pyserial is not installed; install it with: pip install 'cell[tof]' (or pip install pyserial)"
 
 
 @dataclass(frozen=True)
 class LinkStats:
-    """Counters of a serial link since ``connect``: decoded ``frames`` and ``ranging_frames``, of which
+    """Counters of a serial link since ``connect``: ``bytes_read`` from the port and decoded (all of them
+    when the reader has caught up with the port); decoded ``frames`` and ``ranging_frames``, of which
     ``skipped`` were never returned because a newer one had arrived by the next ``capture``; the parser's
     ``crc_errors``, ``bad_headers``, ``malformed`` frames and ``bytes_discarded``; the device's sequence
     ``gaps`` (jumps), ``lost`` frames (numbers skipped), ``duplicates`` and ``restarts``."""
 
+    bytes_read: int
     frames: int
     ranging_frames: int
     skipped: int
@@ -80,8 +91,14 @@ class VL53L8CXSerial(DepthSensor):
         self._serial: Any = None
         self._parser = p.FrameParser()
         self._sequence = p.SequenceCounter()
-        self._pending: deque[p.RangingFrame] = deque()
+        # the reader thread's and capture's shared state: the frames not returned yet with their arrival
+        # times, the fault, the counters
+        self._cond = threading.Condition()
+        self._pending: deque[tuple[float, p.RangingFrame]] = deque()
         self._fault: str | None = None
+        self._reader: threading.Thread | None = None
+        self._stop_reading = threading.Event()
+        self._bytes_read = 0
         self._ranging_frames = 0
         self._skipped = 0
         self._host_seq = 0
@@ -102,6 +119,7 @@ class VL53L8CXSerial(DepthSensor):
         self._sequence = p.SequenceCounter()
         self._pending.clear()
         self._fault = None
+        self._bytes_read = 0
         self._ranging_frames = 0
         self._skipped = 0
         try:
@@ -113,11 +131,18 @@ class VL53L8CXSerial(DepthSensor):
         for cmd, value in ((p.CMD_STOP, None), (p.CMD_SET_RESOLUTION, c.resolution),
                            (p.CMD_SET_FREQUENCY, c.frequency_hz), (p.CMD_START, None)):
             self._send(cmd, value)
+        self._stop_reading.clear()
+        self._reader = threading.Thread(target=self._read_loop, name="vl53l8cx reader", daemon=True)
+        self._reader.start()
 
     def disconnect(self) -> None:
         """Ask the bridge to stop ranging (best effort: the port may be gone) and close the port."""
         if self._serial is None:
             return
+        self._stop_reading.set()
+        if self._reader is not None:
+            self._reader.join(READER_JOIN_S)
+            self._reader = None
         port, self._serial = self._serial, None
         if self._fault is None:
             serial = import_serial()
@@ -137,18 +162,22 @@ class VL53L8CXSerial(DepthSensor):
 
     @property
     def stats(self) -> LinkStats:
-        s, q = self._parser.stats, self._sequence
-        return LinkStats(frames=s.frames, ranging_frames=self._ranging_frames, skipped=self._skipped,
-                         crc_errors=s.crc_errors,
-                         bad_headers=s.bad_headers, malformed=s.malformed, bytes_discarded=s.bytes_discarded,
-                         gaps=q.gaps, lost=q.lost, duplicates=q.duplicates, restarts=q.restarts)
+        with self._cond:
+            s, q = self._parser.stats, self._sequence
+            return LinkStats(bytes_read=self._bytes_read, frames=s.frames,
+                             ranging_frames=self._ranging_frames, skipped=self._skipped,
+                             crc_errors=s.crc_errors, bad_headers=s.bad_headers, malformed=s.malformed,
+                             bytes_discarded=s.bytes_discarded, gaps=q.gaps, lost=q.lost,
+                             duplicates=q.duplicates, restarts=q.restarts)
 
     # -- link ------------------------------------------------------------------------------------------
     def _now_us(self) -> int:
         return int(time.monotonic() * 1e6)
 
     def _raise_fault(self, reason: str) -> DriverError:
-        self._fault = reason
+        with self._cond:
+            self._fault = reason
+            self._cond.notify_all()
         return DriverError(reason, device=self.device)
 
     def _send(self, cmd: int, value: int | None) -> None:
@@ -159,50 +188,64 @@ class VL53L8CXSerial(DepthSensor):
             raise self._raise_fault(f"port vanished while writing: {exc}") from None
         self._host_seq += 1
 
-    def _read(self, wait: bool) -> None:
-        """Decode what the port holds (blocking up to one read slice when ``wait``)."""
+    def _read_loop(self) -> None:
+        """The reader thread: decode what arrives until ``disconnect`` or a fault (kept for capture)."""
+        ordinary_scheduling()  # never at a realtime priority inherited from a control thread
+        with contextlib.suppress(DriverError):
+            while not self._stop_reading.is_set() and self._fault is None:
+                self._read()
+
+    def _read(self) -> None:
+        """Decode what one read of the port returns (waiting up to one read slice for a first byte);
+        RANGING frames wait for ``capture`` with the clock's time of their arrival."""
         serial = import_serial()
         try:
-            n = self._serial.in_waiting
-            data = self._serial.read(max(n, 1)) if (n or wait) else b""
+            data = self._serial.read(max(self._serial.in_waiting, 1))
         except (serial.SerialException, OSError) as exc:
             raise self._raise_fault(f"port vanished: {exc}") from None
-        for frame in self._parser.feed(data):
-            if isinstance(frame, p.CommandFrame):
-                continue  # our own commands, echoed by a loop:// port
-            self._sequence.add(frame.seq)
-            if isinstance(frame, p.RangingFrame):
-                self._ranging_frames += 1
-                self._pending.append(frame)
-            elif isinstance(frame, p.StatusFrame):
-                self.last_status = frame
-                if frame.result != p.RESULT_OK:
-                    raise self._raise_fault(
-                        f"the bridge answered command 0x{frame.command:02x} with "
-                        f"'{p.RESULT_TEXT.get(frame.result, f'result {frame.result}')}'"
-                        + (f" (last message: {self.messages[-1]})" if self.messages else ""))
-            else:
-                self.messages.append(frame.text)
+        arrived = self._clock.now()
+        with self._cond:
+            self._bytes_read += len(data)
+            for frame in self._parser.feed(data):
+                if isinstance(frame, p.CommandFrame):
+                    continue  # our own commands, echoed by a loop:// port
+                self._sequence.add(frame.seq)
+                if isinstance(frame, p.RangingFrame):
+                    self._ranging_frames += 1
+                    self._pending.append((arrived, frame))
+                    self._cond.notify_all()
+                elif isinstance(frame, p.StatusFrame):
+                    self.last_status = frame
+                    if frame.result != p.RESULT_OK:
+                        raise self._raise_fault(
+                            f"the bridge answered command 0x{frame.command:02x} with "
+                            f"'{p.RESULT_TEXT.get(frame.result, f'result {frame.result}')}'"
+                            + (f" (last message: {self.messages[-1]})" if self.messages else ""))
+                else:
+                    self.messages.append(frame.text)
 
     # -- capture ---------------------------------------------------------------------------------------
     def capture(self) -> DepthFrame:
-        """The newest RANGING frame not returned yet; older ones still waiting are dropped (their link
-        counters are kept). Raises ``DriverError`` when faulted, silent for ``timeout_s`` or gone."""
+        """The newest RANGING frame not returned yet, stamped with its arrival; older ones still waiting
+        are dropped (their link counters are kept). Raises ``DriverError`` when faulted, silent for
+        ``timeout_s`` or gone."""
         if self._serial is None:
             raise DriverError("capture while disconnected; call connect() first", device=self.device)
-        if self._fault is not None:
-            raise DriverError(f"faulted: {self._fault}; reconnect to clear", device=self.device)
         deadline = time.monotonic() + self.config.timeout_s
-        while not self._pending:
-            if time.monotonic() > deadline:
-                raise self._raise_fault(f"no frame for {self.config.timeout_s:g} s: the port is silent")
-            self._read(wait=True)
-        self._read(wait=False)  # whatever else has arrived, so that the newest frame is returned
-        raw = self._pending[-1]
-        self._skipped += len(self._pending) - 1
-        self._pending.clear()
+        with self._cond:
+            while not self._pending and self._fault is None:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    self._fault = f"no frame for {self.config.timeout_s:g} s: the port is silent"
+                    raise DriverError(self._fault, device=self.device)
+                self._cond.wait(left)
+            if self._fault is not None:
+                raise DriverError(f"faulted: {self._fault}; reconnect to clear", device=self.device)
+            arrived, raw = self._pending[-1]
+            self._skipped += len(self._pending) - 1
+            self._pending.clear()
         self.last_raw = raw
-        frame = depth_frame(raw, seq=self._seq, timestamp=self._clock.now(), fov_deg=self.config.fov_deg,
+        frame = depth_frame(raw, seq=self._seq, timestamp=arrived, fov_deg=self.config.fov_deg,
                             valid_statuses=self.config.valid_statuses, correction=self._correction)
         self._seq += 1
         return frame
