@@ -72,6 +72,9 @@ MUTANTS = (
     Mutant("every-capsule-axial", "a joint's turn counts as keeping the distance of every capsule it turns "
            "(not only of one on its axis)", COLLISION, "axial[i] = on_z & (axis_frame == c.frame)",
            "axial[i] = c.frame <= axis_frame"),
+    Mutant("one-joint-pairs-never-touch", "two link capsules whose distance one joint changes are left "
+           "unchecked without the proof that they stay apart over its range", COLLISION,
+           "if np.min(d[:-1] + d[1:] - lever[j] * step) / 2.0 > 2.0 * PATH_CONTACT_M:", "if True:"),
     Mutant("no-collision-check-of-moves", "trajectories are not checked for collisions", GUARD,
            "hit = self.collision.check_path(q, self._safety.collision.trajectory_step_rad)", "hit = None"),
     Mutant("no-fcl", "FCL never reports a contact (the collision world finds none in a configuration)",

@@ -6,11 +6,13 @@ turn a body about a capsule on their axis, holds."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from cell.config import load_config
-from cell.safety.collision import CollisionWorld
+from cell.safety.collision import PATH_CONTACT_M, CollisionWorld
 from drivers.robots import get_robot_model
 
 from .safety_rig import CELLS
@@ -123,3 +125,64 @@ def test_no_pair_comes_closer_than_its_bound_says(model_name):
         assert np.max(excess) <= FCL_TOL_M
         axial_pairs += int(np.sum((bound == 0.0) & (np.abs(dq) @ world._lever[pairs[:, 0]].T > 0.0)))
     assert axial_pairs > 0  # some bounds were zero only because a joint turned a body about a capsule
+
+
+def _link_pairs(world: CollisionWorld, model_name: str) -> tuple[set[tuple[str, str]], set[tuple[str, str]]]:
+    """The non-adjacent pairs of the model's link capsules, and those of them the world checks."""
+    model = get_robot_model(model_name)
+    names = [c.name for c in model.capsule_specs]
+    pairs = {(a, b) for i, a in enumerate(names) for b in names[i + 1:] if not model.are_adjacent(a, b)}
+    checked = {(world.moving_names[a], world.moving_names[b]) for a, b in world._self_pairs}
+    return pairs, checked & pairs
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_a_pair_of_links_left_unchecked_never_touches(model_name):
+    """The link pairs the world does not check, against FCL's distance between their capsules: at random
+    configurations across the joint limits, and along every joint's whole range from random configuration
+    (the one that changes such a pair's distance among them, 5 mrad apart), they never come within the
+    contact distance. The UR5e's upper arm and base, 3 mm apart at every shoulder angle, are one of them;
+    its shoulder and forearm, which the elbow folds onto each other, are checked."""
+    world, _ = _world(model_name)
+    model = get_robot_model(model_name)
+    pairs, checked = _link_pairs(world, model_name)
+    unchecked = sorted(pairs - checked)
+    assert unchecked
+    if model_name == "ur5e":
+        assert ("base", "upper_arm") in unchecked and ("shoulder", "forearm") in checked
+    index = {name: k for k, name in enumerate(world.moving_names)}
+    rng = np.random.default_rng(12)
+    configurations = list(rng.uniform(model.q_min, model.q_max, (1000, model.n_joints)))
+    for j in range(model.n_joints):
+        n_angles = int((model.q_max[j] - model.q_min[j]) / 5e-3)
+        sweep = np.tile(rng.uniform(model.q_min, model.q_max), (n_angles, 1))
+        sweep[:, j] = np.linspace(model.q_min[j], model.q_max[j], sweep.shape[0])
+        configurations += list(sweep)
+    closest = np.inf
+    for q in configurations:
+        world._place(q)
+        d = min(world._distance(world._objs[index[a]], world._objs[index[b]]) for a, b in unchecked)
+        closest = min(closest, d)
+    assert closest > PATH_CONTACT_M
+
+
+def test_links_that_can_touch_stay_checked():
+    """A UR5e whose base capsule is 5 mm wider reaches its upper arm at some shoulder angles: that pair is
+    then checked, and a configuration where FCL finds them overlapping is a collision."""
+    nominal = get_robot_model("ur5e")
+    wide = tuple(dataclasses.replace(c, radius=c.radius + 0.005) if c.name == "base" else c
+                 for c in nominal.capsule_specs)
+    model = dataclasses.replace(nominal, capsule_specs=wide)
+    cfg = load_config(CELLS["ur5e"])
+    world = CollisionWorld(model, cfg.safety.collision, cfg.station.table_z_m)
+    pairs = {(world.moving_names[a], world.moving_names[b]) for a, b in world._self_pairs}
+    assert ("base", "upper_arm") in pairs
+    base, upper = world.moving_names.index("base"), world.moving_names.index("upper_arm")
+    q = np.array(cfg.arm.home_joints_rad, dtype=float)
+    overlapping = []
+    for angle in np.linspace(model.q_min[1], model.q_max[1], 721):
+        q[1] = angle
+        world._place(q)
+        if world._distance(world._objs[base], world._objs[upper]) <= 0.0:
+            overlapping.append(q.copy())
+    assert overlapping and all(world.check(qo) is not None for qo in overlapping)
