@@ -57,7 +57,9 @@ def test_a_real_mode_scan_runs_with_a_hardware_arm_and_sensor(tmp_path: Path, pl
     assert result["status"] == "completed", result["termination"]
     assert result["safety"]["stops"] == [], result["safety"]
     # the frames were paired with the poses of their time: the packing box holds what was seen of the
-    # 0.3 x 0.2 x 0.1 m box and nothing beside it (a frame paired with another pose puts points off it)
+    # 0.3 x 0.2 x 0.1 m box and nothing beside it (a frame paired with another pose puts points off it:
+    # frames the bridge had queued while the arm moved made it 0.139 m tall; here no side came out more
+    # than 1.1 cm over the truth)
     dims = sorted(result["packing"]["dims_m"])
     assert all(0.5 * true <= dim <= true + 0.025 for dim, true in zip(dims, (0.1, 0.2, 0.3), strict=True)), \
         dims

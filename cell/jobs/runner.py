@@ -398,7 +398,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
 
 def sim_scene(cfg: CellConfig, mesh: ObjectMesh | None, T_base_object: np.ndarray) -> SimScene:
     """The cell's simulated table (``sim``, ``station``, the calibration board of ``sim.board``) with
-    ``mesh`` on it at ``T_base_object`` (base frame [m]; None: the table only)."""
+    ``mesh`` (None: the table only) on it at ``T_base_object`` (4x4, base frame [m])."""
     return SimScene(mesh, T_base_object, table_z=cfg.station.table_z_m,
                     table_center_xy=cfg.sim.table_center_xy_m, table_size_xy=cfg.sim.table_size_m,
                     texture=_sim_board(cfg))

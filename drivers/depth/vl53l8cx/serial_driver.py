@@ -191,16 +191,17 @@ class VL53L8CXSerial(DepthSensor):
     def _read_loop(self) -> None:
         """The reader thread: decode what arrives until ``disconnect`` or a fault (kept for capture)."""
         ordinary_scheduling()  # never at a realtime priority inherited from a control thread
+        port = self._serial  # the port of this connection, even if disconnect gave up waiting for us
         with contextlib.suppress(DriverError):
             while not self._stop_reading.is_set() and self._fault is None:
-                self._read()
+                self._read(port)
 
-    def _read(self) -> None:
-        """Decode what one read of the port returns (waiting up to one read slice for a first byte);
+    def _read(self, port: Any) -> None:
+        """Decode what one read of ``port`` returns (waiting up to one read slice for a first byte);
         RANGING frames wait for ``capture`` with the clock's time of their arrival."""
         serial = import_serial()
         try:
-            data = self._serial.read(max(self._serial.in_waiting, 1))
+            data = port.read(max(port.in_waiting, 1))
         except (serial.SerialException, OSError) as exc:
             raise self._raise_fault(f"port vanished: {exc}") from None
         arrived = self._clock.now()
