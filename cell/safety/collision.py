@@ -238,7 +238,7 @@ class CollisionWorld:
         n = model.n_joints
         origins = model.fk_all(model.q_home)[:, :3, 3]
         reach = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(origins, axis=0), axis=1))])
-        axis_frame = np.arange(n) + (0 if model.convention == "standard" else 1)
+        axis_frame = model.axis_frames
         lever = extents[:, None] + reach[frames][:, None] - reach[axis_frame][None, :]
         return np.where(np.arange(n)[None, :] < frames[:, None], lever, 0.0)
 
@@ -250,7 +250,7 @@ class CollisionWorld:
         of points after any turn of the joint about it, so the joint's turn (of the capsule itself, or of
         the bodies beyond it) does not change the distance between the capsule and any body."""
         n = model.n_joints
-        axis_frame = np.arange(n) + (0 if model.convention == "standard" else 1)
+        axis_frame = model.axis_frames
         axial = np.zeros((n_moving, n), dtype=bool)
         for i, c in enumerate(model.capsule_specs):
             on_z = not np.any(np.asarray([c.a[:2], c.b[:2]], dtype=float))
@@ -446,27 +446,23 @@ class CollisionWorld:
         (:func:`_segment_distances`), and between two angles h apart it is at least (d_i + d_i+1 - L h) / 2
         with L the pair's lever (:meth:`check_path`'s bound). N grows (up to ``_SWEEP_ANGLES_MAX``) when
         the first angles do not prove it and more could."""
-        specs = model.capsule_specs
+        capsules = model.capsules(model.q_home)
         levers = self._pair_levers(pairs, self._lever, self._axial)
-        T = model.fk_all(model.q_home)
-        axis_frame = np.arange(model.n_joints) + (0 if model.convention == "standard" else 1)
+        axis = model.fk_all(model.q_home)[model.axis_frames]
         never = np.zeros(len(pairs), dtype=bool)
         for k, ((a, b), lever) in enumerate(zip(pairs, levers, strict=True)):
             joints = np.nonzero(lever)[0]
-            if joints.size != 1 or max(a, b) >= len(specs):
+            if joints.size != 1 or max(a, b) >= len(capsules):
                 continue
             j = int(joints[0])
-            moved, still = (a, b) if j < specs[a].frame else (b, a)
-            ends = [(T[specs[i].frame] @ np.array([[*specs[i].a, 1.0], [*specs[i].b, 1.0]]).T).T[:, :3]
-                    for i in (moved, still)]
-            origin, axis = T[axis_frame[j]][:3, 3], T[axis_frame[j]][:3, 2]
+            moved, still = (capsules[a], capsules[b]) if j < self._frames[a] else (capsules[b], capsules[a])
             lo, hi = model.q_min[j] - model.q_home[j], model.q_max[j] - model.q_home[j]
-            radii = specs[a].radius + specs[b].radius
             n_angles = _SWEEP_ANGLES
             while True:
                 angles = np.linspace(lo, hi, n_angles)
-                turned = _turned(ends[0], origin, axis, angles)
-                d = _segment_distances(turned[:, 0], turned[:, 1], ends[1][0], ends[1][1]) - radii
+                turned = _turned(np.array([moved.a, moved.b]), axis[j, :3, 3], axis[j, :3, 2], angles)
+                d = _segment_distances(turned[:, 0], turned[:, 1], still.a, still.b) \
+                    - (moved.radius + still.radius)
                 step = (hi - lo) / (n_angles - 1)
                 if np.min(d[:-1] + d[1:] - lever[j] * step) / 2.0 > 2.0 * PATH_CONTACT_M:
                     never[k] = True

@@ -304,6 +304,12 @@ class RobotModel:
         """T_base_flange (4, 4) at joint positions ``q`` [rad]."""
         return self.fk_all(q)[-1]
 
+    @property
+    def axis_frames(self) -> NDArray[np.intp]:
+        """For each joint i (0-based), the ``fk_all`` frame whose z axis it turns about, through that frame's
+        origin: frame i (standard DH) or i + 1 (modified DH). The joint moves the frames after i."""
+        return np.arange(self.n_joints) + (0 if self.convention == "standard" else 1)
+
     def jacobian_from_frames(self, F: Array) -> Array:
         """The geometric Jacobian (see :meth:`jacobian`) from frames ``F`` already computed by ``fk_all``."""
         n = self.n_joints
