@@ -130,6 +130,8 @@ def test_a_cloud_point_is_the_tables_when_every_capture_point_of_its_voxel_is() 
     cloud = np.vstack([captured[:2].mean(axis=0), captured[2:].mean(axis=0), [[0.6, 0.0, 0.05]]])
     got = off_table(session.perception, cloud, captured, clear)  # type: ignore[arg-type]
     np.testing.assert_array_equal(got, [False, True, True])  # the last: no capture point in its voxel
+    nothing = off_table(session.perception, cloud, np.zeros((0, 3)), np.zeros(0, dtype=bool))  # type: ignore[arg-type]
+    np.testing.assert_array_equal(nothing, [True, True, True])
 
 
 def test_table_noise_over_the_cut_beyond_the_part_does_not_lengthen_its_box() -> None:

@@ -10,8 +10,10 @@ from cell.perception.cloud import (
     PointGrid,
     crop_box,
     first_voxels,
+    point_keys,
     read_ply,
     voxel_downsample,
+    voxel_keys,
     write_ply,
 )
 from drivers.transforms import T_from_xyz_rpy, transform_points
@@ -44,6 +46,21 @@ def test_first_voxels_filters_the_concatenation_and_names_each_voxels_first_clou
     np.testing.assert_array_equal(first, [0, 2, 0, 3])
     empty_centroids, empty_first = first_voxels([], 0.01)
     assert empty_centroids.shape == (0, 3) and empty_first.shape == (0,)
+
+
+def test_point_keys_name_each_points_voxel_as_the_voxel_filter_packs_it():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-0.3, 0.3, (5000, 3))
+    keys = point_keys(pts, 0.01)
+    # one key per voxel of the filter, and points share a key exactly when they share a voxel
+    assert np.unique(keys).size == voxel_keys(pts, 0.01).shape[0]
+    index = np.floor(pts / 0.01)
+    same = keys[:, None] == keys[None, :1000]
+    np.testing.assert_array_equal(same, np.all(index[:, None] == index[None, :1000], axis=2))
+    with pytest.raises(ValueError, match="not finite"):
+        point_keys(np.array([[0.0, np.nan, 0.0]]), 0.01)
+    with pytest.raises(ValueError, match="too far"):
+        point_keys(np.array([[0.0, 0.0, 1.1e4]]), 0.01)
 
 
 def test_crop_box_uses_open_intervals():

@@ -47,6 +47,7 @@ from scipy.ndimage import convolve
 from cell.packing.objects import extent_box, table_cut_z
 from cell.packing.uncertainty import ErrorModel, Sighting
 from cell.packing.zones import zone_grid
+from cell.perception.cloud import point_keys
 from cell.perception.pipeline import PerceptionPipeline
 
 Array = NDArray[np.float64]
@@ -136,11 +137,17 @@ def off_table(perception: PerceptionPipeline, points: Array, captured: Array,
     in their capture's band (``clear`` (N,), :func:`clear_of_table`), True where one does not or none
     falls there (the module docstring, use 2)."""
     voxel = perception.config.voxel_m
-    keys = np.floor(np.vstack([points, captured]) / voxel).astype(np.int64)
-    _, ids = np.unique(keys, axis=0, return_inverse=True)
-    ids = ids.reshape(-1)
-    own, theirs = ids[:points.shape[0]], ids[points.shape[0]:]
-    return ~np.isin(own, theirs) | np.isin(own, theirs[clear])
+    own, theirs = point_keys(points, voxel), point_keys(captured, voxel)
+    return ~_among(own, theirs) | _among(own, theirs[clear])
+
+
+def _among(keys: NDArray[np.int64], others: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Mask (K,) of the ``keys`` (K,) found among ``others`` (M,): one sort of ``others`` and a binary
+    search each (``np.isin`` sorts both together)."""
+    if others.size == 0:
+        return np.zeros(keys.shape, dtype=bool)
+    ordered = np.sort(others)
+    return np.asarray(ordered[np.minimum(np.searchsorted(ordered, keys), ordered.size - 1)] == keys)
 
 
 def _over(points: Array, box: tuple[Array, Array]) -> NDArray[np.bool_]:

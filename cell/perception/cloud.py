@@ -56,6 +56,18 @@ def first_voxels(clouds: Sequence[Array], voxel_m: float) -> tuple[Array, NDArra
     return centroids, cloud_of[first]
 
 
+def point_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
+    """The packed voxel key (N,) of each point (N, 3) [m] on the ``voxel_m`` [m] grid anchored at the
+    origin, packed as ``_kernels.voxel_groups`` packs them: points share a key when they share a voxel.
+    Points not finite or too far from the origin for the grid raise ValueError, as there."""
+    scaled = np.asarray(points, dtype=np.float64).reshape(-1, 3) / voxel_m
+    off = 1 << (_KEY_BITS - 1)
+    if not np.all((scaled >= -off) & (scaled < off)):  # NaN fails both
+        raise ValueError(f"points are not finite or lie too far from the origin for a {voxel_m} m voxel grid")
+    index = np.floor(scaled).astype(np.int64) + off
+    return np.asarray((index[:, 0] << (2 * _KEY_BITS)) | (index[:, 1] << _KEY_BITS) | index[:, 2])
+
+
 def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
     """The distinct voxel keys floor(p / voxel_m) (K, 3) of points (N, 3) [m], sorted (x, then y, then z)."""
     packed = _voxel_groups(points, voxel_m)[0]
