@@ -10,6 +10,8 @@ import pytest
 
 from cell.config.load import load_config
 from cell.config.models import PerceptionConfig
+from cell.evaluation.presets import write_heldout_shapes
+from cell.jobs.runner import ScanRequest, run_scan
 from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
 from cell.packing.config import ContainerConfig, PackingConfig
 from cell.packing.containers import choose_container, required_inner_dims
@@ -392,3 +394,17 @@ def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:
     assert np.all(upper > dims + 0.01)  # no sightings: seen from the stand-off in the worst way
     assert section["container"]["name"] != "small"
     assert "upper bound" in section["container"]["reason"]
+
+
+def test_an_heu_scan_of_a_post_split_by_carving_bounds_its_whole_height(tmp_path) -> None:
+    """HEU's 13 views of a 4 x 4 x 18 cm post carve it apart at mid-height, and its lower piece becomes
+    the largest cluster after the top piece was: the packing box still holds the whole post (when the
+    lower piece started the extent again, the box ended at 9.5 cm and its upper bound 5 cm short)."""
+    post = write_heldout_shapes(tmp_path / "shapes")["post"]
+    cfg = load_config(UR5E)
+    r = run_scan(ScanRequest(config=cfg, config_path=str(UR5E), object=str(post), planner="heu",
+                             out=tmp_path / "job")).result
+    assert r["status"] == "completed", r["termination"]
+    dims, upper = np.array(r["packing"]["dims_m"]), np.array(r["packing"]["dims_upper_m"])
+    assert dims[2] == pytest.approx(0.18, abs=0.01)
+    assert upper[2] >= 0.18

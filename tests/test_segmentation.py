@@ -237,6 +237,23 @@ def test_object_extent_keeps_what_a_split_off_piece_took_and_restarts_on_another
     np.testing.assert_array_equal(hi, other.max(axis=0))
 
 
+def test_object_extent_takes_a_piece_over_its_footprint_for_the_same_object() -> None:
+    """A 4 x 4 x 18 cm post that carving split at mid-height: its top piece was the largest cluster, then
+    its lower one. Both stand over one footprint, so the extent holds the whole post; a piece beside the
+    footprint at the same height is another object."""
+    rng = np.random.default_rng(3)
+    post = CENTRE + rng.uniform([-0.02, -0.02, 0.0], [0.02, 0.02, 0.18], size=(3000, 3))
+    top, lower = post[post[:, 2] > 0.125], post[(post[:, 2] > 0.015) & (post[:, 2] < 0.095)]
+    extent = ObjectExtent()
+    extent.add(compute_roi(top, table_z=0.0))
+    lo, hi = extent.add(compute_roi(lower, table_z=0.0))
+    np.testing.assert_array_equal(lo, np.minimum(top.min(axis=0), lower.min(axis=0)))
+    np.testing.assert_array_equal(hi, np.maximum(top.max(axis=0), lower.max(axis=0)))
+    beside = top + np.array([0.05, 0.0, 0.0])
+    lo, hi = extent.add(compute_roi(beside, table_z=0.0))
+    np.testing.assert_array_equal(lo, beside.min(axis=0))
+
+
 def test_threshold_occupancy() -> None:
     c = np.arange(12.0).reshape(4, 3)
     np.testing.assert_array_equal(threshold_occupancy(c, np.array([0.2, 0.5, 0.51, 0.9])), c[2:])
