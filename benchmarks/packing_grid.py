@@ -24,8 +24,9 @@ every estimate within 1 cm of the truth on the packing paper's four objects.
 ``--rescore DIR``: no scan; the boxes of the scans of DIR/results.csv (an earlier run's ``--out``; every
 job folder under DIR/scans when that results.csv predates the ``job`` column) re-estimated with the code
 as it is now from their recorded frames and poses, played through the cell's perception as the job did,
-each capture a sighting of a planner that records them (LR-NBV, NBV, HEU): seconds per scan instead of a
-rescan, for changes to ``cell.packing``. The same figures, with the packing sections recomputed.
+each capture recorded as the job's planner records it (LR-NBV, NBV and HEU keep every capture for the box
+and its bound; raster and the visual-servoing planners keep none): seconds per scan instead of a rescan,
+for changes to ``cell.packing``. The same figures, with the packing sections recomputed.
 
 Options other than ``--out`` and ``--suite`` go to ``cell eval`` as they are (``--objects horizontal_box``,
 ``--seeds 0``, ``--jobs 2``, ...). Prints JSON {"report": ..., "summary": {...}, "boxes": {...}} as its last
@@ -55,8 +56,9 @@ from cell.evaluation.presets import write_heldout_shapes
 from cell.evaluation.report import REPORT_MD, figures
 from cell.evaluation.results import Row, read_csv
 from cell.packing.box import box_from_mesh
-from cell.packing.result import ReconstructionHistory, packing_section, section_box
+from cell.packing.result import RecordsReconstruction, packing_section, section_box
 from cell.perception.pipeline import PerceptionPipeline
+from cell.planning.registry import get_planner
 from cell.templates import template_path
 from drivers.clock import SimClock
 from drivers.depth.base import SensorModel
@@ -132,27 +134,21 @@ class _Replayed:
         return self.model
 
 
-@dataclass
-class _Recorder:
-    """A planner that records each capture, as LR-NBV, NBV and HEU do."""
-
-    reconstruction: ReconstructionHistory
-
-
 def rescored_packing(job: Path, result: dict[str, Any], mesh: ObjectMesh) -> dict[str, Any]:
     """The packing section of the job folder ``job`` (its ``result``) recomputed by the code as it is
     now: its recorded frames and poses through the perception of its cell file, each frame a capture
-    (the module docstring)."""
+    of a fresh planner of the job's (the module docstring)."""
     config = load_config(result["config"])
     recording = JobRecording(job)
     sensor = ReplaySensor(recording, SimClock(), (config.sensor.range_min_m, config.sensor.range_max_m))
     perception = PerceptionPipeline(config.perception, table_z_m=config.station.table_z_m,
                                     range_max_m=config.sensor.range_max_m, rng=np.random.default_rng(0))
-    planner = _Recorder(ReconstructionHistory())
+    planner = get_planner(result["planner"])(config)
     for index in range(len(recording.frames)):
         frame, T_base_sensor, _ = recording.load(index)
         perception.process(frame, T_base_sensor)
-        planner.reconstruction.record(perception)
+        if isinstance(planner, RecordsReconstruction):
+            planner.reconstruction.record(perception)
     pose = np.array(result["object_pose"])
     return packing_section(config, _Replayed(len(recording.frames), perception, sensor.model), planner,
                            mesh, pose, None)
