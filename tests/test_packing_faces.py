@@ -13,7 +13,7 @@ from cell.config.load import load_config
 from cell.packing.box import PackingBox, box_from_faces, box_from_points
 from cell.packing.faces import face_at, head_on_plane, outline_gap, sample_end
 from cell.packing.uncertainty import ErrorModel, Seen, Sighting
-from cell.packing.zones import inside_outline, surface_normals, zone_grid
+from cell.packing.zones import NEIGHBOURS, outline_sides, surface_normals, zone_grid
 from drivers.clock import WallClock
 from drivers.depth.sim_tof import SimToF, zone_directions
 from drivers.sim.objects import load_object
@@ -86,6 +86,11 @@ def test_surface_normals_of_a_tilted_plane_face_the_sensor() -> None:
     assert np.all(np.isnan(doubled))
 
 
+def _inside(T: np.ndarray, points: np.ndarray, on_object: np.ndarray, margin) -> np.ndarray:
+    """The points on the object whose zone straddles the outline on no side."""
+    return on_object & ~outline_sides(T, points, on_object, margin, ZONE, HALF_FOV).any(axis=1)
+
+
 def test_zones_inside_the_outline_have_the_object_or_something_nearer_all_around() -> None:
     T = _looking_down(0.0, 0.0, 0.4)
     d = RAYS @ T[:3, :3].T
@@ -96,25 +101,35 @@ def test_zones_inside_the_outline_have_the_object_or_something_nearer_all_around
         return np.full(ranges.shape, 0.01)
 
     grid = on_top.reshape(8, 8)
+    # Each side straddles where the neighbour on that side (+x, -x, +y, -y in the image) is the table.
+    sides = outline_sides(T, points, on_top, margin, ZONE, HALF_FOV).reshape(8, 8, 4)
+    for side, (dr, dc) in enumerate(NEIGHBOURS):
+        beyond = np.zeros((10, 10), dtype=bool)
+        beyond[1:9, 1:9] = ~grid
+        beyond[[0, 9], :] = beyond[:, [0, 9]] = False  # past the grid's border: the field of view's edge
+        np.testing.assert_array_equal(sides[:, :, side] & grid, beyond[1 + dr:9 + dr, 1 + dc:9 + dc] & grid)
     around = grid.copy()
     around[1:] &= grid[:-1]
     around[:-1] &= grid[1:]
     around[:, 1:] &= grid[:, :-1]
     around[:, :-1] &= grid[:, 1:]
     assert 0 < np.count_nonzero(around) < np.count_nonzero(on_top)
-    np.testing.assert_array_equal(inside_outline(T, points, on_top, margin, ZONE, HALF_FOV), around.ravel())
+    np.testing.assert_array_equal(_inside(T, points, on_top, margin), around.ravel())
     # Something nearer beside a zone (the table in front of a side's foot) is not past the object; a
     # zone that ranged nothing is not known to be nearer.
     nearer = np.where(on_top[:, None], points, T[:3, 3] + (0.25 / -d[:, 2:]) * d)
-    np.testing.assert_array_equal(inside_outline(T, nearer, on_top, margin, ZONE, HALF_FOV), on_top)
+    np.testing.assert_array_equal(_inside(T, nearer, on_top, margin), on_top)
     silent = np.flatnonzero(on_top)[0] - 1  # the zone left of the top's first
     assert not on_top[silent]
     kept = np.delete(np.arange(64), silent)
-    lone = inside_outline(T, nearer[kept], on_top[kept], margin, ZONE, HALF_FOV)
+    lone = _inside(T, nearer[kept], on_top[kept], margin)
     assert np.count_nonzero(lone) == np.count_nonzero(on_top) - 1
     # The field of view's edge is not the object's: a top filling the grid is inside it everywhere.
     everywhere = np.ones(64, dtype=bool)
-    assert inside_outline(T, points, everywhere, margin, ZONE, HALF_FOV).all()
+    assert _inside(T, points, everywhere, margin).all()
+    # Two points in one zone are not its range: such a zone straddles on every side.
+    assert outline_sides(T, np.vstack([points[:1], points[:1] * 1.001]), np.ones(2, dtype=bool), margin,
+                         ZONE, HALF_FOV).all()
 
 
 def _sim_tof_views(name: str, centre: np.ndarray, aim: np.ndarray, distance: float,
@@ -331,3 +346,28 @@ def test_box_from_faces_inverts_faces() -> None:
     points = np.random.default_rng(5).uniform([0.3, -0.1, 0.0], [0.6, 0.1, 0.1], (500, 3))
     trimmed = box_from_points(points, 0.0, trim=0.02)
     np.testing.assert_allclose(box_from_faces(trimmed, trimmed.faces()).dims, trimmed.dims, atol=1e-12)
+
+
+def test_a_face_seen_only_at_the_outline_may_lie_a_footprint_beyond_it_in_the_image() -> None:
+    # A view looking down 53.13 deg: the top's normal +z points up the image (-y), 0.6 of its length.
+    e = math.acos(0.6)
+    down, ahead = [-math.sin(e), 0.0, -math.cos(e)], [math.cos(e), 0.0, -math.sin(e)]
+    R = np.column_stack([[0.0, -1.0, 0.0], down, ahead])  # image x, image y, optical axis
+    up = np.array([0.0, 0.0, 1.0])
+    n_points = 4
+    seen = Seen(points=np.zeros((n_points, 3)), origins=np.tile(-0.3 * R[:, 2], (n_points, 1)),
+                axes=np.tile(R, (n_points, 1, 1)),
+                normals=np.array([[np.nan] * 3, [np.nan] * 3, up, [0.0, -1.0, 0.0]]),
+                straddles=np.array([[0, 0, 0, 1], [1, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 1]], dtype=bool))
+    # No point of the face lies on the top (no normal, or a side's): the top was seen only at its outline,
+    # and moved up by D it moves the outline 0.6 D up the image, so beyond a point straddling the outline
+    # up the image it may lie 1 / 0.6 footprints; beyond one straddling elsewhere, 0.6 as for a point
+    # ranged on the face.
+    outline_only = np.array([True, True, False, True])
+    footprints = seen.footprints(up, outline_only)
+    np.testing.assert_allclose(footprints[outline_only], [1.0 / 0.6, 0.6, 1.0 / 0.6])
+    # A face with a point on it (its normal +z) was ranged as a surface: 0.6 everywhere.
+    np.testing.assert_allclose(seen.footprints(up, np.ones(n_points, dtype=bool)), 0.6)
+    # The bound takes the median over the face's points.
+    median = MODEL.footprint(np.full(3, 0.3), footprints[outline_only])
+    assert median == pytest.approx(0.3 * math.tan(ZONE) / 0.6)

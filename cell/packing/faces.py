@@ -14,7 +14,7 @@ face is put where its points say the plane is:
    ``BAND_SIGMAS`` of their own noise std inside the box's face: on a box, the face's own points (a top
    and a side meet at 90 deg; the normal's own error is 10-20 deg). Not the view ray: a view 40 deg
    above the table meets a top and a side both at 40-50 deg. The plane (steps 2-3) is fitted to those
-   of them inside the object's outline in their capture (:func:`cell.packing.zones.inside_outline`): a
+   of them inside the object's outline in their capture (:func:`cell.packing.zones.outline_sides`): a
    zone straddling the outline ranges the part of its footprint on the face, but its point lies on the
    zone's central ray, which may pass beside the object, and so beyond the face's plane (the sim
    VL53L8CX's vertical box seen 50-70 deg off a side's normal: 1-1.7 mm out on average, the plane 2.6 mm
@@ -119,11 +119,8 @@ import numpy as np
 from scipy.special import bdtrc, ndtr, ndtri, stdtr
 
 from cell.packing.box import PackingBox, box_from_faces
-from cell.packing.uncertainty import ErrorModel, Seen
+from cell.packing.uncertainty import FACING_DEG, ErrorModel, Seen
 
-# A point faces the face when its surface normal is within this angle of the face's [deg]: twice the
-# normal's error from the range noise at the scans' ranges, far from the 90 deg between adjacent faces.
-FACING_DEG = 35.0
 # The share of the noise-corrected facing points below the face (module docstring, step 2).
 QUANTILE = 0.9
 # Fewer facing points than this cannot place a 0.9 quantile between two of them.

@@ -17,11 +17,26 @@ quantile by:
    the neighbouring zone outwards, which ranged the background, may still hold up to half its own width
    of the object. So a silhouette seen at a zone's centre can lie up to one zone footprint, r tan(w),
    beyond the point along each image axis (at least an eighth of one with the sim's 4 x 4 sub-rays, half
-   of one on average: why an 8 x 8 box comes out small). Along n: r tan(w) (|n.x| + |n.y|), the whole
-   footprint for a face seen edge-on (a grazing view, n in the image plane; up to sqrt 2 of it along the
-   zone's diagonal) and nothing for a face seen head-on. The term is the median of that over the face's
-   points: a face defined by silhouettes seen from above gets about a footprint, a wall the sensor
-   faced gets little. For a pinhole camera w is one pixel's angle and the term vanishes.
+   of one on average: why an 8 x 8 box comes out small). How far that puts the face along n depends on
+   what the point is:
+
+   - a face some of whose points lie on it (a surface normal from the neighbouring zones within
+     ``FACING_DEG`` of n) was ranged as a surface: it is where its points were ranged, anywhere in their
+     zones' cones, r tan(w) (|n.x| + |n.y|) along n: the whole footprint for a face seen edge-on (n in
+     the image plane; up to sqrt 2 of it along the zone's diagonal), nothing for one seen head-on;
+   - a face none of whose points lies on it was seen only at its outline, where other surfaces end (a
+     cone's tip, a dome's top seen from the side). Beyond a point whose zone straddles the outline on the
+     side n points to in the image (the neighbour there saw past the object), the face was not ranged: a
+     face moved out along n by D moves its outline in the image by D max(|n.x|, |n.y|) along the axis n
+     points most along, so it can lie up to r tan(w) / max(|n.x|, |n.y|) beyond the point (at least the
+     first form), the more, the more the view looks along n. A cone's top seen only at its outline from
+     HEU's views, 0.35 m up and 0.22-0.3 m out (|n.y| 0.6): 1.7 footprints, where the first form gave
+     0.6 and left the bound 4-10 mm under the 90 mm cone on all five seeds (its tip never fills half a
+     zone, and the zones above the top's last ranged one saw the table beyond it).
+
+   The term is the median of that over the face's points: a face defined by silhouettes seen from above
+   gets about a footprint, a wall the sensor faced gets little. For a pinhole camera w is one pixel's
+   angle and the term vanishes.
 2. **Map resolution** (bounded). The box is measured on the points in the object's occupancy voxels or
    in the box of every ROI grown by half a voxel (:mod:`cell.packing.objects`), and on the centres of
    object voxels that hold no measured point: a silhouette point whose voxel a grazing ray carved free is
@@ -39,10 +54,11 @@ quantile by:
 
 Bounded terms add (each is a worst case that can coincide with the others); the Gaussian ones, being
 independent, add in quadrature and enter as ``coverage_factor`` c times their combined std. With r, |n.d|
-and |n.x| + |n.y| the medians over the face's points:
+and f the medians over the face's points:
 
-    delta(n) = r tan(w) (|n.x| + |n.y|) + res / 2
-               + c sqrt(sigma(r)^2 |n.d|^2 / K + b^2 |n.d|^2 + (t + r theta)^2).
+    delta(n) = r tan(w) f + res / 2 + c sqrt(sigma(r)^2 |n.d|^2 / K + b^2 |n.d|^2 + (t + r theta)^2),
+
+with f the footprints of item 1 (:meth:`Seen.footprints`).
 
 The points are each capture's own (:class:`Sighting`, with the pose it was taken from); a planner that
 keeps no sightings gets the estimate's own points seen from the configured stand-off range in the worst
@@ -66,7 +82,7 @@ from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox
-from cell.packing.zones import inside_outline, surface_normals
+from cell.packing.zones import outline_sides, surface_normals
 from drivers.depth.base import SensorModel
 from drivers.depth.config import DepthNoiseConfig
 
@@ -75,6 +91,9 @@ Array = NDArray[np.float64]
 # The share of the points, outermost along a face's normal, that the face's delta is taken over: a few
 # zones' worth on each face of a scan of some thousand points, more than the estimate's trim.
 FACE_FRACTION = 0.05
+# A point faces the face when its surface normal is within this angle of the face's [deg]: twice the
+# normal's error from the range noise at the scans' ranges, far from the 90 deg between adjacent faces.
+FACING_DEG = 35.0
 # A neighbour zone further than a zone by more than this many std of two ranges' difference saw past it.
 OUTLINE_SIGMAS = 3.0
 # The sim VL53L8CX's range noise, for a real sensor whose config carries none (BoxUncertaintyConfig).
@@ -109,23 +128,25 @@ class ErrorModel:
     coverage: float
     half_fov_rad: tuple[float, float]
 
-    def delta(self, ranges: Array, along_ray: Array, sideways: Array) -> float:
+    def delta(self, ranges: Array, along_ray: Array, footprints: Array) -> float:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
-        |n.d| (K,) and ``sideways`` |n.x| + |n.y| (K,) (the module docstring; medians over the points)."""
+        |n.d| (K,) and ``footprints`` f (K,) (:meth:`Seen.footprints`; the module docstring, medians over
+        the points)."""
         r, along = float(np.median(ranges)), float(np.median(along_ray))
         sigma = self.range_sigma(r)
         pose = self.pose_m + r * self.pose_rad
         gaussian = math.sqrt(along**2 * (sigma**2 / ranges.shape[0] + self.bias_m**2) + pose**2)
-        return self.footprint(ranges, sideways) + self.voxel_m / 2.0 + self.coverage * gaussian
+        return self.footprint(ranges, footprints) + self.voxel_m / 2.0 + self.coverage * gaussian
 
     def range_sigma(self, ranges: Array | float) -> Array | float:
         """sigma(r) = sigma0 + k r^2 [m] of ranges r [m]."""
         return self.sigma0_m + self.k_per_m * ranges**2
 
-    def footprint(self, ranges: Array, sideways: Array) -> float:
-        """One zone footprint along a face's normal n [m], r tan(w) (|n.x| + |n.y|), from the face's K >= 1
-        points' ``ranges`` r (K,) [m] and ``sideways`` |n.x| + |n.y| (K,) (medians over the points)."""
-        return float(np.median(ranges)) * math.tan(self.zone_rad) * float(np.median(sideways))
+    def footprint(self, ranges: Array, footprints: Array) -> float:
+        """How far [m] a face may lie beyond its K >= 1 points by their zones' footprints, r tan(w) f, from
+        their ``ranges`` r (K,) [m] and ``footprints`` f (K,) along the face's normal n (|n.x| + |n.y|
+        of their views, or :meth:`Seen.footprints`; medians over the points)."""
+        return float(np.median(ranges)) * math.tan(self.zone_rad) * float(np.median(footprints))
 
 
 def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
@@ -149,9 +170,11 @@ class Seen:
     both None when the views are unknown, and then every point counts as seen from ``range_m`` [m] in
     the worst way for every face (sqrt 2 footprints sideways and the whole range error along n).
     ``normals`` (K, 3) the local surface normal at each point from its capture's neighbouring zones
-    (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed; ``inside``
-    (K,) whether each point lies inside the object's outline in its capture, no neighbouring zone having
-    seen past the object (:func:`cell.packing.zones.inside_outline`), None when not computed."""
+    (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed; ``straddles``
+    (K, 4) on which sides (``cell.packing.zones.NEIGHBOURS``) each point's zone straddles the object's
+    outline in its capture, its neighbour there having seen past the object
+    (:func:`cell.packing.zones.outline_sides`), and ``inside`` (K,) whether it straddles on none (lies
+    inside the outline); both None when not computed."""
 
     points: Array
     origins: Array | None = None
@@ -159,6 +182,7 @@ class Seen:
     range_m: float = 0.0
     normals: Array | None = None
     inside: NDArray[np.bool_] | None = None
+    straddles: NDArray[np.bool_] | None = None
 
     @staticmethod
     def of(sightings: list[Sighting], keep: NDArray[np.bool_], model: ErrorModel | None = None) -> Seen:
@@ -178,16 +202,17 @@ class Seen:
             object: ``OUTLINE_SIGMAS`` std of two ranges' difference."""
             return OUTLINE_SIGMAS * math.sqrt(2.0) * np.asarray(model.range_sigma(ranges))
 
-        normals, inside = [], []
+        normals, sides = [], []
         for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True):
             kept = s.points[keep[a:b]]
             normals.append(surface_normals(s.T_base_sensor, kept, model.zone_rad, model.half_fov_rad))
             returns = np.vstack([s.points, s.free_ends])
             on_object = np.concatenate([keep[a:b], np.zeros(s.free_ends.shape[0], dtype=bool)])
-            inside.append(inside_outline(s.T_base_sensor, returns, on_object, margin, model.zone_rad,
-                                         model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
+            sides.append(outline_sides(s.T_base_sensor, returns, on_object, margin, model.zone_rad,
+                                       model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
+        straddles = np.vstack(sides)
         return Seen(points[keep], origins[keep], axes[keep], normals=np.vstack(normals),
-                    inside=np.concatenate(inside))
+                    inside=np.asarray(~straddles.any(axis=1)), straddles=straddles)
 
     def face(self, n: Array) -> tuple[Array, NDArray[np.bool_]]:
         """The points' coordinates x (K,) [m] along the unit normal ``n`` (3,), and which of them are the
@@ -205,6 +230,29 @@ class Seen:
         along = np.abs(offset @ n) / np.maximum(ranges, 1e-9)
         sideways = np.abs(np.einsum("kaj,a->kj", self.axes[:, :, :2], n)).sum(axis=1)
         return ranges, along, sideways
+
+    def footprints(self, n: Array, face: NDArray[np.bool_]) -> Array:
+        """Per point (K,): how many zone footprints along the face normal ``n`` (3,) the face may lie
+        beyond it (module docstring, item 1): |n.x| + |n.y| of its view; for a face none of whose points
+        ``face`` (K,) lies on it (a surface normal within ``FACING_DEG`` of n), 1 / max(|n.x|, |n.y|)
+        where the point's zone straddles the outline on the side n points to in the image, if more;
+        sqrt 2 when the views are unknown."""
+        k = self.points.shape[0]
+        if self.origins is None or self.axes is None:
+            return np.full(k, math.sqrt(2.0))
+        image = np.einsum("kaj,a->kj", self.axes[:, :, :2], n)  # n's components along x and y
+        sideways = np.abs(image).sum(axis=1)
+        if self.straddles is None or self.normals is None:
+            return sideways
+        with np.errstate(invalid="ignore"):  # NaN normals: not known to lie on the face
+            ranged = bool(np.any(self.normals[face] @ n >= math.cos(math.radians(FACING_DEG))))
+        if ranged:
+            return sideways
+        across = np.abs(image[:, 0]) >= np.abs(image[:, 1])
+        side = np.where(across, np.where(image[:, 0] > 0, 0, 1), np.where(image[:, 1] > 0, 2, 3))
+        outward = self.straddles[np.arange(k), side]
+        steepest = np.maximum(np.abs(image).max(axis=1), 1e-9)
+        return np.where(outward, np.maximum(1.0 / steepest, sideways), sideways)
 
     def framed(self, model: ErrorModel) -> NDArray[np.bool_]:
         """Mask (K,) of the points seen at least one zone inside their view's field of view (all True
@@ -225,8 +273,9 @@ def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
     x, face = seen.face(n)
     if not seen.framed(model)[face].any():
         return math.inf
-    ranges, along, sideways = seen.geometry(n)
-    return float(np.quantile(x, 1.0 - trim)) + model.delta(ranges[face], along[face], sideways[face])
+    ranges, along, _ = seen.geometry(n)
+    footprints = seen.footprints(n, face)
+    return float(np.quantile(x, 1.0 - trim)) + model.delta(ranges[face], along[face], footprints[face])
 
 
 def upper_dims(box: PackingBox, model: ErrorModel, seen: Seen, trim: float) -> Array:

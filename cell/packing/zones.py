@@ -15,8 +15,8 @@ on a box's top from one on its side whatever the view, which the view ray alone 
 above the table sees a top and a side both at 40-50 deg.
 
 A zone whose neighbour saw past the object (further off, or nothing) lies on the object's outline in that
-capture: part of its footprint may fall beside the object, and its range, the object's part of it, is
-placed on a central ray that may miss the object (:func:`inside_outline`).
+capture, on that neighbour's side: part of its footprint may fall beside the object, and its range, the
+object's part of it, is placed on a central ray that may miss the object (:func:`outline_sides`).
 """
 
 from __future__ import annotations
@@ -110,31 +110,35 @@ def surface_normals(T_base_sensor: Array, points: Array, zone_rad: float,
     return normals
 
 
-def inside_outline(T_base_sensor: Array, points: Array, on_object: NDArray[np.bool_],
-                   margin_m: Callable[[Array], Array], zone_rad: float,
-                   half_fov_rad: tuple[float, float]) -> NDArray[np.bool_]:
-    """Mask (K,) of the points of one capture ``points`` (K, 3) [m, base frame: its returns and the ends of
-    its rays with no target] taken from ``T_base_sensor`` that are ``on_object`` (K,) and inside the
-    object's outline: each of the zone's four neighbours on the sensor's grid ranged the object, or
-    something no further than the zone's own range r plus ``margin_m(r)`` [m] (elementwise over the
-    ranges; the table in front of a side's foot), or lies beyond the grid's border (the field of view's
-    edge is not the object's). A zone whose neighbour saw past the object, or saw nothing, straddles the
-    outline: part of its footprint falls beside the object, and its range is placed on a central ray that
-    may miss it."""
-    inside = np.zeros(points.shape[0], dtype=bool)
+# The four neighbours of a zone on the grid, the columns of :func:`outline_sides`: across the image (+x,
+# -x: the next and the previous column) and down it (+y, -y: the next and the previous row).
+NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
+
+
+def outline_sides(T_base_sensor: Array, points: Array, on_object: NDArray[np.bool_],
+                  margin_m: Callable[[Array], Array], zone_rad: float,
+                  half_fov_rad: tuple[float, float]) -> NDArray[np.bool_]:
+    """Mask (K, 4) of the sides (:data:`NEIGHBOURS`: +x, -x, +y, -y in the image) on which the zone of each
+    point of one capture ``points`` (K, 3) [m, base frame: its returns and the ends of its rays with no
+    target] taken from ``T_base_sensor`` straddles the object's outline: the zone's neighbour there saw
+    past the object, having ranged something not ``on_object`` (K,) and further than the zone's own range
+    r plus ``margin_m(r)`` [m] (elementwise over the ranges; nearer is the table in front of a side's
+    foot), or nothing. A neighbour beyond the grid's border does not count (the field of view's edge is
+    not the object's). A point that shares its zone with another is not its zone's range, and its
+    neighbours are not known: it straddles on every side. A zone that straddles the outline ranges the
+    part of its footprint on the object, on a central ray that may miss it."""
+    past = np.ones((points.shape[0], len(NEIGHBOURS)), dtype=bool)
     if points.shape[0] == 0:
-        return inside
+        return past
     grid = ZoneNeighbours.of(T_base_sensor, points, zone_rad, half_fov_rad)
     ranges = np.linalg.norm(points - T_base_sensor[:3, 3], axis=1)
     margin = margin_m(ranges)
     r, c, own = grid.row, grid.col, grid.single
-    present = on_object[own].copy()
-    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+    for side, (dr, dc) in enumerate(NEIGHBOURS):
         nr, nc = r + dr, c + dc
         off_grid = (nr < 1) | (nr > grid.n_rows) | (nc < 1) | (nc > grid.n_cols)
         other = grid.owner[nr, nc]
         seen = other >= 0
         near = seen & (on_object[other] | (ranges[other] <= ranges[own] + margin[own]))
-        present &= off_grid | near
-    inside[own] = present
-    return inside
+        past[own, side] = ~(off_grid | near)
+    return past
