@@ -249,6 +249,7 @@ class Seen:
         if ranged:
             return sideways
         across = np.abs(image[:, 0]) >= np.abs(image[:, 1])
+        # the side n points to, as a column of ``straddles`` (zones.NEIGHBOURS: +x, -x, +y, -y)
         side = np.where(across, np.where(image[:, 0] > 0, 0, 1), np.where(image[:, 1] > 0, 2, 3))
         outward = self.straddles[np.arange(k), side]
         steepest = np.maximum(np.abs(image).max(axis=1), 1e-9)
