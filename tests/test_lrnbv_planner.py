@@ -6,12 +6,11 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
-import open3d as o3d
 import pytest
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
-from cell.evaluation.presets import lathe
+from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.lrnbv.heu import HEUPlanner, heu_views
@@ -115,8 +114,7 @@ def test_short_lr_nbv_scan_reports_packing(tmp_path, capture: str) -> None:
 def test_a_narrow_upright_part_too_small_from_above_is_found_from_the_ellipse(tmp_path) -> None:
     """A 6 cm spire 15 cm tall leaves too few voxels for a cluster in the views from above; the search
     goes on round the station's ellipse and finds it from the side (it ended ``no_object`` before)."""
-    spire = tmp_path / "spire.ply"
-    o3d.io.write_triangle_mesh(str(spire), lathe([(0.0, 0.0), (0.03, 0.0), (0.0, 0.15)]))
+    spire = write_heldout_shapes(tmp_path / "shapes")["spire"]
     cfg = _with(load_config(UR5E), "lrnbv", max_iterations=2, samples_per_iteration=20)
     r = run_scan(ScanRequest(config=cfg, config_path=str(UR5E), object=str(spire), out=tmp_path / "lr",
                              planner="lr-nbv")).result

@@ -5,10 +5,10 @@
   measured the clouds re-processed offline at 1 mm (section III-B), so each job is re-processed.
 - ``packing``: the LR-NBV paper's section 4, its four objects x LR-NBV, NBV, HEU, five runs each, on the
   shipped ``sim-ur5e-tof`` cell.
-- ``heldout``: fifteen shapes and placements that are not Table I's (nine shapes built here: a can, a ring
-  lying flat, a cone, a thin upright slab, and the hard cases of issue 24: an open cup (thin walls), a
-  ring standing up and a washer (holes; the washer also flat), a mushroom (an overhang) and a tall square
-  post; the two packing boxes turned; four of Table I's objects moved and turned), VS-Local on
+- ``heldout``: fifteen shapes and placements that are not Table I's (nine of the shapes built here: a can,
+  a ring lying flat, a cone, a thin upright slab, and the hard cases of issue 24: an open cup (thin
+  walls), a ring standing up and a washer (holes; the washer also flat), a mushroom (an overhang) and a
+  tall square post; the two packing boxes turned; four of Table I's objects moved and turned), VS-Local on
   ``sim-franka-rgbd``: the figures away from the objects the planners were tuned on. Each object has its
   own placement.
 """
@@ -104,7 +104,9 @@ def lathe(profile: Sequence[tuple[float, float]], segments: int = 48) -> o3d.geo
 def _shapes() -> dict[str, o3d.geometry.TriangleMesh]:
     """The held-out shapes [m]: a can, a ring lying flat, a cone, a thin upright slab; an open cup with
     4 mm walls, a ring standing on its rim, a washer with a 4 cm hole, a mushroom whose cap overhangs its
-    stem by 2 cm, and a 4 x 4 x 18 cm post."""
+    stem by 2 cm, and a 4 x 4 x 18 cm post; and parts thin or tapering at the 8 x 8 sensor's scale: a 6 cm
+    spire 15 cm tall, a 12 cm dome, a bottle with a 2.4 cm neck to 18 cm and a lamp, a 12 cm disc with a
+    16 mm rod to 15 cm."""
     standing_ring = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.04, tube_radius=0.012,
                                                            radial_resolution=48, tubular_resolution=24)
     standing_ring.rotate(o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0.0, 0.0)), center=(0, 0, 0))
@@ -119,7 +121,14 @@ def _shapes() -> dict[str, o3d.geometry.TriangleMesh]:
             "torus": o3d.geometry.TriangleMesh.create_torus(torus_radius=0.045, tube_radius=0.018,
                                                               radial_resolution=48, tubular_resolution=24),
             "cone": o3d.geometry.TriangleMesh.create_cone(radius=0.05, height=0.09, resolution=48),
-            "slab": o3d.geometry.TriangleMesh.create_box(width=0.14, height=0.03, depth=0.09)}
+            "slab": o3d.geometry.TriangleMesh.create_box(width=0.14, height=0.03, depth=0.09),
+            "spire": lathe([(0.0, 0.0), (0.03, 0.0), (0.0, 0.15)]),
+            "dome": lathe([(0.0, 0.0), *((0.06 * np.cos(a), 0.06 * np.sin(a))
+                                         for a in np.linspace(0.0, np.pi / 2, 10)[:-1]), (0.0, 0.06)]),
+            "bottle": lathe([(0.0, 0.0), (0.035, 0.0), (0.035, 0.11), (0.012, 0.14), (0.012, 0.18),
+                             (0.0, 0.18)]),
+            "lamp": lathe([(0.0, 0.0), (0.06, 0.0), (0.06, 0.015), (0.008, 0.015), (0.008, 0.15),
+                           (0.0, 0.15)])}
 
 
 def write_heldout_shapes(folder: Path) -> dict[str, Path]:
