@@ -49,7 +49,8 @@ class LRNBVConfig(StrictModel):
       which falls like 1 / n with the n scans that updated the voxel, so that surface voxels seen often
       and still ambiguous stop drawing views; a departure from the paper, ``cell.planning.lrnbv.utility``);
     - ``search_heights_m`` [m] above the table from which the station is looked at, in turn, while the
-      first captures show no object (Algorithm 1 needs an initial acquisition of it).
+      first captures show no object (Algorithm 1 needs an initial acquisition of it); then the poses of
+      the cell's ``heu`` ellipse.
     """
 
     max_iterations: PositiveInt = 300

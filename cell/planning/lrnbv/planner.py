@@ -58,10 +58,10 @@ Choices the paper leaves open, and why:
   is found it looks down at the station from each of ``search_heights_m`` in turn: a small object seen
   from far by an 8 x 8 sensor fills fewer zones than a cluster needs. Then, while still none is found,
   from each pose of the cell's ``heu`` ellipse around the station (:func:`heu_views`): a narrow upright
-  part seen from above fills too few zones however close (a 6 cm spire 15 cm tall left 6 voxels from
-  the three views above, where a cluster needs ``min_cluster_points``, 10), and from the side its height
-  fills more. No object in any of those views ends the scan with ``NoObjectFound`` (the job ends
-  ``no_object``).
+  part seen from above fills too few zones however close (a 6 cm spire 15 cm tall left 6 voxels in the
+  first view and the two from above, where a cluster needs ``min_cluster_points``, 10), and from the
+  side its height fills more. No object in any of those views ends the scan with ``NoObjectFound``
+  (the job ends ``no_object``).
 """
 
 from __future__ import annotations
