@@ -174,7 +174,7 @@ def test_a_side_is_at_its_plane_without_the_zones_that_straddle_its_outline() ->
     assert quantile_face - side > 0.004
     plane = head_on_plane(MODEL, seen, n, quantile_face)
     assert plane == pytest.approx(side, abs=0.001)
-    with_outline = head_on_plane(MODEL, replace(seen, inside=None), n, quantile_face)
+    with_outline = head_on_plane(MODEL, replace(seen, straddles=None), n, quantile_face)
     assert with_outline is not None and with_outline - side > 0.002
 
 

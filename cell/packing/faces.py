@@ -200,7 +200,8 @@ def head_on_plane(model: ErrorModel, seen: Seen, n: np.ndarray, face_m: float) -
     facing &= x >= face_m - BAND_SIGMAS * sigma
     if np.count_nonzero(facing) < MIN_FACING_POINTS:
         return None
-    inner = facing & seen.inside if seen.inside is not None else facing
+    inside = seen.inside
+    inner = facing & inside if inside is not None else facing
     if np.count_nonzero(inner) < MIN_FACING_POINTS:
         inner = facing
     plane = float(np.quantile(x[inner] - ndtri(QUANTILE) * sigma[inner], QUANTILE))

@@ -181,15 +181,13 @@ class Seen:
     (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed; ``straddles``
     (K, 4) on which sides (``cell.packing.zones.NEIGHBOURS``) each point's zone straddles the object's
     outline in its capture, its neighbour there having seen past the object
-    (:func:`cell.packing.zones.outline_sides`), and ``inside`` (K,) whether it straddles on none (lies
-    inside the outline); both None when not computed."""
+    (:func:`cell.packing.zones.outline_sides`), None when not computed (then :attr:`inside` is too)."""
 
     points: Array
     origins: Array | None = None
     axes: Array | None = None
     range_m: float = 0.0
     normals: Array | None = None
-    inside: NDArray[np.bool_] | None = None
     straddles: NDArray[np.bool_] | None = None
 
     @staticmethod
@@ -219,8 +217,13 @@ class Seen:
             sides.append(outline_sides(s.T_base_sensor, returns, on_object, margin, model.zone_rad,
                                        model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
         straddles = np.vstack(sides)
-        return Seen(points[keep], origins[keep], axes[keep], normals=np.vstack(normals),
-                    inside=np.asarray(~straddles.any(axis=1)), straddles=straddles)
+        return Seen(points[keep], origins[keep], axes[keep], normals=np.vstack(normals), straddles=straddles)
+
+    @property
+    def inside(self) -> NDArray[np.bool_] | None:
+        """Mask (K,) of the points whose zone straddles the outline on no side (inside the object's outline
+        in its capture); None when ``straddles`` is."""
+        return None if self.straddles is None else np.asarray(~self.straddles.any(axis=1))
 
     def face(self, n: Array) -> tuple[Array, NDArray[np.bool_]]:
         """The points' coordinates x (K,) [m] along the unit normal ``n`` (3,), and which of them are the
