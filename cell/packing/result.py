@@ -1,9 +1,10 @@
 """The ``packing`` section of ``result.json`` (LR-NBV paper, section 4.1, the four metrics):
 
 1. bounding-box dimensions (L, W, H) [m] of the final segmented object (the occupied voxels cut at the
-   known table height, the measured points inside them and inside the box of every ROI of the scan,
-   :mod:`cell.packing.objects`, and those below the cut above the table's noise band, less those within
-   it above the cut, :mod:`cell.packing.table_band`; the box: :mod:`cell.packing.box`, its faces seen
+   known table height, their largest cluster with what stands over its footprint, the measured points
+   inside them and inside the box of every ROI of the scan, :mod:`cell.packing.objects`, and those below
+   the cut above the table's noise band, less those within it above the cut,
+   :mod:`cell.packing.table_band`; the box: :mod:`cell.packing.box`, its faces seen
    head on at the plane their points scatter about, those seen at the outline beyond where their points
    end: :mod:`cell.packing.faces`) and, in sim, their IoU with the ground-truth box of the posed mesh;
 2. the number of poses, one per capture;
@@ -44,6 +45,7 @@ from cell.packing.objects import (
     in_extent,
     in_object_voxels,
     object_surface_points,
+    packed_object,
 )
 from cell.packing.table_band import above_table, clear_of_table, off_table
 from cell.packing.table_calibration import TableCorrection, corrected_perception, table_correction
@@ -135,7 +137,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     """
     pc = config.packing
     radius = pc.coverage_radius_m or config.perception.occupancy.resolution_m
-    objects = current_object(session.perception) if session is not None else np.zeros((0, 3))
+    objects = packed_object(session.perception) if session is not None else np.zeros((0, 3))
     history = planner.reconstruction.objects if isinstance(planner, RecordsReconstruction) else None
     section: dict[str, Any] = {
         "dims_m": None, "iou": None, "coverage_pct": None,
@@ -161,7 +163,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     if correction.n_table_points:  # else nothing was measured and the scan's own pipeline stands
         corrected = [correction.apply(s) for s in recorded]
         rebuilt = corrected_perception(session.perception, corrected)
-        rebuilt_objects = current_object(rebuilt)
+        rebuilt_objects = packed_object(rebuilt)
         if rebuilt_objects.shape[0]:
             perception, sightings, objects = rebuilt, corrected, rebuilt_objects
         else:  # the corrected captures' map lost the object the scan's holds: keep the scan's

@@ -191,16 +191,21 @@ def euclidean_cluster_labels(points: Array, tolerance_m: float) -> NDArray[np.in
     return rank[inverse]
 
 
-def _largest(points: Array, labels: NDArray[np.integer], min_points: int) -> Array:
-    """Points of the most populated label >= 0 (lowest label on ties); empty (0, 3) if below min_points."""
+def largest_label(labels: NDArray[np.integer], min_points: int) -> int:
+    """The most populated label >= 0 of ``labels`` (N,) (lowest label on ties); -1 when there is none or
+    it has fewer than ``min_points`` members."""
     valid = labels >= 0
     if not np.any(valid):
-        return np.zeros((0, 3))
+        return -1
     counts = np.bincount(labels[valid])
     best = int(np.argmax(counts))
-    if counts[best] < min_points:
-        return np.zeros((0, 3))
-    return points[labels == best]
+    return best if counts[best] >= min_points else -1
+
+
+def _largest(points: Array, labels: NDArray[np.integer], min_points: int) -> Array:
+    """Points of the most populated label >= 0 (lowest label on ties); empty (0, 3) if below min_points."""
+    best = largest_label(labels, min_points)
+    return points[labels == best] if best >= 0 else np.zeros((0, 3))
 
 
 def largest_euclidean_cluster(points: Array, tolerance_m: float, min_points: int) -> Array:
