@@ -387,8 +387,10 @@ def test_a_face_seen_edge_on_gets_a_zone_footprint_and_head_on_only_the_range_er
 
 
 def test_upper_bound_of_a_box_seen_from_above_reaches_out_by_the_footprint() -> None:
-    """The top of a 0.2 x 0.1 x 0.1 box seen from 0.3 m straight above: the top face is seen head on (range
-    error only), the four sides only as the top's silhouette, each a footprint further out."""
+    """The top of a 0.2 x 0.1 x 0.1 box seen from 0.4 m straight above: the top face is seen head on (range
+    error only), the four sides only as the top's silhouette, each a footprint further out. From 0.3 m
+    the top's ends, 18 deg off the axis, lie in the outer ring of zones, and the box may go on beyond
+    the field of view."""
     rng = np.random.default_rng(7)
     top = np.column_stack([rng.uniform(-0.1, 0.1, 2000), rng.uniform(-0.05, 0.05, 2000), np.full(2000, 0.1)])
     T = np.eye(4)
@@ -397,8 +399,11 @@ def test_upper_bound_of_a_box_seen_from_above_reaches_out_by_the_footprint() -> 
     seen = Seen.of([Sighting(T, top)], np.ones(2000, dtype=bool))
     box = box_from_points(top, 0.0, trim=0.02)
     m = _model()
+    assert np.isinf(upper_dims(box, m, seen, 0.02)[0])
+    T[:3, 3] = [0.0, 0.0, 0.5]
+    seen = Seen.of([Sighting(T, top)], np.ones(2000, dtype=bool))
     upper = upper_dims(box, m, seen, 0.02)
-    r_edge = np.linalg.norm([0.1, 0.0, 0.3])
+    r_edge = np.linalg.norm([0.1, 0.0, 0.4])
     footprint = r_edge * math.tan(m.zone_rad)
     assert upper[0] - box.dims[0] == pytest.approx(2.0 * footprint + 0.03, abs=0.01)
     assert upper[2] - box.dims[2] < 0.02 < upper[0] - box.dims[0]
@@ -409,6 +414,53 @@ def test_upper_bound_of_a_box_seen_from_above_reaches_out_by_the_footprint() -> 
     seen = Seen.of([Sighting(T, close)], np.ones(close.shape[0], dtype=bool))
     upper = upper_dims(box_from_points(close, 0.0, trim=0.02), m, seen, 0.02)
     assert np.isinf(upper[0]) and np.isinf(upper[1]) and np.isfinite(upper[2])
+
+
+def _camera_wall(eye_z: float, crop_m: tuple | None = None) -> tuple[Sighting, ErrorModel]:
+    """A 640 x 480 camera (f 475 px) 0.2 m in front of a 10 cm wide, 25 cm tall wall (the face x = 0.05 of a
+    box on the table), looking level from height ``eye_z`` [m]: the points of a 1 mm grid on the wall it
+    keeps (inside its field of view and, with ``crop_m``, the crop box's (lower, upper) corners [m,
+    sensor frame]), and the camera's error model."""
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # x right = +y, z along -x
+    T[:3, 3] = [0.25, 0.0, eye_z]
+    y, z = np.meshgrid(np.arange(-0.05, 0.0505, 0.001), np.arange(0.0, 0.2505, 0.001))
+    wall = np.column_stack([np.full(y.size, 0.05), y.ravel(), z.ravel()])
+    local = (wall - T[:3, 3]) @ T[:3, :3]
+    half_fov = (math.atan(320 / 475), math.atan(240 / 475))
+    kept = (np.abs(local[:, 0] / local[:, 2]) <= math.tan(half_fov[0])) \
+        & (np.abs(local[:, 1] / local[:, 2]) <= math.tan(half_fov[1]))
+    if crop_m is not None:
+        kept &= np.all((local > np.array(crop_m[0])) & (local < np.array(crop_m[1])), axis=1)
+    model = ErrorModel(zone_rad=math.atan(1 / 475), sigma0_m=0.0005, k_per_m=0.002, bias_m=0.0, voxel_m=0.005,
+                       pose_m=0.0005, pose_rad=0.001, coverage=2.0, half_fov_rad=half_fov, crop_m=crop_m,
+                       filter_voxel_m=0.0025)
+    return Sighting(T, wall[kept]), model
+
+
+def test_a_face_that_every_view_s_frame_cut_has_no_upper_bound() -> None:
+    """A camera 10 cm up sees a 25 cm tall wall only up to its field of view's top border, 20 cm up: the
+    wall's top has no bound, though most of its highest points lie well inside the frame. A second view
+    from 20 cm up sees the top end inside its frame, and bounds it. A crop box narrower than the field of
+    view (the camera cell's) cuts a view as its border does."""
+    low, camera = _camera_wall(0.10)
+    seen = Seen.of([low], np.ones(low.points.shape[0], dtype=bool))
+    box = box_from_points(low.points, 0.0, trim=0.02)
+    assert box.dims[2] == pytest.approx(0.2, abs=0.005)
+    assert np.isinf(upper_dims(box, camera, seen, 0.02)[2])
+    high, _ = _camera_wall(0.20)
+    both = [low, high]
+    seen = Seen.of(both, np.ones(sum(s.points.shape[0] for s in both), dtype=bool))
+    points = np.vstack([s.points for s in both])
+    upper = upper_dims(box_from_points(points, 0.0, trim=0.02), camera, seen, 0.02)
+    assert upper[2] == pytest.approx(0.25, abs=0.01)
+    crop = ((-0.15, -0.05, 0.05), (0.15, 0.05, 0.4))  # 5 cm up and down at the wall's 0.2 m
+    cropped, model = _camera_wall(0.10, crop)
+    seen = Seen.of([cropped], np.ones(cropped.points.shape[0], dtype=bool))
+    box = box_from_points(cropped.points, 0.0, trim=0.02)
+    assert box.dims[2] == pytest.approx(0.15, abs=0.005)
+    assert np.isinf(upper_dims(box, model, seen, 0.02)[2])
+    assert np.isfinite(upper_dims(box, camera, seen, 0.02)[2])  # the same points, the crop not known
 
 
 def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:

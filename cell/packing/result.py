@@ -189,7 +189,8 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
         choice = replace(choice, reason=f"{choice.reason}, for the box's upper bound")
     else:
         choice = ContainerChoice(None, False, "none: a face of the box was seen only at the edge of the "
-                                              "sensor's field of view, so it has no upper bound")
+                                              "sensor's field of view or of the perception's crop box, so it "
+                                              "has no upper bound")
     section["container"] = {
         "name": choice.container.name if choice.container is not None else None,
         "inner_dims_m": list(choice.container.inner_dims_m) if choice.container is not None else None,

@@ -66,10 +66,17 @@ way (sqrt 2 footprints sideways and the whole range error along n). Each dimensi
 distance between its two faces' bounds (H: from the table up); its uncertainty is the difference to the
 estimate.
 
-All of this assumes that the face was inside some view: a face whose points all come from the outer
-ring of zones of their views (within one zone of the field of view's border) may go on beyond the field
-of view, where no zone looked, and has no upper bound (infinite): a scan that saw the object only from
-too close, cut by the field of view, gives no container rather than too small a one.
+All of this assumes that the face was inside some view: some view saw the object end along n inside
+what it kept, its outermost point along n at least a zone and a filter voxel (the voxel filter moves a
+point up to one inwards) inside its field of view's border. A view that the border cut has its
+outermost point on the border, whatever it shows further in; when every view is so, the face may go on
+beyond, where no zone looked, and has no upper bound (infinite): a scan that saw the object only from too
+close gives no container rather than too small a one. The perception's crop box (sensor frame) cuts a
+view as its border does, and tighter where it is narrower than the field of view (the camera cell's
++-15 cm, the visual-servoing paper's): the point must lie a zone footprint and a filter voxel inside it
+too. (The camera cell's HEU views, from 23 cm up, saw its 25 cm tall box only up to their field of view's
+top border, 19 cm up; with most of the highest points well inside the frame, the bound was 47-49 mm under
+the box.)
 
 It also assumes that every part of the object is at least half a zone footprint wide where it was seen
 (15-20 mm at 0.3-0.4 m for the VL53L8CX), as the sim ranges a zone (the median of its sub-rays): a
@@ -124,7 +131,9 @@ class ErrorModel:
     """The allowance delta(n) of the module docstring: ``zone_rad`` w [rad], range noise sigma(r) =
     ``sigma0_m`` + ``k_per_m`` r^2 [m] and bias std ``bias_m`` [m], ``voxel_m`` the map resolution [m],
     pose std ``pose_m`` [m] and ``pose_rad`` [rad], ``coverage`` the factor on the Gaussian terms;
-    ``half_fov_rad`` half the field of view [rad] across (x) and down (y) the image."""
+    ``half_fov_rad`` half the field of view [rad] across (x) and down (y) the image; ``crop_m`` the
+    perception's crop box, its (lower, upper) corners [m, sensor frame], and ``filter_voxel_m`` the voxel
+    filter's edge [m] after it (None and 0: nothing cropped)."""
 
     zone_rad: float
     sigma0_m: float
@@ -135,6 +144,8 @@ class ErrorModel:
     pose_rad: float
     coverage: float
     half_fov_rad: tuple[float, float]
+    crop_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    filter_voxel_m: float = 0.0
 
     def delta(self, ranges: Array, along_ray: Array, footprints: Array) -> float:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
@@ -163,12 +174,16 @@ def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
     resolution and the packing config's bias, pose and coverage factor."""
     u = config.packing.uncertainty
     noise = u.range_noise or getattr(config.sensor, "noise", None) or DEFAULT_RANGE_NOISE
+    crop = config.perception.crop_box
     return ErrorModel(zone_rad=math.radians(sensor.fov_x_deg) / sensor.width, sigma0_m=noise.sigma0_m,
                       k_per_m=noise.k_per_m, bias_m=u.range_bias_m,
                       voxel_m=config.perception.occupancy.resolution_m, pose_m=u.pose_translation_m,
                       pose_rad=u.pose_rotation_rad, coverage=u.coverage_factor,
                       half_fov_rad=(math.radians(sensor.fov_x_deg) / 2.0,
-                                    math.radians(sensor.fov_y_deg) / 2.0))
+                                    math.radians(sensor.fov_y_deg) / 2.0),
+                      crop_m=((crop.x_m[0], crop.y_m[0], crop.z_m[0]),
+                              (crop.x_m[1], crop.y_m[1], crop.z_m[1])),
+                      filter_voxel_m=config.perception.voxel_m)
 
 
 @dataclass(frozen=True)
@@ -267,23 +282,44 @@ class Seen:
         return np.where(outward, np.maximum(1.0 / steepest, sideways), sideways)
 
     def framed(self, model: ErrorModel) -> NDArray[np.bool_]:
-        """Mask (K,) of the points seen at least one zone inside their view's field of view (all True
-        when the views are unknown)."""
+        """Mask (K,) of the points seen at least a zone and a filter voxel inside their view's field of
+        view and, when ``model`` has a crop box, inside it (module docstring; all True when the views are
+        unknown)."""
         if self.origins is None or self.axes is None:
             return np.ones(self.points.shape[0], dtype=bool)
         local = np.einsum("kaj,ka->kj", self.axes, self.points - self.origins)  # sensor frame
+        ranges = np.maximum(np.linalg.norm(local, axis=1), 1e-9)
+        inset = model.zone_rad + model.filter_voxel_m / ranges  # [rad]
         across = np.abs(np.arctan2(local[:, 0], local[:, 2]))
         down = np.abs(np.arctan2(local[:, 1], local[:, 2]))
-        return np.asarray((across < model.half_fov_rad[0] - model.zone_rad)
-                          & (down < model.half_fov_rad[1] - model.zone_rad))
+        framed = (across < model.half_fov_rad[0] - inset) & (down < model.half_fov_rad[1] - inset)
+        if model.crop_m is not None:
+            margin = ranges[:, None] * math.tan(model.zone_rad) + model.filter_voxel_m
+            lower, upper = np.array(model.crop_m[0]), np.array(model.crop_m[1])
+            framed &= np.all((local > lower + margin) & (local < upper - margin), axis=1)
+        return np.asarray(framed)
+
+    def ends_framed(self, model: ErrorModel, n: Array) -> bool:
+        """Whether some view saw the object end along the unit normal ``n`` (3,) inside what it kept: the
+        view's outermost point along n is :meth:`framed` (a view that the frame's border cut has its
+        outermost point on that border); True when the views are unknown. The views are told apart by
+        their poses."""
+        if self.origins is None or self.axes is None:
+            return True
+        poses = np.hstack([self.origins, self.axes.reshape(-1, 9)])
+        view = np.unique(poses, axis=0, return_inverse=True)[1].ravel()
+        order = np.lexsort((-(self.points @ n), view))  # by view, each view's outermost first
+        outermost = order[np.r_[True, view[order][1:] != view[order][:-1]]]
+        return bool(self.framed(model)[outermost].any())
 
 
 def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
     """The upper bound [m] of the face with outward unit normal ``n`` (3,), as a coordinate along n: the
     ``1 - trim`` quantile of n.p over the points plus delta(n) of the face's points (those beyond the
-    ``1 - FACE_FRACTION`` quantile); infinite when none of those is framed (:meth:`Seen.framed`)."""
+    ``1 - FACE_FRACTION`` quantile); infinite when no view saw the object end along n inside its frame
+    (:meth:`Seen.ends_framed`)."""
     x, face = seen.face(n)
-    if not seen.framed(model)[face].any():
+    if not seen.ends_framed(model, n):
         return math.inf
     ranges, along, _ = seen.geometry(n)
     footprints = seen.footprints(n, face)
