@@ -27,13 +27,20 @@ class BoxUncertaintyConfig(StrictModel):
     against the true one along any one axis: the ToF shape calibration's hand-eye residual, 1.5 mm and
     0.15 deg per axis, and a calibrated arm's kinematics, about 0.4 mm at the flange
     (``drivers.sim.errors`` gives the sources), rounded up to 2 mm and 3.5 mrad (0.2 deg)
-    by default; ``coverage_factor`` the multiple of the combined standard deviation of those Gaussian
-    terms that the bound adds (2: 97.7 % one-sided for each face)."""
+    by default; ``capture_pose_translation_m`` [m] and ``capture_pose_rotation_rad`` [rad] the part of
+    that error that differs from capture to capture (the arm's: its joints' zero offsets move the flange
+    differently in every configuration; the mount's error is the same in all), per axis: a calibrated
+    arm's 0.4 mm at the flange, and its six joints' 0.2 mrad offsets, sqrt 6 x 0.2 = 0.5 mrad, by default
+    (the table correction's per-capture term, ``cell.packing.table_calibration``); ``coverage_factor``
+    the multiple of the combined standard deviation of those Gaussian terms that the bound adds (2: 97.7 %
+    one-sided for each face)."""
 
     range_noise: DepthNoiseConfig | None = None
     range_bias_m: float = Field(default=0.002, ge=0.0, le=0.05)
     pose_translation_m: float = Field(default=0.002, ge=0.0, le=0.05)
     pose_rotation_rad: float = Field(default=0.0035, ge=0.0, le=0.1)
+    capture_pose_translation_m: float = Field(default=0.0004, ge=0.0, le=0.05)
+    capture_pose_rotation_rad: float = Field(default=0.0005, ge=0.0, le=0.1)
     coverage_factor: PositiveFloat = 2.0
 
 

@@ -27,6 +27,17 @@ every view, and a rotation about the table's normal. A table point more than ``O
 std off the fitted plane (a part of the object low enough to pass for the table, a zone mixing the
 object's edge and the table) is left out and the fit repeated, ``FIT_ROUNDS`` times in all.
 
+Not all of the pose error is common to the captures: the arm's joints' zero offsets move the flange
+differently in every configuration (the error model's ``capture_pose_m`` and ``capture_pose_rad``, a
+calibrated arm's 0.4 mm and 0.5 mrad). Each capture's table points therefore share an error of their own,
+u_c (6: a rotation and a translation, in the sensor frame as omega and t), which more points of that
+capture do not average out. It enters as (omega, t) does, with that zero-mean Gaussian prior, and the fit
+takes it out capture by capture (its posterior given x, Woodbury's identity on the capture's 6 x 6
+block), so that x rests on what the captures agree on. Without it a camera's thousands of table points a
+capture, each within a millimetre, pinned x to the captures' own errors: an image axis nearly level in
+every view has a small a_x, and the translation along it came out 13-48 mm on the camera cell's LR-NBV
+scans (a prior of 2 mm), which moved the flange's box 9 cm wide.
+
 The table points are those a capture saw within the segmentation's table cut and outside the footprint of
 the object's extent (the box of every ROI): ``cell.packing.table_band.on_table``, on which a capture's
 table level is taken too. The joints' offsets of a calibrated arm (about 0.4 mm at the flange) differ
@@ -123,16 +134,29 @@ def table_correction(perception: PerceptionPipeline, sightings: list[Sighting],
         sigmas.append(model.range_sigma(np.linalg.norm(local, axis=1)) * np.abs(rays @ up))
     if not rows:
         return TableCorrection.none()
-    J, y = np.vstack(rows), np.concatenate(heights)
-    weight = 1.0 / np.maximum(np.concatenate(sigmas), 1e-6) ** 2
+    weights = [1.0 / np.maximum(sigma, 1e-6) ** 2 for sigma in sigmas]
     prior = np.diag(1.0 / np.maximum([model.pose_rad] * 3 + [model.pose_m] * 3 + [model.bias_m], 1e-9) ** 2)
-    inliers = np.ones(y.size, dtype=bool)
+    capture_prior = np.diag(1.0 / np.maximum([model.capture_pose_rad] * 3 + [model.capture_pose_m] * 3,
+                                             1e-9) ** 2)
+    inliers = [np.ones(y.size, dtype=bool) for y in heights]
     x: Array = np.zeros(7)
     for _ in range(FIT_ROUNDS):
-        Jw = J[inliers] * weight[inliers, None]
-        x = np.asarray(np.linalg.solve(J[inliers].T @ Jw + prior, Jw.T @ y[inliers]), dtype=np.float64)
-        inliers = np.abs(y - J @ x) * np.sqrt(weight) <= OUTLIER_SIGMAS
-    return TableCorrection(x[:3], x[3:6], float(x[6]), int(np.count_nonzero(inliers)))
+        information, gradient = prior.copy(), np.zeros(7)
+        blocks = []
+        for J, y, w, keep in zip(rows, heights, weights, inliers, strict=True):
+            Jw = J[keep] * w[keep, None]
+            A, g = J[keep].T @ Jw, Jw.T @ y[keep]
+            # the capture's own error u_c enters through the first 6 columns: marginalised out
+            S = np.linalg.inv(capture_prior + A[:6, :6])
+            information += A - A[:, :6] @ S @ A[:6, :]
+            gradient += g - A[:, :6] @ S @ g[:6]
+            blocks.append((S, A, g))
+        x = np.asarray(np.linalg.solve(information, gradient), dtype=np.float64)
+        for c, ((S, A, g), J, y, w) in enumerate(zip(blocks, rows, heights, weights, strict=True)):
+            u = S @ (g[:6] - A[:6, :] @ x)  # the capture's own error, given x
+            inliers[c] = np.abs(y - J @ x - J[:, :6] @ u) * np.sqrt(w) <= OUTLIER_SIGMAS
+    n_inliers = sum(int(np.count_nonzero(keep)) for keep in inliers)
+    return TableCorrection(x[:3], x[3:6], float(x[6]), n_inliers)
 
 
 def corrected_perception(perception: PerceptionPipeline, sightings: list[Sighting]) -> PerceptionPipeline:

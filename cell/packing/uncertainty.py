@@ -133,7 +133,8 @@ class ErrorModel:
     pose std ``pose_m`` [m] and ``pose_rad`` [rad], ``coverage`` the factor on the Gaussian terms;
     ``half_fov_rad`` half the field of view [rad] across (x) and down (y) the image; ``crop_m`` the
     perception's crop box, its (lower, upper) corners [m, sensor frame], and ``filter_voxel_m`` the voxel
-    filter's edge [m] after it (None and 0: nothing cropped)."""
+    filter's edge [m] after it (None and 0: nothing cropped); ``capture_pose_m`` [m] and
+    ``capture_pose_rad`` [rad] the std of the pose error's part that differs between captures (0: none)."""
 
     zone_rad: float
     sigma0_m: float
@@ -146,6 +147,8 @@ class ErrorModel:
     half_fov_rad: tuple[float, float]
     crop_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     filter_voxel_m: float = 0.0
+    capture_pose_m: float = 0.0
+    capture_pose_rad: float = 0.0
 
     def delta(self, ranges: Array, along_ray: Array, footprints: Array) -> float:
         """delta(n) [m] of a face from its K >= 1 points: their ``ranges`` r (K,) [m], ``along_ray``
@@ -183,7 +186,8 @@ def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
                                     math.radians(sensor.fov_y_deg) / 2.0),
                       crop_m=((crop.x_m[0], crop.y_m[0], crop.z_m[0]),
                               (crop.x_m[1], crop.y_m[1], crop.z_m[1])),
-                      filter_voxel_m=config.perception.voxel_m)
+                      filter_voxel_m=config.perception.voxel_m, capture_pose_m=u.capture_pose_translation_m,
+                      capture_pose_rad=u.capture_pose_rotation_rad)
 
 
 @dataclass(frozen=True)
