@@ -40,8 +40,8 @@ scans (a prior of 2 mm), which moved the flange's box 9 cm wide.
 
 The table points are those a capture saw within the segmentation's table cut and outside the footprint of
 the object's extent (the box of every ROI): ``cell.packing.table_band.on_table``, on which a capture's
-table level is taken too. The joints' offsets of a calibrated arm (about 0.4 mm at the flange) differ
-from capture to capture and are not modelled here; they stay in the residual.
+table level is taken too. The captures' own errors are taken out of the fit, not out of the captures:
+they stay in the residual, which the upper bound allows for (``pose_m``, ``pose_rad``).
 """
 
 from __future__ import annotations
