@@ -81,10 +81,12 @@ the box.)
 It also assumes that every part of the object is at least half a zone footprint wide where it was seen
 (15-20 mm at 0.3-0.4 m for the VL53L8CX), as the sim ranges a zone (the median of its sub-rays): a
 narrower part is never ranged, and nothing in the captures shows it. The held-out lamp's 16 mm rod is
-missed from HEU's and raster's views (the bound 50-84 mm under it), and so is the tip of a slender taper
-beyond what the outline term allows (the held-out spire, 6 cm wide and 15 cm tall: 23-81 mm under on HEU,
-29-45 mm on raster). A real VL53L8CX reports up to four targets per zone, which would show such a part;
-the driver and the sim keep one.
+missed from HEU's and raster's views, 0.35-0.4 m away (the bound 50-84 mm under it), and so is the tip of
+a slender taper beyond what the outline term allows (the held-out spire, 6 cm wide and 15 cm tall: 23-81
+mm under on HEU, 29-45 mm on raster); LR-NBV's and NBV's views come closer and range both. A real
+VL53L8CX reports up to four targets per zone, but only targets about 60 cm apart or more as separate
+ones (nearer ones merge into one return, status 9: ST's support on its community forum), so a rod
+10-20 cm before the table would not show as a target of its own either.
 """
 
 from __future__ import annotations
