@@ -80,16 +80,19 @@ def stacked_on_table(occupied_base: Array, params: SegmentationParams, table_z: 
     above, labels, largest = _clusters_on_table(occupied_base, params, table_z)
     if largest < 0:
         return np.zeros((0, 3))
-    keep = labels == largest
-    others = [k for k in np.unique(labels[labels >= 0]) if k != largest]
-    if others:
-        # joggled ("QJ"): a cluster one voxel thick has a flat footprint, and no centroid lies over it
-        facets = ConvexHull(above[keep, :2], qhull_options="QJ").equations  # a x + b y + c <= 0 inside
-        for k in others:
-            centroid = above[labels == k, :2].mean(axis=0)
-            if np.all(facets[:, :2] @ centroid + facets[:, 2] <= 0.0):
-                keep |= labels == k
-    return above[keep]
+    clustered = labels >= 0
+    label = labels[clustered]
+    counts = np.bincount(label)
+    if np.count_nonzero(counts) == 1:
+        return above[labels == largest]
+    sums = [np.bincount(label, weights=above[clustered, a], minlength=counts.size) for a in (0, 1)]
+    centroids = np.column_stack(sums) / np.maximum(counts, 1)[:, None]
+    # joggled ("QJ"): a cluster one voxel thick has a flat footprint, and no centroid lies over it;
+    # a x + b y + c <= 0 inside every facet
+    facets = ConvexHull(above[labels == largest, :2], qhull_options="QJ").equations
+    over = np.all(centroids @ facets[:, :2].T + facets[:, 2] <= 0.0, axis=1) & (counts > 0)
+    over[largest] = True
+    return above[clustered & over[np.maximum(labels, 0)]]
 
 
 def current_object(perception: PerceptionPipeline) -> Array:
