@@ -482,7 +482,7 @@ def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:
     assert "upper bound" in section["container"]["reason"]
 
 
-def _heu_scan(tmp_path, shape: str, planner: str = "heu", seed: int = 0) -> tuple[dict, np.ndarray]:
+def _heldout_scan(tmp_path, shape: str, planner: str = "heu", seed: int = 0) -> tuple[dict, np.ndarray]:
     """A real scan (HEU, seed 0, unless told) of the held-out ``shape`` on the ToF cell: its result and
     the truth's box dims (L, W, H) [m]."""
     part = write_heldout_shapes(tmp_path / "shapes")[shape]
@@ -497,7 +497,7 @@ def test_an_heu_scan_of_a_post_split_by_carving_bounds_its_whole_height(tmp_path
     """HEU's 13 views of a 4 x 4 x 18 cm post carve it apart at mid-height, and its lower piece becomes
     the largest cluster after the top piece was: the packing box still holds the whole post (when the
     lower piece started the extent again, the box ended at 9.5 cm and its upper bound 5 cm short)."""
-    r, _ = _heu_scan(tmp_path, "post")
+    r, _ = _heldout_scan(tmp_path, "post")
     dims, upper = np.array(r["packing"]["dims_m"]), np.array(r["packing"]["dims_upper_m"])
     assert dims[2] == pytest.approx(0.18, abs=0.01)
     assert upper[2] >= 0.18
@@ -507,7 +507,7 @@ def test_an_heu_scan_of_a_cone_bounds_its_tip_seen_only_at_the_outline(tmp_path)
     """HEU's views, 0.35 m up, see a 9 cm cone's top only at its outline: the zones above the last ranged
     one see the table past the tapering tip. Allowing the footprint's share along the top's normal that a
     point ranged on the face has, the bound ended 10 mm under the cone."""
-    r, truth = _heu_scan(tmp_path, "cone")
+    r, truth = _heldout_scan(tmp_path, "cone")
     assert np.all(np.array(r["packing"]["dims_upper_m"]) >= truth - 0.002)
 
 
@@ -516,5 +516,5 @@ def test_a_scan_of_a_lamp_bounds_the_rod_the_map_cut_off_its_disc(tmp_path, plan
     """These scans range the lamp's 16 mm rod in a few zones, but its voxels lie more than DBSCAN's
     radius above the disc's, a cluster of their own (8-17 voxels): measured on the disc alone, the upper
     bound ended 55 and 76 mm under the 15 cm lamp."""
-    r, truth = _heu_scan(tmp_path, "lamp", planner, seed)
+    r, truth = _heldout_scan(tmp_path, "lamp", planner, seed)
     assert np.all(np.array(r["packing"]["dims_upper_m"]) >= truth - 0.002)
