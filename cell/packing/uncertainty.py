@@ -260,8 +260,13 @@ class Seen:
         offset = self.points - self.origins
         ranges = np.linalg.norm(offset, axis=1)
         along = np.abs(offset @ n) / np.maximum(ranges, 1e-9)
-        sideways = np.abs(np.einsum("kaj,a->kj", self.axes[:, :, :2], n)).sum(axis=1)
-        return ranges, along, sideways
+        return ranges, along, np.abs(self._image(n)).sum(axis=1)
+
+    def _image(self, n: Array) -> Array:
+        """The components (K, 2) of the unit normal ``n`` (3,) along each point's view's image axes x
+        (right) and y (down); the views must be known."""
+        assert self.axes is not None
+        return np.asarray(np.einsum("kaj,a->kj", self.axes[:, :, :2], n))
 
     def footprints(self, n: Array, face: NDArray[np.bool_]) -> Array:
         """Per point (K,): how many zone footprints along the face normal ``n`` (3,) the face may lie
@@ -272,7 +277,7 @@ class Seen:
         k = self.points.shape[0]
         if self.origins is None or self.axes is None:
             return np.full(k, math.sqrt(2.0))
-        image = np.einsum("kaj,a->kj", self.axes[:, :, :2], n)  # n's components along x and y
+        image = self._image(n)
         sideways = np.abs(image).sum(axis=1)
         if self.straddles is None or self.normals is None:
             return sideways
