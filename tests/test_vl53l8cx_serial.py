@@ -91,7 +91,8 @@ def test_a_capture_after_a_pause_returns_a_frame_measured_after_the_pause():
 
     def stamped(resolution: int) -> ZoneData:
         n = resolution**2
-        ms = np.full(n, round(clock.now() * 1000.0), np.int16)
+        # truncated, not rounded: a stamp rounded up could lie after the frame's own time stamp
+        ms = np.full(n, int(clock.now() * 1000.0), np.int16)
         return ZoneData(distance_mm=ms, range_sigma_mm=np.full(n, 5, np.uint16),
                         target_status=np.full(n, 5, np.uint8), reflectance_pct=np.full(n, 50, np.uint8),
                         nb_target_detected=np.ones(n, np.uint8))
