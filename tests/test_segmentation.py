@@ -14,9 +14,8 @@ from cell.perception.segmentation import (
     SegmentationParams,
     compute_roi,
     dbscan_labels,
-    dbscan_largest_cluster,
     fit_table_plane,
-    largest_euclidean_cluster,
+    largest_cluster,
     min_area_rectangle,
     remove_table_plane,
     segment_object,
@@ -158,11 +157,12 @@ def test_euclidean_cluster_tolerance() -> None:
     a = np.column_stack([np.arange(0, 0.1, 0.01), np.zeros(10), np.zeros(10)])
     b = a[:5] + np.array([0.5, 0.0, 0.0])
     pts = np.vstack([b, a])
-    np.testing.assert_allclose(largest_euclidean_cluster(pts, 0.011, 1), a)
-    assert largest_euclidean_cluster(pts, 0.011, 11).shape == (0, 3)
+    params = SegmentationParams(method="euclidean", cluster_tolerance_m=0.011, min_cluster_points=1)
+    np.testing.assert_allclose(largest_cluster(pts, params), a)
+    assert largest_cluster(pts, params.model_copy(update={"min_cluster_points": 11})).shape == (0, 3)
     # a gap of 2 cm splits the line in two
     gap = np.vstack([a[:6], a[6:] + np.array([0.02, 0.0, 0.0])])
-    assert largest_euclidean_cluster(gap, 0.011, 1).shape[0] == 6
+    assert largest_cluster(gap, params).shape[0] == 6
 
 
 def test_dbscan_core_border_noise() -> None:
@@ -174,7 +174,9 @@ def test_dbscan_core_border_noise() -> None:
     assert np.all(labels[:10] == 0) and labels[10] == 0 and labels[11] == -1
     # min_points too high: no core point, everything noise
     assert np.all(dbscan_labels(pts, 0.0105, 4) == -1)
-    np.testing.assert_allclose(dbscan_largest_cluster(pts, 0.0105, 3), np.vstack([line, border]))
+    params = SegmentationParams(method="dbscan", dbscan_eps_m=0.0105, dbscan_min_points=3,
+                                min_cluster_points=1)
+    np.testing.assert_allclose(largest_cluster(pts, params), np.vstack([line, border]))
 
 
 def test_min_area_rectangle_and_roi_helpers() -> None:

@@ -37,12 +37,7 @@ from scipy.spatial import ConvexHull
 
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.pipeline import PerceptionPipeline
-from cell.perception.segmentation import (
-    SegmentationParams,
-    dbscan_labels,
-    euclidean_cluster_labels,
-    largest_label,
-)
+from cell.perception.segmentation import SegmentationParams, cluster_labels, largest_label
 
 Array = NDArray[np.float64]
 
@@ -59,10 +54,7 @@ def _clusters_on_table(occupied_base: Array, params: SegmentationParams,
     (N,) of the configured method (-1: DBSCAN's noise) and the largest cluster's label (-1: none with
     ``min_cluster_points``)."""
     above = occupied_base[occupied_base[:, 2] > table_cut_z(params, table_z)]
-    if params.method == "euclidean":
-        labels = euclidean_cluster_labels(above, params.cluster_tolerance_m)
-    else:
-        labels = dbscan_labels(above, params.dbscan_eps_m, params.dbscan_min_points)
+    labels = cluster_labels(above, params)
     return above, labels, largest_label(labels, params.min_cluster_points)
 
 

@@ -202,18 +202,6 @@ def largest_label(labels: NDArray[np.integer], min_points: int) -> int:
     return best if counts[best] >= min_points else -1
 
 
-def _largest(points: Array, labels: NDArray[np.integer], min_points: int) -> Array:
-    """Points of the most populated label >= 0 (lowest label on ties); empty (0, 3) if below min_points."""
-    best = largest_label(labels, min_points)
-    return points[labels == best] if best >= 0 else np.zeros((0, 3))
-
-
-def largest_euclidean_cluster(points: Array, tolerance_m: float, min_points: int) -> Array:
-    """The largest Euclidean cluster (visual-servoing paper section II-A, "Euclidean clustering to
-    extract the largest contiguous cluster"); empty (0, 3) if it has fewer than ``min_points``."""
-    return _largest(points, euclidean_cluster_labels(points, tolerance_m), min_points)
-
-
 def dbscan_labels(points: Array, eps_m: float, min_points: int) -> NDArray[np.int64]:
     """DBSCAN labels (N,), -1 for noise (Ester et al. 1996; LR-NBV paper section 3.2).
 
@@ -246,11 +234,23 @@ def dbscan_labels(points: Array, eps_m: float, min_points: int) -> NDArray[np.in
     return labels
 
 
-def dbscan_largest_cluster(points: Array, eps_m: float, min_points: int,
-                           min_cluster_points: int = 1) -> Array:
-    """The largest DBSCAN cluster (LR-NBV paper section 3.2); empty (0, 3) when there is none or it has
-    fewer than ``min_cluster_points`` points."""
-    return _largest(points, dbscan_labels(points, eps_m, min_points), min_cluster_points)
+def cluster_labels(points: Array, params: SegmentationParams) -> NDArray[np.int64]:
+    """Cluster label (N,) of each of ``points`` (N, 3) [m] by ``params.method``: Euclidean clusters
+    (:func:`euclidean_cluster_labels`, ``cluster_tolerance_m``) or DBSCAN (:func:`dbscan_labels`,
+    ``dbscan_eps_m`` and ``dbscan_min_points``; -1 for its noise)."""
+    if params.method == "euclidean":
+        return euclidean_cluster_labels(points, params.cluster_tolerance_m)
+    return dbscan_labels(points, params.dbscan_eps_m, params.dbscan_min_points)
+
+
+def largest_cluster(points: Array, params: SegmentationParams) -> Array:
+    """The points (M, 3) [m] of the largest cluster of ``points`` (N, 3) by ``params.method``
+    (:func:`cluster_labels`; the visual-servoing paper's "largest contiguous cluster", the LR-NBV paper's
+    DBSCAN cluster, section 3.2), lowest label on ties; (0, 3) when it has fewer than
+    ``params.min_cluster_points``."""
+    labels = cluster_labels(points, params)
+    best = largest_label(labels, params.min_cluster_points)
+    return points[labels == best] if best >= 0 else np.zeros((0, 3))
 
 
 # ------------------------------------------------------------------------------------------------- ROI
@@ -429,11 +429,7 @@ def segment_object(points_base: Array, params: SegmentationParams,
     points_base = np.asarray(points_base, dtype=np.float64).reshape(-1, 3)
     n_input = points_base.shape[0]
     candidates, plane = remove_table_plane(points_base, params, rng, table_z)
-    if params.method == "euclidean":
-        obj = largest_euclidean_cluster(candidates, params.cluster_tolerance_m, params.min_cluster_points)
-    else:
-        obj = dbscan_largest_cluster(candidates, params.dbscan_eps_m, params.dbscan_min_points,
-                                     params.min_cluster_points)
+    obj = largest_cluster(candidates, params)
     n_table = n_input - candidates.shape[0]
     n_other = candidates.shape[0] - obj.shape[0]
     if obj.shape[0] == 0:
