@@ -81,9 +81,14 @@ the box.)
 It also assumes that every part of the object is at least half a zone footprint wide where it was seen
 (15-20 mm at 0.3-0.4 m for the VL53L8CX), as the sim ranges a zone (the median of its sub-rays): a
 narrower part is never ranged, and nothing in the captures shows it. The held-out lamp's 16 mm rod is
-missed from HEU's and raster's views, 0.35-0.4 m away (the bound 50-84 mm under it), and so is the tip of
-a slender taper beyond what the outline term allows (the held-out spire, 6 cm wide and 15 cm tall: 23-81
-mm under on HEU, 29-45 mm on raster); LR-NBV's and NBV's views come closer and range both. A real
+missed from HEU's and raster's views, 0.35-0.4 m away (the bound 50-84 mm under it); LR-NBV's and NBV's
+views come closer and range it (the bound held on seeds 0-9 but for one NBV scan, 4 mm under). So is the
+tip of a slender taper, beyond what the outline term allows: a taper of half-angle alpha is narrower than
+half a footprint F over F / (4 tan alpha) from its tip, longer than the one footprint of item 1 when
+alpha is under 14 deg. The held-out spire, 6 cm wide and 15 cm tall (11.3 deg), left the bound 23-81 mm
+under on HEU, 29-45 mm on raster and, on seeds 5-9, 3-25 mm under on three LR-NBV scans and 13-16 mm on
+two NBV ones (within it on seeds 0-4): the zones at its tip, from the side or from straight above (11 cm
+away on one scan), range its flanks a few centimetres below it. A real
 VL53L8CX reports up to four targets per zone, but only targets about 60 cm apart or more as separate
 ones (nearer ones merge into one return, status 9: ST's support on its community forum), so a rod
 10-20 cm before the table would not show as a target of its own either.
