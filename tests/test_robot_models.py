@@ -275,6 +275,20 @@ def test_ik_pose_round_trip(name: str) -> None:
         assert m.within_limits(q)
 
 
+def test_ik_pose_keeps_within_bounds_inside_the_limits() -> None:
+    """A safety layer's bounds (the limits less 0.05 rad): where the limits alone give a solution in that
+    margin, the bounded one lies inside the bounds and reaches the pose."""
+    m = MODELS["panda"]
+    T_goal = m.fk(np.array([-2.712, 0.726, -0.726, -2.791, 0.927, 3.485, -1.691]))
+    lo, hi = m.q_min + 0.05, m.q_max - 0.05
+    unbounded = m.ik_pose(T_goal, m.q_home)
+    assert np.any((unbounded < lo) | (unbounded > hi))
+    q = m.ik_pose(T_goal, m.q_home, q_bounds=(lo, hi))
+    assert np.all((q >= lo) & (q <= hi))
+    e = pose_error(m.fk(q), T_goal)
+    assert np.linalg.norm(e[:3]) <= 1e-4 and np.linalg.norm(e[3:]) <= 1e-3
+
+
 def test_ik_pose_unreachable_names_residual() -> None:
     m = MODELS["ur5e"]
     T = m.fk(m.q_home)

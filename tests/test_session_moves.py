@@ -103,13 +103,14 @@ def test_a_view_a_move_reaches_on_another_branch_or_rolled_is_within_its_reach_n
 
 @pytest.mark.parametrize(("cell", "offset", "roll_deg", "turn_deg"), [
     (UR5E, [-0.196, 0.113, 0.106], 45.0, 90.0),
-    (FRANKA, [0.177, 0.0, 0.177], 270.0, 180.0),
+    (FRANKA, [0.139, -0.08, 0.192], 270.0, 180.0),
 ])
 def test_a_view_no_route_reaches_safely_is_reached_rolled_about_the_sensor_axis(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cell: Path, offset: list[float], roll_deg: float,
         turn_deg: float) -> None:
     """Low on the arm's left, the UR5e's every route folds the base into the forearm; over the station,
-    the Panda's wrist would enter its joint limit margin. The ToF's square grid seen a quarter turn about
+    the Panda's wrist would enter its joint limit margin (and within the guard's bounds IK finds no
+    joints at all). The ToF's square grid seen a quarter turn about
     its axis, and the camera's image seen upside down, are the same view: that one is reached, along the
     same axis from the same point, its image axes turned by that much."""
     _cross(monkeypatch, tmp_path, offset, cell=cell, roll_deg=roll_deg)
@@ -117,3 +118,12 @@ def test_a_view_no_route_reaches_safely_is_reached_rolled_about_the_sensor_axis(
     np.testing.assert_allclose(reached[:3, 2], view[:3, 2], atol=1e-3)
     turned = math.degrees(math.acos(np.clip(reached[:3, 0] @ view[:3, 0], -1.0, 1.0)))
     assert turned == pytest.approx(turn_deg, abs=0.5)
+
+
+def test_a_view_whose_joints_solved_within_the_limits_lie_in_the_guards_margin_is_reached_inside_it(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The Panda's view from 16 cm behind the station and 19 cm over it: IK solved within the joint limits
+    puts the elbow in the guard's margin (from the current joints and from home alike), and the guard
+    would refuse the move; solved within the guard's bounds it reaches the view."""
+    _cross(monkeypatch, tmp_path, [-0.161, 0.0, 0.192], cell=FRANKA)
+    assert CrossPlanner.reach == [(True, True)]

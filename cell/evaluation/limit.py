@@ -173,7 +173,7 @@ def reachable_views(config: CellConfig, views: Array, aabb_min: Array,
         if guard.barrier_violation(T_flange) is not None:
             return False
         try:
-            q = model.ik_pose(T_flange, q_home)
+            q = model.ik_pose(T_flange, q_home, q_bounds=(q_lo, q_hi))
         except KinematicsError:
             return False
         return bool(np.all((q >= q_lo) & (q <= q_hi)) and guard.collision.check(q) is None)

@@ -491,15 +491,16 @@ class JobSession:
                         dtype=bool)
 
     def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
-        """IK seeded from the current joints (from home where the arm reports none, as a replayed arm),
-        then from each solution, reaches the poses (K, 4, 4) in turn, every solution one the arm may take
+        """IK (within the guard's ``joint_bounds`` where it finds joints there) seeded from the current
+        joints (from home where the arm reports none, as a replayed arm), then from each solution, reaches
+        the poses (K, 4, 4) in turn, every solution one the arm may take
         (:meth:`_joints_allowed`) and no joint moving more than ``MAX_PATH_JOINT_STEP_RAD`` between
         consecutive poses."""
         q = self._q_reported()
         T_fs_inv = inv_T(self._T_flange_sensor)
         for k, T in enumerate(np.asarray(T_base_sensor, dtype=np.float64).reshape(-1, 4, 4)):
             try:
-                q_next = self._model.ik_pose(T @ T_fs_inv, q)
+                q_next = self._model.ik_pose(T @ T_fs_inv, q, q_bounds=self._guard.joint_bounds)
             except KinematicsError:
                 return False
             if (k > 0 and np.max(np.abs(q_next - q)) > MAX_PATH_JOINT_STEP_RAD) or \
@@ -545,8 +546,9 @@ class JobSession:
             self._guard.collision.check(q) is None
 
     def _ik_solutions(self, T_base_flange: Array, q_now: Array, quiet: bool = False) -> Iterator[Array]:
-        """Joints reaching ``T_base_flange``, seeded from the current joints, then, where it differs, the
-        solution seeded from home; none when neither converges (logged unless ``quiet``).
+        """Joints reaching ``T_base_flange`` (within the guard's ``joint_bounds`` where IK finds them there,
+        ``RobotModel.ik_pose``), seeded from the current joints, then, where it differs, the solution
+        seeded from home; none when neither converges (logged unless ``quiet``).
 
         Seeding from the current joints keeps moves short; a redundant arm can however drift into a
         folded configuration from which the next views are out of reach, and the home seed recovers.
@@ -555,7 +557,7 @@ class JobSession:
         error: KinematicsError | None = None
         for seed in (q_now, self._q_home):
             try:
-                q_goal = self._model.ik_pose(T_base_flange, seed)
+                q_goal = self._model.ik_pose(T_base_flange, seed, q_bounds=self._guard.joint_bounds)
             except KinematicsError as exc:
                 error = exc
                 continue
