@@ -37,7 +37,7 @@ from scipy.spatial import ConvexHull
 
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.pipeline import PerceptionPipeline
-from cell.perception.segmentation import SegmentationParams, cluster_labels, largest_label
+from cell.perception.segmentation import SegmentationParams, cluster_labels, largest_cluster, largest_label
 
 Array = NDArray[np.float64]
 
@@ -48,28 +48,24 @@ def table_cut_z(params: SegmentationParams, table_z: float) -> float:
     return table_z + params.plane_distance_m
 
 
-def _clusters_on_table(occupied_base: Array, params: SegmentationParams,
-                       table_z: float) -> tuple[Array, NDArray[np.int64], int]:
-    """The occupied voxel centres (N, 3) [m, base frame] above :func:`table_cut_z`, their cluster labels
-    (N,) of the configured method (-1: DBSCAN's noise) and the largest cluster's label (-1: none with
-    ``min_cluster_points``)."""
-    above = occupied_base[occupied_base[:, 2] > table_cut_z(params, table_z)]
-    labels = cluster_labels(above, params)
-    return above, labels, largest_label(labels, params.min_cluster_points)
+def _above_cut(occupied_base: Array, params: SegmentationParams, table_z: float) -> Array:
+    """The occupied voxel centres (N, 3) [m, base frame] above :func:`table_cut_z`."""
+    return occupied_base[occupied_base[:, 2] > table_cut_z(params, table_z)]
 
 
 def segment_on_table(occupied_base: Array, params: SegmentationParams, table_z: float) -> Array:
     """The object's points (M, 3) [m, base frame]: the largest cluster (``params.method``) of the occupied
     voxel centres above :func:`table_cut_z`; (0, 3) when none."""
-    above, labels, largest = _clusters_on_table(occupied_base, params, table_z)
-    return above[labels == largest] if largest >= 0 else np.zeros((0, 3))
+    return largest_cluster(_above_cut(occupied_base, params, table_z), params)
 
 
 def stacked_on_table(occupied_base: Array, params: SegmentationParams, table_z: float) -> Array:
     """:func:`segment_on_table`'s cluster with every other cluster (DBSCAN's noise is none) whose centroid
     lies over its footprint (the convex hull of its points on the table plane): what stands on the object
     or hangs over it (module docstring); (0, 3) when there is no object."""
-    above, labels, largest = _clusters_on_table(occupied_base, params, table_z)
+    above = _above_cut(occupied_base, params, table_z)
+    labels = cluster_labels(above, params)
+    largest = largest_label(labels, params.min_cluster_points)
     if largest < 0:
         return np.zeros((0, 3))
     clustered = labels >= 0
