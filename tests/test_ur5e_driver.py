@@ -122,6 +122,26 @@ def test_recover_unlocks_a_protective_stop_the_receive_stream_does_not_show_yet(
     assert peer.state()["safety_mode"] == "NORMAL" and peer.state()["program_running"]
 
 
+def test_recover_waits_for_the_controller_to_release_the_stop_before_restarting_the_script(
+        peer: ControllerPeer, ur: Backend, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dashboard answers an unlock before the controller has released the stop, and a script sent
+    before the release does not run: recover waits for the release as the dashboard reports it, not as
+    a receive stream that lags behind it (here, one that never showed the stop)."""
+    arm = _ur(ur)
+    peer.protective_stop()
+    ur.wait_until(lambda: not arm._snapshot()["program_running"])
+    read = arm._snapshot
+
+    def snapshot(kick: bool = False) -> dict[str, Any]:
+        return {**read(kick), "protective_stopped": False, "safety_mode": 1}
+
+    monkeypatch.setattr(arm, "_snapshot", snapshot)
+    arm.recover()
+    state = peer.state()
+    assert state["safety_mode"] == "NORMAL" and state["program_running"]
+    assert not any("program refused" in e for e in state["events"])
+
+
 def test_emergency_stop_cannot_be_cleared_from_software(peer: ControllerPeer, ur: Backend) -> None:
     peer.emergency_stop()
     ur.wait_until(lambda: "emergency stop" in ur.arm.state().faults)

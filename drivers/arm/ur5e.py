@@ -514,7 +514,7 @@ class UR5eArm(HardwareArm):
         if snap["protective_stopped"] or self._dashboard_says_protective_stop():
             self._dashboard("closeSafetyPopup")
             self._unlock_protective_stop()
-            self._wait(lambda: not self._snapshot()["protective_stopped"], "unlocking the protective stop")
+            self._wait(lambda: not self._dashboard_says_protective_stop(), "unlocking the protective stop")
         if snap["robot_mode"] != ROBOT_MODE_RUNNING:
             self._dashboard("powerOn")
             self._dashboard("brakeRelease")
@@ -556,7 +556,10 @@ class UR5eArm(HardwareArm):
         """Whether the controller itself, asked on the dashboard, is in a protective stop. The receive
         interface and the control interface read two RTDE streams, so the script's end can reach the driver
         before the protective stop that ended it: seen on a loaded machine, recover skipped the unlock and
-        waited out its timeout for a script the controller would not run."""
+        waited out its timeout for a script the controller would not run. The release after an unlock is
+        awaited here too: the dashboard answers the unlock when the release begins, and a receive stream
+        that lags would let the script's re-upload reach a controller still stopped, which does not run
+        it."""
         return f"Safetystatus: {SAFETY_MODES[SAFETY_PROTECTIVE_STOP]}" in str(self._dashboard("safetystatus"))
 
     def _reconnect(self) -> None:

@@ -8,7 +8,8 @@ It listens on one address (``127.0.0.N``) on the controller's fixed ports:
 - 29999 dashboard: the text commands ur-rtde and the cell use (remote control, PolyScope version, unlock
   protective stop, close safety popup, power on, brake release, robot and safety mode, stop, quit). As a
   real controller, it refuses to unlock a protective stop until ``UNLOCK_AFTER_S`` after it occurred,
-  with the controller's answer (``UNLOCK_TOO_SOON``).
+  with the controller's answer (``UNLOCK_TOO_SOON``), and answers an unlock it accepts ("Protective stop
+  releasing") before the release: the safety mode returns to normal ``RELEASE_S`` later.
 - 30003 script: the uploaded program text. A ``def ...: ... end`` program starts "running": the peer
   then behaves as ur-rtde's control script does, through the register handshake: it reads the command
   from ``input_int_register_<off>`` and its arguments from the input int/double registers (``off`` is
@@ -68,6 +69,10 @@ SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP, SAFETY_ROBOT_EMERGENCY_STOP = 1, 3, 7
 # A UR controller unlocks a protective stop only this long after it occurred [s], and answers earlier
 # requests with this (the Dashboard Server's documented reply)
 UNLOCK_AFTER_S = 5.0
+# How long an accepted unlock takes to release the protective stop [s]: an assumption of this peer (the
+# dashboard's answer says only that the release has begun), long enough for a client that does not wait
+# for the release to act while the controller is still stopped.
+RELEASE_S = 0.3
 UNLOCK_TOO_SOON = ("Cannot unlock protective stop until 5s after occurrence. Always inspect cause of "
                    "protective stop before unlocking")
 ROBOT_MODE_NAMES = {3: "POWER_OFF", 5: "IDLE", 7: "RUNNING"}
@@ -145,6 +150,7 @@ class Controller:
         self.safety_mode = SAFETY_NORMAL
         self.estop_pressed = False
         self.protective_stop_at = 0.0  # when the last protective stop occurred [s]
+        self.release_at: float | None = None  # when an accepted unlock releases the stop [s]
         self.program_running = False
         self.reg_int_offset = 0
         self.reg_float_offset = 0
@@ -327,6 +333,10 @@ class Controller:
     def tick(self, dt: float) -> None:
         with self.lock:
             self.cycle_s += min(dt, MAX_WATCHDOG_STEP_S)
+            if self.release_at is not None and self.now() >= self.release_at:
+                self.release_at = None
+                self.safety_mode = SAFETY_NORMAL
+                self.event("protective stop unlocked (dashboard)")
             self._script_tick()
             self._step_motion(dt)
 
@@ -336,6 +346,7 @@ class Controller:
         with self.lock:
             self.safety_mode = SAFETY_PROTECTIVE_STOP
             self.protective_stop_at = self.now()
+            self.release_at = None
             self.halt()
             self.end_program("protective stop")
             self.event("protective stop")
@@ -343,6 +354,7 @@ class Controller:
     def emergency_stop(self) -> None:
         with self.lock:
             self.safety_mode = SAFETY_ROBOT_EMERGENCY_STOP
+            self.release_at = None
             self.robot_mode = ROBOT_MODE_POWER_OFF
             self.estop_pressed = True
             self.halt()
@@ -558,8 +570,8 @@ def _dashboard_reply(ctl: Controller, line: str) -> str | None:
             if ctl.safety_mode == SAFETY_PROTECTIVE_STOP:
                 if ctl.now() - ctl.protective_stop_at < UNLOCK_AFTER_S:
                     return UNLOCK_TOO_SOON
-                ctl.safety_mode = SAFETY_NORMAL
-                ctl.event("protective stop unlocked (dashboard)")
+                if ctl.release_at is None:
+                    ctl.release_at = ctl.now() + RELEASE_S
             return "Protective stop releasing"
         if low == "power on":
             if ctl.estop_pressed:
