@@ -198,6 +198,7 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     assert again.status_code == 409 and "not valid in Execute" in again.json()["detail"]
     after = line.state()
     assert after["state_name"] == "Execute" and after["job_id"] == running["job_id"]
+    assert after["part_id"] == "bunny"  # the refused Start's part id is not taken either
     assert line.command("stop", role="viewer").status_code == 403
     assert line.command("stop").status_code == 200
     stopped = line.wait({"Stopped"})
@@ -215,6 +216,7 @@ def test_hold_stops_the_scan_and_unhold_scans_the_part_again(line: Line):
     held = line.wait({"Held"})
     assert line.job(first)["status"] == "stopped" and held["job_id"] is None
     assert line.command("start", "bunny").status_code == 409  # Held waits for Unhold (or Stop, Abort)
+    assert line.state()["part_id"] == "cube@0.01,0.0,15"
     line.command("unhold")
     again = line.wait({"Execute"})["job_id"]
     assert again != first and line.job(again)["part_id"] == "cube@0.01,0.0,15"

@@ -182,15 +182,17 @@ class LineController:
 
     async def command(self, command: Command, source: str, part_id: str | None = None) -> str:
         """Act on ``command`` from ``source`` (e.g. ``opcua (key line-1)``); ``part_id`` sets the parameter
-        first. Returns what was done, in words; ``ServiceError`` (conflict) when the command is not valid
-        now, the state unchanged."""
-        if part_id is not None:
-            self.set_part_id(part_id)
-        why = packml.refusal(self.state, command) or self._precondition(command)
+        when the command is accepted, before it acts. Returns what was done, in words; ``ServiceError``
+        (conflict) when the command is not valid now, the state and the part id unchanged (a refused Start
+        in Execute must not rename the part being scanned), or (invalid) when ``part_id`` is."""
+        given = None if part_id is None else check_part_id(part_id)
+        why = packml.refusal(self.state, command) or self._precondition(command, given or self.part_id)
         if why is not None:
             self._message = f"refused {command.label} from {source}: {why}"
             self._notify()
             raise ServiceError(why, reason="conflict")
+        if given is not None:
+            self.part_id = given
         self._message = f"{command.label} from {source}"
         self._source = source
         if command is Command.STOP:
@@ -200,11 +202,11 @@ class LineController:
         self._enter(packml.ACTING[command], self._message)
         return f"{command.label} accepted: {self.state.label}"
 
-    def _precondition(self, command: Command) -> str | None:
+    def _precondition(self, command: Command, part_id: str) -> str | None:
         if command is Command.START:
             if not self.owns_cell:
                 return f"the cell is in {self.mode.label} mode: the line starts scans in Production only"
-            if not self.part_id:
+            if not part_id:
                 return "no part id: set Command/Parameter/PartId (or part_id) before Start"
         if command is Command.RESET and self._service.arm.faulted:
             return (f"the arm is faulted ({', '.join(self._service.arm.status.faults)}): Abort, then Clear "
