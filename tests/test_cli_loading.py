@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -87,6 +88,22 @@ def test_the_help_lists_every_command_and_a_stop_of_no_job_says_why(tmp_path: Pa
                           capture_output=True, text=True, timeout=120, check=False)
     assert stop.returncode == 1
     assert stop.stderr.strip() == f"error: {tmp_path} is not a job folder (no log.txt)"
+
+
+def test_a_commands_help_keeps_its_units_and_placeholders():
+    """Help texts give units in brackets and placeholders in braces; a markup that took "[s]" for a style
+    tag printed "time budget  (default: ...)"."""
+    scan = subprocess.run([sys.executable, "-m", "cell.cli.entry", "scan", "--help"], cwd=REPO,
+                          capture_output=True, text=True, timeout=120, check=True, env=_wide()).stdout
+    assert "time budget [s]" in scan and "jobs/{stamp}-..." in scan
+    jog = subprocess.run([sys.executable, "-m", "cell.cli.entry", "arm", "jog", "--help"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120, check=True, env=_wide()).stdout
+    assert "signed distance [m] or angle [rad]" in jog
+
+
+def _wide() -> dict[str, str]:
+    """The environment with a terminal wide enough that no help line wraps inside a phrase tested."""
+    return {**os.environ, "COLUMNS": "160"}
 
 
 def test_every_registered_planner_loads_as_a_planner():

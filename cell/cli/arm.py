@@ -20,6 +20,7 @@ import typer
 from rich.console import Console
 from scipy.spatial.transform import Rotation
 
+from cell.cli.commands import command_group
 from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.safety.guard import MotionGuard
@@ -30,7 +31,7 @@ from drivers.errors import CellError, DriverError, RobotFault, SafetyStop
 from drivers.factory import make_arm
 from drivers.robots import get_robot_model
 
-arm_app = typer.Typer(help="Commission a cell's arm: status, recovery, small guarded jog moves.",
+arm_app = command_group(help="Commission a cell's arm: status, recovery, small guarded jog moves.",
                       no_args_is_help=True)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)

@@ -22,7 +22,7 @@ console = Console(soft_wrap=True)
 
 
 def backup(
-    dest: Annotated[Path, typer.Argument(help="the backup file, or a folder to write cell-<UTC time>.db in")],
+    dest: Annotated[Path, typer.Argument(help="the backup file, or a folder to write cell-{UTC time}.db in")],
     data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
     = DEFAULT_DATA_DIR,
     db: Annotated[str | None, typer.Option(help="the store's URL instead of the data folder's (SQLite only: "

@@ -21,13 +21,14 @@ from calibration.mount import BOARD_TARGET, calibrate_mount, default_folder, def
 from calibration.table import calibrate_table, table_report
 from calibration.targets import BOX_TARGETS, DEFAULT_BOX
 from calibration.tof import DEFAULT_FRAMES_PER_HEIGHT, DEFAULT_HEIGHTS_M, calibrate_zones, zone_record
+from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.config import load_config
 from cell.service.startup import DEFAULT_DATA_DIR
 from drivers.depth.zone_correction import write_zone_correction
 from drivers.errors import CellError
 
-calibrate_app = typer.Typer(help="Calibrate the cell with the cell: the sensor mount, the table, the ToF "
+calibrate_app = command_group(help="Calibrate the cell with the cell: the sensor mount, the table, the ToF "
                                  "zones.", no_args_is_help=True)
 console = Console(soft_wrap=True)
 

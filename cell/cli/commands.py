@@ -15,7 +15,7 @@ import importlib
 import importlib.util
 from collections.abc import Iterable
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import typer
 
@@ -41,8 +41,16 @@ COMMANDS: dict[str, str] = {
 }
 
 
+def command_group(help: str, **options: Any) -> typer.Typer:
+    """A command group with ``help`` and typer's other ``options``, its commands' help read as Markdown:
+    each paragraph wrapped to the terminal, units in brackets ("[m]", "[s]") kept. The commands' help
+    is their docstrings, wrapped at the source's width, and rich's markup took the units for style tags
+    and dropped them from the help."""
+    return typer.Typer(help=help, rich_markup_mode="markdown", **options)
+
+
 def _app() -> typer.Typer:
-    app = typer.Typer(help="Autonomous active-vision scanning cell.", no_args_is_help=True,
+    app = command_group("Autonomous active-vision scanning cell.", no_args_is_help=True,
                       pretty_exceptions_enable=False)
 
     @app.callback()
@@ -55,7 +63,7 @@ def _app() -> typer.Typer:
 def command_help(location: str) -> tuple[str, bool]:
     """The help of the command at ``location`` (module:attribute, :data:`COMMANDS`) and whether it is a
     group, read from the module's source without importing it: the docstring of a function, or the
-    ``help`` of a group's ``typer.Typer(help=...)``. Raises ``LookupError`` when the source has neither."""
+    ``help`` of a group's ``command_group(help=...)``. Raises ``LookupError`` when the source has neither."""
     module, attribute = location.split(":")
     spec = importlib.util.find_spec(module)
     if spec is None or spec.origin is None:
@@ -68,7 +76,7 @@ def command_help(location: str) -> tuple[str, bool]:
             for keyword in node.value.keywords:
                 if keyword.arg == "help" and isinstance(keyword.value, ast.Constant):
                     return str(keyword.value.value), True
-    raise LookupError(f"{location}: neither a function with a docstring nor a typer.Typer(help=...)")
+    raise LookupError(f"{location}: neither a function with a docstring nor a command_group(help=...)")
 
 
 def _not_loaded() -> NoReturn:
@@ -83,7 +91,7 @@ def listing_app() -> typer.Typer:
     for name, location in COMMANDS.items():
         text, group = command_help(location)
         if group:
-            app.add_typer(typer.Typer(help=text), name=name)
+            app.add_typer(command_group(text), name=name)
         else:
             app.command(name, help=text)(_not_loaded)
     return app

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
 from rich.console import Console
 
+from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.config import load_config
 from cell.config.placeholders import find_placeholders
 from drivers.errors import CellError, ConfigError
 
-config_app = typer.Typer(help="Cell configuration files.", no_args_is_help=True)
+config_app = command_group(help="Cell configuration files.", no_args_is_help=True)
 console = Console(soft_wrap=True)
 
 

@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.config import load_config
 from cell.evaluation import presets
@@ -26,14 +27,14 @@ from cell.templates import template_path
 from drivers.errors import CellError
 from drivers.sim.objects import load_object
 
-eval_app = typer.Typer(help="Grids of scans (the papers' experiments, or any) with a report.",
+eval_app = command_group(help="Grids of scans (the papers' experiments, or any) with a report.",
                        no_args_is_help=True)
 console = Console(soft_wrap=True)
 
 Config = Annotated[Path | None, typer.Option(help="cell file (default: the preset's shipped sim cell)")]
 Planners = Annotated[list[str] | None, typer.Option("--planners", help="planner names (repeat the option)")]
 Objects = Annotated[list[str] | None, typer.Option("--objects", help="shipped names or mesh files (repeat)")]
-Placements = Annotated[Path | None, typer.Option(help="YAML list of \\[x_m, y_m, yaw_deg] placements")]
+Placements = Annotated[Path | None, typer.Option(help="YAML list of [x_m, y_m, yaw_deg] placements")]
 Seeds = Annotated[list[int] | None, typer.Option("--seeds", help="job seeds (repeat the option)")]
 Out = Annotated[Path, typer.Option(help="output folder: job folders, results.csv, report.md, figures")]
 ExecutorOpt = Annotated[str, typer.Option(help="local (a process pool) or ray")]

@@ -26,6 +26,7 @@ import typer
 from rich.console import Console
 
 from cell.cli.client import FINISHED, ApiClient, ServerEvent
+from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from drivers.errors import CellError
 
@@ -36,7 +37,7 @@ TERMINATION_WIDTH = 48
 """``list`` shortens a termination to this many characters."""
 EXIT_NOT_COMPLETED = 2
 
-jobs_app = typer.Typer(help="Jobs of a running `cell serve`: submit, list, show, stop, wait (for scripts).",
+jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, wait (for scripts).",
                        no_args_is_help=True)
 console = Console(soft_wrap=True)
 

@@ -17,6 +17,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.service.keys import Role, create_key, parse_role
 from cell.service.store import Store, open_data_store
@@ -24,7 +25,7 @@ from drivers.errors import CellError
 
 DEFAULT_DATA_DIR = Path("data")
 
-keys_app = typer.Typer(help="API keys of the service: create, list, revoke.", no_args_is_help=True)
+keys_app = command_group(help="API keys of the service: create, list, revoke.", no_args_is_help=True)
 console = Console(soft_wrap=True)
 
 DataDirOption = Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
@@ -66,7 +67,7 @@ def _utc(moment: datetime) -> str:
 def create(
     role: Annotated[str, typer.Option(help=f"what the key may do: {', '.join(Role)}")],
     name: Annotated[str | None, typer.Option(help="1-64 letters, digits, '.', '_', '-' (default: "
-                                                  "<role>-<6 hex>)")] = None,
+                                                  "{role}-{6 hex digits})")] = None,
     data_dir: DataDirOption = DEFAULT_DATA_DIR,
     db: DbOption = None,
 ) -> None:

@@ -75,7 +75,7 @@ def scan(
     seed: Annotated[int | None, typer.Option(help="random seed of the job (default 0; with --replay, the "
                                                   "job's)")] = None,
     out: Annotated[Path | None, typer.Option(help="job folder to create, new or empty (default: "
-                                                  "jobs/<stamp>-...)")] = None,
+                                                  "jobs/{stamp}-...)")] = None,
     max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's)")] = None,
     replay: Annotated[Path | None, typer.Option(help="re-run a recorded job folder's frames and poses "
                                                      "through perception and the planner (nothing moves)")]
@@ -83,8 +83,9 @@ def scan(
 ) -> None:
     """Run a scan and write its job folder.
 
-    Exit code 0 when it completed, 2 when it ended otherwise (no object found, stopped, failed), 1 on an
-    error, 130 after Ctrl-C; the job folder is printed in every case once it exists.
+    Exit code 0 when it completed, 2 when it found no object on the table, 1 when it failed or was stopped
+    and on an error in its input (nothing is made then), 130 after Ctrl-C; the job folder is printed in
+    every case once it exists.
     Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
     try:
         if replay is not None:

@@ -21,6 +21,7 @@ import typer
 from rich.console import Console
 from scipy.spatial import cKDTree
 
+from cell.cli.commands import command_group
 from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.jobs.replay import recorded_job
@@ -38,7 +39,7 @@ from drivers.errors import CellError, JobError
 from drivers.factory import make_sensor
 from drivers.robots import get_robot_model
 
-sensor_app = typer.Typer(help="Depth sensors: commissioning check, VL53L8CX bridge emulator, job replay.",
+sensor_app = command_group(help="Depth sensors: commissioning check, VL53L8CX bridge emulator, job replay.",
                          no_args_is_help=True)
 console = Console(soft_wrap=True, highlight=False)
 err_console = Console(stderr=True, highlight=False)
