@@ -172,6 +172,24 @@ def test_the_log_is_human_on_a_terminal_and_json_elsewhere():
         root.setLevel(saved[1])
 
 
+def test_the_log_keeps_a_librarys_warnings_and_leaves_out_its_workings():
+    """asyncua logs a line per node of the address space it loads as the OPC UA server starts: about a
+    thousand at INFO before the certificate's fingerprint."""
+    root, quiet = logging.getLogger(), logging.getLogger("asyncua")
+    saved = root.handlers[:], root.level, quiet.level
+    out = io.StringIO()
+    try:
+        configure_logging(out)
+        logging.getLogger("asyncua.server.address_space").info("add_node: while adding node ...")
+        logging.getLogger("asyncua.server.server").warning("endpoint not secure")
+        logging.getLogger("cell.line").info("OPC UA: server certificate ...")
+    finally:
+        root.handlers, root.level = saved[0], saved[1]
+        quiet.setLevel(saved[2])
+    lines = [json.loads(line)["msg"] for line in out.getvalue().splitlines()]
+    assert lines == ["endpoint not secure", "OPC UA: server certificate ..."]
+
+
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
 def test_the_unit_file_verifies(tmp_path):
     # verify wants ExecStart's program to exist: point it at this venv's cell instead of /opt/cell's

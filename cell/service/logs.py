@@ -23,6 +23,10 @@ _STANDARD = frozenset(logging.LogRecord("", 0, "", 0, "", None, None).__dict__) 
 _SYSLOG_PRIORITY = {logging.CRITICAL: 2, logging.ERROR: 3, logging.WARNING: 4, logging.INFO: 6,
                     logging.DEBUG: 7}
 UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access")
+# Libraries whose INFO records are their own workings, not the service's events: asyncua's OPC UA server
+# logs a line for each of about a thousand nodes of the standard address space it loads as it starts,
+# burying the line with the certificate's fingerprint that a line's commissioning needs.
+QUIET_LOGGERS = ("asyncua",)
 
 
 def _fields(record: logging.LogRecord) -> dict[str, Any]:
@@ -82,6 +86,8 @@ def configure_logging(stream: IO[str] | None = None, level: int = logging.INFO) 
     root = logging.getLogger()
     root.handlers = [handler]
     root.setLevel(level)
+    for name in QUIET_LOGGERS:
+        logging.getLogger(name).setLevel(max(level, logging.WARNING))
     for name in UVICORN_LOGGERS:  # uvicorn's own handlers would print a second, unstructured copy
         logger = logging.getLogger(name)
         logger.handlers = []
