@@ -207,6 +207,13 @@ def test_report_tables_match_results_csv(local_run, tmp_path):
         assert line[3:7] == [f"{float(d):.4f} ± 0.0000" for d in r["dims_m"].split()] + \
             [f"{float(r['iou']):.3f} ± 0.000"]
     assert (tmp_path / "fig5.png").stat().st_size > 0 and (tmp_path / "fig3.png").stat().st_size > 0
+    # Mann-Whitney U between planners: a p with two seeds a side; none with one (p = 1 whatever the values)
+    tests = _table(md, "object | figure | planner A | planner B | U (A) | p")
+    assert tests and any(line[5] != "-" for line in tests)
+    (tmp_path / "one-seed").mkdir()
+    write_report(rows, tmp_path / "one-seed", {})
+    single = _table((tmp_path / "one-seed" / REPORT_MD).read_text(), "object | figure | planner A")
+    assert single and all(line[4:] == ["-", "-"] for line in single)
 
 
 def _box(lo, hi, inward=False):

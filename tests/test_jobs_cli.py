@@ -25,7 +25,8 @@ from tests.service_process import CELL, REPO, ServedCell, free_port
 CONFIG = REPO / "config" / "sim-franka-rgbd.yaml"
 JOB_ID = re.compile(r"[0-9a-f]{16}")
 UTC_SECONDS = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ")
-PROGRESS_LINE = re.compile(r"t \d+\.\d s  \d+ captures  (coverage \d+\.\d %  )?H_ROI (\d+\.\d{3} nats|-)")
+PROGRESS_LINE = re.compile(r"t \d+\.\d s  \d+ captures  (cloud coverage \d+\.\d %  )?"
+                           r"H_ROI (\d+\.\d{3} nats|-)")
 Completed = tuple[str, subprocess.CompletedProcess[str]]
 FINISHED = ("completed", "no_object", "failed", "stopped", "cancelled", "interrupted")
 
@@ -124,7 +125,7 @@ def test_show_and_list_find_the_job(served: ServedCell, completed_job: Completed
     assert fields["captures"] == str(result["n_captures"]) and result["n_captures"] >= 1
     assert fields["sim time"].startswith(f"{result['sim_time_s']:.1f} s")
     assert fields["path length"] == f"{result['path_length_m']:.2f} m"
-    assert fields["coverage"] == f"{result['metrics']['coverage_pct']:.1f} %"
+    assert fields["cloud coverage (eq. 13)"] == f"{result['metrics']['coverage_pct']:.1f} %"
     assert fields["chamfer"] == f"{result['metrics']['chamfer_mm']:.2f} mm"
 
     listed = invoke(served, "list", "--status", "completed", "--part-id", "P-42", role="viewer")

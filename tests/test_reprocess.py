@@ -140,7 +140,7 @@ def test_a_job_without_ground_truth_is_rebuilt_without_metrics(job_copy):
     (job / "result.json").write_text(json.dumps(result))
     res = CliRunner().invoke(app, ["reprocess", str(job)])
     assert res.exit_code == 0, res.output
-    assert "coverage: - (no ground truth)" in res.output
+    assert "cloud coverage (eq. 13): - (no ground truth)" in res.output
     written = json.loads((job / "result_hires.json").read_text())
     assert written["metrics"] is None and written["timeline"] is None
     assert read_ply(job / "cloud_hires.ply").shape[0] == written["n_cloud_points"] > 0

@@ -266,6 +266,8 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     assert page.text_content("#fig-coverage") == f"{result['metrics']['coverage_pct']:.2f} %"
     dims = " × ".join(f"{v:.3f}" for v in result["packing"]["dims_m"])
     assert page.text_content("#fig-dims") == f"{dims} m"
+    upper = " × ".join("unbounded" if v is None else f"{v:.3f}" for v in result["packing"]["dims_upper_m"])
+    assert page.text_content("#fig-upper") == f"{upper} m"  # the container is chosen on it
     assert page.text_content("#fig-container").startswith(result["packing"]["container"]["name"])
     assert dims in page.text_content("#packing-note")
     wait_for(page, "document.getElementById('job-log').textContent.includes('raster complete')")

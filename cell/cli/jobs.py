@@ -115,7 +115,7 @@ def _progress_line(data: dict[str, Any]) -> str:
     parts = [f"t {_number(data.get('t_s'), '.1f', ' s') or '-'}", f"{data.get('n_captures', 0)} captures"]
     coverage = _number(data.get("coverage_pct"), ".1f", " %")
     if coverage is not None:
-        parts.append(f"coverage {coverage}")
+        parts.append(f"cloud coverage {coverage}")
     parts.append(f"H_ROI {_number(data.get('h_roi'), '.3f', ' nats') or '-'}")
     return "  ".join(parts)
 
@@ -246,6 +246,13 @@ def _job_lines(job: dict[str, Any]) -> list[tuple[str, str]]:
     return lines
 
 
+def coverage_line(coverage_pct: float | None) -> str:
+    """The summary line of a result's ``metrics.coverage_pct`` (eq. 13 on the cloud): not the packing
+    section's share of the surface reconstructed, which :func:`packing_lines` gives."""
+    return "cloud coverage (eq. 13): " + ("- (no ground truth)" if coverage_pct is None else
+                                          f"{coverage_pct:.1f} %")
+
+
 def packing_lines(packing: dict[str, Any]) -> list[tuple[str, str]]:
     """(label, value) lines of a result.json's ``packing`` section: the box's estimate, its upper bound
     and the container chosen for that; none for a section without them."""
@@ -255,6 +262,9 @@ def packing_lines(packing: dict[str, Any]) -> list[tuple[str, str]]:
         if isinstance(value, list) and value:
             # a face seen only at the field of view's edge has no upper bound (null)
             lines.append((label, " x ".join("unbounded" if v is None else f"{v:.3f}" for v in value) + " m"))
+    surface = _number(packing.get("coverage_pct"), ".1f", " %")
+    if surface is not None:
+        lines.append(("surface reconstructed (voxels)", surface))
     container = packing.get("container")
     if isinstance(container, dict):
         name = container.get("name") or "none"
@@ -276,7 +286,7 @@ def _result_lines(result: dict[str, Any]) -> list[tuple[str, str]]:
     if path is not None:
         lines.append(("path length", path))
     metrics = result.get("metrics") or {}
-    for name, field, fmt, unit in (("coverage", "coverage_pct", ".1f", " %"),
+    for name, field, fmt, unit in (("cloud coverage (eq. 13)", "coverage_pct", ".1f", " %"),
                                    ("chamfer", "chamfer_mm", ".2f", " mm"),
                                    ("hausdorff", "hausdorff_mm", ".2f", " mm")):
         value = _number(metrics.get(field), fmt, unit)

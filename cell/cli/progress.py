@@ -41,10 +41,11 @@ def _bar(*columns: TextColumn | BarColumn | MofNCompleteColumn) -> Progress:
 
 
 def scan_line(p: JobProgress, budget_s: float) -> str:
-    """One progress line of a scan: job time of the budget [s], captures, cloud size, coverage."""
+    """One progress line of a scan: job time of the budget [s], captures, cloud size, cloud coverage
+    (eq. 13)."""
     coverage = "-" if p.coverage_pct is None else f"{p.coverage_pct:.1f} %"
     return (f"{p.t_s:.1f} of {budget_s:g} s, {p.n_captures} captures, {p.n_cloud_points} points, "
-            f"coverage {coverage}")
+            f"cloud coverage {coverage}")
 
 
 @contextmanager
@@ -57,7 +58,7 @@ def scan_progress(budget_s: float) -> Iterator[Callable[[JobProgress], None]]:
         return
     with _bar(TextColumn("[bold]scan"), BarColumn(),
               TextColumn("{task.fields[sim]:6.1f} s  {task.fields[captures]:3d} captures  "
-                         "coverage {task.fields[coverage]:5.1f} %")) as bar:
+                         "cloud coverage {task.fields[coverage]:5.1f} %")) as bar:
         task = bar.add_task("scan", total=budget_s, sim=0.0, captures=0, coverage=0.0)
 
         def show(p: JobProgress) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 from rich.console import Console
 
 from cell.cli.errors import fail
+from cell.cli.jobs import coverage_line
 from cell.cli.progress import stage_progress
 from cell.jobs.rebuild import rebuild_result
 from cell.perception.reprocess import reprocess_job
@@ -32,7 +33,6 @@ def reprocess(job_dir: Path) -> None:
     cov = out["metrics"]["coverage_pct"] if out.get("metrics") else None
     console.print(f"{out['n_frames']} frames, {out['n_cloud_points']} points at {out['voxel_m'] * 1e3:g} mm",
                   highlight=False)
-    console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
-                  highlight=False)
+    console.print(coverage_line(cov), highlight=False)
     console.print(f"wrote {job_dir / 'cloud_hires.ply'} and {job_dir / 'result_hires.json'}", markup=False,
                   highlight=False)

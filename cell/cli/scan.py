@@ -11,7 +11,7 @@ from rich.console import Console
 
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
-from cell.cli.jobs import EXIT_NOT_COMPLETED, packing_lines
+from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines
 from cell.cli.progress import scan_progress
 from cell.config import load_config
 from cell.config.placeholders import require_measured
@@ -113,8 +113,7 @@ def scan(
     scan = f" (scan {r['scan_time_s']:.1f} s from the first frame)" if r["scan_time_s"] is not None else ""
     console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim{scan}, path "
                   f"{r['path_length_m']:.2f} m", highlight=False)
-    console.print("coverage: " + (f"{cov:.1f} %" if cov is not None else "- (no ground truth)"),
-                  highlight=False)
+    console.print(coverage_line(cov), highlight=False)
     packing = r.get("packing") or {}
     if packing.get("dims_m"):  # an object was measured: its box, upper bound and container
         for label, value in packing_lines(packing):

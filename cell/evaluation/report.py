@@ -5,7 +5,8 @@ Scans group by object and placement (the placement shown only where an object ha
 group, by planner. A group's figures are the mean and standard error of the mean over its scans that
 have the figure (failed scans have none), ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
 brackets where it has one. Mann-Whitney U (two-sided) compares every two planners of a group on each
-figure both have (and on each box dimension); ``-`` where it cannot say anything (all values tie).
+figure both have (and on each box dimension); ``-`` where it cannot say anything (a single seed, or all
+values tie).
 
 Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
 against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
@@ -36,7 +37,7 @@ FIG3 = "fig3.png"
 RECONSTRUCTION = (("coverage_pct", "coverage %", 1), ("chamfer_mm", "Chamfer mm", 1),
                   ("hausdorff_mm", "Hausdorff mm", 1), ("scan_time_s", "scan time s", 1),
                   ("path_m", "path m", 2), ("coverage_unregistered_pct", "unregistered coverage %", 1))
-PACKING = (("iou", "IoU", 3), ("packing_coverage_pct", "coverage %", 1), ("n_poses", "poses", 1),
+PACKING = (("iou", "IoU", 3), ("packing_coverage_pct", "surface reconstructed %", 1), ("n_poses", "poses", 1),
            ("n_useless_poses", "useless poses", 1))
 DIMS = ("L m", "W m", "H m")
 Limits = dict[tuple[str, str], float]
@@ -97,8 +98,9 @@ def mean_se(values: Sequence[float], digits: int, paper_figure: float | None = N
 
 
 def mann_whitney(a: Sequence[float], b: Sequence[float]) -> tuple[float, float] | None:
-    """(U of ``a``, two-sided p) of two samples; None when either is empty or every value ties."""
-    if not a or not b or len(set(a) | set(b)) == 1:
+    """(U of ``a``, two-sided p) of two samples; None when either has fewer than two values (one against
+    one gives p = 1 whichever is larger) or every value ties."""
+    if len(a) < 2 or len(b) < 2 or len(set(a) | set(b)) == 1:
         return None
     result = mannwhitneyu(a, b, alternative="two-sided")
     return float(result.statistic), float(result.pvalue)
@@ -177,7 +179,7 @@ def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> 
                 axes[1, i].axhline(table_i, color=colour, linestyle="--", linewidth=0.8)
         axes[0, i].set_title(g.label)
         axes[0, i].set_ylabel("Chamfer [mm]")
-        axes[1, i].set_ylabel("coverage [%]")
+        axes[1, i].set_ylabel("cloud coverage (eq. 13) [%]")
         axes[1, i].set_xlabel("scan time [s]")
         axes[0, i].legend(fontsize="small")
     fig.tight_layout()

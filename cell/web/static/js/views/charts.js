@@ -8,7 +8,7 @@ const CURVES = [
   { key: "n_captures", title: "captures", color: "#1f6fb2", yMin: 0 },
   { key: "path_length_m", title: "path length [m]", color: "#5f3dc4", yMin: 0 },
   { key: "h_roi", title: "H_ROI [nats]", color: "#d9480f", yMin: 0 },
-  { key: "coverage_pct", title: "coverage [%]", color: "#2b8a3e", yMin: 0, yMax: 100 },
+  { key: "coverage_pct", title: "cloud coverage [%]", color: "#2b8a3e", yMin: 0, yMax: 100 },
 ];
 
 /** The curves' section: `element`, `add(progress)` for each progress event, `count` of those added. */

@@ -58,7 +58,7 @@ export function showJobs(main, context, params) {
   main.append(h("section", { class: "card", "aria-labelledby": "jobs-title" },
     h("h2", { id: "jobs-title" }, "Jobs"), form,
     h("div", { class: "table-wrap" }, h("table", { class: "jobs" },
-      h("thead", {}, h("tr", {}, ["Created", "Job", "Status", "Planner", "Object", "Part id", "Captures", "Coverage",
+      h("thead", {}, h("tr", {}, ["Created", "Job", "Status", "Planner", "Object", "Part id", "Captures", "Cloud coverage",
         "Dimensions", "Termination"].map((title) => h("th", { scope: "col", class: `col-${title.toLowerCase().replace(" ", "-")}` }, title)))),
       body)),
     pager));

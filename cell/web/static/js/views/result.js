@@ -25,11 +25,16 @@ function figures(result) {
     ["Path length", fmt(result.path_length_m, 3, "m"), "path_length"],
     ["Captures", result.n_captures ?? "–", "captures"],
     ["Cloud points", result.n_cloud_points ?? "–", "cloud_points"],
-    ["Coverage", fmt(m.coverage_pct, 2, "%"), "coverage"],
+    ["Cloud coverage (eq. 13)", fmt(m.coverage_pct, 2, "%"), "coverage"],
     ["Chamfer distance", fmt(m.chamfer_mm, 2, "mm"), "chamfer"],
     ["Hausdorff distance", fmt(m.hausdorff_mm, 2, "mm"), "hausdorff"],
     ["H_ROI at the end", fmt(result.perception?.h_roi, 4, "nats"), "h_roi"],
   ]);
+}
+
+/** The box's upper bound, on which the container is chosen; a face no view saw end is unbounded. */
+function upperBound(p) {
+  return p.dims_upper_m.map((v) => (v === null ? "unbounded" : v.toFixed(3))).join(" × ");
 }
 
 function packing(p) {
@@ -38,10 +43,11 @@ function packing(p) {
   const inner = c.inner_dims_m ? ` (inside ${c.inner_dims_m.map((v) => v.toFixed(3)).join(" × ")} m${c.rotated ? ", turned" : ""})` : "";
   return h("div", {}, h("h3", {}, "Packing"), table("packing", [
     ["Dimensions (l × w × h)", `${dimensions(p)} m`, "dims"],
+    ["Upper bound (l × w × h)", p.dims_upper_m ? `${upperBound(p)} m` : undefined, "upper"],
     ["Container", c.name ? `${c.name}${inner}` : "none fits", "container"],
     ["Why", c.reason ?? "–"],
     ["IoU with the true box", fmt(p.iou, 3)],
-    ["Object surface seen", fmt(p.coverage_pct, 1, "%")],
+    ["Surface reconstructed (voxels)", fmt(p.coverage_pct, 1, "%")],
   ]));
 }
 
