@@ -3,7 +3,8 @@ against a real ``cell serve`` (the sim Franka + RGB-D cell) reached through a TC
 the test can cut (``tests.tcp_proxy``).
 
 One service and one browser serve the whole module. A wrong key is refused; a viewer's key is offered
-no scan; the packing line's PackML state shows when the status has one; an operator starts a raster scan
+no scan; the packing line's PackML state shows when the status has one, and an operator switches its unit
+mode (a cell of its own); an operator starts a raster scan
 from the form (a pose off the table is refused next to the field first), watches progress arrive, sees it
 complete with its coverage and dimensions, downloads a file and finds it in the jobs table; uploads a
 mesh; a vs-local scan is watched live through a cut of every connection (the event stream resumes and no
@@ -205,6 +206,30 @@ def test_the_status_bar_shows_the_lines_packml_state_when_there_is_one(
     log_in(page, cell.keys["viewer"])
     wait_for(page, "document.getElementById('st-line').textContent === 'Execute (6)'")
     assert page.is_visible("#st-line-item") and page.text_content("#st-line-mode") == "Production"
+
+
+def test_an_operator_switches_the_line_to_manual_mode_from_the_status_bar(open_page: Callable[..., Page],
+                                                                          tmp_path: Path) -> None:
+    """In Production the line owns the cell and an operator's scan is refused until Manual: the switch
+    is on the page for keys that may change the unit mode (an operator's, not a viewer's)."""
+    data = yaml.safe_load(FRANKA.read_text())
+    data["line"] = {"initial_mode": "production"}
+    config = tmp_path / "line.yaml"
+    config.write_text(yaml.safe_dump(data))
+    with ServedCell(config, tmp_path / "data", key_prefix="line") as lined:
+        viewer = open_page("viewer", other=lined)
+        wait_for(viewer, "document.getElementById('st-line-mode').textContent === 'Production'")
+        assert viewer.is_hidden("#line-mode")
+        page = open_page("operator", other=lined)
+        page.wait_for_selector("#line-mode:not([hidden])")
+        assert page.text_content("#line-mode") == "Switch to Manual"
+        shot(page, "line-production")
+        page.click("#line-mode")
+        wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('Line:')")
+        assert page.text_content("#stop-outcome") == "Line: Manual mode"
+        wait_for(page, "document.getElementById('st-line-mode').textContent === 'Manual'")
+        assert page.text_content("#line-mode") == "Switch to Production"
+        assert read(lined, "/api/v1/line")["mode_name"] == "Manual"
 
 
 # ---------------------------------------------------------------------------------------------- scans

@@ -47,7 +47,7 @@ async def get_line(cell: Service, _: Reader) -> dict[str, Any]:
 
 @router.post("/command", response_model=LineCommandOut)
 async def post_command(cell: Service, body: LineCommandIn, key: Liner) -> dict[str, Any]:
-    """A PackML command (``part_id`` first sets the part the next Start scans)."""
+    """A PackML command; ``part_id``, when the command is accepted, sets the part the next Start scans."""
     line = _line(cell)
     command = _member(Command, body.command, "command")
     message = await line.command(command, f"REST (key {key.name})", part_id=body.part_id)

@@ -1,6 +1,7 @@
 // The status bar, always on top once logged in: the cell (name, mode), the arm, the sensor, the packing
 // line's PackML state when the line is wired, the running job, the queue; STOP (every key, Escape),
-// Recover after an arm fault and Resume after a STOP (keys that may recover).
+// Recover after an arm fault and Resume after a STOP (keys that may recover); the line's unit mode switch
+// (keys that may switch it): in Production the line owns the cell and the operator's jobs wait for Manual.
 
 import { api, describe } from "../api.js";
 import { h, replace } from "../dom.js";
@@ -13,12 +14,19 @@ const ARM_TONE = {
 
 const $ = (id) => document.getElementById(id);
 
-function line(status) {
+// The unit mode the switch offers from each mode the line is in (cell.line.packml.OFFERED_MODES).
+const OTHER_MODE = { Production: "Manual", Manual: "Production" };
+
+function line(status, context) {
   const wired = status.line;
   $("st-line-item").hidden = !wired;
   if (wired) {
     $("st-line").textContent = `${wired.state_name ?? "?"} (${wired.state ?? "?"})`;
     $("st-line-mode").textContent = wired.mode_name ?? wired.mode ?? "";
+    const other = OTHER_MODE[wired.mode_name];
+    $("line-mode").hidden = !(other && context.can("mode"));
+    $("line-mode").textContent = other ? `Switch to ${other}` : "";
+    $("line-mode").dataset.mode = other ? other.toLowerCase() : "";
   }
 }
 
@@ -31,7 +39,7 @@ function render(status, context) {
   $("st-arm").dataset.tone = ARM_TONE[arm.state] ?? "busy";
   $("st-sensor").textContent = `${status.sensor.type}, ${status.sensor.connected ? "ready" : "not connected"}`;
   $("st-sensor").dataset.tone = status.sensor.connected ? "ok" : "idle";
-  line(status);
+  line(status, context);
   const job = status.job;
   replace($("st-job"), job
     ? h("a", { href: `#/jobs/${job.id}` }, `${job.id} (${job.planner}${job.part_id ? `, part ${job.part_id}` : ""})`)
@@ -98,6 +106,8 @@ export function startStatus(context) {
   const recover = () => act($("recover"), "/api/v1/arm/recover", undefined,
     (answer) => `Recover: ${answer.message}`);
   const resume = () => act($("resume"), "/api/v1/queue/resume", undefined, () => "The queue runs again.");
+  const switchMode = () => act($("line-mode"), "/api/v1/line/mode", { mode: $("line-mode").dataset.mode },
+    (answer) => `Line: ${answer.message}`);
   const logout = () => context.logout("");
   const onKey = (event) => {
     if (event.key === "Escape" && !event.repeat) {
@@ -110,6 +120,7 @@ export function startStatus(context) {
   $("stop").addEventListener("click", stop, { signal });
   $("recover").addEventListener("click", recover, { signal });
   $("resume").addEventListener("click", resume, { signal });
+  $("line-mode").addEventListener("click", switchMode, { signal });
   $("logout").addEventListener("click", logout, { signal });
   document.addEventListener("keydown", onKey, { signal });
   window.addEventListener("cell:changed", poll, { signal });
