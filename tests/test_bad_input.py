@@ -8,6 +8,8 @@ import itertools
 import json
 import subprocess
 import sys
+import threading
+import time
 from importlib.metadata import entry_points
 
 import numpy as np
@@ -20,6 +22,7 @@ from cell.config import load_config
 from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.replay import replay_config
 from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
+from cell.jobs.stop_file import request_stop
 from drivers.errors import JobError
 from drivers.sim.objects import ObjectMesh, load_object, write_mesh
 
@@ -208,3 +211,20 @@ def test_ctrl_c_while_importing_exits_quietly_with_130(module):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 130
     assert proc.stdout == "" and proc.stderr == ""
+
+
+def test_a_scan_stopped_by_the_operator_says_stopped_not_error(tmp_path):
+    out = tmp_path / "job"
+
+    def stop_once_running() -> None:
+        while not (out / "log.txt").exists():
+            time.sleep(0.01)
+        request_stop(out, "lunch")
+
+    stopper = threading.Thread(target=stop_once_running, daemon=True)
+    stopper.start()
+    res = _scan("--planner", "raster", "--out", str(out))
+    stopper.join(timeout=60)
+    assert res.exit_code == 1
+    assert res.stderr.splitlines() == ["stopped: operator stop: lunch (cell stop)", f"job folder: {out}"]
+    assert json.loads((out / "result.json").read_text())["status"] == "stopped"

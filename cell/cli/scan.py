@@ -52,10 +52,13 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
 
 
 def _stopped(job: PreparedScan, exc: Exception) -> typer.Exit:
-    """A scan that stopped or failed after its folder was made: the reason, then where the folder is (its
-    log.txt holds the traceback of an internal error)."""
-    reason = exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}"
-    print_error(reason)
+    """A scan that stopped or failed after its folder was made: ``stopped: <reason>`` for a stop (an
+    operator's, a safety check's), else the error; then where the folder is (its log.txt holds the
+    traceback of an internal error)."""
+    if isinstance(exc, SafetyStop):
+        err_console.print(f"stopped: {exc.reason}", markup=False, highlight=False, soft_wrap=True)
+    else:
+        print_error(exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}")
     err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
     interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED
     return typer.Exit(code=EXIT_INTERRUPTED if interrupted else 1)
