@@ -55,11 +55,11 @@ function safety(s) {
   if (!s) return null;
   const clamps = Object.entries(s.clamps ?? {});
   const events = [
-    ...(s.stops ?? []).map((e) => `stop at ${fmt(e.t, 2, "s")}: ${e.reason}`),
+    ...(s.stops ?? []).map((e) => `motion stopped by the guard at ${fmt(e.t, 2, "s")}: ${e.reason}`),
     ...(s.refusals ?? []).map((e) => `motion refused at ${fmt(e.t, 2, "s")}: ${e.reason}`),
   ];
   return h("div", { id: "safety" }, h("h3", {}, "Safety"),
-    h("p", {}, clamps.length ? `Limits applied: ${clamps.map(([k, n]) => `${k} ×${n}`).join(", ")}.` : "No limit was applied."),
+    h("p", {}, clamps.length ? `Limits applied: ${clamps.map(([k, n]) => `${k.replaceAll("_", " ")} ×${n}`).join(", ")}.` : "No limit was applied."),
     events.length ? h("ul", {}, events.map((e) => h("li", {}, e))) : h("p", {}, "No stop and no refused motion."));
 }
 
