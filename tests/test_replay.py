@@ -149,6 +149,14 @@ def _replay(job_dir, out, *args):
     return json.loads((out / "result.json").read_text()), res.output
 
 
+def test_a_replay_without_out_gets_a_folder_that_says_replay(tof_job, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["scan", "--replay", str(tof_job)])
+    assert res.exit_code == 0, res.output
+    (folder,) = (tmp_path / "jobs").iterdir()
+    assert folder.name.endswith("-raster-s1-replay") and (folder / "result.json").exists()
+
+
 def _requests(job_dir):
     with (job_dir / "planner_requests.csv").open() as f:
         return list(csv.DictReader(f))

@@ -139,9 +139,10 @@ def job_generators(seed: int) -> JobGenerators:
     return JobGenerators(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)))
 
 
-def default_job_folder(object_name: str, planner: str, seed: int) -> Path:
+def default_job_folder(object_name: str, planner: str, seed: int, replay: bool = False) -> Path:
+    """``jobs/<stamp>-<object>-<planner>-s<seed>``, ending ``-replay`` for a replay of a recorded job."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return Path("jobs") / f"{stamp}-{Path(object_name).stem}-{planner}-s{seed}"
+    return Path("jobs") / f"{stamp}-{Path(object_name).stem}-{planner}-s{seed}{'-replay' if replay else ''}"
 
 
 def _finite_or_none(values: dict[str, float]) -> dict[str, float | None]:
@@ -227,7 +228,8 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
     planner = get_planner(planner_name)(cfg)
     replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
     object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
-    folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed)
+    folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed,
+                                                                    replay=replay_dir is not None)
     check_job_folder(folder)
     return PreparedScan(req, planner_name, planner, replay_dir, object_name, mesh, T_base_object, max_time,
                         folder)
