@@ -22,6 +22,7 @@ from cell.line.opcua_endpoint import check_endpoint
 from cell.service.logs import configure_logging
 from cell.service.notify import Notifier
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
+from cell.templates import DEFAULT_TEMPLATE
 from drivers.errors import CellError
 from drivers.hosts import is_loopback
 
@@ -31,7 +32,8 @@ SHUTDOWN_GRACE_S = 2
 
 
 def serve(
-    config: Annotated[Path, typer.Option(help="cell file")] = DEFAULT_CONFIG,
+    config: Annotated[Path, typer.Option(help=f"cell file (default: the shipped {DEFAULT_TEMPLATE} cell)",
+                                         show_default=False)] = DEFAULT_CONFIG,
     host: Annotated[str, typer.Option(help="interface to bind (another than loopback needs an API key)")]
     = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535)] = 8080,
