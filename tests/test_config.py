@@ -161,6 +161,14 @@ def test_cli_config_check(tmp_path, franka_cfg_data):
     runner = CliRunner()
     ok = runner.invoke(app, ["config", "check", str(CONFIG_DIR / "sim-franka-rgbd.yaml")])
     assert ok.exit_code == 0 and "ready: nothing left to measure" in ok.output
+    assert "line:" not in ok.output
+    lined = copy.deepcopy(franka_cfg_data)
+    lined["line"] = {"initial_mode": "manual", "opcua": {"endpoint": "opc.tcp://127.0.0.1:4840/cell"}}
+    (tmp_path / "line.yaml").write_text(yaml.safe_dump(lined))
+    line = runner.invoke(app, ["config", "check", str(tmp_path / "line.yaml")])
+    assert line.exit_code == 0
+    assert ("line: starts in manual mode; driven over REST, OPC UA at opc.tcp://127.0.0.1:4840/cell "
+            "(security sign-and-encrypt)") in line.output
     data = copy.deepcopy(franka_cfg_data)
     data["arm"]["model"] = "kuka"
     bad = tmp_path / "kuka.yaml"

@@ -10,6 +10,7 @@ from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.config import load_config
 from cell.config.placeholders import find_placeholders
+from cell.line.config import LineConfig
 from drivers.errors import CellError, ConfigError
 
 config_app = command_group(help="Cell configuration files.", no_args_is_help=True)
@@ -28,6 +29,8 @@ def config_check(file: Path) -> None:
         raise fail(exc) from None
     console.print(f"{file}: valid ({cfg.name}: mode {cfg.mode}, arm {cfg.arm.type}/{cfg.arm.model}, "
                   f"sensor {cfg.sensor.type}, planner {cfg.scan.planner})", markup=False, highlight=False)
+    if cfg.line is not None:
+        console.print(_line_summary(cfg.line), markup=False, highlight=False)
     left = find_placeholders(file.read_text())
     if not left:
         console.print("ready: nothing left to measure", markup=False, highlight=False)
@@ -36,3 +39,13 @@ def config_check(file: Path) -> None:
         console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
     raise fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
                             "it and delete the mark)", file=str(file)))
+
+
+def _line_summary(line: LineConfig) -> str:
+    """One line: the packing line's unit mode at start and the ways a line controller drives it."""
+    ways = ["REST"]
+    if line.opcua is not None:
+        ways.append(f"OPC UA at {line.opcua.endpoint} (security {line.opcua.security})")
+    if line.dio is not None:
+        ways.append("the arm's digital I/O")
+    return f"line: starts in {line.initial_mode} mode; driven over {', '.join(ways)}"
