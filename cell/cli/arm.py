@@ -32,7 +32,7 @@ from drivers.factory import make_arm
 from drivers.robots import get_robot_model
 
 arm_app = command_group(help="Commission a cell's arm: status, recovery, small guarded jog moves.",
-                      no_args_is_help=True)
+                        no_args_is_help=True)
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 

@@ -29,7 +29,7 @@ from drivers.depth.zone_correction import write_zone_correction
 from drivers.errors import CellError
 
 calibrate_app = command_group(help="Calibrate the cell with the cell: the sensor mount, the table, the ToF "
-                                 "zones.", no_args_is_help=True)
+                                   "zones.", no_args_is_help=True)
 console = Console(soft_wrap=True)
 
 ConfigOption = Annotated[Path, typer.Option(help="the cell file")]

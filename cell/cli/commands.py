@@ -51,7 +51,7 @@ def command_group(help: str, **options: Any) -> typer.Typer:
 
 def _app() -> typer.Typer:
     app = command_group("Autonomous active-vision scanning cell.", no_args_is_help=True,
-                      pretty_exceptions_enable=False)
+                        pretty_exceptions_enable=False)
 
     @app.callback()
     def cell() -> None:

@@ -28,7 +28,7 @@ from drivers.errors import CellError
 from drivers.sim.objects import load_object
 
 eval_app = command_group(help="Grids of scans (the papers' experiments, or any) with a report.",
-                       no_args_is_help=True)
+                         no_args_is_help=True)
 console = Console(soft_wrap=True)
 
 Config = Annotated[Path | None, typer.Option(help="cell file (default: the preset's shipped sim cell)")]

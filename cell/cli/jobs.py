@@ -38,7 +38,7 @@ TERMINATION_WIDTH = 48
 EXIT_NOT_COMPLETED = 2
 
 jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, wait (for scripts).",
-                       no_args_is_help=True)
+                         no_args_is_help=True)
 console = Console(soft_wrap=True)
 
 ServerOption = Annotated[str, typer.Option(

@@ -40,7 +40,7 @@ from drivers.factory import make_sensor
 from drivers.robots import get_robot_model
 
 sensor_app = command_group(help="Depth sensors: commissioning check, VL53L8CX bridge emulator, job replay.",
-                         no_args_is_help=True)
+                           no_args_is_help=True)
 console = Console(soft_wrap=True, highlight=False)
 err_console = Console(stderr=True, highlight=False)
 
