@@ -79,7 +79,8 @@ def test_job_folder_is_complete(bunny_job):
     assert roi is not None and result["perception"]["h_roi"] is not None
     np.testing.assert_allclose(np.subtract(roi["aabb_max_m"], roi["aabb_min_m"]), [0.156, 0.121, 0.154],
                                atol=0.015)
-    assert f"job folder: {out}" in output and "coverage:" in output
+    assert f"job folder: {out}" in output
+    assert f"cloud coverage (eq. 13): {result['metrics']['coverage_pct']:.1f} %" in output
 
 
 def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path):
