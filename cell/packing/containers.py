@@ -53,4 +53,6 @@ def choose_container(dims: Array, containers: list[ContainerConfig], margin_m: f
                                             f"(object plus {margin_m:g} m clearance)")
     chosen = containers[best[1]]
     turn = ", turned by 90 deg" if best[2] else ""
-    return ContainerChoice(chosen, best[2], f"smallest container holding {need_text} m{turn}")
+    dims_text = " x ".join(f"{v:.3f}" for v in dims)
+    return ContainerChoice(chosen, best[2], f"smallest container holding {need_text} m ({dims_text} m plus "
+                                            f"{margin_m:g} m clearance){turn}")
