@@ -80,6 +80,8 @@ def test_job_folder_is_complete(bunny_job):
     np.testing.assert_allclose(np.subtract(roi["aabb_max_m"], roi["aabb_min_m"]), [0.156, 0.121, 0.154],
                                atol=0.015)
     assert f"job folder: {out}" in output
+    # the sensor's path for every planner; the servo telemetry only for a servo planner's job
+    assert (out / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not (out / "servo.png").exists()
     assert f"cloud coverage (eq. 13): {result['metrics']['coverage_pct']:.1f} %" in output
 
 

@@ -296,6 +296,7 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     assert page.text_content("#fig-container").startswith(result["packing"]["container"]["name"])
     assert dims in page.text_content("#packing-note")
     wait_for(page, "document.getElementById('job-log').textContent.includes('raster complete')")
+    page.wait_for_selector("#img-path-png")  # the sensor's path, a raster scan's too
     assert cloud_pixels(page) > 500, "the 3D view shows no cloud"
     shot(page, "job-completed", full_page=True)
 

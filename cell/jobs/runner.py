@@ -20,8 +20,9 @@ the arm reports it is; ``mode: real`` runs a hardware arm and a hardware sensor 
 no ground truth (metrics are None). On the wall clock perception runs asynchronously from control
 (``cell.jobs.live``). ``mode: replay`` re-runs a recorded job (``cell.jobs.replay``).
 
-A servo planner's job also leaves its telemetry (``servo.csv``, ``servo.png``, ``path.png``; see
-``cell.planning.vs.telemetry``), with the coverage over time in sim.
+Every job with a session leaves the sensor's path (``path.png``, ``cell.planning.path_plot``; the views
+captured from marked where the planner keeps its captures); a servo planner's job also its telemetry
+(``servo.csv``, ``servo.png``; see ``cell.planning.vs.telemetry``), with the coverage over time in sim.
 """
 
 from __future__ import annotations
@@ -49,10 +50,11 @@ from cell.jobs.recorder import JobRecorder
 from cell.jobs.replay import ReplaySession
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.jobs.stop_file import STOP_FILE
-from cell.packing.result import packing_section
+from cell.packing.result import RecordsReconstruction, packing_section
 from cell.perception.metrics import METRICS_KEYS, CoverageTracker, ground_truth_points, measure
 from cell.perception.pipeline import PerceptionPipeline
-from cell.planning.base import Planner
+from cell.planning.base import Array, Planner
+from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.registry import get_planner
 from cell.planning.vs.servo_scan import ServoScanPlanner
 from cell.planning.vs.telemetry import write_servo_outputs
@@ -466,4 +468,17 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
         write_servo_outputs(job.folder, planner.telemetry.records(), np.array(session.sensor_path.records()),
                             planner.centroid, session.coverage_history)
+    elif session is not None and session.sensor_path:
+        captures = ([s.T_base_sensor[:3, 3] for s in planner.reconstruction.sightings]
+                    if isinstance(planner, RecordsReconstruction) else None)
+        plot_path(job.folder / PATH_NAME, np.array(session.sensor_path.records()),
+                  _box_centre(result["packing"]), None if captures is None else np.array(captures))
     return result
+
+
+def _box_centre(packing: dict[str, Any]) -> Array | None:
+    """The centre [m, base frame] of a result's packing box, None without one."""
+    box, dims = packing.get("box"), packing.get("dims_m")
+    if box is None or dims is None:
+        return None
+    return np.array([*box["center_xy_m"], box["z_min_m"] + dims[2] / 2.0])

@@ -14,11 +14,11 @@ import numpy as np
 from matplotlib.figure import Figure  # not pyplot: files only, no display or global figure state
 
 from cell.planning.base import Array
+from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.vs.servo_scan import TelemetryRow
 
 CSV_NAME = "servo.csv"
 FIG4_NAME = "servo.png"
-PATH_NAME = "path.png"
 
 
 def coverage_at(t: Array, coverage: Sequence[tuple[float, float]]) -> Array:
@@ -67,25 +67,6 @@ def plot_fig4(path: Path, rows: Sequence[TelemetryRow], coverage: Sequence[tuple
         twin = axes[1, 1].twinx()
         twin.plot(t, coverage_at(t, coverage), lw=1.0, color="tab:green")
         twin.set_ylabel("coverage [%]", color="tab:green")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-
-
-def plot_path(path: Path, positions_base: Array, centroid_base: Array | None) -> None:
-    """The sensor positions (N, 3) [m] in the base frame, in 3D, with the object centroid."""
-    fig = Figure(figsize=(6, 6))
-    ax = fig.add_subplot(projection="3d")
-    p = np.asarray(positions_base, dtype=float).reshape(-1, 3)
-    ax.plot(p[:, 0], p[:, 1], p[:, 2], lw=1.0)
-    if p.shape[0]:
-        ax.scatter(*p[0], marker="o", label="start")
-        ax.scatter(*p[-1], marker="x", label="end")
-    if centroid_base is not None:
-        ax.scatter(*np.asarray(centroid_base, dtype=float), marker="*", s=80, label="object centroid")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
-    ax.legend(loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 

@@ -1,0 +1,38 @@
+"""The sensor's path around the object as a job folder's ``path.png`` (the visual-servoing paper's Fig. 3,
+left), for every planner: a servo planner's continuous path, or a view planner's moves between the views
+it captured from, those marked."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure  # not pyplot: files only, no display or global figure state
+
+from cell.planning.base import Array
+
+PATH_NAME = "path.png"
+
+
+def plot_path(path: Path, positions_base: Array, centroid_base: Array | None,
+              captures_base: Array | None = None) -> None:
+    """The sensor positions (N, 3) [m] in the base frame, in 3D, with the object centroid (3,) [m] and the
+    positions (K, 3) [m] captures were taken from, each when given."""
+    fig = Figure(figsize=(6, 6))
+    ax = fig.add_subplot(projection="3d")
+    p = np.asarray(positions_base, dtype=float).reshape(-1, 3)
+    ax.plot(p[:, 0], p[:, 1], p[:, 2], lw=1.0)
+    if captures_base is not None and len(captures_base):
+        c = np.asarray(captures_base, dtype=float).reshape(-1, 3)
+        ax.scatter(c[:, 0], c[:, 1], c[:, 2], marker=".", s=30, color="tab:blue", label=f"{len(c)} captures")
+    if p.shape[0]:
+        ax.scatter(*p[0], marker="o", color="black", label="start")
+        ax.scatter(*p[-1], marker="x", label="end")
+    if centroid_base is not None:
+        ax.scatter(*np.asarray(centroid_base, dtype=float), marker="*", s=80, label="object centroid")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
