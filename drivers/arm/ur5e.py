@@ -514,7 +514,8 @@ class UR5eArm(HardwareArm):
         if snap["protective_stopped"] or self._dashboard_says_protective_stop():
             self._dashboard("closeSafetyPopup")
             self._unlock_protective_stop()
-            self._wait(lambda: not self._dashboard_says_protective_stop(), "unlocking the protective stop")
+            self._wait(lambda: not self._dashboard_says_protective_stop()
+                       and not self._snapshot()["protective_stopped"], "unlocking the protective stop")
         if snap["robot_mode"] != ROBOT_MODE_RUNNING:
             self._dashboard("powerOn")
             self._dashboard("brakeRelease")
@@ -559,7 +560,7 @@ class UR5eArm(HardwareArm):
         waited out its timeout for a script the controller would not run. The release after an unlock is
         awaited here too: the dashboard answers the unlock when the release begins, and a receive stream
         that lags would let the script's re-upload reach a controller still stopped, which does not run
-        it."""
+        it (recover then waits for the receive stream as well, so that the state read after it agrees)."""
         return f"Safetystatus: {SAFETY_MODES[SAFETY_PROTECTIVE_STOP]}" in str(self._dashboard("safetystatus"))
 
     def _reconnect(self) -> None:
