@@ -429,7 +429,8 @@ def _identity(job: PreparedScan) -> dict[str, Any]:
 def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_start: float, status: str,
                    termination: str, session: JobSession | None, guard: MotionGuard | None,
                    ground_truth: np.ndarray | None) -> dict[str, Any]:
-    """Write the cloud, the map, result.json and the planner's telemetry; returns the result."""
+    """Write the cloud, the map, the planner's telemetry or path, and result.json last; returns the
+    result."""
     cloud = session.cloud.points if session is not None else np.zeros((0, 3))
     recorder.cloud(cloud)
     if session is not None:
@@ -463,7 +464,16 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     if isinstance(session, ReplaySession):
         result["replay"] = {"job_dir": str(job.replay_dir), "n_planner_requests": session.n_planner_requests,
                             "n_recorded_answers": session.n_recorded_answers}
+    _write_plots(job, session, result["packing"])
+    # last: a client that finds result.json finds every other file of the job beside it, and the line
+    # reports the end right after it
     recorder.result(result)
+    return result
+
+
+def _write_plots(job: PreparedScan, session: JobSession | None, packing: dict[str, Any]) -> None:
+    """A servo planner's telemetry, else the sensor's path with the views captured from (when the planner
+    keeps its captures) around the packing box's centre."""
     planner = job.planner
     if isinstance(planner, ServoScanPlanner) and session is not None and planner.telemetry:
         write_servo_outputs(job.folder, planner.telemetry.records(), np.array(session.sensor_path.records()),
@@ -471,9 +481,8 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     elif session is not None and session.sensor_path:
         captures = ([s.T_base_sensor[:3, 3] for s in planner.reconstruction.sightings]
                     if isinstance(planner, RecordsReconstruction) else None)
-        plot_path(job.folder / PATH_NAME, np.array(session.sensor_path.records()),
-                  _box_centre(result["packing"]), None if captures is None else np.array(captures))
-    return result
+        plot_path(job.folder / PATH_NAME, np.array(session.sensor_path.records()), _box_centre(packing),
+                  None if captures is None else np.array(captures))
 
 
 def _box_centre(packing: dict[str, Any]) -> Array | None:

@@ -3,7 +3,8 @@
 The control loop runs here, in a process of its own, so that no web client, however many or slow, holds
 the interpreter lock it needs at every tick. The protocol is ``cell.service.protocol``. Three threads:
 
-- the main thread runs the job (``cell.jobs.runner.run_scan``); its progress callback only queues a line;
+- the main thread runs the job (``cell.jobs.runner.run_prepared``); its progress callback only queues a
+  line;
 - the reader takes commands from the service; a stop commands the arm to stop from this thread at once
   (``JobControl``), before it answers; the end of its input (the service is gone) stops the job too;
 - the writer sends the queued lines; when the service stops reading, progress lines are dropped (the
@@ -102,7 +103,7 @@ def _run_scan(spec: WorkerSpec, outbox: Outbox, control: JobControl) -> int:
     # imported once the protocol's output is set aside: the perception libraries may print as they load
     from cell.config.load import parse_config
     from cell.jobs.progress import JobProgress
-    from cell.jobs.runner import ScanRequest, run_scan
+    from cell.jobs.runner import ScanRequest, prepare_scan, run_prepared
     from drivers.errors import CellError
 
     def report(progress: JobProgress) -> None:
@@ -115,7 +116,9 @@ def _run_scan(spec: WorkerSpec, outbox: Outbox, control: JobControl) -> int:
         request = ScanRequest(config=parse_config(spec.config, file=spec.config_file),
                               config_path=spec.config_file, object=spec.object, object_pose=spec.object_pose,
                               planner=spec.planner, seed=spec.seed, out=folder, max_time_s=spec.max_time_s)
-        outcome = run_scan(request, on_progress=report, control=control)
+        # not run_scan: its heap trim (tens of ms) would delay the end the line waits for, in a process
+        # that exits with its job
+        outcome = run_prepared(prepare_scan(request), on_progress=report, control=control)
         result = outcome.result
     except CellError as exc:
         termination = f"{type(exc).__name__}: {exc}"
