@@ -53,6 +53,7 @@ CONFIG = REPO / "config" / "sim-franka-rgbd.yaml"
 OBJECT, PLANNER, SEED = "bunny", "vs-local", 0
 GOAL_RATIO = 1.10  # service within 10 % of the CLI
 JOB_TIMEOUT_S = 600.0  # a bound on waiting for one job, not a timed check
+REAP_TIMEOUT_S = 10.0  # a bound on waiting for the service to reap an ended job's worker
 SAME = ("n_captures", "sim_time_s", "metrics")
 
 
@@ -85,8 +86,9 @@ def run_cli(out: Path, max_time_s: float) -> tuple[float, dict[str, Any], dict[s
 def run_service(served: ServedCell, max_time_s: float) -> tuple[float, str, dict[str, Any], dict[str, float]]:
     """One job through the service: (seconds from the POST to its end on the event stream, its status,
     its result.json, the CPU time [s] of its worker and of the service meanwhile). The service publishes
-    the job's end once its worker has exited and been waited for, so the worker's CPU time is then in
-    the service's children's."""
+    the job's end on its worker's last message, while the worker is still exiting; its CPU time joins
+    the service's children's once the service has waited for it, which this waits for (at most
+    ``REAP_TIMEOUT_S``)."""
     assert served.proc is not None
     with served.client("operator", timeout_s=JOB_TIMEOUT_S) as client:
         own0, children0 = cpu_s(served.proc.pid)
@@ -104,6 +106,10 @@ def run_service(served: ServedCell, max_time_s: float) -> tuple[float, str, dict
                     break
         elapsed = time.perf_counter() - t0
         own1, children1 = cpu_s(served.proc.pid)
+        reaped_by = time.monotonic() + REAP_TIMEOUT_S
+        while children1 == children0 and time.monotonic() < reaped_by:
+            time.sleep(0.05)
+            own1, children1 = cpu_s(served.proc.pid)
         if status is None:
             raise RuntimeError(f"job {job_id}: its event stream ended before the job did")
         result = client.get(f"/api/v1/jobs/{job_id}/files/result.json")

@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests.*
 
 from drivers.arm.ur5e import UR5eArm
 from drivers.robots import get_robot_model
