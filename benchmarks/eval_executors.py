@@ -1,8 +1,7 @@
 """``cell eval``'s executors on this machine: the same 16-scan grid on the local process pool and on a
 local Ray instance of the same size; wall time of each, their ratio (issue 23's goal: Ray at least 0.9x
 the pool's throughput) and whether their results.csv are byte-identical. Also the mean wall time of one
-scan, from which ``--table-i-seeds`` scans of Table I (8 objects x 3 strategies) on ``--nodes`` nodes of
-``--cores`` cores are estimated.
+scan of the grid.
 
 The grid: 4 packing objects x lr-nbv and heu x seeds 0 1 on ``config/sim-ur5e-tof.yaml`` with the cell's
 own time budget (the packing preset's; ``--max-time`` to shorten it), no coverage limit.
@@ -62,9 +61,6 @@ def main() -> None:
     parser.add_argument("--max-time", type=float, default=None, help="scan budget [s] (default: the cell's)")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--attached", action="store_true", help="also Ray on an instance started before")
-    parser.add_argument("--nodes", type=int, default=10)
-    parser.add_argument("--cores", type=int, default=16)
-    parser.add_argument("--table-i-seeds", type=int, default=10)
     args = parser.parse_args()
     cases = [(o, (0.0, 0.0, 0.0)) for o in paper.PACKING_OBJECTS]
     specs = cross(str(REPO / "config" / "sim-ur5e-tof.yaml"), cases, ["lr-nbv", "heu"], [0, 1], args.max_time)
@@ -89,7 +85,6 @@ def main() -> None:
         results = (Path(tmp) / "0" / "pool").glob("scans/*/result.json")
         scan_s = [json.loads(p.read_text())["wall_time_s"] for p in results]
     mean_scan_s = sum(scan_s) / len(scan_s)
-    n_table_i = len(paper.TABLE_I_OBJECTS) * len(paper.VS_PLANNERS) * args.table_i_seeds
     report = {
         "n_scans": len(specs), "jobs": args.jobs, "max_time_s": args.max_time, "repeats": args.repeats,
         "pool_wall_s": [round(s, 2) for s in pool_s], "ray_wall_s": [round(s, 2) for s in ray_s],
@@ -98,7 +93,7 @@ def main() -> None:
         "ray_throughput_vs_pool": round(statistics.median(p / r for p, r in zip(pool_s, ray_s, strict=True)),
                                         3),
         "results_csv_identical": identical,
-        "mean_scan_wall_s": round(mean_scan_s, 3), "table_i_scans": n_table_i,
+        "mean_scan_wall_s": round(mean_scan_s, 3),
     }
     if attached:
         report["ray_start_s"] = [round(start, 2) for start, _ in attached]

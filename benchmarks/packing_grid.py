@@ -26,7 +26,8 @@ job folder under DIR/scans when that results.csv predates the ``job`` column) re
 as it is now from their recorded frames and poses, played through the cell's perception as the job did,
 each capture recorded as the job's planner records it (LR-NBV, NBV and HEU keep every capture for the box
 and its bound; raster and the visual-servoing planners keep none): seconds per scan instead of a rescan,
-for changes to ``cell.packing``. The same figures, with the packing sections recomputed.
+for changes to ``cell.packing``. The same box figures, with the packing sections recomputed: JSON
+{"boxes": {...}} (the report and its summary are the earlier run's).
 
 Options other than ``--out`` and ``--suite`` go to ``cell eval`` as they are (``--objects horizontal_box``,
 ``--seeds 0``, ``--jobs 2``, ...). Prints JSON {"report": ..., "summary": {...}, "boxes": {...}} as its last
