@@ -17,6 +17,7 @@ import open3d as o3d
 import pytest
 
 from cell.config import load_config
+from cell.evaluation import presets
 from cell.evaluation import spec as spec_module
 from cell.evaluation.evaluate import LIMITS_JSON, coverage_limits
 from cell.evaluation.executors import LocalPool, RayExecutor
@@ -286,3 +287,20 @@ def test_coverage_limits_run_side_by_side_on_the_executor_once_per_input(tmp_pat
     assert len(json.loads((tmp_path / LIMITS_JSON).read_text())) == 2
     assert coverage_limits(specs, tmp_path, 8, pool, progress) == limits
     assert pool.given == [3, 1]  # the broken mesh only
+
+
+def test_a_presets_own_objects_given_by_name_keep_their_placements(tmp_path):
+    """``cell eval heldout --objects cylinder``: the held-out cylinder (a shape file) where the suite puts
+    it, one scan a seed; an object the preset lacks runs at each of its placements, as before."""
+    preset = presets.heldout(tmp_path / "shapes")
+    placements = list(dict.fromkeys(p for _, p in presets.HELDOUT_CASES))
+    (cylinder,) = preset.specs(objects=["cylinder"])
+    assert cylinder.object == str(tmp_path / "shapes" / "cylinder.ply")
+    assert cylinder.placement == (0.0, 0.0, 0.0)
+    (bunny,) = preset.specs(objects=["bunny"])
+    assert bunny.object == "bunny" and bunny.placement == (0.05, -0.04, 60.0)
+    banana = preset.specs(objects=["banana"])
+    assert [s.placement for s in banana] == placements
+    given = preset.specs(objects=["cylinder"], placements=[(0.01, 0.0, 10.0)])
+    assert [(s.object, s.placement) for s in given] == [(cylinder.object, (0.01, 0.0, 10.0))]
+

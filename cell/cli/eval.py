@@ -88,7 +88,7 @@ _grid_command("packing", lambda _: presets.PACKING,
               "The LR-NBV paper's section 4: its four objects x LR-NBV / NBV / HEU, seeds 0 to 4.")
 _grid_command("heldout", lambda out: presets.heldout(out / "shapes"),
               "Fifteen shapes and placements that are not Table I's, VS-Local (shapes written to "
-              "OUT/shapes).")
+              "OUT/shapes); --objects cylinder runs one of them by name, where the suite places it.")
 _grid_command("grid", lambda _: presets.Preset(template_path("sim-franka-rgbd"), (), (), (0,)),
               "Any objects x placements (default the station's centre) x planners x seeds (default 0); "
               "--objects and --planners are needed.")

@@ -46,17 +46,26 @@ class Preset:
               placements: Sequence[Placement] | None = None, planners: Sequence[str] | None = None,
               seeds: Sequence[int] | None = None, max_time_s: float | None = None,
               reprocess: bool | None = None) -> list[ScanSpec]:
-        """The grid of this preset with whatever is given in place of its own; given objects or
-        placements are crossed with each other (where one is not given: the preset's objects, or its
-        distinct placements, or the station's centre), checked (``check_specs``)."""
+        """The grid of this preset with whatever is given in place of its own, checked (``check_specs``).
+        Given objects alone: those of the preset's own (by name: a shape file's stem) at the preset's
+        placements of them, any other at each of the preset's distinct placements (or the station's
+        centre); given placements: crossed with the given objects, or the preset's."""
         cases = self.cases
-        if objects or placements:
-            cases = crossed(objects or list(dict.fromkeys(o for o, _ in self.cases)),
-                            placements or list(dict.fromkeys(p for _, p in self.cases)) or [CENTRE])
+        if placements:
+            cases = crossed([self._named(o) for o in objects] if objects
+                            else list(dict.fromkeys(o for o, _ in self.cases)), placements)
+        elif objects:
+            everywhere = list(dict.fromkeys(p for _, p in self.cases)) or [CENTRE]
+            cases = tuple(case for o in objects for case in
+                          ([c for c in self.cases if c[0] == self._named(o)] or crossed([o], everywhere)))
         specs = cross(str((config or self.config).resolve()), cases, planners or self.planners,
                       seeds or self.seeds, max_time_s, self.reprocess if reprocess is None else reprocess)
         check_specs(specs)
         return specs
+
+    def _named(self, obj: str) -> str:
+        """The preset's own object ``obj`` names (itself, or a shape file of that stem), else ``obj``."""
+        return next((o for o, _ in self.cases if o == obj or Path(o).stem == obj), obj)
 
 
 VS_TABLE = Preset(template_path("sim-franka-rgbd"), tuple((o, CENTRE) for o in paper.TABLE_I_OBJECTS),
