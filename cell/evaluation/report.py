@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure  # not pyplot: files only, no display
 from scipy.stats import mannwhitneyu
 
@@ -34,6 +35,8 @@ FIG5 = "fig5.png"
 FIG3 = "fig3.png"
 
 # (column, heading, decimals) of the two tables
+# Groups side by side in a figure before it wraps to another band of panels below.
+GROUPS_PER_ROW = 5
 RECONSTRUCTION = (("coverage_pct", "coverage %", 1), ("chamfer_mm", "Chamfer mm", 1),
                   ("hausdorff_mm", "Hausdorff mm", 1), ("scan_time_s", "scan time s", 1),
                   ("path_m", "path m", 2), ("coverage_unregistered_pct", "unregistered coverage %", 1))
@@ -162,56 +165,73 @@ def tests_table(gs: Sequence[Group]) -> list[str]:
     return _table(["object", "figure", "planner A", "planner B", "U (A)", "p"], lines)
 
 
+def _panels(gs: Sequence[Group], rows: int, width: float, height: float) -> tuple[Figure, list[list[Axes]]]:
+    """A figure with a column of ``rows`` panels for each group, at most ``GROUPS_PER_ROW`` columns side
+    by side and further groups in bands below, each panel ``width`` x ``height`` [in]; the columns of
+    panels in the groups' order."""
+    columns = max(1, min(len(gs), GROUPS_PER_ROW))
+    bands = -(-len(gs) // columns)
+    fig = Figure(figsize=(width * columns, height * rows * bands))
+    axes = fig.subplots(rows * bands, columns, squeeze=False)
+    for slot in range(len(gs), bands * columns):  # the last band's empty places
+        for r in range(rows):
+            axes[(slot // columns) * rows + r, slot % columns].set_visible(False)
+    return fig, [[axes[(i // columns) * rows + r, i % columns] for r in range(rows)] for i in range(len(gs))]
+
+
 def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> None:
-    fig = Figure(figsize=(4.0 * len(gs), 6.0))
-    axes = fig.subplots(2, len(gs), squeeze=False)
-    for i, g in enumerate(gs):
+    fig, panels = _panels(gs, 2, 4.0, 3.0)
+    for g, (top, bottom) in zip(gs, panels, strict=True):
         for n, (planner, rs) in enumerate(g.by_planner.items()):
             colour = f"C{n}"
-            for ax, column in ((axes[0, i], "chamfer_mm"), (axes[1, i], "coverage_pct")):
+            for ax, column in ((top, "chamfer_mm"), (bottom, "coverage_pct")):
                 pairs = [(t, v) for r in rs if (t := value(r, "scan_time_s")) is not None
                          and (v := value(r, column)) is not None]
                 ax.plot([t for t, _ in pairs], [v for _, v in pairs], "o", color=colour, label=planner)
                 for r in rs:
                     if (timeline := timelines.get(row_id(r))) is not None:
-                        ax.plot(timeline["t_s"], timeline[column], color=colour, linewidth=0.8)
+                        ax.plot(np.array(timeline["t_s"], dtype=float),  # a missing figure (None): NaN
+                                np.array(timeline[column], dtype=float), color=colour, linewidth=0.8)
             if (table_i := paper.table_i(planner, "coverage_pct", g.object)) is not None:
-                axes[1, i].axhline(table_i, color=colour, linestyle="--", linewidth=0.8)
-        axes[0, i].set_title(g.label)
-        axes[0, i].set_ylabel("Chamfer [mm]")
-        axes[1, i].set_ylabel("cloud coverage (eq. 13) [%]")
-        axes[1, i].set_xlabel("scan time [s]")
-        axes[0, i].legend(fontsize="small")
+                bottom.axhline(table_i, color=colour, linestyle="--", linewidth=0.8)
+        top.set_title(g.label)
+        top.set_ylabel("Chamfer [mm]")
+        bottom.set_ylabel("cloud coverage (eq. 13) [%]")
+        bottom.set_xlabel("scan time [s]")
+        top.legend(fontsize="small")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
 
 
-def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
-    """Mean and standard error of each list (0 where a list is empty or has one value)."""
+def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float] | None]:
+    """Mean of each list (0 where one is empty) and their standard errors, None where no list has one
+    (one value each: no error bar to draw)."""
     means = [float(np.mean(v)) if v else 0.0 for v in values]
     errors = [standard_error(v) or 0.0 for v in values]
-    return means, errors
+    return means, errors if any(errors) else None
 
 
 def _bars(gs: Sequence[Group], path: Path) -> None:
     """The packing paper's Fig. 3 per group: the box dimensions L, W, H per planner, then each of
-    ``PACKING``, as mean bars with standard errors."""
-    fig = Figure(figsize=(3.5 * len(gs), 11.0))
-    axes = fig.subplots(len(PACKING) + 1, len(gs), squeeze=False)
-    for i, g in enumerate(gs):
+    ``PACKING``, as mean bars with standard errors; a figure's bars for the planners that have it."""
+    fig, panels = _panels(gs, len(PACKING) + 1, 3.5, 11.0 / (len(PACKING) + 1))
+    for g, (box, *others) in zip(gs, panels, strict=True):
         planners = list(g.by_planner)
         width = 0.8 / len(planners)
         for n, planner in enumerate(planners):
             means, errors = _means_and_errors([dims(g.by_planner[planner], k) for k in range(3)])
-            axes[0, i].bar(np.arange(3) + n * width, means, width, yerr=errors, capsize=3, label=planner)
-        axes[0, i].set_xticks(np.arange(3) + width * (len(planners) - 1) / 2.0, ["L", "W", "H"])
-        axes[0, i].set_ylabel("box [m]")
-        axes[0, i].legend(fontsize="small")
-        for j, (column, heading, _) in enumerate(PACKING, start=1):
-            means, errors = _means_and_errors([figures(g.by_planner[p], column) for p in planners])
-            axes[j, i].bar(planners, means, yerr=errors, capsize=3)
-            axes[j, i].set_ylabel(heading)
-        axes[0, i].set_title(g.label)
+            box.bar(np.arange(3) + n * width, means, width, yerr=errors, capsize=3, label=planner)
+        box.set_xticks(np.arange(3) + width * (len(planners) - 1) / 2.0, ["L", "W", "H"])
+        box.set_ylabel("box [m]")
+        # above the bars, which fill any corner of the panel on one object or another
+        box.legend(fontsize="small", loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=len(planners),
+                   frameon=False, borderaxespad=0.1)
+        for ax, (column, heading, _) in zip(others, PACKING, strict=True):
+            having = [p for p in planners if figures(g.by_planner[p], column)]
+            means, errors = _means_and_errors([figures(g.by_planner[p], column) for p in having])
+            ax.bar(having, means, yerr=errors, capsize=3)
+            ax.set_ylabel(heading)
+        box.set_title(g.label, pad=20.0)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
 
