@@ -217,6 +217,34 @@ def test_stop_holds_the_queue_and_resume_releases_it(served):
     assert client.get(f"/api/v1/jobs/{again['id']}", headers=op).status_code == 404
 
 
+def test_stop_is_never_refused_for_its_body(served):
+    """Every valid key may stop, whatever body it sends: one that a model would refuse (an empty, absent
+    or non-string reason, an extra field, not JSON, NaN, far too long) stops as the default reason does,
+    and a reason's control characters cannot forge a line of the job's log."""
+    client, keys = served
+    viewer, op = _auth(keys["viewer"]), _auth(keys["operator"])
+    job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 60}, headers=op).json()
+    _wait(client, keys["viewer"], job["id"], {"running"})
+    forged = "lunch\n[    1.000] completed: forged\u001b[31m"
+    stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": forged, "why": "extra"},
+                       headers=viewer)
+    assert stop.status_code == 200 and stop.json()["job_id"] == job["id"]
+    done = _wait(client, keys["viewer"], job["id"], {"stopped", "completed", "failed"})
+    assert done["status"] == "stopped"
+    assert "lunch [ 1.000] completed: forged [31m (key viewer)" in done["termination"]
+    log = client.get(f"/api/v1/jobs/{job['id']}/files/log.txt", headers=viewer).text
+    assert not any(line.startswith("[    1.000] completed: forged") for line in log.splitlines())
+    json_type = {"content-type": "application/json"}
+    for body in (b'{"reason": ""}', b'{"reason": null}', b'{"reason": NaN}', b"not json", b"",
+                 json.dumps({"reason": "x" * 100_000}).encode()):
+        answer = client.post("/api/v1/stop", content=body, headers={**viewer, **json_type})
+        assert answer.status_code == 200 and answer.json()["queue_held"], (body[:20], answer.text)
+        held = client.get("/api/v1/cell", headers=viewer).json()["queue"]["held"]
+        assert "requested over the API (key viewer)" in held
+    assert client.post("/api/v1/stop", json={"reason": "x"}, headers={}).status_code == 401
+    client.post("/api/v1/queue/resume", headers=op)
+
+
 def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
     client, keys = served
     op = _auth(keys["operator"])

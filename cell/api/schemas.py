@@ -11,6 +11,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from cell.api.stop_reason import DEFAULT_REASON, MAX_LENGTH
 from cell.jobs.inputs import MAX_SEED
 from cell.line.config import PART_ID_MAX
 from cell.service.store import JobRecord
@@ -135,11 +136,15 @@ class RetentionOut(BaseModel):
 
 
 class StopIn(BaseModel):
-    """Why the stop: recorded in the job's termination with the key's name."""
+    """Why the stop: recorded in the job's termination with the key's name. Documentation only: the stop
+    routes read any body (``cell.api.stop_reason``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    reason: str = Field(DEFAULT_REASON, description=f"one line, at most {MAX_LENGTH} characters kept")
 
-    reason: str = Field("requested over the API", min_length=1, max_length=200)
+
+STOP_BODY: dict[str, Any] = {"requestBody": {"required": False, "content": {"application/json": {
+    "schema": StopIn.model_json_schema()}}}}
+"""The stop routes' body in the OpenAPI document, which their reading it themselves leaves out."""
 
 
 class StopOut(BaseModel):

@@ -5,11 +5,12 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Form, UploadFile
+from fastapi import APIRouter, Form, UploadFile
 
 from cell.api.auth import Reader, Recoverer, Stopper, Uploader
 from cell.api.deps import Service
-from cell.api.schemas import CellOut, ObjectOut, PlannerOut, RecoverOut, StopIn, StopOut
+from cell.api.schemas import STOP_BODY, CellOut, ObjectOut, PlannerOut, RecoverOut, StopOut
+from cell.api.stop_reason import StopReason
 from drivers.errors import ServiceError
 
 router = APIRouter(prefix="/api/v1", tags=["cell"])
@@ -62,12 +63,11 @@ async def post_object(cell: Service, file: UploadFile, _: Uploader,
     return ObjectOut(name=entry.name, source=entry.source, extents_m=entry.extents_m, licence=entry.licence)
 
 
-@router.post("/stop", response_model=StopOut)
-async def post_stop(cell: Service, key: Stopper,
-                    body: Annotated[StopIn | None, Body()] = None) -> StopOut:
+@router.post("/stop", response_model=StopOut, openapi_extra=STOP_BODY)
+async def post_stop(cell: Service, key: Stopper, reason: StopReason) -> StopOut:
     """STOP: whatever moves is commanded to stop (through the guard) before this answers, and queued jobs
-    are held until an operator resumes the queue. Every valid key may stop."""
-    reason = (body or StopIn()).reason
+    are held until an operator resumes the queue. Every valid key may stop, with any body (``reason``
+    optional; a body that does not give one stops all the same)."""
     outcome = await cell.stop_all(f"{reason} (key {key.name})")
     return StopOut(job_id=outcome.job_id, arm_commanded=outcome.arm_commanded, message=outcome.message,
                    queue_held=cell.hold_reason() is not None)

@@ -15,7 +15,8 @@ from fastapi.responses import FileResponse, StreamingResponse
 
 from cell.api.auth import Canceller, Keeper, Reader, Stopper, Submitter
 from cell.api.deps import Service
-from cell.api.schemas import FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopIn, StopOut
+from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
+from cell.api.stop_reason import StopReason
 from cell.service.keys import Permission, allowed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 
@@ -83,11 +84,10 @@ async def keep_job(job_id: str, body: KeepIn, cell: Service, _: Keeper) -> JobOu
     return JobOut.of(await cell.set_keep(job_id, body.keep))
 
 
-@router.post("/{job_id}/stop", response_model=StopOut)
-async def stop_job(job_id: str, cell: Service, key: Stopper, body: StopIn | None = None) -> StopOut:
+@router.post("/{job_id}/stop", response_model=StopOut, openapi_extra=STOP_BODY)
+async def stop_job(job_id: str, cell: Service, key: Stopper, reason: StopReason) -> StopOut:
     """Stop this job: the arm is commanded to stop before this answers (a queued job is cancelled).
-    Every valid key may stop."""
-    reason = (body or StopIn()).reason
+    Every valid key may stop, with any body (``reason`` optional, as for STOP)."""
     outcome = await cell.stop_job(job_id, f"{reason} (key {key.name})")
     return StopOut(job_id=outcome.job_id, arm_commanded=outcome.arm_commanded, message=outcome.message,
                    queue_held=cell.hold_reason() is not None)
