@@ -187,6 +187,9 @@ def test_whole_cycles_with_results_and_counters(line: Line):
     assert walk[:3] == [("Stopped", "Stopped"), ("Stopped", "Resetting"), ("Resetting", "Idle")]
     assert walk.count(("Completing", "Complete")) == 4
     assert line.client.get("/api/v1/line/history", headers={}).status_code == 401
+    # a row id past the store's 64-bit integers is refused, not an overflow in the store (a 500)
+    assert line.client.get(f"/api/v1/line/history?before_id={2**63}", headers=line.auth("viewer")
+                           ).status_code == 422
 
 
 def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: Line):

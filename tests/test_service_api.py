@@ -245,6 +245,26 @@ def test_stop_is_never_refused_for_its_body(served):
     client.post("/api/v1/queue/resume", headers=op)
 
 
+def test_a_body_over_its_bound_is_refused_unread_and_nan_is_a_422(served):
+    """A JSON body over 1 MiB is answered 413 before anything reads it, keyed or not and whether it gives
+    its length or not (FastAPI read and parsed it before the key's check); a NaN or infinite number is a
+    422 naming the field (FastAPI's own answer failed on echoing it, a 500)."""
+    client, keys = served
+    op = _auth(keys["operator"])
+    big = json.dumps({"object": "a" * (1 << 20)}).encode()
+    assert client.post("/api/v1/jobs", content=big, headers={"content-type": "application/json"}
+                       ).status_code == 413
+    chunked = client.post("/api/v1/jobs", content=iter([big[:1000], big[1000:]]),
+                          headers={**op, "content-type": "application/json"})
+    assert chunked.status_code == 413 and "over 1048576 bytes" in chunked.json()["detail"]
+    for field, body in (("max_time_s", b'{"object": "bunny", "max_time_s": NaN}'),
+                        ("object_pose", b'{"object": "bunny", "object_pose": [Infinity, 0, 0]}')):
+        answer = client.post("/api/v1/jobs", content=body, headers={**op, "content-type": "application/json"})
+        assert answer.status_code == 422, answer.text
+        assert answer.json()["detail"][0]["loc"][:2] == ["body", field]
+    assert client.get("/api/v1/jobs", headers=op).status_code == 200  # the service is fine
+
+
 def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
     client, keys = served
     op = _auth(keys["operator"])

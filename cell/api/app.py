@@ -11,13 +11,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 from collections.abc import AsyncIterator
+from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi_offline import FastAPIOffline
 
 from cell import __version__
+from cell.api.body_limit import BodyLimit
 from cell.api.routes import cell as cell_routes
 from cell.api.routes import clouds, health, jobs, keys, retention
 from cell.api.routes import line as line_routes
@@ -75,6 +80,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
     app = FastAPIOffline(title="cell", version=__version__, lifespan=lifespan,
                          description="An autonomous active-vision scanning cell: run, watch and stop scans.",
                          openapi_url="/api/v1/openapi.json", docs_url="/docs", redoc_url=None)
+    app.add_middleware(BodyLimit)
     app.include_router(cell_routes.router)
     app.include_router(jobs.router)
     app.include_router(line_routes.router)
@@ -93,9 +99,26 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
             detail = str(exc)
         return JSONResponse({"detail": detail}, status_code=status)
 
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
+        # as FastAPI's own answer, but a NaN or infinite number given (JSON allows neither, Python's
+        # parser reads both) is echoed as text: it made FastAPI's answer fail, a 500
+        return JSONResponse({"detail": _finite(jsonable_encoder(exc.errors()))}, status_code=422)
+
     @app.exception_handler(StoreError)
     async def store_error(_: Request, exc: StoreError) -> JSONResponse:
         log.error("job store: %s", exc)
         return JSONResponse({"detail": "the job store does not answer; try again"}, status_code=503)
 
     return app
+
+
+def _finite(value: Any) -> Any:
+    """``value`` (JSON-like) with each NaN or infinite float replaced by its text."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value

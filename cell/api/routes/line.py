@@ -19,6 +19,8 @@ from cell.service.manager import CellService
 from drivers.errors import ServiceError
 
 router = APIRouter(prefix="/api/v1/line", tags=["line"])
+ROW_ID_MAX = 2**63 - 1
+"""The largest row id a store holds (SQL's BIGINT, SQLite's INTEGER); a larger one overflowed it, a 500."""
 E = TypeVar("E", Command, UnitMode)
 
 
@@ -65,7 +67,8 @@ async def post_mode(cell: Service, body: LineModeIn, key: ModeSwitcher) -> dict[
 
 @router.get("/history", response_model=list[LineTransitionOut])
 async def get_history(cell: Service, _: Reader, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-                      before_id: Annotated[int | None, Query(ge=1)] = None) -> list[dict[str, Any]]:
+                      before_id: Annotated[int | None, Query(ge=1, le=ROW_ID_MAX)] = None,
+                      ) -> list[dict[str, Any]]:
     """Recorded transitions, newest first; ``before_id`` pages back."""
     rows = await _line(cell).history(limit, before_id)
     return [{"id": row_id, "at": t.at, "from_state": t.from_state, "from_name": State(t.from_state).label,
