@@ -265,6 +265,26 @@ def test_a_body_over_its_bound_is_refused_unread_and_nan_is_a_422(served):
     assert client.get("/api/v1/jobs", headers=op).status_code == 200  # the service is fine
 
 
+def test_a_mesh_whose_header_promises_more_than_it_holds_is_refused_and_the_list_stays_whole(served):
+    """A 180-byte PLY declaring 200 million vertices made the reader allocate 10 GB; one declaring two
+    billion failed outside the upload's error handling, left its staging file, and GET /objects answered
+    500 from then on, for every key and after a restart."""
+    client, keys = served
+    op = _auth(keys["operator"])
+    header = (b"ply\nformat binary_little_endian 1.0\nelement vertex 200000000\nproperty float x\n"
+              b"property float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+              b"end_header\n")
+    answer = client.post("/api/v1/objects", files={"file": ("huge.ply", header)}, headers=op)
+    assert answer.status_code == 422 and "declares elements of at least 2400000001 bytes" in answer.text
+    folder = client.app.state.service.objects.folder
+    (folder / ".upload-stale.ply").write_bytes(header)  # a staging file an older service left
+    (folder / "broken.ply").write_bytes(header)  # an uploaded file that no longer reads
+    listed = client.get("/api/v1/objects", headers=op)
+    assert listed.status_code == 200
+    names = {o["name"] for o in listed.json()}
+    assert "bunny" in names and not names & {"huge", ".upload-stale", ".upload-huge", "broken"}
+
+
 def test_an_uploaded_mesh_is_validated_and_scannable(served, tmp_path):
     client, keys = served
     op = _auth(keys["operator"])

@@ -10,6 +10,7 @@ file in metres.
 
 from __future__ import annotations
 
+import logging
 import re
 import threading
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from cell.config.models import CellConfig
 from cell.jobs.placement import check_placement
 from drivers.errors import CellError, ServiceError
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, list_objects, load_object, shipped_names, write_mesh
+
+log = logging.getLogger("cell.service")
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
 _SAFE_NAME = re.compile(r"[^a-z0-9_-]+")
@@ -59,14 +62,21 @@ class ObjectLibrary:
     def _uploaded(self) -> dict[str, Path]:
         if not self.folder.is_dir():
             return {}
+        # not the dotfiles: an upload's staging file (".upload-NAME.ply") is no object
         return {p.stem: p for p in sorted(self.folder.iterdir())
-                if p.suffix in MESH_SUFFIXES and p.is_file()}
+                if p.suffix in MESH_SUFFIXES and p.is_file() and not p.name.startswith(".")}
 
     def entries(self) -> list[ObjectEntry]:
-        """Every object, shipped first, by name."""
+        """Every object, shipped first, by name; an uploaded file that no longer reads as a mesh is left
+        out (and logged), not the list."""
         shipped = [ObjectEntry(i.name, "shipped", _extents(i.extents_m), i.licence) for i in list_objects()]
-        return shipped + [ObjectEntry(name, "uploaded", _extents(self.mesh(name).extents_m))
-                          for name in self._uploaded()]
+        uploaded = []
+        for name in self._uploaded():
+            try:
+                uploaded.append(ObjectEntry(name, "uploaded", _extents(self.mesh(name).extents_m)))
+            except (CellError, MemoryError, RuntimeError) as exc:
+                log.warning("uploaded object %s is left out of the list: %s", name, exc)
+        return shipped + uploaded
 
     def source(self, name: str) -> str:
         """What the job's worker loads for ``name``: the shipped name, or the uploaded file's path.
@@ -114,10 +124,15 @@ class ObjectLibrary:
             try:
                 mesh = load_object(staged, scale)
                 check_placement(self._config, mesh, (0.0, 0.0, 0.0), scale, option="the upload's scale")
-            except CellError as exc:
-                staged.unlink()
-                text = str(exc).replace(str(staged), filename).replace(staged.stem, Path(filename).stem)
-                raise ServiceError(text, reason="invalid", field="file") from None
+            except BaseException as exc:
+                staged.unlink(missing_ok=True)  # whatever failed: a staged file left behind is no object
+                if isinstance(exc, CellError):
+                    text = str(exc).replace(str(staged), filename).replace(staged.stem, Path(filename).stem)
+                    raise ServiceError(text, reason="invalid", field="file") from None
+                if isinstance(exc, MemoryError | RuntimeError):  # the mesh reader's own failures
+                    raise ServiceError(f"{filename!r} cannot be read as a mesh ({type(exc).__name__})",
+                                       reason="invalid", field="file") from None
+                raise
             if scale == 1.0:
                 staged.rename(self.folder / f"{name}{suffix}")
             else:

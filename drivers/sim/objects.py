@@ -107,6 +107,7 @@ def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
         raise JobError(f"object file not found: {path} ({_names_hint()})")
     if path.suffix.lower() not in _MESH_SUFFIXES:
         raise JobError(f"object file {path} is not a .ply/.obj/.stl mesh ({_names_hint()})")
+    _check_declared_size(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh = o3d.io.read_triangle_mesh(path)
     vertices = np.asarray(mesh.vertices, dtype=np.float64).copy()
@@ -116,6 +117,46 @@ def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
     if not np.all(np.isfinite(vertices)):
         raise JobError(f"object file {path} has non-finite vertices ({_names_hint()})")
     return vertices, triangles
+
+
+# Bytes per value of a binary PLY property type; an ASCII value takes at least 2 (a digit, a separator).
+_PLY_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+              "double": 8, "float64": 8}
+_PLY_HEADER_MAX_BYTES = 65536
+_STL_HEADER_BYTES, _STL_FACET_BYTES = 84, 50
+
+
+def _check_declared_size(path: Path) -> None:
+    """Raise ``JobError`` when a PLY header's element counts, or a binary STL's facet count, promise more
+    than the file holds: the reader allocates what the header declares before it reads, and a 180-byte
+    file declaring 200 million vertices took 10 GB."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(_PLY_HEADER_MAX_BYTES)
+    if path.suffix.lower() == ".stl" and not head.lstrip().startswith(b"solid") and len(head) >= 84:
+        facets = int.from_bytes(head[80:84], "little")
+        if _STL_HEADER_BYTES + _STL_FACET_BYTES * facets > size:
+            raise JobError(f"object file {path} declares {facets} facets, more than its {size} bytes hold")
+        return
+    if path.suffix.lower() != ".ply" or b"end_header" not in head:
+        return
+    header = head[:head.index(b"end_header")].decode("ascii", errors="replace").split("\n")
+    binary = any(line.startswith("format binary") for line in header)
+    needed = 0
+    count = per_element = 0
+    for words in (line.split() for line in header):
+        if words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
+            needed += count * per_element
+            count, per_element = int(words[2]), 0
+        elif words[:1] == ["property"] and len(words) >= 3:
+            # a list property takes at least its count; a value at least its size (2 in ASCII)
+            kind = words[2] if words[1] == "list" else words[1]
+            per_element += _PLY_BYTES.get(kind, 1) if binary else 2
+    needed += count * per_element
+    if needed > size:
+        raise JobError(f"object file {path}: its header declares elements of at least {needed} bytes, more "
+                       f"than the file's {size}")
 
 
 @cache
