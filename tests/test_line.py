@@ -159,6 +159,9 @@ def test_whole_cycles_with_results_and_counters(line: Line):
     assert line.state()["state_name"] == "Stopped"
     refused = line.command("start", "cube")
     assert refused.status_code == 409 and "valid in: Idle" in refused.json()["detail"]
+    # a command is a name or a number, not a boolean (true was taken for 1, Reset)
+    assert line.client.post("/api/v1/line/command", json={"command": True}, headers=line.auth("line")
+                            ).status_code == 422
     assert line.command("reset").json()["line"]["state_name"] in {"Resetting", "Idle"}
     line.wait({"Idle"})
     parts = ["horizontal_box@0.01,-0.02,20", "unicorn", "none", "cube@-0.02,0.01,45"]

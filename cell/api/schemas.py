@@ -9,7 +9,7 @@ import math
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, StrictStr, field_validator
 
 from cell.api.stop_reason import DEFAULT_REASON, MAX_LENGTH
 from cell.jobs.inputs import MAX_SEED
@@ -248,8 +248,9 @@ class LineCommandIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    command: str | int = Field(description="reset 1, start 2, stop 3, hold 4, unhold 5, suspend 6, unsuspend "
-                                           "7, abort 8, clear 9")
+    # strict: a true given as the command was taken for 1, Reset
+    command: StrictStr | StrictInt = Field(description="reset 1, start 2, stop 3, hold 4, unhold 5, "
+                                                       "suspend 6, unsuspend 7, abort 8, clear 9")
     part_id: str | None = Field(None, min_length=1, max_length=PART_ID_MAX, pattern=r"^[\x20-\x7e]+$")
 
 
@@ -261,7 +262,7 @@ class LineCommandOut(BaseModel):
 class LineModeIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    mode: str | int = Field(description="production 1 or manual 3")
+    mode: StrictStr | StrictInt = Field(description="production 1 or manual 3")
 
 
 class LineTransitionOut(BaseModel):
