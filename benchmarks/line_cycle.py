@@ -165,7 +165,11 @@ def serve(tmp: Path, warm: bool) -> tuple[ServedCell, str]:
 
 
 def spread(values: list[float]) -> dict[str, float]:
-    p50, p99 = np.percentile(values, [50, 99])
+    """Median, p99 and maximum of ``values``; p99 is the value at or below which 99 % of them lie (not
+    interpolated: with 20 parts, the largest but one, as the module docstring says; interpolated, it
+    was 80 % of the way to the largest, the first part's, whose worker may still be loading)."""
+    p50 = np.percentile(values, 50)
+    p99 = np.percentile(values, 99, method="lower")
     return {"p50": round(float(p50), 1), "p99": round(float(p99), 1), "max": round(max(values), 1)}
 
 
