@@ -34,9 +34,9 @@ REPORT_MD = "report.md"
 FIG5 = "fig5.png"
 FIG3 = "fig3.png"
 
-# (column, heading, decimals) of the two tables
 # Groups side by side in a figure before it wraps to another band of panels below.
 GROUPS_PER_ROW = 5
+# (column, heading, decimals) of the two tables
 RECONSTRUCTION = (("coverage_pct", "coverage %", 1), ("chamfer_mm", "Chamfer mm", 1),
                   ("hausdorff_mm", "Hausdorff mm", 1), ("scan_time_s", "scan time s", 1),
                   ("path_m", "path m", 2), ("coverage_unregistered_pct", "unregistered coverage %", 1))

@@ -50,7 +50,7 @@ from cell.jobs.recorder import JobRecorder
 from cell.jobs.replay import ReplaySession
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.jobs.stop_file import STOP_FILE
-from cell.packing.result import RecordsReconstruction, packing_section
+from cell.packing.result import RecordsReconstruction, packing_section, section_box
 from cell.perception.metrics import METRICS_KEYS, CoverageTracker, ground_truth_points, measure
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Array, Planner
@@ -486,8 +486,8 @@ def _write_plots(job: PreparedScan, session: JobSession | None, packing: dict[st
 
 
 def _box_centre(packing: dict[str, Any]) -> Array | None:
-    """The centre [m, base frame] of a result's packing box, None without one."""
-    box, dims = packing.get("box"), packing.get("dims_m")
-    if box is None or dims is None:
+    """The centre [m, base frame] of a result's packing box (:func:`section_box`), None without one."""
+    if packing.get("box") is None or packing.get("dims_m") is None:
         return None
-    return np.array([*box["center_xy_m"], box["z_min_m"] + dims[2] / 2.0])
+    box = section_box(packing)
+    return np.array([*box.center_xy, box.z_min + box.dims[2] / 2.0])

@@ -26,6 +26,9 @@ from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, list_objects, load_obje
 log = logging.getLogger("cell.service")
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
+# The mesh reader's own failures, beside the CellError of a mesh it read but refused (Open3D's: a
+# MemoryError for an absurd element count, a RuntimeError for a broken file)
+_READER_ERRORS = (MemoryError, RuntimeError)
 _SAFE_NAME = re.compile(r"[^a-z0-9_-]+")
 
 
@@ -74,7 +77,7 @@ class ObjectLibrary:
         for name in self._uploaded():
             try:
                 uploaded.append(ObjectEntry(name, "uploaded", _extents(self.mesh(name).extents_m)))
-            except (CellError, MemoryError, RuntimeError) as exc:
+            except (CellError, *_READER_ERRORS) as exc:
                 log.warning("uploaded object %s is left out of the list: %s", name, exc)
         return shipped + uploaded
 
@@ -129,7 +132,7 @@ class ObjectLibrary:
                 if isinstance(exc, CellError):
                     text = str(exc).replace(str(staged), filename).replace(staged.stem, Path(filename).stem)
                     raise ServiceError(text, reason="invalid", field="file") from None
-                if isinstance(exc, MemoryError | RuntimeError):  # the mesh reader's own failures
+                if isinstance(exc, _READER_ERRORS):
                     raise ServiceError(f"{filename!r} cannot be read as a mesh ({type(exc).__name__})",
                                        reason="invalid", field="file") from None
                 raise
