@@ -10,11 +10,13 @@ import gc
 import json
 import os
 import signal
+import subprocess
 import sys
 import time
 import warnings
 from collections.abc import Iterator
-from datetime import UTC, datetime
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,7 @@ from cell.jobs.placement import check_on_table
 from cell.jobs.progress import TICK_BUCKETS_S, ControlTicks
 from cell.service.events import JobEvents
 from cell.service.keys import create_key
+from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
 from cell.service.startup import ServiceSettings
 from cell.service.store import JobRecord, open_data_store
@@ -378,6 +381,42 @@ def test_a_restart_settles_running_and_queued_jobs(tmp_path):
     assert cancelled is not None
     assert (cancelled.status, cancelled.termination) == ("cancelled", RESTART_CANCEL)
     store.close()
+
+
+def _worker_like(folder: Path, after_s: float) -> subprocess.Popen[bytes]:
+    """A process that looks like the warm spare a job was given (the worker module in its command line,
+    and ``spare`` where a job id would be): it writes the job's ``result.json`` after ``after_s`` [s]."""
+    script = ("import json, sys, time; time.sleep(float(sys.argv[4])); "
+              "open(sys.argv[3], 'w').write(json.dumps({'status': 'stopped', 'termination': 'eof'}))")
+    return subprocess.Popen([sys.executable, "-c", script, WORKER_MODULE, "spare",
+                             str(folder / "result.json"), str(after_s)])
+
+
+def test_a_restart_waits_for_the_warm_worker_of_a_running_job_and_not_for_a_reused_pid(tmp_path):
+    store = open_data_store(tmp_path, None)
+    now = datetime.now(UTC)
+    job = replace(_job(tmp_path, "running", "d" * 16), started_at=now + timedelta(seconds=1))
+    Path(job.folder).mkdir(parents=True)
+    worker = _worker_like(Path(job.folder), after_s=1.0)
+    store.add_job(replace(job, worker_pid=worker.pid))
+    # a job that started a minute before a process of the worker module took its worker's pid
+    old = replace(_job(tmp_path, "running", "e" * 16), started_at=now - timedelta(seconds=60))
+    Path(old.folder).mkdir(parents=True)
+    stranger = _worker_like(Path(old.folder), after_s=30.0)
+    store.add_job(replace(old, worker_pid=stranger.pid))
+    try:
+        began = time.monotonic()
+        reconcile(store, "c", worker_wait_s=20.0)
+        assert time.monotonic() - began < 10.0  # the stranger was neither waited for nor signalled
+        assert worker.poll() == 0 and stranger.poll() is None
+        written = json.loads((Path(job.folder) / "result.json").read_text())
+        assert written["status"] == "interrupted" and written["worker"]["status"] == "stopped"
+        got = store.get_job(job.id)
+        assert got is not None and got.result == written and got.status == "interrupted"
+    finally:
+        stranger.kill()
+        stranger.wait()
+        store.close()
 
 
 def test_an_object_must_stand_on_the_table():

@@ -28,6 +28,9 @@ RESTART_TERMINATION = "the service stopped while the job ran"
 RESTART_CANCEL = "the service restarted before the job started"
 TERM_GRACE_S = 5.0
 """After SIGTERM, how long a worker has to stop the arm and finish before it is killed [s]."""
+START_SLACK_S = 2.0
+"""How much later than its job's ``started_at`` a process may seem to have started and still be taken for
+its worker [s]: the kernel's boot time is whole seconds, and the store's clock is the service's."""
 
 
 def _frames_recorded(folder: Path) -> int:
@@ -69,28 +72,44 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
     return result
 
 
-def _is_worker(pid: int, job_id: str) -> bool:
-    """Whether ``pid`` is alive and is the worker of ``job_id`` (not a process that reused the pid)."""
+def _started(pid: int) -> float:
+    """When process ``pid`` started, on the wall clock [s since the epoch] (``/proc/<pid>/stat`` field 22,
+    in clock ticks since boot, plus the boot time of ``/proc/stat``)."""
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    ticks = int(stat.rsplit(")", 1)[1].split()[19])  # field 22; the name in brackets may hold spaces
+    boot = next(int(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                if line.startswith("btime "))
+    return boot + ticks / os.sysconf("SC_CLK_TCK")
+
+
+def _is_worker(pid: int, started_at: datetime | None) -> bool:
+    """Whether ``pid`` is alive and is the worker of a job that started at ``started_at``: a process of
+    the worker module that was already running then. Its command line cannot name the job: the service
+    starts the next job's worker before the job (``service.warm_worker``). A process that reused the pid
+    of a worker that ended started after it."""
     try:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-    except OSError:
+        started = _started(pid)
+    except (OSError, ValueError, IndexError):
         return False
-    return WORKER_MODULE.encode() in cmdline and job_id.encode() in cmdline
+    if WORKER_MODULE.encode() not in cmdline:
+        return False
+    return started_at is None or started <= started_at.timestamp() + START_SLACK_S
 
 
-def end_worker(pid: int | None, job_id: str, wait_s: float) -> None:
-    """Wait up to ``wait_s`` [s] for a job's worker to end by itself, then SIGTERM it (it stops the arm
-    and finishes), then SIGKILL it after ``TERM_GRACE_S``."""
+def end_worker(pid: int | None, started_at: datetime | None, wait_s: float) -> None:
+    """Wait up to ``wait_s`` [s] for the worker of a job that started at ``started_at`` to end by itself,
+    then SIGTERM it (it stops the arm and finishes), then SIGKILL it after ``TERM_GRACE_S``."""
     if pid is None:
         return
     for sig, wait in ((None, wait_s), (signal.SIGTERM, TERM_GRACE_S), (signal.SIGKILL, TERM_GRACE_S)):
-        if sig is not None and _is_worker(pid, job_id):
+        if sig is not None and _is_worker(pid, started_at):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, sig)
         deadline = time.monotonic() + wait
-        while _is_worker(pid, job_id) and time.monotonic() < deadline:
+        while _is_worker(pid, started_at) and time.monotonic() < deadline:
             time.sleep(0.05)
-        if not _is_worker(pid, job_id):
+        if not _is_worker(pid, started_at):
             return
 
 
@@ -100,7 +119,7 @@ def reconcile(store: Store, cell: str, worker_wait_s: float) -> list[str]:
     done: list[str] = []
     now = datetime.now(UTC)
     for job in store.jobs_in_status(cell, ["running"]):
-        end_worker(job.worker_pid, job.id, worker_wait_s)
+        end_worker(job.worker_pid, job.started_at, worker_wait_s)
         folder = Path(job.folder)
         result = read_result(folder)
         if result is not None and result.get("status") in ("completed", "no_object"):
