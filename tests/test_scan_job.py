@@ -172,6 +172,7 @@ def test_sensor_failure_stops_and_keeps_frames(tmp_path, monkeypatch):
     (["--object", "no-such-object"], "bunny"),
     (["--planner", "telepathy"], "raster"),
     (["--object-pose", "1,2"], "x,y,yaw"),
+    (["--object-pose", "0,0,1e308"], "yaw must lie within +-360 deg"),
 ])
 def test_cli_bad_input_exits_with_one_line_reason(tmp_path, args, message):
     res = CliRunner().invoke(app, ["scan", "--config", str(FRANKA), "--out", str(tmp_path / "j"), *args])

@@ -88,7 +88,10 @@ def served(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
     ({"object": "bunny", "object_pose": [2.0, 2.0, 0.0]}, "object_pose", "off the table"),
     ({"object": "bunny", "max_time_s": 0}, "max_time_s", "greater than 0"),
     ({"object": "bunny", "seed": -1}, "seed", "greater than or equal to 0"),
-    ({"object": "bunny", "object_pose": [0.0, "nan", 0.0]}, "object_pose", "finite"),
+    ({"object": "bunny", "object_pose": [0.0, "0.1", 0.0]}, 1, "a valid number"),
+    ({"object": "bunny", "object_pose": [0.0, 0.0, 1e308]}, "object_pose", "within +-360 deg"),
+    ({"object": "bunny", "seed": "1"}, "seed", "a valid integer"),
+    ({"object": "bunny", "seed": True}, "seed", "a valid integer"),
     ({"object": "bunny", "colour": "red"}, "colour", "Extra inputs are not permitted"),
 ])
 def test_invalid_submissions_answer_422_naming_the_field(served, body, field, words):

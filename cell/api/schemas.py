@@ -9,10 +9,11 @@ import math
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, StrictStr, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, StrictStr, field_validator
 
 from cell.api.stop_reason import DEFAULT_REASON, MAX_LENGTH
 from cell.jobs.inputs import MAX_SEED
+from cell.jobs.placement import MAX_YAW_DEG
 from cell.line.config import PART_ID_MAX
 from cell.service.store import JobRecord
 from cell.service.submission import MAX_TIME_BUDGET_S, JobRequest
@@ -27,10 +28,11 @@ class JobSubmit(BaseModel):
     planner: str | None = Field(None, max_length=64, description="planner name (GET /api/v1/planners)")
     object: str | None = Field(None, max_length=128, description="object name (GET /api/v1/objects); on a "
                                                                  "real cell, an optional label")
-    object_pose: tuple[float, float, float] | None = Field(
-        None, description="[x_m, y_m, yaw_deg] on the table, from the cell's station")
-    seed: int | None = Field(None, ge=0, le=MAX_SEED)
-    max_time_s: float | None = Field(None, gt=0.0, le=MAX_TIME_BUDGET_S, description="time budget [s]")
+    object_pose: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(
+        None, description=f"[x_m, y_m, yaw_deg] on the table, from the cell's station; "
+                          f"|yaw_deg| <= {MAX_YAW_DEG:g}")
+    seed: StrictInt | None = Field(None, ge=0, le=MAX_SEED)
+    max_time_s: StrictFloat | None = Field(None, gt=0.0, le=MAX_TIME_BUDGET_S, description="time budget [s]")
     part_id: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[\x20-\x7e]+$",
                                 description="the line's identifier of the part (printable ASCII)")
 

@@ -23,6 +23,10 @@ MIN_OBJECT_SIZE_M = 0.01
 2.5 mm map's voxels and at most one zone of an 8x8 ToF frame at the scan's distance, and the mesh is far
 more likely in the wrong units than a part to pack."""
 
+MAX_YAW_DEG = 360.0
+"""The largest turn about the vertical [deg] a placement may give: every placement has one within it, and a
+yaw of 1e308 deg is a finite number whose sine is rounding noise, not a turn of the part."""
+
 UNIT_SCALES = ((0.001, "millimetres"), (0.01, "centimetres"), (0.0254, "inches"))
 """The scales that turn a CAD export's usual units into metres, the first one a refusal suggests."""
 
@@ -70,7 +74,10 @@ def footprint_bounds(config: CellConfig, mesh: ObjectMesh,
 
 
 def check_on_table(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float]) -> None:
-    """Raise ``JobError`` naming the table's extent when the object's footprint at ``pose`` leaves it."""
+    """Raise ``JobError`` naming the table's extent when the object's footprint at ``pose`` leaves it, or
+    when the yaw is not within ``MAX_YAW_DEG``."""
+    if not abs(pose[2]) <= MAX_YAW_DEG:
+        raise JobError(f"object pose {list(pose)}: its yaw must lie within +-{MAX_YAW_DEG:g} deg")
     lo, hi = footprint_bounds(config, mesh, pose)
     centre, size = np.asarray(config.sim.table_center_xy_m), np.asarray(config.sim.table_size_m)
     t_lo, t_hi = centre - size / 2.0, centre + size / 2.0
