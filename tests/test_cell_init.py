@@ -64,6 +64,7 @@ def test_init_never_overwrites_a_cell_file_and_names_bad_input(tmp_path):
                                     "--data-dir", str(tmp_path / "var")])
     assert elsewhere.exit_code == 0 and (tmp_path / "var" / "jobs").is_dir()
     assert not (tmp_path / "etc" / "data").exists() and f"--data-dir {tmp_path / 'var'}" in elsewhere.output
+    assert "\nname: etc\n" in (tmp_path / "etc" / "cell.yaml").read_text()  # the folder's name
     bad_name = runner.invoke(app, ["init", str(tmp_path / "c"), "--template", "sim-ur5e-tof",
                                    "--name", "../x"])
     assert bad_name.exit_code == 1 and "--name" in bad_name.output

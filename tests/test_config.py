@@ -77,6 +77,15 @@ def test_unknown_field_is_refused(franka_cfg_data):
         parse_config(data, file="cell.yaml")
 
 
+@pytest.mark.parametrize("name", ["x" * 65, "../cell", "cell a", ""])
+def test_a_cell_name_the_store_cannot_key_is_refused(franka_cfg_data, name):
+    data = copy.deepcopy(franka_cfg_data)
+    data["name"] = name
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, file="cell.yaml")
+    assert info.value.field == "name"
+
+
 def test_missing_safety_value_is_refused(franka_cfg_data):
     data = copy.deepcopy(franka_cfg_data)
     del data["safety"]["tcp_max_linear_mps"]

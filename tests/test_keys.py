@@ -153,6 +153,10 @@ def test_cli_defaults_and_db_option(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     (tmp_path / "other").mkdir()
     db = sqlite_url(tmp_path / "other")
     assert runner.invoke(app, ["keys", "list", "--db", db]).stdout == "no keys\n"
+    # a URL with a password is given in the environment, out of the process list
+    created = runner.invoke(app, ["keys", "create", "--role", "viewer", "--name", "v"], env={"CELL_DB": db})
+    assert created.exit_code == 0, created.output
+    assert runner.invoke(app, ["keys", "list", "--db", db]).stdout.startswith("v ")
 
 
 def test_cli_errors_are_one_line(tmp_path: Path):

@@ -270,6 +270,18 @@ def test_stop_holds_the_queue_until_an_operator_resumes_it(franka: ServedCell) -
     assert ended["started_at"] is not None
 
 
+def test_a_second_service_of_the_cell_refuses_to_start_and_leaves_its_scan_alone(franka: ServedCell) -> None:
+    job = submit(franka, object="bunny", max_time_s=SHORT_S)
+    wait_progress(franka, job["id"], lambda p: p["n_captures"] >= 1)
+    command = [*CELL, "serve", "--config", str(FRANKA), "--data-dir", str(franka.data_dir), "--port",
+               str(free_port())]
+    second = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert second.returncode == 1, second.stdout + second.stderr
+    assert "cell 'sim-franka-rgbd' is served by another service" in second.stdout + second.stderr
+    assert "Traceback" not in second.stderr
+    assert franka.wait_job(job["id"], ENDED)["status"] == "completed"
+
+
 # ---------------------------------------------------------------------------------------------- 3. kill -9
 
 

@@ -389,3 +389,42 @@ def test_two_cells_share_a_postgres_database(postgres_url: str):  # noqa: F811  
         finally:
             a.close()
             b.close()
+
+
+def test_one_service_at_a_time_holds_a_cell_on_a_store(store_url: str):
+    first, second = open_store(store_url), open_store(store_url)
+    try:
+        lease = first.claim_cell("cell-a")
+        with pytest.raises(StoreError, match="cell 'cell-a' is served by another service"):
+            second.claim_cell("cell-a")
+        other = second.claim_cell("cell-b")  # another cell of the same store
+        assert lease.keep() is None and other.keep() is None
+        lease.release()
+        other.release()
+        second.claim_cell("cell-a").release()  # free once given up
+    finally:
+        first.close()
+        second.close()
+
+
+def test_a_lease_lost_with_its_connection_is_taken_again_unless_another_took_it(
+        postgres_url: str):  # noqa: F811  (the imported fixture)
+    with fresh_database(postgres_url) as url:
+        first, second = open_store(url), open_store(url)
+        try:
+            lease = first.claim_cell("c")
+            with create_engine(url).connect() as admin:  # an outage, for the lease's connection
+                admin.execute(text("SELECT pg_terminate_backend(pid) FROM pg_locks "
+                                   "WHERE locktype = 'advisory' AND database = "
+                                   "(SELECT oid FROM pg_database WHERE datname = current_database())"))
+            taken = second.claim_cell("c")  # the lock ended with its connection
+            lost = lease.keep()
+            assert lost is not None and "served by another service" in lost
+            taken.release()
+            assert lease.keep() is None  # taken again
+            with pytest.raises(StoreError, match="served by another service"):
+                second.claim_cell("c")
+            lease.release()
+        finally:
+            first.close()
+            second.close()

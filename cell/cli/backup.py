@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
 from cell.service.startup import DEFAULT_DATA_DIR
 from cell.service.store import sqlite_url
@@ -25,7 +26,8 @@ def backup(
     dest: Annotated[Path, typer.Argument(help="the backup file, or a folder to write cell-{UTC time}.db in")],
     data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
     = DEFAULT_DATA_DIR,
-    db: Annotated[str | None, typer.Option(help="the store's URL instead of the data folder's (SQLite only: "
+    db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
+                                           help="the store's URL instead of the data folder's (SQLite only: "
                                                 "PostgreSQL is backed up with pg_dump)")] = None,
 ) -> None:
     """Back up the job store while the service runs (SQLite's online backup); never overwrites a file."""

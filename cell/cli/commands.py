@@ -41,6 +41,11 @@ COMMANDS: dict[str, str] = {
 }
 
 
+DB_ENVVAR = "CELL_DB"
+"""The environment variable a ``--db`` option is read from when not given: a store URL with a password
+stays out of the process list (and a systemd unit's command line) when it is passed this way."""
+
+
 def command_group(help: str, **options: Any) -> typer.Typer:
     """A command group with ``help`` and typer's other ``options``, its commands' help read as Markdown:
     each paragraph wrapped to the terminal, units in brackets ("[m]", "[s]") kept. The commands' help

@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from cell.cli.commands import DB_ENVVAR
 from cell.doctor.findings import Status
 from cell.doctor.report import failed, run_checks
 from cell.service.startup import DEFAULT_DATA_DIR
@@ -25,7 +26,8 @@ def doctor(
     data_dir: Annotated[Path, typer.Option(help="the service's data folder")] = DEFAULT_DATA_DIR,
     host: Annotated[str, typer.Option(help="the interface cell serve will bind")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535, help="the port cell serve will listen on")] = 8080,
-    db: Annotated[str | None, typer.Option(help="the store's URL, if not the data folder's SQLite")] = None,
+    db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
+                                           help="the store's URL, if not the data folder's SQLite")] = None,
 ) -> None:
     """Check this machine and the cell's devices before the first scan: ok / warn / FAIL, with each fix."""
     found = run_checks(config, data_dir, host, port, db)

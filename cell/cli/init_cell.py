@@ -16,26 +16,28 @@ import typer
 from rich.console import Console
 
 from cell.cli.errors import fail
+from cell.config.models import CELL_NAME
 from cell.config.placeholders import find_placeholders
 from cell.templates import TEMPLATES, template_path
 from drivers.errors import CellError, ConfigError
 
 CELL_FILE = "cell.yaml"
 DATA_FOLDERS = ("jobs", "objects", "logs", "calibration")
-CELL_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
-"""A cell's name: the store's key for its jobs (64 characters at most), safe in a file name."""
 
 console = Console(soft_wrap=True)
 
 
 def init_cell(folder: Path, template: str, name: str | None = None, data_dir: Path | None = None) -> Path:
-    """Write ``folder/cell.yaml`` from ``template`` (its ``name:`` replaced by ``name`` if given) and the
-    data folder layout in ``data_dir`` (default ``folder/data``); returns the cell file. ``ConfigError``
+    """Write ``folder/cell.yaml`` from ``template`` (its ``name:`` replaced by ``name``, by default the
+    folder's own name where that is a cell name: cells made from one template differ) and the data folder
+    layout in ``data_dir`` (default ``folder/data``); returns the cell file. ``ConfigError``
     if the cell file exists, the template or the name is unknown or invalid, or a folder cannot be
     written."""
     text = template_path(template).read_text()
+    if name is None and re.fullmatch(CELL_NAME, folder.resolve().name):
+        name = folder.resolve().name
     if name is not None:
-        if not CELL_NAME.fullmatch(name):
+        if not re.fullmatch(CELL_NAME, name):
             raise ConfigError(f"{name!r} is not a cell name", field="--name",
                               allowed="1-64 letters, digits, '.', '_', '-', starting with a letter or digit")
         text = re.sub(r"^name: .*$", f"name: {name}", text, count=1, flags=re.MULTILINE)
@@ -56,7 +58,7 @@ def init_cell(folder: Path, template: str, name: str | None = None, data_dir: Pa
 def init(
     folder: Annotated[Path, typer.Argument(help="the cell's folder (created if missing)")],
     template: Annotated[str, typer.Option(help=f"one of: {', '.join(TEMPLATES)}")],
-    name: Annotated[str | None, typer.Option(help="the cell's name (default: the template's)")] = None,
+    name: Annotated[str | None, typer.Option(help="the cell's name (default: the folder's name)")] = None,
     data_dir: Annotated[Path | None, typer.Option(help="the service's data folder (default: FOLDER/data; "
                                                        "/var/lib/cell under systemd)")] = None,
 ) -> None:

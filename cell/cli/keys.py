@@ -17,7 +17,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from cell.cli.commands import command_group
+from cell.cli.commands import DB_ENVVAR, command_group
 from cell.cli.errors import fail
 from cell.service.keys import Role, create_key, parse_role
 from cell.service.store import Store, open_data_store
@@ -29,9 +29,10 @@ keys_app = command_group(help="API keys of the service: create, list, revoke.", 
 console = Console(soft_wrap=True)
 
 DataDirOption = Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
-DbOption = Annotated[str | None, typer.Option(help="store URL instead of the data folder's SQLite file: "
-                                                    "sqlite:///ABS/PATH/cell.db or "
-                                                    "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DB")]
+DbOption = Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
+                                              help="store URL instead of the data folder's SQLite file: "
+                                                   "sqlite:///ABS/PATH/cell.db or "
+                                                   "postgresql+psycopg://USER:PASSWORD@HOST:PORT/DB")]
 
 
 @contextlib.contextmanager

@@ -17,6 +17,7 @@ from rich.console import Console
 
 from cell.api.app import create_app
 from cell.api.server import NotifyingServer
+from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
 from cell.line.opcua_endpoint import check_endpoint
 from cell.service.logs import configure_logging
@@ -39,7 +40,8 @@ def serve(
     port: Annotated[int, typer.Option(min=1, max=65535)] = 8080,
     data_dir: Annotated[Path, typer.Option(help="jobs, uploads, logs and the embedded database")]
     = DEFAULT_DATA_DIR,
-    db: Annotated[str | None, typer.Option(help="store URL, e.g. postgresql+psycopg://user@host/db (default: "
+    db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
+                                           help="store URL, e.g. postgresql+psycopg://user@host/db (default: "
                                                 "SQLite in the data dir)")] = None,
 ) -> None:
     """Run the cell as a service: REST API under /api/v1, docs at /docs."""
@@ -47,10 +49,12 @@ def serve(
         notifier = Notifier()
         service = build_service(ServiceSettings(config_file=config, data_dir=data_dir, db_url=db))
         has_keys = bool(service.store.active_keys())
+        # the store's URL is not repeated: it may hold a password
+        where = f"--data-dir {data_dir}" if db is None else f"with this --db or {DB_ENVVAR}"
         if not is_loopback(host) and not has_keys:
             service.store.close()
             raise CellError(f"refusing to listen on {host}, beyond this machine, with no API key: create one "
-                            f"first (cell keys create --data-dir {data_dir} --role admin)")
+                            f"first (cell keys create --role admin {where})")
         try:
             check_endpoint(service.config.line)  # the line's OPC UA port: free, and a host of this machine
         except CellError:
@@ -59,8 +63,8 @@ def serve(
     except CellError as exc:
         raise fail(exc) from None
     if not has_keys:
-        err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --data-dir "
-                          f"{data_dir} --role operator)", markup=False, highlight=False, soft_wrap=True)
+        err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --role "
+                          f"operator {where})", markup=False, highlight=False, soft_wrap=True)
     configure_logging()
     # On SIGTERM or Ctrl-C uvicorn waits for open connections before the app shuts down (and stops the
     # running job); event streams never close by themselves, so they are cut after a short grace.

@@ -178,6 +178,11 @@ class ServiceConfig(StrictModel):
     retention: RetentionConfig = RetentionConfig()
 
 
+CELL_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+"""A cell's name: 1-64 letters, digits, '.', '_', '-', from a letter or digit (the job store keeps 64
+characters, and the name goes into file names)."""
+
+
 class CellConfig(StrictModel):
     """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan,
     planners, the packing result (container catalogue), the service (``cell serve``) and the packing
@@ -196,7 +201,8 @@ class CellConfig(StrictModel):
       ``cell.jobs.replay``).
     """
 
-    name: str
+    name: str = Field(pattern=CELL_NAME, description="the cell's name: the job store's key for its jobs and "
+                                                     "its lease (one service per name on a store)")
     mode: Literal["sim", "dry-run", "real", "replay"]
     arm: ArmConfig
     sensor: DepthConfig

@@ -46,6 +46,7 @@ from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_c
 from cell.service.recovery import finish_folder, reconcile
 from cell.service.retention import Retention, delete_job
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store
+from cell.service.store.lease import CellLease
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
 from drivers.errors import ServiceError
@@ -53,6 +54,8 @@ from drivers.errors import ServiceError
 LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
 RECOVER_TIMEOUT_S = 60.0
+LEASE_CHECK_S = 5.0
+"""How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]."""
 """How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
@@ -114,7 +117,7 @@ class CellService:
     started."""
 
     def __init__(self, *, config: CellConfig, config_data: dict[str, Any], config_file: str, data_dir: Path,
-                 store: Store) -> None:
+                 store: Store, lease: CellLease | None = None) -> None:
         self.config = config
         self.name = config.name
         self._config_data = config_data
@@ -123,6 +126,9 @@ class CellService:
         self.jobs_dir = data_dir / "jobs"
         self._logs_dir = data_dir / "logs"
         self.store = store
+        self._lease = lease
+        self._lease_lost: str | None = None
+        self._lease_keeper: asyncio.Task[None] | None = None
         self.objects = ObjectLibrary(data_dir / "objects", config)
         self.retention = Retention(store, self.name, self.jobs_dir, config.service.retention)
         self._pruner: asyncio.Task[None] | None = None
@@ -164,14 +170,30 @@ class CellService:
         self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
         if self.retention.active:
             self._pruner = asyncio.create_task(self.retention.run(), name="retention")
+        if self._lease is not None:
+            self._lease_keeper = asyncio.create_task(self._keep_lease(self._lease), name="lease")
         await self._warm()
         return settled
+
+    async def _keep_lease(self, lease: CellLease) -> None:
+        """Check the cell's lease every ``LEASE_CHECK_S``; while it is lost, no queued job starts."""
+        while True:
+            await asyncio.sleep(LEASE_CHECK_S)
+            lost = await asyncio.to_thread(lease.keep)
+            if lost != self._lease_lost:
+                if lost is None:
+                    log.warning("the cell's lease is held again: queued jobs may start")
+                else:
+                    log.error("%s", lost)
+                self._lease_lost = lost
+                self._wake.set()
 
     async def close(self) -> None:
         """Shut down: queued jobs are cancelled, the running one is stopped and its folder finished."""
         self._closing = True
-        if self._pruner is not None:
-            self._pruner.cancel()
+        for task in (self._pruner, self._lease_keeper):
+            if task is not None:
+                task.cancel()
         for job_id in list(self._queued):
             await self._cancel_queued(job_id, SHUTDOWN_CANCEL)
         running = self._running
@@ -194,6 +216,8 @@ class CellService:
             await self._dio.close()
         if self.line is not None:
             await self.line.close()
+        if self._lease is not None:
+            self._lease.release()
 
     @property
     def ready(self) -> bool:
@@ -226,7 +250,7 @@ class CellService:
         """Why queued jobs do not start, or None."""
         if self.arm.faulted:
             return f"arm {self.arm.status.state}: recover the arm first (POST /api/v1/arm/recover)"
-        return self._held
+        return self._lease_lost or self._held
 
     def planners(self) -> list[dict[str, str | bool]]:
         return [{"name": name, "description": entry.description, "default": name == self.config.scan.planner}

@@ -15,6 +15,7 @@ from cell.config.placeholders import require_measured
 from cell.service.manager import CellService
 from cell.service.store import open_data_store
 from cell.templates import DEFAULT_TEMPLATE, template_path
+from drivers.errors import StoreError
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_DATA_DIR = Path("data")
@@ -35,5 +36,10 @@ def build_service(settings: ServiceSettings) -> CellService:
     config, data = load_config_data(settings.config_file)
     require_measured(settings.config_file, config.mode)
     store = open_data_store(settings.data_dir, settings.db_url)
+    try:
+        lease = store.claim_cell(config.name)
+    except StoreError:
+        store.close()
+        raise
     return CellService(config=config, config_data=data, config_file=str(settings.config_file),
-                       data_dir=settings.data_dir.resolve(), store=store)
+                       data_dir=settings.data_dir.resolve(), store=store, lease=lease)

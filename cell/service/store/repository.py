@@ -22,6 +22,7 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from cell.service.store.engine import open_engine, sqlite_url, store_error
+from cell.service.store.lease import CellLease
 from cell.service.store.models import JobRow, KeyRow, LineStateRow, LineTransitionRow
 from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord, LineRecord, LineTransition
 from drivers.errors import ServiceError, StoreError
@@ -62,6 +63,11 @@ class Store:
     def close(self) -> None:
         """Close every pooled connection; the store is not used afterwards."""
         self._engine.dispose()
+
+    def claim_cell(self, cell: str) -> CellLease:
+        """Cell ``cell``'s lease (:mod:`cell.service.store.lease`), for a service to hold while it serves
+        the cell; ``StoreError`` when another service holds it."""
+        return CellLease(self._engine, cell, self.url)
 
     @contextlib.contextmanager
     def _session(self, action: str, *, conflict: str | None = None) -> Iterator[Session]:
