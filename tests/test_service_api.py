@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -35,8 +36,8 @@ from cell.service.keys import create_key
 from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
 from cell.service.startup import ServiceSettings
-from cell.service.store import JobRecord, open_data_store
-from drivers.errors import JobError
+from cell.service.store import FINISHED_STATUSES, JobRecord, open_data_store
+from drivers.errors import JobError, StoreError
 from drivers.sim.objects import load_object
 
 from .conftest import FRANKA
@@ -160,6 +161,48 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
         ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
         assert ended["status"] == "stopped", ended["termination"]
         assert "hands in the cell" in ended["termination"] and "was killed" in ended["termination"]
+
+
+def test_a_job_store_outage_delays_a_job_start_and_end_but_loses_neither(tmp_path):
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    away = threading.Event()
+    with client:
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        update = store.update_job
+
+        def flaky(job_id: str, **changes: Any) -> JobRecord:
+            if away.is_set():
+                raise StoreError("job store: the database does not answer")
+            return update(job_id, **changes)
+
+        store.update_job = flaky
+        away.set()
+        try:
+            first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
+            time.sleep(2.5)  # the start tried thrice
+            waiting = store.get_job(first["id"])
+            assert waiting.status == "queued"
+            assert not (Path(waiting.folder) / "frames").exists()  # its worker never had the job
+        finally:
+            away.clear()
+        assert _wait(client, viewer, first["id"], set(FINISHED_STATUSES))["status"] == "completed"
+
+        second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
+        _wait(client, viewer, second["id"], {"running"})
+        away.set()
+        deadline = time.monotonic() + 90.0
+        folder = Path(store.get_job(second["id"]).folder)
+        while not (folder / "result.json").exists():  # the job ends meanwhile
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        time.sleep(1.5)
+        assert store.get_job(second["id"]).status == "running"
+        away.clear()
+        ended = _wait(client, viewer, second["id"], set(FINISHED_STATUSES), timeout_s=10.0)
+        assert ended["status"] == "completed" and ended["result"]["status"] == "completed"
+        third = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
+        assert _wait(client, viewer, third["id"], set(FINISHED_STATUSES))["status"] == "completed"
 
 
 def _open_pipes() -> int:

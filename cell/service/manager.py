@@ -49,11 +49,13 @@ from cell.service.store import FINISHED_STATUSES, JobRecord, Store
 from cell.service.store.lease import CellLease
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
-from drivers.errors import ServiceError
+from drivers.errors import ServiceError, StoreError
 
 LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
 RECOVER_TIMEOUT_S = 60.0
+STORE_RETRY_S = 1.0
+"""How often a job's start or end the store did not take is tried again [s]."""
 LEASE_CHECK_S = 5.0
 """How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]."""
 """How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
@@ -366,11 +368,14 @@ class CellService:
         stopped too (Stopping, then Stopped)."""
         if self.line is not None:
             self.line.operator_stop(reason)
-        self._held = f"held after a stop ({reason}): resume the queue to go on (POST /api/v1/queue/resume)"
+        self._hold(reason)
         running = self._running
         if running is None:
             return self._logged(StopOutcome(None, False, "nothing was moving; the queue is held"), reason)
         return self._logged(await self._stop_running(running, reason), reason)
+
+    def _hold(self, reason: str) -> None:
+        self._held = f"held after a stop ({reason}): resume the queue to go on (POST /api/v1/queue/resume)"
 
     @staticmethod
     def _logged(outcome: StopOutcome, reason: str) -> StopOutcome:
@@ -473,7 +478,8 @@ class CellService:
     async def _recover_in_worker(self) -> dict[str, Any]:
         spec = WorkerSpec(op="recover", job_id="recover", config=self._config_data,
                           config_file=self._config_file)
-        proc = await self._spawn(spec, self._logs_dir / "worker-recover.log")
+        proc = await self._worker(self._logs_dir / "worker-recover.log", spec.job_id)
+        await self._hand(proc, spec)
         assert proc.stdout is not None
         report: dict[str, Any] = {"ok": False, "message": "the recovery worker ended without an answer"}
         try:
@@ -496,21 +502,23 @@ class CellService:
                 sys.executable, "-m", WORKER_MODULE, "--job", label, stdin=asyncio.subprocess.PIPE,
                 stdout=asyncio.subprocess.PIPE, stderr=log, start_new_session=True, limit=LINE_LIMIT)
 
-    async def _spawn(self, spec: WorkerSpec, log_path: Path, *,
-                     warm: bool = False) -> asyncio.subprocess.Process:
-        """A worker given ``spec``: the warm spare when ``warm`` and one is ready (its log renamed to
-        ``log_path``), else a new process."""
+    async def _worker(self, log_path: Path, label: str, *, warm: bool = False) -> asyncio.subprocess.Process:
+        """A worker for a job (``label``): the warm spare when ``warm`` and one is ready (its log renamed
+        to ``log_path``), else a new process. It waits for its spec (:meth:`_hand`)."""
         proc, self._spare = (self._spare, None) if warm else (None, self._spare)
         if proc is not None and proc.returncode is None:
             os.replace(self._spare_log, log_path)
-        else:
-            if proc is not None:  # the spare died waiting (its log says why)
-                await self._reap(proc)
-            proc = await self._start_worker(log_path, spec.job_id)
+            return proc
+        if proc is not None:  # the spare died waiting (its log says why)
+            await self._reap(proc)
+        return await self._start_worker(log_path, label)
+
+    @staticmethod
+    async def _hand(proc: asyncio.subprocess.Process, spec: WorkerSpec) -> None:
+        """Give a worker its job: it starts at once."""
         assert proc.stdin is not None
         proc.stdin.write(spec.line())
         await proc.stdin.drain()
-        return proc
 
     async def _warm(self) -> None:
         """Start the next job's worker now (``service.warm_worker``): it loads its libraries and waits."""
@@ -542,24 +550,45 @@ class CellService:
                 queued = self._queued.pop(job_id)
                 running = self._running = _Running(queued.job, queued.origin)
                 try:
-                    await self._run(running, queued.source)
+                    started = await self._run(running, queued.source)
                 except Exception as exc:  # the job fails, the service goes on with the next
                     log.exception("job %s could not be run", job_id)
                     await self._finish(running, None, f"the service could not run the job: "
                                                       f"{type(exc).__name__}: {exc}")
+                    continue
+                if not started:  # the store does not answer: the job waits for it, first in the queue
+                    self._running = None
+                    running.gone.set()
+                    self._queued = {job_id: queued, **self._queued}
+                    if running.stop_reason is not None:  # and a stop of it came meanwhile
+                        self._hold(running.stop_reason)
+                    asyncio.get_running_loop().call_later(STORE_RETRY_S, self._wake.set)
+                    break
 
-    async def _run(self, running: _Running, source: str) -> None:
+    async def _run(self, running: _Running, source: str) -> bool:
+        """Run the job to its end; False when it did not start because the store did not record its
+        start (its worker is ended before it had the job: nothing moved)."""
         job = running.job
         spec = WorkerSpec(op="scan", job_id=job.id, config=self._config_data, config_file=self._config_file,
                           object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
                           planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
-        proc = running.proc = await self._spawn(spec, self._logs_dir / f"worker-{job.id}.log", warm=True)
+        proc = await self._worker(self._logs_dir / f"worker-{job.id}.log", job.id, warm=True)
+        try:
+            # recorded before the worker has its job: a job that moves the arm is always `running` in
+            # the store, with the worker a restart settles
+            running.job = await asyncio.to_thread(self.store.update_job, job.id, status="running",
+                                                  started_at=_now(), worker_pid=proc.pid)
+        except StoreError as exc:
+            log.warning("job not started: %s", exc, extra={"job_id": job.id})
+            self._kill(proc)
+            await self._reap(proc)
+            return False
+        await self._hand(proc, spec)
+        running.proc = proc  # a stop that came before is carried out below, after the spec
         if self._warm_beside_jobs:
             await self._warm()
         if running.stop_reason is not None:
             await self._stop_running(running, running.stop_reason)
-        running.job = await asyncio.to_thread(self.store.update_job, job.id, status="running",
-                                              started_at=_now(), worker_pid=proc.pid)
         self.arm.job_started()
         log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
         self.events.log(job.id).publish("state", {"status": "running", "termination": None})
@@ -575,6 +604,7 @@ class CellService:
                 await self._record_end(running)
         code = await proc.wait()
         await self._finish(running, code)
+        return True
 
     def _take(self, running: _Running, message: dict[str, Any]) -> None:
         """One line from the job's worker."""
@@ -623,14 +653,37 @@ class CellService:
         self.arm.job_ended(termination)
         log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
                 termination, extra={"job_id": job.id, "part_id": job.part_id, "status": status})
-        await asyncio.to_thread(self.store.update_job, job.id, status=status, termination=termination,
-                                result=result, finished_at=_now(), worker_pid=None, progress=running.progress)
+        await self._until_stored(job.id, status=status, termination=termination, result=result,
+                                 finished_at=_now(), worker_pid=None, progress=running.progress)
         # the line hears once the store has the outcome: a line that reads the job finds it ended
         if self.line is not None:
             self.line.job_ended(job.id, status, termination, result)
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
+
+    async def _until_stored(self, job_id: str, **changes: Any) -> None:
+        """Write a job's ``changes`` to the store, again every ``STORE_RETRY_S`` while it does not answer:
+        a job's end is never dropped (it stayed ``running`` until a restart). Given up only when the
+        service shuts down; its next start settles the job from its folder."""
+        waited = False
+        while True:
+            try:
+                await asyncio.to_thread(self.store.update_job, job_id, **changes)
+            except StoreError as exc:
+                if self._closing:
+                    log.error("job's end not recorded, the service shutting down: %s", exc,
+                              extra={"job_id": job_id})
+                    return
+                if not waited:
+                    log.warning("job's end not recorded yet, again every %g s: %s", STORE_RETRY_S, exc,
+                                extra={"job_id": job_id})
+                waited = True
+                await asyncio.sleep(STORE_RETRY_S)
+                continue
+            if waited:
+                log.warning("job's end recorded once the store answered", extra={"job_id": job_id})
+            return
 
     async def _finish(self, running: _Running, code: int | None, failure: str | None = None) -> None:
         """The job's worker has exited: the arm is free for the next job."""
