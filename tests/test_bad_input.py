@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -174,6 +176,26 @@ def test_ctrl_c_in_a_scan_stops_it_and_exits_130_with_the_folder(tmp_path, monke
     assert res.exit_code == 130
     assert "interrupted (Ctrl-C)" in res.output and f"job folder: {tmp_path / 'j'}" in res.output
     assert json.loads((tmp_path / "j" / "result.json").read_text())["status"] == "stopped"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_or_sighup_in_a_scan_stops_the_arm_and_finishes_the_folder(tmp_path, monkeypatch, sig):
+    def terminated(self, session):
+        session.wait(0.5)
+        os.kill(os.getpid(), sig)  # as systemd, docker stop or a closed terminal would
+        session.wait(5.0)
+
+    monkeypatch.setattr(runner.get_planner("raster"), "run", terminated)
+    before = signal.getsignal(sig)
+    res = _scan("--object", "cube", "--planner", "raster", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 128 + sig
+    name = signal.Signals(sig).name
+    assert f"stopped: operator stop: received {name}" in res.output
+    result = json.loads((tmp_path / "j" / "result.json").read_text())
+    assert result["status"] == "stopped"
+    assert result["termination"] == f"safety stop: operator stop: received {name}"
+    assert any(name in stop["reason"] for stop in result["safety"]["stops"])  # the guard stopped the arm
+    assert signal.getsignal(sig) == before
 
 
 def test_progress_lines_on_a_pipe_every_few_seconds_of_job_time(tmp_path):

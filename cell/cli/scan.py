@@ -3,7 +3,11 @@ job, writing its job folder."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+from collections.abc import Iterator
 from pathlib import Path
+from types import FrameType
 from typing import Annotated
 
 import typer
@@ -23,6 +27,8 @@ from drivers.sim.objects import EMPTY_TABLE
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_OBJECT = "bunny"
+TERMINATING = (signal.SIGTERM, signal.SIGHUP)
+"""Signals that stop a scan as Ctrl-C does: systemd's and docker's stop, kill, a terminal closed."""
 
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
@@ -51,15 +57,37 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
                        max_time_s=max_time)
 
 
-def _stopped(job: PreparedScan, exc: Exception) -> typer.Exit:
+@contextlib.contextmanager
+def _signals_interrupt() -> Iterator[list[int]]:
+    """While inside, ``TERMINATING`` signals interrupt the scan as Ctrl-C does, naming themselves: the arm
+    is stopped through the guard and the job folder finished (the default action ended the process with
+    the arm streaming until the controller's watchdog, and no result.json). Yields the signals received."""
+    received: list[int] = []
+
+    def interrupt(signum: int, _frame: FrameType | None) -> None:
+        received.append(signum)
+        raise KeyboardInterrupt(f"received {signal.Signals(signum).name}")
+
+    previous = {sig: signal.signal(sig, interrupt) for sig in TERMINATING}
+    try:
+        yield received
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Exit:
     """A scan that stopped or failed after its folder was made: ``stopped: <reason>`` for a stop (an
     operator's, a safety check's), else the error; then where the folder is (its log.txt holds the
-    traceback of an internal error)."""
+    traceback of an internal error). The exit code of a signal that stopped it is the shell's, 128 + its
+    number."""
     if isinstance(exc, SafetyStop):
         err_console.print(f"stopped: {exc.reason}", markup=False, highlight=False, soft_wrap=True)
     else:
         print_error(exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}")
     err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
+    if received:
+        return typer.Exit(code=128 + received[0])
     interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED
     return typer.Exit(code=EXIT_INTERRUPTED if interrupted else 1)
 
@@ -105,11 +133,12 @@ def scan(
         job = prepare_scan(request)
     except CellError as exc:
         raise fail(exc) from None
-    try:
-        with scan_progress(job.max_time_s) as show:
-            outcome = run_prepared(job, on_progress=show)
-    except Exception as exc:  # the job's folder holds its result whatever the error: say where it is
-        raise _stopped(job, exc) from None
+    with _signals_interrupt() as received:
+        try:
+            with scan_progress(job.max_time_s) as show:
+                outcome = run_prepared(job, on_progress=show)
+        except Exception as exc:  # the job's folder holds its result whatever the error: say where it is
+            raise _stopped(job, exc, received) from None
     r = outcome.result
     cov = r["metrics"]["coverage_pct"]
     console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)

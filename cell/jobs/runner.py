@@ -78,6 +78,12 @@ from drivers.transforms import T_from_xyz_rpy
 INTERRUPTED = "operator stop: interrupted (Ctrl-C)"
 
 
+def interrupt_reason(exc: KeyboardInterrupt) -> str:
+    """The operator stop an interrupt is: Ctrl-C's, or the one its raiser named (``cell scan`` raises one
+    naming SIGTERM or SIGHUP)."""
+    return f"operator stop: {exc.args[0]}" if exc.args else INTERRUPTED
+
+
 @dataclass(frozen=True)
 class ScanRequest:
     """What to scan and how. ``object_pose`` is (x [m], y [m], yaw [deg]) relative to the station;
@@ -350,10 +356,11 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             except SafetyStop:
                 session.settle()
                 raise
-            except KeyboardInterrupt:
-                guard.stop(INTERRUPTED)
+            except KeyboardInterrupt as exc:
+                reason = interrupt_reason(exc)
+                guard.stop(reason)
                 session.settle()
-                raise SafetyStop(INTERRUPTED) from None
+                raise SafetyStop(reason) from None
             except Exception as exc:
                 guard.stop(f"{type(exc).__name__}: {exc}")
                 session.settle()
@@ -368,8 +375,9 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                 termination = _no_object(session, termination)
     except SafetyStop as exc:
         status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
-    except KeyboardInterrupt:
-        status, termination, error = "stopped", f"safety stop: {INTERRUPTED}", SafetyStop(INTERRUPTED)
+    except KeyboardInterrupt as exc:
+        reason = interrupt_reason(exc)
+        status, termination, error = "stopped", f"safety stop: {reason}", SafetyStop(reason)
     except CellError as exc:
         status, termination, error = "failed", f"{type(exc).__name__}: {exc}", exc
     except Exception as exc:
