@@ -39,6 +39,11 @@ class DriverError(CellError):
         super().__init__(f"{device}: {message}")
 
 
+class DeviceFault(DriverError):
+    """A device latched a fault (its link gone, it stopped answering): every use fails until it is
+    reconnected, so retrying cannot help and a job that needs it ends."""
+
+
 class RobotFault(DriverError):
     """The arm reports a fault (protective stop, reflex, joint limit, disconnect); motion has stopped."""
 

@@ -17,7 +17,7 @@ from cell.perception.pipeline import PerceptionPipeline
 from drivers.clock import WallClock
 from drivers.depth.base import DepthFrame
 from drivers.depth.sim_tof import SimToF
-from drivers.errors import DriverError
+from drivers.errors import DeviceFault, DriverError
 from drivers.scheduling import is_realtime, ordinary_scheduling
 from drivers.sim.objects import load_object
 from drivers.sim.scene import SimScene
@@ -129,6 +129,35 @@ def test_a_worker_error_reaches_the_control_loop(live_rig) -> None:
             return False
 
         assert wait_for(raised)
+    finally:
+        live.stop()
+
+
+class _VanishingSensor:
+    """A sensor whose link went: every capture raises its latched fault."""
+
+    device = "vanished sim-tof"
+
+    def __init__(self) -> None:
+        self.captures = 0
+
+    def capture(self) -> DepthFrame:
+        self.captures += 1
+        raise DeviceFault("faulted: port vanished; reconnect to clear", device=self.device)
+
+
+def test_a_sensor_fault_reaches_the_control_loop_at_its_next_poll(live_rig) -> None:
+    _, pipeline, poses, _, T_flange_sensor = live_rig
+    vanished, logged = _VanishingSensor(), []
+    live = LivePerception(vanished, pipeline, poses, T_flange_sensor, record=lambda *_: None,
+                          log=logged.append)
+    live.start()
+    try:
+        assert wait_for(lambda: bool(logged))
+        with pytest.raises(DeviceFault, match="vanished sim-tof: faulted: port vanished"):
+            live.poll()
+        time.sleep(0.2)  # a capture thread that retried would have counted more by now
+        assert vanished.captures == 1 and live.n_capture_failures == 1
     finally:
         live.stop()
 

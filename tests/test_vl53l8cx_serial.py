@@ -19,7 +19,7 @@ from drivers.depth.vl53l8cx import protocol as p
 from drivers.depth.vl53l8cx.emulator import EmulatorFaults, SimToFSource, VL53L8CXEmulator, ZoneData
 from drivers.depth.vl53l8cx.i2c import VL53L8CXI2C, uld_to_sensor_order
 from drivers.depth.vl53l8cx.serial_driver import VL53L8CXSerial
-from drivers.errors import DriverError
+from drivers.errors import DeviceFault, DriverError
 from drivers.factory import make_sensor
 
 
@@ -132,16 +132,46 @@ def test_a_silent_port_is_a_fault():
     try:
         sensor = VL53L8CXSerial(_config(os.ttyname(slave), timeout_s=0.3))
         sensor.connect()
-        with pytest.raises(DriverError, match="silent"):
+        with pytest.raises(DeviceFault, match="the port is silent"):
             sensor.capture()
         assert not sensor.is_connected
-        with pytest.raises(DriverError, match="faulted"):
+        with pytest.raises(DeviceFault, match="faulted"):
             sensor.capture()
         # what the driver wrote is a valid command stream
         commands = p.FrameParser().feed(os.read(master, 4096))
         assert [c.command for c in commands] == [p.CMD_STOP, p.CMD_SET_RESOLUTION, p.CMD_SET_FREQUENCY,
                                                  p.CMD_START]
         assert [c.value for c in commands[1:3]] == [4, 60]
+        sensor.disconnect()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def _frame(seq: int) -> bytes:
+    n = 16
+    return p.encode(p.RangingFrame(seq, 1000 * seq, 4, np.full(n, 300, np.int16), np.full(n, 5, np.uint16),
+                                   np.full(n, 5, np.uint8), np.full(n, 50, np.uint8), np.ones(n, np.uint8)))
+
+
+@pytest.mark.parametrize("arrives, says", [
+    # every frame corrupted on the wire (a wrong baud rate, a bad cable)
+    (lambda: b"".join(_frame(k)[:-6] + b"\xff" + _frame(k)[-5:] for k in range(3)),
+     r"no frame for 0.3 s: \d+ bytes arrived but no valid frame \(3 failed their CRC\)"),
+    # the bridge rebooted: its banner and an unsolicited status, not ranging, then nothing
+    (lambda: p.encode(p.TextFrame(0, 0, "bridge v1"))
+     + p.encode(p.StatusFrame(1, 0, 0, p.RESULT_OK, False, 4, 60)),
+     r"no frame for 0.3 s: the bridge says it is not ranging \(it restarted\?\)"),
+])
+def test_a_port_that_delivers_no_frame_says_what_did_arrive(arrives, says):
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        sensor = VL53L8CXSerial(_config(os.ttyname(slave), timeout_s=0.3))
+        sensor.connect()
+        os.write(master, arrives())
+        with pytest.raises(DeviceFault, match=says):
+            sensor.capture()
         sensor.disconnect()
     finally:
         os.close(master)

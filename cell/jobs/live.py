@@ -10,8 +10,10 @@ Two threads besides the control loop:
   frame not yet picked up is replaced by a newer one and perception never lags; it processes the frame
   and records it in the job folder.
 
-The control loop polls :meth:`LivePerception.poll` every tick for the newest update. A sensor that fails
-is retried after a short pause and counted; an error in the worker ends the job at the next poll.
+The control loop polls :meth:`LivePerception.poll` every tick for the newest update. A capture that
+fails is retried after a short pause and counted; a sensor that latched a fault (``DeviceFault``: its
+link gone or silent, which no retry clears) and an error in the worker end the job at the next poll,
+naming the device, rather than after the perception watchdog's age limit.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import numpy as np
 
 from cell.perception.pipeline import AsyncPerception, PerceptionPipeline, PerceptionUpdate
 from drivers.depth.base import DepthFrame, DepthSensor
-from drivers.errors import DriverError
+from drivers.errors import DeviceFault, DriverError
 from drivers.scheduling import ordinary_scheduling
 from drivers.transforms import inv_T, rotation_from_rotvec, rotvec
 
@@ -96,6 +98,7 @@ class LivePerception:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._capture_loop, name="capture", daemon=True)
         self._last_seq: int | None = None
+        self._fault: DeviceFault | None = None
         self.n_capture_failures = 0
 
     def start(self) -> None:
@@ -114,7 +117,10 @@ class LivePerception:
         return self._worker.n_dropped
 
     def poll(self) -> PerceptionUpdate | None:
-        """The newest update if it is new since the last poll, else None; re-raises a worker error."""
+        """The newest update if it is new since the last poll, else None; re-raises a worker error or the
+        sensor's latched fault."""
+        if self._fault is not None:
+            raise self._fault
         update = self._worker.latest()
         if update is None or update.seq == self._last_seq:
             return None
@@ -127,6 +133,11 @@ class LivePerception:
             try:
                 frame = self._sensor.capture()
                 T_fk = self._poses.at(frame.timestamp) @ self._T_fs
+            except DeviceFault as exc:
+                self.n_capture_failures += 1
+                self._log(f"capture failed: {exc}")
+                self._fault = exc
+                return
             except DriverError as exc:
                 self.n_capture_failures += 1
                 self._log(f"capture failed: {exc}")

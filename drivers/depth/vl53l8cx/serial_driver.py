@@ -34,7 +34,7 @@ from drivers.depth.base import DepthFrame, DepthSensor, SensorModel
 from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.vl53l8cx import protocol as p
 from drivers.depth.vl53l8cx.frames import configured_correction, depth_frame, sensor_model
-from drivers.errors import DriverError
+from drivers.errors import DeviceFault, DriverError
 from drivers.scheduling import ordinary_scheduling
 
 READ_SLICE_S = 0.02
@@ -174,11 +174,11 @@ class VL53L8CXSerial(DepthSensor):
     def _now_us(self) -> int:
         return int(time.monotonic() * 1e6)
 
-    def _raise_fault(self, reason: str) -> DriverError:
+    def _raise_fault(self, reason: str) -> DeviceFault:
         with self._cond:
             self._fault = reason
             self._cond.notify_all()
-        return DriverError(reason, device=self.device)
+        return DeviceFault(reason, device=self.device)
 
     def _send(self, cmd: int, value: int | None) -> None:
         serial = import_serial()
@@ -225,6 +225,18 @@ class VL53L8CXSerial(DepthSensor):
                 else:
                     self.messages.append(frame.text)
 
+    def _silence(self, bytes_before: int, crc_before: int, status_before: p.StatusFrame | None) -> str:
+        """Why no RANGING frame came while waiting, from what did (the caller holds the lock): nothing at
+        all, a status saying the bridge no longer ranges (it restarted), or bytes that made no frame."""
+        arrived, crc = self._bytes_read - bytes_before, self._parser.stats.crc_errors - crc_before
+        status = self.last_status
+        if arrived == 0:
+            return "the port is silent"
+        if status is not None and status is not status_before and not status.ranging:
+            return "the bridge says it is not ranging (it restarted?); reconnect to start it again"
+        return (f"{arrived} bytes arrived but no valid frame ({crc} failed their CRC): check the baud rate "
+                f"and the cable")
+
     # -- capture ---------------------------------------------------------------------------------------
     def capture(self) -> DepthFrame:
         """The newest RANGING frame not returned yet, stamped with its arrival; older ones still waiting
@@ -234,14 +246,15 @@ class VL53L8CXSerial(DepthSensor):
             raise DriverError("capture while disconnected; call connect() first", device=self.device)
         deadline = time.monotonic() + self.config.timeout_s
         with self._cond:
+            before = (self._bytes_read, self._parser.stats.crc_errors, self.last_status)
             while not self._pending and self._fault is None:
                 left = deadline - time.monotonic()
                 if left <= 0.0:
-                    self._fault = f"no frame for {self.config.timeout_s:g} s: the port is silent"
-                    raise DriverError(self._fault, device=self.device)
+                    self._fault = f"no frame for {self.config.timeout_s:g} s: {self._silence(*before)}"
+                    raise DeviceFault(self._fault, device=self.device)
                 self._cond.wait(left)
             if self._fault is not None:
-                raise DriverError(f"faulted: {self._fault}; reconnect to clear", device=self.device)
+                raise DeviceFault(f"faulted: {self._fault}; reconnect to clear", device=self.device)
             arrived, raw = self._pending[-1]
             self._skipped += len(self._pending) - 1
             self._pending.clear()
