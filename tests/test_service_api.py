@@ -155,7 +155,10 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
     op = _auth(keys["operator"])
     with client:
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
-        _wait(client, keys["viewer"], job["id"], {"running"})
+        deadline = time.monotonic() + 90.0
+        while client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["progress"] is None:  # it started
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
         stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "hands in the cell"}, headers=op)
         assert stop.status_code == 200 and "was killed" in stop.json()["message"]
         ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
@@ -203,6 +206,21 @@ def test_a_job_store_outage_delays_a_job_start_and_end_but_loses_neither(tmp_pat
         assert ended["status"] == "completed" and ended["result"]["status"] == "completed"
         third = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
         assert _wait(client, viewer, third["id"], set(FINISHED_STATUSES))["status"] == "completed"
+
+
+def test_a_stop_ends_a_job_whose_worker_is_still_starting_at_once(tmp_path):
+    """A worker loading its libraries cannot confirm a stop for seconds, and has not touched the arm: it
+    is ended at once rather than after ``stop_confirm_timeout_s`` (here longer than any load)."""
+    client, keys = _client_with(tmp_path, "cold", service={"warm_worker": False,
+                                                          "stop_confirm_timeout_s": 60})
+    op = _auth(keys["operator"])
+    with client:
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+        assert stop.status_code == 200 and stop.json()["arm_commanded"] is False
+        ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
+        assert ended["status"] == "stopped", ended["termination"]
+        assert "wrong part" in ended["termination"] and "before any motion" in ended["termination"]
 
 
 def _open_pipes() -> int:

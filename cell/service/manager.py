@@ -76,14 +76,16 @@ class _Queued:
 
 @dataclass
 class _Running:
-    """The job on the arm: its worker (None while it is being started), a stop asked for meanwhile, the
-    stop confirmations the worker owes, the stop its worker was killed for (it did not confirm in time),
+    """The job on the arm: its worker (None while it is being started), whether the worker said it
+    started (it says so before it touches the arm), a stop asked for meanwhile, the stop confirmations
+    the worker owes, the stop its worker was killed for (it did not confirm in time, or had not started),
     its newest progress, its worker's last word, whether its end is recorded (the worker may still be
     exiting) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
     proc: asyncio.subprocess.Process | None = None
+    started: bool = False
     stop_reason: str | None = None
     acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
     killed_for: str | None = None
@@ -410,6 +412,14 @@ class CellService:
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
         if running.ended is not None or proc.returncode is not None:
             return StopOutcome(job_id, False, "the job had already ended")
+        await asyncio.sleep(0)  # a "started" the worker sent is read first
+        if not running.started:
+            # still loading its libraries, it cannot answer for seconds, and it has not touched the arm:
+            # ended now, the stop takes milliseconds rather than the confirmation's timeout and a kill
+            running.killed_for = f"{reason} (ended while its worker was starting, before any motion)"
+            self._kill(proc)
+            return StopOutcome(job_id, False, "the job's worker was still starting: it was ended before "
+                                              "any motion")
         ack: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
         running.acks.append(ack)
         try:
@@ -621,6 +631,8 @@ class CellService:
             ack = running.acks.popleft()
             if not ack.done():
                 ack.set_result(bool(message.get("commanded")))
+        elif kind == "started":
+            running.started = True
         elif kind == "ended":
             running.ended = message
 
