@@ -160,6 +160,9 @@ def test_invalid_input_names_the_field(served: ServedCell):
     bad_pose = invoke(served, "submit", "--object-pose", "1,2")
     assert bad_pose.exit_code == 1
     assert "--object-pose" in one_error_line(bad_pose.stderr)
+    for option, value in (("--object-pose", "0,0,nan"), ("--max-time", "nan"), ("--max-time", "inf")):
+        refused = invoke(served, "submit", "--object", "bunny", option, value)  # JSON has no NaN: a traceback
+        assert refused.exit_code == 1 and one_error_line(refused.stderr).startswith(f"error: {option}")
     unknown = invoke(served, "show", "0000000000000000")
     assert unknown.exit_code == 1
     assert one_error_line(unknown.stderr).startswith("error: 404 no job '0000000000000000'")

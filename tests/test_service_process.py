@@ -15,6 +15,7 @@ import csv
 import http.client
 import itertools
 import json
+import socket
 import subprocess
 import time
 from collections.abc import Callable, Iterator
@@ -280,6 +281,19 @@ def test_a_second_service_of_the_cell_refuses_to_start_and_leaves_its_scan_alone
     assert "cell 'sim-franka-rgbd' is served by another service" in second.stdout + second.stderr
     assert "Traceback" not in second.stderr
     assert franka.wait_job(job["id"], ENDED)["status"] == "completed"
+
+
+def test_a_port_in_use_is_one_line_before_anything_is_touched(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        command = [*CELL, "serve", "--config", str(FRANKA), "--data-dir", str(tmp_path / "data"), "--port",
+                   str(port)]
+        refused = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 1, refused.stdout + refused.stderr
+    assert refused.stderr.startswith(f"error: cannot listen on 127.0.0.1:{port}: Address already in use")
+    assert refused.stderr.count("\n") == 1 and not (tmp_path / "data").exists()
 
 
 # ---------------------------------------------------------------------------------------------- 3. kill -9

@@ -100,8 +100,10 @@ def _parse_pose(text: str) -> list[float]:
         if len(parts) != 3:
             raise ValueError
         pose = [float(p) for p in parts]
+        if not all(math.isfinite(v) for v in pose):
+            raise ValueError
     except ValueError:
-        raise fail(f"--object-pose: expected x,y,yaw_deg (three numbers), got {text!r}") from None
+        raise fail(f"--object-pose: expected x,y,yaw_deg (three finite numbers), got {text!r}") from None
     return pose
 
 
@@ -147,9 +149,9 @@ def follow_job(client: ApiClient, job_id: str, timeout_s: float | None) -> int:
     return 0 if status == "completed" else EXIT_NOT_COMPLETED
 
 
-def _check_timeout(timeout_s: float | None) -> None:
-    if timeout_s is not None and not (math.isfinite(timeout_s) and timeout_s > 0):
-        raise fail(f"--timeout must be a positive number of seconds, got {timeout_s:g}")
+def _check_seconds(option: str, seconds: float | None) -> None:
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise fail(f"{option} must be a positive number of seconds, got {seconds:g}")
 
 
 def _wait_exit(client: ApiClient, job_id: str, timeout_s: float | None) -> typer.Exit:
@@ -178,7 +180,8 @@ def submit(
     """Queue a scan; prints the job's id alone on the last line (with --wait: first, then its progress)."""
     if timeout is not None and not wait:
         raise fail("--timeout is for --wait")
-    _check_timeout(timeout)
+    _check_seconds("--timeout", timeout)
+    _check_seconds("--max-time", max_time)
     body: dict[str, Any] = {"planner": planner, "object": object,
                             "object_pose": _parse_pose(object_pose) if object_pose is not None else None,
                             "seed": seed, "max_time_s": max_time, "part_id": part_id}
@@ -384,7 +387,7 @@ def wait(
     """Follow a job until it ends: a progress line at most every second, then its status.
 
     Exit code 0 when it completed, 2 when it ended otherwise, 1 on an error or timeout."""
-    _check_timeout(timeout)
+    _check_seconds("--timeout", timeout)
     with _client(server, key) as client:
         raise _wait_exit(client, job_id, timeout)
 

@@ -25,7 +25,7 @@ from cell.service.notify import Notifier
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
 from cell.templates import DEFAULT_TEMPLATE
 from drivers.errors import CellError
-from drivers.hosts import is_loopback
+from drivers.hosts import is_loopback, listen_problem
 
 err_console = Console(stderr=True)
 SHUTDOWN_GRACE_S = 2
@@ -46,6 +46,10 @@ def serve(
 ) -> None:
     """Run the cell as a service: REST API under /api/v1, docs at /docs."""
     try:
+        # before the service takes its cell and settles what a previous run left
+        problem = listen_problem(host, port)
+        if problem is not None:
+            raise CellError(f"cannot listen on {host}:{port}: {problem} (--host, --port)")
         notifier = Notifier()
         service = build_service(ServiceSettings(config_file=config, data_dir=data_dir, db_url=db))
         has_keys = bool(service.store.active_keys())
