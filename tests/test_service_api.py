@@ -75,6 +75,14 @@ def _wait(client: TestClient, key: str, job_id: str, statuses: set[str], timeout
         time.sleep(0.05)
 
 
+def _wait_started(client: TestClient, key: str, job_id: str) -> None:
+    """Until the job's worker has started it (its first progress)."""
+    deadline = time.monotonic() + 90.0
+    while client.get(f"/api/v1/jobs/{job_id}", headers=_auth(key)).json()["progress"] is None:
+        assert time.monotonic() < deadline, f"job {job_id} did not start"
+        time.sleep(0.05)
+
+
 @pytest.fixture
 def served(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
     client, keys = _client(tmp_path)
@@ -155,10 +163,7 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
     op = _auth(keys["operator"])
     with client:
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
-        deadline = time.monotonic() + 90.0
-        while client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["progress"] is None:  # it started
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+        _wait_started(client, keys["viewer"], job["id"])
         stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "hands in the cell"}, headers=op)
         assert stop.status_code == 200 and "was killed" in stop.json()["message"]
         ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
@@ -221,6 +226,26 @@ def test_a_stop_ends_a_job_whose_worker_is_still_starting_at_once(tmp_path):
         ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
         assert ended["status"] == "stopped", ended["termination"]
         assert "wrong part" in ended["termination"] and "before any motion" in ended["termination"]
+
+
+def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_path):
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    with client:
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
+        _wait_started(client, viewer, first["id"])
+        os.kill(store.get_job(first["id"]).worker_pid, signal.SIGKILL)
+        ended = _wait(client, viewer, first["id"], set(FINISHED_STATUSES))
+        assert ended["status"] == "failed"
+        assert "ended unexpectedly (killed by SIGKILL)" in ended["termination"]
+        held = client.get("/api/v1/cell", headers=op).json()["queue"]["held"]
+        assert "worker ended unexpectedly" in held and "check the arm" in held
+        time.sleep(1.0)  # what would start the next job starts at once: a second is ample
+        assert client.get(f"/api/v1/jobs/{second['id']}", headers=op).json()["status"] == "queued"
+        assert client.post("/api/v1/queue/resume", headers=op).status_code == 200
+        assert _wait(client, viewer, second["id"], set(FINISHED_STATUSES))["status"] == "completed"
 
 
 def _open_pipes() -> int:

@@ -370,14 +370,14 @@ class CellService:
         stopped too (Stopping, then Stopped)."""
         if self.line is not None:
             self.line.operator_stop(reason)
-        self._hold(reason)
+        self._hold(f"a stop ({reason})")
         running = self._running
         if running is None:
             return self._logged(StopOutcome(None, False, "nothing was moving; the queue is held"), reason)
         return self._logged(await self._stop_running(running, reason), reason)
 
-    def _hold(self, reason: str) -> None:
-        self._held = f"held after a stop ({reason}): resume the queue to go on (POST /api/v1/queue/resume)"
+    def _hold(self, after: str) -> None:
+        self._held = f"held after {after}: resume the queue to go on (POST /api/v1/queue/resume)"
 
     @staticmethod
     def _logged(outcome: StopOutcome, reason: str) -> StopOutcome:
@@ -571,7 +571,7 @@ class CellService:
                     running.gone.set()
                     self._queued = {job_id: queued, **self._queued}
                     if running.stop_reason is not None:  # and a stop of it came meanwhile
-                        self._hold(running.stop_reason)
+                        self._hold(f"a stop ({running.stop_reason})")
                     asyncio.get_running_loop().call_later(STORE_RETRY_S, self._wake.set)
                     break
 
@@ -654,6 +654,10 @@ class CellService:
                 exit_text = _exit_text(code or 0)
                 status = "failed"
                 termination = failure or f"the job's worker process ended unexpectedly ({exit_text})"
+                if failure is None:
+                    # no one stopped the arm through the guard, only the controller's watchdog: a person
+                    # looks before the next job moves it
+                    self._hold(f"the job's worker ended unexpectedly ({exit_text}); check the arm")
             result = await asyncio.to_thread(finish_folder, Path(job.folder), job, status, termination)
         else:
             status, termination = ended["status"], ended["termination"]
