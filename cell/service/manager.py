@@ -54,11 +54,11 @@ from drivers.errors import ServiceError, StoreError
 LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
 RECOVER_TIMEOUT_S = 60.0
+"""How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
 STORE_RETRY_S = 1.0
 """How often a job's start or end the store did not take is tried again [s]."""
 LEASE_CHECK_S = 5.0
 """How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]."""
-"""How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
 
