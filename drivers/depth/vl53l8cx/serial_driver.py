@@ -105,6 +105,7 @@ class VL53L8CXSerial(DepthSensor):
         self._seq = 0
         self.last_raw: p.RangingFrame | None = None
         self.last_status: p.StatusFrame | None = None
+        self._at_last_frame: tuple[int, int, p.StatusFrame | None] = (0, 0, None)
         self.messages: deque[str] = deque(maxlen=20)
 
     @property
@@ -122,6 +123,7 @@ class VL53L8CXSerial(DepthSensor):
         self._bytes_read = 0
         self._ranging_frames = 0
         self._skipped = 0
+        self._at_last_frame = (0, 0, self.last_status)
         try:
             self._serial = serial.serial_for_url(self.port_url, baudrate=self.config.baudrate,
                                                  timeout=READ_SLICE_S, write_timeout=self.config.timeout_s)
@@ -213,6 +215,8 @@ class VL53L8CXSerial(DepthSensor):
                 self._sequence.add(frame.seq)
                 if isinstance(frame, p.RangingFrame):
                     self._ranging_frames += 1
+                    self._at_last_frame = (self._parser.stats.bytes_discarded, self._parser.stats.crc_errors,
+                                           self.last_status)
                     self._pending.append((arrived, frame))
                     self._cond.notify_all()
                 elif isinstance(frame, p.StatusFrame):
@@ -225,17 +229,19 @@ class VL53L8CXSerial(DepthSensor):
                 else:
                     self.messages.append(frame.text)
 
-    def _silence(self, bytes_before: int, crc_before: int, status_before: p.StatusFrame | None) -> str:
-        """Why no RANGING frame came while waiting, from what did (the caller holds the lock): nothing at
-        all, a status saying the bridge no longer ranges (it restarted), or bytes that made no frame."""
-        arrived, crc = self._bytes_read - bytes_before, self._parser.stats.crc_errors - crc_before
-        status = self.last_status
-        if arrived == 0:
-            return "the port is silent"
+    def _silence(self) -> str:
+        """Why no RANGING frame came, from what did since the last one (or the connection; the caller
+        holds the lock): a status saying the bridge no longer ranges (it restarted), bytes that made no
+        frame, or nothing (a loop:// port's echo of our own commands is nothing)."""
+        discarded_before, crc_before, status_before = self._at_last_frame
+        stats, status = self._parser.stats, self.last_status
+        discarded, crc = stats.bytes_discarded - discarded_before, stats.crc_errors - crc_before
         if status is not None and status is not status_before and not status.ranging:
             return "the bridge says it is not ranging (it restarted?); reconnect to start it again"
-        return (f"{arrived} bytes arrived but no valid frame ({crc} failed their CRC): check the baud rate "
-                f"and the cable")
+        if discarded == 0 and crc == 0:
+            return "the port is silent"
+        return (f"{discarded} bytes arrived that made no frame ({crc} failed their CRC): check the baud "
+                f"rate and the cable")
 
     # -- capture ---------------------------------------------------------------------------------------
     def capture(self) -> DepthFrame:
@@ -246,11 +252,10 @@ class VL53L8CXSerial(DepthSensor):
             raise DriverError("capture while disconnected; call connect() first", device=self.device)
         deadline = time.monotonic() + self.config.timeout_s
         with self._cond:
-            before = (self._bytes_read, self._parser.stats.crc_errors, self.last_status)
             while not self._pending and self._fault is None:
                 left = deadline - time.monotonic()
                 if left <= 0.0:
-                    self._fault = f"no frame for {self.config.timeout_s:g} s: {self._silence(*before)}"
+                    self._fault = f"no frame for {self.config.timeout_s:g} s: {self._silence()}"
                     raise DeviceFault(self._fault, device=self.device)
                 self._cond.wait(left)
             if self._fault is not None:
