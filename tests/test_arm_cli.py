@@ -56,24 +56,42 @@ def tcp_position(output: str) -> np.ndarray:
     return np.array([float(v) for v in match.groups()])
 
 
+def run_ok(command: str, cell_file: Path) -> str:
+    """The output of ``cell arm <command> --config <cell_file>``, which must succeed."""
+    result = CliRunner().invoke(arm_app, [command, "--config", str(cell_file)])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
 def test_status_prints_the_tcp_pose_then_a_protective_stop_until_recovered(peer: ControllerPeer,
                                                                            cell_file: Path) -> None:
-    runner = CliRunner()
-    result = runner.invoke(arm_app, ["status", "--config", str(cell_file)])
-    assert result.exit_code == 0, result.output
-    assert "arm ur5e: connected" in result.output and "faults: none" in result.output
-    assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+    output = run_ok("status", cell_file)
+    assert "arm ur5e: connected" in output and "faults: none" in output
+    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
 
     peer.protective_stop()
-    result = runner.invoke(arm_app, ["status", "--config", str(cell_file)])
-    assert result.exit_code == 0, result.output
-    assert "protective stop" in result.output and "safety mode PROTECTIVE_STOP" in result.output
-    assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+    output = run_ok("status", cell_file)
+    assert "protective stop" in output and "safety mode PROTECTIVE_STOP" in output
+    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
 
-    result = runner.invoke(arm_app, ["recover", "--config", str(cell_file)])
-    assert result.exit_code == 0, result.output
-    assert "faults: none" in result.output and "safety mode NORMAL" in result.output
+    output = run_ok("recover", cell_file)
+    assert "faults: none" in output and "safety mode NORMAL" in output
     assert any("unlocked" in e for e in peer.state()["events"])
+
+
+def test_status_and_recover_after_a_released_emergency_stop(peer: ControllerPeer, cell_file: Path) -> None:
+    """After an emergency stop is released the robot is powered off: status says so (not that the script
+    port failed) and recover powers it on and releases the brakes."""
+    peer.emergency_stop()
+    peer.release_emergency_stop()
+    output = run_ok("status", cell_file)
+    assert "robot mode POWER_OFF" in output and "faults: power off" in output
+    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
+
+    output = run_ok("recover", cell_file)
+    assert "faults: none" in output and "robot mode RUNNING" in output
+    assert peer.state()["robot_mode"] == "RUNNING"
+    assert not any("program refused" in e for e in peer.state()["events"])
 
 
 def flange_motion(before: list[float], after: list[float]) -> np.ndarray:

@@ -154,6 +154,25 @@ def test_emergency_stop_cannot_be_cleared_from_software(peer: ControllerPeer, ur
     assert ur.arm.state().faults == () and peer.state()["robot_mode"] == "RUNNING"
 
 
+def test_an_arm_powered_off_after_a_released_emergency_stop_connects_and_recover_powers_it_on(
+        peer: ControllerPeer) -> None:
+    """A released emergency stop leaves the robot powered off (robot mode POWER_OFF, safety NORMAL), as at
+    boot: connecting reads the state and does not upload a control script the controller would not run,
+    and recover powers the arm on, releases the brakes and starts the script."""
+    peer.emergency_stop()
+    peer.release_emergency_stop()
+    with ur5e_backend(peer) as ur:
+        arm = _ur(ur)
+        assert "power off" in arm.state().faults and arm.controller_modes()["robot mode"] == "POWER_OFF"
+        state = peer.state()
+        assert state["scripts_uploaded"] == 0 and not any("program refused" in e for e in state["events"])
+        arm.recover()
+        assert arm.state().faults == () and peer.state()["robot_mode"] == "RUNNING"
+        assert peer.state()["program_running"] and peer.state()["scripts_uploaded"] == 1
+        assert np.allclose(peer.state()["tcp_offset"], [0, 0, 0.05, 0, 0, 0])
+        _twist_moves_the_flange_up(peer, ur)
+
+
 def test_digital_inputs_trigger_and_busy_done_outputs(peer: ControllerPeer, ur: Backend) -> None:
     arm = ur.arm
     assert isinstance(arm, UR5eArm)

@@ -9,6 +9,9 @@ interface reconnects by itself and then runs two receive threads on one socket, 
 process; its IO interface's destructor aborts the process), and in a child that is a fault, not the end of
 the program. ``connect`` first opens each controller port with ``connect_timeout_s`` so an unreachable
 controller fails fast with its address, and asks the dashboard whether the pendant is in remote control.
+It starts the control script only on a robot that runs normally: a stopped or powered-off one (robot mode
+POWER_OFF after an emergency stop is released, or at boot) is connected for reading, shows its fault, and
+``recover`` powers it on and starts the script.
 A port that accepts the connection but then closes it or never answers (another device at that address,
 a controller still booting, a service disabled in PolyScope) fails with the port, what happened and what
 to check, not ur-rtde's bare "Operation canceled" or "End of file".
@@ -158,9 +161,11 @@ class UR5eArm(HardwareArm):
         self._connected = True
 
     def _open(self) -> None:
-        """Start a child process and connect its clients; the control script only when the robot is not
-        stopped (a stopped robot cannot start it: connect for reading, so that its fault shows, and let
-        ``recover`` start it once the operator has cleared the stop)."""
+        """Start a child process and connect its clients; the control script only when the robot runs
+        normally: a stopped robot, or one powered off (robot mode POWER_OFF, as after an emergency stop is
+        released or at boot) does not start it, and ur-rtde would wait out its 5 s for it and fail as if
+        the script port were at fault. Connect for reading instead, so that the fault shows, and let
+        ``recover`` start the script once the operator has cleared the stop or powered the arm on."""
         cfg = self._config
         self._proc = RTDEProcess()
         self._proc.start()
@@ -178,7 +183,8 @@ class UR5eArm(HardwareArm):
             step = "RTDE"
             self._proc.call("receive_connect", cfg.host, cfg.rtde_frequency_hz, RECEIVE_VARIABLES,
                             timeout_s=timeout)
-            if self._snapshot()["safety_mode"] not in SAFETY_FAULT_WORDS:
+            snap = self._snapshot()
+            if snap["safety_mode"] not in SAFETY_FAULT_WORDS and snap["robot_mode"] == ROBOT_MODE_RUNNING:
                 step = "script"
                 self._start_control()
         except (ClientError, ClientGone) as exc:

@@ -26,7 +26,13 @@ since the previous one (the cycle is 2 ms; a late one integrates what passed, up
 speedL holds a TCP twist reached with the commanded acceleration, servoJ/servoL follow the target with
 their lookahead time as a first-order lag (within joint speed limits), so the arm trails a streamed
 trajectory as the controller's servo does, stops decelerate. A protective or emergency stop halts the
-arm at once and ends the running program, like the controller; the RTDE watchdog set by the script
+arm at once and ends the running program, like the controller. Releasing an emergency stop leaves the
+robot powered off (robot mode POWER_OFF, safety mode NORMAL), as a UR does: the e-Series user manual has
+the operator power the arm on and release the brakes again after a reset, and the dashboard's ``power on``
+and ``brake release`` do that (here at once; a real arm passes through POWER_ON and IDLE before
+RUNNING). An uploaded program runs only on a robot running normally (assumption: a UR does
+not start a program on a powered-off or stopped robot, which is what ur-rtde's "Failed to start control
+script" reports on one); the peer logs its refusal. The RTDE watchdog set by the script
 (``set_watchdog``) ends the program when the command register is not refreshed at the set frequency.
 The watchdog counts the controller's own time (``cycle_s``): a real controller's cycle never stops, but
 this Python process can be descheduled on a loaded machine, and its own stall is not the client's
