@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.arm.base import ArmMode
+from drivers.arm.base import ArmMode, JointTrajectory
 from drivers.arm.ur5e import REPLY_TIMEOUT_S, UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
@@ -289,6 +289,18 @@ def _until_lost(ur: Backend, action: Callable[[], None]) -> RobotFault:
     raise AssertionError("the lost connection never surfaced")
 
 
+def _slow_trajectory(arm: UR5eArm) -> JointTrajectory:
+    """A turn of the last joint by 1 rad from where the arm is, slow enough to take over 5 s: it is still
+    being streamed when the tests that use it are done waiting (5 s at the most)."""
+    from cell.control.trajectory import joint_trajectory
+
+    q0 = arm.state().q
+    traj = joint_trajectory(get_robot_model("ur5e"), q0, q0 + np.array([0.0, 0, 0, 0, 0, 1.0]), dt=0.008,
+                            velocity_scale=0.05, acceleration_scale=0.3, jerk_scale=0.3)
+    assert traj.duration > 5.0
+    return traj
+
+
 def _twist_moves_the_flange_up(peer: ControllerPeer, ur: Backend) -> None:
     """A twist streamed at 50 Hz for 0.5 s moves the peer's flange up."""
     z0 = peer.state()["flange_pose"][2]
@@ -327,6 +339,23 @@ def test_a_dropped_connection_ends_the_client_process_until_the_operator_reconne
     assert second is not None and second != first
     assert arm.state().faults == () and arm.state().mode is ArmMode.IDLE
     assert np.allclose(peer.state()["tcp_offset"], [0, 0, 0.05, 0, 0, 0])  # the tool is sent again
+    _twist_moves_the_flange_up(peer, ur)
+
+
+def test_recover_after_a_connection_lost_during_a_trajectory(peer: ControllerPeer,
+                                                            streaming_ur: Backend) -> None:
+    """The servoJ stream ends with the lost connection's fault; recover's new connection is not refused
+    for it (it once refused to send the TCP: "setTcp refused: disconnect")."""
+    ur = streaming_ur
+    arm = _ur(ur)
+    arm.execute_trajectory(_slow_trajectory(arm), ur.token)
+    peer.wait_for(lambda s: s["counts"].get("servoJ", 0) > 10, what="servoJ")
+    peer.drop_clients()
+    ur.wait_until(lambda: arm.client_pid is None)  # the child ends itself at the drop
+    with pytest.raises(RobotFault, match="controller closed the connection"):
+        arm.state()
+    arm.recover()
+    assert arm.state().faults == () and arm.state().mode is ArmMode.IDLE
     _twist_moves_the_flange_up(peer, ur)
 
 

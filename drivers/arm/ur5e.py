@@ -172,6 +172,9 @@ class UR5eArm(HardwareArm):
         self._control = False
         self._watchdog_armed = False
         self._mode = ArmMode.IDLE
+        # a stream's error belongs to the connection it ran on: one that ended with a lost connection
+        # would otherwise refuse the new connection's first commands (TCP and payload) as "disconnect"
+        self._traj_error = None
         timeout = cfg.connect_timeout_s + REPLY_TIMEOUT_S
         step = "dashboard"
         try:
