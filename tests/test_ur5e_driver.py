@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from drivers.arm.base import ArmMode, JointTrajectory
-from drivers.arm.ur5e import REPLY_TIMEOUT_S, UR5eArm
+from drivers.arm.ur5e import REPLY_TIMEOUT_S, SILENT_PERIODS, UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
 from tests.arm_backends import STREAMING_WATCHDOG_HZ, Backend, ur5e_backend, ur5e_config
@@ -387,6 +387,64 @@ def test_a_hung_client_process_is_killed_and_a_fault(peer: ControllerPeer, strea
     with pytest.raises(RobotFault, match=f"did not answer snapshot within {REPLY_TIMEOUT_S:g} s") as lost:
         arm.state()
     assert lost.value.fault == "disconnect" and arm.client_pid is None and not _running(pid)
+    arm.recover()
+    assert arm.state().faults == ()
+
+
+def _silence_fault(ur: Backend, peer: ControllerPeer) -> RobotFault:
+    """The fault the arm reports after the controller went silent, once the resumed peer has read what
+    the ur-rtde process sent before it was ended (its connections closed)."""
+    peer.wait_for(lambda s: s["connections"] == 1, what="the ur-rtde process's connections closed")
+    with pytest.raises(RobotFault, match="no data from the controller for") as lost:
+        ur.arm.state()
+    assert lost.value.fault == "disconnect"
+    silent_s = float(re.search(r"no data from the controller for ([\d.]+) s", str(lost.value)).group(1))
+    # a bound on the detection: SILENT_PERIODS periods at the test config's 125 Hz are 0.2 s
+    assert SILENT_PERIODS / ur5e_config(peer.host).rtde_frequency_hz <= silent_s < 1.0
+    return lost.value
+
+
+def test_a_controller_that_goes_silent_is_a_fault_and_receives_no_command_after_it(
+        peer: ControllerPeer, streaming_ur: Backend) -> None:
+    """The controller stops with its connections open: ur-rtde reports the last state it received, and
+    every command waits in the socket for a controller that reads none. A control loop's next reads find
+    the controller's timestamp stuck: the driver latches a disconnect naming the silence and ends the
+    ur-rtde process, so the resumed controller receives exactly the commands sent before the fault."""
+    ur = streaming_ur
+    arm = _ur(ur)
+    v = np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0])
+    arm.command_twist(v, ur.token)
+    peer.wait_for(lambda s: s["counts"].get("speedL", 0) == 1, what="the first speedL")
+    sent = 1
+    with peer.frozen():
+        with pytest.raises(RobotFault):
+            for _ in range(500):  # the control loop at 50 Hz; a bound on waiting: 10 s
+                arm.state()
+                arm.command_twist(v, ur.token)
+                sent += 1
+                ur.advance(0.02)
+        assert arm.client_pid is None
+    _silence_fault(ur, peer)
+    assert peer.state()["counts"]["speedL"] == sent
+    arm.recover()  # the operator's action: a fresh process connects again
+    assert arm.state().faults == ()
+    _twist_moves_the_flange_up(peer, ur)
+
+
+def test_a_trajectory_stream_stops_when_the_controller_goes_silent(peer: ControllerPeer,
+                                                                  streaming_ur: Backend) -> None:
+    """The servoJ stream reads the state before each sample: it ends with the fault, not seconds later
+    when ur-rtde gives up on the silent controller (about 2.5 s: some 300 samples at 125 Hz)."""
+    ur = streaming_ur
+    arm = _ur(ur)
+    arm.execute_trajectory(_slow_trajectory(arm), ur.token)
+    before = peer.wait_for(lambda s: s["counts"].get("servoJ", 0) > 10, what="servoJ")["counts"]["servoJ"]
+    with peer.frozen():
+        ur.wait_until(lambda: arm.client_pid is None, timeout_s=5.0)  # without reading the state
+    _silence_fault(ur, peer)
+    # what was sent while the controller was silent: about 0.2 s of samples at 125 Hz, and any sent
+    # between the count above and the stop
+    assert peer.state()["counts"]["servoJ"] - before < 100
     arm.recover()
     assert arm.state().faults == ()
 

@@ -41,13 +41,15 @@ Faults, from the controller's safety status and the script's state: "protective 
 "safeguard stop", "safety fault", "power off", "control script not running", "disconnect". A command
 while faulted, a command that returns False, or a lost connection raises ``RobotFault``.
 
-A lost connection ("disconnect") is the controller closing it, the child process ending for any other
-reason (a crash), an error from ur-rtde on a command, or the child not answering within
-``REPLY_TIMEOUT_S``. The child is then gone: it ends itself as soon as it sees the controller's drop
-(before ur-rtde's own reconnection could send anything), and the driver kills it in every other case, so
-nothing in this process can resume motion. The fault is latched: ``state()`` and every command raise it
-until the operator recovers. The arm is stopped all the same: the RTDE watchdog, armed whenever it
-moves, ends the control script when commands stop arriving.
+A lost connection ("disconnect") is the controller closing it, the controller going silent with the
+connection open (its RTDE timestamp not advancing for ``SILENT_PERIODS`` RTDE periods: stopped, hung, or a
+network path that no longer delivers), the child process ending for any other reason (a crash), an error
+from ur-rtde on a command, or the child not answering within ``REPLY_TIMEOUT_S``. The child is then gone:
+it ends itself as soon as it sees the controller's drop (before ur-rtde's own reconnection could send
+anything), and the driver kills it in every other case, so nothing in this process can resume motion
+nor send to a silent controller commands that it would run at once on resuming. The fault is latched:
+``state()`` and every command raise it until the operator recovers. The arm is stopped all the same: the
+RTDE watchdog, armed whenever it moves, ends the control script when commands stop arriving.
 
 ``recover`` is the operator's action: after a lost connection, start a fresh child and connect again
 (control script, TCP and payload); then close the safety popup and unlock the protective stop (the one the
@@ -107,6 +109,14 @@ UNLOCK_RETRY_S = 0.25
 # how long a command or a state read in the child may take before the child counts as hung [s]; the
 # slowest are the stops (speedStop waits for the deceleration) and script re-uploads
 REPLY_TIMEOUT_S = 5.0
+# State whose controller timestamp has not advanced for this many RTDE periods (1 / rtde_frequency_hz) is a
+# controller gone silent with the connection open. A controller sends every period from its real-time
+# cycle, so the gaps come from the client's side: the ur-rtde process or the network delayed on a
+# non-real-time PC. 25 periods (50 ms at 500 Hz, 200 ms at the 125 Hz the test configs use) clear the
+# stalls of up to 117 ms seen on the shared 2-core test machine, where the peer and the ur-rtde process
+# compete for the cores, and still end blind motion long before ur-rtde's own control interface gives up
+# on a silent controller (about 2.5 s, then it reconnects by itself).
+SILENT_PERIODS = 25
 # ur-rtde's control interface gives up on a control script that does not start after 5 s
 CONTROL_START_TIMEOUT_S = 5.0
 N_DIGITAL = 8
@@ -139,6 +149,8 @@ class UR5eArm(HardwareArm):
         self._traj_cancel = threading.Event()
         self._traj_error: RobotFault | None = None
         self._last_snapshot: tuple[float, dict[str, Any]] | None = None  # (time.monotonic(), snapshot)
+        # the controller's latest RTDE timestamp [s] and the time.monotonic() it first arrived at [s]
+        self._newest_data: tuple[float, float] | None = None
 
     # ------------------------------------------------------------------ connection
 
@@ -253,6 +265,7 @@ class UR5eArm(HardwareArm):
                 self._proc.close()
             self._proc = None
             self._last_snapshot = None
+            self._newest_data = None
             self._control = False
             self._watchdog_armed = False
 
@@ -310,8 +323,28 @@ class UR5eArm(HardwareArm):
             snap: dict[str, Any] = self._request("snapshot", kick)
         except ClientError as exc:
             raise self._lose(f"reading the state: {exc}") from None
-        self._last_snapshot = (time.monotonic(), snap)
+        now = time.monotonic()
+        self._check_data_flows(snap["timestamp"], now)
+        self._last_snapshot = (now, snap)
         return snap
+
+    def _check_data_flows(self, timestamp: float, now: float) -> None:
+        """Latch a lost connection when the controller's RTDE ``timestamp`` [s] has stayed the same for
+        more than ``SILENT_PERIODS`` RTDE periods up to ``now`` (``time.monotonic()``) [s]. The silence is
+        counted from when that timestamp first reached this driver, so a driver that itself paused between
+        reads does not count its own pause. The child is killed: ur-rtde would otherwise queue every
+        command for a controller that reads none, and a controller that resumes would run them at once."""
+        newest = self._newest_data
+        if newest is None or timestamp != newest[0]:
+            self._newest_data = (timestamp, now)
+            return
+        silent_s = now - newest[1]
+        limit_s = SILENT_PERIODS / self._config.rtde_frequency_hz
+        if silent_s > limit_s:
+            raise self._lose(f"no data from the controller for {silent_s:.3f} s although the connection is "
+                             f"open (its RTDE timestamp stayed at {timestamp:.3f} s; at "
+                             f"{self._config.rtde_frequency_hz:g} Hz the limit is {limit_s:g} s); nothing "
+                             "more is sent to it")
 
     def _recent_snapshot(self) -> dict[str, Any]:
         """The last snapshot if it is younger than one RTDE period (a new read would return the same

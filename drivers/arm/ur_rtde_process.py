@@ -12,8 +12,9 @@ only the driver holds, and exits when that pipe reaches end of file, even in the
 It ignores SIGINT and SIGTERM, so that a Ctrl-C in a terminal reaches the driver, which still stops the
 arm through the child, and not the child first.
 
-Exit codes of the child that the driver tells apart: ``EXIT_LOST`` (the controller closed the connection:
-the child ended itself at once, before ur-rtde could reconnect, see :mod:`drivers.arm.ur_rtde_child`),
+Exit codes of the child that the driver tells apart: ``EXIT_LOST`` (ur-rtde lost the connection, closed by
+the controller or given up on after its silence: the child ended itself at once, before ur-rtde could
+reconnect, see :mod:`drivers.arm.ur_rtde_child`),
 ``EXIT_PARENT_GONE`` and ``EXIT_CLOSED`` (asked to close).
 """
 
@@ -49,8 +50,9 @@ class ClientGone(Exception):
 def exit_words(returncode: int) -> str:
     """Why a child that ended with ``returncode`` ended, in words."""
     if returncode == EXIT_LOST:
-        return ("the controller closed the connection; the ur-rtde process ended itself so that ur-rtde "
-                "cannot reconnect and resume motion")
+        return ("the controller closed the connection, or sent nothing for so long that ur-rtde gave up on "
+                "it (its control interface does after about 2.5 s); the ur-rtde process ended itself so that "
+                "ur-rtde cannot reconnect and resume motion")
     if returncode == EXIT_PARENT_GONE:
         return "the ur-rtde process lost its driver"
     if returncode < 0:

@@ -2,7 +2,8 @@
 
 :class:`ControllerPeer` starts ``python -m tests.rtde_peer`` in its own process (ur-rtde's constructors
 hold the GIL, so a peer in the test's process would starve) on a free ``127.0.0.N`` (the controller's
-ports are fixed), and drives it over its JSON control port: inject faults, read what the client sent.
+ports are fixed), and drives it over its JSON control port: inject faults, read what the client sent; and
+stops its process to play a controller gone silent with its connections open (``frozen``).
 Disconnect the client before stopping the peer.
 """
 
@@ -10,12 +11,14 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +88,18 @@ class ControllerPeer:
 
     def drop_clients(self) -> None:
         self.call("disconnect")
+
+    @contextlib.contextmanager
+    def frozen(self) -> Iterator[None]:
+        """The controller stops with every connection open, as a hung controller or a network path that no
+        longer delivers: the peer's process is stopped (SIGSTOP), so it sends nothing, and what clients
+        send waits in its sockets until the block ends (SIGCONT) and it reads it all at once. Do not call
+        the peer inside the block."""
+        os.kill(self._proc.pid, signal.SIGSTOP)
+        try:
+            yield
+        finally:
+            os.kill(self._proc.pid, signal.SIGCONT)
 
     def wait_for(self, predicate: Any, timeout_s: float = 20.0, what: str = "condition") -> dict[str, Any]:
         """Poll the peer's state until ``predicate(state)`` holds (a bound on waiting, not a timed check)."""
