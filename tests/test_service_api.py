@@ -31,6 +31,7 @@ from cell.cli.main import app as cli
 from cell.config import load_config
 from cell.jobs.placement import check_on_table
 from cell.jobs.progress import TICK_BUCKETS_S, ControlTicks
+from cell.service.arm_status import ArmTracker
 from cell.service.events import JobEvents
 from cell.service.keys import create_key
 from cell.service.protocol import WORKER_MODULE
@@ -534,3 +535,17 @@ def test_control_ticks_count_periods_into_cumulative_buckets_and_overruns():
     summary = ticks.summary()
     assert summary["n_ticks"] == 6 and summary["period_max_s"] == pytest.approx(0.3)
     assert summary["period_p50_s"] == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize("termination, state", [
+    ("safety stop: arm fault: power off, control script not running", "fault"),
+    ("safety stop: arm fault: control script not running", "fault"),
+    ("safety stop: arm fault: safeguard stop", "protective stop"),
+    ("safety stop: arm fault: emergency stop, power off", "emergency stop"),
+])
+def test_every_fault_an_arm_driver_names_latches_until_a_recovery(termination, state):
+    tracker = ArmTracker(load_config(FRANKA))
+    tracker.job_ended(termination)
+    assert tracker.faulted and tracker.status.state == state
+    tracker.recovered([], None)
+    assert not tracker.faulted and tracker.status.state == "idle"

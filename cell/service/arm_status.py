@@ -23,10 +23,12 @@ from cell.jobs.progress import quat_of, xyz_m
 from drivers.robots import get_robot_model
 from drivers.transforms import inv_T, make_T
 
-ARM_FAULTS = {"protective stop": "protective stop", "emergency stop": "emergency stop", "reflex": "fault",
-              "user stop": "fault", "disconnect": "disconnected"}
-"""Faults a job's termination can name (``arm fault: <fault>``, ``cell.safety.guard``) and the arm state
-each leaves."""
+ARM_FAULTS = {"protective stop": "protective stop", "emergency stop": "emergency stop",
+              "safeguard stop": "protective stop", "safety fault": "fault", "power off": "fault",
+              "control script not running": "fault", "reflex": "fault", "user stop": "fault",
+              "disconnect": "disconnected"}
+"""Faults a job's termination can name (``arm fault: <fault>``, ``cell.safety.guard``; the UR5e's and the
+Franka's words, ``drivers.arm``) and the arm state each leaves: each holds the queue until a recovery."""
 
 
 @dataclass
