@@ -468,6 +468,30 @@ def test_the_client_process_ends_with_the_program_that_owns_the_driver(peer: Con
         time.sleep(0.05)
 
 
+def test_a_second_program_of_this_machine_is_refused_the_arm_until_the_first_has_gone(
+        peer: ControllerPeer) -> None:
+    """A second control script would end the first program's (a scan started beside the service's job);
+    the claim goes with its holder however that ends."""
+    owner = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host], cwd=REPO,
+                             stdout=subprocess.PIPE, text=True)
+    second = UR5eArm(ur5e_config(peer.host), get_robot_model("ur5e"))
+    try:
+        assert owner.stdout is not None
+        owner.stdout.readline()  # connected
+        started = [e for e in peer.state()["events"] if "program started" in e]
+        refusal = rf"driven by another program of this machine \(pid {owner.pid}:"
+        with pytest.raises(DriverError, match=refusal):
+            second.connect()
+        assert [e for e in peer.state()["events"] if "program started" in e] == started  # no second script
+    finally:
+        owner.kill()
+        owner.wait()
+        if owner.stdout is not None:
+            owner.stdout.close()
+    second.connect()  # the kernel released the claim of the killed program
+    second.disconnect()
+
+
 def _own_a_connected_arm(host: str) -> None:
     """The driver's process in the test above: connects, prints the client process id, waits to be
     killed."""

@@ -43,6 +43,7 @@ import franky
 import numpy as np
 
 from drivers.arm.base import ArmMode, ArmState, JointTrajectory
+from drivers.arm.claim import ArmClaim
 from drivers.arm.config import FrankaArmConfig
 from drivers.arm.hardware import (
     Array,
@@ -134,6 +135,7 @@ class FrankaArm(HardwareArm):
         self._config = config
         self._model = model
         self._device = f"arm franka at {config.host}"
+        self._claim = ArmClaim(f"franka {config.host}", self._device)
         self._robot: franky.Robot | None = None
         self._mode = ArmMode.IDLE
         self._fault: RobotFault | None = None
@@ -158,6 +160,7 @@ class FrankaArm(HardwareArm):
                               device=self._device)
         realtime = (franky.RealtimeConfig.Enforce if cfg.realtime == "enforce"
                     else franky.RealtimeConfig.Ignore)
+        self._claim.take()
         try:
             robot = franky.Robot(cfg.host, relative_dynamics_factor=cfg.relative_dynamics_factor,
                                  default_torque_threshold=cfg.torque_threshold_nm,
@@ -165,6 +168,7 @@ class FrankaArm(HardwareArm):
             robot.set_load(cfg.payload.mass_kg, list(cfg.payload.cog_m), [0.0] * 9)
         except (franky.IncompatibleVersionException, *NETWORK_ERRORS, franky.RealtimeException,
                 franky.CommandException) as exc:
+            self._claim.release()
             raise DriverError(f"franky could not connect: {exc}", device=self._device) from None
         self._robot = robot
         self._mode = ArmMode.IDLE
@@ -174,9 +178,12 @@ class FrankaArm(HardwareArm):
         """Stop and drop the connection (franky closes it with the Robot object). Safe to call twice."""
         if self._robot is None:
             return
-        if self._fault is None:
-            self.stop()
-        self._robot = None
+        try:
+            if self._fault is None:
+                self.stop()
+        finally:
+            self._robot = None
+            self._claim.release()
 
     @property
     def is_connected(self) -> bool:

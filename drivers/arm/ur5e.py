@@ -69,6 +69,7 @@ from typing import Any, Literal
 import numpy as np
 
 from drivers.arm.base import ArmMode, ArmState, JointTrajectory
+from drivers.arm.claim import ArmClaim
 from drivers.arm.config import UR5eArmConfig
 from drivers.arm.hardware import (
     Array,
@@ -151,6 +152,7 @@ class UR5eArm(HardwareArm):
         self._last_snapshot: tuple[float, dict[str, Any]] | None = None  # (time.monotonic(), snapshot)
         # the controller's latest RTDE timestamp [s] and the time.monotonic() it first arrived at [s]
         self._newest_data: tuple[float, float] | None = None
+        self._claim = ArmClaim(f"ur5e {config.host}", self._device)
 
     # ------------------------------------------------------------------ connection
 
@@ -165,10 +167,12 @@ class UR5eArm(HardwareArm):
                 raise DriverError(f"cannot reach the controller's {what} port {cfg.host}:{port} within "
                                   f"{cfg.connect_timeout_s:g} s ({exc}); check the address and that the "
                                   f"controller is on", device=self._device) from None
+        self._claim.take()
         try:
             self._open()
         except DriverError:
             self._lost = None  # a failed connect latches nothing: the next connect starts afresh
+            self._claim.release()
             raise
         self._connected = True
 
@@ -256,6 +260,7 @@ class UR5eArm(HardwareArm):
                 raise  # a lost connection leaves nothing to stop: the watchdog stops the arm
         finally:
             self._close_process()
+            self._claim.release()
             self._connected = False
             self._lost = None
 
