@@ -213,6 +213,22 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     assert stopped["processed"] == 0
 
 
+def test_a_job_stopped_through_the_api_stops_the_line_it_does_not_abort_it(line: Line):
+    line.command("reset")
+    line.wait({"Idle"})
+    line.command("start", "bunny")
+    job_id = line.wait({"Execute"})["job_id"]
+    stop = line.client.post(f"/api/v1/jobs/{job_id}/stop", json={"reason": "wrong part"},
+                            headers=line.auth("operator"))
+    assert stop.status_code == 200
+    ended = line.wait({"Stopped", "Aborted"})
+    assert ended["state_name"] == "Stopped", ended
+    assert ended["stop_reason"]["id"] == 2 and "wrong part" in ended["stop_reason"]["message"]
+    history = line.client.get("/api/v1/line/history?limit=2", headers=line.auth("viewer")).json()
+    assert [(h["from_name"], h["to_name"]) for h in reversed(history)] == [
+        ("Execute", "Stopping"), ("Stopping", "Stopped")]
+
+
 def test_hold_stops_the_scan_and_unhold_scans_the_part_again(line: Line):
     line.command("reset")
     line.wait({"Idle"})

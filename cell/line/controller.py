@@ -15,10 +15,12 @@ What each state does (TR88.00.02's model, :mod:`cell.line.packml`):
   with a no-part result (``Result/Status`` ``no_object``, ``Fits`` false: counted defective), not a
   fault: the line decides what an empty station means.
 - Stopping stops the scan's arm through the guard (the job ends ``stopped``), then Stopped. An operator's
-  STOP (API, web page) is a Stop too.
-- Aborting is the fault path: a safety stop, an arm fault or a failed job during Execute, or the Abort
-  command, stop the scan and end in Aborted with the stop reason. Clearing recovers a faulted arm (as
-  ``POST /arm/recover`` does), then Stopped; Resetting lets the queue run again, then Idle.
+  STOP (API, web page) is a Stop too, and so is the scan's job stopped through the API or by the
+  service's shutdown during Execute.
+- Aborting is the fault path: a safety stop (a guard refusal, a watchdog), an arm fault or a failed job
+  during Execute, or the Abort command, stop the scan and end in Aborted with the stop reason. Clearing
+  recovers a faulted arm (as ``POST /arm/recover`` does), then Stopped; Resetting lets the queue run
+  again, then Idle.
 - Holding and Suspending stop the scan (a scan cannot be paused half-way: its maps and its path are those
   of one continuous run); Unholding and Unsuspending scan the same part again from the start. A scan
   that completed before the hold took effect is not repeated: its result is written on Unhold.
@@ -57,6 +59,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("cell.line")
 
 MODE_NAMES = {"production": UnitMode.PRODUCTION, "manual": UnitMode.MANUAL}
+REQUESTED_STOP = "safety stop: operator stop: "
+"""How the termination of a job stopped on request begins (``POST /api/v1/jobs/{id}/stop``, an operator's
+STOP, the service's shutdown): the guard names a requested stop ``operator stop: <reason>``
+(:meth:`cell.safety.guard.MotionGuard.tick`) and the job's runner calls every stop of the arm a safety
+stop. A guard refusal, a watchdog or an arm fault is named otherwise (``safety stop: refused: ...``)."""
 
 
 @dataclass(frozen=True)
@@ -275,14 +282,16 @@ class LineController:
         if status in ("completed", "no_object"):
             self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
             return
-        if status in ("stopped", "cancelled") and not termination.startswith("safety stop"):
-            shutdown = status == "cancelled" or not self._service.ready
-            reason = StopReason.SHUTDOWN if shutdown else StopReason.OPERATOR_STOP
+        faulted = self._service.arm.faulted
+        if not faulted and (status == "cancelled" or termination.startswith(REQUESTED_STOP)):
+            # stopped on request, not by the line (its own stops end in Stopping or Aborting): a job
+            # stopped or cancelled through the API, or the service shutting down
+            reason = StopReason.OPERATOR_STOP if self._service.ready else StopReason.SHUTDOWN
             self._set_stop_reason(reason, f"scan {job_id} {status}: {termination}")
             self._record_transition(State.STOPPING, f"the scan was {status}")
             self._record_transition(State.STOPPED, "no scan runs")
             return
-        if self._service.arm.faulted:
+        if faulted:
             reason = StopReason.ARM_FAULT
         elif termination.startswith("safety stop"):
             reason = StopReason.SAFETY_STOP
