@@ -310,7 +310,12 @@ def test_an_operator_stop_stops_the_line_and_the_counters_outlive_a_restart(tmp_
         assert stop.status_code == 200
         stopped = line.wait({"Stopped"})
         assert stopped["stop_reason"]["id"] == 2 and "hands in the cell" in stopped["stop_reason"]["message"]
-        # Reset releases the queue the STOP held: the next part scans
+        # the STOP holds the queue until an operator resumes it: the line's Reset may not release it
+        refused = line.command("reset")
+        assert refused.status_code == 409 and "POST /api/v1/queue/resume" in refused.json()["detail"]
+        cell = line.client.get("/api/v1/cell", headers=line.auth("viewer")).json()
+        assert cell["queue"]["held"] and cell["line"]["state_name"] == "Stopped"
+        assert line.client.post("/api/v1/queue/resume", headers=line.auth("operator")).status_code == 200
         line.command("reset")
         line.wait({"Idle"})
         assert line.client.get("/api/v1/cell", headers=line.auth("viewer")).json()["queue"]["held"] is None

@@ -20,7 +20,8 @@ What each state does (TR88.00.02's model, :mod:`cell.line.packml`):
 - Aborting is the fault path: a safety stop (a guard refusal, a watchdog), an arm fault or a failed job
   during Execute, or the Abort command, stop the scan and end in Aborted with the stop reason. Clearing
   recovers a faulted arm (as ``POST /arm/recover`` does), then Stopped; Resetting lets the queue run
-  again, then Idle.
+  again, then Idle. An operator's STOP holds the queue until an operator resumes it: till then Reset is
+  refused (the line may not release the operator's hold).
 - Holding and Suspending stop the scan (a scan cannot be paused half-way: its maps and its path are those
   of one continuous run); Unholding and Unsuspending scan the same part again from the start. A scan
   that completed before the hold took effect is not repeated: its result is written on Unhold.
@@ -218,6 +219,9 @@ class LineController:
         if command is Command.RESET and self._service.arm.faulted:
             return (f"the arm is faulted ({', '.join(self._service.arm.status.faults)}): Abort, then Clear "
                     "recovers it")
+        if command is Command.RESET and self._service.held_by_operator:
+            return ("an operator's STOP holds the queue: an operator must resume the queue (POST "
+                    "/api/v1/queue/resume) before the line may Reset")
         return None
 
     async def set_mode(self, mode: UnitMode, source: str) -> str:
@@ -252,7 +256,8 @@ class LineController:
                                "line takes the cell in Production mode", reason="conflict")
 
     def operator_stop(self, reason: str) -> None:
-        """The operator's STOP (``POST /api/v1/stop``): a Stop, whatever the mode."""
+        """The operator's STOP (``POST /api/v1/stop``): a Stop, whatever the mode; Reset is refused until an
+        operator resumes the queue."""
         if packml.refusal(self.state, Command.STOP) is None:
             self._set_stop_reason(StopReason.OPERATOR_STOP, reason)
             self._enter(State.STOPPING, f"operator STOP: {reason}")

@@ -143,6 +143,7 @@ class CellService:
         self._queued: dict[str, _Queued] = {}
         self._running: _Running | None = None
         self._held: str | None = None
+        self._held_by_operator = False  # an operator's STOP: only an operator's resume releases it
         self._busy_with_arm = False
         self._closing = False
         self._submit_lock = asyncio.Lock()
@@ -371,6 +372,7 @@ class CellService:
         if self.line is not None:
             self.line.operator_stop(reason)
         self._hold(f"a stop ({reason})")
+        self._held_by_operator = True
         running = self._running
         if running is None:
             return self._logged(StopOutcome(None, False, "nothing was moving; the queue is held"), reason)
@@ -390,12 +392,18 @@ class CellService:
         if self.arm.faulted:
             raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
         self._held = None
+        self._held_by_operator = False
         self._wake.set()
 
+    @property
+    def held_by_operator(self) -> bool:
+        """Whether the queue is held by an operator's STOP, which only an operator's resume releases."""
+        return self._held_by_operator
+
     def resume_for_line(self) -> None:
-        """The line's Reset: let queued jobs start again after a STOP (the line's Reset refuses itself while
-        the arm is faulted)."""
-        if not self.arm.faulted:
+        """The line's Reset: let queued jobs start again after a stop of the line's own (the line's Reset
+        refuses itself while the arm is faulted or an operator's STOP holds the queue)."""
+        if not self.arm.faulted and not self._held_by_operator:
             self.resume()
 
     def operator_jobs(self) -> bool:
