@@ -31,10 +31,14 @@ from asyncua.crypto import cert_gen
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from fastapi.testclient import TestClient
 
+from cell.api.app import create_app
+from cell.line.opcua import LineOPCUA
 from cell.line.opcua_security import CERT_FILE, KEY_FILE, ensure_certificate
 from cell.service.keys import create_key
-from cell.service.store import open_store, sqlite_url
+from cell.service.startup import ServiceSettings
+from cell.service.store import open_data_store, open_store, sqlite_url
 from tests.conftest import UR5E
 from tests.service_process import CELL, REPO, ServedCell, free_port
 
@@ -179,8 +183,13 @@ async def _client(served: Served, user: str | None, secret: str | None = None) -
 async def plc(served: Served, user: str | None = "test-line",
               secret: str | None = None) -> AsyncIterator[PLC]:
     async with await _client(served, user, secret) as client:
-        namespaces = await client.get_namespace_array()
-        yield PLC(client, namespaces.index(NAMESPACE), namespaces.index(PACKML))
+        yield await _plc(client)
+
+
+async def _plc(client: Client) -> PLC:
+    """The PLC of a connected ``client``."""
+    namespaces = await client.get_namespace_array()
+    return PLC(client, namespaces.index(NAMESPACE), namespaces.index(PACKML))
 
 
 def run(coroutine: Any) -> Any:
@@ -475,6 +484,77 @@ def test_a_driver_fault_during_execute_aborts_then_clear_and_reset_recover(tmp_p
         assert not arm["faults"], arm
     finally:
         cell.close()
+
+
+# ------------------------------------------------------------------------------------------------ in process
+
+
+def test_an_operators_stop_holds_the_plcs_reset_and_the_plc_sees_the_shutdown(tmp_path, monkeypatch):
+    """A cell served in this process: an operator's STOP holds the queue until an operator resumes it (the
+    PLC's Reset is refused till then), and a shutdown during Execute is Stopping, then Stopped (stop reason
+    7), which the PLC reads before the server closes."""
+    url = f"opc.tcp://127.0.0.1:{free_port()}/cell"
+    cell = yaml.safe_load(UR5E.read_text())
+    cell["line"] = {"opcua": {"endpoint": url, "security": "none"}, "max_time_s": 60.0}
+    config, data = tmp_path / "cell.yaml", tmp_path / "data"
+    config.write_text(yaml.safe_dump(cell))
+    store = open_data_store(data, None)
+    keys = {role: create_key(store, role, f"test-{role}")[1] for role in ("operator", "line")}
+    store.close()
+
+    @contextlib.asynccontextmanager
+    async def connected() -> AsyncIterator[PLC]:
+        client = Client(url, timeout=30)
+        client.set_user("test-line")
+        client.set_password(keys["line"])
+        async with client:
+            yield await _plc(client)
+
+    seen_at_close: list[tuple[int, int]] = []
+    stop = LineOPCUA.stop
+
+    async def stop_after_a_plc_read(server: LineOPCUA) -> None:
+        await server.settle()
+        async with connected() as line:  # the last moment the server serves
+            seen_at_close.append((await line.state(), await line.read("Admin/StopReason/ID")))
+        await stop(server)
+
+    monkeypatch.setattr(LineOPCUA, "stop", stop_after_a_plc_read)
+    operator = {"Authorization": f"Bearer {keys['operator']}"}
+
+    async def scenario(http: TestClient) -> None:
+        async with connected() as line:
+            await line.to_idle()
+            await line.start("bunny")
+            stop = await asyncio.to_thread(http.post, "/api/v1/stop", json={"reason": "person in cell"},
+                                           headers=operator)
+            assert stop.status_code == 200
+            assert await line.wait((STOPPED,)) == STOPPED
+            with pytest.raises(ua.uaerrors.BadInvalidState):
+                await line.call(f"{EXECUTE_STATE}/Reset")
+            await line.handshake(RESET)
+            assert await line.state() == STOPPED
+            message = await line.read("Status/CommandMessage")
+            assert message.startswith("refused Reset") and "POST /api/v1/queue/resume" in message, message
+            resumed = await asyncio.to_thread(http.post, "/api/v1/queue/resume", headers=operator)
+            assert resumed.status_code == 200
+            await line.handshake(RESET)
+            await line.wait((IDLE,))
+            await line.start("bunny")  # and the service shuts down while it scans
+
+    with TestClient(create_app(ServiceSettings(config_file=config, data_dir=data))) as http:
+        run(scenario(http))
+    assert seen_at_close == [(STOPPED, 7)]
+    store = open_store(sqlite_url(data))
+    try:
+        stopping, stopped = reversed([t for _, t in store.line_transitions("sim-ur5e-tof", limit=2)])
+        line = store.get_line("sim-ur5e-tof")
+    finally:
+        store.close()
+    assert (stopping.from_state, stopping.to_state, stopped.to_state) == (EXECUTE, 7, STOPPED)
+    # the scan's job stopped, or cancelled before it started: "is shutting down", "shut down before ..."
+    assert line is not None and line.stop_reason_id == 7 and "the service" in line.stop_reason
+    assert "shut" in line.stop_reason
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "192.0.2.1"])  # a port in use; an address of no interface here

@@ -3,7 +3,8 @@
 
 The lifespan opens what the routes share: the cell's service (store, queue, workers) and the key ring,
 which a background task reloads every second so that ``cell keys create`` / ``revoke`` take effect
-without a restart. Shutting down stops the running job and finishes its folder.
+without a restart. Shutting down stops the running job and finishes its folder, before the line's OPC UA
+server closes.
 """
 
 from __future__ import annotations
@@ -68,12 +69,14 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
         for line in await cell.start():
             log.warning("%s", line)
         refresher = asyncio.create_task(_refresh_keys(app.state.keys))
+        opcua = contextlib.AsyncExitStack()
         try:
-            async with _line_opcua(cell, app.state.keys):
-                yield
+            await opcua.enter_async_context(_line_opcua(cell, app.state.keys))
+            yield
         finally:
             refresher.cancel()
-            await cell.close()
+            await cell.close()  # while the OPC UA server serves: the line's PLC sees Stopping and Stopped
+            await opcua.aclose()
             cell.store.close()
 
     # the docs page's scripts are served by the cell itself: a cell's PC often has no internet

@@ -30,10 +30,10 @@ Production mode lets the line start scans and refuses operator jobs; Manual mode
 refuses Start. The mode changes only in Stopped, Idle or Aborted, and not to Production while operator
 jobs wait or run.
 
-Every transition is recorded (time, from, to, cause) in the job store, and the mode, counters, stop reason
-and last result are kept there across restarts; the state itself starts at Stopped, as a machine's does
-after power-up. Store writes are queued to a task of their own, so that no transition waits for the
-database.
+Every transition is recorded (time, from, to, cause) in the job store, and the mode, counters and last
+result are kept there across restarts; the state starts at Stopped, as a machine's does after power-up
+(its transition from the state recorded last), with the service's start (7) as the stop reason. Store
+writes are queued to a task of their own, so that no transition waits for the database.
 """
 
 from __future__ import annotations
@@ -131,11 +131,17 @@ class LineController:
     # ------------------------------------------------------------------ life
 
     async def start(self) -> None:
-        """Load what the store kept (mode, counters, stop reason, last result) and begin in Stopped."""
+        """Load what the store kept (mode, counters, last result) and begin in Stopped; on a restart, from
+        the state the line was last in, with the service's start as the stop reason."""
         kept = await asyncio.to_thread(self._store.get_line, self._cell)
         if kept is not None:
             self._record = kept
             self.mode = UnitMode(kept.mode)
+            last = await asyncio.to_thread(self._store.line_transitions, self._cell, limit=1)
+            # the start's transition is from the state the line was in when the service last ended
+            self.state = State(last[0][1].to_state) if last else State.STOPPED
+            self._set_stop_reason(StopReason.SHUTDOWN,
+                                  f"the service started (the line was {self.state.label})")
         self._writer = asyncio.create_task(self._write_all(), name="line store writer")
         self._record_transition(State.STOPPED, "the service started")
 
@@ -211,6 +217,8 @@ class LineController:
         return f"{command.label} accepted: {self.state.label}"
 
     def _precondition(self, command: Command, part_id: str) -> str | None:
+        if not self._service.ready:  # its OPC UA server serves on while the service closes
+            return "the service is starting or shutting down"
         if command is Command.START:
             if not self.owns_cell:
                 return f"the cell is in {self.mode.label} mode: the line starts scans in Production only"

@@ -171,7 +171,9 @@ class LineOPCUA:
         log.info("OPC UA: listening on %s (security %s)", config.endpoint, config.security)
 
     async def stop(self) -> None:
-        """Close the sessions and stop listening."""
+        """Write what the line reported last (the service's shutdown), then close the sessions and stop
+        listening."""
+        await self.settle()
         publisher, self._publisher = self._publisher, None
         await self._server.stop()
         if publisher is not None:
