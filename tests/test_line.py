@@ -13,8 +13,11 @@ from typing import Any
 import pytest
 import yaml
 from fastapi.testclient import TestClient
+from pydantic import ValidationError
 
 from cell.api.app import create_app
+from cell.api.schemas import LineCommandIn
+from cell.line.config import DigitalIOConfig
 from cell.line.dio import Debouncer
 from cell.line.packml import ACCEPTS, Command, State, refusal
 from cell.line.result import check_part_id, cycle_result, feeder_part
@@ -111,9 +114,14 @@ def test_part_ids():
             feeder_part(bad)
         assert err.value.field == "part_id"
     assert check_part_id("x" * 64) == "x" * 64
-    for bad in ("", "x" * 65, "tab\there"):
-        with pytest.raises(ServiceError, match="1 to 64 printable"):
+    for bad in ("würfel部品", "", "x" * 65, "tab\there"):
+        with pytest.raises(ServiceError, match="1 to 64 printable ASCII"):
             check_part_id(bad)
+        # one rule for every way in: REST's command, the digital I/O's part id, OPC UA (check_part_id)
+        with pytest.raises(ValidationError):
+            LineCommandIn(command="start", part_id=bad)
+        with pytest.raises(ValidationError):
+            DigitalIOConfig(part_id=bad)
 
 
 def test_the_result_a_line_reads():

@@ -125,11 +125,18 @@ class PLC:
         assert await self.read("Command/CmdChangeRequest") is False
 
     async def call(self, path: str, *args: ua.Variant) -> None:
-        """The method at ``path`` (under the unit), found by its browse path: OPC 30050's names in the
-        PackML namespace, the cell's own (SetPartId) in the cell's."""
+        """The method at ``path`` (under the unit); raises its Bad status."""
+        (await self.call_result(path, *args)).StatusCode.check()
+
+    async def call_result(self, path: str, *args: ua.Variant) -> ua.CallMethodResult:
+        """The result of the method at ``path`` (under the unit), found by its browse path: OPC 30050's
+        names in the PackML namespace, the cell's own (SetPartId) in the cell's."""
         names = [f"{self.ns if name in CELL_METHODS else self.packml}:{name}" for name in path.split("/")]
         parent = await self.client.nodes.objects.get_child([f"{self.ns}:sim-ur5e-tof", *names[:-1]])
-        await parent.call_method(names[-1], *args)
+        method = await parent.get_child(names[-1])
+        request = ua.CallMethodRequest(ObjectId=parent.nodeid, MethodId=method.nodeid,
+                                       InputArguments=list(args))
+        return (await self.client.uaclient.call([request]))[0]
 
     async def start(self, part_id: str, methods: bool = False) -> str:
         """Start a scan of ``part_id`` in Idle, through the handshake or SetPartId and the Start method;
@@ -346,9 +353,12 @@ def test_writes_of_the_wrong_type_or_too_long_are_refused_and_change_nothing(enc
             with pytest.raises(ua.uaerrors.BadTypeMismatch):
                 await line.write("Command/Parameter/PartId", 42, ua.VariantType.Int32)
             assert "expects a String, got Int32" in await line.read("Status/CommandMessage")
+            with pytest.raises(ua.uaerrors.BadOutOfRange):  # REST's rule: printable ASCII only
+                await line.write("Command/Parameter/PartId", "würfel部品", ua.VariantType.String)
+            assert "got 'würfel部品'" in await line.read("Status/CommandMessage")
             with pytest.raises(ua.uaerrors.BadOutOfRange):
                 await line.write("Command/Parameter/PartId", "x" * 65, ua.VariantType.String)
-            assert "1 to 64 printable characters, got 65" in await line.read("Status/CommandMessage")
+            assert "1 to 64 printable ASCII characters, got 65" in await line.read("Status/CommandMessage")
             with pytest.raises(ua.uaerrors.BadOutOfRange):  # one bad value refuses the whole request
                 await line.client.write_values(
                     [part_id, line.node("PackTags/Command/CntrlCmd")],
@@ -356,8 +366,11 @@ def test_writes_of_the_wrong_type_or_too_long_are_refused_and_change_nothing(enc
             with pytest.raises(ua.uaerrors.BadTypeMismatch):
                 await line.write("Command/CmdChangeRequest", 1, ua.VariantType.Int32)
             assert await part_id.read_value() == "cube"
-            with pytest.raises(ua.UaStatusCodeError):
-                await line.call("SetPartId", ua.Variant("y" * 65, ua.VariantType.String))
+            for refused in (None, "würfel部品", "y" * 65, ""):  # None: a null String
+                result = await line.call_result("SetPartId", ua.Variant(refused, ua.VariantType.String))
+                assert result.StatusCode.value == ua.StatusCodes.BadInvalidArgument, (refused, result)
+                assert [r.value for r in result.InputArgumentResults] == [ua.StatusCodes.BadOutOfRange]
+                assert "refused part id" in await line.read("Status/CommandMessage")
             with pytest.raises(ua.UaStatusCodeError):
                 await line.call("SetPartId", ua.Variant(7, ua.VariantType.Int32))
             assert await part_id.read_value() == "cube"

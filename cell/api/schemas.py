@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, Stric
 from cell.api.stop_reason import DEFAULT_REASON, MAX_LENGTH
 from cell.jobs.inputs import MAX_SEED
 from cell.jobs.placement import MAX_YAW_DEG
-from cell.line.config import PART_ID_MAX
+from cell.line.config import PART_ID_MAX, PART_ID_PATTERN
 from cell.service.store import JobRecord
 from cell.service.submission import MAX_TIME_BUDGET_S, JobRequest
 
@@ -253,7 +253,7 @@ class LineCommandIn(BaseModel):
     # strict: a true given as the command was taken for 1, Reset
     command: StrictStr | StrictInt = Field(description="reset 1, start 2, stop 3, hold 4, unhold 5, "
                                                        "suspend 6, unsuspend 7, abort 8, clear 9")
-    part_id: str | None = Field(None, min_length=1, max_length=PART_ID_MAX, pattern=r"^[\x20-\x7e]+$")
+    part_id: str | None = Field(None, min_length=1, max_length=PART_ID_MAX, pattern=PART_ID_PATTERN)
 
 
 class LineCommandOut(BaseModel):

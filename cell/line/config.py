@@ -17,6 +17,9 @@ from drivers.hosts import is_loopback
 
 PART_ID_MAX = 64
 """Longest part id a line may send [characters]."""
+PART_ID_PATTERN = r"^[\x20-\x7e]+$"
+"""The characters of a part id: printable ASCII, space to ``~`` (it ends up in file names, logs and the
+PLC's STRINGs, which need not hold any other)."""
 
 
 class OPCUAConfig(StrictModel):
@@ -66,7 +69,7 @@ class DigitalIOConfig(StrictModel):
 
     debounce_s: float = Field(default=0.02, ge=0.0, le=1.0)
     poll_hz: float = Field(default=200.0, gt=0.0, le=1000.0)
-    part_id: str | None = Field(default=None, min_length=1, max_length=PART_ID_MAX)
+    part_id: str | None = Field(default=None, min_length=1, max_length=PART_ID_MAX, pattern=PART_ID_PATTERN)
 
 
 class LineConfig(StrictModel):

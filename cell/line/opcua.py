@@ -325,7 +325,8 @@ class LineOPCUA:
             if path == SET_UNIT_MODE:
                 return await self._mode(args[0].Value, source)
             assert path == SET_PART_ID
-            return await self._part_id(args[0].Value, source)
+            # a null String carries no part id: refused as an empty one
+            return await self._part_id(args[0].Value or "", source)
 
         return call
 

@@ -94,9 +94,9 @@ TAGS: tuple[Tag, ...] = (
         "UnitModeChangeRequest goes true.", writable=True),
     Tag(UNIT_MODE_CHANGE_REQUEST, V.Boolean, "The PLC writes true after UnitMode: the cell changes mode "
         "(in Stopped, Idle or Aborted only), then writes it false.", writable=True),
-    Tag(PART_ID, V.String, f"The part the next Start scans (1 to {PART_ID_MAX} printable characters; in a "
-        "sim cell the simulated feeder's part: NAME or NAME@x_m,y_m,yaw_deg).", writable=True,
-        read=lambda s: s.part_id),
+    Tag(PART_ID, V.String, f"The part the next Start scans (1 to {PART_ID_MAX} printable ASCII "
+        "characters; in a sim cell the simulated feeder's part: NAME or NAME@x_m,y_m,yaw_deg).",
+        writable=True, read=lambda s: s.part_id),
     Tag(STATE_CURRENT, V.Int32, "The PackML state (1 Clearing, 2 Stopped, 3 Starting, "
         "4 Idle, 5 Suspended, 6 Execute, 7 Stopping, 8 Aborting, 9 Aborted, 10 Holding, 11 Held, "
         "12 Unholding, 13 Suspending, 14 Unsuspending, 15 Resetting, 16 Completing, 17 Complete).",
@@ -189,7 +189,7 @@ METHODS: tuple[MethodSpec, ...] = (
     MethodSpec(f"{_EXECUTE}/Unsuspend", "Unsuspend (7): Suspended to Execute.", Command.UNSUSPEND),
     MethodSpec(SET_UNIT_MODE, "OPC 30050 SetUnitMode: 1 Production or 3 Manual, in Stopped, Idle or "
                "Aborted.", argument=("RequestedMode", V.Int32)),
-    MethodSpec(SET_PART_ID, f"The part the next Start scans (1 to {PART_ID_MAX} printable characters), "
+    MethodSpec(SET_PART_ID, f"The part the next Start scans (1 to {PART_ID_MAX} printable ASCII characters), "
                "as writing PackTags/Command/Parameter/PartId.", argument=("PartId", V.String)),
 )
 

@@ -8,22 +8,27 @@ or an uploaded mesh, optionally with a placement ``NAME@x_m,y_m,yaw_deg`` (from 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from cell.line.config import PART_ID_MAX
+from cell.line.config import PART_ID_MAX, PART_ID_PATTERN
 from drivers.errors import ServiceError
 
 PLACEMENT_SEPARATOR = "@"
 
 
 def check_part_id(part_id: str) -> str:
-    """``part_id`` if a line may send it (1 to :data:`PART_ID_MAX` printable characters), else
-    ``ServiceError`` (invalid, field ``part_id``)."""
-    if not 0 < len(part_id) <= PART_ID_MAX or not part_id.isprintable():
-        raise ServiceError(f"a part id is 1 to {PART_ID_MAX} printable characters, got {len(part_id)}",
-                           reason="invalid", field="part_id")
-    return part_id
+    """``part_id`` if a line may send it (1 to :data:`PART_ID_MAX` characters of
+    :data:`PART_ID_PATTERN`, printable ASCII), else ``ServiceError`` (invalid, field ``part_id``)."""
+    if not 0 < len(part_id) <= PART_ID_MAX:
+        why = f"got {len(part_id)}"
+    elif re.fullmatch(PART_ID_PATTERN, part_id) is None:
+        why = f"got {part_id!r}"
+    else:
+        return part_id
+    raise ServiceError(f"a part id is 1 to {PART_ID_MAX} printable ASCII characters, {why}", reason="invalid",
+                       field="part_id")
 
 
 def feeder_part(part_id: str) -> tuple[str, tuple[float, float, float] | None]:
