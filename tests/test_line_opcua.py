@@ -294,6 +294,13 @@ def test_start_in_execute_is_refused_and_changes_nothing(encrypted):
             message = await line.read("Status/CommandMessage")
             assert message == ("refused Start from OPC UA (key test-line): Start is not valid in Execute "
                                "(valid in: Idle)")
+            # a refused write says so; the same refusal again says so again, not the write's refusal
+            with pytest.raises(ua.uaerrors.BadTypeMismatch):
+                await line.write("Command/Parameter/PartId", 1, ua.VariantType.Int32)
+            assert "refused a write of PartId" in await line.read("Status/CommandMessage")
+            with pytest.raises(ua.uaerrors.BadInvalidState):
+                await line.call(f"{EXECUTE_STATE}/Start")
+            assert await line.read("Status/CommandMessage") == message
             await line.write("Command/Parameter/PartId", "bunny", ua.VariantType.String)
             await line.handshake(START)
             assert await line.state() == EXECUTE and await line.read("Status/JobId") == job_id
@@ -338,6 +345,12 @@ def test_the_unit_mode_through_the_handshake_and_set_unit_mode(encrypted):
             await line.call("SetUnitMode", ua.Variant(1, ua.VariantType.Int32))
             assert await line.read("Status/UnitModeCurrent") == 1
             assert await line.state() == IDLE
+            # a mode the unit is in already is accepted, and said
+            with pytest.raises(ua.uaerrors.BadInvalidArgument):
+                await line.call("SetUnitMode", ua.Variant(2, ua.VariantType.Int32))
+            await line.call("SetUnitMode", ua.Variant(1, ua.VariantType.Int32))
+            assert await line.read("Status/CommandMessage") == (
+                "unit mode Production from OPC UA (key test-line): already Production")
 
     run(scenario())
 
@@ -379,6 +392,9 @@ def test_writes_of_the_wrong_type_or_too_long_are_refused_and_change_nothing(enc
                                      ("Result/Fits", ua.Variant(True, ua.VariantType.Boolean))):
                 with pytest.raises(ua.uaerrors.BadUserAccessDenied):
                     await line.node(f"PackTags/{read_only}").write_value(value)
+                name = read_only.rsplit("/", 1)[-1]
+                assert await line.read("Status/CommandMessage") == (
+                    f"refused a write of {name} from OPC UA (key test-line): read only")
             assert await part_id.read_value() == "cube"
 
     run(scenario())

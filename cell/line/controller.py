@@ -71,7 +71,7 @@ stop. A guard refusal, a watchdog or an arm fault is named otherwise (``safety s
 class LineSnapshot:
     """The line now: PackML state and unit mode, the part id parameter, the scan job of the cycle (None
     outside one), the counters, the last stop reason, the last result (None before the first), and the
-    outcome of the last command, in words."""
+    outcome of the last command or mode change, or of a request a way in refused by itself, in words."""
 
     state: State
     mode: UnitMode
@@ -189,6 +189,12 @@ class LineController:
 
     # ------------------------------------------------------------------ commands
 
+    def say(self, text: str) -> None:
+        """Make ``text`` the outcome of the last request (the snapshot's ``message``): what a way in refused
+        by itself, e.g. a write to the OPC UA server."""
+        self._message = text
+        self._notify()
+
     def set_part_id(self, part_id: str) -> None:
         """The part id the next Start scans (``Command/Parameter/PartId``); ``ServiceError`` (invalid)."""
         self.part_id = check_part_id(part_id)
@@ -241,11 +247,13 @@ class LineController:
             self._message = f"refused unit mode {mode.label} from {source}: {exc}"
             self._notify()
             raise
+        if mode is self.mode:
+            self.say(f"unit mode {mode.label} from {source}: already {mode.label}")
+            return f"{mode.label} mode"
         self._message = f"unit mode {mode.label} from {source}"
-        if mode is not self.mode:
-            self.mode = mode
-            self._save(mode=int(mode))
-            self._record_transition(self.state, self._message)
+        self.mode = mode
+        self._save(mode=int(mode))
+        self._record_transition(self.state, self._message)
         return f"{mode.label} mode"
 
     def _check_mode(self, mode: UnitMode) -> None:
@@ -254,7 +262,7 @@ class LineController:
             raise ServiceError(f"unit mode {int(mode)} ({mode.label}) is not offered; offered: {offered}",
                                reason="invalid", field="mode")
         if mode is self.mode:
-            return
+            return  # accepted in any state: nothing changes
         if self.state not in packml.MODE_CHANGE_STATES:
             allowed = ", ".join(s.label for s in sorted(packml.MODE_CHANGE_STATES))
             raise ServiceError(f"the unit mode changes in {allowed} only, not in {self.state.label}",

@@ -16,9 +16,11 @@ REST trigger does:
 
 A write of the wrong type, of a value out of range (a PartId over 64 characters, a CntrlCmd that is no
 command) or with an index range is refused whole (the request's service result is Bad) and changes
-nothing. Values follow the line: every change the controller reports is queued and written, in order,
-by one task; a command's answer waits until its effects are readable. Who logs in and how is
-:mod:`cell.line.opcua_security`.
+nothing; a write of a read-only variable is refused by itself (``Bad_UserAccessDenied``), the request's
+other values written. ``Status/CommandMessage`` says why, as it does for a refused method call (it is the
+line's message: REST reads it too). Values follow the line: every change the controller reports is
+queued and written, in order, by one task; a command's answer waits until its effects are readable. Who
+logs in and how is :mod:`cell.line.opcua_security`.
 """
 
 from __future__ import annotations
@@ -38,7 +40,6 @@ from cell.line.controller import LineController, LineSnapshot
 from cell.line.opcua_nodes import (
     CMD_CHANGE_REQUEST,
     CNTRL_CMD,
-    COMMAND_MESSAGE,
     METHODS,
     PACKML_URI,
     PART_ID,
@@ -122,10 +123,9 @@ class LineOPCUA:
         self._keys = keys
         self._server = Server(user_manager=LineUserManager(keys))
         self._ids: dict[str, ua.NodeId] = {}
-        self._writable: dict[ua.NodeId, Tag] = {}
+        self._tags: dict[ua.NodeId, Tag] = {}
         self._snapshots: asyncio.Queue[LineSnapshot] = asyncio.Queue()
         self._published: dict[str, Any] = {}
-        self._line_message: str | None = None
         self._publisher: asyncio.Task[None] | None = None
 
     @property
@@ -156,7 +156,7 @@ class LineOPCUA:
                         await server.register_namespace(PACKML_URI))
         handlers = {method.path: self._handler(method.path) for method in METHODS}
         self._ids = await build(server, self._service.name, ns, handlers)
-        self._writable = {self._ids[tag.path]: tag for tag in TAGS if tag.writable}
+        self._tags = {self._ids[tag.path]: tag for tag in TAGS}
         server.subscribe_server_callback(CallbackType.PreWrite, self._pre_write)
         server.subscribe_server_callback(CallbackType.PostWrite, self._post_write)
         self._publisher = asyncio.create_task(self._publish_all(), name="OPC UA values")
@@ -204,9 +204,6 @@ class LineOPCUA:
     async def _publish(self, snapshot: LineSnapshot) -> None:
         for path, read in _LINE_TAGS:
             await self._set(path, read(snapshot))
-        if snapshot.message != self._line_message:
-            self._line_message = snapshot.message
-            await self._set(COMMAND_MESSAGE, snapshot.message)
 
     async def _set(self, path: str, value: Any) -> None:
         """Write a value the server owns (unchanged values are not written again)."""
@@ -220,10 +217,11 @@ class LineOPCUA:
             ua.Variant(value, _TAG[path].vtype), SourceTimestamp=now, ServerTimestamp=now))
 
     async def _say(self, text: str) -> None:
-        """``Status/CommandMessage`` for what this server refused or did itself."""
-        await self.settle()
+        """What this server refused itself, as the line's message (``Status/CommandMessage``, REST's
+        ``message``), once it is readable."""
         log.info("OPC UA: %s", text)
-        await self._set(COMMAND_MESSAGE, text)
+        self._line.say(text)
+        await self.settle()
 
     def _read(self, path: str) -> Any:
         value = self._server.read_attribute_value(self._ids[path]).Value
@@ -236,9 +234,9 @@ class LineOPCUA:
         if not event.is_external:
             return
         for item in event.request_params.NodesToWrite:
-            tag = self._writable.get(item.NodeId)
-            if tag is None or item.AttributeId != ua.AttributeIds.Value:
-                continue  # asyncua refuses what is not writable
+            tag = self._tags.get(item.NodeId)
+            if tag is None or not tag.writable or item.AttributeId != ua.AttributeIds.Value:
+                continue  # asyncua refuses what is not writable (_post_write says so)
             refused = _refusal(tag, item)
             if refused is not None:
                 why, code = refused
@@ -252,8 +250,12 @@ class LineOPCUA:
             return
         source = _source(event.user.name)
         for item, status in zip(event.request_params.NodesToWrite, event.response_params, strict=True):
-            tag = self._writable.get(item.NodeId)
-            if tag is None or not status.is_good():
+            tag = self._tags.get(item.NodeId)
+            if tag is None:
+                continue
+            if not status.is_good():  # asyncua refused it, the request's other values aside
+                why = "only its value may be written" if tag.writable else "read only"
+                await self._say(f"refused a write of {tag.path.rsplit('/', 1)[-1]} from {source}: {why}")
                 continue
             value = item.Value.Value.Value
             if tag.path == PART_ID:

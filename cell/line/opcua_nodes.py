@@ -106,8 +106,8 @@ TAGS: tuple[Tag, ...] = (
     Tag("PackTags/Status/JobId", V.String, "The scan job of the current cycle (empty outside one).",
         read=lambda s: s.job_id or ""),
     Tag(COMMAND_MESSAGE, V.String, "The outcome of the last command or mode change from any way in "
-        "(OPC UA, REST, digital I/O), or of a write this server refused, in words: why a command was "
-        "refused."),
+        "(OPC UA, REST, digital I/O), or of a write or call this server refused, in words: why a command "
+        "was refused.", read=lambda s: s.message),
     Tag("PackTags/Admin/ProdProcessedCount", V.Int32, "Parts processed (each cycle that reached "
         "Complete), kept across restarts.", read=lambda s: s.processed),
     Tag("PackTags/Admin/ProdDefectiveCount", V.Int32, "Of those, parts that fit no container or could "
