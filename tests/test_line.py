@@ -218,7 +218,7 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     stopped = line.wait({"Stopped"})
     assert stopped["stop_reason"] == {"id": 1, "message": "Stop from REST (key line)"}
     assert line.job(running["job_id"])["status"] == "stopped"
-    assert stopped["processed"] == 0
+    assert stopped["processed"] == 0 and stopped["result"] is None  # only a Complete writes a result
 
 
 def test_a_job_stopped_through_the_api_stops_the_line_it_does_not_abort_it(line: Line):
@@ -327,11 +327,15 @@ def test_an_operator_stop_stops_the_line_and_the_counters_outlive_a_restart(tmp_
         line.command("reset")
         line.wait({"Idle"})
         assert line.client.get("/api/v1/cell", headers=line.auth("viewer")).json()["queue"]["held"] is None
+        manual = line.client.post("/api/v1/line/mode", json={"mode": "manual"}, headers=line.auth("line"))
+        assert manual.status_code == 200
         keys = line.keys
     with _reopen(tmp_path, config, keys) as line:
         state = line.state()
         assert state["state_name"] == "Stopped" and state["processed"] == 1
         assert state["result"]["part_id"] == "baseball" and state["stop_reason"]["id"] == 7
+        # line.initial_mode (production) is a new line's: a cell left in Manual stays in Manual
+        assert state["mode_name"] == "Manual"
 
 
 def test_a_restart_stops_the_line_from_its_last_state_with_the_services_start_as_reason(tmp_path: Path):

@@ -73,9 +73,10 @@ class DigitalIOConfig(StrictModel):
 
 
 class LineConfig(StrictModel):
-    """``initial_mode``: the unit mode the service starts in (the state is Stopped at every start);
-    ``opcua``/``dio``: the ways in besides REST (None: not wired); ``max_time_s`` [s] a line scan's time
-    budget (None: the scan section's)."""
+    """``initial_mode``: the unit mode of a new line, at the service's first start with this cell's store; a
+    restart keeps the mode the line was last in (a cell left in Manual does not come back in Production by
+    itself), and the state is Stopped at every start; ``opcua``/``dio``: the ways in besides REST (None: not
+    wired); ``max_time_s`` [s] a line scan's time budget (None: the scan section's)."""
 
     initial_mode: Literal["production", "manual"] = "production"
     opcua: OPCUAConfig | None = None

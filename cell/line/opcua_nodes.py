@@ -2,8 +2,9 @@
 
 Under ``Objects/<cell name>`` (NodeId ``s=Unit``):
 
-- ``PackTags/`` the classic PackML tags (ISA-TR88.00.02): ``Command/`` what the PLC writes, ``Status/``,
-  ``Admin/`` and ``Result/`` what it reads (:data:`TAGS`).
+- ``PackTags/`` a subset of the classic PackML tags (ISA-TR88.00.02) and the cell's own: ``Command/`` what
+  the PLC writes, ``Status/``, ``Admin/`` and ``Result/`` what it reads (:data:`TAGS`; no MachSpeed, no
+  StateRequested or ChangeInProcess tags: ``docs/packml-opcua.md`` lists what is not offered).
 - OPC 30050's state machine objects and methods: ``BaseStateMachine`` (Abort, Clear), its
   ``MachineState`` (Stop) and that one's ``ExecuteState`` (Reset, Start, Hold, Unhold, Suspend,
   Unsuspend), each with its ``CurrentState``; and on the unit ``SetUnitMode(Int32 RequestedMode)`` and
@@ -122,8 +123,9 @@ TAGS: tuple[Tag, ...] = (
         read=_result(lambda r: r.job_id, "")),
     Tag("PackTags/Result/PartId", V.String, "The part id the last result is of.",
         read=_result(lambda r: r.part_id, "")),
-    Tag("PackTags/Result/Status", V.String, "How the last cycle's scan ended: completed, stopped, failed, "
-        "or rejected (no scan ran: an unknown part).", read=_result(lambda r: r.status, "")),
+    Tag("PackTags/Result/Status", V.String, "How the last cycle that reached Complete ended: completed, "
+        "no_object (nothing on the table) or rejected (no scan ran: an unknown part).",
+        read=_result(lambda r: r.status, "")),
     Tag("PackTags/Result/LengthM", V.Double, "The packing box's length [m] (>= WidthM; 0: not measured).",
         read=_result(lambda r: r.length_m, 0.0)),
     Tag("PackTags/Result/WidthM", V.Double, "The packing box's width [m].",

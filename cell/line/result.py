@@ -53,13 +53,13 @@ def feeder_part(part_id: str) -> tuple[str, tuple[float, float, float] | None]:
 class CycleResult:
     """One part's result as the line reads it (``Result/...``).
 
-    ``status`` is the job's (``completed``, ``no_object``: nothing on the table, ``stopped``, ``failed``)
-    or ``rejected`` when no scan ran (an unknown part); ``length_m`` >= ``width_m`` and ``height_m`` the
-    packing box's estimate [m] (0 when none was measured) and ``upper_length_m``, ``upper_width_m``,
-    ``upper_height_m`` its upper bound [m] from the sensor's error model, the box the container is chosen
-    for (0 when none was measured); ``container`` the chosen container's name ("" when none fits);
-    ``clearance_m`` the smallest gap [m] between the upper bound and the container's walls or lid (0
-    when none fits); ``fits`` whether a container was chosen (a part that fits none is defective, not a
+    ``status`` is the job's (``completed``, ``no_object``: nothing on the table) or ``rejected`` when no scan
+    ran (an unknown part): only a cycle that reaches Complete has a result; ``length_m`` >= ``width_m`` and
+    ``height_m`` the packing box's estimate [m] (0 when none was measured) and ``upper_length_m``,
+    ``upper_width_m``, ``upper_height_m`` its upper bound [m] from the sensor's error model, the box the
+    container is chosen for (0 when none was measured); ``container`` the chosen container's name ("" when
+    none fits); ``clearance_m`` the smallest gap [m] between the upper bound and the container's walls or lid
+    (0 when none fits); ``fits`` whether a container was chosen (a part that fits none is defective, not a
     fault); ``message`` why, in words."""
 
     job_id: str
