@@ -1,10 +1,12 @@
 """The line's transition history as a client reads it: the controller queues its store writes (the event
-loop never waits for the store), and a read of the history waits for the writes queued before it."""
+loop never waits for the store), and a read of the history waits for the writes queued before it; and
+what the controller shows of a scan that completed while the line held it."""
 
 from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -12,8 +14,8 @@ import pytest
 
 from cell.line.config import LineConfig
 from cell.line.controller import LineController
-from cell.line.packml import State, UnitMode
-from cell.service.store import LineTransition, open_store, sqlite_url
+from cell.line.packml import Command, State, UnitMode
+from cell.service.store import LineTransition, Store, open_store, sqlite_url
 
 STORE_DELAY_S = 0.3
 
@@ -42,3 +44,76 @@ def test_a_read_of_the_history_finds_the_transitions_just_made(tmp_path: Path,
     stopped, production, manual = int(State.STOPPED), int(UnitMode.PRODUCTION), int(UnitMode.MANUAL)
     assert started == [(stopped, production)]
     assert changed == [(stopped, manual), (stopped, production)]  # newest first
+
+
+class _Service:
+    """What the controller asks of its service: a sim cell whose scans end when the test says."""
+
+    name = "cell-a"
+    ready = True
+    held_by_operator = False
+    arm = SimpleNamespace(faulted=False)
+    objects = SimpleNamespace(virtual=True)
+
+    def __init__(self) -> None:
+        self.submitted: list[str] = []
+        self.stops: list[str] = []
+
+    def resume_for_line(self) -> None:
+        pass
+
+    async def submit(self, request: object, submitted_by: str, origin: str) -> SimpleNamespace:
+        self.submitted.append(f"job-{len(self.submitted) + 1}")
+        return SimpleNamespace(id=self.submitted[-1])
+
+    async def stop_job(self, job_id: str, reason: str) -> None:
+        self.stops.append(job_id)  # the job's end comes when the test says
+
+
+async def _until(line: LineController, done: Callable[[], bool], what: str) -> None:
+    for _ in range(100):  # the acting states' tasks: a few turns of the loop, no time passes
+        if done():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError(f"{what}: the line is {line.state.label}")
+
+
+async def _reach(line: LineController, state: State) -> None:
+    await _until(line, lambda: line.state is state, f"not {state.label}")
+
+
+async def _executing(service: _Service, store: Store) -> LineController:
+    """A line of ``service`` in Execute, scanning job-1."""
+    line = LineController(service, LineConfig(), store)  # type: ignore[arg-type]
+    await line.start()
+    await line.command(Command.RESET, "test")
+    await _reach(line, State.IDLE)
+    await line.command(Command.START, "test", part_id="cube")
+    await _reach(line, State.EXECUTE)
+    return line
+
+
+def test_unhold_of_a_scan_that_completed_while_held_shows_its_job_in_execute(tmp_path: Path) -> None:
+    store = open_store(sqlite_url(tmp_path))
+
+    async def scenario() -> tuple[list[tuple[State, str | None]], str]:
+        service = _Service()
+        line = await _executing(service, store)
+        seen: list[tuple[State, str | None]] = []
+        line.subscribe(lambda s: seen.append((s.state, s.job_id)))
+        await line.command(Command.HOLD, "test")
+        await _until(line, lambda: bool(service.stops), "the Hold did not stop the scan")
+        line.job_ended("job-1", "completed", "done", None)  # the scan had completed
+        await _reach(line, State.HELD)
+        seen.clear()
+        await line.command(Command.UNHOLD, "test")
+        await _reach(line, State.COMPLETE)
+        result = line.snapshot().result
+        await line.close()
+        assert result is not None
+        return seen, result.job_id
+
+    seen, result_job = asyncio.run(scenario())
+    assert seen == [(State.UNHOLDING, None), (State.EXECUTE, "job-1"), (State.COMPLETING, None),
+                    (State.COMPLETE, None)]
+    assert result_job == "job-1"

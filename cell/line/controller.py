@@ -350,7 +350,10 @@ class LineController:
         state = self.state
         if self._done is not None:
             done, self._done = self._done, None
+            # Execute shows the scan's job, as every Execute does; it is over by Completing
+            self._job_id = done.job_id
             self._enter(State.EXECUTE, "the held part's scan had completed")
+            self._job_id = None
             self._complete(done)
             return
         await self._scan(self._cycle_part, state)
