@@ -5,6 +5,7 @@ what the controller shows of a scan that completed while the line held it."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -117,3 +118,33 @@ def test_unhold_of_a_scan_that_completed_while_held_shows_its_job_in_execute(tmp
     assert seen == [(State.UNHOLDING, None), (State.EXECUTE, "job-1"), (State.COMPLETING, None),
                     (State.COMPLETE, None)]
     assert result_job == "job-1"
+
+
+def test_an_acting_state_left_before_its_work_began_does_nothing(tmp_path: Path,
+                                                                caplog: pytest.LogCaptureFixture) -> None:
+    """A command's acting state is left in the same turn of the loop (the scan's end, a Stop, came first):
+    its work, queued to a task, does nothing when the task begins."""
+    store = open_store(sqlite_url(tmp_path))
+
+    async def scenario() -> tuple[State, State, list[str]]:
+        service = _Service()
+        line = await _executing(service, store)
+        await line.command(Command.HOLD, "test")
+        line.job_ended("job-1", "completed", "done", None)  # its end was on its way
+        await line.command(Command.UNHOLD, "test")
+        await _reach(line, State.COMPLETE)  # the held scan's result: the Holding's work has nothing to do
+        completed = line.state
+        await line.command(Command.RESET, "test")
+        await _reach(line, State.IDLE)
+        await line.command(Command.START, "test", part_id="bunny")
+        await line.command(Command.STOP, "test")  # before Starting submitted the scan: none is
+        await _reach(line, State.STOPPED)
+        for _ in range(10):  # turns in which a Starting's work would have submitted the scan
+            await asyncio.sleep(0)
+        stopped = line.state
+        await line.close()
+        return completed, stopped, service.submitted
+
+    completed, stopped, submitted = asyncio.run(scenario())
+    assert (completed, stopped, submitted) == (State.COMPLETE, State.STOPPED, ["job-1"])
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text

@@ -326,12 +326,14 @@ class LineController:
         self._record_transition(state, cause)
         work = self._acting_work.get(state)
         if work is not None:
-            self._spawn(work(), state)
+            self._spawn(work, state)
 
-    def _spawn(self, coroutine: Awaitable[None], state: State) -> None:
+    def _spawn(self, work: Callable[[], Awaitable[None]], state: State) -> None:
         async def run() -> None:
+            if self.state is not state:  # left before its task began (the scan's end came first, a Stop)
+                return
             try:
-                await coroutine
+                await work()
             except Exception as exc:  # an acting state that cannot finish is a fault, never a hang
                 log.exception("line: %s failed", state.label)
                 if self.state is state:
