@@ -1,6 +1,7 @@
 """The line's transition history as a client reads it: the controller queues its store writes (the event
-loop never waits for the store), and a read of the history waits for the writes queued before it; and
-what the controller shows of a scan that completed while the line held it."""
+loop never waits for the store), and a read of the history waits for the writes queued before it; and,
+with the controller's service standing in, what the line makes of a scan's end: a scan that completed
+while the line held it, an acting state left at once, a scan stopped by someone else than the line."""
 
 from __future__ import annotations
 
@@ -148,3 +149,26 @@ def test_an_acting_state_left_before_its_work_began_does_nothing(tmp_path: Path,
     completed, stopped, submitted = asyncio.run(scenario())
     assert (completed, stopped, submitted) == (State.COMPLETE, State.STOPPED, ["job-1"])
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+
+
+@pytest.mark.parametrize(("termination", "state", "reason"), [
+    ("safety stop: operator stop: wrong part (key op)", State.STOPPED, 2),  # POST /api/v1/jobs/{id}/stop
+    ("safety stop: wrong part (key op) (the job's worker did not confirm the stop in 2 s and was killed)",
+     State.STOPPED, 2),
+    ("safety stop: refused: the twist leaves the workspace", State.ABORTED, 4),
+    ("safety stop: watchdog: no perception for 0.5 s", State.ABORTED, 4),
+])
+def test_a_scan_stopped_in_execute_by_someone_else_than_the_line(tmp_path: Path, termination: str,
+                                                                  state: State, reason: int) -> None:
+    """A stop on request (through the API, also when its worker had to be killed) is a Stop; the safety
+    layer's own stops are faults."""
+    store = open_store(sqlite_url(tmp_path))
+
+    async def scenario() -> tuple[State, int]:
+        line = await _executing(_Service(), store)
+        line.job_ended("job-1", "stopped", termination, None)
+        ended = line.snapshot()
+        await line.close()
+        return ended.state, int(ended.stop_reason_id)
+
+    assert asyncio.run(scenario()) == (state, reason)

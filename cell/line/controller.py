@@ -65,6 +65,10 @@ REQUESTED_STOP = "safety stop: operator stop: "
 STOP, the service's shutdown): the guard names a requested stop ``operator stop: <reason>``
 (:meth:`cell.safety.guard.MotionGuard.tick`) and the job's runner calls every stop of the arm a safety
 stop. A guard refusal, a watchdog or an arm fault is named otherwise (``safety stop: refused: ...``)."""
+UNCONFIRMED_STOP = "(the job's worker did not confirm the stop"
+"""What the termination of a job stopped on request says when its worker did not confirm the stop in time
+and was killed (:meth:`cell.service.manager.CellService._stop_running`; the arm's connection watchdog
+stops the arm, and a fault it leaves is the arm's)."""
 
 
 @dataclass(frozen=True)
@@ -304,7 +308,8 @@ class LineController:
             self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
             return
         faulted = self._service.arm.faulted
-        if not faulted and (status == "cancelled" or termination.startswith(REQUESTED_STOP)):
+        requested = termination.startswith(REQUESTED_STOP) or UNCONFIRMED_STOP in termination
+        if not faulted and (status == "cancelled" or requested):
             # stopped on request, not by the line (its own stops end in Stopping or Aborting): a job
             # stopped or cancelled through the API, or the service shutting down
             reason = StopReason.OPERATOR_STOP if self._service.ready else StopReason.SHUTDOWN
