@@ -53,7 +53,6 @@ class _Service:
 
     name = "cell-a"
     ready = True
-    held_by_operator = False
     arm = SimpleNamespace(faulted=False)
     objects = SimpleNamespace(virtual=True)
 
@@ -61,8 +60,9 @@ class _Service:
         self.submitted: list[str] = []
         self.stops: list[str] = []
 
-    def resume_for_line(self) -> None:
-        pass
+    @staticmethod
+    def hold_reason() -> None:
+        return None
 
     async def submit(self, request: object, submitted_by: str, origin: str) -> SimpleNamespace:
         self.submitted.append(f"job-{len(self.submitted) + 1}")
@@ -151,22 +151,23 @@ def test_an_acting_state_left_before_its_work_began_does_nothing(tmp_path: Path,
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
 
 
-@pytest.mark.parametrize(("termination", "state", "reason"), [
-    ("safety stop: operator stop: wrong part (key op)", State.STOPPED, 2),  # POST /api/v1/jobs/{id}/stop
+@pytest.mark.parametrize(("termination", "requested", "state", "reason"), [
+    ("safety stop: operator stop: wrong part (key op)", True, State.STOPPED, 2),  # POST /jobs/{id}/stop
     ("safety stop: wrong part (key op) (the job's worker did not confirm the stop in 2 s and was killed)",
-     State.STOPPED, 2),
-    ("safety stop: refused: the twist leaves the workspace", State.ABORTED, 4),
-    ("safety stop: watchdog: no perception for 0.5 s", State.ABORTED, 4),
+     True, State.STOPPED, 2),
+    ("safety stop: refused: the twist leaves the workspace", False, State.ABORTED, 4),
+    ("safety stop: watchdog: no perception for 0.5 s", False, State.ABORTED, 4),
 ])
 def test_a_scan_stopped_in_execute_by_someone_else_than_the_line(tmp_path: Path, termination: str,
-                                                                  state: State, reason: int) -> None:
+                                                                  requested: bool, state: State,
+                                                                  reason: int) -> None:
     """A stop on request (through the API, also when its worker had to be killed) is a Stop; the safety
     layer's own stops are faults."""
     store = open_store(sqlite_url(tmp_path))
 
     async def scenario() -> tuple[State, int]:
         line = await _executing(_Service(), store)
-        line.job_ended("job-1", "stopped", termination, None)
+        line.job_ended("job-1", "stopped", termination, None, requested=requested)
         ended = line.snapshot()
         await line.close()
         return ended.state, int(ended.stop_reason_id)

@@ -19,9 +19,9 @@ What each state does (TR88.00.02's model, :mod:`cell.line.packml`):
   service's shutdown during Execute.
 - Aborting is the fault path: a safety stop (a guard refusal, a watchdog), an arm fault or a failed job
   during Execute, or the Abort command, stop the scan and end in Aborted with the stop reason. Clearing
-  recovers a faulted arm (as ``POST /arm/recover`` does), then Stopped; Resetting lets the queue run
-  again, then Idle. An operator's STOP holds the queue until an operator resumes it: till then Reset is
-  refused (the line may not release the operator's hold).
+  recovers a faulted arm (as ``POST /arm/recover`` does), then Stopped; Resetting goes to Idle. A queue
+  the service holds (an operator's STOP, a job's worker that died) is resumed by an operator alone: till
+  then Reset is refused (the line may not release what a person is to look at).
 - Holding and Suspending stop the scan (a scan cannot be paused half-way: its maps and its path are those
   of one continuous run); Unholding and Unsuspending scan the same part again from the start. A scan
   that completed before the hold took effect is not repeated: its result is written on Unhold.
@@ -60,15 +60,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("cell.line")
 
 MODE_NAMES = {"production": UnitMode.PRODUCTION, "manual": UnitMode.MANUAL}
-REQUESTED_STOP = "safety stop: operator stop: "
-"""How the termination of a job stopped on request begins (``POST /api/v1/jobs/{id}/stop``, an operator's
-STOP, the service's shutdown): the guard names a requested stop ``operator stop: <reason>``
-(:meth:`cell.safety.guard.MotionGuard.tick`) and the job's runner calls every stop of the arm a safety
-stop. A guard refusal, a watchdog or an arm fault is named otherwise (``safety stop: refused: ...``)."""
-UNCONFIRMED_STOP = "(the job's worker did not confirm the stop"
-"""What the termination of a job stopped on request says when its worker did not confirm the stop in time
-and was killed (:meth:`cell.service.manager.CellService._stop_running`; the arm's connection watchdog
-stops the arm, and a fault it leaves is the arm's)."""
 
 
 @dataclass(frozen=True)
@@ -237,9 +228,10 @@ class LineController:
         if command is Command.RESET and self._service.arm.faulted:
             return (f"the arm is faulted ({', '.join(self._service.arm.status.faults)}): Abort, then Clear "
                     "recovers it")
-        if command is Command.RESET and self._service.held_by_operator:
-            return ("an operator's STOP holds the queue: an operator must resume the queue (POST "
-                    "/api/v1/queue/resume) before the line may Reset")
+        held = self._service.hold_reason() if command is Command.RESET else None
+        if held is not None:
+            # an operator's STOP, a worker that died: a person looks before the line moves the arm again
+            return f"the queue is {held}; the line may Reset after that, not instead"
         return None
 
     async def set_mode(self, mode: UnitMode, source: str) -> str:
@@ -284,8 +276,11 @@ class LineController:
 
     # ------------------------------------------------------------------ the scan job
 
-    def job_ended(self, job_id: str, status: str, termination: str, result: dict[str, Any] | None) -> None:
-        """The service's word that a job ended; the line acts on its own cycle's job only."""
+    def job_ended(self, job_id: str, status: str, termination: str, result: dict[str, Any] | None, *,
+                  requested: bool = False) -> None:
+        """The service's word that a job ended; ``requested``: the service stopped it on someone's request
+        (``POST /api/v1/jobs/{id}/stop``, an operator's STOP, its shutdown), not the safety layer by
+        itself. The line acts on its own cycle's job only."""
         if job_id != self._job_id:
             return
         self._job_id = None
@@ -300,15 +295,14 @@ class LineController:
         elif state is State.ABORTING:
             self._enter(State.ABORTED, f"the scan ended: {status}")
         elif state is State.EXECUTE:
-            self._execute_ended(job_id, status, termination, result)
+            self._execute_ended(job_id, status, termination, result, requested)
 
-    def _execute_ended(self, job_id: str, status: str, termination: str,
-                       result: dict[str, Any] | None) -> None:
+    def _execute_ended(self, job_id: str, status: str, termination: str, result: dict[str, Any] | None,
+                       requested: bool) -> None:
         if status in ("completed", "no_object"):
             self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
             return
         faulted = self._service.arm.faulted
-        requested = termination.startswith(REQUESTED_STOP) or UNCONFIRMED_STOP in termination
         if not faulted and (status == "cancelled" or requested):
             # stopped on request, not by the line (its own stops end in Stopping or Aborting): a job
             # stopped or cancelled through the API, or the service shutting down
@@ -422,7 +416,6 @@ class LineController:
             self._enter(State.STOPPED, "cleared")
 
     async def _resetting(self) -> None:
-        self._service.resume_for_line()
         if self.state is State.RESETTING:
             self._enter(State.IDLE, "reset")
 

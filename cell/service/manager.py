@@ -77,15 +77,17 @@ class _Queued:
 @dataclass
 class _Running:
     """The job on the arm: its worker (None while it is being started), whether the worker said it
-    started (it says so before it touches the arm), a stop asked for meanwhile, the stop confirmations
-    the worker owes, the stop its worker was killed for (it did not confirm in time, or had not started),
-    its newest progress, its worker's last word, whether its end is recorded (the worker may still be
-    exiting) and ``gone``, set once the worker has exited."""
+    started (it says so before it touches the arm), whether a stop was passed on to it (``requested``: it
+    ended on someone's request, not by its safety layer alone), a stop asked for meanwhile, the stop
+    confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
+    not started), its newest progress, its worker's last word, whether its end is recorded (the worker
+    may still be exiting) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
     proc: asyncio.subprocess.Process | None = None
     started: bool = False
+    requested: bool = False
     stop_reason: str | None = None
     acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
     killed_for: str | None = None
@@ -143,7 +145,6 @@ class CellService:
         self._queued: dict[str, _Queued] = {}
         self._running: _Running | None = None
         self._held: str | None = None
-        self._held_by_operator = False  # an operator's STOP: only an operator's resume releases it
         self._busy_with_arm = False
         self._closing = False
         self._submit_lock = asyncio.Lock()
@@ -372,13 +373,13 @@ class CellService:
         if self.line is not None:
             self.line.operator_stop(reason)
         self._hold(f"a stop ({reason})")
-        self._held_by_operator = True
         running = self._running
         if running is None:
             return self._logged(StopOutcome(None, False, "nothing was moving; the queue is held"), reason)
         return self._logged(await self._stop_running(running, reason), reason)
 
     def _hold(self, after: str) -> None:
+        """Hold the queue until an operator resumes it (never the line's Reset: a person looks first)."""
         self._held = f"held after {after}: resume the queue to go on (POST /api/v1/queue/resume)"
 
     @staticmethod
@@ -392,19 +393,7 @@ class CellService:
         if self.arm.faulted:
             raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
         self._held = None
-        self._held_by_operator = False
         self._wake.set()
-
-    @property
-    def held_by_operator(self) -> bool:
-        """Whether the queue is held by an operator's STOP, which only an operator's resume releases."""
-        return self._held_by_operator
-
-    def resume_for_line(self) -> None:
-        """The line's Reset: let queued jobs start again after a stop of the line's own (the line's Reset
-        refuses itself while the arm is faulted or an operator's STOP holds the queue)."""
-        if not self.arm.faulted and not self._held_by_operator:
-            self.resume()
 
     def operator_jobs(self) -> bool:
         """Whether an operator's job waits or runs."""
@@ -420,6 +409,7 @@ class CellService:
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
         if running.ended is not None or proc.returncode is not None:
             return StopOutcome(job_id, False, "the job had already ended")
+        running.requested = True
         await asyncio.sleep(0)  # a "started" the worker sent is read first
         if not running.started:
             # still loading its libraries, it cannot answer for seconds, and it has not touched the arm:
@@ -681,7 +671,7 @@ class CellService:
                                  finished_at=_now(), worker_pid=None, progress=running.progress)
         # the line hears once the store has the outcome: a line that reads the job finds it ended
         if self.line is not None:
-            self.line.job_ended(job.id, status, termination, result)
+            self.line.job_ended(job.id, status, termination, result, requested=running.requested)
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
