@@ -414,7 +414,8 @@ def test_a_lease_lost_with_its_connection_is_taken_again_unless_another_took_it(
         try:
             lease = first.claim_cell("c")
             with create_engine(url).connect() as admin:  # an outage, for the lease's connection
-                admin.execute(text("SELECT pg_terminate_backend(pid) FROM pg_locks "
+                # waits (up to 10 s) for the backend to end: the lock goes with it, not with the signal
+                admin.execute(text("SELECT pg_terminate_backend(pid, 10000) FROM pg_locks "
                                    "WHERE locktype = 'advisory' AND database = "
                                    "(SELECT oid FROM pg_database WHERE datname = current_database())"))
             taken = second.claim_cell("c")  # the lock ended with its connection
