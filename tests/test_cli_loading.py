@@ -106,6 +106,39 @@ def _wide() -> dict[str, str]:
     return {**os.environ, "COLUMNS": "160"}
 
 
+# Imports every command's module and then runs the named command line, with the client libraries of
+# the optional extras (pyproject.toml) unimportable, as in a venv installed with none of them.
+_WITHOUT_EXTRAS = """
+import importlib, importlib.abc, json, sys
+EXTRAS = {"franky", "rtde_control", "rtde_receive", "rtde_io", "serial", "psycopg", "cv2", "ray", "board",
+          "busio", "adafruit_extended_bus", "vl53lxcx"}
+
+class NoExtras(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in EXTRAS:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+sys.meta_path.insert(0, NoExtras())
+from cell.cli.commands import COMMANDS
+failed = {}
+for name, location in COMMANDS.items():
+    try:
+        importlib.import_module(location.split(":")[0])
+    except ImportError as exc:
+        failed[name] = str(exc)
+print(json.dumps(failed))
+"""
+
+
+def test_every_command_loads_without_the_optional_extras():
+    """A venv built from the wheel with the extras of one robot lacks the other robot's library; a module
+    that imports a driver library at its top (``cell doctor`` imported franky) fails even ``--help``."""
+    proc = subprocess.run([sys.executable, "-c", _WITHOUT_EXTRAS], cwd=REPO, capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == {}
+
+
 def test_every_registered_planner_loads_as_a_planner():
     """The registry names each planner by where it lives, imported only when a job runs it: each entry
     must load a planner class."""

@@ -8,6 +8,7 @@ import os
 import re
 import shutil
 import socket
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -169,6 +170,17 @@ def test_the_franka_handshake_and_its_real_time_limits(tmp_path, monkeypatch):
     assert checks["real-time"][0] == "fail" and "rtprio 99" in checks["real-time"][1]
     _, checks = _doctor(_cell(tmp_path, free_loopback([1337]), "", franka, realtime="ignore"), tmp_path)
     assert checks["real-time"][0] == "warn"
+
+
+def test_a_franka_cell_without_franky_fails_its_fci_check_with_the_extra_to_install(tmp_path, monkeypatch):
+    """The Franka's driver loads only for its own check; without franky that check fails, not doctor."""
+    monkeypatch.setitem(sys.modules, "franky", None)  # None in sys.modules: the import raises
+    monkeypatch.delitem(sys.modules, "drivers.arm.franka")
+    code, checks = _doctor(_cell(tmp_path, free_loopback([1337]), "", CONFIG_DIR / "franka-realsense.yaml"),
+                           tmp_path)
+    assert code == 1 and checks["robot FCI"][0] == "fail"
+    detail = checks["robot FCI"][1]
+    assert "does not load" in detail and "pip install 'cell[franka]'" in detail
 
 
 def test_the_cpu_governor_is_read_from_sysfs(tmp_path):

@@ -1,5 +1,10 @@
 """Checks of the devices a cell file names: the sensor's serial port, the UR5e's controller (RTDE and the
-dashboard server, its software version, remote control) and the Franka's research interface (FCI)."""
+dashboard server, its software version, remote control) and the Franka's research interface (FCI).
+
+A robot's driver module is imported only by the check of that robot: :mod:`drivers.arm.franka` imports
+franky, which a venv built with the ``ur5e`` extra alone does not have, and ``cell doctor`` failed there
+before checking anything.
+"""
 
 from __future__ import annotations
 
@@ -9,9 +14,9 @@ import socket
 import stat
 import struct
 from importlib import metadata
+from typing import BinaryIO
 
 from cell.doctor.findings import Finding
-from drivers.arm.franka import client_version, recv_exact, server_version
 from drivers.errors import CellError
 
 RTDE_PORT = 30004
@@ -73,17 +78,26 @@ def _dashboard(sock: socket.socket, command: str) -> str:
     return reply.decode(errors="replace").strip()
 
 
+def _read_exact(reader: BinaryIO, n: int) -> bytes:
+    """Exactly ``n`` bytes from a socket's buffered reader (which reads until it has them);
+    ``ConnectionError`` when the other side closes first."""
+    data = reader.read(n)
+    if len(data) < n:
+        raise ConnectionError(f"the other side closed the connection after {len(data)} of {n} bytes")
+    return data
+
+
 def _rtde(host: str, unreachable: str) -> Finding:
     """RTDE's first exchange: the client asks for protocol version 2, the controller accepts it."""
     sock = _connect(host, RTDE_PORT)
     if isinstance(sock, str):
         return Finding.fail("robot RTDE", f"{host}:{RTDE_PORT} does not answer ({sock})", unreachable)
     try:
-        with sock:
+        with sock, sock.makefile("rb") as reader:
             sock.sendall(RTDE_HEADER.pack(RTDE_HEADER.size + 2, RTDE_PROTOCOL_VERSION) +
                          struct.pack(">H", RTDE_VERSION))
-            size, kind = RTDE_HEADER.unpack(recv_exact(sock, RTDE_HEADER.size))
-            payload = recv_exact(sock, size - RTDE_HEADER.size)
+            size, kind = RTDE_HEADER.unpack(_read_exact(reader, RTDE_HEADER.size))
+            payload = _read_exact(reader, size - RTDE_HEADER.size)
     except OSError as exc:
         return Finding.fail("robot RTDE", f"{host}:{RTDE_PORT} accepted a connection but did not speak RTDE "
                             f"({exc})", "is this the robot's address? (another machine may answer on it)")
@@ -132,6 +146,11 @@ def ur_controller(host: str) -> list[Finding]:
 
 def franka_controller(host: str) -> Finding:
     """The research interface (FCI) answers the connect handshake and accepts this client's version."""
+    try:
+        from drivers.arm.franka import client_version, server_version
+    except ImportError as exc:
+        return Finding.fail("robot FCI", f"the Franka driver does not load: {exc}",
+                            "pip install 'cell[franka]'")
     try:
         accepted, version = server_version(host, CONNECT_TIMEOUT_S)
     except (CellError, metadata.PackageNotFoundError) as exc:
