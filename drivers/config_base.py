@@ -17,6 +17,8 @@ class StrictModel(BaseModel):
 Number = Annotated[float, Strict()]
 """A number written as one: an integer or a decimal, never a quoted string ("475") or a boolean. Safety
 values use it, so that a value someone quoted is refused instead of read."""
+FiniteNumber = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+"""A :data:`Number` that is finite: a place or a height, where YAML's ``.inf`` or ``.nan`` means nothing."""
 PositiveNumber = Annotated[float, Strict(), Field(gt=0.0)]
 NonNegativeNumber = Annotated[float, Strict(), Field(ge=0.0)]
 PositiveCount = Annotated[int, Strict(), Field(gt=0)]

@@ -192,3 +192,55 @@ def test_sensor_range_must_be_ordered(franka_cfg_data):
     data["sensor"]["range_min_m"] = 2.0
     with pytest.raises(ConfigError, match=r"range_min_m 2\.0 must be below range_max_m 1\.5"):
         parse_config(data, file="cell.yaml")
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("xy_m", [5.0, 5.0], r"station\.xy_m: \[5\.0, 5\.0\] is off the table of safety\.collision\.table "
+                         r"\(allowed: x in \[-0\.2, 1\], y in \[-0\.6, 0\.6\]\)"),
+    ("xy_m", [0.45, float("inf")], r"station\.xy_m\[1\]: Input should be a finite number"),
+    ("xy_m", [True, False], r"station\.xy_m\[0\]: Input should be a valid number"),
+    ("xy_m", ["0.45", 0.0], r"station\.xy_m\[0\]: Input should be a valid number"),
+    ("table_z_m", 5.0, r"station\.table_z_m: 5 m is not below the top of safety\.workspace "
+                       r"\(allowed: below 1\.1 m\)"),
+    ("table_z_m", float("nan"), r"station\.table_z_m: Input should be a finite number"),
+])
+def test_a_station_no_scan_can_use_is_refused(field, value, message):
+    """Off the table, outside the workspace, not finite or not a number: each passed and failed the scan."""
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    data["station"][field] = value
+    with pytest.raises(ConfigError, match=rf"^cell\.yaml: {message}"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_a_station_off_the_simulated_table_or_the_workspace_is_refused(franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["sim"]["table_center_xy_m"] = [1.2, 0.0]  # the collision world's table still holds the station
+    with pytest.raises(ConfigError, match=r"station\.xy_m: \[0\.45, 0\.0\] is off the table of sim "):
+        parse_config(data, file="cell.yaml")
+    data = copy.deepcopy(franka_cfg_data)
+    data["safety"]["workspace"]["min_m"][0] = 0.5
+    with pytest.raises(ConfigError, match=r"station\.xy_m: \[0\.45, 0\.0\] is outside safety\.workspace "
+                                          r"\(allowed: x in \(0\.5, 0\.85\), y in \(-0\.7, 0\.7\)\)"):
+        parse_config(data, file="cell.yaml")
+
+
+def test_a_watchdog_that_tolerates_late_ticks_longer_than_old_perception_is_refused(franka_cfg_data):
+    """100 Hz, 1.5 periods a miss, 3 s of perception age: at most 200 late ticks in a row (3 s)."""
+    data = copy.deepcopy(franka_cfg_data)
+    data["safety"]["watchdog"]["max_missed_deadlines"] = 200
+    assert parse_config(data, file="cell.yaml").safety.watchdog.max_missed_deadlines == 200
+    # 10 ticks of 1.1 periods at 100 Hz last 0.11 s exactly (9.999999999999998 in floating point)
+    data["safety"]["watchdog"].update(deadline_factor=1.1, perception_max_age_s=0.11, max_missed_deadlines=10)
+    assert parse_config(data, file="cell.yaml").safety.watchdog.max_missed_deadlines == 10
+    data["safety"]["watchdog"].update(deadline_factor=1.5, perception_max_age_s=3.0,
+                                      max_missed_deadlines=1000000)
+    with pytest.raises(ConfigError, match=r"safety\.watchdog\.max_missed_deadlines: 1000000 late ticks .*"
+                                          r"\(allowed: at most 200 "):
+        parse_config(data, file="cell.yaml")
+
+
+def test_an_empty_sensor_port_is_refused():
+    data = yaml.safe_load((CONFIG_DIR / "ur5e-vl53l8cx.yaml").read_text())
+    data["sensor"]["port"] = ""
+    with pytest.raises(ConfigError, match=r"sensor\.port: .*the port is empty"):
+        parse_config(data, file="cell.yaml")

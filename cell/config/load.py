@@ -6,6 +6,7 @@ a fixed set of values, the allowed ones. Nothing is connected or moved before th
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +81,54 @@ def _check_ceilings(cfg: CellConfig, file: str) -> None:
                                       f"{np.round(model.q_max, 4).tolist()}")
 
 
+def _on(xy: tuple[float, float], center: tuple[float, float], size: tuple[float, float]) -> bool:
+    """Whether the point ``xy`` lies on the rectangle of ``center`` and ``size`` [m]."""
+    return all(abs(p - c) <= s / 2.0 for p, c, s in zip(xy, center, size, strict=True))
+
+
+def _check_station(cfg: CellConfig, file: str) -> None:
+    """Refuse a station no scan can use: its centre off the table (the collision world's, and in sim and
+    dry-run the simulated one the sensor renders) or outside the workspace's footprint, the table top at
+    or above the workspace's top (no view above it: the scan's object then measured metres below it)."""
+    station, safety = cfg.station, cfg.safety
+    xy, top = station.xy_m, station.table_z_m
+    tables = {"safety.collision.table": (safety.collision.table.center_xy_m, safety.collision.table.size_m)}
+    if cfg.mode in ("sim", "dry-run"):
+        tables["sim"] = (cfg.sim.table_center_xy_m, cfg.sim.table_size_m)
+    for name, (center, size) in tables.items():
+        if not _on(xy, center, size):
+            raise ConfigError(f"{list(xy)} is off the table of {name}", file=file, field="station.xy_m",
+                              allowed=f"x in [{center[0] - size[0] / 2:g}, {center[0] + size[0] / 2:g}], "
+                                      f"y in [{center[1] - size[1] / 2:g}, {center[1] + size[1] / 2:g}]")
+    lo, hi = safety.workspace.min_m, safety.workspace.max_m
+    if not all(lo[i] < xy[i] < hi[i] for i in (0, 1)):
+        raise ConfigError(f"{list(xy)} is outside safety.workspace", file=file, field="station.xy_m",
+                          allowed=f"x in ({lo[0]:g}, {hi[0]:g}), y in ({lo[1]:g}, {hi[1]:g})")
+    if not top < hi[2]:
+        raise ConfigError(f"{top:g} m is not below the top of safety.workspace", file=file,
+                          field="station.table_z_m", allowed=f"below {hi[2]:g} m")
+
+
+def _check_watchdog(cfg: CellConfig, file: str) -> None:
+    """Refuse a late-loop watchdog that in practice never fires. While the control loop is late the arm
+    runs on its last command; a run of ``max_missed_deadlines`` late ticks lasts at least that many times
+    ``deadline_factor`` control periods. It may not last longer than the perception watchdog lets the arm
+    move on data that old (``perception_max_age_s``): a loop that does not run at all is no safer than
+    perception that runs late."""
+    watchdog = cfg.safety.watchdog
+    period_s = 1.0 / cfg.scan.control_rate_hz
+    # rounded before the floor: 0.11 s / (1.1 x 10 ms) is 9.999999999999998 in binary floating point
+    most = math.floor(round(watchdog.perception_max_age_s / (watchdog.deadline_factor * period_s), 9))
+    missed = watchdog.max_missed_deadlines
+    if missed > most:
+        lasts_s = missed * watchdog.deadline_factor * period_s
+        raise ConfigError(f"{missed} late ticks in a row last {lasts_s:g} s or more, longer than "
+                          "safety.watchdog.perception_max_age_s", file=file,
+                          field="safety.watchdog.max_missed_deadlines",
+                          allowed=f"at most {most} (perception_max_age_s / (deadline_factor / "
+                                  "scan.control_rate_hz))")
+
+
 def _yaml_problem(exc: yaml.YAMLError) -> str:
     """A YAML syntax error on one line, positions 1-based: where the problem is, what it is, and where
     the construct it broke began."""
@@ -113,6 +162,8 @@ def parse_config(data: Any, file: str = "<config>") -> CellConfig:
         error.field = problems[0][0]
         raise error from None
     _check_ceilings(cfg, file)
+    _check_station(cfg, file)
+    _check_watchdog(cfg, file)
     return cfg
 
 

@@ -22,7 +22,7 @@ from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
-from drivers.config_base import StrictModel
+from drivers.config_base import FiniteNumber, StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
 from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.sim.errors import SimErrorConfig, SimErrors
@@ -42,10 +42,11 @@ class PoseConfig(StrictModel):
 
 class StationConfig(StrictModel):
     """Where objects are put: the station's centre ``xy_m`` on the table and the table top height
-    ``table_z_m``, both in the robot base frame [m]."""
+    ``table_z_m``, both in the robot base frame [m]: finite numbers, written as numbers. Where they lie
+    against the table and the workspace is checked with the whole file (``cell.config.load``)."""
 
-    xy_m: tuple[float, float]
-    table_z_m: float = 0.0
+    xy_m: tuple[FiniteNumber, FiniteNumber]
+    table_z_m: FiniteNumber = 0.0
 
 
 class SimConfig(StrictModel):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, PositiveFloat, PositiveInt, model_validator
+from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_validator
 
 from drivers.config_base import StrictModel
 from drivers.depth.vl53l8cx.protocol import MAX_FREQUENCY_HZ
@@ -118,6 +118,15 @@ class VL53L8CXConfig(RangedConfig):
     range_max_m: PositiveFloat = 4.0
     timeout_s: PositiveFloat = 1.0
     zone_correction: str | None = None
+
+    @field_validator("port")
+    @classmethod
+    def _named(cls, port: str | None) -> str | None:
+        # an empty port passed every check and failed the scan, its job folder already made
+        if port is not None and not port.strip():
+            raise ValueError("the port is empty: give the bridge board's device (e.g. /dev/vl53l8cx) or a "
+                             "pyserial URL")
+        return port
 
     @model_validator(mode="after")
     def _consistent(self) -> VL53L8CXConfig:
