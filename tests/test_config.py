@@ -244,3 +244,13 @@ def test_an_empty_sensor_port_is_refused():
     data["sensor"]["port"] = ""
     with pytest.raises(ConfigError, match=r"sensor\.port: .*the port is empty"):
         parse_config(data, file="cell.yaml")
+
+
+def test_an_unknown_default_planner_fails_config_check_naming_the_registered_ones(tmp_path, franka_cfg_data):
+    data = copy.deepcopy(franka_cfg_data)
+    data["scan"]["planner"] = "nope"
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(data))
+    res = CliRunner().invoke(app, ["config", "check", str(tmp_path / "cell.yaml")])
+    assert res.exit_code == 1
+    assert res.output == (f"error: {tmp_path / 'cell.yaml'}: scan.planner: 'nope' is no registered planner "
+                          "(allowed: raster, lr-nbv, nbv, heu, vs-local, vs-global, vs-hybrid)\n")

@@ -152,6 +152,15 @@ def test_placeholders_and_a_bad_cell_file_fail(peer, tmp_path):
     assert code == 1 and checks["cell file"][0] == "fail" and "cell config check" in checks["cell file"][1]
 
 
+def test_an_unknown_default_planner_fails_the_cell_file(tmp_path):
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    data["scan"]["planner"] = "nope"
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(data))
+    code, checks = _doctor(tmp_path / "cell.yaml", tmp_path)
+    assert code == 1 and checks["cell file"][0] == "fail"
+    assert "scan.planner: 'nope' is no registered planner (allowed: raster, " in checks["cell file"][1]
+
+
 def test_the_franka_handshake_and_its_real_time_limits(tmp_path, monkeypatch):
     franka = CONFIG_DIR / "franka-realsense.yaml"
     good = FrankaConnectPeer(client_version())

@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, PositiveFloat, PositiveInt, model_validator
+from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_validator
+from pydantic_core import PydanticCustomError
 
 from cell.line.config import LineConfig
 from cell.packing.config import PackingConfig
@@ -19,6 +20,7 @@ from cell.perception.occupancy import OccupancyParams
 from cell.perception.registration import RegistrationParams
 from cell.perception.segmentation import SegmentationParams
 from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
+from cell.planning.registry import PLANNERS
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
@@ -142,13 +144,23 @@ class PlannersConfig(StrictModel):
 
 
 class ScanConfig(StrictModel):
-    """A scan job: default planner, the distance Z* kept to the object [m] (paper eq. 2, 0.25 m), the
-    control rate [Hz] at which motion is commanded and the sim clock steps, and the time budget [s]."""
+    """A scan job: default planner (a name of :data:`cell.planning.registry.PLANNERS`), the distance Z*
+    kept to the object [m] (paper eq. 2, 0.25 m), the control rate [Hz] at which motion is commanded and
+    the sim clock steps, and the time budget [s]."""
 
     planner: str
     standoff_m: PositiveFloat
     control_rate_hz: float = Field(gt=0.0, le=1000.0)
     max_time_s: PositiveFloat
+
+    @field_validator("planner")
+    @classmethod
+    def _registered(cls, name: str) -> str:
+        # checked with the file: an unknown default passed config check and doctor, then every job failed
+        if name not in PLANNERS:
+            raise PydanticCustomError("planner", "'{name}' is no registered planner",
+                                      {"name": name, "expected": ", ".join(PLANNERS)})
+        return name
 
 
 class RetentionConfig(StrictModel):
