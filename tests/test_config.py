@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import copy
+import re
+from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from typer.testing import CliRunner
 
 from cell.cli.main import app
 from cell.config import load_config
-from cell.config.load import parse_config
+from cell.config.load import load_config_data, parse_config
+from drivers.depth.zone_correction import ZoneCorrection, write_zone_correction
 from drivers.errors import ConfigError
 
 from .conftest import CONFIG_DIR
@@ -254,3 +258,36 @@ def test_an_unknown_default_planner_fails_config_check_naming_the_registered_one
     assert res.exit_code == 1
     assert res.output == (f"error: {tmp_path / 'cell.yaml'}: scan.planner: 'nope' is no registered planner "
                           "(allowed: raster, lr-nbv, nbv, heu, vs-local, vs-global, vs-hybrid)\n")
+
+
+def test_a_relative_zone_correction_is_read_from_the_cell_files_folder(tmp_path, monkeypatch):
+    """``sensor.zone_correction: zones.json`` (calibration/README.md) names the file beside the cell file,
+    wherever the command runs; the worker, given the parsed data, reads the same file."""
+    cell_dir, elsewhere = tmp_path / "cell", tmp_path / "elsewhere"
+    cell_dir.mkdir()
+    elsewhere.mkdir()
+    write_zone_correction(ZoneCorrection(resolution=8, offset_m=np.full(64, 0.001), noise_m=np.zeros(64)),
+                          cell_dir / "zones.json")
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    data["sensor"]["zone_correction"] = "zones.json"
+    (cell_dir / "cell.yaml").write_text(yaml.safe_dump(data))
+    monkeypatch.chdir(elsewhere)
+    cfg, parsed = load_config_data(Path("../cell/cell.yaml"))
+    assert Path(cfg.sensor.zone_correction) == (cell_dir / "zones.json").resolve()
+    assert parse_config(parsed, file="cell.yaml").sensor.zone_correction == cfg.sensor.zone_correction
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, r"sensor\.zone_correction: .*zones\.json is not a file \(a relative path is taken from the cell "
+           r"file's folder\)"),
+    ("{}", r"zones\.json: sensor\.zone_correction: not a zone correction"),
+])
+def test_a_zone_correction_that_is_missing_or_unreadable_fails_config_check(tmp_path, content, message):
+    if content is not None:
+        (tmp_path / "zones.json").write_text(content)
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    data["sensor"]["zone_correction"] = "zones.json"
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(data))
+    res = CliRunner().invoke(app, ["config", "check", str(tmp_path / "cell.yaml")])
+    assert res.exit_code == 1 and res.output.count("\n") == 1
+    assert re.search(message, res.output), res.output

@@ -16,6 +16,8 @@ from pydantic import ValidationError
 from pydantic_core import ErrorDetails
 
 from cell.config.models import CellConfig
+from drivers.depth.config import SimToFConfig, VL53L8CXConfig
+from drivers.depth.zone_correction import load_zone_correction
 from drivers.errors import ConfigError
 from drivers.robots import get_robot_model
 
@@ -172,9 +174,32 @@ def load_config(path: str | Path) -> CellConfig:
     return load_config_data(path)[0]
 
 
+def _resolve_zone_correction(data: Any, folder: Path) -> None:
+    """Take a relative ``sensor.zone_correction`` from the cell file's ``folder`` (in ``data``, so that a
+    job's worker, which validates ``data`` again from another working directory, reads the same file).
+    Anything that is not a path is left for the validation to name."""
+    sensor = data.get("sensor") if isinstance(data, dict) else None
+    name = sensor.get("zone_correction") if isinstance(sensor, dict) else None
+    if isinstance(sensor, dict) and isinstance(name, str) and name:
+        sensor["zone_correction"] = str(folder / Path(name).expanduser())
+
+
+def _check_zone_correction(cfg: CellConfig, file: str) -> None:
+    """The sensor's zone correction file exists and holds a correction for its zones (else the scan
+    failed after making its job folder)."""
+    if not isinstance(cfg.sensor, (VL53L8CXConfig, SimToFConfig)) or cfg.sensor.zone_correction is None:
+        return
+    where = Path(cfg.sensor.zone_correction)
+    if not where.is_file():
+        raise ConfigError(f"{where} is not a file (a relative path is taken from the cell file's folder)",
+                          file=file, field="sensor.zone_correction")
+    load_zone_correction(where, cfg.sensor.resolution)
+
+
 def load_config_data(path: str | Path) -> tuple[CellConfig, Any]:
     """Read and validate the cell file at ``path``; returns it with its parsed YAML (which
-    ``parse_config`` validates again elsewhere, e.g. in a job's worker process)."""
+    ``parse_config`` validates again elsewhere, e.g. in a job's worker process). Relative file names in
+    it are made absolute, taken from the cell file's folder: ``sensor.zone_correction``."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError("no such file", file=str(p))
@@ -184,4 +209,7 @@ def load_config_data(path: str | Path) -> tuple[CellConfig, Any]:
         raise ConfigError(f"not a text file: byte {exc.start + 1} is not UTF-8", file=str(p)) from None
     except yaml.YAMLError as exc:
         raise ConfigError(_yaml_problem(exc), file=str(p)) from None
-    return parse_config(data, file=str(p)), data
+    _resolve_zone_correction(data, p.parent.resolve())
+    cfg = parse_config(data, file=str(p))
+    _check_zone_correction(cfg, str(p))
+    return cfg, data

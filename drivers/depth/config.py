@@ -104,6 +104,7 @@ class VL53L8CXConfig(RangedConfig):
     cover at least two frame periods. ``baudrate`` only matters for a real UART (USB CDC ignores it).
     ``zone_correction``: a per-zone range correction file written by ``cell calibrate tof``
     (``drivers.depth.zone_correction``), applied to every frame; None: distances as the sensor reports.
+    Loaded from a cell file, a relative path is taken from the file's folder (``cell.config.load``).
     """
 
     type: Literal["vl53l8cx"]
