@@ -82,3 +82,20 @@ def test_backup_refuses_to_overwrite_and_names_what_it_cannot_copy(tmp_path):
                                    "--db", "postgresql+psycopg://cell:secret@db/cell"])
     assert postgres.exit_code == 1 and "pg_dump" in postgres.output and "secret" not in postgres.output
     assert not Path(tmp_path / "y.db").exists()
+
+
+def test_a_destination_ending_in_a_slash_is_a_folder_made_if_new(tmp_path):
+    """'bk/nodir/' wrote a file named bk/nodir: the '/' was lost and a missing name taken for a file."""
+    runner = CliRunner()
+    data = tmp_path / "data"
+    data.mkdir()
+    open_store(sqlite_url(data)).close()
+    made = runner.invoke(app, ["backup", f"{tmp_path / 'bk'}/", "--data-dir", str(data)])
+    assert made.exit_code == 0, made.output
+    assert (tmp_path / "bk").is_dir() and [p.name[:5] for p in (tmp_path / "bk").iterdir()] == ["cell-"]
+    deep = runner.invoke(app, ["backup", f"{tmp_path / 'no' / 'dir'}/", "--data-dir", str(data)])
+    assert deep.exit_code == 1 and f"folder {tmp_path / 'no'} does not exist" in deep.output
+    (tmp_path / "file").write_text("")
+    a_file = runner.invoke(app, ["backup", f"{tmp_path / 'file'}/", "--data-dir", str(data)])
+    assert a_file.exit_code == 1 and f"{tmp_path / 'file'} is not a folder" in a_file.output
+    assert not (tmp_path / "no").exists() and (tmp_path / "file").read_text() == ""

@@ -6,6 +6,7 @@ and ``cell.db-shm`` beside it), start the service. Job folders are plain files: 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -23,7 +24,9 @@ console = Console(soft_wrap=True)
 
 
 def backup(
-    dest: Annotated[Path, typer.Argument(help="the backup file, or a folder to write cell-{UTC time}.db in")],
+    # a string, not a Path: a Path drops the trailing '/' that makes a new name a folder
+    dest: Annotated[str, typer.Argument(help="the backup file, or a folder to write cell-{UTC time}.db in "
+                                             "(a name ending in '/' is a folder, made if new)")],
     data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
     = DEFAULT_DATA_DIR,
     db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
@@ -32,7 +35,8 @@ def backup(
 ) -> None:
     """Back up the job store while the service runs (SQLite's online backup); never overwrites a file."""
     try:
-        info = backup_sqlite(sqlite_file(db or sqlite_url(data_dir)), dest)
+        source = sqlite_file(db or sqlite_url(data_dir))
+        info = backup_sqlite(source, Path(dest), folder=dest.endswith(os.sep))
     except CellError as exc:
         raise fail(exc) from None
     console.print(f"wrote {info.path}: {info.n_jobs} jobs, {info.size_bytes / 1e6:.1f} MB, schema revision "

@@ -46,9 +46,17 @@ def sqlite_file(url: str) -> Path:
     return Path(parsed.database)
 
 
-def _destination(dest: Path, now: datetime) -> Path:
-    """``dest`` itself, or in an existing folder ``cell-<UTC time>.db``; ``StoreError`` if that exists."""
-    if dest.is_dir():
+def _destination(dest: Path, now: datetime, *, folder: bool) -> Path:
+    """``dest`` itself, or in the folder ``dest`` ``cell-<UTC time>.db``; ``StoreError`` if that exists.
+    ``dest`` is a folder when it is one or when ``folder`` says so (its name ended in '/'); such a folder
+    is made when its parent exists (a name that lost its '/' had written a file of the folder's name)."""
+    if folder or dest.is_dir():
+        if not dest.is_dir():
+            if dest.exists():
+                raise StoreError(f"{dest} is not a folder")
+            if not dest.parent.is_dir():
+                raise StoreError(f"folder {dest.parent} does not exist")
+            dest.mkdir()
         dest = dest / f"cell-{now.strftime('%Y%m%dT%H%M%SZ')}.db"
     if dest.exists():
         raise StoreError(f"{dest} exists: a backup never overwrites a file")
@@ -57,12 +65,13 @@ def _destination(dest: Path, now: datetime) -> Path:
     return dest
 
 
-def backup_sqlite(source: Path, dest: Path) -> BackupInfo:
-    """Copy the store at ``source`` to ``dest`` (a file, or a folder to put a dated file in) while it may
-    be written; ``StoreError`` with the reason if it cannot."""
+def backup_sqlite(source: Path, dest: Path, *, folder: bool = False) -> BackupInfo:
+    """Copy the store at ``source`` to ``dest`` (a file, or a folder to put a dated file in, made if
+    ``folder`` says that it is one) while it may be written; ``StoreError`` with the reason if it
+    cannot."""
     if not source.is_file():
         raise StoreError(f"no store at {source}")
-    target = _destination(dest, datetime.now(UTC))
+    target = _destination(dest, datetime.now(UTC), folder=folder)
     partial = target.with_name(target.name + ".partial")
     try:
         src = sqlite3.connect(source, timeout=30)
