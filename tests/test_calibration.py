@@ -18,8 +18,9 @@ from calibration.mount import BOARD_ELEVATION_DEG, calibrate_mount, pose_differe
 from calibration.predict import check_views_observable
 from calibration.table import fit_table
 from calibration.targets import box_target
-from calibration.tof import calibrate_zones
+from calibration.tof import ZoneFit, calibrate_zones
 from calibration.views import capture_views, mount_views
+from cell.cli import calibrate as calibrate_cli
 from cell.cli.main import app
 from cell.config import load_config
 from cell.config.load import parse_config
@@ -293,3 +294,22 @@ def test_cli_table_finds_the_table_and_the_part_on_the_station(tmp_path: Path) -
     # the centre of what the views saw of the cube: its top and the sides they faced
     assert report["part_xy_m"] is not None and np.hypot(*report["station_difference_mm"]) < 10.0
     assert "part on the station" in run.output
+
+
+def test_a_zone_correction_that_does_not_reduce_the_held_back_error_is_not_written(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """2.13 mm before and 2.21 mm after was written into the cell file without a word."""
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(UR5E.read_text())
+    correction = ZoneCorrection(resolution=8, offset_m=np.full(64, 0.001), noise_m=np.full(64, 0.002))
+    fit = ZoneFit(correction=correction, height0_m=0.15, toward_table=np.array([0.0, 0.0, 1.0]),
+                  error_before_m=0.00213, error_after_m=0.00221, n_frames=40)
+    monkeypatch.setattr(calibrate_cli, "calibrate_zones", lambda *args, **kwargs: fit)
+    out = tmp_path / "zones.json"
+    run = CliRunner().invoke(app, ["calibrate", "tof", "--config", str(cell), "--out", str(out), "--write",
+                                   "--data-dir", str(tmp_path / "data")])
+    assert run.exit_code == 1
+    assert "2.13 mm before, 2.21 mm after" in run.output
+    assert "the correction does not reduce the held-back range error: not written" in run.output
+    assert not out.exists() and cell.read_text() == UR5E.read_text()
+    assert len(list((tmp_path / "data" / "calibrations").glob("*/zone_correction.json"))) == 1

@@ -123,15 +123,15 @@ def tof(
     """Measure each ToF zone's range bias and noise.
 
     With the sensor looking straight down at the flat, clear table beside the station from several
-    heights; writes the per-zone correction the sensor applies (``sensor.zone_correction``) and prints the
-    mean absolute range error over the zones before and after it, on frames held back from the fit."""
+    heights; prints the mean absolute range error over the zones before and after the per-zone correction,
+    on frames held back from the fit, and writes the correction the sensor applies
+    (``sensor.zone_correction``) only when it reduces that error (else exits 1)."""
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "tof", "table")
         fit = calibrate_zones(cfg, str(config), folder=folder, heights_m=_heights(heights),
                               frames_per_height=frames, seed=seed)
         record = zone_record(fit, str(config), folder)
-        write_zone_correction(fit.correction, out, **record)
         write_zone_correction(fit.correction, folder / "zone_correction.json", **record)
     except CellError as exc:
         raise fail(exc) from None
@@ -140,6 +140,13 @@ def tof(
            f"{noise_mm.mean():.2f} mm mean (one standard deviation)")
     _print(f"mean absolute range error over the zones: {record['error_before_mm']:.2f} mm before, "
            f"{record['error_after_mm']:.2f} mm after ({fit.n_frames} frames; held-back half)")
+    # a correction that does not reduce the error on frames it was not fitted to fits noise, not bias:
+    # applying it makes every frame worse, so it is kept for the record only, not offered to the cell
+    if not fit.error_after_m < fit.error_before_m:
+        raise fail(f"the correction does not reduce the held-back range error: not written to {out} nor to "
+                   f"the cell file (the zones' biases are within their noise, or the table is not flat and "
+                   f"clear; kept for the record in {folder})")
+    write_zone_correction(fit.correction, out, **record)
     _print(f"wrote {out}; views kept in {folder}")
     if write:
         try:
