@@ -102,3 +102,28 @@ def test_zone_noise_is_the_per_zone_standard_deviation():
     assert report.valid_share == pytest.approx(15 / 16)
     assert np.isnan(report.zone_noise_m[0, 0])
     np.testing.assert_allclose(report.zone_noise_m.reshape(-1)[1:], sigma[1:], rtol=0.15)
+
+
+@pytest.mark.parametrize("option, message", [
+    (("--frames", "0"), "Invalid value for '--frames': Input should be greater than or equal to 1"),
+    (("--seconds", "-1"), "Invalid value for '--seconds': -1.0 is not a time to read frames for"),
+    (("--seconds", "0"), "Invalid value for '--seconds': 0.0 is not a time to read frames for"),
+    (("--seconds", "inf"), "Invalid value for '--seconds': inf is not a time to read frames for"),
+])
+def test_check_refuses_a_count_or_time_that_reads_nothing(tmp_path, option, message):
+    """'--frames 0' and '--seconds -1' read nothing and passed: "frames: 0 in 0.00 s, - Hz", exit 0."""
+    cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": "/dev/null", "resolution": 4})
+    res = CliRunner().invoke(app, ["sensor", "check", "--config", cell, *option], env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and message in res.output, res.output
+    assert "frames:" not in res.output
+
+
+def test_check_that_read_no_frame_fails(tmp_path):
+    emulator = VL53L8CXEmulator.on_pty(SimToFSource.fixed("cube"), EmulatorFaults())
+    cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": emulator.url, "resolution": 4,
+                                 "frequency_hz": 60})
+    with emulator:
+        res = CliRunner().invoke(app, ["sensor", "check", "--config", cell, "--seconds", "1e-9"])
+    assert res.exit_code == 1, res.output
+    assert "frames: 0 in" in res.output
+    assert "error: depth vl53l8cx: read no frame in 1e-09 s: nothing to check" in res.output

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Annotated
@@ -35,7 +36,7 @@ from drivers.depth.config import VL53L8CX_VALID_STATUSES, VL53L8CXConfig
 from drivers.depth.replay import JobRecording, ReplaySensor
 from drivers.depth.vl53l8cx.emulator import EmulatorFaults, SimToFSource, VL53L8CXEmulator
 from drivers.depth.vl53l8cx.serial_driver import LinkStats, VL53L8CXSerial
-from drivers.errors import CellError, JobError
+from drivers.errors import CellError, DriverError, JobError
 from drivers.factory import make_sensor
 from drivers.robots import get_robot_model
 
@@ -87,11 +88,15 @@ def _print_report(report: CheckReport, link: LinkStats | None,
 @sensor_app.command()
 def check(
     config: Annotated[Path, typer.Option("--config", help="cell file whose sensor to check")],
-    seconds: Annotated[float, typer.Option(help="how long to read frames [s]")] = 3.0,
-    frames: Annotated[int | None, typer.Option(help="read this many frames instead of --seconds")] = None,
+    seconds: Annotated[float, typer.Option(help="how long to read frames [s], above 0")] = 3.0,
+    frames: Annotated[int | None, typer.Option(min=1, help="read this many frames instead of --seconds")]
+    = None,
     port: Annotated[str | None, typer.Option(help="VL53L8CX: pyserial URL replacing sensor.port")] = None,
 ) -> None:
-    """Read frames from a cell's sensor and print commissioning figures."""
+    """Read frames from a cell's sensor and print commissioning figures; fails when it read none."""
+    if not 0.0 < seconds < math.inf:
+        raise typer.BadParameter(f"{seconds} is not a time to read frames for: give a finite time above 0 s",
+                                 param_hint="'--seconds'")
     try:
         cfg = load_config(config)
         sensor_cfg = cfg.sensor
@@ -123,6 +128,9 @@ def check(
     _print_report(tally.report(), link, (valid or VL53L8CX_VALID_STATUSES) if tof else None)
     if failure is not None:
         raise _fail(failure)
+    if tally.count == 0:
+        raise _fail(DriverError(f"read no frame in {seconds:g} s: nothing to check", device=f"depth "
+                                f"{sensor_cfg.type}"))
 
 
 # -- emulate ---------------------------------------------------------------------------------------------
