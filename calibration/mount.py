@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calibration import CALIBRATIONS_FOLDER
 from calibration.board_fit import BoardFit, fit_mount_to_board, load_board_views
 from calibration.predict import check_views_observable
 from calibration.shape_fit import Array, ShapeFit, fit_mount_to_shape
@@ -75,7 +76,7 @@ def default_poses(config: CellConfig) -> int:
 
 def default_folder(data_dir: Path, kind: str, target: str) -> Path:
     """Where a calibration's raw views go: ``<data_dir>/calibrations/<date-time>-<kind>-<target>``."""
-    return data_dir / "calibrations" / f"{datetime.now().strftime('%Y%m%d-%H%M%S')}-{kind}-{target}"
+    return data_dir / CALIBRATIONS_FOLDER / f"{datetime.now().strftime('%Y%m%d-%H%M%S')}-{kind}-{target}"
 
 
 def calibrate_mount(config: CellConfig, config_path: str, *, target: str, n_poses: int, folder: Path,

@@ -33,7 +33,8 @@ def test_init_then_check_lists_the_placeholders_until_measured(tmp_path, templat
     res = runner.invoke(app, ["init", str(folder), "--template", template, "--name", "line-3"])
     assert res.exit_code == 0, res.output
     cell_file = folder / "cell.yaml"
-    assert {p.name for p in (folder / "data").iterdir()} == {"jobs", "objects", "logs", "calibration"}
+    # the calibration commands keep their views in calibrations/ (calibration/README.md)
+    assert {p.name for p in (folder / "data").iterdir()} == {"jobs", "objects", "logs", "calibrations"}
     assert "name: line-3\n" in cell_file.read_text()
     for field in MEASURED[template]:
         assert field in res.output

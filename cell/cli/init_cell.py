@@ -2,7 +2,7 @@
 
 ``cell init DIR --template NAME`` writes ``DIR/cell.yaml`` (the template, its values to measure marked
 ``# MEASURE:``) and the data folder the service fills (``DIR/data`` or ``--data-dir``: ``jobs``,
-``objects``, ``logs``, and ``calibration`` for the calibration views and results), then lists what is
+``objects``, ``logs``, and ``calibrations`` for the calibration views and results), then lists what is
 left to measure and the commands that follow. It never overwrites a cell file.
 """
 
@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from calibration import CALIBRATIONS_FOLDER
 from cell.cli.errors import fail
 from cell.config.models import CELL_NAME
 from cell.config.placeholders import find_placeholders
@@ -22,7 +23,7 @@ from cell.templates import TEMPLATES, template_path
 from drivers.errors import CellError, ConfigError
 
 CELL_FILE = "cell.yaml"
-DATA_FOLDERS = ("jobs", "objects", "logs", "calibration")
+DATA_FOLDERS = ("jobs", "objects", "logs", CALIBRATIONS_FOLDER)
 
 console = Console(soft_wrap=True)
 
