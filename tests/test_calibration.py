@@ -266,8 +266,8 @@ def test_a_calibration_on_the_dry_run_path_moves_the_rtde_peer_through_the_guard
 
 def test_the_table_fit_starts_from_the_table_not_from_a_part_standing_on_it() -> None:
     """A 10 cm part over a tenth of the points: a least-squares start on every point lies between the part
-    and the table, and trimming about it kept neither; from the points near the median height the fit
-    finds the table, 0.5 mm up, and the part above it."""
+    and the table, and trimming about it kept neither; from the lowest band of heights that holds a share
+    of the points the fit finds the table, 0.5 mm up, and the part above it."""
     rng = np.random.default_rng(0)
     table = np.column_stack([rng.uniform([0.25, -0.2], [0.65, 0.2], (20000, 2)),
                              0.0005 + rng.normal(0.0, 0.0005, 20000)])
@@ -277,6 +277,33 @@ def test_the_table_fit_starts_from_the_table_not_from_a_part_standing_on_it() ->
     np.testing.assert_allclose(fit.coefficients, [0.0, 0.0, 0.0005], atol=1e-4)
     assert fit.n_points > 19000
     assert fit.part_xy_m is not None and np.allclose(fit.part_xy_m, [0.45, 0.0], atol=0.005)
+
+
+def test_the_table_fit_starts_from_the_table_under_a_part_that_fills_most_of_the_views() -> None:
+    """The 0.30 x 0.20 m box fills most of the views, and a start about the median height found its top:
+    the table is the lowest extended plane, the part stands on it."""
+    rng = np.random.default_rng(1)
+    table = np.column_stack([rng.uniform([0.25, -0.2], [0.65, 0.2], (3000, 2)),
+                             0.0005 + rng.normal(0.0, 0.005, 3000)])
+    part = np.column_stack([rng.uniform([0.3, -0.1], [0.6, 0.1], (17000, 2)),
+                            0.1 + rng.normal(0.0, 0.005, 17000)])
+    below = np.column_stack([rng.uniform([0.25, -0.2], [0.65, 0.2], (20, 2)), rng.uniform(-0.3, -0.05, 20)])
+    fit = fit_table(np.vstack([table, part, below]))
+    np.testing.assert_allclose(fit.coefficients, [0.0, 0.0, 0.0005], atol=1e-3)
+    assert fit.part_xy_m is not None and np.allclose(fit.part_xy_m, [0.45, 0.0], atol=0.005)
+
+
+@pytest.mark.parametrize("target", ["horizontal_box", "cube"])
+def test_cli_table_on_the_tof_cell_finds_the_table_under_each_part(tmp_path: Path, target: str) -> None:
+    out = tmp_path / "table.json"
+    run = CliRunner().invoke(app, ["calibrate", "table", "--config", str(UR5E), "--out", str(out),
+                                   "--object", target, "--data-dir", str(tmp_path / "data")])
+    assert run.exit_code == 0, run.output
+    report = json.loads(out.read_text())
+    # the sim's calibration errors (a 2 mm depth bias, the mount's) and 5 mm of range noise: a few mm
+    assert abs(report["table_z_difference_mm"]) < 5.0 and report["tilt_deg"] < 1.0
+    assert report["part_xy_m"] is not None and np.hypot(*report["station_difference_mm"]) < 10.0
+    assert f"wrote {out}; views kept in " in run.output
 
 
 def test_cli_table_finds_the_table_and_the_part_on_the_station(tmp_path: Path) -> None:

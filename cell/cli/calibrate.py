@@ -188,7 +188,7 @@ def table(
     if report["part_xy_m"] is not None:
         _print(f"part on the station at xy {report['part_xy_m']} m: {report['station_difference_mm']} mm "
                f"from the cell file's station {report['cell_file_station_xy_m']}")
-    _print(f"views kept in {folder}")
+    _print(f"wrote {out}; views kept in {folder}" if out is not None else f"views kept in {folder}")
 
 
 @calibrate_app.command()
