@@ -19,6 +19,8 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.doctor import machine
 from cell.doctor.findings import Status
+from cell.service.keys import create_key
+from cell.service.store import open_data_store
 from drivers.arm.franka import client_version
 from tests.conftest import CONFIG_DIR
 from tests.franka_connect_peer import FrankaConnectPeer
@@ -107,6 +109,7 @@ def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_pat
         assert checks[name][0] == "fail" and "fix: check the robot is on" in checks[name][1]
     assert checks["serial port"][0] == "fail" and "deploy/udev" in checks["serial port"][1]
     assert checks["service port"][0] == "fail" and "ss -ltnp" in checks["service port"][1]
+    assert checks["service port"][1].endswith("stop it, or choose another port")
 
 
 def test_a_port_this_user_may_not_open_names_the_group_to_join(peer, pty_port, tmp_path, monkeypatch):
@@ -190,6 +193,42 @@ def test_a_franka_cell_without_franky_fails_its_fci_check_with_the_extra_to_inst
     assert code == 1 and checks["robot FCI"][0] == "fail"
     detail = checks["robot FCI"][1]
     assert "does not load" in detail and "pip install 'cell[franka]'" in detail
+
+
+SIM_CELL = CONFIG_DIR / "sim-ur5e-tof.yaml"
+
+
+def test_a_data_dir_that_is_a_file_fails(tmp_path):
+    """cell serve cannot keep its jobs and store in a regular file; doctor said 0 failures."""
+    (tmp_path / "data").write_text("")
+    code, checks = _doctor(SIM_CELL, tmp_path)
+    assert code == 1 and checks["disk"][0] == "fail" and "is not a folder" in checks["disk"][1]
+
+
+def test_an_unreachable_store_fails_without_showing_its_password(tmp_path):
+    """Only the psycopg package was checked; cell serve then failed to open the store."""
+    url = f"postgresql+psycopg://cell:s3cret-pw@127.0.0.1:{free_port()}/cells"
+    code, checks = _doctor(SIM_CELL, tmp_path, "--db", url)
+    status, text = checks["job store"]
+    assert code == 1 and status == "fail" and "cell:***@127.0.0.1" in text and "pg_isready" in text
+    assert "s3cret-pw" not in text
+
+
+def test_listening_beyond_loopback_needs_an_api_key_in_the_store(tmp_path):
+    """cell serve refuses --host 0.0.0.0 with no API key; doctor said 0 failures. The store is read, never
+    made or migrated."""
+    code, checks = _doctor(SIM_CELL, tmp_path, "--host", "0.0.0.0")
+    assert code == 1 and checks["remote access"][0] == "fail"
+    assert "cell keys create --role admin --data-dir" in checks["remote access"][1]
+    assert checks["job store"][0] == "ok" and not (tmp_path / "data").exists()
+    store = open_data_store(tmp_path / "data", None)
+    try:
+        create_key(store, "admin", "admin-1")
+    finally:
+        store.close()
+    code, checks = _doctor(SIM_CELL, tmp_path, "--host", "0.0.0.0")
+    assert checks["remote access"][0] == "ok" and "1 API keys" in checks["job store"][1]
+    assert checks["job store"][0] == "ok"
 
 
 def test_the_cpu_governor_is_read_from_sysfs(tmp_path):

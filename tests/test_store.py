@@ -16,11 +16,13 @@ from pathlib import Path
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import create_engine, text
+from sqlalchemy import create_engine, make_url, text
 
+from cell.service.keys import create_key
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord, Store, open_store, sqlite_url
 from cell.service.store.engine import open_engine, schema_head
 from cell.service.store.models import Base
+from cell.service.store.repository import StoreState, inspect_store
 from drivers.errors import ServiceError, StoreError
 from tests.postgres import free_port, fresh_database, postgres_url  # noqa: F401  (a fixture)
 
@@ -429,3 +431,22 @@ def test_a_lease_lost_with_its_connection_is_taken_again_unless_another_took_it(
         finally:
             first.close()
             second.close()
+
+
+def test_a_store_is_inspected_read_only(store_url: str):
+    """``cell doctor`` reads a store's schema and key count, and changes nothing: an SQLite store not made
+    yet is not made, a database without the schema is not migrated."""
+    state = inspect_store(store_url, connect_timeout_s=2)
+    if store_url.startswith("sqlite"):
+        assert state is None and not Path(make_url(store_url).database).exists()
+    else:
+        assert state == StoreState(frozenset(), 0)
+        assert inspect_store(store_url, connect_timeout_s=2) == StoreState(frozenset(), 0)
+    opened = open_store(store_url)
+    try:
+        create_key(opened, "admin", "admin-1")
+        create_key(opened, "operator", "op-1")
+        opened.revoke_key("op-1")
+    finally:
+        opened.close()
+    assert inspect_store(store_url, connect_timeout_s=2) == StoreState(frozenset({schema_head()}), 1)

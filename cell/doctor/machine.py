@@ -14,7 +14,11 @@ from importlib import metadata
 from pathlib import Path
 
 from cell.doctor.findings import Finding
-from drivers.hosts import listen_problem
+from cell.service.store import sqlite_url
+from cell.service.store.engine import hide_password
+from cell.service.store.repository import inspect_store
+from drivers.errors import StoreError
+from drivers.hosts import is_loopback, listen_problem
 
 PYTHON = (3, 11)
 CORE_PACKAGES = ("numpy", "open3d-cpu", "ruckig", "python-fcl", "fastapi", "uvicorn", "sqlalchemy", "asyncua")
@@ -30,6 +34,9 @@ RT_PRIORITY = 99
 TIME_ERROR = 5
 """adjtimex(2)'s answer when the kernel's clock is not synchronised (TIME_ERROR)."""
 GOVERNORS = Path("/sys/devices/system/cpu")
+STORE_CONNECT_TIMEOUT_S = 2
+"""How long the store's server may take to accept a connection [s]: libpq counts whole seconds, and
+takes any less than 2 as 2."""
 
 
 def python_version() -> Finding:
@@ -143,9 +150,14 @@ def realtime_limits(required: bool, user: str | None = None) -> Finding:
 
 
 def disk(data_dir: Path) -> Finding:
+    """Free space under the data folder (or the folder it will be made in), which must be a folder this
+    user may write."""
     where = data_dir
     while not where.exists() and where != where.parent:
         where = where.parent
+    if not where.is_dir():
+        return Finding.fail("disk", f"{where} is not a folder: cell serve keeps its jobs and store in "
+                            f"--data-dir {data_dir}", "give --data-dir a folder (or a name not taken)")
     free_gb = shutil.disk_usage(where).free / 1e9
     if not os.access(where, os.W_OK):
         return Finding.fail("disk", f"{where} is not writable by this user",
@@ -163,5 +175,35 @@ def port_free(host: str, port: int, name: str = "service port") -> Finding:
     problem = listen_problem(host, port)
     if problem is not None:
         return Finding.fail(name, f"cannot listen on {host}:{port}: {problem}",
-                            f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or move")
+                            f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or choose "
+                            "another port")
     return Finding.ok(name, f"{host}:{port} is free")
+
+
+def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
+    """The job store cell serve opens (``db_url``, else the data folder's SQLite file), read without
+    changing it; and, for a ``host`` beyond loopback, an API key in it (cell serve refuses that host
+    without one). The store's URL is shown with its password hidden."""
+    url = db_url or sqlite_url(data_dir)
+    shown = hide_password(url)
+    try:
+        state = inspect_store(url, STORE_CONNECT_TIMEOUT_S)
+    except StoreError as exc:
+        fix = ("check the URL, that the server runs and that this PC reaches it (pg_isready -h HOST)"
+               if db_url is not None else "restore the store from a backup (docs/deploy.md, section 8)")
+        return [Finding.fail("job store", str(exc), fix)]
+    if state is None:
+        found = [Finding.ok("job store", f"{shown} is not made yet: cell serve makes it")]
+    else:
+        schema = ", ".join(sorted(state.revisions)) or "none yet, cell serve makes it"
+        found = [Finding.ok("job store", f"{shown}: schema {schema}, {state.n_active_keys} API keys")]
+    if not is_loopback(host):
+        where = f"--data-dir {data_dir}" if db_url is None else "with this --db"
+        if state is None or state.n_active_keys == 0:
+            found.append(Finding.fail("remote access", f"cell serve refuses to listen on {host}, beyond this "
+                                      "machine, with no API key in the store",
+                                      f"create one first: cell keys create --role admin {where}"))
+        else:
+            found.append(Finding.ok("remote access", f"{host}: every route but /healthz needs one of the "
+                                    f"{state.n_active_keys} API keys"))
+    return found

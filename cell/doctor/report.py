@@ -58,6 +58,7 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
     enforce_rt = isinstance(cfg.arm, FrankaArmConfig) and cfg.arm.realtime == "enforce"
     found += [machine.clock_sync(), machine.cpu_governor(), machine.realtime_limits(required=enforce_rt),
               machine.disk(data_dir), machine.port_free(host, port)]
+    found += machine.store(data_dir, db_url, host)
     try:
         check_endpoint(cfg.line)
         if cfg.line is not None and cfg.line.opcua is not None:

@@ -20,7 +20,7 @@ from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from alembic.util import CommandError
-from sqlalchemy import Engine, create_engine, event, make_url, text
+from sqlalchemy import Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy.engine import URL
 from sqlalchemy.exc import ArgumentError, DBAPIError, SQLAlchemyError
 
@@ -77,6 +77,19 @@ def schema_head() -> str:
     return head
 
 
+def schema_revisions(connection: Connection, shown: str) -> set[str]:
+    """The schema revisions of the database on ``connection`` (none: no schema yet); :class:`StoreError`
+    naming the store ``shown`` when one is newer than this software's (a newer cell migrated it)."""
+    script = ScriptDirectory.from_config(_alembic_config())
+    known = {revision.revision for revision in script.walk_revisions()}
+    current = set(MigrationContext.configure(connection).get_current_heads())
+    unknown = sorted(current - known)
+    if unknown:
+        raise StoreError(f"job store {shown}: the database's schema revision {', '.join(unknown)} is "
+                         f"newer than this software's ({script.get_current_head()}); upgrade cell")
+    return current
+
+
 def open_engine(url: str) -> Engine:
     """An engine on ``url`` whose schema is at :func:`schema_head`, migrated if need be; a database
     already there is not touched. Raises :class:`StoreError` on a bad URL, an unsupported database, a
@@ -93,23 +106,52 @@ def open_engine(url: str) -> Engine:
     return engine
 
 
-def _create_engine(url: str, shown: str) -> Engine:
+def read_only_engine(url: str, connect_timeout_s: int) -> Engine | None:
+    """An engine that reads the store at ``url`` and cannot change it (no migration, no pragma written, a
+    PostgreSQL session read-only), giving up a connection attempt to PostgreSQL after
+    ``connect_timeout_s`` [s, whole seconds: libpq's unit]; None for an SQLite file not made yet (the
+    service makes it). :class:`StoreError` for a bad URL or an unsupported database, as
+    :func:`open_engine`."""
+    shown = hide_password(url)
+    parsed = _parse(url, shown)
+    if parsed.get_backend_name() == "sqlite":
+        if not parsed.database or not Path(parsed.database).is_file():
+            return None
+        # SQLite's URI form opens the file read-only: a check never makes or changes a store
+        return create_engine(parsed.set(database=f"file:{parsed.database}",
+                                        query={"mode": "ro", "uri": "true"}))
+    return _postgres_engine(parsed, shown, {"connect_timeout": connect_timeout_s,
+                                            "options": "-c default_transaction_read_only=on"})
+
+
+def _parse(url: str, shown: str) -> URL:
+    """``url`` parsed, of a supported database; :class:`StoreError` otherwise."""
     try:
         parsed = make_url(url)
     except (ArgumentError, ValueError):
         raise StoreError(f"job store {shown}: not a database URL (expected {SUPPORTED_URLS})") from None
     backend, _, driver = parsed.drivername.partition("+")
-    if backend == "sqlite" and driver in ("", "pysqlite"):
+    if not ((backend == "sqlite" and driver in ("", "pysqlite")) or
+            (backend == "postgresql" and driver in ("", "psycopg"))):
+        raise StoreError(f"job store {shown}: unsupported database {parsed.drivername!r} "
+                         f"(expected {SUPPORTED_URLS})")
+    return parsed
+
+
+def _create_engine(url: str, shown: str) -> Engine:
+    parsed = _parse(url, shown)
+    if parsed.get_backend_name() == "sqlite":
         return _sqlite_engine(parsed, shown)
-    if backend == "postgresql" and driver in ("", "psycopg"):
-        try:
-            return create_engine(parsed.set(drivername="postgresql+psycopg"), pool_pre_ping=True,
-                                 connect_args={"connect_timeout": POSTGRES_CONNECT_TIMEOUT_S})
-        except ImportError:
-            raise StoreError(f"job store {shown}: PostgreSQL needs psycopg: pip install 'cell[postgres]'"
-                             ) from None
-    raise StoreError(f"job store {shown}: unsupported database {parsed.drivername!r} "
-                     f"(expected {SUPPORTED_URLS})")
+    return _postgres_engine(parsed, shown, {"connect_timeout": POSTGRES_CONNECT_TIMEOUT_S})
+
+
+def _postgres_engine(parsed: URL, shown: str, connect_args: dict[str, Any]) -> Engine:
+    try:
+        return create_engine(parsed.set(drivername="postgresql+psycopg"), pool_pre_ping=True,
+                             connect_args=connect_args)
+    except ImportError:
+        raise StoreError(f"job store {shown}: PostgreSQL needs psycopg: pip install 'cell[postgres]'"
+                         ) from None
 
 
 def _sqlite_engine(parsed: URL, shown: str) -> Engine:
@@ -149,9 +191,7 @@ def _upgrade(engine: Engine, shown: str) -> None:
     PostgreSQL's advisory lock or SQLite's write lock (``BEGIN IMMEDIATE``, which also makes SQLite's DDL
     one transaction) is held from reading the revision until the migration is committed."""
     config = _alembic_config()
-    script = ScriptDirectory.from_config(config)
-    head = script.get_current_head()
-    known = {revision.revision for revision in script.walk_revisions()}
+    head = schema_head()
     postgres = engine.dialect.name == "postgresql"
     with _MIGRATING, engine.connect() as connection:
         if postgres:
@@ -161,12 +201,7 @@ def _upgrade(engine: Engine, shown: str) -> None:
             connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_MIGRATION_WAIT_MS}")
             connection.exec_driver_sql("BEGIN IMMEDIATE")
         try:
-            current = set(MigrationContext.configure(connection).get_current_heads())
-            unknown = sorted(current - known)
-            if unknown:
-                raise StoreError(f"job store {shown}: the database's schema revision {', '.join(unknown)} is "
-                                 f"newer than this software's ({head}); upgrade cell")
-            if current != {head}:
+            if schema_revisions(connection, shown) != {head}:
                 config.attributes["connection"] = connection
                 command.upgrade(config, "head")
             connection.commit()

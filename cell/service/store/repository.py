@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import re
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, fields
+from dataclasses import asdict, dataclass, fields
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -21,7 +21,14 @@ from sqlalchemy import ColumnElement, Engine, func, select
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
-from cell.service.store.engine import open_engine, sqlite_url, store_error
+from cell.service.store.engine import (
+    hide_password,
+    open_engine,
+    read_only_engine,
+    schema_revisions,
+    sqlite_url,
+    store_error,
+)
 from cell.service.store.lease import CellLease
 from cell.service.store.models import JobRow, KeyRow, LineStateRow, LineTransitionRow
 from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord, LineRecord, LineTransition
@@ -38,6 +45,36 @@ def open_store(url: str) -> Store:
     software's newest revision. Raises :class:`drivers.errors.StoreError` with a one-line message naming
     the URL without its password."""
     return Store(open_engine(url))
+
+
+@dataclass(frozen=True)
+class StoreState:
+    """A store as read without changing it: its schema revisions (empty: no schema yet, the service
+    makes it) and how many API keys are not revoked."""
+
+    revisions: frozenset[str]
+    n_active_keys: int
+
+
+def inspect_store(url: str, connect_timeout_s: int) -> StoreState | None:
+    """Read the store at ``url`` without changing it (:func:`read_only_engine`, PostgreSQL given up after
+    ``connect_timeout_s`` [s]); None for an SQLite file not made yet. :class:`StoreError` naming the URL
+    without its password when it cannot be reached or read, or its schema is newer than this software's."""
+    shown = hide_password(url)
+    engine = read_only_engine(url, connect_timeout_s)
+    if engine is None:
+        return None
+    try:
+        with engine.connect() as connection:
+            revisions = schema_revisions(connection, shown)
+            # api_keys is the first revision's table, unchanged since: counted on a store of any revision
+            active = select(func.count()).select_from(KeyRow).where(KeyRow.revoked_at.is_(None))
+            n_keys = int(connection.scalar(active) or 0) if revisions else 0
+    except SQLAlchemyError as exc:
+        raise store_error(shown, "cannot read", exc, engine.url.password) from None
+    finally:
+        engine.dispose()
+    return StoreState(frozenset(revisions), n_keys)
 
 
 def open_data_store(data_dir: Path, db_url: str | None) -> Store:
