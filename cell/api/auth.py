@@ -20,6 +20,12 @@ _bearer = HTTPBearer(auto_error=False, description="an API key made by `cell key
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
+def forbidden(role: str, action: str) -> HTTPException:
+    """The 403 for a key of ``role`` asking to ``action``: "an operator key may not purge ..."."""
+    article = "an" if role.startswith(tuple("aeiou")) else "a"
+    return HTTPException(403, f"{article} {role} key may not {action}")
+
+
 def require(permission: Permission) -> Callable[..., Awaitable[KeyRecord]]:
     """A dependency that returns the caller's key record when its role has ``permission``."""
 
@@ -30,7 +36,7 @@ def require(permission: Permission) -> Callable[..., Awaitable[KeyRecord]]:
             raise HTTPException(401, "a valid API key is needed: Authorization: Bearer <key>",
                                 headers={"WWW-Authenticate": "Bearer"})
         if not allowed(record.role, permission):
-            raise HTTPException(403, f"a {record.role} key may not {permission.value}")
+            raise forbidden(record.role, permission.value)
         return record
 
     return check

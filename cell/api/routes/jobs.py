@@ -13,7 +13,7 @@ from typing import Annotated
 from fastapi import APIRouter, Header, HTTPException, Query, Response
 from fastapi.responses import FileResponse, StreamingResponse
 
-from cell.api.auth import Canceller, Keeper, Reader, Stopper, Submitter
+from cell.api.auth import Canceller, Keeper, Reader, Stopper, Submitter, forbidden
 from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
 from cell.api.stop_reason import StopReason
@@ -72,7 +72,7 @@ async def delete_job(job_id: str, cell: Service,
     job = await cell.job(job_id)
     if job.status in FINISHED_STATUSES:
         if not allowed(key.role, Permission.PURGE):
-            raise HTTPException(403, f"a {key.role} key may not purge an ended job")
+            raise forbidden(key.role, "purge an ended job")
         await cell.purge(job_id)
         return None
     return JobOut.of(await cell.cancel(job_id, f"cancelled by key {key.name}"))
