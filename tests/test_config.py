@@ -291,3 +291,37 @@ def test_a_zone_correction_that_is_missing_or_unreadable_fails_config_check(tmp_
     res = CliRunner().invoke(app, ["config", "check", str(tmp_path / "cell.yaml")])
     assert res.exit_code == 1 and res.output.count("\n") == 1
     assert re.search(message, res.output), res.output
+
+
+@pytest.mark.parametrize("path, value, message", [
+    (("mode",), "sometimes", "mode: Input should be 'sim', 'dry-run', 'real' or 'replay'"),
+    (("arm", "type"), "kuka", "arm: Input tag 'kuka' found using 'type' does not match any of the expected "
+                              "tags: 'sim', 'ur5e', 'franka', 'replay'"),
+])
+def test_the_allowed_values_are_named_once(franka_cfg_data, path, value, message):
+    data = copy.deepcopy(franka_cfg_data)
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    with pytest.raises(ConfigError) as error:
+        parse_config(data, file="cell.yaml")
+    assert str(error.value) == f"cell.yaml: {message}"
+
+
+@pytest.mark.parametrize("path, value", [
+    (("service", "stop_confirm_timeout_s"), "1e9"),
+    (("service", "shutdown_timeout_s"), True),
+    (("service", "queue_max"), "16"),
+    (("service", "max_upload_mb"), "50"),
+    (("service", "retention", "days"), "90"),
+])
+def test_a_quoted_number_in_the_service_section_is_refused(franka_cfg_data, path, value):
+    """As in the safety section: "1e9" was refused for perception_max_age_s and read for a timeout."""
+    data = copy.deepcopy(franka_cfg_data)
+    node = data
+    for key in path[:-1]:
+        node = node.setdefault(key, {})
+    node[path[-1]] = value
+    with pytest.raises(ConfigError, match=rf"{'.'.join(path)}: Input should be a valid (number|integer)"):
+        parse_config(data, file="cell.yaml")

@@ -35,10 +35,12 @@ def _field_path(loc: tuple[Any, ...]) -> str:
 
 
 def _allowed(error: ErrorDetails) -> str | None:
+    """The values the field takes, unless the error's message lists them already (a ``Literal``'s or a
+    type tag's: "Input should be 'sim', 'dry-run', ..." said them twice)."""
     ctx = error.get("ctx") or {}
     for key in ("expected", "expected_tags"):
         if key in ctx:
-            return str(ctx[key])
+            return None if str(ctx[key]) in error["msg"] else str(ctx[key])
     return None
 
 

@@ -24,7 +24,7 @@ from cell.planning.registry import PLANNERS
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
-from drivers.config_base import FiniteNumber, StrictModel
+from drivers.config_base import FiniteNumber, PositiveCount, PositiveNumber, StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
 from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.sim.errors import SimErrorConfig, SimErrors
@@ -169,9 +169,9 @@ class RetentionConfig(StrictModel):
     first). None: no limit of that kind. A running or queued job, and one marked ``keep``, is never
     deleted. The service prunes when it starts and every ``interval_h`` hours."""
 
-    days: PositiveFloat | None = None
-    max_gb: PositiveFloat | None = None
-    interval_h: PositiveFloat = 1.0
+    days: PositiveNumber | None = None
+    max_gb: PositiveNumber | None = None
+    interval_h: PositiveNumber = 1.0
 
 
 class ServiceConfig(StrictModel):
@@ -181,12 +181,13 @@ class ServiceConfig(StrictModel):
     folder [s], and the largest mesh an operator may upload [MB]. ``warm_worker``: keep the next job's
     worker process started, its libraries loaded, so that a job (a line's Start) reaches the arm without
     the second or so a new Python process takes to import them; it costs the memory of one idle worker.
-    ``retention``: when ended jobs are deleted (:class:`RetentionConfig`; by default never)."""
+    ``retention``: when ended jobs are deleted (:class:`RetentionConfig`; by default never). Numbers are
+    written as numbers, as in the safety section (a quoted "1e9" is refused, not read)."""
 
-    queue_max: PositiveInt = 16
-    stop_confirm_timeout_s: PositiveFloat = 2.0
-    shutdown_timeout_s: PositiveFloat = 20.0
-    max_upload_mb: PositiveFloat = 50.0
+    queue_max: PositiveCount = 16
+    stop_confirm_timeout_s: PositiveNumber = 2.0
+    shutdown_timeout_s: PositiveNumber = 20.0
+    max_upload_mb: PositiveNumber = 50.0
     warm_worker: bool = True
     retention: RetentionConfig = RetentionConfig()
 
