@@ -63,6 +63,17 @@ def run_ok(command: str, cell_file: Path) -> str:
     return result.output
 
 
+def _status_then_recover(peer: ControllerPeer, cell_file: Path, faulted: tuple[str, ...],
+                         recovered: tuple[str, ...]) -> None:
+    """``cell arm status`` shows the ``faulted`` words with the peer's TCP pose, then ``cell arm recover``
+    the ``recovered`` ones."""
+    output = run_ok("status", cell_file)
+    assert all(words in output for words in faulted), output
+    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
+    output = run_ok("recover", cell_file)
+    assert all(words in output for words in recovered), output
+
+
 def test_status_prints_the_tcp_pose_then_a_protective_stop_until_recovered(peer: ControllerPeer,
                                                                            cell_file: Path) -> None:
     output = run_ok("status", cell_file)
@@ -70,12 +81,8 @@ def test_status_prints_the_tcp_pose_then_a_protective_stop_until_recovered(peer:
     assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
 
     peer.protective_stop()
-    output = run_ok("status", cell_file)
-    assert "protective stop" in output and "safety mode PROTECTIVE_STOP" in output
-    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
-
-    output = run_ok("recover", cell_file)
-    assert "faults: none" in output and "safety mode NORMAL" in output
+    _status_then_recover(peer, cell_file, ("protective stop", "safety mode PROTECTIVE_STOP"),
+                         ("faults: none", "safety mode NORMAL"))
     assert any("unlocked" in e for e in peer.state()["events"])
 
 
@@ -84,12 +91,8 @@ def test_status_and_recover_after_a_released_emergency_stop(peer: ControllerPeer
     port failed) and recover powers it on and releases the brakes."""
     peer.emergency_stop()
     peer.release_emergency_stop()
-    output = run_ok("status", cell_file)
-    assert "robot mode POWER_OFF" in output and "faults: power off" in output
-    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
-
-    output = run_ok("recover", cell_file)
-    assert "faults: none" in output and "robot mode RUNNING" in output
+    _status_then_recover(peer, cell_file, ("robot mode POWER_OFF", "faults: power off"),
+                         ("faults: none", "robot mode RUNNING"))
     assert peer.state()["robot_mode"] == "RUNNING"
     assert not any("program refused" in e for e in peer.state()["events"])
 
