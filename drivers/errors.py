@@ -44,6 +44,11 @@ class DeviceFault(DriverError):
     reconnected, so retrying cannot help and a job that needs it ends."""
 
 
+ARM_FAULT = "arm fault: "
+"""How the reason of a stop for a fault the arm latched (a ``RobotFault``) begins, the fault's words
+following: the arm stays faulted until recovered."""
+
+
 class RobotFault(DriverError):
     """The arm reports a fault (protective stop, reflex, joint limit, disconnect); motion has stopped."""
 

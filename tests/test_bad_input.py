@@ -16,6 +16,7 @@ from importlib.metadata import entry_points
 
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 import cell.jobs.runner as runner
@@ -176,6 +177,18 @@ def test_ctrl_c_in_a_scan_stops_it_and_exits_130_with_the_folder(tmp_path, monke
     assert res.exit_code == 130
     assert "interrupted (Ctrl-C)" in res.output and f"job folder: {tmp_path / 'j'}" in res.output
     assert json.loads((tmp_path / "j" / "result.json").read_text())["status"] == "stopped"
+
+
+def test_a_scan_stopped_by_an_arm_fault_says_how_to_recover_the_arm(tmp_path):
+    data = yaml.safe_load(FRANKA.read_text())
+    data["sim"]["faults"] = [{"at_s": 3.5, "kind": "protective stop"}]
+    faulty = tmp_path / "faulty.yaml"
+    faulty.write_text(yaml.safe_dump(data))
+    res = CliRunner().invoke(app, ["scan", "--config", str(faulty), "--object", "cube", "--out",
+                                   str(tmp_path / "j")])
+    assert res.exit_code == 1
+    assert "stopped: arm fault: protective stop" in res.output
+    assert f"then cell arm recover --config {faulty}" in res.output
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])

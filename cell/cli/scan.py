@@ -22,7 +22,7 @@ from cell.config.placeholders import require_measured
 from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
 from cell.templates import DEFAULT_TEMPLATE, template_path
-from drivers.errors import CellError, SafetyStop
+from drivers.errors import ARM_FAULT, CellError, SafetyStop
 from drivers.sim.objects import EMPTY_TABLE
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
@@ -83,6 +83,10 @@ def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Ex
     number."""
     if isinstance(exc, SafetyStop):
         err_console.print(f"stopped: {exc.reason}", markup=False, highlight=False, soft_wrap=True)
+        if exc.reason.startswith(ARM_FAULT):  # what the guard names a fault the arm latched
+            err_console.print(f"the arm stays faulted until recovered: clear the cause, then cell arm "
+                              f"recover --config {job.request.config_path}", markup=False, highlight=False,
+                              soft_wrap=True)
     else:
         print_error(exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}")
     err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)

@@ -58,7 +58,7 @@ from cell.safety.smoothing import TwistSmoother
 from cell.safety.watchdog import Watchdog
 from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.clock import Clock
-from drivers.errors import CellError, RobotFault, SafetyStop
+from drivers.errors import ARM_FAULT, CellError, RobotFault, SafetyStop
 from drivers.robots.model import JointVelocityMap, RobotModel
 
 Array = NDArray[np.float64]
@@ -173,9 +173,9 @@ class MotionGuard:
         try:
             state = self._arm.state()
         except RobotFault as exc:
-            raise self._halt(f"arm fault: {exc.fault} ({exc})") from exc
+            raise self._halt(f"{ARM_FAULT}{exc.fault} ({exc})") from exc
         if state.faults:
-            raise self._halt(f"arm fault: {', '.join(state.faults)}")
+            raise self._halt(f"{ARM_FAULT}{', '.join(state.faults)}")
         return state
 
     def arm_state(self) -> ArmState:
@@ -501,7 +501,7 @@ class MotionGuard:
         try:
             command()
         except RobotFault as exc:
-            raise self._halt(f"arm fault: {exc.fault} ({exc})") from exc
+            raise self._halt(f"{ARM_FAULT}{exc.fault} ({exc})") from exc
 
     # ------------------------------------------------------------------ trajectories
 

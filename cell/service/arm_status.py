@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
 from cell.jobs.progress import quat_of, xyz_m
+from drivers.errors import ARM_FAULT
 from drivers.robots import get_robot_model
 from drivers.transforms import inv_T, make_T
 
@@ -82,7 +83,7 @@ class ArmTracker:
 
     def job_ended(self, termination: str) -> None:
         """Latch a fault the job's termination names; otherwise the arm is idle."""
-        fault = next((f for f in ARM_FAULTS if f"arm fault: {f}" in termination), None)
+        fault = next((f for f in ARM_FAULTS if f"{ARM_FAULT}{f}" in termination), None)
         self.status.connected = self._simulated
         if fault is None:
             self.status.state = "idle"
