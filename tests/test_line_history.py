@@ -18,6 +18,7 @@ from cell.line.config import LineConfig
 from cell.line.controller import LineController
 from cell.line.packml import Command, State, UnitMode
 from cell.service.store import LineTransition, Store, open_store, sqlite_url
+from drivers.errors import StoreError
 
 STORE_DELAY_S = 0.3
 
@@ -173,3 +174,28 @@ def test_a_scan_stopped_in_execute_by_someone_else_than_the_line(tmp_path: Path,
         return ended.state, int(ended.stop_reason_id)
 
     assert asyncio.run(scenario()) == (state, reason)
+
+
+def test_transitions_made_while_the_store_is_away_are_recorded_once_it_answers(tmp_path: Path) -> None:
+    store = open_store(sqlite_url(tmp_path))
+    add = store.add_line_transition
+    away = True
+
+    def flaky(transition: LineTransition) -> None:
+        if away:
+            raise StoreError("job store: the database does not answer")
+        add(transition)
+
+    store.add_line_transition = flaky  # type: ignore[method-assign]
+
+    async def scenario() -> list[int]:
+        nonlocal away
+        line = await _executing(_Service(), store)  # Stopped, Resetting, Idle, Starting, Execute
+        await asyncio.sleep(1.5)  # tried again once at least
+        away = False
+        history = await line.history(limit=10, before_id=None)  # waits for the writes before it
+        await line.close()
+        return [t.to_state for _, t in reversed(history)]
+
+    assert asyncio.run(scenario()) == [int(s) for s in (State.STOPPED, State.RESETTING, State.IDLE,
+                                                        State.STARTING, State.EXECUTE)]

@@ -51,8 +51,9 @@ from cell.line.config import LineConfig
 from cell.line.packml import Command, State, StopReason, UnitMode
 from cell.line.result import CycleResult, check_part_id, cycle_result, feeder_part, rejected
 from cell.service.store import LineRecord, LineTransition, Store
+from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest
-from drivers.errors import ServiceError, StoreError
+from drivers.errors import ServiceError
 
 if TYPE_CHECKING:
     from cell.service.manager import CellService
@@ -113,6 +114,7 @@ class LineController:
         # None (close)
         self._writes: asyncio.Queue[Callable[[], None] | asyncio.Event | None] = asyncio.Queue()
         self._writer: asyncio.Task[None] | None = None
+        self._closing = False
         self._tasks: set[asyncio.Task[None]] = set()
         # what each acting state does before its state-complete transition
         self._acting_work: dict[State, Callable[[], Awaitable[None]]] = {
@@ -144,6 +146,7 @@ class LineController:
         """Finish the queued store writes."""
         for task in list(self._tasks):
             task.cancel()
+        self._closing = True
         if self._writer is not None:
             self._writes.put_nowait(None)
             with contextlib.suppress(asyncio.CancelledError):
@@ -455,7 +458,5 @@ class LineController:
             if isinstance(write, asyncio.Event):
                 write.set()
                 continue
-            try:
-                await asyncio.to_thread(write)
-            except StoreError as exc:
-                log.error("line: not recorded: %s", exc)
+            # the writes after it wait, in order
+            await until_stored(write, "line: a state or transition", lambda: self._closing, log)

@@ -45,8 +45,9 @@ from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_command
 from cell.service.recovery import finish_folder, reconcile
 from cell.service.retention import Retention, delete_job
-from cell.service.store import FINISHED_STATUSES, JobRecord, Store
+from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, JobRecord, Store
 from cell.service.store.lease import CellLease
+from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
 from drivers.errors import ServiceError, StoreError
@@ -55,8 +56,6 @@ LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
 RECOVER_TIMEOUT_S = 60.0
 """How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
-STORE_RETRY_S = 1.0
-"""How often a job's start or end the store did not take is tried again [s]."""
 LEASE_CHECK_S = 5.0
 """How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
@@ -667,37 +666,17 @@ class CellService:
         self.arm.job_ended(termination)
         log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
                 termination, extra={"job_id": job.id, "part_id": job.part_id, "status": status})
-        await self._until_stored(job.id, status=status, termination=termination, result=result,
-                                 finished_at=_now(), worker_pid=None, progress=running.progress)
+        # a job's end is never dropped (it stayed `running` until a restart)
+        changes = {"status": status, "termination": termination, "result": result, "finished_at": _now(),
+                   "worker_pid": None, "progress": running.progress}
+        await until_stored(lambda: self.store.update_job(job.id, **changes), "job's end",
+                           lambda: self._closing, log, {"job_id": job.id})
         # the line hears once the store has the outcome: a line that reads the job finds it ended
         if self.line is not None:
             self.line.job_ended(job.id, status, termination, result, requested=running.requested)
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
-
-    async def _until_stored(self, job_id: str, **changes: Any) -> None:
-        """Write a job's ``changes`` to the store, again every ``STORE_RETRY_S`` while it does not answer:
-        a job's end is never dropped (it stayed ``running`` until a restart). Given up only when the
-        service shuts down; its next start settles the job from its folder."""
-        waited = False
-        while True:
-            try:
-                await asyncio.to_thread(self.store.update_job, job_id, **changes)
-            except StoreError as exc:
-                if self._closing:
-                    log.error("job's end not recorded, the service shutting down: %s", exc,
-                              extra={"job_id": job_id})
-                    return
-                if not waited:
-                    log.warning("job's end not recorded yet, again every %g s: %s", STORE_RETRY_S, exc,
-                                extra={"job_id": job_id})
-                waited = True
-                await asyncio.sleep(STORE_RETRY_S)
-                continue
-            if waited:
-                log.warning("job's end recorded once the store answered", extra={"job_id": job_id})
-            return
 
     async def _finish(self, running: _Running, code: int | None, failure: str | None = None) -> None:
         """The job's worker has exited: the arm is free for the next job."""

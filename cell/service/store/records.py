@@ -15,6 +15,9 @@ JOB_STATUSES = ("queued", "running", "completed", "no_object", "failed", "stoppe
 # from the queue before it ran, ``interrupted`` a job whose worker died or whose service went down while
 # it ran.
 FINISHED_STATUSES = frozenset({"completed", "no_object", "failed", "stopped", "cancelled", "interrupted"})
+STORE_RETRY_S = 1.0
+"""How often the service tries again a write the store refused (it does not answer) [s]: a job's start
+or end, the line's state and transitions."""
 
 
 @dataclass(frozen=True)
