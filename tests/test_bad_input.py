@@ -25,6 +25,7 @@ from cell.config import load_config
 from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.replay import replay_config
 from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
+from cell.jobs.session import JobSession
 from cell.jobs.stop_file import request_stop
 from drivers.errors import JobError
 from drivers.sim.objects import ObjectMesh, load_object, write_mesh
@@ -209,6 +210,32 @@ def test_sigterm_or_sighup_in_a_scan_stops_the_arm_and_finishes_the_folder(tmp_p
     assert result["termination"] == f"safety stop: operator stop: received {name}"
     assert any(name in stop["reason"] for stop in result["safety"]["stops"])  # the guard stopped the arm
     assert signal.getsignal(sig) == before
+
+
+def test_signals_after_the_first_do_not_interrupt_the_stop_they_asked_for(tmp_path, monkeypatch):
+    """systemd sends SIGTERM to every process of the unit, a shell's user may press on: the stop the first
+    asked for, and the folder, are finished all the same."""
+    def terminated(self, session):
+        session.wait(0.5)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    settle, write_outputs = JobSession.settle, runner._write_outputs
+
+    def settle_under_a_signal(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)  # while the arm is being stopped
+        return settle(self, *args, **kwargs)
+
+    def write_under_a_signal(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGHUP)  # while the folder is being written
+        return write_outputs(*args, **kwargs)
+
+    monkeypatch.setattr(runner.get_planner("raster"), "run", terminated)
+    monkeypatch.setattr(JobSession, "settle", settle_under_a_signal)
+    monkeypatch.setattr(runner, "_write_outputs", write_under_a_signal)
+    res = _scan("--object", "cube", "--planner", "raster", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 128 + signal.SIGTERM
+    result = json.loads((tmp_path / "j" / "result.json").read_text())
+    assert result["termination"] == "safety stop: operator stop: received SIGTERM"
 
 
 def test_progress_lines_on_a_pipe_every_few_seconds_of_job_time(tmp_path):

@@ -21,6 +21,7 @@ from rich.console import Console
 from scipy.spatial.transform import Rotation
 
 from cell.cli.commands import command_group
+from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.safety.guard import MotionGuard
@@ -192,7 +193,8 @@ def jog(
         try:
             s = cfg.safety
             speed = JOG_SPEED_FRACTION * (s.tcp_max_angular_rps if rotation else s.tcp_max_linear_mps)
-            _jog(guard, clock, AXES[axis], distance, speed, 1.0 / cfg.scan.control_rate_hz)
+            with interrupting():  # as Ctrl-C: the guard and the disconnect stop the arm
+                _jog(guard, clock, AXES[axis], distance, speed, 1.0 / cfg.scan.control_rate_hz)
         finally:
             guard.release()
         _print_status(arm)

@@ -23,6 +23,7 @@ from calibration.targets import BOX_TARGETS, DEFAULT_BOX
 from calibration.tof import DEFAULT_FRAMES_PER_HEIGHT, DEFAULT_HEIGHTS_M, calibrate_zones, zone_record
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
+from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.service.startup import DEFAULT_DATA_DIR
 from drivers.depth.zone_correction import write_zone_correction
@@ -74,8 +75,9 @@ def mount(
         cfg = load_config(config)
         folder = default_folder(data_dir, "mount", target)
         n_poses = poses if poses is not None else default_poses(cfg)
-        cal = calibrate_mount(cfg, str(config), target=target, n_poses=n_poses, folder=folder, seed=seed,
-                              standoff_m=standoff)
+        with interrupting():
+            cal = calibrate_mount(cfg, str(config), target=target, n_poses=n_poses, folder=folder, seed=seed,
+                                  standoff_m=standoff)
         result = result_json(cal, str(config))
         _write_json(out, result)
         _write_json(folder / "calibration.json", result)
@@ -129,8 +131,9 @@ def tof(
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "tof", "table")
-        fit = calibrate_zones(cfg, str(config), folder=folder, heights_m=_heights(heights),
-                              frames_per_height=frames, seed=seed)
+        with interrupting():
+            fit = calibrate_zones(cfg, str(config), folder=folder, heights_m=_heights(heights),
+                                  frames_per_height=frames, seed=seed)
         record = zone_record(fit, str(config), folder)
         write_zone_correction(fit.correction, folder / "zone_correction.json", **record)
     except CellError as exc:
@@ -174,8 +177,10 @@ def table(
     try:
         cfg = load_config(config)
         folder = default_folder(data_dir, "table", object)
-        report = table_report(calibrate_table(cfg, str(config), folder=folder, ring=ring,
-                                              target_object=object, seed=seed), cfg)
+        with interrupting():
+            found = calibrate_table(cfg, str(config), folder=folder, ring=ring, target_object=object,
+                                    seed=seed)
+        report = table_report(found, cfg)
         _write_json(folder / "table.json", report)
         if out is not None:
             _write_json(out, report)

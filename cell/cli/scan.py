@@ -3,11 +3,7 @@ job, writing its job folder."""
 
 from __future__ import annotations
 
-import contextlib
-import signal
-from collections.abc import Iterator
 from pathlib import Path
-from types import FrameType
 from typing import Annotated
 
 import typer
@@ -17,6 +13,7 @@ from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
 from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines
 from cell.cli.progress import scan_progress
+from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.config.placeholders import require_measured
 from cell.jobs.replay import recorded_job, replay_config
@@ -27,8 +24,6 @@ from drivers.sim.objects import EMPTY_TABLE
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_OBJECT = "bunny"
-TERMINATING = (signal.SIGTERM, signal.SIGHUP)
-"""Signals that stop a scan as Ctrl-C does: systemd's and docker's stop, kill, a terminal closed."""
 
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
@@ -55,25 +50,6 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
                        planner=planner or recorded.get("planner"),
                        seed=seed if seed is not None else int(recorded.get("seed", 0)), out=out,
                        max_time_s=max_time)
-
-
-@contextlib.contextmanager
-def _signals_interrupt() -> Iterator[list[int]]:
-    """While inside, ``TERMINATING`` signals interrupt the scan as Ctrl-C does, naming themselves: the arm
-    is stopped through the guard and the job folder finished (the default action ended the process with
-    the arm streaming until the controller's watchdog, and no result.json). Yields the signals received."""
-    received: list[int] = []
-
-    def interrupt(signum: int, _frame: FrameType | None) -> None:
-        received.append(signum)
-        raise KeyboardInterrupt(f"received {signal.Signals(signum).name}")
-
-    previous = {sig: signal.signal(sig, interrupt) for sig in TERMINATING}
-    try:
-        yield received
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Exit:
@@ -137,7 +113,7 @@ def scan(
         job = prepare_scan(request)
     except CellError as exc:
         raise fail(exc) from None
-    with _signals_interrupt() as received:
+    with interrupting() as received:
         try:
             with scan_progress(job.max_time_s) as show:
                 outcome = run_prepared(job, on_progress=show)

@@ -3,9 +3,15 @@
 A UR controller takes any number of connections, and the control script a second program uploads ends
 the first one's: a ``cell scan`` started beside the service's job took the arm in the middle of the job's
 motion, and the job ended on "control script not running". So a driver claims its arm while connected: an
-``flock`` on a file named after the arm in the system's temporary folder, which the kernel releases when
-the holder exits however it ends. The file says who holds it, for the refusal. It does not reach other
-machines: one arm, one cell PC.
+``flock`` on a file named after the arm (its type and address, the host name resolved), which the kernel
+releases when the holder exits however it ends. The file says who holds it, for the refusal. It does not
+reach other machines: one arm, one cell PC.
+
+The files are in ``/run/lock``, the system's folder for locks every user shares (the systemd unit makes
+it writable to the service: ``ReadWritePaths``), not in ``/tmp``, which the unit makes private to the
+service (``PrivateTmp``), out of an operator's sight; in ``/tmp`` only where there is no ``/run/lock``.
+An existing file is opened without ``O_CREAT``: on a sticky folder the kernel refuses that flag for a
+file of another user (``fs.protected_regular``).
 """
 
 from __future__ import annotations
@@ -14,24 +20,45 @@ import contextlib
 import fcntl
 import hashlib
 import os
+import socket
 import sys
 import tempfile
 from pathlib import Path
 
 from drivers.errors import DriverError
 
+LOCK_DIR = Path("/run/lock")
 
-def claim_path(arm: str) -> Path:
-    """The claim file of ``arm`` (its type and address, e.g. ``ur5e 192.168.0.2``)."""
-    digest = hashlib.sha256(arm.encode()).hexdigest()[:16]
-    return Path(tempfile.gettempdir()) / f"cell-arm-{digest}.lock"
+
+def claim_path(kind: str, host: str) -> Path:
+    """The claim file of the arm of type ``kind`` (``ur5e``, ``franka``) at ``host``: by address, so that
+    a name and the address it resolves to are one arm."""
+    with contextlib.suppress(OSError):
+        host = str(socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][4][0])
+    digest = hashlib.sha256(f"{kind} {host}".encode()).hexdigest()[:16]
+    folder = LOCK_DIR if os.access(LOCK_DIR, os.W_OK) else Path(tempfile.gettempdir())
+    return folder / f"cell-arm-{digest}.lock"
+
+
+def _open(path: Path) -> int:
+    try:
+        return os.open(path, os.O_RDWR)
+    except FileNotFoundError:
+        pass
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
+    except FileExistsError:  # another program made it meanwhile
+        return os.open(path, os.O_RDWR)
+    with contextlib.suppress(OSError):  # whatever the umask: another user's program claims it too
+        os.fchmod(fd, 0o666)
+    return fd
 
 
 class ArmClaim:
-    """The claim on ``arm`` of this process; ``device`` names it in errors."""
+    """The claim on the arm of type ``kind`` at ``host`` of this process; ``device`` names it in errors."""
 
-    def __init__(self, arm: str, device: str) -> None:
-        self.path = claim_path(arm)
+    def __init__(self, kind: str, host: str, device: str) -> None:
+        self._where = (kind, host)
         self._device = device
         self._fd: int | None = None
 
@@ -39,13 +66,12 @@ class ArmClaim:
         """Claim the arm; ``DriverError`` naming the holder when another process has it."""
         if self._fd is not None:
             return
+        path = claim_path(*self._where)
         try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            fd = _open(path)
         except OSError as exc:
-            raise DriverError(f"cannot open the arm's claim file {self.path}: {exc.strerror}",
+            raise DriverError(f"cannot open the arm's claim file {path}: {exc.strerror}",
                               device=self._device) from None
-        with contextlib.suppress(OSError):  # another user's program reads and claims it too
-            os.fchmod(fd, 0o666)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
