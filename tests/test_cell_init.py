@@ -102,3 +102,11 @@ def test_a_camera_cells_template_has_the_board_its_mount_calibration_needs(templ
     cfg = load_config(template_path(template))
     camera = cfg.sensor.type in ("realsense", "sim-rgbd")
     assert (cfg.calibration.board is not None) == camera
+
+
+def test_a_folder_whose_name_is_no_cell_name_keeps_the_templates_and_says_so(tmp_path):
+    res = CliRunner().invoke(app, ["init", str(tmp_path / "my cell"), "--template", "sim-ur5e-tof"])
+    assert res.exit_code == 0, res.output
+    assert "\nname: sim-ur5e-tof\n" in (tmp_path / "my cell" / "cell.yaml").read_text()
+    assert "is not a cell name" in res.output and "--name" in res.output
+    assert f"cell config check '{tmp_path / 'my cell' / 'cell.yaml'}'" in res.output  # a path to paste

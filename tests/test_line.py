@@ -338,7 +338,7 @@ def test_an_operator_stop_stops_the_line_and_the_counters_outlive_a_restart(tmp_
         assert state["mode_name"] == "Manual"
 
 
-def test_a_restart_stops_the_line_from_its_last_state_with_the_services_start_as_reason(tmp_path: Path):
+def test_a_shutdown_stops_the_line_and_the_restart_says_so_from_its_last_state(tmp_path: Path):
     config = _cell_file(tmp_path, TOF, {})
     with served_line(tmp_path, config) as line:
         line.command("reset")
@@ -349,10 +349,12 @@ def test_a_restart_stops_the_line_from_its_last_state_with_the_services_start_as
     with _reopen(tmp_path, config, keys) as line:
         state = line.state()
         assert state["state_name"] == "Stopped" and state["processed"] == 1
-        assert state["stop_reason"] == {"id": 7, "message": "the service started (the line was Complete)"}
-        history = line.client.get("/api/v1/line/history?limit=2", headers=line.auth("viewer")).json()
+        assert state["stop_reason"] == {"id": 7, "message": "the service started (the line was Stopped)"}
+        history = line.client.get("/api/v1/line/history?limit=4", headers=line.auth("viewer")).json()
         assert [(h["from_name"], h["to_name"], h["cause"]) for h in history] == [
-            ("Complete", "Stopped", "the service started"),
+            ("Stopped", "Stopped", "the service started"),
+            ("Stopping", "Stopped", "no scan was running"),
+            ("Complete", "Stopping", "the service is shutting down"),  # the PLC saw the shutdown
             ("Completing", "Complete", "the result is written (defective)")]
 
 

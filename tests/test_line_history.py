@@ -199,3 +199,18 @@ def test_transitions_made_while_the_store_is_away_are_recorded_once_it_answers(t
 
     assert asyncio.run(scenario()) == [int(s) for s in (State.STOPPED, State.RESETTING, State.IDLE,
                                                         State.STARTING, State.EXECUTE)]
+
+
+def test_a_job_that_failed_after_a_stop_was_asked_for_is_a_failed_job(tmp_path: Path) -> None:
+    """A stop on request ends the job `stopped`; a job whose worker died meanwhile failed (reason 6)."""
+    store = open_store(sqlite_url(tmp_path))
+
+    async def scenario() -> tuple[State, int]:
+        line = await _executing(_Service(), store)
+        line.job_ended("job-1", "failed", "the job's worker process ended unexpectedly (killed by SIGKILL)",
+                       None, requested=True)
+        ended = line.snapshot()
+        await line.close()
+        return ended.state, int(ended.stop_reason_id)
+
+    assert asyncio.run(scenario()) == (State.ABORTED, 6)

@@ -249,6 +249,34 @@ def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_pat
         assert _wait(client, viewer, second["id"], set(FINISHED_STATUSES))["status"] == "completed"
 
 
+def test_a_store_outage_keeps_a_queued_job_a_stop_could_not_cancel_and_does_not_fail_the_shutdown(tmp_path):
+    client, keys = _client(tmp_path)
+    op = _auth(keys["operator"])
+    away = threading.Event()
+    with client:
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        update = store.update_job
+
+        def flaky(job_id: str, **changes: Any) -> JobRecord:
+            if away.is_set():
+                raise StoreError("job store: the database does not answer")
+            return update(job_id, **changes)
+
+        store.update_job = flaky
+        assert client.post("/api/v1/stop", headers=op).status_code == 200  # the queue held
+        first, second = (client.post("/api/v1/jobs", json={"object": "cube"}, headers=op).json()
+                         for _ in range(2))
+        away.set()
+        refused = client.post(f"/api/v1/jobs/{first['id']}/stop", headers=op)
+        assert refused.status_code == 503
+        assert client.get("/api/v1/cell", headers=op).json()["queue"]["length"] == 2  # kept, in order
+        away.clear()
+        assert client.post(f"/api/v1/jobs/{first['id']}/stop", headers=op).status_code == 200
+        assert store.get_job(first["id"]).status == "cancelled"
+        away.set()  # the service shuts down while the store is away
+    assert store.get_job(second["id"]).status == "queued"  # the next start cancels it
+
+
 def _open_pipes() -> int:
     """The pipes this process holds open (a worker's stdin and stdout are pipes)."""
     pipes = 0

@@ -9,6 +9,7 @@ left to measure and the commands that follow. It never overwrites a cell file.
 from __future__ import annotations
 
 import re
+import shlex
 from pathlib import Path
 from typing import Annotated
 
@@ -70,6 +71,11 @@ def init(
         raise fail(exc) from None
     data = data_dir or folder / "data"
     console.print(f"wrote {cell_file} and {data}/", markup=False, highlight=False)
+    if name is None and not re.fullmatch(CELL_NAME, folder.resolve().name):
+        # two cells of one template on one job store would share a name: one of them refuses to start
+        console.print(f"note: the folder's name {folder.resolve().name!r} is not a cell name, so the cell "
+                      f"keeps the template's: give it its own with --name or in the file's `name:`",
+                      markup=False, highlight=False)
     left = find_placeholders(cell_file.read_text())
     if left:
         console.print(f"{len(left)} values to measure (marked '# MEASURE:'; delete each mark once measured):",
@@ -77,6 +83,7 @@ def init(
         for p in left:
             console.print(f"  line {p.line:3d}  {p.field}: {p.what}", markup=False, highlight=False)
     console.print("next:", markup=False, highlight=False)
-    for step in (f"cell config check {cell_file}", f"cell doctor --config {cell_file} --data-dir {data}",
-                 f"cell serve --config {cell_file} --data-dir {data}"):
+    file, folder_ = shlex.quote(str(cell_file)), shlex.quote(str(data))
+    for step in (f"cell config check {file}", f"cell doctor --config {file} --data-dir {folder_}",
+                 f"cell serve --config {file} --data-dir {folder_}"):
         console.print(f"  {step}", markup=False, highlight=False)

@@ -273,9 +273,17 @@ class LineController:
     def operator_stop(self, reason: str) -> None:
         """The operator's STOP (``POST /api/v1/stop``): a Stop, whatever the mode; Reset is refused until an
         operator resumes the queue."""
+        self._stop_for(StopReason.OPERATOR_STOP, reason, f"operator STOP: {reason}")
+
+    def service_stopping(self, reason: str) -> None:
+        """The service shuts down: a Stop from now (the PLC sees Stopping while the scan stops, and Stopped
+        once it has, before the OPC UA server closes), whatever the mode."""
+        self._stop_for(StopReason.SHUTDOWN, reason, reason)
+
+    def _stop_for(self, reason: StopReason, text: str, cause: str) -> None:
         if packml.refusal(self.state, Command.STOP) is None:
-            self._set_stop_reason(StopReason.OPERATOR_STOP, reason)
-            self._enter(State.STOPPING, f"operator STOP: {reason}")
+            self._set_stop_reason(reason, text)
+            self._enter(State.STOPPING, cause)
 
     # ------------------------------------------------------------------ the scan job
 
@@ -306,7 +314,8 @@ class LineController:
             self._complete(cycle_result(job_id, self._cycle_part, status, termination, result))
             return
         faulted = self._service.arm.faulted
-        if not faulted and (status == "cancelled" or requested):
+        # a job stopped on request ends `stopped`; one that failed meanwhile (its worker died) failed
+        if not faulted and (status == "cancelled" or (requested and status == "stopped")):
             # stopped on request, not by the line (its own stops end in Stopping or Aborting): a job
             # stopped or cancelled through the API, or the service shutting down
             reason = StopReason.OPERATOR_STOP if self._service.ready else StopReason.SHUTDOWN

@@ -66,6 +66,9 @@ log = logging.getLogger("cell.line")
 
 S = ua.StatusCodes
 STATUS_OF = {"conflict": S.BadInvalidState, "invalid": S.BadInvalidArgument}
+SHUTDOWN_LINGER_S = 0.5
+"""How long the server serves on after the line's last change at shutdown [s]: a subscription publishing
+at up to this interval hears the Stopped and stop reason 7 before its session closes."""
 """A refused command's status code by the ``ServiceError`` reason."""
 _TAG = {tag.path: tag for tag in TAGS}
 _LINE_TAGS = sorted(((tag.path, tag.read) for tag in TAGS if tag.read is not None),
@@ -171,9 +174,10 @@ class LineOPCUA:
         log.info("OPC UA: listening on %s (security %s)", config.endpoint, config.security)
 
     async def stop(self) -> None:
-        """Write what the line reported last (the service's shutdown), then close the sessions and stop
-        listening."""
+        """Write what the line reported last (the service's shutdown), let the subscriptions publish it
+        (``SHUTDOWN_LINGER_S``), then close the sessions and stop listening."""
         await self.settle()
+        await asyncio.sleep(SHUTDOWN_LINGER_S)
         publisher, self._publisher = self._publisher, None
         await self._server.stop()
         if publisher is not None:

@@ -56,8 +56,10 @@ LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
 RECOVER_TIMEOUT_S = 60.0
 """How long an arm recovery may take (connect, unlock, power on, brakes) [s]."""
-LEASE_CHECK_S = 5.0
-"""How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]."""
+LEASE_CHECK_S = 1.0
+"""How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]:
+a PostgreSQL lease lost with its connection in an outage is taken again this soon after the store
+answers, the window in which a second service of the cell could start."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
 
@@ -185,6 +187,10 @@ class CellService:
         while True:
             await asyncio.sleep(LEASE_CHECK_S)
             lost = await asyncio.to_thread(lease.keep)
+            if lease.taken and self._queued:
+                # the service that took the cell settled its jobs (the queued ones cancelled): not ours now
+                log.error("%d queued jobs left to the service that took the cell", len(self._queued))
+                self._queued.clear()
             if lost != self._lease_lost:
                 if lost is None:
                     log.warning("the cell's lease is held again: queued jobs may start")
@@ -199,10 +205,10 @@ class CellService:
         for task in (self._pruner, self._lease_keeper):
             if task is not None:
                 task.cancel()
-        for job_id in list(self._queued):
-            await self._cancel_queued(job_id, SHUTDOWN_CANCEL)
+        if self.line is not None:
+            self.line.service_stopping(SHUTDOWN_STOP)
         running = self._running
-        if running is not None:
+        if running is not None:  # the arm first: nothing below may delay its stop
             await self._stop_running(running, SHUTDOWN_STOP)
             proc = running.proc
             if proc is not None:
@@ -210,6 +216,12 @@ class CellService:
                     await asyncio.wait_for(proc.wait(), self.config.service.shutdown_timeout_s)
                 if proc.returncode is None:
                     self._kill(proc)
+        for job_id in list(self._queued):
+            try:
+                await self._cancel_queued(job_id, SHUTDOWN_CANCEL)
+            except StoreError as exc:  # the next start cancels what the store still has queued
+                log.warning("job left queued in the store, the service shutting down: %s", exc,
+                            extra={"job_id": job_id})
         if self._dispatcher is not None:
             self._wake.set()
             with contextlib.suppress(TimeoutError):
@@ -326,9 +338,17 @@ class CellService:
         return await self._cancel_queued(job_id, reason)
 
     async def _cancel_queued(self, job_id: str, reason: str) -> JobRecord:
-        del self._queued[job_id]
-        job = await asyncio.to_thread(self.store.update_job, job_id, status="cancelled", termination=reason,
-                                      finished_at=_now())
+        """Cancel a queued job; ``StoreError`` when the store does not take it (the job stays queued, where
+        it was)."""
+        order = list(self._queued)
+        queued = self._queued.pop(job_id)  # out of the dispatcher's reach while the store is written
+        try:
+            job = await asyncio.to_thread(self.store.update_job, job_id, status="cancelled",
+                                          termination=reason, finished_at=_now())
+        except StoreError:
+            self._queued[job_id] = queued
+            self._queued = {k: self._queued[k] for k in order if k in self._queued} | self._queued
+            raise
         log.info("job cancelled: %s", reason, extra={"job_id": job_id, "status": "cancelled"})
         events = self.events.log(job_id)
         events.publish("state", {"status": "cancelled", "termination": reason})

@@ -51,6 +51,7 @@ class CellLease:
         self._engine, self._url = engine, url
         self._connection: Connection | None = None
         self._fd: int | None = None
+        self.taken = False  # by another service, found by the last keep()
         if engine.dialect.name == "sqlite":
             self._lock_file()
         elif not self._lock_advisory():
@@ -88,7 +89,8 @@ class CellLease:
 
     def keep(self) -> str | None:
         """Check the lease is still held, taking it again where an outage lost it; what is wrong, in
-        words (the database still away, or another service took the cell meanwhile), or None."""
+        words (the database still away, or another service took the cell meanwhile: ``taken``), or None."""
+        self.taken = False
         if self._fd is not None:
             return None
         if self._connection is not None:
@@ -105,6 +107,7 @@ class CellLease:
                 return None
         except StoreError as exc:
             return f"the cell's lease is lost while the job store does not answer ({exc})"
+        self.taken = True
         return str(_taken(self.cell, self._url))
 
     def release(self) -> None:
