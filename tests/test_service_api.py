@@ -37,7 +37,7 @@ from cell.service.keys import create_key
 from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
 from cell.service.startup import ServiceSettings
-from cell.service.store import FINISHED_STATUSES, JobRecord, open_data_store
+from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store
 from drivers.errors import JobError, StoreError
 from drivers.sim.objects import load_object
 
@@ -172,20 +172,26 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
         assert "hands in the cell" in ended["termination"] and "was killed" in ended["termination"]
 
 
+def _store_outage(store: Store) -> threading.Event:
+    """An event that, while set, makes the store's job updates fail as a database that does not answer."""
+    away = threading.Event()
+    update = store.update_job
+
+    def flaky(job_id: str, **changes: Any) -> JobRecord:
+        if away.is_set():
+            raise StoreError("job store: the database does not answer")
+        return update(job_id, **changes)
+
+    store.update_job = flaky  # type: ignore[method-assign]
+    return away
+
+
 def test_a_job_store_outage_delays_a_job_start_and_end_but_loses_neither(tmp_path):
     client, keys = _client(tmp_path)
     op, viewer = _auth(keys["operator"]), keys["viewer"]
-    away = threading.Event()
     with client:
         store = client.app.state.service.store  # type: ignore[attr-defined]
-        update = store.update_job
-
-        def flaky(job_id: str, **changes: Any) -> JobRecord:
-            if away.is_set():
-                raise StoreError("job store: the database does not answer")
-            return update(job_id, **changes)
-
-        store.update_job = flaky
+        away = _store_outage(store)
         away.set()
         try:
             first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
@@ -252,17 +258,9 @@ def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_pat
 def test_a_store_outage_keeps_a_queued_job_a_stop_could_not_cancel_and_does_not_fail_the_shutdown(tmp_path):
     client, keys = _client(tmp_path)
     op = _auth(keys["operator"])
-    away = threading.Event()
     with client:
         store = client.app.state.service.store  # type: ignore[attr-defined]
-        update = store.update_job
-
-        def flaky(job_id: str, **changes: Any) -> JobRecord:
-            if away.is_set():
-                raise StoreError("job store: the database does not answer")
-            return update(job_id, **changes)
-
-        store.update_job = flaky
+        away = _store_outage(store)
         assert client.post("/api/v1/stop", headers=op).status_code == 200  # the queue held
         first, second = (client.post("/api/v1/jobs", json={"object": "cube"}, headers=op).json()
                          for _ in range(2))
