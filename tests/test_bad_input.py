@@ -27,7 +27,8 @@ from cell.jobs.replay import replay_config
 from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
 from cell.jobs.session import JobSession
 from cell.jobs.stop_file import request_stop
-from drivers.errors import JobError
+from drivers.depth.sim_tof import SimToF
+from drivers.errors import DeviceFault, JobError
 from drivers.sim.objects import ObjectMesh, load_object, write_mesh
 
 from .conftest import FRANKA, REPO, UR5E
@@ -152,6 +153,28 @@ def test_a_failure_while_setting_up_still_leaves_a_result(tmp_path, monkeypatch)
     assert result["object"] == "cube" and result["safety"] is None
     log = (tmp_path / "j" / "log.txt").read_text()
     assert "Traceback (most recent call last)" in log and "in broken" in log
+
+
+def test_a_fault_the_sensor_latches_mid_move_ends_a_stop_and_go_job_within_a_tick(tmp_path, monkeypatch):
+    """A VL53L8CX whose port vanished is noticed by its reader thread at once; a raster move, which needs
+    no frame, would otherwise run to its end before the next capture found it."""
+    vanished_at = 4.0
+
+    def latched(self):
+        if self._clock.now() < vanished_at:
+            return None
+        return DeviceFault("faulted: port vanished; reconnect to clear", device=self.device)
+
+    monkeypatch.setattr(SimToF, "latched_fault", latched)
+    config = load_config(UR5E)
+    with pytest.raises(DeviceFault, match="port vanished"):
+        run_scan(ScanRequest(config=config, config_path=str(UR5E), object="cube", planner="raster",
+                             max_time_s=30.0, out=tmp_path / "j"))
+    result = json.loads((tmp_path / "j" / "result.json").read_text())
+    assert result["status"] == "failed" and "port vanished" in result["termination"]
+    (stop,) = result["safety"]["stops"]
+    assert vanished_at <= stop["t"] <= vanished_at + 1.0 / config.scan.control_rate_hz + 1e-9
+    assert "port vanished" in stop["reason"]
 
 
 def test_a_failure_while_writing_the_outputs_still_leaves_a_result(tmp_path, monkeypatch):

@@ -216,6 +216,9 @@ class JobSession:
         self._guard.request_stop(reason)
 
     def _tick(self) -> None:
+        fault = self._sensor.latched_fault()
+        if fault is not None:  # a stop-and-go planner's move would run to its end, a second or more
+            raise fault
         if self.now() >= self._max_time:
             raise TimeBudgetExhausted(f"time budget of {self._max_time:g} s used up")
         if self._stop_file is not None and self._stop_file.exists():

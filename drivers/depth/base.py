@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.device import Device
+from drivers.errors import DeviceFault
 
 Array = NDArray[np.float64]
 
@@ -93,3 +94,9 @@ class DepthSensor(Device):
     @abstractmethod
     def capture(self) -> DepthFrame:
         """Return the newest frame; raises ``DriverError`` when the device is silent or gone."""
+
+    def latched_fault(self) -> DeviceFault | None:
+        """The fault the sensor latched while connected (its link gone, noticed between captures by a
+        backend that reads on its own thread), or None; cheap enough for every control tick. Backends
+        that find faults only when they capture have none to report here."""
+        return None

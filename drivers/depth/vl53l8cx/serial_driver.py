@@ -243,6 +243,13 @@ class VL53L8CXSerial(DepthSensor):
         return (f"{discarded} bytes arrived that made no frame ({crc} failed their CRC): check the baud "
                 f"rate and the cable")
 
+    def latched_fault(self) -> DeviceFault | None:
+        """The fault the reader thread latched (the port vanished, the bridge refused a command), or the
+        silence a capture found; read without the lock: one reference."""
+        fault = self._fault
+        return None if fault is None else DeviceFault(f"faulted: {fault}; reconnect to clear",
+                                                      device=self.device)
+
     # -- capture ---------------------------------------------------------------------------------------
     def capture(self) -> DepthFrame:
         """The newest RANGING frame not returned yet, stamped with its arrival; older ones still waiting
@@ -258,8 +265,9 @@ class VL53L8CXSerial(DepthSensor):
                     self._fault = f"no frame for {self.config.timeout_s:g} s: {self._silence()}"
                     raise DeviceFault(self._fault, device=self.device)
                 self._cond.wait(left)
-            if self._fault is not None:
-                raise DeviceFault(f"faulted: {self._fault}; reconnect to clear", device=self.device)
+            fault = self.latched_fault()
+            if fault is not None:
+                raise fault
             arrived, raw = self._pending[-1]
             self._skipped += len(self._pending) - 1
             self._pending.clear()
