@@ -17,11 +17,14 @@ from typing import Any
 import numpy as np
 import pytest
 
+from cell.config import load_config
+from cell.jobs.runner import ScanRequest, prepare_scan
 from drivers.arm.base import ArmMode, JointTrajectory
 from drivers.arm.ur5e import REPLY_TIMEOUT_S, SILENT_PERIODS, UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
 from tests.arm_backends import STREAMING_WATCHDOG_HZ, Backend, ur5e_backend, ur5e_config
+from tests.conftest import CONFIG_DIR
 from tests.rtde_peer import REPO, ControllerPeer
 from tests.rtde_peer.broken import BrokenController
 from tests.rtde_peer.controller import UNLOCK_AFTER_S
@@ -469,7 +472,7 @@ def test_the_client_process_ends_with_the_program_that_owns_the_driver(peer: Con
 
 
 def test_a_second_program_of_this_machine_is_refused_the_arm_until_the_first_has_gone(
-        peer: ControllerPeer) -> None:
+        peer: ControllerPeer, tmp_path: Path) -> None:
     """A second control script would end the first program's (a scan started beside the service's job);
     the claim goes with its holder however that ends."""
     owner = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host], cwd=REPO,
@@ -483,6 +486,12 @@ def test_a_second_program_of_this_machine_is_refused_the_arm_until_the_first_has
         with pytest.raises(DriverError, match=refusal):
             second.connect()
         assert [e for e in peer.state()["events"] if "program started" in e] == started  # no second script
+        dry_run = load_config(CONFIG_DIR / "dryrun-ur5e-peer.yaml")
+        dry_run = dry_run.model_copy(update={"arm": dry_run.arm.model_copy(update={"host": peer.host})})
+        with pytest.raises(DriverError, match=refusal):  # a scan refuses before it makes its folder
+            prepare_scan(ScanRequest(config=dry_run, config_path="dry-run", object="horizontal_box",
+                                     out=tmp_path / "job"))
+        assert not (tmp_path / "job").exists()
     finally:
         owner.kill()
         owner.wait()

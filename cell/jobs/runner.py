@@ -59,7 +59,8 @@ from cell.planning.registry import get_planner
 from cell.planning.vs.servo_scan import ServoScanPlanner
 from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
-from drivers.arm.config import ReplayArmConfig
+from drivers.arm.claim import ArmClaim
+from drivers.arm.config import FrankaArmConfig, ReplayArmConfig, UR5eArmConfig
 from drivers.arm.replay import ReplayArm
 from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
@@ -232,6 +233,8 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
     check_pose(req.object_pose)
     if cfg.sim.faults and cfg.mode != "sim":
         raise JobError("sim.faults needs the simulated arm and a simulated sensor (mode: sim)")
+    if isinstance(cfg.arm, UR5eArmConfig | FrankaArmConfig):
+        ArmClaim(cfg.arm.type, cfg.arm.host).check()
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
     replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None

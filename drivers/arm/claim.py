@@ -55,12 +55,19 @@ def _open(path: Path) -> int:
 
 
 class ArmClaim:
-    """The claim on the arm of type ``kind`` at ``host`` of this process; ``device`` names it in errors."""
+    """The claim on the arm of type ``kind`` at ``host`` of this process."""
 
-    def __init__(self, kind: str, host: str, device: str) -> None:
+    def __init__(self, kind: str, host: str) -> None:
         self._where = (kind, host)
-        self._device = device
+        self._device = f"arm {kind} at {host}"  # as the arm's driver names it
         self._fd: int | None = None
+
+    def check(self) -> None:
+        """``DriverError`` naming the holder when another program drives the arm now (taken and given
+        back at once: a scan refuses before it makes its folder)."""
+        if self._fd is None:
+            self.take()
+            self.release()
 
     def take(self) -> None:
         """Claim the arm; ``DriverError`` naming the holder when another process has it."""

@@ -135,7 +135,7 @@ class FrankaArm(HardwareArm):
         self._config = config
         self._model = model
         self._device = f"arm franka at {config.host}"
-        self._claim = ArmClaim("franka", config.host, self._device)
+        self._claim = ArmClaim("franka", config.host)
         self._robot: franky.Robot | None = None
         self._mode = ArmMode.IDLE
         self._fault: RobotFault | None = None

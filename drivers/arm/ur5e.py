@@ -152,7 +152,7 @@ class UR5eArm(HardwareArm):
         self._last_snapshot: tuple[float, dict[str, Any]] | None = None  # (time.monotonic(), snapshot)
         # the controller's latest RTDE timestamp [s] and the time.monotonic() it first arrived at [s]
         self._newest_data: tuple[float, float] | None = None
-        self._claim = ArmClaim("ur5e", config.host, self._device)
+        self._claim = ArmClaim("ur5e", config.host)
 
     # ------------------------------------------------------------------ connection
 
