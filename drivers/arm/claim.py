@@ -9,7 +9,8 @@ reach other machines: one arm, one cell PC.
 
 The files are in ``/run/lock``, the system's folder for locks every user shares (the systemd unit makes
 it writable to the service: ``ReadWritePaths``), not in ``/tmp``, which the unit makes private to the
-service (``PrivateTmp``), out of an operator's sight; in ``/tmp`` only where there is no ``/run/lock``.
+service (``PrivateTmp``), out of an operator's sight; in the temporary folder only where ``/run/lock``
+is missing or not writable.
 An existing file is opened without ``O_CREAT``: on a sticky folder the kernel refuses that flag for a
 file of another user (``fs.protected_regular``).
 """
