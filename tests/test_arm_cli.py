@@ -4,6 +4,8 @@ template (config/ur5e-vl53l8cx.yaml) pointed at the peer."""
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,7 +17,7 @@ from typer.testing import CliRunner
 
 from cell.cli.arm import AXES, arm_app
 from tests.conftest import CONFIG_DIR
-from tests.rtde_peer import ControllerPeer
+from tests.rtde_peer import REPO, ControllerPeer
 
 TEMPLATE = CONFIG_DIR / "ur5e-vl53l8cx.yaml"
 POSE_LINE = re.compile(r"tcp pose: x ([-+.\d]+) m y ([-+.\d]+) m z ([-+.\d]+) m")
@@ -95,6 +97,26 @@ def test_status_and_recover_after_a_released_emergency_stop(peer: ControllerPeer
                          ("faults: none", "robot mode RUNNING"))
     assert peer.state()["robot_mode"] == "RUNNING"
     assert not any("program refused" in e for e in peer.state()["events"])
+
+
+def test_status_reads_the_arm_beside_a_program_that_drives_it(peer: ControllerPeer, cell_file: Path) -> None:
+    """An operator looks at the arm while a job drives it: no second control script, no refusal."""
+    owner = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host], cwd=REPO,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert owner.stdout is not None
+        owner.stdout.readline()  # connected, its control script running
+        started = [e for e in peer.state()["events"] if "program started" in e]
+        output = run_ok("status", cell_file)
+        assert "faults: none" in output
+        assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
+        assert [e for e in peer.state()["events"] if "program started" in e] == started
+        assert peer.state()["program_running"]
+    finally:
+        owner.kill()
+        owner.wait()
+        if owner.stdout is not None:
+            owner.stdout.close()
 
 
 def flange_motion(before: list[float], after: list[float]) -> np.ndarray:

@@ -26,7 +26,9 @@ from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.safety.guard import MotionGuard
 from drivers.arm.base import Arm
+from drivers.arm.config import UR5eArmConfig
 from drivers.arm.hardware import Array, HardwareArm
+from drivers.arm.ur5e import UR5eArm
 from drivers.clock import WallClock
 from drivers.errors import CellError, DriverError, RobotFault, SafetyStop
 from drivers.factory import make_arm
@@ -51,15 +53,17 @@ REST_QD_RAD_S = 1e-3  # the arm is at rest when every joint is slower than this 
 
 
 @contextlib.contextmanager
-def _connected_arm(config: Path) -> Iterator[tuple[CellConfig, Arm]]:
-    """The cell file's hardware arm, connected, disconnected at the end; any ``CellError`` becomes a
-    one-line error and exit code 1."""
+def _connected_arm(config: Path, *, read_only: bool = False) -> Iterator[tuple[CellConfig, Arm]]:
+    """The cell file's hardware arm, connected (a UR5e for reading only with ``read_only``), disconnected at
+    the end; any ``CellError`` becomes a one-line error and exit code 1."""
     try:
         cfg = load_config(config)
         if cfg.arm.type == "sim":
             raise DriverError("commissioning commands are for hardware arms (arm.type ur5e or franka)",
                               device="arm sim")
-        arm = make_arm(cfg.arm, get_robot_model(cfg.arm.model), None)
+        model = get_robot_model(cfg.arm.model)
+        arm = UR5eArm(cfg.arm, model, read_only=True) if read_only and isinstance(cfg.arm, UR5eArmConfig) \
+            else make_arm(cfg.arm, model, None)
         arm.connect()
         try:
             yield cfg, arm
@@ -100,8 +104,11 @@ def _status_lines(arm: Arm) -> list[str]:
 
 @arm_app.command("status")
 def status(config: Annotated[Path, typer.Option(help="cell file")]) -> None:
-    """Connect, print pose, joints, modes and faults, disconnect."""
-    with _connected_arm(config) as (_, arm):
+    """Connect, print pose, joints, modes and faults, disconnect.
+
+    A UR5e is only read (RTDE and the dashboard): this works beside a running job, and starts no control
+    script. A Franka takes one client: not while a job runs."""
+    with _connected_arm(config, read_only=True) as (_, arm):
         _print_status(arm)
 
 

@@ -132,11 +132,15 @@ class UR5eArm(HardwareArm):
 
     name = "ur5e"
 
-    def __init__(self, config: UR5eArmConfig, model: RobotModel) -> None:
+    def __init__(self, config: UR5eArmConfig, model: RobotModel, *, read_only: bool = False) -> None:
+        """``read_only``: connect to read the arm's state only (RTDE receive and the dashboard), beside a
+        program that drives it: no control script is started, the arm is not claimed, and the script's
+        state is that program's, not a fault; every command then raises."""
         if model.name != "ur5e":
             raise ValueError(f"arm ur5e: needs the ur5e model, got {model.name!r}")
         self._config = config
         self._model = model
+        self._read_only = read_only
         self._device = f"arm ur5e at {config.host}"
         self._T_flange_tcp = ur_pose_to_T(config.tcp_offset)
         self._proc: RTDEProcess | None = None
@@ -167,7 +171,8 @@ class UR5eArm(HardwareArm):
                 raise DriverError(f"cannot reach the controller's {what} port {cfg.host}:{port} within "
                                   f"{cfg.connect_timeout_s:g} s ({exc}); check the address and that the "
                                   f"controller is on", device=self._device) from None
-        self._claim.take()
+        if not self._read_only:
+            self._claim.take()
         try:
             self._open()
         except DriverError:
@@ -203,7 +208,8 @@ class UR5eArm(HardwareArm):
             self._proc.call("receive_connect", cfg.host, cfg.rtde_frequency_hz, RECEIVE_VARIABLES,
                             timeout_s=timeout)
             snap = self._snapshot()
-            if snap["safety_mode"] not in SAFETY_FAULT_WORDS and snap["robot_mode"] == ROBOT_MODE_RUNNING:
+            if not self._read_only and snap["safety_mode"] not in SAFETY_FAULT_WORDS \
+                    and snap["robot_mode"] == ROBOT_MODE_RUNNING:
                 step = "script"
                 self._start_control()
         except (ClientError, ClientGone) as exc:
@@ -395,7 +401,7 @@ class UR5eArm(HardwareArm):
         if robot_mode != ROBOT_MODE_RUNNING:
             faults.append("power off" if robot_mode in (3, 4, 5)
                           else f"robot mode {ROBOT_MODES.get(robot_mode)}")
-        if not snap["program_running"]:
+        if not snap["program_running"] and not self._read_only:
             faults.append("control script not running")
         if self._traj_error is not None and self._traj_error.fault not in faults:
             faults.append(self._traj_error.fault)
