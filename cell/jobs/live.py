@@ -133,14 +133,12 @@ class LivePerception:
             try:
                 frame = self._sensor.capture()
                 T_fk = self._poses.at(frame.timestamp) @ self._T_fs
-            except DeviceFault as exc:
-                self.n_capture_failures += 1
-                self._log(f"capture failed: {exc}")
-                self._fault = exc
-                return
             except DriverError as exc:
                 self.n_capture_failures += 1
                 self._log(f"capture failed: {exc}")
+                if isinstance(exc, DeviceFault):  # latched: no retry clears it
+                    self._fault = exc
+                    return
                 self._stop.wait(CAPTURE_RETRY_S)
                 continue
             self._worker.submit(frame, T_fk)

@@ -206,8 +206,7 @@ class LineController:
         given = None if part_id is None else check_part_id(part_id)
         why = packml.refusal(self.state, command) or self._precondition(command, given or self.part_id)
         if why is not None:
-            self._message = f"refused {command.label} from {source}: {why}"
-            self._notify()
+            self.say(f"refused {command.label} from {source}: {why}")
             raise ServiceError(why, reason="conflict")
         if given is not None:
             self.part_id = given
@@ -243,8 +242,7 @@ class LineController:
         try:
             self._check_mode(mode)
         except ServiceError as exc:
-            self._message = f"refused unit mode {mode.label} from {source}: {exc}"
-            self._notify()
+            self.say(f"refused unit mode {mode.label} from {source}: {exc}")
             raise
         if mode is self.mode:
             self.say(f"unit mode {mode.label} from {source}: already {mode.label}")

@@ -10,15 +10,13 @@ reach other machines: one arm, one cell PC.
 The files are in ``/run/lock``, the system's folder for locks every user shares (the systemd unit makes
 it writable to the service: ``ReadWritePaths``), not in ``/tmp``, which the unit makes private to the
 service (``PrivateTmp``), out of an operator's sight; in the temporary folder only where ``/run/lock``
-is missing or not writable.
-An existing file is opened without ``O_CREAT``: on a sticky folder the kernel refuses that flag for a
-file of another user (``fs.protected_regular``).
+is missing or not writable. An existing file is opened without ``O_CREAT`` (``drivers.file_lock``): on a
+sticky folder the kernel refuses that flag for a file of another user (``fs.protected_regular``).
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import os
 import socket
@@ -27,6 +25,7 @@ import tempfile
 from pathlib import Path
 
 from drivers.errors import DriverError
+from drivers.file_lock import try_lock
 
 LOCK_DIR = Path("/run/lock")
 
@@ -39,20 +38,6 @@ def claim_path(kind: str, host: str) -> Path:
     digest = hashlib.sha256(f"{kind} {host}".encode()).hexdigest()[:16]
     folder = LOCK_DIR if os.access(LOCK_DIR, os.W_OK) else Path(tempfile.gettempdir())
     return folder / f"cell-arm-{digest}.lock"
-
-
-def _open(path: Path) -> int:
-    try:
-        return os.open(path, os.O_RDWR)
-    except FileNotFoundError:
-        pass
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
-    except FileExistsError:  # another program made it meanwhile
-        return os.open(path, os.O_RDWR)
-    with contextlib.suppress(OSError):  # whatever the umask: another user's program claims it too
-        os.fchmod(fd, 0o666)
-    return fd
 
 
 class ArmClaim:
@@ -76,17 +61,14 @@ class ArmClaim:
             return
         path = claim_path(*self._where)
         try:
-            fd = _open(path)
+            fd = try_lock(path, 0o666)  # every user's: an operator's cell commands beside the service
+            holder = None if fd is not None else path.read_text(errors="replace").strip()[:512] or "unknown"
         except OSError as exc:
             raise DriverError(f"cannot open the arm's claim file {path}: {exc.strerror}",
                               device=self._device) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 512, 0).decode(errors="replace").strip() or "unknown"
-            os.close(fd)
+        if fd is None:
             raise DriverError(f"the arm is driven by another program of this machine ({holder}): stop it "
-                              f"or wait for its job to end", device=self._device) from None
+                              f"or wait for its job to end", device=self._device)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)[:400]}\n".encode(), 0)
         self._fd = fd

@@ -16,7 +16,6 @@ file beside the database. A PostgreSQL connection lost in an outage loses its lo
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import os
 from pathlib import Path
@@ -26,6 +25,7 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from cell.service.store.engine import store_error
 from drivers.errors import StoreError
+from drivers.file_lock import try_lock
 
 LEASE_NAMESPACE = 0x63656C6C
 """The first key of the PostgreSQL advisory lock of every cell's lease ("cell" in ASCII)."""
@@ -61,14 +61,11 @@ class CellLease:
         database = Path(str(self._engine.url.database))
         path = database.with_name(f"{database.name}.lease-{_key(self.cell) & 0xFFFFFFFF:08x}")
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+            fd = try_lock(path, 0o600)
         except OSError as exc:
             raise StoreError(f"cannot open the cell's lease file {path}: {exc.strerror}") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise _taken(self.cell, self._url) from None
+        if fd is None:
+            raise _taken(self.cell, self._url)
         self._fd = fd
 
     def _lock_advisory(self) -> bool:
