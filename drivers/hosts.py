@@ -1,4 +1,5 @@
-"""Host names and addresses: which of them name only this machine, and whether a port can be listened on."""
+"""Host names and addresses: which of them name only this machine, whether a port can be listened on, and
+reading a fixed-size message from a socket."""
 
 from __future__ import annotations
 
@@ -28,3 +29,14 @@ def listen_problem(host: str | None, port: int | None) -> str | None:
     except OSError as exc:
         return str(exc.strerror or exc)
     return None
+
+
+def recv_exact(sock: socket.socket, n: int) -> bytes:
+    """Exactly ``n`` bytes from ``sock``; ``ConnectionError`` when the other side closes first."""
+    data = bytearray()
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError(f"the other side closed the connection after {len(data)} of {n} bytes")
+        data.extend(chunk)
+    return bytes(data)

@@ -16,7 +16,7 @@ import socket
 import struct
 import threading
 
-from drivers.arm.franka import recv_exact
+from drivers.hosts import recv_exact
 from tests.loopback import free_loopback
 
 COMMAND_PORT = 1337

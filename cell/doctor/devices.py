@@ -14,10 +14,10 @@ import socket
 import stat
 import struct
 from importlib import metadata
-from typing import BinaryIO
 
 from cell.doctor.findings import Finding
 from drivers.errors import CellError
+from drivers.hosts import recv_exact
 
 RTDE_PORT = 30004
 RTDE_HEADER = struct.Struct(">HB")
@@ -78,26 +78,17 @@ def _dashboard(sock: socket.socket, command: str) -> str:
     return reply.decode(errors="replace").strip()
 
 
-def _read_exact(reader: BinaryIO, n: int) -> bytes:
-    """Exactly ``n`` bytes from a socket's buffered reader (which reads until it has them);
-    ``ConnectionError`` when the other side closes first."""
-    data = reader.read(n)
-    if len(data) < n:
-        raise ConnectionError(f"the other side closed the connection after {len(data)} of {n} bytes")
-    return data
-
-
 def _rtde(host: str, unreachable: str) -> Finding:
     """RTDE's first exchange: the client asks for protocol version 2, the controller accepts it."""
     sock = _connect(host, RTDE_PORT)
     if isinstance(sock, str):
         return Finding.fail("robot RTDE", f"{host}:{RTDE_PORT} does not answer ({sock})", unreachable)
     try:
-        with sock, sock.makefile("rb") as reader:
+        with sock:
             sock.sendall(RTDE_HEADER.pack(RTDE_HEADER.size + 2, RTDE_PROTOCOL_VERSION) +
                          struct.pack(">H", RTDE_VERSION))
-            size, kind = RTDE_HEADER.unpack(_read_exact(reader, RTDE_HEADER.size))
-            payload = _read_exact(reader, size - RTDE_HEADER.size)
+            size, kind = RTDE_HEADER.unpack(recv_exact(sock, RTDE_HEADER.size))
+            payload = recv_exact(sock, size - RTDE_HEADER.size)
     except OSError as exc:
         return Finding.fail("robot RTDE", f"{host}:{RTDE_PORT} accepted a connection but did not speak RTDE "
                             f"({exc})", "is this the robot's address? (another machine may answer on it)")

@@ -54,6 +54,7 @@ from drivers.arm.hardware import (
     shift_twist,
 )
 from drivers.errors import DriverError, RobotFault
+from drivers.hosts import recv_exact
 from drivers.robots.model import RobotModel
 from drivers.transforms import inv_T
 
@@ -111,17 +112,6 @@ def aborted_fault(exc: franky.ControlException) -> str:
     if "User Stop" in text:
         return "user stop"
     return "reflex" if "reflex" in text else "control error"
-
-
-def recv_exact(sock: socket.socket, n: int) -> bytes:
-    """Exactly ``n`` bytes from ``sock``; ``ConnectionError`` when the other side closes first."""
-    data = bytearray()
-    while len(data) < n:
-        chunk = sock.recv(n - len(data))
-        if not chunk:
-            raise ConnectionError("the robot closed the connection during the version handshake")
-        data.extend(chunk)
-    return bytes(data)
 
 
 class FrankaArm(HardwareArm):
