@@ -66,10 +66,10 @@ log = logging.getLogger("cell.line")
 
 S = ua.StatusCodes
 STATUS_OF = {"conflict": S.BadInvalidState, "invalid": S.BadInvalidArgument}
+"""A refused command's status code by the ``ServiceError`` reason."""
 SHUTDOWN_LINGER_S = 0.5
 """How long the server serves on after the line's last change at shutdown [s]: a subscription publishing
 at up to this interval hears the Stopped and stop reason 7 before its session closes."""
-"""A refused command's status code by the ``ServiceError`` reason."""
 _TAG = {tag.path: tag for tag in TAGS}
 _LINE_TAGS = sorted(((tag.path, tag.read) for tag in TAGS if tag.read is not None),
                     key=lambda item: item[0] == STATE_CURRENT or item[0].endswith("/CurrentState"))
