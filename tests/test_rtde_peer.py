@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.rtde_peer import ControllerPeer
 from tests.rtde_peer.controller import TICK_S, Controller
 
 COMMAND_REGISTER = "input_int_register_0"
@@ -39,3 +45,17 @@ def test_a_write_of_the_command_register_renews_the_watchdog() -> None:
             ctl.tick(TICK_S)
         ctl.write_inputs([COMMAND_REGISTER], [0])
     assert ctl.program_running
+
+
+def test_the_peer_and_its_threads_run_in_the_real_time_class_where_the_machine_allows_it() -> None:
+    may = subprocess.run([sys.executable, "-c", "import os; os.sched_setscheduler(0, os.SCHED_RR, "
+                          "os.sched_param(1))"], capture_output=True).returncode == 0
+    peer = ControllerPeer()
+    try:
+        peer.state()  # the control connection's thread runs too
+        tasks = [int(t.name) for t in Path(f"/proc/{peer.pid}/task").iterdir()]
+        policies = {os.sched_getscheduler(tid) for tid in tasks}
+    finally:
+        peer.stop()
+    assert len(tasks) > 2
+    assert policies == {os.SCHED_RR if may else os.SCHED_OTHER}

@@ -113,10 +113,11 @@ REPLY_TIMEOUT_S = 5.0
 # State whose controller timestamp has not advanced for this many RTDE periods (1 / rtde_frequency_hz) is a
 # controller gone silent with the connection open. A controller sends every period from its real-time
 # cycle, so the gaps come from the client's side: the ur-rtde process or the network delayed on a
-# non-real-time PC. 25 periods (50 ms at 500 Hz, 200 ms at the 125 Hz the test configs use) clear the
-# stalls of up to 117 ms seen on the shared 2-core test machine, where the peer and the ur-rtde process
-# compete for the cores, and still end blind motion long before ur-rtde's own control interface gives up
-# on a silent controller (about 2.5 s, then it reconnects by itself).
+# non-real-time PC. 25 periods (50 ms at 500 Hz, 200 ms at the 125 Hz the test configs use) clear those
+# (none over 50 ms seen on the shared 2-core test machine with eight busy processes, the test peer in the
+# real-time class as a controller; in the normal class that peer itself fell silent for up to 0.25 s), and
+# still end blind motion long before ur-rtde's own control interface gives up on a silent controller
+# (about 2.5 s, then it reconnects by itself).
 SILENT_PERIODS = 25
 # ur-rtde's control interface gives up on a control script that does not start after 5 s
 CONTROL_START_TIMEOUT_S = 5.0

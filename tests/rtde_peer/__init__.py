@@ -1,9 +1,11 @@
 """A UR controller peer for tests: the real ur-rtde client talks to it on loopback.
 
 :class:`ControllerPeer` starts ``python -m tests.rtde_peer`` in its own process (ur-rtde's constructors
-hold the GIL, so a peer in the test's process would starve) on a free ``127.0.0.N`` (the controller's
-ports are fixed), and drives it over its JSON control port: inject faults, read what the client sent; and
-stops its process to play a controller gone silent with its connections open (``frozen``).
+hold the GIL, so a peer in the test's process would starve), in the real-time class where the machine
+allows it (as a controller's cycle runs; a starved peer falls silent), on a free ``127.0.0.N`` (the
+controller's ports are fixed), and drives it over its JSON control port: inject faults, read what the
+client sent; and stops its process to play a controller gone silent with its connections open
+(``frozen``).
 Disconnect the client before stopping the peer.
 """
 
@@ -59,6 +61,10 @@ class ControllerPeer:
             raise RuntimeError(f"controller peer did not start: every address tried was taken ({self.host})")
         self._sock = socket.create_connection((self.host, CONTROL_PORT), timeout=start_timeout_s)
         self._reader = self._sock.makefile("r")
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
 
     def call(self, op: str, **args: Any) -> dict[str, Any]:
         self._sock.sendall((json.dumps({"op": op, **args}) + "\n").encode())
