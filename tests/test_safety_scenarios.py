@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config import load_config
 from cell.config.load import parse_config
-from cell.jobs.control import JobControl
+from cell.jobs.control import JobControl, StopEffect
 from cell.jobs.progress import JobProgress
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.jobs.session import retrace_starts
@@ -202,22 +202,22 @@ def test_arm_comes_to_rest_after_a_fault(tmp_path):
 
 def test_operator_stop_from_the_service_call(tmp_path):
     control = JobControl()
-    commanded: list[bool] = []
+    effects: list[StopEffect] = []
 
     def stop_at_second_frame(progress: JobProgress) -> None:
         if progress.n_captures == 2:
-            commanded.append(control.request_stop("operator pressed stop"))
+            effects.append(control.request_stop("operator pressed stop"))
 
     result, out, error = _run(tmp_path, FRANKA, on_progress=stop_at_second_frame, control=control)
     _assert_stopped_and_kept(result, out, error, "operator stop: operator pressed stop")
-    assert result["n_captures"] == 2 and commanded == [True]
-    # a stop after the job ended has nothing left to stop
-    assert control.request_stop("too late") is False
+    assert result["n_captures"] == 2 and effects == [StopEffect.COMMANDED]
+    # a stop after the job's motion ended has nothing left to stop, and says so
+    assert control.request_stop("too late") is StopEffect.AFTER_MOTION
 
 
 def test_a_stop_asked_before_the_job_moves_is_applied_before_its_first_motion(tmp_path):
     control = JobControl()
-    assert control.request_stop("stopped while queued") is False
+    assert control.request_stop("stopped while queued") is StopEffect.BEFORE_MOTION
     result, out, error = _run(tmp_path, FRANKA, control=control)
     assert isinstance(error, SafetyStop) and result["status"] == "stopped"
     assert "operator stop: stopped while queued" in result["termination"]

@@ -35,6 +35,7 @@ from typing import Any
 
 from cell import __version__
 from cell.config.models import CellConfig
+from cell.jobs.control import StopEffect
 from cell.line.controller import LineController
 from cell.line.dio import DigitalIOHandshake
 from cell.planning.registry import PLANNERS
@@ -62,6 +63,10 @@ a PostgreSQL lease lost with its connection in an outage is taken again this soo
 answers, the window in which a second service of the cell could start."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
+STOP_EFFECTS = {StopEffect.COMMANDED: "the arm was commanded to stop",
+                StopEffect.BEFORE_MOTION: "the job had not moved yet: it stops before its first motion",
+                StopEffect.AFTER_MOTION: "the job's motion had already ended: it was finishing its result"}
+"""A running job's stop, in words, by what it did to the job's motion."""
 
 log = logging.getLogger("cell.service")
 
@@ -90,7 +95,7 @@ class _Running:
     started: bool = False
     requested: bool = False
     stop_reason: str | None = None
-    acks: deque[asyncio.Future[bool]] = field(default_factory=deque)
+    acks: deque[asyncio.Future[StopEffect]] = field(default_factory=deque)
     killed_for: str | None = None
     progress: dict[str, Any] | None = None
     ended: dict[str, Any] | None = None
@@ -101,7 +106,7 @@ class _Running:
 @dataclass(frozen=True)
 class StopOutcome:
     """What a stop did: the job it reached (None: nothing ran), whether that job's arm was commanded to
-    stop before the answer (False: it had not moved yet, or it had ended), and in words."""
+    stop before the answer (False: it had not moved yet, or its motion had ended), and in words."""
 
     job_id: str | None
     arm_commanded: bool
@@ -437,14 +442,13 @@ class CellService:
             self._kill(proc)
             return StopOutcome(job_id, False, "the job's worker was still starting: it was ended before "
                                               "any motion")
-        ack: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+        ack: asyncio.Future[StopEffect] = asyncio.get_running_loop().create_future()
         running.acks.append(ack)
         try:
             assert proc.stdin is not None
             proc.stdin.write(stop_command(reason))
             await proc.stdin.drain()
-            commanded = await asyncio.wait_for(asyncio.shield(ack),
-                                               self.config.service.stop_confirm_timeout_s)
+            effect = await asyncio.wait_for(asyncio.shield(ack), self.config.service.stop_confirm_timeout_s)
         except (BrokenPipeError, ConnectionResetError):
             return StopOutcome(job_id, False, "the job's worker had already ended")
         except TimeoutError:
@@ -454,8 +458,7 @@ class CellService:
             return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
                                f"{self.config.service.stop_confirm_timeout_s:g} s and was killed; the arm's "
                                "connection watchdog stops the arm")
-        return StopOutcome(job_id, commanded, "the arm was commanded to stop" if commanded else
-                           "the job had not moved yet: it stops before its first motion")
+        return StopOutcome(job_id, effect is StopEffect.COMMANDED, STOP_EFFECTS[effect])
 
     @staticmethod
     def _kill(proc: asyncio.subprocess.Process) -> None:
@@ -647,7 +650,7 @@ class CellService:
         elif kind == "stop" and running.acks:
             ack = running.acks.popleft()
             if not ack.done():
-                ack.set_result(bool(message.get("commanded")))
+                ack.set_result(StopEffect(message["effect"]))
         elif kind == "started":
             running.started = True
         elif kind == "ended":
@@ -662,7 +665,7 @@ class CellService:
         job, ended = running.job, running.ended
         for ack in running.acks:
             if not ack.done():
-                ack.set_result(False)
+                ack.set_result(StopEffect.AFTER_MOTION)
         if ended is None:
             if running.killed_for is not None:
                 # a stop carried out by killing a worker that did not answer (busy starting, or hung)

@@ -10,8 +10,9 @@ library printing to it cannot break the protocol), each with a ``type``:
 
 - ``started``: ``pid``;
 - ``progress``: ``progress``, a ``cell.jobs.progress.JobProgress`` as a dict;
-- ``stop``: the answer to a stop command, after the arm was commanded to stop: ``commanded`` (False when
-  the job had not yet moved or had ended: it stops before its first motion), ``reason``;
+- ``stop``: the answer to a stop command, after the arm was commanded to stop: ``effect`` (a
+  ``cell.jobs.control.StopEffect`` value: commanded, or the job had not moved yet, or its motion had
+  ended), ``reason``;
 - ``recovered``: the answer to a recover spec: ``ok``, ``message``, ``arm`` (the state after);
 - ``ended``: ``status``, ``termination``, ``result`` (the job's result.json, None when the job ended
   before its folder existed) and ``ticks`` (the control loop's final tick histogram).

@@ -28,7 +28,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, BinaryIO
 
-from cell.jobs.control import JobControl
+from cell.jobs.control import JobControl, StopEffect
 from cell.service.protocol import WorkerSpec
 
 PROGRESS_QUEUE = 256
@@ -84,7 +84,7 @@ def _lines(fd: int) -> Iterator[bytes]:
         yield from lines
 
 
-def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[[str], bool]) -> None:
+def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[[str], StopEffect]) -> None:
     """The reader thread: stop commands, then the end of the input."""
     for raw in source:
         try:
@@ -95,7 +95,7 @@ def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[[str], bool]
         if reason is None:
             print(f"worker: ignored a malformed command: {raw[:200]!r}", file=sys.stderr)
             continue
-        outbox.send({"type": "stop", "commanded": stop(reason), "reason": reason})
+        outbox.send({"type": "stop", "effect": stop(reason).value, "reason": reason})
     stop(SERVICE_GONE)
 
 
