@@ -88,6 +88,15 @@ def events_of(cell: ServedCell, job_id: str, last_event_id: int | None = None) -
         return read_sse(response)
 
 
+def third_event_id(cell: ServedCell, job_id: str) -> int:
+    """The id of the third event of a running job's stream (which is then closed)."""
+    with cell.client("viewer") as client, \
+            client.stream("GET", f"/api/v1/jobs/{job_id}/events") as response:
+        ids = (int(line.removeprefix("id:")) for line in response.iter_lines() if line.startswith("id:"))
+        next(ids), next(ids)
+        return next(ids)
+
+
 def submit(cell: ServedCell, **body: Any) -> dict[str, Any]:
     with cell.client("operator") as client:
         response = client.post("/api/v1/jobs", json=body)
@@ -177,7 +186,8 @@ def test_a_sim_job_runs_from_submission_to_result_through_its_event_stream(
         franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
     job, events = scanned
     assert job["status"] == "completed", job["termination"]
-    assert [e["id"] for e in events] == list(range(1, len(events) + 1))
+    ids = [e["id"] for e in events]
+    assert ids == list(range(ids[0], ids[0] + len(events)))
     states = [e["data"]["status"] for e in events if e["event"] == "state"]
     assert states == ["queued", "running", "completed"]
     # progress between the running and the final state, its job time and captures growing
@@ -203,8 +213,9 @@ def test_a_sim_job_runs_from_submission_to_result_through_its_event_stream(
     assert served.headers["content-type"] == "application/json"
     assert served.content == on_disk
     # reconnecting with Last-Event-ID gives exactly the events after it
-    for last in (0, 2, len(events) - 1):
-        assert events_of(franka, job["id"], last_event_id=last) == events[last:]
+    assert events_of(franka, job["id"], last_event_id=0) == events
+    for seen in (2, len(events) - 1):
+        assert events_of(franka, job["id"], last_event_id=ids[seen - 1]) == events[seen:]
 
 
 # ---------------------------------------------------------------------------------------------- 2. stop
@@ -318,6 +329,7 @@ def test_killing_the_service_mid_scan_stops_the_arm_and_a_restart_marks_the_job_
         job = submit(cell, object="horizontal_box", planner="raster", max_time_s=60.0)
         waiting = submit(cell, object="horizontal_box", planner="raster", max_time_s=60.0)
         wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1 or p["path_length_m"] > 0)
+        seen_id = third_event_id(cell, job["id"])
         # kill while the arm is moving, so that coming to rest means something
         peer.wait_for(lambda st: max(abs(v) for v in st["qd"]) > 1e-3, what="the arm moving")
         asked = time.monotonic()
@@ -345,6 +357,10 @@ def test_killing_the_service_mid_scan_stops_the_arm_and_a_restart_marks_the_job_
 
         record = get_job(cell, job["id"])
         assert record["status"] == "interrupted" and record["termination"] == RESTART_TERMINATION
+        # a client that reconnects with an event id of the killed run gets the new run's whole log
+        replayed = events_of(cell, job["id"], last_event_id=seen_id)
+        assert [e["event"] for e in replayed] == ["state", "result"]
+        assert replayed[-1]["data"]["status"] == "interrupted"
         folder = cell.data_dir / "jobs" / job["id"]
         result = json.loads((folder / "result.json").read_text())
         assert result["status"] == "interrupted" and finite_json(result) == record["result"]

@@ -1,15 +1,21 @@
 """A job's events, numbered, for live clients: ``state``, ``progress`` and a final ``result``.
 
-Each job keeps its events in order with ids 1, 2, ...; a client that reconnects with the last id it saw
-gets everything after it. Publishing never waits for a client: events are appended to the job's list
-and waiting clients are woken; each client reads at its own pace, so a slow or vanished one costs
-nothing but its own connection. Everything here runs on the service's event loop.
+Each job keeps its events in order with increasing ids; a client that reconnects with the last id it saw
+gets everything after it. The ids of a service run start above its start time in milliseconds since the
+epoch, so that they are above every id an earlier run gave (a job's events are far fewer than its
+milliseconds): a client that reconnects after a restart with an id of the earlier run gets the whole log
+of the new one (the job's final state and result) rather than nothing.
+
+Publishing never waits for a client: events are appended to the job's list and waiting clients are
+woken; each client reads at its own pace, so a slow or vanished one costs nothing but its own connection.
+Everything here runs on the service's event loop.
 """
 
 from __future__ import annotations
 
 import asyncio
 import bisect
+import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
@@ -21,7 +27,7 @@ oldest progress events are dropped (states and the result are always kept)."""
 
 @dataclass(frozen=True)
 class JobEvent:
-    """``id`` (1, 2, ... per job), ``kind`` (``state``, ``progress``, ``result``) and its JSON data."""
+    """``id`` (increasing per job), ``kind`` (``state``, ``progress``, ``result``) and its JSON data."""
 
     id: int
     kind: str
@@ -31,9 +37,9 @@ class JobEvent:
 class JobEvents:
     """The events of one job (see the module docstring). ``closed`` once its ``result`` is published."""
 
-    def __init__(self) -> None:
+    def __init__(self, first_id: int = 1) -> None:
         self._events: list[JobEvent] = []
-        self._next_id = 1
+        self._next_id = first_id
         self._changed = asyncio.Event()
         self.closed = False
 
@@ -76,12 +82,13 @@ class EventHub:
     def __init__(self, keep_finished: int = 50) -> None:
         self._logs: dict[str, JobEvents] = {}
         self._keep = keep_finished
+        self._first_id = time.time_ns() // 1_000_000 + 1
 
     def log(self, job_id: str) -> JobEvents:
         """The job's log, made when first asked for."""
         log = self._logs.get(job_id)
         if log is None:
-            log = self._logs[job_id] = JobEvents()
+            log = self._logs[job_id] = JobEvents(self._first_id)
             finished = [k for k, v in self._logs.items() if v.closed]
             for old in finished[:max(0, len(finished) - self._keep)]:
                 del self._logs[old]
