@@ -1,15 +1,19 @@
-"""``cell config check``: whether a cell file is valid, and what is still to be measured in it."""
+"""``cell config check``: whether a cell file is valid, and what is still to be measured in it; ``cell config
+reference``: every key a cell file may hold (``docs/config.md``)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
+import typer
 from rich.console import Console
 
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.config import load_config
 from cell.config.placeholders import find_placeholders
+from cell.config.reference import reference_markdown
 from cell.line.config import LineConfig
 from drivers.errors import CellError, ConfigError
 
@@ -39,6 +43,21 @@ def config_check(file: Path) -> None:
         console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
     raise fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
                             "it and delete the mark)", file=str(file)))
+
+
+@config_app.command("reference")
+def config_reference(out: Annotated[Path | None, typer.Option(
+        help="write it to this file (docs/config.md in the repository) instead of printing it")] = None
+                     ) -> None:
+    """Every key a cell file may hold, in Markdown: type, unit, default and constraints per section.
+
+    Generated from the models that validate a cell file, so it is what this version of cell accepts."""
+    text = reference_markdown()
+    if out is None:
+        typer.echo(text, nl=False)
+        return
+    out.write_text(text)
+    console.print(f"wrote {out}", markup=False, highlight=False)
 
 
 def _line_summary(line: LineConfig) -> str:

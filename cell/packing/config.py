@@ -42,6 +42,7 @@ class BoxUncertaintyConfig(StrictModel):
     capture_pose_translation_m: float = Field(default=0.0004, ge=0.0, le=0.05)
     capture_pose_rotation_rad: float = Field(default=0.0005, ge=0.0, le=0.1)
     coverage_factor: PositiveFloat = 2.0
+    """[1] the multiple of the combined standard deviation that the upper bound adds."""
 
 
 class PackingConfig(StrictModel):
@@ -62,6 +63,7 @@ class PackingConfig(StrictModel):
     margin_m: float = Field(default=0.01, ge=0.0)
     coverage_radius_m: PositiveFloat | None = None
     trim_fraction: float = Field(default=0.02, ge=0.0, lt=0.5)
+    """[1] the share of object voxels each face of the box may leave outside."""
     uncertainty: BoxUncertaintyConfig = BoxUncertaintyConfig()
 
     @model_validator(mode="after")

@@ -43,6 +43,7 @@ class FilterParams(StrictModel):
 
     sor_neighbors: int = Field(20, ge=1)
     sor_std_ratio: float = Field(2.0, gt=0.0)
+    """[1] standard deviations above the mean neighbour distance beyond which a point is an outlier."""
     sor_enabled: bool = True
     valid_tof_statuses: tuple[int, ...] = (5, 9)
 

@@ -106,10 +106,15 @@ class OccupancyParams(StrictModel):
 
     resolution_m: PositiveFloat
     p_hit: float = 0.7
+    """[1] the occupancy probability a hit gives its voxel."""
     p_miss: float = 0.4
+    """[1] the occupancy probability a ray passing through gives a voxel."""
     clamp_min: float = 0.12
+    """[1] the lowest occupancy probability a voxel is held at."""
     clamp_max: float = 0.97
+    """[1] the highest occupancy probability a voxel is held at."""
     occupied_threshold: float = 0.5
+    """[1] the occupancy probability above which a voxel counts as occupied."""
     max_range_m: PositiveFloat | None = None
     discretize: bool = False
     keep_surface: bool = False

@@ -118,8 +118,9 @@ class RegistrationParams(StrictModel):
 
     ``normal_radius_m`` [m] target-normal search radius (5 mm), also the largest offset of an ICP pair
     along the target's tangent plane (module docstring); ``max_iterations`` per ICP stage (20);
-    ``epsilon`` relative fitness and RMSE change that ends a stage (1e-8); ``max_correspondence_m`` [m]
-    the coarse-to-fine correspondence distances, the last one the paper's 2 mm rejector;
+    ``epsilon`` [m^2] the motion and the residual change that end a stage (1e-8, below);
+    ``max_correspondence_m`` [m] the coarse-to-fine correspondence distances, the last one the paper's
+    2 mm rejector;
     ``source_voxel_m`` [m] voxel filter of the new frame before ICP (paper: 2.5 mm; 0 = none);
     ``min_fitness`` the share of source points with a correspondence below which the result is rejected;
     ``max_correction_m`` [m] / ``max_correction_deg`` [deg] the largest accepted correction of the FK
@@ -138,13 +139,18 @@ class RegistrationParams(StrictModel):
     normal_radius_m: PositiveFloat = 0.005
     max_iterations: PositiveInt = 20
     epsilon: PositiveFloat = 1e-8
+    """[m²] a stage ends when an update moves the source points by a mean squared distance of at most this, or
+    changes their mean squared residual by less (PCL's transformation and Euclidean fitness epsilons)."""
     max_correspondence_m: tuple[PositiveFloat, ...] = Field(default=(0.02, 0.008, 0.002), min_length=1)
     source_voxel_m: float = Field(default=0.0025, ge=0.0)
     min_fitness: float = Field(default=0.3, ge=0.0, le=1.0)
+    """[1] the share of source points with a correspondence below which the result is rejected."""
     max_correction_m: PositiveFloat = 0.02
     max_correction_deg: PositiveFloat = 3.0
     min_points: PositiveInt = 200
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
+    """[1] the smallest eigenvalue of the normalised point-to-plane Hessian for a direction of the correction
+    to be kept."""
     max_source_points: PositiveInt = 3000
     constraint_normal_radius_m: PositiveFloat = 0.01
 

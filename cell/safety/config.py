@@ -38,7 +38,9 @@ class BarrierPlaneConfig(StrictModel):
     ``normal`` pointing into the allowed side, both in the base frame. ``name`` appears in the logs."""
 
     point: Vec3
+    """[m] a point on the plane, in the base frame."""
     normal: Vec3
+    """[1] the direction into the allowed side, in the base frame (any length but zero)."""
     name: str | None = None
 
     @field_validator("normal")
@@ -130,6 +132,7 @@ class WatchdogConfig(StrictModel):
     """
 
     deadline_factor: Number = Field(gt=1.0)
+    """[1] control periods after the previous tick beyond which a tick has missed its deadline."""
     max_missed_deadlines: PositiveCount
     perception_max_age_s: PositiveNumber
 
@@ -154,8 +157,11 @@ class SafetyConfig(StrictModel):
     tcp_max_linear_jerk_mps3: PositiveNumber
     tcp_max_angular_jerk_rps3: PositiveNumber
     joint_velocity_scale: Number = Field(gt=0.0, le=1.0)
+    """[1] the share of each joint's maximum velocity that motion may use."""
     joint_acceleration_scale: Number = Field(gt=0.0, le=1.0)
+    """[1] the share of each joint's maximum acceleration that motion may use."""
     joint_jerk_scale: Number = Field(gt=0.0, le=1.0)
+    """[1] the share of each joint's maximum jerk that motion may use."""
     joint_position_margin_rad: Number = Field(ge=0.0, le=0.5)
     workspace: WorkspaceConfig
     barrier_planes: list[BarrierPlaneConfig]

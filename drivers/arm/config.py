@@ -55,6 +55,8 @@ class UR5eArmConfig(StrictModel):
     home_joints_rad: list[float] | None = None
     connect_timeout_s: PositiveFloat = 5.0
     tcp_offset: tuple[float, float, float, float, float, float]
+    """[m, m, m, rad, rad, rad] the TCP in the flange frame as a UR pose: x, y, z, then the rotation vector
+    (axis-angle)."""
     payload: PayloadConfig
     max_linear_mps: Number = Field(gt=0.0, le=1.0)
     max_angular_rps: Number = Field(gt=0.0, le=3.2)
@@ -64,6 +66,7 @@ class UR5eArmConfig(StrictModel):
     servo_rate_hz: float = Field(default=125.0, gt=0.0, le=500.0)
     servo_lookahead_s: float = Field(default=0.1, ge=0.03, le=0.2)
     servo_gain: float = Field(default=300.0, ge=100.0, le=2000.0)
+    """[1] servoJ's proportional gain (UR's range 100-2000)."""
     settle_tolerance_rad: float = Field(default=1e-3, gt=0.0, le=0.05)
     settle_timeout_s: float = Field(default=2.0, gt=0.0, le=10.0)
     watchdog_min_hz: Number = Field(gt=0.0, le=500.0)
@@ -92,6 +95,7 @@ class FrankaArmConfig(StrictModel):
     home_joints_rad: list[float] | None = None
     connect_timeout_s: PositiveFloat = 5.0
     relative_dynamics_factor: Number = Field(gt=0.0, le=1.0)
+    """[1] the share of the robot's velocity, acceleration and jerk limits that every motion may use."""
     velocity_hold_s: float = Field(gt=0.0, le=0.5)
     max_linear_mps: Number = Field(gt=0.0, le=1.7)
     max_angular_rps: Number = Field(gt=0.0, le=2.5)

@@ -40,11 +40,17 @@ class SimRGBDConfig(RangedConfig):
 
     type: Literal["sim-rgbd"]
     width: PositiveInt = 640
+    """[px] the image's width."""
     height: PositiveInt = 480
+    """[px] the image's height."""
     fx: PositiveFloat
+    """[px] the focal length along x."""
     fy: PositiveFloat
+    """[px] the focal length along y."""
     cx: float
+    """[px] the principal point's x."""
     cy: float
+    """[px] the principal point's y."""
     noise: DepthNoiseConfig
     grazing_deg: float = Field(default=80.0, gt=15.0, le=90.0)
 
@@ -73,6 +79,7 @@ class SimToFConfig(RangedConfig):
     range_max_m: PositiveFloat = 4.0
     noise: DepthNoiseConfig
     min_hit_fraction: float = Field(default=0.25, gt=0.0, le=1.0)
+    """[1] the share of a zone's sub-rays that must hit for the zone to have a target."""
     edge_gap_m: PositiveFloat = 0.025
     zone_bias: ZoneBiasConfig | None = None
     zone_correction: str | None = None
@@ -110,6 +117,7 @@ class VL53L8CXConfig(RangedConfig):
     type: Literal["vl53l8cx"]
     port: str | None = None
     baudrate: PositiveInt = 921600
+    """[bit/s] the UART's rate (a USB CDC port ignores it)."""
     i2c: VL53L8CXI2CConfig | None = None
     resolution: Literal[4, 8] = 8
     frequency_hz: int = Field(default=15, ge=1, le=60)
@@ -158,8 +166,11 @@ class RealSenseConfig(RangedConfig):
     type: Literal["realsense"]
     serial: str = ""
     width: PositiveInt = 640
+    """[px] the depth stream's width."""
     height: PositiveInt = 480
+    """[px] the depth stream's height."""
     fps: PositiveInt = 30
+    """[Hz] the depth stream's frame rate."""
     preset: str = ""
     record_bag: str = ""
     range_min_m: PositiveFloat = 0.1

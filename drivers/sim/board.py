@@ -77,6 +77,7 @@ class SimBoardConfig(StrictModel):
     (x [m], y [m], yaw [deg]) from the station."""
 
     pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """[m, m, deg] the board centre's x, y from the station and its yaw."""
 
 
 @dataclass(frozen=True)

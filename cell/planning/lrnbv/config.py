@@ -65,11 +65,13 @@ class LRNBVConfig(StrictModel):
     ray_length_m: PositiveFloat = 1.0
     roi_margin_m: float = Field(default=0.05, ge=0.0)
     cache_threshold: float = 0.0
+    """[utility units] tau: the utility above which nodes are cached and branch nodes captured."""
     capture: Literal["branch", "best_node"] = "branch"
     rrt_step_m: PositiveFloat = 0.3
     view_distance_m: tuple[PositiveFloat, PositiveFloat] = (0.2, 0.6)
     object_clearance_m: float = Field(default=0.08, ge=0.0)
     look_target_spread: float = Field(default=0.5, ge=0.0, le=1.0)
+    """[1] the fraction towards the box centre at which the look-at corners are taken (0: only the centre)."""
     rgbd_rays_per_side: PositiveInt = 16
     settle_s: float = Field(default=0.1, ge=0.0)
     max_failed_moves: PositiveInt = 10

@@ -97,7 +97,9 @@ class ServoConfig(StrictModel):
     period (``cell.planning.vs.local``), up to the cell's TCP speed limits."""
 
     lambda_0: PositiveFloat = 2.0
+    """[1/s] the primary task's adaptive gain at ||e|| = 0."""
     lambda_inf: PositiveFloat = 0.4
+    """[1/s] the primary task's adaptive gain as ||e|| grows large."""
     lambda_0_slope: PositiveFloat = 30.0
     lambda_g: float = Field(default=0.33, ge=0.0)
     e_converged_m: PositiveFloat = 0.005
@@ -156,6 +158,8 @@ class VSConfig(StrictModel):
     centroid_tau_s: float = Field(default=0.5, ge=0.0)
     h_roi_window: int = Field(default=10, ge=2)
     h_roi_std: PositiveFloat = 0.001
+    """[nats] the standard deviation of the last ``h_roi_window`` H_ROI values below which Global and Hybrid
+    stop."""
     first_object_timeout_s: PositiveFloat = 5.0
     joint_activation_rad: PositiveFloat = 0.15
     singular_value_activation: float = Field(default=0.06, ge=0.0)
@@ -185,10 +189,13 @@ class VSLocalConfig(StrictModel):
     delta_m: PositiveFloat = 0.05
     reach_deg: float = Field(default=0.0, ge=0.0, lt=180.0)
     alpha: PositiveFloat = 1.0
+    """[m] the scale of the relative gradient."""
     f_eps_nats: PositiveFloat = 0.03
     g_max: PositiveFloat = 1.0
+    """[1] the largest norm of g, and the norm below which an evaluation counts towards convergence."""
     window: PositiveInt = 200
     converged_fraction: float = Field(default=0.8, gt=0.0, lt=1.0)
+    """[1] the share of the last ``window`` evaluations with ||g|| < ``g_max`` that ends the scan."""
 
 
 class VSGlobalConfig(StrictModel):
