@@ -21,6 +21,7 @@ from typer.testing import CliRunner
 
 import cell.jobs.runner as runner
 from cell.cli.main import app
+from cell.cli.scan import _arm_fault_hint
 from cell.config import load_config
 from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.replay import replay_config
@@ -203,7 +204,9 @@ def test_ctrl_c_in_a_scan_stops_it_and_exits_130_with_the_folder(tmp_path, monke
     assert json.loads((tmp_path / "j" / "result.json").read_text())["status"] == "stopped"
 
 
-def test_a_scan_stopped_by_an_arm_fault_says_how_to_recover_the_arm(tmp_path):
+def test_a_sim_scan_stopped_by_an_arm_fault_says_the_next_job_starts_fresh(tmp_path):
+    """``cell arm recover`` is for hardware arms (it refuses a sim arm's file): a rehearsed fault in sim
+    does not send the operator there."""
     data = yaml.safe_load(FRANKA.read_text())
     data["sim"]["faults"] = [{"at_s": 3.5, "kind": "protective stop"}]
     faulty = tmp_path / "faulty.yaml"
@@ -212,7 +215,15 @@ def test_a_scan_stopped_by_an_arm_fault_says_how_to_recover_the_arm(tmp_path):
                                    str(tmp_path / "j")])
     assert res.exit_code == 1
     assert "stopped: arm fault: protective stop" in res.output
-    assert f"then cell arm recover --config {faulty}" in res.output
+    assert "the simulated arm starts fresh with the next job" in res.output
+    assert "cell arm recover" not in res.output
+
+
+def test_a_hardware_arm_stopped_by_its_fault_is_to_be_recovered_with_its_cell_file(tmp_path):
+    cell_file = REPO / "config" / "dryrun-ur5e-peer.yaml"
+    request = ScanRequest(config=load_config(cell_file), config_path=str(cell_file), object="none")
+    assert _arm_fault_hint(request) == ("the arm stays faulted until recovered: clear the cause, then cell "
+                                        f"arm recover --config {cell_file}")
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])

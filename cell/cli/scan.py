@@ -52,6 +52,16 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
                        max_time_s=max_time)
 
 
+def _arm_fault_hint(request: ScanRequest) -> str:
+    """What becomes of the fault that stopped ``request``'s arm: a hardware arm stays faulted until an
+    operator recovers it (``cell arm recover``, a commissioning command of hardware arms only); the
+    simulated arm is made anew for every job, so the next one starts without the fault."""
+    if request.config.arm.type == "sim":
+        return "the simulated arm starts fresh with the next job: nothing to recover"
+    return (f"the arm stays faulted until recovered: clear the cause, then cell arm recover --config "
+            f"{request.config_path}")
+
+
 def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Exit:
     """A scan that stopped or failed after its folder was made: ``stopped: <reason>`` for a stop (an
     operator's, a safety check's), else the error; then where the folder is (its log.txt holds the
@@ -60,9 +70,7 @@ def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Ex
     if isinstance(exc, SafetyStop):
         err_console.print(f"stopped: {exc.reason}", markup=False, highlight=False, soft_wrap=True)
         if exc.reason.startswith(ARM_FAULT):  # what the guard names a fault the arm latched
-            err_console.print(f"the arm stays faulted until recovered: clear the cause, then cell arm "
-                              f"recover --config {job.request.config_path}", markup=False, highlight=False,
-                              soft_wrap=True)
+            err_console.print(_arm_fault_hint(job.request), markup=False, highlight=False, soft_wrap=True)
     else:
         print_error(exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}")
     err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
