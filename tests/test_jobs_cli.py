@@ -20,6 +20,7 @@ from cell.cli import client as client_module
 from cell.cli.client import ApiClient, ServerEvent, parse_events
 from cell.cli.jobs import follow_job, packing_lines
 from cell.cli.main import app
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 from tests.service_process import CELL, REPO, ServedCell, free_port
 
 CONFIG = REPO / "config" / "sim-franka-rgbd.yaml"
@@ -338,6 +339,16 @@ def test_the_key_option_is_not_shown_in_help():
     result = CliRunner().invoke(app, ["jobs", "list", "--help"], env={"CELL_KEY": "cell_secret-value"})
     assert result.exit_code == 0 and "CELL_KEY" in result.stdout
     assert "cell_secret-value" not in result.output
+
+
+def test_the_command_line_knows_every_status_of_the_service():
+    """``cell jobs`` keeps its own list (it does not load the store) and shows it in ``list --help``: the
+    service's statuses, no_object included, which ``--status`` filters by."""
+    assert client_module.JOB_STATUSES == JOB_STATUSES
+    assert client_module.FINISHED == FINISHED_STATUSES
+    result = CliRunner().invoke(app, ["jobs", "list", "--help"], env={"COLUMNS": "300"})
+    listed = re.search(r"commas\): ([a-z_, ]+)", result.stdout)
+    assert listed is not None and tuple(listed.group(1).strip().split(", ")) == JOB_STATUSES
 
 
 def test_packing_lines_show_a_face_without_an_upper_bound():

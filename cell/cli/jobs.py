@@ -9,7 +9,8 @@ not answer says so with its URL.
 
 ``submit`` prints the new job's id alone on its last line (``id=$(cell jobs submit ... | tail -1)``).
 ``wait`` (and ``submit --wait``) follows the job's events and exits 0 when it ends ``completed``, 2 when it
-ends otherwise (failed, stopped, cancelled, interrupted) and 1 on an error or when ``--timeout`` passes.
+ends otherwise (no_object, failed, stopped, cancelled, interrupted) and 1 on an error or when ``--timeout``
+passes.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 
-from cell.cli.client import FINISHED, ApiClient, ServerEvent
+from cell.cli.client import FINISHED, JOB_STATUSES, ApiClient, ServerEvent
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from drivers.errors import CellError
@@ -195,8 +196,8 @@ def submit(
 @jobs_app.command("list")
 def list_jobs(
     status: Annotated[list[str] | None, typer.Option(
-        "--status", help="only these statuses (repeat or separate with commas): queued, running, "
-                         "completed, failed, stopped, cancelled, interrupted")] = None,
+        "--status", help="only these statuses (repeat or separate with commas): "
+                         + ", ".join(JOB_STATUSES))] = None,
     planner: Annotated[str | None, typer.Option(help="only this planner")] = None,
     part_id: Annotated[str | None, typer.Option(help="only this part id")] = None,
     limit: Annotated[int, typer.Option(help="at most this many (1-500)")] = 50,
