@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -20,8 +21,11 @@ import yaml
 from typer.testing import CliRunner
 
 import cell.jobs.runner as runner
+from cell.cli.entry import EXIT_INTERRUPTED
+from cell.cli.jobs import EXIT_NOT_COMPLETED
 from cell.cli.main import app
 from cell.cli.scan import _arm_fault_hint
+from cell.cli.signals import TERMINATING
 from cell.config import load_config
 from cell.evaluation.presets import write_heldout_shapes
 from cell.jobs.replay import replay_config
@@ -224,6 +228,17 @@ def test_a_hardware_arm_stopped_by_its_fault_is_to_be_recovered_with_its_cell_fi
     request = ScanRequest(config=load_config(cell_file), config_path=str(cell_file), object="none")
     assert _arm_fault_hint(request) == ("the arm stays faulted until recovered: clear the cause, then cell "
                                         f"arm recover --config {cell_file}")
+
+
+def test_scan_help_gives_every_exit_code_the_scan_has():
+    """``cell scan --help`` names the code of each ending: the codes of the command line's constants, and
+    128 + each signal that stops a scan as Ctrl-C does."""
+    text = " ".join(CliRunner().invoke(app, ["scan", "--help"], env={"COLUMNS": "300"}).stdout.split())
+    codes = text.split("Exit code ", 1)[1].split(";", 1)[0]
+    assert {int(n) for n in re.findall(r"\b\d+\b", codes)} == {
+        0, 1, EXIT_NOT_COMPLETED, EXIT_INTERRUPTED, *(128 + sig for sig in TERMINATING)}
+    for sig in TERMINATING:
+        assert f"{128 + sig} after {signal.Signals(sig).name}" in codes
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
