@@ -13,10 +13,28 @@ from cell.evaluation.report import REPORT_MD
 from cell.evaluation.results import Row, read_csv
 
 
+def preset_parser(description: str, command: str, note: str = "") -> argparse.ArgumentParser:
+    """A benchmark's parser whose help ends with the options it passes on to ``cell eval <command>``, read
+    from that command (so that the help shows what the benchmark accepts), ``note`` after their heading."""
+    import typer.core
+    import typer.main
+
+    from cell.cli.eval import eval_app
+
+    group = typer.main.get_command(eval_app)
+    assert isinstance(group, typer.core.TyperGroup)
+    lines = [f"other options go to `cell eval {command}` as they are{note}:"]
+    for param in group.commands[command].params:
+        if isinstance(param, typer.core.TyperOption) and param.name != "out":
+            lines.append(f"  {', '.join([*param.opts, *param.secondary_opts])}: {param.help}")
+    return argparse.ArgumentParser(description=description, epilog="\n".join(lines),
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
 def run_preset(preset: str, default_out: Path, description: str) -> tuple[Path, list[Row]]:
     """``cell eval <preset> --out OUT`` with the script's other options passed on; exits with its exit
     code when it fails. Returns report.md's path and results.csv's rows."""
-    parser = argparse.ArgumentParser(description=description)
+    parser = preset_parser(description, preset)
     parser.add_argument("--out", type=Path, default=default_out, help="the evaluation's output folder")
     args, rest = parser.parse_known_args()
     cell = Path(sys.executable).with_name("cell")

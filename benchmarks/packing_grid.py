@@ -39,7 +39,6 @@ eval options]`` or ``... --rescore DIR``
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -50,6 +49,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from eval_preset import preset_parser
 
 from cell.config.load import load_config
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR
@@ -245,7 +248,7 @@ def _listed_jobs(out: Path, rows: list[Row]) -> list[Path]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = preset_parser(__doc__.splitlines()[0], "packing", " (`cell eval grid` for --suite heldout)")
     parser.add_argument("--suite", choices=("paper", "unseen", "heldout"), default="paper")
     parser.add_argument("--out", type=Path, default=None, help="the evaluation's output folder")
     parser.add_argument("--rescore", type=Path, default=None,

@@ -60,3 +60,16 @@ def test_bad_input_fails_in_one_line_before_any_scan(tmp_path, args, reason):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and reason in lines[0], done.stderr
     assert not (out / SCANS_DIR).exists()
+
+
+@pytest.mark.parametrize(("script", "command"), [("vs_table.py", "vs-table"), ("packing_grid.py", "packing")])
+def test_a_benchmark_of_a_preset_lists_the_options_it_passes_to_cell_eval(script, command):
+    """README passes ``--planners``, ``--placements``, ``--seeds`` and ``--config`` to these benchmarks,
+    which hand them to ``cell eval``: their --help lists every option of that command but ``--out``."""
+    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / script), "--help"], capture_output=True,
+                          text=True, timeout=120, check=True)
+    passed = done.stdout.split(f"other options go to `cell eval {command}`", 1)[1]
+    for option in ("--config", "--planners", "--objects", "--placements", "--seeds", "--jobs", "--executor",
+                   "--max-time", "--reprocess, --online"):
+        assert f"\n  {option}: " in passed
+    assert "--out:" not in passed
