@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -176,6 +177,40 @@ def test_the_board_method_needs_the_cells_board(tmp_path: Path) -> None:
     run = CliRunner().invoke(app, ["calibrate", "mount", "--config", str(UR5E), "--out",
                                    str(tmp_path / "m.json"), "--target", "charuco"])
     assert run.exit_code == 1 and "no calibration.board" in run.output
+
+
+def test_the_printable_board_is_the_cells_board_at_its_size(tmp_path: Path) -> None:
+    """``cell calibrate board`` writes the cell file's ``calibration.board`` as a PNG whose resolution
+    prints a square ``square_m`` wide, and a detector finds every inner corner of it."""
+    from PIL import Image
+
+    cell_file = CONFIG_DIR / "franka-realsense.yaml"
+    spec = load_config(cell_file).calibration.board
+    assert spec is not None
+    out = tmp_path / "board.png"
+    run = CliRunner().invoke(app, ["calibrate", "board", "--config", str(cell_file), "--out", str(out),
+                                   "--dpi", "200", "--margin", "0.005"])
+    assert run.exit_code == 0, run.output
+    assert f"wrote {out}: 7 x 5 squares of 30 mm, markers of 22 mm (DICT_5X5_100)" in run.output
+    with Image.open(out) as png:
+        image = np.asarray(png.convert("L"))
+        dpi = png.info["dpi"][0]
+    px_per_m = dpi / 0.0254
+    margin_px = round(0.005 * px_per_m)
+    printed_m = np.array(image.shape) / px_per_m  # board and margins, to the pixel
+    assert np.allclose(printed_m, (5 * 0.03 + 0.01, 7 * 0.03 + 0.01), atol=1.5 / px_per_m)
+    assert abs(dpi - 200.0) < 2.0 and (image[:margin_px] == 255).all()
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(spec.opencv()).detectBoard(image)
+    assert ids is not None and sorted(ids.ravel()) == list(range(6 * 4))
+    # the corners lie a square apart in print: square_m at the PNG's resolution
+    by_id = dict(zip(ids.ravel(), corners.reshape(-1, 2), strict=True))
+    assert np.linalg.norm(by_id[1] - by_id[0]) / px_per_m == pytest.approx(0.03, abs=1e-4)
+
+
+def test_a_board_needs_the_cell_files_board(tmp_path: Path) -> None:
+    run = CliRunner().invoke(app, ["calibrate", "board", "--config", str(UR5E), "--out",
+                                   str(tmp_path / "b.png")])
+    assert run.exit_code == 1 and "no calibration.board" in run.output and not (tmp_path / "b.png").exists()
 
 
 def test_the_board_recovers_a_perturbed_mount_and_views_without_it_are_skipped(tmp_path: Path) -> None:

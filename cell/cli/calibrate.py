@@ -27,7 +27,8 @@ from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.service.startup import DEFAULT_DATA_DIR
 from drivers.depth.zone_correction import write_zone_correction
-from drivers.errors import CellError
+from drivers.errors import CellError, ConfigError
+from drivers.sim.board import printable_board
 
 calibrate_app = command_group(help="Calibrate the cell with the cell: the sensor mount, the table, the ToF "
                                    "zones.", no_args_is_help=True)
@@ -99,6 +100,40 @@ def mount(
         except CellError as exc:
             raise fail(exc) from None
         _print(f"wrote the mount into {config}")
+
+
+@calibrate_app.command()
+def board(
+    config: ConfigOption,
+    out: Annotated[Path, typer.Option(help="the image to write (PNG)")],
+    dpi: Annotated[float, typer.Option(min=50.0, help="about this many pixels per inch")] = 300.0,
+    margin: Annotated[float, typer.Option(min=0.0, help="white margin around the board [m]")] = 0.01,
+) -> None:
+    """Write the cell's ChArUco board (``calibration.board``) as an image to print.
+
+    Printed at 100 % scale (not fitted to the page), a square is ``square_m`` wide: the PNG holds the
+    resolution that makes it so. Measure a square and a marker on the print and write them into the cell
+    file (``square_m``, ``marker_m``), as a printer scales a little."""
+    from PIL import Image
+
+    try:
+        cfg = load_config(config)
+        if cfg.calibration.board is None:
+            raise ConfigError("the cell file has no calibration.board (squares, square_m, marker_m, "
+                              "dictionary)", file=str(config))
+        spec = cfg.calibration.board
+        printable = printable_board(spec, dpi, margin)
+    except CellError as exc:
+        raise fail(exc) from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(printable.image).save(out, format="PNG", dpi=(printable.dpi, printable.dpi))
+    width, height = (1000.0 * v for v in printable.size_m)
+    _print(f"wrote {out}: {spec.squares[0]} x {spec.squares[1]} squares of {1000.0 * spec.square_m:g} mm, "
+           f"markers of {1000.0 * spec.marker_m:g} mm ({spec.dictionary}); {printable.image.shape[1]} x "
+           f"{printable.image.shape[0]} px at {printable.dpi:.2f} dpi, {width:.0f} x {height:.0f} mm with "
+           "the margin")
+    _print("print it at 100 % (no fit to page), lay it flat face up on the table at the station, measure a "
+           "square and a marker, and write them into calibration.board (square_m, marker_m)")
 
 
 def _heights(text: str) -> tuple[float, ...]:

@@ -28,6 +28,7 @@ INSTALL_HINT = ("the ChArUco board needs OpenCV: pip install 'cell[calibration]'
                 "(opencv-contrib-python-headless 4.x)")
 TEXTURE_PX_PER_SQUARE = 120
 """Resolution of the simulated board's printed image [px per square]."""
+INCH_M = 0.0254
 INTENSITY_TABLE = 110
 INTENSITY_OBJECT = 170
 
@@ -102,11 +103,39 @@ class TableTexture:
         return out
 
 
+def board_image(board: BoardConfig, px_per_square: int, margin_px: int = 0) -> NDArray[np.uint8]:
+    """The board's image, ``px_per_square`` pixels to a chessboard square, in a white margin of
+    ``margin_px`` pixels (OpenCV's ``CharucoBoard.generateImage``; markers with a one-bit border)."""
+    px = (board.squares[0] * px_per_square + 2 * margin_px, board.squares[1] * px_per_square + 2 * margin_px)
+    return np.asarray(board.opencv().generateImage(px, marginSize=margin_px, borderBits=1), dtype=np.uint8)
+
+
 def board_texture(board: BoardConfig, T_base_board: Array) -> TableTexture:
     """The board's printed image (``TEXTURE_PX_PER_SQUARE``) at ``T_base_board``."""
-    px = (board.squares[0] * TEXTURE_PX_PER_SQUARE, board.squares[1] * TEXTURE_PX_PER_SQUARE)
-    image = np.asarray(board.opencv().generateImage(px, marginSize=0, borderBits=1), dtype=np.uint8)
-    return TableTexture(image=image, T_base_board=T_base_board, size_m=board.size_m)
+    return TableTexture(image=board_image(board, TEXTURE_PX_PER_SQUARE), T_base_board=T_base_board,
+                        size_m=board.size_m)
+
+
+@dataclass(frozen=True)
+class PrintableBoard:
+    """A board's image to print (:func:`printable_board`): ``dpi`` [px per inch] at which it prints at
+    the board's size, ``size_m`` (x, y) the printed image with its margin [m]."""
+
+    image: NDArray[np.uint8]
+    dpi: float
+    size_m: tuple[float, float]
+
+
+def printable_board(board: BoardConfig, dpi: float = 300.0, margin_m: float = 0.01) -> PrintableBoard:
+    """The image of ``board`` to print at 100 % scale, about ``dpi`` pixels per inch with a white margin of
+    ``margin_m`` [m]: a whole number of pixels to a square, and the exact resolution at which a square
+    prints ``square_m`` wide (a PNG stores it; a printer told to fit the page scales it)."""
+    px_per_square = max(1, round(board.square_m * dpi / INCH_M))
+    px_per_m = px_per_square / board.square_m
+    margin_px = round(margin_m * px_per_m)
+    image = board_image(board, px_per_square, margin_px)
+    return PrintableBoard(image=image, dpi=px_per_m * INCH_M,
+                          size_m=(image.shape[1] / px_per_m, image.shape[0] / px_per_m))
 
 
 def board_on_table(board: BoardConfig, station_xy: tuple[float, float], table_z: float,
