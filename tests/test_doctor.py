@@ -195,6 +195,15 @@ def test_a_franka_cell_without_franky_fails_its_fci_check_with_the_extra_to_inst
     assert "does not load" in detail and "pip install 'cell[franka]'" in detail
 
 
+def test_without_opencv_a_cell_with_a_board_is_warned_with_the_extra_to_install(monkeypatch):
+    """The ChArUco board's calibration needs OpenCV, which a venv with the hardware extras alone lacks."""
+    assert machine.board_support().status is Status.OK
+    monkeypatch.setitem(sys.modules, "cv2", None)  # None in sys.modules: the import raises
+    found = machine.board_support()
+    assert found.status is Status.WARN and found.fix == "pip install 'cell[calibration]'"
+    assert "cell calibrate mount --target charuco" in found.detail
+
+
 SIM_CELL = CONFIG_DIR / "sim-ur5e-tof.yaml"
 
 

@@ -17,8 +17,9 @@ from cell.doctor.findings import Finding
 from cell.service.store import sqlite_url
 from cell.service.store.engine import hide_password
 from cell.service.store.repository import inspect_store
-from drivers.errors import StoreError
+from drivers.errors import DriverError, StoreError
 from drivers.hosts import is_loopback, listen_problem
+from drivers.sim.board import import_cv2
 
 PYTHON = (3, 11)
 CORE_PACKAGES = ("numpy", "open3d-cpu", "ruckig", "python-fcl", "fastapi", "uvicorn", "sqlalchemy", "asyncua")
@@ -69,6 +70,18 @@ def packages(extras: dict[str, str]) -> list[Finding]:
             found.append(Finding.fail(f"package {name}", "not installed, and the cell file needs it",
                                       f"pip install 'cell[{extra}]'"))
     return found
+
+
+def board_support() -> Finding:
+    """Whether OpenCV loads with what the ChArUco board needs (aruco, ``calibrateHandEye``): a cell file
+    with a ``calibration.board`` is calibrated with it. A warning only: the cell scans without it."""
+    try:
+        cv2 = import_cv2()
+    except DriverError:
+        return Finding.warn("package opencv", "not installed, or without aruco and calibrateHandEye: cell "
+                            "calibrate mount --target charuco and cell calibrate board need it for the cell "
+                            "file's calibration.board", "pip install 'cell[calibration]'")
+    return Finding.ok("package opencv", str(cv2.__version__))
 
 
 def kernels() -> Finding:

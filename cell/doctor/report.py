@@ -54,6 +54,8 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
         found.append(Finding.fail("cell file", str(exc), f"fix it, then: cell config check {config_file}"))
         return found
     found += machine.packages(_extras(cfg, db_url))
+    if cfg.calibration.board is not None:
+        found.append(machine.board_support())
     found.append(_cell_file(config_file, cfg))
     enforce_rt = isinstance(cfg.arm, FrankaArmConfig) and cfg.arm.realtime == "enforce"
     found += [machine.clock_sync(), machine.cpu_governor(), machine.realtime_limits(required=enforce_rt),
