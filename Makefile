@@ -3,6 +3,8 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# the project runs on Python 3.11 (pyproject.toml): python3.11 where there is one, else python3
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
 
 .PHONY: demo test lint bench setup clean serve dist
 
@@ -20,7 +22,9 @@ $(STAMP): pyproject.toml setup.py cell/perception/_kernels.pyx cell/planning/vs/
 		cell/planning/lrnbv/_raygains.pyx \
 		deploy/system-deps.sh
 	bash deploy/system-deps.sh
-	test -x $(PY) || python3 -m venv $(VENV)
+	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' || \
+		{ echo "cell needs Python 3.11 and $(PYTHON) is $$($(PYTHON) -V): make PYTHON=/path/to/python3.11"; exit 1; }
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
