@@ -19,8 +19,10 @@ from __future__ import annotations
 import base64
 import io
 import json
+import os
 import re
 import shutil
+import signal
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -46,6 +48,7 @@ LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-ru
                "--disable-background-networking", "--disable-component-update", "--disable-sync",
                "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 WAIT_MS = 90_000  # a bound on waiting for a job, not a timed check
+ENDED = ("completed", "no_object", "failed", "stopped", "cancelled", "interrupted")
 BACKGROUND = (0xF4, 0xF6, 0xF8)  # the 3D view's background (scene.js COLORS.background)
 
 Page = Any  # playwright.sync_api.Page
@@ -139,6 +142,25 @@ def cloud_pixels(page: Page) -> int:
     drawn = np.abs(rgb - np.array(BACKGROUND)).max(axis=2) > 40
     grey = (rgb.max(axis=2) - rgb.min(axis=2)) < 30
     return int(np.count_nonzero(drawn & ~grey))
+
+
+def text_js(element_id: str) -> str:
+    """The JavaScript expression of an element's text, for :func:`wait_for`."""
+    return f"document.getElementById('{element_id}').textContent"
+
+
+def start_watching(served: ServedCell, open_page: Callable[..., Page]) -> tuple[str, Page]:
+    """A vs-local scan queued on ``served`` and an operator's page on it, once it shows live progress."""
+    with served.client("operator") as client:
+        response = client.post("/api/v1/jobs", json={"object": "bunny", "planner": "vs-local",
+                                                     "max_time_s": 120.0})
+    assert response.status_code == 201, response.text
+    job_id = response.json()["id"]
+    page = open_page("operator", other=served)
+    page.goto(f"{served.url}/#/jobs/{job_id}")
+    wait_for(page, "Number(document.querySelector('.charts')?.dataset.count || 0) >= 1")
+    wait_for(page, "document.getElementById('job-link').textContent === 'live'")
+    return job_id, page
 
 
 def shot(page: Page, name: str, full_page: bool = False) -> None:
@@ -426,3 +448,63 @@ def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callabl
         assert "recovered" in page.text_content("#stop-outcome")
         wait_for(page, "document.getElementById('st-arm').textContent === 'idle'")
         page.wait_for_selector("#recover", state="hidden")
+
+
+# ---------------------------------------------------------------------------------------------- a cell away
+
+
+def test_a_job_the_restarted_service_ended_is_shown_ended_and_nothing_is_polled_any_more(
+        open_page: Callable[..., Page], tmp_path: Path) -> None:
+    """The service dies under a watched job and comes back: the job is ``interrupted`` (or finished by
+    its worker), and the restarted service's event ids begin at 1 again, so the stream resumed with
+    Last-Event-ID brings nothing. The page reads the job's status from the REST API, shows it with its
+    result and stops polling; a STOP that failed while the service was away does not stay as if current."""
+    with ServedCell(FRANKA, tmp_path / "data", key_prefix="restart") as served:
+        job_id, page = start_watching(served, open_page)
+        served.kill()
+        wait_for(page, "document.getElementById('job-link').textContent.includes('reconnecting')")
+        wait_for(page, "document.getElementById('st-link').textContent.startsWith('status not updated for')")
+        page.keyboard.press("Escape")
+        wait_for(page, "document.getElementById('stop-outcome').textContent.includes('failed')")
+        served.start()
+        job = served.wait_job(job_id, ENDED)
+        page.wait_for_selector("#result")
+        assert page.text_content("#job-status") == job["status"]
+        assert page.text_content("#job-link") == "" and page.locator("#job-stop").count() == 0
+        wait_for(page, "document.getElementById('stop-outcome').textContent.includes('answers again')")
+        assert "got no answer" in page.text_content("#stop-outcome")
+        shot(page, "job-after-restart")
+        polled: list[str] = []
+        page.on("request", lambda r: polled.append(r.url) if re.search(r"/(events|cloud)\b", r.url) else None)
+        page.wait_for_timeout(5000)  # the old page asked for /events every 0.5 s and the cloud every 1.5 s
+        assert polled == []
+
+
+def test_a_hung_service_shows_its_age_and_stop_says_it_got_no_answer_and_stays_pressable(
+        open_page: Callable[..., Page], tmp_path: Path) -> None:
+    """The service stopped (SIGSTOP) while a job runs: connections are accepted and never answered. The
+    status bar says how old its status is, the job is no longer called live, and STOP says it waits,
+    then that it got no answer, and can be pressed again; once the service runs again STOP works."""
+    with ServedCell(FRANKA, tmp_path / "data", key_prefix="hung") as served:
+        job_id, page = start_watching(served, open_page)
+        assert served.proc is not None
+        os.kill(served.proc.pid, signal.SIGSTOP)
+        try:
+            wait_for(page, f"{text_js('st-link')}.startsWith('status not updated for')")
+            assert page.evaluate("() => document.getElementById('statusbar').classList.contains('stale')")
+            wait_for(page, f"{text_js('job-link')}.startsWith('no news from the cell')")
+            page.click("#stop")
+            wait_for(page, f"{text_js('stop-outcome')}.includes('waiting for the cell')")
+            assert page.is_enabled("#stop") and page.get_attribute("#stop", "aria-busy") == "true"
+            wait_for(page, "document.getElementById('stop-outcome').textContent.includes('failed')")
+            assert "did not answer within 10 s" in page.text_content("#stop-outcome")
+            assert "press STOP again" in page.text_content("#stop-outcome")
+            assert page.is_enabled("#stop") and page.get_attribute("#stop", "aria-busy") is None
+            shot(page, "service-hung")
+        finally:
+            os.kill(served.proc.pid, signal.SIGCONT)
+        wait_for(page, "document.getElementById('st-link').textContent === ''")
+        assert not page.evaluate("() => document.getElementById('statusbar').classList.contains('stale')")
+        page.click("#stop")
+        wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP: ')")
+        assert served.wait_job(job_id, ENDED)["status"] == "stopped"

@@ -3,6 +3,11 @@
 // never put in a URL, a log line or the page's markup.
 
 const KEY_ITEM = "cell.key";
+/** How long a call waits for the cell's answer, body included, by default [ms]: a hung service must not
+ *  leave a view waiting for ever (files and uploads give their own, longer, bound). */
+export const TIMEOUT_MS = 15_000;
+/** The bound for a job's files (a cloud.ply of 100 MB over a slow link) and uploads [ms]. */
+export const FILE_TIMEOUT_MS = 300_000;
 
 /** An answer of the API that is not a success: HTTP status, and FastAPI's `detail` (text or a list of
  *  {loc, msg} for validation errors). */
@@ -43,11 +48,29 @@ async function failure(response) {
   return new ApiError(response.status, detail);
 }
 
-/** The raw response of an authorized request; an ApiError for any status but 2xx. `options.json` is sent
- *  as a JSON body, `options.form` as multipart form data. A 401 also fires "cell:unauthorized". */
-export async function request(path, options = {}) {
-  const { json, form, key, headers = {}, ...rest } = options;
-  const init = { ...rest, headers: authHeaders(headers, key ?? storedKey()), cache: "no-store" };
+/** No answer of the cell within a call's time bound (`seconds`). */
+export class NoAnswer extends Error {
+  constructor(seconds) {
+    super(`no answer within ${seconds} s`);
+    this.seconds = seconds;
+  }
+}
+
+/** Run `read(signal)` (a fetch and the reading of its body) with a time bound of `timeoutMs` over both,
+ *  also aborted by `options.signal`; a NoAnswer once the bound is reached. */
+async function bounded(read, timeoutMs, signal) {
+  const timer = AbortSignal.timeout(timeoutMs);
+  try {
+    return await read(signal ? AbortSignal.any([signal, timer]) : timer);
+  } catch (error) {
+    if (timer.aborted && !signal?.aborted) throw new NoAnswer(timeoutMs / 1000);
+    throw error;
+  }
+}
+
+async function fetchChecked(path, options, signal) {
+  const { json, form, key, headers = {}, timeoutMs: _, ...rest } = options;
+  const init = { ...rest, signal, headers: authHeaders(headers, key ?? storedKey()), cache: "no-store" };
   if (json !== undefined) {
     init.body = JSON.stringify(json);
     init.headers["Content-Type"] = "application/json";
@@ -59,15 +82,23 @@ export async function request(path, options = {}) {
   return response;
 }
 
+/** The body of an authorized request as `body(response)` reads it; an ApiError for any status but 2xx,
+ *  a NoAnswer when the answer, its body included, takes longer than `options.timeoutMs` (TIMEOUT_MS).
+ *  `options.json` is sent as a JSON body, `options.form` as multipart form data, `options.signal` aborts
+ *  it. A 401 also fires "cell:unauthorized". */
+export async function request(path, options = {}, body = (response) => response.text()) {
+  return bounded(async (signal) => body(await fetchChecked(path, options, signal)),
+    options.timeoutMs ?? TIMEOUT_MS, options.signal);
+}
+
 /** The JSON answer of an authorized request (null for 204). */
 export async function api(path, options = {}) {
-  const response = await request(path, options);
-  return response.status === 204 ? null : response.json();
+  return request(path, options, (response) => (response.status === 204 ? null : response.json()));
 }
 
 /** A file of the API as a Blob (images and downloads: <img src> and <a href> cannot send the key). */
-export async function apiBlob(path) {
-  return (await request(path)).blob();
+export async function apiBlob(path, timeoutMs = FILE_TIMEOUT_MS) {
+  return request(path, { timeoutMs }, (response) => response.blob());
 }
 
 /** Save a file of the API under `name`, fetched with the key and handed to the browser as a blob URL. */
@@ -88,5 +119,6 @@ export function describe(error) {
     if (Array.isArray(error.detail)) return error.detail.map((d) => d.msg).join("; ");
     return `${error.message} (HTTP ${error.status})`;
   }
+  if (error instanceof NoAnswer) return `the cell did not answer within ${error.seconds} s`;
   return `the cell did not answer (${error.message})`;
 }

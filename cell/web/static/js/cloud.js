@@ -29,6 +29,6 @@ export function decodeCloud(buffer) {
 
 /** The job's cloud now (the final one once it ended), at most `maxPoints` points. */
 export async function fetchCloud(jobId, maxPoints = 200000) {
-  const response = await request(`/api/v1/jobs/${encodeURIComponent(jobId)}/cloud?max_points=${maxPoints}`);
-  return decodeCloud(await response.arrayBuffer());
+  return decodeCloud(await request(`/api/v1/jobs/${encodeURIComponent(jobId)}/cloud?max_points=${maxPoints}`, {},
+    (response) => response.arrayBuffer()));
 }

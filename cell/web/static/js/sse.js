@@ -1,7 +1,10 @@
 // A job's Server-Sent Events, read with fetch() and a stream reader: EventSource cannot send the
-// Authorization header. When the stream breaks before the job's final `result` event, it reconnects by
-// itself with Last-Event-ID, so the service sends exactly the events after the last one seen: a brief
-// disconnect loses no progress.
+// Authorization header. When the stream breaks or ends before the job's final `result` event, the job's
+// status is read from the REST API: a job that ended meanwhile (the service restarted under it: it is
+// `interrupted`, and the restarted service's event ids begin at 1 again, so Last-Event-ID asks for
+// nothing) is handed to the caller and following stops; otherwise it reconnects by itself with
+// Last-Event-ID, so the service sends exactly the events after the last one seen: a brief disconnect
+// loses no progress. Reconnecting backs off while connections bring no event.
 
 import { authHeaders } from "./api.js";
 
@@ -39,9 +42,12 @@ export class EventParser {
 }
 
 /** Follow the events of job `jobId`: `onEvent({id, event, data})` for each (data parsed from JSON) in
- *  order, each once; `onLink(state)` with "open", "reconnecting" or "closed". Returns a function that
- *  stops following. Ends by itself after the `result` event, or on 401/404. */
-export function followJob(jobId, { onEvent, onLink = () => {} }) {
+ *  order, each once; `onLink(state)` with "open", "reconnecting" or "closed". `ended()` is asked each time
+ *  the stream broke or ended before the `result` event: it resolves true when the job has ended by the
+ *  REST API's word (the caller shows it from there) and following stops; false or an error, and the
+ *  stream is opened again. Returns a function that stops following. Ends by itself after the `result`
+ *  event, on 401/404, or when `ended()` says so. */
+export function followJob(jobId, { onEvent, onLink = () => {}, ended = async () => false }) {
   let lastId = 0;
   let stopped = false;
   let controller = null;
@@ -61,7 +67,6 @@ export function followJob(jobId, { onEvent, onLink = () => {} }) {
     }
     if (!response.ok) throw new Error(`HTTP ${response.status}`);
     onLink("open");
-    attempt = 0;
     const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
     const parser = new EventParser();
     try {
@@ -73,6 +78,7 @@ export function followJob(jobId, { onEvent, onLink = () => {} }) {
         for (const raw of parser.feed(value)) {
           if (!(raw.id > lastId)) continue;
           lastId = raw.id;
+          attempt = 0; // this connection brought news: a break after it is retried after the shortest wait
           const event = { id: raw.id, event: raw.event, data: JSON.parse(raw.data) };
           onEvent(event);
           if (event.event === "result") return true;
@@ -94,6 +100,8 @@ export function followJob(jobId, { onEvent, onLink = () => {} }) {
       }
       if (finished || stopped) break;
       onLink("reconnecting");
+      if (await ended().catch(() => false)) break;
+      if (stopped) break;
       await new Promise((resolve) => setTimeout(resolve, RETRY_MS[Math.min(attempt, RETRY_MS.length - 1)]));
       attempt += 1;
     }

@@ -2,7 +2,7 @@
 // growing cloud, the sensor's path and frustum, the ROI box) and a button to stop it; once it ended, its
 // result, plots, log and files, and the final cloud with, on packing cells, the packing box.
 
-import { api, describe, request } from "../api.js";
+import { api, describe, FILE_TIMEOUT_MS, request } from "../api.js";
 import { fmt, h, replace, when } from "../dom.js";
 import { fetchCloud } from "../cloud.js";
 import { followJob } from "../sse.js";
@@ -17,8 +17,8 @@ const LINK_TEXT = { open: "live", reconnecting: "connection lost: reconnectingâ€
 
 /** The sensor's path from trajectory.csv (t,x,y,z,qx,qy,qz,qw), at most MAX_PATH_POINTS rows, and the
  *  last pose; for an ended job whose progress this service did not see. */
-async function trajectory(jobId) {
-  const text = await (await request(`/api/v1/jobs/${jobId}/files/trajectory.csv`)).text();
+async function trajectory(base) {
+  const text = await request(`${base}/files/trajectory.csv`, { timeoutMs: FILE_TIMEOUT_MS });
   const rows = text.trim().split("\n").slice(1).map((line) => line.split(",").map(Number));
   const step = Math.max(1, Math.ceil(rows.length / MAX_PATH_POINTS));
   const path = rows.filter((_, i) => i % step === 0 || i === rows.length - 1).map((r) => r.slice(1, 4));
@@ -45,8 +45,14 @@ function header(job) {
 /** Show job `jobId` in `main`; returns a function that leaves the view. */
 export function showJob(main, context, jobId) {
   let alive = true;
+  let ended = false; // the job ended (its result shown or being shown): nothing is polled any more
   let unfollow = () => {};
   let cloudTimer = null;
+  let cloudLoading = false;
+  let shownPoints = 0;
+  let linkState = "closed";
+  let status = null;
+  let staleS = null; // seconds without news of the cell (the status bar's poll), null while it answers
   const charts = progressCharts();
   const view = viewSection();
   const path = [];
@@ -56,42 +62,80 @@ export function showJob(main, context, jobId) {
     h("div", { class: "live" }, charts.element, view.element), resultSlot);
   view.start();
   charts.element.hidden = true;
+  const base = `/api/v1/jobs/${jobId}`;
 
+  /** The job's cloud into the 3D view; a running job's answer without points (between its snapshot and
+   *  its final cloud) leaves the cloud shown as it is. */
   async function refreshCloud() {
+    if (cloudLoading) return null; // one at a time: a slow cell is not asked again and again
+    cloudLoading = true;
     try {
       const cloud = await fetchCloud(jobId);
-      if (alive && view.view) view.view.setCloud(cloud.positions);
+      if (alive && view.view && (cloud.count > 0 || cloud.final || shownPoints === 0)) {
+        view.view.setCloud(cloud.positions);
+        shownPoints = cloud.count;
+      }
       return cloud;
     } catch {
       return null;
+    } finally {
+      cloudLoading = false;
     }
+  }
+
+  function startCloud() {
+    if (cloudTimer === null && !ended) cloudTimer = setInterval(refreshCloud, CLOUD_REFRESH_MS);
+  }
+
+  function stopCloud() {
+    clearInterval(cloudTimer);
+    cloudTimer = null;
+  }
+
+  function showLink() {
+    const link = document.getElementById("job-link");
+    if (!link) return;
+    if (ended || ENDED.includes(status)) link.textContent = "";
+    else if (staleS !== null && linkState !== "closed") link.textContent = `no news from the cell for ${staleS} s`;
+    else link.textContent = LINK_TEXT[linkState];
   }
 
   function stopButton() {
     const button = h("button", { type: "button", class: "warn", id: "job-stop" }, "Stop this job");
     button.addEventListener("click", async () => {
       button.disabled = true;
+      const outcome = document.getElementById("job-stop-outcome");
+      outcome.textContent = "Stopping the job: waiting for the cell's answerâ€¦";
+      outcome.dataset.settled = "false";
       try {
-        const answer = await api(`/api/v1/jobs/${jobId}/stop`, { method: "POST", json: { reason: "stopped on the operator's page" } });
-        document.getElementById("job-stop-outcome").textContent = answer.message;
+        const answer = await api(`${base}/stop`, { method: "POST", json: { reason: "stopped on the operator's page" } });
+        outcome.textContent = answer.message;
+        outcome.dataset.settled = "true";
       } catch (error) {
-        document.getElementById("job-stop-outcome").textContent = `Stop failed: ${describe(error)}`;
+        outcome.textContent = `Stop failed: ${describe(error)}`;
+      } finally {
         button.disabled = false;
       }
     });
     return button;
   }
 
-  function setStatus(status, termination) {
+  function setStatus(now, termination) {
     const badge = document.getElementById("job-status");
     if (!badge) return;
+    status = now;
     badge.textContent = status;
     badge.className = `status status-${status}`;
     document.getElementById("job-termination").textContent = termination ?? "";
     const actions = head.querySelector(".job-actions");
     const running = status === "running" || status === "queued";
     if (running && !actions.firstChild) actions.append(stopButton());
-    if (!running) actions.replaceChildren();
+    if (!running) {
+      actions.replaceChildren();
+      // a stop that failed or got no answer (the cell was away) says nothing of a job that has ended since
+      const outcome = document.getElementById("job-stop-outcome");
+      if (outcome.dataset.settled === "false") outcome.textContent = "";
+    }
   }
 
   function onProgress(progress) {
@@ -104,16 +148,22 @@ export function showJob(main, context, jobId) {
     view.view.setRoi(progress.roi_box_m);
   }
 
-  async function onEnded() {
-    clearInterval(cloudTimer);
+  /** The ended job (`known`: its record as the API just gave it): its status, final cloud, path and
+   *  result, once; every timer stops. */
+  async function onEnded(known = null) {
+    if (ended) return;
+    ended = true;
+    stopCloud();
+    unfollow();
+    showLink();
     window.dispatchEvent(new Event("cell:changed"));
-    const job = await api(`/api/v1/jobs/${jobId}`);
+    const job = known ?? await api(base);
     if (!alive) return;
     setStatus(job.status, job.termination);
     const result = job.result ?? {};
     await refreshCloud();
     if (view.view && path.length === 0) {
-      const { path: recorded, pose } = await trajectory(jobId).catch(() => ({ path: [], pose: null }));
+      const { path: recorded, pose } = await trajectory(base).catch(() => ({ path: [], pose: null }));
       view.view.setPath(recorded);
       if (pose) view.view.setSensor(...pose);
     }
@@ -125,38 +175,56 @@ export function showJob(main, context, jobId) {
     if (alive) replace(resultSlot, sections);
     main.querySelector(".live").dataset.ended = "true";
   }
+  const showEnded = (known) => onEnded(known).catch((error) => replace(resultSlot, h("p", { class: "error" }, describe(error))));
 
-  api(`/api/v1/jobs/${jobId}`).then((job) => {
+  /** Whether the job has ended by the REST API's word (asked when its event stream broke or ended
+   *  before its result); if so, it is shown. */
+  async function endedMeanwhile() {
+    const job = await api(base);
+    if (!ENDED.includes(job.status)) return false;
+    if (alive) showEnded(job);
+    return true;
+  }
+
+  const onStale = (event) => {
+    staleS = event.detail.seconds;
+    showLink();
+  };
+  window.addEventListener("cell:stale", onStale);
+
+  api(base).then((job) => {
     if (!alive) return;
     replace(head, header(job));
     setStatus(job.status, job.termination);
     if (job.status === "running") {
       refreshCloud();
-      cloudTimer = setInterval(refreshCloud, CLOUD_REFRESH_MS);
+      startCloud();
     }
     unfollow = followJob(jobId, {
       onEvent(event) {
         if (!alive) return;
         if (event.event === "state") {
           setStatus(event.data.status, event.data.termination);
-          if (event.data.status === "running" && cloudTimer === null) cloudTimer = setInterval(refreshCloud, CLOUD_REFRESH_MS);
+          if (event.data.status === "running") startCloud();
         } else if (event.event === "progress") {
           onProgress(event.data);
         } else if (event.event === "result") {
-          onEnded().catch((error) => replace(resultSlot, h("p", { class: "error" }, describe(error))));
+          showEnded();
         }
       },
       onLink(state) {
-        const link = document.getElementById("job-link");
-        if (link) link.textContent = ENDED.includes(document.getElementById("job-status")?.textContent) ? "" : LINK_TEXT[state];
+        linkState = state;
+        showLink();
       },
+      ended: endedMeanwhile,
     });
   }).catch((error) => replace(head, h("p", { class: "error", role: "alert" }, `Job ${jobId}: ${describe(error)}`)));
 
   return () => {
     alive = false;
     unfollow();
-    clearInterval(cloudTimer);
+    stopCloud();
+    window.removeEventListener("cell:stale", onStale);
     view.dispose();
   };
 }

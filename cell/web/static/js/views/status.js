@@ -7,6 +7,11 @@ import { api, describe } from "../api.js";
 import { h, replace } from "../dom.js";
 
 const POLL_MS = 1000;
+const POLL_TIMEOUT_MS = 5000; // one poll's bound: a hung service is not waited for
+const STALE_MS = 3000; // a status older than this is said to be old, with its age, every second
+/** STOP's bound [ms]: the service answers once the job's worker confirmed the stop or was killed
+ *  (service.stop_confirm_timeout_s, 2 s by default); past it the page says that it does not know. */
+const STOP_TIMEOUT_MS = 10_000;
 const STOP_REASON = "STOP on the operator's page";
 const ARM_TONE = {
   idle: "ok", moving: "busy", "protective stop": "bad", "emergency stop": "bad", fault: "bad", disconnected: "bad",
@@ -49,13 +54,15 @@ function render(status, context) {
   $("st-queue").title = queue.held ?? "";
   $("st-queue").dataset.tone = queue.held ? "bad" : "ok";
   $("st-held").textContent = queue.held ?? "";
+  $("st-held").title = queue.held ?? "";
   $("st-held").hidden = !queue.held;
   const mayRecover = context.can("recover");
   $("recover").hidden = !(mayRecover && arm.faults.length > 0);
   $("resume").hidden = !(mayRecover && queue.held && arm.faults.length === 0);
 }
 
-async function act(button, path, body, outcome) {
+/** A button's call: `button` is disabled while it runs; `name` names it in a failure. */
+async function act(button, name, path, body, outcome) {
   button.disabled = true;
   $("stop-outcome").textContent = "";
   try {
@@ -63,10 +70,71 @@ async function act(button, path, body, outcome) {
     $("stop-outcome").textContent = outcome(answer);
     window.dispatchEvent(new Event("cell:changed"));
   } catch (error) {
-    $("stop-outcome").textContent = `${button.textContent.trim()} failed: ${describe(error)}`;
+    $("stop-outcome").textContent = `${name} failed: ${describe(error)}`;
   } finally {
     button.disabled = false;
   }
+}
+
+const clock = (date) => date.toLocaleTimeString();
+
+/** The outcome of the cell's STOP for people: what the service did, and that the queue is held. */
+function stopped(answer) {
+  const held = answer.queue_held && !/\bqueue\b/.test(answer.message) ? "; the queue is held until an operator resumes it" : "";
+  return `STOP: ${answer.message}${held}.`;
+}
+
+/** The cell's STOP (the button, Esc): never disabled. While a STOP waits for its answer the button says
+ *  so and its outcome counts the seconds; a press meanwhile sends it again (the one before is given up);
+ *  no answer within STOP_TIMEOUT_MS, or a failure, is said plainly. Returns {press(), cellAnswers() (the
+ *  status poll's news after a time without answers), settle() (gives up a STOP waiting for its answer)}. */
+function stopControl() {
+  const button = $("stop");
+  let pending = null; // {controller, ticker} of the STOP waiting for its answer
+  let failedAt = null; // when the last STOP failed for want of an answer
+
+  const settle = () => {
+    if (!pending) return;
+    pending.controller.abort();
+    clearInterval(pending.ticker);
+    pending = null;
+    button.removeAttribute("aria-busy");
+  };
+
+  async function press() {
+    settle();
+    const sent = new Date();
+    const controller = new AbortController();
+    const waiting = () => {
+      const s = Math.round((Date.now() - sent) / 1000);
+      $("stop-outcome").textContent = `STOP sent at ${clock(sent)}: waiting for the cell's answer${s > 0 ? ` (${s} s)` : ""}…`;
+    };
+    const mine = { controller, ticker: setInterval(waiting, 1000) };
+    pending = mine;
+    failedAt = null;
+    button.setAttribute("aria-busy", "true");
+    waiting();
+    try {
+      const answer = await api("/api/v1/stop", { method: "POST", json: { reason: STOP_REASON }, timeoutMs: STOP_TIMEOUT_MS, signal: controller.signal });
+      if (pending !== mine) return;
+      $("stop-outcome").textContent = stopped(answer);
+      window.dispatchEvent(new Event("cell:changed"));
+    } catch (error) {
+      if (pending !== mine) return; // given up for a newer press
+      failedAt = sent;
+      $("stop-outcome").textContent = `STOP sent at ${clock(sent)} failed: ${describe(error)}. The arm may still move: press STOP again, or use the cell's emergency stop.`;
+    } finally {
+      if (pending === mine) settle();
+    }
+  }
+
+  function cellAnswers() {
+    if (failedAt === null) return;
+    $("stop-outcome").textContent = `STOP sent at ${clock(failedAt)} got no answer; the cell answers again now: see the arm's state above, and press STOP again if it must stop.`;
+    failedAt = null;
+  }
+
+  return { press, cellAnswers, settle };
 }
 
 /** Start polling the cell (at once again on a "cell:changed" event: a job ended, a button acted) and wire
@@ -75,10 +143,24 @@ export function startStatus(context) {
   const bar = $("statusbar");
   bar.hidden = false;
   $("whoami").textContent = `${context.who.name} (${context.who.role})`;
+  $("logout").title = `Log out ${context.who.name} (${context.who.role})`; // the name is hidden on phones
   let timer = null;
   let alive = true;
   let busy = false;
   let again = false;
+  let lastAnswer = Date.now(); // when the status was last updated
+  let lastError = "";
+  const stopping = stopControl();
+
+  /** Every second: how old the status is, on the bar and to the views ("cell:stale", seconds or null). */
+  function age() {
+    const ms = Date.now() - lastAnswer;
+    const seconds = ms > STALE_MS ? Math.floor(ms / 1000) : null;
+    bar.classList.toggle("stale", seconds !== null);
+    $("st-link").textContent = seconds === null ? "" : `status not updated for ${seconds} s${lastError ? `: ${lastError}` : ""}`;
+    window.dispatchEvent(new CustomEvent("cell:stale", { detail: { seconds } }));
+  }
+  const ager = setInterval(age, 1000);
 
   async function poll() {
     if (busy) {
@@ -88,25 +170,28 @@ export function startStatus(context) {
     busy = true;
     clearTimeout(timer);
     try {
-      const status = await api("/api/v1/cell");
+      const status = await api("/api/v1/cell", { timeoutMs: POLL_TIMEOUT_MS });
+      const wasAway = lastError !== "" || Date.now() - lastAnswer > STALE_MS;
+      lastAnswer = Date.now();
+      lastError = "";
       context.status = status;
       render(status, context);
-      $("st-link").textContent = "";
+      age();
+      if (wasAway) stopping.cellAnswers();
       for (const listener of context.listeners) listener(status);
     } catch (error) {
-      $("st-link").textContent = `status not updated: ${describe(error)}`;
+      lastError = describe(error);
     }
     busy = false;
     if (alive) timer = setTimeout(poll, again ? 0 : POLL_MS);
     again = false;
   }
 
-  const stop = () => act($("stop"), "/api/v1/stop", { reason: STOP_REASON }, (answer) =>
-    `STOP: ${answer.message}${answer.queue_held ? ". The queue is held until an operator resumes it." : ""}`);
-  const recover = () => act($("recover"), "/api/v1/arm/recover", undefined,
+  const stop = () => stopping.press();
+  const recover = () => act($("recover"), "Recover", "/api/v1/arm/recover", undefined,
     (answer) => `Recover: ${answer.message}`);
-  const resume = () => act($("resume"), "/api/v1/queue/resume", undefined, () => "The queue runs again.");
-  const switchMode = () => act($("line-mode"), "/api/v1/line/mode", { mode: $("line-mode").dataset.mode },
+  const resume = () => act($("resume"), "Resume", "/api/v1/queue/resume", undefined, () => "The queue runs again.");
+  const switchMode = () => act($("line-mode"), "Line mode switch", "/api/v1/line/mode", { mode: $("line-mode").dataset.mode },
     (answer) => `Line: ${answer.message}`);
   const logout = () => context.logout("");
   const onKey = (event) => {
@@ -129,8 +214,12 @@ export function startStatus(context) {
   return () => {
     alive = false;
     clearTimeout(timer);
+    clearInterval(ager);
+    stopping.settle();
+    bar.classList.remove("stale");
     listening.abort();
     $("stop-outcome").textContent = "";
+    $("st-link").textContent = "";
     bar.hidden = true;
   };
 }
