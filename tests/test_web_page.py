@@ -450,6 +450,19 @@ def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callabl
         page.wait_for_selector("#recover", state="hidden")
 
 
+def test_a_job_id_in_the_address_is_only_ever_a_job_id(open_page: Callable[..., Page]) -> None:
+    """Whatever follows #/jobs/ is asked for as a job, never as another path of the API (``..%2Fcell``
+    had shown the cell's status as a job) nor a resource a URL's dot segments lead to."""
+    page = open_page("operator")
+    for fragment in ("..%2Fcell", "..", "%3Cb%3Ex"):
+        page.goto(f"{page.url.split('#')[0]}#/jobs/{fragment}")
+        page.wait_for_selector("#main p.error")
+        assert "HTTP 404" in page.text_content("#main p.error"), fragment
+        assert page.locator("#job-status").count() == 0
+        page.goto(f"{page.url.split('#')[0]}#/")
+        page.wait_for_selector("form.scan-form")
+
+
 # ---------------------------------------------------------------------------------------------- a cell away
 
 

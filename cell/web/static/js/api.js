@@ -113,6 +113,13 @@ export async function download(path, name) {
   setTimeout(() => URL.revokeObjectURL(url), 60_000);
 }
 
+/** The API's path of job `jobId`, which may be any text of the page's address: encoded, and "." or ".."
+ *  refused (a URL resolves those to another resource of the API, never to a job). */
+export function jobPath(jobId) {
+  if (jobId === "." || jobId === "..") throw new ApiError(404, `no job ${jobId}`);
+  return `/api/v1/jobs/${encodeURIComponent(jobId)}`;
+}
+
 /** A readable sentence for an error of a call. */
 export function describe(error) {
   if (error instanceof ApiError) {

@@ -2,7 +2,7 @@
 // points sent, uint32 points in the cloud, uint32 final, float32 box min and max [m]) then uint16 x, y, z
 // per point within the box (cell/service/clouds.py).
 
-import { request } from "./api.js";
+import { jobPath, request } from "./api.js";
 
 const HEADER_BYTES = 40;
 const LEVELS = 65535;
@@ -29,6 +29,6 @@ export function decodeCloud(buffer) {
 
 /** The job's cloud now (the final one once it ended), at most `maxPoints` points. */
 export async function fetchCloud(jobId, maxPoints = 200000) {
-  return decodeCloud(await request(`/api/v1/jobs/${encodeURIComponent(jobId)}/cloud?max_points=${maxPoints}`, {},
+  return decodeCloud(await request(`${jobPath(jobId)}/cloud?max_points=${maxPoints}`, {},
     (response) => response.arrayBuffer()));
 }

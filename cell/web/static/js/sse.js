@@ -6,7 +6,7 @@
 // Last-Event-ID, so the service sends exactly the events after the last one seen: a brief disconnect
 // loses no progress. Reconnecting backs off while connections bring no event.
 
-import { authHeaders } from "./api.js";
+import { authHeaders, jobPath } from "./api.js";
 
 const RETRY_MS = [500, 1000, 2000, 5000];
 const SILENCE_MS = 45_000; // the service sends a keep-alive every 15 s: longer silence is a dead link
@@ -58,7 +58,7 @@ export function followJob(jobId, { onEvent, onLink = () => {}, ended = async () 
     let silence = setTimeout(() => controller.abort(), SILENCE_MS);
     const headers = authHeaders({ Accept: "text/event-stream" });
     if (lastId > 0) headers["Last-Event-ID"] = String(lastId);
-    const response = await fetch(`/api/v1/jobs/${encodeURIComponent(jobId)}/events`, {
+    const response = await fetch(`${jobPath(jobId)}/events`, {
       headers, signal: controller.signal, cache: "no-store",
     });
     if (response.status === 401 || response.status === 404) {

@@ -2,7 +2,7 @@
 // growing cloud, the sensor's path and frustum, the ROI box) and a button to stop it; once it ended, its
 // result, plots, log and files, and the final cloud with, on packing cells, the packing box.
 
-import { api, describe, FILE_TIMEOUT_MS, request } from "../api.js";
+import { api, ApiError, describe, FILE_TIMEOUT_MS, jobPath, request } from "../api.js";
 import { fmt, h, replace, when } from "../dom.js";
 import { fetchCloud } from "../cloud.js";
 import { followJob } from "../sse.js";
@@ -42,7 +42,7 @@ function header(job) {
     h("p", { class: "outcome", id: "job-stop-outcome", role: "status" }));
 }
 
-/** Show job `jobId` in `main`; returns a function that leaves the view. */
+/** Show job `jobId` (any text of the address) in `main`; returns a function that leaves the view. */
 export function showJob(main, context, jobId) {
   let alive = true;
   let ended = false; // the job ended (its result shown or being shown): nothing is polled any more
@@ -62,7 +62,12 @@ export function showJob(main, context, jobId) {
     h("div", { class: "live" }, charts.element, view.element), resultSlot);
   view.start();
   charts.element.hidden = true;
-  const base = `/api/v1/jobs/${jobId}`;
+  let base = null; // the job's API path; null for an id that names no job (refused below)
+  try {
+    base = jobPath(jobId);
+  } catch {
+    // shown where the job would be
+  }
 
   /** The job's cloud into the 3D view; a running job's answer without points (between its snapshot and
    *  its final cloud) leaves the cloud shown as it is. */
@@ -192,7 +197,7 @@ export function showJob(main, context, jobId) {
   };
   window.addEventListener("cell:stale", onStale);
 
-  api(base).then((job) => {
+  (base === null ? Promise.reject(new ApiError(404, `no job ${jobId}`)) : api(base)).then((job) => {
     if (!alive) return;
     replace(head, header(job));
     setStatus(job.status, job.termination);

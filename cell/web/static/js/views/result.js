@@ -2,7 +2,7 @@
 // safety events; its plots (servo.png, path.png), its log, and every file of its folder to download. Files
 // are fetched with the key and shown or saved through blob URLs.
 
-import { api, apiBlob, describe, download, FILE_TIMEOUT_MS, request } from "../api.js";
+import { api, apiBlob, describe, download, FILE_TIMEOUT_MS, jobPath, request } from "../api.js";
 import { bytes, fmt, h, replace } from "../dom.js";
 import { dimensions } from "./view3d.js";
 
@@ -67,7 +67,7 @@ async function plots(jobId, names) {
   const shown = PLOTS.filter(([name]) => names.has(name));
   if (!shown.length) return null;
   const figuresShown = await Promise.all(shown.map(async ([name, caption]) => {
-    const url = URL.createObjectURL(await apiBlob(`/api/v1/jobs/${jobId}/files/${name}`));
+    const url = URL.createObjectURL(await apiBlob(`${jobPath(jobId)}/files/${name}`));
     return h("figure", {}, h("img", { src: url, alt: caption, id: `img-${name.replace(".", "-")}` }), h("figcaption", {}, caption));
   }));
   return h("section", { class: "card", "aria-labelledby": "plots-title" }, h("h2", { id: "plots-title" }, "Plots"), figuresShown);
@@ -87,11 +87,11 @@ function filesTable(jobId, files) {
 /** The sections of an ended job (`job` as GET /api/v1/jobs/{id} gives it); resolves to an element. */
 export async function resultSections(job) {
   const result = job.result ?? {};
-  const files = await api(`/api/v1/jobs/${job.id}/files`);
+  const files = await api(`${jobPath(job.id)}/files`);
   const names = new Set(files.map((f) => f.name));
   const log = h("pre", { class: "log", id: "job-log", tabindex: 0, "aria-label": "The job's log" }, "Loading…");
   if (names.has("log.txt")) {
-    request(`/api/v1/jobs/${job.id}/files/log.txt`, { timeoutMs: FILE_TIMEOUT_MS }).then((text) => replace(log, text))
+    request(`${jobPath(job.id)}/files/log.txt`, { timeoutMs: FILE_TIMEOUT_MS }).then((text) => replace(log, text))
       .catch((error) => replace(log, `The log could not load: ${describe(error)}`));
   } else {
     replace(log, "No log.");
