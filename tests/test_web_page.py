@@ -521,3 +521,32 @@ def test_a_hung_service_shows_its_age_and_stop_says_it_got_no_answer_and_stays_p
         page.click("#stop")
         wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP: ')")
         assert served.wait_job(job_id, ENDED)["status"] == "stopped"
+
+
+# ---------------------------------------------------------------------------------------------- phones
+
+
+@pytest.mark.parametrize(("width", "height"), [(320, 640), (390, 844)])
+def test_stop_stays_in_view_on_a_phone_with_the_queue_held(open_page: Callable[..., Page], cell: ServedCell,
+                                                           width: int, height: int) -> None:
+    """The held queue adds Resume to the bar: STOP stays wholly on the screen and reachable, nothing
+    scrolls sideways, and the bar leaves most of the screen to the views."""
+    with cell.client("operator") as client:
+        assert client.post("/api/v1/stop", json={"reason": "phone test"}).status_code == 200
+        try:
+            page = open_page("operator", width=width, height=height)
+            page.wait_for_selector("#resume:not([hidden])")
+            page.wait_for_selector("form.scan-form")
+            box = page.locator("#stop").bounding_box()
+            assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= width, box
+            assert page.evaluate("() => document.documentElement.scrollWidth") <= width
+            hit = page.evaluate(f"() => document.elementFromPoint({box['x'] + box['width'] / 2}, "
+                                f"{box['y'] + box['height'] / 2})?.closest('#stop') !== null")
+            assert hit, "STOP is covered"
+            bar = page.locator("#statusbar").bounding_box()
+            assert bar is not None and bar["height"] <= 0.3 * height, bar
+            shot(page, f"phone-{width}-held")
+            page.click("#stop")
+            wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP: ')")
+        finally:
+            client.post("/api/v1/queue/resume")
