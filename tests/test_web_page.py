@@ -425,6 +425,30 @@ def test_the_pages_fit_a_1024x768_tablet(open_page: Callable[..., Page], cell: S
     shot(page, "jobs-1024")
 
 
+def test_the_jobs_table_follows_its_jobs_while_it_is_shown(open_page: Callable[..., Page],
+                                                            cell: ServedCell) -> None:
+    """A job queued while the table is shown appears in it and its row follows it to its end, without
+    the operator reloading; once the view is left the table is no longer read."""
+    page = open_page("operator")
+    page.goto(f"{page.url.split('#')[0]}#/jobs")
+    page.wait_for_selector("table.jobs tbody tr")
+    with cell.client("operator") as client:
+        response = client.post("/api/v1/jobs", json={"object": "bunny", "planner": "raster",
+                                                     "max_time_s": 5.0})
+    assert response.status_code == 201, response.text
+    link = f"table.jobs a[href='#/jobs/{response.json()['id']}']"
+    page.wait_for_selector(link)
+    status = cell.wait_job(response.json()["id"], ENDED)["status"]
+    wait_for(page, f"document.querySelector(\"{link}\").closest('tr').querySelector('.status').textContent"
+                   f" === '{status}'")
+    read_again: list[str] = []
+    page.on("request", lambda r: read_again.append(r.url) if "/api/v1/jobs?" in r.url else None)
+    page.click("nav a[href='#/']")
+    page.wait_for_selector("form.scan-form")
+    page.wait_for_timeout(6000)  # beyond the table's period (5 s)
+    assert read_again == []
+
+
 def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callable[..., Page],
                                                               tmp_path: Path) -> None:
     data = yaml.safe_load(FRANKA.read_text())

@@ -1,5 +1,7 @@
 // The jobs table: newest first, filtered by status, planner and part id, a page at a time (the list
-// endpoint's own query parameters, kept in the address so that a filtered page can be bookmarked).
+// endpoint's own query parameters, kept in the address so that a filtered page can be bookmarked). While
+// it is shown it is read again every REFRESH_MS (and at once when a job ended or a button acted), so
+// queued and running rows follow their jobs.
 
 import { api, describe } from "../api.js";
 import { fmt, h, replace, when } from "../dom.js";
@@ -8,6 +10,7 @@ const STATUSES = [
   "queued", "running", "completed", "no_object", "failed", "stopped", "cancelled", "interrupted",
 ];
 const PAGE = 20;
+const REFRESH_MS = 5000;
 
 function go(filters, offset) {
   const query = new URLSearchParams();
@@ -55,8 +58,9 @@ export function showJobs(main, context, params) {
 
   const body = h("tbody", {}, h("tr", {}, h("td", { colspan: 10 }, "Loading…")));
   const pager = h("div", { class: "pager" });
+  const note = h("p", { class: "error", id: "jobs-note", role: "status" });
   main.append(h("section", { class: "card", "aria-labelledby": "jobs-title" },
-    h("h2", { id: "jobs-title" }, "Jobs"), form,
+    h("h2", { id: "jobs-title" }, "Jobs"), form, note,
     h("div", { class: "table-wrap" }, h("table", { class: "jobs" },
       h("thead", {}, h("tr", {}, ["Created", "Job", "Status", "Planner", "Object", "Part id", "Captures", "Cloud coverage",
         "Dimensions", "Termination"].map((title) => h("th", { scope: "col", class: `col-${title.toLowerCase().replace(" ", "-")}` }, title)))),
@@ -70,16 +74,43 @@ export function showJobs(main, context, params) {
 
   const query = new URLSearchParams({ limit: String(PAGE), offset: String(offset) });
   for (const [name, value] of Object.entries(filters)) if (value) query.set(name, value);
-  api(`/api/v1/jobs?${query}`).then((page) => {
-    if (!alive) return;
+  let timer = null;
+  let loading = false;
+  let loaded = false;
+
+  function showPage(page) {
     replace(body, page.items.length ? page.items.map(row) : h("tr", {}, h("td", { colspan: 10 }, "No job matches.")));
     const last = Math.min(page.offset + page.items.length, page.total);
     replace(pager,
       h("button", { type: "button", disabled: offset === 0, onclick: () => go(filters, Math.max(0, offset - PAGE)) }, "Newer"),
       h("span", { "aria-live": "polite" }, page.total ? `${page.offset + 1}–${last} of ${page.total}` : "0 jobs"),
       h("button", { type: "button", disabled: last >= page.total, onclick: () => go(filters, offset + PAGE) }, "Older"));
-  }).catch((error) => {
-    if (alive) replace(body, h("tr", {}, h("td", { colspan: 10, class: "error" }, describe(error))));
-  });
-  return () => { alive = false; };
+  }
+
+  async function load() {
+    if (loading || !alive) return;
+    loading = true;
+    clearTimeout(timer);
+    try {
+      const page = await api(`/api/v1/jobs?${query}`);
+      if (!alive) return;
+      showPage(page);
+      loaded = true;
+      note.textContent = "";
+    } catch (error) {
+      if (!alive) return;
+      if (loaded) note.textContent = `The table could not be read again: ${describe(error)}`; // rows stay
+      else replace(body, h("tr", {}, h("td", { colspan: 10, class: "error" }, describe(error))));
+    } finally {
+      loading = false;
+      if (alive) timer = setTimeout(load, REFRESH_MS);
+    }
+  }
+  load();
+  window.addEventListener("cell:changed", load);
+  return () => {
+    alive = false;
+    clearTimeout(timer);
+    window.removeEventListener("cell:changed", load);
+  };
 }
