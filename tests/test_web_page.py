@@ -449,6 +449,23 @@ def test_the_jobs_table_follows_its_jobs_while_it_is_shown(open_page: Callable[.
     assert read_again == []
 
 
+def test_a_page_past_the_last_job_says_so_and_leads_back(open_page: Callable[..., Page],
+                                                         cell: ServedCell) -> None:
+    if read(cell, "/api/v1/jobs?limit=1")["total"] == 0:  # this test alone: a job of its own
+        with cell.client("operator") as client:
+            client.post("/api/v1/jobs", json={"object": "bunny", "planner": "raster", "max_time_s": 5.0})
+    total = read(cell, "/api/v1/jobs?limit=1")["total"]
+    assert 0 < total <= 20
+    page = open_page("operator")
+    page.goto(f"{page.url.split('#')[0]}#/jobs?offset=200")
+    wait_for(page, "document.querySelector('.pager span') !== null")
+    assert page.text_content(".pager span") == f"no job from 201 on ({total} in all)"
+    assert page.is_disabled(".pager button:has-text('Older')")
+    page.click(".pager button:has-text('Newer')")  # to the last page that has jobs: here the first
+    page.wait_for_url(re.compile(r"#/jobs$"))
+    wait_for(page, f"document.querySelector('.pager span')?.textContent === '1–{total} of {total}'")
+
+
 def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callable[..., Page],
                                                               tmp_path: Path) -> None:
     data = yaml.safe_load(FRANKA.read_text())

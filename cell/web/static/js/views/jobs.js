@@ -81,10 +81,16 @@ export function showJobs(main, context, params) {
   function showPage(page) {
     replace(body, page.items.length ? page.items.map(row) : h("tr", {}, h("td", { colspan: 10 }, "No job matches.")));
     const last = Math.min(page.offset + page.items.length, page.total);
+    // past the last page (an old bookmark, jobs purged since): say so, and Newer leads to the last page
+    const lastPage = Math.max(0, Math.floor((page.total - 1) / PAGE) * PAGE);
+    const newer = Math.max(0, Math.min(offset - PAGE, lastPage));
+    const span = !page.total ? "0 jobs"
+      : page.items.length ? `${page.offset + 1}–${last} of ${page.total}` : `no job from ${page.offset + 1} on (${page.total} in all)`;
     replace(pager,
-      h("button", { type: "button", disabled: offset === 0, onclick: () => go(filters, Math.max(0, offset - PAGE)) }, "Newer"),
-      h("span", { "aria-live": "polite" }, page.total ? `${page.offset + 1}–${last} of ${page.total}` : "0 jobs"),
-      h("button", { type: "button", disabled: last >= page.total, onclick: () => go(filters, offset + PAGE) }, "Older"));
+      h("button", { type: "button", disabled: offset === 0, onclick: () => go(filters, newer) }, "Newer"),
+      h("span", { "aria-live": "polite" }, span),
+      h("button", { type: "button", disabled: offset + page.items.length >= page.total || !page.items.length,
+        onclick: () => go(filters, offset + PAGE) }, "Older"));
   }
 
   async function load() {
