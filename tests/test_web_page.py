@@ -366,6 +366,32 @@ def test_an_operator_uploads_a_mesh_from_the_form(open_page: Callable[..., Page]
     assert chosen == "crate (0.060 × 0.050 × 0.040 m, uploaded)"
 
 
+def test_a_mesh_in_millimetres_uploads_with_its_units_and_a_second_one_is_refused_beside_the_upload(
+        open_page: Callable[..., Page], tmp_path: Path) -> None:
+    """A mesh in millimetres read as metres is refused, the refusal naming millimetres; with the form's
+    units set to millimetres it uploads at its size in metres. Uploading it again is refused (409) next
+    to the upload, not under Start scan."""
+    block = tmp_path / "block_mm.ply"
+    trimesh.creation.box(extents=(60.0, 50.0, 40.0)).export(block)
+    page = open_page("operator")
+    page.wait_for_selector("#f-scale")
+    page.set_input_files("#f-file", str(block))
+    page.click("text=Upload mesh")
+    wait_for(page, f"{text_js('err-file')}.length > 0")
+    assert "millimetres" in page.text_content("#err-file")
+    page.select_option("#f-scale", label="millimetres")
+    page.click("text=Upload mesh")
+    wait_for(page, "document.getElementById('f-object').value === 'block_mm'")
+    chosen = page.evaluate("() => document.getElementById('f-object').selectedOptions[0].textContent")
+    assert chosen == "block_mm (0.060 × 0.050 × 0.040 m, uploaded)"
+    page.set_input_files("#f-file", str(block))
+    page.click("text=Upload mesh")
+    wait_for(page, f"{text_js('err-file')}.length > 0")
+    assert "exists already" in page.text_content("#err-file")
+    assert page.text_content("form.scan-form > p.error") == ""
+    shot(page, "upload-refused")
+
+
 def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
         open_page: Callable[..., Page], cell: ServedCell, proxy: CuttableProxy) -> None:
     with cell.client("operator") as client:

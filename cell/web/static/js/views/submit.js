@@ -1,11 +1,15 @@
 // The new-scan form: planner (with its one-line description), the object and its pose on the table for
-// sim and dry-run cells (shipped objects and uploaded meshes), seed, time budget and part id. The API's
-// validation errors (422) are shown next to the field they name.
+// sim and dry-run cells (shipped objects and uploaded meshes, in the units of their file), seed, time
+// budget and part id. The API's validation errors (422) are shown next to the field they name, an
+// upload's errors next to the upload.
 
-import { api, ApiError, describe } from "../api.js";
+import { api, ApiError, describe, FILE_TIMEOUT_MS } from "../api.js";
 import { h, replace } from "../dom.js";
 
 const VIRTUAL_MODES = ["sim", "dry-run"];
+/** The units a mesh file may be in, and the scale that turns them into metres (the API's `scale`;
+ *  cell.jobs.placement.UNIT_SCALES). */
+const UNITS = [["metres", 1], ["millimetres", 0.001], ["centimetres", 0.01], ["inches", 0.0254]];
 
 function field(name, label, control, hint = "") {
   control.id = `f-${name}`;
@@ -55,6 +59,7 @@ export async function scanForm({ onSubmitted }) {
   const budget = numberInput({ min: 0, placeholder: "cell default" });
   const part = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
   const upload = h("input", { type: "file", accept: ".ply,.obj,.stl" });
+  const units = h("select", {}, UNITS.map(([name, scale]) => h("option", { value: String(scale) }, name)));
   const uploadButton = h("button", { type: "button" }, "Upload mesh");
   const formError = h("p", { class: "error", role: "alert" });
   const submit = h("button", { type: "submit", class: "primary" }, "Start scan");
@@ -72,8 +77,8 @@ export async function scanForm({ onSubmitted }) {
     plannerField,
     virtual
       ? [field("object", "Object", object),
-        h("div", { class: "field upload" }, field("file", "Or upload a mesh (PLY, OBJ or STL, metres, z up)", upload),
-          uploadButton),
+        h("div", { class: "field upload" }, field("file", "Or upload a mesh (PLY, OBJ or STL, z up)", upload),
+          field("scale", "Units in the file", units), uploadButton),
         pose]
       : field("object", "Label of the part (optional)", label),
     h("div", { class: "row" }, field("seed", "Seed", seed),
@@ -85,7 +90,8 @@ export async function scanForm({ onSubmitted }) {
     for (const c of form.querySelectorAll("[aria-invalid]")) c.removeAttribute("aria-invalid");
     formError.textContent = "";
   };
-  const showError = (error) => {
+  /** `error` next to the field it names, else in `fallback` (under the form, or the upload's). */
+  const showError = (error, fallback = formError) => {
     if (error instanceof ApiError && Array.isArray(error.detail)) {
       for (const item of error.detail) {
         const name = item.loc?.[1];
@@ -95,11 +101,11 @@ export async function scanForm({ onSubmitted }) {
           form.querySelector(`[data-field="${CSS.escape(String(name))}"] input, [data-field="${CSS.escape(String(name))}"] select`)
             ?.setAttribute("aria-invalid", "true");
         } else {
-          formError.textContent = [formError.textContent, item.msg].filter(Boolean).join("; ");
+          fallback.textContent = [fallback.textContent, item.msg].filter(Boolean).join("; ");
         }
       }
     } else {
-      formError.textContent = describe(error);
+      fallback.textContent = describe(error);
     }
   };
   const number = (input) => (input.value.trim() === "" ? undefined : Number(input.value));
@@ -113,13 +119,14 @@ export async function scanForm({ onSubmitted }) {
     }
     const data = new FormData();
     data.append("file", file);
+    if (units.value !== "1") data.append("scale", units.value);
     uploadButton.disabled = true;
     try {
-      const entry = await api("/api/v1/objects", { method: "POST", form: data });
+      const entry = await api("/api/v1/objects", { method: "POST", form: data, timeoutMs: FILE_TIMEOUT_MS });
       fillObjects(await api("/api/v1/objects"), entry.name);
       upload.value = "";
     } catch (error) {
-      showError(error);
+      showError(error, form.querySelector("#err-file"));
     } finally {
       uploadButton.disabled = false;
     }
