@@ -392,6 +392,28 @@ def test_a_mesh_in_millimetres_uploads_with_its_units_and_a_second_one_is_refuse
     shot(page, "upload-refused")
 
 
+def test_a_number_field_that_holds_no_number_is_refused_beside_it(open_page: Callable[..., Page]) -> None:
+    """Text typed into the time budget, the pose or the seed is said to be no number, next to the field,
+    and nothing is submitted (it had been dropped: the job started with the default)."""
+    page = open_page("operator")
+    page.wait_for_selector("#f-max_time_s")
+    posted: list[str] = []
+    page.on("request", lambda r: posted.append(r.url) if r.method == "POST" else None)
+    for selector, typed in (("#f-max_time_s", "ten"), ("input[aria-label='yaw [deg]']", "3e"),
+                            ("#f-seed", "-")):
+        page.click(selector)
+        page.keyboard.press("Control+A")
+        page.keyboard.type(typed)
+    page.click("button[type=submit]")
+    wait_for(page, f"{text_js('err-max_time_s')}.length > 0")
+    assert "Not a number" in page.text_content("#err-max_time_s")
+    assert "x, y and yaw are numbers" in page.text_content("#err-object_pose")
+    assert "Not a number" in page.text_content("#err-seed")
+    assert page.get_attribute("#f-max_time_s", "aria-invalid") == "true"
+    shot(page, "new-scan-not-a-number")
+    assert posted == [] and page.url.endswith("/")
+
+
 def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
         open_page: Callable[..., Page], cell: ServedCell, proxy: CuttableProxy) -> None:
     with cell.client("operator") as client:

@@ -1,7 +1,8 @@
 // The new-scan form: planner (with its one-line description), the object and its pose on the table for
 // sim and dry-run cells (shipped objects and uploaded meshes, in the units of their file), seed, time
-// budget and part id. The API's validation errors (422) are shown next to the field they name, an
-// upload's errors next to the upload.
+// budget and part id. A number field that does not hold a number is refused next to it before anything
+// is sent; the API's validation errors (422) are shown next to the field they name, an upload's errors
+// next to the upload.
 
 import { api, ApiError, describe, FILE_TIMEOUT_MS } from "../api.js";
 import { h, replace } from "../dom.js";
@@ -108,7 +109,17 @@ export async function scanForm({ onSubmitted }) {
       fallback.textContent = describe(error);
     }
   };
-  const number = (input) => (input.value.trim() === "" ? undefined : Number(input.value));
+  /** The number in `input`, undefined when it is empty; null when it holds something else (a browser
+   *  gives "" for "ten" in a number field: `validity.badInput` tells it apart), said in the field's error
+   *  slot `name` as `what`. */
+  const number = (input, name, what) => {
+    const text = input.value.trim();
+    if (!input.validity.badInput && (text === "" || Number.isFinite(Number(text)))) return text === "" ? undefined : Number(text);
+    const slot = form.querySelector(`#err-${name}`);
+    if (!slot.textContent) slot.textContent = what;
+    input.setAttribute("aria-invalid", "true");
+    return null;
+  };
 
   uploadButton.addEventListener("click", async () => {
     clearErrors();
@@ -135,13 +146,22 @@ export async function scanForm({ onSubmitted }) {
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
     clearErrors();
-    const body = { planner: planner.value, seed: number(seed), max_time_s: number(budget) };
+    const body = {
+      planner: planner.value,
+      seed: number(seed, "seed", "Not a number: a seed is a whole number, 0 or more."),
+      max_time_s: number(budget, "max_time_s", "Not a number: seconds, or empty for the cell's default."),
+    };
     if (part.value.trim()) body.part_id = part.value.trim();
     if (virtual) {
       body.object = object.value;
-      body.object_pose = [number(x) ?? 0, number(y) ?? 0, number(yaw) ?? 0];
+      body.object_pose = [x, y, yaw].map((input) => number(input, "object_pose", "x, y and yaw are numbers (m, m, deg).") ?? 0);
     } else if (label.value.trim()) {
       body.object = label.value.trim();
+    }
+    const invalid = form.querySelector("[aria-invalid='true']");
+    if (invalid) {
+      invalid.focus();
+      return;
     }
     submit.disabled = true;
     try {
