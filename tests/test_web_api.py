@@ -18,7 +18,7 @@ import pytest
 
 from cell.jobs import live_cloud
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter, read_live_cloud
-from cell.perception.cloud import CloudAccumulator, write_ply
+from cell.perception.cloud import CloudAccumulator, read_ply, write_ply
 from cell.service.clouds import HEADER, JobCloud, decode_cloud, encode_cloud, job_cloud
 from cell.service.keys import PERMISSIONS, Role
 
@@ -73,6 +73,20 @@ def test_a_jobs_cloud_is_its_snapshot_while_it_runs_and_cloud_ply_once_it_ended(
     (tmp_path / "result.json").write_text("{}")
     ended = job_cloud(tmp_path)
     assert ended.final and ended.points.shape == (2, 3)
+
+
+def test_a_jobs_cloud_as_it_ends_is_its_cloud_ply_not_none(tmp_path: Path) -> None:
+    """An ending job removes its snapshot, writes cloud.ply, and result.json only after its metrics: in
+    between, its cloud is cloud.ply, not yet final (it had been no points: the page's 3D view went blank);
+    a cloud.ply still being written is not taken for a smaller cloud."""
+    write_ply(tmp_path / "cloud.ply", np.array([[0.2, 0.0, 0.0], [0.3, 0.0, 0.0]]))
+    ending = job_cloud(tmp_path)
+    assert not ending.final and ending.points.shape == (2, 3)
+    whole = (tmp_path / "cloud.ply").read_bytes()
+    (tmp_path / "cloud.ply").write_bytes(whole[:-24])  # one point short of its header
+    assert job_cloud(tmp_path).points.shape == (0, 3)
+    with pytest.raises(ValueError, match="not the 2 points of its header"):
+        read_ply(tmp_path / "cloud.ply")
 
 
 # ---------------------------------------------------------------------------------------------- snapshot

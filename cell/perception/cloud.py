@@ -7,6 +7,7 @@ independent of the order of its hash table, and sums each voxel's points in inpu
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -260,10 +261,16 @@ def write_ply(path: Path, points: Array) -> None:
 
 
 def read_ply(path: Path) -> Array:
-    """Read back a cloud written by ``write_ply`` ((N, 3) float64); other PLY layouts raise ValueError."""
+    """Read back a cloud written by ``write_ply`` ((N, 3) float64); other PLY layouts, and a file that
+    holds fewer or more points than its header says (one being written), raise ValueError."""
     data = path.read_bytes()
     marker = b"end_header\n"
     end = data.find(marker)
     if end < 0 or b"format binary_little_endian" not in data[:end] or b"property double z" not in data[:end]:
         raise ValueError(f"{path} is not a cloud written by cell (binary little-endian x, y, z doubles)")
-    return np.frombuffer(data[end + len(marker):], dtype="<f8").reshape(-1, 3).copy()
+    count = re.search(rb"^element vertex (\d+)$", data[:end], flags=re.MULTILINE)
+    body = data[end + len(marker):]
+    if count is None or len(body) != 24 * int(count.group(1)):
+        raise ValueError(f"{path} holds {len(body)} bytes of points, not the {count and int(count.group(1))} "
+                         "points of its header")
+    return np.frombuffer(body, dtype="<f8").reshape(-1, 3).copy()

@@ -49,14 +49,22 @@ class JobCloud:
 
 
 def job_cloud(folder: Path) -> JobCloud:
-    """The cloud of the job in ``folder``: ``cloud.ply`` once ``result.json`` exists, else the running
-    job's snapshot, else no points (before its first perception update, or a folder that is gone)."""
-    if (folder / "result.json").is_file() and (folder / "cloud.ply").is_file():
-        try:
-            return JobCloud(read_ply(folder / "cloud.ply"), final=True)
-        except (OSError, ValueError):
-            pass
-    live = read_live_cloud(folder / LIVE_CLOUD_FILE)
+    """The cloud of the job in ``folder``: ``cloud.ply`` once ``result.json`` exists (final); while it
+    runs, its snapshot; as it ends, ``cloud.ply`` not yet final: a job removes its snapshot, then writes
+    ``cloud.ply``, then ``result.json`` once its metrics are measured (seconds later), and in that time
+    its cloud is ``cloud.ply``, not none. No points before the first perception update, or for a folder
+    that is gone (or, for a moment, one whose snapshot is gone and whose ``cloud.ply`` is not yet
+    whole)."""
+    ended = (folder / "result.json").is_file()
+    if not ended:
+        live = read_live_cloud(folder / LIVE_CLOUD_FILE)
+        if live is not None:
+            return JobCloud(live, final=False)
+    try:
+        return JobCloud(read_ply(folder / "cloud.ply"), final=ended)
+    except (OSError, ValueError):
+        pass
+    live = read_live_cloud(folder / LIVE_CLOUD_FILE) if ended else None  # a killed worker's last snapshot
     return JobCloud(np.zeros((0, 3)) if live is None else live, final=False)
 
 
