@@ -347,6 +347,19 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     assert page.text_content("#fig-dims") == f"{dims} m"
 
 
+def upload(page: Page, mesh: Path) -> str:
+    """Upload ``mesh`` from the form (the button is disabled until the upload and the object list
+    that follows it are done); returns the upload's error, "" when there is none."""
+    page.set_input_files("#f-file", str(mesh))
+    page.click("#upload")
+    wait_for(page, "!document.getElementById('upload').disabled")
+    return page.text_content("#err-file")
+
+
+def chosen_object(page: Page) -> str:
+    return str(page.evaluate("() => document.getElementById('f-object').selectedOptions[0].textContent"))
+
+
 def test_an_operator_uploads_a_mesh_from_the_form(open_page: Callable[..., Page], tmp_path: Path) -> None:
     notes = tmp_path / "notes.txt"
     notes.write_text("not a mesh")
@@ -354,16 +367,9 @@ def test_an_operator_uploads_a_mesh_from_the_form(open_page: Callable[..., Page]
     trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(crate)
     page = open_page("operator")
     page.wait_for_selector("#f-file")
-    page.set_input_files("#f-file", str(notes))
-    page.click("text=Upload mesh")
-    wait_for(page, "document.getElementById('err-file').textContent.length > 0")
-    assert "not a mesh file" in page.text_content("#err-file")
-    page.set_input_files("#f-file", str(crate))
-    page.click("text=Upload mesh")
-    wait_for(page, "document.getElementById('f-object').value === 'crate'")
-    assert page.text_content("#err-file") == ""
-    chosen = page.evaluate("() => document.getElementById('f-object').selectedOptions[0].textContent")
-    assert chosen == "crate (0.060 × 0.050 × 0.040 m, uploaded)"
+    assert "not a mesh file" in upload(page, notes)
+    assert upload(page, crate) == ""
+    assert chosen_object(page) == "crate (0.060 × 0.050 × 0.040 m, uploaded)"
 
 
 def test_a_mesh_in_millimetres_uploads_with_its_units_and_a_second_one_is_refused_beside_the_upload(
@@ -375,19 +381,11 @@ def test_a_mesh_in_millimetres_uploads_with_its_units_and_a_second_one_is_refuse
     trimesh.creation.box(extents=(60.0, 50.0, 40.0)).export(block)
     page = open_page("operator")
     page.wait_for_selector("#f-scale")
-    page.set_input_files("#f-file", str(block))
-    page.click("text=Upload mesh")
-    wait_for(page, f"{text_js('err-file')}.length > 0")
-    assert "millimetres" in page.text_content("#err-file")
+    assert "millimetres" in upload(page, block)
     page.select_option("#f-scale", label="millimetres")
-    page.click("text=Upload mesh")
-    wait_for(page, "document.getElementById('f-object').value === 'block_mm'")
-    chosen = page.evaluate("() => document.getElementById('f-object').selectedOptions[0].textContent")
-    assert chosen == "block_mm (0.060 × 0.050 × 0.040 m, uploaded)"
-    page.set_input_files("#f-file", str(block))
-    page.click("text=Upload mesh")
-    wait_for(page, f"{text_js('err-file')}.length > 0")
-    assert "exists already" in page.text_content("#err-file")
+    assert upload(page, block) == ""
+    assert chosen_object(page) == "block_mm (0.060 × 0.050 × 0.040 m, uploaded)"
+    assert "exists already" in upload(page, block)
     assert page.text_content("form.scan-form > p.error") == ""
     shot(page, "upload-refused")
 
@@ -601,6 +599,7 @@ def test_a_hung_service_shows_its_age_and_stop_says_it_got_no_answer_and_stays_p
             wait_for(page, "document.getElementById('stop-outcome').textContent.includes('failed')")
             assert "did not answer within 10 s" in page.text_content("#stop-outcome")
             assert "press STOP again" in page.text_content("#stop-outcome")
+            assert "Esc" not in page.text_content("#stop-outcome")  # had been "STOP Esc failed"
             assert page.is_enabled("#stop") and page.get_attribute("#stop", "aria-busy") is None
             shot(page, "service-hung")
         finally:
@@ -637,5 +636,6 @@ def test_stop_stays_in_view_on_a_phone_with_the_queue_held(open_page: Callable[.
             shot(page, f"phone-{width}-held")
             page.click("#stop")
             wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP: ')")
+            assert page.text_content("#stop-outcome").count("queue is held") == 1  # had been said twice
         finally:
             client.post("/api/v1/queue/resume")

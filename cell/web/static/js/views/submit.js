@@ -61,7 +61,7 @@ export async function scanForm({ onSubmitted }) {
   const part = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
   const upload = h("input", { type: "file", accept: ".ply,.obj,.stl" });
   const units = h("select", {}, UNITS.map(([name, scale]) => h("option", { value: String(scale) }, name)));
-  const uploadButton = h("button", { type: "button" }, "Upload mesh");
+  const uploadButton = h("button", { type: "button", id: "upload" }, "Upload mesh");
   const formError = h("p", { class: "error", role: "alert" });
   const submit = h("button", { type: "submit", class: "primary" }, "Start scan");
 
