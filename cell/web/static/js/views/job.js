@@ -48,7 +48,7 @@ export function showJob(main, context, jobId) {
   let ended = false; // the job ended (its result shown or being shown): nothing is polled any more
   let unfollow = () => {};
   let cloudTimer = null;
-  let cloudLoading = false;
+  let cloudLoad = null; // the cloud's request in flight
   let shownPoints = 0;
   let linkState = "closed";
   let status = null;
@@ -71,21 +71,23 @@ export function showJob(main, context, jobId) {
 
   /** The job's cloud into the 3D view; a running job's answer without points (between its snapshot and
    *  its final cloud) leaves the cloud shown as it is. */
-  async function refreshCloud() {
-    if (cloudLoading) return null; // one at a time: a slow cell is not asked again and again
-    cloudLoading = true;
+  async function loadCloud() {
     try {
       const cloud = await fetchCloud(jobId);
       if (alive && view.view && (cloud.count > 0 || cloud.final || shownPoints === 0)) {
         view.view.setCloud(cloud.positions);
         shownPoints = cloud.count;
       }
-      return cloud;
     } catch {
-      return null;
-    } finally {
-      cloudLoading = false;
+      // the next refresh, or the job's end, asks again
     }
+  }
+
+  /** loadCloud(), one request at a time: a slow cell is not asked again and again (the request in
+   *  flight is what a caller waits for). */
+  function refreshCloud() {
+    if (!cloudLoad) cloudLoad = loadCloud().finally(() => { cloudLoad = null; });
+    return cloudLoad;
   }
 
   function startCloud() {
@@ -166,6 +168,7 @@ export function showJob(main, context, jobId) {
     if (!alive) return;
     setStatus(job.status, job.termination);
     const result = job.result ?? {};
+    await cloudLoad; // a running job's snapshot asked for before its end is not drawn over the final cloud
     await refreshCloud();
     if (view.view && path.length === 0) {
       const { path: recorded, pose } = await trajectory(base).catch(() => ({ path: [], pose: null }));
