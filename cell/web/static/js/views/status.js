@@ -91,7 +91,7 @@ function stopped(answer) {
 function stopControl() {
   const button = $("stop");
   let pending = null; // {controller, ticker} of the STOP waiting for its answer
-  let failedAt = null; // when the last STOP failed for want of an answer
+  let failedAt = null; // when the last STOP that failed was sent (null once it is said to be over)
 
   const settle = () => {
     if (!pending) return;
