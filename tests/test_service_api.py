@@ -386,6 +386,22 @@ def test_a_body_over_its_bound_is_refused_unread_and_nan_is_a_422(served):
     assert client.get("/api/v1/jobs", headers=op).status_code == 200  # the service is fine
 
 
+def test_a_lone_surrogate_in_a_refused_body_is_a_422_that_echoes_it_escaped(served):
+    """A JSON string may hold a lone surrogate (``"\\ud800"``), which is no UTF-8: the 422 that echoed it
+    failed to encode, a 500. It is a 422 naming the field, the input escaped as the client wrote it."""
+    client, keys = served
+    headers = {**_auth(keys["operator"]), "content-type": "application/json"}
+    for field, escaped, body in (
+            ("object", b"\\ud800", b'{"object": "\\ud800"}'),
+            ("part_id", b"\\udfff", b'{"object": "bunny", "part_id": "\\udfff"}'),
+            ("max_time_s", b"x\\ud800", b'{"object": "bunny", "max_time_s": "x\\ud800"}')):
+        answer = client.post("/api/v1/jobs", content=body, headers=headers)
+        assert answer.status_code == 422, answer.text
+        assert answer.json()["detail"][0]["loc"] == ["body", field]
+        assert b'"input":"' + escaped + b'"' in answer.content
+    assert client.get("/api/v1/jobs", headers=headers).json()["total"] == 0
+
+
 def test_a_mesh_whose_header_promises_more_than_it_holds_is_refused_and_the_list_stays_whole(served):
     """A 180-byte PLY declaring 200 million vertices made the reader allocate 10 GB; one declaring two
     billion failed outside the upload's error handling, left its staging file, and GET /objects answered

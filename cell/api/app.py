@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 from collections.abc import AsyncIterator
@@ -36,6 +37,16 @@ from drivers.errors import ServiceError, StoreError
 KEY_REFRESH_S = 1.0
 STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429}
 log = logging.getLogger("cell.service")
+
+
+class EchoingResponse(JSONResponse):
+    """A JSON answer that may echo what the client sent (a 422's ``input``, a name a ``ServiceError``
+    quotes): every character beyond ASCII goes out as a JSON escape. A lone surrogate is a valid JSON
+    string (``"\\ud800"``) and so a Python ``str``, but not UTF-8: encoding it failed, a 500 for bad
+    input; escaped, it comes back as the client wrote it."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=True, allow_nan=False, separators=(",", ":")).encode("ascii")
 
 
 async def _refresh_keys(ring: KeyRing) -> None:
@@ -100,13 +111,14 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
             detail: object = [{"loc": ["body", exc.field or "body"], "msg": str(exc), "type": "value_error"}]
         else:
             detail = str(exc)
-        return JSONResponse({"detail": detail}, status_code=status)
+        return EchoingResponse({"detail": detail}, status_code=status)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
         # as FastAPI's own answer, but a NaN or infinite number given (JSON allows neither, Python's
-        # parser reads both) is echoed as text: it made FastAPI's answer fail, a 500
-        return JSONResponse({"detail": _finite(jsonable_encoder(exc.errors()))}, status_code=422)
+        # parser reads both) is echoed as text, and a lone surrogate escaped: each made FastAPI's answer
+        # fail, a 500
+        return EchoingResponse({"detail": _finite(jsonable_encoder(exc.errors()))}, status_code=422)
 
     @app.exception_handler(StoreError)
     async def store_error(_: Request, exc: StoreError) -> JSONResponse:
