@@ -27,6 +27,7 @@ from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
 from cell.api.app import create_app
+from cell.api.body_limit import JSON_MAX_BYTES
 from cell.cli.main import app as cli
 from cell.config import load_config
 from cell.jobs.placement import check_on_table
@@ -367,23 +368,57 @@ def test_stop_is_never_refused_for_its_body(served):
 
 
 def test_a_body_over_its_bound_is_refused_unread_and_nan_is_a_422(served):
-    """A JSON body over 1 MiB is answered 413 before anything reads it, keyed or not and whether it gives
-    its length or not (FastAPI read and parsed it before the key's check); a NaN or infinite number is a
-    422 naming the field (FastAPI's own answer failed on echoing it, a 500)."""
+    """A JSON body over ``JSON_MAX_BYTES`` is answered 413 before anything reads it, whether it gives its
+    length or not; a NaN or infinite number is a 422 naming the field (FastAPI's own answer failed on
+    echoing it, a 500)."""
     client, keys = served
     op = _auth(keys["operator"])
-    big = json.dumps({"object": "a" * (1 << 20)}).encode()
-    assert client.post("/api/v1/jobs", content=big, headers={"content-type": "application/json"}
+    big = json.dumps({"object": "a" * JSON_MAX_BYTES}).encode()
+    assert client.post("/api/v1/jobs", content=big, headers={**op, "content-type": "application/json"}
                        ).status_code == 413
     chunked = client.post("/api/v1/jobs", content=iter([big[:1000], big[1000:]]),
                           headers={**op, "content-type": "application/json"})
-    assert chunked.status_code == 413 and "over 1048576 bytes" in chunked.json()["detail"]
+    assert chunked.status_code == 413 and f"over {JSON_MAX_BYTES} bytes" in chunked.json()["detail"]
     for field, body in (("max_time_s", b'{"object": "bunny", "max_time_s": NaN}'),
                         ("object_pose", b'{"object": "bunny", "object_pose": [Infinity, 0, 0]}')):
         answer = client.post("/api/v1/jobs", content=body, headers={**op, "content-type": "application/json"})
         assert answer.status_code == 422, answer.text
         assert answer.json()["detail"][0]["loc"][:2] == ["body", field]
     assert client.get("/api/v1/jobs", headers=op).status_code == 200  # the service is fine
+
+
+def test_a_request_without_a_valid_key_is_a_401_before_its_body_is_read(served):
+    """The key is checked before the body is read or parsed: no key, an unknown one or a revoked one is
+    a 401 whatever the body (FastAPI parsed it first: ``{bad`` was a 422, and a large body was read and
+    parsed for a client with no key); a valid key's role is checked by the route as before."""
+    client, keys = served
+    read: list[bytes] = []
+
+    def body() -> Iterator[bytes]:
+        read.append(b"{bad")
+        yield b"{bad"
+
+    app = client.app
+    app.state.service.store.revoke_key("admin")
+    app.state.keys.refresh()
+    json_type = {"content-type": "application/json"}
+    for headers in ({}, _auth("cell_" + "x" * 43), {"Authorization": "Basic " + keys["operator"]},
+                    _auth(keys["admin"])):
+        answer = client.post("/api/v1/jobs", content=body(), headers={**headers, **json_type})
+        assert answer.status_code == 401, answer.text
+        assert answer.headers["www-authenticate"] == "Bearer" and "valid API key" in answer.json()["detail"]
+        assert client.post("/api/v1/line/command", content=b"{bad", headers={**headers, **json_type}
+                           ).status_code == 401
+    assert read == []
+    # a valid key with too low a role is the route's 403; a valid key's bad body its 422
+    viewer = client.post("/api/v1/jobs", json={"object": "bunny"}, headers=_auth(keys["viewer"]))
+    assert viewer.status_code == 403
+    assert client.post("/api/v1/jobs", content=b"{bad", headers={**_auth(keys["operator"]), **json_type}
+                       ).status_code == 422
+    # what needs no key still answers without one
+    assert client.get("/healthz").status_code == 200
+    assert client.get("/api/v1/openapi.json").status_code == 200
+    assert client.get("/api/v1/no-such-route").status_code == 404
 
 
 def test_a_lone_surrogate_in_a_refused_body_is_a_422_that_echoes_it_escaped(served):

@@ -503,6 +503,33 @@ def test_every_route_needs_a_key_and_motion_needs_a_role_that_may_move(
         settle_queue(franka)
 
 
+def _answer_to_headers_alone(cell: ServedCell, head: bytes, timeout_s: float = 30.0) -> bytes:
+    """The start of the service's answer to a request whose headers arrive and whose body never does
+    (the connection held open); ``b""`` if it closed unanswered. ``timeout_s`` bounds the wait."""
+    with socket.create_connection((cell.host, cell.port), timeout=timeout_s) as sock:
+        sock.sendall(head)
+        try:
+            return sock.recv(200)
+        except TimeoutError:
+            return b"(no answer in %g s)" % timeout_s
+
+
+def test_a_request_without_a_valid_key_is_answered_401_before_its_body_arrives(franka: ServedCell) -> None:
+    """Every operation that takes a body answers a missing or unknown key 401 from its headers alone: the
+    service read (and parsed) the body first, so a client with no key waited on for a body it had
+    promised, or had a malformed one answered 422."""
+    operations = _operations(franka)
+    promising = sorted((m, p) for m, p in operations - OPEN_ROUTES if m in ("POST", "PUT", "PATCH", "DELETE"))
+    assert ("POST", "/api/v1/jobs") in promising and ("POST", "/api/v1/objects") in promising
+    for method, path in promising:
+        target = path.replace("{job_id}", "0" * 32)
+        for authorization in (b"", b"Authorization: Bearer cell_" + b"A" * 43 + b"\r\n"):
+            head = (b"%s %s HTTP/1.1\r\nHost: x\r\n%sContent-Type: application/json\r\n"
+                    b"Content-Length: 10000\r\n\r\n{bad" % (method.encode(), target.encode(), authorization))
+            answer = _answer_to_headers_alone(franka, head)
+            assert answer.startswith(b"HTTP/1.1 401 "), (method, path, authorization[:22], answer)
+
+
 # ---------------------------------------------------------------------------------------------- 7. files
 
 

@@ -2,15 +2,24 @@
 
 A key is looked up in the service's in-memory key ring (``cell.service.keys.KeyRing``: a hash and a
 dictionary lookup, never the database), then its role is checked against the route's permission. A
-missing or unknown key answers 401, a role too low 403. The key never appears in a response or a log.
+missing, unknown or revoked key answers 401, a role too low 403. The key never appears in a response or
+a log.
+
+The 401 comes before anything reads the request's body (:class:`KeyFirstRoute`): FastAPI reads and parses a
+body before a route's dependencies run, so a client with no key had a malformed body answered 422 (not
+the 401 it is owed) and could make the service read and parse bodies for nothing, which slowed a STOP.
+The role is checked by the route's own dependency (``require``), as before.
 """
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
-from typing import Annotated
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Request
+from fastapi import Depends, HTTPException, Request, Response
+from fastapi.dependencies.models import Dependant
+from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from cell.service.keys import KeyRing, Permission, allowed
@@ -18,6 +27,13 @@ from cell.service.store import KeyRecord
 
 _bearer = HTTPBearer(auto_error=False, description="an API key made by `cell keys create`")
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+UNAUTHORIZED = "a valid API key is needed: Authorization: Bearer <key>"
+CHALLENGE = {"WWW-Authenticate": "Bearer"}
+
+
+def key_record(ring: KeyRing, credentials: HTTPAuthorizationCredentials | None) -> KeyRecord | None:
+    """The active key's record for the request's credentials, or None (missing, unknown, revoked)."""
+    return ring.authenticate(credentials.credentials) if credentials is not None else None
 
 
 def forbidden(role: str, action: str) -> HTTPException:
@@ -30,11 +46,9 @@ def require(permission: Permission) -> Callable[..., Awaitable[KeyRecord]]:
     """A dependency that returns the caller's key record when its role has ``permission``."""
 
     async def check(request: Request, credentials: Credentials) -> KeyRecord:
-        ring: KeyRing = request.app.state.keys
-        record = ring.authenticate(credentials.credentials) if credentials is not None else None
+        record = key_record(request.app.state.keys, credentials)
         if record is None:
-            raise HTTPException(401, "a valid API key is needed: Authorization: Bearer <key>",
-                                headers={"WWW-Authenticate": "Bearer"})
+            raise HTTPException(401, UNAUTHORIZED, headers=CHALLENGE)
         if not allowed(record.role, permission):
             raise forbidden(record.role, permission.value)
         return record
@@ -52,3 +66,26 @@ Liner = Annotated[KeyRecord, Depends(require(Permission.LINE))]
 ModeSwitcher = Annotated[KeyRecord, Depends(require(Permission.MODE))]
 Keeper = Annotated[KeyRecord, Depends(require(Permission.KEEP))]
 Purger = Annotated[KeyRecord, Depends(require(Permission.PURGE))]
+
+
+
+class KeyFirstRoute(APIRoute):
+    """The route class of the API's routers: a route that checks a key (one whose dependencies include
+    the ``Authorization: Bearer`` check) answers a request without a valid key 401 before anything reads
+    its body (the module docstring); a route that needs no key is left as it is."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+        if not _checks_key(self.dependant):
+            return handler
+
+        async def key_first(request: Request) -> Response:
+            if key_record(request.app.state.keys, await _bearer(request)) is None:
+                return JSONResponse({"detail": UNAUTHORIZED}, 401, headers=CHALLENGE)
+            return await handler(request)
+
+        return key_first
+
+
+def _checks_key(dependant: Dependant) -> bool:
+    return dependant.call is _bearer or any(_checks_key(d) for d in dependant.dependencies)

@@ -7,13 +7,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Form, UploadFile
 
-from cell.api.auth import Reader, Recoverer, Stopper, Uploader
+from cell.api.auth import KeyFirstRoute, Reader, Recoverer, Stopper, Uploader
 from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, CellOut, ObjectOut, PlannerOut, RecoverOut, StopOut
 from cell.api.stop_reason import StopReason
 from drivers.errors import ServiceError
 
-router = APIRouter(prefix="/api/v1", tags=["cell"])
+router = APIRouter(prefix="/api/v1", tags=["cell"], route_class=KeyFirstRoute)
 UPLOAD_CHUNK = 1 << 20
 
 

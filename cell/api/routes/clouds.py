@@ -8,11 +8,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
 
-from cell.api.auth import Reader
+from cell.api.auth import KeyFirstRoute, Reader
 from cell.api.deps import Service
 from cell.service.clouds import DEFAULT_MAX_POINTS, MAX_POINTS, encode_cloud, job_cloud
 
-router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
+router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], route_class=KeyFirstRoute)
 MEDIA_TYPE = "application/octet-stream"
 
 

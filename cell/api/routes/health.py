@@ -6,12 +6,12 @@ import asyncio
 
 from fastapi import APIRouter, Response
 
-from cell.api.auth import Reader
+from cell.api.auth import KeyFirstRoute, Reader
 from cell.api.deps import Service
 from cell.service.metrics import CONTENT_TYPE
 from drivers.errors import StoreError
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
 
 @router.get("/healthz")

@@ -13,14 +13,14 @@ from typing import Annotated
 from fastapi import APIRouter, Header, HTTPException, Query, Response
 from fastapi.responses import FileResponse, StreamingResponse
 
-from cell.api.auth import Canceller, Keeper, Reader, Stopper, Submitter, forbidden
+from cell.api.auth import Canceller, Keeper, KeyFirstRoute, Reader, Stopper, Submitter, forbidden
 from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
 from cell.api.stop_reason import StopReason
 from cell.service.keys import Permission, allowed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 
-router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"])
+router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], route_class=KeyFirstRoute)
 KEEP_ALIVE_S = 15.0
 """An event stream with nothing to say sends a comment this often [s], so proxies keep it open."""
 CONTENT_TYPES = {".json": "application/json", ".csv": "text/csv; charset=utf-8",

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from cell.api.auth import Reader
+from cell.api.auth import KeyFirstRoute, Reader
 from cell.api.schemas import WhoAmIOut
 from cell.service.keys import PERMISSIONS, Role
 
-router = APIRouter(prefix="/api/v1", tags=["keys"])
+router = APIRouter(prefix="/api/v1", tags=["keys"], route_class=KeyFirstRoute)
 
 
 @router.get("/whoami", response_model=WhoAmIOut)

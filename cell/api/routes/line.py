@@ -10,7 +10,7 @@ from typing import Annotated, Any, TypeVar
 
 from fastapi import APIRouter, Query
 
-from cell.api.auth import Liner, ModeSwitcher, Reader
+from cell.api.auth import KeyFirstRoute, Liner, ModeSwitcher, Reader
 from cell.api.deps import Service
 from cell.api.schemas import LineCommandIn, LineCommandOut, LineModeIn, LineOut, LineTransitionOut
 from cell.line.controller import LineController
@@ -18,7 +18,7 @@ from cell.line.packml import Command, State, UnitMode
 from cell.service.manager import CellService
 from drivers.errors import ServiceError
 
-router = APIRouter(prefix="/api/v1/line", tags=["line"])
+router = APIRouter(prefix="/api/v1/line", tags=["line"], route_class=KeyFirstRoute)
 ROW_ID_MAX = 2**63 - 1
 """The largest row id a store holds (SQL's BIGINT, SQLite's INTEGER); a larger one overflowed it, a 500."""
 E = TypeVar("E", Command, UnitMode)

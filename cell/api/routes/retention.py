@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from cell.api.auth import Purger, Reader
+from cell.api.auth import KeyFirstRoute, Purger, Reader
 from cell.api.deps import Service
 from cell.api.schemas import PrunedOut, RetentionOut
 from cell.service.retention import GB, PrunedJob, PrunePlan
 
-router = APIRouter(prefix="/api/v1/retention", tags=["retention"])
+router = APIRouter(prefix="/api/v1/retention", tags=["retention"], route_class=KeyFirstRoute)
 
 
 def _out(cell: Service, plan: PrunePlan, jobs: list[PrunedJob]) -> RetentionOut:
