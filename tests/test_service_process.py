@@ -158,6 +158,17 @@ def raw_get(cell: ServedCell, target: str, key: str) -> tuple[int, bytes]:
         conn.close()
 
 
+def answer_to_headers_alone(cell: ServedCell, head: bytes, timeout_s: float = 30.0) -> bytes:
+    """The start of the service's answer to a request whose headers arrive and whose body never does
+    (the connection held open); ``b""`` if it closed unanswered. ``timeout_s`` bounds the wait."""
+    with socket.create_connection((cell.host, cell.port), timeout=timeout_s) as sock:
+        sock.sendall(head)
+        try:
+            return sock.recv(200)
+        except TimeoutError:
+            return b"(no answer in %g s)" % timeout_s
+
+
 # ---------------------------------------------------------------------------------------------- fixtures
 
 
@@ -258,6 +269,38 @@ def test_any_key_stops_a_job_mid_scan_and_the_folder_is_complete(franka: ServedC
     assert np.allclose(rows[-1, 1:], rows[-2, 1:], atol=1e-9), "the arm is still moving at the end"
     step = np.linalg.norm(np.diff(after[:, 1:4], axis=0), axis=1)
     assert step[-1] <= 1e-9 and np.all(np.diff(step) <= 1e-6), "the arm did not slow down to rest"
+
+
+def test_a_stop_acts_on_its_headers_when_its_body_is_late_or_never_comes(franka: ServedCell) -> None:
+    """A stop whose body is promised and does not come stops at once with the default reason: the job's
+    stop and the cell's STOP waited for the whole body (the job ran on), and a client that left before
+    sending it had its stop dropped."""
+    viewer = franka.keys["viewer"]
+
+    def partial_stop(path: str) -> bytes:
+        return (b"POST %s HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\n"
+                b"Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{\"reason\": \"x"
+                % (path.encode(), viewer.encode()))
+
+    try:
+        job = submit(franka, object="bunny", max_time_s=LONG_S)
+        wait_progress(franka, job["id"], lambda p: p["n_captures"] >= 1)
+        answer = answer_to_headers_alone(franka, partial_stop(f"/api/v1/jobs/{job['id']}/stop"))
+        assert answer.startswith(b"HTTP/1.1 200 "), answer
+        ended = franka.wait_job(job["id"], ENDED)
+        assert ended["status"] == "stopped"
+        assert "operator stop: requested over the API (key test-viewer)" in ended["termination"]
+        # the cell's STOP from a client that leaves before its body: the stop stands (the queue held)
+        with socket.create_connection((franka.host, franka.port), timeout=30) as sock:
+            sock.sendall(partial_stop("/api/v1/stop"))
+        deadline = time.monotonic() + 30.0
+        with franka.client("viewer") as client:
+            while (held := client.get("/api/v1/cell").json()["queue"]["held"]) is None:
+                assert time.monotonic() < deadline, "the STOP of a client that left was dropped"
+                time.sleep(0.05)
+        assert "requested over the API (key test-viewer)" in held
+    finally:
+        settle_queue(franka)
 
 
 def test_stop_holds_the_queue_until_an_operator_resumes_it(franka: ServedCell) -> None:
@@ -503,17 +546,6 @@ def test_every_route_needs_a_key_and_motion_needs_a_role_that_may_move(
         settle_queue(franka)
 
 
-def _answer_to_headers_alone(cell: ServedCell, head: bytes, timeout_s: float = 30.0) -> bytes:
-    """The start of the service's answer to a request whose headers arrive and whose body never does
-    (the connection held open); ``b""`` if it closed unanswered. ``timeout_s`` bounds the wait."""
-    with socket.create_connection((cell.host, cell.port), timeout=timeout_s) as sock:
-        sock.sendall(head)
-        try:
-            return sock.recv(200)
-        except TimeoutError:
-            return b"(no answer in %g s)" % timeout_s
-
-
 def test_a_request_without_a_valid_key_is_answered_401_before_its_body_arrives(franka: ServedCell) -> None:
     """Every operation that takes a body answers a missing or unknown key 401 from its headers alone: the
     service read (and parsed) the body first, so a client with no key waited on for a body it had
@@ -526,7 +558,7 @@ def test_a_request_without_a_valid_key_is_answered_401_before_its_body_arrives(f
         for authorization in (b"", b"Authorization: Bearer cell_" + b"A" * 43 + b"\r\n"):
             head = (b"%s %s HTTP/1.1\r\nHost: x\r\n%sContent-Type: application/json\r\n"
                     b"Content-Length: 10000\r\n\r\n{bad" % (method.encode(), target.encode(), authorization))
-            answer = _answer_to_headers_alone(franka, head)
+            answer = answer_to_headers_alone(franka, head)
             assert answer.startswith(b"HTTP/1.1 401 "), (method, path, authorization[:22], answer)
 
 
