@@ -4,7 +4,9 @@
 the others through the store, which is quicker), starts
 ``cell serve --config ... --data-dir ... --port ...`` on a free port of 127.0.0.1 and waits for
 ``/healthz``. ``kill()`` sends SIGKILL to the service alone (its job's worker lives on, as after a crash);
-``start()`` again runs a new service on the same data dir and port.
+``start()`` again runs a new service on the same data dir and port. ``nofile`` starts it under that soft
+limit of file descriptors, as ``ulimit -n`` would. ``until`` and ``closed_by_server`` read raw HTTP from a
+socket.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ from cell.service.store import open_store, sqlite_url
 REPO = Path(__file__).resolve().parent.parent
 CELL = [sys.executable, "-m", "cell.cli.entry"]  # the installed `cell` program's code
 ROLES = ("viewer", "operator", "line", "admin")
+WITH_NOFILE = [sys.executable, "-c", "import os, resource as r, sys; hard = r.getrlimit(r.RLIMIT_NOFILE)[1]; "
+               "r.setrlimit(r.RLIMIT_NOFILE, (int(sys.argv[1]), hard)); os.execv(sys.argv[2], sys.argv[2:])"]
+"""``[*WITH_NOFILE, N, *command]`` runs ``command`` under a soft descriptor limit of N."""
 START_TIMEOUT_S = 60.0
 
 
@@ -35,6 +40,26 @@ def free_port(host: str = "127.0.0.1") -> int:
     with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
         probe.bind((host, 0))
         return int(probe.getsockname()[1])
+
+
+def until(sock: socket.socket, marker: bytes) -> bytes:
+    """What the server sends until ``marker`` (or its end)."""
+    data = b""
+    while marker not in data and (chunk := sock.recv(65536)):
+        data += chunk
+    return data
+
+
+def closed_by_server(sock: socket.socket) -> bool:
+    """Whether the server closes the connection within the socket's timeout (what it sends is read)."""
+    try:
+        while sock.recv(65536):
+            pass
+    except ConnectionResetError:
+        return True
+    except TimeoutError:
+        return False
+    return True
 
 
 def create_key(data_dir: Path, role: str, name: str, db: str | None = None) -> str:
@@ -49,10 +74,12 @@ class ServedCell:
     """One ``cell serve`` process (see the module docstring); ``keys[role]`` holds a key of each role."""
 
     def __init__(self, config: Path, data_dir: Path, *, db: str | None = None, host: str = "127.0.0.1",
-                 key_prefix: str = "test", env: dict[str, str] | None = None) -> None:
+                 key_prefix: str = "test", env: dict[str, str] | None = None,
+                 nofile: int | None = None) -> None:
         """``key_prefix`` names the keys (``<prefix>-<role>``): cells sharing one store need their own;
-        ``env`` is added to the service's environment."""
+        ``env`` is added to the service's environment; ``nofile`` is its soft descriptor limit."""
         self.config, self.data_dir, self.db, self.host = config, data_dir, db, host
+        self.limit = [] if nofile is None else [*WITH_NOFILE, str(nofile)]
         self.env = {**os.environ, **(env or {})}
         self.port = free_port(host)
         self.url = f"http://{host}:{self.port}"
@@ -69,7 +96,7 @@ class ServedCell:
         self.start()
 
     def start(self) -> None:
-        cmd = [*CELL, "serve", "--config", str(self.config), "--data-dir", str(self.data_dir),
+        cmd = [*self.limit, *CELL, "serve", "--config", str(self.config), "--data-dir", str(self.data_dir),
                "--host", self.host, "--port", str(self.port), *(["--db", self.db] if self.db else [])]
         self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT, text=True,
                                      env=self.env)

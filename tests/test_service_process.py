@@ -40,7 +40,7 @@ from tests.conftest import CONFIG_DIR, FRANKA, UR5E
 from tests.postgres import fresh_database, postgres_url  # noqa: F401  (a fixture of this module)
 from tests.rtde_peer import ControllerPeer
 from tests.rtde_peer.controller import MAX_RECORDS
-from tests.service_process import CELL, REPO, ROLES, ServedCell, free_port
+from tests.service_process import CELL, REPO, ROLES, ServedCell, closed_by_server, free_port, until
 
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 ENDED = ("completed", "failed", "stopped", "cancelled", "interrupted")
@@ -301,6 +301,43 @@ def test_a_stop_acts_on_its_headers_when_its_body_is_late_or_never_comes(franka:
         assert "requested over the API (key test-viewer)" in held
     finally:
         settle_queue(franka)
+
+
+FEW_FDS = 256  # a soft descriptor limit: the service's connection cap is a quarter of it, 64
+FLOOD = 300  # sockets that send half a request: more than the service has descriptors
+
+
+def test_idle_connections_beyond_the_descriptor_limit_leave_stop_answering(tmp_path: Path) -> None:
+    """1100 sockets that each sent half a request, under a soft limit of 1024 descriptors, took them all:
+    a STOP and /healthz timed out, and asyncio logged a traceback for every failed accept(). Under a
+    limit of 256 and 300 such sockets: a STOP of the running job is answered and stops it, an event
+    stream open before goes on to the job's end, every idle socket is closed by the service (the longest
+    idle at the cap, the others at the header deadline) and the log has no traceback."""
+    with ServedCell(FRANKA, tmp_path / "data", nofile=FEW_FDS) as cell:
+        job = submit(cell, object="bunny", max_time_s=LONG_S)
+        wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1)
+        events = (b"GET /api/v1/jobs/%s/events HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\n\r\n"
+                  % (job["id"].encode(), cell.keys["viewer"].encode()))
+        stream = socket.create_connection((cell.host, cell.port), timeout=60)
+        idle: list[socket.socket] = []
+        try:
+            stream.sendall(events)
+            assert until(stream, b"event: state").startswith(b"HTTP/1.1 200 ")
+            for _ in range(FLOOD):
+                idle.append(socket.create_connection((cell.host, cell.port), timeout=60))
+                idle[-1].sendall(b"GET / HTTP/1.1\r\nHost: x\r\n")
+            with cell.client("viewer", timeout_s=20.0) as client:
+                stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "flooded"})
+                assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
+                assert client.get("/healthz").status_code == 200
+            assert b'"status": "stopped"' in until(stream, b"event: result")
+            assert cell.wait_job(job["id"], ENDED)["status"] == "stopped"
+            assert sum(closed_by_server(sock) for sock in idle) == FLOOD
+        finally:
+            for sock in (stream, *idle):
+                sock.close()
+        log = cell.log()
+    assert "Traceback" not in log and "out of system resource" not in log, log[-2000:]
 
 
 def test_stop_holds_the_queue_until_an_operator_resumes_it(franka: ServedCell) -> None:

@@ -3,7 +3,8 @@
 ``READY=1`` once the API listens (after the cell's service started: store, queue, line), ``WATCHDOG=1``
 every half watchdog period from the event loop itself, so that a loop that hangs stops the pings and
 systemd restarts the service, and ``STOPPING=1`` as soon as a shutdown begins (the running job is then
-stopped and its folder finished, which may take ``service.shutdown_timeout_s``).
+stopped and its folder finished, which may take ``service.shutdown_timeout_s``). A failing ``accept()``
+is logged once in a while, not once per attempt (``cell.api.connections.quiet_accept_failures``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import socket
 
 import uvicorn
 
+from cell.api.connections import quiet_accept_failures
 from cell.service.notify import Notifier
 
 
@@ -26,6 +28,7 @@ class NotifyingServer(uvicorn.Server):
         self._pings: asyncio.Task[None] | None = None
 
     async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        quiet_accept_failures(asyncio.get_running_loop())
         await super().startup(sockets)
         if not self.started:
             return

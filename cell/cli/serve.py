@@ -16,6 +16,7 @@ import uvicorn
 from rich.console import Console
 
 from cell.api.app import create_app
+from cell.api.connections import ConnectionLimits, protocol_class
 from cell.api.server import NotifyingServer
 from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
@@ -71,10 +72,14 @@ def serve(
                           f"operator {where})", markup=False, highlight=False, soft_wrap=True)
     configure_logging()
     # On SIGTERM or Ctrl-C uvicorn waits for open connections before the app shuts down (and stops the
-    # running job); event streams never close by themselves, so they are cut after a short grace.
+    # running job); event streams never close by themselves, so they are cut after a short grace. The
+    # connections are capped under the descriptor limit, and must deliver their headers in time
+    # (cell.api.connections).
+    limits = ConnectionLimits.of_process()
     server = NotifyingServer(uvicorn.Config(create_app(ServiceSettings(config, data_dir, db), service),
                                             host=host, port=port, log_config=None,
-                                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S), notifier)
+                                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
+                                            http=protocol_class(limits), backlog=limits.backlog), notifier)
     server.run()
     if not server.started:
         raise typer.Exit(code=1)

@@ -1,0 +1,225 @@
+"""The connections ``cell serve`` keeps: how many, how long a client may take to ask, and a log that an
+exhausted descriptor table cannot flood.
+
+uvicorn keeps a connection for as long as its client likes before the request's headers are in: a socket
+that sends half a request line, or a header every few seconds, held a file descriptor for ever. 1100 of
+them under systemd's default soft limit of 1024 descriptors left none for a STOP (it and ``/healthz``
+timed out), and asyncio logged each failed ``accept()`` with a traceback, 112 474 times in 25 s. As nginx
+and haproxy do, :func:`protocol_class` gives uvicorn a protocol (its h11 one, with these guards) where
+
+- a connection has ``HEADER_TIMEOUT_S`` to deliver a request's headers, counted from its opening or from
+  the end of its previous response: this bounds an idle keep-alive connection too (uvicorn's own
+  keep-alive timeout ends one that sends nothing sooner, but not one that starts a request and stalls);
+- at most :attr:`ConnectionLimits.max_connections` are open: a connection that would pass the cap
+  closes the one that has waited longest for a request (none in progress: a slow or idle client), so that
+  a new client, a STOP among them, always gets in. When every open connection has a request in progress,
+  the oldest one whose response is streaming is cut instead (an event stream: a browser's EventSource
+  reconnects and resumes with ``Last-Event-ID``), and only when there is none either (every request still
+  reading its body or being worked on) is the newcomer answered 503;
+- the accept loop takes at most ``backlog`` connections at a time (asyncio's loop accepts up to the
+  listen backlog in one go, before any of them is counted), so that the descriptors of a burst stay
+  under the limit as well.
+
+:func:`quiet_accept_failures` makes what is left (descriptors taken by something else) one log line per
+``LOG_INTERVAL_S`` with a count, not a traceback per attempt; the connections shed or refused at the cap
+are logged the same way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import resource
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+log = logging.getLogger("cell.service")
+
+MAX_CONNECTIONS = 256
+"""The most connections the service keeps open. Its clients are a few operator pages (a browser holds
+up to six connections to a host, and one event stream per job it follows), the line's PLC, the command
+line and a metrics scraper: a few dozen; 256 is ten times that."""
+FD_SHARE = 4
+"""The connections take at most 1/FD_SHARE of the process's soft descriptor limit: each may hold a second
+descriptor (a job file being sent, an upload's temporary file) and the accept backlog adds half as many
+again, which leaves more than a third of the limit to the store, the job's worker and its pipes, the
+line's OPC UA server and the logs (the cap is 256 under the usual soft limit of 1024, 64 under 256)."""
+HEADER_TIMEOUT_S = 10.0
+"""How long a connection has to deliver a request's headers [s], from its opening or from the end of its
+previous response; haproxy's usual ``timeout http-request``. A client on loopback or a LAN sends them in
+one packet, in well under a millisecond; ten seconds is room for a congested wireless link."""
+LOG_INTERVAL_S = 10.0
+"""At most one line per this interval [s] for the accept failures, and one for the connections shed or
+refused at the cap, each with how many there were."""
+ACCEPT_FAILURE = "socket.accept() out of system resource"
+"""What asyncio's event loop reports when ``accept()`` fails for want of descriptors or memory."""
+BUSY_ANSWER = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\n"
+               b"connection: close\r\ncontent-length: 42\r\n\r\nevery connection has a request in progress")
+"""The answer to a connection over the cap when no open one can be closed for it."""
+
+
+@dataclass(frozen=True)
+class ConnectionLimits:
+    """The guards of :func:`protocol_class` (see the module docstring)."""
+
+    max_connections: int
+    """Connections open at once."""
+    header_timeout_s: float = HEADER_TIMEOUT_S
+    """How long a connection has to deliver a request's headers [s]."""
+
+    @property
+    def backlog(self) -> int:
+        """The listen backlog, and so the most connections asyncio accepts in one go: half the cap."""
+        return max(1, self.max_connections // 2)
+
+    @classmethod
+    def of_process(cls) -> ConnectionLimits:
+        """``MAX_CONNECTIONS``, or less when this process's soft descriptor limit is low (``FD_SHARE``)."""
+        soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+        share = MAX_CONNECTIONS if soft == resource.RLIM_INFINITY else soft // FD_SHARE
+        return cls(max(1, min(MAX_CONNECTIONS, share)))
+
+
+class EveryInterval:
+    """Counts events and logs them in one line at most every ``LOG_INTERVAL_S``: the first event at once,
+    the ones after it in a line with their count at the end of the interval."""
+
+    def __init__(self, line: Callable[[int, str], None]) -> None:
+        """``line(count, detail)`` logs the line, ``detail`` being the newest event's."""
+        self._line = line
+        self._count = 0
+        self._detail = ""
+        self._last: float | None = None
+        self._pending: asyncio.TimerHandle | None = None
+
+    def event(self, loop: asyncio.AbstractEventLoop, detail: str = "") -> None:
+        """One more event, on ``loop`` (whose clock times the interval)."""
+        self._count, self._detail = self._count + 1, detail
+        if self._pending is not None:
+            return
+        wait_s = 0.0 if self._last is None else self._last + LOG_INTERVAL_S - loop.time()
+        if wait_s <= 0.0:
+            self._emit(loop)
+        else:
+            self._pending = loop.call_later(wait_s, self._emit, loop)
+
+    def _emit(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._line(self._count, self._detail)
+        self._count, self._last, self._pending = 0, loop.time(), None
+
+
+class GuardedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with a header deadline and a connection cap (the module docstring); made
+    with its limits by :func:`protocol_class`. h11 is what uvicorn's ``auto`` chooses here (httptools is
+    not installed); naming it keeps the guards should httptools ever be."""
+
+    limits: ClassVar[ConnectionLimits]
+    at_cap: ClassVar[EveryInterval]
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._deadline: asyncio.TimerHandle | None = None
+        self.waiting_since = 0.0
+        """When this connection began to wait for a request's headers (the loop's clock [s]); kept while
+        the request is in progress."""
+
+    @property
+    def busy(self) -> bool:
+        """Whether a request is in progress: its headers are in and its response is not complete."""
+        return self.cycle is not None and not self.cycle.response_complete
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._await_request()
+        open_now = [c for c in self.connections if not c.transport.is_closing()]
+        if len(open_now) <= self.limits.max_connections:
+            return
+        others = [c for c in open_now if isinstance(c, GuardedH11Protocol) and c is not self]
+        idle = [c for c in others if not c.busy]
+        streaming = [c for c in others if c.busy and c.cycle.response_started]
+        if idle:
+            _drop(min(idle, key=lambda c: c.waiting_since).transport)
+        elif streaming:
+            _drop(min(streaming, key=lambda c: c.waiting_since).transport)
+        else:
+            self.transport.write(BUSY_ANSWER)
+            self.transport.close()
+        self.at_cap.event(self.loop)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._stop_waiting()
+        super().connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self.busy:
+            self._stop_waiting()
+
+    def handle_websocket_upgrade(self, event: Any) -> None:
+        self._stop_waiting()  # the connection is the WebSocket protocol's from now on
+        super().handle_websocket_upgrade(event)
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.busy and not self.transport.is_closing():
+            self._await_request()
+
+    def _await_request(self) -> None:
+        self._stop_waiting()
+        self.waiting_since = self.loop.time()
+        self._deadline = self.loop.call_later(self.limits.header_timeout_s, _drop, self.transport)
+
+    def _stop_waiting(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+
+
+def _drop(transport: asyncio.Transport) -> None:
+    """Close a connection now: a plain close waits until what is queued for the client has been sent,
+    which a client that does not read never lets happen."""
+    if transport.get_write_buffer_size():
+        transport.abort()
+    else:
+        transport.close()
+
+
+def protocol_class(limits: ConnectionLimits) -> type[GuardedH11Protocol]:
+    """The protocol for ``uvicorn.Config(http=...)`` under ``limits``."""
+
+    def line(count: int, _: str) -> None:
+        log.warning("connections at the cap of %d: %d more came; for each, the one idle longest was closed "
+                    "(with none idle, the oldest streaming response cut; with none either, the new one "
+                    "answered 503)", limits.max_connections, count)
+
+    class Limited(GuardedH11Protocol):
+        pass
+
+    Limited.limits, Limited.at_cap = limits, EveryInterval(line)
+    return Limited
+
+
+def quiet_accept_failures(loop: asyncio.AbstractEventLoop) -> None:
+    """Make the event loop's report of a failed ``accept()`` one line per ``LOG_INTERVAL_S`` with a count
+    (asyncio logs a traceback for every attempt, up to the backlog's number each time it retries); every
+    other report goes where it went."""
+    previous = loop.get_exception_handler()
+
+    def line(count: int, failure: str) -> None:
+        log.error("accept() failed %d times: out of file descriptors or memory (%s); the service accepts "
+                  "again a second later", count, failure)
+
+    failures = EveryInterval(line)
+
+    def handler(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        if context.get("message") == ACCEPT_FAILURE:
+            failures.event(loop, str(context.get("exception", "")))
+        elif previous is not None:
+            previous(loop, context)
+        else:
+            loop.default_exception_handler(context)
+
+    loop.set_exception_handler(handler)

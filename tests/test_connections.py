@@ -1,0 +1,162 @@
+"""The connection guards of ``cell serve`` (``cell.api.connections``), on a uvicorn server of their own on
+loopback with small limits, serving a small ASGI app: a connection that does not deliver its headers in
+time is closed, at the cap the connection idle longest (else the oldest stream) makes room for a new
+client, and a failing ``accept()`` is logged once per interval, not once per attempt.
+
+``test_service_process`` floods a real ``cell serve`` under a low descriptor limit."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+import uvicorn
+
+from cell.api import connections
+from cell.api.connections import ACCEPT_FAILURE, ConnectionLimits, protocol_class, quiet_accept_failures
+from tests.service_process import closed_by_server, free_port, until
+
+WAIT_S = 30.0  # a bound on waiting for the server, never a timed check [s]; the sockets' timeout
+LONG_S = 600.0  # a deadline no test reaches [s]
+
+
+async def app(scope: dict[str, Any], receive: Any, send: Any) -> None:
+    """``/stream``: a response that never ends (a chunk every 50 ms); ``/body``: answers once the whole
+    body is in; anything else: ``ok``."""
+    if scope["path"] == "/body":
+        while (await receive()).get("more_body"):
+            pass
+    length = [] if scope["path"] == "/stream" else [(b"content-length", b"2")]
+    await send({"type": "http.response.start", "status": 200, "headers": length})
+    if scope["path"] == "/stream":
+        while True:
+            await send({"type": "http.response.body", "body": b"tick\n", "more_body": True})
+            await asyncio.sleep(0.05)
+    await send({"type": "http.response.body", "body": b"ok"})
+
+
+@contextlib.contextmanager
+def serving(limits: ConnectionLimits) -> Iterator[int]:
+    """A uvicorn server of ``app`` with the guards under ``limits``, in a thread; yields its port."""
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, lifespan="off", log_config=None,
+                                           http=protocol_class(limits), backlog=limits.backlog,
+                                           timeout_keep_alive=int(LONG_S), timeout_graceful_shutdown=1))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + WAIT_S
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
+        time.sleep(0.01)
+    try:
+        yield port
+    finally:
+        server.should_exit = True
+        thread.join(WAIT_S)
+
+
+def connect(port: int, request: bytes = b"") -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port), timeout=WAIT_S)
+    sock.sendall(request)
+    return sock
+
+
+def still_open(sock: socket.socket) -> bool:
+    """Whether the connection answers another request."""
+    sock.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+    try:
+        return until(sock, b"ok").endswith(b"ok")
+    except ConnectionResetError:
+        return False
+
+
+def test_a_connection_that_does_not_deliver_its_headers_in_time_is_closed() -> None:
+    """Half a request line, a connection that sends nothing, and a kept-alive one that starts its next
+    request and stalls are each closed at the header deadline; a request in time is answered."""
+    with serving(ConnectionLimits(16, header_timeout_s=0.5)) as port:
+        slow = connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n")
+        silent = connect(port)
+        kept = connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert until(kept, b"ok").endswith(b"ok")
+        kept.sendall(b"GET / HTTP/1.1\r\n")
+        for sock in (slow, silent, kept):
+            with sock:
+                assert closed_by_server(sock)
+        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as prompt:
+            assert until(prompt, b"ok").startswith(b"HTTP/1.1 200 ")
+
+
+def test_at_the_cap_the_connection_idle_longest_makes_room_for_a_new_client() -> None:
+    with serving(ConnectionLimits(4, header_timeout_s=LONG_S)) as port:
+        idle = []
+        for _ in range(4):  # one request each, in turn: idle[0] has waited longest since
+            idle.append(connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"))
+            assert until(idle[-1], b"ok").endswith(b"ok")
+        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as newcomer:
+            assert until(newcomer, b"ok").startswith(b"HTTP/1.1 200 ")
+            assert closed_by_server(idle[0])
+            assert all(still_open(sock) for sock in idle[1:])
+        for sock in idle:
+            sock.close()
+
+
+def test_at_the_cap_with_every_request_in_progress_a_stream_is_cut_else_the_newcomer_refused() -> None:
+    """With no idle connection, the oldest streaming response is cut for the new client (an event stream
+    resumes with Last-Event-ID); with none streaming either, the new client is answered 503."""
+    with serving(ConnectionLimits(4, header_timeout_s=LONG_S)) as port:
+        streams = []
+        for _ in range(4):
+            streams.append(connect(port, b"GET /stream HTTP/1.1\r\nHost: x\r\n\r\n"))
+            assert b"tick" in until(streams[-1], b"tick")
+        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as newcomer:
+            assert until(newcomer, b"ok").startswith(b"HTTP/1.1 200 ")
+            assert closed_by_server(streams[0])
+        for sock in streams[1:]:
+            assert b"tick" in until(sock, b"tick")  # still streaming
+            sock.close()
+    with serving(ConnectionLimits(4, header_timeout_s=LONG_S)) as port:
+        # every one waiting for a body that does not come: the newcomer is refused
+        bodies = []
+        for _ in range(4):  # the 100 Continue comes once the app reads the body: its request is in progress
+            bodies.append(connect(port, b"POST /body HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n"
+                                        b"Expect: 100-continue\r\n\r\n"))
+            assert until(bodies[-1], b"\r\n\r\n").startswith(b"HTTP/1.1 100 ")
+        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as refused:
+            answer = until(refused, b"progress")
+        assert answer.startswith(b"HTTP/1.1 503 "), answer
+        for sock in bodies:
+            sock.sendall(b"0123456789")
+            assert until(sock, b"ok").startswith(b"HTTP/1.1 200 ")
+            sock.close()
+
+
+def test_a_failing_accept_is_logged_once_per_interval_with_its_count(
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """asyncio reported every failed ``accept()`` with a traceback (112 474 in 25 s, 57 MB of log); it is
+    one line, then one line with the count at the end of the interval. Other reports go on as before."""
+    monkeypatch.setattr(connections, "LOG_INTERVAL_S", 0.05)
+    loop = asyncio.new_event_loop()
+    try:
+        quiet_accept_failures(loop)
+        with caplog.at_level(logging.INFO):
+            for _ in range(1000):
+                loop.call_exception_handler({"message": ACCEPT_FAILURE,
+                                             "exception": OSError(24, "Too many open files")})
+            assert [r.getMessage() for r in caplog.records if r.name == "cell.service"] == [
+                "accept() failed 1 times: out of file descriptors or memory ([Errno 24] Too many open "
+                "files); the service accepts again a second later"]
+            loop.run_until_complete(asyncio.sleep(0.5))  # past the interval's end
+            lines = [r.getMessage() for r in caplog.records if r.name == "cell.service"]
+            assert len(lines) == 2 and lines[1].startswith("accept() failed 999 times")
+            assert not any(r.exc_info for r in caplog.records)
+            loop.call_exception_handler({"message": "something else"})
+            assert any(r.name == "asyncio" and r.getMessage() == "something else" for r in caplog.records)
+    finally:
+        loop.close()
