@@ -5,17 +5,18 @@ every number written with a fixed number of decimals; nothing that depends on th
 clock (no wall times, no paths). Empty cells are figures a scan does not have (no ground truth, no
 packing history, a scan that never ran).
 
-Columns: ``object``, ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or
-``failed`` for a scan whose worker died twice), ``termination``, ``scan_time_s`` (job time from the first
-frame, the visual-servoing paper's clock), ``path_m`` (sensor path over the same span), ``n_captures``,
-``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud; on the 1 mm re-processed
-cloud, ``result_hires.json``, for a grid that re-processes, as the paper measures Table I; the ground truth
-registered to the cloud as the paper does), ``coverage_unregistered_pct`` and ``chamfer_unregistered_mm``
-(the same without registration, the ground truth where the simulated object really is), and the
-packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
-``packing_coverage_pct``; last ``job``, the scan's job folder under ``scans/`` (its name holds the scan's
-key, ``cell.evaluation.spec``; empty for a failed scan): the output folder may also hold the folders of
-earlier runs, scans of other code or inputs, which are not this grid's.
+Columns: ``object``, ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or ``failed``
+for a scan whose worker died twice, or of a grid that re-processes whose re-process failed: its figures are
+then empty, never the online cloud's), ``termination``, ``scan_time_s`` (job time from the first frame, the
+visual-servoing paper's clock), ``path_m`` (sensor path over the same span), ``n_captures``, ``coverage_pct``,
+``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud; on the 1 mm re-processed cloud,
+``result_hires.json``, for a grid that re-processes, as the paper measures Table I; the ground truth
+registered to the cloud as the paper does), ``coverage_unregistered_pct`` and ``chamfer_unregistered_mm`` (the
+same without registration, the ground truth where the simulated object really is), and the packing paper's
+figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and ``packing_coverage_pct``; last
+``job``, the scan's job folder under ``scans/`` (its name holds the scan's key, ``cell.evaluation.spec``;
+empty for a scan that left no folder): the output folder may also hold the folders of earlier runs, scans of
+other code or inputs, which are not this grid's.
 """
 
 from __future__ import annotations
@@ -56,6 +57,8 @@ def _identity(spec: ScanSpec) -> Row:
 
 
 HIRES_JSON = "result_hires.json"
+REPROCESS_FAILED = "reprocess_failed.txt"
+"""In a re-processed job folder, why its re-process failed (written by ``cell.evaluation.task``)."""
 
 
 def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any] | None = None) -> Row:
@@ -78,10 +81,21 @@ def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any
 
 
 def row_from_folder(spec: ScanSpec, folder: Path) -> Row:
-    """The row of a scan from its job folder."""
+    """The row of a scan from its job folder: for a spec that re-processes, the figures of its
+    ``result_hires.json``, and a ``failed`` row saying why when the re-process failed (no figures: the
+    online cloud's are not what the grid measures); for one that does not, the online cloud's, even where
+    someone re-processed the folder since."""
+    result = json.loads((folder / "result.json").read_text())
     hires = folder / HIRES_JSON
-    return {**row_from_result(spec, json.loads((folder / "result.json").read_text()),
-                              json.loads(hires.read_text()) if hires.is_file() else None), "job": folder.name}
+    if not spec.reprocess:
+        return {**row_from_result(spec, result), "job": folder.name}
+    if hires.is_file():
+        return {**row_from_result(spec, result, json.loads(hires.read_text())), "job": folder.name}
+    why = folder / REPROCESS_FAILED
+    reason = why.read_text().strip() if why.is_file() else "no result_hires.json"
+    scanned = ("" if result["status"] == "completed"
+               else f"the scan {result['status']}: {result['termination']}; ")
+    return {**failed_row(spec, f"{scanned}re-process failed: {reason}"), "job": folder.name}
 
 
 def timeline_from_folder(folder: Path) -> Timeline | None:

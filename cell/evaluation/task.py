@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cell.config import load_config
+from cell.evaluation.results import REPROCESS_FAILED
 from cell.evaluation.spec import ScanSpec, mesh_file
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
@@ -88,7 +89,11 @@ def run_scan_task(task: ScanTask) -> TaskOutput:
                                  out=folder, max_time_s=spec.max_time_s, object_scale=spec.object_scale))
             if spec.reprocess:
                 # the crop box from the task's copy: the job names the driver's file, absent on a cluster
-                reprocess_job(folder, crop=config.perception.crop_box)
+                try:
+                    reprocess_job(folder, crop=config.perception.crop_box)
+                except CellError as exc:
+                    (folder / REPROCESS_FAILED).write_text(f"{type(exc).__name__}: {exc}\n")
+                    raise
         except CellError as exc:
             error = f"{type(exc).__name__}: {exc}"
         except Exception as exc:

@@ -1,0 +1,46 @@
+"""What a grid's rows and report say: a failed re-process is a failed row (never the online figures
+under the re-processed title), an online grid keeps the online figures whatever the folder holds since,
+and scans that did not complete stay out of the means and ``n`` and are listed."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+from cell.evaluation.report import REPORT_MD, write_report
+from cell.evaluation.results import HIRES_JSON, row_from_folder
+from cell.evaluation.spec import ScanSpec, scan_key
+from cell.evaluation.task import ScanTask, run_scan_task, unpack_folder
+
+REPO = Path(__file__).resolve().parents[1]
+TOF = str(REPO / "config" / "sim-ur5e-tof.yaml")
+
+
+def _job(folder: Path, status: str = "completed", coverage: float = 50.0, hires: float | None = None) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "result.json").write_text(json.dumps({
+        "status": status, "termination": "budget", "scan_time_s": 1.0, "n_captures": 3,
+        "metrics": {"coverage_pct": coverage, "chamfer_mm": 2.0}}))
+    if hires is not None:
+        (folder / HIRES_JSON).write_text(json.dumps({"metrics": {"coverage_pct": hires, "chamfer_mm": 1.0}}))
+    return folder
+
+
+def test_a_failed_reprocess_is_a_failed_row_with_no_online_figures(tmp_path):
+    # 1 s of budget: no frame, nothing to re-process
+    spec = ScanSpec(TOF, "cube", (0.0, 0.0, 0.0), "heu", 0, max_time_s=1.0, reprocess=True)
+    output = run_scan_task(ScanTask.of(spec, scan_key(spec)))
+    assert output.archive is not None and output.error is not None
+    unpack_folder(output.archive, tmp_path / "job")
+    row = row_from_folder(spec, tmp_path / "job")
+    assert row["status"] == "failed" and "re-process failed" in row["termination"], row
+    assert row["coverage_pct"] == row["chamfer_mm"] == "" and row["job"] == "job"
+
+
+def test_an_online_row_keeps_the_online_figures_after_a_reprocess(tmp_path):
+    spec = ScanSpec(TOF, "cube", (0.0, 0.0, 0.0), "heu", 0)
+    folder = _job(tmp_path / "job", coverage=50.0, hires=90.0)
+    assert row_from_folder(spec, folder)["coverage_pct"] == "50.0000"
+    assert row_from_folder(replace(spec, reprocess=True), folder)["coverage_pct"] == "90.0000"
+
