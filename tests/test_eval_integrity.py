@@ -44,3 +44,14 @@ def test_an_online_row_keeps_the_online_figures_after_a_reprocess(tmp_path):
     assert row_from_folder(spec, folder)["coverage_pct"] == "50.0000"
     assert row_from_folder(replace(spec, reprocess=True), folder)["coverage_pct"] == "90.0000"
 
+
+def test_scans_that_did_not_complete_are_out_of_the_means_and_listed(tmp_path):
+    spec = ScanSpec(TOF, "cube", (0.0, 0.0, 0.0), "heu", 0)
+    rows = [row_from_folder(replace(spec, seed=seed), _job(tmp_path / f"s{seed}", status, coverage))
+            for seed, status, coverage in ((0, "completed", 60.0), (1, "completed", 80.0),
+                                           (2, "stopped", 5.0), (3, "failed", 1.0))]
+    write_report(rows, tmp_path, {})
+    md = (tmp_path / REPORT_MD).read_text()
+    assert "| cube | heu | 2 | 70.0 ± 10.0 |" in md, md
+    listed = md.split("## Scans that did not complete")[1]
+    assert "cube 0,0,0 heu seed 2: stopped: budget" in listed and "seed 3: failed" in listed

@@ -2,8 +2,11 @@
 can be rebuilt from the output folder at any time).
 
 Scans group by object and placement (the placement shown only where an object has several); within a
-group, by planner. A group's figures are the mean and standard error of the mean over its scans that
-have the figure (failed scans have none), ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
+group, by planner. Only scans that ran to their end count (status ``completed`` or ``no_object``): a
+failed scan, one whose re-process failed and one stopped (a protective stop: partial figures) are left
+out of the tables, the tests, the figures and ``n``, and listed with their reasons under "Scans that did
+not complete". A group's figures are the mean and standard error of the mean over its scans that
+have the figure, ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
 brackets where it has one. Mann-Whitney U (two-sided) compares every two planners of a group on each
 figure both have (and on each box dimension); ``-`` where it cannot say anything (a single seed, or all
 values tie).
@@ -58,8 +61,14 @@ class Group:
     by_planner: dict[str, list[Row]]
 
 
+MEASURED = ("completed", "no_object")
+"""The statuses of scans that ran to their end: the ones a report's figures are of."""
+
+
 def groups(rows: Sequence[Row]) -> list[Group]:
-    """The rows (results.csv's order) grouped by object and placement."""
+    """The rows (results.csv's order) of the scans that ran to their end (``MEASURED``) grouped by object
+    and placement."""
+    rows = [r for r in rows if r["status"] in MEASURED]
     placements: dict[str, set[str]] = {}
     for r in rows:
         placements.setdefault(r["object"], set()).add(r["placement"])
@@ -258,10 +267,11 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
                *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
         _bars(gs, out / FIG3)
     md += ["## Mann-Whitney U between planners", "", *tests_table(gs), ""]
-    failed = [r for r in rows if r["status"] == "failed"]
-    if failed:
-        md += ["## Failed scans", "", *(f"- {r['object']} {r['placement']} {r['planner']} seed {r['seed']}: "
-                                        f"{r['termination']}" for r in failed), ""]
+    unfinished = [r for r in rows if r["status"] not in MEASURED]
+    if unfinished:
+        md += ["## Scans that did not complete (not in the figures above)", "",
+               *(f"- {r['object']} {r['placement']} {r['planner']} seed {r['seed']}: {r['status']}: "
+                 f"{r['termination']}" for r in unfinished), ""]
     path = out / REPORT_MD
     path.write_text("\n".join(md))
     return path
