@@ -8,6 +8,10 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import open3d as o3d
+import yaml
+
+from cell.config import load_config
 from cell.evaluation.report import REPORT_MD, write_report
 from cell.evaluation.results import HIRES_JSON, row_from_folder
 from cell.evaluation.spec import ScanSpec, scan_key
@@ -55,3 +59,51 @@ def test_scans_that_did_not_complete_are_out_of_the_means_and_listed(tmp_path):
     assert "| cube | heu | 2 | 70.0 ± 10.0 |" in md, md
     listed = md.split("## Scans that did not complete")[1]
     assert "cube 0,0,0 heu seed 2: stopped: budget" in listed and "seed 3: failed" in listed
+
+
+def _box_stl(path: Path, size: float) -> str:
+    mesh = o3d.geometry.TriangleMesh.create_box(size, size, size)
+    mesh.compute_triangle_normals()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    return str(path)
+
+
+def test_an_object_is_known_by_its_mesh_not_its_file_name(tmp_path):
+    a = _box_stl(tmp_path / "a" / "part.stl", 0.05)
+    b = _box_stl(tmp_path / "b" / "part.stl", 0.06)
+    same = _box_stl(tmp_path / "c" / "part.stl", 0.05)
+    labels = [ScanSpec(TOF, obj, (0.0, 0.0, 0.0), "heu", 0).object_label for obj in (a, b, same)]
+    assert labels[0] != labels[1] and labels[0] == labels[2] and labels[0].startswith("part@")
+    assert ScanSpec(TOF, "cube", (0.0, 0.0, 0.0), "heu", 0).object_label == "cube"
+    assert ScanSpec(TOF, "cube", (0.0, 0.0, 0.0), "heu", 0, object_scale=0.5).object_label.startswith("cube@")
+    # a user's bunny.stl gets no figure of the paper's bunny in brackets
+    fake = ScanSpec(TOF, _box_stl(tmp_path / "fake" / "bunny.stl", 0.05), (0.0, 0.0, 0.0), "vs-local", 0)
+    write_report([row_from_folder(fake, _job(tmp_path / "job"))], tmp_path, {})
+    line = next(x for x in (tmp_path / REPORT_MD).read_text().splitlines() if "vs-local" in x)
+    assert line.startswith(f"| {fake.object_label} | vs-local | 1 | 50.0 |"), line
+
+
+def _cell_with_obstacle(tmp_path: Path, mesh: str) -> str:
+    data = yaml.safe_load(Path(TOF).read_text())
+    data["safety"]["collision"]["obstacles"] = [
+        {"shape": "mesh", "name": "post", "path": mesh, "pose": {"xyz_m": [0.9, 0.45, 0.025]}}]
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_the_key_covers_the_files_the_cell_file_names_and_a_task_carries_them(tmp_path):
+    mesh = _box_stl(tmp_path / "post.stl", 0.05)
+    spec = ScanSpec(_cell_with_obstacle(tmp_path, mesh), "cube", (0.0, 0.0, 0.0), "heu", 0)
+    key = scan_key(spec)
+    task = ScanTask.of(spec, key)
+    _box_stl(tmp_path / "post.stl", 0.04)
+    assert scan_key(spec) != key
+    # the worker's copy of the cell file names its own copy of the mesh, the bytes the driver read
+    worker = tmp_path / "worker"
+    worker.mkdir()
+    copy = load_config(task.write_config(worker))
+    (obstacle,) = copy.safety.collision.obstacles
+    assert Path(obstacle.path).parent == worker / "files"
+    assert Path(obstacle.path).read_bytes() == task.config_files[0] != Path(mesh).read_bytes()

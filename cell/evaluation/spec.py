@@ -1,14 +1,20 @@
 """One scan of a grid, what makes it what it is (its key), and the grid's cross product.
 
-A scan is keyed by the SHA-256 of its inputs: the content of the cell file, the content of the object's
-mesh file (a shipped object's PLY or the user's file), the placement, planner, seed, time budget, the
-mesh scale, whether the job is re-processed and the software: its release version and the content of
-every source file of ``cell`` and ``drivers`` (:func:`software_digest`: the modules and the compiled
-kernels' sources, the same on every machine), as a working copy keeps its version while its code
-changes. The key names the scan's job folder, so a second run of the same grid finds the scans already
-done, and any change of an input (an edited cell file, a new release, an edited module or kernel) runs
-the scan again: a benchmark run again after a change measures the new code, not the scans the old code
-left in its output folder.
+A scan is keyed by the SHA-256 of its inputs: the content of the cell file and of every file it names
+(:func:`file_references`: mesh bodies of the tool and the obstacles, the sensor's zone correction), the
+content of the object's mesh file (a shipped object's PLY or the user's file), the placement, planner, seed,
+time budget, the mesh scale, whether the job is re-processed and the software: its release version and the
+content of every source file of ``cell`` and ``drivers`` (:func:`software_digest`: the modules and the
+compiled kernels' sources, the same on every machine), as a working copy keeps its version while its code
+changes. The key names the scan's job folder, so a second run of the same grid finds the scans already done,
+and any change of an input (an edited cell file, a new release, an edited module or kernel) runs the scan
+again: a benchmark run again after a change measures the new code, not the scans the old code left in its
+output folder.
+
+An object is known in results and reports by its label (:attr:`ScanSpec.object_label`): a shipped name
+as it is, anything else (a mesh file, a shipped object scaled) by its name and a digest of its mesh's
+content and scale, so two meshes of one file name are two objects and a user's ``bunny.stl`` is not the
+paper's bunny.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -33,6 +40,8 @@ Placement = tuple[float, float, float]
 
 KEY_LENGTH = 12
 """Hex digits of the key in a job folder's name (48 bits: no collision within any practical grid)."""
+LABEL_DIGITS = 8
+"""Hex digits of a mesh's digest in its label (``ScanSpec.object_label``)."""
 
 
 @dataclass(frozen=True)
@@ -53,8 +62,11 @@ class ScanSpec:
 
     @property
     def object_label(self) -> str:
-        """The object's name in tables: a shipped name, or a mesh file's stem."""
-        return self.object if self.object in shipped_names() else Path(self.object).stem
+        """The object's name in tables: a shipped name at scale 1 as it is, else the name (a mesh file's
+        stem) followed by ``@`` and ``LABEL_DIGITS`` hex digits of :func:`object_digest`."""
+        if self.object in shipped_names() and self.object_scale == 1.0:
+            return self.object
+        return f"{Path(self.object).stem}@{object_digest(self.object, self.object_scale)[:LABEL_DIGITS]}"
 
     @property
     def placement_text(self) -> str:
@@ -91,18 +103,65 @@ def software_digest() -> str:
 
 
 @cache
-def _file_digest(path: Path) -> str:
+def _content_digest(path: Path, _mtime_ns: int, _size: int) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def file_digest(path: Path) -> str:
+    """The hex SHA-256 of the file's content (read again when it changed); ``JobError`` when unreadable."""
     try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()
+        stat = path.stat()
+        return _content_digest(path.resolve(), stat.st_mtime_ns, stat.st_size)
     except OSError as exc:
         raise JobError(f"cannot read {path}: {exc}") from None
 
 
+def object_digest(obj: str, scale: float) -> str:
+    """The hex SHA-256 of the object's mesh file's content and its scale."""
+    return hashlib.sha256(f"{file_digest(mesh_file(obj))} {scale!r}".encode()).hexdigest()
+
+
+FileReference = tuple[dict[str, Any], str, Path]
+"""Where a cell file names a file: the mapping of its parsed YAML, the key, the file as the cell reads it."""
+
+
+def file_references(data: Any, folder: Path) -> list[FileReference]:
+    """The files the parsed cell file ``data`` (in ``folder``) names, in its order: the sensor's
+    ``zone_correction`` (a relative name from the cell file's folder, as ``cell.config`` takes it) and
+    the ``path`` of every mesh body of ``safety.collision.tool`` and ``obstacles`` (a relative one from
+    the working directory, as ``cell.safety.collision`` reads it)."""
+    refs: list[FileReference] = []
+    if not isinstance(data, dict):
+        return refs
+    sensor = data.get("sensor")
+    if isinstance(sensor, dict) and isinstance(sensor.get("zone_correction"), str):
+        refs.append((sensor, "zone_correction", folder / Path(sensor["zone_correction"]).expanduser()))
+    safety = data.get("safety")
+    collision = safety.get("collision") if isinstance(safety, dict) else None
+    if isinstance(collision, dict):
+        for body in [*(collision.get("tool") or []), *(collision.get("obstacles") or [])]:
+            if isinstance(body, dict) and body.get("shape") == "mesh" and isinstance(body.get("path"), str):
+                refs.append((body, "path", Path(body["path"]).expanduser().resolve()))
+    return refs
+
+
+def cell_file_references(config: str) -> list[FileReference]:
+    """:func:`file_references` of the cell file at ``config``; ``ConfigError`` when it is unreadable."""
+    path = Path(config)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read the cell file: {exc}", file=config) from None
+    return file_references(data, path.resolve().parent)
+
+
 def input_digest(config: str, object: str, **inputs: object) -> str:
-    """The hex SHA-256 of the cell file's and the object mesh's contents, the software
-    (:func:`software_digest`) and ``inputs`` (JSON values)."""
-    everything = {**inputs, "config": _file_digest(Path(config).resolve()),
-                  "object": _file_digest(mesh_file(object).resolve()), "software": software_digest()}
+    """The hex SHA-256 of the contents of the cell file, of the files it names
+    (:func:`file_references`) and of the object's mesh, the software (:func:`software_digest`) and
+    ``inputs`` (JSON values)."""
+    everything = {**inputs, "config": file_digest(Path(config)),
+                  "files": [file_digest(path) for _, _, path in cell_file_references(config)],
+                  "object": file_digest(mesh_file(object)), "software": software_digest()}
     return hashlib.sha256(json.dumps(everything, sort_keys=True).encode()).hexdigest()
 
 

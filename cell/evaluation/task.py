@@ -1,7 +1,9 @@
 """One scan as a task of an executor: what a worker gets, what it runs, what it sends back.
 
 A worker may be another machine (a Ray cluster) without the driver's files, so the task carries the cell
-file's text and a user mesh's bytes; the worker writes them to a private temporary folder, runs the scan
+file's text, the bytes of every file the cell file names (``cell.evaluation.spec.file_references``: mesh
+bodies, a zone correction) and a user mesh's bytes; the worker writes them to a private temporary folder
+(the cell file's copy naming the copies of its files), runs the scan
 there (``cell.jobs.runner.run_scan``, then ``cell.perception.reprocess`` when the spec asks) and sends
 the whole job folder back as an in-memory tar archive, which the driver unpacks under ``--out``. The job
 records the driver's cell-file path and the mesh's name, not the worker's temporary copies.
@@ -15,9 +17,11 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
+
 from cell.config import load_config
 from cell.evaluation.results import REPROCESS_FAILED
-from cell.evaluation.spec import ScanSpec, mesh_file
+from cell.evaluation.spec import ScanSpec, cell_file_references, file_references, mesh_file
 from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.reprocess import reprocess_job
 from drivers.errors import CellError
@@ -28,17 +32,37 @@ JOB_DIR = "job"
 
 @dataclass(frozen=True)
 class ScanTask:
-    """A scan to run: its spec, key, the cell file's text and, for a user mesh, the file's bytes."""
+    """A scan to run: its spec, key, the cell file's text, the bytes of the files it names (in
+    ``file_references``' order) and, for a user mesh, the file's bytes."""
 
     spec: ScanSpec
     key: str
     config_text: str
     mesh_bytes: bytes | None
+    config_files: tuple[bytes, ...] = ()
 
     @classmethod
     def of(cls, spec: ScanSpec, key: str) -> ScanTask:
         mesh = None if spec.object in shipped_names() else mesh_file(spec.object).read_bytes()
-        return cls(spec, key, Path(spec.config).read_text(), mesh)
+        files = tuple(path.read_bytes() for _, _, path in cell_file_references(spec.config))
+        return cls(spec, key, Path(spec.config).read_text(), mesh, files)
+
+    def write_config(self, root: Path) -> Path:
+        """The cell file's copy in ``root``, and copies of the files it names under ``root/files``, which
+        the copy names instead (the text as it came when it names none)."""
+        path = root / Path(self.spec.config).name
+        data = yaml.safe_load(self.config_text)
+        refs = file_references(data, root)
+        if not refs:
+            path.write_text(self.config_text)
+            return path
+        (root / "files").mkdir()
+        for n, ((holder, key, original), content) in enumerate(zip(refs, self.config_files, strict=True)):
+            copy = root / "files" / f"{n}-{original.name}"
+            copy.write_bytes(content)
+            holder[key] = str(copy)
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
+        return path
 
 
 @dataclass(frozen=True)
@@ -72,8 +96,7 @@ def run_scan_task(task: ScanTask) -> TaskOutput:
     spec = task.spec
     with tempfile.TemporaryDirectory(prefix="cell-eval-") as tmp:
         root = Path(tmp)
-        config_path = root / Path(spec.config).name
-        config_path.write_text(task.config_text)
+        config_path = task.write_config(root)
         obj = spec.object
         if task.mesh_bytes is not None:
             mesh_path = root / "mesh" / Path(spec.object).name
