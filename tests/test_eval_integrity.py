@@ -107,3 +107,12 @@ def test_the_key_covers_the_files_the_cell_file_names_and_a_task_carries_them(tm
     (obstacle,) = copy.safety.collision.obstacles
     assert Path(obstacle.path).parent == worker / "files"
     assert Path(obstacle.path).read_bytes() == task.config_files[0] != Path(mesh).read_bytes()
+
+
+def test_a_job_folder_names_the_user_mesh_as_the_driver_has_it(tmp_path):
+    mesh = _box_stl(tmp_path / "part.stl", 0.05)
+    spec = ScanSpec(TOF, mesh, (0.0, 0.0, 0.0), "heu", 0, max_time_s=1.0)
+    output = run_scan_task(ScanTask.of(spec, scan_key(spec)))
+    unpack_folder(output.archive, tmp_path / "job")
+    for name in ("result.json", "job.json"):
+        assert json.loads((tmp_path / "job" / name).read_text())["object"] == str(Path(mesh).resolve())

@@ -6,14 +6,19 @@ bodies, a zone correction) and a user mesh's bytes; the worker writes them to a 
 (the cell file's copy naming the copies of its files), runs the scan
 there (``cell.jobs.runner.run_scan``, then ``cell.perception.reprocess`` when the spec asks) and sends
 the whole job folder back as an in-memory tar archive, which the driver unpacks under ``--out``. The job
-records the driver's cell-file path and the mesh's name, not the worker's temporary copies.
+records the driver's cell-file path and the driver's absolute path of a user mesh, not the worker's
+temporary copies: ``cell scan --replay`` and ``cell reprocess`` of the folder on the driver find the
+ground truth.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import tarfile
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,12 +45,30 @@ class ScanTask:
     config_text: str
     mesh_bytes: bytes | None
     config_files: tuple[bytes, ...] = ()
+    mesh_origin: str | None = None
+    """The user mesh's absolute path on the driver: what the job folder records as its object."""
 
     @classmethod
     def of(cls, spec: ScanSpec, key: str) -> ScanTask:
-        mesh = None if spec.object in shipped_names() else mesh_file(spec.object).read_bytes()
+        user_mesh = spec.object not in shipped_names()
+        mesh = mesh_file(spec.object).read_bytes() if user_mesh else None
         files = tuple(path.read_bytes() for _, _, path in cell_file_references(spec.config))
-        return cls(spec, key, Path(spec.config).read_text(), mesh, files)
+        origin = str(mesh_file(spec.object).resolve()) if user_mesh else None
+        return cls(spec, key, Path(spec.config).read_text(), mesh, files, origin)
+
+    @contextmanager
+    def materialised(self) -> Iterator[tuple[Path, Path, str]]:
+        """A private temporary folder holding the cell file's copy (:meth:`write_config`) and the user
+        mesh's: (the folder, the cell file's copy, the object to load), removed after."""
+        with tempfile.TemporaryDirectory(prefix="cell-eval-") as tmp:
+            root = Path(tmp)
+            obj = self.spec.object
+            if self.mesh_bytes is not None:
+                mesh_path = root / "mesh" / Path(obj).name
+                mesh_path.parent.mkdir()
+                mesh_path.write_bytes(self.mesh_bytes)
+                obj = str(mesh_path)
+            yield root, self.write_config(root), obj
 
     def write_config(self, root: Path) -> Path:
         """The cell file's copy in ``root``, and copies of the files it names under ``root/files``, which
@@ -90,19 +113,27 @@ def unpack_folder(archive: bytes, folder: Path) -> None:
         tar.extractall(folder, filter="data")
 
 
+RECORDS = ("result.json", "job.json")
+"""The files of a job folder that name its object (``cell.jobs.recorder``)."""
+
+
+def record_object(folder: Path, obj: str) -> None:
+    """Name ``obj`` as the object of the job in ``folder`` (in place of the worker's temporary copy of
+    its mesh), where replay and re-process read it (the ground truth of their metrics)."""
+    for name in RECORDS:
+        path = folder / name
+        if path.is_file():
+            record = json.loads(path.read_text())
+            record["object"] = obj
+            path.write_text(json.dumps(record, indent=2, allow_nan=True) + "\n")
+
+
 def run_scan_task(task: ScanTask) -> TaskOutput:
     """Run the task's scan in a temporary folder and return its job folder (never raises for a scan's
-    failure: a failed job's folder holds its result and the reason comes back with it)."""
+    failure: a failed job's folder holds its result and the reason comes back with it). The folder names
+    the driver's mesh file as its object, not the worker's copy (``record_object``)."""
     spec = task.spec
-    with tempfile.TemporaryDirectory(prefix="cell-eval-") as tmp:
-        root = Path(tmp)
-        config_path = task.write_config(root)
-        obj = spec.object
-        if task.mesh_bytes is not None:
-            mesh_path = root / "mesh" / Path(spec.object).name
-            mesh_path.parent.mkdir()
-            mesh_path.write_bytes(task.mesh_bytes)
-            obj = str(mesh_path)
+    with task.materialised() as (root, config_path, obj):
         folder = root / JOB_DIR
         error = None
         try:
@@ -121,5 +152,7 @@ def run_scan_task(task: ScanTask) -> TaskOutput:
             error = f"{type(exc).__name__}: {exc}"
         except Exception as exc:
             error = f"internal error: {type(exc).__name__}: {exc}"
+        if task.mesh_origin is not None:
+            record_object(folder, task.mesh_origin)
         archive = pack_folder(folder) if (folder / "result.json").is_file() else None
     return TaskOutput(task.key, archive, error)
