@@ -4,18 +4,25 @@ and scans that did not complete stay out of the means and ``n`` and are listed."
 
 from __future__ import annotations
 
+import io
 import json
-from dataclasses import replace
+import tempfile
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import open3d as o3d
+import pytest
 import yaml
 
 from cell.config import load_config
+from cell.evaluation.evaluate import LIMITS_JSON, coverage_limits, evaluate
+from cell.evaluation.executors import LocalPool
+from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, WHOLE, Shard, running
 from cell.evaluation.report import REPORT_MD, write_report
-from cell.evaluation.results import HIRES_JSON, row_from_folder
-from cell.evaluation.spec import ScanSpec, scan_key
-from cell.evaluation.task import ScanTask, run_scan_task, unpack_folder
+from cell.evaluation.results import HIRES_JSON, read_csv, row_from_folder
+from cell.evaluation.spec import ScanSpec, cross, scan_key
+from cell.evaluation.task import ScanTask, TaskOutput, pack_folder, run_scan_task, unpack_folder
+from drivers.errors import CellError
 
 REPO = Path(__file__).resolve().parents[1]
 TOF = str(REPO / "config" / "sim-ur5e-tof.yaml")
@@ -107,6 +114,81 @@ def test_the_key_covers_the_files_the_cell_file_names_and_a_task_carries_them(tm
     (obstacle,) = copy.safety.collision.obstacles
     assert Path(obstacle.path).parent == worker / "files"
     assert Path(obstacle.path).read_bytes() == task.config_files[0] != Path(mesh).read_bytes()
+
+
+def fake_scan(task: ScanTask) -> TaskOutput:
+    """A scan in no time: seed 1 leaves no folder (refused), the others a completed job."""
+    if task.spec.seed == 1:
+        return TaskOutput(task.key, None, "JobError: refused")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = _job(Path(tmp) / "job", coverage=10.0 * task.spec.seed)
+        return TaskOutput(task.key, pack_folder(folder), None)
+
+
+FAKE_GRID = cross(TOF, [("cube", (0.0, 0.0, 0.0)), ("horizontal_box", (0.0, 0.0, 0.0))], ["heu", "nbv"],
+                  [0, 1, 2])
+
+
+def test_shards_part_the_grid_and_each_rebuilds_results_and_report_from_every_finished_scan(tmp_path):
+    keys = [scan_key(s) for s in FAKE_GRID]
+    parts = [Shard(i, 3).select(reversed(keys)) for i in (1, 2, 3)]
+    assert sorted(k for p in parts for k in p) == sorted(keys) and [len(p) for p in parts] == [4, 4, 4]
+    assert parts[0] == Shard(1, 3).select(keys)  # whatever the grid's order
+    first = evaluate(FAKE_GRID, tmp_path, LocalPool(1), limit_directions=None, task=fake_scan,
+                     stream=io.StringIO(), shard=Shard(1, 2))
+    assert len(first.rows) == len(first.mine) == 6 and first.unfinished == 6
+    assert "**Partial**: 6 of the grid's 12 scans" in first.report.read_text()
+    second = evaluate(FAKE_GRID, tmp_path, LocalPool(1), limit_directions=None, task=fake_scan,
+                      stream=io.StringIO(), shard=Shard(2, 2))
+    assert second.unfinished == 0 and len(read_csv(tmp_path / RESULTS_CSV)) == 12
+    report = second.report.read_text()
+    assert "Partial" not in report and "| cube | heu | 2 | 10.0 ± 10.0 |" in report
+    # a scan that left no folder is a failed row of every rebuild, and runs again next time
+    failed = [r for r in second.rows if r["status"] == "failed"]
+    assert len(failed) == 4 and all("refused" in r["termination"] for r in failed)
+    assert len(list((tmp_path / SCANS_DIR).glob("*.failed"))) == 4
+    pool = CountingPool(1)
+    evaluate(FAKE_GRID, tmp_path, pool, limit_directions=None, task=fake_scan, stream=io.StringIO())
+    assert pool.given == [4]
+
+
+def test_a_second_run_that_could_run_the_same_scans_is_refused(tmp_path):
+    with running(tmp_path, WHOLE), pytest.raises(CellError, match=r"running on .* \(the whole grid, pid"):
+        evaluate(FAKE_GRID, tmp_path, LocalPool(1), limit_directions=None, task=fake_scan)
+    with running(tmp_path, Shard(1, 2)):
+        overlap = r"\(shard 1/2, pid .* overlap these \(shard 1/3\)"
+        # disjoint parts run side by side; parts of another count do not
+        with running(tmp_path, Shard(2, 2)), pytest.raises(CellError, match=overlap), \
+                running(tmp_path, Shard(1, 3)):
+            pass
+        with pytest.raises(CellError, match="another cell eval is running"), running(tmp_path, Shard(1, 2)):
+            pass
+    with running(tmp_path, WHOLE):  # all ended: free again
+        pass
+
+
+@dataclass
+class CountingPool(LocalPool):
+    given: list[int] = field(default_factory=list)
+
+    def run(self, fn, items, on_done):
+        self.given.append(len(items))
+        super().run(fn, items, on_done)
+
+
+class InterruptedAfterOne:
+    """An executor interrupted (Ctrl-C) after its first result."""
+
+    def run(self, fn, items, on_done):
+        on_done(0, 42.0)
+        raise KeyboardInterrupt
+
+
+def test_an_interrupted_limit_stage_keeps_the_limits_it_finished(tmp_path):
+    specs = cross(TOF, [("cube", (0.0, 0.0, 0.0)), ("pyramid", (0.0, 0.0, 0.0))], ["heu"], [0])
+    with pytest.raises(KeyboardInterrupt):
+        coverage_limits(specs, tmp_path, 8, InterruptedAfterOne())
+    assert list(json.loads((tmp_path / LIMITS_JSON).read_text()).values()) == [42.0]
 
 
 def test_a_job_folder_names_the_user_mesh_as_the_driver_has_it(tmp_path):

@@ -59,13 +59,13 @@ def _run(preset_for: Callable[[Path], presets.Preset], config: Path | None, plan
         specs = preset.specs(cfg, objects, load_placements(placements) if placements else None, planners,
                              seeds, max_time, reprocess)
         clouds = "the 1 mm re-processed clouds" if specs[0].reprocess else "the online clouds"
-        report = evaluate(specs, out, make_executor(executor, jobs, ray_address),
+        done = evaluate(specs, out, make_executor(executor, jobs, ray_address),
                           limit_directions=limit_directions or None,
                           title_lines=[f"Cell file: `{cfg}`; executor: {executor}; coverage, Chamfer and "
                                        f"Hausdorff of {clouds}.", ""])
     except CellError as exc:
         raise fail(exc) from None
-    console.print(f"report: {report}", markup=False, highlight=False)
+    console.print(f"report: {done.report}", markup=False, highlight=False)
 
 
 def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: str) -> None:

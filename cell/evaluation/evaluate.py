@@ -1,69 +1,121 @@
 """An evaluation: run a grid (``cell.evaluation.grid``), compute each object's coverage limit
 (``cell.evaluation.limit``, cached in ``limits.json`` by its inputs) and write the report
-(``cell.evaluation.report``), all under one output folder."""
+(``cell.evaluation.report``), all under one output folder.
+
+Shared by every run on the folder (the shards of a grid, ``cell.evaluation.grid.Shard``): each limit is
+added to ``limits.json`` as it is computed (an interrupted run keeps those it finished), and
+``results.csv`` and the report are rebuilt from every finished scan, by one writer at a time
+(``cell.evaluation.grid.writers``), each file written whole. A shard computes its part of the limits.
+"""
 
 from __future__ import annotations
 
 import json
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
 from cell.config import load_config
 from cell.evaluation.executors import Executor, TaskFailure
-from cell.evaluation.grid import run_grid, timelines
+from cell.evaluation.grid import WHOLE, Shard, run_grid, running, timelines, write_results, writers
 from cell.evaluation.limit import ROLL_STEP_DEG, cell_coverage_limit
 from cell.evaluation.report import Limits, write_report
-from cell.evaluation.spec import ScanSpec, input_digest
+from cell.evaluation.results import Row, identity, row_id, write_atomic
+from cell.evaluation.spec import ScanSpec, input_digest, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task
 from drivers.sim.objects import load_object
 
 LIMITS_JSON = "limits.json"
 
 
-def run_limit_task(task: tuple[ScanSpec, int]) -> float:
+def run_limit_task(task: tuple[ScanTask, int]) -> float:
     """The coverage limit [%] of a scan's object at its placement on its cell, over the given number of
-    view directions per hemisphere (in a worker of the grid's executor)."""
-    spec, n_directions = task
-    mesh = load_object(spec.object, spec.object_scale)
-    return cell_coverage_limit(load_config(spec.config), mesh, spec.placement, n_directions).coverage_pct
+    view directions per hemisphere (in a worker of the grid's executor, from the task's copies of the
+    cell file, the files it names and the mesh)."""
+    scan, n_directions = task
+    with scan.materialised() as (_, config_path, obj):
+        mesh = load_object(obj, scan.spec.object_scale)
+        return cell_coverage_limit(load_config(config_path), mesh, scan.spec.placement,
+                                   n_directions).coverage_pct
+
+
+def _limit_key(spec: ScanSpec, n_directions: int) -> str:
+    return input_digest(spec.config, spec.object, placement=spec.placement, scale=spec.object_scale,
+                        n_directions=n_directions, roll_step_deg=ROLL_STEP_DEG)
+
+
+def _read_limits(path: Path) -> dict[str, float]:
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, executor: Executor,
-                    stream: TextIO | None = None) -> Limits:
+                    stream: TextIO | None = None, shard: Shard = WHOLE) -> Limits:
     """The coverage limit [%] of each object and placement of ``specs`` on its cell, by (object,
-    placement) as results.csv writes them; computed once per set of inputs, the new ones side by side on
-    ``executor`` (each is minutes of inverse kinematics on one core), and kept in ``limits.json``. A limit
-    whose computation failed is left out (the report shows none), and why is written to ``stream``
-    (default stderr)."""
+    placement) as results.csv writes them; computed once per set of inputs (``shard``'s part of them),
+    the new ones side by side on ``executor`` (each is minutes of inverse kinematics on one core), and
+    each added to ``limits.json`` as it ends. A limit whose computation failed is left out (the report
+    shows none), and why is written to ``stream`` (default stderr). Returns every limit of ``specs`` in
+    ``limits.json``, whoever computed it."""
     cache_path = out / LIMITS_JSON
-    cache: dict[str, float] = json.loads(cache_path.read_text()) if cache_path.is_file() else {}
-    keys = [input_digest(spec.config, spec.object, placement=spec.placement, scale=spec.object_scale,
-                         n_directions=n_directions, roll_step_deg=ROLL_STEP_DEG) for spec in specs]
-    todo = {key: spec for key, spec in zip(keys, specs, strict=True) if key not in cache}
-    pending = list(todo)
+    keyed = {_limit_key(spec, n_directions): spec for spec in specs}
+    with writers(out):
+        done = _read_limits(cache_path)
+    pending = shard.select(key for key in keyed if key not in done)
 
     def on_done(index: int, value: float | TaskFailure) -> None:
+        spec = keyed[pending[index]]
         if isinstance(value, TaskFailure):
-            spec = todo[pending[index]]
             print(f"eval: no coverage limit of {spec.object} at {spec.placement}: {value.reason}",
                   file=stream if stream is not None else sys.stderr, flush=True)
-        else:
+            return
+        with writers(out):
+            cache = _read_limits(cache_path)
             cache[pending[index]] = value
+            write_atomic(cache_path, json.dumps(cache, indent=1, sort_keys=True) + "\n")
 
-    if todo:
-        executor.run(run_limit_task, [(todo[key], n_directions) for key in pending], on_done)
-    cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
+    if pending:
+        executor.run(run_limit_task, [(ScanTask.of(keyed[key], scan_key(keyed[key])), n_directions)
+                                      for key in pending], on_done)
+    with writers(out):
+        cache = _read_limits(cache_path)
     return {(spec.object_label, spec.placement_text): cache[key]
-            for spec, key in zip(specs, keys, strict=True) if key in cache}
+            for key, spec in keyed.items() if key in cache}
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """What a run left: report.md's path, the rows of every finished scan of the grid (results.csv's),
+    those of this run's part (its shard; the whole grid without one) and how many scans of the grid
+    have no row yet (another shard's, still running)."""
+
+    report: Path
+    rows: list[Row]
+    mine: list[Row]
+    unfinished: int
 
 
 def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_directions: int | None,
              task: Callable[[ScanTask], TaskOutput] = run_scan_task, stream: TextIO | None = None,
-             title_lines: Sequence[str] = ()) -> Path:
-    """Run the grid, then the coverage limits on the same executor (``limit_directions`` directions per
-    hemisphere; None: none), and the report; returns report.md's path."""
-    rows = run_grid(specs, out, executor, task, stream)
-    limits = coverage_limits(specs, out, limit_directions, executor, stream) if limit_directions else {}
-    return write_report(rows, out, limits, title_lines, timelines(specs, out))
+             title_lines: Sequence[str] = (), shard: Shard = WHOLE) -> Evaluation:
+    """Run the grid (``shard``'s part), then the coverage limits on the same executor
+    (``limit_directions`` directions per hemisphere; None: none), and the report of every finished scan
+    of the grid; refuses (``CellError``) while another run that could run the same scans runs on ``out``
+    (``cell.evaluation.grid.running``)."""
+    out.mkdir(parents=True, exist_ok=True)
+    with running(out, shard):
+        run_grid(specs, out, executor, task, stream, shard)
+        limits = coverage_limits(specs, out, limit_directions, executor, stream, shard) \
+            if limit_directions else {}
+        keyed = {scan_key(spec): spec for spec in specs}
+        with writers(out):
+            rows = write_results(specs, out)
+            unfinished = len(keyed) - len(rows)
+            partial = [f"**Partial**: {unfinished} of the grid's {len(keyed)} scans have not finished "
+                       "(another shard's, still running, or not run yet); the report is rebuilt as they "
+                       "finish.", ""]
+            report = write_report(rows, out, limits, [*title_lines, *(partial if unfinished else [])],
+                                  timelines(specs, out))
+    mine = {identity(keyed[key]) for key in shard.select(keyed)}
+    return Evaluation(report, rows, [r for r in rows if row_id(r) in mine], unfinished)

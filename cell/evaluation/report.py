@@ -31,7 +31,7 @@ from matplotlib.figure import Figure  # not pyplot: files only, no display
 from scipy.stats import mannwhitneyu
 
 from cell.evaluation import paper
-from cell.evaluation.results import Row, RowId, Timeline, row_id, value
+from cell.evaluation.results import Row, RowId, Timeline, atomic_path, row_id, value, write_atomic
 
 REPORT_MD = "report.md"
 FIG5 = "fig5.png"
@@ -209,7 +209,14 @@ def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> 
         bottom.set_xlabel("scan time [s]")
         top.legend(fontsize="small")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    _save(fig, path)
+
+
+def _save(fig: Figure, path: Path) -> None:
+    """Save ``fig`` as ``path`` whole (a temporary file renamed over it)."""
+    tmp = atomic_path(path)
+    fig.savefig(tmp, dpi=90)
+    tmp.replace(path)
 
 
 def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float] | None]:
@@ -242,7 +249,13 @@ def _bars(gs: Sequence[Group], path: Path) -> None:
             ax.set_ylabel(heading)
         box.set_title(g.label, pad=20.0)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    _save(fig, path)
+
+
+def unfinished_line(row: Row) -> str:
+    """A scan that did not complete: ``<object> <placement> <planner> seed <seed>: <status>: <why>``."""
+    return (f"{row['object']} {row['placement']} {row['planner']} seed {row['seed']}: {row['status']}: "
+            f"{row['termination']}")
 
 
 def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = (),
@@ -253,26 +266,29 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
     gs = groups(rows)
     statuses = sorted({r["status"] for r in rows})
     counts = ", ".join(f"{sum(r['status'] == s for r in rows)} {s}" for s in statuses)
-    md = ["# Evaluation report", "", *title_lines, f"{len(rows)} scans: {counts}.", "",
-          "## Reconstruction (visual-servoing paper, Table I layout)", "",
-          "Mean ± standard error over the seeds; the paper's figure in brackets (Table I; for scan time and "
-          "path the paper's mean over its objects, section III-C). `limit %`: the coverage limit, the share "
-          "of the surface any reachable view can see (`cell eval limit`).", "",
-          *reconstruction_table(gs, limits), "", f"![coverage and Chamfer against scan time]({FIG5})", ""]
-    _fig5(gs, timelines or {}, out / FIG5)
-    if any(r["iou"] for r in rows):
-        md += ["## Packing (LR-NBV paper, Fig. 3)", "",
-               "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "
-               "claims:", "", *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
-               *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
-        _bars(gs, out / FIG3)
-    md += ["## Mann-Whitney U between planners", "", *tests_table(gs), ""]
+    md = ["# Evaluation report", "", *title_lines, f"{len(rows)} scans: {counts}.", ""]
+    if not gs:
+        md += ["No scan ran to its end: no figures.", ""]
+    else:
+        md += ["## Reconstruction (visual-servoing paper, Table I layout)", "",
+               "Mean ± standard error over the seeds; the paper's figure in brackets (Table I; for scan time "
+               "and path the paper's mean over its objects, section III-C). `limit %`: the coverage limit, "
+               "the share of the surface any reachable view can see (`cell eval limit`).", "",
+               *reconstruction_table(gs, limits), "",
+               f"![coverage and Chamfer against scan time]({FIG5})", ""]
+        _fig5(gs, timelines or {}, out / FIG5)
+        if any(r["iou"] for g in gs for rs in g.by_planner.values() for r in rs):
+            md += ["## Packing (LR-NBV paper, Fig. 3)", "",
+                   "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "
+                   "claims:", "", *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
+                   *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
+            _bars(gs, out / FIG3)
+        md += ["## Mann-Whitney U between planners", "", *tests_table(gs), ""]
     unfinished = [r for r in rows if r["status"] not in MEASURED]
     if unfinished:
         md += ["## Scans that did not complete (not in the figures above)", "",
-               *(f"- {r['object']} {r['placement']} {r['planner']} seed {r['seed']}: {r['status']}: "
-                 f"{r['termination']}" for r in unfinished), ""]
+               *(f"- {unfinished_line(r)}" for r in unfinished), ""]
     path = out / REPORT_MD
-    path.write_text("\n".join(md))
+    write_atomic(path, "\n".join(md))
     return path
 
