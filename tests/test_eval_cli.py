@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import open3d as o3d
 import pytest
 from typer.testing import CliRunner
 
@@ -49,12 +50,27 @@ def test_a_grid_writes_its_report_and_a_rerun_skips_the_done_scan(tmp_path):
     (["--objects", "no_such_object", "--planners", "heu"], "unknown object 'no_such_object'"),
     (["--objects", "cube", "--planners", "heu", "--placements", "{placements}"], "a placement is"),
     (["--objects", "cube"], "the grid is empty"),
+    # what cell scan refuses before it starts, refused before the grid starts
+    (["--objects", "cube", "--planners", "heu", "--max-time", "-1"], "time budget must be a positive"),
+    (["--objects", "cube", "--planners", "heu", "--seeds", "-3"], "seed must be between 0"),
+    (["--objects", "cube", "--planners", "heu", "--placements", "{off_table}"], "off the table"),
+    (["--objects", "{mm_mesh}", "--planners", "heu"], "not a size this cell scans"),
+    # the scale the size error suggests exists, and takes the mesh (the time budget is what is wrong)
+    (["--objects", "{mm_mesh}", "--object-scale", "0.001", "--planners", "heu", "--max-time", "0"],
+     "time budget must be a positive"),
+    (["--objects", "none", "--planners", "heu"], "'none' (an empty table) has nothing to measure"),
+    (["--objects", "cube", "--planners", "heu", "--shard", "3/2"], "a shard is I/N with 1 <= I <= N"),
 ])
 def test_bad_input_fails_in_one_line_before_any_scan(tmp_path, args, reason):
     placements = tmp_path / "placements.yaml"
     placements.write_text("- [0.0, 0.0]\n")
+    off_table = tmp_path / "off_table.yaml"
+    off_table.write_text("- [0.9, 0.0, 90.0]\n")
+    box = o3d.geometry.TriangleMesh.create_box(60.0, 40.0, 30.0)  # a part of 6 x 4 x 3 cm in millimetres
+    o3d.io.write_triangle_mesh(str(tmp_path / "part_mm.obj"), box)
     out = tmp_path / "run"
-    given = [a.format(placements=placements) for a in args]
+    given = [a.format(placements=placements, off_table=off_table, mm_mesh=tmp_path / "part_mm.obj")
+             for a in args]
     done = CliRunner().invoke(app, [*GRID, *given, "--out", str(out)])
     assert done.exit_code not in (0, None)
     lines = done.stderr.strip().splitlines()
@@ -73,3 +89,23 @@ def test_a_benchmark_of_a_preset_lists_the_options_it_passes_to_cell_eval(script
                    "--max-time", "--reprocess, --online"):
         assert f"\n  {option}: " in passed
     assert "--out:" not in passed
+
+
+def test_a_grid_with_a_scan_that_did_not_complete_exits_1_and_names_it(tmp_path):
+    """1 s of budget: the scan takes no frame, so its re-process fails: a failed row, listed."""
+    out = tmp_path / "run"
+    done = cell_eval("--objects", "cube", "--planners", "heu", "--reprocess", "--max-time", "1",
+                     "--out", str(out))
+    assert done.returncode == 1, done.stderr
+    assert "error: 1 of 1 scans did not complete:" in done.stderr
+    assert "cube 0,0,0 heu seed 0: failed: re-process failed" in done.stderr
+    (row,) = read_csv(out / RESULTS_CSV)
+    assert row["status"] == "failed" and row["coverage_pct"] == ""
+    report = (out / REPORT_MD).read_text()
+    assert "re-processed" in report and "## Scans that did not complete" in report
+
+
+def test_the_limit_refuses_what_a_scan_refuses():
+    done = CliRunner().invoke(app, ["eval", "limit", "--object", "cube", "--placement", "0.9,0,0"])
+    assert done.exit_code == 1 and "off the table" in done.stderr, done.stderr
+

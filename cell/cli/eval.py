@@ -8,6 +8,7 @@ same command again skips the scans already done. ``cell eval limit`` prints an o
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
@@ -16,13 +17,17 @@ import typer
 from rich.console import Console
 
 from cell.cli.commands import command_group
-from cell.cli.errors import fail
+from cell.cli.errors import err_console, fail, print_error
+from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.evaluation import presets
 from cell.evaluation.evaluate import evaluate
 from cell.evaluation.executors import make_executor
+from cell.evaluation.grid import WHOLE, Shard
 from cell.evaluation.limit import DEFAULT_DIRECTIONS, cell_coverage_limit
+from cell.evaluation.report import MEASURED, unfinished_line
 from cell.evaluation.spec import load_placements, parse_placement
+from cell.jobs.placement import check_placement
 from cell.templates import template_path
 from drivers.errors import CellError
 from drivers.sim.objects import load_object
@@ -46,26 +51,54 @@ Reprocess = Annotated[bool | None, typer.Option(
                                  "the online cloud (default: vs-table re-processes, the others not)")]
 Directions = Annotated[int, typer.Option(help="view directions per hemisphere of the coverage limit; 0: "
                                               "no coverage limit")]
+ObjectScale = Annotated[float, typer.Option(help="multiplies every object's mesh coordinates into metres "
+                                                "(0.001 for meshes in millimetres)")]
+ShardOpt = Annotated[str | None, typer.Option(help="I/N: run the I-th of N parts of the grid (the same "
+                                                   "parts on every machine); each run rebuilds the report "
+                                                   "from every finished scan in --out")]
 
 
 def _run(preset_for: Callable[[Path], presets.Preset], config: Path | None, planners: list[str] | None,
          objects: list[str] | None, placements: Path | None, seeds: list[int] | None, out: Path,
          executor: str, jobs: int | None, ray_address: str | None, max_time: float | None,
-         limit_directions: int, reprocess: bool | None) -> None:
+         limit_directions: int, reprocess: bool | None, object_scale: float, shard: str | None) -> None:
     try:
+        part = Shard.parse(shard) if shard is not None else WHOLE
         preset = preset_for(out)
         cfg = config if config is not None else preset.config
         load_config(cfg)  # a bad cell file fails here, naming the field, not in every worker
+        # every scan checked as cell scan checks it, before any runs (check_specs)
         specs = preset.specs(cfg, objects, load_placements(placements) if placements else None, planners,
-                             seeds, max_time, reprocess)
+                             seeds, max_time, reprocess, object_scale)
         clouds = "the 1 mm re-processed clouds" if specs[0].reprocess else "the online clouds"
-        done = evaluate(specs, out, make_executor(executor, jobs, ray_address),
-                          limit_directions=limit_directions or None,
-                          title_lines=[f"Cell file: `{cfg}`; executor: {executor}; coverage, Chamfer and "
-                                       f"Hausdorff of {clouds}.", ""])
+        pool = make_executor(executor, jobs, ray_address)
     except CellError as exc:
         raise fail(exc) from None
+    with interrupting() as received:
+        try:
+            done = evaluate(specs, out, pool, limit_directions=limit_directions or None, shard=part,
+                            title_lines=[f"Cell file: `{cfg}`; executor: {executor}; coverage, Chamfer and "
+                                         f"Hausdorff of {clouds}.", ""])
+        except CellError as exc:
+            raise fail(exc) from None
+        except KeyboardInterrupt:
+            why = signal.Signals(received[0]).name if received else "Ctrl-C"
+            print_error(f"interrupted ({why}): the scans and coverage limits finished so far are kept in "
+                        f"{out}; the same command resumes")
+            raise typer.Exit(code=128 + (received[0] if received else signal.SIGINT)) from None
     console.print(f"report: {done.report}", markup=False, highlight=False)
+    unfinished = [r for r in done.mine if r["status"] not in MEASURED]
+    if unfinished:
+        print_error(f"{len(unfinished)} of {len(done.mine)} scans did not complete:")
+        for r in unfinished:
+            err_console.print(f"  {unfinished_line(r)}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(code=1)
+
+
+GRID_EXIT = ("\n\nEvery scan is checked as cell scan checks it before any runs. Exit code 0 when "
+             "every scan of this run's part of the grid completed, 1 when one did not (each listed on "
+             "standard error and in the report) or on bad input, 128 + the signal's number when "
+             "interrupted (Ctrl-C, SIGTERM: the workers stop; the finished scans and limits are kept).")
 
 
 def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: str) -> None:
@@ -73,11 +106,12 @@ def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: 
     def command(out: Out, config: Config = None, planners: Planners = None, objects: Objects = None,
                 placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
                 jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
-                limit_directions: Directions = DEFAULT_DIRECTIONS, reprocess: Reprocess = None) -> None:
+                limit_directions: Directions = DEFAULT_DIRECTIONS, reprocess: Reprocess = None,
+                object_scale: ObjectScale = 1.0, shard: ShardOpt = None) -> None:
         _run(preset_for, config, planners, objects, placements, seeds, out, executor, jobs, ray_address,
-             max_time, limit_directions, reprocess)
+             max_time, limit_directions, reprocess, object_scale, shard)
 
-    command.__doc__ = doc
+    command.__doc__ = doc + GRID_EXIT
     eval_app.command(name)(command)
 
 
@@ -109,8 +143,9 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
     axis) within the sensor's range, field of view and grazing limit can see."""
     try:
         path = config if config is not None else template_path("sim-franka-rgbd")
-        result = cell_coverage_limit(load_config(path), load_object(object, object_scale),
-                                     parse_placement(placement), directions, reachable=not everywhere)
+        cfg, mesh, pose = load_config(path), load_object(object, object_scale), parse_placement(placement)
+        check_placement(cfg, mesh, pose, object_scale)  # as cell scan: a size it scans, on the table
+        result = cell_coverage_limit(cfg, mesh, pose, directions, reachable=not everywhere)
     except CellError as exc:
         raise fail(exc) from None
     console.print(f"coverage limit: {result.coverage_pct:.2f} % of {result.n_points} surface points, from "

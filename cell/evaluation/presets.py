@@ -45,8 +45,9 @@ class Preset:
     def specs(self, config: Path | None = None, objects: Sequence[str] | None = None,
               placements: Sequence[Placement] | None = None, planners: Sequence[str] | None = None,
               seeds: Sequence[int] | None = None, max_time_s: float | None = None,
-              reprocess: bool | None = None) -> list[ScanSpec]:
-        """The grid of this preset with whatever is given in place of its own, checked (``check_specs``).
+              reprocess: bool | None = None, object_scale: float = 1.0) -> list[ScanSpec]:
+        """The grid of this preset with whatever is given in place of its own (``object_scale``: of every
+        object's mesh, into metres), checked (``check_specs``).
         Given objects alone: those of the preset's own (by name: a shape file's stem) at the preset's
         placements of them, any other at each of the preset's distinct placements (or the station's
         centre); given placements: crossed with the given objects, or the preset's."""
@@ -59,7 +60,8 @@ class Preset:
             cases = tuple(case for o in objects for case in
                           ([c for c in self.cases if c[0] == self._named(o)] or crossed([o], everywhere)))
         specs = cross(str((config or self.config).resolve()), cases, planners or self.planners,
-                      seeds or self.seeds, max_time_s, self.reprocess if reprocess is None else reprocess)
+                      seeds or self.seeds, max_time_s, self.reprocess if reprocess is None else reprocess,
+                      object_scale)
         check_specs(specs)
         return specs
 

@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import tempfile
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -31,9 +32,11 @@ import yaml
 
 import cell
 import drivers
+from cell.config import load_config
+from cell.jobs.runner import ScanRequest, prepare_scan
 from cell.planning.registry import check_planner
 from drivers.errors import CellError, ConfigError, JobError
-from drivers.sim.objects import OBJECTS_DIR, load_object, shipped_names
+from drivers.sim.objects import EMPTY_TABLE, OBJECTS_DIR, load_object, shipped_names
 
 Placement = tuple[float, float, float]
 """(x [m], y [m], yaw [deg]) of the object relative to the station, as ``cell scan --object-pose``."""
@@ -176,21 +179,38 @@ def folder_name(spec: ScanSpec, key: str) -> str:
 
 
 def cross(config: str, cases: Sequence[tuple[str, Placement]], planners: Sequence[str], seeds: Sequence[int],
-          max_time_s: float | None = None, reprocess: bool = False) -> list[ScanSpec]:
+          max_time_s: float | None = None, reprocess: bool = False,
+          object_scale: float = 1.0) -> list[ScanSpec]:
     """Every case (an object at a placement) x planner x seed."""
-    return [ScanSpec(config, obj, placement, planner, seed, max_time_s, reprocess=reprocess)
+    return [ScanSpec(config, obj, placement, planner, seed, max_time_s, object_scale, reprocess)
             for obj, placement in cases for planner in planners for seed in seeds]
 
 
 def check_specs(specs: Sequence[ScanSpec]) -> None:
-    """Refuse a grid that cannot run before any scan does: an empty one, an unknown planner, an object
-    that is neither a shipped name nor a readable mesh file (``CellError``, one line)."""
+    """Refuse a grid that cannot run before any scan does (``CellError``, one line): an empty one, an
+    unknown planner, an empty table (``none``: nothing to measure), an object that is neither a shipped
+    name nor a readable mesh file, and every scan that ``cell scan`` would refuse before it starts
+    (``cell.jobs.runner.prepare_scan``: the seed, the time budget, the object's size at its scale and
+    its placement on the table, ...); and a cell file, or a file it names, that cannot be read."""
     if not specs:
         raise CellError("the grid is empty: give objects and planners")
     for planner in dict.fromkeys(s.planner for s in specs):
         check_planner(planner)
     for obj, scale in dict.fromkeys((s.object, s.object_scale) for s in specs):
+        if obj == EMPTY_TABLE:
+            raise JobError(f"an evaluation measures an object: {EMPTY_TABLE!r} (an empty table) has "
+                           "nothing to measure; give shipped names or mesh files")
         load_object(obj, scale)
+    configs = {config: load_config(config) for config in dict.fromkeys(s.config for s in specs)}
+    for config in configs:
+        for _, _, path in cell_file_references(config):
+            file_digest(path)
+    with tempfile.TemporaryDirectory(prefix="cell-eval-check-") as tmp:
+        for s in dict.fromkeys(replace(s, reprocess=False) for s in specs):
+            prepare_scan(ScanRequest(config=configs[s.config], config_path=s.config, object=s.object,
+                                     object_pose=s.placement, planner=s.planner, seed=s.seed,
+                                     out=Path(tmp) / "job", max_time_s=s.max_time_s,
+                                     object_scale=s.object_scale))
 
 
 def parse_placement(text: str) -> Placement:
