@@ -5,8 +5,11 @@ would start anyway, and a fresh interpreter per case costs seconds)."""
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import open3d as o3d
@@ -109,3 +112,65 @@ def test_the_limit_refuses_what_a_scan_refuses():
     done = CliRunner().invoke(app, ["eval", "limit", "--object", "cube", "--placement", "0.9,0,0"])
     assert done.exit_code == 1 and "off the table" in done.stderr, done.stderr
 
+
+def _children(pid: int) -> set[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _wait_for(predicate, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.2)
+
+
+def _alive(pids: set[int]) -> set[int]:
+    return {p for p in pids if Path(f"/proc/{p}").exists()
+            and Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"}
+
+
+@pytest.mark.parametrize(("stage", "sig"), [("scan", signal.SIGTERM), ("limit", signal.SIGINT)])
+def test_a_signal_stops_the_workers_and_says_so_in_one_line(tmp_path, stage, sig):
+    """SIGTERM (a scheduler's stop) to the driver alone while it scans, Ctrl-C (SIGINT to the terminal's
+    whole process group) while it computes the coverage limit: the workers end with it, one line says
+    what was kept, no traceback; the exit code is the shell's for the signal."""
+    err = tmp_path / "stderr"
+    # a scan of about a minute; a scan in no time, then a limit of minutes
+    args = ["--config", str(REPO / "config" / "sim-franka-rgbd.yaml"), "--planners", "vs-global",
+            "--max-time", "600", "--limit-directions", "0"] if stage == "scan" else \
+        ["--planners", "heu", "--max-time", "1", "--limit-directions", "300"]
+    with err.open("w") as stderr:
+        proc = subprocess.Popen([str(CELL), *GRID, "--objects", "cube", *args,
+                                 "--out", str(tmp_path / "run")], stderr=stderr, stdout=subprocess.DEVNULL,
+                                start_new_session=True)
+    try:
+        _wait_for(lambda: _children(proc.pid), 60)
+        if stage == "limit":
+            _wait_for(lambda: "eval: 1/1 scans" in err.read_text(), 60)
+        time.sleep(3.0)  # the worker busy with its task
+        workers = _children(proc.pid)
+        if sig == signal.SIGINT:
+            os.killpg(proc.pid, sig)
+        else:
+            proc.send_signal(sig)
+        assert proc.wait(timeout=30) == 128 + sig
+        time.sleep(0.5)
+        assert not _alive(workers)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    text = err.read_text()
+    assert "Traceback" not in text, text
+    name = "SIGTERM" if sig == signal.SIGTERM else "Ctrl-C"
+    assert [line for line in text.splitlines() if line.startswith("error:")] == [
+        f"error: interrupted ({name}): the scans and coverage limits finished so far are kept in "
+        f"{tmp_path / 'run'}; the same command resumes"], text

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
+from types import FrameType
 from typing import Any, Protocol
 
 from drivers.errors import CellError
@@ -43,14 +45,28 @@ class Executor(Protocol):
     def run(self, fn: Callable[[Any], Any], items: Sequence[Any], on_done: OnDone) -> None: ...
 
 
+def _stop_task(signum: int, _frame: FrameType | None) -> None:
+    """SIGTERM in a pool worker: the driver stops the pool. The task under way is interrupted as Ctrl-C
+    would (a scan stops through its guard and finishes its folder); a later one is ignored, so as not to
+    interrupt that stop."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise KeyboardInterrupt(f"received {signal.Signals(signum).name}")
+
+
 def _serve(conn: Connection, fn: Callable[[Any], Any]) -> None:
-    """A pool worker's loop: (index, item) in, (index, ok, result or reason) out, until None."""
-    while (message := conn.recv()) is not None:
-        index, item = message
-        try:
-            conn.send((index, True, fn(item)))
-        except Exception as exc:
-            conn.send((index, False, f"{type(exc).__name__}: {exc}"))
+    """A pool worker's loop: (index, item) in, (index, ok, result or reason) out, until None. The worker
+    starts with SIGINT ignored (``LocalPool``): a Ctrl-C is the driver's, which stops its workers with
+    SIGTERM (``_stop_task``); then the worker ends quietly (the driver says what happened)."""
+    signal.signal(signal.SIGTERM, _stop_task)
+    try:
+        while (message := conn.recv()) is not None:
+            index, item = message
+            try:
+                conn.send((index, True, fn(item)))
+            except Exception as exc:
+                conn.send((index, False, f"{type(exc).__name__}: {exc}"))
+    except (KeyboardInterrupt, EOFError, OSError):
+        return
 
 
 @dataclass
@@ -80,6 +96,23 @@ def _worker_threads(jobs: int) -> Iterator[None]:
         del os.environ[THREADS_VAR]
 
 
+STOP_WAIT_S = 10.0
+"""How long a stopped worker may take to end its task (a scan stops and writes its folder) before it is
+killed."""
+
+
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Processes started inside ignore SIGINT from their start (an ignored signal stays ignored across
+    ``exec``, and Python keeps it so): Ctrl-C in a terminal reaches the whole process group, and only the
+    driver should answer it, before a worker has even imported its task's modules."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @dataclass
 class LocalPool:
     """``jobs`` worker processes on this machine (started fresh, ``spawn``: no state inherited from the
@@ -100,7 +133,7 @@ class LocalPool:
         def start() -> _Worker:
             ours, theirs = ctx.Pipe()
             process = ctx.Process(target=_serve, args=(theirs, fn), daemon=True)
-            with _worker_threads(self.jobs):
+            with _worker_threads(self.jobs), _sigint_ignored():
                 process.start()
             theirs.close()
             return _Worker(process, ours)
@@ -143,10 +176,14 @@ class LocalPool:
                         assign(worker)
                     on_done(index, value if ok else TaskFailure(value, attempts[index]))
         finally:
-            for worker in workers:
+            for worker in workers:  # busy ones only when the driver is interrupted: stop their tasks
                 if worker.process.is_alive() and worker.index is None:
                     worker.conn.send(None)
-                worker.process.join(timeout=5.0)
+                elif worker.process.is_alive():
+                    worker.process.terminate()
+                worker.conn.close()  # what a stopped task would still send goes nowhere
+            for worker in workers:
+                worker.process.join(timeout=STOP_WAIT_S)
                 if worker.process.is_alive():
                     worker.process.kill()
                     worker.process.join()
