@@ -7,7 +7,7 @@ from __future__ import annotations
 import io
 import json
 import tempfile
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import open3d as o3d
@@ -23,6 +23,7 @@ from cell.evaluation.results import HIRES_JSON, read_csv, row_from_folder
 from cell.evaluation.spec import ScanSpec, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, pack_folder, run_scan_task, unpack_folder
 from drivers.errors import CellError
+from tests.test_evaluation import CountingPool
 
 REPO = Path(__file__).resolve().parents[1]
 TOF = str(REPO / "config" / "sim-ur5e-tof.yaml")
@@ -165,15 +166,6 @@ def test_a_second_run_that_could_run_the_same_scans_is_refused(tmp_path):
             pass
     with running(tmp_path, WHOLE):  # all ended: free again
         pass
-
-
-@dataclass
-class CountingPool(LocalPool):
-    given: list[int] = field(default_factory=list)
-
-    def run(self, fn, items, on_done):
-        self.given.append(len(items))
-        super().run(fn, items, on_done)
 
 
 class InterruptedAfterOne:
