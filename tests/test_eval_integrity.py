@@ -190,3 +190,24 @@ def test_a_job_folder_names_the_user_mesh_as_the_driver_has_it(tmp_path):
     unpack_folder(output.archive, tmp_path / "job")
     for name in ("result.json", "job.json"):
         assert json.loads((tmp_path / "job" / name).read_text())["object"] == str(Path(mesh).resolve())
+
+
+class Constant:
+    """An executor that gives every item the same limit, at once; keeps the items it was given."""
+
+    def __init__(self):
+        self.given = []
+
+    def run(self, fn, items, on_done):
+        self.given += [task.spec.object for task, _ in items]
+        for index in range(len(items)):
+            on_done(index, 50.0)
+
+
+def test_shards_compute_disjoint_parts_of_the_limits_whenever_each_starts(tmp_path):
+    specs = cross(TOF, [(o, (0.0, 0.0, 0.0)) for o in ("cube", "pyramid", "teapot", "bunny")], ["heu"], [0])
+    first, second = Constant(), Constant()
+    coverage_limits(specs, tmp_path, 8, first, shard=Shard(1, 2))
+    limits = coverage_limits(specs, tmp_path, 8, second, shard=Shard(2, 2))  # after the first's are in
+    assert sorted(first.given + second.given) == sorted(["cube", "pyramid", "teapot", "bunny"])
+    assert len(limits) == 4 and len(json.loads((tmp_path / LIMITS_JSON).read_text())) == 4

@@ -62,7 +62,8 @@ def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, exe
     keyed = {_limit_key(spec, n_directions): spec for spec in specs}
     with writers(out):
         done = _read_limits(cache_path)
-    pending = shard.select(key for key in keyed if key not in done)
+    # the part dealt from all the limits, not from those left: the same on every shard whenever it starts
+    pending = [key for key in shard.select(keyed) if key not in done]
 
     def on_done(index: int, value: float | TaskFailure) -> None:
         spec = keyed[pending[index]]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import re
 import shutil
 import socket
 import sys
@@ -156,11 +157,12 @@ def running(out: Path, shard: Shard) -> Iterator[None]:
             raise CellError(f"another cell eval is running on {out} ({_holder(path, shard)}): wait for it to "
                             "end, or give another --out")
         for other in folder.iterdir():
-            if other == path or other.name == WRITERS_LOCK or other.name.endswith(f"of{shard.count}"):
+            named = re.fullmatch(r"(\d+)of(\d+)", other.name)
+            if named is None or int(named[2]) == shard.count:  # the writers' lock, or a disjoint part
                 continue
             with other.open("a+") as f:
                 if not _try_lock(f, fcntl.LOCK_SH):
-                    theirs = Shard(*(int(p) for p in other.name.split("of")))
+                    theirs = Shard(int(named[1]), int(named[2]))
                     raise CellError(f"another cell eval is running on {out} ({_holder(other, theirs)}), "
                                     f"whose scans overlap these (shard {shard}): wait for it to end, or run "
                                     f"the same --shard count")
@@ -238,7 +240,7 @@ def run_grid(specs: Sequence[ScanSpec], out: Path, executor: Executor,
             write_atomic(marker, " ".join((reason or "the scan left no job folder").split()))
             progress.done(failed=True)
             return
-        partial = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
+        partial = folder.with_name(f"{folder.name}.partial-{socket.gethostname()}-{os.getpid()}")
         shutil.rmtree(partial, ignore_errors=True)
         unpack_folder(output.archive, partial)
         try:
