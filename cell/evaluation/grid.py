@@ -142,6 +142,9 @@ def _try_lock(f: IO[str], mode: int) -> bool:
         fcntl.flock(f, mode | fcntl.LOCK_NB)
     except BlockingIOError:
         return False
+    except OSError as exc:
+        raise CellError(f"cannot lock {f.name}: {exc} (the output folder must be on a file system with "
+                        "locks)") from None
     return True
 
 

@@ -5,18 +5,19 @@ every number written with a fixed number of decimals; nothing that depends on th
 clock (no wall times, no paths). Empty cells are figures a scan does not have (no ground truth, no
 packing history, a scan that never ran).
 
-Columns: ``object``, ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or ``failed``
-for a scan whose worker died twice, or of a grid that re-processes whose re-process failed: its figures are
-then empty, never the online cloud's), ``termination``, ``scan_time_s`` (job time from the first frame, the
-visual-servoing paper's clock), ``path_m`` (sensor path over the same span), ``n_captures``, ``coverage_pct``,
-``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online cloud; on the 1 mm re-processed cloud,
-``result_hires.json``, for a grid that re-processes, as the paper measures Table I; the ground truth
-registered to the cloud as the paper does), ``coverage_unregistered_pct`` and ``chamfer_unregistered_mm`` (the
-same without registration, the ground truth where the simulated object really is), and the packing paper's
-figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and ``packing_coverage_pct``; last
-``job``, the scan's job folder under ``scans/`` (its name holds the scan's key, ``cell.evaluation.spec``;
-empty for a scan that left no folder): the output folder may also hold the folders of earlier runs, scans of
-other code or inputs, which are not this grid's.
+Columns: ``object`` (its label: a shipped name, else ``name@`` a digest of the mesh,
+``ScanSpec.object_label``), ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or
+``failed`` for a scan that left no folder, refused or its worker dead twice, or for one of a grid that
+re-processes whose re-process failed: its figures are then empty, never the online cloud's), ``termination``,
+``scan_time_s`` (job time from the first frame, the visual-servoing paper's clock), ``path_m`` (sensor path
+over the same span), ``n_captures``, ``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online
+cloud; on the 1 mm re-processed cloud, ``result_hires.json``, for a grid that re-processes, as the paper
+measures Table I; the ground truth registered to the cloud as the paper does), ``coverage_unregistered_pct``
+and ``chamfer_unregistered_mm`` (the same without registration, the ground truth where the simulated object
+really is), and the packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
+``packing_coverage_pct``; last ``job``, the scan's job folder under ``scans/`` (its name holds the scan's key,
+``cell.evaluation.spec``; empty for a scan that left no folder): the output folder may also hold the folders
+of earlier runs, scans of other code or inputs, which are not this grid's.
 """
 
 from __future__ import annotations
