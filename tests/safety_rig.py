@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from cell.config import load_config
 from cell.config.load import parse_config
 from cell.config.models import CellConfig
-from cell.safety.guard import MotionGuard
+from cell.safety.guard import SPEED_SLACK, MotionGuard
 from drivers.arm.base import ArmMode
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
@@ -86,10 +86,13 @@ class Rig:
         self.guard = MotionGuard.from_config(arm, self.model, cfg, self.clock)
         self.dt = 1.0 / cfg.scan.control_rate_hz
         self.sent: list[Array] = []
+        # Where each twist of ``sent`` was sent: the time [s] and the arm's joints [rad].
+        self.sent_at: list[tuple[float, Array]] = []
         backend = arm._command_twist
 
         def record(v: np.ndarray) -> None:
             self.sent.append(np.array(v))
+            self.sent_at.append((self.clock.now(), arm.state().q))
             backend(v)
 
         arm._command_twist = record  # type: ignore[method-assign,assignment]
@@ -134,15 +137,34 @@ class Rig:
         assert not breaches, f"breaches (samples): {breaches}; worst: {self.judge.worst}"
 
     def check_sent(self) -> None:
-        """Every twist sent keeps the TCP speed and acceleration limits."""
+        """Every twist sent keeps each streaming limit of the cell file, within rounding: the TCP's linear
+        and angular speed and every joint's share of its speed limit (through the differential IK where the
+        arm was when it was sent; up to ``SPEED_SLACK`` over while the jerk limit slows it), and, as
+        finite differences over the control period of the twists sent
+        one period after another from rest (a stream starts at rest, after a stop or a trajectory too), the
+        TCP's linear and angular acceleration and jerk."""
         sf = self.cfg.safety
         v = np.array(self.sent) if self.sent else np.zeros((0, 6))
-        assert np.all(np.linalg.norm(v[:, :3], axis=1) <= sf.tcp_max_linear_mps * (1 + 1e-9))
-        assert np.all(np.linalg.norm(v[:, 3:], axis=1) <= sf.tcp_max_angular_rps * (1 + 1e-9))
-        if len(v) > 1:
-            acc = np.diff(v, axis=0) / self.dt
-            assert np.all(np.linalg.norm(acc[:, :3], axis=1) <= sf.tcp_max_linear_acc_mps2 * (1 + 1e-6))
-            assert np.all(np.linalg.norm(acc[:, 3:], axis=1) <= sf.tcp_max_angular_acc_rps2 * (1 + 1e-6))
+        over = 1.0 + 1e-6
+        # A twist the jerk limit keeps from slowing down at once may stay this far over a speed limit
+        # (``cell.safety.guard.SPEED_SLACK``).
+        slack = 1.0 + SPEED_SLACK + 1e-6
+        assert np.all(np.linalg.norm(v[:, :3], axis=1) <= sf.tcp_max_linear_mps * slack)
+        assert np.all(np.linalg.norm(v[:, 3:], axis=1) <= sf.tcp_max_angular_rps * slack)
+        qd_limit = self.model.qd_max * sf.joint_velocity_scale
+        for vk, (_, q) in zip(v, self.sent_at, strict=True):
+            assert np.all(np.abs(self.model.velocity_map(q)(vk)) <= qd_limit * slack)
+        t = np.array([at[0] for at in self.sent_at])
+        # Runs of twists sent in consecutive periods, each preceded by rest.
+        breaks = np.flatnonzero(np.abs(np.diff(t) - self.dt) > 1e-9) + 1
+        for run in np.split(v, breaks):
+            rates = np.diff(np.vstack([np.zeros((2, 6)), run]), axis=0) / self.dt
+            for k, limits in ((1, (sf.tcp_max_linear_acc_mps2, sf.tcp_max_angular_acc_rps2)),
+                              (2, (sf.tcp_max_linear_jerk_mps3, sf.tcp_max_angular_jerk_rps3))):
+                x = np.diff(rates, n=k - 1, axis=0) / self.dt ** (k - 1)
+                for part, limit in zip((slice(0, 3), slice(3, 6)), limits, strict=True):
+                    worst = float(np.max(np.linalg.norm(x[:, part], axis=1), initial=0.0))
+                    assert worst <= limit * over, f"a streamed twist's rate {k}: {worst:.4g} > {limit:g}"
 
 
 def _frame_along(a: Array, b: Array) -> Array:

@@ -17,6 +17,10 @@ the arm. It forwards two kinds of motion:
   every barrier margin and the joints inside their margins, or the next step of braking is sent instead
   (the projection and the joint margin above plan their braking with simpler bounds that the smoothing
   does not always keep, e.g. while it also ramps a turn: this check is what guarantees the stop); the
+  twist sent keeps the TCP acceleration and jerk limits as differences over the control period of the
+  twists sent (a speed cut or a share of a step after smoothing moved as little as needed to keep them),
+  and one that is then still over a speed limit by more than ``SPEED_SLACK``, or whose stop would then
+  enter a margin, is refused; the
   joint path to the configuration predicted ``collision.lookahead_s`` ahead at that twist, along which the
   next period and a stop after it run, is checked for collisions all along (robot, tool, table, object
   ROI, obstacles, self-collision). After a stop, a streamed twist starts once the arm's own stop has
@@ -78,6 +82,21 @@ BRAKING_SHARE = 0.5
 # move's samples may go as deep: the straight joint line back along a path that slid along a margin (a
 # retrace after a refusal) bends into it by the path's curvature.
 BRAKING_MARGIN_SHARE = 0.5
+# A streamed twist may exceed a speed limit, or its change over a period the acceleration or jerk limit, by
+# this share (rounding: the smoother's own steps land on the limits).
+RATE_TOLERANCE = 1e-6
+# A streamed twist that the TCP jerk limit keeps from slowing down at once (a joint's speed grows as the arm
+# turns near a singularity) may stay over a speed limit by this share while it slows down as fast as the
+# limit lets it (counted as ``speed_while_slowing``); further over, the arm stops. Stopping at once would
+# brake far harder than either limit allows.
+SPEED_SLACK = 0.02
+
+
+def _within_norm(x: Array, limit: float) -> Array:
+    """``x`` scaled down (direction kept) to a norm of ``limit`` when it is over it by more than
+    ``RATE_TOLERANCE`` (``x`` itself otherwise)."""
+    norm = float(np.linalg.norm(x))
+    return x * (limit / norm) if norm > limit * (1.0 + RATE_TOLERANCE) else x
 
 
 @dataclass(frozen=True)
@@ -147,6 +166,9 @@ class MotionGuard:
         self._q_lo_overrun = model.q_min + 0.5 * safety.joint_position_margin_rad
         self._q_hi_overrun = model.q_max - 0.5 * safety.joint_position_margin_rad
         self._target: Array | None = None
+        # The last streamed twist sent and its change over the control period before it [per s]
+        # (``_rate_limited``); zero at rest, where the smoother starts.
+        self._sent: tuple[Array, Array] = (np.zeros(6), np.zeros(6))
         self._following = False
         # After a stop, streaming waits for the arm's own ramp to rest (``tick``).
         self._settling = False
@@ -200,6 +222,7 @@ class MotionGuard:
         self._target = None
         self._following = False
         self._smoother.reset()
+        self._sent = (np.zeros(6), np.zeros(6))
         self._settling = True
         try:
             self._arm.stop()
@@ -211,6 +234,7 @@ class MotionGuard:
         self._target = None
         self._following = False
         self._smoother.reset()
+        self._sent = (np.zeros(6), np.zeros(6))
         self._send(self._arm.stop, motion=False)
 
     def request_stop(self, reason: str) -> None:
@@ -407,12 +431,76 @@ class MotionGuard:
             self._smoother.restore(snapshot)
             v = self._smoother.step(np.zeros(6))
             self.log.clamp(unsafe)
+        limited = self._rate_limited(v)
+        if limited is not v:
+            # Braking from the twist the rate limits leave must stay clear as well (it was checked from
+            # the twist before them).
+            v = limited
+            unsafe = self._braking_violation(state, ik)
+            if unsafe is not None:
+                reason = f"{unsafe}: the stop cannot begin within the TCP jerk limit"
+                stop = self._refuse(reason)
+                raise TwistRefused(stop.reason, Refusal("speed", reason))
+        too_fast = self._over_speed(v, ik(v), SPEED_SLACK)
+        if too_fast is not None:
+            stop = self._refuse(too_fast)
+            raise TwistRefused(stop.reason, Refusal("speed", too_fast))
+        if self._over_speed(v, ik(v), RATE_TOLERANCE) is not None:
+            self.log.clamp("speed_while_slowing")
         hit = self._collision_ahead(state.q, ik(v))
         if hit is not None:
             reason = f"{hit} within {self._safety.collision.lookahead_s:g} s"
             stop = self._refuse(reason)
             raise TwistRefused(stop.reason, Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
+        self._sent = (v, (v - self._sent[0]) / self._period)
+
+    def _rate_limited(self, v: Array) -> Array:
+        """``v`` moved as little as needed for the streamed commands to keep the TCP acceleration and jerk
+        limits, as finite differences over the control period of the twists sent (what the arm is
+        commanded, and what a judge of the command stream sees): the change of acceleration from the last
+        period's is cut to the jerk limit, then the acceleration to its limit (per linear and angular part,
+        as norms; the second cut keeps the first, a projection onto a ball around zero that holds the last
+        acceleration). The smoother's own steps pass unchanged; the speed cuts after it (``smoothed_twist``),
+        a share of a step (``joint_acceleration``) and a braking step from an earlier state need not, and
+        are counted as ``tcp_rate``. The smoother goes on from the twist sent."""
+        s, dt = self._safety, self._period
+        v_last, a_last = self._sent
+        out = v.copy()
+        changed = False
+        for part, acc, jerk in ((slice(0, 3), s.tcp_max_linear_acc_mps2, s.tcp_max_linear_jerk_mps3),
+                                (slice(3, 6), s.tcp_max_angular_acc_rps2, s.tcp_max_angular_jerk_rps3)):
+            a = (v[part] - v_last[part]) / dt
+            change = a - a_last[part]
+            cut = _within_norm(change, jerk * dt)
+            limited = _within_norm(a if cut is change else a_last[part] + cut, acc)
+            if limited is not a:
+                out[part] = v_last[part] + limited * dt
+                changed = True
+        if not changed:
+            return v
+        self.log.clamp("tcp_rate")
+        self._smoother.restore((out.tolist(), ((out - v_last) / dt).tolist()))
+        return out
+
+    def _over_speed(self, v: Array, qd: Array, slack: float) -> str | None:
+        """Why the twist ``v`` (joint velocities ``qd`` [rad/s] here) is over a speed limit by more than the
+        share ``slack``, or None. The speed cuts before it aim below every limit; a twist still over one
+        could not be slowed down within the TCP jerk limit (``_rate_limited``)."""
+        s = self._safety
+        for what, value, limit in (("the TCP's linear speed", float(np.linalg.norm(v[:3])),
+                                    s.tcp_max_linear_mps),
+                                   ("the TCP's angular speed", float(np.linalg.norm(v[3:])),
+                                    s.tcp_max_angular_rps)):
+            if value > limit * (1.0 + slack):
+                return (f"{what} ({value:.4g}) would stay over its limit ({limit:g}): the twist cannot slow "
+                        f"down within the TCP jerk limit")
+        over = np.abs(qd) / self._qd_limit
+        j = int(np.argmax(over))
+        if over[j] > 1.0 + slack:
+            return (f"joint {j + 1} at {qd[j]:+.4f} rad/s would stay over its share of its speed limit "
+                    f"({self._qd_limit[j]:.4f} rad/s): the twist cannot slow down within the TCP jerk limit")
+        return None
 
     def _collision_ahead(self, q: Array, qd: Array) -> Collision | None:
         """The contact the arm would make going on at joint velocities ``qd`` [rad/s] from ``q`` [rad] for
