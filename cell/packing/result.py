@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from cell.config.models import CellConfig
-from cell.packing.box import PackingBox, box_from_mesh, box_from_points, box_iou
+from cell.packing.box import PackingBox, box_from_points, packing_iou
 from cell.packing.containers import ContainerChoice, choose_container
 from cell.packing.faces import faced_box
 from cell.packing.objects import (
@@ -183,7 +183,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     section["box"] = _box_dict(box)
     section["table_correction"] = correction.summary()
     if mesh is not None and T_base_object is not None:
-        section["iou"] = round(box_iou(box, box_from_mesh(mesh, T_base_object)), 6)
+        section["iou"] = round(packing_iou(box, mesh, T_base_object), 6)
     if np.all(np.isfinite(upper)):
         choice = choose_container(upper, pc.containers, pc.margin_m)
         choice = replace(choice, reason=f"{choice.reason}, for the box's upper bound")
