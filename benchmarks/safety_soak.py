@@ -22,9 +22,22 @@ Prints one line per robot and then one line of JSON: per robot the commands sent
 reason), ``breaches`` (control periods in which something happened that must never happen: a barrier
 plane crossed, bodies in contact, a joint at its limit or beyond the robot model's speed, acceleration or
 jerk; each must be 0), ``cell_limits`` (control periods over the cell file's tighter limits: margins,
-limit shares, TCP limits), the worst value of each kind (a depth [m or rad] or a ratio to the limit) and
-``breach_events``: the first breaches with the episode and command they came in (``--episodes E:E+1``
-replays episode E alone: the episodes before it are drawn, not run, so it gets the same commands).
+limit shares, TCP limits), the worst value of each kind (a depth [m or rad] or a ratio to the limit),
+``commanded`` (streamed twists the guard sent over a streaming limit of the cell file as the guard defines
+it: TCP speed, acceleration and jerk as differences of the twists sent, each joint's share of its speed
+through the differential IK where the arm was; ``Rig.commanded``; each must be 0 but for a speed up to
+``SPEED_SLACK`` over while the jerk limit slows it down) with ``worst_commanded``, and ``breach_events``:
+the first breaches with the episode and command they came in (``--episodes E:E+1`` replays episode E
+alone: the episodes before it are drawn, not run, so it gets the same commands).
+
+``cell_limits`` judges the motion the arm made, not the commands: near a singularity the arm realizes a
+twist through damped least squares, short of it by up to half (its flange's speed, acceleration and jerk
+are those of ``J(q) DLS(q) v``, whose factor turns with q), so its TCP acceleration and jerk there may pass
+the limits by some tens of percent with every command within them (seed 0, 3000 commands: 1.27 on the
+UR5e, at a smallest singular value of 5 mm); and a trajectory slowed down in time (``trajectory_time_scaled``)
+has samples off the control period, which the arm joins by straight lines, so its joints' jerk over a
+period passes the share the samples keep (1.27 of the UR5e's share in the soak; in 17 random slowed-down
+UR5e moves, 0.95 to 1.44 over a period where their samples keep 0.03 to 0.41 of it).
 
     .venv/bin/python benchmarks/safety_soak.py [--commands N] [--seed S] [--robot ur5e|panda ...]
     .venv/bin/python benchmarks/safety_soak.py --robot ur5e --seed S --episodes 121:122   # replay one
@@ -46,10 +59,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cell.control.trajectory import joint_trajectory
-from cell.safety.guard import TwistRefused
+from cell.safety.guard import SPEED_SLACK, TwistRefused
 from drivers.errors import SafetyStop
 from drivers.robots import get_robot_model
-from tests.safety_rig import MotionJudge, Rig, cell_config
+from tests.safety_rig import COMMANDED, COMMANDED_SPEEDS, MotionJudge, Rig, cell_config
 
 Array = np.ndarray
 ROBOTS = ("ur5e", "panda")
@@ -205,7 +218,9 @@ def soak(robot: str, n_commands: int, seed: int, first_episode: int = 0) -> dict
     refused: Counter[str] = Counter()
     breaches: Counter[str] = Counter()
     cell_limits: Counter[str] = Counter()
+    commanded: Counter[str] = Counter(dict.fromkeys(COMMANDED, 0))
     worst: dict[str, float] = {}
+    worst_commanded: dict[str, float] = {}
     contacts: Counter[str] = Counter()
     events: list[dict[str, Any]] = []
     periods = 0
@@ -244,6 +259,10 @@ def soak(robot: str, n_commands: int, seed: int, first_episode: int = 0) -> dict
             contacts[judge.first_contact] += 1
         for kind, value in judge.worst.items():
             worst[kind] = max(worst.get(kind, -np.inf), value)
+        for kind, ratio in rig.commanded().items():
+            allowed = 1.0 + 1e-6 + (SPEED_SLACK if kind in COMMANDED_SPEEDS else 0.0)
+            commanded[kind] += int(np.count_nonzero(ratio > allowed))
+            worst_commanded[kind] = max(worst_commanded.get(kind, 0.0), float(np.max(ratio, initial=0.0)))
         periods += round(rig.clock.now() / rig.dt)
         number += 1
     return {"robot": robot, "seed": seed, **sent, "control_periods": periods,
@@ -252,6 +271,8 @@ def soak(robot: str, n_commands: int, seed: int, first_episode: int = 0) -> dict
             "breaches_total": sum(breaches.values()), "breaches": dict(breaches),
             "first_contacts": dict(contacts), "cell_limits": dict(cell_limits),
             "worst": {k: float(f"{v:.4g}") for k, v in worst.items()},
+            "commanded": dict(commanded),
+            "worst_commanded": {k: float(f"{v:.4g}") for k, v in worst_commanded.items()},
             "breach_events": events,
             "wall_s": round(time.perf_counter() - t0, 1)}
 
@@ -286,7 +307,8 @@ def main() -> None:
         results.append(r)
         print(f"{robot:6s} {r['commands']} commands ({r['twists']} twists, {r['holds']} holds, {r['moves']} "
               f"moves) over {r['sim_time_h']} h of sim time: {r['refused_total']} refused, "
-              f"{r['breaches_total']} breaches, {r['wall_s']} s", flush=True)
+              f"{r['breaches_total']} breaches, {sum(r['commanded'].values())} commands over a limit, "
+              f"{r['wall_s']} s", flush=True)
     print(json.dumps({"robots": results, "breaches_total": sum(r["breaches_total"] for r in results)}))
 
 

@@ -136,35 +136,39 @@ class Rig:
         breaches = {k: v for k, v in self.judge.breaches.items() if v}
         assert not breaches, f"breaches (samples): {breaches}; worst: {self.judge.worst}"
 
-    def check_sent(self) -> None:
-        """Every twist sent keeps each streaming limit of the cell file, within rounding: the TCP's linear
-        and angular speed and every joint's share of its speed limit (through the differential IK where the
-        arm was when it was sent; up to ``SPEED_SLACK`` over while the jerk limit slows it), and, as
-        finite differences over the control period of the twists sent
+    def commanded(self) -> dict[str, Array]:
+        """Each streaming limit of the cell file as the guard defines it, judged on the twists it sent: per
+        kind (``COMMANDED``) the ratio to its limit of every twist sent (``sent``). The TCP's linear and
+        angular speed; every joint's share of its speed limit, through the differential IK where the arm
+        was when the twist was sent; and, as finite differences over the control period of the twists sent
         one period after another from rest (a stream starts at rest, after a stop or a trajectory too), the
         TCP's linear and angular acceleration and jerk."""
         sf = self.cfg.safety
         v = np.array(self.sent) if self.sent else np.zeros((0, 6))
-        over = 1.0 + 1e-6
-        # A twist the jerk limit keeps from slowing down at once may stay this far over a speed limit
-        # (``cell.safety.guard.SPEED_SLACK``).
-        slack = 1.0 + SPEED_SLACK + 1e-6
-        assert np.all(np.linalg.norm(v[:, :3], axis=1) <= sf.tcp_max_linear_mps * slack)
-        assert np.all(np.linalg.norm(v[:, 3:], axis=1) <= sf.tcp_max_angular_rps * slack)
         qd_limit = self.model.qd_max * sf.joint_velocity_scale
-        for vk, (_, q) in zip(v, self.sent_at, strict=True):
-            assert np.all(np.abs(self.model.velocity_map(q)(vk)) <= qd_limit * slack)
+        out = {"tcp_linear_speed": np.linalg.norm(v[:, :3], axis=1) / sf.tcp_max_linear_mps,
+               "tcp_angular_speed": np.linalg.norm(v[:, 3:], axis=1) / sf.tcp_max_angular_rps,
+               "joint_velocity_share": np.array([np.max(np.abs(self.model.velocity_map(q)(vk)) / qd_limit)
+                                                 for vk, (_, q) in zip(v, self.sent_at, strict=True)])}
         t = np.array([at[0] for at in self.sent_at])
         # Runs of twists sent in consecutive periods, each preceded by rest.
-        breaks = np.flatnonzero(np.abs(np.diff(t) - self.dt) > 1e-9) + 1
-        for run in np.split(v, breaks):
-            rates = np.diff(np.vstack([np.zeros((2, 6)), run]), axis=0) / self.dt
-            for k, limits in ((1, (sf.tcp_max_linear_acc_mps2, sf.tcp_max_angular_acc_rps2)),
-                              (2, (sf.tcp_max_linear_jerk_mps3, sf.tcp_max_angular_jerk_rps3))):
-                x = np.diff(rates, n=k - 1, axis=0) / self.dt ** (k - 1)
-                for part, limit in zip((slice(0, 3), slice(3, 6)), limits, strict=True):
-                    worst = float(np.max(np.linalg.norm(x[:, part], axis=1), initial=0.0))
-                    assert worst <= limit * over, f"a streamed twist's rate {k}: {worst:.4g} > {limit:g}"
+        runs = np.split(v, np.flatnonzero(np.abs(np.diff(t) - self.dt) > 1e-9) + 1)
+        rates = ((1, "acceleration", sf.tcp_max_linear_acc_mps2, sf.tcp_max_angular_acc_rps2),
+                 (2, "jerk", sf.tcp_max_linear_jerk_mps3, sf.tcp_max_angular_jerk_rps3))
+        for k, what, linear, angular in rates:
+            x = np.vstack([np.diff(np.vstack([np.zeros((k, 6)), run]), n=k, axis=0) / self.dt ** k
+                           for run in runs]) if len(v) else np.zeros((0, 6))
+            out[f"tcp_linear_{what}"] = np.linalg.norm(x[:, :3], axis=1) / linear
+            out[f"tcp_angular_{what}"] = np.linalg.norm(x[:, 3:], axis=1) / angular
+        return out
+
+    def check_sent(self) -> None:
+        """Every twist sent keeps each streaming limit of the cell file (:meth:`commanded`) within
+        rounding; a speed, up to ``SPEED_SLACK`` over while the jerk limit slows it down."""
+        for kind, ratio in self.commanded().items():
+            allowed = 1.0 + 1e-6 + (SPEED_SLACK if kind in COMMANDED_SPEEDS else 0.0)
+            worst = float(np.max(ratio, initial=0.0))
+            assert worst <= allowed, f"a streamed twist's {kind}: {worst:.4g} times the limit"
 
 
 def _frame_along(a: Array, b: Array) -> Array:
@@ -190,6 +194,10 @@ PHASES = {ArmMode.VELOCITY: "streamed", ArmMode.TRAJECTORY: "trajectory", ArmMod
 BREACHES = ("barrier_crossing", "collision", "joint_limit", "joint_velocity", "joint_acceleration",
             "joint_jerk")
 """What must never happen, each counted in samples (control periods)."""
+COMMANDED_SPEEDS = ("tcp_linear_speed", "tcp_angular_speed", "joint_velocity_share")
+COMMANDED = (*COMMANDED_SPEEDS, "tcp_linear_acceleration", "tcp_angular_acceleration", "tcp_linear_jerk",
+             "tcp_angular_jerk")
+"""The streaming limits of the cell file, judged on the twists the guard sends (``Rig.commanded``)."""
 CELL_LIMITS = ("barrier_margin", "joint_margin", "joint_velocity_share", "tcp_linear_speed",
                "tcp_angular_speed", "tcp_linear_acceleration", "tcp_angular_acceleration", "tcp_linear_jerk",
                "tcp_angular_jerk", "joint_acceleration_share", "joint_jerk_share")
