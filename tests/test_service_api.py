@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import gc
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -305,6 +307,75 @@ def test_a_service_shut_down_kills_its_spare_worker_and_leaves_none_of_its_pipes
         warnings.simplefilter("ignore", ResourceWarning)
         gc.collect()
     assert [(u.exc_type, str(u.exc_value)) for u in unraisable] == []
+
+
+def _spawns_fail(service: Any) -> threading.Event:
+    """An event that, while set, makes the service's worker processes fail to start as a process out of
+    file descriptors does (its worker's log file cannot be opened)."""
+    out = threading.Event()
+    start = service._start_worker
+
+    async def failing(log_path: Path, label: str) -> Any:
+        if out.is_set():
+            raise OSError(errno.EMFILE, "Too many open files", str(log_path))
+        return await start(log_path, label)
+
+    service._start_worker = failing
+    return out
+
+
+def test_a_worker_that_cannot_be_started_never_leaves_a_job_untracked_and_the_service_recovers(tmp_path,
+                                                                                               caplog):
+    """Out of file descriptors, the warm spare beside a running job cannot be started: the running job is
+    followed to its end all the same (it was marked failed while its worker scanned on, untracked, and the
+    dispatcher died for good), the next job waits in the queue saying why, the failure is logged once,
+    and the next job runs by itself once worker processes start again."""
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    with client, caplog.at_level(logging.INFO, logger="cell.service"):
+        service = client.app.state.service  # type: ignore[attr-defined]
+        assert service._spare is not None  # the first job takes it; no other can start
+        out = _spawns_fail(service)
+        out.set()
+        first, second = (client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2},
+                                     headers=op).json() for _ in range(2))
+        assert _wait(client, viewer, first["id"], set(FINISHED_STATUSES))["status"] == "completed"
+        time.sleep(2.5)  # the second job's start tried twice or more
+        assert client.get(f"/api/v1/jobs/{second['id']}", headers=op).json()["status"] == "queued"
+        cell = client.get("/api/v1/cell", headers=op).json()
+        assert cell["job"] is None and "Too many open files" in cell["queue"]["held"]
+        assert client.get("/readyz", headers=op).status_code == 200
+        out.clear()
+        _wait(client, viewer, second["id"], {"running"})
+        assert client.get("/api/v1/cell", headers=op).json()["job"]["id"] == second["id"]
+        assert _wait(client, viewer, second["id"], set(FINISHED_STATUSES))["status"] == "completed"
+        assert client.get("/api/v1/cell", headers=op).json()["queue"]["held"] is None
+    failures = [r.getMessage() for r in caplog.records if "could not be started" in r.getMessage()]
+    assert len(failures) == 1 and "trying again" in failures[0], failures
+    assert any(r.getMessage() == "worker processes start again" for r in caplog.records)
+
+
+def test_a_dispatcher_that_ends_on_an_error_is_logged_and_makes_the_service_not_ready(tmp_path, caplog):
+    """An error the job dispatcher did not expect ends it: said in the log and in the queue's hold, and
+    ``/readyz`` answers 503 (``cell.api.server`` stops the systemd watchdog's pings on it)."""
+    client, keys = _client(tmp_path)
+    op = _auth(keys["operator"])
+    with client, caplog.at_level(logging.INFO, logger="cell.service"):
+        service = client.app.state.service  # type: ignore[attr-defined]
+
+        def broken() -> bool:
+            raise RuntimeError("a bug")
+
+        service._may_start = broken
+        client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op)
+        deadline = time.monotonic() + 30.0
+        while client.get("/readyz", headers=op).status_code != 503:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        held = client.get("/api/v1/cell", headers=op).json()["queue"]["held"]
+        assert "dispatcher stopped" in held and "RuntimeError: a bug" in held and service.broken == held
+    assert any(r.levelno == logging.CRITICAL and "dispatcher stopped" in r.getMessage()
+               for r in caplog.records)
 
 
 def test_stop_holds_the_queue_and_resume_releases_it(served):

@@ -3,6 +3,7 @@ own, the JSON log lines journald takes, and the unit file as ``systemd-analyze v
 
 from __future__ import annotations
 
+import asyncio
 import io
 import json
 import logging
@@ -16,9 +17,12 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+import uvicorn
 
+from cell.api.server import NotifyingServer
 from cell.service.logs import HumanFormatter, JsonLineFormatter, configure_logging
 from cell.service.notify import Notifier
 from cell.service.store import FINISHED_STATUSES
@@ -101,6 +105,31 @@ def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_
     assert any(m.startswith("job ended") for m in mine)
     assert any(line["logger"] == "uvicorn.access" for line in lines)  # uvicorn's lines are JSON too
     assert cell.keys["operator"] not in log
+
+
+def test_the_watchdog_pings_stop_once_the_cell_service_can_run_no_job(manager):
+    """A cell service whose job dispatcher ended on an error (``CellService.broken``) would queue jobs for
+    ever: the pings stop, with the reason in STATUS, so that systemd restarts it."""
+    service = SimpleNamespace(broken=None)
+    app = SimpleNamespace(state=SimpleNamespace(service=service))
+    notifier = Notifier({"NOTIFY_SOCKET": str(manager.path), "WATCHDOG_USEC": str(WATCHDOG_USEC)})
+    server = NotifyingServer(uvicorn.Config(app), notifier)  # type: ignore[arg-type]
+
+    async def ping_until_broken() -> None:
+        pings = asyncio.create_task(server._ping(0.01))
+        await asyncio.sleep(0.1)
+        assert not pings.done()
+        service.broken = "the job dispatcher stopped on an error"
+        await asyncio.wait_for(pings, 30.0)
+
+    asyncio.run(ping_until_broken())
+    deadline = time.monotonic() + 30.0
+    while not any("STATUS" in m for m in manager.between(0.0, time.monotonic())):
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    received = manager.between(0.0, time.monotonic())
+    assert received[0] == {"WATCHDOG": "1"}
+    assert received[-1] == {"STATUS": "not pinging the watchdog: the job dispatcher stopped on an error"}
 
 
 def test_a_manager_that_reads_nothing_never_holds_a_notification(tmp_path):

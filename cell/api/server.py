@@ -2,9 +2,11 @@
 
 ``READY=1`` once the API listens (after the cell's service started: store, queue, line), ``WATCHDOG=1``
 every half watchdog period from the event loop itself, so that a loop that hangs stops the pings and
-systemd restarts the service, and ``STOPPING=1`` as soon as a shutdown begins (the running job is then
-stopped and its folder finished, which may take ``service.shutdown_timeout_s``). A failing ``accept()``
-is logged once in a while, not once per attempt (``cell.api.connections.quiet_accept_failures``).
+systemd restarts the service (as does a cell service that can run no more jobs: its job dispatcher ended on
+an error, ``CellService.broken``; the pings stop then, with the reason in ``STATUS``), and ``STOPPING=1``
+as soon as a shutdown begins (the running job is then stopped and its folder finished, which may take
+``service.shutdown_timeout_s``). A failing ``accept()`` is logged once in a while, not once per attempt
+(``cell.api.connections.quiet_accept_failures``).
 """
 
 from __future__ import annotations
@@ -48,6 +50,14 @@ class NotifyingServer(uvicorn.Server):
                     await self._pings
 
     async def _ping(self, interval_s: float) -> None:
-        while True:
+        while (broken := self._broken()) is None:
             self._notifier.notify(WATCHDOG="1")
             await asyncio.sleep(interval_s)
+        self._notifier.notify(STATUS=f"not pinging the watchdog: {broken}")
+
+    def _broken(self) -> str | None:
+        """Why the app's cell service can run no more jobs (``app.state.service``, once its lifespan has
+        started it), or None."""
+        service = getattr(getattr(self.config.app, "state", None), "service", None)
+        broken = getattr(service, "broken", None)
+        return broken if isinstance(broken, str) else None

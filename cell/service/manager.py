@@ -61,6 +61,10 @@ LEASE_CHECK_S = 1.0
 """How often the service checks that it still holds its cell's lease (``cell.service.store.lease``) [s]:
 a PostgreSQL lease lost with its connection in an outage is taken again this soon after the store
 answers, the window in which a second service of the cell could start."""
+SPAWN_RETRY_S = 1.0
+"""How soon a worker process that could not be started (the service out of file descriptors, processes or
+memory) is tried again [s]: a job waits in the queue for it, the warm spare is started again, and the
+service takes jobs again by itself once the resources are back."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
 STOP_EFFECTS = {StopEffect.COMMANDED: "the arm was commanded to stop",
@@ -160,6 +164,10 @@ class CellService:
         self._dio: DigitalIOHandshake | None = None
         self._spare: asyncio.subprocess.Process | None = None
         self._spare_log = self._logs_dir / "worker-spare.log"
+        self._warming = False
+        self._rewarm: asyncio.Task[None] | None = None
+        self._spawn_failure: str | None = None
+        self._broken: str | None = None
         # the next worker may load beside a running job only where no arm moves on the wall clock
         self._warm_beside_jobs = config.mode in ("sim", "replay")
 
@@ -233,6 +241,10 @@ class CellService:
                 await asyncio.wait_for(asyncio.shield(self._dispatcher),
                                        self.config.service.shutdown_timeout_s)
             self._dispatcher.cancel()
+        if self._rewarm is not None:
+            self._rewarm.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._rewarm
         await self._close_spare()
         if self._dio is not None:
             await self._dio.close()
@@ -243,8 +255,14 @@ class CellService:
 
     @property
     def ready(self) -> bool:
-        """Taking jobs: started and not shutting down."""
+        """Taking jobs: started, its job dispatcher running and not shutting down."""
         return self._dispatcher is not None and not self._dispatcher.done() and not self._closing
+
+    @property
+    def broken(self) -> str | None:
+        """Why the service can run no job until it is restarted (its job dispatcher ended on an error), in
+        words, or None. The systemd watchdog's pings stop then (``cell.api.server``)."""
+        return self._broken
 
     # ------------------------------------------------------------------ reading
 
@@ -264,7 +282,7 @@ class CellService:
                 "id": running.job.id, "status": "running", "planner": running.job.planner,
                 "part_id": running.job.part_id, "progress": running.progress},
             "queue": {"length": len(self._queued), "max": self.config.service.queue_max,
-                      "held": self.hold_reason()},
+                      "held": self.hold_reason() or self._waiting_for_worker()},
             "line": None if self.line is None else self.line.snapshot().as_dict(),
         }
 
@@ -272,7 +290,12 @@ class CellService:
         """Why queued jobs do not start, or None."""
         if self.arm.faulted:
             return f"arm {self.arm.status.state}: recover the arm first (POST /api/v1/arm/recover)"
-        return self._lease_lost or self._held
+        return self._broken or self._lease_lost or self._held
+
+    def _waiting_for_worker(self) -> str | None:
+        """Why the next job waits though nothing holds the queue: no worker process could be started for
+        it (it is tried again every ``SPAWN_RETRY_S``), or None."""
+        return self._spawn_failure if self._queued and self._running is None else None
 
     def planners(self) -> list[dict[str, str | bool]]:
         return [{"name": name, "description": entry.description, "default": name == self.config.scan.planner}
@@ -509,6 +532,8 @@ class CellService:
         spec = WorkerSpec(op="recover", job_id="recover", config=self._config_data,
                           config_file=self._config_file)
         proc = await self._worker(self._logs_dir / "worker-recover.log", spec.job_id)
+        if proc is None:
+            return {"ok": False, "message": f"the arm was not recovered: {self._spawn_failure}"}
         await self._hand(proc, spec)
         assert proc.stdout is not None
         report: dict[str, Any] = {"ok": False, "message": "the recovery worker ended without an answer"}
@@ -532,16 +557,38 @@ class CellService:
                 sys.executable, "-m", WORKER_MODULE, "--job", label, stdin=asyncio.subprocess.PIPE,
                 stdout=asyncio.subprocess.PIPE, stderr=log, start_new_session=True, limit=LINE_LIMIT)
 
-    async def _worker(self, log_path: Path, label: str, *, warm: bool = False) -> asyncio.subprocess.Process:
+    async def _spawn(self, log_path: Path, label: str) -> asyncio.subprocess.Process | None:
+        """A new worker process for ``label``, or None when it could not be started (its log file or the
+        process itself: out of file descriptors, processes or memory). A failure is logged in one line
+        when it begins or changes, and once workers start again; the caller tries again in
+        ``SPAWN_RETRY_S``."""
+        try:
+            proc = await self._start_worker(log_path, label)
+        except OSError as exc:
+            # the reason without the file it names (a new log file each try): the same failure, one line
+            failure = (f"a worker process could not be started ({type(exc).__name__}: "
+                       f"{exc.strerror or exc}); trying again every {SPAWN_RETRY_S:g} s")
+            if failure != self._spawn_failure:
+                log.error("%s", failure, extra={"job_id": None if label in ("spare", "recover") else label})
+            self._spawn_failure = failure
+            return None
+        if self._spawn_failure is not None:
+            log.warning("worker processes start again")
+            self._spawn_failure = None
+        return proc
+
+    async def _worker(self, log_path: Path, label: str, *,
+                      warm: bool = False) -> asyncio.subprocess.Process | None:
         """A worker for a job (``label``): the warm spare when ``warm`` and one is ready (its log renamed
-        to ``log_path``), else a new process. It waits for its spec (:meth:`_hand`)."""
+        to ``log_path``), else a new process, or None when none could be started (:meth:`_spawn`). It
+        waits for its spec (:meth:`_hand`)."""
         proc, self._spare = (self._spare, None) if warm else (None, self._spare)
         if proc is not None and proc.returncode is None:
             os.replace(self._spare_log, log_path)
             return proc
         if proc is not None:  # the spare died waiting (its log says why)
             await self._reap(proc)
-        return await self._start_worker(log_path, label)
+        return await self._spawn(log_path, label)
 
     @staticmethod
     async def _hand(proc: asyncio.subprocess.Process, spec: WorkerSpec) -> None:
@@ -550,12 +597,42 @@ class CellService:
         proc.stdin.write(spec.line())
         await proc.stdin.drain()
 
+    def _wants_spare(self) -> bool:
+        """Whether the next job's worker should be started now (``service.warm_worker``): none is ready,
+        and no job runs or the cell warms it beside a running job (sim and replay)."""
+        return (self.config.service.warm_worker and not self._closing and self._spare is None
+                and (self._running is None or self._warm_beside_jobs))
+
     async def _warm(self) -> None:
-        """Start the next job's worker now (``service.warm_worker``): it loads its libraries and waits."""
-        if not self.config.service.warm_worker or self._closing or self._spare is not None:
+        """Start the next job's worker now, if it should be (:meth:`_wants_spare`): it loads its libraries
+        and waits. Never raises: a worker that could not be started is tried again every
+        ``SPAWN_RETRY_S`` by a task of its own while one is wanted (a job's end wants one again)."""
+        if await self._spawn_spare():
             return
-        self._spare_log = self._logs_dir / f"worker-spare-{secrets.token_hex(4)}.log"
-        self._spare = await self._start_worker(self._spare_log, "spare")
+        if self._rewarm is None or self._rewarm.done():
+            self._rewarm = asyncio.create_task(self._warm_again(), name="warm worker")
+
+    async def _warm_again(self) -> None:
+        while self._wants_spare():
+            await asyncio.sleep(SPAWN_RETRY_S)
+            if await self._spawn_spare():
+                return
+
+    async def _spawn_spare(self) -> bool:
+        """Start the spare if one is wanted; False when it could not be started."""
+        if self._warming or not self._wants_spare():
+            return True
+        self._warming = True  # one start at a time: the dispatcher's and the retrying task's
+        try:
+            log_path = self._logs_dir / f"worker-spare-{secrets.token_hex(4)}.log"
+            spare = await self._spawn(log_path, "spare")
+        finally:
+            self._warming = False
+        if spare is not None:
+            self._spare_log, self._spare = log_path, spare
+            if self._closing:  # the service began to shut down meanwhile
+                await self._close_spare()
+        return spare is not None
 
     async def _close_spare(self) -> None:
         """End the warm spare at once: it holds no job and no arm, and it would read the end of its input
@@ -572,6 +649,17 @@ class CellService:
             and not self._busy_with_arm and not self._closing
 
     async def _dispatch(self) -> None:
+        """Start queued jobs one at a time, until the service shuts down. An error it did not expect ends
+        it: logged, the service then not ready (``/readyz`` 503), its queue held saying so, and the systemd
+        watchdog's pings stopped (:attr:`broken`), rather than jobs queued for ever in silence."""
+        try:
+            await self._dispatch_jobs()
+        except Exception as exc:
+            self._broken = (f"the job dispatcher stopped on an error ({type(exc).__name__}: {exc}): no job "
+                            "starts until the service is restarted")
+            log.critical("%s", self._broken, exc_info=True)
+
+    async def _dispatch_jobs(self) -> None:
         while not self._closing:
             await self._wake.wait()
             self._wake.clear()
@@ -580,29 +668,37 @@ class CellService:
                 queued = self._queued.pop(job_id)
                 running = self._running = _Running(queued.job, queued.origin)
                 try:
-                    started = await self._run(running, queued.source)
+                    retry_s = await self._run(running, queued.source)
                 except Exception as exc:  # the job fails, the service goes on with the next
                     log.exception("job %s could not be run", job_id)
+                    proc = running.proc
+                    if proc is not None and proc.returncode is None:  # not left moving on its own
+                        self._kill(proc)
+                        await self._reap(proc)
                     await self._finish(running, None, f"the service could not run the job: "
                                                       f"{type(exc).__name__}: {exc}")
                     continue
-                if not started:  # the store does not answer: the job waits for it, first in the queue
+                if retry_s is not None:  # the job waits, first in the queue, and is tried again
                     self._running = None
                     running.gone.set()
                     self._queued = {job_id: queued, **self._queued}
                     if running.stop_reason is not None:  # and a stop of it came meanwhile
                         self._hold(f"a stop ({running.stop_reason})")
-                    asyncio.get_running_loop().call_later(STORE_RETRY_S, self._wake.set)
+                    asyncio.get_running_loop().call_later(retry_s, self._wake.set)
                     break
 
-    async def _run(self, running: _Running, source: str) -> bool:
-        """Run the job to its end; False when it did not start because the store did not record its
-        start (its worker is ended before it had the job: nothing moved)."""
+    async def _run(self, running: _Running, source: str) -> float | None:
+        """Run the job to its end (None). When it did not start, how soon to try again [s]: its worker
+        could not be started, or the store did not record its start (its worker is then ended before it
+        had the job: nothing moved). Once its worker has the job, the job is followed to its end: an
+        error of the service meanwhile stops it through its worker (:meth:`_follow`)."""
         job = running.job
         spec = WorkerSpec(op="scan", job_id=job.id, config=self._config_data, config_file=self._config_file,
                           object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
                           planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
         proc = await self._worker(self._logs_dir / f"worker-{job.id}.log", job.id, warm=True)
+        if proc is None:
+            return SPAWN_RETRY_S
         try:
             # recorded before the worker has its job: a job that moves the arm is always `running` in
             # the store, with the worker a restart settles
@@ -612,17 +708,33 @@ class CellService:
             log.warning("job not started: %s", exc, extra={"job_id": job.id})
             self._kill(proc)
             await self._reap(proc)
-            return False
+            return STORE_RETRY_S
         await self._hand(proc, spec)
         running.proc = proc  # a stop that came before is carried out below, after the spec
-        if self._warm_beside_jobs:
-            await self._warm()
-        if running.stop_reason is not None:
-            await self._stop_running(running, running.stop_reason)
-        self.arm.job_started()
-        log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
-        self.events.log(job.id).publish("state", {"status": "running", "termination": None})
-        assert proc.stdout is not None
+        try:
+            code = await self._follow(running)
+        except Exception as exc:
+            failure = f"the service failed while it ran the job ({type(exc).__name__}: {exc})"
+            log.exception("job %s: %s; it is stopped through its worker", job.id, failure)
+            follower = asyncio.create_task(self._follow(running, started=True))
+            await self._stop_running(running, failure)
+            code = await follower
+        await self._finish(running, code)
+        return None
+
+    async def _follow(self, running: _Running, *, started: bool = False) -> int:
+        """Follow a job whose worker has it to its end (its worker's exit code), taking each line the
+        worker sends; ``started`` when the start was already announced (a second follower after an
+        error of the first)."""
+        job, proc = running.job, running.proc
+        assert proc is not None and proc.stdout is not None
+        if not started:
+            await self._warm()  # beside the job, where the cell allows it; never raises
+            if running.stop_reason is not None:
+                await self._stop_running(running, running.stop_reason)
+            self.arm.job_started()
+            log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
+            self.events.log(job.id).publish("state", {"status": "running", "termination": None})
         while line := await proc.stdout.readline():
             try:
                 message = finite_json(json.loads(line))
@@ -632,9 +744,7 @@ class CellService:
             self._take(running, message)
             if running.ended is not None and not running.recorded:
                 await self._record_end(running)
-        code = await proc.wait()
-        await self._finish(running, code)
-        return True
+        return await proc.wait()
 
     def _take(self, running: _Running, message: dict[str, Any]) -> None:
         """One line from the job's worker."""
@@ -678,13 +788,12 @@ class CellService:
                     # no one stopped the arm through the guard, only the controller's watchdog: a person
                     # looks before the next job moves it
                     self._hold(f"the job's worker ended unexpectedly ({exit_text}); check the arm")
-            result = await asyncio.to_thread(finish_folder, Path(job.folder), job, status, termination)
+            result = await self._finish_folder(job, status, termination)
         else:
             status, termination = ended["status"], ended["termination"]
-            result = finite_json(ended.get("result")) or await asyncio.to_thread(
-                finish_folder, Path(job.folder), job, status, termination)
+            result = finite_json(ended.get("result")) or await self._finish_folder(job, status, termination)
         self.metrics.ticks.job_ended(None if ended is None else ended.get("ticks"))
-        if status == "completed" and result.get("sim_time_s") is not None:
+        if status == "completed" and result is not None and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
         self.arm.job_ended(termination)
         log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
@@ -700,6 +809,17 @@ class CellService:
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
+
+    @staticmethod
+    async def _finish_folder(job: JobRecord, status: str, termination: str) -> dict[str, Any] | None:
+        """``finish_folder`` on a thread; None when the folder could not be written (out of file
+        descriptors, a full disk): the job's end is recorded in the store all the same."""
+        try:
+            return await asyncio.to_thread(finish_folder, Path(job.folder), job, status, termination)
+        except OSError as exc:
+            log.error("the job's folder could not be finished: %s: %s", type(exc).__name__, exc,
+                      extra={"job_id": job.id})
+            return None
 
     async def _finish(self, running: _Running, code: int | None, failure: str | None = None) -> None:
         """The job's worker has exited: the arm is free for the next job."""
