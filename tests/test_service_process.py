@@ -602,6 +602,20 @@ def test_a_request_without_a_valid_key_is_answered_401_before_its_body_arrives(f
 # ---------------------------------------------------------------------------------------------- 7. files
 
 
+def test_a_time_filter_without_a_timezone_is_a_422_naming_it(franka: ServedCell) -> None:
+    """``created_after`` / ``created_before`` need their timezone (it was a 500); with one, they filter."""
+    with franka.client("viewer") as client:
+        for name in ("created_after", "created_before"):
+            naive = client.get("/api/v1/jobs", params={name: "2026-01-01"})
+            assert naive.status_code == 422, naive.text
+            detail = naive.json()["detail"]
+            assert detail[0]["loc"] == ["query", name] and "timezone" in detail[0]["msg"], detail
+        aware = client.get("/api/v1/jobs", params={"created_after": "2026-01-01T00:00:00Z",
+                                                   "created_before": "2026-01-01T08:00:00+08:00"})
+        assert aware.status_code == 200 and aware.json()["total"] == 0, aware.text
+
+
+
 def test_job_files_never_leave_the_job_folder(
         franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
     job_id = scanned[0]["id"]

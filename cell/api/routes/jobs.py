@@ -6,12 +6,12 @@ import asyncio
 import json
 import mimetypes
 from collections.abc import AsyncIterator
-from datetime import datetime
 from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Header, HTTPException, Query, Response
 from fastapi.responses import FileResponse, StreamingResponse
+from pydantic import AwareDatetime
 
 from cell.api.auth import Canceller, Keeper, KeyFirstRoute, Reader, Stopper, Submitter, forbidden
 from cell.api.deps import Service
@@ -39,15 +39,21 @@ async def submit(body: JobSubmit, response: Response, cell: Service,
 
 
 STATUS_FILTER = Query(description="any of " + ", ".join(JOB_STATUSES))
+CREATED_FILTER = Query(description="a date and time with its timezone (ISO 8601, e.g. 2026-01-01T00:00:00Z "
+                                   "or 2026-01-01T08:00:00+08:00)")
 
 
 @router.get("", response_model=JobPage)
 async def list_jobs(cell: Service, _: Reader, status: Annotated[list[str] | None, STATUS_FILTER] = None,
                     planner: str | None = None, part_id: str | None = None,
-                    created_after: datetime | None = None, created_before: datetime | None = None,
+                    created_after: Annotated[AwareDatetime | None, CREATED_FILTER] = None,
+                    created_before: Annotated[AwareDatetime | None, CREATED_FILTER] = None,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
                     offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> JobPage:
-    """This cell's jobs, newest first, filtered and paginated."""
+    """This cell's jobs, newest first, filtered and paginated. ``created_after`` and ``created_before`` need
+    their timezone: a time without one is refused (422, "Input should have timezone info") rather than
+    taken as UTC, since the cell's PC, its store and the person asking may keep different zones, and a
+    guess would shift the answer by hours without a word (it was a 500)."""
     unknown = sorted(set(status or ()) - set(JOB_STATUSES))
     if unknown:
         message = f"unknown status {unknown[0]!r}; one of {', '.join(JOB_STATUSES)}"
