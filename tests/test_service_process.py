@@ -632,7 +632,7 @@ def test_job_files_never_leave_the_job_folder(
         for name in ("../cell.db", "../../cell.db", "..%2F..%2Fcell.db", "%2e%2e/%2e%2e/cell.db",
                      "%2E%2E%2F%2E%2E%2Fcell.db", "frames/../../../cell.db", "/" + str(db),
                      quote(str(db), safe=""), "leak.db", "up/cell.db", "up/../cell.db",
-                     "..%5C..%5Ccell.db", "result.json%00.png", ""):
+                     "..%5C..%5Ccell.db", "result.json%00.png", "", "a" * 5000, "frames/" + "a" * 300):
             status, body = raw_get(franka, base + name, key)
             assert status == 404, (name, status, body[:200])
             assert SQLITE_MAGIC not in body, name
