@@ -33,9 +33,10 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.core.result import Err, Ok
 
+from cell.service.keys import create_key as add_key
 from cell.service.protocol import finite_json
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION
-from cell.service.store import open_store
+from cell.service.store import open_store, sqlite_url
 from tests.conftest import CONFIG_DIR, FRANKA, UR5E
 from tests.postgres import fresh_database, postgres_url  # noqa: F401  (a fixture of this module)
 from tests.rtde_peer import ControllerPeer
@@ -227,6 +228,43 @@ def test_a_sim_job_runs_from_submission_to_result_through_its_event_stream(
     assert events_of(franka, job["id"], last_event_id=0) == events
     for seen in (2, len(events) - 1):
         assert events_of(franka, job["id"], last_event_id=ids[seen - 1]) == events[seen:]
+
+
+def test_an_event_stream_ends_once_its_key_is_revoked(franka: ServedCell) -> None:
+    """The service reloads its keys every second; a stream opened with a key that is revoked meanwhile ends
+    as soon after as the key's next request would be refused (it kept streaming for as long as the job
+    ran). The job waits in the held queue, so that its stream would never end by itself."""
+    store = open_store(sqlite_url(franka.data_dir))
+    try:
+        key = add_key(store, "viewer", "sse-revoked")[1]
+    finally:
+        store.close()
+    auth = {"Authorization": f"Bearer {key}"}
+    try:
+        with franka.client("operator") as operator:
+            assert operator.post("/api/v1/stop", json={"reason": "a stream to follow"}).status_code == 200
+            job = submit(franka, object="bunny", max_time_s=2.0)
+            deadline = time.monotonic() + 30.0  # the key counts within a second of its creation
+            while operator.get("/api/v1/whoami", headers=auth).status_code != 200:
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+            with operator.stream("GET", f"/api/v1/jobs/{job['id']}/events", headers=auth,
+                                 timeout=httpx.Timeout(10.0, read=60.0)) as response:
+                assert response.status_code == 200
+                lines = response.iter_lines()
+                assert next(lines) == "id: 1"  # the job's first state: the stream is open
+                store = open_store(sqlite_url(franka.data_dir))
+                try:
+                    store.revoke_key("sse-revoked")
+                finally:
+                    store.close()
+                revoked = time.monotonic()
+                for line in lines:  # to the stream's end; a keep-alive comes every 15 s at least
+                    assert time.monotonic() - revoked < 30.0, f"the stream went on after its key was " \
+                                                              f"revoked: {line!r}"  # a bound on waiting
+            assert operator.get("/api/v1/whoami", headers=auth).status_code == 401
+    finally:
+        settle_queue(franka)
 
 
 # ---------------------------------------------------------------------------------------------- 2. stop

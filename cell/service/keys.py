@@ -126,6 +126,11 @@ class KeyRing:
             return None
         return record
 
+    def active(self, record: KeyRecord) -> bool:
+        """Whether ``record``'s key still authenticates (a long request, an event stream, asks again
+        while it runs: the key may have been revoked since it began)."""
+        return record.key_hash in self._by_hash
+
     def __len__(self) -> int:
         """The number of active keys."""
         return len(self._by_hash)

@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Header, HTTPException, Query, Response
+from fastapi import APIRouter, Header, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import AwareDatetime
 
@@ -17,12 +17,16 @@ from cell.api.auth import Canceller, Keeper, KeyFirstRoute, Reader, Stopper, Sub
 from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
 from cell.api.stop_reason import StopReason
-from cell.service.keys import Permission, allowed
+from cell.service.keys import KeyRing, Permission, allowed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], route_class=KeyFirstRoute)
 KEEP_ALIVE_S = 15.0
 """An event stream with nothing to say sends a comment this often [s], so proxies keep it open."""
+KEY_CHECK_S = 1.0
+"""How often an open event stream checks that its key is still active [s], at least: at each event and
+after this long without one. The service reloads the keys every second (``cell.api.app``), so a stream
+whose key is revoked ends within about two seconds, as the key's other requests are refused."""
 CONTENT_TYPES = {".json": "application/json", ".csv": "text/csv; charset=utf-8",
                  ".txt": "text/plain; charset=utf-8", ".png": "image/png", ".ply": "application/octet-stream",
                  ".bt": "application/octet-stream", ".npz": "application/octet-stream"}
@@ -101,22 +105,29 @@ async def stop_job(job_id: str, cell: Service, key: Stopper, reason: StopReason)
 
 @router.get("/{job_id}/events", response_class=StreamingResponse,
             responses={200: {"content": {"text/event-stream": {}}}})
-async def job_events(job_id: str, cell: Service, _: Reader,
+async def job_events(job_id: str, request: Request, cell: Service, key: Reader,
                      last_event_id: Annotated[int | None, Header(ge=0)] = None) -> StreamingResponse:
     """Server-Sent Events: ``state`` (queued, running, completed, failed, stopped, cancelled,
     interrupted), ``progress`` at each perception update, and a final ``result``. Reconnect with
-    ``Last-Event-ID`` to resume where the stream broke off."""
+    ``Last-Event-ID`` to resume where the stream broke off. The stream ends once its key is revoked
+    (within about two seconds, ``KEY_CHECK_S``); a reconnection with it is then refused (401)."""
     log = await cell.job_events(job_id)
     metrics = cell.metrics
+    ring: KeyRing = request.app.state.keys
 
     async def stream() -> AsyncIterator[str]:
         metrics.sse_clients.inc()
+        quiet_s = 0.0  # since the last thing sent [s]
         try:
-            async for event in log.follow(last_event_id or 0, KEEP_ALIVE_S):
-                if event is None:
-                    yield ": keep-alive\n\n"
-                else:
+            async for event in log.follow(last_event_id or 0, KEY_CHECK_S):
+                if not ring.active(key):
+                    return
+                if event is not None:
+                    quiet_s = 0.0
                     yield f"id: {event.id}\nevent: {event.kind}\ndata: {json.dumps(event.data)}\n\n"
+                elif (quiet_s := quiet_s + KEY_CHECK_S) >= KEEP_ALIVE_S:
+                    quiet_s = 0.0
+                    yield ": keep-alive\n\n"
         finally:
             metrics.sse_clients.dec()
 
