@@ -355,6 +355,34 @@ def test_a_worker_that_cannot_be_started_never_leaves_a_job_untracked_and_the_se
     assert any(r.getMessage() == "worker processes start again" for r in caplog.records)
 
 
+def test_an_error_of_the_service_while_a_job_runs_stops_it_through_its_worker_and_records_its_end(tmp_path):
+    """A job whose worker has it is never left to itself: an error of the service while it follows the
+    job (here taking its first progress) stops it through its worker, whose guard stops the arm, and
+    its end is recorded (it was marked failed at once while its worker scanned on); the next job runs."""
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    with client:
+        service = client.app.state.service  # type: ignore[attr-defined]
+        take = service._take
+        failed: list[str] = []
+
+        def failing_once(running: Any, message: dict[str, Any]) -> None:
+            if message.get("type") == "progress" and not failed:
+                failed.append(running.job.id)
+                raise RuntimeError("a bug")
+            take(running, message)
+
+        service._take = failing_once
+        first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 60}, headers=op).json()
+        ended = _wait(client, viewer, first["id"], set(FINISHED_STATUSES))
+        assert failed == [first["id"]]
+        assert ended["status"] == "stopped", ended["termination"]
+        assert "the service failed while it ran the job (RuntimeError: a bug)" in ended["termination"]
+        assert ended["result"]["status"] == "stopped"  # the worker's own result.json, written as it stopped
+        second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
+        assert _wait(client, viewer, second["id"], set(FINISHED_STATUSES))["status"] == "completed"
+
+
 def test_a_dispatcher_that_ends_on_an_error_is_logged_and_makes_the_service_not_ready(tmp_path, caplog):
     """An error the job dispatcher did not expect ends it: said in the log and in the queue's hold, and
     ``/readyz`` answers 503 (``cell.api.server`` stops the systemd watchdog's pings on it)."""
