@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import create_engine, make_url, text
+from sqlalchemy import Connection, create_engine, make_url, text
 
 from cell.service.keys import create_key
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord, Store, open_store, sqlite_url
@@ -405,6 +405,24 @@ def test_one_service_at_a_time_holds_a_cell_on_a_store(store_url: str):
         other.release()
         second.claim_cell("cell-a").release()  # free once given up
     finally:
+        first.close()
+        second.close()
+
+
+def test_a_released_lease_is_free_when_release_returns(store_url: str, monkeypatch: pytest.MonkeyPatch):
+    """As a service restarted at once finds it. On PostgreSQL a lock that went only with its connection
+    stayed until the server process behind it had seen the close and ended, after ``release`` returned;
+    here that moment is held back (the lease's connection is not closed until the end)."""
+    first, second = open_store(store_url), open_store(store_url)
+    unclosed: list[Connection] = []
+    monkeypatch.setattr(Connection, "invalidate", lambda self, exception=None: unclosed.append(self))
+    try:
+        first.claim_cell("c").release()
+        second.claim_cell("c").release()
+    finally:
+        monkeypatch.undo()
+        for connection in unclosed:
+            connection.invalidate()
         first.close()
         second.close()
 

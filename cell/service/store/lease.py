@@ -114,6 +114,12 @@ class CellLease:
             self._fd = None
         if self._connection is not None:
             with contextlib.suppress(SQLAlchemyError):
-                # closed, not returned to the pool: the session's advisory lock ends with the connection
+                # unlocked first: a closed connection's lock goes only when its server process has seen
+                # the close and ended, after this returns (a service restarted at once found it taken)
+                self._connection.execute(text("SELECT pg_advisory_unlock(:ns, :key)"),
+                                         {"ns": LEASE_NAMESPACE, "key": _key(self.cell)})
+                self._connection.commit()
+            with contextlib.suppress(SQLAlchemyError):
+                # closed, not returned to the pool: whatever the unlock did, the lock ends with the session
                 self._connection.invalidate()
             self._connection = None
