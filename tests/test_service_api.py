@@ -38,7 +38,7 @@ from cell.service.arm_status import ArmTracker
 from cell.service.events import JobEvents
 from cell.service.keys import create_key
 from cell.service.protocol import WORKER_MODULE
-from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, reconcile
+from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, _started, reconcile
 from cell.service.startup import ServiceSettings
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store
 from drivers.errors import JobError, StoreError
@@ -704,7 +704,9 @@ def test_a_restart_waits_for_the_warm_worker_of_a_running_job_and_not_for_a_reus
         began = time.monotonic()
         reconcile(store, "c", worker_wait_s=20.0)
         assert time.monotonic() - began < 10.0  # the stranger was neither waited for nor signalled
-        assert worker.poll() == 0 and stranger.poll() is None
+        # on failure, what the reconcile judged the worker by
+        assert worker.poll() == 0 and stranger.poll() is None, \
+            f"worker started {_started(worker.pid) - now.timestamp():+.3f} s after now (its job at +1 s)"
         written = json.loads((Path(job.folder) / "result.json").read_text())
         assert written["status"] == "interrupted" and written["worker"]["status"] == "stopped"
         got = store.get_job(job.id)
