@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull, QhullError
 
-from cell.perception.segmentation import min_area_rectangle
+from cell.perception.segmentation import min_area_rectangle, rectangles_at
 from drivers.sim.objects import ObjectMesh
 from drivers.transforms import transform_points
 
@@ -153,19 +153,10 @@ def _hull_xy(xy: Array) -> Array:
         return xy
 
 
-def _rectangles(xy: Array, yaws: Array) -> tuple[Array, Array]:
-    """The coordinates' ranges (lo, hi), each (2, Y), of points (K, 2) along the axes of every yaw (Y,)
-    [rad]: the enclosing rectangle at that yaw."""
-    c, s = np.cos(yaws), np.sin(yaws)
-    u = xy[:, 0:1] * c + xy[:, 1:2] * s
-    v = -xy[:, 0:1] * s + xy[:, 1:2] * c
-    return np.stack([u.min(axis=0), v.min(axis=0)]), np.stack([u.max(axis=0), v.max(axis=0)])
-
-
 def has_round_footprint(points_base: Array) -> bool:
     """True when the table-plane footprint of points (N, 3) [m] has no yaw of its own: the area of its
     enclosing rectangle varies by at most ``ROUND_FOOTPRINT_SHARE`` over every yaw."""
-    lo, hi = _rectangles(_hull_xy(points_base[:, :2]), _ROUND_YAWS)
+    lo, hi = rectangles_at(_hull_xy(points_base[:, :2]), _ROUND_YAWS)
     area = np.prod(hi - lo, axis=0)
     return bool(area.max() <= area.min() * (1.0 + ROUND_FOOTPRINT_SHARE))
 
@@ -186,7 +177,7 @@ def truth_box(points_base: Array, measured: PackingBox) -> PackingBox:
     only, the same whatever the yaw of the object, of its mesh or of the measured box."""
     if not has_round_footprint(points_base):
         return box_from_points(points_base)
-    lo, hi = _rectangles(points_base[:, :2], np.array([measured.yaw_rad]))
+    lo, hi = rectangles_at(points_base[:, :2], np.array([measured.yaw_rad]))
     u, v = measured.axes_xy()
     middle = 0.5 * (lo[:, 0] + hi[:, 0])
     return _long_side_first(middle[0] * u + middle[1] * v, hi[:, 0] - lo[:, 0], measured.yaw_rad,

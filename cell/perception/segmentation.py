@@ -307,6 +307,15 @@ def _principal_angle(xy: Array) -> float:
     return math.atan2(vt[0, 1], vt[0, 0])
 
 
+def rectangles_at(xy: Array, angles: Array) -> tuple[Array, Array]:
+    """The coordinates' ranges (lo, hi), each (2, A), of 2D points (K, 2) along u = (cos a, sin a) and
+    v = (-sin a, cos a) for every angle a of ``angles`` (A,) [rad]: the enclosing rectangle at that angle."""
+    c, s = np.cos(angles), np.sin(angles)
+    u = xy @ np.vstack([c, s])
+    v = xy @ np.vstack([-s, c])
+    return np.stack([u.min(axis=0), v.min(axis=0)]), np.stack([u.max(axis=0), v.max(axis=0)])
+
+
 def min_area_rectangle(xy: Array) -> tuple[Array, Array, float]:
     """Minimum-area enclosing rectangle of 2D points (rotating calipers over the convex hull edges:
     the optimal rectangle has a side collinear with a hull edge, Freeman & Shapira 1975).
@@ -323,16 +332,11 @@ def min_area_rectangle(xy: Array) -> tuple[Array, Array, float]:
         angles = np.unique(np.round(np.arctan2(edges[:, 1], edges[:, 0]) % (math.pi / 2.0), 12))
     except (QhullError, ValueError):
         angles = np.array([_principal_angle(xy)])
-    c, s = np.cos(angles), np.sin(angles)
-    # Coordinates of the hull points along u = (c, s) and v = (-s, c) for every candidate angle.
-    u = hull @ np.vstack([c, s])
-    v = hull @ np.vstack([-s, c])
-    du = u.max(axis=0) - u.min(axis=0)
-    dv = v.max(axis=0) - v.min(axis=0)
+    lo, hi = rectangles_at(hull, angles)
+    du, dv = hi - lo
     best = int(np.argmin(du * dv))
     a = float(angles[best])
-    cu = 0.5 * (u[:, best].max() + u[:, best].min())
-    cv = 0.5 * (v[:, best].max() + v[:, best].min())
+    cu, cv = 0.5 * (lo[:, best] + hi[:, best])
     centre = np.array([cu * math.cos(a) - cv * math.sin(a), cu * math.sin(a) + cv * math.cos(a)])
     length, width = float(du[best]), float(dv[best])
     yaw = a
