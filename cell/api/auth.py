@@ -68,7 +68,6 @@ Keeper = Annotated[KeyRecord, Depends(require(Permission.KEEP))]
 Purger = Annotated[KeyRecord, Depends(require(Permission.PURGE))]
 
 
-
 class KeyFirstRoute(APIRoute):
     """The route class of the API's routers: a route that checks a key (one whose dependencies include
     the ``Authorization: Bearer`` check) answers a request without a valid key 401 before anything reads
