@@ -22,8 +22,9 @@ from cell.packing.uncertainty import ErrorModel, Seen, Sighting, upper_dims
 from cell.perception.metrics import ground_truth_points
 from cell.perception.segmentation import ObjectExtent, compute_roi
 from drivers.depth.base import SensorModel
+from drivers.depth.sim_tof import zone_directions
 from drivers.sim.objects import ObjectMesh, load_object, sample_surface
-from drivers.transforms import T_from_xyz_rpy, transform_points
+from drivers.transforms import T_from_xyz_rpy, look_at, transform_points
 from tests.conftest import UR5E
 
 
@@ -510,6 +511,63 @@ def test_a_face_that_every_view_s_frame_cut_has_no_upper_bound() -> None:
     assert box.dims[2] == pytest.approx(0.15, abs=0.005)
     assert np.isinf(upper_dims(box, model, seen, 0.02)[2])
     assert np.isfinite(upper_dims(box, camera, seen, 0.02)[2])  # the same points, the crop not known
+
+
+def _across_top(eye: np.ndarray, target: np.ndarray, end_x: float) -> Sighting:
+    """What an 8x8 sensor at ``eye`` looking at ``target`` [m, base] ranges of a top at z = 0.25 m over
+    0 <= x <= ``end_x``, |y| <= 0.3 m: the zones' central rays to it, the others' far ends at 4 m."""
+    T = look_at(eye, target)
+    d = zone_directions(8, 45.0, 1)[:, 0, :] @ T[:3, :3].T
+    with np.errstate(divide="ignore"):
+        t = np.where(d[:, 2] < 0.0, (0.25 - eye[2]) / d[:, 2], np.inf)
+    hit = eye + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    on = np.isfinite(t) & (hit[:, 0] >= 0.0) & (hit[:, 0] <= end_x) & (np.abs(hit[:, 1]) <= 0.3)
+    return Sighting(T, hit[on], eye + 4.0 * d[~on])
+
+
+def test_a_view_across_a_top_from_just_above_it_does_not_show_where_it_ends() -> None:
+    """A sensor 3 cm above a long top, looking along it 15 deg down: its rays stop meeting the top about
+    0.6 m out, where the zones above range nothing, so the outermost point lies inside its frame at the
+    outline, but the top goes on under those rays (to 1.5 m): the view does not show it end along +x, and
+    +x has no bound. Seen from 0.3 m above, the same top ending at 0.5 m is seen to end there."""
+    model = _model()
+    n = np.array([1.0, 0.0, 0.0])
+    across = _across_top(np.array([0.2, 0.0, 0.28]), np.array([1.0, 0.0, 0.066]), 1.5)
+    seen = Seen.of([across], np.ones(across.points.shape[0], dtype=bool), model)
+    assert seen.framed(model)[np.argmax(across.points[:, 0])]
+    assert not seen.ends_framed(model, n)
+    box = box_from_points(across.points, 0.0, trim=0.02)
+    assert np.isinf(upper_dims(box, model, seen, 0.02)[0])
+    above = _across_top(np.array([0.35, 0.0, 0.55]), np.array([0.5, 0.0, 0.25]), 0.5)
+    assert Seen.of([above], np.ones(above.points.shape[0], dtype=bool), model).ends_framed(model, n)
+
+
+def test_a_view_whose_next_zones_saw_the_surface_go_on_past_what_the_map_kept_does_not_bound_it() -> None:
+    """An 8x8 sensor 0.35 m above the top (z = 0.25 m) of a long bar 10 cm wide sees the top run through its
+    frame along x, the table beside it; the map kept only the top's part up to x = 0.5 m (grazing rays
+    carved the rest), so the view's outermost kept point along +x lies well inside its frame. The zones
+    beyond it ranged the top going on at the same range: the view does not show the object end, and +x
+    has no bound (the bound had been 3 cm short of a part 48 cm long). A view whose zones beyond saw the
+    table far below does show it end."""
+    d = zone_directions(8, 45.0, 1)[:, 0, :] @ np.diag([1.0, -1.0, -1.0])  # the zones' rays, looking down
+    eye = np.array([0.45, 0.0, 0.6])
+    T = T_from_xyz_rpy(eye.tolist(), [math.pi, 0.0, 0.0])
+
+    def ranged(height: float) -> np.ndarray:
+        return eye + ((height - eye[2]) / d[:, 2])[:, None] * d
+
+    bar = np.abs(ranged(0.25)[:, 1]) <= 0.05
+    top = np.where(bar[:, None], ranged(0.25), ranged(0.0))
+    kept = bar & (top[:, 0] < 0.5)
+    model = _model()
+    n = np.array([1.0, 0.0, 0.0])
+    above = top[:, 2] > 0.012
+    assert Seen.of([Sighting(T, top)], kept).ends_framed(model, n)
+    seen = Seen.of([Sighting(T, top)], kept, loose=above)
+    assert not seen.ends_framed(model, n)
+    assert np.isinf(upper_dims(box_from_points(top[kept], 0.0, trim=0.02), model, seen, 0.02)[0])
+    ended = np.where((bar & ~kept)[:, None], ranged(0.0), top)
+    assert Seen.of([Sighting(T, ended)], kept, loose=ended[:, 2] > 0.012).ends_framed(model, n)
 
 
 def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:

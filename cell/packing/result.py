@@ -46,6 +46,7 @@ from cell.packing.objects import (
     in_object_voxels,
     object_surface_points,
     packed_object,
+    table_cut_z,
 )
 from cell.packing.table_band import above_table, clear_of_table, off_table
 from cell.packing.table_calibration import TableCorrection, corrected_perception, table_correction
@@ -220,4 +221,5 @@ def _seen(perception: PerceptionPipeline, objects: Array, sightings: list[Sighti
     keep &= clear
     if not keep.any():
         return Seen(measured, range_m=standoff_m)
-    return Seen.of(sightings, keep, model)
+    cut = table_cut_z(perception.config.segmentation, perception.table_z_m)
+    return Seen.of(sightings, keep, model, loose=clear & (captured[:, 2] > cut))

@@ -78,6 +78,26 @@ too. (The camera cell's HEU views, from 23 cm up, saw its 25 cm tall box only up
 top border, 19 cm up; with most of the highest points well inside the frame, the bound was 47-49 mm under
 the box.)
 
+A view's outermost point inside its frame shows the object end there only if the view looked past it.
+Two ways it may not, both seen on boxes larger than the ToF cell's views (0.48-0.60 m long, where the
+bound came out 24-175 mm under the box and a container too small was chosen):
+
+- **Across a top from just above it.** On a side (n horizontal) seen from before it, the outermost point
+  may be where the view's rays stop meeting a top that goes on: the next zone's ray passes over it and
+  ranges something far behind, or nothing, so the zone straddles the outline, yet the top goes on under
+  that ray. The view shows the side end only if the ray of the next zone outwards (along the image axis
+  n points along most) comes down to the point's height past it along n within that next zone (at most
+  ``NEXT_ZONE_REACH`` footprints, r tan(w) / max(|n.x|, |n.y|) each) and within a footprint of it across
+  n: there a top, or the side, going on would have stopped that ray. A view from above meets the height
+  a footprint past the edge; a view across the top from a few centimetres above it meets it far beyond,
+  or never. A point whose zone does not straddle the outline towards n (a view looking along n at the
+  object's near side, whose outermost point along n lies on that near side) shows nothing of the end.
+- **Where the map carved the surface away.** Rays grazing a wide top carve its one-voxel layer, so the
+  points kept as the object's (in its voxels or its ROIs' box) can end well before the surface does. A
+  view shows the end only if none of its returns above the table's cut lies past the point along n in a
+  zone next to the point's, no further than the outline's margin (a nearer or equal range: surface going
+  on; further: background, seen past the object).
+
 It also assumes that every part of the object is at least half a zone footprint wide where it was seen
 (15-20 mm at 0.3-0.4 m for the VL53L8CX), as the sim ranges a zone (the median of its sub-rays): a
 narrower part is never ranged, and nothing in the captures shows it. The held-out lamp's 16 mm rod is
@@ -97,14 +117,15 @@ ones (nearer ones merge into one return, status 9: ST's support on its community
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
 from cell.packing.box import PackingBox
-from cell.packing.zones import outline_sides, surface_normals
+from cell.packing.zones import NEIGHBOURS, outline_sides, surface_normals, zone_grid
 from drivers.depth.base import SensorModel
 from drivers.depth.config import DepthNoiseConfig
 
@@ -118,6 +139,10 @@ FACE_FRACTION = 0.05
 FACING_DEG = 35.0
 # A neighbour zone further than a zone by more than this many std of two ranges' difference saw past it.
 OUTLINE_SIGMAS = 3.0
+# How far past a view's outermost point along a side's normal the ray of its next zone outwards may come
+# down to that point's height and still show the side end there [footprints along the normal]: within
+# that next zone, whose cone reaches 1.5 footprints out from the point's central ray (Seen._shows_end).
+NEXT_ZONE_REACH = 1.5
 # The sim VL53L8CX's range noise, for a real sensor whose config carries none (BoxUncertaintyConfig).
 DEFAULT_RANGE_NOISE = DepthNoiseConfig(sigma0_m=0.004, k_per_m=0.01)
 
@@ -197,6 +222,42 @@ def error_model(config: CellConfig, sensor: SensorModel) -> ErrorModel:
                       capture_pose_rad=u.capture_pose_rotation_rad)
 
 
+def _outward_side(image: Array) -> NDArray[np.intp]:
+    """The side of a zone that a face normal with components ``image`` (K, 2) along its view's image axes
+    x and y points to, as a column of :attr:`Seen.straddles` (``cell.packing.zones.NEIGHBOURS``: +x, -x,
+    +y, -y): the axis it points along most."""
+    across = np.abs(image[:, 0]) >= np.abs(image[:, 1])
+    return np.where(across, np.where(image[:, 0] > 0, 0, 1), np.where(image[:, 1] > 0, 2, 3))
+
+
+def _passes_beyond(start: Array, ray: Array, n: Array, reach: float, width: float) -> bool:
+    """Whether the ray from ``start`` (3,) [m, relative to a point on a side of the object] along ``ray``
+    (3,) passes beyond the point along the side's horizontal unit normal ``n`` (3,), by more than 0 and at
+    most ``reach`` [m], no higher than half of ``width`` [m] above it and within ``width`` of it across
+    (along the horizontal perpendicular to n): where the side, or a top at the point's height, going on
+    past the point would have stopped the ray."""
+    across = np.array([-n[1], n[0], 0.0])
+    lo, hi = 0.0, math.inf
+    # each bound is a + b t <= c on the ray's parameter t >= 0
+    bounds = ((-(start @ n), -(ray @ n), 0.0), (start @ n, ray @ n, reach), (start[2], ray[2], 0.0),
+              (start @ across, ray @ across, width), (-(start @ across), -(ray @ across), width))
+    for a, b, c in ((float(a), float(b), c) for a, b, c in bounds):
+        if abs(b) < 1e-12:
+            if a > c:
+                return False
+        elif b > 0.0:
+            hi = min(hi, (c - a) / b)
+        else:
+            lo = max(lo, (c - a) / b)
+    return lo < hi
+
+
+def outline_margin(model: ErrorModel, ranges: Array | float) -> Array:
+    """How far [m] a neighbouring zone may range beyond zones at ``ranges`` [m] and not have seen past the
+    object: ``OUTLINE_SIGMAS`` std of two ranges' difference."""
+    return OUTLINE_SIGMAS * math.sqrt(2.0) * np.asarray(model.range_sigma(ranges))
+
+
 @dataclass(frozen=True)
 class Seen:
     """Object points (K, 3) [m, base frame] with what the allowance needs of the view each came from:
@@ -207,7 +268,11 @@ class Seen:
     (:func:`cell.packing.zones.surface_normals`, NaN where unknown), None when not computed; ``straddles``
     (K, 4) on which sides (``cell.packing.zones.NEIGHBOURS``) each point's zone straddles the object's
     outline in its capture, its neighbour there having seen past the object
-    (:func:`cell.packing.zones.outline_sides`), None when not computed (then :attr:`inside` is too)."""
+    (:func:`cell.packing.zones.outline_sides`), None when not computed (then :attr:`inside` is too).
+    ``views`` (K,) the index of each point's capture, None when not known (the views are then told apart
+    by their poses); ``loose`` (J, 3) [m] the captures' returns above the table that are not the
+    object's points (not in its voxels or in its ROIs' box) and ``loose_views`` (J,) their captures'
+    indices: surface that a capture saw beside what the map kept of the object (:meth:`ends_framed`)."""
 
     points: Array
     origins: Array | None = None
@@ -215,24 +280,28 @@ class Seen:
     range_m: float = 0.0
     normals: Array | None = None
     straddles: NDArray[np.bool_] | None = None
+    views: NDArray[np.intp] | None = None
+    loose: Array | None = None
+    loose_views: NDArray[np.intp] | None = None
 
     @staticmethod
-    def of(sightings: list[Sighting], keep: NDArray[np.bool_], model: ErrorModel | None = None) -> Seen:
+    def of(sightings: list[Sighting], keep: NDArray[np.bool_], model: ErrorModel | None = None,
+           loose: NDArray[np.bool_] | None = None) -> Seen:
         """The points of ``sightings`` (at least one), in order, where ``keep`` (over all of them,
-        concatenated); with ``model``, each point's surface normal from the kept points of its own
-        capture on the model's zone grid, and whether it lies inside its capture's outline."""
+        concatenated), with the points where ``loose`` (likewise; None: none) as :attr:`loose`; with
+        ``model``, each point's surface normal from the kept points of its own capture on the model's
+        zone grid, and whether it lies inside its capture's outline."""
         counts = [s.points.shape[0] for s in sightings]
         points = np.vstack([s.points for s in sightings])
         origins = np.repeat(np.array([s.T_base_sensor[:3, 3] for s in sightings]), counts, axis=0)
         axes = np.repeat(np.array([s.T_base_sensor[:3, :3] for s in sightings]), counts, axis=0)
+        views = np.repeat(np.arange(len(sightings)), counts)
+        loose = np.zeros(points.shape[0], dtype=bool) if loose is None else loose & ~keep
+        known = Seen(points[keep], origins[keep], axes[keep], views=views[keep], loose=points[loose],
+                     loose_views=views[loose])
         if model is None:
-            return Seen(points[keep], origins[keep], axes[keep])
+            return known
         starts = np.cumsum([0, *counts])
-
-        def margin(ranges: Array) -> Array:
-            """How far [m] a neighbour may range beyond zones at ``ranges`` [m] and not have seen past the
-            object: ``OUTLINE_SIGMAS`` std of two ranges' difference."""
-            return OUTLINE_SIGMAS * math.sqrt(2.0) * np.asarray(model.range_sigma(ranges))
 
         normals, sides = [], []
         for s, a, b in zip(sightings, starts[:-1], starts[1:], strict=True):
@@ -240,10 +309,9 @@ class Seen:
             normals.append(surface_normals(s.T_base_sensor, kept, model.zone_rad, model.half_fov_rad))
             returns = np.vstack([s.points, s.free_ends])
             on_object = np.concatenate([keep[a:b], np.zeros(s.free_ends.shape[0], dtype=bool)])
-            sides.append(outline_sides(s.T_base_sensor, returns, on_object, margin, model.zone_rad,
-                                       model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
-        straddles = np.vstack(sides)
-        return Seen(points[keep], origins[keep], axes[keep], normals=np.vstack(normals), straddles=straddles)
+            sides.append(outline_sides(s.T_base_sensor, returns, on_object, partial(outline_margin, model),
+                                       model.zone_rad, model.half_fov_rad)[:s.points.shape[0]][keep[a:b]])
+        return replace(known, normals=np.vstack(normals), straddles=np.vstack(sides))
 
     @property
     def inside(self) -> NDArray[np.bool_] | None:
@@ -290,10 +358,7 @@ class Seen:
             ranged = bool(np.any(self.normals[face] @ n >= math.cos(math.radians(FACING_DEG))))
         if ranged:
             return sideways
-        across = np.abs(image[:, 0]) >= np.abs(image[:, 1])
-        # the side n points to, as a column of ``straddles`` (zones.NEIGHBOURS: +x, -x, +y, -y)
-        side = np.where(across, np.where(image[:, 0] > 0, 0, 1), np.where(image[:, 1] > 0, 2, 3))
-        outward = self.straddles[np.arange(k), side]
+        outward = self.straddles[np.arange(k), _outward_side(image)]
         steepest = np.maximum(np.abs(image).max(axis=1), 1e-9)
         return np.where(outward, np.maximum(1.0 / steepest, sideways), sideways)
 
@@ -318,15 +383,56 @@ class Seen:
     def ends_framed(self, model: ErrorModel, n: Array) -> bool:
         """Whether some view saw the object end along the unit normal ``n`` (3,) inside what it kept: the
         view's outermost point along n is :meth:`framed` (a view that the frame's border cut has its
-        outermost point on that border); True when the views are unknown. The views are told apart by
-        their poses."""
+        outermost point on that border) and the view shows the object end there
+        (:meth:`_shows_end`); True when the views are unknown."""
         if self.origins is None or self.axes is None:
             return True
-        poses = np.hstack([self.origins, self.axes.reshape(-1, 9)])
-        view = np.unique(poses, axis=0, return_inverse=True)[1].ravel()
+        if self.views is None:
+            poses = np.hstack([self.origins, self.axes.reshape(-1, 9)])
+            view = np.unique(poses, axis=0, return_inverse=True)[1].ravel()
+        else:
+            view = self.views
         order = np.lexsort((-(self.points @ n), view))  # by view, each view's outermost first
         outermost = order[np.r_[True, view[order][1:] != view[order][:-1]]]
-        return bool(self.framed(model)[outermost].any())
+        return any(self._shows_end(model, n, int(end))
+                   for end in outermost[self.framed(model)[outermost]])
+
+    def _shows_end(self, model: ErrorModel, n: Array, end: int) -> bool:
+        """Whether the view of point ``end``, its outermost along the unit normal ``n`` (3,), shows the
+        object end there (the module docstring): on a side (n horizontal) seen from before it, its zone
+        straddles the outline towards n and the ray of the next zone that way comes down to its height
+        within ``NEXT_ZONE_REACH`` footprints past it along n (a ray that passes over the object, or
+        meets that height far beyond, does not show where the object ends under it); and no
+        :attr:`loose` return of the view lies past it along n in a zone next to its own, nearer than the
+        outline's margin (the surface going on where the map kept none of it)."""
+        assert self.origins is not None and self.axes is not None
+        origin, axes, point = self.origins[end], self.axes[end], self.points[end]
+        image = axes[:, :2].T @ n
+        local = (point - origin) @ axes
+        row, col = zone_grid(local[None, :], model.zone_rad, model.half_fov_rad)
+        r = float(np.linalg.norm(local))
+        if n[2] == 0.0 and origin @ n < point @ n:
+            side = int(_outward_side(image[None, :])[0])
+            if self.straddles is not None and not self.straddles[end, side]:
+                return False
+            step = np.array(NEIGHBOURS[side])
+            down, across = (np.array([row[0], col[0]]) + step + 0.5) * model.zone_rad \
+                - np.array(model.half_fov_rad[::-1])
+            ray = axes @ np.array([math.tan(across), math.tan(down), 1.0])
+            ray /= np.linalg.norm(ray)
+            footprint = r * math.tan(model.zone_rad)
+            reach = NEXT_ZONE_REACH * footprint / max(float(np.abs(image).max()), 1e-9)
+            if not _passes_beyond(origin - point, ray, n, reach, footprint):
+                return False
+        if self.loose is None or self.loose_views is None or self.views is None:
+            return True
+        beside = self.loose[(self.loose_views == self.views[end]) & (self.loose @ n > point @ n)]
+        if beside.shape[0] == 0:
+            return True
+        near = (beside - origin) @ axes
+        rows, cols = zone_grid(near, model.zone_rad, model.half_fov_rad)
+        nearer = np.linalg.norm(near, axis=1) - r <= outline_margin(model, r)
+        return not np.any((np.abs(rows - row[0]) <= 1) & (np.abs(cols - col[0]) <= 1) & nearer)
 
 
 def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
