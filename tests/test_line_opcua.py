@@ -401,6 +401,45 @@ def test_writes_of_the_wrong_type_or_too_long_are_refused_and_change_nothing(enc
     assert encrypted.rest("/api/v1/line")["part_id"] == "cube"
 
 
+def test_every_refused_call_says_why_in_the_command_message(encrypted):
+    """A call refused for its arguments (their number or type) replaces the message of an earlier
+    refusal, and the unit modes a refusal offers are those the cell accepts."""
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+
+            async def refused(path: str, code: int, message: str, *args: ua.Variant) -> None:
+                with pytest.raises(ua.uaerrors.BadInvalidState):
+                    await line.call("BaseStateMachine/Clear")  # an earlier refusal: Clear in Idle
+                result = await line.call_result(path, *args)
+                assert result.StatusCode.value == code, (path, args, result)
+                assert await line.read("Status/CommandMessage") == message
+
+            source = "from OPC UA (key test-line)"
+            await refused(f"{EXECUTE_STATE}/Reset", ua.StatusCodes.BadTooManyArguments,
+                          f"refused a call of Reset {source}: it takes no argument, got 1",
+                          ua.Variant(1, ua.VariantType.Int32))
+            await refused("SetUnitMode", ua.StatusCodes.BadArgumentsMissing,
+                          f"refused a call of SetUnitMode {source}: it takes one argument, Int32 "
+                          "RequestedMode, got none")
+            await refused("SetUnitMode", ua.StatusCodes.BadTooManyArguments,
+                          f"refused a call of SetUnitMode {source}: it takes one argument, Int32 "
+                          "RequestedMode, got 2",
+                          ua.Variant(1, ua.VariantType.Int32), ua.Variant(1, ua.VariantType.Int32))
+            await refused("SetPartId", ua.StatusCodes.BadInvalidArgument,
+                          f"refused a call of SetPartId {source}: PartId expects a String, got Int32",
+                          ua.Variant(7, ua.VariantType.Int32))
+            await refused("SetUnitMode", ua.StatusCodes.BadInvalidArgument,
+                          f"refused unit mode 7 {source}: one of 1 Production, 3 Manual",
+                          ua.Variant(7, ua.VariantType.Int32))
+            with pytest.raises(ua.uaerrors.BadOutOfRange):
+                await line.write("Command/UnitMode", 9, ua.VariantType.Int32)
+            assert await line.read("Status/CommandMessage") == (
+                f"refused a write of UnitMode {source}: 9 is no unit mode (0 none, 1 Production, 3 Manual)")
+
+    run(scenario())
+
+
 def test_anonymous_and_unknown_users_can_do_nothing(encrypted):
     keys = encrypted.cell.keys
 

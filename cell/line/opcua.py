@@ -49,12 +49,13 @@ from cell.line.opcua_nodes import (
     TAGS,
     UNIT_MODE,
     UNIT_MODE_CHANGE_REQUEST,
+    MethodSpec,
     Namespaces,
     Tag,
     build,
 )
 from cell.line.opcua_security import LinePermissions, LineUserManager, caller, ensure_certificate, fingerprint
-from cell.line.packml import Command, UnitMode
+from cell.line.packml import OFFERED_MODES, Command, UnitMode
 from cell.line.result import check_part_id
 from cell.service.keys import KeyRing
 from drivers.errors import ConfigError, ServiceError
@@ -76,7 +77,8 @@ _LINE_TAGS = sorted(((tag.path, tag.read) for tag in TAGS if tag.read is not Non
 """The tags that follow the line, its state last: a client that sees a new state reads the values that came
 with it (the result with Complete, the job id with Execute)."""
 _COMMANDS = ", ".join(f"{c.value} {c.label}" for c in Command)
-_MODES = ", ".join(f"{m.value} {m.label}" for m in UnitMode)
+_MODES = ", ".join(f"{m.value} {m.label}" for m in sorted(OFFERED_MODES))
+"""The unit modes a client may ask for (Maintenance is a PackML number the cell refuses)."""
 MethodResult = ua.StatusCode | ua.CallMethodResult
 E = TypeVar("E", Command, UnitMode)
 
@@ -112,6 +114,26 @@ def _refusal(tag: Tag, item: ua.WriteValue) -> tuple[str, int] | None:
             check_part_id(value)
         except ServiceError as exc:
             return str(exc), S.BadOutOfRange
+    return None
+
+
+def _argument_refusal(spec: MethodSpec, args: tuple[ua.Variant, ...]) -> tuple[str, MethodResult] | None:
+    """Why a call of ``spec`` with ``args`` is refused before it reaches the line, with its answer; None:
+    it is not."""
+    takes = "no argument" if spec.argument is None else \
+        f"one argument, {spec.argument[1].name} {spec.argument[0]}"
+    if len(args) > (spec.argument is not None):
+        return f"it takes {takes}, got {len(args)}", _status(S.BadTooManyArguments)
+    if spec.argument is None:
+        return None
+    if not args:
+        return f"it takes {takes}, got none", _status(S.BadArgumentsMissing)
+    (arg,) = args
+    if arg.VariantType != spec.argument[1] or arg.is_array:
+        got = f"an array of {arg.VariantType.name}" if arg.is_array else arg.VariantType.name
+        return (f"{spec.argument[0]} expects a {spec.argument[1].name}, got {got}",
+                ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
+                                    InputArgumentResults=[_status(S.BadTypeMismatch)]))
     return None
 
 
@@ -318,14 +340,11 @@ class LineOPCUA:
 
         async def call(_: ua.NodeId, *args: ua.Variant) -> MethodResult:
             source = _source(caller.get())
-            expected = [] if spec.argument is None else [spec.argument[1]]
-            if len(args) > len(expected):
-                return _status(S.BadTooManyArguments)
-            if len(args) < len(expected):
-                return _status(S.BadArgumentsMissing)
-            if any(a.VariantType != t or a.is_array for a, t in zip(args, expected, strict=True)):
-                return ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
-                                           InputArgumentResults=[_status(S.BadTypeMismatch)])
+            refused = _argument_refusal(spec, args)
+            if refused is not None:
+                why, result = refused
+                await self._say(f"refused a call of {path.rsplit('/', 1)[-1]} from {source}: {why}")
+                return result
             if spec.command is not None:
                 return await self._command(int(spec.command), source)
             if path == SET_UNIT_MODE:
