@@ -5,6 +5,7 @@ the result a line reads, the debouncer."""
 from __future__ import annotations
 
 import contextlib
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +18,7 @@ from pydantic import ValidationError
 
 from cell.api.app import create_app
 from cell.api.schemas import LineCommandIn
+from cell.config.models import CellConfig
 from cell.line.config import DigitalIOConfig
 from cell.line.dio import Debouncer
 from cell.line.packml import ACCEPTS, Command, State, refusal
@@ -109,8 +111,12 @@ def test_the_state_table_is_packmls():
 def test_part_ids():
     assert feeder_part("bunny") == ("bunny", None)
     assert feeder_part("horizontal_box@0.01,-0.02,20") == ("horizontal_box", (0.01, -0.02, 20.0))
-    for bad in ("cube@1,2", "cube@a,b,c", "cube@nan,0,0"):
+    for bad in ("cube@1,2", "cube@a,b,c", "cube@nan,0,0", "cube@abc", "cube@0.01,0"):
         with pytest.raises(ServiceError, match="placement") as err:
+            feeder_part(bad)
+        assert err.value.field == "part_id"
+    for bad in ("cube @0,0,0", "@0,0,0", " cube", "big box"):  # no object's name holds a space
+        with pytest.raises(ServiceError, match=r"object name.* one word") as err:
             feeder_part(bad)
         assert err.value.field == "part_id"
     assert check_part_id("x" * 64) == "x" * 64
@@ -201,6 +207,24 @@ def test_whole_cycles_with_results_and_counters(line: Line):
     # a row id past the store's 64-bit integers is refused, not an overflow in the store (a 500)
     assert line.client.get(f"/api/v1/line/history?before_id={2**63}", headers=line.auth("viewer")
                            ).status_code == 422
+
+
+def test_a_malformed_part_id_is_refused_when_it_is_given_not_scanned_as_a_defective_part(line: Line):
+    line.command("reset")
+    line.wait({"Idle"})
+    for bad in ("cube@abc", "cube@0.01,0", "cube @0,0,0"):
+        refused = line.command("start", bad)
+        assert refused.status_code == 422 and f"part id {bad!r}" in refused.text, refused.text
+        state = line.state()
+        assert (state["state_name"], state["processed"], state["defective"]) == ("Idle", 0, 0)
+    # a dry-run cell's line.dio.part_id, the feeder's part at every trigger, is checked when it is loaded
+    dry_run = yaml.safe_load(DRY_RUN.read_text()) | {"line": {"dio": {"part_id": "cube@0.01,0"}}}
+    why = "line.dio.part_id: part id 'cube@0.01,0': the placement"
+    with pytest.raises(ValidationError, match=re.escape(why)):
+        CellConfig.model_validate(dry_run)
+    # the catalogue's check stays at Start: an unknown object is a defective part
+    assert line.command("start", "unicorn@0,0,0").status_code == 200
+    assert line.wait({"Complete"})["defective"] == 1
 
 
 def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: Line):

@@ -372,6 +372,18 @@ def test_writes_of_the_wrong_type_or_too_long_are_refused_and_change_nothing(enc
             with pytest.raises(ua.uaerrors.BadOutOfRange):
                 await line.write("Command/Parameter/PartId", "x" * 65, ua.VariantType.String)
             assert "1 to 64 printable ASCII characters, got 65" in await line.read("Status/CommandMessage")
+            # a sim cell's part id is the feeder's NAME[@x_m,y_m,yaw_deg]: a malformed one is refused
+            # when it is written or set, not scanned as a defective part at Start
+            for malformed in ("cube@abc", "cube@0.01,0", "cube @0,0,0"):
+                with pytest.raises(ua.uaerrors.BadOutOfRange):
+                    await line.write("Command/Parameter/PartId", malformed, ua.VariantType.String)
+                message = await line.read("Status/CommandMessage")
+                assert message.startswith(f"refused a write of PartId from OPC UA (key test-line): part id "
+                                          f"{malformed!r}: "), message
+                result = await line.call_result("SetPartId", ua.Variant(malformed, ua.VariantType.String))
+                assert result.StatusCode.value == ua.StatusCodes.BadInvalidArgument, (malformed, result)
+                assert await line.read("Status/CommandMessage") == message.replace(
+                    "a write of PartId", "part id")
             with pytest.raises(ua.uaerrors.BadOutOfRange):  # one bad value refuses the whole request
                 await line.client.write_values(
                     [part_id, line.node("PackTags/Command/CntrlCmd")],

@@ -14,6 +14,7 @@ from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_v
 from pydantic_core import PydanticCustomError
 
 from cell.line.config import LineConfig
+from cell.line.result import feeder_part
 from cell.packing.config import PackingConfig
 from cell.perception.filters import FilterParams
 from cell.perception.occupancy import OccupancyParams
@@ -26,6 +27,7 @@ from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
 from drivers.config_base import FiniteNumber, PositiveCount, PositiveNumber, StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
+from drivers.errors import ServiceError
 from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.sim.errors import SimErrorConfig, SimErrors
 from drivers.sim.faults import SimFault
@@ -271,4 +273,9 @@ class CellConfig(StrictModel):
             missing = [name for name, index in wired.items() if index is None]
             if missing:
                 raise ValueError(f"line.dio needs the arm's {', '.join(missing)}")
+            if self.mode == "dry-run" and self.line.dio.part_id is not None:
+                try:  # the simulated feeder's part: a malformed one would be refused at every trigger
+                    feeder_part(self.line.dio.part_id)
+                except ServiceError as exc:
+                    raise ValueError(f"line.dio.part_id: {exc}") from None
         return self

@@ -193,9 +193,19 @@ class LineController:
         self._message = text
         self._notify()
 
+    def check_part_id(self, part_id: str) -> str:
+        """``part_id`` if this cell can take it, else ``ServiceError`` (invalid, field ``part_id``): the
+        line's rule (:func:`cell.line.result.check_part_id`) and, in a sim or dry-run cell, the feeder's
+        syntax (:func:`cell.line.result.feeder_part`), so that a malformed placement is refused when it is
+        set, not at Start. Whether the object exists is checked at Start (a defective part then)."""
+        check_part_id(part_id)
+        if self._service.objects.virtual:
+            feeder_part(part_id)
+        return part_id
+
     def set_part_id(self, part_id: str) -> None:
         """The part id the next Start scans (``Command/Parameter/PartId``); ``ServiceError`` (invalid)."""
-        self.part_id = check_part_id(part_id)
+        self.part_id = self.check_part_id(part_id)
         self._notify()
 
     async def command(self, command: Command, source: str, part_id: str | None = None) -> str:
@@ -203,7 +213,7 @@ class LineController:
         when the command is accepted, before it acts. Returns what was done, in words; ``ServiceError``
         (conflict) when the command is not valid now, the state and the part id unchanged (a refused Start
         in Execute must not rename the part being scanned), or (invalid) when ``part_id`` is."""
-        given = None if part_id is None else check_part_id(part_id)
+        given = None if part_id is None else self.check_part_id(part_id)
         why = packml.refusal(self.state, command) or self._precondition(command, given or self.part_id)
         if why is not None:
             self.say(f"refused {command.label} from {source}: {why}")

@@ -56,7 +56,6 @@ from cell.line.opcua_nodes import (
 )
 from cell.line.opcua_security import LinePermissions, LineUserManager, caller, ensure_certificate, fingerprint
 from cell.line.packml import OFFERED_MODES, Command, UnitMode
-from cell.line.result import check_part_id
 from cell.service.keys import KeyRing
 from drivers.errors import ConfigError, ServiceError
 
@@ -91,8 +90,9 @@ def _source(name: str | None) -> str:
     return f"OPC UA (key {name})"
 
 
-def _refusal(tag: Tag, item: ua.WriteValue) -> tuple[str, int] | None:
-    """Why a client's write of ``item`` to ``tag`` is refused, with its status code; None: it is not."""
+def _refusal(tag: Tag, item: ua.WriteValue, check_part_id: Callable[[str], str]) -> tuple[str, int] | None:
+    """Why a client's write of ``item`` to ``tag`` is refused, with its status code; None: it is not.
+    ``check_part_id`` is the line's rule for a part id (``ServiceError`` when it may not be set)."""
     data = item.Value
     if item.IndexRange:
         return "index ranges are not supported", S.BadWriteNotSupported
@@ -263,7 +263,7 @@ class LineOPCUA:
             tag = self._tags.get(item.NodeId)
             if tag is None or not tag.writable or item.AttributeId != ua.AttributeIds.Value:
                 continue  # asyncua refuses what is not writable (_post_write says so)
-            refused = _refusal(tag, item)
+            refused = _refusal(tag, item, self._line.check_part_id)
             if refused is not None:
                 why, code = refused
                 await self._say(f"refused a write of {tag.path.rsplit('/', 1)[-1]} from "

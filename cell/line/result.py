@@ -33,9 +33,14 @@ def check_part_id(part_id: str) -> str:
 
 def feeder_part(part_id: str) -> tuple[str, tuple[float, float, float] | None]:
     """The object and placement (x [m], y [m], yaw [deg], or None: the cell's default) a sim or dry-run
-    cell's feeder puts on the table for ``part_id``; ``ServiceError`` (invalid, field ``part_id``) for a
-    placement that is not three finite numbers."""
+    cell's feeder puts on the table for ``part_id``; ``ServiceError`` (invalid, field ``part_id``) for an
+    object name that is empty or holds a space (no object's name does) or a placement that is not three
+    finite numbers. Whether the object exists is the catalogue's to say, when the scan is submitted."""
     name, sep, placement = part_id.partition(PLACEMENT_SEPARATOR)
+    if not name or any(c.isspace() for c in name):
+        where = " before '@'" if sep else ""
+        raise ServiceError(f"part id {part_id!r}: the object name{where} must be one word, no spaces",
+                           reason="invalid", field="part_id")
     if not sep:
         return name, None
     try:
