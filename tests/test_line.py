@@ -150,9 +150,18 @@ def test_the_result_a_line_reads():
     defective = cycle_result("j", "p", "completed", "done", {"packing": none})
     assert not defective.fits and defective.container == "" and defective.length_m == 0.6
     assert defective.message == "none fits: no container"
+    # the scan's time on the cell and whether its planner ended it, or its time budget
+    budget = {"packing": packing, "sim_time_s": 20.000004, "limit_reached": True}
+    assert cycle_result("j", "p", "completed", "time budget of 20 s used up", budget).scan_time_s == 20.000004
+    assert not cycle_result("j", "p", "completed", "time budget of 20 s used up", budget).converged
+    own = cycle_result("j", "p", "completed", "raster complete", budget | {"limit_reached": False})
+    assert own.converged and own.fits and own.scan_time_s == 20.000004
+    assert not result.converged and result.scan_time_s == 0.0  # a result.json that does not say
     # nothing on the table: a no-part result, whatever the packing section holds
-    empty = cycle_result("j", "p", "no_object", "no object found: ...", {"packing": packing})
+    empty = cycle_result("j", "p", "no_object", "no object found: ...",
+                         {"packing": packing, "sim_time_s": 3.5, "limit_reached": False})
     assert (empty.status, empty.fits, empty.length_m, empty.container) == ("no_object", False, 0.0, "")
+    assert (empty.scan_time_s, empty.converged) == (3.5, False)
     assert empty.message == "no object found: ..."
 
 
@@ -194,6 +203,11 @@ def test_whole_cycles_with_results_and_counters(line: Line):
         else:
             job = line.job(result["job_id"])
             assert job["status"] == "completed" and job["part_id"] == part
+            scanned = job["result"]
+            assert result["scan_time_s"] == scanned["sim_time_s"] > 0
+            # LR-NBV uses up its SCAN_S here: a part that fits, from a scan its time budget ended
+            assert scanned["termination"] == f"time budget of {SCAN_S:g} s used up"
+            assert scanned["limit_reached"] and not result["converged"]
             assert result["fits"] and result["container"] and result["clearance_m"] > 0
             assert result["length_m"] >= result["width_m"] > 0 and result["height_m"] > 0
         assert line.command("reset").status_code == 200

@@ -226,7 +226,8 @@ def test_five_parts_through_the_handshake_and_the_methods(encrypted):
                 assert await line.wait(ENDS) == COMPLETE
                 result = {name: await line.read(f"Result/{name}") for name in (
                     "JobId", "PartId", "Status", "LengthM", "WidthM", "HeightM", "UpperLengthM",
-                    "UpperWidthM", "UpperHeightM", "Container", "ClearanceM", "Fits", "Message")}
+                    "UpperWidthM", "UpperHeightM", "Container", "ClearanceM", "Fits", "ScanTimeS",
+                    "Converged", "Message")}
                 assert result["JobId"] == job_id and result["PartId"] == part, result
                 assert await line.read("Admin/ProdProcessedCount") == processed + i + 1
                 assert await line.read("Status/JobId") == ""
@@ -256,6 +257,8 @@ def test_five_parts_through_the_handshake_and_the_methods(encrypted):
         assert result["UpperLengthM"] >= result["LengthM"], result
         assert result["UpperHeightM"] >= result["HeightM"], result
         assert result["Fits"] and result["Container"] and result["ClearanceM"] >= 0.0, result
+        # the raster ends by itself, within the time budget
+        assert result["Converged"] and 0.0 < result["ScanTimeS"] < 60.0, result
     # a horizontal box measures the same wherever the feeder puts it
     first, last = results[0], results[-1]
     assert abs(first["LengthM"] - last["LengthM"]) < 0.02 and abs(first["HeightM"] - last["HeightM"]) < 0.02

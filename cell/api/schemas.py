@@ -203,7 +203,9 @@ class CycleResultOut(BaseModel):
     """One part's result as the line reads it: lengths [m] of the packing box (length >= width), its upper
     bound from the sensor's error model (``upper_*``, what the container is chosen for), the container
     chosen (empty: none fits) with the smallest clearance [m] between the upper bound and its walls or
-    lid, and whether the part fits; ``status`` the scan job's, or ``rejected`` when no scan ran."""
+    lid, and whether the part fits; ``status`` the scan job's, or ``rejected`` when no scan ran;
+    ``scan_time_s`` [s] the scan's time on the cell (its job's ``sim_time_s``) and ``converged`` whether it
+    completed by its planner's own rule, not its time budget (:class:`cell.line.result.CycleResult`)."""
 
     job_id: str
     part_id: str
@@ -218,6 +220,8 @@ class CycleResultOut(BaseModel):
     upper_length_m: float = 0.0
     upper_width_m: float = 0.0
     upper_height_m: float = 0.0
+    scan_time_s: float = 0.0
+    converged: bool = False
 
 
 class StopReasonOut(BaseModel):

@@ -286,6 +286,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
     wall = cfg.mode in ("dry-run", "real")
     clock: Clock = WallClock() if wall else SimClock()
     status, termination = "failed", "not started"
+    limit_reached = False  # a limit of the job (ScanLimitReached) ended the planner's run, not the planner
     session: JobSession | None = None
     guard: MotionGuard | None = None
     live_cloud: LiveCloudWriter | None = None
@@ -356,6 +357,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             except (ScanLimitReached, NoObjectFound) as exc:
                 termination = str(exc)
                 planner_found_nothing = isinstance(exc, NoObjectFound)
+                limit_reached = isinstance(exc, ScanLimitReached)
             except SafetyStop:
                 session.settle()
                 raise
@@ -395,8 +397,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             live_cloud.close()
         recorder.log(clock.now(), f"{status}: {termination}")
         try:
-            result = _write_outputs(job, recorder, clock, wall_start, status, termination, session, guard,
-                                    ground_truth)
+            result = _write_outputs(job, recorder, clock, wall_start, status, termination, limit_reached,
+                                    session, guard, ground_truth)
         except Exception as exc:
             # the folder still ends with a result, which says what is missing and why
             status = "failed"
@@ -438,10 +440,11 @@ def _identity(job: PreparedScan) -> dict[str, Any]:
 
 
 def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_start: float, status: str,
-                   termination: str, session: JobSession | None, guard: MotionGuard | None,
-                   ground_truth: np.ndarray | None) -> dict[str, Any]:
+                   termination: str, limit_reached: bool, session: JobSession | None,
+                   guard: MotionGuard | None, ground_truth: np.ndarray | None) -> dict[str, Any]:
     """Write the cloud, the map, the planner's telemetry or path, and result.json last; returns the
-    result."""
+    result. ``limit_reached``: a limit of the job (its time budget, a replay's recording) ended the
+    planner's run, not the planner's own termination rule."""
     cloud = session.cloud.points if session is not None else np.zeros((0, 3))
     recorder.cloud(cloud)
     if session is not None:
@@ -454,6 +457,7 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
         **_identity(job),
         "status": status,
         "termination": termination,
+        "limit_reached": limit_reached,
         "sim_time_s": round(clock.now(), 6),
         "scan_time_s": scan_time,
         "wall_time_s": round(time.monotonic() - wall_start, 3),

@@ -145,6 +145,12 @@ TAGS: tuple[Tag, ...] = (
         "container's walls or lid [m] (0 when none fits).", read=_result(lambda r: r.clearance_m, 0.0)),
     Tag("PackTags/Result/Fits", V.Boolean, "Whether a container was chosen (false: the part is "
         "defective).", read=_result(lambda r: r.fits, False)),
+    Tag("PackTags/Result/ScanTimeS", V.Double, "The scan's time on the cell [s]: its job's clock from "
+        "its start, the move to the first view included (the clock line.max_time_s counts; 0: no scan ran).",
+        read=_result(lambda r: r.scan_time_s, 0.0)),
+    Tag("PackTags/Result/Converged", V.Boolean, "Whether the scan completed by its planner's own "
+        "termination rule (false: its time budget ran out, or no part was measured).",
+        read=_result(lambda r: r.converged, False)),
     Tag("PackTags/Result/Message", V.String, "Why the cycle ended as it did, in words.",
         read=_result(lambda r: r.message, "")),
     Tag("BaseStateMachine/CurrentState", V.LocalizedText, "OPC 30050: Aborting, Aborted or Cleared.",

@@ -65,7 +65,12 @@ class CycleResult:
     container is chosen for (0 when none was measured); ``container`` the chosen container's name ("" when
     none fits); ``clearance_m`` the smallest gap [m] between the upper bound and the container's walls or lid
     (0 when none fits); ``fits`` whether a container was chosen (a part that fits none is defective, not a
-    fault); ``message`` why, in words."""
+    fault); ``message`` why, in words; ``scan_time_s`` [s] the scan job's time on the cell (its
+    ``result.json``'s ``sim_time_s``: the job's clock from its start, the move to the first view included,
+    simulated in a sim cell, the wall clock's on a dry-run or real cell; the clock the time budget counts;
+    0 when no scan ran); ``converged`` whether the scan completed by its planner's own termination rule
+    (false when the time budget ran out, ``result.json``'s ``limit_reached``, and when no part was
+    measured)."""
 
     job_id: str
     part_id: str
@@ -80,6 +85,8 @@ class CycleResult:
     upper_length_m: float = 0.0
     upper_width_m: float = 0.0
     upper_height_m: float = 0.0
+    scan_time_s: float = 0.0
+    converged: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -96,16 +103,21 @@ def rejected(part_id: str, reason: str) -> CycleResult:
 
 def cycle_result(job_id: str, part_id: str, status: str, termination: str | None,
                  result: dict[str, Any] | None) -> CycleResult:
-    """The line's view of a finished job: its ``result.json``'s ``packing`` section (dimensions, container)
-    and how it ended; a job that found no object gives a no-part result (no dimensions, no container)."""
+    """The line's view of a finished job: its ``result.json``'s ``packing`` section (dimensions, container),
+    its time and how it ended; a job that found no object gives a no-part result (no dimensions, no
+    container)."""
+    job = result or {}
+    ended: dict[str, Any] = {"scan_time_s": float(job.get("sim_time_s") or 0.0),
+                             "converged": status == "completed" and job.get("limit_reached") is False}
     if status == "no_object":
-        return CycleResult(job_id=job_id, part_id=part_id, status=status, message=termination or status)
+        return CycleResult(job_id=job_id, part_id=part_id, status=status, message=termination or status,
+                           **ended)
     packing = (result or {}).get("packing") or {}
     dims = packing.get("dims_m")
     container = packing.get("container") or {}
     reason = str(container.get("reason") or termination or status)
     if not dims:
-        return CycleResult(job_id=job_id, part_id=part_id, status=status, message=reason)
+        return CycleResult(job_id=job_id, part_id=part_id, status=status, message=reason, **ended)
     length, width = sorted(dims[:2], reverse=True)
     height = dims[2]
     upper = packing.get("dims_upper_m") or dims
@@ -115,9 +127,10 @@ def cycle_result(job_id: str, part_id: str, status: str, termination: str | None
     inner = container.get("inner_dims_m")
     if not container.get("name") or not inner:
         return CycleResult(job_id, part_id, status, length, width, height, message=reason,
-                           upper_length_m=up_length, upper_width_m=up_width, upper_height_m=up_height)
+                           upper_length_m=up_length, upper_width_m=up_width, upper_height_m=up_height,
+                           **ended)
     in_plane = sorted(inner[:2], reverse=True)
     # the box stands on the container's floor: gaps on each side in the plane, and above it
     clearance = min((in_plane[0] - up_length) / 2.0, (in_plane[1] - up_width) / 2.0, inner[2] - up_height)
     return CycleResult(job_id, part_id, status, length, width, height, str(container["name"]),
-                       round(clearance, 6), True, reason, up_length, up_width, up_height)
+                       round(clearance, 6), True, reason, up_length, up_width, up_height, **ended)
