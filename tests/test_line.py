@@ -5,6 +5,7 @@ the result a line reads, the debouncer."""
 from __future__ import annotations
 
 import contextlib
+import logging
 import re
 import time
 from collections.abc import Iterator
@@ -417,32 +418,82 @@ def test_a_cell_without_a_line_says_so(tmp_path: Path):
 # ---------------------------------------------------------------------- the robot's digital I/O
 
 
-def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path):
+DioLine = tuple[Line, ControllerPeer, dict[str, Any]]
+
+
+@contextlib.contextmanager
+def dio_line(tmp_path: Path, caplog: pytest.LogCaptureFixture, dio: dict[str, Any],
+             max_time_s: float = SCAN_S, **arm_changes: Any) -> Iterator[DioLine]:
+    """A dry-run cell with ``line.dio`` against the RTDE controller peer, its digital I/O link connected
+    (the trigger's level read then is its baseline): the served line, the peer and the cell file's arm
+    section (``arm_changes`` wire more I/O)."""
     base = yaml.safe_load(DRY_RUN.read_text())
     peer = ControllerPeer(q=base["arm"]["home_joints_rad"])
     try:
-        arm = base["arm"] | {"host": peer.host}
-        line_config = {"dio": {"part_id": "horizontal_box", "debounce_s": 0.3}, "max_time_s": SCAN_S}
-        config = _cell_file(tmp_path, DRY_RUN, line_config, arm=arm)
-        with served_line(tmp_path, config) as line:
-            trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
-            line.command("reset")
-            line.wait({"Idle"})
-            # a 50 ms pulse is a bounce to a 300 ms filter: nothing starts
-            peer.set_digital_input(trigger, True)
-            time.sleep(0.05)
-            peer.set_digital_input(trigger, False)
-            time.sleep(0.6)
-            assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
-            peer.set_digital_input(trigger, True)
-            peer.wait_for(lambda s: s["digital_out"] == busy, what="busy high in Execute")
-            assert line.state()["state_name"] == "Execute"
-            peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=120, what="done high in Complete")
-            complete = line.state()
-            assert complete["state_name"] == "Complete" and complete["result"]["part_id"] == "horizontal_box"
-            assert complete["message"] == "Start from digital input DI0 rising"
-            peer.set_digital_input(trigger, False)  # the trigger falls: Reset
-            peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the trigger fell")
-            line.wait({"Idle"})
+        arm = base["arm"] | {"host": peer.host} | arm_changes
+        config = _cell_file(tmp_path, DRY_RUN, {"dio": dio, "max_time_s": max_time_s}, arm=arm)
+        with caplog.at_level(logging.INFO, logger="cell.line"), served_line(tmp_path, config) as line:
+            deadline = time.monotonic() + 30
+            while not any("digital I/O connected" in m for m in caplog.messages):
+                assert time.monotonic() < deadline, "the digital I/O link never connected"
+                time.sleep(0.05)
+            yield line, peer, arm
     finally:
         peer.stop()
+
+
+def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path, caplog: pytest.LogCaptureFixture):
+    with dio_line(tmp_path, caplog, {"part_id": "horizontal_box", "debounce_s": 0.3}) as (line, peer, arm):
+        trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
+        line.command("reset")
+        line.wait({"Idle"})
+        # a 50 ms pulse is a bounce to a 300 ms filter: nothing starts
+        peer.set_digital_input(trigger, True)
+        time.sleep(0.05)
+        peer.set_digital_input(trigger, False)
+        time.sleep(0.6)
+        assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
+        peer.set_digital_input(trigger, True)
+        peer.wait_for(lambda s: s["digital_out"] == busy, what="busy high in Execute")
+        assert line.state()["state_name"] == "Execute"
+        peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=120, what="done high in Complete")
+        complete = line.state()
+        assert complete["state_name"] == "Complete" and complete["result"]["part_id"] == "horizontal_box"
+        assert complete["message"] == "Start from digital input DI0 rising"
+        peer.set_digital_input(trigger, False)  # the trigger falls: Reset
+        peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the trigger fell")
+        line.wait({"Idle"})
+
+
+def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture):
+    """The PLC pulses the trigger (shorter than a scan) and waits for done: the pulse's fall during Execute
+    does nothing, done stays high in Complete, and the next pulse's rise is Reset, then Start. A held
+    trigger still works after it: its fall in Complete is Reset."""
+    dio = {"part_id": "horizontal_box", "debounce_s": 0.05}
+    with dio_line(tmp_path, caplog, dio, max_time_s=3.0) as (line, peer, arm):
+        trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
+        line.command("reset")
+        line.wait({"Idle"})
+        for n in (1, 2, 3):
+            peer.set_digital_input(trigger, True)
+            time.sleep(0.2)
+            peer.set_digital_input(trigger, False)
+            peer.wait_for(lambda s: s["digital_out"] == busy, what=f"busy high for part {n}")
+            peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=60, what=f"done high for part {n}")
+            time.sleep(0.2)  # done holds after the pulse fell
+            complete = line.state()
+            assert (complete["state_name"], complete["processed"]) == ("Complete", n), complete
+            assert peer.state()["digital_out"] == done
+        history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
+        causes = [h["cause"] for h in reversed(history) if h["to_name"] in ("Resetting", "Starting")]
+        rise = "from digital input DI0 rising"
+        assert causes == ["Reset from REST (key line)"] + [f"Start {rise}", f"Reset {rise}"] * 2 + [
+            f"Start {rise}"], causes
+        # a held trigger: its rise acknowledges part 3 and starts part 4, its fall after done is Reset
+        peer.set_digital_input(trigger, True)
+        peer.wait_for(lambda s: s["digital_out"] == busy, what="busy high for part 4")
+        peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=60, what="done high for part 4")
+        peer.set_digital_input(trigger, False)
+        peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the held trigger fell")
+        assert line.wait({"Idle"})["processed"] == 4

@@ -152,6 +152,12 @@ class LineController:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._writer
 
+    async def settle(self) -> None:
+        """Wait until the acting states entered so far have done their work (Resetting has reached Idle,
+        Clearing Stopped, Starting Execute): a command after it meets the state they led to."""
+        while pending := [task for task in self._tasks if not task.done()]:
+            await asyncio.wait(pending)
+
     def subscribe(self, listener: Listener) -> None:
         """Call ``listener`` (on the event loop; it must not block) with the snapshot after every change."""
         self._listeners.append(listener)

@@ -3,8 +3,11 @@ outputs).
 
 - A rising edge on ``trigger_input`` in Idle is Start (the part id is ``line.dio.part_id``, or
   ``part-<n>``): a digital input carries none.
-- ``busy_output`` is high in Execute; ``done_output`` is high in Complete, until the trigger falls, which
-  is Reset. An edge the state does not accept is refused as any command is, and logged.
+- ``busy_output`` is high in Execute; ``done_output`` is high in Complete, until the PLC acknowledges the
+  result, which is Reset. Both of a PLC's usual patterns work (:func:`trigger_commands`): a trigger held
+  until done acknowledges by falling (Complete: Reset); a pulsed trigger, whose fall during Execute does
+  nothing, acknowledges with the next part's rising edge (Complete: Reset, then Start). An edge the state
+  does not accept is refused as any command is, and logged.
 - The trigger is debounced: a new level counts once it has held for ``line.dio.debounce_s``. The level
   found at start is the baseline, not an edge (a trigger left high does not start a scan on a restart).
 
@@ -54,6 +57,15 @@ class Debouncer:
         return None
 
 
+def trigger_commands(state: State, rising: bool) -> tuple[Command, ...]:
+    """What an edge of the trigger does in ``state``, in order: a rise is Start, in Complete after Reset
+    (the next part's trigger acknowledges the last part's result); a fall is Reset in Complete (a held
+    trigger acknowledges) and nothing elsewhere (a pulse's fall, or a held trigger's during the scan)."""
+    if rising:
+        return (Command.RESET, Command.START) if state is State.COMPLETE else (Command.START,)
+    return (Command.RESET,) if state is State.COMPLETE else ()
+
+
 class DigitalIOHandshake:
     """The handshake of one cell (see the module docstring); :meth:`start` on the service's loop."""
 
@@ -68,9 +80,11 @@ class DigitalIOHandshake:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="line digital io", daemon=True)
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._edges: asyncio.Lock | None = None  # one edge at a time, in the order they came
 
     def start(self) -> None:
         self._loop = asyncio.get_running_loop()
+        self._edges = asyncio.Lock()
         self._line.subscribe(self._on_change)
         self._thread.start()
 
@@ -121,13 +135,18 @@ class DigitalIOHandshake:
         asyncio.run_coroutine_threadsafe(self._edge(rising), self._loop)
 
     async def _edge(self, rising: bool) -> None:
+        assert self._edges is not None
         line = self._line
         source = f"digital input DI{self._trigger} {'rising' if rising else 'falling'}"
-        if not rising and line.state is not State.COMPLETE:
-            return  # the trigger falls after the part left Idle: only Complete waits for it
-        command = Command.START if rising else Command.RESET
-        part_id = (self._config.part_id or f"part-{line.snapshot().processed + 1}") if rising else None
-        try:
-            await line.command(command, source, part_id=part_id)
-        except ServiceError as exc:
-            log.warning("line: %s refused: %s", source, exc)
+        async with self._edges:
+            await line.settle()
+            for command in trigger_commands(line.state, rising):
+                part_id = None
+                if command is Command.START:
+                    part_id = self._config.part_id or f"part-{line.snapshot().processed + 1}"
+                try:
+                    await line.command(command, source, part_id=part_id)
+                except ServiceError as exc:
+                    log.warning("line: %s refused: %s", source, exc)
+                    return
+                await line.settle()  # Start after Reset meets Idle
