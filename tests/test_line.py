@@ -497,3 +497,81 @@ def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
         peer.set_digital_input(trigger, False)
         peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the held trigger fell")
         assert line.wait({"Idle"})["processed"] == 4
+
+
+def test_two_digital_io_signals_of_the_line_may_not_share_a_pin():
+    base = yaml.safe_load(DRY_RUN.read_text()) | {"line": {"dio": {}}}
+    assert CellConfig.model_validate(base | {"arm": base["arm"] | {"reset_input": 1, "fault_output": 3}})
+    for pins, why in (({"reset_input": 0}, "trigger_input and reset_input are the same digital input"),
+                      ({"ready_output": 2, "fault_output": 2}, "ready_output and fault_output are the same "
+                       "digital output"),
+                      ({"fault_output": 1}, "done_output and fault_output are the same digital output")):
+        with pytest.raises(ValidationError, match=why):
+            CellConfig.model_validate(base | {"arm": base["arm"] | pins})
+
+
+def test_the_reset_input_and_the_ready_and_fault_outputs(tmp_path: Path, caplog: pytest.LogCaptureFixture):
+    """A line wired only to digital I/O: the reset input brings the cell from Stopped (after the start) and
+    Aborted (Clear, then Reset) to Idle; ready shows Idle in Production, fault a stop the line did not
+    command (an operator's STOP, until Reset) and Held; a reset the state refuses is said and changes
+    nothing."""
+    pins = {"reset_input": 1, "ready_output": 2, "fault_output": 3}
+    dio = {"part_id": "horizontal_box", "debounce_s": 0.05}
+    with dio_line(tmp_path, caplog, dio, max_time_s=30.0, **pins) as (line, peer, arm):
+        trigger, reset = arm["trigger_input"], arm["reset_input"]
+        busy, ready, fault = (1 << arm[name] for name in ("busy_output", "ready_output", "fault_output"))
+
+        def pulse(index: int) -> None:
+            """200 ms high, then low for as long: each level outlasts the 50 ms filter."""
+            peer.set_digital_input(index, True)
+            time.sleep(0.2)
+            peer.set_digital_input(index, False)
+            time.sleep(0.2)
+
+        def outputs(value: int, what: str) -> None:
+            peer.wait_for(lambda s: s["digital_out"] == value, what=what)
+
+        assert line.state()["state_name"] == "Stopped" and peer.state()["digital_out"] == 0
+        pulse(reset)
+        outputs(ready, "ready high in Idle")
+        assert line.state()["message"] == "Reset from digital input DI1 rising"
+        # an operator's STOP: a fault until an operator resumes the queue and the line resets
+        line.client.post("/api/v1/stop", json={"reason": "hands in the cell"}, headers=line.auth("viewer"))
+        outputs(fault, "fault high after an operator's STOP")
+        pulse(reset)
+        deadline = time.monotonic() + 10
+        while "POST /api/v1/queue/resume" not in (message := line.state()["message"]):
+            assert time.monotonic() < deadline, message
+            time.sleep(0.05)
+        assert message.startswith("refused Reset from digital input DI1 rising")
+        assert line.state()["state_name"] == "Stopped" and peer.state()["digital_out"] == fault
+        resumed = line.client.post("/api/v1/queue/resume", headers=line.auth("operator"))
+        assert resumed.status_code == 200, resumed.text
+        pulse(reset)
+        outputs(ready, "ready high, fault low after Reset")
+        # the line's own Abort is no fault; the reset input clears it, then resets it
+        assert line.command("abort").status_code == 200
+        line.wait({"Aborted"})
+        outputs(0, "no fault in Aborted after the line's Abort")
+        pulse(reset)
+        assert line.wait({"Stopped"})["message"] == "Clear from digital input DI1 rising"
+        pulse(reset)
+        outputs(ready, "ready high in Idle after Clear and Reset")
+        # Held is a fault; a reset in Held is refused
+        pulse(trigger)
+        outputs(busy, "busy high in Execute")
+        assert line.command("hold").status_code == 200
+        outputs(fault, "fault high in Held")
+        pulse(reset)
+        deadline = time.monotonic() + 10
+        while not (message := line.state()["message"]).startswith("refused Reset from digital input DI1"):
+            assert time.monotonic() < deadline, message
+            time.sleep(0.05)
+        assert "not valid in Held" in message and line.state()["state_name"] == "Held"
+        assert line.command("stop").status_code == 200  # the line's own Stop: no fault
+        outputs(0, "every output low in Stopped after the line's Stop")
+        # in Manual mode a trigger starts nothing: not ready
+        pulse(reset)
+        outputs(ready, "ready high in Idle")
+        line.client.post("/api/v1/line/mode", json={"mode": "manual"}, headers=line.auth("line"))
+        outputs(0, "ready low in Manual mode")

@@ -199,6 +199,18 @@ CELL_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 characters, and the name goes into file names)."""
 
 
+def _shared_pins(pins: dict[str, int | None]) -> str | None:
+    """The first two of ``pins`` (name: digital index, None: not wired) wired to the same index, in words;
+    None when none are."""
+    seen: dict[int, str] = {}
+    for name, index in pins.items():
+        if index is not None:
+            if index in seen:
+                return f"{seen[index]} and {name}"
+            seen[index] = name
+    return None
+
+
 class CellConfig(StrictModel):
     """A whole cell: arm, sensor, its mount on the flange (hand-eye), station, perception, safety, scan,
     planners, the packing result (container catalogue), the service (``cell serve``) and the packing
@@ -273,6 +285,13 @@ class CellConfig(StrictModel):
             missing = [name for name, index in wired.items() if index is None]
             if missing:
                 raise ValueError(f"line.dio needs the arm's {', '.join(missing)}")
+            inputs = {"trigger_input": arm.trigger_input, "reset_input": arm.reset_input}
+            outputs = {"busy_output": arm.busy_output, "done_output": arm.done_output,
+                       "ready_output": arm.ready_output, "fault_output": arm.fault_output}
+            for kind, pins in (("input", inputs), ("output", outputs)):
+                shared = _shared_pins(pins)
+                if shared:
+                    raise ValueError(f"line.dio: the arm's {shared} are the same digital {kind}")
             if self.mode == "dry-run" and self.line.dio.part_id is not None:
                 try:  # the simulated feeder's part: a malformed one would be refused at every trigger
                     feeder_part(self.line.dio.part_id)

@@ -60,7 +60,9 @@ class DigitalIOConfig(StrictModel):
     """The robot's digital-I/O handshake (UR5e: the arm section's ``trigger_input``, ``busy_output`` and
     ``done_output``): a rising edge on the trigger in Idle is Start, busy is high in Execute, done is high
     in Complete until the PLC acknowledges, which is Reset: a held trigger by falling, a pulsed one by
-    the next part's rising edge (Reset, then Start); ``docs/packml-opcua.md`` has the timing.
+    the next part's rising edge (Reset, then Start). Optionally the arm's ``reset_input`` (Clear in
+    Aborted, else Reset), ``ready_output`` (Idle in Production) and ``fault_output`` (Held, or stopped
+    for a reason the line did not command); ``docs/packml-opcua.md`` has the timing.
 
     ``debounce_s`` [s] how long the trigger must hold a new level before it counts (a relay or a
     photo-eye bounces for a few milliseconds; 20 ms is the usual PLC input filter); ``poll_hz`` how

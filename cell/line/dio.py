@@ -1,5 +1,5 @@
 """The packing line's digital-I/O handshake on the UR5e's standard I/O (the simplest line: one input, two
-outputs).
+outputs; optionally a second input and two more outputs). The pins are the arm section's.
 
 - A rising edge on ``trigger_input`` in Idle is Start (the part id is ``line.dio.part_id``, or
   ``part-<n>``): a digital input carries none.
@@ -8,24 +8,34 @@ outputs).
   until done acknowledges by falling (Complete: Reset); a pulsed trigger, whose fall during Execute does
   nothing, acknowledges with the next part's rising edge (Complete: Reset, then Start). An edge the state
   does not accept is refused as any command is, and logged.
-- The trigger is debounced: a new level counts once it has held for ``line.dio.debounce_s``. The level
-  found at start is the baseline, not an edge (a trigger left high does not start a scan on a restart).
+- ``reset_input`` (optional): a rising edge is Clear in Aborted and Reset elsewhere (valid in Stopped and
+  Complete, refused and logged in the other states), so that a line wired only to digital I/O can bring
+  the cell back from Stopped (after every start of the service) and Aborted.
+- ``ready_output`` and ``fault_output`` (optional; :func:`output_levels`): ready is high in Idle in
+  Production mode (a trigger starts a part); fault is high in Held, and in the Stopped and Aborted
+  branches for a stop the line did not command (:data:`cell.line.packml.ORDINARY_STOPS`), until Reset.
+- An input is debounced: a new level counts once it has held for ``line.dio.debounce_s``. The level found
+  at start is the baseline, not an edge (a trigger left high does not start a scan on a restart).
 
-A thread of its own polls the inputs at ``line.dio.poll_hz`` and writes the outputs when the state
-changes, through :class:`drivers.arm.ur_io.URDigitalIO`; commands go to the service's loop. A lost link
-is logged and reconnected every ``RECONNECT_S``; the outputs are written again once it is back.
+A thread of its own polls the inputs at ``line.dio.poll_hz`` and writes the outputs when they change,
+through :class:`drivers.arm.ur_io.URDigitalIO`; commands go to the service's loop. A lost link is logged
+and reconnected every ``RECONNECT_S``; the outputs are written again once it is back.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import contextlib
 import logging
 import threading
 import time
+from collections.abc import AsyncIterator, Coroutine
+from typing import Any
 
 from cell.line.config import DigitalIOConfig
 from cell.line.controller import LineController, LineSnapshot
-from cell.line.packml import Command, State
+from cell.line.packml import ORDINARY_STOPS, Command, State, UnitMode
 from drivers.arm.config import UR5eArmConfig
 from drivers.arm.ur_io import URDigitalIO
 from drivers.errors import DriverError, ServiceError
@@ -66,6 +76,35 @@ def trigger_commands(state: State, rising: bool) -> tuple[Command, ...]:
     return (Command.RESET,) if state is State.COMPLETE else ()
 
 
+def reset_command(state: State) -> Command:
+    """What a rising edge of the reset input asks for in ``state``: Clear in Aborted, else Reset (which the
+    state machine refuses outside Stopped and Complete)."""
+    return Command.CLEAR if state is State.ABORTED else Command.RESET
+
+
+STOPPED_BRANCH = frozenset({State.STOPPING, State.STOPPED, State.ABORTING, State.ABORTED, State.CLEARING})
+"""The states a stop or an abort leads through to Stopped, where a fault shows until Reset."""
+
+
+def output_levels(snapshot: LineSnapshot) -> dict[str, bool]:
+    """The level of each output for the line's ``snapshot``: ``busy`` in Execute, ``done`` in Complete,
+    ``ready`` in Idle in Production mode, ``fault`` in Held, and in :data:`STOPPED_BRANCH` when the stop
+    reason is not one of :data:`cell.line.packml.ORDINARY_STOPS` (it stays high through Clear, until
+    Reset)."""
+    state = snapshot.state
+    return {"busy": state is State.EXECUTE, "done": state is State.COMPLETE,
+            "ready": state is State.IDLE and snapshot.mode is UnitMode.PRODUCTION,
+            "fault": state is State.HELD or (state in STOPPED_BRANCH
+                                             and snapshot.stop_reason_id not in ORDINARY_STOPS)}
+
+
+def _log_failure(done: concurrent.futures.Future[None]) -> None:
+    """Log an edge's handling that failed (it runs on the service's loop, where nobody waits for it)."""
+    if not done.cancelled() and (exc := done.exception()) is not None:
+        log.error("line: a digital input's edge was not handled: %s: %s", type(exc).__name__, exc,
+                  exc_info=exc)
+
+
 class DigitalIOHandshake:
     """The handshake of one cell (see the module docstring); :meth:`start` on the service's loop."""
 
@@ -73,9 +112,12 @@ class DigitalIOHandshake:
         assert arm.trigger_input is not None and arm.busy_output is not None and arm.done_output is not None
         self._line = line
         self._config = config
-        self._trigger, self._busy, self._done = arm.trigger_input, arm.busy_output, arm.done_output
+        self._trigger, self._reset = arm.trigger_input, arm.reset_input
+        wired = {"busy": arm.busy_output, "done": arm.done_output, "ready": arm.ready_output,
+                 "fault": arm.fault_output}
+        self._pins = {name: index for name, index in wired.items() if index is not None}
         self._io = URDigitalIO(arm)
-        self._wanted: list[tuple[int, bool]] = self._outputs(line.state)
+        self._wanted: list[tuple[int, bool]] = self._outputs(line.snapshot())
         self._written: list[tuple[int, bool]] | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="line digital io", daemon=True)
@@ -89,64 +131,91 @@ class DigitalIOHandshake:
         self._thread.start()
 
     async def close(self) -> None:
-        """Stop polling, set both outputs low and disconnect."""
+        """Stop polling, set every output low and disconnect."""
         self._stop.set()
         await asyncio.to_thread(self._thread.join)
 
-    def _outputs(self, state: State) -> list[tuple[int, bool]]:
-        return [(self._busy, state is State.EXECUTE), (self._done, state is State.COMPLETE)]
+    def _outputs(self, snapshot: LineSnapshot) -> list[tuple[int, bool]]:
+        levels = output_levels(snapshot)
+        return [(index, levels[name]) for name, index in self._pins.items()]
 
     def _on_change(self, snapshot: LineSnapshot) -> None:
-        self._wanted = self._outputs(snapshot.state)
+        self._wanted = self._outputs(snapshot)
+
+    def _wiring(self) -> str:
+        inputs = [f"trigger DI{self._trigger}"] + ([] if self._reset is None else [f"reset DI{self._reset}"])
+        return ", ".join(inputs + [f"{name} DO{index}" for name, index in self._pins.items()])
 
     def _run(self) -> None:
         period = 1.0 / self._config.poll_hz
-        debounced: Debouncer | None = None
+        trigger: Debouncer | None = None
+        reset: Debouncer | None = None
         while not self._stop.is_set():
             try:
-                if debounced is None:
+                if trigger is None:
                     self._io.connect()
-                    debounced = Debouncer(self._io.inputs()[self._trigger], self._config.debounce_s)
-                    log.info("line: digital I/O connected (trigger DI%d, busy DO%d, done DO%d)",
-                             self._trigger, self._busy, self._done)
-                assert debounced is not None
+                    levels = self._io.inputs()
+                    trigger = Debouncer(levels[self._trigger], self._config.debounce_s)
+                    if self._reset is not None:
+                        reset = Debouncer(levels[self._reset], self._config.debounce_s)
+                    log.info("line: digital I/O connected (%s)", self._wiring())
+                assert trigger is not None
                 wanted = self._wanted
                 if wanted != self._written:
                     self._io.set_outputs(wanted)
                     self._written = wanted
-                edge = debounced.update(self._io.inputs()[self._trigger], time.monotonic())
+                levels, now = self._io.inputs(), time.monotonic()
+                edge = trigger.update(levels[self._trigger], now)
                 if edge is not None:
-                    self._post(edge)
+                    self._post(self._trigger_edge(edge))
+                if reset is not None and self._reset is not None and reset.update(levels[self._reset], now):
+                    self._post(self._reset_edge())  # its fall does nothing
             except DriverError as exc:
                 log.error("line: digital I/O: %s; connecting again in %g s", exc, RECONNECT_S)
                 self._io.close()
-                debounced, self._written = None, None
+                trigger, reset, self._written = None, None, None
                 self._stop.wait(RECONNECT_S)
                 continue
             self._stop.wait(period)
         try:
-            self._io.set_outputs([(self._busy, False), (self._done, False)])
+            self._io.set_outputs([(index, False) for index in self._pins.values()])
         except DriverError as exc:
             log.warning("line: digital outputs not cleared at shutdown: %s", exc)
         self._io.close()
 
-    def _post(self, rising: bool) -> None:
+    def _post(self, edge: Coroutine[Any, Any, None]) -> None:
         assert self._loop is not None
-        asyncio.run_coroutine_threadsafe(self._edge(rising), self._loop)
+        asyncio.run_coroutine_threadsafe(edge, self._loop).add_done_callback(_log_failure)
 
-    async def _edge(self, rising: bool) -> None:
-        assert self._edges is not None
-        line = self._line
+    async def _trigger_edge(self, rising: bool) -> None:
         source = f"digital input DI{self._trigger} {'rising' if rising else 'falling'}"
-        async with self._edges:
-            await line.settle()
-            for command in trigger_commands(line.state, rising):
+        async with self._one_edge():
+            for command in trigger_commands(self._line.state, rising):
                 part_id = None
                 if command is Command.START:
-                    part_id = self._config.part_id or f"part-{line.snapshot().processed + 1}"
-                try:
-                    await line.command(command, source, part_id=part_id)
-                except ServiceError as exc:
-                    log.warning("line: %s refused: %s", source, exc)
+                    part_id = self._config.part_id or f"part-{self._line.snapshot().processed + 1}"
+                if not await self._give(command, source, part_id):
                     return
-                await line.settle()  # Start after Reset meets Idle
+
+    async def _reset_edge(self) -> None:
+        async with self._one_edge():
+            await self._give(reset_command(self._line.state), f"digital input DI{self._reset} rising")
+
+    @contextlib.asynccontextmanager
+    async def _one_edge(self) -> AsyncIterator[None]:
+        """Edges one at a time, in the order they came, each meeting the state the one before led to."""
+        assert self._edges is not None
+        async with self._edges:
+            await self._line.settle()
+            yield
+
+    async def _give(self, command: Command, source: str, part_id: str | None = None) -> bool:
+        """Give the line ``command``; whether it was accepted (a refusal is logged, and said by the line).
+        Returns once the acting state it entered has done its work (Start after Reset meets Idle)."""
+        try:
+            await self._line.command(command, source, part_id=part_id)
+        except ServiceError as exc:
+            log.warning("line: %s from %s refused: %s", command.label, source, exc)
+            return False
+        await self._line.settle()
+        return True

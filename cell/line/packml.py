@@ -126,3 +126,10 @@ class StopReason(IntEnum):
     """the service shut down or started"""
     CLEAR_FAILED = 8
     """Clear could not recover the arm"""
+
+
+ORDINARY_STOPS = frozenset({StopReason.NONE, StopReason.LINE_STOP, StopReason.LINE_ABORT,
+                            StopReason.SHUTDOWN})
+"""Stop reasons that are no fault of the cell: none yet, the line's own Stop or Abort (the PLC knows why),
+the service's shutdown or start (a Reset is all it takes). The others (an operator's STOP, a safety stop,
+an arm fault, a failed scan, a failed Clear) are what the digital I/O's ``fault_output`` shows."""

@@ -45,7 +45,10 @@ class UR5eArmConfig(StrictModel):
     - ``watchdog_min_hz``: the RTDE watchdog armed while the arm moves: the control script stops the arm
       when no command or kick arrives for 1 / ``watchdog_min_hz`` seconds.
     - ``busy_output`` / ``done_output``: standard digital outputs driven for a packing line, and
-      ``trigger_input``: the standard digital input a line raises to start a scan (``None``: not wired).
+      ``trigger_input``: the standard digital input a line raises to start a scan (``None``: not wired);
+      optionally ``reset_input`` (a rising edge resets the line, or clears it when aborted),
+      ``ready_output`` (high when a trigger would start a scan) and ``fault_output`` (high when the line
+      stopped for a fault or holds): the handshake is ``cell.line.dio``'s.
     - ``connect_timeout_s``: how long to wait for each controller port before giving up.
     """
 
@@ -73,6 +76,9 @@ class UR5eArmConfig(StrictModel):
     busy_output: DigitalIndex | None = None
     done_output: DigitalIndex | None = None
     trigger_input: DigitalIndex | None = None
+    reset_input: DigitalIndex | None = None
+    ready_output: DigitalIndex | None = None
+    fault_output: DigitalIndex | None = None
 
 
 class FrankaArmConfig(StrictModel):
