@@ -4,6 +4,7 @@ the result a line reads, the debouncer."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import re
@@ -14,6 +15,7 @@ from typing import Any
 
 import pytest
 import yaml
+from asyncua import Client, ua
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
@@ -29,6 +31,7 @@ from cell.service.startup import ServiceSettings
 from cell.service.store import open_data_store
 from drivers.errors import ServiceError
 from tests.rtde_peer import ControllerPeer
+from tests.service_process import free_port
 
 from .conftest import CONFIG_DIR
 
@@ -423,15 +426,17 @@ DioLine = tuple[Line, ControllerPeer, dict[str, Any]]
 
 @contextlib.contextmanager
 def dio_line(tmp_path: Path, caplog: pytest.LogCaptureFixture, dio: dict[str, Any],
-             max_time_s: float = SCAN_S, **arm_changes: Any) -> Iterator[DioLine]:
-    """A dry-run cell with ``line.dio`` against the RTDE controller peer, its digital I/O link connected
-    (the trigger's level read then is its baseline): the served line, the peer and the cell file's arm
-    section (``arm_changes`` wire more I/O)."""
+             max_time_s: float = SCAN_S, opcua: dict[str, Any] | None = None,
+             **arm_changes: Any) -> Iterator[DioLine]:
+    """A dry-run cell with ``line.dio`` (and ``line.opcua`` if given) against the RTDE controller peer,
+    its digital I/O link connected (the trigger's level read then is its baseline): the served line, the
+    peer and the cell file's arm section (``arm_changes`` wire more I/O)."""
     base = yaml.safe_load(DRY_RUN.read_text())
     peer = ControllerPeer(q=base["arm"]["home_joints_rad"])
     try:
         arm = base["arm"] | {"host": peer.host} | arm_changes
-        config = _cell_file(tmp_path, DRY_RUN, {"dio": dio, "max_time_s": max_time_s}, arm=arm)
+        line_config = {"dio": dio, "max_time_s": max_time_s} | ({} if opcua is None else {"opcua": opcua})
+        config = _cell_file(tmp_path, DRY_RUN, line_config, arm=arm)
         with caplog.at_level(logging.INFO, logger="cell.line"), served_line(tmp_path, config) as line:
             deadline = time.monotonic() + 30
             while not any("digital I/O connected" in m for m in caplog.messages):
@@ -497,6 +502,45 @@ def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
         peer.set_digital_input(trigger, False)
         peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the held trigger fell")
         assert line.wait({"Idle"})["processed"] == 4
+
+
+def test_a_trigger_scans_the_part_id_the_plc_set_over_opc_ua(tmp_path: Path,
+                                                             caplog: pytest.LogCaptureFixture):
+    """Without line.dio.part_id, a trigger scans the part id the PLC set over OPC UA for this part, and
+    part-<n> when none was set since the last Start (the feeder knows none of these: each is a defective
+    part at once, no scan)."""
+    url = f"opc.tcp://127.0.0.1:{free_port()}/cell"
+    with dio_line(tmp_path, caplog, {"debounce_s": 0.05}, opcua={"endpoint": url, "security": "none"}) as (
+            line, peer, arm):
+        trigger = arm["trigger_input"]
+
+        def part(n: int) -> str:
+            """Pulse the trigger; the part id of the n-th part processed."""
+            peer.set_digital_input(trigger, True)
+            time.sleep(0.2)
+            peer.set_digital_input(trigger, False)
+            time.sleep(0.2)
+            deadline = time.monotonic() + 20
+            while (state := line.state())["processed"] < n:
+                assert time.monotonic() < deadline, state
+                time.sleep(0.05)
+            return str(state["result"]["part_id"])
+
+        async def set_part_id(part_id: str) -> None:
+            client = Client(url, timeout=30)
+            client.set_user("line")
+            client.set_password(line.keys["line"])
+            async with client:
+                ns = (await client.get_namespace_array()).index("urn:cell:packml")
+                node = client.get_node(ua.NodeId("PackTags.Command.Parameter.PartId", ns))
+                await node.write_value(ua.Variant(part_id, ua.VariantType.String))
+
+        line.command("reset")
+        line.wait({"Idle"})
+        assert part(1) == "part-1"
+        asyncio.run(set_part_id("widget-7"))
+        assert part(2) == "widget-7"
+        assert part(3) == "part-3"  # the PLC set none for this part: widget-7 was the last one's
 
 
 def test_two_digital_io_signals_of_the_line_may_not_share_a_pin():

@@ -68,6 +68,7 @@ class DigitalIOConfig(StrictModel):
     photo-eye bounces for a few milliseconds; 20 ms is the usual PLC input filter); ``poll_hz`` how
     often the inputs are read; ``part_id`` what a trigger scans (a digital input carries no part id: in
     sim and dry-run cells this names the simulated feeder's part, on a real cell it is recorded; None:
+    the part id the PLC set for the part over OPC UA or REST since the last Start, else
     ``part-<count>``)."""
 
     debounce_s: float = Field(default=0.02, ge=0.0, le=1.0)

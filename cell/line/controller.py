@@ -103,6 +103,7 @@ class LineController:
         self.state = State.STOPPED
         self.mode = MODE_NAMES[config.initial_mode]
         self.part_id = ""
+        self._part_id_pending = False  # part_id was set for the coming part: no Start has taken it yet
         self._job_id: str | None = None
         self._cycle_part = ""
         self._done: CycleResult | None = None  # a scan that completed while the line held or suspended
@@ -212,7 +213,14 @@ class LineController:
     def set_part_id(self, part_id: str) -> None:
         """The part id the next Start scans (``Command/Parameter/PartId``); ``ServiceError`` (invalid)."""
         self.part_id = self.check_part_id(part_id)
+        self._part_id_pending = True
         self._notify()
+
+    @property
+    def pending_part_id(self) -> str | None:
+        """The part id set for the coming part (OPC UA's PartId or SetPartId, a REST command's ``part_id``)
+        that no Start has taken yet; None when the parameter holds an earlier part's or none."""
+        return self.part_id if self._part_id_pending else None
 
     async def command(self, command: Command, source: str, part_id: str | None = None) -> str:
         """Act on ``command`` from ``source`` (e.g. ``opcua (key line-1)``); ``part_id`` sets the parameter
@@ -225,7 +233,9 @@ class LineController:
             self.say(f"refused {command.label} from {source}: {why}")
             raise ServiceError(why, reason="conflict")
         if given is not None:
-            self.part_id = given
+            self.part_id, self._part_id_pending = given, True
+        if command is Command.START:
+            self._part_id_pending = False
         self._message = f"{command.label} from {source}"
         self._source = source
         if command is Command.STOP:

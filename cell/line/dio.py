@@ -1,8 +1,9 @@
 """The packing line's digital-I/O handshake on the UR5e's standard I/O (the simplest line: one input, two
 outputs; optionally a second input and two more outputs). The pins are the arm section's.
 
-- A rising edge on ``trigger_input`` in Idle is Start (the part id is ``line.dio.part_id``, or
-  ``part-<n>``): a digital input carries none.
+- A rising edge on ``trigger_input`` in Idle is Start. A digital input carries no part id: the part is
+  ``line.dio.part_id`` if the cell file gives one, else the one the line set for it over OPC UA or REST
+  since the last Start, else ``part-<n>`` (:meth:`DigitalIOHandshake._part_id`).
 - ``busy_output`` is high in Execute; ``done_output`` is high in Complete, until the PLC acknowledges the
   result, which is Reset. Both of a PLC's usual patterns work (:func:`trigger_commands`): a trigger held
   until done acknowledges by falling (Complete: Reset); a pulsed trigger, whose fall during Execute does
@@ -193,9 +194,15 @@ class DigitalIOHandshake:
             for command in trigger_commands(self._line.state, rising):
                 part_id = None
                 if command is Command.START:
-                    part_id = self._config.part_id or f"part-{self._line.snapshot().processed + 1}"
+                    part_id = self._part_id()
                 if not await self._give(command, source, part_id):
                     return
+
+    def _part_id(self) -> str:
+        """What a trigger's Start scans: ``line.dio.part_id``; else the part id the line set for this part
+        (OPC UA, REST) since the last Start; else ``part-<n>``, n the count of parts processed, plus one."""
+        line = self._line
+        return self._config.part_id or line.pending_part_id or f"part-{line.snapshot().processed + 1}"
 
     async def _reset_edge(self) -> None:
         async with self._one_edge():
