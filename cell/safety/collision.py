@@ -223,6 +223,10 @@ class CollisionWorld:
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
         self._reference: _Reference | None = None
+        self.n_motion_checks = 0
+        """Calls of :meth:`check_motion` so far (``benchmarks/guard_tick.py`` tells ticks apart by them)."""
+        self.n_distances = 0
+        """FCL distance computations so far."""
 
     @staticmethod
     def _sweep_levers(model: RobotModel, frames: Array, extents: Array) -> Array:
@@ -371,6 +375,7 @@ class CollisionWorld:
 
     def _distance(self, a: fcl.CollisionObject, b: fcl.CollisionObject) -> float:
         """FCL's distance [m] between two bodies (not positive when they touch)."""
+        self.n_distances += 1
         return float(fcl.distance(a, b, self._distance_request, fcl.DistanceResult()))
 
     def check(self, q: Array) -> Collision | None:
@@ -545,6 +550,7 @@ class CollisionWorld:
         the pairs' references are kept from one call to the next, so most calls measure nothing. Returns
         ``(0, contact)`` when ``q_from`` itself touches, ``(1, contact)`` for a contact further on, or
         None. The references hold for the ROI they were found with: another ROI (``set_roi``) drops them."""
+        self.n_motion_checks += 1
         q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
         statics = self._statics()
         ref = self._reference
