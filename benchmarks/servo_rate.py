@@ -30,6 +30,7 @@ a goal sample costs; ``global_5000_cpu_s`` its CPU time over all threads. The la
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -106,6 +107,8 @@ def median_ms(fn, repeat: int) -> tuple[float, float]:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+                            ).parse_args()  # no options: --help
     try:
         import pyoctomap
     except ImportError:

@@ -1,15 +1,16 @@
 """Cost of a UR5e control tick through the process that holds the ur-rtde clients: ``state()`` then
 ``command_twist()`` (three round trips to the child: state; state and fault check; ``speedL``), against
 the RTDE controller peer on loopback (tests/rtde_peer), paced at 500 Hz (a UR e-series controller's
-cycle) for ``TICKS`` ticks. Also ``state()`` alone. Wall time per call from ``time.perf_counter``; CPU
+cycle) for ``--ticks`` ticks. Also ``state()`` alone. Wall time per call from ``time.perf_counter``; CPU
 per tick of the driver's process (``time.process_time``) and of the child (its utime + stime from
 /proc, which includes its connection monitor). Prints readable lines, then one line of JSON.
 
-    nice -n -10 .venv/bin/python benchmarks/ur_rtde_tick.py
+    nice -n -10 .venv/bin/python benchmarks/ur_rtde_tick.py [--ticks 1000]
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -25,7 +26,6 @@ from drivers.robots import get_robot_model
 from tests.arm_backends import ur5e_config
 from tests.rtde_peer import ControllerPeer
 
-TICKS = 1000
 PERIOD_S = 0.002  # 500 Hz
 RTDE_HZ = 125.0  # the peer is a Python process: the rate the tests use
 
@@ -43,6 +43,10 @@ def percentiles_ms(times: list[float]) -> dict[str, float]:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ticks", type=int, default=1000, help="ticks timed (and state() calls alone)")
+    ticks = parser.parse_args().ticks
     peer = ControllerPeer()
     arm = UR5eArm(ur5e_config(peer.host, rtde_frequency_hz=RTDE_HZ), get_robot_model("ur5e"))
     arm.connect()
@@ -51,14 +55,14 @@ def main() -> None:
         pid = arm.client_pid
         assert pid is not None
         state_times = []
-        for _ in range(TICKS):
+        for _ in range(ticks):
             t0 = time.perf_counter()
             arm.state()
             state_times.append(time.perf_counter() - t0)
         tick_times = []
         cpu0, child0 = time.process_time(), child_cpu_s(pid)
         next_t = time.perf_counter()
-        for k in range(TICKS):
+        for k in range(ticks):
             # 1 mm/s up and down: the flange stays where it is
             v = np.array([0.0, 0.0, 0.001 if (k // 250) % 2 == 0 else -0.001, 0.0, 0.0, 0.0])
             t0 = time.perf_counter()
@@ -67,8 +71,8 @@ def main() -> None:
             tick_times.append(time.perf_counter() - t0)
             next_t += PERIOD_S
             time.sleep(max(0.0, next_t - time.perf_counter()))
-        cpu_ms = (time.process_time() - cpu0) / TICKS * 1e3
-        child_ms = (child_cpu_s(pid) - child0) / TICKS * 1e3
+        cpu_ms = (time.process_time() - cpu0) / ticks * 1e3
+        child_ms = (child_cpu_s(pid) - child0) / ticks * 1e3
         arm.stop()
     finally:
         arm.disconnect()
@@ -80,12 +84,12 @@ def main() -> None:
         "state": state,
         "tick": {**tick, "cpu_driver_ms": round(cpu_ms, 4), "cpu_child_ms": round(child_ms, 4),
                  "over_period": over},
-        "ticks": TICKS, "period_ms": PERIOD_S * 1e3, "rtde_hz": RTDE_HZ,
+        "ticks": ticks, "period_ms": PERIOD_S * 1e3, "rtde_hz": RTDE_HZ,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     print(f"state():                 median {state['median_ms']:.3f} ms, p99 {state['p99_ms']:.3f} ms")
     print(f"state() + command_twist: median {tick['median_ms']:.3f} ms, p99 {tick['p99_ms']:.3f} ms, "
-          f"CPU {cpu_ms:.3f} ms driver + {child_ms:.3f} ms child, {over} of {TICKS} ticks over the 2 ms "
+          f"CPU {cpu_ms:.3f} ms driver + {child_ms:.3f} ms child, {over} of {ticks} ticks over the 2 ms "
           "period")
     print(json.dumps(figures))
 
