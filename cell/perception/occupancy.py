@@ -87,7 +87,14 @@ def from_logodds(logodds: NDArray[np.floating]) -> Array:
 
 
 class OccupancyParams(StrictModel):
-    """Sensor model and grid of the occupancy map (OctoMap's defaults).
+    """Sensor model and grid of the occupancy map.
+
+    ``p_hit`` and ``p_miss`` default to OctoMap's defaults (0.7, 0.4). ``clamp_min`` / ``clamp_max``
+    default to 0.12 / 0.97, which are not OctoMap's: its defaults are log-odds -2 and 3.5 (probabilities
+    0.1192 and 0.971 in its source), and 0.12 / 0.97 are those rounded to two decimals (log-odds -1.992 and
+    3.476). Neither paper of the specification gives clamping thresholds (the visual-servoing paper uses
+    OctoMap at 5 mm, the packing paper at 1 cm, both with no other parameter); the cell files set these
+    values explicitly. ``benchmarks/map_vs_octomap.py`` sets an OctoMap to the same four values.
 
     ``resolution_m`` [m] is the voxel edge (5 mm RGB-D cell, 1 cm ToF cell, from the cell config);
     ``max_range_m`` [m] truncates longer rays (their end is then not marked occupied); None: no limit;

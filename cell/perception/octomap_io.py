@@ -105,8 +105,8 @@ def write_bt(occ_map: OccupancyMap, path: str | Path) -> int:
 
 def read_bt(path: str | Path, params: OccupancyParams | None = None) -> OccupancyMap:
     """Read an OctoMap ``.bt`` file into a new ``OccupancyMap`` (resolution from the file; other sensor
-    parameters from ``params`` or OctoMap's defaults). Occupied voxels get logit(clamp_max), free voxels
-    logit(clamp_min); pruned leaves are expanded to all their voxels."""
+    parameters from ``params`` or ``OccupancyParams``' defaults). Occupied voxels get logit(clamp_max),
+    free voxels logit(clamp_min); pruned leaves are expanded to all their voxels."""
     data = Path(path).read_bytes()
     pos = 0
     first = True
