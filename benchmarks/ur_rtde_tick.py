@@ -1,9 +1,12 @@
 """Cost of a UR5e control tick through the process that holds the ur-rtde clients: ``state()`` then
-``command_twist()`` (three round trips to the child: state; state and fault check; ``speedL``), against
-the RTDE controller peer on loopback (tests/rtde_peer), paced at 500 Hz (a UR e-series controller's
-cycle) for ``--ticks`` ticks. Also ``state()`` alone. Wall time per call from ``time.perf_counter``; CPU
-per tick of the driver's process (``time.process_time``) and of the child (its utime + stime from
-/proc, which includes its connection monitor). Prints readable lines, then one line of JSON.
+``command_twist()`` (two round trips to the child: the state read, then ``speedL``; ``command_twist``
+checks faults on the state read less than one RTDE period before, and only the first tick also reads the
+state again and arms the watchdog), against the RTDE controller peer on loopback (tests/rtde_peer), paced
+at 500 Hz (a UR e-series controller's cycle) for ``--ticks`` ticks. Also ``state()`` alone. Wall time
+per call from ``time.perf_counter`` (median, p99, maximum); CPU per tick of the driver's process
+(``time.process_time``) and of the child (its utime + stime from /proc, which includes its connection
+monitor). No reference runs beside it (docs/ur5e-driver.md, "Cost"). Prints readable lines, then one
+line of JSON.
 
     nice -n -10 .venv/bin/python benchmarks/ur_rtde_tick.py [--ticks 1000]
 """
@@ -87,8 +90,10 @@ def main() -> None:
         "ticks": ticks, "period_ms": PERIOD_S * 1e3, "rtde_hz": RTDE_HZ,
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
-    print(f"state():                 median {state['median_ms']:.3f} ms, p99 {state['p99_ms']:.3f} ms")
+    print(f"state():                 median {state['median_ms']:.3f} ms, p99 {state['p99_ms']:.3f} ms, "
+          f"max {state['max_ms']:.3f} ms")
     print(f"state() + command_twist: median {tick['median_ms']:.3f} ms, p99 {tick['p99_ms']:.3f} ms, "
+          f"max {tick['max_ms']:.3f} ms, "
           f"CPU {cpu_ms:.3f} ms driver + {child_ms:.3f} ms child, {over} of {ticks} ticks over the 2 ms "
           "period")
     print(json.dumps(figures))
