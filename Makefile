@@ -46,8 +46,13 @@ lint: $(STAMP)
 dist: $(STAMP)
 	$(PY) -m build --outdir dist .
 
+# The quick benchmarks that need nothing but the .venv (about 1.5 min on 2 cores), one after another; each
+# prints its figures and, last, one line of JSON. The others start services, an RTDE peer on the UR's fixed
+# ports or long scan grids, and are run by hand (README, "Benchmarks").
+BENCH_QUICK := sim_render perception_cycle map_vs_octomap servo_rate guard_tick ik_solve lrnbv_iteration \
+	vl53l8cx_link
 bench: $(STAMP)
-	$(PY) benchmarks/sim_render.py
+	@set -e; for b in $(BENCH_QUICK); do echo "== benchmarks/$$b.py"; $(PY) benchmarks/$$b.py; done
 
 clean:
 	rm -rf $(VENV) dist *.egg-info .pytest_cache .ruff_cache .mypy_cache build cell/perception/_kernels.c \
