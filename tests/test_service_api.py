@@ -309,6 +309,29 @@ def test_a_service_shut_down_kills_its_spare_worker_and_leaves_none_of_its_pipes
     assert [(u.exc_type, str(u.exc_value)) for u in unraisable] == []
 
 
+def test_readyz_says_whether_the_next_jobs_worker_has_loaded(tmp_path):
+    """``/readyz`` answers 200 while the warm spare imports its libraries (a job would wait for them) and
+    says so, ``loading``, then ``loaded`` once the spare's notice came; a cell without a warm worker says
+    ``off``."""
+    client, keys = _client(tmp_path)
+    viewer = _auth(keys["viewer"])
+    seen: list[str] = []
+    with client:
+        deadline = time.monotonic() + 60.0
+        while not seen or seen[-1] != "loaded":
+            assert time.monotonic() < deadline, seen
+            answer = client.get("/readyz", headers=viewer)
+            assert answer.status_code == 200, answer.json()
+            seen.append(answer.json()["warm_worker"])
+            time.sleep(0.02)
+        assert set(seen) <= {"loading", "loaded"}
+    (tmp_path / "cold").mkdir()
+    client, keys = _client_with(tmp_path / "cold", "cold", service={"warm_worker": False})
+    with client:
+        assert client.get("/readyz", headers=_auth(keys["viewer"])).json() == {"status": "ready",
+                                                                               "warm_worker": "off"}
+
+
 def _spawns_fail(service: Any) -> threading.Event:
     """An event that, while set, makes the service's worker processes fail to start as a process out of
     file descriptors does (its worker's log file cannot be opened)."""

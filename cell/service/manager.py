@@ -164,6 +164,8 @@ class CellService:
         self._dio: DigitalIOHandshake | None = None
         self._spare: asyncio.subprocess.Process | None = None
         self._spare_log = self._logs_dir / "worker-spare.log"
+        self._spare_watch: asyncio.Task[None] | None = None
+        self._spare_loaded = False
         self._warming = False
         self._rewarm: asyncio.Task[None] | None = None
         self._spawn_failure: str | None = None
@@ -257,6 +259,18 @@ class CellService:
     def ready(self) -> bool:
         """Taking jobs: started, its job dispatcher running and not shutting down."""
         return self._dispatcher is not None and not self._dispatcher.done() and not self._closing
+
+    @property
+    def warm_worker(self) -> str:
+        """The next job's warm worker (``service.warm_worker``), for ``/readyz``: ``off`` (not configured),
+        ``none`` (not started: a job runs on a cell that warms none beside it, or it could not be started),
+        ``loading`` (importing its libraries: a job given it now waits for them), ``loaded`` (waiting for
+        a job, which then starts without the imports)."""
+        if not self.config.service.warm_worker:
+            return "off"
+        if self._spare is None:
+            return "none"
+        return "loaded" if self._spare_loaded else "loading"
 
     @property
     def broken(self) -> str | None:
@@ -583,6 +597,8 @@ class CellService:
         to ``log_path``), else a new process, or None when none could be started (:meth:`_spawn`). It
         waits for its spec (:meth:`_hand`)."""
         proc, self._spare = (self._spare, None) if warm else (None, self._spare)
+        if proc is not None:
+            await self._stop_watching_spare()  # the job's follower reads its output from here on
         if proc is not None and proc.returncode is None:
             os.replace(self._spare_log, log_path)
             return proc
@@ -630,9 +646,27 @@ class CellService:
             self._warming = False
         if spare is not None:
             self._spare_log, self._spare = log_path, spare
+            self._spare_watch = asyncio.create_task(self._watch_spare(spare), name="warm worker loading")
             if self._closing:  # the service began to shut down meanwhile
                 await self._close_spare()
         return spare is not None
+
+    async def _watch_spare(self, spare: asyncio.subprocess.Process) -> None:
+        """Read the spare's first line: its ``loaded`` notice (``cell.service.protocol``) makes
+        :attr:`warm_worker` ``loaded``. Cancelled when a job takes the spare or it is closed."""
+        assert spare.stdout is not None
+        line = await spare.stdout.readline()
+        with contextlib.suppress(ValueError):
+            message = json.loads(line)
+            self._spare_loaded = isinstance(message, dict) and message.get("type") == "loaded" \
+                and self._spare is spare
+
+    async def _stop_watching_spare(self) -> None:
+        """End :meth:`_watch_spare` (a line it has not read stays for the next reader)."""
+        watch, self._spare_watch, self._spare_loaded = self._spare_watch, None, False
+        if watch is not None and not watch.done():
+            watch.cancel()
+            await asyncio.wait({watch})
 
     async def _close_spare(self) -> None:
         """End the warm spare at once: it holds no job and no arm, and it would read the end of its input
@@ -640,6 +674,7 @@ class CellService:
         spare, self._spare = self._spare, None
         if spare is None:
             return
+        await self._stop_watching_spare()
         self._kill(spare)
         await spare.communicate()
         self._spare_log.unlink(missing_ok=True)

@@ -8,6 +8,8 @@ finishes the job folder, since nobody could press stop any more.
 The worker writes JSON lines back (its own standard output is moved to standard error first, so that a
 library printing to it cannot break the protocol), each with a ``type``:
 
+- ``loaded``: its libraries are imported (before it reads its task): a warm spare is then ready
+  (``CellService.warm_worker``, ``/readyz``);
 - ``started``: ``pid``;
 - ``progress``: ``progress``, a ``cell.jobs.progress.JobProgress`` as a dict;
 - ``stop``: the answer to a stop command, after the arm was commanded to stop: ``effect`` (a

@@ -177,6 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     sys.stdout = sys.stderr
     outbox = Outbox(protocol)
     _preload()
+    outbox.send({"type": "loaded"})
     source = _lines(sys.stdin.fileno())
     try:
         spec = WorkerSpec.parse(next(source).decode())

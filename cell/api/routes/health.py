@@ -23,7 +23,10 @@ async def healthz() -> dict[str, str]:
 @router.get("/readyz", responses={503: {"description": "not taking jobs"}})
 async def readyz(response: Response, cell: Service,
                  _: Reader) -> dict[str, str]:
-    """Taking jobs: the service has started and its store answers."""
+    """Taking jobs: the service has started and its store answers. ``warm_worker`` says whether the next
+    job's worker has loaded its libraries (``CellService.warm_worker``: off, none, loading, loaded); a
+    service whose spare is still loading takes jobs all the same (the first then waits for the imports),
+    so it does not make the answer 503."""
     try:
         await asyncio.to_thread(cell.store.count_by_status, cell.name)
     except StoreError:
@@ -32,7 +35,7 @@ async def readyz(response: Response, cell: Service,
     if not cell.ready:
         response.status_code = 503
         return {"status": "not taking jobs (starting or shutting down)"}
-    return {"status": "ready"}
+    return {"status": "ready", "warm_worker": cell.warm_worker}
 
 
 @router.get("/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE: {}}}})
