@@ -22,8 +22,21 @@ running faster than real time).
 
 The reference, side by side in the same run: a second cell, the same file with ``service.warm_worker:
 false`` (a new worker process per job, as before the warm worker), its parts interleaved with the first
-``--reference-parts`` (5) of the main run, the same parts. Goal (the issue): each overhead <= 100 ms p99
-(with 20 parts, p99 is the largest but one; the maximum is printed too).
+``--reference-parts`` (5) of the main run, the same parts. Goal (the issue): each overhead <= 100 ms p99.
+
+Both cells are started, then each is waited for until its ``/readyz`` answers 200 and, for the warm
+cell, says ``warm_worker: loaded`` (the spare worker has imported its libraries; ``/readyz`` answers
+200 as soon as the service takes jobs, without waiting for that). Parts then follow back to back
+as a line sends them: the next part's spare loads beside the running scan and is not waited for; the
+state it was in at each Start (``/readyz``'s ``warm_worker``, read just before) is recorded per part.
+p99 is the value at or below which at least 99 % of the parts lie (nearest rank, not interpolated): with
+fewer than 100 parts it is the maximum.
+
+The first part after the service started is another thing and is printed apart (``first_part``): to
+validate it the service loads its first object mesh, which imports Open3D into the service process
+(~1 s of CPU; later parts find it imported), so its ``start_ms`` was 0.43-0.99 s in two runs where
+every later part took 52-308 ms. ``start_ms`` and ``end_ms`` are over every later part; ``all_parts``
+over all of them, the first included, on which the goal is judged.
 
     .venv/bin/python benchmarks/line_cycle.py [--parts 20] [--reference-parts 5] [--seed 0]
 """
@@ -65,6 +78,7 @@ PLC_URI = "urn:benchmark:plc"
 START, RESET = 2, 1
 IDLE, COMPLETE = 4, 17
 POLL_S = 0.002
+READY_TIMEOUT_S = 120.0  # a bound on waiting for a cell's readiness, not a timed check
 PART_TIMEOUT_S = 300.0  # a bound on waiting for one part, not a timed check
 GOAL_MS = 100.0
 KEY_PREFIX = "bench"
@@ -131,6 +145,7 @@ class PLC:
     async def cycle(self, part_id: str) -> dict[str, Any]:
         """One part: Start, Complete, the result, Reset."""
         await self.write("Command.Parameter.PartId", part_id, ua.VariantType.String)
+        warm_worker = (await asyncio.to_thread(readiness, self.cell))["warm_worker"]
         t_request = await self.command(START)
         t_complete = await self.wait_state(COMPLETE)
         job_id = await self.read("Result.JobId")
@@ -150,6 +165,7 @@ class PLC:
             "start_ms": round(1e3 * (result["control"]["first_motion_unix_s"] - t_request), 1),
             "end_ms": round(1e3 * (t_complete - done.stat().st_mtime), 1),
             "sim_time_s": result["sim_time_s"], "t_request": t_request, "t_complete": t_complete,
+            "warm_worker_at_start": warm_worker,
             "dims_error_mm": [round(1e3 * (m - t), 1) for m, t in zip(measured, truth_dims, strict=True)],
         }
 
@@ -164,12 +180,27 @@ def serve(tmp: Path, warm: bool) -> tuple[ServedCell, str]:
     return ServedCell(config, tmp / "data", key_prefix=KEY_PREFIX), url
 
 
+def readiness(cell: ServedCell) -> dict[str, Any]:
+    """The cell's ``/readyz`` answer, its HTTP status as ``code``."""
+    with cell.client("viewer") as rest:
+        answer = rest.get("/readyz")
+        return {"code": answer.status_code, **answer.json()}
+
+
+def wait_ready(cell: ServedCell) -> None:
+    """Until the cell takes jobs and its next job's worker, if it keeps one, has loaded (module docstring)."""
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while (ready := readiness(cell))["code"] != 200 or ready.get("warm_worker") not in ("loaded", "off"):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the cell was not ready within {READY_TIMEOUT_S:g} s: {ready}")
+        time.sleep(0.05)
+
+
 def spread(values: list[float]) -> dict[str, float]:
-    """Median, p99 and maximum of ``values``; p99 is the value at or below which 99 % of them lie (not
-    interpolated: with 20 parts, the largest but one, as the module docstring says; interpolated, it
-    was 80 % of the way to the largest, the first part's, whose worker may still be loading)."""
+    """Median, p99 and maximum of ``values``; p99 is the value at or below which at least 99 % of them
+    lie (nearest rank: the maximum for fewer than 100 values)."""
     p50 = np.percentile(values, 50)
-    p99 = np.percentile(values, 99, method="lower")
+    p99 = np.percentile(values, 99, method="inverted_cdf")
     return {"p50": round(float(p50), 1), "p99": round(float(p99), 1), "max": round(max(values), 1)}
 
 
@@ -187,7 +218,8 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
             for plc in (warm, cold):
                 await plc.command(RESET)
                 await plc.wait_state(IDLE)
-            await asyncio.sleep(3.0)  # both cells' warm worker (if any) has loaded its libraries
+            for cell in (warm_cell, cold_cell):
+                await asyncio.to_thread(wait_ready, cell)
             main: list[dict[str, Any]] = []
             reference: list[dict[str, Any]] = []
             for i, part in enumerate(ids):
@@ -207,9 +239,14 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
         "security": "sign-and-encrypt",
         "parts_per_min_sim": round(len(main) / (sum(p["sim_time_s"] for p in main) / 60.0), 2),
         "parts_per_min_wall": round(len(main) / wall_min, 2),
-        "start_ms": spread([p["start_ms"] for p in main]),
-        "end_ms": spread([p["end_ms"] for p in main]),
+        "start_ms": spread([p["start_ms"] for p in main[1:]]),
+        "end_ms": spread([p["end_ms"] for p in main[1:]]),
+        "all_parts": {k: spread([p[k] for p in main]) for k in ("start_ms", "end_ms")},
         "goal_ms": GOAL_MS,
+        "goal_met": all(spread([p[k] for p in main])["p99"] <= GOAL_MS for k in ("start_ms", "end_ms")),
+        "first_part": {k: main[0][k] for k in ("part_id", "start_ms", "end_ms", "warm_worker_at_start")},
+        "warm_worker_at_start": {state: sum(p["warm_worker_at_start"] == state for p in main)
+                                 for state in sorted({p["warm_worker_at_start"] for p in main})},
         "reference_new_worker_per_job": {
             "parts": len(reference), "start_ms": spread([p["start_ms"] for p in reference]),
             "end_ms": spread([p["end_ms"] for p in reference]),
@@ -234,6 +271,24 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="line-cycle-") as tmp:
         figures = asyncio.run(run(args, Path(tmp)))
+    ref = figures["reference_new_worker_per_job"]
+    print(f"load average (1 min) {os.getloadavg()[0]:.2f}; {figures['parts']} parts, "
+          f"{figures['parts_per_min_sim']} parts/min in sim time, "
+          f"{figures['parts_per_min_wall']} in wall time")
+    n = figures["parts"]
+    print(f"overhead [ms]     warm worker, parts 2-{n}    warm worker, all {n} parts    new worker per job "
+          f"(reference, {ref['parts']} parts)")
+    print("                  p50     p99     max        p50     p99     max         p50     p99     max")
+    for key in ("start_ms", "end_ms"):
+        cols = (figures[key], figures["all_parts"][key], ref[key])
+        print(f"  {key:14s}" + "    ".join(f"{c['p50']:7.1f} {c['p99']:7.1f} {c['max']:7.1f}" for c in cols))
+    first = figures["first_part"]
+    print(f"first part after the service started ({first['part_id']}, spare {first['warm_worker_at_start']}; "
+          f"the service's first mesh load): start {first['start_ms']} ms, end {first['end_ms']} ms")
+    print(f"spare worker's state at each Start: {figures['warm_worker_at_start']}; start p50 ratio "
+          f"reference / warm over the first {ref['parts']} parts: {ref['start_ratio_p50_new_over_warm']}")
+    print(f"goal: each overhead <= {GOAL_MS:g} ms p99 over all parts: "
+          f"{'met' if figures['goal_met'] else 'NOT met'}")
     print(json.dumps(figures))
 
 
