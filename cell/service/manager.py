@@ -597,10 +597,11 @@ class CellService:
         to ``log_path``), else a new process, or None when none could be started (:meth:`_spawn`). It
         waits for its spec (:meth:`_hand`)."""
         proc, self._spare = (self._spare, None) if warm else (None, self._spare)
+        spare_log = self._spare_log  # a next spare may start while this one's watch ends
         if proc is not None:
             await self._stop_watching_spare()  # the job's follower reads its output from here on
         if proc is not None and proc.returncode is None:
-            os.replace(self._spare_log, log_path)
+            os.replace(spare_log, log_path)
             return proc
         if proc is not None:  # the spare died waiting (its log says why)
             await self._reap(proc)
@@ -655,9 +656,8 @@ class CellService:
         """Read the spare's first line: its ``loaded`` notice (``cell.service.protocol``) makes
         :attr:`warm_worker` ``loaded``. Cancelled when a job takes the spare or it is closed."""
         assert spare.stdout is not None
-        line = await spare.stdout.readline()
-        with contextlib.suppress(ValueError):
-            message = json.loads(line)
+        with contextlib.suppress(ValueError):  # an end of file, or a line too long or not JSON
+            message = json.loads(await spare.stdout.readline())
             self._spare_loaded = isinstance(message, dict) and message.get("type") == "loaded" \
                 and self._spare is spare
 
