@@ -70,7 +70,8 @@ def test_the_sdist_holds_the_sources_and_the_wheel_the_kernels_and_data(dist):
     for pattern in ("cell/perception/_kernels.cpython", "cell/planning/vs/_objective.cpython",
                     "cell/planning/lrnbv/_raygains.cpython", "drivers/sim/objects/bunny.ply",
                     "drivers/sim/objects/CREDITS", "cell/web/static/index.html",
-                    "cell/templates/sim-ur5e-tof.yaml",
+                    "cell/templates/sim-ur5e-tof.yaml", "cell/deploy/systemd/cell.service",
+                    "cell/deploy/udev/99-vl53l8cx.rules", "calibration/README.md",
                     "cell/service/store/migrations/versions/0001_initial.py"):
         assert any(n.startswith(pattern) for n in wheel), pattern
 
@@ -88,6 +89,16 @@ def test_the_installed_cell_scans_inits_and_serves_without_the_checkout(venv, tm
     init = subprocess.run([cell, "init", "site", "--template", "ur5e-vl53l8cx"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=60)
     assert init.returncode == 0 and "arm.host" in init.stdout, init.stderr
+    # what the cell file's marks and docs/deploy.md name, from the installed package
+    assert "(cell calibrate guide)" in init.stdout
+    guide = subprocess.run([cell, "calibrate", "guide"], cwd=tmp_path, capture_output=True, text=True,
+                           timeout=60)
+    assert guide.returncode == 0 and guide.stdout.startswith("# Calibration"), guide.stderr
+    files = subprocess.run([cell, "deploy", "files", "deploy"], cwd=tmp_path, capture_output=True, text=True,
+                           timeout=60)
+    assert files.returncode == 0, files.stderr
+    for name in ("systemd/cell.service", "systemd/cell.sysusers.conf", "udev/99-vl53l8cx.rules"):
+        assert (tmp_path / "deploy" / name).read_bytes() == (REPO / "deploy" / name).read_bytes()
 
     port = free_port()
     serve = subprocess.Popen([cell, "serve", "--port", str(port)], cwd=tmp_path, stdout=subprocess.DEVNULL,

@@ -15,6 +15,7 @@ import numpy as np
 import typer
 from rich.console import Console
 
+from calibration import guide_path
 from calibration.cell_file import update_cell_file
 from calibration.compare import compare_results, read_result
 from calibration.mount import BOARD_TARGET, calibrate_mount, default_folder, default_poses, result_json
@@ -248,3 +249,9 @@ def compare(
     if diff["consistent"] is not None:
         _print("consistent within their uncertainties" if diff["consistent"]
                else "NOT consistent: the mount moved, or one calibration is off")
+
+
+@calibrate_app.command()
+def guide() -> None:
+    """Print the calibration guide: how to measure the mount, the table and the ToF zones."""
+    console.print(guide_path().read_text(), markup=False, highlight=False)

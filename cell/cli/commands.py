@@ -37,6 +37,7 @@ COMMANDS: dict[str, str] = {
     "init": "cell.cli.init_cell:init",
     "backup": "cell.cli.backup:backup",
     "doctor": "cell.cli.doctor:doctor",
+    "deploy": "cell.cli.deploy:deploy_app",
     "eval": "cell.cli.eval:eval_app",
 }
 

@@ -29,6 +29,7 @@ from cell.jobs.replay import recorded_job
 from cell.jobs.runner import job_generators
 from cell.perception.cloud import read_ply, write_ply
 from cell.perception.pipeline import PerceptionPipeline
+from cell.templates import template_path
 from drivers.arm.replay import ReplayArm
 from drivers.clock import SimClock
 from drivers.depth.check import CheckReport, SensorCheck
@@ -134,6 +135,13 @@ def check(
 
 
 # -- emulate ---------------------------------------------------------------------------------------------
+
+def check_command(url: str) -> str:
+    """The ``cell sensor check`` that reads the emulator at ``url``: with the installed hardware template's
+    sensor section (a path that exists on any PC with the cell, unlike the checkout's ``config/``)."""
+    return f"cell sensor check --config {template_path('ur5e-vl53l8cx')} --port {url}"
+
+
 @sensor_app.command()
 def emulate(
     socket: Annotated[str | None, typer.Option(help="serve on HOST:PORT (TCP) instead of a "
@@ -166,8 +174,7 @@ def emulate(
     except (CellError, OSError) as exc:
         raise _fail(exc) from None
     console.print(f"VL53L8CX bridge emulator on {emulator.url}", markup=False)
-    console.print(f"  try: cell sensor check --config config/ur5e-vl53l8cx.yaml --port {emulator.url}",
-                  markup=False)
+    console.print(f"  try: {check_command(emulator.url)}", markup=False)
     try:
         emulator.run()
     except KeyboardInterrupt:
