@@ -4,10 +4,12 @@ permission, broken kernels, a full disk, a taken port, placeholders, real-time l
 
 from __future__ import annotations
 
+import grp
 import os
 import re
 import shutil
 import socket
+import stat
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,11 +19,12 @@ import yaml
 from typer.testing import CliRunner
 
 from cell.cli.main import app
-from cell.doctor import machine
+from cell.doctor import devices, machine
 from cell.doctor.findings import Status
 from cell.service.keys import create_key
 from cell.service.store import open_data_store
 from drivers.arm.franka import client_version
+from drivers.file_access import user_name
 from tests.conftest import CONFIG_DIR
 from tests.franka_connect_peer import FrankaConnectPeer
 from tests.loopback import free_loopback
@@ -107,16 +110,59 @@ def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_pat
     assert code == 1
     for name in ("robot RTDE", "robot dashboard"):
         assert checks[name][0] == "fail" and "fix: check the robot is on" in checks[name][1]
-    assert checks["serial port"][0] == "fail" and "deploy/udev" in checks["serial port"][1]
+    assert checks["serial port"][0] == "fail" and "`cell deploy files`" in checks["serial port"][1]
     assert checks["service port"][0] == "fail" and "ss -ltnp" in checks["service port"][1]
     assert checks["service port"][1].endswith("stop it, or choose another port")
 
 
-def test_a_port_this_user_may_not_open_names_the_group_to_join(peer, pty_port, tmp_path, monkeypatch):
-    monkeypatch.setattr("cell.doctor.devices.os.access", lambda path, mode: path != pty_port)
-    code, checks = _doctor(_cell(tmp_path, peer.host, pty_port), tmp_path)
-    status, text = checks["serial port"]
-    assert code == 1 and status == "fail" and "usermod -aG" in text and "which this user is not in" in text
+def _port_of(monkeypatch, port: str, uid: int, gid: int, mode: int) -> None:
+    """``port`` seen as owned by ``uid``:``gid`` with permissions ``mode``, and closed to this user."""
+    real_stat, real_access = os.stat, os.access
+
+    def fake_stat(path, *args, **kwargs):
+        st = real_stat(path, *args, **kwargs)
+        if path != port:
+            return st
+        return os.stat_result((stat.S_IFCHR | mode, st.st_ino, st.st_dev, st.st_nlink, uid, gid, st.st_size,
+                               int(st.st_atime), int(st.st_mtime), int(st.st_ctime)))
+
+    monkeypatch.setattr(os, "stat", fake_stat)
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: path != port and real_access(path, mode, **kw))
+
+
+def test_a_port_of_a_group_this_user_is_not_in_names_the_group_and_the_user(pty_port, monkeypatch):
+    """The fix said `usermod -aG dialout $USER`, a literal $USER under sudo -u cell."""
+    dialout = grp.getgrnam("dialout").gr_gid
+    _port_of(monkeypatch, pty_port, 0, dialout, 0o660)
+    found = devices.serial_port(pty_port)
+    assert found.status is Status.FAIL
+    assert f"root:dialout with mode 0660, and user {user_name()}" in found.detail
+    assert found.fix is not None and found.fix.startswith(f"sudo usermod -aG dialout {user_name()} ")
+
+
+@pytest.mark.parametrize(("gid", "mode"), [(0, 0o660), (5, 0o620)])
+def test_a_port_no_group_but_roots_may_open_is_given_the_udev_rule_never_root(pty_port, monkeypatch, gid,
+                                                                             mode):
+    """/dev/ttyS0 root:root (or a tty the group may only write) gave `sudo usermod -aG root $USER`."""
+    _port_of(monkeypatch, pty_port, 0, gid, mode)
+    found = devices.serial_port(pty_port)
+    assert found.status is Status.FAIL and found.fix is not None
+    assert "usermod" not in found.fix and "-aG root" not in found.fix
+    assert "cell deploy files DIR, then sudo cp DIR/udev/99-vl53l8cx.rules /etc/udev/rules.d/" in found.fix
+    assert found.fix.endswith("sensor.port: /dev/vl53l8cx")
+
+
+def test_a_data_folder_this_user_may_not_write_names_the_user_to_give_it_to(tmp_path, monkeypatch):
+    """The fix said `sudo chown -R $USER ...` though doctor runs as the service's user."""
+    data = tmp_path / "data"
+    data.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: Path(path) != data and real_access(path, mode,
+                                                                                                  **kw))
+    found = machine.disk(data)
+    assert found.status is Status.FAIL and f"user {user_name()} may not write in it" in found.detail
+    assert found.fix is not None and found.fix.startswith(f"chmod u+rwx {data}")
+    assert "$USER" not in found.fix
 
 
 def test_broken_kernels_a_missing_extra_and_a_full_disk_fail_with_their_fixes(peer, pty_port, tmp_path,
@@ -179,9 +225,22 @@ def test_the_franka_handshake_and_its_real_time_limits(tmp_path, monkeypatch):
     monkeypatch.setattr(machine.os, "geteuid", lambda: 1000)
     monkeypatch.setattr(machine.resource, "getrlimit", lambda _: (0, 0))
     _, checks = _doctor(_cell(tmp_path, free_loopback([1337]), "", franka, realtime="enforce"), tmp_path)
-    assert checks["real-time"][0] == "fail" and "rtprio 99" in checks["real-time"][1]
+    # the limits.d lines with the user's name (was: 'the cell's user - rtprio 99')
+    who = user_name(1000)
+    assert checks["real-time"][0] == "fail"
+    assert f"'{who} - rtprio 99' '{who} - memlock unlimited' | sudo tee /etc/security/limits.d/cell.conf" \
+        in checks["real-time"][1]
     _, checks = _doctor(_cell(tmp_path, free_loopback([1337]), "", franka, realtime="ignore"), tmp_path)
     assert checks["real-time"][0] == "warn"
+
+
+@pytest.mark.parametrize("cell_file", ["sim-ur5e-tof.yaml", "sim-franka-rgbd.yaml", "ur5e-vl53l8cx.yaml"])
+def test_only_a_franka_cell_is_checked_for_real_time_limits(tmp_path, monkeypatch, cell_file):
+    """A UR5e or simulated cell was warned that it may not use priority 99, which only libfranka needs."""
+    monkeypatch.setattr(machine.os, "geteuid", lambda: 1000)
+    monkeypatch.setattr(machine.resource, "getrlimit", lambda _: (0, 0))
+    _, checks = _doctor(CONFIG_DIR / cell_file, tmp_path)
+    assert "real-time" not in checks
 
 
 def test_a_franka_cell_without_franky_fails_its_fci_check_with_the_extra_to_install(tmp_path, monkeypatch):

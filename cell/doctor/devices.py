@@ -8,15 +8,16 @@ before checking anything.
 
 from __future__ import annotations
 
-import grp
 import os
 import socket
 import stat
 import struct
 from importlib import metadata
 
+from cell.deploy import UDEV_RULE
 from cell.doctor.findings import Finding
 from drivers.errors import CellError
+from drivers.file_access import group_name, user_name
 from drivers.hosts import recv_exact
 
 RTDE_PORT = 30004
@@ -29,10 +30,14 @@ FRANKA_COMMAND_PORT = 1337
 CONNECT_TIMEOUT_S = 2.0
 UR_SOFTWARE_MAJOR = 5
 """A UR5e is an e-Series robot: PolyScope 5 (PolyScope X has no dashboard server of this kind)."""
+UDEV_DEVICE = "/dev/vl53l8cx"
+"""The bridge board's device under the shipped udev rule (``cell.deploy``)."""
+GROUP_RW = stat.S_IRGRP | stat.S_IWGRP
 
 
 def serial_port(port: str) -> Finding:
-    """The sensor's port: a device that exists and that this user may open (else which group to join).
+    """The sensor's port: a device that exists and that this user may open (else which group to join, or,
+    for a device no group but root's may open, the shipped udev rule).
     A pyserial URL (``socket://``, ``loop://``) is not a device and is not checked here."""
     name = "serial port"
     if "://" in port:
@@ -40,16 +45,24 @@ def serial_port(port: str) -> Finding:
     try:
         st = os.stat(port)
     except FileNotFoundError:
-        return Finding.fail(name, f"{port} does not exist", "plug the bridge board in; with deploy/udev's "
-                            "rule it appears as /dev/vl53l8cx (`ls /dev/ttyACM*` lists candidates)")
+        return Finding.fail(name, f"{port} does not exist", "plug the bridge board in; with the udev rule "
+                            f"of `cell deploy files` it appears as {UDEV_DEVICE} (`ls /dev/ttyACM*` lists "
+                            "candidates)")
     if not stat.S_ISCHR(st.st_mode):
         return Finding.fail(name, f"{port} is not a character device",
                             "set sensor.port to the board's device")
     if not os.access(port, os.R_OK | os.W_OK):
-        group = grp.getgrgid(st.st_gid).gr_name
-        return Finding.fail(name, f"{port} belongs to group {group}, which this user is not in",
-                            f"sudo usermod -aG {group} $USER and log in again (the service's unit joins "
-                            "dialout)")
+        me, group = user_name(), group_name(st.st_gid)
+        found = (f"{port} belongs to {user_name(st.st_uid)}:{group} with mode "
+                 f"{stat.S_IMODE(st.st_mode):04o}, and user {me} may not open it")
+        if st.st_gid == 0 or st.st_mode & GROUP_RW != GROUP_RW:
+            # no group to join but root's, which would give the user the whole machine
+            return Finding.fail(name, found, f"install the sensor's udev rule, which gives the board to "
+                                f"group dialout as {UDEV_DEVICE}: cell deploy files DIR, then sudo cp "
+                                f"DIR/{UDEV_RULE} /etc/udev/rules.d/ && sudo udevadm control --reload && "
+                                f"sudo udevadm trigger; and sensor.port: {UDEV_DEVICE}")
+        return Finding.fail(name, found, f"sudo usermod -aG {group} {me} and log in again (the service's "
+                            "unit joins dialout)")
     try:
         fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     except OSError as exc:

@@ -7,17 +7,20 @@ import ctypes
 import importlib
 import os
 import platform
+import pwd
 import resource
 import shutil
 import sys
 from importlib import metadata
 from pathlib import Path
 
+from cell.deploy import SERVICE_USER
 from cell.doctor.findings import Finding
 from cell.service.store import sqlite_url
 from cell.service.store.engine import hide_password
 from cell.service.store.repository import inspect_store
 from drivers.errors import DriverError, StoreError
+from drivers.file_access import access_problem, user_name
 from drivers.hosts import is_loopback, listen_problem
 from drivers.sim.board import import_cv2
 
@@ -32,6 +35,7 @@ DISK_WARN_GB = 10.0
 """Below this a day of scanning may fill the disk; set service.retention [GB]."""
 RT_PRIORITY = 99
 """libfranka raises its control thread to SCHED_FIFO's highest priority (99)."""
+RT_LIMITS_FILE = "/etc/security/limits.d/cell.conf"
 TIME_ERROR = 5
 """adjtimex(2)'s answer when the kernel's clock is not synchronised (TIME_ERROR)."""
 GOVERNORS = Path("/sys/devices/system/cpu")
@@ -142,17 +146,33 @@ def cpu_governor(root: Path = GOVERNORS) -> Finding:
     return Finding.ok("cpu governor", "performance")
 
 
-def realtime_limits(required: bool, user: str | None = None) -> Finding:
+def service_user_note() -> str:
+    """A note for a fix that this user applies, when the shipped unit's user (:data:`SERVICE_USER`) exists
+    on this machine and is another: the service runs as that one, which doctor should be run as
+    (docs/deploy.md, section 5); else nothing."""
+    try:
+        pwd.getpwnam(SERVICE_USER)
+    except KeyError:
+        return ""
+    if user_name() == SERVICE_USER:
+        return ""
+    return (f" (the service runs as {SERVICE_USER}: run doctor as it, sudo -u {SERVICE_USER} cell doctor "
+            "...)")
+
+
+def realtime_limits(required: bool) -> Finding:
     """Whether this user may run a thread at SCHED_FIFO priority 99 (``required``: the Franka with
-    ``realtime: enforce``), and whether the kernel is PREEMPT_RT."""
+    ``realtime: enforce``), and whether the kernel is PREEMPT_RT. Only a Franka's 1 kHz loop (libfranka)
+    needs either: the caller checks them for a Franka cell only."""
     soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
     allowed = os.geteuid() == 0 or soft == resource.RLIM_INFINITY or soft >= RT_PRIORITY
     flag = Path("/sys/kernel/realtime")
     rt_kernel = flag.is_file() and flag.read_text().strip() == "1"
-    who = user or os.environ.get("USER", "the cell's user")
     if not allowed:
-        fix = (f"add '{who} - rtprio 99' and '{who} - memlock unlimited' to /etc/security/limits.d/cell.conf "
-               "and log in again (the systemd unit sets LimitRTPRIO=99)")
+        who = user_name()
+        fix = (f"printf '%s\\n' '{who} - rtprio {RT_PRIORITY}' '{who} - memlock unlimited' | sudo tee "
+               f"{RT_LIMITS_FILE}, then log in again (cell serve under the shipped unit has both from its "
+               "LimitRTPRIO and LimitMEMLOCK)")
         text = f"real-time priority up to {soft}, {RT_PRIORITY} needed"
         return Finding.fail("real-time", text, fix) if required else Finding.warn("real-time", text, fix)
     if not rt_kernel:
@@ -172,9 +192,9 @@ def disk(data_dir: Path) -> Finding:
         return Finding.fail("disk", f"{where} is not a folder: cell serve keeps its jobs and store in "
                             f"--data-dir {data_dir}", "give --data-dir a folder (or a name not taken)")
     free_gb = shutil.disk_usage(where).free / 1e9
-    if not os.access(where, os.W_OK):
-        return Finding.fail("disk", f"{where} is not writable by this user",
-                            f"give the cell's user the data folder: sudo chown -R $USER {where}")
+    problem = access_problem(where, folder=True)
+    if problem is not None:
+        return Finding.fail("disk", problem.found, problem.fix + service_user_note())
     text = f"{free_gb:.1f} GB free under {where}"
     fix = "free space, or set service.retention (days, max_gb) so that old jobs are pruned"
     if free_gb < DISK_FAIL_GB:

@@ -1,0 +1,66 @@
+"""Who this process runs as, and why it may not use a file or folder, with the command that fixes it: for
+the messages of the store (its SQLite file, WAL, lease files), ``cell backup`` and ``cell doctor``, where
+a file left by a trial ``sudo cell serve`` (root's, mode 0600) or a folder of another user stops the
+service's user."""
+
+from __future__ import annotations
+
+import grp
+import os
+import pwd
+import shlex
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def user_name(uid: int | None = None) -> str:
+    """The name of user ``uid`` (default: this process's effective user), or its number where the
+    machine has no name for it."""
+    uid = os.geteuid() if uid is None else uid
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return str(uid)
+
+
+def group_name(gid: int) -> str:
+    """The name of group ``gid``, or its number where the machine has no name for it."""
+    try:
+        return grp.getgrgid(gid).gr_name
+    except KeyError:
+        return str(gid)
+
+
+@dataclass(frozen=True)
+class AccessProblem:
+    """What stops this user at a file or folder (``found``) and the command that fixes it (``fix``)."""
+
+    found: str
+    fix: str
+
+    def __str__(self) -> str:
+        return f"{self.found}; fix: {self.fix}"
+
+
+def access_problem(path: Path, *, folder: bool = False) -> AccessProblem | None:
+    """Why this process's user may not read and write the file ``path`` (with ``folder``: make and delete
+    files in the folder ``path``), naming its owner, group and mode, with the command that fixes it; None
+    when it may, or when ``path`` does not exist."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    wanted = os.R_OK | os.W_OK | (os.X_OK if folder else 0)
+    if os.access(path, wanted):
+        return None
+    me = user_name()
+    kind = "folder" if folder else "file"
+    found = (f"{kind} {path} belongs to {user_name(st.st_uid)}:{group_name(st.st_gid)} with mode "
+             f"{stat.S_IMODE(st.st_mode):04o}, and user {me} may not "
+             f"{'write in' if folder else 'read and write'} it")
+    quoted = shlex.quote(str(path))
+    if st.st_uid == os.geteuid():
+        return AccessProblem(found, f"chmod u+{'rwx' if folder else 'rw'} {quoted}")
+    # a folder's files (the store's, the jobs') were left by the same user as the folder, mostly
+    return AccessProblem(found, f"sudo chown {'-R ' if folder else ''}{me}: {quoted}")
