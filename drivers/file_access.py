@@ -64,3 +64,20 @@ def access_problem(path: Path, *, folder: bool = False) -> AccessProblem | None:
         return AccessProblem(found, f"chmod u+{'rwx' if folder else 'rw'} {quoted}")
     # a folder's files (the store's, the jobs') were left by the same user as the folder, mostly
     return AccessProblem(found, f"sudo chown {'-R ' if folder else ''}{me}: {quoted}")
+
+
+def files_problem(folder: Path, pattern: str) -> AccessProblem | None:
+    """What stops this user at ``folder`` (:func:`access_problem`) or at the files in it that match
+    ``pattern`` (a glob: a database and the files it keeps beside it), all of them named in ``found``
+    and fixed by one command on the pattern; None when nothing does."""
+    problem = access_problem(folder, folder=True)
+    if problem is not None:
+        return problem
+    blocked = {path: each for path in sorted(folder.glob(pattern)) if (each := access_problem(path))}
+    if not blocked:
+        return None
+    found = "; ".join(each.found for each in blocked.values())
+    files = shlex.quote(str(folder)) + "/" + pattern
+    if all(path.stat().st_uid == os.geteuid() for path in blocked):
+        return AccessProblem(found, f"chmod u+rw {files}")
+    return AccessProblem(found, f"sudo chown {user_name()}: {files}")

@@ -17,7 +17,7 @@ from pathlib import Path
 from cell.deploy import SERVICE_USER
 from cell.doctor.findings import Finding
 from cell.service.store import sqlite_url
-from cell.service.store.engine import hide_password
+from cell.service.store.engine import hide_password, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
 from drivers.errors import DriverError, StoreError
 from drivers.file_access import access_problem, user_name
@@ -215,10 +215,16 @@ def port_free(host: str, port: int, name: str = "service port") -> Finding:
 
 def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
     """The job store cell serve opens (``db_url``, else the data folder's SQLite file), read without
-    changing it; and, for a ``host`` beyond loopback, an API key in it (cell serve refuses that host
-    without one). The store's URL is shown with its password hidden."""
+    changing it, and for SQLite its folder and files (``cell.db*``: the database, its WAL, the cells'
+    leases) this user's to write; and, for a ``host`` beyond loopback, an API key in it (cell serve
+    refuses that host without one). The store's URL is shown with its password hidden."""
     url = db_url or sqlite_url(data_dir)
     shown = hide_password(url)
+    database = sqlite_database(url)
+    problem = sqlite_access_problem(database) if database is not None and database.parent.is_dir() else None
+    if problem is not None:
+        # read, the store looked fine; cell serve, which writes it, stopped at "unable to open database file"
+        return [Finding.fail("job store", f"{shown}: {problem.found}", problem.fix + service_user_note())]
     try:
         state = inspect_store(url, STORE_CONNECT_TIMEOUT_S)
     except StoreError as exc:

@@ -25,6 +25,7 @@ from sqlalchemy.engine import URL
 from sqlalchemy.exc import ArgumentError, DBAPIError, SQLAlchemyError
 
 from drivers.errors import StoreError
+from drivers.file_access import AccessProblem, files_problem
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 SUPPORTED_URLS = "sqlite:///ABS/PATH/cell.db or postgresql+psycopg://USER:PASSWORD@HOST:PORT/DATABASE"
@@ -48,6 +49,26 @@ _MIGRATING = threading.Lock()
 def sqlite_url(data_dir: Path) -> str:
     """The URL of the SQLite store in ``data_dir`` (``<data_dir>/cell.db``, made absolute)."""
     return f"sqlite:///{(data_dir / SQLITE_FILE).resolve()}"
+
+
+def sqlite_database(url: str) -> Path | None:
+    """The database file of the SQLite store at ``url``; None for another database, or a URL that does not
+    parse or names no file (opening it says why)."""
+    try:
+        parsed = make_url(url)
+    except (ArgumentError, ValueError):
+        return None
+    if parsed.get_backend_name() != "sqlite" or not parsed.database or parsed.database == ":memory:":
+        return None
+    return Path(parsed.database)
+
+
+def sqlite_access_problem(database: Path) -> AccessProblem | None:
+    """What stops this user at the SQLite store ``database``: its folder, or one of its files (the database,
+    its WAL and shared memory, the cells' lease files: ``cell.db*``) that is not this user's to read and
+    write, as a trial ``sudo cell serve`` leaves them; SQLite itself says only "unable to open database
+    file", or nothing until a write fails."""
+    return files_problem(database.parent, f"{database.name}*")
 
 
 def hide_password(url: str) -> str:
@@ -161,6 +182,9 @@ def _sqlite_engine(parsed: URL, shown: str) -> Engine:
     folder = Path(parsed.database).parent
     if not folder.is_dir():
         raise StoreError(f"job store {shown}: folder {folder} does not exist")
+    problem = sqlite_access_problem(Path(parsed.database))
+    if problem is not None:
+        raise StoreError(f"job store {shown}: {problem}")
     engine = create_engine(parsed)
     event.listen(engine, "connect", _set_sqlite_pragmas)
     return engine

@@ -23,7 +23,7 @@ from pathlib import Path
 from sqlalchemy import Connection, Engine, text
 from sqlalchemy.exc import SQLAlchemyError
 
-from cell.service.store.engine import store_error
+from cell.service.store.engine import sqlite_access_problem, store_error
 from drivers.errors import StoreError
 from drivers.file_lock import try_lock
 
@@ -63,7 +63,9 @@ class CellLease:
         try:
             fd = try_lock(path, 0o600)
         except OSError as exc:
-            raise StoreError(f"cannot open the cell's lease file {path}: {exc.strerror}") from None
+            problem = sqlite_access_problem(database)
+            raise StoreError(f"cannot open the cell's lease file {path}: {exc.strerror}"
+                             + (f"; {problem}" if problem is not None else "")) from None
         if fd is None:
             raise _taken(self.cell, self._url)
         self._fd = fd
