@@ -4,6 +4,7 @@ dir it opens as the service opens its store."""
 from __future__ import annotations
 
 import sqlite3
+import stat
 import threading
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from cell.cli.main import app
 from cell.service.store import open_store, sqlite_url
 from cell.service.store.engine import schema_head
 from tests.test_store import make_job
+from tests.unprivileged import foreign, run_unprivileged, service_folder
 
 
 def test_a_backup_taken_while_jobs_are_written_restores_and_opens(tmp_path):
@@ -99,3 +101,38 @@ def test_a_destination_ending_in_a_slash_is_a_folder_made_if_new(tmp_path):
     a_file = runner.invoke(app, ["backup", f"{tmp_path / 'file'}/", "--data-dir", str(data)])
     assert a_file.exit_code == 1 and f"{tmp_path / 'file'} is not a folder" in a_file.output
     assert not (tmp_path / "no").exists() and (tmp_path / "file").read_text() == ""
+
+
+def test_a_backup_is_its_owners_alone(tmp_path):
+    """It holds the API keys' hashes, and was written 0644."""
+    data = tmp_path / "data"
+    data.mkdir()
+    open_store(sqlite_url(data)).close()
+    res = CliRunner().invoke(app, ["backup", str(tmp_path / "copy.db"), "--data-dir", str(data)])
+    assert res.exit_code == 0, res.output
+    assert stat.S_IMODE((tmp_path / "copy.db").stat().st_mode) == 0o600
+
+
+def _backup(dest: str, data: Path) -> tuple[int, str, bool]:
+    """Exit code, output and whether it ended on an exception other than its exit (a traceback)."""
+    res = CliRunner().invoke(app, ["backup", dest, "--data-dir", str(data)])
+    return res.exit_code, res.output, not isinstance(res.exception, SystemExit | None)
+
+
+def test_a_destination_the_user_may_not_write_is_named_without_a_traceback():
+    """A folder it could not make was a PermissionError's traceback; a folder it could not write in was
+    'cannot back up .../cell.db: unable to open database file', blaming the store."""
+    with service_folder() as base:
+        data = base / "data"
+        run_unprivileged(lambda: (data.mkdir(), open_store(sqlite_url(data)).close()))
+        closed = base / "closed"
+        closed.mkdir()
+        foreign(closed)
+        code, output, raised = run_unprivileged(lambda: _backup(f"{closed / 'new'}/", data))
+        assert (code, raised) == (1, False), output
+        assert output.startswith(f"error: cannot make the backup folder {closed / 'new'}: folder {closed} ")
+        code, output, raised = run_unprivileged(lambda: _backup(f"{closed}/", data))
+        assert (code, raised) == (1, False), output
+        assert output.startswith(f"error: cannot write the backup {closed}/cell-")
+        assert "may not write in it; fix: " in output and str(data) not in output
+        assert list(closed.iterdir()) == []

@@ -3,7 +3,8 @@
 SQLite's online backup copies the database page by page inside one read transaction: in WAL mode the
 service's writers go on meanwhile, and the copy is the database as it was when the read began, never a
 torn mix. The copy is written beside its destination, checked (``PRAGMA integrity_check``) and only then
-renamed into place, so that a failed backup never leaves a file that looks like one.
+renamed into place, so that a failed backup never leaves a file that looks like one. It is its owner's
+alone to read (mode 0600): it holds the API keys' hashes.
 """
 
 from __future__ import annotations
@@ -19,6 +20,10 @@ from sqlalchemy.exc import ArgumentError
 
 from cell.service.store.engine import hide_password
 from drivers.errors import StoreError
+from drivers.file_access import access_problem
+
+BACKUP_MODE = 0o600
+"""A backup's permissions: its owner's alone, as it holds the API keys' hashes."""
 
 
 @dataclass(frozen=True)
@@ -56,13 +61,34 @@ def _destination(dest: Path, now: datetime, *, folder: bool) -> Path:
                 raise StoreError(f"{dest} is not a folder")
             if not dest.parent.is_dir():
                 raise StoreError(f"folder {dest.parent} does not exist")
-            dest.mkdir()
+            try:
+                dest.mkdir()
+            except OSError as exc:
+                problem = access_problem(dest.parent, folder=True)
+                raise StoreError(f"cannot make the backup folder {dest}: "
+                                 f"{problem if problem is not None else exc.strerror}") from None
         dest = dest / f"cell-{now.strftime('%Y%m%dT%H%M%SZ')}.db"
     if dest.exists():
         raise StoreError(f"{dest} exists: a backup never overwrites a file")
     if not dest.parent.is_dir():
         raise StoreError(f"folder {dest.parent} does not exist")
+    problem = access_problem(dest.parent, folder=True)
+    if problem is not None:
+        raise StoreError(f"cannot write the backup {dest}: {problem}")
     return dest
+
+
+def _new_private_file(path: Path) -> None:
+    """Make the empty file ``path``, readable and writable by its owner alone whatever the umask (a backup
+    holds the API keys' hashes); ``StoreError`` naming it if it exists or cannot be made."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, BACKUP_MODE)
+    except FileExistsError:
+        raise StoreError(f"{path} exists: another backup is being written, or one failed there; delete it "
+                         "if none runs") from None
+    except OSError as exc:
+        raise StoreError(f"cannot write the backup {path}: {exc.strerror}") from None
+    os.close(fd)
 
 
 def backup_sqlite(source: Path, dest: Path, *, folder: bool = False) -> BackupInfo:
@@ -73,6 +99,7 @@ def backup_sqlite(source: Path, dest: Path, *, folder: bool = False) -> BackupIn
         raise StoreError(f"no store at {source}")
     target = _destination(dest, datetime.now(UTC), folder=folder)
     partial = target.with_name(target.name + ".partial")
+    _new_private_file(partial)
     try:
         src = sqlite3.connect(source, timeout=30)
         try:
@@ -93,7 +120,10 @@ def backup_sqlite(source: Path, dest: Path, *, folder: bool = False) -> BackupIn
         partial.replace(target)
     except sqlite3.Error as exc:
         partial.unlink(missing_ok=True)
-        raise StoreError(f"cannot back up {source}: {exc}") from None
+        raise StoreError(f"cannot back up {source} to {target}: {exc}") from None
+    except OSError as exc:  # syncing or renaming the copy
+        partial.unlink(missing_ok=True)
+        raise StoreError(f"cannot write the backup {target}: {exc.strerror}") from None
     except StoreError:
         partial.unlink(missing_ok=True)
         raise
