@@ -14,13 +14,19 @@ from datetime import UTC, datetime, timedelta, timezone
 from pathlib import Path
 
 import pytest
+from alembic import command
 from alembic.autogenerate import compare_metadata
+from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import Connection, create_engine, make_url, text
+from typer.testing import CliRunner
 
+from cell.cli.main import app
+from cell.doctor import machine
+from cell.doctor.findings import Status
 from cell.service.keys import create_key
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord, Store, open_store, sqlite_url
-from cell.service.store.engine import open_engine, schema_head
+from cell.service.store.engine import MIGRATIONS, open_engine, schema_head
 from cell.service.store.models import Base
 from cell.service.store.repository import StoreState, inspect_store
 from drivers.errors import ServiceError, StoreError
@@ -468,3 +474,50 @@ def test_a_store_is_inspected_read_only(store_url: str):
     finally:
         opened.close()
     assert inspect_store(store_url, connect_timeout_s=2) == StoreState(frozenset({schema_head()}), 1)
+
+
+def _revisions(url: str) -> list[str]:
+    engine = create_engine(url)
+    try:
+        with engine.connect() as connection:
+            return list(connection.execute(text("SELECT version_num FROM alembic_version")).scalars())
+    finally:
+        engine.dispose()
+
+
+def test_commands_beside_serve_never_migrate_a_store(store_url: str, tmp_path: Path):
+    """A read-only `cell keys list` migrated a shared store to the newest schema, after which the cells of
+    the previous version on it refused to start. The key commands work on the older schema and leave it;
+    doctor says the next serve migrates it; serve does."""
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.set_main_option("path_separator", "os")
+    engine = create_engine(store_url)
+    with engine.begin() as connection:  # the store as a cell of the previous version left it
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0002")
+    engine.dispose()
+    runner = CliRunner()
+    data = ["--data-dir", str(tmp_path / "data")]
+    listed = runner.invoke(app, ["keys", "list", *data], env={"CELL_DB": store_url})
+    assert (listed.exit_code, listed.stdout) == (0, "no keys\n"), listed.output
+    assert _revisions(store_url) == ["0002"]
+    created = runner.invoke(app, ["keys", "create", "--role", "admin", "--name", "a-1", *data],
+                            env={"CELL_DB": store_url})
+    assert created.exit_code == 0, created.output
+    assert runner.invoke(app, ["keys", "list", *data], env={"CELL_DB": store_url}).stdout.startswith("a-1 ")
+    assert _revisions(store_url) == ["0002"]
+    with pytest.raises(StoreError, match=r"schema revision 0002 is older than 0003, which this command "
+                                         r"needs, and only cell serve migrates a store") as err:
+        open_store(store_url, migrate=False, oldest="0003")
+    assert "\n" not in str(err.value)
+
+    (found,) = machine.store(tmp_path, store_url, "127.0.0.1")
+    assert f"schema 0002, older than this software's {schema_head()}: the next cell serve migrates it" \
+        in found.detail
+    shared = store_url.startswith("postgresql")
+    assert found.status is (Status.WARN if shared else Status.OK)
+    if shared:
+        assert found.fix is not None and "stop them all" in found.fix
+    open_store(store_url).close()  # cell serve
+    assert _revisions(store_url) == [schema_head()]

@@ -3,7 +3,9 @@
 ``create`` makes a key and prints it once (alone on its last line, so that a script can take it with
 ``tail -n 1``); only its SHA-256 is stored. ``list`` shows names, roles, creation times and whether each
 key is active, never a key or a hash. ``revoke`` ends a key; its name stays taken. Every command opens the
-store given by ``--db`` or, by default, the SQLite store in ``--data-dir``.
+store given by ``--db`` or, by default, the SQLite store in ``--data-dir``, and never migrates it: on a
+store several cells share, that would stop those of the previous version (``cell serve`` migrates it).
+``list`` only reads it; ``create`` gives a new store its schema.
 """
 
 from __future__ import annotations
@@ -20,7 +22,9 @@ from rich.console import Console
 from cell.cli.commands import DB_ENVVAR, command_group
 from cell.cli.errors import fail
 from cell.service.keys import Role, create_key, parse_role
-from cell.service.store import Store, open_data_store
+from cell.service.store import Store, open_data_store, sqlite_url
+from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S
+from cell.service.store.repository import KEYS_SCHEMA, read_store
 from drivers.errors import CellError
 
 DEFAULT_DATA_DIR = Path("data")
@@ -47,8 +51,9 @@ def _one_line_errors() -> Iterator[None]:
 @contextlib.contextmanager
 def opened_store(data_dir: Path, db: str | None) -> Iterator[Store]:
     """The store at ``db`` or, without it, the SQLite store in ``data_dir`` (the folder created if
-    missing), closed at the end. ``StoreError`` if it cannot be opened."""
-    store = open_data_store(data_dir, db)
+    missing), closed at the end: made if there is none yet, never migrated (:data:`KEYS_SCHEMA` on
+    will do). ``StoreError`` if it cannot be opened."""
+    store = open_data_store(data_dir, db, migrate=False, oldest=KEYS_SCHEMA)
     try:
         yield store
     finally:
@@ -84,8 +89,13 @@ def create(
 @keys_app.command("list")
 def list_keys(data_dir: DataDirOption = DEFAULT_DATA_DIR, db: DbOption = None) -> None:
     """List the keys: name, role, creation time (UTC) and whether each is active or since when revoked."""
-    with _one_line_errors(), opened_store(data_dir, db) as store:
-        records = store.list_keys()
+    with _one_line_errors():
+        store = read_store(db or sqlite_url(data_dir), KEYS_SCHEMA, POSTGRES_CONNECT_TIMEOUT_S)
+        try:
+            records = store.list_keys() if store is not None else []
+        finally:
+            if store is not None:
+                store.close()
     if not records:
         _print("no keys")
         return

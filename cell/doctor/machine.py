@@ -17,7 +17,7 @@ from pathlib import Path
 from cell.deploy import SERVICE_USER
 from cell.doctor.findings import Finding
 from cell.service.store import sqlite_url
-from cell.service.store.engine import hide_password, sqlite_access_problem, sqlite_database
+from cell.service.store.engine import hide_password, schema_head, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
 from drivers.errors import DriverError, StoreError
 from drivers.file_access import access_problem, user_name
@@ -231,8 +231,20 @@ def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
         fix = ("check the URL, that the server runs and that this PC reaches it (pg_isready -h HOST)"
                if db_url is not None else "restore the store from a backup (docs/deploy.md, section 8)")
         return [Finding.fail("job store", str(exc), fix)]
+    head = schema_head()
     if state is None:
         found = [Finding.ok("job store", f"{shown} is not made yet: cell serve makes it")]
+    elif state.revisions and state.revisions != {head}:
+        schema = ", ".join(sorted(state.revisions))
+        text = (f"{shown}: schema {schema}, older than this software's {head}: the next cell serve migrates "
+                f"it, {state.n_active_keys} API keys")
+        if db_url is not None and sqlite_database(db_url) is None:
+            # a shared store: a cell of the previous version on it refuses to start once it is migrated
+            found = [Finding.warn("job store", text, "upgrade every cell on this store: stop them all, "
+                                  "install this version on each, then start them (docs/deploy.md, "
+                                  "'Updating')")]
+        else:
+            found = [Finding.ok("job store", text)]
     else:
         schema = ", ".join(sorted(state.revisions)) or "none yet, cell serve makes it"
         found = [Finding.ok("job store", f"{shown}: schema {schema}, {state.n_active_keys} API keys")]

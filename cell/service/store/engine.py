@@ -111,14 +111,33 @@ def schema_revisions(connection: Connection, shown: str) -> set[str]:
     return current
 
 
-def open_engine(url: str) -> Engine:
+def check_oldest(revisions: set[str], oldest: str, shown: str) -> None:
+    """:class:`StoreError` naming the store ``shown`` unless each of its schema ``revisions`` (known to
+    this software: :func:`schema_revisions`) is ``oldest`` or a later one: a command that does not
+    migrate the store works on a schema from ``oldest`` on, and says what does migrate it."""
+    script = ScriptDirectory.from_config(_alembic_config())
+    older = sorted(revision for revision in revisions
+                   if oldest not in {r.revision for r in script.walk_revisions("base", revision)})
+    if older:
+        raise StoreError(f"job store {shown}: its schema revision {', '.join(older)} is older than {oldest}, "
+                         f"which this command needs, and only cell serve migrates a store (to "
+                         f"{script.get_current_head()}, this software's, when it starts; with several "
+                         "cells on the store, docs/deploy.md, 'Updating', says in which order)")
+
+
+def open_engine(url: str, *, migrate: bool = True, oldest: str | None = None) -> Engine:
     """An engine on ``url`` whose schema is at :func:`schema_head`, migrated if need be; a database
     already there is not touched. Raises :class:`StoreError` on a bad URL, an unsupported database, a
-    database that cannot be reached or migrated, or one whose schema is newer than this software's."""
+    database that cannot be reached or migrated, or one whose schema is newer than this software's.
+
+    With ``migrate`` False (the commands beside ``cell serve``), a database with no schema yet is given
+    the newest one, but an older schema is left as it is: a shared store migrated by a command would stop
+    the cells of the previous version on it. It is accepted from revision ``oldest`` on (the oldest whose
+    tables the caller uses, :func:`check_oldest`), refused before."""
     shown = hide_password(url)
     engine = _create_engine(url, shown)
     try:
-        _upgrade(engine, shown)
+        _upgrade(engine, shown, oldest=None if migrate else oldest or schema_head())
     except (StoreError, CommandError, SQLAlchemyError) as exc:
         engine.dispose()
         if isinstance(exc, StoreError):
@@ -207,9 +226,10 @@ def _alembic_config() -> Config:
     return config
 
 
-def _upgrade(engine: Engine, shown: str) -> None:
+def _upgrade(engine: Engine, shown: str, oldest: str | None = None) -> None:
     """Migrate ``engine``'s database to the head revision on one connection; refuse a revision this
-    software does not know (a newer cell migrated the database).
+    software does not know (a newer cell migrated the database). With ``oldest``, only a database with
+    no schema yet is given one: a schema there is checked to be ``oldest`` or later, never migrated.
 
     Stores opened at once never race: in this process a lock serializes migrations, and across processes
     PostgreSQL's advisory lock or SQLite's write lock (``BEGIN IMMEDIATE``, which also makes SQLite's DDL
@@ -225,7 +245,10 @@ def _upgrade(engine: Engine, shown: str) -> None:
             connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_MIGRATION_WAIT_MS}")
             connection.exec_driver_sql("BEGIN IMMEDIATE")
         try:
-            if schema_revisions(connection, shown) != {head}:
+            current = schema_revisions(connection, shown)
+            if current and oldest is not None:
+                check_oldest(current, oldest, shown)
+            elif current != {head}:
                 config.attributes["connection"] = connection
                 command.upgrade(config, "head")
             connection.commit()

@@ -22,6 +22,7 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from cell.service.store.engine import (
+    check_oldest,
     hide_password,
     open_engine,
     read_only_engine,
@@ -41,11 +42,44 @@ _CHANGEABLE = frozenset(JOB_FIELDS) - {"id"}
 _TIME_FIELDS = ("created_at", "started_at", "finished_at")
 
 
-def open_store(url: str) -> Store:
+KEYS_SCHEMA = "0001"
+"""The oldest schema revision the key methods of :class:`Store` work on: ``api_keys`` is the first
+revision's table, unchanged since."""
+
+
+def open_store(url: str, *, migrate: bool = True, oldest: str | None = None) -> Store:
     """Open the store at ``url`` (see :mod:`cell.service.store.engine`), its schema migrated to this
-    software's newest revision. Raises :class:`drivers.errors.StoreError` with a one-line message naming
-    the URL without its password."""
-    return Store(open_engine(url))
+    software's newest revision; with ``migrate`` False (a command beside ``cell serve``), a schema there
+    is left as it is, accepted from revision ``oldest`` on (:func:`open_engine`). Raises
+    :class:`drivers.errors.StoreError` with a one-line message naming the URL without its password."""
+    return Store(open_engine(url, migrate=migrate, oldest=oldest))
+
+
+def read_store(url: str, oldest: str, connect_timeout_s: int) -> Store | None:
+    """The store at ``url`` opened to read only (:func:`read_only_engine`, PostgreSQL given up after
+    ``connect_timeout_s`` [s]), its schema accepted from revision ``oldest`` on and never changed; None
+    when there is none yet (no SQLite file, or no schema). :class:`StoreError` naming the URL without its
+    password when it cannot be reached or read, or its schema is newer than this software's or older
+    than ``oldest``."""
+    shown = hide_password(url)
+    engine = read_only_engine(url, connect_timeout_s)
+    if engine is None:
+        return None
+    try:
+        with engine.connect() as connection:
+            revisions = schema_revisions(connection, shown)
+        if revisions:
+            check_oldest(revisions, oldest, shown)
+    except SQLAlchemyError as exc:
+        engine.dispose()
+        raise store_error(shown, "cannot read", exc, engine.url.password) from None
+    except StoreError:
+        engine.dispose()
+        raise
+    if not revisions:
+        engine.dispose()
+        return None
+    return Store(engine)
 
 
 @dataclass(frozen=True)
@@ -78,9 +112,11 @@ def inspect_store(url: str, connect_timeout_s: int) -> StoreState | None:
     return StoreState(frozenset(revisions), n_keys)
 
 
-def open_data_store(data_dir: Path, db_url: str | None) -> Store:
+def open_data_store(data_dir: Path, db_url: str | None, *, migrate: bool = True,
+                    oldest: str | None = None) -> Store:
     """The store of a cell's data dir ``data_dir`` (created if missing): ``db_url``, or the embedded SQLite
-    file ``cell.db`` in it. ``StoreError`` when it cannot be opened."""
+    file ``cell.db`` in it, migrated or not as :func:`open_store` says. ``StoreError`` when it cannot be
+    opened."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -88,7 +124,7 @@ def open_data_store(data_dir: Path, db_url: str | None) -> Store:
         problem = access_problem(parent, folder=True)
         raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}"
                          + (f"; {problem}" if problem is not None else "")) from None
-    return open_store(db_url or sqlite_url(data_dir))
+    return open_store(db_url or sqlite_url(data_dir), migrate=migrate, oldest=oldest)
 
 
 class Store:
@@ -96,7 +132,8 @@ class Store:
 
     def __init__(self, engine: Engine) -> None:
         """A store on ``engine``, whose schema must already be at the head revision (:func:`open_store`
-        makes sure of it)."""
+        makes sure of it), or at least at the revision the caller's methods need (:func:`open_store`
+        with ``migrate`` False, :func:`read_store`)."""
         self._engine = engine
         self._sessions = sessionmaker(engine, expire_on_commit=False)
         self.url = engine.url.render_as_string(hide_password=True)

@@ -1,6 +1,6 @@
 """Alembic environment of the job store.
 
-It is run programmatically only, by :func:`cell.service.store.engine.upgrade_schema`, which opens the
+It is run programmatically only, by :func:`cell.service.store.engine.open_engine`, which opens the
 connection (holding PostgreSQL's migration lock), passes it in ``config.attributes["connection"]`` and
 commits; there is no ``alembic.ini`` and no offline (``--sql``) mode.
 """
