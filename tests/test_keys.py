@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import re
 import sqlite3
@@ -13,6 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 from cell.cli.main import app
+from cell.doctor import machine
+from cell.doctor.findings import Status
 from cell.service.keys import (
     PERMISSIONS,
     KeyRing,
@@ -23,8 +26,11 @@ from cell.service.keys import (
     hash_key,
     new_key,
 )
+from cell.service.startup import ServiceSettings, build_service
 from cell.service.store import Store, open_store, sqlite_url
-from drivers.errors import ServiceError
+from cell.service.store.service_store import STORE_RECORD, record_service_store
+from drivers.errors import ServiceError, StoreError
+from tests.conftest import UR5E
 
 KEY = re.compile(r"cell_[A-Za-z0-9_-]{43}")
 UTC_SECONDS = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ"  # how `cell keys list` shows a time
@@ -172,3 +178,41 @@ def test_cli_errors_are_one_line(tmp_path: Path):
     assert bad_db.stderr.count("\n") == 1 and "s3cret" not in bad_db.output
     unknown = runner.invoke(app, ["keys", "revoke", "nobody", "--data-dir", str(data)])
     assert (unknown.exit_code, unknown.stderr) == (1, "error: no key named 'nobody'\n")
+
+
+def test_a_data_folder_whose_service_uses_another_store_is_refused(tmp_path: Path):
+    """Without the service's CELL_DB, `cell keys create` made a new SQLite store in the data folder of a
+    service on PostgreSQL; the key then got 401 with no hint. cell serve records its store; the commands
+    of that data folder refuse another, naming both."""
+    data, other = tmp_path / "data", tmp_path / "other"
+    other.mkdir()
+    service = build_service(ServiceSettings(config_file=UR5E, data_dir=data, db_url=sqlite_url(other)))
+    asyncio.run(service.close())
+    service.store.close()
+    assert (data / STORE_RECORD).read_text() == sqlite_url(other) + "\n"
+    for command in (["keys", "create", "--role", "admin"], ["keys", "list"], ["keys", "revoke", "x"],
+                    ["backup", str(tmp_path / "b.db")]):
+        refused = runner.invoke(app, [*command, "--data-dir", str(data)])
+        assert refused.exit_code == 1 and refused.stderr.count("\n") == 1, refused.output
+        assert refused.stderr.startswith(f"error: the service of data folder {data} uses the job store "
+                                         f"{sqlite_url(other)}, and this command would open "
+                                         f"{sqlite_url(data)}: give it the service's store with --db or "
+                                         "CELL_DB"), refused.stderr
+    assert not (data / "cell.db").exists() and not (tmp_path / "b.db").exists()
+    found = machine.store(data, None, "127.0.0.1")
+    assert [f.status for f in found] == [Status.FAIL] and "uses the job store" in found[0].detail
+    created = runner.invoke(app, ["keys", "create", "--role", "admin", "--data-dir", str(data)],
+                            env={"CELL_DB": sqlite_url(other)})
+    assert created.exit_code == 0, created.output
+    # the service itself, started by hand without the unit's CELL_DB, neither (moved only on purpose)
+    with pytest.raises(StoreError, match=rf"uses the job store {sqlite_url(other)}, and this command would "
+                                         rf"open {sqlite_url(data)}: .*; to move the cell to this store on "
+                                         rf"purpose, delete {data / STORE_RECORD} first"):
+        build_service(ServiceSettings(config_file=UR5E, data_dir=data))
+    assert not (data / "cell.db").exists()
+
+    record_service_store(data, "postgresql+psycopg://cell:s3cret@db-host/cells")
+    assert (data / STORE_RECORD).read_text() == "postgresql+psycopg://cell:***@db-host/cells\n"
+    refused = runner.invoke(app, ["keys", "list", "--data-dir", str(data)])
+    assert refused.exit_code == 1 and "uses the job store postgresql+psycopg://cell:***@db-host/cells" \
+        in refused.stderr

@@ -5,7 +5,8 @@
 key is active, never a key or a hash. ``revoke`` ends a key; its name stays taken. Every command opens the
 store given by ``--db`` or, by default, the SQLite store in ``--data-dir``, and never migrates it: on a
 store several cells share, that would stop those of the previous version (``cell serve`` migrates it).
-``list`` only reads it; ``create`` gives a new store its schema.
+``list`` only reads it; ``create`` gives a new store its schema. A data folder whose service uses
+another store than the one a command would open is refused (:mod:`cell.service.store.service_store`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from cell.service.keys import Role, create_key, parse_role
 from cell.service.store import Store, open_data_store, sqlite_url
 from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S
 from cell.service.store.repository import KEYS_SCHEMA, read_store
+from cell.service.store.service_store import check_service_store
 from drivers.errors import CellError
 
 DEFAULT_DATA_DIR = Path("data")
@@ -52,7 +54,9 @@ def _one_line_errors() -> Iterator[None]:
 def opened_store(data_dir: Path, db: str | None) -> Iterator[Store]:
     """The store at ``db`` or, without it, the SQLite store in ``data_dir`` (the folder created if
     missing), closed at the end: made if there is none yet, never migrated (:data:`KEYS_SCHEMA` on
-    will do). ``StoreError`` if it cannot be opened."""
+    will do). ``StoreError`` if it cannot be opened, or if it is not the store the data folder's service
+    uses."""
+    check_service_store(data_dir, db or sqlite_url(data_dir))
     store = open_data_store(data_dir, db, migrate=False, oldest=KEYS_SCHEMA)
     try:
         yield store
@@ -90,6 +94,7 @@ def create(
 def list_keys(data_dir: DataDirOption = DEFAULT_DATA_DIR, db: DbOption = None) -> None:
     """List the keys: name, role, creation time (UTC) and whether each is active or since when revoked."""
     with _one_line_errors():
+        check_service_store(data_dir, db or sqlite_url(data_dir))
         store = read_store(db or sqlite_url(data_dir), KEYS_SCHEMA, POSTGRES_CONNECT_TIMEOUT_S)
         try:
             records = store.list_keys() if store is not None else []

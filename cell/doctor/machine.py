@@ -19,6 +19,7 @@ from cell.doctor.findings import Finding
 from cell.service.store import sqlite_url
 from cell.service.store.engine import hide_password, schema_head, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
+from cell.service.store.service_store import check_service_store
 from drivers.errors import DriverError, StoreError
 from drivers.file_access import access_problem, user_name
 from drivers.hosts import is_loopback, listen_problem
@@ -220,6 +221,11 @@ def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
     refuses that host without one). The store's URL is shown with its password hidden."""
     url = db_url or sqlite_url(data_dir)
     shown = hide_password(url)
+    try:
+        check_service_store(data_dir, url)
+    except StoreError as exc:
+        return [Finding.fail("job store", str(exc), "run doctor with the service's store: --db URL or "
+                             "CELL_DB (docs/deploy.md, section 6)")]
     database = sqlite_database(url)
     problem = sqlite_access_problem(database) if database is not None and database.parent.is_dir() else None
     if problem is not None:

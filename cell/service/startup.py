@@ -1,8 +1,9 @@
 """Opening a cell's service: its cell file, read once, and its data dir and store.
 
 The data dir holds everything the service writes: ``cell.db`` (the embedded SQLite store, unless
-``--db`` names another), ``jobs/<id>/`` (one folder per job, the layout ``cell scan`` writes),
-``objects/`` (uploaded meshes) and ``logs/`` (each job worker's standard error).
+``--db`` names another), ``store-url`` (which store that is, for the commands given only the data dir:
+:mod:`cell.service.store.service_store`), ``jobs/<id>/`` (one folder per job, the layout ``cell scan``
+writes), ``objects/`` (uploaded meshes) and ``logs/`` (each job worker's standard error).
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from pathlib import Path
 from cell.config.load import load_config_data
 from cell.config.placeholders import require_measured
 from cell.service.manager import CellService
-from cell.service.store import open_data_store
+from cell.service.store import open_data_store, sqlite_url
+from cell.service.store.service_store import check_service_store, record_service_store
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import StoreError
 
@@ -35,10 +37,18 @@ def build_service(settings: ServiceSettings) -> CellService:
     """The service of the cell file, on its store; call ``start`` on the event loop that will run it."""
     config, data = load_config_data(settings.config_file)
     require_measured(settings.config_file, config.mode)
+    url = settings.db_url or sqlite_url(settings.data_dir)
+    check_service_store(settings.data_dir, url, serving=True)
     store = open_data_store(settings.data_dir, settings.db_url)
     try:
         lease = store.claim_cell(config.name)
     except StoreError:
+        store.close()
+        raise
+    try:
+        record_service_store(settings.data_dir, url)
+    except StoreError:
+        lease.release()
         store.close()
         raise
     return CellService(config=config, config_data=data, config_file=str(settings.config_file),
