@@ -233,15 +233,25 @@ def test_a_server_that_is_not_there(served: ServedCell):
     assert one_error_line(waited.stderr).startswith(f"error: the server did not answer at {url} ")
 
 
-def test_stop_all_is_the_cells_stop(served: ServedCell):
-    """Last of the served tests: the STOP holds the queue, resumed here."""
+def test_stop_all_is_the_cells_stop_and_resume_lets_the_queue_go_on(served: ServedCell):
+    """Last of the served tests: the STOP holds the queue, and `cell jobs resume` (an operator's) lets it go
+    on; stop --all's output had sent the user to POST /api/v1/queue/resume, which no command did."""
     try:
         result = invoke(served, "stop", "--all", "--reason", "cli stop all", role="viewer")
         assert result.exit_code == 0, result.output
         lines = result.stdout.strip().splitlines()
-        assert lines[0] and "held" in lines[-1]
+        assert lines[0] and lines[-1] == "queued jobs are held until the queue is resumed (cell jobs resume)"
         with served.client("viewer") as http:
-            assert http.get("/api/v1/cell").json()["queue"]["held"] is not None
+            held = http.get("/api/v1/cell").json()["queue"]["held"]
+            assert held is not None and "cell jobs resume" in held
+        refused = run_cell(served, "resume", role="viewer")
+        assert refused.returncode == 1 and one_error_line(refused.stderr).startswith("error: 403 ")
+        resumed = run_cell(served, "resume")
+        assert resumed.returncode == 0, resumed.stderr
+        assert resumed.stdout.startswith("queue resumed: ") and resumed.stdout.endswith(" jobs queued\n")
+        no_key_in(served, resumed.stdout, resumed.stderr)
+        with served.client("viewer") as http:
+            assert http.get("/api/v1/cell").json()["queue"]["held"] is None
     finally:
         with served.client("operator") as http:
             assert http.post("/api/v1/queue/resume").status_code == 200

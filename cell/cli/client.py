@@ -172,6 +172,11 @@ class ApiClient:
         result: dict[str, Any] = self.request("POST", "/api/v1/stop", json_body={"reason": reason})
         return result
 
+    def resume(self) -> dict[str, Any]:
+        """Let queued jobs start again after a STOP; the cell's state as the service then gives it."""
+        result: dict[str, Any] = self.request("POST", "/api/v1/queue/resume")
+        return result
+
     def keep(self, job_id: str, keep: bool) -> dict[str, Any]:
         result: dict[str, Any] = self.request("PUT", f"/api/v1/jobs/{_segment(job_id)}/keep",
                                               json_body={"keep": keep})

@@ -1,5 +1,5 @@
 """``cell jobs``: submit, list, show, stop, wait for, keep and prune the jobs of a running ``cell serve``,
-from scripts.
+and resume its queue after a STOP, from scripts.
 
 Every command talks to the service at ``--server`` (default: ``$CELL_SERVER``, else
 ``http://127.0.0.1:8080``) with the API key ``--key`` (default: ``$CELL_KEY``; ``cell keys create`` makes
@@ -38,7 +38,8 @@ TERMINATION_WIDTH = 48
 """``list`` shortens a termination to this many characters."""
 EXIT_NOT_COMPLETED = 2
 
-jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, wait (for scripts).",
+jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, resume, wait (for "
+                              "scripts).",
                          no_args_is_help=True)
 console = Console(soft_wrap=True)
 
@@ -337,7 +338,22 @@ def stop(
         outcome = client.stop_all(reason) if all_ else client.stop(str(job_id), reason)
     _print(str(outcome.get("message")))
     if all_ and outcome.get("queue_held"):
-        _print("queued jobs are held until the queue is resumed (POST /api/v1/queue/resume)")
+        _print("queued jobs are held until the queue is resumed (cell jobs resume)")
+
+
+@jobs_app.command("resume")
+def resume(
+    server: ServerOption = DEFAULT_SERVER,
+    key: KeyOption = None,
+) -> None:
+    """Let queued jobs start again after `stop --all` (an operator's key; refused while the arm is faulted:
+    `cell arm recover` first)."""
+    with _client(server, key) as client:
+        cell = client.resume()
+    queue = cell.get("queue") or {}
+    held = queue.get("held")
+    _print(f"queue resumed: {queue.get('length', 0)} jobs queued" if held is None
+           else f"queue resumed, but still held: {held}")
 
 
 @jobs_app.command("keep")

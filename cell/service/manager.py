@@ -441,7 +441,8 @@ class CellService:
 
     def _hold(self, after: str) -> None:
         """Hold the queue until an operator resumes it (never the line's Reset: a person looks first)."""
-        self._held = f"held after {after}: resume the queue to go on (POST /api/v1/queue/resume)"
+        self._held = (f"held after {after}: resume the queue to go on (cell jobs resume, or POST "
+                      "/api/v1/queue/resume)")
 
     @staticmethod
     def _logged(outcome: StopOutcome, reason: str) -> StopOutcome:
