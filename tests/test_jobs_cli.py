@@ -111,6 +111,14 @@ def test_submit_wait_follows_the_job_to_completed(completed_job: Completed):
     assert proc.stderr == ""
 
 
+def test_a_job_logs_into_its_folder_and_leaves_no_empty_worker_log(served: ServedCell,
+                                                                   completed_job: Completed):
+    """Every job left an empty logs/worker-<id>.log beside the log it writes, jobs/<id>/log.txt."""
+    job_id, _ = completed_job
+    assert (served.data_dir / "jobs" / job_id / "log.txt").stat().st_size > 0
+    assert not (served.data_dir / "logs" / f"worker-{job_id}.log").exists()
+
+
 def test_show_and_list_find_the_job(served: ServedCell, completed_job: Completed):
     job_id, _ = completed_job
     shown = invoke(served, "show", job_id, role="viewer")

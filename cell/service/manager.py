@@ -127,6 +127,15 @@ def _exit_text(code: int) -> str:
     return f"exit code {code}"
 
 
+def _drop_if_empty(log_path: Path) -> None:
+    """Delete the log of an ended worker process when it wrote nothing there. A job logs into its folder
+    (``log.txt``); the worker's log (its standard error) holds only what the process printed besides, a
+    crash's traceback or a library's messages, and is kept when there is any."""
+    with contextlib.suppress(OSError):
+        if log_path.stat().st_size == 0:
+            log_path.unlink()
+
+
 class CellService:
     """The service of one cell (see the module docstring). ``config_data`` is the cell file's parsed
     YAML, handed to each job's worker so that every job runs the file as it was when the service
@@ -546,7 +555,8 @@ class CellService:
     async def _recover_in_worker(self) -> dict[str, Any]:
         spec = WorkerSpec(op="recover", job_id="recover", config=self._config_data,
                           config_file=self._config_file)
-        proc = await self._worker(self._logs_dir / "worker-recover.log", spec.job_id)
+        log_path = self._logs_dir / "worker-recover.log"
+        proc = await self._worker(log_path, spec.job_id)
         if proc is None:
             return {"ok": False, "message": f"the arm was not recovered: {self._spawn_failure}"}
         await self._hand(proc, spec)
@@ -562,6 +572,7 @@ class CellService:
             report = {"ok": False, "message": f"the arm did not recover within {RECOVER_TIMEOUT_S:g} s"}
             self._kill(proc)
         await self._reap(proc)
+        _drop_if_empty(log_path)
         return report
 
     # ------------------------------------------------------------------ running jobs
@@ -732,7 +743,8 @@ class CellService:
         spec = WorkerSpec(op="scan", job_id=job.id, config=self._config_data, config_file=self._config_file,
                           object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
                           planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
-        proc = await self._worker(self._logs_dir / f"worker-{job.id}.log", job.id, warm=True)
+        log_path = self._logs_dir / f"worker-{job.id}.log"
+        proc = await self._worker(log_path, job.id, warm=True)
         if proc is None:
             return SPAWN_RETRY_S
         try:
@@ -744,6 +756,7 @@ class CellService:
             log.warning("job not started: %s", exc, extra={"job_id": job.id})
             self._kill(proc)
             await self._reap(proc)
+            _drop_if_empty(log_path)
             return STORE_RETRY_S
         await self._hand(proc, spec)
         running.proc = proc  # a stop that came before is carried out below, after the spec
@@ -756,6 +769,7 @@ class CellService:
             await self._stop_running(running, failure)
             code = await follower
         await self._finish(running, code)
+        _drop_if_empty(log_path)
         return None
 
     async def _follow(self, running: _Running, *, started: bool = False) -> int:

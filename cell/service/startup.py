@@ -3,7 +3,8 @@
 The data dir holds everything the service writes: ``cell.db`` (the embedded SQLite store, unless
 ``--db`` names another), ``store-url`` (which store that is, for the commands given only the data dir:
 :mod:`cell.service.store.service_store`), ``jobs/<id>/`` (one folder per job, the layout ``cell scan``
-writes), ``objects/`` (uploaded meshes) and ``logs/`` (each job worker's standard error).
+writes, with the job's log ``log.txt``), ``objects/`` (uploaded meshes) and ``logs/`` (a job worker's
+standard error, kept when the process printed anything there: a crash's traceback, a library's messages).
 """
 
 from __future__ import annotations
