@@ -246,3 +246,18 @@ def test_the_unit_the_users_and_the_udev_rule_agree():
     readme = (REPO / "deploy" / "firmware" / "README.md").read_text()
     stated = set(re.findall(r"\*\*(\w{4}):(\w{4})\*\*", readme))
     assert matched == stated and stated
+
+
+def test_a_service_that_fails_at_every_start_is_not_restarted_for_ever():
+    """Restart=on-failure with RestartSec=5 restarted a broken cell file every 5 s, for ever: the start
+    limit must be reachable by a service that fails at once, each try RestartSec apart."""
+    text = UNIT.read_text()
+    unit_section = text[text.index("[Unit]"):text.index("[Service]")]
+    limits = dict(line.split("=", 1) for line in unit_section.splitlines() if "=" in line
+                  and not line.startswith("#"))
+    service = dict(line.split("=", 1) for line in text.splitlines()
+                   if "=" in line and not line.startswith("#"))
+    burst, interval = int(limits["StartLimitBurst"]), int(limits["StartLimitIntervalSec"])
+    assert service["Restart"] == "on-failure" and burst >= 3
+    assert burst * int(service["RestartSec"]) < interval
+
