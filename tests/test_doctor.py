@@ -299,6 +299,15 @@ def test_listening_beyond_loopback_needs_an_api_key_in_the_store(tmp_path):
     assert checks["job store"][0] == "ok"
 
 
+def test_without_a_cell_file_doctor_checks_the_embedded_cell_as_serve_runs_it(tmp_path):
+    """--config was required, though cell serve and cell scan run the shipped sim cell without it."""
+    res = CliRunner().invoke(app, ["doctor", "--data-dir", str(tmp_path / "data"),
+                                   "--port", str(free_port())])
+    assert res.exit_code == 0, res.output
+    assert re.search(r"^ok\s+cell file\s+.*sim-franka-rgbd\.yaml: sim-franka-rgbd, mode sim", res.output,
+                     re.MULTILINE), res.output
+
+
 def test_the_cpu_governor_is_read_from_sysfs(tmp_path):
     for cpu, governor in (("cpu0", "performance"), ("cpu1", "powersave")):
         (tmp_path / cpu / "cpufreq").mkdir(parents=True)

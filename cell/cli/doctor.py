@@ -15,14 +15,16 @@ from rich.console import Console
 from cell.cli.commands import DB_ENVVAR
 from cell.doctor.findings import Status
 from cell.doctor.report import failed, run_checks
-from cell.service.startup import DEFAULT_DATA_DIR
+from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR
+from cell.templates import DEFAULT_TEMPLATE
 
 console = Console(soft_wrap=True)
 LABEL = {Status.OK: "ok  ", Status.WARN: "warn", Status.FAIL: "FAIL"}
 
 
 def doctor(
-    config: Annotated[Path, typer.Option(help="the cell file")],
+    config: Annotated[Path, typer.Option(help=f"the cell file (default: the shipped {DEFAULT_TEMPLATE} cell, "
+                                              "as cell serve runs it)", show_default=False)] = DEFAULT_CONFIG,
     data_dir: Annotated[Path, typer.Option(help="the service's data folder")] = DEFAULT_DATA_DIR,
     host: Annotated[str, typer.Option(help="the interface cell serve will bind")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535, help="the port cell serve will listen on")] = 8080,
