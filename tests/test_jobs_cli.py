@@ -18,7 +18,7 @@ from typer.testing import CliRunner, Result
 
 from cell.cli import client as client_module
 from cell.cli.client import ApiClient, ServerEvent, parse_events
-from cell.cli.jobs import follow_job, packing_lines
+from cell.cli.jobs import follow_job, packing_lines, time_label
 from cell.cli.main import app
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 from tests.service_process import CELL, REPO, ServedCell, free_port
@@ -132,7 +132,7 @@ def test_show_and_list_find_the_job(served: ServedCell, completed_job: Completed
     record = show_json(served, job_id)
     result = record["result"]
     assert fields["captures"] == str(result["n_captures"]) and result["n_captures"] >= 1
-    assert fields["sim time"].startswith(f"{result['sim_time_s']:.1f} s")
+    assert result["mode"] == "sim" and fields["sim time"].startswith(f"{result['sim_time_s']:.1f} s")
     assert fields["path length"] == f"{result['path_length_m']:.2f} m"
     assert fields["cloud coverage (eq. 13)"] == f"{result['metrics']['coverage_pct']:.1f} %"
     assert fields["chamfer"] == f"{result['metrics']['chamfer_mm']:.2f} mm"
@@ -192,14 +192,16 @@ def test_stop_a_running_job_then_wait_exits_2(served: ServedCell):
     while (job := show_json(served, job_id))["status"] != "running":
         assert job["status"] == "queued" and time.monotonic() < deadline, job
         time.sleep(0.1)
-    stopped = invoke(served, "stop", job_id, "--reason", "cli test")
+    stopped = invoke(served, "stop", job_id)
     assert stopped.exit_code == 0, stopped.output
     assert stopped.stdout.strip(), "stop prints the service's message"
 
     waited = run_cell(served, "wait", job_id, "--timeout", "60", role="viewer")
     assert waited.returncode == 2, waited.stdout + waited.stderr
     last = waited.stdout.strip().splitlines()[-1]
-    assert last.startswith("stopped: ") and "cli test" in last, waited.stdout
+    # said once: the default reason was 'operator stop', after the guard's 'operator stop: '
+    assert last == ("stopped: safety stop: operator stop: requested from the command line (key "
+                    "test-operator)"), waited.stdout
     assert show_json(served, job_id)["status"] == "stopped"
 
     again = invoke(served, "stop", job_id)
@@ -367,6 +369,13 @@ def test_the_command_line_knows_every_status_of_the_service():
     result = CliRunner().invoke(app, ["jobs", "list", "--help"], env={"COLUMNS": "300"})
     listed = re.search(r"commas\): ([a-z_, ]+)", result.stdout)
     assert listed is not None and tuple(listed.group(1).strip().split(", ")) == JOB_STATUSES
+
+
+def test_a_results_time_is_labelled_by_its_clock():
+    """A real-mode job's time, on the wall clock, was labelled 'sim time'."""
+    assert [time_label({"mode": mode}) for mode in ("sim", "replay", "dry-run", "real")] == \
+        ["sim time", "sim time", "time (wall clock)", "time (wall clock)"]
+    assert time_label({}) == "job time"  # a result.json from before it said its mode
 
 
 def test_packing_lines_show_a_face_without_an_upper_bound():

@@ -47,6 +47,7 @@ def test_job_folder_is_complete(bunny_job):
                 "path_length_m", "n_captures", "object_pose", "metrics"):
         assert key in result
     assert result["status"] == "completed" and result["planner"] == "raster"
+    assert result["mode"] == "sim"  # the clock of sim_time_s (cell jobs show labels it so)
     assert "time budget" in result["termination"] and result["limit_reached"] is True
     assert result["n_captures"] >= 3 and result["path_length_m"] > 0.1
     assert np.allclose(np.array(result["object_pose"])[:3, 3], [0.45, 0.0, 0.0])

@@ -37,6 +37,9 @@ PROGRESS_EVERY_S = 1.0
 TERMINATION_WIDTH = 48
 """``list`` shortens a termination to this many characters."""
 EXIT_NOT_COMPLETED = 2
+COMMAND_LINE_REASON = "requested from the command line"
+"""A stop's reason when none is given: the job's termination already says that it was an operator stop
+(``safety stop: operator stop: <reason> (key NAME)``), which a default of "operator stop" repeated."""
 
 jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, resume, wait (for "
                               "scripts).",
@@ -251,6 +254,18 @@ def _job_lines(job: dict[str, Any]) -> list[tuple[str, str]]:
     return lines
 
 
+TIME_LABELS = {"sim": "sim time", "replay": "sim time", "dry-run": "time (wall clock)",
+               "real": "time (wall clock)"}
+"""What a result's ``sim_time_s`` is, by the cell's ``mode``: the job's clock, simulated in sim and replay,
+the wall clock with a hardware arm."""
+
+
+def time_label(result: dict[str, Any]) -> str:
+    """The label of a result's ``sim_time_s`` by its ``mode`` (:data:`TIME_LABELS`; a result written before
+    it held one: "job time")."""
+    return TIME_LABELS.get(str(result.get("mode")), "job time")
+
+
 def coverage_line(coverage_pct: float | None) -> str:
     """The summary line of a result's ``metrics.coverage_pct`` (eq. 13 on the cloud): not the packing
     section's share of the surface reconstructed, which :func:`packing_lines` gives."""
@@ -281,10 +296,11 @@ def packing_lines(packing: dict[str, Any]) -> list[tuple[str, str]]:
 def _result_lines(result: dict[str, Any]) -> list[tuple[str, str]]:
     """The key figures of an ended job's result.json."""
     lines = [("result", f"{result.get('status')}: {result.get('termination')}")]
-    sim = _number(result.get("sim_time_s"), ".1f", " s")
-    if sim is not None:
+    duration = _number(result.get("sim_time_s"), ".1f", " s")
+    if duration is not None:
         scan = _number(result.get("scan_time_s"), ".1f", " s")
-        lines.append(("sim time", sim + (f" (scan {scan} from the first frame)" if scan else "")))
+        lines.append((time_label(result),
+                      duration + (f" (scan {scan} from the first frame)" if scan else "")))
     if result.get("n_captures") is not None:
         lines.append(("captures", str(result["n_captures"])))
     path = _number(result.get("path_length_m"), ".2f", " m")
@@ -327,7 +343,8 @@ def stop(
     job_id: Annotated[str | None, typer.Argument(metavar="ID", help="the job to stop")] = None,
     all_: Annotated[bool, typer.Option("--all", help="the cell's STOP: whatever moves stops and queued "
                                                      "jobs are held")] = False,
-    reason: Annotated[str, typer.Option(help="recorded in the job's termination")] = "operator stop",
+    reason: Annotated[str, typer.Option(help="recorded in the job's termination, after 'operator stop: '")]
+    = COMMAND_LINE_REASON,
     server: ServerOption = DEFAULT_SERVER,
     key: KeyOption = None,
 ) -> None:

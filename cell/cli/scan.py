@@ -11,7 +11,7 @@ from rich.console import Console
 
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error
-from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines
+from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines, time_label
 from cell.cli.progress import scan_progress
 from cell.cli.signals import interrupting
 from cell.config import load_config
@@ -131,7 +131,7 @@ def scan(
     cov = r["metrics"]["coverage_pct"]
     console.print(f"{r['status']}: {r['termination']}", markup=False, highlight=False)
     scan = f" (scan {r['scan_time_s']:.1f} s from the first frame)" if r["scan_time_s"] is not None else ""
-    console.print(f"{r['n_captures']} captures, {r['sim_time_s']:.1f} s sim{scan}, path "
+    console.print(f"{r['n_captures']} captures, {time_label(r)} {r['sim_time_s']:.1f} s{scan}, path "
                   f"{r['path_length_m']:.2f} m", highlight=False)
     console.print(coverage_line(cov), highlight=False)
     packing = r.get("packing") or {}

@@ -18,7 +18,8 @@ console = Console(soft_wrap=True)
 
 def stop(
     job_dir: Annotated[Path, typer.Argument(help="folder of the running job")],
-    reason: Annotated[str, typer.Option(help="recorded in the job's termination")] = "operator stop",
+    reason: Annotated[str, typer.Option(help="recorded in the job's termination, after 'operator stop: '")]
+    = "requested from the command line",
 ) -> None:
     """Operator stop of a running scan.
 

@@ -432,11 +432,12 @@ def _sim_board(cfg: CellConfig) -> TableTexture | None:
 
 def _identity(job: PreparedScan) -> dict[str, Any]:
     """What result.json says of the job before its outcome: planner, object (its scale, and its pose in
-    the base frame when known), cell file, seed."""
+    the base frame when known), cell file, the cell's mode (which says the clock of ``sim_time_s``:
+    simulated in sim and replay, the wall clock in dry-run and real), seed."""
     req, T = job.request, job.T_base_object
     return {"planner": job.planner_name, "object": job.object_name, "object_scale": req.object_scale,
             "object_pose": None if T is None else np.round(T, 9).tolist(), "config": req.config_path,
-            "seed": req.seed}
+            "mode": req.config.mode, "seed": req.seed}
 
 
 def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_start: float, status: str,
