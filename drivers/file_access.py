@@ -43,9 +43,16 @@ class AccessProblem:
         return f"{self.found}; fix: {self.fix}"
 
 
-def access_problem(path: Path, *, folder: bool = False) -> AccessProblem | None:
+def make_folder(path: Path) -> str:
+    """The command that makes the folder ``path`` this process's user's (its parents stay whose they are:
+    never a fix that gives the user a folder of the system's)."""
+    return f"sudo install -d -o {user_name()} -m 0750 {shlex.quote(str(path))}"
+
+
+def access_problem(path: Path, *, folder: bool = False, recursive: bool = False) -> AccessProblem | None:
     """Why this process's user may not read and write the file ``path`` (with ``folder``: make and delete
-    files in the folder ``path``), naming its owner, group and mode, with the command that fixes it; None
+    files in the folder ``path``), naming its owner, group and mode, with the command that fixes it (for
+    a folder with ``recursive``, all it holds too: a data folder whose files the same user left); None
     when it may, or when ``path`` does not exist."""
     try:
         st = path.stat()
@@ -63,14 +70,14 @@ def access_problem(path: Path, *, folder: bool = False) -> AccessProblem | None:
     if st.st_uid == os.geteuid():
         return AccessProblem(found, f"chmod u+{'rwx' if folder else 'rw'} {quoted}")
     # a folder's files (the store's, the jobs') were left by the same user as the folder, mostly
-    return AccessProblem(found, f"sudo chown {'-R ' if folder else ''}{me}: {quoted}")
+    return AccessProblem(found, f"sudo chown {'-R ' if recursive else ''}{me}: {quoted}")
 
 
 def files_problem(folder: Path, pattern: str) -> AccessProblem | None:
-    """What stops this user at ``folder`` (:func:`access_problem`) or at the files in it that match
-    ``pattern`` (a glob: a database and the files it keeps beside it), all of them named in ``found``
-    and fixed by one command on the pattern; None when nothing does."""
-    problem = access_problem(folder, folder=True)
+    """What stops this user at ``folder`` (:func:`access_problem`, the folder and all it holds given back)
+    or at the files in it that match ``pattern`` (a glob: a database and the files it keeps beside it),
+    all of them named in ``found`` and fixed by one command on the pattern; None when nothing does."""
+    problem = access_problem(folder, folder=True, recursive=True)
     if problem is not None:
         return problem
     blocked = {path: each for path in sorted(folder.glob(pattern)) if (each := access_problem(path))}

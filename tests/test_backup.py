@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.service.store import open_store, sqlite_url
 from cell.service.store.engine import schema_head
+from drivers.file_access import user_name
 from tests.test_store import make_job
 from tests.unprivileged import foreign, run_unprivileged, service_folder
 
@@ -128,9 +129,12 @@ def test_a_destination_the_user_may_not_write_is_named_without_a_traceback():
         closed = base / "closed"
         closed.mkdir()
         foreign(closed)
+        me = run_unprivileged(user_name)
         code, output, raised = run_unprivileged(lambda: _backup(f"{closed / 'new'}/", data))
         assert (code, raised) == (1, False), output
-        assert output.startswith(f"error: cannot make the backup folder {closed / 'new'}: folder {closed} ")
+        # the folder made for the user, never the folder above it given away
+        assert output == (f"error: cannot make the backup folder {closed / 'new'}: Permission denied; fix: "
+                          f"sudo install -d -o {me} -m 0750 {closed / 'new'}\n")
         code, output, raised = run_unprivileged(lambda: _backup(f"{closed}/", data))
         assert (code, raised) == (1, False), output
         assert output.startswith(f"error: cannot write the backup {closed}/cell-")

@@ -163,6 +163,11 @@ def test_a_data_folder_this_user_may_not_write_names_the_user_to_give_it_to(tmp_
     assert found.status is Status.FAIL and f"user {user_name()} may not write in it" in found.detail
     assert found.fix is not None and found.fix.startswith(f"chmod u+rwx {data}")
     assert "$USER" not in found.fix
+    # not made yet, in a folder of the system's: the data folder is made for the user, that one not given
+    found = machine.disk(data / "cell")
+    assert found.status is Status.FAIL and f"folder {data} belongs to" in found.detail
+    assert found.fix is not None and found.fix.startswith(f"sudo install -d -o {user_name()} -m 0750 "
+                                                          f"{data / 'cell'}")
 
 
 def test_broken_kernels_a_missing_extra_and_a_full_disk_fail_with_their_fixes(peer, pty_port, tmp_path,

@@ -46,6 +46,10 @@ def test_a_data_folder_the_user_may_not_write_is_named_with_its_owner_and_the_ch
         assert f"folder {data} belongs to {owner}" in error and f"user {me} may not write in it" in error
         fix = f"sudo chown -R {me}: {data}" if AS_ROOT else f"chmod u+rwx {data}"
         assert error.endswith(f"; fix: {fix}"), error
+        # a data folder not made yet is made for the user: the folder above it is not given away
+        error = run_unprivileged(lambda: _serve_error(data / "cell"))
+        assert error == (f"cannot create the data folder {data / 'cell'}: Permission denied; fix: "
+                         f"sudo install -d -o {me} -m 0750 {data / 'cell'}")
 
 
 def test_a_lease_file_left_by_root_stops_serve_and_doctor_with_the_chown():

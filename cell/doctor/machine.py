@@ -21,7 +21,7 @@ from cell.service.store.engine import hide_password, schema_head, sqlite_access_
 from cell.service.store.repository import inspect_store
 from cell.service.store.service_store import check_service_store
 from drivers.errors import DriverError, StoreError
-from drivers.file_access import access_problem, user_name
+from drivers.file_access import access_problem, make_folder, user_name
 from drivers.hosts import is_loopback, listen_problem
 from drivers.sim.board import import_cv2
 
@@ -193,9 +193,11 @@ def disk(data_dir: Path) -> Finding:
         return Finding.fail("disk", f"{where} is not a folder: cell serve keeps its jobs and store in "
                             f"--data-dir {data_dir}", "give --data-dir a folder (or a name not taken)")
     free_gb = shutil.disk_usage(where).free / 1e9
-    problem = access_problem(where, folder=True)
+    problem = access_problem(where, folder=True, recursive=True)
     if problem is not None:
-        return Finding.fail("disk", problem.found, problem.fix + service_user_note())
+        # a folder above a data folder not made yet is the system's: the data folder is made, not it given
+        fix = problem.fix if where == data_dir else make_folder(data_dir)
+        return Finding.fail("disk", problem.found, fix + service_user_note())
     text = f"{free_gb:.1f} GB free under {where}"
     fix = "free space, or set service.retention (days, max_gb) so that old jobs are pruned"
     if free_gb < DISK_FAIL_GB:

@@ -20,7 +20,7 @@ from sqlalchemy.exc import ArgumentError
 
 from cell.service.store.engine import hide_password
 from drivers.errors import StoreError
-from drivers.file_access import access_problem
+from drivers.file_access import access_problem, make_folder
 
 BACKUP_MODE = 0o600
 """A backup's permissions: its owner's alone, as it holds the API keys' hashes."""
@@ -64,9 +64,8 @@ def _destination(dest: Path, now: datetime, *, folder: bool) -> Path:
             try:
                 dest.mkdir()
             except OSError as exc:
-                problem = access_problem(dest.parent, folder=True)
-                raise StoreError(f"cannot make the backup folder {dest}: "
-                                 f"{problem if problem is not None else exc.strerror}") from None
+                raise StoreError(f"cannot make the backup folder {dest}: {exc.strerror}; fix: "
+                                 f"{make_folder(dest)}") from None
         dest = dest / f"cell-{now.strftime('%Y%m%dT%H%M%SZ')}.db"
     if dest.exists():
         raise StoreError(f"{dest} exists: a backup never overwrites a file")

@@ -34,7 +34,7 @@ from cell.service.store.lease import CellLease
 from cell.service.store.models import JobRow, KeyRow, LineStateRow, LineTransitionRow
 from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord, LineRecord, LineTransition
 from drivers.errors import ServiceError, StoreError
-from drivers.file_access import access_problem
+from drivers.file_access import make_folder
 
 JOB_FIELDS = tuple(field.name for field in fields(JobRecord))
 JOB_ID = re.compile(r"[0-9a-f]{16}")  # a job id: 16 lowercase hex characters
@@ -120,10 +120,8 @@ def open_data_store(data_dir: Path, db_url: str | None, *, migrate: bool = True,
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        parent = next(p for p in data_dir.absolute().parents if p.exists())
-        problem = access_problem(parent, folder=True)
-        raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}"
-                         + (f"; {problem}" if problem is not None else "")) from None
+        raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}; fix: "
+                         f"{make_folder(data_dir)}") from None
     return open_store(db_url or sqlite_url(data_dir), migrate=migrate, oldest=oldest)
 
 
