@@ -22,9 +22,10 @@ from cell.evaluation.executors import Executor, TaskFailure
 from cell.evaluation.grid import WHOLE, Shard, run_grid, running, timelines, write_results, writers
 from cell.evaluation.limit import ROLL_STEP_DEG, cell_coverage_limit
 from cell.evaluation.report import Limits, write_report
-from cell.evaluation.results import Row, identity, row_id, write_atomic
+from cell.evaluation.results import Row, identity, row_id
 from cell.evaluation.spec import ScanSpec, input_digest, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task
+from drivers.atomic_file import write_text_atomic
 from drivers.sim.objects import load_object
 
 LIMITS_JSON = "limits.json"
@@ -74,7 +75,7 @@ def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, exe
         with writers(out):
             cache = _read_limits(cache_path)
             cache[pending[index]] = value
-            write_atomic(cache_path, json.dumps(cache, indent=1, sort_keys=True) + "\n")
+            write_text_atomic(cache_path, json.dumps(cache, indent=1, sort_keys=True) + "\n")
 
     if pending:
         executor.run(run_limit_task, [(ScanTask.of(keyed[key], scan_key(keyed[key])), n_directions)

@@ -44,10 +44,10 @@ from cell.evaluation.results import (
     row_from_folder,
     sorted_rows,
     timeline_from_folder,
-    write_atomic,
 )
 from cell.evaluation.spec import ScanSpec, folder_name, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
+from drivers.atomic_file import write_text_atomic
 from drivers.errors import CellError
 
 SCANS_DIR = "scans"
@@ -217,7 +217,7 @@ def grid_rows(specs: Sequence[ScanSpec], out: Path) -> list[Row]:
 def write_results(specs: Sequence[ScanSpec], out: Path) -> list[Row]:
     """Rebuild results.csv from ``out`` (:func:`grid_rows`; hold :func:`writers`); returns its rows."""
     rows = grid_rows(specs, out)
-    write_atomic(out / RESULTS_CSV, csv_text(rows))
+    write_text_atomic(out / RESULTS_CSV, csv_text(rows))
     return rows
 
 
@@ -240,7 +240,7 @@ def run_grid(specs: Sequence[ScanSpec], out: Path, executor: Executor,
         marker = failed_marker(folder)
         if isinstance(output, TaskFailure) or output.archive is None:
             reason = output.reason if isinstance(output, TaskFailure) else output.error
-            write_atomic(marker, " ".join((reason or "the scan left no job folder").split()))
+            write_text_atomic(marker, " ".join((reason or "the scan left no job folder").split()))
             progress.done(failed=True)
             return
         partial = folder.with_name(f"{folder.name}.partial-{socket.gethostname()}-{os.getpid()}")

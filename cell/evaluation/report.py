@@ -31,7 +31,8 @@ from matplotlib.figure import Figure  # not pyplot: files only, no display
 from scipy.stats import mannwhitneyu
 
 from cell.evaluation import paper
-from cell.evaluation.results import Row, RowId, Timeline, atomic_path, row_id, value, write_atomic
+from cell.evaluation.results import Row, RowId, Timeline, row_id, value
+from drivers.atomic_file import atomic_path, write_text_atomic
 
 REPORT_MD = "report.md"
 FIG5 = "fig5.png"
@@ -214,9 +215,8 @@ def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> 
 
 def _save(fig: Figure, path: Path) -> None:
     """Save ``fig`` as ``path`` whole (a temporary file renamed over it)."""
-    tmp = atomic_path(path)
-    fig.savefig(tmp, dpi=90)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90)
 
 
 def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float] | None]:
@@ -289,6 +289,6 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
         md += ["## Scans that did not complete (not in the figures above)", "",
                *(f"- {unfinished_line(r)}" for r in unfinished), ""]
     path = out / REPORT_MD
-    write_atomic(path, "\n".join(md))
+    write_text_atomic(path, "\n".join(md))
     return path
 

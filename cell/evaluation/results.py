@@ -25,7 +25,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -140,19 +139,6 @@ def csv_text(rows: Iterable[Row]) -> str:
     writer.writeheader()
     writer.writerows(sorted_rows(rows))
     return buffer.getvalue()
-
-
-def atomic_path(path: Path) -> Path:
-    """A temporary file beside ``path``, to be renamed over it once written (:func:`write_atomic`)."""
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``: a reader sees the
-    old file or the new one, whole."""
-    tmp = atomic_path(path)
-    tmp.write_text(text)
-    tmp.replace(path)
 
 
 def read_csv(path: Path) -> list[Row]:

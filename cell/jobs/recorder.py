@@ -19,6 +19,15 @@
   job removes it).
 - ``cloud_live.npy``: while a watched job runs, its accumulated cloud (``cell.jobs.live_cloud``; removed
   when it ends).
+
+Every file that is written whole (a frame, ``job.json``, ``result.json``, the clouds, the map) is written
+to a temporary name beside it and renamed (``drivers.atomic_file``): a job killed or a disk filled up
+mid-write leaves no truncated file under a final name. ``job.json`` and ``result.json`` are also flushed
+to the disk (``fsync``) before they are renamed (they say the job began and ended); the frames are not:
+measured, writing a frame through a temporary name costs what writing it in place does (a ToF frame
+2.0-2.7 ms, a 640 x 480 depth image of noise 98-126 ms, either way, 50-300 frames each, the spread
+run-to-run noise), and an ``fsync`` per frame would add a disk's latency to every capture. The logs and
+CSV files grow a line at a time, each line flushed.
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ from cell.jobs.requests import COLUMNS, REQUESTS_FILE, request_row
 from cell.perception.cloud import write_ply
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.octomap_io import write_bt
+from drivers.atomic_file import atomic_open, write_text_atomic
 from drivers.depth.base import DepthFrame
 from drivers.errors import JobError
 from drivers.transforms import quat_xyzw
@@ -99,7 +109,8 @@ class JobRecorder:
             arrays.update(zone_distance_m=z.distance_m, zone_sigma_m=z.sigma_m, zone_status=z.status,
                           zone_nb_targets=z.nb_targets, zone_reflectance_pct=z.reflectance_pct,
                           zone_directions=z.directions)
-        np.savez_compressed(self.folder / "frames" / name, **arrays)
+        with atomic_open(self.folder / "frames" / name) as f:
+            np.savez_compressed(f, **arrays)
         self._index_writer.writerow([frame.seq, f"{frame.timestamp:.6f}", name, frame.points.shape[0]])
         self._index.flush()
 
@@ -120,11 +131,12 @@ class JobRecorder:
 
     def job(self, job: dict[str, Any]) -> None:
         """Write ``job.json``: what the job was asked."""
-        (self.folder / JOB_FILE).write_text(json.dumps(job, indent=2) + "\n")
+        write_text_atomic(self.folder / JOB_FILE, json.dumps(job, indent=2) + "\n", durable=True)
 
     def result(self, result: dict[str, Any]) -> None:
+        """Write ``result.json``, whole and on the disk (see the module docstring)."""
         text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)
-        (self.folder / RESULT_FILE).write_text(text + "\n")
+        write_text_atomic(self.folder / RESULT_FILE, text + "\n", durable=True)
 
     def close(self) -> None:
         self._traj.flush()

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.perception import _kernels as _k
+from drivers.atomic_file import write_bytes_atomic
 
 Array = NDArray[np.float64]
 
@@ -252,12 +253,13 @@ class CloudAccumulator:
 
 
 def write_ply(path: Path, points: Array) -> None:
-    """Binary little-endian PLY of (N, 3) float64 points; the same points give the same bytes."""
+    """Binary little-endian PLY of (N, 3) float64 points; the same points give the same bytes. Written whole
+    or not at all (``drivers.atomic_file``)."""
     pts = np.ascontiguousarray(points, dtype="<f8")
     header = ("ply\nformat binary_little_endian 1.0\ncomment cell accumulated cloud, base frame, metres\n"
               f"element vertex {pts.shape[0]}\nproperty double x\nproperty double y\nproperty double z\n"
               "end_header\n")
-    path.write_bytes(header.encode("ascii") + pts.tobytes())
+    write_bytes_atomic(path, header.encode("ascii") + pts.tobytes())
 
 
 def read_ply(path: Path) -> Array:

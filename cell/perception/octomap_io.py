@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.perception.occupancy import OccupancyMap, OccupancyParams, logit
+from drivers.atomic_file import atomic_open
 
 TREE_DEPTH = 16
 KEY_OFFSET = 1 << (TREE_DEPTH - 1)  # 32768
@@ -91,7 +92,7 @@ def write_bt(occ_map: OccupancyMap, path: str | Path) -> int:
         codes.append(code)
     path = Path(path)
     n_total = n_nodes + (1 if inner_levels else 0)  # + root
-    with path.open("wb") as f:
+    with atomic_open(path) as f:  # whole or not at all (drivers.atomic_file)
         f.write(f"{HEADER}\n# (written by cell.perception.octomap_io)\n#\nid OcTree\nsize {n_total}\n"
                 f"res {occ_map.resolution_m!r}\ndata\n".encode("ascii"))
         if inner_levels:
