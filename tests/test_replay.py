@@ -51,7 +51,8 @@ def rgbd_job(tmp_path_factory):
 @pytest.mark.parametrize("job, config", [("tof_job", UR5E), ("rgbd_job", FRANKA)])
 def test_a_replayed_job_rebuilds_its_cloud_exactly(request, job, config):
     job_dir = request.getfixturevalue(job)
-    cloud, n = replay_perception(job_dir, load_config(config), seed=1)
+    cloud, n, unreadable = replay_perception(job_dir, load_config(config), seed=1)
+    assert unreadable == []
     assert n == len(list((job_dir / "frames").glob("*.npz"))) >= 3
     recorded = read_ply(job_dir / "cloud.ply")
     assert recorded.shape[0] > 50
@@ -259,4 +260,4 @@ def test_replay_mode_needs_replay_backends_of_one_job(tof_job, tmp_path):
     with pytest.raises(ValueError, match="needs mode 'replay'"):
         CellConfig.model_validate({**data, "mode": "real"})
     res = CliRunner().invoke(app, ["scan", "--replay", str(tmp_path)])
-    assert res.exit_code == 1 and "not a readable job folder" in res.output
+    assert res.exit_code == 1 and "is not a job folder: no result.json and no recorded frames" in res.output

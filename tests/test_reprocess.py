@@ -86,7 +86,7 @@ def test_back_project_matches_the_simulated_points(cube_job):
 def test_not_a_job_folder_raises(tmp_path):
     with pytest.raises(JobError, match="not a job folder"):
         reprocess_job(tmp_path)
-    with pytest.raises(JobError, match="not a job folder"):
+    with pytest.raises(JobError, match="missing does not exist"):
         reprocess_job(tmp_path / "missing")
     (tmp_path / "result.json").write_text("{}")
     with pytest.raises(JobError, match="no recorded frames"):

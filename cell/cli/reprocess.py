@@ -3,36 +3,80 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
+import typer
 from rich.console import Console
 
-from cell.cli.errors import fail
+from cell.cli.errors import fail, print_warning
 from cell.cli.jobs import coverage_line
 from cell.cli.progress import stage_progress
-from cell.jobs.rebuild import rebuild_result
+from cell.jobs.rebuild import check_job_dir, rebuild_result, recorded_result, remove_live_cloud
+from cell.jobs.recorder import RESULT_FILE
 from cell.perception.reprocess import reprocess_job
-from drivers.errors import CellError
+from drivers.atomic_file import check_writable
+from drivers.errors import CellError, JobError
 
 console = Console(soft_wrap=True)
 
 
-def reprocess(job_dir: Path) -> None:
+def _output_folder(job_dir: Path, out: Path | None) -> Path:
+    """Where the outputs go: ``out`` (made when missing) or the job folder; raises ``JobError`` before any
+    work when it cannot be written to."""
+    if out is None:
+        return job_dir
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise JobError(f"cannot create the output folder {out}: {exc}") from None
+    return out
+
+
+def reprocess(
+    job_dir: Path,
+    out: Annotated[Path | None, typer.Option(help="folder to write cloud_hires.ply and result_hires.json to, "
+                                                  "made if missing (default: the job folder)")] = None,
+) -> None:
     """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B).
 
-    A folder whose result.json is missing but whose frames are there gets its result.json back first
-    (status interrupted). Progress: a bar on a terminal, else lines to standard error."""
+    A folder whose result.json is missing or unreadable but whose frames are there gets its result.json
+    back first (status interrupted; an unreadable one is kept as result.json.unreadable); a frame that
+    cannot be read is skipped with a warning. A read-only job folder is refused before any work: give
+    --out. Progress: a bar on a terminal, else lines to standard error."""
     try:
-        rebuilt = rebuild_result(job_dir)
-        if rebuilt is not None:
-            console.print(f"{job_dir / 'result.json'} was missing: rebuilt from {rebuilt['n_captures']} "
-                          f"frames (status {rebuilt['status']})", markup=False, highlight=False)
+        check_job_dir(job_dir)
+        target = _output_folder(job_dir, out)
+        recorded = recorded_result(job_dir)
+        if recorded.problem is not None:
+            try:
+                check_writable(job_dir)
+            except OSError:
+                writable = False
+            else:
+                writable = True
+            if writable:
+                recorded, kept = rebuild_result(job_dir)
+                aside = f"; the unreadable file is kept as {kept}" if kept is not None else ""
+                console.print(f"{job_dir / RESULT_FILE} was {recorded.problem}: rebuilt from "
+                              f"{recorded.result['n_captures']} frames (status {recorded.result['status']})"
+                              f"{aside}", markup=False, highlight=False)
+            elif target != job_dir:  # else reprocess_job refuses the read-only folder, saying to give --out
+                print_warning(f"{job_dir / RESULT_FILE} is {recorded.problem} and the job folder is "
+                              "read-only: re-processing with a result rebuilt from job.json and the frames, "
+                              "not written")
         with stage_progress("reprocess") as show:
-            out = reprocess_job(job_dir, progress=show)
+            outcome = reprocess_job(job_dir, progress=show, out_dir=target, result=recorded.result)
     except CellError as exc:
         raise fail(exc) from None
-    cov = out["metrics"]["coverage_pct"] if out.get("metrics") else None
-    console.print(f"{out['n_frames']} frames, {out['n_cloud_points']} points at {out['voxel_m'] * 1e3:g} mm",
-                  highlight=False)
+    for skipped in outcome["skipped_frames"]:
+        print_warning(f"skipped {skipped['reason']}")
+    if remove_live_cloud(job_dir):
+        console.print("removed the live cloud snapshot cloud_live.npy the job left behind", highlight=False)
+    cov = outcome["metrics"]["coverage_pct"] if outcome.get("metrics") else None
+    n_skipped = len(outcome["skipped_frames"])
+    skipped_text = f" ({n_skipped} unreadable frames skipped)" if n_skipped else ""
+    console.print(f"{outcome['n_frames']} frames{skipped_text}, {outcome['n_cloud_points']} points at "
+                  f"{outcome['voxel_m'] * 1e3:g} mm", highlight=False, markup=False)
     console.print(coverage_line(cov), highlight=False)
-    console.print(f"wrote {job_dir / 'cloud_hires.ply'} and {job_dir / 'result_hires.json'}", markup=False,
+    console.print(f"wrote {target / 'cloud_hires.ply'} and {target / 'result_hires.json'}", markup=False,
                   highlight=False)

@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 
 from cell.cli.entry import EXIT_INTERRUPTED
-from cell.cli.errors import fail, print_error
+from cell.cli.errors import fail, print_error, print_warning
 from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines, time_label
 from cell.cli.progress import scan_progress
 from cell.cli.signals import interrupting
@@ -44,7 +44,11 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
                     out: Path | None, max_time: float | None) -> ScanRequest:
     """A replay of ``job_dir`` (``cell scan --replay``): the job's cell file (or ``config``) with the replay
     backends, and by default the job's own planner and seed."""
-    cfg, recorded, config_path = recorded_job(job_dir, config)
+    cfg, job_result, config_path = recorded_job(job_dir, config)
+    if job_result.problem is not None:
+        print_warning(f"{job_dir / 'result.json'} is {job_result.problem}: replaying with the job's identity "
+                      "from job.json")
+    recorded = job_result.result
     return ScanRequest(config=replay_config(cfg, job_dir), config_path=str(config_path),
                        object=str(recorded.get("object") or "unknown"),
                        planner=planner or recorded.get("planner"),
@@ -64,16 +68,17 @@ def _arm_fault_hint(request: ScanRequest) -> str:
 
 def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Exit:
     """A scan that stopped or failed after its folder was made: ``stopped: <reason>`` for a stop (an
-    operator's, a safety check's), else the error; then where the folder is (its log.txt holds the
-    traceback of an internal error). The exit code of a signal that stopped it is the shell's, 128 + its
-    number."""
+    operator's, a safety check's), else the error; then where the folder is, when it was made (its
+    log.txt holds the traceback of an internal error). The exit code of a signal that stopped it is the
+    shell's, 128 + its number."""
     if isinstance(exc, SafetyStop):
         err_console.print(f"stopped: {exc.reason}", markup=False, highlight=False, soft_wrap=True)
         if exc.reason.startswith(ARM_FAULT):  # what the guard names a fault the arm latched
             err_console.print(_arm_fault_hint(job.request), markup=False, highlight=False, soft_wrap=True)
     else:
         print_error(exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}")
-    err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
+    if job.folder.is_dir():  # not when the folder could not be made
+        err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
     if received:
         return typer.Exit(code=128 + received[0])
     interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED

@@ -7,7 +7,7 @@
   with frames of the simulated ToF sensor and optional injected faults, until Ctrl-C.
 - ``cell sensor replay JOB_DIR`` plays a job folder's frames and poses through the replay sensor and the
   read-only replay arm into the perception pipeline of the job's cell file, and writes the cloud it
-  rebuilds as ``cloud_replay.ply`` beside the recorded ``cloud.ply``.
+  rebuilds as ``cloud_replay.ply`` beside the recorded ``cloud.ply`` (or in ``--out DIR``).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 import numpy as np
 import typer
@@ -23,14 +23,17 @@ from rich.console import Console
 from scipy.spatial import cKDTree
 
 from cell.cli.commands import command_group
+from cell.cli.errors import print_warning
 from cell.config import load_config
 from cell.config.models import CellConfig
+from cell.jobs.rebuild import check_job_dir
 from cell.jobs.replay import recorded_job
 from cell.jobs.runner import job_generators
 from cell.perception.cloud import read_ply, write_ply
 from cell.perception.pipeline import PerceptionPipeline
 from cell.templates import template_path
 from drivers.arm.replay import ReplayArm
+from drivers.atomic_file import check_writable
 from drivers.clock import SimClock
 from drivers.depth.check import CheckReport, SensorCheck
 from drivers.depth.config import VL53L8CX_VALID_STATUSES, VL53L8CXConfig
@@ -185,9 +188,19 @@ def emulate(
 
 
 # -- replay ----------------------------------------------------------------------------------------------
-def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> tuple[np.ndarray, int]:
+class Replayed(NamedTuple):
+    """What :func:`replay_perception` rebuilt: the accumulated ``cloud`` (N, 3) [m, base frame], the number
+    of frames played, and the frame files it skipped as unreadable (file, reason)."""
+
+    cloud: np.ndarray
+    n_frames: int
+    unreadable: list[tuple[Path, str]]
+
+
+def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> Replayed:
     """Play a job folder through the replay sensor and arm on a simulated clock into a fresh perception
-    pipeline of ``cfg``; returns the accumulated cloud [m, base frame] and the number of frames.
+    pipeline of ``cfg``; returns the accumulated cloud, the number of frames and the frames skipped as
+    unreadable (:class:`Replayed`).
 
     Each frame's pose is read from the replay arm at the frame's time and composed with ``cfg``'s mount,
     as a live job does; perception's generator is the job's (``job_generators(seed).perception``), so
@@ -208,7 +221,20 @@ def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> tuple[np.nda
             frame = sensor.capture()
             perception.process(frame, arm.state().T_base_flange @ T_flange_sensor)
             n += 1
-    return perception.cloud.points, n
+    return Replayed(perception.cloud.points, n, recording.unreadable)
+
+
+def _replay_output(job_dir: Path, out_dir: Path | None) -> Path:
+    """The file to write the replayed cloud to: ``cloud_replay.ply`` in ``out_dir`` (made when missing) or
+    in the job folder; raises ``JobError`` before any work when that folder cannot be written to."""
+    folder = job_dir if out_dir is None else out_dir
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        check_writable(folder)
+    except OSError as exc:
+        hint = "; give --out DIR to write it elsewhere" if out_dir is None else ""
+        raise JobError(f"cannot write cloud_replay.ply to {folder}: {exc.strerror or exc}{hint}") from None
+    return folder / "cloud_replay.ply"
 
 
 @sensor_app.command()
@@ -216,16 +242,31 @@ def replay(
     job_dir: Path,
     config: Annotated[Path | None, typer.Option(help="cell file (default: the one the job names)")] = None,
     seed: Annotated[int | None, typer.Option(help="perception seed (default: the job's)")] = None,
+    out: Annotated[Path | None, typer.Option(help="folder to write cloud_replay.ply to, made if missing "
+                                                  "(default: the job folder)")] = None,
 ) -> None:
-    """Re-run a recorded job's frames and poses through perception; writes cloud_replay.ply."""
+    """Re-run a recorded job's frames and poses through perception; writes cloud_replay.ply.
+
+    A frame that cannot be read is skipped with a warning; a result.json that is missing or unreadable
+    is replaced by the job's identity in job.json (nothing is written to the job folder but
+    cloud_replay.ply). A read-only job folder is refused before any work: give --out."""
     try:
-        cfg, result, _ = recorded_job(job_dir, config)
-        cloud, n = replay_perception(job_dir, cfg, seed if seed is not None else int(result.get("seed", 0)))
+        check_job_dir(job_dir)  # before _replay_output, which would make it
+        path = _replay_output(job_dir, out)
+        cfg, job_result, _ = recorded_job(job_dir, config)
+        if job_result.problem is not None:
+            print_warning(f"{job_dir / 'result.json'} is {job_result.problem}: replaying with the job's "
+                          "identity from job.json")
+        result = job_result.result
+        cloud, n, unreadable = replay_perception(job_dir, cfg,
+                                                 seed if seed is not None else int(result.get("seed", 0)))
     except CellError as exc:
         raise _fail(exc) from None
-    out = job_dir / "cloud_replay.ply"
-    write_ply(out, cloud)
-    console.print(f"{n} frames replayed, {cloud.shape[0]} points; wrote {out}", markup=False)
+    for file, reason in unreadable:
+        print_warning(f"skipped {file}: not a readable frame ({reason})")
+    write_ply(path, cloud)
+    skipped = f" ({len(unreadable)} unreadable frames skipped)" if unreadable else ""
+    console.print(f"{n} frames replayed{skipped}, {cloud.shape[0]} points; wrote {path}", markup=False)
     recorded_path = job_dir / "cloud.ply"
     if recorded_path.is_file():
         recorded = read_ply(recorded_path)

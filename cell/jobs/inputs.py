@@ -5,6 +5,7 @@ that ``run_scan`` refuses bad input before the job's folder exists and the servi
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 from drivers.errors import JobError
@@ -30,11 +31,26 @@ def check_pose(pose: tuple[float, float, float]) -> None:
         raise JobError(f"object pose must be three finite numbers x, y, yaw_deg, got {list(pose)}")
 
 
+def _nearest_existing(folder: Path) -> Path:
+    """``folder`` or its nearest ancestor that exists."""
+    for candidate in (folder, *folder.absolute().parents):
+        if candidate.exists():
+            return candidate
+    return Path(folder.absolute().anchor)
+
+
 def check_job_folder(folder: Path) -> None:
-    """A new job's folder: one that does not exist yet, or an empty one. A folder that holds a job is
-    refused (its result would be overwritten), and so is any other non-empty folder (the job's files
-    would land among someone's own)."""
+    """A new job's folder: one that does not exist yet but can be made (its nearest existing ancestor a
+    folder this process may write to, ``os.access``: nothing is made to try), or an empty one. A folder
+    that holds a job is refused (its result would be overwritten), and so is any other non-empty folder
+    (the job's files would land among someone's own)."""
     if not folder.exists():
+        parent = _nearest_existing(folder)
+        if not parent.is_dir():
+            raise JobError(f"cannot create job folder {folder}: {parent} is a file; choose another --out")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise JobError(f"cannot create job folder {folder}: {parent} is not writable (permission denied "
+                           "or a read-only file system); choose another --out")
         return
     if not folder.is_dir():
         raise JobError(f"job folder {folder} is a file; choose another --out")

@@ -1,7 +1,11 @@
-"""A job folder whose ``result.json`` is missing: the process that ran the job was killed before it
-could write it (a power cut, ``kill -9``), or the file was deleted. ``cell reprocess`` rebuilds it from
+"""A job folder whose ``result.json`` is missing or unreadable: the process that ran the job was killed
+before it could write it (a power cut, ``kill -9``), the file was deleted, or it was damaged (a disk
+error; a release that wrote it in place and was killed mid-write). ``cell reprocess`` rebuilds it from
 what the folder still holds, so that the folder is a job folder again: what the job was asked
-(``job.json``, written when the folder was made) and the frames it recorded.
+(``job.json``, written when the folder was made) and the frames it recorded. An unreadable
+``result.json`` is kept aside, renamed ``result.json.unreadable`` (nothing recorded is deleted), and
+rebuilt as a missing one is; the replays (``cell sensor replay``, ``cell scan --replay``) read the same
+rebuilt result without writing it (:func:`recorded_result`).
 
 The rebuilt result says ``status`` ``interrupted`` (the job's own outcome is unknown) and carries the
 identity of the job (planner, object, its scale and pose, seed, cell file), the number of frames, and no
@@ -11,25 +15,66 @@ metrics: ``cell reprocess`` then computes its own from the frames (``result_hire
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.perception.reprocess import recorded_frames
+from drivers.atomic_file import write_text_atomic
 from drivers.errors import JobError
 
 IDENTITY = ("planner", "object", "object_scale", "object_pose", "config", "seed")
 """The fields of ``job.json`` that the rebuilt result keeps."""
 
+UNREADABLE_SUFFIX = ".unreadable"
+"""What an unreadable ``result.json`` is renamed with (``result.json.unreadable``) when it is rebuilt."""
 
-def rebuild_result(job_dir: Path) -> dict[str, Any] | None:
-    """Write the ``result.json`` of a job folder that has lost it and return it; None when the folder has
-    one. Raises ``JobError`` when the folder holds no recorded frame (not a job folder)."""
-    if (job_dir / RESULT_FILE).exists():
-        return None
+
+@dataclass(frozen=True)
+class RecordedResult:
+    """A job folder's result: ``result`` is its ``result.json`` when that is readable, else the one
+    rebuilt from ``job.json`` and the frames; ``problem`` None for a readable ``result.json``, else why it
+    was rebuilt (``missing``, or ``unreadable (<reason>)``)."""
+
+    result: dict[str, Any]
+    problem: str | None
+
+
+def check_job_dir(job_dir: Path) -> None:
+    """Raise ``JobError`` unless ``job_dir`` is an existing folder."""
+    if not job_dir.exists():
+        raise JobError(f"{job_dir} does not exist")
+    if not job_dir.is_dir():
+        raise JobError(f"{job_dir} is not a job folder: it is a file")
+
+
+def _read_result(path: Path) -> dict[str, Any]:
+    """``result.json`` as a dict; raises ``ValueError`` (a JSON error, or not an object) or ``OSError``."""
+    result = json.loads(path.read_text())
+    if not isinstance(result, dict):
+        raise ValueError(f"not a job result (a JSON {type(result).__name__}, expected an object)")
+    return result
+
+
+def recorded_result(job_dir: Path) -> RecordedResult:
+    """A job folder's result, read or rebuilt in memory (nothing is written; see :class:`RecordedResult`).
+    Raises ``JobError`` for a folder that does not exist, and for one without a readable ``result.json``
+    that holds no recorded frame either (not a job folder)."""
+    check_job_dir(job_dir)
+    path = job_dir / RESULT_FILE
+    if not path.exists():
+        problem = "missing"
+    else:
+        try:
+            return RecordedResult(_read_result(path), None)
+        except (OSError, ValueError) as exc:
+            problem = f"unreadable ({exc})"
     frames = recorded_frames(job_dir)
     if not frames:
-        raise JobError(f"{job_dir} is not a job folder: no result.json and no recorded frames")
+        what = f"no {RESULT_FILE}" if problem == "missing" else f"{RESULT_FILE} {problem}"
+        raise JobError(f"{job_dir} is not a job folder: {what} and no recorded frames")
     try:
         asked = json.loads((job_dir / JOB_FILE).read_text())
     except (OSError, ValueError):
@@ -38,13 +83,59 @@ def rebuild_result(job_dir: Path) -> dict[str, Any] | None:
     result: dict[str, Any] = {
         **known,
         "status": "interrupted",
-        "termination": f"the job ended without writing its result; rebuilt by cell reprocess from "
+        "termination": f"the job ended without writing a readable result; rebuilt by cell reprocess from "
                        f"{len(frames)} recorded frames" + ("" if known else f" (no readable {JOB_FILE})"),
         "n_captures": len(frames),
         "metrics": {"chamfer_mm": None, "hausdorff_mm": None, "coverage_pct": None},
     }
-    (job_dir / RESULT_FILE).write_text(json.dumps(result, indent=2) + "\n")
+    return RecordedResult(result, problem)
+
+
+def _aside(path: Path) -> Path:
+    """A free name to keep the unreadable ``path`` under: ``result.json.unreadable``, then ``...-2``..."""
+    candidate = path.with_name(path.name + UNREADABLE_SUFFIX)
+    n = 1
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}{UNREADABLE_SUFFIX}-{n}")
+    return candidate
+
+
+def rebuild_result(job_dir: Path) -> tuple[RecordedResult, Path | None]:
+    """Write the ``result.json`` of a job folder that has lost it, or whose ``result.json`` is unreadable
+    (kept aside first, renamed ``result.json.unreadable``); returns the result (:func:`recorded_result`,
+    ``problem`` None when the folder's own was readable and nothing was written) and where the unreadable
+    file was kept (None when there was none). Raises ``JobError`` as :func:`recorded_result` does, and for
+    a folder it cannot write to."""
+    recorded = recorded_result(job_dir)
+    if recorded.problem is None:
+        return recorded, None
+    path = job_dir / RESULT_FILE
+    kept: Path | None = None
+    try:
+        if path.exists():
+            kept = _aside(path)
+            path.rename(kept)
+        write_text_atomic(path, json.dumps(recorded.result, indent=2) + "\n", durable=True)
+    except OSError as exc:
+        raise JobError(f"cannot rebuild {path} ({RESULT_FILE} {recorded.problem}): {exc}") from None
     if (job_dir / "log.txt").is_file():
         with (job_dir / "log.txt").open("a") as log:
-            log.write(f"[reprocess] {RESULT_FILE} was missing: rebuilt, status interrupted\n")
-    return result
+            aside = f", the unreadable file kept as {kept.name}" if kept is not None else ""
+            log.write(f"[reprocess] {RESULT_FILE} was {recorded.problem}: rebuilt, status "
+                      f"interrupted{aside}\n")
+    return recorded, kept
+
+
+def remove_live_cloud(job_dir: Path) -> bool:
+    """Remove the live cloud snapshot (``cloud_live.npy``) a job killed while watched left behind, once
+    the job has a result again; returns whether there was one. The snapshot is only for watching a
+    running job, and a job with a result is not running."""
+    snapshot = job_dir / LIVE_CLOUD_FILE
+    if not snapshot.is_file() or not (job_dir / RESULT_FILE).is_file():
+        return False
+    try:
+        snapshot.unlink()
+    except OSError:
+        return False
+    return True

@@ -29,7 +29,6 @@ planes, as in a live job.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +36,12 @@ import numpy as np
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
+from cell.jobs.rebuild import RecordedResult, recorded_result
 from cell.jobs.requests import REACHABLE, REACHED, RecordedAnswer, pose_cells, recorded_answers
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.planning.base import Array
 from drivers.arm.replay import ReplayArm
-from drivers.depth.replay import TIME_TOLERANCE_S, ReplaySensor
+from drivers.depth.replay import TIME_TOLERANCE_S, JobRecording, ReplaySensor
 from drivers.errors import ConfigError, JobError
 from drivers.transforms import pose_error
 
@@ -157,20 +157,31 @@ class ReplaySession(JobSession):
         return np.concatenate([R1.T @ step[:3], R1.T @ step[3:]])
 
 
-def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, dict[str, Any], Path]:
-    """A job folder's ``result.json`` and the cell file to replay it with: ``config``, else the one the
-    job names (as given, or relative to the job folder). Returns the loaded cell file, the result and
-    the cell file's path."""
-    try:
-        result = json.loads((job_dir / "result.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
+def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, RecordedResult, Path]:
+    """A job folder's result (its ``result.json``, or one rebuilt from ``job.json`` and the frames when
+    that is missing or unreadable: :func:`cell.jobs.rebuild.recorded_result`, nothing written) and the
+    cell file to replay it with: ``config``, else the one the job names (as given, or relative to the job
+    folder). Returns the loaded cell file, the result and the cell file's path."""
+    recorded = recorded_result(job_dir)
+    result = recorded.result
     if config is None:
         named = Path(str(result.get("config", "")))
         config = next((c for c in (named, job_dir / named) if c.is_file()), None)
         if config is None:
             raise JobError(f"the job's cell file {named} is not found; give --config")
-    return load_config(config), result, config
+    return load_config(config), recorded, config
+
+
+def check_recording(job_dir: Path) -> None:
+    """Refuse to replay a job whose frames cannot all be read (``JobError`` naming the first): a replay
+    re-runs the job's planner on every recorded frame in recorded time, and one left out would change
+    what it decides. ``cell reprocess`` and ``cell sensor replay`` skip such a frame instead."""
+    recording = JobRecording(job_dir)
+    if recording.unreadable:
+        path, reason = recording.unreadable[0]
+        raise JobError(f"{path}: not a readable frame ({reason}); {len(recording.unreadable)} of the job's "
+                       f"{len(recording.unreadable) + len(recording.frames)} frames cannot be read and a "
+                       "replay plays them all (cell reprocess and cell sensor replay skip them)")
 
 
 def replay_config(cfg: CellConfig, job_dir: Path) -> CellConfig:

@@ -27,7 +27,6 @@ captured from marked where the planner keeps its captures); a servo planner's jo
 
 from __future__ import annotations
 
-import json
 import time
 import traceback
 from collections.abc import Callable
@@ -46,8 +45,9 @@ from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
 from cell.jobs.progress import JobProgress
+from cell.jobs.rebuild import recorded_result
 from cell.jobs.recorder import JobRecorder
-from cell.jobs.replay import ReplaySession
+from cell.jobs.replay import ReplaySession, check_recording
 from cell.jobs.session import JobSession, ScanLimitReached
 from cell.jobs.stop_file import STOP_FILE
 from cell.packing.result import RecordsReconstruction, packing_section, section_box
@@ -190,13 +190,11 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
 
 
 def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
-    """The object a recorded job scanned, as its ``result.json`` names it, with its mesh (at the scale
+    """The object a recorded job scanned, as its result names it (``result.json``, or the one rebuilt from
+    ``job.json`` when that is missing or unreadable), with its mesh (at the scale
     the job used) and pose when it was a simulated job whose object is at hand (the ground truth for
     metrics); (name, None, None) otherwise."""
-    try:
-        recorded = json.loads((job_dir / "result.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise JobError(f"{job_dir} is not a readable job folder: {exc}") from None
+    recorded = recorded_result(job_dir).result
     name, pose = recorded.get("object"), recorded.get("object_pose")
     if not name or pose is None:
         return str(name or "unknown"), None, None
@@ -213,6 +211,7 @@ def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, Obj
     of sim and dry runs and of replays of them; a real cell scans an unknown object, an empty table has
     none)."""
     if replay_dir is not None:
+        check_recording(replay_dir)
         return _recorded_object(replay_dir)
     if req.config.mode == "real":
         return req.object, None, None

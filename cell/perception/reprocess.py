@@ -8,7 +8,8 @@ then compares the result with the ground truth by eq. 13. ``reprocess_job`` does
 
 1. frames: ``frames/NNNNNN.npz``; a depth image ``depth`` [m] (0 = no return) with intrinsics ``K`` is
    back-projected (x = (u - cx) z / fx, y = (v - cy) z / fy, pixel centres at integer (u, v)), otherwise
-   the recorded ``points`` [m, sensor frame] are used; ``T_base_sensor`` is the pose the job used;
+   the recorded ``points`` [m, sensor frame] are used; ``T_base_sensor`` is the pose the job used; a
+   frame that cannot be read (a damaged file) is left out, named in ``skipped_frames`` with the reason;
 2. filtering: the crop box in the sensor frame (the job's cell file if it can still be loaded, else the
    paper's x, y within +-15 cm, z in (5, 40) cm), then a ``voxel_m`` (1 mm) voxel filter per frame;
 3. multiway registration: the point-to-plane ICP of online registration (``point_to_plane_icp``:
@@ -47,6 +48,8 @@ from __future__ import annotations
 
 import json
 import time
+import zipfile
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -67,6 +70,7 @@ from cell.perception.registration import (
     kept_directions,
     point_to_plane_icp,
 )
+from drivers.atomic_file import check_writable, write_text_atomic
 from drivers.config_base import StrictModel
 from drivers.depth.projection import back_project
 from drivers.errors import CellError, JobError
@@ -152,6 +156,8 @@ def single_threaded_open3d() -> Iterator[None]:
 
 def _load_result(job_dir: Path) -> dict[str, Any]:
     path = job_dir / "result.json"
+    if not job_dir.exists():
+        raise JobError(f"{job_dir} does not exist")
     if not job_dir.is_dir() or not path.is_file():
         raise JobError(f"{job_dir} is not a job folder: no result.json")
     try:
@@ -191,8 +197,15 @@ def _crop_for(job_dir: Path, result: dict[str, Any]) -> tuple[CropBoxConfig, str
     return PAPER_CROP, "paper section II-A"
 
 
+UNREADABLE_FRAME_ERRORS = (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile, zlib.error)
+"""What reading a damaged ``.npz`` raises: a truncated file is no zip (``BadZipFile``), a damaged member
+fails its CRC (``BadZipFile``) or decompression (``zlib.error``) or ends early (``EOFError``, ``ValueError``),
+a member may be missing (``KeyError``)."""
+
+
 def _load_frame(path: Path) -> tuple[Array, Array, float]:
-    """(points [m, sensor frame], T_base_sensor, capture time [s, job clock]) of one recorded frame."""
+    """(points [m, sensor frame], T_base_sensor, capture time [s, job clock]) of one recorded frame; raises
+    ``JobError`` naming the file for one that cannot be read."""
     try:
         with np.load(path) as f:
             T = np.asarray(f["T_base_sensor"], dtype=np.float64)
@@ -201,8 +214,8 @@ def _load_frame(path: Path) -> tuple[Array, Array, float]:
                 pts = back_project(np.asarray(f["depth"]), np.asarray(f["K"], dtype=np.float64))
             else:
                 pts = np.asarray(f["points"], dtype=np.float64).reshape(-1, 3)
-    except (OSError, KeyError, ValueError, TypeError) as exc:
-        raise JobError(f"{path}: not a readable frame ({exc})") from None
+    except UNREADABLE_FRAME_ERRORS as exc:
+        raise JobError(f"{path}: not a readable frame ({type(exc).__name__}: {exc})") from None
     if T.shape != (4, 4):
         raise JobError(f"{path}: T_base_sensor has shape {T.shape}, expected (4, 4)")
     return pts, T, t
@@ -344,25 +357,36 @@ def _silent(stage: str, done: int, total: int) -> None:
 
 def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig | None = None,
                   params: MultiwayParams | None = None, frame_step: int = 1,
-                  progress: StageReport = _silent) -> dict[str, Any]:
+                  progress: StageReport = _silent, out_dir: Path | None = None,
+                  result: dict[str, Any] | None = None) -> dict[str, Any]:
     """Rebuild a job's cloud at ``voxel_m`` [m] with multiway registration (paper section III-B).
 
-    Writes ``cloud_hires.ply`` and ``result_hires.json`` into ``job_dir`` and returns what was written
-    to the JSON. ``crop`` overrides the crop box (sensor frame); ``params`` the registration settings;
-    ``frame_step`` uses every n-th frame only (1 = all); ``progress`` hears how far each stage is (frames
-    loaded, pairs registered, pose graph, metrics). Raises ``JobError`` for a folder that is not a job
-    folder, has no frames or holds an unreadable frame.
+    Writes ``cloud_hires.ply`` and ``result_hires.json`` into ``out_dir`` (default ``job_dir``) and
+    returns what was written to the JSON. ``result`` is the job's result (default: its ``result.json``);
+    ``crop`` overrides the crop box (sensor frame); ``params`` the registration settings; ``frame_step``
+    uses every n-th frame only (1 = all); ``progress`` hears how far each stage is (frames loaded, pairs
+    registered, pose graph, metrics). A frame that cannot be read (a damaged file) is left out and listed
+    in the output's ``skipped_frames`` (file and reason). Raises ``JobError`` for a folder that is not a
+    job folder or has no readable frame, and, before any work, for an ``out_dir`` it cannot write to.
     """
 
     job_dir = Path(job_dir)
+    out_dir = job_dir if out_dir is None else Path(out_dir)
     if voxel_m <= 0.0:
         raise JobError(f"voxel size must be positive, got {voxel_m} m")
     if frame_step < 1:
         raise JobError(f"frame step must be at least 1, got {frame_step}")
     p = params or MultiwayParams()
     t_start = time.perf_counter()
-    result = _load_result(job_dir)
+    if result is None:
+        result = _load_result(job_dir)
     files = _frame_files(job_dir)[::frame_step]
+    try:
+        check_writable(out_dir)
+    except OSError as exc:
+        hint = "; give --out DIR to write them elsewhere" if out_dir == job_dir else ""
+        raise JobError(f"cannot write cloud_hires.ply and result_hires.json to {out_dir}: "
+                       f"{exc.strerror or exc}{hint}") from None
     if crop is None:
         crop, crop_source = _crop_for(job_dir, result)
     else:
@@ -371,13 +395,21 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     clouds: list[Array] = []
     poses: list[Array] = []
     times: list[float] = []
+    skipped: list[dict[str, str]] = []
     for n_done, path in enumerate(files):
         progress("load frames", n_done, len(files))
-        pts, T, t = _load_frame(path)
+        try:
+            pts, T, t = _load_frame(path)
+        except JobError as exc:
+            skipped.append({"file": str(path.relative_to(job_dir)), "reason": str(exc)})
+            continue
         clouds.append(crop_voxel_downsample(pts, crop.x_m, crop.y_m, crop.z_m, voxel_m))
         poses.append(T)
         times.append(t)
     progress("load frames", len(files), len(files))
+    if not clouds:
+        raise JobError(f"none of the {len(files)} recorded frames of {job_dir} is readable; nothing to "
+                       f"re-process (first: {skipped[0]['reason']})")
     t_loaded = time.perf_counter()
 
     with single_threaded_open3d():
@@ -387,7 +419,7 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     per_frame = [voxel_downsample(transform_points(T, c), voxel_m) for T, c in zip(optimized, clouds,
                                                                                      strict=True)]
     cloud, first = first_voxels(per_frame, voxel_m)
-    write_ply(job_dir / "cloud_hires.ply", cloud)
+    write_ply(out_dir / "cloud_hires.ply", cloud)
 
     gt = _ground_truth(result)
     metrics = timeline = None
@@ -403,7 +435,8 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
         progress("metrics", 1, 1)
     t_measured = time.perf_counter()
     out: dict[str, Any] = {
-        "n_frames": len(files),
+        "n_frames": len(clouds),
+        "skipped_frames": skipped,
         "frame_step": frame_step,
         "voxel_m": voxel_m,
         "crop_box": {"x_m": list(crop.x_m), "y_m": list(crop.y_m), "z_m": list(crop.z_m),
@@ -418,5 +451,5 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
                         "metrics": round(t_measured - t_registered, 3),
                         "total": round(time.perf_counter() - t_start, 3)},
     }
-    (job_dir / "result_hires.json").write_text(json.dumps(out, indent=2, allow_nan=False) + "\n")
+    write_text_atomic(out_dir / "result_hires.json", json.dumps(out, indent=2, allow_nan=False) + "\n")
     return out

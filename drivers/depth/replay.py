@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import csv
 import math
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,9 +51,17 @@ class RecordedFrame:
     timestamp: float
 
 
+UNREADABLE_FRAME_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+"""What reading a damaged ``.npz`` raises: a truncated file is no zip (``BadZipFile``), a damaged member
+fails its CRC (``BadZipFile``) or decompression (``zlib.error``) or ends early (``EOFError``,
+``ValueError``), a member may be missing (``KeyError``)."""
+
+
 class JobRecording:
     """The frames and poses of a job folder (see the module docstring); raises ``DriverError`` for a
-    folder that holds no readable recording."""
+    folder that holds no readable recording. A frame file that cannot be read whole (a damaged file: each
+    one's members are checked against their CRC) is left out of :attr:`frames` and listed in
+    :attr:`unreadable` with the reason, for the caller to warn of or to refuse."""
 
     def __init__(self, job_dir: str | Path) -> None:
         self.job_dir = Path(job_dir)
@@ -60,22 +70,37 @@ class JobRecording:
         if not files:
             raise DriverError("no recorded frames (frames/NNNNNN.npz): not a job folder", device=self.device)
         frames = []
+        self.unreadable: list[tuple[Path, str]] = []
+        """(file, reason) of each frame file that cannot be read, left out of :attr:`frames`."""
         T_flange_sensor: Array | None = None
         for path in files:
-            with self._open(path) as f:
-                frames.append(RecordedFrame(path, int(path.stem), float(f["timestamp"])))
-                if T_flange_sensor is None:
-                    T_flange_sensor = inv_T(np.asarray(f["T_base_flange"])) @ np.asarray(f["T_base_sensor"])
-        assert T_flange_sensor is not None
+            try:
+                with np.load(path) as f:
+                    damaged = f.zip.testzip() if f.zip is not None else None
+                    if damaged is not None:
+                        raise zipfile.BadZipFile(f"member {damaged} fails its CRC check")
+                    frame = RecordedFrame(path, int(path.stem), float(f["timestamp"]))
+                    T_fs = inv_T(np.asarray(f["T_base_flange"])) @ np.asarray(f["T_base_sensor"])
+            except UNREADABLE_FRAME_ERRORS as exc:
+                self.unreadable.append((path, f"{type(exc).__name__}: {exc}"))
+                continue
+            frames.append(frame)
+            if T_flange_sensor is None:
+                T_flange_sensor = T_fs
+        if T_flange_sensor is None:
+            path, reason = self.unreadable[0]
+            raise DriverError(f"none of the {len(files)} recorded frames is readable (first: {path.name}: "
+                              f"{reason})", device=self.device)
         self.frames: list[RecordedFrame] = sorted(frames, key=lambda r: r.timestamp)
         self.T_flange_sensor: Array = T_flange_sensor
-        """The hand-eye transform the job used, recovered from its first frame."""
+        """The hand-eye transform the job used, recovered from its first readable frame."""
 
     def _open(self, path: Path) -> np.lib.npyio.NpzFile:
         try:
             return np.load(path)
-        except (OSError, ValueError) as exc:
-            raise DriverError(f"{path.name}: not a readable frame ({exc})", device=self.device) from None
+        except UNREADABLE_FRAME_ERRORS as exc:
+            raise DriverError(f"{path}: not a readable frame ({type(exc).__name__}: {exc})",
+                              device=self.device) from None
 
     def load(self, index: int) -> tuple[DepthFrame, Array, Array]:
         """Frame ``index`` (in time order) as captured, with its T_base_sensor and T_base_flange."""
@@ -97,7 +122,10 @@ class JobRecording:
                                      reflectance_pct=f["zone_reflectance_pct"],
                                      directions=f["zone_directions"])
         except KeyError as exc:
-            raise DriverError(f"{rec.path.name}: missing {exc}", device=self.device) from None
+            raise DriverError(f"{rec.path}: missing {exc}", device=self.device) from None
+        except UNREADABLE_FRAME_ERRORS as exc:
+            raise DriverError(f"{rec.path}: not a readable frame ({type(exc).__name__}: {exc})",
+                              device=self.device) from None
         frame = DepthFrame(seq=rec.seq, timestamp=rec.timestamp, points=points, depth=depth, intrinsics=K,
                            zones=zones)
         return frame, T_base_sensor, T_base_flange
