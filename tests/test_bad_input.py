@@ -106,11 +106,13 @@ def test_out_must_be_a_new_or_empty_folder(tmp_path):
 
 def test_an_empty_table_ends_no_object_and_the_cli_says_so(tmp_path):
     out = tmp_path / "empty"
-    res = _scan("--object", "none", "--planner", "raster", "--max-time", "8", "--out", str(out))
+    # a budget that lets the raster visit all its views (19.5 s): it ends its path, having seen nothing
+    res = _scan("--object", "none", "--planner", "raster", "--max-time", "25", "--out", str(out))
     assert res.exit_code == 2, res.output
     result = json.loads((out / "result.json").read_text())
     assert result["status"] == "no_object" and result["n_captures"] >= 3
     assert result["termination"].startswith("no object found: segmentation found nothing above the table")
+    assert result["termination"].endswith("(raster complete: 12 of 14 views captured, 2 unreachable)")
     assert result["metrics"]["coverage_pct"] is None and result["packing"]["dims_m"] is None
     assert f"job folder: {out}" in res.output
     # decided from what the job saw, not from ground truth: a replay of the recording has none, and the
@@ -119,6 +121,25 @@ def test_an_empty_table_ends_no_object_and_the_cli_says_so(tmp_path):
                                   config_path=str(FRANKA), object="none", planner="raster",
                                   out=tmp_path / "replay"))
     assert replay.result["object_pose"] is None and replay.result["status"] == "no_object"
+
+
+@pytest.mark.parametrize("planner, max_time, frames",
+                         [("lr-nbv", "1", "1 frame"), ("raster", "5", "2 frames")])
+def test_a_budget_that_ends_the_search_before_an_object_is_found_is_not_no_object(tmp_path, planner, max_time,
+                                                                                  frames):
+    """A cube on the ToF cell: one frame of 8 x 8 zones does not show it to segmentation, and a budget that
+    ended the planner's run after it used to end no_object (exit 2, "no part" to a packing line)."""
+    out = tmp_path / "short"
+    res = CliRunner().invoke(app, ["scan", "--config", str(UR5E), "--object", "cube", "--planner", planner,
+                                   "--seed", "1" if planner == "raster" else "0", "--max-time", max_time,
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    result = json.loads((out / "result.json").read_text())
+    assert result["status"] == "completed" and result["packing"]["dims_m"] is None
+    assert result["termination"] == (
+        f"time budget of {max_time} s used up before an object was found or the planner's search for one had "
+        f"ended (segmentation found nothing above the table in {frames}): too soon to tell an empty table, "
+        "so not no_object")
 
 
 def test_a_part_only_the_map_shows_ends_completed_with_its_box(tmp_path):

@@ -107,7 +107,8 @@ def scan(
 ) -> None:
     """Run a scan and write its job folder.
 
-    Exit code 0 when it completed, 2 when it found no object on the table, 1 when it failed or was stopped
+    Exit code 0 when it completed (also when its time budget ended it before an object was found: the
+    termination says so), 2 when it found no object on the table, 1 when it failed or was stopped
     and on an error in its input (nothing is made then), 130 after Ctrl-C, 143 after SIGTERM and 129 after
     SIGHUP (they stop the scan as Ctrl-C does); the job folder is printed in every case once it exists.
     Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""

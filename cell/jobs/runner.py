@@ -8,11 +8,15 @@ everything recorded so far with ``status`` ``failed`` (or ``stopped`` for a safe
 ``termination`` saying why, then re-raises; a failure while setting up or while writing the outputs
 leaves a ``failed`` result with the error.
 
-A job that ran to its end, recorded frames, but whose segmentation never found an object above the table
-in them (an empty table; a part that did not arrive) ends ``no_object``, not ``completed``: termination
-"no object found: ...". It is decided from what the job saw, never from ground truth, so it holds on a
-real cell too. A job whose time budget ran out before its first frame saw nothing either way and ends
-``completed`` with no captures, as before.
+A job whose planner ended its run (its search for an object, or its whole path) with segmentation never
+having found an object above the table in the frames it captured (an empty table; a part that did not
+arrive) ends ``no_object``, not ``completed``: termination "no object found: ...". It is decided from what
+the job saw, never from ground truth, so it holds on a real cell too. A limit that cut the planner's run
+short before an object was found (the time budget, the end of a replayed recording) decides nothing
+either way: such a job ends ``completed``, its termination saying that no object was found yet and that
+the planner's search had not ended. One ToF frame of 64 zones cannot show a 10 cm cube to segmentation
+(a cluster of at least ``min_cluster_points``), so a 1 s budget that stopped LR-NBV after its first frame
+said "no object" of a cube standing there, and a packing line takes ``no_object`` for "no part".
 
 Sim mode runs every device on the simulated clock (deterministic); a dry run (``mode: dry-run``) runs the
 job on the wall clock with a hardware arm and a simulated sensor that sees the virtual object from where
@@ -252,9 +256,25 @@ def _run_planner(planner: Planner, session: JobSession) -> str:
         session.close()
 
 
-def _no_object(session: JobSession, planner_termination: str) -> str:
-    return (f"no object found: segmentation found nothing above the table in {session.n_captures} frames "
-            f"({planner_termination})")
+def _outcome(session: JobSession, termination: str, planner_found_nothing: bool,
+             cut_short: bool) -> tuple[str, str]:
+    """The status and termination of a job whose planner's run ended with ``termination`` (module
+    docstring): ``no_object`` needs the planner to have ended its run, by ``NoObjectFound``
+    (``planner_found_nothing``, its search ended) or by returning, with no object found in the frames it
+    segmented; a run ``cut_short`` by a limit (``ScanLimitReached``) before an object was found ends
+    ``completed``, undecided, and so does one that captured no frame."""
+    if session.object_found and not planner_found_nothing:
+        return "completed", termination
+    n = session.n_captures
+    frames = f"{n} frame{'' if n == 1 else 's'}"
+    if cut_short:
+        seen = "no frame captured" if n == 0 else f"segmentation found nothing above the table in {frames}"
+        return "completed", (f"{termination} before an object was found or the planner's search for one had "
+                             f"ended ({seen}): too soon to tell an empty table, so not no_object")
+    if n == 0 and not planner_found_nothing:
+        return "completed", termination
+    return "no_object", (f"no object found: segmentation found nothing above the table in {frames} "
+                         f"({termination})")
 
 
 def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None = None,
@@ -371,12 +391,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                 raise
             guard.finish()
             session.settle()
-            # no frame, nothing seen: the budget ran out before the first view (a budget's matter); a
-            # planner that ended for want of an object has the last word over what the map may hold
-            found = session.object_found and not planner_found_nothing
-            status = "completed" if found or session.n_captures == 0 else "no_object"
-            if status == "no_object":
-                termination = _no_object(session, termination)
+            # a planner that ended for want of an object has the last word over what the map may hold
+            status, termination = _outcome(session, termination, planner_found_nothing, limit_reached)
     except SafetyStop as exc:
         status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
     except KeyboardInterrupt as exc:
