@@ -261,3 +261,15 @@ def test_replay_mode_needs_replay_backends_of_one_job(tof_job, tmp_path):
         CellConfig.model_validate({**data, "mode": "real"})
     res = CliRunner().invoke(app, ["scan", "--replay", str(tmp_path)])
     assert res.exit_code == 1 and "is not a job folder: no result.json and no recorded frames" in res.output
+
+
+@pytest.mark.parametrize("option, value", [("--object", "bunny"), ("--object-pose", "0.01,0,0"),
+                                           ("--object-scale", "1")])
+def test_a_replay_refuses_another_object(tof_job, tmp_path, option, value):
+    """The recording holds the scanned object: an object, pose or scale given with --replay was ignored."""
+    out = tmp_path / "replayed"
+    res = CliRunner().invoke(app, ["scan", "--replay", str(tof_job), option, value, "--out", str(out)])
+    assert res.exit_code == 1, res.output
+    assert res.stderr == (f"error: {option} cannot be given with --replay: a replay scans the recorded job's "
+                          "object, where the recording has it\n")
+    assert not out.exists()

@@ -19,7 +19,7 @@ from cell.config.placeholders import require_measured
 from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
 from cell.templates import DEFAULT_TEMPLATE, template_path
-from drivers.errors import ARM_FAULT, CellError, SafetyStop
+from drivers.errors import ARM_FAULT, CellError, JobError, SafetyStop
 from drivers.sim.objects import EMPTY_TABLE
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
@@ -90,10 +90,13 @@ def scan(
                                                      "cell; with --replay, the job's)")] = None,
     object: Annotated[str | None, typer.Option(
         "--object", help=f"shipped name or mesh file (default {DEFAULT_OBJECT}), {EMPTY_TABLE!r} for an "
-                         "empty table; on a real cell, a label for the record")] = None,
-    object_pose: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
-    object_scale: Annotated[float, typer.Option(help="multiplies the mesh's coordinates into metres (0.001 "
-                                                     "for a mesh in millimetres)")] = 1.0,
+                         "empty table; on a real cell, a label for the record; not with --replay, which "
+                         "scans the recorded job's")] = None,
+    object_pose: Annotated[str | None, typer.Option(help="x,y,yaw_deg from the station (default 0,0,0)")]
+    = None,
+    object_scale: Annotated[float | None, typer.Option(help="multiplies the mesh's coordinates into metres "
+                                                            "(0.001 for a mesh in millimetres; default 1)")]
+    = None,
     planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's; with "
                                                      "--replay, the job's)")] = None,
     seed: Annotated[int | None, typer.Option(help="random seed of the job (default 0; with --replay, the "
@@ -114,6 +117,11 @@ def scan(
     Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
     try:
         if replay is not None:
+            given = [name for name, value in (("--object", object), ("--object-pose", object_pose),
+                                              ("--object-scale", object_scale)) if value is not None]
+            if given:
+                raise JobError(f"{', '.join(given)} cannot be given with --replay: a replay scans the "
+                               "recorded job's object, where the recording has it")
             request = _replay_request(replay, config, planner, seed, out, max_time)
         else:
             path = config if config is not None else DEFAULT_CONFIG
@@ -121,9 +129,9 @@ def scan(
             require_measured(path, cfg.mode)
             label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
             request = ScanRequest(config=cfg, config_path=str(path), object=label,
-                                  object_pose=_parse_pose(object_pose), planner=planner,
+                                  object_pose=_parse_pose(object_pose or "0,0,0"), planner=planner,
                                   seed=seed if seed is not None else 0, out=out, max_time_s=max_time,
-                                  object_scale=object_scale)
+                                  object_scale=object_scale if object_scale is not None else 1.0)
         job = prepare_scan(request)
     except CellError as exc:
         raise fail(exc) from None
