@@ -144,6 +144,11 @@ def test_tof_cell_scans(tmp_path):
     assert r["n_cloud_points"] > 20
     f0 = np.load(sorted((tmp_path / "tof" / "frames").glob("*.npz"))[0])
     assert f0["zone_status"].shape == (64,) and f0["points"].shape[1] == 3
+    # the ToF cell's registration is off: the log says so, with no ICP figures as if it had run
+    log = (tmp_path / "tof" / "log.txt").read_text()
+    assert "capture 0: 64 points, 64 after filtering; registration skipped (disabled in the cell file, " \
+           "perception.registration.enabled: false): the FK pose is used; H_ROI" in log
+    assert "directions constrained" not in log
 
 
 def test_sensor_failure_stops_and_keeps_frames(tmp_path, monkeypatch):

@@ -635,6 +635,4 @@ class JobSession:
             self.coverage_history.append((self.now(), self.coverage.add(update.points_base)))
         h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
         self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
-                 f"filtering; registration {reg.reason} (fitness {reg.fitness:.3f}, correction "
-                 f"{reg.correction_m * 1e3:.2f} mm / {reg.correction_deg:.3f} deg, {reg.n_constrained} of 6 "
-                 f"directions constrained); H_ROI {h}")
+                 f"filtering; {reg.describe()}; H_ROI {h}")

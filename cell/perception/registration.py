@@ -163,6 +163,10 @@ class RegistrationParams(StrictModel):
 
 
 REJECTED = "rejected: "
+SKIPPED_REASONS = {"disabled": "disabled in the cell file, perception.registration.enabled: false",
+                   "no target yet": "no target yet: the first frame starts it",
+                   "too few points": "too few points to register"}
+"""The reasons ICP did not run (``RegistrationResult.reason``), in words."""
 
 
 @dataclass(frozen=True)
@@ -194,6 +198,21 @@ class RegistrationResult:
     def rejected(self) -> bool:
         """ICP ran and its result was refused (a skipped registration is not a rejection)."""
         return self.reason.startswith(REJECTED)
+
+    @property
+    def skipped(self) -> bool:
+        """ICP did not run (``reason`` says why: the fitness, correction and constrained directions are
+        placeholders then, not measurements)."""
+        return not (self.accepted or self.rejected)
+
+    def describe(self) -> str:
+        """The outcome in words for a job's log: ICP's figures when it ran, else why it did not run."""
+        if self.skipped:
+            why = SKIPPED_REASONS.get(self.reason, self.reason)
+            return f"registration skipped ({why}): the FK pose is used"
+        return (f"registration {self.reason} (fitness {self.fitness:.3f}, correction "
+                f"{self.correction_m * 1e3:.2f} mm / {self.correction_deg:.3f} deg, "
+                f"{self.n_constrained} of 6 directions constrained)")
 
 
 class IcpResult(NamedTuple):
