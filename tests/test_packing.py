@@ -165,7 +165,7 @@ def test_container_smallest_that_fits_with_yaw_swap() -> None:
     np.testing.assert_allclose(required_inner_dims(np.array([0.3, 0.05, 0.1]), 0.01), [0.32, 0.07, 0.11])
     # the reason shows how the inner size was reached from the box it was asked for
     assert choice.reason == ("smallest container holding 0.320 x 0.070 x 0.110 m (0.300 x 0.050 x 0.100 m "
-                             "plus 0.01 m clearance), turned by 90 deg")
+                             "plus 0.01 m clearance on each side and on top), turned by 90 deg")
 
 
 def test_container_margin_decides() -> None:

@@ -50,9 +50,9 @@ def choose_container(dims: Array, containers: list[ContainerConfig], margin_m: f
         if not containers:
             return ContainerChoice(None, False, "none fits: the catalogue (packing.containers) is empty")
         return ContainerChoice(None, False, f"none fits: no container holds {need_text} m "
-                                            f"(object plus {margin_m:g} m clearance)")
+                                            f"(object plus {margin_m:g} m clearance on each side and on top)")
     chosen = containers[best[1]]
     turn = ", turned by 90 deg" if best[2] else ""
     dims_text = " x ".join(f"{v:.3f}" for v in dims)
     return ContainerChoice(chosen, best[2], f"smallest container holding {need_text} m ({dims_text} m plus "
-                                            f"{margin_m:g} m clearance){turn}")
+                                            f"{margin_m:g} m clearance on each side and on top){turn}")
