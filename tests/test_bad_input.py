@@ -28,6 +28,7 @@ from cell.cli.scan import _arm_fault_hint
 from cell.cli.signals import TERMINATING
 from cell.config import load_config
 from cell.evaluation.presets import write_heldout_shapes
+from cell.evaluation.spec import check_specs, cross
 from cell.jobs.replay import replay_config
 from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
 from cell.jobs.session import JobSession
@@ -62,6 +63,19 @@ def test_a_mesh_in_millimetres_is_refused_saying_what_the_scale_would_make_of_it
                                    object_scale=0.001, out=tmp_path / "j"))
     assert job.mesh is not None and np.allclose(job.mesh.extents_m, 0.1)
     assert not (tmp_path / "j").exists()
+
+
+def test_object_scale_is_for_mesh_files_only(cube_mm, tmp_path):
+    """Shipped objects are in metres: a scale meant for a millimetre mesh made the cube 0.1 mm a side."""
+    res = _scan("--object", "cube", "--object-scale", "0.001", "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1
+    assert res.stderr == "error: --object-scale is for a mesh file: the shipped object cube is in metres\n"
+    assert not (tmp_path / "j").exists()
+    # a grid mixing a millimetre mesh with a shipped object scales the mesh only, and can run
+    specs = cross(str(FRANKA), [("cube", (0.0, 0.0, 0.0)), (str(cube_mm), (0.0, 0.0, 0.0))], ["raster"], [0],
+                  object_scale=0.001)
+    assert [s.object_scale for s in specs] == [1.0, 0.001]
+    check_specs(specs)
 
 
 def test_a_mesh_too_small_to_be_a_part_is_refused(tmp_path):

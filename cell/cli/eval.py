@@ -30,7 +30,7 @@ from cell.evaluation.spec import load_placements, parse_placement
 from cell.jobs.placement import check_placement
 from cell.templates import template_path
 from drivers.errors import CellError
-from drivers.sim.objects import load_object
+from drivers.sim.objects import load_object, mesh_file_scale
 
 eval_app = command_group(help="Grids of scans (the papers' experiments, or any) with a report.",
                          no_args_is_help=True)
@@ -51,8 +51,9 @@ Reprocess = Annotated[bool | None, typer.Option(
                                  "the online cloud (default: vs-table re-processes, the others not)")]
 Directions = Annotated[int, typer.Option(help="view directions per hemisphere of the coverage limit; 0: "
                                               "no coverage limit")]
-ObjectScale = Annotated[float, typer.Option(help="multiplies every object's mesh coordinates into metres "
-                                                "(0.001 for meshes in millimetres)")]
+ObjectScale = Annotated[float, typer.Option(help="multiplies the coordinates of every mesh file's object "
+                                                "into metres (0.001 for meshes in millimetres); shipped "
+                                                "objects are in metres and keep their size")]
 ShardOpt = Annotated[str | None, typer.Option(help="I/N: run the I-th of N parts of the grid (the same "
                                                    "parts on every machine); each run rebuilds the report "
                                                    "from every finished scan in --out")]
@@ -132,7 +133,8 @@ _grid_command("grid", lambda _: presets.Preset(template_path("sim-franka-rgbd"),
 def limit(object: Annotated[str, typer.Option("--object", help="shipped name or mesh file")],
           config: Config = None,
           placement: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
-          object_scale: Annotated[float, typer.Option(help="mesh units to metres")] = 1.0,
+          object_scale: Annotated[float, typer.Option(help="a mesh file's units to metres (not for "
+                                                           "shipped objects, in metres)")] = 1.0,
           directions: Annotated[int, typer.Option(help="view directions per hemisphere")]
           = DEFAULT_DIRECTIONS,
           everywhere: Annotated[bool, typer.Option(help="count every view, reachable by the arm or not")]
@@ -143,8 +145,9 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
     axis) within the sensor's range, field of view and grazing limit can see."""
     try:
         path = config if config is not None else template_path("sim-franka-rgbd")
-        cfg, mesh, pose = load_config(path), load_object(object, object_scale), parse_placement(placement)
-        check_placement(cfg, mesh, pose, object_scale)  # as cell scan: a size it scans, on the table
+        scale = mesh_file_scale(object, object_scale)
+        cfg, mesh, pose = load_config(path), load_object(object, scale), parse_placement(placement)
+        check_placement(cfg, mesh, pose, scale)  # as cell scan: a size it scans, on the table
         result = cell_coverage_limit(cfg, mesh, pose, directions, reachable=not everywhere)
     except CellError as exc:
         raise fail(exc) from None

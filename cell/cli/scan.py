@@ -20,7 +20,7 @@ from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import ARM_FAULT, CellError, JobError, SafetyStop
-from drivers.sim.objects import EMPTY_TABLE
+from drivers.sim.objects import EMPTY_TABLE, mesh_file_scale
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_OBJECT = "bunny"
@@ -94,8 +94,10 @@ def scan(
                          "scans the recorded job's")] = None,
     object_pose: Annotated[str | None, typer.Option(help="x,y,yaw_deg from the station (default 0,0,0)")]
     = None,
-    object_scale: Annotated[float | None, typer.Option(help="multiplies the mesh's coordinates into metres "
-                                                            "(0.001 for a mesh in millimetres; default 1)")]
+    object_scale: Annotated[float | None, typer.Option(help="multiplies a mesh file's coordinates into "
+                                                            "metres (0.001 for a mesh in millimetres; "
+                                                            "default 1); not for a shipped object, which is "
+                                                            "in metres")]
     = None,
     planner: Annotated[str | None, typer.Option(help="planner name (default: the cell file's; with "
                                                      "--replay, the job's)")] = None,
@@ -128,6 +130,10 @@ def scan(
             cfg = load_config(path)
             require_measured(path, cfg.mode)
             label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
+            # a scale that is no positive number is refused as such by prepare_scan
+            if object_scale is not None and object_scale > 0.0 and object_scale != 1.0 \
+                    and mesh_file_scale(label, object_scale) == 1.0:
+                raise JobError(f"--object-scale is for a mesh file: the shipped object {label} is in metres")
             request = ScanRequest(config=cfg, config_path=str(path), object=label,
                                   object_pose=_parse_pose(object_pose or "0,0,0"), planner=planner,
                                   seed=seed if seed is not None else 0, out=out, max_time_s=max_time,

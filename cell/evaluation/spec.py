@@ -36,7 +36,7 @@ from cell.config import load_config
 from cell.jobs.runner import ScanRequest, prepare_scan
 from cell.planning.registry import check_planner
 from drivers.errors import CellError, ConfigError, JobError
-from drivers.sim.objects import EMPTY_TABLE, OBJECTS_DIR, load_object, shipped_names
+from drivers.sim.objects import EMPTY_TABLE, OBJECTS_DIR, load_object, mesh_file_scale, shipped_names
 
 Placement = tuple[float, float, float]
 """(x [m], y [m], yaw [deg]) of the object relative to the station, as ``cell scan --object-pose``."""
@@ -181,8 +181,10 @@ def folder_name(spec: ScanSpec, key: str) -> str:
 def cross(config: str, cases: Sequence[tuple[str, Placement]], planners: Sequence[str], seeds: Sequence[int],
           max_time_s: float | None = None, reprocess: bool = False,
           object_scale: float = 1.0) -> list[ScanSpec]:
-    """Every case (an object at a placement) x planner x seed."""
-    return [ScanSpec(config, obj, placement, planner, seed, max_time_s, object_scale, reprocess)
+    """Every case (an object at a placement) x planner x seed; ``object_scale`` applies to the mesh files
+    among the objects, not to shipped objects (in metres: ``mesh_file_scale``)."""
+    return [ScanSpec(config, obj, placement, planner, seed, max_time_s, mesh_file_scale(obj, object_scale),
+                     reprocess)
             for obj, placement in cases for planner in planners for seed in seeds]
 
 

@@ -83,6 +83,13 @@ def shipped_names() -> list[str]:
     return sorted(p.stem for p in OBJECTS_DIR.glob("*.ply"))
 
 
+def mesh_file_scale(name_or_path: str | Path, scale: float) -> float:
+    """The scale that applies to the object ``name_or_path`` given with ``scale`` (a ``--object-scale``):
+    ``scale`` for a mesh file, 1 for a shipped object (shipped in metres), so that a grid mixing a
+    millimetre mesh with shipped objects scales the mesh only."""
+    return 1.0 if str(name_or_path) in shipped_names() else scale
+
+
 def list_objects() -> list[ObjectInfo]:
     """The shipped objects, sorted by name."""
     return [_info(name) for name in shipped_names()]
