@@ -24,7 +24,7 @@ from cell.evaluation.executors import LocalPool, RayExecutor
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
 from cell.evaluation.limit import cell_coverage_limit, reachable_views
 from cell.evaluation.report import REPORT_MD, write_report
-from cell.evaluation.results import read_csv, row_from_folder
+from cell.evaluation.results import COLUMNS, read_csv, row_from_folder, row_from_result
 from cell.evaluation.spec import ScanSpec, code_digest, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
 from drivers.sim.objects import face_normals, load_object
@@ -214,7 +214,54 @@ def test_report_tables_match_results_csv(local_run, tmp_path):
     (tmp_path / "one-seed").mkdir()
     write_report(rows, tmp_path / "one-seed", {})
     single = _table((tmp_path / "one-seed" / REPORT_MD).read_text(), "object | figure | planner A")
-    assert single and all(line[4:] == ["-", "-"] for line in single)
+    assert single and all(line[4:6] == ["-", "-"] for line in single)
+
+
+def _row(obj: str, planner: str, seed: int, **figures: str) -> dict[str, str]:
+    return {**dict.fromkeys(COLUMNS, ""), "object": obj, "placement": "0,0,0", "planner": planner,
+            "seed": str(seed), "status": "completed", "termination": "done", **figures}
+
+
+def test_the_report_says_what_its_figures_mean(tmp_path):
+    boxes = [_row("horizontal_box", planner, seed, coverage_pct=f"{50 + seed + k:.4f}", iou=f"0.{7 + k}000",
+                  dims_m=f"0.2{seed}00 0.1000 0.0500", dims_true_m="0.2000 0.1000 0.0500",
+                  dims_upper_m=f"0.2{4 + seed}00 0.1400 0.0700", container="medium", n_poses="4")
+             for k, planner in enumerate(("lr-nbv", "heu")) for seed in (0, 1)]
+    write_report(boxes, tmp_path, {})
+    md = (tmp_path / REPORT_MD).read_text()
+    # no object or planner of the paper's tables: no brackets, and no word of them
+    assert "in brackets" not in md and "(" not in _table(md, "object | planner | n | coverage %")[0][3]
+    assert "Higher is better: `coverage %`, `unregistered coverage %`; lower is better: `Chamfer mm`, " \
+        "`Hausdorff mm`, `scan time s`, `path m`." in md
+    assert "Higher is better: `IoU`, `surface reconstructed %`; lower is better: `poses`, `useless poses`." \
+        in md
+    header = next(line for line in md.splitlines() if line.startswith("| object | planner | n | L m"))
+    assert header.endswith("| truth L x W x H m | upper bound L x W x H m (mean) | containers |")
+    packing = _table(md, "object | planner | n | L m")
+    assert packing[0][-3:] == ["0.2000 x 0.1000 x 0.0500", "0.2450 x 0.1400 x 0.0700", "medium (2)"]
+    # two scans a side: Mann-Whitney U cannot give a p below 1/3, and the report says so
+    tests = _table(md, "object | figure | planner A | planner B | U (A) | p | smallest exact p")
+    assert tests and all(line[6] == "0.3333" for line in tests)
+    assert "the exact test cannot reach p < 0.05 whatever the values" in md and "2 against 2 (0.333)" in md
+    # an object and a strategy of Table I: brackets, and the text says what they hold
+    write_report([_row("cube", "vs-local", 0, coverage_pct="80.0000")], tmp_path, {})
+    md = (tmp_path / REPORT_MD).read_text()
+    assert "the paper's figure in brackets (Table I's figure where it has the object and strategy; for " \
+        "scan time and path the paper's mean over its objects (section III-C))" in md
+
+
+def test_results_rows_hold_the_true_box_the_upper_bound_and_the_container():
+    spec = ScanSpec(CONFIG, "cube", (0.0, 0.0, 0.0), "lr-nbv", 0)
+    result = {"status": "completed", "termination": "done", "object_pose": np.eye(4).tolist(),
+              "packing": {"dims_m": [0.11, 0.1, 0.1], "dims_upper_m": [0.14, 0.13, 0.12],
+                          "container": {"name": "small"}}}
+    row = row_from_result(spec, result)
+    assert (row["dims_true_m"], row["dims_upper_m"], row["container"]) == (
+        "0.1000 0.1000 0.1000", "0.1400 0.1300 0.1200", "small")
+    # no ground truth on a real cell; no container fits: none
+    no_fit = {**result["packing"], "container": {}}
+    row = row_from_result(spec, {**result, "object_pose": None, "packing": no_fit})
+    assert (row["dims_true_m"], row["container"]) == ("", "none")
 
 
 def _box(lo, hi, inward=False):

@@ -7,20 +7,26 @@ failed scan, one whose re-process failed and one stopped (a protective stop: par
 out of the tables, the tests, the figures and ``n``, and listed with their reasons under "Scans that did
 not complete". A group's figures are the mean and standard error of the mean over its scans that
 have the figure, ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
-brackets where it has one. Mann-Whitney U (two-sided) compares every two planners of a group on each
-figure both have (and on each box dimension); ``-`` where it cannot say anything (a single seed, or all
-values tie).
+brackets where it has one (the text says so only when one appears); the packing table also gives the
+ground-truth box (sim), the mean upper bound and the containers chosen. Each figure's better direction
+(higher or lower) is written under its table and on its axis. Mann-Whitney U (two-sided) compares every
+two planners of a group on each figure both have (and on each box dimension); ``-`` where it cannot say
+anything (a single seed, or all values tie); beside each test the smallest p its sample sizes can give
+(:func:`smallest_p`), and the report says when that is not below 0.05: such a test cannot find a
+difference whatever the values.
 
 Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
 against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
 job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, for
-packing grids, ``fig3.png`` (the packing paper's Fig. 3: IoU, packing coverage, poses and useless poses
-per planner, mean and standard error, a column per group).
+packing grids, ``fig3.png`` (the packing paper's Fig. 3: the box's L, W, H with the ground truth marked
+in sim, IoU, packing coverage, poses and useless poses per planner, mean and standard error, a column per
+group). Each axis says whether higher or lower is better.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +56,11 @@ DIMS = ("L m", "W m", "H m")
 Limits = dict[tuple[str, str], float]
 """Coverage limit [%] by (object, placement) as results.csv writes them."""
 TESTED = ("coverage_pct", "chamfer_mm", "hausdorff_mm", "scan_time_s", "iou", "n_poses", "n_useless_poses")
+HIGHER_IS_BETTER = ("coverage_pct", "coverage_unregistered_pct", "iou", "packing_coverage_pct")
+"""The figures of which more is better; of every other one of the tables, less is (errors, time, path,
+poses); the box dimensions are best at the truth."""
+SIGNIFICANCE = 0.05
+"""The p below which a test's difference would be called significant."""
 
 
 @dataclass(frozen=True)
@@ -119,6 +130,26 @@ def mann_whitney(a: Sequence[float], b: Sequence[float]) -> tuple[float, float] 
     return float(result.statistic), float(result.pvalue)
 
 
+def smallest_p(n_a: int, n_b: int) -> float:
+    """The smallest two-sided p Mann-Whitney U can give for samples of ``n_a`` and ``n_b`` values (exact
+    test, no ties: every value of one sample below every value of the other), 2 / C(n_a + n_b, n_a), at
+    most 1: 0.333 for 2 against 2, 0.1 for 3 against 3, 0.029 for 4 against 4."""
+    return min(1.0, 2.0 / math.comb(n_a + n_b, n_a))
+
+
+def better(column: str) -> str:
+    """``higher`` or ``lower``: which way a figure of the tables is better."""
+    return "higher" if column in HIGHER_IS_BETTER else "lower"
+
+
+def _directions(columns: Sequence[tuple[str, str, int]]) -> str:
+    """The sentence saying which way each of ``columns`` (column, heading, decimals) is better."""
+    parts = [f"{way} is better: " + ", ".join(f"`{h}`" for c, h, _ in columns if better(c) == way)
+             for way in ("higher", "lower") if any(better(c) == way for c, _, _ in columns)]
+    text = "; ".join(parts)
+    return text[:1].upper() + text[1:] + "."
+
+
 def _paper_figure(planner: str, column: str, obj: str) -> float | None:
     if column in ("coverage_pct", "chamfer_mm", "hausdorff_mm"):
         return paper.table_i(planner, column, obj)
@@ -146,11 +177,37 @@ def reconstruction_table(gs: Sequence[Group], limits: Limits) -> list[str]:
     return _table(header, lines)
 
 
+def truth(rows: Sequence[Row]) -> list[float] | None:
+    """The ground-truth L, W, H [m] of the rows' object (``dims_true_m``), None where none has it."""
+    text = next((t for r in rows if (t := r.get("dims_true_m"))), None)
+    return None if text is None else [float(v) for v in text.split()]
+
+
+def _dims_line(values: Sequence[float] | None) -> str:
+    return "-" if values is None else " x ".join(f"{v:.4f}" for v in values)
+
+
+def _upper(rows: Sequence[Row]) -> list[float] | None:
+    """The mean upper bound L, W, H [m] of the rows that have one (``dims_upper_m``), None without."""
+    uppers = [[float(v) for v in t.split()] for r in rows if (t := r.get("dims_upper_m"))]
+    return [float(v) for v in np.mean(uppers, axis=0)] if uppers else None
+
+
+def _containers(rows: Sequence[Row]) -> str:
+    """The containers chosen, each with how many scans chose it: ``medium (2), large (1)``; ``-``."""
+    chosen = [c for r in rows if (c := r.get("container"))]
+    return ", ".join(f"{name} ({chosen.count(name)})" for name in dict.fromkeys(chosen)) or "-"
+
+
 def packing_table(gs: Sequence[Group]) -> list[str]:
-    """The packing paper's Fig. 3 figures: per group and planner, mean ± se of L, W, H and the rest."""
-    header = ["object", "planner", "n", *DIMS, *(heading for _, heading, _ in PACKING)]
+    """The packing paper's Fig. 3 figures: per group and planner, mean ± se of L, W, H and the rest; then
+    the ground-truth box (sim), the mean upper bound (the box the container is chosen for) and the
+    containers chosen."""
+    header = ["object", "planner", "n", *DIMS, *(heading for _, heading, _ in PACKING), "truth L x W x H m",
+              "upper bound L x W x H m (mean)", "containers"]
     lines = [[g.label, planner, str(len(rs)), *(mean_se(dims(rs, k), 4) for k in range(3)),
-              *(mean_se(figures(rs, c), d) for c, _, d in PACKING)]
+              *(mean_se(figures(rs, c), d) for c, _, d in PACKING), _dims_line(truth(rs)),
+              _dims_line(_upper(rs)), _containers(rs)]
              for g in gs for planner, rs in g.by_planner.items()]
     return _table(header, lines)
 
@@ -161,18 +218,38 @@ def _samples(rs: Sequence[Row]) -> dict[str, list[float]]:
     return {**{c: figures(rs, c) for c in TESTED}, **{name: dims(rs, k) for k, name in enumerate(DIMS)}}
 
 
-def tests_table(gs: Sequence[Group]) -> list[str]:
-    """Mann-Whitney U of every two planners of a group on each figure both have."""
+def tests_table(gs: Sequence[Group]) -> tuple[list[str], list[tuple[int, int]]]:
+    """Mann-Whitney U of every two planners of a group on each figure both have, with the smallest p the
+    two sample sizes can give (:func:`smallest_p`); and the sample sizes (n A, n B) of the tests whose
+    smallest p is not below ``SIGNIFICANCE`` (they cannot find a difference)."""
     lines = []
+    too_small: list[tuple[int, int]] = []
     for g in gs:
         for (pa, ra), (pb, rb) in itertools.combinations(g.by_planner.items(), 2):
             samples_a, samples_b = _samples(ra), _samples(rb)
             for name, a in samples_a.items():
                 if a and (b := samples_b[name]):
                     test = mann_whitney(a, b)
+                    least = smallest_p(len(a), len(b))
+                    if least >= SIGNIFICANCE:
+                        too_small.append((len(a), len(b)))
                     lines.append([g.label, name, pa, pb, *(("-", "-") if test is None else
-                                                           (f"{test[0]:.1f}", f"{test[1]:.4f}"))])
-    return _table(["object", "figure", "planner A", "planner B", "U (A)", "p"], lines)
+                                                           (f"{test[0]:.1f}", f"{test[1]:.4f}")),
+                                  f"{least:.4f}"])
+    return (_table(["object", "figure", "planner A", "planner B", "U (A)", "p", "smallest exact p"], lines),
+            sorted(set(too_small)))
+
+
+def _tests_note(too_small: Sequence[tuple[int, int]]) -> list[str]:
+    """What the sample sizes of ``too_small`` mean for their tests, when there are any."""
+    if not too_small:
+        return []
+    sizes = ", ".join(f"{a} against {b} ({smallest_p(a, b):.3f})" for a, b in too_small)
+    return [f"With these numbers of scans the exact test cannot reach p < {SIGNIFICANCE:g} whatever the "
+            f"values: the smallest p it can give is 2 / C(n A + n B, n A), for {sizes}. Such a test says "
+            f"nothing about a difference (where values tie, `p` is the normal approximation's, no more "
+            f"telling at these sizes); more seeds per planner can (4 against 4 can reach "
+            f"{smallest_p(4, 4):.3f}).", ""]
 
 
 def _panels(gs: Sequence[Group], rows: int, width: float, height: float) -> tuple[Figure, list[list[Axes]]]:
@@ -205,8 +282,8 @@ def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> 
             if (table_i := paper.table_i(planner, "coverage_pct", g.object)) is not None:
                 bottom.axhline(table_i, color=colour, linestyle="--", linewidth=0.8)
         top.set_title(g.label)
-        top.set_ylabel("Chamfer [mm]")
-        bottom.set_ylabel("cloud coverage (eq. 13) [%]")
+        top.set_ylabel(f"Chamfer [mm], {better('chamfer_mm')} is better")
+        bottom.set_ylabel(f"cloud coverage (eq. 13) [%],\n{better('coverage_pct')} is better")
         bottom.set_xlabel("scan time [s]")
         top.legend(fontsize="small")
     fig.tight_layout()
@@ -237,19 +314,36 @@ def _bars(gs: Sequence[Group], path: Path) -> None:
         for n, planner in enumerate(planners):
             means, errors = _means_and_errors([dims(g.by_planner[planner], k) for k in range(3)])
             box.bar(np.arange(3) + n * width, means, width, yerr=errors, capsize=3, label=planner)
+        if (true_lwh := truth([r for rs in g.by_planner.values() for r in rs])) is not None:
+            # the ground truth across each dimension's bars
+            box.hlines(true_lwh, np.arange(3) - width / 2.0, np.arange(3) + width * (len(planners) - 0.5),
+                       colors="black", linewidth=1.5, label="truth")
         box.set_xticks(np.arange(3) + width * (len(planners) - 1) / 2.0, ["L", "W", "H"])
-        box.set_ylabel("box [m]")
+        box.set_ylabel("box [m], best at the truth")
         # above the bars, which fill any corner of the panel on one object or another
-        box.legend(fontsize="small", loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=len(planners),
+        box.legend(fontsize="small", loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=len(planners) + 1,
                    frameon=False, borderaxespad=0.1)
         for ax, (column, heading, _) in zip(others, PACKING, strict=True):
             having = [p for p in planners if figures(g.by_planner[p], column)]
             means, errors = _means_and_errors([figures(g.by_planner[p], column) for p in having])
             ax.bar(having, means, yerr=errors, capsize=3)
-            ax.set_ylabel(heading)
+            ax.set_ylabel(f"{heading},\n{better(column)} is better")
         box.set_title(g.label, pad=20.0)
     fig.tight_layout()
     _save(fig, path)
+
+
+def _brackets(gs: Sequence[Group]) -> str:
+    """What the brackets of the reconstruction table hold, when any cell has one: Table I's figure of an
+    object and strategy it has, the paper's mean over its objects for scan time and path; empty when
+    none does (no object or planner of the grid is in the paper)."""
+    pairs = [(planner, g.object) for g in gs for planner in g.by_planner]
+    table_i = any(_paper_figure(p, c, o) is not None for p, o in pairs
+                  for c in ("coverage_pct", "chamfer_mm", "hausdorff_mm"))
+    means = any(_paper_figure(p, c, o) is not None for p, o in pairs for c in ("scan_time_s", "path_m"))
+    held = (["Table I's figure where it has the object and strategy"] if table_i else []) + \
+        (["for scan time and path the paper's mean over its objects (section III-C)"] if means else [])
+    return f"; the paper's figure in brackets ({'; '.join(held)})" if held else ""
 
 
 def unfinished_line(row: Row) -> str:
@@ -271,9 +365,9 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
         md += ["No scan ran to its end: no figures.", ""]
     else:
         md += ["## Reconstruction (visual-servoing paper, Table I layout)", "",
-               "Mean ± standard error over the seeds; the paper's figure in brackets (Table I; for scan time "
-               "and path the paper's mean over its objects, section III-C). `limit %`: the coverage limit, "
-               "the share of the surface any reachable view can see (`cell eval limit`).", "",
+               f"Mean ± standard error over the seeds{_brackets(gs)}. `limit %`: the coverage limit, the "
+               "share of the surface any reachable view can see (`cell eval limit`). "
+               f"{_directions(RECONSTRUCTION)}", "",
                *reconstruction_table(gs, limits), "",
                f"![coverage and Chamfer against scan time]({FIG5})", ""]
         _fig5(gs, timelines or {}, out / FIG5)
@@ -281,9 +375,14 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
             md += ["## Packing (LR-NBV paper, Fig. 3)", "",
                    "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "
                    "claims:", "", *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
+                   f"`L m`, `W m`, `H m`: the box measured, best at the truth (`truth`, the ground-truth box "
+                   f"of the mesh: sim only; in `{FIG3}` a black mark). `upper bound`: the box grown by the "
+                   f"sensor's error model, the one the container is chosen for (`containers`: how many "
+                   f"scans chose each). {_directions(PACKING)}", "",
                    *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
             _bars(gs, out / FIG3)
-        md += ["## Mann-Whitney U between planners", "", *tests_table(gs), ""]
+        tests, too_small = tests_table(gs)
+        md += ["## Mann-Whitney U between planners", "", *tests, "", *_tests_note(too_small)]
     unfinished = [r for r in rows if r["status"] not in MEASURED]
     if unfinished:
         md += ["## Scans that did not complete (not in the figures above)", "",

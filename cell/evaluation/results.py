@@ -15,7 +15,10 @@ cloud; on the 1 mm re-processed cloud, ``result_hires.json``, for a grid that re
 measures Table I; the ground truth registered to the cloud as the paper does), ``coverage_unregistered_pct``
 and ``chamfer_unregistered_mm`` (the same without registration, the ground truth where the simulated object
 really is), and the packing paper's figures: ``dims_m`` (L W H), ``iou``, ``n_poses``, ``n_useless_poses`` and
-``packing_coverage_pct``; last ``job``, the scan's job folder under ``scans/`` (its name holds the scan's key,
+``packing_coverage_pct``, with ``dims_true_m`` (L W H of the ground-truth box: the minimum-area box of the
+object's mesh, in sim only), ``dims_upper_m`` (the box's upper bound from the sensor's error model, the
+box the container is chosen for) and ``container`` (its name, ``none`` when none fits; empty without a
+box); last ``job``, the scan's job folder under ``scans/`` (its name holds the scan's key,
 ``cell.evaluation.spec``; empty for a scan that left no folder): the output folder may also hold the folders
 of earlier runs, scans of other code or inputs, which are not this grid's.
 """
@@ -25,16 +28,20 @@ from __future__ import annotations
 import csv
 import io
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 from cell.evaluation.spec import ScanSpec
+from cell.packing.box import box_from_points
+from drivers.errors import CellError
+from drivers.sim.objects import load_object
 
 COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "scan_time_s", "path_m",
            "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "coverage_unregistered_pct",
            "chamfer_unregistered_mm", "dims_m", "iou", "n_poses", "n_useless_poses", "packing_coverage_pct",
-           "job")
+           "dims_true_m", "dims_upper_m", "container", "job")
 DECIMALS = 4
 
 Row = dict[str, str]
@@ -62,12 +69,33 @@ REPROCESS_FAILED = "reprocess_failed.txt"
 """In a re-processed job folder, why its re-process failed (written by ``cell.evaluation.task``)."""
 
 
+@cache
+def true_dims(obj: str, scale: float) -> tuple[float, float, float] | None:
+    """L, W, H [m] of the ground-truth box of an object (a shipped name or a mesh file at ``scale``): the
+    minimum-area box of its mesh standing on the table (``cell.packing.box.box_from_points``; its size does
+    not depend on where the object stands or its yaw); None when the mesh cannot be loaded."""
+    try:
+        mesh = load_object(obj, scale)
+    except CellError:
+        return None
+    length, width, height = (float(d) for d in box_from_points(mesh.vertices).dims)
+    return length, width, height
+
+
+def _dims_text(dims: Sequence[float | None] | None) -> str:
+    """L W H as results.csv writes them; empty for none, or for one with an unbounded side (None)."""
+    return "" if dims is None or None in dims else " ".join(_number(d) for d in dims)
+
+
 def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any] | None = None) -> Row:
     """The row of a scan whose job folder holds ``result`` (its result.json) and, re-processed,
     ``hires`` (its result_hires.json), whose eq. 13 figures then replace the online cloud's."""
     metrics = (hires if hires is not None else result).get("metrics") or {}
     packing = result.get("packing") or {}
     dims = packing.get("dims_m")
+    upper = packing.get("dims_upper_m")
+    container = packing.get("container") or {}
+    truth = true_dims(spec.object, spec.object_scale) if result.get("object_pose") is not None else None
     return {**_identity(spec), "status": result["status"],
             "termination": " ".join(str(result["termination"]).split()),
             "scan_time_s": _number(result.get("scan_time_s")),
@@ -75,7 +103,8 @@ def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any
             "n_captures": _number(result.get("n_captures")),
             **{k: _number(metrics.get(k)) for k in ("coverage_pct", "chamfer_mm", "hausdorff_mm",
                                                      "coverage_unregistered_pct", "chamfer_unregistered_mm")},
-            "dims_m": "" if dims is None else " ".join(_number(d) for d in dims),
+            "dims_m": _dims_text(dims), "dims_true_m": _dims_text(truth), "dims_upper_m": _dims_text(upper),
+            "container": "" if dims is None else str(container.get("name") or "none"),
             "iou": _number(packing.get("iou")), "n_poses": _number(packing.get("n_poses")),
             "n_useless_poses": _number(packing.get("n_useless_poses")),
             "packing_coverage_pct": _number(packing.get("coverage_pct"))}
