@@ -115,6 +115,24 @@ def test_scan_replay_refuses_a_damaged_frame_before_making_its_folder(job, tmp_p
     assert not out.exists()
 
 
+def test_a_trajectory_cut_short_mid_line_replays_and_a_damaged_row_is_named(job, tmp_path):
+    trajectory = job / "trajectory.csv"
+    with trajectory.open("a") as f:
+        f.write("9.87,0.4")  # the job killed while it wrote a row: no line end
+    res = CliRunner().invoke(app, ["sensor", "replay", str(job)])
+    assert res.exit_code == 0, res.output
+    assert "identical to the recorded cloud.ply" in res.stdout
+    n_lines = len(trajectory.read_text().splitlines())
+    with trajectory.open("a") as f:
+        f.write("\n1.0,2.0\n")  # now a whole line that is no pose row
+    out = tmp_path / "replayed"
+    res = CliRunner().invoke(app, ["scan", "--replay", str(job), "--out", str(out)])
+    assert res.exit_code == 1, res.output
+    assert res.stderr == (f"error: replay {job}: {trajectory} line {n_lines}: not a pose row (2 fields, "
+                          "expected 8)\n")
+    assert not out.exists()
+
+
 def test_an_unreadable_result_is_kept_aside_and_rebuilt(job, recorded):
     online = json.loads((recorded / "result.json").read_text())
     damaged = _truncate(job / "result.json")

@@ -175,8 +175,11 @@ def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, Record
 def check_recording(job_dir: Path) -> None:
     """Refuse to replay a job whose frames cannot all be read (``JobError`` naming the first): a replay
     re-runs the job's planner on every recorded frame in recorded time, and one left out would change
-    what it decides. ``cell reprocess`` and ``cell sensor replay`` skip such a frame instead."""
+    what it decides. ``cell reprocess`` and ``cell sensor replay`` skip such a frame instead. Its poses
+    (``trajectory.csv``) are read too, so that a damaged row is refused here, before the replay's folder
+    exists."""
     recording = JobRecording(job_dir)
+    recording.flange_track()
     if recording.unreadable:
         path, reason = recording.unreadable[0]
         raise JobError(f"{path}: not a readable frame ({reason}); {len(recording.unreadable)} of the job's "

@@ -143,8 +143,7 @@ class JobRecording:
         poses = [np.stack([self._flange_of(rec) for rec in self.frames])]
         traj = self.job_dir / "trajectory.csv"
         if traj.is_file():
-            with traj.open(newline="") as fh:
-                rows = list(csv.reader(fh))[1:]
+            rows = self._trajectory_rows(traj)
             if rows:
                 values = np.asarray(rows, dtype=np.float64)
                 near = np.abs(values[:, 0, None] - frame_t[None, :]).min(axis=1) <= CSV_TIME_RESOLUTION_S / 2
@@ -158,6 +157,25 @@ class JobRecording:
         t = np.concatenate(times)
         order = np.argsort(t, kind="stable")
         return t[order], np.concatenate(poses)[order]
+
+    def _trajectory_rows(self, path: Path) -> list[list[float]]:
+        """The pose rows of ``trajectory.csv`` (t, x, y, z, qx, qy, qz, qw). The job appends a row at every
+        control tick: a job killed mid-write leaves its last line without its line end, and that line is
+        left out; any other row that is not eight numbers raises ``DriverError`` naming its line."""
+        text = path.read_text()
+        lines = text.splitlines()
+        if lines and not text.endswith("\n"):
+            lines.pop()  # cut short by the job's end
+        rows = []
+        for number, row in enumerate(csv.reader(lines[1:]), start=2):
+            try:
+                if len(row) != 8:
+                    raise ValueError(f"{len(row)} fields, expected 8")
+                rows.append([float(v) for v in row])
+            except ValueError as exc:
+                raise DriverError(f"{path} line {number}: not a pose row ({exc})",
+                                  device=self.device) from None
+        return rows
 
     def _flange_of(self, rec: RecordedFrame) -> Array:
         with self._open(rec.path) as f:
