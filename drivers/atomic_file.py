@@ -84,3 +84,12 @@ def check_writable(folder: Path) -> None:
     except OSError as exc:
         raise type(exc)(exc.errno, exc.strerror, str(folder)) from None
     probe.unlink()
+
+
+def writable_folder(folder: Path) -> Path:
+    """``folder``, made (with its parents) when missing, once a file can be made in it
+    (:func:`check_writable`); raises ``OSError`` otherwise."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    check_writable(folder)
+    return folder

@@ -14,22 +14,30 @@ from cell.cli.progress import stage_progress
 from cell.jobs.rebuild import check_job_dir, rebuild_result, recorded_result, remove_live_cloud
 from cell.jobs.recorder import RESULT_FILE
 from cell.perception.reprocess import reprocess_job
-from drivers.atomic_file import check_writable
+from drivers.atomic_file import check_writable, writable_folder
 from drivers.errors import CellError, JobError
 
 console = Console(soft_wrap=True)
 
 
 def _output_folder(job_dir: Path, out: Path | None) -> Path:
-    """Where the outputs go: ``out`` (made when missing) or the job folder; raises ``JobError`` before any
-    work when it cannot be written to."""
+    """Where the outputs go: ``out`` (made when missing) or the job folder (``reprocess_job`` checks that
+    it can write there before any work); raises ``JobError`` for an ``out`` it cannot make or write to."""
     if out is None:
         return job_dir
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        return writable_folder(out)
     except OSError as exc:
-        raise JobError(f"cannot create the output folder {out}: {exc}") from None
-    return out
+        raise JobError(f"cannot write cloud_hires.ply and result_hires.json to {out}: "
+                       f"{exc.strerror or exc}") from None
+
+
+def _writable(folder: Path) -> bool:
+    try:
+        check_writable(folder)
+    except OSError:
+        return False
+    return True
 
 
 def reprocess(
@@ -48,13 +56,7 @@ def reprocess(
         target = _output_folder(job_dir, out)
         recorded = recorded_result(job_dir)
         if recorded.problem is not None:
-            try:
-                check_writable(job_dir)
-            except OSError:
-                writable = False
-            else:
-                writable = True
-            if writable:
+            if _writable(job_dir):
                 recorded, kept = rebuild_result(job_dir)
                 aside = f"; the unreadable file is kept as {kept}" if kept is not None else ""
                 console.print(f"{job_dir / RESULT_FILE} was {recorded.problem}: rebuilt from "

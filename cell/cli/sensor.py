@@ -33,7 +33,7 @@ from cell.perception.cloud import read_ply, write_ply
 from cell.perception.pipeline import PerceptionPipeline
 from cell.templates import template_path
 from drivers.arm.replay import ReplayArm
-from drivers.atomic_file import check_writable
+from drivers.atomic_file import writable_folder
 from drivers.clock import SimClock
 from drivers.depth.check import CheckReport, SensorCheck
 from drivers.depth.config import VL53L8CX_VALID_STATUSES, VL53L8CXConfig
@@ -229,8 +229,7 @@ def _replay_output(job_dir: Path, out_dir: Path | None) -> Path:
     in the job folder; raises ``JobError`` before any work when that folder cannot be written to."""
     folder = job_dir if out_dir is None else out_dir
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        check_writable(folder)
+        writable_folder(folder)
     except OSError as exc:
         hint = "; give --out DIR to write it elsewhere" if out_dir is None else ""
         raise JobError(f"cannot write cloud_replay.ply to {folder}: {exc.strerror or exc}{hint}") from None
