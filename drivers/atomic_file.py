@@ -73,6 +73,24 @@ def write_text_atomic(path: Path, text: str, *, durable: bool = False) -> None:
     write_bytes_atomic(path, text.encode("utf-8"), durable=durable)
 
 
+UNREADABLE_SUFFIX = ".unreadable"
+"""What a file that cannot be read is renamed with when a new one takes its place (:func:`keep_aside`)."""
+
+
+def keep_aside(path: Path) -> Path:
+    """Rename the unreadable file ``path`` to a free name beside it, ``<name>.unreadable`` (then
+    ``<name>.unreadable-2``, ...), so that a new file can take its place without the old one being lost;
+    returns that name. Raises ``OSError``."""
+    path = Path(path)
+    candidate = path.with_name(path.name + UNREADABLE_SUFFIX)
+    n = 1
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}{UNREADABLE_SUFFIX}-{n}")
+    path.rename(candidate)
+    return candidate
+
+
 def check_writable(folder: Path) -> None:
     """Raise ``OSError`` naming ``folder`` (``PermissionError`` for a read-only folder, ``OSError`` with
     ``EROFS`` on a read-only file system) unless a file can be made in it: tried, not guessed from the

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,8 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.perception.cloud import read_ply
+from cell.service.recovery import finish_folder
+from cell.service.store import JobRecord
 
 from .conftest import UR5E
 
@@ -151,6 +154,21 @@ def test_an_unreadable_result_is_kept_aside_and_rebuilt(job, recorded):
     assert {k: rebuilt[k] for k in ("planner", "object", "seed", "config", "object_pose")} == {
         k: online[k] for k in ("planner", "object", "seed", "config", "object_pose")}
     assert json.loads((job / "result_hires.json").read_text())["metrics"]["coverage_pct"] > 0
+
+
+def test_the_service_keeps_an_unreadable_result_aside_when_it_settles_a_dead_workers_job(job):
+    """A worker killed while it wrote result.json (before this release wrote it whole): the service's
+    restart gave the job its own result.json over the damaged one."""
+    damaged = _truncate(job / "result.json")
+    np.save(job / LIVE_CLOUD_FILE, np.zeros((4, 3), dtype=np.float32))
+    record = JobRecord(id="a" * 16, cell="c", status="running", planner="raster", object="cube",
+                       object_pose=(0.0, 0.0, 0.0), seed=1, max_time_s=None, part_id=None, folder=str(job),
+                       submitted_by="op", created_at=datetime.now(UTC))
+    result = finish_folder(job, record, "interrupted", "the service stopped while the job ran")
+    assert (job / "result.json.unreadable").read_bytes() == damaged
+    assert json.loads((job / "result.json").read_text()) == result
+    assert result["status"] == "interrupted" and "result.json.unreadable" in result["files"]
+    assert not (job / LIVE_CLOUD_FILE).exists()
 
 
 def test_reprocess_of_a_folder_that_does_not_exist_says_so(tmp_path):

@@ -22,14 +22,11 @@ from typing import Any
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.perception.reprocess import recorded_frames
-from drivers.atomic_file import write_text_atomic
+from drivers.atomic_file import keep_aside, write_text_atomic
 from drivers.errors import JobError
 
 IDENTITY = ("planner", "object", "object_scale", "object_pose", "config", "seed")
 """The fields of ``job.json`` that the rebuilt result keeps."""
-
-UNREADABLE_SUFFIX = ".unreadable"
-"""What an unreadable ``result.json`` is renamed with (``result.json.unreadable``) when it is rebuilt."""
 
 
 @dataclass(frozen=True)
@@ -91,16 +88,6 @@ def recorded_result(job_dir: Path) -> RecordedResult:
     return RecordedResult(result, problem)
 
 
-def _aside(path: Path) -> Path:
-    """A free name to keep the unreadable ``path`` under: ``result.json.unreadable``, then ``...-2``..."""
-    candidate = path.with_name(path.name + UNREADABLE_SUFFIX)
-    n = 1
-    while candidate.exists():
-        n += 1
-        candidate = path.with_name(f"{path.name}{UNREADABLE_SUFFIX}-{n}")
-    return candidate
-
-
 def rebuild_result(job_dir: Path) -> tuple[RecordedResult, Path | None]:
     """Write the ``result.json`` of a job folder that has lost it, or whose ``result.json`` is unreadable
     (kept aside first, renamed ``result.json.unreadable``); returns the result (:func:`recorded_result`,
@@ -114,8 +101,7 @@ def rebuild_result(job_dir: Path) -> tuple[RecordedResult, Path | None]:
     kept: Path | None = None
     try:
         if path.exists():
-            kept = _aside(path)
-            path.rename(kept)
+            kept = keep_aside(path)
         write_text_atomic(path, json.dumps(recorded.result, indent=2) + "\n", durable=True)
     except OSError as exc:
         raise JobError(f"cannot rebuild {path} ({RESULT_FILE} {recorded.problem}): {exc}") from None

@@ -21,8 +21,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.service.protocol import WORKER_MODULE
 from cell.service.store import JobRecord, Store
+from drivers.atomic_file import keep_aside, write_text_atomic
 
 RESTART_TERMINATION = "the service stopped while the job ran"
 RESTART_CANCEL = "the service restarted before the job started"
@@ -53,9 +55,14 @@ def read_result(folder: Path) -> dict[str, Any] | None:
 def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -> dict[str, Any]:
     """Give the job folder a ``result.json`` with ``status`` and ``termination`` and return it: the
     worker's own result with those two replaced (its own kept under ``worker``) when there is one, else
-    what the folder shows (captures recorded, files kept). A line goes to ``log.txt``."""
+    what the folder shows (captures recorded, files kept). A ``result.json`` that cannot be read is kept
+    as ``result.json.unreadable`` (``drivers.atomic_file.keep_aside``), and the new one is written whole; the
+    live cloud snapshot a watched job keeps while it runs (``cloud_live.npy``) is removed: the job has
+    ended. A line goes to ``log.txt``."""
     folder.mkdir(parents=True, exist_ok=True)
     previous = read_result(folder)
+    if previous is None and (folder / "result.json").exists():
+        keep_aside(folder / "result.json")
     if previous is not None:
         result = {**previous, "status": status, "termination": termination,
                   "worker": {"status": previous.get("status"), "termination": previous.get("termination")}}
@@ -65,7 +72,9 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
                   "files": sorted(str(p.relative_to(folder)) for p in folder.iterdir()),
                   "note": "the job's worker ended before it wrote its result; its frames, trajectory and "
                           "log are kept, and `cell reprocess` rebuilds a cloud from the frames"}
-    (folder / "result.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_text_atomic(folder / "result.json", json.dumps(result, indent=2) + "\n", durable=True)
+    with contextlib.suppress(OSError):
+        (folder / LIVE_CLOUD_FILE).unlink(missing_ok=True)
     if (folder / "log.txt").is_file():
         with (folder / "log.txt").open("a") as log:
             log.write(f"[service] {status}: {termination}\n")
