@@ -1,11 +1,25 @@
-"""Base of every configuration model: strict (unknown keys are errors) and immutable; and the strict
-number types of safety values."""
+"""Base of every configuration model: strict (unknown keys are errors) and immutable; the strict number
+types of safety values; and :class:`Bounds`, the physical range of a length or an angle, whose refusal
+says when the value looks like millimetres in a metres field or radians in a degrees field."""
 
 from __future__ import annotations
 
-from typing import Annotated
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict
+import annotated_types
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    WrapValidator,
+)
+from pydantic_core import PydanticCustomError
 
 
 class StrictModel(BaseModel):
@@ -23,3 +37,51 @@ PositiveNumber = Annotated[float, Strict(), Field(gt=0.0)]
 NonNegativeNumber = Annotated[float, Strict(), Field(ge=0.0)]
 PositiveCount = Annotated[int, Strict(), Field(gt=0)]
 """A positive integer written as one (not ``"3"``, not ``3.0``)."""
+
+
+UNIT_MISTAKES: dict[str, tuple[str, str, float, float]] = {
+    "m": ("millimetres", "mm", 0.001, 1.0),
+    "deg": ("radians", "rad", math.degrees(1.0), 0.0),
+    "rad": ("degrees", "deg", math.radians(1.0), 0.0),
+}
+"""For a field in unit m, deg or rad: the unit a person likely wrote instead, its symbol, the factor that
+turns a value in it into the field's unit, and the smallest magnitude a value written in it has (a length
+in millimetres is a millimetre or more: 0.8 for a 0.5 m bound is metres, too long, not 0.8 mm)."""
+
+
+@dataclass(frozen=True)
+class Bounds(annotated_types.GroupedMetadata):
+    """The physical range [``lo``, ``hi``] of a length (``unit`` m) or an angle (deg, rad), for a number in
+    ``Annotated``; ``why`` the physical reason for it, in words. A value outside (or NaN) is refused
+    saying the value, the unit, the range and why; and, when the value read in the unit a person likely
+    wrote instead (:data:`UNIT_MISTAKES`: millimetres for metres, radians for degrees, degrees for radians)
+    lies within the range and is a plausible value in that unit, that it looks like that unit and what it
+    would be. The range is the field's ``ge`` / ``le`` to pydantic and to the reference
+    (``docs/config.md``)."""
+
+    lo: float
+    hi: float
+    unit: Literal["m", "deg", "rad"]
+    why: str
+
+    def __iter__(self) -> Iterator[object]:
+        yield annotated_types.Ge(self.lo)
+        yield annotated_types.Le(self.hi)
+        yield WrapValidator(self._explain)
+
+    def _explain(self, value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        try:
+            return handler(value)
+        except ValidationError as exc:
+            if not all(e["type"] in ("greater_than_equal", "less_than_equal") for e in exc.errors()):
+                raise
+        raise PydanticCustomError("out_of_range", self.refusal(float(value)))
+
+    def refusal(self, value: float) -> str:
+        """Why ``value`` (outside the range) is refused, with the likely unit mistake if there is one."""
+        text = f"{value:g} {self.unit} is outside [{self.lo:g}, {self.hi:g}] {self.unit}: {self.why}"
+        name, symbol, factor, smallest = UNIT_MISTAKES[self.unit]
+        converted = value * factor
+        if abs(value) >= smallest and self.lo <= converted <= self.hi:
+            text += f"; it looks like {name} ({value:g} {symbol} is {converted:.6g} {self.unit})"
+        return text

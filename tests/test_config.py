@@ -325,3 +325,71 @@ def test_a_quoted_number_in_the_service_section_is_refused(franka_cfg_data, path
     node[path[-1]] = value
     with pytest.raises(ConfigError, match=rf"{'.'.join(path)}: Input should be a valid (number|integer)"):
         parse_config(data, file="cell.yaml")
+
+
+MM = r"; it looks like millimetres \({mm} mm is {m} m\)(;|$)"
+
+
+@pytest.mark.parametrize("cell, path, value, message", [
+    # millimetres in the metres of what the wrist carries: passed every check and went to the robot
+    ("dryrun-ur5e-peer", ("arm", "tcp_offset"), [0.0, 40, 30, 0.0, 0.0, 0.0],
+     r"arm\.tcp_offset\[1\]: 40 m is outside \[-0\.5, 0\.5\] m: the wrist tool lies within 0\.5 m of the "
+     r"flange" + MM.format(mm=40, m=r"0\.04")),
+    ("dryrun-ur5e-peer", ("arm", "tcp_offset"), [0.0, 0.04, 0.03, 0.0, 0.0, 90],
+     r"arm\.tcp_offset\[5\]: 90 rad is outside \[-6\.2832, 6\.2832\] rad: .*; it looks like degrees "
+     r"\(90 deg is 1\.5708 rad\)$"),
+    ("dryrun-ur5e-peer", ("arm", "payload", "cog_m"), [0, 30, 20],
+     r"arm\.payload\.cog_m\[1\]: 30 m is outside \[-0\.5, 0\.5\] m: .*" + MM.format(mm=30, m=r"0\.03")),
+    ("franka-realsense", ("arm", "payload", "cog_m"), [30, 0.0, 0.03],
+     r"arm\.payload\.cog_m\[0\]: 30 m is outside .*" + MM.format(mm=30, m=r"0\.03")),
+    ("dryrun-ur5e-peer", ("mount", "xyz_m"), [0, 40, 30],
+     r"mount\.xyz_m\[1\]: 40 m is outside \[-0\.5, 0\.5\] m: .*" + MM.format(mm=40, m=r"0\.04")),
+    ("sim-ur5e-tof", ("sim", "true_mount"), {"xyz_m": [0.0, 0.04, 30]},
+     r"sim\.true_mount\.xyz_m\[2\]: 30 m is outside .*" + MM.format(mm=30, m=r"0\.03")),
+    # a length too long for metres and too short for millimetres: no unit is suggested
+    ("dryrun-ur5e-peer", ("mount", "xyz_m"), [0.8, 0.0, 0.0],
+     r"mount\.xyz_m\[0\]: 0\.8 m is outside \[-0\.5, 0\.5\] m: the wrist tool lies within 0\.5 m of the "
+     r"flange$"),
+    # radians in a degrees field
+    ("dryrun-ur5e-peer", ("sensor", "fov_deg"), 0.785,
+     r"sensor\.fov_deg: 0\.785 deg is outside \[10, 65\] deg: a multizone ToF sensor's square field of "
+     r"view .*; it looks like radians \(0\.785 rad is 44\.9772 deg\)$"),
+    ("ur5e-vl53l8cx", ("sensor", "fov_deg"), 0.785, r"sensor\.fov_deg: 0\.785 deg is outside .*radians"),
+    ("sim-ur5e-tof", ("planners", "vs", "objective", "fov_deg"), 0.52,
+     r"planners\.vs\.objective\.fov_deg: 0\.52 deg is outside \[5, 120\] deg: .*; it looks like radians"),
+    # voxel sizes: from half a millimetre to a few centimetres
+    ("dryrun-ur5e-peer", ("perception", "voxel_m"), 2.5,
+     r"perception\.voxel_m: 2\.5 m is outside \[0\.0005, 0\.05\] m: a voxel's edge is half a millimetre "
+     r"to a few centimetres" + MM.format(mm=r"2\.5", m=r"0\.0025")),
+    ("sim-franka-rgbd", ("perception", "occupancy", "resolution_m"), 5,
+     r"perception\.occupancy\.resolution_m: 5 m is outside .*" + MM.format(mm=5, m=r"0\.005")),
+    ("sim-franka-rgbd", ("perception", "registration", "source_voxel_m"), 2.5,
+     r"perception\.registration\.source_voxel_m: 2\.5 m is outside \[0, 0\.05\] m: .*"
+     + MM.format(mm=r"2\.5", m=r"0\.0025")),
+    ("dryrun-ur5e-peer", ("perception", "voxel_m"), float("nan"), r"perception\.voxel_m: nan m is outside"),
+])
+def test_a_length_or_angle_in_the_wrong_unit_is_refused_naming_the_likely_unit(tmp_path, cell, path, value,
+                                                                               message):
+    """Each of these was accepted by config check and doctor; the arm then jogged a TCP 40 m away, or a
+    dry-run scan reached none of its views. The shipped value loads, the one in the wrong unit does not,
+    through the loader that reads the file."""
+    data = yaml.safe_load((CONFIG_DIR / f"{cell}.yaml").read_text())
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    bad = tmp_path / "cell.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(bad))}: {message}"):
+        load_config(bad)
+
+
+def test_config_check_refuses_a_tcp_offset_in_millimetres(tmp_path):
+    text = (CONFIG_DIR / "dryrun-ur5e-peer.yaml").read_text()
+    assert "tcp_offset: [0.0, 0.04, 0.03, " in text
+    bad = tmp_path / "cell.yaml"
+    bad.write_text(text.replace("tcp_offset: [0.0, 0.04, 0.03, ", "tcp_offset: [0.0, 40, 30, "))
+    res = CliRunner().invoke(app, ["config", "check", str(bad)])
+    assert res.exit_code == 1
+    assert res.output.startswith(f"error: {bad}: arm.tcp_offset[1]: 40 m is outside [-0.5, 0.5] m")
+    assert "it looks like millimetres (40 mm is 0.04 m)" in res.output

@@ -7,7 +7,7 @@ Safety-relevant values (speed limits, workspace) have no defaults: a cell file m
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_validator
@@ -16,6 +16,7 @@ from pydantic_core import PydanticCustomError
 from cell.line.config import LineConfig
 from cell.line.result import feeder_part
 from cell.packing.config import PackingConfig
+from cell.perception.cloud import VoxelEdge
 from cell.perception.filters import FilterParams
 from cell.perception.occupancy import OccupancyParams
 from cell.perception.registration import RegistrationParams
@@ -24,8 +25,8 @@ from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
 from cell.planning.registry import PLANNERS
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
-from drivers.arm.config import ArmConfig, ReplayArmConfig, UR5eArmConfig
-from drivers.config_base import FiniteNumber, PositiveCount, PositiveNumber, StrictModel
+from drivers.arm.config import ArmConfig, FlangeOffset, ReplayArmConfig, UR5eArmConfig
+from drivers.config_base import Bounds, FiniteNumber, PositiveCount, PositiveNumber, StrictModel
 from drivers.depth.config import DepthConfig, ReplayConfig
 from drivers.errors import ServiceError
 from drivers.sim.board import BoardConfig, SimBoardConfig
@@ -33,12 +34,17 @@ from drivers.sim.errors import SimErrorConfig, SimErrors
 from drivers.sim.faults import SimFault
 from drivers.transforms import T_from_xyz_rpy
 
+Turn = Annotated[float, Bounds(-360.0, 360.0, "deg", "an angle of a turn lies within one turn either way")]
+"""[deg] one angle of a roll-pitch-yaw rotation."""
+
 
 class PoseConfig(StrictModel):
-    """A rigid transform: translation ``xyz_m`` [m] and extrinsic roll-pitch-yaw ``rpy_deg`` [deg]."""
+    """The pose of the sensor on the flange (T_flange_sensor): translation ``xyz_m`` [m] in the flange frame,
+    each coordinate within :data:`~drivers.arm.config.TOOL_REACH_M` of the flange (the sensor is on the
+    wrist), and extrinsic roll-pitch-yaw ``rpy_deg`` [deg], each within one turn."""
 
-    xyz_m: tuple[float, float, float]
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    xyz_m: tuple[FlangeOffset, FlangeOffset, FlangeOffset]
+    rpy_deg: tuple[Turn, Turn, Turn] = (0.0, 0.0, 0.0)
 
     def matrix(self) -> np.ndarray:
         return T_from_xyz_rpy(self.xyz_m, np.deg2rad(self.rpy_deg))
@@ -103,7 +109,7 @@ class PerceptionConfig(StrictModel):
     the arm moves (sim time in sim mode; the paper ran at 0.7-1.3 Hz), and each stage's parameters."""
 
     crop_box: CropBoxConfig
-    voxel_m: PositiveFloat = 0.0025
+    voxel_m: VoxelEdge = 0.0025
     rate_hz: float = Field(gt=0.0, le=60.0)
     filters: FilterParams = FilterParams()
     registration: RegistrationParams

@@ -110,6 +110,8 @@ def _constraints(metadata: list[Any]) -> list[str]:
     for item in metadata:
         if isinstance(item, FieldInfo):  # the constraints of an Annotated type inside a union
             words.extend(_constraints(item.metadata))
+        if isinstance(item, annotated_types.GroupedMetadata):  # e.g. drivers.config_base.Bounds
+            words.extend(_constraints(list(item)))
         for kind, attribute, symbol in ((annotated_types.Gt, "gt", ">"), (annotated_types.Ge, "ge", ">="),
                                         (annotated_types.Lt, "lt", "<"), (annotated_types.Le, "le", "<=")):
             if isinstance(item, kind):

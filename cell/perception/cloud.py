@@ -10,14 +10,26 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cell.perception import _kernels as _k
 from drivers.atomic_file import write_bytes_atomic
+from drivers.config_base import Bounds
 
 Array = NDArray[np.float64]
+
+VOXEL_EDGE_M = (0.0005, 0.05)
+"""The edge [m] a voxel grid of the perception pipeline (filtering, registration, the occupancy map) may
+have: from half a millimetre, finer than any of the cell's depth sensors measures (their noise is
+millimetres), to 5 cm, where an object of a few centimetres is a voxel or two; 2.5 (millimetres written in
+a metres field) is refused."""
+
+VoxelEdge = Annotated[float, Bounds(*VOXEL_EDGE_M, "m", "a voxel's edge is half a millimetre to a few "
+                                    "centimetres")]
+"""[m] the edge of a voxel grid (:data:`VOXEL_EDGE_M`)."""
 
 
 _KEY_BITS = 21

@@ -55,7 +55,7 @@ from pydantic import PositiveFloat, model_validator
 from scipy.special import digamma
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import bounds, voxel_keys
+from cell.perception.cloud import VoxelEdge, bounds, voxel_keys
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -111,7 +111,7 @@ class OccupancyParams(StrictModel):
     away from every hit (noise, an object that moved), are carved as before.
     """
 
-    resolution_m: PositiveFloat
+    resolution_m: VoxelEdge
     p_hit: float = 0.7
     """[1] the occupancy probability a hit gives its voxel."""
     p_miss: float = 0.4

@@ -88,7 +88,7 @@ import itertools
 import logging
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Annotated, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -96,8 +96,8 @@ from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, bounds, cross_rows, in_box, voxel_downsample
-from drivers.config_base import StrictModel
+from cell.perception.cloud import VOXEL_EDGE_M, PointGrid, bounds, cross_rows, in_box, voxel_downsample
+from drivers.config_base import Bounds, StrictModel
 from drivers.transforms import make_T, rotvec, transform_points
 
 Array = NDArray[np.float64]
@@ -142,7 +142,8 @@ class RegistrationParams(StrictModel):
     """[m²] a stage ends when an update moves the source points by a mean squared distance of at most this, or
     changes their mean squared residual by less (PCL's transformation and Euclidean fitness epsilons)."""
     max_correspondence_m: tuple[PositiveFloat, ...] = Field(default=(0.02, 0.008, 0.002), min_length=1)
-    source_voxel_m: float = Field(default=0.0025, ge=0.0)
+    source_voxel_m: Annotated[float, Bounds(0.0, VOXEL_EDGE_M[1], "m", "a voxel's edge is at most a few "
+                                            "centimetres (0: the frame as it is)")] = 0.0025
     min_fitness: float = Field(default=0.3, ge=0.0, le=1.0)
     """[1] the share of source points with a correspondence below which the result is rejected."""
     max_correction_m: PositiveFloat = 0.02

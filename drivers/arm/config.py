@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat
 
-from drivers.config_base import Number, StrictModel
+from drivers.config_base import Bounds, Number, StrictModel
 
 RobotModelName = Literal["panda", "ur5e"]
 
@@ -21,20 +21,42 @@ class SimArmConfig(StrictModel):
 
 DigitalIndex = Annotated[int, Field(ge=0, le=7)]
 
+TOOL_REACH_M = 0.5
+"""How far [m] from the flange, along each axis of the flange frame, anything the wrist carries may lie:
+the TCP, the sensor (its mount), the payload's centre of mass. This cell's wrist tool is a depth sensor on
+a bracket, a few centimetres; a tool reaching further than 0.5 m is not this cell's (it would be most of
+the arm's own 0.85 m reach), and 40 (millimetres written in a metres field) is refused."""
+
+FlangeOffset = Annotated[float, Bounds(-TOOL_REACH_M, TOOL_REACH_M, "m",
+                                       f"the wrist tool lies within {TOOL_REACH_M:g} m of the flange")]
+"""[m] one coordinate of a point of the wrist tool in the flange frame (:data:`TOOL_REACH_M`)."""
+
+ROTATION_VECTOR_MAX_RAD = 6.2832
+"""The largest component [rad] of a rotation vector (axis-angle) in a cell file: 2 pi, rounded up. A
+rotation is a turn of at most pi about its axis (UR's pendant writes it so), at most 2 pi the long way
+round; 90 is degrees written in a radians field."""
+
+RotationVectorComponent = Annotated[float, Bounds(-ROTATION_VECTOR_MAX_RAD, ROTATION_VECTOR_MAX_RAD, "rad",
+                                                  "a rotation vector's components lie within +-2 pi rad")]
+"""[rad] one component of a rotation vector (:data:`ROTATION_VECTOR_MAX_RAD`)."""
+
 
 class PayloadConfig(StrictModel):
     """What the flange carries (sensor, bracket, cables): mass [kg] and centre of mass in the flange frame
     [m]. The controller uses it for gravity compensation and collision detection, so it has no default."""
 
     mass_kg: float = Field(ge=0.0, le=5.0)
-    cog_m: tuple[float, float, float]
+    cog_m: tuple[FlangeOffset, FlangeOffset, FlangeOffset]
+    """[m] the centre of mass in the flange frame: within the tool, so within :data:`TOOL_REACH_M` of the
+    flange on each axis."""
 
 
 class UR5eArmConfig(StrictModel):
     """A UR5e controller reached through ur-rtde (hardware backend; see :mod:`drivers.arm.ur5e`).
 
     - ``tcp_offset``: the TCP in the flange frame as a UR pose (x, y, z [m], rx, ry, rz [rad, axis-angle]),
-      sent to the controller with ``setTcp``; the driver still reports and commands the flange.
+      sent to the controller with ``setTcp``; the driver still reports and commands the flange. x, y, z lie
+      within :data:`TOOL_REACH_M` of the flange, each rotation component within +-2 pi rad.
     - ``max_linear_mps`` / ``max_angular_rps``: the driver's own ceiling on every twist it sends (a second
       line behind the safety guard's limits); ``acceleration_mps2`` the speedL acceleration and
       ``stop_deceleration_mps2`` the speedStop / stopL deceleration.
@@ -57,9 +79,10 @@ class UR5eArmConfig(StrictModel):
     host: str
     home_joints_rad: list[float] | None = None
     connect_timeout_s: PositiveFloat = 5.0
-    tcp_offset: tuple[float, float, float, float, float, float]
-    """[m, m, m, rad, rad, rad] the TCP in the flange frame as a UR pose: x, y, z, then the rotation vector
-    (axis-angle)."""
+    tcp_offset: tuple[FlangeOffset, FlangeOffset, FlangeOffset,
+                      RotationVectorComponent, RotationVectorComponent, RotationVectorComponent]
+    """[m, m, m, rad, rad, rad] the TCP in the flange frame as a UR pose: x, y, z (each within 0.5 m of the
+    flange), then the rotation vector (axis-angle)."""
     payload: PayloadConfig
     max_linear_mps: Number = Field(gt=0.0, le=1.0)
     max_angular_rps: Number = Field(gt=0.0, le=3.2)

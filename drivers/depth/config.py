@@ -6,8 +6,17 @@ from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_validator
 
-from drivers.config_base import StrictModel
+from drivers.config_base import Bounds, StrictModel
 from drivers.depth.vl53l8cx.protocol import MAX_FREQUENCY_HZ
+
+TOF_FOV_DEG = (10.0, 65.0)
+"""The square field of view [deg] a multizone time-of-flight sensor may have: 45 deg for the VL53L5CX and
+the VL53L8CX, 60 deg for the VL53L7CX; narrower than 10 deg, its zones would be finer than any of them
+(and 0.785 is 45 deg written in radians)."""
+
+ToFFieldOfView = Annotated[float, Bounds(*TOF_FOV_DEG, "deg", "a multizone ToF sensor's square field of view "
+                                         "(VL53L5CX, VL53L8CX 45 deg, VL53L7CX 60 deg)")]
+"""[deg] the square field of view of a multizone ToF sensor (:data:`TOF_FOV_DEG`)."""
 
 
 class RangedConfig(StrictModel):
@@ -73,7 +82,7 @@ class SimToFConfig(RangedConfig):
 
     type: Literal["sim-tof"]
     resolution: Literal[4, 8] = 8
-    fov_deg: float = Field(default=45.0, gt=0.0, lt=90.0)
+    fov_deg: ToFFieldOfView = 45.0
     subrays: PositiveInt = 4
     range_min_m: PositiveFloat = 0.02
     range_max_m: PositiveFloat = 4.0
@@ -121,7 +130,7 @@ class VL53L8CXConfig(RangedConfig):
     i2c: VL53L8CXI2CConfig | None = None
     resolution: Literal[4, 8] = 8
     frequency_hz: int = Field(default=15, ge=1, le=60)
-    fov_deg: float = Field(default=45.0, gt=0.0, lt=90.0)
+    fov_deg: ToFFieldOfView = 45.0
     valid_statuses: tuple[int, ...] = Field(default=VL53L8CX_VALID_STATUSES, min_length=1)
     range_min_m: PositiveFloat = 0.02
     range_max_m: PositiveFloat = 4.0

@@ -4,11 +4,11 @@ paper is silent the docstring says what was chosen and why."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
-from drivers.config_base import StrictModel
+from drivers.config_base import Bounds, StrictModel
 
 
 class ObjectiveConfig(StrictModel):
@@ -68,7 +68,10 @@ class ObjectiveConfig(StrictModel):
     """
 
     rays_per_side: PositiveInt = 23
-    fov_deg: float = Field(default=30.0, gt=0.0, lt=120.0)
+    fov_deg: Annotated[float, Bounds(5.0, 120.0, "deg", "the rays span a field of view a depth sensor "
+                                     "has: 45-60 deg for the ToF sensors, up to about 120 deg for RGB-D "
+                                     "cameras")] = 30.0
+    """[deg] the square field of view of the rays when ``use_sensor_fov`` is false."""
     use_sensor_fov: bool = True
     voxel_entropy: Literal["shannon", "residual"] = "residual"
     entropy: Literal["paper", "observation_aware"] = "observation_aware"
