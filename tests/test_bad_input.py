@@ -374,3 +374,22 @@ def test_a_scan_stopped_by_the_operator_says_stopped_not_error(tmp_path):
     assert res.exit_code == 1
     assert res.stderr.splitlines() == ["stopped: operator stop: lunch (cell stop)", f"job folder: {out}"]
     assert json.loads((out / "result.json").read_text())["status"] == "stopped"
+
+
+def test_a_scan_that_reached_no_view_failed_and_says_what_to_check(tmp_path):
+    """Every raster view out of the arm's reach (views 1.5 m from the station; a mount, station or TCP that
+    is wrong does the same): the scan ended ``completed`` with 0 of 13 views captured, exit code 0."""
+    text = UR5E.read_text()
+    assert "\n  standoff_m: 0.4\n" in text
+    far = tmp_path / "far.yaml"
+    far.write_text(text.replace("\n  standoff_m: 0.4\n", "\n  standoff_m: 1.5\n"))
+    out = tmp_path / "job"
+    res = CliRunner().invoke(app, ["scan", "--config", str(far), "--planner", "raster", "--out", str(out)])
+    assert res.exit_code == 1, res.output
+    result = json.loads((out / "result.json").read_text())
+    assert result["status"] == "failed" and result["n_captures"] == 0 and result["n_unreachable_views"] == 13
+    assert result["termination"] == (
+        "nothing captured: no view was reachable (13 unreachable): check the cell file's mount, station, "
+        "scan.standoff_m and the arm's TCP (tcp_offset) (raster complete: 0 of 13 views captured, "
+        "13 unreachable)")
+    assert f"failed: {result['termination']}" in res.output and f"job folder: {out}" in res.output

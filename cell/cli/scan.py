@@ -159,5 +159,7 @@ def scan(
         for label, value in packing_lines(packing):
             console.print(f"{label}: {value}", markup=False, highlight=False)
     console.print(f"job folder: {outcome.folder}", markup=False, highlight=False)
-    if r["status"] != "completed":
+    if r["status"] == "no_object":
         raise typer.Exit(code=EXIT_NOT_COMPLETED)
+    if r["status"] != "completed":  # failed: e.g. nothing captured, no view being reachable
+        raise typer.Exit(code=1)

@@ -52,7 +52,7 @@ from cell.jobs.progress import JobProgress
 from cell.jobs.rebuild import recorded_result
 from cell.jobs.recorder import JobRecorder
 from cell.jobs.replay import ReplaySession, check_recording
-from cell.jobs.session import JobSession, ScanLimitReached
+from cell.jobs.session import JobSession, ScanLimitReached, TimeBudgetExhausted
 from cell.jobs.stop_file import STOP_FILE
 from cell.packing.result import RecordsReconstruction, packing_section, section_box
 from cell.perception.metrics import METRICS_KEYS, CoverageTracker, ground_truth_points, measure
@@ -256,16 +256,20 @@ def _run_planner(planner: Planner, session: JobSession) -> str:
         session.close()
 
 
-def _outcome(session: JobSession, termination: str, planner_found_nothing: bool,
-             cut_short: bool) -> tuple[str, str]:
+def _outcome(session: JobSession, termination: str, planner_found_nothing: bool, cut_short: bool,
+             budget_ran_out: bool) -> tuple[str, str]:
     """The status and termination of a job whose planner's run ended with ``termination`` (module
-    docstring): ``no_object`` needs the planner to have ended its run, by ``NoObjectFound``
-    (``planner_found_nothing``, its search ended) or by returning, with no object found in the frames it
-    segmented; a run ``cut_short`` by a limit (``ScanLimitReached``) before an object was found ends
-    ``completed``, undecided, and so does one that captured no frame."""
+    docstring): a scan that captured no frame failed (:func:`_nothing_captured`), unless only its time
+    budget ran out before its first view (``budget_ran_out``), with no view refused and no capture
+    failed: a budget's matter, which its termination says. ``no_object`` needs the planner to have ended
+    its run, by ``NoObjectFound`` (``planner_found_nothing``, its search ended) or by returning, with no
+    object found in the frames it segmented; a run ``cut_short`` by a limit (``ScanLimitReached``)
+    before an object was found ends ``completed``, undecided, and so does one that captured no frame."""
+    n = session.n_captures
+    if n == 0 and not (budget_ran_out and not (session.n_unreachable or session.n_capture_failures)):
+        return "failed", _nothing_captured(session, termination)
     if session.object_found and not planner_found_nothing:
         return "completed", termination
-    n = session.n_captures
     frames = f"{n} frame{'' if n == 1 else 's'}"
     if cut_short:
         seen = "no frame captured" if n == 0 else f"segmentation found nothing above the table in {frames}"
@@ -275,6 +279,20 @@ def _outcome(session: JobSession, termination: str, planner_found_nothing: bool,
         return "completed", termination
     return "no_object", (f"no object found: segmentation found nothing above the table in {frames} "
                          f"({termination})")
+
+
+def _nothing_captured(session: JobSession, planner_termination: str) -> str:
+    """Why a scan that ended without a single frame failed: no view reachable (the cell file's mount,
+    station, standoff or TCP is likely wrong: each view is a sensor pose, reached through them), every
+    capture failing, or the planner's run ending before its first view for another reason."""
+    if session.n_capture_failures:
+        why = f"every capture failed ({session.n_capture_failures})"
+    elif session.n_unreachable:
+        why = (f"no view was reachable ({session.n_unreachable} unreachable): check the cell file's mount, "
+               "station, scan.standoff_m and the arm's TCP (tcp_offset)")
+    else:
+        why = "the scan ended before its first view"
+    return f"nothing captured: {why} ({planner_termination})"
 
 
 def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None = None,
@@ -370,13 +388,14 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                 control.attach(session)
             # Whatever ends the planner's run, the arm is brought to rest and watched until it is, and
             # asynchronous capture stops before the sensor disconnects.
-            planner_found_nothing = False
+            planner_found_nothing = budget_ran_out = False
             try:
                 termination = _run_planner(planner, session)
             except (ScanLimitReached, NoObjectFound) as exc:
                 termination = str(exc)
                 planner_found_nothing = isinstance(exc, NoObjectFound)
                 limit_reached = isinstance(exc, ScanLimitReached)
+                budget_ran_out = isinstance(exc, TimeBudgetExhausted)
             except SafetyStop:
                 session.settle()
                 raise
@@ -392,7 +411,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             guard.finish()
             session.settle()
             # a planner that ended for want of an object has the last word over what the map may hold
-            status, termination = _outcome(session, termination, planner_found_nothing, limit_reached)
+            status, termination = _outcome(session, termination, planner_found_nothing, limit_reached,
+                                           budget_ran_out)
     except SafetyStop as exc:
         status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
     except KeyboardInterrupt as exc:
