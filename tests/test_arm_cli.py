@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from cell.cli.arm import AXES, arm_app
+from drivers.arm.hardware import ur_pose_to_T
 from tests.conftest import CONFIG_DIR
 from tests.rtde_peer import REPO, ControllerPeer
 
@@ -58,6 +59,13 @@ def tcp_position(output: str) -> np.ndarray:
     return np.array([float(v) for v in match.groups()])
 
 
+def cell_tcp_position(peer: ControllerPeer, cell_file: Path) -> np.ndarray:
+    """Where the cell's TCP (its file's ``arm.tcp_offset``) is at the peer's joints [m, base frame], whatever
+    TCP the controller has active (another program's, none)."""
+    offset = yaml.safe_load(cell_file.read_text())["arm"]["tcp_offset"]
+    return (ur_pose_to_T(peer.state()["flange_pose"]) @ ur_pose_to_T(offset))[:3, 3]
+
+
 def run_ok(command: str, cell_file: Path) -> str:
     """The output of ``cell arm <command> --config <cell_file>``, which must succeed."""
     result = CliRunner().invoke(arm_app, [command, "--config", str(cell_file)])
@@ -67,11 +75,11 @@ def run_ok(command: str, cell_file: Path) -> str:
 
 def _status_then_recover(peer: ControllerPeer, cell_file: Path, faulted: tuple[str, ...],
                          recovered: tuple[str, ...]) -> None:
-    """``cell arm status`` shows the ``faulted`` words with the peer's TCP pose, then ``cell arm recover``
-    the ``recovered`` ones."""
+    """``cell arm status`` shows the ``faulted`` words with the pose of the cell's TCP (not the controller's
+    active one: none here), then ``cell arm recover`` the ``recovered`` ones."""
     output = run_ok("status", cell_file)
     assert all(words in output for words in faulted), output
-    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
+    assert np.allclose(tcp_position(output), cell_tcp_position(peer, cell_file), atol=1e-4)
     output = run_ok("recover", cell_file)
     assert all(words in output for words in recovered), output
 
@@ -80,7 +88,7 @@ def test_status_prints_the_tcp_pose_then_a_protective_stop_until_recovered(peer:
                                                                            cell_file: Path) -> None:
     output = run_ok("status", cell_file)
     assert "arm ur5e: connected" in output and "faults: none" in output
-    assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
+    assert np.allclose(tcp_position(output), cell_tcp_position(peer, cell_file), atol=1e-4)
 
     peer.protective_stop()
     _status_then_recover(peer, cell_file, ("protective stop", "safety mode PROTECTIVE_STOP"),
@@ -100,7 +108,9 @@ def test_status_and_recover_after_a_released_emergency_stop(peer: ControllerPeer
 
 
 def test_status_reads_the_arm_beside_a_program_that_drives_it(peer: ControllerPeer, cell_file: Path) -> None:
-    """An operator looks at the arm while a job drives it: no second control script, no refusal."""
+    """An operator looks at the arm while a job drives it: no second control script, no refusal; the pose
+    is the cell's TCP, not the TCP the program sent (0.05 m along the flange's z, the cell's is at y 0.04 m,
+    z 0.03 m)."""
     owner = subprocess.Popen([sys.executable, "-m", "tests.test_ur5e_driver", peer.host], cwd=REPO,
                              stdout=subprocess.PIPE, text=True)
     try:
@@ -109,7 +119,7 @@ def test_status_reads_the_arm_beside_a_program_that_drives_it(peer: ControllerPe
         started = [e for e in peer.state()["events"] if "program started" in e]
         output = run_ok("status", cell_file)
         assert "faults: none" in output
-        assert np.allclose(tcp_position(output), peer.state()["tcp_pose"][:3], atol=1e-4)
+        assert np.allclose(tcp_position(output), cell_tcp_position(peer, cell_file), atol=1e-4)
         assert [e for e in peer.state()["events"] if "program started" in e] == started
         assert peer.state()["program_running"]
     finally:
@@ -140,7 +150,7 @@ def test_jog_moves_the_flange_by_the_distance(peer: ControllerPeer, cell_file: P
     # streamed with speedL through the guard, ended with speedStop, the watchdog disarmed at rest
     assert peer.records("speedL") and peer.records("speedStop")
     assert peer.state()["watchdog_hz"] == 0.0 and peer.state()["motion"] == "idle"
-    assert np.allclose(tcp_position(result.output), peer.state()["tcp_pose"][:3], atol=1e-4)
+    assert np.allclose(tcp_position(result.output), cell_tcp_position(peer, cell_file), atol=1e-4)
 
 
 def test_jog_refuses_a_protectively_stopped_arm(peer: ControllerPeer, cell_file: Path) -> None:

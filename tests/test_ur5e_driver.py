@@ -20,6 +20,7 @@ import pytest
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, prepare_scan
 from drivers.arm.base import ArmMode, JointTrajectory
+from drivers.arm.hardware import ur_pose_to_T
 from drivers.arm.ur5e import REPLY_TIMEOUT_S, SILENT_PERIODS, UR5eArm
 from drivers.errors import DriverError, RobotFault
 from drivers.robots import get_robot_model
@@ -57,6 +58,31 @@ def test_connect_sends_tcp_and_payload_from_the_config(peer: ControllerPeer, ur:
     # the driver speaks the flange: the reported flange is the TCP minus the offset
     flange = ur.arm.state().T_base_flange
     assert np.allclose(flange[:3, 3], peer.state()["flange_pose"][:3], atol=1e-6)
+
+
+def test_the_flange_is_reported_whatever_tcp_the_controller_has(peer: ControllerPeer) -> None:
+    """``cell arm status`` connects for reading only (no control script, no setTcp) and took the flange as
+    the controller's TCP pose less the config's TCP, whatever TCP the controller had: the same joints gave
+    poses 40 / 30 mm apart before and after a jog had set the cell's TCP. A program with another TCP drives
+    the arm (then has ended, its TCP left on the controller): the reader reports the flange all the same,
+    and so does the program's own driver."""
+    other = [0.1, -0.05, 0.2, 0.0, 0.3, 0.0]
+    reader = UR5eArm(ur5e_config(peer.host), get_robot_model("ur5e"), read_only=True)
+    with ur5e_backend(peer, tcp_offset=other) as owner:
+        assert np.allclose(peer.state()["tcp_offset"], other)
+        flange = ur_pose_to_T(peer.state()["flange_pose"])
+        assert np.allclose(owner.arm.state().T_base_flange, flange, atol=1e-6)
+        reader.connect()
+        try:
+            assert np.allclose(reader.state().T_base_flange, flange, atol=1e-6)
+        finally:
+            reader.disconnect()
+    assert np.allclose(peer.state()["tcp_offset"], other)
+    reader.connect()
+    try:
+        assert np.allclose(reader.state().T_base_flange, flange, atol=1e-6)
+    finally:
+        reader.disconnect()
 
 
 def test_twists_are_clamped_and_sent_with_speedl_under_a_watchdog(peer: ControllerPeer, ur: Backend) -> None:

@@ -17,7 +17,13 @@ a controller still booting, a service disabled in PolyScope) fails with the port
 to check, not ur-rtde's bare "Operation canceled" or "End of file".
 
 Frames: ur-rtde reports and commands the TCP (``setTcp`` from the config); this backend converts to and
-from the flange, which is what the :class:`~drivers.arm.base.Arm` interface speaks.
+from the flange, which is what the :class:`~drivers.arm.base.Arm` interface speaks. The controller's TCP
+is the config's only while this driver's control script runs with the tool it sent: connected for
+reading (``read_only``, ``cell arm status``), or with the script stopped, the active TCP is another
+program's or the installation's, and RTDE (ur-rtde 1.6.5) does not report it. The flange is then the
+robot model's forward kinematics of the measured joints (nominal kinematics: it differs from the
+controller's calibrated pose by the robot's calibration, about a millimetre), so that the same joints give
+the same pose whatever TCP the controller has.
 
 Motion:
 - twists: clamped to the config's ceilings, turned into a TCP twist and sent with ``speedL`` (each call
@@ -147,6 +153,7 @@ class UR5eArm(HardwareArm):
         self._proc: RTDEProcess | None = None
         self._connected = False
         self._control = False  # the control interface is open in the child
+        self._tool_sent = False  # the config's TCP went to the control script now open (``_apply_tool``)
         self._lost: RobotFault | None = None  # latched until the operator recovers (module docstring)
         self._lock = threading.RLock()  # one exchange with the child at a time, and what depends on it
         self._mode = ArmMode.IDLE
@@ -192,6 +199,7 @@ class UR5eArm(HardwareArm):
         self._proc = RTDEProcess()
         self._proc.start()
         self._control = False
+        self._tool_sent = False
         self._watchdog_armed = False
         self._mode = ArmMode.IDLE
         # a stream's error belongs to the connection it ran on: one that ended with a lost connection
@@ -250,7 +258,9 @@ class UR5eArm(HardwareArm):
     def _apply_tool(self) -> None:
         """Send TCP and payload from the config (the control script forgets them when it restarts)."""
         p = self._config.payload
+        self._tool_sent = False
         self._call("setTcp", list(self._config.tcp_offset))
+        self._tool_sent = True
         self._call("setPayload", p.mass_kg, list(p.cog_m))
 
     def disconnect(self) -> None:
@@ -279,6 +289,7 @@ class UR5eArm(HardwareArm):
             self._last_snapshot = None
             self._newest_data = None
             self._control = False
+            self._tool_sent = False
             self._watchdog_armed = False
 
     @property
@@ -420,7 +431,7 @@ class UR5eArm(HardwareArm):
         qd = checked_vector(snap["qd"], 6, "actual_qd", self._device)
         T_tcp = ur_pose_to_T(checked_vector(snap["tcp_pose"], 6, "actual_TCP_pose", self._device))
         v_tcp = checked_vector(snap["tcp_speed"], 6, "actual_TCP_speed", self._device)
-        T_flange = T_tcp @ inv_T(self._T_flange_tcp)
+        T_flange = self._flange_pose(snap, q, T_tcp)
         faults = self._faults(snap)
         streaming = self._traj_thread is not None and self._traj_thread.is_alive()
         if self._mode is ArmMode.TRAJECTORY and not streaming:
@@ -428,6 +439,14 @@ class UR5eArm(HardwareArm):
         return ArmState(timestamp=snap["timestamp"], q=q, qd=qd, T_base_flange=T_flange,
                         v_base_flange=shift_twist(v_tcp, T_flange[:3, 3] - T_tcp[:3, 3]),
                         mode=ArmMode.FAULT if faults else self._mode, faults=faults)
+
+    def _flange_pose(self, snap: dict[str, Any], q: Array, T_tcp: Array) -> Array:
+        """T_base_flange (4x4) [m]: the controller's TCP pose ``T_tcp`` less the config's TCP while this
+        driver's control script runs with that TCP, else the model's forward kinematics of the joints
+        ``q`` [rad] (the controller's active TCP is then not the config's; module docstring)."""
+        if self._tool_sent and self._control and snap["program_running"]:
+            return T_tcp @ inv_T(self._T_flange_tcp)
+        return self._model.fk(q)
 
     def controller_modes(self) -> dict[str, str]:
         snap = self._snapshot()
