@@ -85,3 +85,30 @@ class Bounds(annotated_types.GroupedMetadata):
         if abs(value) >= smallest and self.lo <= converted <= self.hi:
             text += f"; it looks like {name} ({value:g} {symbol} is {converted:.6g} {self.unit})"
         return text
+
+
+CELL_EXTENT_M = 2.0
+"""How far [m] from the robot's base, along each axis of the base frame, anything a cell file places may
+lie (the workspace, barrier planes, the table, obstacles), and the longest size or distance in the cell:
+the arms reach less than 0.9 m (UR5e 0.85 m, Panda 0.855 m), and their table and obstacles stand around
+them; 850 (millimetres written in a metres field) is refused."""
+
+IN_CELL = Bounds(-CELL_EXTENT_M, CELL_EXTENT_M, "m",
+                 f"the cell lies within {CELL_EXTENT_M:g} m of the robot's base")
+"""The bounds of a coordinate [m] of a place in the cell (:data:`CELL_EXTENT_M`)."""
+CELL_SIZE = Bounds(0.001, CELL_EXTENT_M, "m",
+                   f"a size or a distance in the cell is 1 mm to {CELL_EXTENT_M:g} m")
+"""The bounds of a size or a distance [m] in the cell (:data:`CELL_EXTENT_M`)."""
+ONE_TURN = Bounds(-360.0, 360.0, "deg", "an angle lies within one turn either way")
+"""The bounds of an angle [deg] of a rotation or a direction."""
+
+CellCoordinate = Annotated[float, IN_CELL]
+"""[m] one coordinate of a place in the cell (:data:`IN_CELL`)."""
+CellSize = Annotated[float, CELL_SIZE]
+"""[m] a size or a distance in the cell (:data:`CELL_SIZE`)."""
+Turn = Annotated[float, ONE_TURN]
+"""[deg] an angle of a rotation or a direction (:data:`ONE_TURN`)."""
+CellDistance = Annotated[float, Bounds(0.0, CELL_EXTENT_M, "m",
+                                       f"a distance in the cell is 0 to {CELL_EXTENT_M:g} m")]
+"""[m] a distance in the cell that may be zero: a margin, a clearance, a height above the table
+(:data:`CELL_EXTENT_M`)."""

@@ -367,6 +367,29 @@ MM = r"; it looks like millimetres \({mm} mm is {m} m\)(;|$)"
      r"perception\.registration\.source_voxel_m: 2\.5 m is outside \[0, 0\.05\] m: .*"
      + MM.format(mm=r"2\.5", m=r"0\.0025")),
     ("dryrun-ur5e-peer", ("perception", "voxel_m"), float("nan"), r"perception\.voxel_m: nan m is outside"),
+    # the safety section's places and sizes: a workspace or a plane in millimetres limits nothing
+    ("sim-franka-rgbd", ("safety", "workspace", "max_m"), [850, 700, 1100],
+     r"safety\.workspace\.max_m\[0\]: 850 m is outside \[-2, 2\] m: the cell lies within 2 m of the robot's "
+     r"base" + MM.format(mm=850, m=r"0\.85")),
+    ("sim-franka-rgbd", ("safety", "barrier_planes", 0, "point"), [750, 0.0, 0.0],
+     r"safety\.barrier_planes\[0\]\.point\[0\]: 750 m is outside .*" + MM.format(mm=750, m=r"0\.75")),
+    ("sim-ur5e-tof", ("safety", "collision", "tool", 0, "size_m"), [40, 40, 30],
+     r"safety\.collision\.tool\[0\]\.size_m\[0\]: 40 m is outside \[0\.001, 2\] m: a size or a distance in "
+     r"the cell is 1 mm to 2 m" + MM.format(mm=40, m=r"0\.04")),
+    ("sim-ur5e-tof", ("safety", "collision", "tool", 0, "pose", "xyz_m"), [0.0, 0.04, 15],
+     r"safety\.collision\.tool\[0\]\.pose\.xyz_m\[2\]: 15 m is outside .*" + MM.format(mm=15, m=r"0\.015")),
+    # the sensor, the scan and the planners
+    ("sim-ur5e-tof", ("sensor", "range_max_m"), 4000,
+     r"sensor\.range_max_m: 4000 m is outside \[0\.001, 10\] m: .*" + MM.format(mm=4000, m="4")),
+    ("sim-ur5e-tof", ("perception", "crop_box", "z_m"), [20, 1500],
+     r"perception\.crop_box\.z_m\[0\]: 20 m is outside \[-10, 10\] m: .*" + MM.format(mm=20, m=r"0\.02")),
+    ("sim-ur5e-tof", ("perception", "segmentation", "dbscan_eps_m"), 30,
+     r"perception\.segmentation\.dbscan_eps_m: 30 m is outside \[0\.0001, 0\.2\] m: .*"
+     + MM.format(mm=30, m=r"0\.03")),
+    ("sim-ur5e-tof", ("scan", "standoff_m"), 400,
+     r"scan\.standoff_m: 400 m is outside \[0\.05, 2\] m: .*" + MM.format(mm=400, m=r"0\.4")),
+    ("sim-ur5e-tof", ("planners", "lrnbv", "view_distance_m"), [200, 600],
+     r"planners\.lrnbv\.view_distance_m\[0\]: 200 m is outside .*" + MM.format(mm=200, m=r"0\.2")),
 ])
 def test_a_length_or_angle_in_the_wrong_unit_is_refused_naming_the_likely_unit(tmp_path, cell, path, value,
                                                                                message):

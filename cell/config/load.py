@@ -45,11 +45,12 @@ def _allowed(error: ErrorDetails) -> str | None:
 
 
 def _strip_tags(loc: tuple[Any, ...], data: Any) -> tuple[Any, ...]:
-    """Drop the union tag pydantic puts after a discriminated field (``arm.sim.model`` -> ``arm.model``)."""
+    """Drop the union tag pydantic puts after a discriminated field (``arm.sim.model`` -> ``arm.model``, a
+    collision body's ``tool[0].box.size_m`` -> ``tool[0].size_m``)."""
     out: list[Any] = []
     node = data
     for item in loc:
-        if isinstance(node, dict) and item not in node and node.get("type") == item:
+        if isinstance(node, dict) and item not in node and item in (node.get("type"), node.get("shape")):
             continue
         out.append(item)
         node = node.get(item) if isinstance(node, dict) else (

@@ -26,16 +26,24 @@ from cell.planning.registry import PLANNERS
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
 from drivers.arm.config import ArmConfig, FlangeOffset, ReplayArmConfig, UR5eArmConfig
-from drivers.config_base import Bounds, FiniteNumber, PositiveCount, PositiveNumber, StrictModel
-from drivers.depth.config import DepthConfig, ReplayConfig
+from drivers.config_base import (
+    CELL_EXTENT_M,
+    Bounds,
+    CellCoordinate,
+    CellDistance,
+    CellSize,
+    FiniteNumber,
+    PositiveCount,
+    PositiveNumber,
+    StrictModel,
+    Turn,
+)
+from drivers.depth.config import DepthConfig, ReplayConfig, SensorCoordinate
 from drivers.errors import ServiceError
 from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.sim.errors import SimErrorConfig, SimErrors
 from drivers.sim.faults import SimFault
 from drivers.transforms import T_from_xyz_rpy
-
-Turn = Annotated[float, Bounds(-360.0, 360.0, "deg", "an angle of a turn lies within one turn either way")]
-"""[deg] one angle of a roll-pitch-yaw rotation."""
 
 
 class PoseConfig(StrictModel):
@@ -71,8 +79,8 @@ class SimConfig(StrictModel):
     ``exact`` is true (for the algorithm tests that need the sensor exactly where the job believes it is).
     A ``true_mount`` given replaces the drawn hand-eye error, and holds with ``exact`` too."""
 
-    table_size_m: tuple[PositiveFloat, PositiveFloat] = (1.2, 1.0)
-    table_center_xy_m: tuple[float, float] = (0.5, 0.0)
+    table_size_m: tuple[CellSize, CellSize] = (1.2, 1.0)
+    table_center_xy_m: tuple[CellCoordinate, CellCoordinate] = (0.5, 0.0)
     faults: list[SimFault] = Field(default_factory=list)
     true_mount: PoseConfig | None = None
     board: SimBoardConfig | None = None
@@ -88,11 +96,12 @@ class CalibrationConfig(StrictModel):
 
 
 class CropBoxConfig(StrictModel):
-    """Axis-aligned box in the sensor frame [m]; points outside are dropped (paper section II-A)."""
+    """Axis-aligned box in the sensor frame [m], within the sensors' range; points outside are dropped
+    (paper section II-A)."""
 
-    x_m: tuple[float, float]
-    y_m: tuple[float, float]
-    z_m: tuple[float, float]
+    x_m: tuple[SensorCoordinate, SensorCoordinate]
+    y_m: tuple[SensorCoordinate, SensorCoordinate]
+    z_m: tuple[SensorCoordinate, SensorCoordinate]
 
     @model_validator(mode="after")
     def _ordered(self) -> CropBoxConfig:
@@ -130,8 +139,8 @@ class RasterConfig(StrictModel):
     (0 = looking along +x of the base frame)."""
 
     rings: list[RingConfig] = Field(min_length=1)
-    target_height_m: float = Field(ge=0.0)
-    start_azimuth_deg: float = 180.0
+    target_height_m: CellDistance
+    start_azimuth_deg: Turn = 180.0
     azimuth_span_deg: float = Field(default=360.0, gt=0.0, le=360.0)
     settle_s: float = Field(default=0.1, ge=0.0)
 
@@ -157,7 +166,8 @@ class ScanConfig(StrictModel):
     the sim clock steps, and the time budget [s]."""
 
     planner: str
-    standoff_m: PositiveFloat
+    standoff_m: Annotated[float, Bounds(0.05, CELL_EXTENT_M, "m", "the sensor keeps 5 cm to 2 m from the "
+                                        "object (clear of it, beyond the sensors' minimum range)")]
     control_rate_hz: float = Field(gt=0.0, le=1000.0)
     max_time_s: PositiveFloat
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pydantic import Field, PositiveFloat, model_validator
 
-from drivers.config_base import StrictModel
+from drivers.config_base import CellDistance, CellSize, StrictModel
 from drivers.depth.config import DepthNoiseConfig
 
 
@@ -12,7 +12,7 @@ class ContainerConfig(StrictModel):
     """One container of the catalogue: ``name`` and ``inner_dims_m`` (L, W, H) [m], its inside lengths."""
 
     name: str = Field(min_length=1)
-    inner_dims_m: tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+    inner_dims_m: tuple[CellSize, CellSize, CellSize]
 
 
 class BoxUncertaintyConfig(StrictModel):
@@ -60,8 +60,8 @@ class PackingConfig(StrictModel):
     """
 
     containers: list[ContainerConfig] = Field(default_factory=list)
-    margin_m: float = Field(default=0.01, ge=0.0)
-    coverage_radius_m: PositiveFloat | None = None
+    margin_m: CellDistance = 0.01
+    coverage_radius_m: CellSize | None = None
     trim_fraction: float = Field(default=0.02, ge=0.0, lt=0.5)
     """[1] the share of object voxels each face of the box may leave outside."""
     uncertainty: BoxUncertaintyConfig = BoxUncertaintyConfig()

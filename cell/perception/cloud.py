@@ -31,6 +31,16 @@ VoxelEdge = Annotated[float, Bounds(*VOXEL_EDGE_M, "m", "a voxel's edge is half 
                                     "centimetres")]
 """[m] the edge of a voxel grid (:data:`VOXEL_EDGE_M`)."""
 
+PERCEPTION_DISTANCE_M = (0.0001, 0.2)
+"""The range [m] of a distance parameter of the perception pipeline (a normal's radius, a correspondence
+or cluster distance, a plane's thickness, a correction of a pose): from a tenth of a millimetre, under any
+of the sensors' noise, to 20 cm, the size of the objects the cells scan, beyond which it joins an object
+to everything around it; 12 (millimetres written in a metres field) is refused."""
+
+PerceptionDistance = Annotated[float, Bounds(*PERCEPTION_DISTANCE_M, "m", "a distance of perception is "
+                                             "0.1 mm to 20 cm")]
+"""[m] a distance parameter of the perception pipeline (:data:`PERCEPTION_DISTANCE_M`)."""
+
 
 _KEY_BITS = 21
 """Bits per axis of the packed voxel keys of ``_kernels.voxel_groups`` (offset by 2^20)."""

@@ -51,12 +51,13 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import PositiveFloat, model_validator
+from pydantic import model_validator
 from scipy.special import digamma
 
 from cell.perception import _kernels as _k
 from cell.perception.cloud import VoxelEdge, bounds, voxel_keys
 from drivers.config_base import StrictModel
+from drivers.depth.config import SensorRange
 
 Array = NDArray[np.float64]
 
@@ -122,7 +123,7 @@ class OccupancyParams(StrictModel):
     """[1] the highest occupancy probability a voxel is held at."""
     occupied_threshold: float = 0.5
     """[1] the occupancy probability above which a voxel counts as occupied."""
-    max_range_m: PositiveFloat | None = None
+    max_range_m: SensorRange | None = None
     discretize: bool = False
     keep_surface: bool = False
 

@@ -96,7 +96,15 @@ from pydantic import Field, PositiveFloat, PositiveInt, field_validator
 from scipy.spatial.transform import Rotation
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import VOXEL_EDGE_M, PointGrid, bounds, cross_rows, in_box, voxel_downsample
+from cell.perception.cloud import (
+    VOXEL_EDGE_M,
+    PerceptionDistance,
+    PointGrid,
+    bounds,
+    cross_rows,
+    in_box,
+    voxel_downsample,
+)
 from drivers.config_base import Bounds, StrictModel
 from drivers.transforms import make_T, rotvec, transform_points
 
@@ -136,24 +144,25 @@ class RegistrationParams(StrictModel):
     """
 
     enabled: bool
-    normal_radius_m: PositiveFloat = 0.005
+    normal_radius_m: PerceptionDistance = 0.005
     max_iterations: PositiveInt = 20
     epsilon: PositiveFloat = 1e-8
     """[m²] a stage ends when an update moves the source points by a mean squared distance of at most this, or
     changes their mean squared residual by less (PCL's transformation and Euclidean fitness epsilons)."""
-    max_correspondence_m: tuple[PositiveFloat, ...] = Field(default=(0.02, 0.008, 0.002), min_length=1)
+    max_correspondence_m: tuple[PerceptionDistance, ...] = Field(default=(0.02, 0.008, 0.002), min_length=1)
     source_voxel_m: Annotated[float, Bounds(0.0, VOXEL_EDGE_M[1], "m", "a voxel's edge is at most a few "
                                             "centimetres (0: the frame as it is)")] = 0.0025
     min_fitness: float = Field(default=0.3, ge=0.0, le=1.0)
     """[1] the share of source points with a correspondence below which the result is rejected."""
-    max_correction_m: PositiveFloat = 0.02
-    max_correction_deg: PositiveFloat = 3.0
+    max_correction_m: PerceptionDistance = 0.02
+    max_correction_deg: Annotated[float, Bounds(0.01, 180.0, "deg", "a correction turns the pose by less "
+                                                "than half a turn")] = 3.0
     min_points: PositiveInt = 200
     min_constraint: float = Field(default=0.003, ge=0.0, le=1.0)
     """[1] the smallest eigenvalue of the normalised point-to-plane Hessian for a direction of the correction
     to be kept."""
     max_source_points: PositiveInt = 3000
-    constraint_normal_radius_m: PositiveFloat = 0.01
+    constraint_normal_radius_m: PerceptionDistance = 0.01
 
     @field_validator("max_correspondence_m")
     @classmethod

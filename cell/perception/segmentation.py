@@ -30,7 +30,7 @@ from pydantic import Field
 from scipy.spatial import ConvexHull, QhullError
 
 from cell.perception import _kernels as _k
-from cell.perception.cloud import PointGrid, cross_rows
+from cell.perception.cloud import PerceptionDistance, PointGrid, cross_rows
 from drivers.config_base import StrictModel
 
 Array = NDArray[np.float64]
@@ -60,16 +60,16 @@ class SegmentationParams(StrictModel):
     """
 
     method: Literal["euclidean", "dbscan"] = "euclidean"
-    plane_distance_m: float = Field(0.006, gt=0.0)
+    plane_distance_m: PerceptionDistance = 0.006
     plane_ransac_iterations: int = Field(200, ge=1)
-    cluster_tolerance_m: float = Field(0.012, gt=0.0)
-    dbscan_eps_m: float = Field(0.02, gt=0.0)
+    cluster_tolerance_m: PerceptionDistance = 0.012
+    dbscan_eps_m: PerceptionDistance = 0.02
     dbscan_min_points: int = Field(5, ge=1)
     min_cluster_points: int = Field(10, ge=1)
     table_normal_max_tilt_deg: float = Field(20.0, ge=0.0, le=90.0)
     seed: int = 0
     plane_score_points: int = Field(3000, ge=3)
-    table_max_offset_m: float = Field(0.02, gt=0.0)
+    table_max_offset_m: PerceptionDistance = 0.02
 
 
 def threshold_occupancy(centres: Array, probabilities: Array, p_occupied: float = 0.5) -> Array:

@@ -13,18 +13,35 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from drivers.config_base import NonNegativeNumber, Number, PositiveCount, PositiveNumber, StrictModel
+from drivers.config_base import (
+    CELL_SIZE,
+    IN_CELL,
+    ONE_TURN,
+    Bounds,
+    Number,
+    PositiveCount,
+    PositiveNumber,
+    StrictModel,
+)
 from drivers.transforms import T_from_xyz_rpy
 
 Vec3 = tuple[Number, Number, Number]
+Coordinate = Annotated[Number, IN_CELL]
+"""[m] a coordinate of a place in the cell, written as a number (:data:`~drivers.config_base.CELL_EXTENT_M`:
+a workspace or a barrier plane given in millimetres is no limit at all)."""
+Point = tuple[Coordinate, Coordinate, Coordinate]
+Angle = Annotated[Number, ONE_TURN]
+"""[deg] an angle of a rotation, written as a number, within one turn."""
+Size = Annotated[Number, CELL_SIZE]
+"""[m] a size in the cell, written as a number (:data:`~drivers.config_base.CELL_EXTENT_M`)."""
 
 
 class WorkspaceConfig(StrictModel):
     """Box in the base frame [m] that the sensor and the flange must stay inside; the guard treats its
     six faces as barrier planes."""
 
-    min_m: Vec3
-    max_m: Vec3
+    min_m: Point
+    max_m: Point
 
     @model_validator(mode="after")
     def _ordered(self) -> WorkspaceConfig:
@@ -37,7 +54,7 @@ class BarrierPlaneConfig(StrictModel):
     """A virtual barrier plane (visual-servoing paper section III-A, Fig. 3): a ``point`` on it [m] and its
     ``normal`` pointing into the allowed side, both in the base frame. ``name`` appears in the logs."""
 
-    point: Vec3
+    point: Point
     """[m] a point on the plane, in the base frame."""
     normal: Vec3
     """[1] the direction into the allowed side, in the base frame (any length but zero)."""
@@ -54,8 +71,8 @@ class BarrierPlaneConfig(StrictModel):
 class BodyPose(StrictModel):
     """Pose of a body's centre: translation ``xyz_m`` [m], extrinsic roll-pitch-yaw ``rpy_deg`` [deg]."""
 
-    xyz_m: Vec3
-    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+    xyz_m: Point
+    rpy_deg: tuple[Angle, Angle, Angle] = (0.0, 0.0, 0.0)
 
     def matrix(self) -> np.ndarray:
         return T_from_xyz_rpy(self.xyz_m, np.deg2rad(self.rpy_deg))
@@ -66,7 +83,7 @@ class BoxBody(StrictModel):
 
     shape: Literal["box"]
     name: str
-    size_m: tuple[PositiveNumber, PositiveNumber, PositiveNumber]
+    size_m: tuple[Size, Size, Size]
     pose: BodyPose
 
 
@@ -75,8 +92,8 @@ class CylinderBody(StrictModel):
 
     shape: Literal["cylinder"]
     name: str
-    radius_m: PositiveNumber
-    length_m: PositiveNumber
+    radius_m: Size
+    length_m: Size
     pose: BodyPose
 
 
@@ -97,9 +114,9 @@ class TableConfig(StrictModel):
     """The table slab: its top at ``station.table_z_m``, centre ``center_xy_m`` and ``size_m`` [m] in the
     base frame, ``thickness_m`` below the top."""
 
-    center_xy_m: tuple[Number, Number]
-    size_m: tuple[PositiveNumber, PositiveNumber]
-    thickness_m: PositiveNumber = 0.05
+    center_xy_m: tuple[Coordinate, Coordinate]
+    size_m: tuple[Size, Size]
+    thickness_m: Size = 0.05
 
 
 class CollisionConfig(StrictModel):
@@ -116,7 +133,7 @@ class CollisionConfig(StrictModel):
 
     lookahead_s: Number = Field(gt=0.0, le=1.0)
     trajectory_step_rad: Number = Field(gt=0.0, le=0.2)
-    roi_margin_m: NonNegativeNumber
+    roi_margin_m: Annotated[Number, Bounds(0.0, 0.5, "m", "a margin around the object is at most 0.5 m")]
     table: TableConfig
     tool: list[Body] = Field(min_length=1)
     obstacles: list[Body]

@@ -9,6 +9,19 @@ from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_v
 from drivers.config_base import Bounds, StrictModel
 from drivers.depth.vl53l8cx.protocol import MAX_FREQUENCY_HZ
 
+SENSOR_RANGE_MAX_M = 10.0
+"""The farthest [m] the cell's depth sensors measure, and so the largest range and crop box coordinate a
+cell file may give: the VL53L8CX ranges to 4 m, a RealSense D400 to about 10 m; 4000 (millimetres written
+in a metres field) is refused."""
+
+SensorRange = Annotated[float, Bounds(0.001, SENSOR_RANGE_MAX_M, "m", "a depth sensor measures from a "
+                                      f"millimetre to {SENSOR_RANGE_MAX_M:g} m")]
+"""[m] a distance from the sensor along its optical axis (:data:`SENSOR_RANGE_MAX_M`)."""
+
+SensorCoordinate = Annotated[float, Bounds(-SENSOR_RANGE_MAX_M, SENSOR_RANGE_MAX_M, "m", "a depth sensor "
+                                           f"measures within {SENSOR_RANGE_MAX_M:g} m")]
+"""[m] one coordinate of a place in the sensor frame (:data:`SENSOR_RANGE_MAX_M`)."""
+
 TOF_FOV_DEG = (10.0, 65.0)
 """The square field of view [deg] a multizone time-of-flight sensor may have: 45 deg for the VL53L5CX and
 the VL53L8CX, 60 deg for the VL53L7CX; narrower than 10 deg, its zones would be finer than any of them
@@ -22,8 +35,8 @@ ToFFieldOfView = Annotated[float, Bounds(*TOF_FOV_DEG, "deg", "a multizone ToF s
 class RangedConfig(StrictModel):
     """A sensor that reports returns between ``range_min_m`` and ``range_max_m`` [m]."""
 
-    range_min_m: PositiveFloat
-    range_max_m: PositiveFloat
+    range_min_m: SensorRange
+    range_max_m: SensorRange
 
     @model_validator(mode="after")
     def _range_ordered(self) -> RangedConfig:
@@ -84,12 +97,12 @@ class SimToFConfig(RangedConfig):
     resolution: Literal[4, 8] = 8
     fov_deg: ToFFieldOfView = 45.0
     subrays: PositiveInt = 4
-    range_min_m: PositiveFloat = 0.02
-    range_max_m: PositiveFloat = 4.0
+    range_min_m: SensorRange = 0.02
+    range_max_m: SensorRange = 4.0
     noise: DepthNoiseConfig
     min_hit_fraction: float = Field(default=0.25, gt=0.0, le=1.0)
     """[1] the share of a zone's sub-rays that must hit for the zone to have a target."""
-    edge_gap_m: PositiveFloat = 0.025
+    edge_gap_m: SensorRange = 0.025
     zone_bias: ZoneBiasConfig | None = None
     zone_correction: str | None = None
 
@@ -132,8 +145,8 @@ class VL53L8CXConfig(RangedConfig):
     frequency_hz: int = Field(default=15, ge=1, le=60)
     fov_deg: ToFFieldOfView = 45.0
     valid_statuses: tuple[int, ...] = Field(default=VL53L8CX_VALID_STATUSES, min_length=1)
-    range_min_m: PositiveFloat = 0.02
-    range_max_m: PositiveFloat = 4.0
+    range_min_m: SensorRange = 0.02
+    range_max_m: SensorRange = 4.0
     timeout_s: PositiveFloat = 1.0
     zone_correction: str | None = None
 
@@ -182,8 +195,8 @@ class RealSenseConfig(RangedConfig):
     """[Hz] the depth stream's frame rate."""
     preset: str = ""
     record_bag: str = ""
-    range_min_m: PositiveFloat = 0.1
-    range_max_m: PositiveFloat = 2.0
+    range_min_m: SensorRange = 0.1
+    range_max_m: SensorRange = 2.0
 
 
 class ReplayConfig(RangedConfig):
@@ -193,8 +206,8 @@ class ReplayConfig(RangedConfig):
 
     type: Literal["replay"]
     job_dir: str
-    range_min_m: PositiveFloat = 0.02
-    range_max_m: PositiveFloat = 4.0
+    range_min_m: SensorRange = 0.02
+    range_max_m: SensorRange = 4.0
 
 
 DepthConfig = Annotated[

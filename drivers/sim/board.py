@@ -16,9 +16,9 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import PositiveFloat, model_validator
+from pydantic import model_validator
 
-from drivers.config_base import StrictModel
+from drivers.config_base import CellCoordinate, CellSize, StrictModel, Turn
 from drivers.errors import DriverError
 from drivers.transforms import make_T
 
@@ -49,8 +49,8 @@ class BoardConfig(StrictModel):
     ``marker_m`` [m] from the predefined aruco ``dictionary``."""
 
     squares: tuple[int, int] = (7, 5)
-    square_m: PositiveFloat = 0.03
-    marker_m: PositiveFloat = 0.022
+    square_m: CellSize = 0.03
+    marker_m: CellSize = 0.022
     dictionary: Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_50",
                         "DICT_6X6_100"] = "DICT_5X5_100"
 
@@ -77,7 +77,7 @@ class SimBoardConfig(StrictModel):
     """In sim: the cell's ``calibration.board`` lies face up on the table, its centre at ``pose``
     (x [m], y [m], yaw [deg]) from the station."""
 
-    pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    pose: tuple[CellCoordinate, CellCoordinate, Turn] = (0.0, 0.0, 0.0)
     """[m, m, deg] the board centre's x, y from the station and its yaw."""
 
 

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
-from drivers.config_base import StrictModel
+from drivers.config_base import CellDistance, CellSize, StrictModel, Turn
 
 
 class LRNBVConfig(StrictModel):
@@ -56,27 +56,27 @@ class LRNBVConfig(StrictModel):
     max_iterations: PositiveInt = 300
     samples_per_iteration: PositiveInt = 50
     cached_nodes: PositiveInt = 50
-    visited_grid_m: PositiveFloat = 0.18
+    visited_grid_m: CellSize = 0.18
     w_e: PositiveFloat = 500.0
     w_d: PositiveFloat = 0.05
     w_q: PositiveFloat = 0.08
     w_v: PositiveFloat = 500.0
-    density_radius_m: PositiveFloat = 0.02
-    ray_length_m: PositiveFloat = 1.0
-    roi_margin_m: float = Field(default=0.05, ge=0.0)
+    density_radius_m: CellSize = 0.02
+    ray_length_m: CellSize = 1.0
+    roi_margin_m: CellDistance = 0.05
     cache_threshold: float = 0.0
     """[utility units] tau: the utility above which nodes are cached and branch nodes captured."""
     capture: Literal["branch", "best_node"] = "branch"
-    rrt_step_m: PositiveFloat = 0.3
-    view_distance_m: tuple[PositiveFloat, PositiveFloat] = (0.2, 0.6)
-    object_clearance_m: float = Field(default=0.08, ge=0.0)
+    rrt_step_m: CellSize = 0.3
+    view_distance_m: tuple[CellSize, CellSize] = (0.2, 0.6)
+    object_clearance_m: CellDistance = 0.08
     look_target_spread: float = Field(default=0.5, ge=0.0, le=1.0)
     """[1] the fraction towards the box centre at which the look-at corners are taken (0: only the centre)."""
     rgbd_rays_per_side: PositiveInt = 16
     settle_s: float = Field(default=0.1, ge=0.0)
     max_failed_moves: PositiveInt = 10
-    refused_radius_m: float = Field(default=0.1, ge=0.0)
-    search_heights_m: tuple[PositiveFloat, ...] = (0.3, 0.22)
+    refused_radius_m: CellDistance = 0.1
+    search_heights_m: tuple[CellSize, ...] = (0.3, 0.22)
     exploration_weight: Literal["entropy", "observation"] = "observation"
 
     @model_validator(mode="after")
@@ -95,8 +95,8 @@ class HEUConfig(StrictModel):
     (0 = +x of the base frame); ``settle_s`` [s] waited after each move before the capture."""
 
     n_poses: PositiveInt = 13
-    semi_axes_m: tuple[PositiveFloat, PositiveFloat] = (0.3, 0.3)
-    height_m: PositiveFloat = 0.35
-    target_height_m: float = Field(default=0.05, ge=0.0)
-    start_angle_deg: float = 180.0
+    semi_axes_m: tuple[CellSize, CellSize] = (0.3, 0.3)
+    height_m: CellSize = 0.35
+    target_height_m: CellDistance = 0.05
+    start_angle_deg: Turn = 180.0
     settle_s: float = Field(default=0.1, ge=0.0)

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
-from drivers.config_base import Bounds, StrictModel
+from drivers.config_base import Bounds, CellDistance, CellSize, StrictModel, Turn
 
 
 class ObjectiveConfig(StrictModel):
@@ -75,7 +75,7 @@ class ObjectiveConfig(StrictModel):
     use_sensor_fov: bool = True
     voxel_entropy: Literal["shannon", "residual"] = "residual"
     entropy: Literal["paper", "observation_aware"] = "observation_aware"
-    roi_margin_m: float = Field(default=0.03, ge=0.0)
+    roi_margin_m: CellDistance = 0.03
 
 
 class ServoConfig(StrictModel):
@@ -105,7 +105,7 @@ class ServoConfig(StrictModel):
     """[1/s] the primary task's adaptive gain as ||e|| grows large."""
     lambda_0_slope: PositiveFloat = 30.0
     lambda_g: float = Field(default=0.33, ge=0.0)
-    e_converged_m: PositiveFloat = 0.005
+    e_converged_m: CellSize = 0.005
 
     @model_validator(mode="after")
     def _gain_decreasing(self) -> ServoConfig:
@@ -121,9 +121,9 @@ class StartViewConfig(StrictModel):
     base's +x axis (0: beyond the station, looking back at the robot; 270: on the -y side, a sideways view
     that both the Panda and the UR5e reach)."""
 
-    target_height_m: float = Field(default=0.06, ge=0.0)
+    target_height_m: CellDistance = 0.06
     elevation_deg: float = Field(default=30.0, gt=0.0, le=90.0)
-    azimuth_deg: float = 270.0
+    azimuth_deg: Turn = 270.0
 
 
 class VSConfig(StrictModel):
@@ -157,17 +157,18 @@ class VSConfig(StrictModel):
     objective: ObjectiveConfig = ObjectiveConfig()
     servo: ServoConfig = ServoConfig()
     start: StartViewConfig = StartViewConfig()
-    barrier_activation_m: PositiveFloat = 0.02
+    barrier_activation_m: CellSize = 0.02
     centroid_tau_s: float = Field(default=0.5, ge=0.0)
     h_roi_window: int = Field(default=10, ge=2)
     h_roi_std: PositiveFloat = 0.001
     """[nats] the standard deviation of the last ``h_roi_window`` H_ROI values below which Global and Hybrid
     stop."""
     first_object_timeout_s: PositiveFloat = 5.0
-    joint_activation_rad: PositiveFloat = 0.15
+    joint_activation_rad: Annotated[float, Bounds(0.001, 3.1416, "rad", "a distance to a joint limit is "
+                                                  "under half a turn")] = 0.15
     singular_value_activation: float = Field(default=0.06, ge=0.0)
     backoff_s: PositiveFloat = 1.0
-    refusal_radius_m: PositiveFloat = 0.05
+    refusal_radius_m: CellSize = 0.05
 
 
 class VSLocalConfig(StrictModel):
@@ -189,7 +190,7 @@ class VSLocalConfig(StrictModel):
     moves at k times the exploration speed (``ServoConfig``), up to the cell's TCP speed limits: it is
     crossing views it has used up. VS-Hybrid always uses the single delta."""
 
-    delta_m: PositiveFloat = 0.05
+    delta_m: CellSize = 0.05
     reach_deg: float = Field(default=0.0, ge=0.0, lt=180.0)
     alpha: PositiveFloat = 1.0
     """[m] the scale of the relative gradient."""
@@ -220,10 +221,10 @@ class VSGlobalConfig(StrictModel):
     below a flip; see ``cell.planning.vs.goals``)."""
 
     n_candidates: PositiveInt = 5000
-    slow_radius_m: PositiveFloat = 0.10
-    arrival_m: PositiveFloat = 0.05
+    slow_radius_m: CellSize = 0.10
+    arrival_m: CellSize = 0.05
     stall_time_s: PositiveFloat = 3.0
-    stall_progress_m: PositiveFloat = 0.01
+    stall_progress_m: CellSize = 0.01
     reachability_checks: int = Field(default=50, ge=0)
-    path_step_m: PositiveFloat = 0.03
+    path_step_m: CellSize = 0.03
 
