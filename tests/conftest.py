@@ -54,6 +54,13 @@ def register_planner(monkeypatch: pytest.MonkeyPatch, planner: Any) -> None:
     monkeypatch.setitem(PLANNERS, planner.name, entry)
 
 
+def ended_without_a_frame(result: dict[str, Any], termination: str) -> bool:
+    """Whether a job whose test planner ended with ``termination`` before capturing any frame ended as
+    such a scan does: failed, its planner's termination kept (cell.jobs.runner)."""
+    return bool(result["status"] == "failed" and result["termination"]
+                == f"nothing captured: the scan ended before its first view ({termination})")
+
+
 def wait_for(predicate: Callable[[], bool], timeout_s: float = 30.0) -> bool:
     """Poll ``predicate`` every 10 ms until it holds (True) or ``timeout_s`` [s] of wall time pass (False):
     for what another thread does."""
