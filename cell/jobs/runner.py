@@ -74,6 +74,7 @@ from drivers.errors import CellError, JobError, NoObjectFound, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.board import TableTexture, board_on_table, board_texture
+from drivers.sim.contact import SimContact
 from drivers.sim.errors import SimErrors, draw_sim_errors
 from drivers.sim.faults import SimFaultInjector
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, load_object
@@ -361,6 +362,9 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             assert isinstance(sensor, SimDepthSensor)
             SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
         guard = MotionGuard.from_config(arm, model, cfg, clock)
+        if scene is not None and isinstance(arm, SimArm) and isinstance(clock, SimClock):
+            # the simulated arm hits the true object (and the table) as a real one would: it faults
+            SimContact(clock, arm, scene, guard.collision.arm_bodies())
 
         # a watched job (``on_progress`` given) keeps a snapshot of its cloud for its watchers
         live_cloud = None if on_progress is None else LiveCloudWriter(

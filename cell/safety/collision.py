@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 
 from cell.safety.config import Body, BoxBody, CollisionConfig, CylinderBody, MeshBody
 from drivers.errors import ConfigError
+from drivers.fcl_bodies import ArmBody, fcl_transform, mesh_bvh
 from drivers.robots.model import RobotModel
 
 Array = NDArray[np.float64]
@@ -102,10 +103,6 @@ class _Reference:
     roi: _Static | None
 
 
-def _fcl_transform(T: Array) -> fcl.Transform:
-    return fcl.Transform(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]))
-
-
 def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float]:
     """The FCL geometry of a configured body and the radius of a sphere about its pose that encloses it."""
     if isinstance(body, BoxBody):
@@ -121,11 +118,7 @@ def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float]:
     if triangles.shape[0] == 0:
         raise ConfigError("the mesh has no triangles or cannot be read", field=f"obstacle {body.name}",
                           allowed="a triangle mesh file Open3D reads (.ply, .stl, .obj, ...)")
-    bvh = fcl.BVHModel()
-    bvh.beginModel(vertices.shape[0], triangles.shape[0])
-    bvh.addSubModel(vertices, triangles)
-    bvh.endModel()
-    return bvh, float(np.max(np.linalg.norm(vertices, axis=1)))
+    return mesh_bvh(vertices, triangles), float(np.max(np.linalg.norm(vertices, axis=1)))
 
 
 def _capsule_pose(a: Array, b: Array) -> Array:
@@ -195,6 +188,7 @@ class CollisionWorld:
             frames.append(flange_frame)
         self.moving_names = self._link_names + [b.name for b in config.tool]
         n_moving = len(self.moving_names)
+        self._geoms = geoms
         self._objs = [fcl.CollisionObject(g) for g in geoms]
         self._frames = np.asarray(frames)
         self._local = np.array(local)
@@ -227,6 +221,15 @@ class CollisionWorld:
         """Calls of :meth:`check_motion` so far (``benchmarks/guard_tick.py`` tells ticks apart by them)."""
         self.n_distances = 0
         """FCL distance computations so far."""
+
+    def arm_bodies(self) -> list[ArmBody]:
+        """The moving bodies (the links' capsules, then the tool's bodies) with the frames that carry them,
+        for the simulated cell's contact with the true object (``drivers.sim.contact.SimContact``): the
+        sim arm faults on the geometry the guard checks with."""
+        return [ArmBody(name, int(frame), T.copy(), geom, float(radius), bool(on_base))
+                for name, frame, T, geom, radius, on_base in zip(
+                    self.moving_names, self._frames, self._local, self._geoms, self._radii, self._on_base,
+                    strict=True)]
 
     @staticmethod
     def _sweep_levers(model: RobotModel, frames: Array, extents: Array) -> Array:
@@ -274,7 +277,7 @@ class CollisionWorld:
 
     @staticmethod
     def _static(name: str, geom: fcl.CollisionGeometry, T: Array, radius: float) -> _Static:
-        return _Static(name, fcl.CollisionObject(geom, _fcl_transform(T)), T[:3, 3].copy(), radius)
+        return _Static(name, fcl.CollisionObject(geom, fcl_transform(T)), T[:3, 3].copy(), radius)
 
     def set_roi(self, aabb_min: Array | Sequence[float] | None, aabb_max: Array | Sequence[float] | None,
                 q_free: Array | None = None) -> Array | None:
@@ -367,7 +370,7 @@ class CollisionWorld:
         """Pose every moving body at ``q``; returns their poses (k, 4, 4) in the base frame."""
         T = self._poses(q)
         for obj, Tk in zip(self._objs, T, strict=True):
-            obj.setTransform(_fcl_transform(Tk))
+            obj.setTransform(fcl_transform(Tk))
         return T
 
     def _touch(self, a: fcl.CollisionObject, b: fcl.CollisionObject) -> bool:
@@ -498,7 +501,7 @@ class CollisionWorld:
             i, j = pairs[p]
             for body in (i, j):
                 if body < n_moving and not placed[body]:
-                    objs[body].setTransform(_fcl_transform(T[body]))
+                    objs[body].setTransform(fcl_transform(T[body]))
                     placed[body] = True
             gap[p] = self._distance(objs[i], objs[j])
             if gap[p] <= PATH_CONTACT_M:

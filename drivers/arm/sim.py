@@ -12,9 +12,10 @@ It is a real backend (the embedded default), not a test double. Every ``clock.sl
   becomes IDLE.
 - STOPPING (``stop``): qd is scaled down towards zero so that no joint decelerates faster than its
   ``qdd_max``; IDLE once at rest.
-- FAULT (:meth:`SimArm.inject_fault`, for scenario tests and the ``sim.faults`` schedule): the arm brakes
-  like STOPPING and stays in FAULT, refusing motion with ``RobotFault``, until ``recover``. A
-  ``"disconnect"`` fault makes ``state`` raise ``RobotFault`` too, as a vanished controller would.
+- FAULT (:meth:`SimArm.inject_fault`, for scenario tests, the ``sim.faults`` schedule and contact with the
+  object or the table, :mod:`drivers.sim.contact`): the arm brakes like STOPPING and stays in FAULT,
+  refusing motion with ``RobotFault``, until ``recover``. A ``"disconnect"`` fault makes ``state`` raise
+  ``RobotFault`` too, as a vanished controller would.
 
 Joint positions are always clamped to the model's limits (a clamped joint's velocity is set to zero).
 
@@ -75,6 +76,7 @@ class SimArm(Arm):
         self._traj_t0 = 0.0
         self._connected = False
         self._fault: str | None = None
+        self._fault_detail: str | None = None
         self._fault_recoverable = True
         self._true_model = true_model if true_model is not None else model
         clock.add_stepper(self._step)
@@ -114,8 +116,14 @@ class SimArm(Arm):
     def _require_unfaulted(self, what: str) -> None:
         self._require_connected(what)
         if self._fault is not None:
-            raise RobotFault(f"{what} refused: the arm is in {self._fault}", device=_DEVICE,
+            raise RobotFault(f"{what} refused: the arm is in {self._described_fault()}", device=_DEVICE,
                              fault=self._fault)
+
+    def _described_fault(self) -> str:
+        """The latched fault for people: its kind, and what caused it when known (``kind: detail``, as
+        the Franka driver describes a reflex)."""
+        assert self._fault is not None
+        return self._fault if self._fault_detail is None else f"{self._fault}: {self._fault_detail}"
 
     def state(self) -> ArmState:
         self._require_connected("state()")
@@ -130,7 +138,7 @@ class SimArm(Arm):
             T_base_flange=F[-1].copy(),
             v_base_flange=J @ self._qd,
             mode=self._mode,
-            faults=(self._fault,) if self._fault is not None else (),
+            faults=(self._described_fault(),) if self._fault is not None else (),
         )
 
     def true_flange_pose(self) -> Array:
@@ -140,6 +148,22 @@ class SimArm(Arm):
         disconnected (the arm is still somewhere).
         """
         return self._true_model.fk(self._q)
+
+    def true_frames(self) -> Array:
+        """Where all the arm's frames really are: the perturbed model's ``fk_all`` at the current q
+        ((n + 2, 4, 4), base frame [m]). Works while disconnected."""
+        return self._true_model.fk_all(self._q)
+
+    @property
+    def joints(self) -> Array:
+        """The joint positions (n,) [rad] the arm is at (a copy); read while disconnected or faulted too,
+        as the simulation's own view."""
+        return self._q.copy()
+
+    @property
+    def fault(self) -> str | None:
+        """The kind of the latched fault (``"protective stop"``, ...), or None."""
+        return self._fault
 
     def _command_twist(self, v_base_flange: Array) -> None:
         self._require_unfaulted("command_twist()")
@@ -186,13 +210,15 @@ class SimArm(Arm):
         if np.any(self._qd != 0.0):
             raise RobotFault(f"{self._fault}: wait until the arm is at rest before recovering",
                              device=_DEVICE, fault=self._fault)
-        self._fault = None
+        self._fault = self._fault_detail = None
         self._mode = ArmMode.IDLE
 
-    def inject_fault(self, fault: str, *, recoverable: bool = True) -> None:
+    def inject_fault(self, fault: str, *, recoverable: bool = True, detail: str | None = None) -> None:
         """Simulate a controller fault (``"protective stop"``, ``"reflex"``, ``"disconnect"``, ...): the
-        arm brakes within its deceleration limits and refuses motion until ``recover``."""
+        arm brakes within its deceleration limits and refuses motion until ``recover``. ``detail`` says
+        what caused it (``state().faults`` reads ``"fault: detail"``)."""
         self._fault = fault
+        self._fault_detail = detail
         self._fault_recoverable = recoverable
         self._traj = None
         self._twist = np.zeros(6)

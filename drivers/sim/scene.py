@@ -69,6 +69,7 @@ class SimScene:
         self.table_z: float = float(table_z)
         self.table_center_xy: tuple[float, float] = (float(table_center_xy[0]), float(table_center_xy[1]))
         self.table_size_xy: tuple[float, float] = (float(table_size_xy[0]), float(table_size_xy[1]))
+        self.table_thickness_m = float(table_thickness_m)
 
         verts = (np.zeros((0, 3)) if obj is None
                  else transform_points(T, np.asarray(obj.vertices, dtype=np.float64)))
@@ -108,6 +109,13 @@ class SimScene:
     def object_triangles(self) -> NDArray[np.int32]:
         """Object triangles (F, 3) int32 indices into ``object_vertices_base``."""
         return self._object_triangles
+
+    @property
+    def table_box(self) -> tuple[Array, Array]:
+        """The table's lower and upper corners (3,) [m, base frame]."""
+        (cx, cy), (sx, sy) = self.table_center_xy, self.table_size_xy
+        return (np.array([cx - sx / 2.0, cy - sy / 2.0, self.table_z - self.table_thickness_m]),
+                np.array([cx + sx / 2.0, cy + sy / 2.0, self.table_z]))
 
     def cast(self, origins: Array, directions: Array) -> RayHits:
         """Cast rays from ``origins`` (N, 3) or (3,) [m, base frame] along unit ``directions`` (N, 3).
