@@ -32,12 +32,15 @@ def mesh_bvh(vertices: Array, triangles: NDArray[np.int32]) -> fcl.BVHModel:
 class ArmBody:
     """A body carried by one of the arm's frames: ``frame`` indexes the robot model's ``fk_all``,
     ``T_frame_body`` (4x4) is the body's pose in that frame [m], ``geometry`` its FCL shape about that
-    pose, ``radius`` [m] of a sphere about the pose that encloses it; ``on_base``: it stands on the table
-    (not checked against it)."""
+    pose; ``bounds`` (2, 3) the lower and upper corners of a box in the body's frame [m] that holds it;
+    ``levers`` (n_joints,) [m/rad] bound how far any of its points moves per radian of each joint, in any
+    configuration (``cell.safety.collision.CollisionWorld.sweep_bound``); ``on_base``: it stands on the
+    table (not checked against it)."""
 
     name: str
     frame: int
     T_frame_body: Array
     geometry: fcl.CollisionGeometry
-    radius: float
+    bounds: Array
+    levers: Array
     on_base: bool

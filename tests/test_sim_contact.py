@@ -38,22 +38,29 @@ def _block(size_m: float) -> ObjectMesh:
                       np.asarray(box.faces, dtype=np.int32))
 
 
+def _lowest(T_base_body: np.ndarray, bounds: np.ndarray) -> float:
+    """The height [m, base frame] of the lowest corner of a body's box ``bounds`` (2, 3) at its pose."""
+    corners = np.array([[x, y, z] for x in bounds[:, 0] for y in bounds[:, 1] for z in bounds[:, 2]])
+    return float(np.min(corners @ T_base_body[2, :3] + T_base_body[2, 3]))
+
+
 def _cell(config_path, *, obj: ObjectMesh | None, below_tool_m: float, table_size_m: float
           ) -> tuple[SimArm, SimClock, float]:
     """A connected sim arm of the cell at home, watched for contact with a scene whose table (or, with
-    ``obj``, the object standing on it) tops ``below_tool_m`` [m] under the lowest point of the arm's tool
-    bodies' bounding spheres, centred under the flange; the table is ``table_size_m`` [m] wide. Returns the
-    arm, its clock and that top's height [m, base frame]."""
+    ``obj``, the object standing on it) tops ``below_tool_m`` [m] under the lowest corner of the boxes of
+    the arm's tool and last link, centred under the flange; the table is ``table_size_m`` [m] wide.
+    Returns the arm, its clock and that top's height [m, base frame]."""
     cfg = load_config(config_path)
     model = get_robot_model(cfg.arm.model)
     clock = SimClock()
     assert isinstance(cfg.arm, SimArmConfig)
     arm = SimArm(cfg.arm, model, clock)
     bodies = CollisionWorld(model, cfg.safety.collision, cfg.station.table_z_m).arm_bodies()
-    tool = {t.name for t in cfg.safety.collision.tool}
     frames = arm.true_frames()
-    top = min((frames[b.frame] @ b.T_frame_body)[2, 3] - b.radius for b in bodies if b.name in tool) \
-        - below_tool_m
+    # the tool and the last link (carried by the flange, the last body's frame, and the frame before it)
+    flange = max(b.frame for b in bodies)
+    top = min(_lowest(frames[b.frame] @ b.T_frame_body, b.bounds) for b in bodies
+              if b.frame >= flange - 1) - below_tool_m
     table_z = top - (0.0 if obj is None else float(np.ptp(obj.vertices[:, 2])))
     x, y = frames[-1][:2, 3]
     scene = SimScene(obj, make_T(np.eye(3), np.array([x, y, table_z])), table_z=table_z,

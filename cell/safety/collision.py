@@ -103,14 +103,16 @@ class _Reference:
     roi: _Static | None
 
 
-def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float]:
-    """The FCL geometry of a configured body and the radius of a sphere about its pose that encloses it."""
+def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float, Array]:
+    """The FCL geometry of a configured body, the radius of a sphere about its pose that encloses it, and
+    the lower and upper corners (2, 3) of a box about its pose that holds it [m]."""
     if isinstance(body, BoxBody):
-        size = np.asarray(body.size_m)
-        return fcl.Box(*size), float(np.linalg.norm(size) / 2.0)
+        size = np.asarray(body.size_m, dtype=float)
+        return fcl.Box(*size), float(np.linalg.norm(size) / 2.0), np.array([-size / 2.0, size / 2.0])
     if isinstance(body, CylinderBody):
+        half = np.array([body.radius_m, body.radius_m, body.length_m / 2.0])
         return (fcl.Cylinder(body.radius_m, body.length_m),
-                float(np.hypot(body.radius_m, body.length_m / 2.0)))
+                float(np.hypot(body.radius_m, body.length_m / 2.0)), np.array([-half, half]))
     assert isinstance(body, MeshBody)
     mesh = o3d.io.read_triangle_mesh(Path(body.path))
     vertices = np.asarray(mesh.vertices, dtype=float)
@@ -118,7 +120,8 @@ def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float]:
     if triangles.shape[0] == 0:
         raise ConfigError("the mesh has no triangles or cannot be read", field=f"obstacle {body.name}",
                           allowed="a triangle mesh file Open3D reads (.ply, .stl, .obj, ...)")
-    return mesh_bvh(vertices, triangles), float(np.max(np.linalg.norm(vertices, axis=1)))
+    return (mesh_bvh(vertices, triangles), float(np.max(np.linalg.norm(vertices, axis=1))),
+            np.array([vertices.min(axis=0), vertices.max(axis=0)]))
 
 
 def _capsule_pose(a: Array, b: Array) -> Array:
@@ -175,20 +178,23 @@ class CollisionWorld:
         # Each body's pose relative to the frame that carries it is fixed: precomputed once.
         local = [_capsule_pose(np.asarray(c.a, dtype=float), np.asarray(c.b, dtype=float)) for c in specs]
         radii = [c.radius + h / 2.0 for c, h in zip(specs, lengths, strict=True)]
+        bounds = [np.array([-c.radius, -c.radius, -c.radius - h / 2.0]) * [[1.0], [-1.0]]
+                  for c, h in zip(specs, lengths, strict=True)]
         flange_frame = model.n_joints + (1 if model.flange is not None else 0)
         frames = [c.frame for c in specs]
         # How far a body's points lie from the origin of the frame that carries it (sweep_bound).
         extents = [max(float(np.linalg.norm(c.a)), float(np.linalg.norm(c.b))) + c.radius for c in specs]
         for body in config.tool:
-            geom, radius = _geometry(body)
+            geom, radius, box = _geometry(body)
             geoms.append(geom)
             local.append(body.pose.matrix())
             radii.append(radius)
+            bounds.append(box)
             extents.append(float(np.linalg.norm(body.pose.xyz_m)) + radius)
             frames.append(flange_frame)
         self.moving_names = self._link_names + [b.name for b in config.tool]
         n_moving = len(self.moving_names)
-        self._geoms = geoms
+        self._geoms, self._bounds = geoms, bounds
         self._objs = [fcl.CollisionObject(g) for g in geoms]
         self._frames = np.asarray(frames)
         self._local = np.array(local)
@@ -212,7 +218,7 @@ class CollisionWorld:
         self._table = self._static("table", fcl.Box(*size), slab, float(np.linalg.norm(size) / 2.0))
         self._obstacles = []
         for body in config.obstacles:
-            geom, radius = _geometry(body)
+            geom, radius, _ = _geometry(body)
             self._obstacles.append(self._static(body.name, geom, body.pose.matrix(), radius))
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
@@ -226,10 +232,10 @@ class CollisionWorld:
         """The moving bodies (the links' capsules, then the tool's bodies) with the frames that carry them,
         for the simulated cell's contact with the true object (``drivers.sim.contact.SimContact``): the
         sim arm faults on the geometry the guard checks with."""
-        return [ArmBody(name, int(frame), T.copy(), geom, float(radius), bool(on_base))
-                for name, frame, T, geom, radius, on_base in zip(
-                    self.moving_names, self._frames, self._local, self._geoms, self._radii, self._on_base,
-                    strict=True)]
+        return [ArmBody(name, int(frame), T.copy(), geom, box.copy(), levers.copy(), bool(on_base))
+                for name, frame, T, geom, box, levers, on_base in zip(
+                    self.moving_names, self._frames, self._local, self._geoms, self._bounds, self._lever,
+                    self._on_base, strict=True)]
 
     @staticmethod
     def _sweep_levers(model: RobotModel, frames: Array, extents: Array) -> Array:
