@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import fcl
 import numpy as np
 import pytest
 import trimesh
@@ -19,6 +20,7 @@ from drivers.arm.config import SimArmConfig
 from drivers.arm.sim import SimArm
 from drivers.clock import SimClock
 from drivers.errors import RobotFault
+from drivers.fcl_bodies import fcl_transform, mesh_bvh
 from drivers.robots import get_robot_model
 from drivers.sim.contact import SimContact
 from drivers.sim.objects import ObjectMesh
@@ -139,3 +141,32 @@ def test_the_reviewers_large_box_on_the_tof_cell_ends_with_an_arm_fault(tmp_path
     frames = sorted((out / "frames").glob("*.npz"))
     assert len(frames) >= 1 and len(frames) == result["n_captures"]
     assert (out / "cloud.ply").exists() and "touched the object" in (out / "log.txt").read_text()
+
+
+def test_the_clearances_that_let_steps_go_unchecked_are_lower_bounds():
+    """Every body's clearance (what lets the sim skip the check of a step) is at most its true distance to
+    the object's mesh, in configurations around the block; the arm at home is clear of it."""
+    cfg = load_config(UR5E)
+    model = get_robot_model("ur5e")
+    clock = SimClock()
+    assert isinstance(cfg.arm, SimArmConfig)
+    arm = SimArm(cfg.arm, model, clock)
+    bodies = CollisionWorld(model, cfg.safety.collision, 0.0).arm_bodies()
+    x, y = arm.true_flange_pose()[:2, 3]
+    block = _block(0.1)
+    scene = SimScene(block, make_T(np.eye(3), np.array([x, y, 0.2])), table_z=0.0)
+    contact = SimContact(clock, arm, scene, bodies)
+    mesh = fcl.CollisionObject(mesh_bvh(scene.object_vertices_base, scene.object_triangles))
+    rng = np.random.default_rng(0)
+    for k in range(30):
+        q = arm.joints + (0.0 if k == 0 else rng.normal(0.0, 0.15, model.n_joints))
+        frames = model.fk_all(q)
+        hit, clearance = contact.check(frames)
+        if k == 0:
+            assert hit is None and np.all(clearance > 0.0)
+        if hit is not None:
+            continue
+        for body, bound in zip(bodies, clearance, strict=True):
+            obj = fcl.CollisionObject(body.geometry, fcl_transform(frames[body.frame] @ body.T_frame_body))
+            distance = fcl.distance(obj, mesh, fcl.DistanceRequest(), fcl.DistanceResult())
+            assert bound <= distance + 1e-9 or distance < 0.0, body.name

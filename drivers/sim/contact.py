@@ -142,8 +142,9 @@ class SimContact:
         clearance = np.full(len(self._bodies), np.inf)
         for st, checked in self._statics:
             gap = np.linalg.norm(np.maximum(np.maximum(st.lo - hi, lo - st.hi), 0.0), axis=1)
-            clearance = np.where(checked, np.minimum(clearance, gap), clearance)
-            for i in np.nonzero(checked & (gap <= 0.0))[0]:
+            near = checked & (gap <= 0.0)
+            clearance = np.where(checked & ~near, np.minimum(clearance, gap), clearance)
+            for i in np.nonzero(near)[0]:
                 obj = self._objs[i]
                 obj.setTransform(fcl_transform(T[i]))
                 distance = float(fcl.distance(obj, st.box, self._distance_request, fcl.DistanceResult()))
