@@ -77,7 +77,11 @@ class SimConfig(StrictModel):
     ``error``: the calibration error a carefully calibrated real cell still has (hand-eye, kinematics,
     depth bias; sizes and reasons in ``drivers.sim.errors``), drawn per job from its seed, on unless
     ``exact`` is true (for the algorithm tests that need the sensor exactly where the job believes it is).
-    A ``true_mount`` given replaces the drawn hand-eye error, and holds with ``exact`` too."""
+    A ``true_mount`` given replaces the drawn hand-eye error, and holds with ``exact`` too.
+
+    Besides the scheduled faults, the simulated arm always faults when one of its bodies (the link
+    capsules and ``safety.collision.tool``) touches the object as the sim placed it or this table: a
+    protective stop (UR5e) or a reflex (Franka) naming the body and where (``drivers.sim.contact``)."""
 
     table_size_m: tuple[CellSize, CellSize] = (1.2, 1.0)
     table_center_xy_m: tuple[CellCoordinate, CellCoordinate] = (0.5, 0.0)

@@ -4,6 +4,10 @@ They exercise the safety layer's reactions the way hardware would trigger them: 
 protective stop, a reflex or an emergency stop, or stops answering (disconnect); the control loop runs
 late (loop overrun: every control period lasts ``overrun_s`` longer while the arm keeps moving); the
 sensor delivers no frames (sensor stall). Times are sim time [s].
+
+Not scheduled but always on: the arm faults when one of its bodies touches the object or the table, with
+the kind the real arm would report (a UR5e's protective stop, a Franka's reflex) and what touched what
+where (:mod:`drivers.sim.contact`).
 """
 
 from __future__ import annotations
