@@ -186,3 +186,30 @@ def test_links_that_can_touch_stay_checked():
         if world._distance(world._objs[base], world._objs[upper]) <= 0.0:
             overlapping.append(q.copy())
     assert overlapping and all(world.check(qo) is not None for qo in overlapping)
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_the_arm_keeps_the_table_s_clearance_from_it(model_name):
+    """The flange lowered from home in 1 mm steps: the last configuration that touches nothing with the
+    table at its own height lies within millimetres of it, and with the configured clearance (5 mm: the
+    tool where the calibration puts it may be off by that much) it already touches the table."""
+    cfg = load_config(CELLS[model_name])
+    model = get_robot_model(model_name)
+    collision = cfg.safety.collision
+    at_top = collision.model_copy(update={"table": collision.table.model_copy(update={"clearance_m": 0.0})})
+    bare = CollisionWorld(model, at_top, cfg.station.table_z_m)
+    world = CollisionWorld(model, collision, cfg.station.table_z_m)
+    assert collision.table.clearance_m == pytest.approx(0.005)
+    q = np.asarray(cfg.arm.home_joints_rad)
+    T = model.fk(q)
+    last_free = None
+    for _ in range(1000):
+        T[2, 3] -= 0.001
+        q = model.ik_pose(T, q)
+        hit = bare.check(q)
+        if hit is not None:
+            break
+        last_free = q
+    assert hit is not None and "table" in str(hit) and last_free is not None
+    touching = world.check(last_free)
+    assert touching is not None and "table" in str(touching)

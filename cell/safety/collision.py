@@ -4,7 +4,7 @@ Bodies:
 
 - the robot's links: the capsules of its kinematic model (``drivers.robots``), posed by forward kinematics;
 - the tool: bodies carried by the flange (the sensor and its bracket), from ``safety.collision.tool``;
-- the table: a slab whose top is the station's table height;
+- the table: a slab whose top is the station's table height raised by its ``clearance_m``;
 - the object's ROI: its axis-aligned box inflated by ``roi_margin_m``, replaced whenever perception
   updates the ROI; on a face whose margin would reach the arm where it stands, the margin is shrunk
   (:meth:`CollisionWorld.set_roi`);
@@ -213,7 +213,8 @@ class CollisionWorld:
         self._self_pairs = self_pairs[~self._never_touching(model, self_pairs)]
         table = config.table
         slab = np.eye(4)
-        slab[:3, 3] = [table.center_xy_m[0], table.center_xy_m[1], table_z_m - table.thickness_m / 2.0]
+        top = table_z_m + table.clearance_m  # the bodies keep the clearance as if the table were that high
+        slab[:3, 3] = [table.center_xy_m[0], table.center_xy_m[1], top - table.thickness_m / 2.0]
         size = (table.size_m[0], table.size_m[1], table.thickness_m)
         self._table = self._static("table", fcl.Box(*size), slab, float(np.linalg.norm(size) / 2.0))
         self._obstacles = []

@@ -112,11 +112,18 @@ Body = Annotated[BoxBody | CylinderBody | MeshBody, Field(discriminator="shape")
 
 class TableConfig(StrictModel):
     """The table slab: its top at ``station.table_z_m``, centre ``center_xy_m`` and ``size_m`` [m] in the
-    base frame, ``thickness_m`` below the top."""
+    base frame, ``thickness_m`` below the top. The arm's moving bodies keep ``clearance_m`` [m] above the
+    top: the guard knows the tool where the arm's model and calibration put it, and a calibrated cell's
+    tool is still off by millimetres (the sim's errors: hand-eye 1.5 mm and 0.15 deg, joint offsets 0.2
+    mrad, links 0.2 mm; a camera's corner 0.1 m from the flange moves 0.3 mm per 0.15 deg). With no
+    clearance a Franka camera body came to 1 mm over the table by the job's model and touched it in the
+    sim; the barrier planes keep the sensor as far from theirs (``barrier_margin_m``, 5 mm)."""
 
     center_xy_m: tuple[Coordinate, Coordinate]
     size_m: tuple[Size, Size]
     thickness_m: Size = 0.05
+    clearance_m: Annotated[Number, Bounds(0.0, 0.05, "m", "a clearance over the table is at most 5 cm")] \
+        = 0.005
 
 
 class CollisionConfig(StrictModel):
