@@ -46,14 +46,15 @@ class CrossPlanner(Planner):
 
 def _cross(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, *offsets: list[float], cell: Path = UR5E,
            roll_deg: float = 0.0) -> np.ndarray:
-    """Run the crossing on ``cell``; check that every view was reached with no move refused, and return
-    the sensor's path (K, 3) [m], starting at home."""
+    """Run the crossing on ``cell`` over an empty table (the crossing captures nothing, so the guard never
+    learns an object's ROI, and the sim arm would hit one: it faults on contact); check that every view
+    was reached with no move refused, and return the sensor's path (K, 3) [m], starting at home."""
     register_planner(monkeypatch, CrossPlanner)
     monkeypatch.setattr(CrossPlanner, "offsets", tuple(np.array(o) for o in offsets))
     monkeypatch.setattr(CrossPlanner, "roll_deg", roll_deg)
     monkeypatch.setattr(CrossPlanner, "moves", [])
     monkeypatch.setattr(CrossPlanner, "reach", [])
-    result = run_scan(ScanRequest(config=load_config(cell), config_path=str(cell), object="vertical_box",
+    result = run_scan(ScanRequest(config=load_config(cell), config_path=str(cell), object="none",
                                   out=tmp_path / "scan", planner=CrossPlanner.name)).result
     assert ended_without_a_frame(result, "crossed"), result["termination"]
     assert [moved for moved, _, _ in CrossPlanner.moves] == [True] * len(offsets)

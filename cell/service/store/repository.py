@@ -17,7 +17,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import ColumnElement, Engine, func, select
+from sqlalchemy import ColumnElement, Connection, Engine, func, select
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -61,25 +61,39 @@ def read_store(url: str, oldest: str, connect_timeout_s: int) -> Store | None:
     when there is none yet (no SQLite file, or no schema). :class:`StoreError` naming the URL without its
     password when it cannot be reached or read, or its schema is newer than this software's or older
     than ``oldest``."""
-    shown = hide_password(url)
-    engine = read_only_engine(url, connect_timeout_s)
-    if engine is None:
-        return None
-    try:
-        with engine.connect() as connection:
-            revisions = schema_revisions(connection, shown)
+    with _reading(url, connect_timeout_s) as reading:
+        if reading is None:
+            return None
+        connection, engine, shown = reading
+        revisions = schema_revisions(connection, shown)
         if revisions:
             check_oldest(revisions, oldest, shown)
-    except SQLAlchemyError as exc:
-        engine.dispose()
-        raise store_error(shown, "cannot read", exc, engine.url.password) from None
-    except StoreError:
-        engine.dispose()
-        raise
     if not revisions:
         engine.dispose()
         return None
     return Store(engine)
+
+
+@contextlib.contextmanager
+def _reading(url: str, connect_timeout_s: int) -> Iterator[tuple[Connection, Engine, str] | None]:
+    """A connection to the store at ``url`` that changes nothing (:func:`read_only_engine`, PostgreSQL
+    given up after ``connect_timeout_s`` [s]), with its engine and the URL as shown (password hidden);
+    None for an SQLite file not made yet. An SQLAlchemy error becomes :class:`StoreError` naming the URL,
+    and any error disposes of the engine."""
+    shown = hide_password(url)
+    engine = read_only_engine(url, connect_timeout_s)
+    if engine is None:
+        yield None
+        return
+    try:
+        with engine.connect() as connection:
+            yield connection, engine, shown
+    except SQLAlchemyError as exc:
+        engine.dispose()
+        raise store_error(shown, "cannot read", exc, engine.url.password) from None
+    except BaseException:
+        engine.dispose()
+        raise
 
 
 @dataclass(frozen=True)
@@ -95,20 +109,15 @@ def inspect_store(url: str, connect_timeout_s: int) -> StoreState | None:
     """Read the store at ``url`` without changing it (:func:`read_only_engine`, PostgreSQL given up after
     ``connect_timeout_s`` [s]); None for an SQLite file not made yet. :class:`StoreError` naming the URL
     without its password when it cannot be reached or read, or its schema is newer than this software's."""
-    shown = hide_password(url)
-    engine = read_only_engine(url, connect_timeout_s)
-    if engine is None:
-        return None
-    try:
-        with engine.connect() as connection:
-            revisions = schema_revisions(connection, shown)
-            # api_keys is the first revision's table, unchanged since: counted on a store of any revision
-            active = select(func.count()).select_from(KeyRow).where(KeyRow.revoked_at.is_(None))
-            n_keys = int(connection.scalar(active) or 0) if revisions else 0
-    except SQLAlchemyError as exc:
-        raise store_error(shown, "cannot read", exc, engine.url.password) from None
-    finally:
-        engine.dispose()
+    with _reading(url, connect_timeout_s) as reading:
+        if reading is None:
+            return None
+        connection, engine, shown = reading
+        revisions = schema_revisions(connection, shown)
+        # api_keys is the first revision's table, unchanged since: counted on a store of any revision
+        active = select(func.count()).select_from(KeyRow).where(KeyRow.revoked_at.is_(None))
+        n_keys = int(connection.scalar(active) or 0) if revisions else 0
+    engine.dispose()
     return StoreState(frozenset(revisions), n_keys)
 
 
