@@ -265,7 +265,7 @@ def _outcome(session: JobSession, termination: str, planner_found_nothing: bool,
     failed: a budget's matter, which its termination says. ``no_object`` needs the planner to have ended
     its run, by ``NoObjectFound`` (``planner_found_nothing``, its search ended) or by returning, with no
     object found in the frames it segmented; a run ``cut_short`` by a limit (``ScanLimitReached``)
-    before an object was found ends ``completed``, undecided, and so does one that captured no frame."""
+    before an object was found ends ``completed``, undecided, with or without a frame."""
     n = session.n_captures
     if n == 0 and not (budget_ran_out and not (session.n_unreachable or session.n_capture_failures)):
         return "failed", _nothing_captured(session, termination)
@@ -276,8 +276,6 @@ def _outcome(session: JobSession, termination: str, planner_found_nothing: bool,
         seen = "no frame captured" if n == 0 else f"segmentation found nothing above the table in {frames}"
         return "completed", (f"{termination} before an object was found or the planner's search for one had "
                              f"ended ({seen}): too soon to tell an empty table, so not no_object")
-    if n == 0 and not planner_found_nothing:
-        return "completed", termination
     return "no_object", (f"no object found: segmentation found nothing above the table in {frames} "
                          f"({termination})")
 
