@@ -7,13 +7,13 @@ the service's cloud endpoint) reads this snapshot instead: the accumulated cloud
 The control thread only hands over a reference (:meth:`LiveCloudWriter.offer`, O(1): the accumulator
 publishes each cloud complete and never changes it afterwards, ``cell.perception.cloud.CloudAccumulator``,
 even while the perception worker adds the next frame on the wall clock); a thread of its own
-converts and writes it, to a temporary file renamed over the snapshot (``os.replace``), so a reader sees
-the previous snapshot or the next one, never a part of one. The snapshot is removed when the job ends.
+converts and writes it, to a temporary file renamed over the snapshot (``drivers.atomic_file``), so a
+reader sees the previous snapshot or the next one, never a part of one. The snapshot is removed when
+the job ends.
 """
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.atomic_file import atomic_open, temporary_path
 from drivers.scheduling import ordinary_scheduling
 
 LIVE_CLOUD_FILE = "cloud_live.npy"
@@ -36,7 +37,6 @@ class LiveCloudWriter:
     def __init__(self, path: Path, log: Callable[[str], None],
                  period_s: float = LIVE_CLOUD_PERIOD_S) -> None:
         self._path = path
-        self._tmp = path.with_name(path.name + ".tmp")
         self._log = log
         self._period_s = period_s
         self._latest: NDArray[np.float64] | None = None
@@ -58,7 +58,7 @@ class LiveCloudWriter:
         self._stop.set()
         self._wake.set()
         self._thread.join(JOIN_TIMEOUT_S)
-        self._tmp.unlink(missing_ok=True)
+        temporary_path(self._path).unlink(missing_ok=True)  # a write the join did not wait for
         self._path.unlink(missing_ok=True)
 
     def _run(self) -> None:
@@ -75,9 +75,8 @@ class LiveCloudWriter:
 
     def _write(self, points: NDArray[np.float64]) -> None:
         try:
-            with self._tmp.open("wb") as f:
+            with atomic_open(self._path) as f:
                 np.save(f, np.asarray(points, dtype=np.float32).reshape(-1, 3))
-            os.replace(self._tmp, self._path)
             self.n_written += 1
         except OSError as exc:
             self._log(f"live cloud snapshot not written: {exc}")

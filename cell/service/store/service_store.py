@@ -10,10 +10,10 @@ new SQLite store in the data folder beside a service on PostgreSQL, whose keys i
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from cell.service.store.engine import hide_password
+from drivers.atomic_file import write_text_atomic
 from drivers.errors import StoreError
 
 STORE_RECORD = "store-url"
@@ -24,10 +24,8 @@ def record_service_store(data_dir: Path, url: str) -> None:
     """Record ``url`` (its password hidden) as the store of ``data_dir``'s service, replacing what an
     earlier run recorded; ``StoreError`` naming the file if it cannot be written."""
     path = data_dir / STORE_RECORD
-    partial = path.with_name(f"{STORE_RECORD}.partial")
     try:
-        partial.write_text(hide_password(url) + "\n")
-        os.replace(partial, path)
+        write_text_atomic(path, hide_password(url) + "\n")
     except OSError as exc:
         raise StoreError(f"cannot record the service's store in {path}: {exc.strerror}") from None
 
