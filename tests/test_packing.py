@@ -18,7 +18,7 @@ from cell.packing.config import ContainerConfig, PackingConfig
 from cell.packing.containers import choose_container, required_inner_dims
 from cell.packing.objects import extent_points, object_surface_points, segment_on_table, stacked_on_table
 from cell.packing.result import ReconstructionHistory, count_useless, packing_section, surface_coverage_pct
-from cell.packing.uncertainty import ErrorModel, Seen, Sighting, upper_dims
+from cell.packing.uncertainty import ErrorModel, Seen, Sighting, face_bound, upper_dims
 from cell.perception.metrics import ground_truth_points
 from cell.perception.segmentation import ObjectExtent, compute_roi
 from drivers.depth.base import SensorModel
@@ -535,11 +535,32 @@ def test_a_view_across_a_top_from_just_above_it_does_not_show_where_it_ends() ->
     across = _across_top(np.array([0.2, 0.0, 0.28]), np.array([1.0, 0.0, 0.066]), 1.5)
     seen = Seen.of([across], np.ones(across.points.shape[0], dtype=bool), model)
     assert seen.framed(model)[np.argmax(across.points[:, 0])]
-    assert not seen.ends_framed(model, n)
+    assert seen.end_limit(model, n) == math.inf
     box = box_from_points(across.points, 0.0, trim=0.02)
     assert np.isinf(upper_dims(box, model, seen, 0.02)[0])
     above = _across_top(np.array([0.35, 0.0, 0.55]), np.array([0.5, 0.0, 0.25]), 0.5)
-    assert Seen.of([above], np.ones(above.points.shape[0], dtype=bool), model).ends_framed(model, n)
+    assert Seen.of([above], np.ones(above.points.shape[0], dtype=bool), model).end_limit(model, n) < math.inf
+
+
+def test_a_face_is_bounded_no_nearer_than_the_view_that_showed_it_end_lets_it_lie() -> None:
+    """A sensor 0.35 m above a long top (z = 0.25 m, ending at x = 0.7 m) and 0.5 m before where it looks
+    ranges the top up to x = 0.56 m: its next zone's ray comes down to the top's height only at x = 0.7 m,
+    so the top may end anywhere up to there. A second view, straight down from above x = 0.45 m, has its
+    frame cut the top at 0.57 m and so shows no end, but its points make most of the face's, seen with a
+    small footprint along +x: the face's quantile and delta put the bound at 0.60 m, 10 cm short of the
+    top (the 0.50 m box on the ToF cell had got a bound 19 mm short so). The bound is where the first
+    view lets the end lie, past the top's end."""
+    model = _model()
+    n = np.array([1.0, 0.0, 0.0])
+    along = _across_top(np.array([0.0, 0.0, 0.6]), np.array([0.5, 0.0, 0.25]), 0.7)
+    above = _across_top(np.array([0.45, 0.0, 0.55]), np.array([0.45, 0.0, 0.25]), 0.7)
+    seen = Seen.of([along, above], np.ones(along.points.shape[0] + above.points.shape[0], dtype=bool), model)
+    assert seen.points[:, 0].max() < 0.56
+    x, face = seen.face(n)
+    ranges, ray, _ = seen.geometry(n)
+    delta = model.delta(ranges[face], ray[face], seen.footprints(n, face)[face])
+    assert np.quantile(x, 0.98) + delta < 0.65
+    assert 0.7 <= face_bound(model, seen, n, 0.02) == seen.end_limit(model, n) < 0.75
 
 
 def test_a_view_whose_next_zones_saw_the_surface_go_on_past_what_the_map_kept_does_not_bound_it() -> None:
@@ -562,12 +583,12 @@ def test_a_view_whose_next_zones_saw_the_surface_go_on_past_what_the_map_kept_do
     model = _model()
     n = np.array([1.0, 0.0, 0.0])
     above = top[:, 2] > 0.012
-    assert Seen.of([Sighting(T, top)], kept).ends_framed(model, n)
+    assert Seen.of([Sighting(T, top)], kept).end_limit(model, n) < math.inf
     seen = Seen.of([Sighting(T, top)], kept, loose=above)
-    assert not seen.ends_framed(model, n)
+    assert seen.end_limit(model, n) == math.inf
     assert np.isinf(upper_dims(box_from_points(top[kept], 0.0, trim=0.02), model, seen, 0.02)[0])
     ended = np.where((bar & ~kept)[:, None], ranged(0.0), top)
-    assert Seen.of([Sighting(T, ended)], kept, loose=ended[:, 2] > 0.012).ends_framed(model, n)
+    assert Seen.of([Sighting(T, ended)], kept, loose=ended[:, 2] > 0.012).end_limit(model, n) < math.inf
 
 
 def test_packing_section_chooses_the_container_on_the_upper_bound() -> None:

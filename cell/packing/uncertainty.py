@@ -98,6 +98,16 @@ bound came out 24-175 mm under the box and a container too small was chosen):
   zone next to the point's, no further than the outline's margin (a nearer or equal range: surface going
   on; further: background, seen past the object).
 
+A view that shows a side end so also says how far the side may go on: no further than where its next
+zone's ray comes down to the point's height (the top, or the side, going on to there would have stopped
+that ray), plus the point's own Gaussian terms (those of delta(n) for one point). The face's bound is no
+nearer than the least of those limits over the views that show the end. That matters when the face's
+points are mostly other views': a view looking along n across a top from far (|n.x| + |n.y| 0.4 of a
+footprint, its next zone's ray coming down 25 cm past its last point) shows the end, while views from
+above whose frames cut the top supply most of the face's points, seen with a small footprint along n;
+the quantile and delta(n) then put the face where those views' points end. On a 0.50 x 0.30 x 0.10 m box
+on the ToF cell the bound had come out 19 mm short of its length so; it now lies 19 cm beyond.
+
 It also assumes that every part of the object is at least half a zone footprint wide where it was seen
 (15-20 mm at 0.3-0.4 m for the VL53L8CX), as the sim ranges a zone (the median of its sub-rays): a
 narrower part is never ranged, and nothing in the captures shows it. The held-out lamp's 16 mm rod is
@@ -141,7 +151,7 @@ FACING_DEG = 35.0
 OUTLINE_SIGMAS = 3.0
 # How far past a view's outermost point along a side's normal the ray of its next zone outwards may come
 # down to that point's height and still show the side end there [footprints along the normal]: within
-# that next zone, whose cone reaches 1.5 footprints out from the point's central ray (Seen._shows_end).
+# that next zone, whose cone reaches 1.5 footprints out from the point's central ray (Seen._end_shown).
 NEXT_ZONE_REACH = 1.5
 # The sim VL53L8CX's range noise, for a real sensor whose config carries none (BoxUncertaintyConfig).
 DEFAULT_RANGE_NOISE = DepthNoiseConfig(sigma0_m=0.004, k_per_m=0.01)
@@ -187,10 +197,16 @@ class ErrorModel:
         |n.d| (K,) and ``footprints`` f (K,) (:meth:`Seen.footprints`; the module docstring, medians over
         the points)."""
         r, along = float(np.median(ranges)), float(np.median(along_ray))
+        return (self.footprint(ranges, footprints) + self.voxel_m / 2.0
+                + self.gaussian(r, along, ranges.shape[0]))
+
+    def gaussian(self, r: float, along: float, k: int) -> float:
+        """The Gaussian terms of delta(n) [m], ``coverage`` times their combined std, for a face's ``k``
+        points at range ``r`` [m] and |n.d| ``along``: the range noise of their quantile, the range bias
+        and the pose (the module docstring, items 3-5)."""
         sigma = self.range_sigma(r)
         pose = self.pose_m + r * self.pose_rad
-        gaussian = math.sqrt(along**2 * (sigma**2 / ranges.shape[0] + self.bias_m**2) + pose**2)
-        return self.footprint(ranges, footprints) + self.voxel_m / 2.0 + self.coverage * gaussian
+        return self.coverage * math.sqrt(along**2 * (sigma**2 / k + self.bias_m**2) + pose**2)
 
     def range_sigma(self, ranges: Array | float) -> Array | float:
         """sigma(r) = sigma0 + k r^2 [m] of ranges r [m]."""
@@ -230,12 +246,12 @@ def _outward_side(image: Array) -> NDArray[np.intp]:
     return np.where(across, np.where(image[:, 0] > 0, 0, 1), np.where(image[:, 1] > 0, 2, 3))
 
 
-def _passes_beyond(start: Array, ray: Array, n: Array, reach: float, width: float) -> bool:
-    """Whether the ray from ``start`` (3,) [m, relative to a point on a side of the object] along ``ray``
-    (3,) passes beyond the point along the side's horizontal unit normal ``n`` (3,), by more than 0 and at
-    most ``reach`` [m], no higher than half of ``width`` [m] above it and within ``width`` of it across
-    (along the horizontal perpendicular to n): where the side, or a top at the point's height, going on
-    past the point would have stopped the ray."""
+def _comes_down_beyond(start: Array, ray: Array, n: Array, reach: float, width: float) -> float | None:
+    """How far [m] beyond a point on a side of the object, along the side's horizontal unit normal ``n``
+    (3,), the ray from ``start`` (3,) [m, relative to the point] along ``ray`` (3,) first comes down to the
+    point's height within ``width`` [m] of it across (along the horizontal perpendicular to n), if it does
+    so more than 0 and at most ``reach`` [m] beyond it: where the side, or a top at the point's height,
+    going on past the point would have stopped the ray; None when it does not."""
     across = np.array([-n[1], n[0], 0.0])
     lo, hi = 0.0, math.inf
     # each bound is a + b t <= c on the ray's parameter t >= 0
@@ -244,12 +260,12 @@ def _passes_beyond(start: Array, ray: Array, n: Array, reach: float, width: floa
     for a, b, c in ((float(a), float(b), c) for a, b, c in bounds):
         if abs(b) < 1e-12:
             if a > c:
-                return False
+                return None
         elif b > 0.0:
             hi = min(hi, (c - a) / b)
         else:
             lo = max(lo, (c - a) / b)
-    return lo < hi
+    return float((start + lo * ray) @ n) if lo < hi else None
 
 
 def outline_margin(model: ErrorModel, ranges: Array | float) -> Array:
@@ -272,7 +288,7 @@ class Seen:
     ``views`` (K,) the index of each point's capture, None when not known (the views are then told apart
     by their poses); ``loose`` (J, 3) [m] the captures' returns above the table that are not the
     object's points (not in its voxels or in its ROIs' box) and ``loose_views`` (J,) their captures'
-    indices: surface that a capture saw beside what the map kept of the object (:meth:`ends_framed`)."""
+    indices: surface that a capture saw beside what the map kept of the object (:meth:`end_limit`)."""
 
     points: Array
     origins: Array | None = None
@@ -380,13 +396,15 @@ class Seen:
             framed &= np.all((local > lower + margin) & (local < upper - margin), axis=1)
         return np.asarray(framed)
 
-    def ends_framed(self, model: ErrorModel, n: Array) -> bool:
-        """Whether some view saw the object end along the unit normal ``n`` (3,) inside what it kept: the
-        view's outermost point along n is :meth:`framed` (a view that the frame's border cut has its
-        outermost point on that border) and the view shows the object end there
-        (:meth:`_shows_end`); True when the views are unknown."""
+    def end_limit(self, model: ErrorModel, n: Array) -> float:
+        """How far [m, coordinate along the unit normal ``n`` (3,)] the views that saw the object end
+        along n inside what they kept let it lie: over the views whose outermost point along n is
+        :meth:`framed` (a view that the frame's border cut has its outermost point on that border) and
+        shows the object end there (:meth:`_end_shown`), the least of their limits; infinite when no view
+        does, -infinite when one shows it with no limit of its own (then the face's delta(n) alone bounds
+        it); -infinite when the views are unknown."""
         if self.origins is None or self.axes is None:
-            return True
+            return -math.inf
         if self.views is None:
             poses = np.hstack([self.origins, self.axes.reshape(-1, 9)])
             view = np.unique(poses, axis=0, return_inverse=True)[1].ravel()
@@ -394,27 +412,32 @@ class Seen:
             view = self.views
         order = np.lexsort((-(self.points @ n), view))  # by view, each view's outermost first
         outermost = order[np.r_[True, view[order][1:] != view[order][:-1]]]
-        return any(self._shows_end(model, n, int(end))
-                   for end in outermost[self.framed(model)[outermost]])
+        limits = [self._end_shown(model, n, int(end)) for end in outermost[self.framed(model)[outermost]]]
+        return min((limit for limit in limits if limit is not None), default=math.inf)
 
-    def _shows_end(self, model: ErrorModel, n: Array, end: int) -> bool:
+    def _end_shown(self, model: ErrorModel, n: Array, end: int) -> float | None:
         """Whether the view of point ``end``, its outermost along the unit normal ``n`` (3,), shows the
-        object end there (the module docstring): on a side (n horizontal) seen from before it, its zone
+        object end there (the module docstring), and how far along n it lets the end lie [m, coordinate
+        along n]; None when it does not show it. On a side (n horizontal) seen from before it, its zone
         straddles the outline towards n and the ray of the next zone that way comes down to its height
         within ``NEXT_ZONE_REACH`` footprints past it along n (a ray that passes over the object, or
-        meets that height far beyond, does not show where the object ends under it); and no
-        :attr:`loose` return of the view lies past it along n in a zone next to its own, nearer than the
-        outline's margin (the surface going on where the map kept none of it)."""
+        meets that height far beyond, does not show where the object ends under it): the end lies no
+        further than where that ray comes down, plus the point's Gaussian terms (delta(n)'s, of one
+        point). A view that shows the end otherwise (from beyond the side, or of the top) sets no limit
+        of its own (-infinite). Either way no :attr:`loose` return of the view lies past it along n in a
+        zone next to its own, nearer than the outline's margin (the surface going on where the map kept
+        none of it)."""
         assert self.origins is not None and self.axes is not None
         origin, axes, point = self.origins[end], self.axes[end], self.points[end]
         image = axes[:, :2].T @ n
         local = (point - origin) @ axes
         row, col = zone_grid(local[None, :], model.zone_rad, model.half_fov_rad)
         r = float(np.linalg.norm(local))
+        limit = -math.inf
         if n[2] == 0.0 and origin @ n < point @ n:
             side = int(_outward_side(image[None, :])[0])
             if self.straddles is not None and not self.straddles[end, side]:
-                return False
+                return None
             step = np.array(NEIGHBOURS[side])
             down, across = (np.array([row[0], col[0]]) + step + 0.5) * model.zone_rad \
                 - np.array(model.half_fov_rad[::-1])
@@ -422,30 +445,35 @@ class Seen:
             ray /= np.linalg.norm(ray)
             footprint = r * math.tan(model.zone_rad)
             reach = NEXT_ZONE_REACH * footprint / max(float(np.abs(image).max()), 1e-9)
-            if not _passes_beyond(origin - point, ray, n, reach, footprint):
-                return False
+            beyond = _comes_down_beyond(origin - point, ray, n, reach, footprint)
+            if beyond is None:
+                return None
+            limit = float(point @ n) + beyond + model.gaussian(r, abs(float((point - origin) @ n)) / r, 1)
         if self.loose is None or self.loose_views is None or self.views is None:
-            return True
+            return limit
         beside = self.loose[(self.loose_views == self.views[end]) & (self.loose @ n > point @ n)]
         if beside.shape[0] == 0:
-            return True
+            return limit
         near = (beside - origin) @ axes
         rows, cols = zone_grid(near, model.zone_rad, model.half_fov_rad)
         nearer = np.linalg.norm(near, axis=1) - r <= outline_margin(model, r)
-        return not np.any((np.abs(rows - row[0]) <= 1) & (np.abs(cols - col[0]) <= 1) & nearer)
+        return None if np.any((np.abs(rows - row[0]) <= 1) & (np.abs(cols - col[0]) <= 1) & nearer) else limit
 
 
 def face_bound(model: ErrorModel, seen: Seen, n: Array, trim: float) -> float:
     """The upper bound [m] of the face with outward unit normal ``n`` (3,), as a coordinate along n: the
     ``1 - trim`` quantile of n.p over the points plus delta(n) of the face's points (those beyond the
-    ``1 - FACE_FRACTION`` quantile); infinite when no view saw the object end along n inside its frame
-    (:meth:`Seen.ends_framed`)."""
+    ``1 - FACE_FRACTION`` quantile), and no nearer than the views that showed the object end along n let
+    it lie (:meth:`Seen.end_limit`); infinite when no view saw the object end along n inside its
+    frame."""
     x, face = seen.face(n)
-    if not seen.ends_framed(model, n):
+    limit = seen.end_limit(model, n)
+    if limit == math.inf:
         return math.inf
     ranges, along, _ = seen.geometry(n)
     footprints = seen.footprints(n, face)
-    return float(np.quantile(x, 1.0 - trim)) + model.delta(ranges[face], along[face], footprints[face])
+    bound = float(np.quantile(x, 1.0 - trim)) + model.delta(ranges[face], along[face], footprints[face])
+    return max(bound, limit)
 
 
 def upper_dims(box: PackingBox, model: ErrorModel, seen: Seen, trim: float) -> Array:
