@@ -25,7 +25,15 @@ from cell.cli.main import app
 from cell.doctor import machine
 from cell.doctor.findings import Status
 from cell.service.keys import create_key
-from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord, Store, open_store, sqlite_url
+from cell.service.store import (
+    FINISHED_STATUSES,
+    JOB_STATUSES,
+    HoldRecord,
+    JobRecord,
+    Store,
+    open_store,
+    sqlite_url,
+)
 from cell.service.store.engine import MIGRATIONS, open_engine, schema_head
 from cell.service.store.models import Base
 from cell.service.store.repository import StoreState, inspect_store
@@ -196,6 +204,22 @@ def test_queue_order_and_counts(store: Store, many_jobs: list[JobRecord]):
     assert store.count_by_status("a") == {"queued": 3, "running": 1, "completed": 1, "no_object": 0,
                                           "failed": 1, "stopped": 0, "cancelled": 0, "interrupted": 0}
     assert store.count_by_status("c") == dict.fromkeys(JOB_STATUSES, 0)
+
+
+def test_each_cell_keeps_its_own_queue_hold_until_released(store: Store):
+    assert store.get_hold("a") is None
+    held = HoldRecord(cell="a", reason="held after a stop (hands in): resume", held_at=T0)
+    store.set_hold("a", held)
+    assert store.get_hold("a") == held and store.get_hold("b") is None
+    later = HoldRecord(cell="a", reason="held after a worker that died", held_at=T0 + timedelta(minutes=1))
+    store.set_hold("a", later)
+    store.set_hold("b", replace(held, cell="b"))
+    assert store.get_hold("a") == later and store.get_hold("b") == replace(held, cell="b")
+    store.set_hold("a", None)
+    store.set_hold("a", None)  # releasing a queue that is not held changes nothing
+    assert store.get_hold("a") is None and store.get_hold("b") == replace(held, cell="b")
+    with pytest.raises(ValueError, match="naive"):
+        store.set_hold("a", replace(held, held_at=datetime(2026, 3, 2, 8, 0)))
 
 
 def test_delete_job(store: Store, many_jobs: list[JobRecord]):

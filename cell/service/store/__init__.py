@@ -6,6 +6,7 @@ from cell.service.store.records import (
     FINISHED_STATUSES,
     JOB_STATUSES,
     STORE_RETRY_S,
+    HoldRecord,
     JobRecord,
     KeyRecord,
     LineRecord,
@@ -13,5 +14,5 @@ from cell.service.store.records import (
 )
 from cell.service.store.repository import Store, open_data_store, open_store
 
-__all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "STORE_RETRY_S", "JobRecord", "KeyRecord", "LineRecord",
-           "LineTransition", "Store", "open_data_store", "open_store", "sqlite_url"]
+__all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "STORE_RETRY_S", "HoldRecord", "JobRecord", "KeyRecord",
+           "LineRecord", "LineTransition", "Store", "open_data_store", "open_store", "sqlite_url"]

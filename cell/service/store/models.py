@@ -1,5 +1,5 @@
-"""The job store's tables as SQLAlchemy ORM models: ``jobs``, ``api_keys``, ``line_transitions`` and
-``line_state``.
+"""The job store's tables as SQLAlchemy ORM models: ``jobs``, ``api_keys``, ``line_transitions``,
+``line_state`` and ``queue_holds``.
 
 The schema itself is created and changed only by the Alembic migrations in ``migrations/versions``;
 these models must describe the schema the newest migration leaves (``tests/test_store.py`` compares
@@ -146,3 +146,14 @@ class LineStateRow(Base):
     stop_reason_id: Mapped[int] = mapped_column(Integer)
     stop_reason: Mapped[str] = mapped_column(Text)
     last_result: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
+
+
+class HoldRow(Base):
+    """A row of ``queue_holds``: one :class:`cell.service.store.records.HoldRecord`, the held queue of a
+    cell (no row: its queue is not held)."""
+
+    __tablename__ = "queue_holds"
+
+    cell: Mapped[str] = mapped_column(String(64), primary_key=True)
+    reason: Mapped[str] = mapped_column(Text)
+    held_at: Mapped[datetime] = mapped_column(UTCDateTime)

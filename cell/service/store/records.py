@@ -100,3 +100,13 @@ class LineRecord:
     stop_reason_id: int = 0
     stop_reason: str = ""
     last_result: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class HoldRecord:
+    """A cell's held queue, kept across restarts until an operator resumes it: why, in words (what held
+    it and what to do), and since when (timezone-aware UTC)."""
+
+    cell: str
+    reason: str
+    held_at: datetime

@@ -31,8 +31,15 @@ from cell.service.store.engine import (
     store_error,
 )
 from cell.service.store.lease import CellLease
-from cell.service.store.models import JobRow, KeyRow, LineStateRow, LineTransitionRow
-from cell.service.store.records import JOB_STATUSES, JobRecord, KeyRecord, LineRecord, LineTransition
+from cell.service.store.models import HoldRow, JobRow, KeyRow, LineStateRow, LineTransitionRow
+from cell.service.store.records import (
+    JOB_STATUSES,
+    HoldRecord,
+    JobRecord,
+    KeyRecord,
+    LineRecord,
+    LineTransition,
+)
 from drivers.errors import ServiceError, StoreError
 from drivers.file_access import make_folder
 
@@ -334,6 +341,28 @@ class Store:
         """Write ``cell``'s line record (created or replaced)."""
         with self._session(f"writing cell {record.cell}'s line") as session:
             session.merge(LineStateRow(**asdict(record)))
+
+    # the queue's hold
+
+    def get_hold(self, cell: str) -> HoldRecord | None:
+        """Why ``cell``'s queue is held and since when, or None when it is not."""
+        with self._session(f"reading cell {cell}'s queue hold") as session:
+            row = session.get(HoldRow, cell)
+            return None if row is None else HoldRecord(cell=row.cell, reason=row.reason, held_at=row.held_at)
+
+    def set_hold(self, cell: str, hold: HoldRecord | None) -> None:
+        """Hold ``cell``'s queue (``hold``, written or replaced), or release it (None); ``ValueError`` for
+        a naive time or another cell's hold."""
+        with self._session(f"writing cell {cell}'s queue hold") as session:
+            row = session.get(HoldRow, cell)
+            if hold is None:
+                if row is not None:
+                    session.delete(row)
+                return
+            if hold.cell != cell:
+                raise ValueError(f"a hold of cell {hold.cell!r} given for cell {cell!r}")
+            session.merge(HoldRow(cell=cell, reason=hold.reason,
+                                  held_at=_aware("held_at", hold.held_at).astimezone(UTC)))
 
 
 def _aware(name: str, value: datetime) -> datetime:
