@@ -41,6 +41,7 @@ from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, _started, reconcile
 from cell.service.startup import ServiceSettings
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store
+from cell.service.worker import SERVICE_GONE
 from drivers.errors import JobError, StoreError
 from drivers.sim.objects import load_object
 
@@ -216,6 +217,8 @@ def test_a_job_store_outage_delays_a_job_start_and_end_but_loses_neither(tmp_pat
             time.sleep(0.05)
         time.sleep(1.5)
         assert store.get_job(second["id"]).status == "running"
+        # shown running where the store says so, until its end is recorded
+        assert client.get("/api/v1/cell", headers=op).json()["job"]["id"] == second["id"]
         away.clear()
         ended = _wait(client, viewer, second["id"], set(FINISHED_STATUSES), timeout_s=10.0)
         assert ended["status"] == "completed" and ended["result"]["status"] == "completed"
@@ -351,8 +354,8 @@ def test_a_worker_that_cannot_be_started_never_leaves_a_job_untracked_and_the_se
                                                                                                caplog):
     """Out of file descriptors, the warm spare beside a running job cannot be started: the running job is
     followed to its end all the same (it was marked failed while its worker scanned on, untracked, and the
-    dispatcher died for good), the next job waits in the queue saying why, the failure is logged once,
-    and the next job runs by itself once worker processes start again."""
+    dispatcher died for good), the next job waits in the queue saying why (``/readyz`` too), the failure is
+    logged once, and the next job runs by itself once worker processes start again."""
     client, keys = _client(tmp_path)
     op, viewer = _auth(keys["operator"]), keys["viewer"]
     with client, caplog.at_level(logging.INFO, logger="cell.service"):
@@ -367,7 +370,8 @@ def test_a_worker_that_cannot_be_started_never_leaves_a_job_untracked_and_the_se
         assert client.get(f"/api/v1/jobs/{second['id']}", headers=op).json()["status"] == "queued"
         cell = client.get("/api/v1/cell", headers=op).json()
         assert cell["job"] is None and "Too many open files" in cell["queue"]["held"]
-        assert client.get("/readyz", headers=op).status_code == 200
+        ready = client.get("/readyz", headers=op)  # a job submitted now would not run: not ready
+        assert ready.status_code == 503 and "Too many open files" in ready.json()["status"]
         out.clear()
         _wait(client, viewer, second["id"], {"running"})
         assert client.get("/api/v1/cell", headers=op).json()["job"]["id"] == second["id"]
@@ -704,14 +708,44 @@ def test_a_restart_settles_running_and_queued_jobs(tmp_path):
 
 def _worker_like(folder: Path, after_s: float) -> subprocess.Popen[bytes]:
     """A process that looks like the warm spare a job was given (the worker module in its command line,
-    and ``spare`` where a job id would be): it writes the job's ``result.json`` after ``after_s`` [s]."""
+    and ``spare`` where a job id would be): it writes the job's ``result.json`` after ``after_s`` [s], as
+    a worker whose service went away does."""
     script = ("import json, sys, time; time.sleep(float(sys.argv[4])); "
-              "open(sys.argv[3], 'w').write(json.dumps({'status': 'stopped', 'termination': 'eof'}))")
+              "open(sys.argv[3], 'w').write(json.dumps({'status': 'stopped', 'termination': sys.argv[5]}))")
     return subprocess.Popen([sys.executable, "-c", script, WORKER_MODULE, "spare",
-                             str(folder / "result.json"), str(after_s)])
+                             str(folder / "result.json"), str(after_s), f"safety stop: {SERVICE_GONE}"])
 
 
-def test_a_restart_waits_for_the_warm_worker_of_a_running_job_and_not_for_a_reused_pid(tmp_path):
+def test_a_restart_keeps_the_end_a_job_recorded_in_its_folder_and_holds_after_an_arm_fault(tmp_path):
+    """A job that ended by itself while the store did not answer, the service then killed: its folder's
+    end stands (not ``interrupted``), and an arm fault holds its cell's queue in the store; a job's own
+    failure holds nothing."""
+    store = open_data_store(tmp_path, None)
+    faulted = _job(tmp_path, "running", "f" * 16)
+    failed = replace(_job(tmp_path, "running", "0" * 16), cell="d")
+    ends = {faulted.id: ("stopped", "safety stop: arm fault: protective stop"),
+            failed.id: ("failed", "PlanningError: no view reachable")}
+    for job in (faulted, failed):
+        store.add_job(job)
+        Path(job.folder).mkdir(parents=True)
+        status, termination = ends[job.id]
+        result = {"status": status, "termination": termination}
+        (Path(job.folder) / "result.json").write_text(json.dumps(result))
+    try:
+        settled = reconcile(store, "c", worker_wait_s=0.1) + reconcile(store, "d", worker_wait_s=0.1)
+        for job in (faulted, failed):
+            got = store.get_job(job.id)
+            assert got is not None and (got.status, got.termination) == ends[job.id]
+            assert json.loads((Path(job.folder) / "result.json").read_text())["status"] == ends[job.id][0]
+        hold = store.get_hold("c")
+        assert hold is not None and "arm fault: protective stop" in hold.reason and "resume" in hold.reason
+        assert store.get_hold("d") is None
+        assert any("held" in line for line in settled)
+    finally:
+        store.close()
+
+
+def test_a_restart_waits_for_the_warm_worker_of_a_running_job_and_not_for_a_reused_pid(tmp_path, caplog):
     store = open_data_store(tmp_path, None)
     now = datetime.now(UTC)
     job = replace(_job(tmp_path, "running", "d" * 16), started_at=now + timedelta(seconds=1))
@@ -725,8 +759,11 @@ def test_a_restart_waits_for_the_warm_worker_of_a_running_job_and_not_for_a_reus
     store.add_job(replace(old, worker_pid=stranger.pid))
     try:
         began = time.monotonic()
-        reconcile(store, "c", worker_wait_s=20.0)
+        with caplog.at_level(logging.INFO, logger="cell.service"):
+            reconcile(store, "c", worker_wait_s=20.0)
         assert time.monotonic() - began < 10.0  # the stranger was neither waited for nor signalled
+        waits = [r.getMessage() for r in caplog.records if "waiting for worker pid" in r.getMessage()]
+        assert len(waits) == 1 and f"pid {worker.pid} " in waits[0] and "up to 20 s" in waits[0], waits
         # on failure, what the reconcile judged the worker by
         assert worker.poll() == 0 and stranger.poll() is None, \
             f"worker started {_started(worker.pid) - now.timestamp():+.3f} s after now (its job at +1 s)"
@@ -780,3 +817,126 @@ def test_every_fault_an_arm_driver_names_latches_until_a_recovery(termination, s
     assert tracker.faulted and tracker.status.state == state
     tracker.recovered([], None)
     assert not tracker.faulted and tracker.status.state == "idle"
+
+
+# ------------------------------------------------------------------------------------- holds, liveness
+
+
+def _queue(client: TestClient, key: str) -> dict[str, Any]:
+    queue: dict[str, Any] = client.get("/api/v1/cell", headers=_auth(key)).json()["queue"]
+    return queue
+
+
+def test_a_stop_its_worker_does_not_confirm_holds_the_queue(tmp_path):
+    """A worker killed for a stop it did not confirm left the arm to its connection watchdog: the next
+    job waits for an operator, as after a worker that died."""
+    client, keys = _client_with(tmp_path, "impatient", service={"stop_confirm_timeout_s": 1e-6})
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    with client:
+        first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
+        _wait_started(client, viewer, first["id"])
+        stop = client.post(f"/api/v1/jobs/{first['id']}/stop", json={"reason": "hands in"}, headers=op)
+        assert stop.status_code == 200 and stop.json()["queue_held"] is True, stop.json()
+        assert _wait(client, viewer, first["id"], set(FINISHED_STATUSES))["status"] == "stopped"
+        held = _queue(client, viewer)["held"]
+        assert "did not confirm" in held and "check the arm" in held
+        time.sleep(1.0)  # what would start the next job starts at once: a second is ample
+        assert client.get(f"/api/v1/jobs/{second['id']}", headers=op).json()["status"] == "queued"
+        assert client.get("/readyz", headers=op).status_code == 503
+
+
+def test_a_held_queue_stays_held_across_a_restart_until_resumed(tmp_path, caplog):
+    client, keys = _client(tmp_path)
+    op = _auth(keys["operator"])
+    with client:
+        stop = client.post("/api/v1/stop", json={"reason": "hands in the cell"}, headers=op)
+        assert stop.status_code == 200
+        before = _queue(client, keys["viewer"])
+        assert "hands in the cell" in before["held"] and before["held_at"] is not None
+    with client, caplog.at_level(logging.INFO, logger="cell.service"):
+        assert _queue(client, keys["viewer"]) == before
+        ready = client.get("/readyz", headers=op)
+        assert ready.status_code == 503 and "hands in the cell" in ready.json()["status"]
+        assert "cell_queue_held 1.0" in client.get("/metrics", headers=op).text
+        assert client.post("/api/v1/queue/resume", headers=op).status_code == 200
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("held since" in m and "hands in the cell" in m for m in messages)
+    with client:
+        assert _queue(client, keys["viewer"])["held"] is None
+        assert client.get("/readyz", headers=op).status_code == 200
+        assert "cell_queue_held 0.0" in client.get("/metrics", headers=op).text
+
+
+def test_a_hung_worker_is_stopped_and_holds_the_queue(tmp_path, caplog):
+    """A worker that sends nothing (here stopped by SIGSTOP) for ``WORKER_SILENT_S`` is taken for hung:
+    its job is stopped (killed, as it cannot confirm), the queue held and the reason logged."""
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    with client, caplog.at_level(logging.INFO, logger="cell.service"):
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 60}, headers=op).json()
+        _wait_started(client, viewer, job["id"])
+        pid = store.get_job(job["id"]).worker_pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            ended = _wait(client, viewer, job["id"], set(FINISHED_STATUSES), timeout_s=30.0)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+        assert ended["status"] == "stopped" and "hung" in ended["termination"], ended["termination"]
+        held = _queue(client, viewer)["held"]
+        assert "hung" in held and "check the arm" in held
+        assert client.get("/readyz", headers=op).status_code == 503
+    assert any(r.levelno == logging.ERROR and "hung" in r.getMessage() for r in caplog.records)
+
+
+def test_a_data_dir_without_room_for_a_job_holds_the_next_one_and_says_where(tmp_path, monkeypatch, caplog):
+    from cell.service import manager
+
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), keys["viewer"]
+    usage = manager.shutil.disk_usage
+    full = threading.Event()
+
+    def disk_usage(path: Any) -> Any:
+        real = usage(path)
+        return real._replace(free=5_000_000) if full.is_set() else real
+
+    monkeypatch.setattr(manager.shutil, "disk_usage", disk_usage)
+    full.set()
+    with client, caplog.at_level(logging.INFO, logger="cell.service"):
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
+        time.sleep(1.5)
+        assert client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["status"] == "queued"
+        held = _queue(client, viewer)["held"]
+        assert held.startswith(f"disk full under {tmp_path / 'data'}: 5 MB free"), held
+        ready = client.get("/readyz", headers=op)
+        assert ready.status_code == 503 and "disk full" in ready.json()["status"]
+        full.clear()
+        assert _wait(client, viewer, job["id"], set(FINISHED_STATUSES))["status"] == "completed"
+    messages = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("disk full under") for m in messages)  # at start, and as the job waits
+    assert "the data dir has room for a job again" in messages
+
+
+def test_a_start_removes_the_empty_worker_logs_a_previous_run_left(tmp_path):
+    client, _ = _client(tmp_path)
+    logs = tmp_path / "data" / "logs"
+    logs.mkdir(parents=True)
+    (logs / "worker-0123456789abcdef.log").touch()
+    (logs / "worker-spare-0a1b2c3d.log").touch()
+    (logs / "worker-fedcba9876543210.log").write_text("Traceback ...\n")
+    with client:
+        assert sorted(p.name for p in logs.glob("worker-*.log") if "spare" not in p.name) \
+            == ["worker-fedcba9876543210.log"]
+
+
+def test_a_spare_worker_whose_service_went_away_exits_quietly_leaving_no_log(tmp_path):
+    log_path = tmp_path / "worker-spare-0a1b2c3d.log"
+    with log_path.open("wb") as log:
+        command = [sys.executable, "-m", WORKER_MODULE, "--job", "spare", "--log", str(log_path)]
+        spare = subprocess.run(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
+                               timeout=120)
+    assert spare.returncode == 0 and not log_path.exists()
+    assert [json.loads(line)["type"] for line in spare.stdout.splitlines()] == ["loaded"]

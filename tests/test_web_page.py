@@ -625,6 +625,8 @@ def test_stop_stays_in_view_on_a_phone_with_the_queue_held(open_page: Callable[.
             page = open_page("operator", width=width, height=height)
             page.wait_for_selector("#resume:not([hidden])")
             page.wait_for_selector("form.scan-form")
+            held = page.text_content("#st-held") or ""
+            assert "phone test" in held and "(since " in held, held  # the hold outlives a restart: since when
             box = page.locator("#stop").bounding_box()
             assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= width, box
             assert page.evaluate("() => document.documentElement.scrollWidth") <= width

@@ -197,6 +197,8 @@ class QueueOut(BaseModel):
     length: int
     max: int
     held: str | None = Field(description="why queued jobs do not start, or null")
+    held_at: datetime | None = Field(description="since when the queue is held until an operator resumes "
+                                                 "it (kept across restarts), or null")
 
 
 class CycleResultOut(BaseModel):

@@ -13,7 +13,11 @@ communication reflex). With ``service.warm_worker`` the next job's worker is sta
 jobs, and waits with its libraries loaded.
 
 ``stop_all`` (the operator's STOP) also holds the queue: nothing else starts until an operator resumes
-it. A fault the arm reported holds it too, until the arm is recovered (``cell.service.arm_status``).
+it. So do a worker that died, a stop its worker did not confirm and a worker that went silent (hung:
+stopped as a stop does): the arm was then left to its connection watchdog, and a person looks first. Such
+a hold is kept in the store (``queue_holds``), so that a restart does not release it. A fault the arm
+reported holds the queue too, until the arm is recovered (``cell.service.arm_status``). A data dir with no
+room for a job's recording holds the next job until there is room (:data:`JOB_DISK_MB`).
 """
 
 from __future__ import annotations
@@ -21,10 +25,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import os
 import secrets
+import shutil
 import signal
 import sys
 from collections import deque
@@ -43,10 +49,10 @@ from cell.service.arm_status import ArmTracker
 from cell.service.events import EventHub, JobEvents
 from cell.service.metrics import ServiceMetrics
 from cell.service.objects import ObjectLibrary
-from cell.service.protocol import WORKER_MODULE, WorkerSpec, finite_json, stop_command
-from cell.service.recovery import finish_folder, reconcile
+from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, finite_json, stop_command
+from cell.service.recovery import finish_folder, held_after, reconcile
 from cell.service.retention import Retention, delete_job
-from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, JobRecord, Store
+from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, HoldRecord, JobRecord, Store
 from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest, ValidJob, validate
@@ -65,6 +71,18 @@ SPAWN_RETRY_S = 1.0
 """How soon a worker process that could not be started (the service out of file descriptors, processes or
 memory) is tried again [s]: a job waits in the queue for it, the warm spare is started again, and the
 service takes jobs again by itself once the resources are back."""
+WORKER_SILENT_S = 10 * WORKER_BEAT_S
+"""How long a running job's worker may send nothing (no progress, no beat) before it is taken for hung and
+stopped [s]: ten of its beats (``cell.service.protocol.WORKER_BEAT_S``). Its beat thread needs the
+interpreter lock, which one long library call of the job can hold (an import, a mesh's ray cast): the
+longest gap between two lines of a 60 s sim job of each shipped sim cell, beside another job and a test
+run on a 2-core machine, was 1.1 s: five seconds of silence is no slow job."""
+JOB_DISK_MB = 200.0
+"""Free space a job needs in the data dir to record [MB]. The largest recording a shipped cell makes is the
+RGB-D one's: a 640 x 480 depth and colour frame is ~0.9 MB compressed in ``frames/`` (a 20 s sim-franka-rgbd
+job left 18 in 16 MB), one per second of job time (``perception.rate_hz``), so its 180 s budget
+(``scan.max_time_s``) records ~165 MB, plus its cloud, map and plots (~2 MB). Below it the next job waits
+(the queue says why) rather than fail on a full disk, and the service warns at start."""
 SHUTDOWN_CANCEL = "the service shut down before the job started"
 SHUTDOWN_STOP = "the service is shutting down"
 STOP_EFFECTS = {StopEffect.COMMANDED: "the arm was commanded to stop",
@@ -91,7 +109,8 @@ class _Running:
     ended on someone's request, not by its safety layer alone), a stop asked for meanwhile, the stop
     confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
     not started), its newest progress, its worker's last word, whether its end is recorded (the worker
-    may still be exiting) and ``gone``, set once the worker has exited."""
+    may still be exiting) and in the store (``stored``), the stop of a worker taken for hung
+    (``hung_stop``) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
@@ -104,6 +123,8 @@ class _Running:
     progress: dict[str, Any] | None = None
     ended: dict[str, Any] | None = None
     recorded: bool = False
+    stored: bool = False
+    hung_stop: asyncio.Task[StopOutcome] | None = None
     gone: asyncio.Event = field(default_factory=asyncio.Event)
 
 
@@ -125,6 +146,13 @@ def _exit_text(code: int) -> str:
     if code < 0:
         return f"killed by {signal.Signals(-code).name}"
     return f"exit code {code}"
+
+
+def _drop_empty_logs(logs_dir: Path) -> None:
+    """Delete the empty worker logs a previous run left (its service killed before it could, or a spare
+    that never had a job): a log is kept only when its worker printed something (:func:`_drop_if_empty`)."""
+    for log_path in logs_dir.glob("worker-*.log"):
+        _drop_if_empty(log_path)
 
 
 def _drop_if_empty(log_path: Path) -> None:
@@ -160,10 +188,12 @@ class CellService:
         self.events = EventHub()
         self.arm = ArmTracker(config)
         self.metrics = ServiceMetrics(lambda: self.store.count_by_status(self.name),
-                                      lambda: len(self._queued))
+                                      lambda: len(self._queued), lambda: self.hold_reason() is not None)
         self._queued: dict[str, _Queued] = {}
         self._running: _Running | None = None
-        self._held: str | None = None
+        self._held: HoldRecord | None = None
+        self._hold_writer: asyncio.Task[None] | None = None
+        self._disk_full: str | None = None
         self._busy_with_arm = False
         self._closing = False
         self._submit_lock = asyncio.Lock()
@@ -191,6 +221,13 @@ class CellService:
             folder.mkdir(parents=True, exist_ok=True)
         settled = await asyncio.to_thread(reconcile, self.store, self.name,
                                           self.config.service.shutdown_timeout_s)
+        # after the reconcile, which ended the workers of the previous run: none of them writes there now
+        await asyncio.to_thread(_drop_empty_logs, self._logs_dir)
+        self._held = await asyncio.to_thread(self.store.get_hold, self.name)
+        if self._held is not None:
+            log.warning("the queue is held since %s: %s", self._held.held_at.isoformat(), self._held.reason)
+        if (short := self._disk_short()) is not None:
+            log.warning("%s", short)
         if self.line is not None:
             await self.line.start()
             line_cfg, arm_cfg = self.config.line, self.config.arm
@@ -257,6 +294,10 @@ class CellService:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._rewarm
         await self._close_spare()
+        if self._hold_writer is not None:  # a hold written a moment ago outlives this run
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._hold_writer),
+                                       self.config.service.shutdown_timeout_s)
         if self._dio is not None:
             await self._dio.close()
         if self.line is not None:
@@ -292,7 +333,8 @@ class CellService:
     def status(self) -> dict[str, Any]:
         """The cell now (no database, no device: safe to poll). A job whose end is recorded is no longer
         the running one, though its worker may still be exiting."""
-        running = self._running if self._running is not None and not self._running.recorded else None
+        # shown until its end is in the store: the job's record says `running` until then
+        running = self._running if self._running is not None and not self._running.stored else None
         cfg = self.config
         # a hardware sensor is connected by each job: it is known to deliver once a job has a frame
         sensor_up = cfg.sensor.type.startswith("sim-") or (running is not None
@@ -305,7 +347,8 @@ class CellService:
                 "id": running.job.id, "status": "running", "planner": running.job.planner,
                 "part_id": running.job.part_id, "progress": running.progress},
             "queue": {"length": len(self._queued), "max": self.config.service.queue_max,
-                      "held": self.hold_reason() or self._waiting_for_worker()},
+                      "held": self.hold_reason() or self._waiting_for_resources(),
+                      "held_at": None if self._held is None else self._held.held_at},
             "line": None if self.line is None else self.line.snapshot().as_dict(),
         }
 
@@ -313,12 +356,39 @@ class CellService:
         """Why queued jobs do not start, or None."""
         if self.arm.faulted:
             return f"arm {self.arm.status.state}: recover the arm first (POST /api/v1/arm/recover)"
-        return self._broken or self._lease_lost or self._held
+        return self._broken or self._lease_lost or (None if self._held is None else self._held.reason)
 
-    def _waiting_for_worker(self) -> str | None:
+    def _waiting_for_resources(self) -> str | None:
         """Why the next job waits though nothing holds the queue: no worker process could be started for
-        it (it is tried again every ``SPAWN_RETRY_S``), or None."""
-        return self._spawn_failure if self._queued and self._running is None else None
+        it, or the data dir has no room for its recording (both tried again every ``SPAWN_RETRY_S``), or
+        None."""
+        return self._spawn_failure or self._disk_full if self._queued and self._running is None else None
+
+    def not_ready(self) -> str | None:
+        """Why a job submitted now would not run, in words (for ``/readyz``), or None: starting or shutting
+        down, the queue held, no worker process can be started, the jobs folder not writable or without
+        room for a job. Reads no database (the route checks the store) and no device."""
+        if not self.ready:
+            return "not taking jobs (starting or shutting down)"
+        if (held := self.hold_reason()) is not None:
+            return f"the queue is held: {held}"
+        if self._spawn_failure is not None:
+            return self._spawn_failure
+        if not os.access(self.jobs_dir, os.W_OK | os.X_OK):
+            return f"the jobs folder {self.jobs_dir} is not writable: no job could record"
+        return self._disk_short()
+
+    def _disk_short(self) -> str | None:
+        """``disk full under <data dir>: N MB free`` when the data dir has less room than a job needs
+        (:data:`JOB_DISK_MB`), else None (also when its free space cannot be read: the job then says)."""
+        try:
+            free_mb = shutil.disk_usage(self.jobs_dir).free / 1e6
+        except OSError:
+            return None
+        if free_mb >= JOB_DISK_MB:
+            return None
+        return (f"disk full under {self.data_dir}: {free_mb:.0f} MB free, a job needs {JOB_DISK_MB:.0f} MB "
+                "to record; free space or set service.retention: jobs start again once there is room")
 
     def planners(self) -> list[dict[str, str | bool]]:
         return [{"name": name, "description": entry.description, "default": name == self.config.scan.planner}
@@ -449,9 +519,26 @@ class CellService:
         return self._logged(await self._stop_running(running, reason), reason)
 
     def _hold(self, after: str) -> None:
-        """Hold the queue until an operator resumes it (never the line's Reset: a person looks first)."""
-        self._held = (f"held after {after}: resume the queue to go on (cell jobs resume, or POST "
-                      "/api/v1/queue/resume)")
+        """Hold the queue until an operator resumes it (never the line's Reset: a person looks first), also
+        across restarts: the hold is written to the store beside (:meth:`_write_hold`), never before a
+        stop."""
+        self._held = HoldRecord(cell=self.name, reason=held_after(after), held_at=_now())
+        self._write_hold()
+
+    def _write_hold(self) -> None:
+        """Have the queue's hold as it is now written to the store, by one task at a time so that the
+        writes land in order (a change meanwhile is written after the one under way)."""
+        if self._hold_writer is None or self._hold_writer.done():
+            self._hold_writer = asyncio.create_task(self._hold_written(), name="queue hold")
+
+    async def _hold_written(self) -> None:
+        while True:
+            wanted = self._held
+            if not await until_stored(functools.partial(self.store.set_hold, self.name, wanted),
+                                      "the queue's hold", lambda: self._closing, log):
+                return
+            if self._held is wanted:
+                return
 
     @staticmethod
     def _logged(outcome: StopOutcome, reason: str) -> StopOutcome:
@@ -463,7 +550,10 @@ class CellService:
         """Let queued jobs start again after a STOP; ``ServiceError`` (conflict) while the arm is faulted."""
         if self.arm.faulted:
             raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
-        self._held = None
+        if self._held is not None:
+            log.warning("the queue is resumed (it was %s)", self._held.reason)
+            self._held = None
+            self._write_hold()
         self._wake.set()
 
     def operator_jobs(self) -> bool:
@@ -501,6 +591,9 @@ class CellService:
         except TimeoutError:
             running.killed_for = (f"{reason} (the job's worker did not confirm the stop in "
                                   f"{self.config.service.stop_confirm_timeout_s:g} s and was killed)")
+            # the arm was not stopped through the guard but by its connection watchdog: a person looks
+            # before the next job moves it, as after a worker that died
+            self._hold(f"a stop its job's worker did not confirm ({running.killed_for}); check the arm")
             self._kill(proc)
             return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
                                f"{self.config.service.stop_confirm_timeout_s:g} s and was killed; the arm's "
@@ -580,7 +673,8 @@ class CellService:
     async def _start_worker(self, log_path: Path, label: str) -> asyncio.subprocess.Process:
         with log_path.open("ab") as log:
             return await asyncio.create_subprocess_exec(
-                sys.executable, "-m", WORKER_MODULE, "--job", label, stdin=asyncio.subprocess.PIPE,
+                sys.executable, "-m", WORKER_MODULE, "--job", label, "--log", str(log_path),
+                stdin=asyncio.subprocess.PIPE,
                 stdout=asyncio.subprocess.PIPE, stderr=log, start_new_session=True, limit=LINE_LIMIT)
 
     async def _spawn(self, log_path: Path, label: str) -> asyncio.subprocess.Process | None:
@@ -711,6 +805,9 @@ class CellService:
             await self._wake.wait()
             self._wake.clear()
             while self._may_start():
+                if self._no_room():
+                    asyncio.get_running_loop().call_later(SPAWN_RETRY_S, self._wake.set)
+                    break
                 job_id = next(iter(self._queued))
                 queued = self._queued.pop(job_id)
                 running = self._running = _Running(queued.job, queued.origin)
@@ -733,6 +830,18 @@ class CellService:
                         self._hold(f"a stop ({running.stop_reason})")
                     asyncio.get_running_loop().call_later(retry_s, self._wake.set)
                     break
+
+    def _no_room(self) -> bool:
+        """Whether the data dir lacks the room a job needs (:meth:`_disk_short`); logged in one line when
+        that begins or changes, and once there is room again."""
+        short = self._disk_short()
+        if short != self._disk_full:
+            if short is not None:
+                log.error("%s", short)
+            else:
+                log.warning("the data dir has room for a job again")
+            self._disk_full = short
+        return short is not None
 
     async def _run(self, running: _Running, source: str) -> float | None:
         """Run the job to its end (None). When it did not start, how soon to try again [s]: its worker
@@ -785,7 +894,7 @@ class CellService:
             self.arm.job_started()
             log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
             self.events.log(job.id).publish("state", {"status": "running", "termination": None})
-        while line := await proc.stdout.readline():
+        while line := await self._next_line(running, proc.stdout):
             try:
                 message = finite_json(json.loads(line))
             except ValueError:
@@ -795,6 +904,22 @@ class CellService:
             if running.ended is not None and not running.recorded:
                 await self._record_end(running)
         return await proc.wait()
+
+    async def _next_line(self, running: _Running, stdout: asyncio.StreamReader) -> bytes:
+        """The worker's next line. Once it started its job it sends one every ``WORKER_BEAT_S`` at least:
+        silent for ``WORKER_SILENT_S`` it is taken for hung, and its job is stopped as a stop does (the
+        arm through the guard if the worker still answers, else the worker is killed and the arm's
+        connection watchdog stops it), the queue held and the reason logged."""
+        while running.started and running.hung_stop is None and running.ended is None:
+            try:
+                return await asyncio.wait_for(stdout.readline(), WORKER_SILENT_S)
+            except TimeoutError:
+                reason = (f"the job's worker sent nothing for {WORKER_SILENT_S:g} s (it beats every "
+                          f"{WORKER_BEAT_S:g} s): hung")
+                log.error("job %s: %s; stopping it", running.job.id, reason, extra={"job_id": running.job.id})
+                self._hold(f"{reason}; check the arm")
+                running.hung_stop = asyncio.create_task(self._stop_running(running, reason), name="hung stop")
+        return await stdout.readline()
 
     def _take(self, running: _Running, message: dict[str, Any]) -> None:
         """One line from the job's worker."""
@@ -853,6 +978,7 @@ class CellService:
                    "worker_pid": None, "progress": running.progress}
         await until_stored(lambda: self.store.update_job(job.id, **changes), "job's end",
                            lambda: self._closing, log, {"job_id": job.id})
+        running.stored = True
         # the line hears once the store has the outcome: a line that reads the job finds it ended
         if self.line is not None:
             self.line.job_ended(job.id, status, termination, result, requested=running.requested)

@@ -57,12 +57,14 @@ class TickTotals:
 
 
 class _LiveCollector(Collector):
-    """What is read at scrape time: the store's counts, the queue, the tick totals."""
+    """What is read at scrape time: the store's counts, the queue and whether it is held, the tick
+    totals."""
 
     def __init__(self, counts: Callable[[], dict[str, int]], queue_length: Callable[[], int],
-                 ticks: TickTotals) -> None:
+                 held: Callable[[], bool], ticks: TickTotals) -> None:
         self._counts = counts
         self._queue_length = queue_length
+        self._held = held
         self._ticks = ticks
 
     def collect(self) -> Iterator[Any]:
@@ -72,6 +74,10 @@ class _LiveCollector(Collector):
         yield jobs
         yield GaugeMetricFamily("cell_queue_length", "Jobs waiting behind the running one.",
                                 value=self._queue_length())
+        # 0/1: the reason is free text (it names jobs and stops), unbounded as a label; /api/v1/cell says it
+        yield GaugeMetricFamily("cell_queue_held", "1 while no queued job starts until someone acts (an "
+                                "operator's resume, an arm recovery, a restart): GET /api/v1/cell says why.",
+                                value=int(self._held()))
         t = self._ticks.total()
         yield HistogramMetricFamily(
             "cell_control_tick_period_seconds", "Control-loop tick periods in job time, all jobs.",
@@ -85,10 +91,11 @@ class _LiveCollector(Collector):
 class ServiceMetrics:
     """The registry the service reports through ``GET /metrics``."""
 
-    def __init__(self, counts: Callable[[], dict[str, int]], queue_length: Callable[[], int]) -> None:
+    def __init__(self, counts: Callable[[], dict[str, int]], queue_length: Callable[[], int],
+                 held: Callable[[], bool]) -> None:
         self.registry = CollectorRegistry()
         self.ticks = TickTotals()
-        self.registry.register(_LiveCollector(counts, queue_length, self.ticks))
+        self.registry.register(_LiveCollector(counts, queue_length, held, self.ticks))
         self.scan_duration = Histogram("cell_scan_duration_seconds", "Job time of finished scans.",
                                        ["planner"], buckets=SCAN_BUCKETS_S, registry=self.registry)
         self.perception_cycle = Histogram("cell_perception_cycle_seconds", "Perception wall time per frame.",

@@ -11,6 +11,8 @@ library printing to it cannot break the protocol), each with a ``type``:
 - ``loaded``: its libraries are imported (before it reads its task): a warm spare is then ready
   (``CellService.warm_worker``, ``/readyz``);
 - ``started``: ``pid``;
+- ``alive``: a beat, every :data:`WORKER_BEAT_S` from when it started its task to its end, from a thread
+  of its own: a worker silent for long is hung (``cell.service.manager.WORKER_SILENT_S``);
 - ``progress``: ``progress``, a ``cell.jobs.progress.JobProgress`` as a dict;
 - ``stop``: the answer to a stop command, after the arm was commanded to stop: ``effect`` (a
   ``cell.jobs.control.StopEffect`` value: commanded, or the job had not moved yet, or its motion had
@@ -30,6 +32,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 WORKER_MODULE = "cell.service.worker"
+WORKER_BEAT_S = 0.5
+"""How often a worker that has its task says it is alive [s]: a small fraction of the seconds a hung job
+may be left before it is stopped, and a line every half second costs the worker nothing."""
 
 
 @dataclass(frozen=True)

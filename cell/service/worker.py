@@ -29,7 +29,7 @@ from types import FrameType
 from typing import Any, BinaryIO
 
 from cell.jobs.control import JobControl, StopEffect
-from cell.service.protocol import WorkerSpec
+from cell.service.protocol import WORKER_BEAT_S, WorkerSpec
 
 PROGRESS_QUEUE = 256
 """Progress lines held for a slow reader before newer ones are dropped."""
@@ -97,6 +97,13 @@ def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[[str], StopE
             continue
         outbox.send({"type": "stop", "effect": stop(reason).value, "reason": reason})
     stop(SERVICE_GONE)
+
+
+def _beat(outbox: Outbox, done: threading.Event) -> None:
+    """The beat thread: an ``alive`` line every ``WORKER_BEAT_S`` until ``done`` (never waits on the
+    service: a beat the outbox has no room for is dropped, its progress lines say as much)."""
+    while not done.wait(WORKER_BEAT_S):
+        outbox.offer({"type": "alive"})
 
 
 def _run_scan(spec: WorkerSpec, outbox: Outbox, control: JobControl) -> int:
@@ -170,7 +177,9 @@ def _preload() -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m cell.service.worker", description=__doc__)
     parser.add_argument("--job", required=True, help="the job's id (for the process list)")
-    parser.parse_args(argv)
+    parser.add_argument("--log", type=Path, help="the file of its standard error, deleted when it is left "
+                                                 "empty without a task")
+    args = parser.parse_args(argv)
     # The protocol keeps the original standard output; everything else printing there goes to stderr.
     protocol = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)
@@ -181,7 +190,13 @@ def main(argv: list[str] | None = None) -> int:
     source = _lines(sys.stdin.fileno())
     try:
         spec = WorkerSpec.parse(next(source).decode())
-    except (StopIteration, ValueError, TypeError, KeyError) as exc:
+    except StopIteration:
+        # a spare whose service went away (shut down, restarted or killed) before it had a job: nothing
+        # happened, and an empty log would only be clutter
+        if args.log is not None and args.log.is_file() and args.log.stat().st_size == 0:
+            args.log.unlink(missing_ok=True)
+        return 0
+    except (ValueError, TypeError, KeyError) as exc:
         print(f"worker: no valid task on standard input: {exc!r}", file=sys.stderr)
         return 2
     control = JobControl()
@@ -196,7 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     outbox.send({"type": "started", "pid": os.getpid()})
     threading.Thread(target=_listen, args=(source, outbox, control.request_stop), name="commands",
                      daemon=True).start()
+    done = threading.Event()
+    threading.Thread(target=_beat, args=(outbox, done), name="beat", daemon=True).start()
     code = _run_scan(spec, outbox, control) if spec.op == "scan" else _recover(spec, outbox)
+    done.set()
     outbox.close()
     return code
 

@@ -16,25 +16,27 @@ router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
 @router.get("/healthz")
 async def healthz() -> dict[str, str]:
-    """The process answers (no key needed)."""
+    """The process answers (no key needed): liveness, whether or not a job would run."""
     return {"status": "ok"}
 
 
-@router.get("/readyz", responses={503: {"description": "not taking jobs"}})
+@router.get("/readyz", responses={503: {"description": "a job submitted now would not run: body says why"}})
 async def readyz(response: Response, cell: Service,
                  _: Reader) -> dict[str, str]:
-    """Taking jobs: the service has started and its store answers. ``warm_worker`` says whether the next
-    job's worker has loaded its libraries (``CellService.warm_worker``: off, none, loading, loaded); a
-    service whose spare is still loading takes jobs all the same (the first then waits for the imports),
-    so it does not make the answer 503."""
+    """A job submitted now would run: the service has started, its store answers, and nothing keeps the
+    next job from starting (``CellService.not_ready``: the queue held, no worker process can be started,
+    the jobs folder not writable or without room for a job); else 503 with the reason as ``status``.
+    ``warm_worker`` says whether the next job's worker has loaded its libraries
+    (``CellService.warm_worker``: off, none, loading, loaded); a service whose spare is still loading
+    takes jobs all the same (the first then waits for the imports), so it does not make the answer 503."""
     try:
         await asyncio.to_thread(cell.store.count_by_status, cell.name)
     except StoreError:
         response.status_code = 503
         return {"status": "the job store does not answer"}
-    if not cell.ready:
+    if (reason := cell.not_ready()) is not None:
         response.status_code = 503
-        return {"status": "not taking jobs (starting or shutting down)"}
+        return {"status": reason}
     return {"status": "ready", "warm_worker": cell.warm_worker}
 
 

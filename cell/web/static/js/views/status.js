@@ -53,7 +53,9 @@ function render(status, context) {
   $("st-queue").textContent = `${queue.length} waiting${queue.held ? ", held" : ""}`;
   $("st-queue").title = queue.held ?? "";
   $("st-queue").dataset.tone = queue.held ? "bad" : "ok";
-  $("st-held").textContent = queue.held ?? "";
+  // a hold an operator must resume says since when: it outlives a restart of the service
+  const since = queue.held_at ? ` (since ${new Date(queue.held_at).toLocaleString()})` : "";
+  $("st-held").textContent = queue.held ? `${queue.held}${since}` : "";
   $("st-held").title = queue.held ?? "";
   $("st-held").hidden = !queue.held;
   const mayRecover = context.can("recover");
