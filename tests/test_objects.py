@@ -141,3 +141,13 @@ def test_sample_surface_is_deterministic() -> None:
     c = sample_surface(bunny, 1000, np.random.default_rng(8))
     assert np.array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+def test_an_stl_reads_with_one_vertex_per_corner(tmp_path: Path) -> None:
+    """An STL repeats each corner in every facet (Open3D's reader kept them: 24 vertices for a box, and
+    about a million for an upload of 16 MB); they are merged, the triangles kept."""
+    path = tmp_path / "box.stl"
+    trimesh.creation.box(extents=[0.2, 0.1, 0.05]).export(path)
+    mesh = load_object(path)
+    assert len(mesh.vertices) == 8 and len(mesh.triangles) == 12
+    np.testing.assert_allclose(mesh.extents_m, [0.2, 0.1, 0.05], atol=1e-9)

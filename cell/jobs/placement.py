@@ -12,11 +12,13 @@ at 0 % coverage; the refusal says what a scale would make of it.
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
 from cell.config.models import CellConfig
 from drivers.errors import JobError
-from drivers.sim.objects import ObjectMesh
+from drivers.sim.objects import Array
 
 MIN_OBJECT_SIZE_M = 0.01
 """The smallest largest side [m] of an object a cell scans: below it an object covers a handful of the
@@ -29,6 +31,22 @@ yaw of 1e308 deg is a finite number whose sine is rounding noise, not a turn of 
 
 UNIT_SCALES = ((0.001, "millimetres"), (0.01, "centimetres"), (0.0254, "inches"))
 """The scales that turn a CAD export's usual units into metres, the first one a refusal suggests."""
+
+
+class Placed(Protocol):
+    """What the checks read of an object: its ``name``, its bounding box's size ``extents_m`` (3,) [m] and
+    ``vertices`` (V, 3) [m, object frame], of which only the footprint counts: a mesh's
+    (``drivers.sim.objects.ObjectMesh``), or the few that span the same footprint at every yaw (an
+    upload's outline, ``cell.service.objects.ObjectOutline``, which spares the service the mesh)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def extents_m(self) -> Array: ...
+
+    @property
+    def vertices(self) -> Array: ...
 
 
 def _dims(extents: np.ndarray) -> str:
@@ -44,7 +62,7 @@ def _plausible(config: CellConfig, extents: np.ndarray) -> bool:
     return bool(extents.max() >= MIN_OBJECT_SIZE_M and np.all(across <= table) and extents[2] <= height)
 
 
-def check_object_size(config: CellConfig, mesh: ObjectMesh, scale: float = 1.0,
+def check_object_size(config: CellConfig, mesh: Placed, scale: float = 1.0,
                       option: str = "--object-scale") -> None:
     """Raise ``JobError`` when ``mesh`` (loaded at ``scale``) is not a size the cell can scan: its size,
     the limits, and what ``option`` with a CAD unit's scale would make of it."""
@@ -64,7 +82,7 @@ def check_object_size(config: CellConfig, mesh: ObjectMesh, scale: float = 1.0,
                    f"{_dims(extents * unit)}")
 
 
-def footprint_bounds(config: CellConfig, mesh: ObjectMesh,
+def footprint_bounds(config: CellConfig, mesh: Placed,
                      pose: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
     """(min, max) (2,) [m] of the object's footprint in the base frame at ``pose`` from the station."""
     x, y, yaw_deg = pose
@@ -73,7 +91,7 @@ def footprint_bounds(config: CellConfig, mesh: ObjectMesh,
     return xy.min(axis=0), xy.max(axis=0)
 
 
-def check_on_table(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float]) -> None:
+def check_on_table(config: CellConfig, mesh: Placed, pose: tuple[float, float, float]) -> None:
     """Raise ``JobError`` naming the table's extent when the object's footprint at ``pose`` leaves it, or
     when the yaw is not within ``MAX_YAW_DEG``."""
     if not abs(pose[2]) <= MAX_YAW_DEG:
@@ -88,7 +106,7 @@ def check_on_table(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, floa
                    f"spans x {t_lo[0]:.3f}..{t_hi[0]:.3f} m, y {t_lo[1]:.3f}..{t_hi[1]:.3f} m")
 
 
-def check_placement(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
+def check_placement(config: CellConfig, mesh: Placed, pose: tuple[float, float, float],
                     scale: float = 1.0, option: str = "--object-scale") -> None:
     """Both checks, the size first (a mesh in the wrong units is also off the table, and its size is
     the better reason): ``JobError`` saying what is wrong."""

@@ -6,10 +6,18 @@ path. A mesh is accepted as ``cell scan --object`` accepts it (``drivers.sim.obj
 re-centred, in metres or with the scale that converts its units, as ``--object-scale``), must be of a size
 the cell scans and must stand on the cell's table at the station. A scaled mesh is kept scaled, as a PLY
 file in metres.
+
+The service never keeps an uploaded mesh: a 16 MB STL takes some 60 MB once read, and a second to read.
+What listing the objects and checking a job's placement need of it (:class:`ObjectOutline`: its size and
+its footprint's convex hull, a few hundred numbers) is worked out once, at the upload, and kept beside the
+mesh as ``<name>.json``, with the mesh file's size and modification time; an upload without one (kept from
+before) or whose mesh changed since is read once more, the first time it is asked for. The job's worker
+reads the mesh itself.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 import threading
@@ -17,15 +25,28 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from cell.config.models import CellConfig
+from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
+from drivers.atomic_file import write_text_atomic
 from drivers.errors import CellError, ServiceError
-from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, list_objects, load_object, shipped_names, write_mesh
+from drivers.sim.objects import (
+    EMPTY_TABLE,
+    Array,
+    ObjectMesh,
+    list_objects,
+    load_object,
+    shipped_names,
+    write_mesh,
+)
 
 log = logging.getLogger("cell.service")
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
+OUTLINE_SUFFIX = ".json"
+"""The suffix of an upload's outline file, beside its mesh (``<name>.json``)."""
 # The mesh reader's own failures, beside the CellError of a mesh it read but refused (Open3D's: a
 # MemoryError for an absurd element count, a RuntimeError for a broken file)
 _READER_ERRORS = (MemoryError, RuntimeError)
@@ -43,8 +64,65 @@ class ObjectEntry:
     licence: str | None = None
 
 
+@dataclass(frozen=True)
+class ObjectOutline:
+    """What the service keeps of an uploaded mesh (``cell.jobs.placement`` reads nothing else):
+    ``extents_m`` (3,) its bounding box's size [m] and ``vertices`` (2K, 3) [m, object frame] the corners
+    of the upright prism over the convex hull of its footprint, at z = 0 and at its height: at every yaw
+    their footprint spans what the mesh's does."""
+
+    name: str
+    extents_m: Array
+    vertices: Array
+
+    @classmethod
+    def of(cls, mesh: ObjectMesh) -> ObjectOutline:
+        xy = mesh.vertices[:, :2]
+        # QJ: a footprint that is a line (a flat plate standing on edge) has a hull too; the points it
+        # keeps are the mesh's own
+        hull = xy[ConvexHull(xy, qhull_options="QJ").vertices]
+        return cls.from_footprint(mesh.name, mesh.extents_m, hull)
+
+    @classmethod
+    def from_footprint(cls, name: str, extents_m: Array, footprint: Array) -> ObjectOutline:
+        low = np.column_stack([footprint, np.zeros(len(footprint))])
+        high = np.column_stack([footprint, np.full(len(footprint), extents_m[2])])
+        return cls(name, np.asarray(extents_m, dtype=np.float64), np.vstack([low, high]))
+
+
 def _extents(e: np.ndarray) -> tuple[float, float, float]:
     return round(float(e[0]), 6), round(float(e[1]), 6), round(float(e[2]), 6)
+
+
+def _stamp(path: Path) -> list[int]:
+    """The mesh file's size [bytes] and modification time [ns], which its outline file names: another
+    file copied in under the name has other ones."""
+    stat = path.stat()
+    return [stat.st_size, stat.st_mtime_ns]
+
+
+def _outline_file(mesh_file: Path) -> Path:
+    return mesh_file.with_suffix(OUTLINE_SUFFIX)
+
+
+def _write_outline(mesh_file: Path, outline: ObjectOutline, stamp: list[int]) -> None:
+    footprint = outline.vertices[:len(outline.vertices) // 2, :2]
+    write_text_atomic(_outline_file(mesh_file), json.dumps({
+        "mesh_file": {"bytes": stamp[0], "mtime_ns": stamp[1]},
+        "extents_m": outline.extents_m.tolist(), "footprint_m": footprint.tolist()}, indent=1))
+
+
+def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline | None:
+    """The outline kept beside ``mesh_file`` when it is of this mesh file, else None."""
+    try:
+        data = json.loads(_outline_file(mesh_file).read_text())
+        if [data["mesh_file"]["bytes"], data["mesh_file"]["mtime_ns"]] != stamp:
+            return None
+        extents = np.asarray(data["extents_m"], dtype=np.float64).reshape(3)
+        footprint = np.asarray(data["footprint_m"], dtype=np.float64).reshape(-1, 2)
+    except (OSError, ValueError, TypeError, KeyError):  # none, or not one this module wrote: read the mesh
+        return None
+    return ObjectOutline.from_footprint(name, extents, footprint)
 
 
 class ObjectLibrary:
@@ -53,8 +131,10 @@ class ObjectLibrary:
     def __init__(self, folder: Path, config: CellConfig) -> None:
         self.folder = folder
         self._config = config
+        # held while a mesh is read (one at a time: each takes tens of MB) and while uploads come and go
         self._lock = threading.Lock()
-        self._meshes: dict[str, ObjectMesh] = {}
+        # each upload's outline (None: its file does not read as a mesh) with its mesh file's stamp
+        self._outlines: dict[str, tuple[list[int], ObjectOutline | None]] = {}
 
     @property
     def virtual(self) -> bool:
@@ -71,14 +151,13 @@ class ObjectLibrary:
 
     def entries(self) -> list[ObjectEntry]:
         """Every object, shipped first, by name; an uploaded file that no longer reads as a mesh is left
-        out (and logged), not the list."""
+        out (and logged once), not the list."""
         shipped = [ObjectEntry(i.name, "shipped", _extents(i.extents_m), i.licence) for i in list_objects()]
         uploaded = []
-        for name in self._uploaded():
-            try:
-                uploaded.append(ObjectEntry(name, "uploaded", _extents(self.mesh(name).extents_m)))
-            except (CellError, *_READER_ERRORS) as exc:
-                log.warning("uploaded object %s is left out of the list: %s", name, exc)
+        for name, path in self._uploaded().items():
+            outline = self._outline(name, path)
+            if outline is not None:
+                uploaded.append(ObjectEntry(name, "uploaded", _extents(outline.extents_m)))
         return shipped + uploaded
 
     def source(self, name: str) -> str:
@@ -92,20 +171,58 @@ class ObjectLibrary:
             raise ServiceError(f"unknown object {name!r}; known: {known}", reason="invalid", field="object")
         return str(path.resolve())
 
-    def mesh(self, name: str) -> ObjectMesh:
-        """The mesh of a known object (cached)."""
-        with self._lock:
-            mesh = self._meshes.get(name)
-        if mesh is None:
-            mesh = load_object(self.source(name))
+    def shape(self, name: str) -> ObjectMesh | ObjectOutline:
+        """What the placement checks read of a known object: a shipped mesh (small, cached by
+        ``load_object``) or an upload's outline. ``ServiceError`` (invalid, field ``object``) for an
+        unknown name or an upload that no longer reads as a mesh."""
+        source = self.source(name)
+        if name in shipped_names():
+            return load_object(source)
+        outline = self._outline(name, Path(source))
+        if outline is None:
+            raise ServiceError(f"uploaded object {name!r} no longer reads as a mesh (the service's log says "
+                               "why): upload it again", reason="invalid", field="object")
+        return outline
+
+    def _outline(self, name: str, path: Path) -> ObjectOutline | None:
+        """The upload's outline: remembered, read from its file, or else (once per mesh file) worked out
+        from the mesh; None when the mesh does not read (logged)."""
+        try:
+            stamp = _stamp(path)
+        except FileNotFoundError:  # deleted meanwhile
+            return None
+        known = self._outlines.get(name)
+        if known is not None and known[0] == stamp:
+            return known[1]
+        outline = _read_outline(name, path, stamp)
+        if outline is None:
             with self._lock:
-                self._meshes[name] = mesh
-        return mesh
+                known = self._outlines.get(name)  # another thread may have read it meanwhile
+                if known is not None and known[0] == stamp:
+                    return known[1]
+                outline = self._read_mesh(name, path, stamp)
+        self._outlines[name] = (stamp, outline)
+        return outline
+
+    def _read_mesh(self, name: str, path: Path, stamp: list[int]) -> ObjectOutline | None:
+        """An upload's outline from its mesh, kept beside it; None when it does not read (logged)."""
+        try:
+            outline = ObjectOutline.of(load_object(path))
+        except (CellError, *_READER_ERRORS) as exc:
+            log.warning("uploaded object %s is left out of the list: %s", name, exc)
+            return None
+        finally:
+            release_freed_heap()  # the mesh's memory, given back: the service keeps none
+        try:
+            _write_outline(path, outline, stamp)
+        except OSError as exc:  # kept in memory all the same; a restart reads the mesh again
+            log.warning("the outline of uploaded object %s could not be written: %s", name, exc)
+        return outline
 
     def add(self, filename: str, data: bytes, scale: float = 1.0) -> ObjectEntry:
         """Store an uploaded mesh file, its coordinates multiplied by ``scale`` into metres, as an object
-        named after the file's stem; raises ``ServiceError`` when the name or the mesh is not
-        acceptable."""
+        named after the file's stem, with its outline; raises ``ServiceError`` when the name or the mesh
+        is not acceptable."""
         suffix = Path(filename).suffix.lower()
         if suffix not in MESH_SUFFIXES:
             raise ServiceError(f"{filename!r} is not a mesh file (allowed: {', '.join(MESH_SUFFIXES)})",
@@ -117,29 +234,43 @@ class ObjectLibrary:
         if len(data) > limit * 1e6:
             raise ServiceError(f"{filename!r} is {len(data) / 1e6:.1f} MB, above the cell's {limit:g} MB",
                                reason="invalid", field="file")
-        with self._lock:
-            if name in shipped_names() or name == EMPTY_TABLE or name in self._uploaded():
-                raise ServiceError(f"an object named {name!r} exists already", reason="conflict",
-                                   field="file")
-            self.folder.mkdir(parents=True, exist_ok=True)
-            staged = self.folder / f".upload-{name}{suffix}"
-            staged.write_bytes(data)
-            try:
-                mesh = load_object(staged, scale)
-                check_placement(self._config, mesh, (0.0, 0.0, 0.0), scale, option="the upload's scale")
-            except BaseException as exc:
-                staged.unlink(missing_ok=True)  # whatever failed: a staged file left behind is no object
-                if isinstance(exc, CellError):
-                    text = str(exc).replace(str(staged), filename).replace(staged.stem, Path(filename).stem)
-                    raise ServiceError(text, reason="invalid", field="file") from None
-                if isinstance(exc, _READER_ERRORS):
-                    raise ServiceError(f"{filename!r} cannot be read as a mesh ({type(exc).__name__})",
-                                       reason="invalid", field="file") from None
-                raise
-            if scale == 1.0:
-                staged.rename(self.folder / f"{name}{suffix}")
-            else:
+        try:
+            with self._lock:
+                return self._add(name, filename, suffix, data, scale)
+        finally:
+            release_freed_heap()  # the mesh read to check it: the service keeps none
+
+    def _add(self, name: str, filename: str, suffix: str, data: bytes, scale: float) -> ObjectEntry:
+        if name in shipped_names() or name == EMPTY_TABLE or name in self._uploaded():
+            raise ServiceError(f"an object named {name!r} exists already", reason="conflict", field="file")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        staged = self.folder / f".upload-{name}{suffix}"
+        scaled = self.folder / f".upload-{name}.scaled.ply"
+        staged.write_bytes(data)
+        try:
+            mesh = load_object(staged, scale)
+            check_placement(self._config, mesh, (0.0, 0.0, 0.0), scale, option="the upload's scale")
+            if scale != 1.0:
+                write_mesh(mesh, scaled)
                 staged.unlink()
-                write_mesh(mesh, self.folder / f"{name}.ply")
-            self._meshes[name] = mesh
-        return ObjectEntry(name, "uploaded", _extents(mesh.extents_m))
+                staged = scaled
+            outline = ObjectOutline.of(mesh)
+            del mesh
+            final = self.folder / f"{name}{staged.suffix}"
+            stamp = _stamp(staged)  # a rename keeps it
+            # the outline before the mesh: a listing meanwhile never finds the mesh without it
+            _write_outline(final, outline, stamp)
+            staged.rename(final)
+        except BaseException as exc:
+            # whatever failed: a staged file left behind is no object
+            staged.unlink(missing_ok=True)
+            scaled.unlink(missing_ok=True)
+            if isinstance(exc, CellError):
+                text = str(exc).replace(str(staged), filename).replace(staged.stem, Path(filename).stem)
+                raise ServiceError(text, reason="invalid", field="file") from None
+            if isinstance(exc, _READER_ERRORS):
+                raise ServiceError(f"{filename!r} cannot be read as a mesh ({type(exc).__name__})",
+                                   reason="invalid", field="file") from None
+            raise
+        self._outlines[name] = (stamp, outline)
+        return ObjectEntry(name, "uploaded", _extents(outline.extents_m))

@@ -78,13 +78,13 @@ def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> Val
     if req.object == EMPTY_TABLE:
         return ValidJob(planner, req.object, EMPTY_TABLE, pose, seed, req.max_time_s, req.part_id)
     source = objects.source(req.object)
-    mesh = objects.mesh(req.object)
+    shape = objects.shape(req.object)  # an upload's outline: the service reads no uploaded mesh
     try:
-        check_object_size(config, mesh, option="uploading it again with scale")
+        check_object_size(config, shape, option="uploading it again with scale")
     except JobError as exc:  # an upload kept from before the cell checked sizes
         raise _invalid(str(exc), "object") from None
     try:
-        check_on_table(config, mesh, pose)
+        check_on_table(config, shape, pose)
     except JobError as exc:
         raise _invalid(str(exc), "object_pose") from None
     return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)

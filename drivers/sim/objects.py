@@ -117,6 +117,10 @@ def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
     _check_declared_size(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh = o3d.io.read_triangle_mesh(path)
+    if path.suffix.lower() == ".stl":
+        # an STL repeats each corner in every facet that has it (Open3D's reader keeps them apart): one
+        # vertex each, six times fewer, for the same triangles
+        mesh.remove_duplicated_vertices()
     vertices = np.asarray(mesh.vertices, dtype=np.float64).copy()
     triangles = np.asarray(mesh.triangles, dtype=np.int32).copy()
     if len(vertices) == 0 or len(triangles) == 0:

@@ -1,0 +1,152 @@
+"""What uploaded meshes cost the service: its RSS [MB] and the time of ``GET /api/v1/objects`` [s] with
+``--objects`` large uploads (binary STLs of an icosphere with 327,680 faces, 16.4 MB each, under the
+default ``service.max_upload_mb`` of 50), as an operator's page meets them after a restart.
+
+In a fresh data dir ``cell serve`` (``config/sim-franka-rgbd.yaml``) is started, the meshes are uploaded
+one after the other and the service is stopped; a new one is started on the same data dir, and the
+service process's RSS (``VmRSS``, its job worker apart) is read before and after the first and the second
+listing, then after ``--concurrent`` more uploads sent at once. With ``--reference DIR`` (another
+checkout, e.g. ``git worktree add /tmp/ref REV`` with its compiled kernels copied in) the same is measured
+there after this tree.
+
+Prints one line per step, then as its last line JSON {tree: {step: value}}.
+
+    nice .venv/bin/python benchmarks/object_uploads.py [--objects 12] [--concurrent 4] [--reference /tmp/ref]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import trimesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tests.service_process import free_port
+
+REPO = Path(__file__).resolve().parent.parent
+CELL_FILE = Path("config") / "sim-franka-rgbd.yaml"
+SUBDIVISIONS = 7  # an icosphere of 20 * 4^7 = 327,680 faces: a 16.4 MB binary STL
+TIMEOUT_S = 300.0
+
+
+def rss_mb(pid: int) -> float:
+    """The resident set of process ``pid`` [MB]."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+def write_meshes(folder: Path, count: int) -> list[Path]:
+    """``count`` binary STLs of spheres 6 to 10 cm across, in metres."""
+    sphere = trimesh.creation.icosphere(subdivisions=SUBDIVISIONS, radius=1.0)
+    paths = []
+    for i in range(count):
+        path = folder / f"sphere{i:02d}.stl"
+        sphere.copy().apply_scale(0.03 + 0.02 * i / max(count - 1, 1)).export(path)
+        paths.append(path)
+    return paths
+
+
+class Served:
+    """``cell serve`` of ``tree`` on ``data_dir``, with an operator's key."""
+
+    def __init__(self, tree: Path, data_dir: Path, key: str) -> None:
+        self.port = free_port()
+        cmd = [sys.executable, "-m", "cell.cli.entry", "serve", "--config", str(tree / CELL_FILE),
+               "--data-dir", str(data_dir), "--port", str(self.port)]
+        self.proc = subprocess.Popen(cmd, cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=TIMEOUT_S,
+                                   headers={"Authorization": f"Bearer {key}"})
+        deadline = time.monotonic() + TIMEOUT_S
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"cell serve in {tree} exited with {self.proc.returncode}")
+            with contextlib.suppress(httpx.HTTPError):
+                if self.client.get("/healthz").status_code == 200:
+                    return
+            time.sleep(0.1)
+        raise RuntimeError(f"cell serve in {tree} did not answer within {TIMEOUT_S:g} s")
+
+    def upload(self, path: Path) -> None:
+        with httpx.Client(base_url=self.client.base_url, headers=self.client.headers,
+                          timeout=TIMEOUT_S) as client:
+            answer = client.post("/api/v1/objects", files={"file": (path.name, path.read_bytes())})
+        if answer.status_code != 201:
+            raise RuntimeError(f"uploading {path.name}: HTTP {answer.status_code} {answer.text}")
+
+    def list_s(self) -> float:
+        start = time.monotonic()
+        answer = self.client.get("/api/v1/objects")
+        answer.raise_for_status()
+        return time.monotonic() - start
+
+    def close(self) -> None:
+        self.client.close()
+        self.proc.terminate()
+        self.proc.wait(timeout=60)
+
+
+def measure(tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
+    figures: dict[str, float] = {}
+
+    def note(step: str, value: float) -> None:
+        figures[step] = round(value, 3)
+        print(f"{tree}: {step} {value:.3f}", flush=True)
+
+    with tempfile.TemporaryDirectory() as data_dir:
+        made = subprocess.run([sys.executable, "-m", "cell.cli.entry", "keys", "create", "--data-dir",
+                               data_dir, "--role", "operator", "--name", "bench"],
+                              cwd=tree, capture_output=True, text=True, check=True)
+        key = made.stdout.strip().splitlines()[-1]
+        served = Served(tree, Path(data_dir), key)
+        try:
+            start = time.monotonic()
+            for path in meshes:
+                served.upload(path)
+            note("upload_each_s", (time.monotonic() - start) / len(meshes))
+        finally:
+            served.close()
+        served = Served(tree, Path(data_dir), key)
+        try:
+            time.sleep(2.0)  # the spare worker's start settles
+            note("rss_after_restart_mb", rss_mb(served.proc.pid))
+            note("first_list_s", served.list_s())
+            note("rss_after_first_list_mb", rss_mb(served.proc.pid))
+            note("second_list_s", served.list_s())
+            with ThreadPoolExecutor(len(more)) as pool:
+                list(pool.map(served.upload, more))
+            note("rss_after_concurrent_uploads_mb", rss_mb(served.proc.pid))
+            note("list_after_uploads_s", served.list_s())
+            note("rss_at_end_mb", rss_mb(served.proc.pid))
+        finally:
+            served.close()
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--objects", type=int, default=12)
+    parser.add_argument("--concurrent", type=int, default=4)
+    parser.add_argument("--reference", type=Path, default=None, help="another checkout, measured after this")
+    args = parser.parse_args()
+    trees = {"this": REPO, **({"reference": args.reference.resolve()} if args.reference else {})}
+    with tempfile.TemporaryDirectory() as folder:
+        paths = write_meshes(Path(folder), args.objects + args.concurrent)
+        figures = {name: measure(tree, paths[:args.objects], paths[args.objects:])
+                   for name, tree in trees.items()}
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()
