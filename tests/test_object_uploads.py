@@ -1,11 +1,14 @@
 """Uploaded meshes: the service keeps an outline of each (its size and its footprint's hull, beside the
 mesh as ``<name>.json``), never the mesh, so a listing after a restart reads no mesh; an upload from
-before outlines gets its outline once."""
+before outlines gets its outline once. An operator deletes an upload through the API (a real ``cell
+serve``), never a shipped object nor one a queued or running job scans."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +21,7 @@ from cell.service.objects import ObjectLibrary
 from drivers.errors import JobError, ServiceError
 from drivers.sim.objects import ObjectMesh, load_object
 from tests.conftest import FRANKA
+from tests.service_process import ServedCell
 
 CONFIG = load_config(FRANKA)
 
@@ -107,3 +111,67 @@ def test_an_upload_that_no_longer_reads_is_left_out_and_read_once(tmp_path: Path
     with pytest.raises(ServiceError, match="no longer reads as a mesh"):
         library.shape("junk")
     assert len(counted_loads) == 1
+
+
+def test_a_deletion_keeps_shipped_objects_and_those_of_queued_jobs(tmp_path: Path) -> None:
+    library = ObjectLibrary(tmp_path / "objects", CONFIG)
+    source = tmp_path / "crate.stl"
+    trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(source)
+    library.add(source.name, source.read_bytes())
+    with pytest.raises(ServiceError, match="shipped with the cell") as shipped:
+        library.remove("bunny", [])
+    assert shipped.value.reason == "conflict"
+    with pytest.raises(ServiceError) as unknown:
+        library.remove("nothing", [])
+    assert unknown.value.reason == "not found"
+    library.remove("crate", [])
+    assert not list((tmp_path / "objects").iterdir())
+    assert "crate" not in {e.name for e in library.entries()}
+
+
+# ---------------------------------------------------------------------------------------------- the API
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServedCell]:
+    with ServedCell(FRANKA, tmp_path_factory.mktemp("uploads") / "data", key_prefix="uploads") as cell:
+        yield cell
+
+
+def _calls(cell: ServedCell, role: str) -> Callable[..., Any]:
+    def call(method: str, path: str, **kwargs: Any) -> Any:
+        with cell.client(role) as client:
+            return client.request(method, path, **kwargs)
+    return call
+
+
+def test_an_operator_deletes_an_upload_but_not_a_shipped_object_nor_one_a_queued_job_scans(
+        served: ServedCell, tmp_path: Path) -> None:
+    operator, viewer = _calls(served, "operator"), _calls(served, "viewer")
+    crate = tmp_path / "crate.ply"
+    trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(crate)
+    upload = {"file": (crate.name, crate.read_bytes())}
+    assert operator("POST", "/api/v1/objects", files=upload).status_code == 201
+
+    assert viewer("DELETE", "/api/v1/objects/crate").status_code == 403
+    shipped = operator("DELETE", "/api/v1/objects/bunny")
+    assert shipped.status_code == 409 and "shipped with the cell" in shipped.json()["detail"]
+    assert operator("DELETE", "/api/v1/objects/nothing").status_code == 404
+
+    # a STOP holds the queue: the job waits, queued, for its object
+    assert operator("POST", "/api/v1/stop", json={"reason": "uploads test"}).status_code == 200
+    try:
+        job = operator("POST", "/api/v1/jobs", json={"object": "crate", "max_time_s": 1.0}).json()
+        busy = operator("DELETE", "/api/v1/objects/crate")
+        assert busy.status_code == 409, busy.text
+        assert job["id"] in busy.json()["detail"] and "queued or running" in busy.json()["detail"]
+        assert operator("DELETE", f"/api/v1/jobs/{job['id']}").json()["status"] == "cancelled"
+    finally:
+        operator("POST", "/api/v1/queue/resume")
+
+    gone = _calls(served, "admin")("DELETE", "/api/v1/objects/crate")
+    assert gone.status_code == 204 and gone.content == b""
+    assert "crate" not in {o["name"] for o in viewer("GET", "/api/v1/objects").json()}
+    assert not list((served.data_dir / "objects").glob("crate.*"))
+    # the name is free again
+    assert operator("POST", "/api/v1/objects", files=upload).status_code == 201

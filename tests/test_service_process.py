@@ -561,7 +561,8 @@ def test_a_full_queue_refuses_a_submission_with_429(bounded: ServedCell) -> None
 
 
 MOTION_ROUTES = {("POST", "/api/v1/jobs"), ("DELETE", "/api/v1/jobs/{job_id}"), ("POST", "/api/v1/objects"),
-                 ("POST", "/api/v1/arm/recover"), ("POST", "/api/v1/queue/resume")}
+                 ("DELETE", "/api/v1/objects/{name}"), ("POST", "/api/v1/arm/recover"),
+                 ("POST", "/api/v1/queue/resume")}
 STOP_ROUTES = {("POST", "/api/v1/stop"), ("POST", "/api/v1/jobs/{job_id}/stop")}
 OPEN_ROUTES = {("GET", "/healthz")}
 

@@ -390,6 +390,28 @@ def test_a_mesh_in_millimetres_uploads_with_its_units_and_a_second_one_is_refuse
     shot(page, "upload-refused")
 
 
+def test_an_operator_deletes_an_uploaded_object_from_the_form(open_page: Callable[..., Page],
+                                                              cell: ServedCell, tmp_path: Path) -> None:
+    """The form offers to delete the chosen object when it is an upload (not a shipped one); once the
+    operator confirms, it is gone from the list and from the cell."""
+    tray = tmp_path / "tray.ply"
+    trimesh.creation.box(extents=(0.08, 0.06, 0.02)).export(tray)
+    page = open_page("operator")
+    page.wait_for_selector("#f-file")
+    page.select_option("#f-object", "bunny")
+    assert page.is_hidden("#delete-object")
+    assert upload(page, tray) == ""
+    assert page.is_visible("#delete-object")
+    shot(page, "new-scan-uploaded")
+    asked: list[str] = []
+    page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.accept()))
+    page.click("#delete-object")
+    wait_for(page, "![...document.getElementById('f-object').options].some((o) => o.value === 'tray')")
+    assert asked == ["Delete the uploaded object tray? The jobs that scanned it keep their results."]
+    assert page.is_hidden("#delete-object") and page.text_content("#err-object") == ""
+    assert "tray" not in {o["name"] for o in read(cell, "/api/v1/objects")}
+
+
 def test_a_number_field_that_holds_no_number_is_refused_beside_it(open_page: Callable[..., Page]) -> None:
     """Text typed into the time budget, the pose or the seed is said to be no number, next to the field,
     and nothing is submitted (it had been dropped: the job started with the default)."""

@@ -21,6 +21,7 @@ import json
 import logging
 import re
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from scipy.spatial import ConvexHull
 from cell.config.models import CellConfig
 from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
+from cell.service.store import JobRecord
 from drivers.atomic_file import write_text_atomic
 from drivers.errors import CellError, ServiceError
 from drivers.sim.objects import (
@@ -274,3 +276,24 @@ class ObjectLibrary:
             raise
         self._outlines[name] = (stamp, outline)
         return ObjectEntry(name, "uploaded", _extents(outline.extents_m))
+
+    def remove(self, name: str, active: Sequence[JobRecord]) -> None:
+        """Delete the uploaded object ``name`` (its mesh, then its outline). ``ServiceError``: not found
+        for an unknown name; conflict for a shipped object, or while a job of ``active`` (the cell's
+        queued and running jobs) scans it: its worker reads the file."""
+        if name in shipped_names() or name == EMPTY_TABLE:
+            raise ServiceError(f"{name!r} is shipped with the cell: only uploaded objects can be deleted",
+                               reason="conflict")
+        users = [job.id for job in active if job.object == name]
+        if users:
+            raise ServiceError(f"object {name!r} is the object of {len(users)} queued or running job(s) "
+                               f"({', '.join(users)}): delete it once they have ended, or cancel them",
+                               reason="conflict")
+        with self._lock:
+            path = self._uploaded().get(name)
+            if path is None:
+                raise ServiceError(f"no uploaded object {name!r}", reason="not found")
+            path.unlink()
+            _outline_file(path).unlink(missing_ok=True)
+            self._outlines.pop(name, None)
+        log.info("uploaded object %s deleted", name)

@@ -11,6 +11,7 @@ from cell.api.auth import KeyFirstRoute, Reader, Recoverer, Stopper, Uploader
 from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, CellOut, ObjectOut, PlannerOut, RecoverOut, StopOut
 from cell.api.stop_reason import StopReason
+from cell.service.manager import CellService
 from drivers.errors import ServiceError
 
 router = APIRouter(prefix="/api/v1", tags=["cell"], route_class=KeyFirstRoute)
@@ -40,6 +41,13 @@ def get_objects(cell: Service, _: Reader) -> list[ObjectOut]:
             for e in cell.objects.entries()]
 
 
+def _virtual_only(cell: CellService) -> None:
+    """Refuse uploaded meshes on a cell that scans real objects (409)."""
+    if not cell.objects.virtual:
+        raise ServiceError(f"a {cell.config.mode} cell scans real objects; meshes are for sim and dry-run "
+                           "cells", reason="conflict")
+
+
 @router.post("/objects", response_model=ObjectOut, status_code=201)
 async def post_object(cell: Service, file: UploadFile, _: Uploader,
                       scale: Annotated[float, Form(gt=0.0, allow_inf_nan=False,
@@ -49,9 +57,7 @@ async def post_object(cell: Service, file: UploadFile, _: Uploader,
     """Upload a PLY, OBJ or STL mesh, z-up (sim and dry-run cells), in metres or with the ``scale`` that
     converts it; it is named after the file. A mesh of a size the cell cannot scan is refused (422),
     saying what a scale would make of it."""
-    if not cell.objects.virtual:
-        raise ServiceError(f"a {cell.config.mode} cell scans real objects; meshes are for sim and dry-run "
-                           "cells", reason="conflict")
+    _virtual_only(cell)
     limit = int(cell.config.service.max_upload_mb * 1e6)
     data = bytearray()
     while chunk := await file.read(UPLOAD_CHUNK):
@@ -61,6 +67,15 @@ async def post_object(cell: Service, file: UploadFile, _: Uploader,
                                field="file")
     entry = await asyncio.to_thread(cell.objects.add, file.filename or "upload", bytes(data), scale)
     return ObjectOut(name=entry.name, source=entry.source, extents_m=entry.extents_m, licence=entry.licence)
+
+
+@router.delete("/objects/{name}", status_code=204)
+async def delete_object(cell: Service, name: str, _: Uploader) -> None:
+    """Delete an uploaded object (sim and dry-run cells). Refused (409) for a shipped object and for one
+    that a queued or running job scans; 404 for an unknown one."""
+    _virtual_only(cell)
+    active = await asyncio.to_thread(cell.store.jobs_in_status, cell.name, ("queued", "running"))
+    await asyncio.to_thread(cell.objects.remove, name, active)
 
 
 @router.post("/stop", response_model=StopOut, openapi_extra=STOP_BODY)

@@ -1,6 +1,6 @@
 // The new-scan form: planner (with its one-line description), the object and its pose on the table for
 // sim and dry-run cells (shipped objects and uploaded meshes, in the units of their file), seed, time
-// budget and part id. A number field that does not hold a number is refused next to it before anything
+// budget and part id; an uploaded object may be deleted. A number field that does not hold a number is refused next to it before anything
 // is sent; the API's validation errors (422) are shown next to the field they name, an upload's errors
 // next to the upload.
 
@@ -48,9 +48,18 @@ export async function scanForm({ onSubmitted }) {
   describePlanner();
 
   const object = h("select", {});
-  const fillObjects = (entries, selected) => {
-    replace(object, entries.map((e) => h("option", { value: e.name, selected: e.name === selected }, objectLabel(e))));
+  const deleteButton = h("button", { type: "button", id: "delete-object", class: "small", hidden: true }, "Delete this upload");
+  let listed = objects;
+  // only an uploaded object may be deleted (DELETE /api/v1/objects/{name})
+  const offerDelete = () => {
+    deleteButton.hidden = listed.find((e) => e.name === object.value)?.source !== "uploaded";
   };
+  const fillObjects = (entries, selected) => {
+    listed = entries;
+    replace(object, entries.map((e) => h("option", { value: e.name, selected: e.name === selected }, objectLabel(e))));
+    offerDelete();
+  };
+  object.addEventListener("change", offerDelete);
   fillObjects(objects, objects[0]?.name);
   const label = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
   const x = numberInput({ value: "0", "aria-label": "x [m]" });
@@ -74,10 +83,13 @@ export async function scanForm({ onSubmitted }) {
   plannerField.querySelector(".field-error").before(description);
   planner.setAttribute("aria-describedby", "hint-planner err-planner");
 
+  const objectField = field("object", "Object", object);
+  objectField.querySelector(".field-error").before(deleteButton);
+
   const form = h("form", { class: "scan-form", novalidate: true },
     plannerField,
     virtual
-      ? [field("object", "Object", object),
+      ? [objectField,
         h("div", { class: "field upload" }, field("file", "Or upload a mesh (PLY, OBJ or STL, z up)", upload),
           field("scale", "Units in the file", units), uploadButton),
         pose]
@@ -140,6 +152,21 @@ export async function scanForm({ onSubmitted }) {
       showError(error, form.querySelector("#err-file"));
     } finally {
       uploadButton.disabled = false;
+    }
+  });
+
+  deleteButton.addEventListener("click", async () => {
+    clearErrors();
+    const name = object.value;
+    if (!window.confirm(`Delete the uploaded object ${name}? The jobs that scanned it keep their results.`)) return;
+    deleteButton.disabled = true;
+    try {
+      await api(`/api/v1/objects/${encodeURIComponent(name)}`, { method: "DELETE" });
+      fillObjects(await api("/api/v1/objects"), undefined);
+    } catch (error) {
+      showError(error, form.querySelector("#err-object"));
+    } finally {
+      deleteButton.disabled = false;
     }
   });
 
