@@ -279,6 +279,32 @@ def test_the_form_says_it_is_loading_until_the_api_answers(open_page: Callable[.
     assert page.locator("#form-loading").count() == 0
 
 
+def test_a_form_that_could_not_load_says_which_call_failed_and_loads_when_tried_again(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """The objects' list refused once (as a service just restarted may): the form's place says which
+    call failed and how, and offers to try again, which loads it (it had said "The form could not load"
+    with no way but reloading the page)."""
+    page = open_page()
+    refused: list[str] = []
+
+    def once(route: Any) -> None:
+        if refused:
+            route.continue_()
+        else:
+            refused.append(route.request.url)
+            route.fulfill(status=503, json={"detail": "the cell is starting"})
+
+    page.route("**/api/v1/objects", once)
+    log_in(page, cell.keys["operator"])
+    page.wait_for_selector("#form-failed")
+    text = page.text_content("#form-failed .error")
+    assert "the objects (GET /api/v1/objects): the cell is starting (HTTP 503)" in text, text
+    shot(page, "new-scan-failed")
+    page.click("#form-retry")
+    page.wait_for_selector("form.scan-form")
+    assert page.locator("#form-failed").count() == 0 and len(refused) == 1
+
+
 def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
         open_page: Callable[..., Page], cell: ServedCell) -> None:
     page = open_page("operator")

@@ -3,23 +3,34 @@
 
 import { describe } from "../api.js";
 import { h, replace } from "../dom.js";
-import { scanForm } from "./submit.js";
+import { FormLoadError, scanForm } from "./submit.js";
 
 /** Show the view in `main`; returns a function that leaves it. */
 export function showHome(main, context) {
   const running = h("p", { id: "running-now" }, "Nothing is running.");
   const side = h("section", { class: "card", "aria-labelledby": "now-title" },
     h("h2", { id: "now-title" }, "Now"), running, h("p", {}, h("a", { href: "#/jobs" }, "All jobs")));
-  // the form needs three answers of the API first: until then the slot says so rather than stay blank
-  const slot = h("div", { class: "form-slot" },
-    h("section", { class: "card", id: "form-loading", "aria-busy": "true" }, h("h2", {}, "New scan"),
-      h("p", {}, "Loading the form…")));
+  // the form needs three answers of the API first: until then the slot says so rather than stay blank;
+  // when one fails, it says which and why, and offers to try again
+  const slot = h("div", { class: "form-slot" });
   main.append(h("div", { class: "home" }, slot, side));
 
-  if (context.can("submit")) {
+  const loadForm = () => {
+    replace(slot, h("section", { class: "card", id: "form-loading", "aria-busy": "true" }, h("h2", {}, "New scan"),
+      h("p", {}, "Loading the form…")));
     scanForm({ onSubmitted: (job) => { window.location.hash = `#/jobs/${job.id}`; } })
       .then((form) => replace(slot, form))
-      .catch((error) => replace(slot, h("p", { class: "error", role: "alert" }, `The form could not load: ${describe(error)}`)));
+      .catch((error) => {
+        const retry = h("button", { type: "button", id: "form-retry" }, "Try again");
+        retry.addEventListener("click", loadForm);
+        replace(slot, h("section", { class: "card", id: "form-failed" }, h("h2", {}, "New scan"),
+          h("p", { class: "error", role: "alert" },
+            `The form could not load: ${error instanceof FormLoadError ? error.message : describe(error)}.`),
+          retry));
+      });
+  };
+  if (context.can("submit")) {
+    loadForm();
   } else {
     replace(slot, h("section", { class: "card", id: "no-submit" }, h("h2", {}, "Watching"),
       h("p", {}, `This key (${context.who.role}) may watch the cell and stop it, but not start scans.`)));

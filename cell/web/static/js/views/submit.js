@@ -32,10 +32,28 @@ function objectLabel(entry) {
   return `${entry.name} (${x} × ${y} × ${z} m${entry.source === "uploaded" ? ", uploaded" : ""})`;
 }
 
-/** The form in a section; `onSubmitted(job)` after a job was queued. */
+/** A call the form needs that failed: `message` says which one, and why. */
+export class FormLoadError extends Error {
+  constructor(what, path, cause) {
+    super(`${what} (GET ${path}): ${describe(cause)}`, { cause });
+  }
+}
+
+/** The answer of `path`, or a FormLoadError naming it as `what`. */
+async function needed(path, what) {
+  try {
+    return await api(path);
+  } catch (error) {
+    throw new FormLoadError(what, path, error);
+  }
+}
+
+/** The form in a section; `onSubmitted(job)` after a job was queued. Throws a FormLoadError when a call
+ *  it needs fails. */
 export async function scanForm({ onSubmitted }) {
   const [planners, cell, objects] = await Promise.all([
-    api("/api/v1/planners"), api("/api/v1/cell"), api("/api/v1/objects"),
+    needed("/api/v1/planners", "the planners"), needed("/api/v1/cell", "the cell's status"),
+    needed("/api/v1/objects", "the objects"),
   ]);
   const virtual = VIRTUAL_MODES.includes(cell.mode);
 
