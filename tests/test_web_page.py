@@ -606,26 +606,69 @@ def test_a_job_the_restarted_service_ended_is_shown_ended_and_nothing_is_polled_
     """The service dies under a watched job and comes back: the job is ``interrupted`` (or finished by
     its worker), and the restarted service's event ids begin at 1 again, so the stream resumed with
     Last-Event-ID brings nothing. The page reads the job's status from the REST API, shows it with its
-    result and stops polling; a STOP that failed while the service was away does not stay as if current."""
+    result and stops polling; a STOP that failed while the service was away stays said (the arm may
+    still move), now with when the cell answered again."""
     with ServedCell(FRANKA, tmp_path / "data", key_prefix="restart") as served:
         job_id, page = start_watching(served, open_page)
         served.kill()
         wait_for(page, "document.getElementById('job-link').textContent.includes('reconnecting')")
         wait_for(page, "document.getElementById('st-link').textContent.startsWith('status not updated for')")
         page.keyboard.press("Escape")
-        wait_for(page, "document.getElementById('stop-outcome').textContent.includes('failed')")
+        wait_for(page, f"{text_js('stop-failed-text')}.includes('failed')")
         served.start()
         job = served.wait_job(job_id, ENDED)
         page.wait_for_selector("#result")
         assert page.text_content("#job-status") == job["status"]
         assert page.text_content("#job-link") == "" and page.locator("#job-stop").count() == 0
-        wait_for(page, "document.getElementById('stop-outcome').textContent.includes('answers again')")
-        assert "got no answer" in page.text_content("#stop-outcome")
+        wait_for(page, f"{text_js('stop-failed-text')}.includes('answers again since')")
+        assert "failed: the cell did not answer" in page.text_content("#stop-failed-text")
         shot(page, "job-after-restart")
         polled: list[str] = []
         page.on("request", lambda r: polled.append(r.url) if re.search(r"/(events|cloud)\b", r.url) else None)
         page.wait_for_timeout(5000)  # the old page asked for /events every 0.5 s and the cloud every 1.5 s
         assert polled == []
+
+
+def test_a_refused_stop_stays_said_with_the_cells_answer_until_dismissed_or_a_stop_succeeds(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """STOP answered 503 while the status polls failed too: the failure says the cell answered, with
+    what, and stays once the status answers again (it had become "STOP ... got no answer; the cell
+    answers again now" after one poll); Dismiss clears it, and so does a STOP that succeeds."""
+    page = open_page("operator")
+    page.wait_for_selector("#f-planner")
+
+    def unavailable(route: Any) -> None:
+        route.fulfill(status=503, json={"detail": "Service Unavailable"})
+
+    page.route("**/api/v1/cell", unavailable)
+    page.route("**/api/v1/stop", unavailable)
+    wait_for(page, f"{text_js('st-link')}.startsWith('status not updated for')")
+    page.click("#stop")
+    wait_for(page, f"{text_js('stop-failed-text')}.includes('failed')")
+    refused = page.text_content("#stop-failed-text")
+    assert "failed: the cell answered with an error: Service Unavailable (HTTP 503)" in refused, refused
+    assert "emergency stop" in refused and page.text_content("#stop-outcome") == ""
+    page.unroute("**/api/v1/cell")
+    wait_for(page, f"{text_js('st-link')} === ''")
+    wait_for(page, f"{text_js('stop-failed-text')}.includes('answers again since')")
+    page.wait_for_timeout(3000)  # polls that get through do not end the warning
+    text = page.text_content("#stop-failed-text")
+    assert text.startswith(refused) and "no answer" not in text, text
+    assert page.is_visible("#stop-failed")
+    shot(page, "stop-refused")
+    page.click("#stop-dismiss")
+    assert page.is_hidden("#stop-failed")
+
+    page.keyboard.press("Escape")
+    wait_for(page, f"{text_js('stop-failed-text')}.includes('HTTP 503')")
+    page.unroute("**/api/v1/stop")
+    try:
+        page.click("#stop")
+        wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP: ')")
+        assert page.is_hidden("#stop-failed")
+    finally:
+        with cell.client("operator") as client:
+            assert client.post("/api/v1/queue/resume").status_code == 200
 
 
 def test_a_hung_service_shows_its_age_and_stop_says_it_got_no_answer_and_stays_pressable(
@@ -644,10 +687,10 @@ def test_a_hung_service_shows_its_age_and_stop_says_it_got_no_answer_and_stays_p
             page.click("#stop")
             wait_for(page, f"{text_js('stop-outcome')}.includes('waiting for the cell')")
             assert page.is_enabled("#stop") and page.get_attribute("#stop", "aria-busy") == "true"
-            wait_for(page, "document.getElementById('stop-outcome').textContent.includes('failed')")
-            assert "did not answer within 10 s" in page.text_content("#stop-outcome")
-            assert "press STOP again" in page.text_content("#stop-outcome")
-            assert "Esc" not in page.text_content("#stop-outcome")  # had been "STOP Esc failed"
+            wait_for(page, f"{text_js('stop-failed-text')}.includes('failed')")
+            assert "did not answer within 10 s" in page.text_content("#stop-failed-text")
+            assert "press STOP again" in page.text_content("#stop-failed-text")
+            assert "Esc" not in page.text_content("#stop-failed-text")  # had been "STOP Esc failed"
             assert page.is_enabled("#stop") and page.get_attribute("#stop", "aria-busy") is None
             shot(page, "service-hung")
         finally:
@@ -656,6 +699,7 @@ def test_a_hung_service_shows_its_age_and_stop_says_it_got_no_answer_and_stays_p
         assert not page.evaluate("() => document.getElementById('statusbar').classList.contains('stale')")
         page.click("#stop")
         wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('STOP: ')")
+        assert page.is_hidden("#stop-failed")  # a STOP that succeeded ends the failure's warning
         assert served.wait_job(job_id, ENDED)["status"] == "stopped"
 
 

@@ -3,7 +3,7 @@
 // Recover after an arm fault and Resume after a STOP (keys that may recover); the line's unit mode switch
 // (keys that may switch it): in Production the line owns the cell and the operator's jobs wait for Manual.
 
-import { api, describe } from "../api.js";
+import { api, ApiError, describe } from "../api.js";
 import { h, replace } from "../dom.js";
 
 const POLL_MS = 1000;
@@ -86,14 +86,21 @@ function stopped(answer) {
   return `STOP: ${answer.message}${held}.`;
 }
 
+/** Why a STOP failed, in words: the cell's answer when it gave one (a refusal is no silence). */
+function failure(error) {
+  return error instanceof ApiError ? `the cell answered with an error: ${describe(error)}` : describe(error);
+}
+
 /** The cell's STOP (the button, Esc): never disabled. While a STOP waits for its answer the button says
  *  so and its outcome counts the seconds; a press meanwhile sends it again (the one before is given up);
- *  no answer within STOP_TIMEOUT_MS, or a failure, is said plainly. Returns {press(), cellAnswers() (the
- *  status poll's news after a time without answers), settle() (gives up a STOP waiting for its answer)}. */
+ *  no answer within STOP_TIMEOUT_MS, or a failure, is said plainly, apart, and stays until a STOP
+ *  succeeds or the operator dismisses it: the arm may still move, whatever the status says since.
+ *  Returns {press(), cellAnswers() (the status poll's news after a time without answers), settle() (gives
+ *  up a STOP waiting for its answer), dismiss() (clears a failure)}. */
 function stopControl() {
   const button = $("stop");
   let pending = null; // {controller, ticker} of the STOP waiting for its answer
-  let failedAt = null; // when the last STOP that failed was sent (null once it is said to be over)
+  let failed = null; // the failure shown: {text}, and {answersAgain} once the cell answered since
 
   const settle = () => {
     if (!pending) return;
@@ -101,6 +108,20 @@ function stopControl() {
     clearInterval(pending.ticker);
     pending = null;
     button.removeAttribute("aria-busy");
+  };
+
+  const showFailure = () => {
+    const again = failed.answersAgain
+      ? ` The cell answers again since ${clock(failed.answersAgain)}: see the arm's state above, and press STOP again if it must stop.`
+      : "";
+    $("stop-failed-text").textContent = failed.text + again;
+    $("stop-failed").hidden = false;
+  };
+
+  const dismiss = () => {
+    failed = null;
+    $("stop-failed").hidden = true;
+    $("stop-failed-text").textContent = "";
   };
 
   async function press() {
@@ -113,30 +134,31 @@ function stopControl() {
     };
     const mine = { controller, ticker: setInterval(waiting, 1000) };
     pending = mine;
-    failedAt = null;
     button.setAttribute("aria-busy", "true");
     waiting();
     try {
       const answer = await api("/api/v1/stop", { method: "POST", json: { reason: STOP_REASON }, timeoutMs: STOP_TIMEOUT_MS, signal: controller.signal });
       if (pending !== mine) return;
+      dismiss();
       $("stop-outcome").textContent = stopped(answer);
       window.dispatchEvent(new Event("cell:changed"));
     } catch (error) {
       if (pending !== mine) return; // given up for a newer press
-      failedAt = sent;
-      $("stop-outcome").textContent = `STOP sent at ${clock(sent)} failed: ${describe(error)}. The arm may still move: press STOP again, or use the cell's emergency stop.`;
+      $("stop-outcome").textContent = "";
+      failed = { text: `STOP sent at ${clock(sent)} failed: ${failure(error)}. The arm may still move: press STOP again, or use the cell's emergency stop.` };
+      showFailure();
     } finally {
       if (pending === mine) settle();
     }
   }
 
   function cellAnswers() {
-    if (failedAt === null) return;
-    $("stop-outcome").textContent = `STOP sent at ${clock(failedAt)} got no answer; the cell answers again now: see the arm's state above, and press STOP again if it must stop.`;
-    failedAt = null;
+    if (failed === null || failed.answersAgain) return;
+    failed.answersAgain = new Date();
+    showFailure();
   }
 
-  return { press, cellAnswers, settle };
+  return { press, cellAnswers, settle, dismiss };
 }
 
 /** Start polling the cell (at once again on a "cell:changed" event: a job ended, a button acted) and wire
@@ -205,6 +227,7 @@ export function startStatus(context) {
   const listening = new AbortController(); // removes every listener below at once
   const { signal } = listening;
   $("stop").addEventListener("click", stop, { signal });
+  $("stop-dismiss").addEventListener("click", stopping.dismiss, { signal });
   $("recover").addEventListener("click", recover, { signal });
   $("resume").addEventListener("click", resume, { signal });
   $("line-mode").addEventListener("click", switchMode, { signal });
@@ -218,6 +241,7 @@ export function startStatus(context) {
     clearTimeout(timer);
     clearInterval(ager);
     stopping.settle();
+    stopping.dismiss();
     bar.classList.remove("stale");
     listening.abort();
     $("stop-outcome").textContent = "";
