@@ -193,10 +193,10 @@ def disk(data_dir: Path) -> Finding:
         return Finding.fail("disk", f"{where} is not a folder: cell serve keeps its jobs and store in "
                             f"--data-dir {data_dir}", "give --data-dir a folder (or a name not taken)")
     free_gb = shutil.disk_usage(where).free / 1e9
-    problem = access_problem(where, folder=True, recursive=True)
+    problem = access_problem(where, folder=True, recursive=True, instead="choose another --data-dir")
     if problem is not None:
         # a folder above a data folder not made yet is the system's: the data folder is made, not it given
-        fix = problem.fix if where == data_dir else make_folder(data_dir)
+        fix = problem.fix if where == data_dir or problem.read_only else make_folder(data_dir)
         return Finding.fail("disk", problem.found, fix + service_user_note())
     text = f"{free_gb:.1f} GB free under {where}"
     fix = "free space, or set service.retention (days, max_gb) so that old jobs are pruned"

@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 from drivers.errors import JobError
+from drivers.file_access import read_only_problem, user_name
 
 MAX_SEED = 2**63 - 1
 """The largest seed a job takes: the store keeps it as a signed 64-bit integer; numpy's seed sequence
@@ -39,23 +40,31 @@ def _nearest_existing(folder: Path) -> Path:
     return Path(folder.absolute().anchor)
 
 
-def check_job_folder(folder: Path) -> None:
+CHOOSE_OUT = "choose another --out"
+"""What a job folder that cannot be made asks of ``cell scan``'s user (the service says its own)."""
+
+
+def check_job_folder(folder: Path, choose: str = CHOOSE_OUT) -> None:
     """A new job's folder: one that does not exist yet but can be made (its nearest existing ancestor a
-    folder this process may write to, ``os.access``: nothing is made to try), or an empty one. A folder
-    that holds a job is refused (its result would be overwritten), and so is any other non-empty folder
-    (the job's files would land among someone's own)."""
+    folder this process may write to on a writable file system, ``os.access`` and ``statvfs``: nothing is
+    made to try), or an empty one. A folder that holds a job is refused (its result would be overwritten),
+    and so is any other non-empty folder (the job's files would land among someone's own). ``choose``
+    says what to do instead, in the caller's words (its option that chooses the folder)."""
     if not folder.exists():
         parent = _nearest_existing(folder)
         if not parent.is_dir():
-            raise JobError(f"cannot create job folder {folder}: {parent} is a file; choose another --out")
+            raise JobError(f"cannot create job folder {folder}: {parent} is a file; {choose}")
+        read_only = read_only_problem(parent, "folder", choose)
+        if read_only is not None:
+            raise JobError(f"cannot create job folder {folder}: {read_only}")
         if not os.access(parent, os.W_OK | os.X_OK):
-            raise JobError(f"cannot create job folder {folder}: {parent} is not writable (permission denied "
-                           "or a read-only file system); choose another --out")
+            raise JobError(f"cannot create job folder {folder}: user {user_name()} may not write in "
+                           f"{parent}; {choose}")
         return
     if not folder.is_dir():
-        raise JobError(f"job folder {folder} is a file; choose another --out")
+        raise JobError(f"job folder {folder} is a file; {choose}")
     if (folder / "frames").exists() or (folder / "result.json").exists():
-        raise JobError(f"job folder {folder} already holds a job; choose another --out")
+        raise JobError(f"job folder {folder} already holds a job; {choose}")
     if any(folder.iterdir()):
-        raise JobError(f"{folder} is not empty and holds no job: a job writes its own folder; choose a new "
-                       "or empty --out")
+        raise JobError(f"{folder} is not empty and holds no job: a job writes its own folder; {choose} "
+                       "(a new or empty folder)")

@@ -43,7 +43,7 @@ import numpy as np
 
 from cell.config.models import CellConfig
 from cell.jobs.control import JobControl
-from cell.jobs.inputs import check_job_folder, check_pose, check_seed, check_time_budget
+from cell.jobs.inputs import CHOOSE_OUT, check_job_folder, check_pose, check_seed, check_time_budget
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
@@ -94,7 +94,8 @@ def interrupt_reason(exc: KeyboardInterrupt) -> str:
 class ScanRequest:
     """What to scan and how. ``object_pose`` is (x [m], y [m], yaw [deg]) relative to the station;
     ``object_scale`` multiplies a mesh's coordinates into metres (0.001 for a mesh in millimetres);
-    ``object`` ``"none"`` is an empty table."""
+    ``object`` ``"none"`` is an empty table. ``choose_folder`` is what a job folder that cannot be made
+    asks of the user, in the caller's words (``cell scan``'s ``--out``, the service's data dir)."""
 
     config: CellConfig
     config_path: str
@@ -105,6 +106,7 @@ class ScanRequest:
     out: Path | None = None
     max_time_s: float | None = None
     object_scale: float = 1.0
+    choose_folder: str = CHOOSE_OUT
 
 
 @dataclass(frozen=True)
@@ -245,7 +247,7 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
     object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
     folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed,
                                                                     replay=replay_dir is not None)
-    check_job_folder(folder)
+    check_job_folder(folder, req.choose_folder)
     return PreparedScan(req, planner_name, planner, replay_dir, object_name, mesh, T_base_object, max_time,
                         folder)
 

@@ -33,6 +33,8 @@ from cell.service.protocol import WORKER_BEAT_S, WorkerSpec
 
 PROGRESS_QUEUE = 256
 """Progress lines held for a slow reader before newer ones are dropped."""
+CHOOSE_DATA_DIR = "serve the cell from another data dir (cell serve --data-dir)"
+"""What a job folder the service cannot make asks of its administrator (``cell scan`` asks for --out)."""
 SERVICE_GONE = "the service stopped while the job ran (no one could stop the arm any more)"
 
 
@@ -122,7 +124,8 @@ def _run_scan(spec: WorkerSpec, outbox: Outbox, control: JobControl) -> int:
     try:
         request = ScanRequest(config=parse_config(spec.config, file=spec.config_file),
                               config_path=spec.config_file, object=spec.object, object_pose=spec.object_pose,
-                              planner=spec.planner, seed=spec.seed, out=folder, max_time_s=spec.max_time_s)
+                              planner=spec.planner, seed=spec.seed, out=folder, max_time_s=spec.max_time_s,
+                              choose_folder=CHOOSE_DATA_DIR)
         # not run_scan: its heap trim (tens of ms) would delay the end the line waits for, in a process
         # that exits with its job
         outcome = run_prepared(prepare_scan(request), on_progress=report, control=control)

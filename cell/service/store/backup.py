@@ -71,7 +71,7 @@ def _destination(dest: Path, now: datetime, *, folder: bool) -> Path:
         raise StoreError(f"{dest} exists: a backup never overwrites a file")
     if not dest.parent.is_dir():
         raise StoreError(f"folder {dest.parent} does not exist")
-    problem = access_problem(dest.parent, folder=True)
+    problem = access_problem(dest.parent, folder=True, instead="write the backup on a writable file system")
     if problem is not None:
         raise StoreError(f"cannot write the backup {dest}: {problem}")
     return dest

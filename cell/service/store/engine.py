@@ -68,7 +68,8 @@ def sqlite_access_problem(database: Path) -> AccessProblem | None:
     its WAL and shared memory, the cells' lease files: ``cell.db*``) that is not this user's to read and
     write, as a trial ``sudo cell serve`` leaves them; SQLite itself says only "unable to open database
     file", or nothing until a write fails."""
-    return files_problem(database.parent, f"{database.name}*")
+    return files_problem(database.parent, f"{database.name}*",
+                         "choose a data dir on a writable file system (--data-dir; --db for the store alone)")
 
 
 def hide_password(url: str) -> str:
