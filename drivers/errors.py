@@ -92,6 +92,12 @@ class StoreError(CellError):
     answer, a schema newer than this software)."""
 
 
+class StoreDamaged(StoreError):
+    """The job store answers, but its data is damaged (an SQLite file that is "malformed" or "not a
+    database", a PostgreSQL page or index reported corrupt, a broken constraint): trying again cannot
+    help; the store is restored from a backup (docs/deploy.md, section 9)."""
+
+
 class ServiceError(CellError):
     """The service refuses a request. ``reason`` is one of ``invalid`` (``field`` names the offending
     input), ``not found``, ``conflict`` (not in a state that allows it), ``queue full``; the API turns it

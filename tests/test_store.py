@@ -37,7 +37,7 @@ from cell.service.store import (
 from cell.service.store.engine import MIGRATIONS, open_engine, schema_head
 from cell.service.store.models import Base
 from cell.service.store.repository import StoreState, inspect_store
-from drivers.errors import ServiceError, StoreError
+from drivers.errors import ServiceError, StoreDamaged, StoreError
 from tests.postgres import free_port, fresh_database, postgres_url  # noqa: F401  (a fixture)
 
 T0 = datetime(2026, 3, 2, 8, 0, tzinfo=UTC)
@@ -545,3 +545,40 @@ def test_commands_beside_serve_never_migrate_a_store(store_url: str, tmp_path: P
         assert found.fix is not None and "stop them all" in found.fix
     open_store(store_url).close()  # cell serve
     assert _revisions(store_url) == [schema_head()]
+
+
+def _corrupt(database: Path) -> None:
+    """Overwrite 2 KB at offset 12288 (inside the fourth page) of an SQLite file, as a failing disk would."""
+    with database.open("r+b") as f:
+        f.seek(12288)
+        f.write(b"\xa5" * 2048)
+
+
+def test_a_damaged_sqlite_store_is_named_damaged_with_its_fix_never_unreachable(tmp_path: Path):
+    """A corrupt store passed every check and each request said "does not answer; try again": opening it
+    fails its integrity check, reading it is a StoreDamaged naming the backup to restore, and doctor and
+    serve say so in one line."""
+    url = sqlite_url(tmp_path)
+    store = open_store(url)
+    for n in range(1, 200):
+        store.add_job(make_job(n, result={"coverage_pct": 97.5, "notes": "x" * 200}))
+    store.close()
+    _corrupt(tmp_path / "cell.db")
+    with pytest.raises(StoreDamaged, match=r"integrity check fails .*restore it from a backup "
+                                           r"\(docs/deploy.md, section 9\)") as err:
+        open_store(url)
+    assert "\n" not in str(err.value)
+    # a store opened before the damage (no check at opening) reads it: damaged, not unreachable
+    unchecked = Store(create_engine(url))
+    try:
+        with pytest.raises(StoreDamaged, match=r"malformed.*restore it from a backup"):
+            unchecked.add_job(make_job(500))
+    finally:
+        unchecked.close()
+    (found,) = machine.store(tmp_path, None, "127.0.0.1")
+    assert found.status is Status.FAIL and "integrity check fails" in found.detail
+    assert "restore the store from a backup (docs/deploy.md, section 9)" in found.fix
+    served = subprocess.run([sys.executable, "-m", "cell.cli.entry", "serve", "--data-dir", str(tmp_path),
+                             "--port", str(free_port())], capture_output=True, text=True, timeout=120)
+    assert served.returncode != 0
+    assert "integrity check fails" in served.stderr and "Traceback" not in served.stderr

@@ -32,7 +32,7 @@ from cell.api.routes.page import add_page
 from cell.service.keys import KeyRing
 from cell.service.manager import CellService
 from cell.service.startup import ServiceSettings, build_service
-from drivers.errors import ServiceError, StoreError
+from drivers.errors import ServiceError, StoreDamaged, StoreError
 
 KEY_REFRESH_S = 1.0
 STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429}
@@ -123,6 +123,11 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
     @app.exception_handler(StoreError)
     async def store_error(_: Request, exc: StoreError) -> JSONResponse:
         log.error("job store: %s", exc)
+        if isinstance(exc, StoreDamaged):
+            # trying again cannot help; the store's URL and the database's words stay in the log
+            return JSONResponse({"detail": "the job store is damaged (it answers, but its data is corrupt): "
+                                 "an administrator restores it from a backup (docs/deploy.md, section 9)"},
+                                status_code=500)
         return JSONResponse({"detail": "the job store does not answer; try again"}, status_code=503)
 
     return app

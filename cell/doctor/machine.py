@@ -20,7 +20,7 @@ from cell.service.store import sqlite_url
 from cell.service.store.engine import hide_password, schema_head, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
 from cell.service.store.service_store import check_service_store
-from drivers.errors import DriverError, StoreError
+from drivers.errors import DriverError, StoreDamaged, StoreError
 from drivers.file_access import access_problem, make_folder, user_name
 from drivers.hosts import is_loopback, listen_problem
 from drivers.sim.board import import_cv2
@@ -236,8 +236,9 @@ def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
     try:
         state = inspect_store(url, STORE_CONNECT_TIMEOUT_S)
     except StoreError as exc:
-        fix = ("check the URL, that the server runs and that this PC reaches it (pg_isready -h HOST)"
-               if db_url is not None else "restore the store from a backup (docs/deploy.md, section 8)")
+        fix = ("stop cell serve, then restore the store from a backup (docs/deploy.md, section 9)"
+               if isinstance(exc, StoreDamaged) or db_url is None else
+               "check the URL, that the server runs and that this PC reaches it (pg_isready -h HOST)")
         return [Finding.fail("job store", str(exc), fix)]
     head = schema_head()
     if state is None:

@@ -11,6 +11,7 @@ the URL with its password hidden.
 from __future__ import annotations
 
 import re
+import sqlite3
 import threading
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,9 @@ from alembic.script import ScriptDirectory
 from alembic.util import CommandError
 from sqlalchemy import Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy.engine import URL
-from sqlalchemy.exc import ArgumentError, DBAPIError, SQLAlchemyError
+from sqlalchemy.exc import ArgumentError, DBAPIError, IntegrityError, SQLAlchemyError
 
-from drivers.errors import StoreError
+from drivers.errors import StoreDamaged, StoreError
 from drivers.file_access import AccessProblem, files_problem
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
@@ -80,15 +81,51 @@ def hide_password(url: str) -> str:
         return re.sub(r"(://[^/@:]*:)[^@]*@", r"\1***@", url)
 
 
+RESTORE = "the store is damaged: restore it from a backup (docs/deploy.md, section 9)"
+"""What a :class:`StoreDamaged` says to do."""
+# PostgreSQL's SQLSTATEs of data found corrupt: data_corrupted, index_corrupted
+POSTGRES_DAMAGED = frozenset({"XX001", "XX002"})
+
+
+def is_damage(exc: BaseException) -> bool:
+    """Whether the database error ``exc`` (SQLAlchemy's, or the driver's own) says the store's data is
+    damaged, not that it does not answer: SQLite's ``SQLITE_CORRUPT`` ("database disk image is
+    malformed") or ``SQLITE_NOTADB`` ("file is not a database"), PostgreSQL's corrupt data or index, or a
+    constraint the stored data breaks (an integrity error no caller expected)."""
+    if isinstance(exc, IntegrityError | sqlite3.IntegrityError):
+        return True
+    cause = exc.orig if isinstance(exc, DBAPIError) and exc.orig is not None else exc
+    name = getattr(cause, "sqlite_errorname", "")
+    return ((isinstance(name, str) and name.startswith(("SQLITE_CORRUPT", "SQLITE_NOTADB")))
+            or getattr(cause, "sqlstate", None) in POSTGRES_DAMAGED)
+
+
 def store_error(shown_url: str, action: str, exc: BaseException, password: str | None) -> StoreError:
     """A one-line :class:`StoreError` for ``exc`` raised while doing ``action``: the store's URL (password
     hidden), the action, and the driver's own words (not SQLAlchemy's statement dump), on one line and
-    with ``password`` blotted out."""
+    with ``password`` blotted out; a :class:`StoreDamaged` that says to restore a backup when the error
+    says the data is damaged (:func:`is_damage`)."""
     cause = exc.orig if isinstance(exc, DBAPIError) and exc.orig is not None else exc
     reason = " ".join(line.strip() for line in str(cause).splitlines() if line.strip())
     if password:
         reason = reason.replace(password, "***")
-    return StoreError(f"job store {shown_url}: {action}: {reason or type(cause).__name__}")
+    message = f"job store {shown_url}: {action}: {reason or type(cause).__name__}"
+    if is_damage(exc):
+        return StoreDamaged(f"{message}; {RESTORE}")
+    return StoreError(message)
+
+
+def check_integrity(connection: Connection, shown: str) -> None:
+    """:class:`StoreDamaged` naming the store ``shown`` when SQLite's ``PRAGMA quick_check`` (every page
+    read: 0.4 s for a 250 MB store from the page cache, more from a cold disk) finds damage on
+    ``connection``; nothing for PostgreSQL, whose server checks its pages as it reads them."""
+    if connection.dialect.name != "sqlite":
+        return
+    # each row may hold several lines, the first a "*** in database main ***" heading
+    found = [line.strip() for row in connection.exec_driver_sql("PRAGMA quick_check(5)")
+             for line in str(row[0]).splitlines() if line.strip() and not line.startswith("***")]
+    if found != ["ok"]:
+        raise StoreDamaged(f"job store {shown}: its integrity check fails ({'; '.join(found)}); {RESTORE}")
 
 
 def schema_head() -> str:
@@ -234,7 +271,8 @@ def _upgrade(engine: Engine, shown: str, oldest: str | None = None) -> None:
 
     Stores opened at once never race: in this process a lock serializes migrations, and across processes
     PostgreSQL's advisory lock or SQLite's write lock (``BEGIN IMMEDIATE``, which also makes SQLite's DDL
-    one transaction) is held from reading the revision until the migration is committed."""
+    one transaction) is held from reading the revision until the migration is committed. An SQLite store
+    that fails its integrity check is refused (:func:`check_integrity`) before anything is written."""
     config = _alembic_config()
     head = schema_head()
     postgres = engine.dialect.name == "postgresql"
@@ -246,6 +284,7 @@ def _upgrade(engine: Engine, shown: str, oldest: str | None = None) -> None:
             connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_MIGRATION_WAIT_MS}")
             connection.exec_driver_sql("BEGIN IMMEDIATE")
         try:
+            check_integrity(connection, shown)
             current = schema_revisions(connection, shown)
             if current and oldest is not None:
                 check_oldest(current, oldest, shown)

@@ -22,6 +22,7 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from cell.service.store.engine import (
+    check_integrity,
     check_oldest,
     hide_password,
     open_engine,
@@ -115,11 +116,13 @@ class StoreState:
 def inspect_store(url: str, connect_timeout_s: int) -> StoreState | None:
     """Read the store at ``url`` without changing it (:func:`read_only_engine`, PostgreSQL given up after
     ``connect_timeout_s`` [s]); None for an SQLite file not made yet. :class:`StoreError` naming the URL
-    without its password when it cannot be reached or read, or its schema is newer than this software's."""
+    without its password when it cannot be reached or read, or its schema is newer than this software's;
+    :class:`drivers.errors.StoreDamaged` when an SQLite store fails its integrity check."""
     with _reading(url, connect_timeout_s) as reading:
         if reading is None:
             return None
         connection, engine, shown = reading
+        check_integrity(connection, shown)
         revisions = schema_revisions(connection, shown)
         # api_keys is the first revision's table, unchanged since: counted on a store of any revision
         active = select(func.count()).select_from(KeyRow).where(KeyRow.revoked_at.is_(None))
