@@ -547,6 +547,40 @@ def test_commands_beside_serve_never_migrate_a_store(store_url: str, tmp_path: P
     assert _revisions(store_url) == [schema_head()]
 
 
+def test_job_folders_are_stored_relative_to_the_data_dir_and_older_stores_upgrade(store_url: str,
+                                                                                  tmp_path: Path):
+    """Absolute folders had lost every job's files once the data dir moved: the folder is stored by its
+    name in the cell's jobs folder, read back in the serving data dir, and a store of revision 0003
+    upgrades its absolute folders."""
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.set_main_option("path_separator", "os")
+    engine = create_engine(store_url)
+    with engine.begin() as connection:  # a store as the previous version left it: absolute folders
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0003")
+        for n, folder in ((1, f"/old/data/jobs/{1:016x}"), (2, "/elsewhere/scan-2")):
+            connection.execute(text(
+                "INSERT INTO jobs (id, cell, status, planner, seed, folder, created_at, keep) VALUES "
+                "(:id, 'a', 'completed', 'vs-local', 0, :folder, :at, false)"),
+                {"id": f"{n:016x}", "folder": folder, "at": T0})
+    engine.dispose()
+    jobs_dir = tmp_path / "moved" / "jobs"
+    store = open_store(store_url, jobs_dir=jobs_dir)
+    try:
+        assert store.get_job(f"{1:016x}").folder == str(jobs_dir / f"{1:016x}")
+        assert store.get_job(f"{2:016x}").folder == "/elsewhere/scan-2"  # no folder of a data dir: as it was
+        store.add_job(make_job(3, folder=str(jobs_dir / f"{3:016x}")))
+        assert store.get_job(make_job(3).id).folder == str(jobs_dir / f"{3:016x}")
+    finally:
+        store.close()
+    engine = create_engine(store_url)
+    with engine.connect() as connection:
+        stored = dict(connection.execute(text("SELECT id, folder FROM jobs")).all())
+    engine.dispose()
+    assert stored == {f"{1:016x}": f"{1:016x}", f"{2:016x}": "/elsewhere/scan-2", f"{3:016x}": f"{3:016x}"}
+
+
 def _corrupt(database: Path) -> None:
     """Overwrite 2 KB at offset 12288 (inside the fourth page) of an SQLite file, as a failing disk would."""
     with database.open("r+b") as f:

@@ -18,7 +18,7 @@ from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
 from cell.api.stop_reason import StopReason
 from cell.service.keys import KeyRing, Permission, allowed
-from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord
 
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], route_class=KeyFirstRoute)
 KEEP_ALIVE_S = 15.0
@@ -151,10 +151,23 @@ def _inside(folder: Path, name: str) -> Path | None:
     return path if inside else None
 
 
-def _listing(folder: Path, job_id: str) -> list[FileOut]:
-    """Every file of a job folder (none while it does not exist). It walks the folder and stats each file
-    (a scan's thousands of frames): run it on a thread, never on the event loop, where it delayed a STOP
-    by up to 2 s under 100 viewers."""
+def _folder(job: JobRecord) -> Path:
+    """The folder of ``job``; 410 when the job ran but its folder is missing (the data dir was moved or
+    restored without it, or it was deleted), which a listing must not show as a folder with no files. It
+    reads the file system: run it on a thread."""
+    folder = Path(job.folder)
+    if job.status in FINISHED_STATUSES - {"cancelled"} and not folder.is_dir():
+        raise HTTPException(410, f"the folder of job {job.id} is missing from the data dir (jobs/{job.id}): "
+                                 "it was moved or deleted; restore it there to serve its files")
+    return folder
+
+
+def _listing(job: JobRecord) -> list[FileOut]:
+    """Every file of a job's folder (none while it does not exist yet: a job that has not started, or
+    never will; 410 for an ended job's: :func:`_folder`). It walks the folder and stats each file (a
+    scan's thousands of frames): run it on a thread, never on the event loop, where it delayed a STOP by up
+    to 2 s under 100 viewers."""
+    folder, job_id = _folder(job), job.id
     if not folder.is_dir():
         return []
     root = folder.resolve()
@@ -167,7 +180,7 @@ def _listing(folder: Path, job_id: str) -> list[FileOut]:
 async def list_files(job_id: str, cell: Service,
                      _: Reader) -> list[FileOut]:
     """Every file of the job folder (frames included)."""
-    return await asyncio.to_thread(_listing, Path((await cell.job(job_id)).folder), job_id)
+    return await asyncio.to_thread(_listing, await cell.job(job_id))
 
 
 @router.get("/{job_id}/files/{name:path}", response_class=FileResponse)
@@ -175,7 +188,8 @@ async def get_file(job_id: str, name: str, cell: Service,
                    _: Reader) -> FileResponse:
     """One file of the job folder (``result.json``, ``cloud.ply``, ``map.bt``, ``trajectory.csv``,
     ``servo.png``, ``path.png``, ``log.txt``, ``frames/000000.npz``, ...); nothing outside it."""
-    path = await asyncio.to_thread(_inside, Path((await cell.job(job_id)).folder), name)
+    folder = await asyncio.to_thread(_folder, await cell.job(job_id))
+    path = await asyncio.to_thread(_inside, folder, name)
     if path is None:
         raise HTTPException(404, f"no file {name!r} in this job's folder")
     media = CONTENT_TYPES.get(path.suffix) or mimetypes.guess_type(path.name)[0] or "application/octet-stream"

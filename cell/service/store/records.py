@@ -29,10 +29,12 @@ class JobRecord:
     ``object`` is a shipped object's name or mesh file, or None (a real cell scans an unknown object);
     ``object_pose`` is (x [m], y [m], yaw [deg]) on the table from the cell's station; ``max_time_s`` the
     time budget [s] (None: the cell file's); ``part_id`` the line's identifier of the part, if any;
-    ``folder`` the absolute path of the job folder; ``submitted_by`` the name of the API key that submitted
-    it. Every time is timezone-aware UTC. ``result`` is the job's ``result.json`` once it ended,
-    ``progress`` the last progress snapshot, ``worker_pid`` the process id of the worker that runs it;
-    ``keep``: retention never deletes the job.
+    ``folder`` the path of the job folder: the store keeps one in its cell's job folders by its name
+    there and gives it back in the serving data dir's (:class:`cell.service.store.Store`), so that a data
+    dir may move; ``submitted_by`` the name of the API key that submitted it. Every time is
+    timezone-aware UTC. ``result`` is the job's ``result.json`` once it ended, ``progress`` the last
+    progress snapshot, ``worker_pid`` the process id of the worker that runs it; ``keep``: retention never
+    deletes the job.
     """
 
     id: str

@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import re
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -50,17 +50,22 @@ _CHANGEABLE = frozenset(JOB_FIELDS) - {"id"}
 _TIME_FIELDS = ("created_at", "started_at", "finished_at")
 
 
+JOBS_FOLDER = "jobs"
+"""The folder of a data dir that holds its cell's job folders, one per job, named by its id."""
 KEYS_SCHEMA = "0001"
 """The oldest schema revision the key methods of :class:`Store` work on: ``api_keys`` is the first
 revision's table, unchanged since."""
 
 
-def open_store(url: str, *, migrate: bool = True, oldest: str | None = None) -> Store:
+def open_store(url: str, *, migrate: bool = True, oldest: str | None = None,
+               jobs_dir: Path | None = None) -> Store:
     """Open the store at ``url`` (see :mod:`cell.service.store.engine`), its schema migrated to this
     software's newest revision; with ``migrate`` False (a command beside ``cell serve``), a schema there
-    is left as it is, accepted from revision ``oldest`` on (:func:`open_engine`). Raises
-    :class:`drivers.errors.StoreError` with a one-line message naming the URL without its password."""
-    return Store(open_engine(url, migrate=migrate, oldest=oldest))
+    is left as it is, accepted from revision ``oldest`` on (:func:`open_engine`). ``jobs_dir`` is the
+    cell's job folders' folder, against which the stored job folders are resolved (:class:`Store`).
+    Raises :class:`drivers.errors.StoreError` with a one-line message naming the URL without its
+    password."""
+    return Store(open_engine(url, migrate=migrate, oldest=oldest), jobs_dir=jobs_dir)
 
 
 def read_store(url: str, oldest: str, connect_timeout_s: int) -> Store | None:
@@ -134,24 +139,31 @@ def inspect_store(url: str, connect_timeout_s: int) -> StoreState | None:
 def open_data_store(data_dir: Path, db_url: str | None, *, migrate: bool = True,
                     oldest: str | None = None) -> Store:
     """The store of a cell's data dir ``data_dir`` (created if missing): ``db_url``, or the embedded SQLite
-    file ``cell.db`` in it, migrated or not as :func:`open_store` says. ``StoreError`` when it cannot be
-    opened."""
+    file ``cell.db`` in it, migrated or not as :func:`open_store` says, its job folders resolved in
+    ``data_dir/jobs`` (:data:`JOBS_FOLDER`). ``StoreError`` when it cannot be opened."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}; fix: "
                          f"{make_folder(data_dir)}") from None
-    return open_store(db_url or sqlite_url(data_dir), migrate=migrate, oldest=oldest)
+    return open_store(db_url or sqlite_url(data_dir), migrate=migrate, oldest=oldest,
+                      jobs_dir=data_dir.resolve() / JOBS_FOLDER)
 
 
 class Store:
-    """Jobs and API keys in one database. ``url`` is the database's URL with its password hidden."""
+    """Jobs and API keys in one database. ``url`` is the database's URL with its password hidden.
 
-    def __init__(self, engine: Engine) -> None:
+    A job's folder is stored relative to its cell's job folders (its name there, the job id), so that a
+    data dir moved or restored elsewhere keeps its jobs' files: ``jobs_dir`` (the serving data dir's
+    ``jobs``) turns it into a path when read, and a folder given inside it is stored by its name. Without
+    ``jobs_dir``, or for a folder elsewhere, the folder is stored and read as given."""
+
+    def __init__(self, engine: Engine, jobs_dir: Path | None = None) -> None:
         """A store on ``engine``, whose schema must already be at the head revision (:func:`open_store`
         makes sure of it), or at least at the revision the caller's methods need (:func:`open_store`
-        with ``migrate`` False, :func:`read_store`)."""
+        with ``migrate`` False, :func:`read_store`); job folders resolved in ``jobs_dir``."""
         self._engine = engine
+        self.jobs_dir = jobs_dir
         self._sessions = sessionmaker(engine, expire_on_commit=False)
         self.url = engine.url.render_as_string(hide_password=True)
 
@@ -186,7 +198,7 @@ class Store:
         an id that is not 16 lowercase hex characters, an unknown status or a naive time."""
         if not JOB_ID.fullmatch(job.id):
             raise ValueError(f"job id {job.id!r}: expected 16 lowercase hex characters")
-        columns = _job_columns(asdict(job))
+        columns = self._job_columns(asdict(job))
         with self._session(f"adding job {job.id}", conflict=f"job {job.id} already exists") as session:
             session.add(JobRow(**columns))
 
@@ -194,7 +206,7 @@ class Store:
         """The job ``job_id``, or None if there is none."""
         with self._session(f"reading job {job_id}") as session:
             row = session.get(JobRow, job_id)
-            return None if row is None else _job_record(row)
+            return None if row is None else self._job_record(row)
 
     def update_job(self, job_id: str, **changes: Any) -> JobRecord:
         """Set some of job ``job_id``'s fields (names of :class:`JobRecord` fields other than ``id``) and
@@ -204,7 +216,7 @@ class Store:
         if unknown:
             raise ValueError(f"cannot update job field(s) {', '.join(unknown)} (changeable: "
                              f"{', '.join(sorted(_CHANGEABLE))})")
-        columns = _job_columns(changes)
+        columns = self._job_columns(changes)
         with self._session(f"updating job {job_id}") as session:
             row = session.get(JobRow, job_id)
             if row is None:
@@ -212,7 +224,7 @@ class Store:
             for name, value in columns.items():
                 setattr(row, name, value)
             session.flush()
-            return _job_record(row)
+            return self._job_record(row)
 
     def list_jobs(self, *, cell: str | None = None, statuses: Sequence[str] | None = None,
                   planner: str | None = None, part_id: str | None = None,
@@ -241,7 +253,7 @@ class Store:
             rows = session.scalars(select(JobRow).where(*conditions)
                                    .order_by(JobRow.created_at.desc(), JobRow.id.desc())
                                    .limit(limit).offset(offset))
-            return [_job_record(row) for row in rows], total
+            return [self._job_record(row) for row in rows], total
 
     def jobs_in_status(self, cell: str, statuses: Sequence[str]) -> list[JobRecord]:
         """``cell``'s jobs in one of ``statuses``, oldest first (the queue's order: creation time, then
@@ -249,7 +261,7 @@ class Store:
         query = (select(JobRow).where(JobRow.cell == cell, JobRow.status.in_(_checked_statuses(statuses)))
                  .order_by(JobRow.created_at, JobRow.id))
         with self._session(f"reading cell {cell}'s jobs") as session:
-            return [_job_record(row) for row in session.scalars(query)]
+            return [self._job_record(row) for row in session.scalars(query)]
 
     def count_by_status(self, cell: str) -> dict[str, int]:
         """How many of ``cell``'s jobs are in each status; every status of :data:`JOB_STATUSES` is a key."""
@@ -267,6 +279,23 @@ class Store:
             if row is None:
                 raise KeyError(job_id)
             session.delete(row)
+
+    def _job_columns(self, values: Mapping[str, Any]) -> dict[str, Any]:
+        """:func:`_job_columns`, a folder inside :attr:`jobs_dir` stored by its name there."""
+        columns = _job_columns(values)
+        folder = columns.get("folder")
+        if folder is not None and self.jobs_dir is not None:
+            path = Path(folder)
+            if path.is_absolute() and path.parent.resolve() == self.jobs_dir.resolve():
+                columns["folder"] = path.name
+        return columns
+
+    def _job_record(self, row: JobRow) -> JobRecord:
+        """:func:`_job_record`, a relative folder resolved in :attr:`jobs_dir`."""
+        record = _job_record(row)
+        if self.jobs_dir is None or Path(record.folder).is_absolute():
+            return record
+        return replace(record, folder=str(self.jobs_dir / record.folder))
 
     # keys
 
