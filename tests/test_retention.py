@@ -108,3 +108,19 @@ def test_keep_and_prune_through_the_service_and_the_cli(tmp_path):
             assert client.get(f"/api/v1/jobs/{old}").status_code == 404
             assert client.get(f"/api/v1/jobs/{kept}").json()["keep"] is True
         assert not (cell.data_dir / "jobs" / old).exists() and (cell.data_dir / "jobs" / kept).is_dir()
+
+
+def test_folders_the_store_does_not_know_are_reported_apart_never_counted_against_the_limit(data):
+    """A 200 MB folder the store does not know made the size limit delete the cell's own jobs, more at
+    every start: the limit governs the cell's job folders alone, and the rest is reported."""
+    store, jobs_dir = data
+    unknown = jobs_dir / "aaaa000000000000"
+    unknown.mkdir()
+    (unknown / "x").write_bytes(b"\0" * (50 * MB))
+    (jobs_dir / "notes.txt").write_bytes(b"\0" * MB)
+    plan = plan_prune(store, "a", jobs_dir, RetentionConfig(max_gb=0.030), NOW)
+    assert plan.jobs == () and plan.total_bytes == 25 * MB and plan.unmet is None
+    assert plan.unknown == ("aaaa000000000000", "notes.txt") and plan.unknown_bytes == 51 * MB
+    # another cell's jobs in the same folder are not this cell's to count either
+    other = plan_prune(store, "other-cell", jobs_dir, RetentionConfig(max_gb=0.001), NOW)
+    assert other.total_bytes == 0 and other.jobs == () and len(other.unknown) == 9

@@ -125,9 +125,11 @@ class PrunedOut(BaseModel):
 
 
 class RetentionOut(BaseModel):
-    """Retention's limits (``service.retention``; None: no limit of that kind), the job folders' size
-    before pruning [GB], the jobs pruning deletes (or deleted) and what that frees [GB], and why the size
-    limit still is not met, if it is not."""
+    """Retention's limits (``service.retention``; None: no limit of that kind), the size of the cell's job
+    folders before pruning [GB], the jobs pruning deletes (or deleted) and what that frees [GB], and why
+    the size limit still is not met, if it is not; and how many entries of the jobs folder are no job of
+    the cell's store and their size [GB]: retention neither counts them against its limit nor deletes
+    them (the service's log names them)."""
 
     days: float | None
     max_gb: float | None
@@ -135,6 +137,8 @@ class RetentionOut(BaseModel):
     freed_gb: float
     jobs: list[PrunedOut]
     unmet: str | None
+    unknown_folders: int
+    unknown_gb: float
 
 
 class StopIn(BaseModel):

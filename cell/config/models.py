@@ -187,9 +187,11 @@ class ScanConfig(StrictModel):
 
 class RetentionConfig(StrictModel):
     """How long ``cell serve`` keeps ended jobs (their folders and store rows): ``days`` after they ended,
-    and/or while all job folders together stay under ``max_gb`` [GB, 1e9 bytes] (the oldest ended jobs go
-    first). None: no limit of that kind. A running or queued job, and one marked ``keep``, is never
-    deleted. The service prunes when it starts and every ``interval_h`` hours."""
+    and/or while the cell's job folders together stay under ``max_gb`` [GB, 1e9 bytes] (the oldest ended
+    jobs go first). None: no limit of that kind. A running or queued job, and one marked ``keep``, is never
+    deleted; anything else in the data dir's ``jobs/`` (a folder the store does not know) is neither
+    counted nor deleted, but reported (``GET /api/v1/retention``, the log). The service prunes when it
+    starts and every ``interval_h`` hours."""
 
     days: PositiveNumber | None = None
     max_gb: PositiveNumber | None = None

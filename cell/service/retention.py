@@ -1,9 +1,11 @@
 """Retention: which ended jobs ``service.retention`` deletes, and deleting them (folder and store row).
 
-A plan looks at the store's ended jobs of one cell, oldest first, and at the size of every job folder
-on disk. It never names a running or queued job, nor one marked ``keep``: those stay even when the
-size limit cannot be met without them, and the plan says so. Deleting re-reads each job first, so a job
-marked ``keep`` after the plan was made is spared.
+A plan looks at the store's ended jobs of one cell, oldest first, and at the size of the cell's job
+folders on disk. It never names a running or queued job, nor one marked ``keep``: those stay even when
+the size limit cannot be met without them, and the plan says so. Deleting re-reads each job first, so a
+job marked ``keep`` after the plan was made is spared. The size limit governs the folders of the store's
+jobs of the cell alone: anything else in the jobs folder (a folder the store does not know, another
+cell's) is never deleted, so it is not counted against the limit but reported beside it.
 """
 
 from __future__ import annotations
@@ -12,12 +14,13 @@ import asyncio
 import logging
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from cell.config.models import RetentionConfig
-from cell.service.store import FINISHED_STATUSES, JobRecord, Store
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord, Store
 from drivers.errors import CellError
 
 GB = 1e9
@@ -37,13 +40,17 @@ class PrunedJob:
 
 @dataclass(frozen=True)
 class PrunePlan:
-    """What pruning deletes now: ``jobs`` (oldest first), the size of all job folders before [bytes], what
-    deleting frees [bytes], and ``unmet``: why the size limit still is not met afterwards, or None."""
+    """What pruning deletes now: ``jobs`` (oldest first), the size of the cell's job folders before
+    [bytes], what deleting frees [bytes], ``unmet``: why the size limit still is not met afterwards, or
+    None; and the entries of the jobs folder that are no job of the cell's store (``unknown``: their names,
+    ``unknown_bytes`` their size), which retention neither counts nor deletes."""
 
     jobs: tuple[PrunedJob, ...]
     total_bytes: int
     freed_bytes: int
     unmet: str | None
+    unknown: tuple[str, ...] = ()
+    unknown_bytes: int = 0
 
 
 def folder_size(path: Path) -> int:
@@ -76,12 +83,26 @@ def _inside(folder: str, jobs_dir: Path) -> bool:
     return Path(folder).resolve().parent == jobs_dir.resolve()
 
 
+def listed(names: Sequence[str], most: int = 20) -> str:
+    """``names`` for a log line: the first ``most`` of them, and how many more."""
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return ", ".join(names[:most]) + more
+
+
+def known_folders(store: Store, cell: str, jobs_dir: Path) -> set[str]:
+    """The names in ``jobs_dir`` of the folders of ``cell``'s jobs in the store (any status)."""
+    return {Path(job.folder).name for job in store.jobs_in_status(cell, JOB_STATUSES)
+            if _inside(job.folder, jobs_dir)}
+
+
 def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConfig,
                now: datetime) -> PrunePlan:
     """The ended jobs of ``cell`` that ``retention`` deletes at ``now`` (timezone-aware)."""
-    # one walk of the jobs folder gives both the total and each job's share
+    # one walk of the jobs folder gives the total, each job's share and what retention does not govern
     entries = {entry.name: _size(entry) for entry in (jobs_dir.iterdir() if jobs_dir.is_dir() else ())}
-    total = sum(entries.values())
+    known = known_folders(store, cell, jobs_dir)
+    unknown = sorted(set(entries) - known)
+    total = sum(size for name, size in entries.items() if name in known)
     ended = sorted((job for job in store.jobs_in_status(cell, sorted(FINISHED_STATUSES)) if not job.keep),
                    key=lambda job: (_ended_at(job), job.id))
     sizes = {job.id: entries.get(Path(job.folder).name, 0) if _inside(job.folder, jobs_dir) else 0
@@ -110,8 +131,9 @@ def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConf
             freed += sizes[job.id]
         if total - freed > limit:
             unmet = (f"{(total - freed) / GB:.2f} GB of job folders remain, over the {retention.max_gb:g} GB "
-                     "limit: the rest are running, queued or kept jobs (or folders the store does not know)")
-    return PrunePlan(tuple(chosen), total, freed, unmet)
+                     "limit: the rest are running, queued or kept jobs")
+    return PrunePlan(tuple(chosen), total, freed, unmet, tuple(unknown),
+                     sum(entries[name] for name in unknown))
 
 
 def delete_job(store: Store, job: JobRecord, jobs_dir: Path) -> None:
@@ -164,6 +186,10 @@ class Retention:
                      extra={"job_id": item.job_id})
         if plan.unmet:
             log.warning("retention: %s", plan.unmet)
+        if plan.unknown:
+            log.warning("retention: %d entries of %s (%.2f GB) are no job of this cell's store, neither "
+                        "counted nor deleted: %s", len(plan.unknown), self._jobs_dir, plan.unknown_bytes / GB,
+                        listed(plan.unknown))
         return plan, done
 
     async def run(self) -> None:

@@ -16,6 +16,7 @@ def _out(cell: Service, plan: PrunePlan, jobs: list[PrunedJob]) -> RetentionOut:
     config = cell.retention.config
     return RetentionOut(days=config.days, max_gb=config.max_gb, total_gb=plan.total_bytes / GB,
                         freed_gb=sum(j.size_bytes for j in jobs) / GB, unmet=plan.unmet,
+                        unknown_folders=len(plan.unknown), unknown_gb=plan.unknown_bytes / GB,
                         jobs=[PrunedOut(id=j.job_id, ended_at=j.ended_at, size_mb=j.size_bytes / 1e6,
                                         reason=j.reason) for j in jobs])
 
