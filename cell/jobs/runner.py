@@ -336,7 +336,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
                       f"{req.seed}, config {req.config_path}")
     try:
         T_base_object = job.T_base_object
-        recorder.job({**_identity(job), "object_placement": list(req.object_pose),
+        # the cell's name: a service importing a folder its store does not know takes only its own
+        recorder.job({**_identity(job), "cell": cfg.name, "object_placement": list(req.object_pose),
                       "max_time_s": job.max_time_s})
         world_rng, perception_rng, planner_rng, error_rng = job_generators(req.seed)
         poses = PoseHistory() if wall else None

@@ -10,6 +10,13 @@ before the restart, whose end did not reach the store (it did not answer, then t
 the arm to a person (:func:`hold_after_end`). Any other becomes ``interrupted``, its
 folder keeping every frame and log line and gaining a ``result.json`` that says so. Jobs still
 ``queued`` become ``cancelled``: nothing moves after a restart until someone asks again.
+
+A store restored from a backup (docs/deploy.md, section 9) is older than the job folders: a job it has
+``queued`` may have run since, and jobs submitted since are not in it. A queued job whose folder holds a
+result takes that result (its status, termination and times), and one whose folder shows it started but
+holds none is ``interrupted``; a job folder the store does not know is imported from its ``job.json``
+and ``result.json`` when it is this cell's (:func:`import_folders`), else listed in the log, and never
+deleted.
 """
 
 from __future__ import annotations
@@ -26,8 +33,11 @@ from pathlib import Path
 from typing import Any
 
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
+from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.service.protocol import WORKER_MODULE
-from cell.service.store import HoldRecord, JobRecord, Store
+from cell.service.retention import known_folders, listed
+from cell.service.store import FINISHED_STATUSES, HoldRecord, JobRecord, Store
+from cell.service.store.repository import JOB_ID
 from cell.service.worker import SERVICE_GONE
 from drivers.atomic_file import keep_aside, write_text_atomic
 from drivers.errors import ARM_FAULT
@@ -85,13 +95,34 @@ def _frames_recorded(folder: Path) -> int:
         return max(0, sum(1 for _ in csv.reader(f)) - 1)
 
 
-def read_result(folder: Path) -> dict[str, Any] | None:
-    """The folder's result.json, or None when it is missing or unreadable (a worker killed mid-write)."""
+def _read_json(path: Path) -> dict[str, Any] | None:
     try:
-        data = json.loads((folder / "result.json").read_text())
+        data = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
     return data if isinstance(data, dict) else None
+
+
+def read_result(folder: Path) -> dict[str, Any] | None:
+    """The folder's result.json, or None when it is missing or unreadable (a worker killed mid-write)."""
+    return _read_json(folder / RESULT_FILE)
+
+
+def _recorded_end(folder: Path) -> tuple[str, str, dict[str, Any]] | None:
+    """The status, termination and result a job folder's ``result.json`` records, when it records an end
+    (one of :data:`FINISHED_STATUSES`)."""
+    result = read_result(folder)
+    if result is None or result.get("status") not in FINISHED_STATUSES:
+        return None
+    return str(result["status"]), str(result.get("termination")), result
+
+
+def _modified(path: Path) -> datetime | None:
+    """When ``path`` was last written (UTC), or None when it is gone."""
+    try:
+        return datetime.fromtimestamp(path.stat().st_mtime, UTC)
+    except OSError:
+        return None
 
 
 def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -> dict[str, Any]:
@@ -100,8 +131,9 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
     what the folder shows (captures recorded, files kept). A ``result.json`` that cannot be read is kept
     as ``result.json.unreadable`` (``drivers.atomic_file.keep_aside``), and the new one is written whole; the
     live cloud snapshot a watched job keeps while it runs (``cloud_live.npy``) is removed: the job has
-    ended. A line goes to ``log.txt``."""
-    folder.mkdir(parents=True, exist_ok=True)
+    ended. A line goes to ``log.txt``. Only the job's own folder is made when missing, never its parents:
+    a folder recorded elsewhere (another data dir's) is not recreated (``OSError``)."""
+    folder.mkdir(exist_ok=True)
     previous = read_result(folder)
     if previous is None and (folder / "result.json").exists():
         keep_aside(folder / "result.json")
@@ -190,7 +222,85 @@ def reconcile(store: Store, cell: str, worker_wait_s: float) -> list[str]:
         store.update_job(job.id, status=status, termination=termination, result=result,
                          finished_at=now, worker_pid=None)
         done.append(f"job {job.id} was running when the service stopped: now {status}")
-    for job in store.jobs_in_status(cell, ["queued"]):
-        store.update_job(job.id, status="cancelled", termination=RESTART_CANCEL, finished_at=now)
-        done.append(f"job {job.id} was queued when the service stopped: now cancelled")
+    done += settle_queued(store, cell, now)
+    if store.jobs_dir is not None:
+        done += import_folders(store, cell, store.jobs_dir)
     return done
+
+
+def settle_queued(store: Store, cell: str, now: datetime) -> list[str]:
+    """End ``cell``'s jobs still ``queued``: one whose folder records its end (it ran after the backup the
+    store was restored from) takes it; one whose folder shows it started is ``interrupted``, the folder
+    finished (:func:`finish_folder`); any other is ``cancelled``. Returns what was done, in words."""
+    done: list[str] = []
+    for job in store.jobs_in_status(cell, ["queued"]):
+        folder = Path(job.folder)
+        ended = _recorded_end(folder)
+        if ended is not None:
+            status, termination, result = ended
+            store.update_job(job.id, status=status, termination=termination, result=result,
+                             started_at=_modified(folder / JOB_FILE),
+                             finished_at=_modified(folder / RESULT_FILE) or now)
+            done.append(f"job {job.id} was queued in the store, but its folder records its end: now {status}")
+        elif (folder / JOB_FILE).is_file():
+            result = finish_folder(folder, job, "interrupted", RESTART_TERMINATION)
+            store.update_job(job.id, status="interrupted", termination=RESTART_TERMINATION, result=result,
+                             started_at=_modified(folder / JOB_FILE), finished_at=now)
+            done.append(f"job {job.id} was queued in the store, but its folder shows it ran: now interrupted")
+        else:
+            store.update_job(job.id, status="cancelled", termination=RESTART_CANCEL, finished_at=now)
+            done.append(f"job {job.id} was queued when the service stopped: now cancelled")
+    return done
+
+
+def import_folders(store: Store, cell: str, jobs_dir: Path) -> list[str]:
+    """Add to the store the job folders of ``jobs_dir`` it does not know that are ``cell``'s: a folder
+    named as a job id, with a readable ``job.json`` (of ``cell``, or naming no cell: written before jobs
+    named theirs), and no job of that id in the store. It takes the status, termination and result of
+    its ``result.json`` (``interrupted`` without one: the job did not end), its times from the files'.
+    Every other entry is listed, and left as it is. Returns what was done, in words."""
+    done: list[str] = []
+    skipped: list[str] = []
+    known = known_folders(store, cell, jobs_dir)
+    for folder in sorted(jobs_dir.iterdir() if jobs_dir.is_dir() else ()):
+        if folder.name in known:
+            continue
+        job = _found_job(folder, cell)
+        if job is None or store.get_job(job.id) is not None:  # not a job, or another cell's
+            skipped.append(folder.name)
+            continue
+        try:
+            store.add_job(job)
+        except ValueError:  # a job.json with values no job has (a negative seed, a pose of text)
+            skipped.append(folder.name)
+            continue
+        done.append(f"job {job.id} was not in the store (restored from an older backup?): imported from "
+                    f"its folder, now {job.status}")
+    if skipped:
+        done.append(f"{len(skipped)} entries of {jobs_dir} are no job of this cell's store and were left as "
+                    f"they are: {listed(skipped)} (GET /api/v1/retention counts them)")
+    return done
+
+
+def _found_job(folder: Path, cell: str) -> JobRecord | None:
+    """The job of ``cell`` that ``folder`` holds, as :func:`import_folders` adds it; None when it holds
+    none (not named as a job id, no readable ``job.json``, another cell's, values of the wrong kind)."""
+    asked = _read_json(folder / JOB_FILE) if JOB_ID.fullmatch(folder.name) and folder.is_dir() else None
+    if asked is None or asked.get("cell", cell) != cell:
+        return None
+    status, termination, result = _recorded_end(folder) or ("interrupted", RESTART_TERMINATION, None)
+    created = _modified(folder / JOB_FILE) or datetime.now(UTC)
+    placement = asked.get("object_placement")
+    try:
+        pose = (float(placement[0]), float(placement[1]), float(placement[2])) \
+            if isinstance(placement, list) and len(placement) == 3 else None
+        max_time = asked.get("max_time_s")
+        return JobRecord(id=folder.name, cell=cell, status=status, planner=str(asked["planner"]),
+                         object=None if asked.get("object") is None else str(asked["object"]),
+                         object_pose=pose, seed=int(asked["seed"]),
+                         max_time_s=None if max_time is None else float(max_time), part_id=None,
+                         folder=str(folder), submitted_by=None, created_at=created, started_at=created,
+                         finished_at=_modified(folder / RESULT_FILE) or created, termination=termination,
+                         result=result)
+    except (KeyError, TypeError, ValueError):
+        return None
