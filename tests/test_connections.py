@@ -1,7 +1,8 @@
 """The connection guards of ``cell serve`` (``cell.api.connections``), on a uvicorn server of their own on
-loopback with small limits, serving a small ASGI app: a connection that does not deliver its headers in
-time is closed, at the cap the connection idle longest (else the oldest stream) makes room for a new
-client, and a failing ``accept()`` is logged once per interval, not once per attempt.
+loopback with small limits, serving a small ASGI app: a connection that does not deliver its headers, or
+its body, in time is closed; at the cap the connection idle longest (else the oldest still sending its
+body, else the oldest stream) makes room for a new client, and with every request being worked on a
+newcomer may still stop; a failing ``accept()`` is logged once per interval, not once per attempt.
 
 ``test_service_process`` floods a real ``cell serve`` under a low descriptor limit."""
 
@@ -25,14 +26,20 @@ from tests.service_process import closed_by_server, free_port, until
 
 WAIT_S = 30.0  # a bound on waiting for the server, never a timed check [s]; the sockets' timeout
 LONG_S = 600.0  # a deadline no test reaches [s]
+WORKING: list[dict[str, Any]] = []
+"""The requests ``app`` is working on for ever (``/work``), once it has their whole body."""
 
 
 async def app(scope: dict[str, Any], receive: Any, send: Any) -> None:
     """``/stream``: a response that never ends (a chunk every 50 ms); ``/body``: answers once the whole
-    body is in; anything else: ``ok``."""
-    if scope["path"] == "/body":
+    body is in; ``/work``: once the whole body is in, works for ever (never answers); anything else,
+    ``/api/v1/stop`` among them: ``ok``."""
+    if scope["path"] in ("/body", "/work"):
         while (await receive()).get("more_body"):
             pass
+    if scope["path"] == "/work":
+        WORKING.append(scope)
+        await asyncio.sleep(LONG_S)
     length = [] if scope["path"] == "/stream" else [(b"content-length", b"2")]
     await send({"type": "http.response.start", "status": 200, "headers": length})
     if scope["path"] == "/stream":
@@ -122,19 +129,67 @@ def test_at_the_cap_with_every_request_in_progress_a_stream_is_cut_else_the_newc
             assert b"tick" in until(sock, b"tick")  # still streaming
             sock.close()
     with serving(ConnectionLimits(4, header_timeout_s=LONG_S)) as port:
-        # every one waiting for a body that does not come: the newcomer is refused
+        # every one being worked on: the newcomer may only stop, and one at a time (a cap of 4 spares 1)
+        WORKING.clear()
+        working = [connect(port, b"POST /work HTTP/1.1\r\nHost: x\r\nContent-Length: 2\r\n\r\nab")
+                   for _ in range(4)]
+        deadline = time.monotonic() + WAIT_S
+        while len(WORKING) < 4:
+            assert time.monotonic() < deadline, "the requests were never worked on"
+            time.sleep(0.01)
+        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as refused:
+            answer = until(refused, b"progress")
+            assert answer.startswith(b"HTTP/1.1 503 "), answer
+            assert closed_by_server(refused)
+        stop = b"POST /api/v1/stop HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n"
+        with connect(port) as stopping, connect(port, stop) as over:
+            assert until(over, b"progress").startswith(b"HTTP/1.1 503 ")  # past the spare
+            stopping.sendall(stop)
+            answer = until(stopping, b"ok")
+            assert answer.startswith(b"HTTP/1.1 200 ") and b"connection: close" in answer.lower(), answer
+            assert closed_by_server(stopping)  # its place given back
+        for sock in working:
+            sock.settimeout(0.2)
+            assert not closed_by_server(sock)  # none was cut: each is being answered
+            sock.close()
+
+
+def test_a_body_that_does_not_arrive_in_time_is_closed() -> None:
+    """300 connections each promising a body and sending a byte of it every 2 s held every place for as
+    long as they liked (a STOP was answered 503): a body has a deadline from its headers, as long again
+    as its length takes at the slowest rate owed; one that comes in time is answered."""
+    with serving(ConnectionLimits(16, header_timeout_s=LONG_S, body_timeout_s=0.5)) as port:
+        late = connect(port, b"POST /body HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n\r\n01234")
+        with connect(port, b"POST /body HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n\r\n01234") as prompt:
+            prompt.sendall(b"56789")
+            assert until(prompt, b"ok").startswith(b"HTTP/1.1 200 ")
+        with late:
+            assert closed_by_server(late)
+    limits = ConnectionLimits(16, body_timeout_s=0.5)
+    assert limits.body_deadline_s(0) == 0.5
+    assert limits.body_deadline_s(50_000_000) == pytest.approx(0.5 + 50_000_000 / connections.MIN_BODY_RATE)
+
+
+def test_at_the_cap_the_oldest_connection_still_sending_its_body_makes_room_before_a_stream() -> None:
+    """With no idle connection, one still sending its body is cut for a newcomer (the oldest), before any
+    event stream: a slow body (or a hostile one) never holds a place a STOP needs."""
+    with serving(ConnectionLimits(4, header_timeout_s=LONG_S, body_timeout_s=LONG_S)) as port:
+        stream = connect(port, b"GET /stream HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert b"tick" in until(stream, b"tick")
         bodies = []
-        for _ in range(4):  # the 100 Continue comes once the app reads the body: its request is in progress
+        for _ in range(3):  # the 100 Continue comes once the app reads the body: its request is in progress
             bodies.append(connect(port, b"POST /body HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n"
                                         b"Expect: 100-continue\r\n\r\n"))
             assert until(bodies[-1], b"\r\n\r\n").startswith(b"HTTP/1.1 100 ")
-        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as refused:
-            answer = until(refused, b"progress")
-        assert answer.startswith(b"HTTP/1.1 503 "), answer
-        for sock in bodies:
+        with connect(port, b"POST /api/v1/stop HTTP/1.1\r\nHost: x\r\n\r\n") as newcomer:
+            assert until(newcomer, b"ok").startswith(b"HTTP/1.1 200 ")
+            assert closed_by_server(bodies[0])
+        assert b"tick" in until(stream, b"tick")  # still streaming
+        for sock in bodies[1:]:
             sock.sendall(b"0123456789")
             assert until(sock, b"ok").startswith(b"HTTP/1.1 200 ")
             sock.close()
+        stream.close()
 
 
 def test_a_failing_accept_is_logged_once_per_interval_with_its_count(

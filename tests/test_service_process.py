@@ -638,6 +638,66 @@ def test_a_request_without_a_valid_key_is_answered_401_before_its_body_arrives(f
             assert answer.startswith(b"HTTP/1.1 401 "), (method, path, authorization[:22], answer)
 
 
+def test_a_role_that_may_not_use_a_route_is_answered_403_before_its_body_arrives(franka: ServedCell) -> None:
+    """A known key whose role may not use the route is answered 403 from the headers alone: its body was
+    read first, so a viewer's malformed job was a 422 about JSON, a line key's 50 MB upload was read whole
+    before its 403, and 300 viewer keys each sending a job's body a byte every 2 s held every connection
+    (a STOP was answered 503)."""
+    keys = franka.keys
+    cases = [("POST", "/api/v1/jobs", "viewer", "application/json", 15000),
+             ("POST", "/api/v1/jobs", "line", "application/json", 15000),
+             ("POST", "/api/v1/objects", "line", "multipart/form-data; boundary=x", 50_000_000),
+             ("POST", "/api/v1/objects", "viewer", "multipart/form-data; boundary=x", 50_000_000),
+             ("PUT", f"/api/v1/jobs/{'0' * 32}/keep", "viewer", "application/json", 15000),
+             ("POST", "/api/v1/line/command", "viewer", "application/json", 15000),
+             ("POST", "/api/v1/queue/resume", "line", "application/json", 15000)]
+    for method, path, role, content_type, length in cases:
+        head = (b"%s %s HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\nContent-Type: %s\r\n"
+                b"Content-Length: %d\r\n\r\n{bad" % (method.encode(), path.encode(), keys[role].encode(),
+                                                      content_type.encode(), length))
+        answer = answer_to_headers_alone(franka, head)
+        assert answer.startswith(b"HTTP/1.1 403 "), (method, path, role, answer)
+    with franka.client("viewer") as viewer:  # the whole malformed body sent: still the 403, not a 422
+        refused = viewer.post("/api/v1/jobs", content=b"{bad", headers={"Content-Type": "application/json"})
+    assert refused.status_code == 403, refused.text
+    assert refused.json()["detail"] == "a viewer key may not submit"
+
+
+SLOW_BODIES = 80  # jobs promised and never sent: more than the service's connections under FEW_FDS (64)
+
+
+def test_slow_bodies_never_keep_a_stop_out_and_are_closed_at_their_deadline(tmp_path: Path) -> None:
+    """Connections that each promised a job (a key that may submit, Content-Length 15000) and sent one
+    byte of it held every place: a STOP was answered 503 and the job ran on. A body still arriving is cut
+    for a newcomer, so the STOP gets in; and each is closed at its deadline (10 s after its headers)."""
+    with ServedCell(FRANKA, tmp_path / "data", nofile=FEW_FDS) as cell:
+        job = submit(cell, object="bunny", max_time_s=LONG_S)
+        wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1)
+        head = (b"POST /api/v1/jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s\r\n"
+                b"Content-Type: application/json\r\nContent-Length: 15000\r\n\r\n{"
+                % cell.keys["operator"].encode())
+        slow: list[socket.socket] = []
+        try:
+            for _ in range(SLOW_BODIES):
+                slow.append(socket.create_connection((cell.host, cell.port), timeout=60))
+                slow[-1].sendall(head)
+            with cell.client("viewer", timeout_s=20.0) as client:
+                stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "slow bodies"})
+                assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
+                all_stop = client.post("/api/v1/stop", json={"reason": "slow bodies"})
+                assert all_stop.status_code == 200, all_stop.text
+            assert cell.wait_job(job["id"], ENDED)["status"] == "stopped"
+            assert sum(closed_by_server(sock) for sock in slow) == SLOW_BODIES
+        finally:
+            for sock in slow:
+                sock.close()
+            settle_queue(cell)
+        with cell.client("viewer") as client:
+            assert client.get("/api/v1/jobs").json()["total"] == 1  # none of the slow ones was taken
+        log = cell.log()
+    assert "Traceback" not in log, log[-3000:]
+
+
 # ---------------------------------------------------------------------------------------------- 7. files
 
 

@@ -5,15 +5,18 @@ dictionary lookup, never the database), then its role is checked against the rou
 missing, unknown or revoked key answers 401, a role too low 403. The key never appears in a response or
 a log.
 
-The 401 comes before anything reads the request's body (:class:`KeyFirstRoute`): FastAPI reads and parses a
-body before a route's dependencies run, so a client with no key had a malformed body answered 422 (not
-the 401 it is owed) and could make the service read and parse bodies for nothing, which slowed a STOP.
-The role is checked by the route's own dependency (``require``), as before.
+The 401, and the 403 of a role that may not use the route, come before anything reads the request's body
+(:class:`KeyFirstRoute`): FastAPI reads and parses a body before a route's dependencies run, so a client
+with no key had a malformed body answered 422 (not the 401 it is owed) and could make the service read
+and parse bodies for nothing, which slowed a STOP; a viewer's key held a connection for as long as it
+took to send the body of a job it may not submit (300 of them made every STOP a 503), and a line key's
+50 MB upload was read whole before its 403. The route's own dependency (``Require``) checks the key again
+once the body is in: one revoked meanwhile is refused then.
 """
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request, Response
@@ -42,45 +45,53 @@ def forbidden(role: str, action: str) -> HTTPException:
     return HTTPException(403, f"{article} {role} key may not {action}")
 
 
-def require(permission: Permission) -> Callable[..., Awaitable[KeyRecord]]:
-    """A dependency that returns the caller's key record when its role has ``permission``."""
+class Require:
+    """A dependency that returns the caller's key record when its role has ``permission``; its permission
+    is read by :class:`KeyFirstRoute`."""
 
-    async def check(request: Request, credentials: Credentials) -> KeyRecord:
+    def __init__(self, permission: Permission) -> None:
+        self.permission = permission
+
+    async def __call__(self, request: Request, credentials: Credentials) -> KeyRecord:
         record = key_record(request.app.state.keys, credentials)
         if record is None:
             raise HTTPException(401, UNAUTHORIZED, headers=CHALLENGE)
-        if not allowed(record.role, permission):
-            raise forbidden(record.role, permission.value)
+        if not allowed(record.role, self.permission):
+            raise forbidden(record.role, self.permission.value)
         return record
 
-    return check
 
-
-Reader = Annotated[KeyRecord, Depends(require(Permission.READ))]
-Stopper = Annotated[KeyRecord, Depends(require(Permission.STOP))]
-Submitter = Annotated[KeyRecord, Depends(require(Permission.SUBMIT))]
-Canceller = Annotated[KeyRecord, Depends(require(Permission.CANCEL))]
-Recoverer = Annotated[KeyRecord, Depends(require(Permission.RECOVER))]
-Uploader = Annotated[KeyRecord, Depends(require(Permission.UPLOAD))]
-Liner = Annotated[KeyRecord, Depends(require(Permission.LINE))]
-ModeSwitcher = Annotated[KeyRecord, Depends(require(Permission.MODE))]
-Keeper = Annotated[KeyRecord, Depends(require(Permission.KEEP))]
-Purger = Annotated[KeyRecord, Depends(require(Permission.PURGE))]
+Reader = Annotated[KeyRecord, Depends(Require(Permission.READ))]
+Stopper = Annotated[KeyRecord, Depends(Require(Permission.STOP))]
+Submitter = Annotated[KeyRecord, Depends(Require(Permission.SUBMIT))]
+Canceller = Annotated[KeyRecord, Depends(Require(Permission.CANCEL))]
+Recoverer = Annotated[KeyRecord, Depends(Require(Permission.RECOVER))]
+Uploader = Annotated[KeyRecord, Depends(Require(Permission.UPLOAD))]
+Liner = Annotated[KeyRecord, Depends(Require(Permission.LINE))]
+ModeSwitcher = Annotated[KeyRecord, Depends(Require(Permission.MODE))]
+Keeper = Annotated[KeyRecord, Depends(Require(Permission.KEEP))]
+Purger = Annotated[KeyRecord, Depends(Require(Permission.PURGE))]
 
 
 class KeyFirstRoute(APIRoute):
     """The route class of the API's routers: a route that checks a key (one whose dependencies include
-    the ``Authorization: Bearer`` check) answers a request without a valid key 401 before anything reads
-    its body (the module docstring); a route that needs no key is left as it is."""
+    the ``Authorization: Bearer`` check) answers a request without a valid key 401, and one whose key's
+    role lacks a permission the route's dependencies ``Require`` 403, before anything reads its body (the
+    module docstring); a route that needs no key is left as it is."""
 
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()
         if not _checks_key(self.dependant):
             return handler
+        permissions = sorted(_permissions(self.dependant))
 
         async def key_first(request: Request) -> Response:
-            if key_record(request.app.state.keys, await _bearer(request)) is None:
+            record = key_record(request.app.state.keys, await _bearer(request))
+            if record is None:
                 return JSONResponse({"detail": UNAUTHORIZED}, 401, headers=CHALLENGE)
+            for permission in permissions:
+                if not allowed(record.role, permission):
+                    return JSONResponse({"detail": forbidden(record.role, permission.value).detail}, 403)
             return await handler(request)
 
         return key_first
@@ -88,3 +99,9 @@ class KeyFirstRoute(APIRoute):
 
 def _checks_key(dependant: Dependant) -> bool:
     return dependant.call is _bearer or any(_checks_key(d) for d in dependant.dependencies)
+
+
+def _permissions(dependant: Dependant) -> set[Permission]:
+    """The permissions the route's dependencies ``Require``."""
+    own = {dependant.call.permission} if isinstance(dependant.call, Require) else set()
+    return own.union(*(_permissions(d) for d in dependant.dependencies))

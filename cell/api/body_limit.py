@@ -17,6 +17,8 @@ from typing import Any
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from cell.api.connections import is_stop
+
 JSON_MAX_BYTES = 16 << 10
 """16 KiB [bytes]. The largest JSON body a route takes is a job request: three names of at most 64, 128
 and 128 characters (6 bytes each when written as ``\\uXXXX`` escapes: under 2 KiB) and four numbers; a
@@ -35,7 +37,7 @@ class BodyLimit:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or str(scope.get("path", "")).endswith("/stop"):
+        if scope["type"] != "http" or is_stop(scope):
             await self.app(scope, receive, send)
             return
         bound = _bound(scope)

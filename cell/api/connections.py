@@ -10,12 +10,18 @@ and haproxy do, :func:`protocol_class` gives uvicorn a protocol (its h11 one, wi
 - a connection has ``HEADER_TIMEOUT_S`` to deliver a request's headers, counted from its opening or from
   the end of its previous response: this bounds an idle keep-alive connection too (uvicorn's own
   keep-alive timeout ends one that sends nothing sooner, but not one that starts a request and stalls);
+- a request's body has ``BODY_TIMEOUT_S``, and the time its length takes at ``MIN_BODY_RATE``, to
+  arrive once its headers are in (unless the app answered first): 300 connections that each promised
+  15 000 bytes and sent one every 2 s held every slot for as long as they liked, and a STOP got 503;
 - at most :attr:`ConnectionLimits.max_connections` are open: a connection that would pass the cap
   closes the one that has waited longest for a request (none in progress: a slow or idle client), so that
-  a new client, a STOP among them, always gets in. When every open connection has a request in progress,
-  the oldest one whose response is streaming is cut instead (an event stream: a browser's EventSource
-  reconnects and resumes with ``Last-Event-ID``), and only when there is none either (every request still
-  reading its body or being worked on) is the newcomer answered 503;
+  a new client, a STOP among them, always gets in. Else the oldest one still sending its body is cut (a
+  slow client again, or a hostile one: nothing has answered it yet), else the oldest one whose response
+  is streaming (an event stream: a browser's EventSource reconnects and resumes with ``Last-Event-ID``).
+  Only when every open request is being worked on is the newcomer kept over the cap, one of at most
+  :attr:`ConnectionLimits.stop_spare`, on probation: a STOP on it is served (and the connection closed
+  after it), anything else answered 503 unserved. A stop is known by its request line alone, which the
+  newcomer has not sent when it must be placed;
 - the accept loop takes at most ``backlog`` connections at a time (asyncio's loop accepts up to the
   listen backlog in one go, before any of them is counted), so that the descriptors of a burst stay
   under the limit as well.
@@ -34,6 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 log = logging.getLogger("cell.service")
@@ -44,21 +51,31 @@ up to six connections to a host, and one event stream per job it follows), the l
 line and a metrics scraper: a few dozen; 256 is ten times that."""
 FD_SHARE = 4
 """The connections take at most 1/FD_SHARE of the process's soft descriptor limit: each may hold a second
-descriptor (a job file being sent, an upload's temporary file) and the accept backlog adds half as many
-again, which leaves more than a third of the limit to the store, the job's worker and its pipes, the
-line's OPC UA server and the logs (the cap is 256 under the usual soft limit of 1024, 64 under 256)."""
+descriptor (a job file being sent, an upload's temporary file), the accept backlog adds half as many
+again and the connections on probation an eighth, which leaves a third of the limit to the store, the
+job's worker and its pipes, the line's OPC UA server and the logs (the cap is 256 under the usual soft
+limit of 1024, 64 under 256)."""
 HEADER_TIMEOUT_S = 10.0
 """How long a connection has to deliver a request's headers [s], from its opening or from the end of its
 previous response; haproxy's usual ``timeout http-request``. A client on loopback or a LAN sends them in
 one packet, in well under a millisecond; ten seconds is room for a congested wireless link."""
+BODY_TIMEOUT_S = 10.0
+"""How long a request's body may take to arrive after its headers [s], besides ``MIN_BODY_RATE``'s share:
+a JSON body comes in one packet with its headers, or just after them."""
+MIN_BODY_RATE = 125_000
+"""The slowest a body with a length is owed time for [bytes/s]: 1 Mbit/s, a poor wireless link. The
+largest, a mesh upload of ``service.max_upload_mb``, 50 MB, then has 410 s; a job's 16 KiB, 10.1 s."""
 LOG_INTERVAL_S = 10.0
 """At most one line per this interval [s] for the accept failures, and one for the connections shed or
 refused at the cap, each with how many there were."""
 ACCEPT_FAILURE = "socket.accept() out of system resource"
 """What asyncio's event loop reports when ``accept()`` fails for want of descriptors or memory."""
-BUSY_ANSWER = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain; charset=utf-8\r\n"
-               b"connection: close\r\ncontent-length: 42\r\n\r\nevery connection has a request in progress")
-"""The answer to a connection over the cap when no open one can be closed for it."""
+BUSY = b"every connection has a request in progress"
+BUSY_HEADERS = [(b"content-type", b"text/plain; charset=utf-8"), (b"connection", b"close")]
+BUSY_ANSWER = b"".join((b"HTTP/1.1 503 Service Unavailable\r\n", *(b"%s: %s\r\n" % h for h in BUSY_HEADERS),
+                        b"content-length: %d\r\n\r\n" % len(BUSY), BUSY))
+"""The answer to a connection over the cap when no open one can be closed for it, and to a request on
+probation that is not a stop."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +86,19 @@ class ConnectionLimits:
     """Connections open at once."""
     header_timeout_s: float = HEADER_TIMEOUT_S
     """How long a connection has to deliver a request's headers [s]."""
+
+    body_timeout_s: float = BODY_TIMEOUT_S
+    """How long a request's body has to arrive after its headers [s], besides ``MIN_BODY_RATE``'s share."""
+
+    @property
+    def stop_spare(self) -> int:
+        """The most connections kept over the cap on probation (a STOP served, nothing else): an eighth of
+        it, within the descriptors ``FD_SHARE`` leaves (the accept backlog's half is more)."""
+        return max(1, self.max_connections // 8)
+
+    def body_deadline_s(self, length: int) -> float:
+        """How long a body of ``length`` bytes (0: not given, chunked) has after its headers [s]."""
+        return self.body_timeout_s + length / MIN_BODY_RATE
 
     @property
     def backlog(self) -> int:
@@ -112,9 +142,9 @@ class EveryInterval:
 
 
 class GuardedH11Protocol(H11Protocol):
-    """uvicorn's h11 protocol with a header deadline and a connection cap (the module docstring); made
-    with its limits by :func:`protocol_class`. h11 is what uvicorn's ``auto`` chooses here (httptools is
-    not installed); naming it keeps the guards should httptools ever be."""
+    """uvicorn's h11 protocol with header and body deadlines and a connection cap (the module docstring);
+    made with its limits by :func:`protocol_class`. h11 is what uvicorn's ``auto`` chooses here (httptools
+    is not installed); naming it keeps the guards should httptools ever be."""
 
     limits: ClassVar[ConnectionLimits]
     at_cap: ClassVar[EveryInterval]
@@ -122,28 +152,43 @@ class GuardedH11Protocol(H11Protocol):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._deadline: asyncio.TimerHandle | None = None
+        self._body_of: object = None
+        """The request whose body the deadline is counting for (its cycle), if any."""
         self.waiting_since = 0.0
         """When this connection began to wait for a request's headers (the loop's clock [s]); kept while
         the request is in progress."""
+        self.on_probation = False
+        """Kept over the cap: it may stop, nothing else (the module docstring)."""
 
     @property
     def busy(self) -> bool:
         """Whether a request is in progress: its headers are in and its response is not complete."""
         return self.cycle is not None and not self.cycle.response_complete
 
+    @property
+    def receiving(self) -> bool:
+        """Whether a request in progress is still sending its body, nothing answered yet."""
+        return self.busy and self.cycle.more_body and not self.cycle.response_started
+
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self._await_request()
-        open_now = [c for c in self.connections if not c.transport.is_closing()]
-        if len(open_now) <= self.limits.max_connections:
+        # the connections on probation are over the cap: neither counted nor shed (each serves one request
+        # within the header deadline)
+        others = [c for c in self.connections if c is not self and not c.transport.is_closing()
+                  and isinstance(c, GuardedH11Protocol)]
+        counted = [c for c in others if not c.on_probation]
+        if len(counted) < self.limits.max_connections:
             return
-        others = [c for c in open_now if isinstance(c, GuardedH11Protocol) and c is not self]
-        idle = [c for c in others if not c.busy]
-        streaming = [c for c in others if c.busy and c.cycle.response_started]
-        if idle:
-            _drop(min(idle, key=lambda c: c.waiting_since).transport)
-        elif streaming:
-            _drop(min(streaming, key=lambda c: c.waiting_since).transport)
+        idle = [c for c in counted if not c.busy]
+        receiving = [c for c in counted if c.receiving]
+        streaming = [c for c in counted if c.busy and c.cycle.response_started]
+        sheddable = idle or receiving or streaming
+        if sheddable:
+            _drop(min(sheddable, key=lambda c: c.waiting_since).transport)
+        elif len(others) - len(counted) < self.limits.stop_spare:
+            self.on_probation = True
+            self.app = _stop_only(self.app)
         else:
             self.transport.write(BUSY_ANSWER)
             self.transport.close()
@@ -155,7 +200,13 @@ class GuardedH11Protocol(H11Protocol):
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
-        if self.busy:
+        if self.receiving:
+            if self._body_of is not self.cycle:
+                self._body_of = self.cycle
+                length = dict(self.cycle.scope["headers"]).get(b"content-length", b"")
+                self._set_deadline(self.limits.body_deadline_s(int(length) if length.isdigit() else 0),
+                                   self._body_late)
+        elif self.busy:
             self._stop_waiting()
 
     def handle_websocket_upgrade(self, event: Any) -> None:
@@ -168,14 +219,48 @@ class GuardedH11Protocol(H11Protocol):
             self._await_request()
 
     def _await_request(self) -> None:
-        self._stop_waiting()
         self.waiting_since = self.loop.time()
-        self._deadline = self.loop.call_later(self.limits.header_timeout_s, _drop, self.transport)
+        self._set_deadline(self.limits.header_timeout_s, lambda: _drop(self.transport))
+
+    def _body_late(self) -> None:
+        # an answer started before the body is in (a stream, a stop) did not wait for the body: it is not
+        # cut for it (the deadline moves at the answer's end)
+        if self.receiving:
+            _drop(self.transport)
+
+    def _set_deadline(self, after_s: float, callback: Callable[[], None]) -> None:
+        self._stop_waiting()
+        self._deadline = self.loop.call_later(after_s, callback)
 
     def _stop_waiting(self) -> None:
         if self._deadline is not None:
             self._deadline.cancel()
             self._deadline = None
+
+
+def is_stop(scope: Scope) -> bool:
+    """Whether a request is a stop (``POST /api/v1/stop``, ``POST /api/v1/jobs/{id}/stop``)."""
+    return scope.get("method") == "POST" and str(scope.get("path", "")).endswith("/stop")
+
+
+def _stop_only(app: ASGIApp) -> ASGIApp:
+    """``app`` for a connection on probation: a stop is served (and the connection closed after it, to give
+    its place back), anything else is answered 503 without reaching ``app``."""
+
+    async def stop_only(scope: Scope, receive: Receive, send: Send) -> None:
+        if not is_stop(scope):
+            await send({"type": "http.response.start", "status": 503, "headers": BUSY_HEADERS})
+            await send({"type": "http.response.body", "body": BUSY})
+            return
+
+        async def closing(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message = {**message, "headers": [*message.get("headers", []), (b"connection", b"close")]}
+            await send(message)
+
+        await app(scope, receive, closing)
+
+    return stop_only
 
 
 def _drop(transport: asyncio.Transport) -> None:
@@ -192,8 +277,9 @@ def protocol_class(limits: ConnectionLimits) -> type[GuardedH11Protocol]:
 
     def line(count: int, _: str) -> None:
         log.warning("connections at the cap of %d: %d more came; for each, the one idle longest was closed "
-                    "(with none idle, the oldest streaming response cut; with none either, the new one "
-                    "answered 503)", limits.max_connections, count)
+                    "(with none idle, the oldest still sending its body, else the oldest streaming response "
+                    "cut; with none either, the new one may only stop, or is answered 503)",
+                    limits.max_connections, count)
 
     class Limited(GuardedH11Protocol):
         pass
