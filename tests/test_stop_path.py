@@ -1,0 +1,90 @@
+"""A STOP never waits on another request's work: the app of ``cell serve`` on a uvicorn server on loopback
+(with the service's connection guards), its thread pool taken by a slow sync route.
+
+FastAPI runs a plain ``def`` route or dependency in anyio's pool of 40 threads; the STOP routes took the
+service through such a dependency, and 45 clients polling a slow sync route delayed a STOP by 27 s (the
+arm of a running job moved on for 52 s). Every dependency of the STOP path is a coroutine now.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import uvicorn
+from fastapi import FastAPI
+
+from cell.api.app import create_app
+from cell.api.connections import ConnectionLimits, protocol_class
+from cell.service.keys import create_key
+from cell.service.startup import ServiceSettings
+from cell.service.store import open_data_store
+from tests.conftest import FRANKA
+from tests.service_process import free_port
+
+WAIT_S = 60.0  # a bound on waiting for the server, never a timed check [s]
+POOL_THREADS = 40  # anyio's default thread limiter
+SLOW_CLIENTS = POOL_THREADS + 5
+
+
+@contextlib.contextmanager
+def serving(app: FastAPI) -> Iterator[str]:
+    """``app`` under uvicorn with the guards of ``cell serve``, in a thread; yields its URL."""
+    port = free_port()
+    limits = ConnectionLimits(256)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
+                                           http=protocol_class(limits), backlog=limits.backlog,
+                                           timeout_graceful_shutdown=1))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + WAIT_S
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
+        time.sleep(0.01)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(WAIT_S)
+
+
+def test_stop_answers_while_a_slow_sync_route_holds_every_thread_of_the_pool(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    store = open_data_store(data, None)
+    try:
+        viewer = create_key(store, "viewer", "viewer")[1]
+    finally:
+        store.close()
+    app = create_app(ServiceSettings(config_file=FRANKA, data_dir=data))
+    release = threading.Event()
+    busy: list[int] = []
+
+    @app.get("/test/slow")
+    def slow() -> dict[str, str]:
+        """A sync route that holds its thread until the test releases it."""
+        busy.append(threading.get_ident())
+        release.wait(WAIT_S)
+        return {"status": "ok"}
+
+    with serving(app) as url, ThreadPoolExecutor(SLOW_CLIENTS) as clients:
+        try:
+            slow_calls = [clients.submit(httpx.get, f"{url}/test/slow", timeout=WAIT_S)
+                          for _ in range(SLOW_CLIENTS)]
+            deadline = time.monotonic() + WAIT_S
+            while len(busy) < POOL_THREADS:  # every thread of the pool is held, and more wait for one
+                assert time.monotonic() < deadline, f"only {len(busy)} slow requests run"
+                time.sleep(0.01)
+            auth = {"Authorization": f"Bearer {viewer}"}
+            # answered while the pool is still held: the timeout only bounds the wait (the release is later)
+            stop = httpx.post(f"{url}/api/v1/stop", headers=auth, json={"reason": "pool"}, timeout=WAIT_S / 2)
+            assert not release.is_set()
+            assert stop.status_code == 200 and stop.json()["queue_held"] is True, stop.text
+            assert len(busy) == POOL_THREADS  # the slow ones still wait
+        finally:
+            release.set()
+        assert all(call.result().status_code == 200 for call in slow_calls)
