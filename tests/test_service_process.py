@@ -425,6 +425,35 @@ def test_a_port_in_use_is_one_line_before_anything_is_touched(tmp_path: Path) ->
     assert refused.stderr.count("\n") == 1 and not (tmp_path / "data").exists()
 
 
+def test_sigterm_stops_the_arm_before_waiting_for_open_event_streams(tmp_path: Path) -> None:
+    """On SIGTERM uvicorn waits (up to 2 s) for open requests before the app's lifespan shuts down, and the
+    running job was stopped only then: a page following it kept the arm moving 2 s longer, and its stream
+    was cut with an error logged. The arm's stop comes first now, and the streams end by themselves."""
+    cell = ServedCell(FRANKA, tmp_path / "data")
+    streams: list[socket.socket] = []
+    try:
+        job = submit(cell, object="bunny", max_time_s=LONG_S)
+        wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1)
+        queued = submit(cell, object="bunny", max_time_s=LONG_S)
+        for job_id in (job["id"], queued["id"]):
+            streams.append(socket.create_connection((cell.host, cell.port), timeout=30))
+            streams[-1].sendall(b"GET /api/v1/jobs/%s/events HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer %s"
+                                b"\r\n\r\n" % (job_id.encode(), cell.keys["viewer"].encode()))
+            assert until(streams[-1], b"event: state").startswith(b"HTTP/1.1 200 ")
+        cell.stop()  # SIGTERM, and the process's end
+        assert all(closed_by_server(sock) for sock in streams)
+        log = cell.log()
+    finally:
+        for sock in streams:
+            sock.close()
+        cell.close()
+    stopped = log.find("stop (the service is shutting down): the arm was commanded to stop")
+    assert 0 <= stopped < log.find("Shutting down"), log[-3000:]
+    assert "Exception in ASGI application" not in log and "Cancel" not in log, log[-3000:]
+    result = json.loads((tmp_path / "data" / "jobs" / job["id"] / "result.json").read_text())
+    assert result["status"] == "stopped" and "the service is shutting down" in result["termination"]
+
+
 # ---------------------------------------------------------------------------------------------- 3. kill -9
 
 

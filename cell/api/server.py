@@ -4,8 +4,11 @@
 every half watchdog period from the event loop itself, so that a loop that hangs stops the pings and
 systemd restarts the service (as does a cell service that can run no more jobs: its job dispatcher ended on
 an error, ``CellService.broken``; the pings stop then, with the reason in ``STATUS``), and ``STOPPING=1``
-as soon as a shutdown begins (the running job is then stopped and its folder finished, which may take
-``service.shutdown_timeout_s``). A failing ``accept()`` is logged once in a while, not once per attempt
+as soon as a shutdown begins. The running job's arm is then commanded to stop at once
+(``CellService.stop_for_shutdown``), before uvicorn waits for open requests (event streams, which end
+within a second of it, ``cell.api.routes.jobs``): it used to be stopped by the app's lifespan, after that
+wait, and moved on for its 2 s. The lifespan then finishes the job's folder, which may take
+``service.shutdown_timeout_s``. A failing ``accept()`` is logged once in a while, not once per attempt
 (``cell.api.connections.quiet_accept_failures``).
 """
 
@@ -18,6 +21,7 @@ import socket
 import uvicorn
 
 from cell.api.connections import quiet_accept_failures
+from cell.service.manager import CellService
 from cell.service.notify import Notifier
 
 
@@ -41,7 +45,10 @@ class NotifyingServer(uvicorn.Server):
 
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
         self._notifier.notify(STOPPING="1", STATUS="stopping: the running job stops and finishes its folder")
+        service = self._service()
         try:
+            if service is not None:
+                await service.stop_for_shutdown()
             await super().shutdown(sockets)
         finally:
             if self._pings is not None:
@@ -56,8 +63,11 @@ class NotifyingServer(uvicorn.Server):
         self._notifier.notify(STATUS=f"not pinging the watchdog: {broken}")
 
     def _broken(self) -> str | None:
-        """Why the app's cell service can run no more jobs (``app.state.service``, once its lifespan has
-        started it), or None."""
+        """Why the app's cell service can run no more jobs, or None."""
+        service = self._service()
+        return None if service is None else service.broken
+
+    def _service(self) -> CellService | None:
+        """The app's cell service (``app.state.service``), once its lifespan has started it."""
         service = getattr(getattr(self.config.app, "state", None), "service", None)
-        broken = getattr(service, "broken", None)
-        return broken if isinstance(broken, str) else None
+        return service if isinstance(service, CellService) else None

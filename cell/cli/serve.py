@@ -30,7 +30,8 @@ from drivers.hosts import is_loopback, listen_problem
 
 err_console = Console(stderr=True)
 SHUTDOWN_GRACE_S = 2
-"""How long open requests (event streams) may run on after SIGTERM before they are cut [s]."""
+"""How long open requests may run on after SIGTERM before they are cut [s]; the running job's arm is
+stopped before this wait, and event streams end by themselves within it."""
 
 
 def serve(
@@ -71,10 +72,10 @@ def serve(
         err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --role "
                           f"operator {where})", markup=False, highlight=False, soft_wrap=True)
     configure_logging()
-    # On SIGTERM or Ctrl-C uvicorn waits for open connections before the app shuts down (and stops the
-    # running job); event streams never close by themselves, so they are cut after a short grace. The
-    # connections are capped under the descriptor limit, and must deliver their headers in time
-    # (cell.api.connections).
+    # On SIGTERM or Ctrl-C the running job's arm is stopped first (cell.api.server), then uvicorn waits for
+    # open connections (event streams end by themselves within a second) before the app shuts down; what is
+    # left is cut after a short grace. The connections are capped under the descriptor limit, and must
+    # deliver their headers and bodies in time (cell.api.connections).
     limits = ConnectionLimits.of_process()
     server = NotifyingServer(uvicorn.Config(create_app(ServiceSettings(config, data_dir, db), service),
                                             host=host, port=port, log_config=None,

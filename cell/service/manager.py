@@ -260,17 +260,33 @@ class CellService:
                 self._lease_lost = lost
                 self._wake.set()
 
-    async def close(self) -> None:
-        """Shut down: queued jobs are cancelled, the running one is stopped and its folder finished."""
+    async def stop_for_shutdown(self) -> None:
+        """The start of a shutdown, the arm first: no job starts from now and the running one is stopped
+        (its arm commanded to stop before this returns). ``close`` begins with it; ``cell serve`` calls it
+        as soon as a shutdown begins, before it waits for open requests (an event stream kept the arm
+        moving 2 s longer). Once: later calls return at once."""
+        if self._closing:
+            return
         self._closing = True
-        for task in (self._pruner, self._lease_keeper):
-            if task is not None:
-                task.cancel()
         if self.line is not None:
             self.line.service_stopping(SHUTDOWN_STOP)
         running = self._running
-        if running is not None:  # the arm first: nothing below may delay its stop
-            await self._stop_running(running, SHUTDOWN_STOP)
+        if running is not None:
+            self._logged(await self._stop_running(running, SHUTDOWN_STOP), SHUTDOWN_STOP)
+
+    @property
+    def closing(self) -> bool:
+        """Whether the service has begun to shut down."""
+        return self._closing
+
+    async def close(self) -> None:
+        """Shut down: queued jobs are cancelled, the running one is stopped and its folder finished."""
+        await self.stop_for_shutdown()  # the arm first: nothing below may delay its stop
+        for task in (self._pruner, self._lease_keeper):
+            if task is not None:
+                task.cancel()
+        running = self._running
+        if running is not None:
             proc = running.proc
             if proc is not None:
                 with contextlib.suppress(TimeoutError):

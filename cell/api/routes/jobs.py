@@ -110,7 +110,8 @@ async def job_events(job_id: str, request: Request, cell: Service, key: Reader,
     """Server-Sent Events: ``state`` (queued, running, completed, failed, stopped, cancelled,
     interrupted), ``progress`` at each perception update, and a final ``result``. Reconnect with
     ``Last-Event-ID`` to resume where the stream broke off. The stream ends once its key is revoked
-    (within about two seconds, ``KEY_CHECK_S``); a reconnection with it is then refused (401)."""
+    (within about two seconds, ``KEY_CHECK_S``; a reconnection with it is then refused, 401), and within
+    about a second once the service begins to shut down."""
     log = await cell.job_events(job_id)
     metrics = cell.metrics
     ring: KeyRing = request.app.state.keys
@@ -120,7 +121,9 @@ async def job_events(job_id: str, request: Request, cell: Service, key: Reader,
         quiet_s = 0.0  # since the last thing sent [s]
         try:
             async for event in log.follow(last_event_id or 0, KEY_CHECK_S):
-                if not ring.active(key):
+                # nor does it outlast a shutdown's wait for open requests (2 s), which would cut it with an
+                # error logged: the client resumes from the restarted service with Last-Event-ID
+                if not ring.active(key) or cell.closing:
                     return
                 if event is not None:
                     quiet_s = 0.0
