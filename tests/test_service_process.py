@@ -727,6 +727,26 @@ def test_slow_bodies_never_keep_a_stop_out_and_are_closed_at_their_deadline(tmp_
     assert "Traceback" not in log, log[-3000:]
 
 
+def test_a_viewer_may_stop_the_running_job_but_not_cancel_a_queued_one(franka: ServedCell) -> None:
+    """A queued job's stop cancels it: a viewer's key, which may not cancel (DELETE answers it 403), had it
+    cancelled through the stop route all the same."""
+    try:
+        with franka.client("operator") as operator:
+            assert operator.post("/api/v1/stop", json={"reason": "a queued job"}).status_code == 200
+        job = submit(franka, object="bunny", max_time_s=2.0)
+        with franka.client("viewer") as viewer:
+            refused = viewer.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "not mine"})
+            assert refused.status_code == 403, refused.text
+            assert "would cancel it" in refused.json()["detail"]
+        assert get_job(franka, job["id"])["status"] == "queued"
+        with franka.client("operator") as operator:
+            cancelled = operator.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "not needed"})
+        assert cancelled.status_code == 200 and "cancelled" in cancelled.json()["message"], cancelled.text
+        assert get_job(franka, job["id"])["status"] == "cancelled"
+    finally:
+        settle_queue(franka)
+
+
 # ---------------------------------------------------------------------------------------------- 7. files
 
 

@@ -35,7 +35,7 @@ from cell.service.startup import ServiceSettings, build_service
 from drivers.errors import ServiceError, StoreDamaged, StoreError
 
 KEY_REFRESH_S = 1.0
-STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429}
+STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429, "forbidden": 403}
 log = logging.getLogger("cell.service")
 
 

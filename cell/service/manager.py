@@ -511,10 +511,15 @@ class CellService:
 
     # ------------------------------------------------------------------ stopping
 
-    async def stop_job(self, job_id: str, reason: str) -> StopOutcome:
+    async def stop_job(self, job_id: str, reason: str, *, may_cancel: bool = True) -> StopOutcome:
         """Stop one job: a running one through its worker (the arm is commanded to stop before this
-        returns), a queued one is cancelled."""
+        returns), a queued one is cancelled, when ``may_cancel`` (a caller whose key may stop but not
+        cancel: ``ServiceError``, forbidden)."""
         if job_id in self._queued:
+            if not may_cancel:
+                raise ServiceError(f"job {job_id} has not started: its stop would cancel it, which needs a "
+                                   "key that may cancel (every key may stop a running job)",
+                                   reason="forbidden")
             await self._cancel_queued(job_id, f"cancelled before it started: {reason}")
             return StopOutcome(job_id, False, "the job had not started: cancelled")
         running = self._running

@@ -96,9 +96,11 @@ async def keep_job(job_id: str, body: KeepIn, cell: Service, _: Keeper) -> JobOu
 
 @router.post("/{job_id}/stop", response_model=StopOut, openapi_extra=STOP_BODY)
 async def stop_job(job_id: str, cell: Service, key: Stopper, reason: StopReason) -> StopOut:
-    """Stop this job: the arm is commanded to stop before this answers (a queued job is cancelled).
-    Every valid key may stop, with any body (``reason`` optional, as for STOP)."""
-    outcome = await cell.stop_job(job_id, f"{reason} (key {key.name})")
+    """Stop this job: the arm is commanded to stop before this answers. Every valid key may stop a running
+    job, with any body (``reason`` optional, as for STOP); a queued job is cancelled, which needs a key
+    that may cancel (403 for a viewer's)."""
+    outcome = await cell.stop_job(job_id, f"{reason} (key {key.name})",
+                                  may_cancel=allowed(key.role, Permission.CANCEL))
     return StopOut(job_id=outcome.job_id, arm_commanded=outcome.arm_commanded, message=outcome.message,
                    queue_held=cell.hold_reason() is not None)
 

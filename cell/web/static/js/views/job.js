@@ -135,9 +135,10 @@ export function showJob(main, context, jobId) {
     badge.className = `status status-${status}`;
     document.getElementById("job-termination").textContent = termination ?? "";
     const actions = head.querySelector(".job-actions");
-    const running = status === "running" || status === "queued";
-    if (running && !actions.firstChild) actions.append(stopButton());
-    if (!running) {
+    // every key may stop a running job; a queued one's stop cancels it, which a viewer may not do
+    const stoppable = status === "running" || (status === "queued" && context.can("cancel"));
+    if (stoppable && !actions.firstChild) actions.append(stopButton());
+    if (!stoppable) {
       actions.replaceChildren();
       // a stop that failed or got no answer (the cell was away) says nothing of a job that has ended since
       const outcome = document.getElementById("job-stop-outcome");
