@@ -569,6 +569,22 @@ def test_a_planner_that_raises_fails_its_job_and_the_next_job_runs(bounded: Serv
     assert ran["result"]["planner"] == "raster" and ran["result"]["n_captures"] >= 1
 
 
+def test_a_full_queue_that_is_held_says_to_resume_it(bounded: ServedCell) -> None:
+    """Nothing starts from a held queue: "try again when one has started" had the caller wait for ever."""
+    try:
+        with bounded.client("operator") as client:
+            assert client.post("/api/v1/stop", json={"reason": "hold"}).status_code == 200
+            for _ in range(2):
+                submit(bounded, object="bunny", planner="raster", max_time_s=1.0)
+            refused = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 1.0})
+        assert refused.status_code == 429, refused.text
+        detail = refused.json()["detail"]
+        assert "queue is full" in detail and "held" in detail and "/api/v1/queue/resume" in detail, detail
+        assert "when one has started" not in detail
+    finally:
+        settle_queue(bounded)
+
+
 def test_a_full_queue_refuses_a_submission_with_429(bounded: ServedCell) -> None:
     try:
         running = submit(bounded, object="bunny", planner="raster", max_time_s=LONG_S)
@@ -579,6 +595,7 @@ def test_a_full_queue_refuses_a_submission_with_429(bounded: ServedCell) -> None
             assert refused.status_code == 429, refused.text
             detail = refused.json()["detail"]
             assert isinstance(detail, str) and "queue is full" in detail and "queue_max 2" in detail
+            assert "try again when one has started" in detail
             listed = client.get("/api/v1/jobs", params={"status": ["queued", "running"]}).json()
         assert {j["id"] for j in listed["items"]} == {running["id"], *(j["id"] for j in queued)}
         assert all(get_job(bounded, j["id"])["status"] == "queued" for j in queued)

@@ -449,8 +449,12 @@ class CellService:
                 raise ServiceError("the service is shutting down", reason="conflict")
             limit = self.config.service.queue_max
             if len(self._queued) >= limit:
+                # while the queue is held nothing starts by itself: waiting would not help
+                held = self.hold_reason()
+                advice = ("; try again when one has started" if held is None
+                          else f" and held, so none starts by itself: {held}")
                 raise ServiceError(f"the queue is full: {len(self._queued)} jobs wait (service.queue_max "
-                                   f"{limit}); try again when one has started", reason="queue full")
+                                   f"{limit}){advice}", reason="queue full")
             job_id = secrets.token_hex(8)
             job = JobRecord(id=job_id, cell=self.name, status="queued", planner=valid.planner,
                             object=valid.object, object_pose=valid.object_pose, seed=valid.seed,
