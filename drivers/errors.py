@@ -47,6 +47,9 @@ class DeviceFault(DriverError):
 ARM_FAULT = "arm fault: "
 """How the reason of a stop for a fault the arm latched (a ``RobotFault``) begins, the fault's words
 following: the arm stays faulted until recovered."""
+OPERATOR_STOP = "operator stop: "
+"""How the reason of a stop someone asked for (the guard's ``request_stop``, an interrupt) begins: a job
+it ends was stopped by a person or a client, not by the safety layer."""
 
 
 class RobotFault(DriverError):

@@ -291,7 +291,7 @@ def test_sigterm_or_sighup_in_a_scan_stops_the_arm_and_finishes_the_folder(tmp_p
     assert f"stopped: operator stop: received {name}" in res.output
     result = json.loads((tmp_path / "j" / "result.json").read_text())
     assert result["status"] == "stopped"
-    assert result["termination"] == f"safety stop: operator stop: received {name}"
+    assert result["termination"] == f"operator stop: received {name}"
     assert any(name in stop["reason"] for stop in result["safety"]["stops"])  # the guard stopped the arm
     assert signal.getsignal(sig) == before
 
@@ -319,7 +319,7 @@ def test_signals_after_the_first_do_not_interrupt_the_stop_they_asked_for(tmp_pa
     res = _scan("--object", "cube", "--planner", "raster", "--out", str(tmp_path / "j"))
     assert res.exit_code == 128 + signal.SIGTERM
     result = json.loads((tmp_path / "j" / "result.json").read_text())
-    assert result["termination"] == "safety stop: operator stop: received SIGTERM"
+    assert result["termination"] == "operator stop: received SIGTERM"
 
 
 def test_progress_lines_on_a_pipe_every_few_seconds_of_job_time(tmp_path):

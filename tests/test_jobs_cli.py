@@ -200,8 +200,8 @@ def test_stop_a_running_job_then_wait_exits_2(served: ServedCell):
     assert waited.returncode == 2, waited.stdout + waited.stderr
     last = waited.stdout.strip().splitlines()[-1]
     # said once: the default reason was 'operator stop', after the guard's 'operator stop: '
-    assert last == ("stopped: safety stop: operator stop: requested from the command line (key "
-                    "test-operator)"), waited.stdout
+    assert last == "stopped: operator stop: requested from the command line (key test-operator)", \
+        waited.stdout
     assert show_json(served, job_id)["status"] == "stopped"
 
     again = invoke(served, "stop", job_id)

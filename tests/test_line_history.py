@@ -153,7 +153,7 @@ def test_an_acting_state_left_before_its_work_began_does_nothing(tmp_path: Path,
 
 
 @pytest.mark.parametrize(("termination", "requested", "state", "reason"), [
-    ("safety stop: operator stop: wrong part (key op)", True, State.STOPPED, 2),  # POST /jobs/{id}/stop
+    ("operator stop: wrong part (key op)", True, State.STOPPED, 2),  # POST /jobs/{id}/stop
     ("safety stop: wrong part (key op) (the job's worker did not confirm the stop in 2 s and was killed)",
      True, State.STOPPED, 2),
     ("safety stop: refused: the twist leaves the workspace", False, State.ABORTED, 4),

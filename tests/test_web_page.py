@@ -488,7 +488,8 @@ def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
     wait_for(page, "document.getElementById('job-status').textContent === 'stopped'")
     page.wait_for_selector("#result")
     assert progress_count(page) == events_of(cell, job_id).count("progress"), "progress was lost"
-    assert "operator stop" in page.text_content("#result-termination")
+    assert page.text_content("#result-termination").startswith("operator stop: ")
+    assert "operator stop at " in page.text_content("#safety")  # not "motion stopped by the guard"
     page.wait_for_selector("#img-servo-png")
     assert page.evaluate("() => document.getElementById('img-servo-png').naturalWidth") > 100
 

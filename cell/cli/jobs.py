@@ -39,7 +39,7 @@ TERMINATION_WIDTH = 48
 EXIT_NOT_COMPLETED = 2
 COMMAND_LINE_REASON = "requested from the command line"
 """A stop's reason when none is given: the job's termination already says that it was an operator stop
-(``safety stop: operator stop: <reason> (key NAME)``), which a default of "operator stop" repeated."""
+(``operator stop: <reason> (key NAME)``), which a default of "operator stop" repeated."""
 
 jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, resume, wait (for "
                               "scripts).",

@@ -70,7 +70,7 @@ from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
 from drivers.depth.replay import ReplaySensor
 from drivers.depth.sim_base import SimDepthSensor
-from drivers.errors import CellError, JobError, NoObjectFound, SafetyStop
+from drivers.errors import OPERATOR_STOP, CellError, JobError, NoObjectFound, SafetyStop
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.board import TableTexture, board_on_table, board_texture
@@ -81,13 +81,20 @@ from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, load_object
 from drivers.sim.scene import SimScene
 from drivers.transforms import T_from_xyz_rpy
 
-INTERRUPTED = "operator stop: interrupted (Ctrl-C)"
+INTERRUPTED = f"{OPERATOR_STOP}interrupted (Ctrl-C)"
 
 
 def interrupt_reason(exc: KeyboardInterrupt) -> str:
     """The operator stop an interrupt is: Ctrl-C's, or the one its raiser named (``cell scan`` raises one
     naming SIGTERM or SIGHUP)."""
-    return f"operator stop: {exc.args[0]}" if exc.args else INTERRUPTED
+    return f"{OPERATOR_STOP}{exc.args[0]}" if exc.args else INTERRUPTED
+
+
+def stop_termination(reason: str) -> str:
+    """The termination of a job a stop ended: an operator stop as it is (``operator stop: <reason>``), the
+    safety layer's own (a refusal, the watchdog, an arm fault) as ``safety stop: <reason>``. An operator's
+    stop was reported as a safety stop, and a line or a person reading it looked for a fault."""
+    return reason if reason.startswith(OPERATOR_STOP) else f"safety stop: {reason}"
 
 
 @dataclass(frozen=True)
@@ -419,10 +426,10 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             status, termination = _outcome(session, termination, planner_found_nothing, limit_reached,
                                            budget_ran_out)
     except SafetyStop as exc:
-        status, termination, error = "stopped", f"safety stop: {exc.reason}", exc
+        status, termination, error = "stopped", stop_termination(exc.reason), exc
     except KeyboardInterrupt as exc:
         reason = interrupt_reason(exc)
-        status, termination, error = "stopped", f"safety stop: {reason}", SafetyStop(reason)
+        status, termination, error = "stopped", stop_termination(reason), SafetyStop(reason)
     except CellError as exc:
         status, termination, error = "failed", f"{type(exc).__name__}: {exc}", exc
     except Exception as exc:

@@ -53,7 +53,7 @@ from cell.line.result import CycleResult, check_part_id, cycle_result, feeder_pa
 from cell.service.store import LineRecord, LineTransition, Store
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest
-from drivers.errors import ServiceError
+from drivers.errors import OPERATOR_STOP, ServiceError
 
 if TYPE_CHECKING:
     from cell.service.manager import CellService
@@ -349,6 +349,8 @@ class LineController:
             return
         if faulted:
             reason = StopReason.ARM_FAULT
+        elif termination.startswith(OPERATOR_STOP):
+            reason = StopReason.OPERATOR_STOP
         elif termination.startswith("safety stop"):
             reason = StopReason.SAFETY_STOP
         else:

@@ -62,7 +62,7 @@ from cell.safety.smoothing import TwistSmoother
 from cell.safety.watchdog import Watchdog
 from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.clock import Clock
-from drivers.errors import ARM_FAULT, CellError, RobotFault, SafetyStop
+from drivers.errors import ARM_FAULT, OPERATOR_STOP, CellError, RobotFault, SafetyStop
 from drivers.robots.model import JointVelocityMap, RobotModel
 
 Array = NDArray[np.float64]
@@ -370,7 +370,7 @@ class MotionGuard:
         with self._stop_lock:
             request, self._stop_request = self._stop_request, None
         if request is not None:
-            raise self._halt(f"operator stop: {request}")
+            raise self._halt(f"{OPERATOR_STOP}{request}")
         for reason in (self.watchdog.tick(now), self.watchdog.perception(now, perception_time_s)):
             if reason is not None:
                 raise self._halt(f"watchdog: {reason}")

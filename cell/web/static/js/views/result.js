@@ -51,11 +51,16 @@ function packing(p) {
   ]));
 }
 
+// how the reason of a stop someone asked for begins (drivers/errors.py): not the guard's doing
+const OPERATOR_STOP = "operator stop: ";
+
 function safety(s) {
   if (!s) return null;
   const clamps = Object.entries(s.clamps ?? {});
   const events = [
-    ...(s.stops ?? []).map((e) => `motion stopped by the guard at ${fmt(e.t, 2, "s")}: ${e.reason}`),
+    ...(s.stops ?? []).map((e) => (e.reason.startsWith(OPERATOR_STOP)
+      ? `operator stop at ${fmt(e.t, 2, "s")}: ${e.reason.slice(OPERATOR_STOP.length)}`
+      : `motion stopped by the guard at ${fmt(e.t, 2, "s")}: ${e.reason}`)),
     ...(s.refusals ?? []).map((e) => `motion refused at ${fmt(e.t, 2, "s")}: ${e.reason}`),
   ];
   return h("div", { id: "safety" }, h("h3", {}, "Safety"),
