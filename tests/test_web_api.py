@@ -1,6 +1,7 @@
 """What the operator's page needs from the service, without a browser: the binary cloud format and its
 size bound, the running job's cloud snapshot (written off the control thread), the cloud endpoint on a
-running and on an ended job, ``whoami``, and the page itself with its Content-Security-Policy."""
+running and on an ended job, ``whoami``, the page itself with its Content-Security-Policy, and the part
+id's one limit."""
 
 from __future__ import annotations
 
@@ -16,13 +17,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cell.api.app import create_app
 from cell.jobs import live_cloud
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter, read_live_cloud
+from cell.line.config import PART_ID_MAX
 from cell.perception.cloud import CloudAccumulator, read_ply, write_ply
 from cell.service.clouds import HEADER, JobCloud, decode_cloud, encode_cloud, job_cloud
 from cell.service.keys import PERMISSIONS, Role
+from cell.service.startup import ServiceSettings
+from cell.web import STATIC_DIR
 
-from .conftest import wait_for
+from .conftest import FRANKA, REPO, wait_for
 from .test_service_api import _auth, _client, _wait
 
 # ---------------------------------------------------------------------------------------------- format
@@ -213,3 +218,17 @@ def test_the_cloud_endpoint_serves_a_running_jobs_snapshot_then_its_final_cloud(
     assert points.shape == (1000, 3) and len(answer.content) == 40 + 6 * 1000
     listed = {f["name"] for f in client.get(ended["links"]["files"], headers=viewer).json()}
     assert LIVE_CLOUD_FILE not in listed and "cloud.ply" in listed  # the snapshot goes with the job
+
+
+def test_a_part_id_has_one_limit_for_rest_the_form_opc_ua_and_the_docs(tmp_path: Path) -> None:
+    """A job's part id took 128 characters through REST (and the form's field as many), where the README,
+    the line's commands and OPC UA say 64."""
+    app = create_app(ServiceSettings(config_file=FRANKA, data_dir=tmp_path))
+    schema = app.openapi()["components"]["schemas"]
+    assert schema["JobSubmit"]["properties"]["part_id"]["anyOf"][0]["maxLength"] == PART_ID_MAX
+    assert schema["LineCommandIn"]["properties"]["part_id"]["anyOf"][0]["maxLength"] == PART_ID_MAX
+    form = (STATIC_DIR / "js" / "views" / "submit.js").read_text()
+    constant = re.search(r"^const PART_ID_MAX = (\d+);$", form, re.MULTILINE)
+    assert constant is not None and constant[1] == str(PART_ID_MAX)
+    assert 'const part = h("input", { type: "text", maxlength: PART_ID_MAX,' in form
+    assert f"**Part ids.** 1 to {PART_ID_MAX} printable ASCII characters" in (REPO / "README.md").read_text()

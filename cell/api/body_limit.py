@@ -21,7 +21,7 @@ from cell.api.connections import is_stop
 
 JSON_MAX_BYTES = 16 << 10
 """16 KiB [bytes]. The largest JSON body a route takes is a job request: three names of at most 64, 128
-and 128 characters (6 bytes each when written as ``\\uXXXX`` escapes: under 2 KiB) and four numbers; a
+and 64 characters (6 bytes each when written as ``\\uXXXX`` escapes: under 2 KiB) and four numbers; a
 line command or a mode is smaller. 16 KiB leaves room for pretty-printed JSON and fields to come, and
 parsing it costs the event loop well under a millisecond (at 1 MiB, eight clients slowed a STOP from
 milliseconds to 0.5-0.9 s)."""

@@ -33,7 +33,7 @@ class JobSubmit(BaseModel):
                           f"|yaw_deg| <= {MAX_YAW_DEG:g}")
     seed: StrictInt | None = Field(None, ge=0, le=MAX_SEED)
     max_time_s: StrictFloat | None = Field(None, gt=0.0, le=MAX_TIME_BUDGET_S, description="time budget [s]")
-    part_id: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[\x20-\x7e]+$",
+    part_id: str | None = Field(None, min_length=1, max_length=PART_ID_MAX, pattern=PART_ID_PATTERN,
                                 description="the line's identifier of the part (printable ASCII)")
 
     @field_validator("object_pose")

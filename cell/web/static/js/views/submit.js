@@ -8,6 +8,9 @@ import { api, ApiError, describe, FILE_TIMEOUT_MS } from "../api.js";
 import { h, replace } from "../dom.js";
 
 const VIRTUAL_MODES = ["sim", "dry-run"];
+/** The longest part id: cell.line.config.PART_ID_MAX, as REST, OPC UA and the line's I/O take it
+ *  (tests/test_web_api.py checks that they agree). */
+const PART_ID_MAX = 64;
 /** The units a mesh file may be in, and the scale that turns them into metres (the API's `scale`;
  *  cell.jobs.placement.UNIT_SCALES). */
 const UNITS = [["metres", 1], ["millimetres", 0.001], ["centimetres", 0.01], ["inches", 0.0254]];
@@ -85,7 +88,7 @@ export async function scanForm({ onSubmitted }) {
   const yaw = numberInput({ value: "0", "aria-label": "yaw [deg]" });
   const seed = h("input", { type: "number", min: 0, step: 1, value: "0" });
   const budget = numberInput({ min: 0, placeholder: "cell default" });
-  const part = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
+  const part = h("input", { type: "text", maxlength: PART_ID_MAX, placeholder: "optional" });
   const upload = h("input", { type: "file", accept: ".ply,.obj,.stl" });
   const units = h("select", {}, UNITS.map(([name, scale]) => h("option", { value: String(scale) }, name)));
   const uploadButton = h("button", { type: "button", id: "upload" }, "Upload mesh");
