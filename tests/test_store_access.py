@@ -1,8 +1,11 @@
 """A data folder or store files the service's user may not write (left by a trial ``sudo cell serve``):
-``cell serve`` and ``cell doctor`` say which path, whose it is and the command that gives it back."""
+``cell serve`` and ``cell doctor`` say which path, whose it is and the command that gives it back; and
+store files no one else may read."""
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -14,7 +17,7 @@ from cell.service.store import open_store, sqlite_url
 from drivers.errors import StoreError
 from drivers.file_access import user_name
 from tests.conftest import UR5E
-from tests.service_process import free_port
+from tests.service_process import ServedCell, create_key, free_port
 from tests.unprivileged import AS_ROOT, foreign, run_unprivileged, service_folder
 
 
@@ -72,3 +75,27 @@ def test_a_lease_file_left_by_root_stops_serve_and_doctor_with_the_chown():
         line = next(line for line in output.splitlines() if "job store" in line)
         assert line.startswith("FAIL") and f"file {lease} belongs to" in line, output
         assert f"fix: {fix}" in output
+
+
+def test_the_store_files_are_the_service_users_alone_whatever_the_umask(tmp_path: Path) -> None:
+    """``cell keys create`` and ``cell serve`` left cell.db, cell.db-wal and cell.db-shm at 0644 under umask
+    022: readable by every user, and they hold the API keys' hashes. A new store's files are made 0600; an
+    existing store's are made so when the service starts, with a log line each."""
+    fresh, old = tmp_path / "fresh", tmp_path / "old"
+    previous = os.umask(0o022)
+    try:
+        create_key(fresh, "viewer", "v")
+        create_key(old, "viewer", "v")
+        for path in old.glob("cell.db*"):
+            path.chmod(0o644)  # as an older version left it
+        for data in (fresh, old):
+            with ServedCell(UR5E, data) as cell:
+                with cell.client("admin") as client:  # a write: the WAL and shared memory are in use
+                    assert client.post("/api/v1/retention/prune").status_code == 200
+                modes = {p.name: stat.S_IMODE(p.stat().st_mode) for p in data.glob("cell.db*")}
+                log = cell.log()
+            assert {"cell.db", "cell.db-wal", "cell.db-shm"} <= set(modes), modes
+            assert set(modes.values()) == {0o600}, modes
+            assert ("was mode 0644, open beyond the service's user: made 0600" in log) == (data == old), log
+    finally:
+        os.umask(previous)

@@ -8,6 +8,7 @@ exists (``cell keys create``), since every route but ``/healthz`` needs one.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -24,11 +25,13 @@ from cell.line.opcua_endpoint import check_endpoint
 from cell.service.logs import configure_logging
 from cell.service.notify import Notifier
 from cell.service.startup import DEFAULT_CONFIG, DEFAULT_DATA_DIR, ServiceSettings, build_service
+from cell.service.store import restrict_store_files
 from cell.templates import DEFAULT_TEMPLATE
 from drivers.errors import CellError
 from drivers.hosts import is_loopback, listen_problem
 
 err_console = Console(stderr=True)
+log = logging.getLogger("cell.service")
 SHUTDOWN_GRACE_S = 2
 """How long open requests may run on after SIGTERM before they are cut [s]; the running job's arm is
 stopped before this wait, and event streams end by themselves within it."""
@@ -72,6 +75,10 @@ def serve(
         err_console.print(f"no API key yet: every route but /healthz needs one (cell keys create --role "
                           f"operator {where})", markup=False, highlight=False, soft_wrap=True)
     configure_logging()
+    if db is None:
+        for path, before, after in restrict_store_files(data_dir):
+            log.warning("%s was mode %04o, open beyond the service's user: made %04o (the store holds the "
+                        "API keys' hashes)", path, before, after)
     # On SIGTERM or Ctrl-C the running job's arm is stopped first (cell.api.server), then uvicorn waits for
     # open connections (event streams end by themselves within a second) before the app shuts down; what is
     # left is cut after a short grace. The connections are capped under the descriptor limit, and must

@@ -12,7 +12,8 @@ from cell.service.store.records import (
     LineRecord,
     LineTransition,
 )
-from cell.service.store.repository import Store, open_data_store, open_store
+from cell.service.store.repository import Store, open_data_store, open_store, restrict_store_files
 
 __all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "STORE_RETRY_S", "HoldRecord", "JobRecord", "KeyRecord",
-           "LineRecord", "LineTransition", "Store", "open_data_store", "open_store", "sqlite_url"]
+           "LineRecord", "LineTransition", "Store", "open_data_store", "open_store", "restrict_store_files",
+           "sqlite_url"]

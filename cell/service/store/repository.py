@@ -10,7 +10,9 @@ a naive datetime) is a ``ValueError``.
 from __future__ import annotations
 
 import contextlib
+import os
 import re
+import stat
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from datetime import UTC, datetime
@@ -22,6 +24,7 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from cell.service.store.engine import (
+    SQLITE_FILE,
     check_integrity,
     check_oldest,
     hide_password,
@@ -136,18 +139,43 @@ def inspect_store(url: str, connect_timeout_s: int) -> StoreState | None:
     return StoreState(frozenset(revisions), n_keys)
 
 
+STORE_FILE_MODE = 0o600
+"""The embedded store's files (``cell.db``, and its WAL and shared memory, which SQLite makes with the
+database's mode) are the service user's alone, whatever the umask: they hold the API keys' hashes. Under
+the usual umask 022 all three were 0644, readable by every user of the machine."""
+
+
 def open_data_store(data_dir: Path, db_url: str | None, *, migrate: bool = True,
                     oldest: str | None = None) -> Store:
     """The store of a cell's data dir ``data_dir`` (created if missing): ``db_url``, or the embedded SQLite
-    file ``cell.db`` in it, migrated or not as :func:`open_store` says, its job folders resolved in
-    ``data_dir/jobs`` (:data:`JOBS_FOLDER`). ``StoreError`` when it cannot be opened."""
+    file ``cell.db`` in it (made with ``STORE_FILE_MODE`` if new), migrated or not as :func:`open_store`
+    says, its job folders resolved in ``data_dir/jobs`` (:data:`JOBS_FOLDER`). ``StoreError`` when it
+    cannot be opened."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}; fix: "
                          f"{make_folder(data_dir)}") from None
+    if db_url is None:
+        # an empty file is an empty database; one that cannot be made is reported by opening it
+        with contextlib.suppress(OSError):
+            os.close(os.open(data_dir / SQLITE_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL, STORE_FILE_MODE))
     return open_store(db_url or sqlite_url(data_dir), migrate=migrate, oldest=oldest,
                       jobs_dir=data_dir.resolve() / JOBS_FOLDER)
+
+
+def restrict_store_files(data_dir: Path) -> list[tuple[Path, int, int]]:
+    """Take the group's and others' access from the embedded store's files in ``data_dir`` (``cell.db*``)
+    that have any; returns each file changed with its former and its new mode. A file this user cannot
+    change is left (opening the store says what is wrong with it)."""
+    changed = []
+    for path in sorted(data_dir.glob(f"{SQLITE_FILE}*")):
+        with contextlib.suppress(OSError):
+            mode = stat.S_IMODE(path.stat().st_mode)
+            if mode & ~STORE_FILE_MODE:
+                path.chmod(mode & STORE_FILE_MODE)
+                changed.append((path, mode, mode & STORE_FILE_MODE))
+    return changed
 
 
 class Store:
