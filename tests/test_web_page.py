@@ -2,15 +2,15 @@
 against a real ``cell serve`` (the sim Franka + RGB-D cell) reached through a TCP relay whose connections
 the test can cut (``tests.tcp_proxy``).
 
-One service and one browser serve the whole module. A wrong key is refused; a viewer's key is offered
-no scan; the packing line's PackML state shows when the status has one, and an operator switches its unit
-mode (a cell of its own); an operator starts a raster scan
-from the form (a pose off the table is refused next to the field first), watches progress arrive, sees it
-complete with its coverage and dimensions, downloads a file and finds it in the jobs table; uploads a
-mesh; a vs-local scan is watched live through a cut of every connection (the event stream resumes and no
-progress is lost), then stopped with the STOP key and the queue resumed; the views fit 1024x768; an
-operator recovers the arm after a protective stop (a cell of its own). The 3D view is checked to have
-drawn (its canvas read back), and each main view is saved as a screenshot under
+One service and one browser serve the whole module. A wrong key is refused; a viewer's key is offered no
+scan, nor the stop of a queued job; the packing line's PackML state shows when the status has one, and an
+operator switches its unit mode (a cell of its own); an operator starts a raster scan from the form (a
+pose off the table is refused next to the field first), watches progress arrive, sees it complete with
+its coverage and dimensions, downloads a file and finds it in the jobs table; uploads a mesh; a vs-local
+scan is watched live through a cut of every connection (the event stream resumes and no progress is
+lost), then stopped with the STOP key and the queue resumed; the views fit 1024x768; an operator recovers
+the arm after a protective stop (a cell of its own). The 3D view is checked to have drawn (its canvas
+read back), and each main view is saved as a screenshot under
 ``tests/artifacts/web/``.
 """
 
@@ -211,6 +211,25 @@ def test_a_viewer_may_watch_and_stop_but_is_offered_no_scan(open_page: Callable[
     assert cell.keys["viewer"] not in page.url
     # this cell has no packing line: nothing shown for it
     assert page.is_hidden("#st-line-item")
+
+
+def test_a_queued_job_offers_its_stop_only_to_a_key_that_may_cancel(open_page: Callable[..., Page],
+                                                                     cell: ServedCell) -> None:
+    """A queued job's stop cancels it: the page offered "Stop this job" on one to a viewer, whose key may
+    not cancel (the API answers that stop 403)."""
+    with cell.client("operator") as client:
+        assert client.post("/api/v1/stop", json={"reason": "a queued job"}).status_code == 200
+        job_id = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 1.0}).json()["id"]
+    try:
+        for role, offered in (("viewer", 0), ("operator", 1)):
+            page = open_page(role)
+            page.goto(f"{page.url.split('#')[0]}#/jobs/{job_id}")
+            wait_for(page, "document.getElementById('job-status')?.textContent === 'queued'")
+            assert page.locator("#job-stop").count() == offered, role
+    finally:
+        with cell.client("operator") as client:
+            assert client.delete(f"/api/v1/jobs/{job_id}").status_code == 200
+            assert client.post("/api/v1/queue/resume").status_code == 200
 
 
 def test_the_status_bar_shows_the_lines_packml_state_when_there_is_one(
