@@ -47,9 +47,11 @@ class NotifyingServer(uvicorn.Server):
         self._notifier.notify(STOPPING="1", STATUS="stopping: the running job stops and finishes its folder")
         service = self._service()
         try:
-            if service is not None:
-                await service.stop_for_shutdown()
-            await super().shutdown(sockets)
+            try:
+                if service is not None:  # the arm first, before uvicorn waits for open requests
+                    await service.stop_for_shutdown()
+            finally:
+                await super().shutdown(sockets)
         finally:
             if self._pings is not None:
                 self._pings.cancel()
