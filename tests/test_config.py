@@ -260,6 +260,19 @@ def test_an_unknown_default_planner_fails_config_check_naming_the_registered_one
                           "(allowed: raster, lr-nbv, nbv, heu, vs-local, vs-global, vs-hybrid)\n")
 
 
+def test_a_servo_rate_above_the_control_rate_fails_config_check(tmp_path, franka_cfg_data):
+    """Every visual-servoing scan would refuse the file: config check says so, as the scan did."""
+    data = copy.deepcopy(franka_cfg_data)
+    data["planners"]["vs"]["servo_rate_hz"] = 2 * data["scan"]["control_rate_hz"]
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(data))
+    res = CliRunner().invoke(app, ["config", "check", str(tmp_path / "cell.yaml")])
+    assert res.exit_code == 1
+    assert res.output == (f"error: {tmp_path / 'cell.yaml'}: planners.vs.servo_rate_hz 200 exceeds "
+                          "scan.control_rate_hz 100\n")
+    data["planners"]["vs"]["servo_rate_hz"] = data["scan"]["control_rate_hz"]
+    assert parse_config(data, file="cell.yaml").planners.vs.servo_rate_hz == 100
+
+
 def test_a_relative_zone_correction_is_read_from_the_cell_files_folder(tmp_path, monkeypatch):
     """``sensor.zone_correction: zones.json`` (calibration/README.md) names the file beside the cell file,
     wherever the command runs; the worker, given the parsed data, reads the same file."""

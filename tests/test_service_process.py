@@ -539,13 +539,14 @@ def test_killing_the_service_mid_scan_stops_the_arm_and_a_restart_marks_the_job_
 
 @pytest.fixture(scope="module")
 def bounded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServedCell]:
-    """The Franka cell with two places in its queue, and a servo rate above its control rate: the
-    visual-servoing planners refuse it when the worker builds them (``PlanningError``), others run."""
+    """The Franka cell with two places in its queue, and the servo planners' start view 1.5 m above the
+    table, beyond the arm's reach: a visual-servoing scan fails when it goes there (``PlanningError``),
+    others run."""
     tmp = tmp_path_factory.mktemp("bounded")
 
     def edit(data: dict[str, Any]) -> None:
         data["service"] = {"queue_max": 2}
-        data["planners"]["vs"]["servo_rate_hz"] = 2 * data["scan"]["control_rate_hz"]
+        data["planners"]["vs"].setdefault("start", {})["target_height_m"] = 1.5
 
     cell = ServedCell(cell_file(tmp, FRANKA, "bounded.yaml", edit), tmp / "data")
     try:
@@ -559,8 +560,8 @@ def test_a_planner_that_raises_fails_its_job_and_the_next_job_runs(bounded: Serv
     following = submit(bounded, object="bunny", planner="raster", max_time_s=3.0)
     failed = bounded.wait_job(failing["id"], ENDED)
     assert failed["status"] == "failed"
-    assert failed["termination"].startswith("PlanningError: planners.vs.servo_rate_hz 200 exceeds "
-                                            "scan.control_rate_hz 100"), failed["termination"]
+    assert failed["termination"].startswith("PlanningError: none of the start views is reachable"), \
+        failed["termination"]
     folder = bounded.data_dir / "jobs" / failing["id"]
     result = json.loads((folder / "result.json").read_text())
     assert result["status"] == "failed" and result["termination"] == failed["termination"]

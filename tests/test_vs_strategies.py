@@ -698,13 +698,6 @@ def test_global_h_roi_termination_waits_for_the_first_goal_reached(franka):
     assert "H_ROI settled" in planner.finished(session)
 
 
-def test_servo_rate_above_the_control_rate_is_refused(franka):
-    data = franka.model_dump()
-    data["planners"]["vs"]["servo_rate_hz"] = 500.0
-    with pytest.raises(PlanningError, match="servo_rate_hz"):
-        VSLocalPlanner(type(franka).model_validate(data))
-
-
 def test_servo_outputs_are_written(tmp_path):
     rows = [TelemetryRow(t=0.02 * i, e_norm=0.01 / (i + 1), f=1.5, g_norm=2.0 if i > 3 else 0.0,
                          h_roi=None if i < 2 else 0.6, mode="primary" if i <= 3 else "local")

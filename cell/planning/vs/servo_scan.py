@@ -157,9 +157,6 @@ class ServoScanPlanner(Planner):
     def __init__(self, config: CellConfig) -> None:
         super().__init__(config)
         vs = config.planners.vs
-        if vs.servo_rate_hz > config.scan.control_rate_hz:
-            raise PlanningError(f"planners.vs.servo_rate_hz {vs.servo_rate_hz:g} exceeds "
-                                f"scan.control_rate_hz {config.scan.control_rate_hz:g}")
         self.vs = vs
         sc = vs.servo
         self.servo = DualTaskServo(standoff_m=config.scan.standoff_m, lambda_0=sc.lambda_0,
