@@ -527,6 +527,21 @@ def test_goal_is_the_best_allowed_candidate_and_g_follows_eq_11(franka):
     assert seeker.done(session, arrived)  # within arrival_m (5 cm)
 
 
+def test_no_goal_is_sampled_within_the_arrival_distance_of_the_camera(franka):
+    """A camera at the best view of the sphere gets a goal ``arrival_m`` or more away, not one it has
+    already reached (the best candidates lie around it)."""
+    arrival = franka.planners.vs_global.arrival_m
+    seeker = GoalSeeker(franka)
+    session = FakeSession(floor_z=0.1)
+    objective = LinearObjective([-1.0, 0.0, 0.0])
+    seeker.sample(session, CENTRE, objective)
+    session.pose = seeker.goal
+    for _ in range(5):
+        seeker.sample(session, CENTRE, objective)
+        assert np.linalg.norm(seeker.goal[:3, 3] - session.pose[:3, 3]) >= arrival
+        assert not seeker.done(session, session.pose)
+
+
 def toward_goal(seeker: GoalSeeker, arc_m: float) -> np.ndarray:
     """The camera pose on the goal's sphere ``arc_m`` [m] from the goal along the great circle over the
     top, looking at the centre."""

@@ -124,14 +124,21 @@ class GoalSeeker:
         self.n_goals = 0
 
     def sample(self, session: ScanSession, centroid: Array, objective: EntropyObjective) -> None:
-        """Choose a new goal: the best allowed candidate on the sphere around ``centroid`` (eq. 10)."""
+        """Choose a new goal: the best allowed candidate on the sphere around ``centroid`` (eq. 10), at
+        least ``arrival_m`` [m] from the camera."""
         u = session.rng.normal(size=(self.params.n_candidates, 3))
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         views = sphere_views(centroid, self.radius_m, u)
-        allowed = session.sensor_poses_allowed(views)
+        here = session.sensor_pose()[:3, 3]
+        # A candidate within arrival_m of the camera is a goal already reached (``done`` would report it at
+        # the next iteration): it moves the camera nowhere, and Global's best candidates lie just around a
+        # camera whose view is not yet used up (goals "reached after 0.0 s").
+        allowed = session.sensor_poses_allowed(views) & (
+            np.linalg.norm(views[:, :3, 3] - here, axis=1) >= self.params.arrival_m)
         if not allowed.any():
             raise PlanningError(f"none of {len(views)} goal candidates on the {self.radius_m:g} m sphere "
-                                "lies inside the barrier planes and the workspace")
+                                f"lies inside the barrier planes and the workspace, "
+                                f"{self.params.arrival_m:g} m or more from the camera")
         views = views[allowed]
         scores = objective(views)
         order = np.argsort(-scores, kind="stable")
