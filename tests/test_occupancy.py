@@ -206,6 +206,23 @@ def test_voxels_in_box_and_mean_entropy_eq12():
     assert m.voxels_in_box([0.001, 0.001, 0.001], [0.002, 0.002, 0.002]).shape == (1, 3)
 
 
+def test_observation_aware_h_roi_weights_each_voxel_by_its_observation_weight():
+    m = make_map()
+    o = np.array([0.005, 0.005, 0.5])
+    end = np.array([[0.005, 0.005, 0.205]])  # voxel (0, 0, 20), the ray crossing (0, 0, 21..49)
+    for k in range(30):  # a surface voxel the views disagree on: hit, then crossed, and so on
+        m.integrate(o, end, free_only=np.array([k % 2 == 1]))
+    m.set_logodds(np.array([[1, 0, 20]]), np.array([logit(0.7)]))  # no counts: weighs as unseen
+    lo, hi = np.array([0.0, 0.0, 0.2]), np.array([0.03, 0.01, 0.22])  # 3 x 1 x 2 voxels
+    centres = m.voxels_in_box(lo, hi)
+    h = m.entropy(centres)
+    w = observation_weight(*m.observation_counts(centres))
+    assert sorted(w.tolist())[:2] == pytest.approx(observation_weight(np.array([0, 15]), np.array([30, 15])))
+    assert m.mean_entropy_in_box(lo, hi) == pytest.approx(h.mean(), rel=1e-6)  # eq. 12 as written
+    assert m.mean_entropy_in_box(lo, hi, observation_aware=True) == pytest.approx((h * w).mean(), rel=1e-6)
+    assert np.count_nonzero(w == 1.0) == 4  # the unseen voxels and the one set without counts keep eq. 8's
+
+
 def test_negative_coordinates_and_growth():
     m = make_map()
     m.integrate(np.array([-0.5, -0.5, 0.5]), np.array([[-0.52, -0.49, -0.3]]))
