@@ -962,11 +962,40 @@ def test_a_refusal_after_g_fell_to_zero_avoids_the_way_the_camera_came(franka):
     planner._command(StreamSession(), T, s, Secondary(np.zeros(6), 0.0, 0.5, "local"))
     refusal = TwistRefused("refused: link1 would touch link5b", Refusal("collision", "link1"))
     planner._back_off(session, Secondary(np.zeros(6), 0.0, 0.5, "local"), refusal)
-    [(_, direction)] = planner._refused
+    [(_, direction, _)] = planner._refused
     np.testing.assert_allclose(direction, T[:3, :3] @ [0.6, 0.8, 0.0], atol=1e-12)
     towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
                                                               "local"))
-    np.testing.assert_allclose(towards.g, 0.0, atol=1e-12)  # held, and counted as converging
+    np.testing.assert_allclose(towards.g, 0.0, atol=1e-12)  # held
+
+
+@pytest.mark.parametrize("gradient, ends", [
+    ([1.0, 0.0, 0.0], "held by a refused motion, not converged: ||g|| < 1 in more than 80% of the last 200 "
+                      "servo evaluations, the camera kept from where the gradient leads by a direction the "
+                      "guard refused nearby (link1 would touch link5b)"),
+    ([0.0, 0.0, 0.0], "local gradient converged: ||g|| < 1 in more than 80% of the last 200 servo "
+                      "evaluations"),
+])
+def test_a_camera_held_by_a_refused_direction_has_not_converged(franka, gradient, ends):
+    """After a refusal (a mug scan: link1 would touch link5b) the gradient keeps leading the way the guard
+    refused: g is projected to zero there, but the scan says that it was held, not that it converged; a
+    gradient flat there converges as before."""
+    data = franka.model_dump()
+    data["planners"]["vs_local"]["reach_deg"] = 0.0  # the difference over delta alone
+    planner = VSLocalPlanner(type(franka).model_validate(data))
+    planner.centroid = CENTRE
+    T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)  # camera x = base x
+    session = BackOffSession(T)
+    why = "link1 would touch link5b"
+    refusal = TwistRefused(f"refused: {why}", Refusal("collision", why))
+    planner._back_off(session, Secondary(np.array([1.0, 0, 0, 0, 0, 0.0]), 2.0, 0.5, "local"), refusal)
+    objective = LinearObjective(gradient, at=T[:3, 3], f_at=0.05)
+    for _ in range(franka.planners.vs_local.window):
+        assert planner.finished(session) is None
+        sec = planner.secondary(session, T, objective)
+        np.testing.assert_allclose(sec.g, 0.0, atol=1e-12)
+        planner.observe(sec, sec.g_norm, T[:3, 3])
+    assert planner.finished(session) == ends
 
 
 def test_a_refusal_the_arm_cannot_retrace_from_ends_the_scan(franka):

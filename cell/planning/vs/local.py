@@ -15,6 +15,16 @@ one held by a plane does, instead of pressing against it until the time budget e
 at (8, -6) cm, 45 deg from the station: the stretched arm moved the camera at 4 % of the commanded
 speed from 75 s on, and the scan ran to its 180 s budget).
 
+A camera held by a direction the guard refused (``ServoScanPlanner._back_off``: the arm retraces 1 s of its
+path and g may not point the refused way within ``refusal_radius_m``) is not converged: the gradient still
+leads there, the arm only could not take it in its present configuration. An evaluation whose difference
+over delta the refused directions alone cut below ``g_max`` (``Secondary.refused``) does not count towards
+convergence, and a window that would have converged with them ends the scan "held by a refused motion"
+instead (``held``). A mug (RGB-D cell, seed 0) was refused at 21.9 s (link1 would touch link5b), retraced
+to 4.2 cm from that place, and its ||g|| fell from 3 to 0.04 and then 0 there while the difference over
+delta still pointed the refused way: the scan ended "converged" at 80.8 % 4 s later. VS-Local has no other
+way round (VS-Hybrid's global goals are one); it now ends there saying why.
+
 Going to and fro (``dithering``, not in the paper): a camera that stayed within delta of its mean
 position over a whole window never left the stencil of eq. 5-6 (views delta either side) that judged
 the spot: the differences it followed there were of views overlapping each other's, noise however large
@@ -218,6 +228,8 @@ class LocalGradient:
         # r, r + dx, r - dx, r + dy, r - dy in the camera frame.
         self._offsets = np.array([[0, 0, 0], [d, 0, 0], [-d, 0, 0], [0, d, 0], [0, -d, 0]], dtype=float)
         self._below: deque[bool] = deque(maxlen=self.params.window)
+        # per evaluation of the window: below g_max only because a refused direction held the camera
+        self._refused: deque[bool] = deque(maxlen=self.params.window)
         self._where: deque[Array] = deque(maxlen=self.params.window)
         # (spot [m, base frame], distance [m]): a spot gone to and fro on, and how far from it the
         # arcs lead before the difference over delta is followed again
@@ -228,15 +240,20 @@ class LocalGradient:
     def reset(self) -> None:
         """Forget the convergence window and any spot (a new local phase)."""
         self._below.clear()
+        self._refused.clear()
         self._where.clear()
         self._spot = None
         self._heading = None
 
     def __call__(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
-                 feasible: Callable[[Array], Array] | None = None) -> Secondary:
+                 feasible: Callable[[Array], Array] | None = None,
+                 unrefused: Callable[[Array], Array] | None = None) -> Secondary:
         """g at ``T_base_cam``. ``feasible`` maps a direction (3,) in the camera frame to the part of it the
         camera can follow (default: without its components into the barrier planes); the coarse arcs are
-        judged on that part, as the convergence window is."""
+        judged on that part, as the convergence window is. ``unrefused`` is ``feasible`` without the
+        directions the guard refused nearby (``ServoScanPlanner.follows``): where ``feasible`` cuts the
+        difference over delta below ``g_max`` and ``unrefused`` does not, g is marked ``refused``, and
+        ``record`` does not count it as converging (module docstring)."""
         p = self.params
         if feasible is None:
             def feasible(v: Array) -> Array:
@@ -246,6 +263,7 @@ class LocalGradient:
         relative = p.alpha * grad / (f[0] + p.f_eps_nats)  # d ln f / dx, see the module docstring
         direction = feasible(relative)
         norm = float(np.linalg.norm(direction))
+        refused = unrefused is not None and norm < p.g_max <= float(np.linalg.norm(unrefused(relative)))
         position = T_base_cam[:3, 3]
         if self._spot is not None and np.linalg.norm(position - self._spot[0]) >= self._spot[1]:
             self._spot = None  # the arc's length away: the difference over delta leads again
@@ -263,7 +281,7 @@ class LocalGradient:
                 if not leaving and dithering:
                     self._spot = (self._mean_position(), angle * self.standoff_m)
         clipped = direction * (p.g_max / norm) if norm > p.g_max else direction
-        return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local", speed)
+        return Secondary(np.concatenate([clipped, np.zeros(3)]), norm, float(f[0]), "local", speed, refused)
 
     def _best_arc_view(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective, f_r: float,
                        feasible: Callable[[Array], Array]) -> tuple[Array, float]:
@@ -295,10 +313,13 @@ class LocalGradient:
             self._heading = best if norms[best] >= p.g_max else None
         return side_best[self._heading] if self._heading is not None else side_best[int(np.argmax(norms))]
 
-    def record(self, g_norm: float, position_m: Array) -> None:
+    def record(self, g_norm: float, position_m: Array, refused: bool = False) -> None:
         """Count one servo evaluation whose ||g|| (before clipping, as the arm could follow it) was
-        ``g_norm``, made with the camera at ``position_m`` (3,) [m, base frame]."""
-        self._below.append(g_norm < self.params.g_max)
+        ``g_norm``, made with the camera at ``position_m`` (3,) [m, base frame]; ``refused``: g was held
+        below ``g_max`` by a refused direction (``Secondary.refused``)."""
+        below = g_norm < self.params.g_max
+        self._below.append(below)
+        self._refused.append(below and refused)
         self._where.append(np.asarray(position_m, dtype=float).reshape(3))
 
     def _mean_position(self) -> Array:
@@ -314,9 +335,17 @@ class LocalGradient:
         return float(np.max(spread)) <= self.params.delta_m
 
     def converged(self) -> bool:
-        """||g|| < g_max in more than ``converged_fraction`` of a full window of evaluations."""
+        """||g|| < g_max, not held there by a refused direction, in more than ``converged_fraction`` of a
+        full window of evaluations."""
         w = self._below
-        return len(w) == w.maxlen and sum(w) > self.params.converged_fraction * len(w)
+        return len(w) == w.maxlen and sum(w) - sum(self._refused) > self.params.converged_fraction * len(w)
+
+    def held(self) -> bool:
+        """||g|| < g_max in more than ``converged_fraction`` of a full window of evaluations, but not
+        converged: a refused direction held the camera in enough of them (module docstring)."""
+        w = self._below
+        full = len(w) == w.maxlen and sum(w) > self.params.converged_fraction * len(w)
+        return full and not self.converged()
 
 
 class VSLocalPlanner(ServoScanPlanner):
@@ -325,14 +354,23 @@ class VSLocalPlanner(ServoScanPlanner):
         self.local = LocalGradient(config)
 
     def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
-        return self.local(session, T_base_cam, objective, self.follows(session, T_base_cam))
+        # what the camera could follow but for the refusals nearby: tells a camera they hold from one that
+        # converged
+        near = self._refusals_at(T_base_cam)
+        unrefused = self.follows(session, T_base_cam, refusals=False) if near else None
+        return self.local(session, T_base_cam, objective, self.follows(session, T_base_cam), unrefused)
 
     def observe(self, secondary: Secondary, g_norm: float, position_m: Array) -> None:
-        self.local.record(g_norm, position_m)
+        self.local.record(g_norm, position_m, secondary.refused)
 
     def finished(self, session: ScanSession) -> str | None:
+        p = self.config.planners.vs_local
+        window = (f"||g|| < {p.g_max:g} in more than {p.converged_fraction:.0%} of the last {p.window} servo "
+                  "evaluations")
         if self.local.converged():
-            p = self.config.planners.vs_local
-            return (f"local gradient converged: ||g|| < {p.g_max:g} in more than "
-                    f"{p.converged_fraction:.0%} of the last {p.window} servo evaluations")
+            return f"local gradient converged: {window}"
+        if self.local.held():
+            near = "; ".join(sorted({why for _, _, why in self._refusals_at(session.sensor_pose())}))
+            return (f"held by a refused motion, not converged: {window}, the camera kept from where the "
+                    f"gradient leads by a direction the guard refused nearby{f' ({near})' if near else ''}")
         return None

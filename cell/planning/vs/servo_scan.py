@@ -73,13 +73,17 @@ class Secondary:
     """What a strategy returns for one iteration: g (6,) in the camera frame, after projection and
     clipping, its norm before clipping, f(r) at the current pose [nats], the mode it came from, and
     ``speed``: the multiple of the exploration speed (``ServoConfig``) at which the camera follows g (1
-    but where VS-Local crosses views it has used up, ``cell.planning.vs.local``)."""
+    but where VS-Local crosses views it has used up, ``cell.planning.vs.local``), and ``refused``: g is
+    below ``g_max`` only because the camera avoids a direction the guard refused nearby (VS-Local's
+    difference over delta would lead on without that; such an evaluation is no convergence,
+    ``cell.planning.vs.local``)."""
 
     g: Array
     g_norm: float
     f: float
     mode: str
     speed: float = 1.0
+    refused: bool = False
 
 
 def objective_rays(config: CellConfig) -> Array:
@@ -171,8 +175,9 @@ class ServoScanPlanner(Planner):
         self.h_roi: list[float] = []
         self.telemetry: DecimatedSeries[TelemetryRow] = DecimatedSeries()
         self._centroid_filter = CentroidLowPass(vs.centroid_tau_s)
-        # Where the guard refused a streamed twist and the secondary direction refused there (base frame).
-        self._refused: list[tuple[Array, Array]] = []
+        # Where the guard refused a streamed twist, the secondary direction refused there (base frame) and
+        # the guard's reason.
+        self._refused: list[tuple[Array, Array, str]] = []
         # The last secondary direction the camera followed (unit, base frame), None before the first.
         self._moving: Array | None = None
         self._seq: int | None = None
@@ -283,27 +288,35 @@ class ServoScanPlanner(Planner):
         assert self.centroid is not None
         return T_base_cam[:3, :3].T @ (self.centroid - T_base_cam[:3, 3])
 
-    def _blocked_directions(self, session: ScanSession, T_base_cam: Array, s: Array) -> Array:
+    def _blocked_directions(self, session: ScanSession, T_base_cam: Array, s: Array,
+                            refusals: bool = True) -> Array:
         """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits,
         of singular configurations and of refused motions when B g >= 0: each joint within
         ``joint_activation_rad`` of its margin (its rate a . (P g) of eq. 1, P the primary task's
         null-space projector, must not be towards the margin), the arm's smallest singular value once
-        below ``singular_value_activation`` (it must not fall further), and each refused secondary
-        direction d (base frame) within ``refusal_radius_m`` of where the guard refused it (g . d <= 0)."""
+        below ``singular_value_activation`` (it must not fall further), and with ``refusals`` each refused
+        secondary direction d (base frame) within ``refusal_radius_m`` of where the guard refused it
+        (g . d <= 0)."""
         rows = np.concatenate([session.joint_limit_twists(self.vs.joint_activation_rad),
                                session.singularity_twists(self.vs.singular_value_activation)])
         B = [-(rows @ null_space_projector(s))[:, :2]] if rows.shape[0] else []
-        here = T_base_cam[:3, 3]
-        for where, direction in self._refused:
-            if float(np.linalg.norm(here - where)) < self.vs.refusal_radius_m:
-                B.append(-(T_base_cam[:3, :3].T @ direction)[None, :2])
+        if refusals:
+            B += [-(T_base_cam[:3, :3].T @ d)[None, :2] for _, d, _ in self._refusals_at(T_base_cam)]
         return np.concatenate(B) if B else np.zeros((0, 2))
 
-    def follows(self, session: ScanSession, T_base_cam: Array) -> Callable[[Array], Array]:
+    def _refusals_at(self, T_base_cam: Array) -> list[tuple[Array, Array, str]]:
+        """The refusals in force at the camera pose ``T_base_cam``: those within ``refusal_radius_m`` [m]
+        of where the guard refused (where, refused direction (base frame), the guard's reason)."""
+        here = T_base_cam[:3, 3]
+        return [r for r in self._refused if float(np.linalg.norm(here - r[0])) < self.vs.refusal_radius_m]
+
+    def follows(self, session: ScanSession, T_base_cam: Array,
+                refusals: bool = True) -> Callable[[Array], Array]:
         """A map from a secondary direction (3,) in the camera frame to the part of it the camera can follow
         from ``T_base_cam``: without its components into the barrier planes and into the half-planes
-        ``_blocked_directions`` gives (joint limits, the edge of the reach, refused motions)."""
-        B = self._blocked_directions(session, T_base_cam, self._features(T_base_cam))
+        ``_blocked_directions`` gives (joint limits, the edge of the reach, and with ``refusals`` refused
+        motions)."""
+        B = self._blocked_directions(session, T_base_cam, self._features(T_base_cam), refusals)
         activation = self.vs.barrier_activation_m
 
         def follow(v: Array) -> Array:
@@ -334,7 +347,7 @@ class ServoScanPlanner(Planner):
         projected = float(np.linalg.norm(raw))
         g = sec.g.copy()
         g[:2] = raw * min(1.0, norm / projected) if projected > 0.0 else 0.0
-        return Secondary(g, projected, sec.f, sec.mode, sec.speed)
+        return replace(sec, g=g, g_norm=projected)
 
     def _limits_ahead(self, session: ScanSession, T_base_cam: Array, s: Array, sec: Secondary) -> bool:
         """Whether g moves the camera towards a joint's margin or a barrier plane within ``sec.speed`` times
@@ -362,7 +375,7 @@ class ServoScanPlanner(Planner):
             direction = self._moving
         norm = float(np.linalg.norm(direction))
         if norm > 0.0:
-            self._refused.append((T[:3, 3].copy(), direction / norm))
+            self._refused.append((T[:3, 3].copy(), direction / norm, refusal.refusal.message))
         session.log(f"retracing the arm's last {self.vs.backoff_s:g} s of path, then avoiding "
                     f"{np.round(direction / norm, 3).tolist() if norm > 0.0 else 'no direction'} (base "
                     f"frame) within {self.vs.refusal_radius_m:g} m of {np.round(T[:3, 3], 3).tolist()}")
