@@ -125,6 +125,9 @@ class JobSession:
         # trajectory length start (section III-C)
         self.first_frame_time: float | None = None
         self.first_frame_path_m = 0.0
+        # the sensor origin [m], base frame, that the first recorded frame was taken from (FK): where the
+        # scan starts on its path (``path.png``), the path itself starting at home
+        self.first_frame_position: Array | None = None
         self.n_capture_failures = 0
         self.refused_moves: Counter[str] = Counter()
         self.n_unreachable = 0
@@ -628,6 +631,7 @@ class JobSession:
         if self.first_frame_time is None:
             self.first_frame_time = frame.timestamp
             self.first_frame_path_m = self.path_length_m
+            self.first_frame_position = T_fk[:3, 3].copy()
         if reg.rejected:
             self.n_registration_rejected += 1
         self.registration_n_constrained.append(reg.n_constrained)

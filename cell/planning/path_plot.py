@@ -1,6 +1,10 @@
 """The sensor's path around the object as a job folder's ``path.png`` (the visual-servoing paper's Fig. 3,
 left), for every planner: a servo planner's continuous path, or a view planner's moves between the views
-it captured from, those marked."""
+it captured from, those marked.
+
+The path starts at home, where the job starts, and the scan starts later, at its first capture (a servo
+planner's start view, a view planner's first view): the paper's Fig. 3 starts there. Both are marked and
+named, so that the move from home to the first view is not read as part of the scan."""
 
 from __future__ import annotations
 
@@ -12,12 +16,15 @@ from matplotlib.figure import Figure  # not pyplot: files only, no display or gl
 from cell.planning.base import Array
 
 PATH_NAME = "path.png"
+HOME_LABEL = "home (job start)"
+FIRST_CAPTURE_LABEL = "first capture (scan start)"
 
 
-def plot_path(path: Path, positions_base: Array, centroid_base: Array | None,
-              captures_base: Array | None = None) -> None:
-    """The sensor positions (N, 3) [m] in the base frame, in 3D, with the object centroid (3,) [m] and the
-    positions (K, 3) [m] captures were taken from, each when given."""
+def path_figure(positions_base: Array, centroid_base: Array | None, captures_base: Array | None = None,
+                first_capture_base: Array | None = None) -> Figure:
+    """The sensor positions (N, 3) [m] in the base frame, in 3D, from home (the first) to the end, with the
+    object centroid (3,) [m], the positions (K, 3) [m] captures were taken from and the sensor position
+    (3,) [m] of the first capture, each when given."""
     fig = Figure(figsize=(6, 6))
     ax = fig.add_subplot(projection="3d")
     p = np.asarray(positions_base, dtype=float).reshape(-1, 3)
@@ -26,7 +33,11 @@ def plot_path(path: Path, positions_base: Array, centroid_base: Array | None,
         c = np.asarray(captures_base, dtype=float).reshape(-1, 3)
         ax.scatter(c[:, 0], c[:, 1], c[:, 2], marker=".", s=30, color="tab:blue", label=f"{len(c)} captures")
     if p.shape[0]:
-        ax.scatter(*p[0], marker="o", color="black", label="start")
+        ax.scatter(*p[0], marker="s", color="grey", label=HOME_LABEL)
+    if first_capture_base is not None:
+        ax.scatter(*np.asarray(first_capture_base, dtype=float), marker="o", color="black",
+                   label=FIRST_CAPTURE_LABEL)
+    if p.shape[0]:
         ax.scatter(*p[-1], marker="x", label="end")
     if centroid_base is not None:
         ax.scatter(*np.asarray(centroid_base, dtype=float), marker="*", s=80, label="object centroid")
@@ -35,4 +46,10 @@ def plot_path(path: Path, positions_base: Array, centroid_base: Array | None,
     ax.set_zlabel("z [m]")
     ax.legend(loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    return fig
+
+
+def plot_path(path: Path, positions_base: Array, centroid_base: Array | None,
+              captures_base: Array | None = None, first_capture_base: Array | None = None) -> None:
+    """:func:`path_figure` written to ``path`` as a PNG."""
+    path_figure(positions_base, centroid_base, captures_base, first_capture_base).savefig(path, dpi=100)
