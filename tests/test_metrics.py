@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from cell.perception import metrics
+from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import (
     METRICS_KEYS,
-    CoverageTracker,
+    CloudCoverage,
     compute_metrics,
     ground_truth_points,
     measure,
@@ -40,14 +41,24 @@ def test_empty_cloud():
     assert m.coverage_pct == 0.0 and m.chamfer_mm == float("inf")
 
 
-def test_tracker_agrees_with_batch_computation():
+def test_the_live_coverage_is_eq_13_of_the_cloud_as_it_stands():
+    """Frames of dense points, each over a part of A, go into the voxel-filtered cloud: after each, the
+    live figure is eq. 13's coverage of that cloud (unregistered), never that of the union of the frames'
+    own points, which covers more of A than the cloud's voxel centroids do."""
     rng = np.random.default_rng(0)
-    gt = rng.uniform(0, 0.1, (500, 3))
-    batches = [gt[:100] + 0.001, gt[100:200] + 0.004, rng.uniform(0, 0.1, (300, 3))]
-    tracker = CoverageTracker(gt)
-    for b in batches:
-        tracker.add(b)
-    assert np.isclose(tracker.coverage_pct, compute_metrics(gt, np.vstack(batches)).coverage_pct)
+    gt = np.column_stack([rng.uniform(0.0, 0.1, 2000), rng.uniform(0.0, 0.1, 2000), np.zeros(2000)])
+    cloud = CloudAccumulator(0.005)
+    live = CloudCoverage(gt)
+    frames = [np.column_stack([rng.uniform(x0, x0 + 0.05, 20000), rng.uniform(0.0, 0.1, 20000),
+                               rng.normal(0.0, 0.0005, 20000)]) for x0 in (0.0, 0.03, 0.06)]
+    frames.append(np.array([[5.0, 5.0, 5.0]]))  # far from A: it cannot count
+    for frame in frames:
+        cloud.add(frame)
+        measured = live.update(cloud.points)
+        assert measured == live.coverage_pct == compute_metrics(gt, cloud.points).coverage_pct
+    union = compute_metrics(gt, np.vstack(frames)).coverage_pct
+    assert union > 99.0 and live.coverage_pct < union - 10.0
+    assert CloudCoverage(gt).update(np.zeros((0, 3))) == 0.0
 
 
 def test_timeline_measures_the_voxels_each_frame_had_filled():

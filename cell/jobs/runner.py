@@ -26,7 +26,8 @@ no ground truth (metrics are None). On the wall clock perception runs asynchrono
 
 Every job with a session leaves the sensor's path (``path.png``, ``cell.planning.path_plot``; the views
 captured from marked where the planner keeps its captures); a servo planner's job also its telemetry
-(``servo.csv``, ``servo.png``; see ``cell.planning.vs.telemetry``), with the coverage over time in sim.
+(``servo.csv``, ``servo.png``; see ``cell.planning.vs.telemetry``), with the coverage over time in sim
+(the cloud's, unregistered: ``cell.perception.metrics.CloudCoverage``).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ from cell.jobs.replay import ReplaySession, check_recording
 from cell.jobs.session import JobSession, ScanLimitReached, TimeBudgetExhausted
 from cell.jobs.stop_file import STOP_FILE
 from cell.packing.result import RecordsReconstruction, packing_section, section_box
-from cell.perception.metrics import METRICS_KEYS, CoverageTracker, ground_truth_points, measure
+from cell.perception.metrics import METRICS_KEYS, CloudCoverage, ground_truth_points, measure
 from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Array, Planner
 from cell.planning.path_plot import PATH_NAME, plot_path
@@ -386,7 +387,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
         with arm, sensor:
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng)
-            coverage = CoverageTracker(ground_truth) if ground_truth is not None else None
+            coverage = CloudCoverage(ground_truth) if ground_truth is not None else None
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
                 max_time_s=job.max_time_s, coverage=coverage,

@@ -32,7 +32,7 @@ from cell.jobs.recorder import JobRecorder
 from cell.jobs.requests import REACHABLE, REACHED, REFUSED, UNREACHABLE
 from cell.packing.objects import current_object
 from cell.perception.cloud import CloudAccumulator
-from cell.perception.metrics import CoverageTracker
+from cell.perception.metrics import CloudCoverage
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
 from cell.safety.guard import MotionGuard, Refusal, TwistRefused
@@ -99,7 +99,7 @@ class JobSession:
 
     def __init__(self, config: CellConfig, *, clock: Clock, guard: MotionGuard, model: RobotModel,
                  sensor: DepthSensor, perception: PerceptionPipeline, recorder: JobRecorder,
-                 max_time_s: float, coverage: CoverageTracker | None, rng: np.random.Generator,
+                 max_time_s: float, coverage: CloudCoverage | None, rng: np.random.Generator,
                  on_progress: Callable[[JobSession], None] | None = None,
                  stop_file: Path | None = None, poses: PoseHistory | None = None) -> None:
         self.config = config
@@ -137,7 +137,7 @@ class JobSession:
         self.registration_n_constrained: list[int] = []
         self.path_length_m = 0.0
         # The sensor origin [m], base frame, at every tick (decimated in long jobs); (job time [s],
-        # coverage [%]) at every capture.
+        # coverage [%]: eq. 13 of the cloud as it stands, unregistered, ``CloudCoverage``) at every capture.
         self.sensor_path: DecimatedSeries[Array] = DecimatedSeries()
         self.coverage_history: list[tuple[float, float]] = []
         self._on_progress = on_progress
@@ -636,7 +636,7 @@ class JobSession:
             self.n_registration_rejected += 1
         self.registration_n_constrained.append(reg.n_constrained)
         if self.coverage is not None:
-            self.coverage_history.append((self.now(), self.coverage.add(update.points_base)))
+            self.coverage_history.append((self.now(), self.coverage.update(self.cloud.points)))
         h = f"{update.h_roi:.4f}" if update.h_roi is not None else "-"
         self.log(f"capture {frame.seq}: {frame.points.shape[0]} points, {update.points_base.shape[0]} after "
                  f"filtering; {reg.describe()}; H_ROI {h}")
