@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -16,8 +17,11 @@ from cell.cli.sensor import replay_perception
 from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.jobs.replay import replay_config
+from cell.jobs.requests import REQUESTS_FILE
 from cell.perception.cloud import read_ply
 from cell.perception.metrics import METRICS_KEYS
+from cell.planning.base import Planner, ScanSession
+from cell.safety.guard import TwistRefused
 from drivers.arm.replay import ReplayArm
 from drivers.clock import SimClock
 from drivers.depth.config import ReplayConfig
@@ -25,9 +29,9 @@ from drivers.depth.replay import JobRecording, PlaybackClock, ReplaySensor
 from drivers.errors import DriverError
 from drivers.factory import make_sensor
 from drivers.robots import get_robot_model
-from drivers.transforms import quat_xyzw
+from drivers.transforms import look_at, quat_xyzw
 
-from .conftest import FRANKA, UR5E
+from .conftest import FRANKA, UR5E, register_planner
 
 
 def _scan(tmp_path_factory, config, max_time: str):
@@ -273,3 +277,79 @@ def test_a_replay_refuses_another_object(tof_job, tmp_path, option, value):
     assert res.stderr == (f"error: {option} cannot be given with --replay: a replay scans the recorded job's "
                           "object, where the recording has it\n")
     assert not out.exists()
+
+
+class BackOffPlanner(Planner):
+    """Streams the sensor straight at the object from 25 cm until the guard refuses (the object's ROI
+    ahead), backs off along the arm's path and ends a second later; unrefused, it ends after 3 s. What it
+    does, like a servo planner's back-off and refused directions, turns on the arm's refusal."""
+
+    name: ClassVar[str] = "test-back-off"
+
+    def run(self, session: ScanSession) -> str:
+        station = session.config.station
+        centre = np.array([*station.xy_m, station.table_z_m + 0.05])
+        assert session.move_to_sensor_pose(look_at(centre + np.array([0.0, -0.15, 0.2]), centre))
+        session.set_continuous_capture(True)
+        try:
+            for _ in range(60):
+                session.command_sensor_twist(np.array([0.0, 0.0, 0.1, 0.0, 0.0, 0.0]))
+                session.wait(0.05)
+        except TwistRefused:
+            retraced = session.retrace(1.0)
+            session.wait(1.0)
+            return "backed off" if retraced else "not retraced"
+        return "never refused"
+
+
+@pytest.fixture(scope="module")
+def refused_job(tmp_path_factory):
+    """A Franka cube job whose streamed twist the guard refused (BackOffPlanner)."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        register_planner(monkeypatch, BackOffPlanner)
+        out = tmp_path_factory.mktemp("jobs") / "refused"
+        res = CliRunner().invoke(app, ["scan", "--config", str(FRANKA), "--object", "cube", "--planner",
+                                       BackOffPlanner.name, "--out", str(out), "--max-time", "15"])
+        assert res.exit_code == 0, res.output
+        yield out
+
+
+def test_a_job_whose_twist_was_refused_replays_byte_for_byte(refused_job, tmp_path, monkeypatch):
+    """The live job records the refusal (its tick, the twist, the guard's reason) and its back-off; the
+    replay's guard refuses the same twist at the same tick and the back-off plays as the live one ended,
+    so the planner does what it did live and the cloud is rebuilt exactly. Unrefused, the planner would
+    have streamed on and ended before the recording, with fewer frames."""
+    register_planner(monkeypatch, BackOffPlanner)
+    live = json.loads((refused_job / "result.json").read_text())
+    assert live["termination"] == "backed off" and live["refused_moves"] == {"collision": 1}
+    asked = _requests(refused_job)
+    refused = [r for r in asked if r["answer"] == "refused"]
+    assert [r["kind"] for r in refused] == ["twist"] and refused[0]["refusal"] == "collision"
+    assert refused[0]["reason"] == "camera would touch object ROI within 0.15 s" and refused[0]["vz"] != ""
+    assert [r["answer"] for r in asked if r["kind"] == "retrace"] == ["reached"]
+    result, _ = _replay(refused_job, tmp_path / "again")
+    assert (tmp_path / "again" / "cloud.ply").read_bytes() == (refused_job / "cloud.ply").read_bytes()
+    for key in ("termination", "n_captures", "refused_moves", "metrics"):
+        assert result[key] == live[key], key
+    assert result["safety"]["refusals"] == live["safety"]["refusals"]
+    assert result["replay"]["refusals_recorded"] is True
+    replayed = [r for r in _requests(tmp_path / "again") if r["answer"]]
+    assert replayed == [r for r in asked if r["answer"]]
+    assert result["replay"]["n_recorded_answers"] == len(replayed)
+
+
+def test_a_job_recorded_before_refusals_replays_and_says_it_may_diverge(refused_job, tmp_path, monkeypatch):
+    register_planner(monkeypatch, BackOffPlanner)
+    old = tmp_path / "old"
+    shutil.copytree(refused_job, old)
+    with (old / REQUESTS_FILE).open(newline="") as f:  # as it was written: moves and reach checks only
+        rows = [r for r in csv.DictReader(f) if r["kind"] in ("move", "reach")]
+    with (old / REQUESTS_FILE).open("w", newline="") as f:
+        columns = [c for c in rows[0] if c not in ("refusal", "reason")]
+        writer = csv.DictWriter(f, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    result, _ = _replay(old, tmp_path / "again")
+    assert result["status"] == "completed" and result["replay"]["refusals_recorded"] is False
+    assert "recorded before the arm's refusals" in (tmp_path / "again" / "log.txt").read_text()
+    assert result["refused_moves"] == {}  # unrefused, the planner streamed on

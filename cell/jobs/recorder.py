@@ -13,8 +13,9 @@
   ``frames/index.csv`` lists them;
 - ``map.bt``: the occupancy map in OctoMap's binary format (octovis and pyoctomap open it);
 - ``log.txt``: what happened, stamped with job time;
-- ``planner_requests.csv``: the moves and reach checks the planner asked for, with the cell's answers
-  (a replayed job's: every request, twists and holds too; ``cell.jobs.requests``);
+- ``planner_requests.csv``: the moves, reach checks and retraces the planner asked for and the twists the
+  guard refused, with the cell's answers and the guard's reasons (a replayed job's: every request,
+  twists and holds too; ``cell.jobs.requests``);
 - ``STOP``: written by ``cell stop`` while the job runs (an operator stop, ``cell.jobs.stop_file``; the
   job removes it).
 - ``cloud_live.npy``: while a watched job runs, its accumulated cloud (``cell.jobs.live_cloud``; removed
@@ -45,6 +46,7 @@ from cell.jobs.requests import COLUMNS, REQUESTS_FILE, request_row
 from cell.perception.cloud import write_ply
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.octomap_io import write_bt
+from cell.safety.guard import Refusal
 from drivers.atomic_file import atomic_open, write_text_atomic
 from drivers.depth.base import DepthFrame
 from drivers.errors import JobError
@@ -115,12 +117,14 @@ class JobRecorder:
         self._index.flush()
 
     def planner_request(self, t: float, kind: str, T_base_sensor: Array | None = None,
-                        v_sensor: Array | None = None, answer: str = "", t_done: float | None = None) -> None:
+                        v_sensor: Array | None = None, answer: str = "", t_done: float | None = None,
+                        refusal: Refusal | None = None) -> None:
         """One row of ``planner_requests.csv`` (created with the first request; ``cell.jobs.requests``)."""
         if self._requests is None:
             self._requests = (self.folder / REQUESTS_FILE).open("w", newline="")
             csv.writer(self._requests).writerow(COLUMNS)
-        csv.writer(self._requests).writerow(request_row(t, kind, T_base_sensor, v_sensor, answer, t_done))
+        csv.writer(self._requests).writerow(request_row(t, kind, T_base_sensor, v_sensor, answer, t_done,
+                                                        refusal))
         self._requests.flush()
 
     def cloud(self, points: Array) -> None:

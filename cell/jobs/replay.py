@@ -11,11 +11,20 @@ asks, and :class:`ReplaySession` writes every request to ``planner_requests.csv`
 - while the planner asks what the live job's did (the same views, in order), a move and a reach check
   (``sensor_view_reachable``) get the live job's answers instead (its ``planner_requests.csv``,
   :mod:`cell.jobs.requests`): a move plays the recording until the live move ended and returns whether
-  it reached its view, a reach check returns the live verdict. The arm's answers are not in the frames:
-  without them a replay of LR-NBV asked for other views from the first move the live arm refused, and
-  settled a planner's wait after each move a second time, reading the arm's pose on its way to the next
-  view. Once the planner asks for something else, the recording plays on as above, and reach checks
-  are answered from home's joints (a replayed arm reports none);
+  it reached its view (a refused one counted and logged with the guard's reason, as live), a reach check
+  returns the live verdict. The arm's answers are not in the frames: without them a replay of LR-NBV
+  asked for other views from the first move the live arm refused, and settled a planner's wait after
+  each move a second time, reading the arm's pose on its way to the next view. Once the planner asks for
+  something else, the recording plays on as above, and reach checks are answered from home's joints (a
+  replayed arm reports none);
+- likewise the guard's refusals of streamed twists: at the control tick the live guard refused one, the
+  replay's guard refuses it (``MotionGuard.refuse_twist``, with the live reason), and a ``retrace`` that
+  follows plays the recording until the live retrace ended and returns its answer. Without them a
+  VS-Local replay of a scan whose twist was refused (``link6 would touch table``) servoed on, without
+  the back-off and the blocked direction the live planner took on, and converged 2 s and one capture
+  sooner, its cloud another. A job recorded before refusals were (no ``refusal`` column) replays without
+  them: the log and ``result.json`` (``replay.refusals_recorded``) say so, and from a refusal the live
+  arm made it may diverge;
 - ``command_sensor_twist`` and ``hold`` record the twist asked for; the twist returned is the recorded
   sensor twist over the last control period, what the sensor really does;
 - with continuous capture on, every recorded frame is captured when the clock reaches its time.
@@ -38,8 +47,9 @@ from cell.config.load import load_config
 from cell.config.models import CellConfig
 from cell.jobs.rebuild import RecordedResult, recorded_result
 from cell.jobs.requests import REACHABLE, REACHED, RecordedAnswer, pose_cells, recorded_answers
-from cell.jobs.session import JobSession, ScanLimitReached
+from cell.jobs.session import JobSession, ScanLimitReached, view_name
 from cell.planning.base import Array
+from cell.safety.guard import Refusal
 from drivers.arm.replay import ReplayArm
 from drivers.depth.replay import TIME_TOLERANCE_S, JobRecording, ReplaySensor
 from drivers.errors import ConfigError, JobError
@@ -60,19 +70,25 @@ class ReplaySession(JobSession):
         self._continuous = False
         super().__init__(config, sensor=sensor, **kwargs)
         self.n_planner_requests = 0
-        self._answers = recorded_answers(sensor.recording.job_dir)
+        recorded = recorded_answers(sensor.recording.job_dir)
+        self._answers = recorded.answers
+        self.refusals_recorded = recorded.refusals
         self._asked: dict[str, int] = {}
         self._following = bool(self._answers)
         self.n_recorded_answers = 0
+        if self._following and not self.refusals_recorded:
+            self.log("the recorded job was recorded before the arm's refusals of streamed twists were: where "
+                     "its arm refused one, this replay's does not, and from there it may diverge")
 
     def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
-                 answer: str = "", t_done: float | None = None) -> None:
+                 answer: str = "", t_done: float | None = None, refusal: Refusal | None = None) -> None:
         self.n_planner_requests += 1
-        super()._request(t, kind, T_base_sensor, v_sensor, answer, t_done)
+        super()._request(t, kind, T_base_sensor, v_sensor, answer, t_done, refusal)
 
-    def _recorded(self, kind: str, T_base_sensor: Array) -> RecordedAnswer | None:
-        """The live job's answer to this request (a ``move`` or ``reach`` of the pose (4, 4)), while the
-        planner asks what the live one did; None from the first request it did not ask, logged."""
+    def _recorded(self, kind: str, T_base_sensor: Array | None) -> RecordedAnswer | None:
+        """The live job's answer to this request (a ``move`` or ``reach`` of the pose (4, 4), a ``retrace``
+        without one), while the planner asks what the live one did; None from the first request it did
+        not ask, logged."""
         if not self._following:
             return None
         k = self._asked.get(kind, 0)
@@ -87,6 +103,19 @@ class ReplaySession(JobSession):
         self.log(f"the planner asked for {asked}: from here the recording plays on whatever it asks, and the "
                  "recorded answers no longer apply")
         return None
+
+    def _guard_tick(self) -> None:
+        """The live guard's refusal of a streamed twist at this tick, while the planner asks what the live
+        one did; else the guard's tick."""
+        refusals = self._answers.get("twist", [])
+        k = self._asked.get("twist", 0)
+        if self._following and k < len(refusals) and refusals[k].t <= self.now() + self._dt / 2:
+            self._asked["twist"] = k + 1
+            refusal = refusals[k].refusal
+            if refusal is not None:
+                self.n_recorded_answers += 1
+                raise self._guard.refuse_twist(refusal)
+        super()._guard_tick()
 
     def _ended(self) -> RecordingEnded:
         frames = len(self._replay_sensor.recording.frames)
@@ -112,9 +141,7 @@ class ReplaySession(JobSession):
         session records the request and the answer (``move_to_sensor_pose``)."""
         recorded = self._recorded("move", T_base_sensor)
         if recorded is not None and recorded.t_done is not None:
-            while self.now() < recorded.t_done - self._dt / 2:
-                self._tick()
-            return recorded.answer == REACHED
+            return self._play_answer(recorded, view_name(T_base_sensor))
         due = self._replay_sensor.next_timestamp
         if due is None:
             self._request(self.now(), "move", T_base_sensor)  # asked, and unanswered: the recording has ended
@@ -122,6 +149,24 @@ class ReplaySession(JobSession):
         while self.now() < due - self._dt:
             self._tick()
         return True
+
+    def _retrace(self, duration_s: float) -> bool:
+        """The live retrace's answer while the planner follows the live one (:meth:`_play_answer`), else
+        the session's (False: a replayed arm reports no joints to go back along)."""
+        recorded = self._recorded("retrace", None)
+        if recorded is None or recorded.t_done is None:
+            return super()._retrace(duration_s)
+        return self._play_answer(recorded, f"retrace of {duration_s:g} s")
+
+    def _play_answer(self, recorded: RecordedAnswer, what: str) -> bool:
+        """Play the recording until the live move or retrace ``recorded`` ended; whether it reached its
+        goal, a refusal counted and logged as the live one was (``what`` names it)."""
+        assert recorded.t_done is not None
+        while self.now() < recorded.t_done - self._dt / 2:
+            self._tick()
+        if recorded.refusal is not None:
+            self._refused(recorded.refusal, what)
+        return recorded.answer == REACHED
 
     def _view_reachable(self, T_base_sensor: Array) -> bool:
         """The live job's verdict on the view while the planner follows it (:meth:`_recorded`), else the
@@ -142,7 +187,8 @@ class ReplaySession(JobSession):
     def command_sensor_twist(self, v_sensor: Array) -> Array:
         """Record the twist asked for (sensor frame); returns the recorded sensor twist over the last
         control period [m/s, rad/s], sensor frame."""
-        self._request(self.now(), "twist", v_sensor=np.asarray(v_sensor, dtype=float))
+        self._streamed = np.asarray(v_sensor, dtype=float)
+        self._request(self.now(), "twist", v_sensor=self._streamed)
         return self._recorded_twist()
 
     def hold(self) -> None:

@@ -527,7 +527,8 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
     }
     if isinstance(session, ReplaySession):
         result["replay"] = {"job_dir": str(job.replay_dir), "n_planner_requests": session.n_planner_requests,
-                            "n_recorded_answers": session.n_recorded_answers}
+                            "n_recorded_answers": session.n_recorded_answers,
+                            "refusals_recorded": session.refusals_recorded}
     _write_plots(job, session, result["packing"])
     # last: a client that finds result.json finds every other file of the job beside it, and the line
     # reports the end right after it

@@ -74,6 +74,11 @@ def same_view_rolls(sensor: SensorModel) -> tuple[float, ...]:
     return (math.pi / 2.0, -math.pi / 2.0, math.pi) if square else (math.pi,)
 
 
+def view_name(T_base_sensor: Array) -> str:
+    """A view (sensor pose (4, 4), base frame) as the log names it: its position [m], rounded to 1 mm."""
+    return f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)"
+
+
 def retrace_starts(times: Sequence[float], stopped_at_s: float, duration_s: float) -> list[tuple[float, int]]:
     """Where ``JobSession.retrace`` tries to go back to, in turn: for each share of ``RETRACE_SHARES``, the
     time back [s] and the index in ``times`` (job times [s] of the recorded joints, in order) of the last
@@ -148,6 +153,10 @@ class JobSession:
         self._live: LivePerception | None = None
         # (job time [s], joints [rad]) at every tick over the last JOINT_PATH_KEPT_S, for ``retrace``
         self._joint_path: deque[tuple[float, Array]] = deque(maxlen=int(JOINT_PATH_KEPT_S / self._dt) + 1)
+        # the sensor twist last commanded (sensor frame [m/s, rad/s]), which a refusal refuses, and the
+        # guard's refusal of the move or retrace under way: what planner_requests.csv records of them
+        self._streamed: Array | None = None
+        self._refusal: Refusal | None = None
         self._record_pose(self._guard.state())
 
     def now(self) -> float:
@@ -235,10 +244,14 @@ class JobSession:
             update = self._live.poll()
             if update is not None:
                 self._apply(update)
-        self._guard.tick(self._perception_time)
+        self._guard_tick()
         self._clock.sleep(self._dt)
         self.ticks.record(self.now())
         self._record_pose(self._guard.state())
+
+    def _guard_tick(self) -> None:
+        """The guard's part of a control tick (``MotionGuard.tick``): where it refuses a streamed twist."""
+        self._guard.tick(self._perception_time)
 
     def progress(self, planner: dict[str, float | int | str | None]) -> JobProgress:
         """The job now, for ``run_scan``'s ``on_progress`` (control thread); ``planner`` holds the
@@ -285,7 +298,8 @@ class JobSession:
 
     def wait(self, dt: float) -> None:
         """Let ``dt`` [s] pass. A streamed twist the guard refuses (``TwistRefused``: the arm has been
-        stopped) is counted in ``refused_moves``, logged and raised to the planner, which may back off."""
+        stopped) is counted in ``refused_moves``, logged, recorded in ``planner_requests.csv`` (what a
+        replay refuses it from) and raised to the planner, which may back off."""
         end = self.now() + dt
         while self.now() < end - 1e-9:
             try:
@@ -293,6 +307,8 @@ class JobSession:
             except TwistRefused as exc:
                 self.refused_moves[exc.refusal.kind] += 1
                 self.log(f"streamed twist refused, the arm stopped: {exc.refusal.message}")
+                self._request(self.now(), "twist", v_sensor=self._streamed, answer=REFUSED,
+                              refusal=exc.refusal)
                 raise
 
     def move_to_sensor_pose(self, T_base_sensor: Array) -> bool:
@@ -302,19 +318,21 @@ class JobSession:
         counted unreachable when no joints reach it). :meth:`sensor_view_reachable` gives its verdict on
         the goal beforehand, without the path. The request and its answer go to ``planner_requests.csv``
         (``cell.jobs.requests``: what a replay answers with)."""
-        asked = self.now()
+        asked, self._refusal = self.now(), None
         reached = self._move_to_view(T_base_sensor)
-        self._request(asked, "move", T_base_sensor, answer=REACHED if reached else REFUSED, t_done=self.now())
+        self._request(asked, "move", T_base_sensor, answer=REACHED if reached else REFUSED, t_done=self.now(),
+                      refusal=None if reached else self._refusal)
         return reached
 
     def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
-                 answer: str = "", t_done: float | None = None) -> None:
-        """One row of ``planner_requests.csv``: a request asked at ``t`` [s] and its answer."""
-        self._recorder.planner_request(t, kind, T_base_sensor, v_sensor, answer, t_done)
+                 answer: str = "", t_done: float | None = None, refusal: Refusal | None = None) -> None:
+        """One row of ``planner_requests.csv``: a request asked at ``t`` [s], its answer and the guard's
+        refusal."""
+        self._recorder.planner_request(t, kind, T_base_sensor, v_sensor, answer, t_done, refusal)
 
     def _move_to_view(self, T_base_sensor: Array) -> bool:
-        """:meth:`move_to_sensor_pose`'s move, unrecorded."""
-        what = f"view at {np.round(T_base_sensor[:3, 3], 3).tolist()} (sensor)"
+        """:meth:`move_to_sensor_pose`'s move, unrecorded (a refusal is kept for the record)."""
+        what = view_name(T_base_sensor)
         q_now, T_sensor_flange = self._guard.state().q, inv_T(self._T_flange_sensor)
         refusal: Refusal | None = None
         for roll in (0.0, *same_view_rolls(self._sensor.model)):
@@ -353,6 +371,15 @@ class JobSession:
                 yield [q_now, self._q_home, q_goal]
 
     def retrace(self, duration_s: float) -> bool:
+        """:meth:`_retrace`, its answer (and the guard's last refusal when it refused every try) recorded
+        in ``planner_requests.csv``, as a move's is: what a replay answers with."""
+        asked, self._refusal = self.now(), None
+        retraced = self._retrace(duration_s)
+        self._request(asked, "retrace", answer=REACHED if retraced else REFUSED, t_done=self.now(),
+                      refusal=None if retraced else self._refusal)
+        return retraced
+
+    def _retrace(self, duration_s: float) -> bool:
         """After the guard stopped a streamed twist: tick until the arm is at rest, then move it (guarded,
         blocking in job time) back along the joint path it came, through every configuration it passed
         since ``duration_s`` [s] before this call (at most ``JOINT_PATH_KEPT_S``, or since the record
@@ -408,6 +435,7 @@ class JobSession:
 
     def _refused(self, refusal: Refusal, what: str) -> None:
         """Record and count a move the guard would refuse; ``what`` names it in the log."""
+        self._refusal = refusal
         self.refused_moves[refusal.kind] += 1
         self._guard.log.refuse(self.now(), f"move skipped: {refusal.message}")
         self.log(f"{what} skipped: {refusal.message}")
@@ -429,7 +457,8 @@ class JobSession:
         papers' camera twist), through the guard until the next command or ``hold``. Returns the twist the
         arm realizes of it now (within the limits, short of it near a singularity), in the sensor frame."""
         to_flange = self._sensor_twist_map(self._guard.state().T_base_flange)
-        sent = self._guard.command_twist(to_flange @ np.asarray(v_sensor, dtype=float))
+        self._streamed = np.asarray(v_sensor, dtype=float)
+        sent = self._guard.command_twist(to_flange @ self._streamed)
         # numpy's stub types solve() of float64 operands as NDArray[floating]; it returns float64
         return np.linalg.solve(to_flange, sent)  # type: ignore[return-value]
 

@@ -258,6 +258,12 @@ class MotionGuard:
         self.log.refuse(self._clock.now(), reason)
         return self._halt(f"refused: {reason}")
 
+    def refuse_twist(self, refusal: Refusal) -> TwistRefused:
+        """Refuse the streamed twist for ``refusal``: the arm is stopped and the refusal recorded, as for
+        any refusal; returns the exception to raise. :meth:`tick` refuses with it, and a replayed job
+        (``cell.jobs.replay``) gives its planner the live job's refusals with it."""
+        return TwistRefused(self._refuse(refusal.message).reason, refusal)
+
     # ------------------------------------------------------------------ geometry helpers
 
     def set_roi(self, aabb_min: Array | None, aabb_max: Array | None) -> None:
@@ -391,8 +397,7 @@ class MotionGuard:
             self._settling = False
         overrun = self._joint_overrun(state)
         if overrun is not None:
-            stop = self._refuse(overrun)
-            raise TwistRefused(stop.reason, Refusal("joint limit", overrun))
+            raise self.refuse_twist(Refusal("joint limit", overrun))
         ik = self._model.velocity_map(state.q)
         limited = self._limit(self._target, state, ik, count=True)
         snapshot = self._smoother.snapshot()
@@ -420,8 +425,7 @@ class MotionGuard:
         if share is None:
             reason = ("the joints would have to change speed faster than the robot allows to follow the "
                       "twist (near a singularity)")
-            stop = self._refuse(reason)
-            raise TwistRefused(stop.reason, Refusal("joint acceleration", reason))
+            raise self.refuse_twist(Refusal("joint acceleration", reason))
         if share < 1.0:
             v = self._smoother.blend(snapshot, share)
             self.log.clamp("joint_acceleration")
@@ -439,19 +443,16 @@ class MotionGuard:
             unsafe = self._braking_violation(state, ik)
             if unsafe is not None:
                 reason = f"{unsafe}: the stop cannot begin within the TCP jerk limit"
-                stop = self._refuse(reason)
-                raise TwistRefused(stop.reason, Refusal("speed", reason))
+                raise self.refuse_twist(Refusal("speed", reason))
         too_fast = self._over_speed(v, ik(v), SPEED_SLACK)
         if too_fast is not None:
-            stop = self._refuse(too_fast)
-            raise TwistRefused(stop.reason, Refusal("speed", too_fast))
+            raise self.refuse_twist(Refusal("speed", too_fast))
         if self._over_speed(v, ik(v), RATE_TOLERANCE) is not None:
             self.log.clamp("speed_while_slowing")
         hit = self._collision_ahead(state.q, ik(v))
         if hit is not None:
             reason = f"{hit} within {self._safety.collision.lookahead_s:g} s"
-            stop = self._refuse(reason)
-            raise TwistRefused(stop.reason, Refusal("collision", reason))
+            raise self.refuse_twist(Refusal("collision", reason))
         self._send(lambda: self._arm.command_twist(v, self._token))
         self._sent = (v, (v - self._sent[0]) / self._period)
 
