@@ -81,7 +81,10 @@ def test_replay_arm_follows_the_recorded_poses(tof_job):
             clock.sleep(frame.timestamp - clock.now())
             state = arm.state()
             assert np.array_equal(state.T_base_flange, rec.load(k)[2])  # the capture's own pose, exactly
-            assert np.all(np.isnan(state.q)) and state.q.shape == (6,) and not np.any(state.v_base_flange)
+            assert state.q.shape == (6,) and np.all(np.isfinite(state.q)) and not np.any(state.v_base_flange)
+        with (tof_job / "joints.csv").open() as f:  # the joints the live arm reported, exactly
+            t, *q = (float(v) for v in list(csv.reader(f))[1:][100])
+        assert arm.joints_at(t).tolist() == q
         with (tof_job / "trajectory.csv").open() as f:
             rows = list(csv.reader(f))[1:]
         t, *pose = (float(v) for v in rows[len(rows) // 3])
@@ -89,6 +92,15 @@ def test_replay_arm_follows_the_recorded_poses(tof_job):
         assert np.allclose(T[:3, 3], pose[:3], atol=1e-8)
         assert np.allclose(np.abs(quat_xyzw(T) @ np.asarray(pose[3:])), 1.0, atol=1e-8)
         assert np.array_equal(arm.pose_at(-1.0), arm.pose_at(0.0))  # before the recording: its first pose
+
+
+def test_a_job_recorded_without_joints_replays_an_arm_without_them(tof_job, tmp_path):
+    job = tmp_path / "old"
+    shutil.copytree(tof_job, job)
+    (job / "joints.csv").unlink()
+    arm = ReplayArm(JobRecording(job), get_robot_model("ur5e"), SimClock())
+    with arm:
+        assert np.all(np.isnan(arm.state().q)) and arm.state().q.shape == (6,)
 
 
 def test_replay_arm_cannot_move(tof_job):
@@ -349,7 +361,9 @@ def test_a_job_recorded_before_refusals_replays_and_says_it_may_diverge(refused_
         writer = csv.DictWriter(f, columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
+    (old / "joints.csv").unlink()
     result, _ = _replay(old, tmp_path / "again")
     assert result["status"] == "completed" and result["replay"]["refusals_recorded"] is False
-    assert "recorded before the arm's refusals" in (tmp_path / "again" / "log.txt").read_text()
+    log = (tmp_path / "again" / "log.txt").read_text()
+    assert "recorded before the arm's refusals" in log and "has no joints.csv" in log
     assert result["refused_moves"] == {}  # unrefused, the planner streamed on

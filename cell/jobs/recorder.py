@@ -6,6 +6,9 @@
 - ``result.json``: the job's outcome (see ``cell.jobs.runner``);
 - ``cloud.ply``: the accumulated cloud, base frame [m], binary little-endian float64 x, y, z;
 - ``trajectory.csv``: ``t,x,y,z,qx,qy,qz,qw``, the sensor pose in the base frame at every control tick;
+- ``joints.csv``: ``t,q1..qN``, the joints the arm reported [rad] at every control tick, exactly (the
+  shortest decimal that reads back as the same float): a replay's arm reports them
+  (``drivers.arm.replay``), and the planner's joint-limit and singularity rows see what the live one did;
 - ``frames/NNNNNN.npz``: each capture's raw data with ``T_base_sensor`` (reported), ``T_base_flange`` and
   the timestamp: for a depth camera the depth image [m] and its intrinsics ``K`` (the points follow from
   them, see ``DepthFrame``) and its grey ``intensity`` image when it gives one, otherwise the points in
@@ -49,6 +52,7 @@ from cell.perception.octomap_io import write_bt
 from cell.safety.guard import Refusal
 from drivers.atomic_file import atomic_open, write_text_atomic
 from drivers.depth.base import DepthFrame
+from drivers.depth.replay import JOINTS_FILE
 from drivers.errors import JobError
 from drivers.transforms import quat_xyzw
 
@@ -83,6 +87,7 @@ class JobRecorder:
         self._index_writer = csv.writer(self._index)
         self._index_writer.writerow(["seq", "t", "file", "n_points"])
         self._requests: TextIO | None = None
+        self._joints: TextIO | None = None
 
     def log(self, t: float, message: str) -> None:
         """One line of ``log.txt`` (any thread: the perception worker logs too on the wall clock)."""
@@ -94,6 +99,13 @@ class JobRecorder:
         p = T_base_sensor[:3, 3]
         q = quat_xyzw(T_base_sensor)
         self._traj_writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in p), *(f"{v:.9f}" for v in q)])
+
+    def joints(self, t: float, q: Array) -> None:
+        """One row of ``joints.csv``: job time [s] and the joints [rad] (created with the first row)."""
+        if self._joints is None:
+            self._joints = (self.folder / JOINTS_FILE).open("w", newline="")
+            csv.writer(self._joints).writerow(["t", *(f"q{k + 1}" for k in range(len(q)))])
+        csv.writer(self._joints).writerow([f"{t:.6f}", *(repr(float(v)) for v in q)])
 
     def frame(self, frame: DepthFrame, T_base_sensor: Array, T_base_flange: Array,
               extra: dict[str, Array]) -> None:
@@ -144,6 +156,6 @@ class JobRecorder:
 
     def close(self) -> None:
         self._traj.flush()
-        for f in (self._log, self._traj, self._index, self._requests):
+        for f in (self._log, self._traj, self._index, self._requests, self._joints):
             if f is not None:
                 f.close()

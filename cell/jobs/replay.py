@@ -15,8 +15,8 @@ asks, and :class:`ReplaySession` writes every request to ``planner_requests.csv`
   returns the live verdict. The arm's answers are not in the frames: without them a replay of LR-NBV
   asked for other views from the first move the live arm refused, and settled a planner's wait after
   each move a second time, reading the arm's pose on its way to the next view. Once the planner asks for
-  something else, the recording plays on as above, and reach checks are answered from home's joints (a
-  replayed arm reports none);
+  something else, the recording plays on as above, and reach checks are answered from the recorded
+  joints (``joints.csv``; from home's for a job recorded without them);
 - likewise the guard's refusals of streamed twists: at the control tick the live guard refused one, the
   replay's guard refuses it (``MotionGuard.refuse_twist``, with the live reason), and a ``retrace`` that
   follows plays the recording until the live retrace ended and returns its answer. Without them a
@@ -25,6 +25,11 @@ asks, and :class:`ReplaySession` writes every request to ``planner_requests.csv`
   sooner, its cloud another. A job recorded before refusals were (no ``refusal`` column) replays without
   them: the log and ``result.json`` (``replay.refusals_recorded``) say so, and from a refusal the live
   arm made it may diverge;
+- the replayed arm reports the joints the live arm reported at each tick (``joints.csv``), so that the
+  planner's joint-limit and singularity rows (``joint_limit_twists``, ``singularity_twists``) are the
+  live planner's: without them the VS-Local cube scan refused at 30.73 s (``link1 would touch link5b``)
+  remembered another refused direction than the live one, whose g a joint's margin had projected out,
+  and converged 13 s sooner;
 - ``command_sensor_twist`` and ``hold`` record the twist asked for; the twist returned is the recorded
   sensor twist over the last control period, what the sensor really does;
 - with continuous capture on, every recorded frame is captured when the clock reaches its time.
@@ -79,6 +84,9 @@ class ReplaySession(JobSession):
         if self._following and not self.refusals_recorded:
             self.log("the recorded job was recorded before the arm's refusals of streamed twists were: where "
                      "its arm refused one, this replay's does not, and from there it may diverge")
+        if self._following and self._jointed_state() is None:
+            self.log("the recorded job has no joints.csv: the replayed arm reports no joints, and where a "
+                     "joint's margin shaped the live planner's motion, this replay may diverge")
 
     def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
                  answer: str = "", t_done: float | None = None, refusal: Refusal | None = None) -> None:
@@ -152,10 +160,10 @@ class ReplaySession(JobSession):
 
     def _retrace(self, duration_s: float) -> bool:
         """The live retrace's answer while the planner follows the live one (:meth:`_play_answer`), else
-        the session's (False: a replayed arm reports no joints to go back along)."""
+        False: a replayed arm cannot go back along its path."""
         recorded = self._recorded("retrace", None)
         if recorded is None or recorded.t_done is None:
-            return super()._retrace(duration_s)
+            return False
         return self._play_answer(recorded, f"retrace of {duration_s:g} s")
 
     def _play_answer(self, recorded: RecordedAnswer, what: str) -> bool:
@@ -170,7 +178,7 @@ class ReplaySession(JobSession):
 
     def _view_reachable(self, T_base_sensor: Array) -> bool:
         """The live job's verdict on the view while the planner follows it (:meth:`_recorded`), else the
-        session's own (seeded from home: a replayed arm reports no joints)."""
+        session's own (seeded from the recorded joints, or home's for a job recorded without them)."""
         recorded = self._recorded("reach", T_base_sensor)
         if recorded is None:
             return super()._view_reachable(T_base_sensor)

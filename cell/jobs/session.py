@@ -181,6 +181,7 @@ class JobSession:
             self.path_length_m += float(np.linalg.norm(p - self.sensor_path.last))
         self.sensor_path.append(p)
         self._recorder.pose(self.now(), T)
+        self._recorder.joints(self.now(), state.q)
         if self._poses is not None:
             self._poses.add(self.now(), T_base_flange)
 
@@ -388,9 +389,9 @@ class JobSession:
         towards the contact), and passes only where the guard let the arm pass (a straight joint line
         back cuts the corners of a path that slid along the floor's margin, into it and the table).
         Where the guard refuses it all the same, half as far back is tried, then a quarter
-        (``RETRACE_SHARES``). Returns False, without moving, for an arm that reports no joints (a replayed
-        arm) or when the guard refuses every one (recorded and counted); raises ``KinematicsError`` when
-        the arm does not come to rest within ``SETTLE_TIMEOUT_S``."""
+        (``RETRACE_SHARES``). Returns False, without moving, for an arm that reports no joints or when the
+        guard refuses every one (recorded and counted); raises ``KinematicsError`` when the arm does not
+        come to rest within ``SETTLE_TIMEOUT_S``."""
         stopped_at = self.now()
         deadline = stopped_at + SETTLE_TIMEOUT_S
         while np.any(np.abs(self._guard.state().qd) > SETTLED_QD_RAD_S):
@@ -463,8 +464,9 @@ class JobSession:
         return np.linalg.solve(to_flange, sent)  # type: ignore[return-value]
 
     def _jointed_state(self) -> ArmState | None:
-        """The arm's state, or None when it reports no joints (a replayed arm: its recorded motion plays
-        whatever the planner asks, so no joint limit or reach holds it back)."""
+        """The arm's state, or None when it reports no joints (the replayed arm of a job recorded without
+        ``joints.csv``: its recorded motion plays whatever the planner asks, so no joint limit or reach
+        holds it back; with it, the planner sees the joints the live one did)."""
         state = self._guard.state()
         return state if np.all(np.isfinite(state.q)) else None
 
@@ -527,8 +529,8 @@ class JobSession:
 
     def sensor_path_reachable(self, T_base_sensor: Array, min_singular_value: float = 0.0) -> bool:
         """IK (within the guard's ``joint_bounds`` where it finds joints there) seeded from the current
-        joints (from home where the arm reports none, as a replayed arm), then from each solution, reaches
-        the poses (K, 4, 4) in turn, every solution one the arm may take
+        joints (from home where the arm reports none, as a replayed arm without recorded joints), then
+        from each solution, reaches the poses (K, 4, 4) in turn, every solution one the arm may take
         (:meth:`_joints_allowed`) and no joint moving more than ``MAX_PATH_JOINT_STEP_RAD`` between
         consecutive poses."""
         q = self._q_reported()
@@ -567,7 +569,7 @@ class JobSession:
         return False
 
     def _q_reported(self) -> Array:
-        """The arm's joints, or home where it reports none (a replayed arm)."""
+        """The arm's joints, or home where it reports none (a replayed arm without recorded joints)."""
         q_now = self._guard.state().q
         return q_now if np.all(np.isfinite(q_now)) else self._q_home
 

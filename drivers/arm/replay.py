@@ -2,8 +2,9 @@
 
 ``state()`` reports the recorded flange pose at the clock's time: the last recorded pose at or before it
 (zero-order hold; the recorder writes one every control tick, and the exact pose of every capture), the
-first one before the recording starts and the last one after it ends. The job folder does not record
-joint positions, so ``q`` is NaN; ``qd`` and the flange twist are zero.
+first one before the recording starts and the last one after it ends. ``q`` is the joints the job recorded
+at the last tick at or before the clock's time (``joints.csv``; NaN for a job recorded without them);
+``qd`` and the flange twist are zero.
 
 It cannot move: ``command_twist`` and ``execute_trajectory`` raise ``DriverError`` (after the motion
 token check, so the safety guard stays the only way in). ``stop`` and ``recover`` do nothing: a recording
@@ -35,6 +36,7 @@ class ReplayArm(LocalLink, Arm):
         self._model = model
         self._clock = clock
         self._times, self._poses = recording.flange_track()
+        self._joints = recording.joint_track()
 
     @property
     def device(self) -> str:
@@ -55,11 +57,20 @@ class ReplayArm(LocalLink, Arm):
         k = int(np.searchsorted(self._times, t + CSV_TIME_RESOLUTION_S / 2, side="right")) - 1
         return self._poses[max(k, 0)].copy()
 
+    def joints_at(self, t: float) -> Array:
+        """The recorded joints [rad] at time ``t`` [s] (zero-order hold, as :meth:`pose_at`); NaN when the
+        job did not record them."""
+        if self._joints is None or self._joints[1].shape[1] != self._model.n_joints:
+            return np.full(self._model.n_joints, np.nan)
+        times, q = self._joints
+        k = int(np.searchsorted(times, t + CSV_TIME_RESOLUTION_S / 2, side="right")) - 1
+        return q[max(k, 0)].copy()
+
     def state(self) -> ArmState:
         self._require_connected("state", self.device)
         t = self._clock.now()
         n = self._model.n_joints
-        return ArmState(timestamp=t, q=np.full(n, np.nan), qd=np.zeros(n), T_base_flange=self.pose_at(t),
+        return ArmState(timestamp=t, q=self.joints_at(t), qd=np.zeros(n), T_base_flange=self.pose_at(t),
                         v_base_flange=np.zeros(6), mode=ArmMode.IDLE)
 
     def _command_twist(self, v_base_flange: Array) -> None:

@@ -5,7 +5,8 @@ The folder layout is the job recorder's (``cell/jobs/recorder.py``): ``frames/NN
 capture's ``timestamp`` [s, job clock], ``T_base_sensor`` and ``T_base_flange`` (4x4, base frame), and
 either a depth image ``depth`` [m] with its intrinsics ``K`` or ``points`` [m, sensor frame] with the ToF
 zones (``zone_*``); ``trajectory.csv`` holds ``t,x,y,z,qx,qy,qz,qw``, the sensor pose in the base frame at
-every control tick.
+every control tick, and ``joints.csv`` (jobs recorded since it was) ``t,q1..qN``, the joints [rad] the arm
+reported at every tick.
 
 Timing: both play on a clock given to them (the job's), in the recording's time. ``capture`` returns the
 newest frame recorded at or before the clock's time that was not returned yet; when there is none it lets
@@ -40,6 +41,7 @@ TIME_TOLERANCE_S = 1e-9
 """Recorded times within this of the clock count as reached (times pass through float sums)."""
 CSV_TIME_RESOLUTION_S = 1e-6
 """``trajectory.csv`` writes times with 6 decimals."""
+JOINTS_FILE = "joints.csv"
 
 
 @dataclass(frozen=True)
@@ -157,6 +159,25 @@ class JobRecording:
         t = np.concatenate(times)
         order = np.argsort(t, kind="stable")
         return t[order], np.concatenate(poses)[order]
+
+    def joint_track(self) -> tuple[Array, Array] | None:
+        """The recorded joints in time order: times (K,) [s] and joints (K, N) [rad], from ``joints.csv``;
+        None for a job recorded without it. A last line cut short (a job killed mid-write) is left out;
+        ``DriverError`` names a row that is not numbers."""
+        path = self.job_dir / JOINTS_FILE
+        if not path.is_file():
+            return None
+        text = path.read_text()
+        lines = text.splitlines()
+        if lines and not text.endswith("\n"):
+            lines.pop()
+        try:
+            values = np.array([[float(v) for v in row] for row in csv.reader(lines[1:])], dtype=np.float64)
+        except ValueError as exc:
+            raise DriverError(f"{path}: not a row of joints ({exc})", device=self.device) from None
+        if values.ndim != 2 or values.shape[0] == 0:
+            return None
+        return values[:, 0], values[:, 1:]
 
     def _trajectory_rows(self, path: Path) -> list[list[float]]:
         """The pose rows of ``trajectory.csv`` (t, x, y, z, qx, qy, qz, qw). The job appends a row at every
