@@ -62,7 +62,7 @@ from cell.planning.base import Array, Planner
 from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.registry import get_planner
 from cell.planning.vs.servo_scan import ServoScanPlanner
-from cell.planning.vs.telemetry import CSV_NAME, FIG4_NAME, plot_fig4, write_telemetry_csv
+from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
 from drivers.arm.claim import ArmClaim
 from drivers.arm.config import FrankaArmConfig, ReplayArmConfig, UR5eArmConfig
@@ -544,13 +544,8 @@ def _write_plots(job: PreparedScan, session: JobSession | None, packing: dict[st
         return
     positions = np.array(session.sensor_path.records())
     if isinstance(planner, ServoScanPlanner) and planner.telemetry:
-        # servo.csv and servo.png here, not with write_servo_outputs: path.png marks the first capture,
-        # which that function is not given
-        rows = planner.telemetry.records()
-        write_telemetry_csv(job.folder / CSV_NAME, rows, session.coverage_history)
-        plot_fig4(job.folder / FIG4_NAME, rows, session.coverage_history)
-        plot_path(job.folder / PATH_NAME, positions, planner.centroid,
-                  first_capture_base=session.first_frame_position)
+        write_servo_outputs(job.folder, planner.telemetry.records(), positions, planner.centroid,
+                            session.coverage_history, session.first_frame_position)
     elif session.sensor_path:
         captures = ([s.T_base_sensor[:3, 3] for s in planner.reconstruction.sightings]
                     if isinstance(planner, RecordsReconstruction) else None)

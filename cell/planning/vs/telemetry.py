@@ -1,8 +1,9 @@
 """The servo planners' outputs for a job folder: the time series of the visual-servoing paper's Fig. 4 as
 CSV and as a four-panel PNG, and the sensor path around the object as in Fig. 3 (left).
 
-In sim the coverage of the ground truth (eq. 13, known only to the job, not to the planner) is added:
-a column of the CSV, and a second axis on the H_ROI panel."""
+In sim the coverage of the ground truth (eq. 13 of the cloud as it stands at each capture, before the
+ground truth is registered to it; known only to the job, not to the planner) is added: a column of the
+CSV, and a second axis on the H_ROI panel."""
 
 from __future__ import annotations
 
@@ -66,15 +67,17 @@ def plot_fig4(path: Path, rows: Sequence[TelemetryRow], coverage: Sequence[tuple
     if coverage:
         twin = axes[1, 1].twinx()
         twin.plot(t, coverage_at(t, coverage), lw=1.0, color="tab:green")
-        twin.set_ylabel("coverage [%]", color="tab:green")
+        twin.set_ylabel("coverage, unregistered [%]", color="tab:green")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 
 
 def write_servo_outputs(folder: Path, rows: Sequence[TelemetryRow], positions_base: Array,
-                        centroid_base: Array | None, coverage: Sequence[tuple[float, float]] = ()) -> None:
-    """``servo.csv``, ``servo.png`` (Fig. 4) and ``path.png`` (Fig. 3, left) in a job folder;
-    ``coverage``: (job time [s], coverage [%]) samples, in sim."""
+                        centroid_base: Array | None, coverage: Sequence[tuple[float, float]] = (),
+                        first_capture_base: Array | None = None) -> None:
+    """``servo.csv``, ``servo.png`` (Fig. 4) and ``path.png`` (Fig. 3, left, its scan starting at
+    ``first_capture_base`` [m, base frame] when given) in a job folder; ``coverage``: (job time [s],
+    coverage [%]) samples, in sim."""
     write_telemetry_csv(folder / CSV_NAME, rows, coverage)
     plot_fig4(folder / FIG4_NAME, rows, coverage)
-    plot_path(folder / PATH_NAME, positions_base, centroid_base)
+    plot_path(folder / PATH_NAME, positions_base, centroid_base, first_capture_base=first_capture_base)
