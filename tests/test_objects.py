@@ -71,6 +71,78 @@ def test_missing_path_raises_job_error_listing_names(tmp_path: Path) -> None:
     assert "bunny" in str(exc.value) and "vertical_box" in str(exc.value)
 
 
+def test_a_folder_given_as_the_object_is_named_a_folder(tmp_path: Path) -> None:
+    with pytest.raises(JobError, match="is a folder, not a mesh file") as exc:
+        load_object(str(tmp_path))
+    assert "not found" not in str(exc.value)
+
+
+def _signed_volume(mesh: ObjectMesh) -> float:
+    v = mesh.vertices[mesh.triangles]
+    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".ply"])
+def test_an_inverted_cube_loads_outward_and_its_top_is_ground_truth(tmp_path: Path, suffix: str) -> None:
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    box.invert()
+    path = tmp_path / f"flipped{suffix}"
+    box.export(path)
+    mesh = load_object(path)
+    assert _signed_volume(mesh) == pytest.approx(1e-3, rel=1e-6)
+    normals, _ = face_normals(mesh.vertices, mesh.triangles)
+    centres = mesh.vertices[mesh.triangles].mean(axis=1)
+    assert np.all(np.einsum("ij,ij->i", normals, centres - [0.0, 0.0, 0.05]) > 0.0)  # all outward
+    pts = sample_surface(mesh, 5000, np.random.default_rng(0))
+    assert pts[:, 2].min() > 1e-9  # the bottom is left out, not the top
+    assert np.mean(np.isclose(pts[:, 2], 0.1)) == pytest.approx(0.2, abs=0.03)
+
+
+def test_a_cube_of_mixed_winding_is_made_consistent(tmp_path: Path) -> None:
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    faces = box.faces.copy()
+    faces[::3] = faces[::3, ::-1]
+    path = tmp_path / "mixed.ply"
+    trimesh.Trimesh(box.vertices, faces, process=False).export(path)
+    mesh = load_object(path)
+    assert _signed_volume(mesh) == pytest.approx(1e-3, rel=1e-6)
+
+
+def test_an_open_downward_sheet_faces_up(tmp_path: Path) -> None:
+    sheet = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]], [[0, 2, 1], [0, 3, 2]],
+                            process=False)
+    path = tmp_path / "sheet.ply"
+    sheet.export(path)
+    mesh = load_object(path)
+    normals, _ = face_normals(mesh.vertices, mesh.triangles)
+    np.testing.assert_allclose(normals, [[0, 0, 1], [0, 0, 1]])
+
+
+def test_a_moebius_strip_is_refused(tmp_path: Path) -> None:
+    n = 12
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    ring = []
+    for s in (-0.01, 0.01):
+        ring.append(np.stack([(0.05 + s * np.cos(t / 2)) * np.cos(t), (0.05 + s * np.cos(t / 2)) * np.sin(t),
+                              0.05 + s * np.sin(t / 2)], axis=1))
+    vertices = np.vstack(ring)  # i: edge -1, n + i: edge +1; after a turn the edges swap
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        a, b, c, d = i, n + i, (j if j else n), (n + j if j else 0)
+        faces += [[a, c, b], [b, c, d]]
+    path = tmp_path / "moebius.ply"
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    with pytest.raises(JobError, match="cannot be oriented"):
+        load_object(path)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_the_shipped_meshes_are_already_outward(name: str) -> None:
+    raw = trimesh.load(OBJECTS_DIR / f"{name}.ply", process=False)
+    np.testing.assert_array_equal(load_object(name).triangles, raw.faces)
+
+
 def test_unreadable_file_raises_job_error(tmp_path: Path) -> None:
     bad = tmp_path / "garbage.ply"
     bad.write_bytes(b"this is not a mesh\n")

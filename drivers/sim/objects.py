@@ -4,7 +4,9 @@ Object frame: metres, z-up, the axis-aligned bounding box centred on x = y = 0 a
 z = 0, so an object placed with the identity pose rests on a z = 0 table. The shipped meshes (package data
 in ``drivers/sim/objects/``, origins and licences in ``CREDITS.md`` there) are already in that frame; a
 user file given by path is translated into it on load (no rotation; no scaling unless asked: a file in
-other units than metres needs the scale that converts them, e.g. 0.001 for millimetres). ``EMPTY_TABLE``
+other units than metres needs the scale that converts them, e.g. 0.001 for millimetres) and its triangles
+wound outward (:func:`oriented`: eq. 13's ground truth leaves out the faces pointing down, and an inverted
+file would lose its top instead of its base). ``EMPTY_TABLE``
 ("none") names no object at all: a simulated cell's table with nothing on it.
 """
 
@@ -110,6 +112,9 @@ def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
     """Read a PLY / OBJ / STL with Open3D; raises ``JobError`` when unreadable or empty."""
     import open3d as o3d
 
+    if path.is_dir():
+        raise JobError(f"object file {path} is a folder, not a mesh file: give the .ply/.obj/.stl file in it "
+                       f"({_names_hint()})")
     if not path.is_file():
         raise JobError(f"object file not found: {path} ({_names_hint()})")
     if path.suffix.lower() not in _MESH_SUFFIXES:
@@ -127,7 +132,7 @@ def _read_mesh(path: Path) -> tuple[Array, NDArray[np.int32]]:
         raise JobError(f"object file {path} is unreadable or has no triangles ({_names_hint()})")
     if not np.all(np.isfinite(vertices)):
         raise JobError(f"object file {path} has non-finite vertices ({_names_hint()})")
-    return vertices, triangles
+    return vertices, oriented(vertices, triangles, str(path))
 
 
 # Bytes per value of a binary PLY property type; an ASCII value takes at least 2 (a digit, a separator).
@@ -136,6 +141,83 @@ _PLY_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort"
               "double": 8, "float64": 8}
 _PLY_HEADER_MAX_BYTES = 65536
 _STL_HEADER_BYTES, _STL_FACET_BYTES = 84, 50
+
+
+_FLAT_RELATIVE_VOLUME = 1e-9
+"""Below this share of (surface area x bounding-box diagonal), a patch's signed volume is rounding noise:
+the patch is flat (or a symmetric sheet) and encloses no side to point away from."""
+
+
+def _edge_adjacency(tri: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64],
+                                                     NDArray[np.bool_], NDArray[np.int64]]:
+    """The triangle pairs (a, b) that share a manifold edge (one used by exactly two triangles), whether
+    each pair runs that edge the same way (inconsistent winding), and per triangle its number of edges
+    used by one triangle only (boundary) or by more than two (non-manifold)."""
+    f = tri.shape[0]
+    heads = tri.reshape(-1)
+    tails = tri[:, [1, 2, 0]].reshape(-1)
+    owner = np.repeat(np.arange(f), 3)
+    keys = np.sort(np.stack([heads, tails], axis=1), axis=1)
+    _, edge, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    edge = edge.reshape(-1)
+    order = np.argsort(edge, kind="stable")
+    paired = counts[edge[order]] == 2
+    first = order[paired][0::2]
+    second = order[paired][1::2]
+    same_way = heads[first] == heads[second]
+    open_edges = np.bincount(owner, weights=(counts[edge] != 2), minlength=f).astype(np.int64)
+    return owner[first], owner[second], same_way, open_edges
+
+
+def oriented(vertices: Array, triangles: NDArray[np.int32], name: str) -> NDArray[np.int32]:
+    """``triangles`` (F, 3) of the mesh ``vertices`` (V, 3) [m] wound counter-clockwise seen from outside
+    (outward normals, as ``ObjectMesh`` and ``sample_surface`` take them); ``name`` for the error.
+
+    Vertices at the same coordinates count as one (an STL repeats them per facet). Within each patch of
+    triangles joined by edges that two triangles share, the winding is made consistent: a patch where that
+    is impossible (a Moebius strip) raises ``JobError``. Then each patch is turned to enclose a positive
+    signed volume, taken about the patch's own centroid: for a closed patch that is its volume, and the
+    normals point out; for an open patch (a scan missing its base, an edge used by one triangle or by more
+    than two) it is the same test on the surface it has, outward wherever the patch wraps around its
+    centroid. A flat open patch (a sheet, no volume to tell a side by) faces up (+z), the side a camera
+    above the table sees. A mesh already so wound is returned unchanged (every shipped one is)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    _, canonical = np.unique(vertices, axis=0, return_inverse=True)
+    tri = canonical.reshape(-1)[triangles].astype(np.int64)
+    f = tri.shape[0]
+    a, b, same_way, open_edges = _edge_adjacency(tri)
+    # two states per triangle (kept, flipped); a consistent pair keeps both in the same state
+    rows = np.concatenate([a, a + f])
+    cols = np.concatenate([np.where(same_way, b + f, b), np.where(same_way, b, b + f)])
+    graph = coo_matrix((np.ones(rows.shape[0]), (rows, cols)), shape=(2 * f, 2 * f))
+    _, state = connected_components(graph, directed=False)
+    kept, flipped = state[:f], state[f:]
+    if np.any(kept == flipped):
+        raise JobError(f"object file {name} cannot be oriented: a part of its surface is one-sided (a "
+                       "Moebius strip), so it has no outside; repair the mesh")
+    flip = kept > flipped  # each patch keeps the winding of its state with the lower label
+    patch = np.minimum(kept, flipped)
+    consistent = np.where(flip[:, None], triangles[:, [0, 2, 1]], triangles)
+    v = vertices[consistent]
+    cross = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    _, patch = np.unique(patch, return_inverse=True)
+    n = int(patch.max()) + 1
+    total = np.maximum(np.bincount(patch, weights=area, minlength=n), np.finfo(float).tiny)
+    centroid = np.stack([np.bincount(patch, weights=area * v[:, :, k].mean(axis=1), minlength=n)
+                         for k in range(3)], axis=1) / total[:, None]
+    rel = v - centroid[patch][:, None, :]
+    cones = np.einsum("ij,ij->i", rel[:, 0], np.cross(rel[:, 1], rel[:, 2])) / 6.0
+    volume = np.bincount(patch, weights=cones, minlength=n)
+    up = np.bincount(patch, weights=cross[:, 2], minlength=n)
+    size = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    flat = np.abs(volume) <= _FLAT_RELATIVE_VOLUME * total * size
+    closed = np.bincount(patch, weights=open_edges, minlength=n) == 0
+    inward = np.where(flat & ~closed, up < 0.0, volume < 0.0)
+    turn = inward[patch]
+    return np.where(turn[:, None], consistent[:, [0, 2, 1]], consistent).astype(np.int32)
 
 
 def _check_declared_size(path: Path) -> None:
