@@ -165,4 +165,4 @@ def test_jog_refuses_a_protectively_stopped_arm(peer: ControllerPeer, cell_file:
 def test_jog_refuses_a_long_move_before_connecting(cell_file: Path) -> None:
     result = CliRunner().invoke(arm_app, ["jog", "--config", str(cell_file), "--axis", "x",
                                           "--distance", "0.2"])
-    assert result.exit_code == 2 and "at most 0.05" in result.output
+    assert result.exit_code == 1 and "at most 0.05" in result.output

@@ -144,3 +144,25 @@ def test_every_registered_planner_loads_as_a_planner():
     must load a planner class."""
     assert all(issubclass(get_planner(name), Planner) for name in PLANNERS)
     assert len({entry.location for entry in PLANNERS.values()}) == len(PLANNERS)
+
+
+@pytest.mark.parametrize("args", [
+    ("scan", "--bogus"), ("scan", "--seed", "abc"), ("scan", "--max-time", "abc"),
+    ("scan", "--object-pose", "1,2"),
+    ("scan", "--planner", "vs-local", "--planner", "vs-global"), ("nosuch",), ("config", "check"),
+    ("config", "check", "--bogus"), ("jobs", "list", "--bogus"), ("stop", "--bogus"),
+])
+def test_a_usage_error_of_any_command_exits_1_with_clicks_message(args):
+    """Click's usage errors exited 2, the code ``cell scan`` documents for a scan that found no object."""
+    proc = subprocess.run([sys.executable, "-m", "cell.cli.entry", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, check=False, env={**os.environ, "COLUMNS": "200"})
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "Usage: cell" in proc.stderr and "Error" in proc.stderr
+
+
+def test_an_option_of_one_value_given_twice_is_refused():
+    proc = subprocess.run([sys.executable, "-m", "cell.cli.entry", "scan", "--planner", "vs-local",
+                           "--planner", "vs-global"], cwd=REPO, capture_output=True, text=True, timeout=120,
+                          check=False, env={**os.environ, "COLUMNS": "200"})
+    assert proc.returncode == 1
+    assert "option --planner was given 2 times; it takes one value: give it once" in proc.stderr

@@ -23,12 +23,20 @@ from cell.evaluation.results import read_csv
 
 REPO = Path(__file__).resolve().parents[1]
 CELL = Path(sys.executable).with_name("cell")
-GRID = ["eval", "grid", "--config", str(REPO / "config" / "sim-ur5e-tof.yaml"), "--limit-directions", "0",
-        "--jobs", "1", "--max-time", "6"]
+GRID_DEFAULTS = {"--config": str(REPO / "config" / "sim-ur5e-tof.yaml"), "--limit-directions": "0",
+                 "--jobs": "1", "--max-time": "6"}
+
+
+def grid(*args: str) -> list[str]:
+    """``cell eval grid ARGS`` with each of ``GRID_DEFAULTS`` that ``args`` does not give itself (an option
+    of one value given twice is refused)."""
+    defaults = [word for option, value in GRID_DEFAULTS.items() if option not in args
+                for word in (option, value)]
+    return [str(CELL), "eval", "grid", *defaults, *args]
 
 
 def cell_eval(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(CELL), *GRID, *args], capture_output=True, text=True, timeout=120, check=False)
+    return subprocess.run(grid(*args), capture_output=True, text=True, timeout=120, check=False)
 
 
 def test_a_grid_writes_its_report_and_a_rerun_skips_the_done_scan(tmp_path):
@@ -74,7 +82,7 @@ def test_bad_input_fails_in_one_line_before_any_scan(tmp_path, args, reason):
     out = tmp_path / "run"
     given = [a.format(placements=placements, off_table=off_table, mm_mesh=tmp_path / "part_mm.obj")
              for a in args]
-    done = CliRunner().invoke(app, [*GRID, *given, "--out", str(out)])
+    done = CliRunner().invoke(app, [*grid(*given, "--out", str(out))[1:]])
     assert done.exit_code not in (0, None)
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and reason in lines[0], done.stderr
@@ -149,8 +157,8 @@ def test_a_signal_stops_the_workers_and_says_so_in_one_line(tmp_path, stage, sig
             "--max-time", "600", "--limit-directions", "0"] if stage == "scan" else \
         ["--planners", "heu", "--max-time", "1", "--limit-directions", "300"]
     with err.open("w") as stderr:
-        proc = subprocess.Popen([str(CELL), *GRID, "--objects", "cube", *args,
-                                 "--out", str(tmp_path / "run")], stderr=stderr, stdout=subprocess.DEVNULL,
+        proc = subprocess.Popen(grid("--objects", "cube", *args, "--out", str(tmp_path / "run")),
+                                stderr=stderr, stdout=subprocess.DEVNULL,
                                 start_new_session=True)
     try:
         _wait_for(lambda: _children(proc.pid), 60)

@@ -114,7 +114,7 @@ def test_check_refuses_a_count_or_time_that_reads_nothing(tmp_path, option, mess
     """'--frames 0' and '--seconds -1' read nothing and passed: "frames: 0 in 0.00 s, - Hz", exit 0."""
     cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": "/dev/null", "resolution": 4})
     res = CliRunner().invoke(app, ["sensor", "check", "--config", cell, *option], env={"COLUMNS": "200"})
-    assert res.exit_code == 2 and message in res.output, res.output
+    assert res.exit_code == 1 and message in res.output, res.output
     assert "frames:" not in res.output
 
 

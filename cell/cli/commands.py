@@ -13,11 +13,16 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeVar
 
+# Typer carries its own copy of Click (typer._click); its usage errors are of that copy's classes.
 import typer
+from typer._click import Context
+from typer._click.exceptions import UsageError
+from typer.core import TyperCommand, TyperGroup
 
 # Each command's name and where it lives (module:attribute), a function or a group of commands, in the
 # order ``cell --help`` lists them.
@@ -42,17 +47,78 @@ COMMANDS: dict[str, str] = {
 }
 
 
+EXIT_INPUT_ERROR = 1
+"""The exit code of every ``cell`` command for an error in its input, a usage error of its command line
+(unknown option, a value of the wrong type, a missing argument) as well as one the command finds: Click's
+own code for a usage error, 2, is what ``cell scan`` documents for a scan that found no object."""
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+@contextmanager
+def _usage_errors_as_input_errors() -> Iterator[None]:
+    """Give a usage error that passes through the exit code of an input error (``EXIT_INPUT_ERROR``);
+    Typer still prints its message, with the usage line, to standard error."""
+    try:
+        yield
+    except UsageError as exc:
+        exc.exit_code = EXIT_INPUT_ERROR
+        raise
+
+
+class CellGroup(TyperGroup):
+    """A ``cell`` command group: a usage error of its command line or of a command under it exits with
+    ``EXIT_INPUT_ERROR``. Parsing happens in ``make_context`` (the group's own options) and, for the
+    commands under it, in ``invoke``."""
+
+    def make_context(self, info_name: str | None, args: list[str], parent: Context | None = None,
+                     **extra: Any) -> Context:
+        with _usage_errors_as_input_errors():
+            return super().make_context(info_name, args, parent, **extra)
+
+    def invoke(self, ctx: Context) -> Any:
+        with _usage_errors_as_input_errors():
+            return super().invoke(ctx)
+
+
+class CellCommand(TyperCommand):
+    """A ``cell`` command: an option that takes one value and is given more than once is refused (Click
+    would keep the last one, silently: ``--planner vs-local --planner vs-global`` ran vs-global)."""
+
+    def parse_args(self, ctx: Context, args: list[str]) -> list[str]:
+        given = list(args)  # Click's parser consumes the list it is given
+        rest = super().parse_args(ctx, args)
+        _, _, order = self.make_parser(ctx).parse_args(args=given)
+        for param in dict.fromkeys(order):
+            if isinstance(param, typer.core.TyperOption) and not (param.multiple or param.count
+                                                                   or param.is_flag) \
+                    and order.count(param) > 1:
+                raise UsageError(f"option {param.opts[0]} was given {order.count(param)} times; it takes one "
+                                 "value: give it once", ctx=ctx)
+        return rest
+
+
+class CellTyper(typer.Typer):
+    """A Typer whose commands are :class:`CellCommand` s."""
+
+    def command(self, name: str | None = None, *, cls: type[TyperCommand] | None = None,
+                **options: Any) -> Callable[[F], F]:
+        return super().command(name, cls=cls or CellCommand, **options)
+
+
 DB_ENVVAR = "CELL_DB"
 """The environment variable a ``--db`` option is read from when not given: a store URL with a password
 stays out of the process list (and a systemd unit's command line) when it is passed this way."""
 
 
 def command_group(help: str, **options: Any) -> typer.Typer:
-    """A command group with ``help`` and typer's other ``options``, its commands' help read as Markdown:
+    """A command group (:class:`CellGroup` of :class:`CellCommand` s: a usage error exits with
+    ``EXIT_INPUT_ERROR``, an option of one value given twice is refused) with ``help`` and typer's other
+    ``options``, its commands' help read as Markdown:
     each paragraph wrapped to the terminal, units in brackets ("[m]", "[s]") kept. The commands' help
     is their docstrings, wrapped at the source's width, and rich's markup took the units for style tags
     and dropped them from the help."""
-    return typer.Typer(help=help, rich_markup_mode="markdown", **options)
+    return CellTyper(help=help, rich_markup_mode="markdown", cls=CellGroup, **options)
 
 
 def _app() -> typer.Typer:

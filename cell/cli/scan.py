@@ -114,8 +114,9 @@ def scan(
 
     Exit code 0 when it completed (also when its time budget ended it before an object was found: the
     termination says so), 2 when it found no object on the table, 1 when it failed or was stopped
-    and on an error in its input (nothing is made then), 130 after Ctrl-C, 143 after SIGTERM and 129 after
-    SIGHUP (they stop the scan as Ctrl-C does); the job folder is printed in every case once it exists.
+    and on an error in its input, a usage error of its command line included (nothing is made then), 130
+    after Ctrl-C, 143 after SIGTERM and 129 after SIGHUP (they stop the scan as Ctrl-C does); the job
+    folder is printed in every case once it exists.
     Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
     try:
         if replay is not None:
