@@ -17,6 +17,7 @@ from importlib.metadata import entry_points
 
 import numpy as np
 import pytest
+import trimesh
 import yaml
 from typer.testing import CliRunner
 
@@ -78,10 +79,38 @@ def test_object_scale_is_for_mesh_files_only(cube_mm, tmp_path):
     check_specs(specs)
 
 
-def test_a_mesh_too_small_to_be_a_part_is_refused(tmp_path):
-    with pytest.raises(JobError, match=r"bunny is 0\.000 x 0\.000 x 0\.000 m .* largest side at least 0\.01"):
+def test_a_mesh_too_small_to_be_a_part_is_refused_giving_its_size_in_millimetres(tmp_path):
+    """Its size read "0.000 x 0.000 x 0.000 m"."""
+    with pytest.raises(JobError, match=r"bunny is 0\.156 x 0\.121 x 0\.154 mm .* side at least 0\.01"):
         prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="bunny",
                                  object_scale=0.001, out=tmp_path / "j"))
+
+
+def _box_file(folder, name, extents):
+    path = folder / f"{name}.stl"
+    trimesh.creation.box(extents=extents).export(path)
+    return path
+
+
+def test_a_part_too_thin_for_segmentation_is_refused_saying_why(tmp_path):
+    """A 5 mm plate ended no_object (the segmentation's 6 mm cut above the table) after a full scan."""
+    plate = _box_file(tmp_path, "plate", [0.15, 0.10, 0.005])
+    res = _scan("--object", str(plate), "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1 and not (tmp_path / "j").exists()
+    assert "plate is 0.150 x 0.100 x 0.005 m" in res.output and "taller than 8.5 mm" in res.output
+    assert "plane_distance_m" in res.output
+    thick = _box_file(tmp_path, "thick", [0.15, 0.10, 0.01])
+    assert prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object=str(thick),
+                                    out=tmp_path / "k")).mesh is not None
+
+
+def test_no_scale_is_suggested_that_makes_a_size_the_cell_refuses(tmp_path):
+    """A 1.5 m box was told "a mesh in centimetres? --object-scale 0.01 would make it 0.015 x 0.004 x
+    0.003 m", a size no scan finds."""
+    big = _box_file(tmp_path, "big", [1.5, 0.4, 0.3])
+    res = _scan("--object", str(big), "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1 and "big is 1.500 x 0.400 x 0.300 m" in res.output
+    assert "would make it" not in res.output and "--object-scale" not in res.output
 
 
 def test_a_pose_off_the_table_is_refused_naming_the_table(tmp_path):

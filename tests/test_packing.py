@@ -646,3 +646,18 @@ def test_a_scan_of_a_lamp_bounds_the_rod_the_map_cut_off_its_disc(tmp_path, plan
     bound ended 55 and 76 mm under the 15 cm lamp."""
     r, truth = _heldout_scan(tmp_path, "lamp", planner, seed)
     assert np.all(np.array(r["packing"]["dims_upper_m"]) >= truth - 0.002)
+
+
+def test_a_no_object_job_measures_no_box_and_chooses_no_container() -> None:
+    """A 5 mm plate ended no_object (segmentation: nothing above its 6 mm cut), yet the packing section
+    measured 0.155 x 0.105 x 0.009 m from the table band and chose the medium container."""
+    cfg = load_config(UR5E)
+    pts = _voxelise(np.random.default_rng(3).uniform([0.4, 0.0, 0.02], [0.5, 0.1, 0.08], (2000, 3)), 0.01)
+    history = _Planner(ReconstructionHistory([pts[:1], pts, pts]))
+    measured = packing_section(cfg, _session(3, pts), history, None, None, None)  # type: ignore[arg-type]
+    assert measured["container"]["name"] is not None
+    section = packing_section(cfg, _session(3, pts), history, None, None, None,  # type: ignore[arg-type]
+                              no_object=True)
+    assert section["dims_m"] is None and section["box"] is None and section["dims_upper_m"] is None
+    assert section["container"]["name"] is None and "no_object" in section["container"]["reason"]
+    assert section["n_poses"] == 3

@@ -7,7 +7,8 @@ cell's ``sim`` section, or the object would float beside it and the scan would r
 
 Before that, the mesh's size must be plausible for the cell (:func:`check_object_size`): a CAD export in
 millimetres loads as an object a thousand times too large, which no view sees whole, and whose scan ends
-at 0 % coverage; the refusal says what a scale would make of it.
+at 0 % coverage; the refusal says what a scale would make of it. A part too thin for segmentation to find
+(:func:`thinnest_part_m`) is refused too: its scan could only end ``no_object``.
 """
 
 from __future__ import annotations
@@ -50,16 +51,30 @@ class Placed(Protocol):
 
 
 def _dims(extents: np.ndarray) -> str:
-    return " x ".join(f"{v:.3f}" for v in extents) + " m"
+    """A bounding box's size (x, y, z), in metres, or in millimetres (3 significant digits) when its
+    largest side is below ``MIN_OBJECT_SIZE_M``, where "0.000 x 0.000 x 0.000 m" would hide it."""
+    if extents.max() >= MIN_OBJECT_SIZE_M:
+        return " x ".join(f"{v:.3f}" for v in extents) + " m"
+    return " x ".join(f"{v * 1000.0:.3g}" for v in extents) + " mm"
+
+
+def thinnest_part_m(config: CellConfig) -> float:
+    """The height [m] a part must exceed for segmentation to find it (``cell.perception.segmentation``):
+    the object is the occupied voxels whose centres lie more than ``plane_distance_m`` above the table
+    plane, and a top face at height h lands in a voxel whose centre may lie half a map voxel below it.
+    A thinner part (a 5 mm plate in the RGB-D cell: 6 mm + 2.5 mm) is table to segmentation."""
+    perception = config.perception
+    return perception.segmentation.plane_distance_m + perception.occupancy.resolution_m / 2.0
 
 
 def _plausible(config: CellConfig, extents: np.ndarray) -> bool:
     """Whether a bounding box (x, y, z) [m] could stand on the cell's table and under its workspace's top,
-    with a largest side of at least ``MIN_OBJECT_SIZE_M``."""
+    with a largest side of at least ``MIN_OBJECT_SIZE_M`` and taller than :func:`thinnest_part_m`."""
     across = np.sort(extents[:2])[::-1]
     table = np.sort(np.asarray(config.sim.table_size_m))[::-1]
     height = config.safety.workspace.max_m[2] - config.station.table_z_m
-    return bool(extents.max() >= MIN_OBJECT_SIZE_M and np.all(across <= table) and extents[2] <= height)
+    return bool(extents.max() >= MIN_OBJECT_SIZE_M and np.all(across <= table)
+                and thinnest_part_m(config) < extents[2] <= height)
 
 
 def check_object_size(config: CellConfig, mesh: Placed, scale: float = 1.0,
@@ -72,12 +87,16 @@ def check_object_size(config: CellConfig, mesh: Placed, scale: float = 1.0,
     table = np.asarray(config.sim.table_size_m)
     height = config.safety.workspace.max_m[2] - config.station.table_z_m
     text = (f"object {mesh.name} is {_dims(extents)} (x, y, z), not a size this cell scans: its largest side "
-            f"at least {MIN_OBJECT_SIZE_M:g} m, at most the table's {table[0]:g} x {table[1]:g} m across and "
-            f"{height:g} m tall (the workspace's top)")
+            f"at least {MIN_OBJECT_SIZE_M:g} m, at most the table's {table[0]:g} x {table[1]:g} m across, "
+            f"taller than {thinnest_part_m(config) * 1000.0:g} mm (what segmentation tells from the table: "
+            f"perception.segmentation.plane_distance_m and half a map voxel) and at most {height:g} m tall "
+            "(the workspace's top)")
     if extents.max() < MIN_OBJECT_SIZE_M:
         raise JobError(f"{text}; if the mesh is not in metres, {option} converts it")
     fits = [(unit, name) for unit, name in UNIT_SCALES if _plausible(config, extents * unit)]
-    unit, name = fits[0] if fits else UNIT_SCALES[0]
+    if not fits:  # a scale is worth suggesting only when it makes a size the cell takes
+        raise JobError(text)
+    unit, name = fits[0]
     raise JobError(f"{text}; a mesh in {name}? {option} {scale * unit:g} would make it "
                    f"{_dims(extents * unit)}")
 

@@ -520,7 +520,7 @@ def _write_outputs(job: PreparedScan, recorder: JobRecorder, clock: Clock, wall_
         "metrics": _finite_or_none(metrics),
         "perception": _perception_summary(session),
         "packing": packing_section(job.request.config, session, job.planner, job.mesh, T_base_object,
-                                   ground_truth),
+                                   ground_truth, no_object=status == "no_object"),
         "safety": guard.log.as_dict() if guard is not None else None,
         "control": None if session is None or guard is None else {
             **session.ticks.summary(), "first_motion_unix_s": guard.first_motion_unix_s},

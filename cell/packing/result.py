@@ -129,16 +129,22 @@ def section_box(section: dict[str, Any]) -> PackingBox:
 
 def packing_section(config: CellConfig, session: JobFacts | None, planner: object,
                     mesh: ObjectMesh | None, T_base_object: Array | None,
-                    ground_truth: Array | None) -> dict[str, Any]:
+                    ground_truth: Array | None, *, no_object: bool = False) -> dict[str, Any]:
     """The ``packing`` section of result.json for a finished job.
 
     ``planner`` contributes the per-capture history when it keeps one (:class:`RecordsReconstruction`);
     ``mesh`` posed at ``T_base_object`` gives the ground-truth box and ``ground_truth`` (N, 3) [m] the
     surface sample, both in sim only (None otherwise, and then ``iou`` and ``coverage_pct`` are None).
+
+    A job that ended ``no_object`` (``no_object``: segmentation found no object above the table) measures
+    no box and chooses no container: what the box's table-band points alone show there (a plate thinner
+    than segmentation's cut, ``cell.jobs.placement.thinnest_part_m``) would contradict the status a
+    packing line reads as "no part", and its scan never explored it as an object.
     """
     pc = config.packing
     radius = pc.coverage_radius_m or config.perception.occupancy.resolution_m
-    objects = packed_object(session.perception) if session is not None else np.zeros((0, 3))
+    objects = packed_object(session.perception) if session is not None and not no_object \
+        else np.zeros((0, 3))
     history = planner.reconstruction.objects if isinstance(planner, RecordsReconstruction) else None
     section: dict[str, Any] = {
         "dims_m": None, "iou": None, "coverage_pct": None,
@@ -155,7 +161,9 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
             measures = [float(o.shape[0]) for o in history]
         section["n_useless_poses"] = count_useless(measures)
     if session is None or objects.shape[0] == 0:
-        section["container"] = {"name": None, "reason": "none fits: no object was found"}
+        reason = ("none: the scan ended no_object, segmentation having found no object above the table"
+                  if no_object else "none fits: no object was found")
+        section["container"] = {"name": None, "reason": reason}
         return section
     recorded = planner.reconstruction.sightings if isinstance(planner, RecordsReconstruction) else []
     model = error_model(config, session.sensor_model())
