@@ -30,6 +30,7 @@ from cell.cli.signals import TERMINATING
 from cell.config import load_config
 from cell.evaluation.presets import write_heldout_shapes
 from cell.evaluation.spec import check_specs, cross
+from cell.jobs.placement import where_views_look
 from cell.jobs.replay import replay_config
 from cell.jobs.runner import ScanRequest, prepare_scan, run_scan
 from cell.jobs.session import JobSession
@@ -93,15 +94,45 @@ def _box_file(folder, name, extents):
 
 
 def test_a_part_too_thin_for_segmentation_is_refused_saying_why(tmp_path):
-    """A 5 mm plate ended no_object (the segmentation's 6 mm cut above the table) after a full scan."""
-    plate = _box_file(tmp_path, "plate", [0.15, 0.10, 0.005])
+    """A 3 mm plate lies wholly below the segmentation's 6 mm cut above the table, in the voxel layer."""
+    plate = _box_file(tmp_path, "plate", [0.15, 0.10, 0.003])
     res = _scan("--object", str(plate), "--out", str(tmp_path / "j"))
     assert res.exit_code == 1 and not (tmp_path / "j").exists()
-    assert "plate is 0.150 x 0.100 x 0.005 m" in res.output and "taller than 8.5 mm" in res.output
+    assert "plate is 0.150 x 0.100 x 0.003 m" in res.output and "taller than 3.5 mm" in res.output
     assert "plane_distance_m" in res.output
-    thick = _box_file(tmp_path, "thick", [0.15, 0.10, 0.01])
-    assert prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object=str(thick),
+    thicker = _box_file(tmp_path, "thicker", [0.15, 0.10, 0.005])
+    assert prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object=str(thicker),
                                     out=tmp_path / "k")).mesh is not None
+
+
+def _prepare(tmp_path, **request):
+    return prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA),
+                                    out=tmp_path / "j", **{"object": "bunny", **request}))
+
+
+@pytest.mark.parametrize("pose", [(-0.42, 0.0, 0.0), (-0.4, 0.05, 30.0)])
+def test_a_placement_into_the_robot_base_is_refused(tmp_path, pose):
+    """-0.42,0,0 was accepted, and the job stopped at 0.02 s: 'link0 touched the object'."""
+    with pytest.raises(JobError, match=r"into the robot base \(link0\) at the arm's home joints"):
+        _prepare(tmp_path, object_pose=pose)
+    assert not (tmp_path / "j").exists()
+
+
+def test_a_part_taller_than_the_start_views_leave_room_for_is_refused(tmp_path):
+    """An 8 cm x 1.0 m post was accepted, and the camera hit it on its way to the start view."""
+    post = _box_file(tmp_path, "post", [0.08, 0.08, 1.0])
+    with pytest.raises(JobError, match=r"post is 0\.080 x 0\.080 x 1\.000 m .* at most 0\.260 m tall"):
+        _prepare(tmp_path, object=str(post))
+    assert _prepare(tmp_path, object="vertical_box").mesh is not None  # 0.25 m, the tallest shipped
+
+
+@pytest.mark.parametrize("pose", [(0.3, 0.0, 0.0), (0.0, 0.42, 0.0)])
+def test_a_placement_no_search_view_sees_is_refused_naming_where_they_look(tmp_path, pose):
+    """Both ended 'no_object: segmentation found nothing above the table' after 14 frames."""
+    with pytest.raises(JobError, match=r"where none of the 2 views vs-local looks for an object from sees "
+                                       r"it: they look at the station \(0\.45, 0\) m, each view keeping"):
+        _prepare(tmp_path, object_pose=pose, planner="vs-local")
+    assert _prepare(tmp_path, object_pose=(0.1, 0.1, 0.0), planner="vs-local").mesh is not None
 
 
 def test_no_scale_is_suggested_that_makes_a_size_the_cell_refuses(tmp_path):
@@ -110,7 +141,12 @@ def test_no_scale_is_suggested_that_makes_a_size_the_cell_refuses(tmp_path):
     big = _box_file(tmp_path, "big", [1.5, 0.4, 0.3])
     res = _scan("--object", str(big), "--out", str(tmp_path / "j"))
     assert res.exit_code == 1 and "big is 1.500 x 0.400 x 0.300 m" in res.output
-    assert "would make it" not in res.output and "--object-scale" not in res.output
+    assert "centimetres" not in res.output  # 3 mm tall: table to segmentation
+    assert "a mesh in inches? --object-scale 0.0254 would make it 0.038 x 0.010 x 0.008 m" in res.output
+    assert _prepare(tmp_path, object=str(big), object_scale=0.0254).mesh is not None
+    huge = _box_file(tmp_path, "huge", [100.0, 0.4, 0.3])  # no unit makes it a part
+    res = _scan("--object", str(huge), "--out", str(tmp_path / "j"))
+    assert res.exit_code == 1 and "would make it" not in res.output
 
 
 def test_a_pose_off_the_table_is_refused_naming_the_table(tmp_path):
@@ -154,7 +190,8 @@ def test_an_empty_table_ends_no_object_and_the_cli_says_so(tmp_path):
     assert res.exit_code == 2, res.output
     result = json.loads((out / "result.json").read_text())
     assert result["status"] == "no_object" and result["n_captures"] >= 3
-    assert result["termination"].startswith("no object found: segmentation found nothing above the table")
+    assert result["termination"].startswith("no object found: segmentation found nothing above the table "
+                                            "near the station (0.45, 0) m, each view keeping its crop box")
     assert result["termination"].endswith("(raster complete: 12 of 14 views captured, 2 unreachable)")
     assert result["metrics"]["coverage_pct"] is None and result["packing"]["dims_m"] is None
     assert f"job folder: {out}" in res.output
@@ -181,7 +218,8 @@ def test_a_budget_that_ends_the_search_before_an_object_is_found_is_not_no_objec
     assert result["status"] == "completed" and result["packing"]["dims_m"] is None
     assert result["termination"] == (
         f"time budget of {max_time} s used up before an object was found or the planner's search for one had "
-        f"ended (segmentation found nothing above the table in {frames}): too soon to tell an empty table, "
+        f"ended (segmentation found nothing above the table near {where_views_look(load_config(UR5E))} in "
+        f"{frames}): too soon to tell an empty table, "
         "so not no_object")
 
 

@@ -157,8 +157,7 @@ def reachable_views(config: CellConfig, views: Array, aabb_min: Array,
     simulated twin of the arm. Returns the views at the first roll the arm can take (upright where it
     can take none) and which are reachable."""
     model = get_robot_model(config.arm.model)
-    home = config.arm.home_joints_rad
-    q_home = np.asarray(home, dtype=float) if home is not None else model.q_home
+    q_home = model.home(config.arm.home_joints_rad)
     arm = make_arm(SimArmConfig(type="sim", model=config.arm.model, home_joints_rad=list(q_home)), model,
                    SimWorld(clock=SimClock(), rng=np.random.default_rng(0), scene=None))
     guard = MotionGuard.from_config(arm, model, config, SimClock())

@@ -48,7 +48,7 @@ from cell.jobs.inputs import CHOOSE_OUT, check_job_folder, check_pose, check_see
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
-from cell.jobs.placement import check_placement
+from cell.jobs.placement import check_in_view, check_placement, object_pose_in_base, where_views_look
 from cell.jobs.progress import JobProgress
 from cell.jobs.rebuild import recorded_result
 from cell.jobs.recorder import JobRecorder
@@ -61,7 +61,7 @@ from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Array, Planner
 from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.registry import get_planner
-from cell.planning.vs.servo_scan import ServoScanPlanner
+from cell.planning.vs.servo_scan import ServoScanPlanner, start_views
 from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
 from drivers.arm.claim import ArmClaim
@@ -80,7 +80,6 @@ from drivers.sim.errors import SimErrors, draw_sim_errors
 from drivers.sim.faults import SimFaultInjector
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh, load_object
 from drivers.sim.scene import SimScene
-from drivers.transforms import T_from_xyz_rpy
 
 INTERRUPTED = f"{OPERATOR_STOP}interrupted (Ctrl-C)"
 
@@ -138,13 +137,6 @@ class PreparedScan:
 class ScanOutcome:
     folder: Path
     result: dict[str, Any]
-
-
-def object_pose_in_base(config: CellConfig, pose: tuple[float, float, float]) -> np.ndarray:
-    """T_base_object for an object at (x, y, yaw_deg) relative to the station, resting on the table."""
-    x, y, yaw_deg = pose
-    st = config.station
-    return T_from_xyz_rpy([st.xy_m[0] + x, st.xy_m[1] + y, st.table_z_m], [0.0, 0.0, np.deg2rad(yaw_deg)])
 
 
 class JobGenerators(NamedTuple):
@@ -220,11 +212,20 @@ def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray 
         return str(name), None, None
 
 
-def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, ObjectMesh | None,
-                                                                        np.ndarray | None]:
+def _search_views(planner: Planner) -> list[Array]:
+    """The views ``planner`` looks for the object from (``Planner.search_views``); a servo planner's are
+    its start views."""
+    # here, not as ServoScanPlanner.search_views: cell/planning/vs is another engineer's at the moment
+    if isinstance(planner, ServoScanPlanner):
+        return start_views(planner.config)
+    return planner.search_views()
+
+
+def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str,
+                    planner: Planner) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
     """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
     of sim and dry runs and of replays of them; a real cell scans an unknown object, an empty table has
-    none)."""
+    none). A placement is checked (``cell.jobs.placement``), also against ``planner``'s search views."""
     if replay_dir is not None:
         check_recording(replay_dir)
         return _recorded_object(replay_dir)
@@ -234,6 +235,7 @@ def _scanned_object(req: ScanRequest, replay_dir: Path | None) -> tuple[str, Obj
         return EMPTY_TABLE, None, None
     mesh = load_object(req.object, req.object_scale)
     check_placement(req.config, mesh, req.object_pose, req.object_scale)
+    check_in_view(req.config, mesh, req.object_pose, _search_views(planner), planner_name)
     return req.object, mesh, object_pose_in_base(req.config, req.object_pose)
 
 
@@ -252,7 +254,7 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
     replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
-    object_name, mesh, T_base_object = _scanned_object(req, replay_dir)
+    object_name, mesh, T_base_object = _scanned_object(req, replay_dir, planner_name, planner)
     folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed,
                                                                     replay=replay_dir is not None)
     check_job_folder(folder, req.choose_folder)
@@ -267,8 +269,8 @@ def _run_planner(planner: Planner, session: JobSession) -> str:
         session.close()
 
 
-def _outcome(session: JobSession, termination: str, planner_found_nothing: bool, cut_short: bool,
-             budget_ran_out: bool) -> tuple[str, str]:
+def _outcome(config: CellConfig, session: JobSession, termination: str, planner_found_nothing: bool,
+             cut_short: bool, budget_ran_out: bool) -> tuple[str, str]:
     """The status and termination of a job whose planner's run ended with ``termination`` (module
     docstring): a scan that captured no frame failed (:func:`_nothing_captured`), unless only its time
     budget ran out before its first view (``budget_ran_out``), with no view refused and no capture
@@ -282,12 +284,13 @@ def _outcome(session: JobSession, termination: str, planner_found_nothing: bool,
     if session.object_found and not planner_found_nothing:
         return "completed", termination
     frames = f"{n} frame{'' if n == 1 else 's'}"
+    # where it looked: an object elsewhere on the table is not "no object on the table"
+    nothing = f"segmentation found nothing above the table near {where_views_look(config)} in {frames}"
     if cut_short:
-        seen = "no frame captured" if n == 0 else f"segmentation found nothing above the table in {frames}"
+        seen = "no frame captured" if n == 0 else nothing
         return "completed", (f"{termination} before an object was found or the planner's search for one had "
                              f"ended ({seen}): too soon to tell an empty table, so not no_object")
-    return "no_object", (f"no object found: segmentation found nothing above the table in {frames} "
-                         f"({termination})")
+    return "no_object", f"no object found: {nothing} ({termination})"
 
 
 def _nothing_captured(session: JobSession, planner_termination: str) -> str:
@@ -424,7 +427,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             guard.finish()
             session.settle()
             # a planner that ended for want of an object has the last word over what the map may hold
-            status, termination = _outcome(session, termination, planner_found_nothing, limit_reached,
+            status, termination = _outcome(cfg, session, termination, planner_found_nothing, limit_reached,
                                            budget_ran_out)
     except SafetyStop as exc:
         status, termination, error = "stopped", stop_termination(exc.reason), exc

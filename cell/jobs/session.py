@@ -117,8 +117,7 @@ class JobSession:
         self._max_time = max_time_s
         self._dt = 1.0 / config.scan.control_rate_hz
         self._T_flange_sensor = config.mount.matrix()
-        home = config.arm.home_joints_rad
-        self._q_home = np.asarray(home, dtype=float) if home is not None else model.q_home
+        self._q_home = model.home(config.arm.home_joints_rad)
         self.perception = perception
         self._capture_period = 1.0 / config.perception.rate_hz
         self._next_capture: float | None = None

@@ -152,6 +152,13 @@ class Planner(ABC):
     @abstractmethod
     def run(self, session: ScanSession) -> str: ...
 
+    def search_views(self) -> list[Array]:
+        """The sensor poses T_base_sensor (4x4, base frame [m]) from which the planner looks for the object
+        before it has found one, in the order it tries them: a placement none of them sees ends in
+        ``no_object`` (``cell.jobs.placement.check_in_view``). Empty when it does not say (no placement is
+        refused then)."""
+        return []
+
     def figures(self) -> dict[str, float | int | str | None]:
         """The planner's own figures of the scan so far, for progress reports (names carry units);
         none by default."""

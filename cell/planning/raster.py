@@ -38,6 +38,10 @@ def raster_views(config: CellConfig) -> list[Array]:
 
 
 class RasterPlanner(Planner):
+    def search_views(self) -> list[Array]:
+        """Every view of the raster: it has no feedback, and looks from all of them."""
+        return raster_views(self.config)
+
     def run(self, session: ScanSession) -> str:
         views = raster_views(self.config)
         settle = self.config.planners.raster.settle_s

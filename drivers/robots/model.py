@@ -304,6 +304,10 @@ class RobotModel:
         """T_base_flange (4, 4) at joint positions ``q`` [rad]."""
         return self.fk_all(q)[-1]
 
+    def home(self, configured: list[float] | None) -> Array:
+        """The home joints [rad]: a cell's ``arm.home_joints_rad`` when it sets them, else ``q_home``."""
+        return np.asarray(configured, dtype=float) if configured is not None else self.q_home
+
     @property
     def axis_frames(self) -> NDArray[np.intp]:
         """For each joint i (0-based), the ``fk_all`` frame whose z axis it turns about, through that frame's

@@ -27,6 +27,10 @@ class HEUPlanner(Planner):
         super().__init__(config)
         self.reconstruction = ReconstructionHistory()
 
+    def search_views(self) -> list[Array]:
+        """Every pose of the ellipse: it looks from all of them."""
+        return heu_views(self.config)
+
     def run(self, session: ScanSession) -> str:
         views = heu_views(self.config)
         skipped = 0

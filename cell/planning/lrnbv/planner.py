@@ -80,6 +80,7 @@ from cell.planning.lrnbv.sensor import sensor_rays
 from cell.planning.lrnbv.utility import UtilityField, VisitedGrid, Weights, evaluate
 from drivers.depth.base import SensorModel
 from drivers.errors import NoObjectFound
+from drivers.robots import get_robot_model
 from drivers.transforms import look_at, make_T
 
 
@@ -322,15 +323,27 @@ class RRTViewPlanner(Planner):
         self.visited.mark(session.sensor_pose()[:3, 3])
         return self.reconstruction.record(session.perception)
 
-    def _initial_object(self, session: ScanSession) -> tuple[Array, int]:
-        """The object from the current view, or else from the search views; and the captures made."""
-        obj = self._capture(session)
-        captures = 1
+    def search_views(self) -> list[Array]:
+        """The sensor's home view (the arm's home joints and the cell's mount), where the run captures
+        first, then the views it moves to while no object is found: straight down at the station from
+        each of ``search_heights_m``, then the poses of the ``heu`` ellipse."""
+        model = get_robot_model(self.config.arm.model)
+        T_home = model.fk(model.home(self.config.arm.home_joints_rad))
+        return [T_home @ self.config.mount.matrix(), *self._search_moves()]
+
+    def _search_moves(self) -> list[Array]:
+        """:meth:`search_views` after the home view: the views the run moves to while no object is found."""
         st = self.config.station
         target = np.array([st.xy_m[0], st.xy_m[1], self.table_z])
         above = [look_at(target + np.array([0.0, 0.0, height]), target, up_hint=np.array([1.0, 0.0, 0.0]))
                  for height in self.params.search_heights_m]
-        for T in [*above, *heu_views(self.config)]:
+        return [*above, *heu_views(self.config)]
+
+    def _initial_object(self, session: ScanSession) -> tuple[Array, int]:
+        """The object from the current view, or else from the search views; and the captures made."""
+        obj = self._capture(session)
+        captures = 1
+        for T in self._search_moves():
             if obj.shape[0]:
                 break
             if session.move_to_sensor_pose(T):
