@@ -57,6 +57,11 @@ class SegmentationParams(StrictModel):
     boundary occupies two layers one resolution apart, and the upper one would otherwise join the object
     (the default 6 mm suits the 5 mm RGB-D map; use ~12 mm with ``cluster_tolerance_m`` ~15 mm for a 1 cm
     ToF map). ``cluster_tolerance_m`` must exceed the resolution for face-adjacent voxels to connect.
+
+    It also sets the thinnest part found: a top face lies within half a map voxel of its voxel's centre,
+    so a part no taller than ``plane_distance_m`` less half a voxel (3.5 mm on the RGB-D cell) is never
+    found, one taller than ``plane_distance_m`` plus half a voxel (8.5 mm) always, and one in between
+    where the voxel layers put its top above the cut (``cell.jobs.placement.thinnest_part_m``).
     """
 
     method: Literal["euclidean", "dbscan"] = "euclidean"
