@@ -61,7 +61,7 @@ from cell.perception.pipeline import PerceptionPipeline
 from cell.planning.base import Array, Planner
 from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.registry import get_planner
-from cell.planning.vs.servo_scan import ServoScanPlanner, start_views
+from cell.planning.vs.servo_scan import ServoScanPlanner
 from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.guard import MotionGuard
 from drivers.arm.claim import ArmClaim
@@ -212,15 +212,6 @@ def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray 
         return str(name), None, None
 
 
-def _search_views(planner: Planner) -> list[Array]:
-    """The views ``planner`` looks for the object from (``Planner.search_views``); a servo planner's are
-    its start views."""
-    # here, not as ServoScanPlanner.search_views: cell/planning/vs is another engineer's at the moment
-    if isinstance(planner, ServoScanPlanner):
-        return start_views(planner.config)
-    return planner.search_views()
-
-
 def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str,
                     planner: Planner) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
     """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
@@ -235,7 +226,7 @@ def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str
         return EMPTY_TABLE, None, None
     mesh = load_object(req.object, req.object_scale)
     check_placement(req.config, mesh, req.object_pose, req.object_scale)
-    check_in_view(req.config, mesh, req.object_pose, _search_views(planner), planner_name)
+    check_in_view(req.config, mesh, req.object_pose, planner.search_views(), planner_name)
     return req.object, mesh, object_pose_in_base(req.config, req.object_pose)
 
 

@@ -392,6 +392,10 @@ class ServoScanPlanner(Planner):
         allowed = session.command_sensor_twist(out.v)
         return out, held_norm(sec, out.v, allowed)
 
+    def search_views(self) -> list[Array]:
+        """Its start views (:func:`start_views`), where it looks for the object before servoing."""
+        return start_views(self.config)
+
     def run(self, session: ScanSession) -> str:
         period = 1.0 / self.vs.servo_rate_hz
         self._find_object(session, period)
