@@ -18,12 +18,16 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
+import uvicorn
 
+from cell.api.connections import ConnectionLimits, protocol_class
 from cell.service.keys import create_key as add_key
 from cell.service.store import open_store, sqlite_url
 
@@ -158,3 +162,25 @@ class ServedCell:
 
     def __exit__(self, *_: object) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def serving_guarded(app: Any, limits: ConnectionLimits, wait_s: float, **config: Any) -> Iterator[int]:
+    """``app`` under a uvicorn server on loopback with the connection guards of ``cell serve`` under
+    ``limits``, in a thread (uvicorn ``config`` options besides); yields its port. ``wait_s`` bounds the
+    wait for it to start and to end [s]."""
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
+                                           http=protocol_class(limits), backlog=limits.backlog,
+                                           timeout_graceful_shutdown=1, **config))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + wait_s
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
+        time.sleep(0.01)
+    try:
+        yield port
+    finally:
+        server.should_exit = True
+        thread.join(wait_s)

@@ -12,17 +12,14 @@ import asyncio
 import contextlib
 import logging
 import socket
-import threading
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
-import uvicorn
 
 from cell.api import connections
-from cell.api.connections import ACCEPT_FAILURE, ConnectionLimits, protocol_class, quiet_accept_failures
-from tests.service_process import closed_by_server, free_port, until
+from cell.api.connections import ACCEPT_FAILURE, ConnectionLimits, quiet_accept_failures
+from tests.service_process import closed_by_server, serving_guarded, until
 
 WAIT_S = 30.0  # a bound on waiting for the server, never a timed check [s]; the sockets' timeout
 LONG_S = 600.0  # a deadline no test reaches [s]
@@ -49,24 +46,9 @@ async def app(scope: dict[str, Any], receive: Any, send: Any) -> None:
     await send({"type": "http.response.body", "body": b"ok"})
 
 
-@contextlib.contextmanager
-def serving(limits: ConnectionLimits) -> Iterator[int]:
+def serving(limits: ConnectionLimits) -> contextlib.AbstractContextManager[int]:
     """A uvicorn server of ``app`` with the guards under ``limits``, in a thread; yields its port."""
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, lifespan="off", log_config=None,
-                                           http=protocol_class(limits), backlog=limits.backlog,
-                                           timeout_keep_alive=int(LONG_S), timeout_graceful_shutdown=1))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + WAIT_S
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
-        time.sleep(0.01)
-    try:
-        yield port
-    finally:
-        server.should_exit = True
-        thread.join(WAIT_S)
+    return serving_guarded(app, limits, WAIT_S, lifespan="off", timeout_keep_alive=int(LONG_S))
 
 
 def connect(port: int, request: bytes = b"") -> socket.socket:

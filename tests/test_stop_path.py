@@ -8,49 +8,24 @@ arm of a running job moved on for 52 s). Every dependency of the STOP path is a 
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
-import uvicorn
-from fastapi import FastAPI
 
 from cell.api.app import create_app
-from cell.api.connections import ConnectionLimits, protocol_class
+from cell.api.connections import ConnectionLimits
 from cell.service.keys import create_key
 from cell.service.startup import ServiceSettings
 from cell.service.store import open_data_store
 from tests.conftest import FRANKA
-from tests.service_process import free_port
+from tests.service_process import serving_guarded
 
 WAIT_S = 60.0  # a bound on waiting for the server, never a timed check [s]
 POOL_THREADS = 40  # anyio's default thread limiter
 SLOW_CLIENTS = POOL_THREADS + 5
-
-
-@contextlib.contextmanager
-def serving(app: FastAPI) -> Iterator[str]:
-    """``app`` under uvicorn with the guards of ``cell serve``, in a thread; yields its URL."""
-    port = free_port()
-    limits = ConnectionLimits(256)
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
-                                           http=protocol_class(limits), backlog=limits.backlog,
-                                           timeout_graceful_shutdown=1))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + WAIT_S
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
-        time.sleep(0.01)
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(WAIT_S)
 
 
 def test_stop_answers_while_a_slow_sync_route_holds_every_thread_of_the_pool(tmp_path: Path) -> None:
@@ -71,7 +46,9 @@ def test_stop_answers_while_a_slow_sync_route_holds_every_thread_of_the_pool(tmp
         release.wait(WAIT_S)
         return {"status": "ok"}
 
-    with serving(app) as url, ThreadPoolExecutor(SLOW_CLIENTS) as clients:
+    limits = ConnectionLimits(256)
+    with serving_guarded(app, limits, WAIT_S) as port, ThreadPoolExecutor(SLOW_CLIENTS) as clients:
+        url = f"http://127.0.0.1:{port}"
         try:
             slow_calls = [clients.submit(httpx.get, f"{url}/test/slow", timeout=WAIT_S)
                           for _ in range(SLOW_CLIENTS)]
