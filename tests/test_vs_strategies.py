@@ -31,7 +31,8 @@ from cell.planning.vs.servo_scan import (
     voxel_entropy,
 )
 from cell.planning.vs.telemetry import write_servo_outputs
-from cell.safety.guard import Refusal, TwistRefused
+from cell.safety.events import Refusal
+from cell.safety.guard import TwistRefused
 from drivers.errors import PlanningError
 from drivers.transforms import look_at
 

@@ -49,7 +49,7 @@ from cell.jobs.requests import COLUMNS, REQUESTS_FILE, request_row
 from cell.perception.cloud import write_ply
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.octomap_io import write_bt
-from cell.safety.guard import Refusal
+from cell.safety.events import Refusal
 from drivers.atomic_file import atomic_open, write_text_atomic
 from drivers.depth.base import DepthFrame
 from drivers.depth.replay import JOINTS_FILE

@@ -54,7 +54,7 @@ from cell.jobs.rebuild import RecordedResult, recorded_result
 from cell.jobs.requests import REACHABLE, REACHED, RecordedAnswer, pose_cells, recorded_answers
 from cell.jobs.session import JobSession, ScanLimitReached, view_name
 from cell.planning.base import Array
-from cell.safety.guard import Refusal
+from cell.safety.events import Refusal
 from drivers.arm.replay import ReplayArm
 from drivers.depth.replay import TIME_TOLERANCE_S, JobRecording, ReplaySensor
 from drivers.errors import ConfigError, JobError

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from cell.safety.guard import Refusal
+from cell.safety.events import Refusal
 from drivers.errors import JobError
 from drivers.transforms import quat_xyzw
 

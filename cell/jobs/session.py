@@ -35,7 +35,8 @@ from cell.perception.cloud import CloudAccumulator
 from cell.perception.metrics import CloudCoverage
 from cell.perception.pipeline import PerceptionPipeline, PerceptionUpdate
 from cell.planning.base import Array
-from cell.safety.guard import MotionGuard, Refusal, TwistRefused
+from cell.safety.events import Refusal
+from cell.safety.guard import MotionGuard, TwistRefused
 from drivers.arm.base import ArmState, JointTrajectory
 from drivers.clock import Clock
 from drivers.depth.base import DepthFrame, DepthSensor, SensorModel

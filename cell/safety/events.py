@@ -1,10 +1,20 @@
-"""What the safety layer did during a job: clamps counted by kind, refusals and stops with reasons."""
+"""What the safety layer did during a job: clamps counted by kind, refusals and stops with reasons; and a
+refusal's record (:class:`Refusal`), which job recordings and replays read without loading the guard."""
 
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a motion is refused: a short ``kind`` to count by (``collision``, ``barrier``, ``joint margin``,
+    ...) and the ``message`` naming what would happen."""
+
+    kind: str
+    message: str
 
 
 @dataclass

@@ -57,7 +57,7 @@ from cell.config.models import CellConfig
 from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, workspace_planes
 from cell.safety.collision import Collision, CollisionWorld
 from cell.safety.config import SafetyConfig
-from cell.safety.events import SafetyLog
+from cell.safety.events import Refusal, SafetyLog
 from cell.safety.smoothing import TwistSmoother
 from cell.safety.watchdog import Watchdog
 from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
@@ -97,15 +97,6 @@ def _within_norm(x: Array, limit: float) -> Array:
     ``RATE_TOLERANCE`` (``x`` itself otherwise)."""
     norm = float(np.linalg.norm(x))
     return x * (limit / norm) if norm > limit * (1.0 + RATE_TOLERANCE) else x
-
-
-@dataclass(frozen=True)
-class Refusal:
-    """Why a motion is refused: a short ``kind`` to count by (``collision``, ``barrier``, ``joint margin``,
-    ...) and the ``message`` naming what would happen."""
-
-    kind: str
-    message: str
 
 
 class TwistRefused(SafetyStop):
