@@ -61,10 +61,12 @@ def _cell(tmp_path: Path, host: str, port: str, template: Path = TEMPLATE, **arm
     return path
 
 
-def _doctor(cell_file: Path, tmp_path: Path, *extra: str) -> tuple[int, dict[str, tuple[str, str]]]:
-    """Exit code and, per check, (status, the detail and fix lines)."""
+def _doctor(cell_file: Path, tmp_path: Path, *extra: str,
+            port: int | None = None) -> tuple[int, dict[str, tuple[str, str]]]:
+    """Exit code and, per check, (status, the detail and fix lines); the service port ``port`` (default a
+    free one)."""
     res = CliRunner().invoke(app, ["doctor", "--config", str(cell_file), "--data-dir", str(tmp_path / "data"),
-                                   "--port", str(free_port()), *extra])
+                                   "--port", str(free_port() if port is None else port), *extra])
     checks: dict[str, tuple[str, str]] = {}
     name = ""
     for line in res.output.splitlines():
@@ -105,8 +107,8 @@ def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_pat
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen(1)
-        code, checks = _doctor(_cell(tmp_path, nobody, "/dev/no-such-board"), tmp_path, "--port",
-                               str(taken.getsockname()[1]))
+        code, checks = _doctor(_cell(tmp_path, nobody, "/dev/no-such-board"), tmp_path,
+                               port=taken.getsockname()[1])
     assert code == 1
     for name in ("robot RTDE", "robot dashboard"):
         assert checks[name][0] == "fail" and "fix: check the robot is on" in checks[name][1]

@@ -41,6 +41,10 @@ DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 # scan's accuracy, which the planners' own tests judge; but a box whose ends no view saw inside its frame
 # has no upper bound and no container (LR-NBV sees the 30 cm box's ends after 15-20 s).
 SCAN_S = 20.0
+# A PLC's trigger pulse [s]: well over the 50 ms debounce, and long enough that the digital I/O thread,
+# polling at 200 Hz, still sees it on a test machine that starves it for a while (a 0.2 s pulse was missed
+# under the whole suite).
+PULSE_S = 0.5
 ROLES = ("viewer", "operator", "line", "admin")
 
 
@@ -482,7 +486,7 @@ def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
         line.wait({"Idle"})
         for n in (1, 2, 3):
             peer.set_digital_input(trigger, True)
-            time.sleep(0.2)
+            time.sleep(PULSE_S)
             peer.set_digital_input(trigger, False)
             peer.wait_for(lambda s: s["digital_out"] == busy, what=f"busy high for part {n}")
             peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=60, what=f"done high for part {n}")
@@ -517,7 +521,7 @@ def test_a_trigger_scans_the_part_id_the_plc_set_over_opc_ua(tmp_path: Path,
         def part(n: int) -> str:
             """Pulse the trigger; the part id of the n-th part processed."""
             peer.set_digital_input(trigger, True)
-            time.sleep(0.2)
+            time.sleep(PULSE_S)
             peer.set_digital_input(trigger, False)
             time.sleep(0.2)
             deadline = time.monotonic() + 20

@@ -18,12 +18,14 @@ import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
+from unittest import mock
 
 import pytest
 import uvicorn
 
 from cell.api.server import NotifyingServer
 from cell.service.logs import HumanFormatter, JsonLineFormatter, configure_logging
+from cell.service.manager import CellService
 from cell.service.notify import Notifier
 from cell.service.store import FINISHED_STATUSES
 from drivers.errors import CellError
@@ -110,7 +112,7 @@ def test_serve_reports_ready_watchdog_and_stopping_and_logs_json_lines_with_the_
 def test_the_watchdog_pings_stop_once_the_cell_service_can_run_no_job(manager):
     """A cell service whose job dispatcher ended on an error (``CellService.broken``) would queue jobs for
     ever: the pings stop, with the reason in STATUS, so that systemd restarts it."""
-    service = SimpleNamespace(broken=None)
+    service = mock.Mock(spec=CellService, broken=None)  # a cell service to the server, and no more
     app = SimpleNamespace(state=SimpleNamespace(service=service))
     notifier = Notifier({"NOTIFY_SOCKET": str(manager.path), "WATCHDOG_USEC": str(WATCHDOG_USEC)})
     server = NotifyingServer(uvicorn.Config(app), notifier)  # type: ignore[arg-type]
