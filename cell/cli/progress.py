@@ -42,7 +42,8 @@ def _bar(*columns: TextColumn | BarColumn | MofNCompleteColumn) -> Progress:
 
 def scan_line(p: JobProgress, budget_s: float) -> str:
     """One progress line of a scan: job time of the budget [s], captures, cloud size, cloud coverage
-    (eq. 13)."""
+    (eq. 13 of the cloud as it stands, before the ground truth is registered to it: the final line's
+    registered figure differs, README)."""
     coverage = "-" if p.coverage_pct is None else f"{p.coverage_pct:.1f} %"
     return (f"{p.t_s:.1f} of {budget_s:g} s, {p.n_captures} captures, {p.n_cloud_points} points, "
             f"cloud coverage {coverage}")

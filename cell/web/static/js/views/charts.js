@@ -1,5 +1,5 @@
 // The live job's curves over job time, as progress comes (visual-servoing paper Fig. 4): captures, the
-// sensor's path length, H_ROI and, in sim, the coverage of the object.
+// sensor's path length, H_ROI and, in sim, the coverage of the object (unregistered).
 
 import { h } from "../dom.js";
 import { LinePlot } from "../plot.js";
@@ -8,7 +8,8 @@ const CURVES = [
   { key: "n_captures", title: "captures", color: "#1f6fb2", yMin: 0 },
   { key: "path_length_m", title: "path length [m]", color: "#5f3dc4", yMin: 0 },
   { key: "h_roi", title: "H_ROI [nats]", color: "#d9480f", yMin: 0 },
-  { key: "coverage_pct", title: "cloud coverage [%]", color: "#2b8a3e", yMin: 0, yMax: 100 },
+  // unregistered: eq. 13 of the cloud as it stands, before the final registration (README)
+  { key: "coverage_pct", title: "coverage, unregistered [%]", color: "#2b8a3e", yMin: 0, yMax: 100 },
 ];
 
 /** The curves' section: `element`, `add(progress)` for each progress event, `count` of those added. */
