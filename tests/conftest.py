@@ -54,6 +54,19 @@ def register_planner(monkeypatch: pytest.MonkeyPatch, planner: Any) -> None:
     monkeypatch.setitem(PLANNERS, planner.name, entry)
 
 
+def raster_scan(out: Path, config: Path, obj: str, seed: int, max_time_s: float) -> str:
+    """``cell scan`` of ``obj`` on the cell file ``config`` with the raster planner (a fixed path: the same
+    views whatever the map shows) into ``out``, asserted to complete; its output."""
+    from typer.testing import CliRunner  # the command line only for the tests that scan
+
+    from cell.cli.main import app
+
+    res = CliRunner().invoke(app, ["scan", "--config", str(config), "--object", obj, "--seed", str(seed),
+                                   "--planner", "raster", "--out", str(out), "--max-time", f"{max_time_s:g}"])
+    assert res.exit_code == 0, res.output
+    return res.output
+
+
 def ended_without_a_frame(result: dict[str, Any], termination: str) -> bool:
     """Whether a job whose test planner ended with ``termination`` before capturing any frame ended as
     such a scan does: failed, its planner's termination kept (cell.jobs.runner)."""

@@ -26,7 +26,7 @@ from cell.perception.cloud import read_ply
 from cell.service.recovery import finish_folder
 from cell.service.store import JobRecord
 
-from .conftest import UR5E
+from .conftest import UR5E, raster_scan
 
 NOBODY = 65534
 
@@ -35,9 +35,7 @@ NOBODY = 65534
 def recorded(tmp_path_factory):
     """A short ToF scan's folder (read it, do not change it: copy it with ``job``)."""
     out = tmp_path_factory.mktemp("jobs") / "job"
-    res = CliRunner().invoke(app, ["scan", "--config", str(UR5E), "--object", "cube", "--seed", "1",
-                                   "--planner", "raster", "--out", str(out), "--max-time", "10"])
-    assert res.exit_code == 0, res.output
+    raster_scan(out, UR5E, "cube", 1, 10)
     assert len(list((out / "frames").glob("*.npz"))) >= 3
     return out
 

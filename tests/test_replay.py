@@ -31,25 +31,23 @@ from drivers.factory import make_sensor
 from drivers.robots import get_robot_model
 from drivers.transforms import look_at, quat_xyzw
 
-from .conftest import FRANKA, UR5E, register_planner
+from .conftest import FRANKA, UR5E, raster_scan, register_planner
 
 
-def _scan(tmp_path_factory, config, max_time: str):
+def _scan(tmp_path_factory, config, max_time_s: float):
     out = tmp_path_factory.mktemp("jobs") / "job"
-    res = CliRunner().invoke(app, ["scan", "--config", str(config), "--object", "cube", "--seed", "1",
-                                   "--planner", "raster", "--out", str(out), "--max-time", max_time])
-    assert res.exit_code == 0, res.output
+    raster_scan(out, config, "cube", 1, max_time_s)
     return out
 
 
 @pytest.fixture(scope="module")
 def tof_job(tmp_path_factory):
-    return _scan(tmp_path_factory, UR5E, "15")
+    return _scan(tmp_path_factory, UR5E, 15)
 
 
 @pytest.fixture(scope="module")
 def rgbd_job(tmp_path_factory):
-    return _scan(tmp_path_factory, FRANKA, "6")
+    return _scan(tmp_path_factory, FRANKA, 6)
 
 
 @pytest.mark.parametrize("job, config", [("tof_job", UR5E), ("rgbd_job", FRANKA)])

@@ -24,16 +24,13 @@ from drivers.depth.projection import back_project
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import DriverError
 
-from .conftest import FRANKA, REPO, UR5E
+from .conftest import FRANKA, REPO, UR5E, raster_scan
 
 
 @pytest.fixture(scope="module")
 def bunny_job(tmp_path_factory):
     out = tmp_path_factory.mktemp("jobs") / "bunny"
-    res = CliRunner().invoke(app, ["scan", "--config", str(FRANKA), "--object", "bunny", "--seed", "0",
-                                   "--planner", "raster", "--out", str(out), "--max-time", "8"])
-    assert res.exit_code == 0, res.output
-    return out, res.output
+    return out, raster_scan(out, FRANKA, "bunny", 0, 8)
 
 
 def test_vs_local_is_the_default_planner():
