@@ -48,8 +48,6 @@ from __future__ import annotations
 
 import json
 import time
-import zipfile
-import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -73,6 +71,7 @@ from cell.perception.registration import (
 from drivers.atomic_file import check_writable, write_text_atomic
 from drivers.config_base import StrictModel
 from drivers.depth.projection import back_project
+from drivers.depth.replay import UNREADABLE_FRAME_ERRORS as FRAME_READ_ERRORS
 from drivers.errors import CellError, JobError
 from drivers.sim.objects import load_object
 from drivers.transforms import inv_T, rotvec, transform_points
@@ -197,10 +196,9 @@ def _crop_for(job_dir: Path, result: dict[str, Any]) -> tuple[CropBoxConfig, str
     return PAPER_CROP, "paper section II-A"
 
 
-UNREADABLE_FRAME_ERRORS = (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile, zlib.error)
-"""What reading a damaged ``.npz`` raises: a truncated file is no zip (``BadZipFile``), a damaged member
-fails its CRC (``BadZipFile``) or decompression (``zlib.error``) or ends early (``EOFError``, ``ValueError``),
-a member may be missing (``KeyError``)."""
+UNREADABLE_FRAME_ERRORS = (*FRAME_READ_ERRORS, TypeError)
+"""What reading a damaged ``.npz`` raises (``drivers.depth.replay.UNREADABLE_FRAME_ERRORS``), and a member of
+the wrong kind here (``TypeError``)."""
 
 
 def _load_frame(path: Path) -> tuple[Array, Array, float]:
