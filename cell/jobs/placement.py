@@ -25,10 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.models import CellConfig
+from cell.perception.cloud import crop_box
 from drivers.errors import JobError
 from drivers.robots import get_robot_model
 from drivers.sim.objects import Array, ObjectMesh, sample_surface
-from drivers.transforms import T_from_xyz_rpy
+from drivers.transforms import T_from_xyz_rpy, transform_points
 
 VIEW_CHECK_POINTS = 4096
 """Surface points [count] drawn (from a fixed seed: a placement's verdict never changes) to tell whether a
@@ -175,7 +176,7 @@ def check_clear_of_arm(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, 
     model = get_robot_model(config.arm.model)
     frames = model.fk_all(model.home(config.arm.home_joints_rad))
     T = object_pose_in_base(config, pose)
-    placed = fcl.CollisionObject(mesh_bvh(mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.triangles))
+    placed = fcl.CollisionObject(mesh_bvh(transform_points(T, mesh.vertices), mesh.triangles))
     world = CollisionWorld(model, config.safety.collision, config.station.table_z_m)
     for body in world.arm_bodies():
         part = fcl.CollisionObject(body.geometry, fcl_transform(frames[body.frame] @ body.T_frame_body))
@@ -196,13 +197,8 @@ def where_views_look(config: CellConfig) -> str:
 def _seen(config: CellConfig, views: list[NDArray[np.float64]], points_base: NDArray[np.float64]) -> bool:
     """Whether a view of ``views`` (T_base_sensor) has one of ``points_base`` (N, 3) [m] in its crop box."""
     crop = config.perception.crop_box
-    lo = np.array([crop.x_m[0], crop.y_m[0], crop.z_m[0]])
-    hi = np.array([crop.x_m[1], crop.y_m[1], crop.z_m[1]])
-    for T_view in views:
-        local = (points_base - T_view[:3, 3]) @ T_view[:3, :3]
-        if np.any(np.all((local > lo) & (local < hi), axis=1)):
-            return True
-    return False
+    return any(crop_box((points_base - T_view[:3, 3]) @ T_view[:3, :3], crop.x_m, crop.y_m, crop.z_m).shape[0]
+               for T_view in views)
 
 
 def check_in_view(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
@@ -216,7 +212,7 @@ def check_in_view(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float
     T = object_pose_in_base(config, pose)
     points = sample_surface(mesh, VIEW_CHECK_POINTS, np.random.default_rng(0), exclude_down_deg=-1.0)
     station = object_pose_in_base(config, (0.0, 0.0, 0.0))[:3, 3]
-    if _seen(config, views, points @ T[:3, :3].T + T[:3, 3]) or not _seen(config, views, station[None]):
+    if _seen(config, views, transform_points(T, points)) or not _seen(config, views, station[None]):
         return
     lo_xy, hi_xy = footprint_bounds(config, mesh, pose)
     raise JobError(f"object pose {list(pose)} puts {mesh.name} (footprint x {lo_xy[0]:.3f}..{hi_xy[0]:.3f} "
