@@ -104,8 +104,9 @@ class JobRecorder:
         """One row of ``joints.csv``: job time [s] and the joints [rad] (created with the first row)."""
         if self._joints is None:
             self._joints = (self.folder / JOINTS_FILE).open("w", newline="")
-            csv.writer(self._joints).writerow(["t", *(f"q{k + 1}" for k in range(len(q)))])
-        csv.writer(self._joints).writerow([f"{t:.6f}", *(repr(float(v)) for v in q)])
+            self._joints_writer = csv.writer(self._joints)
+            self._joints_writer.writerow(["t", *(f"q{k + 1}" for k in range(len(q)))])
+        self._joints_writer.writerow([f"{t:.6f}", *(repr(float(v)) for v in q)])
 
     def frame(self, frame: DepthFrame, T_base_sensor: Array, T_base_flange: Array,
               extra: dict[str, Array]) -> None:
