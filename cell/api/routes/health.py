@@ -34,7 +34,8 @@ async def readyz(response: Response, cell: Service,
     except StoreError:
         response.status_code = 503
         return {"status": "the job store does not answer"}
-    if (reason := cell.not_ready()) is not None:
+    # off the event loop: it asks the file system about the jobs folder (access, free space)
+    if (reason := await asyncio.to_thread(cell.not_ready)) is not None:
         response.status_code = 503
         return {"status": reason}
     return {"status": "ready", "warm_worker": cell.warm_worker}
