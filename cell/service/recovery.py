@@ -36,7 +36,7 @@ from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.service.protocol import WORKER_MODULE
 from cell.service.retention import known_folders, listed
-from cell.service.store import FINISHED_STATUSES, HoldRecord, JobRecord, Store
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, HoldRecord, JobRecord, Store
 from cell.service.store.repository import JOB_ID
 from cell.service.worker import SERVICE_GONE
 from drivers.atomic_file import keep_aside, write_text_atomic
@@ -261,7 +261,7 @@ def import_folders(store: Store, cell: str, jobs_dir: Path) -> list[str]:
     Every other entry is listed, and left as it is. Returns what was done, in words."""
     done: list[str] = []
     skipped: list[str] = []
-    known = known_folders(store, cell, jobs_dir)
+    known = known_folders(store.jobs_in_status(cell, JOB_STATUSES), jobs_dir)
     for folder in sorted(jobs_dir.iterdir() if jobs_dir.is_dir() else ()):
         if folder.name in known:
             continue

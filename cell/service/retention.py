@@ -14,7 +14,7 @@ import asyncio
 import logging
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -89,10 +89,9 @@ def listed(names: Sequence[str], most: int = 20) -> str:
     return ", ".join(names[:most]) + more
 
 
-def known_folders(store: Store, cell: str, jobs_dir: Path) -> set[str]:
-    """The names in ``jobs_dir`` of the folders of ``cell``'s jobs in the store (any status)."""
-    return {Path(job.folder).name for job in store.jobs_in_status(cell, JOB_STATUSES)
-            if _inside(job.folder, jobs_dir)}
+def known_folders(jobs: Iterable[JobRecord], jobs_dir: Path) -> set[str]:
+    """The names in ``jobs_dir`` of the folders of ``jobs`` (a cell's jobs in the store, any status)."""
+    return {Path(job.folder).name for job in jobs if _inside(job.folder, jobs_dir)}
 
 
 def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConfig,
@@ -100,10 +99,11 @@ def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConf
     """The ended jobs of ``cell`` that ``retention`` deletes at ``now`` (timezone-aware)."""
     # one walk of the jobs folder gives the total, each job's share and what retention does not govern
     entries = {entry.name: _size(entry) for entry in (jobs_dir.iterdir() if jobs_dir.is_dir() else ())}
-    known = known_folders(store, cell, jobs_dir)
+    jobs = store.jobs_in_status(cell, JOB_STATUSES)
+    known = known_folders(jobs, jobs_dir)
     unknown = sorted(set(entries) - known)
     total = sum(size for name, size in entries.items() if name in known)
-    ended = sorted((job for job in store.jobs_in_status(cell, sorted(FINISHED_STATUSES)) if not job.keep),
+    ended = sorted((job for job in jobs if job.status in FINISHED_STATUSES and not job.keep),
                    key=lambda job: (_ended_at(job), job.id))
     sizes = {job.id: entries.get(Path(job.folder).name, 0) if _inside(job.folder, jobs_dir) else 0
              for job in ended}
