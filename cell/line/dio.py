@@ -36,7 +36,7 @@ from typing import Any
 
 from cell.line.config import DigitalIOConfig
 from cell.line.controller import LineController, LineSnapshot
-from cell.line.packml import ORDINARY_STOPS, Command, State, UnitMode
+from cell.line.packml import ORDINARY_STOPS, STOPPED_BRANCH, Command, State, UnitMode
 from drivers.arm.config import UR5eArmConfig
 from drivers.arm.ur_io import URDigitalIO
 from drivers.errors import DriverError, ServiceError
@@ -83,15 +83,12 @@ def reset_command(state: State) -> Command:
     return Command.CLEAR if state is State.ABORTED else Command.RESET
 
 
-STOPPED_BRANCH = frozenset({State.STOPPING, State.STOPPED, State.ABORTING, State.ABORTED, State.CLEARING})
-"""The states a stop or an abort leads through to Stopped, where a fault shows until Reset."""
-
 
 def output_levels(snapshot: LineSnapshot) -> dict[str, bool]:
     """The level of each output for the line's ``snapshot``: ``busy`` in Execute, ``done`` in Complete,
-    ``ready`` in Idle in Production mode, ``fault`` in Held, and in :data:`STOPPED_BRANCH` when the stop
-    reason is not one of :data:`cell.line.packml.ORDINARY_STOPS` (it stays high through Clear, until
-    Reset)."""
+    ``ready`` in Idle in Production mode, ``fault`` in Held, and in :data:`cell.line.packml.STOPPED_BRANCH`
+    when the stop reason is not one of :data:`cell.line.packml.ORDINARY_STOPS` (it stays high through
+    Clear, until Reset)."""
     state = snapshot.state
     return {"busy": state is State.EXECUTE, "done": state is State.COMPLETE,
             "ready": state is State.IDLE and snapshot.mode is UnitMode.PRODUCTION,

@@ -74,7 +74,10 @@ OFFERED_MODES = frozenset({UnitMode.PRODUCTION, UnitMode.MANUAL})
 MODE_CHANGE_STATES = frozenset({State.STOPPED, State.IDLE, State.ABORTED})
 """The wait states in which the unit mode may change: no part is on its way through the cell."""
 
-_STOPPABLE = frozenset(State) - {State.STOPPED, State.STOPPING, State.ABORTING, State.ABORTED, State.CLEARING}
+STOPPED_BRANCH = frozenset({State.STOPPING, State.STOPPED, State.ABORTING, State.ABORTED, State.CLEARING})
+"""The states a stop or an abort leads through to Stopped, where a fault shows until Reset."""
+
+_STOPPABLE = frozenset(State) - STOPPED_BRANCH
 
 ACCEPTS: dict[Command, frozenset[State]] = {
     Command.RESET: frozenset({State.STOPPED, State.COMPLETE}),
