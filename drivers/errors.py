@@ -50,6 +50,10 @@ following: the arm stays faulted until recovered."""
 OPERATOR_STOP = "operator stop: "
 """How the reason of a stop someone asked for (the guard's ``request_stop``, an interrupt) begins: a job
 it ends was stopped by a person or a client, not by the safety layer."""
+COMMAND_LINE_REASON = "requested from the command line"
+"""A stop's reason when the command line is given none (``cell stop``, ``cell jobs stop``): the job's
+termination already says that it was an operator stop (``operator stop: <reason> (key NAME)``), which a
+default of "operator stop" repeated."""
 
 
 class RobotFault(DriverError):

@@ -29,7 +29,7 @@ from rich.console import Console
 from cell.cli.client import FINISHED, JOB_STATUSES, ApiClient, ServerEvent
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
-from drivers.errors import CellError
+from drivers.errors import COMMAND_LINE_REASON, CellError
 
 DEFAULT_SERVER = "http://127.0.0.1:8080"
 PROGRESS_EVERY_S = 1.0
@@ -37,9 +37,6 @@ PROGRESS_EVERY_S = 1.0
 TERMINATION_WIDTH = 48
 """``list`` shortens a termination to this many characters."""
 EXIT_NOT_COMPLETED = 2
-COMMAND_LINE_REASON = "requested from the command line"
-"""A stop's reason when none is given: the job's termination already says that it was an operator stop
-(``operator stop: <reason> (key NAME)``), which a default of "operator stop" repeated."""
 
 jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, resume, wait (for "
                               "scripts).",

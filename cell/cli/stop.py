@@ -11,7 +11,7 @@ from rich.console import Console
 
 from cell.cli.errors import fail
 from cell.jobs.stop_file import request_stop
-from drivers.errors import CellError
+from drivers.errors import COMMAND_LINE_REASON, CellError
 
 console = Console(soft_wrap=True)
 
@@ -19,7 +19,7 @@ console = Console(soft_wrap=True)
 def stop(
     job_dir: Annotated[Path, typer.Argument(help="folder of the running job")],
     reason: Annotated[str, typer.Option(help="recorded in the job's termination, after 'operator stop: '")]
-    = "requested from the command line",
+    = COMMAND_LINE_REASON,
 ) -> None:
     """Operator stop of a running scan.
 
