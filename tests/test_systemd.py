@@ -24,6 +24,7 @@ import pytest
 import uvicorn
 
 from cell.api.server import NotifyingServer
+from cell.deploy import DATA_DIR, SYSUSERS, UDEV_RULE, UNIT
 from cell.service.logs import HumanFormatter, JsonLineFormatter, configure_logging
 from cell.service.manager import CellService
 from cell.service.notify import Notifier
@@ -32,7 +33,7 @@ from drivers.errors import CellError
 from tests.conftest import UR5E
 from tests.service_process import REPO, ServedCell
 
-UNIT = REPO / "deploy" / "systemd" / "cell.service"
+UNIT_FILE = REPO / "deploy" / UNIT
 WATCHDOG_USEC = 400_000  # pings every 0.2 s
 
 
@@ -226,21 +227,21 @@ def test_the_unit_file_verifies(tmp_path):
     # verify wants ExecStart's program to exist: point it at this venv's cell instead of /opt/cell's
     cell = Path(sys.executable).parent / "cell"
     unit = tmp_path / "cell.service"
-    unit.write_text(UNIT.read_text().replace("/opt/cell/venv/bin/cell", str(cell)))
+    unit.write_text(UNIT_FILE.read_text().replace("/opt/cell/venv/bin/cell", str(cell)))
     out = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stderr == "", out.stderr
 
 
 def test_the_unit_the_users_and_the_udev_rule_agree():
-    unit = dict(line.split("=", 1) for line in UNIT.read_text().splitlines() if "=" in line
+    unit = dict(line.split("=", 1) for line in UNIT_FILE.read_text().splitlines() if "=" in line
                 and not line.startswith("#"))
     assert unit["Type"] == "notify" and int(unit["WatchdogSec"]) > 0 and unit["NotifyAccess"] == "main"
-    assert "--data-dir /var/lib/cell" in unit["ExecStart"] and unit["StateDirectory"] == "cell"
+    assert f"--data-dir {DATA_DIR}" in unit["ExecStart"] and unit["StateDirectory"] == "cell"
     assert "--config /etc/cell/" in unit["ExecStart"] and unit["ConfigurationDirectory"] == "cell"
     group = unit["SupplementaryGroups"]
-    sysusers = (REPO / "deploy" / "systemd" / "cell.sysusers.conf").read_text()
+    sysusers = (REPO / "deploy" / SYSUSERS).read_text()
     assert f"m {unit['User']} {group}" in sysusers
-    rules = [line for line in (REPO / "deploy" / "udev" / "99-vl53l8cx.rules").read_text().splitlines()
+    rules = [line for line in (REPO / "deploy" / UDEV_RULE).read_text().splitlines()
              if line.startswith("SUBSYSTEM")]
     assert rules and all(f'GROUP="{group}"' in line and 'SYMLINK+="vl53l8cx"' in line for line in rules)
     # the rule matches exactly the USB ids the firmware's README says the boards report
@@ -253,7 +254,7 @@ def test_the_unit_the_users_and_the_udev_rule_agree():
 def test_a_service_that_fails_at_every_start_is_not_restarted_for_ever():
     """Restart=on-failure with RestartSec=5 restarted a broken cell file every 5 s, for ever: the start
     limit must be reachable by a service that fails at once, each try RestartSec apart."""
-    text = UNIT.read_text()
+    text = UNIT_FILE.read_text()
     unit_section = text[text.index("[Unit]"):text.index("[Service]")]
     limits = dict(line.split("=", 1) for line in unit_section.splitlines() if "=" in line
                   and not line.startswith("#"))

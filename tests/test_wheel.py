@@ -22,6 +22,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from cell.deploy import DEPLOY_FILES
 from tests.service_process import REPO, free_port
 
 SOURCES = ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "cell", "drivers", "calibration")
@@ -97,7 +98,7 @@ def test_the_installed_cell_scans_inits_and_serves_without_the_checkout(venv, tm
     files = subprocess.run([cell, "deploy", "files", "deploy"], cwd=tmp_path, capture_output=True, text=True,
                            timeout=60)
     assert files.returncode == 0, files.stderr
-    for name in ("systemd/cell.service", "systemd/cell.sysusers.conf", "udev/99-vl53l8cx.rules"):
+    for name in DEPLOY_FILES:
         assert (tmp_path / "deploy" / name).read_bytes() == (REPO / "deploy" / name).read_bytes()
 
     port = free_port()

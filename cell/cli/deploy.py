@@ -3,7 +3,6 @@ out of the installed package, with the commands that install them (docs/deploy.m
 
 from __future__ import annotations
 
-import shlex
 from pathlib import Path
 from typing import Annotated
 
@@ -12,21 +11,12 @@ from rich.console import Console
 
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
-from cell.deploy import write_deploy_files
+from cell.deploy import install_commands, write_deploy_files
 from drivers.errors import CellError
 
 deploy_app = command_group(help="Putting the cell into service: its systemd unit, user and udev rule.",
                            no_args_is_help=True)
 console = Console(soft_wrap=True)
-
-
-def install_commands(folder: Path) -> list[str]:
-    """The commands that install the files written to ``folder`` (docs/deploy.md, sections 3, 4 and 6)."""
-    d = shlex.quote(str(folder))
-    return [f"sudo cp {d}/systemd/cell.sysusers.conf /etc/sysusers.d/cell.conf && sudo systemd-sysusers",
-            f"sudo cp {d}/udev/99-vl53l8cx.rules /etc/udev/rules.d/ && sudo udevadm control --reload "
-            "&& sudo udevadm trigger",
-            f"sudo cp {d}/systemd/cell.service /etc/systemd/system/ && sudo systemctl daemon-reload"]
 
 
 @deploy_app.command("files")

@@ -8,15 +8,25 @@ links to these files.
 
 from __future__ import annotations
 
+import shlex
 from importlib.resources import files
 from pathlib import Path
 
 from drivers.errors import ConfigError
 
-DEPLOY_FILES = ("systemd/cell.service", "systemd/cell.sysusers.conf", "udev/99-vl53l8cx.rules")
-"""Each shipped file, by its path below this package (and below the folder it is written to)."""
 UNIT = "systemd/cell.service"
+SYSUSERS = "systemd/cell.sysusers.conf"
 UDEV_RULE = "udev/99-vl53l8cx.rules"
+DEPLOY_FILES = (UNIT, SYSUSERS, UDEV_RULE)
+"""Each shipped file, by its path below this package (and below the folder it is written to)."""
+_INSTALL = {
+    SYSUSERS: "sudo cp {path} /etc/sysusers.d/cell.conf && sudo systemd-sysusers",
+    UDEV_RULE: "sudo cp {path} /etc/udev/rules.d/ && sudo udevadm control --reload && sudo udevadm trigger",
+    UNIT: "sudo cp {path} /etc/systemd/system/ && sudo systemctl daemon-reload",
+}
+"""How each shipped file is installed, in the order docs/deploy.md installs them (sections 3, 4 and 6)."""
+DATA_DIR = "/var/lib/cell"
+"""The service's data folder under the shipped unit (its ``--data-dir`` and ``StateDirectory=``)."""
 SERVICE_USER = "cell"
 """The user the shipped unit runs ``cell serve`` as (its ``User=``, made by ``cell.sysusers.conf``)."""
 
@@ -26,6 +36,16 @@ def deploy_file(name: str) -> Path:
     if name not in DEPLOY_FILES:
         raise ConfigError(f"no deployment file {name!r}", allowed=", ".join(DEPLOY_FILES))
     return Path(str(files(__name__).joinpath(name)))
+
+
+def install_command(name: str, folder: str) -> str:
+    """The command that installs the file ``name`` (one of :data:`DEPLOY_FILES`) written below ``folder``."""
+    return _INSTALL[name].format(path=f"{shlex.quote(folder)}/{name}")
+
+
+def install_commands(folder: Path) -> list[str]:
+    """The commands that install the files written to ``folder``, in order."""
+    return [install_command(name, str(folder)) for name in _INSTALL]
 
 
 def write_deploy_files(folder: Path) -> list[Path]:

@@ -14,7 +14,7 @@ import stat
 import struct
 from importlib import metadata
 
-from cell.deploy import UDEV_RULE
+from cell.deploy import UDEV_RULE, install_command
 from cell.doctor.findings import Finding
 from drivers.errors import CellError
 from drivers.file_access import group_name, user_name
@@ -58,9 +58,8 @@ def serial_port(port: str) -> Finding:
         if st.st_gid == 0 or st.st_mode & GROUP_RW != GROUP_RW:
             # no group to join but root's, which would give the user the whole machine
             return Finding.fail(name, found, f"install the sensor's udev rule, which gives the board to "
-                                f"group dialout as {UDEV_DEVICE}: cell deploy files DIR, then sudo cp "
-                                f"DIR/{UDEV_RULE} /etc/udev/rules.d/ && sudo udevadm control --reload && "
-                                f"sudo udevadm trigger; and sensor.port: {UDEV_DEVICE}")
+                                f"group dialout as {UDEV_DEVICE}: cell deploy files DIR, then "
+                                f"{install_command(UDEV_RULE, 'DIR')}; and sensor.port: {UDEV_DEVICE}")
         return Finding.fail(name, found, f"sudo usermod -aG {group} {me} and log in again (the service's "
                             "unit joins dialout)")
     try:
