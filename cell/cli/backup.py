@@ -16,9 +16,8 @@ from rich.console import Console
 from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
 from cell.service.startup import DEFAULT_DATA_DIR
-from cell.service.store import sqlite_url
 from cell.service.store.backup import backup_sqlite, sqlite_file
-from cell.service.store.service_store import check_service_store
+from cell.service.store.service_store import service_store_url
 from drivers.errors import CellError
 
 console = Console(soft_wrap=True)
@@ -36,8 +35,7 @@ def backup(
 ) -> None:
     """Back up the job store while the service runs (SQLite's online backup); never overwrites a file."""
     try:
-        check_service_store(data_dir, db or sqlite_url(data_dir))
-        source = sqlite_file(db or sqlite_url(data_dir))
+        source = sqlite_file(service_store_url(data_dir, db))
         info = backup_sqlite(source, Path(dest), folder=dest.endswith(os.sep))
     except CellError as exc:
         raise fail(exc) from None

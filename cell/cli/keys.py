@@ -23,10 +23,10 @@ from rich.console import Console
 from cell.cli.commands import DB_ENVVAR, command_group
 from cell.cli.errors import fail
 from cell.service.keys import Role, create_key, parse_role
-from cell.service.store import Store, open_data_store, sqlite_url
+from cell.service.store import Store, open_data_store
 from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S
 from cell.service.store.repository import KEYS_SCHEMA, read_store
-from cell.service.store.service_store import check_service_store
+from cell.service.store.service_store import service_store_url
 from drivers.errors import CellError
 
 DEFAULT_DATA_DIR = Path("data")
@@ -56,7 +56,7 @@ def opened_store(data_dir: Path, db: str | None) -> Iterator[Store]:
     missing), closed at the end: made if there is none yet, never migrated (:data:`KEYS_SCHEMA` on
     will do). ``StoreError`` if it cannot be opened, or if it is not the store the data folder's service
     uses."""
-    check_service_store(data_dir, db or sqlite_url(data_dir))
+    service_store_url(data_dir, db)
     store = open_data_store(data_dir, db, migrate=False, oldest=KEYS_SCHEMA)
     try:
         yield store
@@ -94,8 +94,7 @@ def create(
 def list_keys(data_dir: DataDirOption = DEFAULT_DATA_DIR, db: DbOption = None) -> None:
     """List the keys: name, role, creation time (UTC) and whether each is active or since when revoked."""
     with _one_line_errors():
-        check_service_store(data_dir, db or sqlite_url(data_dir))
-        store = read_store(db or sqlite_url(data_dir), KEYS_SCHEMA, POSTGRES_CONNECT_TIMEOUT_S)
+        store = read_store(service_store_url(data_dir, db), KEYS_SCHEMA, POSTGRES_CONNECT_TIMEOUT_S)
         try:
             records = store.list_keys() if store is not None else []
         finally:

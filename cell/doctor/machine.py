@@ -16,10 +16,9 @@ from pathlib import Path
 
 from cell.deploy import SERVICE_USER
 from cell.doctor.findings import Finding
-from cell.service.store import sqlite_url
 from cell.service.store.engine import hide_password, schema_head, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
-from cell.service.store.service_store import check_service_store
+from cell.service.store.service_store import service_store_url
 from drivers.errors import DriverError, StoreDamaged, StoreError
 from drivers.file_access import access_problem, make_folder, user_name
 from drivers.hosts import is_loopback, listen_problem
@@ -221,13 +220,12 @@ def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
     changing it, and for SQLite its folder and files (``cell.db*``: the database, its WAL, the cells'
     leases) this user's to write; and, for a ``host`` beyond loopback, an API key in it (cell serve
     refuses that host without one). The store's URL is shown with its password hidden."""
-    url = db_url or sqlite_url(data_dir)
-    shown = hide_password(url)
     try:
-        check_service_store(data_dir, url)
+        url = service_store_url(data_dir, db_url)
     except StoreError as exc:
         return [Finding.fail("job store", str(exc), "run doctor with the service's store: --db URL or "
                              "CELL_DB (docs/deploy.md, section 6)")]
+    shown = hide_password(url)
     database = sqlite_database(url)
     problem = sqlite_access_problem(database) if database is not None and database.parent.is_dir() else None
     if problem is not None:

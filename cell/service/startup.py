@@ -15,8 +15,8 @@ from pathlib import Path
 from cell.config.load import load_config_data
 from cell.config.placeholders import require_measured
 from cell.service.manager import CellService
-from cell.service.store import open_data_store, sqlite_url
-from cell.service.store.service_store import check_service_store, record_service_store
+from cell.service.store import open_data_store
+from cell.service.store.service_store import record_service_store, service_store_url
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import StoreError
 
@@ -38,8 +38,7 @@ def build_service(settings: ServiceSettings) -> CellService:
     """The service of the cell file, on its store; call ``start`` on the event loop that will run it."""
     config, data = load_config_data(settings.config_file)
     require_measured(settings.config_file, config.mode)
-    url = settings.db_url or sqlite_url(settings.data_dir)
-    check_service_store(settings.data_dir, url, serving=True)
+    url = service_store_url(settings.data_dir, settings.db_url, serving=True)
     store = open_data_store(settings.data_dir, settings.db_url)
     try:
         lease = store.claim_cell(config.name)
