@@ -11,25 +11,15 @@ from rich.console import Console
 from cell.cli.errors import fail, print_warning
 from cell.cli.jobs import coverage_line
 from cell.cli.progress import stage_progress
-from cell.jobs.rebuild import check_job_dir, rebuild_result, recorded_result, remove_live_cloud
+from cell.jobs.rebuild import check_job_dir, output_folder, rebuild_result, recorded_result, remove_live_cloud
 from cell.jobs.recorder import RESULT_FILE
 from cell.perception.reprocess import reprocess_job
-from drivers.atomic_file import check_writable, writable_folder
-from drivers.errors import CellError, JobError
+from drivers.atomic_file import check_writable
+from drivers.errors import CellError
 
 console = Console(soft_wrap=True)
-
-
-def _output_folder(job_dir: Path, out: Path | None) -> Path:
-    """Where the outputs go: ``out`` (made when missing) or the job folder (``reprocess_job`` checks that
-    it can write there before any work); raises ``JobError`` for an ``out`` it cannot make or write to."""
-    if out is None:
-        return job_dir
-    try:
-        return writable_folder(out)
-    except OSError as exc:
-        raise JobError(f"cannot write cloud_hires.ply and result_hires.json to {out}: "
-                       f"{exc.strerror or exc}") from None
+HIRES_FILES = ("cloud_hires.ply", "result_hires.json")
+"""What ``reprocess_job`` writes, in the job folder or ``--out``."""
 
 
 def _writable(folder: Path) -> bool:
@@ -53,7 +43,7 @@ def reprocess(
     --out. Progress: a bar on a terminal, else lines to standard error."""
     try:
         check_job_dir(job_dir)
-        target = _output_folder(job_dir, out)
+        target = output_folder(job_dir, out, HIRES_FILES)
         recorded = recorded_result(job_dir)
         if recorded.problem is not None:
             if _writable(job_dir):
@@ -62,7 +52,7 @@ def reprocess(
                 console.print(f"{job_dir / RESULT_FILE} was {recorded.problem}: rebuilt from "
                               f"{recorded.result['n_captures']} frames (status {recorded.result['status']})"
                               f"{aside}", markup=False, highlight=False)
-            elif target != job_dir:  # else reprocess_job refuses the read-only folder, saying to give --out
+            else:  # a read-only job folder, the outputs going to --out (output_folder refused it without)
                 print_warning(f"{job_dir / RESULT_FILE} is {recorded.problem} and the job folder is "
                               "read-only: re-processing with a result rebuilt from job.json and the frames, "
                               "not written")
@@ -80,5 +70,5 @@ def reprocess(
     console.print(f"{outcome['n_frames']} frames{skipped_text}, {outcome['n_cloud_points']} points at "
                   f"{outcome['voxel_m'] * 1e3:g} mm", highlight=False, markup=False)
     console.print(coverage_line(cov), highlight=False)
-    console.print(f"wrote {target / 'cloud_hires.ply'} and {target / 'result_hires.json'}", markup=False,
+    console.print(f"wrote {' and '.join(str(target / name) for name in HIRES_FILES)}", markup=False,
                   highlight=False)

@@ -26,14 +26,13 @@ from cell.cli.commands import command_group
 from cell.cli.errors import print_warning
 from cell.config import load_config
 from cell.config.models import CellConfig
-from cell.jobs.rebuild import check_job_dir
+from cell.jobs.rebuild import check_job_dir, output_folder
 from cell.jobs.replay import recorded_job
 from cell.jobs.runner import job_generators
 from cell.perception.cloud import read_ply, write_ply
 from cell.perception.pipeline import PerceptionPipeline
 from cell.templates import template_path
 from drivers.arm.replay import ReplayArm
-from drivers.atomic_file import writable_folder
 from drivers.clock import SimClock
 from drivers.depth.check import CheckReport, SensorCheck
 from drivers.depth.config import VL53L8CX_VALID_STATUSES, VL53L8CXConfig
@@ -48,6 +47,8 @@ sensor_app = command_group(help="Depth sensors: commissioning check, VL53L8CX br
                            no_args_is_help=True)
 console = Console(soft_wrap=True, highlight=False)
 err_console = Console(stderr=True, highlight=False)
+REPLAY_CLOUD = "cloud_replay.ply"
+"""The cloud ``cell sensor replay`` writes, in the job folder or ``--out``."""
 
 
 def _fail(exc: BaseException) -> typer.Exit:
@@ -224,18 +225,6 @@ def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> Replayed:
     return Replayed(perception.cloud.points, n, recording.unreadable)
 
 
-def _replay_output(job_dir: Path, out_dir: Path | None) -> Path:
-    """The file to write the replayed cloud to: ``cloud_replay.ply`` in ``out_dir`` (made when missing) or
-    in the job folder; raises ``JobError`` before any work when that folder cannot be written to."""
-    folder = job_dir if out_dir is None else out_dir
-    try:
-        writable_folder(folder)
-    except OSError as exc:
-        hint = "; give --out DIR to write it elsewhere" if out_dir is None else ""
-        raise JobError(f"cannot write cloud_replay.ply to {folder}: {exc.strerror or exc}{hint}") from None
-    return folder / "cloud_replay.ply"
-
-
 @sensor_app.command()
 def replay(
     job_dir: Path,
@@ -250,8 +239,8 @@ def replay(
     is replaced by the job's identity in job.json (nothing is written to the job folder but
     cloud_replay.ply). A read-only job folder is refused before any work: give --out."""
     try:
-        check_job_dir(job_dir)  # before _replay_output, which would make it
-        path = _replay_output(job_dir, out)
+        check_job_dir(job_dir)  # before output_folder, which would make it
+        path = output_folder(job_dir, out, (REPLAY_CLOUD,)) / REPLAY_CLOUD
         cfg, job_result, _ = recorded_job(job_dir, config)
         if job_result.problem is not None:
             print_warning(f"{job_dir / 'result.json'} is {job_result.problem}: replaying with the job's "

@@ -22,7 +22,7 @@ from typing import Any
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.perception.reprocess import recorded_frames
-from drivers.atomic_file import keep_aside, write_text_atomic
+from drivers.atomic_file import keep_aside, writable_folder, write_text_atomic
 from drivers.errors import JobError
 
 IDENTITY = ("planner", "object", "object_scale", "object_pose", "config", "seed")
@@ -45,6 +45,20 @@ def check_job_dir(job_dir: Path) -> None:
         raise JobError(f"{job_dir} does not exist")
     if not job_dir.is_dir():
         raise JobError(f"{job_dir} is not a job folder: it is a file")
+
+
+def output_folder(job_dir: Path, out: Path | None, names: tuple[str, ...]) -> Path:
+    """Where an offline command writes the files ``names`` it makes from the job folder ``job_dir``: ``out``
+    (made when missing), else the job folder; raises ``JobError`` naming them before any work when that
+    folder cannot be written to."""
+    folder = job_dir if out is None else out
+    try:
+        return writable_folder(folder)
+    except OSError as exc:
+        them = "it" if len(names) == 1 else "them"
+        hint = f"; give --out DIR to write {them} elsewhere" if out is None else ""
+        raise JobError(f"cannot write {' and '.join(names)} to {folder}: "
+                       f"{exc.strerror or exc}{hint}") from None
 
 
 def _read_result(path: Path) -> dict[str, Any]:
