@@ -154,6 +154,22 @@ def test_an_unreadable_result_is_kept_aside_and_rebuilt(job, recorded):
     assert json.loads((job / "result_hires.json").read_text())["metrics"]["coverage_pct"] > 0
 
 
+def test_reprocess_reads_an_unreadable_result_once(job, monkeypatch):
+    """cell reprocess read a damaged result.json, then read it again to rebuild it."""
+    _truncate(job / "result.json")
+    reads = []
+    read_text = Path.read_text
+
+    def counted(path: Path, *args, **kwargs) -> str:
+        reads.append(path)
+        return read_text(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "read_text", counted)
+    res = CliRunner().invoke(app, ["reprocess", str(job)])
+    assert res.exit_code == 0, res.output
+    assert reads.count(job / "result.json") == 1
+
+
 def test_the_service_keeps_an_unreadable_result_aside_when_it_settles_a_dead_workers_job(job):
     """A worker killed while it wrote result.json (before this release wrote it whole): the service's
     restart gave the job its own result.json over the damaged one."""

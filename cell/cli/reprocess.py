@@ -47,7 +47,7 @@ def reprocess(
         recorded = recorded_result(job_dir)
         if recorded.problem is not None:
             if _writable(job_dir):
-                recorded, kept = rebuild_result(job_dir)
+                kept = rebuild_result(job_dir, recorded)
                 aside = f"; the unreadable file is kept as {kept}" if kept is not None else ""
                 console.print(f"{job_dir / RESULT_FILE} was {recorded.problem}: rebuilt from "
                               f"{recorded.result['n_captures']} frames (status {recorded.result['status']})"

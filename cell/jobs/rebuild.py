@@ -102,15 +102,11 @@ def recorded_result(job_dir: Path) -> RecordedResult:
     return RecordedResult(result, problem)
 
 
-def rebuild_result(job_dir: Path) -> tuple[RecordedResult, Path | None]:
-    """Write the ``result.json`` of a job folder that has lost it, or whose ``result.json`` is unreadable
-    (kept aside first, renamed ``result.json.unreadable``); returns the result (:func:`recorded_result`,
-    ``problem`` None when the folder's own was readable and nothing was written) and where the unreadable
-    file was kept (None when there was none). Raises ``JobError`` as :func:`recorded_result` does, and for
-    a folder it cannot write to."""
-    recorded = recorded_result(job_dir)
-    if recorded.problem is None:
-        return recorded, None
+def rebuild_result(job_dir: Path, recorded: RecordedResult) -> Path | None:
+    """Write ``recorded``, the result :func:`recorded_result` rebuilt for a job folder that has lost its
+    ``result.json`` or whose ``result.json`` is unreadable (kept aside first, renamed
+    ``result.json.unreadable``); returns where the unreadable file was kept (None when there was none).
+    Raises ``JobError`` for a folder it cannot write to."""
     path = job_dir / RESULT_FILE
     kept: Path | None = None
     try:
@@ -124,7 +120,7 @@ def rebuild_result(job_dir: Path) -> tuple[RecordedResult, Path | None]:
             aside = f", the unreadable file kept as {kept.name}" if kept is not None else ""
             log.write(f"[reprocess] {RESULT_FILE} was {recorded.problem}: rebuilt, status "
                       f"interrupted{aside}\n")
-    return recorded, kept
+    return kept
 
 
 def remove_live_cloud(job_dir: Path) -> bool:
