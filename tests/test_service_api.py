@@ -932,11 +932,25 @@ def test_a_start_removes_the_empty_worker_logs_a_previous_run_left(tmp_path):
             == ["worker-fedcba9876543210.log"]
 
 
-def test_a_spare_worker_whose_service_went_away_exits_quietly_leaving_no_log(tmp_path):
+def test_a_service_shut_down_keeps_its_spare_workers_log_only_when_the_spare_printed_something(tmp_path):
+    """The service deleted its spare's log at shutdown whatever it held, where every other worker's log is
+    kept when its worker printed something."""
+    client, _ = _client(tmp_path)
+    with client:
+        quiet = client.app.state.service._spare_log
+    assert not quiet.exists()
+    with client:
+        printed = client.app.state.service._spare_log
+        with printed.open("a") as log:
+            log.write("a library's warning\n")
+    assert printed.read_text() == "a library's warning\n"
+
+
+def test_a_spare_worker_whose_service_went_away_exits_quietly(tmp_path):
     log_path = tmp_path / "worker-spare-0a1b2c3d.log"
     with log_path.open("wb") as log:
-        command = [sys.executable, "-m", WORKER_MODULE, "--job", "spare", "--log", str(log_path)]
+        command = [sys.executable, "-m", WORKER_MODULE, "--job", "spare"]
         spare = subprocess.run(command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
                                timeout=120)
-    assert spare.returncode == 0 and not log_path.exists()
+    assert spare.returncode == 0 and log_path.read_bytes() == b""
     assert [json.loads(line)["type"] for line in spare.stdout.splitlines()] == ["loaded"]

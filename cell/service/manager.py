@@ -698,7 +698,7 @@ class CellService:
     async def _start_worker(self, log_path: Path, label: str) -> asyncio.subprocess.Process:
         with log_path.open("ab") as log:
             return await asyncio.create_subprocess_exec(
-                sys.executable, "-m", WORKER_MODULE, "--job", label, "--log", str(log_path),
+                sys.executable, "-m", WORKER_MODULE, "--job", label,
                 stdin=asyncio.subprocess.PIPE,
                 stdout=asyncio.subprocess.PIPE, stderr=log, start_new_session=True, limit=LINE_LIMIT)
 
@@ -808,7 +808,7 @@ class CellService:
         await self._stop_watching_spare()
         self._kill(spare)
         await spare.communicate()
-        self._spare_log.unlink(missing_ok=True)
+        _drop_if_empty(self._spare_log)
 
     def _may_start(self) -> bool:
         return bool(self._queued) and self._running is None and self.hold_reason() is None \

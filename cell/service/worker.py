@@ -180,9 +180,7 @@ def _preload() -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m cell.service.worker", description=__doc__)
     parser.add_argument("--job", required=True, help="the job's id (for the process list)")
-    parser.add_argument("--log", type=Path, help="the file of its standard error, deleted when it is left "
-                                                 "empty without a task")
-    args = parser.parse_args(argv)
+    parser.parse_args(argv)
     # The protocol keeps the original standard output; everything else printing there goes to stderr.
     protocol = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)
@@ -195,9 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         spec = WorkerSpec.parse(next(source).decode())
     except StopIteration:
         # a spare whose service went away (shut down, restarted or killed) before it had a job: nothing
-        # happened, and an empty log would only be clutter
-        if args.log is not None and args.log.is_file() and args.log.stat().st_size == 0:
-            args.log.unlink(missing_ok=True)
+        # happened (the service drops its log when it stays empty)
         return 0
     except (ValueError, TypeError, KeyError) as exc:
         print(f"worker: no valid task on standard input: {exc!r}", file=sys.stderr)
