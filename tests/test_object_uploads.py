@@ -80,6 +80,24 @@ def test_after_a_restart_the_list_and_a_jobs_placement_read_no_uploaded_mesh(
     assert str(refused.value) == str(by_mesh.value).replace(mesh.name, "l_part")
 
 
+def test_an_outline_file_kept_from_before_loads_without_its_mesh(tmp_path: Path,
+                                                                 counted_loads: list[str]) -> None:
+    """The outline file's format (``extents_m`` and ``footprint_m``) is read as it was written; the
+    outline's size is its footprint's and height."""
+    folder = tmp_path / "objects"
+    folder.mkdir()
+    mesh_file = folder / "wedge.stl"
+    trimesh.creation.box(extents=(0.08, 0.05, 0.04)).export(mesh_file)
+    stat = mesh_file.stat()
+    (folder / "wedge.json").write_text(json.dumps({
+        "mesh_file": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}, "extents_m": [0.08, 0.05, 0.04],
+        "footprint_m": [[-0.04, -0.025], [0.04, -0.025], [0.04, 0.025], [-0.04, 0.025]]}, indent=1))
+    library = ObjectLibrary(folder, CONFIG)
+    assert {e.name: e.extents_m for e in library.entries()}["wedge"] == pytest.approx((0.08, 0.05, 0.04))
+    assert library.shape("wedge").vertices[:, 2].max() == pytest.approx(0.04)
+    assert counted_loads == []
+
+
 def test_an_upload_from_before_outlines_is_read_once_and_again_only_when_its_file_changes(
         tmp_path: Path, counted_loads: list[str]) -> None:
     folder = tmp_path / "objects"

@@ -69,13 +69,17 @@ class ObjectEntry:
 @dataclass(frozen=True)
 class ObjectOutline:
     """What the service keeps of an uploaded mesh (``cell.jobs.placement`` reads nothing else):
-    ``extents_m`` (3,) its bounding box's size [m] and ``vertices`` (2K, 3) [m, object frame] the corners
-    of the upright prism over the convex hull of its footprint, at z = 0 and at its height: at every yaw
-    their footprint spans what the mesh's does."""
+    ``vertices`` (2K, 3) [m, object frame] the corners of the upright prism over the convex hull of its
+    footprint, at z = 0 and at its height: at every yaw their footprint spans what the mesh's does."""
 
     name: str
-    extents_m: Array
     vertices: Array
+
+    @property
+    def extents_m(self) -> Array:
+        """Axis-aligned bounding-box size (x, y, z) [m], the mesh's: its footprint's extreme points are
+        corners of the hull, and the prism is as tall as the mesh."""
+        return np.ptp(self.vertices, axis=0)
 
     @classmethod
     def of(cls, mesh: ObjectMesh) -> ObjectOutline:
@@ -83,13 +87,14 @@ class ObjectOutline:
         # QJ: a footprint that is a line (a flat plate standing on edge) has a hull too; the points it
         # keeps are the mesh's own
         hull = xy[ConvexHull(xy, qhull_options="QJ").vertices]
-        return cls.from_footprint(mesh.name, mesh.extents_m, hull)
+        return cls.from_footprint(mesh.name, float(mesh.extents_m[2]), hull)
 
     @classmethod
-    def from_footprint(cls, name: str, extents_m: Array, footprint: Array) -> ObjectOutline:
+    def from_footprint(cls, name: str, height_m: float, footprint: Array) -> ObjectOutline:
+        """The prism over ``footprint`` (K, 2) [m], from z = 0 to ``height_m`` [m]."""
         low = np.column_stack([footprint, np.zeros(len(footprint))])
-        high = np.column_stack([footprint, np.full(len(footprint), extents_m[2])])
-        return cls(name, np.asarray(extents_m, dtype=np.float64), np.vstack([low, high]))
+        high = np.column_stack([footprint, np.full(len(footprint), height_m)])
+        return cls(name, np.vstack([low, high]))
 
 
 def _extents(e: np.ndarray) -> tuple[float, float, float]:
@@ -124,7 +129,8 @@ def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline
         footprint = np.asarray(data["footprint_m"], dtype=np.float64).reshape(-1, 2)
     except (OSError, ValueError, TypeError, KeyError):  # none, or not one this module wrote: read the mesh
         return None
-    return ObjectOutline.from_footprint(name, extents, footprint)
+    # its x and y sizes are the footprint's: only the height is read of them
+    return ObjectOutline.from_footprint(name, float(extents[2]), footprint)
 
 
 class ObjectLibrary:
