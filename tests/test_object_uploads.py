@@ -18,6 +18,7 @@ import cell.service.objects as objects_module
 from cell.config import load_config
 from cell.jobs.placement import check_on_table, footprint_bounds
 from cell.service.objects import ObjectLibrary
+from cell.service.store import JobRecord
 from drivers.errors import JobError, ServiceError
 from drivers.sim.objects import ObjectMesh, load_object
 from tests.conftest import FRANKA
@@ -136,13 +137,22 @@ def test_a_deletion_keeps_shipped_objects_and_those_of_queued_jobs(tmp_path: Pat
     source = tmp_path / "crate.stl"
     trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(source)
     library.add(source.name, source.read_bytes())
+    asked: list[str] = []
+
+    def active() -> list[JobRecord]:
+        asked.append("jobs")
+        return []
+
     with pytest.raises(ServiceError, match="shipped with the cell") as shipped:
-        library.remove("bunny", [])
+        library.remove("bunny", active)
     assert shipped.value.reason == "conflict"
-    with pytest.raises(ServiceError) as unknown:
-        library.remove("nothing", [])
-    assert unknown.value.reason == "not found"
-    library.remove("crate", [])
+    for name in ("nothing", "../crate", "CRATE"):
+        with pytest.raises(ServiceError) as unknown:
+            library.remove(name, active)
+        assert unknown.value.reason == "not found"
+    assert asked == []  # a name of no upload is refused without reading the store
+    library.remove("crate", active)
+    assert asked == ["jobs"]
     assert not list((tmp_path / "objects").iterdir())
     assert "crate" not in {e.name for e in library.entries()}
 

@@ -920,6 +920,21 @@ def test_a_data_dir_without_room_for_a_job_holds_the_next_one_and_says_where(tmp
     assert "the data dir has room for a job again" in messages
 
 
+def test_deleting_an_object_of_no_upload_is_refused_without_reading_the_store(tmp_path, monkeypatch):
+    """DELETE /objects/{name} read the cell's queued and running jobs before it looked at the name: a
+    store that did not answer made a name of no upload a 503."""
+    client, keys = _client(tmp_path)
+    operator = _auth(keys["operator"])
+
+    def unreadable(*_: Any) -> list[JobRecord]:
+        raise StoreError("job store: cannot read")
+
+    with client:
+        monkeypatch.setattr(client.app.state.service.store, "jobs_in_status", unreadable)
+        assert client.delete("/api/v1/objects/nothing", headers=operator).status_code == 404
+        assert client.delete("/api/v1/objects/bunny", headers=operator).status_code == 409
+
+
 def test_a_start_removes_the_empty_worker_logs_a_previous_run_left(tmp_path):
     client, _ = _client(tmp_path)
     logs = tmp_path / "data" / "logs"

@@ -21,7 +21,7 @@ import json
 import logging
 import re
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -283,22 +283,29 @@ class ObjectLibrary:
         self._outlines[name] = (stamp, outline)
         return ObjectEntry(name, "uploaded", _extents(outline.extents_m))
 
-    def remove(self, name: str, active: Sequence[JobRecord]) -> None:
-        """Delete the uploaded object ``name`` (its mesh, then its outline). ``ServiceError``: not found
-        for an unknown name; conflict for a shipped object, or while a job of ``active`` (the cell's
-        queued and running jobs) scans it: its worker reads the file."""
+    def _upload_path(self, name: str) -> Path:
+        """The mesh file of the upload ``name``; ``ServiceError`` (not found) when there is none."""
+        path = self._uploaded().get(name)
+        if path is None:
+            raise ServiceError(f"no uploaded object {name!r}", reason="not found")
+        return path
+
+    def remove(self, name: str, active: Callable[[], Sequence[JobRecord]]) -> None:
+        """Delete the uploaded object ``name`` (its mesh, then its outline). ``ServiceError``: conflict for
+        a shipped object and not found for a name of no upload, both before ``active`` (the cell's queued
+        and running jobs, from the store) is called; conflict while one of those jobs scans it: its worker
+        reads the file."""
         if name in shipped_names() or name == EMPTY_TABLE:
             raise ServiceError(f"{name!r} is shipped with the cell: only uploaded objects can be deleted",
                                reason="conflict")
-        users = [job.id for job in active if job.object == name]
+        self._upload_path(name)
+        users = [job.id for job in active() if job.object == name]
         if users:
             raise ServiceError(f"object {name!r} is the object of {len(users)} queued or running job(s) "
                                f"({', '.join(users)}): delete it once they have ended, or cancel them",
                                reason="conflict")
         with self._lock:
-            path = self._uploaded().get(name)
-            if path is None:
-                raise ServiceError(f"no uploaded object {name!r}", reason="not found")
+            path = self._upload_path(name)  # another request may have deleted it meanwhile
             path.unlink()
             _outline_file(path).unlink(missing_ok=True)
             self._outlines.pop(name, None)

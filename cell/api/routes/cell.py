@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Form, UploadFile
@@ -74,8 +75,8 @@ async def delete_object(cell: Service, name: str, _: Uploader) -> None:
     """Delete an uploaded object (sim and dry-run cells). Refused (409) for a shipped object and for one
     that a queued or running job scans; 404 for an unknown one."""
     _virtual_only(cell)
-    active = await asyncio.to_thread(cell.store.jobs_in_status, cell.name, ("queued", "running"))
-    await asyncio.to_thread(cell.objects.remove, name, active)
+    await asyncio.to_thread(cell.objects.remove, name,
+                            partial(cell.store.jobs_in_status, cell.name, ("queued", "running")))
 
 
 @router.post("/stop", response_model=StopOut, openapi_extra=STOP_BODY)
