@@ -51,6 +51,18 @@ def test_one_frame_through_every_stage(rig):
     assert second.h_roi != pipeline.map.mean_entropy_in_box(second.roi.aabb_min, second.roi.aabb_max)
 
 
+def test_h_roi_is_in_the_pipelines_form(rig):
+    camera, _, T = rig
+    cfg = load_config(CONFIG_DIR / "sim-franka-rgbd.yaml")
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=cfg.sensor.range_max_m,
+                                  rng=np.random.default_rng(1), h_roi_entropy="observation_aware")
+    pipeline.process(camera.capture(), T)
+    update = pipeline.process(camera.capture(), T)
+    box = (pipeline.extent.min_m, pipeline.extent.max_m)
+    assert update.h_roi == pipeline.map.mean_entropy_in_box(*box, observation_aware=True)
+    assert update.h_roi < pipeline.map.mean_entropy_in_box(*box)
+
+
 def test_async_perception_processes_in_its_own_thread(rig):
     camera, pipeline, T = rig
     runner = AsyncPerception(pipeline)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -19,12 +20,14 @@ from cell.jobs.runner import ScanRequest, run_scan
 from cell.perception.cloud import read_ply
 from cell.perception.metrics import METRICS_KEYS
 from cell.perception.octomap_io import read_bt
+from cell.planning.base import Planner, ScanSession
+from cell.planning.vs.servo_scan import start_views
 from drivers.depth.base import DepthFrame
 from drivers.depth.projection import back_project
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import DriverError
 
-from .conftest import FRANKA, REPO, UR5E, raster_scan
+from .conftest import FRANKA, REPO, UR5E, raster_scan, register_planner
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +84,41 @@ def test_job_folder_is_complete(bunny_job):
     # the sensor's path for every planner; the servo telemetry only for a servo planner's job
     assert (out / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not (out / "servo.png").exists()
     assert f"cloud coverage (eq. 13): {result['metrics']['coverage_pct']:.1f} %" in output
+
+
+class HRoiProbe(Planner):
+    """Captures twice at the servo planners' start view and keeps H_ROI of the last map in both forms."""
+
+    name = "test-h-roi-probe"
+    h_roi: ClassVar[dict[str, float]] = {}
+
+    def run(self, session: ScanSession) -> str:
+        assert session.move_to_sensor_pose(start_views(self.config)[0])
+        session.capture()
+        session.capture()
+        update = session.latest_perception()
+        assert update is not None and update.extent is not None
+        HRoiProbe.h_roi = {form: update.map.mean_entropy_in_box(*update.extent, observation_aware=aware)
+                           for form, aware in (("paper", False), ("observation_aware", True))}
+        return "probed"
+
+
+def test_the_reported_h_roi_is_the_one_the_servo_termination_judges(tmp_path, monkeypatch):
+    """result.json and the log carry H_ROI in the objective's form (the observation-aware one on the
+    RGB-D cell), which ``ServoScanPlanner.entropy_settled`` judges, not eq. 8's, and say which it is."""
+    register_planner(monkeypatch, HRoiProbe)
+    cfg = load_config(FRANKA)
+    assert cfg.planners.vs.objective.entropy == "observation_aware"
+    out = tmp_path / "job"
+    result = run_scan(ScanRequest(config=cfg, config_path=str(FRANKA), object="cube", planner=HRoiProbe.name,
+                                  out=out, max_time_s=10.0)).result
+    aware, paper = HRoiProbe.h_roi["observation_aware"], HRoiProbe.h_roi["paper"]
+    assert round(aware, 6) != round(paper, 6)
+    assert result["perception"]["h_roi"] == round(aware, 6)
+    assert result["perception"]["h_roi_entropy"] == "observation_aware"
+    log = (out / "log.txt").read_text()
+    assert next(line for line in log.splitlines() if "capture 1:" in line).endswith(f"H_ROI {aware:.4f}")
+    assert "H_ROI (eq. 12) in its observation_aware form" in log
 
 
 def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path):

@@ -744,10 +744,12 @@ def test_servo_outputs_are_written(tmp_path):
     rows = [TelemetryRow(t=0.02 * i, e_norm=0.01 / (i + 1), f=1.5, g_norm=2.0 if i > 3 else 0.0,
                          h_roi=None if i < 2 else 0.6, mode="primary" if i <= 3 else "local")
             for i in range(20)]
-    write_servo_outputs(tmp_path, rows, np.cumsum(np.full((50, 3), 0.001), axis=0), CENTRE,
-                        coverage=[(0.05, 40.0), (0.2, 55.5)])
+    write_servo_outputs(tmp_path, rows, "observation_aware", np.cumsum(np.full((50, 3), 0.001), axis=0),
+                        CENTRE, coverage=[(0.05, 40.0), (0.2, 55.5)])
     lines = (tmp_path / "servo.csv").read_text().splitlines()
-    assert lines[0] == "t,e_norm_m,f_nats,g_norm,h_roi_nats,mode,coverage_pct" and len(lines) == 21
+    # H_ROI's column names its form, the termination's
+    assert lines[0] == "t,e_norm_m,f_nats,g_norm,h_roi_observation_aware_nats,mode,coverage_pct"
+    assert len(lines) == 21
     assert lines[1].split(",")[4] == "" and lines[1].endswith(",primary,")  # before the first capture
     assert lines[4].endswith(",primary,40.00") and lines[-1].endswith(",local,55.50")
     for name in ("servo.png", "path.png"):
@@ -756,7 +758,7 @@ def test_servo_outputs_are_written(tmp_path):
 
 def test_servo_csv_without_coverage_has_no_coverage_column(tmp_path):
     rows = [TelemetryRow(t=0.0, e_norm=0.01, f=1.0, g_norm=0.0, h_roi=0.5, mode="primary")]
-    write_servo_outputs(tmp_path, rows, np.zeros((2, 3)), None)
+    write_servo_outputs(tmp_path, rows, "paper", np.zeros((2, 3)), None)
     assert (tmp_path / "servo.csv").read_text().splitlines()[0] == "t,e_norm_m,f_nats,g_norm,h_roi_nats,mode"
 
 

@@ -89,7 +89,8 @@ def quat_of(T: np.ndarray) -> tuple[float, float, float, float]:
 class JobProgress:
     """A running job after a perception update. Base frame, SI units: job time ``t_s`` [s], the sensor
     pose (``sensor_xyz_m``, quaternion ``sensor_quat_xyzw``), the sensor's path so far [m], H_ROI [nats]
-    (eq. 12; None before an object is found), coverage [%] against the ground truth (sim and dry runs;
+    (eq. 12 in the form the servo planners' termination judges, ``planners.vs.objective.entropy``; None
+    before an object is found), coverage [%] against the ground truth (sim and dry runs;
     None otherwise: eq. 13's coverage of the cloud so far before registering the ground truth to it,
     ``cell.perception.metrics.CloudCoverage``, not the result's registered figure), the box (min, max)
     of every ROI so far [m], the accumulated cloud's size, the wall time perception took for the frame

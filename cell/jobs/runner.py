@@ -178,7 +178,8 @@ def _scan_span(session: JobSession | None, end: float) -> tuple[float | None, fl
 
 def _perception_summary(session: JobSession | None) -> dict[str, Any]:
     """The ``perception`` section of result.json: registration counts, the well-constrained directions of
-    each capture's registration (``RegistrationResult.n_constrained``), the last ROI and H_ROI."""
+    each capture's registration (``RegistrationResult.n_constrained``), the last ROI, and H_ROI with its form
+    (``h_roi_entropy``: the termination's, ``PerceptionPipeline``)."""
     latest = session.latest_perception() if session is not None else None
     roi = latest.roi if latest is not None else None
     return {
@@ -186,6 +187,7 @@ def _perception_summary(session: JobSession | None) -> dict[str, Any]:
         "n_registration_rejected": session.n_registration_rejected if session else 0,
         "registration_n_constrained": session.registration_n_constrained if session else [],
         "h_roi": round(latest.h_roi, 6) if latest is not None and latest.h_roi is not None else None,
+        "h_roi_entropy": session.perception.h_roi_entropy if session is not None else None,
         "roi": None if roi is None else {
             "aabb_min_m": np.round(roi.aabb_min, 6).tolist(),
             "aabb_max_m": np.round(roi.aabb_max, 6).tolist(),
@@ -379,8 +381,12 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             on_progress(s.progress(planner.figures()))
 
         with arm, sensor:
+            h_roi_entropy = cfg.planners.vs.objective.entropy
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
-                                            range_max_m=sensor.model.range_max_m, rng=perception_rng)
+                                            range_max_m=sensor.model.range_max_m, rng=perception_rng,
+                                            h_roi_entropy=h_roi_entropy)
+            recorder.log(clock.now(), f"H_ROI (eq. 12) in its {h_roi_entropy} form "
+                                      "(planners.vs.objective.entropy), the servo termination's")
             coverage = CloudCoverage(ground_truth) if ground_truth is not None else None
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,
@@ -538,7 +544,8 @@ def _write_plots(job: PreparedScan, session: JobSession | None, packing: dict[st
         return
     positions = np.array(session.sensor_path.records())
     if isinstance(planner, ServoScanPlanner) and planner.telemetry:
-        write_servo_outputs(job.folder, planner.telemetry.records(), positions, planner.centroid,
+        write_servo_outputs(job.folder, planner.telemetry.records(), session.perception.h_roi_entropy,
+                            positions, planner.centroid,
                             session.coverage_history, session.first_frame_position)
     elif session.sensor_path:
         captures = ([s.T_base_sensor[:3, 3] for s in planner.reconstruction.sightings]

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from cell.config.models import PerceptionConfig
 from cell.perception.cloud import CloudAccumulator
 from cell.perception.filters import carved_lengths, filter_frame, no_target_directions, valid_tof_points
-from cell.perception.occupancy import OccupancyMap
+from cell.perception.occupancy import EntropyForm, OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
 from cell.perception.segmentation import ROI, ObjectExtent, SegmentationResult, segment_object
 from drivers.depth.base import DepthFrame
@@ -38,10 +38,11 @@ class PerceptionUpdate:
     frame, the ends of the rays it carved free (its ToF zones with no target, out to the sensor's range or
     the crop box's far side, :func:`carved_lengths`; (0, 3) for a camera), the segmented object and its
     ROI, ``extent`` the box (min, max) [m] of every ROI so far (``ObjectExtent``), H_ROI (eq. 12) over that
-    box, and the occupancy map. ``roi``, ``centroid``, ``extent`` and ``h_roi`` are None until an object
-    has been found. ``map`` is the pipeline's own map when frames are processed in the planner's thread
-    (later frames update it), and a copy taken right after this frame when they are processed
-    asynchronously (``AsyncPerception``), so that a planner never reads a map the worker is writing."""
+    box in the pipeline's ``h_roi_entropy`` form, and the occupancy map. ``roi``, ``centroid``, ``extent``
+    and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map when frames
+    are processed in the planner's thread (later frames update it), and a copy taken right after this
+    frame when they are processed asynchronously (``AsyncPerception``), so that a planner never reads a
+    map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -81,13 +82,17 @@ class PerceptionPipeline:
     """Filter -> register -> accumulate -> integrate -> segment, one frame at a time.
 
     ``table_z_m`` is the table height in the base frame [m]; ``range_max_m`` the sensor's maximum range
-    [m], up to which ToF zones with no target carve free space (no further than the crop box)."""
+    [m], up to which ToF zones with no target carve free space (no further than the crop box).
+    ``h_roi_entropy``: the form of each update's H_ROI; a job passes its objective's
+    (``planners.vs.objective.entropy``), so that what it reports is what the servo planners' termination
+    judges (``ServoScanPlanner.entropy_settled``), computed once per capture."""
 
     def __init__(self, config: PerceptionConfig, *, table_z_m: float, range_max_m: float,
-                 rng: np.random.Generator) -> None:
+                 rng: np.random.Generator, h_roi_entropy: EntropyForm = "paper") -> None:
         self.config = config
         self.table_z_m = table_z_m
         self.range_max_m = range_max_m
+        self.h_roi_entropy: EntropyForm = h_roi_entropy
         self.cloud = CloudAccumulator(config.voxel_m)
         self.map = OccupancyMap(config.occupancy)
         self._target = RegistrationTarget(config.registration)
@@ -126,7 +131,8 @@ class PerceptionPipeline:
             free_ends = T[:3, 3] + (directions[carves] @ T[:3, :3].T) * length[carves, None]
         seg, extent = self.add_capture(T, points_base, free_ends)
         roi = seg.roi
-        h_roi = self.map.mean_entropy_in_box(*extent) if extent is not None else None
+        aware = self.h_roi_entropy == "observation_aware"
+        h_roi = self.map.mean_entropy_in_box(*extent, observation_aware=aware) if extent is not None else None
         clock.lap("h_roi")
         update = PerceptionUpdate(seq=frame.seq, timestamp=frame.timestamp, T_base_sensor=T, registration=reg,
                                   points_base=points_base, free_ends_base=free_ends,

@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
+from cell.perception.occupancy import EntropyForm
 from drivers.config_base import Bounds, CellDistance, CellSize, StrictModel, Turn
 
 
@@ -74,7 +75,7 @@ class ObjectiveConfig(StrictModel):
     """[deg] the square field of view of the rays when ``use_sensor_fov`` is false."""
     use_sensor_fov: bool = True
     voxel_entropy: Literal["shannon", "residual"] = "residual"
-    entropy: Literal["paper", "observation_aware"] = "observation_aware"
+    entropy: EntropyForm = "observation_aware"
     roi_margin_m: CellDistance = 0.03
 
 
