@@ -12,6 +12,7 @@ import pytest
 from cell.config import load_config
 from cell.control.servo import DualTaskServo, exploration_speed_mps
 from cell.perception.occupancy import OccupancyMap, binary_entropy
+from cell.perception.pipeline import PerceptionPipeline
 from cell.perception.segmentation import compute_roi
 from cell.planning.base import Array
 from cell.planning.registry import get_planner
@@ -33,8 +34,12 @@ from cell.planning.vs.servo_scan import (
 from cell.planning.vs.telemetry import write_servo_outputs
 from cell.safety.events import Refusal
 from cell.safety.guard import TwistRefused
+from drivers.clock import SimClock
+from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import PlanningError
-from drivers.transforms import look_at
+from drivers.sim.objects import load_object
+from drivers.sim.scene import SimScene
+from drivers.transforms import look_at, make_T
 
 from .conftest import FRANKA, UR5E
 
@@ -700,10 +705,11 @@ def test_h_roi_termination_needs_ten_flat_values(franka):
 
 
 @pytest.mark.parametrize("entropy, settles", [("observation_aware", True), ("paper", False)])
-def test_h_roi_of_the_termination_takes_the_objectives_entropy(franka, entropy, settles):
+def test_the_observation_aware_h_roi_settles_where_eq8s_swings(franka, entropy, settles):
     """A face of the object whose voxels the views keep disagreeing on (a calibration error: hit from one
     view, crossed by the next): eq. 8's H_ROI swings with them for good, the observation-aware one (the
-    objective's choice, ``ObjectiveConfig.entropy``) settles as they are seen again."""
+    objective's choice, ``ObjectiveConfig.entropy``, in which the job's pipeline computes it) settles as
+    they are seen again."""
     data = franka.model_dump()
     data["planners"]["vs"]["objective"]["entropy"] = entropy
     planner = VSGlobalPlanner(type(franka).model_validate(data))
@@ -718,7 +724,9 @@ def test_h_roi_of_the_termination_takes_the_objectives_entropy(franka, entropy, 
     for seq in range(120):
         occupancy.integrate(eye, face, free_only=np.full(len(face), seq % 2 == 1))
         update = SimpleNamespace(seq=seq, timestamp=float(seq), roi=roi, centroid=roi.centroid, extent=extent,
-                                 h_roi=occupancy.mean_entropy_in_box(*extent), map=occupancy)
+                                 h_roi=occupancy.mean_entropy_in_box(
+                                     *extent, observation_aware=entropy == "observation_aware"),
+                                 map=occupancy)
         planner._perceive(PerceivingSession(update))
         reasons.append(planner.finished(FakeSession()))
     assert (reasons[-1] is not None) == settles
@@ -1042,7 +1050,31 @@ def test_the_objective_counts_the_objects_extent_so_far_not_the_current_roi(fran
     grow = franka.planners.vs.objective.roi_margin_m
     np.testing.assert_allclose(planner.objective.roi_min, extent[0] - [grow, grow, 0.0])
     np.testing.assert_allclose(planner.objective.roi_max, extent[1] + grow)
-    assert planner.h_roi == [pytest.approx(np.log(2.0))]  # over the extent, of a map that has seen nothing
+    assert planner.h_roi == [0.5]  # the update's own, not computed again
+
+
+def test_h_roi_is_computed_once_per_capture(franka, monkeypatch):
+    """The pipeline computes H_ROI in the objective's form, and the servo planner's termination takes
+    that value."""
+    assert franka.planners.vs.objective.entropy == "observation_aware"
+    calls = []
+    mean_entropy_in_box = OccupancyMap.mean_entropy_in_box
+
+    def counted(self, *args, **kwargs):
+        calls.append(kwargs.get("observation_aware", False))
+        return mean_entropy_in_box(self, *args, **kwargs)
+
+    monkeypatch.setattr(OccupancyMap, "mean_entropy_in_box", counted)
+    scene = SimScene(load_object("cube"), make_T(np.eye(3), np.array([0.45, 0.0, 0.0])))
+    T = look_at(np.array([0.25, -0.1, 0.2]), np.array([0.45, 0.0, 0.05]))
+    camera = SimRGBD(franka.sensor, scene, lambda: T, SimClock(), np.random.default_rng(0))
+    camera.connect()
+    pipeline = PerceptionPipeline(franka.perception, table_z_m=0.0, range_max_m=franka.sensor.range_max_m,
+                                  rng=np.random.default_rng(1), h_roi_entropy="observation_aware")
+    planner = VSGlobalPlanner(franka)
+    update = pipeline.process(camera.capture(), T)
+    planner._perceive(PerceivingSession(update))
+    assert calls == [True] and planner.h_roi == [update.h_roi]
 
 
 def test_the_objectives_box_reaches_down_to_the_table_the_object_stands_on(franka):

@@ -9,7 +9,8 @@ the primary task has converged, streams the twist through the guard and lets 1 /
 Each new perception update (a new occupancy map) rebuilds the objective (eq. 9) on the new map, its rays
 clipped to the box of every ROI of the scan so far (``PerceptionUpdate.extent``, the box H_ROI averages
 over: a box that shrank with the segmentation would change f for reasons unrelated to what a view
-reveals), and adds H_ROI (eq. 12) to the history used by the entropy termination of Global and Hybrid.
+reveals), and adds the update's H_ROI (eq. 12, which the job's pipeline computes in the objective's form,
+``PerceptionPipeline``) to the history used by the entropy termination of Global and Hybrid.
 A strategy ends the scan by returning a reason from ``secondary``'s companion ``finished``; the time
 budget and safety stops end it from the session.
 
@@ -169,7 +170,7 @@ class ServoScanPlanner(Planner):
                                    lambda_g=sc.lambda_g, e_converged_m=sc.e_converged_m)
         self.rays_cam = objective_rays(config)
         self._voxel_entropy = voxel_entropy(config)
-        # the objective's choice of voxel uncertainty, also H_ROI's for the termination (entropy_settled)
+        # the objective's choice of voxel uncertainty (H_ROI's comes with the perception update)
         self._observation_aware = vs.objective.entropy == "observation_aware"
         self.objective: EntropyObjective | None = None
         self.centroid: Array | None = None
@@ -226,7 +227,10 @@ class ServoScanPlanner(Planner):
         (``OccupancyMap.mean_entropy_in_box``). Surface voxels that flicker between occupied and free under
         the simulated calibration error kept eq. 8's H_ROI oscillating between 0.535 and 0.56 nats with a
         15 s period, and a cube's VS-Global scan (RGB-D cell, seed 0) ran to its 180 s budget after reaching
-        100 % coverage at 30 s, although f had stopped counting those voxels long before."""
+        100 % coverage at 30 s, although f had stopped counting those voxels long before. The values are
+        the perception updates' own (``PerceptionUpdate.h_roi``): a job builds its pipeline with the
+        objective's form (``PerceptionPipeline``'s ``h_roi_entropy``), so that H_ROI is computed once per
+        capture and what the job reports is what is judged here."""
         n = self.vs.h_roi_window
         if self._h_roi_from is None or len(self.h_roi) - self._h_roi_from < n:
             return None
@@ -237,8 +241,8 @@ class ServoScanPlanner(Planner):
         return None
 
     def _perceive(self, session: ScanSession) -> None:
-        """Take in a new perception update: filtered centroid, objective on the new map, H_ROI (eq. 12 as
-        ``entropy_settled`` measures it: the pipeline's eq. 8 form, or the observation-aware one)."""
+        """Take in a new perception update: filtered centroid, objective on the new map, the update's H_ROI
+        (eq. 12 in the objective's form, ``entropy_settled``)."""
         update = session.latest_perception()
         if update is None or update.seq == self._seq:
             return
@@ -258,8 +262,7 @@ class ServoScanPlanner(Planner):
         self.objective = EntropyObjective(update.map, lo, hi + grow, perception.crop_box,
                                           self.rays_cam, self._voxel_entropy, self._observation_aware)
         if update.h_roi is not None:
-            self.h_roi.append(update.map.mean_entropy_in_box(*update.extent, observation_aware=True)
-                              if self._observation_aware else update.h_roi)
+            self.h_roi.append(update.h_roi)
 
     def _find_object(self, session: ScanSession, period: float) -> None:
         """Go to the start views in turn until perception segments an object, waiting at each up to
