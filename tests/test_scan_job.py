@@ -22,12 +22,13 @@ from cell.perception.metrics import METRICS_KEYS
 from cell.perception.octomap_io import read_bt
 from cell.planning.base import Planner, ScanSession
 from cell.planning.vs.servo_scan import start_views
+from cell.safety.collision import CollisionWorld
 from drivers.depth.base import DepthFrame
 from drivers.depth.projection import back_project
 from drivers.depth.sim_rgbd import SimRGBD
 from drivers.errors import DriverError
 
-from .conftest import FRANKA, REPO, UR5E, raster_scan, register_planner
+from .conftest import FRANKA, REPO, UR5E, ended_without_a_frame, raster_scan, register_planner
 
 
 @pytest.fixture(scope="module")
@@ -119,6 +120,32 @@ def test_the_reported_h_roi_is_the_one_the_servo_termination_judges(tmp_path, mo
     log = (out / "log.txt").read_text()
     assert next(line for line in log.splitlines() if "capture 1:" in line).endswith(f"H_ROI {aware:.4f}")
     assert "H_ROI (eq. 12) in its observation_aware form" in log
+
+
+class Idle(Planner):
+    """Ends at once."""
+
+    name = "test-idle"
+
+    def run(self, session: ScanSession) -> str:
+        return "idle"
+
+
+def test_a_scan_builds_one_collision_world(tmp_path, monkeypatch):
+    """The placement's check clear of the arm and the job's guard use the same collision world."""
+    register_planner(monkeypatch, Idle)
+    built = []
+    build = CollisionWorld.__init__
+
+    def counted(self, *args, **kwargs):
+        built.append(self)
+        build(self, *args, **kwargs)
+
+    monkeypatch.setattr(CollisionWorld, "__init__", counted)
+    result = run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
+                                  planner=Idle.name, out=tmp_path / "job", max_time_s=5.0)).result
+    assert ended_without_a_frame(result, "idle")
+    assert len(built) == 1
 
 
 def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path):

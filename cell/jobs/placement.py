@@ -19,7 +19,7 @@ end ``no_object``).
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +30,9 @@ from drivers.errors import JobError
 from drivers.robots import get_robot_model
 from drivers.sim.objects import Array, ObjectMesh, sample_surface
 from drivers.transforms import T_from_xyz_rpy, transform_points
+
+if TYPE_CHECKING:  # FCL and the collision world (Open3D) load only to check: the service checks placements
+    from cell.safety.collision import CollisionWorld
 
 VIEW_CHECK_POINTS = 4096
 """Surface points [count] drawn (from a fixed seed: a placement's verdict never changes) to tell whether a
@@ -160,24 +163,32 @@ def check_on_table(config: CellConfig, mesh: Placed, pose: tuple[float, float, f
                    f"spans x {t_lo[0]:.3f}..{t_hi[0]:.3f} m, y {t_lo[1]:.3f}..{t_hi[1]:.3f} m")
 
 
-def check_clear_of_arm(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float]) -> None:
+def collision_world(config: CellConfig) -> CollisionWorld:
+    """The cell's collision world (``cell.safety.collision``), as its guard checks with: a job checks its
+    placement in it and hands it to its guard (``MotionGuard.from_config``), which then builds none."""
+    from cell.safety.collision import CollisionWorld
+
+    model = get_robot_model(config.arm.model)
+    return CollisionWorld(model, config.safety.collision, config.station.table_z_m)
+
+
+def check_clear_of_arm(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
+                       world: CollisionWorld) -> None:
     """Raise ``JobError`` naming the body when the object at ``pose`` intersects the arm standing at its
     home joints (``arm.home_joints_rad``, else the robot model's home): its links' capsules, the robot base
     (``link0``) included, and the cell file's tool bodies, as the guard and the simulated arm's contact
-    check them (``CollisionWorld.arm_bodies``). Such a job's arm faulted on its first tick. A body wholly
-    inside the object, crossing none of its triangles, is not found (FCL tests the mesh's surface); the
-    bodies are 4 cm and more across, and an object that large around the arm crosses another one."""
-    # FCL and the collision world (Open3D) are loaded only here: the service checks placements too
+    check them (``world.arm_bodies``, ``world`` the cell's :func:`collision_world`). Such a job's arm
+    faulted on its first tick. A body wholly inside the object, crossing none of its triangles, is not
+    found (FCL tests the mesh's surface); the bodies are 4 cm and more across, and an object that large
+    around the arm crosses another one."""
     import fcl
 
-    from cell.safety.collision import CollisionWorld
     from drivers.fcl_bodies import fcl_transform, mesh_bvh
 
     model = get_robot_model(config.arm.model)
     frames = model.fk_all(model.home(config.arm.home_joints_rad))
     T = object_pose_in_base(config, pose)
     placed = fcl.CollisionObject(mesh_bvh(transform_points(T, mesh.vertices), mesh.triangles))
-    world = CollisionWorld(model, config.safety.collision, config.station.table_z_m)
     for body in world.arm_bodies():
         part = fcl.CollisionObject(body.geometry, fcl_transform(frames[body.frame] @ body.T_frame_body))
         if fcl.collide(part, placed, fcl.CollisionRequest(), fcl.CollisionResult()):
@@ -222,10 +233,12 @@ def check_in_view(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float
 
 
 def check_placement(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
-                    scale: float = 1.0, option: str = "--object-scale") -> None:
+                    scale: float = 1.0, option: str = "--object-scale", world: CollisionWorld | None = None,
+                    ) -> None:
     """The checks of a placement that need no planner, the size first (a mesh in the wrong units is
-    also off the table, and its size is the better reason), then on the table, then clear of the arm:
-    ``JobError`` saying what is wrong."""
+    also off the table, and its size is the better reason), then on the table, then clear of the arm in
+    ``world`` (the cell's :func:`collision_world`, built here when None): ``JobError`` saying what is
+    wrong."""
     check_object_size(config, mesh, scale, option)
     check_on_table(config, mesh, pose)
-    check_clear_of_arm(config, mesh, pose)
+    check_clear_of_arm(config, mesh, pose, world if world is not None else collision_world(config))

@@ -48,7 +48,13 @@ from cell.jobs.inputs import CHOOSE_OUT, check_job_folder, check_pose, check_see
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
-from cell.jobs.placement import check_in_view, check_placement, object_pose_in_base, where_views_look
+from cell.jobs.placement import (
+    check_in_view,
+    check_placement,
+    collision_world,
+    object_pose_in_base,
+    where_views_look,
+)
 from cell.jobs.progress import JobProgress
 from cell.jobs.rebuild import recorded_result
 from cell.jobs.recorder import JobRecorder
@@ -63,6 +69,7 @@ from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.registry import get_planner
 from cell.planning.vs.servo_scan import ServoScanPlanner
 from cell.planning.vs.telemetry import write_servo_outputs
+from cell.safety.collision import CollisionWorld
 from cell.safety.guard import MotionGuard
 from drivers.arm.claim import ArmClaim
 from drivers.arm.config import FrankaArmConfig, ReplayArmConfig, UR5eArmConfig
@@ -120,7 +127,8 @@ class ScanRequest:
 class PreparedScan:
     """A request checked and resolved by :func:`prepare_scan`, before its folder exists: the planner,
     the object's name, and its mesh and pose in the base frame when known (the ground truth), the time
-    budget [s] and the folder the job will create."""
+    budget [s], the folder the job will create, and the cell's collision world, which checked the
+    placement and which the job's guard checks with (``placement.collision_world``)."""
 
     request: ScanRequest
     planner_name: str
@@ -131,6 +139,7 @@ class PreparedScan:
     T_base_object: np.ndarray | None
     max_time_s: float
     folder: Path
+    collision: CollisionWorld
 
 
 @dataclass(frozen=True)
@@ -214,11 +223,12 @@ def _recorded_object(job_dir: Path) -> tuple[str, ObjectMesh | None, np.ndarray 
         return str(name), None, None
 
 
-def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str,
-                    planner: Planner) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
+def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str, planner: Planner,
+                    collision: CollisionWorld) -> tuple[str, ObjectMesh | None, np.ndarray | None]:
     """The object's name, and its mesh and pose in the base frame when they are known (the ground truth
     of sim and dry runs and of replays of them; a real cell scans an unknown object, an empty table has
-    none). A placement is checked (``cell.jobs.placement``), also against ``planner``'s search views."""
+    none). A placement is checked (``cell.jobs.placement``; clear of the arm in the cell's ``collision``
+    world), also against ``planner``'s search views."""
     if replay_dir is not None:
         check_recording(replay_dir)
         return _recorded_object(replay_dir)
@@ -227,7 +237,7 @@ def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str
     if req.object == EMPTY_TABLE:
         return EMPTY_TABLE, None, None
     mesh = load_object(req.object, req.object_scale)
-    check_placement(req.config, mesh, req.object_pose, req.object_scale)
+    check_placement(req.config, mesh, req.object_pose, req.object_scale, world=collision)
     check_in_view(req.config, mesh, req.object_pose, planner.search_views(), planner_name)
     return req.object, mesh, object_pose_in_base(req.config, req.object_pose)
 
@@ -247,12 +257,13 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
     replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
-    object_name, mesh, T_base_object = _scanned_object(req, replay_dir, planner_name, planner)
+    collision = collision_world(cfg)
+    object_name, mesh, T_base_object = _scanned_object(req, replay_dir, planner_name, planner, collision)
     folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed,
                                                                     replay=replay_dir is not None)
     check_job_folder(folder, req.choose_folder)
     return PreparedScan(req, planner_name, planner, replay_dir, object_name, mesh, T_base_object, max_time,
-                        folder)
+                        folder, collision)
 
 
 def _run_planner(planner: Planner, session: JobSession) -> str:
@@ -366,7 +377,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             assert isinstance(clock, SimClock) and isinstance(arm, SimArm)
             assert isinstance(sensor, SimDepthSensor)
             SimFaultInjector(cfg.sim.faults, clock, arm, sensor)
-        guard = MotionGuard.from_config(arm, model, cfg, clock)
+        guard = MotionGuard.from_config(arm, model, cfg, clock, collision=job.collision)
         if scene is not None and isinstance(arm, SimArm) and isinstance(clock, SimClock):
             # the simulated arm hits the true object (and the table) as a real one would: it faults
             SimContact(clock, arm, scene, guard.collision.arm_bodies())
