@@ -50,6 +50,18 @@ following: the arm stays faulted until recovered."""
 OPERATOR_STOP = "operator stop: "
 """How the reason of a stop someone asked for (the guard's ``request_stop``, an interrupt) begins: a job
 it ends was stopped by a person or a client, not by the safety layer."""
+SAFETY_STOP = "safety stop: "
+"""How the termination of a job its safety layer stopped by itself begins (a guard refusal, the watchdog, an
+arm fault, a worker that stopped answering): the reason follows."""
+
+
+def stop_termination(reason: str) -> str:
+    """The termination of a job a stop ended: an operator stop as it is (``operator stop: <reason>``), the
+    safety layer's own (a refusal, the watchdog, an arm fault) as ``safety stop: <reason>``. An operator's
+    stop was reported as a safety stop, and a line or a person reading it looked for a fault."""
+    return reason if reason.startswith(OPERATOR_STOP) else f"{SAFETY_STOP}{reason}"
+
+
 COMMAND_LINE_REASON = "requested from the command line"
 """A stop's reason when the command line is given none (``cell stop``, ``cell jobs stop``): the job's
 termination already says that it was an operator stop (``operator stop: <reason> (key NAME)``), which a

@@ -7,7 +7,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import re
+import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -281,6 +283,53 @@ def test_a_job_stopped_through_the_api_stops_the_line_it_does_not_abort_it(line:
     history = line.client.get("/api/v1/line/history?limit=2", headers=line.auth("viewer")).json()
     assert [(h["from_name"], h["to_name"]) for h in reversed(history)] == [
         ("Execute", "Stopping"), ("Stopping", "Stopped")]
+
+
+def _started_scan(line: Line, part: str) -> str:
+    """The job id of ``part``'s scan, once its worker has started it (its first progress)."""
+    line.command("reset")
+    line.wait({"Idle"})
+    line.command("start", part)
+    job_id: str = line.wait({"Execute"})["job_id"]
+    deadline = time.monotonic() + 90.0
+    while line.job(job_id)["progress"] is None:
+        assert time.monotonic() < deadline, f"job {job_id} did not start"
+        time.sleep(0.05)
+    return job_id
+
+
+def test_a_job_stopped_through_the_api_whose_worker_is_killed_is_still_an_operators_stop(tmp_path: Path):
+    """A worker that does not confirm the stop is killed: the line still reads an operator's stop (2), and
+    its message says so and that the worker was killed (it said "safety stop")."""
+    config = _cell_file(tmp_path, TOF, {"initial_mode": "production", "max_time_s": SCAN_S},
+                        service={"stop_confirm_timeout_s": 1e-6})  # no worker answers in a microsecond
+    with served_line(tmp_path, config) as line:
+        job_id = _started_scan(line, "bunny")
+        stop = line.client.post(f"/api/v1/jobs/{job_id}/stop", json={"reason": "wrong part"},
+                                headers=line.auth("operator"))
+        assert stop.status_code == 200 and "was killed" in stop.json()["message"]
+        ended = line.wait({"Stopped", "Aborted"})
+        assert ended["state_name"] == "Stopped" and ended["stop_reason"]["id"] == 2, ended
+        message = ended["stop_reason"]["message"]
+        assert message.startswith(f"scan {job_id} stopped: operator stop: wrong part (key operator)"), message
+        assert message.endswith("and was killed)"), message
+
+
+def test_a_hung_scan_is_a_safety_stop_not_an_operators(line: Line):
+    """The service's own stop of a worker that stopped answering is a safety stop (4, Aborted), not a stop
+    someone asked for (it was 2, Stopped)."""
+    job_id = _started_scan(line, "bunny")
+    store = line.client.app.state.service.store  # type: ignore[attr-defined]
+    pid = store.get_job(job_id).worker_pid
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        ended = line.wait({"Stopped", "Aborted"}, timeout_s=60.0)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+    assert ended["state_name"] == "Aborted" and ended["stop_reason"]["id"] == 4, ended
+    message = ended["stop_reason"]["message"]
+    assert message.startswith(f"scan {job_id} stopped: safety stop: ") and "hung" in message, message
 
 
 def test_hold_stops_the_scan_and_unhold_scans_the_part_again(line: Line):

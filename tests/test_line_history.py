@@ -154,8 +154,10 @@ def test_an_acting_state_left_before_its_work_began_does_nothing(tmp_path: Path,
 
 @pytest.mark.parametrize(("termination", "requested", "state", "reason"), [
     ("operator stop: wrong part (key op)", True, State.STOPPED, 2),  # POST /jobs/{id}/stop
-    ("safety stop: wrong part (key op) (the job's worker did not confirm the stop in 2 s and was killed)",
+    ("operator stop: wrong part (key op) (the job's worker did not confirm the stop in 2 s and was killed)",
      True, State.STOPPED, 2),
+    ("safety stop: the job's worker sent nothing for 5 s (it beats every 0.5 s): hung (the job's worker did "
+     "not confirm the stop in 2 s and was killed)", False, State.ABORTED, 4),
     ("safety stop: refused: the twist leaves the workspace", False, State.ABORTED, 4),
     ("safety stop: watchdog: no perception for 0.5 s", False, State.ABORTED, 4),
 ])

@@ -173,7 +173,9 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
         assert stop.status_code == 200 and "was killed" in stop.json()["message"]
         ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
         assert ended["status"] == "stopped", ended["termination"]
-        assert "hands in the cell" in ended["termination"] and "was killed" in ended["termination"]
+        # the operator's stop, as a confirmed one reads, and the kill (it read "safety stop: ...")
+        assert ended["termination"].startswith("operator stop: hands in the cell (key "), ended["termination"]
+        assert ended["termination"].endswith("and was killed)"), ended["termination"]
 
 
 def _store_outage(store: Store) -> threading.Event:

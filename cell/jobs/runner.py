@@ -78,7 +78,7 @@ from drivers.arm.sim import SimArm
 from drivers.clock import Clock, SimClock, WallClock
 from drivers.depth.replay import ReplaySensor
 from drivers.depth.sim_base import SimDepthSensor
-from drivers.errors import OPERATOR_STOP, CellError, JobError, NoObjectFound, SafetyStop
+from drivers.errors import OPERATOR_STOP, CellError, JobError, NoObjectFound, SafetyStop, stop_termination
 from drivers.factory import SimWorld, make_arm, make_sensor, true_flange_pose
 from drivers.robots import get_robot_model
 from drivers.sim.board import TableTexture, board_on_table, board_texture
@@ -95,13 +95,6 @@ def interrupt_reason(exc: KeyboardInterrupt) -> str:
     """The operator stop an interrupt is: Ctrl-C's, or the one its raiser named (``cell scan`` raises one
     naming SIGTERM or SIGHUP)."""
     return f"{OPERATOR_STOP}{exc.args[0]}" if exc.args else INTERRUPTED
-
-
-def stop_termination(reason: str) -> str:
-    """The termination of a job a stop ended: an operator stop as it is (``operator stop: <reason>``), the
-    safety layer's own (a refusal, the watchdog, an arm fault) as ``safety stop: <reason>``. An operator's
-    stop was reported as a safety stop, and a line or a person reading it looked for a fault."""
-    return reason if reason.startswith(OPERATOR_STOP) else f"safety stop: {reason}"
 
 
 @dataclass(frozen=True)

@@ -53,7 +53,7 @@ from cell.line.result import CycleResult, check_part_id, cycle_result, feeder_pa
 from cell.service.store import LineRecord, LineTransition, Store
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest
-from drivers.errors import OPERATOR_STOP, ServiceError
+from drivers.errors import OPERATOR_STOP, SAFETY_STOP, ServiceError
 
 if TYPE_CHECKING:
     from cell.service.manager import CellService
@@ -315,7 +315,8 @@ class LineController:
                   requested: bool = False) -> None:
         """The service's word that a job ended; ``requested``: the service stopped it on someone's request
         (``POST /api/v1/jobs/{id}/stop``, an operator's STOP, its shutdown), not the safety layer by
-        itself. The line acts on its own cycle's job only."""
+        itself nor the service for a worker that stopped answering. The line acts on its own cycle's job
+        only."""
         if job_id != self._job_id:
             return
         self._job_id = None
@@ -351,7 +352,7 @@ class LineController:
             reason = StopReason.ARM_FAULT
         elif termination.startswith(OPERATOR_STOP):
             reason = StopReason.OPERATOR_STOP
-        elif termination.startswith("safety stop"):
+        elif termination.startswith(SAFETY_STOP):
             reason = StopReason.SAFETY_STOP
         else:
             reason = StopReason.JOB_FAILED

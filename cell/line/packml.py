@@ -120,7 +120,8 @@ class StopReason(IntEnum):
     LINE_ABORT = 3
     """the line's Abort command"""
     SAFETY_STOP = 4
-    """the safety layer stopped the arm (a guard refusal, a watchdog)"""
+    """the safety layer stopped the arm (a guard refusal, a watchdog), or the service its scan's worker, which
+    stopped answering (hung)"""
     ARM_FAULT = 5
     """the arm reported a fault: protective stop, emergency stop, reflex, lost connection"""
     JOB_FAILED = 6

@@ -57,7 +57,7 @@ from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
-from drivers.errors import ServiceError, StoreError
+from drivers.errors import OPERATOR_STOP, ServiceError, StoreError, stop_termination
 
 LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
@@ -105,12 +105,14 @@ class _Queued:
 @dataclass
 class _Running:
     """The job on the arm: its worker (None while it is being started), whether the worker said it
-    started (it says so before it touches the arm), whether a stop was passed on to it (``requested``: it
-    ended on someone's request, not by its safety layer alone), a stop asked for meanwhile, the stop
+    started (it says so before it touches the arm), whether a stop someone asked for (an operator, the
+    line, the shutdown) was passed on to it (``requested``: it ended on someone's request, not by its
+    safety layer or the service's own stop of a hung worker), a stop asked for meanwhile, the stop
     confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
-    not started), its newest progress, its worker's last word, whether its end is recorded (the worker
-    may still be exiting) and in the store (``stored``), the stop of a worker taken for hung
-    (``hung_stop``) and ``gone``, set once the worker has exited."""
+    not started: its cause as the termination begins, ``operator stop: `` for a request), its newest
+    progress, its worker's last word, whether its end is recorded (the worker may still be exiting) and in
+    the store (``stored``), the stop of a worker taken for hung (``hung_stop``) and ``gone``, set once the
+    worker has exited."""
 
     job: JobRecord
     origin: str
@@ -587,7 +589,12 @@ class CellService:
         return any(q.origin == "api" for q in self._queued.values()) or (
             running is not None and running.origin == "api")
 
-    async def _stop_running(self, running: _Running, reason: str) -> StopOutcome:
+    async def _stop_running(self, running: _Running, reason: str, *, requested: bool = True) -> StopOutcome:
+        """Stop the running job through its worker, whose guard stops the arm and ends the job ``operator
+        stop: <reason>``. ``requested``: someone asked for the stop (an operator, the line, the shutdown);
+        else the service stops the job itself (a hung worker, its own failure). A worker that cannot
+        confirm is killed, and its job ends as the stop's cause says, the kill added: an operator's stop
+        read as a safety stop when its worker was killed."""
         self.metrics.stop_requests.inc()
         job_id, proc = running.job.id, running.proc
         if proc is None:
@@ -595,12 +602,13 @@ class CellService:
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
         if running.ended is not None or proc.returncode is not None:
             return StopOutcome(job_id, False, "the job had already ended")
-        running.requested = True
+        running.requested = running.requested or requested
+        cause = f"{OPERATOR_STOP}{reason}" if requested else reason
         await asyncio.sleep(0)  # a "started" the worker sent is read first
         if not running.started:
             # still loading its libraries, it cannot answer for seconds, and it has not touched the arm:
             # ended now, the stop takes milliseconds rather than the confirmation's timeout and a kill
-            running.killed_for = f"{reason} (ended while its worker was starting, before any motion)"
+            running.killed_for = f"{cause} (ended while its worker was starting, before any motion)"
             self._kill(proc)
             return StopOutcome(job_id, False, "the job's worker was still starting: it was ended before "
                                               "any motion")
@@ -614,7 +622,7 @@ class CellService:
         except (BrokenPipeError, ConnectionResetError):
             return StopOutcome(job_id, False, "the job's worker had already ended")
         except TimeoutError:
-            running.killed_for = (f"{reason} (the job's worker did not confirm the stop in "
+            running.killed_for = (f"{cause} (the job's worker did not confirm the stop in "
                                   f"{self.config.service.stop_confirm_timeout_s:g} s and was killed)")
             # the arm was not stopped through the guard but by its connection watchdog: a person looks
             # before the next job moves it, as after a worker that died
@@ -900,7 +908,7 @@ class CellService:
             failure = f"the service failed while it ran the job ({type(exc).__name__}: {exc})"
             log.exception("job %s: %s; it is stopped through its worker", job.id, failure)
             follower = asyncio.create_task(self._follow(running, started=True))
-            await self._stop_running(running, failure)
+            await self._stop_running(running, failure, requested=False)
             code = await follower
         await self._finish(running, code)
         _drop_if_empty(log_path)
@@ -943,7 +951,8 @@ class CellService:
                           f"{WORKER_BEAT_S:g} s): hung")
                 log.error("job %s: %s; stopping it", running.job.id, reason, extra={"job_id": running.job.id})
                 self._hold(f"{reason}; check the arm")
-                running.hung_stop = asyncio.create_task(self._stop_running(running, reason), name="hung stop")
+                running.hung_stop = asyncio.create_task(self._stop_running(running, reason, requested=False),
+                                                        name="hung stop")
         return await stdout.readline()
 
     def _take(self, running: _Running, message: dict[str, Any]) -> None:
@@ -979,7 +988,7 @@ class CellService:
         if ended is None:
             if running.killed_for is not None:
                 # a stop carried out by killing a worker that did not answer (busy starting, or hung)
-                status, termination = "stopped", f"safety stop: {running.killed_for}"
+                status, termination = "stopped", stop_termination(running.killed_for)
             else:
                 exit_text = _exit_text(code or 0)
                 status = "failed"
