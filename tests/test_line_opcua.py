@@ -286,6 +286,30 @@ def test_stop_during_execute_stops_the_scan(encrypted):
     assert encrypted.rest("/api/v1/cell")["job"] is None
 
 
+def test_a_part_placed_into_the_robot_base_is_rejected_at_start_with_the_reason(encrypted):
+    """The placement is checked when the scan is submitted: a defective part saying why, no scan and no
+    fault (its scan was accepted, and failed on the arm's first tick: Aborted)."""
+    async def scenario() -> tuple[int, str, str, int, int]:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            defective = await line.read("Admin/ProdDefectiveCount")
+            await line.write("Command/Parameter/PartId", "cube@-0.42,0,0", ua.VariantType.String)
+            await line.handshake(START)
+            ended = await line.wait(ENDS)
+            status, message = await line.read("Result/Status"), await line.read("Result/Message")
+            counted = await line.read("Admin/ProdDefectiveCount") - defective
+            reason_id = await line.read("Admin/StopReason/ID")
+            if ended == COMPLETE:
+                await line.handshake(RESET)
+            return ended, status, message, counted, reason_id
+
+    ended, status, message, counted, reason_id = run(scenario())
+    assert (ended, status, counted) == (COMPLETE, "rejected", 1), (ended, status, message, reason_id)
+    assert message.startswith("object_pose: object pose [-0.42, 0.0, 0.0] puts cube into the robot base "
+                              "(link0) at the arm's home joints"), message
+    assert encrypted.rest("/api/v1/cell")["job"] is None
+
+
 def test_start_in_execute_is_refused_and_changes_nothing(encrypted):
     async def scenario() -> None:
         async with plc(encrypted) as line:

@@ -100,6 +100,7 @@ def served(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
     ({"object": "unicorn"}, "object", "unknown object 'unicorn'"),
     ({}, "object", "scans a virtual object"),
     ({"object": "bunny", "object_pose": [2.0, 2.0, 0.0]}, "object_pose", "off the table"),
+    ({"object": "bunny", "object_pose": [-0.42, 0.0, 0.0]}, "object_pose", "into the robot base (link0)"),
     ({"object": "bunny", "max_time_s": 0}, "max_time_s", "greater than 0"),
     ({"object": "bunny", "seed": -1}, "seed", "greater than or equal to 0"),
     ({"object": "bunny", "object_pose": [0.0, "0.1", 0.0]}, 1, "a valid number"),

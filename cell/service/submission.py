@@ -3,7 +3,10 @@
 Every check that ``cell scan`` would make before anything moves is made here, at submission, so that a
 bad request is answered at once (naming the field) instead of failing later on the arm: the planner is
 registered, the object is known, of a size the cell scans and stands on the table at the pose asked
-(``"none"``: an empty table), the seed and the time budget are in range.
+(``"none"``: an empty table), clear of the arm at its home joints, the seed and the time budget are in
+range. Two checks stay with the job's worker, which repeats all of these: a placement none of the planner's
+search views sees (the service never loads a planner), and an upload's placement into the arm (the
+service keeps an upload's outline, not its surface).
 """
 
 from __future__ import annotations
@@ -12,11 +15,11 @@ from dataclasses import dataclass
 
 from cell.config.models import CellConfig
 from cell.jobs.inputs import check_seed
-from cell.jobs.placement import check_object_size, check_on_table
+from cell.jobs.placement import check_clear_of_arm, check_object_size, check_on_table, collision_world
 from cell.planning.registry import check_planner
 from cell.service.objects import ObjectLibrary
 from drivers.errors import JobError, PlanningError, ServiceError
-from drivers.sim.objects import EMPTY_TABLE
+from drivers.sim.objects import EMPTY_TABLE, ObjectMesh
 
 MAX_TIME_BUDGET_S = 3600.0
 """The longest time budget a job may ask for [s]: an hour, twenty times the papers' longest scans."""
@@ -85,6 +88,8 @@ def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> Val
         raise _invalid(str(exc), "object") from None
     try:
         check_on_table(config, shape, pose)
+        if isinstance(shape, ObjectMesh):  # a shipped mesh; an upload's outline has no surface to test
+            check_clear_of_arm(config, shape, pose, collision_world(config))
     except JobError as exc:
         raise _invalid(str(exc), "object_pose") from None
     return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)
