@@ -25,17 +25,19 @@ from cell.api.app import create_app
 from cell.api.schemas import LineCommandIn
 from cell.config.models import CellConfig
 from cell.line.config import DigitalIOConfig
-from cell.line.dio import Debouncer
-from cell.line.packml import ACCEPTS, Command, State, refusal
+from cell.line.controller import LineSnapshot
+from cell.line.dio import Debouncer, output_levels
+from cell.line.packml import ACCEPTS, Command, State, StopReason, UnitMode, refusal
 from cell.line.result import check_part_id, cycle_result, feeder_part
 from cell.service.keys import create_key
 from cell.service.startup import ServiceSettings
 from cell.service.store import open_data_store
+from drivers.arm.config import LINE_INPUTS, LINE_NEEDS, LINE_OUTPUTS, UR5eArmConfig
 from drivers.errors import ServiceError
 from tests.rtde_peer import ControllerPeer
 from tests.service_process import free_port
 
-from .conftest import CONFIG_DIR
+from .conftest import CONFIG_DIR, REPO
 
 TOF = CONFIG_DIR / "sim-ur5e-tof.yaml"
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
@@ -594,6 +596,22 @@ def test_a_trigger_scans_the_part_id_the_plc_set_over_opc_ua(tmp_path: Path,
         asyncio.run(set_part_id("widget-7"))
         assert part(2) == "widget-7"
         assert part(3) == "part-3"  # the PLC set none for this part: widget-7 was the last one's
+
+
+def test_the_line_pins_are_named_once_and_the_docs_name_no_other():
+    """The arm section's pin fields are the code's one list of them (the config's checks, the handshake's
+    outputs read it), and the docs and templates that name pins name those."""
+    fields = {name for name in UR5eArmConfig.model_fields if name.endswith(("_input", "_output"))}
+    assert set(LINE_INPUTS) | set(LINE_OUTPUTS) == fields and set(LINE_NEEDS) <= fields
+    executing = LineSnapshot(State.EXECUTE, UnitMode.PRODUCTION, "", "job-1", 0, 0, StopReason.NONE, "", None,
+                             "")
+    assert output_levels(executing) == {name: name == "busy_output" for name in LINE_OUTPUTS}
+    templates = (REPO / "cell" / "templates").glob("*.yaml")
+    for doc in (REPO / "README.md", *(REPO / "docs").glob("*.md"), *templates):
+        named = set(re.findall(r"\b[a-z_]+_(?:input|output)\b", doc.read_text()))
+        assert named <= fields, f"{doc.name} names pins the arm section has not: {named - fields}"
+    handshake = (REPO / "docs" / "packml-opcua.md").read_text()
+    assert all(f"`{name}`" in handshake for name in (*LINE_INPUTS, *LINE_OUTPUTS))
 
 
 def test_two_digital_io_signals_of_the_line_may_not_share_a_pin():

@@ -25,7 +25,15 @@ from cell.planning.lrnbv.config import HEUConfig, LRNBVConfig
 from cell.planning.registry import PLANNERS
 from cell.planning.vs.config import VSConfig, VSGlobalConfig, VSLocalConfig
 from cell.safety.config import SafetyConfig
-from drivers.arm.config import ArmConfig, FlangeOffset, ReplayArmConfig, UR5eArmConfig
+from drivers.arm.config import (
+    LINE_INPUTS,
+    LINE_NEEDS,
+    LINE_OUTPUTS,
+    ArmConfig,
+    FlangeOffset,
+    ReplayArmConfig,
+    UR5eArmConfig,
+)
 from drivers.config_base import (
     CELL_EXTENT_M,
     Bounds,
@@ -308,16 +316,11 @@ class CellConfig(StrictModel):
         if self.line is not None and self.line.dio is not None:
             if not isinstance(arm, UR5eArmConfig):
                 raise ValueError(f"line.dio is the UR5e's digital-I/O handshake: a {arm.type} arm has none")
-            wired = {"trigger_input": arm.trigger_input, "busy_output": arm.busy_output,
-                     "done_output": arm.done_output}
-            missing = [name for name, index in wired.items() if index is None]
+            missing = [name for name, index in arm.line_pins(LINE_NEEDS).items() if index is None]
             if missing:
                 raise ValueError(f"line.dio needs the arm's {', '.join(missing)}")
-            inputs = {"trigger_input": arm.trigger_input, "reset_input": arm.reset_input}
-            outputs = {"busy_output": arm.busy_output, "done_output": arm.done_output,
-                       "ready_output": arm.ready_output, "fault_output": arm.fault_output}
-            for kind, pins in (("input", inputs), ("output", outputs)):
-                shared = _shared_pins(pins)
+            for kind, names in (("input", LINE_INPUTS), ("output", LINE_OUTPUTS)):
+                shared = _shared_pins(arm.line_pins(names))
                 if shared:
                     raise ValueError(f"line.dio: the arm's {shared} are the same digital {kind}")
             if self.mode == "dry-run" and self.line.dio.part_id is not None:

@@ -37,7 +37,7 @@ from typing import Any
 from cell.line.config import DigitalIOConfig
 from cell.line.controller import LineController, LineSnapshot
 from cell.line.packml import ORDINARY_STOPS, STOPPED_BRANCH, Command, State, UnitMode
-from drivers.arm.config import UR5eArmConfig
+from drivers.arm.config import LINE_OUTPUTS, UR5eArmConfig
 from drivers.arm.ur_io import URDigitalIO
 from drivers.errors import DriverError, ServiceError
 
@@ -85,15 +85,15 @@ def reset_command(state: State) -> Command:
 
 
 def output_levels(snapshot: LineSnapshot) -> dict[str, bool]:
-    """The level of each output for the line's ``snapshot``: ``busy`` in Execute, ``done`` in Complete,
-    ``ready`` in Idle in Production mode, ``fault`` in Held, and in :data:`cell.line.packml.STOPPED_BRANCH`
-    when the stop reason is not one of :data:`cell.line.packml.ORDINARY_STOPS` (it stays high through
-    Clear, until Reset)."""
+    """The level of each output (:data:`drivers.arm.config.LINE_OUTPUTS`) for the line's ``snapshot``:
+    ``busy_output`` in Execute, ``done_output`` in Complete, ``ready_output`` in Idle in Production mode,
+    ``fault_output`` in Held, and in :data:`cell.line.packml.STOPPED_BRANCH` when the stop reason is not
+    one of :data:`cell.line.packml.ORDINARY_STOPS` (it stays high through Clear, until Reset)."""
     state = snapshot.state
-    return {"busy": state is State.EXECUTE, "done": state is State.COMPLETE,
-            "ready": state is State.IDLE and snapshot.mode is UnitMode.PRODUCTION,
-            "fault": state is State.HELD or (state in STOPPED_BRANCH
-                                             and snapshot.stop_reason_id not in ORDINARY_STOPS)}
+    return {"busy_output": state is State.EXECUTE, "done_output": state is State.COMPLETE,
+            "ready_output": state is State.IDLE and snapshot.mode is UnitMode.PRODUCTION,
+            "fault_output": state is State.HELD or (state in STOPPED_BRANCH
+                                                    and snapshot.stop_reason_id not in ORDINARY_STOPS)}
 
 
 def _log_failure(done: concurrent.futures.Future[None]) -> None:
@@ -107,13 +107,11 @@ class DigitalIOHandshake:
     """The handshake of one cell (see the module docstring); :meth:`start` on the service's loop."""
 
     def __init__(self, line: LineController, arm: UR5eArmConfig, config: DigitalIOConfig) -> None:
-        assert arm.trigger_input is not None and arm.busy_output is not None and arm.done_output is not None
+        assert arm.trigger_input is not None  # the config's check: line.dio needs it (and busy, done)
         self._line = line
         self._config = config
         self._trigger, self._reset = arm.trigger_input, arm.reset_input
-        wired = {"busy": arm.busy_output, "done": arm.done_output, "ready": arm.ready_output,
-                 "fault": arm.fault_output}
-        self._pins = {name: index for name, index in wired.items() if index is not None}
+        self._pins = {name: index for name, index in arm.line_pins(LINE_OUTPUTS).items() if index is not None}
         self._io = URDigitalIO(arm)
         self._wanted: list[tuple[int, bool]] = self._outputs(line.snapshot())
         self._written: list[tuple[int, bool]] | None = None

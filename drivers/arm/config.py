@@ -21,6 +21,18 @@ class SimArmConfig(StrictModel):
 
 DigitalIndex = Annotated[int, Field(ge=0, le=7)]
 
+LINE_INPUTS = ("trigger_input", "reset_input")
+"""The standard digital inputs of a UR5e a packing line may wire (:class:`UR5eArmConfig`'s fields of these
+names; ``cell.line.dio`` is the handshake): a rising trigger starts a scan, a rising reset resets the line.
+The code's one list of them; the docs name them."""
+LINE_OUTPUTS = ("busy_output", "done_output", "ready_output", "fault_output")
+"""The standard digital outputs of a UR5e a packing line may wire (fields of these names), as
+``cell.line.dio.output_levels`` drives them: busy in Execute, done in Complete, ready in Idle in
+Production, fault after a stop the line did not command."""
+LINE_NEEDS = ("trigger_input", "busy_output", "done_output")
+"""The pins of :data:`LINE_INPUTS` and :data:`LINE_OUTPUTS` that ``line.dio`` needs wired; the others are
+optional."""
+
 TOOL_REACH_M = 0.5
 """How far [m] from the flange, along each axis of the flange frame, anything the wrist carries may lie:
 the TCP, the sensor (its mount), the payload's centre of mass. This cell's wrist tool is a depth sensor on
@@ -102,6 +114,11 @@ class UR5eArmConfig(StrictModel):
     reset_input: DigitalIndex | None = None
     ready_output: DigitalIndex | None = None
     fault_output: DigitalIndex | None = None
+
+    def line_pins(self, names: tuple[str, ...]) -> dict[str, int | None]:
+        """The digital index each pin of ``names`` (of :data:`LINE_INPUTS`, :data:`LINE_OUTPUTS`) is wired
+        to, by name; None: not wired."""
+        return {name: getattr(self, name) for name in names}
 
 
 class FrankaArmConfig(StrictModel):

@@ -2,13 +2,14 @@
 
 Connections: RTDE receive (state), RTDE control (the control script ur-rtde uploads to port 30003 and
 drives through its register handshake) and the dashboard server (remote control check, unlocking a
-protective stop, power and brakes); RTDE IO (digital outputs) only while outputs are being set. All of
-them live in a child process that this driver owns (:mod:`drivers.arm.ur_rtde_process`,
-:mod:`drivers.arm.ur_rtde_child`): ur-rtde 1.6.5 misbehaves after a dropped connection (its control
-interface reconnects by itself and then runs two receive threads on one socket, which crashes the
-process; its IO interface's destructor aborts the process), and in a child that is a fault, not the end of
-the program. ``connect`` first opens each controller port with ``connect_timeout_s`` so an unreachable
-controller fails fast with its address, and asks the dashboard whether the pendant is in remote control.
+protective stop, power and brakes); a packing line's digital outputs have a link of their own
+(:mod:`drivers.arm.ur_io`). The driver's live in a child process that it owns
+(:mod:`drivers.arm.ur_rtde_process`, :mod:`drivers.arm.ur_rtde_child`): ur-rtde 1.6.5 misbehaves after
+a dropped connection (its control interface reconnects by itself and then runs two receive threads on
+one socket, which crashes the process; its IO interface's destructor aborts the process), and in a
+child that is a fault, not the end of the program. ``connect`` first opens each controller port with
+``connect_timeout_s`` so an unreachable controller fails fast with its address, and asks the dashboard
+whether the pendant is in remote control.
 It starts the control script only on a robot that runs normally: a stopped or powered-off one (robot mode
 POWER_OFF after an emergency stop is released, or at boot) is connected for reading, shows its fault, and
 ``recover`` powers it on and starts the script.
@@ -70,7 +71,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -661,23 +662,6 @@ class UR5eArm(HardwareArm):
         """The eight standard digital inputs, DI0 first."""
         return bits(self._snapshot()["digital_inputs"])
 
-    def trigger(self) -> bool:
-        """The line trigger input's level; ``DriverError`` when the config wires none."""
-        if self._config.trigger_input is None:
-            raise DriverError("no trigger_input in the arm config", device=self._device)
-        return self.digital_inputs()[self._config.trigger_input]
-
-    def signal(self, state: Literal["busy", "done", "idle"]) -> None:
-        """Drive the busy and done outputs for a packing line: busy while scanning, done when finished."""
-        outputs = {self._config.busy_output: state == "busy", self._config.done_output: state == "done"}
-        wired = [(index, level) for index, level in outputs.items() if index is not None]
-        try:
-            refused = self._request("set_outputs", self._config.host, wired)
-        except ClientError as exc:
-            raise RobotFault(f"setting digital outputs through RTDE IO: {exc}", device=self._device,
-                             fault="disconnect") from None
-        if refused is not None:
-            raise self._fault_error(f"setting digital output {refused}")
 
 
 def bits(value: int) -> tuple[bool, ...]:
