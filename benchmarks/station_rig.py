@@ -18,8 +18,8 @@ TARGET_HEIGHT_M = 0.06
 
 
 class StationRig:
-    """``sensor`` renders from ``T`` (T_base_sensor, set by :meth:`view`); ``pipeline`` is seeded 1, the
-    sensor noise 0."""
+    """``sensor`` renders from ``T`` (T_base_sensor, set by :meth:`view`); ``pipeline`` is seeded 1 and
+    computes H_ROI in the job's form (``planners.vs.objective.entropy``), the sensor noise 0."""
 
     def __init__(self, cfg: CellConfig, object_name: str) -> None:
         station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])
@@ -30,7 +30,8 @@ class StationRig:
         self.sensor = make_sensor(cfg.sensor, world, lambda: self.T)
         self.pipeline = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                            range_max_m=self.sensor.model.range_max_m,
-                                           rng=np.random.default_rng(1))
+                                           rng=np.random.default_rng(1),
+                                           h_roi_entropy=cfg.planners.vs.objective.entropy)
         self.target = station + np.array([0.0, 0.0, TARGET_HEIGHT_M])
 
     def view(self, azimuth_deg: float, standoff_m: float) -> np.ndarray:

@@ -12,7 +12,7 @@ from cell.config.load import load_config
 from cell.packing import result
 from cell.packing.box import PackingBox
 from cell.packing.result import ReconstructionHistory, packing_section, section_box
-from cell.packing.table_calibration import TableCorrection, table_correction
+from cell.packing.table_calibration import TableCorrection, corrected_perception, table_correction
 from cell.packing.uncertainty import Sighting
 from cell.perception.pipeline import PerceptionPipeline
 from cell.perception.segmentation import compute_roi
@@ -169,6 +169,16 @@ def test_a_correction_that_loses_the_object_is_not_applied(monkeypatch: pytest.M
     got = packing_section(cfg, session, _Planner(history), None, None, None)  # type: ignore[arg-type]
     assert got["dims_m"] == as_recorded["dims_m"]
     assert got["table_correction"]["n_table_points"] == 0
+
+
+def test_the_corrected_perception_keeps_the_pipelines_settings_and_h_roi_form() -> None:
+    """The rebuilt pipeline computes H_ROI in the scan's form (the servo termination's), not the default."""
+    cfg = load_config(UR5E)
+    scan = PerceptionPipeline(cfg.perception, table_z_m=0.01, range_max_m=2.5, rng=np.random.default_rng(0),
+                              h_roi_entropy="observation_aware")
+    rebuilt = corrected_perception(scan, [])
+    assert (rebuilt.config, rebuilt.table_z_m, rebuilt.range_max_m) == (cfg.perception, 0.01, 2.5)
+    assert rebuilt.h_roi_entropy == "observation_aware"
 
 
 def test_each_capture_s_own_pose_error_does_not_pass_for_the_mount_s() -> None:

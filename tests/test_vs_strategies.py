@@ -726,7 +726,7 @@ def test_the_observation_aware_h_roi_settles_where_eq8s_swings(franka, entropy, 
         update = SimpleNamespace(seq=seq, timestamp=float(seq), roi=roi, centroid=roi.centroid, extent=extent,
                                  h_roi=occupancy.mean_entropy_in_box(
                                      *extent, observation_aware=entropy == "observation_aware"),
-                                 map=occupancy)
+                                 h_roi_entropy=entropy, map=occupancy)
         planner._perceive(PerceivingSession(update))
         reasons.append(planner.finished(FakeSession()))
     assert (reasons[-1] is not None) == settles
@@ -791,16 +791,15 @@ def test_entropy_choice_reaches_the_objective(franka):
     ends = occupancy.voxels_in_box(CENTRE - 0.04, CENTRE + 0.04)
     for k in range(30):
         occupancy.integrate(origin, ends, free_only=np.full(len(ends), k % 2 == 1))
-    update = SimpleNamespace(seq=1, extent=(CENTRE - 0.02, CENTRE + 0.02), centroid=CENTRE, timestamp=0.0,
-                             map=occupancy, h_roi=None)
-    session = SimpleNamespace(latest_perception=lambda: update)
     T = look_at(origin, CENTRE)
     values = {}
     for choice in ("paper", "observation_aware"):
+        update = SimpleNamespace(seq=1, extent=(CENTRE - 0.02, CENTRE + 0.02), centroid=CENTRE, timestamp=0.0,
+                                 map=occupancy, h_roi=None, h_roi_entropy=choice)
         data = franka.model_dump()
         data["planners"]["vs"]["objective"]["entropy"] = choice
         planner = VSLocalPlanner(type(franka).model_validate(data))
-        planner._perceive(session)
+        planner._perceive(PerceivingSession(update))
         values[choice] = planner.objective(T)
     assert franka.planners.vs.objective.entropy == "observation_aware"
     assert 0.0 < values["observation_aware"] < 0.5 * values["paper"]
@@ -1044,7 +1043,7 @@ def test_the_objective_counts_the_objects_extent_so_far_not_the_current_roi(fran
     roi = compute_roi(np.array([[0.42, -0.03, 0.0], [0.46, 0.01, 0.05]]), table_z=0.0)
     extent = (np.array([0.41, -0.04, 0.0]), np.array([0.49, 0.04, 0.08]))
     update = SimpleNamespace(seq=1, timestamp=1.0, roi=roi, centroid=roi.centroid, extent=extent, h_roi=0.5,
-                             map=OccupancyMap(franka.perception.occupancy))
+                             h_roi_entropy="observation_aware", map=OccupancyMap(franka.perception.occupancy))
     planner = VSLocalPlanner(franka)
     planner._perceive(PerceivingSession(update))
     grow = franka.planners.vs.objective.roi_margin_m
@@ -1065,16 +1064,34 @@ def test_h_roi_is_computed_once_per_capture(franka, monkeypatch):
         return mean_entropy_in_box(self, *args, **kwargs)
 
     monkeypatch.setattr(OccupancyMap, "mean_entropy_in_box", counted)
+    pipeline = PerceptionPipeline(franka.perception, table_z_m=0.0, range_max_m=franka.sensor.range_max_m,
+                                  rng=np.random.default_rng(1), h_roi_entropy="observation_aware")
+    planner = VSGlobalPlanner(franka)
+    update = _capture_of_a_cube(franka, pipeline)
+    planner._perceive(PerceivingSession(update))
+    assert calls == [True] and planner.h_roi == [update.h_roi]
+
+
+def _capture_of_a_cube(franka, pipeline: PerceptionPipeline):
+    """``pipeline``'s update after one capture of a cube by the Franka cell's RGB-D camera."""
     scene = SimScene(load_object("cube"), make_T(np.eye(3), np.array([0.45, 0.0, 0.0])))
     T = look_at(np.array([0.25, -0.1, 0.2]), np.array([0.45, 0.0, 0.05]))
     camera = SimRGBD(franka.sensor, scene, lambda: T, SimClock(), np.random.default_rng(0))
     camera.connect()
+    return pipeline.process(camera.capture(), T)
+
+
+@pytest.mark.parametrize("planner_class", [VSLocalPlanner, VSGlobalPlanner, VSHybridPlanner])
+def test_a_servo_planner_refuses_h_roi_in_another_form_than_its_terminations(franka, planner_class):
+    """A pipeline built without the objective's form (its default, eq. 8's) would end Global and Hybrid
+    on eq. 8's H_ROI while the config asks for the observation-aware one: the planner says so."""
+    assert franka.planners.vs.objective.entropy == "observation_aware"
     pipeline = PerceptionPipeline(franka.perception, table_z_m=0.0, range_max_m=franka.sensor.range_max_m,
-                                  rng=np.random.default_rng(1), h_roi_entropy="observation_aware")
-    planner = VSGlobalPlanner(franka)
-    update = pipeline.process(camera.capture(), T)
-    planner._perceive(PerceivingSession(update))
-    assert calls == [True] and planner.h_roi == [update.h_roi]
+                                  rng=np.random.default_rng(1))
+    update = _capture_of_a_cube(franka, pipeline)
+    assert update.h_roi_entropy == "paper"
+    with pytest.raises(PlanningError, match=r"planners\.vs\.objective\.entropy"):
+        planner_class(franka)._perceive(PerceivingSession(update))
 
 
 def test_the_objectives_box_reaches_down_to_the_table_the_object_stands_on(franka):
@@ -1084,7 +1101,7 @@ def test_the_objectives_box_reaches_down_to_the_table_the_object_stands_on(frank
     extent = (np.array([0.40, -0.05, table_z + 0.06]), np.array([0.49, 0.05, table_z + 0.09]))
     roi = compute_roi(np.vstack(extent), table_z=table_z)
     update = SimpleNamespace(seq=1, timestamp=1.0, roi=roi, centroid=roi.centroid, extent=extent, h_roi=0.5,
-                             map=OccupancyMap(franka.perception.occupancy))
+                             h_roi_entropy="observation_aware", map=OccupancyMap(franka.perception.occupancy))
     planner = VSLocalPlanner(franka)
     planner._perceive(PerceivingSession(update))
     # down to the voxel layer above the table's own surface (whose voxels hold the table's hits)

@@ -164,9 +164,7 @@ def corrected_perception(perception: PerceptionPipeline, sightings: list[Sightin
     correction leaves them) were accumulated in order (``PerceptionPipeline.add_capture``): the scan's
     cloud, occupancy map, object and ROIs where the corrected captures put them. With a zero correction
     they are the scan's own."""
-    rebuilt = PerceptionPipeline(perception.config, table_z_m=perception.table_z_m,
-                                 range_max_m=perception.range_max_m,
-                                 rng=np.random.default_rng(perception.config.segmentation.seed))
+    rebuilt = perception.empty_like(np.random.default_rng(perception.config.segmentation.seed))
     for s in sightings:
         rebuilt.add_capture(s.T_base_sensor, s.points, s.free_ends)
     return rebuilt

@@ -37,12 +37,12 @@ class PerceptionUpdate:
     """What planners see after a frame: its pose after registration, its filtered points in the base
     frame, the ends of the rays it carved free (its ToF zones with no target, out to the sensor's range or
     the crop box's far side, :func:`carved_lengths`; (0, 3) for a camera), the segmented object and its
-    ROI, ``extent`` the box (min, max) [m] of every ROI so far (``ObjectExtent``), H_ROI (eq. 12) over that
-    box in the pipeline's ``h_roi_entropy`` form, and the occupancy map. ``roi``, ``centroid``, ``extent``
-    and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map when frames
-    are processed in the planner's thread (later frames update it), and a copy taken right after this
-    frame when they are processed asynchronously (``AsyncPerception``), so that a planner never reads a
-    map the worker is writing."""
+    ROI, ``extent`` the box (min, max) [m] of every ROI so far (``ObjectExtent``), H_ROI (eq. 12) over
+    that box in the form ``h_roi_entropy`` (the pipeline's), and the occupancy map. ``roi``, ``centroid``,
+    ``extent`` and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map
+    when frames are processed in the planner's thread (later frames update it), and a copy taken right
+    after this frame when they are processed asynchronously (``AsyncPerception``), so that a planner never
+    reads a map the worker is writing."""
 
     seq: int
     timestamp: float
@@ -55,6 +55,7 @@ class PerceptionUpdate:
     centroid: Array | None
     extent: tuple[Array, Array] | None
     h_roi: float | None
+    h_roi_entropy: EntropyForm
     map: OccupancyMap
 
 
@@ -83,9 +84,11 @@ class PerceptionPipeline:
 
     ``table_z_m`` is the table height in the base frame [m]; ``range_max_m`` the sensor's maximum range
     [m], up to which ToF zones with no target carve free space (no further than the crop box).
-    ``h_roi_entropy``: the form of each update's H_ROI; a job passes its objective's
-    (``planners.vs.objective.entropy``), so that what it reports is what the servo planners' termination
-    judges (``ServoScanPlanner.entropy_settled``), computed once per capture."""
+    ``h_roi_entropy``: the form of each update's H_ROI, which the update carries; a job passes its
+    objective's (``planners.vs.objective.entropy``), so that what it reports is what the servo planners'
+    termination judges (``ServoScanPlanner.entropy_settled``), computed once per capture. A servo planner
+    refuses an update in another form (``PlanningError``), so a pipeline built with the default ``paper``
+    cannot silently change that termination."""
 
     def __init__(self, config: PerceptionConfig, *, table_z_m: float, range_max_m: float,
                  rng: np.random.Generator, h_roi_entropy: EntropyForm = "paper") -> None:
@@ -100,6 +103,12 @@ class PerceptionPipeline:
         self._rng = rng
         self.latest: PerceptionUpdate | None = None
         self.stage_times = StageTimes()
+
+    def empty_like(self, rng: np.random.Generator) -> PerceptionPipeline:
+        """A pipeline that has seen nothing, of this one's settings (configuration, table height, range,
+        H_ROI form), segmenting with ``rng``: what a rebuild of this one's captures starts from."""
+        return PerceptionPipeline(self.config, table_z_m=self.table_z_m, range_max_m=self.range_max_m,
+                                  rng=rng, h_roi_entropy=self.h_roi_entropy)
 
     def filter_frame(self, frame: DepthFrame) -> Array:
         """Points of the frame worth keeping, sensor frame: valid ToF statuses, then crop box, voxel filter
@@ -138,7 +147,7 @@ class PerceptionPipeline:
                                   points_base=points_base, free_ends_base=free_ends,
                                   object_points=seg.object_points, roi=roi,
                                   centroid=roi.centroid if roi is not None else None, extent=extent,
-                                  h_roi=h_roi, map=self.map)
+                                  h_roi=h_roi, h_roi_entropy=self.h_roi_entropy, map=self.map)
         self.latest = update
         return update
 

@@ -230,7 +230,8 @@ class ServoScanPlanner(Planner):
         100 % coverage at 30 s, although f had stopped counting those voxels long before. The values are
         the perception updates' own (``PerceptionUpdate.h_roi``): a job builds its pipeline with the
         objective's form (``PerceptionPipeline``'s ``h_roi_entropy``), so that H_ROI is computed once per
-        capture and what the job reports is what is judged here."""
+        capture and what the job reports is what is judged here; an update in another form is refused
+        (``_perceive``)."""
         n = self.vs.h_roi_window
         if self._h_roi_from is None or len(self.h_roi) - self._h_roi_from < n:
             return None
@@ -242,10 +243,15 @@ class ServoScanPlanner(Planner):
 
     def _perceive(self, session: ScanSession) -> None:
         """Take in a new perception update: filtered centroid, objective on the new map, the update's H_ROI
-        (eq. 12 in the objective's form, ``entropy_settled``)."""
+        (eq. 12 in the objective's form, ``entropy_settled``; ``PlanningError`` if it is in another)."""
         update = session.latest_perception()
         if update is None or update.seq == self._seq:
             return
+        if update.h_roi_entropy != self.vs.objective.entropy:
+            raise PlanningError(f"the perception pipeline computes H_ROI in its {update.h_roi_entropy} form, "
+                                f"the termination judges the {self.vs.objective.entropy} one "
+                                "(planners.vs.objective.entropy): build the pipeline with "
+                                "h_roi_entropy=planners.vs.objective.entropy")
         self._seq = update.seq
         if update.extent is None or update.centroid is None:
             return  # segmentation found no object in this map: keep servoing on the last one
