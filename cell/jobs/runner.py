@@ -389,8 +389,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng,
                                             h_roi_entropy=h_roi_entropy)
-            recorder.log(clock.now(), f"H_ROI (eq. 12) in its {h_roi_entropy} form "
-                                      "(planners.vs.objective.entropy), the servo termination's")
+            recorder.log(clock.now(), f"H_ROI (eq. 12) reported in its {h_roi_entropy} form "
+                                      "(planners.vs.objective.entropy, whatever the planner)")
             coverage = CloudCoverage(ground_truth) if ground_truth is not None else None
             common: dict[str, Any] = dict(
                 clock=clock, guard=guard, model=model, perception=perception, recorder=recorder,

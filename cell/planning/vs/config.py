@@ -39,7 +39,10 @@ class ObjectiveConfig(StrictModel):
     voxels the views keep disagreeing on (a surface crossing them at a slant, a calibration error) stop
     drawing the camera and holding f above the termination's floor, and unseen space does not; and a voxel
     hit only from the other side of a ray counts for it as one not hit yet (``OccupancyMap.hit_sides``: the
-    two faces of a wall thinner than a voxel share voxels; ``cell.planning.vs.objective``).
+    two faces of a wall thinner than a voxel share voxels; ``cell.planning.vs.objective``). The same form is
+    the one in which every job reports H_ROI (eq. 12: result.json's ``perception.h_roi`` with its
+    ``h_roi_entropy``, progress, the log), whatever its planner (``lr-nbv``, ``nbv`` and ``heu`` too), and
+    the one the servo planners' termination judges (``ServoScanPlanner.entropy_settled``).
 
     ``roi_margin_m`` [m]: the rays are clipped to the object's ROI box (the box of every ROI of the scan so
     far, ``cell.perception.segmentation.ObjectExtent``) grown by this much sideways and upwards, and downwards
