@@ -950,15 +950,23 @@ def test_a_start_removes_the_empty_worker_logs_a_previous_run_left(tmp_path):
             == ["worker-fedcba9876543210.log"]
 
 
+def _started_spares_log(client: TestClient) -> Path:
+    """The log of the spare worker the running service started (none started: the test would judge the
+    name a service holds before it starts one, a file that never exists)."""
+    service = client.app.state.service
+    assert service._spare is not None and service._spare_log.name.startswith("worker-spare-")
+    return service._spare_log
+
+
 def test_a_service_shut_down_keeps_its_spare_workers_log_only_when_the_spare_printed_something(tmp_path):
     """The service deleted its spare's log at shutdown whatever it held, where every other worker's log is
     kept when its worker printed something."""
     client, _ = _client(tmp_path)
     with client:
-        quiet = client.app.state.service._spare_log
+        quiet = _started_spares_log(client)
     assert not quiet.exists()
     with client:
-        printed = client.app.state.service._spare_log
+        printed = _started_spares_log(client)
         with printed.open("a") as log:
             log.write("a library's warning\n")
     assert printed.read_text() == "a library's warning\n"
