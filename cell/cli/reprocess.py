@@ -13,13 +13,11 @@ from cell.cli.jobs import coverage_line
 from cell.cli.progress import stage_progress
 from cell.jobs.rebuild import check_job_dir, output_folder, rebuild_result, recorded_result, remove_live_cloud
 from cell.jobs.recorder import RESULT_FILE
-from cell.perception.reprocess import reprocess_job
+from cell.perception.reprocess import HIRES_FILES, reprocess_job
 from drivers.atomic_file import check_writable
 from drivers.errors import CellError
 
 console = Console(soft_wrap=True)
-HIRES_FILES = ("cloud_hires.ply", "result_hires.json")
-"""What ``reprocess_job`` writes, in the job folder or ``--out``."""
 
 
 def _writable(folder: Path) -> bool:
@@ -32,8 +30,8 @@ def _writable(folder: Path) -> bool:
 
 def reprocess(
     job_dir: Path,
-    out: Annotated[Path | None, typer.Option(help="folder to write cloud_hires.ply and result_hires.json to, "
-                                                  "made if missing (default: the job folder)")] = None,
+    out: Annotated[Path | None, typer.Option(help=f"folder to write {' and '.join(HIRES_FILES)} to, made if "
+                                                  "missing (default: the job folder)")] = None,
 ) -> None:
     """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B).
 

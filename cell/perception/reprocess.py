@@ -68,7 +68,7 @@ from cell.perception.registration import (
     kept_directions,
     point_to_plane_icp,
 )
-from drivers.atomic_file import check_writable, write_text_atomic
+from drivers.atomic_file import write_text_atomic
 from drivers.config_base import StrictModel
 from drivers.depth.projection import back_project
 from drivers.depth.replay import UNREADABLE_FRAME_ERRORS as FRAME_READ_ERRORS
@@ -82,6 +82,11 @@ _reg = o3d.pipelines.registration
 
 StageReport = Callable[[str, int, int], None]
 """(stage, done, total): how far a stage of the re-processing is."""
+
+CLOUD_HIRES_FILE = "cloud_hires.ply"
+RESULT_HIRES_FILE = "result_hires.json"
+HIRES_FILES = (CLOUD_HIRES_FILE, RESULT_HIRES_FILE)
+"""What :func:`reprocess_job` writes (the cloud, then the figures), in the job folder or its ``out_dir``."""
 
 PAPER_CROP = CropBoxConfig(x_m=(-0.15, 0.15), y_m=(-0.15, 0.15), z_m=(0.05, 0.40))
 """The paper's crop box (section II-A), used when the job's cell file cannot be loaded."""
@@ -359,13 +364,14 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
                   result: dict[str, Any] | None = None) -> dict[str, Any]:
     """Rebuild a job's cloud at ``voxel_m`` [m] with multiway registration (paper section III-B).
 
-    Writes ``cloud_hires.ply`` and ``result_hires.json`` into ``out_dir`` (default ``job_dir``) and
-    returns what was written to the JSON. ``result`` is the job's result (default: its ``result.json``);
-    ``crop`` overrides the crop box (sensor frame); ``params`` the registration settings; ``frame_step``
-    uses every n-th frame only (1 = all); ``progress`` hears how far each stage is (frames loaded, pairs
-    registered, pose graph, metrics). A frame that cannot be read (a damaged file) is left out and listed
-    in the output's ``skipped_frames`` (file and reason). Raises ``JobError`` for a folder that is not a
-    job folder or has no readable frame, and, before any work, for an ``out_dir`` it cannot write to.
+    Writes ``cloud_hires.ply`` and ``result_hires.json`` (``HIRES_FILES``) into ``out_dir`` (default
+    ``job_dir``), a folder the caller has checked it can write to (``cell.jobs.rebuild.output_folder``
+    refuses one before any work), and returns what was written to the JSON. ``result`` is the job's
+    result (default: its ``result.json``); ``crop`` overrides the crop box (sensor frame); ``params`` the
+    registration settings; ``frame_step`` uses every n-th frame only (1 = all); ``progress`` hears how
+    far each stage is (frames loaded, pairs registered, pose graph, metrics). A frame that cannot be read
+    (a damaged file) is left out and listed in the output's ``skipped_frames`` (file and reason). Raises
+    ``JobError`` for a folder that is not a job folder or has no readable frame.
     """
 
     job_dir = Path(job_dir)
@@ -379,12 +385,6 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     if result is None:
         result = _load_result(job_dir)
     files = _frame_files(job_dir)[::frame_step]
-    try:
-        check_writable(out_dir)
-    except OSError as exc:
-        hint = "; give --out DIR to write them elsewhere" if out_dir == job_dir else ""
-        raise JobError(f"cannot write cloud_hires.ply and result_hires.json to {out_dir}: "
-                       f"{exc.strerror or exc}{hint}") from None
     if crop is None:
         crop, crop_source = _crop_for(job_dir, result)
     else:
@@ -417,7 +417,7 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     per_frame = [voxel_downsample(transform_points(T, c), voxel_m) for T, c in zip(optimized, clouds,
                                                                                      strict=True)]
     cloud, first = first_voxels(per_frame, voxel_m)
-    write_ply(out_dir / "cloud_hires.ply", cloud)
+    write_ply(out_dir / CLOUD_HIRES_FILE, cloud)
 
     gt = _ground_truth(result)
     metrics = timeline = None
@@ -449,5 +449,5 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
                         "metrics": round(t_measured - t_registered, 3),
                         "total": round(time.perf_counter() - t_start, 3)},
     }
-    write_text_atomic(out_dir / "result_hires.json", json.dumps(out, indent=2, allow_nan=False) + "\n")
+    write_text_atomic(out_dir / RESULT_HIRES_FILE, json.dumps(out, indent=2, allow_nan=False) + "\n")
     return out
