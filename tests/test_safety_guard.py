@@ -212,7 +212,8 @@ def test_approach_speed_lets_a_braking_motion_stop_before_the_plane():
 def test_collision_world_names_the_bodies(model_name):
     cfg = load_config(CELLS[model_name])
     m = get_robot_model(model_name)
-    world = CollisionWorld(m, cfg.safety.collision, cfg.station.table_z_m)
+    world = CollisionWorld.for_cell(cfg)
+    assert world.moving_names[-len(cfg.safety.collision.tool):] == [b.name for b in cfg.safety.collision.tool]
     q_home = np.asarray(cfg.arm.home_joints_rad)
     assert world.check(q_home) is None
     flange = m.fk(q_home)[:3, 3]

@@ -163,28 +163,23 @@ def check_on_table(config: CellConfig, mesh: Placed, pose: tuple[float, float, f
                    f"spans x {t_lo[0]:.3f}..{t_hi[0]:.3f} m, y {t_lo[1]:.3f}..{t_hi[1]:.3f} m")
 
 
-def collision_world(config: CellConfig) -> CollisionWorld:
-    """The cell's collision world (``cell.safety.collision``), as its guard checks with: a job checks its
-    placement in it and hands it to its guard (``MotionGuard.from_config``), which then builds none."""
-    from cell.safety.collision import CollisionWorld
-
-    model = get_robot_model(config.arm.model)
-    return CollisionWorld(model, config.safety.collision, config.station.table_z_m)
-
-
 def check_clear_of_arm(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
-                       world: CollisionWorld) -> None:
+                       world: CollisionWorld | None = None) -> None:
     """Raise ``JobError`` naming the body when the object at ``pose`` intersects the arm standing at its
     home joints (``arm.home_joints_rad``, else the robot model's home): its links' capsules, the robot base
     (``link0``) included, and the cell file's tool bodies, as the guard and the simulated arm's contact
-    check them (``world.arm_bodies``, ``world`` the cell's :func:`collision_world`). Such a job's arm
+    check them (``world.arm_bodies``, ``world`` the cell's, ``CollisionWorld.for_cell``, built here when
+    None). Such a job's arm
     faulted on its first tick. A body wholly inside the object, crossing none of its triangles, is not
     found (FCL tests the mesh's surface); the bodies are 4 cm and more across, and an object that large
     around the arm crosses another one."""
     import fcl
 
+    from cell.safety.collision import CollisionWorld
     from drivers.fcl_bodies import fcl_transform, mesh_bvh
 
+    if world is None:
+        world = CollisionWorld.for_cell(config)
     model = get_robot_model(config.arm.model)
     frames = model.fk_all(model.home(config.arm.home_joints_rad))
     T = object_pose_in_base(config, pose)
@@ -237,8 +232,8 @@ def check_placement(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, flo
                     ) -> None:
     """The checks of a placement that need no planner, the size first (a mesh in the wrong units is
     also off the table, and its size is the better reason), then on the table, then clear of the arm in
-    ``world`` (the cell's :func:`collision_world`, built here when None): ``JobError`` saying what is
-    wrong."""
+    ``world`` (the cell's, ``CollisionWorld.for_cell``, built here when None): ``JobError`` saying what
+    is wrong."""
     check_object_size(config, mesh, scale, option)
     check_on_table(config, mesh, pose)
-    check_clear_of_arm(config, mesh, pose, world if world is not None else collision_world(config))
+    check_clear_of_arm(config, mesh, pose, world)

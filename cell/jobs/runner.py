@@ -48,13 +48,7 @@ from cell.jobs.inputs import CHOOSE_OUT, check_job_folder, check_pose, check_see
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
-from cell.jobs.placement import (
-    check_in_view,
-    check_placement,
-    collision_world,
-    object_pose_in_base,
-    where_views_look,
-)
+from cell.jobs.placement import check_in_view, check_placement, object_pose_in_base, where_views_look
 from cell.jobs.progress import JobProgress
 from cell.jobs.rebuild import recorded_result
 from cell.jobs.recorder import JobRecorder
@@ -121,7 +115,7 @@ class PreparedScan:
     """A request checked and resolved by :func:`prepare_scan`, before its folder exists: the planner,
     the object's name, and its mesh and pose in the base frame when known (the ground truth), the time
     budget [s], the folder the job will create, and the cell's collision world, which checked the
-    placement and which the job's guard checks with (``placement.collision_world``)."""
+    placement and which the job's guard checks with (``CollisionWorld.for_cell``)."""
 
     request: ScanRequest
     planner_name: str
@@ -250,7 +244,7 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
     planner_name = req.planner or cfg.scan.planner
     planner = get_planner(planner_name)(cfg)
     replay_dir = Path(cfg.arm.job_dir) if isinstance(cfg.arm, ReplayArmConfig) else None
-    collision = collision_world(cfg)
+    collision = CollisionWorld.for_cell(cfg)
     object_name, mesh, T_base_object = _scanned_object(req, replay_dir, planner_name, planner, collision)
     folder = req.out if req.out is not None else default_job_folder(object_name, planner_name, req.seed,
                                                                     replay=replay_dir is not None)

@@ -36,6 +36,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import fcl
 import numpy as np
@@ -45,7 +46,11 @@ from numpy.typing import NDArray
 from cell.safety.config import Body, BoxBody, CollisionConfig, CylinderBody, MeshBody
 from drivers.errors import ConfigError
 from drivers.fcl_bodies import ArmBody, fcl_transform, mesh_bvh
+from drivers.robots import get_robot_model
 from drivers.robots.model import RobotModel
+
+if TYPE_CHECKING:  # the cell file's model imports the planners, which import this module's users
+    from cell.config.models import CellConfig
 
 Array = NDArray[np.float64]
 
@@ -165,6 +170,14 @@ def _turned(points: Array, origin: Array, axis: Array, angles: Array) -> Array:
 
 class CollisionWorld:
     """The robot, its tool and the environment of one cell; :meth:`check` tests a joint configuration."""
+
+    @classmethod
+    def for_cell(cls, config: CellConfig) -> CollisionWorld:
+        """The collision world of the cell ``config`` describes: its arm's robot model (``arm.model``), its
+        tool bodies and margins (``safety.collision``) and its table top (``station.table_z_m``). A job
+        builds one, checks its placement clear of the arm in it and hands it to its guard
+        (``cell.jobs.runner.prepare_scan``, ``MotionGuard.from_config``)."""
+        return cls(get_robot_model(config.arm.model), config.safety.collision, config.station.table_z_m)
 
     def __init__(self, model: RobotModel, config: CollisionConfig, table_z_m: float) -> None:
         self._model = model

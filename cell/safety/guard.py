@@ -123,10 +123,9 @@ class MotionGuard:
     """Owns the motion of one arm for a job; see the module docstring for what each path checks."""
 
     def __init__(self, arm: Arm, model: RobotModel, safety: SafetyConfig, geometry: GuardGeometry,
-                 clock: Clock, log: SafetyLog | None = None, collision: CollisionWorld | None = None) -> None:
+                 clock: Clock, collision: CollisionWorld, log: SafetyLog | None = None) -> None:
         """``collision``: the collision world of ``model``, ``safety.collision`` and the table height of
-        ``geometry``, when it was built already (a job's, which checked its placement in it); built here
-        when None."""
+        ``geometry`` (the cell's, ``CollisionWorld.for_cell``)."""
         self._arm = arm
         self._model = model
         self._safety = safety
@@ -141,8 +140,7 @@ class MotionGuard:
                                  acc=BRAKING_SHARE * safety.tcp_max_linear_acc_mps2,
                                  jerk=safety.tcp_max_linear_jerk_mps3,
                                  latency_s=geometry.period_s, time_constant_s=safety.collision.lookahead_s)
-        self.collision = (collision if collision is not None
-                          else CollisionWorld(model, safety.collision, geometry.table_z_m))
+        self.collision = collision
         self.watchdog = Watchdog(safety.watchdog, geometry.period_s)
         self._smoother = TwistSmoother(
             geometry.period_s, (safety.tcp_max_linear_acc_mps2, safety.tcp_max_angular_acc_rps2),
@@ -179,10 +177,12 @@ class MotionGuard:
     def from_config(cls, arm: Arm, model: RobotModel, config: CellConfig, clock: Clock,
                     log: SafetyLog | None = None, collision: CollisionWorld | None = None) -> MotionGuard:
         """The guard of a cell: its safety section, hand-eye mount, table height and control rate, and its
-        collision world ``collision`` when the job has it already (see ``__init__``)."""
+        collision world, ``collision`` when the job has it already (a job's, which checked its placement in
+        it), else built here (``CollisionWorld.for_cell``)."""
         geometry = GuardGeometry(config.mount.matrix(), config.station.table_z_m,
                                  1.0 / config.scan.control_rate_hz)
-        return cls(arm, model, config.safety, geometry, clock, log, collision)
+        world = collision if collision is not None else CollisionWorld.for_cell(config)
+        return cls(arm, model, config.safety, geometry, clock, world, log)
 
     # ------------------------------------------------------------------ state and stops
 

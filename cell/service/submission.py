@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from cell.config.models import CellConfig
 from cell.jobs.inputs import check_seed
-from cell.jobs.placement import check_clear_of_arm, check_object_size, check_on_table, collision_world
+from cell.jobs.placement import check_clear_of_arm, check_object_size, check_on_table
 from cell.planning.registry import check_planner
 from cell.service.objects import ObjectLibrary
 from drivers.errors import JobError, PlanningError, ServiceError
@@ -89,7 +89,7 @@ def validate(config: CellConfig, objects: ObjectLibrary, req: JobRequest) -> Val
     try:
         check_on_table(config, shape, pose)
         if isinstance(shape, ObjectMesh):  # a shipped mesh; an upload's outline has no surface to test
-            check_clear_of_arm(config, shape, pose, collision_world(config))
+            check_clear_of_arm(config, shape, pose)
     except JobError as exc:
         raise _invalid(str(exc), "object_pose") from None
     return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)
