@@ -22,7 +22,7 @@ from cell.cli.main import app
 from cell.doctor import devices, machine
 from cell.doctor.findings import Status
 from cell.service.keys import create_key
-from cell.service.store import open_data_store
+from cell.service.store import open_data_store, sqlite_url
 from drivers.arm.franka import client_version
 from drivers.file_access import user_name
 from tests.conftest import CONFIG_DIR
@@ -296,7 +296,7 @@ def test_listening_beyond_loopback_needs_an_api_key_in_the_store(tmp_path):
     assert code == 1 and checks["remote access"][0] == "fail"
     assert "cell keys create --role admin --data-dir" in checks["remote access"][1]
     assert checks["job store"][0] == "ok" and not (tmp_path / "data").exists()
-    store = open_data_store(tmp_path / "data", None)
+    store = open_data_store(tmp_path / "data", sqlite_url(tmp_path / "data"))
     try:
         create_key(store, "admin", "admin-1")
     finally:

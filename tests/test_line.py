@@ -31,7 +31,7 @@ from cell.line.packml import ACCEPTS, Command, State, StopReason, UnitMode, refu
 from cell.line.result import check_part_id, cycle_result, feeder_part
 from cell.service.keys import create_key
 from cell.service.startup import ServiceSettings
-from cell.service.store import open_data_store
+from cell.service.store import open_data_store, sqlite_url
 from drivers.arm.config import LINE_INPUTS, LINE_NEEDS, LINE_OUTPUTS, UR5eArmConfig
 from drivers.errors import ServiceError
 from tests.rtde_peer import ControllerPeer
@@ -91,7 +91,7 @@ def _cell_file(tmp_path: Path, base: Path, line: dict[str, Any], **changes: Any)
 @contextlib.contextmanager
 def served_line(tmp_path: Path, config: Path) -> Iterator[Line]:
     data = tmp_path / "data"
-    store = open_data_store(data, None)
+    store = open_data_store(data, sqlite_url(data))
     keys = {role: create_key(store, role, role)[1] for role in ROLES}
     store.close()
     with TestClient(create_app(ServiceSettings(config_file=config, data_dir=data))) as client:
@@ -464,7 +464,7 @@ def _reopen(tmp_path: Path, config: Path, keys: dict[str, str]) -> Iterator[Line
 
 def test_a_cell_without_a_line_says_so(tmp_path: Path):
     data = tmp_path / "data"
-    store = open_data_store(data, None)
+    store = open_data_store(data, sqlite_url(data))
     key = create_key(store, "line", "l")[1]
     store.close()
     with TestClient(create_app(ServiceSettings(config_file=TOF, data_dir=data))) as client:

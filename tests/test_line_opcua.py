@@ -605,7 +605,7 @@ def test_an_operators_stop_holds_the_plcs_reset_and_the_plc_sees_the_shutdown(tm
     cell["line"] = {"opcua": {"endpoint": url, "security": "none"}, "max_time_s": 60.0}
     config, data = tmp_path / "cell.yaml", tmp_path / "data"
     config.write_text(yaml.safe_dump(cell))
-    store = open_data_store(data, None)
+    store = open_data_store(data, sqlite_url(data))
     keys = {role: create_key(store, role, f"test-{role}")[1] for role in ("operator", "line")}
     store.close()
 

@@ -15,7 +15,7 @@ import pytest
 from cell.doctor import machine
 from cell.doctor.findings import Status
 from cell.jobs.inputs import check_job_folder
-from cell.service.store import open_data_store
+from cell.service.store import open_data_store, sqlite_url
 from cell.service.worker import CHOOSE_DATA_DIR
 from drivers.errors import JobError, StoreError
 from drivers.file_access import access_problem, mount_point
@@ -53,7 +53,7 @@ def test_a_read_only_file_system_is_named_with_a_remount_not_a_chmod(read_only: 
 
 def test_serve_and_doctor_on_a_read_only_data_dir_say_so(read_only: Path):
     with pytest.raises(StoreError, match=r"is on a read-only file system.*remount,rw.*--data-dir") as err:
-        open_data_store(read_only, None)
+        open_data_store(read_only, sqlite_url(read_only))
     assert "chmod" not in str(err.value)
     found = machine.disk(read_only)
     assert found.status is Status.FAIL and "read-only file system" in found.detail

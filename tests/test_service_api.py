@@ -40,7 +40,7 @@ from cell.service.keys import create_key
 from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, _started, reconcile
 from cell.service.startup import ServiceSettings
-from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store
+from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store, sqlite_url
 from cell.service.worker import SERVICE_GONE
 from drivers.errors import JobError, StoreError
 from drivers.sim.objects import load_object
@@ -50,7 +50,7 @@ from .conftest import FRANKA
 
 def _client(tmp_path: Path, config: Path = FRANKA) -> tuple[TestClient, dict[str, str]]:
     data = tmp_path / "data"
-    store = open_data_store(data, None)
+    store = open_data_store(data, sqlite_url(data))
     keys = {role: create_key(store, role, role)[1] for role in ("viewer", "operator", "admin")}
     store.close()
     return TestClient(create_app(ServiceSettings(config_file=config, data_dir=data))), keys
@@ -681,7 +681,7 @@ def _job(tmp_path: Path, status: str, name: str) -> JobRecord:
 
 
 def test_a_restart_settles_running_and_queued_jobs(tmp_path):
-    store = open_data_store(tmp_path, None)
+    store = open_data_store(tmp_path, sqlite_url(tmp_path))
     killed, finished, queued = (_job(tmp_path, s, n) for s, n in (
         ("running", "a" * 16), ("running", "b" * 16), ("queued", "c" * 16)))
     for job in (killed, finished, queued):
@@ -723,7 +723,7 @@ def test_a_restart_keeps_the_end_a_job_recorded_in_its_folder_and_holds_after_an
     """A job that ended by itself while the store did not answer, the service then killed: its folder's
     end stands (not ``interrupted``), and an arm fault holds its cell's queue in the store; a job's own
     failure holds nothing."""
-    store = open_data_store(tmp_path, None)
+    store = open_data_store(tmp_path, sqlite_url(tmp_path))
     faulted = _job(tmp_path, "running", "f" * 16)
     failed = replace(_job(tmp_path, "running", "0" * 16), cell="d")
     ends = {faulted.id: ("stopped", "safety stop: arm fault: protective stop"),
@@ -749,7 +749,7 @@ def test_a_restart_keeps_the_end_a_job_recorded_in_its_folder_and_holds_after_an
 
 
 def test_a_restart_waits_for_the_warm_worker_of_a_running_job_and_not_for_a_reused_pid(tmp_path, caplog):
-    store = open_data_store(tmp_path, None)
+    store = open_data_store(tmp_path, sqlite_url(tmp_path))
     now = datetime.now(UTC)
     job = replace(_job(tmp_path, "running", "d" * 16), started_at=now + timedelta(seconds=1))
     Path(job.folder).mkdir(parents=True)

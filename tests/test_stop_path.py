@@ -19,7 +19,7 @@ from cell.api.app import create_app
 from cell.api.connections import ConnectionLimits
 from cell.service.keys import create_key
 from cell.service.startup import ServiceSettings
-from cell.service.store import open_data_store
+from cell.service.store import open_data_store, sqlite_url
 from tests.conftest import FRANKA
 from tests.service_process import serving_guarded
 
@@ -30,7 +30,7 @@ SLOW_CLIENTS = POOL_THREADS + 5
 
 def test_stop_answers_while_a_slow_sync_route_holds_every_thread_of_the_pool(tmp_path: Path) -> None:
     data = tmp_path / "data"
-    store = open_data_store(data, None)
+    store = open_data_store(data, sqlite_url(data))
     try:
         viewer = create_key(store, "viewer", "viewer")[1]
     finally:

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config import load_config
 from cell.service.startup import ServiceSettings, build_service
-from cell.service.store import open_store, sqlite_url
+from cell.service.store import open_data_store, open_store, sqlite_url
 from drivers.errors import StoreError
 from drivers.file_access import user_name
 from tests.conftest import UR5E
@@ -99,3 +99,16 @@ def test_the_store_files_are_the_service_users_alone_whatever_the_umask(tmp_path
             assert ("was mode 0644, open beyond the service's user: made 0600" in log) == (data == old), log
     finally:
         os.umask(previous)
+
+
+def test_the_data_folders_own_store_named_by_its_url_is_made_the_users_alone(tmp_path: Path) -> None:
+    """``--db`` naming the data folder's own cell.db (the URL a command chose, ``service_store_url``) had
+    SQLite make the file under the umask (0644 under 022), where the same store chosen by default was made
+    0600."""
+    data = tmp_path / "data"
+    previous = os.umask(0o022)
+    try:
+        open_data_store(data, sqlite_url(data)).close()
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE((data / "cell.db").stat().st_mode) == 0o600

@@ -56,8 +56,7 @@ def opened_store(data_dir: Path, db: str | None) -> Iterator[Store]:
     missing), closed at the end: made if there is none yet, never migrated (:data:`KEYS_SCHEMA` on
     will do). ``StoreError`` if it cannot be opened, or if it is not the store the data folder's service
     uses."""
-    service_store_url(data_dir, db)
-    store = open_data_store(data_dir, db, migrate=False, oldest=KEYS_SCHEMA)
+    store = open_data_store(data_dir, service_store_url(data_dir, db), migrate=False, oldest=KEYS_SCHEMA)
     try:
         yield store
     finally:

@@ -39,7 +39,7 @@ def build_service(settings: ServiceSettings) -> CellService:
     config, data = load_config_data(settings.config_file)
     require_measured(settings.config_file, config.mode)
     url = service_store_url(settings.data_dir, settings.db_url, serving=True)
-    store = open_data_store(settings.data_dir, settings.db_url)
+    store = open_data_store(settings.data_dir, url)
     try:
         lease = store.claim_cell(config.name)
     except StoreError:

@@ -145,23 +145,21 @@ database's mode) are the service user's alone, whatever the umask: they hold the
 the usual umask 022 all three were 0644, readable by every user of the machine."""
 
 
-def open_data_store(data_dir: Path, db_url: str | None, *, migrate: bool = True,
-                    oldest: str | None = None) -> Store:
-    """The store of a cell's data dir ``data_dir`` (created if missing): ``db_url``, or the embedded SQLite
-    file ``cell.db`` in it (made with ``STORE_FILE_MODE`` if new), migrated or not as :func:`open_store`
-    says, its job folders resolved in ``data_dir/jobs`` (:data:`JOBS_FOLDER`). ``StoreError`` when it
-    cannot be opened."""
+def open_data_store(data_dir: Path, url: str, *, migrate: bool = True, oldest: str | None = None) -> Store:
+    """The store at ``url`` of a cell's data dir ``data_dir`` (created if missing), the URL its command
+    chose (``service_store_url``: ``--db``, else the embedded SQLite file ``cell.db`` in it, which is made
+    with ``STORE_FILE_MODE`` if new), migrated or not as :func:`open_store` says, its job folders resolved
+    in ``data_dir/jobs`` (:data:`JOBS_FOLDER`). ``StoreError`` when it cannot be opened."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}; fix: "
                          f"{make_folder(data_dir)}") from None
-    if db_url is None:
+    if url == sqlite_url(data_dir):
         # an empty file is an empty database; one that cannot be made is reported by opening it
         with contextlib.suppress(OSError):
             os.close(os.open(data_dir / SQLITE_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL, STORE_FILE_MODE))
-    return open_store(db_url or sqlite_url(data_dir), migrate=migrate, oldest=oldest,
-                      jobs_dir=data_dir.resolve() / JOBS_FOLDER)
+    return open_store(url, migrate=migrate, oldest=oldest, jobs_dir=data_dir.resolve() / JOBS_FOLDER)
 
 
 def restrict_store_files(data_dir: Path) -> list[tuple[Path, int, int]]:
