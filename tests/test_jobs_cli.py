@@ -18,7 +18,7 @@ from typer.testing import CliRunner, Result
 
 from cell.cli import client as client_module
 from cell.cli.client import ApiClient, ServerEvent, parse_events
-from cell.cli.jobs import follow_job, packing_lines, time_label
+from cell.cli.jobs import _progress_line, follow_job, packing_lines, time_label
 from cell.cli.main import app
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
 from tests.service_process import CELL, REPO, ServedCell, free_port
@@ -27,7 +27,7 @@ CONFIG = REPO / "config" / "sim-franka-rgbd.yaml"
 JOB_ID = re.compile(r"[0-9a-f]{16}")
 UTC_SECONDS = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ")
 PROGRESS_LINE = re.compile(r"t \d+\.\d s  \d+ captures  (cloud coverage \d+\.\d %  )?"
-                           r"H_ROI (\d+\.\d{3} nats|-)")
+                           r"H_ROI \(observation-aware\) (\d+\.\d{3} nats|-)")  # the sim cell's form
 Completed = tuple[str, subprocess.CompletedProcess[str]]
 FINISHED = ("completed", "no_object", "failed", "stopped", "cancelled", "interrupted")
 
@@ -277,6 +277,13 @@ def sse(event_id: int, kind: str, data: dict[str, Any]) -> str:
 
 def progress(t_s: float) -> dict[str, Any]:
     return {"t_s": t_s, "n_captures": 1, "h_roi": 0.5, "coverage_pct": None}
+
+
+def test_a_progress_line_names_the_form_of_h_roi():
+    """H_ROI is in planners.vs.objective.entropy's form; a service that did not send it sent eq. 8's."""
+    aware = {**progress(1.0), "h_roi_entropy": "observation_aware"}
+    assert _progress_line(aware) == "t 1.0 s  1 captures  H_ROI (observation-aware) 0.500 nats"
+    assert _progress_line(progress(1.0)) == "t 1.0 s  1 captures  H_ROI (eq. 8) 0.500 nats"
 
 
 def test_parse_events():

@@ -356,6 +356,11 @@ def test_an_operator_runs_a_raster_scan_from_the_form_and_sees_it_complete(
     assert progress_count(page) == events_of(cell, job_id).count("progress") >= 2
     # coverage and the packing dimensions, as the result holds them
     assert page.text_content("#fig-coverage") == f"{result['metrics']['coverage_pct']:.2f} %"
+    # H_ROI named with its form (result.json's and progress's h_roi_entropy), in the figures and the curve
+    assert result["perception"]["h_roi_entropy"] == "observation_aware"
+    h_roi_row = "() => document.getElementById('fig-h_roi').previousElementSibling.textContent"
+    assert page.evaluate(h_roi_row) == "H_ROI (observation-aware) at the end"
+    assert page.get_attribute("#plot-h_roi", "aria-label").startswith("H_ROI (observation-aware) [nats]: ")
     dims = " × ".join(f"{v:.3f}" for v in result["packing"]["dims_m"])
     assert page.text_content("#fig-dims") == f"{dims} m"
     upper = " × ".join("unbounded" if v is None else f"{v:.3f}" for v in result["packing"]["dims_upper_m"])

@@ -29,6 +29,7 @@ from rich.console import Console
 from cell.cli.client import FINISHED, JOB_STATUSES, ApiClient, ServerEvent
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
+from cell.perception.entropy_form import h_roi_name
 from drivers.errors import COMMAND_LINE_REASON, CellError
 
 DEFAULT_SERVER = "http://127.0.0.1:8080"
@@ -120,7 +121,9 @@ def _progress_line(data: dict[str, Any]) -> str:
     coverage = _number(data.get("coverage_pct"), ".1f", " %")
     if coverage is not None:
         parts.append(f"cloud coverage {coverage}")
-    parts.append(f"H_ROI {_number(data.get('h_roi'), '.3f', ' nats') or '-'}")
+    # a service from before the form was sent sent eq. 8's H_ROI
+    parts.append(f"{h_roi_name(data.get('h_roi_entropy', 'paper'))} "
+                 f"{_number(data.get('h_roi'), '.3f', ' nats') or '-'}")
     return "  ".join(parts)
 
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from cell.control.decimation import DecimatedSeries
+from cell.perception.entropy_form import EntropyForm
 from drivers.transforms import quat_xyzw
 
 TICK_BUCKETS_S = (0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.05, 0.1, 0.25, 0.5, 1.0)
@@ -90,11 +91,11 @@ class JobProgress:
     """A running job after a perception update. Base frame, SI units: job time ``t_s`` [s], the sensor
     pose (``sensor_xyz_m``, quaternion ``sensor_quat_xyzw``), the sensor's path so far [m], H_ROI [nats]
     (eq. 12 in the form the servo planners' termination judges, ``planners.vs.objective.entropy``; None
-    before an object is found), coverage [%] against the ground truth (sim and dry runs;
-    None otherwise: eq. 13's coverage of the cloud so far before registering the ground truth to it,
-    ``cell.perception.metrics.CloudCoverage``, not the result's registered figure), the box (min, max)
-    of every ROI so far [m], the accumulated cloud's size, the wall time perception took for the frame
-    [s], the planner's own figures, and the tick histogram so far."""
+    before an object is found) and that form ``h_roi_entropy``, coverage [%] against the ground truth
+    (sim and dry runs; None otherwise: eq. 13's coverage of the cloud so far before registering the ground
+    truth to it, ``cell.perception.metrics.CloudCoverage``, not the result's registered figure), the box
+    (min, max) of every ROI so far [m], the accumulated cloud's size, the wall time perception took for
+    the frame [s], the planner's own figures, and the tick histogram so far."""
 
     t_s: float
     n_captures: int
@@ -102,6 +103,7 @@ class JobProgress:
     sensor_quat_xyzw: tuple[float, float, float, float]
     path_length_m: float
     h_roi: float | None
+    h_roi_entropy: EntropyForm
     coverage_pct: float | None
     roi_box_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None
     n_cloud_points: int

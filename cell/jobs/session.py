@@ -265,6 +265,7 @@ class JobSession:
             sensor_xyz_m=xyz_m(self._T_base_sensor[:3, 3]), sensor_quat_xyzw=quat_of(self._T_base_sensor),
             path_length_m=round(self.path_length_m, 6),
             h_roi=round(latest.h_roi, 6) if latest is not None and latest.h_roi is not None else None,
+            h_roi_entropy=self.perception.h_roi_entropy,
             coverage_pct=round(self.coverage.coverage_pct, 3) if self.coverage is not None else None,
             roi_box_m=None if extent is None else (xyz_m(extent[0]), xyz_m(extent[1])),
             n_cloud_points=int(self.cloud.points.shape[0]),

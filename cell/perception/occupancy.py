@@ -50,7 +50,6 @@ planners' termination uses with their observation-aware objective.
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,11 +62,6 @@ from drivers.config_base import StrictModel
 from drivers.depth.config import SensorRange
 
 Array = NDArray[np.float64]
-
-EntropyForm = Literal["paper", "observation_aware"]
-"""How a voxel's uncertainty counts in H_ROI (eq. 12) and in the visual-servoing objective (eq. 9):
-``paper``, eq. 8's H(p); ``observation_aware``, H(p) weighted by :func:`observation_weight` of its counts (a
-departure, ``planners.vs.objective.entropy``)."""
 
 _BLOCK_BITS = 4
 _BLOCK = 1 << _BLOCK_BITS  # voxels per block edge

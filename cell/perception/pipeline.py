@@ -21,8 +21,9 @@ from numpy.typing import NDArray
 
 from cell.config.models import PerceptionConfig
 from cell.perception.cloud import CloudAccumulator
+from cell.perception.entropy_form import EntropyForm
 from cell.perception.filters import carved_lengths, filter_frame, no_target_directions, valid_tof_points
-from cell.perception.occupancy import EntropyForm, OccupancyMap
+from cell.perception.occupancy import OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
 from cell.perception.segmentation import ROI, ObjectExtent, SegmentationResult, segment_object
 from drivers.depth.base import DepthFrame

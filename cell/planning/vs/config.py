@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
-from cell.perception.occupancy import EntropyForm
+from cell.perception.entropy_form import EntropyForm
 from drivers.config_base import Bounds, CellDistance, CellSize, StrictModel, Turn
 
 

@@ -3,7 +3,7 @@ CSV and as a four-panel PNG, and the sensor path around the object as in Fig. 3 
 
 H_ROI is in the form the planner's termination judges (``planners.vs.objective.entropy``), which the CSV's
 column and the panel's label name: ``h_roi_nats`` for eq. 12 as written, ``h_roi_observation_aware_nats``
-for the observation-aware form (``cell.perception.occupancy.EntropyForm``).
+for the observation-aware form (``cell.perception.entropy_form``).
 
 In sim the coverage of the ground truth (eq. 13 of the cloud as it stands at each capture, before the
 ground truth is registered to it; known only to the job, not to the planner) is added: a column of the
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure  # not pyplot: files only, no display or global figure state
 
-from cell.perception.occupancy import EntropyForm
+from cell.perception.entropy_form import EntropyForm, h_roi_name
 from cell.planning.base import Array
 from cell.planning.path_plot import PATH_NAME, plot_path
 from cell.planning.vs.servo_scan import TelemetryRow
@@ -28,9 +28,6 @@ FIG4_NAME = "servo.png"
 H_ROI_COLUMNS: dict[EntropyForm, str] = {"paper": "h_roi_nats",
                                          "observation_aware": "h_roi_observation_aware_nats"}
 """The CSV column of H_ROI in each form."""
-H_ROI_LABELS: dict[EntropyForm, str] = {"paper": "H_ROI [nats]",
-                                        "observation_aware": "H_ROI, observation-aware [nats]"}
-"""The Fig. 4 panel's label of H_ROI in each form."""
 
 
 def coverage_at(t: Array, coverage: Sequence[tuple[float, float]]) -> Array:
@@ -69,7 +66,7 @@ def plot_fig4(path: Path, rows: Sequence[TelemetryRow], h_roi_entropy: EntropyFo
     t = np.array([r.t for r in rows])
     series = [("||e|| [m]", [r.e_norm for r in rows]), ("f(r) [nats]", [r.f for r in rows]),
               ("||g|| before clipping", [r.g_norm for r in rows]),
-              (H_ROI_LABELS[h_roi_entropy], [np.nan if r.h_roi is None else r.h_roi for r in rows])]
+              (f"{h_roi_name(h_roi_entropy)} [nats]", [np.nan if r.h_roi is None else r.h_roi for r in rows])]
     fig = Figure(figsize=(10, 6))
     axes = fig.subplots(2, 2, sharex=True)
     for ax, (label, values) in zip(axes.ravel(), series, strict=True):

@@ -4,6 +4,7 @@
 
 import { api, apiBlob, describe, download, FILE_TIMEOUT_MS, jobPath, request } from "../api.js";
 import { bytes, fmt, h, replace } from "../dom.js";
+import { hRoiName } from "./charts.js";
 import { dimensions } from "./view3d.js";
 
 const PLOTS = [
@@ -28,7 +29,7 @@ function figures(result) {
     ["Cloud coverage (eq. 13)", fmt(m.coverage_pct, 2, "%"), "coverage"],
     ["Chamfer distance", fmt(m.chamfer_mm, 2, "mm"), "chamfer"],
     ["Hausdorff distance", fmt(m.hausdorff_mm, 2, "mm"), "hausdorff"],
-    ["H_ROI at the end", fmt(result.perception?.h_roi, 4, "nats"), "h_roi"],
+    [`${hRoiName(result.perception?.h_roi_entropy)} at the end`, fmt(result.perception?.h_roi, 4, "nats"), "h_roi"],
   ]);
 }
 
