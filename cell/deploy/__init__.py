@@ -38,14 +38,14 @@ def deploy_file(name: str) -> Path:
     return Path(str(files(__name__).joinpath(name)))
 
 
-def install_command(name: str, folder: str) -> str:
+def install_command(name: str, folder: Path) -> str:
     """The command that installs the file ``name`` (one of :data:`DEPLOY_FILES`) written below ``folder``."""
-    return _INSTALL[name].format(path=f"{shlex.quote(folder)}/{name}")
+    return _INSTALL[name].format(path=shlex.quote(str(folder / name)))
 
 
 def install_commands(folder: Path) -> list[str]:
     """The commands that install the files written to ``folder``, in order."""
-    return [install_command(name, str(folder)) for name in _INSTALL]
+    return [install_command(name, folder) for name in _INSTALL]
 
 
 def write_deploy_files(folder: Path) -> list[Path]:

@@ -13,6 +13,7 @@ import socket
 import stat
 import struct
 from importlib import metadata
+from pathlib import Path
 
 from cell.deploy import UDEV_RULE, install_command
 from cell.doctor.findings import Finding
@@ -59,7 +60,7 @@ def serial_port(port: str) -> Finding:
             # no group to join but root's, which would give the user the whole machine
             return Finding.fail(name, found, f"install the sensor's udev rule, which gives the board to "
                                 f"group dialout as {UDEV_DEVICE}: cell deploy files DIR, then "
-                                f"{install_command(UDEV_RULE, 'DIR')}; and sensor.port: {UDEV_DEVICE}")
+                                f"{install_command(UDEV_RULE, Path('DIR'))}; and sensor.port: {UDEV_DEVICE}")
         return Finding.fail(name, found, f"sudo usermod -aG {group} {me} and log in again (the service's "
                             "unit joins dialout)")
     try:
