@@ -26,7 +26,7 @@ from cell.planning.base import Planner, ScanSession
 from cell.safety.guard import TwistRefused
 from drivers.arm.base import ArmMode, JointTrajectory, MotionToken
 from drivers.arm.sim import SimArm
-from drivers.errors import DriverError, SafetyStop
+from drivers.errors import OPERATOR_STOP, SAFETY_STOP, DriverError, SafetyStop
 from drivers.transforms import look_at
 
 from .conftest import FRANKA, UR5E, ended_without_a_frame, register_planner
@@ -213,6 +213,21 @@ def test_operator_stop_from_the_service_call(tmp_path):
     assert result["n_captures"] == 2 and effects == [StopEffect.COMMANDED]
     # a stop after the job's motion ended has nothing left to stop, and says so
     assert control.request_stop("too late") is StopEffect.AFTER_MOTION
+
+
+def test_a_stop_the_service_makes_by_itself_is_the_safety_layers_not_an_operators(tmp_path):
+    """A stop nobody asked for (the service stopping a job whose worker stopped answering, or after its
+    own failure) ends the job as the safety layer's stop, which a line reads as such (StopReason 4), where
+    every stop through the guard had read ``operator stop``."""
+    control = JobControl()
+
+    def stop_at_second_frame(progress: JobProgress) -> None:
+        if progress.n_captures == 2:
+            control.request_stop("the job's worker sent nothing for 5 s: hung", operator=False)
+
+    result, out, error = _run(tmp_path, FRANKA, on_progress=stop_at_second_frame, control=control)
+    _assert_stopped_and_kept(result, out, error, "the job's worker sent nothing for 5 s: hung")
+    assert result["termination"].startswith(SAFETY_STOP) and OPERATOR_STOP not in result["termination"]
 
 
 def test_a_stop_asked_before_the_job_moves_is_applied_before_its_first_motion(tmp_path):

@@ -24,17 +24,18 @@ class StopEffect(enum.Enum):
 class Stoppable(Protocol):
     """What a job exposes to be stopped (``cell.jobs.session.JobSession``)."""
 
-    def request_stop(self, reason: str) -> None: ...
+    def request_stop(self, reason: str, *, operator: bool = True) -> None: ...
 
 
 class JobControl:
-    """A thread-safe stop switch for one job. The first reason given is the one recorded."""
+    """A thread-safe stop switch for one job. The first stop given is the one recorded: its reason, and
+    whether someone asked for it (``operator``, the default) or the service stops the job itself."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._session: Stoppable | None = None
         self._moved = False
-        self._reason: str | None = None
+        self._stop: tuple[str, bool] | None = None
 
     def attach(self, session: Stoppable) -> None:
         """The job's session exists (called by the runner before anything moves); a stop asked for
@@ -42,22 +43,23 @@ class JobControl:
         with self._lock:
             self._session = session
             self._moved = True
-            reason = self._reason
-        if reason is not None:
-            session.request_stop(reason)
+            stop = self._stop
+        if stop is not None:
+            session.request_stop(stop[0], operator=stop[1])
 
     def detach(self) -> None:
         """The job's motion has ended; later stops have nothing to stop."""
         with self._lock:
             self._session = None
 
-    def request_stop(self, reason: str) -> StopEffect:
-        """Stop the job; what this call did to its motion."""
+    def request_stop(self, reason: str, *, operator: bool = True) -> StopEffect:
+        """Stop the job (``operator``: someone asked for it, ``Stoppable.request_stop``); what this call
+        did to its motion."""
         with self._lock:
-            if self._reason is None:
-                self._reason = reason
-            session, reason, moved = self._session, self._reason, self._moved
+            if self._stop is None:
+                self._stop = (reason, operator)
+            session, stop, moved = self._session, self._stop, self._moved
         if session is None:
             return StopEffect.AFTER_MOTION if moved else StopEffect.BEFORE_MOTION
-        session.request_stop(reason)
+        session.request_stop(stop[0], operator=stop[1])
         return StopEffect.COMMANDED

@@ -224,9 +224,10 @@ class JobSession:
             live.stop()
             self.n_capture_failures += live.n_capture_failures
 
-    def request_stop(self, reason: str) -> None:
-        """Operator stop (any thread): the arm stops now and the job ends at its next tick, ``stopped``."""
-        self._guard.request_stop(reason)
+    def request_stop(self, reason: str, *, operator: bool = True) -> None:
+        """Stop the job (any thread): the arm stops now and the job ends at its next tick, ``stopped``; an
+        operator stop unless not ``operator`` (``MotionGuard.request_stop``)."""
+        self._guard.request_stop(reason, operator=operator)
 
     def _tick(self) -> None:
         fault = self._sensor.latched_fault()

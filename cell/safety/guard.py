@@ -167,7 +167,8 @@ class MotionGuard:
         self._settling = False
         self._q_seen: Array | None = None  # the joints [rad] the last tick read
         self._stop_lock = threading.Lock()
-        self._stop_request: str | None = None
+        # (reason, whether someone asked for it) of a stop asked for from another thread
+        self._stop_request: tuple[str, bool] | None = None
         self._token = arm.claim_motion()
         self.first_motion_unix_s: float | None = None
         """Wall-clock time [s since the epoch] of the first motion command sent to the arm (None before
@@ -233,11 +234,13 @@ class MotionGuard:
         self._sent = (np.zeros(6), np.zeros(6))
         self._send(self._arm.stop, motion=False)
 
-    def request_stop(self, reason: str) -> None:
-        """Operator stop, callable from any thread (the service, the CLI): the arm is told to stop at once
-        and the job's next control tick ends it with ``SafetyStop``."""
+    def request_stop(self, reason: str, *, operator: bool = True) -> None:
+        """Stop the job from any thread (the service, the CLI): the arm is told to stop at once and the
+        job's next control tick ends it with ``SafetyStop``, ``operator stop: <reason>`` when someone asked
+        for it (``operator``), else the safety layer's own (the service stopping a job whose worker stopped
+        answering, or after its own failure)."""
         with self._stop_lock:
-            self._stop_request = reason
+            self._stop_request = (reason, operator)
         # A failure here is not lost: the control tick repeats the stop and records its failure.
         with contextlib.suppress(CellError):
             self._arm.stop()
@@ -372,7 +375,8 @@ class MotionGuard:
         with self._stop_lock:
             request, self._stop_request = self._stop_request, None
         if request is not None:
-            raise self._halt(f"{OPERATOR_STOP}{request}")
+            asked, operator = request
+            raise self._halt(f"{OPERATOR_STOP}{asked}" if operator else asked)
         for reason in (self.watchdog.tick(now), self.watchdog.perception(now, perception_time_s)):
             if reason is not None:
                 raise self._halt(f"watchdog: {reason}")

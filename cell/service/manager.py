@@ -591,8 +591,9 @@ class CellService:
 
     async def _stop_running(self, running: _Running, reason: str, *, requested: bool = True) -> StopOutcome:
         """Stop the running job through its worker, whose guard stops the arm and ends the job ``operator
-        stop: <reason>``. ``requested``: someone asked for the stop (an operator, the line, the shutdown);
-        else the service stops the job itself (a hung worker, its own failure). A worker that cannot
+        stop: <reason>`` when someone asked for the stop (``requested``: an operator, the line, the
+        shutdown), else ``safety stop: <reason>`` (the service stops the job itself: a hung worker that
+        answers after all, its own failure; the line reads StopReason 4, not 2). A worker that cannot
         confirm is killed, and its job ends as the stop's cause says, the kill added: an operator's stop
         read as a safety stop when its worker was killed."""
         self.metrics.stop_requests.inc()
@@ -616,7 +617,7 @@ class CellService:
         running.acks.append(ack)
         try:
             assert proc.stdin is not None
-            proc.stdin.write(stop_command(reason))
+            proc.stdin.write(stop_command(reason, operator=requested))
             await proc.stdin.drain()
             effect = await asyncio.wait_for(asyncio.shield(ack), self.config.service.stop_confirm_timeout_s)
         except (BrokenPipeError, ConnectionResetError):

@@ -66,9 +66,11 @@ class WorkerSpec:
         return cls(**data)
 
 
-def stop_command(reason: str) -> bytes:
-    """The line that asks a worker to stop its job."""
-    return (json.dumps({"op": "stop", "reason": reason}) + "\n").encode()
+def stop_command(reason: str, *, operator: bool = True) -> bytes:
+    """The line that asks a worker to stop its job; ``operator``: someone asked for the stop (the job ends
+    ``operator stop: <reason>``), else the service stops the job itself (a hung worker, its own failure:
+    ``safety stop: <reason>``)."""
+    return (json.dumps({"op": "stop", "reason": reason, "operator": operator}) + "\n").encode()
 
 
 def finite_json(value: Any) -> Any:

@@ -86,18 +86,19 @@ def _lines(fd: int) -> Iterator[bytes]:
         yield from lines
 
 
-def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[[str], StopEffect]) -> None:
-    """The reader thread: stop commands, then the end of the input."""
+def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[..., StopEffect]) -> None:
+    """The reader thread: stop commands (``JobControl.request_stop``), then the end of the input."""
     for raw in source:
         try:
             command = json.loads(raw)
             reason = str(command["reason"]) if command.get("op") == "stop" else None
+            operator = command.get("operator", True)
         except (ValueError, KeyError, TypeError, AttributeError):
             reason = None
-        if reason is None:
+        if reason is None or not isinstance(operator, bool):
             print(f"worker: ignored a malformed command: {raw[:200]!r}", file=sys.stderr)
             continue
-        outbox.send({"type": "stop", "effect": stop(reason).value, "reason": reason})
+        outbox.send({"type": "stop", "effect": stop(reason, operator=operator).value, "reason": reason})
     stop(SERVICE_GONE)
 
 
