@@ -284,6 +284,9 @@ def test_a_progress_line_names_the_form_of_h_roi():
     aware = {**progress(1.0), "h_roi_entropy": "observation_aware"}
     assert _progress_line(aware) == "t 1.0 s  1 captures  H_ROI (observation-aware) 0.500 nats"
     assert _progress_line(progress(1.0)) == "t 1.0 s  1 captures  H_ROI (eq. 8) 0.500 nats"
+    # a newer service's form this release does not know is shown by its own name, not a crash
+    newer = {**progress(1.0), "h_roi_entropy": "variance"}
+    assert _progress_line(newer) == "t 1.0 s  1 captures  H_ROI (variance) 0.500 nats"
 
 
 def test_parse_events():

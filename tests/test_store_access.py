@@ -8,6 +8,7 @@ import os
 import stat
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from cell.cli.main import app
@@ -112,3 +113,16 @@ def test_the_data_folders_own_store_named_by_its_url_is_made_the_users_alone(tmp
     finally:
         os.umask(previous)
     assert stat.S_IMODE((data / "cell.db").stat().st_mode) == 0o600
+
+
+def test_the_data_folders_own_store_named_relative_to_the_working_folder_is_made_the_users_alone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--db sqlite:///data/cell.db`` from the folder holding ``data`` names the same file as the data
+    folder's own URL, and is made 0600 as that one is."""
+    monkeypatch.chdir(tmp_path)
+    previous = os.umask(0o022)
+    try:
+        open_data_store(Path("data"), "sqlite:///data/cell.db").close()
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE((tmp_path / "data" / "cell.db").stat().st_mode) == 0o600

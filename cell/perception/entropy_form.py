@@ -12,10 +12,11 @@ EntropyForm = Literal["paper", "observation_aware"]
 the voxel still gives (``cell.perception.occupancy.observation_weight`` of its counts; a departure,
 ``planners.vs.objective.entropy``)."""
 
-ENTROPY_FORM_WORDS: dict[EntropyForm, str] = {"paper": "eq. 8", "observation_aware": "observation-aware"}
+ENTROPY_FORM_WORDS: dict[str, str] = {"paper": "eq. 8", "observation_aware": "observation-aware"}
 """Each form as a reader is told it."""
 
 
-def h_roi_name(form: EntropyForm) -> str:
-    """``H_ROI (<the form's words>)``: H_ROI named with its form."""
-    return f"H_ROI ({ENTROPY_FORM_WORDS[form]})"
+def h_roi_name(form: str) -> str:
+    """``H_ROI (<the form's words>)``: H_ROI named with its form; a form this release does not know (a
+    newer service's) by its own name."""
+    return f"H_ROI ({ENTROPY_FORM_WORDS.get(form, form)})"

@@ -663,7 +663,6 @@ class UR5eArm(HardwareArm):
         return bits(self._snapshot()["digital_inputs"])
 
 
-
 def bits(value: int) -> tuple[bool, ...]:
     """The ``N_DIGITAL`` lowest bits of ``value``, bit 0 first."""
     return tuple(bool(value >> i & 1) for i in range(N_DIGITAL))

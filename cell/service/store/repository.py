@@ -31,7 +31,7 @@ from cell.service.store.engine import (
     open_engine,
     read_only_engine,
     schema_revisions,
-    sqlite_url,
+    sqlite_database,
     store_error,
 )
 from cell.service.store.lease import CellLease
@@ -155,7 +155,8 @@ def open_data_store(data_dir: Path, url: str, *, migrate: bool = True, oldest: s
     except OSError as exc:
         raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}; fix: "
                          f"{make_folder(data_dir)}") from None
-    if url == sqlite_url(data_dir):
+    database = sqlite_database(url)
+    if database is not None and database.resolve() == (data_dir / SQLITE_FILE).resolve():
         # an empty file is an empty database; one that cannot be made is reported by opening it
         with contextlib.suppress(OSError):
             os.close(os.open(data_dir / SQLITE_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL, STORE_FILE_MODE))
