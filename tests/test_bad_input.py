@@ -460,3 +460,28 @@ def test_a_scan_that_reached_no_view_failed_and_says_what_to_check(tmp_path):
         "scan.standoff_m and the arm's TCP (tcp_offset) (raster complete: 0 of 13 views captured, "
         "13 unreachable)")
     assert f"failed: {result['termination']}" in res.output and f"job folder: {out}" in res.output
+
+
+def test_the_services_arm_check_builds_the_cells_collision_world_once(monkeypatch: pytest.MonkeyPatch):
+    """Every Start of the line and every job submitted checks a shipped object's placement against the arm
+    (``ArmClearance``); the cell's collision world is built at the first check and kept, where each
+    check built one (10-100 ms)."""
+    from cell.config.models import CellConfig
+    from cell.safety.collision import CollisionWorld
+    from cell.service.submission import ArmClearance
+    from drivers.sim.objects import load_object
+
+    built: list[int] = []
+    for_cell = CollisionWorld.for_cell
+
+    def counted(config: CellConfig) -> CollisionWorld:
+        built.append(1)
+        return for_cell(config)
+
+    monkeypatch.setattr(CollisionWorld, "for_cell", staticmethod(counted))
+    arm, bunny = ArmClearance(load_config(UR5E)), load_object("bunny")
+    arm.check(bunny, (0.0, 0.0, 0.0))
+    arm.check(bunny, (0.02, -0.01, 25.0))
+    with pytest.raises(JobError, match="robot base"):
+        arm.check(bunny, (-0.42, 0.0, 0.0))
+    assert len(built) == 1

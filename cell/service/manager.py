@@ -55,7 +55,7 @@ from cell.service.retention import Retention, delete_job
 from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, HoldRecord, JobRecord, Store
 from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
-from cell.service.submission import JobRequest, ValidJob, validate
+from cell.service.submission import ArmClearance, JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
 from drivers.errors import OPERATOR_STOP, ServiceError, StoreError, stop_termination
 
@@ -185,6 +185,7 @@ class CellService:
         self._lease_lost: str | None = None
         self._lease_keeper: asyncio.Task[None] | None = None
         self.objects = ObjectLibrary(data_dir / "objects", config)
+        self._arm_clearance = ArmClearance(config)
         self.retention = Retention(store, self.name, self.jobs_dir, config.service.retention)
         self._pruner: asyncio.Task[None] | None = None
         self.events = EventHub()
@@ -445,7 +446,8 @@ class CellService:
             raise ServiceError(f"the packing line owns the cell (PackML {self.line.mode.label} mode, "
                                f"{self.line.state.label}): operator jobs run in Manual mode (POST "
                                "/api/v1/line/mode)", reason="conflict")
-        valid: ValidJob = await asyncio.to_thread(validate, self.config, self.objects, request)
+        valid: ValidJob = await asyncio.to_thread(validate, self.config, self.objects, self._arm_clearance,
+                                                  request)
         async with self._submit_lock:
             if self._closing:
                 raise ServiceError("the service is shutting down", reason="conflict")
