@@ -117,6 +117,22 @@ def test_the_key_covers_the_files_the_cell_file_names_and_a_task_carries_them(tm
     assert Path(obstacle.path).read_bytes() == task.config_files[0] != Path(mesh).read_bytes()
 
 
+def test_a_comment_or_layout_edit_of_the_cell_file_keeps_the_key_and_a_setting_changes_it(tmp_path):
+    """The key hashes the cell file's settings, not its text: a grid run again after a note in the cell
+    file keeps its scans, and one after a changed setting runs them again."""
+    text = Path(TOF).read_text()
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(text)
+    spec = ScanSpec(str(cell), "cube", (0.0, 0.0, 0.0), "heu", 0)
+    key = scan_key(spec)
+    data = yaml.safe_load(text)
+    cell.write_text("# a note on this cell\n" + yaml.safe_dump(data, sort_keys=True, indent=4))
+    assert scan_key(spec) == key
+    data["scan"]["standoff_m"] = 0.35
+    cell.write_text(yaml.safe_dump(data))
+    assert scan_key(spec) != key
+
+
 def fake_scan(task: ScanTask) -> TaskOutput:
     """A scan in no time: seed 1 leaves no folder (refused), the others a completed job."""
     if task.spec.seed == 1:

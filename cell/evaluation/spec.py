@@ -1,15 +1,18 @@
 """One scan of a grid, what makes it what it is (its key), and the grid's cross product.
 
-A scan is keyed by the SHA-256 of its inputs: the content of the cell file and of every file it names
-(:func:`file_references`: mesh bodies of the tool and the obstacles, the sensor's zone correction), the
-content of the object's mesh file (a shipped object's PLY or the user's file), the placement, planner, seed,
-time budget, the mesh scale, whether the job is re-processed and the software: its release version and the
-content of every source file of ``cell`` and ``drivers`` (:func:`software_digest`: the modules and the
-compiled kernels' sources, the same on every machine), as a working copy keeps its version while its code
-changes. The key names the scan's job folder, so a second run of the same grid finds the scans already done,
-and any change of an input (an edited cell file, a new release, an edited module or kernel) runs the scan
-again: a benchmark run again after a change measures the new code, not the scans the old code left in its
-output folder.
+A scan is keyed by the SHA-256 of its inputs: the cell file's settings (:func:`settings_digest`: its
+validated model as canonical JSON, so that a comment or a change of layout keeps the key and any changed
+setting changes it), the content of every file the cell file names (:func:`file_references`: mesh bodies
+of the tool and the obstacles, the sensor's zone correction), the content of the object's mesh file (a
+shipped object's PLY or the user's file), the placement, planner, seed, time budget, the mesh scale,
+whether the job is re-processed and the software: its release version and the content of every source
+file of ``cell`` and ``drivers`` (:func:`software_digest`: the modules and the compiled kernels' sources,
+the same on every machine), as a working copy keeps its version while its code changes. The key names
+the scan's job folder, so a second run of the same grid finds the scans already done, and any change of
+an input (a changed setting, a new release, an edited module or kernel) runs the scan again: a benchmark
+run again after a change measures the new code, not the scans the old code left in its output folder.
+Keys made before the cell file's settings were hashed (its text was) differ from these: such a grid's
+scans run once more, beside the old job folders, which stay under ``scans/`` out of its results.
 
 An object is known in results and reports by its label (:attr:`ScanSpec.object_label`): a shipped name
 as it is, anything else (a mesh file, a shipped object scaled) by its name and a digest of its mesh's
@@ -106,17 +109,32 @@ def software_digest() -> str:
 
 
 @cache
-def _content_digest(path: Path, _mtime_ns: int, _size: int) -> str:
+def _digest(path: Path, _mtime_ns: int, _size: int, settings: bool) -> str:
+    if settings:
+        model = load_config(path).model_dump(mode="json")
+        return hashlib.sha256(json.dumps(model, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _read_digest(path: Path, settings: bool) -> str:
+    try:
+        stat = path.stat()
+        return _digest(path.resolve(), stat.st_mtime_ns, stat.st_size, settings)
+    except OSError as exc:
+        raise JobError(f"cannot read {path}: {exc}") from None
 
 
 def file_digest(path: Path) -> str:
     """The hex SHA-256 of the file's content (read again when it changed); ``JobError`` when unreadable."""
-    try:
-        stat = path.stat()
-        return _content_digest(path.resolve(), stat.st_mtime_ns, stat.st_size)
-    except OSError as exc:
-        raise JobError(f"cannot read {path}: {exc}") from None
+    return _read_digest(path, settings=False)
+
+
+def settings_digest(config: str) -> str:
+    """The hex SHA-256 of the settings of the cell file at ``config``: its validated model
+    (``cell.config``, every default filled in) as canonical JSON (keys sorted), read again when the file
+    changed; the same for a comment or a layout edit, another for any changed setting. ``ConfigError``
+    when it does not validate."""
+    return _read_digest(Path(config), settings=True)
 
 
 def object_digest(obj: str, scale: float) -> str:
@@ -159,10 +177,10 @@ def cell_file_references(config: str) -> list[FileReference]:
 
 
 def input_digest(config: str, object: str, **inputs: object) -> str:
-    """The hex SHA-256 of the contents of the cell file, of the files it names
-    (:func:`file_references`) and of the object's mesh, the software (:func:`software_digest`) and
+    """The hex SHA-256 of the cell file's settings (:func:`settings_digest`), the contents of the files it
+    names (:func:`file_references`) and of the object's mesh, the software (:func:`software_digest`) and
     ``inputs`` (JSON values)."""
-    everything = {**inputs, "config": file_digest(Path(config)),
+    everything = {**inputs, "config": settings_digest(config),
                   "files": [file_digest(path) for _, _, path in cell_file_references(config)],
                   "object": file_digest(mesh_file(object)), "software": software_digest()}
     return hashlib.sha256(json.dumps(everything, sort_keys=True).encode()).hexdigest()
