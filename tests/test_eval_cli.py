@@ -71,6 +71,8 @@ def test_a_grid_writes_its_report_and_a_rerun_skips_the_done_scan(tmp_path):
      "time budget must be a positive"),
     (["--objects", "none", "--planners", "heu"], "'none' (an empty table) has nothing to measure"),
     (["--objects", "cube", "--planners", "heu", "--shard", "3/2"], "a shard is I/N with 1 <= I <= N"),
+    (["--objects", "cube", "--planners", "heu", "--limit-directions", "-5"],
+     "--limit-directions must be at least 1, or 0 for no coverage limit, got -5"),
 ])
 def test_bad_input_fails_in_one_line_before_any_scan(tmp_path, args, reason):
     placements = tmp_path / "placements.yaml"
@@ -119,6 +121,15 @@ def test_a_grid_with_a_scan_that_did_not_complete_exits_1_and_names_it(tmp_path)
 def test_the_limit_refuses_what_a_scan_refuses():
     done = CliRunner().invoke(app, ["eval", "limit", "--object", "cube", "--placement", "0.9,0,0"])
     assert done.exit_code == 1 and "off the table" in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("directions", ["0", "-5"])
+def test_the_limit_refuses_fewer_than_one_direction(directions):
+    """No view direction: no view, a limit of 0 % that says nothing (0 skips the limit of a grid only)."""
+    done = CliRunner().invoke(app, ["eval", "limit", "--object", "cube", "--directions", directions])
+    assert done.exit_code == 1 and done.stdout == "", done.stdout
+    assert done.stderr.strip().splitlines() == [
+        f"error: --directions must be at least 1 (view directions per hemisphere), got {directions}"]
 
 
 def _children(pid: int) -> set[int]:

@@ -64,6 +64,9 @@ def _run(preset_for: Callable[[Path], presets.Preset], config: Path | None, plan
          executor: str, jobs: int | None, ray_address: str | None, max_time: float | None,
          limit_directions: int, reprocess: bool | None, object_scale: float, shard: str | None) -> None:
     try:
+        if limit_directions < 0:
+            raise CellError(f"--limit-directions must be at least 1, or 0 for no coverage limit, got "
+                            f"{limit_directions}")
         part = Shard.parse(shard) if shard is not None else WHOLE
         preset = preset_for(out)
         cfg = config if config is not None else preset.config
@@ -135,7 +138,7 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
           placement: Annotated[str, typer.Option(help="x,y,yaw_deg from the station")] = "0,0,0",
           object_scale: Annotated[float, typer.Option(help="a mesh file's units to metres (not for "
                                                            "shipped objects, in metres)")] = 1.0,
-          directions: Annotated[int, typer.Option(help="view directions per hemisphere")]
+          directions: Annotated[int, typer.Option(help="view directions per hemisphere (at least 1)")]
           = DEFAULT_DIRECTIONS,
           everywhere: Annotated[bool, typer.Option(help="count every view, reachable by the arm or not")]
           = False) -> None:

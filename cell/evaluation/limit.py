@@ -203,7 +203,11 @@ def sensor_limits(config: CellConfig, mesh: ObjectMesh, T_base_object: Array) ->
 def cell_coverage_limit(config: CellConfig, mesh: ObjectMesh, placement: tuple[float, float, float],
                         n_directions: int = DEFAULT_DIRECTIONS, reachable: bool = True) -> CoverageLimit:
     """The coverage limit of ``mesh`` at ``placement`` (x [m], y [m], yaw [deg] from the station) on the
-    cell of ``config``."""
+    cell of ``config``; ``CellError`` for fewer than one direction (no view: a limit of 0 % that says
+    nothing)."""
+    if n_directions < 1:
+        raise CellError(f"--directions must be at least 1 (view directions per hemisphere), got "
+                        f"{n_directions}")
     T_base_object = object_pose_in_base(config, placement)
     limits = sensor_limits(config, mesh, T_base_object)
     corners = transform_points(T_base_object, mesh.vertices)
