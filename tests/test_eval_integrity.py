@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -16,8 +17,8 @@ import yaml
 
 from cell.config import load_config
 from cell.evaluation.evaluate import LIMITS_JSON, coverage_limits, evaluate
-from cell.evaluation.executors import LocalPool
-from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, WHOLE, Shard, running
+from cell.evaluation.executors import LocalPool, RayExecutor
+from cell.evaluation.grid import EXECUTOR_TXT, RESULTS_CSV, SCANS_DIR, WHOLE, Shard, running
 from cell.evaluation.report import REPORT_MD, write_report
 from cell.evaluation.results import HIRES_JSON, read_csv, row_from_folder
 from cell.evaluation.spec import ScanSpec, cross, scan_key
@@ -167,6 +168,25 @@ def test_shards_part_the_grid_and_each_rebuilds_results_and_report_from_every_fi
     pool = CountingPool(1)
     evaluate(FAKE_GRID, tmp_path, pool, limit_directions=None, task=fake_scan, stream=io.StringIO())
     assert pool.given == [4]
+
+
+def test_a_run_with_nothing_left_starts_no_executor_and_the_report_names_those_that_ran(tmp_path,
+                                                                                       monkeypatch):
+    """A finished grid run again with --executor ray: no scan to run, so Ray is not started (importing it
+    fails here, as starting it would take seconds), and the report still names the pool that ran them."""
+    specs = cross(TOF, [("cube", (0.0, 0.0, 0.0))], ["heu"], [0, 2])
+    evaluate(specs, tmp_path, LocalPool(1), limit_directions=None, task=fake_scan, stream=io.StringIO())
+    monkeypatch.setitem(sys.modules, "ray", None)
+    done = evaluate(specs, tmp_path, RayExecutor(), limit_directions=None, task=fake_scan,
+                    stream=io.StringIO())
+    said = [line for line in done.report.read_text().splitlines() if line.startswith("Executors")]
+    assert said == ["Executors that ran these scans (scans each): local (2)."]
+    # a job folder of a release that recorded no executor
+    (tmp_path / SCANS_DIR / done.rows[0]["job"] / EXECUTOR_TXT).unlink()
+    again = evaluate(specs, tmp_path, RayExecutor(), limit_directions=None, task=fake_scan,
+                     stream=io.StringIO())
+    assert "Executors that ran these scans (scans each): not recorded (1), local (1)." in \
+        again.report.read_text()
 
 
 def test_a_second_run_that_could_run_the_same_scans_is_refused(tmp_path):

@@ -81,8 +81,8 @@ def _run(preset_for: Callable[[Path], presets.Preset], config: Path | None, plan
     with interrupting() as received:
         try:
             done = evaluate(specs, out, pool, limit_directions=limit_directions or None, shard=part,
-                            title_lines=[f"Cell file: `{cfg}`; executor: {executor}; coverage, Chamfer and "
-                                         f"Hausdorff of {clouds}.", ""])
+                            title_lines=[f"Cell file: `{cfg}`; coverage, Chamfer and Hausdorff of {clouds}.",
+                                         ""])
         except CellError as exc:
             raise fail(exc) from None
         except KeyboardInterrupt:

@@ -19,7 +19,16 @@ from typing import TextIO
 
 from cell.config import load_config
 from cell.evaluation.executors import Executor, TaskFailure
-from cell.evaluation.grid import WHOLE, Shard, run_grid, running, timelines, write_results, writers
+from cell.evaluation.grid import (
+    WHOLE,
+    Shard,
+    ran_on,
+    run_grid,
+    running,
+    timelines,
+    write_results,
+    writers,
+)
 from cell.evaluation.limit import ROLL_STEP_DEG, cell_coverage_limit
 from cell.evaluation.report import Limits, write_report
 from cell.evaluation.results import Row, identity, row_id
@@ -103,7 +112,8 @@ def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_
              title_lines: Sequence[str] = (), shard: Shard = WHOLE) -> Evaluation:
     """Run the grid (``shard``'s part), then the coverage limits on the same executor
     (``limit_directions`` directions per hemisphere; None: none), and the report of every finished scan
-    of the grid; refuses (``CellError``) while another run that could run the same scans runs on ``out``
+    of the grid, after ``title_lines`` a line naming the executors that ran them (``ran_on``); refuses
+    (``CellError``) while another run that could run the same scans runs on ``out``
     (``cell.evaluation.grid.running``)."""
     out.mkdir(parents=True, exist_ok=True)
     with running(out, shard):
@@ -117,7 +127,10 @@ def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_
             partial = [f"**Partial**: {unfinished} of the grid's {len(keyed)} scans have not finished "
                        "(another shard's, still running, or not run yet); the report is rebuilt as they "
                        "finish.", ""]
-            report = write_report(rows, out, limits, [*title_lines, *(partial if unfinished else [])],
+            ran = ", ".join(f"{name} ({n})" for name, n in ran_on(rows, out).items())
+            executors = [f"Executors that ran these scans (scans each): {ran}.", ""] if ran else []
+            report = write_report(rows, out, limits,
+                                  [*title_lines, *executors, *(partial if unfinished else [])],
                                   timelines(specs, out))
     mine = {identity(keyed[key]) for key in shard.select(keyed)}
     return Evaluation(report, rows, [r for r in rows if row_id(r) in mine], unfinished)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 from types import FrameType
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 from drivers.errors import CellError
 
@@ -40,7 +40,11 @@ OnDone = Callable[[int, Any], None]
 
 
 class Executor(Protocol):
-    """Runs ``fn(item)`` for every item; calls ``on_done(index, result or TaskFailure)`` as each ends."""
+    """Runs ``fn(item)`` for every item; calls ``on_done(index, result or TaskFailure)`` as each ends.
+    Given no items, it starts nothing. ``name``: what the grid records as having run a scan."""
+
+    @property
+    def name(self) -> str: ...
 
     def run(self, fn: Callable[[Any], Any], items: Sequence[Any], on_done: OnDone) -> None: ...
 
@@ -119,6 +123,7 @@ class LocalPool:
     driver; their threads limited, see ``_worker_threads``), each running one task at a time."""
 
     jobs: int
+    name: ClassVar[str] = "local"
 
     def __post_init__(self) -> None:
         if self.jobs < 1:
@@ -195,12 +200,16 @@ class RayExecutor:
     instance of ``jobs`` CPUs, or the cluster at ``address``, e.g. ``auto`` or ``ray://head:10001``) and
     shut down at the end. Each task asks for one CPU; at most ``jobs`` are in flight (all when None).
     Ray reruns a task whose worker died (``max_retries=1``) and keeps its worker processes for the next
-    tasks (``max_calls`` 0, the default), so each worker imports the scan's modules once."""
+    tasks (``max_calls`` 0, the default), so each worker imports the scan's modules once. Given no
+    items, it neither starts nor joins Ray (seconds for nothing to run)."""
 
     address: str | None = None
     jobs: int | None = None
+    name: ClassVar[str] = "ray"
 
     def run(self, fn: Callable[[Any], Any], items: Sequence[Any], on_done: OnDone) -> None:
+        if not items:
+            return
         try:
             import ray
             from ray.exceptions import RayError, RayTaskError

@@ -5,7 +5,8 @@ Layout of the output folder: ``scans/<object>-<planner>-s<seed>-<key>/`` holds e
 exists is done: running the grid again skips it (the key changes with any input, see
 ``cell.evaluation.spec``). A job folder appears at once, complete: it is unpacked beside its final name
 and renamed. A scan that left no folder (refused, or its worker died twice) leaves
-``scans/<folder name>.failed`` holding why: a ``failed`` row, and it runs again next time.
+``scans/<folder name>.failed`` holding why: a ``failed`` row, and it runs again next time. A job folder
+holds ``EXECUTOR_TXT``, the name of the executor that ran its scan (the report says which ran the grid's).
 
 ``results.csv`` is rebuilt from the output folder each time it is written, for every scan of the grid
 whose folder (or ``.failed``) is there, whoever ran it; a scan neither done nor failed yet (another
@@ -52,6 +53,10 @@ from drivers.errors import CellError
 
 SCANS_DIR = "scans"
 RESULTS_CSV = "results.csv"
+EXECUTOR_TXT = "eval_executor.txt"
+"""In a scan's job folder: the name of the executor that ran it (``Executor.name``)."""
+UNRECORDED = "not recorded"
+"""The executor of a job folder that holds no ``EXECUTOR_TXT`` (left by a release that kept none)."""
 
 
 def scan_folder(out: Path, spec: ScanSpec, key: str | None = None) -> Path:
@@ -214,6 +219,17 @@ def grid_rows(specs: Sequence[ScanSpec], out: Path) -> list[Row]:
     return sorted_rows(rows)
 
 
+def ran_on(rows: Sequence[Row], out: Path) -> dict[str, int]:
+    """How many of the scans of ``rows`` that left a job folder under ``out`` each executor ran, by name
+    (``UNRECORDED`` for a folder that does not say), in the order first met."""
+    names = []
+    for row in rows:
+        if row["job"]:
+            recorded = out / SCANS_DIR / row["job"] / EXECUTOR_TXT
+            names.append(recorded.read_text().strip() if recorded.is_file() else UNRECORDED)
+    return {name: names.count(name) for name in dict.fromkeys(names)}
+
+
 def write_results(specs: Sequence[ScanSpec], out: Path) -> list[Row]:
     """Rebuild results.csv from ``out`` (:func:`grid_rows`; hold :func:`writers`); returns its rows."""
     rows = grid_rows(specs, out)
@@ -246,6 +262,7 @@ def run_grid(specs: Sequence[ScanSpec], out: Path, executor: Executor,
         partial = folder.with_name(f"{folder.name}.partial-{socket.gethostname()}-{os.getpid()}")
         shutil.rmtree(partial, ignore_errors=True)
         unpack_folder(output.archive, partial)
+        (partial / EXECUTOR_TXT).write_text(f"{executor.name}\n")
         try:
             partial.rename(folder)
         except OSError:  # another run on this folder finished the same scan first: the same inputs
