@@ -189,6 +189,24 @@ def test_a_run_with_nothing_left_starts_no_executor_and_the_report_names_those_t
         again.report.read_text()
 
 
+def fake_packing_scan(task: ScanTask) -> TaskOutput:
+    """A scan in no time whose job has the packing figures."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = _job(Path(tmp) / "job")
+        result = json.loads((folder / "result.json").read_text())
+        result["packing"] = {"dims_m": [0.1, 0.1, 0.1], "iou": 0.5, "coverage_pct": 70.0, "n_poses": 3}
+        (folder / "result.json").write_text(json.dumps(result))
+        return TaskOutput(task.key, pack_folder(folder), None)
+
+
+def test_the_report_gives_the_cell_files_surface_coverage_radius(tmp_path):
+    specs = cross(TOF, [("flange", (0.0, 0.0, 0.0))], ["lr-nbv"], [0])
+    done = evaluate(specs, tmp_path, LocalPool(1), limit_directions=None, task=fake_packing_scan,
+                    stream=io.StringIO())
+    assert "within 10 mm (`packing.coverage_radius_m`, the occupancy map's resolution when unset)" in \
+        done.report.read_text()
+
+
 def test_a_second_run_that_could_run_the_same_scans_is_refused(tmp_path):
     with running(tmp_path, WHOLE), pytest.raises(CellError, match=r"running on .* \(the whole grid, pid"):
         evaluate(FAKE_GRID, tmp_path, LocalPool(1), limit_directions=None, task=fake_scan)

@@ -250,6 +250,32 @@ def test_the_report_says_what_its_figures_mean(tmp_path):
         "scan time and path the paper's mean over its objects (section III-C))" in md
 
 
+def _before_table(md: str, first_header: str) -> str:
+    """The paragraph just above the table whose header starts with ``first_header``."""
+    lines = md.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first_header}"))
+    return lines[start - 2]
+
+
+def test_the_sentence_before_each_table_says_what_its_coverage_is_and_within_what_radius(tmp_path):
+    """A flange scanned by LR-NBV on the ToF cell: eq. 13's coverage (2.5 mm to a cloud point) 7.6 %
+    against 73.2 % of the surface within 10 mm of an object voxel; each table's sentence says which is
+    which, and why they differ so on a sparse cloud."""
+    flange = [_row("flange", "lr-nbv", seed, coverage_pct="7.6000", packing_coverage_pct="73.2000",
+                   iou="0.7000", dims_m="0.2000 0.2000 0.0500") for seed in (0, 1)]
+    write_report(flange, tmp_path, {("flange", "0,0,0"): 99.7}, packing_radii_m=[0.01])
+    md = (tmp_path / REPORT_MD).read_text()
+    reconstruction = _before_table(md, "object | planner | n | coverage %")
+    assert "`coverage %`: the visual-servoing paper's eq. 13, the share of the object's surface" \
+        in reconstruction
+    assert "within 2.5 mm of a point of the measured cloud" in reconstruction
+    assert "`limit %`: the coverage limit" in reconstruction
+    packing = _before_table(md, "object | planner | n | L m")
+    assert "`surface reconstructed %`: the packing paper's surface coverage, the share of the same surface " \
+        "sample within 10 mm (`packing.coverage_radius_m`" in packing
+    assert "an 8 x 8 time-of-flight sensor" in packing and "few surface points lie within 2.5 mm" in packing
+
+
 def test_results_rows_hold_the_true_box_the_upper_bound_and_the_container():
     spec = ScanSpec(CONFIG, "cube", (0.0, 0.0, 0.0), "lr-nbv", 0)
     result = {"status": "completed", "termination": "done", "object_pose": np.eye(4).tolist(),

@@ -34,6 +34,7 @@ from cell.evaluation.report import Limits, write_report
 from cell.evaluation.results import Row, identity, row_id
 from cell.evaluation.spec import ScanSpec, input_digest, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task
+from cell.packing.result import surface_coverage_radius_m
 from drivers.atomic_file import write_text_atomic
 from drivers.sim.objects import load_object
 
@@ -131,6 +132,8 @@ def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_
             executors = [f"Executors that ran these scans (scans each): {ran}.", ""] if ran else []
             report = write_report(rows, out, limits,
                                   [*title_lines, *executors, *(partial if unfinished else [])],
-                                  timelines(specs, out))
+                                  timelines(specs, out),
+                                  packing_radii_m=[surface_coverage_radius_m(load_config(config))
+                                                   for config in dict.fromkeys(s.config for s in specs)])
     mine = {identity(keyed[key]) for key in shard.select(keyed)}
     return Evaluation(report, rows, [r for r in rows if row_id(r) in mine], unfinished)

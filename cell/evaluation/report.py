@@ -15,6 +15,12 @@ anything (a single seed, or all values tie); beside each test the smallest p its
 (:func:`smallest_p`), and the report says when that is not below 0.05: such a test cannot find a
 difference whatever the values.
 
+The sentence before each table says what its coverage figures are and within what radius:
+``coverage %``, eq. 13 of the visual-servoing paper (within ``COVERAGE_RADIUS_M`` of a point of the
+cloud), and ``surface reconstructed %``, the packing paper's surface coverage (within
+``packing.coverage_radius_m`` of an object voxel's centre, ``cell.packing.result``), and why the two
+differ widely on a sparse cloud.
+
 Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
 against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
 job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, for
@@ -38,6 +44,7 @@ from scipy.stats import mannwhitneyu
 
 from cell.evaluation import paper
 from cell.evaluation.results import Row, RowId, Timeline, row_id, value
+from cell.perception.metrics import COVERAGE_RADIUS_M, N_GROUND_TRUTH_POINTS
 from drivers.atomic_file import atomic_path, write_text_atomic
 
 REPORT_MD = "report.md"
@@ -346,6 +353,34 @@ def _brackets(gs: Sequence[Group]) -> str:
     return f"; the paper's figure in brackets ({'; '.join(held)})" if held else ""
 
 
+def _millimetres(radius_m: float) -> str:
+    return f"{radius_m * 1e3:g} mm"
+
+
+def _coverage_words() -> str:
+    """What ``coverage %`` and ``limit %`` are (the reconstruction table's sentence)."""
+    return (f"`coverage %`: the visual-servoing paper's eq. 13, the share of the object's surface (eq. 13's "
+            f"A: {N_GROUND_TRUTH_POINTS:,} points uniform on the mesh, faces pointing down left out) within "
+            f"{_millimetres(COVERAGE_RADIUS_M)} of a point of the measured cloud (`unregistered coverage %`: "
+            "the same before the mesh is registered to the cloud). `limit %`: the coverage limit, the share "
+            "of that surface some reachable view can see (`cell eval limit`): a bound on where the views "
+            "reach, not on how densely the sensor samples what it sees.")
+
+
+def _surface_words(radii_m: Sequence[float]) -> str:
+    """What ``surface reconstructed %`` is, its radius (``radii_m``: of the grid's cell files; none
+    known: named by its setting), and why it differs from ``coverage %`` (the packing table's sentence)."""
+    radius = " or ".join(_millimetres(r) for r in sorted(set(radii_m)))
+    setting = "`packing.coverage_radius_m`, the occupancy map's resolution when unset"
+    eq13 = _millimetres(COVERAGE_RADIUS_M)
+    return (f"`surface reconstructed %`: the packing paper's surface coverage, the share of the same surface "
+            f"sample within {f'{radius} ({setting})' if radius else setting} of the centre of a voxel of the "
+            f"segmented object, where `coverage %` asks for a point of the cloud within {eq13}. On a sparse "
+            f"cloud the two differ widely: an 8 x 8 time-of-flight sensor (the packing paper's) gives 64 "
+            f"points a frame, centimetres apart at its range, so few surface points lie within {eq13} of "
+            f"one, while the voxels they fill are within {radius or 'that radius'} of most of the surface.")
+
+
 def unfinished_line(row: Row) -> str:
     """A scan that did not complete: ``<object> <placement> <planner> seed <seed>: <status>: <why>``."""
     return (f"{row['object']} {row['placement']} {row['planner']} seed {row['seed']}: {row['status']}: "
@@ -353,10 +388,12 @@ def unfinished_line(row: Row) -> str:
 
 
 def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = (),
-                 timelines: dict[RowId, Timeline] | None = None) -> Path:
+                 timelines: dict[RowId, Timeline] | None = None, *,
+                 packing_radii_m: Sequence[float] = ()) -> Path:
     """Write report.md and its figures into ``out``; ``limits`` the coverage limit [%] per object and
     placement (results.csv's texts; absent: not computed), ``timelines`` those of the re-processed
-    scans by row (``cell.evaluation.grid.timelines``). Returns report.md's path."""
+    scans by row (``cell.evaluation.grid.timelines``), ``packing_radii_m`` the radii [m] of
+    ``surface reconstructed %`` of the grid's cell files. Returns report.md's path."""
     gs = groups(rows)
     statuses = sorted({r["status"] for r in rows})
     counts = ", ".join(f"{sum(r['status'] == s for r in rows)} {s}" for s in statuses)
@@ -365,16 +402,16 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
         md += ["No scan ran to its end: no figures.", ""]
     else:
         md += ["## Reconstruction (visual-servoing paper, Table I layout)", "",
-               f"Mean ± standard error over the seeds{_brackets(gs)}. `limit %`: the coverage limit, the "
-               "share of the surface any reachable view can see (`cell eval limit`). "
+               f"{_coverage_words()} Mean ± standard error over the seeds{_brackets(gs)}. "
                f"{_directions(RECONSTRUCTION)}", "",
                *reconstruction_table(gs, limits), "",
                f"![coverage and Chamfer against scan time]({FIG5})", ""]
         _fig5(gs, timelines or {}, out / FIG5)
         if any(r["iou"] for g in gs for rs in g.by_planner.values() for r in rs):
             md += ["## Packing (LR-NBV paper, Fig. 3)", "",
-                   "Mean ± standard error over the seeds. The paper gives Fig. 3 as plots only; its text "
-                   "claims:", "", *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
+                   "The paper gives Fig. 3 as plots only; its text claims:", "",
+                   *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
+                   f"{_surface_words(packing_radii_m)} Mean ± standard error over the seeds. "
                    f"`L m`, `W m`, `H m`: the box measured, best at the truth (`truth`, the ground-truth box "
                    f"of the mesh: sim only; in `{FIG3}` a black mark). `upper bound`: the box grown by the "
                    f"sensor's error model, the one the container is chosen for (`containers`: how many "

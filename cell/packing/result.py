@@ -127,6 +127,12 @@ def section_box(section: dict[str, Any]) -> PackingBox:
                       z_min=box["z_min_m"])
 
 
+def surface_coverage_radius_m(config: CellConfig) -> float:
+    """The radius [m] of the surface coverage (metric 3): ``packing.coverage_radius_m``, else the occupancy
+    map's resolution."""
+    return config.packing.coverage_radius_m or config.perception.occupancy.resolution_m
+
+
 def packing_section(config: CellConfig, session: JobFacts | None, planner: object,
                     mesh: ObjectMesh | None, T_base_object: Array | None,
                     ground_truth: Array | None, *, no_object: bool = False) -> dict[str, Any]:
@@ -142,7 +148,7 @@ def packing_section(config: CellConfig, session: JobFacts | None, planner: objec
     packing line reads as "no part", and its scan never explored it as an object.
     """
     pc = config.packing
-    radius = pc.coverage_radius_m or config.perception.occupancy.resolution_m
+    radius = surface_coverage_radius_m(config)
     objects = packed_object(session.perception) if session is not None and not no_object \
         else np.zeros((0, 3))
     history = planner.reconstruction.objects if isinstance(planner, RecordsReconstruction) else None
