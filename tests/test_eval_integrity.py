@@ -199,12 +199,15 @@ def fake_packing_scan(task: ScanTask) -> TaskOutput:
         return TaskOutput(task.key, pack_folder(folder), None)
 
 
-def test_the_report_gives_the_cell_files_surface_coverage_radius(tmp_path):
+def test_the_report_gives_the_cell_files_surface_coverage_radius_and_the_packing_section_on_request(tmp_path):
     specs = cross(TOF, [("flange", (0.0, 0.0, 0.0))], ["lr-nbv"], [0])
     done = evaluate(specs, tmp_path, LocalPool(1), limit_directions=None, task=fake_packing_scan,
                     stream=io.StringIO())
     assert "within 10 mm (`packing.coverage_radius_m`, the occupancy map's resolution when unset)" in \
         done.report.read_text()
+    table_i = evaluate(specs, tmp_path, LocalPool(1), limit_directions=None, task=fake_packing_scan,
+                       stream=io.StringIO(), packing=False)
+    assert "## Packing" not in table_i.report.read_text()
 
 
 def test_a_second_run_that_could_run_the_same_scans_is_refused(tmp_path):

@@ -246,8 +246,9 @@ def test_the_report_says_what_its_figures_mean(tmp_path):
     # an object and a strategy of Table I: brackets, and the text says what they hold
     write_report([_row("cube", "vs-local", 0, coverage_pct="80.0000")], tmp_path, {})
     md = (tmp_path / REPORT_MD).read_text()
-    assert "the paper's figure in brackets (Table I's figure where it has the object and strategy; for " \
-        "scan time and path the paper's mean over its objects (section III-C))" in md
+    assert "in brackets the paper's figures: Table I's in an object's row where it has the object and " \
+        "strategy and the paper's mean over its eight objects (section III-C) in a row " \
+        "`mean over N objects`" in md
 
 
 def _before_table(md: str, first_header: str) -> str:
@@ -274,6 +275,40 @@ def test_the_sentence_before_each_table_says_what_its_coverage_is_and_within_wha
     assert "`surface reconstructed %`: the packing paper's surface coverage, the share of the same surface " \
         "sample within 10 mm (`packing.coverage_radius_m`" in packing
     assert "an 8 x 8 time-of-flight sensor" in packing and "few surface points lie within 2.5 mm" in packing
+
+
+def test_the_papers_means_over_its_objects_are_in_a_mean_row_not_in_an_objects_row(tmp_path):
+    rows = [_row(obj, "vs-local", seed, coverage_pct="80.0000", scan_time_s=f"{time + seed:.4f}",
+                 path_m="0.9000") for obj, time in (("bunny", 46.0), ("cube", 40.0)) for seed in (0, 1)]
+    write_report(rows, tmp_path, {})
+    table = _table((tmp_path / REPORT_MD).read_text(), "object | planner | n | coverage %")
+    bunny, cube, mean = table
+    assert bunny[:4] == ["bunny", "vs-local", "2", "80.0 ± 0.0 (90.1)"] and bunny[7] == "46.5 ± 0.5"
+    assert cube[7] == "40.5 ± 0.5"
+    assert mean == ["mean over 2 objects", "vs-local", "4", "", "", "", "", "43.5 ± 3.0 (42.0)",
+                    "0.90 ± 0.00 (0.80)", ""]
+
+
+def test_a_report_without_the_packing_section_and_the_claims_only_for_the_papers_grid(tmp_path):
+    """Table I's report leaves out the packing section of its scans (and its tests), saying where those
+    figures are; a packing section of objects or planners not the packing paper's quotes no claim of it."""
+    assert not presets.VS_TABLE.packing_report and presets.PACKING.packing_report
+    bunny = [_row("bunny", planner, seed, coverage_pct=f"{80 + seed:.4f}", iou=f"0.{5 + seed}000",
+                  dims_m="0.1000 0.1000 0.1000", n_poses=f"{3 + seed}")
+             for planner in ("vs-local", "lr-nbv") for seed in (0, 1)]
+    write_report(bunny, tmp_path, {}, packing=False)
+    md = (tmp_path / REPORT_MD).read_text()
+    assert "## Packing" not in md and "claims" not in md and not (tmp_path / "fig3.png").exists()
+    assert "The packing figures of these scans (the LR-NBV paper's Fig. 3: box, IoU, surface " \
+        "reconstructed, poses) are not this report's; `results.csv` holds them." in md
+    assert {line[1] for line in _table(md, "object | figure | planner A")} == {"coverage_pct"}
+    write_report(bunny, tmp_path, {})
+    md = (tmp_path / REPORT_MD).read_text()
+    assert "## Packing (LR-NBV paper, Fig. 3)" in md and "claims" not in md
+    assert {"iou", "n_poses", "L m"} <= {line[1] for line in _table(md, "object | figure | planner A")}
+    flange = [{**r, "object": "flange"} for r in bunny]
+    write_report(flange, tmp_path, {})
+    assert "The paper gives Fig. 3 as plots only; its text claims:" in (tmp_path / REPORT_MD).read_text()
 
 
 def test_results_rows_hold_the_true_box_the_upper_bound_and_the_container():

@@ -81,6 +81,7 @@ def _run(preset_for: Callable[[Path], presets.Preset], config: Path | None, plan
     with interrupting() as received:
         try:
             done = evaluate(specs, out, pool, limit_directions=limit_directions or None, shard=part,
+                            packing=preset.packing_report,
                             title_lines=[f"Cell file: `{cfg}`; coverage, Chamfer and Hausdorff of {clouds}.",
                                          ""])
         except CellError as exc:

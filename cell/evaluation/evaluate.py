@@ -110,10 +110,11 @@ class Evaluation:
 
 def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_directions: int | None,
              task: Callable[[ScanTask], TaskOutput] = run_scan_task, stream: TextIO | None = None,
-             title_lines: Sequence[str] = (), shard: Shard = WHOLE) -> Evaluation:
+             title_lines: Sequence[str] = (), shard: Shard = WHOLE, packing: bool = True) -> Evaluation:
     """Run the grid (``shard``'s part), then the coverage limits on the same executor
     (``limit_directions`` directions per hemisphere; None: none), and the report of every finished scan
-    of the grid, after ``title_lines`` a line naming the executors that ran them (``ran_on``); refuses
+    of the grid, after ``title_lines`` a line naming the executors that ran them (``ran_on``), with the
+    packing section if ``packing`` (``cell.evaluation.report.write_report``); refuses
     (``CellError``) while another run that could run the same scans runs on ``out``
     (``cell.evaluation.grid.running``)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -132,7 +133,7 @@ def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_
             executors = [f"Executors that ran these scans (scans each): {ran}.", ""] if ran else []
             report = write_report(rows, out, limits,
                                   [*title_lines, *executors, *(partial if unfinished else [])],
-                                  timelines(specs, out),
+                                  timelines(specs, out), packing=packing,
                                   packing_radii_m=[surface_coverage_radius_m(load_config(config))
                                                    for config in dict.fromkeys(s.config for s in specs)])
     mine = {identity(keyed[key]) for key in shard.select(keyed)}

@@ -2,7 +2,8 @@
 
 - ``vs-table``: the visual-servoing paper's Table I, its eight objects x VS-Local, VS-Global, VS-Hybrid
   at the station's centre on the shipped ``sim-franka-rgbd`` cell; the paper ran each three times and
-  measured the clouds re-processed offline at 1 mm (section III-B), so each job is re-processed.
+  measured the clouds re-processed offline at 1 mm (section III-B), so each job is re-processed; its
+  report is Table I's, without the packing paper's section (results.csv keeps its scans' packing figures).
 - ``packing``: the LR-NBV paper's section 4, its four objects x LR-NBV, NBV, HEU, five runs each, on the
   shipped ``sim-ur5e-tof`` cell.
 - ``heldout``: fifteen shapes and placements that are not Table I's (nine of the shapes built here: a can,
@@ -34,13 +35,15 @@ CENTRE: Placement = (0.0, 0.0, 0.0)
 @dataclass(frozen=True)
 class Preset:
     """A grid's defaults: cell file, objects with their placements, planners, seeds and whether each job
-    is re-processed as the visual-servoing paper measures Table I (``ScanSpec.reprocess``)."""
+    is re-processed as the visual-servoing paper measures Table I (``ScanSpec.reprocess``); and whether
+    its report has the packing section (``cell.evaluation.report.write_report``)."""
 
     config: Path
     cases: tuple[tuple[str, Placement], ...]
     planners: tuple[str, ...]
     seeds: tuple[int, ...]
     reprocess: bool = False
+    packing_report: bool = True
 
     def specs(self, config: Path | None = None, objects: Sequence[str] | None = None,
               placements: Sequence[Placement] | None = None, planners: Sequence[str] | None = None,
@@ -71,7 +74,7 @@ class Preset:
 
 
 VS_TABLE = Preset(template_path("sim-franka-rgbd"), tuple((o, CENTRE) for o in paper.TABLE_I_OBJECTS),
-                  paper.VS_PLANNERS, (0, 1, 2), reprocess=True)
+                  paper.VS_PLANNERS, (0, 1, 2), reprocess=True, packing_report=False)
 PACKING = Preset(template_path("sim-ur5e-tof"), tuple((o, CENTRE) for o in paper.PACKING_OBJECTS),
                  paper.PACKING_PLANNERS, (0, 1, 2, 3, 4))
 # (object: a shape of ``heldout_shapes`` or a shipped name, placement)

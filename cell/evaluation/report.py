@@ -6,25 +6,29 @@ group, by planner. Only scans that ran to their end count (status ``completed`` 
 failed scan, one whose re-process failed and one stopped (a protective stop: partial figures) are left
 out of the tables, the tests, the figures and ``n``, and listed with their reasons under "Scans that did
 not complete". A group's figures are the mean and standard error of the mean over its scans that
-have the figure, ``mean ± se`` (no ``± se`` for one scan), the paper's figure in
-brackets where it has one (the text says so only when one appears); the packing table also gives the
-ground-truth box (sim), the mean upper bound and the containers chosen. Each figure's better direction
-(higher or lower) is written under its table and on its axis. Mann-Whitney U (two-sided) compares every
-two planners of a group on each figure both have (and on each box dimension); ``-`` where it cannot say
-anything (a single seed, or all values tie); beside each test the smallest p its sample sizes can give
-(:func:`smallest_p`), and the report says when that is not below 0.05: such a test cannot find a
-difference whatever the values.
+have the figure, ``mean ± se`` (no ``± se`` for one scan), the paper's figure in brackets where it has
+one (the text says so only when one appears): Table I's in an object's row, and the paper's means over
+its objects (scan time and path, section III-C) in a row per planner of the mean over the grid's
+objects (``mean over N objects``), never in an object's row.
 
 The sentence before each table says what its coverage figures are and within what radius:
 ``coverage %``, eq. 13 of the visual-servoing paper (within ``COVERAGE_RADIUS_M`` of a point of the
 cloud), and ``surface reconstructed %``, the packing paper's surface coverage (within
 ``packing.coverage_radius_m`` of an object voxel's centre, ``cell.packing.result``), and why the two
-differ widely on a sparse cloud.
+differ widely on a sparse cloud. The packing section (``packing``: the grid's choice; Table I's report
+leaves it out, a line saying results.csv holds those figures) quotes the packing paper's claims only
+when the grid has one of its objects and planners, and gives the ground-truth box (sim), the mean upper
+bound and the containers chosen. Each figure's better direction (higher or lower) is written under its
+table and on its axis. Mann-Whitney U (two-sided) compares every two planners of a group on each figure
+both have (with the packing section, its figures and each box dimension too); ``-`` where it cannot say
+anything (a single seed, or all values tie); beside each test the smallest p its sample sizes can give
+(:func:`smallest_p`), and the report says when that is not below 0.05: such a test cannot find a
+difference whatever the values.
 
 Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
 against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
-job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, for
-packing grids, ``fig3.png`` (the packing paper's Fig. 3: the box's L, W, H with the ground truth marked
+job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, with
+the packing section, ``fig3.png`` (the packing paper's Fig. 3: the box's L, W, H with the ground truth marked
 in sim, IoU, packing coverage, poses and useless poses per planner, mean and standard error, a column per
 group). Each axis says whether higher or lower is better.
 """
@@ -62,7 +66,12 @@ PACKING = (("iou", "IoU", 3), ("packing_coverage_pct", "surface reconstructed %"
 DIMS = ("L m", "W m", "H m")
 Limits = dict[tuple[str, str], float]
 """Coverage limit [%] by (object, placement) as results.csv writes them."""
-TESTED = ("coverage_pct", "chamfer_mm", "hausdorff_mm", "scan_time_s", "iou", "n_poses", "n_useless_poses")
+TESTED = ("coverage_pct", "chamfer_mm", "hausdorff_mm", "scan_time_s")
+PACKING_TESTED = ("iou", "n_poses", "n_useless_poses")
+"""The figures Mann-Whitney U compares: of the reconstruction table, and of the packing section (with the
+box dimensions) where the report has it."""
+PAPER_MEANS = ("scan_time_s", "path_m")
+"""The figures the visual-servoing paper gives as a mean over its objects (section III-C), not per object."""
 HIGHER_IS_BETTER = ("coverage_pct", "coverage_unregistered_pct", "iou", "packing_coverage_pct")
 """The figures of which more is better; of every other one of the tables, less is (errors, time, path,
 poses); the box dimensions are best at the truth."""
@@ -158,8 +167,14 @@ def _directions(columns: Sequence[tuple[str, str, int]]) -> str:
 
 
 def _paper_figure(planner: str, column: str, obj: str) -> float | None:
+    """Table I's figure of an object's row."""
     if column in ("coverage_pct", "chamfer_mm", "hausdorff_mm"):
         return paper.table_i(planner, column, obj)
+    return None
+
+
+def _paper_mean(planner: str, column: str) -> float | None:
+    """The paper's mean over its objects (``PAPER_MEANS``) of a mean row."""
     return {"scan_time_s": paper.MEAN_SCAN_TIME_S, "path_m": paper.MEAN_PATH_M}.get(column, {}).get(planner)
 
 
@@ -168,9 +183,26 @@ def _table(header: Sequence[str], lines: Sequence[Sequence[str]]) -> list[str]:
             *("| " + " | ".join(line) + " |" for line in lines)]
 
 
+def _mean_lines(gs: Sequence[Group]) -> list[list[str]]:
+    """A line per planner of which the paper gives a mean over its objects: ``mean over N objects``, the
+    scans of the planner (n) and, for each of ``PAPER_MEANS``, the mean ± se over the groups of their
+    means (the paper's mean in brackets); the other cells empty."""
+    lines = []
+    for planner in dict.fromkeys(p for g in gs for p in g.by_planner):
+        if all(_paper_mean(planner, c) is None for c in PAPER_MEANS):
+            continue
+        having = [rs for g in gs if (rs := g.by_planner.get(planner))]
+        cells = [mean_se([float(np.mean(v)) for rs in having if (v := figures(rs, c))], d,
+                         _paper_mean(planner, c)) if c in PAPER_MEANS else ""
+                 for c, _, d in RECONSTRUCTION]
+        label = f"mean over {len(having)} object{'s' if len(having) > 1 else ''}"
+        lines.append([label, planner, str(sum(len(rs) for rs in having)), cells[0], "", *cells[1:]])
+    return lines
+
+
 def reconstruction_table(gs: Sequence[Group], limits: Limits) -> list[str]:
-    """Table I's layout: per group and planner, n and mean ± se (paper) of each reconstruction figure,
-    the group's coverage limit beside its coverage."""
+    """Table I's layout: per group and planner, n and mean ± se (Table I's figure) of each reconstruction
+    figure, the group's coverage limit beside its coverage; then the mean rows (:func:`_mean_lines`)."""
     header = ["object", "planner", "n", RECONSTRUCTION[0][1], "limit %",
               *(heading for _, heading, _ in RECONSTRUCTION[1:])]
     lines = []
@@ -181,7 +213,7 @@ def reconstruction_table(gs: Sequence[Group], limits: Limits) -> list[str]:
                      for c, _, d in RECONSTRUCTION]
             lines.append([g.label, planner, str(len(rs)), cells[0], "-" if limit is None else f"{limit:.1f}",
                           *cells[1:]])
-    return _table(header, lines)
+    return _table(header, lines + _mean_lines(gs))
 
 
 def truth(rows: Sequence[Row]) -> list[float] | None:
@@ -219,21 +251,26 @@ def packing_table(gs: Sequence[Group]) -> list[str]:
     return _table(header, lines)
 
 
-def _samples(rs: Sequence[Row]) -> dict[str, list[float]]:
-    """The rows' values of each tested figure: ``TESTED`` and the box dimensions (the packing paper
-    tests the dimensions too)."""
-    return {**{c: figures(rs, c) for c in TESTED}, **{name: dims(rs, k) for k, name in enumerate(DIMS)}}
+def _samples(rs: Sequence[Row], packing: bool) -> dict[str, list[float]]:
+    """The rows' values of each tested figure: ``TESTED`` and, with ``packing``, ``PACKING_TESTED`` and the
+    box dimensions (the packing paper tests the dimensions too)."""
+    samples = {c: figures(rs, c) for c in TESTED}
+    if packing:
+        samples |= {**{c: figures(rs, c) for c in PACKING_TESTED},
+                    **{name: dims(rs, k) for k, name in enumerate(DIMS)}}
+    return samples
 
 
-def tests_table(gs: Sequence[Group]) -> tuple[list[str], list[tuple[int, int]]]:
-    """Mann-Whitney U of every two planners of a group on each figure both have, with the smallest p the
-    two sample sizes can give (:func:`smallest_p`); and the sample sizes (n A, n B) of the tests whose
-    smallest p is not below ``SIGNIFICANCE`` (they cannot find a difference)."""
+def tests_table(gs: Sequence[Group], packing: bool = True) -> tuple[list[str], list[tuple[int, int]]]:
+    """Mann-Whitney U of every two planners of a group on each figure both have (the packing figures
+    with ``packing``), with the smallest p the two sample sizes can give (:func:`smallest_p`); and the
+    sample sizes (n A, n B) of the tests whose smallest p is not below ``SIGNIFICANCE`` (they cannot find
+    a difference)."""
     lines = []
     too_small: list[tuple[int, int]] = []
     for g in gs:
         for (pa, ra), (pb, rb) in itertools.combinations(g.by_planner.items(), 2):
-            samples_a, samples_b = _samples(ra), _samples(rb)
+            samples_a, samples_b = _samples(ra, packing), _samples(rb, packing)
             for name, a in samples_a.items():
                 if a and (b := samples_b[name]):
                     test = mann_whitney(a, b)
@@ -342,15 +379,17 @@ def _bars(gs: Sequence[Group], path: Path) -> None:
 
 def _brackets(gs: Sequence[Group]) -> str:
     """What the brackets of the reconstruction table hold, when any cell has one: Table I's figure of an
-    object and strategy it has, the paper's mean over its objects for scan time and path; empty when
-    none does (no object or planner of the grid is in the paper)."""
+    object and strategy it has, and in the mean rows the paper's mean over its objects for scan time and
+    path; empty when none does (no object or planner of the grid is in the paper)."""
     pairs = [(planner, g.object) for g in gs for planner in g.by_planner]
     table_i = any(_paper_figure(p, c, o) is not None for p, o in pairs
                   for c in ("coverage_pct", "chamfer_mm", "hausdorff_mm"))
-    means = any(_paper_figure(p, c, o) is not None for p, o in pairs for c in ("scan_time_s", "path_m"))
-    held = (["Table I's figure where it has the object and strategy"] if table_i else []) + \
-        (["for scan time and path the paper's mean over its objects (section III-C)"] if means else [])
-    return f"; the paper's figure in brackets ({'; '.join(held)})" if held else ""
+    means = any(_paper_mean(p, c) is not None for p, _ in pairs for c in PAPER_MEANS)
+    held = (["Table I's in an object's row where it has the object and strategy"] if table_i else []) \
+        + (["the paper's mean over its eight objects (section III-C) in a row `mean over N objects`, whose "
+            "scan time and path are the mean of the objects' means (standard error across the objects)"]
+           if means else [])
+    return f"; in brackets the paper's figures: {' and '.join(held)}" if held else ""
 
 
 def _millimetres(radius_m: float) -> str:
@@ -381,6 +420,16 @@ def _surface_words(radii_m: Sequence[float]) -> str:
             f"one, while the voxels they fill are within {radius or 'that radius'} of most of the surface.")
 
 
+def _claims(gs: Sequence[Group]) -> list[str]:
+    """The packing paper's claims on Fig. 3, when the grid has one of its objects scanned by one of its
+    planners (else they are of nothing in the report)."""
+    if not any(g.object in paper.PACKING_OBJECTS and any(p in paper.PACKING_PLANNERS for p in g.by_planner)
+               for g in gs):
+        return []
+    return ["The paper gives Fig. 3 as plots only; its text claims:", "",
+            *(f"- {claim}" for claim in paper.PACKING_CLAIMS), ""]
+
+
 def unfinished_line(row: Row) -> str:
     """A scan that did not complete: ``<object> <placement> <planner> seed <seed>: <status>: <why>``."""
     return (f"{row['object']} {row['placement']} {row['planner']} seed {row['seed']}: {row['status']}: "
@@ -388,12 +437,13 @@ def unfinished_line(row: Row) -> str:
 
 
 def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = (),
-                 timelines: dict[RowId, Timeline] | None = None, *,
+                 timelines: dict[RowId, Timeline] | None = None, *, packing: bool = True,
                  packing_radii_m: Sequence[float] = ()) -> Path:
     """Write report.md and its figures into ``out``; ``limits`` the coverage limit [%] per object and
     placement (results.csv's texts; absent: not computed), ``timelines`` those of the re-processed
-    scans by row (``cell.evaluation.grid.timelines``), ``packing_radii_m`` the radii [m] of
-    ``surface reconstructed %`` of the grid's cell files. Returns report.md's path."""
+    scans by row (``cell.evaluation.grid.timelines``), ``packing`` whether it has the packing section
+    (when the scans have its figures; else a line says results.csv holds them), ``packing_radii_m`` the
+    radii [m] of ``surface reconstructed %`` of the grid's cell files. Returns report.md's path."""
     gs = groups(rows)
     statuses = sorted({r["status"] for r in rows})
     counts = ", ".join(f"{sum(r['status'] == s for r in rows)} {s}" for s in statuses)
@@ -407,10 +457,12 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
                *reconstruction_table(gs, limits), "",
                f"![coverage and Chamfer against scan time]({FIG5})", ""]
         _fig5(gs, timelines or {}, out / FIG5)
-        if any(r["iou"] for g in gs for rs in g.by_planner.values() for r in rs):
-            md += ["## Packing (LR-NBV paper, Fig. 3)", "",
-                   "The paper gives Fig. 3 as plots only; its text claims:", "",
-                   *(f"- {claim}" for claim in paper.PACKING_CLAIMS), "",
+        measured = any(r["iou"] for g in gs for rs in g.by_planner.values() for r in rs)
+        if measured and not packing:
+            md += ["The packing figures of these scans (the LR-NBV paper's Fig. 3: box, IoU, surface "
+                   "reconstructed, poses) are not this report's; `results.csv` holds them.", ""]
+        if measured and packing:
+            md += ["## Packing (LR-NBV paper, Fig. 3)", "", *_claims(gs),
                    f"{_surface_words(packing_radii_m)} Mean ± standard error over the seeds. "
                    f"`L m`, `W m`, `H m`: the box measured, best at the truth (`truth`, the ground-truth box "
                    f"of the mesh: sim only; in `{FIG3}` a black mark). `upper bound`: the box grown by the "
@@ -418,7 +470,7 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
                    f"scans chose each). {_directions(PACKING)}", "",
                    *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
             _bars(gs, out / FIG3)
-        tests, too_small = tests_table(gs)
+        tests, too_small = tests_table(gs, packing)
         md += ["## Mann-Whitney U between planners", "", *tests, "", *_tests_note(too_small)]
     unfinished = [r for r in rows if r["status"] not in MEASURED]
     if unfinished:
