@@ -19,7 +19,9 @@ from cell.packing.containers import choose_container, required_inner_dims
 from cell.packing.objects import extent_points, object_surface_points, segment_on_table, stacked_on_table
 from cell.packing.result import ReconstructionHistory, count_useless, packing_section, surface_coverage_pct
 from cell.packing.uncertainty import ErrorModel, Seen, Sighting, face_bound, upper_dims
+from cell.perception.entropy_form import EntropyForm
 from cell.perception.metrics import ground_truth_points
+from cell.perception.pipeline import PerceptionPipeline
 from cell.perception.segmentation import ObjectExtent, compute_roi
 from drivers.depth.base import SensorModel
 from drivers.depth.sim_tof import zone_directions
@@ -223,6 +225,10 @@ class _Perception:
     table_z_m: float = 0.0
     extent: ObjectExtent = field(default_factory=ObjectExtent)
     range_max_m: float = 4.0
+    h_roi_entropy: EntropyForm = "paper"
+
+    def empty_like(self, rng: np.random.Generator) -> PerceptionPipeline:
+        return PerceptionPipeline.empty_like(self, rng)  # type: ignore[arg-type]  # its settings alone
 
 
 @dataclass
