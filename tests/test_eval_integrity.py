@@ -20,9 +20,10 @@ from cell.evaluation.evaluate import LIMITS_JSON, coverage_limits, evaluate
 from cell.evaluation.executors import LocalPool, RayExecutor
 from cell.evaluation.grid import EXECUTOR_TXT, RESULTS_CSV, SCANS_DIR, WHOLE, Shard, running
 from cell.evaluation.report import REPORT_MD, write_report
-from cell.evaluation.results import HIRES_JSON, read_csv, row_from_folder
+from cell.evaluation.results import read_csv, row_from_folder
 from cell.evaluation.spec import ScanSpec, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, pack_folder, run_scan_task, unpack_folder
+from cell.perception.hires_files import RESULT_HIRES_FILE
 from drivers.errors import CellError
 from tests.test_evaluation import CountingPool
 
@@ -36,7 +37,8 @@ def _job(folder: Path, status: str = "completed", coverage: float = 50.0, hires:
         "status": status, "termination": "budget", "scan_time_s": 1.0, "n_captures": 3,
         "metrics": {"coverage_pct": coverage, "chamfer_mm": 2.0}}))
     if hires is not None:
-        (folder / HIRES_JSON).write_text(json.dumps({"metrics": {"coverage_pct": hires, "chamfer_mm": 1.0}}))
+        hires_result = {"metrics": {"coverage_pct": hires, "chamfer_mm": 1.0}}
+        (folder / RESULT_HIRES_FILE).write_text(json.dumps(hires_result))
     return folder
 
 

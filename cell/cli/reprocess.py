@@ -13,7 +13,8 @@ from cell.cli.jobs import coverage_line
 from cell.cli.progress import stage_progress
 from cell.jobs.rebuild import check_job_dir, output_folder, rebuild_result, recorded_result, remove_live_cloud
 from cell.jobs.recorder import RESULT_FILE
-from cell.perception.reprocess import HIRES_FILES, reprocess_job
+from cell.perception.hires_files import HIRES_FILES
+from cell.perception.reprocess import reprocess_job
 from drivers.atomic_file import check_writable
 from drivers.errors import CellError
 

@@ -35,6 +35,7 @@ from typing import Any
 
 from cell.evaluation.spec import ScanSpec
 from cell.packing.box import box_from_points
+from cell.perception.hires_files import RESULT_HIRES_FILE
 from drivers.errors import CellError
 from drivers.sim.objects import load_object
 
@@ -64,7 +65,6 @@ def _identity(spec: ScanSpec) -> Row:
     return dict(zip(COLUMNS[:4], identity(spec), strict=True))
 
 
-HIRES_JSON = "result_hires.json"
 REPROCESS_FAILED = "reprocess_failed.txt"
 """In a re-processed job folder, why its re-process failed (written by ``cell.evaluation.task``)."""
 
@@ -116,7 +116,7 @@ def row_from_folder(spec: ScanSpec, folder: Path) -> Row:
     online cloud's are not what the grid measures); for one that does not, the online cloud's, even where
     someone re-processed the folder since."""
     result = json.loads((folder / "result.json").read_text())
-    hires = folder / HIRES_JSON
+    hires = folder / RESULT_HIRES_FILE
     if not spec.reprocess:
         return {**row_from_result(spec, result), "job": folder.name}
     if hires.is_file():
@@ -131,7 +131,7 @@ def row_from_folder(spec: ScanSpec, folder: Path) -> Row:
 def timeline_from_folder(folder: Path) -> Timeline | None:
     """A re-processed scan's timeline from its job folder; None when it was not re-processed or has no
     ground truth."""
-    hires = folder / HIRES_JSON
+    hires = folder / RESULT_HIRES_FILE
     return json.loads(hires.read_text()).get("timeline") if hires.is_file() else None
 
 

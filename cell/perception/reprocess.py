@@ -60,6 +60,7 @@ from pydantic import Field, PositiveFloat, PositiveInt
 
 from cell.config.models import CropBoxConfig
 from cell.perception.cloud import crop_voxel_downsample, cross_rows, first_voxels, voxel_downsample, write_ply
+from cell.perception.hires_files import CLOUD_HIRES_FILE, RESULT_HIRES_FILE
 from cell.perception.metrics import ground_truth_points, measure, metrics_timeline
 from cell.perception.registration import (
     constrain_icp,
@@ -83,10 +84,6 @@ _reg = o3d.pipelines.registration
 StageReport = Callable[[str, int, int], None]
 """(stage, done, total): how far a stage of the re-processing is."""
 
-CLOUD_HIRES_FILE = "cloud_hires.ply"
-RESULT_HIRES_FILE = "result_hires.json"
-HIRES_FILES = (CLOUD_HIRES_FILE, RESULT_HIRES_FILE)
-"""What :func:`reprocess_job` writes (the cloud, then the figures), in the job folder or its ``out_dir``."""
 
 PAPER_CROP = CropBoxConfig(x_m=(-0.15, 0.15), y_m=(-0.15, 0.15), z_m=(0.05, 0.40))
 """The paper's crop box (section II-A), used when the job's cell file cannot be loaded."""
