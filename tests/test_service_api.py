@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import errno
 import gc
+import io
 import json
 import logging
 import os
@@ -982,3 +983,25 @@ def test_a_spare_worker_whose_service_went_away_exits_quietly(tmp_path):
                                timeout=120)
     assert spare.returncode == 0 and log_path.read_bytes() == b""
     assert [json.loads(line)["type"] for line in spare.stdout.splitlines()] == ["loaded"]
+
+
+def test_a_workers_stop_commands_keep_whose_stop_it_is_and_the_services_end_is_the_safety_layers():
+    """The worker's command reader passes on whether someone asked for a stop (``operator``, missing in an
+    older service's command: someone did), refuses a command whose flag is not a boolean, and stops the job
+    as the safety layer's own when the service's end of the pipe closes (nobody asked)."""
+    from cell.jobs.control import StopEffect
+    from cell.service.protocol import stop_command
+    from cell.service.worker import Outbox, _listen
+
+    calls: list[tuple[str, bool]] = []
+
+    def stop(reason: str, *, operator: bool = True) -> StopEffect:
+        calls.append((reason, operator))
+        return StopEffect.COMMANDED
+
+    lines = [stop_command("hands in the cell").strip(), stop_command("hung", operator=False).strip(),
+             b'{"op": "stop", "reason": "older service"}',
+             b'{"op": "stop", "reason": "bad", "operator": "no"}']
+    _listen(iter(lines), Outbox(io.BytesIO()), stop)
+    assert calls == [("hands in the cell", True), ("hung", False), ("older service", True),
+                     (SERVICE_GONE, False)]

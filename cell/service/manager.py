@@ -105,9 +105,10 @@ class _Queued:
 @dataclass
 class _Running:
     """The job on the arm: its worker (None while it is being started), whether the worker said it
-    started (it says so before it touches the arm), whether a stop someone asked for (an operator, the
-    line, the shutdown) was passed on to it (``requested``: it ended on someone's request, not by its
-    safety layer or the service's own stop of a hung worker), a stop asked for meanwhile, the stop
+    started (it says so before it touches the arm), whether the first stop passed on to it, the one its
+    job ends with, was one someone asked for (``requested``: an operator, the line, the shutdown; False:
+    the service's own stop of a hung worker or after its own failure; None: no stop was passed on), a
+    stop asked for while it was being started (``stop_reason``, ``stop_requested``), the stop
     confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
     not started: its cause as the termination begins, ``operator stop: `` for a request), its newest
     progress, its worker's last word, whether its end is recorded (the worker may still be exiting) and in
@@ -118,8 +119,9 @@ class _Running:
     origin: str
     proc: asyncio.subprocess.Process | None = None
     started: bool = False
-    requested: bool = False
+    requested: bool | None = None
     stop_reason: str | None = None
+    stop_requested: bool = True
     acks: deque[asyncio.Future[StopEffect]] = field(default_factory=deque)
     killed_for: str | None = None
     progress: dict[str, Any] | None = None
@@ -601,11 +603,13 @@ class CellService:
         self.metrics.stop_requests.inc()
         job_id, proc = running.job.id, running.proc
         if proc is None:
-            running.stop_reason = running.stop_reason or reason
+            if running.stop_reason is None:
+                running.stop_reason, running.stop_requested = reason, requested
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
         if running.ended is not None or proc.returncode is not None:
             return StopOutcome(job_id, False, "the job had already ended")
-        running.requested = running.requested or requested
+        if running.requested is None:  # the worker's JobControl keeps the first stop it is given
+            running.requested = requested
         cause = f"{OPERATOR_STOP}{reason}" if requested else reason
         await asyncio.sleep(0)  # a "started" the worker sent is read first
         if not running.started:
@@ -926,7 +930,7 @@ class CellService:
         if not started:
             await self._warm()  # beside the job, where the cell allows it; never raises
             if running.stop_reason is not None:
-                await self._stop_running(running, running.stop_reason)
+                await self._stop_running(running, running.stop_reason, requested=running.stop_requested)
             self.arm.job_started()
             log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
             self.events.log(job.id).publish("state", {"status": "running", "termination": None})
@@ -1018,7 +1022,7 @@ class CellService:
         running.stored = True
         # the line hears once the store has the outcome: a line that reads the job finds it ended
         if self.line is not None:
-            self.line.job_ended(job.id, status, termination, result, requested=running.requested)
+            self.line.job_ended(job.id, status, termination, result, requested=bool(running.requested))
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})

@@ -99,7 +99,7 @@ def _listen(source: Iterator[bytes], outbox: Outbox, stop: Callable[..., StopEff
             print(f"worker: ignored a malformed command: {raw[:200]!r}", file=sys.stderr)
             continue
         outbox.send({"type": "stop", "effect": stop(reason, operator=operator).value, "reason": reason})
-    stop(SERVICE_GONE)
+    stop(SERVICE_GONE, operator=False)  # nobody asked: the safety layer's stop
 
 
 def _beat(outbox: Outbox, done: threading.Event) -> None:
