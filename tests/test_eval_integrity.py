@@ -11,6 +11,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import open3d as o3d
 import pytest
 import yaml
@@ -24,6 +25,7 @@ from cell.evaluation.results import read_csv, row_from_folder
 from cell.evaluation.spec import ScanSpec, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, pack_folder, run_scan_task, unpack_folder
 from cell.perception.hires_files import RESULT_HIRES_FILE
+from drivers.depth.zone_correction import ZoneCorrection, write_zone_correction
 from drivers.errors import CellError
 from tests.test_evaluation import CountingPool
 
@@ -134,6 +136,22 @@ def test_a_comment_or_layout_edit_of_the_cell_file_keeps_the_key_and_a_setting_c
     data["scan"]["standoff_m"] = 0.35
     cell.write_text(yaml.safe_dump(data))
     assert scan_key(spec) != key
+
+
+def test_a_cell_folder_with_a_zone_correction_keeps_its_key_wherever_it_lies(tmp_path):
+    """cell.config makes a relative ``sensor.zone_correction`` absolute; the key takes it as the cell file
+    names it (and the file's content), so a grid's cell folder copied or mounted elsewhere (a shard's
+    ``--out``) keeps its scans."""
+    data = yaml.safe_load(Path(TOF).read_text())
+    data["sensor"]["zone_correction"] = "zones.json"
+    keys = []
+    for folder in (tmp_path / "here", tmp_path / "there"):
+        folder.mkdir()
+        write_zone_correction(ZoneCorrection(resolution=8, offset_m=np.full(64, 0.001), noise_m=np.zeros(64)),
+                              folder / "zones.json")
+        (folder / "cell.yaml").write_text(yaml.safe_dump(data))
+        keys.append(scan_key(ScanSpec(str(folder / "cell.yaml"), "cube", (0.0, 0.0, 0.0), "heu", 0)))
+    assert keys[0] == keys[1]
 
 
 def fake_scan(task: ScanTask) -> TaskOutput:

@@ -287,6 +287,12 @@ def test_the_papers_means_over_its_objects_are_in_a_mean_row_not_in_an_objects_r
     assert cube[7] == "40.5 ± 0.5"
     assert mean == ["mean over 2 objects", "vs-local", "4", "", "", "", "", "43.5 ± 3.0 (42.0)",
                     "0.90 ± 0.00 (0.80)", ""]
+    # one object at two placements is one object, each placement's mean counted
+    twice = [{**_row("bunny", "vs-local", 0, scan_time_s=f"{time:.4f}", path_m="0.9000"), "placement": where}
+             for where, time in (("0,0,0", 46.0), ("0.02,0,0", 40.0))]
+    write_report(twice, tmp_path, {})
+    table = _table((tmp_path / REPORT_MD).read_text(), "object | planner | n | coverage %")
+    assert table[-1][:3] == ["mean over 1 object at 2 placements", "vs-local", "2"]
 
 
 def test_a_report_without_the_packing_section_and_the_claims_only_for_the_papers_grid(tmp_path):

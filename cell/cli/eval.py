@@ -148,6 +148,9 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
     The share of its surface (eq. 13's sample) that any reachable view (at any roll about its optical
     axis) within the sensor's range, field of view and grazing limit can see."""
     try:
+        if directions < 1:  # before the cell file and the mesh are read
+            raise CellError(f"--directions must be at least 1 (view directions per hemisphere), got "
+                            f"{directions}")
         path = config if config is not None else template_path("sim-franka-rgbd")
         scale = mesh_file_scale(object, object_scale)
         cfg, mesh, pose = load_config(path), load_object(object, scale), parse_placement(placement)

@@ -206,7 +206,7 @@ def cell_coverage_limit(config: CellConfig, mesh: ObjectMesh, placement: tuple[f
     cell of ``config``; ``CellError`` for fewer than one direction (no view: a limit of 0 % that says
     nothing)."""
     if n_directions < 1:
-        raise CellError(f"--directions must be at least 1 (view directions per hemisphere), got "
+        raise CellError(f"the coverage limit needs at least 1 view direction per hemisphere, got "
                         f"{n_directions}")
     T_base_object = object_pose_in_base(config, placement)
     limits = sensor_limits(config, mesh, T_base_object)

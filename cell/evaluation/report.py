@@ -191,11 +191,15 @@ def _mean_lines(gs: Sequence[Group]) -> list[list[str]]:
     for planner in dict.fromkeys(p for g in gs for p in g.by_planner):
         if all(_paper_mean(planner, c) is None for c in PAPER_MEANS):
             continue
-        having = [rs for g in gs if (rs := g.by_planner.get(planner))]
+        groups = [g for g in gs if g.by_planner.get(planner)]
+        having = [g.by_planner[planner] for g in groups]
         cells = [mean_se([float(np.mean(v)) for rs in having if (v := figures(rs, c))], d,
                          _paper_mean(planner, c)) if c in PAPER_MEANS else ""
                  for c, _, d in RECONSTRUCTION]
-        label = f"mean over {len(having)} object{'s' if len(having) > 1 else ''}"
+        n_objects = len({g.object for g in groups})
+        label = f"mean over {n_objects} object{'s' if n_objects > 1 else ''}"
+        if len(groups) > n_objects:  # an object at several placements: each placement's mean counts
+            label += f" at {len(groups)} placements"
         lines.append([label, planner, str(sum(len(rs) for rs in having)), cells[0], "", *cells[1:]])
     return lines
 

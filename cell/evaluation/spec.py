@@ -112,6 +112,13 @@ def software_digest() -> str:
 def _digest(path: Path, _mtime_ns: int, _size: int, settings: bool) -> str:
     if settings:
         model = load_config(path).model_dump(mode="json")
+        # cell.config makes a relative zone_correction absolute; as the file names it, the key stays the
+        # same wherever the grid's cell file lies (shards mounting --out elsewhere), and the file's
+        # content counts as every referenced file's does
+        written = (yaml.safe_load(path.read_text()) or {}).get("sensor")
+        sensor = model.get("sensor")
+        if isinstance(written, dict) and "zone_correction" in written and isinstance(sensor, dict):
+            sensor["zone_correction"] = written["zone_correction"]
         return hashlib.sha256(json.dumps(model, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
