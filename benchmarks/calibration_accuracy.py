@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from options import BenchmarkParser, at_least, first_paragraph, positive, seed_list
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -55,6 +56,7 @@ TOF = REPO / "config" / "sim-ur5e-tof.yaml"
 BOX_POSE = (0.02, -0.01, 8.0)
 BOARD_POSE = (0.01, 0.005, 5.0)
 BOARD_STANDOFF_M = 0.3
+MOUNT_POSES = at_least(4)  # the views a mount calibration takes, as `cell calibrate mount --poses`
 
 
 def _true_mount(cfg: CellConfig, rng: np.random.Generator, max_mm: float, max_deg: float) -> PoseConfig:
@@ -164,18 +166,19 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", default="0,1,2")
-    parser.add_argument("--chamfer-seeds", type=int, default=1, help="how many of the seeds get scans")
-    parser.add_argument("--max-mm", type=float, default=10.0)
-    parser.add_argument("--max-deg", type=float, default=5.0)
-    parser.add_argument("--poses-board", type=int, default=30)
-    parser.add_argument("--poses-rgbd", type=int, default=20)
-    parser.add_argument("--poses-tof", type=int, default=40)
-    parser.add_argument("--zone-bias-mm", type=float, default=10.0)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--seeds", type=seed_list, default=[0, 1, 2], help="comma-separated seeds")
+    parser.add_argument("--chamfer-seeds", type=at_least(0), default=1,
+                        help="how many of the seeds get scans")
+    parser.add_argument("--max-mm", type=positive, default=10.0)
+    parser.add_argument("--max-deg", type=positive, default=5.0)
+    parser.add_argument("--poses-board", type=MOUNT_POSES, default=30)
+    parser.add_argument("--poses-rgbd", type=MOUNT_POSES, default=20)
+    parser.add_argument("--poses-tof", type=MOUNT_POSES, default=40)
+    parser.add_argument("--zone-bias-mm", type=positive, default=10.0)
     parser.add_argument("--out", type=Path, default=Path("/tmp/calibration_accuracy"))
     args = parser.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",")]
+    seeds = args.seeds
     shutil.rmtree(args.out, ignore_errors=True)
     runs: list[dict[str, Any]] = []
 

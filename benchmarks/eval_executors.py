@@ -20,13 +20,14 @@ Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
+
+from options import BenchmarkParser, count, first_paragraph, positive
 
 from cell.evaluation import paper
 from cell.evaluation.executors import Executor, LocalPool, RayExecutor
@@ -56,10 +57,11 @@ def timed_attached(jobs: int, specs: list[ScanSpec], out: Path) -> tuple[float, 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--max-time", type=float, default=None, help="scan budget [s] (default: the cell's)")
-    parser.add_argument("--repeats", type=int, default=1)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--jobs", type=count, default=2)
+    parser.add_argument("--max-time", type=positive, default=None,
+                        help="scan budget [s] (default: the cell's)")
+    parser.add_argument("--repeats", type=count, default=1)
     parser.add_argument("--attached", action="store_true", help="also Ray on an instance started before")
     args = parser.parse_args()
     cases = [(o, (0.0, 0.0, 0.0)) for o in paper.PACKING_OBJECTS]

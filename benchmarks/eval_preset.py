@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from options import BenchmarkParser
+
 from cell.evaluation.grid import RESULTS_CSV
 from cell.evaluation.report import REPORT_MD
 from cell.evaluation.results import Row, read_csv
@@ -28,7 +30,7 @@ def preset_parser(description: str, command: str, note: str = "") -> argparse.Ar
     for param in group.commands[command].params:
         if isinstance(param, typer.core.TyperOption) and param.name != "out":
             lines.append(f"  {', '.join([*param.opts, *param.secondary_opts])}: {param.help}")
-    return argparse.ArgumentParser(description=description, epilog="\n".join(lines),
+    return BenchmarkParser(description=description, epilog="\n".join(lines),
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
 
 

@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from options import BenchmarkParser, count, positive
 
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
@@ -151,10 +152,10 @@ def figures(ticks: list[Tick]) -> dict[str, dict[str, Any]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
+    parser = BenchmarkParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ticks", type=int, default=2000, help="ticks of the steady twist per model")
-    parser.add_argument("--scan-time", type=float, default=20.0, help="sim time of each model's scan [s]")
+    parser.add_argument("--ticks", type=count, default=2000, help="ticks of the steady twist per model")
+    parser.add_argument("--scan-time", type=positive, default=20.0, help="sim time of each model's scan [s]")
     args = parser.parse_args()
     load_before = os.getloadavg()[0]
     results: dict[str, dict[str, Any]] = {}

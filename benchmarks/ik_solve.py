@@ -19,7 +19,6 @@ Prints readable lines, then as its last line JSON {"ik_ms": {model: {"closed_for
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import statistics
@@ -29,6 +28,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from options import BenchmarkParser, count, first_paragraph
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -75,9 +75,9 @@ def compared(closed: list[float], reference: list[float]) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--goals", type=int, default=40)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--goals", type=count, default=40)
+    parser.add_argument("--repeats", type=count, default=5)
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     goals = {}

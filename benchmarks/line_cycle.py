@@ -60,6 +60,7 @@ from asyncua import Client, ua
 from asyncua.crypto import cert_gen
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from options import BenchmarkParser, at_least, count
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -263,11 +264,11 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
+    parser = BenchmarkParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--parts", type=int, default=20)
-    parser.add_argument("--reference-parts", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--parts", type=count, default=20)
+    parser.add_argument("--reference-parts", type=count, default=5)
+    parser.add_argument("--seed", type=at_least(0), default=0)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="line-cycle-") as tmp:
         figures = asyncio.run(run(args, Path(tmp)))

@@ -14,7 +14,6 @@ Run: ``.venv/bin/python benchmarks/lrnbv_iteration.py [--iterations 15]``
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -22,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from options import BenchmarkParser, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -62,8 +62,8 @@ class _Session:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--iterations", type=int, default=15)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--iterations", type=count, default=15)
     args = parser.parse_args()
     cfg = load_config(REPO / "config" / "sim-ur5e-tof.yaml")
     station = np.array([*cfg.station.xy_m, cfg.station.table_z_m])

@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from options import BenchmarkParser, at_least, positive
 
 from cell.perception.cloud import crop_box, voxel_downsample
 from cell.perception.occupancy import OccupancyMap, OccupancyParams
@@ -157,13 +158,12 @@ def compare(occ: OccupancyMap, ref_keys: np.ndarray, ref_lo: np.ndarray) -> dict
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames-dir", type=Path, default=None, help="recorded frames/ (default: record a scan)")
-    ap.add_argument("--max-time", type=float, default=10.0, help="scan time to record [s]")
-    ap.add_argument("--repeat", type=int, default=9, help="interleaved timed repetitions of each (>= 5)")
+    ap.add_argument("--max-time", type=positive, default=10.0, help="scan time to record [s]")
+    ap.add_argument("--repeat", type=at_least(5), default=9,
+                    help="interleaved timed repetitions of each (>= 5)")
     args = ap.parse_args()
-    if args.repeat < 5:
-        ap.error("--repeat must be at least 5")
     try:
         import pyoctomap
     except ImportError:

@@ -16,7 +16,6 @@ Prints one line per step, then as its last line JSON {tree: {step: value}}.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import subprocess
@@ -28,6 +27,7 @@ from pathlib import Path
 
 import httpx
 import trimesh
+from options import BenchmarkParser, checkout, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -135,12 +135,13 @@ def measure(tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--objects", type=int, default=12)
-    parser.add_argument("--concurrent", type=int, default=4)
-    parser.add_argument("--reference", type=Path, default=None, help="another checkout, measured after this")
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--objects", type=count, default=12)
+    parser.add_argument("--concurrent", type=count, default=4)
+    parser.add_argument("--reference", type=checkout, default=None,
+                        help="another checkout, measured after this")
     args = parser.parse_args()
-    trees = {"this": REPO, **({"reference": args.reference.resolve()} if args.reference else {})}
+    trees = {"this": REPO, **({"reference": args.reference} if args.reference else {})}
     with tempfile.TemporaryDirectory() as folder:
         paths = write_meshes(Path(folder), args.objects + args.concurrent)
         figures = {name: measure(tree, paths[:args.objects], paths[args.objects:])

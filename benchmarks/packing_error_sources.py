@@ -25,7 +25,6 @@ Run: ``nice .venv/bin/python benchmarks/packing_error_sources.py [--out DIR] [pa
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import subprocess
@@ -35,6 +34,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from options import BenchmarkParser, first_paragraph
 
 from cell.templates import template_path
 
@@ -72,7 +72,7 @@ def _count(counts: list[int]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
     parser.add_argument("--out", type=Path, default=Path("/tmp/packing_error_sources"))
     args, rest = parser.parse_known_args()
     cell = yaml.safe_load(template_path("sim-ur5e-tof").read_text())

@@ -53,6 +53,7 @@ from numpy.typing import NDArray
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from eval_preset import preset_parser
+from options import first_paragraph
 
 from cell.config.load import load_config
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR
@@ -248,7 +249,7 @@ def _listed_jobs(out: Path, rows: list[Row]) -> list[Path]:
 
 
 def main() -> None:
-    parser = preset_parser(__doc__.splitlines()[0], "packing", " (`cell eval grid` for --suite heldout)")
+    parser = preset_parser(first_paragraph(__doc__), "packing", " (`cell eval grid` for --suite heldout)")
     parser.add_argument("--suite", choices=("paper", "unseen", "heldout"), default="paper")
     parser.add_argument("--out", type=Path, default=None, help="the evaluation's output folder")
     parser.add_argument("--rescore", type=Path, default=None,

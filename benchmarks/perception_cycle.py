@@ -15,13 +15,13 @@ Run: ``.venv/bin/python benchmarks/perception_cycle.py [--frames 12]``
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from options import BenchmarkParser, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -53,8 +53,8 @@ def cycle_times(config_name: str, object_name: str, standoff_m: float, n_frames:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=12)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--frames", type=count, default=12)
     args = parser.parse_args()
     figures: dict[str, object] = {}
     for name, config, obj, standoff, goal in (("rgbd", "sim-franka-rgbd.yaml", "bunny", 0.25, 100.0),

@@ -16,7 +16,6 @@ have none) and whether every mutant failed at least one test. Exits 1 when one d
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -28,6 +27,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from options import BenchmarkParser, first_paragraph
 
 REPO = Path(__file__).resolve().parents[1]
 TEST_FILES = ("tests/test_safety_guard.py", "tests/test_safety_properties.py",
@@ -174,7 +175,7 @@ def check(mutant: Mutant | None, files: list[str], soak: int) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
     parser.add_argument("--soak", type=int, default=0, metavar="N",
                         help="also run the safety soak in each copy with N commands per robot")
     parser.add_argument("--only", action="append", choices=[m.name for m in MUTANTS],

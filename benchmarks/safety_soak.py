@@ -55,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from options import BenchmarkParser, at_least, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -290,9 +291,9 @@ def _episodes(text: str) -> tuple[int, int]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--commands", type=int, default=100_000, help="random commands per robot")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random generator")
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--commands", type=count, default=100_000, help="random commands per robot")
+    parser.add_argument("--seed", type=at_least(0), default=0, help="seed of the random generator")
     parser.add_argument("--episodes", metavar="FROM:TO", type=_episodes, help="run only episodes FROM to "
                         "TO - 1 of the seed's sequence (e.g. one that ``breach_events`` names), in place of "
                         "--commands")

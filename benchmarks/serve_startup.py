@@ -16,7 +16,6 @@ Prints one line per run, then as its last line JSON {"runs": {tree: [s, ...]}, "
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import statistics
@@ -27,6 +26,7 @@ import time
 from pathlib import Path
 
 import httpx
+from options import BenchmarkParser, checkout, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -61,11 +61,12 @@ def time_to_healthz(tree: Path) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--reference", type=Path, default=None, help="another checkout, measured interleaved")
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--repeats", type=count, default=5)
+    parser.add_argument("--reference", type=checkout, default=None,
+                        help="another checkout, measured interleaved")
     args = parser.parse_args()
-    trees = {"this": REPO, **({"reference": args.reference.resolve()} if args.reference else {})}
+    trees = {"this": REPO, **({"reference": args.reference} if args.reference else {})}
     runs: dict[str, list[float]] = {name: [] for name in trees}
     for repeat in range(args.repeats):
         for name, tree in trees.items():

@@ -58,6 +58,7 @@ from typing import Any
 import httpx
 import numpy as np
 import yaml
+from options import BenchmarkParser, at_least, count, first_paragraph, positive
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -296,11 +297,11 @@ def condition(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=3, help="pairs of runs (alone, loaded)")
-    parser.add_argument("--subscribers", type=int, default=50, help="SSE clients following the job")
-    parser.add_argument("--pollers", type=int, default=20, help="clients polling GET /api/v1/cell")
-    parser.add_argument("--poll-hz", type=float, default=10.0, help="each poller's rate [Hz]")
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--repeats", type=count, default=3, help="pairs of runs (alone, loaded)")
+    parser.add_argument("--subscribers", type=at_least(0), default=50, help="SSE clients following the job")
+    parser.add_argument("--pollers", type=at_least(0), default=20, help="clients polling GET /api/v1/cell")
+    parser.add_argument("--poll-hz", type=positive, default=10.0, help="each poller's rate [Hz]")
     args = parser.parse_args()
     data = yaml.safe_load(CONFIG.read_text())
     home = data["arm"]["home_joints_rad"]

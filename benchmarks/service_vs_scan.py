@@ -30,7 +30,6 @@ at its start.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import resource
@@ -41,6 +40,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from options import BenchmarkParser, count, first_paragraph, positive
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -122,9 +123,10 @@ def median(values: list[float]) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=3, help="runs each way")
-    parser.add_argument("--max-time", type=float, default=30.0, help="the scan's time budget [s of sim time]")
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--repeats", type=count, default=3, help="runs each way")
+    parser.add_argument("--max-time", type=positive, default=30.0,
+                        help="the scan's time budget [s of sim time]")
     args = parser.parse_args()
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="service-vs-scan-") as tmp:

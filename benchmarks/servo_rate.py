@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 from map_vs_octomap import octomap_insert, octomap_tree
+from options import BenchmarkParser
 from station_rig import StationRig
 
 from cell.config import load_config
@@ -118,7 +119,7 @@ def median_ms(fn, repeat: int) -> tuple[float, float]:
 
 
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
                             ).parse_args()  # no options: --help
     try:
         import pyoctomap

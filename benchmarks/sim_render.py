@@ -13,13 +13,13 @@ Embree's threads, so ``OPENBLAS_NUM_THREADS=1`` gives a lower, steadier figure t
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from options import BenchmarkParser, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -46,8 +46,8 @@ def time_frames(sensor, n: int, warmup: int = 3) -> tuple[list[float], int]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=30)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--frames", type=count, default=30)
     args = parser.parse_args()
 
     obj = load_object("bunny")

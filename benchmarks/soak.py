@@ -44,6 +44,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from options import BenchmarkParser, count, first_paragraph, positive
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cell.config import load_config
@@ -152,13 +154,13 @@ def service(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--jobs", type=int, default=200)
-    parser.add_argument("--warmup", type=int, default=20, help="jobs before the RSS baseline")
-    parser.add_argument("--sample-every", type=int, default=10)
+    parser = BenchmarkParser(description=first_paragraph(__doc__))
+    parser.add_argument("--jobs", type=count, default=200)
+    parser.add_argument("--warmup", type=count, default=20, help="jobs before the RSS baseline")
+    parser.add_argument("--sample-every", type=count, default=10)
     parser.add_argument("--config", type=Path, default=REPO / "config" / "sim-ur5e-tof.yaml")
     parser.add_argument("--planner", default=None, help="the cell file's default planner unless given")
-    parser.add_argument("--max-time", type=float, default=10.0, help="each job's budget [s of sim time]")
+    parser.add_argument("--max-time", type=positive, default=10.0, help="each job's budget [s of sim time]")
     parser.add_argument("--only", choices=("in_process", "service"), default=None)
     args = parser.parse_args()
     if not 1 <= args.warmup <= args.jobs:

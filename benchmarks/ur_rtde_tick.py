@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from options import BenchmarkParser, count
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests.*
 
@@ -46,9 +47,9 @@ def percentiles_ms(times: list[float]) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
+    parser = BenchmarkParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ticks", type=int, default=1000, help="ticks timed (and state() calls alone)")
+    parser.add_argument("--ticks", type=count, default=1000, help="ticks timed (and state() calls alone)")
     ticks = parser.parse_args().ticks
     peer = ControllerPeer()
     arm = UR5eArm(ur5e_config(peer.host, rtde_frequency_hz=RTDE_HZ), get_robot_model("ur5e"))

@@ -12,6 +12,7 @@ import json
 import time
 
 import numpy as np
+from options import BenchmarkParser, count, positive
 
 from drivers.depth.config import VL53L8CXConfig
 from drivers.depth.vl53l8cx import protocol as p
@@ -64,10 +65,11 @@ def pty_link(seconds: float) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
+    parser = BenchmarkParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=3000, help="8x8 frames through the parser")
-    parser.add_argument("--seconds", type=float, default=3.0, help="time the pseudo-terminal link runs [s]")
+    parser.add_argument("--frames", type=count, default=3000, help="8x8 frames through the parser")
+    parser.add_argument("--seconds", type=positive, default=3.0,
+                        help="time the pseudo-terminal link runs [s]")
     args = parser.parse_args()
     figures = parser_throughput(args.frames) | pty_link(args.seconds)
     print(f"parser: {figures['parser_frames_per_s']:.0f} 8x8 frames/s ({figures['parser_mb_per_s']} MB/s)")

@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from eval_preset import run_preset
+from options import first_paragraph
 
 from cell.evaluation import paper
 from cell.evaluation.report import figures, groups
@@ -64,7 +65,7 @@ def summary(rows: Sequence[Row]) -> dict[str, Any]:
 
 
 def main() -> None:
-    report, rows = run_preset("vs-table", Path("/tmp/vs_table"), __doc__.splitlines()[0])
+    report, rows = run_preset("vs-table", Path("/tmp/vs_table"), first_paragraph(__doc__))
     print(json.dumps({"report": str(report), "summary": summary(rows)}))
 
 
