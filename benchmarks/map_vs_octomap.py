@@ -65,6 +65,7 @@ VOXEL_FILTER_M = 0.0025
 BOX = ((-0.15, 0.15), (-0.15, 0.15), (0.05, 0.40))
 GOAL_SPEEDUP = 5.0  # the occupancy issue's goal: integration at least 5x OctoMap's speed ...
 GOAL_AGREEMENT = 0.99  # ... at an occupied/free agreement of at least 0.99
+FIRST_FRAME_S = 3.0  # about when the recorded scan takes its first frame, after the approach [s]
 
 
 def record(out: Path, max_time_s: float) -> Path:
@@ -76,6 +77,19 @@ def record(out: Path, max_time_s: float) -> Path:
     outcome = run_scan(ScanRequest(config=cfg, config_path=str(cfg_path), object="bunny",
                                    max_time_s=max_time_s, out=out / "job"))
     return outcome.folder / "frames"
+
+
+def frames_problem(frames_dir: Path) -> str | None:
+    """Why ``frames_dir`` (a job's ``frames/``) gives this benchmark nothing to integrate, or None: not a
+    folder, no recorded frame in it, or frames without a depth image (a ToF sensor's: points and zones)."""
+    if not frames_dir.is_dir():
+        return f"{frames_dir} is not a folder"
+    first = next(iter(sorted(frames_dir.glob("*.npz"))), None)
+    if first is None:
+        return f"{frames_dir} holds no recorded frames (*.npz, a job's frames/)"
+    if "depth" not in np.load(first).files:
+        return f"{frames_dir} holds no RGB-D depth frames ({first.name} has no depth image: a ToF scan's?)"
+    return None
 
 
 def load_frames(frames_dir: Path) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -164,15 +178,21 @@ def main() -> None:
     ap.add_argument("--repeat", type=at_least(5), default=9,
                     help="interleaved timed repetitions of each (>= 5)")
     args = ap.parse_args()
+    if args.frames_dir is not None and (problem := frames_problem(args.frames_dir)):
+        ap.error(f"--frames-dir: {problem}")
     try:
         import pyoctomap
     except ImportError:
         sys.exit("pyoctomap is missing: .venv/bin/pip install pyoctomap")
 
     with tempfile.TemporaryDirectory() as tmp:
-        frames = load_frames(args.frames_dir or record(Path(tmp), args.max_time))
+        frames_dir = args.frames_dir or record(Path(tmp), args.max_time)
+        if frames_problem(frames_dir):
+            ap.error(f"the scan recorded in --max-time {args.max_time:g} s took no frame: give --max-time "
+                     f"{FIRST_FRAME_S + 1:g} or more (its first frame comes about {FIRST_FRAME_S:g} s in)")
+        frames = load_frames(frames_dir)
     n_rays = sum(p.shape[0] for _, p in frames)
-    n = max(len(frames), 1)
+    n = len(frames)
     print(f"{len(frames)} frames, {n_rays} rays ({n_rays / n:.0f} per frame), "
           f"resolution {RES_M * 1000:.1f} mm")
 

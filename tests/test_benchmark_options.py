@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -39,3 +40,20 @@ def test_help_describes_the_benchmark_in_whole_sentences(script: str, ends: str)
     done = subprocess.run([sys.executable, str(BENCHMARKS / script), "--help"], capture_output=True,
                           text=True, timeout=120, check=True)
     assert ends in " ".join(done.stdout.split())
+
+
+def _map_vs_octomap(frames_dir: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, str(BENCHMARKS / "map_vs_octomap.py"), "--frames-dir",
+                           str(frames_dir)], capture_output=True, text=True, timeout=120, check=False)
+
+
+def test_map_vs_octomap_refuses_a_frames_folder_with_no_depth_frames(tmp_path: Path) -> None:
+    """An empty or missing folder, or a ToF scan's frames (points, no depth image), is refused before
+    anything runs, where OctoMap crashed on the empty tree (exit 139) or a KeyError ended the run."""
+    assert "is not a folder" in _map_vs_octomap(tmp_path / "missing").stderr
+    assert "holds no recorded frames" in _map_vs_octomap(tmp_path).stderr
+    np.savez_compressed(tmp_path / "000000.npz", points=np.zeros((3, 3)), T_base_sensor=np.eye(4))
+    done = _map_vs_octomap(tmp_path)
+    assert done.returncode == 1
+    assert done.stderr.splitlines() == [f"map_vs_octomap.py: error: --frames-dir: {tmp_path} holds no RGB-D "
+                                        "depth frames (000000.npz has no depth image: a ToF scan's?)"]
