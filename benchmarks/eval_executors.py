@@ -12,7 +12,9 @@ the scan's modules before their first scan. ``--repeats`` runs pool and Ray that
 interleaved (pool first in even repeats, Ray first in odd ones, so that a change of the machine's load
 falls on both) and reports the median of each and of the per-repeat ratios. ``--attached`` also times
 Ray on an instance started beforehand (what a user with a running cluster, ``--ray-address``, waits
-for), which shows Ray's start-up apart.
+for), which shows Ray's start-up apart. Only completed scans are timed: a run with a scan whose status in
+results.csv is not ``completed`` (a budget too short, a refused scan) ends the benchmark with the first
+of them named and exit code 1.
 
 Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2] [--repeats 3]
 [--max-time S] [--attached]``
@@ -32,6 +34,7 @@ from options import BenchmarkParser, count, first_paragraph, positive
 from cell.evaluation import paper
 from cell.evaluation.executors import Executor, LocalPool, RayExecutor
 from cell.evaluation.grid import RESULTS_CSV, run_grid
+from cell.evaluation.results import read_csv
 from cell.evaluation.spec import ScanSpec, cross
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,6 +45,19 @@ def timed(executor: Executor, specs: list[ScanSpec], out: Path) -> float:
     start = time.perf_counter()
     run_grid(specs, out, executor, stream=io.StringIO())
     return time.perf_counter() - start
+
+
+def not_completed(out: Path) -> str | None:
+    """Which scans of the grid run into ``out`` did not complete (their status in results.csv), or None:
+    a failed scan ends early, so its grid's wall time would not be the executor's."""
+    rows = read_csv(out / RESULTS_CSV)
+    failed = [r for r in rows if r["status"] != "completed"]
+    if not failed:
+        return None
+    first = failed[0]
+    return (f"{len(failed)} of {len(rows)} scans did not complete, so their wall time measures no executor "
+            f"(the first: {first['object']} {first['planner']} seed {first['seed']}, {first['status']}: "
+            f"{first['termination']})")
 
 
 def timed_attached(jobs: int, specs: list[ScanSpec], out: Path) -> tuple[float, float]:
@@ -74,13 +90,16 @@ def main() -> None:
         for k in range(args.repeats):
             root = Path(tmp) / str(k)
             # alternate which goes first, so that neither always runs on the machine the other left
-            for kind in ("pool", "ray") if k % 2 == 0 else ("ray", "pool"):
+            order = ("pool", "ray") if k % 2 == 0 else ("ray", "pool")
+            for kind in (*order, *(("attached",) if args.attached else ())):
                 if kind == "pool":
-                    pool_s.append(timed(LocalPool(args.jobs), specs, root / "pool"))
+                    pool_s.append(timed(LocalPool(args.jobs), specs, root / kind))
+                elif kind == "ray":
+                    ray_s.append(timed(RayExecutor(jobs=args.jobs), specs, root / kind))
                 else:
-                    ray_s.append(timed(RayExecutor(jobs=args.jobs), specs, root / "ray"))
-            if args.attached:
-                attached.append(timed_attached(args.jobs, specs, root / "attached"))
+                    attached.append(timed_attached(args.jobs, specs, root / kind))
+                if problem := not_completed(root / kind):
+                    parser.error(f"{kind}: {problem}")
             reference = (root / "pool" / RESULTS_CSV).read_bytes()
             identical &= all((root / kind / RESULTS_CSV).read_bytes() == reference
                              for kind in ("ray", "attached") if (root / kind).exists())

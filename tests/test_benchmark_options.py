@@ -57,3 +57,23 @@ def test_map_vs_octomap_refuses_a_frames_folder_with_no_depth_frames(tmp_path: P
     assert done.returncode == 1
     assert done.stderr.splitlines() == [f"map_vs_octomap.py: error: --frames-dir: {tmp_path} holds no RGB-D "
                                         "depth frames (000000.npz has no depth image: a ToF scan's?)"]
+
+
+def test_eval_executors_names_the_scans_that_did_not_complete(tmp_path: Path, monkeypatch) -> None:
+    """A grid whose scans failed (too short a budget) is refused, where its wall time was taken as the
+    executor's and a grid with none completed ended in a ZeroDivisionError."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from eval_executors import not_completed
+
+    from cell.evaluation.grid import RESULTS_CSV
+    from cell.evaluation.results import COLUMNS, csv_text
+
+    def row(seed: int, status: str) -> dict[str, str]:
+        return {**dict.fromkeys(COLUMNS, ""), "object": "cube", "placement": "0,0,0", "planner": "heu",
+                "seed": str(seed), "status": status, "termination": "time budget" if seed else "refused"}
+
+    (tmp_path / RESULTS_CSV).write_text(csv_text([row(0, "failed"), row(1, "completed")]))
+    assert not_completed(tmp_path) == ("1 of 2 scans did not complete, so their wall time measures no "
+                                       "executor (the first: cube heu seed 0, failed: refused)")
+    (tmp_path / RESULTS_CSV).write_text(csv_text([row(1, "completed")]))
+    assert not_completed(tmp_path) is None
