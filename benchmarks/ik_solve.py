@@ -4,15 +4,17 @@
 ``RobotModel.ik_pose`` iterates damped least-squares steps, each on the pose error whose rotation part
 is an axis-angle vector (``drivers.transforms.pose_error``). The reference runs the same solves with that
 axis-angle taken from ``Rotation.from_matrix(R).as_rotvec()``. Per model (UR5e, Panda), ``--goals`` goal
-poses are the flange at random joints within the limits, each solved from the home joints; a repeat times
-all of them once with each implementation, in turn (closed form, reference, closed form, ...), and the
-medians over ``--repeats`` repeats are compared. The per-call cost of the primitives (axis-angle and
-quaternion of one matrix, the matrix of one axis-angle) is timed the same way. The solves' joints agree
-(the two give the same error to 1e-15 rad, ``tests/test_transforms.py``).
+poses are the flange at random joints within the limits, each solved from the home joints. After one
+untimed warm-up of each (imports, first-call caches), a repeat times all of them once with each
+implementation, in turn, the one that runs first alternating from repeat to repeat
+(``benchmarks/interleaved.py``), and the medians over ``--repeats`` repeats are compared, the range of
+the repeats' own ratios beside. The per-call cost of the primitives (axis-angle and quaternion of one
+matrix, the matrix of one axis-angle) is timed the same way. The solves' joints agree (the two give the
+same error to 1e-15 rad, ``tests/test_transforms.py``).
 
 Prints readable lines, then as its last line JSON {"ik_ms": {model: {"closed_form": ms per solve,
-"scipy": ms, "ratio": closed / scipy}}, "primitive_us": {name: {"closed_form": us, "scipy": us,
-"ratio": ...}}}.
+"scipy": ms, "ratio": closed / scipy, "ratio_range": [min, max] over the repeats}}, "primitive_us":
+{name: {"closed_form": us, "scipy": us, "ratio": ..., "ratio_range": ...}}}.
 
     .venv/bin/python benchmarks/ik_solve.py [--goals 40] [--repeats 5]
 """
@@ -21,13 +23,13 @@ from __future__ import annotations
 
 import contextlib
 import json
-import statistics
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from interleaved import Comparison, compared, in_turn
 from options import BenchmarkParser, count, first_paragraph
 from scipy.spatial.transform import Rotation
 
@@ -69,9 +71,8 @@ def per_call_us(fn: Callable[[], object]) -> float:
     return (time.perf_counter() - start) * 1e6 / PRIMITIVE_CALLS
 
 
-def compared(closed: list[float], reference: list[float]) -> dict[str, float]:
-    c, r = statistics.median(closed), statistics.median(reference)
-    return {"closed_form": round(c, 3), "scipy": round(r, 3), "ratio": round(c / r, 3)}
+def figures(c: Comparison) -> dict[str, float | list[float]]:
+    return {"closed_form": round(c.this, 3), "scipy": round(c.reference, 3), **c.ratios()}
 
 
 def main() -> None:
@@ -92,24 +93,32 @@ def main() -> None:
         "matrix_of_axis_angle": (lambda: rotation_from_rotvec(r),
                                  lambda: Rotation.from_rotvec(r).as_matrix()),
     }
+    errors = (pose_error, scipy_pose_error)  # closed form, reference: the order of the lists below
+    for name, poses in goals.items():  # warm-up, untimed
+        for error in errors:
+            solve_all(name, poses[:1], error)
+    for pair in primitives.values():
+        for fn in pair:
+            fn()
     ik: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in goals}
     calls: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in primitives}
     for repeat in range(args.repeats):
         for name, poses in goals.items():
-            ik[name][0].append(solve_all(name, poses, pose_error))
-            ik[name][1].append(solve_all(name, poses, scipy_pose_error))
+            for side in in_turn(repeat, (0, 1)):
+                ik[name][side].append(solve_all(name, poses, errors[side]))
             print(f"repeat {repeat}: {name} {ik[name][0][-1]:.2f} ms per solve (closed form), "
                   f"{ik[name][1][-1]:.2f} ms (SciPy)", flush=True)
-        for name, (closed, reference) in primitives.items():
-            calls[name][0].append(per_call_us(closed))
-            calls[name][1].append(per_call_us(reference))
-    report = {"ik_ms": {name: compared(*times) for name, times in ik.items()},
-              "primitive_us": {name: compared(*times) for name, times in calls.items()}}
-    for name, figures in report["ik_ms"].items():
-        print(f"{name}: {figures['closed_form']} ms per IK solve, SciPy {figures['scipy']} ms, "
-              f"ratio {figures['ratio']}")
-    for name, figures in report["primitive_us"].items():
-        print(f"{name}: {figures['closed_form']} us, SciPy {figures['scipy']} us, ratio {figures['ratio']}")
+        for name, pair in primitives.items():
+            for side in in_turn(repeat, (0, 1)):
+                calls[name][side].append(per_call_us(pair[side]))
+    ik_compared = {name: compared(*times) for name, times in ik.items()}
+    calls_compared = {name: compared(*times) for name, times in calls.items()}
+    for name, c in ik_compared.items():
+        print(f"{name}: {c.this:.3f} ms per IK solve, SciPy {c.reference:.3f} ms, {c.text()}")
+    for name, c in calls_compared.items():
+        print(f"{name}: {c.this:.3f} us, SciPy {c.reference:.3f} us, {c.text()}")
+    report = {"ik_ms": {name: figures(c) for name, c in ik_compared.items()},
+              "primitive_us": {name: figures(c) for name, c in calls_compared.items()}}
     print(json.dumps(report))
 
 

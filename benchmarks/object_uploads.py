@@ -7,17 +7,23 @@ one after the other and the service is stopped; a new one is started on the same
 service process's RSS (``VmRSS``, its job worker apart) is read before and after the first and the second
 listing, then after ``--concurrent`` more uploads sent at once. With ``--reference DIR`` (another
 checkout, e.g. ``git worktree add /tmp/ref REV`` with its compiled kernels copied in) the same is measured
-there after this tree.
+there, interleaved run by run over ``--repeats`` repeats, the one that runs first alternating from repeat
+to repeat (``benchmarks/interleaved.py``), and each step's figures are printed side by side: the medians
+of this tree and of the reference, their ratio and the range of the repeats' own ratios.
 
-Prints one line per step, then as its last line JSON {tree: {step: value}}.
+Prints one line per step of each run, then one line per step with the medians (and the ratio), then as
+its last line JSON {"runs": {tree: [{step: value}, ...]}, "median": {tree: {step: value}}, "ratio": {step:
+{"ratio": this / reference, "ratio_range": [min, max]}} or null}.
 
-    nice .venv/bin/python benchmarks/object_uploads.py [--objects 12] [--concurrent 4] [--reference /tmp/ref]
+    nice .venv/bin/python benchmarks/object_uploads.py [--objects 12] [--concurrent 4] [--repeats 1]
+        [--reference /tmp/ref]
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -27,6 +33,7 @@ from pathlib import Path
 
 import httpx
 import trimesh
+from interleaved import compared, in_turn
 from options import BenchmarkParser, checkout, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -97,12 +104,13 @@ class Served:
         self.proc.wait(timeout=60)
 
 
-def measure(tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
+def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
+    """The figures of one run in ``tree``, each printed as it comes after ``name`` (this or reference)."""
     figures: dict[str, float] = {}
 
     def note(step: str, value: float) -> None:
         figures[step] = round(value, 3)
-        print(f"{tree}: {step} {value:.3f}", flush=True)
+        print(f"{name}: {step} {value:.3f}", flush=True)
 
     with tempfile.TemporaryDirectory() as data_dir:
         made = subprocess.run([sys.executable, "-m", "cell.cli.entry", "keys", "create", "--data-dir",
@@ -138,15 +146,28 @@ def main() -> None:
     parser = BenchmarkParser(description=first_paragraph(__doc__))
     parser.add_argument("--objects", type=count, default=12)
     parser.add_argument("--concurrent", type=count, default=4)
+    parser.add_argument("--repeats", type=count, default=1, help="runs of each tree, interleaved")
     parser.add_argument("--reference", type=checkout, default=None,
-                        help="another checkout, measured after this")
+                        help="another checkout, measured interleaved")
     args = parser.parse_args()
     trees = {"this": REPO, **({"reference": args.reference} if args.reference else {})}
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in trees}
     with tempfile.TemporaryDirectory() as folder:
         paths = write_meshes(Path(folder), args.objects + args.concurrent)
-        figures = {name: measure(tree, paths[:args.objects], paths[args.objects:])
-                   for name, tree in trees.items()}
-    print(json.dumps(figures))
+        for repeat in range(args.repeats):
+            for name in in_turn(repeat, list(trees)):
+                runs[name].append(measure(name, trees[name], paths[:args.objects], paths[args.objects:]))
+    steps = list(runs["this"][0])
+    medians = {name: {step: round(statistics.median(run[step] for run in tree_runs), 3) for step in steps}
+               for name, tree_runs in runs.items()}
+    ratios = ({step: compared([run[step] for run in runs["this"]], [run[step] for run in runs["reference"]])
+               for step in steps} if "reference" in runs else None)
+    for step in steps:
+        side_by_side = (f", reference {medians['reference'][step]:.3f}, {ratios[step].text()}"
+                        if ratios is not None else "")
+        print(f"{step}: this {medians['this'][step]:.3f}{side_by_side}")
+    print(json.dumps({"runs": runs, "median": medians,
+                      "ratio": None if ratios is None else {s: c.ratios() for s, c in ratios.items()}}))
 
 
 if __name__ == "__main__":

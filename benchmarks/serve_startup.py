@@ -3,13 +3,15 @@ user does, ``python -m cell.cli.entry serve`` on ``config/sim-ur5e-tof.yaml``, a
 to the first ``/healthz`` that answers 200, polled every 50 ms; the process is then stopped (SIGTERM).
 
 With ``--reference DIR`` (another checkout of the cell, e.g. ``git worktree add /tmp/ref REV`` with its
-compiled kernels copied in) the same is measured there, interleaved run by run (this tree, the
-reference, this tree, ...), and the ratio of the medians is printed: both share the machine's load
-alike. The service starts its spare job worker while it starts (``service.warm_worker``), which competes
-for the cores, as on a cell's PC.
+compiled kernels copied in) the same is measured there, interleaved run by run, the one that runs
+first alternating from repeat to repeat (this, reference; reference, this; ...:
+``benchmarks/interleaved.py``), and the ratio of the medians is printed with the range of the repeats'
+own ratios: both share the machine's load alike. The service starts its spare job worker while it starts
+(``service.warm_worker``), which competes for the cores, as on a cell's PC.
 
-Prints one line per run, then as its last line JSON {"runs": {tree: [s, ...]}, "median_s": {...},
-"ratio": this / reference or null}.
+Prints one line per run, then the median and range of each tree and the ratio, then as its last line
+JSON {"runs": {tree: [s, ...]}, "median_s": {...}, "range_s": {tree: [min, max]}, "ratio": this /
+reference or null, "ratio_range": [min, max] over the repeats or null}.
 
     .venv/bin/python benchmarks/serve_startup.py [--repeats 5] [--reference /tmp/ref]
 """
@@ -26,6 +28,7 @@ import time
 from pathlib import Path
 
 import httpx
+from interleaved import compared, in_turn
 from options import BenchmarkParser, checkout, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -69,14 +72,19 @@ def main() -> None:
     trees = {"this": REPO, **({"reference": args.reference} if args.reference else {})}
     runs: dict[str, list[float]] = {name: [] for name in trees}
     for repeat in range(args.repeats):
-        for name, tree in trees.items():
-            runs[name].append(time_to_healthz(tree))
+        for name in in_turn(repeat, list(trees)):
+            runs[name].append(time_to_healthz(trees[name]))
             print(f"run {repeat} {name}: {runs[name][-1]:.2f} s", flush=True)
     medians = {name: statistics.median(values) for name, values in runs.items()}
-    ratio = medians["this"] / medians["reference"] if "reference" in medians else None
+    for name, values in runs.items():
+        print(f"{name}: median {medians[name]:.2f} s (range {min(values):.2f}-{max(values):.2f} s)")
+    c = compared(runs["this"], runs["reference"]) if "reference" in runs else None
+    if c is not None:
+        print(f"this / reference: {c.text()}")
     print(json.dumps({"runs": {k: [round(v, 3) for v in vs] for k, vs in runs.items()},
                       "median_s": {k: round(v, 3) for k, v in medians.items()},
-                      "ratio": None if ratio is None else round(ratio, 3)}))
+                      "range_s": {k: [round(min(vs), 3), round(max(vs), 3)] for k, vs in runs.items()},
+                      **(c.ratios() if c is not None else {"ratio": None, "ratio_range": None})}))
 
 
 if __name__ == "__main__":

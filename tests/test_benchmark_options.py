@@ -77,3 +77,16 @@ def test_eval_executors_names_the_scans_that_did_not_complete(tmp_path: Path, mo
                                        "executor (the first: cube heu seed 0, failed: refused)")
     (tmp_path / RESULTS_CSV).write_text(csv_text([row(1, "completed")]))
     assert not_completed(tmp_path) is None
+
+
+def test_interleaved_repeats_alternate_which_side_runs_first_and_give_the_spread(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from interleaved import compared, in_turn
+
+    assert [in_turn(r, ("this", "reference")) for r in range(3)] == [
+        ["this", "reference"], ["reference", "this"], ["this", "reference"]]
+    c = compared([2.0, 3.0, 9.0], [4.0, 3.0, 6.0])
+    assert (c.this, c.reference, c.ratio, c.ratio_min, c.ratio_max) == (3.0, 4.0, 0.75, 0.5, 1.5)
+    assert c.ratios() == {"ratio": 0.75, "ratio_range": [0.5, 1.5]}
+    assert c.text() == "ratio 0.750 (repeats 0.500-1.500)"
+
