@@ -90,3 +90,12 @@ def test_interleaved_repeats_alternate_which_side_runs_first_and_give_the_spread
     assert c.ratios() == {"ratio": 0.75, "ratio_range": [0.5, 1.5]}
     assert c.text() == "ratio 0.750 (repeats 0.500-1.500)"
 
+
+def test_guard_tick_judges_the_goal_per_kind_of_tick_on_its_cpu_median(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    from guard_tick import Tick, figures
+
+    ticks = [Tick(0.0004, 0.0005, checked=True, measured=False), Tick(0.0009, 0.003, True, False),
+             Tick(0.0011, 0.0012, True, True), Tick(0.0013, 0.0014, True, True)]
+    judged = figures(ticks)
+    assert {kind: f["goal_met"] for kind, f in judged.items()} == {"bound": True, "fcl": False}
