@@ -1,4 +1,4 @@
-"""The same sim scan through the service and through ``cell scan``: is the wall time within 10 %?
+"""The same sim scan through the service and through ``cell scan``: does the service take at most 10 % longer?
 
 The default sim scan (config/sim-franka-rgbd.yaml, VS-Local, the bunny, seed 0, a ``--max-time`` of 30 s
 of sim time to keep it short) run ``--repeats`` times (3) each way, interleaved, the order alternating
@@ -12,10 +12,13 @@ first on a cold cache:
   its ``GET /api/v1/jobs/{id}/events`` stream (what a client of the service waits; the stream is opened
   right after the POST and replays the job's events from the first).
 
-Both times include a process start: the CLI's own (Python, imports, the cell file), and the job's worker
-process that the service starts for each job (Python, imports; the service hands it the cell file it
-parsed at its start). They also include writing the job folder. The service's time also includes
-queueing, the worker's report lines and the SSE stream.
+The CLI's time includes a process start (Python, imports, the cell file); the service's mostly does not:
+with ``service.warm_worker`` (true by default, and not set otherwise by the cell file) the job runs on
+the spare worker process the service started ahead (at its start for the first job, beside the previous
+job for the others: a sim cell warms its spare while a job runs), its libraries imported by the POST;
+the next job's spare starts while this job runs and competes with it for the cores. Both times include
+writing the job folder. The service's time also includes queueing, the worker's report lines and the SSE
+stream.
 
 Also each job's own ``wall_time_s`` from its result.json (from the job's start to its end, without the
 process start) and the ratio of those. The sim is deterministic: the two ways' result.json must agree on
@@ -52,7 +55,7 @@ REPO = Path(__file__).resolve().parents[1]
 CELL = REPO / ".venv" / "bin" / "cell"
 CONFIG = REPO / "config" / "sim-franka-rgbd.yaml"
 OBJECT, PLANNER, SEED = "bunny", "vs-local", 0
-GOAL_RATIO = 1.10  # service within 10 % of the CLI
+GOAL_RATIO = 1.10  # the service takes at most 10 % longer than the CLI
 JOB_TIMEOUT_S = 600.0  # a bound on waiting for one job, not a timed check
 REAP_TIMEOUT_S = 10.0  # a bound on waiting for the service to reap an ended job's worker
 SAME = ("n_captures", "sim_time_s", "metrics")
@@ -176,8 +179,9 @@ def main() -> None:
     }
     print(f"cell scan: median {cli_s:.3f} s launch to exit (job {cli_job:.3f} s); service: median "
           f"{svc_s:.3f} s POST to completed (job {svc_job:.3f} s)")
-    print(f"service / CLI: {ratio:.3f} ({'within' if figures['goal']['met'] else 'NOT within'} 10 %); job "
-          f"wall time ratio {job_ratio:.3f}")
+    verdict = "met" if figures["goal"]["met"] else "NOT met"
+    print(f"service / CLI: {ratio:.3f}, goal <= {GOAL_RATIO:g}: {verdict}; job wall time ratio "
+          f"{job_ratio:.3f}")
     print(f"CPU time: cell scan {cli_cpu:.2f} s, the service's worker {svc_cpu:.2f} s (+ the service itself "
           f"{figures['service_web_cpu_s']:.2f} s) (medians)")
     print(f"n_captures, sim_time_s and metrics identical across all runs: {identical}")
