@@ -1,5 +1,6 @@
-"""What the benchmarks that judge a preset of ``cell eval`` share: run it as a user does (the ``cell``
-console script beside this Python, so the benchmark measures the product), then read its results.csv."""
+"""A helper module of the benchmarks, not a benchmark (running it does nothing): what the ones that judge
+a preset of ``cell eval`` share: run it as a user does (the ``cell`` console script beside this Python, so
+the benchmark measures the product), then read its results.csv."""
 
 from __future__ import annotations
 

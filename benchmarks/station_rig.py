@@ -1,5 +1,6 @@
-"""What the perception benchmarks share: an object at a cell's station, a simulated sensor posed at will
-on a ring around it, and the cell's perception pipeline (no arm; the pose is exact)."""
+"""A helper module of the benchmarks, not a benchmark (running it does nothing): what the perception ones
+share: an object at a cell's station, a simulated sensor posed at will on a ring around it, and the cell's
+perception pipeline (no arm; the pose is exact)."""
 
 from __future__ import annotations
 
