@@ -1,4 +1,4 @@
-"""What uploaded meshes cost the service: its RSS [MB] and the time of ``GET /api/v1/objects`` [s] with
+"""What uploaded meshes cost the service: its RSS [MiB] and the time of ``GET /api/v1/objects`` [s] with
 ``--objects`` large uploads (binary STLs of an icosphere with 327,680 faces, 16.4 MB each, under the
 default ``service.max_upload_mb`` of 50), as an operator's page meets them after a restart.
 
@@ -46,8 +46,8 @@ SUBDIVISIONS = 7  # an icosphere of 20 * 4^7 = 327,680 faces: a 16.4 MB binary S
 TIMEOUT_S = 300.0
 
 
-def rss_mb(pid: int) -> float:
-    """The resident set of process ``pid`` [MB]."""
+def rss_mib(pid: int) -> float:
+    """The resident set of process ``pid`` [MiB] (VmRSS is in KiB)."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024.0
@@ -128,15 +128,15 @@ def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict
         served = Served(tree, Path(data_dir), key)
         try:
             time.sleep(2.0)  # the spare worker's start settles
-            note("rss_after_restart_mb", rss_mb(served.proc.pid))
+            note("rss_after_restart_mib", rss_mib(served.proc.pid))
             note("first_list_s", served.list_s())
-            note("rss_after_first_list_mb", rss_mb(served.proc.pid))
+            note("rss_after_first_list_mib", rss_mib(served.proc.pid))
             note("second_list_s", served.list_s())
             with ThreadPoolExecutor(len(more)) as pool:
                 list(pool.map(served.upload, more))
-            note("rss_after_concurrent_uploads_mb", rss_mb(served.proc.pid))
+            note("rss_after_concurrent_uploads_mib", rss_mib(served.proc.pid))
             note("list_after_uploads_s", served.list_s())
-            note("rss_at_end_mb", rss_mb(served.proc.pid))
+            note("rss_at_end_mib", rss_mib(served.proc.pid))
         finally:
             served.close()
     return figures

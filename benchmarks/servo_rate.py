@@ -34,7 +34,7 @@ of wall time (``*_wall*``); on a shared machine wall time also measures the othe
 load average before and after the run is printed beside them. ``global_5000_s`` is wall time, the latency
 a goal sample costs; ``global_5000_cpu_s`` its CPU time over all threads. The last line is JSON.
 
-    nice -n -10 .venv/bin/python benchmarks/servo_rate.py
+    .venv/bin/python benchmarks/servo_rate.py
 """
 
 from __future__ import annotations

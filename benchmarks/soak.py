@@ -20,7 +20,8 @@ Sampled after every ``--sample-every`` (10) jobs and after the last: RSS [MiB] (
 descriptors, threads (the kernel's tasks, native pools included). Reported: the samples, RSS at the
 start (after the first job: imports and first-use caches are not a leak), after ``--warmup`` jobs (20)
 and at the end, and the growth from after the warmup to the end [%] against the goal of issue 25
-(<= 5 %); fds and threads at the same three points; every job that did not end ``completed``.
+(<= 5 %); fds and threads at the same three points; every job that did not end ``completed``. Each
+sample is printed as it is taken (standard error), the figures at the end as one line of JSON.
 
 ``run_scan`` gives the C heap's free memory back to the system after each job (``cell.jobs.memory``):
 before that, the in-process RSS crept up by what glibc kept of the jobs' freed allocations (5.9 % from
@@ -173,7 +174,7 @@ def main() -> None:
         if args.only in (None, name):
             with tempfile.TemporaryDirectory(prefix=f"soak-{name}-") as tmp:
                 figures[name] = run(args, Path(tmp))
-    print(json.dumps(figures, indent=2))
+    print(json.dumps(figures))
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ per call from ``time.perf_counter`` (median, p99, maximum); CPU per tick of the 
 monitor). No reference runs beside it (docs/ur5e-driver.md, "Cost"). Prints readable lines, then one
 line of JSON.
 
-    nice -n -10 .venv/bin/python benchmarks/ur_rtde_tick.py [--ticks 1000]
+    .venv/bin/python benchmarks/ur_rtde_tick.py [--ticks 1000]
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -99,3 +100,12 @@ def test_guard_tick_judges_the_goal_per_kind_of_tick_on_its_cpu_median(monkeypat
              Tick(0.0011, 0.0012, True, True), Tick(0.0013, 0.0014, True, True)]
     judged = figures(ticks)
     assert {kind: f["goal_met"] for kind, f in judged.items()} == {"bound": True, "fcl": False}
+
+
+def test_soak_prints_its_figures_as_one_line_of_json_last() -> None:
+    """As the other benchmarks do (their docstrings promise it), where it printed them indented over many
+    lines."""
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "soak.py"), "--jobs", "1", "--warmup", "1",
+                           "--only", "in_process", "--max-time", "2"], capture_output=True, text=True,
+                          timeout=300, check=True)
+    assert json.loads(done.stdout.splitlines()[-1])["in_process"]["jobs"] == 1
