@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from calibration import board_fit, shape_fit
 from calibration.mount import calibrate_mount, pose_dict, pose_difference
 from calibration.tof import calibrate_zones
 from cell.config import load_config
@@ -47,6 +48,7 @@ from cell.config.models import CalibrationConfig, CellConfig, PoseConfig
 from cell.jobs.runner import ScanRequest, run_scan
 from drivers.depth.config import ZoneBiasConfig
 from drivers.depth.sim_tof import zone_offsets
+from drivers.errors import CalibrationError
 from drivers.sim.board import BoardConfig, SimBoardConfig
 from drivers.transforms import make_T
 
@@ -56,7 +58,6 @@ TOF = REPO / "config" / "sim-ur5e-tof.yaml"
 BOX_POSE = (0.02, -0.01, 8.0)
 BOARD_POSE = (0.01, 0.005, 5.0)
 BOARD_STANDOFF_M = 0.3
-MOUNT_POSES = at_least(4)  # the views a mount calibration takes, as `cell calibrate mount --poses`
 
 
 def _true_mount(cfg: CellConfig, rng: np.random.Generator, max_mm: float, max_deg: float) -> PoseConfig:
@@ -172,9 +173,9 @@ def main() -> None:
                         help="how many of the seeds get scans")
     parser.add_argument("--max-mm", type=positive, default=10.0)
     parser.add_argument("--max-deg", type=positive, default=5.0)
-    parser.add_argument("--poses-board", type=MOUNT_POSES, default=30)
-    parser.add_argument("--poses-rgbd", type=MOUNT_POSES, default=20)
-    parser.add_argument("--poses-tof", type=MOUNT_POSES, default=40)
+    parser.add_argument("--poses-board", type=at_least(board_fit.MIN_VIEWS), default=30)
+    parser.add_argument("--poses-rgbd", type=at_least(shape_fit.MIN_VIEWS), default=20)
+    parser.add_argument("--poses-tof", type=at_least(shape_fit.MIN_VIEWS), default=40)
     parser.add_argument("--zone-bias-mm", type=positive, default=10.0)
     parser.add_argument("--out", type=Path, default=Path("/tmp/calibration_accuracy"))
     args = parser.parse_args()
@@ -187,13 +188,16 @@ def main() -> None:
         runs.append(run)
         return run
 
-    for seed in seeds:
-        record(_shape_run("board", RGBD, seed, args, args.out))
-        rgbd = record(_shape_run("rgbd", RGBD, seed, args, args.out))
-        record(_shape_run("tof", TOF, seed, args, args.out))
-        record(_zones_run(seed, args, args.out))
-        if seed in seeds[:args.chamfer_seeds]:
-            record(_chamfer_run(rgbd, args.out))
+    try:
+        for seed in seeds:
+            record(_shape_run("board", RGBD, seed, args, args.out))
+            rgbd = record(_shape_run("rgbd", RGBD, seed, args, args.out))
+            record(_shape_run("tof", TOF, seed, args, args.out))
+            record(_zones_run(seed, args, args.out))
+            if seed in seeds[:args.chamfer_seeds]:
+                record(_chamfer_run(rgbd, args.out))
+    except CalibrationError as exc:  # too few views saw the target: an input of this run, not a crash
+        parser.error(f"seed {seed}: {exc} (give more --poses-board, --poses-rgbd or --poses-tof)")
     print(json.dumps({"runs": runs, "summary": _summary(runs)}))
 
 

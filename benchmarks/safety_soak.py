@@ -215,7 +215,8 @@ def soak(robot: str, n_commands: int, seed: int, first_episode: int = 0) -> dict
     rng = np.random.default_rng(seed)
     probe_cfg = cell_config(robot)
     probe = MotionJudge(probe_cfg, get_robot_model(robot), 1.0 / probe_cfg.scan.control_rate_hz)
-    sent: Counter[str] = Counter()
+    # every kind counted from 0, so that a soak too short for a move still reports 0 moves
+    sent: Counter[str] = Counter(dict.fromkeys(("commands", "episodes", "twists", "holds", "moves"), 0))
     refused: Counter[str] = Counter()
     breaches: Counter[str] = Counter()
     cell_limits: Counter[str] = Counter()

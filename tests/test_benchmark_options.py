@@ -19,6 +19,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
     ("guard_tick.py", ["--ticks", "0"], "argument --ticks: expected at least 1, got 0"),
     ("serve_startup.py", ["--reference", "/nonexistent"], "/nonexistent is not a checkout of the cell"),
     ("calibration_accuracy.py", ["--seeds", "abc"], "expected comma-separated seeds"),
+    ("calibration_accuracy.py", ["--poses-board", "4"], "argument --poses-board: expected at least 5, got 4"),
     ("soak.py", ["--no-such-option"], "unrecognized arguments: --no-such-option"),
 ])
 def test_a_bad_option_is_refused_in_one_line_with_exit_code_1(script: str, option: list[str],
@@ -109,3 +110,10 @@ def test_soak_prints_its_figures_as_one_line_of_json_last() -> None:
                            "--only", "in_process", "--max-time", "2"], capture_output=True, text=True,
                           timeout=300, check=True)
     assert json.loads(done.stdout.splitlines()[-1])["in_process"]["jobs"] == 1
+
+
+def test_safety_soak_too_short_for_a_move_reports_none() -> None:
+    """20 commands of seed 0 on the UR5e send no move: 0 moves, where the summary line's KeyError ended it."""
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "safety_soak.py"), "--commands", "20", "--robot",
+                           "ur5e"], capture_output=True, text=True, timeout=300, check=True)
+    assert json.loads(done.stdout.splitlines()[-1])["robots"][0]["moves"] == 0
