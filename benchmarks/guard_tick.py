@@ -154,8 +154,7 @@ def figures(ticks: list[Tick]) -> dict[str, dict[str, Any]]:
 
 
 def main() -> None:
-    parser = BenchmarkParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ticks", type=count, default=2000, help="ticks of the steady twist per model")
     parser.add_argument("--scan-time", type=positive, default=20.0, help="sim time of each model's scan [s]")
     args = parser.parse_args()

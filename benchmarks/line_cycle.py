@@ -264,9 +264,9 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
 
 
 def main() -> None:
-    parser = BenchmarkParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--parts", type=count, default=20)
+    parser = BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--parts", type=at_least(2), default=20,
+                        help="at least 2: the first part is reported apart")
     parser.add_argument("--reference-parts", type=count, default=5)
     parser.add_argument("--seed", type=at_least(0), default=0)
     args = parser.parse_args()

@@ -120,7 +120,7 @@ def median_ms(fn, repeat: int) -> tuple[float, float]:
 
 def main() -> None:
     BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-                            ).parse_args()  # no options: --help
+                    ).parse_args()  # no options: --help
     try:
         import pyoctomap
     except ImportError:

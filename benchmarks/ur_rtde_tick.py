@@ -47,8 +47,7 @@ def percentiles_ms(times: list[float]) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = BenchmarkParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ticks", type=count, default=1000, help="ticks timed (and state() calls alone)")
     ticks = parser.parse_args().ticks
     peer = ControllerPeer()

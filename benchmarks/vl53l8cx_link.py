@@ -65,8 +65,7 @@ def pty_link(seconds: float) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = BenchmarkParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=count, default=3000, help="8x8 frames through the parser")
     parser.add_argument("--seconds", type=positive, default=3.0,
                         help="time the pseudo-terminal link runs [s]")

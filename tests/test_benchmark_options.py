@@ -21,6 +21,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
     ("calibration_accuracy.py", ["--seeds", "abc"], "expected comma-separated seeds"),
     ("calibration_accuracy.py", ["--poses-board", "4"], "argument --poses-board: expected at least 5, got 4"),
     ("soak.py", ["--no-such-option"], "unrecognized arguments: --no-such-option"),
+    ("line_cycle.py", ["--parts", "1"], "argument --parts: expected at least 2, got 1"),
 ])
 def test_a_bad_option_is_refused_in_one_line_with_exit_code_1(script: str, option: list[str],
                                                               expected: str) -> None:
