@@ -195,9 +195,11 @@ def main(argv: list[str] | None = None) -> int:
     except StopIteration:
         # a spare whose service went away (shut down, restarted or killed) before it had a job: nothing
         # happened (the service drops its log when it stays empty)
+        outbox.close()  # os._exit follows: what is queued ("loaded") is written first
         return 0
     except (ValueError, TypeError, KeyError) as exc:
         print(f"worker: no valid task on standard input: {exc!r}", file=sys.stderr)
+        outbox.close()
         return 2
     control = JobControl()
 
