@@ -102,10 +102,13 @@ export class LinePlot {
     g.fillStyle = TEXT;
     g.textBaseline = "top";
     g.textAlign = "left";
-    g.fillText(this.title, MARGIN.left, 6);
     const last = this.last();
+    const value = last === null ? "–" : format(last);
+    // a long title (H_ROI named with its form) is narrowed to end before the value, never under it
+    const room = width - MARGIN.left - MARGIN.right - g.measureText(value).width - 8;
+    g.fillText(this.title, MARGIN.left, 6, Math.max(room, 0));
     g.textAlign = "right";
-    g.fillText(last === null ? "–" : format(last), width - MARGIN.right, 6);
+    g.fillText(value, width - MARGIN.right, 6);
 
     const plotW = width - MARGIN.left - MARGIN.right;
     const plotH = height - MARGIN.top - MARGIN.bottom;
