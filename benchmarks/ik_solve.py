@@ -7,14 +7,15 @@ axis-angle taken from ``Rotation.from_matrix(R).as_rotvec()``. Per model (UR5e, 
 poses are the flange at random joints within the limits, each solved from the home joints. After one
 untimed warm-up of each (imports, first-call caches), a repeat times all of them once with each
 implementation, in turn, the one that runs first alternating from repeat to repeat
-(``benchmarks/interleaved.py``), and the medians over ``--repeats`` repeats are compared, the range of
-the repeats' own ratios beside. The per-call cost of the primitives (axis-angle and quaternion of one
-matrix, the matrix of one axis-angle) is timed the same way. The solves' joints agree (the two give the
+(``benchmarks/interleaved.py``): the figures are the medians over ``--repeats`` repeats, the ratio the
+median of the repeats' own ratios (closed form / SciPy of one repeat), their range beside. The per-call
+cost of the primitives (axis-angle and quaternion of one matrix, the matrix of one axis-angle) is timed
+the same way. The solves' joints agree (the two give the
 same error to 1e-15 rad, ``tests/test_transforms.py``).
 
 Prints readable lines, then as its last line JSON {"ik_ms": {model: {"closed_form": ms per solve,
-"scipy": ms, "ratio": closed / scipy, "ratio_range": [min, max] over the repeats}}, "primitive_us":
-{name: {"closed_form": us, "scipy": us, "ratio": ..., "ratio_range": ...}}}.
+"scipy": ms, "ratio": the median of the repeats' closed / scipy, "ratio_range": [min, max] over the
+repeats}}, "primitive_us": {name: {"closed_form": us, "scipy": us, "ratio": ..., "ratio_range": ...}}}.
 
     .venv/bin/python benchmarks/ik_solve.py [--goals 40] [--repeats 5]
 """

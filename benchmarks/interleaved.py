@@ -3,8 +3,9 @@ benchmark: running it does nothing): the order of the two in a repeat, and their
 
 Each repeat times both, in turn, the one that runs first alternating from repeat to repeat, so that
 neither always meets the caches and the machine's load the other left; the figure of each is the median
-over the repeats, the ratio that of the medians, and the spread of the repeats' own ratios is given
-beside it (one ratio of a shared machine hides how far it moves).
+over the repeats, the ratio the median of the repeats' own ratios (this / reference of one repeat, two
+figures measured side by side: the pairing the interleaving is for), and their spread is given beside it
+(one ratio of a shared machine hides how far it moves).
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ def in_turn(repeat: int, sides: Sequence[T]) -> list[T]:
 
 
 class Comparison(NamedTuple):
-    """Medians of this tree's and the reference's figures, their ratio (this / reference), and the
-    smallest and largest ratio of one repeat's two figures."""
+    """Medians of this tree's and the reference's figures, and the median, smallest and largest of the
+    repeats' own ratios (this / reference of one repeat)."""
 
     this: float
     reference: float
@@ -46,5 +47,5 @@ class Comparison(NamedTuple):
 def compared(this: Sequence[float], reference: Sequence[float]) -> Comparison:
     """``this`` against ``reference``: one figure per repeat each, of the same repeats."""
     ratios = [t / r for t, r in zip(this, reference, strict=True)]
-    mine, theirs = statistics.median(this), statistics.median(reference)
-    return Comparison(mine, theirs, mine / theirs, min(ratios), max(ratios))
+    return Comparison(statistics.median(this), statistics.median(reference), statistics.median(ratios),
+                      min(ratios), max(ratios))

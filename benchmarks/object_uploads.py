@@ -9,7 +9,7 @@ listing, then after ``--concurrent`` more uploads sent at once. With ``--referen
 checkout, e.g. ``git worktree add /tmp/ref REV`` with its compiled kernels copied in) the same is measured
 there, interleaved run by run over ``--repeats`` repeats, the one that runs first alternating from repeat
 to repeat (``benchmarks/interleaved.py``), and each step's figures are printed side by side: the medians
-of this tree and of the reference, their ratio and the range of the repeats' own ratios.
+of this tree and of the reference, and the median and range of the repeats' own ratios.
 
 Prints one line per step of each run, then one line per step with the medians (and the ratio), then as
 its last line JSON {"runs": {tree: [{step: value}, ...]}, "median": {tree: {step: value}}, "ratio": {step:

@@ -5,13 +5,13 @@ to the first ``/healthz`` that answers 200, polled every 50 ms; the process is t
 With ``--reference DIR`` (another checkout of the cell, e.g. ``git worktree add /tmp/ref REV`` with its
 compiled kernels copied in) the same is measured there, interleaved run by run, the one that runs
 first alternating from repeat to repeat (this, reference; reference, this; ...:
-``benchmarks/interleaved.py``), and the ratio of the medians is printed with the range of the repeats'
-own ratios: both share the machine's load alike. The service starts its spare job worker while it starts
-(``service.warm_worker``), which competes for the cores, as on a cell's PC.
+``benchmarks/interleaved.py``), and the median of the repeats' own ratios (this / reference) is printed
+with their range: both share the machine's load alike. The service starts its spare job worker while it
+starts (``service.warm_worker``), which competes for the cores, as on a cell's PC.
 
 Prints one line per run, then the median and range of each tree and the ratio, then as its last line
-JSON {"runs": {tree: [s, ...]}, "median_s": {...}, "range_s": {tree: [min, max]}, "ratio": this /
-reference or null, "ratio_range": [min, max] over the repeats or null}.
+JSON {"runs": {tree: [s, ...]}, "median_s": {...}, "range_s": {tree: [min, max]}, "ratio": the
+median of the repeats' this / reference or null, "ratio_range": [min, max] over the repeats or null}.
 
     .venv/bin/python benchmarks/serve_startup.py [--repeats 5] [--reference /tmp/ref]
 """

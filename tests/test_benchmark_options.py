@@ -89,9 +89,10 @@ def test_interleaved_repeats_alternate_which_side_runs_first_and_give_the_spread
     assert [in_turn(r, ("this", "reference")) for r in range(3)] == [
         ["this", "reference"], ["reference", "this"], ["this", "reference"]]
     c = compared([2.0, 3.0, 9.0], [4.0, 3.0, 6.0])
-    assert (c.this, c.reference, c.ratio, c.ratio_min, c.ratio_max) == (3.0, 4.0, 0.75, 0.5, 1.5)
-    assert c.ratios() == {"ratio": 0.75, "ratio_range": [0.5, 1.5]}
-    assert c.text() == "ratio 0.750 (repeats 0.500-1.500)"
+    # the repeats' own ratios are 0.5, 1.0 and 1.5: their median, where the medians' ratio is 3 / 4
+    assert (c.this, c.reference, c.ratio, c.ratio_min, c.ratio_max) == (3.0, 4.0, 1.0, 0.5, 1.5)
+    assert c.ratios() == {"ratio": 1.0, "ratio_range": [0.5, 1.5]}
+    assert c.text() == "ratio 1.000 (repeats 0.500-1.500)"
 
 
 def test_guard_tick_judges_the_goal_per_kind_of_tick_on_its_cpu_median(monkeypatch) -> None:
