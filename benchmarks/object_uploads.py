@@ -9,13 +9,15 @@ listing, then after ``--concurrent`` more uploads sent at once. With ``--referen
 checkout, e.g. ``git worktree add /tmp/ref REV`` with its compiled kernels copied in) the same is measured
 there, interleaved run by run over ``--repeats`` repeats, the one that runs first alternating from repeat
 to repeat (``benchmarks/interleaved.py``), and each step's figures are printed side by side: the medians
-of this tree and of the reference, and the median and range of the repeats' own ratios.
+of this tree and of the reference, and the median and range of the repeats' own ratios. Before the
+first repeat ``cell serve`` is started once in each tree, untimed, so that a fresh checkout's first run
+does not pay for compiling its bytecode where the other tree's does not.
 
 Prints one line per step of each run, then one line per step with the medians (and the ratio), then as
 its last line JSON {"runs": {tree: [{step: value}, ...]}, "median": {tree: {step: value}}, "ratio": {step:
 {"ratio": this / reference, "ratio_range": [min, max]}} or null}.
 
-    nice .venv/bin/python benchmarks/object_uploads.py [--objects 12] [--concurrent 4] [--repeats 1]
+    nice .venv/bin/python benchmarks/object_uploads.py [--objects 12] [--concurrent 4] [--repeats 2]
         [--reference /tmp/ref]
 """
 
@@ -104,19 +106,24 @@ class Served:
         self.proc.wait(timeout=60)
 
 
+def operator_key(tree: Path, data_dir: str) -> str:
+    """A new operator's key in the store of ``data_dir``, made by ``cell keys create`` of ``tree``."""
+    made = subprocess.run([sys.executable, "-m", "cell.cli.entry", "keys", "create", "--data-dir", data_dir,
+                           "--role", "operator", "--name", "bench"], cwd=tree, capture_output=True, text=True,
+                          check=True)
+    return made.stdout.strip().splitlines()[-1]
+
+
 def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
     """The figures of one run in ``tree``, each printed as it comes after ``name`` (this or reference)."""
     figures: dict[str, float] = {}
 
     def note(step: str, value: float) -> None:
-        figures[step] = round(value, 3)
+        figures[step] = value
         print(f"{name}: {step} {value:.3f}", flush=True)
 
     with tempfile.TemporaryDirectory() as data_dir:
-        made = subprocess.run([sys.executable, "-m", "cell.cli.entry", "keys", "create", "--data-dir",
-                               data_dir, "--role", "operator", "--name", "bench"],
-                              cwd=tree, capture_output=True, text=True, check=True)
-        key = made.stdout.strip().splitlines()[-1]
+        key = operator_key(tree, data_dir)
         served = Served(tree, Path(data_dir), key)
         try:
             start = time.monotonic()
@@ -146,12 +153,15 @@ def main() -> None:
     parser = BenchmarkParser(description=first_paragraph(__doc__))
     parser.add_argument("--objects", type=count, default=12)
     parser.add_argument("--concurrent", type=count, default=4)
-    parser.add_argument("--repeats", type=count, default=1, help="runs of each tree, interleaved")
+    parser.add_argument("--repeats", type=count, default=2, help="runs of each tree, interleaved")
     parser.add_argument("--reference", type=checkout, default=None,
                         help="another checkout, measured interleaved")
     args = parser.parse_args()
     trees = {"this": REPO, **({"reference": args.reference} if args.reference else {})}
     runs: dict[str, list[dict[str, float]]] = {name: [] for name in trees}
+    for tree in trees.values():  # warm-up, untimed: the bytecode compiled, the libraries in the page cache
+        with tempfile.TemporaryDirectory() as data_dir:
+            Served(tree, Path(data_dir), operator_key(tree, data_dir)).close()
     with tempfile.TemporaryDirectory() as folder:
         paths = write_meshes(Path(folder), args.objects + args.concurrent)
         for repeat in range(args.repeats):
@@ -166,7 +176,9 @@ def main() -> None:
         side_by_side = (f", reference {medians['reference'][step]:.3f}, {ratios[step].text()}"
                         if ratios is not None else "")
         print(f"{step}: this {medians['this'][step]:.3f}{side_by_side}")
-    print(json.dumps({"runs": runs, "median": medians,
+    print(json.dumps({"runs": {name: [{step: round(v, 3) for step, v in run.items()} for run in tree_runs]
+                               for name, tree_runs in runs.items()},
+                      "median": medians,
                       "ratio": None if ratios is None else {s: c.ratios() for s, c in ratios.items()}}))
 
 

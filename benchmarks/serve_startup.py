@@ -6,14 +6,16 @@ With ``--reference DIR`` (another checkout of the cell, e.g. ``git worktree add 
 compiled kernels copied in) the same is measured there, interleaved run by run, the one that runs
 first alternating from repeat to repeat (this, reference; reference, this; ...:
 ``benchmarks/interleaved.py``), and the median of the repeats' own ratios (this / reference) is printed
-with their range: both share the machine's load alike. The service starts its spare job worker while it
-starts (``service.warm_worker``), which competes for the cores, as on a cell's PC.
+with their range: both share the machine's load alike. Before the first repeat each tree's service is
+started once, untimed, so that a fresh checkout's first run does not pay for compiling its bytecode where
+the other tree's does not. The service starts its spare job worker while it starts
+(``service.warm_worker``), which competes for the cores, as on a cell's PC.
 
 Prints one line per run, then the median and range of each tree and the ratio, then as its last line
 JSON {"runs": {tree: [s, ...]}, "median_s": {...}, "range_s": {tree: [min, max]}, "ratio": the
 median of the repeats' this / reference or null, "ratio_range": [min, max] over the repeats or null}.
 
-    .venv/bin/python benchmarks/serve_startup.py [--repeats 5] [--reference /tmp/ref]
+    .venv/bin/python benchmarks/serve_startup.py [--repeats 6] [--reference /tmp/ref]
 """
 
 from __future__ import annotations
@@ -65,11 +67,13 @@ def time_to_healthz(tree: Path) -> float:
 
 def main() -> None:
     parser = BenchmarkParser(description=first_paragraph(__doc__))
-    parser.add_argument("--repeats", type=count, default=5)
+    parser.add_argument("--repeats", type=count, default=6, help="runs of each tree, interleaved")
     parser.add_argument("--reference", type=checkout, default=None,
                         help="another checkout, measured interleaved")
     args = parser.parse_args()
     trees = {"this": REPO, **({"reference": args.reference} if args.reference else {})}
+    for tree in trees.values():  # warm-up, untimed: the bytecode compiled, the libraries in the page cache
+        time_to_healthz(tree)
     runs: dict[str, list[float]] = {name: [] for name in trees}
     for repeat in range(args.repeats):
         for name in in_turn(repeat, list(trees)):

@@ -119,3 +119,32 @@ def test_safety_soak_too_short_for_a_move_reports_none() -> None:
     done = subprocess.run([sys.executable, str(BENCHMARKS / "safety_soak.py"), "--commands", "20", "--robot",
                            "ur5e"], capture_output=True, text=True, timeout=300, check=True)
     assert json.loads(done.stdout.splitlines()[-1])["robots"][0]["moves"] == 0
+
+
+def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypatch, tmp_path: Path) -> None:
+    """A listing of 0.4 ms is 0.0004 s to the ratio, where rounding to 3 decimals made it 0.0 (a ratio
+    dividing by zero) and moved millisecond figures by up to half."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import object_uploads
+
+    class Served:
+        def __init__(self, *args: object) -> None:
+            self.proc = type("Proc", (), {"pid": 0})
+
+        def upload(self, path: Path) -> None:
+            pass
+
+        def list_s(self) -> float:
+            return 0.0004
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(object_uploads, "Served", Served)
+    monkeypatch.setattr(object_uploads, "rss_mib", lambda pid: 100.0004)
+    monkeypatch.setattr(object_uploads.subprocess, "run",
+                        lambda *args, **kwargs: subprocess.CompletedProcess(args, 0, stdout="key\n"))
+    monkeypatch.setattr(object_uploads.time, "sleep", lambda s: None)
+    figures = object_uploads.measure("this", tmp_path, [tmp_path / "a.stl"], [tmp_path / "b.stl"])
+    assert figures["first_list_s"] == 0.0004
+    assert figures["rss_at_end_mib"] == 100.0004
