@@ -1,7 +1,7 @@
 """Cost of one guard tick per robot model (UR5e, Panda): watchdog, fault read, speed and joint limits,
 barrier projection, ruckig smoothing, and the check of the joint path to the configuration predicted
 ``lookahead_s`` ahead for collisions (``CollisionWorld.check_motion``). The safety issue's goal is at most
-1 ms per tick.
+1 ms per tick: a deadline each tick has to keep, not an average, so it is judged on the p99.
 
 Two motions per model, on its sim cell (config/sim-ur5e-tof.yaml, config/sim-franka-rgbd.yaml):
 
@@ -29,7 +29,8 @@ the collision check did:
 
 Per kind: the number of ticks and the median, p99 and maximum [ms] of CPU and of wall time (on a shared
 machine wall time also measures the other processes: the 1-min load average is printed), and whether the
-goal is met, judged on the median CPU time. The last line is JSON: ``{"models": {model: {motion: {kind:
+goal is met, judged on the p99 of CPU time (a tick's deadline; the median would pass a kind whose
+slowest hundredth overran it). The last line is JSON: ``{"models": {model: {motion: {kind:
 {"n", "cpu_ms": {"p50", "p99", "max"}, "wall_ms": {...}, "goal_met"}}}}, "goal_ms": 1.0, "load_avg_1min":
 [before, after]}``.
 
@@ -142,14 +143,15 @@ def spread_ms(times_s: list[float]) -> dict[str, float]:
 
 
 def figures(ticks: list[Tick]) -> dict[str, dict[str, Any]]:
-    """Per kind of tick present: its count and the spread of its CPU and wall time [ms]."""
+    """Per kind of tick present: its count, the spread of its CPU and wall time [ms], and whether the p99
+    of its CPU time keeps the goal's deadline."""
     out: dict[str, dict[str, Any]] = {}
     for kind in KINDS:
         some = [t for t in ticks if t.kind == kind]
         if some:
             cpu_ms = spread_ms([t.cpu_s for t in some])
             out[kind] = {"n": len(some), "cpu_ms": cpu_ms, "wall_ms": spread_ms([t.wall_s for t in some]),
-                         "goal_met": cpu_ms["p50"] <= GOAL_MS}
+                         "goal_met": cpu_ms["p99"] <= GOAL_MS}
     return out
 
 
@@ -166,7 +168,7 @@ def main() -> None:
                              "scan": figures(scan(name, args.scan_time, Path(tmp)))}
     load_after = os.getloadavg()[0]
     print(f"load average (1 min) {load_before:.2f} before, {load_after:.2f} after; goal <= {GOAL_MS:g} ms "
-          "per tick (CPU median)")
+          "per tick (CPU p99)")
     print("model  motion kind       n    CPU ms p50 / p99 / max       wall ms p50 / p99 / max    goal")
     for name, motions in results.items():
         for motion, kinds in motions.items():

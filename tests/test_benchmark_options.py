@@ -95,14 +95,16 @@ def test_interleaved_repeats_alternate_which_side_runs_first_and_give_the_spread
     assert c.text() == "ratio 1.000 (repeats 0.500-1.500)"
 
 
-def test_guard_tick_judges_the_goal_per_kind_of_tick_on_its_cpu_median(monkeypatch) -> None:
+def test_guard_tick_judges_the_goal_per_kind_of_tick_on_its_cpu_p99(monkeypatch) -> None:
+    """1 ms per tick is a deadline: 97 `bound` ticks of 0.4 ms and 3 of 2 ms miss it on the p99 (the median
+    passed them); the `fcl` ticks keep it in CPU time, however long their wall time."""
     monkeypatch.syspath_prepend(str(BENCHMARKS))
     from guard_tick import Tick, figures
 
-    ticks = [Tick(0.0004, 0.0005, checked=True, measured=False), Tick(0.0009, 0.003, True, False),
-             Tick(0.0011, 0.0012, True, True), Tick(0.0013, 0.0014, True, True)]
+    fast, slow = Tick(0.0004, 0.0005, checked=True, measured=False), Tick(0.002, 0.002, True, False)
+    ticks = [*[fast] * 97, *[slow] * 3, Tick(0.0009, 0.003, True, True), Tick(0.0008, 0.0012, True, True)]
     judged = figures(ticks)
-    assert {kind: f["goal_met"] for kind, f in judged.items()} == {"bound": True, "fcl": False}
+    assert {kind: f["goal_met"] for kind, f in judged.items()} == {"bound": False, "fcl": True}
 
 
 def test_soak_prints_its_figures_as_one_line_of_json_last() -> None:
