@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from options import BenchmarkParser, at_least, first_paragraph, positive, seed_list
+from options import BenchmarkParser, at_least, first_paragraph, non_negative, positive, seed_list
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -171,8 +171,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=seed_list, default=[0, 1, 2], help="comma-separated seeds")
     parser.add_argument("--chamfer-seeds", type=at_least(0), default=1,
                         help="how many of the seeds get scans")
-    parser.add_argument("--max-mm", type=positive, default=10.0)
-    parser.add_argument("--max-deg", type=positive, default=5.0)
+    parser.add_argument("--max-mm", type=non_negative, default=10.0)
+    parser.add_argument("--max-deg", type=non_negative, default=5.0)
     parser.add_argument("--poses-board", type=at_least(board_fit.MIN_VIEWS), default=30)
     parser.add_argument("--poses-rgbd", type=at_least(shape_fit.MIN_VIEWS), default=20)
     parser.add_argument("--poses-tof", type=at_least(shape_fit.MIN_VIEWS), default=40)

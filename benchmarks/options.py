@@ -49,14 +49,26 @@ count = at_least(1)
 """An option type: a count of at least 1 (frames, repeats, ticks)."""
 
 
-def positive(text: str) -> float:
-    """An option type: a number above 0 (a time [s], a rate)."""
+def _number(text: str) -> float:
     try:
-        value = float(text)
+        return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def positive(text: str) -> float:
+    """An option type: a number above 0 (a time [s], a rate)."""
+    value = _number(text)
     if not value > 0.0:  # also refuses nan
         raise argparse.ArgumentTypeError(f"expected a number above 0, got {text}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """An option type: a number of at least 0 (a largest error, where none at all is a case too)."""
+    value = _number(text)
+    if not value >= 0.0:  # also refuses nan
+        raise argparse.ArgumentTypeError(f"expected a number of at least 0, got {text}")
     return value
 
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from options import BenchmarkParser, first_paragraph
+from options import BenchmarkParser, at_least, first_paragraph
 
 REPO = Path(__file__).resolve().parents[1]
 TEST_FILES = ("tests/test_safety_guard.py", "tests/test_safety_properties.py",
@@ -176,7 +176,7 @@ def check(mutant: Mutant | None, files: list[str], soak: int) -> dict[str, Any]:
 
 def main() -> None:
     parser = BenchmarkParser(description=first_paragraph(__doc__))
-    parser.add_argument("--soak", type=int, default=0, metavar="N",
+    parser.add_argument("--soak", type=at_least(0), default=0, metavar="N",
                         help="also run the safety soak in each copy with N commands per robot")
     parser.add_argument("--only", action="append", choices=[m.name for m in MUTANTS],
                         help="check only this mutant (repeatable)")

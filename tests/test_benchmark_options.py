@@ -22,6 +22,8 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
     ("calibration_accuracy.py", ["--poses-board", "4"], "argument --poses-board: expected at least 5, got 4"),
     ("soak.py", ["--no-such-option"], "unrecognized arguments: --no-such-option"),
     ("line_cycle.py", ["--parts", "1"], "argument --parts: expected at least 2, got 1"),
+    ("calibration_accuracy.py", ["--max-mm", "-1"], "--max-mm: expected a number of at least 0, got -1"),
+    ("safety_mutants.py", ["--soak", "-1"], "argument --soak: expected at least 0, got -1"),
 ])
 def test_a_bad_option_is_refused_in_one_line_with_exit_code_1(script: str, option: list[str],
                                                               expected: str) -> None:
@@ -150,3 +152,12 @@ def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypat
     figures = object_uploads.measure("this", tmp_path, [tmp_path / "a.stl"], [tmp_path / "b.stl"])
     assert figures["first_list_s"] == 0.0004
     assert figures["rss_at_end_mib"] == 100.0004
+
+
+def test_calibration_accuracy_takes_a_largest_error_of_zero() -> None:
+    """--max-mm 0 and --max-deg 0 (a mount believed exactly) are values of their own, where they were
+    refused as not above 0 (the options are read in order, so --help after them exits 0 only if taken)."""
+    done = subprocess.run([sys.executable, str(BENCHMARKS / "calibration_accuracy.py"), "--max-mm", "0",
+                           "--max-deg", "0", "--help"], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert done.returncode == 0, done.stderr
