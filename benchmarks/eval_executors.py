@@ -9,12 +9,14 @@ own time budget (the packing preset's; ``--max-time`` to shorten it), no coverag
 Both wall times count everything a user waits for: the pool starts its worker processes, Ray its
 instance (``ray.init``: GCS, raylet, agents, the pre-started workers), and the workers of both import
 the scan's modules before their first scan. ``--repeats`` runs pool and Ray that many times each,
-interleaved (pool first in even repeats, Ray first in odd ones, so that a change of the machine's load
-falls on both) and reports the median of each and of the per-repeat ratios. ``--attached`` also times
-Ray on an instance started beforehand (what a user with a running cluster, ``--ray-address``, waits
-for), which shows Ray's start-up apart. Only completed scans are timed: a run with a scan whose status in
-results.csv is not ``completed`` (a budget too short, a refused scan) ends the benchmark with the first
-of them named and exit code 1.
+interleaved, the order reversed from one repeat to the next (pool then Ray, Ray then pool:
+``benchmarks/interleaved.py``) so that a change of the machine's load falls on both, and reports the
+median of each and the median and range of the per-repeat ratios. ``--attached`` also times Ray on an
+instance started beforehand (what a user with a running cluster, ``--ray-address``, waits for), which
+shows Ray's start-up apart; it takes its turn with the others (pool, Ray, attached; then attached, Ray,
+pool), so that it and the pool run first alike. Only completed scans are timed: a run with a scan
+whose status in results.csv is not ``completed`` (a budget too short, a refused scan) ends the benchmark
+with the first of them named and exit code 1.
 
 Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2] [--repeats 3]
 [--max-time S] [--attached]``
@@ -29,6 +31,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from interleaved import compared, in_turn
 from options import BenchmarkParser, count, first_paragraph, positive
 
 from cell.evaluation import paper
@@ -89,9 +92,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.repeats):
             root = Path(tmp) / str(k)
-            # alternate which goes first, so that neither always runs on the machine the other left
-            order = ("pool", "ray") if k % 2 == 0 else ("ray", "pool")
-            for kind in (*order, *(("attached",) if args.attached else ())):
+            for kind in in_turn(k, ("pool", "ray", *(("attached",) if args.attached else ()))):
                 if kind == "pool":
                     pool_s.append(timed(LocalPool(args.jobs), specs, root / kind))
                 elif kind == "ray":
@@ -106,21 +107,23 @@ def main() -> None:
         results = (Path(tmp) / "0" / "pool").glob("scans/*/result.json")
         scan_s = [json.loads(p.read_text())["wall_time_s"] for p in results]
     mean_scan_s = sum(scan_s) / len(scan_s)
+    throughput = compared(pool_s, ray_s)  # pool's time / Ray's: Ray's throughput against the pool's
     report = {
         "n_scans": len(specs), "jobs": args.jobs, "max_time_s": args.max_time, "repeats": args.repeats,
         "pool_wall_s": [round(s, 2) for s in pool_s], "ray_wall_s": [round(s, 2) for s in ray_s],
         "pool_wall_median_s": round(statistics.median(pool_s), 2),
         "ray_wall_median_s": round(statistics.median(ray_s), 2),
-        "ray_throughput_vs_pool": round(statistics.median(p / r for p, r in zip(pool_s, ray_s, strict=True)),
-                                        3),
+        "ray_throughput_vs_pool": round(throughput.ratio, 3),
+        "ray_throughput_vs_pool_range": throughput.ratios()["ratio_range"],
         "results_csv_identical": identical,
         "mean_scan_wall_s": round(mean_scan_s, 3),
     }
     if attached:
         report["ray_start_s"] = [round(start, 2) for start, _ in attached]
         report["ray_attached_wall_s"] = [round(wall, 2) for _, wall in attached]
-        report["ray_attached_throughput_vs_pool"] = round(statistics.median(
-            p / wall for p, (_, wall) in zip(pool_s, attached, strict=True)), 3)
+        attached_throughput = compared(pool_s, [wall for _, wall in attached])
+        report["ray_attached_throughput_vs_pool"] = round(attached_throughput.ratio, 3)
+        report["ray_attached_throughput_vs_pool_range"] = attached_throughput.ratios()["ratio_range"]
     print(json.dumps(report))
 
 

@@ -20,11 +20,11 @@ after the last frame, timed as part of its integration. (On the recorded frames 
 about 5 % more CPU time than the lazy ``ColorOcTree``.)
 
 Timing: per repeat, both maps start empty and take the frames in turn, frame by frame, ours first in even
-repeats and OctoMap first in odd ones, so that load from other processes on a shared machine falls on
-both alike. Each side's time of a repeat is the sum over its frames (OctoMap's with its final
-``updateInnerOccupancy``), in CPU time of the process (``time.process_time``) and wall time; its figure
-is the median over the repeats, and ``speedup`` the ratio of the medians (OctoMap's / ours), for CPU and
-wall.
+repeats and OctoMap first in odd ones (``benchmarks/interleaved.py``), so that load from other processes
+on a shared machine falls on both alike. Each side's time of a repeat is the sum over its frames
+(OctoMap's with its final ``updateInnerOccupancy``), in CPU time of the process (``time.process_time``)
+and wall time; its figure is the median over the repeats, and ``speedup`` the median of the repeats' own
+ratios (OctoMap's / ours), for CPU and wall, with their range.
 
 Agreement, on the maps of the last repeat: OctoMap's log-odds per voxel read back from the tree (every
 leaf, a pruned one expanded to its voxels), against ours. ``max_abs_dlogodds`` over the voxels known to
@@ -33,8 +33,8 @@ both; ``agreement`` the share of the UNION of known voxels on which the occupied
 ``only_octomap``). Goal (the occupancy issue): integration at least 5x OctoMap's speed (CPU time) at an
 agreement of at least 0.99.
 
-Last line: JSON {"speedup_cpu", "speedup_wall", "agreement", "max_abs_dlogodds", "only_ours",
-"only_octomap", "goal_met", ...}.
+Last line: JSON {"speedup_cpu", "speedup_wall", "speedup_range": {"cpu": [min, max], "wall": [...]},
+"agreement", "max_abs_dlogodds", "only_ours", "only_octomap", "goal_met", ...}.
 
     .venv/bin/python benchmarks/map_vs_octomap.py [--frames-dir DIR] [--max-time 10] [--repeat 9]
 """
@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from interleaved import compared, in_turn
 from options import BenchmarkParser, at_least, positive
 
 from cell.perception.cloud import crop_box, voxel_downsample
@@ -204,7 +205,7 @@ def main() -> None:
         sides: list[tuple[str, Callable[..., object]]] = [("ours", occ.integrate),
                                                            ("octomap", partial(octomap_insert, tree))]
         for origin, pts in frames:
-            for side, integrate in sides[::-1] if r % 2 else sides:
+            for side, integrate in in_turn(r, sides):
                 timed(total[side], integrate, origin, pts)
         timed(total["octomap"], tree.updateInnerOccupancy)
         for side, t in total.items():
@@ -214,13 +215,16 @@ def main() -> None:
     agreement = compare(occ, ref_keys, ref_lo)
     # (CPU, wall) [ms per frame]
     med = {side: np.median(np.array(t), axis=0) / n * 1e3 for side, t in spent.items()}
-    speedup_cpu, speedup_wall = (float(med["octomap"][i] / med["ours"][i]) for i in (0, 1))
+    speedup = {kind: compared([t[i] for t in spent["octomap"]], [t[i] for t in spent["ours"]])
+               for i, kind in enumerate(("cpu", "wall"))}
+    speedup_cpu, speedup_wall = speedup["cpu"].ratio, speedup["wall"].ratio
     met = speedup_cpu >= GOAL_SPEEDUP and agreement["agreement"] >= GOAL_AGREEMENT
     print(f"median of {args.repeat} interleaved repeats, ms per frame      CPU      wall")
     for side, label in (("ours", "ours (OccupancyMap.integrate)"),
                         ("octomap", "OctoMap (ColorOcTree, lazy)")):
         print(f"  {label:44s} {med[side][0]:8.2f} {med[side][1]:9.2f}")
     print(f"  speedup (OctoMap / ours)                     {speedup_cpu:8.2f} {speedup_wall:9.2f}")
+    print(f"  speedup over the repeats: CPU {speedup['cpu'].text(2)}, wall {speedup['wall'].text(2)}")
     print(f"voxels known to both {agreement['both']}, only ours {agreement['only_ours']}, only OctoMap "
           f"{agreement['only_octomap']}; occupied {agreement['occupied_ours']} ours, "
           f"{agreement['occupied_octomap']} OctoMap")
@@ -229,6 +233,7 @@ def main() -> None:
     print(f"goal: integration >= {GOAL_SPEEDUP:g}x OctoMap (CPU) at agreement >= {GOAL_AGREEMENT}: "
           f"{'met' if met else 'NOT met'}")
     print(json.dumps({"speedup_cpu": round(speedup_cpu, 3), "speedup_wall": round(speedup_wall, 3),
+                      "speedup_range": {kind: c.ratios()["ratio_range"] for kind, c in speedup.items()},
                       **{k: round(v, 6) if isinstance(v, float) else v for k, v in agreement.items()},
                       "goal": {"speedup": GOAL_SPEEDUP, "agreement": GOAL_AGREEMENT}, "goal_met": met,
                       **{f"{side}_ms_per_frame": {"cpu": round(m[0], 3), "wall": round(m[1], 3)}

@@ -161,3 +161,35 @@ def test_calibration_accuracy_takes_a_largest_error_of_zero() -> None:
                            "--max-deg", "0", "--help"], capture_output=True, text=True, timeout=120,
                           check=False)
     assert done.returncode == 0, done.stderr
+
+
+def test_eval_executors_alternates_the_attached_ray_too(monkeypatch, tmp_path: Path, capsys) -> None:
+    """With --attached the three take turns in an order reversed every repeat, where the attached Ray always
+    ran last; Ray's throughput is the median of the repeats' pool / Ray, with its range."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import eval_executors
+
+    from cell.evaluation.grid import RESULTS_CSV
+
+    order: list[str] = []
+    seconds = iter([10.0, 20.0, 30.0, 40.0, 30.0, 20.0])
+
+    def ran(kind: str, out: Path) -> float:
+        order.append(kind)
+        (out / "scans" / "a").mkdir(parents=True)
+        (out / "scans" / "a" / "result.json").write_text('{"wall_time_s": 1.0}')
+        (out / RESULTS_CSV).write_text("same")
+        return next(seconds)
+
+    monkeypatch.setattr(eval_executors, "timed", lambda executor, specs, out: ran(
+        "pool" if isinstance(executor, eval_executors.LocalPool) else "ray", out))
+    monkeypatch.setattr(eval_executors, "timed_attached",
+                        lambda jobs, specs, out: (1.0, ran("attached", out)))
+    monkeypatch.setattr(eval_executors, "not_completed", lambda out: None)
+    monkeypatch.setattr(sys, "argv", ["eval_executors.py", "--repeats", "2", "--attached"])
+    eval_executors.main()
+    assert order == ["pool", "ray", "attached", "attached", "ray", "pool"]
+    report = json.loads(capsys.readouterr().out.splitlines()[-1])
+    # pool 10 and 20 s, Ray 20 and 30 s: pool / Ray 0.5 and 0.667
+    assert report["ray_throughput_vs_pool"] == 0.583
+    assert report["ray_throughput_vs_pool_range"] == [0.5, 0.667]
