@@ -55,8 +55,12 @@ def _map_vs_octomap(frames_dir: Path) -> subprocess.CompletedProcess[str]:
 def test_map_vs_octomap_refuses_a_frames_folder_with_no_depth_frames(tmp_path: Path) -> None:
     """An empty or missing folder, or a ToF scan's frames (points, no depth image), is refused before
     anything runs, where OctoMap crashed on the empty tree (exit 139) or a KeyError ended the run."""
-    assert "is not a folder" in _map_vs_octomap(tmp_path / "missing").stderr
-    assert "holds no recorded frames" in _map_vs_octomap(tmp_path).stderr
+    missing = tmp_path / "missing"
+    for folder, problem in ((missing, f"{missing} is not a folder"),
+                            (tmp_path, f"{tmp_path} holds no recorded frames (*.npz, a job's frames/)")):
+        done = _map_vs_octomap(folder)
+        assert done.returncode == 1
+        assert done.stderr.splitlines() == [f"map_vs_octomap.py: error: --frames-dir: {problem}"]
     np.savez_compressed(tmp_path / "000000.npz", points=np.zeros((3, 3)), T_base_sensor=np.eye(4))
     done = _map_vs_octomap(tmp_path)
     assert done.returncode == 1
@@ -163,6 +167,13 @@ def test_calibration_accuracy_takes_a_largest_error_of_zero() -> None:
     assert done.returncode == 0, done.stderr
 
 
+def _checkout(folder: Path) -> Path:
+    """A folder that passes for another checkout of the cell (--reference)."""
+    for sub in ("cell", "config"):
+        (folder / sub).mkdir(parents=True)
+    return folder
+
+
 def test_eval_executors_alternates_the_attached_ray_too(monkeypatch, tmp_path: Path, capsys) -> None:
     """With --attached the three take turns in an order reversed every repeat, where the attached Ray always
     ran last; Ray's throughput is the median of the repeats' pool / Ray, with its range."""
@@ -193,3 +204,71 @@ def test_eval_executors_alternates_the_attached_ray_too(monkeypatch, tmp_path: P
     # pool 10 and 20 s, Ray 20 and 30 s: pool / Ray 0.5 and 0.667
     assert report["ray_throughput_vs_pool"] == 0.583
     assert report["ray_throughput_vs_pool_range"] == [0.5, 0.667]
+
+
+def test_serve_startup_warms_each_tree_then_alternates_which_starts_first(monkeypatch, tmp_path: Path,
+                                                                           capsys) -> None:
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import serve_startup
+
+    reference = _checkout(tmp_path / "ref")
+    started: list[Path] = []
+    monkeypatch.setattr(serve_startup, "time_to_healthz", lambda tree: started.append(tree) or 1.0)
+    monkeypatch.setattr(sys, "argv", ["serve_startup.py", "--repeats", "2", "--reference", str(reference)])
+    serve_startup.main()
+    this = serve_startup.REPO
+    assert started == [this, reference, this, reference, reference, this]  # the first two untimed
+    assert json.loads(capsys.readouterr().out.splitlines()[-1])["runs"] == {"this": [1.0, 1.0],
+                                                                           "reference": [1.0, 1.0]}
+
+
+def test_object_uploads_warms_each_tree_then_alternates_which_runs_first(monkeypatch, tmp_path: Path) -> None:
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import object_uploads
+
+    reference = _checkout(tmp_path / "ref")
+    warmed: list[Path] = []
+    measured: list[Path] = []
+
+    class Served:
+        def __init__(self, tree: Path, *args: object, **kwargs: object) -> None:
+            warmed.append(tree)
+
+        def close(self) -> None:
+            pass
+
+    def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
+        measured.append(tree)
+        return {"first_list_s": 1.0}
+
+    monkeypatch.setattr(object_uploads, "Served", Served)
+    monkeypatch.setattr(object_uploads, "operator_key", lambda tree, data_dir: "key")
+    monkeypatch.setattr(object_uploads, "measure", measure)
+    monkeypatch.setattr(object_uploads, "write_meshes",
+                        lambda folder, n: [folder / f"{i}.stl" for i in range(n)])
+    monkeypatch.setattr(sys, "argv", ["object_uploads.py", "--reference", str(reference)])
+    object_uploads.main()
+    this = object_uploads.REPO
+    assert warmed == [this, reference]
+    assert measured == [this, reference, reference, this]  # the default --repeats, 2
+
+
+def test_ik_solve_alternates_which_implementation_runs_first(monkeypatch) -> None:
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import ik_solve
+
+    solved: list[str] = []
+    timed: list[str] = []
+
+    def solve_all(name: str, goals: list[object], error: object) -> float:
+        solved.append("closed" if error is ik_solve.pose_error else "scipy")
+        return 1.0
+
+    monkeypatch.setattr(ik_solve, "solve_all", solve_all)
+    monkeypatch.setattr(ik_solve, "per_call_us", lambda fn: timed.append(fn) or 1.0)
+    monkeypatch.setattr(sys, "argv", ["ik_solve.py", "--goals", "1", "--repeats", "2"])
+    ik_solve.main()
+    # an untimed warm-up of each model, then repeat 0 (UR5e, Panda), then repeat 1 in the other order
+    assert solved == ["closed", "scipy"] * 4 + ["scipy", "closed"] * 2
+    # the first primitive: closed form then SciPy in repeat 0, SciPy then closed form in repeat 1
+    assert timed[6:8] == [timed[1], timed[0]]
