@@ -18,7 +18,7 @@ pool), so that it and the pool run first alike. Only completed scans are timed: 
 whose status in results.csv is not ``completed`` (a budget too short, a refused scan) ends the benchmark
 with the first of them named and exit code 1.
 
-Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2] [--repeats 3]
+Prints JSON. Run: ``nice .venv/bin/python benchmarks/eval_executors.py [--jobs 2] [--repeats 2]
 [--max-time S] [--attached]``
 """
 
@@ -80,7 +80,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=count, default=2)
     parser.add_argument("--max-time", type=positive, default=None,
                         help="scan budget [s] (default: the cell's)")
-    parser.add_argument("--repeats", type=count, default=1)
+    parser.add_argument("--repeats", type=count, default=2)
     parser.add_argument("--attached", action="store_true", help="also Ray on an instance started before")
     args = parser.parse_args()
     cases = [(o, (0.0, 0.0, 0.0)) for o in paper.PACKING_OBJECTS]

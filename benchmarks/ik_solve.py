@@ -17,7 +17,7 @@ Prints readable lines, then as its last line JSON {"ik_ms": {model: {"closed_for
 "scipy": ms, "ratio": the median of the repeats' closed / scipy, "ratio_range": [min, max] over the
 repeats}}, "primitive_us": {name: {"closed_form": us, "scipy": us, "ratio": ..., "ratio_range": ...}}}.
 
-    .venv/bin/python benchmarks/ik_solve.py [--goals 40] [--repeats 5]
+    .venv/bin/python benchmarks/ik_solve.py [--goals 40] [--repeats 6]
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def figures(c: Comparison) -> dict[str, float | list[float]]:
 def main() -> None:
     parser = BenchmarkParser(description=first_paragraph(__doc__))
     parser.add_argument("--goals", type=count, default=40)
-    parser.add_argument("--repeats", type=count, default=5)
+    parser.add_argument("--repeats", type=count, default=6)
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     goals = {}

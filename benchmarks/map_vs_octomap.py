@@ -36,7 +36,7 @@ agreement of at least 0.99.
 Last line: JSON {"speedup_cpu", "speedup_wall", "speedup_range": {"cpu": [min, max], "wall": [...]},
 "agreement", "max_abs_dlogodds", "only_ours", "only_octomap", "goal_met", ...}.
 
-    .venv/bin/python benchmarks/map_vs_octomap.py [--frames-dir DIR] [--max-time 10] [--repeat 9]
+    .venv/bin/python benchmarks/map_vs_octomap.py [--frames-dir DIR] [--max-time 10] [--repeat 10]
 """
 
 from __future__ import annotations
@@ -176,7 +176,7 @@ def main() -> None:
     ap = BenchmarkParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames-dir", type=Path, default=None, help="recorded frames/ (default: record a scan)")
     ap.add_argument("--max-time", type=positive, default=10.0, help="scan time to record [s]")
-    ap.add_argument("--repeat", type=at_least(5), default=9,
+    ap.add_argument("--repeat", type=at_least(5), default=10,
                     help="interleaved timed repetitions of each (>= 5)")
     args = ap.parse_args()
     if args.frames_dir is not None and (problem := frames_problem(args.frames_dir)):

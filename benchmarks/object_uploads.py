@@ -15,7 +15,7 @@ does not pay for compiling its bytecode where the other tree's does not.
 
 Prints one line per step of each run, then one line per step with the medians (and the ratio), then as
 its last line JSON {"runs": {tree: [{step: value}, ...]}, "median": {tree: {step: value}}, "ratio": {step:
-{"ratio": this / reference, "ratio_range": [min, max]}} or null}.
+{"ratio": the median of the repeats' this / reference, "ratio_range": [min, max]}} or null}.
 
     nice .venv/bin/python benchmarks/object_uploads.py [--objects 12] [--concurrent 4] [--repeats 2]
         [--reference /tmp/ref]
@@ -40,7 +40,7 @@ from options import BenchmarkParser, checkout, count, first_paragraph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.service_process import free_port
+from tests.service_process import create_key, free_port
 
 REPO = Path(__file__).resolve().parent.parent
 CELL_FILE = Path("config") / "sim-franka-rgbd.yaml"
@@ -106,14 +106,6 @@ class Served:
         self.proc.wait(timeout=60)
 
 
-def operator_key(tree: Path, data_dir: str) -> str:
-    """A new operator's key in the store of ``data_dir``, made by ``cell keys create`` of ``tree``."""
-    made = subprocess.run([sys.executable, "-m", "cell.cli.entry", "keys", "create", "--data-dir", data_dir,
-                           "--role", "operator", "--name", "bench"], cwd=tree, capture_output=True, text=True,
-                          check=True)
-    return made.stdout.strip().splitlines()[-1]
-
-
 def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
     """The figures of one run in ``tree``, each printed as it comes after ``name`` (this or reference)."""
     figures: dict[str, float] = {}
@@ -123,7 +115,7 @@ def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict
         print(f"{name}: {step} {value:.3f}", flush=True)
 
     with tempfile.TemporaryDirectory() as data_dir:
-        key = operator_key(tree, data_dir)
+        key = create_key(Path(data_dir), "operator", "bench", tree=tree)
         served = Served(tree, Path(data_dir), key)
         try:
             start = time.monotonic()
@@ -161,7 +153,7 @@ def main() -> None:
     runs: dict[str, list[dict[str, float]]] = {name: [] for name in trees}
     for tree in trees.values():  # warm-up, untimed: the bytecode compiled, the libraries in the page cache
         with tempfile.TemporaryDirectory() as data_dir:
-            Served(tree, Path(data_dir), operator_key(tree, data_dir)).close()
+            Served(tree, Path(data_dir), create_key(Path(data_dir), "operator", "bench", tree=tree)).close()
     with tempfile.TemporaryDirectory() as folder:
         paths = write_meshes(Path(folder), args.objects + args.concurrent)
         for repeat in range(args.repeats):

@@ -21,15 +21,16 @@ the next job's spare starts while this job runs and competes with it for the cor
 writing the job folder. The service's time also includes queueing, the worker's report lines and the SSE
 stream.
 
-Also each job's own ``wall_time_s`` from its result.json (from the job's start to its end, without the
-process start) and the ratio of those. The sim is deterministic: the two ways' result.json must agree on
-``n_captures``, ``sim_time_s`` and ``metrics``, and are checked to. And the CPU time [s] of each job's
-process (the CLI's; the service's worker, counted in the service's children once it was waited for) and
-of the service itself meanwhile: a job this size uses more than one core, so its wall time moves with
-whatever else runs on the machine; its CPU time much less. Each run records the 1-minute load average
-at its start.
+Also each job's own ``wall_time_s`` from its result.json (from the job's start to its end, without the process
+start) and the ratio of those. Every ratio (``ratio_service_over_cli``, ``job_wall_time_ratio``,
+``cpu_ratio``) is the median of the repeats' own ratios, its ``*_range`` their least and greatest. The sim is
+deterministic: the two ways' result.json must agree on ``n_captures``, ``sim_time_s`` and ``metrics``, and are
+checked to. And the CPU time [s] of each job's process (the CLI's; the service's worker, counted in the
+service's children once it was waited for) and of the service itself meanwhile: a job this size uses more than
+one core, so its wall time moves with whatever else runs on the machine; its CPU time much less. Each run
+records the 1-minute load average at its start.
 
-    nice .venv/bin/python benchmarks/service_vs_scan.py [--repeats 3] [--max-time 30]
+    nice .venv/bin/python benchmarks/service_vs_scan.py [--repeats 4] [--max-time 30]
 """
 
 from __future__ import annotations
@@ -129,7 +130,8 @@ def median(values: list[float]) -> float:
 
 def main() -> None:
     parser = BenchmarkParser(description=first_paragraph(__doc__))
-    parser.add_argument("--repeats", type=count, default=3, help="runs each way")
+    parser.add_argument("--repeats", type=count, default=4,
+                        help="runs each way (even: each way runs first as often)")
     parser.add_argument("--max-time", type=positive, default=30.0,
                         help="the scan's time budget [s of sim time]")
     args = parser.parse_args()
@@ -171,7 +173,9 @@ def main() -> None:
         "goal": {"limit": GOAL_RATIO, "met": ratio.ratio <= GOAL_RATIO},
         "cli_job_wall_time_s": cli_job, "service_job_wall_time_s": svc_job,
         "job_wall_time_ratio": round(job_ratio.ratio, 4),
+        "job_wall_time_ratio_range": job_ratio.ratios()["ratio_range"],
         "cli_cpu_s": cli_cpu, "service_worker_cpu_s": svc_cpu, "cpu_ratio": round(cpu_ratio.ratio, 4),
+        "cpu_ratio_range": cpu_ratio.ratios()["ratio_range"],
         "service_web_cpu_s": median([r["service_cpu_s"] for r in svc]),
         "results_identical": identical, "all_completed": all(r["status"] == "completed" for r in rows),
         **{k: rows[0][k] for k in SAME},

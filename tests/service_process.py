@@ -66,10 +66,11 @@ def closed_by_server(sock: socket.socket) -> bool:
     return True
 
 
-def create_key(data_dir: Path, role: str, name: str, db: str | None = None) -> str:
-    """``cell keys create``; returns the key (its output's last line)."""
+def create_key(data_dir: Path, role: str, name: str, db: str | None = None, tree: Path = REPO) -> str:
+    """``cell keys create`` of the checkout ``tree`` (this one by default); returns the key (its output's
+    last line)."""
     cmd = [*CELL, "keys", "create", "--data-dir", str(data_dir), "--role", role, "--name", name]
-    out = subprocess.run([*cmd, *(["--db", db] if db else [])], cwd=REPO, capture_output=True, text=True,
+    out = subprocess.run([*cmd, *(["--db", db] if db else [])], cwd=tree, capture_output=True, text=True,
                          check=True)
     return out.stdout.strip().splitlines()[-1]
 

@@ -242,7 +242,7 @@ def test_object_uploads_warms_each_tree_then_alternates_which_runs_first(monkeyp
         return {"first_list_s": 1.0}
 
     monkeypatch.setattr(object_uploads, "Served", Served)
-    monkeypatch.setattr(object_uploads, "operator_key", lambda tree, data_dir: "key")
+    monkeypatch.setattr(object_uploads, "create_key", lambda *args, **kwargs: "key")
     monkeypatch.setattr(object_uploads, "measure", measure)
     monkeypatch.setattr(object_uploads, "write_meshes",
                         lambda folder, n: [folder / f"{i}.stl" for i in range(n)])
