@@ -21,10 +21,10 @@ from tests.test_store import make_job
 ENDED = tuple(FINISHED_STATUSES)
 
 
-def _submit(cell: ServedCell, n: int) -> list[str]:
+def _submit(cell: ServedCell, n: int, part_id: str | None = None) -> list[str]:
     with cell.client() as client:
-        return [client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2.0}).json()["id"]
-                for _ in range(n)]
+        return [client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2.0, "part_id": part_id}
+                            ).json()["id"] for _ in range(n)]
 
 
 def test_a_restored_backup_keeps_the_jobs_folders_records_and_a_moved_data_dir_keeps_its_files(tmp_path):
@@ -38,7 +38,7 @@ def test_a_restored_backup_keeps_the_jobs_folders_records_and_a_moved_data_dir_k
         with sqlite3.connect(backup) as db:
             assert db.execute("SELECT status FROM jobs WHERE id = ?", (ran[1],)).fetchone()[0] == "queued"
         before = {job_id: cell.wait_job(job_id, ENDED) for job_id in ran}
-        (later,) = _submit(cell, 1)  # after the backup: the store restored does not know it
+        (later,) = _submit(cell, 1, "crate-9")  # after the backup: the store restored does not know it
         before[later] = cell.wait_job(later, ENDED)
         junk = data / "jobs" / "aaaa000000000000"  # no job of any store: counted apart, never deleted
         junk.mkdir()
@@ -54,6 +54,9 @@ def test_a_restored_backup_keeps_the_jobs_folders_records_and_a_moved_data_dir_k
                 job = client.get(f"/api/v1/jobs/{job_id}").json()
                 assert (job["status"], job["termination"]) == (was["status"], was["termination"]), job_id
                 assert job["result"] == was["result"]
+                # the part and who asked, also of the job imported from its folder's job.json
+                assert (job["part_id"], job["submitted_by"]) == (was["part_id"], was["submitted_by"]), job_id
+            assert before[later]["part_id"] == "crate-9" and before[later]["submitted_by"]
             files = client.get(f"/api/v1/jobs/{later}/files")
             assert files.status_code == 200 and "cloud.ply" in {f["name"] for f in files.json()}
             retention = client.get("/api/v1/retention").json()
@@ -90,7 +93,8 @@ def test_only_this_cells_job_folders_are_imported_and_a_stale_folder_is_never_ma
     try:
         mine, theirs, broken = (jobs_dir / f"{n:016x}" for n in (1, 2, 3))
         for folder, asked in ((mine, {"cell": "a", "planner": "vs-local", "object": "cube", "seed": 7,
-                                      "object_placement": [0.01, 0.0, 15.0], "max_time_s": 5.0}),
+                                      "object_placement": [0.01, 0.0, 15.0], "max_time_s": 5.0,
+                                      "part_id": "crate-17", "submitted_by": "line"}),
                               (theirs, {"cell": "b", "planner": "vs-local", "object": "cube", "seed": 1}),
                               (broken, {"cell": "a", "planner": "vs-local", "seed": "seven"})):
             folder.mkdir(parents=True)
@@ -102,6 +106,7 @@ def test_only_this_cells_job_folders_are_imported_and_a_stale_folder_is_never_ma
         job = store.get_job(mine.name)
         assert job is not None and (job.status, job.termination, job.seed) == ("completed", "coverage", 7)
         assert job.object_pose == (0.01, 0.0, 15.0) and job.folder == str(mine)
+        assert (job.part_id, job.submitted_by) == ("crate-17", "line")
         assert store.get_job(theirs.name) is None and store.get_job(broken.name) is None
         assert any(f"4 entries of {jobs_dir} are no job of this cell's store" in line for line in done), done
         assert all(p.exists() for p in (theirs, broken, jobs_dir / "scan-by-hand", jobs_dir / "notes.txt"))

@@ -96,7 +96,9 @@ class ScanRequest:
     """What to scan and how. ``object_pose`` is (x [m], y [m], yaw [deg]) relative to the station;
     ``object_scale`` multiplies a mesh's coordinates into metres (0.001 for a mesh in millimetres);
     ``object`` ``"none"`` is an empty table. ``choose_folder`` is what a job folder that cannot be made
-    asks of the user, in the caller's words (``cell scan``'s ``--out``, the service's data dir)."""
+    asks of the user, in the caller's words (``cell scan``'s ``--out``, the service's data dir).
+    ``part_id`` and ``submitted_by``: the part and the key that asked for a service's job, kept in its
+    job.json (a store restored from an older backup imports them from there); None for ``cell scan``."""
 
     config: CellConfig
     config_path: str
@@ -108,6 +110,8 @@ class ScanRequest:
     max_time_s: float | None = None
     object_scale: float = 1.0
     choose_folder: str = CHOOSE_OUT
+    part_id: str | None = None
+    submitted_by: str | None = None
 
 
 @dataclass(frozen=True)
@@ -339,8 +343,9 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
     try:
         T_base_object = job.T_base_object
         # the cell's name: a service importing a folder its store does not know takes only its own
+        asked_by = {k: v for k, v in (("part_id", req.part_id), ("submitted_by", req.submitted_by)) if v}
         recorder.job({**_identity(job), "cell": cfg.name, "object_placement": list(req.object_pose),
-                      "max_time_s": job.max_time_s})
+                      "max_time_s": job.max_time_s, **asked_by})
         world_rng, perception_rng, planner_rng, error_rng = job_generators(req.seed)
         poses = PoseHistory() if wall else None
         T_station = object_pose_in_base(cfg, (0.0, 0.0, 0.0))

@@ -891,7 +891,8 @@ class CellService:
         job = running.job
         spec = WorkerSpec(op="scan", job_id=job.id, config=self._config_data, config_file=self._config_file,
                           object=source, object_pose=job.object_pose or (0.0, 0.0, 0.0),
-                          planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder)
+                          planner=job.planner, seed=job.seed, max_time_s=job.max_time_s, folder=job.folder,
+                          part_id=job.part_id, submitted_by=job.submitted_by)
         log_path = self._logs_dir / f"worker-{job.id}.log"
         proc = await self._worker(log_path, job.id, warm=True)
         if proc is None:

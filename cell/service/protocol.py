@@ -42,7 +42,8 @@ class WorkerSpec:
     """One task of a worker. ``op`` ``scan``: run the job (``config`` is the cell file's parsed YAML, which
     the worker validates again, ``config_file`` its name for messages and the record; ``object`` a
     shipped name or a mesh path, or a label on a real cell; ``object_pose`` x [m], y [m], yaw [deg] from
-    the station; ``folder`` the job folder to create). ``op`` ``recover``: connect the cell's arm, clear
+    the station; ``folder`` the job folder to create; ``part_id`` and ``submitted_by`` the job's, kept in
+    its job.json). ``op`` ``recover``: connect the cell's arm, clear
     a recoverable fault, report its state and disconnect (operator action)."""
 
     op: str
@@ -55,6 +56,8 @@ class WorkerSpec:
     seed: int = 0
     max_time_s: float | None = None
     folder: str = ""
+    part_id: str | None = None
+    submitted_by: str | None = None
 
     def line(self) -> bytes:
         return (json.dumps(asdict(self)) + "\n").encode()

@@ -257,7 +257,8 @@ def import_folders(store: Store, cell: str, jobs_dir: Path) -> list[str]:
     """Add to the store the job folders of ``jobs_dir`` it does not know that are ``cell``'s: a folder
     named as a job id, with a readable ``job.json`` (of ``cell``, or naming no cell: written before jobs
     named theirs), and no job of that id in the store. It takes the status, termination and result of
-    its ``result.json`` (``interrupted`` without one: the job did not end), its times from the files'.
+    its ``result.json`` (``interrupted`` without one: the job did not end), its part id and the key that
+    submitted it from its ``job.json`` (where a service wrote them), its times from the files'.
     Every other entry is listed, and left as it is. Returns what was done, in words."""
     done: list[str] = []
     skipped: list[str] = []
@@ -282,6 +283,11 @@ def import_folders(store: Store, cell: str, jobs_dir: Path) -> list[str]:
     return done
 
 
+def _text(value: Any) -> str | None:
+    """A job.json's optional text (a part id, a key's name): None when absent or not text."""
+    return value if isinstance(value, str) else None
+
+
 def _found_job(folder: Path, cell: str) -> JobRecord | None:
     """The job of ``cell`` that ``folder`` holds, as :func:`import_folders` adds it; None when it holds
     none (not named as a job id, no readable ``job.json``, another cell's, values of the wrong kind)."""
@@ -298,8 +304,10 @@ def _found_job(folder: Path, cell: str) -> JobRecord | None:
         return JobRecord(id=folder.name, cell=cell, status=status, planner=str(asked["planner"]),
                          object=None if asked.get("object") is None else str(asked["object"]),
                          object_pose=pose, seed=int(asked["seed"]),
-                         max_time_s=None if max_time is None else float(max_time), part_id=None,
-                         folder=str(folder), submitted_by=None, created_at=created, started_at=created,
+                         max_time_s=None if max_time is None else float(max_time),
+                         part_id=_text(asked.get("part_id")), folder=str(folder),
+                         submitted_by=_text(asked.get("submitted_by")), created_at=created,
+                         started_at=created,
                          finished_at=_modified(folder / RESULT_FILE) or created, termination=termination,
                          result=result)
     except (KeyError, TypeError, ValueError):

@@ -126,7 +126,8 @@ def _run_scan(spec: WorkerSpec, outbox: Outbox, control: JobControl) -> int:
         request = ScanRequest(config=parse_config(spec.config, file=spec.config_file),
                               config_path=spec.config_file, object=spec.object, object_pose=spec.object_pose,
                               planner=spec.planner, seed=spec.seed, out=folder, max_time_s=spec.max_time_s,
-                              choose_folder=CHOOSE_DATA_DIR)
+                              choose_folder=CHOOSE_DATA_DIR, part_id=spec.part_id,
+                              submitted_by=spec.submitted_by)
         # not run_scan: its heap trim (tens of ms) would delay the end the line waits for, in a process
         # that exits with its job
         outcome = run_prepared(prepare_scan(request), on_progress=report, control=control)
