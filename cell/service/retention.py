@@ -105,8 +105,8 @@ def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConf
     total = sum(size for name, size in entries.items() if name in known)
     ended = sorted((job for job in jobs if job.status in FINISHED_STATUSES and not job.keep),
                    key=lambda job: (_ended_at(job), job.id))
-    sizes = {job.id: entries.get(Path(job.folder).name, 0) if _inside(job.folder, jobs_dir) else 0
-             for job in ended}
+    # a job's folder is named by its id: in ``known`` when it lies inside jobs_dir (resolved once above)
+    sizes = {job.id: entries.get(name, 0) if (name := Path(job.folder).name) in known else 0 for job in ended}
     chosen: list[PrunedJob] = []
     rest: list[JobRecord] = []
     if retention.days is not None:

@@ -167,6 +167,12 @@ def _folder(job: JobRecord) -> Path:
     return folder
 
 
+def _job_file(job: JobRecord, name: str) -> Path | None:
+    """The file ``name`` of ``job``'s folder (:func:`_inside` of :func:`_folder`, 410 for an ended job's
+    missing folder): one trip to a thread for both."""
+    return _inside(_folder(job), name)
+
+
 def _listing(job: JobRecord) -> list[FileOut]:
     """Every file of a job's folder (none while it does not exist yet: a job that has not started, or
     never will; 410 for an ended job's: :func:`_folder`). It walks the folder and stats each file (a
@@ -193,8 +199,7 @@ async def get_file(job_id: str, name: str, cell: Service,
                    _: Reader) -> FileResponse:
     """One file of the job folder (``result.json``, ``cloud.ply``, ``map.bt``, ``trajectory.csv``,
     ``servo.png``, ``path.png``, ``log.txt``, ``frames/000000.npz``, ...); nothing outside it."""
-    folder = await asyncio.to_thread(_folder, await cell.job(job_id))
-    path = await asyncio.to_thread(_inside, folder, name)
+    path = await asyncio.to_thread(_job_file, await cell.job(job_id), name)
     if path is None:
         raise HTTPException(404, f"no file {name!r} in this job's folder")
     media = CONTENT_TYPES.get(path.suffix) or mimetypes.guess_type(path.name)[0] or "application/octet-stream"
