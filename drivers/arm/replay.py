@@ -36,7 +36,10 @@ class ReplayArm(LocalLink, Arm):
         self._model = model
         self._clock = clock
         self._times, self._poses = recording.flange_track()
-        self._joints = recording.joint_track()
+        joints = recording.joint_track()
+        # joints of another arm's count are as good as none: decided once, not at every tick
+        self._joints = joints if joints is not None and joints[1].shape[1] == model.n_joints else None
+        self._unknown = np.full(model.n_joints, np.nan)
 
     @property
     def device(self) -> str:
@@ -60,8 +63,8 @@ class ReplayArm(LocalLink, Arm):
     def joints_at(self, t: float) -> Array:
         """The recorded joints [rad] at time ``t`` [s] (zero-order hold, as :meth:`pose_at`); NaN when the
         job did not record them."""
-        if self._joints is None or self._joints[1].shape[1] != self._model.n_joints:
-            return np.full(self._model.n_joints, np.nan)
+        if self._joints is None:
+            return self._unknown.copy()
         times, q = self._joints
         k = int(np.searchsorted(times, t + CSV_TIME_RESOLUTION_S / 2, side="right")) - 1
         return q[max(k, 0)].copy()
