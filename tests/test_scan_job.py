@@ -169,9 +169,7 @@ def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path)
 def test_same_seed_gives_identical_outputs(bunny_job, tmp_path):
     out, _ = bunny_job
     again = tmp_path / "again"
-    res = CliRunner().invoke(app, ["scan", "--config", str(FRANKA), "--object", "bunny", "--seed", "0",
-                                   "--planner", "raster", "--out", str(again), "--max-time", "8"])
-    assert res.exit_code == 0, res.output
+    raster_scan(again, FRANKA, "bunny", 0, 8)
     assert (out / "cloud.ply").read_bytes() == (again / "cloud.ply").read_bytes()
     a = json.loads((out / "result.json").read_text())
     b = json.loads((again / "result.json").read_text())
