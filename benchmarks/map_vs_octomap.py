@@ -188,7 +188,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         frames_dir = args.frames_dir or record(Path(tmp), args.max_time)
-        if frames_problem(frames_dir):
+        if args.frames_dir is None and frames_problem(frames_dir):  # a given folder was checked above
             ap.error(f"the scan recorded in --max-time {args.max_time:g} s took no frame: give --max-time "
                      f"{FIRST_FRAME_S + 1:g} or more (its first frame comes about {FIRST_FRAME_S:g} s in)")
         frames = load_frames(frames_dir)

@@ -150,8 +150,7 @@ def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypat
 
     monkeypatch.setattr(object_uploads, "Served", Served)
     monkeypatch.setattr(object_uploads, "rss_mib", lambda pid: 100.0004)
-    monkeypatch.setattr(object_uploads.subprocess, "run",
-                        lambda *args, **kwargs: subprocess.CompletedProcess(args, 0, stdout="key\n"))
+    monkeypatch.setattr(object_uploads, "create_key", lambda *args, **kwargs: "key")
     monkeypatch.setattr(object_uploads.time, "sleep", lambda s: None)
     figures = object_uploads.measure("this", tmp_path, [tmp_path / "a.stl"], [tmp_path / "b.stl"])
     assert figures["first_list_s"] == 0.0004
