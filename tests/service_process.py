@@ -165,6 +165,15 @@ class ServedCell:
         self.close()
 
 
+def submit(cell: ServedCell, **body: Any) -> dict[str, Any]:
+    """``POST /api/v1/jobs`` of ``body`` with the operator's key, asserted accepted (201); the job."""
+    with cell.client("operator") as client:
+        response = client.post("/api/v1/jobs", json=body)
+    assert response.status_code == 201, response.text
+    job: dict[str, Any] = response.json()
+    return job
+
+
 @contextlib.contextmanager
 def serving_guarded(app: Any, limits: ConnectionLimits, wait_s: float, **config: Any) -> Iterator[int]:
     """``app`` under a uvicorn server on loopback with the connection guards of ``cell serve`` under

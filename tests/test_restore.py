@@ -15,16 +15,14 @@ from cell.cli.main import app
 from cell.service.recovery import finish_folder, reconcile
 from cell.service.store import FINISHED_STATUSES, open_store, sqlite_url
 from tests.conftest import UR5E
-from tests.service_process import ServedCell
+from tests.service_process import ServedCell, submit
 from tests.test_store import make_job
 
 ENDED = tuple(FINISHED_STATUSES)
 
 
 def _submit(cell: ServedCell, n: int, part_id: str | None = None) -> list[str]:
-    with cell.client() as client:
-        return [client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2.0, "part_id": part_id}
-                            ).json()["id"] for _ in range(n)]
+    return [submit(cell, object="cube", max_time_s=2.0, part_id=part_id)["id"] for _ in range(n)]
 
 
 def test_a_restored_backup_keeps_the_jobs_folders_records_and_a_moved_data_dir_keeps_its_files(tmp_path):

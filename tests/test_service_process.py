@@ -41,7 +41,7 @@ from tests.conftest import CONFIG_DIR, FRANKA, UR5E
 from tests.postgres import fresh_database, postgres_url  # noqa: F401  (a fixture of this module)
 from tests.rtde_peer import ControllerPeer
 from tests.rtde_peer.controller import MAX_RECORDS
-from tests.service_process import CELL, REPO, ROLES, ServedCell, closed_by_server, free_port, until
+from tests.service_process import CELL, REPO, ROLES, ServedCell, closed_by_server, free_port, submit, until
 
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 ENDED = ("completed", "failed", "stopped", "cancelled", "interrupted")
@@ -96,14 +96,6 @@ def third_event_id(cell: ServedCell, job_id: str) -> int:
         ids = (int(line.removeprefix("id:")) for line in response.iter_lines() if line.startswith("id:"))
         next(ids), next(ids)
         return next(ids)
-
-
-def submit(cell: ServedCell, **body: Any) -> dict[str, Any]:
-    with cell.client("operator") as client:
-        response = client.post("/api/v1/jobs", json=body)
-    assert response.status_code == 201, response.text
-    job: dict[str, Any] = response.json()
-    return job
 
 
 def get_job(cell: ServedCell, job_id: str) -> dict[str, Any]:
