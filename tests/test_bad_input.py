@@ -93,6 +93,11 @@ def _box_file(folder, name, extents):
     return path
 
 
+def _prepare(tmp_path, **request):
+    return prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA),
+                                    out=tmp_path / "j", **{"object": "bunny", **request}))
+
+
 def test_a_part_too_thin_for_segmentation_is_refused_saying_why(tmp_path):
     """A 3 mm plate lies wholly below the segmentation's 6 mm cut above the table, in the voxel layer."""
     plate = _box_file(tmp_path, "plate", [0.15, 0.10, 0.003])
@@ -101,13 +106,7 @@ def test_a_part_too_thin_for_segmentation_is_refused_saying_why(tmp_path):
     assert "plate is 0.150 x 0.100 x 0.003 m" in res.output and "taller than 3.5 mm" in res.output
     assert "plane_distance_m" in res.output
     thicker = _box_file(tmp_path, "thicker", [0.15, 0.10, 0.005])
-    assert prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object=str(thicker),
-                                    out=tmp_path / "k")).mesh is not None
-
-
-def _prepare(tmp_path, **request):
-    return prepare_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA),
-                                    out=tmp_path / "j", **{"object": "bunny", **request}))
+    assert _prepare(tmp_path, object=str(thicker)).mesh is not None  # prepare_scan makes no folder
 
 
 @pytest.mark.parametrize("pose", [(-0.42, 0.0, 0.0), (-0.4, 0.05, 30.0)])
