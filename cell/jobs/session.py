@@ -644,12 +644,13 @@ class JobSession:
         return int(update.points_base.shape[0])
 
     def _apply(self, update: PerceptionUpdate) -> None:
-        """Take in a perception update on the control thread: the ROI for collision checks, the age of
-        perception for the watchdog, progress."""
+        """Take in a perception update on the control thread: the ROI and what was seen outside it for
+        collision checks, the age of perception for the watchdog, progress."""
         self._latest = update
         self._perception_time = update.timestamp if self._perception_time is not None else None
         if update.roi is not None:
             self._guard.set_roi(update.roi.aabb_min, update.roi.aabb_max)
+        self._guard.set_seen(update.seen)
         if self._on_progress is not None:
             self._on_progress(self)
 

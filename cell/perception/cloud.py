@@ -92,12 +92,22 @@ def point_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
     return np.asarray((index[:, 0] << (2 * _KEY_BITS)) | (index[:, 1] << _KEY_BITS) | index[:, 2])
 
 
-def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
-    """The distinct voxel keys floor(p / voxel_m) (K, 3) of points (N, 3) [m], sorted (x, then y, then z)."""
-    packed = _voxel_groups(points, voxel_m)[0]
+def unpack_keys(packed: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The voxel indices floor(p / voxel_m) (K, 3) of packed voxel keys (K,) (:func:`point_keys`)."""
     mask = (1 << _KEY_BITS) - 1
     return np.column_stack([packed >> (2 * _KEY_BITS), (packed >> _KEY_BITS) & mask, packed & mask]
                            ) - (1 << (_KEY_BITS - 1))
+
+
+def key_steps(steps: NDArray[np.int64]) -> NDArray[np.int64]:
+    """What adding each of the voxel index steps ``steps`` (K, 3) adds to a packed key (K,): the key of a
+    neighbour, as long as it stays on the grid."""
+    return np.asarray((steps[:, 0] << (2 * _KEY_BITS)) + (steps[:, 1] << _KEY_BITS) + steps[:, 2])
+
+
+def voxel_keys(points: Array, voxel_m: float) -> NDArray[np.int64]:
+    """The distinct voxel keys floor(p / voxel_m) (K, 3) of points (N, 3) [m], sorted (x, then y, then z)."""
+    return unpack_keys(_voxel_groups(points, voxel_m)[0])
 
 
 def voxel_downsample(points: Array, voxel_m: float) -> Array:

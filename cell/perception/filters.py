@@ -113,24 +113,27 @@ def statistical_outlier_removal(points: Array, k: int, std_ratio: float) -> Arra
     return points[statistical_outlier_mask(points, k, std_ratio)]
 
 
-def _zone_points(zones_distance: Array, directions: Array) -> Array:
-    return zones_distance[:, None] * directions
+def valid_tof_zones(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[int] = (5, 9)
+                    ) -> NDArray[np.bool_]:
+    """Which of the frame's ToF zones (n_zones,) hold a range: a status in ``valid_statuses``, a target and
+    a finite positive distance (whatever the status, a zone without them is dropped). Raises
+    ``ValueError`` for a frame without ``zones`` (not a ToF frame)."""
+    zones = frame.zones
+    if zones is None:
+        raise ValueError(f"frame {frame.seq} has no ToF zones: not a ToF frame")
+    return np.asarray(np.isin(zones.status, np.asarray(valid_statuses, dtype=np.int64))
+                      & (zones.nb_targets > 0) & np.isfinite(zones.distance_m) & (zones.distance_m > 0.0))
 
 
 def valid_tof_points(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[int] = (5, 9)) -> Array:
-    """Points (K, 3) [m, sensor frame] of the ToF zones whose target status is in ``valid_statuses``.
+    """Points (K, 3) [m, sensor frame] of the ToF zones that hold a range (:func:`valid_tof_zones`).
 
     Rebuilt from ``zones.distance_m * zones.directions`` (distance along each zone's central ray) rather
-    than taken from ``frame.points``, which holds every zone with a target whatever its status. Zones with
-    no target or a non-finite distance are dropped even if their status were listed. Zone order is kept.
-    Raises ``ValueError`` for a frame without ``zones`` (not a ToF frame).
-    """
-    zones = frame.zones
-    if zones is None:
-        raise ValueError(f"valid_tof_points: frame {frame.seq} has no ToF zones")
-    keep = (np.isin(zones.status, np.asarray(valid_statuses, dtype=np.int64))
-            & (zones.nb_targets > 0) & np.isfinite(zones.distance_m) & (zones.distance_m > 0.0))
-    return _zone_points(zones.distance_m[keep], zones.directions[keep])
+    than taken from ``frame.points``, which holds every zone with a target whatever its status. Zone order
+    is kept."""
+    keep = valid_tof_zones(frame, valid_statuses)
+    assert frame.zones is not None
+    return frame.zones.distance_m[keep, None] * frame.zones.directions[keep]
 
 
 def no_target_directions(frame: DepthFrame) -> Array:

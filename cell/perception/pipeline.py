@@ -20,11 +20,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cell.config.models import PerceptionConfig
+from cell.perception import filters
 from cell.perception.cloud import CloudAccumulator
 from cell.perception.entropy_form import EntropyForm
-from cell.perception.filters import carved_lengths, filter_frame, no_target_directions, valid_tof_points
 from cell.perception.occupancy import OccupancyMap
 from cell.perception.registration import RegistrationResult, RegistrationTarget
+from cell.perception.seen_obstacles import SeenCells, SeenObstacles, sample_pitch_rad
 from cell.perception.segmentation import ROI, ObjectExtent, SegmentationResult, segment_object
 from drivers.depth.base import DepthFrame
 from drivers.scheduling import ordinary_scheduling
@@ -39,8 +40,10 @@ class PerceptionUpdate:
     frame, the ends of the rays it carved free (its ToF zones with no target, out to the sensor's range or
     the crop box's far side, :func:`carved_lengths`; (0, 3) for a camera), the segmented object and its
     ROI, ``extent`` the box (min, max) [m] of every ROI so far (``ObjectExtent``), H_ROI (eq. 12) over
-    that box in the form ``h_roi_entropy`` (the pipeline's), and the occupancy map. ``roi``, ``centroid``,
-    ``extent`` and ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map
+    that box in the form ``h_roi_entropy`` (the pipeline's), the occupancy map, and ``seen`` the cells of
+    every return above the table so far, crop box or not (``cell.perception.seen_obstacles``: outside the
+    ROI, the guard's obstacles). ``roi``, ``centroid``, ``extent`` and ``h_roi`` are None until an object
+    has been found. ``map`` is the pipeline's own map
     when frames are processed in the planner's thread (later frames update it), and a copy taken right
     after this frame when they are processed asynchronously (``AsyncPerception``), so that a planner never
     reads a map the worker is writing."""
@@ -58,6 +61,7 @@ class PerceptionUpdate:
     h_roi: float | None
     h_roi_entropy: EntropyForm
     map: OccupancyMap
+    seen: SeenCells
 
 
 class StageTimes:
@@ -101,6 +105,8 @@ class PerceptionPipeline:
         self.map = OccupancyMap(config.occupancy)
         self._target = RegistrationTarget(config.registration)
         self.extent = ObjectExtent()
+        self.seen = SeenObstacles(config.seen_obstacle_voxel_m, table_z_m,
+                                  config.segmentation.plane_distance_m)
         self._rng = rng
         self.latest: PerceptionUpdate | None = None
         self.stage_times = StageTimes()
@@ -111,14 +117,20 @@ class PerceptionPipeline:
         return PerceptionPipeline(self.config, table_z_m=self.table_z_m, range_max_m=self.range_max_m,
                                   rng=rng, h_roi_entropy=self.h_roi_entropy)
 
-    def filter_frame(self, frame: DepthFrame) -> Array:
-        """Points of the frame worth keeping, sensor frame: valid ToF statuses, then crop box, voxel filter
-        and statistical outlier removal (section II-A, "Filtering")."""
+    def _returns(self, frame: DepthFrame) -> tuple[Array, Array | None]:
+        """The frame's returns (N, 3) [m, sensor frame], for the ToF only its zones that hold a range
+        (``filters.valid_tof_statuses``), and their range sigmas (N,) [m] when the sensor reports them."""
+        if frame.zones is None:
+            return frame.points, None
+        statuses = self.config.filters.valid_tof_statuses
+        sigma = frame.zones.sigma_m[filters.valid_tof_zones(frame, statuses)]
+        return filters.valid_tof_points(frame, statuses), sigma
+
+    def filter_frame(self, points: Array) -> Array:
+        """Of a frame's returns ``points`` (:meth:`_returns`), those worth keeping, sensor frame: crop box,
+        voxel filter and statistical outlier removal (section II-A, "Filtering")."""
         c = self.config
-        points = frame.points
-        if frame.zones is not None:
-            points = valid_tof_points(frame, c.filters.valid_tof_statuses)
-        return filter_frame(points, crop=c.crop_box, voxel_m=c.voxel_m, params=c.filters)
+        return filters.filter_frame(points, crop=c.crop_box, voxel_m=c.voxel_m, params=c.filters)
 
     def process(self, frame: DepthFrame, T_base_sensor_fk: Array) -> PerceptionUpdate:
         """Process one frame captured at the pose the arm reported (FK and hand-eye)."""
@@ -127,7 +139,8 @@ class PerceptionPipeline:
             raise ValueError(f"T_base_sensor_fk is not a finite 4x4 pose: {T_fk.tolist()}")
         clock = self.stage_times
         clock.start()
-        points = self.filter_frame(frame)
+        returns, sigma = self._returns(frame)
+        points = self.filter_frame(returns)
         clock.lap("filter")
         reg = self._target.register(points, T_fk)
         clock.lap("register")
@@ -135,12 +148,15 @@ class PerceptionPipeline:
         points_base = transform_points(T, points)
         free_ends = np.zeros((0, 3))
         if frame.zones is not None:
-            directions = no_target_directions(frame)
-            length = carved_lengths(directions, self.config.crop_box, self.range_max_m)
+            directions = filters.no_target_directions(frame)
+            length = filters.carved_lengths(directions, self.config.crop_box, self.range_max_m)
             carves = length > 0.0
             free_ends = T[:3, 3] + (directions[carves] @ T[:3, :3].T) * length[carves, None]
         seg, extent = self.add_capture(T, points_base, free_ends)
         roi = seg.roi
+        self.seen.add(returns, T, sample_pitch_rad(frame), sigma)
+        seen = self.seen.outside((roi.aabb_min, roi.aabb_max) if roi is not None else None)
+        clock.lap("seen")
         aware = self.h_roi_entropy == "observation_aware"
         h_roi = self.map.mean_entropy_in_box(*extent, observation_aware=aware) if extent is not None else None
         clock.lap("h_roi")
@@ -148,7 +164,8 @@ class PerceptionPipeline:
                                   points_base=points_base, free_ends_base=free_ends,
                                   object_points=seg.object_points, roi=roi,
                                   centroid=roi.centroid if roi is not None else None, extent=extent,
-                                  h_roi=h_roi, h_roi_entropy=self.h_roi_entropy, map=self.map)
+                                  h_roi=h_roi, h_roi_entropy=self.h_roi_entropy, map=self.map,
+                                  seen=seen)
         self.latest = update
         return update
 

@@ -8,9 +8,13 @@ Bodies:
 - the object's ROI: its axis-aligned box inflated by ``roi_margin_m``, replaced whenever perception
   updates the ROI; on a face whose margin would reach the arm where it stands, the margin is shrunk
   (:meth:`CollisionWorld.set_roi`);
-- static obstacles from ``safety.collision.obstacles`` (boxes, cylinders, meshes).
+- static obstacles from ``safety.collision.obstacles`` (boxes, cylinders, meshes);
+- what the sensor has seen standing on the table outside the object's ROI (``perception.seen_obstacles``),
+  replaced whenever perception updates it: the cells' union as a mesh, without the cells the arm stands
+  in (:meth:`CollisionWorld.set_seen`).
 
-A configuration collides when a moving body (link or tool) touches the table, the ROI or an obstacle, or
+A configuration collides when a moving body (link or tool) touches the table, the ROI or an obstacle (seen
+or configured), or
 when two moving bodies that are not adjacent touch (self-collision). Adjacent pairs are the robot model's
 (capsules of consecutive frames touch by construction) plus the tool with the flange's own capsules. The
 links on the base and the first joint's frames stand on the table and are not checked against it.
@@ -43,6 +47,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from cell.perception.seen_obstacles import SeenCells
 from cell.safety.config import Body, BoxBody, CollisionConfig, CylinderBody, MeshBody
 from drivers.errors import ConfigError
 from drivers.fcl_bodies import ArmBody, fcl_transform, mesh_bvh
@@ -98,14 +103,14 @@ class _Static:
 class _Reference:
     """For each of the path check's ``pairs`` (p, 2), with their ``levers`` (p, n) [m/rad]
     (``CollisionWorld._path_pairs``): a lower bound ``distance`` (p,) [m] on its distance at joints ``q``
-    (p, n) [rad], where it was last looked at (``CollisionWorld.check_motion``); ``roi`` is the ROI body
-    they were found with."""
+    (p, n) [rad], where it was last looked at (``CollisionWorld.check_motion``); ``statics`` are the
+    static bodies they were found with."""
 
     q: Array
     distance: Array
     pairs: Array
     levers: Array
-    roi: _Static | None
+    statics: list[_Static]
 
 
 def _geometry(body: Body) -> tuple[fcl.CollisionGeometry, float, Array]:
@@ -236,6 +241,7 @@ class CollisionWorld:
             self._obstacles.append(self._static(body.name, geom, body.pose.matrix(), radius))
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
+        self._seen: _Static | None = None
         self._reference: _Reference | None = None
         self.n_motion_checks = 0
         """Calls of :meth:`check_motion` so far (``benchmarks/guard_tick.py`` tells ticks apart by them)."""
@@ -321,6 +327,48 @@ class CollisionWorld:
         margins = np.full(6, self._roi_margin) if q_free is None else self._roi_margins(lo, hi, q_free)
         self._roi = self._box("object ROI", lo - margins[:3], hi + margins[3:])
         return margins if np.any(margins < self._roi_margin) else None
+
+    def set_seen(self, cells: SeenCells | None, q_free: Array | None = None) -> int:
+        """Replace what the sensor has seen outside the object's ROI (``perception.seen_obstacles``; None
+        or no cells removes it) by the union of ``cells``, checked as one body, "seen obstacle".
+
+        ``q_free``: the joints [rad] the arm stands at as they are updated. The space its bodies take there
+        holds nothing (what the sensor saw there, it saw of the arm or before the arm came), so the cells
+        within ``ROI_ARM_CLEARANCE_M`` of them are left out (:meth:`_near_arm`), and the arm may move on
+        from where it stands. Returns the number of cells left out so."""
+        if cells is None or len(cells) == 0:
+            self._seen = None
+            return 0
+        near = np.zeros(len(cells), dtype=bool) if q_free is None else self._near_arm(
+            cells.centers(), cells.voxel_m, np.asarray(q_free, dtype=float))
+        if np.all(near):
+            self._seen = None
+            return int(near.size)
+        vertices, triangles = (cells.without(near) if np.any(near) else cells).surface
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        T = np.eye(4)
+        T[:3, 3] = (lo + hi) / 2.0
+        self._seen = self._static("seen obstacle", mesh_bvh(vertices - T[:3, 3], triangles), T,
+                                  float(np.linalg.norm(hi - lo) / 2.0))
+        return int(np.count_nonzero(near))
+
+    def _near_arm(self, points: Array, voxel_m: float, q: Array) -> NDArray[np.bool_]:
+        """Which cubes of edge ``voxel_m`` [m] about ``points`` (M, 3) [m, base frame] come within
+        ``ROI_ARM_CLEARANCE_M`` of the arm's bodies at joints ``q`` [rad]: of a link's capsule (the distance
+        to its segment, less its radius, of a ball about the cube), or of a tool body (FCL's distance, for
+        the cubes whose ball reaches the body's enclosing sphere)."""
+        reach = voxel_m * np.sqrt(3.0) / 2.0 + ROI_ARM_CLEARANCE_M
+        near = np.zeros(points.shape[0], dtype=bool)
+        for capsule in self._model.capsules(q):
+            near |= _segment_distances(points, points, capsule.a, capsule.b) <= capsule.radius + reach
+        T = self._place(q)
+        cube = fcl.Box(voxel_m, voxel_m, voxel_m)
+        for k in range(len(self._link_names), len(self._objs)):
+            ball = ~near & (np.linalg.norm(points - T[k, :3, 3], axis=1) <= self._radii[k] + reach)
+            for i in np.nonzero(ball)[0]:
+                cell = fcl.CollisionObject(cube, fcl.Transform(points[i]))
+                near[i] = self._distance(self._objs[k], cell) <= ROI_ARM_CLEARANCE_M
+        return near
 
     def _roi_margins(self, lo: Array, hi: Array, q: Array) -> Array:
         """The margins [m] of the faces (-x, -y, -z, +x, +y, +z) of the box ``lo``..``hi`` (base frame [m])
@@ -432,7 +480,7 @@ class CollisionWorld:
         return ~self._on_base if st is self._table else np.ones(len(self._objs), dtype=bool)
 
     def _statics(self) -> list[_Static]:
-        return [self._table, *self._obstacles] + ([self._roi] if self._roi is not None else [])
+        return [self._table, *self._obstacles] + [st for st in (self._roi, self._seen) if st is not None]
 
     def _path_pairs(self, statics: list[_Static]) -> tuple[Array, Array]:
         """The pairs a path check watches, as (p, 2) indices into the moving bodies followed by ``statics``:
@@ -572,12 +620,14 @@ class CollisionWorld:
         for a path checked again and again as the arm moves (the guard's way ahead, every control period):
         the pairs' references are kept from one call to the next, so most calls measure nothing. Returns
         ``(0, contact)`` when ``q_from`` itself touches, ``(1, contact)`` for a contact further on, or
-        None. The references hold for the ROI they were found with: another ROI (``set_roi``) drops them."""
+        None. The references hold for the static bodies they were found with: another ROI (``set_roi``) or
+        other seen obstacles (``set_seen``) drop them."""
         self.n_motion_checks += 1
         q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
         statics = self._statics()
         ref = self._reference
-        if ref is None or ref.roi is not self._roi:
+        if ref is None or len(ref.statics) != len(statics) or any(
+                a is not b for a, b in zip(ref.statics, statics, strict=True)):
             ref = self._reference = self._reference_for(q_from, statics)
         return self._advance(ref, q_from, q_to, statics)
 
@@ -585,7 +635,7 @@ class CollisionWorld:
         """References of the path check's pairs with ``statics`` that clear nothing yet (a distance of minus
         infinity, at joints ``q``)."""
         pairs, levers = self._path_pairs(statics)
-        return _Reference(np.tile(q, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers, self._roi)
+        return _Reference(np.tile(q, (len(pairs), 1)), np.full(len(pairs), -np.inf), pairs, levers, statics)
 
     def _advance(self, ref: _Reference, q_from: Array, q_to: Array, statics: list[_Static]
                  ) -> tuple[int, Collision] | None:

@@ -54,6 +54,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
+from cell.perception.seen_obstacles import SeenCells
 from cell.safety.barriers import BarrierPlane, Barriers, approach_speed, workspace_planes
 from cell.safety.collision import Collision, CollisionWorld
 from cell.safety.config import SafetyConfig
@@ -269,14 +270,26 @@ class MotionGuard:
         """The object's ROI box (base frame [m]) for collision checks, as perception updates it. Its margin
         is shrunk where it would reach the arm where it stands (``CollisionWorld.set_roi``), counted as the
         clamp ``roi_margin_at_arm``."""
-        # The joints the last tick read (the arm is at rest after a capture), not a read of its own: a
-        # fault is the tick's to act on and name. None before the first tick, or from a replayed arm whose
-        # joints are not known: the ROI keeps its full margin.
-        q = self._q_seen
-        if aabb_min is None or aabb_max is None or q is None or not np.all(np.isfinite(q)):
+        # Without those joints the ROI keeps its full margin.
+        q = self._q_free()
+        if aabb_min is None or aabb_max is None:
             q = None
         if self.collision.set_roi(aabb_min, aabb_max, q_free=q) is not None:
             self.log.clamp("roi_margin_at_arm")
+
+    def set_seen(self, cells: SeenCells | None, q_free: Array | None = None) -> None:
+        """What the sensor has seen outside the object's ROI, as perception updates it: obstacles for
+        collision checks but where the arm stands, at ``q_free`` [rad] (by default the joints the last tick
+        read) (``CollisionWorld.set_seen``), counted as the clamp ``seen_at_arm``."""
+        if self.collision.set_seen(cells, q_free=self._q_free() if q_free is None else q_free):
+            self.log.clamp("seen_at_arm")
+
+    def _q_free(self) -> Array | None:
+        """The joints [rad] the arm stands at for the obstacles perception updates: those the last tick
+        read (the arm is at rest after a capture), not a read of its own (a fault is the tick's to act on
+        and name). None before the first tick, or from a replayed arm whose joints are not known."""
+        q = self._q_seen
+        return None if q is None or not np.all(np.isfinite(q)) else q
 
     def guarded_points(self, T_base_flange: Array) -> Array:
         """The TCP (flange origin) and the sensor origin (2, 3) [m] in the base frame."""

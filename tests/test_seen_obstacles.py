@@ -1,0 +1,125 @@
+"""What the sensor has seen standing on the table is an obstacle outside the object's ROI
+(``cell.perception.seen_obstacles``, ``CollisionWorld.set_seen``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cell.config import load_config
+from cell.perception.pipeline import PerceptionPipeline
+from cell.perception.seen_obstacles import SeenObstacles, sample_pitch_rad
+from cell.safety.collision import CollisionWorld
+from drivers.depth.base import DepthFrame, ToFZones
+from drivers.robots import get_robot_model
+
+from .safety_rig import CELLS
+
+G = 0.01  # the grid's edge [m] in these tests
+
+
+def _looking_down(height_m: float) -> np.ndarray:
+    """A sensor pose (base frame) at ``height_m`` over the origin, its z axis down."""
+    T = np.diag([1.0, -1.0, -1.0, 1.0])
+    T[2, 3] = height_m
+    return T
+
+
+def test_only_returns_above_the_table_band_and_their_noise_mark_cells() -> None:
+    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    T = _looking_down(0.5)
+    # 4 mm, 8 mm and 50 mm above the table, straight below the sensor
+    points = np.array([[0.0, 0.0, 0.496], [0.1, 0.0, 0.492], [0.2, 0.0, 0.45]])
+    seen.add(points, T, pitch_rad=0.0)
+    assert np.allclose(seen.outside(None).centers(), [[0.105, 0.005, 0.005], [0.205, 0.005, 0.045]])
+    # a range sigma of 5 mm lifts the band by 15 mm: only the return 50 mm up is left
+    ranged = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    ranged.add(points, T, pitch_rad=0.0, sigma_m=np.full(3, 0.005))
+    assert len(ranged.outside(None)) == 1
+
+
+def test_a_sparse_sensor_s_return_stands_for_the_gap_to_its_neighbours() -> None:
+    """Returns 3.9 cm apart (an 8x8 ToF zone at 0.4 m) grow by two cells on each side, so the cells of two
+    neighbouring returns meet; returns closer than a cell apart do not grow."""
+    pitch = np.radians(45.0 / 8.0)
+    sparse = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    sparse.add(np.array([[0.0, 0.0, 0.4]]), _looking_down(0.5), pitch_rad=pitch)
+    cells = sparse.outside(None)
+    assert len(cells) == 5 ** 3
+    assert np.ptp(cells.centers(), axis=0) == pytest.approx([0.04, 0.04, 0.04])
+    dense = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    dense.add(np.array([[0.0, 0.0, 0.4]]), _looking_down(0.5), pitch_rad=0.001)
+    assert len(dense.outside(None)) == 1
+
+
+def test_what_lies_within_its_reach_of_the_roi_is_the_object_s() -> None:
+    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    # a return 2.5 cm beside a ROI box and one 10 cm from it, each 3.2-3.3 cm from its neighbours (a reach
+    # of 2 cells)
+    seen.add(np.array([[0.025, 0.0, 0.4], [0.10, 0.0, 0.4]]), _looking_down(0.5), pitch_rad=0.08)
+    roi = (np.array([-0.05, -0.05, 0.0]), np.array([0.0, 0.05, 0.1]))
+    kept = seen.outside(roi).centers()
+    assert len(kept) == 5 ** 3 and np.all(kept[:, 0] > 0.07)
+    assert len(seen.outside(None)) == 2 * 5 ** 3
+
+
+def test_the_surface_of_the_cells_is_their_union_s_boundary() -> None:
+    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    seen.add(np.array([[0.005, 0.005, 0.455], [0.015, 0.005, 0.455]]), _looking_down(0.5), pitch_rad=0.0)
+    vertices, triangles = seen.outside(None).surface
+    assert triangles.shape == (2 * 10, 3)  # two cells side by side: ten open faces
+    assert vertices.min(axis=0) == pytest.approx([0.0, -0.01, 0.04])
+    assert vertices.max(axis=0) == pytest.approx([0.02, 0.0, 0.05])
+
+
+def test_the_pitch_of_a_frame_s_returns() -> None:
+    angles = np.radians([-2.0, 3.0])
+    directions = np.column_stack([np.sin(angles), np.zeros(2), np.cos(angles)])
+    zones = ToFZones(distance_m=np.ones(2), sigma_m=np.zeros(2), status=np.full(2, 5, dtype=np.uint8),
+                     nb_targets=np.ones(2, dtype=np.uint8), reflectance_pct=np.ones(2), directions=directions)
+    assert sample_pitch_rad(DepthFrame(0, 0.0, directions, zones=zones)) == pytest.approx(np.radians(5.0))
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    assert sample_pitch_rad(DepthFrame(0, 0.0, np.zeros((0, 3)), intrinsics=K)) == pytest.approx(0.002)
+    assert sample_pitch_rad(DepthFrame(0, 0.0, np.zeros((0, 3)))) == 0.0
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_seen_cells_on_the_arm_s_way_are_an_obstacle_but_where_the_arm_stands(model_name: str) -> None:
+    """A column of cells below the flange: the way down to it is refused, also after the way ahead was
+    cleared many times without it; the cells the arm stands in are left out (counted), and without cells
+    the way is clear again."""
+    cfg = load_config(CELLS[model_name])
+    model = get_robot_model(model_name)
+    world = CollisionWorld(model, cfg.safety.collision, cfg.station.table_z_m)
+    q_home = np.asarray(cfg.arm.home_joints_rad)
+    T = model.fk(q_home)
+    T[2, 3] -= 0.2
+    q_down = model.ik_pose(T, q_home)
+    for _ in range(5):
+        assert world.check_motion(q_home, q_down) is None
+    seen = SeenObstacles(G, table_z_m=cfg.station.table_z_m, table_band_m=0.006)
+    flange = model.fk(q_home)[:3, 3]
+    column = flange - np.column_stack([np.zeros((40, 2)), np.linspace(0.05, 0.3, 40)])
+    seen.add(column, np.eye(4), pitch_rad=0.0)
+    cells = seen.outside(None)
+    assert world.set_seen(cells, q_free=q_home) > 0
+    hit = world.check_motion(q_home, q_down)
+    assert hit is not None and hit[1].body_b == "seen obstacle"
+    path_hit = world.check_path(np.array([q_home, q_down]), 0.02)
+    assert path_hit is not None and path_hit[1].body_b == "seen obstacle"
+    assert world.check(q_home) is None  # the cells at the arm were left out
+    world.set_seen(None)
+    assert world.check_motion(q_home, q_down) is None
+
+
+def test_a_frame_s_update_keeps_the_returns_outside_its_crop_box() -> None:
+    cfg = load_config(CELLS["panda"])
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=cfg.sensor.range_max_m,
+                                  rng=np.random.default_rng(0))
+    T = _looking_down(0.35)  # the table 35 cm ahead, within the crop box (5-40 cm, +-15 cm across)
+    table = np.column_stack([np.mgrid[-0.05:0.05:0.0025, -0.05:0.05:0.0025].reshape(2, -1).T,
+                             np.full(1600, 0.35)])
+    # 5 cm up, 30 cm off the sensor's axis: beyond the crop box
+    update = pipeline.process(DepthFrame(1, 1.0, np.vstack([table, [[-0.3, 0.1, 0.3]]])), T)
+    assert len(update.seen) == 1 and update.roi is None
+    assert pipeline.cloud.points.shape[0] > 0 and np.all(np.abs(pipeline.cloud.points[:, 0]) < 0.06)
