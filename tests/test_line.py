@@ -43,8 +43,8 @@ TOF = CONFIG_DIR / "sim-ur5e-tof.yaml"
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 # A line scan's time budget here [s]: the line needs a scan's result (a box, a container), not a full
 # scan's accuracy, which the planners' own tests judge; but a box whose ends no view saw inside its frame
-# has no upper bound and no container (LR-NBV sees the 30 cm box's ends after 15-20 s).
-SCAN_S = 20.0
+# has no upper bound and no container (LR-NBV sees the 30 cm box's ends after 15-25 s).
+SCAN_S = 25.0
 # A PLC's trigger pulse [s]: well over the 50 ms debounce, and long enough that the digital I/O thread,
 # polling at 200 Hz, still sees it on a test machine that starves it for a while (a 0.2 s pulse was missed
 # under the whole suite).

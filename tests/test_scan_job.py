@@ -70,7 +70,10 @@ def test_job_folder_is_complete(bunny_job):
     assert 0.0 < result["scan_path_length_m"] < result["path_length_m"]
     assert f0["depth"].shape == (480, 640) and f0["K"].shape == (3, 3) and f0["T_base_sensor"].shape == (4, 4)
     assert read_ply(out / "cloud.ply").shape[0] == result["n_cloud_points"] > 1000
-    assert "capture 0" in (out / "log.txt").read_text()
+    # the sensor's frame 0 was the survey from home, which is not one of the scan's
+    assert frames[0].name == "000001.npz"
+    log = (out / "log.txt").read_text()
+    assert "survey from home" in log and "capture 1: " in log
     occupancy = read_bt(out / "map.bt")
     assert occupancy.occupied_centers().shape[0] > 100
     # The first frame has no target to register onto: a skip, not a rejection.
@@ -118,7 +121,8 @@ def test_the_reported_h_roi_is_the_one_the_servo_termination_judges(tmp_path, mo
     assert result["perception"]["h_roi"] == round(aware, 6)
     assert result["perception"]["h_roi_entropy"] == "observation_aware"
     log = (out / "log.txt").read_text()
-    assert next(line for line in log.splitlines() if "capture 1:" in line).endswith(f"H_ROI {aware:.4f}")
+    # the scan's second frame (the sensor's frame 0 was the survey from home)
+    assert next(line for line in log.splitlines() if "capture 2:" in line).endswith(f"H_ROI {aware:.4f}")
     # a planner of no servo termination (the probe) reports it in that form too, and the log says so
     assert ("H_ROI (eq. 12) reported in its observation_aware form (planners.vs.objective.entropy, whatever "
             "the planner)") in log
@@ -208,7 +212,7 @@ def test_tof_cell_scans(tmp_path):
     assert f0["zone_status"].shape == (64,) and f0["points"].shape[1] == 3
     # the ToF cell's registration is off: the log says so, with no ICP figures as if it had run
     log = (tmp_path / "tof" / "log.txt").read_text()
-    assert "capture 0: 64 points, 64 after filtering; registration skipped (disabled in the cell file, " \
+    assert "capture 1: 64 points, 64 after filtering; registration skipped (disabled in the cell file, " \
            "perception.registration.enabled: false): the FK pose is used; H_ROI" in log
     assert "directions constrained" not in log
 
@@ -219,7 +223,7 @@ def test_sensor_failure_stops_and_keeps_frames(tmp_path, monkeypatch):
 
     def failing_capture(self):
         calls["n"] += 1
-        if calls["n"] == 3:
+        if calls["n"] == 4:  # the survey from home, two of the scan's frames, then the failure
             raise DriverError("frame timeout", device="depth sim-rgbd")
         return real_capture(self)
 

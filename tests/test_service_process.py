@@ -509,7 +509,7 @@ def test_killing_the_service_mid_scan_stops_the_arm_and_a_restart_marks_the_job_
         with (folder / "frames" / "index.csv").open(newline="") as f:
             assert len(list(csv.DictReader(f))) == len(frames) >= 1
         log = (folder / "log.txt").read_text()
-        assert "capture 0" in log and "[service] interrupted" in log
+        assert "capture 1:" in log and "[service] interrupted" in log
         # nothing starts by itself after the restart: the job that waited is cancelled, the arm idle
         cancelled = get_job(cell, waiting["id"])
         assert cancelled["status"] == "cancelled" and cancelled["termination"] == RESTART_CANCEL

@@ -88,6 +88,10 @@ class ReplaySession(JobSession):
             self.log("the recorded job has no joints.csv: the replayed arm reports no joints, and where a "
                      "joint's margin shaped the live planner's motion, this replay may diverge")
 
+    def survey(self) -> None:
+        """None: the replayed sensor's frames are the live job's captures, and the replayed arm moves
+        nowhere the live one did not."""
+
     def _request(self, t: float, kind: str, T_base_sensor: Array | None = None, v_sensor: Array | None = None,
                  answer: str = "", t_done: float | None = None, refusal: Refusal | None = None) -> None:
         self.n_planner_requests += 1

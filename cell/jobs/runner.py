@@ -259,6 +259,7 @@ def prepare_scan(req: ScanRequest) -> PreparedScan:
 
 def _run_planner(planner: Planner, session: JobSession) -> str:
     try:
+        session.survey()
         return planner.run(session)
     finally:
         session.close()

@@ -606,6 +606,19 @@ class JobSession:
         if not found and not quiet:
             self.log(f"view at {np.round(T_base_flange[:3, 3], 3).tolist()} (flange) unreachable: {error}")
 
+    def survey(self) -> None:
+        """Look before the first move: one frame from where the arm stands (home), taken in only for what
+        stands on the table (``PerceptionPipeline.survey``), which the guard then keeps the arm from. The
+        way to the first view is otherwise checked against the table and the configured obstacles alone,
+        and a part put off the station may stand on it. The frame is not one of the scan's: it is neither
+        recorded nor counted."""
+        state = self._guard.state()
+        frame = self._sensor.capture()
+        cells = self.perception.survey(frame, state.T_base_flange @ self._T_flange_sensor)
+        self._guard.set_seen(cells, q_free=state.q)
+        self.log(f"survey from home: {len(cells)} cells of {cells.voxel_m * 100:g} cm seen above the table, "
+                 "obstacles until the object is found among them")
+
     def capture(self) -> int:
         """One frame at the current pose through perception. On the wall clock a frame stamped before
         the call (e.g. queued by the device while the arm moved) is skipped; while asynchronous capture

@@ -132,6 +132,14 @@ class PerceptionPipeline:
         c = self.config
         return filters.filter_frame(points, crop=c.crop_box, voxel_m=c.voxel_m, params=c.filters)
 
+    def survey(self, frame: DepthFrame, T_base_sensor_fk: Array) -> SeenCells:
+        """Take in a frame only for what stands on the table (``cell.perception.seen_obstacles``): a look
+        from where the arm stands before it first moves, whose cells are all obstacles (no object has been
+        found yet). It adds nothing to the cloud, the map or registration, whose frames are the scan's."""
+        returns, sigma = self._returns(frame)
+        self.seen.add(returns, np.asarray(T_base_sensor_fk, dtype=float), sample_pitch_rad(frame), sigma)
+        return self.seen.outside(None)
+
     def process(self, frame: DepthFrame, T_base_sensor_fk: Array) -> PerceptionUpdate:
         """Process one frame captured at the pose the arm reported (FK and hand-eye)."""
         T_fk = np.asarray(T_base_sensor_fk, dtype=float)
