@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections import Counter
 from typing import ClassVar
 
 import numpy as np
@@ -12,7 +13,9 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.config import load_config
 from cell.jobs.runner import ScanRequest, run_scan
+from cell.jobs.session import JobSession
 from cell.planning.base import Planner, ScanSession
+from cell.planning.vs.servo_scan import ServoScanPlanner
 from drivers.transforms import look_at
 
 from .conftest import FRANKA, PANDA_AT_REACH, UR5E, ended_without_a_frame, register_planner
@@ -126,3 +129,33 @@ def test_servo_scan_runs_on_the_cell(tmp_path, cell_file, planner, budget):
     traj = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1)
     moving = traj[traj[:, 0] > float(budget) - 3.0, 1:4]
     assert np.linalg.norm(moving[-1] - moving[0]) > 0.01
+
+
+
+def test_the_limit_rows_are_built_once_per_servo_iteration(tmp_path, monkeypatch):
+    """The joint-limit and singularity rows at the planner's activations are built once per iteration of
+    the secondary task and shared by what uses them: VS-Local's ``follows`` (twice near a refusal) and
+    the projection of g (``_within_limits``), which built them again each."""
+    cfg = load_config(FRANKA)
+    activation_rad = cfg.planners.vs.joint_activation_rad
+    calls: Counter[str] = Counter()
+
+    def counted(name, method, *only):
+        """``method``, counting under ``name`` its calls (those whose arguments after the first are
+        ``only``, when given)."""
+        def spy(first, *args):
+            calls[name] += not only or args == only
+            return method(first, *args)
+        return spy
+
+    # _limits_ahead's look ahead, at a multiple of the activation, is another question than the rows'
+    monkeypatch.setattr(JobSession, "joint_limit_twists",
+                        counted("joint rows", JobSession.joint_limit_twists, activation_rad))
+    monkeypatch.setattr(JobSession, "singularity_twists",
+                        counted("singularity rows", JobSession.singularity_twists))
+    monkeypatch.setattr(ServoScanPlanner, "_within_limits",
+                        counted("iterations", ServoScanPlanner._within_limits))
+    run_scan(ScanRequest(config=cfg, config_path=str(FRANKA), object="bunny", planner="vs-local",
+                         out=tmp_path / "job", max_time_s=8.0))
+    assert calls["iterations"] > 100
+    assert calls["joint rows"] == calls["singularity rows"] == calls["iterations"]

@@ -44,6 +44,7 @@ from drivers.transforms import look_at, make_T
 from .conftest import FRANKA, UR5E
 
 CENTRE = np.array([0.45, 0.0, 0.06])
+NO_ROWS = np.zeros((0, 6))  # an arm clear of its limits and of the edge of its reach (``limit_rows``)
 
 
 class LinearObjective:
@@ -684,13 +685,14 @@ def test_hybrid_goes_global_after_local_converges_then_back(franka):
     weak = LinearObjective([0.5 / franka.planners.vs_local.alpha, 0.0, 0.0], T[:3, 3], 1.0)
     modes = []
     for _ in range(201):
-        sec = planner.secondary(session, T, weak)
+        sec = planner.secondary(session, T, weak, NO_ROWS)
         planner.observe(sec, sec.g_norm, T[:3, 3])
         modes.append(sec.mode)
     assert modes[:200] == ["local"] * 200 and modes[200] == "global"
     assert planner.goals.n_goals == 1
     session.pose = planner.goals.goal
-    assert planner.secondary(session, planner.goals.goal, weak).mode == "local"  # arrived: local again
+    # arrived: local again
+    assert planner.secondary(session, planner.goals.goal, weak, NO_ROWS).mode == "local"
     assert not planner.local.converged()
 
 
@@ -736,11 +738,12 @@ def test_the_observation_aware_h_roi_settles_where_eq8s_swings(franka, entropy, 
 def test_global_h_roi_termination_waits_for_the_first_goal_reached(franka):
     planner, session, T = sideways(VSGlobalPlanner, franka)
     objective = LinearObjective([-1.0, 0.0, 0.0])
-    planner.secondary(session, T, objective)  # first goal sampled, far from T
+    planner.secondary(session, T, objective, NO_ROWS)  # first goal sampled, far from T
     planner.h_roi = [0.4] * 12  # flat while travelling
     assert planner.goals.n_goals == 1 and planner.finished(session) is None
     session.pose = planner.goals.goal
-    planner.secondary(session, planner.goals.goal, objective)  # arrived: the window opens, a new goal
+    # arrived: the window opens, a new goal
+    planner.secondary(session, planner.goals.goal, objective, NO_ROWS)
     assert planner.goals.n_goals == 2 and planner.finished(session) is None
     planner.h_roi += [0.4] * 9
     assert planner.finished(session) is None  # nine values since the arrival
@@ -833,6 +836,11 @@ class JointLimitSession(FakeSession):
         return self.singular
 
 
+def within_limits(planner, session, T, s, sec):
+    """``planner._within_limits`` with the rows of ``session``'s arm, as the servo loop gives them."""
+    return planner._within_limits(session, T, s, sec, planner.limit_rows(session))
+
+
 def test_secondary_slides_along_a_joint_limit(franka):
     planner = VSLocalPlanner(franka)
     s = np.array([0.0, 0.0, franka.scan.standoff_m])
@@ -840,23 +848,23 @@ def test_secondary_slides_along_a_joint_limit(franka):
     sec = Secondary(np.array([0.6, 0.8, 0.0, 0.0, 0.0, 0.0]), 2.0, 1.0, "local")
     limit = JointLimitSession([1.0, 0, 0, 0, 0, 0])
     # g before clipping, (1.2, 1.6), projected: (0, 1.6), clipped again: the camera slides at full speed
-    blocked = planner._within_limits(limit, T, s, sec)
+    blocked = within_limits(planner, limit, T, s, sec)
     np.testing.assert_allclose(blocked.g, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
     assert blocked.g_norm == pytest.approx(1.6)
     # (0.66, 0.88) projected: (0, 0.88), below the clipping norm: slower, and counted as converging
-    weak = planner._within_limits(limit, T, s, Secondary(sec.g, 1.1, 1.0, "local"))
+    weak = within_limits(planner, limit, T, s, Secondary(sec.g, 1.1, 1.0, "local"))
     np.testing.assert_allclose(weak.g[:2], [0.0, 0.88], atol=1e-12)
     assert weak.g_norm == pytest.approx(0.88)
-    unclipped = planner._within_limits(limit, T, s, Secondary(sec.g * 0.5, 0.5, 1.0, "local"))
+    unclipped = within_limits(planner, limit, T, s, Secondary(sec.g * 0.5, 0.5, 1.0, "local"))
     np.testing.assert_allclose(unclipped.g[:2], [0.0, 0.4], atol=1e-12)
     assert unclipped.g_norm == pytest.approx(0.4)
-    free = planner._within_limits(JointLimitSession(np.zeros((0, 6))), T, s, sec)
+    free = within_limits(planner, JointLimitSession(np.zeros((0, 6))), T, s, sec)
     assert free is sec
-    away = planner._within_limits(JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    away = within_limits(planner, JointLimitSession([-1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(away.g, sec.g)  # moving away from the limit is not blocked
     # along the edge of the reach a crossing slides as fast as it was crossing
     reach = JointLimitSession(np.zeros((0, 6)), [1.0, 0, 0, 0, 0, 0])
-    crossing = planner._within_limits(reach, T, s, Secondary(sec.g, 2.0, 1.0, "local", 3.0))
+    crossing = within_limits(planner, reach, T, s, Secondary(sec.g, 2.0, 1.0, "local", 3.0))
     np.testing.assert_allclose(crossing.g, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
     assert crossing.speed == 3.0
 
@@ -867,11 +875,11 @@ def test_secondary_slides_along_the_edge_of_the_reach_and_a_joint_limit_together
     T = look_at(CENTRE + np.array([0.0, -0.25, 0.0]), CENTRE)
     sec = Secondary(np.array([0.6, 0.8, 0.0, 0.0, 0.0, 0.0]), 2.0, 1.0, "local")
     # the reach alone: as a joint limit, g before clipping (1.2, 1.6) loses its +x part
-    reach = planner._within_limits(JointLimitSession(np.zeros((0, 6)), [1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    reach = within_limits(planner, JointLimitSession(np.zeros((0, 6)), [1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(reach.g, [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
     assert reach.g_norm == pytest.approx(1.6)
     # the reach against +x and a joint against +y: held in the corner, and counted as converging
-    corner = planner._within_limits(JointLimitSession([0, 1.0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0]), T, s, sec)
+    corner = within_limits(planner, JointLimitSession([0, 1.0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0]), T, s, sec)
     np.testing.assert_allclose(corner.g, 0.0, atol=1e-12)
     assert corner.g_norm == pytest.approx(0.0, abs=1e-12)
 
@@ -903,17 +911,17 @@ def test_a_crossing_slows_to_the_exploration_speed_near_the_limits_it_moves_towa
     joint = MarginSession(along_x, 2.0 * vs.joint_activation_rad)
     joint.pose = T
     crossing = Secondary(along_x, 2.0, 0.01, "local", 3.0)
-    assert planner._within_limits(joint, T, s, crossing).speed == 1.0
-    np.testing.assert_allclose(planner._within_limits(joint, T, s, crossing).g, along_x)  # not yet sliding
-    assert planner._within_limits(joint, T, s, replace(crossing, speed=1.5)).speed == 1.5  # not that near
+    assert within_limits(planner, joint, T, s, crossing).speed == 1.0
+    np.testing.assert_allclose(within_limits(planner, joint, T, s, crossing).g, along_x)  # not yet sliding
+    assert within_limits(planner, joint, T, s, replace(crossing, speed=1.5)).speed == 1.5  # not that near
     away = Secondary(-along_x, 2.0, 0.01, "local", 3.0)
-    assert planner._within_limits(joint, T, s, away).speed == 3.0
+    assert within_limits(planner, joint, T, s, away).speed == 3.0
     floor = MarginSession(along_x, np.inf, floor_z=T[2, 3] - 2.5 * vs.barrier_activation_m)
     floor.pose = T
     down = Secondary(np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0]), 2.0, 0.01, "local", 3.0)
-    assert planner._within_limits(floor, T, s, down).speed == 1.0
-    assert planner._within_limits(floor, T, s, replace(down, speed=2.0)).speed == 2.0
-    assert planner._within_limits(floor, T, s, crossing).speed == 3.0  # along the floor
+    assert within_limits(planner, floor, T, s, down).speed == 1.0
+    assert within_limits(planner, floor, T, s, replace(down, speed=2.0)).speed == 2.0
+    assert within_limits(planner, floor, T, s, crossing).speed == 3.0  # along the floor
 
 
 class BackOffSession(JointLimitSession):
@@ -950,12 +958,12 @@ def test_after_a_refusal_the_arm_retraces_and_the_camera_avoids_that_direction(f
     assert session.retraced == [vs.backoff_s]
     assert "retracing" in session.lines[0]
     s = np.array([0.0, 0.0, franka.scan.standoff_m])
-    towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
+    towards = within_limits(planner, session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
                                                               "local"))
     np.testing.assert_allclose(towards.g[:2], [0.0, 1.0], atol=1e-12)  # slides past the refused direction
     session.pose = far = translated(T, np.array([[-2.0 * vs.refusal_radius_m, 0.0, 0.0]]))[0]
     sec = Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5, "local")
-    assert planner._within_limits(session, far, s, sec) is sec  # blocked only near where it was refused
+    assert within_limits(planner, session, far, s, sec) is sec  # blocked only near where it was refused
 
 
 def test_a_refusal_after_g_fell_to_zero_avoids_the_way_the_camera_came(franka):
@@ -974,7 +982,7 @@ def test_a_refusal_after_g_fell_to_zero_avoids_the_way_the_camera_came(franka):
     planner._back_off(session, Secondary(np.zeros(6), 0.0, 0.5, "local"), refusal)
     [(_, direction, _)] = planner._refused
     np.testing.assert_allclose(direction, T[:3, :3] @ [0.6, 0.8, 0.0], atol=1e-12)
-    towards = planner._within_limits(session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
+    towards = within_limits(planner, session, T, s, Secondary(np.array([0.6, 0.8, 0, 0, 0, 0.0]), 2.0, 0.5,
                                                               "local"))
     np.testing.assert_allclose(towards.g, 0.0, atol=1e-12)  # held
 
@@ -1002,7 +1010,7 @@ def test_a_camera_held_by_a_refused_direction_has_not_converged(franka, gradient
     objective = LinearObjective(gradient, at=T[:3, 3], f_at=0.05)
     for _ in range(franka.planners.vs_local.window):
         assert planner.finished(session) is None
-        sec = planner.secondary(session, T, objective)
+        sec = planner.secondary(session, T, objective, planner.limit_rows(session))
         np.testing.assert_allclose(sec.g, 0.0, atol=1e-12)
         planner.observe(sec, sec.g_norm, T[:3, 3])
     assert planner.finished(session) == ends

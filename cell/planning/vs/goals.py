@@ -222,7 +222,8 @@ class VSGlobalPlanner(ServoScanPlanner):
         super().__init__(config)
         self.goals = GoalSeeker(config)
 
-    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
+                  rows: Array) -> Secondary:
         if self.goals.done(session, T_base_cam):
             if self.goals.goal is not None:
                 self.open_entropy_window()  # the first goal reached or given up

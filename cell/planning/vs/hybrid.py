@@ -21,7 +21,8 @@ class VSHybridPlanner(ServoScanPlanner):
         self.goals = GoalSeeker(config)
         self._global_leg = False
 
-    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
+                  rows: Array) -> Secondary:
         if self._global_leg and self.goals.done(session, T_base_cam):
             self._global_leg = False
             self.local.reset()

@@ -353,12 +353,13 @@ class VSLocalPlanner(ServoScanPlanner):
         super().__init__(config)
         self.local = LocalGradient(config)
 
-    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
+                  rows: Array) -> Secondary:
         # what the camera could follow but for the refusals nearby: tells a camera they hold from one that
         # converged
         near = self._refusals_at(T_base_cam)
-        unrefused = self.follows(session, T_base_cam, refusals=False) if near else None
-        return self.local(session, T_base_cam, objective, self.follows(session, T_base_cam), unrefused)
+        unrefused = self.follows(session, T_base_cam, rows, refusals=False) if near else None
+        return self.local(session, T_base_cam, objective, self.follows(session, T_base_cam, rows), unrefused)
 
     def observe(self, secondary: Secondary, g_norm: float, position_m: Array) -> None:
         self.local.record(g_norm, position_m, secondary.refused)

@@ -195,8 +195,10 @@ class ServoScanPlanner(Planner):
                 "f_nats": round(row.f, 6), "g_norm": round(row.g_norm, 6), "mode": row.mode}
 
     @abstractmethod
-    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective) -> Secondary:
-        """The secondary task g for the current pose (called once the primary task has converged)."""
+    def secondary(self, session: ScanSession, T_base_cam: Array, objective: EntropyObjective,
+                  rows: Array) -> Secondary:
+        """The secondary task g for the current pose (called once the primary task has converged);
+        ``rows``: the arm's ``limit_rows`` there."""
 
     @abstractmethod
     def finished(self, session: ScanSession) -> str | None:
@@ -298,17 +300,24 @@ class ServoScanPlanner(Planner):
         assert self.centroid is not None
         return T_base_cam[:3, :3].T @ (self.centroid - T_base_cam[:3, 3])
 
-    def _blocked_directions(self, session: ScanSession, T_base_cam: Array, s: Array,
-                            refusals: bool = True) -> Array:
-        """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits,
-        of singular configurations and of refused motions when B g >= 0: each joint within
-        ``joint_activation_rad`` of its margin (its rate a . (P g) of eq. 1, P the primary task's
-        null-space projector, must not be towards the margin), the arm's smallest singular value once
-        below ``singular_value_activation`` (it must not fall further), and with ``refusals`` each refused
-        secondary direction d (base frame) within ``refusal_radius_m`` of where the guard refused it
-        (g . d <= 0)."""
-        rows = np.concatenate([session.joint_limit_twists(self.vs.joint_activation_rad),
+    def limit_rows(self, session: ScanSession) -> Array:
+        """Rows a (m, 6) of the arm's state now, by which a sensor twist v (sensor frame, [m/s, rad/s])
+        drives it further into a limit at a . v: each joint within ``joint_activation_rad`` of its margin
+        (``session.joint_limit_twists``), and the smallest singular value of its Jacobian once below
+        ``singular_value_activation`` (``session.singularity_twists``). ``run`` builds them once per
+        servo iteration, for the strategy's ``secondary`` and ``_within_limits``: the arm does not move
+        between the two."""
+        return np.concatenate([session.joint_limit_twists(self.vs.joint_activation_rad),
                                session.singularity_twists(self.vs.singular_value_activation)])
+
+    def _blocked_directions(self, rows: Array, T_base_cam: Array, s: Array, refusals: bool = True) -> Array:
+        """Rows B (m, 2) such that a secondary direction g (camera x, y) keeps clear of the joint limits,
+        of singular configurations and of refused motions when B g >= 0: for each of ``rows``
+        (``limit_rows``) a . (P g) of eq. 1, P the primary task's null-space projector, must not be
+        positive (a joint within ``joint_activation_rad`` of its margin must not move towards it, the
+        arm's smallest singular value below ``singular_value_activation`` must not fall further), and with
+        ``refusals`` each refused secondary direction d (base frame) within ``refusal_radius_m`` of where
+        the guard refused it (g . d <= 0)."""
         B = [-(rows @ null_space_projector(s))[:, :2]] if rows.shape[0] else []
         if refusals:
             B += [-(T_base_cam[:3, :3].T @ d)[None, :2] for _, d, _ in self._refusals_at(T_base_cam)]
@@ -320,13 +329,13 @@ class ServoScanPlanner(Planner):
         here = T_base_cam[:3, 3]
         return [r for r in self._refused if float(np.linalg.norm(here - r[0])) < self.vs.refusal_radius_m]
 
-    def follows(self, session: ScanSession, T_base_cam: Array,
+    def follows(self, session: ScanSession, T_base_cam: Array, rows: Array,
                 refusals: bool = True) -> Callable[[Array], Array]:
         """A map from a secondary direction (3,) in the camera frame to the part of it the camera can follow
         from ``T_base_cam``: without its components into the barrier planes and into the half-planes
-        ``_blocked_directions`` gives (joint limits, the edge of the reach, and with ``refusals`` refused
-        motions)."""
-        B = self._blocked_directions(session, T_base_cam, self._features(T_base_cam), refusals)
+        ``_blocked_directions`` gives (``rows``: joint limits, the edge of the reach, ``limit_rows``; and
+        with ``refusals`` refused motions)."""
+        B = self._blocked_directions(rows, T_base_cam, self._features(T_base_cam), refusals)
         activation = self.vs.barrier_activation_m
 
         def follow(v: Array) -> Array:
@@ -337,19 +346,20 @@ class ServoScanPlanner(Planner):
 
         return follow
 
-    def _within_limits(self, session: ScanSession, T_base_cam: Array, s: Array, sec: Secondary) -> Secondary:
-        """``sec`` with g projected into the set ``_blocked_directions`` allows, the camera sliding along a
-        joint limit as along a barrier plane (paper Fig. 3): g before clipping is projected, and then
-        clipped again to the norm g had, so that a strong gradient slides the camera along the limit at
-        full speed, and ||g|| before clipping, the projected one, falls below 1 when the camera is held
-        there, as at a plane. Projection onto these half-planes through the origin scales with its
-        argument: g before clipping is ``sec.g`` times ||g|| before clipping over ||``sec.g``||. A crossing
-        faster than the exploration speed slows to it near the limits g moves towards
-        (``_limits_ahead``)."""
+    def _within_limits(self, session: ScanSession, T_base_cam: Array, s: Array, sec: Secondary,
+                       rows: Array) -> Secondary:
+        """``sec`` with g projected into the set ``_blocked_directions`` allows (``rows``: ``limit_rows``),
+        the camera sliding along a joint limit as along a barrier plane (paper Fig. 3): g before clipping
+        is projected, and then clipped again to the norm g had, so that a strong gradient slides the
+        camera along the limit at full speed, and ||g|| before clipping, the projected one, falls below 1
+        when the camera is held there, as at a plane. Projection onto these half-planes through the origin
+        scales with its argument: g before clipping is ``sec.g`` times ||g|| before clipping over
+        ||``sec.g``||. A crossing faster than the exploration speed slows to it near the limits g moves
+        towards (``_limits_ahead``)."""
         if sec.speed > 1.0 and self._limits_ahead(session, T_base_cam, s, sec):
             sec = replace(sec, speed=1.0)
         norm = float(np.linalg.norm(sec.g[:2]))
-        B = self._blocked_directions(session, T_base_cam, s) if norm > 0.0 else np.zeros((0, 2))
+        B = self._blocked_directions(rows, T_base_cam, s) if norm > 0.0 else np.zeros((0, 2))
         if not B.shape[0]:
             return sec
         xy, _ = project_onto_halfspaces(sec.g[:2], B, np.zeros(B.shape[0]), np.ones(2))
@@ -417,7 +427,9 @@ class ServoScanPlanner(Planner):
             s = self._features(T)
             e = self.servo.error(s)
             if self.servo.secondary_active or self.servo.primary_converged(e):
-                sec = self._within_limits(session, T, s, self.secondary(session, T, self.objective))
+                rows = self.limit_rows(session)
+                sec = self.secondary(session, T, self.objective, rows)
+                sec = self._within_limits(session, T, s, sec, rows)
             else:
                 sec = Secondary(zero, 0.0, float(self.objective(T)), "primary")
             out, g_norm = self._command(session, T, s, sec)
