@@ -80,6 +80,23 @@ def test_object_scale_is_for_mesh_files_only(cube_mm, tmp_path):
     check_specs(specs)
 
 
+def test_a_grid_is_checked_preparing_one_scan_of_the_seeds_that_share_the_rest(monkeypatch):
+    """prepare_scan's checks other than the seed's range do not depend on the seed: a grid of two objects
+    x two planners x three seeds prepares four scans, and a bad seed among good ones is still refused."""
+    prepared = []
+
+    def counted(req):
+        prepared.append((req.object, req.planner))
+        return prepare_scan(req)
+
+    monkeypatch.setattr("cell.evaluation.spec.prepare_scan", counted)
+    cases, planners = [("cube", (0.0, 0.0, 0.0)), ("bunny", (0.0, 0.0, 0.0))], ["raster", "vs-local"]
+    check_specs(cross(str(FRANKA), cases, planners, [0, 1, 2]))
+    assert sorted(prepared) == sorted((obj, planner) for obj, _ in cases for planner in planners)
+    with pytest.raises(JobError, match="seed must be between 0 and"):
+        check_specs(cross(str(FRANKA), cases, ["raster"], [0, -1]))
+
+
 def test_a_mesh_too_small_to_be_a_part_is_refused_giving_its_size_in_millimetres(tmp_path):
     """Its size read "0.000 x 0.000 x 0.000 m"."""
     with pytest.raises(JobError, match=r"bunny is 0\.156 x 0\.121 x 0\.154 mm .* side at least 0\.01"):

@@ -36,6 +36,7 @@ import yaml
 import cell
 import drivers
 from cell.config import load_config
+from cell.jobs.inputs import check_seed
 from cell.jobs.runner import ScanRequest, prepare_scan
 from cell.planning.registry import check_planner
 from drivers.errors import CellError, ConfigError, JobError
@@ -232,8 +233,12 @@ def check_specs(specs: Sequence[ScanSpec]) -> None:
     for config in configs:
         for _, _, path in cell_file_references(config):
             file_digest(path)
+    for seed in dict.fromkeys(s.seed for s in specs):
+        check_seed(seed)
+    # Of prepare_scan's checks only the seed's range depends on the seed, and none on re-processing: one
+    # scan of each other combination tells what all its seeds would (a grid's seeds share the rest).
     with tempfile.TemporaryDirectory(prefix="cell-eval-check-") as tmp:
-        for s in dict.fromkeys(replace(s, reprocess=False) for s in specs):
+        for s in dict.fromkeys(replace(s, seed=0, reprocess=False) for s in specs):
             prepare_scan(ScanRequest(config=configs[s.config], config_path=s.config, object=s.object,
                                      object_pose=s.placement, planner=s.planner, seed=s.seed,
                                      out=Path(tmp) / "job", max_time_s=s.max_time_s,
