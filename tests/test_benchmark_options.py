@@ -2,15 +2,36 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType, SimpleNamespace
 
 import numpy as np
 import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _run(script: str, *args: str, check: bool = False,
+         timeout_s: float = 120.0) -> subprocess.CompletedProcess[str]:
+    """The benchmark ``script`` run with ``args`` as a user runs it, its output captured."""
+    return subprocess.run([sys.executable, str(BENCHMARKS / script), *args], capture_output=True, text=True,
+                          timeout=timeout_s, check=check)
+
+
+def _benchmark(monkeypatch: pytest.MonkeyPatch, name: str) -> ModuleType:
+    """The benchmark module ``name``, imported as the benchmarks import their helpers (from their folder)."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    return importlib.import_module(name)
+
+
+def _main(monkeypatch: pytest.MonkeyPatch, benchmark: ModuleType, *args: str) -> None:
+    """``benchmark.main()`` as its command line with ``args`` runs it."""
+    monkeypatch.setattr(sys, "argv", [f"{benchmark.__name__}.py", *args])
+    benchmark.main()
 
 
 @pytest.mark.parametrize(("script", "option", "expected"), [
@@ -27,8 +48,7 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 ])
 def test_a_bad_option_is_refused_in_one_line_with_exit_code_1(script: str, option: list[str],
                                                               expected: str) -> None:
-    done = subprocess.run([sys.executable, str(BENCHMARKS / script), *option], capture_output=True, text=True,
-                          timeout=120, check=False)
+    done = _run(script, *option)
     assert done.returncode == 1
     assert done.stderr.startswith(f"{script}: error: ")
     assert expected in done.stderr
@@ -42,14 +62,8 @@ def test_a_bad_option_is_refused_in_one_line_with_exit_code_1(script: str, optio
 ])
 def test_help_describes_the_benchmark_in_whole_sentences(script: str, ends: str) -> None:
     """--help shows the docstring's first paragraph, not its first line, which ends mid-sentence."""
-    done = subprocess.run([sys.executable, str(BENCHMARKS / script), "--help"], capture_output=True,
-                          text=True, timeout=120, check=True)
+    done = _run(script, "--help", check=True)
     assert ends in " ".join(done.stdout.split())
-
-
-def _map_vs_octomap(frames_dir: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, str(BENCHMARKS / "map_vs_octomap.py"), "--frames-dir",
-                           str(frames_dir)], capture_output=True, text=True, timeout=120, check=False)
 
 
 def test_map_vs_octomap_refuses_a_frames_folder_with_no_depth_frames(tmp_path: Path) -> None:
@@ -58,11 +72,11 @@ def test_map_vs_octomap_refuses_a_frames_folder_with_no_depth_frames(tmp_path: P
     missing = tmp_path / "missing"
     for folder, problem in ((missing, f"{missing} is not a folder"),
                             (tmp_path, f"{tmp_path} holds no recorded frames (*.npz, a job's frames/)")):
-        done = _map_vs_octomap(folder)
+        done = _run("map_vs_octomap.py", "--frames-dir", str(folder))
         assert done.returncode == 1
         assert done.stderr.splitlines() == [f"map_vs_octomap.py: error: --frames-dir: {problem}"]
     np.savez_compressed(tmp_path / "000000.npz", points=np.zeros((3, 3)), T_base_sensor=np.eye(4))
-    done = _map_vs_octomap(tmp_path)
+    done = _run("map_vs_octomap.py", "--frames-dir", str(tmp_path))
     assert done.returncode == 1
     assert done.stderr.splitlines() == [f"map_vs_octomap.py: error: --frames-dir: {tmp_path} holds no RGB-D "
                                         "depth frames (000000.npz has no depth image: a ToF scan's?)"]
@@ -71,8 +85,7 @@ def test_map_vs_octomap_refuses_a_frames_folder_with_no_depth_frames(tmp_path: P
 def test_eval_executors_names_the_scans_that_did_not_complete(tmp_path: Path, monkeypatch) -> None:
     """A grid whose scans failed (too short a budget) is refused, where its wall time was taken as the
     executor's and a grid with none completed ended in a ZeroDivisionError."""
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    from eval_executors import not_completed
+    not_completed = _benchmark(monkeypatch, "eval_executors").not_completed
 
     from cell.evaluation.grid import RESULTS_CSV
     from cell.evaluation.results import COLUMNS, csv_text
@@ -89,12 +102,11 @@ def test_eval_executors_names_the_scans_that_did_not_complete(tmp_path: Path, mo
 
 
 def test_interleaved_repeats_alternate_which_side_runs_first_and_give_the_spread(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    from interleaved import compared, in_turn
+    interleaved = _benchmark(monkeypatch, "interleaved")
 
-    assert [in_turn(r, ("this", "reference")) for r in range(3)] == [
+    assert [interleaved.in_turn(r, ("this", "reference")) for r in range(3)] == [
         ["this", "reference"], ["reference", "this"], ["this", "reference"]]
-    c = compared([2.0, 3.0, 9.0], [4.0, 3.0, 6.0])
+    c = interleaved.compared([2.0, 3.0, 9.0], [4.0, 3.0, 6.0])
     # the repeats' own ratios are 0.5, 1.0 and 1.5: their median, where the medians' ratio is 3 / 4
     assert (c.this, c.reference, c.ratio, c.ratio_min, c.ratio_max) == (3.0, 4.0, 1.0, 0.5, 1.5)
     assert c.ratios() == {"ratio": 1.0, "ratio_range": [0.5, 1.5]}
@@ -104,40 +116,40 @@ def test_interleaved_repeats_alternate_which_side_runs_first_and_give_the_spread
 def test_guard_tick_judges_the_goal_per_kind_of_tick_on_its_cpu_p99(monkeypatch) -> None:
     """1 ms per tick is a deadline: 97 `bound` ticks of 0.4 ms and 3 of 2 ms miss it on the p99 (the median
     passed them); the `fcl` ticks keep it in CPU time, however long their wall time."""
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    from guard_tick import Tick, figures
+    guard_tick = _benchmark(monkeypatch, "guard_tick")
+    Tick = guard_tick.Tick
 
     fast, slow = Tick(0.0004, 0.0005, checked=True, measured=False), Tick(0.002, 0.002, True, False)
     ticks = [*[fast] * 97, *[slow] * 3, Tick(0.0009, 0.003, True, True), Tick(0.0008, 0.0012, True, True)]
-    judged = figures(ticks)
+    judged = guard_tick.figures(ticks)
     assert {kind: f["goal_met"] for kind, f in judged.items()} == {"bound": False, "fcl": True}
 
 
 def test_soak_prints_its_figures_as_one_line_of_json_last() -> None:
     """As the other benchmarks do (their docstrings promise it), where it printed them indented over many
     lines."""
-    done = subprocess.run([sys.executable, str(BENCHMARKS / "soak.py"), "--jobs", "1", "--warmup", "1",
-                           "--only", "in_process", "--max-time", "2"], capture_output=True, text=True,
-                          timeout=300, check=True)
+    done = _run("soak.py", "--jobs", "1", "--warmup", "1", "--only", "in_process", "--max-time", "2",
+                check=True, timeout_s=300.0)
     assert json.loads(done.stdout.splitlines()[-1])["in_process"]["jobs"] == 1
 
 
 def test_safety_soak_too_short_for_a_move_reports_none() -> None:
     """20 commands of seed 0 on the UR5e send no move: 0 moves, where the summary line's KeyError ended it."""
-    done = subprocess.run([sys.executable, str(BENCHMARKS / "safety_soak.py"), "--commands", "20", "--robot",
-                           "ur5e"], capture_output=True, text=True, timeout=300, check=True)
+    done = _run("safety_soak.py", "--commands", "20", "--robot", "ur5e", check=True, timeout_s=300.0)
     assert json.loads(done.stdout.splitlines()[-1])["robots"][0]["moves"] == 0
 
 
-def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypatch, tmp_path: Path) -> None:
-    """A listing of 0.4 ms is 0.0004 s to the ratio, where rounding to 3 decimals made it 0.0 (a ratio
-    dividing by zero) and moved millisecond figures by up to half."""
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import object_uploads
+def _object_uploads_served_by_nothing(monkeypatch: pytest.MonkeyPatch) -> tuple[ModuleType, list[Path]]:
+    """The object_uploads benchmark with no service behind it (its ``Served`` and ``create_key``
+    replaced): an upload does nothing and a listing takes 0.4 ms. Returns the module, and the list of the
+    checkouts a service is started from, in order."""
+    object_uploads = _benchmark(monkeypatch, "object_uploads")
+    started: list[Path] = []
 
     class Served:
-        def __init__(self, *args: object) -> None:
-            self.proc = type("Proc", (), {"pid": 0})
+        def __init__(self, tree: Path, *args: object) -> None:
+            started.append(tree)
+            self.proc = SimpleNamespace(pid=0)
 
         def upload(self, path: Path) -> None:
             pass
@@ -149,8 +161,15 @@ def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypat
             pass
 
     monkeypatch.setattr(object_uploads, "Served", Served)
-    monkeypatch.setattr(object_uploads, "rss_mib", lambda pid: 100.0004)
     monkeypatch.setattr(object_uploads, "create_key", lambda *args, **kwargs: "key")
+    return object_uploads, started
+
+
+def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypatch, tmp_path: Path) -> None:
+    """A listing of 0.4 ms is 0.0004 s to the ratio, where rounding to 3 decimals made it 0.0 (a ratio
+    dividing by zero) and moved millisecond figures by up to half."""
+    object_uploads, _ = _object_uploads_served_by_nothing(monkeypatch)
+    monkeypatch.setattr(object_uploads, "rss_mib", lambda pid: 100.0004)
     monkeypatch.setattr(object_uploads.time, "sleep", lambda s: None)
     figures = object_uploads.measure("this", tmp_path, [tmp_path / "a.stl"], [tmp_path / "b.stl"])
     assert figures["first_list_s"] == 0.0004
@@ -160,9 +179,7 @@ def test_object_uploads_keeps_its_figures_unrounded_for_the_comparison(monkeypat
 def test_calibration_accuracy_takes_a_largest_error_of_zero() -> None:
     """--max-mm 0 and --max-deg 0 (a mount believed exactly) are values of their own, where they were
     refused as not above 0 (the options are read in order, so --help after them exits 0 only if taken)."""
-    done = subprocess.run([sys.executable, str(BENCHMARKS / "calibration_accuracy.py"), "--max-mm", "0",
-                           "--max-deg", "0", "--help"], capture_output=True, text=True, timeout=120,
-                          check=False)
+    done = _run("calibration_accuracy.py", "--max-mm", "0", "--max-deg", "0", "--help")
     assert done.returncode == 0, done.stderr
 
 
@@ -176,8 +193,7 @@ def _checkout(folder: Path) -> Path:
 def test_eval_executors_alternates_the_attached_ray_too(monkeypatch, tmp_path: Path, capsys) -> None:
     """With --attached the three take turns in an order reversed every repeat, where the attached Ray always
     ran last; Ray's throughput is the median of the repeats' pool / Ray, with its range."""
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import eval_executors
+    eval_executors = _benchmark(monkeypatch, "eval_executors")
 
     from cell.evaluation.grid import RESULTS_CSV
 
@@ -196,8 +212,7 @@ def test_eval_executors_alternates_the_attached_ray_too(monkeypatch, tmp_path: P
     monkeypatch.setattr(eval_executors, "timed_attached",
                         lambda jobs, specs, out: (1.0, ran("attached", out)))
     monkeypatch.setattr(eval_executors, "not_completed", lambda out: None)
-    monkeypatch.setattr(sys, "argv", ["eval_executors.py", "--repeats", "2", "--attached"])
-    eval_executors.main()
+    _main(monkeypatch, eval_executors, "--repeats", "2", "--attached")
     assert order == ["pool", "ray", "attached", "attached", "ray", "pool"]
     report = json.loads(capsys.readouterr().out.splitlines()[-1])
     # pool 10 and 20 s, Ray 20 and 30 s: pool / Ray 0.5 and 0.667
@@ -207,14 +222,12 @@ def test_eval_executors_alternates_the_attached_ray_too(monkeypatch, tmp_path: P
 
 def test_serve_startup_warms_each_tree_then_alternates_which_starts_first(monkeypatch, tmp_path: Path,
                                                                            capsys) -> None:
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import serve_startup
+    serve_startup = _benchmark(monkeypatch, "serve_startup")
 
     reference = _checkout(tmp_path / "ref")
     started: list[Path] = []
     monkeypatch.setattr(serve_startup, "time_to_healthz", lambda tree: started.append(tree) or 1.0)
-    monkeypatch.setattr(sys, "argv", ["serve_startup.py", "--repeats", "2", "--reference", str(reference)])
-    serve_startup.main()
+    _main(monkeypatch, serve_startup, "--repeats", "2", "--reference", str(reference))
     this = serve_startup.REPO
     assert started == [this, reference, this, reference, reference, this]  # the first two untimed
     assert json.loads(capsys.readouterr().out.splitlines()[-1])["runs"] == {"this": [1.0, 1.0],
@@ -222,39 +235,25 @@ def test_serve_startup_warms_each_tree_then_alternates_which_starts_first(monkey
 
 
 def test_object_uploads_warms_each_tree_then_alternates_which_runs_first(monkeypatch, tmp_path: Path) -> None:
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import object_uploads
-
+    object_uploads, warmed = _object_uploads_served_by_nothing(monkeypatch)
     reference = _checkout(tmp_path / "ref")
-    warmed: list[Path] = []
     measured: list[Path] = []
-
-    class Served:
-        def __init__(self, tree: Path, *args: object, **kwargs: object) -> None:
-            warmed.append(tree)
-
-        def close(self) -> None:
-            pass
 
     def measure(name: str, tree: Path, meshes: list[Path], more: list[Path]) -> dict[str, float]:
         measured.append(tree)
         return {"first_list_s": 1.0}
 
-    monkeypatch.setattr(object_uploads, "Served", Served)
-    monkeypatch.setattr(object_uploads, "create_key", lambda *args, **kwargs: "key")
     monkeypatch.setattr(object_uploads, "measure", measure)
     monkeypatch.setattr(object_uploads, "write_meshes",
                         lambda folder, n: [folder / f"{i}.stl" for i in range(n)])
-    monkeypatch.setattr(sys, "argv", ["object_uploads.py", "--reference", str(reference)])
-    object_uploads.main()
+    _main(monkeypatch, object_uploads, "--reference", str(reference))
     this = object_uploads.REPO
     assert warmed == [this, reference]
     assert measured == [this, reference, reference, this]  # the default --repeats, 2
 
 
 def test_ik_solve_alternates_which_implementation_runs_first(monkeypatch) -> None:
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import ik_solve
+    ik_solve = _benchmark(monkeypatch, "ik_solve")
 
     solved: list[str] = []
     timed: list[str] = []
@@ -265,8 +264,7 @@ def test_ik_solve_alternates_which_implementation_runs_first(monkeypatch) -> Non
 
     monkeypatch.setattr(ik_solve, "solve_all", solve_all)
     monkeypatch.setattr(ik_solve, "per_call_us", lambda fn: timed.append(fn) or 1.0)
-    monkeypatch.setattr(sys, "argv", ["ik_solve.py", "--goals", "1", "--repeats", "2"])
-    ik_solve.main()
+    _main(monkeypatch, ik_solve, "--goals", "1", "--repeats", "2")
     # an untimed warm-up of each model, then repeat 0 (UR5e, Panda), then repeat 1 in the other order
     assert solved == ["closed", "scipy"] * 4 + ["scipy", "closed"] * 2
     # the first primitive: closed form then SciPy in repeat 0, SciPy then closed form in repeat 1

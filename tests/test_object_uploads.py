@@ -6,9 +6,8 @@ serve``), never a shipped object nor one a queued or running job scans."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from cell.service.store import JobRecord
 from drivers.errors import JobError, ServiceError
 from drivers.sim.objects import ObjectMesh, load_object
 from tests.conftest import FRANKA
-from tests.service_process import ServedCell
+from tests.service_process import ServedCell, submit
 
 CONFIG = load_config(FRANKA)
 
@@ -167,40 +166,34 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServedCell]:
         yield cell
 
 
-def _calls(cell: ServedCell, role: str) -> Callable[..., Any]:
-    def call(method: str, path: str, **kwargs: Any) -> Any:
-        with cell.client(role) as client:
-            return client.request(method, path, **kwargs)
-    return call
-
-
 def test_an_operator_deletes_an_upload_but_not_a_shipped_object_nor_one_a_queued_job_scans(
         served: ServedCell, tmp_path: Path) -> None:
-    operator, viewer = _calls(served, "operator"), _calls(served, "viewer")
     crate = tmp_path / "crate.ply"
     trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(crate)
     upload = {"file": (crate.name, crate.read_bytes())}
-    assert operator("POST", "/api/v1/objects", files=upload).status_code == 201
+    with served.client("operator") as operator, served.client("viewer") as viewer:
+        assert operator.post("/api/v1/objects", files=upload).status_code == 201
 
-    assert viewer("DELETE", "/api/v1/objects/crate").status_code == 403
-    shipped = operator("DELETE", "/api/v1/objects/bunny")
-    assert shipped.status_code == 409 and "shipped with the cell" in shipped.json()["detail"]
-    assert operator("DELETE", "/api/v1/objects/nothing").status_code == 404
+        assert viewer.delete("/api/v1/objects/crate").status_code == 403
+        shipped = operator.delete("/api/v1/objects/bunny")
+        assert shipped.status_code == 409 and "shipped with the cell" in shipped.json()["detail"]
+        assert operator.delete("/api/v1/objects/nothing").status_code == 404
 
-    # a STOP holds the queue: the job waits, queued, for its object
-    assert operator("POST", "/api/v1/stop", json={"reason": "uploads test"}).status_code == 200
-    try:
-        job = operator("POST", "/api/v1/jobs", json={"object": "crate", "max_time_s": 1.0}).json()
-        busy = operator("DELETE", "/api/v1/objects/crate")
-        assert busy.status_code == 409, busy.text
-        assert job["id"] in busy.json()["detail"] and "queued or running" in busy.json()["detail"]
-        assert operator("DELETE", f"/api/v1/jobs/{job['id']}").json()["status"] == "cancelled"
-    finally:
-        operator("POST", "/api/v1/queue/resume")
+        # a STOP holds the queue: the job waits, queued, for its object
+        assert operator.post("/api/v1/stop", json={"reason": "uploads test"}).status_code == 200
+        try:
+            job = submit(served, object="crate", max_time_s=1.0)
+            busy = operator.delete("/api/v1/objects/crate")
+            assert busy.status_code == 409, busy.text
+            assert job["id"] in busy.json()["detail"] and "queued or running" in busy.json()["detail"]
+            assert operator.delete(f"/api/v1/jobs/{job['id']}").json()["status"] == "cancelled"
+        finally:
+            operator.post("/api/v1/queue/resume")
 
-    gone = _calls(served, "admin")("DELETE", "/api/v1/objects/crate")
-    assert gone.status_code == 204 and gone.content == b""
-    assert "crate" not in {o["name"] for o in viewer("GET", "/api/v1/objects").json()}
-    assert not list((served.data_dir / "objects").glob("crate.*"))
-    # the name is free again
-    assert operator("POST", "/api/v1/objects", files=upload).status_code == 201
+        with served.client("admin") as admin:
+            gone = admin.delete("/api/v1/objects/crate")
+        assert gone.status_code == 204 and gone.content == b""
+        assert "crate" not in {o["name"] for o in viewer.get("/api/v1/objects").json()}
+        assert not list((served.data_dir / "objects").glob("crate.*"))
+        # the name is free again
+        assert operator.post("/api/v1/objects", files=upload).status_code == 201
