@@ -113,6 +113,15 @@ def test_seen_cells_on_the_arm_s_way_are_an_obstacle_but_where_the_arm_stands(mo
     path_hit = world.check_path(np.array([q_home, q_down]), 0.02)
     assert path_hit is not None and path_hit[1].body_b == "seen obstacle"
     assert world.check(q_home) is None  # the cells at the arm were left out
+    # the same cells again keep the body, and the distances the way ahead keeps with it: the next check
+    # measures only what every check measures
+    assert world.check_motion(q_home, q_home) is None
+    before = world.n_distances
+    world.check_motion(q_home, q_home)
+    every_check = world.n_distances - before
+    world.set_seen(seen.outside(None), q_free=q_home)
+    before = world.n_distances
+    assert world.check_motion(q_home, q_home) is None and world.n_distances - before == every_check
     world.set_seen(None)
     assert world.check_motion(q_home, q_down) is None
 

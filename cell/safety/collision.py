@@ -242,6 +242,7 @@ class CollisionWorld:
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
         self._seen: _Static | None = None
+        self._seen_keys: NDArray[np.int64] | None = None  # the cells of the seen obstacles' body
         self._reference: _Reference | None = None
         self.n_motion_checks = 0
         """Calls of :meth:`check_motion` so far (``benchmarks/guard_tick.py`` tells ticks apart by them)."""
@@ -337,19 +338,21 @@ class CollisionWorld:
         within ``ROI_ARM_CLEARANCE_M`` of them are left out (:meth:`_near_arm`), and the arm may move on
         from where it stands. Returns the number of cells left out so."""
         if cells is None or len(cells) == 0:
-            self._seen = None
+            self._seen = self._seen_keys = None
             return 0
         near = np.zeros(len(cells), dtype=bool) if q_free is None else self._near_arm(
             cells.centers(), cells.voxel_m, np.asarray(q_free, dtype=float))
-        if np.all(near):
-            self._seen = None
-            return int(near.size)
-        vertices, triangles = (cells.without(near) if np.any(near) else cells).surface
-        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-        T = np.eye(4)
-        T[:3, 3] = (lo + hi) / 2.0
-        self._seen = self._static("seen obstacle", mesh_bvh(vertices - T[:3, 3], triangles), T,
-                                  float(np.linalg.norm(hi - lo) / 2.0))
+        kept = cells.without(near) if np.any(near) else cells
+        if self._seen_keys is not None and np.array_equal(kept.keys, self._seen_keys):
+            return int(np.count_nonzero(near))  # the same body: the path references stay good
+        self._seen, self._seen_keys = None, kept.keys
+        if len(kept):
+            vertices, triangles = kept.surface
+            lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+            T = np.eye(4)
+            T[:3, 3] = (lo + hi) / 2.0
+            self._seen = self._static("seen obstacle", mesh_bvh(vertices - T[:3, 3], triangles), T,
+                                      float(np.linalg.norm(hi - lo) / 2.0))
         return int(np.count_nonzero(near))
 
     def _near_arm(self, points: Array, voxel_m: float, q: Array) -> NDArray[np.bool_]:
