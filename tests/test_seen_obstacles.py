@@ -8,17 +8,22 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import fcl
 import numpy as np
 import pytest
 
 from cell.config import load_config
 from cell.perception.pipeline import PerceptionPipeline
 from cell.perception.seen_obstacles import SeenObstacles, sample_pitch_rad
-from cell.safety.collision import CollisionWorld
+from cell.safety.collision import ROI_ARM_CLEARANCE_M, CollisionWorld
 from drivers.depth.base import DepthFrame, ToFZones
+from drivers.fcl_bodies import fcl_transform
 from drivers.robots import get_robot_model
 
+from .conftest import CONFIG_DIR
 from .safety_rig import CELLS
+
+TOF = CONFIG_DIR / "sim-ur5e-tof.yaml"
 
 G = 0.01  # the grid's edge [m] in these tests
 
@@ -30,17 +35,19 @@ def _looking_down(height_m: float) -> np.ndarray:
     return T
 
 
-def test_only_returns_above_the_table_band_and_their_noise_mark_cells() -> None:
-    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+def test_only_returns_over_the_table_and_above_its_band_and_noise_mark_cells() -> None:
     T = _looking_down(0.5)
-    # 4 mm, 8 mm and 50 mm above the table, straight below the sensor
-    points = np.array([[0.0, 0.0, 0.496], [0.1, 0.0, 0.492], [0.2, 0.0, 0.45]])
+    # 4 mm, 8 mm, 50 mm and 30 mm above the table, the last beyond its edge (x 0.3 m)
+    points = np.array([[0.0, 0.0, 0.496], [0.1, 0.0, 0.492], [0.2, 0.0, 0.45], [0.35, 0.0, 0.47]])
+    footprint = (np.array([-0.3, -0.3]), np.array([0.3, 0.3]))
+    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006, table_xy_m=footprint)
     seen.add(points, T, pitch_rad=0.0)
     assert np.allclose(seen.outside(None).centers(), [[0.105, 0.005, 0.005], [0.205, 0.005, 0.045]])
-    # a range sigma of 5 mm lifts the band by 15 mm: only the return 50 mm up is left
-    ranged = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
-    ranged.add(points, T, pitch_rad=0.0, sigma_m=np.full(3, 0.005))
-    assert len(ranged.outside(None)) == 1
+    # a median range sigma of 5 mm lifts the band by 15 mm: only the return 50 mm up is left, however
+    # large its own sigma (a zone on a part's edge), and a zone without one changes nothing
+    ranged = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006, table_xy_m=footprint)
+    ranged.add(points, T, pitch_rad=0.0, sigma_m=np.array([0.005, 0.005, 0.05, np.nan]))
+    assert np.allclose(ranged.outside(None).centers(), [[0.205, 0.005, 0.045]])
 
 
 def test_a_sparse_sensor_s_return_stands_for_the_gap_to_its_neighbours() -> None:
@@ -57,15 +64,14 @@ def test_a_sparse_sensor_s_return_stands_for_the_gap_to_its_neighbours() -> None
     assert len(dense.outside(None)) == 1
 
 
-def test_what_lies_within_its_reach_of_the_roi_is_the_object_s() -> None:
+def test_what_lies_within_a_cell_of_the_roi_is_the_object_s_and_a_part_beside_it_is_not() -> None:
     seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
-    # a return 2.5 cm beside a ROI box and one 10 cm from it, each 3.2-3.3 cm from its neighbours (a reach
-    # of 2 cells)
-    seen.add(np.array([[0.025, 0.0, 0.4], [0.10, 0.0, 0.4]]), _looking_down(0.5), pitch_rad=0.08)
+    # returns 5 mm and 2.5 cm beside a ROI box, each 3.2-3.3 cm from its neighbours (a reach of 2 cells)
+    seen.add(np.array([[0.005, 0.0, 0.4], [0.025, 0.0, 0.4]]), _looking_down(0.5), pitch_rad=0.08)
     roi = (np.array([-0.05, -0.05, 0.0]), np.array([0.0, 0.05, 0.1]))
     kept = seen.outside(roi).centers()
-    assert len(kept) == 5 ** 3 and np.all(kept[:, 0] > 0.07)
-    assert len(seen.outside(None)) == 2 * 5 ** 3
+    assert len(kept) == 5 ** 3 and kept[:, 0].min() == pytest.approx(0.005)
+    assert len(seen.outside(None)) == 7 * 5 * 5
 
 
 def test_the_surface_of_the_cells_is_their_union_s_boundary() -> None:
@@ -104,7 +110,7 @@ def test_seen_cells_on_the_arm_s_way_are_an_obstacle_but_where_the_arm_stands(mo
         assert world.check_motion(q_home, q_down) is None
     seen = SeenObstacles(G, table_z_m=cfg.station.table_z_m, table_band_m=0.006)
     flange = model.fk(q_home)[:3, 3]
-    column = flange - np.column_stack([np.zeros((40, 2)), np.linspace(0.05, 0.3, 40)])
+    column = flange - np.column_stack([np.zeros((40, 2)), np.linspace(0.0, 0.3, 40)])
     seen.add(column, np.eye(4), pitch_rad=0.0)
     cells = seen.outside(None)
     assert world.set_seen(cells, q_free=q_home) > 0
@@ -126,6 +132,35 @@ def test_seen_cells_on_the_arm_s_way_are_an_obstacle_but_where_the_arm_stands(mo
     assert world.check_motion(q_home, q_down) is None
 
 
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_the_cells_left_out_are_those_the_arm_s_bodies_come_within_its_clearance_of(model_name: str) -> None:
+    """Cells all about the arm at home: exactly those whose cube one of its bodies (links and tool, FCL's
+    distance) comes within ``ROI_ARM_CLEARANCE_M`` of are left out, not every one a ball about the cube
+    reaches."""
+    cfg = load_config(CELLS[model_name])
+    model = get_robot_model(model_name)
+    world = CollisionWorld(model, cfg.safety.collision, cfg.station.table_z_m)
+    q = np.asarray(cfg.arm.home_joints_rad)
+    frames = model.fk_all(q)
+    bodies = [(b.geometry, frames[b.frame] @ b.T_frame_body) for b in world.arm_bodies()]
+    anchors = np.array([T[:3, 3] for _, T in bodies])
+    rng = np.random.default_rng(3)
+    points = (anchors[rng.integers(0, len(anchors), 400)] + rng.uniform(-0.12, 0.12, (400, 3)))
+    seen = SeenObstacles(G, table_z_m=-1.0, table_band_m=0.0)
+    seen.add(points, np.eye(4), pitch_rad=0.0)
+    cells = seen.outside(None)
+    cube = fcl.Box(G, G, G)
+
+    def touches(center: np.ndarray) -> bool:
+        cell = fcl.CollisionObject(cube, fcl.Transform(center))
+        return any(fcl.distance(fcl.CollisionObject(geometry, fcl_transform(T)), cell, fcl.DistanceRequest(),
+                                fcl.DistanceResult()) <= ROI_ARM_CLEARANCE_M for geometry, T in bodies)
+
+    expected = sum(touches(c) for c in cells.centers())
+    assert 0 < expected < len(cells)
+    assert world.set_seen(cells, q_free=q) == expected
+
+
 def test_a_survey_adds_to_the_seen_cells_only_and_a_frame_s_update_keeps_those_outside_its_crop_box() -> None:
     cfg = load_config(CELLS["panda"])
     pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=cfg.sensor.range_max_m,
@@ -139,6 +174,30 @@ def test_a_survey_adds_to_the_seen_cells_only_and_a_frame_s_update_keeps_those_o
     update = pipeline.process(DepthFrame(1, 1.0, np.vstack([table, [[-0.3, 0.1, 0.3]]])), T)
     assert len(update.seen) == 2 and update.roi is None
     assert pipeline.cloud.points.shape[0] > 0 and np.all(np.abs(pipeline.cloud.points[:, 0]) < 0.06)
+
+
+def test_a_tof_frame_s_sigmas_lift_the_band_by_their_median() -> None:
+    """An 8x8 frame straight down from 40 cm onto the table (ToF cell: band 12 mm), zone sigmas 5 mm: a
+    zone 2 cm up stays below the band's 27 mm, one 4 cm up with a 3 cm sigma of its own (an edge) counts."""
+    cfg = load_config(TOF)
+    pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=cfg.sensor.range_max_m,
+                                  rng=np.random.default_rng(0))
+    angles = np.radians(np.arange(-3.5, 4.0) * 45.0 / 8.0)
+    ax, ay = np.meshgrid(angles, angles)
+    directions = np.column_stack([np.tan(ax).ravel(), np.tan(ay).ravel(), np.ones(64)])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    distance = 0.4 / directions[:, 2]
+    sigma = np.full(64, 0.005)
+    distance[27], distance[36], sigma[36] = distance[27] * 0.95, distance[36] * 0.9, 0.03
+    zones = ToFZones(distance_m=distance, sigma_m=sigma, status=np.full(64, 5, dtype=np.uint8),
+                     nb_targets=np.ones(64, dtype=np.uint8), reflectance_pct=np.full(64, 50.0),
+                     directions=directions)
+    frame = DepthFrame(0, 0.0, distance[:, None] * directions, zones=zones)
+    cells = pipeline.survey(frame, _looking_down(0.4))
+    # the one zone 4 cm up, grown by its reach (3.5 cm to its neighbours: 2 cells)
+    assert len(cells) == 5 ** 3
+    top = 0.4 - distance[36] * directions[36, 2]
+    assert np.mean(cells.centers()[:, 2]) == pytest.approx(np.floor(top / G) * G + G / 2)
 
 
 def test_a_part_off_the_station_where_the_first_view_goes_is_not_run_into(tmp_path: Path) -> None:

@@ -129,12 +129,12 @@ class PerceptionConfig(StrictModel):
     voxel size [m] of filtering and accumulation (2.5 mm), the rate [Hz] at which frames are taken while
     the arm moves (sim time in sim mode; the paper ran at 0.7-1.3 Hz), and each stage's parameters.
 
-    ``seen_obstacle_voxel_m``: the edge [m] of the grid on which every return above the table, before the
-    crop box, is kept for the guard as an obstacle outside the object's ROI
+    ``seen_obstacle_voxel_m``: the edge [m] of the grid on which every return standing on the table,
+    before the crop box, is kept for the guard as an obstacle outside the object's ROI
     (``cell.perception.seen_obstacles``). 1 cm: the guard's own clearances are centimetres (the ROI's
     margin is 2 cm), a grid no finer than that adds at most a cell to every side of what was seen, and a
-    part the size of the shipped objects is a few thousand cells, whose mesh the guard builds per update in
-    milliseconds."""
+    part the size of the shipped objects is hundreds to a few thousand cells, whose mesh perception builds
+    with every update."""
 
     crop_box: CropBoxConfig
     voxel_m: VoxelEdge = 0.0025

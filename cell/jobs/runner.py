@@ -388,7 +388,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             h_roi_entropy = cfg.planners.vs.objective.entropy
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng,
-                                            h_roi_entropy=h_roi_entropy)
+                                            h_roi_entropy=h_roi_entropy,
+                                            table_xy_m=cfg.safety.collision.table.footprint_m())
             recorder.log(clock.now(), f"H_ROI (eq. 12) reported in its {h_roi_entropy} form "
                                       "(planners.vs.objective.entropy, whatever the planner)")
             coverage = CloudCoverage(ground_truth) if ground_truth is not None else None

@@ -612,19 +612,23 @@ class JobSession:
         way to the first view is otherwise checked against the table and the configured obstacles alone,
         and a part put off the station may stand on it. The frame is not one of the scan's: it is neither
         recorded nor counted."""
+        frame = self._fresh_frame()
         state = self._guard.state()
-        frame = self._sensor.capture()
         cells = self.perception.survey(frame, state.T_base_flange @ self._T_flange_sensor)
         self._guard.set_seen(cells, q_free=state.q)
         self.log(f"survey from home: {len(cells)} cells of {cells.voxel_m * 100:g} cm seen above the table, "
                  "obstacles until the object is found among them")
 
     def capture(self) -> int:
-        """One frame at the current pose through perception. On the wall clock a frame stamped before
-        the call (e.g. queued by the device while the arm moved) is skipped; while asynchronous capture
-        runs, this waits for its next update instead."""
+        """One frame at the current pose through perception (:meth:`_fresh_frame`); while asynchronous
+        capture runs, this waits for its next update instead."""
         if self._live is not None:
             return self._next_live_update()
+        return self._ingest(self._fresh_frame(), self._guard.state().T_base_flange)
+
+    def _fresh_frame(self) -> DepthFrame:
+        """The sensor's frame, on the wall clock one stamped no earlier than this call: one queued by the
+        device while the arm moved is skipped."""
         asked = self.now()
         frame = self._sensor.capture()
         deadline = asked + STALE_FRAME_TIMEOUT_S
@@ -634,7 +638,7 @@ class JobSession:
                                   f"{STALE_FRAME_TIMEOUT_S:g} s (newest at {frame.timestamp:.3f} s)",
                                   device=self._sensor.device)
             frame = self._sensor.capture()
-        return self._ingest(frame, self._guard.state().T_base_flange)
+        return frame
 
     def _next_live_update(self) -> int:
         assert self._live is not None

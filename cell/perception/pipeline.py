@@ -93,12 +93,16 @@ class PerceptionPipeline:
     objective's (``planners.vs.objective.entropy``), so that what it reports is what the servo planners'
     termination judges (``ServoScanPlanner.entropy_settled``), computed once per capture. A servo planner
     refuses an update in another form (``PlanningError``), so a pipeline built with the default ``paper``
-    cannot silently change that termination."""
+    cannot silently change that termination. ``table_xy_m``: the table's footprint, its lower and upper
+    (x, y) corners [m, base frame], over which what stands above the table is kept for the guard
+    (``cell.perception.seen_obstacles``; None: anywhere)."""
 
     def __init__(self, config: PerceptionConfig, *, table_z_m: float, range_max_m: float,
-                 rng: np.random.Generator, h_roi_entropy: EntropyForm = "paper") -> None:
+                 rng: np.random.Generator, h_roi_entropy: EntropyForm = "paper",
+                 table_xy_m: tuple[Array, Array] | None = None) -> None:
         self.config = config
         self.table_z_m = table_z_m
+        self.table_xy_m = table_xy_m
         self.range_max_m = range_max_m
         self.h_roi_entropy: EntropyForm = h_roi_entropy
         self.cloud = CloudAccumulator(config.voxel_m)
@@ -106,16 +110,16 @@ class PerceptionPipeline:
         self._target = RegistrationTarget(config.registration)
         self.extent = ObjectExtent()
         self.seen = SeenObstacles(config.seen_obstacle_voxel_m, table_z_m,
-                                  config.segmentation.plane_distance_m)
+                                  config.segmentation.plane_distance_m, table_xy_m)
         self._rng = rng
         self.latest: PerceptionUpdate | None = None
         self.stage_times = StageTimes()
 
     def empty_like(self, rng: np.random.Generator) -> PerceptionPipeline:
-        """A pipeline that has seen nothing, of this one's settings (configuration, table height, range,
-        H_ROI form), segmenting with ``rng``: what a rebuild of this one's captures starts from."""
+        """A pipeline that has seen nothing, of this one's settings (configuration, table, range, H_ROI
+        form), segmenting with ``rng``: what a rebuild of this one's captures starts from."""
         return PerceptionPipeline(self.config, table_z_m=self.table_z_m, range_max_m=self.range_max_m,
-                                  rng=rng, h_roi_entropy=self.h_roi_entropy)
+                                  rng=rng, h_roi_entropy=self.h_roi_entropy, table_xy_m=self.table_xy_m)
 
     def _returns(self, frame: DepthFrame) -> tuple[Array, Array | None]:
         """The frame's returns (N, 3) [m, sensor frame], for the ToF only its zones that hold a range

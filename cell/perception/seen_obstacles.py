@@ -7,19 +7,24 @@ object's ROI and the configured obstacles, would let the arm run into it. So eve
 before the crop, that stands above the table is kept here on a coarse grid (base frame), and the guard
 treats what lies outside the object's ROI as an obstacle (``CollisionWorld.set_seen``).
 
-A return counts as standing above the table when it lies higher than segmentation's table band
-(``perception.segmentation.plane_distance_m``, the height below which segmentation takes a point for the
-table) plus three times its range sigma when the sensor reports one (a ToF zone's ``sigma_m``): the table's
-own returns, noise included, stay out, and so does a zone whose range is the spread of two surfaces.
+A return counts as standing on the table when it lies over the table's footprint (beyond its edges, a
+wall is the configured obstacles' and the workspace's to keep the arm from, and the room's far returns,
+each grown by its reach, would only cost cells) and
+higher than segmentation's table band (``perception.segmentation.plane_distance_m``, the height below
+which segmentation takes a point for the table) plus, for a sensor that reports range sigmas (a ToF
+zone's ``sigma_m``), three times the frame's median sigma: the table's own returns, noise included, stay
+out. The frame's median stands for its range noise; a single zone's sigma also holds the spread of the
+surfaces it straddles, which is what a part's edge, or a curved part seen from afar, looks like.
 
 A return marks the cell of the grid it falls in. The returns of a sparse sensor lie further apart than a
 cell (the 8x8 ToF: a zone's pitch, 45 deg / 8, is 2.9 cm at 0.3 m), and an obstacle between two zones'
 central rays would fall through the gaps: such a return also marks the cells within half the gap to its
-neighbours (its reach, in cells). What lies near the object's ROI is the object's, which the guard's ROI
-holds (:meth:`SeenObstacles.outside`).
+neighbours along each axis (its reach, in cells). What lies within a cell of the object's ROI is the
+object's, which the guard's ROI holds (:meth:`SeenObstacles.outside`).
 
-Nothing is ever removed: a cell once seen stays an obstacle for the rest of the scan (a part does not walk
-away, and the arm stops before a phantom as it would before a part).
+Nothing seen is ever forgotten: a cell stays an obstacle for the rest of the scan (a part does not walk
+away, and the arm stops before a phantom as it would before a part), but for the cells the arm stands in
+when an update comes, which the guard leaves out.
 """
 
 from __future__ import annotations
@@ -27,18 +32,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
+import fcl
 import numpy as np
 from numpy.typing import NDArray
 
 from cell.perception.cloud import key_steps, point_keys, unpack_keys
 from drivers.depth.base import DepthFrame
+from drivers.fcl_bodies import mesh_bvh
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 SIGMA_BAND = 3.0
-"""Range sigmas [1] above the table band a return must stand to count: a table return's range noise
-passes it once in about 700 (one-sided Gaussian tail)."""
+"""The frame's median range sigmas [1] above the table band a return must stand to count: a table return's
+range noise passes it once in about 700 (one-sided Gaussian tail)."""
 
 
 _FACES = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
@@ -50,7 +57,7 @@ class SeenCells:
     """Cells seen occupied: ``keys`` (M,) their packed indices (``cell.perception.cloud.point_keys``), sorted
     and distinct, on the ``voxel_m`` [m] grid anchored at the base frame's origin (cell i spans
     ``i * voxel_m`` to ``(i + 1) * voxel_m``). Immutable: an update hands it to the control thread as it
-    is, its :attr:`surface` already built."""
+    is, its :attr:`body` already built (:meth:`SeenObstacles.outside`)."""
 
     voxel_m: float
     keys: IntArray
@@ -92,6 +99,17 @@ class SeenCells:
         return vertices, triangles
 
 
+    @cached_property
+    def body(self) -> tuple[fcl.BVHModel, Array, float]:
+        """The BVH of :attr:`surface` about the centre of its bounding box, that centre (3,) [m, base
+        frame] and the radius [m] of a sphere about it that holds it: what the guard checks (one body,
+        ``CollisionWorld.set_seen``). Only for cells that are there."""
+        vertices, triangles = self.surface
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        center = (lo + hi) / 2.0
+        return mesh_bvh(vertices - center, triangles), center, float(np.linalg.norm(hi - lo) / 2.0)
+
+
 def sample_pitch_rad(frame: DepthFrame) -> float:
     """The angle [rad] between the rays of neighbouring returns of ``frame``: a ToF's zone pitch (from its
     zones' central rays), a camera's pixel (1 / fx of its intrinsics); 0 when the frame says neither."""
@@ -104,13 +122,16 @@ def sample_pitch_rad(frame: DepthFrame) -> float:
 
 
 class SeenObstacles:
-    """The cells (``voxel_m`` [m] edge) of every return seen above the table (top at ``table_z_m`` [m] in
-    the base frame, band ``table_band_m`` [m]) so far in a scan, each with its reach [cells]."""
+    """The cells (``voxel_m`` [m] edge) of every return seen standing on the table (top at ``table_z_m``
+    [m] in the base frame, band ``table_band_m`` [m], footprint ``table_xy_m`` (lower, upper) (x, y)
+    corners [m], None: anywhere) so far in a scan, each with its reach [cells]."""
 
-    def __init__(self, voxel_m: float, table_z_m: float, table_band_m: float) -> None:
+    def __init__(self, voxel_m: float, table_z_m: float, table_band_m: float,
+                 table_xy_m: tuple[Array, Array] | None = None) -> None:
         self.voxel_m = voxel_m
         self.table_z_m = table_z_m
         self.table_band_m = table_band_m
+        self.table_xy_m = table_xy_m
         self._keys = np.zeros(0, dtype=np.int64)
         self._reach = np.zeros(0, dtype=np.int64)
 
@@ -122,15 +143,17 @@ class SeenObstacles:
         points = np.asarray(points_sensor, dtype=float).reshape(-1, 3)
         base = points @ T_base_sensor[:3, :3].T + T_base_sensor[:3, 3]
         floor = self.table_z_m + self.table_band_m
-        if sigma_m is not None:
-            floor = floor + SIGMA_BAND * np.nan_to_num(np.asarray(sigma_m, dtype=float), nan=np.inf)
-        above = np.isfinite(base).all(axis=1) & (base[:, 2] > floor)
-        if not np.any(above):
+        if sigma_m is not None and np.any(np.isfinite(sigma_m)):
+            floor += SIGMA_BAND * float(np.nanmedian(sigma_m))
+        on = np.isfinite(base).all(axis=1) & (base[:, 2] > floor)
+        if self.table_xy_m is not None:
+            on &= np.all((base[:, :2] >= self.table_xy_m[0]) & (base[:, :2] <= self.table_xy_m[1]), axis=1)
+        if not np.any(on):
             return
-        gap = np.linalg.norm(points[above], axis=1) * pitch_rad
+        gap = np.linalg.norm(points[on], axis=1) * pitch_rad
         # returns closer than a cell apart fill neighbouring cells themselves
         reach = np.where(gap > self.voxel_m, np.ceil(gap / (2.0 * self.voxel_m)), 0.0).astype(np.int64)
-        keys = np.concatenate([self._keys, point_keys(base[above], self.voxel_m)])
+        keys = np.concatenate([self._keys, point_keys(base[on], self.voxel_m)])
         reach = np.concatenate([self._reach, reach])
         order = np.lexsort((-reach, keys))  # by key, the largest reach first
         keys, reach = keys[order], reach[order]
@@ -139,16 +162,17 @@ class SeenObstacles:
         self._keys, self._reach = keys[first], reach[first]
 
     def outside(self, roi: tuple[Array, Array] | None) -> SeenCells:
-        """The cells seen so far that are not the object, each grown by its reach: a cell whose grown cube
-        meets the object's ROI box ``roi`` (min, max) [m, base frame] is taken for the object (its return
-        lies within its reach of it), which the guard's ROI, grown by its margin, holds already. The
-        mesh of their surface is built here (:attr:`SeenCells.surface`), off the control thread."""
+        """The cells seen so far that are not the object, each grown by its reach. A cell within a cell of
+        the object's ROI box ``roi`` (min, max) [m, base frame] holds a return of the object (on its
+        surface, up to the noise and the map's voxels the box was found on), which the guard's ROI holds
+        already; any other return, a part's beside it included, is an obstacle with its whole reach. The
+        mesh of their surface and its BVH are built here (:attr:`SeenCells.body`), on the thread that
+        processes frames."""
         keys, reach = self._keys, self._reach
         if roi is not None and keys.size:
             g = self.voxel_m
             index = unpack_keys(keys)
-            lo, hi = (index - reach[:, None]) * g, (index + 1 + reach[:, None]) * g
-            meets = np.all((lo <= roi[1]) & (hi >= roi[0]), axis=1)
+            meets = np.all(((index + 1) * g >= roi[0] - g) & (index * g <= roi[1] + g), axis=1)
             keys, reach = keys[~meets], reach[~meets]
         grown = [keys[reach == 0]]
         for r in np.unique(reach[reach > 0]):
@@ -156,5 +180,6 @@ class SeenObstacles:
             steps = key_steps(np.stack(np.meshgrid(span, span, span, indexing="ij"), axis=-1).reshape(-1, 3))
             grown.append((keys[reach == r][:, None] + steps[None, :]).ravel())
         cells = SeenCells(self.voxel_m, np.unique(np.concatenate(grown)))
-        _ = cells.surface
+        if len(cells):
+            _ = cells.body
         return cells

@@ -336,7 +336,9 @@ class CollisionWorld:
         ``q_free``: the joints [rad] the arm stands at as they are updated. The space its bodies take there
         holds nothing (what the sensor saw there, it saw of the arm or before the arm came), so the cells
         within ``ROI_ARM_CLEARANCE_M`` of them are left out (:meth:`_near_arm`), and the arm may move on
-        from where it stands. Returns the number of cells left out so."""
+        from where it stands. The cells' body comes built (``SeenCells.body``, on the thread that processes
+        frames); only when cells are left out is it built again here. Cells the body holds already keep it,
+        and the path references with it. Returns the number of cells left out."""
         if cells is None or len(cells) == 0:
             self._seen = self._seen_keys = None
             return 0
@@ -344,33 +346,34 @@ class CollisionWorld:
             cells.centers(), cells.voxel_m, np.asarray(q_free, dtype=float))
         kept = cells.without(near) if np.any(near) else cells
         if self._seen_keys is not None and np.array_equal(kept.keys, self._seen_keys):
-            return int(np.count_nonzero(near))  # the same body: the path references stay good
+            return int(np.count_nonzero(near))
         self._seen, self._seen_keys = None, kept.keys
         if len(kept):
-            vertices, triangles = kept.surface
-            lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+            bvh, center, radius = kept.body
             T = np.eye(4)
-            T[:3, 3] = (lo + hi) / 2.0
-            self._seen = self._static("seen obstacle", mesh_bvh(vertices - T[:3, 3], triangles), T,
-                                      float(np.linalg.norm(hi - lo) / 2.0))
+            T[:3, 3] = center
+            self._seen = self._static("seen obstacle", bvh, T, radius)
         return int(np.count_nonzero(near))
 
     def _near_arm(self, points: Array, voxel_m: float, q: Array) -> NDArray[np.bool_]:
         """Which cubes of edge ``voxel_m`` [m] about ``points`` (M, 3) [m, base frame] come within
-        ``ROI_ARM_CLEARANCE_M`` of the arm's bodies at joints ``q`` [rad]: of a link's capsule (the distance
-        to its segment, less its radius, of a ball about the cube), or of a tool body (FCL's distance, for
-        the cubes whose ball reaches the body's enclosing sphere)."""
+        ``ROI_ARM_CLEARANCE_M`` of the arm's bodies at joints ``q`` [rad]: FCL's distance between the cube
+        and each body whose enclosing sphere (a link capsule's own segment and radius) a ball about the
+        cube reaches."""
         reach = voxel_m * np.sqrt(3.0) / 2.0 + ROI_ARM_CLEARANCE_M
-        near = np.zeros(points.shape[0], dtype=bool)
-        for capsule in self._model.capsules(q):
-            near |= _segment_distances(points, points, capsule.a, capsule.b) <= capsule.radius + reach
         T = self._place(q)
+        capsules = self._model.capsules(q)
         cube = fcl.Box(voxel_m, voxel_m, voxel_m)
-        for k in range(len(self._link_names), len(self._objs)):
-            ball = ~near & (np.linalg.norm(points - T[k, :3, 3], axis=1) <= self._radii[k] + reach)
-            for i in np.nonzero(ball)[0]:
+        near = np.zeros(points.shape[0], dtype=bool)
+        for k, obj in enumerate(self._objs):
+            if k < len(capsules):
+                c = capsules[k]
+                ball = _segment_distances(points, points, c.a, c.b) <= c.radius + reach
+            else:
+                ball = np.linalg.norm(points - T[k, :3, 3], axis=1) <= self._radii[k] + reach
+            for i in np.nonzero(ball & ~near)[0]:
                 cell = fcl.CollisionObject(cube, fcl.Transform(points[i]))
-                near[i] = self._distance(self._objs[k], cell) <= ROI_ARM_CLEARANCE_M
+                near[i] = self._distance(obj, cell) <= ROI_ARM_CLEARANCE_M
         return near
 
     def _roi_margins(self, lo: Array, hi: Array, q: Array) -> Array:
