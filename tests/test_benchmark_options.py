@@ -38,6 +38,7 @@ def _main(monkeypatch: pytest.MonkeyPatch, benchmark: ModuleType, *args: str) ->
     ("sim_render.py", ["--frames", "0"], "argument --frames: expected at least 1, got 0"),
     ("vl53l8cx_link.py", ["--seconds", "0"], "argument --seconds: expected a number above 0, got 0"),
     ("guard_tick.py", ["--ticks", "0"], "argument --ticks: expected at least 1, got 0"),
+    ("seen_update.py", ["--repeats", "0"], "argument --repeats: expected at least 1, got 0"),
     ("serve_startup.py", ["--reference", "/nonexistent"], "/nonexistent is not a checkout of the cell"),
     ("calibration_accuracy.py", ["--seeds", "abc"], "expected comma-separated seeds"),
     ("calibration_accuracy.py", ["--poses-board", "4"], "argument --poses-board: expected at least 5, got 4"),

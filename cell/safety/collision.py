@@ -362,16 +362,24 @@ class CollisionWorld:
         cube reaches."""
         reach = voxel_m * np.sqrt(3.0) / 2.0 + ROI_ARM_CLEARANCE_M
         T = self._place(q)
+        near = np.zeros(points.shape[0], dtype=bool)
+        # only the cells in the box about the bodies' enclosing spheres can be near (most are not: cheap)
+        spheres = T[:, :3, 3]
+        inside = np.all((points >= (spheres - self._radii[:, None]).min(axis=0) - reach)
+                        & (points <= (spheres + self._radii[:, None]).max(axis=0) + reach), axis=1)
+        candidates = np.nonzero(inside)[0]
+        if candidates.size == 0:
+            return near
         capsules = self._model.capsules(q)
         cube = fcl.Box(voxel_m, voxel_m, voxel_m)
-        near = np.zeros(points.shape[0], dtype=bool)
+        p = points[candidates]
         for k, obj in enumerate(self._objs):
             if k < len(capsules):
                 c = capsules[k]
-                ball = _segment_distances(points, points, c.a, c.b) <= c.radius + reach
+                ball = _segment_distances(p, p, c.a, c.b) <= c.radius + reach
             else:
-                ball = np.linalg.norm(points - T[k, :3, 3], axis=1) <= self._radii[k] + reach
-            for i in np.nonzero(ball & ~near)[0]:
+                ball = np.linalg.norm(p - T[k, :3, 3], axis=1) <= self._radii[k] + reach
+            for i in candidates[ball & ~near[candidates]]:
                 cell = fcl.CollisionObject(cube, fcl.Transform(points[i]))
                 near[i] = self._distance(obj, cell) <= ROI_ARM_CLEARANCE_M
         return near
