@@ -14,8 +14,9 @@ import pytest
 
 from cell.config import load_config
 from cell.perception.pipeline import PerceptionPipeline
-from cell.perception.seen_obstacles import SeenObstacles, sample_pitch_rad
+from cell.perception.seen_obstacles import SeenCells, SeenObstacles, sample_pitch_rad
 from cell.safety.collision import ROI_ARM_CLEARANCE_M, CollisionWorld
+from cell.safety.guard import MotionGuard
 from drivers.depth.base import DepthFrame, ToFZones
 from drivers.fcl_bodies import fcl_transform
 from drivers.robots import get_robot_model
@@ -200,15 +201,26 @@ def test_a_tof_frame_s_sigmas_lift_the_band_by_their_median() -> None:
     assert np.mean(cells.centers()[:, 2]) == pytest.approx(np.floor(top / G) * G + G / 2)
 
 
-def test_a_part_off_the_station_where_the_first_view_goes_is_not_run_into(tmp_path: Path) -> None:
+def test_a_part_off_the_station_where_the_first_view_goes_is_not_run_into(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch
+                                                                         ) -> None:
     """The bunny put 19 cm off the station, where VS-Local's start view takes the camera: no frame of the
     scan sees it in its crop box before the camera would reach it (perception finds no object), but the
     survey from home saw it, and the guard keeps the arm off it. Without the seen obstacles the camera
-    touches it at 7.8 s (the sim arm's reflex)."""
+    touches it at 7.8 s (the sim arm's reflex). The guard takes them in from the survey and from every
+    capture's update."""
     from typer.testing import CliRunner
 
     from cell.cli.main import app
 
+    taken_in = []
+    set_seen = MotionGuard.set_seen
+
+    def spy(guard: MotionGuard, cells: SeenCells | None, q_free: np.ndarray | None = None) -> None:
+        taken_in.append(len(cells) if cells is not None else None)
+        set_seen(guard, cells, q_free)
+
+    monkeypatch.setattr(MotionGuard, "set_seen", spy)
     out = tmp_path / "job"
     res = CliRunner().invoke(app, ["scan", "--planner", "vs-local", "--object", "bunny", "--object-pose",
                                    "0,-0.19,0", "--max-time", "12", "--out", str(out)])
@@ -216,3 +228,4 @@ def test_a_part_off_the_station_where_the_first_view_goes_is_not_run_into(tmp_pa
     assert result["status"] == "completed", res.output
     assert "touched" not in res.output
     assert "survey from home" in (out / "log.txt").read_text()
+    assert len(taken_in) == result["n_captures"] + 1 and taken_in[0] > 0
