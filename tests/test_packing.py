@@ -226,6 +226,7 @@ class _Perception:
     extent: ObjectExtent = field(default_factory=ObjectExtent)
     range_max_m: float = 4.0
     h_roi_entropy: EntropyForm = "paper"
+    reach_m: float | None = None
 
     def empty_like(self, rng: np.random.Generator) -> PerceptionPipeline:
         return PerceptionPipeline.empty_like(self, rng)  # type: ignore[arg-type]  # its settings alone

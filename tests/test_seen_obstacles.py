@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import fcl
 import numpy as np
@@ -36,17 +37,16 @@ def _looking_down(height_m: float) -> np.ndarray:
     return T
 
 
-def test_only_returns_over_the_table_and_above_its_band_and_noise_mark_cells() -> None:
+def test_only_returns_within_reach_and_above_the_table_band_and_noise_mark_cells() -> None:
     T = _looking_down(0.5)
-    # 4 mm, 8 mm, 50 mm and 30 mm above the table, the last beyond its edge (x 0.3 m)
-    points = np.array([[0.0, 0.0, 0.496], [0.1, 0.0, 0.492], [0.2, 0.0, 0.45], [0.35, 0.0, 0.47]])
-    footprint = (np.array([-0.3, -0.3]), np.array([0.3, 0.3]))
-    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006, table_xy_m=footprint)
+    # 4 mm, 8 mm, 50 mm and 30 mm above the table, the last beyond the arm's reach (0.6 m here)
+    points = np.array([[0.0, 0.0, 0.496], [0.1, 0.0, 0.492], [0.2, 0.0, 0.45], [0.7, 0.0, 0.47]])
+    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006, reach_m=0.6)
     seen.add(points, T, pitch_rad=0.0)
     assert np.allclose(seen.outside(None).centers(), [[0.105, 0.005, 0.005], [0.205, 0.005, 0.045]])
     # a median range sigma of 5 mm lifts the band by 15 mm: only the return 50 mm up is left, however
     # large its own sigma (a zone on a part's edge), and a zone without one changes nothing
-    ranged = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006, table_xy_m=footprint)
+    ranged = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006, reach_m=0.6)
     ranged.add(points, T, pitch_rad=0.0, sigma_m=np.array([0.005, 0.005, 0.05, np.nan]))
     assert np.allclose(ranged.outside(None).centers(), [[0.205, 0.005, 0.045]])
 
@@ -160,6 +160,40 @@ def test_the_cells_left_out_are_those_the_arm_s_bodies_come_within_its_clearance
     expected = sum(touches(c) for c in cells.centers())
     assert 0 < expected < len(cells)
     assert world.set_seen(cells, q_free=q) == expected
+
+
+@pytest.mark.parametrize("model_name", ["ur5e", "panda"])
+def test_no_body_of_the_arm_comes_further_from_its_base_than_its_reach(model_name: str) -> None:
+    """``CollisionWorld.reach_m``, beyond which a scan keeps no return: every capsule's ends at 2000 random
+    configurations lie within it, less the capsule's radius; it is no more than a link's length over."""
+    cfg = load_config(CELLS[model_name])
+    model = get_robot_model(model_name)
+    world = CollisionWorld(model, cfg.safety.collision, cfg.station.table_z_m)
+    rng = np.random.default_rng(4)
+    farthest = 0.0
+    for q in rng.uniform(model.q_min, model.q_max, (2000, model.n_joints)):
+        for c in model.capsules(q):
+            farthest = max(farthest, max(float(np.linalg.norm(c.a)), float(np.linalg.norm(c.b))) + c.radius)
+    assert farthest <= world.reach_m <= farthest + 0.4
+
+
+def test_a_job_keeps_what_it_sees_within_its_arm_s_reach(tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    from cell.jobs import runner
+
+    built: list[PerceptionPipeline] = []
+
+    class Kept(PerceptionPipeline):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            built.append(self)
+
+    monkeypatch.setattr(runner, "PerceptionPipeline", Kept)
+    cfg = load_config(CELLS["panda"])
+    runner.run_scan(runner.ScanRequest(config=cfg, config_path=str(CELLS["panda"]), object="cube",
+                                       planner="raster", out=tmp_path / "job", max_time_s=0.5))
+    world = CollisionWorld.for_cell(cfg)
+    assert [p.seen.reach_m for p in built] == [world.reach_m]
 
 
 def test_a_survey_adds_to_the_seen_cells_only_and_a_frame_s_update_keeps_those_outside_its_crop_box() -> None:

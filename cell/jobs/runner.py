@@ -389,7 +389,7 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
             perception = PerceptionPipeline(cfg.perception, table_z_m=cfg.station.table_z_m,
                                             range_max_m=sensor.model.range_max_m, rng=perception_rng,
                                             h_roi_entropy=h_roi_entropy,
-                                            table_xy_m=cfg.safety.collision.table.footprint_m())
+                                            reach_m=job.collision.reach_m)
             recorder.log(clock.now(), f"H_ROI (eq. 12) reported in its {h_roi_entropy} form "
                                       "(planners.vs.objective.entropy, whatever the planner)")
             coverage = CloudCoverage(ground_truth) if ground_truth is not None else None

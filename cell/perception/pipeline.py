@@ -93,16 +93,16 @@ class PerceptionPipeline:
     objective's (``planners.vs.objective.entropy``), so that what it reports is what the servo planners'
     termination judges (``ServoScanPlanner.entropy_settled``), computed once per capture. A servo planner
     refuses an update in another form (``PlanningError``), so a pipeline built with the default ``paper``
-    cannot silently change that termination. ``table_xy_m``: the table's footprint, its lower and upper
-    (x, y) corners [m, base frame], over which what stands above the table is kept for the guard
-    (``cell.perception.seen_obstacles``; None: anywhere)."""
+    cannot silently change that termination. ``reach_m``: the arm's reach [m] from the base frame's
+    origin, within which what stands on the table is kept for the guard (``cell.perception.seen_obstacles``;
+    None: anywhere)."""
 
     def __init__(self, config: PerceptionConfig, *, table_z_m: float, range_max_m: float,
                  rng: np.random.Generator, h_roi_entropy: EntropyForm = "paper",
-                 table_xy_m: tuple[Array, Array] | None = None) -> None:
+                 reach_m: float | None = None) -> None:
         self.config = config
         self.table_z_m = table_z_m
-        self.table_xy_m = table_xy_m
+        self.reach_m = reach_m
         self.range_max_m = range_max_m
         self.h_roi_entropy: EntropyForm = h_roi_entropy
         self.cloud = CloudAccumulator(config.voxel_m)
@@ -110,7 +110,7 @@ class PerceptionPipeline:
         self._target = RegistrationTarget(config.registration)
         self.extent = ObjectExtent()
         self.seen = SeenObstacles(config.seen_obstacle_voxel_m, table_z_m,
-                                  config.segmentation.plane_distance_m, table_xy_m)
+                                  config.segmentation.plane_distance_m, reach_m)
         self._rng = rng
         self.latest: PerceptionUpdate | None = None
         self.stage_times = StageTimes()
@@ -119,7 +119,7 @@ class PerceptionPipeline:
         """A pipeline that has seen nothing, of this one's settings (configuration, table, range, H_ROI
         form), segmenting with ``rng``: what a rebuild of this one's captures starts from."""
         return PerceptionPipeline(self.config, table_z_m=self.table_z_m, range_max_m=self.range_max_m,
-                                  rng=rng, h_roi_entropy=self.h_roi_entropy, table_xy_m=self.table_xy_m)
+                                  rng=rng, h_roi_entropy=self.h_roi_entropy, reach_m=self.reach_m)
 
     def _returns(self, frame: DepthFrame) -> tuple[Array, Array | None]:
         """The frame's returns (N, 3) [m, sensor frame], for the ToF only its zones that hold a range
@@ -167,7 +167,8 @@ class PerceptionPipeline:
         seg, extent = self.add_capture(T, points_base, free_ends)
         roi = seg.roi
         self.seen.add(returns, T, sample_pitch_rad(frame), sigma)
-        seen = self.seen.outside((roi.aabb_min, roi.aabb_max) if roi is not None else None)
+        # a frame whose segmentation lost the object: the box of every ROI so far, not none
+        seen = self.seen.outside((roi.aabb_min, roi.aabb_max) if roi is not None else extent)
         clock.lap("seen")
         aware = self.h_roi_entropy == "observation_aware"
         h_roi = self.map.mean_entropy_in_box(*extent, observation_aware=aware) if extent is not None else None

@@ -7,10 +7,9 @@ object's ROI and the configured obstacles, would let the arm run into it. So eve
 before the crop, that stands above the table is kept here on a coarse grid (base frame), and the guard
 treats what lies outside the object's ROI as an obstacle (``CollisionWorld.set_seen``).
 
-A return counts as standing on the table when it lies over the table's footprint (beyond its edges, a
-wall is the configured obstacles' and the workspace's to keep the arm from, and the room's far returns,
-each grown by its reach, would only cost cells) and
-higher than segmentation's table band (``perception.segmentation.plane_distance_m``, the height below
+A return counts as standing on the table when it lies within the arm's reach (what no body of the arm can
+come to, the room's far returns, would only cost cells, each grown by its reach) and higher than
+segmentation's table band (``perception.segmentation.plane_distance_m``, the height below
 which segmentation takes a point for the table) plus, for a sensor that reports range sigmas (a ToF
 zone's ``sigma_m``), three times the frame's median sigma: the table's own returns, noise included, stay
 out. The frame's median stands for its range noise; a single zone's sigma also holds the spread of the
@@ -43,6 +42,12 @@ from drivers.fcl_bodies import mesh_bvh
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+CHUNK_CELLS = 16
+"""The edge [cells] of the blocks the cells are checked in, one body each (:attr:`SeenCells.chunks`): a
+body's enclosing sphere (14 cm across a 16 cm block) is what the guard's cheap test sees of it, and the
+cells a block holds (at most 16^3) are what the guard builds again when it leaves out those the arm
+stands in."""
+
 SIGMA_BAND = 3.0
 """The frame's median range sigmas [1] above the table band a return must stand to count: a table return's
 range noise passes it once in about 700 (one-sided Gaussian tail)."""
@@ -57,7 +62,7 @@ class SeenCells:
     """Cells seen occupied: ``keys`` (M,) their packed indices (``cell.perception.cloud.point_keys``), sorted
     and distinct, on the ``voxel_m`` [m] grid anchored at the base frame's origin (cell i spans
     ``i * voxel_m`` to ``(i + 1) * voxel_m``). Immutable: an update hands it to the control thread as it
-    is, its :attr:`body` already built (:meth:`SeenObstacles.outside`)."""
+    is, the bodies of its :attr:`chunks` already built (:meth:`SeenObstacles.outside`)."""
 
     voxel_m: float
     keys: IntArray
@@ -100,6 +105,16 @@ class SeenCells:
 
 
     @cached_property
+    def chunks(self) -> tuple[tuple[SeenCells, NDArray[np.intp]], ...]:
+        """These cells by blocks of ``CHUNK_CELLS`` cells a side: each block's cells and their indices
+        into these."""
+        blocks = np.floor_divide(unpack_keys(self.keys), CHUNK_CELLS)
+        _, which = np.unique(blocks, axis=0, return_inverse=True)
+        which = which.ravel()
+        return tuple((SeenCells(self.voxel_m, self.keys[at]), at)
+                     for at in (np.nonzero(which == k)[0] for k in range(int(which.max(initial=-1)) + 1)))
+
+    @cached_property
     def body(self) -> tuple[fcl.BVHModel, Array, float]:
         """The BVH of :attr:`surface` about the centre of its bounding box, that centre (3,) [m, base
         frame] and the radius [m] of a sphere about it that holds it: what the guard checks (one body,
@@ -123,15 +138,16 @@ def sample_pitch_rad(frame: DepthFrame) -> float:
 
 class SeenObstacles:
     """The cells (``voxel_m`` [m] edge) of every return seen standing on the table (top at ``table_z_m``
-    [m] in the base frame, band ``table_band_m`` [m], footprint ``table_xy_m`` (lower, upper) (x, y)
-    corners [m], None: anywhere) so far in a scan, each with its reach [cells]."""
+    [m] in the base frame, band ``table_band_m`` [m]) within ``reach_m`` [m] of the base frame's origin
+    (the arm's reach, ``CollisionWorld.reach_m``; None: anywhere) so far in a scan, each with its reach
+    [cells]."""
 
     def __init__(self, voxel_m: float, table_z_m: float, table_band_m: float,
-                 table_xy_m: tuple[Array, Array] | None = None) -> None:
+                 reach_m: float | None = None) -> None:
         self.voxel_m = voxel_m
         self.table_z_m = table_z_m
         self.table_band_m = table_band_m
-        self.table_xy_m = table_xy_m
+        self.reach_m = reach_m
         self._keys = np.zeros(0, dtype=np.int64)
         self._reach = np.zeros(0, dtype=np.int64)
 
@@ -146,8 +162,8 @@ class SeenObstacles:
         if sigma_m is not None and np.any(np.isfinite(sigma_m)):
             floor += SIGMA_BAND * float(np.nanmedian(sigma_m))
         on = np.isfinite(base).all(axis=1) & (base[:, 2] > floor)
-        if self.table_xy_m is not None:
-            on &= np.all((base[:, :2] >= self.table_xy_m[0]) & (base[:, :2] <= self.table_xy_m[1]), axis=1)
+        if self.reach_m is not None:
+            on &= np.linalg.norm(base, axis=1) <= self.reach_m
         if not np.any(on):
             return
         gap = np.linalg.norm(points[on], axis=1) * pitch_rad
@@ -166,8 +182,8 @@ class SeenObstacles:
         the object's ROI box ``roi`` (min, max) [m, base frame] holds a return of the object (on its
         surface, up to the noise and the map's voxels the box was found on), which the guard's ROI holds
         already; any other return, a part's beside it included, is an obstacle with its whole reach. The
-        mesh of their surface and its BVH are built here (:attr:`SeenCells.body`), on the thread that
-        processes frames."""
+        bodies of their blocks are built here (:attr:`SeenCells.chunks`), on the thread that processes
+        frames."""
         keys, reach = self._keys, self._reach
         if roi is not None and keys.size:
             g = self.voxel_m
@@ -180,6 +196,6 @@ class SeenObstacles:
             steps = key_steps(np.stack(np.meshgrid(span, span, span, indexing="ij"), axis=-1).reshape(-1, 3))
             grown.append((keys[reach == r][:, None] + steps[None, :]).ravel())
         cells = SeenCells(self.voxel_m, np.unique(np.concatenate(grown)))
-        if len(cells):
-            _ = cells.body
+        for chunk, _ in cells.chunks:
+            _ = chunk.body
         return cells

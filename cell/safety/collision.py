@@ -219,6 +219,13 @@ class CollisionWorld:
         self._radii = np.asarray(radii)
         self._on_base = self._frames <= _BASE_FRAMES
         self._lever = self._sweep_levers(model, self._frames, np.asarray(extents))
+        origins = model.fk_all(model.q_home)[:, :3, 3]
+        along = np.cumsum(np.concatenate([[np.linalg.norm(origins[0])],
+                                          np.linalg.norm(np.diff(origins, axis=0), axis=1)]))
+        self.reach_m = float(np.max(along[self._frames] + np.asarray(extents)))
+        """The farthest [m] any point of the arm's bodies comes from the base frame's origin, in any
+        configuration: the origins of consecutive frames are a fixed distance apart (:meth:`_sweep_levers`),
+        so by the triangle inequality a body lies within the sum of those up to its frame, plus its extent."""
         self._axial = self._axial_capsules(model, len(self._objs))
         allowed = np.eye(n_moving, dtype=bool)
         for i, a in enumerate(self.moving_names):
@@ -241,8 +248,8 @@ class CollisionWorld:
             self._obstacles.append(self._static(body.name, geom, body.pose.matrix(), radius))
         self._roi: _Static | None = None
         self._roi_margin = config.roi_margin_m
-        self._seen: _Static | None = None
-        self._seen_keys: NDArray[np.int64] | None = None  # the cells of the seen obstacles' body
+        # the seen obstacles' bodies, one per block of cells, by the cells they hold
+        self._seen: dict[bytes, _Static] = {}
         self._reference: _Reference | None = None
         self.n_motion_checks = 0
         """Calls of :meth:`check_motion` so far (``benchmarks/guard_tick.py`` tells ticks apart by them)."""
@@ -331,28 +338,34 @@ class CollisionWorld:
 
     def set_seen(self, cells: SeenCells | None, q_free: Array | None = None) -> int:
         """Replace what the sensor has seen outside the object's ROI (``perception.seen_obstacles``; None
-        or no cells removes it) by the union of ``cells``, checked as one body, "seen obstacle".
+        or no cells removes it) by ``cells``, checked as one body per block of cells
+        (``SeenCells.chunks``), each "seen obstacle".
 
         ``q_free``: the joints [rad] the arm stands at as they are updated. The space its bodies take there
         holds nothing (what the sensor saw there, it saw of the arm or before the arm came), so the cells
         within ``ROI_ARM_CLEARANCE_M`` of them are left out (:meth:`_near_arm`), and the arm may move on
-        from where it stands. The cells' body comes built (``SeenCells.body``, on the thread that processes
-        frames); only when cells are left out is it built again here. Cells the body holds already keep it,
-        and the path references with it. Returns the number of cells left out."""
+        from where it stands. The blocks' bodies come built (on the thread that processes frames); only a
+        block some of whose cells are left out is built again here. A block whose cells a body holds
+        already keeps that body, and the path references with it. Returns the number of cells left out."""
         if cells is None or len(cells) == 0:
-            self._seen = self._seen_keys = None
+            self._seen = {}
             return 0
         near = np.zeros(len(cells), dtype=bool) if q_free is None else self._near_arm(
             cells.centers(), cells.voxel_m, np.asarray(q_free, dtype=float))
-        kept = cells.without(near) if np.any(near) else cells
-        if self._seen_keys is not None and np.array_equal(kept.keys, self._seen_keys):
-            return int(np.count_nonzero(near))
-        self._seen, self._seen_keys = None, kept.keys
-        if len(kept):
-            bvh, center, radius = kept.body
-            T = np.eye(4)
-            T[:3, 3] = center
-            self._seen = self._static("seen obstacle", bvh, T, radius)
+        seen: dict[bytes, _Static] = {}
+        for chunk, at in cells.chunks:
+            kept = chunk.without(near[at]) if np.any(near[at]) else chunk
+            if len(kept) == 0:
+                continue
+            held = kept.keys.tobytes()
+            if held not in self._seen:
+                bvh, center, radius = kept.body
+                T = np.eye(4)
+                T[:3, 3] = center
+                seen[held] = self._static("seen obstacle", bvh, T, radius)
+            else:
+                seen[held] = self._seen[held]
+        self._seen = seen
         return int(np.count_nonzero(near))
 
     def _near_arm(self, points: Array, voxel_m: float, q: Array) -> NDArray[np.bool_]:
@@ -494,7 +507,8 @@ class CollisionWorld:
         return ~self._on_base if st is self._table else np.ones(len(self._objs), dtype=bool)
 
     def _statics(self) -> list[_Static]:
-        return [self._table, *self._obstacles] + [st for st in (self._roi, self._seen) if st is not None]
+        return [self._table, *self._obstacles] + ([self._roi] if self._roi is not None else []) \
+            + list(self._seen.values())
 
     def _path_pairs(self, statics: list[_Static]) -> tuple[Array, Array]:
         """The pairs a path check watches, as (p, 2) indices into the moving bodies followed by ``statics``:

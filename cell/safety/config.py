@@ -125,11 +125,6 @@ class TableConfig(StrictModel):
     clearance_m: Annotated[Number, Bounds(0.0, 0.05, "m", "a clearance over the table is at most 5 cm")] \
         = 0.005
 
-    def footprint_m(self) -> tuple[np.ndarray, np.ndarray]:
-        """The table's lower and upper (x, y) corners [m, base frame]."""
-        center, half = np.asarray(self.center_xy_m, dtype=float), np.asarray(self.size_m, dtype=float) / 2.0
-        return center - half, center + half
-
 
 class CollisionConfig(StrictModel):
     """The collision world checked with python-fcl.
