@@ -157,11 +157,13 @@ class SeenObstacles:
         ``pitch_rad`` [rad] apart (:func:`sample_pitch_rad`), with their range sigmas ``sigma_m`` (N,) [m]
         when the sensor reports them."""
         points = np.asarray(points_sensor, dtype=float).reshape(-1, 3)
-        base = points @ T_base_sensor[:3, :3].T + T_base_sensor[:3, 3]
         floor = self.table_z_m + self.table_band_m
         if sigma_m is not None and np.any(np.isfinite(sigma_m)):
             floor += SIGMA_BAND * float(np.nanmedian(sigma_m))
-        on = np.isfinite(base).all(axis=1) & (base[:, 2] > floor)
+        # the heights first: most of a camera's returns are the table's, and only the rest are moved whole
+        points = points[points @ T_base_sensor[2, :3] + T_base_sensor[2, 3] > floor]
+        base = points @ T_base_sensor[:3, :3].T + T_base_sensor[:3, 3]
+        on = np.isfinite(base).all(axis=1)
         if self.reach_m is not None:
             on &= np.linalg.norm(base, axis=1) <= self.reach_m
         if not np.any(on):
