@@ -131,7 +131,6 @@ def test_servo_scan_runs_on_the_cell(tmp_path, cell_file, planner, budget):
     assert np.linalg.norm(moving[-1] - moving[0]) > 0.01
 
 
-
 def test_the_limit_rows_are_built_once_per_servo_iteration(tmp_path, monkeypatch):
     """The joint-limit and singularity rows at the planner's activations are built once per iteration of
     the secondary task and shared by what uses them: VS-Local's ``follows`` (twice near a refusal) and

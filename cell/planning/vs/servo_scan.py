@@ -305,8 +305,9 @@ class ServoScanPlanner(Planner):
         drives it further into a limit at a . v: each joint within ``joint_activation_rad`` of its margin
         (``session.joint_limit_twists``), and the smallest singular value of its Jacobian once below
         ``singular_value_activation`` (``session.singularity_twists``). ``run`` builds them once per
-        servo iteration, for the strategy's ``secondary`` and ``_within_limits``: the arm does not move
-        between the two."""
+        servo iteration, for the strategy's ``secondary`` and ``_within_limits``: both judge the state read
+        then (on the wall clock the arm goes on under the last streamed twist meanwhile, for less than an
+        iteration)."""
         return np.concatenate([session.joint_limit_twists(self.vs.joint_activation_rad),
                                session.singularity_twists(self.vs.singular_value_activation)])
 
