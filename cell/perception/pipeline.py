@@ -41,12 +41,12 @@ class PerceptionUpdate:
     the crop box's far side, :func:`carved_lengths`; (0, 3) for a camera), the segmented object and its
     ROI, ``extent`` the box (min, max) [m] of every ROI so far (``ObjectExtent``), H_ROI (eq. 12) over
     that box in the form ``h_roi_entropy`` (the pipeline's), the occupancy map, and ``seen`` the cells of
-    every return above the table so far, crop box or not (``cell.perception.seen_obstacles``: outside the
-    ROI, the guard's obstacles). ``roi``, ``centroid``, ``extent`` and ``h_roi`` are None until an object
-    has been found. ``map`` is the pipeline's own map
-    when frames are processed in the planner's thread (later frames update it), and a copy taken right
-    after this frame when they are processed asynchronously (``AsyncPerception``), so that a planner never
-    reads a map the worker is writing."""
+    every return standing on the table so far, crop box or not, but the object's
+    (``cell.perception.seen_obstacles``: the guard's obstacles). ``roi``, ``centroid``, ``extent`` and
+    ``h_roi`` are None until an object has been found. ``map`` is the pipeline's own map when frames are
+    processed in the planner's thread (later frames update it), and a copy taken right after this frame
+    when they are processed asynchronously (``AsyncPerception``), so that a planner never reads a map the
+    worker is writing."""
 
     seq: int
     timestamp: float
@@ -123,7 +123,8 @@ class PerceptionPipeline:
 
     def _returns(self, frame: DepthFrame) -> tuple[Array, Array | None]:
         """The frame's returns (N, 3) [m, sensor frame], for the ToF only its zones that hold a range
-        (``filters.valid_tof_statuses``), and their range sigmas (N,) [m] when the sensor reports them."""
+        (the cell file's ``perception.filters.valid_tof_statuses``), and their range sigmas (N,) [m] when
+        the sensor reports them."""
         if frame.zones is None:
             return frame.points, None
         statuses = self.config.filters.valid_tof_statuses

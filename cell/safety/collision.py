@@ -10,8 +10,8 @@ Bodies:
   (:meth:`CollisionWorld.set_roi`);
 - static obstacles from ``safety.collision.obstacles`` (boxes, cylinders, meshes);
 - what the sensor has seen standing on the table outside the object's ROI (``perception.seen_obstacles``),
-  replaced whenever perception updates it: the cells' union as a mesh, without the cells the arm stands
-  in (:meth:`CollisionWorld.set_seen`).
+  replaced whenever perception updates it: the cells as meshes, one per 16 cm block, without the cells
+  the arm stands in (:meth:`CollisionWorld.set_seen`).
 
 A configuration collides when a moving body (link or tool) touches the table, the ROI or an obstacle (seen
 or configured), or
