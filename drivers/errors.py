@@ -55,6 +55,13 @@ SAFETY_STOP = "safety stop: "
 arm fault, a worker that stopped answering): the reason follows."""
 
 
+def stop_cause(reason: str, operator: bool) -> str:
+    """The reason a stop is made with: ``operator stop: <reason>`` for a stop someone asked for, the
+    reason as it is for one the safety layer or the service made by itself (``stop_termination`` then
+    reads it as a safety stop)."""
+    return f"{OPERATOR_STOP}{reason}" if operator else reason
+
+
 def stop_termination(reason: str) -> str:
     """The termination of a job a stop ended: an operator stop as it is (``operator stop: <reason>``), the
     safety layer's own (a refusal, the watchdog, an arm fault) as ``safety stop: <reason>``. An operator's

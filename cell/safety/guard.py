@@ -63,7 +63,7 @@ from cell.safety.smoothing import TwistSmoother
 from cell.safety.watchdog import Watchdog
 from drivers.arm.base import Arm, ArmMode, ArmState, JointTrajectory
 from drivers.clock import Clock
-from drivers.errors import ARM_FAULT, OPERATOR_STOP, CellError, RobotFault, SafetyStop
+from drivers.errors import ARM_FAULT, CellError, RobotFault, SafetyStop, stop_cause
 from drivers.robots.model import JointVelocityMap, RobotModel
 
 Array = NDArray[np.float64]
@@ -389,7 +389,7 @@ class MotionGuard:
             request, self._stop_request = self._stop_request, None
         if request is not None:
             asked, operator = request
-            raise self._halt(f"{OPERATOR_STOP}{asked}" if operator else asked)
+            raise self._halt(stop_cause(asked, operator))
         for reason in (self.watchdog.tick(now), self.watchdog.perception(now, perception_time_s)):
             if reason is not None:
                 raise self._halt(f"watchdog: {reason}")

@@ -57,7 +57,7 @@ from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
 from cell.service.submission import ArmClearance, JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
-from drivers.errors import OPERATOR_STOP, ServiceError, StoreError, stop_termination
+from drivers.errors import ServiceError, StoreError, stop_cause, stop_termination
 
 LINE_LIMIT = 1 << 24
 """Longest line a worker may send [bytes]: the ``ended`` line carries the whole result.json."""
@@ -610,7 +610,7 @@ class CellService:
             return StopOutcome(job_id, False, "the job had already ended")
         if running.requested is None:  # the worker's JobControl keeps the first stop it is given
             running.requested = requested
-        cause = f"{OPERATOR_STOP}{reason}" if requested else reason
+        cause = stop_cause(reason, requested)
         await asyncio.sleep(0)  # a "started" the worker sent is read first
         if not running.started:
             # still loading its libraries, it cannot answer for seconds, and it has not touched the arm:
