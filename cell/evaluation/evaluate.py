@@ -135,6 +135,7 @@ def evaluate(specs: Sequence[ScanSpec], out: Path, executor: Executor, *, limit_
                                   [*title_lines, *executors, *(partial if unfinished else [])],
                                   timelines(specs, out), packing=packing,
                                   packing_radii_m=[surface_coverage_radius_m(load_config(config))
-                                                   for config in dict.fromkeys(s.config for s in specs)])
+                                                   for config in dict.fromkeys(s.config for s in specs)]
+                                  if packing else ())
     mine = {identity(keyed[key]) for key in shard.select(keyed)}
     return Evaluation(report, rows, [r for r in rows if row_id(r) in mine], unfinished)
