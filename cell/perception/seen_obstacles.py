@@ -52,7 +52,6 @@ SIGMA_BAND = 3.0
 """The frame's median range sigmas [1] above the table band a return must stand to count: a table return's
 range noise passes it once in about 700 (one-sided Gaussian tail)."""
 
-
 _FACES = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
 """The steps to a cell's six face neighbours."""
 
@@ -102,7 +101,6 @@ class SeenCells:
         first = np.arange(0, vertices.shape[0], 4, dtype=np.int32)[:, None]
         triangles = np.vstack([first + np.array([0, 1, 2]), first + np.array([0, 2, 3])]).astype(np.int32)
         return vertices, triangles
-
 
     @cached_property
     def chunks(self) -> tuple[tuple[SeenCells, NDArray[np.intp]], ...]:
