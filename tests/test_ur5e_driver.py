@@ -379,8 +379,12 @@ def test_recover_after_a_connection_lost_during_a_trajectory(peer: ControllerPee
     peer.wait_for(lambda s: s["counts"].get("servoJ", 0) > 10, what="servoJ")
     peer.drop_clients()
     ur.wait_until(lambda: arm.client_pid is None)  # the child ends itself at the drop
-    with pytest.raises(RobotFault, match="controller closed the connection"):
+    # which comes first is a race inside ur-rtde: the child's monitor seeing the drop (it exits, "the
+    # controller closed the connection"), or the servoJ stream's failed send reconnecting in its own
+    # thread, which on a loaded machine crashes the child first ("killed by signal 11 (Segmentation fault)")
+    with pytest.raises(RobotFault, match="lost the connection to the controller") as lost:
         arm.state()
+    assert lost.value.fault == "disconnect"
     arm.recover()
     assert arm.state().faults == () and arm.state().mode is ArmMode.IDLE
     _twist_moves_the_flange_up(peer, ur)

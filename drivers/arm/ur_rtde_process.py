@@ -21,6 +21,7 @@ reconnect, see :mod:`drivers.arm.ur_rtde_child`),
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -56,7 +57,8 @@ def exit_words(returncode: int) -> str:
     if returncode == EXIT_PARENT_GONE:
         return "the ur-rtde process lost its driver"
     if returncode < 0:
-        return f"the ur-rtde process was killed by signal {-returncode}"
+        name = signal.strsignal(-returncode)
+        return f"the ur-rtde process was killed by signal {-returncode}" + (f" ({name})" if name else "")
     return f"the ur-rtde process ended with exit code {returncode}"
 
 
