@@ -19,7 +19,7 @@ from cell.perception.filters import (
     no_target_directions,
     statistical_outlier_mask,
     statistical_outlier_removal,
-    valid_tof_points,
+    valid_tof_returns,
 )
 from drivers.depth.base import DepthFrame, ToFZones
 
@@ -91,26 +91,27 @@ def _tof_frame() -> DepthFrame:
     dist = np.array([0.30, 0.31, np.nan, 0.5, 0.40, 0.2, 0.35, np.nan])
     angles = np.linspace(-0.3, 0.3, 8)
     directions = np.column_stack([np.sin(angles), np.zeros(8), np.cos(angles)])
-    zones = ToFZones(distance_m=dist, sigma_m=np.full(8, 0.005), status=status, nb_targets=nb,
+    zones = ToFZones(distance_m=dist, sigma_m=np.arange(1, 9) * 0.001, status=status, nb_targets=nb,
                      reflectance_pct=np.full(8, 40.0), directions=directions)
     with_target = nb > 0
     points = dist[with_target, None] * directions[with_target]
     return DepthFrame(seq=3, timestamp=0.1, points=points, zones=zones)
 
 
-def test_valid_tof_points_by_status() -> None:
+def test_valid_tof_returns_by_status() -> None:
     frame = _tof_frame()
     z = frame.zones
     assert z is not None
-    pts = valid_tof_points(frame, FilterParams().valid_tof_statuses)
+    pts, sigma = valid_tof_returns(frame, FilterParams().valid_tof_statuses)
     expected = [0, 1, 4, 6]
     np.testing.assert_allclose(pts, z.distance_m[expected, None] * z.directions[expected])
     np.testing.assert_allclose(np.linalg.norm(pts, axis=1), z.distance_m[expected])
+    np.testing.assert_array_equal(sigma, z.sigma_m[expected])
     # configurable: only 5; and a listed no-target status (255) never yields a NaN point
-    np.testing.assert_allclose(valid_tof_points(frame, (5,)), frame.points[[0, 3]])
-    assert valid_tof_points(frame, (5, 9, 255)).shape == (4, 3)
+    np.testing.assert_allclose(valid_tof_returns(frame, (5,))[0], frame.points[[0, 3]])
+    assert valid_tof_returns(frame, (5, 9, 255))[0].shape == (4, 3)
     with pytest.raises(ValueError):
-        valid_tof_points(DepthFrame(seq=0, timestamp=0.0, points=np.zeros((0, 3))))
+        valid_tof_returns(DepthFrame(seq=0, timestamp=0.0, points=np.zeros((0, 3))))
 
 
 def test_no_target_directions() -> None:

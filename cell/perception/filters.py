@@ -125,15 +125,17 @@ def valid_tof_zones(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[in
                       & (zones.nb_targets > 0) & np.isfinite(zones.distance_m) & (zones.distance_m > 0.0))
 
 
-def valid_tof_points(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[int] = (5, 9)) -> Array:
-    """Points (K, 3) [m, sensor frame] of the ToF zones that hold a range (:func:`valid_tof_zones`).
+def valid_tof_returns(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[int] = (5, 9)
+                      ) -> tuple[Array, Array]:
+    """Points (K, 3) [m, sensor frame] of the ToF zones that hold a range (:func:`valid_tof_zones`) and
+    their range sigmas (K,) [m].
 
     Rebuilt from ``zones.distance_m * zones.directions`` (distance along each zone's central ray) rather
     than taken from ``frame.points``, which holds every zone with a target whatever its status. Zone order
     is kept."""
     keep = valid_tof_zones(frame, valid_statuses)
     assert frame.zones is not None
-    return frame.zones.distance_m[keep, None] * frame.zones.directions[keep]
+    return frame.zones.distance_m[keep, None] * frame.zones.directions[keep], frame.zones.sigma_m[keep]
 
 
 def no_target_directions(frame: DepthFrame) -> Array:

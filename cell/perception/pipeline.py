@@ -127,9 +127,7 @@ class PerceptionPipeline:
         the sensor reports them."""
         if frame.zones is None:
             return frame.points, None
-        statuses = self.config.filters.valid_tof_statuses
-        sigma = frame.zones.sigma_m[filters.valid_tof_zones(frame, statuses)]
-        return filters.valid_tof_points(frame, statuses), sigma
+        return filters.valid_tof_returns(frame, self.config.filters.valid_tof_statuses)
 
     def filter_frame(self, points: Array) -> Array:
         """Of a frame's returns ``points`` (:meth:`_returns`), those worth keeping, sensor frame: crop box,
