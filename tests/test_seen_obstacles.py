@@ -84,6 +84,20 @@ def test_the_surface_of_the_cells_is_their_union_s_boundary() -> None:
     assert vertices.max(axis=0) == pytest.approx([0.02, 0.0, 0.05])
 
 
+def test_a_block_that_holds_the_cells_it_held_keeps_its_body() -> None:
+    """Cells in two blocks (16 cells a side), then a cell more in one of them: the other block is the one
+    built before, body and all; the grown one is built again, and its body holds the new cell."""
+    seen = SeenObstacles(G, table_z_m=0.0, table_band_m=0.006)
+    seen.add(np.array([[0.005, 0.005, 0.455], [0.305, 0.005, 0.455]]), _looking_down(0.5), pitch_rad=0.0)
+    first = [chunk for chunk, _ in seen.outside(None).chunks]
+    again = [chunk for chunk, _ in seen.outside(None).chunks]
+    assert len(first) == 2 and all(a is b for a, b in zip(first, again, strict=True))
+    seen.add(np.array([[0.015, 0.005, 0.455]]), _looking_down(0.5), pitch_rad=0.0)
+    grown, kept = (chunk for chunk, _ in seen.outside(None).chunks)
+    assert kept is first[1] and grown is not first[0] and len(grown) == 2
+    assert grown.body[2] > first[0].body[2]
+
+
 def test_the_pitch_of_a_frame_s_returns() -> None:
     angles = np.radians([-2.0, 3.0])
     directions = np.column_stack([np.sin(angles), np.zeros(2), np.cos(angles)])

@@ -28,7 +28,8 @@ when an update comes, which the guard leaves out.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import fcl
@@ -65,6 +66,9 @@ class SeenCells:
 
     voxel_m: float
     keys: IntArray
+    built: Mapping[bytes, SeenCells] = field(default_factory=dict, repr=False, compare=False)
+    """Blocks built before, by their keys' bytes: a block of :attr:`chunks` that holds the same cells as
+    one of them is that one, its body with it."""
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
@@ -104,13 +108,17 @@ class SeenCells:
 
     @cached_property
     def chunks(self) -> tuple[tuple[SeenCells, NDArray[np.intp]], ...]:
-        """These cells by blocks of ``CHUNK_CELLS`` cells a side: each block's cells and their indices
-        into these."""
+        """These cells by blocks of ``CHUNK_CELLS`` cells a side: each block's cells (one of :attr:`built`
+        when it holds the same) and their indices into these."""
         blocks = np.floor_divide(unpack_keys(self.keys), CHUNK_CELLS)
         _, which = np.unique(blocks, axis=0, return_inverse=True)
         which = which.ravel()
-        return tuple((SeenCells(self.voxel_m, self.keys[at]), at)
-                     for at in (np.nonzero(which == k)[0] for k in range(int(which.max(initial=-1)) + 1)))
+        chunks = []
+        for at in (np.nonzero(which == k)[0] for k in range(int(which.max(initial=-1)) + 1)):
+            keys = self.keys[at]
+            block = self.built.get(keys.tobytes())
+            chunks.append((SeenCells(self.voxel_m, keys) if block is None else block, at))
+        return tuple(chunks)
 
     @cached_property
     def body(self) -> tuple[fcl.BVHModel, Array, float]:
@@ -148,6 +156,7 @@ class SeenObstacles:
         self.reach_m = reach_m
         self._keys = np.zeros(0, dtype=np.int64)
         self._reach = np.zeros(0, dtype=np.int64)
+        self._blocks: dict[bytes, SeenCells] = {}
 
     def add(self, points_sensor: Array, T_base_sensor: Array, pitch_rad: float,
             sigma_m: Array | None = None) -> None:
@@ -183,7 +192,7 @@ class SeenObstacles:
         surface, up to the noise and the map's voxels the box was found on), which the guard's ROI holds
         already; any other return, a part's beside it included, is an obstacle with its whole reach. The
         bodies of their blocks are built here (:attr:`SeenCells.chunks`), on the thread that processes
-        frames."""
+        frames; a block that holds the same cells as one of the previous call's keeps its body."""
         keys, reach = self._keys, self._reach
         if roi is not None and keys.size:
             g = self.voxel_m
@@ -195,7 +204,8 @@ class SeenObstacles:
             span = np.arange(-r, r + 1)
             steps = key_steps(np.stack(np.meshgrid(span, span, span, indexing="ij"), axis=-1).reshape(-1, 3))
             grown.append((keys[reach == r][:, None] + steps[None, :]).ravel())
-        cells = SeenCells(self.voxel_m, np.unique(np.concatenate(grown)))
-        for chunk, _ in cells.chunks:
+        cells = SeenCells(self.voxel_m, np.unique(np.concatenate(grown)), self._blocks)
+        self._blocks = {chunk.keys.tobytes(): chunk for chunk, _ in cells.chunks}
+        for chunk in self._blocks.values():
             _ = chunk.body
         return cells
