@@ -11,9 +11,11 @@ from pydantic import ValidationError
 
 from cell.config.models import CropBoxConfig
 from cell.perception.filters import (
+    GRAZING_DEG,
     CentroidLowPass,
     FilterParams,
     carved_lengths,
+    continuous_depth_mask,
     filter_frame,
     knn_mean_distances,
     no_target_directions,
@@ -83,6 +85,19 @@ def test_sor_small_inputs() -> None:
     assert np.all(statistical_outlier_mask(np.ones((5, 3)), 5, 2.0))
     with pytest.raises(ValueError):
         statistical_outlier_mask(np.ones((5, 3)), 0, 2.0)
+
+
+@pytest.mark.parametrize("incidence_deg", [0.0, 45.0, GRAZING_DEG - 5.0, GRAZING_DEG + 5.0])
+def test_a_plane_s_depths_are_continuous_when_seen_no_flatter_than_grazing(incidence_deg: float) -> None:
+    """A plane 40 cm ahead, turned about the camera's y axis, seen at ``incidence_deg`` on the optical axis
+    (2.3 deg more or less at the image's sides, 41 pixels of 2 mrad): every pixel but those without a
+    return is kept up to ``GRAZING_DEG``, none beyond it."""
+    f, theta = 500.0, math.radians(incidence_deg)
+    u = np.arange(41) - 20.0
+    depth = np.tile(0.4 * math.cos(theta) / (math.sin(theta) * u / f + math.cos(theta)), (41, 1))
+    depth[5, 7] = 0.0
+    keep = continuous_depth_mask(depth, 1.0 / f)
+    assert not keep[5, 7] and np.count_nonzero(keep) == (41 * 41 - 1 if incidence_deg < GRAZING_DEG else 0)
 
 
 def _tof_frame() -> DepthFrame:

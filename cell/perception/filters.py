@@ -31,6 +31,12 @@ BoolArray = NDArray[np.bool_]
 _MAX_GRID_CELLS = 4_000_000
 """Cap on the cells of the kNN search grid (32 MB of run offsets)."""
 
+GRAZING_DEG = 80.0
+"""[deg] The largest incidence (between a pixel's ray and the surface's normal) at which a depth camera
+returns a surface (:func:`continuous_depth_mask`): ``sim-rgbd`` returns none beyond its ``grazing_deg``
+(80 by default), and a stereo or structured-light camera matches no texture or pattern on a surface seen
+flatter."""
+
 
 class FilterParams(StrictModel):
     """Filter settings not already in the cell config's perception section.
@@ -136,6 +142,30 @@ def valid_tof_returns(frame: DepthFrame, valid_statuses: tuple[int, ...] | list[
     keep = valid_tof_zones(frame, valid_statuses)
     assert frame.zones is not None
     return frame.zones.distance_m[keep, None] * frame.zones.directions[keep], frame.zones.sigma_m[keep]
+
+
+def continuous_depth_mask(depth: NDArray[np.floating], pitch_rad: float) -> BoolArray:
+    """Which pixels (H, W) of a depth image ``depth`` [m] (0: no return) hold a return whose depth no
+    neighbour's (4-neighbourhood, those with a return) differs from by more than one surface can give.
+
+    The bound is geometric. Neighbouring pixels' rays are ``pitch_rad`` [rad] apart (a camera's 1 / fx).
+    Along two rays that far apart, a plane seen at incidence theta lies at depths z and, to first order,
+    z (1 + pitch_rad tan theta); no surface is returned seen beyond ``GRAZING_DEG``, so depths further
+    apart than ``z_near * pitch_rad * tan(GRAZING_DEG)`` [m] (z_near the nearer one) are two surfaces, a
+    foreground's edge over a background. A pixel at such an edge may mix the two (a flying pixel, its depth
+    anywhere between them, as a RealSense gives), so both pixels of every such pair are dropped: the flying
+    ones and the outermost pixel of each surface. Range noise is not in the bound: it drops a few pixels of
+    a surface seen at nearly ``GRAZING_DEG``, each one of the many that a centimetre holds, where a bound
+    widened by it would keep the flying pixels of a shallow edge."""
+    z = np.asarray(depth)
+    slope = pitch_rad * math.tan(math.radians(GRAZING_DEG))
+    keep = z > 0.0
+    for along, kept in ((z, keep), (z.T, keep.T)):  # down the columns, then along the rows (views)
+        near = np.minimum(along[:-1], along[1:])
+        edge = (np.abs(along[1:] - along[:-1]) > slope * near) & (near > 0.0)
+        kept[:-1] &= ~edge
+        kept[1:] &= ~edge
+    return keep
 
 
 def no_target_directions(frame: DepthFrame) -> Array:

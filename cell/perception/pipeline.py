@@ -28,6 +28,7 @@ from cell.perception.registration import RegistrationResult, RegistrationTarget
 from cell.perception.seen_obstacles import SeenCells, SeenObstacles, sample_pitch_rad
 from cell.perception.segmentation import ROI, ObjectExtent, SegmentationResult, segment_object
 from drivers.depth.base import DepthFrame
+from drivers.depth.projection import back_project
 from drivers.scheduling import ordinary_scheduling
 from drivers.transforms import transform_points
 
@@ -129,6 +130,17 @@ class PerceptionPipeline:
             return frame.points, None
         return filters.valid_tof_returns(frame, self.config.filters.valid_tof_statuses)
 
+    def _see(self, frame: DepthFrame, returns: Array, sigma: Array | None, T_base_sensor: Array) -> None:
+        """Add a frame's returns and sigmas (:meth:`_returns`), seen from ``T_base_sensor``, to what stands
+        on the table (``cell.perception.seen_obstacles``); a camera's without the pixels at a jump of its
+        depth image (:func:`filters.continuous_depth_mask`): the flying pixels between an edge and what
+        lies behind it, which no crop box or outlier filter takes off outside the crop box."""
+        pitch = sample_pitch_rad(frame)
+        if frame.depth is not None and frame.intrinsics is not None:
+            keep = filters.continuous_depth_mask(frame.depth, pitch)
+            returns = back_project(np.where(keep, frame.depth, 0.0), frame.intrinsics)
+        self.seen.add(returns, T_base_sensor, pitch, sigma)
+
     def filter_frame(self, points: Array) -> Array:
         """Of a frame's returns ``points`` (:meth:`_returns`), those worth keeping, sensor frame: crop box,
         voxel filter and statistical outlier removal (section II-A, "Filtering")."""
@@ -140,7 +152,7 @@ class PerceptionPipeline:
         from where the arm stands before it first moves, whose cells are all obstacles (no object has been
         found yet). It adds nothing to the cloud, the map or registration, whose frames are the scan's."""
         returns, sigma = self._returns(frame)
-        self.seen.add(returns, np.asarray(T_base_sensor_fk, dtype=float), sample_pitch_rad(frame), sigma)
+        self._see(frame, returns, sigma, np.asarray(T_base_sensor_fk, dtype=float))
         return self.seen.outside(None)
 
     def process(self, frame: DepthFrame, T_base_sensor_fk: Array) -> PerceptionUpdate:
@@ -165,7 +177,7 @@ class PerceptionPipeline:
             free_ends = T[:3, 3] + (directions[carves] @ T[:3, :3].T) * length[carves, None]
         seg, extent = self.add_capture(T, points_base, free_ends)
         roi = seg.roi
-        self.seen.add(returns, T, sample_pitch_rad(frame), sigma)
+        self._see(frame, returns, sigma, T)
         # a frame whose segmentation lost the object: the box of every ROI so far, not none
         seen = self.seen.outside((roi.aabb_min, roi.aabb_max) if roi is not None else extent)
         clock.lap("seen")
