@@ -108,20 +108,19 @@ class _Running:
     started (it says so before it touches the arm), whether the first stop passed on to it, the one its
     job ends with, was one someone asked for (``requested``: an operator, the line, the shutdown; False:
     the service's own stop of a hung worker or after its own failure; None: no stop was passed on), a
-    stop asked for while it was being started (``stop_reason``, ``stop_requested``), the stop
-    confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
-    not started: its cause as the termination begins, ``operator stop: `` for a request), its newest
-    progress, its worker's last word, whether its end is recorded (the worker may still be exiting) and in
-    the store (``stored``), the stop of a worker taken for hung (``hung_stop``) and ``gone``, set once the
-    worker has exited."""
+    stop asked for while it was being started (``pending_stop``: its reason and whether it was requested,
+    the pair ``JobControl`` keeps), the stop confirmations the worker owes, the stop its worker was killed
+    for (it did not confirm in time, or had not started: its cause as the termination begins,
+    ``operator stop: `` for a request), its newest progress, its worker's last word, whether its end is
+    recorded (the worker may still be exiting) and in the store (``stored``), the stop of a worker taken
+    for hung (``hung_stop``) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
     proc: asyncio.subprocess.Process | None = None
     started: bool = False
     requested: bool | None = None
-    stop_reason: str | None = None
-    stop_requested: bool = True
+    pending_stop: tuple[str, bool] | None = None
     acks: deque[asyncio.Future[StopEffect]] = field(default_factory=deque)
     killed_for: str | None = None
     progress: dict[str, Any] | None = None
@@ -603,8 +602,8 @@ class CellService:
         self.metrics.stop_requests.inc()
         job_id, proc = running.job.id, running.proc
         if proc is None:
-            if running.stop_reason is None:
-                running.stop_reason, running.stop_requested = reason, requested
+            if running.pending_stop is None:
+                running.pending_stop = (reason, requested)
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
         if running.ended is not None or proc.returncode is not None:
             return StopOutcome(job_id, False, "the job had already ended")
@@ -866,8 +865,8 @@ class CellService:
                     self._running = None
                     running.gone.set()
                     self._queued = {job_id: queued, **self._queued}
-                    if running.stop_reason is not None:  # and a stop of it came meanwhile
-                        self._hold(f"a stop ({running.stop_reason})")
+                    if running.pending_stop is not None:  # and a stop of it came meanwhile
+                        self._hold(f"a stop ({running.pending_stop[0]})")
                     asyncio.get_running_loop().call_later(retry_s, self._wake.set)
                     break
 
@@ -930,8 +929,9 @@ class CellService:
         assert proc is not None and proc.stdout is not None
         if not started:
             await self._warm()  # beside the job, where the cell allows it; never raises
-            if running.stop_reason is not None:
-                await self._stop_running(running, running.stop_reason, requested=running.stop_requested)
+            if running.pending_stop is not None:
+                reason, requested = running.pending_stop
+                await self._stop_running(running, reason, requested=requested)
             self.arm.job_started()
             log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
             self.events.log(job.id).publish("state", {"status": "running", "termination": None})
