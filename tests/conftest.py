@@ -85,6 +85,23 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float = 30.0) -> bool:
     return False
 
 
+@pytest.fixture
+def built_worlds(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The collision worlds (``cell.safety.collision.CollisionWorld``) built from now on, however each is
+    made (``CollisionWorld.for_cell`` or its constructor)."""
+    from cell.safety.collision import CollisionWorld  # FCL, for the tests that count worlds only
+
+    built: list[Any] = []
+    build = CollisionWorld.__init__
+
+    def counted(self: CollisionWorld, *args: Any, **kwargs: Any) -> None:
+        built.append(self)
+        build(self, *args, **kwargs)
+
+    monkeypatch.setattr(CollisionWorld, "__init__", counted)
+    return built
+
+
 @pytest.fixture(autouse=True)
 def _no_realtime_leak() -> Iterator[None]:
     """franky (libfranka) leaves the test's thread at a realtime priority (see ``drivers.scheduling``);

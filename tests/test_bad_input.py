@@ -478,26 +478,23 @@ def test_a_scan_that_reached_no_view_failed_and_says_what_to_check(tmp_path):
     assert f"failed: {result['termination']}" in res.output and f"job folder: {out}" in res.output
 
 
-def test_the_services_arm_check_builds_the_cells_collision_world_once(monkeypatch: pytest.MonkeyPatch):
+def test_the_services_arm_checks_build_the_cells_collision_world_once(tmp_path, built_worlds):
     """Every Start of the line and every job submitted checks a shipped object's placement against the arm
-    (``ArmClearance``); the cell's collision world is built at the first check and kept, where each
-    check built one (10-100 ms)."""
-    from cell.config.models import CellConfig
-    from cell.safety.collision import CollisionWorld
-    from cell.service.submission import ArmClearance
-    from drivers.sim.objects import load_object
+    (``ArmClearance``), and every upload its mesh's, in the same ``ArmClearance`` (the object library's);
+    the cell's collision world is built at the first check and kept, where each check, and each upload,
+    built one (10-100 ms)."""
+    from cell.service.arm_clearance import ArmClearance
+    from cell.service.objects import ObjectLibrary
 
-    built: list[int] = []
-    for_cell = CollisionWorld.for_cell
-
-    def counted(config: CellConfig) -> CollisionWorld:
-        built.append(1)
-        return for_cell(config)
-
-    monkeypatch.setattr(CollisionWorld, "for_cell", staticmethod(counted))
-    arm, bunny = ArmClearance(load_config(UR5E)), load_object("bunny")
+    config = load_config(UR5E)
+    arm, bunny = ArmClearance(config), load_object("bunny")
+    library = ObjectLibrary(tmp_path / "objects", config, arm)
+    for name in ("crate", "tray"):
+        source = tmp_path / f"{name}.stl"
+        trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(source)
+        library.add(source.name, source.read_bytes())
     arm.check(bunny, (0.0, 0.0, 0.0))
     arm.check(bunny, (0.02, -0.01, 25.0))
     with pytest.raises(JobError, match="robot base"):
         arm.check(bunny, (-0.42, 0.0, 0.0))
-    assert len(built) == 1
+    assert len(built_worlds) == 1

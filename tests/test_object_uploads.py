@@ -16,6 +16,7 @@ import trimesh
 import cell.service.objects as objects_module
 from cell.config import load_config
 from cell.jobs.placement import check_on_table, footprint_bounds
+from cell.service.arm_clearance import ArmClearance
 from cell.service.objects import ObjectLibrary
 from cell.service.store import JobRecord
 from drivers.errors import JobError, ServiceError
@@ -24,6 +25,11 @@ from tests.conftest import FRANKA
 from tests.service_process import ServedCell, submit
 
 CONFIG = load_config(FRANKA)
+
+
+def _library(folder: Path) -> ObjectLibrary:
+    """The object library of the cell ``CONFIG`` describes, its uploads in ``folder``."""
+    return ObjectLibrary(folder, CONFIG, ArmClearance(CONFIG))
 
 
 def _l_shape() -> trimesh.Trimesh:
@@ -53,13 +59,13 @@ def test_after_a_restart_the_list_and_a_jobs_placement_read_no_uploaded_mesh(
     16 MB STLs); its outline, written at the upload, now answers both, as the mesh would have."""
     source = tmp_path / "L part.stl"
     _l_shape().export(source)
-    entry = ObjectLibrary(tmp_path / "objects", CONFIG).add(source.name, source.read_bytes())
+    entry = _library(tmp_path / "objects").add(source.name, source.read_bytes())
     assert entry.name == "l_part" and entry.extents_m == pytest.approx((0.12, 0.14, 0.05))
     assert len(counted_loads) == 1  # the upload's own check
     kept = json.loads((tmp_path / "objects" / "l_part.json").read_text())
     assert kept["extents_m"] == pytest.approx([0.12, 0.14, 0.05])
 
-    restarted = ObjectLibrary(tmp_path / "objects", CONFIG)
+    restarted = _library(tmp_path / "objects")
     listed = {e.name: e for e in restarted.entries()}
     assert listed["l_part"].source == "uploaded" and listed["l_part"].extents_m == entry.extents_m
     shape = restarted.shape("l_part")
@@ -93,7 +99,7 @@ def test_an_outline_file_kept_from_before_loads_without_its_mesh(tmp_path: Path,
     (folder / "wedge.json").write_text(json.dumps({
         "mesh_file": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}, "extents_m": [0.3, 0.2, 0.04],
         "footprint_m": [[-0.04, -0.025], [0.04, -0.025], [0.04, 0.025], [-0.04, 0.025]]}, indent=1))
-    library = ObjectLibrary(folder, CONFIG)
+    library = _library(folder)
     assert {e.name: e.extents_m for e in library.entries()}["wedge"] == pytest.approx((0.08, 0.05, 0.04))
     assert library.shape("wedge").vertices[:, 2].max() == pytest.approx(0.04)
     assert counted_loads == []
@@ -106,7 +112,7 @@ def test_an_upload_from_before_outlines_is_read_once_and_again_only_when_its_fil
     old = folder / "crate.stl"
     trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(old)
     for _ in range(2):  # two services one after the other
-        library = ObjectLibrary(folder, CONFIG)
+        library = _library(folder)
         for _ in range(3):
             listed = {e.name: e.extents_m for e in library.entries()}
             assert listed["crate"] == pytest.approx((0.06, 0.05, 0.04))
@@ -115,7 +121,7 @@ def test_an_upload_from_before_outlines_is_read_once_and_again_only_when_its_fil
 
     trimesh.creation.box(extents=(0.08, 0.05, 0.04)).export(old)  # another file copied in under the name
     assert {e.name: e.extents_m for e in library.entries()}["crate"] == pytest.approx((0.08, 0.05, 0.04))
-    assert ObjectLibrary(folder, CONFIG).shape("crate").extents_m == pytest.approx((0.08, 0.05, 0.04))
+    assert _library(folder).shape("crate").extents_m == pytest.approx((0.08, 0.05, 0.04))
     assert counted_loads == [str(old)] * 2
 
 
@@ -124,7 +130,7 @@ def test_an_upload_that_no_longer_reads_is_left_out_and_read_once(tmp_path: Path
     folder = tmp_path / "objects"
     folder.mkdir()
     (folder / "junk.ply").write_bytes(b"not a mesh")
-    library = ObjectLibrary(folder, CONFIG)
+    library = _library(folder)
     for _ in range(3):
         assert "junk" not in {e.name for e in library.entries()}
     with pytest.raises(ServiceError, match="no longer reads as a mesh"):
@@ -133,7 +139,7 @@ def test_an_upload_that_no_longer_reads_is_left_out_and_read_once(tmp_path: Path
 
 
 def test_a_deletion_keeps_shipped_objects_and_those_of_queued_jobs(tmp_path: Path) -> None:
-    library = ObjectLibrary(tmp_path / "objects", CONFIG)
+    library = _library(tmp_path / "objects")
     source = tmp_path / "crate.stl"
     trimesh.creation.box(extents=(0.06, 0.05, 0.04)).export(source)
     library.add(source.name, source.read_bytes())

@@ -22,7 +22,6 @@ from cell.perception.metrics import METRICS_KEYS
 from cell.perception.octomap_io import read_bt
 from cell.planning.base import Planner, ScanSession
 from cell.planning.vs.servo_scan import start_views
-from cell.safety.collision import CollisionWorld
 from drivers.depth.base import DepthFrame
 from drivers.depth.projection import back_project
 from drivers.depth.sim_rgbd import SimRGBD
@@ -137,21 +136,13 @@ class Idle(Planner):
         return "idle"
 
 
-def test_a_scan_builds_one_collision_world(tmp_path, monkeypatch):
+def test_a_scan_builds_one_collision_world(tmp_path, monkeypatch, built_worlds):
     """The placement's check clear of the arm and the job's guard use the same collision world."""
     register_planner(monkeypatch, Idle)
-    built = []
-    build = CollisionWorld.__init__
-
-    def counted(self, *args, **kwargs):
-        built.append(self)
-        build(self, *args, **kwargs)
-
-    monkeypatch.setattr(CollisionWorld, "__init__", counted)
     result = run_scan(ScanRequest(config=load_config(FRANKA), config_path=str(FRANKA), object="cube",
                                   planner=Idle.name, out=tmp_path / "job", max_time_s=5.0)).result
     assert ended_without_a_frame(result, "idle")
-    assert len(built) == 1
+    assert len(built_worlds) == 1
 
 
 def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path):

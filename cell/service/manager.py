@@ -45,6 +45,7 @@ from cell.jobs.control import StopEffect
 from cell.line.controller import LineController
 from cell.line.dio import DigitalIOHandshake
 from cell.planning.registry import PLANNERS
+from cell.service.arm_clearance import ArmClearance
 from cell.service.arm_status import ArmTracker
 from cell.service.events import EventHub, JobEvents
 from cell.service.metrics import ServiceMetrics
@@ -55,7 +56,7 @@ from cell.service.retention import Retention, delete_job
 from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, HoldRecord, JobRecord, Store
 from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
-from cell.service.submission import ArmClearance, JobRequest, ValidJob, validate
+from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
 from drivers.errors import ServiceError, StoreError, stop_cause, stop_termination
 
@@ -185,8 +186,8 @@ class CellService:
         self._lease = lease
         self._lease_lost: str | None = None
         self._lease_keeper: asyncio.Task[None] | None = None
-        self.objects = ObjectLibrary(data_dir / "objects", config)
         self._arm_clearance = ArmClearance(config)
+        self.objects = ObjectLibrary(data_dir / "objects", config, self._arm_clearance)
         self.retention = Retention(store, self.name, self.jobs_dir, config.service.retention)
         self._pruner: asyncio.Task[None] | None = None
         self.events = EventHub()

@@ -31,6 +31,7 @@ from scipy.spatial import ConvexHull
 from cell.config.models import CellConfig
 from cell.jobs.memory import release_freed_heap
 from cell.jobs.placement import check_placement
+from cell.service.arm_clearance import ArmClearance
 from cell.service.store import JobRecord
 from drivers.atomic_file import write_text_atomic
 from drivers.errors import CellError, ServiceError
@@ -134,11 +135,13 @@ def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline
 
 
 class ObjectLibrary:
-    """Shipped and uploaded objects of one cell; thread-safe."""
+    """Shipped and uploaded objects of one cell; thread-safe. An upload's placement is checked clear of
+    the arm in ``arm``'s collision world, the one the service's Starts check in."""
 
-    def __init__(self, folder: Path, config: CellConfig) -> None:
+    def __init__(self, folder: Path, config: CellConfig, arm: ArmClearance) -> None:
         self.folder = folder
         self._config = config
+        self._arm = arm
         # held while a mesh is read (one at a time: each takes tens of MB) and while uploads come and go
         self._lock = threading.Lock()
         # each upload's outline (None: its file does not read as a mesh) with its mesh file's stamp
@@ -257,7 +260,8 @@ class ObjectLibrary:
         staged.write_bytes(data)
         try:
             mesh = load_object(staged, scale)
-            check_placement(self._config, mesh, (0.0, 0.0, 0.0), scale, option="the upload's scale")
+            check_placement(self._config, mesh, (0.0, 0.0, 0.0), scale, option="the upload's scale",
+                            world=self._arm.world())
             if scale != 1.0:
                 write_mesh(mesh, scaled)
                 staged.unlink()

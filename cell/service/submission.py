@@ -11,20 +11,16 @@ service keeps an upload's outline, not its surface).
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from cell.config.models import CellConfig
 from cell.jobs.inputs import check_seed
-from cell.jobs.placement import check_clear_of_arm, check_object_size, check_on_table
+from cell.jobs.placement import check_object_size, check_on_table
 from cell.planning.registry import check_planner
+from cell.service.arm_clearance import ArmClearance
 from cell.service.objects import ObjectLibrary
 from drivers.errors import JobError, PlanningError, ServiceError
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh
-
-if TYPE_CHECKING:  # FCL and the collision world load at the first check, not when ``cell serve`` starts
-    from cell.safety.collision import CollisionWorld
 
 MAX_TIME_BUDGET_S = 3600.0
 """The longest time budget a job may ask for [s]: an hour, twenty times the papers' longest scans."""
@@ -55,29 +51,6 @@ class ValidJob:
     seed: int
     max_time_s: float | None
     part_id: str | None
-
-
-class ArmClearance:
-    """The check that a shipped object's placement is clear of the arm at its home joints
-    (``check_clear_of_arm``), in the cell's collision world, built at the first check (it loads FCL and
-    the tool's meshes, which ``cell serve`` does not load to start) and kept for the next: the arm and its
-    tool do not change while the service runs, and building the world took 10-100 ms of every Start.
-    Callable from several threads at once."""
-
-    def __init__(self, config: CellConfig) -> None:
-        self._config = config
-        self._lock = threading.Lock()
-        self._world: CollisionWorld | None = None
-
-    def check(self, mesh: ObjectMesh, pose: tuple[float, float, float]) -> None:
-        """``JobError`` naming the body when ``mesh`` at ``pose`` (x [m], y [m], yaw [deg] from the
-        station) stands in the arm."""
-        with self._lock:
-            if self._world is None:
-                from cell.safety.collision import CollisionWorld
-
-                self._world = CollisionWorld.for_cell(self._config)
-        check_clear_of_arm(self._config, mesh, pose, self._world)
 
 
 def _invalid(message: str, field: str) -> ServiceError:
