@@ -170,6 +170,24 @@ def test_reprocess_reads_an_unreadable_result_once(job, monkeypatch):
     assert reads.count(job / "result.json") == 1
 
 
+def test_reprocess_tries_once_whether_it_can_write_to_the_job_folder(job, monkeypatch):
+    """cell reprocess of a job folder with a damaged result.json made a probe file in it to see that it
+    could write its outputs there, then another to see that it could rebuild result.json there."""
+    _truncate(job / "result.json")
+    probes = []
+    open_path = Path.open
+
+    def counted(path: Path, *args, **kwargs):
+        if path.parent == job and ".write-check." in path.name:
+            probes.append(path)
+        return open_path(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "open", counted)
+    res = CliRunner().invoke(app, ["reprocess", str(job)])
+    assert res.exit_code == 0, res.output
+    assert "was unreadable" in res.stdout and len(probes) == 1
+
+
 def test_the_service_keeps_an_unreadable_result_aside_when_it_settles_a_dead_workers_job(job):
     """A worker killed while it wrote result.json (before this release wrote it whole): the service's
     restart gave the job its own result.json over the damaged one."""

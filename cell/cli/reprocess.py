@@ -45,7 +45,8 @@ def reprocess(
         target = output_folder(job_dir, out, HIRES_FILES)
         recorded = recorded_result(job_dir)
         if recorded.problem is not None:
-            if _writable(job_dir):
+            # output_folder found the job folder writable when it is where the outputs go
+            if target == job_dir or _writable(job_dir):
                 kept = rebuild_result(job_dir, recorded)
                 aside = f"; the unreadable file is kept as {kept}" if kept is not None else ""
                 console.print(f"{job_dir / RESULT_FILE} was {recorded.problem}: rebuilt from "
