@@ -5,13 +5,16 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 import yaml
 
 from cell.planning.registry import PLANNERS, PlannerEntry
 from drivers.scheduling import ordinary_scheduling
+
+if TYPE_CHECKING:
+    from fastapi.testclient import TestClient
 
 REPO = Path(__file__).resolve().parent.parent
 CONFIG_DIR = REPO / "config"
@@ -83,6 +86,15 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float = 30.0) -> bool:
             return True
         time.sleep(0.01)
     return False
+
+
+def wait_started(client: TestClient, headers: dict[str, str], job_id: str) -> None:
+    """Poll the job ``job_id`` through the API (with ``headers``) every 50 ms until its worker has started
+    it (its first progress); a job not started within 90 s of wall time fails the test."""
+    deadline = time.monotonic() + 90.0
+    while client.get(f"/api/v1/jobs/{job_id}", headers=headers).json()["progress"] is None:
+        assert time.monotonic() < deadline, f"job {job_id} did not start"
+        time.sleep(0.05)
 
 
 @pytest.fixture

@@ -89,16 +89,15 @@ def test_eval_executors_names_the_scans_that_did_not_complete(tmp_path: Path, mo
     not_completed = _benchmark(monkeypatch, "eval_executors").not_completed
 
     from cell.evaluation.grid import RESULTS_CSV
-    from cell.evaluation.results import COLUMNS, csv_text
+    from cell.evaluation.results import csv_text
+    from tests.result_rows import result_row
 
-    def row(seed: int, status: str) -> dict[str, str]:
-        return {**dict.fromkeys(COLUMNS, ""), "object": "cube", "placement": "0,0,0", "planner": "heu",
-                "seed": str(seed), "status": status, "termination": "time budget" if seed else "refused"}
-
-    (tmp_path / RESULTS_CSV).write_text(csv_text([row(0, "failed"), row(1, "completed")]))
+    refused = result_row("cube", "heu", 0, status="failed", termination="refused")
+    completed = result_row("cube", "heu", 1, termination="time budget")
+    (tmp_path / RESULTS_CSV).write_text(csv_text([refused, completed]))
     assert not_completed(tmp_path) == ("1 of 2 scans did not complete, so their wall time measures no "
                                        "executor (the first: cube heu seed 0, failed: refused)")
-    (tmp_path / RESULTS_CSV).write_text(csv_text([row(1, "completed")]))
+    (tmp_path / RESULTS_CSV).write_text(csv_text([completed]))
     assert not_completed(tmp_path) is None
 
 

@@ -24,11 +24,12 @@ from cell.evaluation.executors import LocalPool, RayExecutor
 from cell.evaluation.grid import RESULTS_CSV, SCANS_DIR, run_grid, scan_folder, timelines
 from cell.evaluation.limit import cell_coverage_limit, reachable_views
 from cell.evaluation.report import REPORT_MD, write_report
-from cell.evaluation.results import COLUMNS, read_csv, row_from_folder, row_from_result
+from cell.evaluation.results import read_csv, row_from_folder, row_from_result
 from cell.evaluation.spec import ScanSpec, code_digest, cross, scan_key
 from cell.evaluation.task import ScanTask, TaskOutput, run_scan_task, unpack_folder
 from drivers.sim.objects import face_normals, load_object
 from drivers.transforms import look_at
+from tests.result_rows import result_row
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "config" / "sim-ur5e-tof.yaml")
@@ -217,15 +218,11 @@ def test_report_tables_match_results_csv(local_run, tmp_path):
     assert single and all(line[4:6] == ["-", "-"] for line in single)
 
 
-def _row(obj: str, planner: str, seed: int, **figures: str) -> dict[str, str]:
-    return {**dict.fromkeys(COLUMNS, ""), "object": obj, "placement": "0,0,0", "planner": planner,
-            "seed": str(seed), "status": "completed", "termination": "done", **figures}
-
-
 def test_the_report_says_what_its_figures_mean(tmp_path):
-    boxes = [_row("horizontal_box", planner, seed, coverage_pct=f"{50 + seed + k:.4f}", iou=f"0.{7 + k}000",
-                  dims_m=f"0.2{seed}00 0.1000 0.0500", dims_true_m="0.2000 0.1000 0.0500",
-                  dims_upper_m=f"0.2{4 + seed}00 0.1400 0.0700", container="medium", n_poses="4")
+    boxes = [result_row("horizontal_box", planner, seed, coverage_pct=f"{50 + seed + k:.4f}",
+                        iou=f"0.{7 + k}000", dims_m=f"0.2{seed}00 0.1000 0.0500",
+                        dims_true_m="0.2000 0.1000 0.0500", dims_upper_m=f"0.2{4 + seed}00 0.1400 0.0700",
+                        container="medium", n_poses="4")
              for k, planner in enumerate(("lr-nbv", "heu")) for seed in (0, 1)]
     write_report(boxes, tmp_path, {})
     md = (tmp_path / REPORT_MD).read_text()
@@ -244,7 +241,7 @@ def test_the_report_says_what_its_figures_mean(tmp_path):
     assert tests and all(line[6] == "0.3333" for line in tests)
     assert "the exact test cannot reach p < 0.05 whatever the values" in md and "2 against 2 (0.333)" in md
     # an object and a strategy of Table I: brackets, and the text says what they hold
-    write_report([_row("cube", "vs-local", 0, coverage_pct="80.0000")], tmp_path, {})
+    write_report([result_row("cube", "vs-local", 0, coverage_pct="80.0000")], tmp_path, {})
     md = (tmp_path / REPORT_MD).read_text()
     assert "in brackets the paper's figures: Table I's in an object's row where it has the object and " \
         "strategy and the paper's mean over its eight objects (section III-C) in a row " \
@@ -262,8 +259,8 @@ def test_the_sentence_before_each_table_says_what_its_coverage_is_and_within_wha
     """A flange scanned by LR-NBV on the ToF cell: eq. 13's coverage (2.5 mm to a cloud point) 7.6 %
     against 73.2 % of the surface within 10 mm of an object voxel; each table's sentence says which is
     which, and why they differ so on a sparse cloud."""
-    flange = [_row("flange", "lr-nbv", seed, coverage_pct="7.6000", packing_coverage_pct="73.2000",
-                   iou="0.7000", dims_m="0.2000 0.2000 0.0500") for seed in (0, 1)]
+    flange = [result_row("flange", "lr-nbv", seed, coverage_pct="7.6000", packing_coverage_pct="73.2000",
+                         iou="0.7000", dims_m="0.2000 0.2000 0.0500") for seed in (0, 1)]
     write_report(flange, tmp_path, {("flange", "0,0,0"): 99.7}, packing_radii_m=[0.01])
     md = (tmp_path / REPORT_MD).read_text()
     reconstruction = _before_table(md, "object | planner | n | coverage %")
@@ -278,8 +275,8 @@ def test_the_sentence_before_each_table_says_what_its_coverage_is_and_within_wha
 
 
 def test_the_papers_means_over_its_objects_are_in_a_mean_row_not_in_an_objects_row(tmp_path):
-    rows = [_row(obj, "vs-local", seed, coverage_pct="80.0000", scan_time_s=f"{time + seed:.4f}",
-                 path_m="0.9000") for obj, time in (("bunny", 46.0), ("cube", 40.0)) for seed in (0, 1)]
+    rows = [result_row(obj, "vs-local", seed, coverage_pct="80.0000", scan_time_s=f"{time + seed:.4f}",
+                       path_m="0.9000") for obj, time in (("bunny", 46.0), ("cube", 40.0)) for seed in (0, 1)]
     write_report(rows, tmp_path, {})
     table = _table((tmp_path / REPORT_MD).read_text(), "object | planner | n | coverage %")
     bunny, cube, mean = table
@@ -288,7 +285,7 @@ def test_the_papers_means_over_its_objects_are_in_a_mean_row_not_in_an_objects_r
     assert mean == ["mean over 2 objects", "vs-local", "4", "", "", "", "", "43.5 ± 3.0 (42.0)",
                     "0.90 ± 0.00 (0.80)", ""]
     # one object at two placements is one object, each placement's mean counted
-    twice = [{**_row("bunny", "vs-local", 0, scan_time_s=f"{time:.4f}", path_m="0.9000"), "placement": where}
+    twice = [result_row("bunny", "vs-local", 0, scan_time_s=f"{time:.4f}", path_m="0.9000", placement=where)
              for where, time in (("0,0,0", 46.0), ("0.02,0,0", 40.0))]
     write_report(twice, tmp_path, {})
     table = _table((tmp_path / REPORT_MD).read_text(), "object | planner | n | coverage %")
@@ -299,8 +296,8 @@ def test_a_report_without_the_packing_section_and_the_claims_only_for_the_papers
     """Table I's report leaves out the packing section of its scans (and its tests), saying where those
     figures are; a packing section of objects or planners not the packing paper's quotes no claim of it."""
     assert not presets.VS_TABLE.packing_report and presets.PACKING.packing_report
-    bunny = [_row("bunny", planner, seed, coverage_pct=f"{80 + seed:.4f}", iou=f"0.{5 + seed}000",
-                  dims_m="0.1000 0.1000 0.1000", n_poses=f"{3 + seed}")
+    bunny = [result_row("bunny", planner, seed, coverage_pct=f"{80 + seed:.4f}", iou=f"0.{5 + seed}000",
+                        dims_m="0.1000 0.1000 0.1000", n_poses=f"{3 + seed}")
              for planner in ("vs-local", "lr-nbv") for seed in (0, 1)]
     write_report(bunny, tmp_path, {}, packing=False)
     md = (tmp_path / REPORT_MD).read_text()

@@ -37,7 +37,7 @@ from drivers.errors import ServiceError
 from tests.rtde_peer import ControllerPeer
 from tests.service_process import free_port
 
-from .conftest import CONFIG_DIR, REPO
+from .conftest import CONFIG_DIR, REPO, wait_started
 
 TOF = CONFIG_DIR / "sim-ur5e-tof.yaml"
 DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
@@ -293,10 +293,7 @@ def _started_scan(line: Line, part: str) -> str:
     line.wait({"Idle"})
     line.command("start", part)
     job_id: str = line.wait({"Execute"})["job_id"]
-    deadline = time.monotonic() + 90.0
-    while line.job(job_id)["progress"] is None:
-        assert time.monotonic() < deadline, f"job {job_id} did not start"
-        time.sleep(0.05)
+    wait_started(line.client, line.auth("viewer"), job_id)
     return job_id
 
 

@@ -46,7 +46,7 @@ from cell.service.worker import SERVICE_GONE
 from drivers.errors import JobError, StoreError
 from drivers.sim.objects import load_object
 
-from .conftest import FRANKA
+from .conftest import FRANKA, wait_started
 
 
 def _client(tmp_path: Path, config: Path = FRANKA) -> tuple[TestClient, dict[str, str]]:
@@ -78,14 +78,6 @@ def _wait(client: TestClient, key: str, job_id: str, statuses: set[str], timeout
         if job["status"] in statuses:
             return job
         assert time.monotonic() < deadline, f"job {job_id} stayed {job['status']}"
-        time.sleep(0.05)
-
-
-def _wait_started(client: TestClient, key: str, job_id: str) -> None:
-    """Until the job's worker has started it (its first progress)."""
-    deadline = time.monotonic() + 90.0
-    while client.get(f"/api/v1/jobs/{job_id}", headers=_auth(key)).json()["progress"] is None:
-        assert time.monotonic() < deadline, f"job {job_id} did not start"
         time.sleep(0.05)
 
 
@@ -170,7 +162,7 @@ def test_a_worker_that_does_not_confirm_a_stop_is_killed_and_the_job_ends_stoppe
     op = _auth(keys["operator"])
     with client:
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
-        _wait_started(client, keys["viewer"], job["id"])
+        wait_started(client, _auth(keys["viewer"]), job["id"])
         stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "hands in the cell"}, headers=op)
         assert stop.status_code == 200 and "was killed" in stop.json()["message"]
         ended = _wait(client, keys["viewer"], job["id"], {"stopped", "failed", "completed"})
@@ -252,7 +244,7 @@ def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_pat
         store = client.app.state.service.store  # type: ignore[attr-defined]
         first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
         second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
-        _wait_started(client, viewer, first["id"])
+        wait_started(client, _auth(viewer), first["id"])
         os.kill(store.get_job(first["id"]).worker_pid, signal.SIGKILL)
         ended = _wait(client, viewer, first["id"], set(FINISHED_STATUSES))
         assert ended["status"] == "failed"
@@ -841,7 +833,7 @@ def test_a_stop_its_worker_does_not_confirm_holds_the_queue(tmp_path):
     with client:
         first = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
         second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 2}, headers=op).json()
-        _wait_started(client, viewer, first["id"])
+        wait_started(client, _auth(viewer), first["id"])
         stop = client.post(f"/api/v1/jobs/{first['id']}/stop", json={"reason": "hands in"}, headers=op)
         assert stop.status_code == 200 and stop.json()["queue_held"] is True, stop.json()
         assert _wait(client, viewer, first["id"], set(FINISHED_STATUSES))["status"] == "stopped"
@@ -882,7 +874,7 @@ def test_a_hung_worker_is_stopped_and_holds_the_queue(tmp_path, caplog):
     with client, caplog.at_level(logging.INFO, logger="cell.service"):
         store = client.app.state.service.store  # type: ignore[attr-defined]
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 60}, headers=op).json()
-        _wait_started(client, viewer, job["id"])
+        wait_started(client, _auth(viewer), job["id"])
         pid = store.get_job(job["id"]).worker_pid
         os.kill(pid, signal.SIGSTOP)
         try:
