@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -27,6 +28,7 @@ from typing import Any
 import pytest
 import yaml
 from fastapi.testclient import TestClient
+from sqlalchemy import create_engine
 from typer.testing import CliRunner
 
 from cell.api.app import create_app
@@ -42,6 +44,7 @@ from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, _started, reconcile
 from cell.service.startup import ServiceSettings
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store, sqlite_url
+from cell.service.store.engine import RESTORE
 from cell.service.worker import SERVICE_GONE
 from drivers.errors import JobError, StoreError
 from drivers.sim.objects import load_object
@@ -864,6 +867,62 @@ def test_a_held_queue_stays_held_across_a_restart_until_resumed(tmp_path, caplog
         assert _queue(client, keys["viewer"])["held"] is None
         assert client.get("/readyz", headers=op).status_code == 200
         assert "cell_queue_held 0.0" in client.get("/metrics", headers=op).text
+
+
+def _damage_page_of(database: Path, marker: bytes) -> None:
+    """Overwrite the whole page of the SQLite file ``database`` that holds ``marker`` (a table's leaf page:
+    the row that holds it), as a failing disk would."""
+    with contextlib.closing(sqlite3.connect(database)) as connection:
+        (page_size,) = connection.execute("PRAGMA page_size").fetchone()
+    page = database.read_bytes().index(marker) // page_size
+    with database.open("r+b") as f:
+        f.seek(page * page_size)
+        f.write(b"\xa5" * page_size)
+
+
+def test_a_store_damaged_while_the_service_runs_holds_the_queue_and_makes_it_not_ready(tmp_path, caplog):
+    """A store damaged at run time in pages the job counts do not read (a row of an old job) answered
+    ``/readyz`` ready while the jobs' records failed: the first call that meets the damage (here a read
+    of that job) latches it, the queue is held saying to restore the store, a resume is refused,
+    ``/readyz`` answers 503 and ``/metrics`` says so, and a job submitted then is not started."""
+    client, keys = _client(tmp_path)
+    op, viewer = _auth(keys["operator"]), _auth(keys["viewer"])
+    data = tmp_path / "data"
+    store = open_data_store(data, sqlite_url(data))
+    old = [replace(_job(data, "completed", f"{n:016x}"), cell="sim-franka-rgbd",
+                   termination=f"old scan {n:03d}") for n in range(1, 200)]
+    for job in old:
+        store.add_job(job)
+    store.close()
+    with client, caplog.at_level(logging.INFO, logger="cell.service"):
+        assert client.get("/readyz", headers=viewer).status_code == 200
+        assert "cell_store_damaged 0.0" in client.get("/metrics", headers=viewer).text
+        _damage_page_of(data / "cell.db", b"old scan 100")
+        # a write beside the service's (a store opened before the damage): the service's connections then
+        # read the file again, not the pages they hold since their integrity check at the start
+        beside = Store(create_engine(sqlite_url(data)))
+        create_key(beside, "viewer", "beside")
+        beside.close()
+        assert client.get(f"/api/v1/jobs/{old[99].id}", headers=viewer).status_code == 500
+        ready = client.get("/readyz", headers=viewer)
+        assert ready.status_code == 503, ready.json()
+        assert ready.json()["status"] == f"the queue is held: {RESTORE}"
+        metrics = client.get("/metrics", headers=viewer).text
+        assert "cell_store_damaged 1.0" in metrics and "cell_queue_held 1.0" in metrics
+        resume = client.post("/api/v1/queue/resume", headers=op)
+        assert resume.status_code == 409 and RESTORE in resume.json()["detail"]
+        service = client.app.state.service  # type: ignore[attr-defined]
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op)
+        assert job.status_code == 201, job.text  # its row is written to pages the damage left whole
+        deadline = time.monotonic() + 30.0
+        while service._wake.is_set():  # the dispatcher has looked at the queue once the job was in it
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        assert list(service._queued) == [job.json()["id"]] and service._running is None
+        queue = _queue(client, keys["viewer"])
+        assert queue["held"] == RESTORE and queue["length"] == 1
+    damaged = [r for r in caplog.records if r.levelno == logging.CRITICAL]
+    assert len(damaged) == 1 and "malformed" in damaged[0].getMessage()
 
 
 def test_a_hung_worker_is_stopped_and_holds_the_queue(tmp_path, caplog):

@@ -602,13 +602,20 @@ def test_a_damaged_sqlite_store_is_named_damaged_with_its_fix_never_unreachable(
                                            r"\(docs/deploy.md, section 9\)") as err:
         open_store(url)
     assert "\n" not in str(err.value)
-    # a store opened before the damage (no check at opening) reads it: damaged, not unreachable
+    # a store opened before the damage (no check at opening) reads it: damaged, not unreachable, and says
+    # so from then on (Store.damaged, which holds the service's queue)
     unchecked = Store(create_engine(url))
     try:
+        assert not unchecked.damaged
         with pytest.raises(StoreDamaged, match=r"malformed.*restore it from a backup"):
             unchecked.add_job(make_job(500))
+        assert unchecked.damaged
     finally:
         unchecked.close()
+    unreachable = Store(create_engine(sqlite_url(tmp_path / "nowhere")))
+    with pytest.raises(StoreError, match="unable to open database file"):
+        unreachable.count_by_status("a")
+    assert not unreachable.damaged  # a store that does not answer may answer again: nothing latched
     (found,) = machine.store(tmp_path, None, "127.0.0.1")
     assert found.status is Status.FAIL and "integrity check fails" in found.detail
     assert "restore the store from a backup (docs/deploy.md, section 9)" in found.fix

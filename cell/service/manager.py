@@ -16,8 +16,10 @@ jobs, and waits with its libraries loaded.
 it. So do a worker that died, a stop its worker did not confirm and a worker that went silent (hung:
 stopped as a stop does): the arm was then left to its connection watchdog, and a person looks first. Such
 a hold is kept in the store (``queue_holds``), so that a restart does not release it. A fault the arm
-reported holds the queue too, until the arm is recovered (``cell.service.arm_status``). A data dir with no
-room for a job's recording holds the next job until there is room (:data:`JOB_DISK_MB`).
+reported holds the queue too, until the arm is recovered (``cell.service.arm_status``), and so does a job
+store found damaged by any call (``Store.damaged``: no job's start or end could be relied on to be
+recorded), until it is restored and the service restarted. A data dir with no room for a job's recording
+holds the next job until there is room (:data:`JOB_DISK_MB`).
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, fini
 from cell.service.recovery import finish_folder, held_after, reconcile
 from cell.service.retention import Retention, delete_job
 from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, HoldRecord, JobRecord, Store
+from cell.service.store.engine import RESTORE
 from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest, ValidJob, validate
@@ -193,7 +196,8 @@ class CellService:
         self.events = EventHub()
         self.arm = ArmTracker(config)
         self.metrics = ServiceMetrics(lambda: self.store.count_by_status(self.name),
-                                      lambda: len(self._queued), lambda: self.hold_reason() is not None)
+                                      lambda: len(self._queued), lambda: self.hold_reason() is not None,
+                                      lambda: self.store.damaged)
         self._queued: dict[str, _Queued] = {}
         self._running: _Running | None = None
         self._held: HoldRecord | None = None
@@ -375,6 +379,8 @@ class CellService:
 
     def hold_reason(self) -> str | None:
         """Why queued jobs do not start, or None."""
+        if self.store.damaged:  # first: neither a resume nor an arm recovery helps
+            return RESTORE
         if self.arm.faulted:
             return f"arm {self.arm.status.state}: recover the arm first (POST /api/v1/arm/recover)"
         return self._broken or self._lease_lost or (None if self._held is None else self._held.reason)
@@ -578,8 +584,9 @@ class CellService:
         return outcome
 
     def resume(self) -> None:
-        """Let queued jobs start again after a STOP; ``ServiceError`` (conflict) while the arm is faulted."""
-        if self.arm.faulted:
+        """Let queued jobs start again after a STOP; ``ServiceError`` (conflict) while the arm is faulted or
+        the store damaged."""
+        if self.arm.faulted or self.store.damaged:
             raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
         if self._held is not None:
             log.warning("the queue is resumed (it was %s)", self._held.reason)

@@ -2,6 +2,9 @@
 
 - ``cell_jobs{status}``: the cell's jobs in the store by status (read at each scrape);
 - ``cell_queue_length``: jobs waiting behind the running one;
+- ``cell_queue_held``: 1 while queued jobs do not start until someone acts, 0 otherwise;
+- ``cell_store_damaged``: 1 once the service found its job store's data damaged (``Store.damaged``, cleared
+  by a restart after a restore), 0 otherwise;
 - ``cell_scan_duration_seconds{planner}``: job time of each finished scan (histogram);
 - ``cell_control_tick_period_seconds``: the control loop's tick periods in job time, over every job the
   service has run since it started and the running one (histogram, ``cell.jobs.progress.TICK_BUCKETS_S``);
@@ -57,14 +60,15 @@ class TickTotals:
 
 
 class _LiveCollector(Collector):
-    """What is read at scrape time: the store's counts, the queue and whether it is held, the tick
-    totals."""
+    """What is read at scrape time: the store's counts, the queue and whether it is held, whether the
+    store was found damaged, the tick totals."""
 
     def __init__(self, counts: Callable[[], dict[str, int]], queue_length: Callable[[], int],
-                 held: Callable[[], bool], ticks: TickTotals) -> None:
+                 held: Callable[[], bool], damaged: Callable[[], bool], ticks: TickTotals) -> None:
         self._counts = counts
         self._queue_length = queue_length
         self._held = held
+        self._damaged = damaged
         self._ticks = ticks
 
     def collect(self) -> Iterator[Any]:
@@ -78,6 +82,9 @@ class _LiveCollector(Collector):
         yield GaugeMetricFamily("cell_queue_held", "1 while no queued job starts until someone acts (an "
                                 "operator's resume, an arm recovery, a restart): GET /api/v1/cell says why.",
                                 value=int(self._held()))
+        yield GaugeMetricFamily("cell_store_damaged", "1 once the job store's data was found damaged: no job "
+                                "starts until it is restored from a backup and the service restarted.",
+                                value=int(self._damaged()))
         t = self._ticks.total()
         yield HistogramMetricFamily(
             "cell_control_tick_period_seconds", "Control-loop tick periods in job time, all jobs.",
@@ -92,10 +99,10 @@ class ServiceMetrics:
     """The registry the service reports through ``GET /metrics``."""
 
     def __init__(self, counts: Callable[[], dict[str, int]], queue_length: Callable[[], int],
-                 held: Callable[[], bool]) -> None:
+                 held: Callable[[], bool], damaged: Callable[[], bool]) -> None:
         self.registry = CollectorRegistry()
         self.ticks = TickTotals()
-        self.registry.register(_LiveCollector(counts, queue_length, held, self.ticks))
+        self.registry.register(_LiveCollector(counts, queue_length, held, damaged, self.ticks))
         self.scan_duration = Histogram("cell_scan_duration_seconds", "Job time of finished scans.",
                                        ["planner"], buckets=SCAN_BUCKETS_S, registry=self.registry)
         self.perception_cycle = Histogram("cell_perception_cycle_seconds", "Perception wall time per frame.",

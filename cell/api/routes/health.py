@@ -9,7 +9,7 @@ from fastapi import APIRouter, Response
 from cell.api.auth import KeyFirstRoute, Reader
 from cell.api.deps import Service
 from cell.service.metrics import CONTENT_TYPE
-from drivers.errors import StoreError
+from drivers.errors import StoreDamaged, StoreError
 
 router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
@@ -24,13 +24,16 @@ async def healthz() -> dict[str, str]:
 async def readyz(response: Response, cell: Service,
                  _: Reader) -> dict[str, str]:
     """A job submitted now would run: the service has started, its store answers, and nothing keeps the
-    next job from starting (``CellService.not_ready``: the queue held, no worker process can be started,
-    the jobs folder not writable or without room for a job); else 503 with the reason as ``status``.
+    next job from starting (``CellService.not_ready``: the queue held, also by a store found damaged, here
+    or by any call before, which answers other reads all the same; no worker process can be started, the
+    jobs folder not writable or without room for a job); else 503 with the reason as ``status``.
     ``warm_worker`` says whether the next job's worker has loaded its libraries
     (``CellService.warm_worker``: off, none, loading, loaded); a service whose spare is still loading
     takes jobs all the same (the first then waits for the imports), so it does not make the answer 503."""
     try:
         await asyncio.to_thread(cell.store.count_by_status, cell.name)
+    except StoreDamaged:
+        pass  # latched by the store (``Store.damaged``): the queue is held, not_ready says how to restore it
     except StoreError:
         response.status_code = 503
         return {"status": "the job store does not answer"}

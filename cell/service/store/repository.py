@@ -10,9 +10,11 @@ a naive datetime) is a ``ValueError``.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import stat
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from datetime import UTC, datetime
@@ -44,8 +46,10 @@ from cell.service.store.records import (
     LineRecord,
     LineTransition,
 )
-from drivers.errors import ServiceError, StoreError
+from drivers.errors import ServiceError, StoreDamaged, StoreError
 from drivers.file_access import make_folder
+
+log = logging.getLogger("cell.service")
 
 JOB_FIELDS = tuple(field.name for field in fields(JobRecord))
 JOB_ID = re.compile(r"[0-9a-f]{16}")  # a job id: 16 lowercase hex characters
@@ -183,7 +187,9 @@ class Store:
     A job's folder is stored relative to its cell's job folders (its name there, the job id), so that a
     data dir moved or restored elsewhere keeps its jobs' files: ``jobs_dir`` (the serving data dir's
     ``jobs``) turns it into a path when read, and a folder given inside it is stored by its name. Without
-    ``jobs_dir``, or for a folder elsewhere, the folder is stored and read as given."""
+    ``jobs_dir``, or for a folder elsewhere, the folder is stored and read as given.
+
+    The first call that finds the data damaged (a :class:`StoreDamaged`) latches :attr:`damaged`."""
 
     def __init__(self, engine: Engine, jobs_dir: Path | None = None) -> None:
         """A store on ``engine``, whose schema must already be at the head revision (:func:`open_store`
@@ -193,6 +199,17 @@ class Store:
         self.jobs_dir = jobs_dir
         self._sessions = sessionmaker(engine, expire_on_commit=False)
         self.url = engine.url.render_as_string(hide_password=True)
+        self._damaged = False
+        self._damage_seen = threading.Lock()
+
+    @property
+    def damaged(self) -> bool:
+        """Whether a call of this store found its data damaged (a read or a write, by any thread), latched:
+        damage is on the disk, so a later call that answers (one that reads other pages) does not clear
+        it. Only a new store object starts clear: for the service, a restart after a restore from a backup
+        (docs/deploy.md, section 9); an SQLite store still damaged is refused then (:func:`open_store`
+        checks its integrity). Logged once, when it latches."""
+        return self._damaged
 
     def close(self) -> None:
         """Close every pooled connection; the store is not used afterwards."""
@@ -213,10 +230,22 @@ class Store:
                 yield session
         except IntegrityError as exc:
             if conflict is None:
-                raise store_error(self.url, action, exc, self._engine.url.password) from None
+                raise self._error(action, exc) from None
             raise ServiceError(conflict, reason="conflict") from None
         except SQLAlchemyError as exc:
-            raise store_error(self.url, action, exc, self._engine.url.password) from None
+            raise self._error(action, exc) from None
+
+    def _error(self, action: str, exc: SQLAlchemyError) -> StoreError:
+        """:func:`store_error` for ``exc``, raised while doing ``action``; a :class:`StoreDamaged` latches
+        :attr:`damaged`."""
+        error = store_error(self.url, action, exc, self._engine.url.password)
+        if isinstance(error, StoreDamaged):
+            with self._damage_seen:
+                first, self._damaged = not self._damaged, True
+            if first:
+                log.critical("%s; taken for damaged until the store is opened again (a service's queue "
+                             "is held until it is restarted)", error)
+        return error
 
     # jobs
 
