@@ -588,6 +588,26 @@ def _corrupt(database: Path) -> None:
         f.write(b"\xa5" * 2048)
 
 
+def test_rows_that_break_a_constraint_are_damage_that_does_not_latch(tmp_path: Path):
+    """An integrity error no caller expected is a StoreDamaged, but not corrupt pages: the store is not
+    taken for damaged (which would hold a service's queue until a restart), and the next call answers."""
+    url = sqlite_url(tmp_path)
+    store = open_store(url)
+    try:
+        store.add_job(make_job(1))
+        engine = create_engine(url)
+        with engine.begin() as connection:  # a constraint of the database's own, as a restore may bring
+            connection.exec_driver_sql("CREATE TRIGGER refuse BEFORE UPDATE ON jobs "
+                                       "BEGIN SELECT RAISE(ABORT, 'a constraint the rows break'); END")
+        engine.dispose()
+        with pytest.raises(StoreDamaged, match="a constraint the rows break"):
+            store.update_job(make_job(1).id, status="running")
+        assert not store.damaged
+        assert store.get_job(make_job(1).id) is not None
+    finally:
+        store.close()
+
+
 def test_a_damaged_sqlite_store_is_named_damaged_with_its_fix_never_unreachable(tmp_path: Path):
     """A corrupt store passed every check and each request said "does not answer; try again": opening it
     fails its integrity check, reading it is a StoreDamaged naming the backup to restore, and doctor and

@@ -89,11 +89,15 @@ POSTGRES_DAMAGED = frozenset({"XX001", "XX002"})
 
 def is_damage(exc: BaseException) -> bool:
     """Whether the database error ``exc`` (SQLAlchemy's, or the driver's own) says the store's data is
-    damaged, not that it does not answer: SQLite's ``SQLITE_CORRUPT`` ("database disk image is
-    malformed") or ``SQLITE_NOTADB`` ("file is not a database"), PostgreSQL's corrupt data or index, or a
-    constraint the stored data breaks (an integrity error no caller expected)."""
-    if isinstance(exc, IntegrityError | sqlite3.IntegrityError):
-        return True
+    damaged, not that it does not answer: its pages are (:func:`is_corrupt`), or the stored data breaks a
+    constraint (an integrity error no caller expected)."""
+    return isinstance(exc, IntegrityError | sqlite3.IntegrityError) or is_corrupt(exc)
+
+
+def is_corrupt(exc: BaseException) -> bool:
+    """Whether the database error ``exc`` says the store's pages are corrupt: SQLite's ``SQLITE_CORRUPT``
+    ("database disk image is malformed") or ``SQLITE_NOTADB`` ("file is not a database"), PostgreSQL's
+    corrupt data or index."""
     cause = exc.orig if isinstance(exc, DBAPIError) and exc.orig is not None else exc
     name = getattr(cause, "sqlite_errorname", "")
     return ((isinstance(name, str) and name.startswith(("SQLITE_CORRUPT", "SQLITE_NOTADB")))

@@ -30,6 +30,7 @@ from cell.service.store.engine import (
     check_integrity,
     check_oldest,
     hide_password,
+    is_corrupt,
     open_engine,
     read_only_engine,
     schema_revisions,
@@ -46,7 +47,7 @@ from cell.service.store.records import (
     LineRecord,
     LineTransition,
 )
-from drivers.errors import ServiceError, StoreDamaged, StoreError
+from drivers.errors import ServiceError, StoreError
 from drivers.file_access import make_folder
 
 log = logging.getLogger("cell.service")
@@ -204,11 +205,13 @@ class Store:
 
     @property
     def damaged(self) -> bool:
-        """Whether a call of this store found its data damaged (a read or a write, by any thread), latched:
-        damage is on the disk, so a later call that answers (one that reads other pages) does not clear
-        it. Only a new store object starts clear: for the service, a restart after a restore from a backup
-        (docs/deploy.md, section 9); an SQLite store still damaged is refused then (:func:`open_store`
-        checks its integrity). Logged once, when it latches."""
+        """Whether a call of this store found its pages corrupt (a read or a write, by any thread), latched:
+        the damage is on the disk, so a later call that answers (one that reads other pages) does not clear
+        it. An integrity error no caller expected is raised as damage too (:class:`StoreDamaged`) but does
+        not latch: it says that rows break a constraint, which the next call need not meet. Only a new
+        store object starts clear: for the service, a restart after a restore from a backup (docs/deploy.md,
+        section 9); an SQLite store still damaged is refused then (:func:`open_store` checks its
+        integrity). Logged once, when it latches."""
         return self._damaged
 
     def close(self) -> None:
@@ -236,10 +239,10 @@ class Store:
             raise self._error(action, exc) from None
 
     def _error(self, action: str, exc: SQLAlchemyError) -> StoreError:
-        """:func:`store_error` for ``exc``, raised while doing ``action``; a :class:`StoreDamaged` latches
-        :attr:`damaged`."""
+        """:func:`store_error` for ``exc``, raised while doing ``action``; corrupt pages (:func:`is_corrupt`)
+        latch :attr:`damaged`."""
         error = store_error(self.url, action, exc, self._engine.url.password)
-        if isinstance(error, StoreDamaged):
+        if is_corrupt(exc):
             with self._damage_seen:
                 first, self._damaged = not self._damaged, True
             if first:
