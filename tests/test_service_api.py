@@ -40,13 +40,14 @@ from cell.jobs.progress import TICK_BUCKETS_S, ControlTicks
 from cell.service.arm_status import ArmTracker
 from cell.service.events import JobEvents
 from cell.service.keys import create_key
+from cell.service.metrics import ServiceMetrics
 from cell.service.protocol import WORKER_MODULE
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION, _started, reconcile
 from cell.service.startup import ServiceSettings
 from cell.service.store import FINISHED_STATUSES, JobRecord, Store, open_data_store, sqlite_url
 from cell.service.store.engine import RESTORE
 from cell.service.worker import SERVICE_GONE
-from drivers.errors import JobError, StoreError
+from drivers.errors import JobError, StoreDamaged, StoreError
 from drivers.sim.objects import load_object
 
 from .conftest import FRANKA, wait_started
@@ -878,6 +879,19 @@ def _damage_page_of(database: Path, marker: bytes) -> None:
     with database.open("r+b") as f:
         f.seek(page * page_size)
         f.write(b"\xa5" * page_size)
+
+
+def test_a_scrape_whose_job_counts_fail_still_says_the_store_is_damaged():
+    """A store damaged in the pages the job counts read made the whole scrape fail (500), hiding the
+    gauge that says it is damaged: now ``cell_jobs`` has no samples and the rest is scraped."""
+
+    def counts() -> dict[str, int]:
+        raise StoreDamaged(f"job store sqlite:///cell.db: counting jobs: database disk image is malformed; "
+                           f"{RESTORE}")
+
+    text = ServiceMetrics(counts, lambda: 2, lambda: True, lambda: True).render().decode()
+    assert "cell_store_damaged 1.0" in text and "cell_queue_held 1.0" in text
+    assert "cell_queue_length 2.0" in text and "cell_jobs{" not in text
 
 
 def test_a_store_damaged_while_the_service_runs_holds_the_queue_and_makes_it_not_ready(tmp_path, caplog):

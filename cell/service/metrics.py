@@ -1,6 +1,7 @@
 """The service's Prometheus metrics (names in base units, labels for what varies, never a job id).
 
-- ``cell_jobs{status}``: the cell's jobs in the store by status (read at each scrape);
+- ``cell_jobs{status}``: the cell's jobs in the store by status (read at each scrape; no samples when the
+  store does not answer or answers damaged, so that the rest still scrapes, ``cell_store_damaged`` with it);
 - ``cell_queue_length``: jobs waiting behind the running one;
 - ``cell_queue_held``: 1 while queued jobs do not start until someone acts, 0 otherwise;
 - ``cell_store_damaged``: 1 once the service found its job store's data damaged (``Store.damaged``, cleared
@@ -24,6 +25,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 
 from cell.jobs.progress import TICK_BUCKETS_S
+from drivers.errors import StoreError
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 SCAN_BUCKETS_S = (5.0, 10.0, 20.0, 30.0, 45.0, 60.0, 90.0, 120.0, 180.0, 300.0, 600.0)
@@ -73,7 +75,11 @@ class _LiveCollector(Collector):
 
     def collect(self) -> Iterator[Any]:
         jobs = GaugeMetricFamily("cell_jobs", "The cell's jobs in the store, by status.", labels=["status"])
-        for status, n in sorted(self._counts().items()):
+        try:
+            counts = self._counts()
+        except StoreError:  # /readyz and cell_store_damaged say what is wrong with it; the rest still counts
+            counts = {}
+        for status, n in sorted(counts.items()):
             jobs.add_metric([status], n)
         yield jobs
         yield GaugeMetricFamily("cell_queue_length", "Jobs waiting behind the running one.",
