@@ -110,3 +110,20 @@ def test_a_folder_whose_name_is_no_cell_name_keeps_the_templates_and_says_so(tmp
     assert "\nname: sim-ur5e-tof\n" in (tmp_path / "my cell" / "cell.yaml").read_text()
     assert "is not a cell name" in res.output and "--name" in res.output
     assert f"cell config check '{tmp_path / 'my cell' / 'cell.yaml'}'" in res.output  # a path to paste
+
+
+def test_init_s_next_commands_run_cell_as_it_was_run(tmp_path, monkeypatch):
+    """In a checkout whose venv is not activated, ``cell`` is not on the PATH: the next steps name the
+    command that ran (``.venv/bin/cell``); where ``cell`` on the PATH is that command, plain ``cell``."""
+    venv_cell = tmp_path / ".venv" / "bin" / "cell"
+    venv_cell.parent.mkdir(parents=True)
+    venv_cell.write_text("#!/bin/sh\n")
+    venv_cell.chmod(0o755)
+    monkeypatch.setattr("sys.argv", [str(venv_cell), "init"])
+    monkeypatch.setenv("PATH", str(tmp_path / "elsewhere"))
+    res = CliRunner().invoke(app, ["init", str(tmp_path / "a"), "--template", "sim-ur5e-tof"])
+    assert res.exit_code == 0, res.output
+    assert f"  {venv_cell} config check " in res.output and f"  {venv_cell} serve --config " in res.output
+    monkeypatch.setenv("PATH", str(venv_cell.parent))
+    res = CliRunner().invoke(app, ["init", str(tmp_path / "b"), "--template", "sim-ur5e-tof"])
+    assert "\n  cell config check " in res.output and str(venv_cell) not in res.output

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import re
 import shlex
+import shutil
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -85,6 +87,17 @@ def init(
             console.print(f"  line {p.line:3d}  {p.field}: {p.what}", markup=False, highlight=False)
     console.print("next:", markup=False, highlight=False)
     file, folder_ = shlex.quote(str(cell_file)), shlex.quote(str(data))
-    for step in (f"cell config check {file}", f"cell doctor --config {file} --data-dir {folder_}",
-                 f"cell serve --config {file} --data-dir {folder_}"):
+    cell = _cell_command()
+    for step in (f"{cell} config check {file}", f"{cell} doctor --config {file} --data-dir {folder_}",
+                 f"{cell} serve --config {file} --data-dir {folder_}"):
         console.print(f"  {step}", markup=False, highlight=False)
+
+
+def _cell_command() -> str:
+    """How to run ``cell`` again from here: ``cell`` when that is the command running now, found on the
+    PATH; else the path it was run by (``.venv/bin/cell`` in a checkout whose venv is not activated)."""
+    ran = Path(sys.argv[0])
+    found = shutil.which("cell")
+    if ran.name != "cell" or (found is not None and Path(found).resolve() == ran.resolve()):
+        return "cell"
+    return shlex.quote(str(ran))
