@@ -253,6 +253,23 @@ def test_a_malformed_part_id_is_refused_when_it_is_given_not_scanned_as_a_defect
     assert line.wait({"Complete"})["defective"] == 1
 
 
+def test_a_part_placed_where_no_search_view_sees_it_is_rejected_at_start_with_the_reason(tmp_path):
+    """The Franka cell's vs-local looks from 2 views: a part at 0.5,0,0 was scanned, and its job failed with
+    0 captures (a fault); it is a defective part saying why, and no scan runs."""
+    config = _cell_file(tmp_path, CONFIG_DIR / "sim-franka-rgbd.yaml", {"initial_mode": "production"})
+    with served_line(tmp_path, config) as line:
+        line.command("reset")
+        line.wait({"Idle"})
+        assert line.command("start", "bunny@0.5,0,0").status_code == 200
+        done = line.wait({"Complete"})
+        result = done["result"]
+        assert (result["status"], result["job_id"], done["defective"]) == ("rejected", "", 1), done
+        message = result["message"]
+        assert message.startswith("object_pose: object pose [0.5, 0.0, 0.0] puts bunny (footprint"), message
+        assert "where none of the 2 views vs-local looks for an object from sees it" in message, message
+        assert line.client.get("/api/v1/jobs", headers=line.auth("viewer")).json()["total"] == 0
+
+
 def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: Line):
     line.command("reset")
     line.wait({"Idle"})

@@ -116,6 +116,24 @@ def test_invalid_submissions_answer_422_naming_the_field(served, body, field, wo
     assert client.get("/api/v1/jobs", headers=_auth(keys["viewer"])).json()["total"] == 0
 
 
+def test_a_pose_no_search_view_sees_is_a_422_in_cell_scans_words_and_one_they_see_is_queued(served):
+    """0.5,0,0 was a 201, and the job failed with 0 captures: 'JobError: object pose [0.5, 0.0, 0.0] puts
+    bunny ... where none of the 2 views vs-local looks for an object from sees it', which ``cell scan``
+    refuses before it starts."""
+    client, keys = served
+    res = client.post("/api/v1/jobs", json={"object": "bunny", "object_pose": [0.5, 0.0, 0.0]},
+                      headers=_auth(keys["operator"]))
+    assert res.status_code == 422, res.text
+    [detail] = res.json()["detail"]
+    assert detail["loc"][-1] == "object_pose", detail
+    assert detail["msg"].startswith("object pose [0.5, 0.0, 0.0] puts bunny (footprint x "), detail
+    assert "where none of the 2 views vs-local looks for an object from sees it: they look at the station" \
+        in detail["msg"], detail
+    ok = client.post("/api/v1/jobs", json={"object": "bunny", "object_pose": [0.1, 0.1, 0.0]},
+                     headers=_auth(keys["operator"]))
+    assert ok.status_code == 201, ok.text
+
+
 def test_the_docs_page_works_without_the_internet(served):
     client, _ = served
     page = client.get("/docs")

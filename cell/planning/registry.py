@@ -1,8 +1,9 @@
 """The planners a job can run, registered explicitly by name (no import-time side effects).
 
 Each entry says what the planner does and where its class lives; the class, with what it needs (Open3D,
-SciPy, seconds of imports), is imported only when a job runs it: the service lists and validates
-planners by name and runs the scans in a worker process of their own, so it never imports a planner.
+SciPy, seconds of imports), is imported only when a job runs it or asks where it looks: the service lists
+and validates planners by name and runs the scans in a worker process of their own; it imports a planner
+only to check a placement in its search views (``cell.service.search_views``), off its event loop.
 """
 
 from __future__ import annotations

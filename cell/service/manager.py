@@ -55,6 +55,7 @@ from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, finite_json, stop_command
 from cell.service.recovery import finish_folder, held_after, reconcile
 from cell.service.retention import Retention, delete_job
+from cell.service.search_views import SearchViews
 from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, HoldRecord, JobRecord, Store
 from cell.service.store.engine import RESTORE
 from cell.service.store.lease import CellLease
@@ -190,6 +191,7 @@ class CellService:
         self._lease_lost: str | None = None
         self._lease_keeper: asyncio.Task[None] | None = None
         self._arm_clearance = ArmClearance(config)
+        self._search_views = SearchViews(config)
         self.objects = ObjectLibrary(data_dir / "objects", config, self._arm_clearance)
         self.retention = Retention(store, self.name, self.jobs_dir, config.service.retention)
         self._pruner: asyncio.Task[None] | None = None
@@ -455,7 +457,7 @@ class CellService:
                                f"{self.line.state.label}): operator jobs run in Manual mode (POST "
                                "/api/v1/line/mode)", reason="conflict")
         valid: ValidJob = await asyncio.to_thread(validate, self.config, self.objects, self._arm_clearance,
-                                                  request)
+                                                  self._search_views, request)
         async with self._submit_lock:
             if self._closing:
                 raise ServiceError("the service is shutting down", reason="conflict")

@@ -3,10 +3,10 @@
 Every check that ``cell scan`` would make before anything moves is made here, at submission, so that a
 bad request is answered at once (naming the field) instead of failing later on the arm: the planner is
 registered, the object is known, of a size the cell scans and stands on the table at the pose asked
-(``"none"``: an empty table), clear of the arm at its home joints, the seed and the time budget are in
-range. Two checks stay with the job's worker, which repeats all of these: a placement none of the planner's
-search views sees (the service never loads a planner), and an upload's placement into the arm (the
-service keeps an upload's outline, not its surface).
+(``"none"``: an empty table), clear of the arm at its home joints and seen by one of the planner's search
+views, the seed and the time budget are in range. The job's worker repeats all of these, and makes the two
+that need an upload's surface, which the service does not keep (only its outline): its placement into the
+arm and in the search views.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from cell.jobs.placement import check_object_size, check_on_table
 from cell.planning.registry import check_planner
 from cell.service.arm_clearance import ArmClearance
 from cell.service.objects import ObjectLibrary
+from cell.service.search_views import SearchViews
 from drivers.errors import JobError, PlanningError, ServiceError
 from drivers.sim.objects import EMPTY_TABLE, ObjectMesh
 
@@ -57,9 +58,12 @@ def _invalid(message: str, field: str) -> ServiceError:
     return ServiceError(message, reason="invalid", field=field)
 
 
-def validate(config: CellConfig, objects: ObjectLibrary, arm: ArmClearance, req: JobRequest) -> ValidJob:
+def validate(config: CellConfig, objects: ObjectLibrary, arm: ArmClearance, views: SearchViews,
+             req: JobRequest) -> ValidJob:
     """The request completed with the cell's defaults, or ``ServiceError`` (invalid) naming the field;
-    ``arm`` checks a shipped object's placement against the arm."""
+    ``arm`` checks a shipped object's placement against the arm, ``views`` in the planner's search views.
+    Slow at the first call that checks a placement, or names a planner (``ArmClearance``,
+    ``SearchViews``): call it off the event loop."""
     planner = req.planner or config.scan.planner
     try:
         check_planner(planner)
@@ -92,6 +96,7 @@ def validate(config: CellConfig, objects: ObjectLibrary, arm: ArmClearance, req:
         check_on_table(config, shape, pose)
         if isinstance(shape, ObjectMesh):  # a shipped mesh; an upload's outline has no surface to test
             arm.check(shape, pose)
+            views.check(shape, pose, planner)
     except JobError as exc:
         raise _invalid(str(exc), "object_pose") from None
     return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)

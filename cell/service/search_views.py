@@ -1,0 +1,37 @@
+"""The service's check that one of the planner's search views sees an object's placement."""
+
+from __future__ import annotations
+
+import threading
+
+from cell.config.models import CellConfig
+from cell.jobs.placement import check_in_view
+from cell.planning.registry import get_planner
+from drivers.sim.objects import Array, ObjectMesh
+
+
+class SearchViews:
+    """The check that one of a planner's search views sees a shipped object's placement
+    (``check_in_view``), at every submission and Start: a placement none of them sees could only end
+    ``no_object``. A planner's views (``Planner.search_views``) are worked out at the first check that
+    names it, which imports the planner (SciPy, Open3D: up to a second, which ``cell serve`` does not load
+    to start), and kept for the next: they depend on the cell's config alone, which does not change while
+    the service runs. Callable from several threads at once: the views are worked out under a lock and
+    only read after."""
+
+    def __init__(self, config: CellConfig) -> None:
+        self._config = config
+        self._lock = threading.Lock()
+        self._views: dict[str, list[Array]] = {}
+
+    def of(self, planner: str) -> list[Array]:
+        """``planner``'s search views, T_base_sensor (4x4, base frame [m]), worked out at the first call."""
+        with self._lock:
+            if planner not in self._views:
+                self._views[planner] = get_planner(planner)(self._config).search_views()
+            return self._views[planner]
+
+    def check(self, mesh: ObjectMesh, pose: tuple[float, float, float], planner: str) -> None:
+        """``JobError`` saying where the views look when none of ``planner``'s sees ``mesh`` at ``pose``
+        (x [m], y [m], yaw [deg] from the station)."""
+        check_in_view(self._config, mesh, pose, self.of(planner), planner)
