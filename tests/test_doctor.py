@@ -25,11 +25,11 @@ from cell.service.keys import create_key
 from cell.service.store import open_data_store, sqlite_url
 from drivers.arm.franka import client_version
 from drivers.file_access import user_name
-from tests.conftest import CONFIG_DIR
+from tests.conftest import CONFIG_DIR, UR5E
 from tests.franka_connect_peer import FrankaConnectPeer
 from tests.loopback import free_loopback
 from tests.rtde_peer import ControllerPeer
-from tests.service_process import free_port
+from tests.service_process import ServedCell, free_port
 from tests.test_arm_cli import TEMPLATE, peer_cell_file
 
 
@@ -115,6 +115,32 @@ def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_pat
     assert checks["serial port"][0] == "fail" and "`cell deploy files`" in checks["serial port"][1]
     assert checks["service port"][0] == "fail" and "ss -ltnp" in checks["service port"][1]
     assert checks["service port"][1].endswith("stop it, or choose another port")
+
+
+def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_fail(tmp_path):
+    """Run on a live cell (docs/deploy.md, e.g. after store damage), doctor failed both ports its own
+    service held: 'Address already in use', 'fix: another program has it'."""
+    opcua_port = free_port()
+    endpoint = f"opc.tcp://127.0.0.1:{opcua_port}/cell"
+    data = yaml.safe_load(UR5E.read_text())
+    data["line"] = {"opcua": {"endpoint": endpoint, "security": "none"}}
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump(data))
+    with ServedCell(cell_file, tmp_path / "data") as cell:
+        code, checks = _doctor(cell_file, tmp_path, port=cell.port)
+    assert checks["service port"] == ("ok", f"127.0.0.1:{cell.port} is in use by this cell's running service")
+    assert checks["line OPC UA port"] == ("ok", f"{endpoint} is in use by this cell's running service")
+    assert code == 0, checks
+    # the same ports, held by another program, still fail
+    with socket.socket() as service, socket.socket() as opcua:
+        for held, at in ((service, cell.port), (opcua, opcua_port)):
+            held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # past the service's TIME_WAITs
+            held.bind(("127.0.0.1", at))
+            held.listen(1)
+        code, checks = _doctor(cell_file, tmp_path, port=cell.port)
+    assert checks["service port"][0] == "fail" and "another program has it" in checks["service port"][1]
+    assert checks["line OPC UA port"][0] == "fail", checks["line OPC UA port"]
+    assert "Address already in use" in checks["line OPC UA port"][1] and code == 1
 
 
 def _port_of(monkeypatch, port: str, uid: int, gid: int, mode: int) -> None:

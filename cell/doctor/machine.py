@@ -4,7 +4,10 @@ CPU frequency governor, real-time scheduling limits, free disk, and the service'
 from __future__ import annotations
 
 import ctypes
+import errno
+import http.client
 import importlib
+import json
 import os
 import platform
 import pwd
@@ -36,6 +39,12 @@ DISK_WARN_GB = 10.0
 RT_PRIORITY = 99
 """libfranka raises its control thread to SCHED_FIFO's highest priority (99)."""
 RT_LIMITS_FILE = "/etc/security/limits.d/cell.conf"
+SERVICE_ANSWER_TIMEOUT_S = 2.0
+"""How long [s] the check of a port in use waits for a service there to answer ``/healthz``."""
+HEALTHZ_MAX_BYTES = 4096
+"""The most of an answer to ``/healthz`` [bytes] that check reads."""
+IN_USE = os.strerror(errno.EADDRINUSE)
+"""Why a port another process listens on cannot be listened on (``listen_problem``'s words)."""
 TIME_ERROR = 5
 """adjtimex(2)'s answer when the kernel's clock is not synchronised (TIME_ERROR)."""
 GOVERNORS = Path("/sys/devices/system/cpu")
@@ -206,8 +215,28 @@ def disk(data_dir: Path) -> Finding:
     return Finding.ok("disk", text)
 
 
-def port_free(host: str, port: int, name: str = "service port") -> Finding:
+def serves_cell(host: str, port: int, cell: str) -> bool:
+    """Whether cell ``cell``'s own service answers on ``host``:``port`` (its ``/healthz`` names the cell):
+    the ports in use that its cell file names are then its, not another program's."""
+    connection = http.client.HTTPConnection(host, port, timeout=SERVICE_ANSWER_TIMEOUT_S)
+    try:
+        connection.request("GET", "/healthz")
+        answer = connection.getresponse()
+        # a cell's answer is a few dozen bytes: another program's longer one is read no further
+        body = json.loads(answer.read(HEALTHZ_MAX_BYTES)) if answer.status == 200 else None
+    except (OSError, http.client.HTTPException, ValueError):  # nothing there, or not a cell's service
+        return False
+    finally:
+        connection.close()
+    return isinstance(body, dict) and body.get("cell") == cell
+
+
+def port_free(host: str, port: int, name: str = "service port", served: bool = False) -> Finding:
+    """Whether the service can listen on ``host``:``port``; a port in use is fine when ``served``: this
+    cell's running service holds it (:func:`serves_cell`)."""
     problem = listen_problem(host, port)
+    if problem == IN_USE and served:
+        return Finding.ok(name, f"{host}:{port} is in use by this cell's running service")
     if problem is not None:
         return Finding.fail(name, f"cannot listen on {host}:{port}: {problem}",
                             f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or choose "

@@ -15,9 +15,11 @@ router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
 
 @router.get("/healthz")
-async def healthz() -> dict[str, str]:
-    """The process answers (no key needed): liveness, whether or not a job would run."""
-    return {"status": "ok"}
+async def healthz(cell: Service) -> dict[str, str]:
+    """The process answers (no key needed): liveness, whether or not a job would run; ``cell`` its cell's
+    name, by which ``cell doctor`` tells the ports this cell's running service holds from another
+    program's."""
+    return {"status": "ok", "cell": cell.name}
 
 
 @router.get("/readyz", responses={503: {"description": "a job submitted now would not run: body says why"}})
