@@ -268,7 +268,8 @@ def test_a_failure_while_setting_up_still_leaves_a_result(tmp_path, monkeypatch)
     monkeypatch.setattr(runner.MotionGuard, "from_config", broken)
     res = _scan("--object", "cube", "--out", str(tmp_path / "j"))
     assert res.exit_code == 1
-    assert res.output == ("error: internal error: RuntimeError: the guard could not be built\n"
+    assert res.output == (f"job folder: {tmp_path / 'j'}\n"
+                          "error: internal error: RuntimeError: the guard could not be built\n"
                           f"job folder: {tmp_path / 'j'}\n")
     result = json.loads((tmp_path / "j" / "result.json").read_text())
     assert result["status"] == "failed"
@@ -412,7 +413,22 @@ def test_progress_lines_on_a_pipe_every_few_seconds_of_job_time(tmp_path):
     times = [float(line.split()[1]) for line in lines]
     assert len(lines) >= 2 and all(b - a >= 5.0 for a, b in itertools.pairwise(times))
     assert lines[0].endswith(" %") and " of 14 s, " in lines[0] and " captures, " in lines[0]
-    assert "job folder:" not in res.stderr  # a completed job prints its folder with its result
+    # the folder comes first, for a `cell stop` while it runs, and again with the result on standard output
+    assert res.stderr.splitlines()[0] == f"job folder: {tmp_path / 'j'}"
+    assert res.stderr.count("job folder:") == 1 and res.stdout.endswith(f"job folder: {tmp_path / 'j'}\n")
+
+
+def test_a_scan_names_its_folder_as_soon_as_it_exists_for_a_stop_from_another_terminal(tmp_path):
+    """``cell stop JOB_DIR`` while a scan runs needs its folder, which only the scan's end named: standard
+    error and output in one pipe, in the order written, the folder comes before the progress lines."""
+    out = tmp_path / "j"
+    proc = subprocess.run([sys.executable, "-m", "cell.cli.entry", "scan", "--config", str(UR5E), "--object",
+                           "cube", "--planner", "raster", "--max-time", "6", "--out", str(out)], cwd=REPO,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout
+    lines = proc.stdout.splitlines()
+    assert lines[0] == f"job folder: {out}" and lines[1].startswith("scan: ")
+    assert lines[-1] == f"job folder: {out}" and lines.count(lines[0]) == 2
 
 
 # Ctrl-C (SIGINT) at the moment `cell` imports a module of its command line, as a person typing it during
@@ -455,7 +471,8 @@ def test_a_scan_stopped_by_the_operator_says_stopped_not_error(tmp_path):
     res = _scan("--planner", "raster", "--out", str(out))
     stopper.join(timeout=60)
     assert res.exit_code == 1
-    assert res.stderr.splitlines() == ["stopped: operator stop: lunch (cell stop)", f"job folder: {out}"]
+    assert res.stderr.splitlines() == [f"job folder: {out}", "stopped: operator stop: lunch (cell stop)",
+                                       f"job folder: {out}"]
     assert json.loads((out / "result.json").read_text())["status"] == "stopped"
 
 

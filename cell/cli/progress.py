@@ -36,8 +36,13 @@ class ProgressLines:
         print(f"{self._label}: {text}", file=sys.stderr, flush=True)
 
 
+BAR_CONSOLE = Console(stderr=True)
+"""Standard error as the bars write it: a line printed through it while a bar shows goes above the bar
+(through another console, the bar's next refresh would write over it)."""
+
+
 def _bar(*columns: TextColumn | BarColumn | MofNCompleteColumn) -> Progress:
-    return Progress(*columns, console=Console(stderr=True), transient=True)
+    return Progress(*columns, console=BAR_CONSOLE, transient=True)
 
 
 def scan_line(p: JobProgress, budget_s: float) -> str:

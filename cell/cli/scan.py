@@ -12,7 +12,7 @@ from rich.console import Console
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error, print_warning
 from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines, time_label
-from cell.cli.progress import scan_progress
+from cell.cli.progress import BAR_CONSOLE, scan_progress
 from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.config.placeholders import require_measured
@@ -26,7 +26,7 @@ DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_OBJECT = "bunny"
 
 console = Console(soft_wrap=True)
-err_console = Console(stderr=True)
+err_console = BAR_CONSOLE  # a line printed while the bar shows goes above it
 
 
 def _parse_pose(text: str) -> tuple[float, float, float]:
@@ -66,6 +66,12 @@ def _arm_fault_hint(request: ScanRequest) -> str:
             f"{request.config_path}")
 
 
+def _print_folder(folder: Path) -> None:
+    """``job folder: <folder>`` to standard error: at the start, for a ``cell stop`` from another terminal
+    while the scan runs (standard output keeps only the outcome), and again after a stop or a failure."""
+    err_console.print(f"job folder: {folder}", markup=False, highlight=False, soft_wrap=True)
+
+
 def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Exit:
     """A scan that stopped or failed after its folder was made: ``stopped: <reason>`` for a stop (an
     operator's, a safety check's), else the error; then where the folder is, when it was made (its
@@ -78,7 +84,7 @@ def _stopped(job: PreparedScan, exc: Exception, received: list[int]) -> typer.Ex
     else:
         print_error(exc if isinstance(exc, CellError) else f"internal error: {type(exc).__name__}: {exc}")
     if job.folder.is_dir():  # not when the folder could not be made
-        err_console.print(f"job folder: {job.folder}", markup=False, highlight=False, soft_wrap=True)
+        _print_folder(job.folder)
     if received:
         return typer.Exit(code=128 + received[0])
     interrupted = isinstance(exc, SafetyStop) and exc.reason == INTERRUPTED
@@ -115,8 +121,10 @@ def scan(
     Exit code 0 when it completed (also when its time budget ended it before an object was found: the
     termination says so), 2 when it found no object on the table, 1 when it failed or was stopped
     and on an error in its input, a usage error of its command line included (nothing is made then), 130
-    after Ctrl-C, 143 after SIGTERM and 129 after SIGHUP (they stop the scan as Ctrl-C does); the job
-    folder is printed in every case once it exists.
+    after Ctrl-C, 143 after SIGTERM and 129 after SIGHUP (they stop the scan as Ctrl-C does). The job
+    folder is printed to standard error as soon as it exists (``job folder: DIR``, for ``cell stop DIR``
+    from another terminal), and again at the end in every case: with the outcome on standard output, or
+    after the error or stop on standard error.
     Progress: a bar on a terminal, else a line to standard error every few seconds of job time."""
     try:
         if replay is not None:
@@ -145,7 +153,7 @@ def scan(
     with interrupting() as received:
         try:
             with scan_progress(job.max_time_s) as show:
-                outcome = run_prepared(job, on_progress=show)
+                outcome = run_prepared(job, on_progress=show, on_folder=_print_folder)
         except Exception as exc:  # the job's folder holds its result whatever the error: say where it is
             raise _stopped(job, exc, received) from None
     r = outcome.result

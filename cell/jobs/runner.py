@@ -314,8 +314,12 @@ def run_scan(req: ScanRequest, on_progress: Callable[[JobProgress], None] | None
 
 
 def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] | None = None,
-                 control: JobControl | None = None) -> ScanOutcome:
+                 control: JobControl | None = None,
+                 on_folder: Callable[[Path], None] | None = None) -> ScanOutcome:
     """Run a prepared scan; returns the job folder and the result written there.
+
+    ``on_folder`` gets the job's folder as soon as it exists, before anything connects (``cell scan``
+    names it then, for a ``cell stop`` from another terminal).
 
     ``on_progress`` gets a snapshot after each perception update, on the control thread (keep it short),
     and the job then also keeps its accumulated cloud in ``cloud_live.npy`` while it runs
@@ -342,6 +346,8 @@ def run_prepared(job: PreparedScan, on_progress: Callable[[JobProgress], None] |
     recorder.log(0.0, f"job: planner {job.planner_name}, object {job.object_name}{scaled} {placed}, seed "
                       f"{req.seed}, config {req.config_path}")
     try:
+        if on_folder is not None:
+            on_folder(folder)
         T_base_object = job.T_base_object
         # the cell's name: a service importing a folder its store does not know takes only its own
         asked_by = {k: v for k, v in (("part_id", req.part_id), ("submitted_by", req.submitted_by)) if v}
