@@ -825,6 +825,18 @@ def test_control_ticks_count_periods_into_cumulative_buckets_and_overruns():
     assert summary["period_p50_s"] == pytest.approx(0.01)
 
 
+def test_a_perfect_loop_counts_every_tick_in_the_bucket_of_its_period():
+    """A sim job's 10 ms ticks all read p50 = p99 = max = 0.01 s, yet near a third of 1999 fell into the
+    15 ms bucket: job time is a sum of periods, and a period taken from two such sums is 0.01 s up to float
+    error."""
+    ticks, t = ControlTicks(period_s=0.01), 0.0
+    for _ in range(2000):  # as the control loop's simulated clock advances
+        ticks.record(t)
+        t += 0.01
+    bounds = dict(zip(TICK_BUCKETS_S, ticks.histogram()["buckets"], strict=True))
+    assert (bounds[0.008], bounds[0.01], bounds[0.015]) == (0, 1999, 1999)
+
+
 @pytest.mark.parametrize("termination, state", [
     ("safety stop: arm fault: power off, control script not running", "fault"),
     ("safety stop: arm fault: control script not running", "fault"),

@@ -23,6 +23,13 @@ TICK_BUCKETS_S = (0.001, 0.002, 0.004, 0.006, 0.008, 0.01, 0.015, 0.02, 0.03, 0.
 """Upper bounds [s] of the tick-period histogram (Prometheus ``le`` buckets; +Inf is implied): control
 periods of 2 ms (500 Hz RTDE) to 20 ms (50 Hz), and the late ticks a watchdog counts."""
 
+TICK_EDGE_TOLERANCE_S = 1e-9
+"""A period up to this much [s] over a bucket's bound counts in that bucket: a period is the difference
+of two job times that are sums of control periods, and their float arithmetic puts many ticks of a perfect
+10 ms loop just above 0.01 s (0.010000000000000009 s). That error is at most an ulp of the job
+time [s] (1.5e-11 s a day into a job), far below 1 ns, and 1 ns is a millionth of the narrowest bucket
+(1 ms): no tick the loop really made late moves bucket."""
+
 OVERRUN_FACTOR = 1.5
 """A tick is an overrun when its period exceeds the control period by more than half a period: it then
 lands nearer the next slot than its own, so one command period was lost."""
@@ -51,7 +58,7 @@ class ControlTicks:
             self.periods.append(dt)
             self._sum_s += dt
             self._max_s = max(self._max_s, dt)
-            bucket = bisect.bisect_left(TICK_BUCKETS_S, dt)
+            bucket = bisect.bisect_left(TICK_BUCKETS_S, dt - TICK_EDGE_TOLERANCE_S)
             if bucket < len(TICK_BUCKETS_S):
                 self._per_bucket[bucket] += 1
             if dt > OVERRUN_FACTOR * self.period_s:
