@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from calibration.mount import pose_difference
 from cell.config.models import PoseConfig
@@ -18,14 +19,25 @@ CONSISTENT_SIGMAS = 3.0
 
 
 def read_result(path: Path) -> dict[str, Any]:
-    """A calibration result written by ``cell calibrate mount``; ``CalibrationError`` otherwise."""
+    """A calibration result written by ``cell calibrate mount``; ``CalibrationError`` (one line) when
+    ``path`` cannot be read, is no JSON, holds no ``mount`` section (a job's result.json) or a mount that is
+    not a pose."""
     try:
-        data = json.loads(path.read_text())
-        PoseConfig(**data["mount"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise CalibrationError(f"{path} is not a mount calibration result: {exc}") from None
-    if not isinstance(data, dict):
-        raise CalibrationError(f"{path} is not a mount calibration result")
+        data = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        raise CalibrationError(f"cannot read {path}: no such file") from None
+    except OSError as exc:
+        raise CalibrationError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:  # not JSON, or not text
+        raise CalibrationError(f"{path} is not a mount calibration result: not JSON ({exc})") from None
+    if not isinstance(data, dict) or "mount" not in data:
+        raise CalibrationError(f"{path} has no 'mount' section: it is not a mount calibration result (a "
+                               "job's result.json?); cell calibrate mount --out writes one")
+    try:
+        PoseConfig.model_validate(data["mount"])
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, ('mount', *e['loc'])))}: {e['msg']}" for e in exc.errors())
+        raise CalibrationError(f"{path} is not a mount calibration result: {problems}") from None
     return data
 
 

@@ -157,6 +157,24 @@ def test_cli_mount_writes_the_result_and_the_cell_file_keeping_its_comments(tmp_
     assert "x 0.500" in run.output and "consistent within their uncertainties" in run.output
 
 
+@pytest.mark.parametrize(("content", "problem"), [
+    (None, "cannot read {b}: no such file"),  # was "... is not a mount calibration result: [Errno 2] ..."
+    ({"planner": "raster", "status": "completed"},  # a job's result.json; was "...: 'mount'" (a KeyError)
+     "{b} has no 'mount' section: it is not a mount calibration result (a job's result.json?); cell "
+     "calibrate mount --out writes one"),
+    ({"mount": {"xyz_m": [0.0, 0.04]}},
+     "{b} is not a mount calibration result: mount.xyz_m.2: Field required"),
+])
+def test_compare_says_what_is_wrong_with_a_file_that_is_no_mount_result(tmp_path: Path, content: object,
+                                                                          problem: str) -> None:
+    a, b = tmp_path / "mount.json", tmp_path / "other.json"
+    a.write_text(json.dumps({"mount": {"xyz_m": [0.0, 0.04, 0.03], "rpy_deg": [0.0, 0.0, 0.0]}}))
+    if content is not None:
+        b.write_text(json.dumps(content))
+    run = CliRunner().invoke(app, ["calibrate", "compare", str(a), str(b)])
+    assert run.exit_code == 1 and run.stderr == f"error: {problem.format(b=b)}\n"
+
+
 def test_write_replaces_measure_marks_and_touches_nothing_else() -> None:
     hardware = CONFIG_DIR / "ur5e-vl53l8cx.yaml"
     text = hardware.read_text()
