@@ -90,9 +90,29 @@ def test_a_real_cell_with_placeholders_is_refused_and_runs_once_measured(tmp_pat
     scan = CliRunner().invoke(app, ["scan", "--config", str(cell_file), "--out", str(tmp_path / "job")])
     assert scan.exit_code == 1 and "still to measure: arm.host" in scan.output
     assert not (tmp_path / "job").exists()
-    require_measured(cell_file, "dry-run")  # a dry run moves the real arm but scans a virtual object
+    # a dry run scans a virtual object, so its mount and station may wait, but it connects to the real arm
+    with pytest.raises(ConfigError, match=r"before connecting to the arm, .*: arm\.host at line 10, "):
+        require_measured(cell_file, "dry-run")
+    cell_file.write_text(re.sub(r"(host: \S+)\s*# MEASURE:.*", r"\1", cell_file.read_text()))
+    require_measured(cell_file, "dry-run")
     cell_file.write_text(_measure(cell_file.read_text()))
     require_measured(cell_file, "real")
+
+
+@pytest.mark.parametrize("command", [("arm", "status"), ("arm", "recover"),
+                                     ("arm", "jog", "--axis", "z", "--distance", "0.01"),
+                                     ("calibrate", "mount", "--out", "mount.json")])
+def test_a_command_that_connects_to_the_arm_refuses_the_templates_example_address(tmp_path, command):
+    """``cell arm status`` on the template connected to its example arm.host and printed a long
+    diagnosis of the dashboard handshake, never saying that the address was the template's example."""
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(template_path("ur5e-vl53l8cx").read_text())
+    res = CliRunner().invoke(app, [*command, "--config", str(cell_file)])
+    assert res.exit_code == 1
+    assert res.stderr == (f"error: {cell_file}: still to measure before connecting to the arm, its value "
+                          "the template's example: arm.host at line 10, the controller's IP address "
+                          "(PolyScope: Settings > System > Network); measure it, write it and delete its "
+                          f"'# MEASURE:' mark (cell config check {cell_file} lists every mark left)\n")
 
 
 @pytest.mark.parametrize("template", TEMPLATES)

@@ -24,6 +24,7 @@ from cell.cli.commands import command_group
 from cell.cli.signals import interrupting
 from cell.config import load_config
 from cell.config.models import CellConfig
+from cell.config.placeholders import require_arm_measured
 from cell.safety.guard import MotionGuard
 from drivers.arm.base import Arm
 from drivers.arm.config import UR5eArmConfig
@@ -55,12 +56,14 @@ REST_QD_RAD_S = 1e-3  # the arm is at rest when every joint is slower than this 
 @contextlib.contextmanager
 def _connected_arm(config: Path, *, read_only: bool = False) -> Iterator[tuple[CellConfig, Arm]]:
     """The cell file's hardware arm, connected (a UR5e for reading only with ``read_only``), disconnected at
-    the end; any ``CellError`` becomes a one-line error and exit code 1."""
+    the end; refused while the file's ``arm`` values are still marked ``# MEASURE:`` (its address would be
+    the template's example); any ``CellError`` becomes a one-line error and exit code 1."""
     try:
         cfg = load_config(config)
         if cfg.arm.type == "sim":
             raise DriverError("commissioning commands are for hardware arms (arm.type ur5e or franka)",
                               device="arm sim")
+        require_arm_measured(config, cfg.mode)
         model = get_robot_model(cfg.arm.model)
         arm = UR5eArm(cfg.arm, model, read_only=True) if read_only and isinstance(cfg.arm, UR5eArmConfig) \
             else make_arm(cfg.arm, model, None)
@@ -70,7 +73,7 @@ def _connected_arm(config: Path, *, read_only: bool = False) -> Iterator[tuple[C
         finally:
             arm.disconnect()
     except CellError as exc:
-        err_console.print(f"error: {exc}", markup=False, highlight=False)
+        err_console.print(f"error: {exc}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(code=1) from None
 
 

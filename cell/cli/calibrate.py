@@ -26,6 +26,7 @@ from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.cli.signals import interrupting
 from cell.config import load_config
+from cell.config.placeholders import require_arm_measured
 from cell.service.startup import DEFAULT_DATA_DIR
 from drivers.depth.zone_correction import write_zone_correction
 from drivers.errors import CellError, ConfigError
@@ -75,6 +76,7 @@ def mount(
     writes the JSON result."""
     try:
         cfg = load_config(config)
+        require_arm_measured(config, cfg.mode)
         folder = default_folder(data_dir, "mount", target)
         n_poses = poses if poses is not None else default_poses(cfg)
         with interrupting():
@@ -166,6 +168,7 @@ def tof(
     (``sensor.zone_correction``) only when it reduces that error (else exits 1)."""
     try:
         cfg = load_config(config)
+        require_arm_measured(config, cfg.mode)
         folder = default_folder(data_dir, "tof", "table")
         with interrupting():
             fit = calibrate_zones(cfg, str(config), folder=folder, heights_m=_heights(heights),
@@ -212,6 +215,7 @@ def table(
     ``station``."""
     try:
         cfg = load_config(config)
+        require_arm_measured(config, cfg.mode)
         folder = default_folder(data_dir, "table", object)
         with interrupting():
             found = calibrate_table(cfg, str(config), folder=folder, ring=ring, target_object=object,
