@@ -181,6 +181,22 @@ def test_the_page_is_served_with_a_policy_that_runs_only_its_own_scripts(served)
     assert "/" not in client.get("/api/v1/openapi.json").json()["paths"]
 
 
+@pytest.mark.parametrize("path", ["/", "/static/js/main.js", "/healthz"])
+def test_head_answers_where_get_does_as_uptime_monitors_ask(served, path: str) -> None:
+    """``HEAD /`` answered 405 Method Not Allowed, which an uptime monitor sending HEAD reads as down."""
+    client, _ = served
+    head, get = client.head(path), client.get(path)
+    assert head.status_code == get.status_code == 200 and head.content == b""
+    assert head.headers["content-type"] == get.headers["content-type"]
+    assert head.headers["content-length"] == get.headers["content-length"]
+
+
+def test_readyz_answers_head_with_a_key(served) -> None:
+    client, keys = served
+    head = client.head("/readyz", headers=_auth(keys["viewer"]))
+    assert head.status_code == client.get("/readyz", headers=_auth(keys["viewer"])).status_code == 200
+
+
 def test_whoami_names_the_key_and_what_its_role_may_do(served) -> None:
     client, keys = served
     for role, key in keys.items():

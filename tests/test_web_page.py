@@ -33,6 +33,7 @@ import trimesh
 import yaml
 from PIL import Image
 
+from drivers.sim.objects import DEFAULT_OBJECT
 from tests.conftest import FRANKA
 from tests.service_process import REPO, ServedCell
 from tests.tcp_proxy import CuttableProxy
@@ -276,6 +277,16 @@ def test_an_operator_switches_the_line_to_manual_mode_from_the_status_bar(open_p
 # ---------------------------------------------------------------------------------------------- scans
 
 
+def test_the_form_preselects_the_object_cell_scan_takes_by_default(open_page: Callable[..., Page],
+                                                                   cell: ServedCell) -> None:
+    """The form preselected the first object by name (banana) where ``cell scan`` takes the bunny: it
+    takes the one the API marks ``default``, which is the command line's (after a deletion too)."""
+    assert [o["name"] for o in read(cell, "/api/v1/objects") if o["default"]] == [DEFAULT_OBJECT]
+    page = open_page("operator")
+    page.wait_for_selector("#f-object")
+    assert page.evaluate("() => document.getElementById('f-object').value") == DEFAULT_OBJECT
+
+
 def test_the_form_says_it_is_loading_until_the_api_answers(open_page: Callable[..., Page],
                                                           cell: ServedCell) -> None:
     """The form needs the planners, the cell and the objects: while an answer is held back, its place says
@@ -459,6 +470,7 @@ def test_an_operator_deletes_an_uploaded_object_from_the_form(open_page: Callabl
     wait_for(page, "![...document.getElementById('f-object').options].some((o) => o.value === 'tray')")
     assert asked == ["Delete the uploaded object tray? The jobs that scanned it keep their results."]
     assert page.is_hidden("#delete-object") and page.text_content("#err-object") == ""
+    assert page.evaluate("() => document.getElementById('f-object').value") == DEFAULT_OBJECT  # as at first
     assert "tray" not in {o["name"] for o in read(cell, "/api/v1/objects")}
 
 

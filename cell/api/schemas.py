@@ -170,12 +170,14 @@ class RecoverOut(BaseModel):
 
 
 class ObjectOut(BaseModel):
-    """An object the cell can scan: bounding box (x, y, z) [m]; ``source`` shipped or uploaded."""
+    """An object the cell can scan: bounding box (x, y, z) [m]; ``source`` shipped or uploaded;
+    ``default`` marks the object ``cell scan`` takes when none is named, which the page preselects."""
 
     name: str
     source: str
     extents_m: tuple[float, float, float]
     licence: str | None
+    default: bool
 
 
 class PlannerOut(BaseModel):

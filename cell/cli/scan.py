@@ -20,10 +20,9 @@ from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import ARM_FAULT, CellError, JobError, SafetyStop
-from drivers.sim.objects import EMPTY_TABLE, mesh_file_scale
+from drivers.sim.objects import DEFAULT_OBJECT, EMPTY_TABLE, mesh_file_scale
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
-DEFAULT_OBJECT = "bunny"
 
 console = Console(soft_wrap=True)
 err_console = BAR_CONSOLE  # a line printed while the bar shows goes above it

@@ -47,6 +47,10 @@ _LICENCES: dict[str, str] = {
 
 _MESH_SUFFIXES = (".ply", ".obj", ".stl")
 
+DEFAULT_OBJECT = "bunny"
+"""The shipped object a simulated scan takes when none is named (``cell scan``; the operator's page
+preselects it, ``GET /api/v1/objects`` marking it ``default``): the visual-servoing paper's own example."""
+
 EMPTY_TABLE = "none"
 """The object name of an empty table: a simulated scene with nothing on it (no mesh, no ground truth)."""
 

@@ -13,7 +13,9 @@ from cell.api.deps import Service
 from cell.api.schemas import STOP_BODY, CellOut, ObjectOut, PlannerOut, RecoverOut, StopOut
 from cell.api.stop_reason import StopReason
 from cell.service.manager import CellService
+from cell.service.objects import ObjectEntry
 from drivers.errors import ServiceError
+from drivers.sim.objects import DEFAULT_OBJECT
 
 router = APIRouter(prefix="/api/v1", tags=["cell"], route_class=KeyFirstRoute)
 UPLOAD_CHUNK = 1 << 20
@@ -38,8 +40,13 @@ def get_objects(cell: Service, _: Reader) -> list[ObjectOut]:
     none)."""
     if not cell.objects.virtual:
         return []
-    return [ObjectOut(name=e.name, source=e.source, extents_m=e.extents_m, licence=e.licence)
-            for e in cell.objects.entries()]
+    return [_object_out(e) for e in cell.objects.entries()]
+
+
+def _object_out(entry: ObjectEntry) -> ObjectOut:
+    """``entry`` as the API gives it: the shipped object ``cell scan`` takes by default marked."""
+    return ObjectOut(name=entry.name, source=entry.source, extents_m=entry.extents_m, licence=entry.licence,
+                     default=entry.source == "shipped" and entry.name == DEFAULT_OBJECT)
 
 
 def _virtual_only(cell: CellService) -> None:
@@ -67,7 +74,7 @@ async def post_object(cell: Service, file: UploadFile, _: Uploader,
             raise ServiceError(f"the file is above the cell's {limit / 1e6:g} MB", reason="invalid",
                                field="file")
     entry = await asyncio.to_thread(cell.objects.add, file.filename or "upload", bytes(data), scale)
-    return ObjectOut(name=entry.name, source=entry.source, extents_m=entry.extents_m, licence=entry.licence)
+    return _object_out(entry)
 
 
 @router.delete("/objects/{name}", status_code=204)

@@ -14,15 +14,16 @@ from drivers.errors import StoreDamaged, StoreError
 router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
 
-@router.get("/healthz")
+@router.api_route("/healthz", methods=["GET", "HEAD"])
 async def healthz(cell: Service) -> dict[str, str]:
     """The process answers (no key needed): liveness, whether or not a job would run; ``cell`` its cell's
     name, by which ``cell doctor`` tells the ports this cell's running service holds from another
-    program's."""
+    program's. HEAD too, as uptime monitors send."""
     return {"status": "ok", "cell": cell.name}
 
 
-@router.get("/readyz", responses={503: {"description": "a job submitted now would not run: body says why"}})
+@router.api_route("/readyz", methods=["GET", "HEAD"],
+                  responses={503: {"description": "a job submitted now would not run: body says why"}})
 async def readyz(response: Response, cell: Service,
                  _: Reader) -> dict[str, str]:
     """A job submitted now would run: the service has started, its store answers, and nothing keeps the

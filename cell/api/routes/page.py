@@ -45,9 +45,9 @@ class _RevalidatedFiles(StaticFiles):
         return response
 
 
-@router.get("/")
+@router.api_route("/", methods=["GET", "HEAD"])
 def index() -> Response:
-    """The page."""
+    """The page; HEAD too, as uptime monitors send (the static files answer it already)."""
     html = INDEX_HTML.read_text()
     return Response(html, media_type="text/html; charset=utf-8", headers=security_headers(html))
 

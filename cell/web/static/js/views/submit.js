@@ -75,13 +75,15 @@ export async function scanForm({ onSubmitted }) {
   const offerDelete = () => {
     deleteButton.hidden = listed.find((e) => e.name === object.value)?.source !== "uploaded";
   };
-  const fillObjects = (entries, selected) => {
+  /** The object list with `selected` chosen; by default the object `cell scan` takes when none is named,
+   *  as the API marks it (else the browser's choice, the first). */
+  const fillObjects = (entries, selected = entries.find((e) => e.default)?.name) => {
     listed = entries;
     replace(object, entries.map((e) => h("option", { value: e.name, selected: e.name === selected }, objectLabel(e))));
     offerDelete();
   };
   object.addEventListener("change", offerDelete);
-  fillObjects(objects, objects[0]?.name);
+  fillObjects(objects);
   const label = h("input", { type: "text", maxlength: 128, placeholder: "optional" });
   const x = numberInput({ value: "0", "aria-label": "x [m]" });
   const y = numberInput({ value: "0", "aria-label": "y [m]" });
@@ -183,7 +185,7 @@ export async function scanForm({ onSubmitted }) {
     deleteButton.disabled = true;
     try {
       await api(`/api/v1/objects/${encodeURIComponent(name)}`, { method: "DELETE" });
-      fillObjects(await api("/api/v1/objects"), undefined);
+      fillObjects(await api("/api/v1/objects"));
     } catch (error) {
       showError(error, form.querySelector("#err-object"));
     } finally {
