@@ -19,6 +19,7 @@ import pytest
 
 from cell.api import connections
 from cell.api.connections import ACCEPT_FAILURE, ConnectionLimits, quiet_accept_failures
+from cell.service import logs
 from tests.service_process import closed_by_server, serving_guarded, until
 
 WAIT_S = 30.0  # a bound on waiting for the server, never a timed check [s]; the sockets' timeout
@@ -178,7 +179,7 @@ def test_a_failing_accept_is_logged_once_per_interval_with_its_count(
         caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     """asyncio reported every failed ``accept()`` with a traceback (112 474 in 25 s, 57 MB of log); it is
     one line, then one line with the count at the end of the interval. Other reports go on as before."""
-    monkeypatch.setattr(connections, "LOG_INTERVAL_S", 0.05)
+    monkeypatch.setattr(logs, "LOG_INTERVAL_S", 0.05)
     loop = asyncio.new_event_loop()
     try:
         quiet_accept_failures(loop)

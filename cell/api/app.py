@@ -25,6 +25,7 @@ from fastapi_offline import FastAPIOffline
 
 from cell import __version__
 from cell.api.body_limit import BodyLimit
+from cell.api.connections import ConnectionLimits
 from cell.api.routes import cell as cell_routes
 from cell.api.routes import clouds, health, jobs, keys, retention
 from cell.api.routes import line as line_routes
@@ -60,13 +61,16 @@ async def _refresh_keys(ring: KeyRing) -> None:
 
 def _line_opcua(cell: CellService, keys: KeyRing) -> contextlib.AbstractAsyncContextManager[object]:
     """The line's OPC UA server while the context runs, when the cell file has ``line.opcua``; asyncua (a
-    second of imports) is loaded only then."""
+    second of imports) is loaded only then. Its connections take their share of the descriptors that the
+    API's connections are capped under."""
     line_config = cell.config.line
     if cell.line is None or line_config is None or line_config.opcua is None:
         return contextlib.nullcontext()
     from cell.line.opcua import serve_opcua
+    from cell.line.opcua_connections import OPCUALimits
 
-    return serve_opcua(cell, cell.line, line_config.opcua, keys)
+    limits = OPCUALimits(ConnectionLimits.of_process().opcua_connections)
+    return serve_opcua(cell, cell.line, line_config.opcua, keys, limits)
 
 
 def create_app(settings: ServiceSettings, service: CellService | None = None) -> FastAPI:

@@ -27,8 +27,8 @@ and haproxy do, :func:`protocol_class` gives uvicorn a protocol (its h11 one, wi
   under the limit as well.
 
 :func:`quiet_accept_failures` makes what is left (descriptors taken by something else) one log line per
-``LOG_INTERVAL_S`` with a count, not a traceback per attempt; the connections shed or refused at the cap
-are logged the same way.
+``cell.service.logs.LOG_INTERVAL_S`` with a count, not a traceback per attempt; the connections shed or
+refused at the cap are logged the same way.
 """
 
 from __future__ import annotations
@@ -43,6 +43,8 @@ from typing import Any, ClassVar
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from cell.service.logs import EveryInterval
+
 log = logging.getLogger("cell.service")
 
 MAX_CONNECTIONS = 256
@@ -52,9 +54,10 @@ line and a metrics scraper: a few dozen; 256 is ten times that."""
 FD_SHARE = 4
 """The connections take at most 1/FD_SHARE of the process's soft descriptor limit: each may hold a second
 descriptor (a job file being sent, an upload's temporary file), the accept backlog adds half as many
-again and the connections on probation an eighth, which leaves a third of the limit to the store, the
-job's worker and its pipes, the line's OPC UA server and the logs (the cap is 256 under the usual soft
-limit of 1024, 64 under 256)."""
+again and the connections on probation an eighth; the line's OPC UA server takes an eighth as many again
+and its backlog a sixteenth (:attr:`ConnectionLimits.opcua_connections`). That leaves 30 % of the limit
+to the store, the job's worker and its pipes and the logs (the cap is 256 under the usual soft limit of
+1024, 64 under 256; 720 descriptors at most for the connections of both servers under 1024)."""
 HEADER_TIMEOUT_S = 10.0
 """How long a connection has to deliver a request's headers [s], from its opening or from the end of its
 previous response; haproxy's usual ``timeout http-request``. A client on loopback or a LAN sends them in
@@ -65,9 +68,6 @@ a JSON body comes in one packet with its headers, or just after them."""
 MIN_BODY_RATE = 125_000
 """The slowest a body with a length is owed time for [bytes/s]: 1 Mbit/s, a poor wireless link. The
 largest, a mesh upload of ``service.max_upload_mb``, 50 MB, then has 410 s; a job's 16 KiB, 10.1 s."""
-LOG_INTERVAL_S = 10.0
-"""At most one line per this interval [s] for the accept failures, and one for the connections shed or
-refused at the cap, each with how many there were."""
 ACCEPT_FAILURE = "socket.accept() out of system resource"
 """What asyncio's event loop reports when ``accept()`` fails for want of descriptors or memory."""
 BUSY = b"every connection has a request in progress"
@@ -105,40 +105,20 @@ class ConnectionLimits:
         """The listen backlog, and so the most connections asyncio accepts in one go: half the cap."""
         return max(1, self.max_connections // 2)
 
+    @property
+    def opcua_connections(self) -> int:
+        """The most connections the line's OPC UA server keeps open (:mod:`cell.line.opcua_connections`),
+        out of the same descriptors: an eighth of the cap, 32 under a soft limit of 1024, 8 under 256. A
+        line's OPC UA clients are its PLC, an HMI or a SCADA server reading the tags and an engineer's
+        client at commissioning: a handful, each one connection (one descriptor; no files)."""
+        return max(1, self.max_connections // 8)
+
     @classmethod
     def of_process(cls) -> ConnectionLimits:
         """``MAX_CONNECTIONS``, or less when this process's soft descriptor limit is low (``FD_SHARE``)."""
         soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
         share = MAX_CONNECTIONS if soft == resource.RLIM_INFINITY else soft // FD_SHARE
         return cls(max(1, min(MAX_CONNECTIONS, share)))
-
-
-class EveryInterval:
-    """Counts events and logs them in one line at most every ``LOG_INTERVAL_S``: the first event at once,
-    the ones after it in a line with their count at the end of the interval."""
-
-    def __init__(self, line: Callable[[int, str], None]) -> None:
-        """``line(count, detail)`` logs the line, ``detail`` being the newest event's."""
-        self._line = line
-        self._count = 0
-        self._detail = ""
-        self._last: float | None = None
-        self._pending: asyncio.TimerHandle | None = None
-
-    def event(self, loop: asyncio.AbstractEventLoop, detail: str = "") -> None:
-        """One more event, on ``loop`` (whose clock times the interval)."""
-        self._count, self._detail = self._count + 1, detail
-        if self._pending is not None:
-            return
-        wait_s = 0.0 if self._last is None else self._last + LOG_INTERVAL_S - loop.time()
-        if wait_s <= 0.0:
-            self._emit(loop)
-        else:
-            self._pending = loop.call_later(wait_s, self._emit, loop)
-
-    def _emit(self, loop: asyncio.AbstractEventLoop) -> None:
-        self._line(self._count, self._detail)
-        self._count, self._last, self._pending = 0, loop.time(), None
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -289,7 +269,8 @@ def protocol_class(limits: ConnectionLimits) -> type[GuardedH11Protocol]:
 
 
 def quiet_accept_failures(loop: asyncio.AbstractEventLoop) -> None:
-    """Make the event loop's report of a failed ``accept()`` one line per ``LOG_INTERVAL_S`` with a count
+    """Make the event loop's report of a failed ``accept()`` one line per ``LOG_INTERVAL_S`` (of
+    :mod:`cell.service.logs`) with a count
     (asyncio logs a traceback for every attempt, up to the backlog's number each time it retries); every
     other report goes where it went."""
     previous = loop.get_exception_handler()

@@ -20,7 +20,8 @@ nothing; a write of a read-only variable is refused by itself (``Bad_UserAccessD
 other values written. ``Status/CommandMessage`` says why, as it does for a refused method call (it is the
 line's message: REST reads it too). Values follow the line: every change the controller reports is
 queued and written, in order, by one task; a command's answer waits until its effects are readable. Who
-logs in and how is :mod:`cell.line.opcua_security`.
+logs in and how is :mod:`cell.line.opcua_security`; how many connections the server keeps, and for how
+long one may stay silent, :mod:`cell.line.opcua_connections`.
 """
 
 from __future__ import annotations
@@ -32,11 +33,12 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from datetime import UTC
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from asyncua import Server, ua
+from asyncua import ua
 from asyncua.common.callback import CallbackType, ServerItemCallback
 
 from cell.line.config import OPCUAConfig
 from cell.line.controller import LineController, LineSnapshot
+from cell.line.opcua_connections import GuardedServer, OPCUALimits
 from cell.line.opcua_nodes import (
     CMD_CHANGE_REQUEST,
     CNTRL_CMD,
@@ -141,12 +143,13 @@ class LineOPCUA:
     """The OPC UA server of one cell's line (see the module docstring)."""
 
     def __init__(self, service: CellService, line: LineController, config: OPCUAConfig,
-                 keys: KeyRing) -> None:
+                 keys: KeyRing, limits: OPCUALimits) -> None:
+        """``limits`` guard the server's connections (:mod:`cell.line.opcua_connections`)."""
         self._service = service
         self._line = line
         self._config = config
         self._keys = keys
-        self._server = Server(user_manager=LineUserManager(keys))
+        self._server = GuardedServer(limits, user_manager=LineUserManager(keys))
         self._ids: dict[str, ua.NodeId] = {}
         self._tags: dict[ua.NodeId, Tag] = {}
         self._snapshots: asyncio.Queue[LineSnapshot] = asyncio.Queue()
@@ -358,10 +361,10 @@ class LineOPCUA:
 
 @contextlib.asynccontextmanager
 async def serve_opcua(service: CellService, line: LineController, config: OPCUAConfig,
-                      keys: KeyRing) -> AsyncIterator[LineOPCUA]:
+                      keys: KeyRing, limits: OPCUALimits) -> AsyncIterator[LineOPCUA]:
     """The OPC UA server ``config`` of the cell's ``line`` while the context runs; ``keys`` authenticates
-    its users and is kept current by the caller."""
-    server = LineOPCUA(service, line, config, keys)
+    its users and is kept current by the caller; ``limits`` guard its connections."""
+    server = LineOPCUA(service, line, config, keys, limits)
     try:
         await server.start()
         yield server

@@ -10,10 +10,12 @@ the record's level.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import os
 import sys
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import IO, Any
 
@@ -27,6 +29,10 @@ UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access")
 # logs a line for each of about a thousand nodes of the standard address space it loads as it starts,
 # burying the line with the certificate's fingerprint that a line's commissioning needs.
 QUIET_LOGGERS = ("asyncua",)
+LOG_INTERVAL_S = 10.0
+"""At most one line per this interval [s] for an event that a flood repeats (:class:`EveryInterval`): the
+accept failures, the connections shed or refused at the caps of the HTTP and OPC UA servers, each line
+with how many there were."""
 
 
 def _fields(record: logging.LogRecord) -> dict[str, Any]:
@@ -92,3 +98,31 @@ def configure_logging(stream: IO[str] | None = None, level: int = logging.INFO) 
         logger = logging.getLogger(name)
         logger.handlers = []
         logger.propagate = True
+
+
+class EveryInterval:
+    """Counts events and logs them in one line at most every ``LOG_INTERVAL_S``: the first event at once,
+    the ones after it in a line with their count at the end of the interval."""
+
+    def __init__(self, line: Callable[[int, str], None]) -> None:
+        """``line(count, detail)`` logs the line, ``detail`` being the newest event's."""
+        self._line = line
+        self._count = 0
+        self._detail = ""
+        self._last: float | None = None
+        self._pending: asyncio.TimerHandle | None = None
+
+    def event(self, loop: asyncio.AbstractEventLoop, detail: str = "") -> None:
+        """One more event, on ``loop`` (whose clock times the interval)."""
+        self._count, self._detail = self._count + 1, detail
+        if self._pending is not None:
+            return
+        wait_s = 0.0 if self._last is None else self._last + LOG_INTERVAL_S - loop.time()
+        if wait_s <= 0.0:
+            self._emit(loop)
+        else:
+            self._pending = loop.call_later(wait_s, self._emit, loop)
+
+    def _emit(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._line(self._count, self._detail)
+        self._count, self._last, self._pending = 0, loop.time(), None
