@@ -9,7 +9,7 @@ from fastapi import APIRouter, Response
 from cell.api.auth import KeyFirstRoute, Reader
 from cell.api.deps import Service
 from cell.service.metrics import CONTENT_TYPE
-from drivers.errors import StoreDamaged, StoreError
+from drivers.errors import StoreError
 
 router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
@@ -35,11 +35,10 @@ async def readyz(response: Response, cell: Service,
     takes jobs all the same (the first then waits for the imports), so it does not make the answer 503."""
     try:
         await asyncio.to_thread(cell.store.count_by_status, cell.name)
-    except StoreDamaged:
-        pass  # latched by the store (``Store.damaged``): the queue is held, not_ready says how to restore it
     except StoreError:
-        response.status_code = 503
-        return {"status": "the job store does not answer"}
+        if not cell.store.damaged:  # else the queue is held, and not_ready says how to restore the store
+            response.status_code = 503
+            return {"status": "the job store does not answer"}
     # off the event loop: it asks the file system about the jobs folder (access, free space)
     if (reason := await asyncio.to_thread(cell.not_ready)) is not None:
         response.status_code = 503
