@@ -91,13 +91,19 @@ def test_sor_small_inputs() -> None:
 def test_a_plane_s_depths_are_continuous_when_seen_no_flatter_than_grazing(incidence_deg: float) -> None:
     """A plane 40 cm ahead, turned about the camera's y axis, seen at ``incidence_deg`` on the optical axis
     (2.3 deg more or less at the image's sides, 41 pixels of 2 mrad): every pixel but those without a
-    return is kept up to ``GRAZING_DEG``, none beyond it."""
+    return is kept up to ``GRAZING_DEG``; beyond it, each pixel farther than its neighbour along the slope
+    is dropped, so only the nearest of each row's runs stays: the last column, and the pixel before the
+    hole."""
     f, theta = 500.0, math.radians(incidence_deg)
     u = np.arange(41) - 20.0
     depth = np.tile(0.4 * math.cos(theta) / (math.sin(theta) * u / f + math.cos(theta)), (41, 1))
     depth[5, 7] = 0.0
     keep = continuous_depth_mask(depth, 1.0 / f)
-    assert not keep[5, 7] and np.count_nonzero(keep) == (41 * 41 - 1 if incidence_deg < GRAZING_DEG else 0)
+    assert not keep[5, 7]
+    if incidence_deg < GRAZING_DEG:
+        assert np.count_nonzero(keep) == 41 * 41 - 1
+    else:
+        assert set(zip(*np.nonzero(keep), strict=True)) == {(row, 40) for row in range(41)} | {(5, 6)}
 
 
 def _tof_frame() -> DepthFrame:

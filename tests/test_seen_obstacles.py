@@ -229,8 +229,9 @@ def test_a_survey_adds_to_the_seen_cells_only_and_a_frame_s_update_keeps_those_o
 def test_a_camera_s_flying_pixels_at_an_edge_mark_no_cells_and_a_thin_rod_s_top_does() -> None:
     """Straight down from 50 cm onto the table: a box's top 10.5 cm up fills the image's left half, and
     the three pixels of each row beyond its edge lie between it and the table, 7.75, 5.25 and 2.75 cm up
-    (flying pixels); a rod 6 mm across (7 pixels) stands 8.5 cm up on the right. The box's top and the
-    rod's are seen, and nothing between the box's edge and the table."""
+    (flying pixels); a rod 6 mm across (7 pixels) stands 8.5 cm up on the right, and a wire 2 pixels
+    across (1.7 mm) 8 cm up above it. The box's top, the rod's and the wire are seen, and nothing between
+    the box's edge and the table."""
     cfg = load_config(CELLS["panda"])
     pipeline = PerceptionPipeline(cfg.perception, table_z_m=0.0, range_max_m=cfg.sensor.range_max_m,
                                   rng=np.random.default_rng(0))
@@ -239,11 +240,12 @@ def test_a_camera_s_flying_pixels_at_an_edge_mark_no_cells_and_a_thin_rod_s_top_
     depth[:, :100] = 0.395
     depth[:, 100:103] = [0.4225, 0.4475, 0.4725]
     depth[100:107, 150:157] = 0.415
+    depth[30:40, 180:182] = 0.42
     frame = DepthFrame(0, 0.0, back_project(depth, K), depth=depth, intrinsics=K)
     centers = pipeline.survey(frame, _looking_down(0.5)).centers()
     box = centers[:, 0] < 0.0
     assert np.count_nonzero(box) == 8 * 16 and np.allclose(centers[box, 2], 0.105)
-    assert np.allclose(centers[~box], [[0.045, -0.005, 0.085]])
+    assert np.allclose(centers[~box], [[0.045, -0.005, 0.085], [0.065, 0.055, 0.085]])
 
 
 def test_a_tof_frame_s_sigmas_lift_the_band_by_their_median() -> None:

@@ -153,18 +153,21 @@ def continuous_depth_mask(depth: NDArray[np.floating], pitch_rad: float) -> Bool
     z (1 + pitch_rad tan theta); no surface is returned seen beyond ``GRAZING_DEG``, so depths further
     apart than ``z_near * pitch_rad * tan(GRAZING_DEG)`` [m] (z_near the nearer one) are two surfaces, a
     foreground's edge over a background. A pixel at such an edge may mix the two (a flying pixel, its depth
-    anywhere between them, as a RealSense gives), so both pixels of every such pair are dropped: the flying
-    ones and the outermost pixel of each surface. Range noise is not in the bound: it drops a few pixels of
-    a surface seen at nearly ``GRAZING_DEG``, each one of the many that a centimetre holds, where a bound
-    widened by it would keep the flying pixels of a shallow edge."""
+    anywhere between them, as a RealSense gives), so the farther pixel of every such pair is dropped: a
+    flying pixel lies beyond the foreground pixel beside it, and the ones in a row of them each beyond the
+    one before, while the foreground itself stays, however thin (a rod one pixel wide over the table is
+    nearer than both its neighbours: the obstacle the guard must see). Range noise is not in the bound: it
+    drops a few pixels of a surface seen at nearly ``GRAZING_DEG``, each one of the many that a centimetre
+    holds, where a bound widened by it would keep the flying pixels of a shallow edge."""
     z = np.asarray(depth)
     slope = pitch_rad * math.tan(math.radians(GRAZING_DEG))
     keep = z > 0.0
     for along, kept in ((z, keep), (z.T, keep.T)):  # down the columns, then along the rows (views)
-        near = np.minimum(along[:-1], along[1:])
-        edge = (np.abs(along[1:] - along[:-1]) > slope * near) & (near > 0.0)
-        kept[:-1] &= ~edge
-        kept[1:] &= ~edge
+        first, second = along[:-1], along[1:]
+        near = np.minimum(first, second)
+        edge = (np.abs(second - first) > slope * near) & (near > 0.0)
+        kept[:-1] &= ~(edge & (first > second))
+        kept[1:] &= ~(edge & (second > first))
     return keep
 
 

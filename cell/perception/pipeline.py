@@ -132,9 +132,9 @@ class PerceptionPipeline:
 
     def _see(self, frame: DepthFrame, returns: Array, sigma: Array | None, T_base_sensor: Array) -> None:
         """Add a frame's returns and sigmas (:meth:`_returns`), seen from ``T_base_sensor``, to what stands
-        on the table (``cell.perception.seen_obstacles``); a camera's without the pixels at a jump of its
-        depth image (:func:`filters.continuous_depth_mask`): the flying pixels between an edge and what
-        lies behind it, which no crop box or outlier filter takes off outside the crop box."""
+        on the table (``cell.perception.seen_obstacles``); a camera's without the farther pixel at each jump
+        of its depth image (:func:`filters.continuous_depth_mask`): the flying pixels between an edge and
+        what lies behind it, which no crop box or outlier filter takes off outside the crop box."""
         pitch = sample_pitch_rad(frame)
         if frame.depth is not None and frame.intrinsics is not None:
             keep = filters.continuous_depth_mask(frame.depth, pitch)

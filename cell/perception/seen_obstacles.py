@@ -6,9 +6,10 @@ in neither, and the guard's collision world (``cell.safety.collision``), which k
 object's ROI and the configured obstacles, would let the arm run into it. So every return of every frame,
 before the crop, that stands above the table is kept here on a coarse grid (base frame), and the guard
 treats what lies outside the object's ROI as an obstacle (``CollisionWorld.set_seen``). Of a camera's
-returns, the pipeline leaves out those at a jump of its depth image
+returns, the pipeline leaves out the farther pixel at each jump of its depth image
 (``cell.perception.filters.continuous_depth_mask``): the flying pixels between an edge and what lies
-behind it, which outside the crop box no other filter takes off, would be phantom obstacles.
+behind it, which outside the crop box no other filter takes off, would be phantom obstacles; a thin
+foreground (a wire) is nearer than both its neighbours and stays.
 
 A return counts as standing on the table when it lies within the arm's reach (what no body of the arm can
 come to, the room's far returns, would only cost cells, each grown by its reach) and higher than
