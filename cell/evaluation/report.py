@@ -80,10 +80,10 @@ SIGNIFICANCE = 0.05
 """The p below which a test's difference would be called significant."""
 EXACT_SPLITS = 20_000
 """Up to this many ways of splitting two samples' pooled values into them (8 against 8 has 12870),
-Mann-Whitney U's p is exact, from every split (a permutation test, ties included); beyond, it is the normal
-approximation with scipy's tie correction, which with small tied samples (pose counts over five seeds) gave
-p about half the exact one: 0.027 for [1, 1, 1, 2, 2] against [2, 2, 3, 3, 3], where every split gives
-0.048."""
+Mann-Whitney U's p is exact: twice the smaller share of splits whose U is at least or at most the samples'
+(a permutation test, ties included, at most 1); beyond, it is the normal approximation with scipy's tie
+correction, which with small tied samples (pose counts over five seeds) gave p about half the exact one:
+0.027 for [1, 1, 1, 2, 2] against [2, 2, 3, 3, 3], where every split gives 0.048."""
 
 
 @dataclass(frozen=True)
