@@ -911,6 +911,21 @@ def _damage_page_of(database: Path, marker: bytes) -> None:
         f.write(b"\xa5" * page_size)
 
 
+def test_the_placement_checks_are_loaded_before_the_service_takes_a_job(tmp_path, built_worlds):
+    """The collision world and the default planner's search views are built while the service starts, so
+    that no import of theirs (FCL, Open3D, the planner: the GIL held for up to 0.1 s at a time) falls while
+    a job runs; a submission then builds nothing."""
+    client, keys = _client(tmp_path)
+    with client:
+        service = client.app.state.service  # type: ignore[attr-defined]
+        assert len(built_worlds) == 1
+        assert list(service._search_views._views) == [service.config.scan.planner]
+        job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 1},
+                          headers=_auth(keys["operator"]))
+        assert job.status_code == 201, job.text
+        assert len(built_worlds) == 1
+
+
 def test_a_scrape_whose_job_counts_fail_still_says_the_store_is_damaged():
     """A store damaged in the pages the job counts read made the whole scrape fail (500), hiding the
     gauge that says it is damaged: now ``cell_jobs`` has no samples and the rest is scraped."""

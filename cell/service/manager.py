@@ -239,6 +239,7 @@ class CellService:
             log.warning("the queue is held since %s: %s", self._held.held_at.isoformat(), self._held.reason)
         if (short := self._disk_short()) is not None:
             log.warning("%s", short)
+        await asyncio.to_thread(self._load_checks)
         if self.line is not None:
             await self.line.start()
             line_cfg, arm_cfg = self.config.line, self.config.arm
@@ -253,6 +254,15 @@ class CellService:
             self._lease_keeper = asyncio.create_task(self._keep_lease(self._lease), name="lease")
         await self._warm()
         return settled
+
+    def _load_checks(self) -> None:
+        """Load what a submission's placement checks need (``validate``): the cell's collision world and
+        the default planner's search views, with FCL, Open3D and the planner's modules. Here, before any
+        job can run or any line part can start: importing them holds the GIL for up to 0.1 s at a time,
+        which at a first submission could fall while a job runs and delay a STOP on the event loop; and the
+        line's first part after a start would wait for them (about a second)."""
+        self._arm_clearance.world()
+        self._search_views.of(self.config.scan.planner)
 
     async def _keep_lease(self, lease: CellLease) -> None:
         """Check the cell's lease every ``LEASE_CHECK_S``; while it is lost, no queued job starts."""
