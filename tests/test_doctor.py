@@ -128,9 +128,13 @@ def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_f
     cell_file.write_text(yaml.safe_dump(data))
     with ServedCell(cell_file, tmp_path / "data") as cell:
         code, checks = _doctor(cell_file, tmp_path, port=cell.port)
+        # a cell of the same name with another data dir (a copied cell file): that service is not its own
+        (tmp_path / "copy").mkdir()
+        copy_code, copy_checks = _doctor(cell_file, tmp_path / "copy", port=cell.port)
     assert checks["service port"] == ("ok", f"127.0.0.1:{cell.port} is in use by this cell's running service")
     assert checks["line OPC UA port"] == ("ok", f"{endpoint} is in use by this cell's running service")
     assert code == 0, checks
+    assert copy_checks["service port"][0] == copy_checks["line OPC UA port"][0] == "fail" and copy_code == 1
     # the same ports, held by another program, still fail
     with socket.socket() as service, socket.socket() as opcua:
         for held, at in ((service, cell.port), (opcua, opcua_port)):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from cell.deploy import SERVICE_USER
 from cell.doctor.findings import Finding
+from cell.service.instance import instance_of
 from cell.service.store.engine import hide_password, schema_head, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
 from cell.service.store.service_store import service_store_url
@@ -215,9 +216,13 @@ def disk(data_dir: Path) -> Finding:
     return Finding.ok("disk", text)
 
 
-def serves_cell(host: str, port: int, cell: str) -> bool:
-    """Whether cell ``cell``'s own service answers on ``host``:``port`` (its ``/healthz`` names the cell):
-    the ports in use that its cell file names are then its, not another program's."""
+def serves_cell(host: str, port: int, data_dir: Path) -> bool:
+    """Whether the running service of ``data_dir`` answers on ``host``:``port``: its ``/healthz`` says the
+    id its start wrote there (``cell.service.instance``). The ports in use that its cell file names are
+    then its, not another program's."""
+    expected = instance_of(data_dir)
+    if expected is None:
+        return False
     connection = http.client.HTTPConnection(host, port, timeout=SERVICE_ANSWER_TIMEOUT_S)
     try:
         connection.request("GET", "/healthz")
@@ -228,7 +233,7 @@ def serves_cell(host: str, port: int, cell: str) -> bool:
         return False
     finally:
         connection.close()
-    return isinstance(body, dict) and body.get("cell") == cell
+    return isinstance(body, dict) and body.get("instance") == expected
 
 
 def port_free(host: str, port: int, name: str = "service port", served: bool = False) -> Finding:

@@ -61,7 +61,7 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
     if isinstance(cfg.arm, FrankaArmConfig):  # the arm whose 1 kHz loop runs at real-time priority
         found.append(machine.realtime_limits(required=cfg.arm.realtime == "enforce"))
     # run on a live cell (docs/deploy.md), the ports its own service holds are in use, and rightly so
-    served = machine.serves_cell(host, port, cfg.name)
+    served = machine.serves_cell(host, port, data_dir)
     found += [machine.disk(data_dir), machine.port_free(host, port, served=served)]
     found += machine.store(data_dir, db_url, host)
     opcua = cfg.line.opcua if cfg.line is not None else None

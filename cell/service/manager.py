@@ -50,6 +50,7 @@ from cell.planning.registry import PLANNERS
 from cell.service.arm_clearance import ArmClearance
 from cell.service.arm_status import ArmTracker
 from cell.service.events import EventHub, JobEvents
+from cell.service.instance import new_instance
 from cell.service.metrics import ServiceMetrics
 from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, finite_json, stop_command
@@ -181,6 +182,8 @@ class CellService:
                  store: Store, lease: CellLease | None = None) -> None:
         self.config = config
         self.name = config.name
+        self.instance = ""
+        """The id of this start (``cell.service.instance``), drawn when it starts."""
         self._config_data = config_data
         self._config_file = config_file
         self.data_dir = data_dir
@@ -230,6 +233,7 @@ class CellService:
         settled, in words."""
         for folder in (self.jobs_dir, self._logs_dir):
             folder.mkdir(parents=True, exist_ok=True)
+        self.instance = await asyncio.to_thread(new_instance, self.data_dir)
         settled = await asyncio.to_thread(reconcile, self.store, self.name,
                                           self.config.service.shutdown_timeout_s)
         # after the reconcile, which ended the workers of the previous run: none of them writes there now

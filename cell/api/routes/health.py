@@ -16,10 +16,11 @@ router = APIRouter(tags=["health"], route_class=KeyFirstRoute)
 
 @router.api_route("/healthz", methods=["GET", "HEAD"])
 async def healthz(cell: Service) -> dict[str, str]:
-    """The process answers (no key needed): liveness, whether or not a job would run; ``cell`` its cell's
-    name, by which ``cell doctor`` tells the ports this cell's running service holds from another
-    program's. HEAD too, as uptime monitors send."""
-    return {"status": "ok", "cell": cell.name}
+    """The process answers (no key needed): liveness, whether or not a job would run; ``instance`` the id
+    of this start (``cell.service.instance``: random, it says nothing of the cell), by which ``cell doctor``
+    tells the ports this cell's running service holds from another program's. HEAD too, as uptime
+    monitors send."""
+    return {"status": "ok", "instance": cell.instance}
 
 
 @router.api_route("/readyz", methods=["GET", "HEAD"],
