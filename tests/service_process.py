@@ -26,6 +26,7 @@ from typing import Any
 
 import httpx
 import uvicorn
+import yaml
 
 from cell.api.connections import ConnectionLimits, protocol_class
 from cell.service.keys import create_key as add_key
@@ -44,6 +45,17 @@ def free_port(host: str = "127.0.0.1") -> int:
     with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as probe:
         probe.bind((host, 0))
         return int(probe.getsockname()[1])
+
+
+def opcua_cell_file(folder: Path, base: Path) -> tuple[Path, int]:
+    """The cell file ``base`` with a line whose OPC UA endpoint is a free loopback port, unencrypted
+    (``security: none``, loopback only), written as ``folder``/cell.yaml; with that port."""
+    port = free_port()
+    data = yaml.safe_load(base.read_text())
+    data["line"] = {"opcua": {"endpoint": f"opc.tcp://127.0.0.1:{port}/cell", "security": "none"}}
+    cell_file = folder / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump(data))
+    return cell_file, port
 
 
 def until(sock: socket.socket, marker: bytes) -> bytes:

@@ -29,7 +29,7 @@ from tests.conftest import CONFIG_DIR, UR5E
 from tests.franka_connect_peer import FrankaConnectPeer
 from tests.loopback import free_loopback
 from tests.rtde_peer import ControllerPeer
-from tests.service_process import ServedCell, free_port
+from tests.service_process import ServedCell, free_port, opcua_cell_file
 from tests.test_arm_cli import TEMPLATE, peer_cell_file
 
 
@@ -120,12 +120,8 @@ def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_pat
 def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_fail(tmp_path):
     """Run on a live cell (docs/deploy.md, e.g. after store damage), doctor failed both ports its own
     service held: 'Address already in use', 'fix: another program has it'."""
-    opcua_port = free_port()
+    cell_file, opcua_port = opcua_cell_file(tmp_path, UR5E)
     endpoint = f"opc.tcp://127.0.0.1:{opcua_port}/cell"
-    data = yaml.safe_load(UR5E.read_text())
-    data["line"] = {"opcua": {"endpoint": endpoint, "security": "none"}}
-    cell_file = tmp_path / "cell.yaml"
-    cell_file.write_text(yaml.safe_dump(data))
     with ServedCell(cell_file, tmp_path / "data") as cell:
         code, checks = _doctor(cell_file, tmp_path, port=cell.port)
         # a cell of the same name with another data dir (a copied cell file): that service is not its own

@@ -25,7 +25,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
-import yaml
 from asyncua import Client, ua
 from asyncua.ua.ua_binary import uatcp_to_binary
 
@@ -33,7 +32,7 @@ from cell.api import connections
 from cell.api.connections import ConnectionLimits
 from cell.line.opcua_connections import GuardedServer, OPCUALimits
 from tests.conftest import UR5E
-from tests.service_process import ServedCell, closed_by_server, free_port
+from tests.service_process import ServedCell, closed_by_server, free_port, opcua_cell_file
 
 WAIT_S = 60.0  # a bound on waiting, never a timed check [s]
 LONG_S = 600.0  # a deadline no test reaches [s]
@@ -75,12 +74,8 @@ def silent_connections(port: int, source: str) -> list[socket.socket]:
 
 
 def test_a_flood_of_silent_connections_leaves_stop_answering_and_the_plc_connecting(tmp_path: Path) -> None:
-    port = free_port()
+    config, port = opcua_cell_file(tmp_path, UR5E)
     url = f"opc.tcp://127.0.0.1:{port}/cell"
-    data = yaml.safe_load(UR5E.read_text())
-    data["line"] = {"opcua": {"endpoint": url, "security": "none"}}
-    config = tmp_path / "cell.yaml"
-    config.write_text(yaml.safe_dump(data))
     with ServedCell(config, tmp_path / "data", nofile=FEW_FDS) as cell:
         assert cell.proc is not None
         flood: list[socket.socket] = []
