@@ -911,19 +911,33 @@ def _damage_page_of(database: Path, marker: bytes) -> None:
         f.write(b"\xa5" * page_size)
 
 
-def test_the_placement_checks_are_loaded_before_the_service_takes_a_job(tmp_path, built_worlds):
-    """The collision world and the default planner's search views are built while the service starts, so
-    that no import of theirs (FCL, Open3D, the planner: the GIL held for up to 0.1 s at a time) falls while
-    a job runs; a submission then builds nothing."""
+def test_the_placement_checks_are_loaded_before_the_first_job_starts(tmp_path, built_worlds, monkeypatch):
+    """The dispatcher builds the collision world and the default planner's search views before it starts
+    a job, so that no import of theirs (FCL, Open3D, the planner: the GIL held for up to 0.1 s at a time)
+    falls while a job runs; the job's submission builds no world of its own."""
+    from cell.service.manager import CellService
+
+    order: list[str] = []
+    load, run = CellService._load_checks, CellService._run
+
+    def loading(self: CellService) -> None:
+        load(self)
+        order.append(f"loaded {sorted(self._search_views._views)}")
+
+    async def running(self: CellService, *args: Any) -> float | None:
+        order.append("job started")
+        return await run(self, *args)
+
+    monkeypatch.setattr(CellService, "_load_checks", loading)
+    monkeypatch.setattr(CellService, "_run", running)
     client, keys = _client(tmp_path)
     with client:
-        service = client.app.state.service  # type: ignore[attr-defined]
-        assert len(built_worlds) == 1
-        assert list(service._search_views._views) == [service.config.scan.planner]
+        planner = client.app.state.service.config.scan.planner  # type: ignore[attr-defined]
         job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 1},
                           headers=_auth(keys["operator"]))
         assert job.status_code == 201, job.text
-        assert len(built_worlds) == 1
+        _wait(client, keys["viewer"], job.json()["id"], {"completed", "failed", "stopped"})
+    assert order == [f"loaded {[planner]}", "job started"] and len(built_worlds) == 1
 
 
 def test_a_scrape_whose_job_counts_fail_still_says_the_store_is_damaged():

@@ -243,7 +243,6 @@ class CellService:
             log.warning("the queue is held since %s: %s", self._held.held_at.isoformat(), self._held.reason)
         if (short := self._disk_short()) is not None:
             log.warning("%s", short)
-        await asyncio.to_thread(self._load_checks)
         if self.line is not None:
             await self.line.start()
             line_cfg, arm_cfg = self.config.line, self.config.arm
@@ -261,10 +260,11 @@ class CellService:
 
     def _load_checks(self) -> None:
         """Load what a submission's placement checks need (``validate``): the cell's collision world and
-        the default planner's search views, with FCL, Open3D and the planner's modules. Here, before any
-        job can run or any line part can start: importing them holds the GIL for up to 0.1 s at a time,
-        which at a first submission could fall while a job runs and delay a STOP on the event loop; and the
-        line's first part after a start would wait for them (about a second)."""
+        the default planner's search views, with FCL, Open3D and the planner's modules (about a second).
+        The dispatcher does so before it starts any job: importing them holds the GIL for up to 0.1 s at a
+        time, which at a first submission could fall while a job runs and delay a STOP on the event loop;
+        the line's first part then finds them loaded. The service answers meanwhile (``/healthz``), as it
+        did before it loaded them."""
         self._arm_clearance.world()
         self._search_views.of(self.config.scan.planner)
 
@@ -855,8 +855,10 @@ class CellService:
     async def _dispatch(self) -> None:
         """Start queued jobs one at a time, until the service shuts down. An error it did not expect ends
         it: logged, the service then not ready (``/readyz`` 503), its queue held saying so, and the systemd
-        watchdog's pings stopped (:attr:`broken`), rather than jobs queued for ever in silence."""
+        watchdog's pings stopped (:attr:`broken`), rather than jobs queued for ever in silence. No job
+        starts before the placement checks are loaded (:meth:`_load_checks`)."""
         try:
+            await asyncio.to_thread(self._load_checks)
             await self._dispatch_jobs()
         except Exception as exc:
             self._broken = (f"the job dispatcher stopped on an error ({type(exc).__name__}: {exc}): no job "
