@@ -186,7 +186,7 @@ class Raw:
         self.writer.close()
 
 
-def test_a_new_connection_closes_its_addresses_oldest_and_at_the_cap_the_oldest_silent_one() -> None:
+def test_a_new_connection_closes_its_addresses_oldest_and_at_the_cap_a_silent_one_first() -> None:
     async def scenario() -> None:
         async with guarded(OPCUALimits(4, hello_timeout_s=LONG_S)) as url:
             first, second = [await Raw.open(url, "127.0.0.2") for _ in range(2)]
@@ -199,11 +199,57 @@ def test_a_new_connection_closes_its_addresses_oldest_and_at_the_cap_the_oldest_
             newcomer = await Raw.open(url, "127.0.0.5")
             assert await silent.closed()
             assert await newcomer.hello() == b"ACK"
-            refused = await Raw.open(url, "127.0.0.6")  # every open one said Hello
-            assert await refused.answer() == b"ERR" and await refused.closed()
-            for raw in (second, third, talker, newcomer):
+            # every open one said Hello, none logged in: the oldest of the address that holds the most
+            sixth = await Raw.open(url, "127.0.0.6")
+            assert await second.closed()
+            for raw in (third, talker, newcomer, sixth):
                 assert await raw.hello() == b"ACK"  # all still served
                 raw.close()
+
+    asyncio.run(scenario())
+
+
+def test_a_logged_in_client_is_never_closed_to_make_room_and_a_newcomer_then_is_refused() -> None:
+    """A PLC's session (here asyncua's client, from 127.0.0.1) outlives the connections its address opens
+    past its share; with both of the address's slots logged in, the next is refused."""
+    async def scenario() -> None:
+        async with guarded(OPCUALimits(4, hello_timeout_s=LONG_S)) as url:
+            plc = Client(url, timeout=WAIT_S)
+            await plc.connect()
+            raw = await Raw.open(url, "127.0.0.1")
+            assert await raw.hello() == b"ACK"
+            again = await Raw.open(url, "127.0.0.1")  # past the share: the raw one goes, not the PLC
+            assert await raw.closed()
+            async with Client(url, timeout=WAIT_S) as second_plc:  # past it again: `again` goes
+                assert await again.closed()
+                refused = await Raw.open(url, "127.0.0.1")
+                assert await refused.answer() == b"ERR" and await refused.closed()
+                assert await second_plc.nodes.server_state.read_value() == ua.ServerState.Running
+            assert await plc.nodes.server_state.read_value() == ua.ServerState.Running
+            await plc.disconnect()
+
+    asyncio.run(scenario())
+
+
+def test_a_first_message_that_is_no_hello_or_a_chunk_past_the_buffer_is_cut() -> None:
+    """A client may claim any size in a header, and asyncua would keep (and copy at every read) what it
+    sends towards it: a Hello claiming 4 GB, a first message that is no Hello, and after a Hello a chunk
+    larger than the receive buffer the server acknowledged are each cut at once."""
+    async def scenario() -> None:
+        async with guarded(OPCUALimits(8, hello_timeout_s=LONG_S)) as url:
+            huge = await Raw.open(url, "127.0.0.2")
+            huge.writer.write(b"HELF" + struct.pack("<I", 0xFFFFFFF0) + bytes(1000))
+            other = await Raw.open(url, "127.0.0.3")
+            other.writer.write(b"MSGF" + struct.pack("<I", 100) + bytes(92))
+            chunk = await Raw.open(url, "127.0.0.4")
+            assert await chunk.hello() == b"ACK"
+            chunk.writer.write(b"MSGF" + struct.pack("<I", 1 << 20) + bytes(1000))
+            talker = await Raw.open(url, "127.0.0.5")
+            assert await talker.hello() == b"ACK"
+            for raw in (huge, other, chunk):
+                assert await raw.closed()
+            assert await talker.hello() == b"ACK"
+            talker.close()
 
     asyncio.run(scenario())
 

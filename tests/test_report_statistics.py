@@ -34,7 +34,7 @@ def _split_p(a: list[float], b: list[float]) -> float:
     ([0.91, 0.93, 0.95, 0.97, 0.99], [0.92, 0.94, 0.96, 0.98, 1.0]),  # no ties
     ([1, 1, 2], [2, 3, 3, 3, 4]),            # sizes and ties unequal: U's distribution is not symmetric
 ])
-def test_p_is_the_share_of_splits_at_least_as_extreme_for_small_tied_samples(a, b):
+def test_p_is_twice_the_smaller_one_sided_share_of_splits_for_small_tied_samples(a, b):
     test = mann_whitney(a, b)
     assert test is not None
     u, p = test

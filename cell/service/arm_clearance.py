@@ -17,10 +17,10 @@ class ArmClearance:
     """The check that an object's placement is clear of the arm at its home joints (``check_clear_of_arm``):
     a shipped object's at every Start and submission, an upload's at its upload (``ObjectLibrary.add``).
     Both check in the cell's collision world, built at the first call (it loads FCL, Open3D and the tool's
-    meshes: the service makes it while it starts, ``CellService._load_checks``) and kept for the next: the
-    arm and its tool do not change while the service runs, and building the world took 10-100 ms of every
-    check. Callable from
-    several threads at once: the world is built under a lock and only read after."""
+    meshes: the dispatcher makes it before its first job, ``CellService._load_checks``) and kept for the
+    next: the arm and its tool do not change while the service runs, and building the world took 10-100 ms
+    of every check. Callable from several threads at once: the world is built under a lock and only read
+    after."""
 
     def __init__(self, config: CellConfig) -> None:
         self._config = config

@@ -15,7 +15,7 @@ class SearchViews:
     (``check_in_view``), at every submission and Start: a placement none of them sees could only end
     ``no_object``. A planner's views (``Planner.search_views``) are worked out at the first call that
     names it, which imports the planner (SciPy, Open3D: up to a second; the service does so for its
-    default planner while it starts, ``CellService._load_checks``), and kept for the next: they depend on
+    default planner before its first job, ``CellService._load_checks``), and kept for the next: they depend on
     the cell's config alone, which does not change while the service runs. Callable from several threads
     at once: the views are worked out under a lock and only read after."""
 
