@@ -197,6 +197,14 @@ def test_readyz_answers_head_with_a_key(served) -> None:
     assert head.status_code == client.get("/readyz", headers=_auth(keys["viewer"])).status_code == 200
 
 
+def test_every_operation_of_the_api_document_has_its_own_id(served) -> None:
+    """A HEAD and a GET of one route had shared an operation id, which generated clients refuse."""
+    client, _ = served
+    paths = client.get("/api/v1/openapi.json").json()["paths"]
+    ids = [op["operationId"] for item in paths.values() for op in item.values() if "operationId" in op]
+    assert len(ids) == len(set(ids)) and "readyz_head" in ids
+
+
 def test_whoami_names_the_key_and_what_its_role_may_do(served) -> None:
     client, keys = served
     for role, key in keys.items():
