@@ -270,9 +270,8 @@ def protocol_class(limits: ConnectionLimits) -> type[GuardedH11Protocol]:
 
 def quiet_accept_failures(loop: asyncio.AbstractEventLoop) -> None:
     """Make the event loop's report of a failed ``accept()`` one line per ``LOG_INTERVAL_S`` (of
-    :mod:`cell.service.logs`) with a count
-    (asyncio logs a traceback for every attempt, up to the backlog's number each time it retries); every
-    other report goes where it went."""
+    :mod:`cell.service.logs`) with a count (asyncio logs a traceback for every attempt, up to the
+    backlog's number each time it retries); every other report goes where it went."""
     previous = loop.get_exception_handler()
 
     def line(count: int, failure: str) -> None:
