@@ -2,9 +2,10 @@
 cell file has ``line.opcua``, and an asyncua client as the PLC.
 
 One cell (sign-and-encrypt, the server's generated certificate trusted by the PLC) serves most tests: five
-parts through the PackTags handshake and OPC 30050's methods, Stop during Execute, Start refused in
-Execute, the PLC disconnecting mid-scan, anonymous and unknown users refused, writes of the wrong type
-or too long refused, the unit mode. A second cell (security ``none`` on loopback) has a protective stop
+parts through the PackTags handshake and OPC 30050's methods, the unit's OPC 30050 types and members
+browsed and followed through a Start, Stop during Execute, Start refused in Execute, the PLC
+disconnecting mid-scan, anonymous and unknown users refused, writes of the wrong type or too long
+refused, the unit mode. A second cell (security ``none`` on loopback) has a protective stop
 injected into every scan: Aborted with the stop reason, then Clear and Reset. Last, ``cell serve``
 refuses an OPC UA port in use or a host that is not this machine's, in one line.
 
@@ -268,6 +269,70 @@ def test_five_parts_through_the_handshake_and_the_methods(encrypted):
     assert line["result"]["part_id"] == "unicorn" and line["state_name"] == "Idle"
     causes = [t["cause"] for t in encrypted.rest("/api/v1/line/history?limit=200")]
     assert "Start from OPC UA (key test-line)" in causes and "Reset from OPC UA (key test-line)" in causes
+
+
+def test_the_unit_is_opc_30050s_typed_base_object_and_its_members_follow_a_start(encrypted):
+    """A client that browses by OPC 30050's types (browse names in the PackML namespace, no NodeId known
+    beforehand) finds the unit a PackMLBaseObjectType with its Status, Admin and state machines typed,
+    reads its members follow a Start cycle (Start with the Parameter argument the standard declares), and
+    is told SetMachSpeed is not offered."""
+    async def typed(parent: Node, name: str, type_id: int, packml: int) -> Node:
+        node = await parent.get_child(f"{packml}:{name}")
+        assert await node.read_type_definition() == ua.NodeId(type_id, packml), name
+        return node
+
+    async def until(node: Node, value: Any) -> None:
+        """Poll ``node`` until it reads ``value`` (a bound on waiting, not a timed check)."""
+        deadline = time.monotonic() + 30.0
+        while (seen := await node.read_value()) != value:
+            assert time.monotonic() < deadline, f"{node} stayed {seen}, not {value}"
+            await asyncio.sleep(0.01)
+
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            await line.client.load_data_type_definitions()  # PackMLCountDataType, from the server
+            pk = line.packml
+            unit = await line.client.nodes.objects.get_child(f"{line.ns}:sim-ur5e-tof")
+            assert await unit.read_type_definition() == ua.NodeId(6, pk)  # PackMLBaseObjectType
+            status = await typed(unit, "Status", 4, pk)  # PackMLStatusObjectType
+            admin = await typed(unit, "Admin", 5, pk)  # PackMLAdminObjectType
+            base = await typed(unit, "BaseStateMachine", 3, pk)  # PackMLBaseStateMachineType
+            machine = await typed(base, "MachineState", 2, pk)  # PackMLMachineStateMachineType
+            execute = await typed(machine, "ExecuteState", 1, pk)  # PackMLExecuteStateMachineType
+            states = [await m.get_child("0:CurrentState") for m in (base, machine, execute)]
+            execute_id = await states[2].get_child("0:Id")
+            processed = await admin.get_child(f"{pk}:ProdProcessedCount")
+
+            assert await (await status.get_child(f"{pk}:UnitModeCurrent")).read_value() == 1  # Produce
+            assert await (await status.get_child(f"{pk}:UnitSupportedModes")).read_value() == \
+                ua.NodeId(11, pk)  # ProductionMaintenanceModeEnum
+            assert [(await s.read_value()).Text for s in states] == ["Cleared", "Running", "Idle"]
+            assert await execute_id.read_value() == ua.NodeId(28, pk)  # the Idle state object
+            (count,) = await processed.read_value()
+            assert (count.Count, count.AccCount) == (await line.read("Admin/ProdProcessedCount"),) * 2
+
+            await line.call("SetPartId", ua.Variant("cube", ua.VariantType.String))
+            parameters = ua.Variant([ua.PackMLDescriptorDataType(ID=1, Name="speed", Value=1.0)],
+                                    ua.VariantType.ExtensionObject)
+            with pytest.raises(ua.uaerrors.BadInvalidArgument):
+                await execute.call_method(f"{pk}:Start", parameters)
+            assert "Parameter must be empty" in await line.read("Status/CommandMessage")
+            # Start as OPC 30050 declares it, with its Parameter array (empty: the cell takes none)
+            await execute.call_method(f"{pk}:Start", ua.Variant([], ua.VariantType.ExtensionObject))
+            await until(states[2], ua.LocalizedText("Execute"))
+            assert await execute_id.read_value() == ua.NodeId(36, pk)
+            await until(states[2], ua.LocalizedText("Complete"))
+            assert (await processed.read_value())[0].Count == count.Count + 1
+            await execute.call_method(f"{pk}:Reset")
+            await until(states[2], ua.LocalizedText("Idle"))
+
+            with pytest.raises(ua.uaerrors.BadNotSupported):
+                await unit.call_method(f"{pk}:SetMachSpeed", ua.Variant(1.0, ua.VariantType.Float))
+            assert await line.read("Status/CommandMessage") == (
+                "refused a call of SetMachSpeed from OPC UA (key test-line): the cell has no machine speed")
+
+    run(scenario())
 
 
 def test_stop_during_execute_stops_the_scan(encrypted):

@@ -73,6 +73,7 @@ def test_the_sdist_holds_the_sources_and_the_wheel_the_kernels_and_data(dist):
                     "drivers/sim/objects/CREDITS", "cell/web/static/index.html",
                     "cell/templates/sim-ur5e-tof.yaml", "cell/deploy/systemd/cell.service",
                     "cell/deploy/udev/99-vl53l8cx.rules", "calibration/README.md",
+                    "cell/line/Opc.Ua.PackML.NodeSet2.xml",
                     "cell/service/store/migrations/versions/0001_initial.py"):
         assert any(n.startswith(pattern) for n in wheel), pattern
 

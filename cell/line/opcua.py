@@ -11,8 +11,10 @@ REST trigger does:
   back to false; ``Status/CommandMessage`` says what was done or why not. ``Command/UnitMode`` with
   ``Command/UnitModeChangeRequest`` changes the unit mode the same way. ``Command/Parameter/PartId`` sets
   the part the next Start scans.
-- OPC 30050's methods (Start, Stop, Reset, ...; SetUnitMode): a refused call answers ``Bad_InvalidState``
-  (not valid in this state) or ``Bad_InvalidArgument``, the reason in ``Status/CommandMessage``.
+- OPC 30050's methods on the unit, a ``PackMLBaseObjectType`` instance (Start, Stop, Reset, ... of its
+  state machines; SetUnitMode): a refused call answers ``Bad_InvalidState`` (not valid in this state) or
+  ``Bad_InvalidArgument``, the reason in ``Status/CommandMessage``; SetMachSpeed, SetParameter and
+  SetProduct, which the type requires, answer ``Bad_NotSupported``.
 
 A write of the wrong type, of a value out of range (a PartId over 64 characters, a CntrlCmd that is no
 command) or with an index range is refused whole (the request's service result is Bad) and changes
@@ -73,8 +75,8 @@ SHUTDOWN_LINGER_S = 0.5
 """How long the server serves on after the line's last change at shutdown [s]: a subscription publishing
 at up to this interval hears the Stopped and stop reason 7 before its session closes."""
 _TAG = {tag.path: tag for tag in TAGS}
-_LINE_TAGS = sorted(((tag.path, tag.read) for tag in TAGS if tag.read is not None),
-                    key=lambda item: item[0] == STATE_CURRENT or item[0].endswith("/CurrentState"))
+_LINE_TAGS = sorted((tag for tag in TAGS if tag.read is not None),
+                    key=lambda tag: tag.path == STATE_CURRENT or "/CurrentState" in tag.path)
 """The tags that follow the line, its state last: a client that sees a new state reads the values that came
 with it (the result with Complete, the job id with Execute)."""
 _COMMANDS = ", ".join(f"{c.value} {c.label}" for c in Command)
@@ -122,6 +124,14 @@ def _refusal(tag: Tag, item: ua.WriteValue, check_part_id: Callable[[str], str])
 def _argument_refusal(spec: MethodSpec, args: tuple[ua.Variant, ...]) -> tuple[str, MethodResult] | None:
     """Why a call of ``spec`` with ``args`` is refused before it reaches the line, with its answer; None:
     it is not."""
+    if spec.parameters and args:
+        if len(args) > 1:
+            return f"it takes one argument, Parameter, got {len(args)}", _status(S.BadTooManyArguments)
+        if args[0].Value not in (None, []):
+            return ("Parameter must be empty: the cell's scans take no parameter (SetPartId sets the part)",
+                    ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
+                                        InputArgumentResults=[_status(S.BadOutOfRange)]))
+        return None
     takes = "no argument" if spec.argument is None else \
         f"one argument, {spec.argument[1].name} {spec.argument[0]}"
     if len(args) > (spec.argument is not None):
@@ -151,6 +161,7 @@ class LineOPCUA:
         self._keys = keys
         self._server = GuardedServer(limits, user_manager=LineUserManager(keys))
         self._ids: dict[str, ua.NodeId] = {}
+        self._ns = Namespaces(0, 0)  # the server's, once start() registered them
         self._tags: dict[ua.NodeId, Tag] = {}
         self._snapshots: asyncio.Queue[LineSnapshot] = asyncio.Queue()
         self._published: dict[str, Any] = {}
@@ -180,10 +191,10 @@ class LineOPCUA:
             policies = [ua.SecurityPolicyType.NoSecurity]
         server.set_security_policy(policies, permission_ruleset=LinePermissions(self._keys))
         server.set_identity_tokens([ua.UserNameIdentityToken])
-        ns = Namespaces(await server.register_namespace(config.namespace),
-                        await server.register_namespace(PACKML_URI))
+        self._ns = Namespaces(await server.register_namespace(config.namespace),
+                              await server.register_namespace(PACKML_URI))
         handlers = {method.path: self._handler(method.path) for method in METHODS}
-        self._ids = await build(server, self._service.name, ns, handlers)
+        self._ids = await build(server, self._service.name, self._ns, handlers)
         self._tags = {self._ids[tag.path]: tag for tag in TAGS}
         server.subscribe_server_callback(CallbackType.PreWrite, self._pre_write)
         server.subscribe_server_callback(CallbackType.PostWrite, self._post_write)
@@ -231,8 +242,8 @@ class LineOPCUA:
                 self._snapshots.task_done()
 
     async def _publish(self, snapshot: LineSnapshot) -> None:
-        for path, read in _LINE_TAGS:
-            await self._set(path, read(snapshot))
+        for tag in _LINE_TAGS:
+            await self._set(tag.path, tag.value(snapshot, self._ns))
 
     async def _set(self, path: str, value: Any) -> None:
         """Write a value the server owns (unchanged values are not written again)."""
@@ -342,11 +353,14 @@ class LineOPCUA:
         spec = next(m for m in METHODS if m.path == path)
 
         async def call(_: ua.NodeId, *args: ua.Variant) -> MethodResult:
-            source = _source(caller.get())
+            source, name = _source(caller.get()), path.rsplit("/", 1)[-1]
+            if spec.refusal is not None:
+                await self._say(f"refused a call of {name} from {source}: {spec.refusal}")
+                return _status(S.BadNotSupported)
             refused = _argument_refusal(spec, args)
             if refused is not None:
                 why, result = refused
-                await self._say(f"refused a call of {path.rsplit('/', 1)[-1]} from {source}: {why}")
+                await self._say(f"refused a call of {name} from {source}: {why}")
                 return result
             if spec.command is not None:
                 return await self._command(int(spec.command), source)

@@ -1,31 +1,47 @@
 """The cell's OPC UA address space: what each node is, its type, who may write it, and its value.
 
-Under ``Objects/<cell name>`` (NodeId ``s=Unit``):
+``Objects/<cell name>`` (NodeId ``s=Unit``) is an instance of OPC 30050's ``PackMLBaseObjectType``
+(OPC 30050 v1.01, its nodeset ``Opc.Ua.PackML.NodeSet2.xml`` shipped next to this module and imported at
+start: :data:`NODESET`), made by asyncua's instantiation of the type, so that a client browsing by type
+finds the standard's typed members:
 
-- ``PackTags/`` a subset of the classic PackML tags (ISA-TR88.00.02) and the cell's own: ``Command/`` what
-  the PLC writes, ``Status/``, ``Admin/`` and ``Result/`` what it reads (:data:`TAGS`; no MachSpeed, no
-  StateRequested or ChangeInProcess tags: ``docs/packml-opcua.md`` lists what is not offered).
-- OPC 30050's state machine objects and methods: ``BaseStateMachine`` (Abort, Clear), its
-  ``MachineState`` (Stop) and that one's ``ExecuteState`` (Reset, Start, Hold, Unhold, Suspend,
-  Unsuspend), each with its ``CurrentState``; and on the unit ``SetUnitMode(Int32 RequestedMode)`` and
-  the cell's own ``SetPartId(String PartId)`` (OPC 30050's ``SetParameter`` carries numbers only)
+- ``Status`` (``PackMLStatusObjectType``): ``UnitModeCurrent``, ``UnitSupportedModes``, ``MachSpeed``,
+  ``CurMachSpeed``, ``EquipmentBlocked``, ``EquipmentStarved`` (its mandatory members).
+- ``Admin`` (``PackMLAdminObjectType``): the optional ``ProdProcessedCount`` and ``ProdDefectiveCount``
+  (one ``PackMLCountDataType`` each), added by the cell.
+- ``BaseStateMachine`` (``PackMLBaseStateMachineType``; Abort, Clear), its ``MachineState``
+  (``PackMLMachineStateMachineType``; Stop) and that one's ``ExecuteState``
+  (``PackMLExecuteStateMachineType``; Reset, Start, Hold, Unhold, Suspend, Unsuspend), each with its
+  ``CurrentState`` and ``CurrentState/Id`` (the state's NodeId in the nodeset); the methods are the
+  types' optional members, added by the cell.
+- The type's methods: ``SetUnitMode(Int32 RequestedMode)``; ``SetMachSpeed``, ``SetParameter`` and
+  ``SetProduct`` are there (the type requires them) and answer ``Bad_NotSupported``.
+
+The typed members' NodeIds are the ones asyncua gives an instance's members: the unit's and the browse
+path, with dots (``s=Unit.Status.UnitModeCurrent``); their browse names are OPC 30050's (the PackML
+namespace ``http://opcfoundation.org/UA/PackML/``; ``CurrentState`` and ``Id`` namespace 0's).
+
+The cell's own nodes, in the cell's namespace (``line.opcua.namespace``) with the path with dots as
+NodeId (``s=PackTags.Command.CntrlCmd``), untyped (``BaseObjectType``):
+
+- ``PackTags/`` the classic PackML tags (ISA-TR88.00.02) OPC 30050 has no member for or gives another
+  type: ``Command/`` the CntrlCmd and UnitMode handshakes and the part id the PLC writes, ``Status/``
+  (the Int32 StateCurrent, ...), ``Admin/`` (the stop reason, ...), and the cell's scan ``Result/``
+  (:data:`TAGS`; no MachSpeed, no StateRequested or ChangeInProcess tags: ``docs/packml-opcua.md``
+  lists what is not offered).
+- ``SetPartId(String PartId)`` on the unit (OPC 30050's ``SetParameter`` carries numbers only)
   (:data:`METHODS`).
-
-Every NodeId is a string in the cell's namespace (``line.opcua.namespace``): the path with dots
-(``s=PackTags.Command.CntrlCmd``), the same on every cell. Browse names are in the cell's namespace too,
-except OPC 30050's names (the state machines, their methods, ``SetUnitMode``: the PackML namespace
-``http://opcfoundation.org/UA/PackML/``) and ``CurrentState`` (namespace 0), so that a client that
-resolves OPC 30050 browse paths finds them. The nodeset's types are not instantiated: the objects are
-plain ``BaseObjectType`` objects with the members named here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from asyncua import Node, Server, ua
+from asyncua.common.instantiate_util import instantiate
 
 from cell.line.config import PART_ID_MAX
 from cell.line.controller import LineSnapshot
@@ -33,9 +49,33 @@ from cell.line.packml import Command, State
 from cell.line.result import CycleResult
 
 PACKML_URI = "http://opcfoundation.org/UA/PackML/"
-"""OPC 30050's namespace: the browse names of its objects and methods."""
+"""OPC 30050's namespace: its types, and the browse names of its members."""
+NODESET = Path(__file__).with_name("Opc.Ua.PackML.NodeSet2.xml")
+"""OPC 30050 v1.01's nodeset (OPC Foundation, MIT licence in its header; it requires namespace 0 only),
+from github.com/OPCFoundation/UA-Nodeset ``PackML/``."""
 UNIT_ID = "Unit"
 """The NodeId (string, in the cell's namespace) of the cell's object under ``Objects``."""
+BASE_OBJECT_TYPE = 6
+"""``PackMLBaseObjectType``'s NodeId (numeric, in OPC 30050's namespace): the unit's type."""
+COUNT_DATA_TYPE = 14
+"""``PackMLCountDataType``'s NodeId: the Admin counters' DataType."""
+DESCRIPTOR_DATA_TYPE = 16
+"""``PackMLDescriptorDataType``'s NodeId: the type of Start's ``Parameter`` argument."""
+MODE_ENUM = 11
+"""``ProductionMaintenanceModeEnum``'s NodeId: the unit modes (1 Produce, 2 Maintenance, 3 Manual)."""
+STATE_IDS = {"Cleared": 71, "Aborting": 61, "Aborted": 62, "Stopped": 53, "Stopping": 54, "Clearing": 55,
+             "Running": 75, "Resetting": 27, "Idle": 28, "Starting": 29, "Suspending": 30, "Suspended": 31,
+             "Unsuspending": 32, "Holding": 33, "Held": 34, "Unholding": 35, "Execute": 36,
+             "Completing": 37, "Complete": 38}
+"""The NodeId (numeric, in OPC 30050's namespace) of each state object of its state machine types
+(``PackML.NodeIds.csv``): a ``CurrentState/Id``'s value."""
+TYPED = frozenset({"Status", "Admin", "BaseStateMachine", "SetUnitMode", "SetMachSpeed", "SetParameter",
+                   "SetProduct"})
+"""The unit's members that are OPC 30050's (the first part of their path)."""
+PIECE = ua.EUInformation(NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
+                         UnitId=(ord("H") << 16) | (ord("8") << 8) | ord("7"),
+                         DisplayName=ua.LocalizedText("pcs"), Description=ua.LocalizedText("piece"))
+"""The Admin counters' unit: UNECE H87, piece (OPC UA Part 8's UnitId of a three-letter code)."""
 V = ua.VariantType
 
 Reader = Callable[[LineSnapshot], Any]
@@ -57,23 +97,57 @@ def machine_states(state: State) -> tuple[str, str, str]:
     return "Cleared", "Running", state.label
 
 
+def _count(read: Callable[[LineSnapshot], int]) -> Reader:
+    """An Admin counter's value: one ``PackMLCountDataType`` (a class asyncua makes from the nodeset when
+    it is imported), of every part, its count kept across restarts (so Count and AccCount are equal)."""
+
+    def value(s: LineSnapshot) -> list[Any]:
+        count = read(s)
+        return [ua.PackMLCountDataType(ID=0, Name="parts", Unit=PIECE, Count=count,  # type: ignore[attr-defined]
+                                       AccCount=count)]
+
+    return value
+
+
 @dataclass(frozen=True)
 class Tag:
     """One variable: ``path`` under the unit (``/``-separated), its type, what it means (the node's
     Description), whether a client may write it, and ``read``, its value from the line's snapshot (None:
-    the PLC's own register, or a node the server sets by itself)."""
+    the PLC's own register, or a node the server sets by itself). A NodeId tag reads the numeric id of a
+    node in OPC 30050's namespace (0: the null NodeId). ``datatype``: the OPC 30050 DataType (numeric id)
+    of an optional member of the type the cell adds, whose value is an array of it."""
 
     path: str
     vtype: ua.VariantType
     doc: str
     writable: bool = False
     read: Reader | None = None
+    datatype: int | None = None
 
     @property
     def initial(self) -> Any:
         """The value before the line's first snapshot is written: zero, false or empty."""
-        return {V.Int32: 0, V.Boolean: False, V.String: "", V.Double: 0.0,
+        return {V.Int32: 0, V.Boolean: False, V.String: "", V.Double: 0.0, V.Float: 0.0,
+                V.NodeId: ua.NodeId(), V.ExtensionObject: [],
                 V.LocalizedText: ua.LocalizedText("")}[self.vtype]
+
+    def value(self, snapshot: LineSnapshot, ns: Namespaces) -> Any:
+        """The tag's value in ``snapshot`` (``read`` must be set), a NodeId made in OPC 30050's namespace."""
+        assert self.read is not None
+        value = self.read(snapshot)
+        if self.vtype is V.NodeId:
+            return ns.packml_id(value) if value else ua.NodeId()
+        return value
+
+
+def _current_state(level: int, machine: str, states: str) -> tuple[Tag, Tag]:
+    """``CurrentState`` and its ``Id`` of the state machine at ``machine``, ``level`` deep (0 the base
+    state machine: :func:`machine_states`), whose states are ``states``."""
+    return (Tag(f"{machine}/CurrentState", V.LocalizedText, f"OPC 30050: {states}.",
+                read=lambda s: ua.LocalizedText(machine_states(s.state)[level])),
+            Tag(f"{machine}/CurrentState/Id", V.NodeId, "The current state's object in OPC 30050's nodeset "
+                "(null when the state machine is not active).",
+                read=lambda s: STATE_IDS.get(machine_states(s.state)[level], 0)))
 
 
 CNTRL_CMD = "PackTags/Command/CntrlCmd"
@@ -153,27 +227,45 @@ TAGS: tuple[Tag, ...] = (
         read=_result(lambda r: r.converged, False)),
     Tag("PackTags/Result/Message", V.String, "Why the cycle ended as it did, in words.",
         read=_result(lambda r: r.message, "")),
-    Tag("BaseStateMachine/CurrentState", V.LocalizedText, "OPC 30050: Aborting, Aborted or Cleared.",
-        read=lambda s: ua.LocalizedText(machine_states(s.state)[0])),
-    Tag("BaseStateMachine/MachineState/CurrentState", V.LocalizedText, "OPC 30050, within Cleared: "
-        "Stopped, Stopping, Clearing or Running (empty outside Cleared).",
-        read=lambda s: ua.LocalizedText(machine_states(s.state)[1])),
-    Tag("BaseStateMachine/MachineState/ExecuteState/CurrentState", V.LocalizedText, "OPC 30050, within "
-        "Running: Resetting, Idle, Starting, Execute, Completing, Complete, Holding, Held, Unholding, "
-        "Suspending, Suspended or Unsuspending (empty outside Running).",
-        read=lambda s: ua.LocalizedText(machine_states(s.state)[2])),
+    Tag("Status/UnitModeCurrent", V.Int32, "The unit mode (ProductionMaintenanceModeEnum: 1 Produce, the "
+        "line starts scans; 3 Manual, the operator's).", read=lambda s: int(s.mode)),
+    Tag("Status/UnitSupportedModes", V.NodeId, "The DataType whose values are the unit modes: "
+        "ProductionMaintenanceModeEnum (the cell offers 1 Produce and 3 Manual).", read=lambda s: MODE_ENUM),
+    Tag("Status/MachSpeed", V.Float, "The cell has no machine speed: 0.", read=lambda s: 0.0),
+    Tag("Status/CurMachSpeed", V.Float, "The cell has no machine speed: 0.", read=lambda s: 0.0),
+    Tag("Status/EquipmentBlocked", V.Boolean, "Always false: the cell is not blocked by the line "
+        "downstream (it holds a result in Complete until the PLC resets).", read=lambda s: False),
+    Tag("Status/EquipmentStarved", V.Boolean, "Always false: the cell scans the part it is given.",
+        read=lambda s: False),
+    Tag("Admin/ProdProcessedCount", V.ExtensionObject, "Parts processed (each cycle that reached Complete), "
+        "kept across restarts: one PackMLCountDataType, Count and AccCount equal.",
+        read=_count(lambda s: s.processed), datatype=COUNT_DATA_TYPE),
+    Tag("Admin/ProdDefectiveCount", V.ExtensionObject, "Of those, parts that fit no container or could not "
+        "be scanned: one PackMLCountDataType, Count and AccCount equal.",
+        read=_count(lambda s: s.defective), datatype=COUNT_DATA_TYPE),
+    *_current_state(0, "BaseStateMachine", "Aborting, Aborted or Cleared"),
+    *_current_state(1, "BaseStateMachine/MachineState", "within Cleared: Stopped, Stopping, Clearing or "
+                    "Running (empty outside Cleared)"),
+    *_current_state(2, "BaseStateMachine/MachineState/ExecuteState", "within Running: Resetting, Idle, "
+                    "Starting, Execute, Completing, Complete, Holding, Held, Unholding, Suspending, "
+                    "Suspended or Unsuspending (empty outside Running)"),
 )
 
 
 @dataclass(frozen=True)
 class MethodSpec:
-    """One method: ``path`` under the unit, the PackML command it gives (None: it takes an argument,
-    ``argument`` its name and type), what it does."""
+    """One method: ``path`` under the unit, what it does, and either the PackML command it gives, or
+    ``argument`` (its name and type), or ``refusal``: why every call is refused (a method OPC 30050's type
+    requires and the cell does not offer, answered ``Bad_NotSupported``). ``parameters``: it declares
+    OPC 30050's ``Parameter`` argument (Start's: an array of ``PackMLDescriptorDataType``), which a call
+    may leave out or give empty, the cell's scans having no parameter."""
 
     path: str
     doc: str
     command: Command | None = None
     argument: tuple[str, ua.VariantType] | None = None
+    refusal: str | None = None
+    parameters: bool = False
 
 
 _BASE, _MACHINE = "BaseStateMachine", "BaseStateMachine/MachineState"
@@ -187,22 +279,25 @@ METHODS: tuple[MethodSpec, ...] = (
     MethodSpec(f"{_BASE}/Clear", "Clear (9): recover the arm, Aborted to Stopped.", Command.CLEAR),
     MethodSpec(f"{_MACHINE}/Stop", "Stop (3): stop the scan and the arm, then Stopped.", Command.STOP),
     MethodSpec(f"{_EXECUTE}/Reset", "Reset (1): Stopped or Complete to Idle.", Command.RESET),
-    MethodSpec(f"{_EXECUTE}/Start", "Start (2): in Idle, scan the part PackTags/Command/Parameter/PartId.",
-               Command.START),
+    MethodSpec(f"{_EXECUTE}/Start", "Start (2): in Idle, scan the part PackTags/Command/Parameter/PartId "
+               "(Parameter: none or empty).", Command.START, parameters=True),
     MethodSpec(f"{_EXECUTE}/Hold", "Hold (4): stop the scan in Execute; Unhold scans the part again.",
                Command.HOLD),
     MethodSpec(f"{_EXECUTE}/Unhold", "Unhold (5): Held to Execute.", Command.UNHOLD),
     MethodSpec(f"{_EXECUTE}/Suspend", "Suspend (6): stop the scan in Execute; Unsuspend scans the part "
                "again.", Command.SUSPEND),
     MethodSpec(f"{_EXECUTE}/Unsuspend", "Unsuspend (7): Suspended to Execute.", Command.UNSUSPEND),
-    MethodSpec(SET_UNIT_MODE, "OPC 30050 SetUnitMode: 1 Production or 3 Manual, in Stopped, Idle or "
+    MethodSpec(SET_UNIT_MODE, "OPC 30050 SetUnitMode: 1 Produce or 3 Manual, in Stopped, Idle or "
                "Aborted.", argument=("RequestedMode", V.Int32)),
+    MethodSpec("SetMachSpeed", "Not offered: the cell has no machine speed.",
+               refusal="the cell has no machine speed"),
+    MethodSpec("SetParameter", "Not offered: the cell's scans take no numeric parameter (SetPartId sets the "
+               "part).", refusal="the cell's scans take no numeric parameter; SetPartId sets the part"),
+    MethodSpec("SetProduct", "Not offered: the cell has no products (SetPartId sets the part).",
+               refusal="the cell has no products; SetPartId sets the part"),
     MethodSpec(SET_PART_ID, f"The part the next Start scans (1 to {PART_ID_MAX} printable ASCII characters), "
                "as writing PackTags/Command/Parameter/PartId.", argument=("PartId", V.String)),
 )
-
-_PACKML_NAMES = frozenset({"BaseStateMachine", "MachineState", "ExecuteState", SET_UNIT_MODE,
-                           *(m.path.rsplit("/", 1)[-1] for m in METHODS if m.command is not None)})
 
 
 @dataclass(frozen=True)
@@ -214,50 +309,83 @@ class Namespaces:
 
     def browse_name(self, path: str) -> ua.QualifiedName:
         """The browse name of the node at ``path``: its last part, in OPC 30050's namespace for the
-        specification's names, in namespace 0 for ``CurrentState`` (FiniteStateMachineType's), else in
-        the cell's."""
-        name = path.rsplit("/", 1)[-1]
-        if name == "CurrentState":
-            return ua.QualifiedName(name, 0)
-        return ua.QualifiedName(name, self.packml if name in _PACKML_NAMES else self.cell)
+        members of its type (:data:`TYPED`), else in the cell's."""
+        return ua.QualifiedName(path.rsplit("/", 1)[-1],
+                                self.packml if path.split("/", 1)[0] in TYPED else self.cell)
+
+    def packml_id(self, number: int) -> ua.NodeId:
+        """The NodeId of OPC 30050's node ``number`` (its nodeset's numeric ids)."""
+        return ua.NodeId(ua.Int32(number), ua.Int16(self.packml))
 
     def node_id(self, path: str) -> ua.NodeId:
-        """The NodeId of the node at ``path``: the path with dots, a string in the cell's namespace."""
-        return ua.NodeId(ua.String(path.replace("/", ".")), ua.Int16(self.cell))
+        """The NodeId of the node at ``path``, a string in the cell's namespace: the path with dots, after
+        ``Unit.`` for a member of OPC 30050's type (as asyncua's instantiation names them)."""
+        typed = path.split("/", 1)[0] in TYPED
+        return ua.NodeId(ua.String((f"{UNIT_ID}.{path}" if typed else path).replace("/", ".")),
+                         ua.Int16(self.cell))
 
 
 async def _describe(node: Node, text: str) -> None:
     await node.write_attribute(ua.AttributeIds.Description, ua.DataValue(ua.Variant(ua.LocalizedText(text))))
 
 
+def _inputs(method: MethodSpec, ns: Namespaces) -> list[ua.Argument]:
+    """The InputArguments of a method the cell adds."""
+    if method.parameters:
+        return [ua.Argument(Name="Parameter", DataType=ns.packml_id(DESCRIPTOR_DATA_TYPE),
+                            ValueRank=ua.ValueRank.OneDimension, ArrayDimensions=[0],
+                            Description=ua.LocalizedText("None or empty: the cell's scans take no parameter "
+                                                         "(SetPartId sets the part)."))]
+    if method.argument is None:
+        return []
+    return [ua.Argument(Name=method.argument[0], DataType=ua.NodeId(ua.Int32(method.argument[1].value)),
+                        ValueRank=-1, Description=ua.LocalizedText(method.doc))]
+
+
 async def build(server: Server, unit_name: str, ns: Namespaces,
                 handlers: dict[str, Callable[..., Any]]) -> dict[str, ua.NodeId]:
-    """Add the unit's objects, :data:`TAGS` and :data:`METHODS` (``handlers`` by method path) to
-    ``server``'s address space; returns each tag's NodeId by path."""
-    unit = await server.nodes.objects.add_object(ns.node_id(UNIT_ID), ua.QualifiedName(unit_name, ns.cell))
+    """Import OPC 30050's nodeset (its namespace ``ns.packml``, registered already), add the unit as an
+    instance of ``PackMLBaseObjectType`` with its mandatory members, the optional ones of :data:`TAGS` and
+    :data:`METHODS`, and the cell's own objects, tags and methods to ``server``'s address space; link each
+    method to its handler (``handlers`` by method path). Returns each tag's NodeId by path."""
+    await server.import_xml(str(NODESET))
+    made = await instantiate(server.nodes.objects, server.get_node(ns.packml_id(BASE_OBJECT_TYPE)),
+                             ns.node_id(UNIT_ID), ua.QualifiedName(unit_name, ns.cell),
+                             instantiate_optional=False)
+    typed = {node.nodeid: node for node in made}
+    unit = typed[ns.node_id(UNIT_ID)]
     await _describe(unit, "A scanning cell on the packing line: a PackML unit (ISA-TR88.00.02, OPC 30050).")
     objects: dict[str, Node] = {"": unit}
 
     async def parent(path: str) -> Node:
         folder = path.rpartition("/")[0]
         if folder not in objects:
-            above = await parent(folder)
-            objects[folder] = await above.add_object(ns.node_id(folder), ns.browse_name(folder))
+            node = typed.get(ns.node_id(folder))
+            if node is None:
+                node = await (await parent(folder)).add_object(ns.node_id(folder), ns.browse_name(folder))
+            objects[folder] = node
         return objects[folder]
 
     ids: dict[str, ua.NodeId] = {}
     for tag in TAGS:
-        node = await (await parent(tag.path)).add_variable(ns.node_id(tag.path), ns.browse_name(tag.path),
-                                                           tag.initial, varianttype=tag.vtype)
+        node = typed.get(ns.node_id(tag.path))
+        if node is None:
+            datatype = None if tag.datatype is None else ns.packml_id(tag.datatype)
+            node = await (await parent(tag.path)).add_variable(ns.node_id(tag.path), ns.browse_name(tag.path),
+                                                               tag.initial, tag.vtype, datatype)
+            if datatype is not None:
+                await node.write_value_rank(ua.ValueRank.OneDimension)
         await _describe(node, tag.doc)
         if tag.writable:
             await node.set_writable()
         ids[tag.path] = node.nodeid
     for method in METHODS:
-        inputs = [] if method.argument is None else [ua.Argument(
-            Name=method.argument[0], DataType=ua.NodeId(ua.Int32(method.argument[1].value)), ValueRank=-1,
-            Description=ua.LocalizedText(method.doc))]
-        node = await (await parent(method.path)).add_method(
-            ns.node_id(method.path), ns.browse_name(method.path), handlers[method.path], inputs, [])
+        node = typed.get(ns.node_id(method.path))
+        if node is None:
+            node = await (await parent(method.path)).add_method(
+                ns.node_id(method.path), ns.browse_name(method.path), handlers[method.path],
+                _inputs(method, ns), [])
+        else:
+            server.link_method(node, handlers[method.path])
         await _describe(node, method.doc)
     return ids
