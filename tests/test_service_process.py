@@ -17,8 +17,10 @@ import itertools
 import json
 import socket
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -36,7 +38,7 @@ from schemathesis.core.result import Err, Ok
 from cell.service.keys import create_key as add_key
 from cell.service.protocol import finite_json
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION
-from cell.service.store import open_store, sqlite_url
+from cell.service.store import JobRecord, open_store, sqlite_url
 from tests.conftest import CONFIG_DIR, FRANKA, UR5E
 from tests.postgres import fresh_database, postgres_url  # noqa: F401  (a fixture of this module)
 from tests.rtde_peer import ControllerPeer
@@ -736,6 +738,72 @@ def test_slow_bodies_never_keep_a_stop_out_and_are_closed_at_their_deadline(tmp_
             assert client.get("/api/v1/jobs").json()["total"] == 1  # none of the slow ones was taken
         log = cell.log()
     assert "Traceback" not in log, log[-3000:]
+
+
+BULK_JOBS = 500  # ended jobs in the store: one page of the largest size
+BULK_CLIENTS = 40  # viewers listing that page over and over
+BULK_STOP_S = 5.0  # a bound on the STOP's answer, not a measurement: it was 29 s, it is well under 1 s [s]
+
+
+def _add_ended_jobs(cell: ServedCell, count: int) -> None:
+    """``count`` completed jobs of the cell in its store, each with a result of the size and shape of a
+    sim scan's (2-3 kB of JSON: figures, nested sections, a pose)."""
+    section = {f"figure_{i}": i * 0.001 for i in range(12)}
+    result = {"planner": "vs-local", "object": "bunny", "object_pose": np.eye(4).tolist(),
+              "status": "completed", **{f"value_{i}": float(i) for i in range(15)}, "metrics": section,
+              "perception": section, "packing": {"box_m": [0.1, 0.2, 0.3], **section},
+              "safety": {"events": []}, "control": section}
+    now = datetime.now(UTC)
+    store = open_store(sqlite_url(cell.data_dir))
+    try:
+        for n in range(count):
+            store.add_job(JobRecord(
+                id=f"{n:016x}", cell="sim-franka-rgbd", status="completed", planner="vs-local",
+                object="bunny", object_pose=(0.0, 0.0, 0.0), seed=n, max_time_s=SHORT_S, part_id=None,
+                folder=str(cell.data_dir / "jobs" / f"{n:016x}"), submitted_by="operator", created_at=now,
+                started_at=now, finished_at=now, termination="time budget used up", result=result))
+    finally:
+        store.close()
+
+
+def test_viewers_listing_pages_of_500_jobs_never_keep_a_stop_out(tmp_path: Path) -> None:
+    """A page of 500 jobs is pure Python work: the store's rows, a model and the JSON of each. Built on the
+    event loop, and read on a worker thread per client (each holding the GIL), it left the loop so little
+    of the GIL under 40 viewers listing at once that a STOP was answered after 29 s, the arm moving on.
+    Built on one thread at a time (``cell.api.bulk``), the STOP gets in at once."""
+    with ServedCell(FRANKA, tmp_path / "data") as cell:
+        _add_ended_jobs(cell, BULK_JOBS)
+        job = submit(cell, object="bunny", max_time_s=LONG_S)
+        wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1)
+        done = threading.Event()
+        pages: list[int] = []
+
+        def list_pages() -> None:
+            with cell.client("viewer", timeout_s=120.0) as client:
+                while not done.is_set():
+                    pages.append(client.get("/api/v1/jobs", params={"limit": BULK_JOBS}).status_code)
+
+        viewers = [threading.Thread(target=list_pages) for _ in range(BULK_CLIENTS)]
+        try:
+            for viewer in viewers:
+                viewer.start()
+            deadline = time.monotonic() + 120.0
+            while len(pages) < BULK_CLIENTS:  # every viewer is listing by now
+                assert time.monotonic() < deadline, f"only {len(pages)} pages listed"
+                time.sleep(0.1)
+            with cell.client("viewer", timeout_s=BULK_STOP_S) as client:
+                stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "bulk reads"})
+            assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
+        finally:
+            done.set()
+            for viewer in viewers:
+                viewer.join(120.0)
+        assert set(pages) == {200}
+        assert cell.wait_job(job["id"], ENDED)["status"] == "stopped"
+        with cell.client("viewer") as client:
+            page = client.get("/api/v1/jobs", params={"limit": 2, "status": "completed"}).json()
+        assert page["total"] == BULK_JOBS
+        assert page["items"][0]["result"]["packing"]["box_m"] == [0.1, 0.2, 0.3]
 
 
 def test_a_viewer_may_stop_the_running_job_but_not_cancel_a_queued_one(franka: ServedCell) -> None:

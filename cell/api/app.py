@@ -25,6 +25,7 @@ from fastapi_offline import FastAPIOffline
 
 from cell import __version__
 from cell.api.body_limit import BodyLimit
+from cell.api.bulk import BulkReads
 from cell.api.connections import ConnectionLimits
 from cell.api.routes import cell as cell_routes
 from cell.api.routes import clouds, health, jobs, keys, retention
@@ -81,6 +82,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
         cell = service if service is not None else await asyncio.to_thread(build_service, settings)
         app.state.service = cell
         app.state.keys = await asyncio.to_thread(KeyRing, cell.store)
+        app.state.bulk = BulkReads()
         for line in await cell.start():
             log.warning("%s", line)
         refresher = asyncio.create_task(_refresh_keys(app.state.keys))

@@ -11,6 +11,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from cell.api.bulk import BulkReads
 from cell.service.manager import CellService
 
 
@@ -20,3 +21,11 @@ async def service(request: Request) -> CellService:
 
 
 Service = Annotated[CellService, Depends(service)]
+
+
+async def bulk(request: Request) -> BulkReads:
+    reads: BulkReads = request.app.state.bulk
+    return reads
+
+
+Bulk = Annotated[BulkReads, Depends(bulk)]

@@ -11,10 +11,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
-from pydantic import AwareDatetime
+from pydantic import AwareDatetime, TypeAdapter
 
 from cell.api.auth import Canceller, Keeper, KeyFirstRoute, Reader, Stopper, Submitter, forbidden
-from cell.api.deps import Service
+from cell.api.deps import Bulk, Service
 from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
 from cell.api.stop_reason import StopReason
 from cell.service.keys import KeyRing, Permission, allowed
@@ -27,6 +27,7 @@ KEY_CHECK_S = 1.0
 """How often an open event stream checks that its key is still active [s], at least: at each event and
 after this long without one. The service reloads the keys every second (``cell.api.app``), so a stream
 whose key is revoked ends within about two seconds, as the key's other requests are refused."""
+FILE_LIST = TypeAdapter(list[FileOut])
 CONTENT_TYPES = {".json": "application/json", ".csv": "text/csv; charset=utf-8",
                  ".txt": "text/plain; charset=utf-8", ".png": "image/png", ".ply": "application/octet-stream",
                  ".bt": "application/octet-stream", ".npz": "application/octet-stream"}
@@ -48,24 +49,32 @@ CREATED_FILTER = Query(description="a date and time with its timezone (ISO 8601,
 
 
 @router.get("", response_model=JobPage)
-async def list_jobs(cell: Service, _: Reader, status: Annotated[list[str] | None, STATUS_FILTER] = None,
+async def list_jobs(cell: Service, bulk: Bulk, _: Reader,
+                    status: Annotated[list[str] | None, STATUS_FILTER] = None,
                     planner: str | None = None, part_id: str | None = None,
                     created_after: Annotated[AwareDatetime | None, CREATED_FILTER] = None,
                     created_before: Annotated[AwareDatetime | None, CREATED_FILTER] = None,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
-                    offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> JobPage:
+                    offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> Response:
     """This cell's jobs, newest first, filtered and paginated. ``created_after`` and ``created_before`` need
     their timezone: a time without one is refused (422, "Input should have timezone info") rather than
     taken as UTC, since the cell's PC, its store and the person asking may keep different zones, and a
-    guess would shift the answer by hours without a word (it was a 500)."""
+    guess would shift the answer by hours without a word (it was a 500). A bulk answer
+    (``cell.api.bulk``): a page of 500 jobs, built on the event loop, kept a STOP out for 29 s under 40
+    viewers."""
     unknown = sorted(set(status or ()) - set(JOB_STATUSES))
     if unknown:
         message = f"unknown status {unknown[0]!r}; one of {', '.join(JOB_STATUSES)}"
         raise HTTPException(422, [{"loc": ["query", "status"], "type": "value_error", "msg": message}])
-    jobs, total = await asyncio.to_thread(
-        cell.store.list_jobs, cell=cell.name, statuses=status, planner=planner, part_id=part_id,
-        created_after=created_after, created_before=created_before, limit=limit, offset=offset)
-    return JobPage(items=[JobOut.of(j) for j in jobs], total=total, limit=limit, offset=offset)
+
+    def page() -> bytes:
+        jobs, total = cell.store.list_jobs(
+            cell=cell.name, statuses=status, planner=planner, part_id=part_id, created_after=created_after,
+            created_before=created_before, limit=limit, offset=offset)
+        return JobPage(items=[JobOut.of(j) for j in jobs], total=total, limit=limit,
+                       offset=offset).model_dump_json().encode()
+
+    return await bulk.json(page)
 
 
 @router.get("/{job_id}", response_model=JobOut)
@@ -173,25 +182,27 @@ def _job_file(job: JobRecord, name: str) -> Path | None:
     return _inside(_folder(job), name)
 
 
-def _listing(job: JobRecord) -> list[FileOut]:
-    """Every file of a job's folder (none while it does not exist yet: a job that has not started, or
-    never will; 410 for an ended job's: :func:`_folder`). It walks the folder and stats each file (a
-    scan's thousands of frames): run it on a thread, never on the event loop, where it delayed a STOP by up
-    to 2 s under 100 viewers."""
+def _listing(job: JobRecord) -> bytes:
+    """Every file of a job's folder, as the JSON of a list of ``FileOut`` (none while it does not exist
+    yet: a job that has not started, or never will; 410 for an ended job's: :func:`_folder`). It walks
+    the folder and stats each file (a scan's thousands of frames): run it on a thread, never on the event
+    loop, where it delayed a STOP by up to 2 s under 100 viewers."""
     folder, job_id = _folder(job), job.id
-    if not folder.is_dir():
-        return []
-    root = folder.resolve()
-    return [FileOut(name=str(p.relative_to(root)), size_bytes=p.stat().st_size,
-                    url=f"/api/v1/jobs/{job_id}/files/{p.relative_to(root)}")
-            for p in sorted(root.rglob("*")) if p.is_file() and p.resolve().is_relative_to(root)]
+    files: list[FileOut] = []
+    if folder.is_dir():
+        root = folder.resolve()
+        files = [FileOut(name=str(p.relative_to(root)), size_bytes=p.stat().st_size,
+                         url=f"/api/v1/jobs/{job_id}/files/{p.relative_to(root)}")
+                 for p in sorted(root.rglob("*")) if p.is_file() and p.resolve().is_relative_to(root)]
+    return FILE_LIST.dump_json(files)
 
 
 @router.get("/{job_id}/files", response_model=list[FileOut])
-async def list_files(job_id: str, cell: Service,
-                     _: Reader) -> list[FileOut]:
-    """Every file of the job folder (frames included)."""
-    return await asyncio.to_thread(_listing, await cell.job(job_id))
+async def list_files(job_id: str, cell: Service, bulk: Bulk,
+                     _: Reader) -> Response:
+    """Every file of the job folder (frames included); a bulk answer (``cell.api.bulk``)."""
+    job = await cell.job(job_id)
+    return await bulk.json(lambda: _listing(job))
 
 
 @router.get("/{job_id}/files/{name:path}", response_class=FileResponse)
