@@ -181,6 +181,22 @@ def test_the_page_is_served_with_a_policy_that_runs_only_its_own_scripts(served)
     assert "/" not in client.get("/api/v1/openapi.json").json()["paths"]
 
 
+def test_the_page_under_static_and_every_static_file_carry_the_pages_policy(served) -> None:
+    """``/static/index.html`` is the page itself: it was served with no policy and no ``frame-ancestors``
+    (another site could frame it, and nothing kept out a script the policy keeps out at ``/``)."""
+    client, _ = served
+    policy = client.get("/").headers["content-security-policy"]
+    for path in ("/static/index.html", "/static/js/main.js", "/static/favicon.svg", "/static/css/app.css"):
+        answer = client.get(path)
+        assert answer.status_code == 200, path
+        assert answer.headers["content-security-policy"] == policy, path
+        assert answer.headers["x-content-type-options"] == "nosniff", path
+        assert answer.headers["cache-control"] == "no-cache", path
+    etag = client.get("/static/index.html").headers["etag"]
+    revalidated = client.get("/static/index.html", headers={"If-None-Match": etag})
+    assert revalidated.status_code == 304 and revalidated.headers["content-security-policy"] == policy
+
+
 @pytest.mark.parametrize("path", ["/", "/static/js/main.js", "/healthz"])
 def test_head_answers_where_get_does_as_uptime_monitors_ask(served, path: str) -> None:
     """``HEAD /`` answered 405 Method Not Allowed, which an uptime monitor sending HEAD reads as down."""

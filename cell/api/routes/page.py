@@ -1,12 +1,13 @@
 """The operator's page (``cell.web``): ``/`` and its files under ``/static``, no key needed (they hold
-no data; every call the page makes sends the key). The page is sent with a Content-Security-Policy that
-lets it run only the scripts of this service and connect only to it."""
+no data; every call the page makes sends the key). The page, and every file under ``/static``, is sent
+with a Content-Security-Policy that lets it run only the scripts of this service and connect only to it."""
 
 from __future__ import annotations
 
 import base64
 import hashlib
 import re
+from pathlib import Path
 from typing import Any
 
 from fastapi import APIRouter, FastAPI, Response
@@ -36,12 +37,17 @@ def security_headers(html: str) -> dict[str, str]:
 
 class _RevalidatedFiles(StaticFiles):
     """Static files a browser revalidates at each load (ETag): a new version of the cell's software is
-    picked up at once, never mixed with cached modules of the old one."""
+    picked up at once, never mixed with cached modules of the old one. Each goes out with the page's
+    security headers: ``/static/index.html`` is the page itself, and was served without its policy (to
+    be framed, or to run what the policy keeps out)."""
+
+    def __init__(self, directory: Path, headers: dict[str, str]) -> None:
+        super().__init__(directory=directory)
+        self._headers = headers
 
     def file_response(self, *args: Any, **kwargs: Any) -> Response:
         response = super().file_response(*args, **kwargs)
-        response.headers["Cache-Control"] = "no-cache"
-        response.headers["X-Content-Type-Options"] = "nosniff"
+        response.headers.update(self._headers)
         return response
 
 
@@ -55,4 +61,5 @@ def index() -> Response:
 def add_page(app: FastAPI) -> None:
     """Serve the page at ``/`` and its files at ``/static``."""
     app.include_router(router)
-    app.mount("/static", _RevalidatedFiles(directory=STATIC_DIR), name="static")
+    static = _RevalidatedFiles(STATIC_DIR, security_headers(INDEX_HTML.read_text()))
+    app.mount("/static", static, name="static")
