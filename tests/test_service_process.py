@@ -35,6 +35,7 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.core.result import Err, Ok
 
+from cell.service.keys import Permission, allowed
 from cell.service.keys import create_key as add_key
 from cell.service.protocol import finite_json
 from cell.service.recovery import RESTART_CANCEL, RESTART_TERMINATION
@@ -606,13 +607,33 @@ MOTION_ROUTES = {("POST", "/api/v1/jobs"), ("DELETE", "/api/v1/jobs/{job_id}"), 
                  ("DELETE", "/api/v1/objects/{name}"), ("POST", "/api/v1/arm/recover"),
                  ("POST", "/api/v1/queue/resume")}
 STOP_ROUTES = {("POST", "/api/v1/stop"), ("POST", "/api/v1/jobs/{job_id}/stop")}
-OPEN_ROUTES = {("GET", "/healthz")}
+OPEN_ROUTES = {("GET", "/healthz"), ("HEAD", "/healthz")}
+ROUTE_PERMISSIONS: dict[tuple[str, str], Permission] = {
+    ("GET", "/api/v1/cell"): Permission.READ, ("GET", "/api/v1/planners"): Permission.READ,
+    ("GET", "/api/v1/objects"): Permission.READ, ("POST", "/api/v1/objects"): Permission.UPLOAD,
+    ("DELETE", "/api/v1/objects/{name}"): Permission.UPLOAD, ("POST", "/api/v1/stop"): Permission.STOP,
+    ("POST", "/api/v1/arm/recover"): Permission.RECOVER, ("POST", "/api/v1/queue/resume"): Permission.RECOVER,
+    ("POST", "/api/v1/jobs"): Permission.SUBMIT, ("GET", "/api/v1/jobs"): Permission.READ,
+    ("GET", "/api/v1/jobs/{job_id}"): Permission.READ, ("DELETE", "/api/v1/jobs/{job_id}"): Permission.CANCEL,
+    ("PUT", "/api/v1/jobs/{job_id}/keep"): Permission.KEEP,
+    ("POST", "/api/v1/jobs/{job_id}/stop"): Permission.STOP,
+    ("GET", "/api/v1/jobs/{job_id}/events"): Permission.READ,
+    ("GET", "/api/v1/jobs/{job_id}/files"): Permission.READ,
+    ("GET", "/api/v1/jobs/{job_id}/files/{name}"): Permission.READ,
+    ("GET", "/api/v1/jobs/{job_id}/cloud"): Permission.READ, ("GET", "/api/v1/line"): Permission.READ,
+    ("POST", "/api/v1/line/command"): Permission.LINE, ("POST", "/api/v1/line/mode"): Permission.MODE,
+    ("GET", "/api/v1/line/history"): Permission.READ, ("GET", "/readyz"): Permission.READ,
+    ("HEAD", "/readyz"): Permission.READ, ("GET", "/metrics"): Permission.READ,
+    ("GET", "/api/v1/whoami"): Permission.READ, ("GET", "/api/v1/retention"): Permission.READ,
+    ("POST", "/api/v1/retention/prune"): Permission.PURGE}
+"""What each operation of the API needs; every operation of the API document is here (a new one is placed
+here when it is added, with the permission its ``Require`` is to check)."""
 
 
 def _operations(cell: ServedCell) -> set[tuple[str, str]]:
     document = httpx.get(f"{cell.url}/api/v1/openapi.json", timeout=10).json()
     return {(method.upper(), path) for path, item in document["paths"].items() for method in item
-            if method in ("get", "post", "put", "patch", "delete")}
+            if method in ("get", "head", "post", "put", "patch", "delete")}
 
 
 def _call(cell: ServedCell, method: str, path: str, job_id: str, key: str | None) -> httpx.Response:
@@ -660,6 +681,34 @@ def test_every_route_needs_a_key_and_motion_needs_a_role_that_may_move(
             assert client.get("/api/v1/jobs").json()["total"] >= 1  # nothing was purged or added
             assert client.get(f"/api/v1/jobs/{job_id}").json()["status"] == "completed"
         assert httpx.get(f"{franka.url}/healthz", timeout=10).status_code == 200
+    finally:
+        settle_queue(franka)
+
+
+def test_each_role_is_answered_on_every_operation_as_its_permissions_say(franka: ServedCell) -> None:
+    """Every operation of the API document, HEAD and the event stream included, for a key of each role: a
+    403 naming the role exactly when the role lacks the operation's permission (``ROUTE_PERMISSIONS``),
+    else anything but 401 or 403. The requests a role may make are made harmless: an unknown job or object
+    (404), a malformed body (422); the few left (stop, resume, recover, prune) leave the cell as it was."""
+    assert _operations(franka) == set(ROUTE_PERMISSIONS) | OPEN_ROUTES
+    try:
+        for (method, path), permission in sorted(ROUTE_PERMISSIONS.items()):
+            target = path.replace("{job_id}", "0" * 16).replace("{name}", "nothing")
+            multipart = path == "/api/v1/objects"
+            content_type = "multipart/form-data; boundary=x" if multipart else "application/json"
+            body = b"{bad" if method in ("POST", "PUT") else None
+            for role in ROLES:
+                headers = {"Authorization": f"Bearer {franka.keys[role]}"}
+                if body is not None:
+                    headers["Content-Type"] = content_type
+                with httpx.Client(base_url=franka.url, timeout=30) as client:
+                    answer = client.request(method, target, headers=headers, content=body)
+                if allowed(role, permission):
+                    assert answer.status_code not in (401, 403), (method, path, role, answer.text)
+                else:
+                    assert answer.status_code == 403, (method, path, role, answer.text)
+                    article = "an" if role[0] in "aeiou" else "a"
+                    assert answer.json()["detail"].startswith(f"{article} {role} key"), answer.text
     finally:
         settle_queue(franka)
 
