@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from cell.api.auth import KeyFirstRoute, Purger, Reader
-from cell.api.deps import Service
+from cell.api.deps import Bulk, Service
 from cell.api.schemas import PrunedOut, RetentionOut
 from cell.service.retention import GB, PrunedJob, PrunePlan
 
@@ -22,9 +22,11 @@ def _out(cell: Service, plan: PrunePlan, jobs: list[PrunedJob]) -> RetentionOut:
 
 
 @router.get("", response_model=RetentionOut)
-async def preview(cell: Service, _: Reader) -> RetentionOut:
-    """The ended jobs that pruning would delete now (a dry run: nothing is deleted)."""
-    plan = await cell.retention.plan()
+async def preview(cell: Service, bulk: Bulk, _: Reader) -> RetentionOut:
+    """The ended jobs that pruning would delete now (a dry run: nothing is deleted). It reads every job of
+    the store and walks the jobs folder: a bulk read (``cell.api.bulk``), in its turn."""
+    async with bulk.turn():
+        plan = await cell.retention.plan()
     return _out(cell, plan, list(plan.jobs))
 
 
