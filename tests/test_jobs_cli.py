@@ -111,6 +111,15 @@ def test_submit_wait_follows_the_job_to_completed(completed_job: Completed):
     assert proc.stderr == ""
 
 
+def test_wait_for_an_ended_job_prints_its_status_alone(served: ServedCell, completed_job: Completed):
+    """Not the history its event stream replays (queued, running, its first progress line) as if live."""
+    job_id, _ = completed_job
+    waited = run_cell(served, "wait", job_id, role="viewer")
+    assert waited.returncode == 0, waited.stdout + waited.stderr
+    assert waited.stdout == "completed: time budget of 3 s used up\n"
+    assert waited.stderr == ""
+
+
 def test_a_job_logs_into_its_folder_and_leaves_no_empty_worker_log(served: ServedCell,
                                                                    completed_job: Completed):
     """Every job left an empty logs/worker-<id>.log beside the log it writes, jobs/<id>/log.txt."""
@@ -299,7 +308,7 @@ def test_parse_events():
 def test_a_broken_stream_resumes_after_the_last_event(monkeypatch: pytest.MonkeyPatch,
                                                        capsys: pytest.CaptureFixture[str]):
     """The first connection breaks after two events; the client comes back with Last-Event-ID: 2 and gets
-    the rest. Ten progress events inside a second print one line."""
+    the rest. Ten progress events inside a second print the first and, before the status, the newest."""
     monkeypatch.setattr(client_module, "RECONNECT_DELAY_S", 0.01)
     asked: list[str | None] = []
 
@@ -330,8 +339,9 @@ def test_a_broken_stream_resumes_after_the_last_event(monkeypatch: pytest.Monkey
         assert follow_job(api, "abc", None) == 2
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0] == "running"
-    assert len([line for line in lines if line.startswith("t ")]) == 1
-    assert lines[-1] == "failed: PlanningError: no view"
+    shown = [line for line in lines if line.startswith("t ")]
+    assert [line.split("  ")[0] for line in shown] == ["t 0.5 s", "t 1.9 s"]
+    assert lines[-2:] == [shown[-1], "failed: PlanningError: no view"]
 
 
 def test_a_stream_ended_early_is_completed_from_the_record(monkeypatch: pytest.MonkeyPatch):

@@ -128,8 +128,12 @@ def _progress_line(data: dict[str, Any]) -> str:
 
 
 def follow_job(client: ApiClient, job_id: str, timeout_s: float | None) -> int:
-    """Print the job's progress until it ends; its exit code (0 completed, 2 ended otherwise)."""
+    """Print the job's progress until it ends, then its status; its exit code (0 completed, 2 ended
+    otherwise). A progress line is printed at most every ``PROGRESS_EVERY_S``; the newest one held back
+    meanwhile is printed before the status, so that the last progress line shown is the job's last (a
+    burst of events, such as the history a stream replays, showed its first one only)."""
     last_print = -math.inf
+    held: str | None = None
     shown_state: str | None = None
     status, termination = "unknown", None
     event: ServerEvent
@@ -141,15 +145,23 @@ def follow_job(client: ApiClient, job_id: str, timeout_s: float | None) -> int:
                 _print(status)
                 shown_state = status
         elif event.event == "progress":
+            held = _progress_line(data)
             now = time.monotonic()
             if now - last_print >= PROGRESS_EVERY_S:
-                _print(_progress_line(data))
-                last_print = now
+                _print(held)
+                held, last_print = None, now
         elif event.event == "result":
             status = str(data.get("status", status))
             result = data.get("result")
             if isinstance(result, dict) and termination is None:
                 termination = result.get("termination")
+    if held is not None:
+        _print(held)
+    return _print_end(status, termination)
+
+
+def _print_end(status: str, termination: str | None) -> int:
+    """Print how a job ended (its status and termination); its exit code (0 completed, 2 otherwise)."""
     _print(f"{status}: {termination}" if termination else status)
     return 0 if status == "completed" else EXIT_NOT_COMPLETED
 
@@ -420,8 +432,12 @@ def wait(
 ) -> None:
     """Follow a job until it ends: a progress line at most every second, then its status.
 
-    Exit code 0 when it completed, 2 when it ended otherwise, 1 on an error or timeout."""
+    A job that has already ended: its status alone. Exit code 0 when it completed, 2 when it ended
+    otherwise, 1 on an error or timeout."""
     _check_seconds("--timeout", timeout)
     with _client(server, key) as client:
+        job = client.job(job_id)
+        if job["status"] in FINISHED:  # its status alone, not the history its event stream would replay
+            raise typer.Exit(code=_print_end(str(job["status"]), job.get("termination")))
         raise _wait_exit(client, job_id, timeout)
 
