@@ -176,7 +176,10 @@ def test_a_pose_off_the_table_is_refused_naming_the_table(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--seed", "-1"], "seed must be between 0 and 9223372036854775807, got -1"),
     (["--max-time", "nan"], "time budget must be a positive number of seconds, got nan"),
-    (["--object-pose", "inf,0,0"], "object pose must be three finite numbers"),
+    (["--object-pose", "inf,0,0"],
+     "--object-pose: expected x,y,yaw_deg (three finite numbers), got 'inf,0,0'"),
+    # a malformed pose was Typer's usage box, which named no option ("Invalid value: expected ...")
+    (["--object-pose", "1,2"], "--object-pose: expected x,y,yaw_deg (three finite numbers), got '1,2'"),
     (["--object-scale", "0"], "scale must be a positive number, got 0.0"),
 ])
 def test_every_input_is_checked_before_the_job_folder_exists(tmp_path, args, message):

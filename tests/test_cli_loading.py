@@ -148,7 +148,7 @@ def test_every_registered_planner_loads_as_a_planner():
 
 @pytest.mark.parametrize("args", [
     ("scan", "--bogus"), ("scan", "--seed", "abc"), ("scan", "--max-time", "abc"),
-    ("scan", "--object-pose", "1,2"),
+    ("scan", "--object-scale", "abc"),
     ("scan", "--planner", "vs-local", "--planner", "vs-global"), ("nosuch",), ("config", "check"),
     ("config", "check", "--bogus"), ("jobs", "list", "--bogus"), ("stop", "--bogus"),
 ])

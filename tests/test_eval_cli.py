@@ -123,6 +123,16 @@ def test_the_limit_refuses_what_a_scan_refuses():
     assert done.exit_code == 1 and "off the table" in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize("placement", ["0,0,nan", "0,0"])
+def test_the_limit_names_a_malformed_placement(placement):
+    """As cell scan and cell jobs submit name their --object-pose (a yaw of nan was "its yaw must lie
+    within +-360 deg")."""
+    done = CliRunner().invoke(app, ["eval", "limit", "--object", "cube", "--placement", placement])
+    assert done.exit_code == 1 and done.stdout == "", done.stdout
+    assert done.stderr.strip().splitlines() == [
+        f"error: --placement: expected x,y,yaw_deg (three finite numbers), got '{placement}'"]
+
+
 @pytest.mark.parametrize("directions", ["0", "-5"])
 def test_the_limit_refuses_fewer_than_one_direction(directions):
     """No view direction: no view, a limit of 0 % that says nothing (0 skips the limit of a grid only)."""

@@ -19,6 +19,7 @@ from rich.console import Console
 from cell.cli.commands import command_group
 from cell.cli.errors import err_console, fail, print_error
 from cell.cli.signals import interrupting
+from cell.cli.values import parse_pose
 from cell.config import load_config
 from cell.evaluation import presets
 from cell.evaluation.evaluate import evaluate
@@ -26,7 +27,7 @@ from cell.evaluation.executors import make_executor
 from cell.evaluation.grid import WHOLE, Shard
 from cell.evaluation.limit import DEFAULT_DIRECTIONS, cell_coverage_limit
 from cell.evaluation.report import MEASURED, unfinished_line
-from cell.evaluation.spec import load_placements, parse_placement
+from cell.evaluation.spec import load_placements
 from cell.jobs.placement import check_placement
 from cell.templates import template_path
 from drivers.errors import CellError
@@ -153,7 +154,7 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
                             f"{directions}")
         path = config if config is not None else template_path("sim-franka-rgbd")
         scale = mesh_file_scale(object, object_scale)
-        cfg, mesh, pose = load_config(path), load_object(object, scale), parse_placement(placement)
+        cfg, mesh, pose = load_config(path), load_object(object, scale), parse_pose("--placement", placement)
         check_placement(cfg, mesh, pose, scale)  # as cell scan: a size it scans, on the table
         result = cell_coverage_limit(cfg, mesh, pose, directions, reachable=not everywhere)
     except CellError as exc:

@@ -29,6 +29,7 @@ from rich.console import Console
 from cell.cli.client import FINISHED, JOB_STATUSES, ApiClient, ServerEvent
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
+from cell.cli.values import parse_pose
 from cell.perception.entropy_form import h_roi_name
 from drivers.errors import COMMAND_LINE_REASON, CellError
 
@@ -95,19 +96,6 @@ def _number(value: object, fmt: str, unit: str = "") -> str | None:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         return None
     return f"{value:{fmt}}{unit}"
-
-
-def _parse_pose(text: str) -> list[float]:
-    parts = text.split(",")
-    try:
-        if len(parts) != 3:
-            raise ValueError
-        pose = [float(p) for p in parts]
-        if not all(math.isfinite(v) for v in pose):
-            raise ValueError
-    except ValueError:
-        raise fail(f"--object-pose: expected x,y,yaw_deg (three finite numbers), got {text!r}") from None
-    return pose
 
 
 def _print_json(data: object) -> None:
@@ -200,7 +188,8 @@ def submit(
     _check_seconds("--timeout", timeout)
     _check_seconds("--max-time", max_time)
     body: dict[str, Any] = {"planner": planner, "object": object,
-                            "object_pose": _parse_pose(object_pose) if object_pose is not None else None,
+                            "object_pose": None if object_pose is None
+                            else list(parse_pose("--object-pose", object_pose)),
                             "seed": seed, "max_time_s": max_time, "part_id": part_id}
     with _client(server, key) as client:
         job = client.submit({k: v for k, v in body.items() if v is not None})

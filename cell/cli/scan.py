@@ -14,6 +14,7 @@ from cell.cli.errors import fail, print_error, print_warning
 from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines, time_label
 from cell.cli.progress import BAR_CONSOLE, scan_progress
 from cell.cli.signals import interrupting
+from cell.cli.values import parse_pose
 from cell.config import load_config
 from cell.config.placeholders import require_measured
 from cell.jobs.replay import recorded_job, replay_config
@@ -26,17 +27,6 @@ DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 
 console = Console(soft_wrap=True)
 err_console = BAR_CONSOLE  # a line printed while the bar shows goes above it
-
-
-def _parse_pose(text: str) -> tuple[float, float, float]:
-    parts = text.split(",")
-    try:
-        if len(parts) != 3:
-            raise ValueError
-        x, y, yaw = (float(p) for p in parts)
-    except ValueError:
-        raise typer.BadParameter(f"expected x,y,yaw_deg (three numbers), got {text!r}") from None
-    return x, y, yaw
 
 
 def _replay_request(job_dir: Path, config: Path | None, planner: str | None, seed: int | None,
@@ -143,7 +133,8 @@ def scan(
                     and mesh_file_scale(label, object_scale) == 1.0:
                 raise JobError(f"--object-scale is for a mesh file: the shipped object {label} is in metres")
             request = ScanRequest(config=cfg, config_path=str(path), object=label,
-                                  object_pose=_parse_pose(object_pose or "0,0,0"), planner=planner,
+                                  object_pose=parse_pose("--object-pose", object_pose or "0,0,0"),
+                                  planner=planner,
                                   seed=seed if seed is not None else 0, out=out, max_time_s=max_time,
                                   object_scale=object_scale if object_scale is not None else 1.0)
         job = prepare_scan(request)
