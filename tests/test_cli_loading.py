@@ -12,7 +12,9 @@ import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import typer
@@ -70,6 +72,28 @@ def test_the_list_gives_each_command_the_help_the_command_has():
             assert command_help(location) == (target.info.help, True)
         else:
             assert command_help(location) == (inspect.getdoc(target), False)
+
+
+def _commands(command: Any, path: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], Any]]:
+    """Every command of the ``cell`` command line with its path of names, groups' commands included."""
+    for name, sub in getattr(command, "commands", {}).items():
+        yield (*path, name), sub
+        yield from _commands(sub, (*path, name))
+
+
+def test_every_argument_has_a_help_and_an_upper_case_name():
+    """As the docs name them (``cell reprocess JOB_DIR``, ``cell deploy files FOLDER``): usage lines said
+    ``{job_dir}`` and ``{folder}``, and three arguments had no help at all."""
+    from typer.core import TyperArgument
+
+    from cell.cli.main import app
+
+    arguments = [(" ".join(path), param) for path, command in _commands(typer.main.get_command(app))
+                 for param in command.params if isinstance(param, TyperArgument)]
+    assert len(arguments) >= 14
+    for path, param in arguments:
+        assert param.help, f"cell {path} {param.name}: no help"
+        assert param.metavar and param.metavar == param.metavar.upper(), f"cell {path} {param.name}"
 
 
 def test_a_scan_loads_the_planners_and_the_service_does_not():

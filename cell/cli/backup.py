@@ -25,8 +25,9 @@ console = Console(soft_wrap=True)
 
 def backup(
     # a string, not a Path: a Path drops the trailing '/' that makes a new name a folder
-    dest: Annotated[str, typer.Argument(help="the backup file, or a folder to write cell-{UTC time}.db in "
-                                             "(a name ending in '/' is a folder, made if new)")],
+    dest: Annotated[str, typer.Argument(metavar="DEST", help="the backup file, or a folder to write "
+                                                             "cell-{UTC time}.db in (a name ending in '/' "
+                                                             "is a folder, made if new)")],
     data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
     = DEFAULT_DATA_DIR,
     db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,

@@ -238,8 +238,8 @@ def table(
 
 @calibrate_app.command()
 def compare(
-    a: Annotated[Path, typer.Argument(help="a mount calibration result (JSON)")],
-    b: Annotated[Path, typer.Argument(help="another one")],
+    a: Annotated[Path, typer.Argument(metavar="A", help="a mount calibration result (JSON)")],
+    b: Annotated[Path, typer.Argument(metavar="B", help="another one")],
 ) -> None:
     """How far two mount calibrations are apart (B less A).
 

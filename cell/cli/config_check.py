@@ -22,7 +22,7 @@ console = Console(soft_wrap=True)
 
 
 @config_app.command("check")
-def config_check(file: Path) -> None:
+def config_check(file: Annotated[Path, typer.Argument(metavar="FILE", help="the cell file")]) -> None:
     """Validate a cell file.
 
     Prints a summary or the problem, and the values still marked ``# MEASURE:`` (then exit code 1: the

@@ -20,7 +20,8 @@ console = Console(soft_wrap=True)
 
 
 @deploy_app.command("files")
-def files(folder: Annotated[Path, typer.Argument(help="where to write them (made if missing)")]) -> None:
+def files(folder: Annotated[Path, typer.Argument(metavar="FOLDER", help="where to write them (made if "
+                                                                                  "missing)")]) -> None:
     """Write the systemd unit, the service user's sysusers file and the sensor's udev rule into FOLDER.
 
     Never overwrites a file. Prints the files and the commands that install them."""

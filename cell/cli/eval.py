@@ -37,7 +37,8 @@ eval_app = command_group(help="Grids of scans (the papers' experiments, or any) 
                          no_args_is_help=True)
 console = Console(soft_wrap=True)
 
-Config = Annotated[Path | None, typer.Option(help="cell file (default: the preset's shipped sim cell)")]
+Config = Annotated[Path | None, typer.Option(help="cell file (default: the shipped sim-ur5e-tof cell for "
+                                                 "packing, sim-franka-rgbd for the others)")]
 Planners = Annotated[list[str] | None, typer.Option("--planners", help="planner names (repeat the option)")]
 Objects = Annotated[list[str] | None, typer.Option("--objects", help="shipped names or mesh files (repeat)")]
 Placements = Annotated[Path | None, typer.Option(help="YAML list of [x_m, y_m, yaw_deg] placements")]

@@ -61,7 +61,7 @@ def init_cell(folder: Path, template: str, name: str | None = None, data_dir: Pa
 
 
 def init(
-    folder: Annotated[Path, typer.Argument(help="the cell's folder (created if missing)")],
+    folder: Annotated[Path, typer.Argument(metavar="FOLDER", help="the cell's folder (created if missing)")],
     template: Annotated[str, typer.Option(help=f"one of: {', '.join(TEMPLATES)}")],
     name: Annotated[str | None, typer.Option(help="the cell's name (default: the folder's name)")] = None,
     data_dir: Annotated[Path | None, typer.Option(help="the service's data folder (default: FOLDER/data; "

@@ -40,8 +40,8 @@ TERMINATION_WIDTH = 48
 """``list`` shortens a termination to this many characters."""
 EXIT_NOT_COMPLETED = 2
 
-jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, resume, wait (for "
-                              "scripts).",
+jobs_app = command_group(help="Jobs of a running `cell serve`: submit, list, show, stop, resume, keep, "
+                              "prune, wait (for scripts).",
                          no_args_is_help=True)
 console = Console(soft_wrap=True)
 

@@ -110,7 +110,7 @@ def list_keys(data_dir: DataDirOption = DEFAULT_DATA_DIR, db: DbOption = None) -
 
 @keys_app.command("revoke")
 def revoke(
-    name: Annotated[str, typer.Argument(help="the key's name")],
+    name: Annotated[str, typer.Argument(metavar="NAME", help="the key's name")],
     data_dir: DataDirOption = DEFAULT_DATA_DIR,
     db: DbOption = None,
 ) -> None:

@@ -30,7 +30,7 @@ def _writable(folder: Path) -> bool:
 
 
 def reprocess(
-    job_dir: Path,
+    job_dir: Annotated[Path, typer.Argument(metavar="JOB_DIR", help="the job folder")],
     out: Annotated[Path | None, typer.Option(help=f"folder to write {' and '.join(HIRES_FILES)} to, made if "
                                                   "missing (default: the job folder)")] = None,
 ) -> None:

@@ -227,7 +227,7 @@ def replay_perception(job_dir: Path, cfg: CellConfig, seed: int) -> Replayed:
 
 @sensor_app.command()
 def replay(
-    job_dir: Path,
+    job_dir: Annotated[Path, typer.Argument(metavar="JOB_DIR", help="the recorded job's folder")],
     config: Annotated[Path | None, typer.Option(help="cell file (default: the one the job names)")] = None,
     seed: Annotated[int | None, typer.Option(help="perception seed (default: the job's)")] = None,
     out: Annotated[Path | None, typer.Option(help="folder to write cloud_replay.ply to, made if missing "

@@ -17,7 +17,7 @@ console = Console(soft_wrap=True)
 
 
 def stop(
-    job_dir: Annotated[Path, typer.Argument(help="folder of the running job")],
+    job_dir: Annotated[Path, typer.Argument(metavar="JOB_DIR", help="folder of the running job")],
     reason: Annotated[str, typer.Option(help="recorded in the job's termination, after 'operator stop: '")]
     = COMMAND_LINE_REASON,
 ) -> None:
