@@ -165,7 +165,8 @@ def test_cli_defaults_and_db_option(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     assert runner.invoke(app, ["keys", "list", "--db", db]).stdout.startswith("v ")
 
 
-def test_cli_errors_are_one_line(tmp_path: Path):
+def test_cli_errors_are_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.chdir(tmp_path)  # not the checkout's ./data, which `make serve` makes, its service's store
     data = tmp_path / "data"
     bad_role = runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "root"])
     assert bad_role.exit_code == 1
@@ -176,6 +177,20 @@ def test_cli_errors_are_one_line(tmp_path: Path):
     assert bad_db.exit_code == 1
     assert bad_db.stderr.startswith("error: job store mysql://cell:***@localhost/cell: unsupported")
     assert bad_db.stderr.count("\n") == 1 and "s3cret" not in bad_db.output
+    # a mistyped --data-dir: revoke made an empty store (and the folder) there, then found no such key
+    store = sqlite_url(data)
+    unknown = runner.invoke(app, ["keys", "revoke", "nobody", "--data-dir", str(data)])
+    assert unknown.exit_code == 1 and unknown.stdout == ""
+    assert unknown.stderr.splitlines() == [
+        f"warning: no store at {store} yet (cell serve and cell keys create make it); is {data} the "
+        "service's data folder (--data-dir)?",
+        "error: no key named 'nobody': there is no store to revoke it in"]
+    assert not data.exists()
+    listed = runner.invoke(app, ["keys", "list", "--data-dir", str(data)])
+    assert (listed.exit_code, listed.stdout) == (0, "no keys\n")
+    assert listed.stderr.startswith("warning: no store")
+    assert not data.exists()
+    assert runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "viewer"]).exit_code == 0
     unknown = runner.invoke(app, ["keys", "revoke", "nobody", "--data-dir", str(data)])
     assert (unknown.exit_code, unknown.stderr) == (1, "error: no key named 'nobody'\n")
 

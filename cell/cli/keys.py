@@ -21,13 +21,13 @@ import typer
 from rich.console import Console
 
 from cell.cli.commands import DB_ENVVAR, command_group
-from cell.cli.errors import fail
+from cell.cli.errors import fail, print_warning
 from cell.service.keys import Role, create_key, parse_role
 from cell.service.store import Store, open_data_store
-from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S
+from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S, hide_password
 from cell.service.store.repository import KEYS_SCHEMA, read_store
 from cell.service.store.service_store import service_store_url
-from drivers.errors import CellError
+from drivers.errors import CellError, StoreError
 
 DEFAULT_DATA_DIR = Path("data")
 
@@ -89,11 +89,23 @@ def create(
     _print(key)
 
 
+def _existing_store(data_dir: Path, db: str | None) -> Store | None:
+    """The store the service of ``data_dir`` uses (or ``db``), opened to read only; None, with a warning
+    naming where it looked, when there is none yet: a mistyped ``--data-dir`` is no store of keys."""
+    url = service_store_url(data_dir, db)
+    store = read_store(url, KEYS_SCHEMA, POSTGRES_CONNECT_TIMEOUT_S)
+    if store is None:
+        asked = "" if db is not None else f"; is {data_dir} the service's data folder (--data-dir)?"
+        print_warning(f"no store at {hide_password(url)} yet (cell serve and cell keys create make "
+                      f"it){asked}")
+    return store
+
+
 @keys_app.command("list")
 def list_keys(data_dir: DataDirOption = DEFAULT_DATA_DIR, db: DbOption = None) -> None:
     """List the keys: name, role, creation time (UTC) and whether each is active or since when revoked."""
     with _one_line_errors():
-        store = read_store(service_store_url(data_dir, db), KEYS_SCHEMA, POSTGRES_CONNECT_TIMEOUT_S)
+        store = _existing_store(data_dir, db)
         try:
             records = store.list_keys() if store is not None else []
         finally:
@@ -115,6 +127,11 @@ def revoke(
     db: DbOption = None,
 ) -> None:
     """Revoke a key: the service refuses it within a second. Its name stays taken."""
-    with _one_line_errors(), opened_store(data_dir, db) as store:
-        record = store.revoke_key(name)
+    with _one_line_errors():
+        existing = _existing_store(data_dir, db)
+        if existing is None:  # opening it to write would make an empty store there, and its folder
+            raise StoreError(f"no key named {name!r}: there is no store to revoke it in")
+        existing.close()
+        with opened_store(data_dir, db) as store:
+            record = store.revoke_key(name)
     _print(f"revoked key {record.name!r} (role {record.role})")
