@@ -96,6 +96,23 @@ def test_every_argument_has_a_help_and_an_upper_case_name():
         assert param.metavar and param.metavar == param.metavar.upper(), f"cell {path} {param.name}"
 
 
+def test_no_help_gives_a_flag_a_type():
+    """``--help <bool>``, ``--wait <bool>``: Typer's type column made every flag read as an option that takes
+    a value; the command list, read from the sources, is checked as well."""
+    from typer.testing import CliRunner
+
+    from cell.cli.main import app
+
+    paths = [path for path, _ in _commands(typer.main.get_command(app))]
+    for path in [(), *paths]:
+        shown = CliRunner().invoke(app, [*path, "--help"], env=_wide())
+        assert shown.exit_code == 0 and "--help" in shown.stdout, path
+        assert "<bool>" not in shown.stdout, path
+    listing = subprocess.run([sys.executable, "-m", "cell.cli.entry", "--help"], cwd=REPO,
+                             capture_output=True, text=True, timeout=120, check=True, env=_wide()).stdout
+    assert "--install-completion" in listing and "<bool>" not in listing
+
+
 def test_a_scan_loads_the_planners_and_the_service_does_not():
     assert _loaded("scan", "--help") == {"open3d": True, "scipy": True, "cell.planning.base": True,
                                          "cell.jobs.runner": True, "fastapi": False}

@@ -20,12 +20,12 @@ from typing import Any, NoReturn, TypeVar
 
 # Typer carries its own copy of Click (typer._click); its usage errors are of that copy's classes.
 import typer
-from typer._click import Context
+from typer._click import Context, Parameter
 from typer._click.exceptions import UsageError
 from typer.core import TyperCommand, TyperGroup
 
-# Each command's name and where it lives (module:attribute), a function or a group of commands, in the
-# order ``cell --help`` lists them.
+# Each command's name and where it lives (module:attribute), a function or a group of commands. ``cell
+# --help`` lists them in this order, the single commands first and then the groups (Typer's order).
 COMMANDS: dict[str, str] = {
     "scan": "cell.cli.scan:scan",
     "stop": "cell.cli.stop:stop",
@@ -66,10 +66,22 @@ def _usage_errors_as_input_errors() -> Iterator[None]:
         raise
 
 
+def _flags_without_a_type(params: list[Parameter]) -> list[Parameter]:
+    """``params`` with the flags' type column left empty in the help: Typer shows ``<bool>`` beside
+    ``--help``, ``--wait`` or ``--all``, which reads as an option that takes a value (``--wait true``)."""
+    for param in params:
+        if isinstance(param, typer.core.TyperOption) and param.is_flag and param.metavar is None:
+            param.metavar = ""  # what the help's type column shows instead of the type
+    return params
+
+
 class CellGroup(TyperGroup):
     """A ``cell`` command group: a usage error of its command line or of a command under it exits with
     ``EXIT_INPUT_ERROR``. Parsing happens in ``make_context`` (the group's own options) and, for the
-    commands under it, in ``invoke``."""
+    commands under it, in ``invoke``. Its flags show no type in the help (:func:`_flags_without_a_type`)."""
+
+    def get_params(self, ctx: Context) -> list[Parameter]:
+        return _flags_without_a_type(super().get_params(ctx))
 
     def make_context(self, info_name: str | None, args: list[str], parent: Context | None = None,
                      **extra: Any) -> Context:
@@ -83,7 +95,11 @@ class CellGroup(TyperGroup):
 
 class CellCommand(TyperCommand):
     """A ``cell`` command: an option that takes one value and is given more than once is refused (Click
-    would keep the last one, silently: ``--planner vs-local --planner vs-global`` ran vs-global)."""
+    would keep the last one, silently: ``--planner vs-local --planner vs-global`` ran vs-global). Its
+    flags show no type in the help (:func:`_flags_without_a_type`)."""
+
+    def get_params(self, ctx: Context) -> list[Parameter]:
+        return _flags_without_a_type(super().get_params(ctx))
 
     def parse_args(self, ctx: Context, args: list[str]) -> list[str]:
         given = list(args)  # Click's parser consumes the list it is given
