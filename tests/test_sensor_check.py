@@ -118,6 +118,19 @@ def test_check_refuses_a_count_or_time_that_reads_nothing(tmp_path, option, mess
     assert "frames:" not in res.output
 
 
+def test_a_port_that_does_not_open_says_what_to_check(tmp_path):
+    """The driver's error says what failed; the commissioning command adds what to do about it."""
+    cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": str(tmp_path / "ttyACM9"), "resolution": 4})
+    res = CliRunner().invoke(app, ["sensor", "check", "--config", cell])
+    assert res.exit_code == 1 and res.stdout == "", res.output
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: depth vl53l8cx at {tmp_path / 'ttyACM9'}: cannot "
+                                                   "open the port: ")
+    assert lines[0].endswith("; is the bridge board plugged in, and is sensor.port its port? (the udev rule "
+                             "of `cell deploy files` makes it /dev/vl53l8cx; --port tries another; `cell "
+                             "doctor` checks it)")
+
+
 def test_check_that_read_no_frame_fails(tmp_path):
     emulator = VL53L8CXEmulator.on_pty(SimToFSource.fixed("cube"), EmulatorFaults())
     cell = _cell_file(tmp_path, {"type": "vl53l8cx", "port": emulator.url, "resolution": 4,

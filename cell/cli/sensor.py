@@ -51,7 +51,12 @@ REPLAY_CLOUD = "cloud_replay.ply"
 """The cloud ``cell sensor replay`` writes, in the job folder or ``--out``."""
 
 
-def _fail(exc: BaseException) -> typer.Exit:
+PORT_HINT = ("; is the bridge board plugged in, and is sensor.port its port? (the udev rule of `cell deploy "
+             "files` makes it /dev/vl53l8cx; --port tries another; `cell doctor` checks it)")
+"""Added to the error of a VL53L8CX bridge board's port that does not open."""
+
+
+def _fail(exc: BaseException | str) -> typer.Exit:
     err_console.print(f"error: {exc}", markup=False, soft_wrap=True)
     return typer.Exit(code=1)
 
@@ -102,6 +107,7 @@ def check(
     if not 0.0 < seconds < math.inf:
         raise typer.BadParameter(f"{seconds} is not a time to read frames for: give a finite time above 0 s",
                                  param_hint="'--seconds'")
+    hint = ""
     try:
         cfg = load_config(config)
         sensor_cfg = cfg.sensor
@@ -116,7 +122,10 @@ def check(
         valid = sensor_cfg.valid_statuses if isinstance(sensor_cfg, VL53L8CXConfig) else None
         tally = SensorCheck(valid if valid is not None else VL53L8CX_VALID_STATUSES)
         failure: CellError | None = None
+        # what to do when the bridge board's port does not open (the driver's error says what failed)
+        hint = PORT_HINT if isinstance(sensor_cfg, VL53L8CXConfig) and sensor_cfg.i2c is None else ""
         with sensor:
+            hint = ""
             end = time.monotonic() + seconds
             try:
                 while (frames is not None and tally.count < frames) or (
@@ -129,7 +138,7 @@ def check(
             link = sensor.stats if isinstance(sensor, VL53L8CXSerial) else None
             tof = isinstance(sensor_cfg, VL53L8CXConfig) or sensor.model.kind == "tof"
     except CellError as exc:
-        raise _fail(exc) from None
+        raise _fail(f"{exc}{hint}") from None
     _print_report(tally.report(), link, (valid or VL53L8CX_VALID_STATUSES) if tof else None)
     if failure is not None:
         raise _fail(failure)
