@@ -123,6 +123,15 @@ def test_the_limit_refuses_what_a_scan_refuses():
     assert done.exit_code == 1 and "off the table" in done.stderr, done.stderr
 
 
+def test_the_limit_refuses_a_scale_for_a_shipped_object():
+    """As cell scan does (and as its help says): it took the scale and ignored it, the shipped object being
+    in metres."""
+    done = CliRunner().invoke(app, ["eval", "limit", "--object", "cube", "--object-scale", "0.001"])
+    assert done.exit_code == 1 and done.stdout == "", done.stdout
+    assert done.stderr.strip().splitlines() == [
+        "error: --object-scale is for a mesh file: the shipped object cube is in metres"]
+
+
 @pytest.mark.parametrize("placement", ["0,0,nan", "0,0"])
 def test_the_limit_names_a_malformed_placement(placement):
     """As cell scan and cell jobs submit name their --object-pose (a yaw of nan was "its yaw must lie

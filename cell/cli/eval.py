@@ -18,6 +18,7 @@ from rich.console import Console
 
 from cell.cli.commands import command_group
 from cell.cli.errors import err_console, fail, print_error
+from cell.cli.object_scale import scale_of
 from cell.cli.signals import interrupting
 from cell.cli.values import parse_pose
 from cell.config import load_config
@@ -31,7 +32,7 @@ from cell.evaluation.spec import load_placements
 from cell.jobs.placement import check_placement
 from cell.templates import template_path
 from drivers.errors import CellError
-from drivers.sim.objects import load_object, mesh_file_scale
+from drivers.sim.objects import load_object
 
 eval_app = command_group(help="Grids of scans (the papers' experiments, or any) with a report.",
                          no_args_is_help=True)
@@ -154,7 +155,7 @@ def limit(object: Annotated[str, typer.Option("--object", help="shipped name or 
             raise CellError(f"--directions must be at least 1 (view directions per hemisphere), got "
                             f"{directions}")
         path = config if config is not None else template_path("sim-franka-rgbd")
-        scale = mesh_file_scale(object, object_scale)
+        scale = scale_of(object, object_scale)
         cfg, mesh, pose = load_config(path), load_object(object, scale), parse_pose("--placement", placement)
         check_placement(cfg, mesh, pose, scale)  # as cell scan: a size it scans, on the table
         result = cell_coverage_limit(cfg, mesh, pose, directions, reachable=not everywhere)

@@ -12,6 +12,7 @@ from rich.console import Console
 from cell.cli.entry import EXIT_INTERRUPTED
 from cell.cli.errors import fail, print_error, print_warning
 from cell.cli.jobs import EXIT_NOT_COMPLETED, coverage_line, packing_lines, time_label
+from cell.cli.object_scale import scale_of
 from cell.cli.progress import BAR_CONSOLE, scan_progress
 from cell.cli.signals import interrupting
 from cell.cli.values import parse_pose
@@ -21,7 +22,7 @@ from cell.jobs.replay import recorded_job, replay_config
 from cell.jobs.runner import INTERRUPTED, PreparedScan, ScanRequest, prepare_scan, run_prepared
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.errors import ARM_FAULT, CellError, JobError, SafetyStop
-from drivers.sim.objects import DEFAULT_OBJECT, EMPTY_TABLE, mesh_file_scale
+from drivers.sim.objects import DEFAULT_OBJECT, EMPTY_TABLE
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 
@@ -128,15 +129,12 @@ def scan(
             cfg = load_config(path)
             require_measured(path, cfg.mode)
             label = object or (DEFAULT_OBJECT if cfg.mode != "real" else "unknown")
-            # a scale that is no positive number is refused as such by prepare_scan
-            if object_scale is not None and object_scale > 0.0 and object_scale != 1.0 \
-                    and mesh_file_scale(label, object_scale) == 1.0:
-                raise JobError(f"--object-scale is for a mesh file: the shipped object {label} is in metres")
+            scale = scale_of(label, object_scale)
             request = ScanRequest(config=cfg, config_path=str(path), object=label,
                                   object_pose=parse_pose("--object-pose", object_pose or "0,0,0"),
                                   planner=planner,
                                   seed=seed if seed is not None else 0, out=out, max_time_s=max_time,
-                                  object_scale=object_scale if object_scale is not None else 1.0)
+                                  object_scale=scale)
         job = prepare_scan(request)
     except CellError as exc:
         raise fail(exc) from None
