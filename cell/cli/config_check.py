@@ -40,7 +40,7 @@ def config_check(file: Annotated[Path, typer.Argument(metavar="FILE", help="the 
         console.print("ready: nothing left to measure", markup=False, highlight=False)
         return
     for p in left:
-        console.print(f"placeholder: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
+        console.print(f"to measure: line {p.line} {p.field}: {p.what}", markup=False, highlight=False)
     raise fail(ConfigError(f"not ready: {len(left)} values still marked '# MEASURE:' (measure each, write "
                             "it and delete the mark)", file=str(file)))
 
