@@ -70,7 +70,8 @@ def test_a_backup_taken_while_jobs_are_written_restores_and_opens(tmp_path):
         reopened.close()
 
 
-def test_backup_refuses_to_overwrite_and_names_what_it_cannot_copy(tmp_path):
+def test_backup_refuses_to_overwrite_and_names_what_it_cannot_copy(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # not the checkout's ./data, which `make serve` makes, its service's store
     runner = CliRunner()
     data = tmp_path / "data"
     data.mkdir()
