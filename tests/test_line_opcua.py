@@ -335,6 +335,25 @@ def test_the_unit_is_opc_30050s_typed_base_object_and_its_members_follow_a_start
     run(scenario())
 
 
+def test_the_machine_states_reset_leaves_stopped_where_the_execute_state_machine_is_inactive(encrypted):
+    """OPC 30050's Stopped -> Running (StoppedToRunning, i=59) is caused by PackMLMachineStateMachineType's
+    Reset: a client following the standard finds it on MachineState, as ExecuteState is not active in
+    Stopped."""
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            await line.to_idle()
+            await line.handshake(STOP)
+            await line.wait((STOPPED,))
+            machine = "BaseStateMachine/MachineState"
+            assert await line.node(f"Unit/{machine}/ExecuteState/CurrentState").read_value() == \
+                ua.LocalizedText("")
+            await line.call(f"{machine}/Reset")
+            assert await line.wait((IDLE,)) == IDLE
+            assert await line.read("Status/CommandMessage") == "Reset from OPC UA (key test-line)"
+
+    run(scenario())
+
+
 def test_stop_during_execute_stops_the_scan(encrypted):
     async def scenario() -> tuple[str, int, str]:
         async with plc(encrypted) as line:

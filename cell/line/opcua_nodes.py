@@ -10,7 +10,7 @@ finds the standard's typed members:
 - ``Admin`` (``PackMLAdminObjectType``): the optional ``ProdProcessedCount`` and ``ProdDefectiveCount``
   (one ``PackMLCountDataType`` each), added by the cell.
 - ``BaseStateMachine`` (``PackMLBaseStateMachineType``; Abort, Clear), its ``MachineState``
-  (``PackMLMachineStateMachineType``; Stop) and that one's ``ExecuteState``
+  (``PackMLMachineStateMachineType``; Stop, Reset) and that one's ``ExecuteState``
   (``PackMLExecuteStateMachineType``; Reset, Start, Hold, Unhold, Suspend, Unsuspend), each with its
   ``CurrentState`` and ``CurrentState/Id`` (the state's NodeId in the nodeset); the methods are the
   types' optional members, added by the cell.
@@ -278,6 +278,8 @@ METHODS: tuple[MethodSpec, ...] = (
                Command.ABORT),
     MethodSpec(f"{_BASE}/Clear", "Clear (9): recover the arm, Aborted to Stopped.", Command.CLEAR),
     MethodSpec(f"{_MACHINE}/Stop", "Stop (3): stop the scan and the arm, then Stopped.", Command.STOP),
+    MethodSpec(f"{_MACHINE}/Reset", "Reset (1): Stopped to Idle (OPC 30050's StoppedToRunning; "
+               "ExecuteState's Reset does the same, and Complete to Idle).", Command.RESET),
     MethodSpec(f"{_EXECUTE}/Reset", "Reset (1): Stopped or Complete to Idle.", Command.RESET),
     MethodSpec(f"{_EXECUTE}/Start", "Start (2): in Idle, scan the part PackTags/Command/Parameter/PartId "
                "(Parameter: none or empty).", Command.START, parameters=True),
