@@ -354,6 +354,35 @@ def test_the_machine_states_reset_leaves_stopped_where_the_execute_state_machine
     run(scenario())
 
 
+def test_the_state_machines_list_their_states_and_transitions_and_the_status_is_typed(encrypted):
+    """Each state machine's AvailableStates and AvailableTransitions (mandatory) list the state and
+    transition objects of its type in OPC 30050's nodeset; MachSpeed's and CurMachSpeed's EURange is 0..0
+    (the cell has no speed); UnitModeCurrent's DataType is ProductionMaintenanceModeEnum."""
+    machines = {  # the state machine's path: its type's states and transitions (numeric ids in the nodeset)
+        "BaseStateMachine": ({61, 62, 71}, {65, 66, 67}),
+        "BaseStateMachine/MachineState": ({53, 54, 55, 75}, {57, 58, 59, 60}),
+        EXECUTE_STATE: (set(range(27, 39)), {39, 40, 41, 42, 43, 44, 45, 46, 47, 48, 49, 50, 51, 52, 99, 100,
+                                             101, 102, 103}),
+    }
+
+    async def scenario() -> None:
+        async with plc(encrypted) as line:
+            pk = line.packml
+            for machine, expected in machines.items():
+                for name, ids in zip(("AvailableStates", "AvailableTransitions"), expected, strict=True):
+                    value = await line.node(f"Unit/{machine}/{name}").read_value()
+                    assert value is not None and {i.Identifier for i in value} == ids, (machine, name, value)
+                    assert {i.NamespaceIndex for i in value} == {pk}, (machine, name)
+            for speed in ("MachSpeed", "CurMachSpeed"):
+                assert await line.node(f"Unit/Status/{speed}/EURange").read_value() == \
+                    ua.Range(Low=0.0, High=0.0)
+            mode = line.node("Unit/Status/UnitModeCurrent")
+            assert await mode.read_data_type() == ua.NodeId(11, pk)  # ProductionMaintenanceModeEnum
+            assert await mode.read_value() == await line.read("Status/UnitModeCurrent")
+
+    run(scenario())
+
+
 def test_stop_during_execute_stops_the_scan(encrypted):
     async def scenario() -> tuple[str, int, str]:
         async with plc(encrypted) as line:

@@ -12,8 +12,9 @@ finds the standard's typed members:
 - ``BaseStateMachine`` (``PackMLBaseStateMachineType``; Abort, Clear), its ``MachineState``
   (``PackMLMachineStateMachineType``; Stop, Reset) and that one's ``ExecuteState``
   (``PackMLExecuteStateMachineType``; Reset, Start, Hold, Unhold, Suspend, Unsuspend), each with its
-  ``CurrentState`` and ``CurrentState/Id`` (the state's NodeId in the nodeset); the methods are the
-  types' optional members, added by the cell.
+  ``CurrentState`` and ``CurrentState/Id`` (the state's NodeId in the nodeset), and its
+  ``AvailableStates`` and ``AvailableTransitions`` (the NodeIds of its type's states and transitions in
+  the nodeset, written once); the methods are the types' optional members, added by the cell.
 - The type's methods: ``SetUnitMode(Int32 RequestedMode)``; ``SetMachSpeed``, ``SetParameter`` and
   ``SetProduct`` are there (the type requires them) and answer ``Bad_NotSupported``.
 
@@ -62,7 +63,20 @@ COUNT_DATA_TYPE = 14
 DESCRIPTOR_DATA_TYPE = 16
 """``PackMLDescriptorDataType``'s NodeId: the type of Start's ``Parameter`` argument."""
 MODE_ENUM = 11
-"""``ProductionMaintenanceModeEnum``'s NodeId: the unit modes (1 Produce, 2 Maintenance, 3 Manual)."""
+"""``ProductionMaintenanceModeEnum``'s NodeId: the unit modes (1 Produce, 2 Maintenance, 3 Manual), and
+the DataType of ``Status/UnitModeCurrent`` (the type declares the abstract Enumeration)."""
+MACHINE_TYPES = {"BaseStateMachine": 3, "BaseStateMachine/MachineState": 2,
+                 "BaseStateMachine/MachineState/ExecuteState": 1}
+"""The unit's state machines (path) and their types' NodeIds (``PackMLBaseStateMachineType``,
+``PackMLMachineStateMachineType``, ``PackMLExecuteStateMachineType``)."""
+STATE_TYPES = frozenset({ua.NodeId(ua.Int32(ua.ObjectIds.StateType)),
+                         ua.NodeId(ua.Int32(ua.ObjectIds.InitialStateType))})
+"""The type definitions of a state machine type's state objects (OPC UA Part 16)."""
+TRANSITION_TYPE = ua.NodeId(ua.Int32(ua.ObjectIds.TransitionType))
+"""The type definition of its transition objects."""
+NO_SPEED = ua.Range(Low=0.0, High=0.0)
+"""``Status/MachSpeed``'s and ``CurMachSpeed``'s EURange (AnalogItemType's mandatory property): the cell
+has no machine speed, its speeds are always 0."""
 STATE_IDS = {"Cleared": 71, "Aborting": 61, "Aborted": 62, "Stopped": 53, "Stopping": 54, "Clearing": 55,
              "Running": 75, "Resetting": 27, "Idle": 28, "Starting": 29, "Suspending": 30, "Suspended": 31,
              "Unsuspending": 32, "Holding": 33, "Held": 34, "Unholding": 35, "Execute": 36,
@@ -344,6 +358,25 @@ def _inputs(method: MethodSpec, ns: Namespaces) -> list[ua.Argument]:
                         ValueRank=-1, Description=ua.LocalizedText(method.doc))]
 
 
+async def _state_machines(server: Server, ns: Namespaces) -> None:
+    """Write each state machine's ``AvailableStates`` and ``AvailableTransitions``: the NodeIds of its
+    type's state and transition objects in OPC 30050's nodeset (its type's components, so that they
+    follow the nodeset), which a client reads to learn the states and transitions the machine has."""
+    for machine, type_id in MACHINE_TYPES.items():
+        states: list[ua.NodeId] = []
+        transitions: list[ua.NodeId] = []
+        for child in await server.get_node(ns.packml_id(type_id)).get_children(
+                refs=ua.ObjectIds.HasComponent, nodeclassmask=ua.NodeClass.Object):
+            kind = await child.read_type_definition()
+            if kind in STATE_TYPES:
+                states.append(child.nodeid)
+            elif kind == TRANSITION_TYPE:
+                transitions.append(child.nodeid)
+        for name, ids in (("AvailableStates", states), ("AvailableTransitions", transitions)):
+            await server.get_node(ns.node_id(f"{machine}/{name}")).write_value(
+                ua.Variant(sorted(ids, key=lambda i: i.Identifier), V.NodeId))
+
+
 async def build(server: Server, unit_name: str, ns: Namespaces,
                 handlers: dict[str, Callable[..., Any]]) -> dict[str, ua.NodeId]:
     """Import OPC 30050's nodeset (its namespace ``ns.packml``, registered already), add the unit as an
@@ -357,6 +390,11 @@ async def build(server: Server, unit_name: str, ns: Namespaces,
     typed = {node.nodeid: node for node in made}
     unit = typed[ns.node_id(UNIT_ID)]
     await _describe(unit, "A scanning cell on the packing line: a PackML unit (ISA-TR88.00.02, OPC 30050).")
+    await _state_machines(server, ns)
+    for speed in ("Status/MachSpeed", "Status/CurMachSpeed"):
+        await server.get_node(ns.node_id(f"{speed}/EURange")).write_value(ua.Variant(NO_SPEED))
+    await server.get_node(ns.node_id("Status/UnitModeCurrent")).write_attribute(
+        ua.AttributeIds.DataType, ua.DataValue(ua.Variant(ns.packml_id(MODE_ENUM))))
     objects: dict[str, Node] = {"": unit}
 
     async def parent(path: str) -> Node:
