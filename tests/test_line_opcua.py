@@ -584,6 +584,16 @@ def test_every_refused_call_says_why_in_the_command_message(encrypted):
             await refused("SetUnitMode", ua.StatusCodes.BadInvalidArgument,
                           f"refused unit mode 7 {source}: one of 1 Production, 3 Manual",
                           ua.Variant(7, ua.VariantType.Int32))
+            # Start's Parameter of another type, empty or not, is a type mismatch, not a value refused
+            for parameter, got in ((ua.Variant(7, ua.VariantType.Int32), "Int32"),
+                                   (ua.Variant([], ua.VariantType.Int32), "an array of Int32"),
+                                   (ua.Variant([7], ua.VariantType.Int32), "an array of Int32")):
+                await refused(f"{EXECUTE_STATE}/Start", ua.StatusCodes.BadInvalidArgument,
+                              f"refused a call of Start {source}: Parameter expects an array of "
+                              f"PackMLDescriptorDataType, got {got}", parameter)
+                result = await line.call_result(f"{EXECUTE_STATE}/Start", parameter)
+                assert [r.value for r in result.InputArgumentResults] == [ua.StatusCodes.BadTypeMismatch]
+            assert await line.state() == IDLE
             with pytest.raises(ua.uaerrors.BadOutOfRange):
                 await line.write("Command/UnitMode", 9, ua.VariantType.Int32)
             assert await line.read("Status/CommandMessage") == (

@@ -121,13 +121,29 @@ def _refusal(tag: Tag, item: ua.WriteValue, check_part_id: Callable[[str], str])
     return None
 
 
+def _mismatch(name: str, expects: str, arg: ua.Variant) -> tuple[str, MethodResult]:
+    """The refusal of argument ``name`` given ``arg`` where it ``expects`` another type."""
+    got = f"an array of {arg.VariantType.name}" if arg.is_array else arg.VariantType.name
+    return (f"{name} expects {expects}, got {got}",
+            ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
+                                InputArgumentResults=[_status(S.BadTypeMismatch)]))
+
+
 def _argument_refusal(spec: MethodSpec, args: tuple[ua.Variant, ...]) -> tuple[str, MethodResult] | None:
     """Why a call of ``spec`` with ``args`` is refused before it reaches the line, with its answer; None:
-    it is not."""
+    it is not. Start's ``Parameter`` may be left out or null, or be an empty array of
+    ``PackMLDescriptorDataType``: another type is a type mismatch, a descriptor is out of range."""
     if spec.parameters and args:
         if len(args) > 1:
             return f"it takes one argument, Parameter, got {len(args)}", _status(S.BadTooManyArguments)
-        if args[0].Value not in (None, []):
+        (arg,) = args
+        if arg.VariantType == ua.VariantType.Null:
+            return None
+        descriptor = ua.PackMLDescriptorDataType  # type: ignore[attr-defined]  # made by the nodeset's import
+        if arg.VariantType != ua.VariantType.ExtensionObject or not arg.is_array or \
+                not all(isinstance(value, descriptor) for value in arg.Value or ()):
+            return _mismatch("Parameter", "an array of PackMLDescriptorDataType", arg)
+        if arg.Value:
             return ("Parameter must be empty: the cell's scans take no parameter (SetPartId sets the part)",
                     ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
                                         InputArgumentResults=[_status(S.BadOutOfRange)]))
@@ -142,10 +158,7 @@ def _argument_refusal(spec: MethodSpec, args: tuple[ua.Variant, ...]) -> tuple[s
         return f"it takes {takes}, got none", _status(S.BadArgumentsMissing)
     (arg,) = args
     if arg.VariantType != spec.argument[1] or arg.is_array:
-        got = f"an array of {arg.VariantType.name}" if arg.is_array else arg.VariantType.name
-        return (f"{spec.argument[0]} expects a {spec.argument[1].name}, got {got}",
-                ua.CallMethodResult(StatusCode=_status(S.BadInvalidArgument),
-                                    InputArgumentResults=[_status(S.BadTypeMismatch)]))
+        return _mismatch(spec.argument[0], f"a {spec.argument[1].name}", arg)
     return None
 
 
