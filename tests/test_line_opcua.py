@@ -383,6 +383,39 @@ def test_the_state_machines_list_their_states_and_transitions_and_the_status_is_
     run(scenario())
 
 
+def test_only_the_five_command_tags_are_writable(encrypted):
+    """Every variable under the unit, the typed members and their properties included, is read only but
+    the five PackTags/Command variables: a nodeset update or a stray set_writable is caught here."""
+    async def walk(node: Node, ns: int, seen: set[ua.NodeId]) -> AsyncIterator[Node]:
+        for child in await node.get_children(refs=ua.ObjectIds.HierarchicalReferences):
+            if child.nodeid in seen or child.nodeid.NamespaceIndex != ns:  # not the unit's: a type's
+                continue
+            seen.add(child.nodeid)
+            yield child
+            async for grandchild in walk(child, ns, seen):
+                yield grandchild
+
+    async def scenario() -> tuple[int, set[str]]:
+        async with plc(encrypted) as line:
+            unit = await line.client.nodes.objects.get_child(f"{line.ns}:sim-ur5e-tof")
+            variables, writable = 0, set()
+            async for node in walk(unit, line.ns, set()):
+                if await node.read_node_class() != ua.NodeClass.Variable:
+                    continue
+                variables += 1
+                for attribute in (ua.AttributeIds.AccessLevel, ua.AttributeIds.UserAccessLevel):
+                    level = (await node.read_attribute(attribute)).Value.Value
+                    if level & ua.AccessLevel.CurrentWrite.mask:
+                        writable.add(str(node.nodeid.Identifier))
+            return variables, writable
+
+    variables, writable = run(scenario())
+    assert variables > 50, variables  # the walk reached the typed members and the PackTags
+    assert writable == {"PackTags.Command.CntrlCmd", "PackTags.Command.CmdChangeRequest",
+                        "PackTags.Command.UnitMode", "PackTags.Command.UnitModeChangeRequest",
+                        "PackTags.Command.Parameter.PartId"}
+
+
 def test_stop_during_execute_stops_the_scan(encrypted):
     async def scenario() -> tuple[str, int, str]:
         async with plc(encrypted) as line:
