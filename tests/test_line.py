@@ -205,6 +205,8 @@ def test_whole_cycles_with_results_and_counters(line: Line):
         done = line.wait({"Complete"})
         result = done["result"]
         assert result["part_id"] == part and done["processed"] == n
+        # Complete shows the job that produced its result (none for a part rejected before a scan)
+        assert done["job_id"] == (result["job_id"] or None), done
         if part == "unicorn":  # the feeder has no such part: defective, not a fault
             assert result["status"] == "rejected" and not result["fits"]
             assert "unknown object" in result["message"]
@@ -223,7 +225,7 @@ def test_whole_cycles_with_results_and_counters(line: Line):
             assert result["fits"] and result["container"] and result["clearance_m"] > 0
             assert result["length_m"] >= result["width_m"] > 0 and result["height_m"] > 0
         assert line.command("reset").status_code == 200
-        line.wait({"Idle"})
+        assert line.wait({"Idle"})["job_id"] is None  # Reset ends the cycle
     assert line.state()["defective"] == 2
     history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
     walk = [(h["from_name"], h["to_name"]) for h in reversed(history)]
@@ -284,7 +286,7 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     assert line.command("stop").status_code == 200
     stopped = line.wait({"Stopped"})
     assert stopped["stop_reason"] == {"id": 1, "message": "Stop from REST (key line)"}
-    assert line.job(running["job_id"])["status"] == "stopped"
+    assert line.job(running["job_id"])["status"] == "stopped" and stopped["job_id"] == running["job_id"]
     assert stopped["processed"] == 0 and stopped["result"] is None  # only a Complete writes a result
 
 
@@ -355,14 +357,14 @@ def test_hold_stops_the_scan_and_unhold_scans_the_part_again(line: Line):
     first = line.wait({"Execute"})["job_id"]
     assert line.command("hold").status_code == 200
     held = line.wait({"Held"})
-    assert line.job(first)["status"] == "stopped" and held["job_id"] is None
+    assert line.job(first)["status"] == "stopped" and held["job_id"] == first
     assert line.command("start", "bunny").status_code == 409  # Held waits for Unhold (or Stop, Abort)
     assert line.state()["part_id"] == "cube@0.01,0.0,15"
     line.command("unhold")
     again = line.wait({"Execute"})["job_id"]
     assert again != first and line.job(again)["part_id"] == "cube@0.01,0.0,15"
     done = line.wait({"Complete"})
-    assert done["result"]["job_id"] == again and done["processed"] == 1
+    assert done["result"]["job_id"] == done["job_id"] == again and done["processed"] == 1
     history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
     walk = [h["to_name"] for h in reversed(history)]
     assert walk[walk.index("Holding"):walk.index("Complete") + 1] == [

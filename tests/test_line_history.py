@@ -117,8 +117,9 @@ def test_unhold_of_a_scan_that_completed_while_held_shows_its_job_in_execute(tmp
         return seen, result.job_id
 
     seen, result_job = asyncio.run(scenario())
-    assert seen == [(State.UNHOLDING, None), (State.EXECUTE, "job-1"), (State.COMPLETING, None),
-                    (State.COMPLETE, None)]
+    # the cycle's job, from the Hold through its result, until Reset
+    assert seen == [(State.UNHOLDING, "job-1"), (State.EXECUTE, "job-1"), (State.COMPLETING, "job-1"),
+                    (State.COMPLETE, "job-1")]
     assert result_job == "job-1"
 
 

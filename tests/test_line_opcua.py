@@ -231,13 +231,15 @@ def test_five_parts_through_the_handshake_and_the_methods(encrypted):
                     "Converged", "Message")}
                 assert result["JobId"] == job_id and result["PartId"] == part, result
                 assert await line.read("Admin/ProdProcessedCount") == processed + i + 1
-                assert await line.read("Status/JobId") == ""
+                # Complete holds the cycle's job, the one whose result it holds, until Reset
+                assert await line.read("Status/JobId") == job_id
                 results.append(result)
                 if methods:
                     await line.call(f"{EXECUTE_STATE}/Reset")
                 else:
                     await line.handshake(RESET)
                 assert await line.wait((IDLE,)) == IDLE
+                assert await line.read("Status/JobId") == ""
             await subscription.delete()
             assert seen.count(EXECUTE) == len(PARTS) and seen.count(COMPLETE) == len(PARTS), seen
             # a part the feeder does not know: no scan, a defective part, not a fault

@@ -65,9 +65,12 @@ MODE_NAMES = {"production": UnitMode.PRODUCTION, "manual": UnitMode.MANUAL}
 
 @dataclass(frozen=True)
 class LineSnapshot:
-    """The line now: PackML state and unit mode, the part id parameter, the scan job of the cycle (None
-    outside one), the counters, the last stop reason, the last result (None before the first), and the
-    outcome of the last command or mode change, or of a request a way in refused by itself, in words."""
+    """The line now: PackML state and unit mode, the part id parameter, the cycle's scan job (the last one
+    the cycle submitted, running or ended, until Reset: in Complete the job whose result the line holds, in
+    Stopped or Aborted the one that stopped or failed; None from Reset until the next cycle's scan is
+    submitted, and for a part rejected before a scan), the counters, the last stop reason, the last result
+    (None before the first), and the outcome of the last command or mode change, or of a request a way in
+    refused by itself, in words."""
 
     state: State
     mode: UnitMode
@@ -104,7 +107,8 @@ class LineController:
         self.mode = MODE_NAMES[config.initial_mode]
         self.part_id = ""
         self._part_id_pending = False  # part_id was set for the coming part: no Start has taken it yet
-        self._job_id: str | None = None
+        self._job_id: str | None = None  # the cycle's scan job while it runs: the one the line stops
+        self._cycle_job_id: str | None = None  # the cycle's last scan job, ended or not, until Reset
         self._cycle_part = ""
         self._done: CycleResult | None = None  # a scan that completed while the line held or suspended
         self._record = LineRecord(cell=self._cell, mode=int(self.mode))
@@ -177,8 +181,8 @@ class LineController:
 
     def snapshot(self) -> LineSnapshot:
         r = self._record
-        return LineSnapshot(self.state, self.mode, self.part_id, self._job_id, r.processed, r.defective,
-                            StopReason(r.stop_reason_id), r.stop_reason,
+        return LineSnapshot(self.state, self.mode, self.part_id, self._cycle_job_id, r.processed,
+                            r.defective, StopReason(r.stop_reason_id), r.stop_reason,
                             None if r.last_result is None else CycleResult.from_dict(r.last_result),
                             self._message)
 
@@ -236,6 +240,8 @@ class LineController:
             self.part_id, self._part_id_pending = given, True
         if command is Command.START:
             self._part_id_pending = False
+        elif command is Command.RESET:
+            self._cycle_job_id = None  # the cycle is over: its job stays in the last result and the history
         self._message = f"{command.label} from {source}"
         self._source = source
         if command is Command.STOP:
@@ -390,10 +396,7 @@ class LineController:
         state = self.state
         if self._done is not None:
             done, self._done = self._done, None
-            # Execute shows the scan's job, as every Execute does; it is over by Completing
-            self._job_id = done.job_id
             self._enter(State.EXECUTE, "the held part's scan had completed")
-            self._job_id = None
             self._complete(done)
             return
         await self._scan(self._cycle_part, state)
@@ -422,7 +425,7 @@ class LineController:
         if self.state is not acting:  # stopped or aborted meanwhile: the job is not the line's any more
             await service.stop_job(job.id, f"the line left {acting.label}")
             return
-        self._job_id = job.id
+        self._job_id = self._cycle_job_id = job.id
         self._enter(State.EXECUTE, f"scan {job.id} of part {part_id!r}")
 
     def _complete(self, result: CycleResult) -> None:
