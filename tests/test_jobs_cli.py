@@ -198,15 +198,21 @@ def test_stop_a_running_job_then_wait_exits_2(served: ServedCell):
     assert submitted.exit_code == 0, submitted.output
     job_id = submitted.stdout.strip().splitlines()[-1]
     deadline = time.monotonic() + 60.0
-    while (job := show_json(served, job_id))["status"] != "running":
-        assert job["status"] == "queued" and time.monotonic() < deadline, job
+    # its worker has started it (its first progress): the stop goes through the worker, not a kill of a
+    # worker still loading its libraries
+    while (job := show_json(served, job_id))["progress"] is None:
+        assert job["status"] in {"queued", "running"} and time.monotonic() < deadline, job
         time.sleep(0.1)
     stopped = invoke(served, "stop", job_id)
     assert stopped.exit_code == 0, stopped.output
     assert stopped.stdout.strip(), "stop prints the service's message"
+    # the stop is answered once the worker has taken it: never `running` after, `stopping` until the
+    # worker has written the job's end
+    assert show_json(served, job_id)["status"] in {"stopping", "stopped"}
 
     waited = run_cell(served, "wait", job_id, "--timeout", "60", role="viewer")
     assert waited.returncode == 2, waited.stdout + waited.stderr
+    assert "stopping" in waited.stdout.splitlines(), waited.stdout  # the job's events say so too
     last = waited.stdout.strip().splitlines()[-1]
     # said once: the default reason was 'operator stop', after the guard's 'operator stop: '
     assert last == "stopped: operator stop: requested from the command line (key test-operator)", \

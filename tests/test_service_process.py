@@ -127,7 +127,8 @@ def settle_queue(cell: ServedCell) -> None:
     wait for the running job to end, resume."""
     with cell.client("admin") as client:
         assert client.post("/api/v1/stop", json={"reason": "test clean-up"}).status_code == 200
-        for job in client.get("/api/v1/jobs", params={"status": ["queued", "running"]}).json()["items"]:
+        jobs = client.get("/api/v1/jobs", params={"status": ["queued", "running", "stopping"]}).json()
+        for job in jobs["items"]:
             if job["status"] == "queued":
                 client.delete(f"/api/v1/jobs/{job['id']}")
             else:

@@ -72,7 +72,7 @@ def store(store_url: str) -> Iterator[Store]:
 
 def test_statuses():
     assert set(JOB_STATUSES) > FINISHED_STATUSES
-    assert set(JOB_STATUSES) - FINISHED_STATUSES == {"queued", "running"}
+    assert set(JOB_STATUSES) - FINISHED_STATUSES == {"queued", "running", "stopping"}
 
 
 def test_job_round_trip(store: Store):
@@ -201,9 +201,19 @@ def test_queue_order_and_counts(store: Store, many_jobs: list[JobRecord]):
     assert ids(store.jobs_in_status("a", ["queued", "running"])) == [4, 5, 6, 7]
     assert ids(store.jobs_in_status("b", ["queued"])) == [8]
     assert store.jobs_in_status("c", ["queued"]) == []
-    assert store.count_by_status("a") == {"queued": 3, "running": 1, "completed": 1, "no_object": 0,
-                                          "failed": 1, "stopped": 0, "cancelled": 0, "interrupted": 0}
+    assert store.count_by_status("a") == {"queued": 3, "running": 1, "stopping": 0, "completed": 1,
+                                          "no_object": 0, "failed": 1, "stopped": 0, "cancelled": 0,
+                                          "interrupted": 0}
     assert store.count_by_status("c") == dict.fromkeys(JOB_STATUSES, 0)
+
+
+def test_a_running_job_is_marked_stopping_and_an_ended_one_never(store: Store, many_jobs: list[JobRecord]):
+    """A stop's ``stopping`` never overwrites an end the worker stored first."""
+    (running,) = store.jobs_in_status("a", ["running"])
+    assert store.mark_stopping(running.id) and store.get_job(running.id).status == "stopping"
+    assert ids(store.jobs_in_status("a", ["running", "stopping"])) == ids([running])
+    store.update_job(running.id, status="stopped")
+    assert not store.mark_stopping(running.id) and store.get_job(running.id).status == "stopped"
 
 
 def test_each_cell_keeps_its_own_queue_hold_until_released(store: Store):

@@ -24,13 +24,13 @@ import httpx
 
 from drivers.errors import CellError
 
-JOB_STATUSES = ("queued", "running", "completed", "no_object", "failed", "stopped", "cancelled",
+JOB_STATUSES = ("queued", "running", "stopping", "completed", "no_object", "failed", "stopped", "cancelled",
                 "interrupted")
 """Every status a job can be in, in the order of its life: the service's own list
 (``cell.service.store.JOB_STATUSES``; a test holds them equal), which the command line does not import: the
 store's module loads SQLAlchemy, a third of a second of every ``cell jobs``."""
-FINISHED = frozenset(JOB_STATUSES[2:])
-"""The statuses a job never leaves: all but queued and running."""
+FINISHED = frozenset(JOB_STATUSES[3:])
+"""The statuses a job never leaves: all but queued, running and stopping."""
 REQUEST_TIMEOUT_S = 30.0
 STREAM_IDLE_S = 40.0
 """An event stream silent this long [s] is taken as broken (the server sends a keep-alive every 15 s)."""

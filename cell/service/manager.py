@@ -57,7 +57,14 @@ from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, fini
 from cell.service.recovery import finish_folder, held_after, reconcile
 from cell.service.retention import Retention, delete_job
 from cell.service.search_views import SearchViews
-from cell.service.store import FINISHED_STATUSES, STORE_RETRY_S, HoldRecord, JobRecord, Store
+from cell.service.store import (
+    FINISHED_STATUSES,
+    RUNNING_STATUSES,
+    STORE_RETRY_S,
+    HoldRecord,
+    JobRecord,
+    Store,
+)
 from cell.service.store.engine import RESTORE
 from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
@@ -118,8 +125,9 @@ class _Running:
     the pair ``JobControl`` keeps), the stop confirmations the worker owes, the stop its worker was killed
     for (it did not confirm in time, or had not started: its cause as the termination begins,
     ``operator stop: `` for a request), its newest progress, its worker's last word, whether its end is
-    recorded (the worker may still be exiting) and in the store (``stored``), the stop of a worker taken
-    for hung (``hung_stop``) and ``gone``, set once the worker has exited."""
+    recorded (the worker may still be exiting) and in the store (``stored``), whether its record says
+    ``stopping`` (its worker took a stop), the stop of a worker taken for hung (``hung_stop``) and
+    ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
@@ -133,6 +141,7 @@ class _Running:
     ended: dict[str, Any] | None = None
     recorded: bool = False
     stored: bool = False
+    stopping: bool = False
     hung_stop: asyncio.Task[StopOutcome] | None = None
     gone: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -385,8 +394,8 @@ class CellService:
             "arm": {"type": cfg.arm.type, "model": cfg.arm.model, **self.arm.status.as_dict()},
             "sensor": {"type": cfg.sensor.type, "connected": sensor_up},
             "job": None if running is None else {
-                "id": running.job.id, "status": "running", "planner": running.job.planner,
-                "part_id": running.job.part_id, "progress": running.progress},
+                "id": running.job.id, "status": "stopping" if running.stopping else "running",
+                "planner": running.job.planner, "part_id": running.job.part_id, "progress": running.progress},
             "queue": {"length": len(self._queued), "max": self.config.service.queue_max,
                       "held": self.hold_reason() or self._waiting_for_resources(),
                       "held_at": None if self._held is None else self._held.held_at},
@@ -502,7 +511,7 @@ class CellService:
         if job_id not in self._queued:
             job = await self.job(job_id)
             raise ServiceError(f"job {job_id} is {job.status}, not queued: "
-                               + ("stop it instead" if job.status == "running" else "it has ended"),
+                               + ("stop it instead" if job.status in RUNNING_STATUSES else "it has ended"),
                                reason="conflict")
         return await self._cancel_queued(job_id, reason)
 
@@ -640,6 +649,7 @@ class CellService:
             # ended now, the stop takes milliseconds rather than the confirmation's timeout and a kill
             running.killed_for = f"{cause} (ended while its worker was starting, before any motion)"
             self._kill(proc)
+            await self._mark_stopping(running)
             return StopOutcome(job_id, False, "the job's worker was still starting: it was ended before "
                                               "any motion")
         ack: asyncio.Future[StopEffect] = asyncio.get_running_loop().create_future()
@@ -658,10 +668,31 @@ class CellService:
             # before the next job moves it, as after a worker that died
             self._hold(f"a stop its job's worker did not confirm ({running.killed_for}); check the arm")
             self._kill(proc)
+            await self._mark_stopping(running)
             return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
                                f"{self.config.service.stop_confirm_timeout_s:g} s and was killed; the arm's "
                                "connection watchdog stops the arm")
+        if effect is not StopEffect.AFTER_MOTION:  # a job whose motion had ended may still complete
+            await self._mark_stopping(running)
         return StopOutcome(job_id, effect is StopEffect.COMMANDED, STOP_EFFECTS[effect])
+
+    async def _mark_stopping(self, running: _Running) -> None:
+        """Have the running job's record say ``stopping`` (its worker has taken the stop, the arm commanded
+        to stop or not moved yet, or it was killed) until the worker has written how the job ended, so that
+        a list read after the stop's answer does not show it ``running``. A store that does not take the
+        write leaves it ``running`` (logged): the arm was stopped before this write either way."""
+        if running.stopping or running.recorded:
+            return
+        job_id = running.job.id
+        try:
+            marked = await asyncio.to_thread(self.store.mark_stopping, job_id)
+        except StoreError as exc:
+            log.warning("the job's record still says running: %s", exc, extra={"job_id": job_id})
+            return
+        # its end, stored meanwhile, is published after its own write: never before this one
+        if marked and not running.stored:
+            running.stopping = True
+            self.events.log(job_id).publish("state", {"status": "stopping", "termination": None})
 
     @staticmethod
     def _kill(proc: asyncio.subprocess.Process) -> None:
@@ -955,12 +986,13 @@ class CellService:
         assert proc is not None and proc.stdout is not None
         if not started:
             await self._warm()  # beside the job, where the cell allows it; never raises
+            self.arm.job_started()
+            log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
+            # before a stop asked for meanwhile: its `stopping` follows `running`
+            self.events.log(job.id).publish("state", {"status": "running", "termination": None})
             if running.pending_stop is not None:
                 reason, requested = running.pending_stop
                 await self._stop_running(running, reason, requested=requested)
-            self.arm.job_started()
-            log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
-            self.events.log(job.id).publish("state", {"status": "running", "termination": None})
         while line := await self._next_line(running, proc.stdout):
             try:
                 message = finite_json(json.loads(line))

@@ -1,8 +1,8 @@
 """After the service or a worker died: finish the job folders and the store so that nothing stays
 ``running`` and nothing recorded is lost.
 
-When the service starts it looks for its cell's jobs still marked ``running`` (the service was killed
-while they ran). A worker that outlived the service has seen its input close and stopped the arm
+When the service starts it looks for its cell's jobs still marked ``running`` or ``stopping`` (the service
+was killed while they ran). A worker that outlived the service has seen its input close and stopped the arm
 (``cell.service.worker``); it is given time to finish its folder, then ended. A job whose folder says
 ``completed`` or ``no_object`` was finished safely and stays so; so does a job that ended by itself
 before the restart, whose end did not reach the store (it did not answer, then the service died):
@@ -36,7 +36,7 @@ from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.service.protocol import WORKER_MODULE
 from cell.service.retention import known_folders, listed
-from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, HoldRecord, JobRecord, Store
+from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, RUNNING_STATUSES, HoldRecord, JobRecord, Store
 from cell.service.store.repository import JOB_ID
 from cell.service.worker import SERVICE_GONE
 from drivers.atomic_file import keep_aside, write_text_atomic
@@ -208,7 +208,7 @@ def reconcile(store: Store, cell: str, worker_wait_s: float) -> list[str]:
     words, for the service's log."""
     done: list[str] = []
     now = datetime.now(UTC)
-    for job in store.jobs_in_status(cell, ["running"]):
+    for job in store.jobs_in_status(cell, RUNNING_STATUSES):
         ended_alone = end_worker(job.worker_pid, job.started_at, worker_wait_s)
         folder = Path(job.folder)
         result = read_result(folder)
@@ -221,7 +221,7 @@ def reconcile(store: Store, cell: str, worker_wait_s: float) -> list[str]:
             result = finish_folder(folder, job, status, termination)
         store.update_job(job.id, status=status, termination=termination, result=result,
                          finished_at=now, worker_pid=None)
-        done.append(f"job {job.id} was running when the service stopped: now {status}")
+        done.append(f"job {job.id} was {job.status} when the service stopped: now {status}")
     done += settle_queued(store, cell, now)
     if store.jobs_dir is not None:
         done += import_folders(store, cell, store.jobs_dir)

@@ -14,6 +14,7 @@ from cell.api.schemas import STOP_BODY, CellOut, ObjectOut, PlannerOut, RecoverO
 from cell.api.stop_reason import StopReason
 from cell.service.manager import CellService
 from cell.service.objects import ObjectEntry
+from cell.service.store import RUNNING_STATUSES
 from drivers.errors import ServiceError
 from drivers.sim.objects import DEFAULT_OBJECT
 
@@ -83,7 +84,7 @@ async def delete_object(cell: Service, name: str, _: Uploader) -> None:
     that a queued or running job scans; 404 for an unknown one."""
     _virtual_only(cell)
     await asyncio.to_thread(cell.objects.remove, name,
-                            partial(cell.store.jobs_in_status, cell.name, ("queued", "running")))
+                            partial(cell.store.jobs_in_status, cell.name, ("queued", *RUNNING_STATUSES)))
 
 
 @router.post("/stop", response_model=StopOut, openapi_extra=STOP_BODY)

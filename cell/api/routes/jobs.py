@@ -118,7 +118,7 @@ async def stop_job(job_id: str, cell: Service, key: Stopper, reason: StopReason)
             responses={200: {"content": {"text/event-stream": {}}}})
 async def job_events(job_id: str, request: Request, cell: Service, key: Reader,
                      last_event_id: Annotated[int | None, Header(ge=0)] = None) -> StreamingResponse:
-    """Server-Sent Events: ``state`` (queued, running, completed, failed, stopped, cancelled,
+    """Server-Sent Events: ``state`` (queued, running, stopping, completed, failed, stopped, cancelled,
     interrupted), ``progress`` at each perception update, and a final ``result``. Reconnect with
     ``Last-Event-ID`` to resume where the stream broke off. The stream ends once its key is revoked
     (within about two seconds, ``KEY_CHECK_S``; a reconnection with it is then refused, 401), and within

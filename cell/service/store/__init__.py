@@ -5,6 +5,7 @@ from cell.service.store.engine import sqlite_url
 from cell.service.store.records import (
     FINISHED_STATUSES,
     JOB_STATUSES,
+    RUNNING_STATUSES,
     STORE_RETRY_S,
     HoldRecord,
     JobRecord,
@@ -14,6 +15,6 @@ from cell.service.store.records import (
 )
 from cell.service.store.repository import Store, open_data_store, open_store, restrict_store_files
 
-__all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "STORE_RETRY_S", "HoldRecord", "JobRecord", "KeyRecord",
-           "LineRecord", "LineTransition", "Store", "open_data_store", "open_store", "restrict_store_files",
-           "sqlite_url"]
+__all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "RUNNING_STATUSES", "STORE_RETRY_S", "HoldRecord",
+           "JobRecord", "KeyRecord", "LineRecord", "LineTransition", "Store", "open_data_store", "open_store",
+           "restrict_store_files", "sqlite_url"]

@@ -7,9 +7,13 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-# Every status a job can be in, in the order of its life: waiting, on the arm, then one way of ending.
-JOB_STATUSES = ("queued", "running", "completed", "no_object", "failed", "stopped", "cancelled",
+# Every status a job can be in, in the order of its life: waiting, on the arm (``stopping``: its worker
+# has taken a stop, the arm is commanded to stop, and the worker has not yet written how the job ended),
+# then one way of ending.
+JOB_STATUSES = ("queued", "running", "stopping", "completed", "no_object", "failed", "stopped", "cancelled",
                 "interrupted")
+# The statuses of a job whose worker holds the arm.
+RUNNING_STATUSES = ("running", "stopping")
 # The statuses a job never leaves: ``completed``, ``no_object`` (the scan found nothing on the table),
 # ``failed`` and ``stopped`` are the scan's own outcomes (``result.json``), ``cancelled`` a job removed
 # from the queue before it ran, ``interrupted`` a job whose worker died or whose service went down while

@@ -21,7 +21,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import ColumnElement, Connection, Engine, func, select
+from sqlalchemy import ColumnElement, Connection, CursorResult, Engine, func, select, update
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -284,6 +284,15 @@ class Store:
                 setattr(row, name, value)
             session.flush()
             return self._job_record(row)
+
+    def mark_stopping(self, job_id: str) -> bool:
+        """Job ``job_id`` is ``stopping`` if it is ``running`` (its worker has taken a stop); False, and the
+        job as it is, when it is not running any more: its end, stored meanwhile, is never overwritten."""
+        query = (update(JobRow).where(JobRow.id == job_id, JobRow.status == "running")
+                 .values(status="stopping"))
+        with self._session(f"marking job {job_id} stopping") as session:
+            result: CursorResult[Any] = session.execute(query)  # type: ignore[assignment]  # an UPDATE's is one
+            return bool(result.rowcount)
 
     def list_jobs(self, *, cell: str | None = None, statuses: Sequence[str] | None = None,
                   planner: str | None = None, part_id: str | None = None,

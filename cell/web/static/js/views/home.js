@@ -39,7 +39,7 @@ export function showHome(main, context) {
   return context.onStatus((status) => {
     const job = status.job;
     replace(running, job
-      ? ["Running: ", h("a", { href: `#/jobs/${job.id}` }, `job ${job.id}`), ` (${job.planner})`]
+      ? [job.status === "stopping" ? "Stopping: " : "Running: ", h("a", { href: `#/jobs/${job.id}` }, `job ${job.id}`), ` (${job.planner})`]
       : "Nothing is running.");
   });
 }

@@ -135,7 +135,8 @@ export function showJob(main, context, jobId) {
     badge.className = `status status-${status}`;
     document.getElementById("job-termination").textContent = termination ?? "";
     const actions = head.querySelector(".job-actions");
-    // every key may stop a running job; a queued one's stop cancels it, which a viewer may not do
+    // every key may stop a running job; a queued one's stop cancels it, which a viewer may not do; a
+    // stopping one's worker has taken a stop already
     const stoppable = status === "running" || (status === "queued" && context.can("cancel"));
     if (stoppable && !actions.firstChild) actions.append(stopButton());
     if (!stoppable) {
@@ -205,7 +206,7 @@ export function showJob(main, context, jobId) {
     if (!alive) return;
     replace(head, header(job));
     setStatus(job.status, job.termination);
-    if (job.status === "running") {
+    if (job.status === "running" || job.status === "stopping") { // its worker runs till it writes its end
       refreshCloud();
       startCloud();
     }

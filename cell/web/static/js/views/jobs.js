@@ -1,13 +1,13 @@
 // The jobs table: newest first, filtered by status, planner and part id, a page at a time (the list
 // endpoint's own query parameters, kept in the address so that a filtered page can be bookmarked). While
 // it is shown it is read again every REFRESH_MS (and at once when a job ended or a button acted), so
-// queued and running rows follow their jobs.
+// queued, running and stopping rows follow their jobs.
 
 import { api, describe } from "../api.js";
 import { fmt, h, replace, when } from "../dom.js";
 
 const STATUSES = [
-  "queued", "running", "completed", "no_object", "failed", "stopped", "cancelled", "interrupted",
+  "queued", "running", "stopping", "completed", "no_object", "failed", "stopped", "cancelled", "interrupted",
 ];
 const PAGE = 20;
 const REFRESH_MS = 5000;
