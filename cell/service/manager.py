@@ -228,6 +228,7 @@ class CellService:
         self._spare_log = self._logs_dir / "worker-spare.log"
         self._spare_watch: asyncio.Task[None] | None = None
         self._spare_loaded = False
+        self._checks_loaded = False  # the dispatcher has loaded the placement checks: it starts jobs
         self._warming = False
         self._rewarm: asyncio.Task[None] | None = None
         self._spawn_failure: str | None = None
@@ -371,6 +372,13 @@ class CellService:
         if self._spare is None:
             return "none"
         return "loaded" if self._spare_loaded else "loading"
+
+    @property
+    def placement_checks(self) -> str:
+        """Whether the dispatcher has loaded the placement checks (:meth:`_load_checks`), for ``/readyz``:
+        ``loading`` (a job submitted now starts once they are loaded, about a second after the start) or
+        ``loaded`` (it waits for queued jobs)."""
+        return "loaded" if self._checks_loaded else "loading"
 
     @property
     def broken(self) -> str | None:
@@ -890,6 +898,7 @@ class CellService:
         starts before the placement checks are loaded (:meth:`_load_checks`)."""
         try:
             await asyncio.to_thread(self._load_checks)
+            self._checks_loaded = True
             await self._dispatch_jobs()
         except Exception as exc:
             self._broken = (f"the job dispatcher stopped on an error ({type(exc).__name__}: {exc}): no job "

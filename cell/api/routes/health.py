@@ -35,7 +35,9 @@ async def readyz(response: Response, cell: Service,
     jobs folder not writable or without room for a job); else 503 with the reason as ``status``.
     ``warm_worker`` says whether the next job's worker has loaded its libraries
     (``CellService.warm_worker``: off, none, loading, loaded); a service whose spare is still loading
-    takes jobs all the same (the first then waits for the imports), so it does not make the answer 503."""
+    takes jobs all the same (the first then waits for the imports), so it does not make the answer 503;
+    ``placement_checks`` whether the dispatcher has loaded them (``CellService.placement_checks``:
+    loading, loaded), which it does once, about a second after the start, before it starts any job."""
     try:
         await asyncio.to_thread(cell.store.count_by_status, cell.name)
     except StoreError:
@@ -46,7 +48,7 @@ async def readyz(response: Response, cell: Service,
     if (reason := await asyncio.to_thread(cell.not_ready)) is not None:
         response.status_code = 503
         return {"status": reason}
-    return {"status": "ready", "warm_worker": cell.warm_worker}
+    return {"status": "ready", "warm_worker": cell.warm_worker, "placement_checks": cell.placement_checks}
 
 
 @router.get("/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE: {}}}})
