@@ -18,7 +18,9 @@ from cell.config import load_config
 from cell.jobs.placement import check_on_table, footprint_bounds
 from cell.service.arm_clearance import ArmClearance
 from cell.service.objects import ObjectLibrary
+from cell.service.search_views import SearchViews
 from cell.service.store import JobRecord
+from cell.service.submission import JobRequest, validate
 from drivers.errors import JobError, ServiceError
 from drivers.sim.objects import ObjectMesh, load_object
 from tests.conftest import FRANKA
@@ -84,6 +86,53 @@ def test_after_a_restart_the_list_and_a_jobs_placement_read_no_uploaded_mesh(
     with pytest.raises(JobError) as by_mesh:
         check_on_table(CONFIG, mesh, far)
     assert str(refused.value) == str(by_mesh.value).replace(mesh.name, "l_part")
+
+
+def test_an_uploads_placement_no_search_view_sees_is_refused_at_submission_from_its_kept_surface(
+        tmp_path: Path, counted_loads: list[str]) -> None:
+    """The job's worker alone refused it (a job that failed with 0 captures); the outline now keeps the
+    points on the upload's surface that the check tests: the submission refuses it as it refuses the
+    mesh, reading no mesh, and takes a placement the views see."""
+    source = tmp_path / "L part.stl"
+    _l_shape().export(source)
+    library = _library(tmp_path / "objects")
+    library.add(source.name, source.read_bytes())
+    restarted = _library(tmp_path / "objects")
+    views = SearchViews(CONFIG)
+
+    arm = ArmClearance(CONFIG)
+
+    def submit_at(pose: tuple[float, float, float]) -> None:
+        validate(CONFIG, restarted, arm, views, JobRequest(object="l_part", object_pose=pose))
+
+    with pytest.raises(ServiceError, match="where none of the 2 views vs-local looks") as refused:
+        submit_at((0.5, 0.0, 0.0))
+    assert refused.value.field == "object_pose"
+    mesh = load_object(tmp_path / "objects" / "l_part.stl")
+    with pytest.raises(JobError) as by_mesh:
+        views.check(mesh, (0.5, 0.0, 0.0), "vs-local")
+    assert str(refused.value) == str(by_mesh.value)
+    submit_at((0.0, 0.0, 30.0))
+    assert len(counted_loads) == 1  # the upload's own check
+
+
+def test_an_outline_file_from_before_surfaces_has_its_mesh_read_once_for_a_submission(
+        tmp_path: Path, counted_loads: list[str]) -> None:
+    folder = tmp_path / "objects"
+    source = tmp_path / "L part.stl"
+    _l_shape().export(source)
+    _library(folder).add(source.name, source.read_bytes())
+    outline_file = folder / "l_part.json"
+    kept = json.loads(outline_file.read_text())
+    del kept["surface_m"]  # as an outline file written before
+    outline_file.write_text(json.dumps(kept))
+    library = _library(folder)
+    assert "l_part" in {e.name for e in library.entries()} and len(counted_loads) == 1  # listed as it was
+    for _ in range(2):
+        with pytest.raises(ServiceError, match="where none of the 2 views"):
+            validate(CONFIG, library, ArmClearance(CONFIG), SearchViews(CONFIG),
+                     JobRequest(object="l_part", object_pose=(0.5, 0.0, 0.0)))
+    assert len(counted_loads) == 2 and "surface_m" in json.loads(outline_file.read_text())
 
 
 def test_an_outline_file_kept_from_before_loads_without_its_mesh(tmp_path: Path,

@@ -207,21 +207,28 @@ def _seen(config: CellConfig, views: list[NDArray[np.float64]], points_base: NDA
                for T_view in views)
 
 
-def check_in_view(config: CellConfig, mesh: ObjectMesh, pose: tuple[float, float, float],
+def view_points(mesh: ObjectMesh) -> Array:
+    """The points (``VIEW_CHECK_POINTS``, 3) [m, object frame] on ``mesh``'s whole surface that
+    :func:`check_in_view` tests, from a fixed seed: the same for the same mesh, wherever it is worked out
+    (the service keeps an upload's, ``cell.service.objects.ObjectOutline.surface``)."""
+    return sample_surface(mesh, VIEW_CHECK_POINTS, np.random.default_rng(0), exclude_down_deg=-1.0)
+
+
+def check_in_view(config: CellConfig, shape: Placed, surface: Array, pose: tuple[float, float, float],
                   views: list[NDArray[np.float64]], planner: str) -> None:
     """Raise ``JobError`` when none of ``views`` (``planner``'s search views, T_base_sensor) has a point of
-    the object at ``pose`` inside its crop box (``perception.crop_box``, sensor frame: what perception
-    keeps of a frame), so that its scan could only end ``no_object``. Occlusion and the sensor's field of
-    view are not counted: a view that might see it is enough. Nothing is refused without views, nor when
-    none of them sees the station on the table either: then the cell file is what is wrong (its mount,
-    standoff), not the placement, and the scan fails saying what to check."""
+    the object ``shape`` at ``pose``, of its ``surface`` points (:func:`view_points`), inside its crop box
+    (``perception.crop_box``, sensor frame: what perception keeps of a frame), so that its scan could only
+    end ``no_object``. Occlusion and the sensor's field of view are not counted: a view that might see it
+    is enough. Nothing is refused without views, nor when none of them sees the station on the table
+    either: then the cell file is what is wrong (its mount, standoff), not the placement, and the scan
+    fails saying what to check."""
     T = object_pose_in_base(config, pose)
-    points = sample_surface(mesh, VIEW_CHECK_POINTS, np.random.default_rng(0), exclude_down_deg=-1.0)
     station = object_pose_in_base(config, (0.0, 0.0, 0.0))[:3, 3]
-    if _seen(config, views, transform_points(T, points)) or not _seen(config, views, station[None]):
+    if _seen(config, views, transform_points(T, surface)) or not _seen(config, views, station[None]):
         return
-    lo_xy, hi_xy = footprint_bounds(config, mesh, pose)
-    raise JobError(f"object pose {list(pose)} puts {mesh.name} (footprint x {lo_xy[0]:.3f}..{hi_xy[0]:.3f} "
+    lo_xy, hi_xy = footprint_bounds(config, shape, pose)
+    raise JobError(f"object pose {list(pose)} puts {shape.name} (footprint x {lo_xy[0]:.3f}..{hi_xy[0]:.3f} "
                    f"m, y {lo_xy[1]:.3f}..{hi_xy[1]:.3f} m, base frame) where none of the {len(views)} views "
                    f"{planner} looks for an object from sees it: they look at {where_views_look(config)}; "
                    "place it nearer the station")

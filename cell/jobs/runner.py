@@ -48,7 +48,13 @@ from cell.jobs.inputs import CHOOSE_OUT, check_job_folder, check_pose, check_see
 from cell.jobs.live import PoseHistory
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter
 from cell.jobs.memory import release_freed_heap
-from cell.jobs.placement import check_in_view, check_placement, object_pose_in_base, where_views_look
+from cell.jobs.placement import (
+    check_in_view,
+    check_placement,
+    object_pose_in_base,
+    view_points,
+    where_views_look,
+)
 from cell.jobs.progress import JobProgress
 from cell.jobs.rebuild import recorded_result
 from cell.jobs.recorder import JobRecorder
@@ -229,7 +235,7 @@ def _scanned_object(req: ScanRequest, replay_dir: Path | None, planner_name: str
         return EMPTY_TABLE, None, None
     mesh = load_object(req.object, req.object_scale)
     check_placement(req.config, mesh, req.object_pose, req.object_scale, world=collision)
-    check_in_view(req.config, mesh, req.object_pose, planner.search_views(), planner_name)
+    check_in_view(req.config, mesh, view_points(mesh), req.object_pose, planner.search_views(), planner_name)
     return req.object, mesh, object_pose_in_base(req.config, req.object_pose)
 
 

@@ -8,11 +8,13 @@ the cell scans and must stand on the cell's table at the station. A scaled mesh 
 file in metres.
 
 The service never keeps an uploaded mesh: a 16 MB STL takes some 60 MB once read, and a second to read.
-What listing the objects and checking a job's placement need of it (:class:`ObjectOutline`: its size and
-its footprint's convex hull, a few hundred numbers) is worked out once, at the upload, and kept beside the
-mesh as ``<name>.json``, with the mesh file's size and modification time; an upload without one (kept from
-before) or whose mesh changed since is read once more, the first time it is asked for. The job's worker
-reads the mesh itself.
+What listing the objects and checking a job's placement need of it (:class:`ObjectOutline`: its size, its
+footprint's convex hull, and the points on its surface that the search views' check tests, some 12,000
+numbers) is worked out once, at the upload, and kept beside the mesh as ``<name>.json``, with the mesh
+file's size and modification time; an upload without one (kept from before) or whose mesh changed since is
+read once more, the first time it is asked for, and so is one whose outline file was written before the
+surface points were kept, the first time a job's placement is checked. The job's worker reads the mesh
+itself.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from scipy.spatial import ConvexHull
 
 from cell.config.models import CellConfig
 from cell.jobs.memory import release_freed_heap
-from cell.jobs.placement import check_placement
+from cell.jobs.placement import check_placement, view_points
 from cell.service.arm_clearance import ArmClearance
 from cell.service.store import JobRecord
 from drivers.atomic_file import write_text_atomic
@@ -71,10 +73,14 @@ class ObjectEntry:
 class ObjectOutline:
     """What the service keeps of an uploaded mesh (``cell.jobs.placement`` reads nothing else):
     ``vertices`` (2K, 3) [m, object frame] the corners of the upright prism over the convex hull of its
-    footprint, at z = 0 and at its height: at every yaw their footprint spans what the mesh's does."""
+    footprint, at z = 0 and at its height: at every yaw their footprint spans what the mesh's does;
+    ``surface`` (``VIEW_CHECK_POINTS``, 3) [m, object frame] the points on its surface that the search
+    views' check tests (``cell.jobs.placement.view_points``), None when read from an outline file written
+    before they were kept."""
 
     name: str
     vertices: Array
+    surface: Array | None = None
 
     @property
     def extents_m(self) -> Array:
@@ -88,14 +94,15 @@ class ObjectOutline:
         # QJ: a footprint that is a line (a flat plate standing on edge) has a hull too; the points it
         # keeps are the mesh's own
         hull = xy[ConvexHull(xy, qhull_options="QJ").vertices]
-        return cls.from_footprint(mesh.name, float(mesh.extents_m[2]), hull)
+        return cls.from_footprint(mesh.name, float(mesh.extents_m[2]), hull, view_points(mesh))
 
     @classmethod
-    def from_footprint(cls, name: str, height_m: float, footprint: Array) -> ObjectOutline:
-        """The prism over ``footprint`` (K, 2) [m], from z = 0 to ``height_m`` [m]."""
+    def from_footprint(cls, name: str, height_m: float, footprint: Array,
+                       surface: Array | None = None) -> ObjectOutline:
+        """The prism over ``footprint`` (K, 2) [m], from z = 0 to ``height_m`` [m], with ``surface``."""
         low = np.column_stack([footprint, np.zeros(len(footprint))])
         high = np.column_stack([footprint, np.full(len(footprint), height_m)])
-        return cls(name, np.vstack([low, high]))
+        return cls(name, np.vstack([low, high]), surface)
 
 
 def _extents(e: np.ndarray) -> tuple[float, float, float]:
@@ -115,9 +122,12 @@ def _outline_file(mesh_file: Path) -> Path:
 
 def _write_outline(mesh_file: Path, outline: ObjectOutline, stamp: list[int]) -> None:
     footprint = outline.vertices[:len(outline.vertices) // 2, :2]
+    assert outline.surface is not None  # an outline worked out from its mesh
+    # to the micrometre: a third of the digits, and a verdict that moves only at a crop box's very edge
+    surface = np.round(outline.surface, 6).tolist()
     write_text_atomic(_outline_file(mesh_file), json.dumps({
         "mesh_file": {"bytes": stamp[0], "mtime_ns": stamp[1]},
-        "extents_m": outline.extents_m.tolist(), "footprint_m": footprint.tolist()}, indent=1))
+        "extents_m": outline.extents_m.tolist(), "footprint_m": footprint.tolist(), "surface_m": surface}))
 
 
 def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline | None:
@@ -128,10 +138,12 @@ def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline
             return None
         extents = np.asarray(data["extents_m"], dtype=np.float64).reshape(3)
         footprint = np.asarray(data["footprint_m"], dtype=np.float64).reshape(-1, 2)
+        surface = (None if "surface_m" not in data  # written before the surface was kept
+                   else np.asarray(data["surface_m"], dtype=np.float64).reshape(-1, 3))
     except (OSError, ValueError, TypeError, KeyError):  # none, or not one this module wrote: read the mesh
         return None
     # its x and y sizes are the footprint's: only the height is read of them
-    return ObjectOutline.from_footprint(name, float(extents[2]), footprint)
+    return ObjectOutline.from_footprint(name, float(extents[2]), footprint, surface)
 
 
 class ObjectLibrary:
@@ -182,38 +194,45 @@ class ObjectLibrary:
             raise ServiceError(f"unknown object {name!r}; known: {known}", reason="invalid", field="object")
         return str(path.resolve())
 
-    def shape(self, name: str) -> ObjectMesh | ObjectOutline:
+    def shape(self, name: str, *, surface: bool = False) -> ObjectMesh | ObjectOutline:
         """What the placement checks read of a known object: a shipped mesh (small, cached by
-        ``load_object``) or an upload's outline. ``ServiceError`` (invalid, field ``object``) for an
-        unknown name or an upload that no longer reads as a mesh."""
+        ``load_object``) or an upload's outline, with its surface points when ``surface`` (the search
+        views' check: an outline file written before they were kept has the mesh read once more).
+        ``ServiceError`` (invalid, field ``object``) for an unknown name or an upload that no longer reads
+        as a mesh."""
         source = self.source(name)
         if name in shipped_names():
             return load_object(source)
-        outline = self._outline(name, Path(source))
+        outline = self._outline(name, Path(source), surface=surface)
         if outline is None:
             raise ServiceError(f"uploaded object {name!r} no longer reads as a mesh (the service's log says "
                                "why): upload it again", reason="invalid", field="object")
         return outline
 
-    def _outline(self, name: str, path: Path) -> ObjectOutline | None:
-        """The upload's outline: remembered, read from its file, or else (once per mesh file) worked out
-        from the mesh; None when the mesh does not read (logged)."""
+    def _outline(self, name: str, path: Path, *, surface: bool = False) -> ObjectOutline | None:
+        """The upload's outline (with its surface points when ``surface``): remembered, read from its file,
+        or else (once per mesh file) worked out from the mesh; None when the mesh does not read (logged)."""
         try:
             stamp = _stamp(path)
         except FileNotFoundError:  # deleted meanwhile
             return None
-        known = self._outlines.get(name)
-        if known is not None and known[0] == stamp:
-            return known[1]
+        if self._remembers(name, stamp, surface):
+            return self._outlines[name][1]
         outline = _read_outline(name, path, stamp)
-        if outline is None:
+        if outline is None or (surface and outline.surface is None):
             with self._lock:
-                known = self._outlines.get(name)  # another thread may have read it meanwhile
-                if known is not None and known[0] == stamp:
-                    return known[1]
+                if self._remembers(name, stamp, surface):  # another thread may have read it meanwhile
+                    return self._outlines[name][1]
                 outline = self._read_mesh(name, path, stamp)
         self._outlines[name] = (stamp, outline)
         return outline
+
+    def _remembers(self, name: str, stamp: list[int], surface: bool) -> bool:
+        """Whether the outline remembered for ``name`` is of the mesh file ``stamp`` names, and holds its
+        surface points when ``surface`` (or is None: the mesh does not read)."""
+        known = self._outlines.get(name)
+        return known is not None and known[0] == stamp and not (
+            surface and known[1] is not None and known[1].surface is None)
 
     def _read_mesh(self, name: str, path: Path, stamp: list[int]) -> ObjectOutline | None:
         """An upload's outline from its mesh, kept beside it; None when it does not read (logged)."""

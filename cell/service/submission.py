@@ -4,9 +4,9 @@ Every check that ``cell scan`` would make before anything moves is made here, at
 bad request is answered at once (naming the field) instead of failing later on the arm: the planner is
 registered, the object is known, of a size the cell scans and stands on the table at the pose asked
 (``"none"``: an empty table), clear of the arm at its home joints and seen by one of the planner's search
-views, the seed and the time budget are in range. The job's worker repeats all of these, and makes the two
-that need an upload's surface, which the service does not keep (only its outline): its placement into the
-arm and in the search views.
+views (an upload's by the points on its surface the service keeps of it), the seed and the time budget are
+in range. The job's worker repeats all of these, and makes the one that needs an upload's mesh, which the
+service does not keep (only its outline): its placement clear of the arm.
 """
 
 from __future__ import annotations
@@ -87,16 +87,17 @@ def validate(config: CellConfig, objects: ObjectLibrary, arm: ArmClearance, view
     if req.object == EMPTY_TABLE:
         return ValidJob(planner, req.object, EMPTY_TABLE, pose, seed, req.max_time_s, req.part_id)
     source = objects.source(req.object)
-    shape = objects.shape(req.object)  # an upload's outline: the service reads no uploaded mesh
+    # an upload's outline, with its surface points: the service reads no uploaded mesh
+    shape = objects.shape(req.object, surface=True)
     try:
         check_object_size(config, shape, option="uploading it again with scale")
     except JobError as exc:  # an upload kept from before the cell checked sizes
         raise _invalid(str(exc), "object") from None
     try:
         check_on_table(config, shape, pose)
-        if isinstance(shape, ObjectMesh):  # a shipped mesh; an upload's outline has no surface to test
+        if isinstance(shape, ObjectMesh):  # a shipped mesh; an upload's outline has no faces to test
             arm.check(shape, pose)
-            views.check(shape, pose, planner)
+        views.check(shape, pose, planner)
     except JobError as exc:
         raise _invalid(str(exc), "object_pose") from None
     return ValidJob(planner, req.object, source, pose, seed, req.max_time_s, req.part_id)
