@@ -127,6 +127,20 @@ def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_f
         # a cell of the same name with another data dir (a copied cell file): that service is not its own
         (tmp_path / "copy").mkdir()
         copy_code, copy_checks = _doctor(cell_file, tmp_path / "copy", port=cell.port)
+        # its cell file changed since it started, to an OPC UA port another program holds: that port is not
+        # the service's, though the service answers on its HTTP port (it was taken for the service's)
+        moved = tmp_path / "moved.yaml"
+        data = yaml.safe_load(cell_file.read_text())
+        with socket.socket() as other:
+            other.bind(("127.0.0.1", 0))
+            other.listen(1)
+            data["line"]["opcua"]["endpoint"] = f"opc.tcp://127.0.0.1:{other.getsockname()[1]}/cell"
+            moved.write_text(yaml.safe_dump(data))
+            moved_code, moved_checks = _doctor(moved, tmp_path, port=cell.port)
+    status, text = moved_checks["line OPC UA port"]
+    assert status == "fail" and moved_code == 1, moved_checks
+    assert f"this cell's running service listens for OPC UA on 127.0.0.1:{opcua_port}" in text, text
+    assert moved_checks["service port"][0] == "ok"
     assert checks["service port"] == ("ok", f"127.0.0.1:{cell.port} is in use by this cell's running service")
     assert checks["line OPC UA port"] == ("ok", f"{endpoint} is in use by this cell's running service")
     assert code == 0, checks

@@ -31,6 +31,7 @@ from cell.api.routes import cell as cell_routes
 from cell.api.routes import clouds, health, jobs, keys, retention
 from cell.api.routes import line as line_routes
 from cell.api.routes.page import add_page
+from cell.service.instance import opcua_listening
 from cell.service.keys import KeyRing
 from cell.service.manager import CellService
 from cell.service.startup import ServiceSettings, build_service
@@ -88,7 +89,11 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
         refresher = asyncio.create_task(_refresh_keys(app.state.keys))
         opcua = contextlib.AsyncExitStack()
         try:
-            await opcua.enter_async_context(_line_opcua(cell, app.state.keys))
+            if await opcua.enter_async_context(_line_opcua(cell, app.state.keys)) is not None:
+                # it listens: cell doctor tells its port from another program's by this (not by /healthz)
+                assert cell.config.line is not None and cell.config.line.opcua is not None
+                await asyncio.to_thread(opcua_listening, cell.data_dir, cell.instance,
+                                        cell.config.line.opcua.endpoint)
             yield
         finally:
             refresher.cancel()

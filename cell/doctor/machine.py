@@ -19,7 +19,7 @@ from pathlib import Path
 
 from cell.deploy import SERVICE_USER
 from cell.doctor.findings import Finding
-from cell.service.instance import instance_of
+from cell.service.instance import Instance, instance_of
 from cell.service.store.engine import hide_password, schema_head, sqlite_access_problem, sqlite_database
 from cell.service.store.repository import inspect_store
 from cell.service.store.service_store import service_store_url
@@ -216,13 +216,13 @@ def disk(data_dir: Path) -> Finding:
     return Finding.ok("disk", text)
 
 
-def serves_cell(host: str, port: int, data_dir: Path) -> bool:
-    """Whether the running service of ``data_dir`` answers on ``host``:``port``: its ``/healthz`` says the
-    id its start wrote there (``cell.service.instance``). The ports in use that its cell file names are
-    then its, not another program's."""
+def serves_cell(host: str, port: int, data_dir: Path) -> Instance | None:
+    """What the running service of ``data_dir`` wrote there (``cell.service.instance``) when it answers on
+    ``host``:``port`` (its ``/healthz`` says the id its start wrote), else None. The service port is then
+    its, not another program's; an OPC UA port only when it wrote that it listens there."""
     expected = instance_of(data_dir)
     if expected is None:
-        return False
+        return None
     connection = http.client.HTTPConnection(host, port, timeout=SERVICE_ANSWER_TIMEOUT_S)
     try:
         connection.request("GET", "/healthz")
@@ -230,10 +230,10 @@ def serves_cell(host: str, port: int, data_dir: Path) -> bool:
         # a cell's answer is a few dozen bytes: another program's longer one is read no further
         body = json.loads(answer.read(HEALTHZ_MAX_BYTES)) if answer.status == 200 else None
     except (OSError, http.client.HTTPException, ValueError):  # nothing there, or not a cell's service
-        return False
+        return None
     finally:
         connection.close()
-    return isinstance(body, dict) and body.get("instance") == expected
+    return expected if isinstance(body, dict) and body.get("instance") == expected.id else None
 
 
 def port_free(host: str, port: int, name: str = "service port", served: bool = False) -> Finding:

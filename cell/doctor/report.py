@@ -11,6 +11,7 @@ from cell.config.placeholders import find_placeholders
 from cell.doctor import devices, machine
 from cell.doctor.findings import Finding, Status
 from cell.line.opcua_endpoint import check_endpoint
+from cell.service.instance import Instance, opcua_address
 from drivers.arm.config import FrankaArmConfig, UR5eArmConfig
 from drivers.depth.config import VL53L8CXConfig
 from drivers.errors import CellError
@@ -62,7 +63,7 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
         found.append(machine.realtime_limits(required=cfg.arm.realtime == "enforce"))
     # run on a live cell (docs/deploy.md), the ports its own service holds are in use, and rightly so
     served = machine.serves_cell(host, port, data_dir)
-    found += [machine.disk(data_dir), machine.port_free(host, port, served=served)]
+    found += [machine.disk(data_dir), machine.port_free(host, port, served=served is not None)]
     found += machine.store(data_dir, db_url, host)
     opcua = cfg.line.opcua if cfg.line is not None else None
     if opcua is not None:
@@ -70,12 +71,7 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
             check_endpoint(cfg.line)
             found.append(Finding.ok("line OPC UA port", f"{opcua.endpoint} is free"))
         except CellError as exc:
-            if served and str(exc).endswith(machine.IN_USE):  # its OPC UA server: cell serve checked it free
-                found.append(Finding.ok("line OPC UA port", f"{opcua.endpoint} is in use by this cell's "
-                                        "running service"))
-            else:
-                found.append(Finding.fail("line OPC UA port", str(exc), "stop the program that holds it, or "
-                                          "change line.opcua.endpoint (and the PLC's configuration)"))
+            found.append(_opcua_in_use(opcua.endpoint, str(exc), served))
     if isinstance(cfg.sensor, VL53L8CXConfig) and cfg.sensor.port is not None:
         found.append(devices.serial_port(cfg.sensor.port))
     if isinstance(cfg.arm, UR5eArmConfig):
@@ -83,6 +79,22 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
     elif isinstance(cfg.arm, FrankaArmConfig):
         found.append(devices.franka_controller(cfg.arm.host))
     return found
+
+
+def _opcua_in_use(endpoint: str, problem: str, served: Instance | None) -> Finding:
+    """The finding for the line's OPC UA ``endpoint`` that cannot be listened on (``problem``): fine when
+    this cell's running service (``served``) wrote that it listens there (``cell serve`` checked it free),
+    not when it listens on another (the cell file changed since it started)."""
+    if served is not None and problem.endswith(machine.IN_USE):
+        if served.opcua == opcua_address(endpoint):
+            return Finding.ok("line OPC UA port", f"{endpoint} is in use by this cell's running service")
+        if served.opcua is not None:
+            host, port = served.opcua
+            problem += (f" (this cell's running service listens for OPC UA on {host}:{port}: the cell file "
+                        "changed since it started, or another program holds this port)")
+    return Finding.fail("line OPC UA port", problem, "stop the program that holds it, or change "
+                        "line.opcua.endpoint (and the PLC's configuration); after a change of the cell "
+                        "file, restart cell serve")
 
 
 def failed(found: list[Finding]) -> bool:

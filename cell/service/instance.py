@@ -2,17 +2,33 @@
 data dir and answers it on ``/healthz``, so that ``cell doctor``, given the same data dir, tells the ports
 this cell's running service holds from another program's (another cell's service included, one of the
 same name too). The id says nothing of the cell; a stale file, left by a service that ended, matches no
-answer."""
+answer. Beside the id the file holds the line's OPC UA endpoint the service listens on, once it does: the
+port a cell file names is the running service's only when that service listens there, not when the cell
+file was changed since it started (nothing of it is answered on a route without a key).
+
+The file's lines: the id, then ``opcua HOST PORT`` when the service listens for the line's OPC UA
+clients."""
 
 from __future__ import annotations
 
 import secrets
+from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from drivers.atomic_file import write_text_atomic
 
 INSTANCE_FILE = "service.instance"
 """The file in the data dir that holds the id of the service's latest start."""
+
+
+@dataclass(frozen=True)
+class Instance:
+    """What the latest start of a data dir's service wrote: its ``id`` (16 hex digits) and the host and
+    port its line's OPC UA server listens on (``opcua``; None without one, or before it listens)."""
+
+    id: str
+    opcua: tuple[str, int] | None = None
 
 
 def new_instance(data_dir: Path) -> str:
@@ -22,10 +38,31 @@ def new_instance(data_dir: Path) -> str:
     return instance
 
 
-def instance_of(data_dir: Path) -> str | None:
-    """The id written by the latest start of the service of ``data_dir``; None when there is none, or it
+def opcua_listening(data_dir: Path, instance: str, endpoint: str) -> None:
+    """Write that the start ``instance`` listens on the OPC UA ``endpoint`` (``opc.tcp://HOST:PORT/...``)
+    into ``data_dir``/:data:`INSTANCE_FILE`."""
+    host, port = opcua_address(endpoint)
+    write_text_atomic(data_dir / INSTANCE_FILE, f"{instance}\nopcua {host} {port}\n")
+
+
+def opcua_address(endpoint: str) -> tuple[str, int]:
+    """The host (lower case) and port of an OPC UA ``endpoint``, as :class:`Instance` holds them."""
+    parts = urlsplit(endpoint)
+    return (parts.hostname or "").lower(), parts.port or 0
+
+
+def instance_of(data_dir: Path) -> Instance | None:
+    """What the latest start of the service of ``data_dir`` wrote; None when there is nothing, or it
     cannot be read."""
     try:
-        return (data_dir / INSTANCE_FILE).read_text().strip() or None
+        lines = (data_dir / INSTANCE_FILE).read_text().split("\n")
     except OSError:
         return None
+    if not lines[0].strip():
+        return None
+    opcua = None
+    for line in lines[1:]:
+        words = line.split()
+        if len(words) == 3 and words[0] == "opcua" and words[2].isdigit():
+            opcua = (words[1], int(words[2]))
+    return Instance(lines[0].strip(), opcua)
