@@ -192,7 +192,8 @@ TAGS: tuple[Tag, ...] = (
         read=lambda s: int(s.state)),
     Tag("PackTags/Status/UnitModeCurrent", V.Int32, "The unit mode (1 Production: the line starts scans; "
         "3 Manual: the operator's).", read=lambda s: int(s.mode)),
-    Tag("PackTags/Status/JobId", V.String, "The scan job of the current cycle (empty outside one).",
+    Tag("PackTags/Status/JobId", V.String,
+        "The scan job of the current cycle, from its submission until Reset (empty before it and after).",
         read=lambda s: s.job_id or ""),
     Tag(COMMAND_MESSAGE, V.String, "The outcome of the last command or mode change from any way in "
         "(OPC UA, REST, digital I/O), or of a write or call this server refused, in words: why a command "
