@@ -128,7 +128,11 @@ def test_a_port_that_does_not_open_says_what_to_check(tmp_path):
                                                    "open the port: ")
     assert lines[0].endswith("; is the bridge board plugged in, and is sensor.port its port? (the udev rule "
                              "of `cell deploy files` makes it /dev/vl53l8cx; --port tries another; `cell "
-                             "doctor` checks it)")
+                             "doctor --config FILE` checks it)")
+    # A pyserial URL is no board plugged in: the driver's error alone.
+    url = CliRunner().invoke(app, ["sensor", "check", "--config", cell, "--port", "socket://127.0.0.1:9"])
+    assert url.exit_code == 1 and "cannot open the port" in url.stderr, url.output
+    assert "plugged in" not in url.stderr
 
 
 def test_check_that_read_no_frame_fails(tmp_path):

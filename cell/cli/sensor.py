@@ -52,8 +52,9 @@ REPLAY_CLOUD = "cloud_replay.ply"
 
 
 PORT_HINT = ("; is the bridge board plugged in, and is sensor.port its port? (the udev rule of `cell deploy "
-             "files` makes it /dev/vl53l8cx; --port tries another; `cell doctor` checks it)")
-"""Added to the error of a VL53L8CX bridge board's port that does not open."""
+             "files` makes it /dev/vl53l8cx; --port tries another; `cell doctor --config FILE` checks it)")
+"""Added to the error of a VL53L8CX bridge board's serial device that does not open (not to a pyserial URL
+such as socket://, which is no board plugged in)."""
 
 
 def _fail(exc: BaseException | str) -> typer.Exit:
@@ -123,7 +124,9 @@ def check(
         tally = SensorCheck(valid if valid is not None else VL53L8CX_VALID_STATUSES)
         failure: CellError | None = None
         # what to do when the bridge board's port does not open (the driver's error says what failed)
-        hint = PORT_HINT if isinstance(sensor_cfg, VL53L8CXConfig) and sensor_cfg.i2c is None else ""
+        board = isinstance(sensor_cfg, VL53L8CXConfig) and sensor_cfg.i2c is None \
+            and "://" not in (sensor_cfg.port or "")
+        hint = PORT_HINT if board else ""
         with sensor:
             hint = ""
             end = time.monotonic() + seconds
