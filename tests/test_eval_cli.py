@@ -60,6 +60,8 @@ def test_a_grid_writes_its_report_and_a_rerun_skips_the_done_scan(tmp_path):
     (["--objects", "cube", "--planners", "no-such-planner"], "unknown planner 'no-such-planner'"),
     (["--objects", "no_such_object", "--planners", "heu"], "unknown object 'no_such_object'"),
     (["--objects", "cube", "--planners", "heu", "--placements", "{placements}"], "a placement is"),
+    (["--objects", "cube", "--planners", "heu", "--placements", "{text_nan}"],
+     "expected x,y,yaw_deg (three finite numbers), got '0,0,nan'"),
     (["--objects", "cube"], "the grid is empty"),
     # what cell scan refuses before it starts, refused before the grid starts
     (["--objects", "cube", "--planners", "heu", "--max-time", "-1"], "time budget must be a positive"),
@@ -79,11 +81,13 @@ def test_bad_input_fails_in_one_line_before_any_scan(tmp_path, args, reason):
     placements.write_text("- [0.0, 0.0]\n")
     off_table = tmp_path / "off_table.yaml"
     off_table.write_text("- [0.9, 0.0, 90.0]\n")
+    text_nan = tmp_path / "text_nan.yaml"
+    text_nan.write_text("- '0,0,nan'\n")
     box = o3d.geometry.TriangleMesh.create_box(60.0, 40.0, 30.0)  # a part of 6 x 4 x 3 cm in millimetres
     o3d.io.write_triangle_mesh(str(tmp_path / "part_mm.obj"), box)
     out = tmp_path / "run"
-    given = [a.format(placements=placements, off_table=off_table, mm_mesh=tmp_path / "part_mm.obj")
-             for a in args]
+    given = [a.format(placements=placements, off_table=off_table, text_nan=text_nan,
+                      mm_mesh=tmp_path / "part_mm.obj") for a in args]
     done = CliRunner().invoke(app, [*grid(*given, "--out", str(out))[1:]])
     assert done.exit_code not in (0, None)
     lines = done.stderr.strip().splitlines()

@@ -36,7 +36,7 @@ import yaml
 import cell
 import drivers
 from cell.config import load_config
-from cell.jobs.inputs import check_seed
+from cell.jobs.inputs import check_seed, parse_pose
 from cell.jobs.runner import ScanRequest, prepare_scan
 from cell.planning.registry import check_planner
 from drivers.errors import CellError, ConfigError, JobError
@@ -245,16 +245,6 @@ def check_specs(specs: Sequence[ScanSpec]) -> None:
                                      object_scale=s.object_scale))
 
 
-def parse_placement(text: str) -> Placement:
-    """``x,y,yaw_deg`` as three numbers; raises ``ConfigError``."""
-    parts = text.split(",")
-    try:
-        x, y, yaw = (float(p) for p in parts)
-    except ValueError:
-        raise ConfigError(f"a placement is x,y,yaw_deg (three numbers), got {text!r}") from None
-    return x, y, yaw
-
-
 def load_placements(path: Path) -> list[Placement]:
     """A placements file: YAML, a list of ``[x_m, y_m, yaw_deg]`` (or ``"x,y,yaw_deg"`` strings)."""
     try:
@@ -266,7 +256,10 @@ def load_placements(path: Path) -> list[Placement]:
     placements = []
     for item in data:
         if isinstance(item, str):
-            placements.append(parse_placement(item))
+            try:
+                placements.append(parse_pose(item))
+            except JobError as exc:
+                raise ConfigError(f"{path}: {exc}") from None
         elif isinstance(item, list) and len(item) == 3 and all(isinstance(v, int | float) for v in item):
             placements.append((float(item[0]), float(item[1]), float(item[2])))
         else:

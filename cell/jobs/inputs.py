@@ -26,6 +26,18 @@ def check_time_budget(max_time_s: float) -> None:
         raise JobError(f"time budget must be a positive number of seconds, got {max_time_s}")
 
 
+def parse_pose(text: str) -> tuple[float, float, float]:
+    """An object pose written ``x,y,yaw_deg`` (x [m], y [m], yaw [deg]): three finite numbers; raises
+    ``JobError`` saying what it expected."""
+    try:
+        pose = tuple(float(part) for part in text.split(","))
+    except ValueError:  # not a number
+        pose = ()
+    if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
+        raise JobError(f"expected x,y,yaw_deg (three finite numbers), got {text!r}")
+    return pose[0], pose[1], pose[2]
+
+
 def check_pose(pose: tuple[float, float, float]) -> None:
     """An object pose (x [m], y [m], yaw [deg]) from the station: three finite numbers."""
     if not all(math.isfinite(v) for v in pose):
