@@ -708,8 +708,9 @@ def test_each_role_is_answered_on_every_operation_as_its_permissions_say(franka:
                     assert answer.status_code not in (401, 403), (method, path, role, answer.text)
                 else:
                     assert answer.status_code == 403, (method, path, role, answer.text)
-                    article = "an" if role[0] in "aeiou" else "a"
-                    assert answer.json()["detail"].startswith(f"{article} {role} key"), answer.text
+                    if method != "HEAD":  # a HEAD answer has no body to name the role in
+                        article = "an" if role[0] in "aeiou" else "a"
+                        assert answer.json()["detail"].startswith(f"{article} {role} key"), answer.text
     finally:
         settle_queue(franka)
 
