@@ -84,6 +84,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
         app.state.service = cell
         app.state.keys = await asyncio.to_thread(KeyRing, cell.store)
         app.state.bulk = BulkReads()
+        cell.retention.on_thread = app.state.bulk.run  # its automatic prunes too, before start() runs them
         for line in await cell.start():
             log.warning("%s", line)
         refresher = asyncio.create_task(_refresh_keys(app.state.keys))

@@ -14,7 +14,7 @@ import asyncio
 import logging
 import os
 import shutil
-from collections.abc import Iterable, Sequence
+from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -165,16 +165,22 @@ class Retention:
         self.config = config
         self._store, self._cell, self._jobs_dir = store, cell, jobs_dir
         self._lock = asyncio.Lock()
+        self.on_thread: Callable[[Callable[[], PrunePlan]], Awaitable[PrunePlan]] = asyncio.to_thread
+        """How a plan is made on a worker thread: in the API's bulk turn once ``cell serve`` runs
+        (``cell.api.bulk``), as it reads every job of the store and walks the jobs folder."""
 
     @property
     def active(self) -> bool:
         """Whether any limit is set (else nothing is ever deleted by retention)."""
         return self.config.days is not None or self.config.max_gb is not None
 
+    def plan_now(self) -> PrunePlan:
+        """What pruning would delete now; it blocks: on a worker thread (``plan``)."""
+        return plan_prune(self._store, self._cell, self._jobs_dir, self.config, datetime.now(UTC))
+
     async def plan(self) -> PrunePlan:
-        """What pruning would delete now."""
-        return await asyncio.to_thread(plan_prune, self._store, self._cell, self._jobs_dir, self.config,
-                                       datetime.now(UTC))
+        """What pruning would delete now, planned by ``on_thread``."""
+        return await self.on_thread(self.plan_now)
 
     async def prune(self) -> tuple[PrunePlan, list[PrunedJob]]:
         """Prune now; returns the plan and the jobs deleted, each logged."""

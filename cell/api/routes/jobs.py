@@ -49,7 +49,7 @@ CREATED_FILTER = Query(description="a date and time with its timezone (ISO 8601,
 
 
 @router.get("", response_model=JobPage)
-async def list_jobs(cell: Service, bulk: Bulk, _: Reader,
+async def list_jobs(request: Request, cell: Service, bulk: Bulk, _: Reader,
                     status: Annotated[list[str] | None, STATUS_FILTER] = None,
                     planner: str | None = None, part_id: str | None = None,
                     created_after: Annotated[AwareDatetime | None, CREATED_FILTER] = None,
@@ -59,9 +59,9 @@ async def list_jobs(cell: Service, bulk: Bulk, _: Reader,
     """This cell's jobs, newest first, filtered and paginated. ``created_after`` and ``created_before`` need
     their timezone: a time without one is refused (422, "Input should have timezone info") rather than
     taken as UTC, since the cell's PC, its store and the person asking may keep different zones, and a
-    guess would shift the answer by hours without a word (it was a 500). A bulk answer
-    (``cell.api.bulk``): a page of 500 jobs, built on the event loop, kept a STOP out for 29 s under 40
-    viewers."""
+    guess would shift the answer by hours without a word (it was a 500)."""
+    # A bulk answer (cell.api.bulk): a page of 500 jobs, built on the event loop, kept a STOP out for 29 s
+    # under 40 viewers.
     unknown = sorted(set(status or ()) - set(JOB_STATUSES))
     if unknown:
         message = f"unknown status {unknown[0]!r}; one of {', '.join(JOB_STATUSES)}"
@@ -74,7 +74,7 @@ async def list_jobs(cell: Service, bulk: Bulk, _: Reader,
         return JobPage(items=[JobOut.of(j) for j in jobs], total=total, limit=limit,
                        offset=offset).model_dump_json().encode()
 
-    return await bulk.json(page)
+    return await bulk.answer(request, page)
 
 
 @router.get("/{job_id}", response_model=JobOut)
@@ -198,11 +198,11 @@ def _listing(job: JobRecord) -> bytes:
 
 
 @router.get("/{job_id}/files", response_model=list[FileOut])
-async def list_files(job_id: str, cell: Service, bulk: Bulk,
+async def list_files(request: Request, job_id: str, cell: Service, bulk: Bulk,
                      _: Reader) -> Response:
-    """Every file of the job folder (frames included); a bulk answer (``cell.api.bulk``)."""
+    """Every file of the job folder (frames included)."""
     job = await cell.job(job_id)
-    return await bulk.json(lambda: _listing(job))
+    return await bulk.answer(request, lambda: _listing(job))  # thousands of frames: a bulk answer
 
 
 @router.get("/{job_id}/files/{name:path}", response_class=FileResponse)

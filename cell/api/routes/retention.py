@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request, Response
 
 from cell.api.auth import KeyFirstRoute, Purger, Reader
 from cell.api.deps import Bulk, Service
@@ -22,12 +22,14 @@ def _out(cell: Service, plan: PrunePlan, jobs: list[PrunedJob]) -> RetentionOut:
 
 
 @router.get("", response_model=RetentionOut)
-async def preview(cell: Service, bulk: Bulk, _: Reader) -> RetentionOut:
-    """The ended jobs that pruning would delete now (a dry run: nothing is deleted). It reads every job of
-    the store and walks the jobs folder: a bulk read (``cell.api.bulk``), in its turn."""
-    async with bulk.turn():
-        plan = await cell.retention.plan()
-    return _out(cell, plan, list(plan.jobs))
+async def preview(request: Request, cell: Service, bulk: Bulk, _: Reader) -> Response:
+    """The ended jobs that pruning would delete now (a dry run: nothing is deleted)."""
+
+    def planned() -> bytes:  # every job of the store and every file of the jobs folder: a bulk answer
+        plan = cell.retention.plan_now()
+        return _out(cell, plan, list(plan.jobs)).model_dump_json().encode()
+
+    return await bulk.answer(request, planned)
 
 
 @router.post("/prune", response_model=RetentionOut)
