@@ -13,18 +13,21 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
+import yaml
 
 from cell.api.app import create_app
 from cell.api.connections import ConnectionLimits
+from cell.api.routes import clouds
 from cell.service import retention
 from cell.service.keys import create_key
 from cell.service.startup import ServiceSettings
-from cell.service.store import Store, open_data_store, sqlite_url
+from cell.service.store import JobRecord, Store, open_data_store, sqlite_url
 from tests.conftest import FRANKA
 from tests.service_process import serving_guarded
 
@@ -33,10 +36,12 @@ POOL_THREADS = 40  # anyio's default thread limiter
 SLOW_CLIENTS = POOL_THREADS + 5
 
 
-def _viewer_key(data: Path) -> str:
-    """A viewer's key, made in the store of the data dir ``data``."""
+def _viewer_key(data: Path, *jobs: JobRecord) -> str:
+    """A viewer's key, made in the store of the data dir ``data`` (with ``jobs`` added)."""
     store = open_data_store(data, sqlite_url(data))
     try:
+        for job in jobs:
+            store.add_job(job)
         return create_key(store, "viewer", "viewer")[1]
     finally:
         store.close()
@@ -81,11 +86,17 @@ BULK_CLIENTS = 6  # clients of each bulk read at once
 
 
 def test_bulk_reads_of_every_kind_run_one_at_a_time(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A page of jobs and retention's preview each hold the GIL for as long as they read
-    (``cell.api.bulk``): run on a worker thread per client, six of them at once left the event loop a
-    seventh of it, and a STOP waited for seconds. They take turns, whatever their kind."""
+    """A page of jobs, retention's preview, the line's history and a job's cloud each hold the GIL for as
+    long as they read (``cell.api.bulk``): run on a worker thread per client, six of them at once left the
+    event loop a seventh of it, and a STOP waited for seconds. They take turns, whatever their kind."""
     data = tmp_path / "data"
-    viewer = _viewer_key(data)
+    job = JobRecord(id="0" * 16, cell=yaml.safe_load(FRANKA.read_text())["name"], status="completed",
+                    planner="vs-local", object="bunny", object_pose=(0.0, 0.0, 0.0), seed=1, max_time_s=60.0,
+                    part_id=None, folder=str(data / "jobs" / "gone"), submitted_by="op",
+                    created_at=datetime.now(UTC))
+    viewer = _viewer_key(data, job)
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump(yaml.safe_load(FRANKA.read_text()) | {"line": {}}))
     inside: list[int] = []  # bulk reads running now, as each one entered or left
     lock = threading.Lock()
 
@@ -103,13 +114,16 @@ def test_bulk_reads_of_every_kind_run_one_at_a_time(tmp_path: Path, monkeypatch:
 
     monkeypatch.setattr(retention, "plan_prune", counted(retention.plan_prune))
     monkeypatch.setattr(Store, "list_jobs", counted(Store.list_jobs))
-    app = create_app(ServiceSettings(config_file=FRANKA, data_dir=data))
+    monkeypatch.setattr(Store, "line_transitions", counted(Store.line_transitions))
+    monkeypatch.setattr(clouds, "job_cloud", counted(clouds.job_cloud))
+    app = create_app(ServiceSettings(config_file=cell_file, data_dir=data))
     limits = ConnectionLimits(256)
-    with serving_guarded(app, limits, WAIT_S) as port, ThreadPoolExecutor(2 * BULK_CLIENTS) as pool, \
+    with serving_guarded(app, limits, WAIT_S) as port, ThreadPoolExecutor(4 * BULK_CLIENTS) as pool, \
             httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=WAIT_S,
                          headers={"Authorization": f"Bearer {viewer}"}) as client:
-        reads = [pool.submit(client.get, path) for path in ("/api/v1/jobs?limit=500", "/api/v1/retention")
-                 for _ in range(BULK_CLIENTS)]
+        paths = ("/api/v1/jobs?limit=500", "/api/v1/retention", "/api/v1/line/history?limit=1000",
+                 f"/api/v1/jobs/{job.id}/cloud")
+        reads = [pool.submit(client.get, path) for path in paths for _ in range(BULK_CLIENTS)]
         answers = [read.result() for read in reads]
     assert all(answer.status_code == 200 for answer in answers), [a.text for a in answers]
-    assert len(inside) == 4 * BULK_CLIENTS and max(inside) == 1, inside
+    assert len(inside) == 2 * len(paths) * BULK_CLIENTS and max(inside) == 1, inside
