@@ -9,6 +9,7 @@ import base64
 import hashlib
 import json
 import re
+import shutil
 import struct
 import threading
 import time
@@ -16,8 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
 
 from cell.api.app import create_app
+from cell.api.routes import page
 from cell.jobs import live_cloud
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter, read_live_cloud
 from cell.line.config import PART_ID_MAX
@@ -195,6 +199,26 @@ def test_the_page_under_static_and_every_static_file_carry_the_pages_policy(serv
     etag = client.get("/static/index.html").headers["etag"]
     revalidated = client.get("/static/index.html", headers={"If-None-Match": etag})
     assert revalidated.status_code == 304 and revalidated.headers["content-security-policy"] == policy
+
+
+def test_a_page_upgraded_in_place_goes_out_with_its_new_policy_at_both_addresses(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``/`` reads the page at each request; ``/static/index.html``'s policy was the hash of the import map
+    the service started with, and refused the upgraded page's own import map."""
+    static = tmp_path / "static"
+    shutil.copytree(STATIC_DIR, static)
+    monkeypatch.setattr(page, "STATIC_DIR", static)
+    monkeypatch.setattr(page, "INDEX_HTML", static / "index.html")
+    app = FastAPI()
+    page.add_page(app)
+    html = (static / "index.html").read_text()
+    upgraded = re.sub(r'(<script type="importmap">)', r'\1{"scopes": {}}', html, count=1)
+    assert upgraded != html
+    (static / "index.html").write_text(upgraded)
+    with TestClient(app) as client:
+        policies = {client.get(path).headers["content-security-policy"]
+                    for path in ("/", "/static/index.html")}
+    assert policies == {page.security_headers(upgraded)["Content-Security-Policy"]}
 
 
 @pytest.mark.parametrize("path", ["/", "/static/js/main.js", "/healthz"])

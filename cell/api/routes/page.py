@@ -37,17 +37,18 @@ def security_headers(html: str) -> dict[str, str]:
 
 class _RevalidatedFiles(StaticFiles):
     """Static files a browser revalidates at each load (ETag): a new version of the cell's software is
-    picked up at once, never mixed with cached modules of the old one. Each goes out with the page's
-    security headers: ``/static/index.html`` is the page itself, and was served without its policy (to
-    be framed, or to run what the policy keeps out)."""
+    picked up at once, never mixed with cached modules of the old one. Each goes out with the security
+    headers of the page ``page`` as it is now, as ``/`` sends it: ``/static/index.html`` is the page
+    itself, and was served without its policy (to be framed, or to run what the policy keeps out), then
+    with the import map's hash of the page the service started with, which an upgrade in place changes."""
 
-    def __init__(self, directory: Path, headers: dict[str, str]) -> None:
+    def __init__(self, directory: Path, page: Path) -> None:
         super().__init__(directory=directory)
-        self._headers = headers
+        self._page = page
 
     def file_response(self, *args: Any, **kwargs: Any) -> Response:
         response = super().file_response(*args, **kwargs)
-        response.headers.update(self._headers)
+        response.headers.update(security_headers(self._page.read_text()))  # a few kB, from the page cache
         return response
 
 
@@ -61,5 +62,4 @@ def index() -> Response:
 def add_page(app: FastAPI) -> None:
     """Serve the page at ``/`` and its files at ``/static``."""
     app.include_router(router)
-    static = _RevalidatedFiles(STATIC_DIR, security_headers(INDEX_HTML.read_text()))
-    app.mount("/static", static, name="static")
+    app.mount("/static", _RevalidatedFiles(STATIC_DIR, INDEX_HTML), name="static")
