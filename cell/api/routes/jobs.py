@@ -59,9 +59,9 @@ async def list_jobs(request: Request, cell: Service, bulk: Bulk, _: Reader,
     """This cell's jobs, newest first, filtered and paginated. ``created_after`` and ``created_before`` need
     their timezone: a time without one is refused (422, "Input should have timezone info") rather than
     taken as UTC, since the cell's PC, its store and the person asking may keep different zones, and a
-    guess would shift the answer by hours without a word (it was a 500)."""
-    # A bulk answer (cell.api.bulk): a page of 500 jobs, built on the event loop, kept a STOP out for 29 s
-    # under 40 viewers.
+    guess would shift the answer by hours without a word."""
+    # A time without its zone was a 500. A bulk answer (cell.api.bulk): a page of 500 jobs, built on the
+    # event loop, kept a STOP out for 29 s under 40 viewers.
     unknown = sorted(set(status or ()) - set(JOB_STATUSES))
     if unknown:
         message = f"unknown status {unknown[0]!r}; one of {', '.join(JOB_STATUSES)}"
