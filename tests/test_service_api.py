@@ -259,6 +259,60 @@ def test_a_stop_ends_a_job_whose_worker_is_still_starting_at_once(tmp_path):
         assert "wrong part" in ended["termination"] and "before any motion" in ended["termination"]
 
 
+def test_a_stop_is_answered_before_the_store_has_its_stopping(tmp_path, monkeypatch):
+    """The stop's answer never waits for the store (a slow or lost database held it for its timeout): with
+    the record's ``stopping`` write held up, the stop answers, the arm commanded, and the job reads
+    ``stopping``; the record takes it once the store answers."""
+    client, keys = _client(tmp_path)
+    op = _auth(keys["operator"])
+    release, outwaited = threading.Event(), threading.Event()
+    with client:
+        store = client.app.state.service.store  # type: ignore[attr-defined]
+        mark_stopping = store.mark_stopping
+
+        def held(job_id: str) -> bool:
+            if not release.wait(20.0):
+                outwaited.set()
+            return mark_stopping(job_id)
+
+        monkeypatch.setattr(store, "mark_stopping", held)
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        wait_started(client, op, job["id"])
+        stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+        assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
+        assert client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["status"] in {"stopping", "stopped"}
+        release.set()
+        assert not outwaited.is_set()
+        assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "stopped"
+
+
+def test_a_job_stopped_while_its_worker_starts_reads_running_then_stopping(tmp_path):
+    """A stop that ends a worker still loading, before the service has said the job runs, says
+    ``stopping`` after that ``running``: a page or ``cell jobs wait`` reading the events in order never
+    shows the job running again after its stop."""
+    client, keys = _client_with(tmp_path, "cold", service={"warm_worker": True, "stop_confirm_timeout_s": 60})
+    op = _auth(keys["operator"])
+    with client:
+        service = client.app.state.service  # type: ignore[attr-defined]
+        warm = service._warm
+
+        async def slow_warm() -> None:  # the spare's start, beside the job, before its `running`
+            await asyncio.sleep(2.0)
+            await warm()
+
+        service._warm = slow_warm
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        time.sleep(0.5)
+        stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+        assert stop.status_code == 200 and "before any motion" in stop.json()["message"], stop.text
+        assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "stopped"
+        blocks = client.get(f"/api/v1/jobs/{job['id']}/events", headers=op).text.split("\n\n")
+        data = [line[len("data: "):] for block in blocks if "event: state" in block.splitlines()
+                for line in block.splitlines() if line.startswith("data: ")]
+        states = [json.loads(d)["status"] for d in data]
+        assert states == ["queued", "running", "stopping", "stopped"], states
+
+
 def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_path):
     client, keys = _client(tmp_path)
     op, viewer = _auth(keys["operator"]), keys["viewer"]

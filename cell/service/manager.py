@@ -125,8 +125,9 @@ class _Running:
     the pair ``JobControl`` keeps), the stop confirmations the worker owes, the stop its worker was killed
     for (it did not confirm in time, or had not started: its cause as the termination begins,
     ``operator stop: `` for a request), its newest progress, its worker's last word, whether its end is
-    recorded (the worker may still be exiting) and in the store (``stored``), whether its record says
-    ``stopping`` (its worker took a stop), the stop of a worker taken for hung (``hung_stop``) and
+    recorded (the worker may still be exiting) and in the store (``stored``), whether it is ``stopping``
+    (its worker took a stop) and the write of that to its record (``stopping_write``), whether its
+    ``running`` was published (``announced``), the stop of a worker taken for hung (``hung_stop``) and
     ``gone``, set once the worker has exited."""
 
     job: JobRecord
@@ -142,6 +143,8 @@ class _Running:
     recorded: bool = False
     stored: bool = False
     stopping: bool = False
+    announced: bool = False
+    stopping_write: asyncio.Task[None] | None = None
     hung_stop: asyncio.Task[StopOutcome] | None = None
     gone: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -455,14 +458,17 @@ class CellService:
                 for name, entry in sorted(PLANNERS.items())]
 
     async def job(self, job_id: str) -> JobRecord:
-        """A job of this cell, with the running job's newest progress; ``ServiceError`` (not found)."""
+        """A job of this cell, with the running job's newest progress and its ``stopping`` before its record
+        has it; ``ServiceError`` (not found)."""
         job = await asyncio.to_thread(self.store.get_job, job_id)
         if job is None or job.cell != self.name:
             raise ServiceError(f"no job {job_id!r} on cell {self.name!r}", reason="not found")
         running = self._running
-        if running is not None and running.job.id == job_id and running.progress is not None:
-            return dataclasses.replace(job, progress=running.progress)
-        return job
+        if running is None or running.job.id != job_id:
+            return job
+        if running.stopping and job.status == "running":  # its record's write may still be under way
+            job = dataclasses.replace(job, status="stopping")
+        return job if running.progress is None else dataclasses.replace(job, progress=running.progress)
 
     async def job_events(self, job_id: str) -> JobEvents:
         """The job's event log; for a job this run of the service has not seen (it ended before a
@@ -657,7 +663,7 @@ class CellService:
             # ended now, the stop takes milliseconds rather than the confirmation's timeout and a kill
             running.killed_for = f"{cause} (ended while its worker was starting, before any motion)"
             self._kill(proc)
-            await self._mark_stopping(running)
+            self._mark_stopping(running)
             return StopOutcome(job_id, False, "the job's worker was still starting: it was ended before "
                                               "any motion")
         ack: asyncio.Future[StopEffect] = asyncio.get_running_loop().create_future()
@@ -676,31 +682,39 @@ class CellService:
             # before the next job moves it, as after a worker that died
             self._hold(f"a stop its job's worker did not confirm ({running.killed_for}); check the arm")
             self._kill(proc)
-            await self._mark_stopping(running)
+            self._mark_stopping(running)
             return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
                                f"{self.config.service.stop_confirm_timeout_s:g} s and was killed; the arm's "
                                "connection watchdog stops the arm")
         if effect is not StopEffect.AFTER_MOTION:  # a job whose motion had ended may still complete
-            await self._mark_stopping(running)
+            self._mark_stopping(running)
         return StopOutcome(job_id, effect is StopEffect.COMMANDED, STOP_EFFECTS[effect])
 
-    async def _mark_stopping(self, running: _Running) -> None:
-        """Have the running job's record say ``stopping`` (its worker has taken the stop, the arm commanded
-        to stop or not moved yet, or it was killed) until the worker has written how the job ended, so that
-        a list read after the stop's answer does not show it ``running``. A store that does not take the
-        write leaves it ``running`` (logged): the arm was stopped before this write either way."""
+    def _mark_stopping(self, running: _Running) -> None:
+        """Say that the running job is ``stopping`` (its worker has taken the stop, the arm commanded to
+        stop or not moved yet, or it was killed) until its worker has written how it ended, so that nothing
+        read after the stop's answer shows it ``running``: at once in the cell's state, :meth:`job` and its
+        events (after its ``running``), and in its record by a write beside, which the stop's answer does
+        not wait for (a store that is slow or does not answer would have held it for its timeout; one that
+        does not take the write leaves the record ``running``, logged; the arm was stopped before either
+        way)."""
         if running.stopping or running.recorded:
             return
-        job_id = running.job.id
+        running.stopping = True
+        if running.announced:
+            self._publish_stopping(running)
+        running.stopping_write = asyncio.create_task(self._write_stopping(running.job.id), name="stopping")
+
+    def _publish_stopping(self, running: _Running) -> None:
+        self.events.log(running.job.id).publish("state", {"status": "stopping", "termination": None})
+
+    async def _write_stopping(self, job_id: str) -> None:
+        """The record's ``stopping`` (:meth:`_mark_stopping`); a record whose end was stored first stays as
+        it is (``Store.mark_stopping`` changes only a ``running`` one)."""
         try:
-            marked = await asyncio.to_thread(self.store.mark_stopping, job_id)
+            await asyncio.to_thread(self.store.mark_stopping, job_id)
         except StoreError as exc:
             log.warning("the job's record still says running: %s", exc, extra={"job_id": job_id})
-            return
-        # its end, stored meanwhile, is published after its own write: never before this one
-        if marked and not running.stored:
-            running.stopping = True
-            self.events.log(job_id).publish("state", {"status": "stopping", "termination": None})
 
     @staticmethod
     def _kill(proc: asyncio.subprocess.Process) -> None:
@@ -999,6 +1013,9 @@ class CellService:
             log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
             # before a stop asked for meanwhile: its `stopping` follows `running`
             self.events.log(job.id).publish("state", {"status": "running", "termination": None})
+            running.announced = True
+            if running.stopping:  # a worker killed while it was starting, before this `running`
+                self._publish_stopping(running)
             if running.pending_stop is not None:
                 reason, requested = running.pending_stop
                 await self._stop_running(running, reason, requested=requested)
