@@ -262,7 +262,7 @@ def test_a_stop_ends_a_job_whose_worker_is_still_starting_at_once(tmp_path):
 def test_a_stop_is_answered_before_the_store_has_its_stopping(tmp_path, monkeypatch):
     """The stop's answer never waits for the store (a slow or lost database held it for its timeout): with
     the record's ``stopping`` write held up, the stop answers, the arm commanded, and the job reads
-    ``stopping``; the record takes it once the store answers."""
+    ``stopping``, alone and in the list; the record takes it once the store answers."""
     client, keys = _client(tmp_path)
     op = _auth(keys["operator"])
     release, outwaited = threading.Event(), threading.Event()
@@ -278,10 +278,14 @@ def test_a_stop_is_answered_before_the_store_has_its_stopping(tmp_path, monkeypa
         monkeypatch.setattr(store, "mark_stopping", held)
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
         wait_started(client, op, job["id"])
-        stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
-        assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
-        assert client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["status"] in {"stopping", "stopped"}
-        release.set()
+        try:
+            stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+            assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
+            shown = client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["status"]
+            listed = {j["id"]: j["status"] for j in client.get("/api/v1/jobs", headers=op).json()["items"]}
+            assert {shown, listed[job["id"]]} <= {"stopping", "stopped"}, (shown, listed)
+        finally:
+            release.set()
         assert not outwaited.is_set()
         assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "stopped"
 
@@ -302,7 +306,10 @@ def test_a_job_stopped_while_its_worker_starts_reads_running_then_stopping(tmp_p
 
         service._warm = slow_warm
         job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
-        time.sleep(0.5)
+        deadline = time.monotonic() + 30.0
+        while service._running is None or service._running.proc is None:  # its worker has been handed it
+            assert time.monotonic() < deadline, "the job's worker was never handed it"
+            time.sleep(0.01)
         stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
         assert stop.status_code == 200 and "before any motion" in stop.json()["message"], stop.text
         assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "stopped"

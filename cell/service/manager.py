@@ -464,11 +464,19 @@ class CellService:
         if job is None or job.cell != self.name:
             raise ServiceError(f"no job {job_id!r} on cell {self.name!r}", reason="not found")
         running = self._running
-        if running is None or running.job.id != job_id:
+        job = self.as_now(job)
+        if running is None or running.job.id != job_id or running.progress is None:
             return job
-        if running.stopping and job.status == "running":  # its record's write may still be under way
-            job = dataclasses.replace(job, status="stopping")
-        return job if running.progress is None else dataclasses.replace(job, progress=running.progress)
+        return dataclasses.replace(job, progress=running.progress)
+
+    def as_now(self, job: JobRecord) -> JobRecord:
+        """``job`` read from the store, ``stopping`` when it is the running job and its worker has taken a
+        stop whose write to its record may still be under way (:meth:`_mark_stopping`); safe to call from
+        a worker thread (it only reads the running job)."""
+        running = self._running
+        if running is None or running.job.id != job.id or not running.stopping or job.status != "running":
+            return job
+        return dataclasses.replace(job, status="stopping")
 
     async def job_events(self, job_id: str) -> JobEvents:
         """The job's event log; for a job this run of the service has not seen (it ended before a

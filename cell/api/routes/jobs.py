@@ -71,7 +71,7 @@ async def list_jobs(request: Request, cell: Service, bulk: Bulk, _: Reader,
         jobs, total = cell.store.list_jobs(
             cell=cell.name, statuses=status, planner=planner, part_id=part_id, created_after=created_after,
             created_before=created_before, limit=limit, offset=offset)
-        return JobPage(items=[JobOut.of(j) for j in jobs], total=total, limit=limit,
+        return JobPage(items=[JobOut.of(cell.as_now(j)) for j in jobs], total=total, limit=limit,
                        offset=offset).model_dump_json().encode()
 
     return await bulk.answer(request, page)
