@@ -850,7 +850,8 @@ def test_viewers_listing_pages_of_500_jobs_never_keep_a_stop_out(tmp_path: Path)
             done.set()
             for viewer in viewers:
                 viewer.join(120.0)
-        assert set(pages) == {200}
+        # each listing is a page, or past the 32 that may wait for their turn a 503 to try again
+        assert 200 in pages and set(pages) <= {200, 503}, sorted(set(pages))
         assert cell.wait_job(job["id"], ENDED)["status"] == "stopped"
         with cell.client("viewer") as client:
             page = client.get("/api/v1/jobs", params={"limit": 2, "status": "completed"}).json()
