@@ -23,7 +23,7 @@ from rich.console import Console
 from scipy.spatial import cKDTree
 
 from cell.cli.commands import command_group
-from cell.cli.errors import print_warning
+from cell.cli.errors import fail, print_warning
 from cell.config import load_config
 from cell.config.models import CellConfig
 from cell.jobs.rebuild import check_job_dir, output_folder
@@ -46,7 +46,6 @@ from drivers.robots import get_robot_model
 sensor_app = command_group(help="Depth sensors: commissioning check, VL53L8CX bridge emulator, job replay.",
                            no_args_is_help=True)
 console = Console(soft_wrap=True, highlight=False)
-err_console = Console(stderr=True, highlight=False)
 REPLAY_CLOUD = "cloud_replay.ply"
 """The cloud ``cell sensor replay`` writes, in the job folder or ``--out``."""
 
@@ -55,11 +54,6 @@ PORT_HINT = ("; is the bridge board plugged in, and is sensor.port its port? (th
              "files` makes it /dev/vl53l8cx; --port tries another; `cell doctor --config FILE` checks it)")
 """Added to the error of a VL53L8CX bridge board's serial device that does not open (not to a pyserial URL
 such as socket://, which is no board plugged in)."""
-
-
-def _fail(exc: BaseException | str) -> typer.Exit:
-    err_console.print(f"error: {exc}", markup=False, soft_wrap=True)
-    return typer.Exit(code=1)
 
 
 def _int_set(text: str) -> frozenset[int]:
@@ -141,12 +135,12 @@ def check(
             link = sensor.stats if isinstance(sensor, VL53L8CXSerial) else None
             tof = isinstance(sensor_cfg, VL53L8CXConfig) or sensor.model.kind == "tof"
     except CellError as exc:
-        raise _fail(f"{exc}{hint}") from None
+        raise fail(f"{exc}{hint}") from None
     _print_report(tally.report(), link, (valid or VL53L8CX_VALID_STATUSES) if tof else None)
     if failure is not None:
-        raise _fail(failure)
+        raise fail(failure)
     if tally.count == 0:
-        raise _fail(DriverError(f"read no frame in {seconds:g} s: nothing to check", device=f"depth "
+        raise fail(DriverError(f"read no frame in {seconds:g} s: nothing to check", device=f"depth "
                                 f"{sensor_cfg.type}"))
 
 
@@ -188,7 +182,7 @@ def emulate(
         else:
             emulator = VL53L8CXEmulator.on_pty(source, faults, seed)
     except (CellError, OSError) as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
     console.print(f"VL53L8CX bridge emulator on {emulator.url}", markup=False)
     console.print(f"  try: {check_command(emulator.url)}", markup=False)
     try:
@@ -261,7 +255,7 @@ def replay(
         cloud, n, unreadable = replay_perception(job_dir, cfg,
                                                  seed if seed is not None else int(result.get("seed", 0)))
     except CellError as exc:
-        raise _fail(exc) from None
+        raise fail(exc) from None
     for file, reason in unreadable:
         print_warning(f"skipped {file}: not a readable frame ({reason})")
     write_ply(path, cloud)
