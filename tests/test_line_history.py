@@ -37,9 +37,11 @@ def test_a_read_of_the_history_finds_the_transitions_just_made(tmp_path: Path,
     async def scenario() -> list[list[tuple[int, int]]]:
         line = LineController(SimpleNamespace(name="cell-a"), LineConfig(), store)  # type: ignore[arg-type]
         await line.start()
-        seen = [[(t.to_state, t.mode) for _, t in await line.history(limit=10, before_id=None)]]
+        await line.written()
+        seen = [[(t.to_state, t.mode) for _, t in line.transitions(limit=10, before_id=None)]]
         await line.set_mode(UnitMode.MANUAL, "test")
-        seen.append([(t.to_state, t.mode) for _, t in await line.history(limit=10, before_id=None)])
+        await line.written()
+        seen.append([(t.to_state, t.mode) for _, t in line.transitions(limit=10, before_id=None)])
         await line.close()
         return seen
 
@@ -196,7 +198,8 @@ def test_transitions_made_while_the_store_is_away_are_recorded_once_it_answers(t
         line = await _executing(_Service(), store)  # Stopped, Resetting, Idle, Starting, Execute
         await asyncio.sleep(1.5)  # tried again once at least
         away = False
-        history = await line.history(limit=10, before_id=None)  # waits for the writes before it
+        await line.written()  # the writes before it
+        history = line.transitions(limit=10, before_id=None)
         await line.close()
         return [t.to_state for _, t in reversed(history)]
 

@@ -186,22 +186,17 @@ class LineController:
                             None if r.last_result is None else CycleResult.from_dict(r.last_result),
                             self._message)
 
-    async def history(self, limit: int, before_id: int | None) -> list[tuple[int, LineTransition]]:
-        """The transitions the store holds, newest first, those queued for it so far included: a client
-        that saw the line in a state finds the transition into it."""
-        await self.written()
-        return await asyncio.to_thread(self.transitions, limit, before_id)
-
     async def written(self) -> None:
-        """Once the transitions queued for the store so far are in it."""
+        """Once the transitions queued for the store so far are in it: :meth:`transitions` read after it
+        holds them, so that a client that saw the line in a state finds the transition into it."""
         if self._writer is not None and not self._writer.done():
             written = asyncio.Event()
             self._writes.put_nowait(written)
             await written.wait()
 
     def transitions(self, limit: int, before_id: int | None) -> list[tuple[int, LineTransition]]:
-        """The transitions the store holds, newest first, as :meth:`history` without waiting for the queued
-        ones; it blocks: on a worker thread."""
+        """The transitions the store holds, newest first (those queued for it too once :meth:`written`); it
+        blocks: on a worker thread."""
         return self._store.line_transitions(self._cell, limit=limit, before_id=before_id)
 
     # ------------------------------------------------------------------ commands
