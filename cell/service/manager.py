@@ -148,6 +148,12 @@ class _Running:
     hung_stop: asyncio.Task[StopOutcome] | None = None
     gone: asyncio.Event = field(default_factory=asyncio.Event)
 
+    @property
+    def status(self) -> str:
+        """The job's status as the service knows it: ``stopping`` once its worker took a stop, before its
+        record may say so."""
+        return "stopping" if self.stopping else "running"
+
 
 @dataclass(frozen=True)
 class StopOutcome:
@@ -405,7 +411,7 @@ class CellService:
             "arm": {"type": cfg.arm.type, "model": cfg.arm.model, **self.arm.status.as_dict()},
             "sensor": {"type": cfg.sensor.type, "connected": sensor_up},
             "job": None if running is None else {
-                "id": running.job.id, "status": "stopping" if running.stopping else "running",
+                "id": running.job.id, "status": running.status,
                 "planner": running.job.planner, "part_id": running.job.part_id, "progress": running.progress},
             "queue": {"length": len(self._queued), "max": self.config.service.queue_max,
                       "held": self.hold_reason() or self._waiting_for_resources(),
@@ -474,9 +480,9 @@ class CellService:
         stop whose write to its record may still be under way (:meth:`_mark_stopping`); safe to call from
         a worker thread (it only reads the running job)."""
         running = self._running
-        if running is None or running.job.id != job.id or not running.stopping or job.status != "running":
+        if running is None or running.job.id != job.id or job.status != "running":
             return job
-        return dataclasses.replace(job, status="stopping")
+        return dataclasses.replace(job, status=running.status)
 
     async def job_events(self, job_id: str) -> JobEvents:
         """The job's event log; for a job this run of the service has not seen (it ended before a
