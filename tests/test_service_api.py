@@ -290,34 +290,103 @@ def test_a_stop_is_answered_before_the_store_has_its_stopping(tmp_path, monkeypa
         assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "stopped"
 
 
-def test_a_job_stopped_while_its_worker_starts_reads_running_then_stopping(tmp_path):
-    """A stop that ends a worker still loading, before the service has said the job runs, says
-    ``stopping`` after that ``running``: a page or ``cell jobs wait`` reading the events in order never
-    shows the job running again after its stop."""
-    client, keys = _client_with(tmp_path, "cold", service={"warm_worker": True, "stop_confirm_timeout_s": 60})
+def _states(client: TestClient, headers: dict[str, str], job_id: str) -> list[str]:
+    """The statuses the job's event log said, in order (its ``state`` events)."""
+    blocks = client.get(f"/api/v1/jobs/{job_id}/events", headers=headers).text.split("\n\n")
+    states = [block.splitlines() for block in blocks if "event: state" in block.splitlines()]
+    return [json.loads(line[len("data: "):])["status"] for lines in states for line in lines
+            if line.startswith("data: ")]
+
+
+ENDED_STARTING = ("operator stop: wrong part (key operator) (ended while its worker was starting, before any "
+                  "motion)")
+"""How a stop of ``wrong part`` by the test's operator key ends a job whose worker had not started it."""
+
+
+def _held_start(store: Store) -> tuple[threading.Event, threading.Event]:
+    """Hold the write of a job's start to the store (the job popped from the queue, its worker not yet
+    handed it): the first event is set once the write is held, the second releases it."""
+    held, release = threading.Event(), threading.Event()
+    update = store.update_job
+
+    def slow_start(job_id: str, **changes: Any) -> JobRecord:
+        if changes.get("status") == "running":
+            held.set()
+            assert release.wait(30.0), "the job's start was never released"
+        return update(job_id, **changes)
+
+    store.update_job = slow_start  # type: ignore[method-assign]
+    return held, release
+
+
+def test_a_stop_while_the_next_worker_is_spawned_stops_the_running_job_through_its_guard(tmp_path):
+    """The next job's worker is spawned beside a job once the job is announced, never before: a job whose
+    worker has it is followed from the start, and a stop while the spare's spawn is under way (held here
+    until the test releases it) reaches the moving arm through the worker's guard, as any stop during
+    motion does (it had been taken for a stop before any motion and the worker killed)."""
+    client, keys = _client_with(tmp_path, "warm", service={"warm_worker": True,
+                                                          "stop_confirm_timeout_s": 60})
     op = _auth(keys["operator"])
+    spawn = threading.Event()
     with client:
         service = client.app.state.service  # type: ignore[attr-defined]
+        deadline = time.monotonic() + 60.0
+        # a loaded spare: the job starts at once
+        while client.get("/readyz", headers=op).json()["warm_worker"] != "loaded":
+            assert time.monotonic() < deadline, "the spare worker never loaded"
+            time.sleep(0.02)
         warm = service._warm
 
-        async def slow_warm() -> None:  # the spare's start, beside the job, before its `running`
-            await asyncio.sleep(2.0)
+        async def held_warm() -> None:
+            await asyncio.to_thread(spawn.wait, 60.0)
             await warm()
 
-        service._warm = slow_warm
-        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
-        deadline = time.monotonic() + 30.0
-        while service._running is None or service._running.proc is None:  # its worker has been handed it
-            assert time.monotonic() < deadline, "the job's worker was never handed it"
-            time.sleep(0.01)
-        stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
-        assert stop.status_code == 200 and "before any motion" in stop.json()["message"], stop.text
-        assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "stopped"
-        blocks = client.get(f"/api/v1/jobs/{job['id']}/events", headers=op).text.split("\n\n")
-        data = [line[len("data: "):] for block in blocks if "event: state" in block.splitlines()
-                for line in block.splitlines() if line.startswith("data: ")]
-        states = [json.loads(d)["status"] for d in data]
-        assert states == ["queued", "running", "stopping", "stopped"], states
+        service._warm = held_warm
+        try:
+            job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+            live_cloud = Path(service.store.get_job(job["id"]).folder) / "cloud_live.npy"
+            while not live_cloud.exists():  # the worker has moved the arm and captured
+                assert time.monotonic() < deadline, "the job never captured"
+                time.sleep(0.02)
+            stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+            assert stop.status_code == 200, stop.text
+            assert stop.json()["arm_commanded"] is True, stop.json()
+            cell = client.get("/api/v1/cell", headers=op).json()
+            assert cell["job"]["id"] == job["id"] and cell["job"]["status"] == "stopping", cell["job"]
+            assert cell["queue"]["held"] is None
+        finally:
+            spawn.set()
+        ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
+        assert ended["status"] == "stopped", ended["termination"]
+        assert ended["termination"] == "operator stop: wrong part (key operator)"  # confirmed: no kill
+        assert ended["result"]["status"] == "stopped"  # the worker's own result.json, written as it stopped
+        assert service.store.get_job(job["id"]).status == "stopped"
+        assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
+        assert client.get("/api/v1/cell", headers=op).json()["queue"]["held"] is None
+
+
+def test_a_stop_before_the_worker_has_its_job_reads_running_then_stopping(tmp_path):
+    """A stop asked for while the job is being started (its start written to the store, held here) is
+    passed on once its worker has it, after the service says the job runs: the worker, which cannot have
+    moved, is ended at once, and a page or ``cell jobs wait`` reading the events in order never shows the
+    job running again after its stop."""
+    client, keys = _client_with(tmp_path, "cold", service={"warm_worker": False,
+                                                          "stop_confirm_timeout_s": 60})
+    op = _auth(keys["operator"])
+    with client:
+        held, release = _held_start(client.app.state.service.store)  # type: ignore[attr-defined]
+        try:
+            job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+            assert held.wait(30.0), "the job never started"
+            stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+            assert stop.status_code == 200, stop.text
+            assert "before its first motion" in stop.json()["message"], stop.json()
+        finally:
+            release.set()
+        ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
+        assert ended["status"] == "stopped", ended["termination"]
+        assert ended["termination"].startswith(ENDED_STARTING), ended["termination"]
+        assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
 
 
 def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_path):

@@ -240,6 +240,7 @@ class CellService:
         self._checks_loaded = False  # the dispatcher has loaded the placement checks: it starts jobs
         self._warming = False
         self._rewarm: asyncio.Task[None] | None = None
+        self._warmer: asyncio.Task[None] | None = None
         self._spawn_failure: str | None = None
         self._broken: str | None = None
         # the next worker may load beside a running job only where no arm moves on the wall clock
@@ -349,6 +350,8 @@ class CellService:
                 await asyncio.wait_for(asyncio.shield(self._dispatcher),
                                        self.config.service.shutdown_timeout_s)
             self._dispatcher.cancel()
+        if self._warmer is not None:  # not cancelled: a spare it spawns as the service closes is closed
+            await self._warmer
         if self._rewarm is not None:
             self._rewarm.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -865,6 +868,14 @@ class CellService:
         if self._rewarm is None or self._rewarm.done():
             self._rewarm = asyncio.create_task(self._warm_again(), name="warm worker")
 
+    def _warm_beside(self) -> None:
+        """:meth:`_warm` beside a job that has just been announced, by a task of its own (awaited at the
+        shutdown): the spare's spawn (a fork and exec, milliseconds to a loaded machine's tenths of a
+        second) never stands between a job's worker having its job and the service reading that it
+        started, nor before a stop."""
+        if self._warmer is None or self._warmer.done():
+            self._warmer = asyncio.create_task(self._warm(), name="warm worker beside a job")
+
     async def _warm_again(self) -> None:
         while self._wants_spare():
             await asyncio.sleep(SPAWN_RETRY_S)
@@ -1022,14 +1033,14 @@ class CellService:
         job, proc = running.job, running.proc
         assert proc is not None and proc.stdout is not None
         if not started:
-            await self._warm()  # beside the job, where the cell allows it; never raises
+            # announced before anything is awaited: the worker may move the arm within milliseconds, and a
+            # stop meanwhile must reach it through its guard, as a stop of a running job
             self.arm.job_started()
             log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
             # before a stop asked for meanwhile: its `stopping` follows `running`
             self.events.log(job.id).publish("state", {"status": "running", "termination": None})
             running.announced = True
-            if running.stopping:  # a worker killed while it was starting, before this `running`
-                self._publish_stopping(running)
+            self._warm_beside()  # the next job's worker, where the cell allows it beside this job
             if running.pending_stop is not None:
                 reason, requested = running.pending_stop
                 await self._stop_running(running, reason, requested=requested)
