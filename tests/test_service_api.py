@@ -389,6 +389,42 @@ def test_a_stop_before_the_worker_has_its_job_reads_running_then_stopping(tmp_pa
         assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
 
 
+def test_an_error_before_a_job_is_announced_still_announces_it_and_passes_on_its_pending_stop_first(tmp_path):
+    """The service's follower failing before it said the job runs (here at the arm's state) leaves nothing
+    undone: the job still reads running, then stopping, and an operator's stop asked for while it was
+    being started stays the stop it ends with, before the service's own stop for its failure."""
+    client, keys = _client_with(tmp_path, "cold", service={"warm_worker": False,
+                                                          "stop_confirm_timeout_s": 60})
+    op = _auth(keys["operator"])
+    with client:
+        service = client.app.state.service  # type: ignore[attr-defined]
+        job_started = service.arm.job_started
+        failed: list[bool] = []
+
+        def failing_once() -> None:
+            if not failed:
+                failed.append(True)
+                raise RuntimeError("a bug")
+            job_started()
+
+        service.arm.job_started = failing_once
+        held, release = _held_start(service.store)
+        try:
+            job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+            assert held.wait(30.0), "the job never started"
+            stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "wrong part"}, headers=op)
+            assert stop.status_code == 200, stop.text
+        finally:
+            release.set()
+        ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
+        assert failed == [True]
+        assert ended["status"] == "stopped", ended["termination"]
+        assert ended["termination"].startswith(ENDED_STARTING), ended["termination"]
+        assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
+        second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
+        assert _wait(client, keys["viewer"], second["id"], set(FINISHED_STATUSES))["status"] == "completed"
+
+
 def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_path):
     client, keys = _client(tmp_path)
     op, viewer = _auth(keys["operator"]), keys["viewer"]

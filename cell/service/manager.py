@@ -122,13 +122,13 @@ class _Running:
     job ends with, was one someone asked for (``requested``: an operator, the line, the shutdown; False:
     the service's own stop of a hung worker or after its own failure; None: no stop was passed on), a
     stop asked for while it was being started (``pending_stop``: its reason and whether it was requested,
-    the pair ``JobControl`` keeps), the stop confirmations the worker owes, the stop its worker was killed
-    for (it did not confirm in time, or had not started: its cause as the termination begins,
-    ``operator stop: `` for a request), its newest progress, its worker's last word, whether its end is
-    recorded (the worker may still be exiting) and in the store (``stored``), whether it is ``stopping``
-    (its worker took a stop) and the write of that to its record (``stopping_write``), whether its
-    ``running`` was published (``announced``), the stop of a worker taken for hung (``hung_stop``) and
-    ``gone``, set once the worker has exited."""
+    the pair ``JobControl`` keeps; until it is passed on once the worker has the job), the stop
+    confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
+    not started: its cause as the termination begins, ``operator stop: `` for a request), its newest
+    progress, its worker's last word, whether its end is recorded (the worker may still be exiting) and
+    in the store (``stored``), whether it is ``stopping`` (its worker took a stop) and the write of that
+    to its record (``stopping_write``), whether its ``running`` was published (``announced``), the stop
+    of a worker taken for hung (``hung_stop``) and ``gone``, set once the worker has exited."""
 
     job: JobRecord
     origin: str
@@ -669,7 +669,8 @@ class CellService:
             if running.pending_stop is None:
                 running.pending_stop = (reason, requested)
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
-        if running.ended is not None or proc.returncode is not None:
+        if running.ended is not None or proc.returncode is not None or running.killed_for is not None:
+            # a worker killed for an earlier stop keeps that stop's cause, as JobControl keeps the first
             return StopOutcome(job_id, False, "the job had already ended")
         if running.requested is None:  # the worker's JobControl keeps the first stop it is given
             running.requested = requested
@@ -1019,31 +1020,23 @@ class CellService:
         except Exception as exc:
             failure = f"the service failed while it ran the job ({type(exc).__name__}: {exc})"
             log.exception("job %s: %s; it is stopped through its worker", job.id, failure)
-            follower = asyncio.create_task(self._follow(running, started=True))
+            # an error before the job was announced or its pending stop passed on: both first, so that
+            # the job reads running, then stopping, and a stop someone asked for stays the first one
+            await self._announce(running)
+            follower = asyncio.create_task(self._follow(running))
             await self._stop_running(running, failure, requested=False)
             code = await follower
         await self._finish(running, code)
         _drop_if_empty(log_path)
         return None
 
-    async def _follow(self, running: _Running, *, started: bool = False) -> int:
+    async def _follow(self, running: _Running) -> int:
         """Follow a job whose worker has it to its end (its worker's exit code), taking each line the
-        worker sends; ``started`` when the start was already announced (a second follower after an
-        error of the first)."""
+        worker sends, once the job is announced (:meth:`_announce`; a second follower follows after an
+        error of the first, :meth:`_run`)."""
         job, proc = running.job, running.proc
         assert proc is not None and proc.stdout is not None
-        if not started:
-            # announced before anything is awaited: the worker may move the arm within milliseconds, and a
-            # stop meanwhile must reach it through its guard, as a stop of a running job
-            self.arm.job_started()
-            log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
-            # before a stop asked for meanwhile: its `stopping` follows `running`
-            self.events.log(job.id).publish("state", {"status": "running", "termination": None})
-            running.announced = True
-            self._warm_beside()  # the next job's worker, where the cell allows it beside this job
-            if running.pending_stop is not None:
-                reason, requested = running.pending_stop
-                await self._stop_running(running, reason, requested=requested)
+        await self._announce(running)
         while line := await self._next_line(running, proc.stdout):
             try:
                 message = finite_json(json.loads(line))
@@ -1054,6 +1047,27 @@ class CellService:
             if running.ended is not None and not running.recorded:
                 await self._record_end(running)
         return await proc.wait()
+
+    async def _announce(self, running: _Running) -> None:
+        """Say that the job runs, as soon as its worker has it and before anything is awaited (the worker
+        may move the arm within milliseconds, and a stop in between must reach it through its guard, read
+        as a stop of a running job), then pass on a stop asked for while it was being started
+        (``pending_stop``: its worker had not had the job, so it cannot have moved; ended at once).
+        Each once, by the job's first follower or, after an error of the follower before it got there, by
+        :meth:`_run`. The next job's worker is then started beside, by a task (:meth:`_warm_beside`):
+        spawning it never delays the job's announce or a stop."""
+        job, proc = running.job, running.proc
+        assert proc is not None
+        if not running.announced:
+            self.arm.job_started()
+            log.info("job started (worker %d)", proc.pid, extra={"job_id": job.id, "part_id": job.part_id})
+            # before a stop passed on below: its `stopping` follows `running`
+            self.events.log(job.id).publish("state", {"status": "running", "termination": None})
+            running.announced = True
+            self._warm_beside()
+        if running.pending_stop is not None:
+            (reason, requested), running.pending_stop = running.pending_stop, None
+            await self._stop_running(running, reason, requested=requested)
 
     async def _next_line(self, running: _Running, stdout: asyncio.StreamReader) -> bytes:
         """The worker's next line. Once it started its job it sends one every ``WORKER_BEAT_S`` at least:
