@@ -6,7 +6,7 @@ serve``), never a shipped object nor one a queued or running job scans."""
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,7 @@ import cell.service.objects as objects_module
 from cell.config import load_config
 from cell.jobs.placement import check_on_table, footprint_bounds
 from cell.service.arm_clearance import ArmClearance
-from cell.service.objects import ObjectLibrary
+from cell.service.objects import ObjectLibrary, ObjectOutline
 from cell.service.search_views import SearchViews
 from cell.service.store import JobRecord
 from cell.service.submission import JobRequest, validate
@@ -116,23 +116,64 @@ def test_an_uploads_placement_no_search_view_sees_is_refused_at_submission_from_
     assert len(counted_loads) == 1  # the upload's own check
 
 
-def test_an_outline_file_from_before_surfaces_has_its_mesh_read_once_for_a_submission(
-        tmp_path: Path, counted_loads: list[str]) -> None:
-    folder = tmp_path / "objects"
+def _upload_l_part(tmp_path: Path) -> Path:
+    """Upload the L (:func:`_l_shape`) as ``l_part`` into ``tmp_path / "objects"``; its outline file."""
     source = tmp_path / "L part.stl"
     _l_shape().export(source)
-    _library(folder).add(source.name, source.read_bytes())
-    outline_file = folder / "l_part.json"
+    _library(tmp_path / "objects").add(source.name, source.read_bytes())
+    return tmp_path / "objects" / "l_part.json"
+
+
+def test_an_outline_file_from_before_surfaces_has_its_mesh_read_once_for_a_submission(
+        tmp_path: Path, counted_loads: list[str]) -> None:
+    outline_file = _upload_l_part(tmp_path)
     kept = json.loads(outline_file.read_text())
     del kept["surface_m"]  # as an outline file written before
     outline_file.write_text(json.dumps(kept))
-    library = _library(folder)
+    library = _library(outline_file.parent)
     assert "l_part" in {e.name for e in library.entries()} and len(counted_loads) == 1  # listed as it was
     for _ in range(2):
         with pytest.raises(ServiceError, match="where none of the 2 views"):
             validate(CONFIG, library, ArmClearance(CONFIG), SearchViews(CONFIG),
                      JobRequest(object="l_part", object_pose=(0.5, 0.0, 0.0)))
     assert len(counted_loads) == 2 and "surface_m" in json.loads(outline_file.read_text())
+
+
+Points = list[list[float]]
+"""A list of points as an outline file keeps them (``footprint_m``, ``surface_m``)."""
+
+
+def _nan_at_first(points: Points) -> Points:
+    return [[float("nan"), *points[0][1:]], *points[1:]]
+
+
+@pytest.mark.parametrize(("field", "damage"), [
+    ("surface_m", lambda points: []),
+    ("surface_m", lambda points: points[:100]),
+    ("surface_m", _nan_at_first),
+    ("footprint_m", lambda points: []),
+], ids=["surface emptied", "surface cut short", "surface not finite", "footprint emptied"])
+def test_a_damaged_outline_file_has_its_mesh_read_again_and_a_placement_its_views_see_is_accepted(
+        tmp_path: Path, counted_loads: list[str], field: str, damage: Callable[[Points], Points]) -> None:
+    """An outline file damaged on disk (its surface emptied, cut short or not finite, its footprint
+    emptied) is no outline: its mesh is read again and the file written whole, once; the placement checks
+    never run on what was left (with no surface point, no view sees the object anywhere: a placement at
+    the station was refused)."""
+    outline_file = _upload_l_part(tmp_path)
+    kept = json.loads(outline_file.read_text())
+    whole = np.asarray(kept["surface_m"])
+    kept[field] = damage(kept[field])
+    outline_file.write_text(json.dumps(kept))
+    library = _library(outline_file.parent)
+    for _ in range(2):
+        validate(CONFIG, library, ArmClearance(CONFIG), SearchViews(CONFIG),
+                 JobRequest(object="l_part", object_pose=(0.0, 0.0, 0.0)))
+    shape = library.shape("l_part", surface=True)
+    assert isinstance(shape, ObjectOutline) and shape.surface is not None
+    assert np.array_equal(np.round(shape.surface, 6), whole)
+    assert shape.extents_m == pytest.approx((0.12, 0.14, 0.05))
+    assert len(counted_loads) == 2  # the upload's check, then the damaged file's once
+    assert np.array_equal(json.loads(outline_file.read_text())["surface_m"], whole)
 
 
 def test_an_outline_file_kept_from_before_loads_without_its_mesh(tmp_path: Path,

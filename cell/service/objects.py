@@ -11,10 +11,10 @@ The service never keeps an uploaded mesh: a 16 MB STL takes some 60 MB once read
 What listing the objects and checking a job's placement need of it (:class:`ObjectOutline`: its size, its
 footprint's convex hull, and the points on its surface that the search views' check tests, some 12,000
 numbers) is worked out once, at the upload, and kept beside the mesh as ``<name>.json``, with the mesh
-file's size and modification time; an upload without one (kept from before) or whose mesh changed since is
-read once more, the first time it is asked for, and so is one whose outline file was written before the
-surface points were kept, the first time a job's placement is checked. The job's worker reads the mesh
-itself.
+file's size and modification time; an upload without one (kept from before), whose mesh changed since or
+whose outline file is damaged (emptied or cut short on disk) is read once more, the first time it is asked
+for, and so is one whose outline file was written before the surface points were kept, the first time a
+job's placement is checked. The job's worker reads the mesh itself.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from scipy.spatial import ConvexHull
 
 from cell.config.models import CellConfig
 from cell.jobs.memory import release_freed_heap
-from cell.jobs.placement import check_placement, view_points
+from cell.jobs.placement import VIEW_CHECK_POINTS, check_placement, view_points
 from cell.service.arm_clearance import ArmClearance
 from cell.service.store import JobRecord
 from drivers.atomic_file import write_text_atomic
@@ -131,7 +131,10 @@ def _write_outline(mesh_file: Path, outline: ObjectOutline, stamp: list[int]) ->
 
 
 def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline | None:
-    """The outline kept beside ``mesh_file`` when it is of this mesh file, else None."""
+    """The outline kept beside ``mesh_file`` when it is of this mesh file and whole, else None (its mesh is
+    then read again): a footprint of fewer than three points (a hull has three at least) or a surface
+    other than the ``VIEW_CHECK_POINTS`` finite points it was written with (a file emptied or cut short
+    on disk) is not one this module wrote, and the placement checks would have run on what was left."""
     try:
         data = json.loads(_outline_file(mesh_file).read_text())
         if [data["mesh_file"]["bytes"], data["mesh_file"]["mtime_ns"]] != stamp:
@@ -139,8 +142,12 @@ def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline
         extents = np.asarray(data["extents_m"], dtype=np.float64).reshape(3)
         footprint = np.asarray(data["footprint_m"], dtype=np.float64).reshape(-1, 2)
         surface = (None if "surface_m" not in data  # written before the surface was kept
-                   else np.asarray(data["surface_m"], dtype=np.float64).reshape(-1, 3))
+                   else np.asarray(data["surface_m"], dtype=np.float64))
     except (OSError, ValueError, TypeError, KeyError):  # none, or not one this module wrote: read the mesh
+        return None
+    whole = len(footprint) >= 3 and np.isfinite(extents).all() and np.isfinite(footprint).all() and (
+        surface is None or (surface.shape == (VIEW_CHECK_POINTS, 3) and np.isfinite(surface).all()))
+    if not whole:
         return None
     # its x and y sizes are the footprint's: only the height is read of them
     return ObjectOutline.from_footprint(name, float(extents[2]), footprint, surface)
