@@ -31,7 +31,7 @@ from cell.line.packml import ACCEPTS, Command, State, StopReason, UnitMode, refu
 from cell.line.result import check_part_id, cycle_result, feeder_part
 from cell.service.keys import create_key
 from cell.service.startup import ServiceSettings
-from cell.service.store import open_data_store, sqlite_url
+from cell.service.store import FINISHED_STATUSES, open_data_store, sqlite_url
 from drivers.arm.config import LINE_INPUTS, LINE_NEEDS, LINE_OUTPUTS, UR5eArmConfig
 from drivers.errors import ServiceError
 from tests.rtde_peer import ControllerPeer
@@ -314,6 +314,33 @@ def _started_scan(line: Line, part: str) -> str:
     job_id: str = line.wait({"Execute"})["job_id"]
     wait_started(line.client, line.auth("viewer"), job_id)
     return job_id
+
+
+def test_an_operators_stop_of_a_line_scan_whose_worker_is_starting_keeps_the_operators_cause(tmp_path: Path):
+    """``POST /api/v1/stop`` while the line's scan's worker still loads: the line's own stop of its scan
+    follows the operator's within the same turns of the loop; the job ends with the operator's reason
+    (it ended "the line: Stopping", the second stop's, overwriting the first)."""
+    config = _cell_file(tmp_path, TOF, {"initial_mode": "production", "max_time_s": SCAN_S},
+                        service={"warm_worker": False})
+    with served_line(tmp_path, config) as line:
+        service = line.client.app.state.service  # type: ignore[attr-defined]
+        line.command("reset")
+        line.wait({"Idle"})
+        line.command("start", "bunny")
+        job_id = line.wait({"Execute"})["job_id"]
+        deadline = time.monotonic() + 30.0
+        while service._running is None or service._running.proc is None:  # handed its job, still loading
+            assert time.monotonic() < deadline, "the worker was never handed its job"
+            time.sleep(0.005)
+        stop = line.client.post("/api/v1/stop", json={"reason": "hands in"}, headers=line.auth("operator"))
+        assert stop.status_code == 200, stop.text
+        line.wait({"Stopped", "Aborted"})
+        job = line.job(job_id)
+        while job["status"] not in FINISHED_STATUSES:
+            assert time.monotonic() < deadline + 60.0, job
+            time.sleep(0.05)
+            job = line.job(job_id)
+        assert "hands in" in job["termination"], job["termination"]
 
 
 def test_a_job_stopped_through_the_api_whose_worker_is_killed_is_still_an_operators_stop(tmp_path: Path):

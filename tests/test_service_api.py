@@ -389,10 +389,14 @@ def test_a_stop_before_the_worker_has_its_job_reads_running_then_stopping(tmp_pa
         assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
 
 
-def test_an_error_before_a_job_is_announced_still_announces_it_and_passes_on_its_pending_stop_first(tmp_path):
+@pytest.mark.parametrize("failures", [1, 2])
+def test_an_error_before_a_job_is_announced_still_announces_it_and_passes_on_its_pending_stop_first(
+        tmp_path, failures: int):
     """The service's follower failing before it said the job runs (here at the arm's state) leaves nothing
     undone: the job still reads running, then stopping, and an operator's stop asked for while it was
-    being started stays the stop it ends with, before the service's own stop for its failure."""
+    being started stays the stop it ends with, before the service's own stop for its failure. When the
+    announce fails again after the follower's error, the operator's stop is still the one the job ends
+    with (it ended ``failed``, the stop dropped, through the dispatcher's catch-all)."""
     client, keys = _client_with(tmp_path, "cold", service={"warm_worker": False,
                                                           "stop_confirm_timeout_s": 60})
     op = _auth(keys["operator"])
@@ -401,13 +405,13 @@ def test_an_error_before_a_job_is_announced_still_announces_it_and_passes_on_its
         job_started = service.arm.job_started
         failed: list[bool] = []
 
-        def failing_once() -> None:
-            if not failed:
+        def failing() -> None:
+            if len(failed) < failures:
                 failed.append(True)
                 raise RuntimeError("a bug")
             job_started()
 
-        service.arm.job_started = failing_once
+        service.arm.job_started = failing
         held, release = _held_start(service.store)
         try:
             job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
@@ -417,12 +421,36 @@ def test_an_error_before_a_job_is_announced_still_announces_it_and_passes_on_its
         finally:
             release.set()
         ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
-        assert failed == [True]
+        assert failed == [True] * failures
         assert ended["status"] == "stopped", ended["termination"]
         assert ended["termination"].startswith(ENDED_STARTING), ended["termination"]
-        assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
+        if failures == 1:
+            assert _states(client, op, job["id"]) == ["queued", "running", "stopping", "stopped"]
         second = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
         assert _wait(client, keys["viewer"], second["id"], set(FINISHED_STATUSES))["status"] == "completed"
+
+
+def test_two_stops_at_once_of_a_worker_that_confirms_neither_end_the_job_with_the_first(tmp_path):
+    """An operator's stop and the line's behind it (``stop_all``) both time out on a wedged worker: the job
+    and the queue's hold name the first stop's cause; the second, arriving while the first waited, had
+    overwritten it."""
+    client, keys = _client_with(tmp_path, "c", service={"warm_worker": False, "stop_confirm_timeout_s": 1.0})
+    op = _auth(keys["operator"])
+    with client:
+        service = client.app.state.service  # type: ignore[attr-defined]
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 30}, headers=op).json()
+        wait_started(client, op, job["id"])
+        os.killpg(service._running.proc.pid, signal.SIGSTOP)  # a worker that confirms nothing
+
+        async def both() -> None:
+            await asyncio.gather(service.stop_job(job["id"], "first (key operator)"),
+                                 service.stop_job(job["id"], "second (key line)"))
+
+        client.portal.call(both)  # type: ignore[union-attr]
+        ended = _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))
+        assert "first" in ended["termination"] and "second" not in ended["termination"], ended["termination"]
+        held = client.get("/api/v1/cell", headers=op).json()["queue"]["held"]
+        assert "first" in held and "second" not in held, held
 
 
 def test_a_worker_that_dies_holds_the_queue_until_an_operator_resumes_it(tmp_path):

@@ -351,7 +351,10 @@ class CellService:
                                        self.config.service.shutdown_timeout_s)
             self._dispatcher.cancel()
         if self._warmer is not None:  # not cancelled: a spare it spawns as the service closes is closed
-            await self._warmer
+            try:
+                await self._warmer
+            except Exception:  # a spare that failed to start leaves the rest of the close to do
+                log.exception("the next job's worker failed to start")
         if self._rewarm is not None:
             self._rewarm.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -676,6 +679,8 @@ class CellService:
             running.requested = requested
         cause = stop_cause(reason, requested)
         await asyncio.sleep(0)  # a "started" the worker sent is read first
+        if running.killed_for is not None:  # another stop in flight beside this one (the line's, behind an
+            return StopOutcome(job_id, False, "the job had already ended")  # operator's) killed it first
         if not running.started:
             # still loading its libraries, it cannot answer for seconds, and it has not touched the arm:
             # ended now, the stop takes milliseconds rather than the confirmation's timeout and a kill
@@ -694,11 +699,12 @@ class CellService:
         except (BrokenPipeError, ConnectionResetError):
             return StopOutcome(job_id, False, "the job's worker had already ended")
         except TimeoutError:
-            running.killed_for = (f"{cause} (the job's worker did not confirm the stop in "
-                                  f"{self.config.service.stop_confirm_timeout_s:g} s and was killed)")
-            # the arm was not stopped through the guard but by its connection watchdog: a person looks
-            # before the next job moves it, as after a worker that died
-            self._hold(f"a stop its job's worker did not confirm ({running.killed_for}); check the arm")
+            if running.killed_for is None:  # the first stop that timed out names the kill
+                running.killed_for = (f"{cause} (the job's worker did not confirm the stop in "
+                                      f"{self.config.service.stop_confirm_timeout_s:g} s and was killed)")
+                # the arm was not stopped through the guard but by its connection watchdog: a person looks
+                # before the next job moves it, as after a worker that died
+                self._hold(f"a stop its job's worker did not confirm ({running.killed_for}); check the arm")
             self._kill(proc)
             self._mark_stopping(running)
             return StopOutcome(job_id, False, "the job's worker did not confirm the stop in "
@@ -1022,9 +1028,14 @@ class CellService:
             log.exception("job %s: %s; it is stopped through its worker", job.id, failure)
             # an error before the job was announced or its pending stop passed on: both first, so that
             # the job reads running, then stopping, and a stop someone asked for stays the first one
-            await self._announce(running)
+            try:
+                await self._announce(running)
+            except Exception:  # the same error again: the job is stopped all the same, below
+                log.exception("job %s: the announce failed again", job.id)
+            reason, requested = running.pending_stop or (failure, False)
+            running.pending_stop = None
             follower = asyncio.create_task(self._follow(running))
-            await self._stop_running(running, failure, requested=False)
+            await self._stop_running(running, reason, requested=requested)
             code = await follower
         await self._finish(running, code)
         _drop_if_empty(log_path)
