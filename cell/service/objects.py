@@ -12,9 +12,9 @@ What listing the objects and checking a job's placement need of it (:class:`Obje
 footprint's convex hull, and the points on its surface that the search views' check tests, some 12,000
 numbers) is worked out once, at the upload, and kept beside the mesh as ``<name>.json``, with the mesh
 file's size and modification time; an upload without one (kept from before), whose mesh changed since or
-whose outline file is damaged (emptied or cut short on disk) is read once more, the first time it is asked
-for, and so is one whose outline file was written before the surface points were kept, the first time a
-job's placement is checked. The job's worker reads the mesh itself.
+whose outline file is damaged (not JSON, or its fields missing, short or not finite) is read once more,
+the first time it is asked for, and so is one whose outline file was written before the surface points
+were kept, the first time a job's placement is checked. The job's worker reads the mesh itself.
 """
 
 from __future__ import annotations
@@ -133,8 +133,9 @@ def _write_outline(mesh_file: Path, outline: ObjectOutline, stamp: list[int]) ->
 def _read_outline(name: str, mesh_file: Path, stamp: list[int]) -> ObjectOutline | None:
     """The outline kept beside ``mesh_file`` when it is of this mesh file and whole, else None (its mesh is
     then read again): a footprint of fewer than three points (a hull has three at least) or a surface
-    other than the ``VIEW_CHECK_POINTS`` finite points it was written with (a file emptied or cut short
-    on disk) is not one this module wrote, and the placement checks would have run on what was left."""
+    other than the ``VIEW_CHECK_POINTS`` finite points it was written with (its points edited away or
+    not finite on disk) is not one this module wrote, and the placement checks would have run on what
+    was left."""
     try:
         data = json.loads(_outline_file(mesh_file).read_text())
         if [data["mesh_file"]["bytes"], data["mesh_file"]["mtime_ns"]] != stamp:
