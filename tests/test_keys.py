@@ -150,6 +150,29 @@ def test_cli_create_list_revoke(tmp_path: Path):
     assert again.stderr.startswith("error: key 'op-1' was already revoked") and again.stderr.count("\n") == 1
 
 
+def test_cli_create_warns_when_it_makes_a_new_store(tmp_path: Path):
+    """A commissioning engineer who mistyped --data-dir (/var/lib/cel) got a key and no hint that it went
+    into a new store no running service reads: the PLC's login was then refused. create says so on
+    standard error; the key stays alone on standard output's last line."""
+    data = tmp_path / "cel"
+    made = runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "line", "--name",
+                               "plc-1"])
+    assert made.exit_code == 0, made.output
+    assert KEY.fullmatch(made.stdout.splitlines()[-1])
+    assert made.stderr == (f"warning: there was no store in {data}: made {data / 'cell.db'}, and the key "
+                           f"works only for a cell serve with --data-dir {data}; is {data} the service's "
+                           "data folder?\n")
+    # the folder a service (or cell init, then the first create) made a store in: no warning
+    again = runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "line", "--name",
+                                "plc-2"])
+    assert (again.exit_code, again.stderr) == (0, "")
+    # a store named on purpose with --db: no warning either
+    (tmp_path / "shared").mkdir()
+    shared = sqlite_url(tmp_path / "shared")
+    named = runner.invoke(app, ["keys", "create", "--db", shared, "--role", "viewer"])
+    assert (named.exit_code, named.stderr) == (0, "")
+
+
 def test_cli_defaults_and_db_option(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     monkeypatch.chdir(tmp_path)
     created = runner.invoke(app, ["keys", "create", "--role", "admin"])

@@ -5,8 +5,10 @@
 key is active, never a key or a hash. ``revoke`` ends a key; its name stays taken. Every command opens the
 store given by ``--db`` or, by default, the SQLite store in ``--data-dir``, and never migrates it: on a
 store several cells share, that would stop those of the previous version (``cell serve`` migrates it).
-``list`` only reads it; ``create`` gives a new store its schema. A data folder whose service uses
-another store than the one a command would open is refused (:mod:`cell.service.store.service_store`).
+``list`` only reads it; ``create`` gives a new store its schema, and warns that it made one: a key made in a
+mistyped ``--data-dir`` is a key no running service knows (the PLC's login is then refused with no hint
+where the key went). A data folder whose service uses another store than the one a command would open is
+refused (:mod:`cell.service.store.service_store`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from cell.cli.commands import DB_ENVVAR, command_group
 from cell.cli.errors import fail, print_warning
 from cell.service.keys import Role, create_key, parse_role
 from cell.service.store import Store, open_data_store
-from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S, hide_password
+from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S, SQLITE_FILE, hide_password
 from cell.service.store.repository import KEYS_SCHEMA, read_store
 from cell.service.store.service_store import service_store_url
 from drivers.errors import CellError, StoreError
@@ -83,8 +85,14 @@ def create(
     """Create a key and print it once: only its hash is stored, it cannot be shown again."""
     with _one_line_errors():
         parse_role(role)
+        # a store given by --db was named on purpose; a data folder's may be a typo away from the service's
+        new_store = db is None and not (data_dir / SQLITE_FILE).exists()
         with opened_store(data_dir, db) as store:
             record, key = create_key(store, role, name)
+    if new_store:
+        print_warning(f"there was no store in {data_dir}: made {data_dir / SQLITE_FILE}, and the key works "
+                      f"only for a cell serve with --data-dir {data_dir}; is {data_dir} the service's data "
+                      "folder?")
     _print(f"created key {record.name!r} (role {record.role}); it is shown once, store it now:")
     _print(key)
 
