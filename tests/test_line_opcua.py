@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import socket
 import subprocess
 import time
@@ -677,6 +678,18 @@ def test_anonymous_and_unknown_users_can_do_nothing(encrypted):
 
     run(scenario())
     assert not any(secret in encrypted.cell.log() for secret in keys.values())
+    # the PLC hears only BadUserAccessDenied: the cell's log tells the integrator which mistake it was
+    said = {json.loads(line)["msg"] for line in encrypted.cell.log().splitlines() if line.startswith("{")}
+    login = "OPC UA: login refused for user name"
+    role_line = "which may not drive the line: give the PLC a key of role line (cell keys create --role line)"
+    assert {
+        f"{login} 'test-line': the password is no active key's secret: a mistyped secret, or a key revoked "
+        "or made in another store than this service's (cell keys list --data-dir, as the service's user)",
+        f"{login} 'test-line': the password is another key's secret: the user name must be the name of the "
+        "key whose secret it is",
+        f"{login} 'test-viewer': key test-viewer has role viewer, {role_line}",
+        f"{login} 'test-operator': key test-operator has role operator, {role_line}",
+    } <= said
 
 
 def test_a_revoked_key_is_refused_from_its_next_request(encrypted):

@@ -61,10 +61,26 @@ class LineUser(User):
     secret: str = field(default="", repr=False, compare=False)
 
 
-def _line_key(keys: KeyRing, secret: str) -> KeyRecord | None:
+def _login(keys: KeyRing, username: str, secret: str) -> KeyRecord | str:
+    """The active key of ``keys`` that logs in as ``username`` with the password ``secret`` and may drive
+    the line; else why the login is refused, in words for the cell's log. The PLC is told only
+    ``BadUserAccessDenied``, so the integrator commissioning it reads the cause here, which tells the usual
+    mistakes apart: a key of another role, a user name that is not the key's, a secret that is no active
+    key's (mistyped, revoked, or made in another store). Nothing of the secret is said, and no other key
+    is named. Asked again at every request of a logged-in session (:class:`LinePermissions`): the key may
+    have been revoked since."""
+    if not username or not secret:
+        return "no user name or no password: the user name is a key's name, the password its secret"
     record = keys.authenticate(secret)
-    if record is None or not record.active or not allowed(record.role, Permission.LINE):
-        return None
+    if record is None or not record.active:
+        return ("the password is no active key's secret: a mistyped secret, or a key revoked or made in "
+                "another store than this service's (cell keys list --data-dir, as the service's user)")
+    if record.name != username:
+        return ("the password is another key's secret: the user name must be the name of the key whose "
+                "secret it is")
+    if not allowed(record.role, Permission.LINE):
+        return (f"key {record.name} has role {record.role}, which may not drive the line: give the PLC a "
+                "key of role line (cell keys create --role line)")
     return record
 
 
@@ -78,15 +94,15 @@ class LineUserManager(UserManager):
 
     def get_user(self, iserver: InternalServer, username: str | None = None, password: str | None = None,
                  certificate: Any = None) -> User | None:
-        """The session's user, or None (asyncua answers ``BadUserAccessDenied``)."""
+        """The session's user, or None (asyncua answers ``BadUserAccessDenied``, and the cell's log says
+        why: :func:`_login`)."""
         secret = password or ""
-        record = _line_key(self._keys, secret) if username and secret else None
-        if record is None or record.name != username:
-            log.warning("OPC UA: login refused for user name %r: not an active key with the line "
-                        "permission, or the wrong secret", (username or "")[:64])
+        login = _login(self._keys, username or "", secret)
+        if isinstance(login, str):
+            log.warning("OPC UA: login refused for user name %r: %s", (username or "")[:64], login)
             return None
-        log.info("OPC UA: key %s logged in", record.name)
-        return LineUser(role=UserRole.User, name=record.name, secret=secret)
+        log.info("OPC UA: key %s logged in", login.name)
+        return LineUser(role=UserRole.User, name=login.name, secret=secret)
 
 
 class LinePermissions(SimpleRoleRuleset):
@@ -102,7 +118,7 @@ class LinePermissions(SimpleRoleRuleset):
     def check_validity(self, user: User, action_type_id: ua.NodeId, body: Any) -> bool:
         if not isinstance(user, LineUser) or action_type_id not in self._allowed:
             return False
-        if _line_key(self._keys, user.secret) is None:
+        if isinstance(_login(self._keys, user.name or "", user.secret), str):
             log.warning("OPC UA: key %s was revoked: its session is refused", user.name)
             return False
         caller.set(user.name)
