@@ -127,6 +127,10 @@ def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_f
         # a cell of the same name with another data dir (a copied cell file): that service is not its own
         (tmp_path / "copy").mkdir()
         copy_code, copy_checks = _doctor(cell_file, tmp_path / "copy", port=cell.port)
+        # doctor given another --port than the service's (cell serve --port): the OPC UA port its data folder
+        # says the service holds failed as another program's, with nothing about the port doctor asked
+        asked = free_port()
+        other_code, other_checks = _doctor(cell_file, tmp_path, port=asked)
         # its cell file changed since it started, to an OPC UA port another program holds: that port is not
         # the service's, though the service answers on its HTTP port (it was taken for the service's)
         moved = tmp_path / "moved.yaml"
@@ -145,6 +149,12 @@ def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_f
     assert checks["line OPC UA port"] == ("ok", f"{endpoint} is in use by this cell's running service")
     assert code == 0, checks
     assert copy_checks["service port"][0] == copy_checks["line OPC UA port"][0] == "fail" and copy_code == 1
+    assert "this data folder's service" not in copy_checks["line OPC UA port"][1]
+    status, text = other_checks["line OPC UA port"]
+    assert status == "fail" and other_code == 1, other_checks
+    assert (f"(this data folder's service wrote at its latest start that it listens here, but none answers "
+            f"on 127.0.0.1:{asked}: if it runs, give doctor its --host and --port; else another program "
+            "holds this port)") in text, text
     # the same ports, held by another program, still fail
     with socket.socket() as service, socket.socket() as opcua:
         for held, at in ((service, cell.port), (opcua, opcua_port)):

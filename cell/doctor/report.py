@@ -11,7 +11,7 @@ from cell.config.placeholders import find_placeholders
 from cell.doctor import devices, machine
 from cell.doctor.findings import Finding, Status
 from cell.line.opcua_endpoint import check_endpoint
-from cell.service.instance import Instance, opcua_address
+from cell.service.instance import Instance, instance_of, opcua_address
 from drivers.arm.config import FrankaArmConfig, UR5eArmConfig
 from drivers.depth.config import VL53L8CXConfig
 from drivers.errors import CellError
@@ -71,7 +71,8 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
             check_endpoint(cfg.line)
             found.append(Finding.ok("line OPC UA port", f"{opcua.endpoint} is free"))
         except CellError as exc:
-            found.append(_opcua_in_use(opcua.endpoint, str(exc), served))
+            found.append(_opcua_in_use(opcua.endpoint, str(exc), instance_of(data_dir), served is not None,
+                                       f"{host}:{port}"))
     if isinstance(cfg.sensor, VL53L8CXConfig) and cfg.sensor.port is not None:
         found.append(devices.serial_port(cfg.sensor.port))
     if isinstance(cfg.arm, UR5eArmConfig):
@@ -81,17 +82,27 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
     return found
 
 
-def _opcua_in_use(endpoint: str, problem: str, served: Instance | None) -> Finding:
-    """The finding for the line's OPC UA ``endpoint`` that cannot be listened on (``problem``): fine when
-    this cell's running service (``served``) wrote that it listens there (``cell serve`` checked it free),
-    not when it listens on another (the cell file changed since it started)."""
-    if served is not None and problem.endswith(machine.IN_USE):
-        if served.opcua == opcua_address(endpoint):
+def _opcua_in_use(endpoint: str, problem: str, written: Instance | None, answered: bool,
+                  service: str) -> Finding:
+    """The finding for the line's OPC UA ``endpoint`` that cannot be listened on (``problem``), given what
+    the data folder's service wrote at its latest start (``written``) and whether it ``answered`` on the
+    HTTP address ``service`` (doctor's ``--host``:``--port``): fine when it answered and wrote that it listens
+    there (``cell serve`` checked it free), not when it listens on another (the cell file changed since it
+    started). When it wrote that it listens there but did not answer, it may run on another HTTP port than
+    doctor was given (``cell serve --port``): the finding says so, rather than only blaming another
+    program."""
+    if written is not None and written.opcua is not None and problem.endswith(machine.IN_USE):
+        here = written.opcua == opcua_address(endpoint)
+        if answered and here:
             return Finding.ok("line OPC UA port", f"{endpoint} is in use by this cell's running service")
-        if served.opcua is not None:
-            host, port = served.opcua
+        if answered:
+            host, port = written.opcua
             problem += (f" (this cell's running service listens for OPC UA on {host}:{port}: the cell file "
                         "changed since it started, or another program holds this port)")
+        elif here:
+            problem += (f" (this data folder's service wrote at its latest start that it listens here, but "
+                        f"none answers on {service}: if it runs, give doctor its --host and --port; else "
+                        "another program holds this port)")
     return Finding.fail("line OPC UA port", problem, "stop the program that holds it, or change "
                         "line.opcua.endpoint (and the PLC's configuration); after a change of the cell "
                         "file, restart cell serve")
