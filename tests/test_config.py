@@ -429,3 +429,17 @@ def test_config_check_refuses_a_tcp_offset_in_millimetres(tmp_path):
     assert res.exit_code == 1
     assert res.output.startswith(f"error: {bad}: arm.tcp_offset[1]: 40 m is outside [-0.5, 0.5] m")
     assert "it looks like millimetres (40 mm is 0.04 m)" in res.output
+
+
+@pytest.mark.parametrize("line, message", [
+    ({"opcua": {"endpoint": "opc.tcp://127.0.0.1:99999/cell"}},
+     r"line\.opcua\.endpoint: Port out of range 0-65535$"),
+    ({"dio": {}}, r"line\.dio is the UR5e's digital-I/O handshake: a sim arm has none$"),
+])
+def test_a_validators_refusal_reads_as_its_own_words(line, message):
+    """A refusal of the cell's own validators read "line.opcua.endpoint: Value error, Port out of range
+    0-65535", pydantic's prefix before the words, in `cell config check`, `cell serve` and `cell doctor`."""
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    data["line"] = line
+    with pytest.raises(ConfigError, match=rf"^cell\.yaml: {message}"):
+        parse_config(data, file="cell.yaml")

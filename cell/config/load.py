@@ -44,6 +44,15 @@ def _allowed(error: ErrorDetails) -> str | None:
     return None
 
 
+def _message(error: ErrorDetails) -> str:
+    """The error's message, without the "Value error, " pydantic puts before the words of a validator's
+    ``ValueError`` (the cell's own checks: "line.opcua.endpoint: Value error, Port out of range 0-65535")."""
+    ctx = error.get("ctx") or {}
+    if error["type"] == "value_error" and "error" in ctx:
+        return str(ctx["error"])
+    return error["msg"]
+
+
 def _strip_tags(loc: tuple[Any, ...], data: Any) -> tuple[Any, ...]:
     """Drop the union tag pydantic puts after a discriminated field (``arm.sim.model`` -> ``arm.model``, a
     collision body's ``tool[0].box.size_m`` -> ``tool[0].size_m``)."""
@@ -157,7 +166,7 @@ def parse_config(data: Any, file: str = "<config>") -> CellConfig:
     try:
         cfg = CellConfig.model_validate(data)
     except ValidationError as exc:
-        problems = [(_field_path(_strip_tags(tuple(err["loc"]), data)), err["msg"], _allowed(err))
+        problems = [(_field_path(_strip_tags(tuple(err["loc"]), data)), _message(err), _allowed(err))
                     for err in exc.errors()]
         if len(problems) == 1:
             field, msg, allowed = problems[0]
