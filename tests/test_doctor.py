@@ -4,6 +4,7 @@ permission, broken kernels, a full disk, a taken port, placeholders, real-time l
 
 from __future__ import annotations
 
+import errno
 import grp
 import os
 import re
@@ -115,6 +116,33 @@ def test_no_robot_no_port_and_a_taken_service_port_fail_with_their_fixes(tmp_pat
     assert checks["serial port"][0] == "fail" and "`cell deploy files`" in checks["serial port"][1]
     assert checks["service port"][0] == "fail" and "ss -ltnp" in checks["service port"][1]
     assert checks["service port"][1].endswith("stop it, or choose another port")
+
+
+def test_a_host_not_this_machines_or_a_port_of_the_systems_is_not_blamed_on_another_program(
+        tmp_path, monkeypatch):
+    """An OPC UA endpoint on the PLC network's address of another PC, a --host that does not resolve, or a
+    port below 1024 for a user who may not take one: each was "another program has it: stop it"."""
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    data["line"] = {"opcua": {"endpoint": "opc.tcp://192.0.2.1:4840/cell"}}  # TEST-NET-1: no machine's
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump(data))
+    code, checks = _doctor(cell_file, tmp_path, "--host", "no-such-host.invalid")
+    assert code == 1
+    status, text = checks["line OPC UA port"]
+    assert status == "fail" and "Cannot assign requested address" in text, text
+    assert text.endswith("fix: 192.0.2.1 is no name or address of this machine (ip -brief address lists "
+                         "them; 0.0.0.0 is every one): correct it (line.opcua.endpoint, and the PLC's "
+                         "configuration)"), text
+    status, text = checks["service port"]
+    assert status == "fail" and text.endswith(
+        "fix: no-such-host.invalid is no name or address of this machine (ip -brief address lists them; "
+        "0.0.0.0 is every one): correct it (cell serve --host)"), text
+    # the tests run as root, who may take any port: the refusal a service user meets, as bind(2) words it
+    monkeypatch.setattr(machine, "listen_problem", lambda host, port: os.strerror(errno.EACCES))
+    code, checks = _doctor(cell_file, tmp_path, port=80)
+    assert checks["service port"] == ("fail", f"cannot listen on 127.0.0.1:80: {os.strerror(errno.EACCES)} "
+                                      "fix: a port below 1024 is the system's: choose one from 1024 up (cell "
+                                      "serve --port)")
 
 
 def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_fail(tmp_path):

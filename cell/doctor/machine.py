@@ -236,6 +236,20 @@ def serves_cell(host: str, port: int, data_dir: Path) -> Instance | None:
     return expected if isinstance(body, dict) and body.get("instance") == expected.id else None
 
 
+def listen_fix(problem: str, host: str, in_use: str, host_setting: str, port_setting: str) -> str:
+    """What to do when a server cannot listen on ``host`` for ``problem`` (``listen_problem``'s words):
+    ``in_use`` for a port another program holds; else the port (one the system keeps) or the host (not
+    this machine's: a PLC network's address on another PC, a name that does not resolve) to correct in
+    the setting that names it. Both had been told "another program has it", sending the engineer after a
+    program that is not there."""
+    if problem == IN_USE:
+        return in_use
+    if problem == os.strerror(errno.EACCES):
+        return f"a port below 1024 is the system's: choose one from 1024 up ({port_setting})"
+    return (f"{host} is no name or address of this machine (ip -brief address lists them; 0.0.0.0 is every "
+            f"one): correct it ({host_setting})")
+
+
 def port_free(host: str, port: int, name: str = "service port", served: bool = False) -> Finding:
     """Whether the service can listen on ``host``:``port``; a port in use is fine when ``served``: this
     cell's running service holds it (:func:`serves_cell`)."""
@@ -243,9 +257,9 @@ def port_free(host: str, port: int, name: str = "service port", served: bool = F
     if problem == IN_USE and served:
         return Finding.ok(name, f"{host}:{port} is in use by this cell's running service")
     if problem is not None:
+        in_use = f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or choose another port"
         return Finding.fail(name, f"cannot listen on {host}:{port}: {problem}",
-                            f"another program has it (sudo ss -ltnp 'sport = :{port}'): stop it, or choose "
-                            "another port")
+                            listen_fix(problem, host, in_use, "cell serve --host", "cell serve --port"))
     return Finding.ok(name, f"{host}:{port} is free")
 
 

@@ -4,6 +4,7 @@ machine, the cell file, then the devices it names."""
 from __future__ import annotations
 
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
@@ -91,7 +92,8 @@ def _opcua_in_use(endpoint: str, problem: str, written: Instance | None, answere
     started). When it wrote that it listens there but did not answer, it may run on another HTTP port than
     doctor was given (``cell serve --port``): the finding says so, rather than only blaming another
     program."""
-    if written is not None and written.opcua is not None and problem.endswith(machine.IN_USE):
+    reason = problem.rsplit(": ", 1)[-1]  # listen_problem's words end check_endpoint's message
+    if written is not None and written.opcua is not None and reason == machine.IN_USE:
         here = written.opcua == opcua_address(endpoint)
         if answered and here:
             return Finding.ok("line OPC UA port", f"{endpoint} is in use by this cell's running service")
@@ -103,9 +105,11 @@ def _opcua_in_use(endpoint: str, problem: str, written: Instance | None, answere
             problem += (f" (this data folder's service wrote at its latest start that it listens here, but "
                         f"none answers on {service}: if it runs, give doctor its --host and --port; else "
                         "another program holds this port)")
-    return Finding.fail("line OPC UA port", problem, "stop the program that holds it, or change "
-                        "line.opcua.endpoint (and the PLC's configuration); after a change of the cell "
-                        "file, restart cell serve")
+    setting = "line.opcua.endpoint, and the PLC's configuration"
+    in_use = ("stop the program that holds it, or change line.opcua.endpoint (and the PLC's configuration); "
+              "after a change of the cell file, restart cell serve")
+    return Finding.fail("line OPC UA port", problem, machine.listen_fix(
+        reason, urlsplit(endpoint).hostname or "", in_use, setting, setting))
 
 
 def failed(found: list[Finding]) -> bool:
