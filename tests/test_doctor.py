@@ -356,6 +356,11 @@ def test_a_data_dir_that_is_a_file_fails(tmp_path):
     (tmp_path / "data").write_text("")
     code, checks = _doctor(SIM_CELL, tmp_path)
     assert code == 1 and checks["disk"][0] == "fail" and "is not a folder" in checks["disk"][1]
+    # the store check said "cannot read which store the service of DATA uses (DATA/store-url): Not a
+    # directory" and to run doctor with another store (--db, CELL_DB), which no store would have fixed
+    data = tmp_path / "data"
+    assert checks["job store"] == ("fail", f"none: --data-dir {data} is not a folder fix: give --data-dir a "
+                                   "folder (or a name not taken)")
 
 
 def test_an_unreachable_store_fails_without_showing_its_password(tmp_path):

@@ -46,6 +46,8 @@ HEALTHZ_MAX_BYTES = 4096
 """The most of an answer to ``/healthz`` [bytes] that check reads."""
 IN_USE = os.strerror(errno.EADDRINUSE)
 """Why a port another process listens on cannot be listened on (``listen_problem``'s words)."""
+NOT_A_FOLDER_FIX = "give --data-dir a folder (or a name not taken)"
+"""The fix of a ``--data-dir`` that names a file (the disk and the job store checks)."""
 TIME_ERROR = 5
 """adjtimex(2)'s answer when the kernel's clock is not synchronised (TIME_ERROR)."""
 GOVERNORS = Path("/sys/devices/system/cpu")
@@ -200,7 +202,7 @@ def disk(data_dir: Path) -> Finding:
         where = where.parent
     if not where.is_dir():
         return Finding.fail("disk", f"{where} is not a folder: cell serve keeps its jobs and store in "
-                            f"--data-dir {data_dir}", "give --data-dir a folder (or a name not taken)")
+                            f"--data-dir {data_dir}", NOT_A_FOLDER_FIX)
     free_gb = shutil.disk_usage(where).free / 1e9
     problem = access_problem(where, folder=True, recursive=True, instead="choose another --data-dir")
     if problem is not None:
@@ -268,6 +270,9 @@ def store(data_dir: Path, db_url: str | None, host: str) -> list[Finding]:
     changing it, and for SQLite its folder and files (``cell.db*``: the database, its WAL, the cells'
     leases) this user's to write; and, for a ``host`` beyond loopback, an API key in it (cell serve
     refuses that host without one). The store's URL is shown with its password hidden."""
+    if data_dir.exists() and not data_dir.is_dir():
+        # its store-url could not be read ("Not a directory"): no other store would help
+        return [Finding.fail("job store", f"none: --data-dir {data_dir} is not a folder", NOT_A_FOLDER_FIX)]
     try:
         url = service_store_url(data_dir, db_url)
     except StoreError as exc:
