@@ -254,3 +254,17 @@ def test_a_data_folder_whose_service_uses_another_store_is_refused(tmp_path: Pat
     refused = runner.invoke(app, ["keys", "list", "--data-dir", str(data)])
     assert refused.exit_code == 1 and "uses the job store postgresql+psycopg://cell:***@db-host/cells" \
         in refused.stderr
+
+
+@pytest.mark.parametrize("command", [["keys", "create", "--role", "line"], ["keys", "list"],
+                                     ["keys", "revoke", "plc-1"], ["backup", "backups/"], ["serve"]])
+def test_a_data_dir_that_is_a_file_is_refused_as_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     command: list[str]):
+    """A --data-dir naming a file was refused with "cannot read which store the service of data uses
+    (data/store-url): Not a directory", which sends an engineer after the store rather than the path."""
+    monkeypatch.chdir(tmp_path)
+    Path("data").write_text("")
+    refused = runner.invoke(app, [*command, "--data-dir", "data"])
+    assert (refused.exit_code, refused.stdout) == (1, "")
+    assert refused.stderr == "error: --data-dir data is not a folder: give a folder, or a name not taken\n"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["data"]

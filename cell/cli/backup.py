@@ -15,6 +15,7 @@ from rich.console import Console
 
 from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
+from cell.cli.values import data_folder
 from cell.service.startup import DEFAULT_DATA_DIR
 from cell.service.store.backup import backup_sqlite, sqlite_file
 from cell.service.store.service_store import service_store_url
@@ -28,7 +29,8 @@ def backup(
     dest: Annotated[str, typer.Argument(metavar="DEST", help="the backup file, or a folder to write "
                                                              "cell-{UTC time}.db in (a name ending in '/' "
                                                              "is a folder, made if new)")],
-    data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
+    data_dir: Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)",
+                                           callback=data_folder)]
     = DEFAULT_DATA_DIR,
     db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
                                            help="the store's URL instead of the data folder's (SQLite only: "

@@ -24,6 +24,7 @@ from rich.console import Console
 
 from cell.cli.commands import DB_ENVVAR, command_group
 from cell.cli.errors import fail, print_warning
+from cell.cli.values import data_folder
 from cell.service.keys import Role, create_key, parse_role
 from cell.service.store import Store, open_data_store
 from cell.service.store.engine import POSTGRES_CONNECT_TIMEOUT_S, SQLITE_FILE, hide_password
@@ -36,7 +37,8 @@ DEFAULT_DATA_DIR = Path("data")
 keys_app = command_group(help="API keys of the service: create, list, revoke.", no_args_is_help=True)
 console = Console(soft_wrap=True)
 
-DataDirOption = Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)")]
+DataDirOption = Annotated[Path, typer.Option(help="the service's data folder (its store: cell.db)",
+                                             callback=data_folder)]
 DbOption = Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
                                               help="store URL instead of the data folder's SQLite file: "
                                                    "sqlite:///ABS/PATH/cell.db or "

@@ -21,6 +21,7 @@ from cell.api.connections import ConnectionLimits, protocol_class
 from cell.api.server import NotifyingServer
 from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
+from cell.cli.values import data_folder
 from cell.line.opcua_endpoint import check_endpoint
 from cell.service.logs import configure_logging
 from cell.service.notify import Notifier
@@ -43,7 +44,8 @@ def serve(
     host: Annotated[str, typer.Option(help="interface to bind (another than loopback needs an API key)")]
     = "127.0.0.1",
     port: Annotated[int, typer.Option(min=1, max=65535)] = 8080,
-    data_dir: Annotated[Path, typer.Option(help="jobs, uploads, logs and the embedded database")]
+    data_dir: Annotated[Path, typer.Option(help="jobs, uploads, logs and the embedded database",
+                                           callback=data_folder)]
     = DEFAULT_DATA_DIR,
     db: Annotated[str | None, typer.Option(envvar=DB_ENVVAR,
                                            help="store URL, e.g. postgresql+psycopg://user@host/db (default: "

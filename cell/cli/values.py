@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from cell.cli.errors import fail
 from cell.jobs import inputs
 from drivers.errors import JobError
@@ -16,3 +18,13 @@ def parse_pose(option: str, text: str) -> tuple[float, float, float]:
         return inputs.parse_pose(text)
     except JobError as exc:
         raise fail(f"{option}: {exc}") from None
+
+
+def data_folder(path: Path) -> Path:
+    """A ``--data-dir`` option's check (its ``callback``): ``path``, a folder or a name not taken (the
+    command makes it); else the input error (exit 1) saying so, before anything opens it. A file there
+    was reported as "cannot read which store the service of DATA uses (DATA/store-url): Not a
+    directory"."""
+    if path.exists() and not path.is_dir():
+        raise fail(f"--data-dir {path} is not a folder: give a folder, or a name not taken")
+    return path
