@@ -286,7 +286,10 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     assert line.command("stop").status_code == 200
     stopped = line.wait({"Stopped"})
     assert stopped["stop_reason"] == {"id": 1, "message": "Stop from REST (key line)"}
-    assert line.job(running["job_id"])["status"] == "stopped" and stopped["job_id"] == running["job_id"]
+    job = line.job(running["job_id"])
+    assert job["status"] == "stopped" and stopped["job_id"] == running["job_id"]
+    # the job says who stopped the line, as the stop reason does
+    assert job["termination"].startswith("operator stop: the line: Stopping (Stop from REST (key line))")
     assert stopped["processed"] == 0 and stopped["result"] is None  # only a Complete writes a result
 
 

@@ -114,6 +114,7 @@ class LineController:
         self._record = LineRecord(cell=self._cell, mode=int(self.mode))
         self._message = ""
         self._source = ""
+        self._cause = ""  # why the line entered its state now (the newest transition's cause)
         self._listeners: list[Listener] = []
         # store writes in order: a write, a reader's marker (set once the writes before it are done), or
         # None (close)
@@ -442,8 +443,8 @@ class LineController:
     async def _stop_scan(self) -> None:
         acting = self.state
         job_id = self._job_id
-        if job_id is not None:
-            await self._service.stop_job(job_id, f"the line: {acting.label}")
+        if job_id is not None:  # the job says who: "the line: Stopping (Stop from OPC UA (key plc-1))"
+            await self._service.stop_job(job_id, f"the line: {acting.label} ({self._cause})")
             return  # job_ended moves on
         after = {State.STOPPING: State.STOPPED, State.ABORTING: State.ABORTED, State.HOLDING: State.HELD,
                  State.SUSPENDING: State.SUSPENDED}[acting]
@@ -483,7 +484,7 @@ class LineController:
         transition = LineTransition(cell=self._cell, at=datetime.now(UTC), from_state=int(self.state),
                                     to_state=int(to), mode=int(self.mode), cause=cause[:500])
         log.info("line: %s -> %s (%s)", self.state.label, to.label, cause)
-        self.state = to
+        self.state, self._cause = to, cause
         self._writes.put_nowait(lambda: self._store.add_line_transition(transition))
         self._notify()
 
