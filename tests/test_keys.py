@@ -92,10 +92,11 @@ def test_create_key_refuses(store: Store):
         create_key(store, "root", "x")
     assert (err.value.reason, err.value.field) == ("invalid", "role")
     assert "viewer, operator, line, admin" in str(err.value)
-    for name in ("", "has space", "x" * 65, "semi;colon"):
+    for name in ("", "has space", "x" * 65, "semi;colon", "cell_" + "A" * 43):  # the last: a key's shape
         with pytest.raises(ServiceError) as err:
             create_key(store, "viewer", name)
         assert (err.value.reason, err.value.field) == ("invalid", "name")
+        assert "A" * 20 not in str(err.value)
     create_key(store, "viewer", "screen.1")
     with pytest.raises(ServiceError) as err:
         create_key(store, "admin", "screen.1")
@@ -159,9 +160,9 @@ def test_cli_create_warns_when_it_makes_a_new_store(tmp_path: Path):
                                "plc-1"])
     assert made.exit_code == 0, made.output
     assert KEY.fullmatch(made.stdout.splitlines()[-1])
-    assert made.stderr == (f"warning: there was no store in {data}: made {data / 'cell.db'}, and the key "
-                           f"works only for a cell serve with --data-dir {data}; is {data} the service's "
-                           "data folder?\n")
+    assert made.stderr == (f"warning: no store in {data} yet: made {data / 'cell.db'}; the key works for a "
+                           f"cell serve with --data-dir {data} (the first key of a new cell; else check that "
+                           f"{data} is the service's data folder)\n")
     # the folder a service (or cell init, then the first create) made a store in: no warning
     again = runner.invoke(app, ["keys", "create", "--data-dir", str(data), "--role", "line", "--name",
                                 "plc-2"])
@@ -257,7 +258,9 @@ def test_a_data_folder_whose_service_uses_another_store_is_refused(tmp_path: Pat
 
 
 @pytest.mark.parametrize("command", [["keys", "create", "--role", "line"], ["keys", "list"],
-                                     ["keys", "revoke", "plc-1"], ["backup", "backups/"], ["serve"]])
+                                     ["keys", "revoke", "plc-1"], ["backup", "backups/"], ["serve"],
+                                     ["init", "c1", "--template", "sim-ur5e-tof"],
+                                     ["calibrate", "table", "--config", str(UR5E)]])
 def test_a_data_dir_that_is_a_file_is_refused_as_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                      command: list[str]):
     """A --data-dir naming a file was refused with "cannot read which store the service of data uses

@@ -671,6 +671,7 @@ def test_anonymous_and_unknown_users_can_do_nothing(encrypted):
         await refused("test-line", keys["operator"])  # another key's secret
         await refused("test-viewer", keys["viewer"])  # a key without the line permission
         await refused("test-operator", keys["operator"])
+        await refused(keys["line"], "test-line")  # the user name and the password swapped
         async with plc(encrypted, "test-admin", keys["admin"]) as line:  # admin keys have it too
             assert await line.state() in (STOPPED, IDLE, COMPLETE, ABORTED)
             ns = line.ns
@@ -689,6 +690,8 @@ def test_anonymous_and_unknown_users_can_do_nothing(encrypted):
         "key whose secret it is",
         f"{login} 'test-viewer': key test-viewer has role viewer, {role_line}",
         f"{login} 'test-operator': key test-operator has role operator, {role_line}",
+        f"{login} <a key's secret, not shown>: the user name is a key's secret: the user name is the key's "
+        "name, the password its secret (swapped?)",
     } <= said
 
 

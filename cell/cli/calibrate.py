@@ -25,6 +25,7 @@ from calibration.tof import DEFAULT_FRAMES_PER_HEIGHT, DEFAULT_HEIGHTS_M, calibr
 from cell.cli.commands import command_group
 from cell.cli.errors import fail
 from cell.cli.signals import interrupting
+from cell.cli.values import data_folder
 from cell.config import load_config
 from cell.config.placeholders import require_arm_measured
 from cell.service.startup import DEFAULT_DATA_DIR
@@ -37,7 +38,8 @@ calibrate_app = command_group(help="Calibrate the cell with the cell: the sensor
 console = Console(soft_wrap=True)
 
 ConfigOption = Annotated[Path, typer.Option(help="the cell file")]
-DataDirOption = Annotated[Path, typer.Option(help="the data folder; the views are kept in its calibrations/")]
+DataDirOption = Annotated[Path, typer.Option(help="the data folder; the views are kept in its calibrations/",
+                                             callback=data_folder)]
 
 
 def _print(text: str) -> None:

@@ -20,6 +20,7 @@ from rich.console import Console
 
 from calibration import CALIBRATIONS_FOLDER
 from cell.cli.errors import fail
+from cell.cli.values import data_folder
 from cell.config.models import CELL_NAME
 from cell.config.placeholders import find_placeholders
 from cell.deploy import DATA_DIR
@@ -65,7 +66,8 @@ def init(
     template: Annotated[str, typer.Option(help=f"one of: {', '.join(TEMPLATES)}")],
     name: Annotated[str | None, typer.Option(help="the cell's name (default: the folder's name)")] = None,
     data_dir: Annotated[Path | None, typer.Option(help="the service's data folder (default: FOLDER/data; "
-                                                       f"{DATA_DIR} under systemd)")] = None,
+                                                       f"{DATA_DIR} under systemd)",
+                                                  callback=data_folder)] = None,
 ) -> None:
     """Start a cell: its cell file from a template and its data folder, with what is left to measure."""
     try:

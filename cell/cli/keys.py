@@ -88,13 +88,13 @@ def create(
     with _one_line_errors():
         parse_role(role)
         # a store given by --db was named on purpose; a data folder's may be a typo away from the service's
-        new_store = db is None and not (data_dir / SQLITE_FILE).exists()
+        new_store = not db and not (data_dir / SQLITE_FILE).exists()
         with opened_store(data_dir, db) as store:
             record, key = create_key(store, role, name)
     if new_store:
-        print_warning(f"there was no store in {data_dir}: made {data_dir / SQLITE_FILE}, and the key works "
-                      f"only for a cell serve with --data-dir {data_dir}; is {data_dir} the service's data "
-                      "folder?")
+        print_warning(f"no store in {data_dir} yet: made {data_dir / SQLITE_FILE}; the key works for a cell "
+                      f"serve with --data-dir {data_dir} (the first key of a new cell; else check that "
+                      f"{data_dir} is the service's data folder)")
     _print(f"created key {record.name!r} (role {record.role}); it is shown once, store it now:")
     _print(key)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import typer
+
 from cell.cli.errors import fail
 from cell.jobs import inputs
 from drivers.errors import JobError
@@ -20,11 +22,12 @@ def parse_pose(option: str, text: str) -> tuple[float, float, float]:
         raise fail(f"{option}: {exc}") from None
 
 
-def data_folder(path: Path) -> Path:
+def data_folder(ctx: typer.Context, path: Path | None) -> Path | None:
     """A ``--data-dir`` option's check (its ``callback``): ``path``, a folder or a name not taken (the
-    command makes it); else the input error (exit 1) saying so, before anything opens it. A file there
-    was reported as "cannot read which store the service of DATA uses (DATA/store-url): Not a
-    directory"."""
-    if path.exists() and not path.is_dir():
+    command makes it) or None (not given, where the option has no default); else the input error (exit
+    1) saying so, before anything opens it. A file there was reported as "cannot read which store the
+    service of DATA uses (DATA/store-url): Not a directory". Not checked while the shell completes a
+    command line (``resilient_parsing``): the error would be printed into the completion."""
+    if not ctx.resilient_parsing and path is not None and path.exists() and not path.is_dir():
         raise fail(f"--data-dir {path} is not a folder: give a folder, or a name not taken")
     return path

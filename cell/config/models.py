@@ -293,12 +293,11 @@ class CellConfig(StrictModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> CellConfig:
-        # the servo law streams one twist per servo period, and the control loop takes at most one a tick;
-        # the message names both fields, without pydantic's "Value error, " before it
+        # the servo law streams one twist per servo period, and the control loop takes at most one a tick
         vs = self.planners.vs
         if vs.servo_rate_hz > self.scan.control_rate_hz:
-            raise PydanticCustomError("servo_rate", f"planners.vs.servo_rate_hz {vs.servo_rate_hz:g} exceeds "
-                                      f"scan.control_rate_hz {self.scan.control_rate_hz:g}")
+            raise ValueError(f"planners.vs.servo_rate_hz {vs.servo_rate_hz:g} exceeds scan.control_rate_hz "
+                             f"{self.scan.control_rate_hz:g}")
         sim_arm = self.arm.type == "sim"
         sim_sensor = self.sensor.type.startswith("sim-")
         arm, sensor = self.arm, self.sensor

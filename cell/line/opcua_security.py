@@ -33,7 +33,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from cell.service.keys import KeyRing, Permission, allowed
+from cell.service.keys import SECRET_SHAPE, KeyRing, Permission, allowed
 from cell.service.store import KeyRecord
 from drivers.errors import ConfigError
 
@@ -71,6 +71,9 @@ def _login(keys: KeyRing, username: str, secret: str) -> KeyRecord | str:
     have been revoked since."""
     if not username or not secret:
         return "no user name or no password: the user name is a key's name, the password its secret"
+    if SECRET_SHAPE.fullmatch(username):
+        return ("the user name is a key's secret: the user name is the key's name, the password its secret "
+                "(swapped?)")
     record = keys.authenticate(secret)
     if record is None or not record.active:
         return ("the password is no active key's secret: a mistyped secret, or a key revoked or made in "
@@ -99,7 +102,9 @@ class LineUserManager(UserManager):
         secret = password or ""
         login = _login(self._keys, username or "", secret)
         if isinstance(login, str):
-            log.warning("OPC UA: login refused for user name %r: %s", (username or "")[:64], login)
+            shown = "<a key's secret, not shown>" if SECRET_SHAPE.fullmatch(username or "") \
+                else repr((username or "")[:64])
+            log.warning("OPC UA: login refused for user name %s: %s", shown, login)
             return None
         log.info("OPC UA: key %s logged in", login.name)
         return LineUser(role=UserRole.User, name=login.name, secret=secret)

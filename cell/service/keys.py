@@ -20,6 +20,7 @@ from drivers.errors import ServiceError
 KEY_PREFIX = "cell_"
 KEY_RANDOM_BYTES = 32  # 256 bits of randomness per key
 KEY_NAME = re.compile(r"[A-Za-z0-9._-]{1,64}")  # what a key's name may be
+SECRET_SHAPE = re.compile(rf"{KEY_PREFIX}[A-Za-z0-9_-]{{43}}")  # what a key looks like: no name may
 
 
 class Role(StrEnum):
@@ -90,6 +91,9 @@ def create_key(store: Store, role: str, name: str | None) -> tuple[KeyRecord, st
     elif not KEY_NAME.fullmatch(name):
         raise ServiceError(f"key name {name!r}: expected 1 to 64 letters, digits, '.', '_' or '-'",
                            reason="invalid", field="name")
+    elif SECRET_SHAPE.fullmatch(name):  # a name is logged and shown, a secret never
+        raise ServiceError(f"key name {name[:8]}...: a key's name may not look like a key (cell_ and 43 "
+                           "characters)", reason="invalid", field="name")
     key = new_key()
     return store.add_key(name, checked.value, hash_key(key)), key
 
