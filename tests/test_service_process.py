@@ -35,6 +35,8 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.core.result import Err, Ok
 
+from cell.config import load_config
+from cell.jobs.replay import recorded_job
 from cell.service.keys import Permission, allowed
 from cell.service.keys import create_key as add_key
 from cell.service.protocol import finite_json
@@ -224,6 +226,24 @@ def test_a_sim_job_runs_from_submission_to_result_through_its_event_stream(
     assert events_of(franka, job["id"], last_event_id=0) == events
     for seen in (2, len(events) - 1):
         assert events_of(franka, job["id"], last_event_id=ids[seen - 1]) == events[seen:]
+
+
+def test_a_served_result_shows_no_path_of_the_host_and_its_cell_file_is_found_from_the_folder(
+        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
+    """result.json, job.json and log.txt go to every viewer: they name the cell file the job ran relative to
+    the job folder (the service's copy in its data dir), never the absolute path it was served from, and
+    a replay or reprocess finds it from the folder alone."""
+    job, _ = scanned
+    hidden = (str(franka.config), str(REPO), str(franka.data_dir.resolve()))
+    with franka.client("viewer") as client:
+        for name in ("result.json", "job.json", "log.txt"):
+            served = client.get(f"/api/v1/jobs/{job['id']}/files/{name}")
+            assert served.status_code == 200
+            assert not [h for h in hidden if h in served.text], f"{name} names a path of the host"
+    assert job["result"]["config"].startswith("../../cells/")
+    folder = franka.data_dir / "jobs" / job["id"]
+    config, _, _ = recorded_job(folder, None)
+    assert config == load_config(franka.config)
 
 
 def test_an_event_stream_ends_once_its_key_is_revoked(franka: ServedCell) -> None:

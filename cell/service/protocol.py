@@ -40,10 +40,11 @@ may be left before it is stopped, and a line every half second costs the worker 
 @dataclass(frozen=True)
 class WorkerSpec:
     """One task of a worker. ``op`` ``scan``: run the job (``config`` is the cell file's parsed YAML, which
-    the worker validates again, ``config_file`` its name for messages and the record; ``object`` a
-    shipped name or a mesh path, or a label on a real cell; ``object_pose`` x [m], y [m], yaw [deg] from
-    the station; ``folder`` the job folder to create; ``part_id`` and ``submitted_by`` the job's, kept in
-    its job.json). ``op`` ``recover``: connect the cell's arm, clear
+    the worker validates again, ``config_file`` the service's copy of it in the data dir, named in messages
+    and, relative to the job folder, in the job's result, :func:`cell.service.startup.keep_cell_file`;
+    ``object`` a shipped name or a mesh path, or a label on a real cell; ``object_pose`` x [m], y [m],
+    yaw [deg] from the station; ``folder`` the job folder to create; ``part_id`` and ``submitted_by`` the
+    job's, kept in its job.json). ``op`` ``recover``: connect the cell's arm, clear
     a recoverable fault, report its state and disconnect (operator action)."""
 
     op: str

@@ -3,14 +3,19 @@
 The data dir holds everything the service writes: ``cell.db`` (the embedded SQLite store, unless
 ``--db`` names another), ``store-url`` (which store that is, for the commands given only the data dir:
 :mod:`cell.service.store.service_store`), ``jobs/<id>/`` (one folder per job, the layout ``cell scan``
-writes, with the job's log ``log.txt``), ``objects/`` (uploaded meshes) and ``logs/`` (a job worker's
+writes, with the job's log ``log.txt``), ``objects/`` (uploaded meshes), ``cells/``
+(the cell files its jobs ran: :func:`keep_cell_file`) and ``logs/`` (a job worker's
 standard error, kept when the process printed anything there: a crash's traceback, a library's messages).
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+import yaml
 
 from cell.config.load import load_config_data
 from cell.config.placeholders import require_measured
@@ -18,10 +23,13 @@ from cell.service.manager import CellService
 from cell.service.store import open_data_store
 from cell.service.store.service_store import record_service_store, service_store_url
 from cell.templates import DEFAULT_TEMPLATE, template_path
+from drivers.atomic_file import write_text_atomic
 from drivers.errors import StoreError
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_DATA_DIR = Path("data")
+CELLS_DIR = "cells"
+"""The data dir's folder of the cell files its service's jobs ran (:func:`keep_cell_file`)."""
 
 
 @dataclass(frozen=True)
@@ -47,9 +55,35 @@ def build_service(settings: ServiceSettings) -> CellService:
         raise
     try:
         record_service_store(settings.data_dir, url)
+        kept = keep_cell_file(settings.data_dir, settings.config_file, data)
     except StoreError:
         lease.release()
         store.close()
         raise
-    return CellService(config=config, config_data=data, config_file=str(settings.config_file),
+    return CellService(config=config, config_data=data, config_file=str(kept),
                        data_dir=settings.data_dir.resolve(), store=store, lease=lease)
+
+
+def keep_cell_file(data_dir: Path, source: Path, data: Any) -> Path:
+    """Keep the cell file the service runs its jobs with in ``data_dir``/cells/<digest>.yaml and return
+    that file's absolute path. It holds ``data``, the cell file's parsed YAML with its relative names
+    already made absolute (``load_config_data``), so that it loads as it is from there; one file per
+    content, so that an older job keeps the cell file it ran after the one at ``source`` was edited.
+
+    A job's ``result.json`` and ``job.json`` name this copy relative to the job folder
+    (``../../cells/<digest>.yaml``): they are served to every viewer and must not show where the
+    service's files are on its host, and ``cell scan --replay`` and ``cell reprocess`` find the cell
+    file from the job folder alone (also in a data dir moved whole). ``source`` is named in the copy's
+    first line, for a person; the data dir is never served. ``StoreError`` naming the file if it
+    cannot be written."""
+    body = yaml.safe_dump(data, sort_keys=False)
+    path = data_dir.resolve() / CELLS_DIR / f"{hashlib.sha256(body.encode()).hexdigest()[:16]}.yaml"
+    if path.is_file():
+        return path
+    try:
+        path.parent.mkdir(exist_ok=True)
+        write_text_atomic(path, f"# cell serve --config {source}, as its jobs ran it (relative names made "
+                                f"absolute)\n{body}")
+    except OSError as exc:
+        raise StoreError(f"cannot keep the cell file the jobs run in {path}: {exc.strerror}") from None
+    return path

@@ -123,10 +123,11 @@ def _run_scan(spec: WorkerSpec, outbox: Outbox, control: JobControl) -> int:
     result: dict[str, Any] | None = None
     status, termination = "failed", "not started"
     try:
+        # the kept cell file relative to the job folder: the result is served, the host's paths are not
         request = ScanRequest(config=parse_config(spec.config, file=spec.config_file),
-                              config_path=spec.config_file, object=spec.object, object_pose=spec.object_pose,
-                              planner=spec.planner, seed=spec.seed, out=folder, max_time_s=spec.max_time_s,
-                              choose_folder=CHOOSE_DATA_DIR, part_id=spec.part_id,
+                              config_path=os.path.relpath(spec.config_file, folder), object=spec.object,
+                              object_pose=spec.object_pose, planner=spec.planner, seed=spec.seed, out=folder,
+                              max_time_s=spec.max_time_s, choose_folder=CHOOSE_DATA_DIR, part_id=spec.part_id,
                               submitted_by=spec.submitted_by)
         # not run_scan: its heap trim (tens of ms) would delay the end the line waits for, in a process
         # that exits with its job
