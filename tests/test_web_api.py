@@ -221,6 +221,30 @@ def test_a_page_upgraded_in_place_goes_out_with_its_new_policy_at_both_addresses
     assert policies == {page.security_headers(upgraded)["Content-Security-Policy"]}
 
 
+def test_the_api_docs_and_their_files_carry_a_policy_of_their_own(served) -> None:
+    """``/docs`` (Swagger UI) and its files went out with no security header: any site could frame the
+    docs page, and nothing kept out a script it did not load itself. Its one inline script, Swagger UI's
+    start, is allowed by its hash, and the OAuth2 redirect page (an inline script, no OAuth2 flow) is gone."""
+    client, _ = served
+    docs = client.get("/docs")
+    assert docs.status_code == 200 and docs.headers["content-type"].startswith("text/html")
+    policy = docs.headers["content-security-policy"]
+    [start] = page.INLINE_SCRIPT.findall(docs.text)
+    digest = base64.b64encode(hashlib.sha256(start.encode()).digest()).decode()
+    assert f"script-src 'self' 'sha256-{digest}';" in policy and "frame-ancestors 'none'" in policy
+    assert "'unsafe-inline'" not in policy and "connect-src 'self'" in policy
+    files = re.findall(r'(?:src|href)="(/static-offline-docs/[^"]+)"', docs.text)
+    assert len(files) == 3, files
+    for path in ("/docs", *files):
+        answer = client.get(path)
+        assert answer.status_code == 200, path
+        assert answer.headers["content-security-policy"] == policy, path
+        assert answer.headers["x-content-type-options"] == "nosniff", path
+        assert answer.headers["referrer-policy"] == "no-referrer", path
+    assert client.head("/docs").headers["content-security-policy"] == policy
+    assert client.get("/docs/oauth2-redirect").status_code == 404
+
+
 @pytest.mark.parametrize("path", ["/", "/static/js/main.js", "/healthz"])
 def test_head_answers_where_get_does_as_uptime_monitors_ask(served, path: str) -> None:
     """``HEAD /`` answered 405 Method Not Allowed, which an uptime monitor sending HEAD reads as down."""

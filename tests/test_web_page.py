@@ -181,6 +181,30 @@ def events_of(cell: ServedCell, job_id: str) -> list[str]:
         return re.findall(r"^event: (\w+)$", response.read().decode(), flags=re.MULTILINE)
 
 
+# ---------------------------------------------------------------------------------------------- docs
+
+
+def test_the_api_docs_run_under_their_policy_and_list_the_operations(browser: Any, cell: ServedCell) -> None:
+    """``/docs`` goes out with a policy that lets only the service's scripts and the page's own start of
+    Swagger UI run: the page still draws every operation, and the browser refuses nothing it asks for."""
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    page.set_default_timeout(WAIT_MS)
+    refused: list[str] = []
+    page.on("console", lambda message: refused.append(message.text) if message.type == "error" else None)
+    page.on("pageerror", lambda error: refused.append(str(error)))
+    try:
+        answer = page.goto(cell.url + "/docs")
+        assert answer is not None and "frame-ancestors 'none'" in answer.headers["content-security-policy"]
+        page.wait_for_selector(".opblock-summary-path")
+        paths = page.eval_on_selector_all(".opblock-summary-path", "nodes => nodes.map(n => n.textContent)")
+        assert "/api/v1/stop" in [p.replace("\u200b", "") for p in paths]
+        shot(page, "docs")
+    finally:
+        context.close()
+    assert refused == [], refused
+
+
 # ---------------------------------------------------------------------------------------------- login
 
 

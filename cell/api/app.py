@@ -21,7 +21,6 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from fastapi_offline import FastAPIOffline
 
 from cell import __version__
 from cell.api.body_limit import BodyLimit
@@ -30,6 +29,7 @@ from cell.api.connections import ConnectionLimits
 from cell.api.routes import cell as cell_routes
 from cell.api.routes import clouds, health, jobs, keys, retention
 from cell.api.routes import line as line_routes
+from cell.api.routes.docs import add_docs
 from cell.api.routes.page import add_page
 from cell.service.instance import opcua_listening
 from cell.service.keys import KeyRing
@@ -102,10 +102,10 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
             await opcua.aclose()
             cell.store.close()
 
-    # the docs page's scripts are served by the cell itself: a cell's PC often has no internet
-    app = FastAPIOffline(title="cell", version=__version__, lifespan=lifespan,
-                         description="An autonomous active-vision scanning cell: run, watch and stop scans.",
-                         openapi_url="/api/v1/openapi.json", docs_url="/docs", redoc_url=None)
+    # the docs page is cell.api.routes.docs's: FastAPI's own loads its scripts from a CDN
+    app = FastAPI(title="cell", version=__version__, lifespan=lifespan,
+                  description="An autonomous active-vision scanning cell: run, watch and stop scans.",
+                  openapi_url="/api/v1/openapi.json", docs_url=None, redoc_url=None)
     app.add_middleware(BodyLimit)
     app.include_router(cell_routes.router)
     app.include_router(jobs.router)
@@ -115,6 +115,7 @@ def create_app(settings: ServiceSettings, service: CellService | None = None) ->
     app.include_router(keys.router)
     app.include_router(retention.router)
     add_page(app)  # the operator's page (cell.web) at / and /static
+    add_docs(app)
 
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:

@@ -1,12 +1,14 @@
 """The operator's page (``cell.web``): ``/`` and its files under ``/static``, no key needed (they hold
 no data; every call the page makes sends the key). The page, and every file under ``/static``, is sent
-with a Content-Security-Policy that lets it run only the scripts of this service and connect only to it."""
+with a Content-Security-Policy that lets it run only the scripts of this service and connect only to it
+(:func:`security_headers`, which the API's docs page also goes out with: ``cell.api.routes.docs``)."""
 
 from __future__ import annotations
 
 import base64
 import hashlib
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,40 +17,43 @@ from starlette.staticfiles import StaticFiles
 
 from cell.web import INDEX_HTML, STATIC_DIR
 
-IMPORT_MAP = re.compile(r'<script type="importmap">(.*?)</script>', re.DOTALL)
+INLINE_SCRIPT = re.compile(r"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.DOTALL)
+"""A script written in the page (the page's import map, the docs page's start of Swagger UI), not loaded."""
 
 router = APIRouter(include_in_schema=False)
 
 
-def security_headers(html: str) -> dict[str, str]:
-    """The page's headers: its CSP allows scripts from this origin and the page's import map (by its
-    SHA-256, the one inline script), images from it and from blob URLs (plots fetched with the key),
-    connections to it alone, and no framing."""
+def security_headers(html: str, images: str = "blob:") -> dict[str, str]:
+    """The headers of the page ``html``: its CSP allows scripts from this origin and the page's inline
+    scripts (each by its SHA-256: the operator page's import map), images from this origin and from
+    ``images`` (the operator page's blob URLs: plots fetched with the key), connections to this origin
+    alone, and no framing."""
     inline = [f"'sha256-{base64.b64encode(hashlib.sha256(m.encode()).digest()).decode()}'"
-              for m in IMPORT_MAP.findall(html)]
+              for m in INLINE_SCRIPT.findall(html)]
     scripts = " ".join(("'self'", *inline))
     policy = "; ".join((
         "default-src 'self'", f"script-src {scripts}", "style-src 'self'",
-        "img-src 'self' blob:", "connect-src 'self'", "object-src 'none'", "base-uri 'none'",
+        f"img-src 'self' {images}", "connect-src 'self'", "object-src 'none'", "base-uri 'none'",
         "form-action 'none'", "frame-ancestors 'none'"))
     return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff",
             "Referrer-Policy": "no-referrer", "Cache-Control": "no-cache"}
 
 
-class _RevalidatedFiles(StaticFiles):
+class RevalidatedFiles(StaticFiles):
     """Static files a browser revalidates at each load (ETag): a new version of the cell's software is
     picked up at once, never mixed with cached modules of the old one. Each goes out with the security
-    headers of the page ``page`` as it is now, as ``/`` sends it: ``/static/index.html`` is the page
-    itself, and was served without its policy (to be framed, or to run what the policy keeps out), then
-    with the import map's hash of the page the service started with, which an upgrade in place changes."""
+    headers ``headers()`` gives at that moment, those of the page the files belong to (for the operator's
+    page, as ``/`` sends it: ``/static/index.html`` is the page itself, and was served without its policy,
+    to be framed or to run what the policy keeps out, then with the import map's hash of the page the
+    service started with, which an upgrade in place changes)."""
 
-    def __init__(self, directory: Path, page: Path) -> None:
+    def __init__(self, directory: Path, headers: Callable[[], dict[str, str]]) -> None:
         super().__init__(directory=directory)
-        self._page = page
+        self._headers = headers
 
     def file_response(self, *args: Any, **kwargs: Any) -> Response:
         response = super().file_response(*args, **kwargs)
-        response.headers.update(security_headers(self._page.read_text()))  # a few kB, from the page cache
+        response.headers.update(self._headers())
         return response
 
 
@@ -62,4 +67,6 @@ def index() -> Response:
 def add_page(app: FastAPI) -> None:
     """Serve the page at ``/`` and its files at ``/static``."""
     app.include_router(router)
-    app.mount("/static", _RevalidatedFiles(STATIC_DIR, INDEX_HTML), name="static")
+    # the page read at each file, a few kB from the page cache: an upgrade in place changes its policy
+    app.mount("/static", RevalidatedFiles(STATIC_DIR, lambda: security_headers(INDEX_HTML.read_text())),
+              name="static")
