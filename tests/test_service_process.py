@@ -35,6 +35,7 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
 from schemathesis.core.result import Err, Ok
 
+from cell.api.connections import REFUSED_BURST, REFUSED_RATE
 from cell.config import load_config
 from cell.jobs.replay import recorded_job
 from cell.service.keys import Permission, allowed
@@ -810,6 +811,48 @@ def test_slow_bodies_never_keep_a_stop_out_and_are_closed_at_their_deadline(tmp_
             assert client.get("/api/v1/jobs").json()["total"] == 1  # none of the slow ones was taken
         log = cell.log()
     assert "Traceback" not in log, log[-3000:]
+
+
+FLOODERS = 60  # clients without a valid key, each asking again as soon as it is answered
+
+
+def test_clients_without_a_valid_key_are_answered_at_a_pace_and_a_stop_gets_in(tmp_path: Path) -> None:
+    """240 clients with wrong keys asking as fast as they were answered got some 5000 answers a second,
+    and a valid key's STOP was answered after 0.6 s, up to 1.3 s. Their 401s now go out at
+    ``REFUSED_RATE`` past a burst, so that they cost the service next to nothing and the STOP is served
+    among them. The count of answers is the check (thousands without the pace); the STOP's time is not."""
+    with ServedCell(FRANKA, tmp_path / "data") as cell:
+        job = submit(cell, object="bunny", max_time_s=LONG_S)
+        wait_progress(cell, job["id"], lambda p: p["n_captures"] >= 1)
+        done = threading.Event()
+        refused: list[int] = []
+
+        def flood(n: int) -> None:
+            headers = {"Authorization": f"Bearer cell_{n:043d}"} if n % 2 else {}  # wrong, or none
+            with httpx.Client(base_url=cell.url, headers=headers, timeout=60.0) as client:
+                while not done.is_set():
+                    status = client.get("/api/v1/cell").status_code
+                    if not done.is_set():
+                        refused.append(status)
+
+        flooders = [threading.Thread(target=flood, args=(n,)) for n in range(FLOODERS)]
+        started = time.monotonic()
+        try:
+            for flooder in flooders:
+                flooder.start()
+            time.sleep(2.0)  # every flooder asking by now
+            with cell.client("viewer", timeout_s=20.0) as client:
+                stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": "key flood"})
+            assert stop.status_code == 200 and stop.json()["arm_commanded"] is True, stop.text
+            time.sleep(1.0)
+        finally:
+            done.set()
+            elapsed = time.monotonic() - started
+            for flooder in flooders:
+                flooder.join(60.0)
+        assert set(refused) == {401}
+        assert len(refused) <= REFUSED_BURST + REFUSED_RATE * elapsed + 1, (len(refused), elapsed)
+        assert cell.wait_job(job["id"], ENDED)["status"] == "stopped"
 
 
 BULK_JOBS = 500  # ended jobs in the store: one page of the largest size
