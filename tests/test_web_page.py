@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import base64
 import io
+import itertools
 import json
 import os
 import re
 import shutil
 import signal
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -602,6 +604,51 @@ def test_the_jobs_table_follows_its_jobs_while_it_is_shown(open_page: Callable[.
     page.wait_for_selector("form.scan-form")
     page.wait_for_timeout(6000)  # beyond the table's period (5 s)
     assert read_again == []
+
+
+def test_a_cell_busy_with_large_answers_is_waited_for_and_said_busy_not_failed(
+        open_page: Callable[..., Page]) -> None:
+    """A list refused 503 with a Retry-After (the cell's queue of large answers is full, cell/api/bulk.py:
+    here a route answers the first two so, as the cell does) was an error in the table. The page waits
+    the Retry-After, says on the status bar that the cell is busy, and asks again."""
+    page = open_page("viewer")
+    asked: list[float] = []
+
+    def busy_twice(route: Any) -> None:
+        asked.append(time.monotonic())
+        if len(asked) > 2:
+            route.continue_()
+        else:
+            route.fulfill(status=503, headers={"Retry-After": "1"}, json={
+                "detail": "32 requests for large answers (job lists, file lists, the line's history, clouds, "
+                          "retention) are waiting already: ask again later"})
+
+    page.route(re.compile(r"/api/v1/jobs\?"), busy_twice)
+    page.goto(f"{page.url.split('#')[0]}#/jobs")
+    page.wait_for_function("() => !document.getElementById('st-busy').hidden", timeout=10_000)
+    assert page.text_content("#st-busy") == "cell busy with large answers: asking again in 1 s"
+    shot(page, "jobs-busy")
+    page.wait_for_selector(".pager span")  # the page of jobs is shown
+    wait_for(page, "document.getElementById('st-busy').hidden")
+    assert page.locator("table.jobs td.error").count() == 0 and page.text_content("#jobs-note") == ""
+    assert len(asked) >= 3 and all(b - a >= 0.9 for a, b in itertools.pairwise(asked[:3])), asked
+    shot(page, "jobs-after-busy")
+
+
+def test_a_cell_busy_beyond_every_try_says_so(open_page: Callable[..., Page]) -> None:
+    """Still busy after BUSY_TRIES calls (api.js), the table says the cell is busy, and reads again later."""
+    page = open_page("viewer")
+    asked: list[str] = []
+
+    def busy(route: Any) -> None:
+        asked.append(route.request.url)
+        route.fulfill(status=503, headers={"Retry-After": "0"}, json={"detail": "ask again later"})
+
+    page.route(re.compile(r"/api/v1/jobs\?"), busy)
+    page.goto(f"{page.url.split('#')[0]}#/jobs")
+    page.wait_for_selector("table.jobs td.error")
+    assert page.text_content("table.jobs td.error") == "the cell is busy, asked 5 times: ask again later"
+    assert len(asked) == 5
 
 
 def test_a_page_past_the_last_job_says_so_and_leads_back(open_page: Callable[..., Page],

@@ -8,14 +8,22 @@ const KEY_ITEM = "cell.key";
 export const TIMEOUT_MS = 15_000;
 /** The bound for a job's files (a cloud.ply of 100 MB over a slow link) and uploads [ms]. */
 export const FILE_TIMEOUT_MS = 300_000;
+/** How many times a call is sent when the cell answers 503 with a Retry-After: too many large answers
+ *  (job lists, file lists, the line's history, clouds) are waiting for their turn (cell/api/bulk.py),
+ *  nothing was done, and the cell says when to ask again. Each wait is the Retry-After, at most
+ *  MAX_RETRY_AFTER_S, all within the call's time bound. */
+export const BUSY_TRIES = 5;
+const MAX_RETRY_AFTER_S = 5;
+let busyCalls = 0; // calls of this page waiting to ask again, on the status bar ("cell:busy")
 
 /** An answer of the API that is not a success: HTTP status, and FastAPI's `detail` (text or a list of
  *  {loc, msg} for validation errors). */
 export class ApiError extends Error {
-  constructor(status, detail) {
+  constructor(status, detail, busy = false) {
     super(typeof detail === "string" ? detail : `HTTP ${status}`);
     this.status = status;
     this.detail = detail;
+    this.busy = busy; // a 503 with a Retry-After: the cell was busy, still so after BUSY_TRIES calls
   }
 }
 
@@ -45,7 +53,34 @@ async function failure(response) {
     // not JSON: keep the status text
   }
   if (response.status === 401) window.dispatchEvent(new CustomEvent("cell:unauthorized"));
-  return new ApiError(response.status, detail);
+  return new ApiError(response.status, detail, retryAfter(response) !== null);
+}
+
+/** The seconds a 503 answer says to wait before asking again (its Retry-After, in seconds, at most
+ *  MAX_RETRY_AFTER_S), or null for any other answer. */
+function retryAfter(response) {
+  const seconds = Number(response.headers.get("Retry-After") ?? NaN);
+  if (response.status !== 503 || !Number.isFinite(seconds) || seconds < 0) return null;
+  return Math.min(seconds, MAX_RETRY_AFTER_S);
+}
+
+/** Wait `seconds` (ended early by `signal`), counted on the status bar as a call waiting for a busy cell:
+ *  "cell:busy" carries how many calls wait, and the wait of the newest. */
+async function waitBusy(seconds, signal) {
+  busyCalls += 1;
+  window.dispatchEvent(new CustomEvent("cell:busy", { detail: { calls: busyCalls, seconds } }));
+  try {
+    await new Promise((resolve, reject) => {
+      const timer = setTimeout(resolve, seconds * 1000);
+      signal.addEventListener("abort", () => {
+        clearTimeout(timer);
+        reject(signal.reason);
+      }, { once: true });
+    });
+  } finally {
+    busyCalls -= 1;
+    window.dispatchEvent(new CustomEvent("cell:busy", { detail: { calls: busyCalls, seconds: null } }));
+  }
 }
 
 /** No answer of the cell within a call's time bound (`seconds`). */
@@ -77,13 +112,19 @@ async function fetchChecked(path, options, signal) {
   } else if (form !== undefined) {
     init.body = form;
   }
-  const response = await fetch(path, init);
-  if (!response.ok) throw await failure(response);
-  return response;
+  for (let call = 1; ; call += 1) {
+    const response = await fetch(path, init);
+    if (response.ok) return response;
+    const seconds = retryAfter(response);
+    if (seconds === null || call >= BUSY_TRIES) throw await failure(response);
+    await response.body?.cancel(); // its text says only that the cell is busy
+    await waitBusy(seconds, signal);
+  }
 }
 
-/** The body of an authorized request as `body(response)` reads it; an ApiError for any status but 2xx,
- *  a NoAnswer when the answer, its body included, takes longer than `options.timeoutMs` (TIMEOUT_MS).
+/** The body of an authorized request as `body(response)` reads it; an ApiError for any status but 2xx
+ *  (a 503 with a Retry-After is asked again after it, BUSY_TRIES calls in all), a NoAnswer when the
+ *  answer, its body included, takes longer than `options.timeoutMs` (TIMEOUT_MS).
  *  `options.json` is sent as a JSON body, `options.form` as multipart form data, `options.signal` aborts
  *  it. A 401 also fires "cell:unauthorized". */
 export async function request(path, options = {}, body = (response) => response.text()) {
@@ -124,6 +165,7 @@ export function jobPath(jobId) {
 export function describe(error) {
   if (error instanceof ApiError) {
     if (Array.isArray(error.detail)) return error.detail.map((d) => d.msg).join("; ");
+    if (error.busy) return `the cell is busy, asked ${BUSY_TRIES} times: ${error.message}`;
     return `${error.message} (HTTP ${error.status})`;
   }
   if (error instanceof NoAnswer) return `the cell did not answer within ${error.seconds} s`;

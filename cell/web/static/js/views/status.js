@@ -211,6 +211,15 @@ export function startStatus(context) {
     again = false;
   }
 
+  /** The page's calls the cell asked to wait ("cell:busy"): said on the bar while there are any. */
+  function showBusy(event) {
+    const { calls, seconds } = event.detail;
+    $("st-busy").hidden = calls === 0;
+    if (seconds !== null) {
+      $("st-busy").textContent = `cell busy with large answers: asking again in ${seconds} s`;
+    }
+  }
+
   const stop = () => stopping.press();
   const recover = () => act($("recover"), "Recover", "/api/v1/arm/recover", undefined,
     (answer) => `Recover: ${answer.message}`);
@@ -234,6 +243,7 @@ export function startStatus(context) {
   $("logout").addEventListener("click", logout, { signal });
   document.addEventListener("keydown", onKey, { signal });
   window.addEventListener("cell:changed", poll, { signal });
+  window.addEventListener("cell:busy", showBusy, { signal });
   poll();
 
   return () => {
@@ -246,6 +256,7 @@ export function startStatus(context) {
     listening.abort();
     $("stop-outcome").textContent = "";
     $("st-link").textContent = "";
+    $("st-busy").hidden = true;
     bar.hidden = true;
   };
 }
