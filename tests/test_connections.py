@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from cell.api import connections
-from cell.api.connections import ACCEPT_FAILURE, ConnectionLimits, quiet_accept_failures
+from cell.api.connections import ACCEPT_FAILURE, ConnectionLimits, RefusalPace, quiet_accept_failures
 from cell.service import logs
 from tests.service_process import closed_by_server, serving_guarded, until
 
@@ -198,3 +198,15 @@ def test_a_failing_accept_is_logged_once_per_interval_with_its_count(
             assert any(r.name == "asyncio" and r.getMessage() == "something else" for r in caplog.records)
     finally:
         loop.close()
+
+
+def test_refusals_go_out_at_once_up_to_the_burst_then_at_the_rate_and_none_waits_past_the_bound() -> None:
+    """``RefusalPace`` on a clock of its own (no time passes unless the test says so): a burst of 4 at once,
+    then one every 0.1 s; an answer that would wait past 0.35 s is not counted, so that later ones do not
+    wait for it; as time passes the burst comes back."""
+    pace = RefusalPace(rate=10.0, burst=4, max_wait_s=0.35)
+    waits = [pace.wait_s(100.0) for _ in range(7)]
+    assert waits == pytest.approx([0.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3])
+    assert pace.wait_s(100.0) is None
+    assert pace.wait_s(100.1) == pytest.approx(0.3)  # the refused one took no place
+    assert pace.wait_s(200.0) == 0.0

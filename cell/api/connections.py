@@ -147,7 +147,7 @@ class RefusalPace:
     def __init__(self, rate: float = REFUSED_RATE, burst: int = REFUSED_BURST,
                  max_wait_s: float = REFUSED_MAX_WAIT_S) -> None:
         self._interval = 1.0 / rate
-        self._tolerance = burst * self._interval
+        self._tolerance = (burst - 1) * self._interval  # the burst's first answer is due at once
         self._max_wait_s = max_wait_s
         self._due = -math.inf
         """When the answers given so far would all have gone out at the rate (the loop's clock [s])."""
