@@ -282,7 +282,8 @@ def test_stop_during_execute_stops_the_scan_and_a_start_there_is_refused(line: L
     after = line.state()
     assert after["state_name"] == "Execute" and after["job_id"] == running["job_id"]
     assert after["part_id"] == "bunny"  # the refused Start's part id is not taken either
-    assert line.command("stop", role="viewer").status_code == 403
+    refused = line.command("stop", role="viewer")
+    assert (refused.status_code, refused.json()["detail"]) == (403, "a viewer key may not drive the line")
     assert line.command("stop").status_code == 200
     stopped = line.wait({"Stopped"})
     assert stopped["stop_reason"] == {"id": 1, "message": "Stop from REST (key line)"}

@@ -39,6 +39,16 @@ def key_record(ring: KeyRing, credentials: HTTPAuthorizationCredentials | None) 
     return ring.authenticate(credentials.credentials) if credentials is not None else None
 
 
+# What each permission lets a key do, in the 403's words ("an operator key may not drive the line").
+ACTIONS: dict[Permission, str] = {
+    Permission.READ: "read the cell and its jobs", Permission.STOP: "stop", Permission.SUBMIT: "submit",
+    Permission.CANCEL: "cancel a queued job", Permission.RECOVER: "recover the arm",
+    Permission.UPLOAD: "upload an object", Permission.LINE: "drive the line",
+    Permission.MODE: "switch the line's unit mode", Permission.KEYS: "manage keys",
+    Permission.PURGE: "purge jobs", Permission.KEEP: "keep a job from retention",
+}
+
+
 def forbidden(role: str, action: str) -> HTTPException:
     """The 403 for a key of ``role`` asking to ``action``: "an operator key may not purge ..."."""
     article = "an" if role.startswith(tuple("aeiou")) else "a"
@@ -57,7 +67,7 @@ class Require:
         if record is None:
             raise HTTPException(401, UNAUTHORIZED, headers=CHALLENGE)
         if not allowed(record.role, self.permission):
-            raise forbidden(record.role, self.permission.value)
+            raise forbidden(record.role, ACTIONS[self.permission])
         return record
 
 
@@ -91,7 +101,7 @@ class KeyFirstRoute(APIRoute):
                 return JSONResponse({"detail": UNAUTHORIZED}, 401, headers=CHALLENGE)
             for permission in permissions:
                 if not allowed(record.role, permission):
-                    return JSONResponse({"detail": forbidden(record.role, permission.value).detail}, 403)
+                    return JSONResponse({"detail": forbidden(record.role, ACTIONS[permission]).detail}, 403)
             return await handler(request)
 
         return key_first
