@@ -855,3 +855,4 @@ def test_serve_refuses_an_endpoint_it_cannot_listen_on_in_one_line(tmp_path, hos
     why = "Address already in use" if host == "127.0.0.1" else "Cannot assign requested address"
     endpoint = f"opc.tcp://{host}:{port}/cell"
     assert out.stderr.strip() == f"error: line.opcua.endpoint: cannot listen on {endpoint}: {why}", out.stderr
+    assert not (tmp_path / "data").exists()  # refused before the store, its lease and its files were made

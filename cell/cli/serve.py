@@ -22,6 +22,7 @@ from cell.api.server import NotifyingServer
 from cell.cli.commands import DB_ENVVAR
 from cell.cli.errors import fail
 from cell.cli.values import data_folder
+from cell.config import load_config
 from cell.line.opcua_endpoint import check_endpoint
 from cell.service.logs import configure_logging
 from cell.service.notify import Notifier
@@ -57,6 +58,9 @@ def serve(
         problem = listen_problem(host, port)
         if problem is not None:
             raise CellError(f"cannot listen on {host}:{port}: {problem} (--host, --port)")
+        # the line's OPC UA port: free, and a host of this machine; before the store, its lease and the
+        # data folder's files are made, so that a refused start leaves nothing behind
+        check_endpoint(load_config(config).line)
         notifier = Notifier()
         service = build_service(ServiceSettings(config_file=config, data_dir=data_dir, db_url=db))
         has_keys = bool(service.store.active_keys())
@@ -66,11 +70,6 @@ def serve(
             service.store.close()
             raise CellError(f"refusing to listen on {host}, beyond this machine, with no API key: create one "
                             f"first (cell keys create --role admin {where})")
-        try:
-            check_endpoint(service.config.line)  # the line's OPC UA port: free, and a host of this machine
-        except CellError:
-            service.store.close()
-            raise
     except CellError as exc:
         raise fail(exc) from None
     if not has_keys:
