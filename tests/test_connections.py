@@ -30,8 +30,12 @@ WORKING: list[dict[str, Any]] = []
 
 async def app(scope: dict[str, Any], receive: Any, send: Any) -> None:
     """``/stream``: a response that never ends (a chunk every 50 ms); ``/body``: answers once the whole
-    body is in; ``/work``: once the whole body is in, works for ever (never answers); anything else,
-    ``/api/v1/stop`` among them: ``ok``."""
+    body is in; ``/work``: once the whole body is in, works for ever (never answers); ``/refused``: a
+    401, as to a request without a valid key; anything else, ``/api/v1/stop`` among them: ``ok``."""
+    if scope["path"] == "/refused":
+        await send({"type": "http.response.start", "status": 401, "headers": [(b"content-length", b"2")]})
+        await send({"type": "http.response.body", "body": b"no"})
+        return
     if scope["path"] in ("/body", "/work"):
         while (await receive()).get("more_body"):
             pass
@@ -210,3 +214,42 @@ def test_refusals_go_out_at_once_up_to_the_burst_then_at_the_rate_and_none_waits
     assert pace.wait_s(100.0) is None
     assert pace.wait_s(100.1) == pytest.approx(0.3)  # the refused one took no place
     assert pace.wait_s(200.0) == 0.0
+
+
+def test_refusals_past_the_pace_s_bound_are_closed_without_an_error_or_a_500_logged(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """A refusal that would wait past the bound is closed unanswered; uvicorn had logged "ASGI callable
+    returned without starting response" and an access line of a 500 for each, a log flood of its own."""
+    monkeypatch.setattr(connections, "RefusalPace", lambda: RefusalPace(rate=1.0, burst=2, max_wait_s=0.5))
+    caplog.set_level(logging.INFO)
+    with serving(ConnectionLimits(16)) as port:
+        answers = []
+        for _ in range(6):
+            with connect(port, b"GET /refused HTTP/1.1\r\nHost: x\r\n\r\n") as sock:
+                try:
+                    answers.append(until(sock, b"no").split(b"\r\n")[0])
+                except ConnectionResetError:
+                    answers.append(b"")
+    assert answers.count(b"HTTP/1.1 401 Unauthorized") >= 2 and b"" in answers, answers
+    logged = [record.getMessage() for record in caplog.records]
+    assert not any("without starting response" in m or " 500" in m for m in logged), logged
+
+
+def test_at_the_cap_a_connection_held_for_its_refusal_goes_before_an_idle_one(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A client waiting for its paced 401 is shed first: a legitimate idle keep-alive connection, older,
+    had gone in its place."""
+    monkeypatch.setattr(connections, "RefusalPace", lambda: RefusalPace(rate=0.1, burst=1, max_wait_s=LONG_S))
+    with serving(ConnectionLimits(2, header_timeout_s=LONG_S)) as port:
+        legit = connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert until(legit, b"ok").endswith(b"ok")
+        with connect(port, b"GET /refused HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n") as first:
+            assert until(first, b"no").startswith(b"HTTP/1.1 401 ")  # the burst, at once
+        held = connect(port, b"GET /refused HTTP/1.1\r\nHost: x\r\n\r\n")  # waits 10 s for its 401
+        time.sleep(0.3)  # its request is in: held, not idle (no timed check: the order is what is asserted)
+        with connect(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n") as newcomer:
+            assert until(newcomer, b"ok").startswith(b"HTTP/1.1 200 ")
+            assert closed_by_server(held)
+            assert still_open(legit)
+        held.close()
+        legit.close()

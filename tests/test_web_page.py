@@ -748,11 +748,18 @@ def test_a_refused_stop_stays_said_with_the_cells_answer_until_dismissed_or_a_st
     def unavailable(route: Any) -> None:
         route.fulfill(status=503, json={"detail": "Service Unavailable"})
 
+    stops: list[str] = []
+
+    def stop_unavailable(route: Any) -> None:  # a Retry-After, as a proxy may send: a STOP is not asked again
+        stops.append(route.request.method)
+        route.fulfill(status=503, headers={"Retry-After": "1"}, json={"detail": "Service Unavailable"})
+
     page.route("**/api/v1/cell", unavailable)
-    page.route("**/api/v1/stop", unavailable)
+    page.route("**/api/v1/stop", stop_unavailable)
     wait_for(page, f"{text_js('st-link')}.startsWith('status not updated for')")
     page.click("#stop")
     wait_for(page, f"{text_js('stop-failed-text')}.includes('failed')")
+    assert stops == ["POST"]
     refused = page.text_content("#stop-failed-text")
     assert "failed: the cell answered with an error: Service Unavailable (HTTP 503)" in refused, refused
     assert "emergency stop" in refused and page.text_content("#stop-outcome") == ""

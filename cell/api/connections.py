@@ -27,9 +27,12 @@ and haproxy do, :func:`protocol_class` gives uvicorn a protocol (its h11 one, wi
   asks again, so that clients without a valid key, however many, cost the service a few dozen requests a
   second. 240 of them asking as fast as they were answered (5000 a second, a log line each) had a valid
   key's STOP answered after 0.6 s, up to 1.3 s. A connection whose refusal is held back is shed first at
-  the cap, like an idle one, and one that would wait longer than ``REFUSED_MAX_WAIT_S`` is closed
-  unanswered. Key hashing is untouched (one SHA-256 of a random key, microseconds): the time went to
-  serving and logging the requests, whoever they came from;
+  the cap, before an idle one, and one that would wait longer than ``REFUSED_MAX_WAIT_S`` is closed
+  unanswered (and not logged as an error). The pace is one for the whole service: during such a flood a
+  person whose key is mistyped or revoked waits for the answer, or gets a closed connection rather than a
+  401 (the page then says it could not reach the cell); a bucket per client address would not tell
+  clients apart behind a reverse proxy. Key hashing is untouched (one SHA-256 of a random key,
+  microseconds): the time went to serving and logging the requests, whoever they came from;
 - the accept loop takes at most ``backlog`` connections at a time (asyncio's loop accepts up to the
   listen backlog in one go, before any of them is counted), so that the descriptors of a burst stay
   under the limit as well.
@@ -206,10 +209,11 @@ class GuardedH11Protocol(H11Protocol):
         counted = [c for c in others if not c.on_probation]
         if len(counted) < self.limits.max_connections:
             return
-        idle = [c for c in counted if not c.busy or c.refusing]
+        refusing = [c for c in counted if c.refusing]
+        idle = [c for c in counted if not c.busy]
         receiving = [c for c in counted if c.receiving]
         streaming = [c for c in counted if c.busy and c.cycle.response_started]
-        sheddable = idle or receiving or streaming
+        sheddable = refusing or idle or receiving or streaming
         if sheddable:
             _drop(min(sheddable, key=lambda c: c.waiting_since).transport)
         elif len(others) - len(counted) < self.limits.stop_spare:
@@ -302,6 +306,9 @@ def _paced_refusals(app: ASGIApp, connection: GuardedH11Protocol) -> ASGIApp:
                 wait_s = connection.refusals.wait_s(connection.loop.time())
                 if wait_s is None:
                     closed = True
+                    # said disconnected, uvicorn logs no "returned without starting response" error and
+                    # sends no 500 for the answer the app did not give
+                    connection.cycle.disconnected = True
                     _drop(connection.transport)
                 elif wait_s > 0.0:
                     connection.refusing = True

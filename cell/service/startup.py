@@ -10,6 +10,7 @@ standard error, kept when the process printed anything there: a crash's tracebac
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,12 +79,13 @@ def keep_cell_file(data_dir: Path, source: Path, data: Any) -> Path:
     cannot be written."""
     body = yaml.safe_dump(data, sort_keys=False)
     path = data_dir.resolve() / CELLS_DIR / f"{hashlib.sha256(body.encode()).hexdigest()[:16]}.yaml"
-    if path.is_file():
-        return path
-    try:
+    with contextlib.suppress(OSError, yaml.YAMLError):
+        if path.is_file() and yaml.safe_load(path.read_text()) == data:
+            return path
+    try:  # durable before a job's result names it; one lost to a power cut (empty, cut short) is rewritten
         path.parent.mkdir(exist_ok=True)
         write_text_atomic(path, f"# cell serve --config {source}, as its jobs ran it (relative names made "
-                                f"absolute)\n{body}")
+                                f"absolute)\n{body}", durable=True)
     except OSError as exc:
         raise StoreError(f"cannot keep the cell file the jobs run in {path}: {exc.strerror}") from None
     return path

@@ -19,9 +19,9 @@ from cell.api.routes.page import RevalidatedFiles, security_headers
 DOCS_URL = "/docs"
 DOCS_FILES_URL = "/static-offline-docs"
 DOCS_FILES = Path(str(files("fastapi_offline").joinpath("static")))
-DOCS_IMAGES = "data:"
+DOCS_IMAGES = "data: blob:"
 """Where the docs page's images may come from besides this service: Swagger UI's stylesheet draws its
-icons from ``data:`` URLs."""
+icons from ``data:`` URLs, and "Try it out" shows an image answer (a job's plot) from a ``blob:`` URL."""
 
 
 def add_docs(app: FastAPI) -> None:

@@ -8,10 +8,11 @@ const KEY_ITEM = "cell.key";
 export const TIMEOUT_MS = 15_000;
 /** The bound for a job's files (a cloud.ply of 100 MB over a slow link) and uploads [ms]. */
 export const FILE_TIMEOUT_MS = 300_000;
-/** How many times a call is sent when the cell answers 503 with a Retry-After: too many large answers
- *  (job lists, file lists, the line's history, clouds) are waiting for their turn (cell/api/bulk.py),
- *  nothing was done, and the cell says when to ask again. Each wait is the Retry-After, at most
- *  MAX_RETRY_AFTER_S, all within the call's time bound. */
+/** How many times a read (GET, HEAD) is sent when the cell answers 503 with a Retry-After: too many
+ *  large answers (job lists, file lists, the line's history, clouds) are waiting for their turn
+ *  (cell/api/bulk.py), nothing was done, and the cell says when to ask again. Each wait is the
+ *  Retry-After, at most MAX_RETRY_AFTER_S, all within the call's time bound. Nothing else is asked
+ *  again: a STOP, or anything that acts, says at once that it was refused. */
 export const BUSY_TRIES = 5;
 const MAX_RETRY_AFTER_S = 5;
 let busyCalls = 0; // calls of this page waiting to ask again, on the status bar ("cell:busy")
@@ -44,7 +45,8 @@ export function authHeaders(extra = {}, key = storedKey()) {
   return { ...extra, Authorization: `Bearer ${key}` };
 }
 
-async function failure(response) {
+/** The ApiError of `response`; `busy` when it is a read's 503 still refused after BUSY_TRIES calls. */
+async function failure(response, busy = false) {
   let detail = response.statusText || `HTTP ${response.status}`;
   try {
     const body = await response.json();
@@ -53,7 +55,7 @@ async function failure(response) {
     // not JSON: keep the status text
   }
   if (response.status === 401) window.dispatchEvent(new CustomEvent("cell:unauthorized"));
-  return new ApiError(response.status, detail, retryAfter(response) !== null);
+  return new ApiError(response.status, detail, busy);
 }
 
 /** The seconds a 503 answer says to wait before asking again (its Retry-After, in seconds, at most
@@ -112,11 +114,13 @@ async function fetchChecked(path, options, signal) {
   } else if (form !== undefined) {
     init.body = form;
   }
+  const reads = ["GET", "HEAD"].includes((init.method ?? "GET").toUpperCase());
   for (let call = 1; ; call += 1) {
     const response = await fetch(path, init);
     if (response.ok) return response;
     const seconds = retryAfter(response);
-    if (seconds === null || call >= BUSY_TRIES) throw await failure(response);
+    if (seconds === null || !reads) throw await failure(response);
+    if (call >= BUSY_TRIES) throw await failure(response, true);
     await response.body?.cancel(); // its text says only that the cell is busy
     await waitBusy(seconds, signal);
   }
