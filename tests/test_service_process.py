@@ -230,10 +230,12 @@ def test_a_sim_job_runs_from_submission_to_result_through_its_event_stream(
 
 
 def test_a_served_result_shows_no_path_of_the_host_and_its_cell_file_is_found_from_the_folder(
-        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]]) -> None:
+        franka: ServedCell, scanned: tuple[dict[str, Any], list[dict[str, Any]]], tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """result.json, job.json and log.txt go to every viewer: they name the cell file the job ran relative to
     the job folder (the service's copy in its data dir), never the absolute path it was served from, and
-    a replay or reprocess finds it from the folder alone."""
+    a replay or reprocess finds it from the folder alone, wherever it is run from (the same name relative
+    to the working folder, another cell's file, is not taken for it)."""
     job, _ = scanned
     hidden = (str(franka.config), str(REPO), str(franka.data_dir.resolve()))
     with franka.client("viewer") as client:
@@ -242,9 +244,14 @@ def test_a_served_result_shows_no_path_of_the_host_and_its_cell_file_is_found_fr
             assert served.status_code == 200
             assert not [h for h in hidden if h in served.text], f"{name} names a path of the host"
     assert job["result"]["config"].startswith("../../cells/")
-    folder = franka.data_dir / "jobs" / job["id"]
+    folder = (franka.data_dir / "jobs" / job["id"]).resolve()
+    elsewhere = tmp_path / "a" / "b"
+    elsewhere.mkdir(parents=True)
+    (elsewhere / job["result"]["config"]).parent.mkdir()
+    (elsewhere / job["result"]["config"]).write_text(UR5E.read_text())
+    monkeypatch.chdir(elsewhere)
     config, _, _ = recorded_job(folder, None)
-    assert config == load_config(franka.config)
+    assert config == load_config(franka.config) != load_config(UR5E)
 
 
 def test_an_event_stream_ends_once_its_key_is_revoked(franka: ServedCell) -> None:

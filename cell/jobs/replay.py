@@ -218,13 +218,14 @@ class ReplaySession(JobSession):
 def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, RecordedResult, Path]:
     """A job folder's result (its ``result.json``, or one rebuilt from ``job.json`` and the frames when
     that is missing or unreadable: :func:`cell.jobs.rebuild.recorded_result`, nothing written) and the
-    cell file to replay it with: ``config``, else the one the job names (as given, or relative to the job
-    folder). Returns the loaded cell file, the result and the cell file's path."""
+    cell file to replay it with: ``config``, else the one the job names (relative to the job folder, as
+    the service names its copy, else as given). Returns the loaded cell file, the result and the cell
+    file's path."""
     recorded = recorded_result(job_dir)
     result = recorded.result
     if config is None:
         named = Path(str(result.get("config", "")))
-        config = next((c for c in (named, job_dir / named) if c.is_file()), None)
+        config = next((c for c in (job_dir / named, named) if c.is_file()), None)
         if config is None:
             raise JobError(f"the job's cell file {named} is not found; give --config")
     return load_config(config), recorded, config

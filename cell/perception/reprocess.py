@@ -183,13 +183,13 @@ def _frame_files(job_dir: Path) -> list[Path]:
 
 
 def _crop_for(job_dir: Path, result: dict[str, Any]) -> tuple[CropBoxConfig, str]:
-    """The crop box of the job's cell file if it loads (as given, or relative to the job folder), else the
-    paper's; the second item says where it came from."""
+    """The crop box of the job's cell file if it loads (relative to the job folder, as the service names
+    its copy, else as given), else the paper's; the second item says where it came from."""
     from cell.config import load_config  # config sits beside perception; imported here, used only here
 
     name = result.get("config")
     if isinstance(name, str) and name:
-        for candidate in (Path(name), job_dir / name):
+        for candidate in (job_dir / name, Path(name)):
             if candidate.is_file():
                 try:
                     return load_config(candidate).perception.crop_box, str(candidate)
