@@ -7,7 +7,8 @@ connected, with the last pose and faults known.
 
 A fault the arm reported (protective stop, emergency stop, reflex, disconnect) is latched: no queued job
 starts until an operator recovers the arm (``POST /arm/recover``), as on the command line, where
-recovery is never automatic.
+recovery is never automatic. The service keeps that hold in its store (:func:`fault_hold`): a restart
+latches the fault again from it.
 """
 
 from __future__ import annotations
@@ -30,6 +31,23 @@ ARM_FAULTS = {"protective stop": "protective stop", "emergency stop": "emergency
               "disconnect": "disconnected"}
 """Faults a job's termination can name (``arm fault: <fault>``, ``cell.safety.guard``; the UR5e's and the
 Franka's words, ``drivers.arm``) and the arm state each leaves: each holds the queue until a recovery."""
+_FAULT_HOLD = "the arm reported a fault: "
+
+
+def fault_hold(fault: str, job_id: str) -> str:
+    """The reason of the queue's hold after the arm reported ``fault`` in job ``job_id``: kept in the store
+    (``queue_holds``) so that a restart latches the fault again (:func:`held_fault`), and released by the
+    arm's recovery."""
+    return f"{_FAULT_HOLD}{fault} (job {job_id}); recover the arm first (POST /api/v1/arm/recover)"
+
+
+def held_fault(reason: str) -> str | None:
+    """The arm fault a queue hold's ``reason`` was made for by :func:`fault_hold`, or None (a hold of
+    another kind: an operator's reason never begins so)."""
+    if not reason.startswith(_FAULT_HOLD):
+        return None
+    fault = reason.removeprefix(_FAULT_HOLD).split(" (job ", 1)[0]
+    return fault if fault in ARM_FAULTS else None
 
 
 @dataclass
@@ -81,13 +99,19 @@ class ArmTracker:
                                np.asarray(progress["sensor_xyz_m"]))
         self.status.tcp = _pose(T_base_sensor @ self._T_sensor_flange)
 
-    def job_ended(self, termination: str) -> None:
-        """Latch a fault the job's termination names; otherwise the arm is idle."""
+    def job_ended(self, termination: str) -> str | None:
+        """Latch a fault the job's termination names, and return it; otherwise the arm is idle (None)."""
         fault = next((f for f in ARM_FAULTS if f"{ARM_FAULT}{f}" in termination), None)
         self.status.connected = self._simulated
         if fault is None:
             self.status.state = "idle"
-            return
+            return None
+        self.latch(fault)
+        return fault
+
+    def latch(self, fault: str) -> None:
+        """Latch ``fault`` (a key of :data:`ARM_FAULTS`) until a recovery: a job's, or one a queue hold
+        kept in the store says the arm had before a restart (:func:`held_fault`)."""
         self.status.faults = [fault]
         self.status.state = ARM_FAULTS[fault]
 

@@ -16,7 +16,8 @@ jobs, and waits with its libraries loaded.
 it. So do a worker that died, a stop its worker did not confirm and a worker that went silent (hung:
 stopped as a stop does): the arm was then left to its connection watchdog, and a person looks first. Such
 a hold is kept in the store (``queue_holds``), so that a restart does not release it. A fault the arm
-reported holds the queue too, until the arm is recovered (``cell.service.arm_status``), and so does a job
+reported holds the queue too, until the arm is recovered (``cell.service.arm_status``; kept in the store
+as well, and latched again by a restart), and so does a job
 store found damaged by any call (``Store.damaged``: no job's start or end could be relied on to be
 recorded), until it is restored and the service restarted. A data dir with no room for a job's recording
 holds the next job until there is room (:data:`JOB_DISK_MB`).
@@ -48,7 +49,7 @@ from cell.line.controller import LineController
 from cell.line.dio import DigitalIOHandshake
 from cell.planning.registry import PLANNERS
 from cell.service.arm_clearance import ArmClearance
-from cell.service.arm_status import ArmTracker
+from cell.service.arm_status import ArmTracker, fault_hold, held_fault
 from cell.service.events import EventHub, JobEvents
 from cell.service.instance import new_instance
 from cell.service.metrics import ServiceMetrics
@@ -261,6 +262,8 @@ class CellService:
         self._held = await asyncio.to_thread(self.store.get_hold, self.name)
         if self._held is not None:
             log.warning("the queue is held since %s: %s", self._held.held_at.isoformat(), self._held.reason)
+            if (fault := held_fault(self._held.reason)) is not None:  # held until the arm is recovered
+                self.arm.latch(fault)
         if (short := self._disk_short()) is not None:
             log.warning("%s", short)
         if self.line is not None:
@@ -772,7 +775,7 @@ class CellService:
             raise ServiceError("a job owns the arm: stop it first", reason="conflict")
         if self.config.arm.type == "sim":
             self.arm.recovered([], None)
-            self._wake.set()
+            self._release_fault_hold()
             return {"ok": True, "message": "recovered (simulated arm)", "arm": self.arm.status.as_dict()}
         self._busy_with_arm = True
         try:
@@ -781,9 +784,18 @@ class CellService:
             self._busy_with_arm = False
         if report.get("arm") is not None:
             self.arm.recovered(report["arm"]["faults"], report["arm"]["T_base_flange"])
-        self._wake.set()
+        self._release_fault_hold()
         return {"ok": bool(report.get("ok")), "message": str(report.get("message")),
                 "arm": self.arm.status.as_dict()}
+
+    def _release_fault_hold(self) -> None:
+        """After a recovery: release the queue's hold for an arm fault (``fault_hold``) once the arm has
+        none, in the store too; a hold of another kind (a STOP) waits for the operator's resume."""
+        if not self.arm.faulted and self._held is not None and held_fault(self._held.reason) is not None:
+            log.warning("the queue is released: the arm was recovered (%s)", self._held.reason)
+            self._held = None
+            self._write_hold()
+        self._wake.set()
 
     async def _recover_in_worker(self) -> dict[str, Any]:
         spec = WorkerSpec(op="recover", job_id="recover", config=self._config_data,
@@ -1147,7 +1159,10 @@ class CellService:
         self.metrics.ticks.job_ended(None if ended is None else ended.get("ticks"))
         if status == "completed" and result is not None and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
-        self.arm.job_ended(termination)
+        if (fault := self.arm.job_ended(termination)) is not None and self._held is None:
+            # kept in the store as the other holds are: the latch alone was lost with a restart
+            self._held = HoldRecord(cell=self.name, reason=fault_hold(fault, job.id), held_at=_now())
+            self._write_hold()
         log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
                 termination, extra={"job_id": job.id, "part_id": job.part_id, "status": status})
         # a job's end is never dropped (it stayed `running` until a restart)
