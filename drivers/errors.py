@@ -127,7 +127,8 @@ class StoreDamaged(StoreError):
 class ServiceError(CellError):
     """The service refuses a request. ``reason`` is one of ``invalid`` (``field`` names the offending
     input), ``not found``, ``conflict`` (not in a state that allows it), ``queue full``, ``forbidden``
-    (the caller's key may not do it); the API turns it into its HTTP status (422, 404, 409, 429, 403)."""
+    (the caller's key may not do it), ``unavailable`` (what it needs is gone: the job store's file); the API
+    turns it into its HTTP status (422, 404, 409, 429, 403, 503)."""
 
     def __init__(self, message: str, *, reason: str, field: str | None = None) -> None:
         self.reason = reason

@@ -1,15 +1,29 @@
 """Recovery gaps a chaos review found, against a real ``cell serve`` (``tests.service_process``) on the
-Franka sim cell with its SQLite store: an arm fault's hold across a ``kill -9``."""
+Franka sim cell with its SQLite store: an arm fault's hold across a ``kill -9``, the store's file deleted
+while serving, a store locked by another process."""
 
 from __future__ import annotations
 
+import contextlib
+import sqlite3
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 from tests.conftest import FRANKA
 from tests.service_process import ServedCell, submit
+
+LONG_S = 120.0  # a budget no test's job reaches: it is stopped first [s]
+
+
+@pytest.fixture
+def franka(tmp_path: Path) -> Iterator[ServedCell]:
+    """The Franka + RGB-D sim cell served on a data dir of its own (these tests break its store)."""
+    with ServedCell(FRANKA, tmp_path / "data") as cell:
+        yield cell
 
 
 def _faulty_cell(tmp_path: Path) -> Path:
@@ -53,3 +67,50 @@ def test_an_arm_faults_hold_outlives_a_kill_9_until_the_arm_is_recovered(tmp_pat
         cell.kill()
         cell.start()
         assert _cell(cell)["queue"]["held"] is None
+
+
+def test_a_store_file_deleted_while_serving_makes_the_service_unready_and_refuse_jobs(
+        franka: ServedCell) -> None:
+    """``cell.db`` and its WAL deleted by hand: the service wrote on into the deleted file, ``/readyz`` 200,
+    and every key and job was gone after a restart. The running job's stop still works."""
+    running = submit(franka, object="bunny", max_time_s=LONG_S)
+    franka.wait_job(running["id"], ("running",))
+    for name in ("cell.db", "cell.db-wal", "cell.db-shm"):
+        (franka.data_dir / name).unlink(missing_ok=True)
+    with franka.client("operator") as client:
+        for _ in range(2):
+            ready = client.get("/readyz")
+            assert ready.status_code == 503, ready.text
+            assert "cell.db was deleted while the service ran" in ready.json()["status"]
+            assert "restore the file from a backup" in ready.json()["status"]
+        refused = client.post("/api/v1/jobs", json={"object": "cube"})
+        assert refused.status_code == 503 and "was deleted" in refused.json()["detail"], refused.text
+        assert client.post(f"/api/v1/jobs/{running['id']}/stop").status_code == 200
+    assert franka.wait_job(running["id"], ("stopped", "completed", "failed"))["status"] == "stopped"
+    assert franka.log().count("was deleted while the service ran") == 1  # logged once
+
+
+@contextlib.contextmanager
+def _locked(database: Path) -> Iterator[None]:
+    """An exclusive lock on the SQLite store ``database``, held by this process as another program would."""
+    other = sqlite3.connect(database, isolation_level=None)
+    try:
+        other.execute("BEGIN EXCLUSIVE")
+        yield
+        other.execute("ROLLBACK")
+    finally:
+        other.close()
+
+
+def test_readyz_is_503_while_the_store_refuses_writes_and_ready_once_it_takes_them(
+        franka: ServedCell) -> None:
+    """A lock held by another process: each ``POST /jobs`` was 503 after the store's busy timeout, while
+    ``/readyz`` (which only reads) answered 200."""
+    with franka.client("operator") as client:
+        assert client.get("/readyz").status_code == 200
+        with _locked(franka.data_dir / "cell.db"):
+            refused = client.post("/api/v1/jobs", json={"object": "cube"})
+            assert refused.status_code == 503, refused.text
+            ready = client.get("/readyz")
+            assert ready.status_code == 503 and "takes no write" in ready.json()["status"], ready.text
+        assert client.get("/readyz").status_code == 200

@@ -38,7 +38,8 @@ from cell.service.startup import ServiceSettings, build_service
 from drivers.errors import ServiceError, StoreDamaged, StoreError
 
 KEY_REFRESH_S = 1.0
-STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429, "forbidden": 403}
+STATUS_OF = {"invalid": 422, "not found": 404, "conflict": 409, "queue full": 429, "forbidden": 403,
+             "unavailable": 503}
 log = logging.getLogger("cell.service")
 
 

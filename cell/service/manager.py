@@ -432,6 +432,8 @@ class CellService:
         """Why queued jobs do not start, or None."""
         if self.store.damaged:  # first: neither a resume nor an arm recovery helps
             return RESTORE
+        if self.store.lost is not None:  # nor here: what a job records now would be lost
+            return self.store.lost
         if self.arm.faulted:
             return f"arm {self.arm.status.state}: recover the arm first (POST /api/v1/arm/recover)"
         return self._broken or self._lease_lost or (None if self._held is None else self._held.reason)
@@ -445,7 +447,10 @@ class CellService:
     def not_ready(self) -> str | None:
         """Why a job submitted now would not run, in words (for ``/readyz``), or None: starting or shutting
         down, the queue held, no worker process can be started, the jobs folder not writable or without
-        room for a job. Reads no database (the route checks the store) and no device."""
+        room for a job. Reads no database (the route checks the store) and no device; whether the store's
+        file is still the one opened is asked here (``Store.check_file``), where a deleted one holds the
+        queue."""
+        self.store.check_file()
         if not self.ready:
             return "not taking jobs (starting or shutting down)"
         if (held := self.hold_reason()) is not None:
@@ -511,13 +516,16 @@ class CellService:
     async def submit(self, request: JobRequest, submitted_by: str | None, origin: str = "api") -> JobRecord:
         """Validate and queue a job from ``origin`` (``api``: an operator; ``line``: the packing line's
         Start); ``ServiceError`` when invalid (naming the field), when the queue is full, while shutting
-        down, or for an operator's job while the line owns the cell (Production mode)."""
+        down, for an operator's job while the line owns the cell (Production mode), and (``unavailable``)
+        when the store's file was deleted (``Store.check_file``)."""
         if origin == "api" and self.line is not None and self.line.owns_cell:
             raise ServiceError(f"the packing line owns the cell (PackML {self.line.mode.label} mode, "
                                f"{self.line.state.label}): operator jobs run in Manual mode (POST "
                                "/api/v1/line/mode)", reason="conflict")
         valid: ValidJob = await asyncio.to_thread(validate, self.config, self.objects, self._arm_clearance,
                                                   self._search_views, request)
+        if (lost := await asyncio.to_thread(self.store.check_file)) is not None:
+            raise ServiceError(lost, reason="unavailable")
         async with self._submit_lock:
             if self._closing:
                 raise ServiceError("the service is shutting down", reason="conflict")
@@ -647,8 +655,8 @@ class CellService:
 
     def resume(self) -> None:
         """Let queued jobs start again after a STOP; ``ServiceError`` (conflict) while the arm is faulted or
-        the store damaged."""
-        if self.arm.faulted or self.store.damaged:
+        the store damaged or its file lost."""
+        if self.arm.faulted or self.store.damaged or self.store.lost is not None:
             raise ServiceError(self.hold_reason() or "the arm is faulted", reason="conflict")
         if self._held is not None:
             log.warning("the queue is resumed (it was %s)", self._held.reason)

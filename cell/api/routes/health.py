@@ -29,7 +29,8 @@ async def healthz(cell: Service) -> dict[str, str]:
              responses={503: {"description": "a job submitted now would not run: GET's body says why"}})
 async def readyz(response: Response, cell: Service,
                  _: Reader) -> dict[str, str]:
-    """A job submitted now would run: the service has started, its store answers, and nothing keeps the
+    """A job submitted now would run: the service has started, its store answers (to a write too, when the
+    newest write failed: ``Store.probe_write``), and nothing keeps the
     next job from starting (``CellService.not_ready``: the queue held, also by a store found damaged, here
     or by any call before, which answers other reads all the same; no worker process can be started, the
     jobs folder not writable or without room for a job); else 503 with the reason as ``status``.
@@ -44,6 +45,11 @@ async def readyz(response: Response, cell: Service,
         if not cell.store.damaged:  # else the queue is held, and not_ready says how to restore the store
             response.status_code = 503
             return {"status": "the job store does not answer"}
+    # a write probe only while the newest write failed: a store that reads but refuses writes (a lock
+    # another process holds) takes no job
+    if not cell.store.damaged and await asyncio.to_thread(cell.store.probe_write) is not None:
+        response.status_code = 503
+        return {"status": "the job store does not answer: it takes no write (the log says why)"}
     # off the event loop: it asks the file system about the jobs folder (access, free space)
     if (reason := await asyncio.to_thread(cell.not_ready)) is not None:
         response.status_code = 503

@@ -190,7 +190,9 @@ class Store:
     ``jobs``) turns it into a path when read, and a folder given inside it is stored by its name. Without
     ``jobs_dir``, or for a folder elsewhere, the folder is stored and read as given.
 
-    The first call that finds the data damaged (a :class:`StoreDamaged`) latches :attr:`damaged`."""
+    The first call that finds the data damaged (a :class:`StoreDamaged`) latches :attr:`damaged`; the first
+    :meth:`check_file` that finds an SQLite store's file deleted or replaced latches :attr:`lost`; a write
+    that fails makes :attr:`write_failing` say so until a write succeeds (:meth:`probe_write`)."""
 
     def __init__(self, engine: Engine, jobs_dir: Path | None = None) -> None:
         """A store on ``engine``, whose schema must already be at the head revision (:func:`open_store`
@@ -202,6 +204,10 @@ class Store:
         self.url = engine.url.render_as_string(hide_password=True)
         self._damaged = False
         self._damage_seen = threading.Lock()
+        self._database = _sqlite_file(engine)
+        self._identity = None if self._database is None else _file_identity(self._database)
+        self._lost: str | None = None
+        self._write_failure: str | None = None
 
     @property
     def damaged(self) -> bool:
@@ -214,6 +220,44 @@ class Store:
         integrity). Logged once, when it latches."""
         return self._damaged
 
+    @property
+    def lost(self) -> str | None:
+        """Why this store's writes are lost, latched by :meth:`check_file`: what to do, in words; or None."""
+        return self._lost
+
+    def check_file(self) -> str | None:
+        """Whether an SQLite store's file was deleted (``cell.db`` and its WAL removed by hand) or replaced
+        by another since it was opened: the open connections write on into the deleted file, which is gone
+        with them, every key and job of it. Latched and logged once (:attr:`lost`); None while the file is
+        the one opened, and always for PostgreSQL (no file). A ``stat`` of one path: cheap, but a file
+        system call, so callers on the event loop run it on a thread."""
+        if self._lost is None and self._identity is not None and self._database is not None:
+            now = _file_identity(self._database)
+            if now != self._identity:
+                happened = "deleted" if now is None else "replaced by another file"
+                lost = (f"the job store's file {self._database} was {happened} while the service ran: what "
+                        "it writes now is lost when it stops; restore the file from a backup "
+                        "(docs/deploy.md, section 9) and restart the service")
+                with self._damage_seen:
+                    first, self._lost = self._lost is None, lost
+                if first:
+                    log.error("%s", lost)
+        return self._lost
+
+    @property
+    def write_failing(self) -> str | None:
+        """The error of the newest write when it failed (a lock another process holds, a database that does
+        not answer), until a later write succeeds; else None."""
+        return self._write_failure
+
+    def probe_write(self) -> str | None:
+        """While :attr:`write_failing`, try a write that changes nothing (an update of no row, which takes
+        the database's write lock all the same): :attr:`write_failing` as it is then."""
+        if self._write_failure is not None:
+            with contextlib.suppress(StoreError), self._session("probing a write", writes=True) as session:
+                session.execute(update(HoldRow).where(HoldRow.cell.is_(None)).values(reason=""))
+        return self._write_failure
+
     def close(self) -> None:
         """Close every pooled connection; the store is not used afterwards."""
         self._engine.dispose()
@@ -224,10 +268,12 @@ class Store:
         return CellLease(self._engine, cell, self.url)
 
     @contextlib.contextmanager
-    def _session(self, action: str, *, conflict: str | None = None) -> Iterator[Session]:
+    def _session(self, action: str, *, conflict: str | None = None,
+                 writes: bool = False) -> Iterator[Session]:
         """A session in a transaction, committed at the end. A database error becomes a
         :class:`StoreError` naming ``action``; with ``conflict``, an integrity error (a duplicate key)
-        becomes a ``ServiceError`` of reason ``conflict`` with that message."""
+        becomes a ``ServiceError`` of reason ``conflict`` with that message. A session that ``writes`` sets
+        :attr:`write_failing` by how it ended (an integrity error is the caller's, not the store's)."""
         try:
             with self._sessions.begin() as session:
                 yield session
@@ -236,7 +282,12 @@ class Store:
                 raise self._error(action, exc) from None
             raise ServiceError(conflict, reason="conflict") from None
         except SQLAlchemyError as exc:
-            raise self._error(action, exc) from None
+            error = self._error(action, exc)
+            if writes:
+                self._write_failure = str(error)
+            raise error from None
+        if writes:
+            self._write_failure = None
 
     def _error(self, action: str, exc: SQLAlchemyError) -> StoreError:
         """:func:`store_error` for ``exc``, raised while doing ``action``; corrupt pages (:func:`is_corrupt`)
@@ -258,7 +309,8 @@ class Store:
         if not JOB_ID.fullmatch(job.id):
             raise ValueError(f"job id {job.id!r}: expected 16 lowercase hex characters")
         columns = self._job_columns(asdict(job))
-        with self._session(f"adding job {job.id}", conflict=f"job {job.id} already exists") as session:
+        with self._session(f"adding job {job.id}", conflict=f"job {job.id} already exists",
+                           writes=True) as session:
             session.add(JobRow(**columns))
 
     def get_job(self, job_id: str) -> JobRecord | None:
@@ -276,7 +328,7 @@ class Store:
             raise ValueError(f"cannot update job field(s) {', '.join(unknown)} (changeable: "
                              f"{', '.join(sorted(_CHANGEABLE))})")
         columns = self._job_columns(changes)
-        with self._session(f"updating job {job_id}") as session:
+        with self._session(f"updating job {job_id}", writes=True) as session:
             row = session.get(JobRow, job_id)
             if row is None:
                 raise KeyError(job_id)
@@ -290,7 +342,7 @@ class Store:
         job as it is, when it is not running any more: its end, stored meanwhile, is never overwritten."""
         query = (update(JobRow).where(JobRow.id == job_id, JobRow.status == "running")
                  .values(status="stopping"))
-        with self._session(f"marking job {job_id} stopping") as session:
+        with self._session(f"marking job {job_id} stopping", writes=True) as session:
             result: CursorResult[Any] = session.execute(query)  # type: ignore[assignment]  # an UPDATE's is one
             return bool(result.rowcount)
 
@@ -342,7 +394,7 @@ class Store:
 
     def delete_job(self, job_id: str) -> None:
         """Remove job ``job_id`` from the store (its folder stays); ``KeyError`` if there is none."""
-        with self._session(f"deleting job {job_id}") as session:
+        with self._session(f"deleting job {job_id}", writes=True) as session:
             row = session.get(JobRow, job_id)
             if row is None:
                 raise KeyError(job_id)
@@ -372,7 +424,7 @@ class Store:
         (``conflict``) if a key of that name exists, even revoked: a name always means one key."""
         record = KeyRecord(name=name, role=role, key_hash=key_hash, created_at=datetime.now(UTC))
         conflict = f"a key named {name!r} already exists (a revoked key's name stays taken)"
-        with self._session(f"adding key {name!r}", conflict=conflict) as session:
+        with self._session(f"adding key {name!r}", conflict=conflict, writes=True) as session:
             if session.get(KeyRow, name) is not None:
                 raise ServiceError(conflict, reason="conflict")
             session.add(KeyRow(**asdict(record)))
@@ -386,7 +438,7 @@ class Store:
     def revoke_key(self, name: str) -> KeyRecord:
         """Revoke key ``name`` now and return it. ``ServiceError`` ``not found`` if there is no such key,
         ``conflict`` if it is already revoked."""
-        with self._session(f"revoking key {name!r}") as session:
+        with self._session(f"revoking key {name!r}", writes=True) as session:
             row = session.get(KeyRow, name)
             if row is None:
                 raise ServiceError(f"no key named {name!r}", reason="not found")
@@ -409,7 +461,7 @@ class Store:
     def add_line_transition(self, transition: LineTransition) -> None:
         """Record one PackML transition (``ValueError`` for a naive time)."""
         at = _aware("at", transition.at).astimezone(UTC)
-        with self._session(f"recording cell {transition.cell}'s line transition") as session:
+        with self._session(f"recording cell {transition.cell}'s line transition", writes=True) as session:
             session.add(LineTransitionRow(**{**asdict(transition), "at": at}))
 
     def line_transitions(self, cell: str, *, limit: int = 100,
@@ -439,7 +491,7 @@ class Store:
 
     def put_line(self, record: LineRecord) -> None:
         """Write ``cell``'s line record (created or replaced)."""
-        with self._session(f"writing cell {record.cell}'s line") as session:
+        with self._session(f"writing cell {record.cell}'s line", writes=True) as session:
             session.merge(LineStateRow(**asdict(record)))
 
     # the queue's hold
@@ -453,7 +505,7 @@ class Store:
     def set_hold(self, cell: str, hold: HoldRecord | None) -> None:
         """Hold ``cell``'s queue (``hold``, written or replaced), or release it (None); ``ValueError`` for
         a naive time or another cell's hold."""
-        with self._session(f"writing cell {cell}'s queue hold") as session:
+        with self._session(f"writing cell {cell}'s queue hold", writes=True) as session:
             row = session.get(HoldRow, cell)
             if hold is None:
                 if row is not None:
@@ -463,6 +515,23 @@ class Store:
                 raise ValueError(f"a hold of cell {hold.cell!r} given for cell {cell!r}")
             session.merge(HoldRow(cell=cell, reason=hold.reason,
                                   held_at=_aware("held_at", hold.held_at).astimezone(UTC)))
+
+
+def _sqlite_file(engine: Engine) -> Path | None:
+    """The file of an SQLite store's ``engine``; None for PostgreSQL."""
+    url = engine.url
+    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+        return None
+    return Path(url.database)
+
+
+def _file_identity(path: Path) -> tuple[int, int] | None:
+    """The device and inode of ``path``, or None when there is no file there (or it cannot be read)."""
+    try:
+        info = path.stat()
+    except OSError:
+        return None
+    return info.st_dev, info.st_ino
 
 
 def _aware(name: str, value: datetime) -> datetime:
