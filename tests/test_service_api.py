@@ -1241,7 +1241,7 @@ def test_a_data_dir_without_room_for_a_job_holds_the_next_one_and_says_where(tmp
         assert _wait(client, viewer, job["id"], set(FINISHED_STATUSES))["status"] == "completed"
     messages = [r.getMessage() for r in caplog.records]
     assert any(m.startswith("disk full under") for m in messages)  # at start, and as the job waits
-    assert "the data dir has room for a job again" in messages
+    assert "the jobs folder takes a job's recording again" in messages
 
 
 def test_deleting_an_object_of_no_upload_is_refused_without_reading_the_store(tmp_path, monkeypatch):

@@ -1,11 +1,14 @@
 """Recovery gaps a chaos review found, against a real ``cell serve`` (``tests.service_process``) on the
 Franka sim cell with its SQLite store: an arm fault's hold across a ``kill -9``, the store's file deleted
-while serving, a store locked by another process."""
+while serving, a store locked by another process, a read-only jobs folder."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import sqlite3
+import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -114,3 +117,37 @@ def test_readyz_is_503_while_the_store_refuses_writes_and_ready_once_it_takes_th
             ready = client.get("/readyz")
             assert ready.status_code == 503 and "takes no write" in ready.json()["status"], ready.text
         assert client.get("/readyz").status_code == 200
+
+
+@contextlib.contextmanager
+def _read_only(folder: Path) -> Iterator[None]:
+    """``folder`` taking no new entry: its write permissions taken for a user, immutable for root (whom
+    permissions do not stop), as a read-only mount would."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        try:
+            yield
+        finally:
+            folder.chmod(0o755)
+        return
+    subprocess.run(["chattr", "+i", str(folder)], check=True)
+    try:
+        yield
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)], check=True)
+
+
+def test_a_read_only_jobs_folder_keeps_jobs_waiting_until_it_is_writable(franka: ServedCell) -> None:
+    """As with a full disk: each job posted was started and failed within a second while ``/readyz`` said
+    the folder was not writable."""
+    with _read_only(franka.data_dir / "jobs"):
+        job = submit(franka, object="cube", max_time_s=2.0)
+        deadline = time.monotonic() + 30.0
+        while "is not writable" not in str(_cell(franka)["queue"]["held"]):
+            assert time.monotonic() < deadline, _cell(franka)
+            time.sleep(0.1)
+        with franka.client("viewer") as client:
+            assert client.get(f"/api/v1/jobs/{job['id']}").json()["status"] == "queued"
+            ready = client.get("/readyz")
+            assert ready.status_code == 503 and "is not writable" in ready.json()["status"], ready.text
+    assert franka.wait_job(job["id"], ("completed", "failed", "stopped"))["status"] == "completed"

@@ -20,7 +20,7 @@ reported holds the queue too, until the arm is recovered (``cell.service.arm_sta
 as well, and latched again by a restart), and so does a job
 store found damaged by any call (``Store.damaged``: no job's start or end could be relied on to be
 recorded), until it is restored and the service restarted. A data dir with no room for a job's recording
-holds the next job until there is room (:data:`JOB_DISK_MB`).
+(:data:`JOB_DISK_MB`), or a jobs folder that takes no file, holds the next job until a job can record.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ import secrets
 import shutil
 import signal
 import sys
+import tempfile
 from collections import deque
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -226,7 +227,7 @@ class CellService:
         self._running: _Running | None = None
         self._held: HoldRecord | None = None
         self._hold_writer: asyncio.Task[None] | None = None
-        self._disk_full: str | None = None
+        self._unrecordable: str | None = None  # why the next job waits: it could not record (_no_room)
         self._busy_with_arm = False
         self._closing = False
         self._submit_lock = asyncio.Lock()
@@ -264,7 +265,7 @@ class CellService:
             log.warning("the queue is held since %s: %s", self._held.held_at.isoformat(), self._held.reason)
             if (fault := held_fault(self._held.reason)) is not None:  # held until the arm is recovered
                 self.arm.latch(fault)
-        if (short := self._disk_short()) is not None:
+        if (short := self._cannot_record()) is not None:
             log.warning("%s", short)
         if self.line is not None:
             await self.line.start()
@@ -440,9 +441,9 @@ class CellService:
 
     def _waiting_for_resources(self) -> str | None:
         """Why the next job waits though nothing holds the queue: no worker process could be started for
-        it, or the data dir has no room for its recording (both tried again every ``SPAWN_RETRY_S``), or
-        None."""
-        return self._spawn_failure or self._disk_full if self._queued and self._running is None else None
+        it, or it could not record in the jobs folder (:meth:`_cannot_record`; both tried again every
+        ``SPAWN_RETRY_S``), or None."""
+        return self._spawn_failure or self._unrecordable if self._queued and self._running is None else None
 
     def not_ready(self) -> str | None:
         """Why a job submitted now would not run, in words (for ``/readyz``), or None: starting or shutting
@@ -457,8 +458,17 @@ class CellService:
             return f"the queue is held: {held}"
         if self._spawn_failure is not None:
             return self._spawn_failure
-        if not os.access(self.jobs_dir, os.W_OK | os.X_OK):
-            return f"the jobs folder {self.jobs_dir} is not writable: no job could record"
+        return self._cannot_record()
+
+    def _cannot_record(self) -> str | None:
+        """Why a job could not record in the jobs folder now, or None: the folder takes no file (one made
+        and dropped there says so, also for root, whom permissions do not stop, and on a file system
+        mounted read-only), or the data dir has not the room a job needs (:meth:`_disk_short`)."""
+        try:
+            tempfile.TemporaryFile(dir=self.jobs_dir).close()  # no name on Linux: retention never sees it
+        except OSError as exc:
+            return (f"the jobs folder {self.jobs_dir} is not writable ({exc.strerror or exc}): no job could "
+                    "record; make it writable: jobs start again once it is")
         return self._disk_short()
 
     def _disk_short(self) -> str | None:
@@ -1003,15 +1013,16 @@ class CellService:
                     break
 
     def _no_room(self) -> bool:
-        """Whether the data dir lacks the room a job needs (:meth:`_disk_short`); logged in one line when
-        that begins or changes, and once there is room again."""
-        short = self._disk_short()
-        if short != self._disk_full:
+        """Whether a job could not record now (:meth:`_cannot_record`: the jobs folder not writable, or the
+        data dir without the room a job needs); logged in one line when that begins or changes, and once
+        a job can record again."""
+        short = self._cannot_record()
+        if short != self._unrecordable:
             if short is not None:
                 log.error("%s", short)
             else:
-                log.warning("the data dir has room for a job again")
-            self._disk_full = short
+                log.warning("the jobs folder takes a job's recording again")
+            self._unrecordable = short
         return short is not None
 
     async def _run(self, running: _Running, source: str) -> float | None:
