@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -23,6 +24,16 @@ def temporary_path(path: Path) -> Path:
     suffix (a plot library picks the format from it) and this process's id (two writers never share it).
     Its name starts with a dot: no pattern of the final names (``[0-9]*.npz``, ``*.ply``) matches it."""
     return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+
+
+_TEMPORARY = re.compile(r"\..*\.[0-9]+\.tmp(\.[^.]+)?")
+"""The names :func:`temporary_path` gives."""
+
+
+def is_temporary(path: Path) -> bool:
+    """Whether ``path`` is a temporary file of :func:`temporary_path`: a write under way, or left half
+    written by a process killed mid-write (never a job's file of its own)."""
+    return _TEMPORARY.fullmatch(path.name) is not None
 
 
 def _sync_folder(folder: Path) -> None:

@@ -1,11 +1,13 @@
 """Recovery gaps a chaos review found, against a real ``cell serve`` (``tests.service_process``) on the
 Franka sim cell with its SQLite store: an arm fault's hold across a ``kill -9``, the store's file deleted
-while serving, a store locked by another process, a read-only jobs folder."""
+while serving, a store locked by another process, a read-only jobs folder, a worker killed mid-scan."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import signal
 import sqlite3
 import subprocess
 import time
@@ -16,6 +18,7 @@ from typing import Any
 import pytest
 import yaml
 
+from cell.service.store import open_store, sqlite_url
 from tests.conftest import FRANKA
 from tests.service_process import ServedCell, submit
 
@@ -151,3 +154,35 @@ def test_a_read_only_jobs_folder_keeps_jobs_waiting_until_it_is_writable(franka:
             ready = client.get("/readyz")
             assert ready.status_code == 503 and "is not writable" in ready.json()["status"], ready.text
     assert franka.wait_job(job["id"], ("completed", "failed", "stopped"))["status"] == "completed"
+
+
+def _files(cell: ServedCell, job_id: str) -> list[str]:
+    with cell.client("viewer") as client:
+        return [f["name"] for f in client.get(f"/api/v1/jobs/{job_id}/files").json()]
+
+
+def test_a_worker_killed_mid_scan_leaves_no_temporary_file_listed_and_says_how_to_rebuild(
+        franka: ServedCell) -> None:
+    """A half-written frame (``frames/.NNNNNN.PID.tmp.npz``, as a worker killed mid-write leaves) was
+    listed by ``GET /jobs/{id}/files``, and the folder without ``cloud.ply`` did not say how to make one."""
+    job = submit(franka, object="bunny", max_time_s=LONG_S)
+    folder = franka.data_dir / "jobs" / job["id"]
+    deadline = time.monotonic() + 60.0
+    while not list((folder / "frames").glob("[0-9]*.npz")):
+        assert time.monotonic() < deadline, "no frame recorded"
+        time.sleep(0.1)
+    half = folder / "frames" / ".000999.4242.tmp.npz"
+    half.write_bytes(b"PK\x03\x04 cut short")
+    assert not [name for name in _files(franka, job["id"]) if ".tmp" in name]  # a write under way
+    store = open_store(sqlite_url(franka.data_dir), migrate=False)
+    try:
+        record = store.get_job(job["id"])
+    finally:
+        store.close()
+    assert record is not None and record.worker_pid is not None
+    os.killpg(record.worker_pid, signal.SIGKILL)
+    ended = franka.wait_job(job["id"], ("failed", "stopped", "completed"))
+    assert ended["status"] == "failed" and "ended unexpectedly" in ended["termination"], ended
+    assert not half.exists() and not [name for name in _files(franka, job["id"]) if ".tmp" in name]
+    result = json.loads((folder / "result.json").read_text())
+    assert result["rebuild"].startswith(f"no cloud.ply: `cell reprocess {folder}` rebuilds it"), result

@@ -39,7 +39,7 @@ from cell.service.retention import known_folders, listed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, RUNNING_STATUSES, HoldRecord, JobRecord, Store
 from cell.service.store.repository import JOB_ID
 from cell.service.worker import SERVICE_GONE
-from drivers.atomic_file import keep_aside, write_text_atomic
+from drivers.atomic_file import is_temporary, keep_aside, write_text_atomic
 from drivers.errors import ARM_FAULT
 
 RESTART_TERMINATION = "the service stopped while the job ran"
@@ -130,10 +130,17 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
     worker's own result with those two replaced (its own kept under ``worker``) when there is one, else
     what the folder shows (captures recorded, files kept). A ``result.json`` that cannot be read is kept
     as ``result.json.unreadable`` (``drivers.atomic_file.keep_aside``), and the new one is written whole; the
-    live cloud snapshot a watched job keeps while it runs (``cloud_live.npy``) is removed: the job has
-    ended. A line goes to ``log.txt``. Only the job's own folder is made when missing, never its parents:
-    a folder recorded elsewhere (another data dir's) is not recreated (``OSError``)."""
+    live cloud snapshot a watched job keeps while it runs (``cloud_live.npy``) and the temporary files of
+    writes its killed worker left half done (``drivers.atomic_file.is_temporary``, a frame's
+    ``frames/.NNNNNN.PID.tmp.npz``) are removed: the job has ended. A folder with frames and no
+    ``cloud.ply`` says under ``rebuild`` how to make one (``cell reprocess``). A line goes to ``log.txt``.
+    Only the job's own folder is made when missing, never its parents: a folder recorded elsewhere
+    (another data dir's) is not recreated (``OSError``)."""
     folder.mkdir(exist_ok=True)
+    for path in list(folder.rglob(".*")):
+        if is_temporary(path):
+            with contextlib.suppress(OSError):
+                path.unlink()
     previous = read_result(folder)
     if previous is None and (folder / "result.json").exists():
         keep_aside(folder / "result.json")
@@ -146,12 +153,16 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
                   "files": sorted(str(p.relative_to(folder)) for p in folder.iterdir()),
                   "note": "the job's worker ended before it wrote its result; its frames, trajectory and "
                           "log are kept, and `cell reprocess` rebuilds a cloud from the frames"}
+    if not (folder / "cloud.ply").exists() and (n_frames := _frames_recorded(folder)) > 0:
+        result["rebuild"] = f"no cloud.ply: `cell reprocess {folder}` rebuilds it from the {n_frames} frames"
     write_text_atomic(folder / "result.json", json.dumps(result, indent=2) + "\n", durable=True)
     with contextlib.suppress(OSError):
         (folder / LIVE_CLOUD_FILE).unlink(missing_ok=True)
     if (folder / "log.txt").is_file():
         with (folder / "log.txt").open("a") as log:
             log.write(f"[service] {status}: {termination}\n")
+            if "rebuild" in result:
+                log.write(f"[service] {result['rebuild']}\n")
     return result
 
 
