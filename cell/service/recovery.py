@@ -125,6 +125,14 @@ def _modified(path: Path) -> datetime | None:
         return None
 
 
+def folder_files(root: Path) -> list[Path]:
+    """The files a job folder ``root`` (resolved) shows its viewers, sorted: every file in it, its
+    subfolders' too, but the temporary files of writes under way or left half done by a killed worker
+    (``drivers.atomic_file.is_temporary``) and anything a link leads out of it to."""
+    return [p for p in sorted(root.rglob("*"))
+            if p.is_file() and not is_temporary(p) and p.resolve().is_relative_to(root)]
+
+
 def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -> dict[str, Any]:
     """Give the job folder a ``result.json`` with ``status`` and ``termination`` and return it: the
     worker's own result with those two replaced (its own kept under ``worker``) when there is one, else

@@ -18,8 +18,8 @@ from cell.api.deps import Bulk, Service
 from cell.api.schemas import STOP_BODY, FileOut, JobOut, JobPage, JobSubmit, KeepIn, StopOut
 from cell.api.stop_reason import StopReason
 from cell.service.keys import KeyRing, Permission, allowed
+from cell.service.recovery import folder_files
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, JobRecord
-from drivers.atomic_file import is_temporary
 
 router = APIRouter(prefix="/api/v1/jobs", tags=["jobs"], route_class=KeyFirstRoute)
 KEEP_ALIVE_S = 15.0
@@ -194,8 +194,7 @@ def _listing(job: JobRecord) -> bytes:
         root = folder.resolve()
         files = [FileOut(name=str(p.relative_to(root)), size_bytes=p.stat().st_size,
                          url=f"/api/v1/jobs/{job_id}/files/{p.relative_to(root)}")
-                 for p in sorted(root.rglob("*"))
-                 if p.is_file() and not is_temporary(p) and p.resolve().is_relative_to(root)]
+                 for p in folder_files(root)]
     return FILE_LIST.dump_json(files)
 
 
