@@ -47,13 +47,20 @@ def _cell(cell: ServedCell) -> dict[str, Any]:
     return answer
 
 
-def test_an_arm_faults_hold_outlives_a_kill_9_until_the_arm_is_recovered(tmp_path: Path) -> None:
+@pytest.mark.parametrize("stop_after_fault", [False, True])
+def test_an_arm_faults_hold_outlives_a_kill_9_until_the_arm_is_recovered(tmp_path: Path,
+                                                                          stop_after_fault: bool) -> None:
     """The hold was read from the arm's live latch alone (``held_at`` null): after a ``kill -9`` and a
-    restart the queue was free, ``/readyz`` ready and the next job would have run on a faulted arm."""
+    restart the queue was free, ``/readyz`` ready and the next job would have run on a faulted arm. A
+    STOP pressed after the fault replaced the stored hold with its own, and the restart forgot the fault
+    the same way."""
     with ServedCell(_faulty_cell(tmp_path), tmp_path / "data", key_prefix="faulty") as cell:
         job = submit(cell, object="bunny", max_time_s=8.0)
         ended = cell.wait_job(job["id"], ("stopped", "failed", "completed"))
         assert ended["termination"] == "safety stop: arm fault: protective stop", ended
+        if stop_after_fault:
+            with cell.client("operator") as client:
+                assert client.post("/api/v1/stop", json={"reason": "hands in"}).status_code == 200
         before = _cell(cell)["queue"]
         assert "recover the arm first" in before["held"] and before["held_at"] is not None, before
         cell.kill()
@@ -187,4 +194,4 @@ def test_a_worker_killed_mid_scan_leaves_no_temporary_file_listed_and_says_how_t
     assert ended["status"] == "failed" and "ended unexpectedly" in ended["termination"], ended
     assert not half.exists() and not [name for name in _files(franka, job["id"]) if ".tmp" in name]
     result = json.loads((folder / "result.json").read_text())
-    assert result["rebuild"].startswith(f"no cloud.ply: `cell reprocess {folder}` rebuilds it"), result
+    assert result["rebuild"].startswith(f"no cloud.ply: `cell reprocess {folder}` makes a cloud"), result

@@ -653,3 +653,28 @@ def test_a_damaged_sqlite_store_is_named_damaged_with_its_fix_never_unreachable(
                              "--port", str(free_port())], capture_output=True, text=True, timeout=120)
     assert served.returncode != 0
     assert "integrity check fails" in served.stderr and "Traceback" not in served.stderr
+
+
+def test_a_store_file_that_cannot_be_looked_at_for_a_moment_is_not_taken_for_deleted(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One failed ``stat`` of ``cell.db`` (an I/O error, a permission changed a moment) had latched the store
+    as deleted for the life of the service, which then said to restore a healthy store from a backup. A
+    file really gone is still found so."""
+    store = open_store(sqlite_url(tmp_path))
+    try:
+        looked = Path.stat
+
+        def failing(path: Path, **kw: object) -> object:
+            if path.name == "cell.db":
+                raise OSError(5, "Input/output error")
+            return looked(path, **kw)  # type: ignore[arg-type]
+
+        with monkeypatch.context() as patched:
+            patched.setattr(Path, "stat", failing)
+            assert store.check_file() is None
+        assert store.check_file() is None and store.lost is None
+        for name in ("cell.db", "cell.db-wal", "cell.db-shm"):
+            (tmp_path / name).unlink(missing_ok=True)
+        assert "was deleted" in (store.check_file() or "")
+    finally:
+        store.close()

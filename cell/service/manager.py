@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import errno
 import functools
 import json
 import logging
@@ -92,6 +93,11 @@ stopped [s]: ten of its beats (``cell.service.protocol.WORKER_BEAT_S``). Its bea
 interpreter lock, which one long library call of the job can hold (an import, a mesh's ray cast): the
 longest gap between two lines of a 60 s sim job of each shipped sim cell, beside another job and a test
 run on a 2-core machine, was 1.1 s: five seconds of silence is no slow job."""
+NOT_WRITABLE = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENOENT,
+                          errno.ENOTDIR})
+"""The errors of a file made in the jobs folder that say it takes no job's recording (a permission, a
+read-only or full file system, a folder gone); others (out of descriptors, of memory) are no verdict on
+the folder."""
 JOB_DISK_MB = 200.0
 """Free space a job needs in the data dir to record [MB]. The largest recording a shipped cell makes is the
 RGB-D one's: a 640 x 480 depth and colour frame is ~0.9 MB compressed in ``frames/`` (a 20 s sim-franka-rgbd
@@ -265,7 +271,7 @@ class CellService:
             log.warning("the queue is held since %s: %s", self._held.held_at.isoformat(), self._held.reason)
             if (fault := held_fault(self._held.reason)) is not None:  # held until the arm is recovered
                 self.arm.latch(fault)
-        if (short := self._cannot_record()) is not None:
+        if (short := await asyncio.to_thread(self._cannot_record)) is not None:
             log.warning("%s", short)
         if self.line is not None:
             await self.line.start()
@@ -467,6 +473,8 @@ class CellService:
         try:
             tempfile.TemporaryFile(dir=self.jobs_dir).close()  # no name on Linux: retention never sees it
         except OSError as exc:
+            if exc.errno not in NOT_WRITABLE:  # out of descriptors or memory: the job's own start says
+                return None
             return (f"the jobs folder {self.jobs_dir} is not writable ({exc.strerror or exc}): no job could "
                     "record; make it writable: jobs start again once it is")
         return self._disk_short()
@@ -638,8 +646,13 @@ class CellService:
     def _hold(self, after: str) -> None:
         """Hold the queue until an operator resumes it (never the line's Reset: a person looks first), also
         across restarts: the hold is written to the store beside (:meth:`_write_hold`), never before a
-        stop."""
-        self._held = HoldRecord(cell=self.name, reason=held_after(after), held_at=_now())
+        stop. A hold for an arm fault still latched keeps its reason first (:func:`held_fault`), the new
+        one after it: a STOP pressed after the fault does not free the arm from its recovery."""
+        reason, since = held_after(after), _now()
+        if self._held is not None and held_fault(self._held.reason) is not None and self.arm.faulted:
+            # the arm's fault stays what the hold is for, also across a restart (it is latched again then)
+            reason, since = f"{self._held.reason}; then {reason}", self._held.held_at
+        self._held = HoldRecord(cell=self.name, reason=reason, held_at=since)
         self._write_hold()
 
     def _write_hold(self) -> None:
@@ -986,8 +999,10 @@ class CellService:
             await self._wake.wait()
             self._wake.clear()
             while self._may_start():
-                if self._no_room():
+                if await self._no_room():
                     asyncio.get_running_loop().call_later(SPAWN_RETRY_S, self._wake.set)
+                    break
+                if not self._may_start():  # the queue changed while the jobs folder was looked at
                     break
                 job_id = next(iter(self._queued))
                 queued = self._queued.pop(job_id)
@@ -1012,11 +1027,12 @@ class CellService:
                     asyncio.get_running_loop().call_later(retry_s, self._wake.set)
                     break
 
-    def _no_room(self) -> bool:
-        """Whether a job could not record now (:meth:`_cannot_record`: the jobs folder not writable, or the
-        data dir without the room a job needs); logged in one line when that begins or changes, and once
-        a job can record again."""
-        short = self._cannot_record()
+    async def _no_room(self) -> bool:
+        """Whether a job could not record now (:meth:`_cannot_record`, on a thread: a file made in the jobs
+        folder, which a hung network mount would make the event loop wait for: the jobs folder not
+        writable, or the data dir without the room a job needs); logged in one line when that begins or
+        changes, and once a job can record again."""
+        short = await asyncio.to_thread(self._cannot_record)
         if short != self._unrecordable:
             if short is not None:
                 log.error("%s", short)

@@ -26,6 +26,7 @@ import csv
 import json
 import logging
 import os
+import shlex
 import signal
 import time
 from datetime import UTC, datetime
@@ -141,7 +142,8 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
     live cloud snapshot a watched job keeps while it runs (``cloud_live.npy``) and the temporary files of
     writes its killed worker left half done (``drivers.atomic_file.is_temporary``, a frame's
     ``frames/.NNNNNN.PID.tmp.npz``) are removed: the job has ended. A folder with frames and no
-    ``cloud.ply`` says under ``rebuild`` how to make one (``cell reprocess``). A line goes to ``log.txt``.
+    ``cloud.ply`` says under ``rebuild`` how to make a cloud (``cell reprocess``: ``cloud_hires.ply``). A
+    line goes to ``log.txt``.
     Only the job's own folder is made when missing, never its parents: a folder recorded elsewhere
     (another data dir's) is not recreated (``OSError``)."""
     folder.mkdir(exist_ok=True)
@@ -162,7 +164,8 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
                   "note": "the job's worker ended before it wrote its result; its frames, trajectory and "
                           "log are kept, and `cell reprocess` rebuilds a cloud from the frames"}
     if not (folder / "cloud.ply").exists() and (n_frames := _frames_recorded(folder)) > 0:
-        result["rebuild"] = f"no cloud.ply: `cell reprocess {folder}` rebuilds it from the {n_frames} frames"
+        result["rebuild"] = (f"no cloud.ply: `cell reprocess {shlex.quote(str(folder))}` makes a cloud from "
+                             f"the {n_frames} frames (cloud_hires.ply, result_hires.json)")
     write_text_atomic(folder / "result.json", json.dumps(result, indent=2) + "\n", durable=True)
     with contextlib.suppress(OSError):
         (folder / LIVE_CLOUD_FILE).unlink(missing_ok=True)

@@ -39,15 +39,18 @@ async def readyz(response: Response, cell: Service,
     takes jobs all the same (the first then waits for the imports), so it does not make the answer 503;
     ``placement_checks`` whether the dispatcher has loaded them (``CellService.placement_checks``:
     loading, loaded), which it does once, about a second after the start, before it starts any job."""
+    # first: a deleted file's pool may make an empty one in its place, which answers no read
+    lost = await asyncio.to_thread(cell.store.check_file)
     try:
         await asyncio.to_thread(cell.store.count_by_status, cell.name)
     except StoreError:
-        if not cell.store.damaged:  # else the queue is held, and not_ready says how to restore the store
+        if not cell.store.damaged and lost is None:  # else not_ready says how to restore the store
             response.status_code = 503
             return {"status": "the job store does not answer"}
     # a write probe only while the newest write failed: a store that reads but refuses writes (a lock
     # another process holds) takes no job
-    if not cell.store.damaged and await asyncio.to_thread(cell.store.probe_write) is not None:
+    whole = not cell.store.damaged and lost is None
+    if whole and await asyncio.to_thread(cell.store.probe_write) is not None:
         response.status_code = 503
         return {"status": "the job store does not answer: it takes no write (the log says why)"}
     # off the event loop: it asks the file system about the jobs folder (access, free space)

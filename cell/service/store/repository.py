@@ -205,7 +205,10 @@ class Store:
         self._damaged = False
         self._damage_seen = threading.Lock()
         self._database = _sqlite_file(engine)
-        self._identity = None if self._database is None else _file_identity(self._database)
+        self._identity: tuple[int, int] | None = None
+        if self._database is not None:
+            with contextlib.suppress(OSError):  # not told: the file is not checked
+                self._identity = _file_identity(self._database)
         self._lost: str | None = None
         self._write_failure: str | None = None
 
@@ -232,7 +235,11 @@ class Store:
         the one opened, and always for PostgreSQL (no file). A ``stat`` of one path: cheap, but a file
         system call, so callers on the event loop run it on a thread."""
         if self._lost is None and self._identity is not None and self._database is not None:
-            now = _file_identity(self._database)
+            try:
+                now = _file_identity(self._database)
+            except OSError as exc:  # no verdict (an I/O error, a permission changed a moment): not lost
+                log.warning("cannot check the job store's file %s: %s", self._database, exc.strerror)
+                return None
             if now != self._identity:
                 happened = "deleted" if now is None else "replaced by another file"
                 lost = (f"the job store's file {self._database} was {happened} while the service ran: what "
@@ -526,10 +533,11 @@ def _sqlite_file(engine: Engine) -> Path | None:
 
 
 def _file_identity(path: Path) -> tuple[int, int] | None:
-    """The device and inode of ``path``, or None when there is no file there (or it cannot be read)."""
+    """The device and inode of ``path``, or None when there is no file there; ``OSError`` when that
+    cannot be told (an I/O error, a folder that may not be read)."""
     try:
         info = path.stat()
-    except OSError:
+    except FileNotFoundError:
         return None
     return info.st_dev, info.st_ino
 
