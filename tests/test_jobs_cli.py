@@ -17,7 +17,7 @@ import pytest
 from typer.testing import CliRunner, Result
 
 from cell.cli import client as client_module
-from cell.cli.client import ApiClient, ServerEvent, parse_events
+from cell.cli.client import ApiClient, ServerEvent, ServerUnreachable, parse_events
 from cell.cli.jobs import _progress_line, follow_job, packing_lines, time_label
 from cell.cli.main import app
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES
@@ -368,6 +368,46 @@ def test_a_stream_ended_early_is_completed_from_the_record(monkeypatch: pytest.M
     assert [(e.event, e.data["status"]) for e in events] == [("state", "interrupted"),
                                                              ("result", "interrupted")]
     assert events[0].data["termination"] == "service died"
+
+
+def test_a_stream_broken_by_a_service_restart_is_waited_for_then_ends_from_the_record(
+        monkeypatch: pytest.MonkeyPatch):
+    """The service dies and systemd restarts it: the client reconnects for up to RECONNECT_WINDOW_S, and
+    the restarted service's record of the job ends the wait (it had given up after five tries, 12 s, before
+    a restart is back). A service that stays away past the window is said so."""
+    monkeypatch.setattr(client_module, "RECONNECT_DELAY_S", 0.001)
+    down = {"left": 8}  # refused connections while the service restarts: more than the five tried before
+
+    def restarting(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events") and down["left"] == 8:
+            down["left"] -= 1
+            return httpx.Response(200, content=sse(1, "state", {"status": "running",
+                                                                 "termination": None}).encode())
+        if down["left"] > 0:
+            down["left"] -= 1
+            raise httpx.ConnectError("connection refused")
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, content=b": keep-alive\n\n")
+        return httpx.Response(200, json={"id": "abc", "status": "interrupted",
+                                         "termination": "the service restarted", "result": None})
+
+    with ApiClient("http://cell.test", "k", transport=httpx.MockTransport(restarting)) as api:
+        events = list(api.follow("abc"))
+    assert [(e.event, e.data["status"]) for e in events][-1] == ("result", "interrupted")
+
+    monkeypatch.setattr(client_module, "RECONNECT_WINDOW_S", 0.05)
+    down["left"] = 8
+
+    def gone(request: httpx.Request) -> httpx.Response:
+        if down["left"] == 8:
+            down["left"] -= 1
+            return httpx.Response(200, content=sse(1, "state", {"status": "running",
+                                                                 "termination": None}).encode())
+        raise httpx.ConnectError("connection refused")
+
+    with ApiClient("http://cell.test", "k", transport=httpx.MockTransport(gone)) as api, \
+            pytest.raises(ServerUnreachable, match=r"failed for 0\.05 s"):
+        list(api.follow("abc"))
 
 
 def test_paths_are_one_segment():

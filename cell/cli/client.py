@@ -7,8 +7,9 @@ never part of a message.
 
 :meth:`ApiClient.follow` reads ``GET /api/v1/jobs/{id}/events`` (Server-Sent Events, parsed here: ``id:``,
 ``event:``, ``data:`` lines, comments ignored, a blank line ends an event). When the stream breaks it
-reconnects with ``Last-Event-ID``, up to :data:`MAX_RECONNECTS` times in a row, so that no event is lost
-or repeated; it ends after the job's ``result`` event.
+reconnects with ``Last-Event-ID`` for up to :data:`RECONNECT_WINDOW_S` without an event, so that no event
+is lost or repeated and a service restarted meanwhile is waited for; it ends after the job's ``result``
+event.
 """
 
 from __future__ import annotations
@@ -34,10 +35,13 @@ FINISHED = frozenset(JOB_STATUSES[3:])
 REQUEST_TIMEOUT_S = 30.0
 STREAM_IDLE_S = 40.0
 """An event stream silent this long [s] is taken as broken (the server sends a keep-alive every 15 s)."""
-MAX_RECONNECTS = 5
-"""Reconnections of an event stream in a row (without an event in between) before giving up."""
+RECONNECT_WINDOW_S = 60.0
+"""How long [s] a broken event stream is reconnected without an event before giving up: a service that
+systemd restarts (``RestartSec=5``, then a start of 10-20 s) is back within it, and the job's record then
+says how it ended (``interrupted``); five tries in a row, 12 s, had given up before."""
 RECONNECT_DELAY_S = 0.5
-"""The wait before the n-th reconnection in a row is n times this [s]."""
+"""The wait before the n-th reconnection in a row is n times this [s], at most ``MAX_RECONNECT_DELAY_S``."""
+MAX_RECONNECT_DELAY_S = 5.0
 
 
 class ApiError(CellError):
@@ -212,8 +216,8 @@ class ApiClient:
     def follow(self, job_id: str, timeout_s: float | None = None) -> Iterator[ServerEvent]:
         """Every event of the job from its start, until its ``result`` event (the last one yielded).
 
-        A broken stream is reopened with ``Last-Event-ID`` (up to :data:`MAX_RECONNECTS` times in a row;
-        a first connection that fails is ``ServerUnreachable`` at once);
+        A broken stream is reopened with ``Last-Event-ID`` (for up to :data:`RECONNECT_WINDOW_S` without
+        an event; a first connection that fails is ``ServerUnreachable`` at once);
         one the server ended without a result (e.g. a restarted service that no longer has the events) is
         completed from the job's record: a ``result`` event with its status is made up once it ended.
         ``WaitTimeout`` once ``timeout_s`` [s] passed, ``ServerUnreachable`` when reconnecting failed."""
@@ -222,7 +226,7 @@ class ApiClient:
         def check() -> None:
             _check_deadline(deadline, job_id, timeout_s)
 
-        last_id, failures, received = 0, 0, False
+        last_id, failures, received, broken_since = 0, 0, False, 0.0
         while True:
             idle = STREAM_IDLE_S
             if deadline is not None:
@@ -253,10 +257,12 @@ class ApiClient:
                         return
                     problem = "the server ended the event stream before the job ended"
             failures += 1
-            if failures > MAX_RECONNECTS:
-                raise ServerUnreachable(f"lost the event stream of job {job_id}: {MAX_RECONNECTS} "
-                                        f"reconnections to {self.server} failed ({problem})")
-            time.sleep(RECONNECT_DELAY_S * failures)
+            if failures == 1:
+                broken_since = time.monotonic()
+            elif time.monotonic() - broken_since > RECONNECT_WINDOW_S:
+                raise ServerUnreachable(f"lost the event stream of job {job_id}: reconnecting to "
+                                        f"{self.server} failed for {RECONNECT_WINDOW_S:g} s ({problem})")
+            time.sleep(min(RECONNECT_DELAY_S * failures, MAX_RECONNECT_DELAY_S))
 
 
 def parse_events(lines: Iterator[str]) -> Iterator[ServerEvent]:
