@@ -52,9 +52,9 @@ def sqlite_url(data_dir: Path) -> str:
     return f"sqlite:///{(data_dir / SQLITE_FILE).resolve()}"
 
 
-def sqlite_database(url: str) -> Path | None:
-    """The database file of the SQLite store at ``url``; None for another database, or a URL that does not
-    parse or names no file (opening it says why)."""
+def sqlite_database(url: str | URL) -> Path | None:
+    """The database file of the SQLite store at ``url`` (text, or an engine's URL); None for another
+    database, or a URL that does not parse or names no file (opening it says why)."""
     try:
         parsed = make_url(url)
     except (ArgumentError, ValueError):

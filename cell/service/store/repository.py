@@ -204,7 +204,7 @@ class Store:
         self.url = engine.url.render_as_string(hide_password=True)
         self._damaged = False
         self._damage_seen = threading.Lock()
-        self._database = _sqlite_file(engine)
+        self._database = sqlite_database(engine.url)
         self._identity: tuple[int, int] | None = None
         if self._database is not None:
             with contextlib.suppress(OSError):  # not told: the file is not checked
@@ -522,14 +522,6 @@ class Store:
                 raise ValueError(f"a hold of cell {hold.cell!r} given for cell {cell!r}")
             session.merge(HoldRow(cell=cell, reason=hold.reason,
                                   held_at=_aware("held_at", hold.held_at).astimezone(UTC)))
-
-
-def _sqlite_file(engine: Engine) -> Path | None:
-    """The file of an SQLite store's ``engine``; None for PostgreSQL."""
-    url = engine.url
-    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
-        return None
-    return Path(url.database)
 
 
 def _file_identity(path: Path) -> tuple[int, int] | None:
