@@ -706,15 +706,15 @@ class CellService:
             if running.pending_stop is None:
                 running.pending_stop = (reason, requested)
             return StopOutcome(job_id, False, "the job was starting: it stops before its first motion")
+        # first, a "started" the worker sent is read, and a stop in flight beside this one (the line's,
+        # behind an operator's) goes on to its kill, if any
+        await asyncio.sleep(0)
         if running.ended is not None or proc.returncode is not None or running.killed_for is not None:
             # a worker killed for an earlier stop keeps that stop's cause, as JobControl keeps the first
             return StopOutcome(job_id, False, "the job had already ended")
         if running.requested is None:  # the worker's JobControl keeps the first stop it is given
             running.requested = requested
         cause = stop_cause(reason, requested)
-        await asyncio.sleep(0)  # a "started" the worker sent is read first
-        if running.killed_for is not None:  # another stop in flight beside this one (the line's, behind an
-            return StopOutcome(job_id, False, "the job had already ended")  # operator's) killed it first
         if not running.started:
             # still loading its libraries, it cannot answer for seconds, and it has not touched the arm:
             # ended now, the stop takes milliseconds rather than the confirmation's timeout and a kill
