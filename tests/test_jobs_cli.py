@@ -370,13 +370,21 @@ def test_a_stream_ended_early_is_completed_from_the_record(monkeypatch: pytest.M
     assert events[0].data["termination"] == "service died"
 
 
+@pytest.mark.parametrize("proxy", [None, 502, 503, 504])
 def test_a_stream_broken_by_a_service_restart_is_waited_for_then_ends_from_the_record(
-        monkeypatch: pytest.MonkeyPatch):
+        monkeypatch: pytest.MonkeyPatch, proxy: int | None):
     """The service dies and systemd restarts it: the client reconnects for up to RECONNECT_WINDOW_S, and
     the restarted service's record of the job ends the wait (it had given up after five tries, 12 s, before
-    a restart is back). A service that stays away past the window is said so."""
+    a restart is back). A service that stays away past the window is said so. Behind a reverse proxy
+    (``proxy``) the restart is its 502, 503 or 504 rather than a refused connection (the wait had ended
+    with that error at once)."""
     monkeypatch.setattr(client_module, "RECONNECT_DELAY_S", 0.001)
     down = {"left": 8}  # refused connections while the service restarts: more than the five tried before
+
+    def away() -> httpx.Response:
+        if proxy is None:
+            raise httpx.ConnectError("connection refused")
+        return httpx.Response(proxy, text="<html>Bad Gateway</html>")
 
     def restarting(request: httpx.Request) -> httpx.Response:
         if request.url.path.endswith("/events") and down["left"] == 8:
@@ -385,7 +393,7 @@ def test_a_stream_broken_by_a_service_restart_is_waited_for_then_ends_from_the_r
                                                                  "termination": None}).encode())
         if down["left"] > 0:
             down["left"] -= 1
-            raise httpx.ConnectError("connection refused")
+            return away()
         if request.url.path.endswith("/events"):
             return httpx.Response(200, content=b": keep-alive\n\n")
         return httpx.Response(200, json={"id": "abc", "status": "interrupted",
@@ -403,7 +411,7 @@ def test_a_stream_broken_by_a_service_restart_is_waited_for_then_ends_from_the_r
             down["left"] -= 1
             return httpx.Response(200, content=sse(1, "state", {"status": "running",
                                                                  "termination": None}).encode())
-        raise httpx.ConnectError("connection refused")
+        return away()
 
     with ApiClient("http://cell.test", "k", transport=httpx.MockTransport(gone)) as api, \
             pytest.raises(ServerUnreachable, match=r"failed for 0\.05 s"):

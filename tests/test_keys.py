@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from cell.api.auth import ACTIONS
 from cell.cli.main import app
 from cell.doctor import machine
 from cell.doctor.findings import Status
@@ -62,6 +63,8 @@ def test_permission_table():
     assert all(allowed(role, Permission.STOP) for role in Role)
     assert [role for role in Role if allowed(role, Permission.KEYS)] == [Role.ADMIN]
     assert not allowed("nobody", Permission.READ)
+    # every permission has the words a 403 says it in (a missing one made the refusal a 500)
+    assert set(ACTIONS) == set(Permission)
 
 
 def test_new_keys_are_random():

@@ -344,7 +344,8 @@ def test_an_operators_stop_of_a_line_scan_whose_worker_is_starting_keeps_the_ope
             assert time.monotonic() < deadline + 60.0, job
             time.sleep(0.05)
             job = line.job(job_id)
-        assert "hands in" in job["termination"], job["termination"]
+        # the operator's own words first, not the line's stop that names them
+        assert job["termination"].startswith("operator stop: hands in (key "), job["termination"]
 
 
 def test_a_job_stopped_through_the_api_whose_worker_is_killed_is_still_an_operators_stop(tmp_path: Path):

@@ -672,6 +672,7 @@ def test_anonymous_and_unknown_users_can_do_nothing(encrypted):
         await refused("test-viewer", keys["viewer"])  # a key without the line permission
         await refused("test-operator", keys["operator"])
         await refused(keys["line"], "test-line")  # the user name and the password swapped
+        await refused(f" {keys['line']}\n", "test-line")  # so, pasted with a space and a line end
         async with plc(encrypted, "test-admin", keys["admin"]) as line:  # admin keys have it too
             assert await line.state() in (STOPPED, IDLE, COMPLETE, ABORTED)
             ns = line.ns

@@ -561,6 +561,36 @@ def _spawns_fail(service: Any) -> threading.Event:
     return out
 
 
+def test_a_stale_network_mount_as_jobs_folder_keeps_jobs_waiting(tmp_path, monkeypatch):
+    """A jobs folder on a network mount gone stale (ESTALE; EIO from a failing disk alike) was no verdict
+    on the folder: each queued job started and failed within a second. It waits now, as on a read-only
+    folder, and starts once the folder takes files again."""
+    import cell.service.manager as manager
+
+    stale = threading.Event()
+    make = manager.tempfile.TemporaryFile
+
+    def probing(*args: Any, **kwargs: Any) -> Any:
+        if stale.is_set():
+            raise OSError(errno.ESTALE, "Stale file handle")
+        return make(*args, **kwargs)
+
+    monkeypatch.setattr(manager.tempfile, "TemporaryFile", probing)
+    client, keys = _client(tmp_path)
+    op = _auth(keys["operator"])
+    with client:
+        stale.set()
+        job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1}, headers=op).json()
+        deadline = time.monotonic() + 30.0
+        while "is not writable (Stale file handle)" not in str(
+                client.get("/api/v1/cell", headers=op).json()["queue"]["held"]):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["status"] == "queued"
+        stale.clear()
+        assert _wait(client, keys["viewer"], job["id"], set(FINISHED_STATUSES))["status"] == "completed"
+
+
 def test_a_worker_that_cannot_be_started_never_leaves_a_job_untracked_and_the_service_recovers(tmp_path,
                                                                                                caplog):
     """Out of file descriptors, the warm spare beside a running job cannot be started: the running job is
@@ -672,6 +702,38 @@ def test_a_job_folder_listing_never_holds_the_event_loop_and_so_a_stop(served, m
     stopped.set()
     listing.join(60.0)
     assert stop.status_code == 200 and released == [True]
+
+
+def test_a_fault_that_ends_a_stopped_job_goes_first_in_the_queues_hold(served, monkeypatch):
+    """A job stopped by the operator whose end names an arm fault (the fault came as the arm stopped):
+    the fault was kept only in the arm's live latch, since a hold (the STOP's) was already there, so a
+    restart forgot it and the next resume ran a job on the faulted arm. It now goes first in the hold,
+    and the recovery leaves the STOP's part for the operator's resume."""
+    from cell.service.arm_status import ArmTracker
+
+    def faulted(self: ArmTracker, termination: str) -> str:  # the job's end names the fault
+        self.latch("protective stop")
+        return "protective stop"
+
+    monkeypatch.setattr(ArmTracker, "job_ended", faulted)
+    client, keys = served
+    op = _auth(keys["operator"])
+    job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 60}, headers=op).json()
+    _wait(client, keys["viewer"], job["id"], {"running"})
+    assert client.post("/api/v1/stop", json={"reason": "hands in"}, headers=op).status_code == 200
+    _wait(client, keys["viewer"], job["id"], {"stopped"})
+    service = client.app.state.service  # type: ignore[attr-defined]
+    deadline = time.monotonic() + 10.0  # the hold is written beside, by a task of its own
+    while not (stored := service.store.get_hold(service.name).reason).startswith("the arm reported a fault"):
+        assert time.monotonic() < deadline, stored
+        time.sleep(0.05)
+    assert stored.startswith("the arm reported a fault: protective stop") and \
+        "; then held after a stop (hands in" in stored, stored
+    assert client.post("/api/v1/arm/recover", headers=op).status_code == 200
+    assert client.get("/api/v1/cell", headers=op).json()["queue"]["held"].startswith(
+        "held after a stop (hands in")
+    assert client.post("/api/v1/queue/resume", headers=op).status_code == 200
+    assert client.get("/api/v1/cell", headers=op).json()["queue"]["held"] is None
 
 
 def test_stop_holds_the_queue_and_resume_releases_it(served):

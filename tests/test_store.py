@@ -4,6 +4,7 @@ password, and two cells sharing one PostgreSQL database."""
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import subprocess
 import sys
@@ -656,10 +657,11 @@ def test_a_damaged_sqlite_store_is_named_damaged_with_its_fix_never_unreachable(
 
 
 def test_a_store_file_that_cannot_be_looked_at_for_a_moment_is_not_taken_for_deleted(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     """One failed ``stat`` of ``cell.db`` (an I/O error, a permission changed a moment) had latched the store
     as deleted for the life of the service, which then said to restore a healthy store from a backup. A
-    file really gone is still found so."""
+    file really gone is still found so. A file that stays unreadable is said once, not at each of the
+    checks (every ``/readyz`` and submission), and again after it could be looked at meanwhile."""
     store = open_store(sqlite_url(tmp_path))
     try:
         looked = Path.stat
@@ -669,10 +671,14 @@ def test_a_store_file_that_cannot_be_looked_at_for_a_moment_is_not_taken_for_del
                 raise OSError(5, "Input/output error")
             return looked(path, **kw)  # type: ignore[arg-type]
 
-        with monkeypatch.context() as patched:
-            patched.setattr(Path, "stat", failing)
-            assert store.check_file() is None
-        assert store.check_file() is None and store.lost is None
+        with caplog.at_level(logging.WARNING, logger="cell.service"):
+            for _ in range(2):
+                with monkeypatch.context() as patched:
+                    patched.setattr(Path, "stat", failing)
+                    assert [store.check_file() for _ in range(3)] == [None] * 3
+                assert store.check_file() is None and store.lost is None
+        said = [r for r in caplog.records if r.getMessage().startswith("cannot check the job store's file")]
+        assert len(said) == 2, said
         for name in ("cell.db", "cell.db-wal", "cell.db-shm"):
             (tmp_path / name).unlink(missing_ok=True)
         assert "was deleted" in (store.check_file() or "")

@@ -39,6 +39,10 @@ RECONNECT_WINDOW_S = 60.0
 """How long [s] a broken event stream is reconnected without an event before giving up: a service that
 systemd restarts (``RestartSec=5``, then a start of 10-20 s) is back within it, and the job's record then
 says how it ended (``interrupted``); five tries in a row, 12 s, had given up before."""
+GATEWAY_AWAY = frozenset({502, 503, 504})
+"""What a reverse proxy before the service answers while the service restarts (bad gateway, unavailable,
+gateway timeout): a broken stream to reconnect within :data:`RECONNECT_WINDOW_S`, as a refused
+connection is."""
 RECONNECT_DELAY_S = 0.5
 """The wait before the n-th reconnection in a row is n times this [s], at most ``MAX_RECONNECT_DELAY_S``."""
 MAX_RECONNECT_DELAY_S = 5.0
@@ -216,7 +220,8 @@ class ApiClient:
     def follow(self, job_id: str, timeout_s: float | None = None) -> Iterator[ServerEvent]:
         """Every event of the job from its start, until its ``result`` event (the last one yielded).
 
-        A broken stream is reopened with ``Last-Event-ID`` (for up to :data:`RECONNECT_WINDOW_S` without
+        A broken stream (also a reverse proxy's :data:`GATEWAY_AWAY` answer) is reopened with
+        ``Last-Event-ID`` (for up to :data:`RECONNECT_WINDOW_S` without
         an event; a first connection that fails is ``ServerUnreachable`` at once);
         one the server ended without a result (e.g. a restarted service that no longer has the events) is
         completed from the job's record: a ``result`` event with its status is made up once it ended.
@@ -245,11 +250,19 @@ class ApiClient:
                 if not received:  # never connected: no server there, nothing to resume
                     raise self._unreachable(exc) from None
                 problem = _reason(exc)
+            except ApiError as exc:
+                if exc.status not in GATEWAY_AWAY or not received:
+                    raise
+                problem = str(exc)
             check()
             if problem is None:
                 try:
                     job = self.job(job_id)
                 except ServerUnreachable as exc:
+                    problem = str(exc)
+                except ApiError as exc:
+                    if exc.status not in GATEWAY_AWAY:
+                        raise
                     problem = str(exc)
                 else:
                     if job["status"] in FINISHED:

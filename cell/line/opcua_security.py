@@ -71,7 +71,7 @@ def _login(keys: KeyRing, username: str, secret: str) -> KeyRecord | str:
     have been revoked since."""
     if not username or not secret:
         return "no user name or no password: the user name is a key's name, the password its secret"
-    if SECRET_SHAPE.fullmatch(username):
+    if SECRET_SHAPE.search(username):  # also with a space or a line end pasted with it
         return ("the user name is a key's secret: the user name is the key's name, the password its secret "
                 "(swapped?)")
     record = keys.authenticate(secret)
@@ -102,7 +102,7 @@ class LineUserManager(UserManager):
         secret = password or ""
         login = _login(self._keys, username or "", secret)
         if isinstance(login, str):
-            shown = "<a key's secret, not shown>" if SECRET_SHAPE.fullmatch(username or "") \
+            shown = "<a key's secret, not shown>" if SECRET_SHAPE.search(username or "") \
                 else repr((username or "")[:64])
             log.warning("OPC UA: login refused for user name %s: %s", shown, login)
             return None

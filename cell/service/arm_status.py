@@ -32,6 +32,8 @@ ARM_FAULTS = {"protective stop": "protective stop", "emergency stop": "emergency
 """Faults a job's termination can name (``arm fault: <fault>``, ``cell.safety.guard``; the UR5e's and the
 Franka's words, ``drivers.arm``) and the arm state each leaves: each holds the queue until a recovery."""
 _FAULT_HOLD = "the arm reported a fault: "
+# between a fault hold's reason and the reason of a hold that came with it (a STOP after the fault)
+_THEN = "; then "
 
 
 def fault_hold(fault: str, job_id: str) -> str:
@@ -39,6 +41,21 @@ def fault_hold(fault: str, job_id: str) -> str:
     (``queue_holds``) so that a restart latches the fault again (:func:`held_fault`), and released by the
     arm's recovery."""
     return f"{_FAULT_HOLD}{fault} (job {job_id}); recover the arm first (POST /api/v1/arm/recover)"
+
+
+def fault_first(fault_reason: str, other: str | None) -> str:
+    """The reason of a queue hold for an arm fault (``fault_reason``, :func:`fault_hold`; a fault first
+    in a hold is only the fault's part of it, as :func:`after_fault` splits it off) with the reason of
+    another hold, ``other`` (a STOP, a hung worker's; None: none) after it: the fault stays what a
+    restart latches, and the other hold outlives the arm's recovery."""
+    fault = fault_reason.partition(_THEN)[0]
+    return fault if other is None else f"{fault}{_THEN}{other}"
+
+
+def after_fault(reason: str) -> str | None:
+    """What else a fault hold's ``reason`` (:func:`fault_first`) holds the queue for, which the arm's
+    recovery leaves to the operator's resume; None when only the fault."""
+    return reason.partition(_THEN)[2] or None
 
 
 def held_fault(reason: str) -> str | None:

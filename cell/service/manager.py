@@ -51,7 +51,7 @@ from cell.line.controller import LineController
 from cell.line.dio import DigitalIOHandshake
 from cell.planning.registry import PLANNERS
 from cell.service.arm_clearance import ArmClearance
-from cell.service.arm_status import ArmTracker, fault_hold, held_fault
+from cell.service.arm_status import ArmTracker, after_fault, fault_first, fault_hold, held_fault
 from cell.service.events import EventHub, JobEvents
 from cell.service.instance import new_instance
 from cell.service.metrics import ServiceMetrics
@@ -93,11 +93,11 @@ stopped [s]: ten of its beats (``cell.service.protocol.WORKER_BEAT_S``). Its bea
 interpreter lock, which one long library call of the job can hold (an import, a mesh's ray cast): the
 longest gap between two lines of a 60 s sim job of each shipped sim cell, beside another job and a test
 run on a 2-core machine, was 1.1 s: five seconds of silence is no slow job."""
-NOT_WRITABLE = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENOENT,
-                          errno.ENOTDIR})
-"""The errors of a file made in the jobs folder that say it takes no job's recording (a permission, a
-read-only or full file system, a folder gone); others (out of descriptors, of memory) are no verdict on
-the folder."""
+NO_VERDICT = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOMEM, errno.EINTR})
+"""The errors of a file made in the jobs folder that are no verdict on the folder (this process out of
+descriptors or memory, a signal): every other one says it takes no job's recording (a permission, a
+read-only or full file system, a folder gone, a failing disk (EIO), a stale or lost network mount
+(ESTALE, ENOTCONN)), and jobs wait rather than each start and fail."""
 JOB_DISK_MB = 200.0
 """Free space a job needs in the data dir to record [MB]. The largest recording a shipped cell makes is the
 RGB-D one's: a 640 x 480 depth and colour frame is ~0.9 MB compressed in ``frames/`` (a 20 s sim-franka-rgbd
@@ -473,8 +473,8 @@ class CellService:
         try:
             tempfile.TemporaryFile(dir=self.jobs_dir).close()  # no name on Linux: retention never sees it
         except OSError as exc:
-            if exc.errno not in NOT_WRITABLE:  # out of descriptors or memory: the job's own start says
-                return None
+            if exc.errno in NO_VERDICT:  # out of descriptors or memory: the job's own start says
+                return self._disk_short()
             return (f"the jobs folder {self.jobs_dir} is not writable ({exc.strerror or exc}): no job could "
                     "record; make it writable: jobs start again once it is")
         return self._disk_short()
@@ -646,12 +646,13 @@ class CellService:
     def _hold(self, after: str) -> None:
         """Hold the queue until an operator resumes it (never the line's Reset: a person looks first), also
         across restarts: the hold is written to the store beside (:meth:`_write_hold`), never before a
-        stop. A hold for an arm fault still latched keeps its reason first (:func:`held_fault`), the new
-        one after it: a STOP pressed after the fault does not free the arm from its recovery."""
+        stop. A hold for an arm fault still latched keeps its reason first (:func:`fault_first`), the new
+        one after it: a STOP pressed after the fault does not free the arm from its recovery, nor the
+        recovery the queue from the STOP."""
         reason, since = held_after(after), _now()
         if self._held is not None and held_fault(self._held.reason) is not None and self.arm.faulted:
             # the arm's fault stays what the hold is for, also across a restart (it is latched again then)
-            reason, since = f"{self._held.reason}; then {reason}", self._held.held_at
+            reason, since = fault_first(self._held.reason, reason), self._held.held_at
         self._held = HoldRecord(cell=self.name, reason=reason, held_at=since)
         self._write_hold()
 
@@ -821,10 +822,17 @@ class CellService:
 
     def _release_fault_hold(self) -> None:
         """After a recovery: release the queue's hold for an arm fault (``fault_hold``) once the arm has
-        none, in the store too; a hold of another kind (a STOP) waits for the operator's resume."""
+        none, in the store too; a hold of another kind (a STOP), also one that came after the fault
+        (:func:`after_fault`), waits for the operator's resume."""
         if not self.arm.faulted and self._held is not None and held_fault(self._held.reason) is not None:
-            log.warning("the queue is released: the arm was recovered (%s)", self._held.reason)
-            self._held = None
+            rest = after_fault(self._held.reason)
+            if rest is None:
+                log.warning("the queue is released: the arm was recovered (%s)", self._held.reason)
+                self._held = None
+            else:
+                log.warning("the arm was recovered (%s); the queue stays held until resumed: %s",
+                            self._held.reason, rest)
+                self._held = HoldRecord(cell=self.name, reason=rest, held_at=self._held.held_at)
             self._write_hold()
         self._wake.set()
 
@@ -1194,9 +1202,14 @@ class CellService:
         self.metrics.ticks.job_ended(None if ended is None else ended.get("ticks"))
         if status == "completed" and result is not None and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
-        if (fault := self.arm.job_ended(termination)) is not None and self._held is None:
-            # kept in the store as the other holds are: the latch alone was lost with a restart
-            self._held = HoldRecord(cell=self.name, reason=fault_hold(fault, job.id), held_at=_now())
+        if (fault := self.arm.job_ended(termination)) is not None and (
+                self._held is None or held_fault(self._held.reason) is None):
+            # kept in the store as the other holds are, first in a hold that came during the job (a STOP,
+            # a hung worker's): the latch alone was lost with a restart
+            other = None if self._held is None else self._held.reason
+            since = _now() if self._held is None else self._held.held_at
+            self._held = HoldRecord(cell=self.name, reason=fault_first(fault_hold(fault, job.id), other),
+                                    held_at=since)
             self._write_hold()
         log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
                 termination, extra={"job_id": job.id, "part_id": job.part_id, "status": status})

@@ -210,6 +210,7 @@ class Store:
             with contextlib.suppress(OSError):  # not told: the file is not checked
                 self._identity = _file_identity(self._database)
         self._lost: str | None = None
+        self._unchecked = False  # the newest check_file could not stat the file (logged once per spell)
         self._write_failure: str | None = None
 
     @property
@@ -231,15 +232,19 @@ class Store:
     def check_file(self) -> str | None:
         """Whether an SQLite store's file was deleted (``cell.db`` and its WAL removed by hand) or replaced
         by another since it was opened: the open connections write on into the deleted file, which is gone
-        with them, every key and job of it. Latched and logged once (:attr:`lost`); None while the file is
+        with them, every key and job of it. Latched and logged once (:attr:`lost`); a file that cannot be
+        looked at (EACCES, EIO) is no verdict, logged once until it can be again; None while the file is
         the one opened, and always for PostgreSQL (no file). A ``stat`` of one path: cheap, but a file
         system call, so callers on the event loop run it on a thread."""
         if self._lost is None and self._identity is not None and self._database is not None:
             try:
                 now = _file_identity(self._database)
             except OSError as exc:  # no verdict (an I/O error, a permission changed a moment): not lost
-                log.warning("cannot check the job store's file %s: %s", self._database, exc.strerror)
+                if not self._unchecked:  # once, not at every probe and submission while it lasts
+                    log.warning("cannot check the job store's file %s: %s", self._database, exc.strerror)
+                self._unchecked = True
                 return None
+            self._unchecked = False
             if now != self._identity:
                 happened = "deleted" if now is None else "replaced by another file"
                 lost = (f"the job store's file {self._database} was {happened} while the service ran: what "
