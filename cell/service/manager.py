@@ -473,10 +473,9 @@ class CellService:
         try:
             tempfile.TemporaryFile(dir=self.jobs_dir).close()  # no name on Linux: retention never sees it
         except OSError as exc:
-            if exc.errno in NO_VERDICT:  # out of descriptors or memory: the job's own start says
-                return self._disk_short()
-            return (f"the jobs folder {self.jobs_dir} is not writable ({exc.strerror or exc}): no job could "
-                    "record; make it writable: jobs start again once it is")
+            if exc.errno not in NO_VERDICT:  # out of descriptors or memory: the job's own start says
+                return (f"the jobs folder {self.jobs_dir} is not writable ({exc.strerror or exc}): no job "
+                        "could record; make it writable: jobs start again once it is")
         return self._disk_short()
 
     def _disk_short(self) -> str | None:
