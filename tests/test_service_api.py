@@ -736,6 +736,35 @@ def test_a_fault_that_ends_a_stopped_job_goes_first_in_the_queues_hold(served, m
     assert client.get("/api/v1/cell", headers=op).json()["queue"]["held"] is None
 
 
+def test_a_stop_of_a_job_whose_end_is_recorded_is_refused_while_its_worker_exits(served, monkeypatch):
+    """A job stopped, its end recorded, its worker still exiting (a loaded machine): a second stop was
+    answered 200 "the job had already ended" while its record said ``stopped``; it is now refused as for
+    any ended job."""
+    from cell.service.manager import CellService
+
+    finish = CellService._finish
+
+    async def exits_slowly(self: CellService, *args: Any, **kwargs: Any) -> None:
+        await asyncio.sleep(2.0)
+        await finish(self, *args, **kwargs)
+
+    monkeypatch.setattr(CellService, "_finish", exits_slowly)
+    client, keys = served
+    op = _auth(keys["operator"])
+    job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 60}, headers=op).json()
+    deadline = time.monotonic() + 60.0  # its worker has the job (its first progress): it writes the end
+    while client.get(f"/api/v1/jobs/{job['id']}", headers=op).json()["progress"] is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert client.post(f"/api/v1/jobs/{job['id']}/stop", headers=op).status_code == 200
+    _wait(client, keys["viewer"], job["id"], {"stopped"})
+    service = client.app.state.service  # type: ignore[attr-defined]
+    assert service._running is not None and service._running.job.id == job["id"]  # its worker still exits
+    again = client.post(f"/api/v1/jobs/{job['id']}/stop", headers=op)
+    assert again.status_code == 409, again.text
+    assert again.json()["detail"] == f"job {job['id']} is stopped: nothing to stop"
+
+
 def test_stop_holds_the_queue_and_resume_releases_it(served):
     client, keys = served
     op = _auth(keys["operator"])

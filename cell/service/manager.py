@@ -626,7 +626,8 @@ class CellService:
             await self._cancel_queued(job_id, f"cancelled before it started: {reason}")
             return StopOutcome(job_id, False, "the job had not started: cancelled")
         running = self._running
-        if running is None or running.job.id != job_id:
+        if running is None or running.job.id != job_id or running.recorded:
+            # a job whose end is recorded is answered as its record says, also while its worker exits
             job = await self.job(job_id)
             raise ServiceError(f"job {job_id} is {job.status}: nothing to stop", reason="conflict")
         return self._logged(await self._stop_running(running, reason), reason)
