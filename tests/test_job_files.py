@@ -83,6 +83,30 @@ def test_a_write_cut_short_by_a_full_disk_leaves_no_truncated_file(tmp_path):
     assert sorted(p.name for p in job.rglob(".*")) == []  # no temporary file left either
 
 
+def test_a_process_killed_right_after_its_result_leaves_every_trajectory_and_joint_row(tmp_path):
+    """``trajectory.csv`` and ``joints.csv`` buffer their rows (one per control tick): a worker killed
+    between ``result.json`` and closing them left a folder whose result said the job was whole while its
+    trajectory lacked its last rows."""
+    script = textwrap.dedent(f"""
+        import os, signal
+        import numpy as np
+        from pathlib import Path
+        from cell.jobs.recorder import JobRecorder
+        recorder = JobRecorder(Path({str(tmp_path / "job")!r}))
+        for k in range(50):  # a short job's ticks: far less than the files' buffers
+            recorder.pose(k * 0.01, np.eye(4))
+            recorder.joints(k * 0.01, np.zeros(7))
+        recorder.result({{"status": "completed"}})
+        os.kill(os.getpid(), signal.SIGKILL)  # before close(), as a kill of the worker there
+    """)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert res.returncode == -9, res.stderr
+    job = tmp_path / "job"
+    assert json.loads((job / "result.json").read_text())["status"] == "completed"
+    for name in ("trajectory.csv", "joints.csv"):
+        assert len((job / name).read_text().splitlines()) == 51, name  # the header and every row
+
+
 def test_reprocess_skips_a_damaged_frame_naming_it(job):
     n = len(list((job / "frames").glob("*.npz")))
     _truncate(job / "frames" / "000001.npz")

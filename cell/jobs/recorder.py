@@ -31,13 +31,16 @@ to the disk (``fsync``) before they are renamed (they say the job began and ende
 measured, writing a frame through a temporary name costs what writing it in place does (a ToF frame
 2.0-2.7 ms, a 640 x 480 depth image of noise 98-126 ms, either way, 50-300 frames each, the spread
 run-to-run noise), and an ``fsync`` per frame would add a disk's latency to every capture. The logs and
-CSV files grow a line at a time, each line flushed.
+CSV files grow a line at a time: ``log.txt``, ``frames/index.csv`` and ``planner_requests.csv`` flushed at
+each line, ``trajectory.csv`` and ``joints.csv`` (a row per control tick) buffered, and all of them flushed
+to the disk before ``result.json`` is written: a folder whose ``result.json`` exists holds every row.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import os
 import threading
 from pathlib import Path
 from typing import Any, TextIO
@@ -68,7 +71,8 @@ def holds_job(folder: Path) -> bool:
 
 
 class JobRecorder:
-    """Writes one job folder; every file is flushed as the job goes, so a crash loses nothing recorded."""
+    """Writes one job folder; every file is flushed as the job goes (the per-tick CSV files at the latest
+    before ``result.json``), so a crash loses nothing recorded under a result."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
@@ -151,7 +155,15 @@ class JobRecorder:
         write_text_atomic(self.folder / JOB_FILE, json.dumps(job, indent=2) + "\n", durable=True)
 
     def result(self, result: dict[str, Any]) -> None:
-        """Write ``result.json``, whole and on the disk (see the module docstring)."""
+        """Write ``result.json``, whole and on the disk (see the module docstring), once the files that
+        grow a row at a time are on the disk too: ``trajectory.csv`` and ``joints.csv`` buffer their rows
+        (one per control tick), and a process killed between ``result.json`` and :meth:`close` lost their
+        tail under a result that said the job was whole."""
+        with self._log_lock:  # the perception worker may log meanwhile
+            for f in (self._traj, self._joints, self._index, self._requests, self._log):
+                if f is not None and not f.closed:
+                    f.flush()
+                    os.fsync(f.fileno())
         text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)
         write_text_atomic(self.folder / RESULT_FILE, text + "\n", durable=True)
 
