@@ -185,6 +185,17 @@ def _files(cell: ServedCell, job_id: str) -> list[str]:
         return [f["name"] for f in client.get(f"/api/v1/jobs/{job_id}/files").json()]
 
 
+def _worker_pid(cell: ServedCell, job_id: str) -> int:
+    """The pid of the running job's worker, as the store records it."""
+    store = open_store(sqlite_url(cell.data_dir), migrate=False)
+    try:
+        record = store.get_job(job_id)
+    finally:
+        store.close()
+    assert record is not None and record.worker_pid is not None
+    return record.worker_pid
+
+
 def test_a_worker_killed_mid_scan_leaves_no_temporary_file_listed_and_says_how_to_rebuild(
         franka: ServedCell) -> None:
     """A half-written frame (``frames/.NNNNNN.PID.tmp.npz``, as a worker killed mid-write leaves) was
@@ -198,15 +209,57 @@ def test_a_worker_killed_mid_scan_leaves_no_temporary_file_listed_and_says_how_t
     half = folder / "frames" / ".000999.4242.tmp.npz"
     half.write_bytes(b"PK\x03\x04 cut short")
     assert not [name for name in _files(franka, job["id"]) if ".tmp" in name]  # a write under way
-    store = open_store(sqlite_url(franka.data_dir), migrate=False)
-    try:
-        record = store.get_job(job["id"])
-    finally:
-        store.close()
-    assert record is not None and record.worker_pid is not None
-    os.killpg(record.worker_pid, signal.SIGKILL)
+    os.killpg(_worker_pid(franka, job["id"]), signal.SIGKILL)
     ended = franka.wait_job(job["id"], ("failed", "stopped", "completed"))
     assert ended["status"] == "failed" and "ended unexpectedly" in ended["termination"], ended
     assert not half.exists() and not [name for name in _files(franka, job["id"]) if ".tmp" in name]
     result = json.loads((folder / "result.json").read_text())
     assert result["rebuild"].startswith(f"no cloud.ply: `cell reprocess {folder}` makes a cloud"), result
+
+
+def _protocol_pipe(pid: int) -> int:
+    """Open, for writing, the pipe on which the worker ``pid`` sends its lines to the service: its only
+    write-only pipe (its standard output goes to its log, the pipe is a copy of it made at its start)."""
+    for name in os.listdir(f"/proc/{pid}/fd"):
+        flags = int((Path(f"/proc/{pid}/fdinfo") / name).read_text().split("flags:")[1].split()[0], 8)
+        if os.readlink(f"/proc/{pid}/fd/{name}").startswith("pipe:") and flags & os.O_ACCMODE == os.O_WRONLY:
+            return os.open(f"/proc/{pid}/fd/{name}", os.O_WRONLY | os.O_NONBLOCK)
+    raise AssertionError(f"worker {pid} has no pipe to the service")
+
+
+def test_a_worker_killed_after_it_wrote_its_result_is_recorded_as_its_folder_says(franka: ServedCell) -> None:
+    """A worker killed between its ``result.json`` (its last output) and its last line to the service was
+    recorded ``failed`` ("ended unexpectedly") and the queue held, while its folder held the job's whole
+    result; the service then rewrote that result.json as failed. The worker is held there by its pipe to
+    the service, filled (with lines the service ignores) while the service is stopped (SIGSTOP)."""
+    job = submit(franka, object="cube", max_time_s=2.0)
+    franka.wait_job(job["id"], ("running",))
+    worker = _worker_pid(franka, job["id"])
+    folder = franka.data_dir / "jobs" / job["id"]
+    assert franka.proc is not None
+    os.kill(franka.proc.pid, signal.SIGSTOP)
+    try:
+        pipe = _protocol_pipe(worker)
+        try:
+            with contextlib.suppress(BlockingIOError):
+                while True:
+                    os.write(pipe, b"{}\n")
+        finally:
+            os.close(pipe)
+        deadline = time.monotonic() + 60.0
+        while not (folder / "result.json").exists():  # its end written, its last line waits for the pipe
+            assert time.monotonic() < deadline, "the job wrote no result"
+            time.sleep(0.05)
+        written = json.loads((folder / "result.json").read_text())
+        os.killpg(worker, signal.SIGKILL)
+    finally:
+        os.kill(franka.proc.pid, signal.SIGCONT)
+    assert written["status"] == "completed", written
+    ended = franka.wait_job(job["id"], ("failed", "stopped", "completed"))
+    assert (ended["status"], ended["termination"]) == ("completed", written["termination"]), ended
+    assert json.loads((folder / "result.json").read_text()) == written  # left as the worker wrote it
+    log_txt = (folder / "log.txt").read_text()
+    assert "ended unexpectedly (killed by SIGKILL) after it wrote its result" in log_txt
+    assert _cell(franka)["queue"]["held"] is None  # the arm was at rest through the guard
+    assert franka.wait_job(submit(franka, object="cube", max_time_s=1.0)["id"],
+                           ("completed", "failed", "stopped"))["status"] == "completed"

@@ -57,7 +57,7 @@ from cell.service.instance import new_instance
 from cell.service.metrics import ServiceMetrics
 from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, finite_json, stop_command
-from cell.service.recovery import finish_folder, held_after, reconcile
+from cell.service.recovery import finish_folder, held_after, reconcile, worker_wrote_end
 from cell.service.retention import Retention, delete_job
 from cell.service.search_views import SearchViews
 from cell.service.store import (
@@ -1187,15 +1187,24 @@ class CellService:
             if running.killed_for is not None:
                 # a stop carried out by killing a worker that did not answer (busy starting, or hung)
                 status, termination = "stopped", stop_termination(running.killed_for)
+                result = await self._finish_folder(job, status, termination)
             else:
                 exit_text = _exit_text(code or 0)
-                status = "failed"
-                termination = failure or f"the job's worker process ended unexpectedly ({exit_text})"
-                if failure is None:
-                    # no one stopped the arm through the guard, only the controller's watchdog: a person
-                    # looks before the next job moves it
-                    self._hold(f"the job's worker ended unexpectedly ({exit_text}); check the arm")
-            result = await self._finish_folder(job, status, termination)
+                # killed after it wrote its result.json (its last output, once the arm was at rest through
+                # the guard) but before its last line: the folder holds the job's whole end, which stands
+                wrote = None if failure is not None else await self._worker_wrote_end(job, exit_text)
+                if wrote is not None:
+                    status, termination, result = wrote[0], wrote[1], finite_json(wrote[2])
+                    log.warning("the job's worker ended unexpectedly (%s) after it wrote its result: %s "
+                                "stands", exit_text, status, extra={"job_id": job.id})
+                else:
+                    status = "failed"
+                    termination = failure or f"the job's worker process ended unexpectedly ({exit_text})"
+                    if failure is None:
+                        # no one stopped the arm through the guard, only the controller's watchdog: a
+                        # person looks before the next job moves it
+                        self._hold(f"the job's worker ended unexpectedly ({exit_text}); check the arm")
+                    result = await self._finish_folder(job, status, termination)
         else:
             status, termination = ended["status"], ended["termination"]
             result = finite_json(ended.get("result")) or await self._finish_folder(job, status, termination)
@@ -1225,6 +1234,15 @@ class CellService:
         events = self.events.log(job.id)
         events.publish("state", {"status": status, "termination": termination})
         events.publish("result", {"status": status, "result": result})
+
+    @staticmethod
+    async def _worker_wrote_end(job: JobRecord, exit_text: str) -> tuple[str, str, dict[str, Any]] | None:
+        """``worker_wrote_end`` of the job's folder, on a thread; None when it wrote none (or the folder
+        cannot be read)."""
+        try:
+            return await asyncio.to_thread(worker_wrote_end, Path(job.folder), exit_text)
+        except OSError:
+            return None
 
     @staticmethod
     async def _finish_folder(job: JobRecord, status: str, termination: str) -> dict[str, Any] | None:

@@ -147,10 +147,7 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
     Only the job's own folder is made when missing, never its parents: a folder recorded elsewhere
     (another data dir's) is not recreated (``OSError``)."""
     folder.mkdir(exist_ok=True)
-    for path in list(folder.rglob(".*")):
-        if is_temporary(path):
-            with contextlib.suppress(OSError):
-                path.unlink()
+    _remove_temporary(folder)
     previous = read_result(folder)
     if previous is None and (folder / "result.json").exists():
         keep_aside(folder / "result.json")
@@ -169,12 +166,47 @@ def finish_folder(folder: Path, job: JobRecord, status: str, termination: str) -
     write_text_atomic(folder / "result.json", json.dumps(result, indent=2) + "\n", durable=True)
     with contextlib.suppress(OSError):
         (folder / LIVE_CLOUD_FILE).unlink(missing_ok=True)
+    _log_line(folder, f"{status}: {termination}", result.get("rebuild"))
+    return result
+
+
+def _remove_temporary(folder: Path) -> None:
+    """Remove the temporary files of writes a killed worker left half done in ``folder`` and its
+    subfolders (``drivers.atomic_file.is_temporary``): never a file of the job's own."""
+    for path in list(folder.rglob(".*")):
+        if is_temporary(path):
+            with contextlib.suppress(OSError):
+                path.unlink()
+
+
+def _log_line(folder: Path, *lines: str | None) -> None:
+    """Append ``lines`` (None skipped) to the job's ``log.txt`` as the service's, when it has one."""
     if (folder / "log.txt").is_file():
         with (folder / "log.txt").open("a") as log:
-            log.write(f"[service] {status}: {termination}\n")
-            if "rebuild" in result:
-                log.write(f"[service] {result['rebuild']}\n")
-    return result
+            log.writelines(f"[service] {line}\n" for line in lines if line is not None)
+
+
+def worker_wrote_end(folder: Path, exit_text: str) -> tuple[str, str, dict[str, Any]] | None:
+    """The end a job's worker wrote into ``folder`` before it died without telling the service (killed
+    between its ``result.json`` and its last line, ``exit_text`` saying how it ended): the status,
+    termination and result of its ``result.json`` when :func:`own_end` lets that stand (``completed``
+    and ``no_object``; ``stopped`` and ``failed`` for reasons of the job's own), else None. The worker
+    writes ``result.json`` last, after every other output and after the arm was brought to rest through
+    the guard and disconnected (``cell.jobs.runner``), so such a folder is whole: the record takes that
+    end, not "ended unexpectedly", and ``result.json`` is left as the worker wrote it. Half-written
+    temporary files and the live cloud are removed, as :func:`finish_folder` does, and a line goes to
+    ``log.txt``."""
+    result = read_result(folder)
+    own = own_end(result, ended_alone=True)
+    if result is None or own is None:
+        return None
+    _remove_temporary(folder)
+    with contextlib.suppress(OSError):
+        (folder / LIVE_CLOUD_FILE).unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        _log_line(folder, f"the job's worker ended unexpectedly ({exit_text}) after it wrote its result: "
+                          f"{own[0]} stands")
+    return own[0], own[1], result
 
 
 def _started(pid: int) -> float:
