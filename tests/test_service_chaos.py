@@ -10,6 +10,7 @@ import os
 import signal
 import sqlite3
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,7 +21,7 @@ import yaml
 
 from cell.service.store import open_store, sqlite_url
 from tests.conftest import FRANKA
-from tests.service_process import ServedCell, submit
+from tests.service_process import REPO, ServedCell, free_port, submit
 
 LONG_S = 120.0  # a budget no test's job reaches: it is stopped first [s]
 
@@ -263,3 +264,29 @@ def test_a_worker_killed_after_it_wrote_its_result_is_recorded_as_its_folder_say
     assert _cell(franka)["queue"]["held"] is None  # the arm was at rest through the guard
     assert franka.wait_job(submit(franka, object="cube", max_time_s=1.0)["id"],
                            ("completed", "failed", "stopped"))["status"] == "completed"
+
+
+def test_a_second_service_on_the_data_dir_refuses_to_start_naming_the_first(franka: ServedCell,
+                                                                            tmp_path: Path) -> None:
+    """A second ``cell serve`` on the same data dir, of another cell name (whose lease it gets), overwrote
+    the first one's ``service.instance`` and settled its jobs. It is refused, naming the first, which
+    keeps working; a ``kill -9`` leaves nothing that blocks a restart."""
+    instance = (franka.data_dir / "service.instance").read_text()
+    other = yaml.safe_load(FRANKA.read_text()) | {"name": "another-cell"}
+    (tmp_path / "other.yaml").write_text(yaml.safe_dump(other))
+    command = [sys.executable, "-m", "cell.cli.entry", "serve", "--config", str(tmp_path / "other.yaml"),
+               "--data-dir", str(franka.data_dir), "--port", str(free_port())]
+    second = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert second.returncode == 1, second.stdout + second.stderr
+    assert second.stderr.startswith(f"error: the data dir {franka.data_dir} is served by another cell serve "
+                                    f"(pid {franka.proc.pid if franka.proc else None}, cell "
+                                    f"'sim-franka-rgbd', started "), second.stderr
+    assert "Traceback" not in second.stderr
+    assert (franka.data_dir / "service.instance").read_text() == instance
+    with franka.client("viewer") as client:
+        assert client.get("/healthz").json()["instance"] == instance.split()[0]
+    assert franka.wait_job(submit(franka, object="cube", max_time_s=1.0)["id"],
+                           ("completed", "failed", "stopped"))["status"] == "completed"
+    franka.kill()
+    franka.start()  # the lock died with the process
+    assert (franka.data_dir / "service.instance").read_text() != instance

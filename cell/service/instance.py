@@ -7,19 +7,66 @@ port a cell file names is the running service's only when that service listens t
 file was changed since it started (nothing of it is answered on a route without a key).
 
 The file's lines: the id, then ``opcua HOST PORT`` when the service listens for the line's OPC UA
-clients."""
+clients.
+
+One service at a time serves a data dir (:class:`DataDirClaim`): a second one, even of another cell name
+or on another store (whose cell's lease it would get), would overwrite the first one's instance file,
+settle its running jobs and prune its folders. The claim is an ``flock`` on ``service.lock`` that the
+kernel releases when its holder exits however it ends (a ``kill -9`` leaves no stale claim), and the file
+names its holder for the service refused."""
 
 from __future__ import annotations
 
+import os
 import secrets
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from urllib.parse import urlsplit
 
 from drivers.atomic_file import write_text_atomic
+from drivers.errors import CellError
+from drivers.file_lock import try_lock
 
 INSTANCE_FILE = "service.instance"
 """The file in the data dir that holds the id of the service's latest start."""
+LOCK_FILE = "service.lock"
+"""The file in the data dir whose lock the service serving it holds (:class:`DataDirClaim`)."""
+
+
+class DataDirClaim:
+    """The claim of ``data_dir`` (made when missing) by this process, for as long as it serves it:
+    ``CellError`` naming the holder (its pid, cell and start time, as it wrote them into
+    :data:`LOCK_FILE`) when another process holds it, or naming the file when it cannot be made.
+    :meth:`release` gives it up (so does the process's end)."""
+
+    def __init__(self, data_dir: Path, cell: str) -> None:
+        path = data_dir / LOCK_FILE
+        try:
+            data_dir.mkdir(parents=True, exist_ok=True)
+            fd = try_lock(path, 0o644)
+        except OSError as exc:
+            raise CellError(f"cannot claim the data dir {data_dir}: {path}: {exc.strerror or exc}") from None
+        if fd is None:
+            try:
+                holder = path.read_text().strip() or "a process that has not yet said which"
+            except OSError:
+                holder = "a process whose entry cannot be read"
+            raise CellError(f"the data dir {data_dir} is served by another cell serve ({holder}; its lock "
+                            f"{path}): a second service would take over its jobs and files; stop that one "
+                            f"first, or give this one another --data-dir")
+        # who holds it, for the service refused (read, never trusted: the lock decides)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}, cell {cell!r}, started "
+                      f"{datetime.now(UTC).isoformat(timespec='seconds')}\n".encode(), 0)
+        self._fd: int | None = fd
+
+    def release(self) -> None:
+        """Give the data dir up (once; later calls do nothing)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
 
 
 @dataclass(frozen=True)

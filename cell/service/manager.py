@@ -53,7 +53,7 @@ from cell.planning.registry import PLANNERS
 from cell.service.arm_clearance import ArmClearance
 from cell.service.arm_status import ArmTracker, after_fault, fault_first, fault_hold, held_fault
 from cell.service.events import EventHub, JobEvents
-from cell.service.instance import new_instance
+from cell.service.instance import DataDirClaim, new_instance
 from cell.service.metrics import ServiceMetrics
 from cell.service.objects import ObjectLibrary
 from cell.service.protocol import WORKER_BEAT_S, WORKER_MODULE, WorkerSpec, finite_json, stop_command
@@ -205,7 +205,8 @@ class CellService:
     started."""
 
     def __init__(self, *, config: CellConfig, config_data: dict[str, Any], config_file: str, data_dir: Path,
-                 store: Store, lease: CellLease | None = None) -> None:
+                 store: Store, lease: CellLease | None = None,
+                 data_dir_claim: DataDirClaim | None = None) -> None:
         self.config = config
         self.name = config.name
         self.instance = ""
@@ -217,6 +218,7 @@ class CellService:
         self._logs_dir = data_dir / "logs"
         self.store = store
         self._lease = lease
+        self._data_dir_claim = data_dir_claim  # released last, in close
         self._lease_lost: str | None = None
         self._lease_keeper: asyncio.Task[None] | None = None
         self._arm_clearance = ArmClearance(config)
@@ -380,6 +382,8 @@ class CellService:
             await self.line.close()
         if self._lease is not None:
             self._lease.release()
+        if self._data_dir_claim is not None:
+            self._data_dir_claim.release()
 
     @property
     def ready(self) -> bool:

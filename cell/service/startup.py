@@ -20,12 +20,13 @@ import yaml
 
 from cell.config.load import load_config_data
 from cell.config.placeholders import require_measured
+from cell.service.instance import DataDirClaim
 from cell.service.manager import CellService
 from cell.service.store import open_data_store
 from cell.service.store.service_store import record_service_store, service_store_url
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.atomic_file import write_text_atomic
-from drivers.errors import StoreError
+from drivers.errors import CellError, StoreError
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_DATA_DIR = Path("data")
@@ -54,15 +55,21 @@ def build_service(settings: ServiceSettings) -> CellService:
     except StoreError:
         store.close()
         raise
+    claim: DataDirClaim | None = None
     try:
+        # after the cell's lease (a second service of the cell is told so), before anything of the data
+        # dir is written: one of another cell name or store is refused here
+        claim = DataDirClaim(settings.data_dir, config.name)
         record_service_store(settings.data_dir, url)
         kept = keep_cell_file(settings.data_dir, settings.config_file, data)
-    except StoreError:
+    except CellError:
+        if claim is not None:
+            claim.release()
         lease.release()
         store.close()
         raise
     return CellService(config=config, config_data=data, config_file=str(kept),
-                       data_dir=settings.data_dir.resolve(), store=store, lease=lease)
+                       data_dir=settings.data_dir.resolve(), store=store, lease=lease, data_dir_claim=claim)
 
 
 def keep_cell_file(data_dir: Path, source: Path, data: Any) -> Path:
