@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from cell.service.store import open_store, sqlite_url
+from drivers.errors import StoreError
 from tests.conftest import FRANKA
 from tests.service_process import REPO, ServedCell, free_port, submit
 
@@ -290,3 +291,45 @@ def test_a_second_service_on_the_data_dir_refuses_to_start_naming_the_first(fran
     franka.kill()
     franka.start()  # the lock died with the process
     assert (franka.data_dir / "service.instance").read_text() != instance
+
+
+def test_a_start_on_a_locked_store_says_what_it_waits_for_and_starts_once_it_is_free(
+        tmp_path: Path) -> None:
+    """``cell serve`` on a store whose lock another process held waited up to a minute without a word."""
+    data = tmp_path / "data"
+    data.mkdir()
+    store = open_store(sqlite_url(data))  # made, then left to the lock's holder
+    store.close()
+    command = [sys.executable, "-m", "cell.cli.entry", "serve", "--config", str(FRANKA), "--data-dir",
+               str(data), "--port", str(free_port())]
+    with _locked(data / "cell.db"):
+        serve = subprocess.Popen(command, cwd=REPO, stderr=subprocess.PIPE, text=True)
+        try:
+            assert serve.stderr is not None
+            line = serve.stderr.readline()  # said before it waits, while the lock is held
+        except BaseException:
+            serve.kill()
+            raise
+    try:
+        assert "another process holds its lock" in line and "waiting up to 60 s for it" in line, line
+        assert f"job store {sqlite_url(data)}" in line, line
+        deadline = time.monotonic() + 60.0
+        while not (data / "service.instance").exists():  # started once the lock was released
+            assert serve.poll() is None and time.monotonic() < deadline, serve.returncode
+            time.sleep(0.1)
+    finally:
+        serve.terminate()
+        serve.wait(60)
+
+
+def test_a_store_locked_past_the_wait_is_a_clear_error(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Given up on after the wait, with what to do, not SQLite's bare "database is locked"."""
+    monkeypatch.setattr("cell.service.store.engine.SQLITE_MIGRATION_WAIT_MS", 200)
+    open_store(sqlite_url(tmp_path)).close()
+    with _locked(tmp_path / "cell.db"), pytest.raises(StoreError) as refused:
+        open_store(sqlite_url(tmp_path))
+    assert str(refused.value) == (
+        f"job store {sqlite_url(tmp_path)}: another process held its lock for 0.2 s, and the store cannot "
+        f"be opened while it does: end that process (`fuser -v {tmp_path / 'cell.db'}` lists those that "
+        "have the file open), then start again")

@@ -10,6 +10,7 @@ the URL with its password hidden.
 
 from __future__ import annotations
 
+import logging
 import re
 import sqlite3
 import threading
@@ -43,6 +44,7 @@ MIGRATION_LOCK_ID = 0x63656C6C
 # How long a cell starting beside another waits for that one's SQLite migration [ms]: longer than the
 # 5 s a request waits, as a migration on a loaded machine can take several seconds.
 SQLITE_MIGRATION_WAIT_MS = 60_000
+log = logging.getLogger("cell.service.store")
 # Alembic's ``context`` and ``op`` are module-level proxies: one migration at a time in a process.
 _MIGRATING = threading.Lock()
 
@@ -260,6 +262,41 @@ def _set_sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
         cursor.close()
 
 
+def _begin_sqlite_write(connection: Connection, shown: str) -> None:
+    """Take the SQLite store ``shown``'s write lock on ``connection`` (``BEGIN IMMEDIATE``). When another
+    process holds it (another cell migrating it, a program with a transaction open on the file), say so
+    on the console, with how long it waits (``SQLITE_MIGRATION_WAIT_MS``), and wait; :class:`StoreError`
+    saying who may hold it when the lock was not freed meanwhile. A start had waited silently."""
+    connection.exec_driver_sql("PRAGMA busy_timeout=0")
+    try:
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+        return
+    except SQLAlchemyError as exc:
+        if not _is_locked(exc):
+            raise
+        connection.rollback()
+    wait_s = SQLITE_MIGRATION_WAIT_MS / 1000
+    log.warning("job store %s: another process holds its lock (another cell starting on it, a program "
+                "with a transaction open on the file); waiting up to %g s for it", shown, wait_s)
+    connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_MIGRATION_WAIT_MS}")
+    try:
+        connection.exec_driver_sql("BEGIN IMMEDIATE")
+    except SQLAlchemyError as exc:
+        if not _is_locked(exc):
+            raise
+        file = make_url(shown).database
+        raise StoreError(f"job store {shown}: another process held its lock for {wait_s:g} s, and the store "
+                         f"cannot be opened while it does: end that process (`fuser -v {file}` lists those "
+                         f"that have the file open), then start again") from None
+
+
+def _is_locked(exc: SQLAlchemyError) -> bool:
+    """Whether ``exc`` is SQLite's "database is locked" (or "busy"): another connection holds the lock."""
+    cause = exc.orig if isinstance(exc, DBAPIError) else None
+    return isinstance(cause, sqlite3.OperationalError) and (
+        "locked" in str(cause) or "busy" in str(cause))
+
+
 def _alembic_config() -> Config:
     """Alembic's configuration without an ini file: the packaged migrations folder."""
     config = Config()
@@ -285,8 +322,7 @@ def _upgrade(engine: Engine, shown: str, oldest: str | None = None) -> None:
             connection.execute(text("SELECT pg_advisory_lock(:id)"), {"id": MIGRATION_LOCK_ID})
             connection.commit()
         else:
-            connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_MIGRATION_WAIT_MS}")
-            connection.exec_driver_sql("BEGIN IMMEDIATE")
+            _begin_sqlite_write(connection, shown)
         try:
             check_integrity(connection, shown)
             current = schema_revisions(connection, shown)
