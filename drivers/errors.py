@@ -50,6 +50,10 @@ following: the arm stays faulted until recovered."""
 OPERATOR_STOP = "operator stop: "
 """How the reason of a stop someone asked for (the guard's ``request_stop``, an interrupt) begins: a job
 it ends was stopped by a person or a client, not by the safety layer."""
+SHUTDOWN_STOP = "shutdown stop: "
+"""How the reason of a stop the service makes as it is shut down (SIGTERM or Ctrl-C of ``cell serve``, a
+system shutdown) begins: asked for, not the safety layer's, but by no operator of the job, and kept so in its
+termination (it read ``operator stop``)."""
 SAFETY_STOP = "safety stop: "
 """How the termination of a job its safety layer stopped by itself begins (a guard refusal, the watchdog, an
 arm fault, a worker that stopped answering): the reason follows."""
@@ -59,14 +63,17 @@ def stop_cause(reason: str, operator: bool) -> str:
     """The reason a stop is made with: ``operator stop: <reason>`` for a stop someone asked for, the
     reason as it is for one the safety layer or the service made by itself (``stop_termination`` then
     reads it as a safety stop)."""
+    if reason.startswith(SHUTDOWN_STOP):  # the service's shutdown says so itself
+        return reason
     return f"{OPERATOR_STOP}{reason}" if operator else reason
 
 
 def stop_termination(reason: str) -> str:
-    """The termination of a job a stop ended: an operator stop as it is (``operator stop: <reason>``), the
+    """The termination of a job a stop ended: an operator stop as it is (``operator stop: <reason>``), as is
+    the service's shutdown (``shutdown stop: <reason>``), the
     safety layer's own (a refusal, the watchdog, an arm fault) as ``safety stop: <reason>``. An operator's
     stop was reported as a safety stop, and a line or a person reading it looked for a fault."""
-    return reason if reason.startswith(OPERATOR_STOP) else f"{SAFETY_STOP}{reason}"
+    return reason if reason.startswith((OPERATOR_STOP, SHUTDOWN_STOP)) else f"{SAFETY_STOP}{reason}"
 
 
 COMMAND_LINE_REASON = "requested from the command line"

@@ -333,3 +333,21 @@ def test_a_store_locked_past_the_wait_is_a_clear_error(tmp_path: Path,
         f"job store {sqlite_url(tmp_path)}: another process held its lock for 0.2 s, and the store cannot "
         f"be opened while it does: end that process (`fuser -v {tmp_path / 'cell.db'}` lists those that "
         "have the file open), then start again")
+
+
+def test_a_job_stopped_by_the_services_shutdown_says_so(franka: ServedCell) -> None:
+    """SIGTERM of ``cell serve`` while a job ran recorded it as ``operator stop: the service is shutting
+    down``, as if someone had stopped the job; the arm still stops through the guard."""
+    job = submit(franka, object="bunny", max_time_s=LONG_S)
+    deadline = time.monotonic() + 60.0
+    while not list((franka.data_dir / "jobs" / job["id"] / "frames").glob("[0-9]*.npz")):  # it moves
+        assert time.monotonic() < deadline, "no frame recorded"
+        time.sleep(0.1)
+    franka.stop()  # SIGTERM
+    result = json.loads((franka.data_dir / "jobs" / job["id"] / "result.json").read_text())
+    assert result["status"] == "stopped", result
+    assert result["termination"] == "shutdown stop: the service is shutting down", result
+    assert result["safety"]["stops"], result["safety"]  # the guard stopped the arm
+    franka.start()
+    recorded = franka.wait_job(job["id"], ("stopped",))
+    assert recorded["termination"] == "shutdown stop: the service is shutting down", recorded

@@ -53,7 +53,7 @@ from cell.line.result import CycleResult, check_part_id, cycle_result, feeder_pa
 from cell.service.store import LineRecord, LineTransition, Store
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest
-from drivers.errors import OPERATOR_STOP, SAFETY_STOP, ServiceError
+from drivers.errors import OPERATOR_STOP, SAFETY_STOP, SHUTDOWN_STOP, ServiceError
 
 if TYPE_CHECKING:
     from cell.service.manager import CellService
@@ -364,6 +364,8 @@ class LineController:
             reason = StopReason.OPERATOR_STOP
         elif termination.startswith(SAFETY_STOP):
             reason = StopReason.SAFETY_STOP
+        elif termination.startswith(SHUTDOWN_STOP):
+            reason = StopReason.SHUTDOWN
         else:
             reason = StopReason.JOB_FAILED
         self._fault(reason, f"scan {job_id} {status}: {termination}")

@@ -73,6 +73,7 @@ from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest, ValidJob, validate
 from drivers.arm.config import UR5eArmConfig
+from drivers.errors import SHUTDOWN_STOP as SERVICE_SHUTDOWN
 from drivers.errors import ServiceError, StoreError, stop_cause, stop_termination
 
 LINE_LIMIT = 1 << 24
@@ -329,7 +330,10 @@ class CellService:
             self.line.service_stopping(SHUTDOWN_STOP)
         running = self._running
         if running is not None:
-            self._logged(await self._stop_running(running, SHUTDOWN_STOP), SHUTDOWN_STOP)
+            # its termination says the service was shut down (an operator's stop it is not); the arm
+            # stops through the guard as for any requested stop
+            stopped = await self._stop_running(running, f"{SERVICE_SHUTDOWN}{SHUTDOWN_STOP}")
+            self._logged(stopped, SHUTDOWN_STOP)
 
     @property
     def closing(self) -> bool:
