@@ -3,6 +3,9 @@ through a real ``cell serve``: ``cell jobs keep`` and ``cell jobs prune [--dry-r
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import time
 from datetime import UTC, datetime, timedelta
 
@@ -124,3 +127,34 @@ def test_folders_the_store_does_not_know_are_reported_apart_never_counted_agains
     # another cell's jobs in the same folder are not this cell's to count either
     other = plan_prune(store, "other-cell", jobs_dir, RetentionConfig(max_gb=0.001), NOW)
     assert other.total_bytes == 0 and other.jobs == () and len(other.unknown) == 9
+
+
+def test_a_deletion_killed_midway_leaves_the_job_whole_or_gone_after_a_restart(tmp_path):
+    """A prune killed while it deleted a job's folder left the job listed over a folder cut in half (its
+    row is deleted after its folder)."""
+    with ServedCell(UR5E, tmp_path / "data") as cell:
+        with cell.client() as client:
+            job_id = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 0.5}).json()["id"]
+        cell.wait_job(job_id, tuple(FINISHED_STATUSES))
+        cell.stop()
+        # the service's own delete_job, killed (SIGKILL) right after the first file of the folder went
+        script = textwrap.dedent(f"""
+            import os, signal
+            from pathlib import Path
+            from cell.service.retention import delete_job
+            from cell.service.store import open_data_store, sqlite_url
+            data = Path({str(cell.data_dir)!r})
+            store = open_data_store(data, sqlite_url(data))
+            unlink = os.unlink
+            def unlink_then_die(*args, **kwargs):
+                unlink(*args, **kwargs)
+                os.kill(os.getpid(), signal.SIGKILL)
+            os.unlink = unlink_then_die
+            delete_job(store, store.get_job({job_id!r}), data / "jobs")
+        """)
+        killed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+        assert killed.returncode == -9, killed.stderr
+        cell.start()
+        with cell.client("viewer") as client:
+            assert client.get(f"/api/v1/jobs/{job_id}").status_code == 404
+        assert sorted(p.name for p in (cell.data_dir / "jobs").iterdir()) == []  # its folder's rest too

@@ -36,7 +36,7 @@ from typing import Any
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
 from cell.service.protocol import WORKER_MODULE
-from cell.service.retention import known_folders, listed
+from cell.service.retention import finish_deletions, known_folders, listed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, RUNNING_STATUSES, HoldRecord, JobRecord, Store
 from cell.service.store.repository import JOB_ID
 from cell.service.worker import SERVICE_GONE
@@ -278,6 +278,8 @@ def reconcile(store: Store, cell: str, worker_wait_s: float) -> list[str]:
         done.append(f"job {job.id} was {job.status} when the service stopped: now {status}")
     done += settle_queued(store, cell, now)
     if store.jobs_dir is not None:
+        # a deletion cut short first: its job is gone, never imported again from what is left of its folder
+        done += finish_deletions(store, store.jobs_dir)
         done += import_folders(store, cell, store.jobs_dir)
     return done
 

@@ -11,6 +11,7 @@ cell's) is never deleted, so it is not counted against the limit but reported be
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import shutil
@@ -136,12 +137,40 @@ def plan_prune(store: Store, cell: str, jobs_dir: Path, retention: RetentionConf
                      sum(entries[name] for name in unknown))
 
 
+DELETING = ".deleting-"
+"""The name a job folder being deleted takes first in the jobs folder (``.deleting-<folder name>``)."""
+
+
 def delete_job(store: Store, job: JobRecord, jobs_dir: Path) -> None:
-    """Delete an ended job: its folder when it is one of ``jobs_dir``'s (a folder elsewhere is never
-    touched), then its row, so that a row a crash leaves in between is deleted next time."""
+    """Delete an ended job so that it is, at every moment, listed with its folder whole or gone: its
+    folder, when it is one of ``jobs_dir``'s (a folder elsewhere is never touched), is first renamed
+    ``.deleting-<name>`` (one atomic rename), then its row is deleted, then the renamed folder. A prune
+    killed anywhere in between leaves a ``.deleting-`` folder that the next start finishes
+    (:func:`finish_deletions`): a job listed over a folder cut in half had stayed so."""
     if _inside(job.folder, jobs_dir):
-        shutil.rmtree(job.folder, ignore_errors=True)
+        folder = Path(job.folder)
+        doomed = jobs_dir / f"{DELETING}{folder.name}"
+        with contextlib.suppress(FileNotFoundError):  # no folder: only its row is left
+            folder.rename(doomed)
+        store.delete_job(job.id)
+        shutil.rmtree(doomed, ignore_errors=True)
+        return
     store.delete_job(job.id)
+
+
+def finish_deletions(store: Store, jobs_dir: Path) -> list[str]:
+    """Finish the deletions a killed prune or purge left in ``jobs_dir`` (:func:`delete_job`): the row of
+    each ``.deleting-<id>`` folder's job, when still there, then the folder. Returns what was done, in
+    words."""
+    done = []
+    for doomed in sorted(jobs_dir.glob(f"{DELETING}*") if jobs_dir.is_dir() else ()):
+        job_id = doomed.name.removeprefix(DELETING)
+        job = store.get_job(job_id)
+        if job is not None and Path(job.folder).name == job_id and _inside(job.folder, jobs_dir):
+            store.delete_job(job_id)
+        shutil.rmtree(doomed, ignore_errors=True)
+        done.append(f"job {job_id}: its deletion, cut short when the service stopped, is finished")
+    return done
 
 
 def prune(store: Store, plan: PrunePlan, jobs_dir: Path) -> list[PrunedJob]:
