@@ -351,3 +351,38 @@ def test_a_job_stopped_by_the_services_shutdown_says_so(franka: ServedCell) -> N
     franka.start()
     recorded = franka.wait_job(job["id"], ("stopped",))
     assert recorded["termination"] == "shutdown stop: the service is shutting down", recorded
+
+
+def test_an_arm_fault_only_the_job_folder_records_is_latched_by_the_restart(tmp_path: Path) -> None:
+    """The service killed after the job's worker wrote its arm fault, before the service stored the
+    queue's hold: the restart held the queue as after any end, resumable, and the arm's fault was not
+    latched, so the next job would have run on the faulted arm."""
+    with ServedCell(_faulty_cell(tmp_path), tmp_path / "data", key_prefix="faulty") as cell:
+        job = submit(cell, object="bunny", max_time_s=8.0)
+        cell.wait_job(job["id"], ("running",))
+        assert cell.proc is not None
+        os.kill(cell.proc.pid, signal.SIGSTOP)  # it reads nothing more from the worker
+        folder = cell.data_dir / "jobs" / job["id"]
+        deadline = time.monotonic() + 60.0
+        while not (folder / "result.json").exists():
+            assert time.monotonic() < deadline, "the job wrote no result"
+            time.sleep(0.05)
+        cell.kill()  # SIGKILL reaches a stopped process too
+        assert json.loads((folder / "result.json").read_text())["termination"] == \
+            "safety stop: arm fault: protective stop"
+        store = open_store(sqlite_url(cell.data_dir), migrate=False)
+        try:  # what the killed service could not store
+            assert store.get_hold("sim-franka-rgbd") is None
+            record = store.get_job(job["id"])
+            assert record is not None and record.status == "running"
+        finally:
+            store.close()
+        cell.start()
+        after = _cell(cell)
+        assert after["arm"]["faults"] == ["protective stop"], after["arm"]
+        assert "recover the arm first" in after["queue"]["held"], after["queue"]
+        with cell.client("operator") as client:
+            assert client.post("/api/v1/queue/resume").status_code == 409  # the arm first
+            recovered = client.post("/api/v1/arm/recover")
+            assert recovered.status_code == 200 and recovered.json()["ok"], recovered.text
+            assert client.get("/api/v1/cell").json()["queue"]["held"] is None

@@ -58,6 +58,12 @@ def after_fault(reason: str) -> str | None:
     return reason.partition(_THEN)[2] or None
 
 
+def fault_in(termination: str) -> str | None:
+    """The arm fault (a key of :data:`ARM_FAULTS`) a job's ``termination`` names (``arm fault: <fault>``),
+    or None."""
+    return next((f for f in ARM_FAULTS if f"{ARM_FAULT}{f}" in termination), None)
+
+
 def held_fault(reason: str) -> str | None:
     """The arm fault a queue hold's ``reason`` was made for by :func:`fault_hold`, or None (a hold of
     another kind: an operator's reason never begins so)."""
@@ -118,7 +124,7 @@ class ArmTracker:
 
     def job_ended(self, termination: str) -> str | None:
         """Latch a fault the job's termination names, and return it; otherwise the arm is idle (None)."""
-        fault = next((f for f in ARM_FAULTS if f"{ARM_FAULT}{f}" in termination), None)
+        fault = fault_in(termination)
         self.status.connected = self._simulated
         if fault is None:
             self.status.state = "idle"

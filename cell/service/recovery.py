@@ -35,6 +35,7 @@ from typing import Any
 
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
+from cell.service.arm_status import fault_hold, fault_in
 from cell.service.protocol import WORKER_MODULE
 from cell.service.retention import finish_deletions, known_folders, listed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, RUNNING_STATUSES, HoldRecord, JobRecord, Store
@@ -80,10 +81,16 @@ def hold_after_end(store: Store, job: JobRecord, result: dict[str, Any], termina
     record (:func:`own_end`), when that end left the arm to a person, as the service holds it when it
     records such an end: an arm fault, or an end the service wrote for a worker it killed or lost (a stop
     not confirmed through the guard, a worker that died: its result.json keeps the worker's own under
-    ``worker``, or a ``note``). Returns what was held, in words, or None."""
-    if ARM_FAULT not in termination and "worker" not in result and "note" not in result:
+    ``worker``, or a ``note``). An arm fault is held as a fault (``fault_hold``), which the start latches
+    and only the arm's recovery releases; it had been held as any other end, so the queue could be resumed
+    and the next job run on the faulted arm. Returns what was held, in words, or None."""
+    fault = fault_in(termination)
+    if fault is None and ARM_FAULT not in termination and "worker" not in result and "note" not in result:
         return None
-    reason = held_after(f"job {job.id} ended ({termination}) before the service stopped; check the arm")
+    # an arm fault the folder records is held as the service holds it when it records the end itself: the
+    # start latches it again from the hold (held_fault), and only the arm's recovery releases it
+    reason = fault_hold(fault, job.id) if fault is not None else \
+        held_after(f"job {job.id} ended ({termination}) before the service stopped; check the arm")
     store.set_hold(job.cell, HoldRecord(cell=job.cell, reason=reason, held_at=datetime.now(UTC)))
     return f"the queue is held: job {job.id} ended with {termination}"
 
