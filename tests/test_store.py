@@ -25,7 +25,9 @@ from typer.testing import CliRunner
 from cell.cli.main import app
 from cell.doctor import machine
 from cell.doctor.findings import Status
+from cell.service.arm_status import after_fault, held_fault
 from cell.service.keys import create_key
+from cell.service.recovery import hold_after_end
 from cell.service.store import (
     FINISHED_STATUSES,
     JOB_STATUSES,
@@ -231,6 +233,26 @@ def test_each_cell_keeps_its_own_queue_hold_until_released(store: Store):
     assert store.get_hold("a") is None and store.get_hold("b") == replace(held, cell="b")
     with pytest.raises(ValueError, match="naive"):
         store.set_hold("a", replace(held, held_at=datetime(2026, 3, 2, 8, 0)))
+
+
+@pytest.mark.parametrize("first", ["held after a stop (hands in): resume", None])
+def test_an_arm_fault_recorded_only_in_a_folder_goes_first_in_a_stored_hold(store: Store, first: str | None):
+    """The restart's hold for a job whose folder records an arm fault: the fault first, so that the start
+    latches it, and a STOP stored before it kept after it with its time (it had been overwritten, and the
+    arm's recovery would then have released a stopped queue); any other end leaves a stored hold as it
+    is."""
+    if first is not None:
+        store.set_hold("a", HoldRecord(cell="a", reason=first, held_at=T0))
+    job = make_job(1, status="running")
+    hold_after_end(store, job, {}, "safety stop: arm fault: protective stop")
+    held = store.get_hold("a")
+    assert held is not None and held_fault(held.reason) == "protective stop", held
+    assert after_fault(held.reason) == first
+    assert (held.held_at == T0) is (first is not None)
+    store.set_hold("a", None if first is None else HoldRecord(cell="a", reason=first, held_at=T0))
+    hold_after_end(store, job, {"worker": {}}, "safety stop: the job's worker ended unexpectedly")
+    held = store.get_hold("a")
+    assert held is not None and (held.reason == first if first else held.reason.startswith("held after job"))
 
 
 def test_delete_job(store: Store, many_jobs: list[JobRecord]):
