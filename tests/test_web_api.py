@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from cell.api.app import create_app
-from cell.api.routes import page
+from cell.api.routes import docs, page
 from cell.jobs import live_cloud
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE, LiveCloudWriter, read_live_cloud
 from cell.line.config import PART_ID_MAX
@@ -243,6 +243,18 @@ def test_the_api_docs_and_their_files_carry_a_policy_of_their_own(served) -> Non
         assert answer.headers["referrer-policy"] == "no-referrer", path
     assert client.head("/docs").headers["content-security-policy"] == policy
     assert client.get("/docs/oauth2-redirect").status_code == 404
+
+
+def test_the_docs_files_are_only_those_the_docs_page_loads(served) -> None:
+    """The service offers Swagger UI alone, but fastapi_offline's copy of ReDoc (1 MB of script no page of
+    it loads) was served beside it; it, and any other file not on the docs page, answers 404."""
+    client, _ = served
+    assert (docs.DOCS_FILES / "redoc.standalone.js").is_file()  # the package still ships it
+    for name in ("redoc.standalone.js", "../index.html", ""):
+        assert client.get(f"/static-offline-docs/{name}").status_code == 404, name
+        assert client.head(f"/static-offline-docs/{name}").status_code == 404, name
+    loaded = set(re.findall(r'(?:src|href)="/static-offline-docs/([^"]+)"', client.get("/docs").text))
+    assert loaded == docs.DOCS_FILE_NAMES
 
 
 @pytest.mark.parametrize("path", ["/", "/static/js/main.js", "/healthz"])

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -45,11 +46,19 @@ class RevalidatedFiles(StaticFiles):
     headers ``headers()`` gives at that moment, those of the page the files belong to (for the operator's
     page, as ``/`` sends it: ``/static/index.html`` is the page itself, and was served without its policy,
     to be framed or to run what the policy keeps out, then with the import map's hash of the page the
-    service started with, which an upgrade in place changes)."""
+    service started with, which an upgrade in place changes). ``only``: the names of the files served,
+the others answering 404 as missing ones do (None: every file of ``directory``)."""
 
-    def __init__(self, directory: Path, headers: Callable[[], dict[str, str]]) -> None:
+    def __init__(self, directory: Path, headers: Callable[[], dict[str, str]],
+                 only: frozenset[str] | None = None) -> None:
         super().__init__(directory=directory)
         self._headers = headers
+        self._only = only
+
+    def lookup_path(self, path: str) -> tuple[str, os.stat_result | None]:
+        if self._only is not None and path not in self._only:
+            return "", None  # as StaticFiles answers a file it does not find: 404
+        return super().lookup_path(path)
 
     def file_response(self, *args: Any, **kwargs: Any) -> Response:
         response = super().file_response(*args, **kwargs)
