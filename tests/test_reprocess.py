@@ -28,6 +28,9 @@ from drivers.errors import JobError
 
 from .conftest import FRANKA
 
+CROP = load_config(FRANKA).perception.crop_box
+"""The crop box of the cell file the test jobs run with."""
+
 
 @pytest.fixture(scope="module")
 def cube_job(tmp_path_factory):
@@ -40,7 +43,7 @@ def cube_job(tmp_path_factory):
 
 def test_reprocess_writes_hires_cloud_and_metrics(cube_job):
     job, online = cube_job
-    out = reprocess_job(job)
+    out = reprocess_job(job, crop=CROP, crop_source=str(FRANKA))
 
     assert (job / "cloud_hires.ply").is_file() and (job / "result_hires.json").is_file()
     written = json.loads((job / "result_hires.json").read_text())
@@ -85,12 +88,12 @@ def test_back_project_matches_the_simulated_points(cube_job):
 
 def test_not_a_job_folder_raises(tmp_path):
     with pytest.raises(JobError, match="not a job folder"):
-        reprocess_job(tmp_path)
+        reprocess_job(tmp_path, crop=CROP)
     with pytest.raises(JobError, match="missing does not exist"):
-        reprocess_job(tmp_path / "missing")
+        reprocess_job(tmp_path / "missing", crop=CROP)
     (tmp_path / "result.json").write_text("{}")
     with pytest.raises(JobError, match="no recorded frames"):
-        reprocess_job(tmp_path)
+        reprocess_job(tmp_path, crop=CROP)
 
 
 @pytest.fixture
@@ -122,7 +125,7 @@ def test_loop_closures_are_the_nearest_earlier_frames_up_to_the_cap():
 
 def test_reprocess_adds_loop_closures_between_close_frames(job_copy):
     job, online = job_copy
-    out = reprocess_job(job, voxel_m=0.0025, params=MultiwayParams(**EVERY_PAIR))
+    out = reprocess_job(job, crop=CROP, voxel_m=0.0025, params=MultiwayParams(**EVERY_PAIR))
     reg, n = out["registration"], out["n_frames"]
     assert reg["pair_edges"] + len(reg["rejected_pairs"]) == n * (n - 1) // 2  # every pair was tried
     loops_rejected = sum(r["loop_closure"] for r in reg["rejected_pairs"])
@@ -131,6 +134,30 @@ def test_reprocess_adds_loop_closures_between_close_frames(job_copy):
     assert reg["edges"] == reg["fk_prior_edges"] + reg["pair_edges"]
     assert reg["max_pose_change_mm"] < 1.0 and reg["max_pose_change_deg"] < 0.2
     assert out["metrics"]["coverage_pct"] >= online["metrics"]["coverage_pct"] - 3.0
+
+
+def test_a_job_whose_cell_file_is_gone_is_refused_until_it_is_given(job_copy):
+    """A job folder copied off the cell names a cell file that is not there (the service's copy,
+    ``../../cells/<digest>.yaml``, stays in the data dir): cell reprocess went on with the paper's crop box,
+    and the cloud differed from the job's without a word. It refuses, naming the file and --config, writes
+    nothing, and with --config uses that file's crop box."""
+    job, _ = job_copy
+    for name in ("result_hires.json", "cloud_hires.ply"):  # a test before may have made them in the original
+        (job / name).unlink(missing_ok=True)
+    result = json.loads((job / "result.json").read_text())
+    result["config"] = "../../cells/0123abcd.yaml"
+    (job / "result.json").write_text(json.dumps(result))
+    res = CliRunner().invoke(app, ["reprocess", str(job)])
+    assert res.exit_code == 1, res.output
+    assert "the job's cell file ../../cells/0123abcd.yaml is not found" in res.output
+    assert "--config FILE" in res.output
+    assert not (job / "result_hires.json").exists() and not (job / "cloud_hires.ply").exists()
+
+    res = CliRunner().invoke(app, ["reprocess", str(job), "--config", str(FRANKA)])
+    assert res.exit_code == 0, res.output
+    crop = json.loads((job / "result_hires.json").read_text())["crop_box"]
+    assert crop == {"x_m": list(CROP.x_m), "y_m": list(CROP.y_m), "z_m": list(CROP.z_m),
+                    "source": str(FRANKA)}
 
 
 def test_a_job_without_ground_truth_is_rebuilt_without_metrics(job_copy):
@@ -179,13 +206,13 @@ def test_reprocess_prunes_uncertain_edges_only(job_copy):
     pair edge goes (any residual weighs less than 1) and the certain FK priors alone hold the poses; at 0
     none goes."""
     job, _ = job_copy
-    reg = reprocess_job(job, voxel_m=0.0025,
+    reg = reprocess_job(job, crop=CROP, voxel_m=0.0025,
                         params=MultiwayParams(**EVERY_PAIR, edge_prune_threshold=1.0))["registration"]
     assert reg["pair_edges"] >= 2
     assert reg["pruned_edges"] == reg["pair_edges"] == len(reg["pruned_pairs"])
     assert reg["edges_after_pruning"] == reg["fk_prior_edges"]
     assert reg["max_pose_change_mm"] < 0.01  # only the priors, at the recorded poses, are left
-    reg = reprocess_job(job, voxel_m=0.0025,
+    reg = reprocess_job(job, crop=CROP, voxel_m=0.0025,
                         params=MultiwayParams(**EVERY_PAIR, edge_prune_threshold=0.0))["registration"]
     assert reg["pruned_edges"] == 0 and reg["pruned_pairs"] == []
 

@@ -11,7 +11,15 @@ from rich.console import Console
 from cell.cli.errors import fail, print_warning
 from cell.cli.jobs import coverage_line
 from cell.cli.progress import stage_progress
-from cell.jobs.rebuild import check_job_dir, output_folder, rebuild_result, recorded_result, remove_live_cloud
+from cell.config import load_config
+from cell.jobs.rebuild import (
+    check_job_dir,
+    job_cell_file,
+    output_folder,
+    rebuild_result,
+    recorded_result,
+    remove_live_cloud,
+)
 from cell.jobs.recorder import RESULT_FILE
 from cell.perception.hires_files import HIRES_FILES
 from cell.perception.reprocess import reprocess_job
@@ -33,17 +41,23 @@ def reprocess(
     job_dir: Annotated[Path, typer.Argument(metavar="JOB_DIR", help="the job folder")],
     out: Annotated[Path | None, typer.Option(help=f"folder to write {' and '.join(HIRES_FILES)} to, made if "
                                                   "missing (default: the job folder)")] = None,
+    config: Annotated[Path | None, typer.Option(help="the cell file the job ran with (default: the one the "
+                                                     "job names)")] = None,
 ) -> None:
     """Rebuild a job's cloud offline at 1 mm with multiway registration (paper section III-B).
 
     A folder whose result.json is missing or unreadable but whose frames are there gets its result.json
     back first (status interrupted; an unreadable one is kept as result.json.unreadable); a frame that
     cannot be read is skipped with a warning. A read-only job folder is refused before any work: give
-    --out. Progress: a bar on a terminal, else lines to standard error."""
+    --out. The crop box is that of the cell file the job names (relative to the job folder, as the
+    service names its copy); when that is not found (a folder copied off the cell), the job is refused:
+    give its cell file with --config. Progress: a bar on a terminal, else lines to standard error."""
     try:
         check_job_dir(job_dir)
         target = output_folder(job_dir, out, HIRES_FILES)
         recorded = recorded_result(job_dir)
+        cell_file = job_cell_file(job_dir, recorded.result, config)
+        crop = load_config(cell_file).perception.crop_box
         if recorded.problem is not None:
             # output_folder found the job folder writable when it is where the outputs go
             if target == job_dir or _writable(job_dir):
@@ -57,7 +71,8 @@ def reprocess(
                               "read-only: re-processing with a result rebuilt from job.json and the frames, "
                               "not written")
         with stage_progress("reprocess") as show:
-            outcome = reprocess_job(job_dir, progress=show, out_dir=target, result=recorded.result)
+            outcome = reprocess_job(job_dir, crop=crop, crop_source=str(cell_file), progress=show,
+                                    out_dir=target, result=recorded.result)
     except CellError as exc:
         raise fail(exc) from None
     for skipped in outcome["skipped_frames"]:

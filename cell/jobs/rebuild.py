@@ -123,6 +123,27 @@ def rebuild_result(job_dir: Path, recorded: RecordedResult) -> Path | None:
     return kept
 
 
+def job_cell_file(job_dir: Path, result: dict[str, Any], config: Path | None = None) -> Path:
+    """The cell file to process a recorded job with: ``config`` when given, else the one its ``result``
+    names, found relative to the job folder (the service names its copy so, ``../../cells/<digest>.yaml``)
+    or else as written. ``JobError`` naming the file and the paths looked at when neither is there (a job
+    folder copied away from the data dir leaves its cell's copy behind): the crop box, the filters and
+    the planner's settings are the cell's, and another cell's would give another cloud without a word."""
+    if config is not None:
+        return config  # loading it says what is wrong with it
+    named = Path(str(result.get("config") or ""))
+    if not named.name:
+        raise JobError(f"{job_dir / RESULT_FILE} names no cell file; give the job's with --config FILE")
+    candidates = list(dict.fromkeys((job_dir / named, named)))
+    found = next((c for c in candidates if c.is_file()), None)
+    if found is None:
+        looked = " nor ".join(str(c) for c in candidates)
+        raise JobError(f"the job's cell file {named} is not found (neither {looked} is a file): give it "
+                       "with --config FILE (the service keeps a copy of each cell file in its data dir's "
+                       "cells/ folder)")
+    return found
+
+
 def remove_live_cloud(job_dir: Path) -> bool:
     """Remove the live cloud snapshot (``cloud_live.npy``) a job killed while watched left behind, once
     the job has a result again; returns whether there was one. The snapshot is only for watching a

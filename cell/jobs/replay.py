@@ -50,7 +50,7 @@ import numpy as np
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
-from cell.jobs.rebuild import RecordedResult, recorded_result
+from cell.jobs.rebuild import RecordedResult, job_cell_file, recorded_result
 from cell.jobs.requests import REACHABLE, REACHED, RecordedAnswer, pose_cells, recorded_answers
 from cell.jobs.session import JobSession, ScanLimitReached, view_name
 from cell.planning.base import Array
@@ -218,16 +218,11 @@ class ReplaySession(JobSession):
 def recorded_job(job_dir: Path, config: Path | None) -> tuple[CellConfig, RecordedResult, Path]:
     """A job folder's result (its ``result.json``, or one rebuilt from ``job.json`` and the frames when
     that is missing or unreadable: :func:`cell.jobs.rebuild.recorded_result`, nothing written) and the
-    cell file to replay it with: ``config``, else the one the job names (relative to the job folder, as
-    the service names its copy, else as given). Returns the loaded cell file, the result and the cell
+    cell file to replay it with (:func:`cell.jobs.rebuild.job_cell_file`: ``config``, else the one the
+    job names; ``JobError`` when that is not found). Returns the loaded cell file, the result and the cell
     file's path."""
     recorded = recorded_result(job_dir)
-    result = recorded.result
-    if config is None:
-        named = Path(str(result.get("config", "")))
-        config = next((c for c in (job_dir / named, named) if c.is_file()), None)
-        if config is None:
-            raise JobError(f"the job's cell file {named} is not found; give --config")
+    config = job_cell_file(job_dir, recorded.result, config)
     return load_config(config), recorded, config
 
 

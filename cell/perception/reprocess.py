@@ -10,8 +10,8 @@ then compares the result with the ground truth by eq. 13. ``reprocess_job`` does
    back-projected (x = (u - cx) z / fx, y = (v - cy) z / fy, pixel centres at integer (u, v)), otherwise
    the recorded ``points`` [m, sensor frame] are used; ``T_base_sensor`` is the pose the job used; a
    frame that cannot be read (a damaged file) is left out, named in ``skipped_frames`` with the reason;
-2. filtering: the crop box in the sensor frame (the job's cell file if it can still be loaded, else the
-   paper's x, y within +-15 cm, z in (5, 40) cm), then a ``voxel_m`` (1 mm) voxel filter per frame;
+2. filtering: the crop box in the sensor frame (the job's cell file's: ``cell reprocess`` refuses a job
+   whose cell file it cannot find rather than guess one), then a ``voxel_m`` (1 mm) voxel filter per frame;
 3. multiway registration: the point-to-plane ICP of online registration (``point_to_plane_icp``:
    coarse to fine, the paper's epsilons with PCL's meaning, pairs beyond the target's surface left out)
    between consecutive frames and between non-consecutive frames whose recorded poses are close (loop
@@ -73,7 +73,7 @@ from drivers.atomic_file import write_text_atomic
 from drivers.config_base import StrictModel
 from drivers.depth.projection import back_project
 from drivers.depth.replay import UNREADABLE_FRAME_ERRORS as FRAME_READ_ERRORS
-from drivers.errors import CellError, JobError
+from drivers.errors import JobError
 from drivers.sim.objects import load_object
 from drivers.transforms import inv_T, rotvec, transform_points
 
@@ -83,10 +83,6 @@ _reg = o3d.pipelines.registration
 
 StageReport = Callable[[str, int, int], None]
 """(stage, done, total): how far a stage of the re-processing is."""
-
-
-PAPER_CROP = CropBoxConfig(x_m=(-0.15, 0.15), y_m=(-0.15, 0.15), z_m=(0.05, 0.40))
-"""The paper's crop box (section II-A), used when the job's cell file cannot be loaded."""
 
 
 class MultiwayParams(StrictModel):
@@ -180,22 +176,6 @@ def _frame_files(job_dir: Path) -> list[Path]:
     if not files:
         raise JobError(f"{job_dir} holds no recorded frames (frames/NNNNNN.npz); nothing to re-process")
     return files
-
-
-def _crop_for(job_dir: Path, result: dict[str, Any]) -> tuple[CropBoxConfig, str]:
-    """The crop box of the job's cell file if it loads (relative to the job folder, as the service names
-    its copy, else as given), else the paper's; the second item says where it came from."""
-    from cell.config import load_config  # config sits beside perception; imported here, used only here
-
-    name = result.get("config")
-    if isinstance(name, str) and name:
-        for candidate in (job_dir / name, Path(name)):
-            if candidate.is_file():
-                try:
-                    return load_config(candidate).perception.crop_box, str(candidate)
-                except CellError:
-                    break
-    return PAPER_CROP, "paper section II-A"
 
 
 UNREADABLE_FRAME_ERRORS = (*FRAME_READ_ERRORS, TypeError)
@@ -355,7 +335,7 @@ def _silent(stage: str, done: int, total: int) -> None:
     """A ``StageReport`` that reports nowhere."""
 
 
-def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig | None = None,
+def reprocess_job(job_dir: Path, *, crop: CropBoxConfig, crop_source: str = "given", voxel_m: float = 0.001,
                   params: MultiwayParams | None = None, frame_step: int = 1,
                   progress: StageReport = _silent, out_dir: Path | None = None,
                   result: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -364,7 +344,9 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     Writes ``cloud_hires.ply`` and ``result_hires.json`` (``HIRES_FILES``) into ``out_dir`` (default
     ``job_dir``), a folder the caller has checked it can write to (``cell.jobs.rebuild.output_folder``
     refuses one before any work), and returns what was written to the JSON. ``result`` is the job's
-    result (default: its ``result.json``); ``crop`` overrides the crop box (sensor frame); ``params`` the
+    result (default: its ``result.json``); ``crop`` is the crop box (sensor frame) of the cell file the job
+    ran with and ``crop_source`` says where it came from (recorded in the output: the frames hold no crop
+    box, and a guessed one, another cell's, gave another cloud without a word); ``params`` the
     registration settings; ``frame_step`` uses every n-th frame only (1 = all); ``progress`` hears how
     far each stage is (frames loaded, pairs registered, pose graph, metrics). A frame that cannot be read
     (a damaged file) is left out and listed in the output's ``skipped_frames`` (file and reason). Raises
@@ -382,10 +364,6 @@ def reprocess_job(job_dir: Path, *, voxel_m: float = 0.001, crop: CropBoxConfig 
     if result is None:
         result = _load_result(job_dir)
     files = _frame_files(job_dir)[::frame_step]
-    if crop is None:
-        crop, crop_source = _crop_for(job_dir, result)
-    else:
-        crop_source = "given"
 
     clouds: list[Array] = []
     poses: list[Array] = []
