@@ -17,6 +17,11 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+INVALID_HOST_NAME = "not a valid host name: each of its dot-separated labels has 1 to 63 characters"
+"""Why a name that no resolver takes cannot be listened on (``listen_problem``'s words). getaddrinfo raised
+``UnicodeError`` for it, which ended ``cell serve`` and ``cell doctor`` with a traceback."""
+
+
 def listen_problem(host: str | None, port: int | None) -> str | None:
     """Why a TCP server could not listen on ``host``:``port`` now (a port in use, an address that is not
     this machine's, a name that does not resolve), or None when it could. Probed as a server binds, with
@@ -28,6 +33,8 @@ def listen_problem(host: str | None, port: int | None) -> str | None:
                 probe.bind(address)
     except OSError as exc:
         return str(exc.strerror or exc)
+    except UnicodeError:  # encoding the name (IDNA): an empty label ("a..b") or one of over 63 characters
+        return INVALID_HOST_NAME
     return None
 
 

@@ -26,6 +26,7 @@ from cell.service.keys import create_key
 from cell.service.store import open_data_store, sqlite_url
 from drivers.arm.franka import client_version
 from drivers.file_access import user_name
+from drivers.hosts import INVALID_HOST_NAME
 from tests.conftest import CONFIG_DIR, UR5E
 from tests.franka_connect_peer import FrankaConnectPeer
 from tests.loopback import free_loopback
@@ -143,6 +144,30 @@ def test_a_host_not_this_machines_or_a_port_of_the_systems_is_not_blamed_on_anot
     assert checks["service port"] == ("fail", f"cannot listen on 127.0.0.1:80: {os.strerror(errno.EACCES)} "
                                       "fix: a port below 1024 is the system's: choose one from 1024 up (cell "
                                       "serve --port)")
+
+
+def test_an_endpoint_host_no_resolver_takes_is_a_finding_and_a_refusal_not_a_traceback(tmp_path):
+    """A host name with a label of over 63 characters (a pasted name, two joined by mistake): getaddrinfo
+    raised UnicodeError, and doctor and cell serve ended with a traceback. Doctor now fails the check with
+    the host's fix (its reason holds a colon: the fix is chosen by the check's reason, not cut from the
+    message), and cell serve refuses to start with the same words."""
+    data = yaml.safe_load((CONFIG_DIR / "sim-ur5e-tof.yaml").read_text())
+    host = "a" * 64 + ".example"
+    data["line"] = {"opcua": {"endpoint": f"opc.tcp://{host}:4840/cell"}}
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump(data))
+    code, checks = _doctor(cell_file, tmp_path)
+    assert code == 1
+    assert checks["line OPC UA port"] == (
+        "fail", f"cannot listen on opc.tcp://{host}:4840/cell: {INVALID_HOST_NAME} fix: {host} is no name or "
+        "address of this machine (ip -brief address lists them; 0.0.0.0 is every one): correct it "
+        "(line.opcua.endpoint, and the PLC's configuration)")
+    res = CliRunner().invoke(app, ["serve", "--config", str(cell_file), "--data-dir", str(tmp_path / "data"),
+                                   "--port", str(free_port())])
+    assert res.exit_code == 1, res.output
+    assert f"line.opcua.endpoint: cannot listen on opc.tcp://{host}:4840/cell: {INVALID_HOST_NAME}" \
+        in res.output, res.output
+    assert not (tmp_path / "data").exists()  # refused before the store was made
 
 
 def test_the_ports_the_cells_running_service_holds_are_ok_and_another_programs_fail(tmp_path):

@@ -4,14 +4,13 @@ machine, the cell file, then the devices it names."""
 from __future__ import annotations
 
 from pathlib import Path
-from urllib.parse import urlsplit
 
 from cell.config.load import load_config
 from cell.config.models import CellConfig
 from cell.config.placeholders import find_placeholders
 from cell.doctor import devices, machine
 from cell.doctor.findings import Finding, Status
-from cell.line.opcua_endpoint import check_endpoint
+from cell.line.opcua_endpoint import ENDPOINT_FIELD, EndpointProblem, endpoint_problem
 from cell.service.instance import Instance, instance_of, opcua_address
 from drivers.arm.config import FrankaArmConfig, UR5eArmConfig
 from drivers.depth.config import VL53L8CXConfig
@@ -68,12 +67,11 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
     found += machine.store(data_dir, db_url, host)
     opcua = cfg.line.opcua if cfg.line is not None else None
     if opcua is not None:
-        try:
-            check_endpoint(cfg.line)
+        problem = endpoint_problem(cfg.line)
+        if problem is None:
             found.append(Finding.ok("line OPC UA port", f"{opcua.endpoint} is free"))
-        except CellError as exc:
-            found.append(_opcua_in_use(opcua.endpoint, str(exc), instance_of(data_dir), served is not None,
-                                       f"{host}:{port}"))
+        else:
+            found.append(_opcua_in_use(problem, instance_of(data_dir), served is not None, f"{host}:{port}"))
     if isinstance(cfg.sensor, VL53L8CXConfig) and cfg.sensor.port is not None:
         found.append(devices.serial_port(cfg.sensor.port))
     if isinstance(cfg.arm, UR5eArmConfig):
@@ -83,33 +81,33 @@ def run_checks(config_file: Path, data_dir: Path, host: str, port: int,
     return found
 
 
-def _opcua_in_use(endpoint: str, problem: str, written: Instance | None, answered: bool,
+def _opcua_in_use(problem: EndpointProblem, written: Instance | None, answered: bool,
                   service: str) -> Finding:
-    """The finding for the line's OPC UA ``endpoint`` that cannot be listened on (``problem``), given what
+    """The finding for the line's OPC UA endpoint that cannot be listened on (``problem``), given what
     the data folder's service wrote at its latest start (``written``) and whether it ``answered`` on the
     HTTP address ``service`` (doctor's ``--host``:``--port``): fine when it answered and wrote that it listens
     there (``cell serve`` checked it free), not when it listens on another (the cell file changed since it
     started). When it wrote that it listens there but did not answer, it may run on another HTTP port than
     doctor was given (``cell serve --port``): the finding says so, rather than only blaming another
     program."""
-    reason = problem.rsplit(": ", 1)[-1]  # listen_problem's words end check_endpoint's message
+    endpoint, reason, detail = problem.endpoint, problem.reason, str(problem)
     if written is not None and written.opcua is not None and reason == machine.IN_USE:
         here = written.opcua == opcua_address(endpoint)
         if answered and here:
             return Finding.ok("line OPC UA port", f"{endpoint} is in use by this cell's running service")
         if answered:
             host, port = written.opcua
-            problem += (f" (this cell's running service listens for OPC UA on {host}:{port}: the cell file "
+            detail += (f" (this cell's running service listens for OPC UA on {host}:{port}: the cell file "
                         "changed since it started, or another program holds this port)")
         elif here:
-            problem += (f" (this data folder's service wrote at its latest start that it listens here, but "
+            detail += (f" (this data folder's service wrote at its latest start that it listens here, but "
                         f"none answers on {service}: if it runs, give doctor its --host and --port; else "
                         "another program holds this port)")
-    setting = "line.opcua.endpoint, and the PLC's configuration"
-    in_use = ("stop the program that holds it, or change line.opcua.endpoint (and the PLC's configuration); "
+    setting = f"{ENDPOINT_FIELD}, and the PLC's configuration"
+    in_use = (f"stop the program that holds it, or change {ENDPOINT_FIELD} (and the PLC's configuration); "
               "after a change of the cell file, restart cell serve")
-    return Finding.fail("line OPC UA port", problem, machine.listen_fix(
-        reason, urlsplit(endpoint).hostname or "", in_use, setting, setting))
+    return Finding.fail("line OPC UA port", detail, machine.listen_fix(reason, problem.host, in_use, setting,
+                                                                       setting))
 
 
 def failed(found: list[Finding]) -> bool:
