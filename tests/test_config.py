@@ -434,7 +434,7 @@ def test_config_check_refuses_a_tcp_offset_in_millimetres(tmp_path):
 @pytest.mark.parametrize("line, message", [
     ({"opcua": {"endpoint": "opc.tcp://127.0.0.1:99999/cell"}},
      r"line\.opcua\.endpoint: Port out of range 0-65535$"),
-    ({"dio": {}}, r"line\.dio is the UR5e's digital-I/O handshake: a sim arm has none$"),
+    ({"dio": {}}, r"line\.dio needs the arm's trigger_input, busy_output, done_output$"),
 ])
 def test_a_validators_refusal_reads_as_its_own_words(line, message):
     """A refusal of the cell's own validators read "line.opcua.endpoint: Value error, Port out of range

@@ -652,7 +652,8 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], Permission] = {
     ("GET", "/api/v1/jobs/{job_id}/files/{name}"): Permission.READ,
     ("GET", "/api/v1/jobs/{job_id}/cloud"): Permission.READ, ("GET", "/api/v1/line"): Permission.READ,
     ("POST", "/api/v1/line/command"): Permission.LINE, ("POST", "/api/v1/line/mode"): Permission.MODE,
-    ("GET", "/api/v1/line/history"): Permission.READ, ("GET", "/readyz"): Permission.READ,
+    ("GET", "/api/v1/line/history"): Permission.READ, ("GET", "/api/v1/line/dio"): Permission.READ,
+    ("PUT", "/api/v1/line/dio/inputs/{name}"): Permission.LINE, ("GET", "/readyz"): Permission.READ,
     ("HEAD", "/readyz"): Permission.READ, ("GET", "/metrics"): Permission.READ,
     ("GET", "/api/v1/whoami"): Permission.READ, ("GET", "/api/v1/retention"): Permission.READ,
     ("POST", "/api/v1/retention/prune"): Permission.PURGE}

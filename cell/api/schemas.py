@@ -9,7 +9,16 @@ import math
 from datetime import datetime
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, StrictStr, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    StrictStr,
+    field_validator,
+)
 
 from cell.api.stop_reason import DEFAULT_REASON, MAX_LENGTH
 from cell.jobs.inputs import MAX_SEED
@@ -277,6 +286,32 @@ class LineModeIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     mode: StrictStr | StrictInt = Field(description="production 1 or manual 3")
+
+
+class LineDioPinOut(BaseModel):
+    """One wired signal of the digital-I/O handshake: its name (``trigger_input``, ``busy_output``, ...),
+    its standard digital index (DI/DO 0-7) and its level: an input's as the handshake counts it (after the
+    debounce filter), an output's as last written; null before the link first connected."""
+
+    name: str
+    pin: int
+    level: bool | None
+
+
+class LineDioOut(BaseModel):
+    """The line's digital I/O: whether its link is connected, whether it is a sim cell's simulated UR5e
+    (whose inputs ``PUT /api/v1/line/dio/inputs/{name}`` sets), and each wired input and output."""
+
+    connected: bool
+    simulated: bool
+    inputs: list[LineDioPinOut]
+    outputs: list[LineDioPinOut]
+
+
+class LineDioInputIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    level: StrictBool = Field(description="true: high, false: low")
 
 
 class LineTransitionOut(BaseModel):

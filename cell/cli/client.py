@@ -195,6 +195,17 @@ class ApiClient:
                                   else self.request("GET", "/api/v1/retention"))
         return result
 
+    # --- the line's digital I/O ---------------------------------------------------------------------------
+
+    def line_dio(self) -> dict[str, Any]:
+        result: dict[str, Any] = self.request("GET", "/api/v1/line/dio")
+        return result
+
+    def set_line_input(self, name: str, level: bool) -> dict[str, Any]:
+        result: dict[str, Any] = self.request("PUT", f"/api/v1/line/dio/inputs/{_segment(name)}",
+                                              json_body={"level": level})
+        return result
+
     # --- the event stream ---------------------------------------------------------------------------------
 
     def events(self, job_id: str, last_id: int, idle_s: float,

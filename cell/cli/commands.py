@@ -38,6 +38,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "cell.cli.calibrate:calibrate_app",
     "serve": "cell.cli.serve:serve",
     "jobs": "cell.cli.jobs:jobs_app",
+    "line": "cell.cli.line:line_app",
     "keys": "cell.cli.keys:keys_app",
     "init": "cell.cli.init_cell:init",
     "backup": "cell.cli.backup:backup",

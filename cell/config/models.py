@@ -31,8 +31,9 @@ from drivers.arm.config import (
     LINE_OUTPUTS,
     ArmConfig,
     FlangeOffset,
+    LinePinsConfig,
     ReplayArmConfig,
-    UR5eArmConfig,
+    SimArmConfig,
 )
 from drivers.config_base import (
     CELL_EXTENT_M,
@@ -321,8 +322,10 @@ class CellConfig(StrictModel):
         if self.sim.board is not None and self.calibration.board is None:
             raise ValueError("sim.board lays the calibration board on the table: it needs calibration.board")
         if self.line is not None and self.line.dio is not None:
-            if not isinstance(arm, UR5eArmConfig):
-                raise ValueError(f"line.dio is the UR5e's digital-I/O handshake: a {arm.type} arm has none")
+            if not isinstance(arm, LinePinsConfig) or arm.model != "ur5e":
+                what = f"a simulated {arm.model}" if isinstance(arm, SimArmConfig) else f"a {arm.type} arm"
+                raise ValueError("line.dio is the UR5e's digital-I/O handshake (a real or a simulated ur5e): "
+                                 f"{what} has none")
             missing = [name for name, index in arm.line_pins(LINE_NEEDS).items() if index is None]
             if missing:
                 raise ValueError(f"line.dio needs the arm's {', '.join(missing)}")

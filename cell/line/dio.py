@@ -19,8 +19,10 @@ outputs; optionally a second input and two more outputs). The pins are the arm s
   at start is the baseline, not an edge (a trigger left high does not start a scan on a restart).
 
 A thread of its own polls the inputs at ``line.dio.poll_hz`` and writes the outputs when they change,
-through :class:`drivers.arm.ur_io.URDigitalIO`; commands go to the service's loop. A lost link is logged
-and reconnected every ``RECONNECT_S``; the outputs are written again once it is back.
+through :class:`drivers.arm.ur_io.URDigitalIO` (a UR5e) or :class:`drivers.arm.sim_io.SimDigitalIO` (a sim
+cell's simulated UR5e, whose inputs REST sets: :meth:`DigitalIOHandshake.simulated`); commands go to the
+service's loop. A lost link is logged and reconnected every ``RECONNECT_S``; the outputs are written again
+once it is back. :meth:`DigitalIOHandshake.levels` says what the handshake last saw and wrote.
 """
 
 from __future__ import annotations
@@ -32,12 +34,14 @@ import logging
 import threading
 import time
 from collections.abc import AsyncIterator, Coroutine
+from dataclasses import dataclass
 from typing import Any
 
 from cell.line.config import DigitalIOConfig
 from cell.line.controller import LineController, LineSnapshot
 from cell.line.packml import ORDINARY_STOPS, STOPPED_BRANCH, Command, State, UnitMode
-from drivers.arm.config import LINE_OUTPUTS, UR5eArmConfig
+from drivers.arm.config import LINE_INPUTS, LINE_OUTPUTS, ArmConfig, LinePinsConfig, UR5eArmConfig
+from drivers.arm.sim_io import DigitalIO, SimDigitalIO
 from drivers.arm.ur_io import URDigitalIO
 from drivers.errors import DriverError, ServiceError
 
@@ -96,6 +100,40 @@ def output_levels(snapshot: LineSnapshot) -> dict[str, bool]:
                                                     and snapshot.stop_reason_id not in ORDINARY_STOPS)}
 
 
+@dataclass(frozen=True)
+class Signal:
+    """One wired signal of the handshake: its ``name`` (of :data:`LINE_INPUTS`, :data:`LINE_OUTPUTS`), the
+    digital index it is wired to (``pin``) and its ``level``: an input's as the handshake counts it
+    (debounced; None before the link first connected), an output's as last written (None: not written
+    since the link connected)."""
+
+    name: str
+    pin: int
+    level: bool | None
+
+
+@dataclass(frozen=True)
+class DigitalLevels:
+    """What :meth:`DigitalIOHandshake.levels` says: whether the link is ``connected``, whether the I/O is
+    ``simulated`` (a sim cell's, whose inputs may be set), and each wired input and output."""
+
+    connected: bool
+    simulated: bool
+    inputs: tuple[Signal, ...]
+    outputs: tuple[Signal, ...]
+
+
+def digital_io(arm: ArmConfig) -> DigitalIO:
+    """The digital I/O the handshake of a cell with ``arm`` uses: a UR5e's over RTDE, else (the config's
+    check: a simulated UR5e) a simulated one."""
+    return URDigitalIO(arm) if isinstance(arm, UR5eArmConfig) else SimDigitalIO()
+
+
+def _wired(arm: LinePinsConfig, names: tuple[str, ...]) -> dict[str, int]:
+    """The pins of ``names`` that ``arm`` wires: name -> digital index."""
+    return {name: index for name, index in arm.line_pins(names).items() if index is not None}
+
+
 def _log_failure(done: concurrent.futures.Future[None]) -> None:
     """Log an edge's handling that failed (it runs on the service's loop, where nobody waits for it)."""
     if not done.cancelled() and (exc := done.exception()) is not None:
@@ -106,15 +144,17 @@ def _log_failure(done: concurrent.futures.Future[None]) -> None:
 class DigitalIOHandshake:
     """The handshake of one cell (see the module docstring); :meth:`start` on the service's loop."""
 
-    def __init__(self, line: LineController, arm: UR5eArmConfig, config: DigitalIOConfig) -> None:
+    def __init__(self, line: LineController, arm: LinePinsConfig, config: DigitalIOConfig,
+                 io: DigitalIO) -> None:
         assert arm.trigger_input is not None  # the config's check: line.dio needs it (and busy, done)
         self._line = line
         self._config = config
         self._trigger, self._reset = arm.trigger_input, arm.reset_input
-        self._pins = {name: index for name, index in arm.line_pins(LINE_OUTPUTS).items() if index is not None}
-        self._io = URDigitalIO(arm)
+        self._inputs, self._pins = _wired(arm, LINE_INPUTS), _wired(arm, LINE_OUTPUTS)
+        self._io = io
         self._wanted: list[tuple[int, bool]] = self._outputs(line.snapshot())
         self._written: list[tuple[int, bool]] | None = None
+        self._seen: dict[int, bool] | None = None  # the debounced inputs by index, once connected
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="line digital io", daemon=True)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -130,6 +170,21 @@ class DigitalIOHandshake:
         """Stop polling, set every output low and disconnect."""
         self._stop.set()
         await asyncio.to_thread(self._thread.join)
+
+    @property
+    def simulated(self) -> SimDigitalIO | None:
+        """The simulated I/O of a sim cell, whose inputs may be set; None for a UR5e's."""
+        return self._io if isinstance(self._io, SimDigitalIO) else None
+
+    def levels(self) -> DigitalLevels:
+        """Each wired input as the handshake counts it and each output as it last wrote it."""
+        seen, written = self._seen, self._written
+        wrote = dict(written) if written is not None else {}
+        return DigitalLevels(
+            connected=seen is not None, simulated=self.simulated is not None,
+            inputs=tuple(Signal(name, index, None if seen is None else seen[index])
+                         for name, index in self._inputs.items()),
+            outputs=tuple(Signal(name, index, wrote.get(index)) for name, index in self._pins.items()))
 
     def _outputs(self, snapshot: LineSnapshot) -> list[tuple[int, bool]]:
         levels = output_levels(snapshot)
@@ -166,10 +221,14 @@ class DigitalIOHandshake:
                     self._post(self._trigger_edge(edge))
                 if reset is not None and self._reset is not None and reset.update(levels[self._reset], now):
                     self._post(self._reset_edge())  # its fall does nothing
+                # after the edges are posted: a level seen here has had its command sent to the line
+                self._seen = {self._trigger: trigger.level}
+                if reset is not None and self._reset is not None:
+                    self._seen[self._reset] = reset.level
             except DriverError as exc:
                 log.error("line: digital I/O: %s; connecting again in %g s", exc, RECONNECT_S)
                 self._io.close()
-                trigger, reset, self._written = None, None, None
+                trigger, reset, self._written, self._seen = None, None, None, None
                 self._stop.wait(RECONNECT_S)
                 continue
             self._stop.wait(period)

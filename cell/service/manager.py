@@ -48,7 +48,7 @@ from cell import __version__
 from cell.config.models import CellConfig
 from cell.jobs.control import StopEffect
 from cell.line.controller import LineController
-from cell.line.dio import DigitalIOHandshake
+from cell.line.dio import DigitalIOHandshake, digital_io
 from cell.planning.registry import PLANNERS
 from cell.service.arm_clearance import ArmClearance
 from cell.service.arm_status import ArmTracker, after_fault, fault_first, fault_hold, held_fault
@@ -72,7 +72,7 @@ from cell.service.store.engine import RESTORE
 from cell.service.store.lease import CellLease
 from cell.service.store.retry import until_stored
 from cell.service.submission import JobRequest, ValidJob, validate
-from drivers.arm.config import UR5eArmConfig
+from drivers.arm.config import LinePinsConfig
 from drivers.errors import SHUTDOWN_STOP as SERVICE_SHUTDOWN
 from drivers.errors import ServiceError, StoreError, stop_cause, stop_termination
 
@@ -243,7 +243,7 @@ class CellService:
         self._wake = asyncio.Event()
         self._dispatcher: asyncio.Task[None] | None = None
         self.line = LineController(self, config.line, store) if config.line is not None else None
-        self._dio: DigitalIOHandshake | None = None
+        self.dio: DigitalIOHandshake | None = None  # the line's digital-I/O handshake (line.dio)
         self._spare: asyncio.subprocess.Process | None = None
         self._spare_log = self._logs_dir / "worker-spare.log"
         self._spare_watch: asyncio.Task[None] | None = None
@@ -280,9 +280,9 @@ class CellService:
             await self.line.start()
             line_cfg, arm_cfg = self.config.line, self.config.arm
             assert line_cfg is not None
-            if line_cfg.dio is not None and isinstance(arm_cfg, UR5eArmConfig):
-                self._dio = DigitalIOHandshake(self.line, arm_cfg, line_cfg.dio)
-                self._dio.start()
+            if line_cfg.dio is not None and isinstance(arm_cfg, LinePinsConfig):  # a real or simulated UR5e
+                self.dio = DigitalIOHandshake(self.line, arm_cfg, line_cfg.dio, digital_io(arm_cfg))
+                self.dio.start()
         self._dispatcher = asyncio.create_task(self._dispatch(), name="dispatcher")
         if self.retention.active:
             self._pruner = asyncio.create_task(self.retention.run(), name="retention")
@@ -380,8 +380,8 @@ class CellService:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(asyncio.shield(self._hold_writer),
                                        self.config.service.shutdown_timeout_s)
-        if self._dio is not None:
-            await self._dio.close()
+        if self.dio is not None:
+            await self.dio.close()
         if self.line is not None:
             await self.line.close()
         if self._lease is not None:

@@ -11,15 +11,9 @@ from drivers.config_base import Bounds, Number, StrictModel
 RobotModelName = Literal["panda", "ur5e"]
 
 
-class SimArmConfig(StrictModel):
-    """The simulated arm: integrates commanded twists through the model's differential IK."""
-
-    type: Literal["sim"]
-    model: RobotModelName
-    home_joints_rad: list[float] | None = None
-
-
-DigitalIndex = Annotated[int, Field(ge=0, le=7)]
+DIGITAL_PINS = 8
+"""How many standard digital inputs, and as many outputs, a UR5e's control box has (DI0-DI7, DO0-DO7)."""
+DigitalIndex = Annotated[int, Field(ge=0, le=DIGITAL_PINS - 1)]
 
 LINE_INPUTS = ("trigger_input", "reset_input")
 """The standard digital inputs of a UR5e a packing line may wire (:class:`UR5eArmConfig`'s fields of these
@@ -63,7 +57,37 @@ class PayloadConfig(StrictModel):
     flange on each axis."""
 
 
-class UR5eArmConfig(StrictModel):
+class LinePinsConfig(StrictModel):
+    """The standard digital inputs and outputs a packing line's handshake (``cell.line.dio``) is wired to
+    (:data:`LINE_INPUTS`, :data:`LINE_OUTPUTS`; ``None``: not wired): a UR5e's, and a simulated UR5e's,
+    which a sim cell offers an integrator to try the handshake on (``cell line dio``)."""
+
+    busy_output: DigitalIndex | None = None
+    done_output: DigitalIndex | None = None
+    trigger_input: DigitalIndex | None = None
+    reset_input: DigitalIndex | None = None
+    ready_output: DigitalIndex | None = None
+    fault_output: DigitalIndex | None = None
+
+    def line_pins(self, names: tuple[str, ...]) -> dict[str, int | None]:
+        """The digital index each pin of ``names`` (of :data:`LINE_INPUTS`, :data:`LINE_OUTPUTS`) is wired
+        to, by name; None: not wired."""
+        return {name: getattr(self, name) for name in names}
+
+
+class SimArmConfig(LinePinsConfig):
+    """The simulated arm: integrates commanded twists through the model's differential IK. A simulated
+    ``ur5e`` has the UR5e's eight standard digital inputs and outputs for the line's handshake
+    (``line.dio``, the pins as a UR5e's: ``trigger_input``, ``busy_output``, ...): the service holds them,
+    its outputs driven by the handshake and its inputs set over REST (``PUT /api/v1/line/dio/inputs/NAME``,
+    ``cell line dio set``), where a real UR5e's are the PLC's wires."""
+
+    type: Literal["sim"]
+    model: RobotModelName
+    home_joints_rad: list[float] | None = None
+
+
+class UR5eArmConfig(LinePinsConfig):
     """A UR5e controller reached through ur-rtde (hardware backend; see :mod:`drivers.arm.ur5e`).
 
     - ``tcp_offset``: the TCP in the flange frame as a UR pose (x, y, z [m], rx, ry, rz [rad, axis-angle]),
@@ -108,17 +132,6 @@ class UR5eArmConfig(StrictModel):
     settle_tolerance_rad: float = Field(default=1e-3, gt=0.0, le=0.05)
     settle_timeout_s: float = Field(default=2.0, gt=0.0, le=10.0)
     watchdog_min_hz: Number = Field(gt=0.0, le=500.0)
-    busy_output: DigitalIndex | None = None
-    done_output: DigitalIndex | None = None
-    trigger_input: DigitalIndex | None = None
-    reset_input: DigitalIndex | None = None
-    ready_output: DigitalIndex | None = None
-    fault_output: DigitalIndex | None = None
-
-    def line_pins(self, names: tuple[str, ...]) -> dict[str, int | None]:
-        """The digital index each pin of ``names`` (of :data:`LINE_INPUTS`, :data:`LINE_OUTPUTS`) is wired
-        to, by name; None: not wired."""
-        return {name: getattr(self, name) for name in names}
 
 
 class FrankaArmConfig(StrictModel):

@@ -6,6 +6,8 @@ valid now answers 409 with the reason, the state unchanged.
 
 from __future__ import annotations
 
+import logging
+from dataclasses import asdict
 from typing import Annotated, Any, TypeVar
 
 from fastapi import APIRouter, Query, Request, Response
@@ -13,12 +15,22 @@ from pydantic import TypeAdapter
 
 from cell.api.auth import KeyFirstRoute, Liner, ModeSwitcher, Reader
 from cell.api.deps import Bulk, Service
-from cell.api.schemas import LineCommandIn, LineCommandOut, LineModeIn, LineOut, LineTransitionOut
+from cell.api.schemas import (
+    LineCommandIn,
+    LineCommandOut,
+    LineDioInputIn,
+    LineDioOut,
+    LineModeIn,
+    LineOut,
+    LineTransitionOut,
+)
 from cell.line.controller import LineController
+from cell.line.dio import DigitalIOHandshake
 from cell.line.packml import Command, State, UnitMode
 from cell.service.manager import CellService
 from drivers.errors import ServiceError
 
+log = logging.getLogger("cell.line")
 router = APIRouter(prefix="/api/v1/line", tags=["line"], route_class=KeyFirstRoute)
 ROW_ID_MAX = 2**63 - 1
 """The largest row id a store holds (SQL's BIGINT, SQLite's INTEGER); a larger one overflowed it, a 500."""
@@ -31,6 +43,18 @@ def _line(cell: CellService) -> LineController:
         raise ServiceError(f"cell {cell.name} has no packing line (no line: section in its cell file)",
                            reason="not found")
     return cell.line
+
+
+def _dio(cell: CellService) -> DigitalIOHandshake:
+    _line(cell)
+    if cell.dio is None:
+        raise ServiceError(f"cell {cell.name}'s line has no digital-I/O handshake (no line.dio in its cell "
+                           "file)", reason="not found")
+    return cell.dio
+
+
+def _levels(dio: DigitalIOHandshake) -> dict[str, Any]:
+    return asdict(dio.levels())
 
 
 def _member(kind: type[E], value: str | int, field: str) -> E:
@@ -65,6 +89,32 @@ async def post_mode(cell: Service, body: LineModeIn, key: ModeSwitcher) -> dict[
     line = _line(cell)
     message = await line.set_mode(_member(UnitMode, body.mode, "mode"), f"REST (key {key.name})")
     return {"message": message, "line": line.snapshot().as_dict()}
+
+
+@router.get("/dio", response_model=LineDioOut)
+async def get_dio(cell: Service, _: Reader) -> dict[str, Any]:
+    """The digital-I/O handshake's signals: each wired input as the handshake counts it (debounced), each
+    output as last written, and whether the link is connected."""
+    return _levels(_dio(cell))
+
+
+@router.put("/dio/inputs/{name}", response_model=LineDioOut)
+async def put_dio_input(cell: Service, name: str, body: LineDioInputIn, key: Liner) -> dict[str, Any]:
+    """Drive a wired input (``trigger_input``, ``reset_input``) of a sim cell's simulated UR5e high or
+    low, as a PLC's wire would; the handshake counts the new level after its debounce filter (``GET
+    /api/v1/line/dio`` shows when). A real UR5e's inputs are the PLC's wires: 409."""
+    dio = _dio(cell)
+    simulated = dio.simulated
+    if simulated is None:
+        raise ServiceError("the inputs of a real UR5e are its wires from the PLC: only a sim cell's "
+                           "simulated inputs can be set", reason="conflict")
+    pins = {signal.name: signal.pin for signal in dio.levels().inputs}
+    if name not in pins:
+        raise ServiceError(f"no wired input {name!r}; this cell's: {', '.join(pins)}", reason="not found")
+    simulated.set_input(pins[name], body.level)
+    log.info("line: simulated digital input %s (DI%d) set %s by REST (key %s)", name, pins[name],
+             "high" if body.level else "low", key.name)
+    return _levels(dio)
 
 
 @router.get("/history", response_model=list[LineTransitionOut])
