@@ -45,10 +45,10 @@ DRY_RUN = CONFIG_DIR / "dryrun-ur5e-peer.yaml"
 # scan's accuracy, which the planners' own tests judge; but a box whose ends no view saw inside its frame
 # has no upper bound and no container (LR-NBV sees the 30 cm box's ends after 15-25 s).
 SCAN_S = 25.0
-# A PLC's trigger pulse [s]: well over the 50 ms debounce, and long enough that the digital I/O thread,
-# polling at 200 Hz, still sees it on a test machine that starves it for a while (a 0.2 s pulse was missed
-# under the whole suite).
-PULSE_S = 0.5
+# How long a test waits for the line at most [s]: a bound on waiting (a scan's worker started on a loaded
+# machine), never a timed check. A PLC's level is held until the handshake counted it (``drive``), not for
+# a guessed time: a 0.2 s, then a 0.5 s pulse was missed by a digital I/O thread starved under load.
+WAIT_S = 120.0
 ROLES = ("viewer", "operator", "line", "admin")
 
 
@@ -68,7 +68,7 @@ class Line:
         body = {"command": command} | ({"part_id": part_id} if part_id is not None else {})
         return self.client.post("/api/v1/line/command", json=body, headers=self.auth(role))
 
-    def wait(self, states: set[str], timeout_s: float = 120.0) -> dict[str, Any]:
+    def wait(self, states: set[str], timeout_s: float = WAIT_S) -> dict[str, Any]:
         deadline = time.monotonic() + timeout_s
         while (now := self.state())["state_name"] not in states:
             assert time.monotonic() < deadline, f"the line stayed {now['state_name']}: {now}"
@@ -77,6 +77,29 @@ class Line:
 
     def job(self, job_id: str) -> dict[str, Any]:
         return self.client.get(f"/api/v1/jobs/{job_id}", headers=self.auth("viewer")).json()
+
+    def dio(self) -> dict[str, Any]:
+        """The digital-I/O handshake's signals (``GET /api/v1/line/dio``)."""
+        answer: dict[str, Any] = self.client.get("/api/v1/line/dio", headers=self.auth("viewer")).json()
+        return answer
+
+    def counted(self, name: str, level: bool) -> dict[str, Any]:
+        """Wait until the handshake counts input ``name`` at ``level`` (past its debounce filter)."""
+        deadline = time.monotonic() + WAIT_S
+        while True:
+            dio = self.dio()
+            if {s["name"]: s["level"] for s in dio["inputs"]}[name] is level:
+                return dio
+            assert time.monotonic() < deadline, f"the handshake never counted {name} {level}: {dio}"
+            time.sleep(0.02)
+
+    def message(self, start: str) -> str:
+        """Wait until the line's last command message starts with ``start``."""
+        deadline = time.monotonic() + WAIT_S
+        while not (message := self.state()["message"]).startswith(start):
+            assert time.monotonic() < deadline, message
+            time.sleep(0.05)
+        return message
 
 
 def _cell_file(tmp_path: Path, base: Path, line: dict[str, Any], **changes: Any) -> Path:
@@ -541,7 +564,7 @@ def dio_line(tmp_path: Path, caplog: pytest.LogCaptureFixture, dio: dict[str, An
         line_config = {"dio": dio, "max_time_s": max_time_s} | ({} if opcua is None else {"opcua": opcua})
         config = _cell_file(tmp_path, DRY_RUN, line_config, arm=arm)
         with caplog.at_level(logging.INFO, logger="cell.line"), served_line(tmp_path, config) as line:
-            deadline = time.monotonic() + 30
+            deadline = time.monotonic() + WAIT_S
             while not any("digital I/O connected" in m for m in caplog.messages):
                 assert time.monotonic() < deadline, "the digital I/O link never connected"
                 time.sleep(0.05)
@@ -550,27 +573,68 @@ def dio_line(tmp_path: Path, caplog: pytest.LogCaptureFixture, dio: dict[str, An
         peer.stop()
 
 
+def drive(dio: DioLine, name: str, level: bool) -> None:
+    """The PLC sets input ``name`` to ``level`` and holds it until the handshake counted it."""
+    line, peer, arm = dio
+    peer.set_digital_input(arm[name], level)
+    line.counted(name, level)
+
+
+def pulse(dio: DioLine, name: str) -> None:
+    """A PLC's pulse on input ``name``: high, then low, each held until the handshake counted it."""
+    drive(dio, name, True)
+    drive(dio, name, False)
+
+
+def outputs(peer: ControllerPeer, value: int, what: str) -> dict[str, Any]:
+    """Wait until the controller's digital outputs are ``value`` (a bit per output)."""
+    return peer.wait_for(lambda s: s["digital_out"] == value, timeout_s=WAIT_S, what=what)
+
+
 def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path, caplog: pytest.LogCaptureFixture):
-    with dio_line(tmp_path, caplog, {"part_id": "horizontal_box", "debounce_s": 0.3}) as (line, peer, arm):
+    debounce_s = 0.3
+    with dio_line(tmp_path, caplog, {"part_id": "horizontal_box", "debounce_s": debounce_s}) as dio:
+        line, peer, arm = dio
         trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
         line.command("reset")
         line.wait({"Idle"})
-        # a 50 ms pulse is a bounce to a 300 ms filter: nothing starts
-        peer.set_digital_input(trigger, True)
-        time.sleep(0.05)
-        peer.set_digital_input(trigger, False)
-        time.sleep(0.6)
+        # a 50 ms pulse, on the controller's clock, is a bounce to a 300 ms filter: nothing starts, however
+        # late the handshake reads the samples (the filter counts their RTDE timestamps)
+        falls_s = peer.pulse_digital_input(trigger, 0.05)
+        deadline = time.monotonic() + WAIT_S
+        while (seen := line.dio())["sampled_s"] < falls_s + debounce_s:
+            assert time.monotonic() < deadline, seen
+            time.sleep(0.02)
+        assert seen["inputs"][0] == {"name": "trigger_input", "pin": trigger, "level": False}, seen
         assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
-        peer.set_digital_input(trigger, True)
-        peer.wait_for(lambda s: s["digital_out"] == busy, what="busy high in Execute")
+        # the link stalls during a bounce (the controller's packages stop for a second, as a loaded PC's RTDE
+        # child can fall behind): the last sample, high, is read again and again, but it is one sample at
+        # one controller time, no level held for 300 ms (a filter on the service's clock took it for one)
+        falls_s = peer.pulse_digital_input(trigger, 0.1)
+        time.sleep(0.05)  # the high samples reach the service
+        with peer.frozen():
+            time.sleep(1.0)
+        while (seen := line.dio())["sampled_s"] < falls_s + debounce_s:
+            assert time.monotonic() < deadline + WAIT_S, seen
+            time.sleep(0.02)
+        assert seen["inputs"][0]["level"] is False, seen
+        assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
+        drive(dio, "trigger_input", True)
+        outputs(peer, busy, "busy high in Execute")
         assert line.state()["state_name"] == "Execute"
-        peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=120, what="done high in Complete")
+        outputs(peer, done, "done high in Complete")
         complete = line.state()
         assert complete["state_name"] == "Complete" and complete["result"]["part_id"] == "horizontal_box"
         assert complete["message"] == "Start from digital input DI0 rising"
-        peer.set_digital_input(trigger, False)  # the trigger falls: Reset
-        peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the trigger fell")
+        drive(dio, "trigger_input", False)  # the trigger falls: Reset
+        outputs(peer, 0, "done low after the trigger fell")
         line.wait({"Idle"})
+        history = line.client.get("/api/v1/line/history", headers=line.auth("viewer")).json()
+        assert [h["to_name"] for h in history].count("Starting") == 1  # the bounces started nothing
+        # a real UR5e's inputs are the PLC's wires: REST does not set them
+        refused = line.client.put("/api/v1/line/dio/inputs/trigger_input", json={"level": True},
+                                  headers=line.auth("line"))
+        assert refused.status_code == 409 and "only a sim cell's" in refused.json()["detail"], refused.text
 
 
 def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
@@ -578,19 +642,16 @@ def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
     """The PLC pulses the trigger (shorter than a scan) and waits for done: the pulse's fall during Execute
     does nothing, done stays high in Complete, and the next pulse's rise is Reset, then Start. A held
     trigger still works after it: its fall in Complete is Reset."""
-    dio = {"part_id": "horizontal_box", "debounce_s": 0.05}
-    with dio_line(tmp_path, caplog, dio, max_time_s=3.0) as (line, peer, arm):
-        trigger, busy, done = arm["trigger_input"], 1 << arm["busy_output"], 1 << arm["done_output"]
+    with dio_line(tmp_path, caplog, {"part_id": "horizontal_box", "debounce_s": 0.05}, max_time_s=3.0) as dio:
+        line, peer, arm = dio
+        busy, done = 1 << arm["busy_output"], 1 << arm["done_output"]
         line.command("reset")
         line.wait({"Idle"})
         for n in (1, 2, 3):
-            peer.set_digital_input(trigger, True)
-            time.sleep(PULSE_S)
-            peer.set_digital_input(trigger, False)
-            peer.wait_for(lambda s: s["digital_out"] == busy, what=f"busy high for part {n}")
-            peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=60, what=f"done high for part {n}")
-            time.sleep(0.2)  # done holds after the pulse fell
-            complete = line.state()
+            pulse(dio, "trigger_input")
+            outputs(peer, busy, f"busy high for part {n}")
+            outputs(peer, done, f"done high for part {n}")
+            complete = line.state()  # done holds after the pulse fell
             assert (complete["state_name"], complete["processed"]) == ("Complete", n), complete
             assert peer.state()["digital_out"] == done
         history = line.client.get("/api/v1/line/history?limit=1000", headers=line.auth("viewer")).json()
@@ -599,11 +660,11 @@ def test_a_pulsed_trigger_acknowledges_each_part_with_the_next_ones_rising_edge(
         assert causes == ["Reset from REST (key line)"] + [f"Start {rise}", f"Reset {rise}"] * 2 + [
             f"Start {rise}"], causes
         # a held trigger: its rise acknowledges part 3 and starts part 4, its fall after done is Reset
-        peer.set_digital_input(trigger, True)
-        peer.wait_for(lambda s: s["digital_out"] == busy, what="busy high for part 4")
-        peer.wait_for(lambda s: s["digital_out"] == done, timeout_s=60, what="done high for part 4")
-        peer.set_digital_input(trigger, False)
-        peer.wait_for(lambda s: s["digital_out"] == 0, what="done low after the held trigger fell")
+        drive(dio, "trigger_input", True)
+        outputs(peer, busy, "busy high for part 4")
+        outputs(peer, done, "done high for part 4")
+        drive(dio, "trigger_input", False)
+        outputs(peer, 0, "done low after the held trigger fell")
         assert line.wait({"Idle"})["processed"] == 4
 
 
@@ -613,17 +674,13 @@ def test_a_trigger_scans_the_part_id_the_plc_set_over_opc_ua(tmp_path: Path,
     part-<n> when none was set since the last Start (the feeder knows none of these: each is a defective
     part at once, no scan)."""
     url = f"opc.tcp://127.0.0.1:{free_port()}/cell"
-    with dio_line(tmp_path, caplog, {"debounce_s": 0.05}, opcua={"endpoint": url, "security": "none"}) as (
-            line, peer, arm):
-        trigger = arm["trigger_input"]
+    with dio_line(tmp_path, caplog, {"debounce_s": 0.05}, opcua={"endpoint": url, "security": "none"}) as dio:
+        line = dio[0]
 
         def part(n: int) -> str:
             """Pulse the trigger; the part id of the n-th part processed."""
-            peer.set_digital_input(trigger, True)
-            time.sleep(PULSE_S)
-            peer.set_digital_input(trigger, False)
-            time.sleep(0.2)
-            deadline = time.monotonic() + 20
+            pulse(dio, "trigger_input")
+            deadline = time.monotonic() + WAIT_S
             while (state := line.state())["processed"] < n:
                 assert time.monotonic() < deadline, state
                 time.sleep(0.05)
@@ -680,61 +737,44 @@ def test_the_reset_input_and_the_ready_and_fault_outputs(tmp_path: Path, caplog:
     nothing."""
     pins = {"reset_input": 1, "ready_output": 2, "fault_output": 3}
     dio = {"part_id": "horizontal_box", "debounce_s": 0.05}
-    with dio_line(tmp_path, caplog, dio, max_time_s=30.0, **pins) as (line, peer, arm):
-        trigger, reset = arm["trigger_input"], arm["reset_input"]
+    with dio_line(tmp_path, caplog, dio, max_time_s=30.0, **pins) as wired:
+        line, peer, arm = wired
         busy, ready, fault = (1 << arm[name] for name in ("busy_output", "ready_output", "fault_output"))
-
-        def pulse(index: int) -> None:
-            """200 ms high, then low for as long: each level outlasts the 50 ms filter."""
-            peer.set_digital_input(index, True)
-            time.sleep(0.2)
-            peer.set_digital_input(index, False)
-            time.sleep(0.2)
-
-        def outputs(value: int, what: str) -> None:
-            peer.wait_for(lambda s: s["digital_out"] == value, what=what)
-
         assert line.state()["state_name"] == "Stopped" and peer.state()["digital_out"] == 0
-        pulse(reset)
-        outputs(ready, "ready high in Idle")
+        pulse(wired, "reset_input")
+        outputs(peer, ready, "ready high in Idle")
         assert line.state()["message"] == "Reset from digital input DI1 rising"
         # an operator's STOP: a fault until an operator resumes the queue and the line resets
         line.client.post("/api/v1/stop", json={"reason": "hands in the cell"}, headers=line.auth("viewer"))
-        outputs(fault, "fault high after an operator's STOP")
-        pulse(reset)
-        deadline = time.monotonic() + 10
-        while "POST /api/v1/queue/resume" not in (message := line.state()["message"]):
-            assert time.monotonic() < deadline, message
-            time.sleep(0.05)
-        assert message.startswith("refused Reset from digital input DI1 rising")
+        outputs(peer, fault, "fault high after an operator's STOP")
+        pulse(wired, "reset_input")
+        message = line.message("refused Reset from digital input DI1 rising")
+        assert "POST /api/v1/queue/resume" in message, message
         assert line.state()["state_name"] == "Stopped" and peer.state()["digital_out"] == fault
         resumed = line.client.post("/api/v1/queue/resume", headers=line.auth("operator"))
         assert resumed.status_code == 200, resumed.text
-        pulse(reset)
-        outputs(ready, "ready high, fault low after Reset")
+        pulse(wired, "reset_input")
+        outputs(peer, ready, "ready high, fault low after Reset")
         # the line's own Abort is no fault; the reset input clears it, then resets it
         assert line.command("abort").status_code == 200
         line.wait({"Aborted"})
-        outputs(0, "no fault in Aborted after the line's Abort")
-        pulse(reset)
+        outputs(peer, 0, "no fault in Aborted after the line's Abort")
+        pulse(wired, "reset_input")
         assert line.wait({"Stopped"})["message"] == "Clear from digital input DI1 rising"
-        pulse(reset)
-        outputs(ready, "ready high in Idle after Clear and Reset")
+        pulse(wired, "reset_input")
+        outputs(peer, ready, "ready high in Idle after Clear and Reset")
         # Held is a fault; a reset in Held is refused
-        pulse(trigger)
-        outputs(busy, "busy high in Execute")
+        pulse(wired, "trigger_input")
+        outputs(peer, busy, "busy high in Execute")
         assert line.command("hold").status_code == 200
-        outputs(fault, "fault high in Held")
-        pulse(reset)
-        deadline = time.monotonic() + 10
-        while not (message := line.state()["message"]).startswith("refused Reset from digital input DI1"):
-            assert time.monotonic() < deadline, message
-            time.sleep(0.05)
+        outputs(peer, fault, "fault high in Held")
+        pulse(wired, "reset_input")
+        message = line.message("refused Reset from digital input DI1")
         assert "not valid in Held" in message and line.state()["state_name"] == "Held"
         assert line.command("stop").status_code == 200  # the line's own Stop: no fault
-        outputs(0, "every output low in Stopped after the line's Stop")
+        outputs(peer, 0, "every output low in Stopped after the line's Stop")
         # in Manual mode a trigger starts nothing: not ready
-        pulse(reset)
-        outputs(ready, "ready high in Idle")
+        pulse(wired, "reset_input")
+        outputs(peer, ready, "ready high in Idle")
         line.client.post("/api/v1/line/mode", json={"mode": "manual"}, headers=line.auth("line"))
-        outputs(0, "ready low in Manual mode")
+        outputs(peer, 0, "ready low in Manual mode")

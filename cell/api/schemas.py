@@ -304,6 +304,8 @@ class LineDioOut(BaseModel):
 
     connected: bool
     simulated: bool
+    sampled_s: float | None = Field(description="when the device sampled the inputs the levels were counted "
+                                                "from [s, on its clock: a UR controller's RTDE timestamp]")
     inputs: list[LineDioPinOut]
     outputs: list[LineDioPinOut]
 

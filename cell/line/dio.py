@@ -15,8 +15,11 @@ outputs; optionally a second input and two more outputs). The pins are the arm s
 - ``ready_output`` and ``fault_output`` (optional; :func:`output_levels`): ready is high in Idle in
   Production mode (a trigger starts a part); fault is high in Held, and in the Stopped and Aborted
   branches for a stop the line did not command (:data:`cell.line.packml.ORDINARY_STOPS`), until Reset.
-- An input is debounced: a new level counts once it has held for ``line.dio.debounce_s``. The level found
-  at start is the baseline, not an edge (a trigger left high does not start a scan on a restart).
+- An input is debounced: a new level counts once it has held for ``line.dio.debounce_s``, on the clock of
+  the device that sampled it (the UR controller's RTDE timestamp): a sample the service reads late or
+  twice (it, or its RTDE link, descheduled on a loaded PC) does not stretch a bounce into a level. The
+  level found at start is the baseline, not an edge (a trigger left high does not start a scan on a
+  restart).
 
 A thread of its own polls the inputs at ``line.dio.poll_hz`` and writes the outputs when they change,
 through :class:`drivers.arm.ur_io.URDigitalIO` (a UR5e) or :class:`drivers.arm.sim_io.SimDigitalIO` (a sim
@@ -32,7 +35,6 @@ import concurrent.futures
 import contextlib
 import logging
 import threading
-import time
 from collections.abc import AsyncIterator, Coroutine
 from dataclasses import dataclass
 from typing import Any
@@ -115,10 +117,13 @@ class Signal:
 @dataclass(frozen=True)
 class DigitalLevels:
     """What :meth:`DigitalIOHandshake.levels` says: whether the link is ``connected``, whether the I/O is
-    ``simulated`` (a sim cell's, whose inputs may be set), and each wired input and output."""
+    ``simulated`` (a sim cell's, whose inputs may be set), the device's time of the inputs' sample the
+    levels were counted from (``sampled_s`` [s, the controller's RTDE timestamp; a sim cell's: the
+    service's monotonic clock]; None before the link connected), and each wired input and output."""
 
     connected: bool
     simulated: bool
+    sampled_s: float | None
     inputs: tuple[Signal, ...]
     outputs: tuple[Signal, ...]
 
@@ -155,6 +160,7 @@ class DigitalIOHandshake:
         self._wanted: list[tuple[int, bool]] = self._outputs(line.snapshot())
         self._written: list[tuple[int, bool]] | None = None
         self._seen: dict[int, bool] | None = None  # the debounced inputs by index, once connected
+        self._sampled_s: float | None = None  # the device's time of the sample they were counted from
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="line digital io", daemon=True)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -181,7 +187,7 @@ class DigitalIOHandshake:
         seen, written = self._seen, self._written
         wrote = dict(written) if written is not None else {}
         return DigitalLevels(
-            connected=seen is not None, simulated=self.simulated is not None,
+            connected=seen is not None, simulated=self.simulated is not None, sampled_s=self._sampled_s,
             inputs=tuple(Signal(name, index, None if seen is None else seen[index])
                          for name, index in self._inputs.items()),
             outputs=tuple(Signal(name, index, wrote.get(index)) for name, index in self._pins.items()))
@@ -205,7 +211,7 @@ class DigitalIOHandshake:
             try:
                 if trigger is None:
                     self._io.connect()
-                    levels = self._io.inputs()
+                    levels, _ = self._io.inputs()
                     trigger = Debouncer(levels[self._trigger], self._config.debounce_s)
                     if self._reset is not None:
                         reset = Debouncer(levels[self._reset], self._config.debounce_s)
@@ -215,7 +221,7 @@ class DigitalIOHandshake:
                 if wanted != self._written:
                     self._io.set_outputs(wanted)
                     self._written = wanted
-                levels, now = self._io.inputs(), time.monotonic()
+                levels, now = self._io.inputs()  # now: the device's clock [s]
                 edge = trigger.update(levels[self._trigger], now)
                 if edge is not None:
                     self._post(self._trigger_edge(edge))
@@ -225,6 +231,7 @@ class DigitalIOHandshake:
                 self._seen = {self._trigger: trigger.level}
                 if reset is not None and self._reset is not None:
                     self._seen[self._reset] = reset.level
+                self._sampled_s = now
             except DriverError as exc:
                 log.error("line: digital I/O: %s; connecting again in %g s", exc, RECONNECT_S)
                 self._io.close()

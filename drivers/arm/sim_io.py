@@ -10,6 +10,7 @@ REST (``cell line dio``), to try the handshake before the robot arrives.
 from __future__ import annotations
 
 import threading
+import time
 from typing import Protocol
 
 from drivers.arm.config import DIGITAL_PINS
@@ -23,8 +24,10 @@ class DigitalIO(Protocol):
 
     def close(self) -> None: ...
 
-    def inputs(self) -> tuple[bool, ...]:
-        """The inputs' levels, DI0 first."""
+    def inputs(self) -> tuple[tuple[bool, ...], float]:
+        """The inputs' levels, DI0 first, and when the device sampled them [s, on the device's own clock]:
+        a debounce filter measures how long a level held on that clock, so that a sample read late, or
+        read again, does not stretch a short pulse into a level."""
         ...
 
     def set_outputs(self, outputs: list[tuple[int, bool]]) -> None:
@@ -48,9 +51,10 @@ class SimDigitalIO:
     def close(self) -> None:
         """Nothing to close (see :meth:`connect`)."""
 
-    def inputs(self) -> tuple[bool, ...]:
+    def inputs(self) -> tuple[tuple[bool, ...], float]:
+        """The levels and the time they are read at (``time.monotonic``: they live here, read now)."""
         with self._lock:
-            return tuple(self._inputs)
+            return tuple(self._inputs), time.monotonic()
 
     def set_outputs(self, outputs: list[tuple[int, bool]]) -> None:
         with self._lock:

@@ -39,11 +39,13 @@ class URDigitalIO:
             self._proc.close()
             self._proc = None
 
-    def inputs(self) -> tuple[bool, ...]:
-        """The eight standard digital inputs, DI0 first."""
+    def inputs(self) -> tuple[tuple[bool, ...], float]:
+        """The eight standard digital inputs, DI0 first, and when the controller sampled them: its RTDE
+        ``timestamp`` [s since the controller started]. A sample read again (no newer package arrived,
+        this process or its RTDE child having been descheduled) carries its old time."""
         snapshot = self._call("snapshot", False, timeout_s=REPLY_TIMEOUT_S)
         assert isinstance(snapshot, dict)
-        return bits(int(snapshot["digital_inputs"]))
+        return bits(int(snapshot["digital_inputs"])), float(snapshot["timestamp"])
 
     def set_outputs(self, outputs: list[tuple[int, bool]]) -> None:
         """Set standard digital outputs ``[(index, level), ...]``; ``DriverError`` when one is refused."""

@@ -92,6 +92,11 @@ class ControllerPeer:
     def set_digital_input(self, index: int, value: bool) -> None:
         self.call("digital_input", index=index, value=value)
 
+    def pulse_digital_input(self, index: int, duration_s: float) -> float:
+        """Input ``index`` high for ``duration_s`` of the controller's time (its RTDE timestamp); returns
+        when it falls, on that clock [s]."""
+        return float(self.call("digital_pulse", index=index, duration_s=duration_s)["ends_s"])
+
     def drop_clients(self) -> None:
         self.call("disconnect")
 

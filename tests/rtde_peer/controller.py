@@ -19,7 +19,8 @@ It listens on one address (``127.0.0.N``) on the controller's fixed ports:
   and answered with 1. Command 255 ends the program.
 - 30099 (peer only, not a UR port): a JSON-line control channel for tests and for people, which injects
   a protective stop, an emergency stop (and its release), a disconnect (every client socket closed),
-  digital input changes, and reports the state and the commands received.
+  digital input changes and pulses timed on the controller's clock, and reports the state and the
+  commands received.
 
 Motion: a kinematic UR5e (the project's nominal model) integrated every tick over the wall-clock time
 since the previous one (the cycle is 2 ms; a late one integrates what passed, up to ``MAX_STEP_S``):
@@ -151,6 +152,7 @@ class Controller:
         self.input_updated: dict[str, float] = {}  # controller time of each input's last write [s]
         self.cycle_s = 0.0  # the controller's time as its cycles count it (module docstring) [s]
         self.digital_in = 0
+        self.pulse_ends: dict[int, float] = {}  # input index -> when its pulse falls [s, now()'s clock]
         self.digital_out = 0
         self.robot_mode = ROBOT_MODE_RUNNING
         self.safety_mode = SAFETY_NORMAL
@@ -338,6 +340,7 @@ class Controller:
 
     def tick(self, dt: float) -> None:
         with self.lock:
+            self._end_pulses()
             self.cycle_s += min(dt, MAX_WATCHDOG_STEP_S)
             if self.release_at is not None and self.now() >= self.release_at:
                 self.release_at = None
@@ -375,13 +378,36 @@ class Controller:
 
     def set_digital_input(self, index: int, value: bool) -> None:
         with self.lock:
-            bit = 1 << index
-            self.digital_in = (self.digital_in | bit) if value else (self.digital_in & ~bit)
+            self.pulse_ends.pop(index, None)
+            self._set_input(index, value)
+
+    def pulse_digital_input(self, index: int, duration_s: float) -> float:
+        """Raise input ``index`` now and let it fall ``duration_s`` later, on this controller's clock (the
+        RTDE ``timestamp``, ``now()``): a test process descheduled meanwhile does not stretch the pulse.
+        Returns when it falls [s, that clock]."""
+        with self.lock:
+            self._set_input(index, True)
+            self.pulse_ends[index] = self.now() + duration_s
+            return self.pulse_ends[index]
+
+    def _set_input(self, index: int, value: bool) -> None:
+        bit = 1 << index
+        self.digital_in = (self.digital_in | bit) if value else (self.digital_in & ~bit)
+
+    def _end_pulses(self) -> None:
+        """Let each pulse whose time is up fall (with the lock held): before every cycle and every data
+        package, so that no package stamped after a pulse's end shows it high."""
+        now = self.now()
+        for index, end in list(self.pulse_ends.items()):
+            if now >= end:
+                del self.pulse_ends[index]
+                self._set_input(index, False)
 
     # ------------------------------------------------------------------ outputs
 
     def output_values(self, names: list[str]) -> list[object]:
         with self.lock:
+            self._end_pulses()
             T = self.tcp_T()
             J = self.model.jacobian(self.q)
             v_flange = J @ self.qd
@@ -721,6 +747,9 @@ class PeerServer:
             ctl.release_emergency_stop()
         elif op == "digital_input":
             ctl.set_digital_input(int(req["index"]), bool(req["value"]))
+        elif op == "digital_pulse":
+            ends_s = ctl.pulse_digital_input(int(req["index"]), float(req["duration_s"]))
+            return {"ok": True, "ends_s": ends_s}
         elif op == "remote_control":
             with ctl.lock:
                 ctl.remote_control = bool(req["value"])
