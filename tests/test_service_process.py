@@ -416,7 +416,9 @@ def test_stop_holds_the_queue_until_an_operator_resumes_it(franka: ServedCell) -
         time.sleep(1.0)  # what would start it starts at once: a second is ample
         assert get_job(franka, job["id"])["status"] == "queued"
         assert viewer.get("/api/v1/cell").json()["job"] is None
-        assert viewer.post("/api/v1/queue/resume").status_code == 403  # resuming is an operator's
+        refused = viewer.post("/api/v1/queue/resume")  # resuming is an operator's, and says so by its name
+        assert (refused.status_code, refused.json()["detail"]) == (
+            403, "a viewer key may not recover the arm or resume the queue")  # was "may not recover the arm"
     with franka.client("operator") as operator:
         resumed = operator.post("/api/v1/queue/resume")
     assert resumed.status_code == 200 and resumed.json()["queue"]["held"] is None

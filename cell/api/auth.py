@@ -40,9 +40,11 @@ def key_record(ring: KeyRing, credentials: HTTPAuthorizationCredentials | None) 
 
 
 # What each permission lets a key do, in the 403's words ("an operator key may not drive the line").
+# RECOVER guards both the arm's recovery and the queue's resume: a viewer's resume was told it "may not
+# recover the arm", which reads as if the request had gone to the wrong place.
 ACTIONS: dict[Permission, str] = {
     Permission.READ: "read the cell and its jobs", Permission.STOP: "stop", Permission.SUBMIT: "submit",
-    Permission.CANCEL: "cancel a queued job", Permission.RECOVER: "recover the arm",
+    Permission.CANCEL: "cancel a queued job", Permission.RECOVER: "recover the arm or resume the queue",
     Permission.UPLOAD: "upload an object", Permission.LINE: "drive the line",
     Permission.MODE: "switch the line's unit mode", Permission.KEYS: "manage keys",
     Permission.PURGE: "purge jobs", Permission.KEEP: "keep a job from retention",
