@@ -52,6 +52,11 @@ function packing(p) {
   ]));
 }
 
+/** A count of clamps in words, "787 times": result.json's safety.clamps count how often the guard applied
+ *  a limit (mostly a command scaled down at a control tick), and "×787" read as a factor, as if a limit
+ *  had been exceeded 787-fold. */
+const times = (n) => `${n} ${n === 1 ? "time" : "times"}`;
+
 // how the reason of a stop someone asked for begins (drivers/errors.py): not the guard's doing
 const OPERATOR_STOP = "operator stop: ";
 
@@ -65,7 +70,9 @@ function safety(s) {
     ...(s.refusals ?? []).map((e) => `motion refused at ${fmt(e.t, 2, "s")}: ${e.reason}`),
   ];
   return h("div", { id: "safety" }, h("h3", {}, "Safety"),
-    h("p", {}, clamps.length ? `Limits applied: ${clamps.map(([k, n]) => `${k.replaceAll("_", " ")} ×${n}`).join(", ")}.` : "No limit was applied."),
+    h("p", {}, clamps.length
+      ? `Limits applied: ${clamps.map(([k, n]) => `${k.replaceAll("_", " ")} ${times(n)}`).join(", ")}.`
+      : "No limit was applied."),
     events.length ? h("ul", {}, events.map((e) => h("li", {}, e))) : h("p", {}, "No stop and no refused motion."));
 }
 
