@@ -38,6 +38,7 @@ function header(job) {
       ["Seed", job.seed], ["Time budget", job.max_time_s === null ? "the cell's" : fmt(job.max_time_s, 0, "s")], ["Part id", job.part_id ?? "–"],
       ["Submitted", `${when(job.created_at)}${job.submitted_by ? ` by ${job.submitted_by}` : ""}`]]
       .map(([name, value]) => h("div", {}, h("dt", {}, name), h("dd", {}, value)))),
+    h("p", { class: "held-note", id: "job-waiting", role: "status" }),
     h("div", { class: "job-actions" }),
     h("p", { class: "outcome", id: "job-stop-outcome", role: "status" }));
 }
@@ -107,12 +108,22 @@ export function showJob(main, context, jobId) {
     else link.textContent = LINK_TEXT[linkState];
   }
 
+  /** Why a queued job does not start, when the cell says its queue is held (a STOP, an arm fault, a
+   *  dead worker): the job view said only "queued", and a job submitted after a STOP seemed to hang. */
+  function showWaiting() {
+    const note = document.getElementById("job-waiting");
+    if (!note) return;
+    const held = status === "queued" ? context.status?.queue?.held : null;
+    note.textContent = held ? `Waiting: the queue is held (${held}).` : "";
+  }
+
   function stopButton() {
-    const button = h("button", { type: "button", class: "warn", id: "job-stop" }, "Stop this job");
+    const button = h("button", { type: "button", class: "warn", id: "job-stop" });
     button.addEventListener("click", async () => {
       button.disabled = true;
       const outcome = document.getElementById("job-stop-outcome");
-      outcome.textContent = "Stopping the job: waiting for the cell's answer…";
+      const doing = status === "queued" ? "Cancelling" : "Stopping";
+      outcome.textContent = `${doing} the job: waiting for the cell's answer…`;
       outcome.dataset.settled = "false";
       try {
         const answer = await api(`${base}/stop`, { method: "POST", json: { reason: "stopped on the operator's page" } });
@@ -139,6 +150,9 @@ export function showJob(main, context, jobId) {
     // stopping one's worker has taken a stop already
     const stoppable = status === "running" || (status === "queued" && context.can("cancel"));
     if (stoppable && !actions.firstChild) actions.append(stopButton());
+    // a queued job's stop cancels it (it never moved the arm): the button says what it will do
+    if (stoppable) actions.firstChild.textContent = status === "queued" ? "Cancel this job" : "Stop this job";
+    showWaiting();
     if (!stoppable) {
       actions.replaceChildren();
       // a stop that failed or got no answer (the cell was away) says nothing of a job that has ended since
@@ -201,6 +215,7 @@ export function showJob(main, context, jobId) {
     showLink();
   };
   window.addEventListener("cell:stale", onStale);
+  const unlisten = context.onStatus(showWaiting); // the queue held or resumed meanwhile
 
   (base === null ? Promise.reject(new ApiError(404, `no job ${jobId}`)) : api(base)).then((job) => {
     if (!alive) return;
@@ -235,6 +250,7 @@ export function showJob(main, context, jobId) {
     unfollow();
     stopCloud();
     window.removeEventListener("cell:stale", onStale);
+    unlisten();
     view.dispose();
   };
 }
