@@ -243,7 +243,8 @@ def test_a_viewer_may_watch_and_stop_but_is_offered_no_scan(open_page: Callable[
 def test_a_queued_job_offers_its_stop_only_to_a_key_that_may_cancel(open_page: Callable[..., Page],
                                                                      cell: ServedCell) -> None:
     """A queued job's stop cancels it: the page offered "Stop this job" on one to a viewer, whose key may
-    not cancel (the API answers that stop 403)."""
+    not cancel (the API answers that stop 403), and to an operator as a stop, not as the cancel it is. A
+    job waiting in a held queue says so and why (it showed "queued" alone, as if it hung)."""
     with cell.client("operator") as client:
         assert client.post("/api/v1/stop", json={"reason": "a queued job"}).status_code == 200
         job_id = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 1.0}).json()["id"]
@@ -253,6 +254,10 @@ def test_a_queued_job_offers_its_stop_only_to_a_key_that_may_cancel(open_page: C
             page.goto(f"{page.url.split('#')[0]}#/jobs/{job_id}")
             wait_for(page, "document.getElementById('job-status')?.textContent === 'queued'")
             assert page.locator("#job-stop").count() == offered, role
+            wait_for(page, f"{text_js('job-waiting')}.startsWith('Waiting: the queue is held')")
+            assert "a queued job" in page.text_content("#job-waiting"), role  # the hold's reason
+        assert page.text_content("#job-stop") == "Cancel this job"
+        shot(page, "job-queued-held")
     finally:
         with cell.client("operator") as client:
             assert client.delete(f"/api/v1/jobs/{job_id}").status_code == 200
@@ -560,6 +565,21 @@ def test_a_live_vs_local_scan_survives_a_cut_and_the_stop_key_stops_it(
     page.click("#resume")
     page.wait_for_selector("#resume", state="hidden")
     assert read(cell, "/api/v1/cell")["queue"]["held"] is None
+
+
+def test_the_safety_section_counts_the_limits_applied_in_times_not_as_factors(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """result.json's ``safety.clamps`` count how often a limit was applied: the page wrote them
+    "tcp acceleration ×787", which reads as a limit exceeded 787-fold."""
+    with cell.client("operator") as client:
+        job = client.post("/api/v1/jobs", json={"object": "bunny", "max_time_s": 5.0}).json()
+    clamps = cell.wait_job(job["id"], ENDED)["result"]["safety"]["clamps"]
+    assert clamps, "a vs-local scan whose limits were never applied: nothing to show"
+    page = open_page("operator")
+    page.goto(f"{page.url.split('#')[0]}#/jobs/{job['id']}")
+    page.wait_for_selector("#safety")
+    counts = ", ".join(f"{kind.replace('_', ' ')} {n} {'time' if n == 1 else 'times'}" for kind, n in clamps.items())
+    assert page.text_content("#safety p") == f"Limits applied: {counts}."  # its first paragraph
 
 
 def test_the_pages_fit_a_1024x768_tablet(open_page: Callable[..., Page], cell: ServedCell) -> None:
