@@ -258,9 +258,13 @@ def test_a_queued_job_offers_its_stop_only_to_a_key_that_may_cancel(open_page: C
             assert "a queued job" in page.text_content("#job-waiting"), role  # the hold's reason
         assert page.text_content("#job-stop") == "Cancel this job"
         shot(page, "job-queued-held")
+        page.click("#job-stop")  # its reason says what was done: it was "stopped on the operator's page"
+        wait_for(page, "document.getElementById('job-status').textContent === 'cancelled'")
+        assert "cancelled on the operator's page" in page.text_content("#job-termination")
     finally:
         with cell.client("operator") as client:
-            assert client.delete(f"/api/v1/jobs/{job_id}").status_code == 200
+            if client.get(f"/api/v1/jobs/{job_id}").json()["status"] == "queued":  # the test failed before
+                assert client.delete(f"/api/v1/jobs/{job_id}").status_code == 200
             assert client.post("/api/v1/queue/resume").status_code == 200
 
 

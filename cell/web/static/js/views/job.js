@@ -122,15 +122,15 @@ export function showJob(main, context, jobId) {
     button.addEventListener("click", async () => {
       button.disabled = true;
       const outcome = document.getElementById("job-stop-outcome");
-      const doing = status === "queued" ? "Cancelling" : "Stopping";
-      outcome.textContent = `${doing} the job: waiting for the cell's answer…`;
+      const cancel = status === "queued";
+      outcome.textContent = `${cancel ? "Cancelling" : "Stopping"} the job: waiting for the cell's answer…`;
       outcome.dataset.settled = "false";
       try {
-        const answer = await api(`${base}/stop`, { method: "POST", json: { reason: "stopped on the operator's page" } });
+        const answer = await api(`${base}/stop`, { method: "POST", json: { reason: `${cancel ? "cancelled" : "stopped"} on the operator's page` } });
         outcome.textContent = answer.message;
         outcome.dataset.settled = "true";
       } catch (error) {
-        outcome.textContent = `Stop failed: ${describe(error)}`;
+        outcome.textContent = `${cancel ? "Cancel" : "Stop"} failed: ${describe(error)}`;
       } finally {
         button.disabled = false;
       }
