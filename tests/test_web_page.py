@@ -630,6 +630,21 @@ def test_the_jobs_table_follows_its_jobs_while_it_is_shown(open_page: Callable[.
     assert read_again == []
 
 
+def test_a_part_id_filter_that_matches_nothing_says_a_part_id_is_matched_whole(
+        open_page: Callable[..., Page]) -> None:
+    """The API matches ``part_id`` whole: an operator who typed the start of an id ("crate" for
+    "crate-17") was told only "No job matches.", as if the part had never been scanned."""
+    page = open_page("operator")
+    page.click("nav a[href='#/jobs']")
+    page.fill("#filter-part", "crat")
+    page.click("form.filters button[type=submit]")
+    page.wait_for_url(re.compile(r"#/jobs\?part_id=crat$"))
+    wait_for(page, "document.querySelector('.pager span')?.textContent === '0 jobs'")  # the page is in
+    assert page.text_content("table.jobs tbody td") == ('No job matches. A part id is matched whole, not in '
+                                                        'part: "crat" finds the jobs of exactly that id.')
+    assert page.get_attribute("#filter-part", "placeholder") == "the whole id"  # said before asking, too
+
+
 def test_a_cell_busy_with_large_answers_is_waited_for_and_said_busy_not_failed(
         open_page: Callable[..., Page]) -> None:
     """A list refused 503 with a Retry-After (the cell's queue of large answers is full, cell/api/bulk.py:

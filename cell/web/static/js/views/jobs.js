@@ -45,7 +45,10 @@ export function showJobs(main, context, params) {
   const status = h("select", { id: "filter-status", name: "status" }, h("option", { value: "" }, "any"),
     STATUSES.map((s) => h("option", { value: s, selected: s === filters.status }, s)));
   const planner = h("select", { id: "filter-planner", name: "planner" }, h("option", { value: "" }, "any"));
-  const part = h("input", { id: "filter-part", name: "part_id", type: "search", value: filters.part_id });
+  // the API matches a part id whole (GET /api/v1/jobs?part_id=): "crate" finds no "crate-17", and an
+  // empty table said only "No job matches.", as if the part had never been scanned
+  const part = h("input", { id: "filter-part", name: "part_id", type: "search", value: filters.part_id,
+    placeholder: "the whole id" });
   const form = h("form", { class: "filters", role: "search", "aria-label": "Filter jobs" },
     h("label", { for: "filter-status" }, "Status"), status,
     h("label", { for: "filter-planner" }, "Planner"), planner,
@@ -79,7 +82,10 @@ export function showJobs(main, context, params) {
   let loaded = false;
 
   function showPage(page) {
-    replace(body, page.items.length ? page.items.map(row) : h("tr", {}, h("td", { colspan: 10 }, "No job matches.")));
+    const none = filters.part_id
+      ? `No job matches. A part id is matched whole, not in part: "${filters.part_id}" finds the jobs of exactly that id.`
+      : "No job matches.";
+    replace(body, page.items.length ? page.items.map(row) : h("tr", {}, h("td", { colspan: 10 }, none)));
     const last = Math.min(page.offset + page.items.length, page.total);
     // past the last page (an old bookmark, jobs purged since): say so, and Newer leads to the last page
     const lastPage = Math.max(0, Math.floor((page.total - 1) / PAGE) * PAGE);
