@@ -776,6 +776,21 @@ def test_a_job_the_restarted_service_ended_is_shown_ended_and_nothing_is_polled_
         assert polled == []
 
 
+def test_a_stops_word_that_the_queue_is_held_gives_way_once_it_is_resumed_elsewhere(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """The STOP's outcome says the queue is held; resumed from elsewhere (``cell jobs resume``, another
+    page), the bar went on saying so for the rest of the shift, beside a queue shown running."""
+    page = open_page("operator")
+    page.click("#stop")
+    wait_for(page, f"{text_js('stop-outcome')}.startsWith('STOP:')")
+    assert "the queue is held" in page.text_content("#stop-outcome")
+    with cell.client("operator") as client:
+        assert client.post("/api/v1/queue/resume").status_code == 200
+    # the bar's queue and the outcome come from the same poll of the status
+    wait_for(page, f"!{text_js('st-queue')}.includes('held')")
+    assert page.text_content("#stop-outcome") == "The queue runs again."
+
+
 def test_a_refused_stop_stays_said_with_the_cells_answer_until_dismissed_or_a_stop_succeeds(
         open_page: Callable[..., Page], cell: ServedCell) -> None:
     """STOP answered 503 while the status polls failed too: the failure says the cell answered, with

@@ -13,6 +13,7 @@ const STALE_MS = 3000; // a status older than this is said to be old, with its a
  *  (service.stop_confirm_timeout_s, 2 s by default); past it the page says that it does not know. */
 const STOP_TIMEOUT_MS = 10_000;
 const STOP_REASON = "STOP on the operator's page";
+const QUEUE_RUNS = "The queue runs again."; // a held queue resumed, whoever resumed it
 const ARM_TONE = {
   idle: "ok", moving: "busy", "protective stop": "bad", "emergency stop": "bad", fault: "bad", disconnected: "bad",
 };
@@ -101,6 +102,7 @@ function stopControl() {
   const button = $("stop");
   let pending = null; // {controller, ticker} of the STOP waiting for its answer
   let failed = null; // the failure shown: {text}, and {answersAgain} once the cell answered since
+  let heldSaid = null; // when the outcome shown began to say that the STOP holds the queue [ms], else null
 
   const settle = () => {
     if (!pending) return;
@@ -141,6 +143,7 @@ function stopControl() {
       if (pending !== mine) return;
       dismiss();
       $("stop-outcome").textContent = stopped(answer);
+      heldSaid = answer.queue_held ? Date.now() : null;
       window.dispatchEvent(new Event("cell:changed"));
     } catch (error) {
       if (pending !== mine) return; // given up for a newer press
@@ -158,7 +161,17 @@ function stopControl() {
     showFailure();
   }
 
-  return { press, cellAnswers, settle, dismiss };
+  /** The cell's queue as a status asked for at `askedAt` [ms] says it (`held`: its reason, or null): a
+   *  STOP's outcome that says the queue is held is replaced once it runs again, whoever resumed it (the
+   *  bar's button, `cell jobs resume`, another page); it said "held" for the rest of the shift. A status
+   *  asked for before the STOP's answer came says nothing of the hold. */
+  function queueNow(held, askedAt) {
+    if (heldSaid === null || held || askedAt <= heldSaid) return;
+    heldSaid = null;
+    $("stop-outcome").textContent = QUEUE_RUNS;
+  }
+
+  return { press, cellAnswers, settle, dismiss, queueNow };
 }
 
 /** Start polling the cell (at once again on a "cell:changed" event: a job ended, a button acted) and wire
@@ -194,12 +207,14 @@ export function startStatus(context) {
     busy = true;
     clearTimeout(timer);
     try {
+      const askedAt = Date.now();
       const status = await api("/api/v1/cell", { timeoutMs: POLL_TIMEOUT_MS });
       const wasAway = lastError !== "" || Date.now() - lastAnswer > STALE_MS;
       lastAnswer = Date.now();
       lastError = "";
       context.status = status;
       render(status, context);
+      stopping.queueNow(status.queue.held, askedAt);
       age();
       if (wasAway) stopping.cellAnswers();
       for (const listener of context.listeners) listener(status);
@@ -223,7 +238,7 @@ export function startStatus(context) {
   const stop = () => stopping.press();
   const recover = () => act($("recover"), "Recover", "/api/v1/arm/recover", undefined,
     (answer) => `Recover: ${answer.message}`);
-  const resume = () => act($("resume"), "Resume", "/api/v1/queue/resume", undefined, () => "The queue runs again.");
+  const resume = () => act($("resume"), "Resume", "/api/v1/queue/resume", undefined, () => QUEUE_RUNS);
   const switchMode = () => act($("line-mode"), "Line mode switch", "/api/v1/line/mode", { mode: $("line-mode").dataset.mode },
     (answer) => `Line: ${answer.message}`);
   const logout = () => context.logout("");
