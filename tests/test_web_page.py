@@ -582,7 +582,8 @@ def test_the_safety_section_counts_the_limits_applied_in_times_not_as_factors(
     page = open_page("operator")
     page.goto(f"{page.url.split('#')[0]}#/jobs/{job['id']}")
     page.wait_for_selector("#safety")
-    counts = ", ".join(f"{kind.replace('_', ' ')} {n} {'time' if n == 1 else 'times'}" for kind, n in clamps.items())
+    counts = ", ".join(f"{kind.replace('_', ' ')} {n} {'time' if n == 1 else 'times'}"
+                       for kind, n in clamps.items())
     assert page.text_content("#safety p") == f"Limits applied: {counts}."  # its first paragraph
 
 
