@@ -31,7 +31,8 @@ against its scan time, a panel per group: a curve as the scan went on for a re-p
 job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, with
 the packing section, ``fig3.png`` (the packing paper's Fig. 3: the box's L, W, H with the ground truth marked
 in sim, IoU, packing coverage, poses and useless poses per planner, mean and standard error, a column per
-group). Each axis says whether higher or lower is better.
+group). Each axis says whether higher or lower is better; a planner has one colour in every panel of
+both figures (:func:`planner_colours`).
 """
 
 from __future__ import annotations
@@ -325,11 +326,24 @@ def _panels(gs: Sequence[Group], rows: int, width: float, height: float) -> tupl
     return fig, [[axes[(i // columns) * rows + r, i % columns] for r in range(rows)] for i in range(len(gs))]
 
 
-def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> None:
+def planner_colours(gs: Sequence[Group]) -> dict[str, str]:
+    """One colour per planner of the groups, in the order first met (matplotlib's ``C0``, ``C1``, ...),
+    the same in every panel of both figures: a planner's place in one group's legend (another group may
+    lack a planner whose scans all failed) must not give it another group's colour, nor may the bars
+    under a legend take a colour of their own."""
+    planners = dict.fromkeys(p for g in gs for p in g.by_planner)
+    return {planner: f"C{n % 10}" for n, planner in enumerate(planners)}
+
+
+def fig5_figure(gs: Sequence[Group], timelines: dict[RowId, Timeline]) -> Figure:
+    """``fig5.png``: per group, Chamfer distance [mm] (top) and coverage [%] (bottom) against scan time
+    [s], a dot where each scan ended and a curve per re-processed scan's timeline, each planner in its
+    colour (:func:`planner_colours`), Table I's coverage dashed."""
     fig, panels = _panels(gs, 2, 4.0, 3.0)
+    colours = planner_colours(gs)
     for g, (top, bottom) in zip(gs, panels, strict=True):
-        for n, (planner, rs) in enumerate(g.by_planner.items()):
-            colour = f"C{n}"
+        for planner, rs in g.by_planner.items():
+            colour = colours[planner]
             for ax, column in ((top, "chamfer_mm"), (bottom, "coverage_pct")):
                 pairs = [(t, v) for r in rs if (t := value(r, "scan_time_s")) is not None
                          and (v := value(r, column)) is not None]
@@ -346,7 +360,7 @@ def _fig5(gs: Sequence[Group], timelines: dict[RowId, Timeline], path: Path) -> 
         bottom.set_xlabel("scan time [s]")
         top.legend(fontsize="small")
     fig.tight_layout()
-    _save(fig, path)
+    return fig
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -363,16 +377,19 @@ def _means_and_errors(values: Sequence[Sequence[float]]) -> tuple[list[float], l
     return means, errors if any(errors) else None
 
 
-def _bars(gs: Sequence[Group], path: Path) -> None:
-    """The packing paper's Fig. 3 per group: the box dimensions L, W, H per planner, then each of
-    ``PACKING``, as mean bars with standard errors; a figure's bars for the planners that have it."""
+def fig3_figure(gs: Sequence[Group]) -> Figure:
+    """``fig3.png``, the packing paper's Fig. 3 per group: the box dimensions L, W, H per planner, then
+    each of ``PACKING``, as mean bars with standard errors; a figure's bars for the planners that have
+    it, each planner's in its colour (:func:`planner_colours`), the one of the box panel's legend."""
     fig, panels = _panels(gs, len(PACKING) + 1, 3.5, 11.0 / (len(PACKING) + 1))
+    colours = planner_colours(gs)
     for g, (box, *others) in zip(gs, panels, strict=True):
         planners = list(g.by_planner)
         width = 0.8 / len(planners)
         for n, planner in enumerate(planners):
             means, errors = _means_and_errors([dims(g.by_planner[planner], k) for k in range(3)])
-            box.bar(np.arange(3) + n * width, means, width, yerr=errors, capsize=3, label=planner)
+            box.bar(np.arange(3) + n * width, means, width, yerr=errors, capsize=3, label=planner,
+                    color=colours[planner])
         if (true_lwh := truth([r for rs in g.by_planner.values() for r in rs])) is not None:
             # the ground truth across each dimension's bars
             box.hlines(true_lwh, np.arange(3) - width / 2.0, np.arange(3) + width * (len(planners) - 0.5),
@@ -385,11 +402,11 @@ def _bars(gs: Sequence[Group], path: Path) -> None:
         for ax, (column, heading, _) in zip(others, PACKING, strict=True):
             having = [p for p in planners if figures(g.by_planner[p], column)]
             means, errors = _means_and_errors([figures(g.by_planner[p], column) for p in having])
-            ax.bar(having, means, yerr=errors, capsize=3)
+            ax.bar(having, means, yerr=errors, capsize=3, color=[colours[p] for p in having])
             ax.set_ylabel(f"{heading},\n{better(column)} is better")
         box.set_title(g.label, pad=20.0)
     fig.tight_layout()
-    _save(fig, path)
+    return fig
 
 
 def _brackets(gs: Sequence[Group]) -> str:
@@ -471,7 +488,7 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
                f"{_directions(RECONSTRUCTION)}", "",
                *reconstruction_table(gs, limits), "",
                f"![coverage and Chamfer against scan time]({FIG5})", ""]
-        _fig5(gs, timelines or {}, out / FIG5)
+        _save(fig5_figure(gs, timelines or {}), out / FIG5)
         measured = any(r["iou"] for g in gs for rs in g.by_planner.values() for r in rs)
         if measured and not packing:
             md += ["The packing figures of these scans (the LR-NBV paper's Fig. 3: box, IoU, surface "
@@ -484,7 +501,7 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
                    f"sensor's error model, the one the container is chosen for (`containers`: how many "
                    f"scans chose each). {_directions(PACKING)}", "",
                    *packing_table(gs), "", f"![packing figures per planner]({FIG3})", ""]
-            _bars(gs, out / FIG3)
+            _save(fig3_figure(gs), out / FIG3)
         tests, too_small = tests_table(gs, packing)
         md += ["## Mann-Whitney U between planners", "", *tests, "", *_tests_note(too_small)]
     unfinished = [r for r in rows if r["status"] not in MEASURED]
