@@ -1,13 +1,20 @@
-"""The report's figures (fig5.png, fig3.png): a planner keeps one colour in every panel."""
+"""The evaluation report as a reader compares planners on it: a planner keeps one colour in every panel
+of fig5.png and fig3.png, and the scans a time budget cut short are named."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
 
-from cell.evaluation.report import fig3_figure, fig5_figure, groups
+from cell.evaluation.report import fig3_figure, fig5_figure, groups, write_report
+from cell.evaluation.results import row_from_result
+from cell.evaluation.spec import ScanSpec
 from tests.result_rows import result_row
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "sim-ur5e-tof.yaml"
 
 
 def _rows() -> list[dict[str, str]]:
@@ -53,3 +60,30 @@ def test_a_planner_has_one_colour_in_every_panel_of_both_figures():
     for planner in ("heu", "lr-nbv"):
         assert len(fig3[planner] | fig5[planner]) == 1, (planner, fig3[planner], fig5[planner])
     assert fig3["heu"] != fig3["lr-nbv"]
+
+
+def test_the_report_lists_the_scans_that_their_time_budget_cut_short(tmp_path):
+    """A grid run with --max-time 40: lr-nbv ran out of time (result.json's limit_reached), heu ended on
+    its own; the report said only "2 completed", and the comparison read as of two finished scans."""
+    rows = [result_row("cube", "heu", 0, coverage_pct="1.6000", limit_reached="false",
+                       termination="heu complete: 13 of 13 poses captured, 0 refused"),
+            result_row("cube", "lr-nbv", 0, coverage_pct="3.3000", limit_reached="true",
+                       termination="time budget of 40 s used up"),
+            result_row("cube", "vs-local", 0, status="failed", limit_reached="true", termination="fault")]
+    md = (write_report(rows, tmp_path, {})).read_text()
+    cut = md.split("**Cut short**: ", 1)[1].split("\n\n")
+    assert cut[0].startswith("1 of the 2 scans in the figures ended on a limit of the job")
+    assert cut[1] == "- cube 0,0,0 lr-nbv seed 0: completed: time budget of 40 s used up"
+    # a grid whose scans all ended on their own (or whose folders do not say) has no such paragraph
+    md = write_report([{**r, "limit_reached": flag} for r, flag in zip(rows[:2], ("false", ""), strict=True)],
+                      tmp_path, {}).read_text()
+    assert "Cut short" not in md
+
+
+def test_results_csv_says_whether_a_limit_ended_the_scan():
+    spec = ScanSpec(str(CONFIG), "cube", (0.0, 0.0, 0.0), "lr-nbv", 0)
+    result = {"status": "completed", "termination": "time budget of 40 s used up", "limit_reached": True}
+    assert row_from_result(spec, result)["limit_reached"] == "true"
+    assert row_from_result(spec, {**result, "limit_reached": False})["limit_reached"] == "false"
+    del result["limit_reached"]  # a folder of a release before the flag
+    assert row_from_result(spec, result)["limit_reached"] == ""

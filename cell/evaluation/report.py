@@ -26,6 +26,9 @@ all values tie); beside each test the smallest p its sample sizes can give
 (:func:`smallest_p`), and the report says when that is not below 0.05: such a test cannot find a
 difference whatever the values.
 
+Scans in the figures that their time budget ended before their planner's own termination
+(``limit_reached``) are listed under the counts ("Cut short"): their figures are of a scan cut short.
+
 Figures: ``fig5.png`` (the visual-servoing paper's Fig. 5: each scan's Chamfer distance and coverage
 against its scan time, a panel per group: a curve as the scan went on for a re-processed scan, from its
 job folder's ``result_hires.json``, a dot where each scan ended, Table I's coverage dashed) and, with
@@ -468,6 +471,21 @@ def unfinished_line(row: Row) -> str:
             f"{row['termination']}")
 
 
+def _cut_short(rows: Sequence[Row]) -> list[str]:
+    """The paragraph listing the scans in the figures that a limit of the job (its time budget) ended
+    before their planner's own termination (``limit_reached``), when there are any: their figures are
+    of a scan cut short, and a comparison of planners at a ``--max-time`` shorter than one of them needs
+    is of how far each got, not of where each would have stopped."""
+    cut = [r for r in rows if r["status"] in MEASURED and r.get("limit_reached") == "true"]
+    if not cut:
+        return []
+    return [f"**Cut short**: {len(cut)} of the {sum(r['status'] in MEASURED for r in rows)} scans in the "
+            "figures ended on a limit of the job (its time budget: `--max-time`, or the cell's "
+            "`scan.max_time_s`), not on their planner's own termination; their figures are of a scan cut "
+            "short (`limit_reached` in `results.csv`):", "",
+            *(f"- {unfinished_line(r)}" for r in cut), ""]
+
+
 def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Sequence[str] = (),
                  timelines: dict[RowId, Timeline] | None = None, *, packing: bool = True,
                  packing_radii_m: Sequence[float] = ()) -> Path:
@@ -479,7 +497,7 @@ def write_report(rows: Sequence[Row], out: Path, limits: Limits, title_lines: Se
     gs = groups(rows)
     statuses = sorted({r["status"] for r in rows})
     counts = ", ".join(f"{sum(r['status'] == s for r in rows)} {s}" for s in statuses)
-    md = ["# Evaluation report", "", *title_lines, f"{len(rows)} scans: {counts}.", ""]
+    md = ["# Evaluation report", "", *title_lines, f"{len(rows)} scans: {counts}.", "", *_cut_short(rows)]
     if not gs:
         md += ["No scan ran to its end: no figures.", ""]
     else:

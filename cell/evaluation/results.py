@@ -9,6 +9,9 @@ Columns: ``object`` (its label: a shipped name, else ``name@`` a digest of the m
 ``ScanSpec.object_label``), ``placement`` (x,y,yaw_deg), ``planner``, ``seed``, ``status`` (the job's, or
 ``failed`` for a scan that left no folder, refused or its worker dead twice, or for one of a grid that
 re-processes whose re-process failed: its figures are then empty, never the online cloud's), ``termination``,
+``limit_reached`` (``true`` when a limit of the job, its time budget, ended the planner's run before the
+planner's own termination: a scan cut short, ``--max-time``; ``false``; empty where result.json does not
+say, a folder of an earlier release or a scan that left none),
 ``scan_time_s`` (job time from the first frame, the visual-servoing paper's clock), ``path_m`` (sensor path
 over the same span), ``n_captures``, ``coverage_pct``, ``chamfer_mm``, ``hausdorff_mm`` (eq. 13 on the online
 cloud; on the 1 mm re-processed cloud, ``result_hires.json``, for a grid that re-processes, as the paper
@@ -39,8 +42,8 @@ from cell.perception.hires_files import RESULT_HIRES_FILE
 from drivers.errors import CellError
 from drivers.sim.objects import load_object
 
-COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "scan_time_s", "path_m",
-           "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "coverage_unregistered_pct",
+COLUMNS = ("object", "placement", "planner", "seed", "status", "termination", "limit_reached", "scan_time_s",
+           "path_m", "n_captures", "coverage_pct", "chamfer_mm", "hausdorff_mm", "coverage_unregistered_pct",
            "chamfer_unregistered_mm", "dims_m", "iou", "n_poses", "n_useless_poses", "packing_coverage_pct",
            "dims_true_m", "dims_upper_m", "container", "job")
 DECIMALS = 4
@@ -59,6 +62,11 @@ def _number(value: Any) -> str:
     if isinstance(value, int) and not isinstance(value, bool):
         return str(value)
     return f"{float(value):.{DECIMALS}f}"
+
+
+def _flag(value: Any) -> str:
+    """A true/false of result.json as results.csv writes it: ``true``, ``false``, or empty when absent."""
+    return "" if value is None else str(bool(value)).lower()
 
 
 def _identity(spec: ScanSpec) -> Row:
@@ -98,6 +106,7 @@ def row_from_result(spec: ScanSpec, result: dict[str, Any], hires: dict[str, Any
     truth = true_dims(spec.object, spec.object_scale) if result.get("object_pose") is not None else None
     return {**_identity(spec), "status": result["status"],
             "termination": " ".join(str(result["termination"]).split()),
+            "limit_reached": _flag(result.get("limit_reached")),
             "scan_time_s": _number(result.get("scan_time_s")),
             "path_m": _number(result.get("scan_path_length_m")),
             "n_captures": _number(result.get("n_captures")),
