@@ -66,8 +66,10 @@ def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, exe
     """The coverage limit [%] of each object and placement of ``specs`` on its cell, by (object,
     placement) as results.csv writes them; computed once per set of inputs (``shard``'s part of them),
     the new ones side by side on ``executor`` (each is minutes of inverse kinematics on one core), and
-    each added to ``limits.json`` as it ends. A limit whose computation failed is left out (the report
-    shows none), and why is written to ``stream`` (default stderr). Returns every limit of ``specs`` in
+    each added to ``limits.json`` as it ends. ``stream`` (default stderr) gets a line saying how many
+    are to compute before they start and one with each limit as it ends: the run is silent otherwise
+    between its last scan and its report. A limit whose computation failed is left out (the report
+    shows none), and why is written to ``stream``. Returns every limit of ``specs`` in
     ``limits.json``, whoever computed it."""
     cache_path = out / LIMITS_JSON
     keyed = {_limit_key(spec, n_directions): spec for spec in specs}
@@ -76,18 +78,29 @@ def coverage_limits(specs: Sequence[ScanSpec], out: Path, n_directions: int, exe
     # the part dealt from all the limits, not from those left: the same on every shard whenever it starts
     pending = [key for key in shard.select(keyed) if key not in done]
 
+    def say(text: str) -> None:
+        print(f"eval: {text}", file=stream if stream is not None else sys.stderr, flush=True)
+
+    finished = 0
+
     def on_done(index: int, value: float | TaskFailure) -> None:
+        nonlocal finished
         spec = keyed[pending[index]]
+        finished += 1
         if isinstance(value, TaskFailure):
-            print(f"eval: no coverage limit of {spec.object} at {spec.placement}: {value.reason}",
-                  file=stream if stream is not None else sys.stderr, flush=True)
+            say(f"no coverage limit of {spec.object} at {spec.placement}: {value.reason}")
             return
+        say(f"coverage limit of {spec.object_label} at {spec.placement_text}: {value:.1f} % "
+            f"({finished}/{len(pending)})")
         with writers(out):
             cache = _read_limits(cache_path)
             cache[pending[index]] = value
             write_text_atomic(cache_path, json.dumps(cache, indent=1, sort_keys=True) + "\n")
 
-    if pending:
+    if pending:  # minutes each, after the scans: say what the run is doing until the report
+        say(f"{len(pending)} coverage limit{'s' if len(pending) > 1 else ''} to compute, {n_directions} view "
+            "directions per hemisphere (minutes of inverse kinematics each; --limit-directions 0 skips "
+            "them)")
         executor.run(run_limit_task, [(ScanTask.of(keyed[key], scan_key(keyed[key])), n_directions)
                                       for key in pending], on_done)
     with writers(out):

@@ -79,8 +79,9 @@ def _duration(seconds: float) -> str:
 @dataclass
 class GridProgress:
     """``eval: <finished>/<total> scans (<failed> failed), <elapsed>, about <left> left`` on ``stream``
-    after each scan; scans found done count as finished, and the estimate of the time left extrapolates
-    from the scans this run finished."""
+    after each scan, and a line before the first saying how many there are to run (a scan takes minutes:
+    without it a run was silent until its first scan ended); scans found done count as finished, and the
+    estimate of the time left extrapolates from the scans this run finished."""
 
     total: int
     already_done: int
@@ -93,6 +94,8 @@ class GridProgress:
         self.finished = self.already_done
         if self.already_done:
             self._line(f"{self.already_done} scans already done, {self.total - self.already_done} to run")
+        elif self.total:
+            self._line(f"{self.total} scans to run")
 
     def _line(self, text: str) -> None:
         print(f"eval: {text}", file=self.stream, flush=True)
