@@ -9,7 +9,8 @@ same command again skips the scans already done. ``cell eval limit`` prints an o
 from __future__ import annotations
 
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
@@ -38,12 +39,8 @@ eval_app = command_group(help="Grids of scans (the papers' experiments, or any) 
                          no_args_is_help=True)
 console = Console(soft_wrap=True)
 
-Config = Annotated[Path | None, typer.Option(help="cell file (default: the shipped sim-ur5e-tof cell for "
-                                                 "packing, sim-franka-rgbd for the others)")]
-Planners = Annotated[list[str] | None, typer.Option("--planners", help="planner names (repeat the option)")]
-Objects = Annotated[list[str] | None, typer.Option("--objects", help="shipped names or mesh files (repeat)")]
+Config = Annotated[Path | None, typer.Option(help="cell file (default: the shipped sim-franka-rgbd cell)")]
 Placements = Annotated[Path | None, typer.Option(help="YAML list of [x_m, y_m, yaw_deg] placements")]
-Seeds = Annotated[list[int] | None, typer.Option("--seeds", help="job seeds (repeat the option)")]
 Out = Annotated[Path, typer.Option(help="output folder: job folders, results.csv, report.md, figures")]
 ExecutorOpt = Annotated[str, typer.Option(help="local (a process pool) or ray")]
 Jobs = Annotated[int | None, typer.Option(help="scans at a time (local default 2; ray: all the CPUs)")]
@@ -109,10 +106,26 @@ GRID_EXIT = ("\n\nEvery scan is checked as cell scan checks it before any runs. 
              "interrupted (Ctrl-C, SIGTERM: the workers stop; the finished scans and limits are kept).")
 
 
-def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: str) -> None:
-    """Register ``cell eval <name>``: the grid of ``preset_for(out)`` with the options in its place."""
-    def command(out: Out, config: Config = None, planners: Planners = None, objects: Objects = None,
-                placements: Placements = None, seeds: Seeds = None, executor: ExecutorOpt = "local",
+@dataclass(frozen=True)
+class GridDefaults:
+    """What a grid command takes where an option is not given, in words for its ``--help``: a shared text
+    ("default: sim-ur5e-tof for packing, sim-franka-rgbd for the others") read, under ``cell eval grid``,
+    as if its packing planners got the ToF cell, which they do not."""
+
+    config: str
+    objects: str | None
+    """None: the option is needed."""
+    planners: str | None
+    seeds: str
+
+
+def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: str,
+                  defaults: GridDefaults) -> None:
+    """Register ``cell eval <name>``: the grid of ``preset_for(out)`` with the options in its place, each
+    option's help naming this command's own default (``defaults``)."""
+    def command(out: Out, config: Path | None = None, planners: list[str] | None = None,
+                objects: list[str] | None = None, placements: Placements = None,
+                seeds: list[int] | None = None, executor: ExecutorOpt = "local",
                 jobs: Jobs = None, ray_address: RayAddress = None, max_time: MaxTime = None,
                 limit_directions: Directions = DEFAULT_DIRECTIONS, reprocess: Reprocess = None,
                 object_scale: ObjectScale = 1.0, shard: ShardOpt = None) -> None:
@@ -120,20 +133,51 @@ def _grid_command(name: str, preset_for: Callable[[Path], presets.Preset], doc: 
              max_time, limit_directions, reprocess, object_scale, shard)
 
     command.__doc__ = doc + GRID_EXIT
+    # this command's own defaults in the help: set here, as objects (the annotations written above are
+    # strings, ``from __future__ import annotations``, which typer resolves in the module's names only)
+    command.__annotations__ |= {
+        "config": Annotated[Path | None, typer.Option(help=f"cell file (default: {defaults.config})")],
+        "planners": Annotated[list[str] | None, typer.Option(
+            "--planners", help=f"planner names, repeat the option {_default(defaults.planners)}")],
+        "objects": Annotated[list[str] | None, typer.Option(
+            "--objects", help=f"shipped names or mesh files, repeat {_default(defaults.objects)}")],
+        "seeds": Annotated[list[int] | None, typer.Option(
+            "--seeds", help=f"job seeds, repeat the option (default: {defaults.seeds})")]}
     eval_app.command(name)(command)
+
+
+def _default(text: str | None) -> str:
+    return "(needed)" if text is None else f"(default: {text})"
+
+
+def _words(values: Iterable[object]) -> str:
+    return " ".join(str(v) for v in values)
+
+
+def _preset_defaults(preset: presets.Preset, whose: str) -> GridDefaults:
+    """A preset's defaults in words, its objects introduced as ``whose``."""
+    objects = f"{whose}: {_words(o for o, _ in preset.cases)}"
+    return GridDefaults(f"the shipped {preset.config.stem} cell", objects, _words(preset.planners),
+                        _words(preset.seeds))
 
 
 _grid_command("vs-table", lambda _: presets.VS_TABLE,
               "The visual-servoing paper's Table I: its eight objects x VS-Local / Global / Hybrid, seeds "
-              "0 1 2, each job re-processed at 1 mm as the paper.")
+              "0 1 2, each job re-processed at 1 mm as the paper.",
+              _preset_defaults(presets.VS_TABLE, "Table I's"))
 _grid_command("packing", lambda _: presets.PACKING,
-              "The LR-NBV paper's section 4: its four objects x LR-NBV / NBV / HEU, seeds 0 to 4.")
+              "The LR-NBV paper's section 4: its four objects x LR-NBV / NBV / HEU, seeds 0 to 4.",
+              _preset_defaults(presets.PACKING, "the paper's"))
 _grid_command("heldout", lambda out: presets.heldout(out / "shapes"),
               "Fifteen shapes and placements that are not Table I's, VS-Local (shapes written to "
-              "OUT/shapes); --objects cylinder runs one of them by name, where the suite places it.")
+              "OUT/shapes); --objects cylinder runs one of them by name, where the suite places it.",
+              GridDefaults("the shipped sim-franka-rgbd cell",
+                           f"the suite's: {_words(o for o, _ in presets.HELDOUT_CASES)}", "vs-local", "0"))
 _grid_command("grid", lambda _: presets.Preset(template_path("sim-franka-rgbd"), (), (), (0,)),
               "Any objects x placements (default the station's centre) x planners x seeds (default 0); "
-              "--objects and --planners are needed.")
+              "--objects and --planners are needed.",
+              GridDefaults("the shipped sim-franka-rgbd cell, whatever the planners: --config "
+                           "config/sim-ur5e-tof.yaml for the packing paper's ToF cell", None, None, "0"))
 
 
 @eval_app.command("limit")
