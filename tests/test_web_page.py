@@ -729,6 +729,8 @@ def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callabl
         page.click("#recover")
         wait_for(page, "document.getElementById('stop-outcome').textContent.startsWith('Recover:')")
         assert "recovered" in page.text_content("#stop-outcome")
+        assert outcome_background(page) == OUTCOME_GREEN  # a recovery that went through is no alarm
+        shot(page, "recovered")
         wait_for(page, "document.getElementById('st-arm').textContent === 'idle'")
         page.wait_for_selector("#recover", state="hidden")
 
@@ -777,6 +779,14 @@ def test_a_job_the_restarted_service_ended_is_shown_ended_and_nothing_is_polled_
         assert polled == []
 
 
+STOP_RED, OUTCOME_GREEN = "rgb(92, 43, 43)", "rgb(43, 92, 58)"  # the bar's outcome line (app.css)
+
+
+def outcome_background(page: Page) -> str:
+    """The background colour of the status bar's outcome line, as the browser draws it."""
+    return page.eval_on_selector("#stop-outcome", "e => getComputedStyle(e).backgroundColor")
+
+
 def test_a_stops_word_that_the_queue_is_held_gives_way_once_it_is_resumed_elsewhere(
         open_page: Callable[..., Page], cell: ServedCell) -> None:
     """The STOP's outcome says the queue is held; resumed from elsewhere (``cell jobs resume``, another
@@ -785,11 +795,13 @@ def test_a_stops_word_that_the_queue_is_held_gives_way_once_it_is_resumed_elsewh
     page.click("#stop")
     wait_for(page, f"{text_js('stop-outcome')}.startsWith('STOP:')")
     assert "the queue is held" in page.text_content("#stop-outcome")
+    assert outcome_background(page) == STOP_RED
     with cell.client("operator") as client:
         assert client.post("/api/v1/queue/resume").status_code == 200
     # the bar's queue and the outcome come from the same poll of the status
     wait_for(page, f"!{text_js('st-queue')}.includes('held')")
     assert page.text_content("#stop-outcome") == "The queue runs again."
+    assert outcome_background(page) == OUTCOME_GREEN  # no alarm: the STOP's red is for stops
 
 
 def test_a_refused_stop_stays_said_with_the_cells_answer_until_dismissed_or_a_stop_succeeds(

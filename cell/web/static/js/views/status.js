@@ -67,19 +67,26 @@ function render(status, context) {
 /** A button's call: `button` is disabled while it runs; `name` names it in a failure. */
 async function act(button, name, path, body, outcome) {
   button.disabled = true;
-  $("stop-outcome").textContent = "";
+  say("");
   try {
     const answer = await api(path, { method: "POST", json: body });
-    $("stop-outcome").textContent = outcome(answer);
+    say(outcome(answer), answer.ok === false ? "bad" : "ok");
     window.dispatchEvent(new Event("cell:changed"));
   } catch (error) {
-    $("stop-outcome").textContent = `${name} failed: ${describe(error)}`;
+    say(`${name} failed: ${describe(error)}`, "bad");
   } finally {
     button.disabled = false;
   }
 }
 
 const clock = (date) => date.toLocaleTimeString();
+
+/** Say `text` on the bar's outcome line, in the tone of what it tells: "stop" (a STOP, red), "ok" (a
+ *  recovery, a resume, a mode switch that went through) or "bad" (a call that failed or did not help). */
+function say(text, tone = "stop") {
+  $("stop-outcome").textContent = text;
+  $("stop-outcome").dataset.tone = tone;
+}
 
 /** The outcome of the cell's STOP for people: what the service did, and that the queue is held. */
 function stopped(answer) {
@@ -132,7 +139,7 @@ function stopControl() {
     const controller = new AbortController();
     const waiting = () => {
       const s = Math.round((Date.now() - sent) / 1000);
-      $("stop-outcome").textContent = `STOP sent at ${clock(sent)}: waiting for the cell's answer${s > 0 ? ` (${s} s)` : ""}…`;
+      say(`STOP sent at ${clock(sent)}: waiting for the cell's answer${s > 0 ? ` (${s} s)` : ""}…`);
     };
     const mine = { controller, ticker: setInterval(waiting, 1000) };
     pending = mine;
@@ -142,12 +149,12 @@ function stopControl() {
       const answer = await api("/api/v1/stop", { method: "POST", json: { reason: STOP_REASON }, timeoutMs: STOP_TIMEOUT_MS, signal: controller.signal });
       if (pending !== mine) return;
       dismiss();
-      $("stop-outcome").textContent = stopped(answer);
+      say(stopped(answer));
       heldSaid = answer.queue_held ? Date.now() : null;
       window.dispatchEvent(new Event("cell:changed"));
     } catch (error) {
       if (pending !== mine) return; // given up for a newer press
-      $("stop-outcome").textContent = "";
+      say("");
       failed = { text: `STOP sent at ${clock(sent)} failed: ${failure(error)}. The arm may still move: press STOP again, or use the cell's emergency stop.` };
       showFailure();
     } finally {
@@ -168,7 +175,7 @@ function stopControl() {
   function queueNow(held, askedAt) {
     if (heldSaid === null || held || askedAt <= heldSaid) return;
     heldSaid = null;
-    $("stop-outcome").textContent = QUEUE_RUNS;
+    say(QUEUE_RUNS, "ok");
   }
 
   return { press, cellAnswers, settle, dismiss, queueNow };
@@ -269,7 +276,7 @@ export function startStatus(context) {
     stopping.dismiss();
     bar.classList.remove("stale");
     listening.abort();
-    $("stop-outcome").textContent = "";
+    say("");
     $("st-link").textContent = "";
     $("st-busy").hidden = true;
     bar.hidden = true;
