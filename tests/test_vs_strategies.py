@@ -31,7 +31,7 @@ from cell.planning.vs.servo_scan import (
     translated,
     voxel_entropy,
 )
-from cell.planning.vs.telemetry import write_servo_outputs
+from cell.planning.vs.telemetry import servo_figure, write_servo_outputs
 from cell.safety.events import Refusal
 from cell.safety.guard import TwistRefused
 from drivers.clock import SimClock
@@ -765,6 +765,19 @@ def test_servo_outputs_are_written(tmp_path):
     assert lines[4].endswith(",primary,40.00") and lines[-1].endswith(",local,55.50")
     for name in ("servo.png", "path.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_servo_png_says_what_it_shows_with_units():
+    """servo.png has a title naming the paper's figure and a unit on every axis (||g|| is dimensionless,
+    its panel had none)."""
+    rows = [TelemetryRow(t=0.1 * i, e_norm=0.01, f=1.0, g_norm=0.5, h_roi=0.5, mode="local")
+            for i in range(5)]
+    fig = servo_figure(rows, "paper", coverage=[(0.0, 10.0), (0.4, 50.0)])
+    assert "Fig. 4" in fig.get_suptitle()
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    units = ("[m]", "[nats]", "[1]", "[%]")
+    assert len(labels) == 5 and all(label.endswith(units) for label in labels), labels
+    assert "||g|| before clipping [1]" in labels
 
 
 def test_servo_csv_without_coverage_has_no_coverage_column(tmp_path):

@@ -58,7 +58,7 @@ from drivers.transforms import look_at
 
 @dataclass(frozen=True)
 class TelemetryRow:
-    """One servo iteration: job time [s], ||e|| [m], f(r) [nats], ||g|| before clipping, H_ROI [nats] as
+    """One servo iteration: job time [s], ||e|| [m], f(r) [nats], ||g|| before clipping [1], H_ROI [nats] as
     the termination judges it (None before the first ROI), and the strategy's mode ("primary", "local",
     "global")."""
 

@@ -60,12 +60,19 @@ def write_telemetry_csv(path: Path, rows: Sequence[TelemetryRow], h_roi_entropy:
 
 def plot_fig4(path: Path, rows: Sequence[TelemetryRow], h_roi_entropy: EntropyForm,
               coverage: Sequence[tuple[float, float]] = ()) -> None:
-    """Four panels over job time: ||e|| (eq. 2), f(r) (eq. 9), ||g|| before clipping (eq. 4), H_ROI
+    """:func:`servo_figure` saved as a PNG at ``path``."""
+    servo_figure(rows, h_roi_entropy, coverage).savefig(path, dpi=100)
+
+
+def servo_figure(rows: Sequence[TelemetryRow], h_roi_entropy: EntropyForm,
+                 coverage: Sequence[tuple[float, float]] = ()) -> Figure:
+    """Four panels over job time: ||e|| (eq. 2), f(r) (eq. 9), ||g|| before clipping (eq. 4; g is
+    dimensionless: VS-Local's relative gradient times ``alpha`` [m], VS-Global's scaled unit tangent), H_ROI
     (eq. 12, labelled with its form ``h_roi_entropy``), the last with the coverage [%] on a second axis when
     ``coverage`` samples are given."""
     t = np.array([r.t for r in rows])
     series = [("||e|| [m]", [r.e_norm for r in rows]), ("f(r) [nats]", [r.f for r in rows]),
-              ("||g|| before clipping", [r.g_norm for r in rows]),
+              ("||g|| before clipping [1]", [r.g_norm for r in rows]),
               (f"{h_roi_name(h_roi_entropy)} [nats]", [np.nan if r.h_roi is None else r.h_roi for r in rows])]
     fig = Figure(figsize=(10, 6))
     axes = fig.subplots(2, 2, sharex=True)
@@ -75,12 +82,13 @@ def plot_fig4(path: Path, rows: Sequence[TelemetryRow], h_roi_entropy: EntropyFo
         ax.grid(alpha=0.3)
     for ax in axes[1]:
         ax.set_xlabel("t [s]")
+    fig.suptitle("Servo telemetry over the job's time (paper Fig. 4)")
     if coverage:
         twin = axes[1, 1].twinx()
         twin.plot(t, coverage_at(t, coverage), lw=1.0, color="tab:green")
         twin.set_ylabel("coverage, unregistered [%]", color="tab:green")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    return fig
 
 
 def write_servo_outputs(folder: Path, rows: Sequence[TelemetryRow], h_roi_entropy: EntropyForm,
