@@ -261,6 +261,11 @@ def test_a_queued_job_offers_its_stop_only_to_a_key_that_may_cancel(open_page: C
         page.click("#job-stop")  # its reason says what was done: it was "stopped on the operator's page"
         wait_for(page, "document.getElementById('job-status').textContent === 'cancelled'")
         assert "cancelled on the operator's page" in page.text_content("#job-termination")
+        # nothing was captured: no empty 3D view, but why there is none
+        wait_for(page, "document.getElementById('view-nothing')?.textContent === "
+                       "'Nothing to draw: the job was cancelled before it started.'")
+        assert page.locator("#view3d").count() == 0
+        shot(page, "job-cancelled")
     finally:
         with cell.client("operator") as client:
             if client.get(f"/api/v1/jobs/{job_id}").json()["status"] == "queued":  # the test failed before

@@ -186,10 +186,17 @@ export function showJob(main, context, jobId) {
     const result = job.result ?? {};
     await cloudLoad; // a running job's snapshot asked for before its end is not drawn over the final cloud
     await refreshCloud();
-    if (view.view && path.length === 0) {
+    let moved = path.length > 0;
+    if (view.view && !moved) {
       const { path: recorded, pose } = await trajectory(base).catch(() => ({ path: [], pose: null }));
       view.view.setPath(recorded);
       if (pose) view.view.setSensor(...pose);
+      moved = recorded.length > 0;
+    }
+    if (view.view && shownPoints === 0 && !moved && !result.packing?.dims_m) {
+      view.nothingToDraw(job.status === "cancelled"
+        ? "Nothing to draw: the job was cancelled before it started."
+        : "Nothing to draw: the job captured no point and recorded no path.");
     }
     const roi = result.perception?.roi;
     if (view.view && roi) view.view.setRoi([roi.aabb_min_m, roi.aabb_max_m]);

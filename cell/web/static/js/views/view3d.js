@@ -50,6 +50,12 @@ export function viewSection() {
       replace(packingNote, mark(COLORS.packing), `packing box ${dimensions(packing)} m${container}`);
       packingNote.hidden = false;
     },
+    /** An ended job that captured nothing and moved nowhere: its empty view gives way to `text`. */
+    nothingToDraw(text) {
+      section.dispose();
+      section.view = null;
+      replace(section.element, h("h2", { id: "view-title" }, "3D view"), h("p", { class: "hint", id: "view-nothing" }, text));
+    },
     dispose() {
       if (section.view) section.view.dispose();
     },
