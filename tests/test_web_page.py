@@ -325,6 +325,10 @@ def test_the_form_preselects_the_object_cell_scan_takes_by_default(open_page: Ca
     page = open_page("operator")
     page.wait_for_selector("#f-object")
     assert page.evaluate("() => document.getElementById('f-object').value") == DEFAULT_OBJECT
+    # an empty time budget is the cell's, whose figure the field shows (it said only "cell default")
+    budget = read(cell, "/api/v1/cell")["max_time_s"]
+    assert budget == yaml.safe_load(FRANKA.read_text())["scan"]["max_time_s"]
+    assert page.get_attribute("#f-max_time_s", "placeholder") == f"{budget:g} (the cell's)"
 
 
 def test_the_form_says_it_is_loading_until_the_api_answers(open_page: Callable[..., Page],
@@ -738,6 +742,30 @@ def test_an_operator_recovers_the_arm_after_a_protective_stop(open_page: Callabl
         shot(page, "recovered")
         wait_for(page, "document.getElementById('st-arm').textContent === 'idle'")
         page.wait_for_selector("#recover", state="hidden")
+
+
+def test_a_stop_for_the_services_shutdown_is_said_as_such_not_as_the_guards(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """A job that the service's shutdown stopped (SIGTERM of ``cell serve``) records ``shutdown stop:``;
+    its safety section said "motion stopped by the guard" for it. The job's answer is given that stop by a
+    route, as such a job's result.json has it."""
+    with cell.client("operator") as client:
+        job_id = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 1.0}).json()["id"]
+    cell.wait_job(job_id, ENDED)
+    page = open_page("viewer")
+
+    def shut_down(route: Any) -> None:
+        answer = route.fetch().json()
+        shutdown = {"t": 0.5, "reason": "shutdown stop: the service is shutting down"}
+        answer["result"]["safety"]["stops"] = [shutdown]
+        route.fulfill(json=answer)
+
+    page.route(f"**/api/v1/jobs/{job_id}", shut_down)
+    page.goto(f"{page.url.split('#')[0]}#/jobs/{job_id}")
+    page.wait_for_selector("#safety")
+    said = page.text_content("#safety")
+    assert "stop for the service's shutdown at 0.50 s: the service is shutting down" in said, said
+    assert "by the guard" not in said
 
 
 def test_a_job_id_in_the_address_is_only_ever_a_job_id(open_page: Callable[..., Page]) -> None:

@@ -331,12 +331,14 @@ class LineTransitionOut(BaseModel):
 
 
 class CellOut(BaseModel):
-    """The cell now: name, mode (sim, dry-run, real, replay), arm, sensor, running job, queue, version, and
-    the packing line's state when the cell has one."""
+    """The cell now: name, mode (sim, dry-run, real, replay), a job's time budget when its submission gives
+    none [s], arm, sensor, running job, queue, version, and the packing line's state when the cell has
+    one."""
 
     name: str
     mode: str
     version: str
+    max_time_s: float
     arm: ArmOut
     sensor: dict[str, Any]
     job: dict[str, Any] | None

@@ -228,9 +228,11 @@ class DigitalIOHandshake:
                 if reset is not None and self._reset is not None and reset.update(levels[self._reset], now):
                     self._post(self._reset_edge())  # its fall does nothing
                 # after the edges are posted: a level seen here has had its command sent to the line
-                self._seen = {self._trigger: trigger.level}
+                # whole before it is published: the event loop reads it from this thread's side
+                seen = {self._trigger: trigger.level}
                 if reset is not None and self._reset is not None:
-                    self._seen[self._reset] = reset.level
+                    seen[self._reset] = reset.level
+                self._seen = seen
                 self._sampled_s = now
             except DriverError as exc:
                 log.error("line: digital I/O: %s; connecting again in %g s", exc, RECONNECT_S)

@@ -431,7 +431,7 @@ class CellService:
         sensor_up = cfg.sensor.type.startswith("sim-") or (running is not None
                                                            and running.progress is not None)
         return {
-            "name": self.name, "mode": cfg.mode, "version": __version__,
+            "name": self.name, "mode": cfg.mode, "version": __version__, "max_time_s": cfg.scan.max_time_s,
             "arm": {"type": cfg.arm.type, "model": cfg.arm.model, **self.arm.status.as_dict()},
             "sensor": {"type": cfg.sensor.type, "connected": sensor_up},
             "job": None if running is None else {
@@ -634,8 +634,9 @@ class CellService:
             await self._cancel_queued(job_id, f"cancelled before it started: {reason}")
             return StopOutcome(job_id, False, "the job had not started: cancelled")
         running = self._running
-        if running is None or running.job.id != job_id or running.recorded:
-            # a job whose end is recorded is answered as its record says, also while its worker exits
+        if running is None or running.job.id != job_id or running.stored:
+            # a job whose end is in the store is answered as its record says, also while its worker exits;
+            # before, its stop is answered "had already ended" (the line moves on at the job's end)
             job = await self.job(job_id)
             raise ServiceError(f"job {job_id} is {job.status}: nothing to stop", reason="conflict")
         return self._logged(await self._stop_running(running, reason), reason)

@@ -58,15 +58,21 @@ function packing(p) {
 const times = (n) => `${n} ${n === 1 ? "time" : "times"}`;
 
 // how the reason of a stop someone asked for begins (drivers/errors.py): not the guard's doing
-const OPERATOR_STOP = "operator stop: ";
+const ASKED_STOPS = [["operator stop: ", "operator stop"], ["shutdown stop: ", "stop for the service's shutdown"]];
+
+/** A stop of the job's safety record in words: whose it was, when, and why. */
+function stopSaid(e) {
+  const asked = ASKED_STOPS.find(([prefix]) => e.reason.startsWith(prefix));
+  return asked
+    ? `${asked[1]} at ${fmt(e.t, 2, "s")}: ${e.reason.slice(asked[0].length)}`
+    : `motion stopped by the guard at ${fmt(e.t, 2, "s")}: ${e.reason}`;
+}
 
 function safety(s) {
   if (!s) return null;
   const clamps = Object.entries(s.clamps ?? {});
   const events = [
-    ...(s.stops ?? []).map((e) => (e.reason.startsWith(OPERATOR_STOP)
-      ? `operator stop at ${fmt(e.t, 2, "s")}: ${e.reason.slice(OPERATOR_STOP.length)}`
-      : `motion stopped by the guard at ${fmt(e.t, 2, "s")}: ${e.reason}`)),
+    ...(s.stops ?? []).map(stopSaid),
     ...(s.refusals ?? []).map((e) => `motion refused at ${fmt(e.t, 2, "s")}: ${e.reason}`),
   ];
   return h("div", { id: "safety" }, h("h3", {}, "Safety"),
