@@ -14,6 +14,7 @@ latches the fault again from it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from cell.config.models import CellConfig
 from cell.jobs.progress import quat_of, xyz_m
+from cell.service.store import HoldRecord
 from drivers.errors import ARM_FAULT
 from drivers.robots import get_robot_model
 from drivers.transforms import inv_T, make_T
@@ -56,6 +58,19 @@ def after_fault(reason: str) -> str | None:
     """What else a fault hold's ``reason`` (:func:`fault_first`) holds the queue for, which the arm's
     recovery leaves to the operator's resume; None when only the fault."""
     return reason.partition(_THEN)[2] or None
+
+
+def held_for_fault(cell: str, fault: str, job_id: str, held: HoldRecord | None,
+                   now: datetime) -> HoldRecord | None:
+    """The hold of ``cell``'s queue once job ``job_id`` ended with the arm's ``fault``, the queue held as
+    ``held`` (None: not held) until then: the fault first (:func:`fault_first`), so that a restart latches
+    it again, and a hold already there (a STOP) after it, since that hold's time; None when ``held`` is a
+    fault's already (the arm is latched, and only its recovery releases the queue)."""
+    if held is not None and held_fault(held.reason) is not None:
+        return None
+    other = None if held is None else held.reason
+    return HoldRecord(cell=cell, reason=fault_first(fault_hold(fault, job_id), other),
+                      held_at=now if held is None else held.held_at)
 
 
 def fault_in(termination: str) -> str | None:

@@ -51,7 +51,7 @@ from cell.line.controller import LineController
 from cell.line.dio import DigitalIOHandshake, digital_io
 from cell.planning.registry import PLANNERS
 from cell.service.arm_clearance import ArmClearance
-from cell.service.arm_status import ArmTracker, after_fault, fault_first, fault_hold, held_fault
+from cell.service.arm_status import ArmTracker, after_fault, fault_first, held_fault, held_for_fault
 from cell.service.events import EventHub, JobEvents
 from cell.service.instance import DataDirClaim, new_instance
 from cell.service.metrics import ServiceMetrics
@@ -1221,13 +1221,10 @@ class CellService:
         if status == "completed" and result is not None and result.get("sim_time_s") is not None:
             self.metrics.scan_duration.labels(job.planner).observe(result["sim_time_s"])
         if (fault := self.arm.job_ended(termination)) is not None and (
-                self._held is None or held_fault(self._held.reason) is None):
+                held := held_for_fault(self.name, fault, job.id, self._held, _now())) is not None:
             # kept in the store as the other holds are, first in a hold that came during the job (a STOP,
             # a hung worker's): the latch alone was lost with a restart
-            other = None if self._held is None else self._held.reason
-            since = _now() if self._held is None else self._held.held_at
-            self._held = HoldRecord(cell=self.name, reason=fault_first(fault_hold(fault, job.id), other),
-                                    held_at=since)
+            self._held = held
             self._write_hold()
         log.log(logging.INFO if status == "completed" else logging.WARNING, "job ended %s: %s", status,
                 termination, extra={"job_id": job.id, "part_id": job.part_id, "status": status})

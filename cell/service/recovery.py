@@ -35,7 +35,7 @@ from typing import Any
 
 from cell.jobs.live_cloud import LIVE_CLOUD_FILE
 from cell.jobs.recorder import JOB_FILE, RESULT_FILE
-from cell.service.arm_status import fault_first, fault_hold, fault_in, held_fault
+from cell.service.arm_status import fault_in, held_for_fault
 from cell.service.protocol import WORKER_MODULE
 from cell.service.retention import finish_deletions, known_folders, listed
 from cell.service.store import FINISHED_STATUSES, JOB_STATUSES, RUNNING_STATUSES, HoldRecord, JobRecord, Store
@@ -87,18 +87,18 @@ def hold_after_end(store: Store, job: JobRecord, result: dict[str, Any], termina
     fault = fault_in(termination)
     if fault is None and ARM_FAULT not in termination and "worker" not in result and "note" not in result:
         return None
-    held = store.get_hold(job.cell)
-    if held is None or (fault is not None and held_fault(held.reason) is None):
-        # an arm fault the folder records is held as the service holds it when it records the end itself:
-        # first, so that the start latches it again (held_fault) and only the arm's recovery releases it,
-        # with a hold already stored (a STOP) after it, left to the operator's resume
-        if fault is not None:
-            reason = fault_first(fault_hold(fault, job.id), None if held is None else held.reason)
-        else:
-            reason = held_after(f"job {job.id} ended ({termination}) before the service stopped; "
-                                "check the arm")
-        since = datetime.now(UTC) if held is None else held.held_at
-        store.set_hold(job.cell, HoldRecord(cell=job.cell, reason=reason, held_at=since))
+    held, now = store.get_hold(job.cell), datetime.now(UTC)
+    if fault is not None:
+        # held as the service holds it when it records the end itself: first, so that the start latches
+        # it again and only the arm's recovery releases it, a hold already stored (a STOP) after it
+        held = held_for_fault(job.cell, fault, job.id, held, now)
+    elif held is None:
+        held = HoldRecord(cell=job.cell, reason=held_after(f"job {job.id} ended ({termination}) before the "
+                                                           "service stopped; check the arm"), held_at=now)
+    else:  # already held, for a person to look at before a resume
+        held = None
+    if held is not None:
+        store.set_hold(job.cell, held)
     return f"the queue is held: job {job.id} ended with {termination}"
 
 
