@@ -586,6 +586,16 @@ def pulse(dio: DioLine, name: str) -> None:
     drive(dio, name, False)
 
 
+def sampled_after(line: Line, controller_s: float) -> dict[str, Any]:
+    """Wait until the handshake shows levels counted from a sample the controller took after
+    ``controller_s`` [s, its RTDE clock]; what it shows then."""
+    deadline = time.monotonic() + WAIT_S
+    while (seen := line.dio())["sampled_s"] is None or seen["sampled_s"] < controller_s:
+        assert time.monotonic() < deadline, seen
+        time.sleep(0.02)
+    return seen
+
+
 def outputs(peer: ControllerPeer, value: int, what: str) -> dict[str, Any]:
     """Wait until the controller's digital outputs are ``value`` (a bit per output)."""
     return peer.wait_for(lambda s: s["digital_out"] == value, timeout_s=WAIT_S, what=what)
@@ -601,10 +611,7 @@ def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path, caplog: 
         # a 50 ms pulse, on the controller's clock, is a bounce to a 300 ms filter: nothing starts, however
         # late the handshake reads the samples (the filter counts their RTDE timestamps)
         falls_s = peer.pulse_digital_input(trigger, 0.05)
-        deadline = time.monotonic() + WAIT_S
-        while (seen := line.dio())["sampled_s"] < falls_s + debounce_s:
-            assert time.monotonic() < deadline, seen
-            time.sleep(0.02)
+        seen = sampled_after(line, falls_s + debounce_s)
         assert seen["inputs"][0] == {"name": "trigger_input", "pin": trigger, "level": False}, seen
         assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
         # the link stalls during a bounce (the controller's packages stop for a second, as a loaded PC's RTDE
@@ -614,9 +621,7 @@ def test_the_digital_io_handshake_against_the_rtde_peer(tmp_path: Path, caplog: 
         time.sleep(0.05)  # the high samples reach the service
         with peer.frozen():
             time.sleep(1.0)
-        while (seen := line.dio())["sampled_s"] < falls_s + debounce_s:
-            assert time.monotonic() < deadline + WAIT_S, seen
-            time.sleep(0.02)
+        seen = sampled_after(line, falls_s + debounce_s)
         assert seen["inputs"][0]["level"] is False, seen
         assert line.state()["state_name"] == "Idle" and peer.state()["digital_out"] == 0
         drive(dio, "trigger_input", True)

@@ -305,7 +305,8 @@ class LineDioOut(BaseModel):
     connected: bool
     simulated: bool
     sampled_s: float | None = Field(description="when the device sampled the inputs the levels were counted "
-                                                "from [s, on its clock: a UR controller's RTDE timestamp]")
+                                                "from [s, on its clock: a UR controller's RTDE timestamp]; "
+                                                "null while the link is not connected")
     inputs: list[LineDioPinOut]
     outputs: list[LineDioPinOut]
 

@@ -119,7 +119,7 @@ class DigitalLevels:
     """What :meth:`DigitalIOHandshake.levels` says: whether the link is ``connected``, whether the I/O is
     ``simulated`` (a sim cell's, whose inputs may be set), the device's time of the inputs' sample the
     levels were counted from (``sampled_s`` [s, the controller's RTDE timestamp; a sim cell's: the
-    service's monotonic clock]; None before the link connected), and each wired input and output."""
+    service's monotonic clock]; None while the link is not connected), and each wired input and output."""
 
     connected: bool
     simulated: bool
@@ -159,8 +159,9 @@ class DigitalIOHandshake:
         self._io = io
         self._wanted: list[tuple[int, bool]] = self._outputs(line.snapshot())
         self._written: list[tuple[int, bool]] | None = None
-        self._seen: dict[int, bool] | None = None  # the debounced inputs by index, once connected
-        self._sampled_s: float | None = None  # the device's time of the sample they were counted from
+        # the debounced inputs by index and the device's time of the sample they were counted from, while
+        # connected: one tuple, replaced whole, so a reader never pairs one sample's levels with another's
+        self._seen: tuple[dict[int, bool], float] | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="line digital io", daemon=True)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -186,9 +187,10 @@ class DigitalIOHandshake:
         """Each wired input as the handshake counts it and each output as it last wrote it."""
         seen, written = self._seen, self._written
         wrote = dict(written) if written is not None else {}
+        levels, sampled_s = (None, None) if seen is None else seen
         return DigitalLevels(
-            connected=seen is not None, simulated=self.simulated is not None, sampled_s=self._sampled_s,
-            inputs=tuple(Signal(name, index, None if seen is None else seen[index])
+            connected=seen is not None, simulated=self.simulated is not None, sampled_s=sampled_s,
+            inputs=tuple(Signal(name, index, None if levels is None else levels[index])
                          for name, index in self._inputs.items()),
             outputs=tuple(Signal(name, index, wrote.get(index)) for name, index in self._pins.items()))
 
@@ -211,10 +213,13 @@ class DigitalIOHandshake:
             try:
                 if trigger is None:
                     self._io.connect()
-                    levels, _ = self._io.inputs()
+                    levels, now = self._io.inputs()
                     trigger = Debouncer(levels[self._trigger], self._config.debounce_s)
                     if self._reset is not None:
                         reset = Debouncer(levels[self._reset], self._config.debounce_s)
+                    # the baseline is what is counted until the next sample, which comes after the outputs
+                    # are written (the first write connects RTDE IO, seconds on a loaded PC)
+                    self._publish(trigger, reset, now)
                     log.info("line: digital I/O connected (%s)", self._wiring())
                 assert trigger is not None
                 wanted = self._wanted
@@ -228,12 +233,7 @@ class DigitalIOHandshake:
                 if reset is not None and self._reset is not None and reset.update(levels[self._reset], now):
                     self._post(self._reset_edge())  # its fall does nothing
                 # after the edges are posted: a level seen here has had its command sent to the line
-                # whole before it is published: the event loop reads it from this thread's side
-                seen = {self._trigger: trigger.level}
-                if reset is not None and self._reset is not None:
-                    seen[self._reset] = reset.level
-                self._seen = seen
-                self._sampled_s = now
+                self._publish(trigger, reset, now)
             except DriverError as exc:
                 log.error("line: digital I/O: %s; connecting again in %g s", exc, RECONNECT_S)
                 self._io.close()
@@ -246,6 +246,13 @@ class DigitalIOHandshake:
         except DriverError as exc:
             log.warning("line: digital outputs not cleared at shutdown: %s", exc)
         self._io.close()
+
+    def _publish(self, trigger: Debouncer, reset: Debouncer | None, sampled_s: float) -> None:
+        """Publish the inputs as counted from the device's sample at ``sampled_s`` [s, its clock]."""
+        seen = {self._trigger: trigger.level}
+        if reset is not None and self._reset is not None:
+            seen[self._reset] = reset.level
+        self._seen = (seen, sampled_s)  # whole: the event loop reads it from this thread's side
 
     def _post(self, edge: Coroutine[Any, Any, None]) -> None:
         assert self._loop is not None
