@@ -462,10 +462,9 @@ class CellService:
     def not_ready(self) -> str | None:
         """Why a job submitted now would not run, in words (for ``/readyz``), or None: starting or shutting
         down, the queue held, no worker process can be started, the jobs folder not writable or without
-        room for a job. Reads no database (the route checks the store) and no device; whether the store's
-        file is still the one opened is asked here (``Store.check_file``), where a deleted one holds the
-        queue."""
-        self.store.check_file()
+        room for a job. Reads no database and no device: the route checks the store first, also whether
+        its file is still the one opened (``Store.check_file``, which latches a deleted one, holding the
+        queue)."""
         if not self.ready:
             return "not taking jobs (starting or shutting down)"
         if (held := self.hold_reason()) is not None:
