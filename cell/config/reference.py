@@ -46,12 +46,14 @@ HEADER = """# Cell file reference
 drivers/*/config.py and the sections they include): do not edit by hand. -->
 
 Every key a cell file may hold, section by section, as the models that validate it define them: the type,
-the unit, the default ("required": the file must state it) and the constraints checked at load ("not
-quoted": a number written as one, a quoted "475" is refused). A unit comes from the key's description,
-else from its name (`_m` metres, `_s` seconds, `_deg` degrees, `_hz` hertz, ...); 1 is a plain number (a
-share, a ratio, a probability), and a number whose unit the models do not state says "not stated". An
-unknown key is an error. `cell config check FILE` validates a file; the templates (`cell init
---template NAME`) are complete examples.
+the unit, the default (what a file that leaves the key out gets; "required": the file must state it) and
+the constraints checked at load ("not quoted": a number written as one, a quoted "475" is refused). A
+unit comes from the key's description, else from its name (`_m` metres, `_s` seconds, `_deg` degrees,
+`_hz` hertz, ...); 1 is a plain number (a share, a ratio, a probability), and a number whose unit the
+models do not state says "not stated". An unknown key is an error. `cell config check FILE` validates a
+file; the templates (`cell init --template NAME`) are complete examples, which set some keys to other
+values than these defaults (a sim ToF cell's sensor, a scan's time budget): a key a file states takes its
+value from the file.
 """
 
 
