@@ -181,21 +181,28 @@ def test_replay_through_the_recording_planner_rebuilds_the_job(tof_job, tmp_path
     result, output = _replay(tof_job, tmp_path / "again")
     recorded = json.loads((tof_job / "result.json").read_text())
     assert result["planner"] == recorded["planner"] == "raster" and result["seed"] == 1
-    assert result["status"] == "completed"
-    assert result["termination"] == f"recording ended: all {recorded['n_captures']} recorded frames played"
+    # the job's own time budget, not the cell file's: the replay ends where the job did, and why
+    assert result["status"] == "completed" and recorded["termination"] == "time budget of 15 s used up"
+    assert result["termination"] == recorded["termination"] and result["limit_reached"] is True
     assert result["replay"]["job_dir"] == str(tof_job)
     assert (tmp_path / "again" / "cloud.ply").read_bytes() == (tof_job / "cloud.ply").read_bytes()
     assert result["metrics"] == recorded["metrics"]
     assert result["packing"]["dims_m"] == recorded["packing"]["dims_m"]
     moves = _requests(tmp_path / "again")
     # raster asked for the live job's views and got its answers (refused ones too); the live job's time
-    # ran out on its way to the last, whose capture found the recording ended
+    # ran out on its way to the last
     live = _requests(tof_job)
     assert {r["kind"] for r in moves} == {"move"} and moves == live
     assert sum(r["answer"] == "reached" for r in live) == recorded["n_captures"] + 1
     assert result["replay"]["n_planner_requests"] == len(moves)
     assert result["replay"]["n_recorded_answers"] == len(live)
-    assert "recording ended" in output
+    assert "time budget of 15 s used up" in output
+    # a longer budget than the job's plays the recording to its end: the live job's last move's capture
+    # finds no frame
+    longer, output = _replay(tof_job, tmp_path / "longer", "--max-time", "60")
+    assert longer["termination"] == f"recording ended: all {recorded['n_captures']} recorded frames played"
+    assert longer["limit_reached"] is True and "recording ended" in output
+    assert (tmp_path / "longer" / "cloud.ply").read_bytes() == (tof_job / "cloud.ply").read_bytes()
 
 
 def test_replay_through_another_planner_records_what_it_asks_for(tof_job, tmp_path):

@@ -33,7 +33,8 @@ err_console = BAR_CONSOLE  # a line printed while the bar shows goes above it
 def _replay_request(job_dir: Path, config: Path | None, planner: str | None, seed: int | None,
                     out: Path | None, max_time: float | None) -> ScanRequest:
     """A replay of ``job_dir`` (``cell scan --replay``): the job's cell file (or ``config``) with the replay
-    backends, and by default the job's own planner and seed."""
+    backends, and by default the job's own planner, seed and time budget (a budget the cell file changed
+    since would end the replay at another time than the job)."""
     cfg, job_result, config_path = recorded_job(job_dir, config)
     if job_result.problem is not None:
         print_warning(f"{job_dir / 'result.json'} is {job_result.problem}: replaying with the job's identity "
@@ -43,7 +44,7 @@ def _replay_request(job_dir: Path, config: Path | None, planner: str | None, see
                        object=str(recorded.get("object") or "unknown"),
                        planner=planner or recorded.get("planner"),
                        seed=seed if seed is not None else int(recorded.get("seed", 0)), out=out,
-                       max_time_s=max_time)
+                       max_time_s=max_time if max_time is not None else job_result.budget_s)
 
 
 def _arm_fault_hint(request: ScanRequest) -> str:
@@ -101,7 +102,8 @@ def scan(
                                                   "job's)")] = None,
     out: Annotated[Path | None, typer.Option(help="job folder to create, new or empty (default: "
                                                   "jobs/{stamp}-...)")] = None,
-    max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's)")] = None,
+    max_time: Annotated[float | None, typer.Option(help="time budget [s] (default: the cell file's; with "
+                                                        "--replay, the job's)")] = None,
     replay: Annotated[Path | None, typer.Option(help="re-run a recorded job folder's frames and poses "
                                                      "through perception and the planner (nothing moves)")]
     = None,

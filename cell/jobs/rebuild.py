@@ -15,6 +15,7 @@ metrics: ``cell reprocess`` then computes its own from the frames (``result_hire
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,10 +34,30 @@ IDENTITY = ("planner", "object", "object_scale", "object_pose", "config", "seed"
 class RecordedResult:
     """A job folder's result: ``result`` is its ``result.json`` when that is readable, else the one
     rebuilt from ``job.json`` and the frames; ``problem`` None for a readable ``result.json``, else why it
-    was rebuilt (``missing``, or ``unreadable (<reason>)``)."""
+    was rebuilt (``missing``, or ``unreadable (<reason>)``); ``budget_s`` the job's time budget [s] as
+    ``job.json`` records it (None: the cell's at the time, or no readable ``job.json``)."""
 
     result: dict[str, Any]
     problem: str | None
+    budget_s: float | None = None
+
+
+def _asked(job_dir: Path) -> dict[str, Any]:
+    """What ``job.json`` says was asked of the job; empty when it is unreadable or missing (a folder made
+    before job.json existed)."""
+    try:
+        asked = json.loads((job_dir / JOB_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return asked if isinstance(asked, dict) else {}
+
+
+def _budget(asked: dict[str, Any]) -> float | None:
+    """The time budget [s] of ``job.json``'s ``asked``: a positive finite number, else None."""
+    value = asked.get("max_time_s")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) and value > 0 else None
 
 
 def check_job_dir(job_dir: Path) -> None:
@@ -79,18 +100,15 @@ def recorded_result(job_dir: Path) -> RecordedResult:
         problem = "missing"
     else:
         try:
-            return RecordedResult(_read_result(path), None)
+            return RecordedResult(_read_result(path), None, _budget(_asked(job_dir)))
         except (OSError, ValueError) as exc:
             problem = f"unreadable ({exc})"
     frames = recorded_frames(job_dir)
     if not frames:
         what = f"no {RESULT_FILE}" if problem == "missing" else f"{RESULT_FILE} {problem}"
         raise JobError(f"{job_dir} is not a job folder: {what} and no recorded frames")
-    try:
-        asked = json.loads((job_dir / JOB_FILE).read_text())
-    except (OSError, ValueError):
-        asked = {}  # a folder made before job.json existed: the job's identity is lost
-    known = {key: asked[key] for key in IDENTITY if isinstance(asked, dict) and key in asked}
+    asked = _asked(job_dir)  # empty: the job's identity is lost
+    known = {key: asked[key] for key in IDENTITY if key in asked}
     result: dict[str, Any] = {
         **known,
         "status": "interrupted",
@@ -99,7 +117,7 @@ def recorded_result(job_dir: Path) -> RecordedResult:
         "n_captures": len(frames),
         "metrics": {"chamfer_mm": None, "hausdorff_mm": None, "coverage_pct": None},
     }
-    return RecordedResult(result, problem)
+    return RecordedResult(result, problem, _budget(asked))
 
 
 def rebuild_result(job_dir: Path, recorded: RecordedResult) -> Path | None:
