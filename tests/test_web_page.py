@@ -768,6 +768,31 @@ def test_a_stop_for_the_services_shutdown_is_said_as_such_not_as_the_guards(
     assert "by the guard" not in said
 
 
+def test_a_job_whose_cloud_and_path_do_not_load_keeps_its_view_and_is_not_said_to_have_captured_nothing(
+        open_page: Callable[..., Page], cell: ServedCell) -> None:
+    """A job that captured, whose cloud and path the page could not load (the network, a busy cell): the
+    page had decided from what loaded that the job captured nothing, and removed its 3D view."""
+    with cell.client("operator") as client:
+        job_id = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 3.0}).json()["id"]
+    job = cell.wait_job(job_id, ENDED)
+    assert job["result"]["n_captures"] > 0, job
+    page = open_page("viewer")
+
+    def without_packing(route: Any) -> None:  # no packing box to draw either: only the cloud and the path
+        answer = route.fetch().json()
+        answer["result"].pop("packing", None)
+        route.fulfill(json=answer)
+
+    page.route(f"**/api/v1/jobs/{job_id}", without_packing)
+    # its events too, whose progress draws the path: the page then asks the job's record whether it ended
+    page.route(re.compile(rf"/api/v1/jobs/{job_id}/(cloud|files/trajectory\.csv|events)"),
+               lambda route: route.abort())
+    page.goto(f"{page.url.split('#')[0]}#/jobs/{job_id}")
+    page.wait_for_selector(".live[data-ended='true']", state="attached")
+    assert page.locator("#view-nothing").count() == 0
+    assert page.locator("#view3d").count() == 1
+
+
 def test_a_job_id_in_the_address_is_only_ever_a_job_id(open_page: Callable[..., Page]) -> None:
     """Whatever follows #/jobs/ is asked for as a job, never as another path of the API (``..%2Fcell``
     had shown the cell's status as a job) nor a resource a URL's dot segments lead to."""

@@ -193,7 +193,10 @@ export function showJob(main, context, jobId) {
       if (pose) view.view.setSensor(...pose);
       moved = recorded.length > 0;
     }
-    if (view.view && shownPoints === 0 && !moved && !result.packing?.dims_m) {
+    // from the job's record, not from what loaded: a cloud or path the cell could not send now (busy, the
+    // network) is no proof that the job recorded none, and the view would be gone until a reload
+    const recordedNothing = !job.started_at || (!(result.n_captures > 0) && !(result.path_length_m > 0));
+    if (view.view && recordedNothing && shownPoints === 0 && !moved && !result.packing?.dims_m) {
       view.nothingToDraw(job.status === "cancelled"
         ? "Nothing to draw: the job was cancelled before it started."
         : "Nothing to draw: the job captured no point and recorded no path.");
