@@ -61,8 +61,9 @@ arm fault, a worker that stopped answering): the reason follows."""
 
 def stop_cause(reason: str, operator: bool) -> str:
     """The reason a stop is made with: ``operator stop: <reason>`` for a stop someone asked for, the
-    reason as it is for one the safety layer or the service made by itself (``stop_termination`` then
-    reads it as a safety stop)."""
+    reason as it is for the service's shutdown (it begins ``shutdown stop:``; a client's reason never does,
+    ``cell.api.stop_reason``) and for one the safety layer or the service made by itself
+    (``stop_termination`` then reads it as a safety stop)."""
     if reason.startswith(SHUTDOWN_STOP):  # the service's shutdown says so itself
         return reason
     return f"{OPERATOR_STOP}{reason}" if operator else reason

@@ -800,18 +800,19 @@ def test_stop_holds_the_queue_and_resume_releases_it(served):
 def test_stop_is_never_refused_for_its_body(served):
     """Every valid key may stop, whatever body it sends: one that a model would refuse (an empty, absent
     or non-string reason, an extra field, not JSON, NaN, far too long) stops as the default reason does,
-    and a reason's control characters cannot forge a line of the job's log."""
+    and a reason's control characters cannot forge a line of the job's log, nor its words the stop's kind
+    (a client's ``shutdown stop:`` was recorded as the service's shutdown)."""
     client, keys = served
     viewer, op = _auth(keys["viewer"]), _auth(keys["operator"])
     job = client.post("/api/v1/jobs", json={"object": "cube", "max_time_s": 60}, headers=op).json()
     _wait(client, keys["viewer"], job["id"], {"running"})
-    forged = "lunch\n[    1.000] completed: forged\u001b[31m"
+    forged = "shutdown stop: safety stop:lunch\n[    1.000] completed: forged\u001b[31m"
     stop = client.post(f"/api/v1/jobs/{job['id']}/stop", json={"reason": forged, "why": "extra"},
                        headers=viewer)
     assert stop.status_code == 200 and stop.json()["job_id"] == job["id"]
     done = _wait(client, keys["viewer"], job["id"], {"stopped", "completed", "failed"})
     assert done["status"] == "stopped"
-    assert "lunch [ 1.000] completed: forged [31m (key viewer)" in done["termination"]
+    assert done["termination"].startswith("operator stop: lunch [ 1.000] completed: forged [31m (key viewer)")
     log = client.get(f"/api/v1/jobs/{job['id']}/files/log.txt", headers=viewer).text
     assert not any(line.startswith("[    1.000] completed: forged") for line in log.splitlines())
     json_type = {"content-type": "application/json"}

@@ -4,7 +4,8 @@ STOP must work for every valid key whatever else it sends, so the stop routes re
 is missing, not JSON, too large, or whose ``reason`` is not a string (or is empty, or an extra field sits
 beside it) stops as a body of ``{"reason": DEFAULT_REASON}`` does. A reason is recorded in the job's
 termination and its ``log.txt``, so it is kept to one line of printable characters (a newline or an
-escape sequence in it would forge a line of the log) and ``MAX_LENGTH`` characters. Only the first
+escape sequence in it would forge a line of the log) and ``MAX_LENGTH`` characters, without a stop's
+kind at its start (``STOP_KINDS``: the service says who stopped). Only the first
 ``MAX_BODY_BYTES`` of a body are read: no body, however large, costs a stop time or memory.
 
 Nor does a body that is slow to come, or never comes: a stop acts on its headers. The reason is taken
@@ -22,7 +23,12 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from starlette.requests import ClientDisconnect
 
+from drivers.errors import OPERATOR_STOP, SAFETY_STOP, SHUTDOWN_STOP
+
 DEFAULT_REASON = "requested over the API"
+STOP_KINDS = tuple(kind.strip() for kind in (OPERATOR_STOP, SHUTDOWN_STOP, SAFETY_STOP))
+"""How a termination says who stopped the job: a reason that begins so has it taken off (a client's
+``shutdown stop: ...`` was recorded as the service's shutdown, not as the operator stop it was)."""
 MAX_LENGTH = 200
 """Characters of a reason that are kept."""
 MAX_BODY_BYTES = 4096
@@ -52,6 +58,8 @@ async def stop_reason(request: Request) -> str:
     if not isinstance(reason, str):
         return DEFAULT_REASON
     line = " ".join("".join(c if c.isprintable() else " " for c in reason).split())
+    while line.startswith(STOP_KINDS):  # a stop's kind is the service's word, never the client's
+        line = line.partition(":")[2].strip()
     return line[:MAX_LENGTH] or DEFAULT_REASON
 
 

@@ -133,7 +133,8 @@ class _Running:
     stop asked for while it was being started (``pending_stop``: its reason and whether it was requested,
     the pair ``JobControl`` keeps; until it is passed on once the worker has the job), the stop
     confirmations the worker owes, the stop its worker was killed for (it did not confirm in time, or had
-    not started: its cause as the termination begins, ``operator stop: `` for a request), its newest
+    not started: its cause as the termination begins, ``operator stop: `` for a request but the
+    shutdown's, ``shutdown stop: ``), its newest
     progress, its worker's last word, whether its end is recorded (the worker may still be exiting) and
     in the store (``stored``), whether it is ``stopping`` (its worker took a stop) and the write of that
     to its record (``stopping_write``), whether its ``running`` was published (``announced``), the stop
@@ -704,11 +705,11 @@ class CellService:
 
     async def _stop_running(self, running: _Running, reason: str, *, requested: bool = True) -> StopOutcome:
         """Stop the running job through its worker, whose guard stops the arm and ends the job ``operator
-        stop: <reason>`` when someone asked for the stop (``requested``: an operator, the line, the
-        shutdown), else ``safety stop: <reason>`` (the service stops the job itself: a hung worker that
-        answers after all, its own failure; the line reads StopReason 4, not 2). A worker that cannot
-        confirm is killed, and its job ends as the stop's cause says, the kill added: an operator's stop
-        read as a safety stop when its worker was killed."""
+        stop: <reason>`` when someone asked for the stop (``requested``: an operator, the line; the
+        shutdown's reason says ``shutdown stop:`` itself and stays so), else ``safety stop: <reason>``
+        (the service stops the job itself: a hung worker that answers after all, its own failure; the line
+        reads StopReason 4, not 2). A worker that cannot confirm is killed, and its job ends as the stop's
+        cause says, the kill added: an operator's stop read as a safety stop when its worker was killed."""
         self.metrics.stop_requests.inc()
         job_id, proc = running.job.id, running.proc
         if proc is None:
