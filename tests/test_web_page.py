@@ -860,6 +860,25 @@ def test_a_stops_word_that_the_queue_is_held_gives_way_once_it_is_resumed_elsewh
     wait_for(page, f"!{text_js('st-queue')}.includes('held')")
     assert page.text_content("#stop-outcome") == "The queue runs again."
     assert outcome_background(page) == OUTCOME_GREEN  # no alarm: the STOP's red is for stops
+    # an outcome said after the STOP's is not the STOP's to replace: here a line's mode switch that failed
+    # (a route gives this line-less cell a line in Production, and refuses the switch)
+
+    def with_line(route: Any) -> None:
+        status = route.fetch().json()
+        status["line"] = {"state": 2, "state_name": "Stopped", "mode": 1, "mode_name": "Production"}
+        route.fulfill(json=status)
+
+    page.route("**/api/v1/cell", with_line)
+    page.route("**/api/v1/line/mode", lambda route: route.fulfill(status=500, json={"detail": "refused"}))
+    page.click("#stop")
+    wait_for(page, f"{text_js('stop-outcome')}.startsWith('STOP:')")
+    page.wait_for_selector("#line-mode:not([hidden])")
+    page.click("#line-mode")
+    wait_for(page, f"{text_js('stop-outcome')}.startsWith('Line mode switch failed')")
+    with cell.client("operator") as client:
+        assert client.post("/api/v1/queue/resume").status_code == 200
+    wait_for(page, f"!{text_js('st-queue')}.includes('held')")
+    assert page.text_content("#stop-outcome").startswith("Line mode switch failed"), "replaced"
 
 
 def test_a_refused_stop_stays_said_with_the_cells_answer_until_dismissed_or_a_stop_succeeds(

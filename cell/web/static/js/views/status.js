@@ -109,7 +109,7 @@ function stopControl() {
   const button = $("stop");
   let pending = null; // {controller, ticker} of the STOP waiting for its answer
   let failed = null; // the failure shown: {text}, and {answersAgain} once the cell answered since
-  let heldSaid = null; // when the outcome shown began to say that the STOP holds the queue [ms], else null
+  let heldSaid = null; // the STOP's outcome that says the queue is held: {at [ms], text}, else null
 
   const settle = () => {
     if (!pending) return;
@@ -135,6 +135,7 @@ function stopControl() {
 
   async function press() {
     settle();
+    heldSaid = null;
     const sent = new Date();
     const controller = new AbortController();
     const waiting = () => {
@@ -149,8 +150,9 @@ function stopControl() {
       const answer = await api("/api/v1/stop", { method: "POST", json: { reason: STOP_REASON }, timeoutMs: STOP_TIMEOUT_MS, signal: controller.signal });
       if (pending !== mine) return;
       dismiss();
-      say(stopped(answer));
-      heldSaid = answer.queue_held ? Date.now() : null;
+      const text = stopped(answer);
+      say(text);
+      heldSaid = answer.queue_held ? { at: Date.now(), text } : null;
       window.dispatchEvent(new Event("cell:changed"));
     } catch (error) {
       if (pending !== mine) return; // given up for a newer press
@@ -171,11 +173,13 @@ function stopControl() {
   /** The cell's queue as a status asked for at `askedAt` [ms] says it (`held`: its reason, or null): a
    *  STOP's outcome that says the queue is held is replaced once it runs again, whoever resumed it (the
    *  bar's button, `cell jobs resume`, another page); it said "held" for the rest of the shift. A status
-   *  asked for before the STOP's answer came says nothing of the hold. */
+   *  asked for before the STOP's answer came says nothing of the hold, and an outcome said since (a
+   *  recovery's, a mode switch's, a failure) is not the STOP's to replace. */
   function queueNow(held, askedAt) {
-    if (heldSaid === null || held || askedAt <= heldSaid) return;
+    if (heldSaid === null || held || askedAt <= heldSaid.at) return;
+    const shown = $("stop-outcome").textContent === heldSaid.text;
     heldSaid = null;
-    say(QUEUE_RUNS, "ok");
+    if (shown) say(QUEUE_RUNS, "ok");
   }
 
   return { press, cellAnswers, settle, dismiss, queueNow };
