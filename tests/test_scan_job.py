@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -159,6 +160,28 @@ def test_a_depth_frame_is_kept_as_its_image_with_or_without_a_grey_one(tmp_path)
     # the points follow from the depth image: a camera's frame does not keep them twice
     assert {"depth", "K"} <= set(plain.files) and not {"points", "intensity"} & set(plain.files)
     assert "points" not in with_grey.files and np.array_equal(with_grey["intensity"], grey)
+
+
+DEV_FULL = Path("/dev/full")
+
+
+@pytest.mark.skipif(not DEV_FULL.exists(), reason="no /dev/full to stand for a full disk")
+def test_rows_that_cannot_reach_the_disk_are_said_in_the_result_which_is_written_all_the_same(tmp_path):
+    """``trajectory.csv`` on a full disk (here /dev/full): its buffered rows fail at the flush before
+    ``result.json``, which had then never been written (the job's own end lost to a generic "failed")."""
+    folder = tmp_path / "job"
+    folder.mkdir()
+    (folder / "trajectory.csv").symlink_to(DEV_FULL)
+    recorder = JobRecorder(folder)
+    for k in range(3):
+        recorder.pose(0.01 * k, np.eye(4))
+    recorder.log(0.0, "a line of the log")
+    recorder.result({"status": "completed", "termination": "done"})
+    recorder.close()
+    result = json.loads((folder / "result.json").read_text())
+    assert result["status"] == "completed" and result["termination"] == "done"
+    assert result["files_incomplete"] == {"trajectory.csv": "No space left on device"}
+    assert (folder / "log.txt").read_text() == "[    0.000] a line of the log\n"
 
 
 def test_same_seed_gives_identical_outputs(bunny_job, tmp_path):

@@ -92,12 +92,16 @@ class JobRecorder:
         self._index_writer.writerow(["seq", "t", "file", "n_points"])
         self._requests: TextIO | None = None
         self._joints: TextIO | None = None
+        self._unsaved: dict[str, str] = {}  # a growing file whose rows could not all be written: why
 
     def log(self, t: float, message: str) -> None:
         """One line of ``log.txt`` (any thread: the perception worker logs too on the wall clock)."""
         with self._log_lock:
-            self._log.write(f"[{t:9.3f}] {message}\n")
-            self._log.flush()
+            try:
+                self._log.write(f"[{t:9.3f}] {message}\n")
+                self._log.flush()
+            except OSError as exc:  # a full disk: the job goes on, its result says the log is short
+                self._unsaved.setdefault("log.txt", exc.strerror or str(exc))
 
     def pose(self, t: float, T_base_sensor: Array) -> None:
         p = T_base_sensor[:3, 3]
@@ -158,17 +162,31 @@ class JobRecorder:
         """Write ``result.json``, whole and on the disk (see the module docstring), once the files that
         grow a row at a time are on the disk too: ``trajectory.csv`` and ``joints.csv`` buffer their rows
         (one per control tick), and a process killed between ``result.json`` and :meth:`close` lost their
-        tail under a result that said the job was whole."""
+        tail under a result that said the job was whole. One that cannot be (a full disk, an I/O error)
+        does not keep ``result.json`` from being written: it says which files lack rows and why
+        (``files_incomplete``, file name -> the error)."""
         with self._log_lock:  # the perception worker may log meanwhile
-            for f in (self._traj, self._joints, self._index, self._requests, self._log):
-                if f is not None and not f.closed:
+            for f in self._growing():
+                try:
                     f.flush()
                     os.fsync(f.fileno())
+                except OSError as exc:
+                    self._unsaved.setdefault(Path(f.name).name, exc.strerror or str(exc))
+        if self._unsaved:
+            result = {**result, "files_incomplete": dict(self._unsaved)}
         text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)
         write_text_atomic(self.folder / RESULT_FILE, text + "\n", durable=True)
 
     def close(self) -> None:
-        self._traj.flush()
-        for f in (self._log, self._traj, self._index, self._requests, self._joints):
-            if f is not None:
+        """Close the growing files; one whose rows cannot be written is closed all the same (its buffer
+        dropped), as :meth:`result` has said in ``files_incomplete``, and the others are closed too."""
+        for f in self._growing():
+            try:
                 f.close()
+            except OSError as exc:
+                self._unsaved.setdefault(Path(f.name).name, exc.strerror or str(exc))
+
+    def _growing(self) -> list[TextIO]:
+        """The files that grow a row at a time, open ones only."""
+        return [f for f in (self._traj, self._joints, self._index, self._requests, self._log)
+                if f is not None and not f.closed]
