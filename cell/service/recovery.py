@@ -83,7 +83,9 @@ def hold_after_end(store: Store, job: JobRecord, result: dict[str, Any], termina
     not confirmed through the guard, a worker that died: its result.json keeps the worker's own under
     ``worker``, or a ``note``). An arm fault is held as a fault (``fault_hold``), which the start latches
     and only the arm's recovery releases; it had been held as any other end, so the queue could be resumed
-    and the next job run on the faulted arm. Returns what was held, in words, or None."""
+    and the next job run on the faulted arm. A queue held already keeps its hold (a fault's, or one for a
+    person to look at before a resume); an arm fault goes first in any other. Returns, in words, that the
+    queue is held for this end (held now or already), or None when the end holds nothing."""
     fault = fault_in(termination)
     if fault is None and ARM_FAULT not in termination and "worker" not in result and "note" not in result:
         return None
