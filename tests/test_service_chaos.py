@@ -19,8 +19,10 @@ from typing import Any
 import pytest
 import yaml
 
+from cell.service import startup
+from cell.service.instance import DataDirClaim
 from cell.service.store import open_store, sqlite_url
-from drivers.errors import StoreError
+from drivers.errors import CellError, StoreError
 from tests.conftest import FRANKA
 from tests.service_process import REPO, ServedCell, free_port, submit
 
@@ -265,6 +267,22 @@ def test_a_worker_killed_after_it_wrote_its_result_is_recorded_as_its_folder_say
     assert _cell(franka)["queue"]["held"] is None  # the arm was at rest through the guard
     assert franka.wait_job(submit(franka, object="cube", max_time_s=1.0)["id"],
                            ("completed", "failed", "stopped"))["status"] == "completed"
+
+
+def test_a_service_refused_the_data_dir_has_not_opened_its_store(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The data dir's claim comes before the store: a newer release started beside a running service
+    migrated the store under it, and only then was refused (the claim was taken after the store's
+    lease)."""
+    first = DataDirClaim(tmp_path, "first")
+    opened: list[Any] = []
+    monkeypatch.setattr(startup, "open_data_store", lambda *args, **kwargs: opened.append(args))
+    try:
+        with pytest.raises(CellError, match="is served by another cell serve"):
+            startup.build_service(startup.ServiceSettings(config_file=FRANKA, data_dir=tmp_path))
+    finally:
+        first.release()
+    assert opened == []
 
 
 def test_a_second_service_on_the_data_dir_refuses_to_start_naming_the_first(franka: ServedCell,

@@ -434,7 +434,9 @@ def test_a_second_service_of_the_cell_refuses_to_start_and_leaves_its_scan_alone
                str(free_port())]
     second = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
     assert second.returncode == 1, second.stdout + second.stderr
-    assert "cell 'sim-franka-rgbd' is served by another service" in second.stdout + second.stderr
+    # refused on the data dir, before it opened the store (which a newer release would have migrated)
+    assert (f"the data dir {franka.data_dir} is served by another cell serve (pid "
+            f"{franka.proc.pid if franka.proc else None}, cell 'sim-franka-rgbd', started ") in second.stderr
     assert "Traceback" not in second.stderr
     assert franka.wait_job(job["id"], ENDED)["status"] == "completed"
 

@@ -15,7 +15,7 @@ from cell.cli.main import app
 from cell.config import load_config
 from cell.service.startup import ServiceSettings, build_service
 from cell.service.store import open_data_store, open_store, sqlite_url
-from drivers.errors import StoreError
+from drivers.errors import CellError
 from drivers.file_access import user_name
 from tests.conftest import UR5E
 from tests.service_process import ServedCell, create_key, free_port
@@ -26,7 +26,7 @@ def _serve_error(data: Path) -> str:
     """What opening the service of the sim cell on ``data`` raises (it must not open)."""
     try:
         service = build_service(ServiceSettings(config_file=UR5E, data_dir=data))
-    except StoreError as exc:
+    except CellError as exc:  # the data dir's claim, or the store's
         return str(exc)
     service.store.close()
     raise AssertionError("the service opened its store")

@@ -26,6 +26,7 @@ from urllib.parse import urlsplit
 
 from drivers.atomic_file import write_text_atomic
 from drivers.errors import CellError
+from drivers.file_access import access_problem, make_folder
 from drivers.file_lock import try_lock
 
 INSTANCE_FILE = "service.instance"
@@ -44,9 +45,16 @@ class DataDirClaim:
         path = data_dir / LOCK_FILE
         try:
             data_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CellError(f"cannot create the data folder {data_dir}: {exc.strerror or exc}; fix: "
+                            f"{make_folder(data_dir)}") from None
+        try:
             fd = try_lock(path, 0o644)
         except OSError as exc:
-            raise CellError(f"cannot claim the data dir {data_dir}: {path}: {exc.strerror or exc}") from None
+            # the service's whole data folder, as the store's files would be: whose it is and the fix
+            problem = access_problem(data_dir, folder=True, recursive=True) or access_problem(path)
+            raise CellError(f"cannot claim the data dir {data_dir}: "
+                            f"{problem or f'{path}: {exc.strerror or exc}'}") from None
         if fd is None:
             try:
                 holder = path.read_text().strip() or "a process that has not yet said which"

@@ -26,7 +26,7 @@ from cell.service.store import open_data_store
 from cell.service.store.service_store import record_service_store, service_store_url
 from cell.templates import DEFAULT_TEMPLATE, template_path
 from drivers.atomic_file import write_text_atomic
-from drivers.errors import CellError, StoreError
+from drivers.errors import StoreError
 
 DEFAULT_CONFIG = template_path(DEFAULT_TEMPLATE)
 DEFAULT_DATA_DIR = Path("data")
@@ -49,25 +49,18 @@ def build_service(settings: ServiceSettings) -> CellService:
     config, data = load_config_data(settings.config_file)
     require_measured(settings.config_file, config.mode)
     url = service_store_url(settings.data_dir, settings.db_url, serving=True)
-    store = open_data_store(settings.data_dir, url)
-    try:
-        lease = store.claim_cell(config.name)
-    except StoreError:
-        store.close()
-        raise
-    claim: DataDirClaim | None = None
-    try:
-        # after the cell's lease (a second service of the cell is told so), before anything of the data
-        # dir is written: one of another cell name or store is refused here
+    with contextlib.ExitStack() as undo:  # what was taken is given back, in reverse, if a later step fails
+        # the data dir first: a second service on it (of this cell or another) is refused naming the first
+        # before it opens the store, which a newer release would migrate under the one running
         claim = DataDirClaim(settings.data_dir, config.name)
+        undo.callback(claim.release)
+        store = open_data_store(settings.data_dir, url)
+        undo.callback(store.close)
+        lease = store.claim_cell(config.name)  # the cell served from another data dir on a shared store
+        undo.callback(lease.release)
         record_service_store(settings.data_dir, url)
         kept = keep_cell_file(settings.data_dir, settings.config_file, data)
-    except CellError:
-        if claim is not None:
-            claim.release()
-        lease.release()
-        store.close()
-        raise
+        undo.pop_all()
     return CellService(config=config, config_data=data, config_file=str(kept),
                        data_dir=settings.data_dir.resolve(), store=store, lease=lease, data_dir_claim=claim)
 
