@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from cell.cli.main import app
 from cell.config.models import RetentionConfig
+from cell.service import retention
 from cell.service.retention import plan_prune, prune
 from cell.service.store import FINISHED_STATUSES, open_store, sqlite_url
 from tests.conftest import UR5E
@@ -127,6 +128,35 @@ def test_folders_the_store_does_not_know_are_reported_apart_never_counted_agains
     # another cell's jobs in the same folder are not this cell's to count either
     other = plan_prune(store, "other-cell", jobs_dir, RetentionConfig(max_gb=0.001), NOW)
     assert other.total_bytes == 0 and other.jobs == () and len(other.unknown) == 9
+
+
+def test_a_deletion_cut_between_the_folders_rename_and_the_rows_delete_is_finished(tmp_path, monkeypatch):
+    """Killed after its folder was renamed ``.deleting-<id>``, before its row went: the next start deletes
+    the row and the folder; a folder that cannot be removed is said so, not said finished."""
+    jobs_dir = tmp_path / "jobs"
+    store = open_store(sqlite_url(tmp_path))
+    for n in (1, 2):
+        folder = jobs_dir / f"{n:016x}"
+        (folder / "frames").mkdir(parents=True)
+        (folder / "frames" / "000000.npz").write_bytes(b"\0" * 10)
+        store.add_job(make_job(n, status="completed", folder=str(folder), finished_at=NOW))
+        folder.rename(jobs_dir / f".deleting-{n:016x}")
+    store.add_job(make_job(3, status="completed", folder=str(jobs_dir / f"{3:016x}"), finished_at=NOW))
+    rmtree = retention.shutil.rmtree
+
+    def refused_for_job_2(path, *args, **kwargs):
+        if path.name.endswith("2"):
+            raise PermissionError(13, "Permission denied", str(path / "frames" / "000000.npz"))
+        rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(retention.shutil, "rmtree", refused_for_job_2)
+    done = retention.finish_deletions(store, jobs_dir)
+    assert done[0] == f"job {1:016x}: its deletion, cut short when the service stopped, is finished"
+    assert done[1].startswith(f"job {2:016x}: deleted, but its folder {jobs_dir / f'.deleting-{2:016x}'} "
+                              "could not be removed (Permission denied: ")
+    assert store.get_job(f"{1:016x}") is None and store.get_job(f"{2:016x}") is None
+    assert store.get_job(f"{3:016x}") is not None  # no folder being deleted: not touched
+    assert sorted(p.name for p in jobs_dir.iterdir()) == [f".deleting-{2:016x}"]
 
 
 def test_a_deletion_killed_midway_leaves_the_job_whole_or_gone_after_a_restart(tmp_path):

@@ -161,14 +161,20 @@ def delete_job(store: Store, job: JobRecord, jobs_dir: Path) -> None:
 def finish_deletions(store: Store, jobs_dir: Path) -> list[str]:
     """Finish the deletions a killed prune or purge left in ``jobs_dir`` (:func:`delete_job`): the row of
     each ``.deleting-<id>`` folder's job, when still there, then the folder. Returns what was done, in
-    words."""
+    words: a folder that could not be removed all is named with the error and left (the job is gone from
+    the store; the plan of a prune lists the folder as an entry it does not count, ``unknown``)."""
     done = []
     for doomed in sorted(jobs_dir.glob(f"{DELETING}*") if jobs_dir.is_dir() else ()):
         job_id = doomed.name.removeprefix(DELETING)
         job = store.get_job(job_id)
         if job is not None and Path(job.folder).name == job_id and _inside(job.folder, jobs_dir):
             store.delete_job(job_id)
-        shutil.rmtree(doomed, ignore_errors=True)
+        try:
+            shutil.rmtree(doomed)
+        except OSError as exc:
+            done.append(f"job {job_id}: deleted, but its folder {doomed} could not be removed "
+                        f"({exc.strerror or exc}: {exc.filename}); remove it by hand")
+            continue
         done.append(f"job {job_id}: its deletion, cut short when the service stopped, is finished")
     return done
 
