@@ -343,12 +343,13 @@ def test_a_start_on_a_locked_store_says_what_it_waits_for_and_starts_once_it_is_
 def test_a_store_locked_past_the_wait_is_a_clear_error(tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """Given up on after the wait, with what to do, not SQLite's bare "database is locked"."""
+    monkeypatch.setattr("cell.service.store.engine.SQLITE_QUIET_WAIT_MS", 100)
     monkeypatch.setattr("cell.service.store.engine.SQLITE_MIGRATION_WAIT_MS", 200)
     open_store(sqlite_url(tmp_path)).close()
     with _locked(tmp_path / "cell.db"), pytest.raises(StoreError) as refused:
         open_store(sqlite_url(tmp_path))
     assert str(refused.value) == (
-        f"job store {sqlite_url(tmp_path)}: another process held its lock for 0.2 s, and the store cannot "
+        f"job store {sqlite_url(tmp_path)}: another process held its lock for 0.3 s, and the store cannot "
         f"be opened while it does: end that process (`fuser -v {tmp_path / 'cell.db'}` lists those that "
         "have the file open), then start again")
 

@@ -44,6 +44,9 @@ MIGRATION_LOCK_ID = 0x63656C6C
 # How long a cell starting beside another waits for that one's SQLite migration [ms]: longer than the
 # 5 s a request waits, as a migration on a loaded machine can take several seconds.
 SQLITE_MIGRATION_WAIT_MS = 60_000
+# How long it waits for the lock without a word first [ms]: cells started together take it in turns for
+# their migrations, each well under a second on an idle machine; a wait past this one is said.
+SQLITE_QUIET_WAIT_MS = 1_000
 log = logging.getLogger("cell.service.store")
 # Alembic's ``context`` and ``op`` are module-level proxies: one migration at a time in a process.
 _MIGRATING = threading.Lock()
@@ -264,10 +267,12 @@ def _set_sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
 
 def _begin_sqlite_write(connection: Connection, shown: str) -> None:
     """Take the SQLite store ``shown``'s write lock on ``connection`` (``BEGIN IMMEDIATE``). When another
-    process holds it (another cell migrating it, a program with a transaction open on the file), say so
-    on the console, with how long it waits (``SQLITE_MIGRATION_WAIT_MS``), and wait; :class:`StoreError`
-    saying who may hold it when the lock was not freed meanwhile. A start had waited silently."""
-    connection.exec_driver_sql("PRAGMA busy_timeout=0")
+    process holds it past ``SQLITE_QUIET_WAIT_MS`` (another cell migrating it on a loaded machine, a
+    program with a transaction open on the file), say so on the console, with how long it waits
+    (``SQLITE_MIGRATION_WAIT_MS``), and wait; :class:`StoreError` saying who may hold it when the lock
+    was not freed meanwhile. A start had waited silently; one beside another, whose migration takes a
+    moment, is not worth a word."""
+    connection.exec_driver_sql(f"PRAGMA busy_timeout={SQLITE_QUIET_WAIT_MS}")
     try:
         connection.exec_driver_sql("BEGIN IMMEDIATE")
         return
@@ -285,7 +290,8 @@ def _begin_sqlite_write(connection: Connection, shown: str) -> None:
         if not _is_locked(exc):
             raise
         file = make_url(shown).database
-        raise StoreError(f"job store {shown}: another process held its lock for {wait_s:g} s, and the store "
+        held_s = (SQLITE_QUIET_WAIT_MS + SQLITE_MIGRATION_WAIT_MS) / 1000
+        raise StoreError(f"job store {shown}: another process held its lock for {held_s:g} s, and the store "
                          f"cannot be opened while it does: end that process (`fuser -v {file}` lists those "
                          f"that have the file open), then start again") from None
 
