@@ -52,6 +52,7 @@ LAUNCH_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-ru
                "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 WAIT_MS = 90_000  # a bound on waiting for a job, not a timed check
 ENDED = ("completed", "no_object", "failed", "stopped", "cancelled", "interrupted")
+SPIN_BUTTONS_PX = 20  # the room a number field's spin buttons take at its right in Chromium (about 15 px)
 BACKGROUND = (0xF4, 0xF6, 0xF8)  # the 3D view's background (scene.js COLORS.background)
 
 Page = Any  # playwright.sync_api.Page
@@ -329,6 +330,14 @@ def test_the_form_preselects_the_object_cell_scan_takes_by_default(open_page: Ca
     budget = read(cell, "/api/v1/cell")["max_time_s"]
     assert budget == yaml.safe_load(FRANKA.read_text())["scan"]["max_time_s"]
     assert page.get_attribute("#f-max_time_s", "placeholder") == f"{budget:g} (the cell's)"
+    # shown whole: the field was as narrow as the seed's, and the words were cut at "(the cell's" (9 px
+    # were left beside them, under the room Chromium keeps for a number field's spin buttons)
+    room = page.eval_on_selector("#f-max_time_s", """e => {
+        const style = getComputedStyle(e), text = document.createElement("canvas").getContext("2d");
+        text.font = style.font;
+        return e.clientWidth - parseFloat(style.paddingLeft) - parseFloat(style.paddingRight)
+            - text.measureText(e.placeholder).width; }""")
+    assert room >= SPIN_BUTTONS_PX, room
 
 
 def test_the_form_says_it_is_loading_until_the_api_answers(open_page: Callable[..., Page],

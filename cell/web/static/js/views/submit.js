@@ -89,7 +89,7 @@ export async function scanForm({ onSubmitted }) {
   const y = numberInput({ value: "0", "aria-label": "y [m]" });
   const yaw = numberInput({ value: "0", "aria-label": "yaw [deg]" });
   const seed = h("input", { type: "number", min: 0, step: 1, value: "0" });
-  const budget = numberInput({ min: 0, placeholder: `${cell.max_time_s} (the cell's)` });
+  const budget = numberInput({ min: 0, class: "budget", placeholder: `${cell.max_time_s} (the cell's)` });
   const part = h("input", { type: "text", maxlength: PART_ID_MAX, placeholder: "optional" });
   const upload = h("input", { type: "file", accept: ".ply,.obj,.stl" });
   const units = h("select", {}, UNITS.map(([name, scale]) => h("option", { value: String(scale) }, name)));
