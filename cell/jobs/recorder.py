@@ -101,7 +101,7 @@ class JobRecorder:
                 self._log.write(f"[{t:9.3f}] {message}\n")
                 self._log.flush()
             except OSError as exc:  # a full disk: the job goes on, its result says the log is short
-                self._unsaved.setdefault("log.txt", exc.strerror or str(exc))
+                self._lost(self._log, exc)
 
     def pose(self, t: float, T_base_sensor: Array) -> None:
         p = T_base_sensor[:3, 3]
@@ -171,7 +171,7 @@ class JobRecorder:
                     f.flush()
                     os.fsync(f.fileno())
                 except OSError as exc:
-                    self._unsaved.setdefault(Path(f.name).name, exc.strerror or str(exc))
+                    self._lost(f, exc)
         if self._unsaved:
             result = {**result, "files_incomplete": dict(self._unsaved)}
         text = json.dumps(result, indent=2, sort_keys=False, allow_nan=True)
@@ -184,7 +184,11 @@ class JobRecorder:
             try:
                 f.close()
             except OSError as exc:
-                self._unsaved.setdefault(Path(f.name).name, exc.strerror or str(exc))
+                self._lost(f, exc)
+
+    def _lost(self, f: TextIO, exc: OSError) -> None:
+        """Note that rows of ``f`` could not be written, and why (the first error per file)."""
+        self._unsaved.setdefault(Path(f.name).name, exc.strerror or str(exc))
 
     def _growing(self) -> list[TextIO]:
         """The files that grow a row at a time, open ones only."""
