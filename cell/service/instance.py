@@ -24,9 +24,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from cell.service.store import data_folder_not_made
 from drivers.atomic_file import write_text_atomic
 from drivers.errors import CellError
-from drivers.file_access import access_problem, make_folder
+from drivers.file_access import access_problem
 from drivers.file_lock import try_lock
 
 INSTANCE_FILE = "service.instance"
@@ -46,8 +47,7 @@ class DataDirClaim:
         try:
             data_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise CellError(f"cannot create the data folder {data_dir}: {exc.strerror or exc}; fix: "
-                            f"{make_folder(data_dir)}") from None
+            raise CellError(data_folder_not_made(data_dir, exc)) from None
         try:
             fd = try_lock(path, 0o644)
         except OSError as exc:

@@ -13,8 +13,14 @@ from cell.service.store.records import (
     LineRecord,
     LineTransition,
 )
-from cell.service.store.repository import Store, open_data_store, open_store, restrict_store_files
+from cell.service.store.repository import (
+    Store,
+    data_folder_not_made,
+    open_data_store,
+    open_store,
+    restrict_store_files,
+)
 
 __all__ = ["FINISHED_STATUSES", "JOB_STATUSES", "RUNNING_STATUSES", "STORE_RETRY_S", "HoldRecord",
-           "JobRecord", "KeyRecord", "LineRecord", "LineTransition", "Store", "open_data_store", "open_store",
-           "restrict_store_files", "sqlite_url"]
+           "JobRecord", "KeyRecord", "LineRecord", "LineTransition", "Store", "data_folder_not_made",
+           "open_data_store", "open_store", "restrict_store_files", "sqlite_url"]

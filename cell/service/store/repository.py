@@ -150,6 +150,12 @@ database's mode) are the service user's alone, whatever the umask: they hold the
 the usual umask 022 all three were 0644, readable by every user of the machine."""
 
 
+def data_folder_not_made(data_dir: Path, exc: OSError) -> str:
+    """Why the data folder ``data_dir`` could not be made (``exc``), with the command that makes it this
+    user's (its parents stay whose they are)."""
+    return f"cannot create the data folder {data_dir}: {exc.strerror or exc}; fix: {make_folder(data_dir)}"
+
+
 def open_data_store(data_dir: Path, url: str, *, migrate: bool = True, oldest: str | None = None) -> Store:
     """The store at ``url`` of a cell's data dir ``data_dir`` (created if missing), the URL its command
     chose (``service_store_url``: ``--db``, else the embedded SQLite file ``cell.db`` in it, which is made
@@ -158,8 +164,7 @@ def open_data_store(data_dir: Path, url: str, *, migrate: bool = True, oldest: s
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise StoreError(f"cannot create the data folder {data_dir}: {exc.strerror}; fix: "
-                         f"{make_folder(data_dir)}") from None
+        raise StoreError(data_folder_not_made(data_dir, exc)) from None
     database = sqlite_database(url)
     if database is not None and database.resolve() == (data_dir / SQLITE_FILE).resolve():
         # an empty file is an empty database; one that cannot be made is reported by opening it
