@@ -90,17 +90,16 @@ def hold_after_end(store: Store, job: JobRecord, result: dict[str, Any], termina
     if fault is None and ARM_FAULT not in termination and "worker" not in result and "note" not in result:
         return None
     held, now = store.get_hold(job.cell), datetime.now(UTC)
+    hold: HoldRecord | None = None  # none new: already held, for a person to look at before a resume
     if fault is not None:
         # held as the service holds it when it records the end itself: first, so that the start latches
         # it again and only the arm's recovery releases it, a hold already stored (a STOP) after it
-        held = held_for_fault(job.cell, fault, job.id, held, now)
+        hold = held_for_fault(job.cell, fault, job.id, held, now)
     elif held is None:
-        held = HoldRecord(cell=job.cell, reason=held_after(f"job {job.id} ended ({termination}) before the "
+        hold = HoldRecord(cell=job.cell, reason=held_after(f"job {job.id} ended ({termination}) before the "
                                                            "service stopped; check the arm"), held_at=now)
-    else:  # already held, for a person to look at before a resume
-        held = None
-    if held is not None:
-        store.set_hold(job.cell, held)
+    if hold is not None:
+        store.set_hold(job.cell, hold)
     return f"the queue is held: job {job.id} ended with {termination}"
 
 
